@@ -1,0 +1,249 @@
+"""Hamilton unit quaternions, scalar first, as in section V of the primer.
+
+A quaternion is an array ``q = (q0, qx, qy, qz)`` of shape ``(..., 4)`` with ``q0`` the real part;
+every function is vectorised over leading dimensions. ``q`` and ``-q`` are the same orientation;
+functions that return a quaternion return the one with ``q0 >= 0`` unless said otherwise
+(``compose`` and ``inverse`` keep the sign their inputs imply).
+
+The orientation ``Phi = q`` maps coordinates with eq. (35),
+``Phi(r) = (2 q0^2 - 1) r + 2 q0 qv x r + 2 qv (qv . r)``, i.e. ``C(q)`` of eq. (36) is the usual
+active rotation matrix of ``q``, the same matrix GTSAM's ``Rot3.Quaternion(w, x, y, z)`` builds.
+
+Small angles: ``exp`` uses ``(cos(t/2), sin(t/2)/t phi)`` and below ``SMALL_ANGLE`` its Taylor
+form, whose leading term is eq. (39), ``(1, phi/2)``. ``log`` uses ``2 atan2(|qv|, q0) qv/|qv|``
+(eq. 40) and below ``SMALL_ANGLE`` its Taylor form, whose leading term is ``2 qv``. (The primer's
+eq. 41 prints ``log ~= qv``: that drops the factor 2 and contradicts eqs. 39 and 40; the
+consistency test ``exp(log(q)) == q`` decides for ``2 qv``.)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
+SMALL_ANGLE = 1e-4
+
+#: Tolerance on ``| |q| - 1 |`` accepted by :func:`check_unit`.
+UNIT_TOLERANCE = 1e-6
+
+
+def _split(q: np.ndarray):
+    q = np.asarray(q, dtype=float)
+    return q[..., 0], q[..., 1:]
+
+
+def identity(shape=()) -> np.ndarray:
+    """The identity orientation ``(1, 0, 0, 0)`` of the given leading shape."""
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    q = np.zeros(shape + (4,))
+    q[..., 0] = 1.0
+    return q
+
+
+def check_unit(q: np.ndarray, name: str = "quaternion", tolerance: float = UNIT_TOLERANCE) -> np.ndarray:
+    """Return ``q`` as a float array after checking shape ``(..., 4)``, finiteness and unit norm.
+
+    Raises ``ValueError`` naming ``name``, the first offending index and the norm found.
+    """
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"{name}: expected shape (..., 4) (q0, qx, qy, qz), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        bad = np.argwhere(~np.isfinite(q).all(axis=-1))[0]
+        raise ValueError(f"{name}: non-finite value at index {tuple(bad)}")
+    norm = np.linalg.norm(q, axis=-1)
+    off = np.abs(norm - 1.0) > tolerance
+    if np.any(off):
+        bad = np.argwhere(np.atleast_1d(off))[0]
+        found = np.atleast_1d(norm)[tuple(bad)]
+        raise ValueError(
+            f"{name}: not a unit quaternion at index {tuple(bad)}: norm {found:.9g}, "
+            f"expected 1 within {tolerance:g}"
+        )
+    return q
+
+
+def normalize(q: np.ndarray) -> np.ndarray:
+    """``q / |q|``."""
+    q = np.asarray(q, dtype=float)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def canonical(q: np.ndarray) -> np.ndarray:
+    """The representative of ``q`` with ``q0 >= 0`` (the same orientation)."""
+    q = np.asarray(q, dtype=float)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def rotate(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The coordinate map ``Phi(r)`` of eq. (35)."""
+    q0, qv = _split(q)
+    r = np.asarray(r, dtype=float)
+    dot = np.sum(qv * r, axis=-1, keepdims=True)
+    return (2 * q0[..., None] ** 2 - 1) * r + 2 * q0[..., None] * np.cross(qv, r) + 2 * qv * dot
+
+
+def to_matrix(q: np.ndarray) -> np.ndarray:
+    """``C(Phi)`` of eq. (36): ``(2 q0^2 - 1) I + 2 q0 qv^x + 2 qv qv^T``."""
+    q0, qv = _split(q)
+    x, y, z = qv[..., 0], qv[..., 1], qv[..., 2]
+    out = np.empty(q0.shape + (3, 3))
+    a = 2 * q0**2 - 1
+    out[..., 0, 0] = a + 2 * x * x
+    out[..., 1, 1] = a + 2 * y * y
+    out[..., 2, 2] = a + 2 * z * z
+    out[..., 0, 1] = 2 * (x * y - q0 * z)
+    out[..., 1, 0] = 2 * (x * y + q0 * z)
+    out[..., 0, 2] = 2 * (x * z + q0 * y)
+    out[..., 2, 0] = 2 * (x * z - q0 * y)
+    out[..., 1, 2] = 2 * (y * z - q0 * x)
+    out[..., 2, 1] = 2 * (y * z + q0 * x)
+    return out
+
+
+def from_matrix(C: np.ndarray) -> np.ndarray:
+    """Unit quaternion (``q0 >= 0``) of a rotation matrix, by Shepperd's method.
+
+    Of the four algebraically equivalent formulas, each row uses the one that divides by the
+    largest of ``|q0|, |qx|, |qy|, |qz|`` (at least 1/2), so the result is accurate to round-off
+    for every rotation, including angles of pi.
+    """
+    C = np.asarray(C, dtype=float)
+    c00, c11, c22 = C[..., 0, 0], C[..., 1, 1], C[..., 2, 2]
+    trace = c00 + c11 + c22
+    # 4 * (component)^2 for each candidate pivot.
+    pivots = np.stack([1 + trace, 1 + c00 - c11 - c22, 1 - c00 + c11 - c22, 1 - c00 - c11 + c22], axis=-1)
+    which = np.argmax(pivots, axis=-1)
+    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(pivots, which[..., None], axis=-1)[..., 0], 1e-300))
+    d21, d02, d10 = C[..., 2, 1] - C[..., 1, 2], C[..., 0, 2] - C[..., 2, 0], C[..., 1, 0] - C[..., 0, 1]
+    s01, s02, s12 = C[..., 0, 1] + C[..., 1, 0], C[..., 0, 2] + C[..., 2, 0], C[..., 1, 2] + C[..., 2, 1]
+    candidates = np.stack(
+        [
+            np.stack([0.25 * s, d21 / s, d02 / s, d10 / s], axis=-1),
+            np.stack([d21 / s, 0.25 * s, s01 / s, s02 / s], axis=-1),
+            np.stack([d02 / s, s01 / s, 0.25 * s, s12 / s], axis=-1),
+            np.stack([d10 / s, s02 / s, s12 / s, 0.25 * s], axis=-1),
+        ],
+        axis=-2,
+    )
+    q = np.take_along_axis(candidates, which[..., None, None], axis=-2)[..., 0, :]
+    return canonical(normalize(q))
+
+
+def compose(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """``Phi1 o Phi2`` by eq. (37): ``(q0 p0 - qv.pv, q0 pv + p0 qv + qv x pv)``."""
+    q0, qv = _split(q1)
+    p0, pv = _split(q2)
+    real = q0 * p0 - np.sum(qv * pv, axis=-1)
+    imag = q0[..., None] * pv + p0[..., None] * qv + np.cross(qv, pv)
+    return np.concatenate([real[..., None], imag], axis=-1)
+
+
+def inverse(q: np.ndarray) -> np.ndarray:
+    """``Phi^-1``: the conjugate ``(q0, -qv)`` of a unit quaternion."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
+
+
+def exp(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation vector ``phi`` (eq. 38; eq. 39 below ``SMALL_ANGLE``)."""
+    phi = np.asarray(phi, dtype=float)
+    t = np.linalg.norm(phi, axis=-1)
+    small = t < SMALL_ANGLE
+    t_safe = np.where(small, 1.0, t)
+    # sin(t/2)/t; its series 1/2 - t^2/48 starts with eq. (39)'s 1/2.
+    half_sinc = np.where(small, 0.5 - t * t / 48.0, np.sin(0.5 * t_safe) / t_safe)
+    real = np.where(small, 1.0 - t * t / 8.0, np.cos(0.5 * t))
+    q = np.concatenate([real[..., None], half_sinc[..., None] * phi], axis=-1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector of a unit quaternion, ``|phi| <= pi`` (eq. 40; its Taylor form, led by
+    ``2 qv``, below ``SMALL_ANGLE``). ``q`` and ``-q`` give the same vector except at exactly pi."""
+    q = canonical(q)
+    q0, qv = q[..., 0], q[..., 1:]
+    s = np.linalg.norm(qv, axis=-1)
+    small = s < 0.5 * SMALL_ANGLE
+    s_safe = np.where(small, 1.0, s)
+    x2 = (s / np.where(q0 > 0, q0, 1.0)) ** 2
+    # 2 atan2(s, q0) / s, and its series (2/q0)(1 - x^2/3 + x^4/5) with x = s/q0.
+    scale = np.where(
+        small,
+        2.0 / np.where(q0 > 0, q0, 1.0) * (1.0 - x2 / 3.0 + x2 * x2 / 5.0),
+        2.0 * np.arctan2(s_safe, q0) / s_safe,
+    )
+    return scale[..., None] * qv
+
+
+def from_rot3(R) -> np.ndarray:
+    """Quaternion of a ``gtsam.Rot3`` (``q0 >= 0``)."""
+    return from_matrix(np.asarray(R.matrix()))
+
+
+def to_rot3(q: np.ndarray):
+    """``gtsam.Rot3`` of one unit quaternion."""
+    import gtsam
+
+    q = normalize(q)
+    return gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def from_xyzw(q: np.ndarray) -> np.ndarray:
+    """Reorder a scalar-last ``(qx, qy, qz, qw)`` array (TUM, ROS) to this module's scalar-first."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
+
+
+def to_xyzw(q: np.ndarray) -> np.ndarray:
+    """Reorder to scalar-last ``(qx, qy, qz, qw)``."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+#: Below this value of cos(pitch) roll and yaw are not separable (gimbal lock).
+GIMBAL_LOCK_COS = 1e-10
+
+
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """``C = Rz(yaw) Ry(pitch) Rx(roll)`` for ``rpy = (roll, pitch, yaw)`` of shape ``(..., 3)``."""
+    rpy = np.asarray(rpy, dtype=float)
+    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
+    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
+    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
+    out = np.empty(rpy.shape[:-1] + (3, 3))
+    out[..., 0, 0] = cy * cp
+    out[..., 0, 1] = cy * sp * sr - sy * cr
+    out[..., 0, 2] = cy * sp * cr + sy * sr
+    out[..., 1, 0] = sy * cp
+    out[..., 1, 1] = sy * sp * sr + cy * cr
+    out[..., 1, 2] = sy * sp * cr - cy * sr
+    out[..., 2, 0] = -sp
+    out[..., 2, 1] = cp * sr
+    out[..., 2, 2] = cp * cr
+    return out
+
+
+def matrix_to_rpy(C: np.ndarray) -> np.ndarray:
+    """``(roll, pitch, yaw)`` with ``C = Rz(yaw) Ry(pitch) Rx(roll)``, pitch in [-pi/2, pi/2].
+
+    Gimbal lock (``cos(pitch) < GIMBAL_LOCK_COS``): only ``yaw - roll`` (pitch = +pi/2) or
+    ``yaw + roll`` (pitch = -pi/2) is defined; roll is then set to 0 and yaw carries the whole
+    rotation about the vertical, so ``rpy_to_matrix`` of the result still reproduces ``C``.
+    """
+    C = np.asarray(C, dtype=float)
+    cos_pitch = np.hypot(C[..., 2, 1], C[..., 2, 2])
+    pitch = np.arctan2(-C[..., 2, 0], cos_pitch)
+    locked = cos_pitch < GIMBAL_LOCK_COS
+    roll = np.where(locked, 0.0, np.arctan2(C[..., 2, 1], C[..., 2, 2]))
+    yaw = np.where(locked, np.arctan2(-C[..., 0, 1], C[..., 1, 1]), np.arctan2(C[..., 1, 0], C[..., 0, 0]))
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def from_rpy(rpy: np.ndarray) -> np.ndarray:
+    """Quaternion of ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return from_matrix(rpy_to_matrix(rpy))
+
+
+def to_rpy(q: np.ndarray) -> np.ndarray:
+    """``(roll, pitch, yaw)`` of a quaternion; see :func:`matrix_to_rpy` for gimbal lock."""
+    return matrix_to_rpy(to_matrix(q))

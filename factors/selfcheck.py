@@ -1,0 +1,148 @@
+"""Every analytic Jacobian of the project against its numerical twin, at random points.
+
+Each entry of :data:`CHECKS` draws one random point from a generator and returns the analytic
+Jacobian and the central-difference one (:func:`factors.jacobians.numerical_jacobian`).
+:func:`run_checks` evaluates each entry at many points -- rotations of ordinary size, tiny ones
+(1e-9 to 1e-6 rad) and ones within 1e-3 rad of pi -- and keeps the worst error.
+``smoother check-jacobians`` prints the result.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from factors import derivatives as d
+from factors import jacobians, quaternion, so3
+
+#: Angles closer to pi than this are not used where a numerical step could cross pi (log jumps there).
+PI_MARGIN_FOR_LOG = 1e-4
+
+
+def random_rotation_vector(rng: np.random.Generator, regime: str | None = None, pi_margin: float = 1e-9) -> np.ndarray:
+    """A rotation vector with a random axis and an angle from one of three regimes:
+    ``"tiny"`` (1e-9 to 1e-6 rad, log-uniform), ``"near_pi"`` (pi - 1e-3 to pi - ``pi_margin``,
+    log-uniform in the distance to pi) or ``"any"`` (uniform in [0, pi)). ``None`` picks one."""
+    regime = regime or rng.choice(["tiny", "near_pi", "any", "any"])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    if regime == "tiny":
+        angle = 10 ** rng.uniform(-9, -6)
+    elif regime == "near_pi":
+        angle = np.pi - 10 ** rng.uniform(np.log10(pi_margin), -3)
+    elif regime == "any":
+        angle = rng.uniform(0, np.pi)
+    else:
+        raise ValueError(f"unknown regime {regime!r}")
+    return angle * axis
+
+
+def random_rotation(rng: np.random.Generator, regime: str | None = None, pi_margin: float = 1e-9) -> np.ndarray:
+    """``exp`` of :func:`random_rotation_vector`."""
+    return so3.exp(random_rotation_vector(rng, regime, pi_margin))
+
+
+def _num(f, *args, **kw):
+    return jacobians.numerical_jacobian(f, *args, **kw)
+
+
+def _rotate_wrt_rotation(rng):
+    C, r = random_rotation(rng), rng.normal(size=3) * 3
+    return d.rotate_wrt_rotation(C, r), _num(lambda X: X @ r, C)[0]
+
+
+def _rotate_wrt_vector(rng):
+    C, r = random_rotation(rng), rng.normal(size=3)
+    return d.rotate_wrt_vector(C), _num(lambda x: C @ x, r)[0]
+
+
+def _inverse(rng):
+    C = random_rotation(rng)
+    return d.inverse_wrt_rotation(C), _num(so3.inverse, C)[0]
+
+
+def _compose_left(rng):
+    C1, C2 = random_rotation(rng), random_rotation(rng)
+    return d.compose_wrt_left(C1), _num(so3.compose, C1, C2)[0]
+
+
+def _compose_right(rng):
+    C1, C2 = random_rotation(rng), random_rotation(rng)
+    return d.compose_wrt_right(C1), _num(so3.compose, C1, C2)[1]
+
+
+def _exp(rng):
+    phi = random_rotation_vector(rng, pi_margin=1e-9)
+    return d.exp_wrt_vector(phi), _num(so3.exp, phi, arg_kinds=["vector"])[0]
+
+
+def _log(rng):
+    C = random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG)
+    return d.log_wrt_rotation(C), _num(so3.log, C, arg_kinds=["rotation"])[0]
+
+
+def _boxplus(rng):
+    C, phi = random_rotation(rng), random_rotation_vector(rng)
+    ana = np.hstack([d.boxplus_wrt_rotation(C, phi), d.boxplus_wrt_vector(C, phi)])
+    num = np.hstack(_num(so3.boxplus, C, phi, arg_kinds=["rotation", "vector"], value_kind="rotation"))
+    return ana, num
+
+
+def _boxminus(rng):
+    C2 = random_rotation(rng)
+    C1 = so3.boxplus(C2, random_rotation_vector(rng, pi_margin=PI_MARGIN_FOR_LOG))
+    ana = np.hstack([d.boxminus_wrt_left(C1, C2), d.boxminus_wrt_right(C1, C2)])
+    num = np.hstack(_num(so3.boxminus, C1, C2, arg_kinds=["rotation", "rotation"], value_kind="vector"))
+    return ana, num
+
+
+def _gamma_inverse(rng):
+    """Gamma_inv is the inverse of Gamma (the check that the two closed forms agree)."""
+    phi = random_rotation_vector(rng, pi_margin=PI_MARGIN_FOR_LOG)
+    return so3.gamma_inv(phi) @ so3.gamma(phi), np.eye(3)
+
+
+def _quaternion_rotate(rng):
+    """Eq. (35) through quaternions: d q(r) / d q = -(q(r))^x."""
+    q, r = quaternion.exp(random_rotation_vector(rng)), rng.normal(size=3)
+    C = quaternion.to_matrix(q)
+    num = _num(lambda X: quaternion.rotate(quaternion.from_matrix(X), r), C)[0]
+    return d.rotate_wrt_rotation(C, r), num
+
+
+#: name -> draw(rng) returning (analytic, numerical).
+CHECKS: dict[str, Callable] = {
+    "exp: Gamma (31)": _exp,
+    "log: Gamma^-1 (32)": _log,
+    "Gamma^-1 Gamma = I": _gamma_inverse,
+    "coordinate map wrt rotation (27)": _rotate_wrt_rotation,
+    "coordinate map wrt vector (26)": _rotate_wrt_vector,
+    "quaternion coordinate map (35, 27)": _quaternion_rotate,
+    "inverse (28)": _inverse,
+    "composition wrt left (29)": _compose_left,
+    "composition wrt right (30)": _compose_right,
+    "boxplus wrt (Phi, phi)": _boxplus,
+    "boxminus wrt (Phi1, Phi2)": _boxminus,
+}
+
+
+def register(name: str, draw: Callable) -> None:
+    """Add a check (used by modules with further analytic Jacobians, e.g. the IMU model)."""
+    CHECKS[name] = draw
+
+
+def run_checks(samples: int = 200, seed: int = 0, atol: float = 1e-6, rtol: float = 1e-6,
+               names: list[str] | None = None) -> list[jacobians.Comparison]:
+    """Evaluate each registered check at ``samples`` random points; the worst error per check."""
+    rng = np.random.default_rng(seed)
+    results = []
+    for name, draw in CHECKS.items():
+        if names is not None and name not in names:
+            continue
+        worst_abs, worst_rel, ok = 0.0, 0.0, True
+        for _ in range(samples):
+            analytic, numerical = draw(rng)
+            c = jacobians.compare(name, analytic, numerical, atol, rtol)
+            worst_abs, worst_rel, ok = max(worst_abs, c.max_abs_error), max(worst_rel, c.max_rel_error), ok and c.ok
+        results.append(jacobians.Comparison(name, worst_abs, worst_rel, ok))
+    return results
