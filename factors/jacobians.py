@@ -51,26 +51,52 @@ def _like(template, C: np.ndarray):
     return C
 
 
-def _perturb(arg, kind: str, index: int, step: float):
+class Manifold:
+    """A manifold for :func:`numerical_jacobian`: ``dim``, ``plus(x, delta)`` and
+    ``minus(a, b)`` (with ``minus(plus(x, d), x) == d``). Subclass it, or pass any object with
+    these three members as a kind, for composite states such as the IMU state."""
+
+    dim: int
+
+    def plus(self, x, delta: np.ndarray):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def minus(self, a, b) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+def _perturb(arg, kind, index: int, step: float):
     if kind == ROTATION:
         return _like(arg, so3.boxplus(_matrix(arg), step * np.eye(3)[index]))
-    flat = np.array(arg, dtype=float).reshape(-1)
-    flat[index] += step
-    return flat.reshape(np.shape(arg))
+    if kind == VECTOR:
+        flat = np.array(arg, dtype=float).reshape(-1)
+        flat[index] += step
+        return flat.reshape(np.shape(arg))
+    return kind.plus(arg, step * np.eye(kind.dim)[index])
 
 
-def _difference(value, reference, kind: str) -> np.ndarray:
+def _difference(value, reference, kind) -> np.ndarray:
     if kind == ROTATION:
         return so3.boxminus(_matrix(value), _matrix(reference))
-    return (np.asarray(value, dtype=float) - np.asarray(reference, dtype=float)).reshape(-1)
+    if kind == VECTOR:
+        return (np.asarray(value, dtype=float) - np.asarray(reference, dtype=float)).reshape(-1)
+    return np.asarray(kind.minus(value, reference), dtype=float)
+
+
+def _dim(arg, kind) -> int:
+    if kind == ROTATION:
+        return 3
+    if kind == VECTOR:
+        return int(np.size(arg))
+    return int(kind.dim)
 
 
 def numerical_jacobian(
     f: Callable,
     *args,
     step: float = DEFAULT_STEP,
-    arg_kinds: Sequence[str] | None = None,
-    value_kind: str | None = None,
+    arg_kinds: Sequence | None = None,
+    value_kind=None,
 ) -> list[np.ndarray]:
     """Central-difference Jacobians of ``f(*args)`` with respect to each argument.
 
@@ -78,7 +104,8 @@ def numerical_jacobian(
     primer's boxplus, 3 columns) or a vector (any array, flattened, one column per entry). The
     value is a rotation (compared with boxminus, 3 rows) or an array (flattened). Kinds are
     detected from the values; pass ``arg_kinds`` / ``value_kind`` (``"vector"`` or ``"rotation"``)
-    to override, e.g. for a 3x3 matrix that happens to be orthonormal but is not a rotation.
+    to override, e.g. for a 3x3 matrix that happens to be orthonormal but is not a rotation; a
+    kind may also be a :class:`Manifold` (any object with ``dim``, ``plus``, ``minus``).
 
     Column ``i`` for a rotation argument is ``(f(Phi [+] eps e_i) [-] f(Phi)
     - f(Phi [+] -eps e_i) [-] f(Phi)) / (2 eps)``, the central form of the primer's eqs. (19, 20),
@@ -91,9 +118,9 @@ def numerical_jacobian(
     out_kind = value_kind or (ROTATION if _is_rotation(reference) else VECTOR)
     jacobians = []
     for position, (arg, kind) in enumerate(zip(args, kinds)):
-        if kind not in (VECTOR, ROTATION):
-            raise ValueError(f"unknown kind {kind!r}; expected {VECTOR!r} or {ROTATION!r}")
-        dim = 3 if kind == ROTATION else np.size(arg)
+        if isinstance(kind, str) and kind not in (VECTOR, ROTATION):
+            raise ValueError(f"unknown kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
+        dim = _dim(arg, kind)
         columns = []
         for i in range(dim):
             shifted = []

@@ -146,3 +146,42 @@ def run_checks(samples: int = 200, seed: int = 0, atol: float = 1e-6, rtol: floa
             worst_abs, worst_rel, ok = max(worst_abs, c.max_abs_error), max(worst_rel, c.max_rel_error), ok and c.ok
         results.append(jacobians.Comparison(name, worst_abs, worst_rel, ok))
     return results
+
+
+def _random_imu_point(rng):
+    from factors import imu
+
+    state = imu.ImuState(
+        r=rng.normal(size=3) * 10,
+        v=rng.normal(size=3) * 5,
+        C=random_rotation(rng),
+        b_f=rng.normal(size=3) * 0.5,
+        b_w=rng.normal(size=3) * 0.2,
+    )
+    acc, gyro = rng.normal(size=3) * 5, rng.normal(size=3) * 4  # several rad/s
+    dt = rng.uniform(1e-3, 0.05)
+    return state, acc, gyro, dt
+
+
+def _process_F(rng):
+    from factors import imu
+
+    state, acc, gyro, dt = _random_imu_point(rng)
+    _, F, _ = imu.propagate(state, acc, gyro, dt)
+    num = _num(lambda x: imu.propagate(x, acc, gyro, dt, jacobians=False)[0], state,
+               arg_kinds=[imu.StateManifold], value_kind=imu.StateManifold)[0]
+    return F, num
+
+
+def _process_G(rng):
+    from factors import imu
+
+    state, acc, gyro, dt = _random_imu_point(rng)
+    _, _, G = imu.propagate(state, acc, gyro, dt)
+    num = _num(lambda n: imu.propagate_with_noise(state, acc, gyro, dt, n), np.zeros(imu.NOISE_DIM),
+               arg_kinds=["vector"], value_kind=imu.StateManifold)[0]
+    return G, num
+
+
+register("IMU process F (54-60)", _process_F)
+register("IMU process G (54-60)", _process_G)
