@@ -1,0 +1,287 @@
+"""The project's data types: a few NumPy arrays in a dataclass each, never objects per sample.
+
+Conventions (DESIGN.md section 1): times in seconds (float64; loaders with nanosecond stamps keep
+them exactly in ``t_ns``), world frame ``I``, body = IMU frame ``B``, attitudes as body-to-world
+rotation matrices ``C(Phi_IB)`` of shape ``(N, 3, 3)``. Orientation covariances are in the
+primer's convention: ``C_meas = exp(n) C_true`` with ``n ~ N(0, cov)`` in WORLD coordinates.
+Every constructor validates shapes and values and raises ``ValueError`` naming the field.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+
+
+def _array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
+    """``value`` as a finite float array of shape ``(n,) + shape_tail``; a clear error otherwise."""
+    a = np.asarray(value, dtype=float)
+    expected = ("N",) + shape_tail if n is None else (n,) + shape_tail
+    if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail or (n is not None and a.shape[0] != n):
+        raise ValueError(f"{name}: expected shape {expected}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1))[0][0]
+        raise ValueError(f"{name}: non-finite value (NaN or inf) at row {bad}")
+    return a
+
+
+def _times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
+    t = _array(name, t, ())
+    if strictly_increasing and t.size > 1:
+        step = np.diff(t)
+        if np.any(step <= 0):
+            i = int(np.argmax(step <= 0))
+            what = "duplicate" if step[i] == 0 else "decreasing"
+            raise ValueError(
+                f"{name}: timestamps must increase strictly; row {i + 1} ({t[i + 1]!r}) is {what} "
+                f"after row {i} ({t[i]!r})"
+            )
+    return t
+
+
+def _covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape == (dim, dim):
+        cov = np.broadcast_to(cov, (n, dim, dim)).copy()
+    cov = _array(name, cov, (dim, dim), n)
+    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
+    scale = np.abs(cov).max(axis=(1, 2)) + 1e-300
+    if np.any(asym > 1e-9 * scale):
+        i = int(np.argmax(asym > 1e-9 * scale))
+        raise ValueError(f"{name}: covariance at row {i} is not symmetric")
+    eig_min = np.linalg.eigvalsh(cov).min(axis=1)
+    if np.any(eig_min <= 0):
+        i = int(np.argmax(eig_min <= 0))
+        raise ValueError(
+            f"{name}: covariance at row {i} is not positive definite (smallest eigenvalue {eig_min[i]:.3g})"
+        )
+    return cov
+
+
+def _rotations(name: str, C, n: int) -> np.ndarray:
+    C = _array(name, C, (3, 3), n)
+    err = np.abs(C @ np.swapaxes(C, 1, 2) - np.eye(3)).max(axis=(1, 2)) if n else np.zeros(0)
+    det = np.linalg.det(C) if n else np.zeros(0)
+    if np.any(err > 1e-6) or np.any(det <= 0):
+        i = int(np.argmax((err > 1e-6) | (det <= 0)))
+        raise ValueError(f"{name}: row {i} is not a rotation matrix (|C C^T - I| = {err[i]:.3g}, det {det[i]:.6g})")
+    return C
+
+
+@dataclass(frozen=True)
+class ImuSamples:
+    """IMU samples: specific force ``acc`` [m/s^2] and angular rate ``gyro`` [rad/s] in the body
+    frame at times ``t`` [s]. Sample ``k`` drives the Euler step over ``[t[k], t[k+1]]``.
+    ``t_ns`` keeps integer nanosecond stamps where the source had them."""
+
+    t: np.ndarray
+    acc: np.ndarray
+    gyro: np.ndarray
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = _times("ImuSamples.t", self.t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "acc", _array("ImuSamples.acc", self.acc, (3,), len(t)))
+        object.__setattr__(self, "gyro", _array("ImuSamples.gyro", self.gyro, (3,), len(t)))
+        if self.t_ns is not None:
+            t_ns = np.asarray(self.t_ns, dtype=np.int64)
+            if t_ns.shape != t.shape:
+                raise ValueError(f"ImuSamples.t_ns: expected shape {t.shape}, got {t_ns.shape}")
+            object.__setattr__(self, "t_ns", t_ns)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def slice(self, start: int, stop: int) -> "ImuSamples":
+        return ImuSamples(
+            self.t[start:stop], self.acc[start:stop], self.gyro[start:stop],
+            None if self.t_ns is None else self.t_ns[start:stop],
+        )
+
+
+@dataclass(frozen=True)
+class PositionMeasurements:
+    """World positions ``I_r`` [m] (GPS-like), covariance ``cov`` (N, 3, 3) [m^2]."""
+
+    t: np.ndarray
+    position: np.ndarray
+    cov: np.ndarray
+
+    def __post_init__(self):
+        t = _times("PositionMeasurements.t", self.t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "position", _array("PositionMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "cov", _covariances("PositionMeasurements.cov", self.cov, len(t), 3))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def subset(self, index) -> "PositionMeasurements":
+        return PositionMeasurements(self.t[index], self.position[index], self.cov[index])
+
+
+@dataclass(frozen=True)
+class OrientationMeasurements:
+    """Attitudes ``C(Phi_IB)`` with ``C_meas = exp(n) C`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2]."""
+
+    t: np.ndarray
+    C: np.ndarray
+    cov: np.ndarray
+
+    def __post_init__(self):
+        t = _times("OrientationMeasurements.t", self.t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "C", _rotations("OrientationMeasurements.C", self.C, len(t)))
+        object.__setattr__(self, "cov", _covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def subset(self, index) -> "OrientationMeasurements":
+        return OrientationMeasurements(self.t[index], self.C[index], self.cov[index])
+
+
+@dataclass(frozen=True)
+class PoseMeasurements:
+    """Pose-sensor readings (eqs. 61-63): position [m] and attitude; ``cov`` (N, 6, 6) over
+    ``(n_p, n_Phi)`` (position first, world-frame orientation noise second)."""
+
+    t: np.ndarray
+    position: np.ndarray
+    C: np.ndarray
+    cov: np.ndarray
+
+    def __post_init__(self):
+        t = _times("PoseMeasurements.t", self.t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "position", _array("PoseMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "C", _rotations("PoseMeasurements.C", self.C, len(t)))
+        object.__setattr__(self, "cov", _covariances("PoseMeasurements.cov", self.cov, len(t), 6))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def subset(self, index) -> "PoseMeasurements":
+        return PoseMeasurements(self.t[index], self.position[index], self.C[index], self.cov[index])
+
+
+@dataclass(frozen=True)
+class RelativePoseMeasurements:
+    """Odometry between times ``t_from`` and ``t_to``: ``dr = C_i^T (r_j - r_i)`` [m] (in the body
+    frame at ``t_from``) and ``dC = C_i^T C_j``; noise ``dC_meas = exp(n_Phi) dC``,
+    ``dr_meas = dr + n_r`` with ``cov`` (N, 6, 6) over ``(n_r, n_Phi)``, both in frame ``i``."""
+
+    t_from: np.ndarray
+    t_to: np.ndarray
+    dr: np.ndarray
+    dC: np.ndarray
+    cov: np.ndarray
+
+    def __post_init__(self):
+        t_from = _array("RelativePoseMeasurements.t_from", self.t_from, ())
+        n = len(t_from)
+        t_to = _array("RelativePoseMeasurements.t_to", self.t_to, (), n)
+        if np.any(t_to <= t_from):
+            i = int(np.argmax(t_to <= t_from))
+            raise ValueError(f"RelativePoseMeasurements: row {i}: t_to ({t_to[i]}) must be after t_from ({t_from[i]})")
+        object.__setattr__(self, "t_from", t_from)
+        object.__setattr__(self, "t_to", t_to)
+        object.__setattr__(self, "dr", _array("RelativePoseMeasurements.dr", self.dr, (3,), n))
+        object.__setattr__(self, "dC", _rotations("RelativePoseMeasurements.dC", self.dC, n))
+        object.__setattr__(self, "cov", _covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
+
+    def __len__(self) -> int:
+        return len(self.t_from)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """States over time: ``t`` (N,) and an :class:`ImuState` with leading dimension N. Biases are
+    NaN where unknown (e.g. a TUM file or a ground truth without biases). ``cov`` optionally holds
+    the (N, 15, 15) error-state covariances of an estimate (error-state order of
+    ``factors.imu``)."""
+
+    t: np.ndarray
+    states: ImuState
+    cov: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = _times("Trajectory.t", self.t)
+        object.__setattr__(self, "t", t)
+        n = len(t)
+        s = self.states
+        for name in ("r", "v", "b_f", "b_w"):
+            a = getattr(s, name)
+            if a.shape != (n, 3):
+                raise ValueError(f"Trajectory.states.{name}: expected shape ({n}, 3), got {a.shape}")
+        _rotations("Trajectory.states.C", s.C, n)
+        if not (np.all(np.isfinite(s.r)) and np.all(np.isfinite(s.C))):
+            raise ValueError("Trajectory: positions and attitudes must be finite")
+        if self.cov is not None:
+            cov = np.asarray(self.cov, dtype=float)
+            if cov.shape != (n, 15, 15):
+                raise ValueError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
+            object.__setattr__(self, "cov", cov)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.states.r
+
+    @property
+    def C(self) -> np.ndarray:
+        return self.states.C
+
+    def subset(self, index) -> "Trajectory":
+        return Trajectory(self.t[index], self.states[index], None if self.cov is None else self.cov[index])
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Everything an estimator needs: IMU samples, noise densities, gravity, an initial state with
+    its 15x15 covariance, the measurements available (any may be None) and, where known, the
+    ground truth. ``heldout_positions`` are GPS fixes kept out of estimation for evaluation."""
+
+    name: str
+    imu: ImuSamples
+    noise: ImuNoise
+    initial: ImuState
+    initial_cov: np.ndarray
+    gravity: np.ndarray = field(default_factory=lambda: DEFAULT_GRAVITY.copy())
+    pose: PoseMeasurements | None = None
+    position: PositionMeasurements | None = None
+    orientation: OrientationMeasurements | None = None
+    relative_pose: RelativePoseMeasurements | None = None
+    truth: Trajectory | None = None
+    heldout_positions: PositionMeasurements | None = None
+
+    def __post_init__(self):
+        cov = np.asarray(self.initial_cov, dtype=float)
+        if cov.shape != (15, 15):
+            raise ValueError(f"Dataset.initial_cov: expected shape (15, 15), got {cov.shape}")
+        _covariances("Dataset.initial_cov", cov[None], 1, 15)
+        object.__setattr__(self, "initial_cov", cov)
+        g = np.asarray(self.gravity, dtype=float)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"Dataset.gravity: expected a finite 3-vector, got {g!r}")
+        object.__setattr__(self, "gravity", g)
+        if len(self.imu) < 2:
+            raise ValueError("Dataset.imu: at least two IMU samples are needed")
+
+    @property
+    def t0(self) -> float:
+        return float(self.imu.t[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.imu.t[-1])
+
+    def measurement_times(self) -> np.ndarray:
+        """Sorted unique times of the absolute measurements (pose, position, orientation)."""
+        parts = [m.t for m in (self.pose, self.position, self.orientation) if m is not None]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0)

@@ -1,0 +1,1 @@
+"""Sub-commands of the ``smoother`` command line, one module each."""
