@@ -222,16 +222,25 @@ def _key_label(key: int) -> str:
         return str(key)
 
 
-def _gaussian_version(factor):
-    """The factor with a robust noise model replaced by its Gaussian base: GTSAM scales a robust
-    factor's linearisation by the weight at the current error, which is not the derivative of
-    the whitened error, so the check is made on the underlying Gaussian factor."""
+def _whitened_error(factor, values, base_model) -> np.ndarray:
+    """The factor's error whitened by its Gaussian noise model: ``base_model.whiten`` of the
+    unwhitened error for factors with a robust noise model, ``-b`` of the linearisation otherwise."""
+    if base_model is not None:
+        return np.asarray(base_model.whiten(factor.unwhitenedError(values)), dtype=float)
+    return -_linearize(factor, values)[1]
+
+
+def _robust_base(factor):
+    """The Gaussian base of a robust noise model, or None. GTSAM scales a robust factor's
+    linearisation ``(A, b)`` by one scalar ``sqrt(weight)`` at the current error; that scaling is
+    not part of the derivative, so the check divides it out and compares against differences of
+    the base-whitened error."""
     import gtsam
 
     model = factor.noiseModel() if hasattr(factor, "noiseModel") else None
-    if isinstance(model, gtsam.noiseModel.Robust) and hasattr(factor, "cloneWithNewNoiseModel"):
-        return factor.cloneWithNewNoiseModel(model.noise())
-    return factor
+    if isinstance(model, gtsam.noiseModel.Robust) and hasattr(factor, "unwhitenedError"):
+        return model.noise()
+    return None
 
 
 def _linearize(factor, values):
@@ -253,18 +262,22 @@ def check_factor(factor, values, atol: float = 1e-6, rtol: float = 1e-5, step: f
     ``values`` holds (at least) its keys. The analytic Jacobian is the factor's own
     ``linearize(values)``; the numerical one differentiates the whitened error ``-b`` of that
     linearisation at ``values.retract(+-step e_i)``, i.e. in GTSAM's chart (a right increment for
-    ``Rot3``). Robust noise models are checked through their Gaussian base (see the note in
-    :func:`_gaussian_version`). Both sides are whitened, so ``atol`` is in units of sigma per
+    ``Rot3``). Robust noise models are checked through their Gaussian base (see
+    :func:`_robust_base`). Both sides are whitened, so ``atol`` is in units of sigma per
     unit of the variable.
     """
     import gtsam
 
-    factor = _gaussian_version(factor)
+    base = _robust_base(factor)
     keys = list(factor.keys())
     missing = [k for k in keys if not values.exists(k)]
     if missing:
         raise KeyError(f"check_factor: values lack the factor's keys {[_key_label(k) for k in missing]}")
-    A, _ = _linearize(factor, values)
+    A, b = _linearize(factor, values)
+    if base is not None:
+        e_w = _whitened_error(factor, values, base)
+        scale = np.linalg.norm(b) / np.linalg.norm(e_w) if np.linalg.norm(e_w) > 0 else 1.0
+        A = A / scale
     zeros = values.zeroVectors()
     dims = [zeros.at(k).shape[0] for k in keys]
     offsets = np.concatenate([[0], np.cumsum(dims)])
@@ -280,7 +293,7 @@ def check_factor(factor, values, atol: float = 1e-6, rtol: float = 1e-5, step: f
                     if k == key:
                         v[i] = sign * step
                     delta.insert(k, v)
-                errors.append(-_linearize(factor, values.retract(delta))[1])
+                errors.append(_whitened_error(factor, values.retract(delta), base))
             columns.append((errors[0] - errors[1]) / (2.0 * step))
         num = np.stack(columns, axis=-1)
         ana = A[:, offsets[index] : offsets[index + 1]]

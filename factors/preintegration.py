@@ -95,10 +95,17 @@ class Preintegrated:
         return dC, W, Rm, d
 
     def relinearized(self, b_w: np.ndarray) -> "Preintegrated":
-        """The same intervals integrated again around gyro bias ``b_w`` (``(J, 3)``); the
-        covariance is kept (it is the noise model of a factor and does not move)."""
+        """The same interval(s) integrated again around gyro bias ``b_w``; the covariance is
+        kept (it is a factor's noise model and does not move). Works on one interval (no
+        leading dimension) or on ``J``."""
         acc, gyro, dt = self.samples
-        fresh = integrate(acc, gyro, dt, np.broadcast_to(b_w, self.b_w_bar.shape))
+        single = dt.ndim == 1
+        if single:
+            acc, gyro, dt = acc[None], gyro[None], dt[None]
+        b_w = np.broadcast_to(np.asarray(b_w, dtype=float), (len(dt), 3))
+        fresh = integrate(acc, gyro, dt, b_w)
+        if single:
+            fresh = fresh[0]
         fresh.cov = self.cov
         return fresh
 

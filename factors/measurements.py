@@ -1,0 +1,131 @@
+"""Measurement residuals in the primer's convention, and the GTSAM factors built on them.
+
+Each ``*_residual`` function returns the error and, with ``jacobians=True``, its Jacobians with
+respect to the primer's increments of each variable (LEFT boxplus for attitudes). The EKF
+(``smoother.ekf``) linearises the same functions, and each ``*_factor`` wraps one in a
+``gtsam.CustomFactor`` through :func:`factors.custom.custom_factor` (the chart adapter). Any GTSAM
+noise model is accepted, robust ones included; ``covariance_model`` makes the Gaussian one.
+
+Noise conventions (primer eqs. 61-63): ``r_meas = r + n_p``; ``C_meas = exp(n_Phi) C`` with
+``n_Phi`` in WORLD coordinates; so ``C [-] C_meas = log(C C_meas^T) = -n_Phi`` has covariance
+``cov(n_Phi)``. Relative poses carry their noise in the body frame of the earlier keyframe.
+
+Derivatives used (eqs. 27-32): ``d log(C C_m^T)/d phi = Gamma^-1(e)`` (eqs. 29, 32);
+``d C_i^T x / d phi_i = (C_i^T x)^x C_i^T`` (eqs. 27, 28, 3); ``log(C_i^T C_j D^T)`` moves by
+``-Gamma^-1(e) C_i^T`` for ``phi_i`` and ``Gamma^-1(e) C_i^T`` for ``phi_j`` (eq. 24).
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from factors import so3
+from factors.custom import BIAS, ROT, VEC, custom_factor
+
+_I3 = np.eye(3)
+
+
+def covariance_model(cov: np.ndarray):
+    """A Gaussian GTSAM noise model of covariance ``cov``."""
+    return gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
+
+
+def position_residual(r, measured, jacobians: bool = False):
+    """``e = r - r_meas`` (eq. 61); ``de/dr = I``."""
+    e = np.asarray(r, dtype=float) - measured
+    return (e, [_I3]) if jacobians else e
+
+
+def orientation_residual(C, measured, jacobians: bool = False):
+    """``e = C [-] C_meas = log(C C_meas^T)`` (eqs. 62, 63); ``de/dphi = Gamma^-1(e)``."""
+    e = so3.boxminus(C, measured)
+    return (e, [so3.gamma_inv(e)]) if jacobians else e
+
+
+def pose_residual(r, C, measured_r, measured_C, jacobians: bool = False):
+    """``e = (r - r_meas, C [-] C_meas)`` (eqs. 61-63); Jacobians for ``(r, C)``."""
+    e_r = np.asarray(r, dtype=float) - measured_r
+    e_phi = so3.boxminus(C, measured_C)
+    e = np.concatenate([e_r, e_phi])
+    if not jacobians:
+        return e
+    J_r = np.zeros((6, 3))
+    J_r[:3] = _I3
+    J_C = np.zeros((6, 3))
+    J_C[3:] = so3.gamma_inv(e_phi)
+    return e, [J_r, J_C]
+
+
+def relative_pose_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, jacobians: bool = False):
+    """``e = (C_i^T (r_j - r_i) - dr_meas, log(C_i^T C_j dC_meas^T))`` in body frame ``i``;
+    Jacobians for ``(C_i, r_i, C_j, r_j)``."""
+    Cit = C_i.T
+    u = Cit @ (np.asarray(r_j, dtype=float) - r_i)
+    X = Cit @ C_j @ np.asarray(measured_dC).T
+    e_phi = so3.log(X)
+    e = np.concatenate([u - measured_dr, e_phi])
+    if not jacobians:
+        return e
+    Ginv_Cit = so3.gamma_inv(e_phi) @ Cit
+    J_Ci, J_ri, J_Cj, J_rj = (np.zeros((6, 3)) for _ in range(4))
+    J_Ci[:3] = so3.skew(u) @ Cit
+    J_Ci[3:] = -Ginv_Cit
+    J_ri[:3] = -Cit
+    J_Cj[3:] = Ginv_Cit
+    J_rj[:3] = Cit
+    return e, [J_Ci, J_ri, J_Cj, J_rj]
+
+
+def velocity_residual(v, measured, jacobians: bool = False):
+    """``e = B_v - v_meas`` (body-frame velocity, e.g. a zero-velocity update); ``de/dv = I``."""
+    e = np.asarray(v, dtype=float) - measured
+    return (e, [_I3]) if jacobians else e
+
+
+def bias_residual(b, measured, jacobians: bool = False):
+    """``e = (b_f, b_w) - prior``; ``de/db = I_6``."""
+    e = np.asarray(b, dtype=float) - measured
+    return (e, [np.eye(6)]) if jacobians else e
+
+
+def position_factor(key: int, measured, noise_model) -> gtsam.CustomFactor:
+    """Position (GPS) or position prior on a ``Point3`` key."""
+    m = np.array(measured, dtype=float)
+    return custom_factor(noise_model, [key], [VEC], lambda r, jacobians: position_residual(r, m, jacobians))
+
+
+def orientation_factor(key: int, measured_C, noise_model) -> gtsam.CustomFactor:
+    """Attitude measurement or prior on a ``Rot3`` key."""
+    m = np.array(measured_C, dtype=float)
+    return custom_factor(noise_model, [key], [ROT], lambda C, jacobians: orientation_residual(C, m, jacobians))
+
+
+def pose_factor(pos_key: int, rot_key: int, measured_r, measured_C, noise_model) -> gtsam.CustomFactor:
+    """Pose-sensor measurement (position first, then attitude, 6x6 noise)."""
+    mr, mC = np.array(measured_r, dtype=float), np.array(measured_C, dtype=float)
+    return custom_factor(
+        noise_model, [pos_key, rot_key], [VEC, ROT],
+        lambda r, C, jacobians: pose_residual(r, C, mr, mC, jacobians),
+    )
+
+
+def relative_pose_factor(rot_i: int, pos_i: int, rot_j: int, pos_j: int, measured_dr, measured_dC,
+                         noise_model) -> gtsam.CustomFactor:
+    """Odometry between two keyframes (noise in body frame ``i``, position first)."""
+    mr, mC = np.array(measured_dr, dtype=float), np.array(measured_dC, dtype=float)
+    return custom_factor(
+        noise_model, [rot_i, pos_i, rot_j, pos_j], [ROT, VEC, ROT, VEC],
+        lambda Ci, ri, Cj, rj, jacobians: relative_pose_residual(Ci, ri, Cj, rj, mr, mC, jacobians),
+    )
+
+
+def velocity_factor(key: int, measured_v, noise_model) -> gtsam.CustomFactor:
+    """Body-frame velocity measurement or prior (zero-velocity update with ``measured_v = 0``)."""
+    m = np.array(measured_v, dtype=float)
+    return custom_factor(noise_model, [key], [VEC], lambda v, jacobians: velocity_residual(v, m, jacobians))
+
+
+def bias_factor(key: int, measured_bias, noise_model) -> gtsam.CustomFactor:
+    """Prior on an ``imuBias.ConstantBias`` key, ``measured_bias = (b_f, b_w)``."""
+    m = np.array(measured_bias, dtype=float)
+    return custom_factor(noise_model, [key], [BIAS], lambda b, jacobians: bias_residual(b, m, jacobians))
