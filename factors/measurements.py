@@ -129,3 +129,29 @@ def bias_factor(key: int, measured_bias, noise_model) -> gtsam.CustomFactor:
     """Prior on an ``imuBias.ConstantBias`` key, ``measured_bias = (b_f, b_w)``."""
     m = np.array(measured_bias, dtype=float)
     return custom_factor(noise_model, [key], [BIAS], lambda b, jacobians: bias_residual(b, m, jacobians))
+
+
+def state_residual(C, r, v, b, prior, jacobians: bool = False):
+    """``e = x [-] x_prior`` over the whole state, in error-state order ``(r, v, phi, b_f, b_w)``;
+    Jacobians for the variables ``(C, r, v, b)`` (the keyframe's Rot3, Point3, velocity, bias)."""
+    e_phi = so3.boxminus(C, prior.C)
+    e = np.concatenate([np.asarray(r) - prior.r, np.asarray(v) - prior.v, e_phi,
+                        np.asarray(b[:3]) - prior.b_f, np.asarray(b[3:]) - prior.b_w])
+    if not jacobians:
+        return e
+    J_C, J_r, J_v, J_b = np.zeros((15, 3)), np.zeros((15, 3)), np.zeros((15, 3)), np.zeros((15, 6))
+    J_r[0:3] = _I3
+    J_v[3:6] = _I3
+    J_C[6:9] = so3.gamma_inv(e_phi)
+    J_b[9:15] = np.eye(6)
+    return e, [J_C, J_r, J_v, J_b]
+
+
+def state_prior_factor(keys, prior, cov, noise_model=None) -> gtsam.CustomFactor:
+    """A joint prior on a keyframe ``keys`` (:class:`factors.keys.KeyframeKeys`) from an
+    :class:`factors.imu.ImuState` and its 15x15 covariance (error-state order)."""
+    model = noise_model if noise_model is not None else covariance_model(cov)
+    return custom_factor(
+        model, keys.all(), [ROT, VEC, VEC, BIAS],
+        lambda C, r, v, b, jacobians: state_residual(C, r, v, b, prior, jacobians),
+    )

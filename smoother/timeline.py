@@ -1,0 +1,60 @@
+"""The IMU stream cut at knot times (keyframes, measurements) into Euler-forward steps.
+
+IMU sample ``k`` is held over ``[t_k, t_{k+1})`` (zero-order hold, the primer's Euler-forward
+step). A knot strictly inside such an interval splits it into two steps with the same sample, so
+an estimator can stop exactly at the knot. The last IMU sample only marks the end of the stream.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.types import ImuSamples
+
+
+@dataclass(frozen=True)
+class Steps:
+    """Euler steps: ``acc, gyro (S, 3)``, ``dt (S,)``, start times ``t (S,)``, and for each knot
+    the number of steps taken before reaching it, ``knot_step (K,)``."""
+
+    acc: np.ndarray
+    gyro: np.ndarray
+    dt: np.ndarray
+    t: np.ndarray
+    knot_step: np.ndarray
+
+    def segments(self):
+        """The steps between consecutive knots, padded: ``acc, gyro (J, L, 3)``, ``dt (J, L)``
+        with ``J = K - 1`` and padding steps of ``dt = 0`` (the identity step)."""
+        starts, stops = self.knot_step[:-1], self.knot_step[1:]
+        lengths = stops - starts
+        L = max(int(lengths.max(initial=0)), 1)
+        idx = starts[:, None] + np.arange(L)[None, :]
+        valid = np.arange(L)[None, :] < lengths[:, None]
+        safe = np.minimum(idx, max(len(self.dt) - 1, 0))
+        dt = np.where(valid, self.dt[safe], 0.0)
+        acc = np.where(valid[..., None], self.acc[safe], 0.0)
+        gyro = np.where(valid[..., None], self.gyro[safe], 0.0)
+        return acc, gyro, dt
+
+
+def imu_steps(imu: ImuSamples, knots: np.ndarray) -> Steps:
+    """Cut the IMU stream at ``knots`` (sorted, within ``[imu.t[0], imu.t[-1]]``)."""
+    knots = np.asarray(knots, dtype=float)
+    if knots.size and (knots[0] < imu.t[0] or knots[-1] > imu.t[-1]):
+        raise ValueError(
+            f"knot times [{knots[0]}, {knots[-1]}] outside the IMU span [{imu.t[0]}, {imu.t[-1]}]"
+        )
+    if np.any(np.diff(knots) <= 0):
+        raise ValueError("knot times must increase strictly")
+    bounds = np.union1d(imu.t, knots)
+    starts = bounds[:-1]
+    sample = np.searchsorted(imu.t, starts, side="right") - 1
+    return Steps(
+        acc=imu.acc[sample],
+        gyro=imu.gyro[sample],
+        dt=np.diff(bounds),
+        t=starts,
+        knot_step=np.searchsorted(bounds, knots),
+    )
