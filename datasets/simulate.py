@@ -1,0 +1,436 @@
+"""Synthetic datasets: an analytic motion, the IMU it would measure, and noisy measurements.
+
+``simulate(profile=..., duration=..., seed=...)`` returns a :class:`SimulatedDataset` (a
+:class:`datasets.types.Dataset` with a few extra fields). The construction, step by step:
+
+Time. IMU samples at ``t_k = t0 + k / imu_rate``, ``k = 0 .. N-1``, ``N = floor(duration *
+imu_rate) + 1`` (so ``duration * imu_rate`` steps; the last sample would drive the step after the
+data and is only there to end the record). Sample ``k`` drives the Euler step over ``[t_k,
+t_{k+1}]``. A measurement stream at ``rate`` takes every ``imu_rate / rate``-th sample starting
+with ``k = 0``; ``imu_rate`` must be an integer multiple of ``rate``, so measurement times are IMU
+times exactly (the same floats).
+
+Clean IMU. ``clean_imu="analytic"`` (default): the profile (:mod:`datasets.trajectories`) is
+evaluated at the sample times, ``f_k = C(t_k)^T (a(t_k) - g)`` (eq. 42) and ``w_k = omega_B(t_k)``.
+``clean_imu="matched"``: the samples that make the Euler-forward model pass exactly through the
+profile's positions and attitudes at every sample time (``w_k = log(C_k^T C_{k+1}) / dt``,
+``v_k = C_k^T (r_{k+1} - r_k) / dt``, ``f_k`` from eq. 55); they differ from the analytic ones by
+O(dt).
+
+Biases. ``b_0 ~ N(0, initial_bias_sigma^2)`` per axis (accelerometer, gyro), then the
+discretisation of VI.B: ``b_{k+1} = b_k + dt n_b`` with ``n_b ~ N(0, R_b / dt)``, i.e. independent
+increments of variance ``R_b dt`` (``R_b = noise.acc_bias^2`` or ``noise.gyro_bias^2``,
+``dt = 1 / imu_rate``).
+
+Measured IMU. ``f~_k = f_k + b_f,k + n_f,k`` and ``w~_k = w_k + b_w,k + n_w,k`` with
+``n ~ N(0, R / dt)`` per sample and axis (``R = noise.acc^2``, ``noise.gyro^2``).
+
+Truth. ``truth="continuous"``: the profile at ``t_k`` (``r``, ``v_B = C^T dr/dt``, ``C``) with the
+bias sequence ``b_k``. ``truth="discrete"`` (default): the primer's Euler-forward model
+(:func:`factors.imu.propagate`, eqs. 54-60) run on the CLEAN signals ``f_k, w_k`` with zero biases
+from the profile's state at ``t0``, with ``dt_k = t_{k+1} - t_k``; then the bias sequence is
+attached (with ``clean_imu="matched"`` the start velocity is the matched ``v_0``). If
+``noise.velocity > 0`` the position also takes the model's velocity noise,
+``r_{k+1} = r_k + dt C_k (v_k + n_v,k)``, ``n_v ~ N(0, R_v / dt)`` (the continuous truth has no such
+term: there ``noise.velocity`` is only a tuning term of the estimator). Since ``f~ - b - n = f``,
+an EKF that runs :func:`factors.imu.propagate` on the measured IMU is then exactly consistent with
+this truth: no discretisation error enters the comparison. With the analytic clean IMU the Euler
+model drifts from the analytic motion by O(dt) per unit time, and the drift adds up: over 60 s at
+200 Hz the discrete truth ends 5.8 m (gentle) and 300 m (tumbling: a 0.02 rad attitude error lets
+gravity leak in) away from the profile. ``clean_imu="matched"`` removes that drift (positions and
+attitudes on the profile to round-off, body velocity within O(dt)) while keeping the exact
+consistency. The continuous truth is the one to use for questions about the discretisation itself.
+
+The discrete truth is computed without a per-sample Python loop: the attitude is a cumulative
+product of ``exp(dt_k w_k)`` and the body velocity an affine recursion ``v_{k+1} = (I - dt_k
+w_k^x) v_k + dt_k (C_k^T g + f_k)``; both are prefix products of small matrices (3x3, and 4x4 in
+homogeneous form), evaluated by recursive doubling in ``log2 N`` batched matrix products. It
+equals :func:`factors.imu.integrate` to round-off (tested); it is about 100x faster.
+
+Measurements, all from the truth (whichever was chosen), at their own rates:
+
+* pose (eqs. 61-63): ``r~ = r + n_p``, ``C~ = exp(n_Phi) C``; ``n_p ~ N(0, sp^2 I)``,
+  ``n_Phi ~ N(0, sa^2 I)`` (world frame), ``cov = diag(sp^2 I, sa^2 I)``, ``(sp, sa) = pose_sigma``.
+* position (GPS): ``r~ = r + n``, ``n ~ N(0, position_sigma^2 I)``.
+* orientation: ``C~ = exp(n) C``, ``n ~ N(0, orientation_sigma^2 I)``.
+* relative pose between consecutive times ``i -> j`` of its stream: ``dr~ = C_i^T (r_j - r_i) +
+  n_r``, ``dC~ = exp(n_Phi) C_i^T C_j``, noise in frame ``i``, ``cov = diag(sr^2 I, sa^2 I)``.
+* outliers: ``round(outlier_fraction * len(pose))`` pose measurements, chosen uniformly without
+  replacement, get their position moved by ``outlier_scale[0]`` metres in a uniformly random
+  direction and their attitude rotated by ``outlier_scale[1]`` radians about a uniformly random
+  axis (``C~ <- exp(angle axis) C~``); their indices are ``SimulatedDataset.pose_outliers``. Their
+  ``cov`` still states the nominal noise: that is what makes them outliers.
+
+Initial estimate. ``Dataset.initial_cov = diag(s_r^2 I, s_v^2 I, s_phi^2 I, s_bf^2 I, s_bw^2 I)``
+(error-state order of :mod:`factors.imu`) with ``(s_r, s_v, s_phi) = initial_sigma`` and
+``(s_bf, s_bw) = initial_bias_sigma``. ``Dataset.initial`` is the true state at ``t0`` with
+``r + d_r``, ``v + d_v``, ``exp(d_phi) C`` and biases 0, where ``d ~ N(0, diag(s_r^2, s_v^2,
+s_phi^2))``. Because the true ``b_0`` was drawn from ``N(0, s_b^2)`` and the estimate is 0, the
+error ``initial [-] truth_0 = (d_r, d_v, d_phi, -b_f0, -b_w0)`` is exactly one draw from
+``N(0, initial_cov)``, so NEES tests on it are meaningful. A sigma of 0 means "known exactly": the
+state is not perturbed and its variance is floored at ``MIN_SIGMA^2`` so that the covariance stays
+positive definite, as :class:`~datasets.types.Dataset` requires.
+
+Randomness. ``np.random.SeedSequence(seed).spawn`` gives one independent generator per role
+(:data:`STREAMS`), always all of them and in a fixed order, so switching a measurement type on or
+off, or changing its rate, changes nothing else; the same seed gives the same dataset.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from datasets.trajectories import PROFILES, Profile
+from datasets.types import (
+    Dataset,
+    ImuSamples,
+    OrientationMeasurements,
+    PoseMeasurements,
+    PositionMeasurements,
+    RelativePoseMeasurements,
+    Trajectory,
+)
+from factors import so3
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+
+__all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS"]
+
+#: The independent random streams, in spawn order (never reorder: it would change every dataset).
+STREAMS = ("imu", "bias", "initial", "velocity", "pose", "position", "orientation", "relative_pose", "outliers")
+
+TRUTH_MODELS = ("discrete", "continuous")
+
+CLEAN_IMU_MODELS = ("analytic", "matched")
+
+#: Floor of the initial-covariance sigmas (a state given a sigma of 0 is known exactly).
+MIN_SIGMA = 1e-6
+
+#: Tolerance on "integer multiple" and "whole number of steps" (relative).
+_RATE_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class SimulatedDataset(Dataset):
+    """A :class:`~datasets.types.Dataset` with what only a simulator knows.
+
+    ``clean_imu``: the noise- and bias-free IMU signals at the same times; ``pose_outliers``:
+    indices (into ``pose``) of the measurements given a gross error; ``profile``,
+    ``truth_model``, ``seed``: how it was made."""
+
+    clean_imu: ImuSamples | None = None
+    pose_outliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    profile: str = ""
+    truth_model: str = ""
+    seed: int | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# option checking
+
+
+def _sigmas(name: str, value, count: int) -> np.ndarray:
+    """``value`` as ``count`` finite sigmas >= 0 (a scalar is accepted when ``count == 1``)."""
+    a = np.atleast_1d(np.asarray(value, dtype=float))
+    if a.shape != (count,) or not np.all(np.isfinite(a)) or np.any(a < 0):
+        what = "a sigma" if count == 1 else f"{count} sigmas"
+        raise ValueError(f"{name}: expected {what}, finite and >= 0, got {value!r}")
+    return a
+
+
+def _positive_sigmas(name: str, value, count: int) -> np.ndarray:
+    a = _sigmas(name, value, count)
+    if np.any(a <= 0):
+        raise ValueError(f"{name}: measurement noise sigmas must be > 0 (a covariance must be invertible), got {value!r}")
+    return a
+
+
+def _stride(name: str, rate, imu_rate: float) -> int | None:
+    """Every how many IMU samples a stream at ``rate`` is measured; None if it is off."""
+    if rate is None or rate == 0:
+        return None
+    rate = float(rate)
+    if not np.isfinite(rate) or rate < 0:
+        raise ValueError(f"{name}: expected a rate in Hz > 0 (or None/0 for none), got {rate!r}")
+    ratio = imu_rate / rate
+    stride = int(round(ratio))
+    if stride < 1 or abs(ratio - stride) > _RATE_TOLERANCE * ratio:
+        raise ValueError(
+            f"{name}: imu_rate ({imu_rate:g} Hz) must be an integer multiple of {name} ({rate:g} Hz) "
+            "so that measurement times are IMU sample times"
+        )
+    return stride
+
+
+def _profile(profile) -> Profile:
+    if isinstance(profile, Profile):
+        return profile
+    if profile not in PROFILES:
+        raise ValueError(f"profile: unknown {profile!r}; choose one of {sorted(PROFILES)} or pass a Profile")
+    return PROFILES[profile]
+
+
+# --------------------------------------------------------------------------------------------
+# the discrete truth
+
+
+def _prefix_products(M: np.ndarray, later_on_left: bool) -> np.ndarray:
+    """Inclusive prefix products of a stack of square matrices ``M`` (K, n, n):
+    ``M_k ... M_1 M_0`` (``later_on_left``) or ``M_0 M_1 ... M_k``, by recursive doubling
+    (``ceil(log2 K)`` batched products)."""
+    P = np.array(M, dtype=float, copy=True)
+    shift = 1
+    while shift < len(P):
+        P[shift:] = P[shift:] @ P[:-shift] if later_on_left else P[:-shift] @ P[shift:]
+        shift *= 2
+    return P
+
+
+def euler_truth(initial: ImuState, acc, gyro, t, gravity=DEFAULT_GRAVITY, velocity_noise=None) -> ImuState:
+    """The states of :func:`factors.imu.integrate` (``initial``'s biases are ignored: zero biases)
+    on samples ``acc[k], gyro[k]`` over steps ``dt_k = t[k+1] - t[k]``, without a per-sample
+    loop (see the module docstring). ``velocity_noise`` (``len(t) - 1``, 3), if given, is the
+    model's ``n_v`` of each step. Returns ``len(t)`` states with zero biases."""
+    acc, gyro, t = np.asarray(acc, float), np.asarray(gyro, float), np.asarray(t, float)
+    g = np.asarray(gravity, dtype=float)
+    n = len(t)
+    dt = np.diff(t)[:, None]
+    C = np.empty((n, 3, 3))
+    C[0] = initial.C
+    C[1:] = initial.C @ _prefix_products(so3.exp(dt * gyro[: n - 1]), later_on_left=False)
+    # v_{k+1} = A_k v_k + b_k as 4x4 homogeneous maps [[A_k, b_k], [0, 1]].
+    M = np.zeros((n - 1, 4, 4))
+    M[:, :3, :3] = np.eye(3) - dt[:, :, None] * so3.skew(gyro[: n - 1])
+    M[:, :3, 3] = dt * (np.einsum("kji,j->ki", C[:-1], g) + acc[: n - 1])
+    M[:, 3, 3] = 1.0
+    P = _prefix_products(M, later_on_left=True)
+    v = np.empty((n, 3))
+    v[0] = initial.v
+    v[1:] = P[:, :3, :3] @ initial.v + P[:, :3, 3]
+    body = v[:-1] if velocity_noise is None else v[:-1] + velocity_noise
+    r = np.empty((n, 3))
+    r[0] = initial.r
+    r[1:] = initial.r + np.cumsum(dt * np.einsum("kij,kj->ki", C[:-1], body), axis=0)
+    zeros = np.zeros((n, 3))
+    return ImuState(r, v, C, zeros, zeros.copy())
+
+
+def _matched_signals(profile: Profile, t: np.ndarray, gravity: np.ndarray):
+    """The IMU samples whose Euler-forward propagation passes through the profile's positions and
+    attitudes at every sample time (``clean_imu="matched"``). ``t`` has two times more than the
+    samples wanted. Returns ``(kinematics at the samples, f, w, v_0)``.
+
+    With ``v_k = C_k^T (r_{k+1} - r_k) / dt_k`` (then eq. 54 gives ``r_{k+1}`` exactly),
+    ``w_k = log(C_k^T C_{k+1}) / dt_k`` (eq. 56 gives ``C_{k+1}``) and
+    ``f_k = (v_{k+1} - v_k) / dt_k - C_k^T g + w_k x v_k`` (eq. 55 gives ``v_{k+1}``)."""
+    kin = profile.evaluate(t)
+    dt = np.diff(t)[:, None]
+    C, C_T = kin.C, so3.inverse(kin.C)
+    v = np.einsum("kij,kj->ki", C_T[:-1], np.diff(kin.r, axis=0)) / dt
+    w = so3.log(C_T[:-1] @ C[1:]) / dt
+    f = np.diff(v, axis=0) / dt[:-1] - np.einsum("kji,j->ki", C[:-2], gravity) + np.cross(w[:-1], v[:-1])
+    n = len(t) - 2
+    return kin[:n], f, w[:n], v[0]
+
+
+# --------------------------------------------------------------------------------------------
+# the simulator
+
+
+def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    u = rng.standard_normal((n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def _covariance(*sigma_blocks) -> np.ndarray:
+    return np.diag(np.repeat(np.asarray(sigma_blocks, dtype=float) ** 2, 3))
+
+
+def simulate(
+    profile="gentle",
+    duration: float = 60.0,
+    seed: int = 0,
+    imu_rate: float = 200.0,
+    noise: ImuNoise = ImuNoise(),
+    truth: str = "discrete",
+    pose_rate: float | None = 10.0,
+    pose_sigma=(0.05, 0.01),
+    position_rate: float | None = None,
+    position_sigma: float = 0.5,
+    orientation_rate: float | None = None,
+    orientation_sigma: float = 0.01,
+    relative_pose_rate: float | None = None,
+    relative_pose_sigma=(0.02, 0.005),
+    initial_bias_sigma=(0.1, 0.01),
+    initial_sigma=(0.1, 0.1, 0.02),
+    outlier_fraction: float = 0.0,
+    outlier_scale=(5.0, 1.0),
+    gravity=DEFAULT_GRAVITY,
+    t0: float = 0.0,
+    clean_imu: str = "analytic",
+) -> SimulatedDataset:
+    """Simulate an IMU dataset with measurements and ground truth (construction: module docstring).
+
+    ``profile``: a name in :data:`PROFILES` (``gentle``, ``tumbling``, ``static``,
+    ``static_level``) or a :class:`~datasets.trajectories.Profile`. ``duration`` [s] and
+    ``imu_rate`` [Hz]: ``floor(duration * imu_rate) + 1`` samples from ``t0``. ``seed``: every
+    random draw. ``noise``: the IMU noise densities (also stored as ``Dataset.noise``).
+    ``truth``: ``"discrete"`` (the Euler model's propagation of the clean IMU) or
+    ``"continuous"`` (the analytic motion). ``clean_imu``: ``"analytic"`` (eq. 42 at the sample
+    times) or ``"matched"`` (the samples whose Euler propagation follows the profile exactly).
+
+    Measurements (rate [Hz] None or 0 = none; ``imu_rate`` must be an integer multiple; the first
+    is at ``t0``): ``pose_rate`` with ``pose_sigma = (position [m], attitude [rad])``;
+    ``position_rate`` (GPS) with ``position_sigma`` [m]; ``orientation_rate`` with
+    ``orientation_sigma`` [rad]; ``relative_pose_rate`` with ``relative_pose_sigma =
+    (translation [m], rotation [rad])`` between consecutive times of that stream.
+
+    ``initial_bias_sigma = (acc [m/s^2], gyro [rad/s])``: spread of the true initial biases (and
+    the bias block of ``initial_cov``; the initial bias estimate is 0). ``initial_sigma =
+    (position [m], velocity [m/s], attitude [rad])``: spread of the initial estimate's error.
+    ``outlier_fraction`` in [0, 1] of the pose measurements get an error of ``outlier_scale =
+    (metres, radians)``. ``gravity``: ``I_g`` [m/s^2].
+
+    Raises ``ValueError`` naming the option for any bad option.
+    """
+    prof = _profile(profile)
+    duration, imu_rate, t0 = float(duration), float(imu_rate), float(t0)
+    if not np.isfinite(imu_rate) or imu_rate <= 0:
+        raise ValueError(f"imu_rate: expected a rate in Hz > 0, got {imu_rate!r}")
+    if not np.isfinite(duration) or duration <= 0:
+        raise ValueError(f"duration: expected a duration in seconds > 0, got {duration!r}")
+    if not np.isfinite(t0):
+        raise ValueError(f"t0: expected a finite start time, got {t0!r}")
+    steps = int(np.floor(duration * imu_rate * (1 + _RATE_TOLERANCE)))
+    if steps < 1:
+        raise ValueError(f"duration: {duration!r} s is shorter than one IMU step (1/imu_rate = {1 / imu_rate:g} s)")
+    if clean_imu not in CLEAN_IMU_MODELS:
+        raise ValueError(f"clean_imu: expected one of {CLEAN_IMU_MODELS}, got {clean_imu!r}")
+    if truth not in TRUTH_MODELS:
+        raise ValueError(f"truth: expected one of {TRUTH_MODELS}, got {truth!r}")
+    if not isinstance(noise, ImuNoise):
+        raise ValueError(f"noise: expected an ImuNoise, got {type(noise).__name__}")
+    g = np.asarray(gravity, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ValueError(f"gravity: expected a finite 3-vector, got {gravity!r}")
+    strides = {
+        name: _stride(name, rate, imu_rate)
+        for name, rate in (
+            ("pose_rate", pose_rate), ("position_rate", position_rate),
+            ("orientation_rate", orientation_rate), ("relative_pose_rate", relative_pose_rate),
+        )
+    }
+    sigma_pose = _positive_sigmas("pose_sigma", pose_sigma, 2) if strides["pose_rate"] else None
+    sigma_position = _positive_sigmas("position_sigma", position_sigma, 1) if strides["position_rate"] else None
+    sigma_orientation = (
+        _positive_sigmas("orientation_sigma", orientation_sigma, 1) if strides["orientation_rate"] else None
+    )
+    sigma_relative = (
+        _positive_sigmas("relative_pose_sigma", relative_pose_sigma, 2) if strides["relative_pose_rate"] else None
+    )
+    sigma_bias = _sigmas("initial_bias_sigma", initial_bias_sigma, 2)
+    sigma_initial = _sigmas("initial_sigma", initial_sigma, 3)
+    outlier_fraction = float(outlier_fraction)
+    if not 0.0 <= outlier_fraction <= 1.0:
+        raise ValueError(f"outlier_fraction: expected a fraction in [0, 1], got {outlier_fraction!r}")
+    outlier_scale = _sigmas("outlier_scale", outlier_scale, 2)
+    rngs = dict(zip(STREAMS, (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(len(STREAMS)))))
+
+    # --- time, clean IMU
+    n = steps + 1
+    dt = 1.0 / imu_rate
+    t = t0 + np.arange(n) / imu_rate
+    if clean_imu == "analytic":
+        kin = prof.evaluate(t)
+        f_clean, w_clean = kin.specific_force(g), kin.omega
+        v0 = kin.body_velocity()[0]
+    else:
+        kin, f_clean, w_clean, v0 = _matched_signals(prof, t0 + np.arange(n + 2) / imu_rate, g)
+
+    # --- biases and measured IMU (draw order within each stream is fixed)
+    initial_rng = rngs["initial"]
+    b0 = initial_rng.standard_normal((2, 3)) * sigma_bias[:, None]
+    initial_error = initial_rng.standard_normal((3, 3)) * sigma_initial[:, None]
+    bias_steps = rngs["bias"].standard_normal((2, n - 1, 3)) * (
+        np.array([noise.acc_bias, noise.gyro_bias])[:, None, None] * np.sqrt(dt)
+    )
+    b_f = b0[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(bias_steps[0], axis=0)])
+    b_w = b0[1] + np.concatenate([np.zeros((1, 3)), np.cumsum(bias_steps[1], axis=0)])
+    white = rngs["imu"].standard_normal((2, n, 3))
+    acc = f_clean + b_f + white[0] * (noise.acc / np.sqrt(dt))
+    gyro = w_clean + b_w + white[1] * (noise.gyro / np.sqrt(dt))
+
+    # --- truth
+    start = ImuState(kin.r[0], v0, kin.C[0], b_f[0], b_w[0])
+    if truth == "discrete":
+        n_v = None
+        if noise.velocity > 0:
+            n_v = rngs["velocity"].standard_normal((n - 1, 3)) * (noise.velocity / np.sqrt(dt))
+        states = euler_truth(start, f_clean, w_clean, t, g, velocity_noise=n_v).replace(b_f=b_f, b_w=b_w)
+    else:
+        states = ImuState(kin.r, kin.body_velocity(), kin.C, b_f, b_w)
+
+    # --- initial estimate
+    initial = ImuState(
+        start.r + initial_error[0], start.v + initial_error[1], so3.boxplus(start.C, initial_error[2]),
+        np.zeros(3), np.zeros(3),
+    )
+    initial_cov = _covariance(*np.maximum(np.concatenate([sigma_initial, sigma_bias]), MIN_SIGMA))
+
+    # --- measurements
+    def indices(stride):
+        return np.arange(0, n, stride)
+
+    pose = None
+    pose_outliers = np.zeros(0, dtype=int)
+    if strides["pose_rate"]:
+        k = indices(strides["pose_rate"])
+        rng = rngs["pose"]
+        position = states.r[k] + rng.standard_normal((len(k), 3)) * sigma_pose[0]
+        C = so3.boxplus(states.C[k], rng.standard_normal((len(k), 3)) * sigma_pose[1])
+        n_out = int(round(outlier_fraction * len(k)))
+        if n_out:
+            rng = rngs["outliers"]
+            pose_outliers = np.sort(rng.choice(len(k), size=n_out, replace=False))
+            position[pose_outliers] += outlier_scale[0] * _unit_vectors(rng, n_out)
+            C[pose_outliers] = so3.boxplus(C[pose_outliers], outlier_scale[1] * _unit_vectors(rng, n_out))
+        pose = PoseMeasurements(t[k], position, C, _covariance(*sigma_pose))
+    position = None
+    if strides["position_rate"]:
+        k = indices(strides["position_rate"])
+        noisy = states.r[k] + rngs["position"].standard_normal((len(k), 3)) * sigma_position[0]
+        position = PositionMeasurements(t[k], noisy, _covariance(*sigma_position))
+    orientation = None
+    if strides["orientation_rate"]:
+        k = indices(strides["orientation_rate"])
+        noisy = so3.boxplus(states.C[k], rngs["orientation"].standard_normal((len(k), 3)) * sigma_orientation[0])
+        orientation = OrientationMeasurements(t[k], noisy, _covariance(*sigma_orientation))
+    relative_pose = None
+    if strides["relative_pose_rate"]:
+        k = indices(strides["relative_pose_rate"])
+        i, j = k[:-1], k[1:]
+        rng = rngs["relative_pose"]
+        Ci_T = so3.inverse(states.C[i])
+        dr = np.einsum("kij,kj->ki", Ci_T, states.r[j] - states.r[i])
+        dr = dr + rng.standard_normal((len(i), 3)) * sigma_relative[0]
+        dC = so3.boxplus(Ci_T @ states.C[j], rng.standard_normal((len(i), 3)) * sigma_relative[1])
+        relative_pose = RelativePoseMeasurements(t[i], t[j], dr, dC, _covariance(*sigma_relative))
+
+    return SimulatedDataset(
+        name=f"synthetic:{prof.name}",
+        imu=ImuSamples(t, acc, gyro),
+        noise=noise,
+        initial=initial,
+        initial_cov=initial_cov,
+        gravity=g.copy(),
+        pose=pose,
+        position=position,
+        orientation=orientation,
+        relative_pose=relative_pose,
+        truth=Trajectory(t, states),
+        clean_imu=ImuSamples(t, f_clean, w_clean),
+        pose_outliers=pose_outliers,
+        profile=prof.name,
+        truth_model=truth,
+        seed=seed,
+    )
