@@ -18,3 +18,17 @@ def to_gtsam_chart(jacobian: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     ``gtsam.Rot3``); both arguments may carry matching leading dimensions."""
     C = rotation.matrix() if hasattr(rotation, "matrix") else rotation
     return np.asarray(jacobian, dtype=float) @ np.asarray(C, dtype=float)
+
+
+def state_covariance_to_primer(cov_rpvb: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """A keyframe's joint covariance from GTSAM -- variables ``(Rot3, Point3, velocity, bias)`` in
+    that order, the ``Rot3`` block in GTSAM's right chart -- as the primer's 15x15 error-state
+    covariance ``(dr, dv, dphi, db_f, db_w)`` with the LEFT attitude increment ``dphi = C d``."""
+    C = rotation.matrix() if hasattr(rotation, "matrix") else np.asarray(rotation, dtype=float)
+    T = np.zeros((15, 15))
+    T[6:9, 0:3] = C  # dphi <- C d_rot
+    T[0:3, 3:6] = np.eye(3)  # dr <- d_pos
+    T[3:6, 6:9] = np.eye(3)  # dv <- d_vel
+    T[9:15, 9:15] = np.eye(6)  # (db_f, db_w) <- d_bias
+    out = T @ np.asarray(cov_rpvb, dtype=float) @ T.T
+    return 0.5 * (out + out.T)

@@ -116,15 +116,9 @@ def _z(v_i, gamma, b_f) -> np.ndarray:
     return np.concatenate([v_i, gamma, one, -np.asarray(b_f, dtype=float)], axis=-1)
 
 
-def integrate(acc, gyro, dt, b_w_bar, reference: imu.ImuState | None = None, noise: imu.ImuNoise | None = None,
-              gravity=imu.DEFAULT_GRAVITY) -> Preintegrated:
+def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
-    around gyro biases ``b_w_bar (J, 3)``.
-
-    With ``reference`` (the states at the start of each interval, leading dimension ``J``) and
-    ``noise``, the residual covariance is computed too, by propagating the primer's ``F`` and
-    ``G`` along the reference trajectory (see the module docstring).
-    """
+    around gyro biases ``b_w_bar (J, 3)`` (no covariance: see :func:`noise_covariance`)."""
     acc, gyro, dt = (np.asarray(a, dtype=float) for a in (acc, gyro, dt))
     b_w_bar = np.asarray(b_w_bar, dtype=float)
     J, K = dt.shape
@@ -136,10 +130,6 @@ def integrate(acc, gyro, dt, b_w_bar, reference: imu.ImuState | None = None, noi
     JC = np.zeros((J, 3, 3))
     dW = np.zeros((J, 3, 10, 3))
     dRm = np.zeros((J, 3, 10, 3))
-    with_cov = reference is not None and noise is not None
-    if with_cov:
-        state = reference
-        S = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
     for k in range(K):
         h = dt[:, k]
         hm = h[:, None, None]
@@ -160,23 +150,36 @@ def integrate(acc, gyro, dt, b_w_bar, reference: imu.ImuState | None = None, noi
         B[:, :, 7:10] = eye
         W = A @ W + hm * B
         JC = JC - hm * (dC @ so3.gamma(h[:, None] * w))
-        if with_cov:
-            state, F, G = imu.propagate(state, acc[:, k], gyro[:, k], h, gravity)
-            Q = noise.discrete_covariance(h)
-            S = F @ S @ np.swapaxes(F, 1, 2) + G @ Q @ np.swapaxes(G, 1, 2)
         dC = dC @ so3.exp(h[:, None] * w)
-    cov = None
-    if with_cov:
-        T = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
-        Ct = np.swapaxes(reference.C, -1, -2)
-        T[:, imu.R, imu.R] = Ct
-        T[:, imu.V, imu.V] = eye
-        T[:, imu.PHI, imu.PHI] = Ct
-        T[:, imu.BF, imu.BF] = eye
-        T[:, imu.BW, imu.BW] = eye
-        cov = T @ S @ np.swapaxes(T, 1, 2)
-        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
-    return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt), cov)
+    return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
+
+
+def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
+                     gravity=imu.DEFAULT_GRAVITY) -> np.ndarray:
+    """Covariance ``(J, 15, 15)`` of the IMU residual of ``J`` padded intervals ``samples = (acc,
+    gyro, dt)``: the primer's ``F`` and ``G`` propagated along the trajectory that starts at the
+    ``reference`` states (leading dimension ``J``) with zero covariance,
+    ``S <- F S F^T + G Q_d G^T`` -- the EKF's own covariance growth over the interval -- then
+    rotated into the residual's body-``i`` coordinates, ``T S T^T`` with
+    ``T = diag(C_i^T, I, C_i^T, I, I)``."""
+    acc, gyro, dt = samples
+    J, K = dt.shape
+    state = reference
+    S = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
+    for k in range(K):
+        state, F, G = imu.propagate(state, acc[:, k], gyro[:, k], dt[:, k], gravity)
+        Q = noise.discrete_covariance(dt[:, k])
+        S = F @ S @ np.swapaxes(F, 1, 2) + G @ Q @ np.swapaxes(G, 1, 2)
+    eye = np.eye(3)
+    T = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
+    Ct = np.swapaxes(reference.C, -1, -2)
+    T[:, imu.R, imu.R] = Ct
+    T[:, imu.V, imu.V] = eye
+    T[:, imu.PHI, imu.PHI] = Ct
+    T[:, imu.BF, imu.BF] = eye
+    T[:, imu.BW, imu.BW] = eye
+    cov = T @ S @ np.swapaxes(T, 1, 2)
+    return 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
 
 def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:
