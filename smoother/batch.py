@@ -17,6 +17,7 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors.chart import state_covariance_to_primer
+from factors.keys import KeyframeKeys
 from smoother.errors import UserError
 from smoother.graph import Problem, read_state
 
@@ -80,13 +81,11 @@ def _optimizer(optimizer: str, graph, values, params):
     return cls(graph, values, params)
 
 
-def keyframe_covariances(graph, values, problem: Problem, which=None) -> np.ndarray:
-    """Primer-convention 15x15 covariances of the keyframes ``which`` (default: all)."""
+def keyframe_covariances(graph, values, keys: list[KeyframeKeys]) -> np.ndarray:
+    """Primer-convention 15x15 covariances of the keyframes with ``keys``."""
     marginals = gtsam.Marginals(graph, values)
-    which = range(len(problem.keys)) if which is None else which
     out = []
-    for k in which:
-        kk = problem.keys[k]
+    for kk in keys:
         joint = marginals.jointMarginalCovariance(gtsam.KeyVector(kk.all())).fullMatrix()
         out.append(state_covariance_to_primer(joint, values.atRot3(kk.rot)))
     return np.stack(out)
@@ -100,7 +99,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
     opt = _optimizer(optimizer, problem.graph, problem.initial, params)
     try:
         values = opt.optimize()
-        cov = keyframe_covariances(problem.graph, values, problem) if covariances else None
+        cov = keyframe_covariances(problem.graph, values, problem.keys) if covariances else None
     except RuntimeError as error:
         if "ndeterminant" in str(error):
             raise explain_indeterminant(error, problem) from None
