@@ -35,11 +35,13 @@ line up -- ``b = +-pi/2`` for Tait-Bryan (gimbal lock), ``b = 0`` or ``pi`` for 
 degenerate case) -- only a sum or difference of the first and third angles is determined. Then the
 angle applied LAST in the body-fixed order -- the third angle of an intrinsic name, the first angle
 of an extrinsic name (for roll-pitch-yaw: the roll) -- is set to 0 and the other one carries the
-whole rotation, so ``to_matrix(from_matrix(C))`` still reproduces ``C``. This matches
-``quaternion.matrix_to_rpy``. The test for "singular" is ``|cos b|`` (or ``|sin b|``) below
-``quaternion.GIMBAL_LOCK_COS``; in any case the first angle is computed from what is left of ``C``
-once the other two are removed, so the result reproduces ``C`` to round-off even for matrices just
-off the singularity, where the angles themselves are ill-conditioned.
+whole rotation, so ``to_matrix(from_matrix(C))`` still reproduces ``C``. This is the choice of
+``quaternion.matrix_to_rpy``. "Singular" means ``|cos b|`` (or ``|sin b|``), as read from ``C``,
+below :data:`SINGULAR_TOLERANCE` (1e-14: exact lock computed in floating point gives about 1e-16;
+snapping to the singular solution moves ``C`` by at most about this much). Off the singularity the
+first angle is computed from what is left of ``C`` once the other two rotations are removed, not
+from its own pair of entries, so the result reproduces ``C`` to round-off even just off the
+singularity, where the angles themselves are ill-conditioned.
 """
 from __future__ import annotations
 
@@ -47,7 +49,6 @@ import numpy as np
 
 from factors import quaternion
 from factors.axis_angle import check_rotation_matrix, check_vector
-from factors.quaternion import GIMBAL_LOCK_COS
 
 _AXES = "xyz"
 
@@ -58,6 +59,10 @@ SEQUENCES = TAIT_BRYAN + PROPER_EULER
 
 #: All 24 convention names: ``'r'`` (intrinsic) and ``'s'`` (extrinsic) for each sequence.
 CONVENTIONS = tuple("r" + s for s in SEQUENCES) + tuple("s" + s for s in SEQUENCES)
+
+#: Below this ``|cos b|`` (Tait-Bryan) or ``|sin b|`` (proper Euler) :func:`from_matrix` treats the
+#: middle angle as singular and sets the body-most angle to 0.
+SINGULAR_TOLERANCE = 1e-14
 
 #: The project's roll-pitch-yaw: angles ``(roll, pitch, yaw)``, ``C = R_z(yaw) R_y(pitch) R_x(roll)``.
 ROLL_PITCH_YAW = "sxyz"
@@ -151,7 +156,7 @@ def _intrinsic_from_matrix(C: np.ndarray, i: int, j: int, k: int) -> np.ndarray:
         # M = R_x(a) R_y(b) R_x(c): M00 = cos b, (M01, M02) = sin b (sin c, cos c).
         sin_b = np.hypot(M[..., 0, 1], M[..., 0, 2])
         b = np.arctan2(sin_b, M[..., 0, 0])
-        singular = sin_b < GIMBAL_LOCK_COS
+        singular = sin_b < SINGULAR_TOLERANCE
         c = np.where(singular, 0.0, np.arctan2(M[..., 0, 1], M[..., 0, 2]))
         third = elementary(0, c)
     else:
@@ -160,7 +165,7 @@ def _intrinsic_from_matrix(C: np.ndarray, i: int, j: int, k: int) -> np.ndarray:
         # M02 = sin b, (M00, M01) = cos b (cos c', -sin c') with c' = sign c.
         cos_b = np.hypot(M[..., 0, 0], M[..., 0, 1])
         b = np.arctan2(M[..., 0, 2], cos_b)
-        singular = cos_b < GIMBAL_LOCK_COS
+        singular = cos_b < SINGULAR_TOLERANCE
         c_canonical = np.where(singular, 0.0, np.arctan2(-M[..., 0, 1], M[..., 0, 0]))
         c = sign * c_canonical
         third = elementary(2, c_canonical)
