@@ -1,0 +1,163 @@
+"""Errors of the dataset loaders, and the small text-parsing helpers that raise them.
+
+Every malformed input becomes one :class:`DataError` (a ``ValueError``) whose message names the
+file, the 1-based line, the field, what was found and what was expected, e.g.::
+
+    /data/imu.txt, line 12, field 'accelY': found 'nan'; expected a finite number
+
+Loaders never let an exception from deep inside NumPy or GTSAM escape for bad input, and never
+return silently wrong data: a row they cannot read is an error, not a skipped row.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+#: Found values longer than this are shortened in messages (fuzzed input can be huge).
+_MAX_SHOWN = 60
+
+
+def _shown(found) -> str:
+    text = found if isinstance(found, str) else str(found)
+    if isinstance(found, str):
+        text = repr(found)
+    if len(text) > _MAX_SHOWN:
+        text = text[: _MAX_SHOWN - 3] + "..."
+    return text
+
+
+class DataError(ValueError):
+    """Malformed input data. ``path``, ``line`` (1-based, or None for the file as a whole),
+    ``field`` (or None), ``found`` and ``expected`` are kept as attributes."""
+
+    def __init__(self, path, line: int | None, field: str | None, found, expected: str):
+        self.path = str(path)
+        self.line = line
+        self.field = field
+        self.found = found
+        self.expected = expected
+        where = self.path
+        if line is not None:
+            where += f", line {line}"
+        if field is not None:
+            where += f", field '{field}'"
+        super().__init__(f"{where}: found {_shown(found)}; expected {expected}")
+
+
+def read_lines(path) -> list[str]:
+    """The lines of a UTF-8 text file (without line ends); a :class:`DataError` naming the file
+    if it is missing, unreadable or not text."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DataError(path, None, None, "no such file", "an existing, readable file") from None
+    except IsADirectoryError:
+        raise DataError(path, None, None, "a directory", "a file") from None
+    except OSError as error:
+        raise DataError(path, None, None, f"an unreadable file ({error.strerror})", "a readable file") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise DataError(path, line, None, f"byte 0x{data[error.start]:02x}", "UTF-8 text") from None
+    if "\x00" in text:
+        line = text[: text.index("\x00")].count("\n") + 1
+        raise DataError(path, line, None, "a NUL character", "text") from None
+    return text.splitlines()
+
+
+def number(token: str, path, line: int, field: str) -> float:
+    """``token`` as a finite float, or a :class:`DataError` naming ``path``, ``line``, ``field``."""
+    try:
+        value = float(token)
+    except (ValueError, TypeError):
+        raise DataError(path, line, field, token, "a number") from None
+    if "_" in token or not math.isfinite(value):
+        raise DataError(path, line, field, token, "a finite number")
+    return value
+
+
+def integer(token: str, path, line: int, field: str) -> int:
+    """``token`` as a (64-bit) integer, e.g. a nanosecond time stamp."""
+    text = token.strip()
+    body = text[1:] if text[:1] in "+-" else text
+    if not body.isascii() or not body.isdigit():
+        raise DataError(path, line, field, token, "an integer")
+    value = int(text)
+    if not -(2**63) <= value < 2**63:
+        raise DataError(path, line, field, token, "an integer that fits in 64 bits")
+    return value
+
+
+def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str], integer_fields=()) -> np.ndarray:
+    """Parse ``rows`` (pairs of 1-based line number and tokens) into a float array of shape
+    ``(len(rows), len(fields))``. Columns named in ``integer_fields`` are parsed as integers and
+    returned in a separate int64 array: the result is ``(floats, ints)`` with the integer
+    columns of ``floats`` set to 0 (the caller uses ``ints`` for them)."""
+    n, m = len(rows), len(fields)
+    out = np.zeros((n, m))
+    int_cols = [fields.index(f) for f in integer_fields]
+    ints = np.zeros((n, len(int_cols)), dtype=np.int64)
+    for i, (line, tokens) in enumerate(rows):
+        if len(tokens) != m:
+            if len(tokens) < m:
+                field = fields[len(tokens)]
+                raise DataError(path, line, field, f"{len(tokens)} fields", f"{m} fields ({', '.join(fields)})")
+            raise DataError(path, line, None, f"{len(tokens)} fields", f"{m} fields ({', '.join(fields)})")
+        for j, token in enumerate(tokens):
+            if j in int_cols:
+                ints[i, int_cols.index(j)] = integer(token, path, line, fields[j])
+            else:
+                out[i, j] = number(token, path, line, fields[j])
+    return out, ints
+
+
+def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
+    """Raise a :class:`DataError` at the first time stamp that does not increase strictly."""
+    t = np.asarray(t)
+    if t.size < 2:
+        return
+    step = np.diff(t)
+    bad = np.flatnonzero(step <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        what = "a duplicate of" if step[i - 1] == 0 else "earlier than"
+        raise DataError(
+            path, int(lines[i]), field, f"{t[i]!r}, {what} line {int(lines[i - 1])} ({t[i - 1]!r})",
+            "strictly increasing time stamps",
+        )
+
+
+def check_unit_quaternions(path, q: np.ndarray, lines, field: str, tolerance: float) -> np.ndarray:
+    """Check ``| |q| - 1 | <= tolerance`` row by row and return the normalised quaternions."""
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > tolerance)
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(
+            path, int(lines[i]), field, f"a quaternion of norm {norm[i]:.9g}",
+            f"a unit quaternion (norm 1 within {tolerance:g})",
+        )
+    return q / norm[:, None]
+
+
+def data_rows(lines: list[str], split, comment: str = "#", skip: int = 0) -> list[tuple[int, list[str]]]:
+    """Non-blank, non-comment lines after the first ``skip`` as ``(1-based line, tokens)``."""
+    rows = []
+    for index in range(skip, len(lines)):
+        text = lines[index].strip()
+        if not text or (comment and text.startswith(comment)):
+            continue
+        rows.append((index + 1, split(text)))
+    return rows
+
+
+def require_rows(path, rows, n_lines: int, minimum: int, what: str) -> None:
+    """At least ``minimum`` data rows, else a :class:`DataError` pointing after the last line."""
+    if len(rows) < minimum:
+        found = "an empty file" if n_lines == 0 else f"{len(rows)} data line{'s' if len(rows) != 1 else ''}"
+        raise DataError(path, max(n_lines, 1) if len(rows) == 0 else rows[-1][0], None, found,
+                        f"at least {minimum} {what}")

@@ -1,0 +1,438 @@
+"""EuRoC MAV / ASL dataset folders: IMU samples, ground truth and (on request) synthetic pose or
+position measurements drawn from the ground truth.
+
+Layout read (``folder`` is the sequence folder holding ``mav0/`` or ``mav0/`` itself)::
+
+    mav0/imu0/data.csv                        IMU samples
+    mav0/imu0/sensor.yaml                     T_BS of the IMU, noise densities
+    mav0/state_groundtruth_estimate0/data.csv ground truth
+    mav0/state_groundtruth_estimate0/sensor.yaml   T_BS of the ground truth's frame
+
+CSV files: comma separated, one header line (optional) starting with ``#``, column names with or
+without a unit in brackets and with or without spaces after the commas (``#timestamp [ns],w_RS_S_x
+[rad s^-1],...``, ``#timestamp, p_RS_R_x [m], ...``, ``#timestamp,...``): columns are found by
+name, so their order does not matter; without a header the standard EuRoC order is assumed.
+Time stamps are integer nanoseconds (>= 0).
+
+Frames (ASL convention: ``T_BS`` in a sensor's ``sensor.yaml`` maps that sensor's frame S into the
+rig's body frame B, ``p_B = T_BS p_S``; ``p_RS_R`` is the position of S in the reference frame R,
+``q_RS`` (w, x, y, z, Hamilton) the rotation from S to R; ``v_RS_R`` the velocity of S's origin
+in R; ``b_w_RS_S``, ``b_a_RS_S`` the gyro and accelerometer biases in S):
+
+* the project's world frame I is the ground truth's reference frame R (z up, gravity
+  ``(0, 0, -9.81)`` by default);
+* the project's body frame B is the IMU's sensor frame ``S_imu``: IMU samples are used as they
+  are (``w_RS_S`` -> ``gyro``, ``a_RS_S`` -> ``acc``). NOTE: this is not EuRoC's rig frame B;
+* the ground truth describes the frame ``S_gt`` of ``state_groundtruth_estimate0`` (identity
+  ``T_BS`` in the real dataset, so there it IS the IMU). With ``X = T_{B S_gt}^-1 T_{B S_imu} =
+  (R_x, p_x)`` (the IMU in ``S_gt``), the IMU's state is ``C = C_gt R_x``, ``r = r_gt + C_gt
+  p_x``, world velocity ``v_gt + (C_gt w_gt) x (C_gt p_x)`` with ``w_gt`` the body rate of the
+  ground truth by central differences of its attitudes (one-sided at the ends), then rotated into
+  the body frame, ``B_v = C^T I_v`` (the file's velocity is in the WORLD frame; ``ImuState.v``
+  is in the BODY frame), and biases ``R_x^T b`` (vectors re-expressed in ``S_imu``).
+
+Times: ``ImuSamples.t_ns`` keeps the integer stamps exactly; ``ImuSamples.t`` and all other
+times (ground truth, measurements) are float seconds relative to the FIRST IMU STAMP OF THE
+DATASET, ``(t_ns - t_ns[0]) * 1e-9`` computed from integers, so they keep sub-microsecond
+precision (seconds since 1970 in a float64 only resolve ~0.2 us). The dataset covers the span of
+the ground truth: IMU samples before the first or after the last ground-truth stamp are dropped,
+and the ground truth is kept over the IMU samples' span. The initial state is the ground truth
+at the first IMU stamp, interpolated (linearly for vectors; ``C_a exp(s log(C_a^T C_b))`` for the
+attitude) between the two ground-truth samples around it.
+
+Noise: the densities of ``imu0/sensor.yaml`` (``accelerometer_noise_density``,
+``gyroscope_noise_density``, ``accelerometer_random_walk``, ``gyroscope_random_walk``; EuRoC
+gives them as continuous-time densities) where present, else :class:`ImuNoise`'s defaults, or
+``noise`` if given. Initial covariance: diagonal with sigmas :data:`INITIAL_SIGMAS` (position,
+velocity, attitude, accelerometer bias, gyro bias; attitude in the world frame, left
+perturbation, as everywhere in the project).
+
+``sensor.yaml`` is read by a small parser (no PyYAML dependency): top-level ``key: value`` lines
+(``#`` comments allowed) and the ``T_BS`` block ``T_BS:`` / ``cols: 4`` / ``rows: 4`` /
+``data: [16 numbers]`` (the list may span lines; ``{cols: 4, rows: 4, data: [...]}`` on one line
+works too). ``T_BS`` must be a rigid transform: last row ``0 0 0 1`` and a rotation part with
+``|R R^T - I| <= 1e-5`` and det > 0 (it is then projected onto SO(3)).
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datasets import from_truth
+from datasets.errors import DataError, check_unit_quaternions, integer, number, read_lines
+from datasets.types import Dataset, ImuSamples, Trajectory
+from factors import quaternion, so3
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+
+IMU_COLUMNS = ["timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z"]
+GROUNDTRUTH_COLUMNS = [
+    "timestamp", "p_RS_R_x", "p_RS_R_y", "p_RS_R_z", "q_RS_w", "q_RS_x", "q_RS_y", "q_RS_z",
+    "v_RS_R_x", "v_RS_R_y", "v_RS_R_z", "b_w_RS_S_x", "b_w_RS_S_y", "b_w_RS_S_z",
+    "b_a_RS_S_x", "b_a_RS_S_y", "b_a_RS_S_z",
+]
+#: Accepted deviation of a ground-truth quaternion's norm from 1 (then normalised).
+QUATERNION_TOLERANCE = 1e-3
+#: Accepted deviation of T_BS's rotation part from orthonormality.
+ROTATION_TOLERANCE = 1e-5
+#: Initial-state sigmas: position [m], velocity [m/s], attitude [rad], acc bias [m/s^2], gyro bias [rad/s].
+INITIAL_SIGMAS = (0.01, 0.01, 0.01, 0.05, 0.002)
+#: sensor.yaml keys of the IMU noise densities and the ImuNoise fields they set.
+NOISE_KEYS = {
+    "accelerometer_noise_density": "acc",
+    "gyroscope_noise_density": "gyro",
+    "accelerometer_random_walk": "acc_bias",
+    "gyroscope_random_walk": "gyro_bias",
+}
+
+
+# ------------------------------------------------------------------------------------------
+# sensor.yaml
+
+
+@dataclass(frozen=True)
+class SensorYaml:
+    """What is read from a ``sensor.yaml``: ``T_BS`` (4x4) and the top-level scalar values."""
+
+    T_BS: np.ndarray
+    values: dict
+    lines: dict  # key -> 1-based line, for messages
+
+
+def _strip_comment(text: str) -> str:
+    return text.split("#", 1)[0].rstrip()
+
+
+def read_sensor_yaml(path) -> SensorYaml:
+    """Read ``T_BS`` and the top-level scalars of an ASL ``sensor.yaml``."""
+    path = Path(path)
+    lines = read_lines(path)
+    values: dict = {}
+    where: dict = {}
+    index = 0
+    T = None
+    while index < len(lines):
+        raw = lines[index]
+        text = _strip_comment(raw)
+        if not text.strip() or text.lstrip().startswith("%"):
+            index += 1
+            continue
+        if raw[:1] in " \t":  # indented line outside a block we know: part of a block we skip
+            index += 1
+            continue
+        match = re.match(r"^([A-Za-z_][\w]*)\s*:(.*)$", text)
+        if not match:
+            raise DataError(path, index + 1, None, raw.strip(), "'key: value' (YAML)")
+        key, rest = match.group(1), match.group(2).strip()
+        if key == "T_BS":
+            T, index = _read_matrix_block(path, lines, index, rest)
+            where[key] = index
+            continue
+        values[key] = rest
+        where[key] = index + 1
+        index += 1
+    if T is None:
+        raise DataError(path, max(len(lines), 1), "T_BS", "no T_BS block", "a 'T_BS:' block with cols, rows, data")
+    return SensorYaml(T, values, where)
+
+
+def _read_matrix_block(path, lines: list[str], index: int, rest: str):
+    """Parse the ``T_BS`` block starting at line ``index``; returns (4x4 transform, next index)."""
+    start = index
+    block: dict = {}
+    block_lines: dict = {}
+    if rest:  # flow style: {cols: 4, rows: 4, data: [...]}, possibly over several lines
+        text = rest
+        while text.count("{") > text.count("}") and index + 1 < len(lines):
+            index += 1
+            text += " " + _strip_comment(lines[index]).strip()
+        index += 1
+        match = re.fullmatch(r"\{(.*)\}", text.strip())
+        if not match:
+            raise DataError(path, start + 1, "T_BS", rest, "a block of cols, rows, data")
+        body = match.group(1)
+        for key in ("cols", "rows"):
+            m = re.search(rf"\b{key}\s*:\s*([^,\]]+)", body)
+            if m:
+                block[key], block_lines[key] = m.group(1).strip(), start + 1
+        m = re.search(r"\bdata\s*:\s*\[([^\]]*)\]", body)
+        if m:
+            block["data"], block_lines["data"] = m.group(1), start + 1
+    else:
+        index += 1
+        while index < len(lines):
+            raw = lines[index]
+            text = _strip_comment(raw)
+            if not text.strip():
+                index += 1
+                continue
+            if raw[:1] not in " \t":
+                break
+            m = re.match(r"^\s+([A-Za-z_]\w*)\s*:(.*)$", text)
+            if not m:
+                raise DataError(path, index + 1, "T_BS", raw.strip(), "an indented 'cols:', 'rows:' or 'data:' line")
+            key, value = m.group(1), m.group(2).strip()
+            block_lines[key] = index + 1
+            if key == "data":
+                if not value.startswith("["):
+                    raise DataError(path, index + 1, "T_BS.data", value, "a list '[...]' of 16 numbers")
+                while "]" not in value and index + 1 < len(lines):
+                    index += 1
+                    value += " " + _strip_comment(lines[index]).strip()
+                if "]" not in value:
+                    raise DataError(path, index + 1, "T_BS.data", "end of file", "a closing ']'")
+                value = value[1: value.index("]")]
+                if _strip_comment(lines[index]).strip().split("]", 1)[1].strip():
+                    raise DataError(path, index + 1, "T_BS.data", lines[index].strip(), "nothing after ']'")
+            block[key] = value
+            index += 1
+    for key in ("cols", "rows"):
+        if key not in block:
+            raise DataError(path, start + 1, f"T_BS.{key}", "no such entry", f"'{key}: 4'")
+        if integer(block[key], path, block_lines[key], f"T_BS.{key}") != 4:
+            raise DataError(path, block_lines[key], f"T_BS.{key}", block[key], "4")
+    if "data" not in block:
+        raise DataError(path, start + 1, "T_BS.data", "no such entry", "'data: [...]' with 16 numbers")
+    line = block_lines["data"]
+    tokens = [tok.strip() for tok in block["data"].split(",")]
+    if tokens and tokens[-1] == "":
+        tokens = tokens[:-1]
+    if len(tokens) != 16:
+        raise DataError(path, line, "T_BS.data", f"{len(tokens)} numbers", "16 numbers (4 x 4, row major)")
+    T = np.array([number(tok, path, line, "T_BS.data") for tok in tokens]).reshape(4, 4)
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise DataError(path, line, "T_BS.data", f"last row {T[3].tolist()}", "0, 0, 0, 1")
+    R = T[:3, :3]
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+        raise DataError(
+            path, line, "T_BS.data", f"a rotation part with |R R^T - I| = {err:.3g}, det {np.linalg.det(R):.6g}",
+            f"a rotation (|R R^T - I| <= {ROTATION_TOLERANCE:g}, det > 0)",
+        )
+    T = T.copy()
+    T[:3, :3] = so3.project(R)
+    return T, index
+
+
+# ------------------------------------------------------------------------------------------
+# CSV files
+
+
+def _normalise(name: str) -> str:
+    return re.sub(r"\[[^\]]*\]", "", name).replace(" ", "").replace("\t", "").lower()
+
+
+def _read_asl_csv(path, columns: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read an ASL CSV file; returns (int64 stamps, float values of the other columns in the
+    order of ``columns[1:]``, 1-based line numbers)."""
+    path = Path(path)
+    lines = read_lines(path)
+    first = next((i for i, text in enumerate(lines) if text.strip()), None)
+    if first is None:
+        raise DataError(path, max(len(lines), 1), None, "an empty file", f"a header '#{','.join(columns)}' and data lines")
+    header_text = lines[first].strip()
+    first_token = header_text.split(",")[0].strip()
+    has_header = header_text.startswith("#") or not re.fullmatch(r"[+-]?\d+", first_token)
+    if has_header:
+        names = [_normalise(tok) for tok in header_text.lstrip("#").split(",")]
+        if names and names[-1] == "" and len(names) > 1:
+            names = names[:-1]
+        if not names or names[0] not in ("timestamp", "time", "t"):
+            raise DataError(path, first + 1, "header", header_text, "a first column named timestamp")
+        order = []
+        for col in columns[1:]:
+            key = col.lower()
+            if key not in names:
+                raise DataError(path, first + 1, col, "a header without this column", f"a column named {col}")
+            if names.count(key) > 1:
+                raise DataError(path, first + 1, col, "this column twice", "each column once")
+            order.append(names.index(key))
+        width = len(names)
+        name_of = {0: columns[0]}
+        for col, j in zip(columns[1:], order):
+            name_of[j] = col
+        start = first + 1
+    else:
+        order = list(range(1, len(columns)))
+        width = len(columns)
+        name_of = dict(enumerate(columns))
+        start = first
+    stamps, values, line_numbers = [], [], []
+    for index in range(start, len(lines)):
+        text = lines[index].strip()
+        if not text or text.startswith("#"):
+            continue
+        line = index + 1
+        tokens = text.split(",")
+        if len(tokens) == width + 1 and tokens[-1].strip() == "":
+            tokens = tokens[:-1]
+        if len(tokens) != width:
+            missing = name_of.get(len(tokens), None) if len(tokens) < width else None
+            raise DataError(path, line, missing, f"{len(tokens)} fields", f"{width} comma-separated fields")
+        stamp = integer(tokens[0], path, line, columns[0] + " [ns]")
+        if stamp < 0:
+            raise DataError(path, line, columns[0] + " [ns]", tokens[0], "a time stamp >= 0 (nanoseconds)")
+        stamps.append(stamp)
+        values.append([number(tokens[j], path, line, name_of.get(j, f"column {j + 1}")) for j in order])
+        line_numbers.append(line)
+    if len(stamps) < 2:
+        found = "no data lines" if not stamps else "1 data line"
+        raise DataError(path, len(lines), None, found, "at least 2 data lines")
+    stamps = np.array(stamps, dtype=np.int64)
+    bad = np.flatnonzero(np.diff(stamps) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        what = "a duplicate of" if stamps[i] == stamps[i - 1] else "earlier than"
+        raise DataError(
+            path, line_numbers[i], columns[0] + " [ns]", f"{int(stamps[i])}, {what} line {line_numbers[i - 1]}",
+            "strictly increasing time stamps",
+        )
+    return stamps, np.array(values, dtype=float), np.array(line_numbers)
+
+
+def read_imu_csv(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``imu0/data.csv``: (stamps [ns] int64, acc (N, 3), gyro (N, 3)) in the IMU frame."""
+    stamps, values, _ = _read_asl_csv(path, IMU_COLUMNS)
+    return stamps, values[:, 3:6], values[:, 0:3]
+
+
+@dataclass(frozen=True)
+class GroundTruthCsv:
+    """The columns of ``state_groundtruth_estimate0/data.csv`` as read (frame ``S_gt``)."""
+
+    t_ns: np.ndarray
+    p: np.ndarray
+    q: np.ndarray  # w, x, y, z (normalised)
+    v_world: np.ndarray
+    b_w: np.ndarray
+    b_a: np.ndarray
+
+
+def read_groundtruth_csv(path) -> GroundTruthCsv:
+    stamps, values, lines = _read_asl_csv(path, GROUNDTRUTH_COLUMNS)
+    q = check_unit_quaternions(path, values[:, 3:7], lines, "q_RS_w q_RS_x q_RS_y q_RS_z", QUATERNION_TOLERANCE)
+    return GroundTruthCsv(stamps, values[:, 0:3], q, values[:, 7:10], values[:, 10:13], values[:, 13:16])
+
+
+# ------------------------------------------------------------------------------------------
+# the dataset
+
+
+def _mav0(folder) -> Path:
+    folder = Path(folder)
+    if (folder / "mav0").is_dir():
+        return folder / "mav0"
+    if (folder / "imu0").is_dir():
+        return folder
+    raise DataError(folder, None, None, "a folder without mav0/ or imu0/", "an EuRoC/ASL sequence folder (with mav0/)")
+
+
+def _body_rates(t: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Body angular rate of the attitudes ``C`` at times ``t`` by central differences
+    (one-sided at the ends): ``w_k = log(C_a^T C_b) / (t_b - t_a)``."""
+    n = len(t)
+    a = np.clip(np.arange(n) - 1, 0, n - 1)
+    b = np.clip(np.arange(n) + 1, 0, n - 1)
+    rel = np.swapaxes(C[a], 1, 2) @ C[b]
+    return so3.log(rel) / (t[b] - t[a])[:, None]
+
+
+def _noise_from_yaml(yaml: SensorYaml, path) -> ImuNoise:
+    given = {}
+    for key, field in NOISE_KEYS.items():
+        if key in yaml.values:
+            value = number(yaml.values[key], path, yaml.lines[key], key)
+            if value < 0:
+                raise DataError(path, yaml.lines[key], key, yaml.values[key], "a density >= 0")
+            given[field] = value
+    return ImuNoise(**given)
+
+
+def _interpolate(truth_t_ns: np.ndarray, states: ImuState, t_ns: int) -> ImuState:
+    """The truth at ``t_ns`` (inside the truth's span) by linear/geodesic interpolation."""
+    k = int(np.searchsorted(truth_t_ns, t_ns, side="right")) - 1
+    if truth_t_ns[k] == t_ns or k == len(truth_t_ns) - 1:
+        return states[k]
+    s = float(t_ns - truth_t_ns[k]) / float(truth_t_ns[k + 1] - truth_t_ns[k])
+    a, b = states[k], states[k + 1]
+    C = a.C @ so3.exp(s * so3.log(a.C.T @ b.C))
+    lerp = lambda x, y: (1 - s) * x + s * y  # noqa: E731
+    return ImuState(lerp(a.r, b.r), lerp(a.v, b.v), C, lerp(a.b_f, b.b_f), lerp(a.b_w, b.b_w))
+
+
+def _triple(name: str, value, size: int):
+    try:
+        items = tuple(float(x) for x in value)
+    except TypeError:
+        raise ValueError(f"{name}: expected a tuple of {size} numbers, got {value!r}") from None
+    if len(items) != size:
+        raise ValueError(f"{name}: expected a tuple of {size} numbers, got {value!r}")
+    return items
+
+
+def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noise: ImuNoise | None = None,
+               gravity=DEFAULT_GRAVITY) -> Dataset:
+    """An EuRoC/ASL sequence as a :class:`Dataset` named ``"euroc"`` (see the module docstring).
+
+    ``pose_from_truth=(rate_hz, pos_sigma_m, rot_sigma_rad)`` and ``gps_from_truth=(rate_hz,
+    pos_sigma_m)`` add synthetic pose / position measurements from the ground truth
+    (:mod:`datasets.from_truth`; orientation noise ``C_meas = exp(n) C``), seeded by ``seed``
+    (the two streams get independent generators spawned from it).
+    """
+    pose_args = None if pose_from_truth is None else _triple("pose_from_truth", pose_from_truth, 3)
+    gps_args = None if gps_from_truth is None else _triple("gps_from_truth", gps_from_truth, 2)
+    mav0 = _mav0(folder)
+    imu_yaml_path = mav0 / "imu0" / "sensor.yaml"
+    gt_yaml_path = mav0 / "state_groundtruth_estimate0" / "sensor.yaml"
+    imu_csv = mav0 / "imu0" / "data.csv"
+    gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    imu_yaml = read_sensor_yaml(imu_yaml_path)
+    gt_yaml = read_sensor_yaml(gt_yaml_path)
+    if noise is None:
+        noise = _noise_from_yaml(imu_yaml, imu_yaml_path)
+    imu_ns, acc, gyro = read_imu_csv(imu_csv)
+    gt = read_groundtruth_csv(gt_csv)
+
+    # The dataset spans the IMU samples inside the ground truth's span.
+    inside = (imu_ns >= gt.t_ns[0]) & (imu_ns <= gt.t_ns[-1])
+    if np.count_nonzero(inside) < 2:
+        raise DataError(
+            imu_csv, None, "timestamp", f"{np.count_nonzero(inside)} IMU samples within the ground truth's span "
+            f"[{int(gt.t_ns[0])}, {int(gt.t_ns[-1])}] ns of {gt_csv}", "at least 2",
+        )
+    imu_ns, acc, gyro = imu_ns[inside], acc[inside], gyro[inside]
+    t0_ns = int(imu_ns[0])
+    gt_keep = (gt.t_ns >= t0_ns) & (gt.t_ns <= imu_ns[-1])
+
+    # Ground truth of S_gt -> the IMU frame.
+    X = np.linalg.inv(gt_yaml.T_BS) @ imu_yaml.T_BS
+    R_x, p_x = X[:3, :3], X[:3, 3]
+    C_gt = quaternion.to_matrix(gt.q)
+    t_gt = (gt.t_ns - gt.t_ns[0]) * 1e-9
+    w_gt = _body_rates(t_gt, C_gt)
+    C = C_gt @ R_x
+    lever = C_gt @ p_x
+    r = gt.p + lever
+    v_world = gt.v_world + np.cross(np.einsum("nij,nj->ni", C_gt, w_gt), lever)
+    v_body = np.einsum("nji,nj->ni", C, v_world)
+    states = ImuState(r=r, v=v_body, C=C, b_f=gt.b_a @ R_x, b_w=gt.b_w @ R_x)
+
+    initial = _interpolate(gt.t_ns, states, t0_ns)
+    truth = Trajectory((gt.t_ns[gt_keep] - t0_ns) * 1e-9, states[gt_keep])
+    t = (imu_ns - t0_ns) * 1e-9
+    imu = ImuSamples(t, acc, gyro, t_ns=imu_ns)
+
+    sigmas = np.repeat(INITIAL_SIGMAS, 3)
+    pose = position = None
+    if pose_args is not None or gps_args is not None:
+        pose_seed, gps_seed = np.random.SeedSequence(seed).spawn(2)
+        if pose_args is not None:
+            pose = from_truth.pose_measurements_from_truth(truth, *pose_args, seed=pose_seed)
+        if gps_args is not None:
+            position = from_truth.position_measurements_from_truth(truth, *gps_args, seed=gps_seed)
+    return Dataset(
+        name="euroc", imu=imu, noise=noise, initial=initial, initial_cov=np.diag(sigmas**2),
+        gravity=np.asarray(gravity, dtype=float), pose=pose, position=position, truth=truth,
+    )

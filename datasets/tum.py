@@ -1,0 +1,78 @@
+"""TUM trajectory files: one pose per line, ``t x y z qx qy qz qw``.
+
+Format (as the TUM RGB-D benchmark and evo use it): fields separated by spaces or tabs, lines
+starting with ``#`` and blank lines ignored; ``t`` in seconds, ``(x, y, z)`` the position of the
+body in the world frame, ``(qx, qy, qz, qw)`` the Hamilton quaternion of the body-to-world
+rotation with the scalar LAST. In memory the project keeps quaternions scalar first and attitudes
+as matrices ``C(Phi_IB)`` (see ``factors.quaternion``).
+
+Reading checks every line (8 finite numbers, strictly increasing times, quaternion norm 1 within
+:data:`QUATERNION_TOLERANCE`, then normalised: files written with 6 decimals are off by ~1e-6)
+and raises :class:`datasets.errors.DataError` naming the file, line and field otherwise.
+
+Writing is atomic (``datasets.atomic.atomic_write``) and exact: every number is written with
+Python's ``repr`` of the float, the shortest decimal that reads back to the identical float64,
+so ``read_tum(write_tum(...))`` reproduces times and positions bit for bit (attitudes to
+round-off of the matrix-quaternion conversion). The quaternion is written with ``qw >= 0``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from datasets.atomic import atomic_write
+from datasets.errors import DataError, check_increasing, check_unit_quaternions, data_rows, parse_rows, read_lines, require_rows
+from datasets.types import Trajectory
+from factors import quaternion
+from factors.imu import ImuState
+
+FIELDS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+
+#: Accepted deviation of a quaternion's norm from 1 before it is normalised.
+QUATERNION_TOLERANCE = 1e-3
+
+HEADER = "# timestamp tx ty tz qx qy qz qw (TUM; Hamilton quaternion of body-to-world, scalar last)"
+
+
+def read_tum(path) -> Trajectory:
+    """Read a TUM trajectory file into a :class:`Trajectory` (velocities and biases NaN)."""
+    path = Path(path)
+    lines = read_lines(path)
+    rows = data_rows(lines, str.split)
+    require_rows(path, rows, len(lines), 1, "pose line ('t x y z qx qy qz qw')")
+    values, _ = parse_rows(path, rows, FIELDS)
+    line_numbers = [line for line, _ in rows]
+    t = values[:, 0]
+    check_increasing(path, t, line_numbers, "timestamp")
+    q_xyzw = values[:, 4:8]
+    norm_lines = line_numbers
+    q_xyzw = check_unit_quaternions(path, q_xyzw, norm_lines, "qx qy qz qw", QUATERNION_TOLERANCE)
+    C = quaternion.to_matrix(quaternion.from_xyzw(q_xyzw))
+    n = len(t)
+    nan = np.full((n, 3), np.nan)
+    states = ImuState(r=values[:, 1:4].copy(), v=nan, C=C, b_f=nan.copy(), b_w=nan.copy())
+    return Trajectory(t, states)
+
+
+def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True) -> None:
+    """Write a TUM file atomically from a :class:`Trajectory` or from arrays ``(t, r, C)``
+    (``C`` body-to-world matrices of shape ``(N, 3, 3)``). With ``header`` a ``#`` comment line
+    naming the columns comes first."""
+    if isinstance(trajectory_or_t, Trajectory):
+        if r is not None or C is not None:
+            raise ValueError("write_tum: give either a Trajectory or (t, r, C), not both")
+        traj = trajectory_or_t
+    else:
+        if r is None or C is None:
+            raise ValueError("write_tum: (t, r, C) needs all three arrays")
+        n = len(np.atleast_1d(trajectory_or_t))
+        z = np.zeros((n, 3))
+        traj = Trajectory(trajectory_or_t, ImuState(r=r, v=z, C=C, b_f=z, b_w=z))
+    q = quaternion.to_xyzw(quaternion.from_matrix(traj.C))
+    with atomic_write(path) as handle:
+        if header:
+            handle.write(HEADER + "\n")
+        for k in range(len(traj)):
+            numbers = (traj.t[k], *traj.position[k], *q[k])
+            handle.write(" ".join(repr(float(x)) for x in numbers) + "\n")

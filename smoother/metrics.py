@@ -1,0 +1,455 @@
+"""Trajectory evaluation: time association, alignment, ATE, RPE, NEES and chi-square bounds.
+
+Poses are ``(r, C)``: world positions ``(N, 3)`` and body-to-world attitudes ``(N, 3, 3)``
+(DESIGN.md). The definitions follow the usual ones of the TUM benchmark as evo implements them, so
+that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files (tested to 1e-9):
+
+* :func:`associate`: nearest time stamps within ``max_dt``. The trajectory with fewer poses is
+  walked (the estimate when both have as many), each of its stamps paired with the nearest stamp
+  of the other (the earlier one on a tie) if it is at most ``max_dt`` away. A stamp of the longer
+  trajectory may serve two stamps of the shorter one, as in evo.
+* :func:`umeyama`: least-squares similarity ``dst ~= s R src + t`` (Umeyama 1991); alignment
+  ``'se3'`` is Umeyama without scale applied to the estimate (``r' = R r + t``, ``C' = R C``),
+  ``'posyaw'`` the 4-DoF alignment (translation and a rotation about the world z axis, the
+  direction of gravity: what is unobservable for a visual-inertial or IMU+GPS estimator without
+  an absolute heading), ``'none'`` no alignment.
+* ATE (:func:`ate`): translation error ``|r_ref - r_est'|`` and rotation error, the angle of
+  ``C_ref^T C_est'`` in degrees, per associated pose, after alignment; statistics
+  (:func:`statistics`): RMSE, mean, median, std (population), min, max, SSE.
+* RPE (:func:`rpe`): for pose pairs ``(i, j)`` the error ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``
+  of the reference ``Q`` and estimate ``P``; translation ``|t(E)|`` [m] and rotation angle of
+  ``R(E)`` [deg]. Pairs (evo's semantics): unit ``'frames'`` -> ``(0, d), (d, 2d), ...`` (all
+  ``(i, i + d)`` with ``all_pairs``); unit ``'m'`` -> the next pose after the accumulated path
+  length of the estimate reaches ``delta`` (with ``all_pairs``: for each i the pose whose path
+  distance is nearest to ``delta``, within 10%); unit ``'s'`` (not in evo) -> the same rules on
+  elapsed time instead of path length.
+* NEES (:func:`nees`): error ``e = x_true [-] x_est`` in the estimator's error-state convention
+  (``factors.imu``: vectors subtract, attitude ``log(C_true C_est^T)``, a world-frame LEFT
+  perturbation), ``NEES = e^T P^-1 e`` with P the matching block of the 15x15 error-state
+  covariance; ``part='pose'`` uses ``(r, phi)``: rows/cols 0:3 and 6:9 (6 dims).
+* Chi-square: :func:`chi2_cdf`, :func:`chi2_quantile` (exact, by the regularised incomplete gamma
+  function, no scipy) and :func:`nees_bounds` (two-sided interval of the NEES averaged over M
+  runs: ``M * mean ~ chi2(M d)``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from factors import so3
+
+ALIGN_MODES = ("se3", "posyaw", "none")
+DELTA_UNITS = ("frames", "m", "s")
+#: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
+NEES_PARTS = {
+    "pose": np.r_[0:3, 6:9],
+    "position": np.r_[0:3],
+    "orientation": np.r_[6:9],
+    "velocity": np.r_[3:6],
+    "full": np.r_[0:15],
+}
+
+
+# ------------------------------------------------------------------------------------------
+# association and alignment
+
+
+def associate(t_ref, t_est, max_dt: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``(i_ref, i_est)`` of associated stamps (see the module docstring). Both time
+    arrays must be sorted increasingly."""
+    t_ref, t_est = np.asarray(t_ref, dtype=float), np.asarray(t_est, dtype=float)
+    if not (np.isfinite(max_dt) and max_dt >= 0):
+        raise ValueError(f"max_dt: expected a finite time >= 0, got {max_dt!r}")
+    for name, t in (("t_ref", t_ref), ("t_est", t_est)):
+        if t.ndim != 1 or (t.size > 1 and np.any(np.diff(t) < 0)):
+            raise ValueError(f"{name}: expected sorted 1-D time stamps")
+    if t_ref.size == 0 or t_est.size == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    est_drives = t_est.size <= t_ref.size
+    walk, other = (t_est, t_ref) if est_drives else (t_ref, t_est)
+    upper = np.searchsorted(other, walk, side="right")
+    upper_c = np.minimum(upper, other.size - 1)
+    lower = np.maximum(upper - 1, 0)
+    diff_up = np.where(upper < other.size, other[upper_c] - walk, np.inf)
+    diff_low = np.where(upper > 0, walk - other[lower], np.inf)
+    take_up = diff_up < diff_low
+    best = np.where(take_up, upper_c, lower)
+    diff = np.where(take_up, diff_up, diff_low)
+    ok = diff <= max_dt
+    i_walk = np.flatnonzero(ok)
+    i_other = best[ok]
+    return (i_other, i_walk) if est_drives else (i_walk, i_other)
+
+
+def umeyama(src, dst, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` minimising ``sum |dst_i - (s R src_i + t)|^2`` over rotations ``R``
+    (det +1), translations ``t`` and, with ``with_scale``, a scale ``s`` (else ``s = 1``).
+    ``src``, ``dst``: (N, 3). Raises ``ValueError`` when the points do not determine R
+    (fewer than 3, or all on one line)."""
+    src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ValueError(f"umeyama: expected two (N, 3) arrays of the same shape, got {src.shape} and {dst.shape}")
+    n = len(src)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    cross = b.T @ a / max(n, 1)
+    u, d, vt = np.linalg.svd(cross)
+    scale_ref = max(d[0], np.abs(cross).max(), 1e-300)
+    if n < 3 or np.count_nonzero(d > 1e-12 * scale_ref) < 2:
+        raise ValueError(
+            f"alignment is degenerate: {n} point pairs that do not span a plane (need 3 or more, not collinear)"
+        )
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    R = u @ np.diag(sign) @ vt
+    if with_scale:
+        var_s = np.sum(a * a) / n
+        s = float(np.sum(d * sign) / var_s)
+    else:
+        s = 1.0
+    t = mu_d - s * R @ mu_s
+    return R, t, s
+
+
+def align_posyaw(src, dst) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` with ``R`` a rotation about z minimising ``sum |dst_i - (R src_i + t)|^2``
+    (closed form: the yaw is the angle of ``sum (a_x b_x + a_y b_y) + i (a_x b_y - a_y b_x)`` of
+    the centred points ``a``, ``b``; any yaw is optimal when that sum is 0, then 0 is used)."""
+    src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) == 0:
+        raise ValueError(f"align_posyaw: expected two non-empty (N, 3) arrays, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R, mu_d - R @ mu_s
+
+
+def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` that maps the estimate onto the reference for ``mode`` in :data:`ALIGN_MODES`."""
+    if mode == "se3":
+        return umeyama(est_r, ref_r, with_scale=False)
+    if mode == "posyaw":
+        R, t = align_posyaw(est_r, ref_r)
+        return R, t, 1.0
+    if mode == "none":
+        return np.eye(3), np.zeros(3), 1.0
+    raise ValueError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {mode!r}")
+
+
+def apply_alignment(R, t, s, r, C) -> tuple[np.ndarray, np.ndarray]:
+    """``(s R r + t, R C)``."""
+    r = np.asarray(r, dtype=float)
+    return s * r @ np.asarray(R).T + t, np.asarray(R) @ np.asarray(C, dtype=float)
+
+
+# ------------------------------------------------------------------------------------------
+# error statistics
+
+
+def statistics(errors) -> dict:
+    """RMSE, mean, median, std (population), min, max, SSE and count of ``errors``."""
+    e = np.asarray(errors, dtype=float)
+    if e.size == 0:
+        return {"rmse": math.nan, "mean": math.nan, "median": math.nan, "std": math.nan,
+                "min": math.nan, "max": math.nan, "sse": 0.0, "count": 0}
+    sse = float(np.dot(e, e))
+    return {
+        "rmse": math.sqrt(sse / e.size), "mean": float(np.mean(e)), "median": float(np.median(e)),
+        "std": float(np.std(e)), "min": float(np.min(e)), "max": float(np.max(e)), "sse": sse, "count": int(e.size),
+    }
+
+
+def rotation_angle_deg(C) -> np.ndarray:
+    """Rotation angle in degrees of each matrix in ``C`` (..., 3, 3)."""
+    return np.degrees(np.linalg.norm(so3.log(C), axis=-1))
+
+
+def ate(ref_r, ref_C, est_r, est_C) -> dict:
+    """Absolute trajectory error of associated, already aligned poses: per-pose errors and their
+    statistics, ``{'translation': stats [m], 'rotation': stats [deg], 'translation_errors',
+    'rotation_errors'}``."""
+    ref_r, est_r = np.asarray(ref_r, dtype=float), np.asarray(est_r, dtype=float)
+    trans = np.linalg.norm(ref_r - est_r, axis=1)
+    rot = rotation_angle_deg(np.swapaxes(np.asarray(ref_C, dtype=float), -1, -2) @ np.asarray(est_C, dtype=float))
+    return {"translation": statistics(trans), "rotation": statistics(rot),
+            "translation_errors": trans, "rotation_errors": rot}
+
+
+def _pairs_by_index(n: int, delta: int, all_pairs: bool) -> list[tuple[int, int]]:
+    if all_pairs:
+        return [(i, i + delta) for i in range(n - delta)]
+    ids = list(range(0, n, delta))
+    return list(zip(ids[:-1], ids[1:]))
+
+
+def _pairs_by_accumulation(acc: np.ndarray, delta: float, all_pairs: bool, tol: float) -> list[tuple[int, int]]:
+    """Pairs along a non-decreasing accumulated quantity ``acc`` (path length or time)."""
+    n = len(acc)
+    if all_pairs:
+        pairs = []
+        for i in range(n - 1):
+            ahead = acc[i + 1:] - acc[i]
+            k = int(np.argmin(np.abs(ahead - delta)))
+            if abs(ahead[k] - delta) <= tol:
+                pairs.append((i, i + 1 + k))
+        return pairs
+    ids = [0]
+    since = 0.0
+    for i in range(1, n):
+        since += acc[i] - acc[i - 1]
+        if since >= delta:
+            ids.append(i)
+            since = 0.0
+    return list(zip(ids[:-1], ids[1:]))
+
+
+def rpe_pairs(est_r, t, delta, unit: str = "frames", all_pairs: bool = False, rel_tol: float = 0.1):
+    """The index pairs of :func:`rpe` (see the module docstring)."""
+    n = len(est_r)
+    if unit == "frames":
+        if float(delta) != int(delta) or int(delta) < 1:
+            raise ValueError(f"delta: expected a whole number of frames >= 1, got {delta!r}")
+        return _pairs_by_index(n, int(delta), all_pairs)
+    if not (np.isfinite(delta) and delta > 0):
+        raise ValueError(f"delta: expected a number > 0, got {delta!r}")
+    if unit == "m":
+        step = np.linalg.norm(np.diff(np.asarray(est_r, dtype=float), axis=0), axis=1)
+        acc = np.concatenate([[0.0], np.cumsum(step)])
+    elif unit == "s":
+        acc = np.asarray(t, dtype=float) - float(t[0])
+    else:
+        raise ValueError(f"delta unit: expected one of {', '.join(DELTA_UNITS)}, got {unit!r}")
+    return _pairs_by_accumulation(acc, float(delta), all_pairs, rel_tol * float(delta))
+
+
+def rpe(ref_r, ref_C, est_r, est_C, delta=1, unit: str = "frames", all_pairs: bool = False, t=None) -> dict:
+    """Relative pose error over associated poses: ``{'translation': stats [m], 'rotation':
+    stats [deg], 'pairs', 'translation_errors', 'rotation_errors'}``. ``t`` (the associated
+    times) is needed for ``unit='s'``."""
+    ref_r, est_r = np.asarray(ref_r, dtype=float), np.asarray(est_r, dtype=float)
+    ref_C, est_C = np.asarray(ref_C, dtype=float), np.asarray(est_C, dtype=float)
+    if unit == "s" and t is None:
+        raise ValueError("rpe: unit 's' needs the times t")
+    pairs = rpe_pairs(est_r, t, delta, unit, all_pairs)
+    if not pairs:
+        empty = np.zeros(0)
+        return {"translation": statistics(empty), "rotation": statistics(empty), "pairs": pairs,
+                "translation_errors": empty, "rotation_errors": empty}
+    i, j = np.array(pairs).T
+    QiT, PiT = np.swapaxes(ref_C[i], 1, 2), np.swapaxes(est_C[i], 1, 2)
+    q_rot, q_trans = QiT @ ref_C[j], np.einsum("nab,nb->na", QiT, ref_r[j] - ref_r[i])
+    p_rot, p_trans = PiT @ est_C[j], np.einsum("nab,nb->na", PiT, est_r[j] - est_r[i])
+    q_rotT = np.swapaxes(q_rot, 1, 2)
+    e_rot = q_rotT @ p_rot
+    e_trans = np.einsum("nab,nb->na", q_rotT, p_trans - q_trans)
+    trans = np.linalg.norm(e_trans, axis=1)
+    rot = rotation_angle_deg(e_rot)
+    return {"translation": statistics(trans), "rotation": statistics(rot), "pairs": pairs,
+            "translation_errors": trans, "rotation_errors": rot}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Result of :func:`evaluate`: association, alignment and the two error summaries."""
+
+    i_ref: np.ndarray
+    i_est: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    s: float
+    ate: dict
+    rpe: dict
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary (statistics, alignment; no per-pose arrays)."""
+        return {
+            "pairs": int(len(self.i_ref)),
+            "alignment": {"R": self.R.tolist(), "t": self.t.tolist(), "s": self.s},
+            "ate": {"translation_m": self.ate["translation"], "rotation_deg": self.ate["rotation"]},
+            "rpe": {"translation_m": self.rpe["translation"], "rotation_deg": self.rpe["rotation"]},
+        }
+
+
+def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_dt: float = 0.01,
+             delta=1, delta_unit: str = "frames", all_pairs: bool = False) -> Evaluation:
+    """Associate, align the estimate onto the reference, then ATE and RPE."""
+    if align not in ALIGN_MODES:
+        raise ValueError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
+    i_ref, i_est = associate(ref_t, est_t, max_dt)
+    if i_ref.size == 0:
+        raise ValueError(f"no time stamps of the estimate are within max_dt = {max_dt:g} s of the reference's")
+    rr, rC = np.asarray(ref_r, dtype=float)[i_ref], np.asarray(ref_C, dtype=float)[i_ref]
+    er, eC = np.asarray(est_r, dtype=float)[i_est], np.asarray(est_C, dtype=float)[i_est]
+    R, t, s = alignment(rr, er, align)
+    er, eC = apply_alignment(R, t, s, er, eC)
+    tt = np.asarray(est_t, dtype=float)[i_est]
+    return Evaluation(i_ref, i_est, R, t, s, ate(rr, rC, er, eC), rpe(rr, rC, er, eC, delta, delta_unit, all_pairs, tt))
+
+
+# ------------------------------------------------------------------------------------------
+# NEES
+
+
+def pose_error(r_true, C_true, r_est, C_est) -> np.ndarray:
+    """``(r_true - r_est, log(C_true C_est^T))``, shape (..., 6)."""
+    return np.concatenate(
+        [np.asarray(r_true, dtype=float) - np.asarray(r_est, dtype=float), so3.boxminus(C_true, C_est)], axis=-1
+    )
+
+
+def nees(truth, estimate, cov, part: str = "pose") -> np.ndarray:
+    """Normalised estimation error squared per state: ``e^T P^-1 e`` with
+    ``e = (truth [-] estimate)[idx]`` and ``P = cov[idx, idx]`` for the error-state indices
+    ``idx = NEES_PARTS[part]``. ``truth``, ``estimate``: :class:`factors.imu.ImuState` (one or
+    a batch) or :class:`datasets.types.Trajectory`; ``cov``: (..., 15, 15)."""
+    from factors import imu
+
+    truth = getattr(truth, "states", truth)
+    estimate = getattr(estimate, "states", estimate)
+    if part not in NEES_PARTS:
+        raise ValueError(f"part: expected one of {', '.join(NEES_PARTS)}, got {part!r}")
+    idx = NEES_PARTS[part]
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape[-2:] != (15, 15):
+        raise ValueError(f"cov: expected shape (..., 15, 15), got {cov.shape}")
+    if part == "pose":
+        e = pose_error(truth.r, truth.C, estimate.r, estimate.C)
+    else:
+        e = imu.boxminus(truth, estimate)[..., idx]
+    if not np.all(np.isfinite(e)):
+        raise ValueError(f"nees: the {part} error is not finite (is the truth's velocity or bias unknown?)")
+    P = cov[..., idx[:, None], idx[None, :]]
+    return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
+
+
+# ------------------------------------------------------------------------------------------
+# chi-square distribution without scipy
+
+_EPS = 1e-16
+_MAX_TERMS = 100000
+
+
+def _gamma_p_series(a: float, x: float) -> float:
+    """P(a, x) = x^a e^-x / Gamma(a + 1) * sum_n x^n / ((a + 1) ... (a + n)), good for x < a + 1."""
+    term = 1.0 / a
+    total = term
+    for n in range(1, _MAX_TERMS):
+        term *= x / (a + n)
+        total += term
+        if abs(term) < abs(total) * _EPS:
+            break
+    return total * math.exp(a * math.log(x) - x - math.lgamma(a))
+
+
+def _gamma_q_fraction(a: float, x: float) -> float:
+    """Q(a, x) = 1 - P(a, x) by its continued fraction (modified Lentz), good for x >= a + 1."""
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c = 1.0 / tiny
+    d = 1.0 / b
+    h = d
+    for i in range(1, _MAX_TERMS):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < _EPS:
+            break
+    return math.exp(a * math.log(x) - x - math.lgamma(a)) * h
+
+
+def _gamma_p(a: float, x: float) -> float:
+    if x <= 0:
+        return 0.0
+    if x < a + 1.0:
+        return _gamma_p_series(a, x)
+    return 1.0 - _gamma_q_fraction(a, x)
+
+
+def _gamma_q(a: float, x: float) -> float:
+    if x <= 0:
+        return 1.0
+    if x < a + 1.0:
+        return 1.0 - _gamma_p_series(a, x)
+    return _gamma_q_fraction(a, x)
+
+
+def _check_dof(dof) -> float:
+    dof = float(dof)
+    if not (np.isfinite(dof) and dof > 0):
+        raise ValueError(f"dof: expected degrees of freedom > 0, got {dof!r}")
+    return dof
+
+
+def chi2_cdf(x: float, dof: float) -> float:
+    """P(X <= x) for X ~ chi-square with ``dof`` degrees of freedom."""
+    return _gamma_p(0.5 * _check_dof(dof), 0.5 * float(x))
+
+
+def chi2_sf(x: float, dof: float) -> float:
+    """P(X > x), accurate in the upper tail."""
+    return _gamma_q(0.5 * _check_dof(dof), 0.5 * float(x))
+
+
+def chi2_quantile(p: float, dof: float) -> float:
+    """The ``x`` with ``chi2_cdf(x, dof) = p``, by safeguarded Newton iteration on the regularised
+    incomplete gamma function from a Wilson-Hilferty start (relative accuracy ~1e-12)."""
+    dof = _check_dof(dof)
+    p = float(p)
+    if not 0.0 < p < 1.0:
+        if p == 0.0:
+            return 0.0
+        if p == 1.0:
+            return math.inf
+        raise ValueError(f"p: expected a probability in [0, 1], got {p!r}")
+    a = 0.5 * dof
+    z = NormalDist().inv_cdf(p)
+    h = 2.0 / (9.0 * dof)
+    x = dof * max(1.0 - h + z * math.sqrt(h), 1e-3) ** 3
+    upper_tail = p > 0.5
+    target = 1.0 - p if upper_tail else p
+    lo, hi = 0.0, math.inf
+
+    def residual(v):  # increasing in v
+        return (target - _gamma_q(a, 0.5 * v)) if upper_tail else (_gamma_p(a, 0.5 * v) - target)
+
+    for _ in range(200):
+        f = residual(x)
+        if f > 0:
+            hi = min(hi, x)
+        else:
+            lo = max(lo, x)
+        log_density = (a - 1.0) * math.log(0.5 * x) - 0.5 * x - math.lgamma(a) - math.log(2.0) if x > 0 else -math.inf
+        density = math.exp(log_density)
+        step = f / density if density > 0 else math.inf
+        new = x - step
+        if not (lo < new < hi) or not math.isfinite(new):
+            new = 0.5 * (lo + hi) if math.isfinite(hi) else 2.0 * x + 1.0
+        if abs(new - x) <= 1e-14 * max(abs(x), 1e-300):
+            return new
+        x = new
+    return x
+
+
+def nees_bounds(dim: int, runs: int = 1, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``confidence`` interval for the NEES of dimension ``dim`` averaged over ``runs``
+    independent runs (at one time step): ``[q((1-c)/2), q((1+c)/2)] / runs`` with ``q`` the
+    quantile of chi-square with ``runs * dim`` degrees of freedom."""
+    if int(dim) != dim or dim < 1 or int(runs) != runs or runs < 1:
+        raise ValueError(f"nees_bounds: expected dim >= 1 and runs >= 1 (integers), got {dim!r}, {runs!r}")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence: expected a probability in (0, 1), got {confidence!r}")
+    dof = dim * runs
+    alpha = 1.0 - confidence
+    return chi2_quantile(0.5 * alpha, dof) / runs, chi2_quantile(1.0 - 0.5 * alpha, dof) / runs
