@@ -52,8 +52,8 @@ def check_vector(v, name: str, size: int = 3) -> np.ndarray:
     if v.ndim < 1 or v.shape[-1] != size:
         raise ValueError(f"{name}: expected shape (..., {size}), got {v.shape}")
     if not np.all(np.isfinite(v)):
-        bad = np.argwhere(~np.isfinite(v))[0]
-        raise ValueError(f"{name}: expected finite values, found {v[tuple(bad)]} at index {tuple(bad)}")
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
+        raise ValueError(f"{name}: expected finite values, found {v[bad]} at index {bad}")
     return v
 
 
@@ -67,8 +67,8 @@ def check_matrix(M, name: str, size: int = 3) -> np.ndarray:
     if M.ndim < 2 or M.shape[-2:] != (size, size):
         raise ValueError(f"{name}: expected shape (..., {size}, {size}), got {M.shape}")
     if not np.all(np.isfinite(M)):
-        bad = np.argwhere(~np.isfinite(M))[0]
-        raise ValueError(f"{name}: expected finite values, found {M[tuple(bad)]} at index {tuple(bad)}")
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(M))[0])
+        raise ValueError(f"{name}: expected finite values, found {M[bad]} at index {bad}")
     return M
 
 
@@ -83,7 +83,7 @@ def check_rotation_matrix(C, name: str = "C", tolerance: float = ORTHONORMAL_TOL
     det = np.linalg.det(C)
     bad = (err > tolerance) | (det <= 0.0)
     if np.any(bad):
-        first = tuple(np.argwhere(np.atleast_1d(bad))[0])
+        first = tuple(int(i) for i in np.argwhere(np.atleast_1d(bad))[0])
         index = first if C.ndim > 2 else ()
         raise ValueError(
             f"{name}: expected a rotation matrix (C^T C = I within {tolerance:g}, det C = +1); "
@@ -93,14 +93,21 @@ def check_rotation_matrix(C, name: str = "C", tolerance: float = ORTHONORMAL_TOL
     return C
 
 
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis without underflow for tiny vectors (|v| ~ 1e-200)."""
+    scale = np.abs(v).max(axis=-1)
+    safe = np.where(scale > 0.0, scale, 1.0)
+    return scale * np.linalg.norm(v / safe[..., None], axis=-1)
+
+
 def _check_axis_angle(axis, angle):
     axis = check_vector(axis, "axis")
     norm = np.linalg.norm(axis, axis=-1)
     if np.any(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE):
-        bad = np.argwhere(np.atleast_1d(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE))[0]
+        bad = tuple(int(i) for i in np.argwhere(np.atleast_1d(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE))[0])
         raise ValueError(
             f"axis: expected unit vectors (norm 1 within {ORTHONORMAL_TOLERANCE:g}), "
-            f"found norm {np.atleast_1d(norm)[tuple(bad)]:.9g} at index {tuple(bad)}"
+            f"found norm {np.atleast_1d(norm)[bad]:.9g} at index {bad if axis.ndim > 1 else ()}"
         )
     try:
         angle = np.asarray(angle, dtype=float)
@@ -137,7 +144,7 @@ def from_matrix(C):
     column of the symmetric part (the ``(I + C) e_i`` construction); see the module docstring."""
     C = check_rotation_matrix(C)
     w = so3.vee(C)  # (C - C^T)^v / 2 = sin(angle) n
-    s = np.linalg.norm(w, axis=-1)
+    s = _norm(w)
     c = 0.5 * (np.trace(C, axis1=-2, axis2=-1) - 1.0)
     angle = np.arctan2(s, c)
 
@@ -169,7 +176,7 @@ def from_rotation_vector(phi):
     """``(axis, angle)`` of the rotation vector ``phi``: ``angle = |phi|`` (not wrapped to pi),
     ``axis = phi / |phi|``, and :data:`DEFAULT_AXIS` for ``phi = 0``."""
     phi = check_vector(phi, "phi")
-    angle = np.linalg.norm(phi, axis=-1)
+    angle = _norm(phi)
     nonzero = angle > 0.0
     axis = np.where(nonzero[..., None], phi / np.where(nonzero, angle, 1.0)[..., None], DEFAULT_AXIS)
     return axis, angle
@@ -197,7 +204,7 @@ def from_quaternion(q):
     pi, unlike ``2 arccos(q_0)``), ``axis = q_v / |q_v|``; :data:`DEFAULT_AXIS` at angle 0."""
     q = quaternion.canonical(quaternion.check_unit(q, "q"))
     qv = q[..., 1:]
-    s = np.linalg.norm(qv, axis=-1)
+    s = _norm(qv)
     angle = 2.0 * np.arctan2(s, q[..., 0])
     nonzero = s > 0.0
     axis = np.where(nonzero[..., None], qv / np.where(nonzero, s, 1.0)[..., None], DEFAULT_AXIS)
