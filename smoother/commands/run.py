@@ -1,0 +1,136 @@
+"""``smoother run``: run the estimators on a dataset, write trajectories, metrics and plots."""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+from smoother.errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="run batch, fixed-lag and/or EKF estimation on a dataset")
+    p.add_argument("--dataset", default="synthetic:gentle",
+                   help="synthetic[:PROFILE] (gentle, tumbling, static), kitti, or euroc:PATH (default synthetic:gentle)")
+    p.add_argument("--estimator", default="all", choices=["batch", "fixed-lag", "ekf", "all"],
+                   help="which estimator(s) to run (default all)")
+    p.add_argument("--out", default="out", help="output directory (default ./out)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulator and of synthetic measurements")
+    p.add_argument("--duration", type=float, default=30.0, help="simulated duration [s] (default 30)")
+    p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
+    p.add_argument("--fixed-lag-kind", default="incremental", choices=["incremental", "batch"],
+                   help="GTSAM's IncrementalFixedLagSmoother (iSAM2) or BatchFixedLagSmoother")
+    p.add_argument("--optimizer", default="lm", choices=["lm", "gn", "dogleg"], help="batch optimiser (default lm)")
+    p.add_argument("--keyframe-rate", type=float, default=None,
+                   help="add keyframes on a fixed grid [Hz] besides the measurement times")
+    p.add_argument("--robust", action="append", default=[], metavar="[TYPE=]KERNEL[:T]",
+                   help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for all measurement "
+                        "types or one (pose, position, orientation, relative_pose); repeatable")
+    p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
+                   help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
+    p.add_argument("--outliers", type=float, default=0.0, help="fraction of simulated pose measurements made gross outliers")
+    p.add_argument("--gps-every", type=int, default=1, help="use every K-th GPS fix, hold out the rest (kitti)")
+    p.add_argument("--pose-from-truth", type=float, nargs=3, metavar=("HZ", "POS_M", "ROT_RAD"),
+                   help="pose measurements drawn from the ground truth")
+    p.add_argument("--gps-from-truth", type=float, nargs=2, metavar=("HZ", "POS_M"),
+                   help="position measurements drawn from the ground truth")
+    p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
+    p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
+    p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="never show progress bars")
+    p.set_defaults(handler=run)
+
+
+def parse_robust(specs: list[str]) -> dict:
+    """``["huber"]`` -> the same kernel for every type; ``["pose=cauchy:2"]`` -> per type."""
+    from smoother.graph import robust_spec
+
+    types = ("pose", "position", "orientation", "relative_pose")
+    out: dict = {}
+    for spec in specs:
+        target, sep, kernel = spec.partition("=")
+        if not sep:
+            target, kernel = None, spec
+        elif target not in types:
+            raise UserError(f"--robust {spec}: unknown measurement type {target!r}; expected one of {', '.join(types)}")
+        try:
+            parsed = robust_spec(kernel)
+        except ValueError as error:
+            raise UserError(f"--robust {spec}: {error}") from None
+        for t in (types if target is None else (target,)):
+            out[t] = parsed
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def gate_threshold(probability: float | None, dim: int = 6) -> float | None:
+    """Chi-square threshold for the EKF gate (6-dim pose innovations)."""
+    if probability is None:
+        return None
+    if not 0.0 < probability < 1.0:
+        raise UserError(f"--ekf-gate: expected a probability in (0, 1), got {probability}")
+    from smoother.metrics import chi2_quantile
+
+    return chi2_quantile(probability, dim)
+
+
+def run(args) -> int:
+    from smoother import report, sources
+    from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators
+
+    options = sources.SourceOptions(
+        seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
+        pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
+        gps_from_truth=tuple(args.gps_from_truth) if args.gps_from_truth else None,
+    )
+    if args.gps_every < 1:
+        raise UserError(f"--gps-every: expected a positive integer, got {args.gps_every}")
+    if not args.lag > 0:
+        raise UserError(f"--lag: expected a positive number of seconds, got {args.lag}")
+    dataset = sources.load(args.dataset, options)
+    names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
+    run_options = RunOptions(
+        lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
+        keyframe_rate=args.keyframe_rate, robust=parse_robust(args.robust),
+        ekf_gate=gate_threshold(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
+    )
+    print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
+    started = time.perf_counter()
+    estimates = {}
+    try:
+        for name in names:
+            print(f"running {name} ...", file=sys.stderr)
+            estimates.update(run_estimators(dataset, [name], run_options))
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    except KeyboardInterrupt:
+        if estimates:
+            report.write_outputs(Path(args.out), dataset, estimates, {"interrupted": True})
+            print(f"interrupted: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
+        raise
+    metrics = report.write_outputs(Path(args.out), dataset, estimates, {
+        "dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "total_s": time.perf_counter() - started,
+    })
+    if args.plot:
+        from smoother import plots
+
+        for path in plots.plot_run(Path(args.out)):
+            print(f"wrote {path}", file=sys.stderr)
+    print(format_table(metrics))
+    print(f"outputs in {args.out}/", file=sys.stderr)
+    return 0
+
+
+def format_table(metrics: dict) -> str:
+    """One line per estimator with the headline metrics that exist."""
+    columns = [("ate_rmse_m", "ATE [m]"), ("rot_rmse_deg", "rot [deg]"), ("nees_mean", "NEES/dim"),
+               ("gps_rmse_m", "GPS rms [m]"), ("gps_heldout_rmse_m", "held-out [m]"), ("runtime_s", "time [s]")]
+    present = [(k, h) for k, h in columns if any(k in m for m in metrics.values())]
+    lines = [f"{'estimator':<10}" + "".join(f"{h:>14}" for _, h in present)]
+    for name, m in metrics.items():
+        cells = []
+        for k, _ in present:
+            v = m.get(k, math.nan)
+            cells.append(f"{v:>14.4f}" if v is not None and math.isfinite(v) else f"{'-':>14}")
+        lines.append(f"{name:<10}" + "".join(cells))
+    return "\n".join(lines)

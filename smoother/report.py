@@ -1,0 +1,133 @@
+"""Scoring estimates against a dataset's reference and writing a run's outputs.
+
+Against a ground truth (simulator, EuRoC): ``ate_rmse_m`` (position RMSE, no alignment: truth and
+estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est``) and
+``nees_mean``: the time average of the 6-dim pose NEES (position and primer-boxminus attitude,
+:func:`smoother.metrics.nees`) divided by 6, so 1 is consistent. Against GPS (KITTI):
+``gps_rmse_m`` over every fix and ``gps_heldout_rmse_m`` over the fixes held out of estimation,
+the estimate interpolated linearly to the fix times.
+
+A run directory holds ``<estimator>.tum`` (TUM trajectory), ``<estimator>.npz`` (the full states
+and covariances, for plots), ``truth.npz`` where known, and ``metrics.json``; every file is
+written atomically.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from datasets.atomic import atomic_write
+from datasets.tum import write_tum
+from datasets.types import Dataset, PositionMeasurements, Trajectory
+from factors import imu
+from smoother import metrics
+
+#: Largest time difference [s] at which an estimate is compared with a truth sample.
+MATCH_DT = 1e-6
+
+
+def _match_truth(truth: Trajectory, t: np.ndarray):
+    i_truth, i_est = metrics.associate(truth.t, t, MATCH_DT)
+    return truth.states[i_truth], i_est
+
+
+def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
+    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (NaN without covariances)."""
+    T, i = _match_truth(truth, estimate.t)
+    E = estimate.states[i]
+    result = metrics.ate(T.r, T.C, E.r, E.C)
+    nees_mean = math.nan
+    if estimate.cov is not None:
+        nees_mean = float(np.mean(metrics.nees(T, E, estimate.cov[i], "pose")) / 6.0)
+    return {
+        "ate_rmse_m": result["translation"]["rmse"],
+        "rot_rmse_deg": result["rotation"]["rmse"],
+        "nees_mean": nees_mean,
+        "compared_states": int(len(i)),
+    }
+
+
+def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
+    """RMS distance between measured positions and the estimate interpolated to their times
+    (fixes outside the estimate's time span are not counted)."""
+    if positions is None or len(positions) == 0:
+        return math.nan
+    inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
+    if not inside.any():
+        return math.nan
+    t = positions.t[inside]
+    est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
+    return float(np.sqrt(np.mean(np.sum((est - positions.position[inside]) ** 2, axis=1))))
+
+
+def score(dataset: Dataset, estimate: Trajectory) -> dict:
+    """Every metric the dataset allows for one estimate."""
+    out: dict = {}
+    if dataset.truth is not None:
+        out.update(against_truth(dataset.truth, estimate))
+    if dataset.position is not None or dataset.heldout_positions is not None:
+        parts = [p for p in (dataset.position, dataset.heldout_positions) if p is not None]
+        out["gps_rmse_m"] = position_rmse(_merge(parts), estimate)
+        out["gps_heldout_rmse_m"] = position_rmse(dataset.heldout_positions, estimate)
+    return out
+
+
+def _merge(parts: list[PositionMeasurements]) -> PositionMeasurements:
+    t = np.concatenate([p.t for p in parts])
+    order = np.argsort(t, kind="stable")
+    keep = np.concatenate([[True], np.diff(t[order]) > 0])
+    idx = order[keep]
+    return PositionMeasurements(t[idx], np.concatenate([p.position for p in parts])[idx],
+                                np.concatenate([p.cov for p in parts])[idx])
+
+
+def save_trajectory(path: Path, trajectory: Trajectory) -> None:
+    """A trajectory with its covariances as ``.npz`` (atomic)."""
+    s = trajectory.states
+    arrays = {"t": trajectory.t, "r": s.r, "v": s.v, "C": s.C, "b_f": s.b_f, "b_w": s.b_w}
+    if trajectory.cov is not None:
+        arrays["cov"] = trajectory.cov
+    with atomic_write(path, "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+def load_trajectory(path: Path) -> Trajectory:
+    """Inverse of :func:`save_trajectory`."""
+    with np.load(path) as data:
+        states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
+        return Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
+
+
+def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
+    """Write every estimate (TUM + npz), the truth (npz) and ``metrics.json``; return the metrics."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    for name, est in estimates.items():
+        write_tum(out_dir / f"{name}.tum", est.trajectory)
+        save_trajectory(out_dir / f"{name}.npz", est.trajectory)
+        report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
+    if dataset.truth is not None:
+        save_trajectory(out_dir / "truth.npz", dataset.truth)
+    document = {**report, "_run": extra or {}}
+    with atomic_write(out_dir / "metrics.json") as handle:
+        json.dump(_jsonable(document), handle, indent=2)
+        handle.write("\n")
+    return report
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return None if not math.isfinite(float(x)) else float(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    return x

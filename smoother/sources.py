@@ -1,0 +1,77 @@
+"""Turning a ``--dataset`` spec into a :class:`datasets.types.Dataset`.
+
+``synthetic[:PROFILE]`` (the simulator, default profile ``gentle``), ``kitti`` (GTSAM's shipped
+KITTI IMU + GPS example), ``euroc:PATH`` (an EuRoC/ASL folder). Errors in the spec or the data
+become :class:`smoother.errors.UserError` naming what was wrong.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from datasets.types import Dataset
+from smoother.errors import UserError
+
+
+@dataclass
+class SourceOptions:
+    """Options that shape a dataset: simulator settings and measurements made from truth."""
+
+    seed: int = 0
+    duration: float = 30.0
+    outliers: float = 0.0
+    gps_every: int = 1
+    pose_from_truth: tuple | None = None  # (hz, pos_sigma_m, rot_sigma_rad)
+    gps_from_truth: tuple | None = None  # (hz, pos_sigma_m)
+
+
+def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
+    """The dataset named by ``spec`` (see the module docstring)."""
+    kind, _, arg = spec.partition(":")
+    try:
+        if kind == "synthetic":
+            from datasets.simulate import PROFILES, simulate
+
+            profile = arg or "gentle"
+            if profile not in PROFILES:
+                raise UserError(f"--dataset synthetic:{profile}: unknown profile; expected one of {', '.join(PROFILES)}")
+            if not options.duration > 0:
+                raise UserError(f"--duration: expected a positive number of seconds, got {options.duration}")
+            dataset = simulate(profile=profile, duration=options.duration, seed=options.seed,
+                               outlier_fraction=options.outliers)
+        elif kind == "kitti":
+            from datasets.kitti import load_kitti
+
+            dataset = load_kitti(gps_every=options.gps_every)
+        elif kind == "euroc":
+            from datasets.euroc import load_euroc
+
+            if not arg:
+                raise UserError("--dataset euroc:PATH needs the path of an EuRoC/ASL folder")
+            dataset = load_euroc(arg, pose_from_truth=options.pose_from_truth,
+                                 gps_from_truth=options.gps_from_truth, seed=options.seed)
+        else:
+            raise UserError(f"--dataset {spec!r}: expected synthetic[:PROFILE], kitti or euroc:PATH")
+    except UserError:
+        raise
+    except (ValueError, OSError) as error:
+        raise UserError(str(error)) from None
+    return _with_truth_measurements(dataset, options, kind)
+
+
+def _with_truth_measurements(dataset: Dataset, options: SourceOptions, kind: str) -> Dataset:
+    """Add pose / GPS measurements drawn from the ground truth (``--pose-from-truth``,
+    ``--gps-from-truth``) for datasets other than EuRoC (whose loader does it itself)."""
+    if kind == "euroc" or (options.pose_from_truth is None and options.gps_from_truth is None):
+        return dataset
+    if dataset.truth is None:
+        raise UserError(f"--pose-from-truth/--gps-from-truth: dataset {dataset.name!r} has no ground truth")
+    from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
+
+    changes = {}
+    if options.pose_from_truth is not None:
+        hz, pos, rot = options.pose_from_truth
+        changes["pose"] = pose_measurements_from_truth(dataset.truth, hz, pos, rot, seed=options.seed)
+    if options.gps_from_truth is not None:
+        hz, pos = options.gps_from_truth
+        changes["position"] = position_measurements_from_truth(dataset.truth, hz, pos, seed=options.seed)
+    return replace(dataset, **changes)
