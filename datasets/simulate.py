@@ -47,7 +47,8 @@ w_k^x) v_k + dt_k (C_k^T g + f_k)``; both are prefix products of small matrices 
 homogeneous form), evaluated by recursive doubling in ``log2 N`` batched matrix products. It
 equals :func:`factors.imu.integrate` to round-off (tested); it is about 100x faster.
 
-Measurements, all from the truth (whichever was chosen), at their own rates:
+Measurements, all from the truth (whichever was chosen), at their own rates (pose and position by
+:mod:`datasets.from_truth`, the project's one generator of those, with this module's seeds):
 
 * pose (eqs. 61-63): ``r~ = r + n_p``, ``C~ = exp(n_Phi) C``; ``n_p ~ N(0, sp^2 I)``,
   ``n_Phi ~ N(0, sa^2 I)`` (world frame), ``cov = diag(sp^2 I, sa^2 I)``, ``(sp, sa) = pose_sigma``.
@@ -81,13 +82,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
 from datasets.trajectories import PROFILES, Profile
 from datasets.types import (
     Dataset,
     ImuSamples,
     OrientationMeasurements,
     PoseMeasurements,
-    PositionMeasurements,
     RelativePoseMeasurements,
     Trajectory,
 )
@@ -334,7 +335,8 @@ def simulate(
     if not 0.0 <= outlier_fraction <= 1.0:
         raise ValueError(f"outlier_fraction: expected a fraction in [0, 1], got {outlier_fraction!r}")
     outlier_scale = _sigmas("outlier_scale", outlier_scale, 2)
-    rngs = dict(zip(STREAMS, (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(len(STREAMS)))))
+    seeds = dict(zip(STREAMS, np.random.SeedSequence(seed).spawn(len(STREAMS))))
+    rngs = {name: np.random.default_rng(s) for name, s in seeds.items()}
 
     # --- time, clean IMU
     n = steps + 1
@@ -377,29 +379,28 @@ def simulate(
     )
     initial_cov = _covariance(*np.maximum(np.concatenate([sigma_initial, sigma_bias]), MIN_SIGMA))
 
-    # --- measurements
+    # --- measurements (pose and GPS by datasets.from_truth; its ticks t0 + k / rate fall on the
+    # samples k * stride exactly because the rates were checked to divide imu_rate)
+    truth_trajectory = Trajectory(t, states)
+
     def indices(stride):
         return np.arange(0, n, stride)
 
     pose = None
     pose_outliers = np.zeros(0, dtype=int)
     if strides["pose_rate"]:
-        k = indices(strides["pose_rate"])
-        rng = rngs["pose"]
-        position = states.r[k] + rng.standard_normal((len(k), 3)) * sigma_pose[0]
-        C = so3.boxplus(states.C[k], rng.standard_normal((len(k), 3)) * sigma_pose[1])
-        n_out = int(round(outlier_fraction * len(k)))
+        pose = pose_measurements_from_truth(truth_trajectory, pose_rate, *sigma_pose, seed=seeds["pose"])
+        n_out = int(round(outlier_fraction * len(pose)))
         if n_out:
             rng = rngs["outliers"]
-            pose_outliers = np.sort(rng.choice(len(k), size=n_out, replace=False))
+            pose_outliers = np.sort(rng.choice(len(pose), size=n_out, replace=False))
+            position, C = pose.position.copy(), pose.C.copy()
             position[pose_outliers] += outlier_scale[0] * _unit_vectors(rng, n_out)
             C[pose_outliers] = so3.boxplus(C[pose_outliers], outlier_scale[1] * _unit_vectors(rng, n_out))
-        pose = PoseMeasurements(t[k], position, C, _covariance(*sigma_pose))
+            pose = PoseMeasurements(pose.t, position, C, pose.cov)
     position = None
     if strides["position_rate"]:
-        k = indices(strides["position_rate"])
-        noisy = states.r[k] + rngs["position"].standard_normal((len(k), 3)) * sigma_position[0]
-        position = PositionMeasurements(t[k], noisy, _covariance(*sigma_position))
+        position = position_measurements_from_truth(truth_trajectory, position_rate, *sigma_position, seed=seeds["position"])
     orientation = None
     if strides["orientation_rate"]:
         k = indices(strides["orientation_rate"])
@@ -427,7 +428,7 @@ def simulate(
         position=position,
         orientation=orientation,
         relative_pose=relative_pose,
-        truth=Trajectory(t, states),
+        truth=truth_trajectory,
         clean_imu=ImuSamples(t, f_clean, w_clean),
         pose_outliers=pose_outliers,
         profile=prof.name,

@@ -14,8 +14,9 @@ back into the body frame (``C^T dC/dt = omega^x``)::
                dpitch cos(roll) + dyaw sin(roll) cos(pitch),
                -dpitch sin(roll) + dyaw cos(roll) cos(pitch))
 
-No matrix is inverted, so pitch may pass through +-pi/2. ``tests/datasets/test_simulate.py``
-checks this against finite differences of ``C``.
+This is the body-frame perturbation Jacobian of :mod:`factors.euler` applied to the rates. No
+matrix is inverted, so pitch may pass through +-pi/2. ``tests/datasets/test_simulate.py`` checks
+it against finite differences of ``C``.
 
 Every profile is a sum of sinusoids and linear ramps (:class:`Sinusoids`) except the heading of
 ``gentle``, which follows the horizontal velocity; its rate is ``(v_x a_y - v_y a_x) / (v_x^2 +
@@ -28,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from factors import quaternion
+from factors import euler, quaternion
 
 # --------------------------------------------------------------------------------------------
 # building blocks
@@ -65,13 +66,11 @@ def _stack3(functions, t):
 
 
 def body_rate_from_rpy(rpy: np.ndarray, rpy_rate: np.ndarray) -> np.ndarray:
-    """Body angular rate ``omega_B`` (``C^T dC/dt = omega_B^x``) of ZYX Euler angles and their
-    rates (see the module docstring). Shapes ``(..., 3)``."""
-    rpy, rpy_rate = np.asarray(rpy, dtype=float), np.asarray(rpy_rate, dtype=float)
-    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
-    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
-    dr, dp, dy = rpy_rate[..., 0], rpy_rate[..., 1], rpy_rate[..., 2]
-    return np.stack([dr - dy * sp, dp * cr + dy * sr * cp, -dp * sr + dy * cr * cp], axis=-1)
+    """Body angular rate ``omega_B`` (``C^T dC/dt = omega_B^x``) of roll-pitch-yaw angles and their
+    rates (the formula of the module docstring): the body-frame (right) perturbation Jacobian of
+    :func:`factors.euler.perturbation_jacobian` times the rates. Shapes ``(..., 3)``."""
+    E = euler.perturbation_jacobian(rpy, euler.ROLL_PITCH_YAW, "right")
+    return np.einsum("...ij,...j->...i", E, np.asarray(rpy_rate, dtype=float))
 
 
 # --------------------------------------------------------------------------------------------
