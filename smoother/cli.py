@@ -11,6 +11,7 @@ from smoother.errors import UserError
 #: Modules that contribute sub-commands, in the order they are listed by ``smoother --help``.
 COMMAND_MODULES = [
     "smoother.commands.run",
+    "smoother.commands.crosscheck",
     "smoother.commands.check_jacobians",
     "smoother.commands.evaluate",
 ]

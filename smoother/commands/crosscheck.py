@@ -1,0 +1,50 @@
+"""``smoother crosscheck``: batch, fixed-lag and EKF against each other on simulated runs."""
+from __future__ import annotations
+
+import json
+import sys
+
+from smoother.errors import UserError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("crosscheck", help="check that the three estimators agree where theory says they must")
+    p.add_argument("--profile", default="gentle", help="simulator profile (default gentle)")
+    p.add_argument("--seeds", type=int, default=5, help="Monte Carlo runs (default 5)")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--duration", type=float, default=20.0, help="simulated seconds per run (default 20)")
+    p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(handler=run)
+
+
+def run(args) -> int:
+    from datasets.simulate import PROFILES
+    from smoother.crosscheck import CrosscheckOptions, TARGETS, crosscheck
+    from smoother.progress import progress_bar
+
+    if args.profile not in PROFILES:
+        raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
+    if args.seeds < 2:
+        raise UserError(f"--seeds: expected at least 2 runs, got {args.seeds}")
+    if not args.duration > 0 or not args.lag > 0:
+        raise UserError("--duration and --lag must be positive")
+    options = CrosscheckOptions(args.profile, args.seeds, args.first_seed, args.duration, args.lag)
+    with progress_bar(args.seeds, f"crosscheck {args.profile}", None) as bar:
+        result = crosscheck(options, progress=lambda seed: bar.update(1))
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"crosscheck on '{args.profile}', {args.seeds} seeds x {args.duration:g} s")
+        print(f"  prediction_max_abs_error  {result['prediction_max_abs_error']:.3e}  (< {TARGETS['prediction_max_abs_error']:g})")
+        print(f"  final_state_max_sigma     {result['final_state_max_sigma']:.4f}  (< {TARGETS['final_state_max_sigma']:g})")
+        lo, hi = result["final_cov_trace_ratio_range"]
+        print(f"  final_cov_trace_ratio     {result['final_cov_trace_ratio']:.4f}  (range {lo:.4f}..{hi:.4f}, within 10% of 1)")
+        print(f"  fixed_lag_max_sigma       {result['fixed_lag_max_sigma']:.4f}  (< {TARGETS['fixed_lag_max_sigma']:g})")
+        low, high = result["nees_interval_95"]
+        for name in ("batch", "fixed-lag", "ekf"):
+            print(f"  {name:<10} ATE {result['ate_rmse_m'][name]:.4f} m   NEES/6 {result['nees_mean'][name]:.3f}"
+                  f"  (95% interval {low:.3f}..{high:.3f})")
+        failed = [k for k, v in result["checks"].items() if not v]
+        print("  ok" if result["ok"] else f"  FAILED: {', '.join(failed)}")
+    return 0 if result["ok"] else 1
