@@ -265,7 +265,8 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
 
     # GPS: from fix first_gps on, within the IMU span.
     if first_gps > len(t_gps) - 2:
-        raise ValueError(f"first_gps: {first_gps} leaves fewer than 2 of the {len(t_gps)} GPS fixes in {gps_path}")
+        raise DataError(gps_path, int(gps_lines[-1]), None, f"{len(t_gps)} GPS fixes",
+                        f"at least first_gps + 2 = {first_gps + 2} fixes")
     t_gps, p_gps, gps_lines = t_gps[first_gps:], p_gps[first_gps:], gps_lines[first_gps:]
     t0 = t_gps[0]
     if not imu.t[0] <= t0 < imu.t[-1]:
