@@ -363,8 +363,8 @@ def simulate(
     gyro = w_clean + b_w + white[1] * (noise.gyro / np.sqrt(dt))
 
     # --- truth
-    start = ImuState(kin.r[0], v0, kin.C[0], b_f[0], b_w[0])
     if truth == "discrete":
+        start = ImuState(kin.r[0], v0, kin.C[0], np.zeros(3), np.zeros(3))
         n_v = None
         if noise.velocity > 0:
             n_v = rngs["velocity"].standard_normal((n - 1, 3)) * (noise.velocity / np.sqrt(dt))
@@ -372,9 +372,10 @@ def simulate(
     else:
         states = ImuState(kin.r, kin.body_velocity(), kin.C, b_f, b_w)
 
-    # --- initial estimate
+    # --- initial estimate: the truth at t0 (whichever truth) perturbed
+    first = states[0]
     initial = ImuState(
-        start.r + initial_error[0], start.v + initial_error[1], so3.boxplus(start.C, initial_error[2]),
+        first.r + initial_error[0], first.v + initial_error[1], so3.boxplus(first.C, initial_error[2]),
         np.zeros(3), np.zeros(3),
     )
     initial_cov = _covariance(*np.maximum(np.concatenate([sigma_initial, sigma_bias]), MIN_SIGMA))

@@ -94,14 +94,31 @@ def test_switching_measurements_on_or_off_changes_nothing_else():
 # analytic kinematics against finite differences
 
 
+def _gimbal_lock_times(profile, t):
+    """Times where the profile's pitch crosses +-pi/2 (bisection between grid points ``t``)."""
+
+    def gap(times):
+        return np.abs(PROFILES[profile].evaluate(times).rpy[:, 1]) - np.pi / 2
+
+    g = gap(t)
+    cross = np.flatnonzero(np.sign(g[:-1]) != np.sign(g[1:]))
+    lo, hi = t[cross], t[cross + 1]
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        left = np.sign(gap(mid)) == np.sign(gap(lo))
+        lo, hi = np.where(left, mid, lo), np.where(left, hi, mid)
+    return lo
+
+
 def _times(profile):
-    # tumbling: include times where the pitch is within 1e-3 of +-pi/2 (no inverse anywhere)
+    # tumbling: include the times where the pitch is exactly at +-pi/2 (no inverse anywhere)
     t = np.linspace(0.0, 30.0, 301)
     if profile == "tumbling":
-        pitch = PROFILES["tumbling"].evaluate(np.linspace(0, 30, 300001)).rpy[:, 1]
-        near = np.linspace(0, 30, 300001)[np.abs(np.abs(pitch) - np.pi / 2) < 1e-3]
-        assert len(near) > 0
-        t = np.concatenate([t, near[:20]])
+        lock = _gimbal_lock_times(profile, t)
+        assert len(lock) >= 10
+        pitch = PROFILES[profile].evaluate(lock).rpy[:, 1]
+        np.testing.assert_allclose(np.abs(pitch), np.pi / 2, atol=1e-12)
+        t = np.concatenate([t, lock])
     return t
 
 
@@ -423,8 +440,11 @@ def test_initial_estimate_error_is_a_draw_from_initial_cov():
     assert abs(nees.mean() - 15.0) < Z * np.sqrt(30.0 / len(nees))
 
 
-def test_zero_initial_sigma_means_known_exactly():
-    d = simulate("gentle", duration=1.0, initial_sigma=(0, 0, 0), initial_bias_sigma=(0, 0))
+@pytest.mark.parametrize("truth", ["discrete", "continuous"])
+@pytest.mark.parametrize("clean_imu", ["analytic", "matched"])
+def test_zero_initial_sigma_means_known_exactly(truth, clean_imu):
+    d = simulate("tumbling", duration=1.0, initial_sigma=(0, 0, 0), initial_bias_sigma=(0, 0), truth=truth,
+                 clean_imu=clean_imu)
     np.testing.assert_array_equal(imu.boxminus(d.initial, d.truth.states[0]), 0.0)
     np.testing.assert_allclose(np.diag(d.initial_cov), sim.MIN_SIGMA**2)
 
