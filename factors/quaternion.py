@@ -48,18 +48,22 @@ def check_unit(q: np.ndarray, name: str = "quaternion", tolerance: float = UNIT_
     if q.shape[-1:] != (4,):
         raise ValueError(f"{name}: expected shape (..., 4) (q0, qx, qy, qz), got {q.shape}")
     if not np.all(np.isfinite(q)):
-        bad = np.argwhere(~np.isfinite(q).all(axis=-1))[0]
-        raise ValueError(f"{name}: non-finite value at index {tuple(bad)}")
+        bad = _first_index(~np.isfinite(q).all(axis=-1))
+        raise ValueError(f"{name}: non-finite value at index {bad}")
     norm = np.linalg.norm(q, axis=-1)
     off = np.abs(norm - 1.0) > tolerance
     if np.any(off):
-        bad = np.argwhere(np.atleast_1d(off))[0]
-        found = np.atleast_1d(norm)[tuple(bad)]
+        bad = _first_index(off)
         raise ValueError(
-            f"{name}: not a unit quaternion at index {tuple(bad)}: norm {found:.9g}, "
+            f"{name}: not a unit quaternion at index {bad}: norm {norm[bad]:.9g}, "
             f"expected 1 within {tolerance:g}"
         )
     return q
+
+
+def _first_index(mask: np.ndarray) -> tuple:
+    """Index (a tuple of Python ints, ``()`` for a single quaternion) of the first True in ``mask``."""
+    return tuple(int(i) for i in np.argwhere(mask)[0]) if np.ndim(mask) else ()
 
 
 def normalize(q: np.ndarray) -> np.ndarray:
@@ -165,7 +169,8 @@ def log(q: np.ndarray) -> np.ndarray:
     s = np.linalg.norm(qv, axis=-1)
     small = s < 0.5 * SMALL_ANGLE
     s_safe = np.where(small, 1.0, s)
-    x2 = (s / np.where(q0 > 0, q0, 1.0)) ** 2
+    # x = s / q0 only where the series is used (elsewhere q0 may be ~0 and x^2 would overflow)
+    x2 = (np.where(small, s, 0.0) / np.where(q0 > 0, q0, 1.0)) ** 2
     # 2 atan2(s, q0) / s, and its series (2/q0)(1 - x^2/3 + x^4/5) with x = s/q0.
     scale = np.where(
         small,
