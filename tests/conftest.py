@@ -1,0 +1,30 @@
+"""Shared test configuration: Hypothesis profiles and the import path of ``tests/strategies.py``.
+
+Profiles (choose with ``HYPOTHESIS_PROFILE=<name>``; ``default`` otherwise):
+
+* ``default``: 200 examples per property, no deadline (the first call of a GTSAM wrapper or of
+  numpy's linear algebra can be slow, and timing is not what these tests assert).
+* ``ci``: as ``default`` but derandomised, so that a CI run is reproducible from the commit alone.
+* ``dev``: 30 examples, for a quick edit-and-run loop.
+* ``thorough``: 2000 examples, for an occasional deep run.
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+from hypothesis import HealthCheck, settings
+
+# ``strategies.py`` sits next to this file. pytest's default (prepend) import mode already puts
+# this directory on sys.path because tests/ is not a package; doing it here as well keeps
+# ``import strategies`` working under ``--import-mode=importlib``.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+if _HERE not in sys.path:
+    sys.path.insert(0, _HERE)
+
+_COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("default", max_examples=200, **_COMMON)
+settings.register_profile("ci", max_examples=200, derandomize=True, **_COMMON)
+settings.register_profile("dev", max_examples=30, **_COMMON)
+settings.register_profile("thorough", max_examples=2000, **_COMMON)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))

@@ -1,0 +1,407 @@
+"""factors.quaternion: Hamilton, scalar-first unit quaternions (primer section V).
+
+The centre piece is the primer's consistency table (section V.D), run over rotations in every
+angle regime (down to 1e-12 rad, and within 1e-12 rad of pi and at pi):
+
+    C(q) r == q(r)                     eqs. (35), (36)
+    (q1 o q2)(r) == q1(q2(r))          eqs. (35), (37)
+    C(exp(phi)) == Rodrigues C(phi)    eqs. (36), (38), (21) -- against so3.exp
+    q == exp(log(q)) up to sign        eqs. (38)-(41)
+
+plus the small-angle branches on both sides of ``quaternion.SMALL_ANGLE`` against 60-digit
+references, GTSAM and scipy interoperability, roll-pitch-yaw with gimbal lock, ``check_unit``
+and vectorisation. Tolerances are in units of EPS = 2.2e-16 (see tests/factors/test_so3.py).
+"""
+from __future__ import annotations
+
+import math
+import re
+import warnings
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+import strategies as S
+from factors import quaternion as Q
+from factors import so3
+from strategies import EPS
+
+ROUNDOFF = 8 * EPS
+PRODUCT = 16 * EPS
+
+
+def max_abs(a, b) -> float:
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+
+
+def same_orientation(q1, q2) -> float:
+    """Distance between two quaternions up to the sign ambiguity q ~ -q."""
+    return min(max_abs(q1, q2), max_abs(q1, -np.asarray(q2)))
+
+
+def quaternions(regime="any", min_pi_distance=0.0):
+    """Unit quaternions of both signs: exp of a rotation vector, sometimes negated."""
+    return st.builds(lambda phi, flip: (-1.0 if flip else 1.0) * Q.exp(phi),
+                     S.rotation_vectors(regime, min_pi_distance), st.booleans())
+
+
+def raw_quaternions():
+    """Unit quaternions from normalised 4-vectors: a distribution exp() never produces exactly
+    (any sign of q0, components not tied to a rotation vector's rounding)."""
+    comp = st.floats(-1, 1, allow_nan=False, allow_subnormal=False)
+    return (st.tuples(comp, comp, comp, comp).map(np.array)
+            .filter(lambda q: np.linalg.norm(q) > 0.1).map(lambda q: q / np.linalg.norm(q)))
+
+
+# --------------------------------------------------------------------------- the table of section V.D
+
+
+@given(st.one_of(quaternions(), raw_quaternions()), S.vectors())
+def test_table_row_1_matrix_and_coordinate_map_agree(q, r):
+    # C(q) r == q(r): both round O(10) times on terms of size |r|.
+    assert max_abs(Q.to_matrix(q) @ r, Q.rotate(q, r)) <= PRODUCT * np.abs(r).max()
+
+
+@given(st.one_of(quaternions(), raw_quaternions()), st.one_of(quaternions(), raw_quaternions()), S.vectors())
+def test_table_row_2_composition_is_the_composition_of_maps(q1, q2, r):
+    assert max_abs(Q.rotate(Q.compose(q1, q2), r), Q.rotate(q1, Q.rotate(q2, r))) <= 2 * PRODUCT * np.abs(r).max()
+
+
+@given(S.rotation_vectors())
+def test_table_row_3_exp_matches_rodrigues(phi):
+    C = Q.to_matrix(Q.exp(phi))
+    # absolute agreement at every angle ...
+    assert max_abs(C, so3.exp(phi)) <= ROUNDOFF
+    # ... and relative agreement of the off-diagonal entries, which carry phi itself at tiny
+    # angles (an absolute 1e-15 would not see a wrong first-order term at 1e-9 rad).
+    off = ~np.eye(3, dtype=bool)
+    t = np.linalg.norm(phi)
+    assert max_abs(C[off], so3.exp(phi)[off]) <= ROUNDOFF * min(t, 1.0) + 1e-300
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_table_row_4_exp_of_log_is_the_quaternion_up_to_sign(q):
+    back = Q.exp(Q.log(q))
+    assert same_orientation(back, q) <= ROUNDOFF
+    # the sign convention: log then exp returns the representative with q0 >= 0 ...
+    if abs(q[0]) > 1e-12:
+        assert np.sign(back[0]) == 1.0
+        assert max_abs(back, Q.canonical(q)) <= ROUNDOFF
+
+
+@given(S.rotation_vectors("tiny"))
+def test_table_row_4_at_tiny_angles_is_relatively_exact(phi):
+    # At 1e-12 rad the vector part is ~5e-13; absolute 1e-15 would accept a 0.2% error.
+    q = Q.exp(phi)
+    back = Q.exp(Q.log(q))
+    assert abs(back[0] - q[0]) <= EPS
+    assert max_abs(back[1:], q[1:]) <= ROUNDOFF * np.abs(q[1:]).max() + 1e-300
+
+
+@given(S.unit_vectors())
+def test_table_row_4_at_exactly_pi(axis):
+    q = np.concatenate([[0.0], axis])  # a half turn: q0 = 0 exactly
+    assert same_orientation(Q.exp(Q.log(q)), q) <= ROUNDOFF
+    assert abs(np.linalg.norm(Q.log(q)) - math.pi) <= 4 * EPS
+
+
+# --------------------------------------------------------------------------- exp, log and their branches
+
+
+@given(S.rotation_vectors())
+def test_exp_matches_high_precision_eq_38(phi):
+    ref = S.reference_quaternion_exp(phi)
+    q = Q.exp(phi)
+    assert abs(q[0] - ref[0]) <= 2 * EPS
+    # vector part relatively exact: |qv| = sin(t/2), from 1e-12 rad up to pi
+    assert max_abs(q[1:], ref[1:]) <= 4 * EPS * np.abs(ref[1:]).max() + 1e-300
+
+
+SMALL = Q.SMALL_ANGLE
+SWITCH = [SMALL * (1 + f) for f in (-1e-2, -1e-9, 0.0, 1e-9, 1e-2)] + [1e-12, 1e-9, 1e-6, 1e-3]
+
+
+@pytest.mark.parametrize("t", SWITCH)
+@pytest.mark.parametrize("axis", [np.array([1.0, 0.0, 0.0]), np.array([0.48, -0.6, 0.64])])
+def test_exp_both_sides_of_small_angle_against_reference(t, axis):
+    phi = t * axis
+    ref, q = S.reference_quaternion_exp(phi), Q.exp(phi)
+    assert abs(q[0] - ref[0]) <= EPS
+    assert max_abs(q[1:], ref[1:]) <= 2 * EPS * np.abs(ref[1:]).max()
+
+
+@pytest.mark.parametrize("t", SWITCH)
+@pytest.mark.parametrize("axis", [np.array([0.0, 0.0, 1.0]), np.array([0.48, -0.6, 0.64])])
+def test_log_both_sides_of_its_switch_against_reference(t, axis):
+    # log switches at |qv| = SMALL_ANGLE / 2, i.e. an angle of SMALL_ANGLE, like exp.
+    q = S.reference_quaternion_exp(t * axis)
+    ref = S.reference_quaternion_log(q)
+    assert max_abs(Q.log(q), ref) <= 2 * EPS * np.abs(ref).max()
+
+
+@given(S.rotation_vectors(min_pi_distance=1e-12))
+def test_log_inverts_exp(phi):
+    assert max_abs(Q.log(Q.exp(phi)), phi) <= ROUNDOFF * np.abs(phi).max() + 1e-300
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_log_matches_high_precision_eq_40(q):
+    q = Q.canonical(q)
+    ref = S.reference_quaternion_log(q)
+    # near pi (q0 ~ 0) the angle 2 atan2(|qv|, q0) is absolutely, not relatively, accurate
+    assert max_abs(Q.log(q), ref) <= ROUNDOFF * max(np.abs(ref).max(), 1.0) * (1 if q[0] > 1e-3 else 2)
+
+
+@given(S.rotation_vectors("tiny"))
+def test_eq_41_small_angle_log_is_twice_the_vector_part_not_the_vector_part(phi):
+    # The primer prints log(q) ~= qv (eq. 41). With exp(phi) ~= (1, phi/2) (eq. 39) the inverse
+    # must be 2 qv; the module uses 2 qv and the consistency table (row 4) confirms it.
+    q = Q.exp(phi)
+    t = np.linalg.norm(phi)
+    # log(q) = 2 qv (1 + t^2/24 + ...): relative deviation below t^2/20 + round-off
+    assert max_abs(Q.log(q), 2 * q[1:]) <= (t * t / 20 + 4 * EPS) * t + 1e-300
+    if t > 0:
+        # the printed formula is off by a factor 2: |log q - qv| = |qv| = t/2
+        assert np.linalg.norm(Q.log(q) - q[1:]) >= 0.49 * t
+
+
+def test_log_of_half_turns_raises_no_floating_point_warnings():
+    # q0 tiny but positive: the small-angle series must not be evaluated (s / q0 overflows).
+    qs = np.array([[1e-200, 1.0, 0, 0], [0.0, 0, 1.0, 0], [1e-300, 0.6, 0.8, 0], [1e-17, 0, 0, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phis = Q.log(qs)
+        so3.log(Q.to_matrix(qs))
+    assert np.max(np.abs(np.linalg.norm(phis, axis=-1) - math.pi)) <= 4 * EPS
+    assert max_abs(phis / math.pi, qs[:, 1:]) <= 4 * EPS
+
+
+def test_hamilton_product_of_the_units():
+    i, j, k = (np.array(v, dtype=float) for v in ([0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]))
+    # Hamilton: i j = k, j k = i, k i = j, i^2 = -1 (the JPL convention would give i j = -k)
+    assert np.array_equal(Q.compose(i, j), k)
+    assert np.array_equal(Q.compose(j, k), i)
+    assert np.array_equal(Q.compose(k, i), j)
+    assert np.array_equal(Q.compose(i, i), np.array([-1.0, 0, 0, 0]))
+
+
+@given(quaternions(), quaternions(), quaternions())
+def test_compose_is_associative_and_matches_matrix_products(q1, q2, q3):
+    assert max_abs(Q.compose(Q.compose(q1, q2), q3), Q.compose(q1, Q.compose(q2, q3))) <= PRODUCT
+    assert max_abs(Q.to_matrix(Q.compose(q1, q2)), Q.to_matrix(q1) @ Q.to_matrix(q2)) <= 2 * PRODUCT
+
+
+@given(quaternions())
+def test_inverse_and_identity(q):
+    assert max_abs(Q.compose(q, Q.inverse(q)), Q.identity()) <= ROUNDOFF
+    assert max_abs(Q.to_matrix(Q.inverse(q)), Q.to_matrix(q).T) == 0.0
+    assert np.array_equal(Q.compose(Q.identity(), q), q)
+
+
+@given(S.rotation_vectors(), S.vectors())
+def test_rotation_vector_is_the_same_in_both_frames(phi, r):
+    # eq. (23): exp(phi) maps phi to itself
+    q = Q.exp(phi)
+    assert max_abs(Q.rotate(q, phi), phi) <= PRODUCT * max(np.abs(phi).max(), 1e-300)
+
+
+# --------------------------------------------------------------------------- from_matrix (Shepperd)
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_from_matrix_inverts_to_matrix(q):
+    back = Q.from_matrix(Q.to_matrix(q))
+    assert back[0] >= 0.0
+    assert same_orientation(back, q) <= PRODUCT
+
+
+@pytest.mark.parametrize("pivot", [0, 1, 2, 3])
+def test_from_matrix_every_pivot_branch(pivot):
+    # a quaternion whose largest component is `pivot`, including half turns (q0 = 0)
+    rng = np.random.default_rng(pivot)
+    for _ in range(50):
+        q = rng.normal(size=4) * 0.3
+        q[pivot] = 1.0
+        if pivot:
+            q[0] = 0.0 if rng.random() < 0.3 else q[0]
+        q /= np.linalg.norm(q)
+        assert same_orientation(Q.from_matrix(Q.to_matrix(q)), q) <= PRODUCT
+
+
+@pytest.mark.parametrize("i", [1, 2, 3])
+def test_from_matrix_of_exact_half_turns(i):
+    C = -np.eye(3)
+    C[i - 1, i - 1] = 1.0
+    q = Q.from_matrix(C)
+    expected = np.zeros(4)
+    expected[i] = 1.0
+    assert same_orientation(q, expected) == 0.0
+
+
+# --------------------------------------------------------------------------- GTSAM, scipy, xyzw
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_to_matrix_is_gtsams_rot3_quaternion(q):
+    R = gtsam.Rot3.Quaternion(*map(float, q))
+    assert max_abs(Q.to_matrix(q), R.matrix()) <= ROUNDOFF
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_rot3_round_trip(q):
+    R = Q.to_rot3(q)
+    assert max_abs(R.matrix(), Q.to_matrix(q)) <= ROUNDOFF
+    assert same_orientation(Q.from_rot3(R), q) <= PRODUCT
+    g = R.toQuaternion()
+    assert same_orientation(np.array([g.w(), g.x(), g.y(), g.z()]), q) <= PRODUCT
+
+
+@given(S.rotation_vectors())
+def test_exp_agrees_with_gtsam_expmap_quaternion(phi):
+    g = gtsam.Rot3.Expmap(phi).toQuaternion()
+    assert same_orientation(Q.exp(phi), np.array([g.w(), g.x(), g.y(), g.z()])) <= PRODUCT
+
+
+@given(st.one_of(quaternions(), raw_quaternions()))
+def test_xyzw_reorder_round_trip_and_scipy(q):
+    xyzw = Q.to_xyzw(q)
+    assert np.array_equal(xyzw, np.array([q[1], q[2], q[3], q[0]]))
+    assert np.array_equal(Q.from_xyzw(xyzw), q)
+    # scipy's from_quat is scalar-last, the TUM / ROS order
+    assert max_abs(Rotation.from_quat(xyzw).as_matrix(), Q.to_matrix(q)) <= PRODUCT
+
+
+# --------------------------------------------------------------------------- roll, pitch, yaw
+
+angle = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+def max_wrapped(a, b) -> float:
+    """Largest difference of two angle arrays, modulo 2 pi."""
+    return float(np.max(np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))))
+
+
+@given(angle, st.floats(-math.pi / 2, math.pi / 2), angle)
+def test_rpy_to_matrix_is_gtsam_ypr(roll, pitch, yaw):
+    assert max_abs(Q.rpy_to_matrix([roll, pitch, yaw]), gtsam.Rot3.Ypr(yaw, pitch, roll).matrix()) <= ROUNDOFF
+
+
+@given(angle, st.floats(-1.5, 1.5), angle)
+def test_rpy_round_trip_away_from_gimbal_lock(roll, pitch, yaw):
+    rpy = np.array([roll, pitch, yaw])
+    back = Q.matrix_to_rpy(Q.rpy_to_matrix(rpy))
+    # angles are defined modulo 2 pi; cos(1.5) = 0.07 keeps the conditioning within 15x
+    assert max_wrapped(back, rpy) <= 15 * ROUNDOFF
+    assert max_wrapped(back, gtsam.Rot3(Q.rpy_to_matrix(rpy)).rpy()) <= 15 * ROUNDOFF
+
+
+@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
+@given(roll=angle, yaw=angle)
+@settings(max_examples=50)
+def test_rpy_at_gimbal_lock_reproduces_the_matrix(pitch, roll, yaw):
+    C = Q.rpy_to_matrix([roll, pitch, yaw])
+    rpy = Q.matrix_to_rpy(C)
+    assert rpy[0] == 0.0  # roll is set to 0 ...
+    assert abs(rpy[1] - pitch) <= 1e-7  # pitch is exact to sqrt(EPS) (atan2 of 1 against ~1e-17)
+    # ... and yaw carries yaw - roll (pitch +pi/2) or yaw + roll (pitch -pi/2), modulo 2 pi
+    expected = yaw - roll if pitch > 0 else yaw + roll
+    assert max_wrapped(rpy[2], expected) <= 4 * ROUNDOFF
+    assert max_abs(Q.rpy_to_matrix(rpy), C) <= 4 * ROUNDOFF
+
+
+@given(quaternions())
+def test_quaternion_rpy_helpers(q):
+    rpy = Q.to_rpy(q)
+    assert max_abs(rpy, Q.matrix_to_rpy(Q.to_matrix(q))) == 0.0
+    # the orientation survives the round trip at any pitch (at gimbal lock too, by construction)
+    assert same_orientation(Q.from_rpy(rpy), q) <= 1e-12
+
+
+# --------------------------------------------------------------------------- check_unit
+
+
+def test_check_unit_accepts_unit_quaternions_and_returns_floats():
+    q = Q.check_unit([1, 0, 0, 0])
+    assert q.dtype == float and np.array_equal(q, [1.0, 0.0, 0.0, 0.0])
+    batch = np.tile([0.5, 0.5, 0.5, 0.5], (2, 3, 1))
+    assert Q.check_unit(batch).shape == (2, 3, 4)
+
+
+def test_check_unit_names_the_first_non_unit_index():
+    batch = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0.5, 0.5, 0.5, 0.6], [2, 0, 0, 0.0]])
+    with pytest.raises(ValueError) as info:
+        Q.check_unit(batch, name="q_IB")
+    message = str(info.value)
+    assert message.startswith("q_IB")
+    assert "index (2,)" in message
+    assert re.search(r"norm 1\.0535", message)
+
+
+def test_check_unit_names_a_multi_dimensional_index():
+    batch = np.tile([1.0, 0, 0, 0], (2, 3, 1))
+    batch[1, 2] = [0, 0, 0, 2.0]
+    with pytest.raises(ValueError, match=re.escape("index (1, 2)")):
+        Q.check_unit(batch)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_check_unit_rejects_non_finite_values_with_the_index(bad):
+    batch = np.tile([1.0, 0, 0, 0], (4, 1))
+    batch[3, 2] = bad
+    with pytest.raises(ValueError, match=r"q_wb: non-finite value at index \(3,\)"):
+        Q.check_unit(batch, name="q_wb")
+
+
+def test_check_unit_rejects_a_single_non_finite_quaternion():
+    with pytest.raises(ValueError, match="quaternion: non-finite"):
+        Q.check_unit([np.nan, 0, 0, 1])
+
+
+@pytest.mark.parametrize("shape", [(3,), (5,), (4, 3), ()])
+def test_check_unit_rejects_wrong_shapes(shape):
+    with pytest.raises(ValueError, match=re.escape(f"got {shape}")):
+        Q.check_unit(np.ones(shape), name="q")
+
+
+def test_check_unit_tolerance():
+    q = np.array([1.0 + 5e-7, 0, 0, 0])
+    assert Q.check_unit(q) is not None  # within the default 1e-6
+    with pytest.raises(ValueError, match="within 1e-07"):
+        Q.check_unit(q, tolerance=1e-7)
+
+
+def test_check_unit_reports_a_single_non_unit_quaternion():
+    with pytest.raises(ValueError, match=r"not a unit quaternion.*norm 1\.00498756"):
+        Q.check_unit([1.0, 0, 0, 0.1])
+
+
+# --------------------------------------------------------------------------- vectorisation
+
+
+@settings(max_examples=50)
+@given(st.lists(quaternions(), min_size=6, max_size=6), st.lists(quaternions(), min_size=6, max_size=6),
+       st.lists(S.vectors(), min_size=6, max_size=6))
+def test_vectorised_functions_equal_loops(qs, ps, rs):
+    qb, pb, rb = (np.array(x).reshape(2, 3, -1) for x in (qs, ps, rs))
+    phis = Q.log(qb)
+    cases = [
+        (Q.rotate, (qb, rb)), (Q.to_matrix, (qb,)), (Q.compose, (qb, pb)), (Q.inverse, (qb,)),
+        (Q.exp, (phis,)), (Q.log, (qb,)), (Q.from_matrix, (Q.to_matrix(qb),)), (Q.canonical, (qb,)),
+        (Q.normalize, (qb,)), (Q.to_xyzw, (qb,)), (Q.from_xyzw, (qb,)), (Q.to_rpy, (qb,)),
+        (Q.from_rpy, (Q.to_rpy(qb),)), (Q.rpy_to_matrix, (Q.to_rpy(qb),)), (Q.matrix_to_rpy, (Q.to_matrix(qb),)),
+    ]
+    for f, args in cases:
+        batched = f(*args)
+        looped = np.array([[f(*(a[i, j] for a in args)) for j in range(3)] for i in range(2)])
+        assert batched.shape == looped.shape, f.__name__
+        assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
+
+
+def test_identity_shapes():
+    assert np.array_equal(Q.identity(), [1.0, 0, 0, 0])
+    assert Q.identity(5).shape == (5, 4) and Q.identity((2, 3)).shape == (2, 3, 4)
+    assert np.array_equal(Q.identity((2, 3))[..., 0], np.ones((2, 3)))

@@ -1,0 +1,478 @@
+"""factors.so3: the primer's calculus on rotation matrices.
+
+Covers the skew identities (1)-(3), exp/log/boxplus/boxminus and their identities (12), (13),
+(16)-(18), (21)-(24), the cheat sheet's active/passive boxminus relations (its eqs. 10, 12, 21, 22),
+Gamma and its inverse (eqs. 33, 74, 76, 80), agreement with GTSAM, accuracy against 60-digit
+references at every angle (both sides of ``so3.SERIES_ANGLE``), and vectorisation.
+
+Tolerances are stated in units of ``EPS`` = 2.2e-16 (float64 round-off). A Rodrigues evaluation
+rounds a handful of times on terms of size up to 2 (near pi), so "exact to round-off" is taken as
+``ROUNDOFF`` = 8 EPS (1.8e-15) absolute on entries of size <= 1; a result that also goes through a
+product of two such matrices gets ``PRODUCT`` = 16 EPS, through three ``TRIPLE`` = 32 EPS (7e-15).
+Every one of these is 6 orders of magnitude below what a wrong formula or a half-precision
+algorithm (arccos-based log near pi: ~1e-8) would produce.
+"""
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+import scipy.linalg
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import strategies as S
+from factors import so3
+from strategies import EPS
+
+ROUNDOFF = 8 * EPS
+PRODUCT = 16 * EPS
+TRIPLE = 32 * EPS
+
+
+def max_abs(a, b) -> float:
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+
+
+# --------------------------------------------------------------------------- skew, identities (1)-(3)
+
+
+@given(S.vectors(), S.vectors())
+def test_skew_is_the_cross_product_and_vee_inverts_it(v, r):
+    assert max_abs(so3.skew(v) @ r, np.cross(v, r)) <= 4 * EPS * np.abs(v).max() * np.abs(r).max() * 3
+    assert np.array_equal(so3.vee(so3.skew(v)), v)  # exact: vee halves a difference of +-v_i
+
+
+@given(S.vectors())
+def test_identity_1_skew_is_antisymmetric(v):
+    assert np.array_equal(so3.skew(v).T, -so3.skew(v))
+
+
+@given(S.vectors())
+def test_identity_2_square_of_skew(v):
+    # (v^x)^2 = v v^T - (v^T v) I; entries are sums of two products of size |v|^2.
+    lhs = so3.skew(v) @ so3.skew(v)
+    rhs = np.outer(v, v) - (v @ v) * np.eye(3)
+    assert max_abs(lhs, rhs) <= 4 * EPS * (v @ v)
+
+
+@given(S.rotations(), S.vectors())
+def test_identity_3_skew_of_rotated_vector(C, v):
+    # (C v)^x = C v^x C^T: a triple product, entries bounded by |v|.
+    assert max_abs(so3.skew(C @ v), C @ so3.skew(v) @ C.T) <= 16 * EPS * np.abs(v).max()
+
+
+# --------------------------------------------------------------------------- exp (eqs. 12, 13, 21-24)
+
+
+@given(S.rotation_vectors())
+def test_exp_is_a_rotation(phi):
+    C = so3.exp(phi)
+    assert max_abs(C @ C.T, np.eye(3)) <= PRODUCT
+    assert abs(np.linalg.det(C) - 1.0) <= PRODUCT
+
+
+@given(S.rotation_vectors())
+def test_exp_equals_the_matrix_exponential_of_the_skew_matrix(phi):
+    # Appendix II-A, eq. (87): C(phi) = e^{phi^x}. scipy's Pade expm is itself accurate to a few EPS.
+    assert max_abs(so3.exp(phi), scipy.linalg.expm(so3.skew(phi))) <= 2 * ROUNDOFF
+
+
+@given(S.rotation_vectors())
+def test_exp_matches_high_precision_rodrigues(phi):
+    # Eq. (21) evaluated in 60-digit arithmetic and rounded once.
+    assert max_abs(so3.exp(phi), S.reference_matrix("exp", phi)) <= ROUNDOFF
+
+
+@given(S.rotation_vectors(), S.vectors())
+def test_exp_rotates_by_the_angle_about_the_axis(phi, r):
+    # The rotation vector is its own axis (eq. 23: the same coordinates in both frames) ...
+    C = so3.exp(phi)
+    assert max_abs(C @ phi, phi) <= ROUNDOFF * max(np.linalg.norm(phi), 1e-300)
+    # ... and exp(-phi) is the inverse.
+    assert max_abs(so3.exp(-phi), C.T) <= ROUNDOFF
+
+
+@given(S.unit_vectors(), st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
+def test_identity_12_one_parameter_subgroup(axis, t, s):
+    phi = axis
+    assert max_abs(so3.exp((t + s) * phi), so3.exp(t * phi) @ so3.exp(s * phi)) <= 2 * ROUNDOFF
+
+
+@given(S.vectors(3.0), S.vectors())
+def test_identity_13_derivative_at_zero_is_the_cross_product(phi, v):
+    # d/dt exp(t phi) v at 0 = phi x v. Central difference with h: truncation h^2 |phi|^3 |v| / 6,
+    # round-off EPS |v| / h; h = 1e-5 makes both <= 1e-9 relative to |phi| |v| (|phi| <= 5.2).
+    h = 1e-5
+    num = (so3.exp(h * phi) @ v - so3.exp(-h * phi) @ v) / (2 * h)
+    scale = max(np.linalg.norm(phi), 1.0) ** 3 * max(np.linalg.norm(v), 1.0)
+    assert max_abs(num, np.cross(phi, v)) <= 1e-9 * scale
+
+
+@given(S.rotation_vectors("tiny"))
+def test_identity_22_small_angle_approximation(phi):
+    # C(phi) = I + phi^x + phi^x^2 / 2 + O(t^3): the remainder of I + phi^x is at most t^2 / 2.
+    t = np.linalg.norm(phi)
+    assert max_abs(so3.exp(phi), np.eye(3) + so3.skew(phi)) <= 0.5 * t * t + EPS
+
+
+@given(S.rotations(), S.rotation_vectors())
+def test_identity_24_adjoint(C, phi):
+    # exp(Phi(phi)) = Phi o exp(phi) o Phi^-1.
+    # C phi rounds by ~2 EPS pi per component, then a triple product: TRIPLE.
+    assert max_abs(so3.exp(C @ phi), C @ so3.exp(phi) @ C.T) <= TRIPLE
+
+
+# --------------------------------------------------------------------------- log
+
+
+@given(S.rotation_vectors(min_pi_distance=1e-12))
+def test_log_inverts_exp_at_every_angle(phi):
+    # Relative accuracy: 8 EPS |phi| holds from 1e-12 rad (where an arccos-based log would return
+    # 0) up to 1e-12 rad short of pi (where it would lose half the digits).
+    assert max_abs(so3.log(so3.exp(phi)), phi) <= ROUNDOFF * np.linalg.norm(phi) + 1e-300
+
+
+@given(S.unit_vectors(), st.floats(1e-12, 1e-6))
+def test_log_accurate_within_a_micro_radian_of_pi(axis, distance):
+    phi = (math.pi - distance) * axis
+    assert max_abs(so3.log(so3.exp(phi)), phi) <= 4 * ROUNDOFF
+
+
+@given(S.unit_vectors())
+def test_log_at_exactly_pi_has_norm_pi_and_the_right_axis(axis):
+    C = so3.exp(math.pi * axis)
+    phi = so3.log(C)
+    assert abs(np.linalg.norm(phi) - math.pi) <= 4 * EPS
+    # either of the two vectors of norm pi is a valid answer
+    assert min(max_abs(phi, math.pi * axis), max_abs(phi, -math.pi * axis)) <= 2 * ROUNDOFF
+    assert max_abs(so3.exp(phi), C) <= ROUNDOFF
+
+
+@pytest.mark.parametrize("i", [0, 1, 2])
+def test_log_of_exact_half_turns_about_the_axes(i):
+    C = -np.eye(3)
+    C[i, i] = 1.0  # rotation by pi about e_i, exactly representable
+    phi = so3.log(C)
+    assert np.abs(phi[i]) == math.pi and np.count_nonzero(phi) == 1
+
+
+def test_log_of_identity_is_exactly_zero():
+    assert np.array_equal(so3.log(np.eye(3)), np.zeros(3))
+
+
+@given(S.rotation_vectors())
+def test_log_of_transpose_is_minus_log(phi):
+    C = so3.exp(phi)
+    if np.linalg.norm(phi) > math.pi - 1e-12:
+        return  # at pi both signs are valid
+    assert max_abs(so3.log(C.T), -so3.log(C)) <= ROUNDOFF * max(np.linalg.norm(phi), 1e-300)
+
+
+# --------------------------------------------------------------------------- against GTSAM
+
+
+@given(S.rotation_vectors())
+def test_exp_agrees_with_gtsam_expmap(phi):
+    assert max_abs(so3.exp(phi), gtsam.Rot3.Expmap(phi).matrix()) <= ROUNDOFF
+
+
+@given(S.rotation_vectors(min_pi_distance=1e-12))
+def test_log_agrees_with_gtsam_logmap(phi):
+    C = so3.exp(phi)
+    ours, theirs = so3.log(C), gtsam.Rot3.Logmap(gtsam.Rot3(C))
+    assert max_abs(ours, theirs) <= ROUNDOFF * np.abs(phi).max() + 1e-300
+
+
+@given(S.rotation_vectors())
+def test_gamma_is_gtsam_expmap_derivative_of_minus_phi(phi):
+    # GTSAM's ExpmapDerivative is the RIGHT Jacobian Gamma(-phi) = Gamma(phi)^T (DESIGN.md).
+    assert max_abs(so3.gamma(phi), gtsam.Rot3.ExpmapDerivative(-phi)) <= ROUNDOFF
+
+
+@given(S.rotation_vectors())
+def test_gamma_inv_agrees_with_gtsam_logmap_derivative_away_from_pi(phi):
+    # GTSAM's LogmapDerivative switches to an approximation close to pi (we measured 2.6e-8 off
+    # the exact inverse of its own ExpmapDerivative at pi - 1e-3); compare where it is exact and
+    # check near pi against the exact inverse instead (next test).
+    if np.linalg.norm(phi) > 3.0:
+        return
+    assert max_abs(so3.gamma_inv(phi), gtsam.Rot3.LogmapDerivative(-phi)) <= ROUNDOFF
+
+
+@given(S.asymmetric_rotations().map(so3.log))
+def test_gamma_is_not_gtsams_expmap_derivative_of_phi(phi):
+    # The sign matters: Gamma(phi) and its transpose differ by 2 (1 - cos t)/t^2 |phi| >= 0.23.
+    assert max_abs(so3.gamma(phi), gtsam.Rot3.ExpmapDerivative(phi)) > 0.2
+
+
+# --------------------------------------------------------------------------- Gamma and its inverse
+
+
+@given(S.rotation_vectors())
+def test_gamma_matches_the_series_of_the_left_jacobian(phi):
+    # Gamma(phi) = sum_n (phi^x)^n / (n+1)!, the top-right block of expm([[phi^x, I], [0, 0]]).
+    block = np.zeros((6, 6))
+    block[:3, :3] = so3.skew(phi)
+    block[:3, 3:] = np.eye(3)
+    assert max_abs(so3.gamma(phi), scipy.linalg.expm(block)[:3, 3:]) <= 2 * ROUNDOFF
+
+
+@given(S.rotation_vectors())
+def test_gamma_and_gamma_inv_match_high_precision_references(phi):
+    assert max_abs(so3.gamma(phi), S.reference_matrix("gamma", phi)) <= 4 * EPS
+    assert max_abs(so3.gamma_inv(phi), S.reference_matrix("gamma_inv", phi)) <= 4 * EPS
+
+
+@given(S.rotation_vectors())
+def test_gamma_inv_inverts_gamma_at_every_angle_including_pi(phi):
+    assert max_abs(so3.gamma_inv(phi) @ so3.gamma(phi), np.eye(3)) <= ROUNDOFF
+    assert max_abs(so3.gamma(phi) @ so3.gamma_inv(phi), np.eye(3)) <= ROUNDOFF
+
+
+@given(S.rotation_vectors())
+def test_gamma_fixes_phi_and_maps_phi_cross_to_c_minus_i(phi):
+    # Appendix I, eqs. (76) and (74): Gamma(phi) phi = phi, Gamma(phi) phi^x = C(phi) - I.
+    G = so3.gamma(phi)
+    t = max(np.linalg.norm(phi), 1e-300)
+    assert max_abs(G @ phi, phi) <= ROUNDOFF * t
+    # C - I rounds its diagonal (1 - t^2/2) - 1 by up to EPS absolute, whatever t.
+    assert max_abs(G @ so3.skew(phi), so3.exp(phi) - np.eye(3)) <= ROUNDOFF * t + EPS
+
+
+@given(S.rotation_vectors("ordinary").filter(lambda p: np.linalg.norm(p) > 0.1))
+def test_gamma_equals_the_closed_form_of_eq_80(phi):
+    # ((I - C) phi^x + phi phi^T) / |phi|^2; no cancellation above 0.1 rad (loses < 2 digits).
+    C = so3.exp(phi)
+    closed = ((np.eye(3) - C) @ so3.skew(phi) + np.outer(phi, phi)) / (phi @ phi)
+    assert max_abs(so3.gamma(phi), closed) <= 100 * ROUNDOFF
+
+
+@given(S.rotation_vectors())
+def test_gamma_of_minus_phi_is_the_transpose(phi):
+    assert max_abs(so3.gamma(-phi), so3.gamma(phi).T) == 0.0  # the same arithmetic, mirrored
+
+
+# ------------------------------------------------- coefficient accuracy on both sides of the switch
+
+# Each matrix is I + a(t) phi^x + b(t) phi^x^2. For phi = t (cos u, sin u, 0) the entry [0, 2] is
+# exactly a * phi_1 and [0, 1] exactly b * phi_0 phi_1 (the other term is an exact zero), so the
+# coefficients can be read off the public functions to one rounding and compared, RELATIVELY, with
+# 60-digit values. This catches what an absolute test cannot: (1 - cos t)/t^2 evaluated naively is
+# 0 at t = 1e-9 and would still pass an absolute tolerance of 1e-15 on the matrix.
+SWITCH_ANGLES = [so3.SERIES_ANGLE * (1 + f) for f in (-1e-3, -1e-9, 0.0, 1e-9, 1e-3, 0.05)]
+GRID = sorted(set(list(np.logspace(-12, 0, 49)) + SWITCH_ANGLES))
+FUNCTIONS = {"exp": so3.exp, "gamma": so3.gamma, "gamma_inv": so3.gamma_inv}
+
+
+def _measured_coefficients(kind, t, u=0.7):
+    phi = np.array([t * math.cos(u), t * math.sin(u), 0.0])
+    M = FUNCTIONS[kind](phi)
+    return M[0, 2] / phi[1], M[0, 1] / (phi[0] * phi[1])
+
+
+def _allowed_relative_error(kind, which, t):
+    """8 EPS, except where the module knowingly evaluates a closed form that cancels: just above
+    SERIES_ANGLE, (t - sin t)/t^3 loses 6 EPS/t^2 (sin t rounds by EPS t on a difference of t^3/6)
+    and (1 - (t/2)cot(t/2))/t^2 about 20 EPS/t^2 (three roundings of size EPS on a difference of
+    t^2/12). Their weight in the matrix is t^2, so the matrix itself stays exact to round-off
+    (test_gamma_and_gamma_inv_match_high_precision_references)."""
+    base = 8 * EPS
+    if which == "b" and t >= so3.SERIES_ANGLE:
+        if kind == "gamma":
+            return base + 6 * EPS / t**2
+        if kind == "gamma_inv":
+            return base + 20 * EPS / t**2
+    return base
+
+
+@pytest.mark.parametrize("kind", sorted(FUNCTIONS))
+@pytest.mark.parametrize("t", GRID)
+def test_coefficients_are_relatively_accurate_from_1e12_to_1_rad(kind, t):
+    a_ref, b_ref = S.coefficients(kind, t)
+    a, b = _measured_coefficients(kind, t)
+    for which, got, ref in (("a", a, float(a_ref)), ("b", b, float(b_ref))):
+        rel = abs(got - ref) / abs(ref)
+        assert rel <= _allowed_relative_error(kind, which, t), (kind, which, t, rel)
+
+
+@pytest.mark.parametrize("kind", sorted(FUNCTIONS))
+def test_series_and_closed_form_meet_at_the_switch(kind):
+    # The two sides of SERIES_ANGLE, 1e-12 apart in relative angle: the coefficients may change by
+    # their derivative (~t^2 relative) plus the closed form's cancellation error, nothing more.
+    lo, hi = so3.SERIES_ANGLE * (1 - 1e-12), so3.SERIES_ANGLE * (1 + 1e-12)
+    for below, above in zip(_measured_coefficients(kind, lo), _measured_coefficients(kind, hi)):
+        assert abs(below - above) <= (8 * EPS + 20 * EPS / so3.SERIES_ANGLE**2) * abs(below)
+
+
+# --------------------------------------------------------------------------- boxplus / boxminus
+
+
+@given(S.rotations())
+def test_identity_16_boxplus_zero(C):
+    assert np.array_equal(so3.boxplus(C, np.zeros(3)), C)
+
+
+@given(S.rotations(), S.rotation_vectors(min_pi_distance=1e-9))
+def test_identity_17_boxminus_undoes_boxplus(C, phi):
+    # log(exp(phi) C C^T): C C^T is I to ~2 EPS, so the error is absolute, a few EPS, at any |phi|.
+    assert max_abs(so3.boxminus(so3.boxplus(C, phi), C), phi) <= 2 * ROUNDOFF
+
+
+@given(S.rotations(), S.rotations())
+def test_identity_18_boxplus_of_the_difference(C1, C2):
+    # Holds even when C2 C1^T is a half turn: both candidate logs exponentiate to the same matrix.
+    assert max_abs(so3.boxplus(C1, so3.boxminus(C2, C1)), C2) <= 2 * ROUNDOFF
+
+
+@given(S.rotations(), S.rotation_vectors())
+def test_boxplus_is_a_left_perturbation(C, phi):
+    assert max_abs(so3.boxplus(C, phi), so3.exp(phi) @ C) == 0.0
+    # ... which equals the right perturbation by C^T phi (eq. 24), GTSAM's retract.
+    assert max_abs(so3.boxplus(C, phi), C @ so3.exp(C.T @ phi)) <= 2 * ROUNDOFF
+
+
+# ------------------------------------------------ active and passive boxminus (cheat sheet 10, 12, 21, 22)
+
+# Passive rotations C_IA = A and C_IB = B map A- and B-coordinates to I. The active ones are their
+# inverses, Phi_AI = A^T and Phi_BI = B^T. The cheat sheet's relations, with matrices:
+#   (10) Phi_AI [-] Phi_BI = log(A^T B) = B_phi_AB, the rotation vector of C_AB = A^T B;
+#   (12) Phi_IA [-] Phi_IB = log(A B^T) = I_phi_BA = B log(B^T A), the vector of C_BA seen in I;
+#   (21) Phi_AI [-] Phi_BI = -Phi_BI(Phi_IA [-] Phi_IB):  log(A^T B) = -B^T log(A B^T);
+#   (22) Phi_AI [-] Phi_BI = -(Phi_BI [-] Phi_AI):         log(A^T B) = -log(B^T A).
+
+
+def _frames(B, phi):
+    """C_IA and C_IB with a relative rotation of angle |phi| between them."""
+    return so3.exp(phi) @ B, B
+
+
+@given(S.rotations(), S.rotation_vectors(min_pi_distance=1e-9))
+def test_cheat_sheet_21_active_boxminus_from_passive(B_, phi):
+    A, B = _frames(B_, phi)
+    active = so3.boxminus(A.T, B.T)
+    passive = so3.boxminus(A, B)
+    assert max_abs(active, -B.T @ passive) <= 2 * ROUNDOFF
+
+
+@given(S.rotations(), S.rotation_vectors(min_pi_distance=1e-9))
+def test_cheat_sheet_22_swapping_the_operands_negates(B_, phi):
+    A, B = _frames(B_, phi)
+    assert max_abs(so3.boxminus(A.T, B.T), -so3.boxminus(B.T, A.T)) <= 2 * ROUNDOFF
+    # the same holds for passive rotations
+    assert max_abs(so3.boxminus(A, B), -so3.boxminus(B, A)) <= 2 * ROUNDOFF
+
+
+@given(S.rotations(), S.rotation_vectors(min_pi_distance=1e-9))
+def test_cheat_sheet_10_and_12_frames_of_the_difference(B_, phi):
+    A, B = _frames(B_, phi)
+    # (10): the active difference is the rotation vector of C_AB = A^T B
+    assert max_abs(so3.boxminus(A.T, B.T), so3.log(A.T @ B)) <= 2 * ROUNDOFF
+    # (12): the passive difference is the rotation vector of C_BA = B^T A, in I-coordinates
+    assert max_abs(so3.boxminus(A, B), B @ so3.log(B.T @ A)) <= 2 * ROUNDOFF
+    # and by construction it is the phi we put in (A = exp(phi) B, i.e. A = B [+] phi)
+    assert max_abs(so3.boxminus(A, B), phi) <= 2 * ROUNDOFF
+
+
+@given(S.asymmetric_rotations(), S.asymmetric_rotations())
+def test_cheat_sheet_21_is_not_trivially_true(A, B):
+    # Without the -Phi_BI( . ) on the right-hand side the relation fails: the active and passive
+    # differences are different vectors in general, so the tests above can fail.
+    if np.linalg.norm(so3.boxminus(A, B)) < 0.5 or np.linalg.norm(so3.boxminus(A, B)) > math.pi - 1e-6:
+        return
+    active, passive = so3.boxminus(A.T, B.T), so3.boxminus(A, B)
+    assert max_abs(active, passive) > 1e-3 or max_abs(active, -passive) > 1e-3
+
+
+# --------------------------------------------------------------------------- compose, inverse, project
+
+
+@given(S.rotations(), S.rotations(), S.vectors())
+def test_compose_and_inverse(C1, C2, r):
+    # eq. (5): (Phi1 o Phi2)(r) = Phi1(Phi2(r)); eq. (7): Phi^-1 o Phi = identity
+    assert max_abs(so3.compose(C1, C2) @ r, C1 @ (C2 @ r)) <= PRODUCT * np.abs(r).max()
+    assert max_abs(so3.compose(so3.inverse(C1), C1), np.eye(3)) <= PRODUCT
+
+
+def _spd(seed):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(3, 3))
+    return X @ X.T + 0.5 * np.eye(3)
+
+
+@given(S.rotations(), st.integers(0, 2**32 - 1))
+def test_project_recovers_the_rotation_of_a_polar_decomposition(C, seed):
+    # M = C S with S symmetric positive definite: the nearest rotation is C (polar decomposition).
+    S_ = _spd(seed)
+    cond = np.linalg.cond(S_)
+    assert max_abs(so3.project(C @ S_), C) <= 10 * EPS * cond
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_project_returns_a_proper_rotation_even_from_a_reflection(seed):
+    M = np.random.default_rng(seed).normal(size=(3, 3))
+    R = so3.project(M)
+    assert max_abs(R @ R.T, np.eye(3)) <= PRODUCT
+    assert abs(np.linalg.det(R) - 1.0) <= PRODUCT
+    # and it is at least as near as any rotation we can think of, e.g. the nearest one's neighbours
+    for phi in np.eye(3) * 1e-3:
+        for sign in (1, -1):
+            assert np.linalg.norm(R - M) <= np.linalg.norm(so3.exp(sign * phi) @ R - M) + 1e-12
+
+
+@given(S.rotations())
+def test_project_of_a_rotation_is_itself(C):
+    assert max_abs(so3.project(C), C) <= ROUNDOFF
+
+
+# --------------------------------------------------------------------------- vectorisation
+
+SHAPE = (4, 3)
+
+
+@st.composite
+def _batches(draw):
+    phis = np.array([[draw(S.rotation_vectors()) for _ in range(SHAPE[1])] for _ in range(SHAPE[0])])
+    others = np.array([[draw(S.rotation_vectors()) for _ in range(SHAPE[1])] for _ in range(SHAPE[0])])
+    return phis, others
+
+
+def _loop(f, *batched):
+    out = [[f(*(b[i][j] for b in batched)) for j in range(SHAPE[1])] for i in range(SHAPE[0])]
+    return np.array(out)
+
+
+@settings(max_examples=50)
+@given(_batches())
+def test_vectorised_functions_equal_loops_of_single_calls(batch):
+    phis, others = batch
+    Cs, Ds = so3.exp(phis), so3.exp(others)
+    assert Cs.shape == SHAPE + (3, 3)
+    cases = [
+        (so3.skew, (phis,)),
+        (so3.vee, (so3.skew(phis),)),
+        (so3.exp, (phis,)),
+        (so3.log, (Cs,)),
+        (so3.gamma, (phis,)),
+        (so3.gamma_inv, (phis,)),
+        (so3.compose, (Cs, Ds)),
+        (so3.inverse, (Cs,)),
+        (so3.boxplus, (Cs, others)),
+        (so3.boxminus, (Cs, Ds)),
+        (so3.project, (Cs,)),
+    ]
+    for f, args in cases:
+        batched = f(*args)
+        looped = _loop(f, *args)
+        assert batched.shape == looped.shape, f.__name__
+        # Elementwise code is bitwise identical; batched matmul and SVD may take other BLAS paths,
+        # so allow round-off relative to the entry (4 EPS) with a floor far below any tiny angle.
+        assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
+
+
+def test_vectorised_functions_accept_a_single_leading_dimension_of_zero_length():
+    assert so3.exp(np.zeros((0, 3))).shape == (0, 3, 3)
+    assert so3.gamma(np.zeros((0, 3))).shape == (0, 3, 3)
+    assert so3.skew(np.zeros((0, 3))).shape == (0, 3, 3)
