@@ -95,7 +95,7 @@ from datasets.types import (
 from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 
-__all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS"]
+__all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 
 #: The independent random streams, in spawn order (never reorder: it would change every dataset).
 STREAMS = ("imu", "bias", "initial", "velocity", "pose", "position", "orientation", "relative_pose", "outliers")
