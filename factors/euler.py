@@ -191,10 +191,10 @@ def from_matrix(C, convention: str) -> np.ndarray:
     return _intrinsic_from_matrix(C, k, j, i)[..., ::-1]
 
 
-def perturbation_jacobian(angles, convention: str, perturbation: str = "left") -> np.ndarray:
+def perturbation_jacobian(angles, convention: str, chart: str = "left") -> np.ndarray:
     """``E = d eps / d angles`` (shape ``(..., 3, 3)``): the rotation-vector perturbation that a
     small change of the Euler angles makes, ``to_matrix(angles + d) ~= exp(E d) to_matrix(angles)``
-    for ``perturbation='left'`` (the primer's [+], world frame) or
+    for ``chart='left'`` (the primer's [+], world frame) or
     ``~= to_matrix(angles) exp(E d)`` for ``'right'`` (GTSAM's chart, body frame; ``E_right =
     C^T E_left``).
 
@@ -204,8 +204,8 @@ def perturbation_jacobian(angles, convention: str, perturbation: str = "left") -
     degenerate middle angle, where the angles cannot follow every perturbation."""
     intrinsic, (i, j, k) = parse(convention)
     angles = _check_angles(angles)
-    if perturbation not in ("left", "right"):
-        raise ValueError(f"perturbation: expected 'left' or 'right', got {perturbation!r}")
+    if chart not in ("left", "right"):
+        raise ValueError(f"chart: expected 'left' or 'right' (see uncertainty.convert_covariance for 'middle'), got {chart!r}")
     e = np.eye(3)
     a, b, c = angles[..., 0], angles[..., 1], angles[..., 2]
     if intrinsic:
@@ -215,7 +215,7 @@ def perturbation_jacobian(angles, convention: str, perturbation: str = "left") -
         Rc = elementary(k, c)
         cols = [Rc @ elementary(j, b) @ e[i], Rc @ e[j], np.broadcast_to(e[k], angles.shape)]
     E = np.stack(cols, axis=-1)
-    if perturbation == "right":
+    if chart == "right":
         E = np.swapaxes(to_matrix(angles, convention), -1, -2) @ E
     return E
 

@@ -24,9 +24,10 @@ related to the others only to first order, through the SO(3) Jacobians
 (``exp((mu + d)^) ~= exp((Gamma(mu) d)^) exp(mu^) = exp(mu^) exp((Gamma(-mu) d)^)`` with
 ``Gamma = so3.gamma``, the left Jacobian): ``eps_l ~= Gamma(mu) eps_m``, ``eps_r ~= Gamma(-mu) eps_m``.
 Note on the slides: their struck-out so(3) column reads ``phi ~= mu + J_l(mu) eps_l``; with ``J_l``
-the left Jacobian the first-order relation is ``phi ~= mu + J_l(mu)^-1 eps_l`` (the inverse). The
-Monte Carlo test of :func:`covariance_left_to_middle` confirms the inverse and rejects the printed
-form.
+the left Jacobian the first-order relation is ``phi ~= mu + J_l(mu)^-1 eps_l`` (the inverse), and
+likewise ``J_r(mu)^-1`` in the right row. Monte Carlo (tests/factors/test_uncertainty.py,
+``test_slides_struck_out_jacobian_would_be_wrong``) confirms the inverse and rejects the printed
+form by hundreds of standard errors.
 
 Rotated vector ``y = C x`` with the left chart (``z = C_bar x``, ``t = tr Sigma``):
 expanding ``exp(eps^) = I + eps^ + eps^2/2 + eps^3/6 + eps^4/24 + ...``, odd moments vanish and
