@@ -55,6 +55,7 @@ works too). ``T_BS`` must be a rigid transform: last row ``0 0 0 1`` and a rotat
 """
 from __future__ import annotations
 
+import bisect
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -160,6 +161,7 @@ def _read_matrix_block(path, lines: list[str], index: int, rest: str):
         m = re.search(r"\bdata\s*:\s*\[([^\]]*)\]", body)
         if m:
             block["data"], block_lines["data"] = m.group(1), start + 1
+            data_segments = [(start + 1, m.group(1))]
     else:
         index += 1
         while index < len(lines):
@@ -178,14 +180,17 @@ def _read_matrix_block(path, lines: list[str], index: int, rest: str):
             if key == "data":
                 if not value.startswith("["):
                     raise DataError(path, index + 1, "T_BS.data", value, "a list '[...]' of 16 numbers")
-                while "]" not in value and index + 1 < len(lines):
+                data_segments = [(index + 1, value[1:])]
+                while "]" not in data_segments[-1][1] and index + 1 < len(lines):
                     index += 1
-                    value += " " + _strip_comment(lines[index]).strip()
-                if "]" not in value:
-                    raise DataError(path, index + 1, "T_BS.data", "end of file", "a closing ']'")
-                value = value[1: value.index("]")]
-                if _strip_comment(lines[index]).strip().split("]", 1)[1].strip():
-                    raise DataError(path, index + 1, "T_BS.data", lines[index].strip(), "nothing after ']'")
+                    data_segments.append((index + 1, _strip_comment(lines[index]).strip()))
+                last_line, last = data_segments[-1]
+                if "]" not in last:
+                    raise DataError(path, last_line, "T_BS.data", "end of file", "a closing ']'")
+                if last.split("]", 1)[1].strip():
+                    raise DataError(path, last_line, "T_BS.data", lines[index].strip(), "nothing after ']'")
+                data_segments[-1] = (last_line, last.split("]", 1)[0])
+                value = " ".join(text for _, text in data_segments)
             block[key] = value
             index += 1
     for key in ("cols", "rows"):
@@ -196,14 +201,28 @@ def _read_matrix_block(path, lines: list[str], index: int, rest: str):
     if "data" not in block:
         raise DataError(path, start + 1, "T_BS.data", "no such entry", "'data: [...]' with 16 numbers")
     line = block_lines["data"]
-    tokens = [tok.strip() for tok in block["data"].split(",")]
-    if tokens and tokens[-1] == "":
-        tokens = tokens[:-1]
-    if len(tokens) != 16:
-        raise DataError(path, line, "T_BS.data", f"{len(tokens)} numbers", "16 numbers (4 x 4, row major)")
-    T = np.array([number(tok, path, line, "T_BS.data") for tok in tokens]).reshape(4, 4)
+    # Each number with the line it is on: offsets of the segments in the joined text.
+    joined, offsets = "", []
+    for seg_line, text in data_segments:
+        offsets.append(len(joined))
+        joined += text + " "
+    tokens, token_lines = [], []
+    position = 0
+    for piece in joined.split(","):
+        stripped = len(piece) - len(piece.lstrip())
+        where = position + (stripped if piece.strip() else 0)
+        token_lines.append(data_segments[bisect.bisect_right(offsets, where) - 1][0])
+        tokens.append(piece)
+        position += len(piece) + 1
+    pairs = [(tok.strip(), ln) for tok, ln in zip(tokens, token_lines)]
+    if pairs and pairs[-1][0] == "":
+        pairs = pairs[:-1]
+    end_line = data_segments[-1][0]
+    if len(pairs) != 16:
+        raise DataError(path, end_line, "T_BS.data", f"{len(pairs)} numbers", "16 numbers (4 x 4, row major)")
+    T = np.array([number(tok, path, ln, "T_BS.data") for tok, ln in pairs]).reshape(4, 4)
     if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise DataError(path, line, "T_BS.data", f"last row {T[3].tolist()}", "0, 0, 0, 1")
+        raise DataError(path, pairs[12][1], "T_BS.data", f"last row {T[3].tolist()}", "0, 0, 0, 1")
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()
     if err > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:

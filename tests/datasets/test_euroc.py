@@ -1,0 +1,349 @@
+"""EuRoC/ASL loader on synthetic sequence folders written here (no EuRoC data ships anywhere):
+header variants, extrinsics that are not the identity, exact nanosecond stamps, and errors."""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from datasets.errors import DataError
+from datasets.euroc import GROUNDTRUTH_COLUMNS, IMU_COLUMNS, load_euroc, read_sensor_yaml
+from factors import quaternion, so3
+
+NS0 = 1403636579758555392  # a real EuRoC first stamp: far beyond float64's integer precision
+IMU_STEP = 5_000_000
+GT_OFFSET = 51_300_000  # the ground truth starts 51.3 ms after the IMU, off the IMU's grid
+OMEGA = np.array([0.3, -0.2, 0.5])  # world-frame angular rate [rad/s]
+C0 = so3.exp([0.4, -1.0, 2.0])
+R0, U, A = np.array([4.0, -1.5, 0.8]), np.array([0.5, -0.3, 0.2]), np.array([0.1, 0.2, -0.05])
+B_GYRO_GT, B_ACC_GT = np.array([-0.003, 0.021, 0.078]), np.array([-0.025, 0.137, 0.076])
+
+
+def _transform(phi, p):
+    T = np.eye(4)
+    T[:3, :3] = so3.exp(phi)
+    T[:3, 3] = p
+    return T
+
+
+T_B_IMU = _transform([0.1, -0.2, 0.3], [0.05, -0.02, 0.1])
+T_B_GT = _transform([-0.4, 0.2, 1.1], [-0.1, 0.2, 0.03])
+X = np.linalg.inv(T_B_GT) @ T_B_IMU  # the IMU in the ground truth's frame
+R_X, P_X = X[:3, :3], X[:3, 3]
+
+
+def imu_truth(t):
+    """The IMU's true state at times ``t`` [s after NS0]: C, r, world velocity."""
+    t = np.asarray(t, dtype=float)
+    C = so3.exp(t[:, None] * OMEGA) @ C0
+    r = R0 + t[:, None] * U + 0.5 * t[:, None] ** 2 * A
+    v = U + t[:, None] * A
+    return C, r, v
+
+
+def _yaml(T, extra="", flow=False):
+    rows = [", ".join(repr(float(x)) for x in T[i]) for i in range(4)]
+    if flow:
+        block = "T_BS: {cols: 4, rows: 4, data: [" + ", ".join(rows) + "]}\n"
+    else:
+        block = ("T_BS:\n  cols: 4\n  rows: 4\n  data: [" + ",\n         ".join(rows) + "]\n")
+    return ("%YAML:1.0\n# General sensor definitions.\nsensor_type: imu\ncomment: synthetic, for tests\n\n"
+            "# Sensor extrinsics wrt. the body-frame.\n" + block + "rate_hz: 200\n\n" + extra)
+
+
+NOISE_YAML = (
+    "# inertial sensor noise model parameters (static)\n"
+    "gyroscope_noise_density: 1.6968e-04     # [ rad / s / sqrt(Hz) ]   ( gyro \"white noise\" )\n"
+    "gyroscope_random_walk: 1.9393e-05       # [ rad / s^2 / sqrt(Hz) ] ( gyro bias diffusion )\n"
+    "accelerometer_noise_density: 2.0000e-3  # [ m / s^2 / sqrt(Hz) ]  ( accel \"white noise\" )\n"
+    "accelerometer_random_walk: 3.0000e-3    # [ m / s^3 / sqrt(Hz) ].  ( accel bias diffusion )\n"
+)
+
+UNITS = {"timestamp": "ns", "w": "rad s^-1", "a": "m s^-2", "p": "m", "q": "", "v": "m s^-1", "b_w": "rad s^-1",
+         "b_a": "m s^-2"}
+
+
+def _header(columns, style):
+    if style == "none":
+        return None
+    names = []
+    for c in columns:
+        unit = UNITS["timestamp"] if c == "timestamp" else UNITS[c.split("_R")[0] if c.startswith("b_") else c[0]]
+        names.append(f"{c} [{unit}]" if style in ("units", "units_spaces") else c)
+    sep = ", " if style in ("spaces", "units_spaces") else ","
+    return "#" + sep.join(names)
+
+
+def _csv(path: Path, columns, stamps, values, style="units", order=None):
+    order = list(range(len(columns))) if order is None else order
+    lines = []
+    header = _header([columns[j] for j in order], style)
+    if header is not None:
+        lines.append(header)
+    for stamp, row in zip(stamps, values):
+        fields = [str(int(stamp))] + [repr(float(x)) for x in row]
+        lines.append(",".join(fields[j] for j in order))
+    path.write_text("\r\n".join(lines) + "\r\n" if style == "crlf" else "\n".join(lines) + "\n")
+
+
+def write_sequence(root: Path, n_imu=401, n_gt=370, style="units", gt_style=None, order=None, flow=False,
+                   T_imu=T_B_IMU, T_gt=T_B_GT, seed=0):
+    """An ASL folder ``root/mav0`` with a moving IMU; returns the IMU stamps and readings."""
+    rng = np.random.default_rng(seed)
+    mav0 = root / "mav0"
+    (mav0 / "imu0").mkdir(parents=True, exist_ok=True)
+    (mav0 / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
+    imu_ns = NS0 + IMU_STEP * np.arange(n_imu, dtype=np.int64)
+    readings = rng.normal(size=(n_imu, 6))  # gyro (w_RS_S) then acc (a_RS_S)
+    _csv(mav0 / "imu0" / "data.csv", IMU_COLUMNS, imu_ns, readings, style,
+         order=None if order is None else [0] + [1 + j for j in order[:6]])
+    gt_ns = NS0 + GT_OFFSET + IMU_STEP * np.arange(n_gt, dtype=np.int64)
+    C, r, v = imu_truth((gt_ns - NS0) * 1e-9)
+    C_gt = C @ R_X.T
+    lever = C_gt @ P_X
+    r_gt = r - lever
+    v_gt = v - np.cross(OMEGA, lever)
+    q_gt = quaternion.from_matrix(C_gt)
+    values = np.hstack([r_gt, q_gt, v_gt, np.tile(B_GYRO_GT, (n_gt, 1)), np.tile(B_ACC_GT, (n_gt, 1))])
+    _csv(mav0 / "state_groundtruth_estimate0" / "data.csv", GROUNDTRUTH_COLUMNS, gt_ns, values,
+         gt_style or ("spaces" if style == "units" else style))
+    (mav0 / "imu0" / "sensor.yaml").write_text(_yaml(T_imu, NOISE_YAML, flow))
+    (mav0 / "state_groundtruth_estimate0" / "sensor.yaml").write_text(_yaml(T_gt, flow=flow))
+    return imu_ns, readings, gt_ns
+
+
+@pytest.fixture
+def sequence(tmp_path):
+    imu_ns, readings, gt_ns = write_sequence(tmp_path)
+    return tmp_path, imu_ns, readings, gt_ns
+
+
+# ------------------------------------------------------------------------------------------
+
+
+def test_frames_times_and_initial_state(sequence):
+    root, imu_ns, readings, gt_ns = sequence
+    d = load_euroc(root)
+    assert d.name == "euroc"
+    # IMU samples inside the ground truth's span, stamps exact, t relative to the first of them.
+    keep = (imu_ns >= gt_ns[0]) & (imu_ns <= gt_ns[-1])
+    assert np.array_equal(d.imu.t_ns, imu_ns[keep]) and d.imu.t_ns.dtype == np.int64
+    assert d.imu.t_ns[0] == NS0 + 11 * IMU_STEP
+    assert np.array_equal(d.imu.t, (imu_ns[keep] - imu_ns[keep][0]) * 1e-9)
+    assert d.imu.t[0] == 0.0 and abs(d.imu.t[1] - 0.005) < 1e-15
+    assert np.array_equal(d.imu.gyro, readings[keep, 0:3]) and np.array_equal(d.imu.acc, readings[keep, 3:6])
+    # Ground truth: of the IMU (not of S_gt), body-frame velocity, biases in the IMU frame.
+    t_abs = (d.truth.t * 1e9 + (d.imu.t_ns[0] - NS0)) * 1e-9
+    C, r, v_world = imu_truth(t_abs)
+    assert np.array_equal(d.truth.t, (gt_ns[(gt_ns >= d.imu.t_ns[0]) & (gt_ns <= d.imu.t_ns[-1])] - d.imu.t_ns[0]) * 1e-9)
+    assert np.abs(d.truth.C - C).max() < 1e-12
+    assert np.abs(d.truth.position - r).max() < 1e-12
+    assert np.abs(d.truth.states.v - np.einsum("nji,nj->ni", C, v_world)).max() < 1e-9
+    assert np.allclose(d.truth.states.b_w, R_X.T @ B_GYRO_GT, atol=1e-15)
+    assert np.allclose(d.truth.states.b_f, R_X.T @ B_ACC_GT, atol=1e-15)
+    # Initial state: the truth at the first IMU stamp (between two ground-truth samples).
+    C0_, r0_, v0_ = imu_truth([(d.imu.t_ns[0] - NS0) * 1e-9])
+    assert np.abs(d.initial.C - C0_[0]).max() < 1e-9
+    assert np.abs(d.initial.r - r0_[0]).max() < 1e-6
+    assert np.abs(d.initial.v - C0_[0].T @ v0_[0]).max() < 1e-6
+    assert np.allclose(d.initial.b_f, R_X.T @ B_ACC_GT)
+    # Noise densities from imu0/sensor.yaml; gravity z up.
+    assert (d.noise.gyro, d.noise.gyro_bias, d.noise.acc, d.noise.acc_bias) == (1.6968e-04, 1.9393e-05, 2.0e-3, 3.0e-3)
+    assert np.array_equal(d.gravity, [0.0, 0.0, -9.81])
+    assert np.allclose(np.sqrt(np.diag(d.initial_cov)), np.repeat([0.01, 0.01, 0.01, 0.05, 0.002], 3))
+
+
+def test_identity_extrinsics_give_the_file_values(tmp_path):
+    write_sequence(tmp_path, T_imu=np.eye(4), T_gt=np.eye(4))
+    d = load_euroc(tmp_path / "mav0")  # the mav0 folder itself works too
+    assert np.allclose(d.truth.states.b_w, B_GYRO_GT) and np.allclose(d.truth.states.b_f, B_ACC_GT)
+
+
+def test_wrong_extrinsics_would_be_noticed(tmp_path):
+    """Swapping the two T_BS must change the result (guards against ignoring the extrinsics)."""
+    write_sequence(tmp_path, T_imu=T_B_GT, T_gt=T_B_IMU)
+    d = load_euroc(tmp_path)
+    C, _, _ = imu_truth((d.truth.t * 1e9 + (d.imu.t_ns[0] - NS0)) * 1e-9)
+    assert np.abs(d.truth.C - C).max() > 0.1
+
+
+@pytest.mark.parametrize("style, gt_style", [
+    ("units", "spaces"), ("plain", "plain"), ("spaces", "units_spaces"), ("units_spaces", "units"),
+    ("none", "none"), ("crlf", "crlf"),
+])
+def test_header_variants_give_the_same_dataset(tmp_path, style, gt_style):
+    write_sequence(tmp_path / "ref")
+    write_sequence(tmp_path / "var", style=style, gt_style=gt_style)
+    a, b = load_euroc(tmp_path / "ref"), load_euroc(tmp_path / "var")
+    assert np.array_equal(a.imu.t_ns, b.imu.t_ns) and np.array_equal(a.imu.acc, b.imu.acc)
+    assert np.array_equal(a.truth.position, b.truth.position) and np.array_equal(a.truth.C, b.truth.C)
+
+
+def test_columns_are_found_by_name(tmp_path):
+    write_sequence(tmp_path / "ref")
+    write_sequence(tmp_path / "shuffled", order=[3, 4, 5, 0, 1, 2])
+    a, b = load_euroc(tmp_path / "ref"), load_euroc(tmp_path / "shuffled")
+    assert np.array_equal(a.imu.acc, b.imu.acc) and np.array_equal(a.imu.gyro, b.imu.gyro)
+    header = (tmp_path / "shuffled/mav0/imu0/data.csv").read_text().splitlines()[0]
+    assert header.startswith("#timestamp [ns],a_RS_S_x")
+
+
+def test_flow_style_yaml_and_the_parser():
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "sensor.yaml"
+        for flow in (False, True):
+            path.write_text(_yaml(T_B_IMU, NOISE_YAML, flow))
+            y = read_sensor_yaml(path)
+            assert np.abs(y.T_BS - T_B_IMU).max() < 1e-15
+            assert y.values["rate_hz"] == "200" and y.values["gyroscope_random_walk"] == "1.9393e-05"
+
+
+def test_synthetic_measurements_from_truth(sequence):
+    root = sequence[0]
+    d = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
+    assert d.pose is not None and d.position is not None
+    assert set(d.pose.t) <= set(d.truth.t) and set(d.position.t) <= set(d.truth.t)
+    assert np.allclose(np.diff(d.pose.t), 0.05) and np.allclose(np.diff(d.position.t), 0.1)
+    assert np.allclose(d.pose.cov[0], np.diag([1e-4] * 3 + [2.5e-5] * 3))
+    again = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
+    assert np.array_equal(d.pose.position, again.pose.position) and np.array_equal(d.pose.C, again.pose.C)
+    other = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), seed=4)
+    assert not np.allclose(d.pose.position, other.pose.position) and other.position is None
+    # The two streams are independent: at common times their position noises differ.
+    common, i, j = np.intersect1d(d.pose.t, d.position.t, return_indices=True)
+    k = np.searchsorted(d.truth.t, common)
+    e_pose = (d.pose.position[i] - d.truth.position[k]) / 0.01
+    e_gps = (d.position.position[j] - d.truth.position[k]) / 0.1
+    assert not np.allclose(e_pose, e_gps)
+    with pytest.raises(ValueError, match="pose_from_truth"):
+        load_euroc(root, pose_from_truth=(20, 0.01))
+
+
+# ------------------------------------------------------------------------------------------
+# malformed input
+
+
+def _edit(path: Path, line: int, func) -> None:
+    lines = path.read_text().splitlines()
+    lines[line - 1] = func(lines[line - 1])
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _set_field(index, value):
+    def f(text):
+        fields = text.split(",")
+        fields[index] = value
+        return ",".join(fields)
+    return f
+
+
+IMU = "mav0/imu0/data.csv"
+GT = "mav0/state_groundtruth_estimate0/data.csv"
+IMU_YAML = "mav0/imu0/sensor.yaml"
+GT_YAML = "mav0/state_groundtruth_estimate0/sensor.yaml"
+
+
+@pytest.mark.parametrize(
+    "file, line, edit, field, expected",
+    [
+        (IMU, 1, lambda s: s.rsplit(",", 1)[0], "a_RS_S_z", "a column named a_RS_S_z"),  # header lacks a column
+        (IMU, 5, lambda s: s.rsplit(",", 1)[0], "a_RS_S_z", "7 comma-separated fields"),
+        (IMU, 5, _set_field(2, "nan"), "w_RS_S_y", "finite number"),
+        (IMU, 5, _set_field(4, "1.5.2"), "a_RS_S_x", "a number"),
+        (IMU, 5, _set_field(0, "1403636579.5"), "timestamp [ns]", "an integer"),
+        (IMU, 2, _set_field(0, "-5"), "timestamp [ns]", ">= 0"),
+        (IMU, 5, _set_field(0, str(NS0 + 2 * IMU_STEP)), "timestamp [ns]", "strictly increasing"),  # duplicate
+        (IMU, 5, _set_field(0, str(NS0 + IMU_STEP)), "timestamp [ns]", "strictly increasing"),  # decreasing
+        (IMU, 1, lambda s: "#stamp,w_RS_S_x", "header", "timestamp"),
+        (GT, 7, _set_field(5, "0.9"), "q_RS_w q_RS_x q_RS_y q_RS_z", "unit quaternion"),
+        (GT, 7, _set_field(2, "inf"), "p_RS_R_y", "finite"),
+        (GT, 7, _set_field(16, ""), "b_a_RS_S_z", "a number"),
+        (GT, 1, lambda s: s.replace("v_RS_R_y", "v_RS_R_q"), "v_RS_R_y", "a column named v_RS_R_y"),
+        (IMU_YAML, 13, lambda s: s.replace("0.0, ", "", 1), "T_BS.data", "16 numbers"),
+        (IMU_YAML, 8, lambda s: s.replace("4", "3"), "T_BS.cols", "4"),
+        (GT_YAML, 10, lambda s: s.replace("[", "[2.0 * ", 1), "T_BS.data", "a number"),
+        (IMU_YAML, 13, lambda s: s.replace("1.0]", "2.0]"), "T_BS.data", "0, 0, 0, 1"),
+        (IMU_YAML, 19, lambda s: s.replace("2.0000e-3", "fast"), "accelerometer_noise_density", "a number"),
+        (IMU_YAML, 7, lambda s: s.replace("T_BS", "T_SB"), "T_BS", "T_BS"),
+        (IMU_YAML, 11, lambda s: s.replace("0.28", "0.2.8"), "T_BS.data", "a number"),
+        (IMU_YAML, 12, lambda s: s.replace("0.06", "0.06,"), "T_BS.data", "16 numbers"),
+    ],
+)
+def test_malformed_files(tmp_path, file, line, edit, field, expected):
+    write_sequence(tmp_path)
+    path = tmp_path / file
+    _edit(path, line, edit)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    with pytest.raises(DataError) as info:
+        load_euroc(tmp_path)
+    message = str(info.value)
+    assert str(path) in message, message
+    assert f"line {info.value.line}" in message and info.value.field == field, message
+    if field == "T_BS":  # no T_BS block at all: reported at the end of the file
+        assert info.value.line == len(path.read_text().splitlines())
+    elif field == "T_BS.data" and expected == "16 numbers":  # counted at the closing bracket
+        assert info.value.line == 13
+    else:
+        assert info.value.line == line, message
+    assert expected in message, message
+    assert before == {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}  # nothing written
+
+
+def test_rotation_in_t_bs_must_be_a_rotation(tmp_path):
+    T = T_B_IMU.copy()
+    T[:3, :3] *= 1.01
+    write_sequence(tmp_path, T_imu=T)
+    with pytest.raises(DataError, match=r"imu0/sensor\.yaml, line 10, field 'T_BS\.data'.*a rotation"):
+        load_euroc(tmp_path)
+
+
+@pytest.mark.parametrize("file", [IMU, GT])
+def test_empty_and_header_only(tmp_path, file):
+    write_sequence(tmp_path)
+    path = tmp_path / file
+    header = path.read_text().splitlines()[0]
+    for text in ("", header + "\n", header + "\n" + path.read_text().splitlines()[1] + "\n"):
+        path.write_text(text)
+        with pytest.raises(DataError) as info:
+            load_euroc(tmp_path)
+        assert str(path) in str(info.value) and "line" in str(info.value)
+
+
+def test_no_overlap_and_no_folder(tmp_path):
+    write_sequence(tmp_path, n_imu=8)  # the IMU ends before the ground truth starts
+    with pytest.raises(DataError, match=r"imu0/data\.csv.*0 IMU samples within the ground truth's span"):
+        load_euroc(tmp_path)
+    with pytest.raises(DataError, match="mav0"):
+        load_euroc(tmp_path / "mav0" / "imu0" / "nothing")
+
+
+_TOKENS = st.sampled_from(
+    ["0", str(NS0), str(NS0 + 7), "-1", "0.5", "1e400", "nan", "inf", "x", "", " ", "#", "[", "]", ":", "T_BS:",
+     "  data:", "cols: 4", "1_0", "9" * 25, "\u00e9", "1,2,3", "%"]
+)
+_LINE = st.lists(_TOKENS, min_size=0, max_size=10).flatmap(
+    lambda toks: st.sampled_from([",", " ", ", "]).map(lambda sep: sep.join(toks)))
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(file=st.sampled_from([IMU, GT, IMU_YAML, GT_YAML]), line=_LINE, where=st.integers(0, 14),
+       replace=st.booleans())
+def test_fuzz_only_data_errors_naming_the_file(file, line, where, replace):
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        write_sequence(root, n_imu=40, n_gt=20)
+        path = root / file
+        lines = path.read_text().splitlines()
+        where = min(where, len(lines))
+        lines[where: where + int(replace)] = [line]
+        path.write_text("\n".join(lines) + "\n")
+        try:
+            d = load_euroc(root)
+        except DataError as error:
+            assert str(path) in str(error), str(error)
+        else:
+            assert np.all(np.diff(d.imu.t_ns) > 0)
