@@ -70,7 +70,7 @@ def _rotations(name: str, C, n: int) -> np.ndarray:
     return C
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ImuSamples:
     """IMU samples: specific force ``acc`` [m/s^2] and angular rate ``gyro`` [rad/s] in the body
     frame at times ``t`` [s]. Sample ``k`` drives the Euler step over ``[t[k], t[k+1]]``.
@@ -102,7 +102,7 @@ class ImuSamples:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PositionMeasurements:
     """World positions ``I_r`` [m] (GPS-like), covariance ``cov`` (N, 3, 3) [m^2]."""
 
@@ -123,7 +123,7 @@ class PositionMeasurements:
         return PositionMeasurements(self.t[index], self.position[index], self.cov[index])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class OrientationMeasurements:
     """Attitudes ``C(Phi_IB)`` with ``C_meas = exp(n) C`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2]."""
 
@@ -144,7 +144,7 @@ class OrientationMeasurements:
         return OrientationMeasurements(self.t[index], self.C[index], self.cov[index])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PoseMeasurements:
     """Pose-sensor readings (eqs. 61-63): position [m] and attitude; ``cov`` (N, 6, 6) over
     ``(n_p, n_Phi)`` (position first, world-frame orientation noise second)."""
@@ -168,7 +168,7 @@ class PoseMeasurements:
         return PoseMeasurements(self.t[index], self.position[index], self.C[index], self.cov[index])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RelativePoseMeasurements:
     """Odometry between times ``t_from`` and ``t_to``: ``dr = C_i^T (r_j - r_i)`` [m] (in the body
     frame at ``t_from``) and ``dC = C_i^T C_j``; noise ``dC_meas = exp(n_Phi) dC``,
@@ -197,7 +197,7 @@ class RelativePoseMeasurements:
         return len(self.t_from)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Trajectory:
     """States over time: ``t`` (N,) and an :class:`ImuState` with leading dimension N. Biases are
     NaN where unknown (e.g. a TUM file or a ground truth without biases). ``cov`` optionally holds
@@ -241,7 +241,7 @@ class Trajectory:
         return Trajectory(self.t[index], self.states[index], None if self.cov is None else self.cov[index])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Dataset:
     """Everything an estimator needs: IMU samples, noise densities, gravity, an initial state with
     its 15x15 covariance, the measurements available (any may be None) and, where known, the
