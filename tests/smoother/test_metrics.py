@@ -1,0 +1,295 @@
+"""Evaluation metrics: association, alignment, ATE, RPE, NEES, chi-square; and agreement with evo."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets.tum import write_tum
+from factors import imu, so3
+from factors.imu import ImuState
+from smoother import metrics
+from smoother.metrics import (
+    align_posyaw, associate, ate, chi2_cdf, chi2_quantile, chi2_sf, evaluate, nees, nees_bounds, rpe, rpe_pairs,
+    umeyama,
+)
+
+
+def _walk(n=300, seed=0, dt=0.05, t0=1000.0):
+    rng = np.random.default_rng(seed)
+    t = t0 + dt * np.arange(n)
+    r = np.cumsum(rng.normal(scale=0.3, size=(n, 3)), axis=0)
+    C = so3.exp(np.cumsum(rng.normal(scale=0.05, size=(n, 3)), axis=0) + [0.2, -0.4, 1.0])
+    return t, r, C
+
+
+def _transform(R, t, r, C, s=1.0):
+    return s * r @ R.T + t, R @ C
+
+
+# ------------------------------------------------------------------------------------------
+# association
+
+
+def test_associate_nearest_within_max_dt():
+    t_ref = np.array([0.0, 1.0, 2.0, 3.0])
+    t_est = np.array([0.004, 1.5, 2.996])  # the shorter one is walked
+    i_ref, i_est = associate(t_ref, t_est, 0.01)
+    assert i_ref.tolist() == [0, 3] and i_est.tolist() == [0, 2]
+    # the reference walked when it is shorter; the nearest wins
+    i_ref, i_est = associate([1.0], [0.0, 0.995, 1.004, 2.0], 0.01)
+    assert i_ref.tolist() == [0] and i_est.tolist() == [2]
+    # tie: the earlier stamp; a difference of exactly max_dt is accepted
+    assert associate([0.0, 0.5], [0.25], 0.25)[0].tolist() == [0]
+    assert associate([0.0, 1.0], [0.5], 0.4)[0].size == 0
+    # equal lengths: the estimate is walked; a stamp of the longer may serve twice (as in evo)
+    i_ref, i_est = associate([1.0, 5.0, 6.0], [0.996, 1.004], 0.01)
+    assert i_ref.tolist() == [0, 0] and i_est.tolist() == [0, 1]
+    assert associate([], [1.0], 0.1)[0].size == 0
+    with pytest.raises(ValueError, match="sorted"):
+        associate([1.0, 0.0], [0.0], 0.1)
+    with pytest.raises(ValueError, match="max_dt"):
+        associate([0.0], [0.0], -1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# alignment
+
+
+def test_umeyama_recovers_a_known_transform_and_scale():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(50, 3))
+    R, t = so3.exp([0.5, -2.0, 1.0]), np.array([3.0, -1.0, 7.0])
+    R_hat, t_hat, s_hat = umeyama(src, src @ R.T + t)
+    assert np.abs(R_hat - R).max() < 1e-12 and np.abs(t_hat - t).max() < 1e-12 and s_hat == 1.0
+    R_hat, t_hat, s_hat = umeyama(src, 2.5 * src @ R.T + t, with_scale=True)
+    assert np.abs(R_hat - R).max() < 1e-12 and np.abs(t_hat - t).max() < 1e-11 and abs(s_hat - 2.5) < 1e-12
+    # a mirror image still gives a rotation
+    R_hat, _, _ = umeyama(src, src * [1, 1, -1])
+    assert abs(np.linalg.det(R_hat) - 1.0) < 1e-12
+
+
+@pytest.mark.parametrize("points", [np.zeros((2, 3)), np.outer(np.arange(10.0), [1.0, 2.0, 3.0]), np.ones((5, 3))])
+def test_umeyama_refuses_degenerate_points(points):
+    with pytest.raises(ValueError, match="degenerate"):
+        umeyama(points, points + 1.0)
+
+
+def test_posyaw_recovers_yaw_and_translation_only():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(40, 3))
+    Rz = so3.exp([0.0, 0.0, 2.5])
+    R, t = align_posyaw(src, src @ Rz.T + [1.0, 2.0, 3.0])
+    assert np.abs(R - Rz).max() < 1e-12 and np.abs(t - [1.0, 2.0, 3.0]).max() < 1e-12
+    # with a roll in the true offset, the result is still a rotation about z
+    R, _ = align_posyaw(src, src @ so3.exp([0.3, 0.0, 2.5]).T)
+    assert R[2, 2] == 1.0 and R[0, 2] == R[2, 0] == 0.0
+
+
+@pytest.mark.parametrize("mode", ["se3", "posyaw"])
+def test_alignment_recovers_a_known_offset_and_ate_is_zero(mode):
+    t, r, C = _walk()
+    phi = [0.0, 0.0, -1.2] if mode == "posyaw" else [0.4, -0.3, -1.2]
+    R, offset = so3.exp(phi), np.array([10.0, -5.0, 2.0])
+    r_est, C_est = _transform(R, offset, r, C)
+    result = evaluate(t, r, C, t, r_est, C_est, align=mode)
+    assert np.abs(result.R - R.T).max() < 1e-12
+    assert np.abs(result.t + R.T @ offset).max() < 1e-10
+    assert result.ate["translation"]["max"] < 1e-10 and result.ate["rotation"]["max"] < 1e-6
+    unaligned = evaluate(t, r, C, t, r_est, C_est, align="none")
+    assert unaligned.ate["translation"]["min"] > 1.0
+
+
+def test_ate_known_errors():
+    t, r, C = _walk(n=20)
+    e = ate(r, C, r + [0.0, 3.0, 4.0], so3.exp([0.0, 0.0, np.radians(2.0)]) @ C)
+    assert np.allclose(e["translation_errors"], 5.0) and e["translation"]["rmse"] == pytest.approx(5.0)
+    assert np.allclose(e["rotation_errors"], 2.0) and e["rotation"]["median"] == pytest.approx(2.0)
+    stats = metrics.statistics([3.0, 4.0])
+    assert stats == {"rmse": np.sqrt(12.5), "mean": 3.5, "median": 3.5, "std": 0.5, "min": 3.0, "max": 4.0,
+                     "sse": 25.0, "count": 2}
+
+
+# ------------------------------------------------------------------------------------------
+# RPE
+
+
+def test_rpe_pairs_semantics():
+    r = np.zeros((9, 3))
+    r[:, 0] = 0.5 * np.arange(9)
+    assert rpe_pairs(r, None, 1) == [(i, i + 1) for i in range(8)]
+    assert rpe_pairs(r, None, 3) == [(0, 3), (3, 6)]
+    assert rpe_pairs(r, None, 3, all_pairs=True) == [(i, i + 3) for i in range(6)]
+    assert rpe_pairs(r, None, 1.0, unit="m") == [(0, 2), (2, 4), (4, 6), (6, 8)]
+    assert rpe_pairs(r, None, 1.0, unit="m", all_pairs=True) == [(i, i + 2) for i in range(7)]
+    t = np.array([0.0, 0.1, 0.3, 0.35, 0.6, 0.9])
+    assert rpe_pairs(r[:6], t, 0.3, unit="s") == [(0, 2), (2, 4), (4, 5)]
+    for bad in (0, 1.5, -2):
+        with pytest.raises(ValueError, match="delta"):
+            rpe_pairs(r, None, bad)
+    with pytest.raises(ValueError, match="unit"):
+        rpe_pairs(r, None, 1.0, unit="deg")
+
+
+def test_rpe_is_invariant_to_a_global_transform_and_local():
+    t, r, C = _walk(n=60, seed=4)
+    rng = np.random.default_rng(5)
+    r_est = r + rng.normal(scale=0.01, size=r.shape)
+    C_est = so3.exp(rng.normal(scale=0.01, size=r.shape)) @ C
+    a = rpe(r, C, r_est, C_est)
+    moved = _transform(so3.exp([1.0, 2.0, -0.5]), [4.0, 5.0, 6.0], r_est, C_est)
+    b = rpe(r, C, *moved)
+    assert np.allclose(a["translation_errors"], b["translation_errors"], atol=1e-12)
+    assert np.allclose(a["rotation_errors"], b["rotation_errors"], atol=1e-9)
+    # a jump at one pose only changes the two pairs touching it
+    r_jump = r.copy()
+    r_jump[30] += [0.0, 0.0, 1.0]
+    e = rpe(r, C, r_jump, C)["translation_errors"]
+    assert np.allclose(np.flatnonzero(e > 1e-12), [29, 30]) and np.allclose(e[[29, 30]], 1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# NEES
+
+
+def _random_cov(rng, anisotropic=True):
+    A = rng.normal(size=(15, 15))
+    cov = A @ A.T * 1e-3 + np.eye(15) * 1e-4
+    if anisotropic:
+        cov[8, 8] += 0.05  # large yaw (about WORLD z) uncertainty
+    return cov
+
+
+def test_nees_definition_exact():
+    rng = np.random.default_rng(6)
+    est = ImuState(rng.normal(size=3), rng.normal(size=3), so3.exp(rng.normal(size=3)), rng.normal(size=3),
+                   rng.normal(size=3))
+    cov = _random_cov(rng)
+    e = rng.multivariate_normal(np.zeros(15), cov)
+    truth = imu.boxplus(est, e)  # truth = est [+] e, i.e. e = truth [-] est
+    idx = np.r_[0:3, 6:9]
+    expected = e[idx] @ np.linalg.solve(cov[np.ix_(idx, idx)], e[idx])
+    assert nees(truth, est, cov) == pytest.approx(expected, rel=1e-9)
+    assert nees(truth, est, cov, part="full") == pytest.approx(e @ np.linalg.solve(cov, e), rel=1e-9)
+    pos = e[:3] @ np.linalg.solve(cov[:3, :3], e[:3])
+    assert nees(truth, est, cov, part="position") == pytest.approx(pos, rel=1e-9)
+    with pytest.raises(ValueError, match="part"):
+        nees(truth, est, cov, part="bias")
+    unknown = truth.replace(v=np.full(3, np.nan))
+    assert np.isfinite(nees(unknown, est, cov))  # the pose part does not need velocities
+    with pytest.raises(ValueError, match="not finite"):
+        nees(unknown, est, cov, part="full")
+
+
+def test_nees_monte_carlo_consistent_only_in_the_left_world_convention():
+    rng = np.random.default_rng(7)
+    runs = 3000
+    C_est = so3.exp([1.2, 0.3, -0.8])
+    est = ImuState(np.zeros((runs, 3)), np.zeros((runs, 3)), np.broadcast_to(C_est, (runs, 3, 3)),
+                   np.zeros((runs, 3)), np.zeros((runs, 3)))
+    cov = np.diag([0.01] * 3 + [0.01] * 3 + [1e-4, 1e-4, 0.05] + [1e-3] * 6)
+    e = rng.multivariate_normal(np.zeros(15), cov, size=runs)
+    left = imu.boxplus(est, e)
+    value = nees(left, est, np.broadcast_to(cov, (runs, 15, 15))).mean()
+    lo, hi = nees_bounds(6, runs, 0.999)
+    assert lo < value < hi
+    # the same numbers as a body-frame (right) perturbation C exp(n) are not consistent
+    right = left.replace(C=C_est @ so3.exp(e[:, 6:9]))
+    assert nees(right, est, np.broadcast_to(cov, (runs, 15, 15))).mean() > 2 * hi
+
+
+# ------------------------------------------------------------------------------------------
+# chi-square without scipy
+
+
+def test_chi2_against_scipy():
+    stats = pytest.importorskip("scipy.stats")
+    for dof in (1, 2, 3, 6, 9, 15, 60, 600, 6000, 45000):
+        for p in (1e-9, 1e-4, 0.005, 0.025, 0.05, 0.5, 0.95, 0.975, 0.995, 1 - 1e-6):
+            ref = stats.chi2.ppf(p, dof)
+            assert chi2_quantile(p, dof) == pytest.approx(ref, rel=1e-9), (p, dof)
+            assert chi2_cdf(ref, dof) == pytest.approx(p, rel=1e-9, abs=1e-15)
+            assert chi2_sf(ref, dof) == pytest.approx(1 - p, rel=1e-8, abs=1e-15)
+    for dim, runs in ((3, 1), (6, 50), (15, 100)):
+        lo, hi = nees_bounds(dim, runs, 0.95)
+        assert lo == pytest.approx(stats.chi2.ppf(0.025, dim * runs) / runs, rel=1e-9)
+        assert hi == pytest.approx(stats.chi2.ppf(0.975, dim * runs) / runs, rel=1e-9)
+
+
+def test_chi2_known_values_and_arguments():
+    assert chi2_quantile(0.95, 1) == pytest.approx(1.959963984540054**2, rel=1e-12)
+    assert chi2_cdf(2.0, 2) == pytest.approx(1 - np.exp(-1.0), rel=1e-14)
+    assert chi2_quantile(0.0, 3) == 0.0 and chi2_quantile(1.0, 3) == np.inf
+    for bad in ((1.5, 3), (0.5, 0), (0.5, -1)):
+        with pytest.raises(ValueError):
+            chi2_quantile(*bad)
+    with pytest.raises(ValueError):
+        nees_bounds(0, 10)
+
+
+# ------------------------------------------------------------------------------------------
+# evo
+
+
+def _evo_case(tmp_path, seed):
+    """Reference and estimate TUM files: noisy, transformed, jittered in time, of different
+    lengths, with gaps, so that association and alignment both matter."""
+    rng = np.random.default_rng(seed)
+    t, r, C = _walk(n=300, seed=seed)
+    keep = np.sort(rng.choice(300, size=250, replace=False))
+    R, offset = so3.exp(rng.normal(size=3)), rng.normal(scale=20.0, size=3)
+    r_est = r + rng.normal(scale=0.05, size=r.shape)
+    C_est = so3.exp(rng.normal(scale=0.02, size=r.shape)) @ C
+    r_est, C_est = _transform(R, offset, r_est, C_est)
+    t_est = t + rng.uniform(-0.004, 0.004, size=t.size)
+    t_est[keep[::7]] += 0.03  # some too far off to associate
+    order = np.argsort(t_est[keep])
+    ref_path, est_path = tmp_path / f"ref{seed}.txt", tmp_path / f"est{seed}.txt"
+    write_tum(ref_path, t, r, C)
+    write_tum(est_path, t_est[keep][order], r_est[keep][order], C_est[keep][order])
+    return ref_path, est_path
+
+
+def _close(a, b):
+    return abs(a - b) <= 1e-9 * max(1.0, abs(b))
+
+
+@pytest.mark.parametrize("align", ["se3", "none"])
+@pytest.mark.parametrize("seed, delta, unit, all_pairs", [(11, 1, "frames", False), (12, 5, "frames", False),
+                                                          (13, 4, "frames", True), (14, 2.0, "m", False),
+                                                          (15, 3.0, "m", True)])
+def test_agrees_with_evo(tmp_path, seed, align, delta, unit, all_pairs):
+    pytest.importorskip("evo", reason="evo (test-only dependency) is not installed: pip install evo")
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from evo.tools import file_interface
+
+    from datasets.tum import read_tum
+
+    ref_path, est_path = _evo_case(tmp_path, seed)
+    ref, est = read_tum(ref_path), read_tum(est_path)
+    ours = evaluate(ref.t, ref.position, ref.C, est.t, est.position, est.C, align=align, max_dt=0.01,
+                    delta=delta, delta_unit=unit, all_pairs=all_pairs)
+
+    evo_ref = file_interface.read_tum_trajectory_file(str(ref_path))
+    evo_est = file_interface.read_tum_trajectory_file(str(est_path))
+    evo_ref, evo_est = sync.associate_trajectories(evo_ref, evo_est, max_diff=0.01)
+    assert np.array_equal(evo_ref.timestamps, ref.t[ours.i_ref])
+    assert np.array_equal(evo_est.timestamps, est.t[ours.i_est])
+    if align == "se3":
+        R, t, s = evo_est.align(evo_ref, correct_scale=False)
+        assert np.abs(R - ours.R).max() < 1e-9 and np.abs(t - ours.t).max() < 1e-9
+    relations = {"translation": evo_metrics.PoseRelation.translation_part,
+                 "rotation": evo_metrics.PoseRelation.rotation_angle_deg}
+    evo_unit = evo_metrics.Unit.frames if unit == "frames" else evo_metrics.Unit.meters
+    compared = 0
+    for name, relation in relations.items():
+        ape = evo_metrics.APE(relation)
+        ape.process_data((evo_ref, evo_est))
+        rpe_metric = evo_metrics.RPE(relation, delta=delta, delta_unit=evo_unit, all_pairs=all_pairs)
+        rpe_metric.process_data((evo_ref, evo_est))
+        for mine, theirs in ((ours.ate[name], ape.get_all_statistics()), (ours.rpe[name], rpe_metric.get_all_statistics())):
+            for key in ("rmse", "mean", "median", "std", "min", "max", "sse"):
+                assert _close(mine[key], theirs[key]), (name, key, mine[key], theirs[key])
+                compared += 1
+        assert mine["count"] == len(rpe_metric.error)
+    assert compared == 28
