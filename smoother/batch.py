@@ -39,10 +39,19 @@ class SmootherResult:
     runtime_s: float
 
 
+def is_indeterminant(error: BaseException) -> bool:
+    """Whether ``error`` is GTSAM's indeterminant-system exception (spelled "Indeterminate" by
+    GTSAM 4.3.0, "Indeterminant" by older versions)."""
+    text = str(error)
+    return "ndeterminate" in text or "ndeterminant" in text
+
+
 def explain_indeterminant(error: RuntimeError, problem: Problem | None = None) -> IndeterminantSystem:
     """Turn GTSAM's indeterminant-system exception into a readable error naming the keyframe."""
     text = str(error)
-    match = re.search(r"near variable (\d+)", text)
+    # GTSAM 4.3.0 says "Indeterminate linear system ... near variable\n<key> (Symbol: ...)"
+    # (older versions "Indeterminant", with a space before the key).
+    match = re.search(r"near variable\s+(\d+)", text)
     where = ""
     if match:
         key = int(match.group(1))
@@ -101,7 +110,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
         values = opt.optimize()
         cov = keyframe_covariances(problem.graph, values, problem.keys) if covariances else None
     except RuntimeError as error:
-        if "ndeterminant" in str(error):
+        if is_indeterminant(error):
             raise explain_indeterminant(error, problem) from None
         raise
     states = imu.ImuState.stack([read_state(values, kk) for kk in problem.keys])

@@ -29,7 +29,7 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
-from smoother.batch import keyframe_covariances
+from smoother.batch import is_indeterminant, keyframe_covariances
 from smoother.graph import Problem, insert_state, read_state
 from smoother.progress import progress_bar
 
@@ -107,7 +107,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             try:
                 smoother.update(graph, values, stamps)
             except RuntimeError as error:
-                if "ndeterminant" not in str(error):
+                if not is_indeterminant(error):
                     raise
                 recovered.append(k)
                 weak = gtsam.NonlinearFactorGraph()
