@@ -392,7 +392,7 @@ def test_check_factor_fails_a_wrong_block_in_the_imu_factor(block, rows):
     """The IMU factor's residual with a 1e-3 error in one block of the Jacobian of keyframe i's
     bias (variable number 3) fails the check on that key only."""
     rng = np.random.default_rng(4)
-    pre, x_i, x_j, *_ = _imu_cases(rng, 1, long_every=0)[0]
+    pre, x_i, x_j, *_ = _imu_cases(rng, 2, long_every=0)[1]  # ordinary attitudes (p = 1)
     f, values = _imu_factor_and_values(pre, x_i, x_j)
     assert checked("control", f.factor, values).ok
     model = noise_model("gaussian", pre.cov)
@@ -414,7 +414,7 @@ def test_check_factor_fails_when_the_chart_adapter_gets_C_transposed(monkeypatch
     values.insert(k.rot, gtsam.Rot3(C))
     orientation = meas.orientation_factor(k.rot, so3.exp(np.array([0.1, 0.2, -0.1])) @ C,
                                           noise_model("gaussian", random_covariance(rng, 3)))
-    pre, x_i, x_j, *_ = _imu_cases(rng, 1, long_every=0)[0]
+    pre, x_i, x_j, *_ = _imu_cases(rng, 2, long_every=0)[1]  # ordinary attitudes (p = 1)
     f, imu_values = _imu_factor_and_values(pre, x_i, x_j)
     assert checked("control", orientation, values).ok and checked("control", f.factor, imu_values).ok
 
