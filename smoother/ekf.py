@@ -21,7 +21,7 @@ import numpy as np
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
 from smoother.progress import progress_bar
-from smoother.timeline import imu_steps
+from smoother.timeline import estimate_times, imu_steps
 
 
 class Ekf:
@@ -99,7 +99,7 @@ def run_ekf(dataset: Dataset, gate_threshold: float | None = None, progress: boo
     start = time.perf_counter()
     if dataset.relative_pose is not None and len(dataset.relative_pose):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
-    knots = np.union1d(dataset.measurement_times(), [dataset.t0, dataset.t1])
+    knots = estimate_times(dataset)
     steps = imu_steps(dataset.imu, knots)
     ekf = Ekf(dataset.initial, dataset.initial_cov, dataset.noise, dataset.gravity, gate_threshold)
     lookups = _measurement_lookup(dataset)

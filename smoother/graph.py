@@ -1,9 +1,8 @@
 """Building the factor graph of a dataset: keyframes, IMU factors, measurement factors, priors
 and initial values.
 
-Keyframes sit at every measurement time (pose, position, orientation, both ends of each relative
-pose) plus the start and the end of the IMU data, or additionally on a fixed grid
-(``keyframe_rate``). Keyframe 0 carries a joint prior from ``dataset.initial`` and
+Keyframes sit at :func:`smoother.timeline.estimate_times`: every measurement time, held-out fix
+times, the start and end of the IMU data, and optionally a fixed grid (``keyframe_rate``). Keyframe 0 carries a joint prior from ``dataset.initial`` and
 ``dataset.initial_cov``. Consecutive keyframes are joined by an IMU factor
 (:class:`factors.imu_factor.ImuFactor`); every interval is preintegrated in one batched call.
 
@@ -24,7 +23,7 @@ from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
-from smoother.timeline import imu_steps
+from smoother.timeline import estimate_times, imu_steps
 
 #: Robust kernels selectable per measurement type.
 ROBUST_KERNELS = {
@@ -72,17 +71,6 @@ class Problem:
     imu_factors: list[ImuFactor]
     factors_at: list[list] = field(default_factory=list)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
-
-
-def keyframe_times(dataset: Dataset, keyframe_rate: float | None = None) -> np.ndarray:
-    """Measurement times within the IMU span, the IMU start and end, and an optional grid."""
-    parts = [dataset.measurement_times(), [dataset.t0, dataset.t1]]
-    if dataset.relative_pose is not None:
-        parts += [dataset.relative_pose.t_from, dataset.relative_pose.t_to]
-    if keyframe_rate:
-        parts.append(np.arange(dataset.t0, dataset.t1, 1.0 / keyframe_rate))
-    times = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
-    return times[(times >= dataset.t0) & (times <= dataset.t1)]
 
 
 def _match(times: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -148,7 +136,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     ``"relative_pose"``) to a kernel spec ``(name, threshold)`` from :func:`robust_spec`.
     """
     robust = robust or {}
-    times = keyframe_times(dataset, keyframe_rate)
+    times = estimate_times(dataset, keyframe_rate)
     if len(times) < 2:
         raise ValueError("the dataset spans less than one keyframe interval")
     keys = [keyframe_keys(k) for k in range(len(times))]

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.types import ImuSamples
+from datasets.types import Dataset, ImuSamples
 
 
 @dataclass(frozen=True)
@@ -58,3 +58,19 @@ def imu_steps(imu: ImuSamples, knots: np.ndarray) -> Steps:
         t=starts,
         knot_step=np.searchsorted(bounds, knots),
     )
+
+
+def estimate_times(dataset: Dataset, grid_rate: float | None = None) -> np.ndarray:
+    """Where the estimators report states (the smoothers' keyframes, the EKF's knots): every
+    measurement time (pose, position, orientation, both ends of each relative pose), the times of
+    held-out fixes (only their times: an evaluation wants estimates there), the start and end of
+    the IMU data, and optionally a grid of ``grid_rate`` Hz; all within the IMU span."""
+    parts = [dataset.measurement_times(), [dataset.t0, dataset.t1]]
+    if dataset.relative_pose is not None:
+        parts += [dataset.relative_pose.t_from, dataset.relative_pose.t_to]
+    if dataset.heldout_positions is not None:
+        parts.append(dataset.heldout_positions.t)
+    if grid_rate:
+        parts.append(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))
+    times = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
+    return times[(times >= dataset.t0) & (times <= dataset.t1)]
