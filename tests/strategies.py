@@ -221,3 +221,27 @@ def reference_quaternion_log(q: np.ndarray) -> np.ndarray:
             return np.zeros(3)
         k = 2 * dec_atan2(s, q0) / s
         return np.array([float(k * x) for x in v])
+
+
+# ---------------------------------------------------------------------------------------------
+# Plain NumPy samplers for batch (vectorisation) tests, where Hypothesis' per-draw cost would
+# dominate and shrinking a batch of 12 rotations would not explain anything anyway.
+
+
+def sample_angles(rng: np.random.Generator, shape) -> np.ndarray:
+    """Angles mixing every regime: 0, 1e-12..1e-6 (log-uniform), uniform in [0, pi], pi - 1e-12..
+    pi - 1e-3 (log-uniform in the distance) and exactly pi."""
+    shape = tuple(np.atleast_1d(shape))
+    regime = rng.integers(0, 5, size=shape)
+    tiny = 10.0 ** rng.uniform(-12, -6, size=shape)
+    ordinary = rng.uniform(0, math.pi, size=shape)
+    near_pi = math.pi - 10.0 ** rng.uniform(-12, -3, size=shape)
+    return np.choose(regime, [np.zeros(shape), tiny, ordinary, near_pi, np.full(shape, math.pi)])
+
+
+def sample_rotation_vectors(rng: np.random.Generator, shape) -> np.ndarray:
+    """Rotation vectors of shape ``shape + (3,)`` with :func:`sample_angles` and uniform axes."""
+    shape = tuple(np.atleast_1d(shape))
+    axes = rng.normal(size=shape + (3,))
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    return sample_angles(rng, shape)[..., None] * axes
