@@ -55,7 +55,7 @@ from smoother.errors import UserError
 DPI = 120
 #: Figure sizes [inch] by file stem; a PNG is ``round(w * DPI) x round(h * DPI)`` pixels.
 FIGSIZE = {
-    "trajectory": (12.0, 5.5),
+    "trajectory": (12.0, 6.0),
     "position_error": (12.0, 7.5),
     "orientation_error": (12.0, 7.5),
     "nees": (11.0, 7.5),
@@ -136,8 +136,18 @@ class Run:
 _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError)
 
 
+def _check_npz(path: Path, expected: str) -> None:
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as error:
+        raise UserError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
+    if not is_zip:
+        raise UserError(f"{path}: not an .npz archive; expected {expected}")
+
+
 def _load_trajectory(path: Path) -> Trajectory:
     expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
+    _check_npz(path, expected)
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
@@ -156,6 +166,7 @@ def _load_trajectory(path: Path) -> Trajectory:
 
 def _load_gps(path: Path) -> Gps:
     expected = "an .npz with arrays t (M,), position (M, 3) and optionally cov (M, 3, 3) and heldout (M,) bool"
+    _check_npz(path, expected)
     try:
         with np.load(path, allow_pickle=False) as data:
             t = np.asarray(data["t"], dtype=float)
@@ -265,6 +276,7 @@ class Errors:
     P_phi: np.ndarray | None = None
     nees: np.ndarray | None = None
     dof: int = 6
+    heldout: np.ndarray | None = None
 
 
 def _safe_nees(e: np.ndarray, P: np.ndarray) -> np.ndarray | None:
@@ -275,7 +287,8 @@ def _safe_nees(e: np.ndarray, P: np.ndarray) -> np.ndarray | None:
 
 
 def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | None:
-    """Errors at the estimate's times inside the truth's span (None if there are none)."""
+    """Errors at the estimate's times inside the truth's span (None if there are none); the
+    pose NEES with the (r, phi) block of the covariance."""
     T, _, inside = interpolate(truth, estimate.t)
     if not inside.any():
         return None
@@ -292,18 +305,29 @@ def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | No
     )
 
 
-def errors_against_gps(gps: Gps, estimate: Trajectory) -> tuple[Errors, np.ndarray] | None:
-    """Fix minus estimate (interpolated to the fix times) with covariance ``P_est + R_fix``; and
-    the held-out flags of the fixes compared (None if no fix lies inside the estimate's span)."""
+def errors_against_gps(gps: Gps, estimate: Trajectory) -> Errors | None:
+    """Fix minus estimate (interpolated linearly to the fix times, as ``metrics.json``'s GPS RMSEs
+    are) with covariance ``P_est + R_fix`` (None if no fix lies inside the estimate's span).
+
+    ``P_est + R_fix`` is the residual's covariance only for a HELD-OUT fix (independent of the
+    estimate); a fix the estimator used pulled the estimate towards itself, so its residual is
+    smaller than that. The NEES is therefore computed over the held-out fixes only (NaN at the
+    others, None if there are none)."""
     E, cov, inside = interpolate(estimate, gps.t)
     if not inside.any():
         return None
     dr = gps.position[inside] - E.r
+    heldout = gps.heldout[inside]
     P = None
     if cov is not None:
         P = cov[:, 0:3, 0:3] + (0.0 if gps.cov is None else gps.cov[inside])
-    nees = None if P is None else _safe_nees(dr, P)
-    return Errors(t=gps.t[inside], dr=dr, P_r=P, nees=nees, dof=3), gps.heldout[inside]
+    nees = None
+    if P is not None and heldout.any():
+        values = _safe_nees(dr[heldout], P[heldout])
+        if values is not None:
+            nees = np.full(len(dr), np.nan)
+            nees[heldout] = values
+    return Errors(t=gps.t[inside], dr=dr, P_r=P, nees=nees, dof=3, heldout=heldout)
 
 
 def reference_errors(run: Run) -> tuple[str, dict]:
@@ -316,7 +340,7 @@ def reference_errors(run: Run) -> tuple[str, dict]:
         for n, tr in run.estimates.items():
             result = errors_against_gps(run.gps, tr)
             if result is not None:
-                out[n] = result[0]
+                out[n] = result
         return "gps", out
     return "", {}
 
@@ -357,10 +381,13 @@ def _symmetric_limit(values: list, bands: list) -> float:
 
 
 def _plain_log_labels(ax) -> None:
-    """Tick labels like 0.02 instead of 2 x 10^-2 on a log y axis."""
-    plain = FuncFormatter(lambda v, _: f"{v:g}")
-    ax.yaxis.set_major_formatter(plain)
-    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if _leading_digit(v) in (2, 5) else ""))
+    """Tick labels like 0.02 instead of 2 x 10^-2 on a log y axis (call after setting the limits);
+    minor ticks 2 and 5 are labelled only when the axis spans at most two decades."""
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    lo, hi = ax.get_ylim()
+    few = lo > 0 and math.log10(hi / lo) <= 2.0
+    ax.yaxis.set_minor_formatter(FuncFormatter(
+        lambda v, _: f"{v:g}" if few and _leading_digit(v) in (2, 5) else ""))
 
 
 def _leading_digit(v: float) -> int:
@@ -401,12 +428,14 @@ def plot_trajectory(run: Run, out_dir: Path) -> Path:
     top.set_xlabel("x [m]")
     top.set_ylabel("y [m]")
     top.set_title("Top view (world x-y)")
-    top.legend(loc="best")
     height.set_xlabel(_time_label(run))
     height.set_ylabel("height z [m]")
     height.set_title("Height over time")
-    reference = "truth" if run.truth is not None else ("GPS fixes" if run.gps is not None else "no reference")
-    fig.suptitle(f"Trajectory: estimates vs {reference}  (run {run.run_dir.name})", fontsize=12)
+    reference = ("vs truth" if run.truth is not None else "vs GPS fixes" if run.gps is not None
+                 else "(no truth or GPS in the run directory)")
+    handles, labels = top.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), markerscale=1.5)
+    fig.suptitle(f"Trajectory: estimates {reference}  (run {run.run_dir.name})", fontsize=12)
     return _save(fig, out_dir, "trajectory")
 
 
@@ -433,8 +462,12 @@ def _error_grid(run: Run, out_dir: Path, stem: str, errors: dict, title: str, yl
                 ax.plot(t, b, color=color, lw=0.6, alpha=0.6)
                 ax.plot(t, -b, color=color, lw=0.6, alpha=0.6)
                 note += f",  {np.mean(np.abs(v) <= b) * 100.0:.0f}% inside ±3σ"
-            if points:
-                ax.plot(t, v, ".", ms=2.5, color=color, label="error")
+            held = errors[name].heldout
+            if points and held is not None and held.any():
+                ax.plot(t[~held], v[~held], ".", ms=2.5, color="0.55", label="used fix")
+                ax.plot(t[held], v[held], ".", ms=3.0, color=color, label="held-out fix")
+            elif points:
+                ax.plot(t, v, ".", ms=2.5, color=color, label="fix")
             else:
                 ax.plot(t, v, color=color, lw=1.0, label="error")
             ax.axhline(0.0, color="0.3", lw=0.6)
@@ -458,7 +491,8 @@ def plot_position_error(run: Run, out_dir: Path, kind: str, errors: dict) -> Pat
         title = "Position error (truth − estimate) per world axis, with the estimator's ±3σ"
         labels = [f"{a} error [m]" for a in AXES]
     else:
-        title = "Position difference to the GPS fixes (fix − estimate), with ±3σ of estimate and fix combined"
+        title = ("Position difference to the GPS fixes (fix − estimate), with ±3σ of estimate and fix combined\n"
+                 "(a used fix pulled the estimate towards itself: only held-out fixes test the band)")
         labels = [f"{a} difference [m]" for a in AXES]
     return _error_grid(run, out_dir, "position_error", errors, title, labels, "m", lambda e: (e.dr, e.P_r), 1.0,
                        points=kind == "gps")
@@ -481,26 +515,30 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     axes = fig.subplots(len(names), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
     t0 = run.t0
     values = np.concatenate([errors[n].nees for n in names])
+    values = values[np.isfinite(values)]
     positive = values[values > 0]
     bottom = min(lo, float(positive.min()) if positive.size else lo) / 2.0
     top = max(hi, float(values.max())) * 2.0
     for ax, name in zip(axes, names):
         e = errors[name]
-        inside = float(np.mean((e.nees >= lo) & (e.nees <= hi))) * 100.0
+        ok = np.isfinite(e.nees)
+        t, nees = e.t[ok] - t0, e.nees[ok]
+        inside = float(np.mean((nees >= lo) & (nees <= hi))) * 100.0
         band = ax.axhspan(lo, hi, color="0.5", alpha=0.2, lw=0)
         expected = ax.axhline(dof, color="0.3", lw=0.8, ls="--")
-        ax.semilogy(e.t - t0, np.clip(e.nees, bottom, None), color=run.color(name), lw=1.0,
-                    marker="." if len(e.t) <= 500 else None, ms=3)
+        ax.semilogy(t, np.clip(nees, bottom, None), color=run.color(name), lw=1.0,
+                    marker="." if len(t) <= 500 else None, ms=3)
         ax.set_ylim(bottom, top)
         _plain_log_labels(ax)
         ax.set_ylabel(f"NEES ({dof} dof)")
-        ax.set_title(f"{name}: mean NEES/dof = {np.mean(e.nees) / dof:.2f}, {inside:.0f}% of the times inside "
-                     f"the band", loc="left", fontsize=10, color=run.color(name))
+        ax.set_title(f"{name}: mean NEES/dof = {np.mean(nees) / dof:.2f}, {inside:.0f}% of the "
+                     f"{'times' if kind == 'truth' else f'{len(nees)} held-out fixes'} inside the band",
+                     loc="left", fontsize=10, color=run.color(name))
     axes[-1].set_xlabel(_time_label(run))
     fig.legend([band, expected], [f"{NEES_CONFIDENCE:.0%} band of χ²({dof}) for one run: [{lo:.2f}, {hi:.2f}]",
                                   f"expected value {dof}"], loc="outside lower center", ncol=2)
     what = ("pose (position + attitude) against the truth" if kind == "truth"
-            else "position residual to the GPS fixes (estimate + fix covariance)")
+            else "position residual to the held-out GPS fixes (covariance: estimate + fix)")
     fig.suptitle(f"NEES of the {what}", fontsize=12)
     return _save(fig, out_dir, "nees")
 
@@ -602,7 +640,7 @@ def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     for name, e in errors.items():
         norm = np.linalg.norm(e.dr, axis=1)
         if kind == "gps":
-            ax.plot(e.t - t0, norm, ".", ms=2.5, **run.line(name, ls="none"))
+            ax.plot(e.t - t0, norm, marker=".", ms=2.5, **run.line(name, lw=0.7))
         else:
             ax.plot(e.t - t0, norm, **run.line(name, lw=1.1))
     ax.set_yscale("log")
@@ -649,6 +687,8 @@ def plot_run(run_dir, estimators=None, out_dir=None) -> list[Path]:
                 written.append(plot_orientation_error(run, out_dir, errors))
             if any(e.nees is not None for e in errors.values()):
                 written.append(plot_nees(run, out_dir, kind, errors))
+            elif kind == "gps" and not run.gps.heldout.any():
+                print("plots: no held-out GPS fix (see --gps-every): no NEES figure", file=sys.stderr)
         else:
             print(f"plots: {run.run_dir} has neither truth.npz nor gps.npz: no error figures", file=sys.stderr)
         written.append(plot_biases(run, out_dir))
