@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "smoother.commands.crosscheck",
     "smoother.commands.check_jacobians",
     "smoother.commands.evaluate",
+    "smoother.commands.plot",
 ]
 
 
