@@ -71,6 +71,15 @@ def estimate_times(dataset: Dataset, grid_rate: float | None = None) -> np.ndarr
     if dataset.heldout_positions is not None:
         parts.append(dataset.heldout_positions.t)
     if grid_rate:
-        parts.append(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))
+        # Grid times as t0 + k / rate (correctly rounded, like the measurement ticks; arange's
+        # accumulated k * step differs by an ulp, e.g. 0.30000000000000004 beside a measurement
+        # at 0.3), and none within half an IMU step of another estimate time: a near-duplicate
+        # keyframe makes an IMU interval of ~1e-16 s whose factor has a ~0 covariance, and the
+        # system becomes indeterminant.
+        others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
+        grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
+        i = np.searchsorted(others, grid)
+        gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
+        parts.append(grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))])
     times = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
     return times[(times >= dataset.t0) & (times <= dataset.t1)]
