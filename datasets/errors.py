@@ -20,9 +20,8 @@ _MAX_SHOWN = 60
 
 
 def _shown(found) -> str:
-    text = found if isinstance(found, str) else str(found)
-    if isinstance(found, str):
-        text = repr(found)
+    """Strings as ``repr`` (so blanks and control characters show), other values as ``str``."""
+    text = repr(found) if isinstance(found, str) else str(found)
     if len(text) > _MAX_SHOWN:
         text = text[: _MAX_SHOWN - 3] + "..."
     return text
@@ -92,11 +91,11 @@ def integer(token: str, path, line: int, field: str) -> int:
     return value
 
 
-def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str], integer_fields=()) -> np.ndarray:
-    """Parse ``rows`` (pairs of 1-based line number and tokens) into a float array of shape
-    ``(len(rows), len(fields))``. Columns named in ``integer_fields`` are parsed as integers and
-    returned in a separate int64 array: the result is ``(floats, ints)`` with the integer
-    columns of ``floats`` set to 0 (the caller uses ``ints`` for them)."""
+def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
+               integer_fields=()) -> tuple[np.ndarray, np.ndarray]:
+    """Parse ``rows`` (pairs of 1-based line number and tokens, exactly ``len(fields)`` each)
+    into ``(floats, ints)``: a float array of shape ``(len(rows), len(fields))`` and an int64
+    array with the columns named in ``integer_fields`` (whose entries in ``floats`` stay 0)."""
     n, m = len(rows), len(fields)
     out = np.zeros((n, m))
     int_cols = [fields.index(f) for f in integer_fields]

@@ -439,8 +439,15 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     states = ImuState(r=r, v=v_body, C=C, b_f=gt.b_a @ R_x, b_w=gt.b_w @ R_x)
 
     initial = _interpolate(gt.t_ns, states, t0_ns)
-    truth = Trajectory((gt.t_ns[gt_keep] - t0_ns) * 1e-9, states[gt_keep])
+    truth_t = (gt.t_ns[gt_keep] - t0_ns) * 1e-9
+    if np.any(np.diff(truth_t) <= 0):
+        raise DataError(gt_csv, None, "timestamp [ns]", "stamps that coincide in float64 seconds",
+                        "stamps that stay distinct relative to the first IMU stamp")
+    truth = Trajectory(truth_t, states[gt_keep])
     t = (imu_ns - t0_ns) * 1e-9
+    if np.any(np.diff(t) <= 0):  # stamps 1 ns apart more than ~100 days after the first
+        raise DataError(imu_csv, None, "timestamp [ns]", "stamps that coincide in float64 seconds",
+                        "stamps that stay distinct relative to the first IMU stamp")
     imu = ImuSamples(t, acc, gyro, t_ns=imu_ns)
 
     sigmas = np.repeat(INITIAL_SIGMAS, 3)

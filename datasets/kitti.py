@@ -298,6 +298,9 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
     samples = ImuSamples(t, acc, gyro)
 
     initial, initial_cov = _initial_state(t_gps, p_gps)
+    if not (np.all(np.isfinite(initial.v)) and np.all(np.isfinite(initial.r))):
+        raise DataError(gps_path, int(gps_lines[1]), None, "a velocity from the first two fixes that overflows",
+                        "finite positions and times")
     j = np.arange(1, len(t_gps))
     used = j[j % gps_every == 0]
     held = j[j % gps_every != 0]

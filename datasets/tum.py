@@ -45,9 +45,7 @@ def read_tum(path) -> Trajectory:
     line_numbers = [line for line, _ in rows]
     t = values[:, 0]
     check_increasing(path, t, line_numbers, "timestamp")
-    q_xyzw = values[:, 4:8]
-    norm_lines = line_numbers
-    q_xyzw = check_unit_quaternions(path, q_xyzw, norm_lines, "qx qy qz qw", QUATERNION_TOLERANCE)
+    q_xyzw = check_unit_quaternions(path, values[:, 4:8], line_numbers, "qx qy qz qw", QUATERNION_TOLERANCE)
     C = quaternion.to_matrix(quaternion.from_xyzw(q_xyzw))
     n = len(t)
     nan = np.full((n, 3), np.nan)

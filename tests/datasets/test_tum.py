@@ -129,7 +129,7 @@ _TOKENS = st.sampled_from(
 _LINES = st.lists(_TOKENS, min_size=0, max_size=12).map(" ".join)
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(lines=st.lists(_LINES, min_size=1, max_size=4), where=st.integers(0, 3))
 def test_fuzz_only_data_errors_naming_the_file(lines, where):
     with tempfile.TemporaryDirectory() as tmp:

@@ -42,6 +42,8 @@ def test_associate_nearest_within_max_dt():
     assert associate([0.0, 0.5], [0.25], 0.25)[0].tolist() == [0]
     assert associate([0.0, 1.0], [0.5], 0.4)[0].size == 0
     # equal lengths: the estimate is walked; a stamp of the longer may serve twice (as in evo)
+    i_ref, i_est = associate([1.0, 2.0], [1.001, 1.003], 0.01)
+    assert i_ref.tolist() == [0, 0] and i_est.tolist() == [0, 1]
     i_ref, i_est = associate([1.0, 5.0, 6.0], [0.996, 1.004], 0.01)
     assert i_ref.tolist() == [0, 0] and i_est.tolist() == [0, 1]
     assert associate([], [1.0], 0.1)[0].size == 0
