@@ -22,18 +22,19 @@ import numpy as np
 from factors import so3
 from factors.custom import BIAS, ROT, VEC, custom_factor
 
-_I3 = np.eye(3)
-
-
 def covariance_model(cov: np.ndarray):
     """A Gaussian GTSAM noise model of covariance ``cov``."""
     return gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
 
 
+def _eye(shape: tuple, n: int = 3) -> np.ndarray:
+    return np.broadcast_to(np.eye(n), shape + (n, n)).copy()
+
+
 def position_residual(r, measured, jacobians: bool = False):
     """``e = r - r_meas`` (eq. 61); ``de/dr = I``."""
     e = np.asarray(r, dtype=float) - measured
-    return (e, [_I3]) if jacobians else e
+    return (e, [_eye(e.shape[:-1])]) if jacobians else e
 
 
 def orientation_residual(C, measured, jacobians: bool = False):
@@ -46,46 +47,48 @@ def pose_residual(r, C, measured_r, measured_C, jacobians: bool = False):
     """``e = (r - r_meas, C [-] C_meas)`` (eqs. 61-63); Jacobians for ``(r, C)``."""
     e_r = np.asarray(r, dtype=float) - measured_r
     e_phi = so3.boxminus(C, measured_C)
-    e = np.concatenate([e_r, e_phi])
+    e = np.concatenate([e_r, e_phi], axis=-1)
     if not jacobians:
         return e
-    J_r = np.zeros((6, 3))
-    J_r[:3] = _I3
-    J_C = np.zeros((6, 3))
-    J_C[3:] = so3.gamma_inv(e_phi)
+    shape = e.shape[:-1]
+    J_r = np.zeros(shape + (6, 3))
+    J_r[..., :3, :] = _eye(shape)
+    J_C = np.zeros(shape + (6, 3))
+    J_C[..., 3:, :] = so3.gamma_inv(e_phi)
     return e, [J_r, J_C]
 
 
 def relative_pose_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, jacobians: bool = False):
     """``e = (C_i^T (r_j - r_i) - dr_meas, log(C_i^T C_j dC_meas^T))`` in body frame ``i``;
     Jacobians for ``(C_i, r_i, C_j, r_j)``."""
-    Cit = C_i.T
-    u = Cit @ (np.asarray(r_j, dtype=float) - r_i)
-    X = Cit @ C_j @ np.asarray(measured_dC).T
+    Cit = so3.inverse(C_i)
+    u = np.einsum("...ab,...b->...a", Cit, np.asarray(r_j, dtype=float) - r_i)
+    X = Cit @ C_j @ so3.inverse(measured_dC)
     e_phi = so3.log(X)
-    e = np.concatenate([u - measured_dr, e_phi])
+    e = np.concatenate([u - measured_dr, e_phi], axis=-1)
     if not jacobians:
         return e
+    shape = e.shape[:-1]
     Ginv_Cit = so3.gamma_inv(e_phi) @ Cit
-    J_Ci, J_ri, J_Cj, J_rj = (np.zeros((6, 3)) for _ in range(4))
-    J_Ci[:3] = so3.skew(u) @ Cit
-    J_Ci[3:] = -Ginv_Cit
-    J_ri[:3] = -Cit
-    J_Cj[3:] = Ginv_Cit
-    J_rj[:3] = Cit
+    J_Ci, J_ri, J_Cj, J_rj = (np.zeros(shape + (6, 3)) for _ in range(4))
+    J_Ci[..., :3, :] = so3.skew(u) @ Cit
+    J_Ci[..., 3:, :] = -Ginv_Cit
+    J_ri[..., :3, :] = -Cit
+    J_Cj[..., 3:, :] = Ginv_Cit
+    J_rj[..., :3, :] = Cit
     return e, [J_Ci, J_ri, J_Cj, J_rj]
 
 
 def velocity_residual(v, measured, jacobians: bool = False):
     """``e = B_v - v_meas`` (body-frame velocity, e.g. a zero-velocity update); ``de/dv = I``."""
     e = np.asarray(v, dtype=float) - measured
-    return (e, [_I3]) if jacobians else e
+    return (e, [_eye(e.shape[:-1])]) if jacobians else e
 
 
 def bias_residual(b, measured, jacobians: bool = False):
     """``e = (b_f, b_w) - prior``; ``de/db = I_6``."""
     e = np.asarray(b, dtype=float) - measured
-    return (e, [np.eye(6)]) if jacobians else e
+    return (e, [_eye(e.shape[:-1], 6)]) if jacobians else e
 
 
 def position_factor(key: int, measured, noise_model) -> gtsam.CustomFactor:
@@ -134,16 +137,18 @@ def bias_factor(key: int, measured_bias, noise_model) -> gtsam.CustomFactor:
 def state_residual(C, r, v, b, prior, jacobians: bool = False):
     """``e = x [-] x_prior`` over the whole state, in error-state order ``(r, v, phi, b_f, b_w)``;
     Jacobians for the variables ``(C, r, v, b)`` (the keyframe's Rot3, Point3, velocity, bias)."""
+    b = np.asarray(b, dtype=float)
     e_phi = so3.boxminus(C, prior.C)
     e = np.concatenate([np.asarray(r) - prior.r, np.asarray(v) - prior.v, e_phi,
-                        np.asarray(b[:3]) - prior.b_f, np.asarray(b[3:]) - prior.b_w])
+                        b[..., :3] - prior.b_f, b[..., 3:] - prior.b_w], axis=-1)
     if not jacobians:
         return e
-    J_C, J_r, J_v, J_b = np.zeros((15, 3)), np.zeros((15, 3)), np.zeros((15, 3)), np.zeros((15, 6))
-    J_r[0:3] = _I3
-    J_v[3:6] = _I3
-    J_C[6:9] = so3.gamma_inv(e_phi)
-    J_b[9:15] = np.eye(6)
+    shape = e.shape[:-1]
+    J_C, J_r, J_v, J_b = (np.zeros(shape + (15, n)) for n in (3, 3, 3, 6))
+    J_r[..., 0:3, :] = _eye(shape)
+    J_v[..., 3:6, :] = _eye(shape)
+    J_C[..., 6:9, :] = so3.gamma_inv(e_phi)
+    J_b[..., 9:15, :] = _eye(shape, 6)
     return e, [J_C, J_r, J_v, J_b]
 
 

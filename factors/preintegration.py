@@ -85,6 +85,11 @@ class Preintegrated:
             tuple(s[index] for s in self.samples), pick(self.cov),
         )
 
+    def assign(self, index, other: "Preintegrated") -> None:
+        """Overwrite intervals ``index`` with ``other``'s (same count), keeping the covariance."""
+        for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "b_w_bar", "duration"):
+            getattr(self, name)[index] = getattr(other, name)
+
     def corrected(self, b_w: np.ndarray):
         """``(dC, W, Rm)`` at gyro bias ``b_w`` (first order around ``b_w_bar``) and the offset
         ``d = b_w - b_w_bar``."""

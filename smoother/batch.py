@@ -1,9 +1,18 @@
 """Batch smoothing: the whole graph optimised at once, with marginal covariances.
 
-Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable. Covariances are GTSAM's
-marginals of each keyframe's four variables, converted to the primer's 15-dim error state with
-:func:`factors.chart.state_covariance_to_primer`. An indeterminant system is reported with the
-variable GTSAM names and a hint instead of a bare exception.
+Two engines over the same residuals:
+
+* ``vectorized`` (default): :mod:`smoother.solver` -- every factor type linearised at once with
+  NumPy, GTSAM's sparse elimination for the steps and ``Marginals`` for the covariances, which
+  come out directly in the primer's convention. Linear in the length of the run.
+* ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
+  per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
+  independent reference the tests compare against). Covariances from GTSAM's marginals are
+  converted with :func:`factors.chart.state_covariance_to_primer`.
+
+Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. An indeterminant
+system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe and its time,
+with a hint, instead of a bare GTSAM exception.
 """
 from __future__ import annotations
 
@@ -18,20 +27,25 @@ from datasets.types import Trajectory
 from factors import imu
 from factors.chart import state_covariance_to_primer
 from factors.keys import KeyframeKeys
-from smoother.errors import UserError
+from smoother import solver
+from smoother.errors import IndeterminantSystem, UserError
 from smoother.graph import Problem, read_state
 
-OPTIMIZERS = ("lm", "gn", "dogleg")
+OPTIMIZERS = solver.METHODS
+ENGINES = ("vectorized", "gtsam")
 
+_HINT = ("the factors do not constrain every variable there. Typical causes: a stretch with no "
+         "measurements and no IMU link, yaw unobservable with position-only measurements and a "
+         "prior too weak, or a diverging bias. Add a prior or a measurement, or check the data "
+         "around that time.")
 
-class IndeterminantSystem(UserError):
-    """The linear system is rank-deficient: some variable is not constrained by the factors."""
+__all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_covariances", "OPTIMIZERS", "ENGINES"]
 
 
 @dataclass
 class SmootherResult:
-    """Estimates (and covariances, if computed) at every keyframe, the optimiser's final error
-    and iteration count, and the wall time."""
+    """Estimates (and covariances, if computed) at every keyframe, the optimiser's final cost
+    (``sum rho(|e_w|)``, i.e. GTSAM's graph error) and iteration count, and the wall time."""
 
     trajectory: Trajectory
     error: float
@@ -39,59 +53,26 @@ class SmootherResult:
     runtime_s: float
 
 
-def is_indeterminant(error: BaseException) -> bool:
-    """Whether ``error`` is GTSAM's indeterminant-system exception (spelled "Indeterminate" by
-    GTSAM 4.3.0, "Indeterminant" by older versions)."""
-    text = str(error)
-    return "ndeterminate" in text or "ndeterminant" in text
-
-
-def explain_indeterminant(error: RuntimeError, problem: Problem | None = None) -> IndeterminantSystem:
-    """Turn GTSAM's indeterminant-system exception into a readable error naming the keyframe."""
-    text = str(error)
-    # GTSAM 4.3.0 says "Indeterminate linear system ... near variable\n<key> (Symbol: ...)"
-    # (older versions "Indeterminant", with a space before the key).
-    match = re.search(r"near variable\s+(\d+)", text)
+def _explained(keyframe: int | None, problem: Problem) -> IndeterminantSystem:
     where = ""
+    if keyframe is not None and 0 <= keyframe < len(problem.times):
+        where = f" near keyframe {keyframe} (t = {problem.times[keyframe]:.6f} s)"
+    return IndeterminantSystem(f"indeterminant system{where}: {_HINT}", keyframe)
+
+
+def _keyframe_of_gtsam_key(error: Exception, problem: Problem) -> int | None:
+    match = re.search(r"near variable (\d+)", str(error))
     if match:
         key = int(match.group(1))
-        where = f" near variable {gtsam.DefaultKeyFormatter(key)}"
-        if problem is not None:
-            for k, kk in enumerate(problem.keys):
-                if key in kk.all():
-                    where += f" (keyframe {k}, t = {problem.times[k]:.6f} s)"
-                    break
-    return IndeterminantSystem(
-        f"indeterminant system{where}: the factors do not constrain every variable there. "
-        "Typical causes: a stretch with no measurements and no IMU link, yaw unobservable with "
-        "position-only measurements and a prior too weak, or a diverging bias. Add a prior, a "
-        "measurement, or check the data around that time."
-    )
-
-
-def _parameters(optimizer: str, max_iterations: int):
-    if optimizer == "lm":
-        p = gtsam.LevenbergMarquardtParams()
-    elif optimizer == "gn":
-        p = gtsam.GaussNewtonParams()
-    elif optimizer == "dogleg":
-        p = gtsam.DoglegParams()
-    else:
-        raise UserError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
-    p.setMaxIterations(max_iterations)
-    p.setRelativeErrorTol(1e-9)
-    p.setAbsoluteErrorTol(1e-9)
-    return p
-
-
-def _optimizer(optimizer: str, graph, values, params):
-    cls = {"lm": gtsam.LevenbergMarquardtOptimizer, "gn": gtsam.GaussNewtonOptimizer,
-           "dogleg": gtsam.DoglegOptimizer}[optimizer]
-    return cls(graph, values, params)
+        for k, kk in enumerate(problem.keys):
+            if key in kk.all():
+                return k
+    return None
 
 
 def keyframe_covariances(graph, values, keys: list[KeyframeKeys]) -> np.ndarray:
-    """Primer-convention 15x15 covariances of the keyframes with ``keys``."""
+    """Primer-convention 15x15 covariances of the keyframes with ``keys``, from GTSAM's marginals
+    of a nonlinear graph (the ``gtsam`` engine and the fixed-lag smoothers)."""
     marginals = gtsam.Marginals(graph, values)
     out = []
     for kk in keys:
@@ -100,20 +81,43 @@ def keyframe_covariances(graph, values, keys: list[KeyframeKeys]) -> np.ndarray:
     return np.stack(out)
 
 
-def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 100,
-                covariances: bool = True) -> SmootherResult:
-    """Optimise the whole graph from its initial values."""
-    start = time.perf_counter()
-    params = _parameters(optimizer, max_iterations)
-    opt = _optimizer(optimizer, problem.graph, problem.initial, params)
-    try:
-        values = opt.optimize()
-        cov = keyframe_covariances(problem.graph, values, problem.keys) if covariances else None
-    except RuntimeError as error:
-        if is_indeterminant(error):
-            raise explain_indeterminant(error, problem) from None
-        raise
+def _gtsam_engine(problem: Problem, optimizer: str, max_iterations: int, covariances: bool):
+    if optimizer == "lm":
+        params, cls = gtsam.LevenbergMarquardtParams(), gtsam.LevenbergMarquardtOptimizer
+    elif optimizer == "gn":
+        params, cls = gtsam.GaussNewtonParams(), gtsam.GaussNewtonOptimizer
+    else:
+        params, cls = gtsam.DoglegParams(), gtsam.DoglegOptimizer
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-9)
+    params.setAbsoluteErrorTol(1e-9)
+    opt = cls(problem.graph, problem.initial, params)
+    values = opt.optimize()
+    cov = keyframe_covariances(problem.graph, values, problem.keys) if covariances else None
     states = imu.ImuState.stack([read_state(values, kk) for kk in problem.keys])
+    return states, cov, float(problem.graph.error(values)), int(opt.iterations())
+
+
+def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 100,
+                covariances: bool = True, engine: str = "vectorized") -> SmootherResult:
+    """Optimise the whole graph from its initial values (see the module docstring)."""
+    if optimizer not in OPTIMIZERS:
+        raise UserError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
+    if engine not in ENGINES:
+        raise UserError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    start = time.perf_counter()
+    try:
+        if engine == "vectorized":
+            result = solver.optimize(problem.blocks, problem.initial_states, optimizer, max_iterations)
+            states, cost, iterations = result.states, result.cost, result.iterations
+            cov = solver.covariances(problem.blocks, states) if covariances else None
+        else:
+            states, cov, cost, iterations = _gtsam_engine(problem, optimizer, max_iterations, covariances)
+    except IndeterminantSystem as error:
+        raise _explained(error.keyframe, problem) from None
+    except RuntimeError as error:
+        if "ndeterminant" in str(error):
+            raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None
+        raise
     trajectory = Trajectory(problem.times, states, cov)
-    return SmootherResult(trajectory, float(problem.graph.error(values)), int(opt.iterations()),
-                          time.perf_counter() - start)
+    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start)

@@ -23,6 +23,7 @@ from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
+from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
 
 #: Robust kernels selectable per measurement type.
@@ -60,8 +61,9 @@ def noise_model(cov: np.ndarray, robust=None):
 
 @dataclass
 class Problem:
-    """A dataset's factor graph: keyframe times and keys, the graph, initial values, and the
-    factors grouped by the keyframe at which they become available (for fixed-lag smoothing)."""
+    """A dataset's factor graph, twice over: as GTSAM factors (``graph``, and ``factors_at`` grouped
+    by the keyframe at which they become available, for fixed-lag smoothing) and as vectorised
+    :class:`smoother.solver.Block` s over the same residual functions (for the batch solver)."""
 
     times: np.ndarray
     keys: list[KeyframeKeys]
@@ -69,6 +71,7 @@ class Problem:
     initial: gtsam.Values
     initial_states: imu.ImuState
     imu_factors: list[ImuFactor]
+    blocks: list[Block]
     factors_at: list[list] = field(default_factory=list)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
 
@@ -129,7 +132,43 @@ def _initial_states(dataset: Dataset, times: np.ndarray, pre: preintegration.Pre
     return imu.ImuState.stack(states)
 
 
-def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: dict | None = None) -> Problem:
+_SLOTS = {"rot": imu.PHI, "pos": imu.R, "vel": imu.V, "bias": slice(9, 15)}
+
+
+def _place(jacobians: list[np.ndarray], variables: list[str]) -> np.ndarray:
+    """Per-variable Jacobians (primer convention) -> one (..., d, 15) error-state Jacobian."""
+    d = jacobians[0].shape[-2]
+    out = np.zeros(jacobians[0].shape[:-2] + (d, imu.STATE_DIM))
+    for J, name in zip(jacobians, variables):
+        out[..., _SLOTS[name]] = J
+    return out
+
+
+def _robust_estimator(spec):
+    if spec is None:
+        return None
+    kernel, _ = ROBUST_KERNELS[spec[0]]
+    return kernel.Create(spec[1])
+
+
+def _imu_block(pre: preintegration.Preintegrated, gravity: np.ndarray, threshold: float) -> Block:
+    def residual(slots, jacobians):
+        out = preintegration.residual(pre, slots[0], slots[1], gravity, jacobians)
+        return (out[0], list(out[1])) if jacobians else out
+
+    def reintegrate(states):
+        drift = np.max(np.abs(states.b_w[:-1] - pre.b_w_bar), axis=1)
+        moved = np.flatnonzero(drift > threshold)
+        if moved.size:
+            pre.assign(moved, pre[moved].relinearized(states.b_w[moved]))
+
+    n = len(pre)
+    keyframes = np.stack([np.arange(n), np.arange(1, n + 1)], axis=1)
+    return Block("imu", keyframes, residual, whitening(pre.cov), None, reintegrate)
+
+
+def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: dict | None = None,
+                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD) -> Problem:
     """The factor graph of ``dataset`` (see the module docstring).
 
     ``robust`` maps a measurement type (``"pose"``, ``"position"``, ``"orientation"``,
@@ -148,40 +187,33 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     pre.cov = preintegration.noise_covariance(pre.samples, initial_states[:-1], dataset.noise, dataset.gravity)
 
     factors_at: list[list] = [[] for _ in times]
-    factors_at[0].append(meas.state_prior_factor(keys[0], dataset.initial, dataset.initial_cov))
+    blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]
+    prior = dataset.initial
+    factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
+
+    def prior_residual(slots, jacobians):
+        s = slots[0]
+        out = meas.state_residual(s.C, s.r, s.v, np.concatenate([s.b_f, s.b_w], axis=-1), prior, jacobians)
+        return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
+
+    blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
     imu_factors = []
     for k in range(1, len(times)):
-        f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity)
+        f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity, reintegration_threshold=reintegration_threshold)
         imu_factors.append(f)
         factors_at[k].append(f.factor)
-    if dataset.pose is not None:
-        m = dataset.pose
-        for i, k in enumerate(_match(times, m.t)):
-            if k >= 0:
-                model = noise_model(m.cov[i], robust.get("pose"))
-                factors_at[k].append(meas.pose_factor(keys[k].pos, keys[k].rot, m.position[i], m.C[i], model))
-    if dataset.position is not None:
-        m = dataset.position
-        for i, k in enumerate(_match(times, m.t)):
-            if k >= 0:
-                model = noise_model(m.cov[i], robust.get("position"))
-                factors_at[k].append(meas.position_factor(keys[k].pos, m.position[i], model))
-    if dataset.orientation is not None:
-        m = dataset.orientation
-        for i, k in enumerate(_match(times, m.t)):
-            if k >= 0:
-                model = noise_model(m.cov[i], robust.get("orientation"))
-                factors_at[k].append(meas.orientation_factor(keys[k].rot, m.C[i], model))
-    if dataset.relative_pose is not None:
-        m = dataset.relative_pose
-        ki, kj = _match(times, m.t_from), _match(times, m.t_to)
-        for i in range(len(m)):
-            if ki[i] >= 0 and kj[i] >= 0:
-                model = noise_model(m.cov[i], robust.get("relative_pose"))
-                a, b = keys[ki[i]], keys[kj[i]]
-                factors_at[kj[i]].append(
-                    meas.relative_pose_factor(a.rot, a.pos, b.rot, b.pos, m.dr[i], m.dC[i], model)
-                )
+    for spec in _measurement_specs(dataset):
+        rows = np.flatnonzero(np.all([_match(times, t) >= 0 for t in spec["times"]], axis=0))
+        if rows.size == 0:
+            continue
+        kf = np.stack([_match(times, t[rows]) for t in spec["times"]], axis=1)
+        data = [np.asarray(a)[rows] for a in spec["data"]]
+        cov = np.asarray(spec["cov"])[rows]
+        kernel = robust.get(spec["name"])
+        blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel)))
+        for m in range(len(rows)):
+            factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
+            factors_at[int(kf[m].max())].append(factor)
     graph = gtsam.NonlinearFactorGraph()
     for group in factors_at:
         for f in group:
@@ -189,4 +221,60 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     values = gtsam.Values()
     for k, kk in enumerate(keys):
         insert_state(values, kk, initial_states[k])
-    return Problem(times, keys, graph, values, initial_states, imu_factors, factors_at, dataset.gravity)
+    return Problem(times, keys, graph, values, initial_states, imu_factors, blocks, factors_at, dataset.gravity)
+
+
+def _block_residual(spec: dict, data: list[np.ndarray]):
+    """A vectorised block residual from a measurement spec: reads each slot's variables, calls the
+    spec's residual with the measurement arrays and places the Jacobians in error-state columns."""
+    def residual(slots, jacobians):
+        args = []
+        for state, names in zip(slots, spec["variables"]):
+            args += [_variable(state, name) for name in names]
+        out = spec["residual"](*args, *data, jacobians=jacobians)
+        if not jacobians:
+            return out
+        e, Js = out
+        placed, i = [], 0
+        for names in spec["variables"]:
+            placed.append(_place(Js[i:i + len(names)], names))
+            i += len(names)
+        return e, placed
+
+    return residual
+
+
+def _variable(state: imu.ImuState, name: str) -> np.ndarray:
+    return {"rot": state.C, "pos": state.r, "vel": state.v}[name]
+
+
+def _measurement_specs(dataset: Dataset) -> list[dict]:
+    """Each measurement type: times of the keyframes it connects, the variables it reads per
+    keyframe, its residual, its data arrays, covariances, and how to make one GTSAM factor."""
+    specs = []
+    if dataset.pose is not None:
+        m = dataset.pose
+        specs.append(dict(
+            name="pose", times=[m.t], variables=[["pos", "rot"]], residual=meas.pose_residual,
+            data=[m.position, m.C], cov=m.cov,
+            factor=lambda kk, d, model: meas.pose_factor(kk[0].pos, kk[0].rot, d[0], d[1], model)))
+    if dataset.position is not None:
+        m = dataset.position
+        specs.append(dict(
+            name="position", times=[m.t], variables=[["pos"]], residual=meas.position_residual,
+            data=[m.position], cov=m.cov,
+            factor=lambda kk, d, model: meas.position_factor(kk[0].pos, d[0], model)))
+    if dataset.orientation is not None:
+        m = dataset.orientation
+        specs.append(dict(
+            name="orientation", times=[m.t], variables=[["rot"]], residual=meas.orientation_residual,
+            data=[m.C], cov=m.cov,
+            factor=lambda kk, d, model: meas.orientation_factor(kk[0].rot, d[0], model)))
+    if dataset.relative_pose is not None:
+        m = dataset.relative_pose
+        specs.append(dict(
+            name="relative_pose", times=[m.t_from, m.t_to], variables=[["rot", "pos"], ["rot", "pos"]],
+            residual=meas.relative_pose_residual, data=[m.dr, m.dC], cov=m.cov,
+            factor=lambda kk, d, model: meas.relative_pose_factor(
+                kk[0].rot, kk[0].pos, kk[1].rot, kk[1].pos, d[0], d[1], model)))
+    return specs
