@@ -43,10 +43,8 @@ REGIMES = ("tiny", "ordinary", "near_pi")
 #: Relative part of the check's absolute tolerance (see the module docstring).
 ATOL_REL = 1e-7
 
-#: Numbers of random linearisation points per factor type, 1000 in all. The IMU factor's check
-#: costs ~60 evaluations of a 15x30 residual each, so it gets 150; the cheap one-variable vector
-#: factors get 150 each, the rotation factors 100 each.
-N_POINTS = {"imu": 150, "position": 150, "velocity": 150, "bias": 150, "orientation": 100, "pose": 100,
+#: Numbers of random linearisation points per factor type, 1000 in all.
+N_POINTS = {"imu": 300, "position": 100, "velocity": 100, "bias": 100, "orientation": 100, "pose": 100,
             "relative_pose": 100, "state_prior": 100}
 assert sum(N_POINTS.values()) == 1000
 
@@ -215,7 +213,7 @@ MEASUREMENT_FACTORS = ("pose", "position", "orientation", "relative_pose", "velo
 
 @pytest.mark.parametrize("name", MEASUREMENT_FACTORS)
 def test_check_factor_passes_measurement_factor(name):
-    """100 or 150 random linearisation points per factor type (``N_POINTS``): rotations tiny / ordinary / near pi,
+    """100 random linearisation points per factor type (``N_POINTS``): rotations tiny / ordinary / near pi,
     measurement errors of 0, 1e-12..1e-6 and up to 2.5 rad, positions up to 200 m, biases up to
     2 m/s^2 and 1 rad/s, full correlated covariances (sigmas 1e-2..1, biases 1e-3..1e-1), and
     Gaussian / Huber / Cauchy models round-robin, a quarter with gross (30x) errors."""
@@ -316,7 +314,7 @@ def _imu_factor_and_values(pre, x_i, x_j, model_kind="gaussian", **kwargs):
 
 
 def test_check_factor_passes_imu_factor():
-    """150 random IMU factors (see ``_imu_cases``) pass the Jacobian check; the regimes of C_i
+    """300 random IMU factors (see ``_imu_cases``) pass the Jacobian check; the regimes of C_i
     and C_j are verified, and the factor integrated again exactly where the offset demanded it."""
     rng = np.random.default_rng(2024)
     reintegrated = 0
@@ -346,6 +344,26 @@ def test_imu_factor_error_is_the_residual_whitened_by_its_covariance():
     f2 = ImuFactor(pre, keyframe_keys(0), keyframe_keys(1), GRAVITY)
     assert f2.factor.error(values) == pytest.approx(f.factor.error(values), rel=1e-10)
     assert imu.boxminus(f.predict(x_i), preintegration.predict(pre, x_i, GRAVITY)).max() == 0.0
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "BUG (reported, not fixed: a modelling decision): with ImuNoise.velocity = 0 (the default) the "
+    "covariance of a ONE-sample interval has a zero position block (r_j = r_i + dt C_i v_i is "
+    "deterministic), ImuFactor passes it to Gaussian.Covariance unchanged and the factor's error "
+    "is NaN. smoother.graph builds such a factor whenever two knots fall within one IMU period."))
+def test_imu_factor_on_a_one_sample_interval_has_a_finite_error():
+    rng = np.random.default_rng(12)
+    acc, gyro, dt = np.array([[0.1, 0.2, 9.8]]), np.array([[0.3, -0.2, 0.1]]), np.array([5e-3])
+    x_i = random_state(rng)
+    pre = preintegration.integrate(acc[None], gyro[None], dt[None], x_i.b_w[None])
+    pre.cov = preintegration.noise_covariance(pre.samples, imu.ImuState.stack([x_i]), imu.ImuNoise(), GRAVITY)
+    assert np.linalg.eigvalsh(pre.cov[0])[0] == 0.0  # singular, as the physics says
+    x_j = imu.boxplus(preintegration.predict(pre[0], x_i, GRAVITY), rng.normal(0, 1e-4, 15))
+    f = ImuFactor(pre[0], keyframe_keys(0), keyframe_keys(1), GRAVITY)
+    values = gtsam.Values()
+    insert_state(values, keyframe_keys(0), x_i)
+    insert_state(values, keyframe_keys(1), x_j)
+    assert np.isfinite(f.factor.error(values))
 
 
 # --------------------------------------------------------------------------- the check can fail
@@ -416,6 +434,7 @@ def test_check_factor_fails_when_the_chart_adapter_gets_C_transposed(monkeypatch
                                           noise_model("gaussian", random_covariance(rng, 3)))
     pre, x_i, x_j, *_ = _imu_cases(rng, 2, long_every=0)[1]  # ordinary attitudes (p = 1)
     f, imu_values = _imu_factor_and_values(pre, x_i, x_j)
+    assert np.abs(x_i.C - x_i.C.T).max() > 0.1 and np.abs(x_j.C - x_j.C.T).max() > 0.1
     assert checked("control", orientation, values).ok and checked("control", f.factor, imu_values).ok
 
     real = custom.to_gtsam_chart
