@@ -83,6 +83,27 @@ def _difference(value, reference, kind) -> np.ndarray:
     return np.asarray(kind.minus(value, reference), dtype=float)
 
 
+def _check_kind(kind, role: str) -> None:
+    """Raise ``ValueError`` unless ``kind`` is ``"vector"``, ``"rotation"`` or a Manifold-like object."""
+    if isinstance(kind, str):
+        if kind not in (VECTOR, ROTATION):
+            raise ValueError(f"unknown {role} kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
+    elif not all(hasattr(kind, member) for member in ("dim", "plus", "minus")):
+        raise ValueError(
+            f"{role} kind {kind!r} is neither {VECTOR!r}, {ROTATION!r} nor a Manifold (dim, plus, minus)"
+        )
+
+
+def _check_kind(kind, what: str):
+    if isinstance(kind, str):
+        if kind not in (VECTOR, ROTATION):
+            raise ValueError(f"{what}: unknown kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
+    elif not all(hasattr(kind, name) for name in ("dim", "plus", "minus")):
+        raise ValueError(f"{what}: kind {kind!r} is neither {VECTOR!r}, {ROTATION!r} nor a Manifold "
+                         "(an object with dim, plus and minus)")
+    return kind
+
+
 def _dim(arg, kind) -> int:
     if kind == ROTATION:
         return 3
@@ -114,12 +135,18 @@ def numerical_jacobian(
     kinds = list(arg_kinds) if arg_kinds is not None else [ROTATION if _is_rotation(a) else VECTOR for a in args]
     if len(kinds) != len(args):
         raise ValueError(f"arg_kinds has {len(kinds)} entries for {len(args)} arguments")
+    for kind in kinds:
+        _check_kind(kind, "argument")
+    if value_kind is not None:
+        _check_kind(value_kind, "value")
+    for i, kind in enumerate(kinds):
+        _check_kind(kind, f"argument {i}")
+    if value_kind is not None:
+        _check_kind(value_kind, "value")
     reference = f(*args)
     out_kind = value_kind or (ROTATION if _is_rotation(reference) else VECTOR)
     jacobians = []
     for position, (arg, kind) in enumerate(zip(args, kinds)):
-        if isinstance(kind, str) and kind not in (VECTOR, ROTATION):
-            raise ValueError(f"unknown kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
         dim = _dim(arg, kind)
         columns = []
         for i in range(dim):
@@ -232,9 +259,10 @@ def _whitened_error(factor, values, base_model) -> np.ndarray:
 
 def _robust_base(factor):
     """The Gaussian base of a robust noise model, or None. GTSAM scales a robust factor's
-    linearisation ``(A, b)`` by one scalar ``sqrt(weight)`` at the current error; that scaling is
-    not part of the derivative, so the check divides it out and compares against differences of
-    the base-whitened error."""
+    linearisation ``(A, b)`` by ``sqrt(weight)`` at the current error -- one scalar for the
+    ``Block`` reweight scheme, one per row for ``Scalar`` (see :func:`_robust_row_scales`); that
+    scaling is not part of the derivative, so the check divides it out and compares against
+    differences of the base-whitened error."""
     import gtsam
 
     model = factor.noiseModel() if hasattr(factor, "noiseModel") else None
@@ -243,15 +271,43 @@ def _robust_base(factor):
     return None
 
 
+def _robust_row_scales(factor, b: np.ndarray, e_w: np.ndarray) -> np.ndarray:
+    """The factors ``s`` (one per row) with ``b = -s * e_w`` that a robust noise model applied:
+    ``sqrt(w(|e_w|))`` for every row (``Block`` reweighting, GTSAM's default) or
+    ``sqrt(w(|e_w[i]|))`` for row ``i`` (``Scalar``). The scheme is not exposed to Python, so the
+    one that reproduces ``b`` is used."""
+    estimator = factor.noiseModel().robust()
+    block = np.full(e_w.shape, np.sqrt(estimator.weight(float(np.linalg.norm(e_w)))))
+    rows = np.sqrt(np.array([estimator.weight(float(abs(x))) for x in e_w]))
+    for s in (block, rows):
+        if np.all(s > 0) and np.allclose(b, -s * e_w, rtol=1e-9, atol=1e-300):
+            return s
+    raise TypeError(
+        f"check_factor: cannot undo the robust weighting of {type(factor).__name__} "
+        "(a weight of 0, or a reweighting scheme other than Block and Scalar)"
+    )
+
+
 def _linearize(factor, values):
     import gtsam
 
     linear = factor.linearize(values)
     if not isinstance(linear, gtsam.JacobianFactor):
-        raise TypeError(
-            f"check_factor needs a factor that linearises to a JacobianFactor; "
-            f"{type(factor).__name__} gave {type(linear).__name__}"
-        )
+        # pybind11 types a JacobianFactor subclass it does not know (e.g. the fixed-size
+        # BinaryJacobianFactor that BetweenFactor returns) as its base GaussianFactor. Convert
+        # such a factor; the conversion would Cholesky-factor a HessianFactor, so accept the
+        # result only if it has one row per error dimension.
+        if isinstance(linear, gtsam.HessianFactor) or not isinstance(linear, gtsam.GaussianFactor):
+            linear = None
+        else:
+            linear = gtsam.JacobianFactor(linear)
+            if hasattr(factor, "dim") and linear.rows() != factor.dim():
+                linear = None
+        if linear is None:
+            raise TypeError(
+                f"check_factor needs a factor that linearises to a JacobianFactor; "
+                f"{type(factor).__name__} gave {type(factor.linearize(values)).__name__}"
+            )
     return linear.jacobian()
 
 
@@ -275,9 +331,7 @@ def check_factor(factor, values, atol: float = 1e-6, rtol: float = 1e-5, step: f
         raise KeyError(f"check_factor: values lack the factor's keys {[_key_label(k) for k in missing]}")
     A, b = _linearize(factor, values)
     if base is not None:
-        e_w = _whitened_error(factor, values, base)
-        scale = np.linalg.norm(b) / np.linalg.norm(e_w) if np.linalg.norm(e_w) > 0 else 1.0
-        A = A / scale
+        A = A / _robust_row_scales(factor, b, _whitened_error(factor, values, base))[:, None]
     zeros = values.zeroVectors()
     dims = [zeros.at(k).shape[0] for k in keys]
     offsets = np.concatenate([[0], np.cumsum(dims)])
