@@ -28,7 +28,7 @@ from factors import imu
 from factors.chart import state_covariance_to_primer
 from factors.keys import KeyframeKeys
 from smoother import solver
-from smoother.errors import IndeterminantSystem, UserError
+from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, UserError, is_indeterminant
 from smoother.graph import Problem, read_state
 
 OPTIMIZERS = solver.METHODS
@@ -61,7 +61,7 @@ def _explained(keyframe: int | None, problem: Problem) -> IndeterminantSystem:
 
 
 def _keyframe_of_gtsam_key(error: Exception, problem: Problem) -> int | None:
-    match = re.search(r"near variable (\d+)", str(error))
+    match = re.search(INDETERMINANT_KEY, str(error))
     if match:
         key = int(match.group(1))
         for k, kk in enumerate(problem.keys):
@@ -116,7 +116,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
     except IndeterminantSystem as error:
         raise _explained(error.keyframe, problem) from None
     except RuntimeError as error:
-        if "ndeterminant" in str(error):
+        if is_indeterminant(error):
             raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None
         raise
     trajectory = Trajectory(problem.times, states, cov)

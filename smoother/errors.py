@@ -12,3 +12,15 @@ class IndeterminantSystem(UserError):
     def __init__(self, message: str, keyframe: int | None = None):
         super().__init__(message)
         self.keyframe = keyframe
+
+
+def is_indeterminant(error: BaseException) -> bool:
+    """Whether ``error`` is GTSAM's indeterminant-system exception. GTSAM 4.3.0 spells it
+    "Indeterminate linear system ... near variable\n<key> (Symbol: ...)" (older versions
+    "Indeterminant"): match both, and any whitespace before the key (``INDETERMINANT_KEY``)."""
+    text = str(error)
+    return "ndeterminate" in text or "ndeterminant" in text
+
+
+#: The key GTSAM names in its indeterminant-system message (group 1).
+INDETERMINANT_KEY = r"near variable\s+(\d+)"

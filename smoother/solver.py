@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from factors import imu
-from smoother.errors import IndeterminantSystem
+from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
 
 DIM = imu.STATE_DIM
 METHODS = ("lm", "gn", "dogleg")
@@ -132,7 +132,7 @@ def linearize(blocks: list[Block], states: imu.ImuState) -> tuple[gtsam.Gaussian
 
 
 def _keyframe_of(error: RuntimeError) -> int | None:
-    match = re.search(r"near variable (\d+)", str(error))
+    match = re.search(INDETERMINANT_KEY, str(error))
     return int(match.group(1)) if match else None
 
 
@@ -140,7 +140,7 @@ def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
     try:
         solution = graph.optimize()
     except RuntimeError as error:
-        if "ndeterminant" in str(error):
+        if is_indeterminant(error):
             k = _keyframe_of(error)
             raise IndeterminantSystem(str(error), k) from None
         raise
@@ -263,6 +263,6 @@ def covariances(blocks: list[Block], states: imu.ImuState, which=None) -> np.nda
         which = range(n) if which is None else which
         return np.stack([marginals.marginalCovariance(int(k)) for k in which])
     except RuntimeError as error:
-        if "ndeterminant" in str(error):
+        if is_indeterminant(error):
             raise IndeterminantSystem(str(error), _keyframe_of(error)) from None
         raise
