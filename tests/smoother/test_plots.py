@@ -1,0 +1,186 @@
+"""Plots of a run directory: the PNG files, their sizes, runs without truth or with GPS fixes,
+errors for missing or malformed inputs, and ``smoother plot DIR`` in-process.
+
+The run directory is written by :func:`smoother.report.write_outputs` from a 3 s simulated
+dataset and hand-made estimates (the truth perturbed, with matching covariances), so that the
+tests exercise the real file format without running the estimators.
+"""
+from __future__ import annotations
+
+import shutil
+import struct
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from datasets.atomic import atomic_write
+from datasets.simulate import simulate
+from datasets.types import Trajectory
+from factors import so3
+from factors.imu import ImuState
+from smoother import cli, metrics, plots, report
+from smoother.errors import UserError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+ALL_FIGURES = ["trajectory", "position_error", "orientation_error", "nees", "biases", "comparison"]
+# (position [m], attitude [rad], acc bias [m/s^2], gyro bias [rad/s]) error sigmas per estimator
+SIGMAS = {"batch": (0.01, 0.002, 0.005, 0.0005), "fixed-lag": (0.02, 0.004, 0.01, 0.001),
+          "ekf": (0.02, 0.004, 0.01, 0.001)}
+
+
+def _estimate(truth: Trajectory, sigmas, rng) -> SimpleNamespace:
+    """The truth at 10 Hz, perturbed with the given sigmas, and the matching diagonal covariance."""
+    idx = np.arange(0, len(truth), 20)
+    s = truth.states[idx]
+    n = len(idx)
+    sr, sphi, sbf, sbw = sigmas
+    # C_est = exp(-e) C_true, so that log(C_true C_est^T) = e ~ N(0, sphi^2 I)
+    states = ImuState(
+        r=s.r + sr * rng.standard_normal((n, 3)), v=s.v + 0.01 * rng.standard_normal((n, 3)),
+        C=so3.boxplus(s.C, -sphi * rng.standard_normal((n, 3))),
+        b_f=s.b_f + sbf * rng.standard_normal((n, 3)), b_w=s.b_w + sbw * rng.standard_normal((n, 3)),
+    )
+    diag = np.repeat([sr, 0.01, sphi, sbf, sbw], 3) ** 2
+    cov = np.broadcast_to(np.diag(diag), (n, 15, 15)).copy()
+    return SimpleNamespace(trajectory=Trajectory(truth.t[idx], states, cov), runtime_s=0.5, details={})
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    dataset = simulate(duration=3.0, seed=1)
+    rng = np.random.default_rng(7)
+    estimates = {name: _estimate(dataset.truth, sig, rng) for name, sig in SIGMAS.items()}
+    out = tmp_path_factory.mktemp("run")
+    report.write_outputs(out, dataset, estimates, {"dataset": "test"})
+    return out
+
+
+def _copy(run_dir: Path, tmp_path: Path, without=()) -> Path:
+    target = tmp_path / "copy"
+    shutil.copytree(run_dir, target)
+    for name in without:
+        (target / name).unlink()
+    return target
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE, f"{path} is not a PNG"
+    assert data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+def _check_pngs(paths, directory: Path, stems) -> None:
+    assert [p.stem for p in paths] == list(stems)
+    for p in paths:
+        assert p.parent == directory and p.suffix == ".png" and p.stat().st_size > 10_000
+        w, h = plots.FIGSIZE[p.stem]
+        assert _png_size(p) == (round(w * plots.DPI), round(h * plots.DPI))
+    assert not list(directory.glob(".*.tmp")), "temporary files left behind"
+
+
+def test_plot_run_writes_every_figure(run_dir, tmp_path):
+    from matplotlib._pylab_helpers import Gcf
+
+    directory = _copy(run_dir, tmp_path)  # the shared run directory stays free of PNGs
+    paths = plots.plot_run(directory)
+    _check_pngs(paths, directory, ALL_FIGURES)
+    assert Gcf.get_num_fig_managers() == 0, "plot_run must not leave pyplot figures open"
+
+
+def test_without_truth_or_gps_draws_what_it_can(run_dir, tmp_path, capsys):
+    directory = _copy(run_dir, tmp_path, without=["truth.npz"])
+    paths = plots.plot_run(directory, estimators=["ekf"])
+    _check_pngs(paths, directory, ["trajectory", "biases"])
+    assert "neither truth.npz nor gps.npz" in capsys.readouterr().err
+
+
+def test_gps_reference(run_dir, tmp_path):
+    """KITTI-like: no truth, GPS fixes (every third used, the rest held out) in gps.npz."""
+    directory = _copy(run_dir, tmp_path, without=["truth.npz"])
+    truth = report.load_trajectory(run_dir / "truth.npz")
+    rng = np.random.default_rng(3)
+    idx = np.arange(5, len(truth), 10)
+    heldout = np.arange(len(idx)) % 3 != 0
+    with atomic_write(directory / "gps.npz", "wb") as handle:
+        np.savez(handle, t=truth.t[idx], position=truth.position[idx] + 0.05 * rng.standard_normal((len(idx), 3)),
+                 cov=np.broadcast_to(0.05 ** 2 * np.eye(3), (len(idx), 3, 3)), heldout=heldout)
+    paths = plots.plot_run(directory, estimators=["ekf"])
+    _check_pngs(paths, directory, ["trajectory", "position_error", "nees", "biases", "comparison"])
+
+    run = plots.load_run(directory, ["ekf"])
+    e = plots.errors_against_gps(run.gps, run.estimates["ekf"])
+    assert e.dof == 3 and np.array_equal(e.heldout, heldout)
+    # NEES only where the fix was held out (a used fix is not independent of the estimate)
+    assert np.all(np.isfinite(e.nees[heldout])) and np.all(np.isnan(e.nees[~heldout]))
+
+
+def test_errors_against_truth_match_metrics(run_dir):
+    """At common time stamps the plotted errors and NEES are the metrics module's."""
+    run = plots.load_run(run_dir, ["batch"])
+    est = run.estimates["batch"]
+    e = plots.errors_against_truth(run.truth, est)
+    i_truth, i_est = metrics.associate(run.truth.t, est.t, plots.MATCH_DT)
+    assert len(i_est) == len(est) == len(e.t)
+    T = run.truth.states[i_truth]
+    expected = metrics.pose_error(T.r, T.C, est.states.r, est.states.C)
+    np.testing.assert_allclose(np.hstack([e.dr, e.dphi]), expected, atol=1e-12)
+    np.testing.assert_allclose(e.nees, metrics.nees(T, est.states, est.cov, "pose"), rtol=1e-10)
+
+
+def test_interpolate_is_exact_at_samples_and_geodesic_between():
+    phi = np.array([0.0, 0.0, 0.8])
+    C = np.stack([np.eye(3), so3.exp(phi)])
+    states = ImuState(r=np.array([[0.0, 0, 0], [2.0, 0, 0]]), v=np.zeros((2, 3)), C=C,
+                      b_f=np.zeros((2, 3)), b_w=np.zeros((2, 3)))
+    traj = Trajectory(np.array([0.0, 1.0]), states, np.stack([np.eye(15), 3 * np.eye(15)]))
+    s, cov, inside = plots.interpolate(traj, np.array([-1.0, 0.0, 0.25, 1.0, 2.0]))
+    assert inside.tolist() == [False, True, True, True, False]
+    np.testing.assert_allclose(s.r[:, 0], [0.0, 0.5, 2.0])
+    np.testing.assert_allclose(s.C[0], C[0], atol=0)
+    np.testing.assert_allclose(s.C[2], C[1], atol=0)
+    np.testing.assert_allclose(s.C[1], so3.exp(0.25 * phi), atol=1e-12)
+    np.testing.assert_allclose(cov[1], 1.5 * np.eye(15))
+
+
+def test_missing_or_malformed_run_directory(tmp_path, run_dir):
+    with pytest.raises(UserError, match="no estimate found"):
+        plots.plot_run(tmp_path)
+    with pytest.raises(UserError, match="not a directory"):
+        plots.plot_run(tmp_path / "nowhere")
+    with pytest.raises(UserError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
+        plots.load_run(run_dir, ["foo"])
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "ekf.npz").write_text("not an archive\n")
+    with pytest.raises(UserError, match=r"ekf\.npz: not an \.npz archive"):
+        plots.plot_run(bad)
+    np.savez(bad / "ekf.npz", t=np.arange(3.0))
+    with pytest.raises(UserError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
+        plots.plot_run(bad)
+    est = report.load_trajectory(run_dir / "ekf.npz")
+    report.save_trajectory(bad / "ekf.npz", est)
+    np.savez(bad / "gps.npz", t=np.arange(3.0), position=np.zeros((2, 3)))
+    with pytest.raises(UserError, match=r"gps\.npz: inconsistent shapes"):
+        plots.load_run(bad)
+    (bad / "gps.npz").unlink()
+    (bad / "metrics.json").write_text("{ not json")
+    with pytest.raises(UserError, match=r"metrics\.json: cannot read it"):
+        plots.load_run(bad)
+
+
+def test_cli_plot(run_dir, tmp_path, capsys):
+    # without truth.npz only two figures are possible, which keeps this test quick
+    directory = _copy(run_dir, tmp_path, without=["truth.npz"])
+    out = tmp_path / "figures"
+    assert cli.main(["plot", str(directory), "--estimators", "batch", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.glob("*.png")) == ["biases.png", "trajectory.png"]
+    assert not list(directory.glob("*.png"))
+    assert f"wrote {out / 'biases.png'}" in capsys.readouterr().err
+
+    assert cli.main(["plot", str(tmp_path / "empty-or-missing")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("smoother: error: ") and "empty-or-missing" in err and len(err.splitlines()) == 1
