@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
-from datasets.errors import DataError, check_increasing, check_unit_quaternions, data_rows, parse_rows, read_lines, require_rows
+from datasets.errors import check_increasing, check_unit_quaternions, data_rows, parse_rows, read_lines, require_rows
 from datasets.types import Trajectory
 from factors import quaternion
 from factors.imu import ImuState
