@@ -475,7 +475,7 @@ def _error_grid(run: Run, out_dir: Path, stem: str, errors: dict, title: str, yl
             ax.text(0.99, 0.03, note, transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.2",
                     bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="none", alpha=0.75))
             if row == 0:
-                ax.set_title(name)
+                ax.set_title(name if b is not None else f"{name} (no covariance: no band)")
             if col == 0:
                 ax.set_ylabel(ylabels[row])
             if row == 2:
@@ -539,7 +539,9 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
                                   f"expected value {dof}"], loc="outside lower center", ncol=2)
     what = ("pose (position + attitude) against the truth" if kind == "truth"
             else "position residual to the held-out GPS fixes (covariance: estimate + fix)")
-    fig.suptitle(f"NEES of the {what}", fontsize=12)
+    missing = [n for n in errors if n not in names]
+    note = f"\n({', '.join(missing)}: no covariance saved)" if missing else ""
+    fig.suptitle(f"NEES of the {what}{note}", fontsize=12)
     return _save(fig, out_dir, "nees")
 
 
