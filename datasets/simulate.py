@@ -94,7 +94,7 @@ from datasets.types import (
     Trajectory,
 )
 from factors import so3
-from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 
 __all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 
@@ -176,45 +176,21 @@ def _profile(profile) -> Profile:
 # the discrete truth
 
 
-def _prefix_products(M: np.ndarray, later_on_left: bool) -> np.ndarray:
-    """Inclusive prefix products of a stack of square matrices ``M`` (K, n, n):
-    ``M_k ... M_1 M_0`` (``later_on_left``) or ``M_0 M_1 ... M_k``, by recursive doubling
-    (``ceil(log2 K)`` batched products)."""
-    P = np.array(M, dtype=float, copy=True)
-    shift = 1
-    while shift < len(P):
-        P[shift:] = P[shift:] @ P[:-shift] if later_on_left else P[:-shift] @ P[shift:]
-        shift *= 2
-    return P
-
-
 def euler_truth(initial: ImuState, acc, gyro, t, gravity=DEFAULT_GRAVITY, velocity_noise=None) -> ImuState:
     """The states of :func:`factors.imu.integrate` (``initial``'s biases are ignored: zero biases)
-    on samples ``acc[k], gyro[k]`` over steps ``dt_k = t[k+1] - t[k]``, without a per-sample
-    loop (see the module docstring). ``velocity_noise`` (``len(t) - 1``, 3), if given, is the
-    model's ``n_v`` of each step. Returns ``len(t)`` states with zero biases."""
-    acc, gyro, t = np.asarray(acc, float), np.asarray(gyro, float), np.asarray(t, float)
-    g = np.asarray(gravity, dtype=float)
-    n = len(t)
-    dt = np.diff(t)[:, None]
-    C = np.empty((n, 3, 3))
-    C[0] = initial.C
-    C[1:] = initial.C @ _prefix_products(so3.exp(dt * gyro[: n - 1]), later_on_left=False)
-    # v_{k+1} = A_k v_k + b_k as 4x4 homogeneous maps [[A_k, b_k], [0, 1]].
-    M = np.zeros((n - 1, 4, 4))
-    M[:, :3, :3] = np.eye(3) - dt[:, :, None] * so3.skew(gyro[: n - 1])
-    M[:, :3, 3] = dt * (np.einsum("kji,j->ki", C[:-1], g) + acc[: n - 1])
-    M[:, 3, 3] = 1.0
-    P = _prefix_products(M, later_on_left=True)
-    v = np.empty((n, 3))
-    v[0] = initial.v
-    v[1:] = P[:, :3, :3] @ initial.v + P[:, :3, 3]
-    body = v[:-1] if velocity_noise is None else v[:-1] + velocity_noise
-    r = np.empty((n, 3))
-    r[0] = initial.r
-    r[1:] = initial.r + np.cumsum(dt * np.einsum("kij,kj->ki", C[:-1], body), axis=0)
-    zeros = np.zeros((n, 3))
-    return ImuState(r, v, C, zeros, zeros.copy())
+    on samples ``acc[k], gyro[k]`` over steps ``dt_k = t[k+1] - t[k]``. ``velocity_noise``
+    (``len(t) - 1``, 3), if given, is the model's ``n_v`` of each step, which moves only the
+    position: ``r_{k+1} = r_k + dt_k C_k (v_k + n_v)``. Returns ``len(t)`` states with zero biases."""
+    t = np.asarray(t, dtype=float)
+    dt = np.diff(t)
+    zero = np.zeros(3)
+    states = integrate(initial.replace(b_f=zero, b_w=zero), acc, gyro, dt, gravity)
+    if velocity_noise is None:
+        return states
+    extra = np.cumsum(dt[:, None] * np.einsum("kij,kj->ki", states.C[:-1], velocity_noise), axis=0)
+    r = states.r.copy()
+    r[1:] += extra
+    return states.replace(r=r)
 
 
 def _matched_signals(profile: Profile, t: np.ndarray, gravity: np.ndarray):

@@ -45,6 +45,10 @@ import numpy as np
 
 from factors import imu, so3
 
+#: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
+#: IMU residual's covariance so that it is positive definite even for one-sample intervals.
+COVARIANCE_FLOOR = 1e-7
+
 #: Default gyro-bias change (rad/s) beyond which an interval is integrated again.
 REINTEGRATION_THRESHOLD = 0.02
 
@@ -166,7 +170,12 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     ``reference`` states (leading dimension ``J``) with zero covariance,
     ``S <- F S F^T + G Q_d G^T`` -- the EKF's own covariance growth over the interval -- then
     rotated into the residual's body-``i`` coordinates, ``T S T^T`` with
-    ``T = diag(C_i^T, I, C_i^T, I, I)``."""
+    ``T = diag(C_i^T, I, C_i^T, I, I)``.
+
+    A floor of ``COVARIANCE_FLOOR^2`` is added on the diagonal: without the velocity noise
+    ``n_v`` the position of a one-sample interval is deterministic (``r_j = r_i + dt C_i v_i``),
+    and a zero variance would make the factor's noise model singular. The floor stands for the
+    model's own discretisation error and is far below any sensor's noise."""
     acc, gyro, dt = samples
     J, K = dt.shape
     state = reference
@@ -184,7 +193,8 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     T[:, imu.BF, imu.BF] = eye
     T[:, imu.BW, imu.BW] = eye
     cov = T @ S @ np.swapaxes(T, 1, 2)
-    return 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    return cov + COVARIANCE_FLOOR**2 * np.eye(imu.STATE_DIM)
 
 
 def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:

@@ -1,6 +1,7 @@
 """The primer's EKF (section VI.E) on the model of :mod:`factors.imu`.
 
-Prediction per IMU step with ``F``, ``G`` and ``Q_d = diag(R_i / dt)``; updates linearise the
+Prediction per IMU step with ``F``, ``G`` and ``Q_d = diag(R_i / dt)`` (between two updates all
+steps at once, :meth:`Ekf.predict_steps`, the same recursion unrolled); updates linearise the
 same measurement residuals the smoother's factors use (:mod:`factors.measurements`), so the
 innovation of an attitude is the boxminus ``C [-] C_meas`` and the correction is applied with
 the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Joseph form, kept
@@ -20,6 +21,7 @@ import numpy as np
 
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
+from factors.scan import suffix_products
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
 
@@ -42,6 +44,27 @@ class Ekf:
         self.state, F, G = imu.propagate(self.state, acc, gyro, dt, self.gravity)
         Q = self.noise.discrete_covariance(dt)
         self.P = F @ self.P @ F.T + G @ Q @ G.T
+
+    def predict_steps(self, acc, gyro, dt) -> None:
+        """The same as :meth:`predict` applied to every step of ``acc, gyro (K, 3)``, ``dt (K,)``,
+        without a Python loop per step.
+
+        The predicted states are the block integration :func:`factors.imu.integrate`; ``F_k``
+        and ``G_k`` are evaluated along them in one batched :func:`factors.imu.propagate`; then
+        ``P_K = S_0 P S_0^T + sum_k S_{k+1} G_k Q_k G_k^T S_{k+1}^T`` with the suffix products
+        ``S_k = F_{K-1} ... F_k`` (``S_K = I``) -- the step-by-step recursion unrolled."""
+        dt = np.asarray(dt, dtype=float)
+        if dt.size == 0:
+            return
+        states = imu.integrate(self.state, acc, gyro, dt, self.gravity)
+        _, F, G = imu.propagate(states[:-1], acc, gyro, dt, self.gravity)
+        q = self.noise.densities()[None, :] / np.where(dt > 0, dt, np.inf)[:, None]
+        GQG = (G * q[:, None, :]) @ np.swapaxes(G, 1, 2)
+        S = suffix_products(F)  # S[k] = F_{K-1} ... F_k
+        after = np.concatenate([S[1:], np.eye(imu.STATE_DIM)[None]], axis=0)  # S_{k+1}
+        P = S[0] @ self.P @ S[0].T + (after @ GQG @ np.swapaxes(after, 1, 2)).sum(axis=0)
+        self.state = states[-1]
+        self.P = 0.5 * (P + P.T)
 
     def update(self, e: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
         """Correct with a residual ``e(x)`` (measurement model minus measurement, e.g.
@@ -107,10 +130,9 @@ def run_ekf(dataset: Dataset, gate_threshold: float | None = None, progress: boo
     step = 0
     with progress_bar(len(steps.dt), "EKF", progress) as bar:
         for knot, stop in zip(knots, steps.knot_step):
-            while step < stop:
-                ekf.predict(steps.acc[step], steps.gyro[step], steps.dt[step])
-                step += 1
-            bar.update(int(stop) - bar.n)
+            ekf.predict_steps(steps.acc[step:stop], steps.gyro[step:stop], steps.dt[step:stop])
+            step = int(stop)
+            bar.update(step - bar.n)
             for kind, (times, apply) in lookups.items():
                 i = np.searchsorted(times, knot)
                 if i < len(times) and times[i] == knot:
