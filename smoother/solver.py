@@ -197,7 +197,15 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
             if method == "gn":
                 delta = _solve(graph, n)
             elif method == "lm":
-                delta = _solve(_damped(graph, n, lam), n)
+                try:
+                    delta = _solve(_damped(graph, n, lam), n)
+                except IndeterminantSystem:
+                    # as GTSAM's LM does: a damped system too poorly conditioned to factor
+                    # counts as a rejected step; more damping, and try again
+                    lam *= 10.0
+                    if lam > 1e10:
+                        break
+                    continue
             else:
                 delta = _dogleg_step(graph, n, radius)
             trial = imu.boxplus(states, delta)
