@@ -8,7 +8,7 @@ estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est
 the estimate interpolated linearly to the fix times.
 
 A run directory holds ``<estimator>.tum`` (TUM trajectory), ``<estimator>.npz`` (the full states
-and covariances, for plots), ``truth.npz`` where known, and ``metrics.json``; every file is
+and covariances, for plots), ``truth.npz`` and ``gps.npz`` where known, and ``metrics.json``; every file is
 written atomically.
 """
 from __future__ import annotations
@@ -101,6 +101,21 @@ def load_trajectory(path: Path) -> Trajectory:
         return Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
 
 
+def save_gps(path: Path, dataset: Dataset) -> None:
+    """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
+    nothing when it has none."""
+    parts = [(p, False) for p in [dataset.position] if p is not None]
+    parts += [(p, True) for p in [dataset.heldout_positions] if p is not None]
+    if not parts:
+        return
+    t = np.concatenate([p.t for p, _ in parts])
+    order = np.argsort(t, kind="stable")
+    with atomic_write(path, "wb") as handle:
+        np.savez(handle, t=t[order], position=np.concatenate([p.position for p, _ in parts])[order],
+                 cov=np.concatenate([p.cov for p, _ in parts])[order],
+                 heldout=np.concatenate([np.full(len(p), flag) for p, flag in parts])[order])
+
+
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
     """Write every estimate (TUM + npz), the truth (npz) and ``metrics.json``; return the metrics."""
     out_dir = Path(out_dir)
@@ -112,6 +127,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     if dataset.truth is not None:
         save_trajectory(out_dir / "truth.npz", dataset.truth)
+    save_gps(out_dir / "gps.npz", dataset)
     document = {**report, "_run": extra or {}}
     with atomic_write(out_dir / "metrics.json") as handle:
         json.dump(_jsonable(document), handle, indent=2)
