@@ -1,0 +1,199 @@
+"""Batch smoothing (smoother/batch.py): optimisers and engines agree, covariances, indeterminant
+systems, robust kernels."""
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from factors import imu
+from smoother import batch
+from smoother.batch import IndeterminantSystem, solve_batch
+from smoother.errors import UserError
+from smoother.graph import ROBUST_KERNELS, build_problem, noise_model, robust_spec
+
+import estimator_cases as cases
+
+ENGINES = getattr(batch, "ENGINES", (None,))
+
+
+def _solve(problem, optimizer="lm", engine=None, **kwargs):
+    if engine is None:
+        return solve_batch(problem, optimizer, **kwargs)
+    return solve_batch(problem, optimizer, engine=engine, **kwargs)
+
+
+@functools.lru_cache(maxsize=None)
+def small():
+    """2 s gentle, 10 Hz poses: 21 keyframes."""
+    return simulate(profile="gentle", duration=2.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
+
+
+@functools.lru_cache(maxsize=None)
+def reference():
+    """LM on the default engine: the optimum and covariances the others are compared with."""
+    return solve_batch(build_problem(small()), "lm")
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg"])
+def test_optimizers_and_engines_reach_the_same_optimum(optimizer, engine):
+    """Every optimiser (and engine) from the same initial values reaches the reference optimum:
+    states within 1e-3 of the batch standard deviations (the stopping rule, a relative cost
+    decrease below 1e-9 of a cost ~66, leaves |dx|^2 ~ 1e-7 in whitened units, i.e. ~3e-4
+    sigma) and the same cost to 1e-7 relative; covariances to 1e-5 relative (they are evaluated
+    at those states)."""
+    ref = reference()
+    result = _solve(build_problem(small()), optimizer, engine)
+    sigma = cases.sigma_difference(result.trajectory.states, ref.trajectory.states, ref.trajectory.cov)
+    assert sigma.max() < 1e-3, sigma.max()
+    assert result.error == pytest.approx(ref.error, rel=1e-7)
+    scale = np.abs(ref.trajectory.cov).max(axis=(1, 2), keepdims=True)
+    assert np.abs(result.trajectory.cov - ref.trajectory.cov).max() / scale.min() < 1e-5
+    assert 1 <= result.iterations < 100
+    # the optimisation did something: the optimum is far from the initial values
+    start = build_problem(small()).initial_states
+    assert cases.sigma_difference(start, ref.trajectory.states, ref.trajectory.cov).max() > 1.0
+
+
+def test_covariances_are_symmetric_positive_definite_and_below_the_prior():
+    """Every keyframe's 15x15 covariance is symmetric (to round-off) and positive definite, and
+    keyframe 0's is below the prior's in the Loewner order (measurements only add information:
+    initial_cov - P_0 is positive semi-definite)."""
+    cov = reference().trajectory.cov
+    assert cov.shape == (21, 15, 15)
+    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2)) / np.abs(cov).max(axis=(1, 2))
+    assert asym.max() < 1e-9
+    assert np.linalg.eigvalsh(cov).min() > 0
+    gap = np.linalg.eigvalsh(small().initial_cov - cov[0])
+    assert gap.min() > -1e-12, gap.min()
+
+
+def test_covariances_can_be_skipped():
+    result = solve_batch(build_problem(small()), covariances=False)
+    assert result.trajectory.cov is None
+
+
+def _without_prior(problem):
+    """The same problem with the prior on keyframe 0 removed (GTSAM graph and, where the
+    problem has them, the vectorised blocks)."""
+    prior = problem.factors_at[0][0]
+    graph = gtsam.NonlinearFactorGraph()
+    for group in problem.factors_at:
+        for f in group:
+            if f is not prior:
+                graph.add(f)
+    factors_at = [[f for f in group if f is not prior] for group in problem.factors_at]
+    changes = dict(graph=graph, factors_at=factors_at)
+    if hasattr(problem, "blocks"):
+        changes["blocks"] = [b for b in problem.blocks if b.name != "prior"]
+        assert len(changes["blocks"]) == len(problem.blocks) - 1
+    return replace(problem, **changes)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("optimizer", ["lm", "gn"])
+def test_an_indeterminant_system_names_the_keyframe(optimizer, engine):
+    """No prior and no measurement: nothing fixes the start, the system is rank-deficient. The
+    error is IndeterminantSystem (a UserError the command line prints in one line), not GTSAM's
+    bare RuntimeError, and it names a keyframe and its time."""
+    data = simulate(profile="gentle", duration=1.0, seed=3, imu_rate=cases.IMU_RATE, pose_rate=None)
+    problem = _without_prior(build_problem(data))
+    assert len(problem.times) == 2
+    with pytest.raises(IndeterminantSystem) as info:
+        _solve(problem, optimizer, engine)
+    assert isinstance(info.value, UserError)
+    message = str(info.value)
+    assert "keyframe 0 (t = 0.000000 s)" in message or "keyframe 1 (t = 1.000000 s)" in message, message
+    assert "\n" not in message
+
+
+def test_without_the_prior_but_with_measurements_the_system_is_determined():
+    """The contrast: with 10 Hz poses the prior is not needed (IMU factors fix velocity and
+    biases), so the indeterminant case above really is about the missing constraints."""
+    result = solve_batch(_without_prior(build_problem(small())))
+    assert np.all(np.isfinite(result.trajectory.cov))
+
+
+# ------------------------------------------------------------------------------------------
+# robust kernels
+
+
+@pytest.mark.parametrize("spec, expected", [
+    (None, None), ("none", None),
+    ("huber", ("huber", 1.345)), ("cauchy", ("cauchy", 2.385)), ("tukey", ("tukey", 4.685)),
+    ("huber:2", ("huber", 2.0)), ("cauchy:0.5", ("cauchy", 0.5)), ("tukey:4.0", ("tukey", 4.0)),
+    ("huber:", ("huber", 1.345)),
+])
+def test_robust_spec_parses_kernels(spec, expected):
+    assert robust_spec(spec) == expected
+
+
+@pytest.mark.parametrize("junk", ["", "Huber", "l2", "huber:abc", "huber:-1", "cauchy:0", "tukey:nan", "huber:1:2",
+                                  ":1.0"])
+def test_robust_spec_rejects_junk_with_value_error(junk):
+    with pytest.raises(ValueError):
+        robust_spec(junk)
+
+
+@pytest.mark.parametrize("name", sorted(ROBUST_KERNELS))
+def test_noise_model_wraps_the_kernel(name):
+    model = noise_model(np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]), (name, 2.0))
+    assert isinstance(model, gtsam.noiseModel.Robust)
+    assert isinstance(noise_model(np.eye(3), None), gtsam.noiseModel.Gaussian)
+
+
+@pytest.mark.parametrize("name", sorted(ROBUST_KERNELS))
+def test_robust_kernels_are_accepted_on_clean_data(name):
+    """On clean data every kernel solves, changes the optimum (the kernel is applied) and keeps
+    the position error within 1.5 times the plain solution's (measured: 1.07-1.17 on this seed;
+    the kernels act on the NORM of the 6-dim whitened pose error, see the xfail below)."""
+    ref = reference()
+    result = solve_batch(build_problem(small(), robust={"pose": robust_spec(name)}))
+    diff = cases.sigma_difference(result.trajectory.states, ref.trajectory.states, ref.trajectory.cov)
+    assert diff.max() > 1e-6
+    assert np.all(np.isfinite(result.trajectory.cov))
+    assert cases.position_rmse(small(), result.trajectory) < 1.5 * cases.position_rmse(small(), ref.trajectory)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "the default thresholds (huber 1.345, cauchy 2.385, tukey 4.685) are the 95%-efficiency "
+    "values for a SCALAR residual, but GTSAM's Robust noise model applies the kernel to the norm "
+    "of the whole whitened error, chi(6) for a pose factor (mean 2.35): on clean data nearly "
+    "every inlier is downweighted and the optimum moves by 0.5-1.4 batch sigma in position "
+    "(huber 0.77, tukey 1.22 sigma here); a threshold scaled to the factor dimension, e.g. "
+    "sqrt(chi2_6(0.95)) = 3.55 for huber, moves it by < 0.01 sigma"))
+def test_default_huber_threshold_leaves_clean_data_nearly_unchanged():
+    ref = reference()
+    result = solve_batch(build_problem(small(), robust={"pose": robust_spec("huber")}))
+    diff = cases.sigma_difference(result.trajectory.states, ref.trajectory.states, ref.trajectory.cov)
+    assert diff[:, imu.R].max() < 0.25
+
+
+def test_a_dimension_scaled_huber_threshold_leaves_clean_data_unchanged():
+    """The contrast to the xfail above: with the threshold sqrt(chi2_6(0.95)) = 3.55 no inlier
+    pose factor of this run is downweighted noticeably (< 0.05 sigma)."""
+    ref = reference()
+    result = solve_batch(build_problem(small(), robust={"pose": robust_spec("huber:3.55")}))
+    diff = cases.sigma_difference(result.trajectory.states, ref.trajectory.states, ref.trajectory.cov)
+    assert diff[:, imu.R].max() < 0.05
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("name", ["huber", "cauchy"])
+def test_robust_kernels_resist_outliers(name, engine):
+    """10% of the poses moved by 5 m / 1 rad: the plain solution is dragged ~0.4 m off, a Huber
+    or Cauchy kernel keeps the error at the ~2 cm of clean data. (Tukey, a redescending kernel,
+    is not tested here: from initial values that sit ON the outlier measurements it stops in a
+    local minimum ~1 m off, in both engines.)"""
+    data = simulate(profile="gentle", duration=3.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
+                    outlier_fraction=0.1)
+    plain = _solve(build_problem(data), "lm", engine, covariances=False)
+    robust = _solve(build_problem(data, robust={"pose": robust_spec(name)}), "lm", engine, covariances=False)
+    ate_plain = cases.position_rmse(data, plain.trajectory)
+    ate_robust = cases.position_rmse(data, robust.trajectory)
+    assert ate_robust < 0.05 < 0.2 < ate_plain, (ate_robust, ate_plain)
