@@ -37,8 +37,11 @@ def test_real_data_noise_gravity_and_start(real, real_files):
     assert real.noise.acc == meta.accelerometer_sigma == 0.01
     assert real.noise.gyro == meta.gyroscope_sigma == 0.000175
     assert real.noise.velocity == meta.integration_sigma == 0.0
-    assert real.noise.acc_bias == meta.accelerometer_bias_sigma == 0.000167
-    assert real.noise.gyro_bias == meta.gyroscope_bias_sigma == 2.91e-6
+    # bias sigmas are per-sample random-walk steps: density = sigma / sqrt(dt)
+    assert meta.accelerometer_bias_sigma == 0.000167 and meta.gyroscope_bias_sigma == 2.91e-6
+    assert real.noise.acc_bias == pytest.approx(0.000167 / np.sqrt(meta.average_delta_t), rel=1e-12)
+    assert real.noise.gyro_bias == pytest.approx(2.91e-6 / np.sqrt(meta.average_delta_t), rel=1e-12)
+    assert 9.0 < real.noise.acc_bias / 0.000167 < 11.0
     t_gps, p_gps, _ = read_gps(real_files[kitti.GPS_FILE])
     # Fix 1 is the start (as in GTSAM's example): the IMU begins exactly at its time.
     assert real.imu.t[0] == t_gps[1]
