@@ -99,16 +99,17 @@ def asymmetric_rotations() -> st.SearchStrategy[np.ndarray]:
     return st.builds(lambda t, u: so3.exp(t * u), _floats(0.5, math.pi - 0.5), unit_vectors())
 
 
-def imu_states(attitude_regime: str = "any"):
+def imu_states(attitude_regime: str = "any", attitudes=None):
     """Random :class:`factors.imu.ImuState`: position within 100 m, body velocity within 10 m/s,
-    accelerometer bias within 0.5 m/s^2 and gyro bias within 0.2 rad/s per axis."""
+    accelerometer bias within 0.5 m/s^2 and gyro bias within 0.2 rad/s per axis; the attitude
+    from :func:`rotations` of ``attitude_regime``, or from the strategy ``attitudes``."""
     from factors import imu
 
     return st.builds(
         imu.ImuState,
         r=vectors(100.0),
         v=vectors(10.0),
-        C=rotations(attitude_regime),
+        C=attitudes if attitudes is not None else rotations(attitude_regime),
         b_f=vectors(0.5),
         b_w=vectors(0.2),
     )

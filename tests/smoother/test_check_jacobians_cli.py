@@ -1,0 +1,121 @@
+"""``smoother check-jacobians [--json] [--samples N] [--seed S]``: every analytic Jacobian of
+factors.selfcheck against central differences, as a command.
+
+In-process through ``smoother.cli.main`` with capsys; one subprocess run of the installed console
+script. The command's own acceptance threshold is atol = rtol = 1e-6; correct Jacobians show
+~1e-9, so the tests also assert that the reported errors are below 1e-7 -- a command that printed
+``ok`` without computing anything would fail them.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factors import selfcheck
+from smoother import cli
+
+KEYS = {"name", "max_abs_error", "max_rel_error", "ok"}
+
+
+def run(capsys, *argv):
+    code = cli.main(["check-jacobians", *argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_json_output_is_valid_and_every_check_passes(capsys):
+    code, out, err = run(capsys, "--samples", "5", "--json")
+    assert code == 0, err
+    assert err == ""
+    results = json.loads(out)
+    assert isinstance(results, list) and len(results) == len(selfcheck.CHECKS)
+    assert [r["name"] for r in results] == list(selfcheck.CHECKS)
+    for r in results:
+        assert set(r) == KEYS, r
+        assert isinstance(r["name"], str) and r["ok"] is True
+        assert isinstance(r["max_abs_error"], float) and isinstance(r["max_rel_error"], float)
+        assert 0.0 <= r["max_rel_error"] <= r["max_abs_error"] < 1e-7, r
+    # the checks that differentiate (all but the Gamma^-1 Gamma identity) see a non-zero error
+    differentiated = [r for r in results if "Gamma^-1 Gamma" not in r["name"]]
+    assert all(r["max_abs_error"] > 0 for r in differentiated)
+
+
+def test_the_imu_process_jacobians_are_among_the_checks(capsys):
+    code, out, _ = run(capsys, "--samples", "3", "--json")
+    names = [r["name"] for r in json.loads(out)]
+    assert code == 0
+    assert any(n.startswith("IMU process F") for n in names)
+    assert any(n.startswith("IMU process G") for n in names)
+
+
+def test_text_output_is_a_table_of_every_check(capsys):
+    code, out, _ = run(capsys, "--samples", "3", "--seed", "4")
+    assert code == 0
+    lines = out.splitlines()
+    assert lines[0] == "analytic vs numerical Jacobians (3 random points each, seed 4)"
+    assert lines[1].split()[:2] == ["check", "max"]
+    assert len(lines) == 2 + len(selfcheck.CHECKS)
+    for name, line in zip(selfcheck.CHECKS, lines[2:]):
+        assert line.startswith(name) and line.endswith("ok"), line
+
+
+def test_seed_makes_runs_reproducible(capsys):
+    first = run(capsys, "--samples", "4", "--seed", "11", "--json")[1]
+    again = run(capsys, "--samples", "4", "--seed", "11", "--json")[1]
+    other = run(capsys, "--samples", "4", "--seed", "12", "--json")[1]
+    assert first == again
+    errors = lambda text: [r["max_abs_error"] for r in json.loads(text)]  # noqa: E731
+    assert errors(first) != errors(other)
+
+
+@pytest.mark.parametrize("samples", ["0", "-3"])
+def test_non_positive_samples_is_a_user_error(capsys, samples):
+    code, out, err = run(capsys, "--samples", samples)
+    assert code == 2
+    assert out == ""
+    assert err.startswith("smoother: error: --samples") and samples in err
+
+
+def test_a_failing_check_makes_the_command_fail(capsys, monkeypatch):
+    # Register a deliberately wrong "Jacobian" (twice the truth): the command must report it,
+    # name it on stderr and exit 1, while the genuine checks still pass.
+    def wrong(rng):
+        x = rng.normal(size=3)
+        return 2.0 * np.eye(3), np.eye(3) + 0.0 * x
+
+    monkeypatch.setitem(selfcheck.CHECKS, "deliberately wrong", wrong)
+    code, out, err = run(capsys, "--samples", "2", "--json")
+    assert code == 1
+    verdicts = {r["name"]: r["ok"] for r in json.loads(out)}
+    assert verdicts.pop("deliberately wrong") is False
+    assert all(verdicts.values())
+    assert err.strip() == "FAILED: deliberately wrong"
+    row = [r for r in json.loads(out) if r["name"] == "deliberately wrong"][0]
+    assert row["max_abs_error"] == 1.0 and row["max_rel_error"] == 1.0
+
+
+def _console_script() -> str | None:
+    """The installed ``smoother`` script: next to this interpreter (a virtual environment's bin/),
+    else on PATH."""
+    here = Path(sys.executable).with_name("smoother")
+    return str(here) if here.exists() else shutil.which("smoother")
+
+
+@pytest.mark.skipif(_console_script() is None, reason="the smoother console script is not installed")
+def test_console_script_json(tmp_path):
+    env = dict(os.environ, PYTHONHASHSEED="0")
+    done = subprocess.run(
+        [_console_script(), "check-jacobians", "--samples", "5", "--json"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env,
+    )
+    assert done.returncode == 0, done.stderr
+    results = json.loads(done.stdout)
+    assert {r["name"] for r in results} == set(selfcheck.CHECKS)
+    assert all(set(r) == KEYS and r["ok"] is True and r["max_abs_error"] < 1e-7 for r in results)
