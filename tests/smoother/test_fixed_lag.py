@@ -1,0 +1,133 @@
+"""Fixed-lag smoothing (smoother/fixed_lag.py): the window, long runs with a measurement gap,
+factors older than the lag, recovery, options. (Tracking of the EKF is in test_crosscheck.py.)"""
+from __future__ import annotations
+
+import functools
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from smoother.fixed_lag import KINDS, run_fixed_lag
+from smoother.graph import build_problem
+
+import estimator_cases as cases
+
+LAG = 1.0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_window_holds_the_last_lag_seconds_smoothed_like_the_batch(tumbling, kind):
+    """At the end the window holds the keyframes of the last ``lag`` seconds (GTSAM keeps a
+    variable while ``t_newest - t <= lag``), its last state is the newest estimate, and inside it
+    the fixed-lag estimates are those of the full batch smoother within 0.05 batch sigma
+    (measured 0.002-0.008: the window has seen every measurement the batch has from its start
+    on; older information enters through a marginal linearised at earlier estimates)."""
+    problem, result = cases.fixed_lag(tumbling, kind, LAG)
+    t_end = problem.times[-1]
+    expected = problem.times[problem.times >= t_end - LAG - 1e-9]
+    np.testing.assert_array_equal(result.window.t, expected)
+    assert len(expected) == 11
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        np.testing.assert_allclose(getattr(result.window.states, name)[-1], getattr(result.newest.states, name)[-1],
+                                   rtol=0, atol=1e-9)
+    _, batch = cases.batch(tumbling)
+    i = np.searchsorted(batch.trajectory.t, result.window.t)
+    diff = cases.sigma_difference(result.window.states, batch.trajectory.states[i], batch.trajectory.cov[i])
+    assert diff.max() < 0.05, diff.max()
+    # smoothing inside the window: the first window state is more certain than when it was newest
+    first = np.searchsorted(problem.times, result.window.t[0])
+    assert np.trace(result.window.cov[0]) < np.trace(result.newest.cov[first])
+    assert result.skipped_factors == 0 and result.recovered == []
+    assert len(result.update_s) == len(problem.times)
+
+
+@functools.lru_cache(maxsize=None)
+def gap_run():
+    """10 s gentle run, poses at 10 Hz except in [4, 6) s, lag 0.5 s (incremental smoother)."""
+    data = simulate(profile="gentle", duration=10.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
+    keep = (data.pose.t < 4.0) | (data.pose.t >= 6.0)
+    gapped = replace(data, pose=data.pose.subset(keep))
+    assert len(gapped.pose) == len(data.pose) - 20
+    problem = build_problem(gapped)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = run_fixed_lag(problem, 0.5, "incremental", progress=False)
+    return gapped, problem, result
+
+
+def test_a_long_run_with_a_measurement_gap_keeps_working():
+    """Lag 0.5 s over 10 s (20 lags), no pose for 2 s: no exception, every estimate and
+    covariance finite, no update needed a recovery; at the first keyframe after the gap the
+    error is larger than anywhere before it (the gap is real: 2 s of dead reckoning), and one
+    second after the gap the error is back to normal: RMS over [7, 10] s at most 1.5 times the
+    RMS over [0, 4) s (measured 0.027 m against 0.049 m)."""
+    data, problem, result = gap_run()
+    newest = result.newest
+    assert np.all(np.isfinite(newest.states.r)) and np.all(np.isfinite(newest.states.v))
+    assert np.all(np.isfinite(newest.cov))
+    assert np.linalg.eigvalsh(newest.cov).min() > 0
+    assert result.recovered == [] and result.skipped_factors == 0
+    t = problem.times
+    assert not np.any((t > 3.95) & (t < 6.0))  # no keyframe inside the gap
+    error = np.linalg.norm(newest.states.r - cases.truth_at(data, t).r, axis=1)
+    before, after = error[t < 4.0], error[t >= 7.0]
+    at_gap_end = error[np.searchsorted(t, 6.0)]
+    assert at_gap_end > before.max(), (at_gap_end, before.max())
+    rms_before, rms_after = np.sqrt(np.mean(before**2)), np.sqrt(np.mean(after**2))
+    assert rms_after <= 1.5 * rms_before, (rms_after, rms_before)
+    # the window at the end is the last 0.5 s only: the smoother did marginalise all along
+    assert result.window.t[0] >= t[-1] - 0.5 - 1e-9
+
+
+def test_factors_older_than_the_lag_are_skipped_with_a_warning():
+    """Odometry between keyframes 1 s apart with a lag of 0.3 s: when such a factor becomes
+    available its earlier keyframe has been marginalised; it is skipped (and counted) instead of
+    failing GTSAM. With a 2 s lag the same factors are all used."""
+    data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
+                    relative_pose_rate=1.0)
+    assert len(data.relative_pose) == 2
+    with pytest.warns(UserWarning, match="2 factors referred to variables older than the lag"):
+        short = run_fixed_lag(build_problem(data), 0.3, "incremental", covariances=False, progress=False)
+    assert short.skipped_factors == 2
+    assert np.all(np.isfinite(short.newest.states.r))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        long = run_fixed_lag(build_problem(data), 2.0, "incremental", covariances=False, progress=False)
+    assert long.skipped_factors == 0
+
+
+@pytest.mark.parametrize("lag", [0.0, -1.0, float("nan")])
+def test_lag_must_be_positive(lag, gentle):
+    with pytest.raises(ValueError, match="lag"):
+        run_fixed_lag(cases.problem(gentle), lag)
+
+
+def test_unknown_kind_is_refused(gentle):
+    with pytest.raises(ValueError, match="kind"):
+        run_fixed_lag(cases.problem(gentle), 1.0, "sliding")
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.xfail(strict=True, reason=(
+    "recovery with a weak prior catches only GTSAM's indeterminant-system error, but a keyframe "
+    "without an IMU link raises something else: BatchFixedLagSmoother 'inconsistent arguments "
+    "... Leftover keys after elimination' (RuntimeError), IncrementalFixedLagSmoother IndexError "
+    "'clique for a key that is not in the BayesTree'; and after a genuine indeterminant update "
+    "ISAM2 is left inconsistent (the recovery update raises IndexError 'no clique'), while the "
+    "batch kind's LM damps the update through and Marginals then raises"))
+def test_a_keyframe_without_imu_link_is_recovered_with_a_weak_prior(kind):
+    """Keyframe 5 of a 1.5 s run keeps its pose measurement but loses its IMU factor (as a gap
+    in the IMU data would leave it): its velocity and biases are unconstrained. The module
+    promises that such an update is recovered with a weak prior and the run goes on."""
+    data = simulate(profile="gentle", duration=1.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
+    problem = build_problem(data)
+    k = 5
+    imu_factor = problem.imu_factors[k - 1].factor
+    factors_at = [[f for f in group if f is not imu_factor] for group in problem.factors_at]
+    assert len(factors_at[k]) == len(problem.factors_at[k]) - 1
+    result = run_fixed_lag(replace(problem, factors_at=factors_at), 0.3, kind, progress=False)
+    assert result.recovered == [k]
+    assert np.all(np.isfinite(result.newest.states.r))
