@@ -17,12 +17,14 @@ What is proved here:
 
 Tolerance of the Jacobian check. ``check_factor`` compares WHITENED Jacobians. Its numerical side
 differences a whitened error whose raw parts carry round-off ``EPS * |x|`` (positions up to
-~200 m), amplified by the whitening ``1/sigma``; for the IMU factor sigma reaches 1e-6 m, so the
-whitened entries reach ~1e6 and their central differences carry an absolute error of a few
-1e-9 of the largest entry (measured: at most ~1e-8 of it). The check is therefore run with
-``atol = max(1e-6, 1e-7 * max|A|)`` (``A`` the factor's whitened Jacobian) and the default
-``rtol = 1e-5``: 1e-7 relative to the largest entry, about 10-100 times the measured round-off,
-while the deliberately wrong blocks below miss by 1e-3 and more.
+~200 m), amplified by the whitening ``1/sigma``; for the IMU factor sigma goes down to 1e-6 m, so
+the whitened entries reach ~1e7 and their central differences carry absolute errors up to ~1e-2
+(measured 6e-3; up to 1.5e-7 of the largest entry), which check_factor's default
+``atol = 1e-6`` cannot absorb. The check is therefore run with ``atol = max(1e-6, 1e-7 * max|A|)`` (``A`` the
+factor's whitened Jacobian) and the default ``rtol = 1e-5``. Measured over the 1000 points: the
+worst entry uses 3% of this tolerance for the IMU factor and at most 2% for the others; the
+deliberately wrong blocks below (1e-3 added to a raw Jacobian block) exceed it 20 to 200 times in
+the IMU factor and far more in the measurement factor.
 """
 from __future__ import annotations
 
@@ -49,10 +51,6 @@ ATOL_REL = 1e-7
 N_POINTS = {"imu": 300, "position": 100, "velocity": 100, "bias": 100, "orientation": 100, "pose": 100,
             "relative_pose": 100, "state_prior": 100}
 assert sum(N_POINTS.values()) == 1000
-
-#: Worst relative error ``max|A - N| / max(|N|, 1)`` seen per factor type (printed with -s).
-WORST: dict[str, float] = {}
-
 
 # --------------------------------------------------------------------------- helpers
 
@@ -130,13 +128,9 @@ def transform(C_i: np.ndarray) -> np.ndarray:
 
 
 def checked(name: str, factor, values: gtsam.Values):
-    """Run ``check_factor`` with the tolerance of the module docstring; record the worst error."""
+    """Run ``check_factor`` with the tolerance of the module docstring."""
     A = factor.linearize(values).jacobian()[0]
-    result = check_factor(factor, values, atol=max(1e-6, ATOL_REL * np.abs(A).max()))
-    for key in result.keys:
-        err = np.abs(result.analytic[key] - result.numerical[key]).max()
-        WORST[name] = max(WORST.get(name, 0.0), err / max(1.0, np.abs(result.numerical[key]).max()))
-    return result
+    return check_factor(factor, values, atol=max(1e-6, ATOL_REL * np.abs(A).max()))
 
 
 def assert_passes(name: str, factor, values: gtsam.Values, context) -> None:
