@@ -1,0 +1,155 @@
+"""Scoring and run outputs (smoother/report.py): metrics against known errors, GPS RMSE,
+trajectory files, metrics.json (atomic, NaN as null)."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from datasets.tum import read_tum
+from datasets.types import PositionMeasurements, Trajectory
+from factors import so3
+from smoother import report
+from smoother.pipeline import Estimate
+
+import estimator_cases as cases
+
+ANGLE = np.radians(2.0)
+
+
+def _truth(n: int = 5) -> Trajectory:
+    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+    return data.truth.subset(np.arange(0, 5 * n, 5))
+
+
+def _offset_estimate(truth: Trajectory, with_cov: bool = True) -> Trajectory:
+    """Every position 0.5 m off (0.3, 0.4, 0), every attitude rotated by 2 degrees about the world
+    z axis (C_est = exp(a z) C_true); covariance 0.01 m^2 and 1e-4 rad^2 on the pose blocks."""
+    s = truth.states
+    states = s.replace(r=s.r + [0.3, 0.4, 0.0], C=so3.exp([0.0, 0.0, ANGLE]) @ s.C)
+    cov = None
+    if with_cov:
+        cov = np.tile(np.eye(15), (len(truth), 1, 1))
+        cov[:, 0:3, 0:3] = 0.01 * np.eye(3)
+        cov[:, 6:9, 6:9] = 1e-4 * np.eye(3)
+    return Trajectory(truth.t, states, cov)
+
+
+def test_against_truth_on_a_known_error():
+    """ATE 0.5 m, rotation RMSE 2 deg, pose NEES = 0.25 / 0.01 + a^2 / 1e-4 (a = 2 deg in rad),
+    /6, at every state."""
+    truth = _truth()
+    m = report.against_truth(truth, _offset_estimate(truth))
+    assert m["ate_rmse_m"] == pytest.approx(0.5, rel=1e-12)
+    assert m["rot_rmse_deg"] == pytest.approx(2.0, rel=1e-9)
+    assert m["nees_mean"] == pytest.approx((0.25 / 0.01 + ANGLE**2 / 1e-4) / 6.0, rel=1e-9)
+    assert m["compared_states"] == 5
+
+
+def test_against_truth_compares_only_states_at_truth_times_and_needs_covariances_for_nees():
+    truth = _truth()
+    est = _offset_estimate(truth, with_cov=False)
+    m = report.against_truth(truth, est)
+    assert math.isnan(m["nees_mean"]) and m["ate_rmse_m"] == pytest.approx(0.5)
+    # an estimate 1 ms off the truth samples (tolerance 1e-6 s) is compared nowhere
+    shifted = Trajectory(est.t + 1e-3, est.states)
+    assert report.against_truth(truth, shifted)["compared_states"] == 0
+
+
+def test_position_rmse_interpolates_and_ignores_fixes_outside_the_estimate():
+    truth = _truth()
+    est = Trajectory(truth.t, truth.states.replace(r=np.outer(truth.t, [1.0, 0.0, 0.0])))
+    t = np.array([truth.t[0] - 1.0, 0.5 * (truth.t[1] + truth.t[2]), truth.t[3], truth.t[-1] + 1.0])
+    position = np.outer(t, [1.0, 0.0, 0.0]) + [[0, 0, 0], [0, 3.0, 0], [0, 0, 4.0], [0, 0, 0]]
+    fixes = PositionMeasurements(t, position, np.eye(3))
+    # inside: errors 3 and 4 (the estimate interpolates linearly in between), outside: ignored
+    assert report.position_rmse(fixes, est) == pytest.approx(math.sqrt((9 + 16) / 2), rel=1e-12)
+    assert math.isnan(report.position_rmse(None, est))
+    assert math.isnan(report.position_rmse(fixes.subset([0, 3]), est))
+
+
+def test_score_reports_gps_and_heldout_rmse_when_there_are_fixes():
+    data = simulate(profile="gentle", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None,
+                    position_rate=10.0, position_sigma=0.5)
+    used, held = data.position.subset(slice(0, None, 2)), data.position.subset(slice(1, None, 2))
+    data = replace(data, position=used, heldout_positions=held)
+    m = report.score(data, data.truth)  # the truth itself as the estimate: errors = GPS noise
+    assert set(m) >= {"ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_rmse_m", "gps_heldout_rmse_m"}
+    assert m["ate_rmse_m"] == 0.0
+    fixes = report._merge([used, held])
+    noise_all = np.sqrt(np.mean(np.sum((cases.truth_at(data, fixes.t).r - fixes.position) ** 2, axis=1)))
+    assert len(fixes) == 11
+    assert m["gps_rmse_m"] == pytest.approx(noise_all, rel=1e-9)
+    assert 0.3 < m["gps_heldout_rmse_m"] < 2.0  # 3-D noise of 0.5 m per axis: ~0.87 m expected
+
+
+@pytest.mark.parametrize("with_cov", [True, False])
+def test_trajectory_npz_round_trip(tmp_path, with_cov):
+    truth = _truth()
+    est = _offset_estimate(truth, with_cov)
+    report.save_trajectory(tmp_path / "x.npz", est)
+    back = report.load_trajectory(tmp_path / "x.npz")
+    np.testing.assert_array_equal(back.t, est.t)
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        np.testing.assert_array_equal(getattr(back.states, name), getattr(est.states, name))
+    if with_cov:
+        np.testing.assert_array_equal(back.cov, est.cov)
+    else:
+        assert back.cov is None
+
+
+def _estimates(truth):
+    return {
+        "ekf": Estimate("ekf", _offset_estimate(truth), 0.25, {"rejected_measurements": 0}),
+        "batch": Estimate("batch", _offset_estimate(truth, with_cov=False), 0.5, {"iterations": 3}),
+    }
+
+
+def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
+    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+    truth = data.truth.subset(np.arange(0, 25, 5))
+    metrics = report.write_outputs(tmp_path / "run", data, _estimates(truth), {"seed": 7})
+    names = {p.name for p in (tmp_path / "run").iterdir()}
+    assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
+    document = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert document["_run"] == {"seed": 7}
+    assert document["ekf"]["ate_rmse_m"] == pytest.approx(0.5)
+    assert document["ekf"]["runtime_s"] == 0.25 and document["ekf"]["rejected_measurements"] == 0
+    assert document["batch"]["nees_mean"] is None  # NaN (no covariances) is written as null
+    assert math.isnan(metrics["batch"]["nees_mean"])
+    tum = read_tum(tmp_path / "run" / "ekf.tum")
+    np.testing.assert_array_equal(tum.t, truth.t)
+    np.testing.assert_allclose(tum.position, truth.position + [0.3, 0.4, 0.0], rtol=0, atol=1e-12)
+    saved_truth = report.load_trajectory(tmp_path / "run" / "truth.npz")
+    np.testing.assert_array_equal(saved_truth.t, data.truth.t)
+
+
+def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
+    """metrics.json is written atomically: an error in the middle of writing it (here json.dump
+    fails after writing part of the document) leaves the previous complete file, and no
+    temporary file behind."""
+    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+    truth = data.truth.subset(np.arange(0, 25, 5))
+    out = tmp_path / "run"
+    report.write_outputs(out, data, _estimates(truth), {"first": True})
+    before = (out / "metrics.json").read_bytes()
+
+    def broken_dump(obj, handle, **kwargs):
+        handle.write('{"ekf": {"ate_rmse_m": 0.')
+        raise OSError("disk full")
+
+    monkeypatch.setattr(report.json, "dump", broken_dump)
+    with pytest.raises(OSError, match="disk full"):
+        report.write_outputs(out, data, _estimates(truth), {"first": False})
+    assert (out / "metrics.json").read_bytes() == before
+    assert json.loads(before)["_run"] == {"first": True}
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_jsonable_turns_numpy_and_non_finite_values_into_json():
+    out = report._jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
+    assert json.loads(json.dumps(out)) == {"a": None, "b": [3, [1.5, None]], "c": [1, "x"]}
