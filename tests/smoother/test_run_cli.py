@@ -1,0 +1,139 @@
+"""``smoother run`` in-process (smoother.cli.main): outputs, table, one-line errors, atomic
+metrics.json."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from datasets.tum import read_tum
+from smoother import report
+from smoother.cli import main
+from smoother.commands.run import format_table
+
+ESTIMATORS = ("batch", "fixed-lag", "ekf")
+
+
+def test_run_all_estimators_writes_trajectories_truth_metrics_and_a_table(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["run", "--dataset", "synthetic:gentle", "--duration", "4", "--estimator", "all", "--out", str(out),
+                 "--no-progress"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    names = {p.name for p in out.iterdir()}
+    assert names >= {f"{e}.{ext}" for e in ESTIMATORS for ext in ("tum", "npz")} | {"truth.npz", "metrics.json"}
+    assert not [n for n in names if n.endswith(".tmp")]
+
+    document = json.loads((out / "metrics.json").read_text())
+    assert set(ESTIMATORS) <= set(document)
+    truth = report.load_trajectory(out / "truth.npz")
+    for name in ESTIMATORS:
+        m = document[name]
+        for key in ("ate_rmse_m", "rot_rmse_deg", "nees_mean", "runtime_s"):
+            assert isinstance(m[key], float) and math.isfinite(m[key]), (name, key, m.get(key))
+        # sane values on a 4 s gentle run with 10 Hz poses (0.05 m, 0.01 rad): errors of a few cm
+        assert m["ate_rmse_m"] < 0.2 and m["rot_rmse_deg"] < 2.0 and 0.1 < m["nees_mean"] < 10.0
+        traj = report.load_trajectory(out / f"{name}.npz")
+        tum = read_tum(out / f"{name}.tum")
+        np.testing.assert_array_equal(tum.t, traj.t)
+        np.testing.assert_allclose(tum.position, traj.position, rtol=0, atol=1e-12)
+        assert traj.cov is not None and traj.cov.shape == (len(traj.t), 15, 15)
+        assert traj.t[0] == truth.t[0] and traj.t[-1] == truth.t[-1]
+        # the metrics are those of the files (re-scored here from what was written)
+        assert report.against_truth(truth, traj)["ate_rmse_m"] == pytest.approx(m["ate_rmse_m"], rel=1e-12)
+    assert document["_run"]["dataset"] == "synthetic:gentle"
+
+    lines = captured.out.strip().splitlines()
+    assert lines[0].split()[0] == "estimator" and "ATE" in lines[0] and "NEES/dim" in lines[0]
+    assert [line.split()[0] for line in lines[1:]] == list(ESTIMATORS)
+    ekf_row = lines[1 + ESTIMATORS.index("ekf")].split()
+    assert float(ekf_row[1]) == pytest.approx(document["ekf"]["ate_rmse_m"], abs=5e-5)
+
+
+def test_format_table_marks_missing_values():
+    table = format_table({"ekf": {"ate_rmse_m": 0.01234, "nees_mean": float("nan"), "runtime_s": 1.0},
+                          "batch": {"ate_rmse_m": 0.5, "nees_mean": None, "runtime_s": 2.0}})
+    header, ekf, batch = table.splitlines()
+    assert header.split() == ["estimator", "ATE", "[m]", "NEES/dim", "time", "[s]"]
+    assert ekf.split() == ["ekf", "0.0123", "-", "1.0000"]
+    assert batch.split() == ["batch", "0.5000", "-", "2.0000"]
+
+
+def _one_line_error(capsys) -> str:
+    """The error is the last line of stderr, one line (progress notes such as 'running ekf ...'
+    may come before it), without a traceback."""
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert err and err[-1].startswith("smoother: error: "), captured.err
+    assert sum(line.startswith("smoother:") for line in err) == 1
+    assert "Traceback" not in captured.err and captured.out == ""
+    return err[-1]
+
+
+@pytest.mark.parametrize("argv, mentions", [
+    (["--dataset", "synthetic:wobbly"], "wobbly"),
+    (["--dataset", "nonsense"], "nonsense"),
+    (["--duration", "-1"], "--duration"),
+    (["--duration", "0"], "--duration"),
+    (["--gps-every", "0"], "--gps-every"),
+    (["--robust", "huber:abc"], "--robust"),
+    (["--robust", "l1"], "--robust"),
+    (["--robust", "speed=huber"], "speed"),
+    (["--robust", "pose=tukey:-2"], "--robust"),
+    (["--lag", "0"], "--lag"),
+    (["--ekf-gate", "1.5"], "--ekf-gate"),
+])
+def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
+    out = tmp_path / "run"
+    code = main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"] + argv)
+    assert code == 2
+    assert mentions in _one_line_error(capsys)
+    assert not out.exists()  # nothing written
+
+
+@pytest.fixture()
+def good_run(tmp_path, capsys):
+    """A finished cheap run (EKF, 1 s) whose metrics.json later runs must not spoil."""
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
+    capsys.readouterr()
+    return out, (out / "metrics.json").read_bytes()
+
+
+def test_a_run_with_bad_options_leaves_the_previous_metrics(good_run, capsys):
+    out, before = good_run
+    assert main(["run", "--duration", "-1", "--estimator", "ekf", "--out", str(out)]) == 2
+    _one_line_error(capsys)
+    assert (out / "metrics.json").read_bytes() == before
+
+
+def test_a_run_whose_estimator_fails_leaves_the_previous_metrics(good_run, capsys, monkeypatch):
+    """An estimator failing with a ValueError: exit 2, one line, metrics.json untouched."""
+    import smoother.pipeline
+
+    def failing(*args, **kwargs):
+        raise ValueError("simulated estimator failure")
+
+    monkeypatch.setattr(smoother.pipeline, "run_ekf", failing)
+    out, before = good_run
+    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--seed", "3"]) == 2
+    assert "simulated estimator failure" in _one_line_error(capsys)
+    assert (out / "metrics.json").read_bytes() == before
+
+
+def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_run, capsys, monkeypatch):
+    """Ctrl-C in the middle of writing metrics.json (after part of it was written): exit 130,
+    the previous complete metrics.json is still there, no temporary file is left."""
+    def interrupted_dump(obj, handle, **kwargs):
+        handle.write('{"ekf": ')
+        raise KeyboardInterrupt
+
+    out, before = good_run
+    monkeypatch.setattr(report.json, "dump", interrupted_dump)
+    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--seed", "3"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert (out / "metrics.json").read_bytes() == before
+    json.loads(before)
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
