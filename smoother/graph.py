@@ -26,23 +26,41 @@ from factors.keys import KeyframeKeys, keyframe_keys
 from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
 
-#: Robust kernels selectable per measurement type.
+#: Robust kernels selectable per measurement type, and the probability that sets each one's
+#: default threshold (see :func:`default_threshold`).
 ROBUST_KERNELS = {
-    "huber": (gtsam.noiseModel.mEstimator.Huber, 1.345),
-    "cauchy": (gtsam.noiseModel.mEstimator.Cauchy, 2.385),
-    "tukey": (gtsam.noiseModel.mEstimator.Tukey, 4.685),
+    "huber": (gtsam.noiseModel.mEstimator.Huber, 0.95),
+    "cauchy": (gtsam.noiseModel.mEstimator.Cauchy, 0.95),
+    "tukey": (gtsam.noiseModel.mEstimator.Tukey, 0.999),
 }
 
 
+def default_threshold(kernel: str, dim: int) -> float:
+    """The default threshold of a kernel on a ``dim``-dimensional factor.
+
+    GTSAM's ``Robust`` noise model applies the kernel to the NORM of the whole whitened error,
+    which for an inlier is chi-distributed with ``dim`` degrees of freedom (mean ~2.35 for a
+    6-dim pose). The textbook constants (Huber 1.345, ...) are for a scalar residual and would
+    down-weight nearly every inlier of a pose factor. The default is therefore
+    ``sqrt(chi2_dim(p))``: Huber and Cauchy leave 95% of inliers at full weight, Tukey (which
+    rejects completely beyond it) 99.9%."""
+    from smoother.metrics import chi2_quantile
+
+    return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
+
+
 def robust_spec(text: str | None):
-    """Parse ``none``, ``huber``, ``cauchy[:k]``, ``tukey:4.0`` into ``(name, threshold)`` or None."""
+    """Parse ``none``, ``huber``, ``cauchy:2.5``, ... into ``(name, threshold)`` (threshold None:
+    the dimension-aware default of :func:`default_threshold`) or None for no kernel."""
     if text is None or text == "none":
         return None
     name, _, value = text.partition(":")
     if name not in ROBUST_KERNELS:
         raise ValueError(f"robust kernel {name!r}: expected one of none, {', '.join(ROBUST_KERNELS)}")
+    if not value:
+        return name, None
     try:
-        threshold = float(value) if value else ROBUST_KERNELS[name][1]
+        threshold = float(value)
     except ValueError:
         raise ValueError(f"robust kernel threshold {value!r}: expected a number") from None
     if not threshold > 0:
@@ -50,13 +68,20 @@ def robust_spec(text: str | None):
     return name, threshold
 
 
+def _robust_estimator(spec, dim: int):
+    if spec is None:
+        return None
+    name, threshold = spec
+    kernel, _ = ROBUST_KERNELS[name]
+    return kernel.Create(threshold if threshold is not None else default_threshold(name, dim))
+
+
 def noise_model(cov: np.ndarray, robust=None):
     """A Gaussian model of ``cov``, wrapped in a robust kernel ``(name, threshold)`` if given."""
     base = meas.covariance_model(cov)
     if robust is None:
         return base
-    kernel, _ = ROBUST_KERNELS[robust[0]]
-    return gtsam.noiseModel.Robust.Create(kernel.Create(robust[1]), base)
+    return gtsam.noiseModel.Robust.Create(_robust_estimator(robust, np.shape(cov)[-1]), base)
 
 
 @dataclass
@@ -144,13 +169,6 @@ def _place(jacobians: list[np.ndarray], variables: list[str]) -> np.ndarray:
     return out
 
 
-def _robust_estimator(spec):
-    if spec is None:
-        return None
-    kernel, _ = ROBUST_KERNELS[spec[0]]
-    return kernel.Create(spec[1])
-
-
 def _imu_block(pre: preintegration.Preintegrated, gravity: np.ndarray, threshold: float) -> Block:
     def residual(slots, jacobians):
         out = preintegration.residual(pre, slots[0], slots[1], gravity, jacobians)
@@ -210,7 +228,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         data = [np.asarray(a)[rows] for a in spec["data"]]
         cov = np.asarray(spec["cov"])[rows]
         kernel = robust.get(spec["name"])
-        blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel)))
+        blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel, cov.shape[-1])))
         for m in range(len(rows)):
             factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
             factors_at[int(kf[m].max())].append(factor)
