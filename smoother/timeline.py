@@ -42,6 +42,8 @@ class Steps:
 def imu_steps(imu: ImuSamples, knots: np.ndarray) -> Steps:
     """Cut the IMU stream at ``knots`` (sorted, within ``[imu.t[0], imu.t[-1]]``)."""
     knots = np.asarray(knots, dtype=float)
+    if not np.all(np.isfinite(knots)):  # a NaN passes every comparison below and yields NaN steps
+        raise ValueError(f"knot times must be finite, got {knots[~np.isfinite(knots)][:3]}")
     if knots.size and (knots[0] < imu.t[0] or knots[-1] > imu.t[-1]):
         raise ValueError(
             f"knot times [{knots[0]}, {knots[-1]}] outside the IMU span [{imu.t[0]}, {imu.t[-1]}]"
