@@ -235,14 +235,19 @@ def _allowed_relative_error(kind, which, t):
     SERIES_ANGLE, (t - sin t)/t^3 loses 6 EPS/t^2 (sin t rounds by EPS t on a difference of t^3/6)
     and (1 - (t/2)cot(t/2))/t^2 about 20 EPS/t^2 (three roundings of size EPS on a difference of
     t^2/12). Their weight in the matrix is t^2, so the matrix itself stays exact to round-off
-    (test_gamma_and_gamma_inv_match_high_precision_references)."""
+    (test_gamma_and_gamma_inv_match_references). Whatever SERIES_ANGLE is, no coefficient may be
+    worse than ``CANCELLATION_CAP`` = 5e-11 relative (measured: 1.9e-11 just above 1e-2), so moving
+    the switch down to where the closed forms lose more digits fails this test."""
     base = 8 * EPS
     if which == "b" and t >= so3.SERIES_ANGLE:
         if kind == "gamma":
-            return base + 6 * EPS / t**2
+            return min(base + 6 * EPS / t**2, CANCELLATION_CAP)
         if kind == "gamma_inv":
-            return base + 20 * EPS / t**2
+            return min(base + 20 * EPS / t**2, CANCELLATION_CAP)
     return base
+
+
+CANCELLATION_CAP = 5e-11
 
 
 @pytest.mark.parametrize("kind", sorted(FUNCTIONS))
@@ -261,7 +266,7 @@ def test_series_and_closed_form_meet_at_the_switch(kind):
     # their derivative (~t^2 relative) plus the closed form's cancellation error, nothing more.
     lo, hi = so3.SERIES_ANGLE * (1 - 1e-12), so3.SERIES_ANGLE * (1 + 1e-12)
     for below, above in zip(_measured_coefficients(kind, lo), _measured_coefficients(kind, hi)):
-        assert abs(below - above) <= (8 * EPS + 20 * EPS / so3.SERIES_ANGLE**2) * abs(below)
+        assert abs(below - above) <= min(8 * EPS + 20 * EPS / so3.SERIES_ANGLE**2, CANCELLATION_CAP) * abs(below)
 
 
 # --------------------------------------------------------------------------- boxplus / boxminus
