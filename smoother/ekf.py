@@ -22,6 +22,7 @@ import numpy as np
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
 from factors.scan import suffix_products
+from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
 
@@ -31,12 +32,12 @@ class Ekf:
     primer's left-perturbation error state)."""
 
     def __init__(self, state: imu.ImuState, cov: np.ndarray, noise: imu.ImuNoise, gravity=imu.DEFAULT_GRAVITY,
-                 gate_threshold: float | None = None):
+                 gate_probability: float | None = None):
         self.state = state
         self.P = np.array(cov, dtype=float)
         self.noise = noise
         self.gravity = np.asarray(gravity, dtype=float)
-        self.gate_threshold = gate_threshold
+        self.gate_probability = gate_probability
         self.rejected = 0
 
     def predict(self, acc, gyro, dt) -> None:
@@ -69,12 +70,14 @@ class Ekf:
     def update(self, e: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
         """Correct with a residual ``e(x)`` (measurement model minus measurement, e.g.
         ``C [-] C_meas``), its Jacobian ``H`` (m x 15, error-state columns) and noise ``R``.
-        Returns False when the chi-square gate rejects it."""
+        Returns False when the chi-square gate rejects it: the normalised innovation
+        ``e^T S^-1 e`` beyond the ``gate_probability`` quantile of chi-square with ``len(e)``
+        degrees of freedom (so 3-dim and 6-dim updates are gated alike)."""
         S = H @ self.P @ H.T + R
         PHt = self.P @ H.T
-        if self.gate_threshold is not None:
+        if self.gate_probability is not None:
             d2 = float(e @ np.linalg.solve(S, e))
-            if d2 > self.gate_threshold:
+            if d2 > chi2_quantile(self.gate_probability, len(e)):
                 self.rejected += 1
                 return False
         K = np.linalg.solve(S, PHt.T).T
@@ -116,7 +119,7 @@ class FilterResult:
     rejected: int
 
 
-def run_ekf(dataset: Dataset, gate_threshold: float | None = None, progress: bool | None = None) -> FilterResult:
+def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
     time with every measurement taken then, record the state after the updates."""
     start = time.perf_counter()
@@ -124,7 +127,7 @@ def run_ekf(dataset: Dataset, gate_threshold: float | None = None, progress: boo
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
     knots = estimate_times(dataset)
     steps = imu_steps(dataset.imu, knots)
-    ekf = Ekf(dataset.initial, dataset.initial_cov, dataset.noise, dataset.gravity, gate_threshold)
+    ekf = Ekf(dataset.initial, dataset.initial_cov, dataset.noise, dataset.gravity, gate_probability)
     lookups = _measurement_lookup(dataset)
     states, covs = [], []
     step = 0

@@ -38,7 +38,7 @@ class RunOptions:
     optimizer: str = "lm"
     keyframe_rate: float | None = None
     robust: dict | None = None
-    ekf_gate: float | None = None
+    ekf_gate: float | None = None  # chi-square gate probability
     covariances: bool = True
     progress: bool | None = None
 

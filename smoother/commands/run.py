@@ -63,15 +63,11 @@ def parse_robust(specs: list[str]) -> dict:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def gate_threshold(probability: float | None, dim: int = 6) -> float | None:
-    """Chi-square threshold for the EKF gate (6-dim pose innovations)."""
-    if probability is None:
-        return None
-    if not 0.0 < probability < 1.0:
+def gate_probability(probability: float | None) -> float | None:
+    """Validate ``--ekf-gate``."""
+    if probability is not None and not 0.0 < probability < 1.0:
         raise UserError(f"--ekf-gate: expected a probability in (0, 1), got {probability}")
-    from smoother.metrics import chi2_quantile
-
-    return chi2_quantile(probability, dim)
+    return probability
 
 
 def run(args) -> int:
@@ -92,7 +88,7 @@ def run(args) -> int:
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
         keyframe_rate=args.keyframe_rate, robust=parse_robust(args.robust),
-        ekf_gate=gate_threshold(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
+        ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
     )
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()

@@ -222,9 +222,8 @@ def test_gate_rejects_a_gross_outlier_and_counts_it():
     """A 5 m / 0.5 rad pose error against sigmas 0.05 m / 0.01 rad is far beyond the 99.9%
     chi-square(6) gate: the update returns False, changes nothing and is counted; a measurement
     at the predicted pose passes."""
-    gate = metrics.chi2_quantile(0.999, 6)
     ekf = _initial_ekf()
-    ekf.gate_threshold = gate
+    ekf.gate_probability = 0.999
     _predict_some(ekf)
     x, P = ekf.state, ekf.P.copy()
     R = np.diag(np.repeat([0.05, 0.01], 3) ** 2)
@@ -244,7 +243,7 @@ def test_run_ekf_gate_rejects_exactly_the_simulated_outliers():
     data = simulate(profile="gentle", duration=4.0, seed=2, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
                     outlier_fraction=0.1)
     assert len(data.pose_outliers) == 4
-    gated = run_ekf(data, gate_threshold=metrics.chi2_quantile(0.999, 6), progress=False)
+    gated = run_ekf(data, gate_probability=0.999, progress=False)
     plain = run_ekf(data, progress=False)
     assert gated.rejected == len(data.pose_outliers)
     assert plain.rejected == 0
@@ -313,3 +312,20 @@ def test_nees_is_consistent_over_monte_carlo_runs(profile):
     full_mean = float(np.mean(full))
     assert lo <= pose_mean <= hi, f"{profile}: pose NEES/6 {pose_mean:.3f} outside [{lo:.3f}, {hi:.3f}]"
     assert lo15 <= full_mean <= hi15, f"{profile}: full NEES/15 {full_mean:.3f} outside [{lo15:.3f}, {hi15:.3f}]"
+
+
+def test_gate_threshold_follows_the_innovation_dimension():
+    """A 3-dim position update is gated at chi2_3(p), not at the 6-dim pose threshold: a
+    normalised innovation of 19 (between chi2_3(0.999) = 16.3 and chi2_6(0.999) = 22.5) is
+    rejected as a position update, which a 6-dim threshold would have let through."""
+    assert metrics.chi2_quantile(0.999, 3) < 19.0 < metrics.chi2_quantile(0.999, 6)
+    ekf = _initial_ekf()
+    ekf.gate_probability = 0.999
+    _predict_some(ekf)
+    x = ekf.state
+    S_pos = ekf.P[imu.R, imu.R] + 0.01 * np.eye(3)
+    # a position innovation with e^T S^-1 e = 19 along the first eigenvector of S
+    w, V = np.linalg.eigh(S_pos)
+    offset = V[:, 0] * np.sqrt(19.0 * w[0])
+    assert not ekf.update_position(x.r + offset, 0.01 * np.eye(3))
+    assert ekf.rejected == 1
