@@ -12,6 +12,7 @@ from smoother.errors import UserError
 COMMAND_MODULES = [
     "smoother.commands.run",
     "smoother.commands.crosscheck",
+    "smoother.commands.montecarlo",
     "smoother.commands.check_jacobians",
     "smoother.commands.evaluate",
     "smoother.commands.plot",

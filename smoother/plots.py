@@ -61,6 +61,7 @@ FIGSIZE = {
     "nees": (11.0, 7.5),
     "biases": (12.0, 10.5),
     "comparison": (12.0, 8.0),
+    "montecarlo_nees": (11.0, 5.0),
 }
 #: Estimators in the order they are drawn, with their colours (others get the next free colour).
 ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
@@ -697,3 +698,25 @@ def plot_run(run_dir, estimators=None, out_dir=None) -> list[Path]:
         if errors:
             written.append(plot_comparison(run, out_dir, kind, errors))
     return written
+
+
+def plot_montecarlo(summary, out_dir) -> Path:
+    """``montecarlo_nees.png``: the pose NEES per dimension at each keyframe, averaged over the
+    Monte Carlo runs, per estimator, with the 95% chi-square interval of that average."""
+    import matplotlib
+
+    low, high = summary.nees_interval_95
+    with matplotlib.rc_context(STYLE):
+        fig = _figure("montecarlo_nees")
+        ax = fig.add_subplot()
+        ax.axhspan(low, high, color="0.85", label=f"95% interval ({summary.runs} runs)")
+        ax.axhline(1.0, color="0.3", lw=0.8, ls="--")
+        for k, (name, e) in enumerate(summary.estimators.items()):
+            color = COLORS.get(name, _SPARE_COLORS[k % len(_SPARE_COLORS)])
+            ax.plot(e["t"], e["nees_per_keyframe"], color=color, lw=1.2, ls=LINESTYLES.get(name, "-"),
+                    label=f"{name} (mean {e['nees_mean']:.2f}, {100 * e['nees_share_inside_95']:.0f}% inside)")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("pose NEES / 6, mean over runs")
+        ax.set_title(f"Monte Carlo consistency: {summary.runs} runs")
+        ax.legend(loc="upper right", fontsize=9)
+        return _save(fig, out_dir, "montecarlo_nees")

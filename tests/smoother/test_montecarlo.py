@@ -1,0 +1,82 @@
+"""Monte Carlo: results independent of the executor, kept on interruption, CLI errors."""
+import json
+
+import numpy as np
+import pytest
+
+from smoother import montecarlo
+from smoother.cli import main
+
+CONFIG = montecarlo.MonteCarloConfig(profile="gentle", duration=2.0, estimators=("batch", "ekf"))
+
+
+@pytest.fixture(scope="module")
+def serial():
+    return montecarlo.run_many(CONFIG, [3, 1, 2], montecarlo.make_executor(1))
+
+
+def test_one_worker_and_several_give_identical_results(serial):
+    parallel = montecarlo.run_many(CONFIG, [2, 3, 1], montecarlo.make_executor(2))
+    assert [r["seed"] for r in serial] == [1, 2, 3]
+    assert json.dumps(serial, sort_keys=True) == json.dumps(parallel, sort_keys=True)
+
+
+def test_runs_are_seeded_and_differ_between_seeds(serial):
+    again = montecarlo.run_many(CONFIG, [1], montecarlo.make_executor(1))
+    assert again[0] == serial[0]
+    assert serial[0]["ekf"]["ate_rmse_m"] != serial[1]["ekf"]["ate_rmse_m"]
+
+
+def test_aggregate_averages_nees_over_runs(serial):
+    summary = montecarlo.aggregate(serial, ("batch", "ekf"))
+    assert summary.runs == 3
+    for name in ("batch", "ekf"):
+        per_run = np.array([r[name]["nees"] for r in serial])
+        np.testing.assert_allclose(summary.estimators[name]["nees_per_keyframe"], per_run.mean(axis=0) / 6.0)
+        assert 0.0 <= summary.estimators[name]["nees_share_inside_95"] <= 1.0
+    low, high = summary.nees_interval_95
+    assert low < 1.0 < high
+
+
+def test_finished_runs_are_written_as_they_complete(tmp_path):
+    seen = []
+    montecarlo.run_many(CONFIG, [5, 6], montecarlo.make_executor(1), out_dir=tmp_path, on_done=seen.append)
+    files = sorted(p.name for p in (tmp_path / "runs").iterdir())
+    assert files == ["seed_5.json", "seed_6.json"]
+    assert json.loads((tmp_path / "runs" / "seed_5.json").read_text()) == {r["seed"]: r for r in seen}[5]
+
+
+def test_an_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
+    calls = []
+    real = montecarlo.run_one
+
+    def interrupt_second(config, seed):
+        calls.append(seed)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(config, seed)
+
+    monkeypatch.setattr(montecarlo, "run_one", interrupt_second)
+    with pytest.raises(KeyboardInterrupt):
+        montecarlo.run_many(CONFIG, [7, 8, 9], montecarlo.make_executor(1), out_dir=tmp_path)
+    assert [p.name for p in (tmp_path / "runs").iterdir()] == ["seed_7.json"]
+
+
+def test_cli_writes_summary_and_plot(tmp_path, capsys):
+    assert main(["montecarlo", "--runs", "2", "--duration", "2", "--out", str(tmp_path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["runs"] == 2 and set(out) >= {"batch", "ekf", "nees_interval_95"}
+    assert (tmp_path / "summary.json").exists()
+    assert (tmp_path / "montecarlo_nees.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--runs", "1"], "--runs"),
+    (["--workers", "0"], "--workers"),
+    (["--profile", "loopy"], "--profile"),
+    (["--duration", "-1"], "--duration"),
+])
+def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
+    assert main(["montecarlo", "--out", str(tmp_path), *argv]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and "Traceback" not in err
