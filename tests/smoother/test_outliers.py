@@ -1,0 +1,48 @@
+"""The outlier experiment: 5% gross pose outliers; robust smoothing and the EKF's gate keep the
+accuracy of the clean run while the plain estimators degrade."""
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from smoother import report
+from smoother.batch import solve_batch
+from smoother.ekf import run_ekf
+from smoother.graph import build_problem, robust_spec
+
+KW = dict(profile="gentle", duration=10.0, seed=4, imu_rate=100.0)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    clean = simulate(**KW)
+    dirty = simulate(**KW, outlier_fraction=0.05)
+    assert len(dirty.pose_outliers) == 5  # 5% of the 101 poses, each moved 5 m / 1 rad
+    return clean, dirty
+
+
+def _ate(dataset, trajectory):
+    return report.against_truth(dataset.truth, trajectory)["ate_rmse_m"]
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy"])
+def test_robust_smoother_stays_within_20_percent_of_the_clean_run(runs, kernel):
+    """Measured on this seed: clean 0.0174 m; plain with outliers 0.167 m (9.6x); Huber 0.0168 m,
+    Cauchy 0.0171 m."""
+    clean, dirty = runs
+    reference = _ate(clean, solve_batch(build_problem(clean), covariances=False).trajectory)
+    plain = _ate(dirty, solve_batch(build_problem(dirty), covariances=False).trajectory)
+    robust = _ate(dirty, solve_batch(build_problem(dirty, robust={"pose": robust_spec(kernel)}),
+                                      covariances=False).trajectory)
+    assert plain > 2.0 * reference
+    assert robust < 1.2 * reference
+
+
+def test_ekf_gate_keeps_the_filter_on_track(runs):
+    """Measured: clean 0.036 m, plain with outliers 0.406 m, gated (99.9%) 0.037 m."""
+    clean, dirty = runs
+    reference = _ate(clean, run_ekf(clean, progress=False).trajectory)
+    plain = run_ekf(dirty, progress=False)
+    gated = run_ekf(dirty, gate_probability=0.999, progress=False)
+    assert gated.rejected >= len(dirty.pose_outliers)
+    assert _ate(dirty, plain.trajectory) > 2.0 * reference
+    assert _ate(dirty, gated.trajectory) < 1.2 * reference
