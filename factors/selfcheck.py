@@ -185,3 +185,60 @@ def _process_G(rng):
 
 register("IMU process F (54-60)", _process_F)
 register("IMU process G (54-60)", _process_G)
+
+
+def _random_state(rng):
+    from factors import imu
+
+    return imu.ImuState(r=rng.normal(size=3) * 10, v=rng.normal(size=3) * 5, C=random_rotation(rng),
+                        b_f=rng.normal(size=3) * 0.5, b_w=rng.normal(size=3) * 0.2)
+
+
+def _pose_measurement_H(rng):
+    """The pose sensor's H (primer VI.D) as the Jacobian of the residual e(x) = (r - r~, C [-] C~)
+    with respect to the error state."""
+    from factors import imu, measurements
+
+    x = _random_state(rng)
+    r_m, C_m = x.r + rng.normal(size=3) * 0.1, so3.boxplus(x.C, rng.normal(size=3) * 0.1)
+    _, (J_r, J_C) = measurements.pose_residual(x.r, x.C, r_m, C_m, jacobians=True)
+    H = np.zeros((6, imu.STATE_DIM))
+    H[:, imu.R], H[:, imu.PHI] = J_r, J_C
+    num = _num(lambda s: measurements.pose_residual(s.r, s.C, r_m, C_m), x,
+               arg_kinds=[imu.StateManifold], value_kind="vector")[0]
+    return H, num
+
+
+def _relative_pose_jacobians(rng):
+    from factors import measurements
+
+    Ci, Cj = random_rotation(rng), random_rotation(rng)
+    ri, rj = rng.normal(size=3) * 5, rng.normal(size=3) * 5
+    dr, dC = rng.normal(size=3), random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG)
+    _, J = measurements.relative_pose_residual(Ci, ri, Cj, rj, dr, dC, jacobians=True)
+    num = _num(lambda a, b, c, d: measurements.relative_pose_residual(a, b, c, d, dr, dC), Ci, ri, Cj, rj,
+               arg_kinds=["rotation", "vector", "rotation", "vector"], value_kind="vector")
+    return np.hstack(J), np.hstack(num)
+
+
+def _imu_residual_jacobians(rng):
+    """The IMU factor's residual (preintegration) with respect to both keyframes' error states,
+    over an interval of 10-60 samples at rates of several rad/s, with a gyro-bias offset."""
+    from factors import imu, preintegration
+
+    n = rng.integers(10, 60)
+    acc, gyro = rng.normal(size=(1, n, 3)) * 3, rng.normal(size=(1, n, 3)) * 3
+    dt = np.full((1, n), rng.uniform(2e-3, 1e-2))
+    xi = _random_state(rng)
+    pre = preintegration.integrate(acc, gyro, dt, xi.b_w[None])[0]
+    xi = xi.replace(b_w=xi.b_w + rng.normal(size=3) * 0.01)
+    xj = imu.boxplus(preintegration.predict(pre, xi), rng.normal(size=15) * 0.05)
+    _, (Ji, Jj) = preintegration.residual(pre, xi, xj, jacobians=True)
+    num = _num(lambda a, b: preintegration.residual(pre, a, b), xi, xj,
+               arg_kinds=[imu.StateManifold] * 2, value_kind="vector")
+    return np.hstack([Ji, Jj]), np.hstack(num)
+
+
+register("pose measurement H (61-63)", _pose_measurement_H)
+register("relative pose residual", _relative_pose_jacobians)
+register("IMU factor residual (preintegrated)", _imu_residual_jacobians)
