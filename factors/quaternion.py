@@ -205,43 +205,29 @@ def to_xyzw(q: np.ndarray) -> np.ndarray:
     return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
 
-#: Below this value of cos(pitch) roll and yaw are not separable (gimbal lock).
-GIMBAL_LOCK_COS = 1e-10
+#: Below this value of |cos(pitch)| roll and yaw are not separable (gimbal lock); the same
+#: tolerance as :data:`factors.euler.SINGULAR_TOLERANCE`, which these functions delegate to.
+GIMBAL_LOCK_COS = 1e-14
 
 
 def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
-    """``C = Rz(yaw) Ry(pitch) Rx(roll)`` for ``rpy = (roll, pitch, yaw)`` of shape ``(..., 3)``."""
-    rpy = np.asarray(rpy, dtype=float)
-    cr, sr = np.cos(rpy[..., 0]), np.sin(rpy[..., 0])
-    cp, sp = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
-    cy, sy = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
-    out = np.empty(rpy.shape[:-1] + (3, 3))
-    out[..., 0, 0] = cy * cp
-    out[..., 0, 1] = cy * sp * sr - sy * cr
-    out[..., 0, 2] = cy * sp * cr + sy * sr
-    out[..., 1, 0] = sy * cp
-    out[..., 1, 1] = sy * sp * sr + cy * cr
-    out[..., 1, 2] = sy * sp * cr - cy * sr
-    out[..., 2, 0] = -sp
-    out[..., 2, 1] = cp * sr
-    out[..., 2, 2] = cp * cr
-    return out
+    """``C = Rz(yaw) Ry(pitch) Rx(roll)`` for ``rpy = (roll, pitch, yaw)`` of shape ``(..., 3)``:
+    the static/extrinsic x-y-z sequence, ``factors.euler``'s ``"sxyz"``."""
+    from factors import euler
+
+    return euler.to_matrix(rpy, euler.ROLL_PITCH_YAW)
 
 
 def matrix_to_rpy(C: np.ndarray) -> np.ndarray:
     """``(roll, pitch, yaw)`` with ``C = Rz(yaw) Ry(pitch) Rx(roll)``, pitch in [-pi/2, pi/2].
 
-    Gimbal lock (``cos(pitch) < GIMBAL_LOCK_COS``): only ``yaw - roll`` (pitch = +pi/2) or
+    Gimbal lock (``|cos(pitch)| < GIMBAL_LOCK_COS``): only ``yaw - roll`` (pitch = +pi/2) or
     ``yaw + roll`` (pitch = -pi/2) is defined; roll is then set to 0 and yaw carries the whole
-    rotation about the vertical, so ``rpy_to_matrix`` of the result still reproduces ``C``.
-    """
-    C = np.asarray(C, dtype=float)
-    cos_pitch = np.hypot(C[..., 2, 1], C[..., 2, 2])
-    pitch = np.arctan2(-C[..., 2, 0], cos_pitch)
-    locked = cos_pitch < GIMBAL_LOCK_COS
-    roll = np.where(locked, 0.0, np.arctan2(C[..., 2, 1], C[..., 2, 2]))
-    yaw = np.where(locked, np.arctan2(-C[..., 0, 1], C[..., 1, 1]), np.arctan2(C[..., 1, 0], C[..., 0, 0]))
-    return np.stack([roll, pitch, yaw], axis=-1)
+    rotation about the vertical, so ``rpy_to_matrix`` of the result still reproduces ``C``
+    (``factors.euler.from_matrix`` with ``"sxyz"``)."""
+    from factors import euler
+
+    return euler.from_matrix(C, euler.ROLL_PITCH_YAW)
 
 
 def from_rpy(rpy: np.ndarray) -> np.ndarray:

@@ -57,6 +57,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors import euler, so3
+from factors.chart import primer_from_gtsam
 from factors.axis_angle import check_matrix, check_rotation_matrix, check_vector
 from factors.quaternion import GIMBAL_LOCK_COS
 
@@ -147,7 +148,8 @@ def chart_jacobian(C, source: str, target: str) -> np.ndarray:
     if source == target:
         return np.broadcast_to(np.eye(3), C.shape).copy()
     if {source, target} == {"left", "right"}:
-        return np.swapaxes(C, -1, -2) if source == "left" else C.copy()
+        left_from_right = primer_from_gtsam(C)  # the one chart adapter (factors.chart)
+        return np.swapaxes(left_from_right, -1, -2) if source == "left" else left_from_right.copy()
     mu = so3.log(C)
     if target == "middle":
         return so3.gamma_inv(mu if source == "left" else -mu)
