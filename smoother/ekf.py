@@ -39,6 +39,9 @@ class Ekf:
         self.gravity = np.asarray(gravity, dtype=float)
         self.gate_probability = gate_probability
         self.rejected = 0
+        #: Sum of the log densities of the accepted innovations, ``log N(e; 0, S)``: the
+        #: prediction-error decomposition of the measurements' likelihood under the model.
+        self.log_likelihood = 0.0
 
     def predict(self, acc, gyro, dt) -> None:
         """One Euler-forward step: ``x <- f(x)``, ``P <- F P F^T + G Q_d G^T``."""
@@ -75,11 +78,11 @@ class Ekf:
         degrees of freedom (so 3-dim and 6-dim updates are gated alike)."""
         S = H @ self.P @ H.T + R
         PHt = self.P @ H.T
-        if self.gate_probability is not None:
-            d2 = float(e @ np.linalg.solve(S, e))
-            if d2 > chi2_quantile(self.gate_probability, len(e)):
-                self.rejected += 1
-                return False
+        d2 = float(e @ np.linalg.solve(S, e))
+        if self.gate_probability is not None and d2 > chi2_quantile(self.gate_probability, len(e)):
+            self.rejected += 1
+            return False
+        self.log_likelihood -= 0.5 * (d2 + np.linalg.slogdet(2.0 * np.pi * S)[1])
         K = np.linalg.solve(S, PHt.T).T
         dx = -K @ e
         self.state = imu.boxplus(self.state, dx)
@@ -117,6 +120,7 @@ class FilterResult:
     trajectory: Trajectory
     runtime_s: float
     rejected: int
+    log_likelihood: float
 
 
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
@@ -143,7 +147,7 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
             states.append(ekf.state)
             covs.append(ekf.P.copy())
     trajectory = Trajectory(knots, imu.ImuState.stack(states), np.stack(covs))
-    return FilterResult(trajectory, time.perf_counter() - start, ekf.rejected)
+    return FilterResult(trajectory, time.perf_counter() - start, ekf.rejected, ekf.log_likelihood)
 
 
 def _measurement_lookup(dataset: Dataset) -> dict:

@@ -329,3 +329,24 @@ def test_gate_threshold_follows_the_innovation_dimension():
     offset = V[:, 0] * np.sqrt(19.0 * w[0])
     assert not ekf.update_position(x.r + offset, 0.01 * np.eye(3))
     assert ekf.rejected == 1
+
+
+def test_log_likelihood_accumulates_the_innovation_densities():
+    """Each accepted update adds log N(e; 0, S) (scipy as the reference); a gated one adds nothing."""
+    from scipy.stats import multivariate_normal
+
+    ekf = _initial_ekf()
+    _predict_some(ekf)
+    R = np.diag(np.repeat([0.05, 0.01], 3) ** 2)
+    x = ekf.state
+    measured_r, measured_C = x.r + [0.02, -0.01, 0.03], so3.exp([0.004, 0.0, -0.002]) @ x.C
+    e, (J_r, J_C) = meas.pose_residual(x.r, x.C, measured_r, measured_C, jacobians=True)
+    H = np.zeros((6, 15))
+    H[:, imu.R], H[:, imu.PHI] = J_r, J_C
+    expected = multivariate_normal(np.zeros(6), H @ ekf.P @ H.T + R).logpdf(e)
+    assert ekf.update_pose(measured_r, measured_C, R)
+    assert ekf.log_likelihood == pytest.approx(expected, rel=1e-12)
+    ekf.gate_probability = 0.999
+    before = ekf.log_likelihood
+    assert not ekf.update_pose(ekf.state.r + [5.0, 0, 0], ekf.state.C, R)
+    assert ekf.log_likelihood == before
