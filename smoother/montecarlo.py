@@ -57,30 +57,17 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     return out
 
 
-class _InProcess(Executor):
-    """The serial executor: runs each call at submission (used for ``--workers 1``)."""
-
-    def submit(self, fn, /, *args, **kwargs):
-        from concurrent.futures import Future
-
-        future = Future()
-        try:
-            future.set_result(fn(*args, **kwargs))
-        except BaseException as error:  # noqa: BLE001 - handed to the caller through the future
-            future.set_exception(error)
-        return future
-
-
-def make_executor(workers: int) -> Executor:
-    """In-process for one worker, a process pool otherwise."""
+def make_executor(workers: int) -> Executor | None:
+    """None (runs in this process, in seed order) for one worker, a process pool otherwise."""
     if workers < 1:
         raise ValueError(f"workers: expected at least 1, got {workers}")
-    return _InProcess() if workers == 1 else ProcessPoolExecutor(max_workers=workers)
+    return None if workers == 1 else ProcessPoolExecutor(max_workers=workers)
 
 
 def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, dask_address: str | None = None,
              out_dir: Path | None = None, on_done=None) -> list[dict]:
-    """Every seed through :func:`run_one`; results sorted by seed. With ``out_dir`` each finished
+    """Every seed through :func:`run_one` -- in this process when ``executor`` is None, else on
+    the executor or the Dask scheduler; results sorted by seed. With ``out_dir`` each finished
     run is written at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them."""
     seeds = [int(s) for s in seeds]
     results = []
@@ -102,16 +89,14 @@ def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, 
             futures = client.map(run_one, [config] * len(seeds), seeds, pure=False)
             for future in dask_completed(futures):
                 keep(future.result())
+    elif executor is None:
+        for seed in seeds:
+            keep(run_one(config, seed))
     else:
-        executor = executor or make_executor(1)
         futures = [executor.submit(run_one, config, s) for s in seeds]
         try:
             for future in as_completed(futures):
                 keep(future.result())
-        except KeyboardInterrupt:
-            for future in futures:
-                future.cancel()
-            raise
         finally:
             executor.shutdown(wait=False, cancel_futures=True)
     return sorted(results, key=lambda r: r["seed"])

@@ -1,8 +1,9 @@
 """Shared test configuration: Hypothesis profiles and the import path of ``tests/strategies.py``.
 
-Profiles (choose with ``HYPOTHESIS_PROFILE=<name>``; ``default`` otherwise):
+Profiles (choose with ``HYPOTHESIS_PROFILE=<name>``; ``ci`` when the environment variable ``CI``
+is set, as it is in the project's CI; ``default`` otherwise):
 
-* ``default``: 200 examples per property, no deadline (the first call of a GTSAM wrapper or of
+* ``default``: 100 examples per property, no deadline (the first call of a GTSAM wrapper or of
   numpy's linear algebra can be slow, and timing is not what these tests assert).
 * ``ci``: as ``default`` but derandomised, so that a CI run is reproducible from the commit alone.
 * ``dev``: 30 examples, for a quick edit-and-run loop.
@@ -27,4 +28,4 @@ settings.register_profile("default", max_examples=100, **_COMMON)
 settings.register_profile("ci", max_examples=100, derandomize=True, **_COMMON)
 settings.register_profile("dev", max_examples=30, **_COMMON)
 settings.register_profile("thorough", max_examples=2000, **_COMMON)
-settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default"))
