@@ -8,9 +8,12 @@ its 15x15 covariance (primer convention) are recorded; the smoothed window is re
 
 GTSAM pitfalls handled here:
 
-* the Python ``BatchFixedLagSmoother`` has no ``marginalCovariance``: covariances come from
-  ``gtsam.Marginals`` on the smoother's current factors (its marginal factors included), which
-  works for both smoothers and gives the joint block of the keyframe's four variables;
+* the Python ``BatchFixedLagSmoother`` has no ``marginalCovariance``: covariances come from the
+  smoother's current factors (its marginal factors included) linearised and inverted densely
+  (:func:`window_covariances`), which works for both smoothers, gives the joint block of the
+  keyframe's four variables, and survives nearly singular windows;
+* both smoothers factorise with QR: with Cholesky, sparse GPS (KITTI) is declared
+  indeterminant within seconds and ISAM2 cannot continue after a failed update;
 * a factor that refers to a variable already marginalised out (a relative pose longer than the
   lag) would make GTSAM fail: it is skipped with a warning;
 * an indeterminant update (for example a gap with no measurement and yaw unobservable) is caught:
@@ -29,7 +32,8 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
-from smoother.batch import is_indeterminant, keyframe_covariances
+from factors.chart import state_covariance_to_primer
+from smoother.batch import is_indeterminant
 from smoother.graph import Problem, insert_state, read_state
 from smoother.progress import progress_bar
 
@@ -42,10 +46,14 @@ WEAK_PRIOR_SIGMAS = np.array([1e2] * 3 + [1e1] * 3 + [np.pi] * 3 + [1.0] * 3 + [
 @dataclass
 class FixedLagResult:
     """``newest``: the newest state's estimate (and covariance) after each update, at the
-    keyframe times; ``window``: the smoothed estimates of the last window; ``update_s``: wall
-    time of each update; ``recovered``: keyframes where a weak prior was needed."""
+    keyframe times -- a filtered estimate; ``lagged``: each keyframe's estimate (and covariance)
+    at the last update that still held it, i.e. smoothed with up to ``lag`` seconds of later
+    data -- the fixed-lag smoother's own output; ``window``: the estimates of the last window;
+    ``update_s``: wall time of each update; ``recovered``: keyframes where a weak prior was
+    needed."""
 
     newest: Trajectory
+    lagged: Trajectory
     window: Trajectory
     update_s: np.ndarray
     recovered: list
@@ -54,11 +62,18 @@ class FixedLagResult:
 
 
 def _make_smoother(kind: str, lag_s: float):
+    """GTSAM's smoother of ``kind`` with QR factorisation: Cholesky declares the nearly
+    singular systems of sparse GPS (KITTI, a fix every 10 s with 1 s keyframes) indeterminant
+    at the velocity variables within seconds, and ISAM2 cannot continue after a failed update;
+    QR solves them (the price is about 1.5x per update)."""
     if kind == "batch":
-        return gtsam.BatchFixedLagSmoother(lag_s)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setLinearSolverType("MULTIFRONTAL_QR")
+        return gtsam.BatchFixedLagSmoother(lag_s, params)
     if kind == "incremental":
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(1e-3)
+        params.setFactorization("QR")
         return gtsam.IncrementalFixedLagSmoother(lag_s, params)
     raise ValueError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
 
@@ -73,6 +88,33 @@ def _active_factors(smoother) -> gtsam.NonlinearFactorGraph:
     return graph
 
 
+def window_covariances(smoother, estimate: gtsam.Values, keys: list) -> np.ndarray:
+    """Primer-convention 15x15 covariances of the keyframes ``keys`` from the smoother's current
+    factors (its marginal factors included) linearised at ``estimate``.
+
+    The window is small (lag / keyframe period keyframes), so its information matrix
+    ``A^T A`` is formed densely and inverted: unlike ``gtsam.Marginals`` (Cholesky) this does
+    not stop at the nearly singular systems that QR-based smoothers accept (sparse GPS); a
+    direction the data does not constrain shows as a large variance."""
+    linear = _active_factors(smoother).linearize(estimate)
+    window = [int(k) for k in estimate.keys()]
+    zeros = estimate.zeroVectors()
+    dims = {k: zeros.at(k).shape[0] for k in window}
+    A, _ = linear.jacobian(gtsam.Ordering(window))
+    offsets = dict(zip(window, np.concatenate([[0], np.cumsum([dims[k] for k in window])])[:-1]))
+    information = A.T @ A
+    try:
+        cov = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(information)
+    cov = 0.5 * (cov + cov.T)
+    out = []
+    for kk in keys:
+        idx = np.concatenate([np.arange(offsets[k], offsets[k] + dims[k]) for k in kk.all()])
+        out.append(state_covariance_to_primer(cov[np.ix_(idx, idx)], estimate.atRot3(kk.rot)))
+    return np.stack(out)
+
+
 def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covariances: bool = True,
                   progress: bool | None = None) -> FixedLagResult:
     """Run a fixed-lag smoother over ``problem`` (see the module docstring)."""
@@ -81,6 +123,9 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     start = time.perf_counter()
     smoother = _make_smoother(kind, lag_s)
     newest_states, newest_covs, update_s, recovered = [], [], [], []
+    lagged_states: dict[int, imu.ImuState] = {}
+    lagged_covs: dict[int, np.ndarray] = {}
+    first = 0
     skipped = 0
     present: set[int] = set()
     with progress_bar(len(problem.times), f"fixed-lag ({kind})", progress) as bar:
@@ -116,9 +161,17 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             estimate = smoother.calculateEstimate()
             update_s.append(time.perf_counter() - tick)
             present = set(int(key) for key in estimate.keys())
-            newest_states.append(read_state(estimate, keys))
+            while problem.keys[first].rot not in present:  # the window is contiguous: [first, k]
+                first += 1
+            in_window = range(first, k + 1)
+            for j in in_window:
+                lagged_states[j] = read_state(estimate, problem.keys[j])
+            newest_states.append(lagged_states[k])
             if covariances:
-                newest_covs.append(keyframe_covariances(_active_factors(smoother), estimate, [keys])[0])
+                covs = window_covariances(smoother, estimate, [problem.keys[j] for j in in_window])
+                for j, c in zip(in_window, covs):
+                    lagged_covs[j] = c
+                newest_covs.append(lagged_covs[k])
             bar.update(1)
     if skipped:
         warnings.warn(f"{skipped} factors referred to variables older than the lag ({lag_s} s) and were skipped",
@@ -128,10 +181,13 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     window_states = imu.ImuState.stack([read_state(estimate, problem.keys[k]) for k in in_window])
     window_cov = None
     if covariances:
-        window_cov = keyframe_covariances(_active_factors(smoother), estimate,
-                                          [problem.keys[k] for k in in_window])
+        window_cov = window_covariances(smoother, estimate, [problem.keys[k] for k in in_window])
     newest = Trajectory(problem.times, imu.ImuState.stack(newest_states),
                         np.stack(newest_covs) if covariances else None)
+    order = range(len(problem.times))
+    lagged = Trajectory(problem.times, imu.ImuState.stack([lagged_states[j] for j in order]),
+                        np.stack([lagged_covs[j] for j in order]) if covariances else None)
     window = Trajectory(problem.times[in_window], window_states, window_cov)
-    return FixedLagResult(newest, window, np.array(update_s), recovered, skipped, time.perf_counter() - start)
+    return FixedLagResult(newest, lagged, window, np.array(update_s), recovered, skipped,
+                          time.perf_counter() - start)
 

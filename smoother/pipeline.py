@@ -1,7 +1,7 @@
 """Running the estimators on a dataset: one call per estimator, one result type for all.
 
-``batch`` (the whole graph), ``fixed-lag`` (GTSAM's fixed-lag smoother, newest state after each
-update) and ``ekf`` (the primer's filter) see the same dataset; the two smoothers see the same
+``batch`` (the whole graph), ``fixed-lag`` (GTSAM's fixed-lag smoother; each keyframe's estimate
+when it leaves the window, i.e. smoothed over the lag) and ``ekf`` (the primer's filter) see the same dataset; the two smoothers see the same
 graph (:func:`smoother.graph.build_problem`), so their differences are the estimators', not the
 model's.
 """
@@ -61,7 +61,7 @@ def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions()) 
                                  {"iterations": r.iterations, "final_error": r.error, "graph_build_s": build_s})
         elif name == "fixed-lag":
             r = run_fixed_lag(problem, options.lag_s, options.fixed_lag_kind, options.covariances, options.progress)
-            out[name] = Estimate(name, r.newest, build_s + r.runtime_s, {
+            out[name] = Estimate(name, r.lagged, build_s + r.runtime_s, {
                 "lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                 "skipped_factors": r.skipped_factors, "graph_build_s": build_s,
             })
