@@ -10,9 +10,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import warnings
+
 import numpy as np
 
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+
+
+#: An IMU interval longer than this many typical periods is reported as a gap.
+IMU_GAP_FACTOR = 5.0
 
 
 def _array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
@@ -272,6 +278,51 @@ class Dataset:
         object.__setattr__(self, "gravity", g)
         if len(self.imu) < 2:
             raise ValueError("Dataset.imu: at least two IMU samples are needed")
+        s = self.initial
+        if any(np.shape(getattr(s, n)) != (3,) for n in ("r", "v", "b_f", "b_w")) or np.shape(s.C) != (3, 3):
+            raise ValueError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")
+        if not all(np.all(np.isfinite(getattr(s, n))) for n in ("r", "v", "C", "b_f", "b_w")):
+            raise ValueError("Dataset.initial: non-finite value in the initial state")
+        _rotations("Dataset.initial.C", s.C[None], 1)
+        self._check_imu_gaps()
+        self._drop_outside_imu_span()
+
+    def _check_imu_gaps(self) -> None:
+        """Warn about gaps in the IMU stream longer than ``IMU_GAP_FACTOR`` typical periods: the
+        Euler step holds the sample before a gap over the whole gap (zero-order hold), which is
+        only as good as the motion is steady there."""
+        dt = np.diff(self.imu.t)
+        typical = float(np.median(dt))
+        long = np.flatnonzero(dt > IMU_GAP_FACTOR * typical)
+        if long.size:
+            i = int(long[np.argmax(dt[long])])
+            warnings.warn(
+                f"Dataset.imu: {long.size} gap(s) longer than {IMU_GAP_FACTOR:g} x the typical period "
+                f"({typical:.4g} s); the longest is {dt[i]:.4g} s after t = {self.imu.t[i]:.6f} s (row {i}); "
+                "each is bridged by holding the sample before it", stacklevel=3)
+
+    def _drop_outside_imu_span(self) -> None:
+        """Measurements outside ``[t0, t1]`` cannot be predicted by the IMU: they are dropped with
+        a warning naming the field and how many (documented behaviour, not an error)."""
+        t0, t1 = self.t0, self.t1
+        for name in ("pose", "position", "orientation", "heldout_positions"):
+            m = getattr(self, name)
+            if m is None:
+                continue
+            inside = (m.t >= t0) & (m.t <= t1)
+            if not inside.all():
+                warnings.warn(f"Dataset.{name}: {int((~inside).sum())} of {len(m)} measurements lie outside the "
+                              f"IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
+                object.__setattr__(self, name, m.subset(inside) if inside.any() else None)
+        m = self.relative_pose
+        if m is not None:
+            inside = (m.t_from >= t0) & (m.t_to <= t1)
+            if not inside.all():
+                warnings.warn(f"Dataset.relative_pose: {int((~inside).sum())} of {len(m)} measurements reach outside "
+                              f"the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
+                kept = RelativePoseMeasurements(m.t_from[inside], m.t_to[inside], m.dr[inside], m.dC[inside],
+                                                m.cov[inside]) if inside.any() else None
+                object.__setattr__(self, "relative_pose", kept)
 
     @property
     def t0(self) -> float:

@@ -1,0 +1,97 @@
+"""The data types: validation at construction, and the documented behaviour for data a user can
+reasonably feed (out-of-span measurements, IMU gaps) -- a warning and a documented action."""
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from datasets.types import (Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
+                            RelativePoseMeasurements)
+from factors import imu, so3
+
+
+def _imu(n=101, rate=100.0, t0=0.0):
+    t = t0 + np.arange(n) / rate
+    return ImuSamples(t, np.tile([0.0, 0.0, 9.81], (n, 1)), np.zeros((n, 3)))
+
+
+def _dataset(**kw):
+    base = dict(name="test", imu=_imu(), noise=imu.ImuNoise(), initial=imu.ImuState.identity(),
+                initial_cov=np.eye(15) * 0.01)
+    base.update(kw)
+    return Dataset(**base)
+
+
+def test_measurements_outside_the_imu_span_are_dropped_with_a_warning():
+    t = np.array([-0.5, 0.0, 0.5, 1.0, 1.5])
+    gps = PositionMeasurements(t, np.zeros((5, 3)), np.eye(3))
+    with pytest.warns(UserWarning, match=r"Dataset.position: 2 of 5 .* outside the IMU span"):
+        d = _dataset(position=gps)
+    np.testing.assert_array_equal(d.position.t, [0.0, 0.5, 1.0])
+
+
+def test_relative_poses_reaching_outside_the_span_are_dropped():
+    rel = RelativePoseMeasurements([0.0, 0.8], [0.5, 1.2], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)),
+                                   np.eye(6))
+    with pytest.warns(UserWarning, match="relative_pose: 1 of 2"):
+        d = _dataset(relative_pose=rel)
+    assert len(d.relative_pose) == 1
+
+
+def test_an_imu_gap_is_reported_with_its_time_and_length():
+    t = np.concatenate([np.arange(50) / 100.0, 1.0 + np.arange(50) / 100.0])
+    samples = ImuSamples(t, np.zeros((100, 3)), np.zeros((100, 3)))
+    with pytest.warns(UserWarning, match=r"longest is 0.51 s after t = 0.490000 s \(row 49\)"):
+        _dataset(imu=samples)
+
+
+def test_clean_data_gives_no_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _dataset(pose=PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6)))
+
+
+@pytest.mark.parametrize("field, value, fragment", [
+    ("initial", imu.ImuState.identity().replace(r=np.array([np.nan, 0, 0])), "non-finite"),
+    ("initial", imu.ImuState.identity().replace(C=np.diag([1.0, 1.0, -1.0])), "not a rotation"),
+    ("initial_cov", -np.eye(15), "positive definite"),
+    ("initial_cov", np.eye(14), "(15, 15)"),
+    ("gravity", np.array([0.0, np.inf, 0.0]), "gravity"),
+])
+def test_bad_dataset_fields_raise_naming_the_field(field, value, fragment):
+    with pytest.raises(ValueError, match="Dataset") as info:
+        _dataset(**{field: value})
+    assert fragment in str(info.value)
+
+
+@given(hnp.arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 5)),
+                  elements=st.floats(allow_nan=True, allow_infinity=True, width=64)),
+       hnp.arrays(np.float64, st.integers(0, 6), elements=st.floats(allow_nan=True, allow_infinity=True)))
+def test_fuzzed_arrays_give_value_errors_or_valid_objects(values, times):
+    """Any array shape and content fed to the constructors: either a ValueError naming the class,
+    or an object whose arrays have the documented shapes and are finite -- never another exception
+    and never silently wrong data."""
+    for make in (
+        lambda: ImuSamples(times, values, values),
+        lambda: PositionMeasurements(times, values, np.eye(3)),
+        lambda: PoseMeasurements(times, values, np.tile(np.eye(3), (len(times), 1, 1)), np.eye(6)),
+    ):
+        try:
+            obj = make()
+        except ValueError as error:
+            assert any(name in str(error) for name in ("ImuSamples", "PositionMeasurements", "PoseMeasurements"))
+        else:
+            assert obj.t.shape == (len(times),) and np.all(np.isfinite(obj.t))
+            assert np.all(np.diff(obj.t) > 0)
+            for arr in (getattr(obj, a) for a in ("acc", "gyro", "position") if hasattr(obj, a)):
+                assert arr.shape == (len(times), 3) and np.all(np.isfinite(arr))
+
+
+def test_rotation_check_names_the_row():
+    C = np.tile(np.eye(3), (3, 1, 1))
+    C[2] = so3.exp([0.1, 0, 0]) * 1.01
+    with pytest.raises(ValueError, match="row 2 is not a rotation matrix"):
+        PoseMeasurements([0.0, 1.0, 2.0], np.zeros((3, 3)), C, np.eye(6))
