@@ -246,3 +246,16 @@ def sample_rotation_vectors(rng: np.random.Generator, shape) -> np.ndarray:
     axes = rng.normal(size=shape + (3,))
     axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
     return sample_angles(rng, shape)[..., None] * axes
+
+
+def random_rotation(rng: np.random.Generator, regime: str) -> np.ndarray:
+    """A rotation whose angle is tiny (<= 1e-6, 0 included), ordinary, or within 1e-3 of pi."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    if regime == "tiny":
+        angle = 0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -6)
+    elif regime == "near_pi":
+        angle = np.pi - (0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -3))
+    else:
+        angle = rng.uniform(1e-6, np.pi - 1e-3)
+    return so3.exp(angle * axis)

@@ -40,6 +40,7 @@ from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.imu_factor import ImuFactor
 from factors.jacobians import check_factor
 from factors.keys import keyframe_keys
+from strategies import random_rotation
 
 GRAVITY = imu.DEFAULT_GRAVITY
 REGIMES = ("tiny", "ordinary", "near_pi")
@@ -55,17 +56,6 @@ assert sum(N_POINTS.values()) == 1000
 # --------------------------------------------------------------------------- helpers
 
 
-def random_rotation(rng: np.random.Generator, regime: str) -> np.ndarray:
-    """A rotation whose angle is tiny (<= 1e-6, 0 included), ordinary, or within 1e-3 of pi."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    if regime == "tiny":
-        angle = 0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -6)
-    elif regime == "near_pi":
-        angle = math.pi - (0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -3))
-    else:
-        angle = rng.uniform(1e-6, math.pi - 1e-3)
-    return so3.exp(angle * axis)
 
 
 def random_rotation_vector(rng: np.random.Generator, max_angle: float) -> np.ndarray:

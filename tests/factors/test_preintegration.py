@@ -36,7 +36,7 @@ from hypothesis import strategies as st
 import strategies as S
 from factors import imu, preintegration, so3
 from factors.jacobians import numerical_jacobian
-from strategies import EPS
+from strategies import EPS, random_rotation
 
 GRAVITY = imu.DEFAULT_GRAVITY
 #: Required agreement of prediction and sample-by-sample integration (see module docstring).
@@ -48,17 +48,6 @@ NUMERIC_REL = 1e-7
 # --------------------------------------------------------------------------- helpers
 
 
-def random_rotation(rng: np.random.Generator, regime: str) -> np.ndarray:
-    """A rotation whose angle is tiny (<= 1e-6, 0 included), ordinary, or within 1e-3 of pi."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    if regime == "tiny":
-        angle = 0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -6)
-    elif regime == "near_pi":
-        angle = math.pi - (0.0 if rng.random() < 0.2 else 10.0 ** rng.uniform(-12, -3))
-    else:
-        angle = rng.uniform(1e-6, math.pi - 1e-3)
-    return so3.exp(angle * axis)
 
 
 def random_state(rng: np.random.Generator, regime: str = "ordinary", b_f: float = 1.0, b_w: float = 0.5) -> imu.ImuState:
