@@ -144,10 +144,31 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
                 i = np.searchsorted(times, knot)
                 if i < len(times) and times[i] == knot:
                     apply(ekf, i)
+            _check_divergence(ekf, knot)
             states.append(ekf.state)
             covs.append(ekf.P.copy())
     trajectory = Trajectory(knots, imu.ImuState.stack(states), np.stack(covs))
     return FilterResult(trajectory, time.perf_counter() - start, ekf.rejected, ekf.log_likelihood)
+
+
+#: Beyond these the filter is declared diverged: |velocity| [m/s], sqrt(trace P) (mixed units).
+DIVERGED_SPEED = 1e4
+DIVERGED_SPREAD = 1e6
+
+
+class FilterDiverged(ValueError):
+    """The EKF's state or covariance left any plausible range (non-finite or absurdly large)."""
+
+
+def _check_divergence(ekf: Ekf, t: float) -> None:
+    x, P = ekf.state, ekf.P
+    finite = all(np.all(np.isfinite(getattr(x, n))) for n in ("r", "v", "C", "b_f", "b_w")) and np.all(np.isfinite(P))
+    if not finite or np.linalg.norm(x.v) > DIVERGED_SPEED or np.sqrt(max(np.trace(P), 0.0)) > DIVERGED_SPREAD:
+        raise FilterDiverged(
+            f"the EKF diverged at t = {t:.6f} s (|v| = {np.linalg.norm(x.v):.3g} m/s, sqrt(trace P) = "
+            f"{np.sqrt(abs(np.trace(P))):.3g}): the linearisation failed, typically after a long stretch "
+            "without measurements or with a bias random walk far looser than the data; a smoother "
+            "(batch or fixed-lag) relinearises and is the tool for such data")
 
 
 def _measurement_lookup(dataset: Dataset) -> dict:

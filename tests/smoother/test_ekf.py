@@ -350,3 +350,19 @@ def test_log_likelihood_accumulates_the_innovation_densities():
     before = ekf.log_likelihood
     assert not ekf.update_pose(ekf.state.r + [5.0, 0, 0], ekf.state.C, R)
     assert ekf.log_likelihood == before
+
+
+def test_a_diverging_filter_stops_with_an_error_naming_the_time():
+    """A filter whose state has run away (here: forced) stops at the next knot with an error
+    naming the time, instead of writing a trajectory of NaNs or 1e9 m."""
+    from smoother.ekf import FilterDiverged, _check_divergence
+
+    ekf = _initial_ekf()
+    _check_divergence(ekf, 1.0)  # a sane filter passes
+    ekf.state = ekf.state.replace(v=np.array([1e5, 0.0, 0.0]))
+    with pytest.raises(FilterDiverged, match=r"diverged at t = 2.500000 s"):
+        _check_divergence(ekf, 2.5)
+    ekf = _initial_ekf()
+    ekf.P[0, 0] = np.nan
+    with pytest.raises(FilterDiverged):
+        _check_divergence(ekf, 3.0)
