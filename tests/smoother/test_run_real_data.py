@@ -1,0 +1,48 @@
+"""`smoother run` end to end on the real-data loaders: an EuRoC/ASL folder (written by the test)
+and the KITTI example shipped with gtsam."""
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from smoother.cli import main
+
+
+def _euroc_writer():
+    path = Path(__file__).parents[1] / "datasets" / "test_euroc.py"
+    spec = importlib.util.spec_from_file_location("euroc_folder_writer", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.write_sequence
+
+
+def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
+    _euroc_writer()(tmp_path / "seq")
+    out = tmp_path / "out"
+    code = main(["run", "--dataset", f"euroc:{tmp_path / 'seq'}", "--pose-from-truth", "20", "0.05", "0.01",
+                 "--gps-from-truth", "10", "0.3", "--out", str(out), "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    for name in ("batch", "fixed-lag", "ekf"):
+        assert (out / f"{name}.tum").exists()
+        assert metrics[name]["compared_states"] > 10
+        assert metrics[name]["ate_rmse_m"] is not None and metrics[name]["ate_rmse_m"] >= 0
+        assert metrics[name]["gps_rmse_m"] is not None
+
+
+def test_euroc_without_a_folder_is_a_one_line_error(tmp_path, capsys):
+    assert main(["run", "--dataset", f"euroc:{tmp_path / 'missing'}", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "missing" in err and "Traceback" not in err
+
+
+def test_kitti_batch_beats_2_m_on_held_out_fixes(tmp_path, capsys):
+    """Every 10th fix used, 422 held out: the batch smoother's RMS distance to the held-out fixes
+    measured 1.43 m (GTSAM's native pipeline with the same bias model: 1.41 m)."""
+    out = tmp_path / "kitti"
+    assert main(["run", "--dataset", "kitti", "--gps-every", "10", "--estimator", "batch", "--out", str(out),
+                 "--no-progress", "--no-covariance"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())["batch"]
+    assert metrics["gps_heldout_rmse_m"] == pytest.approx(1.43, abs=0.1)
+    assert (out / "gps.npz").exists()
