@@ -1,0 +1,450 @@
+"""Performance figures of the project next to their targets (measures; asserts nothing).
+
+Figures (each with its target; ratios are measured side by side in the same run, repetitions
+interleaved, medians taken, because the machine is noisy):
+
+1. preintegration of a whole run (``factors.preintegration.integrate`` + ``noise_covariance``:
+   preintegrated quantities, bias Jacobians and covariance) per IMU sample, next to GTSAM's
+   ``PreintegratedImuMeasurements.integrateMeasurement`` called per sample from Python (which
+   always computes the covariance and bias Jacobians too), one fresh PIM per keyframe interval;
+2. the EKF (``run_ekf``: 15-dim state, prediction and 10 Hz pose updates) per IMU sample, next to
+   GTSAM's ``NavStateImuEKF.predict`` called per sample (9-dim NavState, no biases, no updates);
+3. KITTI: this project's batch smoother end to end (load, preintegrate, optimise) and GTSAM's
+   native ImuFactor graph with LM (``benchmarks/kitti_native.py``, whose time excludes reading
+   the files), held-out RMS with every 10th fix;
+4. synthetic batch solve (200 Hz IMU, 10 Hz keyframes and poses) of 1, 5, 15 and 60 minutes:
+   build (preintegration included) + optimise, covariances off; covariance time of the short runs;
+5. fixed-lag update times (lag 2 s, covariances off): incremental over 5 minutes, batch kind
+   over a shorter run (it is ~100x slower per update);
+6. peak resident memory of the one-hour batch run, measured in a child process (``os.wait4``
+   gives that child's own ``ru_maxrss``).
+
+Run: python benchmarks/run.py [--quick] [--json]
+``--quick`` runs a reduced set in about a minute (shorter runs, fewer repetitions, no hour run:
+``hour_*`` are null).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import kitti_native  # noqa: E402  (a sibling script, not a package)
+
+from datasets import kitti  # noqa: E402
+from datasets.simulate import simulate  # noqa: E402
+from factors import preintegration  # noqa: E402
+from smoother import solver  # noqa: E402
+from smoother.batch import solve_batch  # noqa: E402
+from smoother.ekf import run_ekf  # noqa: E402
+from smoother.fixed_lag import run_fixed_lag  # noqa: E402
+from smoother.graph import build_problem  # noqa: E402
+from smoother.timeline import estimate_times, imu_steps  # noqa: E402
+
+KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
+LAG_S = 2.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    preint_s: float  # duration of the preintegration and EKF runs [s]
+    repeats: int  # repetitions of the cheap figures
+    kitti_repeats: int
+    scaling_min: tuple  # run lengths of the batch scaling figure [min] (without the hour)
+    covariance_min: tuple  # lengths whose covariance time is measured too
+    hour: bool
+    fixed_lag_min: float  # incremental fixed-lag run [min]
+    fixed_lag_batch_s: float  # batch-kind fixed-lag run [s]
+
+
+FULL = Settings(60.0, 7, 5, (1, 5, 15), (1, 5), True, 5.0, 60.0)
+QUICK = Settings(20.0, 3, 1, (0.5, 1, 2), (0.5,), False, 1.0, 5.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# helpers
+
+
+def _clock(fn):
+    """``(seconds, result)`` of one call."""
+    tick = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - tick, out
+
+
+def _interleaved(fns: dict, repeats: int) -> dict:
+    """Wall times of each function over ``repeats`` rounds, called in turn within each round (so
+    a slow spell of the machine hits all of them alike). Returns name -> list of seconds."""
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            times[name].append(_clock(fn)[0])
+    return times
+
+
+def _median(xs) -> float:
+    return float(statistics.median(xs))
+
+
+def _synthetic(duration_s: float):
+    return simulate("gentle", duration=duration_s, seed=0, imu_rate=200.0, pose_rate=KEYFRAME_RATE)
+
+
+def _gtsam_params(dataset) -> gtsam.PreintegrationParams:
+    """GTSAM preintegration parameters with the dataset's gravity and noise densities."""
+    params = gtsam.PreintegrationParams(np.asarray(dataset.gravity, dtype=float))
+    params.setAccelerometerCovariance(np.eye(3) * dataset.noise.acc**2)
+    params.setGyroscopeCovariance(np.eye(3) * dataset.noise.gyro**2)
+    params.setIntegrationCovariance(np.eye(3) * max(dataset.noise.velocity, 1e-4) ** 2)
+    return params
+
+
+def _per_sample(steps):
+    """The Euler steps as Python lists of per-sample arrays / floats (prepared untimed, the best
+    case for a per-sample Python loop)."""
+    return list(steps.acc), list(steps.gyro), steps.dt.tolist()
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. preintegration
+
+
+def bench_preintegration(s: Settings) -> dict:
+    dataset = _synthetic(s.preint_s)
+    times = estimate_times(dataset, KEYFRAME_RATE)
+    steps = imu_steps(dataset.imu, times)
+    acc, gyro, dt = steps.segments()
+    b_w = np.broadcast_to(dataset.initial.b_w, (len(times) - 1, 3))
+    reference = dataset.truth.states[np.searchsorted(dataset.truth.t, times[:-1])]
+    n = len(steps.dt)
+    params = _gtsam_params(dataset)
+    bias = gtsam.imuBias.ConstantBias(dataset.initial.b_f, dataset.initial.b_w)
+    a_rows, g_rows, dt_rows = _per_sample(steps)
+    bounds = steps.knot_step.tolist()
+
+    def gtsam_loop():
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            pim = gtsam.PreintegratedImuMeasurements(params, bias)
+            for k in range(start, stop):
+                pim.integrateMeasurement(a_rows[k], g_rows[k], dt_rows[k])
+
+    t = _interleaved({
+        "integrate": lambda: preintegration.integrate(acc, gyro, dt, b_w),
+        "noise_covariance": lambda: preintegration.noise_covariance((acc, gyro, dt), reference, dataset.noise,
+                                                                    dataset.gravity),
+        "gtsam": gtsam_loop,
+    }, s.repeats)
+    us = lambda seconds: 1e6 * seconds / n  # noqa: E731
+    ours = us(_median([a + b for a, b in zip(t["integrate"], t["noise_covariance"])]))
+    theirs = us(_median(t["gtsam"]))
+    return {
+        "preintegration_us_per_sample": ours,
+        "preintegration_integrate_us_per_sample": us(_median(t["integrate"])),
+        "preintegration_covariance_us_per_sample": us(_median(t["noise_covariance"])),
+        "gtsam_preintegration_us_per_sample": theirs,
+        "preintegration_speedup_vs_gtsam": theirs / ours,
+        "preintegration_run": f"{s.preint_s:g} s at 200 Hz, {len(times) - 1} intervals (J x K = {dt.shape[0]} x "
+                              f"{dt.shape[1]}), {n} samples, median of {s.repeats}",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. EKF
+
+
+def bench_ekf(s: Settings) -> dict:
+    dataset = _synthetic(s.preint_s)
+    steps = imu_steps(dataset.imu, estimate_times(dataset))
+    n = len(steps.dt)
+    a_rows, g_rows, dt_rows = _per_sample(steps)
+    x0 = dataset.initial
+    nav0 = gtsam.NavState(gtsam.Rot3(x0.C), gtsam.Point3(*x0.r), x0.C @ x0.v)
+    params = _gtsam_params(dataset)
+
+    def gtsam_loop():
+        ekf = gtsam.NavStateImuEKF(nav0, np.eye(9) * 1e-2, params)
+        for k in range(n):
+            ekf.predict(g_rows[k], a_rows[k], dt_rows[k])
+
+    t = _interleaved({"ours": lambda: run_ekf(dataset, progress=False), "gtsam": gtsam_loop}, s.repeats)
+    ours, theirs = (1e6 * _median(t[k]) / n for k in ("ours", "gtsam"))
+    return {
+        "ekf_us_per_sample": ours,
+        "gtsam_ekf_us_per_sample": theirs,
+        "ekf_ratio_vs_gtsam": ours / theirs,
+        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.pose)} pose updates, {n} samples, median of {s.repeats}",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. KITTI
+
+
+def bench_kitti(s: Settings, gps_every: int = 10) -> dict:
+    native, ours = [], []
+    for _ in range(s.kitti_repeats):
+        native.append(kitti_native.native(gps_every, "interval"))
+        ours.append(kitti_native.ours(gps_every))
+    load_s = _median([_clock(lambda: kitti.load_kitti(gps_every=gps_every))[0] for _ in range(s.kitti_repeats)])
+    cumulative = kitti_native.native(gps_every, "cumulative")
+    ours_s = _median([r["compute_s"] for r in ours])
+    native_s = _median([r["compute_s"] for r in native])
+    return {
+        "kitti_batch_s": ours_s,
+        "kitti_native_s": native_s,
+        "kitti_time_ratio": ours_s / native_s,
+        "kitti_load_s": load_s,
+        "kitti_rmse_m": ours[-1]["heldout_rmse_m"],
+        "kitti_native_rmse_m": native[-1]["heldout_rmse_m"],
+        "kitti_native_cumulative_rmse_m": cumulative["heldout_rmse_m"],
+        "kitti_run": f"every {gps_every}th fix used, {ours[-1]['states']} keyframes, median of {s.kitti_repeats}",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. linear scaling of the batch smoother (and 6. memory of the hour run)
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def batch_run(minutes: float, covariances: bool = False, repeats: int = 1, memory: bool = False) -> dict:
+    """Simulate (untimed), build the problem (preintegration included) and optimise with the
+    vectorised engine, covariances off; optionally time the marginal covariances too. With
+    ``memory`` (a fresh process) the peak RSS so far is recorded after each stage."""
+    dataset = _synthetic(60.0 * minutes)
+    stages = {"simulate": _peak_rss_mib()} if memory else None
+    builds, solves = [], []
+    for _ in range(repeats):
+        build_s, problem = _clock(lambda: build_problem(dataset, keyframe_rate=KEYFRAME_RATE))
+        if memory:
+            stages["build"] = _peak_rss_mib()
+        solve_s, result = _clock(lambda: solve_batch(problem, covariances=False))
+        if memory:
+            stages["solve"] = _peak_rss_mib()
+        builds.append(build_s)
+        solves.append(solve_s)
+    out = {"minutes": minutes, "keyframes": len(problem.times), "iterations": result.iterations,
+           "build_s": _median(builds), "solve_s": _median(solves)}
+    out["total_s"] = out["build_s"] + out["solve_s"]
+    out["ms_per_keyframe"] = 1e3 * out["total_s"] / out["keyframes"]
+    out["covariance_s"] = None
+    if memory:
+        out["peak_rss_mib_after"] = stages
+    if covariances:
+        out["covariance_s"] = _median([_clock(lambda: solver.covariances(problem.blocks, result.trajectory.states))[0]
+                                       for _ in range(repeats)])
+    return out
+
+
+def _hour_in_child(minutes: float = 60.0) -> dict:
+    """The hour run in a fresh interpreter; its own peak RSS from ``os.wait4``."""
+    with tempfile.TemporaryFile("w+") as out:
+        child = subprocess.Popen([sys.executable, __file__, "--child-batch", str(minutes)], stdout=out)
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)
+        if child.returncode != 0:
+            raise RuntimeError(f"the {minutes:g}-minute child run failed (exit code {child.returncode})")
+        out.seek(0)
+        result = json.loads(out.read())
+    result["peak_rss_mib"] = usage.ru_maxrss / 1024.0  # KiB on Linux
+    return result
+
+
+def bench_scaling(s: Settings) -> dict:
+    runs = [batch_run(m, covariances=m in s.covariance_min, repeats=3)
+            for m in s.scaling_min]
+    hour = _hour_in_child() if s.hour else None
+    if hour is not None:
+        runs.append(hour)
+    per_kf = [r["ms_per_keyframe"] for r in runs]
+    return {
+        "scaling": runs,
+        "scaling_ms_per_keyframe_spread": max(per_kf) / min(per_kf) - 1.0,
+        "hour_batch_s": hour["total_s"] if hour else None,
+        "hour_peak_rss_mib": hour["peak_rss_mib"] if hour else None,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. fixed-lag
+
+
+def fixed_lag_run(duration_s: float, kind: str) -> dict:
+    problem = build_problem(_synthetic(duration_s), keyframe_rate=KEYFRAME_RATE)
+    result = run_fixed_lag(problem, LAG_S, kind, covariances=False, progress=False)
+    ms = 1e3 * result.update_s
+    minutes = max(int(np.ceil(duration_s / 60.0 - 1e-9)), 1)  # the last keyframe (t = end) joins the last minute
+    minute = np.minimum((problem.times - problem.times[0]) // 60.0, minutes - 1).astype(int)
+    return {
+        "kind": kind, "seconds": duration_s, "updates": len(ms),
+        "median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
+        "over_10ms": int(np.sum(ms > 10.0)),
+        "first_minute_median_ms": float(np.median(ms[minute == minute.min()])),
+        "last_minute_median_ms": float(np.median(ms[minute == minute.max()])),
+        "per_minute_median_ms": [float(np.median(ms[minute == m])) for m in np.unique(minute)],
+        "total_s": result.runtime_s,
+    }
+
+
+def bench_fixed_lag(s: Settings) -> dict:
+    inc = fixed_lag_run(60.0 * s.fixed_lag_min, "incremental")
+    bat = fixed_lag_run(s.fixed_lag_batch_s, "batch")
+    return {
+        "fixed_lag_update_ms_median": inc["median_ms"],
+        "fixed_lag_update_ms_p99": inc["p99_ms"],
+        "fixed_lag_incremental": inc,
+        "fixed_lag_batch_update_ms_median": bat["median_ms"],
+        "fixed_lag_batch_update_ms_p99": bat["p99_ms"],
+        "fixed_lag_batch": bat,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# report
+
+
+def machine() -> dict:
+    model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "nproc": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "cpu": model,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "gtsam": metadata.version("gtsam"),
+        "loadavg": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def _table_rows(r: dict) -> list:
+    """(figure, value, unit, target text, met) rows; met None where the target is a comparison
+    without a threshold or the figure was not measured."""
+    def row(key, unit, target=None, test=None, value=None):
+        v = r.get(key) if value is None else value
+        met = None if (v is None or test is None) else bool(test(v))
+        return (key, v, unit, target or "", met)
+
+    gt_ekf = r["gtsam_ekf_us_per_sample"]
+    rows = [
+        row("preintegration_us_per_sample", "us", "<= 0.3", lambda v: v <= 0.3),
+        row("preintegration_integrate_us_per_sample", "us"),
+        row("preintegration_covariance_us_per_sample", "us"),
+        row("gtsam_preintegration_us_per_sample", "us"),
+        row("preintegration_speedup_vs_gtsam", "x", ">= 5", lambda v: v >= 5.0),
+        row("ekf_us_per_sample", "us", f"<= gtsam ({gt_ekf:.2f})", lambda v: v <= gt_ekf),
+        row("gtsam_ekf_us_per_sample", "us"),
+        row("kitti_batch_s", "s", f"<= native ({r['kitti_native_s']:.2f})", lambda v: v <= r["kitti_native_s"]),
+        row("kitti_native_s", "s"),
+        row("kitti_rmse_m", "m", f"<= native ({r['kitti_native_rmse_m']:.2f})",
+            lambda v: v <= r["kitti_native_rmse_m"]),
+        row("kitti_native_rmse_m", "m"),
+    ]
+    for run in r["scaling"]:
+        rows.append((f"batch {run['minutes']:g} min: total s ({run['keyframes']} kf)", run["total_s"], "s", "", None))
+        rows.append((f"batch {run['minutes']:g} min: ms / keyframe", run["ms_per_keyframe"], "ms", "", None))
+        if run.get("covariance_s") is not None:
+            rows.append((f"batch {run['minutes']:g} min: covariances", run["covariance_s"], "s", "", None))
+    rows += [
+        row("scaling_ms_per_keyframe_spread", "", "<= 0.20 (max/min - 1)", lambda v: v <= 0.2),
+        row("hour_batch_s", "s", "< 60", lambda v: v < 60.0),
+        row("fixed_lag_update_ms_median", "ms", "<= 2", lambda v: v <= 2.0),
+        row("fixed_lag_update_ms_p99", "ms", "<= 10", lambda v: v <= 10.0),
+        row("fixed_lag_batch_update_ms_median", "ms"),
+        row("fixed_lag_batch_update_ms_p99", "ms"),
+        row("hour_peak_rss_mib", "MiB", "< 2048", lambda v: v < 2048.0),
+    ]
+    return rows
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, float):
+        return f"{v:.4g}" if abs(v) < 1e5 else f"{v:.0f}"
+    return str(v)
+
+
+def print_table(r: dict) -> None:
+    m = r["machine"]
+    print(f"machine: {m['nproc']} CPUs, {m['cpu']}; python {m['python']}, numpy {m['numpy']}, "
+          f"gtsam {m['gtsam']}; load average {m['loadavg']}")
+    rows = _table_rows(r)
+    width = max(len(name) for name, *_ in rows)
+    print(f"{'figure':<{width}}  {'value':>10} {'unit':<4}  {'target':<28} met?")
+    for name, value, unit, target, met in rows:
+        ok = "" if met is None else ("yes" if met else "NO")
+        print(f"{name:<{width}}  {_fmt(value):>10} {unit:<4}  {target:<28} {ok}")
+    print()
+    for key in ("preintegration_run", "ekf_run", "kitti_run"):
+        print(f"{key}: {r[key]}")
+    print(f"preintegration: GTSAM / ours = {r['preintegration_speedup_vs_gtsam']:.3g}; "
+          f"EKF: ours / GTSAM = {r['ekf_ratio_vs_gtsam']:.3g} (GTSAM's NavStateImuEKF: 9-dim, predict only; "
+          f"ours: 15-dim, predict + updates)")
+    print(f"KITTI: ours / native time = {r['kitti_time_ratio']:.3g} (ours includes loading, "
+          f"{r['kitti_load_s']:.2f} s; native excludes reading the files); native with the cumulative "
+          f"bias count (GTSAM's Python example): {r['kitti_native_cumulative_rmse_m']:.3f} m")
+    print("batch scaling (covariances=False; covariance time measured separately on the short runs):")
+    for run in r["scaling"]:
+        extra = ""
+        if "peak_rss_mib" in run:
+            after = ", ".join(f"{k} {v:.0f}" for k, v in run["peak_rss_mib_after"].items())
+            extra = f", peak RSS {run['peak_rss_mib']:.0f} MiB (child process; peak after {after} MiB)"
+        print(f"  {run['minutes']:>5g} min: {run['keyframes']:>6} kf, build {run['build_s']:.2f} s + solve "
+              f"{run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
+              f"{run['ms_per_keyframe']:.3f} ms/kf{extra}")
+    for key in ("fixed_lag_incremental", "fixed_lag_batch"):
+        f = r[key]
+        print(f"fixed-lag {f['kind']} ({f['seconds']:g} s, lag {LAG_S:g} s, covariances=False): median "
+              f"{f['median_ms']:.2f} ms, p99 {f['p99_ms']:.2f} ms, max {f['max_ms']:.1f} ms, {f['over_10ms']} of "
+              f"{f['updates']} > 10 ms; first / last minute median {f['first_minute_median_ms']:.2f} / "
+              f"{f['last_minute_median_ms']:.2f} ms")
+    print(f"wall time of the benchmark: {r['benchmark_s']:.1f} s")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="reduced set, about a minute, no hour run")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    parser.add_argument("--child-batch", type=float, metavar="MIN", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child_batch is not None:  # internal: one batch run in a clean process (peak RSS)
+        print(json.dumps(batch_run(args.child_batch, memory=True)))
+        return
+    s = QUICK if args.quick else FULL
+    tick = time.perf_counter()
+    result = {"quick": args.quick, "machine": machine()}
+    for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_scaling, bench_fixed_lag):
+        result.update(bench(s))
+        if not args.json:
+            print(f"[{time.perf_counter() - tick:6.1f} s] {bench.__name__} done", file=sys.stderr)
+    result["benchmark_s"] = time.perf_counter() - tick
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print_table(result)
+
+
+if __name__ == "__main__":
+    main()
