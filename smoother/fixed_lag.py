@@ -32,9 +32,9 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
-from factors.chart import state_covariance_to_primer
 from smoother.batch import is_indeterminant
 from smoother.graph import Problem, insert_state, read_state
+from smoother.solver import _evaluate
 from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
@@ -78,41 +78,80 @@ def _make_smoother(kind: str, lag_s: float):
     raise ValueError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
 
 
-def _active_factors(smoother) -> gtsam.NonlinearFactorGraph:
-    graph = gtsam.NonlinearFactorGraph()
+def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first: int,
+                       states: imu.ImuState) -> np.ndarray:
+    """Primer-convention 15x15 covariances of the window's keyframes ``first, first + 1, ...``
+    (their states ``states``) from the smoother's current factors linearised at ``estimate``.
+
+    The project's own factors in the window are linearised together by the vectorised blocks
+    of :mod:`smoother.solver` (no Python callback per factor), the smoother's marginal factors
+    (``LinearContainerFactor``) by GTSAM, their ``Rot3`` columns moved into the primer's chart
+    (``J C^T``). The window is small, so its information ``A^T A`` is formed densely and
+    inverted: unlike ``gtsam.Marginals`` (Cholesky) this does not stop at nearly singular
+    windows, which QR-based smoothers accept (sparse GPS); an unconstrained direction shows as a
+    large variance."""
+    n = len(states)
+    dim = imu.STATE_DIM
+    rows = []  # (keyframe columns, A (m, 15 per keyframe), ...) collected as dense row blocks
+    ours: dict[int, list[int]] = {}
+    containers = gtsam.NonlinearFactorGraph()
     factors = smoother.getFactors()
     for i in range(factors.size()):
         f = factors.at(i)
-        if f is not None:
-            graph.add(f)
-    return graph
-
-
-def window_covariances(smoother, estimate: gtsam.Values, keys: list) -> np.ndarray:
-    """Primer-convention 15x15 covariances of the keyframes ``keys`` from the smoother's current
-    factors (its marginal factors included) linearised at ``estimate``.
-
-    The window is small (lag / keyframe period keyframes), so its information matrix
-    ``A^T A`` is formed densely and inverted: unlike ``gtsam.Marginals`` (Cholesky) this does
-    not stop at the nearly singular systems that QR-based smoothers accept (sparse GPS); a
-    direction the data does not constrain shows as a large variance."""
-    linear = _active_factors(smoother).linearize(estimate)
-    window = [int(k) for k in estimate.keys()]
-    zeros = estimate.zeroVectors()
-    dims = {k: zeros.at(k).shape[0] for k in window}
-    A, _ = linear.jacobian(gtsam.Ordering(window))
-    offsets = dict(zip(window, np.concatenate([[0], np.cumsum([dims[k] for k in window])])[:-1]))
+        if f is None:
+            continue
+        where = problem.rows_of.get(id(f))
+        if where is None:
+            containers.add(f)
+        else:
+            ours.setdefault(where[0], []).append(where[1])
+    A_parts = []
+    for b, block_rows in ours.items():
+        block = problem.blocks[b]
+        idx = np.array(block_rows)
+        ev = _evaluate(block, states, True, idx, keyframe_offset=first)
+        part = np.zeros((ev.e.size, n * dim))
+        d = ev.e.shape[1]
+        local = block.keyframes[idx] - first
+        for slot, A in enumerate(ev.A):
+            for m in range(len(idx)):
+                j = local[m, slot]
+                part[m * d:(m + 1) * d, j * dim:(j + 1) * dim] += A[m]
+        A_parts.append(part)
+    if containers.size():
+        A_parts.append(_container_rows(problem, containers, estimate, first, n))
+    A = np.vstack(A_parts)
     information = A.T @ A
     try:
         cov = np.linalg.inv(information)
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(information)
     cov = 0.5 * (cov + cov.T)
-    out = []
-    for kk in keys:
-        idx = np.concatenate([np.arange(offsets[k], offsets[k] + dims[k]) for k in kk.all()])
-        out.append(state_covariance_to_primer(cov[np.ix_(idx, idx)], estimate.atRot3(kk.rot)))
-    return np.stack(out)
+    return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in range(n)])
+
+
+def _container_rows(problem: Problem, containers, estimate, first: int, n: int) -> np.ndarray:
+    """Dense rows of GTSAM's marginal factors in the window's primer columns."""
+    keys = sorted({int(k) for i in range(containers.size()) for k in containers.at(i).keys()})
+    linear = containers.linearize(estimate)
+    A, _ = linear.jacobian(gtsam.Ordering(keys))
+    dims = [estimate.zeroVectors().at(k).shape[0] for k in keys]
+    out = np.zeros((A.shape[0], n * imu.STATE_DIM))
+    column = 0
+    slots = {}
+    for j in range(first, first + n):
+        kk = problem.keys[j]
+        base = (j - first) * imu.STATE_DIM
+        slots[kk.rot] = (base + 6, estimate.atRot3(kk.rot).matrix().T)  # d = C^T phi
+        slots[kk.pos] = (base + 0, None)
+        slots[kk.vel] = (base + 3, None)
+        slots[kk.bias] = (base + 9, None)
+    for key, d in zip(keys, dims):
+        block = A[:, column:column + d]
+        start, to_gtsam = slots[key]
+        out[:, start:start + d] += block if to_gtsam is None else block @ to_gtsam
+        column += d
+    return out
 
 
 def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covariances: bool = True,
@@ -168,7 +207,8 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
                 lagged_states[j] = read_state(estimate, problem.keys[j])
             newest_states.append(lagged_states[k])
             if covariances:
-                covs = window_covariances(smoother, estimate, [problem.keys[j] for j in in_window])
+                covs = window_covariances(problem, smoother, estimate, first,
+                                          imu.ImuState.stack([lagged_states[j] for j in in_window]))
                 for j, c in zip(in_window, covs):
                     lagged_covs[j] = c
                 newest_covs.append(lagged_covs[k])
@@ -181,7 +221,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     window_states = imu.ImuState.stack([read_state(estimate, problem.keys[k]) for k in in_window])
     window_cov = None
     if covariances:
-        window_cov = window_covariances(smoother, estimate, [problem.keys[k] for k in in_window])
+        window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states)
     newest = Trajectory(problem.times, imu.ImuState.stack(newest_states),
                         np.stack(newest_covs) if covariances else None)
     order = range(len(problem.times))

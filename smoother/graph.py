@@ -98,6 +98,8 @@ class Problem:
     imu_factors: list[ImuFactor]
     blocks: list[Block]
     factors_at: list[list] = field(default_factory=list)
+    #: ``id(gtsam factor) -> (block index, row)``: where each GTSAM factor sits in ``blocks``.
+    rows_of: dict = field(default_factory=dict)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
 
 
@@ -170,8 +172,9 @@ def _place(jacobians: list[np.ndarray], variables: list[str]) -> np.ndarray:
 
 
 def _imu_block(pre: preintegration.Preintegrated, gravity: np.ndarray, threshold: float) -> Block:
-    def residual(slots, jacobians):
-        out = preintegration.residual(pre, slots[0], slots[1], gravity, jacobians)
+    def residual(slots, jacobians, rows):
+        intervals = pre if isinstance(rows, slice) and rows == slice(None) else pre[rows]
+        out = preintegration.residual(intervals, slots[0], slots[1], gravity, jacobians)
         return (out[0], list(out[1])) if jacobians else out
 
     def reintegrate(states):
@@ -208,8 +211,9 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]
     prior = dataset.initial
     factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
+    rows_of = {id(factors_at[0][0]): (1, 0)}
 
-    def prior_residual(slots, jacobians):
+    def prior_residual(slots, jacobians, rows):
         s = slots[0]
         out = meas.state_residual(s.C, s.r, s.v, np.concatenate([s.b_f, s.b_w], axis=-1), prior, jacobians)
         return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
@@ -220,6 +224,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity, reintegration_threshold=reintegration_threshold)
         imu_factors.append(f)
         factors_at[k].append(f.factor)
+        rows_of[id(f.factor)] = (0, k - 1)
     for spec in _measurement_specs(dataset):
         rows = np.flatnonzero(np.all([_match(times, t) >= 0 for t in spec["times"]], axis=0))
         if rows.size == 0:
@@ -232,6 +237,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         for m in range(len(rows)):
             factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
             factors_at[int(kf[m].max())].append(factor)
+            rows_of[id(factor)] = (len(blocks) - 1, m)
     graph = gtsam.NonlinearFactorGraph()
     for group in factors_at:
         for f in group:
@@ -239,17 +245,18 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     values = gtsam.Values()
     for k, kk in enumerate(keys):
         insert_state(values, kk, initial_states[k])
-    return Problem(times, keys, graph, values, initial_states, imu_factors, blocks, factors_at, dataset.gravity)
+    return Problem(times, keys, graph, values, initial_states, imu_factors, blocks, factors_at, rows_of,
+                   dataset.gravity)
 
 
 def _block_residual(spec: dict, data: list[np.ndarray]):
     """A vectorised block residual from a measurement spec: reads each slot's variables, calls the
     spec's residual with the measurement arrays and places the Jacobians in error-state columns."""
-    def residual(slots, jacobians):
+    def residual(slots, jacobians, rows):
         args = []
         for state, names in zip(slots, spec["variables"]):
             args += [_variable(state, name) for name in names]
-        out = spec["residual"](*args, *data, jacobians=jacobians)
+        out = spec["residual"](*args, *(d[rows] for d in data), jacobians=jacobians)
         if not jacobians:
             return out
         e, Js = out

@@ -39,9 +39,10 @@ METHODS = ("lm", "gn", "dogleg")
 class Block:
     """Factors of one kind, evaluated together.
 
-    ``keyframes (M, n)``: the keyframes each factor connects; ``residual(states, jacobians)``
-    takes one :class:`factors.imu.ImuState` per slot (leading dimension M) and returns ``e
-    (M, d)`` and, with ``jacobians``, a list of ``n`` arrays ``(M, d, 15)``; ``whiten (M, d, d)``
+    ``keyframes (M, n)``: the keyframes each factor connects; ``residual(states, jacobians,
+    rows)`` evaluates the factors ``rows`` (an index array, or ``slice(None)`` for all) from one
+    :class:`factors.imu.ImuState` per slot (leading dimension = number of rows) and returns
+    ``e`` and, with ``jacobians``, a list of ``n`` arrays ``(rows, d, 15)``; ``whiten (M, d, d)``
     with ``|whiten e|^2 = e^T cov^-1 e``; ``robust``: a GTSAM mEstimator or None;
     ``before_linearize(states)``: an optional hook (the IMU block re-integrates there)."""
 
@@ -69,13 +70,18 @@ class _Evaluated:
     loss: float
 
 
-def _evaluate(block: Block, states: imu.ImuState, jacobians: bool) -> _Evaluated:
-    slots = [states[block.keyframes[:, s]] for s in range(block.keyframes.shape[1])]
+def _evaluate(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(None),
+              keyframe_offset: int = 0) -> _Evaluated:
+    """Whitened (and robustly reweighted) residuals and Jacobians of the factors ``rows`` of
+    ``block``; ``states[k - keyframe_offset]`` is the state of keyframe ``k``."""
+    keyframes = block.keyframes[rows] - keyframe_offset
+    whiten = block.whiten[rows]
+    slots = [states[keyframes[:, s]] for s in range(keyframes.shape[1])]
     if jacobians:
-        e, Js = block.residual(slots, True)
+        e, Js = block.residual(slots, True, rows)
     else:
-        e, Js = block.residual(slots, False), None
-    e_w = np.einsum("mab,mb->ma", block.whiten, e)
+        e, Js = block.residual(slots, False, rows), None
+    e_w = np.einsum("mab,mb->ma", whiten, e)
     if block.robust is None:
         loss = 0.5 * float(np.sum(e_w * e_w))
         scale = None
@@ -85,7 +91,7 @@ def _evaluate(block: Block, states: imu.ImuState, jacobians: bool) -> _Evaluated
         scale = np.sqrt([block.robust.weight(float(x)) for x in d])[:, None]
     A = None
     if Js is not None:
-        A = [block.whiten @ J for J in Js]
+        A = [whiten @ J for J in Js]
         if scale is not None:
             A = [a * scale[..., None] for a in A]
     if scale is not None:
