@@ -85,14 +85,13 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
 
     The project's own factors in the window are linearised together by the vectorised blocks
     of :mod:`smoother.solver` (no Python callback per factor), the smoother's marginal factors
-    (``LinearContainerFactor``) by GTSAM, their ``Rot3`` columns moved into the primer's chart
-    (``J C^T``). The window is small, so its information ``A^T A`` is formed densely and
-    inverted: unlike ``gtsam.Marginals`` (Cholesky) this does not stop at nearly singular
-    windows, which QR-based smoothers accept (sparse GPS); an unconstrained direction shows as a
-    large variance."""
+    (``LinearContainerFactor``) by GTSAM with their ``Rot3`` columns moved into the primer's
+    chart (``J C^T``). The resulting linear system -- one 15-dim variable per window keyframe --
+    goes to ``gtsam.Marginals`` (sparse elimination). A window that Cholesky calls indeterminant
+    (nearly singular: sparse GPS, which the QR-based smoothers accept) falls back to a dense
+    pseudo-inverse of ``A^T A``, where an unconstrained direction shows as a large variance."""
     n = len(states)
     dim = imu.STATE_DIM
-    rows = []  # (keyframe columns, A (m, 15 per keyframe), ...) collected as dense row blocks
     ours: dict[int, list[int]] = {}
     containers = gtsam.NonlinearFactorGraph()
     factors = smoother.getFactors()
@@ -105,27 +104,48 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
             containers.add(f)
         else:
             ours.setdefault(where[0], []).append(where[1])
-    A_parts = []
+    groups = []  # (window keyframes, [A per keyframe]) of one factor each
     for b, block_rows in ours.items():
         block = problem.blocks[b]
         idx = np.array(block_rows)
         ev = _evaluate(block, states, True, idx, keyframe_offset=first)
-        part = np.zeros((ev.e.size, n * dim))
-        d = ev.e.shape[1]
         local = block.keyframes[idx] - first
-        for slot, A in enumerate(ev.A):
-            for m in range(len(idx)):
-                j = local[m, slot]
-                part[m * d:(m + 1) * d, j * dim:(j + 1) * dim] += A[m]
-        A_parts.append(part)
+        groups += [(tuple(int(j) for j in local[m]), [A[m] for A in ev.A]) for m in range(len(idx))]
     if containers.size():
-        A_parts.append(_container_rows(problem, containers, estimate, first, n))
-    A = np.vstack(A_parts)
-    information = A.T @ A
+        dense = _container_rows(problem, containers, estimate, first, n)
+        used = [j for j in range(n) if np.any(dense[:, j * dim:(j + 1) * dim])]
+        groups.append((tuple(used), [dense[:, j * dim:(j + 1) * dim] for j in used]))
     try:
-        cov = np.linalg.inv(information)
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(information)
+        return _sparse_marginals(groups, n)
+    except RuntimeError:
+        return _dense_marginals(groups, n)
+
+
+def _sparse_marginals(groups, n: int) -> np.ndarray:
+    graph = gtsam.GaussianFactorGraph()
+    for keys, blocks in groups:
+        if len(keys) > 3:  # the Python JacobianFactor takes at most three keys
+            raise RuntimeError("a factor on more than three keyframes")
+        model = gtsam.noiseModel.Unit.Create(blocks[0].shape[0])
+        args = [x for pair in zip(keys, blocks) for x in pair]
+        graph.add(gtsam.JacobianFactor(*args, np.zeros(blocks[0].shape[0]), model))
+    zero = gtsam.VectorValues()
+    for j in range(n):
+        zero.insert(j, np.zeros(imu.STATE_DIM))
+    marginals = gtsam.Marginals(graph, zero)
+    return np.stack([marginals.marginalCovariance(j) for j in range(n)])
+
+
+def _dense_marginals(groups, n: int) -> np.ndarray:
+    dim = imu.STATE_DIM
+    rows = []
+    for keys, blocks in groups:
+        part = np.zeros((blocks[0].shape[0], n * dim))
+        for j, A in zip(keys, blocks):
+            part[:, j * dim:(j + 1) * dim] += A
+        rows.append(part)
+    A = np.vstack(rows)
+    cov = np.linalg.pinv(A.T @ A, hermitian=True)
     cov = 0.5 * (cov + cov.T)
     return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in range(n)])
 
