@@ -16,9 +16,11 @@ GTSAM pitfalls handled here:
   indeterminant within seconds and ISAM2 cannot continue after a failed update;
 * a factor that refers to a variable already marginalised out (a relative pose longer than the
   lag) would make GTSAM fail: it is skipped with a warning;
-* an indeterminant update (for example a gap with no measurement and yaw unobservable) is caught:
-  the keyframe's variables get a weak prior around their prediction and the update is repeated,
-  so one bad stretch does not stop or poison the rest of the run.
+* a keyframe that no factor ties to the window (no IMU factor: a gap in the IMU data) gets a
+  weak prior around its prediction in the same update, and an update GTSAM still calls
+  indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
+  update that fails beyond that raises :class:`FixedLagFailed` naming the keyframe and time
+  instead of a bare GTSAM exception.
 """
 from __future__ import annotations
 
@@ -174,6 +176,20 @@ def _container_rows(problem: Problem, containers, estimate, first: int, n: int) 
     return out
 
 
+def _weak_prior(keys, guess: imu.ImuState):
+    return meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
+
+
+class FixedLagFailed(ValueError):
+    """GTSAM's smoother failed at an update in a way that cannot be recovered."""
+
+
+def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
+    first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    return FixedLagFailed(f"the fixed-lag smoother failed at keyframe {k} (t = {t:.6f} s): {first_line}. "
+                          "Check the data around that time (an IMU gap, a measurement far off).")
+
+
 def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covariances: bool = True,
                   progress: bool | None = None) -> FixedLagResult:
     """Run a fixed-lag smoother over ``problem`` (see the module docstring)."""
@@ -207,16 +223,27 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             stamps = gtsam.FixedLagSmootherKeyTimestampMap()
             for key in keys.all():
                 stamps.insert((key, float(t_k)))
+            linked = k == 0 or any(
+                any(key in new_keys for key in graph.at(i).keys()) and any(key in present for key in graph.at(i).keys())
+                for i in range(graph.size()))
+            if not linked:  # nothing ties the new keyframe to the window (no IMU factor): weak prior
+                graph.add(_weak_prior(keys, guess))
+                recovered.append(k)
             tick = time.perf_counter()
             try:
                 smoother.update(graph, values, stamps)
             except RuntimeError as error:
-                if not is_indeterminant(error):
-                    raise
+                if not is_indeterminant(error) or not linked:
+                    raise _update_failed(k, t_k, error) from None
                 recovered.append(k)
                 weak = gtsam.NonlinearFactorGraph()
-                weak.add(meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2)))
-                smoother.update(weak, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+                weak.add(_weak_prior(keys, guess))
+                try:
+                    smoother.update(weak, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+                except (RuntimeError, IndexError) as again:
+                    raise _update_failed(k, t_k, again) from None
+            except IndexError as error:  # ISAM2's Bayes tree is inconsistent: cannot continue
+                raise _update_failed(k, t_k, error) from None
             estimate = smoother.calculateEstimate()
             update_s.append(time.perf_counter() - tick)
             present = set(int(key) for key in estimate.keys())
