@@ -80,3 +80,12 @@ def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
     assert main(["montecarlo", "--out", str(tmp_path), *argv]) == 2
     err = capsys.readouterr().err
     assert fragment in err and "Traceback" not in err
+
+
+def test_dask_cluster_gives_the_same_results(serial):
+    """The optional Dask path on a local in-process cluster (skipped without the 'dask' extra)."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        on_dask = montecarlo.run_many(CONFIG, [1, 2, 3], dask_address=cluster.scheduler_address)
+    assert json.dumps(serial, sort_keys=True) == json.dumps(on_dask, sort_keys=True)
