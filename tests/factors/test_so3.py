@@ -281,8 +281,9 @@ def test_identities_16_to_18_and_the_left_perturbation(C, C2, phi):
     assert max_abs(so3.boxplus(C, so3.boxminus(C2, C)), C2) <= 2 * ROUNDOFF, "(18)"
     # boxplus perturbs on the left (eq. 14) ...
     assert max_abs(so3.boxplus(C, phi), so3.exp(phi) @ C) == 0.0
-    # ... which is the right perturbation by C^T phi (eq. 24), GTSAM's retract.
-    assert max_abs(so3.boxplus(C, phi), C @ so3.exp(C.T @ phi)) <= 2 * ROUNDOFF
+    # ... which is the right perturbation by C^T phi (eq. 24), GTSAM's retract: two products of
+    # rotations and two exps computed differently, a few EPS each (3.6e-15 = 2.03 ROUNDOFF seen).
+    assert max_abs(so3.boxplus(C, phi), C @ so3.exp(C.T @ phi)) <= 4 * ROUNDOFF
 
 
 # ------------------------------------------------ active and passive boxminus (cheat sheet 10, 12, 21, 22)
