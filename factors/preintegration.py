@@ -52,7 +52,16 @@ COVARIANCE_FLOOR = 1e-7
 #: Default gyro-bias change (rad/s) beyond which an interval is integrated again.
 REINTEGRATION_THRESHOLD = 0.02
 
-_BASIS_SKEW = so3.skew(np.eye(3))  # (3, 3, 3): e_l^x for l = 0, 1, 2
+
+
+def _basis_cross(W: np.ndarray) -> np.ndarray:
+    """``out[j, :, :, l] = e_l^x W[j]`` for ``W (J, 3, n)``: the cross products of the basis vectors
+    with every column, as signed copies of W's rows."""
+    out = np.zeros(W.shape + (3,))
+    out[:, 1, :, 0], out[:, 2, :, 0] = -W[:, 2], W[:, 1]
+    out[:, 0, :, 1], out[:, 2, :, 1] = W[:, 2], -W[:, 0]
+    out[:, 0, :, 2], out[:, 1, :, 2] = -W[:, 1], W[:, 0]
+    return out
 
 
 @dataclass
@@ -81,7 +90,8 @@ class Preintegrated:
         return len(self.duration)
 
     def __getitem__(self, index) -> "Preintegrated":
-        index = np.arange(len(self))[index]
+        if not isinstance(index, (int, np.integer)):
+            index = np.arange(len(self))[index]
         pick = lambda a: None if a is None else a[index]  # noqa: E731
         return Preintegrated(
             self.dC[index], self.W[index], self.Rm[index], self.JC[index], self.dW[index],
@@ -142,15 +152,17 @@ def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     for k in range(K):
         h = dt[:, k]
         hm = h[:, None, None]
+        hm4 = hm[..., None]
         w = gyro[:, k] - b_w_bar
         A = eye - hm * so3.skew(w)
-        JCd = np.einsum("jal,abc->jlbc", JC, _BASIS_SKEW)  # (JC e_l)^x, shape (J, l, 3, 3)
+        JCd = so3.skew(np.swapaxes(JC, 1, 2))  # (JC e_l)^x for l = 0, 1, 2: shape (J, l, 3, 3)
         dCt = np.swapaxes(dC, 1, 2)
-        # Bias Jacobians use the values at step k, so they are updated first.
-        dW_new = np.einsum("jab,jbcl->jacl", A, dW) + hm[..., None] * np.einsum("lab,jbc->jacl", _BASIS_SKEW, W)
-        dW_new[:, :, 3:6, :] -= hm[..., None] * np.einsum("jab,jlbc->jacl", dCt, JCd)
         dC_W = dC @ W
-        dRm += hm[..., None] * (np.einsum("jlab,jbc->jacl", JCd, dC_W) + np.einsum("jab,jbcl->jacl", dC, dW))
+        # Bias Jacobians use the values at step k, so they are updated first. Tensors (J, 3, 10, 3)
+        # are contracted as (J, 3, 30) matrices; d^x W for d = e_l is a signed row shuffle.
+        dW_new = (A @ dW.reshape(J, 3, 30)).reshape(J, 3, 10, 3) + hm4 * _basis_cross(W)
+        dW_new[:, :, 3:6, :] -= hm4 * np.moveaxis(dCt[:, None] @ JCd, 1, -1)
+        dRm += hm4 * (np.moveaxis(JCd @ dC_W[:, None], 1, -1) + (dC @ dW.reshape(J, 3, 30)).reshape(J, 3, 10, 3))
         dW = dW_new
         Rm = Rm + hm * dC_W
         B = np.zeros((J, 3, 10))
@@ -180,10 +192,12 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     J, K = dt.shape
     state = reference
     S = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
+    densities = noise.densities()
     for k in range(K):
         state, F, G = imu.propagate(state, acc[:, k], gyro[:, k], dt[:, k], gravity)
-        Q = noise.discrete_covariance(dt[:, k])
-        S = F @ S @ np.swapaxes(F, 1, 2) + G @ Q @ np.swapaxes(G, 1, 2)
+        h = dt[:, k]
+        q = densities / np.where(h > 0, h, np.inf)[:, None]  # diag of Q_d = R / dt (0 for dt = 0)
+        S = F @ S @ np.swapaxes(F, 1, 2) + (G * q[:, None, :]) @ np.swapaxes(G, 1, 2)
     eye = np.eye(3)
     T = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
     Ct = np.swapaxes(reference.C, -1, -2)
