@@ -113,23 +113,19 @@ def from_matrix(C: np.ndarray) -> np.ndarray:
     """
     C = np.asarray(C, dtype=float)
     c00, c11, c22 = C[..., 0, 0], C[..., 1, 1], C[..., 2, 2]
-    trace = c00 + c11 + c22
-    # 4 * (component)^2 for each candidate pivot.
-    pivots = np.stack([1 + trace, 1 + c00 - c11 - c22, 1 - c00 + c11 - c22, 1 - c00 - c11 + c22], axis=-1)
-    which = np.argmax(pivots, axis=-1)
-    s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(pivots, which[..., None], axis=-1)[..., 0], 1e-300))
+    # 4 * (component)^2 for each candidate pivot: q0, qx, qy, qz.
+    pivots = (1 + c00 + c11 + c22, 1 + c00 - c11 - c22, 1 - c00 + c11 - c22, 1 - c00 - c11 + c22)
+    which = np.argmax(np.stack(pivots, axis=-1), axis=-1)
+    s = 2.0 * np.sqrt(np.maximum(np.choose(which, pivots), 1e-300))
     d21, d02, d10 = C[..., 2, 1] - C[..., 1, 2], C[..., 0, 2] - C[..., 2, 0], C[..., 1, 0] - C[..., 0, 1]
     s01, s02, s12 = C[..., 0, 1] + C[..., 1, 0], C[..., 0, 2] + C[..., 2, 0], C[..., 1, 2] + C[..., 2, 1]
-    candidates = np.stack(
-        [
-            np.stack([0.25 * s, d21 / s, d02 / s, d10 / s], axis=-1),
-            np.stack([d21 / s, 0.25 * s, s01 / s, s02 / s], axis=-1),
-            np.stack([d02 / s, s01 / s, 0.25 * s, s12 / s], axis=-1),
-            np.stack([d10 / s, s02 / s, s12 / s, 0.25 * s], axis=-1),
-        ],
-        axis=-2,
-    )
-    q = np.take_along_axis(candidates, which[..., None, None], axis=-2)[..., 0, :]
+    quarter = 0.25 * s * s  # = s^2 / 4, divided by s below: the pivot component itself
+    q = np.stack([
+        np.choose(which, (quarter, d21, d02, d10)),
+        np.choose(which, (d21, quarter, s01, s02)),
+        np.choose(which, (d02, s01, quarter, s12)),
+        np.choose(which, (d10, s02, s12, quarter)),
+    ], axis=-1) / s[..., None]
     return canonical(normalize(q))
 
 
