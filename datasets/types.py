@@ -19,6 +19,8 @@ from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
 IMU_GAP_FACTOR = 5.0
+#: Angular rates [rad/s] beyond which gyro data are reported as probably in deg/s.
+MAX_PLAUSIBLE_RATE = 35.0
 
 
 def _array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
@@ -285,7 +287,21 @@ class Dataset:
             raise ValueError("Dataset.initial: non-finite value in the initial state")
         _rotations("Dataset.initial.C", s.C[None], 1)
         self._check_imu_gaps()
+        self._check_imu_units()
         self._drop_outside_imu_span()
+
+    def _check_imu_units(self) -> None:
+        """Warn when the IMU's magnitudes do not look like m/s^2 and rad/s: a median specific
+        force far from |g| (data in g, or in mm/s^2) or angular rates beyond 35 rad/s (deg/s)."""
+        g = float(np.linalg.norm(self.gravity))
+        f = float(np.median(np.linalg.norm(self.imu.acc, axis=1)))
+        if g > 0 and not 0.3 * g <= f <= 3.0 * g:
+            warnings.warn(f"Dataset.imu.acc: median specific-force magnitude {f:.4g}; expected about |g| = "
+                          f"{g:.4g} in m/s^2 (is the data in g, or in mm/s^2?)", stacklevel=3)
+        w = float(np.percentile(np.linalg.norm(self.imu.gyro, axis=1), 99))
+        if w > MAX_PLAUSIBLE_RATE:
+            warnings.warn(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}; expected rad/s (below "
+                          f"{MAX_PLAUSIBLE_RATE:g}); is the data in deg/s?", stacklevel=3)
 
     def _check_imu_gaps(self) -> None:
         """Warn about gaps in the IMU stream longer than ``IMU_GAP_FACTOR`` typical periods: the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from smoother.errors import UserError
@@ -41,6 +42,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("smoother: interrupted; files already written are complete and kept", file=sys.stderr)
         return 130
+    except (ValueError, RuntimeError, IndexError, ArithmeticError) as error:
+        # Data errors from the library (ValueError subclasses name file, field or time) and
+        # failures inside GTSAM or NumPy: one line, no traceback; set SMOOTHER_DEBUG=1 for it.
+        if os.environ.get("SMOOTHER_DEBUG"):
+            raise
+        first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        kind = "error" if isinstance(error, ValueError) else f"internal failure ({type(error).__name__})"
+        print(f"smoother: {kind}: {first}", file=sys.stderr)
+        return 2 if isinstance(error, ValueError) else 3
 
 
 if __name__ == "__main__":

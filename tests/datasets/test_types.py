@@ -1,5 +1,6 @@
 """The data types: validation at construction, and the documented behaviour for data a user can
 reasonably feed (out-of-span measurements, IMU gaps) -- a warning and a documented action."""
+import re
 import warnings
 
 import numpy as np
@@ -43,7 +44,7 @@ def test_relative_poses_reaching_outside_the_span_are_dropped():
 
 def test_an_imu_gap_is_reported_with_its_time_and_length():
     t = np.concatenate([np.arange(50) / 100.0, 1.0 + np.arange(50) / 100.0])
-    samples = ImuSamples(t, np.zeros((100, 3)), np.zeros((100, 3)))
+    samples = ImuSamples(t, np.tile([0.0, 0.0, 9.81], (100, 1)), np.zeros((100, 3)))
     with pytest.warns(UserWarning, match=r"longest is 0.51 s after t = 0.490000 s \(row 49\)"):
         _dataset(imu=samples)
 
@@ -95,3 +96,17 @@ def test_rotation_check_names_the_row():
     C[2] = so3.exp([0.1, 0, 0]) * 1.01
     with pytest.raises(ValueError, match="row 2 is not a rotation matrix"):
         PoseMeasurements([0.0, 1.0, 2.0], np.zeros((3, 3)), C, np.eye(6))
+
+
+@pytest.mark.parametrize("acc_scale, gyro_scale, fragment", [
+    (1.0 / 9.81, 1.0, "is the data in g"),
+    (1000.0, 1.0, "mm/s^2"),
+    (1.0, 57.3, "deg/s"),
+])
+def test_implausible_imu_units_are_reported(acc_scale, gyro_scale, fragment):
+    n = 101
+    t = np.arange(n) / 100.0
+    gyro = np.tile([0.0, 0.0, 1.0], (n, 1)) * gyro_scale
+    samples = ImuSamples(t, np.tile([0.0, 0.0, 9.81], (n, 1)) * acc_scale, gyro)
+    with pytest.warns(UserWarning, match=re.escape(fragment)):
+        _dataset(imu=samples)

@@ -137,3 +137,23 @@ def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_r
     assert (out / "metrics.json").read_bytes() == before
     json.loads(before)
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_failures_inside_the_library_are_one_line_without_traceback(monkeypatch, capsys, tmp_path):
+    """A GTSAM/NumPy failure surfacing as RuntimeError, or a data ValueError, is one line on
+    stderr with exit code 3 (internal) or 2 (data); SMOOTHER_DEBUG=1 re-raises it."""
+    import smoother.pipeline
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("\nIndeterminate linear system detected while working near variable\n42")
+
+    monkeypatch.setattr(smoother.pipeline, "run_estimators", boom)
+    from smoother.cli import main as cli_main
+
+    assert cli_main(["run", "--duration", "1", "--out", str(tmp_path)]) == 3
+    err = capsys.readouterr().err
+    assert "internal failure (RuntimeError): Indeterminate linear system" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) <= 3
+    monkeypatch.setenv("SMOOTHER_DEBUG", "1")
+    with pytest.raises(RuntimeError):
+        cli_main(["run", "--duration", "1", "--out", str(tmp_path)])
