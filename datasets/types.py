@@ -8,7 +8,7 @@ Every constructor validates shapes and values and raises ``ValueError`` naming t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import warnings
 
@@ -78,6 +78,18 @@ def _rotations(name: str, C, n: int) -> np.ndarray:
     return C
 
 
+class _Rows:
+    """Shared by the row-wise data types: ``len()`` and ``subset(index)`` (every array field,
+    re-validated by the constructor)."""
+
+    def __len__(self) -> int:
+        return len(getattr(self, fields(self)[0].name))
+
+    def subset(self, index):
+        return type(self)(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[index]
+                             for f in fields(self)})
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSamples:
     """IMU samples: specific force ``acc`` [m/s^2] and angular rate ``gyro`` [rad/s] in the body
@@ -111,7 +123,7 @@ class ImuSamples:
 
 
 @dataclass(frozen=True, eq=False)
-class PositionMeasurements:
+class PositionMeasurements(_Rows):
     """World positions ``I_r`` [m] (GPS-like), covariance ``cov`` (N, 3, 3) [m^2]."""
 
     t: np.ndarray
@@ -124,15 +136,10 @@ class PositionMeasurements:
         object.__setattr__(self, "position", _array("PositionMeasurements.position", self.position, (3,), len(t)))
         object.__setattr__(self, "cov", _covariances("PositionMeasurements.cov", self.cov, len(t), 3))
 
-    def __len__(self) -> int:
-        return len(self.t)
-
-    def subset(self, index) -> "PositionMeasurements":
-        return PositionMeasurements(self.t[index], self.position[index], self.cov[index])
 
 
 @dataclass(frozen=True, eq=False)
-class OrientationMeasurements:
+class OrientationMeasurements(_Rows):
     """Attitudes ``C(Phi_IB)`` with ``C_meas = exp(n) C`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2]."""
 
     t: np.ndarray
@@ -145,15 +152,10 @@ class OrientationMeasurements:
         object.__setattr__(self, "C", _rotations("OrientationMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", _covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
 
-    def __len__(self) -> int:
-        return len(self.t)
-
-    def subset(self, index) -> "OrientationMeasurements":
-        return OrientationMeasurements(self.t[index], self.C[index], self.cov[index])
 
 
 @dataclass(frozen=True, eq=False)
-class PoseMeasurements:
+class PoseMeasurements(_Rows):
     """Pose-sensor readings (eqs. 61-63): position [m] and attitude; ``cov`` (N, 6, 6) over
     ``(n_p, n_Phi)`` (position first, world-frame orientation noise second)."""
 
@@ -169,15 +171,10 @@ class PoseMeasurements:
         object.__setattr__(self, "C", _rotations("PoseMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", _covariances("PoseMeasurements.cov", self.cov, len(t), 6))
 
-    def __len__(self) -> int:
-        return len(self.t)
-
-    def subset(self, index) -> "PoseMeasurements":
-        return PoseMeasurements(self.t[index], self.position[index], self.C[index], self.cov[index])
 
 
 @dataclass(frozen=True, eq=False)
-class RelativePoseMeasurements:
+class RelativePoseMeasurements(_Rows):
     """Odometry between times ``t_from`` and ``t_to``: ``dr = C_i^T (r_j - r_i)`` [m] (in the body
     frame at ``t_from``) and ``dC = C_i^T C_j``; noise ``dC_meas = exp(n_Phi) dC``,
     ``dr_meas = dr + n_r`` with ``cov`` (N, 6, 6) over ``(n_r, n_Phi)``, both in frame ``i``."""
@@ -201,12 +198,9 @@ class RelativePoseMeasurements:
         object.__setattr__(self, "dC", _rotations("RelativePoseMeasurements.dC", self.dC, n))
         object.__setattr__(self, "cov", _covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
 
-    def __len__(self) -> int:
-        return len(self.t_from)
-
 
 @dataclass(frozen=True, eq=False)
-class Trajectory:
+class Trajectory(_Rows):
     """States over time: ``t`` (N,) and an :class:`ImuState` with leading dimension N. Biases are
     NaN where unknown (e.g. a TUM file or a ground truth without biases). ``cov`` optionally holds
     the (N, 15, 15) error-state covariances of an estimate (error-state order of
@@ -234,9 +228,6 @@ class Trajectory:
                 raise ValueError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
             object.__setattr__(self, "cov", cov)
 
-    def __len__(self) -> int:
-        return len(self.t)
-
     @property
     def position(self) -> np.ndarray:
         return self.states.r
@@ -245,8 +236,6 @@ class Trajectory:
     def C(self) -> np.ndarray:
         return self.states.C
 
-    def subset(self, index) -> "Trajectory":
-        return Trajectory(self.t[index], self.states[index], None if self.cov is None else self.cov[index])
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,9 +325,7 @@ class Dataset:
             if not inside.all():
                 warnings.warn(f"Dataset.relative_pose: {int((~inside).sum())} of {len(m)} measurements reach outside "
                               f"the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
-                kept = RelativePoseMeasurements(m.t_from[inside], m.t_to[inside], m.dr[inside], m.dC[inside],
-                                                m.cov[inside]) if inside.any() else None
-                object.__setattr__(self, "relative_pose", kept)
+                object.__setattr__(self, "relative_pose", m.subset(inside) if inside.any() else None)
 
     @property
     def t0(self) -> float:

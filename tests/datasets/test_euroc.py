@@ -99,6 +99,7 @@ def write_sequence(root: Path, n_imu=401, n_gt=370, style="units", gt_style=None
     (mav0 / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
     imu_ns = NS0 + IMU_STEP * np.arange(n_imu, dtype=np.int64)
     readings = rng.normal(size=(n_imu, 6))  # gyro (w_RS_S) then acc (a_RS_S)
+    readings[:, 5] += 9.81  # a plausible specific force (the loader warns about implausible units)
     _csv(mav0 / "imu0" / "data.csv", IMU_COLUMNS, imu_ns, readings, style,
          order=None if order is None else [0] + [1 + j for j in order[:6]])
     gt_ns = NS0 + GT_OFFSET + IMU_STEP * np.arange(n_gt, dtype=np.int64)
