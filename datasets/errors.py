@@ -97,6 +97,10 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
     into ``(floats, ints)``: a float array of shape ``(len(rows), len(fields))`` and an int64
     array with the columns named in ``integer_fields`` (whose entries in ``floats`` stay 0)."""
     n, m = len(rows), len(fields)
+    if not integer_fields and n:
+        fast = _parse_fast(rows, m)
+        if fast is not None:
+            return fast, np.zeros((n, 0), dtype=np.int64)
     out = np.zeros((n, m))
     int_cols = [fields.index(f) for f in integer_fields]
     ints = np.zeros((n, len(int_cols)), dtype=np.int64)
@@ -112,6 +116,22 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
             else:
                 out[i, j] = number(token, path, line, fields[j])
     return out, ints
+
+
+def _parse_fast(rows, m: int) -> np.ndarray | None:
+    """The common case in one NumPy conversion: every row has ``m`` tokens, all plain finite
+    numbers. None when anything is off; the caller then parses token by token, which finds the
+    first bad one and names it."""
+    if any(len(tokens) != m for _, tokens in rows):
+        return None
+    flat = [token for _, tokens in rows for token in tokens]
+    try:
+        values = np.array(flat, dtype=float)
+    except (ValueError, TypeError):
+        return None
+    if not np.all(np.isfinite(values)) or any("_" in token for token in flat):
+        return None
+    return values.reshape(len(rows), m)
 
 
 def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
