@@ -1,4 +1,5 @@
-"""``smoother evaluate``: ATE and RPE of an estimated TUM trajectory against a reference one."""
+"""``smoother evaluate``: ATE and RPE of an estimated trajectory against a reference one, and the
+NEES where the estimate carries covariances (a run directory's ``.npz``) and is not aligned."""
 from __future__ import annotations
 
 import json
@@ -14,8 +15,10 @@ def register(sub) -> None:
             "error (RPE); the definitions are evo's (see smoother/metrics.py)."
         ),
     )
-    p.add_argument("--reference", required=True, metavar="REF", help="reference trajectory, TUM format")
-    p.add_argument("--estimate", required=True, metavar="EST", help="estimated trajectory, TUM format")
+    p.add_argument("--reference", required=True, metavar="REF",
+                   help="reference trajectory: a TUM file, or a run directory's .npz (e.g. truth.npz)")
+    p.add_argument("--estimate", required=True, metavar="EST",
+                   help="estimated trajectory: a TUM file, or a run directory's .npz (with covariances: NEES too)")
     p.add_argument("--align", choices=["se3", "posyaw", "none"], default="se3",
                    help="alignment of the estimate: se3 (Umeyama, default), posyaw (translation + yaw), none")
     p.add_argument("--max-dt", type=float, default=0.01, metavar="S",
@@ -55,7 +58,6 @@ def run(args) -> int:
     import math
 
     from datasets.errors import DataError
-    from datasets.tum import read_tum
     from smoother import metrics
     from smoother.errors import UserError
 
@@ -68,9 +70,9 @@ def run(args) -> int:
     trajectories = {}
     for option, path in (("--reference", args.reference), ("--estimate", args.estimate)):
         try:
-            trajectories[option] = read_tum(path)
-        except DataError as error:
-            raise UserError(f"{option}: {error}") from None
+            trajectories[option] = _read(path)
+        except (DataError, ValueError, OSError, KeyError) as error:
+            raise UserError(f"{option}: {path}: {error}") from None
     ref, est = trajectories["--reference"], trajectories["--estimate"]
     delta = int(args.delta) if args.delta_unit == "frames" else args.delta
     try:
@@ -80,14 +82,43 @@ def run(args) -> int:
         )
     except ValueError as error:
         raise UserError(f"{args.estimate} against {args.reference}: {error}") from None
+    nees = _nees(ref, est, result, args.align)
     if args.json:
         out = result.as_dict()
+        out["nees_mean"] = nees
         out.update({"reference": str(args.reference), "estimate": str(args.estimate), "align": args.align,
                     "max_dt": args.max_dt, "rpe_delta": {"value": delta, "unit": args.delta_unit}})
         print(json.dumps(_clean(out), indent=2, allow_nan=False))
     else:
         print(_table(result, args, len(ref), len(est)))
+        if nees is not None:
+            print(f"pose NEES / 6 (estimate's covariances): {nees:.4f}  (1 is consistent)")
+        elif est.cov is not None:
+            print("(NEES only with --align none: an alignment fitted to the reference is not in the covariance)")
     return 0
+
+
+def _read(path):
+    """A TUM file, or a run directory's ``.npz`` (states and, if present, covariances)."""
+    from datasets.tum import read_tum
+    from smoother.report import load_trajectory
+
+    return load_trajectory(path) if str(path).endswith(".npz") else read_tum(path)
+
+
+def _nees(ref, est, result, align: str) -> float | None:
+    """Mean pose NEES / 6 of the associated poses when the estimate carries covariances and is
+    compared in its own frame (``--align none``). An alignment fitted to the reference would
+    move the estimate by an amount its covariance knows nothing about (a position-fitted
+    rotation of 0.1 deg is several attitude sigmas of a good smoother), so no NEES then."""
+    import numpy as np
+
+    from smoother import metrics
+
+    if est.cov is None or align != "none":
+        return None
+    nees = metrics.nees(ref.states[result.i_ref], est.states[result.i_est], est.cov[result.i_est], "pose")
+    return float(np.mean(nees) / 6.0)
 
 
 def _finite(obj) -> bool:

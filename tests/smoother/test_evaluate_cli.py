@@ -109,3 +109,19 @@ def test_bad_options(files, capsys, option):
     ref, est = files
     err = _error(capsys, ["evaluate", "--reference", str(ref), "--estimate", str(est)] + option)
     assert option[0] in err
+
+
+def test_npz_estimates_with_covariances_give_the_nees_of_the_run(tmp_path, capsys):
+    """A run directory's .npz against its truth.npz, unaligned: the NEES equals metrics.json's."""
+    from smoother.cli import main as cli_main
+
+    out = tmp_path / "run"
+    assert cli_main(["run", "--duration", "3", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
+    capsys.readouterr()
+    expected = json.loads((out / "metrics.json").read_text())["ekf"]["nees_mean"]
+    assert cli_main(["evaluate", "--reference", str(out / "truth.npz"), "--estimate", str(out / "ekf.npz"),
+                     "--align", "none", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["nees_mean"] == pytest.approx(expected, rel=1e-12)
+    assert cli_main(["evaluate", "--reference", str(out / "truth.npz"), "--estimate", str(out / "ekf.npz"),
+                     "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["nees_mean"] is None
