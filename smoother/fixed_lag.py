@@ -36,7 +36,7 @@ from factors import imu
 from factors import measurements as meas
 from smoother.batch import is_indeterminant
 from smoother.graph import Problem, insert_state, read_state
-from smoother.solver import _evaluate
+from smoother.solver import evaluate_block
 from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
@@ -110,7 +110,7 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
     for b, block_rows in ours.items():
         block = problem.blocks[b]
         idx = np.array(block_rows)
-        ev = _evaluate(block, states, True, idx, keyframe_offset=first)
+        ev = evaluate_block(block, states, True, idx, keyframe_offset=first)
         local = block.keyframes[idx] - first
         groups += [(tuple(int(j) for j in local[m]), [A[m] for A in ev.A]) for m in range(len(idx))]
     if containers.size():

@@ -70,7 +70,7 @@ class _Evaluated:
     loss: float
 
 
-def _evaluate(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(None),
+def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(None),
               keyframe_offset: int = 0) -> _Evaluated:
     """Whitened (and robustly reweighted) residuals and Jacobians of the factors ``rows`` of
     ``block``; ``states[k - keyframe_offset]`` is the state of keyframe ``k``."""
@@ -101,7 +101,7 @@ def _evaluate(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(No
 
 def total_cost(blocks: list[Block], states: imu.ImuState) -> float:
     """``sum rho(|e_w|)`` over every factor (``|e_w|^2 / 2`` without a robust kernel)."""
-    return sum(_evaluate(b, states, False).loss for b in blocks)
+    return sum(evaluate_block(b, states, False).loss for b in blocks)
 
 
 _UNIT = {}
@@ -121,7 +121,7 @@ def linearize(blocks: list[Block], states: imu.ImuState) -> tuple[gtsam.Gaussian
     graph = gtsam.GaussianFactorGraph()
     cost = 0.0
     for block in blocks:
-        ev = _evaluate(block, states, True)
+        ev = evaluate_block(block, states, True)
         cost += ev.loss
         model = _unit(ev.e.shape[1])
         keys = block.keyframes
