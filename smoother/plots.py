@@ -187,8 +187,15 @@ def _load_gps(path: Path) -> Gps:
 
 
 def estimator_names(run_dir: Path) -> list[str]:
-    """Names of the estimates in ``run_dir`` (``<name>.npz`` other than truth/gps), drawing order."""
+    """Names of the estimates in ``run_dir``, drawing order: those of the last run when
+    ``metrics.json`` lists them (so an older run's files left in the directory are not drawn),
+    else every ``<name>.npz`` other than truth/gps."""
     found = {p.stem for p in Path(run_dir).glob("*.npz") if p.stem not in RESERVED}
+    try:
+        listed = json.loads((Path(run_dir) / "metrics.json").read_text())["_run"]["estimators"]
+        found &= set(listed)
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
     return [n for n in ESTIMATOR_ORDER if n in found] + sorted(found - set(ESTIMATOR_ORDER))
 
 

@@ -125,10 +125,13 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         write_tum(out_dir / f"{name}.tum", est.trajectory)
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
+    # A directory reused for another dataset must not keep a previous run's reference.
+    for name in ("truth.npz", "gps.npz"):
+        (out_dir / name).unlink(missing_ok=True)
     if dataset.truth is not None:
         save_trajectory(out_dir / "truth.npz", dataset.truth)
     save_gps(out_dir / "gps.npz", dataset)
-    document = {**report, "_run": extra or {}}
+    document = {**report, "_run": {**(extra or {}), "estimators": list(estimates)}}
     with atomic_write(out_dir / "metrics.json") as handle:
         json.dump(_jsonable(document), handle, indent=2)
         handle.write("\n")

@@ -116,7 +116,7 @@ def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
     names = {p.name for p in (tmp_path / "run").iterdir()}
     assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
     document = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert document["_run"] == {"seed": 7}
+    assert document["_run"] == {"seed": 7, "estimators": ["ekf", "batch"]}
     assert document["ekf"]["ate_rmse_m"] == pytest.approx(0.5)
     assert document["ekf"]["runtime_s"] == 0.25 and document["ekf"]["rejected_measurements"] == 0
     assert document["batch"]["nees_mean"] is None  # NaN (no covariances) is written as null
@@ -146,10 +146,24 @@ def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         report.write_outputs(out, data, _estimates(truth), {"first": False})
     assert (out / "metrics.json").read_bytes() == before
-    assert json.loads(before)["_run"] == {"first": True}
+    assert json.loads(before)["_run"]["first"] is True
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
 
 
 def test_jsonable_turns_numpy_and_non_finite_values_into_json():
     out = report._jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
     assert json.loads(json.dumps(out)) == {"a": None, "b": [3, [1.5, None]], "c": [1, "x"]}
+
+
+def test_a_reused_directory_keeps_no_reference_of_an_earlier_run(tmp_path):
+    """truth.npz / gps.npz belong to the dataset of the LAST run: a run without truth into a
+    directory that held one removes it (plots would otherwise draw another dataset's truth)."""
+    from dataclasses import replace
+
+    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+    truth = data.truth.subset(np.arange(0, 25, 5))
+    out = tmp_path / "run"
+    report.write_outputs(out, data, _estimates(truth), {})
+    assert (out / "truth.npz").exists()
+    report.write_outputs(out, replace(data, truth=None), _estimates(truth), {})
+    assert not (out / "truth.npz").exists()
