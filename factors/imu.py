@@ -40,7 +40,7 @@ All functions are vectorised over leading dimensions (a batch of states, samples
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 

@@ -94,16 +94,6 @@ def _check_kind(kind, role: str) -> None:
         )
 
 
-def _check_kind(kind, what: str):
-    if isinstance(kind, str):
-        if kind not in (VECTOR, ROTATION):
-            raise ValueError(f"{what}: unknown kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
-    elif not all(hasattr(kind, name) for name in ("dim", "plus", "minus")):
-        raise ValueError(f"{what}: kind {kind!r} is neither {VECTOR!r}, {ROTATION!r} nor a Manifold "
-                         "(an object with dim, plus and minus)")
-    return kind
-
-
 def _dim(arg, kind) -> int:
     if kind == ROTATION:
         return 3
@@ -135,10 +125,6 @@ def numerical_jacobian(
     kinds = list(arg_kinds) if arg_kinds is not None else [ROTATION if _is_rotation(a) else VECTOR for a in args]
     if len(kinds) != len(args):
         raise ValueError(f"arg_kinds has {len(kinds)} entries for {len(args)} arguments")
-    for kind in kinds:
-        _check_kind(kind, "argument")
-    if value_kind is not None:
-        _check_kind(value_kind, "value")
     for i, kind in enumerate(kinds):
         _check_kind(kind, f"argument {i}")
     if value_kind is not None:

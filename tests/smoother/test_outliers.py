@@ -1,6 +1,5 @@
 """The outlier experiment: 5% gross pose outliers; robust smoothing and the EKF's gate keep the
 accuracy of the clean run while the plain estimators degrade."""
-import numpy as np
 import pytest
 
 from datasets.simulate import simulate
