@@ -6,6 +6,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 from smoother.errors import UserError
 
@@ -31,7 +32,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    return f"smoother: warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
+    previous, warnings.formatwarning = warnings.formatwarning, _format_warning  # one line per warning
+    try:
+        return _main(argv)
+    finally:
+        warnings.formatwarning = previous
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

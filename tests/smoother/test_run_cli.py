@@ -157,3 +157,25 @@ def test_failures_inside_the_library_are_one_line_without_traceback(monkeypatch,
     monkeypatch.setenv("SMOOTHER_DEBUG", "1")
     with pytest.raises(RuntimeError):
         cli_main(["run", "--duration", "1", "--out", str(tmp_path)])
+
+
+def test_warnings_are_one_readable_line(monkeypatch, capsys, tmp_path):
+    """During a command, a data warning (e.g. measurements dropped outside the IMU span) is
+    formatted as one line 'smoother: warning: ...' without Python's source-code echo; the
+    previous format is restored afterwards."""
+    import warnings as pywarnings
+
+    import smoother.sources
+    from smoother.cli import main as cli_main
+
+    real, seen = smoother.sources.load, []
+
+    def load_and_format(spec, options):
+        seen.append(pywarnings.formatwarning("Dataset.position: 2 of 5 dropped", UserWarning, "types.py", 1))
+        return real(spec, options)
+
+    monkeypatch.setattr(smoother.sources, "load", load_and_format)
+    before = pywarnings.formatwarning
+    assert cli_main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert seen == ["smoother: warning: Dataset.position: 2 of 5 dropped\n"]
+    assert pywarnings.formatwarning is before
