@@ -28,6 +28,7 @@ from smoother.batch import solve_batch
 from smoother.ekf import Ekf, run_ekf
 from smoother.fixed_lag import run_fixed_lag
 from smoother.graph import build_problem
+from smoother.report import compare_with_truth
 
 TARGETS = {
     "prediction_max_abs_error": 1e-9,
@@ -87,12 +88,10 @@ def one_seed(options: CrosscheckOptions, seed: int) -> dict:
         "ate_rmse_m": {},
         "nees": {},
     }
-    truth = dataset.truth
-    i_truth = np.searchsorted(truth.t, problem.times)
     for name, traj in (("batch", batch), ("fixed-lag", fixed), ("ekf", ekf.subset(i_ekf))):
-        T = truth.states[i_truth]
-        out["ate_rmse_m"][name] = metrics.ate(T.r, T.C, traj.states.r, traj.states.C)["translation"]["rmse"]
-        out["nees"][name] = metrics.nees(T, traj.states, traj.cov, "pose") / 6.0
+        c = compare_with_truth(dataset.truth, traj)
+        out["ate_rmse_m"][name] = c["ate_rmse_m"]
+        out["nees"][name] = c["nees"] / 6.0
     return out
 
 

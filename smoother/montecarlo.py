@@ -33,8 +33,8 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     """One seeded run: ``{"seed", <estimator>: {"ate_rmse_m", "rot_rmse_deg", "nees_mean",
     "nees": [...] per keyframe, "t": [...]}}``. Plain lists and floats only (picklable, JSON)."""
     from datasets.simulate import simulate
-    from smoother import metrics
     from smoother.pipeline import RunOptions, run_estimators
+    from smoother.report import compare_with_truth
 
     dataset = simulate(profile=config.profile, duration=config.duration, seed=seed,
                        outlier_fraction=config.outliers)
@@ -42,17 +42,13 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     estimates = run_estimators(dataset, list(config.estimators), options)
     out: dict = {"seed": int(seed)}
     for name, est in estimates.items():
-        traj = est.trajectory
-        i_truth, i_est = metrics.associate(dataset.truth.t, traj.t, 1e-6)
-        truth, states = dataset.truth.states[i_truth], traj.states[i_est]
-        ate = metrics.ate(truth.r, truth.C, states.r, states.C)
-        nees = metrics.nees(truth, states, traj.cov[i_est], "pose")
+        c = compare_with_truth(dataset.truth, est.trajectory)
         out[name] = {
-            "ate_rmse_m": ate["translation"]["rmse"],
-            "rot_rmse_deg": ate["rotation"]["rmse"],
-            "nees_mean": float(np.mean(nees) / 6.0),
-            "t": traj.t[i_est].tolist(),
-            "nees": nees.tolist(),
+            "ate_rmse_m": c["ate_rmse_m"],
+            "rot_rmse_deg": c["rot_rmse_deg"],
+            "nees_mean": float(np.mean(c["nees"]) / 6.0),
+            "t": c["t"].tolist(),
+            "nees": c["nees"].tolist(),
         }
     return out
 

@@ -29,24 +29,27 @@ from smoother import metrics
 MATCH_DT = 1e-6
 
 
-def _match_truth(truth: Trajectory, t: np.ndarray):
-    i_truth, i_est = metrics.associate(truth.t, t, MATCH_DT)
-    return truth.states[i_truth], i_est
+def compare_with_truth(truth: Trajectory, estimate: Trajectory) -> dict:
+    """The estimate against the truth at the estimate's times (associated within ``MATCH_DT``):
+    ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` and the pose NEES of each
+    state, ``nees`` (None without covariances). One place for the run's metrics, the Monte Carlo
+    runs and the cross-checks."""
+    i_truth, i_est = metrics.associate(truth.t, estimate.t, MATCH_DT)
+    T, E = truth.states[i_truth], estimate.states[i_est]
+    result = metrics.ate(T.r, T.C, E.r, E.C)
+    nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[i_est], "pose")
+    return {"t": estimate.t[i_est], "ate_rmse_m": result["translation"]["rmse"],
+            "rot_rmse_deg": result["rotation"]["rmse"], "nees": nees}
 
 
 def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
-    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (NaN without covariances)."""
-    T, i = _match_truth(truth, estimate.t)
-    E = estimate.states[i]
-    result = metrics.ate(T.r, T.C, E.r, E.C)
-    nees_mean = math.nan
-    if estimate.cov is not None:
-        nees_mean = float(np.mean(metrics.nees(T, E, estimate.cov[i], "pose")) / 6.0)
+    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (pose NEES / 6; NaN without covariances)."""
+    c = compare_with_truth(truth, estimate)
     return {
-        "ate_rmse_m": result["translation"]["rmse"],
-        "rot_rmse_deg": result["rotation"]["rmse"],
-        "nees_mean": nees_mean,
-        "compared_states": int(len(i)),
+        "ate_rmse_m": c["ate_rmse_m"],
+        "rot_rmse_deg": c["rot_rmse_deg"],
+        "nees_mean": math.nan if c["nees"] is None else float(np.mean(c["nees"]) / 6.0),
+        "compared_states": int(len(c["t"])),
     }
 
 
