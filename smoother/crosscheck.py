@@ -66,7 +66,8 @@ def prediction_error(problem, dataset, intervals: int = 5) -> float:
     return worst
 
 
-def _sigma_difference(a: imu.ImuState, b: imu.ImuState, cov: np.ndarray) -> np.ndarray:
+def sigma_difference(a: imu.ImuState, b: imu.ImuState, cov: np.ndarray) -> np.ndarray:
+    """``|a [-] b|`` per error-state component in standard deviations of ``cov``."""
     return np.abs(imu.boxminus(a, b)) / np.sqrt(np.einsum("...ii->...i", cov))
 
 
@@ -82,9 +83,9 @@ def one_seed(options: CrosscheckOptions, seed: int) -> dict:
         raise RuntimeError("EKF and smoother keyframe times differ")
     out = {
         "prediction_max_abs_error": prediction_error(problem, dataset),
-        "final_state_max_sigma": float(_sigma_difference(batch.states[-1], ekf.states[-1], ekf.cov[-1]).max()),
+        "final_state_max_sigma": float(sigma_difference(batch.states[-1], ekf.states[-1], ekf.cov[-1]).max()),
         "final_cov_trace_ratio": float(np.trace(batch.cov[-1]) / np.trace(ekf.cov[-1])),
-        "fixed_lag_max_sigma": float(_sigma_difference(fixed.states, ekf.states[i_ekf], ekf.cov[i_ekf]).max()),
+        "fixed_lag_max_sigma": float(sigma_difference(fixed.states, ekf.states[i_ekf], ekf.cov[i_ekf]).max()),
         "ate_rmse_m": {},
         "nees": {},
     }
