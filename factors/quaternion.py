@@ -17,13 +17,19 @@ consistency test ``exp(log(q)) == q`` decides for ``2 qv``.)
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
+
+from factors.compiled import apply_rows
 
 #: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
 SMALL_ANGLE = 1e-4
 
 #: Tolerance on ``| |q| - 1 |`` accepted by :func:`check_unit`.
 UNIT_TOLERANCE = 1e-6
+
 
 
 def _split(q: np.ndarray):
@@ -104,29 +110,50 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True)
+def matrix_to_quaternion(C) -> tuple:
+    """Compiled core of :func:`from_matrix` for one 3x3 matrix: ``(q0, qx, qy, qz)``, ``q0 >= 0``."""
+    c00, c11, c22 = C[0, 0], C[1, 1], C[2, 2]
+    # 4 * (component)^2 for each candidate pivot: q0, qx, qy, qz; the first largest is used.
+    pivots = (1.0 + c00 + c11 + c22, 1.0 + c00 - c11 - c22, 1.0 - c00 + c11 - c22, 1.0 - c00 - c11 + c22)
+    which = 0
+    for i in range(1, 4):
+        if pivots[i] > pivots[which]:
+            which = i
+    s = 2.0 * math.sqrt(max(pivots[which], 1e-300))
+    quarter = 0.25 * s * s  # = s^2 / 4, divided by s below: the pivot component itself
+    d21, d02, d10 = C[2, 1] - C[1, 2], C[0, 2] - C[2, 0], C[1, 0] - C[0, 1]
+    s01, s02, s12 = C[0, 1] + C[1, 0], C[0, 2] + C[2, 0], C[1, 2] + C[2, 1]
+    if which == 0:
+        q = (quarter, d21, d02, d10)
+    elif which == 1:
+        q = (d21, quarter, s01, s02)
+    elif which == 2:
+        q = (d02, s01, quarter, s12)
+    else:
+        q = (d10, s02, s12, quarter)
+    q0, qx, qy, qz = q[0] / s, q[1] / s, q[2] / s, q[3] / s
+    n = math.sqrt(q0 * q0 + qx * qx + qy * qy + qz * qz)
+    if q0 < 0.0:
+        n = -n
+    return q0 / n, qx / n, qy / n, qz / n
+
+
+@njit(cache=True)
+def _from_matrix_rows(C, out):
+    for i in range(C.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = matrix_to_quaternion(C[i])
+
+
 def from_matrix(C: np.ndarray) -> np.ndarray:
     """Unit quaternion (``q0 >= 0``) of a rotation matrix, by Shepperd's method.
 
-    Of the four algebraically equivalent formulas, each row uses the one that divides by the
+    Of the four algebraically equivalent formulas, each matrix uses the one that divides by the
     largest of ``|q0|, |qx|, |qy|, |qz|`` (at least 1/2), so the result is accurate to round-off
-    for every rotation, including angles of pi.
+    for every rotation, including angles of pi. Compiled (:func:`matrix_to_quaternion`),
+    vectorised over leading dimensions.
     """
-    C = np.asarray(C, dtype=float)
-    c00, c11, c22 = C[..., 0, 0], C[..., 1, 1], C[..., 2, 2]
-    # 4 * (component)^2 for each candidate pivot: q0, qx, qy, qz.
-    pivots = (1 + c00 + c11 + c22, 1 + c00 - c11 - c22, 1 - c00 + c11 - c22, 1 - c00 - c11 + c22)
-    which = np.argmax(np.stack(pivots, axis=-1), axis=-1)
-    s = 2.0 * np.sqrt(np.maximum(np.choose(which, pivots), 1e-300))
-    d21, d02, d10 = C[..., 2, 1] - C[..., 1, 2], C[..., 0, 2] - C[..., 2, 0], C[..., 1, 0] - C[..., 0, 1]
-    s01, s02, s12 = C[..., 0, 1] + C[..., 1, 0], C[..., 0, 2] + C[..., 2, 0], C[..., 1, 2] + C[..., 2, 1]
-    quarter = 0.25 * s * s  # = s^2 / 4, divided by s below: the pivot component itself
-    q = np.stack([
-        np.choose(which, (quarter, d21, d02, d10)),
-        np.choose(which, (d21, quarter, s01, s02)),
-        np.choose(which, (d02, s01, quarter, s12)),
-        np.choose(which, (d10, s02, s12, quarter)),
-    ], axis=-1) / s[..., None]
-    return canonical(normalize(q))
+    return apply_rows(_from_matrix_rows, C, (3, 3), (4,), "C")
 
 
 def compose(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
@@ -157,23 +184,33 @@ def exp(phi: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
+@njit(cache=True)
+def quaternion_log(q0, qx, qy, qz) -> tuple:
+    """Compiled core of :func:`log` for one unit quaternion: the rotation vector ``(x, y, z)``."""
+    if q0 < 0.0:
+        q0, qx, qy, qz = -q0, -qx, -qy, -qz
+    s = math.sqrt(qx * qx + qy * qy + qz * qz)
+    if s < 0.5 * SMALL_ANGLE:
+        # 2 atan2(s, q0) / s as its series (2/q0)(1 - x^2/3 + x^4/5), x = s/q0 (q0 ~ 1 here)
+        q0_safe = q0 if q0 > 0.0 else 1.0
+        x2 = (s / q0_safe) ** 2
+        scale = 2.0 / q0_safe * (1.0 - x2 / 3.0 + x2 * x2 / 5.0)
+    else:
+        scale = 2.0 * math.atan2(s, q0) / s
+    return scale * qx, scale * qy, scale * qz
+
+
+@njit(cache=True)
+def _log_rows(q, out):
+    for i in range(q.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = quaternion_log(q[i, 0], q[i, 1], q[i, 2], q[i, 3])
+
+
 def log(q: np.ndarray) -> np.ndarray:
     """Rotation vector of a unit quaternion, ``|phi| <= pi`` (eq. 40; its Taylor form, led by
-    ``2 qv``, below ``SMALL_ANGLE``). ``q`` and ``-q`` give the same vector except at exactly pi."""
-    q = canonical(q)
-    q0, qv = q[..., 0], q[..., 1:]
-    s = np.linalg.norm(qv, axis=-1)
-    small = s < 0.5 * SMALL_ANGLE
-    s_safe = np.where(small, 1.0, s)
-    # x = s / q0 only where the series is used (elsewhere q0 may be ~0 and x^2 would overflow)
-    x2 = (np.where(small, s, 0.0) / np.where(q0 > 0, q0, 1.0)) ** 2
-    # 2 atan2(s, q0) / s, and its series (2/q0)(1 - x^2/3 + x^4/5) with x = s/q0.
-    scale = np.where(
-        small,
-        2.0 / np.where(q0 > 0, q0, 1.0) * (1.0 - x2 / 3.0 + x2 * x2 / 5.0),
-        2.0 * np.arctan2(s_safe, q0) / s_safe,
-    )
-    return scale[..., None] * qv
+    ``2 qv``, below ``SMALL_ANGLE``). ``q`` and ``-q`` give the same vector except at exactly pi.
+    Compiled (:func:`quaternion_log`), vectorised over leading dimensions."""
+    return apply_rows(_log_rows, q, (4,), (3,), "q")
 
 
 def from_rot3(R) -> np.ndarray:

@@ -20,12 +20,20 @@ free of cancellation (``(1 - cos t) / t^2 = sinc(t/2)^2 / 2``) or, for the two t
 (``(t - sin t) / t^3`` and the ``gamma_inv`` coefficient), by their Taylor series below
 ``SERIES_ANGLE``. ``log`` goes through the quaternion of the matrix (Shepperd's method) and
 ``2 atan2(|q_v|, q_0)``, which is accurate to round-off at every angle, 0 and pi included.
+
+exp, log, gamma and gamma_inv are compiled scalar kernels (``*_into``, ``log_of``; see
+:mod:`factors.compiled`) that the IMU recursions call directly; the public functions run them
+over any leading dimensions.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from factors import quaternion
+from factors.compiled import apply_rows
 
 #: Below this angle (rad) the coefficients that cancel are evaluated by their Taylor series.
 SERIES_ANGLE = 1e-2
@@ -53,55 +61,108 @@ def vee(m: np.ndarray) -> np.ndarray:
     )
 
 
-def _angle(phi: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(phi, axis=-1)
+@njit(cache=True)
+def _sinc(t: float) -> float:
+    """sin(t)/t, exact at 0."""
+    return 1.0 if t == 0.0 else math.sin(t) / t
 
 
-def _sinc(t: np.ndarray) -> np.ndarray:
-    """sin(t)/t, exact at 0 (numpy's sinc is normalised by pi)."""
-    return np.sinc(t / np.pi)
-
-
-def _series_or(t: np.ndarray, closed, coefficients) -> np.ndarray:
-    """Evaluate ``closed(t)`` where ``t >= SERIES_ANGLE`` and the even power series
-    ``c0 + c1 t^2 + c2 t^4 + ...`` below it."""
-    t = np.asarray(t, dtype=float)
-    small = t < SERIES_ANGLE
-    t_safe = np.where(small, 1.0, t)
-    t2 = t * t
-    series = np.zeros_like(t)
-    for c in reversed(coefficients):
-        series = series * t2 + c
-    return np.where(small, series, closed(t_safe))
-
-
-def _one_minus_cos_over_t2(t: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _one_minus_cos_over_t2(t: float) -> float:
     """(1 - cos t) / t^2 = sinc(t/2)^2 / 2, no cancellation at any angle."""
-    return 0.5 * _sinc(0.5 * t) ** 2
+    s = _sinc(0.5 * t)
+    return 0.5 * s * s
 
 
-def _t_minus_sin_over_t3(t: np.ndarray) -> np.ndarray:
-    """(t - sin t) / t^3."""
-    return _series_or(
-        t, lambda s: (s - np.sin(s)) / s**3, (1 / 6, -1 / 120, 1 / 5040, -1 / 362880)
-    )
+@njit(cache=True)
+def _t_minus_sin_over_t3(t: float) -> float:
+    """(t - sin t) / t^3; its Taylor series below ``SERIES_ANGLE``."""
+    if t < SERIES_ANGLE:
+        t2 = t * t
+        return 1 / 6 + t2 * (-1 / 120 + t2 * (1 / 5040 + t2 * (-1 / 362880)))
+    return (t - math.sin(t)) / t**3
 
 
-def _gamma_inv_coefficient(t: np.ndarray) -> np.ndarray:
-    """(1 - (t/2) cot(t/2)) / t^2, the phi^x^2 coefficient of gamma_inv; finite up to t = pi."""
-    return _series_or(
-        t,
-        lambda s: (1.0 - 0.5 * s * np.cos(0.5 * s) / np.sin(0.5 * s)) / s**2,
-        (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600),
-    )
+@njit(cache=True)
+def _gamma_inv_coefficient(t: float) -> float:
+    """(1 - (t/2) cot(t/2)) / t^2, the phi^x^2 coefficient of gamma_inv; finite up to t = pi;
+    its Taylor series below ``SERIES_ANGLE``."""
+    if t < SERIES_ANGLE:
+        t2 = t * t
+        return 1 / 12 + t2 * (1 / 720 + t2 * (1 / 30240 + t2 * (1 / 1209600)))
+    return (1.0 - 0.5 * t * math.cos(0.5 * t) / math.sin(0.5 * t)) / (t * t)
+
+
+@njit(cache=True)
+def _quadratic(x: float, y: float, z: float, a: float, b: float, out) -> None:
+    """``out = I + a phi^x + b phi^x^2`` for ``phi = (x, y, z)`` (the form of exp, Gamma and
+    Gamma^-1), with ``phi^x^2 = phi phi^T - |phi|^2 I`` written entry by entry."""
+    out[0, 0] = 1.0 - b * (y * y + z * z)
+    out[1, 1] = 1.0 - b * (x * x + z * z)
+    out[2, 2] = 1.0 - b * (x * x + y * y)
+    out[0, 1] = -a * z + b * x * y
+    out[1, 0] = a * z + b * x * y
+    out[0, 2] = a * y + b * x * z
+    out[2, 0] = -a * y + b * x * z
+    out[1, 2] = -a * x + b * y * z
+    out[2, 1] = a * x + b * y * z
+
+
+@njit(cache=True)
+def exp_into(x: float, y: float, z: float, out) -> None:
+    """Compiled core of :func:`exp`: Rodrigues' matrix of ``(x, y, z)`` into ``out`` (3x3)."""
+    t = math.sqrt(x * x + y * y + z * z)
+    _quadratic(x, y, z, _sinc(t), _one_minus_cos_over_t2(t), out)
+
+
+@njit(cache=True)
+def gamma_into(x: float, y: float, z: float, out) -> None:
+    """Compiled core of :func:`gamma`."""
+    t = math.sqrt(x * x + y * y + z * z)
+    _quadratic(x, y, z, _one_minus_cos_over_t2(t), _t_minus_sin_over_t3(t), out)
+
+
+@njit(cache=True)
+def gamma_inv_into(x: float, y: float, z: float, out) -> None:
+    """Compiled core of :func:`gamma_inv`."""
+    t = math.sqrt(x * x + y * y + z * z)
+    _quadratic(x, y, z, -0.5, _gamma_inv_coefficient(t), out)
+
+
+@njit(cache=True)
+def log_of(C) -> tuple:
+    """Compiled core of :func:`log` for one 3x3 rotation matrix: ``(x, y, z)``."""
+    q0, qx, qy, qz = quaternion.matrix_to_quaternion(C)
+    return quaternion.quaternion_log(q0, qx, qy, qz)
+
+
+@njit(cache=True)
+def _exp_rows(phi, out):
+    for i in range(phi.shape[0]):
+        exp_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+
+
+@njit(cache=True)
+def _gamma_rows(phi, out):
+    for i in range(phi.shape[0]):
+        gamma_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+
+
+@njit(cache=True)
+def _gamma_inv_rows(phi, out):
+    for i in range(phi.shape[0]):
+        gamma_inv_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+
+
+@njit(cache=True)
+def _log_rows(C, out):
+    for i in range(C.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = log_of(C[i])
 
 
 def exp(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix ``C(exp(phi))`` by Rodrigues' formula (primer eq. 21)."""
-    phi = np.asarray(phi, dtype=float)
-    t = _angle(phi)[..., None, None]
-    k = skew(phi)
-    return np.eye(3) + _sinc(t) * k + _one_minus_cos_over_t2(t) * (k @ k)
+    return apply_rows(_exp_rows, phi, (3,), (3, 3), "phi")
 
 
 def log(C: np.ndarray) -> np.ndarray:
@@ -111,7 +172,7 @@ def log(C: np.ndarray) -> np.ndarray:
     so it keeps full precision near 0 and near pi, where the textbook
     ``arccos((tr C - 1) / 2)`` loses half the digits and ``1 / sin`` blows up.
     """
-    return quaternion.log(quaternion.from_matrix(C))
+    return apply_rows(_log_rows, C, (3, 3), (3,), "C")
 
 
 def compose(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
@@ -141,10 +202,7 @@ def gamma(phi: np.ndarray) -> np.ndarray:
     The derivative of ``exp`` in the [+] sense (eq. 31): ``exp(phi + d) ~= exp(Gamma(phi) d) exp(phi)``.
     Equal to GTSAM's ``Rot3.ExpmapDerivative(-phi)`` (GTSAM's is the right Jacobian).
     """
-    phi = np.asarray(phi, dtype=float)
-    t = _angle(phi)[..., None, None]
-    k = skew(phi)
-    return np.eye(3) + _one_minus_cos_over_t2(t) * k + _t_minus_sin_over_t3(t) * (k @ k)
+    return apply_rows(_gamma_rows, phi, (3,), (3, 3), "phi")
 
 
 def gamma_inv(phi: np.ndarray) -> np.ndarray:
@@ -153,10 +211,7 @@ def gamma_inv(phi: np.ndarray) -> np.ndarray:
     The derivative of ``log`` in the [+] sense (eq. 32): ``d log(Phi) / d Phi = Gamma^-1(log Phi)``.
     Valid for ``|phi| < 2 pi``; at ``|phi| = pi`` (where ``log`` lives at most) it is finite.
     """
-    phi = np.asarray(phi, dtype=float)
-    t = _angle(phi)[..., None, None]
-    k = skew(phi)
-    return np.eye(3) - 0.5 * k + _gamma_inv_coefficient(t) * (k @ k)
+    return apply_rows(_gamma_inv_rows, phi, (3,), (3, 3), "phi")
 
 
 def project(M: np.ndarray) -> np.ndarray:

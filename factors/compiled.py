@@ -1,0 +1,31 @@
+"""Running compiled per-element kernels over arrays with any leading dimensions.
+
+The per-element mathematics of this package (Rodrigues' formula, ``Gamma``, Shepperd's
+quaternion, the IMU recursions) is written once, as scalar Numba kernels. Numba compiles them to
+machine code on first use (cached on disk, so later processes start at once); NumPy expressions of
+the same formulas spend nearly all their time in Python call overhead on 3x3 arrays. A kernel
+``loop(flat_in, flat_out)`` loops over the first axis; :func:`apply_rows` gives it the
+vectorised interface of a NumPy function (``(..., *in_dims) -> (..., *out_dims)``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_trailing(a, dims: tuple, name: str) -> np.ndarray:
+    """``a`` as a float array whose trailing dimensions are ``dims``: checked here, because the
+    compiled kernels index them without bounds checks."""
+    a = np.asarray(a, dtype=float)
+    if a.ndim < len(dims) or a.shape[a.ndim - len(dims):] != tuple(dims):
+        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, dims))}), got {a.shape}")
+    return a
+
+
+def apply_rows(loop, a, in_dims: tuple, out_dims: tuple, name: str) -> np.ndarray:
+    """``loop(flat, out)`` over ``a`` of shape ``(..., *in_dims)``, returning ``(..., *out_dims)``."""
+    a = as_trailing(a, in_dims, name)
+    lead = a.shape[: a.ndim - len(in_dims)]
+    flat = np.ascontiguousarray(a.reshape((-1,) + tuple(in_dims)))
+    out = np.empty((flat.shape[0],) + tuple(out_dims))
+    loop(flat, out)
+    return out.reshape(lead + tuple(out_dims))
