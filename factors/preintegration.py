@@ -34,16 +34,19 @@ along the reference trajectory from keyframe ``i`` with zero initial covariance,
 ``S_{k+1} = F S F^T + G Q_d G^T``, expressed in the residual's body-``i`` coordinates.
 
 Everything is vectorised over intervals: arrays of shape ``(J, K, ...)`` hold ``J`` intervals of
-up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the identity step, so the
-Python loop runs over the ``K`` samples of the longest interval, never over intervals.
+up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the identity step. The
+recursions run as one compiled pass over all samples (:mod:`factors.compiled`), with no Python
+per sample or per interval.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from factors import imu, so3
+from factors.compiled import as_trailing
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -52,16 +55,6 @@ COVARIANCE_FLOOR = 1e-7
 #: Default gyro-bias change (rad/s) beyond which an interval is integrated again.
 REINTEGRATION_THRESHOLD = 0.02
 
-
-
-def _basis_cross(W: np.ndarray) -> np.ndarray:
-    """``out[j, :, :, l] = e_l^x W[j]`` for ``W (J, 3, n)``: the cross products of the basis vectors
-    with every column, as signed copies of W's rows."""
-    out = np.zeros(W.shape + (3,))
-    out[:, 1, :, 0], out[:, 2, :, 0] = -W[:, 2], W[:, 1]
-    out[:, 0, :, 1], out[:, 2, :, 1] = W[:, 2], -W[:, 0]
-    out[:, 0, :, 2], out[:, 1, :, 2] = -W[:, 1], W[:, 0]
-    return out
 
 
 @dataclass
@@ -135,43 +128,99 @@ def _z(v_i, gamma, b_f) -> np.ndarray:
     return np.concatenate([v_i, gamma, one, -np.asarray(b_f, dtype=float)], axis=-1)
 
 
+@njit(cache=True)
+def _cross(u0, u1, u2, x0, x1, x2) -> tuple:
+    return u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0
+
+
+@njit(cache=True)
+def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
+    """The recursions of the module docstring, interval by interval, sample by sample, on
+    3x3 blocks (outputs initialised by the caller). ``A x = x - dt w x x`` is applied as a cross
+    product; samples with ``dt = 0`` are identity steps and skipped."""
+    E = np.empty((3, 3))
+    Gm = np.empty((3, 3))
+    dCW = np.empty((3, 10))
+    tmp = np.empty((3, 3))
+    for j in range(dt.shape[0]):
+        for k in range(dt.shape[1]):
+            h = dt[j, k]
+            if h <= 0.0:
+                continue
+            w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
+            D, Wj, JCj, dWj, dRj = dC[j], W[j], JC[j], dW[j], dRm[j]
+            for a in range(3):
+                for c in range(10):
+                    dCW[a, c] = D[a, 0] * Wj[0, c] + D[a, 1] * Wj[1, c] + D[a, 2] * Wj[2, c]
+            for l in range(3):
+                u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
+                # dRm += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
+                for c in range(10):
+                    x0, x1, x2 = _cross(u0, u1, u2, dCW[0, c], dCW[1, c], dCW[2, c])
+                    y0, y1, y2 = dWj[0, c, l], dWj[1, c, l], dWj[2, c, l]
+                    dRj[0, c, l] += h * (x0 + D[0, 0] * y0 + D[0, 1] * y1 + D[0, 2] * y2)
+                    dRj[1, c, l] += h * (x1 + D[1, 0] * y0 + D[1, 1] * y1 + D[1, 2] * y2)
+                    dRj[2, c, l] += h * (x2 + D[2, 0] * y0 + D[2, 1] * y1 + D[2, 2] * y2)
+                # dC^T (JC e_l)^x: column m is dC^T (u x e_m)
+                for m in range(3):
+                    e0, e1, e2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
+                    x0, x1, x2 = _cross(u0, u1, u2, e0, e1, e2)
+                    for a in range(3):
+                        tmp[a, m] = D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2
+                # dW <- A dW + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
+                e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
+                for c in range(10):
+                    y0, y1, y2 = dWj[0, c, l], dWj[1, c, l], dWj[2, c, l]
+                    a0, a1, a2 = _cross(w0, w1, w2, y0, y1, y2)
+                    b0, b1, b2 = _cross(e0, e1, e2, Wj[0, c], Wj[1, c], Wj[2, c])
+                    y0 += h * (b0 - a0)
+                    y1 += h * (b1 - a1)
+                    y2 += h * (b2 - a2)
+                    if 3 <= c < 6:
+                        y0 -= h * tmp[0, c - 3]
+                        y1 -= h * tmp[1, c - 3]
+                        y2 -= h * tmp[2, c - 3]
+                    dWj[0, c, l], dWj[1, c, l], dWj[2, c, l] = y0, y1, y2
+            # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
+            for c in range(10):
+                for a in range(3):
+                    Rm[j, a, c] += h * dCW[a, c]
+                a0, a1, a2 = _cross(w0, w1, w2, Wj[0, c], Wj[1, c], Wj[2, c])
+                Wj[0, c] -= h * a0
+                Wj[1, c] -= h * a1
+                Wj[2, c] -= h * a2
+            for a in range(3):
+                for b in range(3):
+                    Wj[a, 3 + b] += h * D[b, a]
+                Wj[a, 6] += h * acc[j, k, a]
+                Wj[a, 7 + a] += h
+            # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
+            so3.gamma_into(h * w0, h * w1, h * w2, Gm)
+            so3.exp_into(h * w0, h * w1, h * w2, E)
+            for a in range(3):
+                for b in range(3):
+                    JCj[a, b] -= h * (D[a, 0] * Gm[0, b] + D[a, 1] * Gm[1, b] + D[a, 2] * Gm[2, b])
+                    tmp[a, b] = D[a, 0] * E[0, b] + D[a, 1] * E[1, b] + D[a, 2] * E[2, b]
+            D[:, :] = tmp
+
+
 def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
-    around gyro biases ``b_w_bar (J, 3)`` (no covariance: see :func:`noise_covariance`)."""
-    acc, gyro, dt = (np.asarray(a, dtype=float) for a in (acc, gyro, dt))
-    b_w_bar = np.asarray(b_w_bar, dtype=float)
+    around gyro biases ``b_w_bar (J, 3)`` (no covariance: see :func:`noise_covariance`).
+    One compiled pass over the samples (:func:`_integrate_kernel`)."""
+    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
+    dt = np.asarray(dt, dtype=float)
     J, K = dt.shape
-    eye = np.eye(3)
-    dC = np.broadcast_to(eye, (J, 3, 3)).copy()
+    b_w_bar = np.ascontiguousarray(np.broadcast_to(as_trailing(b_w_bar, (3,), "b_w_bar"), (J, 3)))
+    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
     W = np.zeros((J, 3, 10))
-    W[:, :, 0:3] = eye
+    W[:, :, 0:3] = np.eye(3)
     Rm = np.zeros((J, 3, 10))
     JC = np.zeros((J, 3, 3))
     dW = np.zeros((J, 3, 10, 3))
     dRm = np.zeros((J, 3, 10, 3))
-    for k in range(K):
-        h = dt[:, k]
-        hm = h[:, None, None]
-        hm4 = hm[..., None]
-        w = gyro[:, k] - b_w_bar
-        A = eye - hm * so3.skew(w)
-        JCd = so3.skew(np.swapaxes(JC, 1, 2))  # (JC e_l)^x for l = 0, 1, 2: shape (J, l, 3, 3)
-        dCt = np.swapaxes(dC, 1, 2)
-        dC_W = dC @ W
-        # Bias Jacobians use the values at step k, so they are updated first. Tensors (J, 3, 10, 3)
-        # are contracted as (J, 3, 30) matrices; d^x W for d = e_l is a signed row shuffle.
-        dW_new = (A @ dW.reshape(J, 3, 30)).reshape(J, 3, 10, 3) + hm4 * _basis_cross(W)
-        dW_new[:, :, 3:6, :] -= hm4 * np.moveaxis(dCt[:, None] @ JCd, 1, -1)
-        dRm += hm4 * (np.moveaxis(JCd @ dC_W[:, None], 1, -1) + (dC @ dW.reshape(J, 3, 30)).reshape(J, 3, 10, 3))
-        dW = dW_new
-        Rm = Rm + hm * dC_W
-        B = np.zeros((J, 3, 10))
-        B[:, :, 3:6] = dCt
-        B[:, :, 6] = acc[:, k]
-        B[:, :, 7:10] = eye
-        W = A @ W + hm * B
-        JC = JC - hm * (dC @ so3.gamma(h[:, None] * w))
-        dC = dC @ so3.exp(h[:, None] * w)
+    _integrate_kernel(np.ascontiguousarray(acc), np.ascontiguousarray(gyro), np.ascontiguousarray(dt), b_w_bar,
+                      dC, W, Rm, JC, dW, dRm)
     return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
 
 
@@ -189,15 +238,8 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     and a zero variance would make the factor's noise model singular. The floor stands for the
     model's own discretisation error and is far below any sensor's noise."""
     acc, gyro, dt = samples
-    J, K = dt.shape
-    state = reference
-    S = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
-    densities = noise.densities()
-    for k in range(K):
-        state, F, G = imu.propagate(state, acc[:, k], gyro[:, k], dt[:, k], gravity)
-        h = dt[:, k]
-        q = densities / np.where(h > 0, h, np.inf)[:, None]  # diag of Q_d = R / dt (0 for dt = 0)
-        S = F @ S @ np.swapaxes(F, 1, 2) + (G * q[:, None, :]) @ np.swapaxes(G, 1, 2)
+    J = dt.shape[0]
+    _, S = imu.propagate_steps(reference, np.zeros((J, imu.STATE_DIM, imu.STATE_DIM)), acc, gyro, dt, noise, gravity)
     eye = np.eye(3)
     T = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
     Ct = np.swapaxes(reference.C, -1, -2)

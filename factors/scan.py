@@ -15,8 +15,3 @@ def prefix_products(M: np.ndarray, later_on_left: bool) -> np.ndarray:
         shift *= 2
     return P
 
-
-def suffix_products(M: np.ndarray) -> np.ndarray:
-    """``S_k = M_{K-1} ... M_{k+1} M_k`` for k = 0..K-1 (later factors on the left), by the same
-    doubling: the transition from step ``k`` to the end of a sequence of linear maps ``M``."""
-    return prefix_products(np.asarray(M)[::-1], later_on_left=False)[::-1]

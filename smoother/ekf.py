@@ -21,7 +21,6 @@ import numpy as np
 
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
-from factors.scan import suffix_products
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
@@ -45,30 +44,14 @@ class Ekf:
 
     def predict(self, acc, gyro, dt) -> None:
         """One Euler-forward step: ``x <- f(x)``, ``P <- F P F^T + G Q_d G^T``."""
-        self.state, F, G = imu.propagate(self.state, acc, gyro, dt, self.gravity)
-        Q = self.noise.discrete_covariance(dt)
-        self.P = F @ self.P @ F.T + G @ Q @ G.T
+        self.predict_steps(np.reshape(acc, (1, 3)), np.reshape(gyro, (1, 3)), np.reshape(dt, (1,)))
 
     def predict_steps(self, acc, gyro, dt) -> None:
-        """The same as :meth:`predict` applied to every step of ``acc, gyro (K, 3)``, ``dt (K,)``,
-        without a Python loop per step.
-
-        The predicted states are the block integration :func:`factors.imu.integrate`; ``F_k``
-        and ``G_k`` are evaluated along them in one batched :func:`factors.imu.propagate`; then
-        ``P_K = S_0 P S_0^T + sum_k S_{k+1} G_k Q_k G_k^T S_{k+1}^T`` with the suffix products
-        ``S_k = F_{K-1} ... F_k`` (``S_K = I``) -- the step-by-step recursion unrolled."""
-        dt = np.asarray(dt, dtype=float)
-        if dt.size == 0:
+        """:meth:`predict` applied to every step of ``acc, gyro (K, 3)``, ``dt (K,)``: one call of
+        the compiled :func:`factors.imu.propagate_steps`, no Python per step."""
+        if np.size(dt) == 0:
             return
-        states = imu.integrate(self.state, acc, gyro, dt, self.gravity)
-        _, F, G = imu.propagate(states[:-1], acc, gyro, dt, self.gravity)
-        q = self.noise.densities()[None, :] / np.where(dt > 0, dt, np.inf)[:, None]
-        GQG = (G * q[:, None, :]) @ np.swapaxes(G, 1, 2)
-        S = suffix_products(F)  # S[k] = F_{K-1} ... F_k
-        after = np.concatenate([S[1:], np.eye(imu.STATE_DIM)[None]], axis=0)  # S_{k+1}
-        P = S[0] @ self.P @ S[0].T + (after @ GQG @ np.swapaxes(after, 1, 2)).sum(axis=0)
-        self.state = states[-1]
-        self.P = 0.5 * (P + P.T)
+        self.state, self.P = imu.propagate_steps(self.state, self.P, acc, gyro, dt, self.noise, self.gravity)
 
     def update(self, e: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
         """Correct with a residual ``e(x)`` (measurement model minus measurement, e.g.

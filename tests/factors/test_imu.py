@@ -283,3 +283,34 @@ def test_vectorised_propagate_equals_loops(seed):
         for name in ("r", "v", "C", "b_f", "b_w"):
             assert max_abs(getattr(nxt[k], name), getattr(one, name)) <= 4 * EPS * 30, name
         assert max_abs(F[k], Fk) <= 4 * EPS * 30 and max_abs(G[k], Gk) <= 4 * EPS * 30
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_propagate_steps_equals_dense_covariance_recursion(seed):
+    """The compiled block-sparse prediction over J rows of K samples (padding dt = 0 skipped)
+    equals the dense ``S <- F S F^T + G Q_d G^T`` with this module's F and G, step by step."""
+    rng = np.random.default_rng(seed)
+    J, K = 4, 9
+    noise = imu.ImuNoise(acc=2e-2, gyro=3e-3, acc_bias=4e-4, gyro_bias=5e-5, velocity=1e-3)
+    C = so3.exp(S.sample_rotation_vectors(rng, J))
+    states = imu.ImuState(rng.normal(size=(J, 3)) * 10, rng.normal(size=(J, 3)) * 3, C,
+                          rng.normal(size=(J, 3)) * 0.3, rng.normal(size=(J, 3)) * 0.1)
+    A = rng.normal(size=(J, 15, 15))
+    cov = A @ np.swapaxes(A, 1, 2) * 1e-2
+    acc, gyro = rng.normal(size=(J, K, 3)) * 5, rng.normal(size=(J, K, 3)) * 4
+    dt = rng.uniform(1e-3, 0.05, (J, K))
+    dt[1, 5:] = 0.0  # a shorter row, padded
+    dt[2, 0] = 0.0
+    out, P = imu.propagate_steps(states, cov, acc, gyro, dt, noise)
+    for j in range(J):
+        x, Pj = states[j], cov[j]
+        for k in range(K):
+            if dt[j, k] == 0:
+                continue
+            x, F, G = imu.propagate(x, acc[j, k], gyro[j, k], dt[j, k])
+            Pj = F @ Pj @ F.T + G @ (noise.discrete_covariance(dt[j, k])) @ G.T
+        np.testing.assert_allclose(P[j], Pj, rtol=1e-12, atol=1e-13 * np.abs(Pj).max())
+        for name in ("r", "v", "C", "b_f", "b_w"):
+            assert max_abs(getattr(out[j], name), getattr(x, name)) <= 1e-12 * max(1.0, np.abs(getattr(x, name)).max())
+    one, P1 = imu.propagate_steps(states[0], cov[0], acc[0], gyro[0], dt[0], noise)
+    assert one.shape == () and P1.shape == (15, 15) and max_abs(P1, P[0]) == 0.0
