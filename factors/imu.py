@@ -237,27 +237,33 @@ def _skew_into(x, y, z, out) -> None:
 
 
 @njit(cache=True)
+def _left_multiply(F, X, out) -> None:
+    """``out = F X = X + (F - I) X`` with only the blocks of ``_F_OFF_IDENTITY``: row-block
+    updates along contiguous rows of ``X``."""
+    n = X.shape[1]
+    out[:, :] = X
+    for a, c in _F_OFF_IDENTITY:
+        d = 1.0 if a == c else 0.0
+        m00, m01, m02 = F[3 * a, 3 * c] - d, F[3 * a, 3 * c + 1], F[3 * a, 3 * c + 2]
+        m10, m11, m12 = F[3 * a + 1, 3 * c], F[3 * a + 1, 3 * c + 1] - d, F[3 * a + 1, 3 * c + 2]
+        m20, m21, m22 = F[3 * a + 2, 3 * c], F[3 * a + 2, 3 * c + 1], F[3 * a + 2, 3 * c + 2] - d
+        for col in range(n):
+            x0, x1, x2 = X[3 * c, col], X[3 * c + 1, col], X[3 * c + 2, col]
+            out[3 * a, col] += m00 * x0 + m01 * x1 + m02 * x2
+            out[3 * a + 1, col] += m10 * x0 + m11 * x1 + m12 * x2
+            out[3 * a + 2, col] += m20 * x0 + m21 * x1 + m22 * x2
+
+
+@njit(cache=True)
 def _covariance_step(S, F, G, q, T) -> None:
-    """``S <- F S F^T + G diag(q) G^T`` in place, multiplying only the blocks of ``F - I`` and
-    ``G`` listed in ``_F_OFF_IDENTITY`` and ``_G_BLOCKS``; ``T`` is a 15x15 work array."""
-    n = S.shape[0]
-    T[:, :] = S  # T = F S = S + (F - I) S
-    for a, c in _F_OFF_IDENTITY:
-        for i in range(3):
-            for k in range(3):
-                m = F[3 * a + i, 3 * c + k] - (1.0 if (a == c and i == k) else 0.0)
-                if m != 0.0:
-                    for col in range(n):
-                        T[3 * a + i, col] += m * S[3 * c + k, col]
-    S[:, :] = T  # S = T F^T = T + T (F - I)^T
-    for a, c in _F_OFF_IDENTITY:
-        for i in range(3):
-            for k in range(3):
-                m = F[3 * a + i, 3 * c + k] - (1.0 if (a == c and i == k) else 0.0)
-                if m != 0.0:
-                    for row in range(n):
-                        S[row, 3 * a + i] += T[row, 3 * c + k] * m
-    for a, na in _G_BLOCKS:  # + G diag(q) G^T, pairs of blocks driven by the same noise
+    """``S <- F S F^T + G diag(q) G^T`` in place: ``T = F S``, then ``S = F T^T`` (which is
+    ``F S F^T`` for symmetric ``S``), both as block-sparse row updates (:func:`_left_multiply`),
+    then the blocks of ``G diag(q) G^T`` that ``_G_BLOCKS`` makes nonzero. ``T`` is a
+    (2, 15, 15) work array."""
+    _left_multiply(F, S, T[0])
+    T[1][:, :] = T[0].T
+    _left_multiply(F, T[1], S)
+    for a, na in _G_BLOCKS:  # pairs of blocks driven by the same noise
         for b, nb in _G_BLOCKS:
             if na == nb:
                 for i in range(3):
@@ -284,7 +290,7 @@ def _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, q_density, g):
     its covariance ``S`` (in place)."""
     F = np.zeros((15, 15))
     G = np.zeros((15, 15))
-    T = np.empty((15, 15))
+    T = np.empty((2, 15, 15))
     q = np.empty(15)
     scratch = np.empty((2, 3, 3))
     for j in range(r.shape[0]):
