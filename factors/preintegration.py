@@ -99,12 +99,15 @@ class Preintegrated:
 
     def corrected(self, b_w: np.ndarray):
         """``(dC, W, Rm)`` at gyro bias ``b_w`` (first order around ``b_w_bar``) and the offset
-        ``d = b_w - b_w_bar``."""
-        d = np.asarray(b_w, dtype=float) - self.b_w_bar
-        W = self.W + np.einsum("...acl,...l->...ac", self.dW, d)
-        Rm = self.Rm + np.einsum("...acl,...l->...ac", self.dRm, d)
-        dC = so3.exp(np.einsum("...al,...l->...a", self.JC, d)) @ self.dC
-        return dC, W, Rm, d
+        ``d = b_w - b_w_bar`` (compiled, :func:`_correct`)."""
+        lead = np.broadcast_shapes(self.b_w_bar.shape[:-1], np.shape(b_w)[:-1])
+        n = int(np.prod(lead, dtype=int))
+        rows = _rows(lead, n, (self.dC, self.W, self.Rm, self.JC, self.dW, self.dRm, self.b_w_bar, b_w),
+                     _PRE_TAILS + ((3,),))
+        dC, W, Rm = np.empty((n, 3, 3)), np.empty((n, 3, 10)), np.empty((n, 3, 10))
+        _corrected_rows(*rows, dC, W, Rm)
+        d = rows[-1] - rows[-2]
+        return dC.reshape(lead + (3, 3)), W.reshape(lead + (3, 10)), Rm.reshape(lead + (3, 10)), d.reshape(lead + (3,))
 
     def relinearized(self, b_w: np.ndarray) -> "Preintegrated":
         """The same interval(s) integrated again around gyro bias ``b_w``; the covariance is
@@ -269,6 +272,133 @@ def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVI
     )
 
 
+#: Trailing shapes of the Preintegrated fields a residual reads, and of an ImuState's fields.
+_PRE_TAILS = ((3, 3), (3, 10), (3, 10), (3, 3), (3, 10, 3), (3, 10, 3), (3,))
+_STATE_TAILS = ((3,), (3,), (3, 3), (3,), (3,))
+
+
+def _rows(lead: tuple, n: int, arrays, tails) -> list:
+    """Each array broadcast to ``lead + tail`` and flattened to ``n`` contiguous rows."""
+    out = []
+    for a, t in zip(arrays, tails):
+        a = np.asarray(a, dtype=float)
+        if a.shape != lead + t:
+            a = np.broadcast_to(a, lead + t)
+        out.append(np.ascontiguousarray(a).reshape((n,) + t))
+    return out
+
+
+@njit(cache=True)
+def _matmul(A, B, out) -> None:
+    """``out = A B`` for small 2-d arrays (out must not alias A or B)."""
+    for a in range(A.shape[0]):
+        for b in range(B.shape[1]):
+            acc = 0.0
+            for k in range(A.shape[1]):
+                acc += A[a, k] * B[k, b]
+            out[a, b] = acc
+
+
+@njit(cache=True)
+def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E) -> None:
+    """First-order gyro-bias correction of one interval: ``W + dW . d``, ``Rm + dRm . d``,
+    ``exp(JC d) dC`` with ``d = b_w - b_w_bar``; ``JC d`` into ``JCd`` (3), ``E`` a 3x3 work array."""
+    d0, d1, d2 = b_w[0] - b_w_bar[0], b_w[1] - b_w_bar[1], b_w[2] - b_w_bar[2]
+    for a in range(3):
+        for c in range(10):
+            W_out[a, c] = W[a, c] + dW[a, c, 0] * d0 + dW[a, c, 1] * d1 + dW[a, c, 2] * d2
+            Rm_out[a, c] = Rm[a, c] + dRm[a, c, 0] * d0 + dRm[a, c, 1] * d1 + dRm[a, c, 2] * d2
+        JCd[a] = JC[a, 0] * d0 + JC[a, 1] * d1 + JC[a, 2] * d2
+    so3.exp_into(JCd[0], JCd[1], JCd[2], E)
+    _matmul(E, dC, dC_out)
+
+
+@njit(cache=True)
+def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out):
+    JCd, E = np.empty(3), np.empty((3, 3))
+    for n in range(dC.shape[0]):
+        _correct(dC[n], W[n], Rm[n], JC[n], dW[n], dRm[n], b_w_bar[n], b_w[n], dC_out[n], W_out[n], Rm_out[n], JCd, E)
+
+
+@njit(cache=True)
+def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
+                   jacobians, e, Ji, Jj):
+    """:func:`residual` for each row (see its docstring for every formula)."""
+    dC, W, Rm = np.empty((3, 3)), np.empty((3, 10)), np.empty((3, 10))
+    JCd, E, X, Y, M, z = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(10)
+    u, gamma, dr = np.empty(3), np.empty(3), np.empty(3)
+    for n in range(dC0.shape[0]):
+        _correct(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], bwi[n], dC, W, Rm, JCd, E)
+        C = Ci[n]
+        for a in range(3):
+            dr[a] = rj[n, a] - ri[n, a]
+        for a in range(3):
+            gamma[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
+            u[a] = C[0, a] * dr[0] + C[1, a] * dr[1] + C[2, a] * dr[2]
+            z[a], z[3 + a], z[7 + a] = vi[n, a], gamma[a], -bfi[n, a]
+        z[6] = 1.0
+        # X = C_i^T C_j dC^T
+        for a in range(3):
+            for b in range(3):
+                Y[a, b] = C[0, a] * Cj[n, 0, b] + C[1, a] * Cj[n, 1, b] + C[2, a] * Cj[n, 2, b]
+        for a in range(3):
+            for b in range(3):
+                X[a, b] = Y[a, 0] * dC[b, 0] + Y[a, 1] * dC[b, 1] + Y[a, 2] * dC[b, 2]
+        p0, p1, p2 = so3.log_of(X)
+        for a in range(3):
+            rz, wz = 0.0, 0.0
+            for c in range(10):
+                rz += Rm[a, c] * z[c]
+                wz += W[a, c] * z[c]
+            e[n, a] = u[a] - rz
+            e[n, 3 + a] = vj[n, a] - wz
+            e[n, 9 + a] = bfj[n, a] - bfi[n, a]
+            e[n, 12 + a] = bwj[n, a] - bwi[n, a]
+        e[n, 6], e[n, 7], e[n, 8] = p0, p1, p2
+        if not jacobians:
+            continue
+        A, B = Ji[n], Jj[n]
+        A[:, :] = 0.0
+        B[:, :] = 0.0
+        so3.gamma_inv_into(p0, p1, p2, M)  # Gamma^-1(e_phi)
+        for a in range(3):
+            A[9 + a, 9 + a] = A[12 + a, 12 + a] = -1.0
+            B[9 + a, 9 + a] = B[12 + a, 12 + a] = B[3 + a, 3 + a] = 1.0
+            for b in range(3):
+                A[a, b] = -C[b, a]
+                B[a, b] = C[b, a]
+                A[a, 3 + b] = -Rm[a, b]
+                A[a, 9 + b] = Rm[a, 7 + b]
+                A[3 + a, 3 + b] = -W[a, b]
+                A[3 + a, 9 + b] = W[a, 7 + b]
+                # Gamma^-1 C_i^T into the attitude rows
+                gc = M[a, 0] * C[b, 0] + M[a, 1] * C[b, 1] + M[a, 2] * C[b, 2]
+                B[6 + a, 6 + b] = gc
+                A[6 + a, 6 + b] = -gc
+                sr, sv = 0.0, 0.0
+                for c in range(10):
+                    sr += dRm[n, a, c, b] * z[c]
+                    sv += dW[n, a, c, b] * z[c]
+                A[a, 12 + b] = -sr
+                A[3 + a, 12 + b] = -sv
+        # attitude columns of the r and v rows: u^x C_i^T - Rm_g gamma^x C_i^T, -W_g gamma^x C_i^T
+        for b in range(3):
+            c0, c1, c2 = C[b, 0], C[b, 1], C[b, 2]  # column b of C_i^T
+            x0, x1, x2 = gamma[1] * c2 - gamma[2] * c1, gamma[2] * c0 - gamma[0] * c2, gamma[0] * c1 - gamma[1] * c0
+            y0, y1, y2 = u[1] * c2 - u[2] * c1, u[2] * c0 - u[0] * c2, u[0] * c1 - u[1] * c0
+            for a in range(3):
+                A[a, 6 + b] = (y0, y1, y2)[a] - (Rm[a, 3] * x0 + Rm[a, 4] * x1 + Rm[a, 5] * x2)
+                A[3 + a, 6 + b] = -(W[a, 3] * x0 + W[a, 4] * x1 + W[a, 5] * x2)
+        # gyro-bias column of the attitude rows: -Gamma^-1(e) X Gamma(JC d) JC
+        so3.gamma_into(JCd[0], JCd[1], JCd[2], E)
+        _matmul(M, X, Y)
+        _matmul(Y, E, M)
+        _matmul(M, JC[n], Y)
+        for a in range(3):
+            for b in range(3):
+                A[6 + a, 12 + b] = -Y[a, b]
+
+
 def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, gravity=imu.DEFAULT_GRAVITY,
              jacobians: bool = False):
     """The 15-dim IMU residual and, optionally, its Jacobians in the primer's convention.
@@ -289,55 +419,17 @@ def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, g
         e_phi = log(X), X = C_i^T C_j dC^T:  dphi_j Gamma^-1(e) C_i^T,  dphi_i -Gamma^-1(e) C_i^T,
              db_w -Gamma^-1(e) X Gamma(JC d) JC
     """
-    g = np.asarray(gravity, dtype=float)
-    dC, W, Rm, d = pre.corrected(state_i.b_w)
-    Ci, Cj = state_i.C, state_j.C
-    Cit = np.swapaxes(Ci, -1, -2)
-    gamma = np.einsum("...ab,b->...a", Cit, g)
-    z = _z(state_i.v, gamma, state_i.b_f)
-    u = np.einsum("...ab,...b->...a", Cit, state_j.r - state_i.r)
-    X = Cit @ Cj @ np.swapaxes(dC, -1, -2)
-    e_phi = so3.log(X)
-    e = np.concatenate(
-        [
-            u - np.einsum("...ac,...c->...a", Rm, z),
-            state_j.v - np.einsum("...ac,...c->...a", W, z),
-            e_phi,
-            state_j.b_f - state_i.b_f,
-            state_j.b_w - state_i.b_w,
-        ],
-        axis=-1,
-    )
+    lead = np.broadcast_shapes(pre.b_w_bar.shape[:-1], state_i.shape, state_j.shape)
+    n = int(np.prod(lead, dtype=int))
+    fields = ("r", "v", "C", "b_f", "b_w")
+    args = (_rows(lead, n, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
+            + _rows(lead, n, [getattr(state_i, f) for f in fields], _STATE_TAILS)
+            + _rows(lead, n, [getattr(state_j, f) for f in fields], _STATE_TAILS))
+    e = np.empty((n, 15))
+    Ji = np.empty((n, 15, 15) if jacobians else (0, 15, 15))
+    Jj = np.empty_like(Ji)
+    _residual_rows(*args, as_trailing(gravity, (3,), "gravity"), jacobians, e, Ji, Jj)
+    e = e.reshape(lead + (15,))
     if not jacobians:
         return e
-    shape = e.shape[:-1]
-    Ji = np.zeros(shape + (15, 15))
-    Jj = np.zeros(shape + (15, 15))
-    eye = np.eye(3)
-    R_, V_, P_, BF_, BW_ = imu.R, imu.V, imu.PHI, imu.BF, imu.BW
-    gx_Cit = so3.skew(gamma) @ Cit
-    Ginv = so3.gamma_inv(e_phi)
-    JCd = np.einsum("...al,...l->...a", pre.JC, d)
-    # position rows
-    Ji[..., R_, R_] = -Cit
-    Jj[..., R_, R_] = Cit
-    Ji[..., R_, V_] = -Rm[..., :, 0:3]
-    Ji[..., R_, P_] = so3.skew(u) @ Cit - Rm[..., :, 3:6] @ gx_Cit
-    Ji[..., R_, BF_] = Rm[..., :, 7:10]
-    Ji[..., R_, BW_] = -np.einsum("...acl,...c->...al", pre.dRm, z)
-    # velocity rows
-    Jj[..., V_, V_] = eye
-    Ji[..., V_, V_] = -W[..., :, 0:3]
-    Ji[..., V_, P_] = -W[..., :, 3:6] @ gx_Cit
-    Ji[..., V_, BF_] = W[..., :, 7:10]
-    Ji[..., V_, BW_] = -np.einsum("...acl,...c->...al", pre.dW, z)
-    # attitude rows
-    Jj[..., P_, P_] = Ginv @ Cit
-    Ji[..., P_, P_] = -Ginv @ Cit
-    Ji[..., P_, BW_] = -Ginv @ X @ so3.gamma(JCd) @ pre.JC
-    # bias rows
-    Ji[..., BF_, BF_] = -eye
-    Jj[..., BF_, BF_] = eye
-    Ji[..., BW_, BW_] = -eye
-    Jj[..., BW_, BW_] = eye
-    return e, (Ji, Jj)
+    return e, (Ji.reshape(lead + (15, 15)), Jj.reshape(lead + (15, 15)))
