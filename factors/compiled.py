@@ -29,3 +29,16 @@ def apply_rows(loop, a, in_dims: tuple, out_dims: tuple, name: str) -> np.ndarra
     out = np.empty((flat.shape[0],) + tuple(out_dims))
     loop(flat, out)
     return out.reshape(lead + tuple(out_dims))
+
+
+def rows(lead: tuple, arrays, tails) -> list:
+    """Each array broadcast to ``lead + tail`` (its own trailing shape ``tail``) and flattened to
+    contiguous rows ``(prod(lead),) + tail`` -- the layout the compiled row loops take."""
+    n = int(np.prod(lead, dtype=int))
+    out = []
+    for a, t in zip(arrays, tails):
+        a = np.asarray(a, dtype=float)
+        if a.shape != tuple(lead) + tuple(t):
+            a = np.broadcast_to(a, tuple(lead) + tuple(t))
+        out.append(np.ascontiguousarray(a).reshape((n,) + tuple(t)))
+    return out

@@ -46,7 +46,7 @@ import numpy as np
 from numba import njit
 
 from factors import scan, so3
-from factors.compiled import as_trailing
+from factors.compiled import as_trailing, rows
 
 STATE_DIM = 15
 NOISE_DIM = 15
@@ -318,16 +318,12 @@ def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians
     g = as_trailing(gravity, (3,), "gravity")
     shape = np.broadcast_shapes(state.shape, dt.shape, acc.shape[:-1], gyro.shape[:-1])
     n = int(np.prod(shape, dtype=int))
-
-    def flat(a, tail):
-        return np.ascontiguousarray(np.broadcast_to(a, shape + tail).reshape((n,) + tail))
-
     vec = (3,)
-    r, v, b_f, b_w = (flat(getattr(state, name), vec) for name in ("r", "v", "b_f", "b_w"))
+    r, v, C, b_f, b_w, acc, gyro, dt = rows(shape, (state.r, state.v, state.C, state.b_f, state.b_w, acc, gyro, dt),
+                                            (vec, vec, (3, 3), vec, vec, vec, vec, ()))
     out_r, out_v, out_C = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
     F, G = np.empty((n, STATE_DIM, STATE_DIM)), np.empty((n, STATE_DIM, NOISE_DIM))
-    _propagate_rows(r, v, flat(state.C, (3, 3)), b_f, b_w, flat(acc, vec), flat(gyro, vec), flat(dt, ()), g,
-                    out_r, out_v, out_C, F, G)
+    _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G)
     next_state = ImuState(out_r.reshape(shape + vec), out_v.reshape(shape + vec), out_C.reshape(shape + (3, 3)),
                           b_f.reshape(shape + vec), b_w.reshape(shape + vec))
     if not jacobians:
@@ -350,17 +346,16 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
     single = dt.ndim == 1
     lead = (1,) if single else dt.shape[:1]
     K = dt.shape[-1]
-    rows = [np.array(np.broadcast_to(getattr(state, name), lead + (3,)), dtype=float) for name in ("r", "v")]
-    C = np.array(np.broadcast_to(state.C, lead + (3, 3)), dtype=float)
-    b_f, b_w = (np.ascontiguousarray(np.broadcast_to(getattr(state, n), lead + (3,))) for n in ("b_f", "b_w"))
-    S = np.array(np.broadcast_to(cov, lead + (STATE_DIM, STATE_DIM)), dtype=float)
-    _propagate_steps_kernel(rows[0], rows[1], C, b_f, b_w, S,
-                            np.ascontiguousarray(acc.reshape(lead + (K, 3))),
-                            np.ascontiguousarray(gyro.reshape(lead + (K, 3))),
-                            np.ascontiguousarray(dt.reshape(lead + (K,))), noise.densities(),
-                            as_trailing(gravity, (3,), "gravity"))
+    vec = (3,)
+    # copies: the kernel steps the states and covariances in place
+    r, v, C, S = (np.array(a) for a in rows(lead, (state.r, state.v, state.C, cov),
+                                             (vec, vec, (3, 3), (STATE_DIM, STATE_DIM))))
+    b_f, b_w, acc, gyro, dt = rows(lead, (state.b_f, state.b_w, acc.reshape(lead + (K, 3)),
+                                          gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
+                                   (vec, vec, (K, 3), (K, 3), (K,)))
+    _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(), as_trailing(gravity, vec, "gravity"))
     S = 0.5 * (S + np.swapaxes(S, -1, -2))
-    out = ImuState(rows[0], rows[1], C, b_f, b_w)
+    out = ImuState(r, v, C, b_f, b_w)
     return (out[0], S[0]) if single else (out, S)
 
 

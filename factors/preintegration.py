@@ -46,7 +46,7 @@ import numpy as np
 from numba import njit
 
 from factors import imu, so3
-from factors.compiled import as_trailing
+from factors.compiled import as_trailing, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -102,7 +102,7 @@ class Preintegrated:
         ``d = b_w - b_w_bar`` (compiled, :func:`_correct`)."""
         lead = np.broadcast_shapes(self.b_w_bar.shape[:-1], np.shape(b_w)[:-1])
         n = int(np.prod(lead, dtype=int))
-        rows = _rows(lead, n, (self.dC, self.W, self.Rm, self.JC, self.dW, self.dRm, self.b_w_bar, b_w),
+        rows = rows_of(lead, (self.dC, self.W, self.Rm, self.JC, self.dW, self.dRm, self.b_w_bar, b_w),
                      _PRE_TAILS + ((3,),))
         dC, W, Rm = np.empty((n, 3, 3)), np.empty((n, 3, 10)), np.empty((n, 3, 10))
         _corrected_rows(*rows, dC, W, Rm)
@@ -277,17 +277,6 @@ _PRE_TAILS = ((3, 3), (3, 10), (3, 10), (3, 3), (3, 10, 3), (3, 10, 3), (3,))
 _STATE_TAILS = ((3,), (3,), (3, 3), (3,), (3,))
 
 
-def _rows(lead: tuple, n: int, arrays, tails) -> list:
-    """Each array broadcast to ``lead + tail`` and flattened to ``n`` contiguous rows."""
-    out = []
-    for a, t in zip(arrays, tails):
-        a = np.asarray(a, dtype=float)
-        if a.shape != lead + t:
-            a = np.broadcast_to(a, lead + t)
-        out.append(np.ascontiguousarray(a).reshape((n,) + t))
-    return out
-
-
 @njit(cache=True)
 def _matmul(A, B, out) -> None:
     """``out = A B`` for small 2-d arrays (out must not alias A or B)."""
@@ -422,9 +411,9 @@ def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, g
     lead = np.broadcast_shapes(pre.b_w_bar.shape[:-1], state_i.shape, state_j.shape)
     n = int(np.prod(lead, dtype=int))
     fields = ("r", "v", "C", "b_f", "b_w")
-    args = (_rows(lead, n, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
-            + _rows(lead, n, [getattr(state_i, f) for f in fields], _STATE_TAILS)
-            + _rows(lead, n, [getattr(state_j, f) for f in fields], _STATE_TAILS))
+    args = (rows_of(lead, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
+            + rows_of(lead, [getattr(state_i, f) for f in fields], _STATE_TAILS)
+            + rows_of(lead, [getattr(state_j, f) for f in fields], _STATE_TAILS))
     e = np.empty((n, 15))
     Ji = np.empty((n, 15, 15) if jacobians else (0, 15, 15))
     Jj = np.empty_like(Ji)
