@@ -136,22 +136,24 @@ def log_of(C) -> tuple:
     return quaternion.quaternion_log(q0, qx, qy, qz)
 
 
-@njit(cache=True)
-def _exp_rows(phi, out):
-    for i in range(phi.shape[0]):
-        exp_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+_EXP, _GAMMA, _GAMMA_INV = 0, 1, 2
 
 
 @njit(cache=True)
-def _gamma_rows(phi, out):
+def _quadratic_rows(phi, out, which):
+    """exp, gamma or gamma_inv (``which``) of every row of ``phi``."""
     for i in range(phi.shape[0]):
-        gamma_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+        x, y, z = phi[i, 0], phi[i, 1], phi[i, 2]
+        if which == _EXP:
+            exp_into(x, y, z, out[i])
+        elif which == _GAMMA:
+            gamma_into(x, y, z, out[i])
+        else:
+            gamma_inv_into(x, y, z, out[i])
 
 
-@njit(cache=True)
-def _gamma_inv_rows(phi, out):
-    for i in range(phi.shape[0]):
-        gamma_inv_into(phi[i, 0], phi[i, 1], phi[i, 2], out[i])
+def _matrices(phi, which: int) -> np.ndarray:
+    return apply_rows(lambda flat, out: _quadratic_rows(flat, out, which), phi, (3,), (3, 3), "phi")
 
 
 @njit(cache=True)
@@ -162,7 +164,7 @@ def _log_rows(C, out):
 
 def exp(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix ``C(exp(phi))`` by Rodrigues' formula (primer eq. 21)."""
-    return apply_rows(_exp_rows, phi, (3,), (3, 3), "phi")
+    return _matrices(phi, _EXP)
 
 
 def log(C: np.ndarray) -> np.ndarray:
@@ -202,7 +204,7 @@ def gamma(phi: np.ndarray) -> np.ndarray:
     The derivative of ``exp`` in the [+] sense (eq. 31): ``exp(phi + d) ~= exp(Gamma(phi) d) exp(phi)``.
     Equal to GTSAM's ``Rot3.ExpmapDerivative(-phi)`` (GTSAM's is the right Jacobian).
     """
-    return apply_rows(_gamma_rows, phi, (3,), (3, 3), "phi")
+    return _matrices(phi, _GAMMA)
 
 
 def gamma_inv(phi: np.ndarray) -> np.ndarray:
@@ -211,7 +213,7 @@ def gamma_inv(phi: np.ndarray) -> np.ndarray:
     The derivative of ``log`` in the [+] sense (eq. 32): ``d log(Phi) / d Phi = Gamma^-1(log Phi)``.
     Valid for ``|phi| < 2 pi``; at ``|phi| = pi`` (where ``log`` lives at most) it is finite.
     """
-    return apply_rows(_gamma_inv_rows, phi, (3,), (3, 3), "phi")
+    return _matrices(phi, _GAMMA_INV)
 
 
 def project(M: np.ndarray) -> np.ndarray:
