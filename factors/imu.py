@@ -266,12 +266,18 @@ def _covariance_step(S, F, G, q, T) -> None:
     for a, na in _G_BLOCKS:  # pairs of blocks driven by the same noise
         for b, nb in _G_BLOCKS:
             if na == nb:
-                for i in range(3):
-                    for j in range(3):
-                        acc = 0.0
-                        for k in range(3):
-                            acc += G[3 * a + i, 3 * na + k] * q[3 * na + k] * G[3 * b + j, 3 * na + k]
-                        S[3 * a + i, 3 * b + j] += acc
+                _add_noise_block(S, G, q, a, b, na)
+
+
+@njit(cache=True)
+def _add_noise_block(S, G, q, a, b, noise) -> None:
+    """``S[a, b] += G[a, noise] diag(q[noise]) G[b, noise]^T`` on 3-blocks."""
+    q0, q1, q2 = q[3 * noise], q[3 * noise + 1], q[3 * noise + 2]
+    for i in range(3):
+        g0, g1, g2 = G[3 * a + i, 3 * noise] * q0, G[3 * a + i, 3 * noise + 1] * q1, G[3 * a + i, 3 * noise + 2] * q2
+        for j in range(3):
+            S[3 * a + i, 3 * b + j] += g0 * G[3 * b + j, 3 * noise] + g1 * G[3 * b + j, 3 * noise + 1] \
+                + g2 * G[3 * b + j, 3 * noise + 2]
 
 
 @njit(cache=True)
