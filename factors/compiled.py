@@ -9,6 +9,8 @@ vectorised interface of a NumPy function (``(..., *in_dims) -> (..., *out_dims)`
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -33,12 +35,25 @@ def apply_rows(loop, a, in_dims: tuple, out_dims: tuple, name: str) -> np.ndarra
 
 def rows(lead: tuple, arrays, tails) -> list:
     """Each array broadcast to ``lead + tail`` (its own trailing shape ``tail``) and flattened to
-    contiguous rows ``(prod(lead),) + tail`` -- the layout the compiled row loops take."""
-    n = int(np.prod(lead, dtype=int))
+    contiguous rows ``(prod(lead),) + tail`` -- the layout the compiled row loops take. Arrays
+    already in that shape and layout are reshaped views (this sits on the per-factor callback
+    path, so the common case does no copying and few checks)."""
+    lead = tuple(lead)
+    n = math.prod(lead)
     out = []
     for a, t in zip(arrays, tails):
-        a = np.asarray(a, dtype=float)
-        if a.shape != tuple(lead) + tuple(t):
-            a = np.broadcast_to(a, tuple(lead) + tuple(t))
-        out.append(np.ascontiguousarray(a).reshape((n,) + tuple(t)))
+        shape = lead + tuple(t)
+        if type(a) is not np.ndarray or a.dtype != np.float64:
+            a = np.asarray(a, dtype=float)
+        if a.shape != shape:
+            a = np.broadcast_to(a, shape)
+        if not a.flags.c_contiguous:
+            a = np.ascontiguousarray(a)
+        out.append(a.reshape((n,) + tuple(t)))
     return out
+
+
+def common_shape(*shapes) -> tuple:
+    """The broadcast of ``shapes`` (fast when they are all equal)."""
+    first = shapes[0]
+    return first if all(s == first for s in shapes) else np.broadcast_shapes(*shapes)

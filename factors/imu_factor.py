@@ -29,7 +29,7 @@ def _state(C, r, v, b) -> imu.ImuState:
 
 def _reorder(J: np.ndarray) -> list[np.ndarray]:
     """Error-state columns (r, v, phi, b_f, b_w) -> the factor's variables (Rot3, Point3, V, bias)."""
-    return [J[:, imu.PHI], J[:, imu.R], J[:, imu.V], np.hstack([J[:, imu.BF], J[:, imu.BW]])]
+    return [J[:, imu.PHI], J[:, imu.R], J[:, imu.V], J[:, imu.BF.start:imu.BW.stop]]  # (b_f, b_w) adjacent
 
 
 class ImuFactor:

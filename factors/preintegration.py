@@ -40,13 +40,14 @@ per sample or per interval.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from factors import imu, so3
-from factors.compiled import as_trailing, rows as rows_of
+from factors.compiled import as_trailing, common_shape, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -100,8 +101,8 @@ class Preintegrated:
     def corrected(self, b_w: np.ndarray):
         """``(dC, W, Rm)`` at gyro bias ``b_w`` (first order around ``b_w_bar``) and the offset
         ``d = b_w - b_w_bar`` (compiled, :func:`_correct`)."""
-        lead = np.broadcast_shapes(self.b_w_bar.shape[:-1], np.shape(b_w)[:-1])
-        n = int(np.prod(lead, dtype=int))
+        lead = common_shape(self.b_w_bar.shape[:-1], np.shape(b_w)[:-1])
+        n = math.prod(lead)
         rows = rows_of(lead, (self.dC, self.W, self.Rm, self.JC, self.dW, self.dRm, self.b_w_bar, b_w),
                      _PRE_TAILS + ((3,),))
         dC, W, Rm = np.empty((n, 3, 3)), np.empty((n, 3, 10)), np.empty((n, 3, 10))
@@ -408,8 +409,8 @@ def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, g
         e_phi = log(X), X = C_i^T C_j dC^T:  dphi_j Gamma^-1(e) C_i^T,  dphi_i -Gamma^-1(e) C_i^T,
              db_w -Gamma^-1(e) X Gamma(JC d) JC
     """
-    lead = np.broadcast_shapes(pre.b_w_bar.shape[:-1], state_i.shape, state_j.shape)
-    n = int(np.prod(lead, dtype=int))
+    lead = common_shape(pre.b_w_bar.shape[:-1], state_i.shape, state_j.shape)
+    n = math.prod(lead)
     fields = ("r", "v", "C", "b_f", "b_w")
     args = (rows_of(lead, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
             + rows_of(lead, [getattr(state_i, f) for f in fields], _STATE_TAILS)
