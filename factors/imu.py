@@ -192,11 +192,10 @@ def step_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, sc
     v0, v1, v2 = v[0], v[1], v[2]
     so3.exp_into(dt * w0, dt * w1, dt * w2, E)
     so3.gamma_into(dt * w0, dt * w1, dt * w2, CG)
-    Cv = np.empty(3)
-    Ctg = np.empty(3)
-    for a in range(3):
-        Cv[a] = C[a, 0] * v0 + C[a, 1] * v1 + C[a, 2] * v2
-        Ctg[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
+    Cv = (C[0, 0] * v0 + C[0, 1] * v1 + C[0, 2] * v2, C[1, 0] * v0 + C[1, 1] * v1 + C[1, 2] * v2,
+          C[2, 0] * v0 + C[2, 1] * v1 + C[2, 2] * v2)
+    Ctg = (C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2], C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2],
+           C[0, 2] * g[0] + C[1, 2] * g[1] + C[2, 2] * g[2])
     # Jacobians first: they are taken at the current state (and out_* may alias it).
     for a in range(3):
         for b in range(3):
