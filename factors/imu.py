@@ -103,12 +103,35 @@ class ImuState:
         return replace(self, **changes)
 
 
+@njit(cache=True)
+def boxplus_into(r, v, C, b_f, b_w, dx) -> None:
+    """Compiled core of :func:`boxplus` for one state, in place."""
+    E, C0 = np.empty((3, 3)), C.copy()
+    so3.exp_into(dx[6], dx[7], dx[8], E)
+    for a in range(3):
+        r[a] += dx[a]
+        v[a] += dx[3 + a]
+        b_f[a] += dx[9 + a]
+        b_w[a] += dx[12 + a]
+        for b in range(3):
+            C[a, b] = E[a, 0] * C0[0, b] + E[a, 1] * C0[1, b] + E[a, 2] * C0[2, b]
+
+
+@njit(cache=True)
+def _boxplus_rows(r, v, C, b_f, b_w, dx):
+    for n in range(r.shape[0]):
+        boxplus_into(r[n], v[n], C[n], b_f[n], b_w[n], dx[n])
+
+
 def boxplus(x: ImuState, dx: np.ndarray) -> ImuState:
-    """``x [+] dx``: vectors add, the attitude takes the primer's left boxplus."""
-    dx = np.asarray(dx, dtype=float)
-    return ImuState(
-        x.r + dx[..., R], x.v + dx[..., V], so3.boxplus(x.C, dx[..., PHI]), x.b_f + dx[..., BF], x.b_w + dx[..., BW]
-    )
+    """``x [+] dx``: vectors add, the attitude takes the primer's left boxplus ``exp(dphi) C``."""
+    dx = as_trailing(dx, (STATE_DIM,), "dx")
+    lead = np.broadcast_shapes(x.shape, dx.shape[:-1])
+    vec = (3,)
+    r, v, C, b_f, b_w = (np.array(a) for a in rows(lead, (x.r, x.v, x.C, x.b_f, x.b_w), (vec, vec, (3, 3), vec, vec)))
+    (step,) = rows(lead, (dx,), ((STATE_DIM,),))
+    _boxplus_rows(r, v, C, b_f, b_w, step)
+    return ImuState(*(a.reshape(lead + a.shape[1:]) for a in (r, v, C, b_f, b_w)))
 
 
 def boxminus(a: ImuState, b: ImuState) -> np.ndarray:
@@ -169,144 +192,197 @@ class ImuNoise:
 
 # ------------------------------------------------------------------------------------------------
 # One step and its Jacobians: the compiled core every estimator runs (see factors.compiled).
+#
+# A step is described by the 37 numbers ``Q`` of :func:`step_quantities` (the nonzero blocks of
+# ``F - I`` and ``G`` are all products of ``dt`` with ``C``, ``C v``, ``w``, ``v``, ``C^T g^x`` and
+# ``C Gamma``). ``F`` is never formed on the estimators' path: :func:`_apply_A` applies
+# ``A = F - I`` to a vector, and the covariance update ``F P F^T = P + B + B^T + B A^T`` with
+# ``B = A P`` costs 24 such applications (about 1100 multiply-adds instead of 2 x 3375 for dense
+# 15x15 products). The dense ``F`` and ``G`` of :func:`propagate` are built from the same
+# ``Q`` (``A`` applied to the identity), so the numerical-twin tests of ``F`` and ``G`` check the
+# operator the estimators use.
 
-#: Error-state blocks (index of each 3-block) and the blocks of ``F - I`` and of ``G`` that the
-#: step writes; every other block of ``F - I`` and ``G`` is zero. ``_covariance_step`` multiplies
-#: only these, so the covariance update costs a few 3x3 products per step instead of dense 15x15
-#: ones; tests compare it with the dense ``F S F^T + G Q G^T``.
-_RB, _VB, _PB, _FB, _WB = 0, 1, 2, 3, 4
-_F_OFF_IDENTITY = ((_RB, _VB), (_RB, _PB), (_VB, _VB), (_VB, _PB), (_VB, _FB), (_VB, _WB), (_PB, _WB))
-_G_BLOCKS = ((_RB, _RB), (_VB, _VB), (_VB, _PB), (_PB, _PB), (_FB, _FB), (_WB, _WB))
+#: Offsets into ``Q``: ``dt C`` (row-major), ``dt C v``, ``dt w``, ``dt v``, ``dt C^T g^x``
+#: (row-major), ``dt C Gamma(dt w)`` (row-major), ``dt``.
+_Q_C, _Q_CV, _Q_W, _Q_V, _Q_CTGX, _Q_CGAMMA, _Q_DT = 0, 9, 12, 15, 18, 27, 36
+Q_SIZE = 37
 
 
 @njit(cache=True)
-def step_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, scratch) -> None:
-    """Compiled core of :func:`propagate` for one state and one sample.
-
-    Writes the next state into ``out_r, out_v, out_C`` (which may alias the inputs) and the
-    nonzero blocks of ``F`` and ``G`` (15x15, zero elsewhere: the caller zeroes them once).
-    ``scratch`` is a (2, 3, 3) work array."""
-    E, CG = scratch[0], scratch[1]
-    w0, w1, w2 = gyro[0] - b_w[0], gyro[1] - b_w[1], gyro[2] - b_w[2]
-    f0, f1, f2 = acc[0] - b_f[0], acc[1] - b_f[1], acc[2] - b_f[2]
+def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
+    """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
+    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
+    x, y, z = dt * w0, dt * w1, dt * w2
+    so3.exp_into(x, y, z, E)
+    Gm = np.empty((3, 3))
+    so3.gamma_into(x, y, z, Gm)
     v0, v1, v2 = v[0], v[1], v[2]
-    so3.exp_into(dt * w0, dt * w1, dt * w2, E)
-    so3.gamma_into(dt * w0, dt * w1, dt * w2, CG)
-    Cv = (C[0, 0] * v0 + C[0, 1] * v1 + C[0, 2] * v2, C[1, 0] * v0 + C[1, 1] * v1 + C[1, 2] * v2,
-          C[2, 0] * v0 + C[2, 1] * v1 + C[2, 2] * v2)
-    Ctg = (C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2], C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2],
-           C[0, 2] * g[0] + C[1, 2] * g[1] + C[2, 2] * g[2])
-    # Jacobians first: they are taken at the current state (and out_* may alias it).
-    for a in range(3):
-        for b in range(3):
-            F[a, 3 + b] = dt * C[a, b]
-            G[a, b] = dt * C[a, b]
-            F[9 + a, 9 + b] = F[12 + a, 12 + b] = F[a, b] = F[6 + a, 6 + b] = 1.0 if a == b else 0.0
-            F[3 + a, 9 + b] = G[3 + a, 3 + b] = -dt if a == b else 0.0
-            G[9 + a, 9 + b] = G[12 + a, 12 + b] = dt if a == b else 0.0
-            # C^T g^x: column b of g^x is e_b x g
-            gx0 = (0.0, -g[2], g[1])[b]
-            gx1 = (g[2], 0.0, -g[0])[b]
-            gx2 = (-g[1], g[0], 0.0)[b]
-            F[3 + a, 6 + b] = dt * (C[0, a] * gx0 + C[1, a] * gx1 + C[2, a] * gx2)
-            F[6 + a, 12 + b] = G[6 + a, 6 + b] = -dt * (C[a, 0] * CG[0, b] + C[a, 1] * CG[1, b] + C[a, 2] * CG[2, b])
-    _skew_into(-dt * Cv[0], -dt * Cv[1], -dt * Cv[2], F[0:3, 6:9])
-    _skew_into(-dt * w0, -dt * w1, -dt * w2, F[3:6, 3:6])
-    F[3, 3] = F[4, 4] = F[5, 5] = 1.0
-    _skew_into(-dt * v0, -dt * v1, -dt * v2, F[3:6, 12:15])
-    G[3:6, 6:9] = F[3:6, 12:15]
-    # The step (eqs. 54-60): r' = r + dt C v, v' = v + dt (C^T g + f - w x v), C' = C exp(dt w).
-    for a in range(3):
-        out_r[a] = r[a] + dt * Cv[a]
-    out_v[0] = v0 + dt * (Ctg[0] + f0 - (w1 * v2 - w2 * v1))
-    out_v[1] = v1 + dt * (Ctg[1] + f1 - (w2 * v0 - w0 * v2))
-    out_v[2] = v2 + dt * (Ctg[2] + f2 - (w0 * v1 - w1 * v0))
-    for a in range(3):
-        c0, c1, c2 = C[a, 0], C[a, 1], C[a, 2]
-        for b in range(3):
-            CG[a, b] = c0 * E[0, b] + c1 * E[1, b] + c2 * E[2, b]
-    out_C[:, :] = CG
-
-
-@njit(cache=True)
-def _skew_into(x, y, z, out) -> None:
-    out[0, 0] = out[1, 1] = out[2, 2] = 0.0
-    out[0, 1], out[0, 2], out[1, 2] = -z, y, -x
-    out[1, 0], out[2, 0], out[2, 1] = z, -y, x
-
-
-@njit(cache=True)
-def _left_multiply(F, X, out) -> None:
-    """``out = F X = X + (F - I) X`` with only the blocks of ``_F_OFF_IDENTITY``: row-block
-    updates along contiguous rows of ``X``."""
-    n = X.shape[1]
-    out[:, :] = X
-    for a, c in _F_OFF_IDENTITY:
-        d = 1.0 if a == c else 0.0
-        m00, m01, m02 = F[3 * a, 3 * c] - d, F[3 * a, 3 * c + 1], F[3 * a, 3 * c + 2]
-        m10, m11, m12 = F[3 * a + 1, 3 * c], F[3 * a + 1, 3 * c + 1] - d, F[3 * a + 1, 3 * c + 2]
-        m20, m21, m22 = F[3 * a + 2, 3 * c], F[3 * a + 2, 3 * c + 1], F[3 * a + 2, 3 * c + 2] - d
-        for col in range(n):
-            x0, x1, x2 = X[3 * c, col], X[3 * c + 1, col], X[3 * c + 2, col]
-            out[3 * a, col] += m00 * x0 + m01 * x1 + m02 * x2
-            out[3 * a + 1, col] += m10 * x0 + m11 * x1 + m12 * x2
-            out[3 * a + 2, col] += m20 * x0 + m21 * x1 + m22 * x2
-
-
-@njit(cache=True)
-def _covariance_step(S, F, G, q, T) -> None:
-    """``S <- F S F^T + G diag(q) G^T`` in place: ``T = F S``, then ``S = F T^T`` (which is
-    ``F S F^T`` for symmetric ``S``), both as block-sparse row updates (:func:`_left_multiply`),
-    then the blocks of ``G diag(q) G^T`` that ``_G_BLOCKS`` makes nonzero. ``T`` is a
-    (2, 15, 15) work array."""
-    _left_multiply(F, S, T[0])
-    T[1][:, :] = T[0].T
-    _left_multiply(F, T[1], S)
-    for a, na in _G_BLOCKS:  # pairs of blocks driven by the same noise
-        for b, nb in _G_BLOCKS:
-            if na == nb:
-                _add_noise_block(S, G, q, a, b, na)
-
-
-@njit(cache=True)
-def _add_noise_block(S, G, q, a, b, noise) -> None:
-    """``S[a, b] += G[a, noise] diag(q[noise]) G[b, noise]^T`` on 3-blocks."""
-    q0, q1, q2 = q[3 * noise], q[3 * noise + 1], q[3 * noise + 2]
     for i in range(3):
-        g0, g1, g2 = G[3 * a + i, 3 * noise] * q0, G[3 * a + i, 3 * noise + 1] * q1, G[3 * a + i, 3 * noise + 2] * q2
-        for j in range(3):
-            S[3 * a + i, 3 * b + j] += g0 * G[3 * b + j, 3 * noise] + g1 * G[3 * b + j, 3 * noise + 1] \
-                + g2 * G[3 * b + j, 3 * noise + 2]
+        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
+        Q[_Q_C + 3 * i], Q[_Q_C + 3 * i + 1], Q[_Q_C + 3 * i + 2] = dt * c0, dt * c1, dt * c2
+        Q[_Q_CV + i] = dt * (c0 * v0 + c1 * v1 + c2 * v2)
+        for m in range(3):
+            Q[_Q_CGAMMA + 3 * i + m] = dt * (c0 * Gm[0, m] + c1 * Gm[1, m] + c2 * Gm[2, m])
+        # row i of C^T g^x is (c x g)^T with c = column i of C
+        k0, k1, k2 = C[0, i], C[1, i], C[2, i]
+        Q[_Q_CTGX + 3 * i] = dt * (k1 * g[2] - k2 * g[1])
+        Q[_Q_CTGX + 3 * i + 1] = dt * (k2 * g[0] - k0 * g[2])
+        Q[_Q_CTGX + 3 * i + 2] = dt * (k0 * g[1] - k1 * g[0])
+    Q[_Q_W], Q[_Q_W + 1], Q[_Q_W + 2] = x, y, z
+    Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2] = dt * v0, dt * v1, dt * v2
+    Q[_Q_DT] = dt
 
 
 @njit(cache=True)
-def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G):
-    scratch = np.empty((2, 3, 3))
+def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
+    """The step (eqs. 54-60) in place: ``r += dt C v``, ``v += dt (C^T g + f - w x v)``,
+    ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples and ``E, Q`` from
+    :func:`step_quantities` at this state."""
+    h = Q[_Q_DT]
+    v0, v1, v2 = v[0], v[1], v[2]
+    tg0 = C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2]
+    tg1 = C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2]
+    tg2 = C[0, 2] * g[0] + C[1, 2] * g[1] + C[2, 2] * g[2]
+    r[0] += Q[_Q_CV]
+    r[1] += Q[_Q_CV + 1]
+    r[2] += Q[_Q_CV + 2]
+    v[0] = v0 + h * (tg0 + f0 - (w1 * v2 - w2 * v1))
+    v[1] = v1 + h * (tg1 + f1 - (w2 * v0 - w0 * v2))
+    v[2] = v2 + h * (tg2 + f2 - (w0 * v1 - w1 * v0))
+    for i in range(3):
+        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
+        for m in range(3):
+            C[i, m] = c0 * E[0, m] + c1 * E[1, m] + c2 * E[2, m]
+
+
+@njit(cache=True)
+def _apply_A(X, col, Q, out) -> None:
+    """``out[col, :9] = (F - I) X[:, col]``: the rows of ``F - I`` in the module docstring (its
+    last six rows are zero) applied to column ``col`` of the 15-row array ``X``."""
+    x0, x1, x2 = X[3, col], X[4, col], X[5, col]  # dv
+    p0, p1, p2 = X[6, col], X[7, col], X[8, col]  # dphi
+    s0, s1, s2 = X[12, col], X[13, col], X[14, col]  # db_w
+    u0, u1, u2 = Q[_Q_CV], Q[_Q_CV + 1], Q[_Q_CV + 2]
+    # dr row: dt C dv - dt (C v) x dphi
+    out[col, 0] = Q[_Q_C] * x0 + Q[_Q_C + 1] * x1 + Q[_Q_C + 2] * x2 - (u1 * p2 - u2 * p1)
+    out[col, 1] = Q[_Q_C + 3] * x0 + Q[_Q_C + 4] * x1 + Q[_Q_C + 5] * x2 - (u2 * p0 - u0 * p2)
+    out[col, 2] = Q[_Q_C + 6] * x0 + Q[_Q_C + 7] * x1 + Q[_Q_C + 8] * x2 - (u0 * p1 - u1 * p0)
+    # dv row: -dt w x dv + dt C^T g^x dphi - dt db_f - dt v x db_w
+    a0, a1, a2 = Q[_Q_W], Q[_Q_W + 1], Q[_Q_W + 2]
+    b0, b1, b2 = Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2]
+    h = Q[_Q_DT]
+    M = _Q_CTGX
+    out[col, 3] = Q[M] * p0 + Q[M + 1] * p1 + Q[M + 2] * p2 - (a1 * x2 - a2 * x1) - h * X[9, col] - (b1 * s2 - b2 * s1)
+    out[col, 4] = Q[M + 3] * p0 + Q[M + 4] * p1 + Q[M + 5] * p2 - (a2 * x0 - a0 * x2) - h * X[10, col] - (b2 * s0 - b0 * s2)
+    out[col, 5] = Q[M + 6] * p0 + Q[M + 7] * p1 + Q[M + 8] * p2 - (a0 * x1 - a1 * x0) - h * X[11, col] - (b0 * s1 - b1 * s0)
+    # dphi row: -dt C Gamma db_w
+    N = _Q_CGAMMA
+    out[col, 6] = -(Q[N] * s0 + Q[N + 1] * s1 + Q[N + 2] * s2)
+    out[col, 7] = -(Q[N + 3] * s0 + Q[N + 4] * s1 + Q[N + 5] * s2)
+    out[col, 8] = -(Q[N + 6] * s0 + Q[N + 7] * s1 + Q[N + 8] * s2)
+
+
+@njit(cache=True)
+def _jacobians_into(Q, F, G) -> None:
+    """Dense ``F = I + A`` and ``G`` (module docstring) from the step's ``Q``."""
+    eye = np.eye(STATE_DIM)
+    At = np.empty((STATE_DIM, 9))
+    for c in range(STATE_DIM):
+        _apply_A(eye, c, Q, At)
+    F[:, :] = eye
+    F[:9, :] += At.T
+    G[:, :] = 0.0
+    h = Q[_Q_DT]
+    b0, b1, b2 = Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2]
+    for i in range(3):
+        for m in range(3):
+            G[i, m] = Q[_Q_C + 3 * i + m]
+            G[6 + i, 6 + m] = -Q[_Q_CGAMMA + 3 * i + m]
+        G[3 + i, 3 + i] = -h
+        G[9 + i, 9 + i] = G[12 + i, 12 + i] = h
+    # -dt v^x in the (dv, n_w) block
+    G[3, 7], G[3, 8], G[4, 8] = b2, -b1, b0
+    G[4, 6], G[5, 6], G[5, 7] = -b2, b1, -b0
+
+
+@njit(cache=True)
+def _covariance_step(P, Q, q, v, BT, BA) -> None:
+    """``P <- F P F^T + G diag(q / dt) G^T`` in place for symmetric ``P`` (15x15), at the step
+    of ``Q`` from body velocity ``v``. ``F P F^T = P + B + B^T + B A^T`` with ``B = A P``
+    (rows dr, dv, dphi only): ``BT = B^T`` (15x9) by applying ``A`` to each column of ``P``,
+    ``BA = B A^T`` (9x9) by applying ``A`` to each row of ``B``. The noise term, written out
+    from ``G`` (``C C^T = I``)::
+
+        dr,dr: dt q_v I     dv,dv: dt (q_f I - q_w v^x v^x)     dv,dphi: q_w (dt v)^x (dt C Gamma)^T / dt
+        dphi,dphi: q_w (dt C Gamma)(dt C Gamma)^T / dt     db_f: dt q_bf I     db_w: dt q_bw I
+    """
+    for c in range(STATE_DIM):
+        _apply_A(P, c, Q, BT)
+    for i in range(9):
+        _apply_A(BT, i, Q, BA)
+    for i in range(9):  # upper triangle; the nav x nav block gets B + B^T + B A^T
+        for m in range(i, STATE_DIM):
+            s = P[i, m] + BT[m, i]
+            if m < 9:
+                s += BT[i, m] + BA[i, m]
+            P[i, m] = s
+    h = Q[_Q_DT]
+    qw = q[NW.start]
+    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    for i in range(3):
+        P[i, i] += h * q[NV.start + i]
+        P[9 + i, 9 + i] += h * q[NBF.start + i]
+        P[12 + i, 12 + i] += h * q[NBW.start + i]
+        P[3 + i, 3 + i] += h * (q[NF.start + i] + qw * vv)
+        for m in range(i, 3):
+            P[3 + i, 3 + m] -= h * qw * v[i] * v[m]
+            P[6 + i, 6 + m] += qw / h * (Q[_Q_CGAMMA + 3 * i] * Q[_Q_CGAMMA + 3 * m]
+                                         + Q[_Q_CGAMMA + 3 * i + 1] * Q[_Q_CGAMMA + 3 * m + 1]
+                                         + Q[_Q_CGAMMA + 3 * i + 2] * Q[_Q_CGAMMA + 3 * m + 2])
+    b0, b1, b2 = Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2]
+    for m in range(3):
+        y0, y1, y2 = Q[_Q_CGAMMA + 3 * m], Q[_Q_CGAMMA + 3 * m + 1], Q[_Q_CGAMMA + 3 * m + 2]
+        P[3, 6 + m] += qw / h * (b1 * y2 - b2 * y1)
+        P[4, 6 + m] += qw / h * (b2 * y0 - b0 * y2)
+        P[5, 6 + m] += qw / h * (b0 * y1 - b1 * y0)
+    for i in range(STATE_DIM):
+        for m in range(i + 1, STATE_DIM):
+            P[m, i] = P[i, m]
+
+
+@njit(cache=True)
+def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians):
+    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
     for i in range(r.shape[0]):
-        F[i] = 0.0
-        G[i] = 0.0
-        step_into(r[i], v[i], C[i], b_f[i], b_w[i], acc[i], gyro[i], dt[i], g, out_r[i], out_v[i], out_C[i],
-                  F[i], G[i], scratch)
+        w0, w1, w2 = gyro[i, 0] - b_w[i, 0], gyro[i, 1] - b_w[i, 1], gyro[i, 2] - b_w[i, 2]
+        step_quantities(C[i], v[i], w0, w1, w2, dt[i], g, E, Q)
+        if jacobians:
+            _jacobians_into(Q, F[i], G[i])
+        out_r[i], out_v[i], out_C[i] = r[i], v[i], C[i]
+        step_state(out_r[i], out_v[i], out_C[i], acc[i, 0] - b_f[i, 0], acc[i, 1] - b_f[i, 1], acc[i, 2] - b_f[i, 2],
+                   w0, w1, w2, g, E, Q)
+
+
+@njit(cache=True)
+def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
+    """Compiled core of :func:`propagate_steps` for one state: every sample ``k`` with
+    ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` in place."""
+    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
+    BT, BA = np.empty((STATE_DIM, 9)), np.empty((9, 9))
+    for k in range(dt.shape[0]):
+        h = dt[k]
+        if h <= 0.0:
+            continue
+        w0, w1, w2 = gyro[k, 0] - b_w[0], gyro[k, 1] - b_w[1], gyro[k, 2] - b_w[2]
+        step_quantities(C, v, w0, w1, w2, h, g, E, Q)
+        _covariance_step(P, Q, q_density, v, BT, BA)
+        step_state(r, v, C, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2, g, E, Q)
 
 
 @njit(cache=True)
 def _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, q_density, g):
-    """For each of the J rows: every sample k with ``dt > 0`` steps the state (in place) and
-    its covariance ``S`` (in place)."""
-    F = np.zeros((15, 15))
-    G = np.zeros((15, 15))
-    T = np.empty((2, 15, 15))
-    q = np.empty(15)
-    scratch = np.empty((2, 3, 3))
     for j in range(r.shape[0]):
-        for k in range(dt.shape[1]):
-            h = dt[j, k]
-            if h <= 0.0:
-                continue
-            step_into(r[j], v[j], C[j], b_f[j], b_w[j], acc[j, k], gyro[j, k], h, g, r[j], v[j], C[j], F, G, scratch)
-            for m in range(15):
-                q[m] = q_density[m] / h
-            _covariance_step(S[j], F, G, q, T)
+        predict_into(r[j], v[j], C[j], b_f[j], b_w[j], S[j], acc[j], gyro[j], dt[j], q_density, g)
 
 
 def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians: bool = True):
@@ -316,7 +392,7 @@ def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians
     state with respect to the current one, ``G`` with respect to the discrete noise
     ``(n_v, n_f, n_w, n_bf, n_bw)`` (see the module docstring). With ``jacobians=False`` ``F``
     and ``G`` are None. ``dt = 0`` is the identity step. Vectorised over (broadcast) leading
-    dimensions of the state and the samples; compiled (:func:`step_into`).
+    dimensions of the state and the samples; compiled (:func:`step_quantities`, :func:`step_state`).
     """
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
@@ -327,8 +403,9 @@ def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians
     r, v, C, b_f, b_w, acc, gyro, dt = rows(shape, (state.r, state.v, state.C, state.b_f, state.b_w, acc, gyro, dt),
                                             (vec, vec, (3, 3), vec, vec, vec, vec, ()))
     out_r, out_v, out_C = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
-    F, G = np.empty((n, STATE_DIM, STATE_DIM)), np.empty((n, STATE_DIM, NOISE_DIM))
-    _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G)
+    m = n if jacobians else 0
+    F, G = np.empty((m, STATE_DIM, STATE_DIM)), np.empty((m, STATE_DIM, NOISE_DIM))
+    _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians)
     next_state = ImuState(out_r.reshape(shape + vec), out_v.reshape(shape + vec), out_C.reshape(shape + (3, 3)),
                           b_f.reshape(shape + vec), b_w.reshape(shape + vec))
     if not jacobians:
@@ -344,8 +421,8 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
     ``state`` and ``cov (..., 15, 15)`` have leading dimensions ``J`` (one state, or ``J``
     independent rows, e.g. keyframe intervals); the samples have shape ``(J, K, 3)`` and
     ``(J, K)``. Returns the final ``(state, cov)``. One compiled loop over rows and samples
-    (:func:`step_into`, then the block-sparse covariance update), so there is no Python per
-    sample."""
+    (:func:`step_quantities`, :func:`_covariance_step`, :func:`step_state`), so there is no
+    Python per sample."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     single = dt.ndim == 1
@@ -359,7 +436,6 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
                                           gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
                                    (vec, vec, (K, 3), (K, 3), (K,)))
     _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(), as_trailing(gravity, vec, "gravity"))
-    S = 0.5 * (S + np.swapaxes(S, -1, -2))
     out = ImuState(r, v, C, b_f, b_w)
     return (out[0], S[0]) if single else (out, S)
 
