@@ -16,10 +16,14 @@ Derivatives used (eqs. 27-32): ``d log(C C_m^T)/d phi = Gamma^-1(e)`` (eqs. 29, 
 """
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
+from numba import njit
 
 from factors import so3
+from factors.compiled import as_trailing, common_shape, rows
 from factors.custom import BIAS, ROT, VEC, custom_factor
 
 def covariance_model(cov: np.ndarray):
@@ -37,16 +41,45 @@ def position_residual(r, measured, jacobians: bool = False):
     return (e, [_eye(e.shape[:-1])]) if jacobians else e
 
 
+@njit(cache=True)
+def orientation_error_into(C, measured, e, J) -> None:
+    """Compiled core of :func:`orientation_residual` for one attitude: ``e (3) = log(C C_meas^T)``
+    and ``J (3x3) = Gamma^-1(e)``; the EKF's compiled update calls it directly."""
+    X = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            X[a, b] = C[a, 0] * measured[b, 0] + C[a, 1] * measured[b, 1] + C[a, 2] * measured[b, 2]
+    e[0], e[1], e[2] = so3.log_of(X)
+    so3.gamma_inv_into(e[0], e[1], e[2], J)
+
+
+@njit(cache=True)
+def _orientation_rows(C, measured, e, J):
+    for n in range(C.shape[0]):
+        orientation_error_into(C[n], measured[n], e[n], J[n])
+
+
+def _orientation_errors(C, measured):
+    """``(e, Gamma^-1(e))`` of :func:`orientation_error_into` over broadcast leading dimensions."""
+    C, measured = as_trailing(C, (3, 3), "C"), as_trailing(measured, (3, 3), "measured C")
+    lead = common_shape(C.shape[:-2], measured.shape[:-2])
+    n = math.prod(lead)
+    e, J = np.empty((n, 3)), np.empty((n, 3, 3))
+    _orientation_rows(*rows(lead, (C, measured), ((3, 3), (3, 3))), e, J)
+    return e.reshape(lead + (3,)), J.reshape(lead + (3, 3))
+
+
 def orientation_residual(C, measured, jacobians: bool = False):
     """``e = C [-] C_meas = log(C C_meas^T)`` (eqs. 62, 63); ``de/dphi = Gamma^-1(e)``."""
-    e = so3.boxminus(C, measured)
-    return (e, [so3.gamma_inv(e)]) if jacobians else e
+    e, J = _orientation_errors(C, measured)
+    return (e, [J]) if jacobians else e
 
 
 def pose_residual(r, C, measured_r, measured_C, jacobians: bool = False):
     """``e = (r - r_meas, C [-] C_meas)`` (eqs. 61-63); Jacobians for ``(r, C)``."""
     e_r = np.asarray(r, dtype=float) - measured_r
-    e_phi = so3.boxminus(C, measured_C)
+    e_phi, J_phi = _orientation_errors(C, measured_C)
+    e_r, e_phi = np.broadcast_arrays(e_r, e_phi)
     e = np.concatenate([e_r, e_phi], axis=-1)
     if not jacobians:
         return e
@@ -54,7 +87,7 @@ def pose_residual(r, C, measured_r, measured_C, jacobians: bool = False):
     J_r = np.zeros(shape + (6, 3))
     J_r[..., :3, :] = _eye(shape)
     J_C = np.zeros(shape + (6, 3))
-    J_C[..., 3:, :] = so3.gamma_inv(e_phi)
+    J_C[..., 3:, :] = J_phi
     return e, [J_r, J_C]
 
 

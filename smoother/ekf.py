@@ -19,6 +19,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
@@ -59,20 +60,23 @@ class Ekf:
         ``C [-] C_meas``), its Jacobian ``H`` (m x 15, error-state columns) and noise ``R``.
         Returns False when the chi-square gate rejects it: the normalised innovation
         ``e^T S^-1 e`` beyond the ``gate_probability`` quantile of chi-square with ``len(e)``
-        degrees of freedom (so 3-dim and 6-dim updates are gated alike)."""
-        S = H @ self.P @ H.T + R
-        PHt = self.P @ H.T
-        d2 = float(e @ np.linalg.solve(S, e))
-        if self.gate_probability is not None and d2 > chi2_quantile(self.gate_probability, len(e)):
+        degrees of freedom (so 3-dim and 6-dim updates are gated alike). Compiled
+        (:func:`_kalman_update`, the same code as :func:`run_ekf`'s)."""
+        e = np.ascontiguousarray(e, dtype=float)
+        H = np.ascontiguousarray(H, dtype=float)
+        R = np.ascontiguousarray(R, dtype=float)
+        m = len(e)
+        if H.shape != (m, imu.STATE_DIM) or R.shape != (m, m):
+            raise ValueError(f"update: expected H ({m}, 15) and R ({m}, {m}), got {H.shape} and {R.shape}")
+        x = self.state
+        r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x.r, x.v, x.C, x.b_f, x.b_w))
+        stats = np.zeros(2)
+        _kalman_update(r, v, C, b_f, b_w, self.P, e, H, R, _gates(self.gate_probability), stats)
+        if stats[0]:
             self.rejected += 1
             return False
-        self.log_likelihood -= 0.5 * (d2 + np.linalg.slogdet(2.0 * np.pi * S)[1])
-        K = np.linalg.solve(S, PHt.T).T
-        dx = -K @ e
-        self.state = imu.boxplus(self.state, dx)
-        IKH = np.eye(imu.STATE_DIM) - K @ H
-        P = IKH @ self.P @ IKH.T + K @ R @ K.T
-        self.P = 0.5 * (P + P.T)
+        self.log_likelihood += stats[1]
+        self.state = imu.ImuState(r, v, C, b_f, b_w)
         return True
 
     def update_position(self, measured, R) -> bool:
@@ -109,30 +113,191 @@ class FilterResult:
 
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
-    time with every measurement taken then, record the state after the updates."""
+    time with every measurement taken then (pose, then position, then orientation), record the
+    state after the updates. The loop over knots is compiled (:func:`_filter_knots`); it runs in
+    chunks so the progress bar moves and Ctrl-C stops it between chunks."""
     start = time.perf_counter()
     if dataset.relative_pose is not None and len(dataset.relative_pose):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
     knots = estimate_times(dataset)
     steps = imu_steps(dataset.imu, knots)
-    ekf = Ekf(dataset.initial, dataset.initial_cov, dataset.noise, dataset.gravity, gate_probability)
-    lookups = _measurement_lookup(dataset)
-    states, covs = [], []
-    step = 0
+    n = len(knots)
+    x0 = dataset.initial
+    r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x0.r, x0.v, x0.C, x0.b_f, x0.b_w))
+    P = np.array(dataset.initial_cov, dtype=float)
+    out = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
+           np.empty((n, imu.STATE_DIM, imu.STATE_DIM)))
+    measurements = _measurements_at(dataset, knots)
+    bounds = np.concatenate([[0], steps.knot_step]).astype(np.int64)
+    stats = np.zeros(2)
+    samples = (np.ascontiguousarray(steps.acc, dtype=float), np.ascontiguousarray(steps.gyro, dtype=float),
+               np.ascontiguousarray(steps.dt, dtype=float))
     with progress_bar(len(steps.dt), "EKF", progress) as bar:
-        for knot, stop in zip(knots, steps.knot_step):
-            ekf.predict_steps(steps.acc[step:stop], steps.gyro[step:stop], steps.dt[step:stop])
-            step = int(stop)
-            bar.update(step - bar.n)
-            for kind, (times, apply) in lookups.items():
-                i = np.searchsorted(times, knot)
-                if i < len(times) and times[i] == knot:
-                    apply(ekf, i)
-            _check_divergence(ekf, knot)
-            states.append(ekf.state)
-            covs.append(ekf.P.copy())
-    trajectory = Trajectory(knots, imu.ImuState.stack(states), np.stack(covs))
-    return FilterResult(trajectory, time.perf_counter() - start, ekf.rejected, ekf.log_likelihood)
+        for first in range(0, n, _KNOTS_PER_CALL):
+            last = min(n, first + _KNOTS_PER_CALL)
+            diverged = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, *measurements,
+                                     dataset.noise.densities(), np.asarray(dataset.gravity, dtype=float),
+                                     _gates(gate_probability), *out, stats)
+            if diverged >= 0:
+                raise _divergence(knots[diverged], out[1][diverged], out[5][diverged])
+            bar.update(int(bounds[last]) - bar.n)
+    states = imu.ImuState(*out[:5])
+    return FilterResult(Trajectory(knots, states, out[5]), time.perf_counter() - start, int(stats[0]), float(stats[1]))
+
+
+#: Knots per call of the compiled loop (between two calls the progress bar moves and Ctrl-C is seen).
+_KNOTS_PER_CALL = 256
+
+
+def _gates(probability: float | None) -> np.ndarray:
+    """Chi-square gate per measurement dimension (index m), infinite without a gate."""
+    gates = np.full(7, np.inf)
+    if probability is not None:
+        for m in range(1, 7):
+            gates[m] = chi2_quantile(probability, m)
+    return gates
+
+
+def _measurements_at(dataset: Dataset, knots: np.ndarray) -> tuple:
+    """For pose, position and orientation: the row taken at each knot (-1 where none) and the
+    arrays of that type (empty of the right shape when the dataset has none)."""
+    def rows_at(times):
+        i = np.minimum(np.searchsorted(times, knots), max(len(times) - 1, 0))
+        hit = (len(times) > 0) & (np.asarray(times)[i] == knots) if len(times) else np.zeros(len(knots), bool)
+        return np.where(hit, i, -1).astype(np.int64)
+
+    none = np.empty(0)
+    pose, pos, ori = dataset.pose, dataset.position, dataset.orientation
+    return (
+        rows_at(pose.t if pose is not None else none),
+        *(np.ascontiguousarray(a, dtype=float) for a in (
+            (pose.position, pose.C, pose.cov) if pose is not None else (np.empty((0, 3)), np.empty((0, 3, 3)),
+                                                                        np.empty((0, 6, 6))))),
+        rows_at(pos.t if pos is not None else none),
+        *(np.ascontiguousarray(a, dtype=float) for a in (
+            (pos.position, pos.cov) if pos is not None else (np.empty((0, 3)), np.empty((0, 3, 3))))),
+        rows_at(ori.t if ori is not None else none),
+        *(np.ascontiguousarray(a, dtype=float) for a in (
+            (ori.C, ori.cov) if ori is not None else (np.empty((0, 3, 3)), np.empty((0, 3, 3))))),
+    )
+
+
+@njit(cache=True)
+def _cholesky(S, L) -> bool:
+    """Lower Cholesky factor of the small SPD matrix ``S`` into ``L``; False if not positive definite."""
+    m = S.shape[0]
+    for i in range(m):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    return False
+                L[i, i] = math.sqrt(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+        for j in range(i + 1, m):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def _solve_lower(L, b, out) -> None:
+    """``out = L^-1 b`` (forward substitution)."""
+    for i in range(L.shape[0]):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * out[k]
+        out[i] = acc / L[i, i]
+
+
+@njit(cache=True)
+def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
+    """The update of :meth:`Ekf.update` in place on the state arrays and ``P``.
+
+    ``S = H P H^T + R = L L^T``; normalised innovation ``d2 = |L^-1 e|^2``; if ``d2`` passes the
+    gate, ``K = P H^T S^-1`` (rows of ``K`` solved through ``L``), ``x <- x [+] (-K e)`` and
+    Joseph's ``P <- (I - K H) P (I - K H)^T + K R K^T``; ``stats[0]`` counts rejections,
+    ``stats[1]`` accumulates ``log N(e; 0, S)``. A non-positive-definite ``S`` raises."""
+    m, n = e.shape[0], P.shape[0]
+    PHt = P @ H.T
+    S = H @ PHt + R
+    L = np.empty((m, m))
+    if not _cholesky(0.5 * (S + S.T), L):
+        raise ValueError("EKF update: the innovation covariance H P H^T + R is not positive definite")
+    y = np.empty(m)
+    _solve_lower(L, e, y)
+    d2 = 0.0
+    logdet = 0.0
+    for i in range(m):
+        d2 += y[i] * y[i]
+        logdet += 2.0 * math.log(L[i, i])
+    if d2 > gates[m]:
+        stats[0] += 1
+        return
+    stats[1] -= 0.5 * (d2 + logdet + m * math.log(2.0 * math.pi))
+    # K^T = S^-1 (P H^T)^T = L^-T L^-1 PHt^T, column by column
+    K = np.empty((n, m))
+    z, col = np.empty(m), np.empty(m)
+    for row in range(n):
+        _solve_lower(L, PHt[row], z)
+        for i in range(m - 1, -1, -1):  # back substitution with L^T
+            acc = z[i]
+            for k in range(i + 1, m):
+                acc -= L[k, i] * col[k]
+            col[i] = acc / L[i, i]
+        K[row] = col
+    imu.boxplus_into(r, v, C, b_f, b_w, -(K @ e))
+    IKH = np.eye(n) - K @ H
+    T = IKH @ P
+    KR = K @ R
+    for i in range(n):
+        for j in range(i, n):
+            acc = 0.0
+            for k in range(n):
+                acc += T[i, k] * IKH[j, k]
+            for k in range(m):
+                acc += KR[i, k] * K[j, k]
+            P[i, j] = P[j, i] = acc
+
+
+@njit(cache=True)
+def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last,
+                  pose_row, pose_r, pose_C, pose_R, pos_row, pos_r, pos_R, ori_row, ori_C, ori_R,
+                  q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+    """Knots ``first .. last - 1`` of :func:`run_ekf`: predict through the knot's IMU steps
+    (``bounds[k] .. bounds[k + 1]``), apply the measurements taken there, store the state.
+    Returns the first knot where the filter diverged (see :func:`_diverged`), else -1."""
+    n = P.shape[0]
+    for knot in range(first, last):
+        a, b = bounds[knot], bounds[knot + 1]
+        imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
+        i = pose_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
+        if i >= 0:
+            e, H = np.empty(6), np.zeros((6, n))
+            meas.orientation_error_into(C, pose_C[i], e[3:], H[3:, 6:9])
+            for k in range(3):
+                e[k] = r[k] - pose_r[i, k]
+                H[k, k] = 1.0
+            _kalman_update(r, v, C, b_f, b_w, P, e, H, pose_R[i], gates, stats)
+        i = pos_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
+        if i >= 0:
+            e, H = np.empty(3), np.zeros((3, n))
+            for k in range(3):
+                e[k] = r[k] - pos_r[i, k]
+                H[k, k] = 1.0
+            _kalman_update(r, v, C, b_f, b_w, P, e, H, pos_R[i], gates, stats)
+        i = ori_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
+        if i >= 0:
+            e, H = np.empty(3), np.zeros((3, n))
+            meas.orientation_error_into(C, ori_C[i], e, H[:, 6:9])
+            _kalman_update(r, v, C, b_f, b_w, P, e, H, ori_R[i], gates, stats)
+        out_r[knot], out_v[knot], out_C[knot], out_b_f[knot], out_b_w[knot] = r, v, C, b_f, b_w
+        out_P[knot] = P
+        if _diverged(r, v, C, b_f, b_w, P):
+            return knot
+    return -1
 
 
 #: Beyond these the filter is declared diverged: |velocity| [m/s], sqrt(trace P) (mixed units).
@@ -144,30 +309,17 @@ class FilterDiverged(ValueError):
     """The EKF's state or covariance left any plausible range (non-finite or absurdly large)."""
 
 
-def _check_divergence(ekf: Ekf, t: float) -> None:
-    x, P = ekf.state, ekf.P
-    speed = float(np.sqrt(x.v @ x.v))
-    # one sum is finite only if every term is: a single check instead of one per array
-    finite = np.isfinite(speed + P.sum() + x.r.sum() + x.C.sum() + x.b_f.sum() + x.b_w.sum())
-    spread = float(np.sqrt(max(np.trace(P), 0.0))) if finite else math.inf
-    if not finite or speed > DIVERGED_SPEED or spread > DIVERGED_SPREAD:
-        raise FilterDiverged(
-            f"the EKF diverged at t = {t:.6f} s (|v| = {speed:.3g} m/s, sqrt(trace P) = "
-            f"{np.sqrt(abs(np.trace(P))):.3g}): the linearisation failed, typically after a long stretch "
-            "without measurements or with a bias random walk far looser than the data; a smoother "
-            "(batch or fixed-lag) relinearises and is the tool for such data")
+@njit(cache=True)
+def _diverged(r, v, C, b_f, b_w, P) -> bool:
+    """Non-finite state or covariance, ``|v| > DIVERGED_SPEED`` or ``sqrt(trace P) > DIVERGED_SPREAD``."""
+    total = P.sum() + r.sum() + v.sum() + C.sum() + b_f.sum() + b_w.sum()  # finite only if every term is
+    speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return not math.isfinite(total) or speed > DIVERGED_SPEED or np.trace(P) > DIVERGED_SPREAD**2
 
 
-def _measurement_lookup(dataset: Dataset) -> dict:
-    """For each measurement type: its times and a function applying row ``i`` to the filter."""
-    out = {}
-    if dataset.pose is not None:
-        m = dataset.pose
-        out["pose"] = (m.t, lambda f, i: f.update_pose(m.position[i], m.C[i], m.cov[i]))
-    if dataset.position is not None:
-        m2 = dataset.position
-        out["position"] = (m2.t, lambda f, i: f.update_position(m2.position[i], m2.cov[i]))
-    if dataset.orientation is not None:
-        m3 = dataset.orientation
-        out["orientation"] = (m3.t, lambda f, i: f.update_orientation(m3.C[i], m3.cov[i]))
-    return out
+def _divergence(t: float, v: np.ndarray, P: np.ndarray) -> FilterDiverged:
+    return FilterDiverged(
+        f"the EKF diverged at t = {t:.6f} s (|v| = {np.linalg.norm(v):.3g} m/s, sqrt(trace P) = "
+        f"{np.sqrt(abs(np.trace(P))):.3g}): the linearisation failed, typically after a long stretch "
+        "without measurements or with a bias random walk far looser than the data; a smoother "
+        "(batch or fixed-lag) relinearises and is the tool for such data")
