@@ -17,7 +17,7 @@ from factors import imu, so3
 from factors import measurements as meas
 from smoother import metrics
 from smoother.ekf import Ekf, run_ekf
-from smoother.timeline import estimate_times
+from smoother.timeline import estimate_times, imu_steps
 
 import estimator_cases as cases
 
@@ -370,3 +370,34 @@ def test_a_diverging_filter_stops_with_an_error_naming_the_time():
     cov[3, 3] = 1e14  # a velocity spread of 1e7 m/s
     with pytest.raises(FilterDiverged, match=rf"diverged at t = {first:.6f} s"):
         run_ekf(dataclasses.replace(data, initial_cov=cov), progress=False)
+
+
+def test_run_ekf_equals_the_filter_driven_step_by_step():
+    """The compiled filter loop of run_ekf equals the Ekf class driven knot by knot from Python
+    (predict_steps, then update_pose, update_position, update_orientation at their times), with
+    all three measurement types, a gate and a rejected outlier."""
+    data = simulate("tumbling", duration=6.0, seed=2, pose_rate=2.0, position_rate=5.0, orientation_rate=4.0)
+    pose = data.pose
+    bad = dataclasses.replace(pose, position=pose.position + np.where(np.arange(len(pose.t)) == 4, 50.0, 0.0)[:, None])
+    data = dataclasses.replace(data, pose=bad)
+    result = run_ekf(data, gate_probability=0.999, progress=False)
+
+    knots = estimate_times(data)
+    samples = imu_steps(data.imu, knots)
+    ekf = Ekf(data.initial, data.initial_cov, data.noise, data.gravity, gate_probability=0.999)
+    start = 0
+    for k, (t, stop) in enumerate(zip(knots, samples.knot_step)):
+        ekf.predict_steps(samples.acc[start:stop], samples.gyro[start:stop], samples.dt[start:stop])
+        start = stop
+        for m, update in ((data.pose, lambda i: ekf.update_pose(data.pose.position[i], data.pose.C[i], data.pose.cov[i])),
+                          (data.position, lambda i: ekf.update_position(data.position.position[i], data.position.cov[i])),
+                          (data.orientation, lambda i: ekf.update_orientation(data.orientation.C[i], data.orientation.cov[i]))):
+            hit = np.flatnonzero(m.t == t)
+            if len(hit):
+                update(hit[0])
+        for name in ("r", "v", "C", "b_f", "b_w"):
+            np.testing.assert_allclose(getattr(result.trajectory.states, name)[k], getattr(ekf.state, name),
+                                       rtol=0, atol=1e-9)
+        np.testing.assert_allclose(result.trajectory.cov[k], ekf.P, rtol=1e-9, atol=1e-15)
+    assert result.rejected == ekf.rejected == 1
+    assert result.log_likelihood == pytest.approx(ekf.log_likelihood, rel=1e-12)
