@@ -12,6 +12,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
+
+#: Decorator of the IMU recursions (:mod:`factors.imu`, :mod:`factors.preintegration`): compiled,
+#: cached on disk, and allowed to fuse ``a * b + c`` into one fused multiply-add (Numba's
+#: ``fastmath={"contract"}``; each fused pair rounds once instead of twice, no other reordering).
+#: It makes the recursions about 1.3x faster; their tests compare with independent evaluations at
+#: 1e-12 relative, far above the one-ulp differences this allows. The SO(3) kernels keep strict
+#: IEEE evaluation (their tests hold them to a few ulps near 0 and pi).
+recursion = njit(cache=True, fastmath={"contract"})
 
 
 def as_trailing(a, dims: tuple, name: str) -> np.ndarray:

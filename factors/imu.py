@@ -43,10 +43,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numba import njit
 
 from factors import scan, so3
-from factors.compiled import as_trailing, rows
+from factors.compiled import as_trailing, recursion, rows
 
 STATE_DIM = 15
 NOISE_DIM = 15
@@ -103,7 +102,7 @@ class ImuState:
         return replace(self, **changes)
 
 
-@njit(cache=True)
+@recursion
 def boxplus_into(r, v, C, b_f, b_w, dx) -> None:
     """Compiled core of :func:`boxplus` for one state, in place."""
     E, C0 = np.empty((3, 3)), C.copy()
@@ -117,7 +116,7 @@ def boxplus_into(r, v, C, b_f, b_w, dx) -> None:
             C[a, b] = E[a, 0] * C0[0, b] + E[a, 1] * C0[1, b] + E[a, 2] * C0[2, b]
 
 
-@njit(cache=True)
+@recursion
 def _boxplus_rows(r, v, C, b_f, b_w, dx):
     for n in range(r.shape[0]):
         boxplus_into(r[n], v[n], C[n], b_f[n], b_w[n], dx[n])
@@ -208,14 +207,16 @@ _Q_C, _Q_CV, _Q_W, _Q_V, _Q_CTGX, _Q_CGAMMA, _Q_DT = 0, 9, 12, 15, 18, 27, 36
 Q_SIZE = 37
 
 
-@njit(cache=True)
+@recursion
 def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
-    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
+    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (``E[0]``; ``E`` is a (2, 3, 3) work array) and
+    ``Q`` (see ``_Q_*``)."""
     x, y, z = dt * w0, dt * w1, dt * w2
-    so3.exp_into(x, y, z, E)
-    Gm = np.empty((3, 3))
+    Gm = E[1]
     so3.gamma_into(x, y, z, Gm)
+    E = E[0]
+    so3.exp_into(x, y, z, E)
     v0, v1, v2 = v[0], v[1], v[2]
     for i in range(3):
         c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
@@ -233,12 +234,13 @@ def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     Q[_Q_DT] = dt
 
 
-@njit(cache=True)
+@recursion
 def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
     """The step (eqs. 54-60) in place: ``r += dt C v``, ``v += dt (C^T g + f - w x v)``,
     ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples and ``E, Q`` from
     :func:`step_quantities` at this state."""
     h = Q[_Q_DT]
+    E = E[0]
     v0, v1, v2 = v[0], v[1], v[2]
     tg0 = C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2]
     tg1 = C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2]
@@ -255,7 +257,7 @@ def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
             C[i, m] = c0 * E[0, m] + c1 * E[1, m] + c2 * E[2, m]
 
 
-@njit(cache=True)
+@recursion
 def _apply_A(X, col, Q, out) -> None:
     """``out[col, :9] = (F - I) X[:, col]``: the rows of ``F - I`` in the module docstring (its
     last six rows are zero) applied to column ``col`` of the 15-row array ``X``."""
@@ -282,7 +284,7 @@ def _apply_A(X, col, Q, out) -> None:
     out[col, 8] = -(Q[N + 6] * s0 + Q[N + 7] * s1 + Q[N + 8] * s2)
 
 
-@njit(cache=True)
+@recursion
 def _jacobians_into(Q, F, G) -> None:
     """Dense ``F = I + A`` and ``G`` (module docstring) from the step's ``Q``."""
     eye = np.eye(STATE_DIM)
@@ -305,7 +307,7 @@ def _jacobians_into(Q, F, G) -> None:
     G[4, 6], G[5, 6], G[5, 7] = -b2, b1, -b0
 
 
-@njit(cache=True)
+@recursion
 def _covariance_step(P, Q, q, v, BT, BA) -> None:
     """``P <- F P F^T + G diag(q / dt) G^T`` in place for symmetric ``P`` (15x15), at the step
     of ``Q`` from body velocity ``v``. ``F P F^T = P + B + B^T + B A^T`` with ``B = A P``
@@ -350,9 +352,9 @@ def _covariance_step(P, Q, q, v, BT, BA) -> None:
             P[m, i] = P[i, m]
 
 
-@njit(cache=True)
+@recursion
 def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians):
-    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
+    E, Q = np.empty((2, 3, 3)), np.empty(Q_SIZE)
     for i in range(r.shape[0]):
         w0, w1, w2 = gyro[i, 0] - b_w[i, 0], gyro[i, 1] - b_w[i, 1], gyro[i, 2] - b_w[i, 2]
         step_quantities(C[i], v[i], w0, w1, w2, dt[i], g, E, Q)
@@ -363,11 +365,11 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
                    w0, w1, w2, g, E, Q)
 
 
-@njit(cache=True)
+@recursion
 def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
     """Compiled core of :func:`propagate_steps` for one state: every sample ``k`` with
     ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` in place."""
-    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
+    E, Q = np.empty((2, 3, 3)), np.empty(Q_SIZE)
     BT, BA = np.empty((STATE_DIM, 9)), np.empty((9, 9))
     for k in range(dt.shape[0]):
         h = dt[k]
@@ -379,7 +381,7 @@ def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
         step_state(r, v, C, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2, g, E, Q)
 
 
-@njit(cache=True)
+@recursion
 def _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, q_density, g):
     for j in range(r.shape[0]):
         predict_into(r[j], v[j], C[j], b_f[j], b_w[j], S[j], acc[j], gyro[j], dt[j], q_density, g)

@@ -44,10 +44,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from factors import imu, so3
-from factors.compiled import as_trailing, common_shape, rows as rows_of
+from factors.compiled import as_trailing, common_shape, recursion, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -132,12 +131,12 @@ def _z(v_i, gamma, b_f) -> np.ndarray:
     return np.concatenate([v_i, gamma, one, -np.asarray(b_f, dtype=float)], axis=-1)
 
 
-@njit(cache=True)
+@recursion
 def _cross(u0, u1, u2, x0, x1, x2) -> tuple:
     return u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0
 
 
-@njit(cache=True)
+@recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
     """The recursions of the module docstring, interval by interval, sample by sample, on
     3x3 blocks (outputs initialised by the caller). ``A x = x - dt w x x`` is applied as a cross
@@ -244,17 +243,31 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     acc, gyro, dt = samples
     J = dt.shape[0]
     _, S = imu.propagate_steps(reference, np.zeros((J, imu.STATE_DIM, imu.STATE_DIM)), acc, gyro, dt, noise, gravity)
-    eye = np.eye(3)
-    T = np.zeros((J, imu.STATE_DIM, imu.STATE_DIM))
-    Ct = np.swapaxes(reference.C, -1, -2)
-    T[:, imu.R, imu.R] = Ct
-    T[:, imu.V, imu.V] = eye
-    T[:, imu.PHI, imu.PHI] = Ct
-    T[:, imu.BF, imu.BF] = eye
-    T[:, imu.BW, imu.BW] = eye
-    cov = T @ S @ np.swapaxes(T, 1, 2)
-    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
-    return cov + COVARIANCE_FLOOR**2 * np.eye(imu.STATE_DIM)
+    (C,) = rows_of((J,), (reference.C,), ((3, 3),))
+    _to_body_i(S, C, COVARIANCE_FLOOR**2)
+    return S
+
+
+@recursion
+def _to_body_i(S, C, floor) -> None:
+    """``S <- T S T^T + floor I`` in place for each row, ``T = diag(C^T, I, C^T, I, I)``:
+    the position and attitude rows, then columns, rotated into body frame ``i``; symmetric."""
+    n = imu.STATE_DIM
+    for j in range(S.shape[0]):
+        P, Cj = S[j], C[j]
+        for block in (0, 6):
+            for col in range(n):  # rows: C^T x
+                x0, x1, x2 = P[block, col], P[block + 1, col], P[block + 2, col]
+                for i in range(3):
+                    P[block + i, col] = Cj[0, i] * x0 + Cj[1, i] * x1 + Cj[2, i] * x2
+            for row in range(n):  # columns: y C
+                y0, y1, y2 = P[row, block], P[row, block + 1], P[row, block + 2]
+                for i in range(3):
+                    P[row, block + i] = y0 * Cj[0, i] + y1 * Cj[1, i] + y2 * Cj[2, i]
+        for a in range(n):
+            P[a, a] += floor
+            for b in range(a + 1, n):
+                P[a, b] = P[b, a] = 0.5 * (P[a, b] + P[b, a])
 
 
 def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:
@@ -278,7 +291,7 @@ _PRE_TAILS = ((3, 3), (3, 10), (3, 10), (3, 3), (3, 10, 3), (3, 10, 3), (3,))
 _STATE_TAILS = ((3,), (3,), (3, 3), (3,), (3,))
 
 
-@njit(cache=True)
+@recursion
 def _matmul(A, B, out) -> None:
     """``out = A B`` for small 2-d arrays (out must not alias A or B)."""
     for a in range(A.shape[0]):
@@ -289,7 +302,7 @@ def _matmul(A, B, out) -> None:
             out[a, b] = acc
 
 
-@njit(cache=True)
+@recursion
 def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E) -> None:
     """First-order gyro-bias correction of one interval: ``W + dW . d``, ``Rm + dRm . d``,
     ``exp(JC d) dC`` with ``d = b_w - b_w_bar``; ``JC d`` into ``JCd`` (3), ``E`` a 3x3 work array."""
@@ -303,14 +316,14 @@ def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E
     _matmul(E, dC, dC_out)
 
 
-@njit(cache=True)
+@recursion
 def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out):
     JCd, E = np.empty(3), np.empty((3, 3))
     for n in range(dC.shape[0]):
         _correct(dC[n], W[n], Rm[n], JC[n], dW[n], dRm[n], b_w_bar[n], b_w[n], dC_out[n], W_out[n], Rm_out[n], JCd, E)
 
 
-@njit(cache=True)
+@recursion
 def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
                    jacobians, e, Ji, Jj):
     """:func:`residual` for each row (see its docstring for every formula)."""
