@@ -214,9 +214,7 @@ def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     ``Q`` (see ``_Q_*``)."""
     x, y, z = dt * w0, dt * w1, dt * w2
     Gm = E[1]
-    so3.gamma_into(x, y, z, Gm)
-    E = E[0]
-    so3.exp_into(x, y, z, E)
+    so3.exp_and_gamma_into(x, y, z, E[0], Gm)
     v0, v1, v2 = v[0], v[1], v[2]
     for i in range(3):
         c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]

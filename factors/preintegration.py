@@ -198,8 +198,7 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
                 Wj[a, 6] += h * acc[j, k, a]
                 Wj[a, 7 + a] += h
             # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-            so3.gamma_into(h * w0, h * w1, h * w2, Gm)
-            so3.exp_into(h * w0, h * w1, h * w2, E)
+            so3.exp_and_gamma_into(h * w0, h * w1, h * w2, E, Gm)
             for a in range(3):
                 for b in range(3):
                     JCj[a, b] -= h * (D[a, 0] * Gm[0, b] + D[a, 1] * Gm[1, b] + D[a, 2] * Gm[2, b])

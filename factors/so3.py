@@ -62,25 +62,19 @@ def vee(m: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _sinc(t: float) -> float:
-    """sin(t)/t, exact at 0."""
-    return 1.0 if t == 0.0 else math.sin(t) / t
-
-
-@njit(cache=True)
-def _one_minus_cos_over_t2(t: float) -> float:
-    """(1 - cos t) / t^2 = sinc(t/2)^2 / 2, no cancellation at any angle."""
-    s = _sinc(0.5 * t)
-    return 0.5 * s * s
-
-
-@njit(cache=True)
-def _t_minus_sin_over_t3(t: float) -> float:
-    """(t - sin t) / t^3; its Taylor series below ``SERIES_ANGLE``."""
+def _coefficients(t: float) -> tuple:
+    """``(sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3)`` at ``t >= 0``: the coefficients of
+    exp (first two) and Gamma (last two). Below ``SERIES_ANGLE`` all three by their Taylor series
+    (no trigonometric call; truncation below 1e-27 relative there); above, from ``sin t`` and
+    ``sin(t/2)`` with ``(1 - cos t) / t^2 = sinc(t/2)^2 / 2``, free of cancellation."""
     if t < SERIES_ANGLE:
         t2 = t * t
-        return 1 / 6 + t2 * (-1 / 120 + t2 * (1 / 5040 + t2 * (-1 / 362880)))
-    return (t - math.sin(t)) / t**3
+        return (1.0 + t2 * (-1 / 6 + t2 * (1 / 120 + t2 * (-1 / 5040 + t2 * (1 / 362880)))),
+                0.5 + t2 * (-1 / 24 + t2 * (1 / 720 + t2 * (-1 / 40320 + t2 * (1 / 3628800)))),
+                1 / 6 + t2 * (-1 / 120 + t2 * (1 / 5040 + t2 * (-1 / 362880))))
+    s = math.sin(t)
+    half = math.sin(0.5 * t) / (0.5 * t)
+    return s / t, 0.5 * half * half, (t - s) / t**3
 
 
 @njit(cache=True)
@@ -111,15 +105,24 @@ def _quadratic(x: float, y: float, z: float, a: float, b: float, out) -> None:
 @njit(cache=True)
 def exp_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`exp`: Rodrigues' matrix of ``(x, y, z)`` into ``out`` (3x3)."""
-    t = math.sqrt(x * x + y * y + z * z)
-    _quadratic(x, y, z, _sinc(t), _one_minus_cos_over_t2(t), out)
+    a, b, _ = _coefficients(math.sqrt(x * x + y * y + z * z))
+    _quadratic(x, y, z, a, b, out)
 
 
 @njit(cache=True)
 def gamma_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`gamma`."""
-    t = math.sqrt(x * x + y * y + z * z)
-    _quadratic(x, y, z, _one_minus_cos_over_t2(t), _t_minus_sin_over_t3(t), out)
+    _, b, c = _coefficients(math.sqrt(x * x + y * y + z * z))
+    _quadratic(x, y, z, b, c, out)
+
+
+@njit(cache=True)
+def exp_and_gamma_into(x: float, y: float, z: float, E, G) -> None:
+    """:func:`exp_into` and :func:`gamma_into` of the same vector, sharing their coefficients
+    (the IMU recursions need both at every sample)."""
+    a, b, c = _coefficients(math.sqrt(x * x + y * y + z * z))
+    _quadratic(x, y, z, a, b, E)
+    _quadratic(x, y, z, b, c, G)
 
 
 @njit(cache=True)
