@@ -83,7 +83,7 @@ class Preintegrated:
         return len(self.duration)
 
     def __getitem__(self, index) -> "Preintegrated":
-        if not isinstance(index, (int, np.integer)):
+        if not isinstance(index, (int, np.integer, slice)):  # a slice gives views, no copies
             index = np.arange(len(self))[index]
         pick = lambda a: None if a is None else a[index]  # noqa: E731
         return Preintegrated(

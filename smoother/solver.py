@@ -121,20 +121,28 @@ def linearize(blocks: list[Block], states: imu.ImuState) -> tuple[gtsam.Gaussian
     graph = gtsam.GaussianFactorGraph()
     cost = 0.0
     for block in blocks:
-        ev = evaluate_block(block, states, True)
-        cost += ev.loss
-        model = _unit(ev.e.shape[1])
-        keys = block.keyframes
-        if keys.shape[1] == 1:
-            for m in range(len(block)):
-                graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], -ev.e[m], model))
-        elif keys.shape[1] == 2:
-            for m in range(len(block)):
-                graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], int(keys[m, 1]), ev.A[1][m],
-                                               -ev.e[m], model))
-        else:
+        if block.keyframes.shape[1] > 2:
             raise ValueError(f"block {block.name}: factors on more than two keyframes are not supported")
+        # in chunks, so the Jacobians of a long run stay in cache between evaluation and use
+        for start in range(0, len(block), LINEARIZE_CHUNK):
+            rows = slice(start, min(start + LINEARIZE_CHUNK, len(block)))
+            ev = evaluate_block(block, states, True, rows)
+            cost += ev.loss
+            model = _unit(ev.e.shape[1])
+            keys = block.keyframes[rows]
+            if keys.shape[1] == 1:
+                for m in range(len(keys)):
+                    graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], -ev.e[m], model))
+            else:
+                for m in range(len(keys)):
+                    graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], int(keys[m, 1]), ev.A[1][m],
+                                                   -ev.e[m], model))
     return graph, cost
+
+
+#: Factors of a block linearised at once (a few MB of Jacobians: cache-resident, so the cost per
+#: factor does not grow with the length of the run).
+LINEARIZE_CHUNK = 1024
 
 
 def _keyframe_of(error: RuntimeError) -> int | None:

@@ -60,6 +60,21 @@ def test_optimizers_and_engines_reach_the_same_optimum(optimizer, engine):
     assert cases.sigma_difference(start, ref.trajectory.states, ref.trajectory.cov).max() > 1.0
 
 
+def test_linearizing_in_chunks_changes_nothing(monkeypatch):
+    """The vectorised engine linearises each block in chunks of factors (cache-sized for long
+    runs); chunks of 4 factors (blocks of 20 and 21 split unevenly) give the reference optimum
+    exactly: the same factors, the same arithmetic."""
+    from smoother import solver
+
+    monkeypatch.setattr(solver, "LINEARIZE_CHUNK", 4)
+    result = solve_batch(build_problem(small()), "lm")
+    ref = reference()
+    assert result.iterations == ref.iterations
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        np.testing.assert_allclose(getattr(result.trajectory.states, name), getattr(ref.trajectory.states, name),
+                                   rtol=0, atol=1e-12)
+
+
 def test_covariances_are_symmetric_positive_definite_and_below_the_prior():
     """Every keyframe's 15x15 covariance is symmetric (to round-off) and positive definite, and
     keyframe 0's is below the prior's in the Loewner order (measurements only add information:
