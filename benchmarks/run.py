@@ -13,8 +13,9 @@ interleaved, medians taken, because the machine is noisy):
    native ImuFactor graph with LM (``benchmarks/kitti_native.py``, whose time excludes reading
    the files), held-out RMS with every 10th fix;
 4. synthetic batch solve (200 Hz IMU, 10 Hz keyframes and poses) of 1, 5, 15 and 60 minutes,
-   each in fresh child processes after a warm-up: build (preintegration included) + optimise,
-   covariances off; covariance time of the short runs;
+   each in a fresh child process after a warm-up and repeated there to about 15 minutes of data
+   (mean): build (preintegration included) + optimise, covariances off; covariance time of the
+   short runs;
 5. fixed-lag update times (lag 2 s, covariances off): incremental over 5 minutes, batch kind
    over a shorter run (it is ~100x slower per update);
 6. peak resident memory of the one-hour batch run, measured in a child process (``os.wait4``
@@ -224,21 +225,26 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
-def batch_run(minutes: float, covariances: bool = False, memory: bool = False) -> dict:
-    """Simulate (untimed), build the problem (preintegration included) and optimise with the
-    vectorised engine, covariances off; optionally time the marginal covariances too. With
-    ``memory`` (a fresh process) the peak RSS so far is recorded after each stage."""
+def batch_run(minutes: float, covariances: bool = False, memory: bool = False, repeats: int = 1) -> dict:
+    """Simulate (untimed), then ``repeats`` times build the problem (preintegration included) and
+    optimise with the vectorised engine, covariances off; the mean times. Optionally time the
+    marginal covariances too. With ``memory`` (a fresh process) the peak RSS so far is recorded
+    after each stage."""
     dataset = _synthetic(60.0 * minutes)
     stages = {"simulate": _peak_rss_mib()} if memory else None
-    build_s, problem = _clock(lambda: build_problem(dataset, keyframe_rate=KEYFRAME_RATE))
-    if memory:
-        stages["build"] = _peak_rss_mib()
-    solve_s, result = _clock(lambda: solve_batch(problem, covariances=False))
-    if memory:
-        stages["solve"] = _peak_rss_mib()
+    builds, solves = [], []
+    for _ in range(repeats):
+        build_s, problem = _clock(lambda: build_problem(dataset, keyframe_rate=KEYFRAME_RATE))
+        if memory:
+            stages["build"] = _peak_rss_mib()
+        solve_s, result = _clock(lambda: solve_batch(problem, covariances=False))
+        if memory:
+            stages["solve"] = _peak_rss_mib()
+        builds.append(build_s)
+        solves.append(solve_s)
     out = {"minutes": minutes, "keyframes": len(problem.times), "iterations": result.iterations,
-           "build_s": build_s, "solve_s": solve_s}
-    out["total_s"] = build_s + solve_s
+           "repeats": repeats, "build_s": float(np.mean(builds)), "solve_s": float(np.mean(solves))}
+    out["total_s"] = out["build_s"] + out["solve_s"]
     out["ms_per_keyframe"] = 1e3 * out["total_s"] / out["keyframes"]
     out["covariance_s"] = None
     if memory:
@@ -248,11 +254,13 @@ def batch_run(minutes: float, covariances: bool = False, memory: bool = False) -
     return out
 
 
-def _batch_in_child(minutes: float, covariances: bool) -> dict:
-    """:func:`batch_run` in a fresh interpreter, after a 10-second warm-up run there (so every
-    length is measured in the same conditions: no first-call costs, no memory left by earlier
+def _batch_in_child(minutes: float, covariances: bool, repeats: int) -> dict:
+    """:func:`batch_run` in a fresh interpreter, after a 10-second warm-up run there, so every
+    length is measured in the same conditions (no first-call costs, no memory left by earlier
     runs); the child's own peak RSS from ``os.wait4``."""
-    command = [sys.executable, __file__, "--child-batch", str(minutes)] + (["--covariances"] if covariances else [])
+    command = [sys.executable, __file__, "--child-batch", str(minutes), "--repeats", str(repeats)]
+    if covariances:
+        command.append("--covariances")
     with tempfile.TemporaryFile("w+") as out:
         child = subprocess.Popen(command, stdout=out)
         _, status, usage = os.wait4(child.pid, 0)
@@ -265,15 +273,16 @@ def _batch_in_child(minutes: float, covariances: bool) -> dict:
     return result
 
 
+#: Each length is repeated until it has run about this many minutes of data (at least once):
+#: this machine's speed wanders by +-15% over seconds, and a mean over comparable spans of
+#: wall time compares the lengths fairly, where one short run would catch one spell.
+SCALING_SPAN_MIN = 15.0
+
+
 def bench_scaling(s: Settings) -> dict:
-    """Each length in fresh child processes (the median of ``SCALING_REPEATS`` children for runs up
-    to 5 minutes, one child for the longer ones), so short and long runs are timed alike."""
+    """Each length in its own fresh child process, repeated there (mean) to a comparable span."""
     lengths = list(s.scaling_min) + ([60.0] if s.hour else [])
-    runs = []
-    for minutes in lengths:
-        children = [_batch_in_child(minutes, minutes in s.covariance_min)
-                    for _ in range(SCALING_REPEATS if minutes <= 5 else 1)]
-        runs.append(sorted(children, key=lambda r: r["total_s"])[len(children) // 2])
+    runs = [_batch_in_child(m, m in s.covariance_min, max(1, round(SCALING_SPAN_MIN / m))) for m in lengths]
     hour = runs[-1] if s.hour else None
     per_kf = [r["ms_per_keyframe"] for r in runs]
     return {
@@ -282,9 +291,6 @@ def bench_scaling(s: Settings) -> dict:
         "hour_batch_s": hour["total_s"] if hour else None,
         "hour_peak_rss_mib": hour["peak_rss_mib"] if hour else None,
     }
-
-
-SCALING_REPEATS = 3
 
 
 # ------------------------------------------------------------------------------------------------
@@ -412,14 +418,14 @@ def print_table(r: dict) -> None:
     print(f"KITTI: ours / native time = {r['kitti_time_ratio']:.3g} (ours includes loading, "
           f"{r['kitti_load_s']:.2f} s; native excludes reading the files); native with the cumulative "
           f"bias count (GTSAM's Python example): {r['kitti_native_cumulative_rmse_m']:.3f} m")
-    print("batch scaling (each length in fresh child processes after a warm-up; covariances=False, "
-          "covariance time measured separately on the short runs):")
+    print("batch scaling (each length in a fresh child process after a warm-up, repeated to ~15 min of data, "
+          "mean; covariances=False, covariance time measured separately on the short runs):")
     for run in r["scaling"]:
         extra = ""
         if "peak_rss_mib" in run:
             after = ", ".join(f"{k} {v:.0f}" for k, v in run["peak_rss_mib_after"].items())
             extra = f", peak RSS {run['peak_rss_mib']:.0f} MiB (peak after {after} MiB)"
-        print(f"  {run['minutes']:>5g} min: {run['keyframes']:>6} kf, build {run['build_s']:.2f} s + solve "
+        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): {run['keyframes']:>6} kf, build {run['build_s']:.2f} s + solve "
               f"{run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
               f"{run['ms_per_keyframe']:.3f} ms/kf{extra}")
     for key in ("fixed_lag_incremental", "fixed_lag_batch"):
@@ -437,10 +443,11 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
     parser.add_argument("--child-batch", type=float, metavar="MIN", help=argparse.SUPPRESS)
     parser.add_argument("--covariances", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child_batch is not None:  # internal: one batch run in a clean process (peak RSS)
         batch_run(10.0 / 60.0)  # warm-up: first calls, lazy imports, allocator
-        print(json.dumps(batch_run(args.child_batch, covariances=args.covariances, memory=True)))
+        print(json.dumps(batch_run(args.child_batch, args.covariances, memory=True, repeats=args.repeats)))
         return
     s = QUICK if args.quick else FULL
     tick = time.perf_counter()
