@@ -23,10 +23,6 @@ from factors.measurements import covariance_model
 KINDS = [ROT, VEC, VEC, BIAS]
 
 
-def _state(C, r, v, b) -> imu.ImuState:
-    return imu.ImuState(r=r, v=v, C=C, b_f=b[:3], b_w=b[3:])
-
-
 def _reorder(J: np.ndarray) -> list[np.ndarray]:
     """Error-state columns (r, v, phi, b_f, b_w) -> the factor's variables (Rot3, Point3, V, bias)."""
     return [J[:, imu.PHI], J[:, imu.R], J[:, imu.V], J[:, imu.BF.start:imu.BW.stop]]  # (b_f, b_w) adjacent
@@ -54,16 +50,17 @@ class ImuFactor:
         self.factor = custom_factor(model, keys, KINDS + KINDS, self._residual)
 
     def _maybe_reintegrate(self, b_w: np.ndarray) -> None:
-        if np.max(np.abs(b_w - self.pre.b_w_bar)) > self.threshold:
+        bar = self.pre.b_w_bar
+        if max(abs(b_w[0] - bar[0]), abs(b_w[1] - bar[1]), abs(b_w[2] - bar[2])) > self.threshold:
             self.pre = self.pre.relinearized(b_w)
             self.reintegrations += 1
 
     def _residual(self, Ci, ri, vi, bi, Cj, rj, vj, bj, jacobians: bool):
-        state_i, state_j = _state(Ci, ri, vi, bi), _state(Cj, rj, vj, bj)
-        self._maybe_reintegrate(state_i.b_w)
+        self._maybe_reintegrate(bi[3:])
+        out = preintegration.residual_one(self.pre, Ci, ri, vi, bi, Cj, rj, vj, bj, self.gravity, jacobians)
         if not jacobians:
-            return preintegration.residual(self.pre, state_i, state_j, self.gravity)
-        e, (Ji, Jj) = preintegration.residual(self.pre, state_i, state_j, self.gravity, jacobians=True)
+            return out
+        e, (Ji, Jj) = out
         return e, _reorder(Ji) + _reorder(Jj)
 
     def predict(self, state_i: imu.ImuState) -> imu.ImuState:

@@ -323,82 +323,99 @@ def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out)
 
 
 @recursion
-def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
-                   jacobians, e, Ji, Jj):
-    """:func:`residual` for each row (see its docstring for every formula)."""
+def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
+                   jacobians, e, A, B) -> None:
+    """:func:`residual` of one interval (see its docstring for every formula): ``e`` (15) and,
+    with ``jacobians``, ``A = Ji``, ``B = Jj`` (15x15)."""
     dC, W, Rm = np.empty((3, 3)), np.empty((3, 10)), np.empty((3, 10))
     JCd, E, X, Y, M, z = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(10)
     u, gamma, dr = np.empty(3), np.empty(3), np.empty(3)
-    for n in range(dC0.shape[0]):
-        _correct(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], bwi[n], dC, W, Rm, JCd, E)
-        C = Ci[n]
-        for a in range(3):
-            dr[a] = rj[n, a] - ri[n, a]
-        for a in range(3):
-            gamma[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
-            u[a] = C[0, a] * dr[0] + C[1, a] * dr[1] + C[2, a] * dr[2]
-            z[a], z[3 + a], z[7 + a] = vi[n, a], gamma[a], -bfi[n, a]
-        z[6] = 1.0
-        # X = C_i^T C_j dC^T
-        for a in range(3):
-            for b in range(3):
-                Y[a, b] = C[0, a] * Cj[n, 0, b] + C[1, a] * Cj[n, 1, b] + C[2, a] * Cj[n, 2, b]
-        for a in range(3):
-            for b in range(3):
-                X[a, b] = Y[a, 0] * dC[b, 0] + Y[a, 1] * dC[b, 1] + Y[a, 2] * dC[b, 2]
-        p0, p1, p2 = so3.log_of(X)
-        for a in range(3):
-            rz, wz = 0.0, 0.0
-            for c in range(10):
-                rz += Rm[a, c] * z[c]
-                wz += W[a, c] * z[c]
-            e[n, a] = u[a] - rz
-            e[n, 3 + a] = vj[n, a] - wz
-            e[n, 9 + a] = bfj[n, a] - bfi[n, a]
-            e[n, 12 + a] = bwj[n, a] - bwi[n, a]
-        e[n, 6], e[n, 7], e[n, 8] = p0, p1, p2
-        if not jacobians:
-            continue
-        A, B = Ji[n], Jj[n]
-        A[:, :] = 0.0
-        B[:, :] = 0.0
-        so3.gamma_inv_into(p0, p1, p2, M)  # Gamma^-1(e_phi)
-        for a in range(3):
-            A[9 + a, 9 + a] = A[12 + a, 12 + a] = -1.0
-            B[9 + a, 9 + a] = B[12 + a, 12 + a] = B[3 + a, 3 + a] = 1.0
-            for b in range(3):
-                A[a, b] = -C[b, a]
-                B[a, b] = C[b, a]
-                A[a, 3 + b] = -Rm[a, b]
-                A[a, 9 + b] = Rm[a, 7 + b]
-                A[3 + a, 3 + b] = -W[a, b]
-                A[3 + a, 9 + b] = W[a, 7 + b]
-                # Gamma^-1 C_i^T into the attitude rows
-                gc = M[a, 0] * C[b, 0] + M[a, 1] * C[b, 1] + M[a, 2] * C[b, 2]
-                B[6 + a, 6 + b] = gc
-                A[6 + a, 6 + b] = -gc
-                sr, sv = 0.0, 0.0
-                for c in range(10):
-                    sr += dRm[n, a, c, b] * z[c]
-                    sv += dW[n, a, c, b] * z[c]
-                A[a, 12 + b] = -sr
-                A[3 + a, 12 + b] = -sv
-        # attitude columns of the r and v rows: u^x C_i^T - Rm_g gamma^x C_i^T, -W_g gamma^x C_i^T
+    _correct(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, bwi, dC, W, Rm, JCd, E)
+    C = Ci
+    for a in range(3):
+        dr[a] = rj[a] - ri[a]
+    for a in range(3):
+        gamma[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
+        u[a] = C[0, a] * dr[0] + C[1, a] * dr[1] + C[2, a] * dr[2]
+        z[a], z[3 + a], z[7 + a] = vi[a], gamma[a], -bfi[a]
+    z[6] = 1.0
+    # X = C_i^T C_j dC^T
+    for a in range(3):
         for b in range(3):
-            c0, c1, c2 = C[b, 0], C[b, 1], C[b, 2]  # column b of C_i^T
-            x0, x1, x2 = gamma[1] * c2 - gamma[2] * c1, gamma[2] * c0 - gamma[0] * c2, gamma[0] * c1 - gamma[1] * c0
-            y0, y1, y2 = u[1] * c2 - u[2] * c1, u[2] * c0 - u[0] * c2, u[0] * c1 - u[1] * c0
-            for a in range(3):
-                A[a, 6 + b] = (y0, y1, y2)[a] - (Rm[a, 3] * x0 + Rm[a, 4] * x1 + Rm[a, 5] * x2)
-                A[3 + a, 6 + b] = -(W[a, 3] * x0 + W[a, 4] * x1 + W[a, 5] * x2)
-        # gyro-bias column of the attitude rows: -Gamma^-1(e) X Gamma(JC d) JC
-        so3.gamma_into(JCd[0], JCd[1], JCd[2], E)
-        _matmul(M, X, Y)
-        _matmul(Y, E, M)
-        _matmul(M, JC[n], Y)
+            Y[a, b] = C[0, a] * Cj[0, b] + C[1, a] * Cj[1, b] + C[2, a] * Cj[2, b]
+    for a in range(3):
+        for b in range(3):
+            X[a, b] = Y[a, 0] * dC[b, 0] + Y[a, 1] * dC[b, 1] + Y[a, 2] * dC[b, 2]
+    p0, p1, p2 = so3.log_of(X)
+    for a in range(3):
+        rz, wz = 0.0, 0.0
+        for c in range(10):
+            rz += Rm[a, c] * z[c]
+            wz += W[a, c] * z[c]
+        e[a] = u[a] - rz
+        e[3 + a] = vj[a] - wz
+        e[9 + a] = bfj[a] - bfi[a]
+        e[12 + a] = bwj[a] - bwi[a]
+    e[6], e[7], e[8] = p0, p1, p2
+    if not jacobians:
+        return
+    A[:, :] = 0.0
+    B[:, :] = 0.0
+    so3.gamma_inv_into(p0, p1, p2, M)  # Gamma^-1(e_phi)
+    for a in range(3):
+        A[9 + a, 9 + a] = A[12 + a, 12 + a] = -1.0
+        B[9 + a, 9 + a] = B[12 + a, 12 + a] = B[3 + a, 3 + a] = 1.0
+        for b in range(3):
+            A[a, b] = -C[b, a]
+            B[a, b] = C[b, a]
+            A[a, 3 + b] = -Rm[a, b]
+            A[a, 9 + b] = Rm[a, 7 + b]
+            A[3 + a, 3 + b] = -W[a, b]
+            A[3 + a, 9 + b] = W[a, 7 + b]
+            # Gamma^-1 C_i^T into the attitude rows
+            gc = M[a, 0] * C[b, 0] + M[a, 1] * C[b, 1] + M[a, 2] * C[b, 2]
+            B[6 + a, 6 + b] = gc
+            A[6 + a, 6 + b] = -gc
+            sr, sv = 0.0, 0.0
+            for c in range(10):
+                sr += dRm[a, c, b] * z[c]
+                sv += dW[a, c, b] * z[c]
+            A[a, 12 + b] = -sr
+            A[3 + a, 12 + b] = -sv
+    # attitude columns of the r and v rows: u^x C_i^T - Rm_g gamma^x C_i^T, -W_g gamma^x C_i^T
+    for b in range(3):
+        c0, c1, c2 = C[b, 0], C[b, 1], C[b, 2]  # column b of C_i^T
+        x0, x1, x2 = gamma[1] * c2 - gamma[2] * c1, gamma[2] * c0 - gamma[0] * c2, gamma[0] * c1 - gamma[1] * c0
+        y0, y1, y2 = u[1] * c2 - u[2] * c1, u[2] * c0 - u[0] * c2, u[0] * c1 - u[1] * c0
         for a in range(3):
-            for b in range(3):
-                A[6 + a, 12 + b] = -Y[a, b]
+            A[a, 6 + b] = (y0, y1, y2)[a] - (Rm[a, 3] * x0 + Rm[a, 4] * x1 + Rm[a, 5] * x2)
+            A[3 + a, 6 + b] = -(W[a, 3] * x0 + W[a, 4] * x1 + W[a, 5] * x2)
+    # gyro-bias column of the attitude rows: -Gamma^-1(e) X Gamma(JC d) JC
+    so3.gamma_into(JCd[0], JCd[1], JCd[2], E)
+    _matmul(M, X, Y)
+    _matmul(Y, E, M)
+    _matmul(M, JC, Y)
+    for a in range(3):
+        for b in range(3):
+            A[6 + a, 12 + b] = -Y[a, b]
+
+
+
+
+@recursion
+def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
+                   jacobians, e, Ji, Jj):
+    """:func:`_residual_into` for each row."""
+    for n in range(dC0.shape[0]):
+        A, B = (Ji[n], Jj[n]) if jacobians else (Ji[0], Jj[0])
+        _residual_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
+                       rj[n], vj[n], Cj[n], bfj[n], bwj[n], g, jacobians, e[n], A, B)
+
+
+@recursion
+def _residual_one(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, Ci, ri, vi, bi, Cj, rj, vj, bj, g, jacobians, e, Ji, Jj):
+    _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bi[:3], bi[3:], rj, vj, Cj, bj[:3], bj[3:], g,
+                   jacobians, e, Ji, Jj)
 
 
 def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, gravity=imu.DEFAULT_GRAVITY,
@@ -428,10 +445,33 @@ def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, g
             + rows_of(lead, [getattr(state_i, f) for f in fields], _STATE_TAILS)
             + rows_of(lead, [getattr(state_j, f) for f in fields], _STATE_TAILS))
     e = np.empty((n, 15))
-    Ji = np.empty((n, 15, 15) if jacobians else (0, 15, 15))
+    Ji = np.empty((n, 15, 15) if jacobians else (1, 15, 15))
     Jj = np.empty_like(Ji)
     _residual_rows(*args, as_trailing(gravity, (3,), "gravity"), jacobians, e, Ji, Jj)
     e = e.reshape(lead + (15,))
     if not jacobians:
         return e
     return e, (Ji.reshape(lead + (15, 15)), Jj.reshape(lead + (15, 15)))
+
+
+_ONE_SHAPES = ((3, 3), (3,), (3,), (6,)) * 2
+
+
+def residual_one(pre: Preintegrated, Ci, ri, vi, bi, Cj, rj, vj, bj, gravity, jacobians: bool = False):
+    """:func:`residual` of ONE interval from a factor's variables as GTSAM hands them over
+    (attitude matrix, position, body velocity and the bias 6-vector ``(b_f, b_w)`` of keyframes
+    ``i`` and ``j``): the same compiled core (:func:`_residual_into`) without the batch plumbing,
+    for the per-factor callback, where that plumbing cost more than the mathematics."""
+    variables = (Ci, ri, vi, bi, Cj, rj, vj, bj)
+    if pre.dC.shape != (3, 3) or np.shape(gravity) != (3,):
+        raise ValueError(f"residual_one: expected one interval and gravity (3,), got {pre.dC.shape[:-2]} "
+                         f"intervals and gravity {np.shape(gravity)}")
+    for x, shape in zip(variables, _ONE_SHAPES):
+        if type(x) is not np.ndarray or x.shape != shape or x.dtype != np.float64:
+            raise ValueError(f"residual_one: expected float arrays of shapes {_ONE_SHAPES}, "
+                             f"got {[np.shape(v) for v in variables]}")
+    e = np.empty(15)
+    Ji, Jj = np.empty((15, 15)), np.empty((15, 15))
+    _residual_one(pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar, Ci, ri, vi, bi, Cj, rj, vj, bj,
+                  gravity, jacobians, e, Ji, Jj)
+    return (e, (Ji, Jj)) if jacobians else e

@@ -60,3 +60,32 @@ def test_residual_broadcasts_one_interval_against_many_states():
         np.testing.assert_array_equal(e[k], ek)
         np.testing.assert_array_equal(Ji[k], Jik)
         np.testing.assert_array_equal(Jj[k], Jjk)
+
+
+def test_residual_one_equals_the_vectorised_residual_and_checks_its_inputs():
+    """The factor callback's direct path (:func:`preintegration.residual_one`, variables as GTSAM
+    hands them over) runs the same kernel as the vectorised residual: identical numbers."""
+    rng = np.random.default_rng(2)
+    K = 9
+    acc, gyro, dt = rng.normal(size=(1, K, 3)), rng.normal(size=(1, K, 3)), np.full((1, K), 0.01)
+    pre = preintegration.integrate(acc, gyro, dt, np.full((1, 3), 0.01))[0]
+    states = imu.ImuState(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)), so3.exp(rng.normal(size=(2, 3))),
+                          rng.normal(size=(2, 3)) * 0.1, rng.normal(size=(2, 3)) * 1e-2)
+    g = imu.DEFAULT_GRAVITY
+
+    def variables(x):
+        return [x.C, x.r, x.v, np.concatenate([x.b_f, x.b_w])]
+
+    e, (Ji, Jj) = preintegration.residual(pre, states[0], states[1], g, jacobians=True)
+    e1, (Ji1, Jj1) = preintegration.residual_one(pre, *variables(states[0]), *variables(states[1]), g, True)
+    np.testing.assert_array_equal(e1, e)
+    np.testing.assert_array_equal(Ji1, Ji)
+    np.testing.assert_array_equal(Jj1, Jj)
+    np.testing.assert_array_equal(preintegration.residual_one(pre, *variables(states[0]), *variables(states[1]), g), e)
+    bad = variables(states[1])
+    bad[3] = bad[3][:3]  # a 3-vector where the bias 6-vector belongs
+    with pytest.raises(ValueError, match="expected float arrays"):
+        preintegration.residual_one(pre, *variables(states[0]), *bad, g)
+    with pytest.raises(ValueError, match="one interval"):
+        preintegration.residual_one(preintegration.integrate(acc, gyro, dt, np.zeros((1, 3))),
+                                    *variables(states[0]), *variables(states[1]), g)
