@@ -1,6 +1,7 @@
 """``smoother run``: run the estimators on a dataset, write trajectories, metrics and plots."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -35,6 +36,9 @@ def register(sub) -> None:
                    help="pose measurements drawn from the ground truth")
     p.add_argument("--gps-from-truth", type=float, nargs=2, metavar=("HZ", "POS_M"),
                    help="position measurements drawn from the ground truth")
+    p.add_argument("--tune-noise", action="store_true",
+                   help="first scale the IMU noise densities to maximise the likelihood of the measurements used "
+                        "(EKF prediction errors; no truth, no held-out data), then run with them")
     p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
     p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
     p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
@@ -92,6 +96,9 @@ def run(args) -> int:
     )
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()
+    run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:]}
+    if args.tune_noise:
+        dataset, run_info["noise_tuning"] = tuned(dataset, args.progress)
     estimates = {}
     try:
         for name in names:
@@ -104,9 +111,8 @@ def run(args) -> int:
             report.write_outputs(Path(args.out), dataset, estimates, {"interrupted": True})
             print(f"interrupted: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
         raise
-    metrics = report.write_outputs(Path(args.out), dataset, estimates, {
-        "dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "total_s": time.perf_counter() - started,
-    })
+    metrics = report.write_outputs(Path(args.out), dataset, estimates,
+                                   {**run_info, "total_s": time.perf_counter() - started})
     if args.plot:
         from smoother import plots
 
@@ -115,6 +121,23 @@ def run(args) -> int:
     print(format_table(metrics))
     print(f"outputs in {args.out}/", file=sys.stderr)
     return 0
+
+
+def tuned(dataset, progress: bool | None):
+    """``dataset`` with its IMU noise tuned (:func:`smoother.tuning.tune_noise`) and the record of
+    the tuning for ``metrics.json``; the factors are reported on stderr."""
+    from smoother.tuning import tune_noise
+
+    print("tuning the IMU noise (maximum likelihood of the measurements used) ...", file=sys.stderr)
+    try:
+        tuning = tune_noise(dataset, progress=progress)
+    except ValueError as error:
+        raise UserError(f"--tune-noise: {error}") from None
+    summary = tuning.summary()
+    factors = ", ".join(f"{name} x{scale:.3g}" for name, scale in summary["scale"].items())
+    print(f"noise tuned ({tuning.evaluations} EKF runs, log-likelihood {tuning.initial_log_likelihood:.1f} -> "
+          f"{tuning.log_likelihood:.1f}): {factors}", file=sys.stderr)
+    return dataclasses.replace(dataset, noise=tuning.noise), summary
 
 
 def format_table(metrics: dict) -> str:
