@@ -179,3 +179,17 @@ def test_warnings_are_one_readable_line(monkeypatch, capsys, tmp_path):
     assert cli_main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(tmp_path), "--no-progress"]) == 0
     assert seen == ["smoother: warning: Dataset.position: 2 of 5 dropped\n"]
     assert pywarnings.formatwarning is before
+
+
+def test_tune_noise_reports_and_records_the_tuning(tmp_path, capsys):
+    """--tune-noise: the tuning's factors go to stderr and its record into metrics.json."""
+    out = tmp_path / "tuned"
+    code = main(["run", "--dataset", "synthetic:gentle", "--duration", "4", "--estimator", "ekf", "--out", str(out),
+                 "--tune-noise", "--no-progress"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "noise tuned (" in captured.err
+    tuning = json.loads((out / "metrics.json").read_text())["_run"]["noise_tuning"]
+    assert set(tuning["scale"]) == {"acc", "gyro", "acc_bias", "gyro_bias"}
+    assert tuning["log_likelihood"] >= tuning["initial_log_likelihood"]
+    assert tuning["evaluations"] >= 9  # the start and both directions of each density at least
