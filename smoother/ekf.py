@@ -273,26 +273,20 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last,
     for knot in range(first, last):
         a, b = bounds[knot], bounds[knot + 1]
         imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
-        i = pose_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
-        if i >= 0:
-            e, H = np.empty(6), np.zeros((6, n))
-            meas.orientation_error_into(C, pose_C[i], e[3:], H[3:, 6:9])
-            for k in range(3):
-                e[k] = r[k] - pose_r[i, k]
-                H[k, k] = 1.0
-            _kalman_update(r, v, C, b_f, b_w, P, e, H, pose_R[i], gates, stats)
-        i = pos_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
-        if i >= 0:
-            e, H = np.empty(3), np.zeros((3, n))
-            for k in range(3):
-                e[k] = r[k] - pos_r[i, k]
-                H[k, k] = 1.0
-            _kalman_update(r, v, C, b_f, b_w, P, e, H, pos_R[i], gates, stats)
-        i = ori_row[knot] if not _diverged(r, v, C, b_f, b_w, P) else -1
-        if i >= 0:
-            e, H = np.empty(3), np.zeros((3, n))
-            meas.orientation_error_into(C, ori_C[i], e, H[:, 6:9])
-            _kalman_update(r, v, C, b_f, b_w, P, e, H, ori_R[i], gates, stats)
+        for kind in range(3):  # pose, position, orientation (the order of Ekf's update_* calls)
+            i = (pose_row, pos_row, ori_row)[kind][knot]
+            if i < 0 or _diverged(r, v, C, b_f, b_w, P):
+                continue
+            m = 6 if kind == 0 else 3
+            e, H = np.empty(m), np.zeros((m, n))
+            if kind != 2:  # e_r = r - r_meas, de_r/dr = I
+                measured = pose_r[i] if kind == 0 else pos_r[i]
+                for k in range(3):
+                    e[k] = r[k] - measured[k]
+                    H[k, k] = 1.0
+            if kind != 1:  # e_phi = C [-] C_meas in the last three rows
+                meas.orientation_error_into(C, pose_C[i] if kind == 0 else ori_C[i], e[m - 3:], H[m - 3:, 6:9])
+            _kalman_update(r, v, C, b_f, b_w, P, e, H, (pose_R, pos_R, ori_R)[kind][i], gates, stats)
         out_r[knot], out_v[knot], out_C[knot], out_b_f[knot], out_b_w[knot] = r, v, C, b_f, b_w
         out_P[knot] = P
         if _diverged(r, v, C, b_f, b_w, P):
