@@ -287,8 +287,9 @@ def test_vectorised_propagate_equals_loops(seed):
 
 @pytest.mark.parametrize("seed", range(3))
 def test_propagate_steps_equals_dense_covariance_recursion(seed):
-    """The compiled block-sparse prediction over J rows of K samples (padding dt = 0 skipped)
-    equals the dense ``S <- F S F^T + G Q_d G^T`` with this module's F and G, step by step."""
+    """The compiled prediction (F applied as an operator, never formed) over J rows of K samples
+    (padding dt = 0 skipped) equals the dense ``S <- F S F^T + G Q_d G^T`` with this module's F
+    and G, step by step."""
     rng = np.random.default_rng(seed)
     J, K = 4, 9
     noise = imu.ImuNoise(acc=2e-2, gyro=3e-3, acc_bias=4e-4, gyro_bias=5e-5, velocity=1e-3)
