@@ -210,11 +210,14 @@ def _pose_measurement_H(rng):
 
 
 def _relative_pose_jacobians(rng):
+    """The odometry residual at random poses whose residual rotation ``C_i^T C_j dC^T`` keeps
+    ``PI_MARGIN_FOR_LOG`` from pi, where ``log`` (and so the central differences) jumps."""
     from factors import measurements
 
-    Ci, Cj = random_rotation(rng), random_rotation(rng)
+    Ci, dC = random_rotation(rng), random_rotation(rng)
+    Cj = Ci @ random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG) @ dC
     ri, rj = rng.normal(size=3) * 5, rng.normal(size=3) * 5
-    dr, dC = rng.normal(size=3), random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG)
+    dr = rng.normal(size=3)
     _, J = measurements.relative_pose_residual(Ci, ri, Cj, rj, dr, dC, jacobians=True)
     num = _num(lambda a, b, c, d: measurements.relative_pose_residual(a, b, c, d, dr, dC), Ci, ri, Cj, rj,
                arg_kinds=["rotation", "vector", "rotation", "vector"], value_kind="vector")
