@@ -66,3 +66,16 @@ def common_shape(*shapes) -> tuple:
     """The broadcast of ``shapes`` (fast when they are all equal)."""
     first = shapes[0]
     return first if all(s == first for s in shapes) else np.broadcast_shapes(*shapes)
+
+
+@njit(cache=True)
+def matmul_into(A, B, out) -> None:
+    """``out = A B`` for small 2-d arrays of any layout (``out`` must not alias ``A`` or ``B``).
+    Written out because Numba's ``@`` on matrices calls SciPy's BLAS, and SciPy is not a
+    dependency of this package."""
+    for a in range(A.shape[0]):
+        for b in range(B.shape[1]):
+            acc = 0.0
+            for k in range(A.shape[1]):
+                acc += A[a, k] * B[k, b]
+            out[a, b] = acc

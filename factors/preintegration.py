@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import imu, so3
-from factors.compiled import as_trailing, common_shape, recursion, rows as rows_of
+from factors.compiled import as_trailing, common_shape, matmul_into, recursion, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -291,17 +291,6 @@ _STATE_TAILS = ((3,), (3,), (3, 3), (3,), (3,))
 
 
 @recursion
-def _matmul(A, B, out) -> None:
-    """``out = A B`` for small 2-d arrays (out must not alias A or B)."""
-    for a in range(A.shape[0]):
-        for b in range(B.shape[1]):
-            acc = 0.0
-            for k in range(A.shape[1]):
-                acc += A[a, k] * B[k, b]
-            out[a, b] = acc
-
-
-@recursion
 def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E) -> None:
     """First-order gyro-bias correction of one interval: ``W + dW . d``, ``Rm + dRm . d``,
     ``exp(JC d) dC`` with ``d = b_w - b_w_bar``; ``JC d`` into ``JCd`` (3), ``E`` a 3x3 work array."""
@@ -312,7 +301,7 @@ def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E
             Rm_out[a, c] = Rm[a, c] + dRm[a, c, 0] * d0 + dRm[a, c, 1] * d1 + dRm[a, c, 2] * d2
         JCd[a] = JC[a, 0] * d0 + JC[a, 1] * d1 + JC[a, 2] * d2
     so3.exp_into(JCd[0], JCd[1], JCd[2], E)
-    _matmul(E, dC, dC_out)
+    matmul_into(E, dC, dC_out)
 
 
 @recursion
@@ -392,9 +381,9 @@ def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj,
             A[3 + a, 6 + b] = -(W[a, 3] * x0 + W[a, 4] * x1 + W[a, 5] * x2)
     # gyro-bias column of the attitude rows: -Gamma^-1(e) X Gamma(JC d) JC
     so3.gamma_into(JCd[0], JCd[1], JCd[2], E)
-    _matmul(M, X, Y)
-    _matmul(Y, E, M)
-    _matmul(M, JC, Y)
+    matmul_into(M, X, Y)
+    matmul_into(Y, E, M)
+    matmul_into(M, JC, Y)
     for a in range(3):
         for b in range(3):
             A[6 + a, 12 + b] = -Y[a, b]

@@ -23,6 +23,7 @@ from numba import njit
 
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
+from factors.compiled import matmul_into
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
@@ -221,8 +222,10 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
     Joseph's ``P <- (I - K H) P (I - K H)^T + K R K^T``; ``stats[0]`` counts rejections,
     ``stats[1]`` accumulates ``log N(e; 0, S)``. A non-positive-definite ``S`` raises."""
     m, n = e.shape[0], P.shape[0]
-    PHt = P @ H.T
-    S = H @ PHt + R
+    PHt, S = np.empty((n, m)), np.empty((m, m))
+    matmul_into(P, H.T, PHt)
+    matmul_into(H, PHt, S)
+    S += R
     L = np.empty((m, m))
     if not _cholesky(0.5 * (S + S.T), L):
         raise ValueError("EKF update: the innovation covariance H P H^T + R is not positive definite")
@@ -237,7 +240,7 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
         stats[0] += 1
         return
     stats[1] -= 0.5 * (d2 + logdet + m * math.log(2.0 * math.pi))
-    # K^T = S^-1 (P H^T)^T = L^-T L^-1 PHt^T, column by column
+    # K^T = S^-1 (P H^T)^T = L^-T L^-1 PHt^T, row by row of K
     K = np.empty((n, m))
     z, col = np.empty(m), np.empty(m)
     for row in range(n):
@@ -248,10 +251,16 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
                 acc -= L[k, i] * col[k]
             col[i] = acc / L[i, i]
         K[row] = col
-    imu.boxplus_into(r, v, C, b_f, b_w, -(K @ e))
-    IKH = np.eye(n) - K @ H
-    T = IKH @ P
-    KR = K @ R
+    dx = np.zeros(n)
+    for row in range(n):
+        for i in range(m):
+            dx[row] -= K[row, i] * e[i]
+    imu.boxplus_into(r, v, C, b_f, b_w, dx)
+    IKH, T, KR = np.empty((n, n)), np.empty((n, n)), np.empty((n, m))
+    matmul_into(K, H, IKH)
+    IKH[:, :] = np.eye(n) - IKH
+    matmul_into(IKH, P, T)
+    matmul_into(K, R, KR)
     for i in range(n):
         for j in range(i, n):
             acc = 0.0
