@@ -401,3 +401,26 @@ def test_run_ekf_equals_the_filter_driven_step_by_step():
         np.testing.assert_allclose(result.trajectory.cov[k], ekf.P, rtol=1e-9, atol=1e-15)
     assert result.rejected == ekf.rejected == 1
     assert result.log_likelihood == pytest.approx(ekf.log_likelihood, rel=1e-12)
+
+
+def test_the_compiled_filter_needs_no_scipy(tmp_path):
+    """SciPy is a test dependency only: Numba's ``@`` on matrices would need its BLAS. A fresh
+    interpreter with SciPy made unimportable and an empty Numba cache (so every kernel compiles
+    anew) predicts and updates."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "sys.modules['scipy'] = None\n"
+        "import numpy as np\n"
+        "from factors import imu, so3\n"
+        "from smoother.ekf import Ekf\n"
+        "ekf = Ekf(imu.ImuState.identity(), np.eye(15) * 0.01, imu.ImuNoise())\n"
+        "ekf.predict_steps(np.tile([0, 0, 9.81], (5, 1)), np.full((5, 3), 0.1), np.full(5, 0.01))\n"
+        "assert ekf.update_pose(ekf.state.r + 0.01, so3.exp([0.01, 0, 0]) @ ekf.state.C, np.eye(6) * 1e-4)\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
