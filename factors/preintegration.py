@@ -131,72 +131,79 @@ def _z(v_i, gamma, b_f) -> np.ndarray:
     return np.concatenate([v_i, gamma, one, -np.asarray(b_f, dtype=float)], axis=-1)
 
 
-@recursion
-def _cross(u0, u1, u2, x0, x1, x2) -> tuple:
-    return u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0
+#: Row width of the kernel's flat work rows: W, Rm and each slice of their bias Jacobians have
+#: 10 columns, held in rows of 16 so that every column loop has a compile-time length over
+#: contiguous memory, which LLVM turns into SIMD instructions.
+_IW = 16
 
 
 @recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
-    """The recursions of the module docstring, interval by interval, sample by sample, on
-    3x3 blocks (outputs initialised by the caller). ``A x = x - dt w x x`` is applied as a cross
-    product; samples with ``dt = 0`` are identity steps and skipped."""
-    E = np.empty((3, 3))
-    Gm = np.empty((3, 3))
-    dCW = np.empty((3, 10))
-    tmp = np.empty((3, 3))
+    """The recursions of the module docstring, interval by interval, sample by sample
+    (outputs initialised by the caller). ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[...,
+    l]`` live in flat rows of ``_IW`` columns while an interval is integrated (row ``a`` of ``W``;
+    row ``3 l + a`` of ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is
+    applied as a cross product. Samples with ``dt = 0`` are identity steps and skipped."""
+    E, Gm, tmp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Wf, Rf, dCW = np.zeros(3 * _IW), np.zeros(3 * _IW), np.zeros(3 * _IW)
+    dWf, dRf = np.zeros(9 * _IW), np.zeros(9 * _IW)
     for j in range(dt.shape[0]):
+        D, JCj = dC[j], JC[j]
+        for a in range(3):
+            for c in range(10):
+                Wf[a * _IW + c], Rf[a * _IW + c] = W[j, a, c], Rm[j, a, c]
+                for l in range(3):
+                    dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c] = dW[j, a, c, l], dRm[j, a, c, l]
         for k in range(dt.shape[1]):
             h = dt[j, k]
             if h <= 0.0:
                 continue
             w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
-            D, Wj, JCj, dWj, dRj = dC[j], W[j], JC[j], dW[j], dRm[j]
-            for a in range(3):
-                for c in range(10):
-                    dCW[a, c] = D[a, 0] * Wj[0, c] + D[a, 1] * Wj[1, c] + D[a, 2] * Wj[2, c]
+            d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
+                                                           D[2, 0], D[2, 1], D[2, 2])
+            for c in range(_IW):  # dC W
+                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
+                dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
+                dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
             for l in range(3):
                 u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
-                # dRm += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
-                for c in range(10):
-                    x0, x1, x2 = _cross(u0, u1, u2, dCW[0, c], dCW[1, c], dCW[2, c])
-                    y0, y1, y2 = dWj[0, c, l], dWj[1, c, l], dWj[2, c, l]
-                    dRj[0, c, l] += h * (x0 + D[0, 0] * y0 + D[0, 1] * y1 + D[0, 2] * y2)
-                    dRj[1, c, l] += h * (x1 + D[1, 0] * y0 + D[1, 1] * y1 + D[1, 2] * y2)
-                    dRj[2, c, l] += h * (x2 + D[2, 0] * y0 + D[2, 1] * y1 + D[2, 2] * y2)
-                # dC^T (JC e_l)^x: column m is dC^T (u x e_m)
-                for m in range(3):
-                    e0, e1, e2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
-                    x0, x1, x2 = _cross(u0, u1, u2, e0, e1, e2)
-                    for a in range(3):
-                        tmp[a, m] = D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2
-                # dW <- A dW + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
                 e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
-                for c in range(10):
-                    y0, y1, y2 = dWj[0, c, l], dWj[1, c, l], dWj[2, c, l]
-                    a0, a1, a2 = _cross(w0, w1, w2, y0, y1, y2)
-                    b0, b1, b2 = _cross(e0, e1, e2, Wj[0, c], Wj[1, c], Wj[2, c])
-                    y0 += h * (b0 - a0)
-                    y1 += h * (b1 - a1)
-                    y2 += h * (b2 - a2)
-                    if 3 <= c < 6:
-                        y0 -= h * tmp[0, c - 3]
-                        y1 -= h * tmp[1, c - 3]
-                        y2 -= h * tmp[2, c - 3]
-                    dWj[0, c, l], dWj[1, c, l], dWj[2, c, l] = y0, y1, y2
+                row = 3 * l * _IW
+                # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
+                for c in range(_IW):
+                    x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
+                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                    dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
+                    dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
+                    dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
+                # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
+                for c in range(_IW):
+                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                    x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                    dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
+                    dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
+                    dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
+                # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
+                for m in range(3):
+                    f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
+                    x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
+                    for a in range(3):
+                        dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
             # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
-            for c in range(10):
-                for a in range(3):
-                    Rm[j, a, c] += h * dCW[a, c]
-                a0, a1, a2 = _cross(w0, w1, w2, Wj[0, c], Wj[1, c], Wj[2, c])
-                Wj[0, c] -= h * a0
-                Wj[1, c] -= h * a1
-                Wj[2, c] -= h * a2
+            for c in range(_IW):
+                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                Rf[c] += h * dCW[c]
+                Rf[_IW + c] += h * dCW[_IW + c]
+                Rf[2 * _IW + c] += h * dCW[2 * _IW + c]
+                Wf[c] = x0 - h * (w1 * x2 - w2 * x1)
+                Wf[_IW + c] = x1 - h * (w2 * x0 - w0 * x2)
+                Wf[2 * _IW + c] = x2 - h * (w0 * x1 - w1 * x0)
             for a in range(3):
                 for b in range(3):
-                    Wj[a, 3 + b] += h * D[b, a]
-                Wj[a, 6] += h * acc[j, k, a]
-                Wj[a, 7 + a] += h
+                    Wf[a * _IW + 3 + b] += h * D[b, a]
+                Wf[a * _IW + 6] += h * acc[j, k, a]
+                Wf[a * _IW + 7 + a] += h
             # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
             so3.exp_and_gamma_into(h * w0, h * w1, h * w2, E, Gm)
             for a in range(3):
@@ -204,6 +211,11 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
                     JCj[a, b] -= h * (D[a, 0] * Gm[0, b] + D[a, 1] * Gm[1, b] + D[a, 2] * Gm[2, b])
                     tmp[a, b] = D[a, 0] * E[0, b] + D[a, 1] * E[1, b] + D[a, 2] * E[2, b]
             D[:, :] = tmp
+        for a in range(3):
+            for c in range(10):
+                W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
+                for l in range(3):
+                    dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
 
 
 def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
