@@ -232,6 +232,11 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                     lam = max(lam / 10.0, 1e-12)
                     accepted = True
                     break
+                # At the minimum the linear model promises a decrease at round-off level and no
+                # damping can realise it: stop there instead of raising lambda to its bound.
+                promised = cost - graph.error(_to_vector_values(delta))
+                if promised <= max(absolute_tolerance, relative_tolerance * cost):
+                    break
                 lam *= 10.0
                 if lam > 1e10:
                     break
