@@ -40,6 +40,7 @@ All functions are vectorised over leading dimensions (a batch of states, samples
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -216,18 +217,18 @@ _W = 16
 @recursion
 def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
-    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (``E[0]``; ``E`` is a (2, 3, 3) work array) and
-    ``Q`` (see ``_Q_*``)."""
+    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
     x, y, z = dt * w0, dt * w1, dt * w2
-    Gm = E[1]
-    so3.exp_and_gamma_into(x, y, z, E[0], Gm)
+    a, b, c = so3.coefficients(math.sqrt(x * x + y * y + z * z))
+    so3.quadratic_into(x, y, z, a, b, E)
+    Gm = so3.quadratic_entries(x, y, z, b, c)  # Gamma(dt w), row-major
     v0, v1, v2 = v[0], v[1], v[2]
     for i in range(3):
         c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
         Q[_Q_C + 3 * i], Q[_Q_C + 3 * i + 1], Q[_Q_C + 3 * i + 2] = dt * c0, dt * c1, dt * c2
         Q[_Q_CV + i] = dt * (c0 * v0 + c1 * v1 + c2 * v2)
         for m in range(3):
-            Q[_Q_CGAMMA + 3 * i + m] = dt * (c0 * Gm[0, m] + c1 * Gm[1, m] + c2 * Gm[2, m])
+            Q[_Q_CGAMMA + 3 * i + m] = dt * (c0 * Gm[m] + c1 * Gm[3 + m] + c2 * Gm[6 + m])
         # row i of C^T g^x is (c x g)^T with c = column i of C
         k0, k1, k2 = C[0, i], C[1, i], C[2, i]
         Q[_Q_CTGX + 3 * i] = dt * (k1 * g[2] - k2 * g[1])
@@ -244,7 +245,6 @@ def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
     ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples and ``E, Q`` from
     :func:`step_quantities` at this state."""
     h = Q[_Q_DT]
-    E = E[0]
     v0, v1, v2 = v[0], v[1], v[2]
     tg0 = C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2]
     tg1 = C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2]
@@ -372,7 +372,7 @@ def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
 
 @recursion
 def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians):
-    E, Q = np.empty((2, 3, 3)), np.empty(Q_SIZE)
+    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
     for i in range(r.shape[0]):
         w0, w1, w2 = gyro[i, 0] - b_w[i, 0], gyro[i, 1] - b_w[i, 1], gyro[i, 2] - b_w[i, 2]
         step_quantities(C[i], v[i], w0, w1, w2, dt[i], g, E, Q)
@@ -388,7 +388,7 @@ def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
     """Compiled core of :func:`propagate_steps` for one state: every sample ``k`` with
     ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` (15x15, symmetric on
     return) in place."""
-    E, Q = np.empty((2, 3, 3)), np.empty(Q_SIZE)
+    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
     flat, B, Bt, ABt = np.zeros(STATE_DIM * _W), np.empty(9 * _W), np.zeros(STATE_DIM * _W), np.empty(9 * _W)
     for i in range(STATE_DIM):
         for m in range(STATE_DIM):

@@ -62,7 +62,7 @@ def vee(m: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _coefficients(t: float) -> tuple:
+def coefficients(t: float) -> tuple:
     """``(sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3)`` at ``t >= 0``: the coefficients of
     exp (first two) and Gamma (last two). Below ``SERIES_ANGLE`` all three by their Taylor series
     (no trigonometric call; truncation below 1e-27 relative there); above, from ``sin t`` and
@@ -88,48 +88,53 @@ def _gamma_inv_coefficient(t: float) -> float:
 
 
 @njit(cache=True)
-def _quadratic(x: float, y: float, z: float, a: float, b: float, out) -> None:
-    """``out = I + a phi^x + b phi^x^2`` for ``phi = (x, y, z)`` (the form of exp, Gamma and
-    Gamma^-1), with ``phi^x^2 = phi phi^T - |phi|^2 I`` written entry by entry."""
-    out[0, 0] = 1.0 - b * (y * y + z * z)
-    out[1, 1] = 1.0 - b * (x * x + z * z)
-    out[2, 2] = 1.0 - b * (x * x + y * y)
-    out[0, 1] = -a * z + b * x * y
-    out[1, 0] = a * z + b * x * y
-    out[0, 2] = a * y + b * x * z
-    out[2, 0] = -a * y + b * x * z
-    out[1, 2] = -a * x + b * y * z
-    out[2, 1] = a * x + b * y * z
+def quadratic_entries(x: float, y: float, z: float, a: float, b: float) -> tuple:
+    """The nine entries (row-major) of ``I + a phi^x + b phi^x^2`` for ``phi = (x, y, z)`` (the
+    form of exp, Gamma and Gamma^-1), with ``phi^x^2 = phi phi^T - |phi|^2 I`` written entry by
+    entry; as a tuple, so compiled callers keep them in registers."""
+    xy, xz, yz = b * x * y, b * x * z, b * y * z
+    return (1.0 - b * (y * y + z * z), -a * z + xy, a * y + xz,
+            a * z + xy, 1.0 - b * (x * x + z * z), -a * x + yz,
+            -a * y + xz, a * x + yz, 1.0 - b * (x * x + y * y))
+
+
+@njit(cache=True)
+def quadratic_into(x: float, y: float, z: float, a: float, b: float, out) -> None:
+    """:func:`quadratic_entries` into the 3x3 array ``out``."""
+    e = quadratic_entries(x, y, z, a, b)
+    out[0, 0], out[0, 1], out[0, 2] = e[0], e[1], e[2]
+    out[1, 0], out[1, 1], out[1, 2] = e[3], e[4], e[5]
+    out[2, 0], out[2, 1], out[2, 2] = e[6], e[7], e[8]
 
 
 @njit(cache=True)
 def exp_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`exp`: Rodrigues' matrix of ``(x, y, z)`` into ``out`` (3x3)."""
-    a, b, _ = _coefficients(math.sqrt(x * x + y * y + z * z))
-    _quadratic(x, y, z, a, b, out)
+    a, b, _ = coefficients(math.sqrt(x * x + y * y + z * z))
+    quadratic_into(x, y, z, a, b, out)
 
 
 @njit(cache=True)
 def gamma_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`gamma`."""
-    _, b, c = _coefficients(math.sqrt(x * x + y * y + z * z))
-    _quadratic(x, y, z, b, c, out)
+    _, b, c = coefficients(math.sqrt(x * x + y * y + z * z))
+    quadratic_into(x, y, z, b, c, out)
 
 
 @njit(cache=True)
 def exp_and_gamma_into(x: float, y: float, z: float, E, G) -> None:
     """:func:`exp_into` and :func:`gamma_into` of the same vector, sharing their coefficients
     (the IMU recursions need both at every sample)."""
-    a, b, c = _coefficients(math.sqrt(x * x + y * y + z * z))
-    _quadratic(x, y, z, a, b, E)
-    _quadratic(x, y, z, b, c, G)
+    a, b, c = coefficients(math.sqrt(x * x + y * y + z * z))
+    quadratic_into(x, y, z, a, b, E)
+    quadratic_into(x, y, z, b, c, G)
 
 
 @njit(cache=True)
 def gamma_inv_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`gamma_inv`."""
     t = math.sqrt(x * x + y * y + z * z)
-    _quadratic(x, y, z, -0.5, _gamma_inv_coefficient(t), out)
+    quadratic_into(x, y, z, -0.5, _gamma_inv_coefficient(t), out)
 
 
 @njit(cache=True)
