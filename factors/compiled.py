@@ -9,10 +9,50 @@ vectorised interface of a NumPy function (``(..., *in_dims) -> (..., *out_dims)`
 """
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 from numba import njit
+
+
+def clear_stale_kernel_caches(packages, stamp: Path) -> bool:
+    """Remove Numba's cached kernels (``__pycache__/*.nbi``, ``*.nbc``) of ``packages`` (source
+    directories) when their sources have changed since the fingerprint in ``stamp``; returns
+    whether it removed them.
+
+    Numba invalidates a cached kernel only when the kernel's OWN file changes, but a compiled
+    kernel contains the kernels it calls from other modules (``so3`` inside ``imu``, ``imu``
+    inside the EKF): after an edit of ``so3.py`` alone the cached IMU kernels would keep the old
+    mathematics. One fingerprint over every source file closes that gap (cost: a recompilation
+    after any edit). Unwritable directories are left as they are."""
+    digest = hashlib.sha256()
+    for package in packages:
+        for source in sorted(Path(package).glob("*.py")):
+            digest.update(source.name.encode() + b"\0" + source.read_bytes())
+    fingerprint = digest.hexdigest()
+    try:
+        if stamp.read_text() == fingerprint:
+            return False
+    except OSError:
+        pass
+    try:
+        for package in packages:
+            for cached in list(Path(package, "__pycache__").glob("*.nb[ic]")):
+                cached.unlink(missing_ok=True)
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(fingerprint)
+    except OSError:
+        return False
+    return True
+
+
+if "NUMBA_CACHE_DIR" not in os.environ:  # a cache directory of the user's own is theirs to manage
+    _ROOT = Path(__file__).resolve().parent.parent
+    clear_stale_kernel_caches([_ROOT / name for name in ("factors", "datasets", "smoother")],
+                              _ROOT / "factors" / "__pycache__" / "kernel-sources.sha256")
 
 #: Decorator of the IMU recursions (:mod:`factors.imu`, :mod:`factors.preintegration`): compiled,
 #: cached on disk, and allowed to fuse ``a * b + c`` into one fused multiply-add (Numba's

@@ -89,3 +89,34 @@ def test_residual_one_equals_the_vectorised_residual_and_checks_its_inputs():
     with pytest.raises(ValueError, match="one interval"):
         preintegration.residual_one(preintegration.integrate(acc, gyro, dt, np.zeros((1, 3))),
                                     *variables(states[0]), *variables(states[1]), g)
+
+
+def test_cached_kernels_are_cleared_when_any_source_changes(tmp_path):
+    """Numba re-validates a cached kernel only against its own file; the package clears every
+    cached kernel when any of its sources changes (a kernel inlines others' code)."""
+    from factors.compiled import clear_stale_kernel_caches
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for package in (a, b):
+        (package / "__pycache__").mkdir(parents=True)
+        (package / "m.py").write_text("x = 1\n")
+    stamp = tmp_path / "stamp"
+
+    def cached():
+        for package in (a, b):
+            for name in ("m.k-10.py311.nbi", "m.k-10.py311.1.nbc"):
+                (package / "__pycache__" / name).write_text("")
+
+    cached()
+    assert clear_stale_kernel_caches([a, b], stamp)  # no fingerprint yet: cleared
+    assert not list(a.glob("__pycache__/*.nb?")) and stamp.exists()
+    cached()
+    assert not clear_stale_kernel_caches([a, b], stamp)  # unchanged sources: kept
+    assert len(list(b.glob("__pycache__/*.nb?"))) == 2
+    (b / "m.py").write_text("x = 2\n")  # an edit in ANOTHER package clears both
+    assert clear_stale_kernel_caches([a, b], stamp)
+    assert not list(a.glob("__pycache__/*.nb?")) and not list(b.glob("__pycache__/*.nb?"))
+    (a / "__pycache__" / "other.pyc").write_text("")
+    (b / "m.py").write_text("x = 3\n")
+    clear_stale_kernel_caches([a, b], stamp)
+    assert (a / "__pycache__" / "other.pyc").exists()  # only Numba's files go
