@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.types import Dataset
+from factors.imu import ImuNoise
 from smoother.ekf import FilterDiverged, run_ekf
 from smoother.progress import progress_bar
 
@@ -39,7 +40,7 @@ class NoiseTuning:
     """The tuned dataset's noise, its log10 factors relative to the original densities, and the
     log-likelihood before and after (``evaluations`` EKF runs)."""
 
-    noise: object
+    noise: ImuNoise
     log10_scale: dict
     log_likelihood: float
     initial_log_likelihood: float
