@@ -40,7 +40,6 @@ All functions are vectorised over leading dimensions (a batch of states, samples
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -219,9 +218,10 @@ def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
     rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
     x, y, z = dt * w0, dt * w1, dt * w2
-    a, b, c = so3.coefficients(math.sqrt(x * x + y * y + z * z))
-    so3.quadratic_into(x, y, z, a, b, E)
-    Gm = so3.quadratic_entries(x, y, z, b, c)  # Gamma(dt w), row-major
+    Em, Gm = so3.exp_and_gamma_entries(x, y, z)  # exp(dt w), Gamma(dt w), row-major
+    E[0, 0], E[0, 1], E[0, 2] = Em[0], Em[1], Em[2]
+    E[1, 0], E[1, 1], E[1, 2] = Em[3], Em[4], Em[5]
+    E[2, 0], E[2, 1], E[2, 2] = Em[6], Em[7], Em[8]
     v0, v1, v2 = v[0], v[1], v[2]
     for i in range(3):
         c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]

@@ -45,11 +45,7 @@ def position_residual(r, measured, jacobians: bool = False):
 def orientation_error_into(C, measured, e, J) -> None:
     """Compiled core of :func:`orientation_residual` for one attitude: ``e (3) = log(C C_meas^T)``
     and ``J (3x3) = Gamma^-1(e)``; the EKF's compiled update calls it directly."""
-    X = np.empty((3, 3))
-    for a in range(3):
-        for b in range(3):
-            X[a, b] = C[a, 0] * measured[b, 0] + C[a, 1] * measured[b, 1] + C[a, 2] * measured[b, 2]
-    e[0], e[1], e[2] = so3.log_of(X)
+    e[0], e[1], e[2] = so3.boxminus_of(C, measured)
     so3.gamma_inv_into(e[0], e[1], e[2], J)
 
 

@@ -144,7 +144,7 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
     l]`` live in flat rows of ``_IW`` columns while an interval is integrated (row ``a`` of ``W``;
     row ``3 l + a`` of ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is
     applied as a cross product. Samples with ``dt = 0`` are identity steps and skipped."""
-    E, Gm, tmp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    tmp = np.empty((3, 3))
     Wf, Rf, dCW = np.zeros(3 * _IW), np.zeros(3 * _IW), np.zeros(3 * _IW)
     dWf, dRf = np.zeros(9 * _IW), np.zeros(9 * _IW)
     for j in range(dt.shape[0]):
@@ -205,11 +205,11 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
                 Wf[a * _IW + 6] += h * acc[j, k, a]
                 Wf[a * _IW + 7 + a] += h
             # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-            so3.exp_and_gamma_into(h * w0, h * w1, h * w2, E, Gm)
+            Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
             for a in range(3):
                 for b in range(3):
-                    JCj[a, b] -= h * (D[a, 0] * Gm[0, b] + D[a, 1] * Gm[1, b] + D[a, 2] * Gm[2, b])
-                    tmp[a, b] = D[a, 0] * E[0, b] + D[a, 1] * E[1, b] + D[a, 2] * E[2, b]
+                    JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
+                    tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
             D[:, :] = tmp
         for a in range(3):
             for c in range(10):

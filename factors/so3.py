@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from factors import quaternion
-from factors.compiled import apply_rows
+from factors.compiled import apply_rows, as_trailing, common_shape, rows
 
 #: Below this angle (rad) the coefficients that cancel are evaluated by their Taylor series.
 SERIES_ANGLE = 1e-2
@@ -122,12 +122,11 @@ def gamma_into(x: float, y: float, z: float, out) -> None:
 
 
 @njit(cache=True)
-def exp_and_gamma_into(x: float, y: float, z: float, E, G) -> None:
-    """:func:`exp_into` and :func:`gamma_into` of the same vector, sharing their coefficients
-    (the IMU recursions need both at every sample)."""
+def exp_and_gamma_entries(x: float, y: float, z: float) -> tuple:
+    """The entries (row-major 9-tuples) of ``exp`` and ``Gamma`` of the same vector, sharing their
+    coefficients (the IMU recursions need both at every sample)."""
     a, b, c = coefficients(math.sqrt(x * x + y * y + z * z))
-    quadratic_into(x, y, z, a, b, E)
-    quadratic_into(x, y, z, b, c, G)
+    return quadratic_entries(x, y, z, a, b), quadratic_entries(x, y, z, b, c)
 
 
 @njit(cache=True)
@@ -162,6 +161,22 @@ def _quadratic_rows(phi, out, which):
 
 def _matrices(phi, which: int) -> np.ndarray:
     return apply_rows(lambda flat, out: _quadratic_rows(flat, out, which), phi, (3,), (3, 3), "phi")
+
+
+@njit(cache=True)
+def boxminus_of(C1, C2) -> tuple:
+    """Compiled core of :func:`boxminus` for one pair of 3x3 matrices: ``log(C1 C2^T)``."""
+    X = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            X[a, b] = C1[a, 0] * C2[b, 0] + C1[a, 1] * C2[b, 1] + C1[a, 2] * C2[b, 2]
+    return log_of(X)
+
+
+@njit(cache=True)
+def _boxminus_rows(C1, C2, out):
+    for i in range(C1.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = boxminus_of(C1[i], C2[i])
 
 
 @njit(cache=True)
@@ -202,8 +217,12 @@ def boxplus(C: np.ndarray, phi: np.ndarray) -> np.ndarray:
 
 
 def boxminus(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
-    """``Phi1 [-] Phi2 = log(Phi1 o Phi2^-1)`` (primer eq. 15)."""
-    return log(np.asarray(C1, dtype=float) @ inverse(C2))
+    """``Phi1 [-] Phi2 = log(Phi1 o Phi2^-1)`` (primer eq. 15), over broadcast leading dimensions."""
+    C1, C2 = as_trailing(C1, (3, 3), "C1"), as_trailing(C2, (3, 3), "C2")
+    lead = common_shape(C1.shape[:-2], C2.shape[:-2])
+    out = np.empty((math.prod(lead), 3))
+    _boxminus_rows(*rows(lead, (C1, C2), ((3, 3), (3, 3))), out)
+    return out.reshape(lead + (3,))
 
 
 def gamma(phi: np.ndarray) -> np.ndarray:
