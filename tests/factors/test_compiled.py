@@ -37,6 +37,8 @@ def test_wrong_trailing_shapes_are_refused_before_any_kernel_runs(bad):
         so3.log(bad)
     with pytest.raises(ValueError, match="x: expected"):
         as_trailing(bad, (3,), "x")
+    with pytest.raises(ValueError, match="C2: expected shape"):
+        so3.boxminus(np.eye(3), bad)
 
 
 def test_kernels_keep_leading_dimensions_and_accept_empty_batches():

@@ -53,3 +53,9 @@ def test_a_dataset_without_measurements_is_refused():
     data = dataclasses.replace(_simulated(), position=None, orientation=None)
     with pytest.raises(ValueError, match="needs pose, position or orientation measurements"):
         tune_noise(data, progress=False)
+
+
+@pytest.mark.parametrize("options", [{"step": 0.1, "min_step": 0.25}, {"min_step": 0.0}, {"max_log10": 0.0}])
+def test_invalid_search_settings_are_refused(options):
+    with pytest.raises(ValueError, match="expected 0 < min_step <= step and max_log10 > 0"):
+        tune_noise(_simulated(), progress=False, **options)
