@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from factors import scan, so3
-from factors.compiled import as_trailing, recursion, rows
+from factors.compiled import as_trailing, block_operation, recursion, rows
 
 STATE_DIM = 15
 NOISE_DIM = 15
@@ -261,7 +261,7 @@ def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
             C[i, m] = c0 * E[0, m] + c1 * E[1, m] + c2 * E[2, m]
 
 
-@recursion
+@block_operation
 def _apply_A(X, Q, out) -> None:
     """``out = (F - I) X`` column by column: ``X`` holds 15 rows and ``out`` 9 rows (the last six
     rows of ``F - I`` are zero) of ``_W`` columns each, flat. The rows of ``F - I`` are those in
@@ -321,7 +321,7 @@ def _jacobians_into(Q, F, G) -> None:
     G[4, 6], G[5, 6], G[5, 7] = -b2, b1, -b0
 
 
-@recursion
+@block_operation
 def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
     """``P <- F P F^T + G diag(q / dt) G^T`` in place, ``P`` flat (15 rows of ``_W``), at the
     step of ``Q`` from body velocity ``v``. ``F P F^T = P + B + B^T + A B^T`` with ``B = A P``
@@ -338,12 +338,10 @@ def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
         for i in range(9):
             Bt[k * _W + i] = B[i * _W + k]
     _apply_A(Bt, Q, ABt)
-    for i in range(9):
-        for c in range(_W):
-            P[i * _W + c] += B[i * _W + c] + Bt[i * _W + c] + ABt[i * _W + c]
-    for i in range(9, STATE_DIM):
-        for c in range(_W):
-            P[i * _W + c] += Bt[i * _W + c]
+    for t in range(9 * _W):  # flat loops over whole blocks of rows: one SIMD loop each
+        P[t] += B[t] + Bt[t] + ABt[t]
+    for t in range(9 * _W, STATE_DIM * _W):
+        P[t] += Bt[t]
     h = Q[_Q_DT]
     qw = q[NW.start]
     vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
