@@ -137,28 +137,105 @@ def _z(v_i, gamma, b_f) -> np.ndarray:
 _IW = 16
 
 
+@dataclass(frozen=True)
+class Anchors:
+    """Known values at the keyframes that reset the dead-reckoned reference trajectory of
+    :func:`integrate_with_covariance`: position ``r (J+1, 3)``, attitude ``C (J+1, 3, 3)`` and
+    WORLD velocity ``world_v (J+1, 3)``; NaN in a row means unknown (keep the prediction)."""
+
+    r: np.ndarray
+    C: np.ndarray
+    world_v: np.ndarray
+
+    @staticmethod
+    def of_states(states: imu.ImuState) -> "Anchors":
+        """Every keyframe anchored at ``states`` (position, attitude and velocity known)."""
+        return Anchors(states.r, states.C, states.world_velocity())
+
+    @staticmethod
+    def none(n: int) -> "Anchors":
+        """``n`` keyframes, none anchored."""
+        return Anchors(np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan))
+
+
 @recursion
-def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
-    """The recursions of the module docstring, interval by interval, sample by sample
-    (outputs initialised by the caller). ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[...,
-    l]`` live in flat rows of ``_IW`` columns while an interval is integrated (row ``a`` of ``W``;
-    row ``3 l + a`` of ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is
-    applied as a cross product. Samples with ``dt = 0`` are identity steps and skipped."""
-    tmp = np.empty((3, 3))
+def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
+    """The reference state of keyframe ``j``: the prediction ``(r, v, C)`` (in place) replaced
+    by the anchors that are known (finite): position, attitude, then body velocity ``C^T v_world``
+    with the (possibly replaced) attitude."""
+    if np.isfinite(anchor_r[j, 0]):
+        r[:] = anchor_r[j]
+    if np.isfinite(anchor_C[j, 0, 0]):
+        C[:, :] = anchor_C[j]
+    if np.isfinite(anchor_v[j, 0]):
+        for a in range(3):
+            v[a] = C[0, a] * anchor_v[j, 0] + C[1, a] * anchor_v[j, 1] + C[2, a] * anchor_v[j, 2]
+
+
+@recursion
+def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q, floor,
+                         dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C):
+    """The recursions of the module docstring (``want_jacobians``: with the gyro-bias
+    Jacobians ``JC, dW, dRm``) and, with ``want_covariance``, the covariance ``S`` of each
+    interval, all in one pass over the samples; interval by interval, sample by sample (outputs
+    initialised by the caller).
+
+    Interval ``j`` starts at the reference state ``ref_*[j]``: ``(r0, v0, C0)`` for ``j = 0``,
+    else the prediction from interval ``j - 1``, in both cases replaced by the known anchors
+    (:func:`_reference_at`); ``ref_*[J]`` is the last prediction, anchored the same way.
+
+    Covariance: the EKF's recursion ``S <- F S F^T + G Q_d G^T`` from ``S = 0`` along the
+    reference trajectory (:func:`factors.imu._covariance_step`), written directly in body-``i``
+    coordinates: the primer's model is invariant under a rotation of the world, so with the
+    relative attitude ``dC_k`` in place of ``C_k``, gravity ``gamma = C_i^T g`` in place of ``g``
+    and the body velocity ``v_k = W_k z`` of the reference, ``F`` and ``G`` are ``T F T^-1`` and
+    ``T G`` of the world-frame step (``T = diag(C_i^T, I, C_i^T, I, I)``), and ``S`` is the
+    world-frame covariance ``T S T^T`` without a rotation pass. ``floor`` is added on the
+    diagonal.
+
+    Layout: ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[..., l]`` live in flat rows of
+    ``_IW`` columns while an interval is integrated (row ``a`` of ``W``; row ``3 l + a`` of
+    ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is applied as a cross
+    product. Samples with ``dt = 0`` are identity steps and skipped."""
+    n = imu.STATE_DIM
+    tmp, E, Q, z, vk = np.empty((3, 3)), np.empty((3, 3)), np.empty(imu.Q_SIZE), np.zeros(10), np.zeros(3)
+    r, v, C, gamma = r0.copy(), v0.copy(), C0.copy(), np.empty(3)
     Wf, Rf, dCW = np.zeros(3 * _IW), np.zeros(3 * _IW), np.zeros(3 * _IW)
     dWf, dRf = np.zeros(9 * _IW), np.zeros(9 * _IW)
+    P, B, Bt, ABt = np.zeros(n * imu._W), np.empty(9 * imu._W), np.zeros(n * imu._W), np.empty(9 * imu._W)
     for j in range(dt.shape[0]):
+        _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v)
+        ref_r[j], ref_v[j], ref_C[j] = r, v, C
+        for a in range(3):
+            gamma[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
+            z[a], z[3 + a], z[7 + a] = v[a], gamma[a], -b_f[j, a]
+        z[6] = 1.0
         D, JCj = dC[j], JC[j]
         for a in range(3):
             for c in range(10):
                 Wf[a * _IW + c], Rf[a * _IW + c] = W[j, a, c], Rm[j, a, c]
                 for l in range(3):
                     dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c] = dW[j, a, c, l], dRm[j, a, c, l]
+        if q is not None:
+            P[:] = 0.0
         for k in range(dt.shape[1]):
             h = dt[j, k]
             if h <= 0.0:
                 continue
             w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
+            if q is not None:  # body velocity of the reference at sample k: W_k z
+                for a in range(3):
+                    acc_v = 0.0
+                    for c in range(10):
+                        acc_v += Wf[a * _IW + c] * z[c]
+                    vk[a] = acc_v
+            if q is not None:
+                # E = exp(dt w), Q: the step's quantities in body-i coordinates (dC for C, gamma
+                # for g), then the covariance step
+                imu.step_quantities(D, vk, w0, w1, w2, h, gamma, E, Q)
+                imu._covariance_step(P, Q, q, vk, B, Bt, ABt)
+            else:
+                Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
             d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
                                                            D[2, 0], D[2, 1], D[2, 2])
             for c in range(_IW):  # dC W
@@ -166,30 +243,31 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
                 dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
                 dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
                 dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
-            for l in range(3):
-                u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
-                e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
-                row = 3 * l * _IW
-                # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
-                for c in range(_IW):
-                    x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
-                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                    dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
-                    dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
-                    dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
-                # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
-                for c in range(_IW):
-                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                    x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-                    dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
-                    dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
-                    dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
-                # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
-                for m in range(3):
-                    f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
-                    x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
-                    for a in range(3):
-                        dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
+            if True:
+                for l in range(3):
+                    u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
+                    e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
+                    row = 3 * l * _IW
+                    # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
+                    for c in range(_IW):
+                        x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
+                        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                        dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
+                        dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
+                        dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
+                    # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
+                    for c in range(_IW):
+                        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                        x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                        dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
+                        dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
+                        dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
+                    # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
+                    for m in range(3):
+                        f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
+                        x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
+                        for a in range(3):
+                            dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
             # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
             for c in range(_IW):
                 x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
@@ -205,37 +283,105 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, dC, W, Rm, JC, dW, dRm):
                 Wf[a * _IW + 6] += h * acc[j, k, a]
                 Wf[a * _IW + 7 + a] += h
             # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-            Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
-            for a in range(3):
-                for b in range(3):
-                    JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
-                    tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
+            if q is not None:  # dt dC Gamma and exp are in Q and E
+                for a in range(3):
+                    for b in range(3):
+                        JCj[a, b] -= Q[imu._Q_CGAMMA + 3 * a + b]
+                        tmp[a, b] = D[a, 0] * E[0, b] + D[a, 1] * E[1, b] + D[a, 2] * E[2, b]
+            else:
+                for a in range(3):
+                    for b in range(3):
+                        JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
+                        tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
             D[:, :] = tmp
         for a in range(3):
             for c in range(10):
                 W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
                 for l in range(3):
                     dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
+        if q is not None:
+            Sj = S[j]
+            for a in range(n):
+                Sj[a, a] = P[a * imu._W + a] + floor
+                for b in range(a + 1, n):
+                    Sj[a, b] = Sj[b, a] = 0.5 * (P[a * imu._W + b] + P[b * imu._W + a])
+        # the prediction of keyframe j + 1 (module docstring): r + C Rm z, W z, C dC
+        for a in range(3):
+            rz, wz = 0.0, 0.0
+            for c in range(10):
+                rz += Rm[j, a, c] * z[c]
+                wz += W[j, a, c] * z[c]
+            vk[a], v[a] = rz, wz
+        for a in range(3):
+            r[a] += C[a, 0] * vk[0] + C[a, 1] * vk[1] + C[a, 2] * vk[2]
+            for b in range(3):
+                tmp[a, b] = C[a, 0] * D[0, b] + C[a, 1] * D[1, b] + C[a, 2] * D[2, b]
+        C[:, :] = tmp
+    J = dt.shape[0]
+    _reference_at(J, r, v, C, anchor_r, anchor_C, anchor_v)
+    ref_r[J], ref_v[J], ref_C[J] = r, v, C
+
+
+def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_jacobians, want_covariance):
+    """Check and lay out the inputs, run :func:`_preintegrate_kernel`; returns ``(Preintegrated,
+    reference states (J+1))``. ``cov`` is set when ``want_covariance``."""
+    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
+    dt = np.asarray(dt, dtype=float)
+    if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
+        raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
+    J, K = dt.shape
+    # every array C-contiguous and writable, so the kernel is compiled (and cached) once
+    ready = lambda a, shape: np.require(np.broadcast_to(a, shape), float, ["C", "W"])  # noqa: E731
+    b_w_bar = ready(as_trailing(b_w_bar, (3,), "b_w_bar"), (J, 3))
+    b_f = ready(as_trailing(b_f, (3,), "b_f"), (J, 3))
+    g = ready(as_trailing(gravity, (3,), "gravity"), (3,))
+    anchor_r, anchor_C, anchor_v = (ready(a, shape) for a, shape in (
+        (anchors.r, (J + 1, 3)), (anchors.C, (J + 1, 3, 3)), (anchors.world_v, (J + 1, 3))))
+    if start.shape != ():
+        raise ValueError(f"start: expected one state, got states of shape {start.shape}")
+    r0, v0, C0 = ready(start.r, (3,)), ready(start.v, (3,)), ready(start.C, (3, 3))
+    acc, gyro, dt = ready(acc, (J, K, 3)), ready(gyro, (J, K, 3)), ready(dt, (J, K))
+    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
+    W = np.zeros((J, 3, 10))
+    W[:, :, 0:3] = np.eye(3)
+    Rm, JC = np.zeros((J, 3, 10)), np.zeros((J, 3, 3))
+    dW, dRm = np.zeros((J, 3, 10, 3)), np.zeros((J, 3, 10, 3))
+    S = np.empty((J if want_covariance else 0, imu.STATE_DIM, imu.STATE_DIM))
+    ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
+    q = noise.densities() if want_covariance else None
+    _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q, COVARIANCE_FLOOR**2,
+                         dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C)
+    pre = Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt),
+                        S if want_covariance else None)
+    last = lambda a: np.concatenate([a, a[-1:]])  # noqa: E731  (the last keyframe keeps the last biases)
+    return pre, imu.ImuState(ref_r, ref_v, ref_C, last(b_f), last(b_w_bar))
 
 
 def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
-    around gyro biases ``b_w_bar (J, 3)`` (no covariance: see :func:`noise_covariance`).
-    One compiled pass over the samples (:func:`_integrate_kernel`)."""
-    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
-    dt = np.asarray(dt, dtype=float)
-    J, K = dt.shape
-    b_w_bar = np.ascontiguousarray(np.broadcast_to(as_trailing(b_w_bar, (3,), "b_w_bar"), (J, 3)))
-    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
-    W = np.zeros((J, 3, 10))
-    W[:, :, 0:3] = np.eye(3)
-    Rm = np.zeros((J, 3, 10))
-    JC = np.zeros((J, 3, 3))
-    dW = np.zeros((J, 3, 10, 3))
-    dRm = np.zeros((J, 3, 10, 3))
-    _integrate_kernel(np.ascontiguousarray(acc), np.ascontiguousarray(gyro), np.ascontiguousarray(dt), b_w_bar,
-                      dC, W, Rm, JC, dW, dRm)
-    return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
+    around gyro biases ``b_w_bar (J, 3)``, with the bias Jacobians, without the covariance (see
+    :func:`integrate_with_covariance`). One compiled pass over the samples."""
+    J = np.shape(dt)[0]
+    pre, _ = _run(acc, gyro, dt, b_w_bar, np.zeros(3), imu.ImuState.identity(), Anchors.none(J + 1),
+                  None, imu.DEFAULT_GRAVITY, True, False)
+    return pre
+
+
+def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.ImuNoise,
+                              gravity=imu.DEFAULT_GRAVITY, anchors: Anchors | None = None):
+    """Preintegrate ``J`` padded intervals ``samples = (acc, gyro, dt)`` around the biases of
+    ``start`` (one state) with the bias Jacobians AND the residual covariance of every interval
+    (see :func:`noise_covariance`), in one compiled pass; returns ``(pre, states)``.
+
+    The covariance of interval ``i`` is evaluated along the reference trajectory from keyframe
+    state ``states[i]``: ``states[0]`` is ``start``, ``states[i + 1]`` the prediction from
+    ``states[i]`` (:func:`predict`), each replaced where ``anchors`` (``J + 1`` keyframes) knows
+    the position, attitude or world velocity -- dead reckoning reset by measurements, the
+    smoother's initial trajectory."""
+    acc, gyro, dt = samples
+    J = np.shape(dt)[0]
+    return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors if anchors is not None else Anchors.none(J + 1),
+                noise, gravity, True, True)
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
@@ -243,42 +389,24 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     """Covariance ``(J, 15, 15)`` of the IMU residual of ``J`` padded intervals ``samples = (acc,
     gyro, dt)``: the primer's ``F`` and ``G`` propagated along the trajectory that starts at the
     ``reference`` states (leading dimension ``J``) with zero covariance,
-    ``S <- F S F^T + G Q_d G^T`` -- the EKF's own covariance growth over the interval -- then
-    rotated into the residual's body-``i`` coordinates, ``T S T^T`` with
-    ``T = diag(C_i^T, I, C_i^T, I, I)``.
+    ``S <- F S F^T + G Q_d G^T`` -- the EKF's own covariance growth over the interval -- in the
+    residual's body-``i`` coordinates, ``T S T^T`` with ``T = diag(C_i^T, I, C_i^T, I, I)``.
 
     A floor of ``COVARIANCE_FLOOR^2`` is added on the diagonal: without the velocity noise
     ``n_v`` the position of a one-sample interval is deterministic (``r_j = r_i + dt C_i v_i``),
     and a zero variance would make the factor's noise model singular. The floor stands for the
     model's own discretisation error and is far below any sensor's noise."""
     acc, gyro, dt = samples
-    J = dt.shape[0]
-    _, S = imu.propagate_steps(reference, np.zeros((J, imu.STATE_DIM, imu.STATE_DIM)), acc, gyro, dt, noise, gravity)
-    (C,) = rows_of((J,), (reference.C,), ((3, 3),))
-    _to_body_i(S, C, COVARIANCE_FLOOR**2)
-    return S
-
-
-@recursion
-def _to_body_i(S, C, floor) -> None:
-    """``S <- T S T^T + floor I`` in place for each row, ``T = diag(C^T, I, C^T, I, I)``:
-    the position and attitude rows, then columns, rotated into body frame ``i``; symmetric."""
-    n = imu.STATE_DIM
-    for j in range(S.shape[0]):
-        P, Cj = S[j], C[j]
-        for block in (0, 6):
-            for col in range(n):  # rows: C^T x
-                x0, x1, x2 = P[block, col], P[block + 1, col], P[block + 2, col]
-                for i in range(3):
-                    P[block + i, col] = Cj[0, i] * x0 + Cj[1, i] * x1 + Cj[2, i] * x2
-            for row in range(n):  # columns: y C
-                y0, y1, y2 = P[row, block], P[row, block + 1], P[row, block + 2]
-                for i in range(3):
-                    P[row, block + i] = y0 * Cj[0, i] + y1 * Cj[1, i] + y2 * Cj[2, i]
-        for a in range(n):
-            P[a, a] += floor
-            for b in range(a + 1, n):
-                P[a, b] = P[b, a] = 0.5 * (P[a, b] + P[b, a])
+    J = np.shape(dt)[0]
+    lead = (J,)
+    r, v, C, b_f, b_w = rows_of(lead, (reference.r, reference.v, reference.C, reference.b_f, reference.b_w),
+                                _STATE_TAILS)
+    unknown = Anchors.none(1)  # keyframe J: not needed
+    anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
+                      np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))
+    pre, _ = _run(acc, gyro, dt, b_w, b_f, imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0]), anchors, noise, gravity,
+                  False, True)
+    return pre.cov
 
 
 def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:

@@ -127,36 +127,28 @@ def read_state(values: gtsam.Values, keys: KeyframeKeys) -> imu.ImuState:
     )
 
 
-def _initial_states(dataset: Dataset, times: np.ndarray, pre: preintegration.Preintegrated) -> imu.ImuState:
-    """Dead reckoning from keyframe to keyframe, reset by measured positions and attitudes."""
+def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
+    """What the measurements say about keyframes ``1 ..``, to reset the dead reckoning of the
+    initial trajectory: measured positions and attitudes at the keyframes they fall on, and the
+    world velocity interpolated from the finite differences of the positions (when there are two
+    or more); NaN where unknown. Keyframe 0 is the dataset's initial state, never reset."""
     n = len(times)
-    measured_r = np.full((n, 3), np.nan)
-    measured_C = np.full((n, 3, 3), np.nan)
+    anchors = preintegration.Anchors.none(n)
     for m in (dataset.position, dataset.pose):
         if m is not None:
             idx = _match(times, m.t)
-            measured_r[idx[idx >= 0]] = m.position[idx >= 0]
+            anchors.r[idx[idx >= 0]] = m.position[idx >= 0]
     for m in (dataset.orientation, dataset.pose):
         if m is not None:
             idx = _match(times, m.t)
-            measured_C[idx[idx >= 0]] = m.C[idx >= 0]
-    has_r = np.isfinite(measured_r[:, 0])
-    world_v = None
+            anchors.C[idx[idx >= 0]] = m.C[idx >= 0]
+    has_r = np.isfinite(anchors.r[:, 0])
     if has_r.sum() >= 2:
-        tr, rr = times[has_r], measured_r[has_r]
+        tr, rr = times[has_r], anchors.r[has_r]
         gradient = np.gradient(rr, tr, axis=0)
-        world_v = np.stack([np.interp(times, tr, gradient[:, a]) for a in range(3)], axis=-1)
-    states = [dataset.initial]
-    for k in range(1, n):
-        x = preintegration.predict(pre[k - 1], states[-1], dataset.gravity)
-        if np.isfinite(measured_C[k, 0, 0]):
-            x = x.replace(C=measured_C[k])
-        if has_r[k]:
-            x = x.replace(r=measured_r[k])
-        if world_v is not None:
-            x = x.replace(v=x.C.T @ world_v[k])
-        states.append(x)
-    return imu.ImuState.stack(states)
+        anchors.world_v[:] = np.stack([np.interp(times, tr, gradient[:, a]) for a in range(3)], axis=-1)
+    anchors.r[0], anchors.C[0], anchors.world_v[0] = np.nan, np.nan, np.nan
+    return anchors
 
 
 _SLOTS = {"rot": imu.PHI, "pos": imu.R, "vel": imu.V, "bias": slice(9, 15)}
@@ -202,10 +194,10 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     keys = [keyframe_keys(k) for k in range(len(times))]
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
-    b_w0 = np.broadcast_to(dataset.initial.b_w, (len(times) - 1, 3))
-    pre = preintegration.integrate(acc, gyro, dt, b_w0)
-    initial_states = _initial_states(dataset, times, pre)
-    pre.cov = preintegration.noise_covariance(pre.samples, initial_states[:-1], dataset.noise, dataset.gravity)
+    # initial trajectory: dead reckoning from the initial state, reset by the measurements; the
+    # IMU factors' covariances are evaluated along it (one compiled pass does both)
+    pre, initial_states = preintegration.integrate_with_covariance((acc, gyro, dt), dataset.initial, dataset.noise,
+                                                                   dataset.gravity, _anchors(dataset, times))
 
     factors_at: list[list] = [[] for _ in times]
     blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]

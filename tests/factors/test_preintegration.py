@@ -352,6 +352,81 @@ def test_noise_covariance_is_the_ekf_covariance_growth_and_psd():
         np.linalg.cholesky(cov[j])
 
 
+def padded_intervals(rng, lengths):
+    """Random samples of intervals of the given lengths, padded with ``dt = 0`` to ``(J, K)``."""
+    J, K = len(lengths), max(lengths)
+    acc, gyro, dt = np.zeros((J, K, 3)), np.zeros((J, K, 3)), np.zeros((J, K))
+    for j, n in enumerate(lengths):
+        acc[j, :n], gyro[j, :n], dt[j, :n] = random_samples(rng, n)
+    return acc, gyro, dt
+
+
+def reference_chain(start, pre, anchors):
+    """The reference trajectory of :func:`integrate_with_covariance` written out with
+    :func:`preintegration.predict`: each keyframe predicted from the one before, then the known
+    anchors (position, attitude, then body velocity ``C^T v_world``) put in."""
+    def anchored(x, k):
+        if np.isfinite(anchors.r[k, 0]):
+            x = x.replace(r=anchors.r[k])
+        if np.isfinite(anchors.C[k, 0, 0]):
+            x = x.replace(C=anchors.C[k])
+        if np.isfinite(anchors.world_v[k, 0]):
+            x = x.replace(v=x.C.T @ anchors.world_v[k])
+        return x
+
+    states = [anchored(start, 0)]
+    for j in range(len(pre)):
+        states.append(anchored(preintegration.predict(pre[j], states[-1], GRAVITY), j + 1))
+    return batch(states)
+
+
+@pytest.mark.parametrize("anchored", ["none", "some", "all"])
+def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_chain(anchored):
+    """One pass = the two separate computations: the same preintegrated quantities and bias
+    Jacobians as :func:`integrate` (to round-off: the covariance pass takes ``dt dC Gamma`` from
+    the step's quantities, the same products fused differently), reference states equal to the prediction chain
+    reset by the anchors, and the covariance :func:`noise_covariance` gives at those states."""
+    rng = np.random.default_rng(31)
+    lengths = [7, 1, 40, 23, 60]
+    acc, gyro, dt = padded_intervals(rng, lengths)
+    J = len(lengths)
+    start = random_state(rng)
+    anchors = preintegration.Anchors.none(J + 1)
+    if anchored != "none":
+        truth = batch([random_state(rng, regime) for regime in ("ordinary", "tiny", "near_pi") * 2])
+        every = slice(None) if anchored == "all" else slice(None, None, 2)
+        anchors.r[every], anchors.C[every] = truth.r[every], truth.C[every]
+        anchors.world_v[1::3] = truth.world_velocity()[1::3]  # velocity at other keyframes than r, C
+    noise = imu.ImuNoise(acc=0.02, gyro=2e-3, acc_bias=1e-3, gyro_bias=1e-4, velocity=1e-3)
+    pre, states = preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY, anchors)
+    alone = preintegration.integrate(acc, gyro, dt, start.b_w)
+    for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "b_w_bar", "duration"):
+        a, b = getattr(pre, name), getattr(alone, name)
+        assert np.abs(a - b).max() <= 1e-14 * np.abs(b).max(), name
+    chain = reference_chain(start, alone, anchors)
+    assert states.shape == (J + 1,)
+    assert np.abs(imu.boxminus(states, chain)).max() < 1e-12
+    assert np.array_equal(states.b_f, np.broadcast_to(start.b_f, (J + 1, 3)))
+    assert np.array_equal(states.b_w, np.broadcast_to(start.b_w, (J + 1, 3)))
+    cov = preintegration.noise_covariance((acc, gyro, dt), chain[:-1], noise, GRAVITY)
+    scale = np.abs(cov).max(axis=(1, 2), keepdims=True)
+    assert np.all(np.abs(pre.cov - cov) <= 1e-12 * scale)
+    if anchored == "all":  # every keyframe is its anchor (velocity only where given)
+        assert np.allclose(states.r, anchors.r) and np.allclose(states.C, anchors.C)
+
+
+def test_integrate_with_covariance_refuses_bad_input():
+    rng = np.random.default_rng(2)
+    acc, gyro, dt = padded_intervals(rng, [5, 3])
+    start, noise = random_state(rng), imu.ImuNoise()
+    with pytest.raises(ValueError, match="start: expected one state"):
+        preintegration.integrate_with_covariance((acc, gyro, dt), batch([start, start]), noise)
+    with pytest.raises(ValueError, match=r"acc, gyro \(J, K, 3\) and dt \(J, K\)"):
+        preintegration.integrate_with_covariance((acc, gyro, dt[:, :-1]), start, noise)
+    with pytest.raises(ValueError, match="acc: expected shape"):
+        preintegration.integrate_with_covariance((acc[..., :2], gyro, dt), start, noise)
+
+
 def test_noise_covariance_does_not_depend_on_the_yaw_of_keyframe_i():
     """In body-i coordinates the covariance is invariant under a rotation of the world about
     gravity (the reason for T); the world-frame covariance P would not be."""
