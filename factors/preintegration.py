@@ -31,7 +31,11 @@ When the gyro bias moves far from ``b_w_bar``, the interval is integrated again
 
 The noise covariance of the prediction is the EKF's own: the primer's ``F`` and ``G`` propagated
 along the reference trajectory from keyframe ``i`` with zero initial covariance,
-``S_{k+1} = F S F^T + G Q_d G^T``, expressed in the residual's body-``i`` coordinates.
+``S_{k+1} = F S F^T + G Q_d G^T``, expressed in the residual's body-``i`` coordinates. It is
+propagated in those coordinates directly (``dC_k`` in place of ``C_k``, ``gamma`` in place of
+``g``: the model is invariant under a rotation of the world), in the same pass as the
+recursions above (:func:`integrate_with_covariance`); the reference trajectory is the dead
+reckoning from keyframe to keyframe, reset where measurements anchor it.
 
 Everything is vectorised over intervals: arrays of shape ``(J, K, ...)`` hold ``J`` intervals of
 up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the identity step. The
@@ -175,10 +179,10 @@ def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
 @recursion
 def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q, floor,
                          dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C):
-    """The recursions of the module docstring (``want_jacobians``: with the gyro-bias
-    Jacobians ``JC, dW, dRm``) and, with ``want_covariance``, the covariance ``S`` of each
-    interval, all in one pass over the samples; interval by interval, sample by sample (outputs
-    initialised by the caller).
+    """The recursions of the module docstring, with the gyro-bias Jacobians ``JC, dW, dRm``, and,
+    when the noise densities ``q`` are given (not None: Numba compiles the two cases separately),
+    the covariance ``S`` of each interval, all in one pass over the samples; interval by
+    interval, sample by sample (outputs initialised by the caller).
 
     Interval ``j`` starts at the reference state ``ref_*[j]``: ``(r0, v0, C0)`` for ``j = 0``,
     else the prediction from interval ``j - 1``, in both cases replaced by the known anchors
@@ -243,31 +247,30 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
                 dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
                 dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
                 dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
-            if True:
-                for l in range(3):
-                    u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
-                    e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
-                    row = 3 * l * _IW
-                    # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
-                    for c in range(_IW):
-                        x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
-                        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                        dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
-                        dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
-                        dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
-                    # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
-                    for c in range(_IW):
-                        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                        x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-                        dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
-                        dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
-                        dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
-                    # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
-                    for m in range(3):
-                        f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
-                        x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
-                        for a in range(3):
-                            dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
+            for l in range(3):
+                u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
+                e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
+                row = 3 * l * _IW
+                # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
+                for c in range(_IW):
+                    x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
+                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                    dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
+                    dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
+                    dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
+                # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
+                for c in range(_IW):
+                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+                    x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                    dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
+                    dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
+                    dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
+                # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
+                for m in range(3):
+                    f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
+                    x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
+                    for a in range(3):
+                        dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
             # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
             for c in range(_IW):
                 x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
@@ -322,7 +325,7 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
     ref_r[J], ref_v[J], ref_C[J] = r, v, C
 
 
-def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_jacobians, want_covariance):
+def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covariance):
     """Check and lay out the inputs, run :func:`_preintegrate_kernel`; returns ``(Preintegrated,
     reference states (J+1))``. ``cov`` is set when ``want_covariance``."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
@@ -363,7 +366,7 @@ def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     :func:`integrate_with_covariance`). One compiled pass over the samples."""
     J = np.shape(dt)[0]
     pre, _ = _run(acc, gyro, dt, b_w_bar, np.zeros(3), imu.ImuState.identity(), Anchors.none(J + 1),
-                  None, imu.DEFAULT_GRAVITY, True, False)
+                  None, imu.DEFAULT_GRAVITY, False)
     return pre
 
 
@@ -381,7 +384,7 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     acc, gyro, dt = samples
     J = np.shape(dt)[0]
     return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors if anchors is not None else Anchors.none(J + 1),
-                noise, gravity, True, True)
+                noise, gravity, True)
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
@@ -404,8 +407,7 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     unknown = Anchors.none(1)  # keyframe J: not needed
     anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
                       np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))
-    pre, _ = _run(acc, gyro, dt, b_w, b_f, imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0]), anchors, noise, gravity,
-                  False, True)
+    pre, _ = _run(acc, gyro, dt, b_w, b_f, imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0]), anchors, noise, gravity, True)
     return pre.cov
 
 
