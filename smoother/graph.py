@@ -9,10 +9,15 @@ times, the start and end of the IMU data, and optionally a fixed grid (``keyfram
 Initial values come from dead reckoning and the measurements: keyframe ``k`` starts as the IMU
 prediction from keyframe ``k-1``; a measured position or attitude then replaces the predicted one
 and, where positions are measured, the velocity is taken from their finite differences. The same
-initial trajectory is the reference along which each IMU factor's noise covariance is computed.
+initial trajectory is the reference along which each IMU factor's noise covariance is computed
+(one compiled pass: :func:`factors.preintegration.integrate_with_covariance`).
+
+The GTSAM factors (``Problem.graph`` and friends) are built on first use: the batch solver runs on
+the vectorised blocks and never needs them.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import gtsam
@@ -85,22 +90,60 @@ def noise_model(cov: np.ndarray, robust=None):
 
 
 @dataclass
+class GtsamGraph:
+    """A problem's factors as GTSAM factors: the ``graph`` with its ``initial`` values, the IMU
+    factors, the factors grouped by the keyframe at which they become available (``factors_at``,
+    for fixed-lag smoothing) and ``rows_of``: ``id(gtsam factor) -> (block index, row)``, where
+    each factor sits in the problem's blocks."""
+
+    graph: gtsam.NonlinearFactorGraph
+    initial: gtsam.Values
+    imu_factors: list[ImuFactor]
+    factors_at: list[list]
+    rows_of: dict
+
+
+@dataclass
 class Problem:
-    """A dataset's factor graph, twice over: as GTSAM factors (``graph``, and ``factors_at`` grouped
-    by the keyframe at which they become available, for fixed-lag smoothing) and as vectorised
-    :class:`smoother.solver.Block` s over the same residual functions (for the batch solver)."""
+    """A dataset's factor graph, twice over: as vectorised :class:`smoother.solver.Block` s (the
+    batch solver's) and as GTSAM factors (:class:`GtsamGraph`: for GTSAM's optimisers, the
+    fixed-lag smoothers and the cross-checks) over the same residual functions. The GTSAM side
+    is built on first use (``gtsam_parts`` is None until then): the batch solver never needs it,
+    and building it took about half of the problem's construction."""
 
     times: np.ndarray
     keys: list[KeyframeKeys]
-    graph: gtsam.NonlinearFactorGraph
-    initial: gtsam.Values
     initial_states: imu.ImuState
-    imu_factors: list[ImuFactor]
     blocks: list[Block]
-    factors_at: list[list] = field(default_factory=list)
-    #: ``id(gtsam factor) -> (block index, row)``: where each GTSAM factor sits in ``blocks``.
-    rows_of: dict = field(default_factory=dict)
+    build_gtsam: Callable[[], GtsamGraph] = field(repr=False)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
+    gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
+
+    @property
+    def gtsam(self) -> GtsamGraph:
+        if self.gtsam_parts is None:
+            self.gtsam_parts = self.build_gtsam()
+        return self.gtsam_parts
+
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        return self.gtsam.graph
+
+    @property
+    def initial(self) -> gtsam.Values:
+        return self.gtsam.initial
+
+    @property
+    def imu_factors(self) -> list[ImuFactor]:
+        return self.gtsam.imu_factors
+
+    @property
+    def factors_at(self) -> list[list]:
+        return self.gtsam.factors_at
+
+    @property
+    def rows_of(self) -> dict:
+        return self.gtsam.rows_of
 
 
 def _match(times: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -199,11 +242,8 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     pre, initial_states = preintegration.integrate_with_covariance((acc, gyro, dt), dataset.initial, dataset.noise,
                                                                    dataset.gravity, _anchors(dataset, times))
 
-    factors_at: list[list] = [[] for _ in times]
     blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]
     prior = dataset.initial
-    factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
-    rows_of = {id(factors_at[0][0]): (1, 0)}
 
     def prior_residual(slots, jacobians, rows):
         s = slots[0]
@@ -211,12 +251,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
-    imu_factors = []
-    for k in range(1, len(times)):
-        f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity, reintegration_threshold=reintegration_threshold)
-        imu_factors.append(f)
-        factors_at[k].append(f.factor)
-        rows_of[id(f.factor)] = (0, k - 1)
+    measurements = []  # (spec, keyframes, data, cov, kernel) of each measurement block
     for spec in _measurement_specs(dataset):
         rows = np.flatnonzero(np.all([_match(times, t) >= 0 for t in spec["times"]], axis=0))
         if rows.size == 0:
@@ -226,19 +261,34 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         cov = np.asarray(spec["cov"])[rows]
         kernel = robust.get(spec["name"])
         blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel, cov.shape[-1])))
-        for m in range(len(rows)):
-            factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
-            factors_at[int(kf[m].max())].append(factor)
-            rows_of[id(factor)] = (len(blocks) - 1, m)
-    graph = gtsam.NonlinearFactorGraph()
-    for group in factors_at:
-        for f in group:
-            graph.add(f)
-    values = gtsam.Values()
-    for k, kk in enumerate(keys):
-        insert_state(values, kk, initial_states[k])
-    return Problem(times, keys, graph, values, initial_states, imu_factors, blocks, factors_at, rows_of,
-                   dataset.gravity)
+        measurements.append((len(blocks) - 1, spec, kf, data, cov, kernel))
+
+    def build_gtsam() -> GtsamGraph:
+        factors_at: list[list] = [[] for _ in times]
+        factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
+        rows_of = {id(factors_at[0][0]): (1, 0)}
+        imu_factors = []
+        for k in range(1, len(times)):
+            f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
+                          reintegration_threshold=reintegration_threshold)
+            imu_factors.append(f)
+            factors_at[k].append(f.factor)
+            rows_of[id(f.factor)] = (0, k - 1)
+        for block, spec, kf, data, cov, kernel in measurements:
+            for m in range(len(kf)):
+                factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
+                factors_at[int(kf[m].max())].append(factor)
+                rows_of[id(factor)] = (block, m)
+        graph = gtsam.NonlinearFactorGraph()
+        for group in factors_at:
+            for f in group:
+                graph.add(f)
+        values = gtsam.Values()
+        for k, kk in enumerate(keys):
+            insert_state(values, kk, initial_states[k])
+        return GtsamGraph(graph, values, imu_factors, factors_at, rows_of)
+
+    return Problem(times, keys, initial_states, blocks, build_gtsam, dataset.gravity)
 
 
 def _block_residual(spec: dict, data: list[np.ndarray]):

@@ -94,8 +94,8 @@ def test_covariances_can_be_skipped():
 
 
 def _without_prior(problem):
-    """The same problem with the prior on keyframe 0 removed (GTSAM graph and, where the
-    problem has them, the vectorised blocks)."""
+    """The same problem with the prior on keyframe 0 removed (GTSAM graph and vectorised
+    blocks)."""
     prior = problem.factors_at[0][0]
     graph = gtsam.NonlinearFactorGraph()
     for group in problem.factors_at:
@@ -103,11 +103,9 @@ def _without_prior(problem):
             if f is not prior:
                 graph.add(f)
     factors_at = [[f for f in group if f is not prior] for group in problem.factors_at]
-    changes = dict(graph=graph, factors_at=factors_at)
-    if hasattr(problem, "blocks"):
-        changes["blocks"] = [b for b in problem.blocks if b.name != "prior"]
-        assert len(changes["blocks"]) == len(problem.blocks) - 1
-    return replace(problem, **changes)
+    blocks = [b for b in problem.blocks if b.name != "prior"]
+    assert len(blocks) == len(problem.blocks) - 1
+    return replace(problem, blocks=blocks, gtsam_parts=replace(problem.gtsam, graph=graph, factors_at=factors_at))
 
 
 @pytest.mark.parametrize("engine", ENGINES)

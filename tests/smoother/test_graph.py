@@ -93,6 +93,21 @@ def test_graph_holds_the_prior_one_imu_factor_per_interval_and_every_measurement
                 assert {index for _, index in _symbols(f)} == {k}
 
 
+def test_gtsam_graph_is_built_on_first_use_only():
+    """The batch solver works on the vectorised blocks: solving does not build the GTSAM factors
+    (about half of the construction time); the first access builds them once, with the initial
+    values of the problem's initial states."""
+    from smoother.batch import solve_batch
+
+    problem = build_problem(mixed())
+    solve_batch(problem, covariances=False)
+    assert problem.gtsam_parts is None
+    graph = problem.graph
+    assert problem.gtsam_parts is not None and problem.graph is graph and problem.factors_at is problem.gtsam.factors_at
+    for k in (0, len(problem.times) - 1):
+        assert np.allclose(problem.initial.atPoint3(problem.keys[k].pos), problem.initial_states.r[k])
+
+
 def test_relative_pose_factors_join_the_right_keyframes():
     """Odometry at 5 Hz between consecutive times of its stream: one factor per measurement,
     between the keyframes at t_from and t_to, announced at t_to; evaluated at the TRUE states its
