@@ -10,7 +10,9 @@ return silently wrong data: a row they cannot read is an error, not a skipped ro
 """
 from __future__ import annotations
 
+import io
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +163,46 @@ def check_unit_quaternions(path, q: np.ndarray, lines, field: str, tolerance: fl
             f"a unit quaternion (norm 1 within {tolerance:g})",
         )
     return q / norm[:, None]
+
+
+def read_table(path, lines: list[str], fields: list[str], minimum: int, what: str, delimiter: str | None = None,
+               comment: str = "#", skip: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The data lines of a text table after ``skip`` header lines -- blank lines and lines
+    starting with ``comment`` ignored, tokens separated by ``delimiter`` (None: whitespace) --
+    as a float array ``(rows, len(fields))`` of finite numbers and the 1-based line number of
+    each row; at least ``minimum`` rows (``what`` names them in the error).
+
+    The common case (every line a row of plain finite numbers) is read by NumPy's C parser in
+    one call; anything else -- a comment, a blank line, a bad token, a short row -- goes
+    through the token-by-token parser, which names the first offending line and field. The C
+    parser accepts a subset of what the token parser does (no underscores, no other Unicode
+    digits), so both give the same values for any file they both accept."""
+    body = lines[skip:]
+    values = _table_fast(body, len(fields), delimiter)
+    if values is not None and len(values) >= minimum:
+        return values, np.arange(skip + 1, skip + 1 + len(values))
+    split = str.split if delimiter is None else (lambda text: text.split(delimiter))
+    rows = data_rows(lines, split, comment=comment, skip=skip)
+    require_rows(path, rows, len(lines), minimum, what)
+    values, _ = parse_rows(path, rows, fields)
+    return values, np.array([line for line, _ in rows], dtype=np.int64)
+
+
+def _table_fast(body: list[str], m: int, delimiter: str | None) -> np.ndarray | None:
+    """``body`` as an ``(len(body), m)`` array of finite numbers by ``np.loadtxt``, or None when
+    any line is not such a row (``loadtxt`` skips blank lines, so a count mismatch means one)."""
+    if not body:
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            values = np.loadtxt(io.StringIO("\n".join(body)), delimiter=delimiter, comments=None, ndmin=2,
+                                dtype=float)
+    except ValueError:
+        return None
+    if values.shape != (len(body), m) or not np.all(np.isfinite(values)):
+        return None
+    return values
 
 
 def data_rows(lines: list[str], split, comment: str = "#", skip: int = 0) -> list[tuple[int, list[str]]]:

@@ -79,7 +79,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, require_rows
+from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, read_table, require_rows
 from datasets.types import Dataset, ImuSamples, PositionMeasurements
 from factors import quaternion
 from factors.imu import ImuNoise, ImuState
@@ -185,10 +185,7 @@ def read_imu(path=None) -> tuple[ImuSamples, np.ndarray]:
     path = _default(path, IMU_FILE)
     lines = read_lines(path)
     _check_header(path, lines, IMU_FIELDS, str.split)
-    rows = data_rows(lines, str.split, comment="#", skip=1)
-    require_rows(path, rows, len(lines), 2, "IMU sample lines")
-    values, _ = parse_rows(path, rows, IMU_FIELDS)
-    line_numbers = np.array([line for line, _ in rows])
+    values, line_numbers = read_table(path, lines, IMU_FIELDS, 2, "IMU sample lines", skip=1)
     t = values[:, 0]
     check_increasing(path, t, line_numbers, "Time")
     dt_err = np.abs(values[1:, 1] - np.diff(t))
@@ -211,10 +208,7 @@ def read_gps(path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return text.split(",")
 
     _check_header(path, lines, GPS_FIELDS, split)
-    rows = data_rows(lines, split, comment="#", skip=1)
-    require_rows(path, rows, len(lines), 2, "GPS fix lines")
-    values, _ = parse_rows(path, rows, GPS_FIELDS)
-    line_numbers = np.array([line for line, _ in rows])
+    values, line_numbers = read_table(path, lines, GPS_FIELDS, 2, "GPS fix lines", delimiter=",", skip=1)
     check_increasing(path, values[:, 0], line_numbers, "Time")
     return values[:, 0], values[:, 1:4], line_numbers
 

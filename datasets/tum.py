@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
-from datasets.errors import check_increasing, check_unit_quaternions, data_rows, parse_rows, read_lines, require_rows
+from datasets.errors import check_increasing, check_unit_quaternions, read_lines, read_table
 from datasets.types import Trajectory
 from factors import quaternion
 from factors.imu import ImuState
@@ -39,10 +39,7 @@ def read_tum(path) -> Trajectory:
     """Read a TUM trajectory file into a :class:`Trajectory` (velocities and biases NaN)."""
     path = Path(path)
     lines = read_lines(path)
-    rows = data_rows(lines, str.split)
-    require_rows(path, rows, len(lines), 1, "pose line ('t x y z qx qy qz qw')")
-    values, _ = parse_rows(path, rows, FIELDS)
-    line_numbers = [line for line, _ in rows]
+    values, line_numbers = read_table(path, lines, FIELDS, 1, "pose line ('t x y z qx qy qz qw')")
     t = values[:, 0]
     check_increasing(path, t, line_numbers, "timestamp")
     q_xyzw = check_unit_quaternions(path, values[:, 4:8], line_numbers, "qx qy qz qw", QUATERNION_TOLERANCE)
