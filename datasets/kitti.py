@@ -45,10 +45,11 @@ GPS fixes: covariance ``gps_sigma^2 I`` with ``gps_sigma = sqrt(0.07)`` m by def
 example's GPS prior has precision ``1 / 0.07`` on each position axis). Fix number
 ``first_gps`` (0-based, default 1 like the example, because the IMU record has a lone first
 sample followed by a 1.9 s gap) is the start: it defines the initial position and the dataset
-begins at its time. Of the later fixes, number ``j`` after the first is a measurement
-(``Dataset.position``) when ``j % gps_every == 0`` and held out (``Dataset.heldout_positions``)
-otherwise; the first fix itself is in neither (it is the initial position's prior). Fixes after
-the last IMU sample are dropped.
+begins at its time. Of the later fixes, fix number ``i`` of the file (0-based, counted as GTSAM's
+example counts them) is a measurement (``Dataset.position``) when ``i % gps_every == 0`` -- the
+example's rule, so ``gps_every=10`` uses the same fixes 10, 20, ... as the example -- and held
+out (``Dataset.heldout_positions``) otherwise; the first fix itself is in neither (it is the
+initial position's prior). Fixes after the last IMU sample are dropped.
 
 Times: measurement times are kept exactly as in the file; a fix between two IMU samples is not
 moved to a sample: the estimators put keyframes at measurement times and split the IMU interval
@@ -236,7 +237,8 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
                gps_sigma: float = float(np.sqrt(GPS_VARIANCE)), max_imu_gap: float | None = 0.1) -> Dataset:
     """The KITTI example data as a :class:`Dataset` named ``"kitti"`` (see the module docstring).
 
-    ``gps_every=K``: every K-th fix after the first is a measurement, the others are held out.
+    ``gps_every=K``: the fixes after the first whose number in the file is a multiple of ``K``
+    are measurements (GTSAM's example's rule), the others are held out.
     Paths default to GTSAM's installed example files.
     """
     if isinstance(gps_every, bool) or not isinstance(gps_every, (int, np.integer)) or gps_every < 1:
@@ -299,9 +301,9 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
     if not (np.all(np.isfinite(initial.v)) and np.all(np.isfinite(initial.r))):
         raise DataError(gps_path, int(gps_lines[1]), None, "a velocity from the first two fixes that overflows",
                         "finite positions and times")
-    j = np.arange(1, len(t_gps))
-    used = j[j % gps_every == 0]
-    held = j[j % gps_every != 0]
+    j = np.arange(1, len(t_gps))  # index after the first; fix number first_gps + j in the file
+    used = j[(first_gps + j) % gps_every == 0]
+    held = j[(first_gps + j) % gps_every != 0]
     cov = gps_sigma**2 * np.eye(3)
     position = PositionMeasurements(t_gps[used], p_gps[used], cov) if used.size else None
     heldout = PositionMeasurements(t_gps[held], p_gps[held], cov) if held.size else None

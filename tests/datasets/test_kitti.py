@@ -63,8 +63,10 @@ def test_real_data_noise_gravity_and_start(real, real_files):
 def test_gps_every_partitions_the_fixes(real_files):
     d = load_kitti(gps_every=10)
     t_gps, _, _ = read_gps(real_files[kitti.GPS_FILE])
-    later = t_gps[2:]
-    assert np.array_equal(d.position.t, later[9::10])
+    later = t_gps[2:]  # the fixes after fix 1, the first
+    # GTSAM's example's rule: fix i of the file is used when i % 10 == 0 (fixes 10, 20, ...)
+    assert np.array_equal(d.position.t, t_gps[10::10][: len(d.position.t)])
+    assert len(d.position.t) == np.sum(np.arange(2, 2 + len(later)) % 10 == 0)
     assert np.array_equal(np.sort(np.concatenate([d.position.t, d.heldout_positions.t])), later)
     assert not set(d.position.t) & set(d.heldout_positions.t)
     for bad in (0, -1, 1.5, True):
@@ -158,6 +160,15 @@ def _write_small(tmp: Path, gps_times=None, meta_values=None, t0=1000.0, n=501, 
     paths["gps_path"].write_text("\n".join(gps_lines) + "\n")
     paths["metadata_path"].write_text(META_HEADER + "\n" + " ".join(str(v) for v in meta) + "\n")
     return paths
+
+
+def test_used_fixes_are_counted_from_the_start_of_the_file_like_the_example(tmp_path):
+    """GTSAM's example uses fix i when i % gps_skip == 0 with i the fix's number in the file, not
+    its number after the first fix: with the first fix at 1 and gps_every=2, fixes 2 and 4 are
+    used and 3 is held out (counting after the first would use 3)."""
+    paths = _write_small(tmp_path)
+    d = load_kitti(**paths, first_gps=1, gps_every=2)
+    assert np.allclose(d.position.t, [1002.0, 1004.0]) and np.allclose(d.heldout_positions.t, [1003.0])
 
 
 def test_small_files_with_explicit_paths(tmp_path):
