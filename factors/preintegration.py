@@ -352,8 +352,8 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covar
     S = np.empty((J if want_covariance else 0, imu.STATE_DIM, imu.STATE_DIM))
     ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
     q = noise.densities() if want_covariance else None
-    _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q, COVARIANCE_FLOOR**2,
-                         dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C)
+    _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q,
+                         COVARIANCE_FLOOR**2, dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C)
     pre = Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt),
                         S if want_covariance else None)
     last = lambda a: np.concatenate([a, a[-1:]])  # noqa: E731  (the last keyframe keeps the last biases)
@@ -407,7 +407,8 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     unknown = Anchors.none(1)  # keyframe J: not needed
     anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
                       np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))
-    pre, _ = _run(acc, gyro, dt, b_w, b_f, imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0]), anchors, noise, gravity, True)
+    start = imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0])  # every interval is anchored: start unused
+    pre, _ = _run(acc, gyro, dt, b_w, b_f, start, anchors, noise, gravity, True)
     return pre.cov
 
 

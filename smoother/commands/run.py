@@ -31,7 +31,9 @@ def register(sub) -> None:
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of simulated pose measurements made gross outliers")
-    p.add_argument("--gps-every", type=int, default=1, help="use the GPS fixes whose number in the file is a multiple of K (as GTSAM's example), hold out the rest (kitti)")
+    p.add_argument("--gps-every", type=int, default=1,
+                   help="use the GPS fixes whose number in the file is a multiple of K (as GTSAM's example), "
+                        "hold out the rest (kitti)")
     p.add_argument("--pose-from-truth", type=float, nargs=3, metavar=("HZ", "POS_M", "ROT_RAD"),
                    help="pose measurements drawn from the ground truth")
     p.add_argument("--gps-from-truth", type=float, nargs=2, metavar=("HZ", "POS_M"),
