@@ -325,6 +325,16 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
     ref_r[J], ref_v[J], ref_C[J] = r, v, C
 
 
+def _kernel_array(a, shape: tuple, name: str) -> np.ndarray:
+    """``a`` broadcast to ``shape``, C-contiguous and writable (so the kernel is compiled, and
+    cached, for one layout only); a ValueError naming ``name`` if it does not broadcast."""
+    a = np.asarray(a, dtype=float)
+    try:
+        return np.require(np.broadcast_to(a, shape), float, ["C", "W"])
+    except ValueError:
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}") from None
+
+
 def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covariance):
     """Check and lay out the inputs, run :func:`_preintegrate_kernel`; returns ``(Preintegrated,
     reference states (J+1))``. ``cov`` is set when ``want_covariance``."""
@@ -333,17 +343,21 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covar
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
         raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
     J, K = dt.shape
-    # every array C-contiguous and writable, so the kernel is compiled (and cached) once
-    ready = lambda a, shape: np.require(np.broadcast_to(a, shape), float, ["C", "W"])  # noqa: E731
-    b_w_bar = ready(as_trailing(b_w_bar, (3,), "b_w_bar"), (J, 3))
-    b_f = ready(as_trailing(b_f, (3,), "b_f"), (J, 3))
-    g = ready(as_trailing(gravity, (3,), "gravity"), (3,))
-    anchor_r, anchor_C, anchor_v = (ready(a, shape) for a, shape in (
-        (anchors.r, (J + 1, 3)), (anchors.C, (J + 1, 3, 3)), (anchors.world_v, (J + 1, 3))))
+    ready = _kernel_array
+    b_w_bar, b_f = ready(b_w_bar, (J, 3), "b_w_bar"), ready(b_f, (J, 3), "b_f")
+    g = ready(gravity, (3,), "gravity")
+    anchor_r, anchor_C, anchor_v = (ready(a, shape, "anchors." + name) for a, shape, name in (
+        (anchors.r, (J + 1, 3), "r"), (anchors.C, (J + 1, 3, 3), "C"), (anchors.world_v, (J + 1, 3), "world_v")))
     if start.shape != ():
         raise ValueError(f"start: expected one state, got states of shape {start.shape}")
-    r0, v0, C0 = ready(start.r, (3,)), ready(start.v, (3,)), ready(start.C, (3, 3))
-    acc, gyro, dt = ready(acc, (J, K, 3)), ready(gyro, (J, K, 3)), ready(dt, (J, K))
+    r0, v0, C0 = ready(start.r, (3,), "start.r"), ready(start.v, (3,), "start.v"), ready(start.C, (3, 3), "start.C")
+    acc, gyro, dt = ready(acc, (J, K, 3), "acc"), ready(gyro, (J, K, 3), "gyro"), ready(dt, (J, K), "dt")
+    for name, a in (("r", anchor_r), ("C", anchor_C), ("world_v", anchor_v)):
+        finite = np.isfinite(a.reshape(J + 1, -1))
+        partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
+        if partial.size:
+            raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
+                             f"got {a[partial[0]].tolist()}")
     dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
     W = np.zeros((J, 3, 10))
     W[:, :, 0:3] = np.eye(3)

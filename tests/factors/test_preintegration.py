@@ -425,6 +425,12 @@ def test_integrate_with_covariance_refuses_bad_input():
         preintegration.integrate_with_covariance((acc, gyro, dt[:, :-1]), start, noise)
     with pytest.raises(ValueError, match="acc: expected shape"):
         preintegration.integrate_with_covariance((acc[..., :2], gyro, dt), start, noise)
+    anchors = preintegration.Anchors.none(3)
+    anchors.r[1, 2] = 4.0  # one coordinate known, two not: not an anchor, not unknown
+    with pytest.raises(ValueError, match=r"anchors.r\[1\]: expected all finite"):
+        preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, anchors=anchors)
+    with pytest.raises(ValueError, match=r"expected shape \(3, 3\)"):  # J + 1 = 3 keyframes
+        preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, anchors=preintegration.Anchors.none(4))
 
 
 def test_noise_covariance_does_not_depend_on_the_yaw_of_keyframe_i():
