@@ -325,14 +325,18 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
     ref_r[J], ref_v[J], ref_C[J] = r, v, C
 
 
-def _kernel_array(a, shape: tuple, name: str) -> np.ndarray:
-    """``a`` broadcast to ``shape``, C-contiguous and writable (so the kernel is compiled, and
-    cached, for one layout only); a ValueError naming ``name`` if it does not broadcast."""
-    a = np.asarray(a, dtype=float)
+def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True) -> np.ndarray:
+    """``a`` of trailing shape ``tail`` (checked), its leading dimensions broadcast to ``lead``
+    (with ``broadcast``; else they must be ``lead``), C-contiguous and writable, so the kernel is
+    compiled (and cached) for one layout only. A ValueError names ``name`` otherwise."""
+    a = as_trailing(a, tail, name)
+    shape = tuple(lead) + tuple(tail)
+    if not broadcast and a.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
     try:
         return np.require(np.broadcast_to(a, shape), float, ["C", "W"])
     except ValueError:
-        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}") from None
+        raise ValueError(f"{name}: expected shape {shape} (or one that broadcasts to it), got {a.shape}") from None
 
 
 def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covariance):
@@ -344,14 +348,18 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covar
         raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
     J, K = dt.shape
     ready = _kernel_array
-    b_w_bar, b_f = ready(b_w_bar, (J, 3), "b_w_bar"), ready(b_f, (J, 3), "b_f")
-    g = ready(gravity, (3,), "gravity")
-    anchor_r, anchor_C, anchor_v = (ready(a, shape, "anchors." + name) for a, shape, name in (
-        (anchors.r, (J + 1, 3), "r"), (anchors.C, (J + 1, 3, 3), "C"), (anchors.world_v, (J + 1, 3), "world_v")))
+    b_w_bar, b_f = ready(b_w_bar, (J,), (3,), "b_w_bar"), ready(b_f, (J,), (3,), "b_f")
+    g = ready(gravity, (), (3,), "gravity", broadcast=False)
+    anchor_r, anchor_C, anchor_v = (ready(a, (J + 1,), tail, "anchors." + name, broadcast=False) for a, tail, name in (
+        (anchors.r, (3,), "r"), (anchors.C, (3, 3), "C"), (anchors.world_v, (3,), "world_v")))
     if start.shape != ():
         raise ValueError(f"start: expected one state, got states of shape {start.shape}")
-    r0, v0, C0 = ready(start.r, (3,), "start.r"), ready(start.v, (3,), "start.v"), ready(start.C, (3, 3), "start.C")
-    acc, gyro, dt = ready(acc, (J, K, 3), "acc"), ready(gyro, (J, K, 3), "gyro"), ready(dt, (J, K), "dt")
+    r0, v0, C0 = (ready(a, (), tail, "start." + name, broadcast=False)
+                  for a, tail, name in ((start.r, (3,), "r"), (start.v, (3,), "v"), (start.C, (3, 3), "C")))
+    for name, a in (("r", r0), ("v", v0), ("C", C0), ("b_f", b_f), ("b_w", b_w_bar)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"start.{name} (or the biases given): expected finite values, got {a.tolist()}")
+    acc, gyro, dt = ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt")
     for name, a in (("r", anchor_r), ("C", anchor_C), ("world_v", anchor_v)):
         finite = np.isfinite(a.reshape(J + 1, -1))
         partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
@@ -418,6 +426,10 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     lead = (J,)
     r, v, C, b_f, b_w = rows_of(lead, (reference.r, reference.v, reference.C, reference.b_f, reference.b_w),
                                 _STATE_TAILS)
+    for name, a in (("r", r), ("v", v), ("C", C), ("b_f", b_f), ("b_w", b_w)):
+        bad = np.flatnonzero(~np.isfinite(a.reshape(J, -1)).all(axis=1))
+        if bad.size:  # NaN would read as "unknown" in the anchors below
+            raise ValueError(f"reference.{name}[{bad[0]}]: expected finite values, got {a[bad[0]].tolist()}")
     unknown = Anchors.none(1)  # keyframe J: not needed
     anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
                       np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))

@@ -115,14 +115,14 @@ class Problem:
     keys: list[KeyframeKeys]
     initial_states: imu.ImuState
     blocks: list[Block]
-    build_gtsam: Callable[[], GtsamGraph] = field(repr=False)
+    build_gtsam: Callable[["Problem"], GtsamGraph] = field(repr=False)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
     gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
 
     @property
     def gtsam(self) -> GtsamGraph:
         if self.gtsam_parts is None:
-            self.gtsam_parts = self.build_gtsam()
+            self.gtsam_parts = self.build_gtsam(self)
         return self.gtsam_parts
 
     @property
@@ -263,7 +263,9 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel, cov.shape[-1])))
         measurements.append((len(blocks) - 1, spec, kf, data, cov, kernel))
 
-    def build_gtsam() -> GtsamGraph:
+    def build_gtsam(problem: Problem) -> GtsamGraph:
+        """The GTSAM factors; initial values from ``problem.initial_states`` at the time of the
+        first use (so a copy of the problem with other initial states gets its own)."""
         factors_at: list[list] = [[] for _ in times]
         factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
         rows_of = {id(factors_at[0][0]): (1, 0)}
@@ -285,7 +287,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
                 graph.add(f)
         values = gtsam.Values()
         for k, kk in enumerate(keys):
-            insert_state(values, kk, initial_states[k])
+            insert_state(values, kk, problem.initial_states[k])
         return GtsamGraph(graph, values, imu_factors, factors_at, rows_of)
 
     return Problem(times, keys, initial_states, blocks, build_gtsam, dataset.gravity)

@@ -429,8 +429,19 @@ def test_integrate_with_covariance_refuses_bad_input():
     anchors.r[1, 2] = 4.0  # one coordinate known, two not: not an anchor, not unknown
     with pytest.raises(ValueError, match=r"anchors.r\[1\]: expected all finite"):
         preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, anchors=anchors)
-    with pytest.raises(ValueError, match=r"expected shape \(3, 3\)"):  # J + 1 = 3 keyframes
+    with pytest.raises(ValueError, match=r"anchors.r: expected shape \(3, 3\)"):  # J + 1 = 3 keyframes
         preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, anchors=preintegration.Anchors.none(4))
+    # nothing is broadcast where it would silently change the meaning
+    with pytest.raises(ValueError, match="gravity"):
+        preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, gravity=-9.81)
+    with pytest.raises(ValueError, match="b_w_bar"):
+        preintegration.integrate(acc, gyro, dt, np.full((2, 1), 0.1))
+    with pytest.raises(ValueError, match="start.v"):
+        preintegration.integrate_with_covariance((acc, gyro, dt), start.replace(v=np.full(3, np.nan)), noise)
+    # a NaN reference is an error for noise_covariance (NaN would read as an unknown anchor)
+    states = batch([start, start.replace(v=np.full(3, np.nan))])
+    with pytest.raises(ValueError, match=r"reference.v\[1\]: expected finite"):
+        preintegration.noise_covariance((acc, gyro, dt), states, noise)
 
 
 def test_noise_covariance_does_not_depend_on_the_yaw_of_keyframe_i():
