@@ -172,15 +172,17 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
     as a float array ``(rows, len(fields))`` of finite numbers and the 1-based line number of
     each row; at least ``minimum`` rows (``what`` names them in the error).
 
-    The common case (every line a row of plain finite numbers) is read by NumPy's C parser in
-    one call; anything else -- a comment, a blank line, a bad token, a short row -- goes
-    through the token-by-token parser, which names the first offending line and field. The C
+    The common case (after leading comment or blank lines, every line a row of plain finite
+    numbers) is read by NumPy's C parser in one call; anything else -- a comment or blank line
+    further down, a bad token, a short row -- goes through the token-by-token parser, which names the first offending line and field. The C
     parser accepts a subset of what the token parser does (no underscores, no other Unicode
     digits), so both give the same values for any file they both accept."""
-    body = lines[skip:]
-    values = _table_fast(body, len(fields), delimiter)
+    first = skip  # leading blank and comment lines (a TUM file's header) do not spoil the fast path
+    while first < len(lines) and (not lines[first].strip() or (comment and lines[first].lstrip().startswith(comment))):
+        first += 1
+    values = _table_fast(lines[first:], len(fields), delimiter)
     if values is not None and len(values) >= minimum:
-        return values, np.arange(skip + 1, skip + 1 + len(values))
+        return values, np.arange(first + 1, first + 1 + len(values))
     split = str.split if delimiter is None else (lambda text: text.split(delimiter))
     rows = data_rows(lines, split, comment=comment, skip=skip)
     require_rows(path, rows, len(lines), minimum, what)
