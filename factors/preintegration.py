@@ -227,15 +227,14 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
             if h <= 0.0:
                 continue
             w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
-            if q is not None:  # body velocity of the reference at sample k: W_k z
-                for a in range(3):
+            if q is not None:
+                for a in range(3):  # body velocity of the reference at sample k: W_k z
                     acc_v = 0.0
                     for c in range(10):
                         acc_v += Wf[a * _IW + c] * z[c]
                     vk[a] = acc_v
-            if q is not None:
                 # E = exp(dt w), Q: the step's quantities in body-i coordinates (dC for C, gamma
-                # for g), then the covariance step
+                # for g; Q holds dt dC Gamma for JC below), then the covariance step
                 imu.step_quantities(D, vk, w0, w1, w2, h, gamma, E, Q)
                 imu._covariance_step(P, Q, q, vk, B, Bt, ABt)
             else:
