@@ -146,8 +146,9 @@ def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
     if bad.size:
         i = int(bad[0]) + 1
         what = "a duplicate of" if step[i - 1] == 0 else "earlier than"
+        show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))  # noqa: E731
         raise DataError(
-            path, int(lines[i]), field, f"{t[i]!r}, {what} line {int(lines[i - 1])} ({t[i - 1]!r})",
+            path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} ({show(t[i - 1])})",
             "strictly increasing time stamps",
         )
 
@@ -180,7 +181,7 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
     first = skip  # leading blank and comment lines (a TUM file's header) do not spoil the fast path
     while first < len(lines) and (not lines[first].strip() or (comment and lines[first].lstrip().startswith(comment))):
         first += 1
-    values = _table_fast(lines[first:], len(fields), delimiter)
+    values = table_fast(lines[first:], len(fields), delimiter)
     if values is not None and len(values) >= minimum:
         return values, np.arange(first + 1, first + 1 + len(values))
     split = str.split if delimiter is None else (lambda text: text.split(delimiter))
@@ -190,20 +191,28 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
     return values, np.array([line for line, _ in rows], dtype=np.int64)
 
 
-def _table_fast(body: list[str], m: int, delimiter: str | None) -> np.ndarray | None:
-    """``body`` as an ``(len(body), m)`` array of finite numbers by ``np.loadtxt``, or None when
-    any line is not such a row (``loadtxt`` skips blank lines, so a count mismatch means one)."""
+def table_fast(body: list[str], m: int, delimiter: str | None, stamps: bool = False):
+    """``body`` as an ``(len(body), m)`` array of finite numbers by NumPy's C parser
+    (``np.loadtxt``), or None when any line is not such a row (``loadtxt`` skips blank lines, so
+    a count mismatch means one). With ``stamps``, returns ``(values, first column as int64)``
+    and the first column must be integers >= 0 (nanosecond time stamps, exact beyond 2^53)."""
     if not body:
         return None
+    text = "\n".join(body)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            values = np.loadtxt(io.StringIO("\n".join(body)), delimiter=delimiter, comments=None, ndmin=2,
-                                dtype=float)
+            values = np.loadtxt(io.StringIO(text), delimiter=delimiter, comments=None, ndmin=2, dtype=float)
+            ints = (np.loadtxt(io.StringIO(text), delimiter=delimiter, comments=None, ndmin=1, dtype=np.int64,
+                               usecols=0) if stamps else None)
     except ValueError:
         return None
     if values.shape != (len(body), m) or not np.all(np.isfinite(values)):
         return None
+    if stamps:
+        if ints.shape != (len(body),) or np.any(ints < 0):
+            return None
+        return values, ints
     return values
 
 

@@ -158,6 +158,24 @@ def test_frames_times_and_initial_state(sequence):
     assert np.allclose(np.sqrt(np.diag(d.initial_cov)), np.repeat([0.01, 0.01, 0.01, 0.05, 0.002], 3))
 
 
+def test_plain_files_take_the_fast_parser_and_give_what_the_token_parser_gives(tmp_path, monkeypatch):
+    """A file of plain rows is read by NumPy's C parser (exact int64 stamps); a comment line in
+    the middle sends it through the token parser, with the same stamps and values."""
+    from datasets import euroc
+
+    imu_ns, readings, _ = write_sequence(tmp_path)
+    path = tmp_path / IMU
+    with monkeypatch.context() as patch:  # the token parser must not be reached
+        patch.setattr(euroc, "integer", lambda *args: pytest.fail("token parser used"))
+        stamps, acc, gyro = euroc.read_imu_csv(path)
+    assert stamps.dtype == np.int64 and np.array_equal(stamps, imu_ns)
+    assert np.array_equal(gyro, readings[:, :3]) and np.array_equal(acc, readings[:, 3:])
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:10] + ["# a comment"] + lines[10:]) + "\n")
+    slow_stamps, slow_acc, slow_gyro = euroc.read_imu_csv(path)
+    assert np.array_equal(slow_stamps, stamps) and np.array_equal(slow_acc, acc) and np.array_equal(slow_gyro, gyro)
+
+
 def test_identity_extrinsics_give_the_file_values(tmp_path):
     write_sequence(tmp_path, T_imu=np.eye(4), T_gt=np.eye(4))
     d = load_euroc(tmp_path / "mav0")  # the mav0 folder itself works too
