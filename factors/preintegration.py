@@ -399,9 +399,10 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
 
     The covariance of interval ``i`` is evaluated along the reference trajectory from keyframe
     state ``states[i]``: ``states[0]`` is ``start``, ``states[i + 1]`` the prediction from
-    ``states[i]`` (:func:`predict`), each replaced where ``anchors`` (``J + 1`` keyframes) knows
-    the position, attitude or world velocity -- dead reckoning reset by measurements, the
-    smoother's initial trajectory."""
+    ``states[i]`` (:func:`predict`), each (``states[0]`` too) replaced where ``anchors`` (``J + 1``
+    keyframes, default none) knows the position, attitude or world velocity -- dead reckoning
+    reset by measurements, the smoother's initial trajectory. ``states`` keeps the biases of
+    ``start``."""
     acc, gyro, dt = samples
     J = np.shape(dt)[0]
     return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors if anchors is not None else Anchors.none(J + 1),
