@@ -99,10 +99,6 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
     into ``(floats, ints)``: a float array of shape ``(len(rows), len(fields))`` and an int64
     array with the columns named in ``integer_fields`` (whose entries in ``floats`` stay 0)."""
     n, m = len(rows), len(fields)
-    if not integer_fields and n:
-        fast = _parse_fast(rows, m)
-        if fast is not None:
-            return fast, np.zeros((n, 0), dtype=np.int64)
     out = np.zeros((n, m))
     int_cols = [fields.index(f) for f in integer_fields]
     ints = np.zeros((n, len(int_cols)), dtype=np.int64)
@@ -118,22 +114,6 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
             else:
                 out[i, j] = number(token, path, line, fields[j])
     return out, ints
-
-
-def _parse_fast(rows, m: int) -> np.ndarray | None:
-    """The common case in one NumPy conversion: every row has ``m`` tokens, all plain finite
-    numbers. None when anything is off; the caller then parses token by token, which finds the
-    first bad one and names it."""
-    if any(len(tokens) != m for _, tokens in rows):
-        return None
-    flat = [token for _, tokens in rows for token in tokens]
-    try:
-        values = np.array(flat, dtype=float)
-    except (ValueError, TypeError):
-        return None
-    if not np.all(np.isfinite(values)) or any("_" in token for token in flat):
-        return None
-    return values.reshape(len(rows), m)
 
 
 def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
@@ -173,17 +153,15 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
     as a float array ``(rows, len(fields))`` of finite numbers and the 1-based line number of
     each row; at least ``minimum`` rows (``what`` names them in the error).
 
-    The common case (after leading comment or blank lines, every line a row of plain finite
-    numbers) is read by NumPy's C parser in one call; anything else -- a comment or blank line
-    further down, a bad token, a short row -- goes through the token-by-token parser, which names the first offending line and field. The C
-    parser accepts a subset of what the token parser does (no underscores, no other Unicode
-    digits), so both give the same values for any file they both accept."""
-    first = skip  # leading blank and comment lines (a TUM file's header) do not spoil the fast path
-    while first < len(lines) and (not lines[first].strip() or (comment and lines[first].lstrip().startswith(comment))):
-        first += 1
-    values = table_fast(lines[first:], len(fields), delimiter)
+    The common case (every data line a row of plain finite numbers) is read by NumPy's C parser
+    in one call; anything else -- a bad token, a short row -- goes through the token-by-token
+    parser, which names the first offending line and field. The C parser accepts a subset of
+    what the token parser does (no underscores, no other Unicode digits), so both give the same
+    values for any file they both accept."""
+    numbered = data_lines(lines, comment, skip)
+    values = table_fast([text for _, text in numbered], len(fields), delimiter)
     if values is not None and len(values) >= minimum:
-        return values, np.arange(first + 1, first + 1 + len(values))
+        return values, np.array([line for line, _ in numbered], dtype=np.int64)
     split = str.split if delimiter is None else (lambda text: text.split(delimiter))
     rows = data_rows(lines, split, comment=comment, skip=skip)
     require_rows(path, rows, len(lines), minimum, what)
@@ -216,15 +194,19 @@ def table_fast(body: list[str], m: int, delimiter: str | None, stamps: bool = Fa
     return values
 
 
-def data_rows(lines: list[str], split, comment: str = "#", skip: int = 0) -> list[tuple[int, list[str]]]:
-    """Non-blank, non-comment lines after the first ``skip`` as ``(1-based line, tokens)``."""
-    rows = []
+def data_lines(lines: list[str], comment: str = "#", skip: int = 0) -> list[tuple[int, str]]:
+    """Non-blank, non-comment lines after the first ``skip`` as ``(1-based line, stripped text)``."""
+    out = []
     for index in range(skip, len(lines)):
         text = lines[index].strip()
-        if not text or (comment and text.startswith(comment)):
-            continue
-        rows.append((index + 1, split(text)))
-    return rows
+        if text and not (comment and text.startswith(comment)):
+            out.append((index + 1, text))
+    return out
+
+
+def data_rows(lines: list[str], split, comment: str = "#", skip: int = 0) -> list[tuple[int, list[str]]]:
+    """:func:`data_lines` split into tokens: ``(1-based line, tokens)``."""
+    return [(line, split(text)) for line, text in data_lines(lines, comment, skip)]
 
 
 def require_rows(path, rows, n_lines: int, minimum: int, what: str) -> None:

@@ -63,7 +63,8 @@ from pathlib import Path
 import numpy as np
 
 from datasets import from_truth
-from datasets.errors import DataError, check_increasing, check_unit_quaternions, integer, number, read_lines, table_fast
+from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
+                             read_lines, table_fast)
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors import quaternion, so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
@@ -278,10 +279,11 @@ def _read_asl_csv(path, columns: list[str]) -> tuple[np.ndarray, np.ndarray, np.
         width = len(columns)
         name_of = dict(enumerate(columns))
         start = first
-    fast = table_fast(lines[start:], width, ",", stamps=True)
-    if fast is not None and len(fast[1]) >= 2:  # every line a plain row: NumPy's C parser
+    numbered = data_lines(lines, "#", start)
+    fast = table_fast([text for _, text in numbered], width, ",", stamps=True)
+    if fast is not None and len(fast[1]) >= 2:  # every data line a plain row: NumPy's C parser
         values, stamps = fast
-        line_numbers = np.arange(start + 1, start + 1 + len(stamps))
+        line_numbers = np.array([line for line, _ in numbered], dtype=np.int64)
         check_increasing(path, stamps, line_numbers, columns[0] + " [ns]")
         return stamps, values[:, order], line_numbers
     stamps, values, line_numbers = [], [], []

@@ -26,16 +26,23 @@ def test_fast_path_and_token_parser_give_the_same_values(delimiter, monkeypatch)
         patch.setattr(errors, "data_rows", lambda *args, **kwargs: pytest.fail("token parser used"))
         fast, numbers = read_table("f.txt", ["header"] + lines, FIELDS, 1, "rows", delimiter=delimiter, skip=1)
         assert np.array_equal(fast, values) and np.array_equal(numbers, np.arange(2, len(lines) + 2))
-        # leading comment and blank lines (a TUM header) keep the fast path; the numbers shift
+        # comment and blank lines (a TUM header) are skipped by the fast path; the numbers shift
         lead, numbers = read_table("f.txt", ["header", "# columns", ""] + lines, FIELDS, 1, "rows",
                                    delimiter=delimiter, skip=1)
         assert np.array_equal(lead, values) and np.array_equal(numbers, np.arange(4, len(lines) + 4))
-    # a comment and a blank line further down send the file through the token parser: same values, the line
-    # numbers skip the two extra lines
+    # a comment and a blank line further down: same values, the line numbers skip the two extra lines
     slow, numbers = read_table("f.txt", ["header", "# comment"] + lines[:10] + [""] + lines[10:], FIELDS, 1, "rows",
                                delimiter=delimiter, skip=1)
     assert np.array_equal(slow, values)
     assert np.array_equal(numbers, np.r_[3:13, 14:len(lines) + 4])
+    # a digit only Python's float reads (ARABIC-INDIC THREE): the token parser takes the file,
+    # every other value as the fast path reads it
+    sep = delimiter or " "
+    odd = lines[:5] + [sep.join(["\u0663"] + lines[5].split(sep)[1:])] + lines[6:]
+    slow, numbers = read_table("f.txt", odd, FIELDS, 1, "rows", delimiter=delimiter)
+    expected = values.copy()
+    expected[5, 0] = 3.0
+    assert np.array_equal(slow, expected) and np.array_equal(numbers, np.arange(1, len(lines) + 1))
 
 
 @pytest.mark.parametrize("bad, field, found", [
