@@ -382,15 +382,17 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
 
 
 @recursion
-def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
-    """Compiled core of :func:`propagate_steps` for one state: every sample ``k`` with
-    ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` (15x15, symmetric on
-    return) in place."""
-    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
-    flat, B, Bt, ABt = np.zeros(STATE_DIM * _W), np.empty(9 * _W), np.zeros(STATE_DIM * _W), np.empty(9 * _W)
-    for i in range(STATE_DIM):
-        for m in range(STATE_DIM):
-            flat[i * _W + m] = P[i, m]
+def prediction_work() -> tuple:
+    """Work arrays of :func:`predict_flat`: ``(E, Q, B, Bt, ABt)``; allocate once, reuse."""
+    return np.empty((3, 3)), np.empty(Q_SIZE), np.empty(9 * _W), np.zeros(STATE_DIM * _W), np.empty(9 * _W)
+
+
+@block_operation
+def predict_flat(r, v, C, b_f, b_w, flat, acc, gyro, dt, q_density, g, work) -> None:
+    """Every sample ``k`` with ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance
+    ``flat`` (15 rows of ``_W``, see :func:`_covariance_step`) in place; ``work`` from
+    :func:`prediction_work`."""
+    E, Q, B, Bt, ABt = work
     for k in range(dt.shape[0]):
         h = dt[k]
         if h <= 0.0:
@@ -399,9 +401,29 @@ def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
         step_quantities(C, v, w0, w1, w2, h, g, E, Q)
         _covariance_step(flat, Q, q_density, v, B, Bt, ABt)
         step_state(r, v, C, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2, g, E, Q)
+
+
+@block_operation
+def symmetric_from_flat(flat, P, floor) -> None:
+    """``P`` (15x15) = the symmetric part of the flat covariance ``flat``, plus ``floor`` on the
+    diagonal."""
     for i in range(STATE_DIM):
-        for m in range(i, STATE_DIM):
+        P[i, i] = flat[i * _W + i] + floor
+        for m in range(i + 1, STATE_DIM):
             P[i, m] = P[m, i] = 0.5 * (flat[i * _W + m] + flat[m * _W + i])
+
+
+@recursion
+def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
+    """Compiled core of :func:`propagate_steps` for one state: every sample ``k`` with
+    ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` (15x15, symmetric on
+    return) in place (:func:`predict_flat`)."""
+    flat = np.zeros(STATE_DIM * _W)
+    for i in range(STATE_DIM):
+        for m in range(STATE_DIM):
+            flat[i * _W + m] = P[i, m]
+    predict_flat(r, v, C, b_f, b_w, flat, acc, gyro, dt, q_density, g, prediction_work())
+    symmetric_from_flat(flat, P, 0.0)
 
 
 @recursion

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import imu, so3
-from factors.compiled import as_trailing, common_shape, matmul_into, recursion, rows as rows_of
+from factors.compiled import as_trailing, common_shape, in_parallel, matmul_into, recursion, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -177,68 +177,31 @@ def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
 
 
 @recursion
-def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q, floor,
-                         dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C):
-    """The recursions of the module docstring, with the gyro-bias Jacobians ``JC, dW, dRm``, and,
-    when the noise densities ``q`` are given (not None: Numba compiles the two cases separately),
-    the covariance ``S`` of each interval, all in one pass over the samples; interval by
-    interval, sample by sample (outputs initialised by the caller).
-
-    Interval ``j`` starts at the reference state ``ref_*[j]``: ``(r0, v0, C0)`` for ``j = 0``,
-    else the prediction from interval ``j - 1``, in both cases replaced by the known anchors
-    (:func:`_reference_at`); ``ref_*[J]`` is the last prediction, anchored the same way.
-
-    Covariance: the EKF's recursion ``S <- F S F^T + G Q_d G^T`` from ``S = 0`` along the
-    reference trajectory (:func:`factors.imu._covariance_step`), written directly in body-``i``
-    coordinates: the primer's model is invariant under a rotation of the world, so with the
-    relative attitude ``dC_k`` in place of ``C_k``, gravity ``gamma = C_i^T g`` in place of ``g``
-    and the body velocity ``v_k = W_k z`` of the reference, ``F`` and ``G`` are ``T F T^-1`` and
-    ``T G`` of the world-frame step (``T = diag(C_i^T, I, C_i^T, I, I)``), and ``S`` is the
-    world-frame covariance ``T S T^T`` without a rotation pass. ``floor`` is added on the
-    diagonal.
+def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
+    """The recursions of the module docstring with the gyro-bias Jacobians ``JC, dW, dRm``, for
+    intervals ``lo <= j < hi``, sample by sample (outputs initialised by the caller). Intervals do
+    not depend on each other, so disjoint ranges can run on different threads.
 
     Layout: ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[..., l]`` live in flat rows of
     ``_IW`` columns while an interval is integrated (row ``a`` of ``W``; row ``3 l + a`` of
     ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is applied as a cross
     product. Samples with ``dt = 0`` are identity steps and skipped."""
-    n = imu.STATE_DIM
-    tmp, E, Q, z, vk = np.empty((3, 3)), np.empty((3, 3)), np.empty(imu.Q_SIZE), np.zeros(10), np.zeros(3)
-    r, v, C, gamma = r0.copy(), v0.copy(), C0.copy(), np.empty(3)
+    tmp = np.empty((3, 3))
     Wf, Rf, dCW = np.zeros(3 * _IW), np.zeros(3 * _IW), np.zeros(3 * _IW)
     dWf, dRf = np.zeros(9 * _IW), np.zeros(9 * _IW)
-    P, B, Bt, ABt = np.zeros(n * imu._W), np.empty(9 * imu._W), np.zeros(n * imu._W), np.empty(9 * imu._W)
-    for j in range(dt.shape[0]):
-        _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v)
-        ref_r[j], ref_v[j], ref_C[j] = r, v, C
-        for a in range(3):
-            gamma[a] = C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
-            z[a], z[3 + a], z[7 + a] = v[a], gamma[a], -b_f[j, a]
-        z[6] = 1.0
+    for j in range(lo, hi):
         D, JCj = dC[j], JC[j]
         for a in range(3):
             for c in range(10):
                 Wf[a * _IW + c], Rf[a * _IW + c] = W[j, a, c], Rm[j, a, c]
                 for l in range(3):
                     dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c] = dW[j, a, c, l], dRm[j, a, c, l]
-        if q is not None:
-            P[:] = 0.0
         for k in range(dt.shape[1]):
             h = dt[j, k]
             if h <= 0.0:
                 continue
             w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
-            if q is not None:
-                for a in range(3):  # body velocity of the reference at sample k: W_k z
-                    acc_v = 0.0
-                    for c in range(10):
-                        acc_v += Wf[a * _IW + c] * z[c]
-                    vk[a] = acc_v
-                # E = exp(dt w), Q: the step's quantities in body-i coordinates (dC for C, gamma
-                # for g; Q holds dt dC Gamma for JC below), then the covariance step
-                imu.step_quantities(D, vk, w0, w1, w2, h, gamma, E, Q)
-                imu._covariance_step(P, Q, q, vk, B, Bt, ABt)
-            else:
-                Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
+            Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
             d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
                                                            D[2, 0], D[2, 1], D[2, 2])
             for c in range(_IW):  # dC W
@@ -285,43 +248,69 @@ def _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor
                 Wf[a * _IW + 6] += h * acc[j, k, a]
                 Wf[a * _IW + 7 + a] += h
             # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-            if q is not None:  # dt dC Gamma and exp are in Q and E
-                for a in range(3):
-                    for b in range(3):
-                        JCj[a, b] -= Q[imu._Q_CGAMMA + 3 * a + b]
-                        tmp[a, b] = D[a, 0] * E[0, b] + D[a, 1] * E[1, b] + D[a, 2] * E[2, b]
-            else:
-                for a in range(3):
-                    for b in range(3):
-                        JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
-                        tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
+            for a in range(3):
+                for b in range(3):
+                    JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
+                    tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
             D[:, :] = tmp
         for a in range(3):
             for c in range(10):
                 W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
                 for l in range(3):
                     dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
-        if q is not None:
-            Sj = S[j]
-            for a in range(n):
-                Sj[a, a] = P[a * imu._W + a] + floor
-                for b in range(a + 1, n):
-                    Sj[a, b] = Sj[b, a] = 0.5 * (P[a * imu._W + b] + P[b * imu._W + a])
-        # the prediction of keyframe j + 1 (module docstring): r + C Rm z, W z, C dC
+
+
+@recursion
+def _reference_chain(dC, W, Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, ref_r, ref_v, ref_C):
+    """The reference states ``ref_* (J + 1)`` at the keyframes: ``(r0, v0, C0)`` for keyframe 0,
+    else the prediction from keyframe ``j - 1`` through the integrated interval (module
+    docstring: ``r + C Rm z``, ``W z``, ``C dC``), in both cases replaced by the known anchors
+    (:func:`_reference_at`). Sequential, but a few operations per interval."""
+    tmp, z, u = np.empty((3, 3)), np.zeros(10), np.empty(3)
+    r, v, C = r0.copy(), v0.copy(), C0.copy()
+    z[6] = 1.0
+    for j in range(dC.shape[0]):
+        _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v)
+        ref_r[j], ref_v[j], ref_C[j] = r, v, C
+        for a in range(3):
+            z[a], z[3 + a], z[7 + a] = v[a], C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2], -b_f[j, a]
         for a in range(3):
             rz, wz = 0.0, 0.0
             for c in range(10):
                 rz += Rm[j, a, c] * z[c]
                 wz += W[j, a, c] * z[c]
-            vk[a], v[a] = rz, wz
+            u[a], v[a] = rz, wz
         for a in range(3):
-            r[a] += C[a, 0] * vk[0] + C[a, 1] * vk[1] + C[a, 2] * vk[2]
+            r[a] += C[a, 0] * u[0] + C[a, 1] * u[1] + C[a, 2] * u[2]
             for b in range(3):
-                tmp[a, b] = C[a, 0] * D[0, b] + C[a, 1] * D[1, b] + C[a, 2] * D[2, b]
+                tmp[a, b] = C[a, 0] * dC[j, 0, b] + C[a, 1] * dC[j, 1, b] + C[a, 2] * dC[j, 2, b]
         C[:, :] = tmp
-    J = dt.shape[0]
+    J = dC.shape[0]
     _reference_at(J, r, v, C, anchor_r, anchor_C, anchor_v)
     ref_r[J], ref_v[J], ref_C[J] = r, v, C
+
+
+@recursion
+def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, lo, hi, S):
+    """The covariance ``S[j]`` of intervals ``lo <= j < hi``: the EKF's prediction
+    (:func:`factors.imu.predict_into`, ``S <- F S F^T + G Q_d G^T`` from ``S = 0``) along the
+    reference trajectory from ``ref_v[j], ref_C[j]``, run directly in the residual's body-``i``
+    coordinates: the primer's model is invariant under a rotation of the world, so starting at
+    attitude ``I`` with gravity ``gamma = C_i^T g`` steps through ``dC_k`` in place of ``C_k``, and
+    ``F``, ``G`` are ``T F T^-1`` and ``T G`` of the world-frame step (``T = diag(C_i^T, I,
+    C_i^T, I, I)``): ``S`` is the world-frame covariance ``T S T^T`` without a rotation pass.
+    ``floor`` is added on the diagonal. Intervals are independent given the reference."""
+    r, v, C, gamma = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty(3)
+    flat, work = np.empty(imu.STATE_DIM * imu._W), imu.prediction_work()
+    for j in range(lo, hi):
+        for a in range(3):
+            gamma[a] = ref_C[j, 0, a] * g[0] + ref_C[j, 1, a] * g[1] + ref_C[j, 2, a] * g[2]
+            r[a], v[a] = 0.0, ref_v[j, a]
+            for b in range(3):
+                C[a, b] = 1.0 if a == b else 0.0
+        flat[:] = 0.0
+        imu.predict_flat(r, v, C, b_f[j], b_w_bar[j], flat, acc[j], gyro[j], dt[j], q, gamma, work)
+        imu.symmetric_from_flat(flat, S[j], floor)
 
 
 def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True) -> np.ndarray:
@@ -338,16 +327,42 @@ def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True
         raise ValueError(f"{name}: expected shape {shape} (or one that broadcasts to it), got {a.shape}") from None
 
 
-def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covariance):
-    """Check and lay out the inputs, run :func:`_preintegrate_kernel`; returns ``(Preintegrated,
-    reference states (J+1))``. ``cov`` is set when ``want_covariance``."""
+#: Fewest intervals worth handing to a thread of their own (~0.2 ms of work; a hand-over costs
+#: tens of microseconds): shorter runs, such as one new keyframe, stay on the calling thread.
+_MIN_INTERVALS_PER_THREAD = 32
+
+
+def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
+    """Check and lay out the samples, run :func:`_integrate_kernel` over the intervals (on
+    several threads when there are many); the covariance is left unset."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
         raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
     J, K = dt.shape
     ready = _kernel_array
-    b_w_bar, b_f = ready(b_w_bar, (J,), (3,), "b_w_bar"), ready(b_f, (J,), (3,), "b_f")
+    b_w_bar = ready(b_w_bar, (J,), (3,), "b_w_bar")
+    if not np.all(np.isfinite(b_w_bar)):
+        raise ValueError(f"b_w (the gyro biases given): expected finite values, got {b_w_bar.tolist()}")
+    acc, gyro, dt = ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt")
+    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
+    W = np.zeros((J, 3, 10))
+    W[:, :, 0:3] = np.eye(3)
+    Rm, JC = np.zeros((J, 3, 10)), np.zeros((J, 3, 3))
+    dW, dRm = np.zeros((J, 3, 10, 3)), np.zeros((J, 3, 10, 3))
+    in_parallel(lambda lo, hi: _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm), J,
+                _MIN_INTERVALS_PER_THREAD)
+    return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
+
+
+def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
+    """Check and lay out the inputs; integrate the intervals (:func:`_integrate`), chain the
+    reference states (:func:`_reference_chain`), then the covariances along them
+    (:func:`_covariance_kernel`, on several threads when there are many intervals); returns
+    ``(Preintegrated, reference states (J+1))``."""
+    J = np.shape(dt)[0]
+    ready = _kernel_array
+    b_f = ready(b_f, (J,), (3,), "b_f")
     g = ready(gravity, (), (3,), "gravity", broadcast=False)
     anchor_r, anchor_C, anchor_v = (ready(a, (J + 1,), tail, "anchors." + name, broadcast=False) for a, tail, name in (
         (anchors.r, (3,), "r"), (anchors.C, (3, 3), "C"), (anchors.world_v, (3,), "world_v")))
@@ -355,40 +370,33 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity, want_covar
         raise ValueError(f"start: expected one state, got states of shape {start.shape}")
     r0, v0, C0 = (ready(a, (), tail, "start." + name, broadcast=False)
                   for a, tail, name in ((start.r, (3,), "r"), (start.v, (3,), "v"), (start.C, (3, 3), "C")))
-    for name, a in (("r", r0), ("v", v0), ("C", C0), ("b_f", b_f), ("b_w", b_w_bar)):
+    for name, a in (("r", r0), ("v", v0), ("C", C0), ("b_f", b_f)):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"start.{name} (or the biases given): expected finite values, got {a.tolist()}")
-    acc, gyro, dt = ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt")
     for name, a in (("r", anchor_r), ("C", anchor_C), ("world_v", anchor_v)):
         finite = np.isfinite(a.reshape(J + 1, -1))
         partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
         if partial.size:
             raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
                              f"got {a[partial[0]].tolist()}")
-    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
-    W = np.zeros((J, 3, 10))
-    W[:, :, 0:3] = np.eye(3)
-    Rm, JC = np.zeros((J, 3, 10)), np.zeros((J, 3, 3))
-    dW, dRm = np.zeros((J, 3, 10, 3)), np.zeros((J, 3, 10, 3))
-    S = np.empty((J if want_covariance else 0, imu.STATE_DIM, imu.STATE_DIM))
+    pre = _integrate(acc, gyro, dt, b_w_bar)
+    acc, gyro, dt = pre.samples
     ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
-    q = noise.densities() if want_covariance else None
-    _preintegrate_kernel(acc, gyro, dt, b_w_bar, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, q,
-                         COVARIANCE_FLOOR**2, dC, W, Rm, JC, dW, dRm, S, ref_r, ref_v, ref_C)
-    pre = Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt),
-                        S if want_covariance else None)
+    _reference_chain(pre.dC, pre.W, pre.Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, ref_r, ref_v, ref_C)
+    S, q, floor = np.empty((J, imu.STATE_DIM, imu.STATE_DIM)), noise.densities(), COVARIANCE_FLOOR**2
+    b_w = pre.b_w_bar
+    in_parallel(lambda lo, hi: _covariance_kernel(acc, gyro, dt, b_w, b_f, ref_v, ref_C, g, q, floor, lo, hi, S), J,
+                _MIN_INTERVALS_PER_THREAD)
+    pre.cov = S
     last = lambda a: np.concatenate([a, a[-1:]])  # noqa: E731  (the last keyframe keeps the last biases)
-    return pre, imu.ImuState(ref_r, ref_v, ref_C, last(b_f), last(b_w_bar))
+    return pre, imu.ImuState(ref_r, ref_v, ref_C, last(b_f), last(b_w))
 
 
 def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
     around gyro biases ``b_w_bar (J, 3)``, with the bias Jacobians, without the covariance (see
     :func:`integrate_with_covariance`). One compiled pass over the samples."""
-    J = np.shape(dt)[0]
-    pre, _ = _run(acc, gyro, dt, b_w_bar, np.zeros(3), imu.ImuState.identity(), Anchors.none(J + 1),
-                  None, imu.DEFAULT_GRAVITY, False)
-    return pre
+    return _integrate(acc, gyro, dt, b_w_bar)
 
 
 def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.ImuNoise,
@@ -406,7 +414,7 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     acc, gyro, dt = samples
     J = np.shape(dt)[0]
     return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors if anchors is not None else Anchors.none(J + 1),
-                noise, gravity, True)
+                noise, gravity)
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
@@ -434,7 +442,7 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
                       np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))
     start = imu.ImuState(r[0], v[0], C[0], b_f[0], b_w[0])  # every interval is anchored: start unused
-    pre, _ = _run(acc, gyro, dt, b_w, b_f, start, anchors, noise, gravity, True)
+    pre, _ = _run(acc, gyro, dt, b_w, b_f, start, anchors, noise, gravity)
     return pre.cov
 
 

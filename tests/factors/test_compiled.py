@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from factors import imu, preintegration, so3
+from factors import compiled, imu, preintegration, so3
 from factors.compiled import as_trailing, common_shape, rows
 
 
@@ -122,3 +122,39 @@ def test_cached_kernels_are_cleared_when_any_source_changes(tmp_path):
     (b / "m.py").write_text("x = 3\n")
     clear_stale_kernel_caches([a, b], stamp)
     assert (a / "__pycache__" / "other.pyc").exists()  # only Numba's files go
+
+
+def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
+    seen = []
+    with compiled.thread_limit(3):
+        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 10, 2)
+    assert sorted(seen) == [(0, 3), (3, 6), (6, 10)]
+    seen.clear()
+    with compiled.thread_limit(4):  # too few items for four pieces of at least 4
+        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 9, 4)
+    assert sorted(seen) == [(0, 4), (4, 9)]
+    seen.clear()
+    compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 5, 32)  # small: the calling thread only
+    assert seen == [(0, 5)]
+    compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 0, 1)
+    assert seen[-1] == (0, 0)
+
+
+def test_in_parallel_raises_a_pieces_error_after_all_pieces_ran():
+    done = []
+
+    def task(lo, hi):
+        done.append(lo)
+        if lo > 0:
+            raise ValueError(f"piece {lo}")
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 5"):
+        compiled.in_parallel(task, 10, 1)
+    assert sorted(done) == [0, 5]
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, None])
+def test_thread_limit_refuses_a_count_that_is_not_a_whole_number_above_zero(bad):
+    with pytest.raises(ValueError, match="thread_limit: expected a whole number"):
+        with compiled.thread_limit(bad):
+            pass

@@ -34,7 +34,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from factors import imu, preintegration, so3
+from factors import compiled, imu, preintegration, so3
 from factors.jacobians import numerical_jacobian
 from strategies import EPS, random_rotation
 
@@ -382,10 +382,9 @@ def reference_chain(start, pre, anchors):
 
 @pytest.mark.parametrize("anchored", ["none", "some", "all"])
 def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_chain(anchored):
-    """One pass = the two separate computations: the same preintegrated quantities and bias
-    Jacobians as :func:`integrate` (to round-off: the covariance pass takes ``dt dC Gamma`` from
-    the step's quantities, the same products fused differently), reference states equal to the prediction chain
-    reset by the anchors, and the covariance :func:`noise_covariance` gives at those states."""
+    """The one call = the separate computations: exactly the preintegrated quantities and bias
+    Jacobians of :func:`integrate`, reference states equal to the prediction chain reset by the
+    anchors, and the covariance :func:`noise_covariance` gives at those states."""
     rng = np.random.default_rng(31)
     lengths = [7, 1, 40, 23, 60]
     acc, gyro, dt = padded_intervals(rng, lengths)
@@ -401,8 +400,7 @@ def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_
     pre, states = preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY, anchors)
     alone = preintegration.integrate(acc, gyro, dt, start.b_w)
     for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "b_w_bar", "duration"):
-        a, b = getattr(pre, name), getattr(alone, name)
-        assert np.abs(a - b).max() <= 1e-14 * np.abs(b).max(), name
+        assert np.array_equal(getattr(pre, name), getattr(alone, name)), name
     chain = reference_chain(start, alone, anchors)
     assert states.shape == (J + 1,)
     assert np.abs(imu.boxminus(states, chain)).max() < 1e-12
@@ -413,6 +411,28 @@ def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_
     assert np.all(np.abs(pre.cov - cov) <= 1e-12 * scale)
     if anchored == "all":  # every keyframe is its anchor (velocity only where given)
         assert np.allclose(states.r, anchors.r) and np.allclose(states.C, anchors.C)
+
+
+def test_results_do_not_depend_on_the_number_of_threads(monkeypatch):
+    """Intervals are split among threads in contiguous ranges; each interval's arithmetic is the
+    same whichever thread runs it, so the results are identical bit for bit."""
+    rng = np.random.default_rng(8)
+    lengths = [int(n) for n in rng.integers(1, 30, size=11)]
+    acc, gyro, dt = padded_intervals(rng, lengths)
+    start, noise = random_state(rng), imu.ImuNoise(acc=0.02, gyro=2e-3, acc_bias=1e-3, gyro_bias=1e-4)
+    anchors = preintegration.Anchors.none(len(lengths) + 1)
+    anchors.r[::3] = rng.normal(size=(4, 3))
+    monkeypatch.setattr(preintegration, "_MIN_INTERVALS_PER_THREAD", 2)
+    runs = []
+    for threads in (1, 2, 5):
+        with compiled.thread_limit(threads):
+            runs.append(preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY, anchors))
+    (one, states_one), others = runs[0], runs[1:]
+    for pre, states in others:
+        for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "cov"):
+            assert np.array_equal(getattr(pre, name), getattr(one, name)), name
+        for name in ("r", "v", "C"):
+            assert np.array_equal(getattr(states, name), getattr(states_one, name)), name
 
 
 def test_integrate_with_covariance_refuses_bad_input():
