@@ -4,8 +4,8 @@ Figures (each with its target; ratios are measured side by side in the same run,
 interleaved, medians taken, because the machine is noisy):
 
 1. preintegration of a whole run (``factors.preintegration.integrate_with_covariance``:
-   preintegrated quantities, bias Jacobians and the 15x15 covariance, in one pass, along the true
-   keyframe states) per IMU sample, next to GTSAM's
+   preintegrated quantities, bias Jacobians and the 15x15 covariance, along the true keyframe
+   states; on every core, and on one for comparison) per IMU sample, next to GTSAM's
    ``PreintegratedImuMeasurements.integrateMeasurement`` called per sample from Python (which
    always computes its 9x9 covariance and bias Jacobians too), one fresh PIM per keyframe
    interval; for context also ``integrate`` alone (no covariance) and GTSAM's
@@ -52,7 +52,7 @@ import kitti_native  # noqa: E402  (a sibling script, not a package)
 
 from datasets import kitti  # noqa: E402
 from datasets.simulate import simulate  # noqa: E402
-from factors import preintegration  # noqa: E402
+from factors import compiled, preintegration  # noqa: E402
 from smoother import native, solver  # noqa: E402
 from smoother.batch import solve_batch  # noqa: E402
 from smoother.ekf import run_ekf  # noqa: E402
@@ -167,9 +167,16 @@ def bench_preintegration(s: Settings) -> dict:
             for k in range(start_k, stop_k):
                 pim.integrateMeasurement(a_rows[k], g_rows[k], dt_rows[k])
 
+    def ours():
+        return preintegration.integrate_with_covariance(samples, start, dataset.noise, dataset.gravity, anchors)
+
+    def one_thread(fn):
+        with compiled.thread_limit(1):
+            return fn()
+
     t = _interleaved({
-        "ours": lambda: preintegration.integrate_with_covariance(samples, start, dataset.noise, dataset.gravity,
-                                                                 anchors),
+        "ours": ours,
+        "ours_one_thread": lambda: one_thread(ours),
         "integrate": lambda: preintegration.integrate(*samples, b_w),
         "gtsam": lambda: gtsam_loop(gtsam.PreintegratedImuMeasurements, params),
         "gtsam_combined": lambda: gtsam_loop(gtsam.PreintegratedCombinedMeasurements, combined),
@@ -178,6 +185,8 @@ def bench_preintegration(s: Settings) -> dict:
     ours, theirs = us(_median(t["ours"])), us(_median(t["gtsam"]))
     return {
         "preintegration_us_per_sample": ours,
+        "preintegration_one_thread_us_per_sample": us(_median(t["ours_one_thread"])),
+        "preintegration_threads": compiled.thread_count(),
         "preintegration_without_covariance_us_per_sample": us(_median(t["integrate"])),
         # the fastest repetition of each: what the code costs when the machine is quiet
         "preintegration_best_us_per_sample": us(min(t["ours"])),
@@ -187,7 +196,8 @@ def bench_preintegration(s: Settings) -> dict:
         "preintegration_speedup_vs_gtsam": theirs / ours,
         "preintegration_speedup_vs_gtsam_combined": us(_median(t["gtsam_combined"])) / ours,
         "preintegration_run": f"{s.preint_s:g} s at 200 Hz, {len(times) - 1} intervals (J x K = "
-                              f"{samples[2].shape[0]} x {samples[2].shape[1]}), {n} samples, median of {s.repeats}",
+                              f"{samples[2].shape[0]} x {samples[2].shape[1]}), {n} samples, median of {s.repeats}; "
+                              f"{compiled.thread_count()} threads (one_thread: 1)",
     }
 
 
@@ -391,6 +401,7 @@ def _table_rows(r: dict) -> list:
     gt_ekf = r["gtsam_ekf_us_per_sample"]
     rows = [
         row("preintegration_us_per_sample", "us", "<= 0.3", lambda v: v <= 0.3),
+        row("preintegration_one_thread_us_per_sample", "us"),
         row("preintegration_without_covariance_us_per_sample", "us"),
         row("gtsam_preintegration_us_per_sample", "us"),
         row("gtsam_combined_preintegration_us_per_sample", "us"),

@@ -131,24 +131,48 @@ def matmul_into(A, B, out) -> None:
             out[a, b] = acc
 
 
-def _available_cores() -> int:
+def _default_threads() -> int:
+    """``BOXPLUS_THREADS`` if set (e.g. 1 when several processes share the cores), else the
+    number of cores this process may run on."""
+    text = os.environ.get("BOXPLUS_THREADS", "").strip()
+    if text:
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(f"BOXPLUS_THREADS: expected a whole number of threads >= 1, got {text!r}")
+        return int(text)
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
 
 
-_threads = _available_cores()
+_threads = _default_threads()
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+
+
+def _forget_the_pool() -> None:
+    """In a forked child: only the forking thread exists there, so the parent's pool has no
+    workers and anything submitted to it would wait for ever; the child starts its own."""
+    global _pool, _pool_size
+    _pool, _pool_size = None, 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_the_pool)
+
+
+def thread_count() -> int:
+    """The number of threads :func:`in_parallel` may use now."""
+    return _threads
 
 
 @contextmanager
 def thread_limit(n: int):
     """Run :func:`in_parallel` work on at most ``n`` threads inside the ``with`` block (for
-    measurements and tests; by default it uses every core this process may run on)."""
+    measurements and tests; the default is :func:`_default_threads`). Process-wide: not for
+    changing the limit from several threads at once."""
     global _threads
-    if not isinstance(n, int) or n < 1:
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"thread_limit: expected a whole number of threads >= 1, got {n!r}")
     before, _threads = _threads, n
     try:

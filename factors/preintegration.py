@@ -33,14 +33,18 @@ The noise covariance of the prediction is the EKF's own: the primer's ``F`` and 
 along the reference trajectory from keyframe ``i`` with zero initial covariance,
 ``S_{k+1} = F S F^T + G Q_d G^T``, expressed in the residual's body-``i`` coordinates. It is
 propagated in those coordinates directly (``dC_k`` in place of ``C_k``, ``gamma`` in place of
-``g``: the model is invariant under a rotation of the world), in the same pass as the
-recursions above (:func:`integrate_with_covariance`); the reference trajectory is the dead
-reckoning from keyframe to keyframe, reset where measurements anchor it.
+``g``: the model is invariant under a rotation of the world), by the EKF's own prediction code
+(:func:`factors.imu.predict_flat`); the reference trajectory is the dead reckoning from keyframe
+to keyframe, reset where measurements anchor it (:func:`integrate_with_covariance`).
 
 Everything is vectorised over intervals: arrays of shape ``(J, K, ...)`` hold ``J`` intervals of
 up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the identity step. The
-recursions run as one compiled pass over all samples (:mod:`factors.compiled`), with no Python
-per sample or per interval.
+recursions are compiled loops over all samples (:mod:`factors.compiled`), with no Python per
+sample or per interval. Intervals are independent of each other except through the reference
+trajectory, so a whole run takes three phases: the recursions of every interval, split among the
+cores (:func:`factors.compiled.in_parallel`); the reference chain, sequential but a few operations
+per interval; the covariances along it, split among the cores again. Each interval's arithmetic
+is the same whichever thread runs it, so the results do not depend on the number of cores.
 """
 from __future__ import annotations
 
@@ -395,7 +399,7 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
 def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
     around gyro biases ``b_w_bar (J, 3)``, with the bias Jacobians, without the covariance (see
-    :func:`integrate_with_covariance`). One compiled pass over the samples."""
+    :func:`integrate_with_covariance`). Compiled, on several cores when there are many intervals."""
     return _integrate(acc, gyro, dt, b_w_bar)
 
 
@@ -403,7 +407,8 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
                               gravity=imu.DEFAULT_GRAVITY, anchors: Anchors | None = None):
     """Preintegrate ``J`` padded intervals ``samples = (acc, gyro, dt)`` around the biases of
     ``start`` (one state) with the bias Jacobians AND the residual covariance of every interval
-    (see :func:`noise_covariance`), in one compiled pass; returns ``(pre, states)``.
+    (see :func:`noise_covariance`); returns ``(pre, states)``. Three compiled phases (module
+    docstring), the two heavy ones on several cores when there are many intervals.
 
     The covariance of interval ``i`` is evaluated along the reference trajectory from keyframe
     state ``states[i]``: ``states[0]`` is ``start``, ``states[i + 1]`` the prediction from

@@ -10,7 +10,7 @@ Initial values come from dead reckoning and the measurements: keyframe ``k`` sta
 prediction from keyframe ``k-1``; a measured position or attitude then replaces the predicted one
 and, where positions are measured, the velocity is taken from their finite differences. The same
 initial trajectory is the reference along which each IMU factor's noise covariance is computed
-(one compiled pass: :func:`factors.preintegration.integrate_with_covariance`).
+(one call: :func:`factors.preintegration.integrate_with_covariance`).
 
 The GTSAM factors (``Problem.graph`` and friends) are built on first use: the batch solver runs on
 the vectorised blocks and never needs them.
@@ -238,7 +238,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
     # initial trajectory: dead reckoning from the initial state, reset by the measurements; the
-    # IMU factors' covariances are evaluated along it (one compiled pass does both)
+    # IMU factors' covariances are evaluated along it (one call does both)
     pre, initial_states = preintegration.integrate_with_covariance((acc, gyro, dt), dataset.initial, dataset.noise,
                                                                    dataset.gravity, _anchors(dataset, times))
 

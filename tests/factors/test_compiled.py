@@ -2,6 +2,9 @@
 trailing shapes), and that the public vectorised functions built on it broadcast like NumPy."""
 from __future__ import annotations
 
+import multiprocessing
+import os
+
 import numpy as np
 import pytest
 
@@ -153,8 +156,44 @@ def test_in_parallel_raises_a_pieces_error_after_all_pieces_ran():
     assert sorted(done) == [0, 5]
 
 
-@pytest.mark.parametrize("bad", [0, -1, 1.5, None])
+@pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])
 def test_thread_limit_refuses_a_count_that_is_not_a_whole_number_above_zero(bad):
     with pytest.raises(ValueError, match="thread_limit: expected a whole number"):
         with compiled.thread_limit(bad):
             pass
+
+
+def _pieces_in_a_child(queue):
+    seen = []
+    with compiled.thread_limit(2):
+        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 4, 1)
+    queue.put(sorted(seen))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_runs_in_parallel_work_although_the_parent_had_started_its_pool():
+    """A forked child has none of the parent's threads; it must not hand work to the parent's
+    pool (it would wait for ever) -- e.g. Monte Carlo workers of a process pool."""
+    with compiled.thread_limit(2):
+        compiled.in_parallel(lambda lo, hi: None, 4, 1)  # the parent's pool exists now
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=_pieces_in_a_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=60) == [(0, 2), (2, 4)]
+    finally:
+        child.join(timeout=10)
+        if child.is_alive():
+            child.kill()
+
+
+def test_the_default_thread_count_comes_from_boxplus_threads_when_set(monkeypatch):
+    monkeypatch.setenv("BOXPLUS_THREADS", "3")
+    assert compiled._default_threads() == 3
+    monkeypatch.setenv("BOXPLUS_THREADS", " ")
+    assert compiled._default_threads() >= 1  # unset: the cores this process may use
+    for bad in ("0", "two", "-1", "1.5"):
+        monkeypatch.setenv("BOXPLUS_THREADS", bad)
+        with pytest.raises(ValueError, match="BOXPLUS_THREADS: expected a whole number"):
+            compiled._default_threads()
