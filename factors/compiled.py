@@ -166,19 +166,26 @@ def thread_count() -> int:
     return _threads
 
 
-@contextmanager
-def thread_limit(n: int):
-    """Run :func:`in_parallel` work on at most ``n`` threads inside the ``with`` block (for
-    measurements and tests; the default is :func:`_default_threads`). Process-wide: not for
-    changing the limit from several threads at once."""
+def set_thread_count(n: int) -> None:
+    """Let :func:`in_parallel` use at most ``n`` threads from now on in this process (e.g. in
+    each worker of a process pool, so that the workers do not oversubscribe the cores; the
+    default is :func:`_default_threads`). Process-wide: not for changing the limit from several
+    threads at once."""
     global _threads
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"thread_limit: expected a whole number of threads >= 1, got {n!r}")
-    before, _threads = _threads, n
+        raise ValueError(f"thread count: expected a whole number of threads >= 1, got {n!r}")
+    _threads = n
+
+
+@contextmanager
+def thread_limit(n: int):
+    """:func:`set_thread_count` inside the ``with`` block only (measurements and tests)."""
+    before = _threads
+    set_thread_count(n)
     try:
         yield
     finally:
-        _threads = before
+        set_thread_count(before)
 
 
 def in_parallel(task, n: int, min_items: int) -> None:

@@ -157,10 +157,12 @@ def test_in_parallel_raises_a_pieces_error_after_all_pieces_ran():
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])
-def test_thread_limit_refuses_a_count_that_is_not_a_whole_number_above_zero(bad):
-    with pytest.raises(ValueError, match="thread_limit: expected a whole number"):
+def test_a_thread_count_that_is_not_a_whole_number_above_zero_is_refused(bad):
+    with pytest.raises(ValueError, match="thread count: expected a whole number"):
         with compiled.thread_limit(bad):
             pass
+    with pytest.raises(ValueError, match="thread count: expected a whole number"):
+        compiled.set_thread_count(bad)
 
 
 def _pieces_in_a_child(queue):

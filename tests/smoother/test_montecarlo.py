@@ -4,6 +4,7 @@ import json
 import numpy as np
 import pytest
 
+from factors import compiled
 from smoother import montecarlo
 from smoother.cli import main
 
@@ -19,6 +20,21 @@ def test_one_worker_and_several_give_identical_results(serial):
     parallel = montecarlo.run_many(CONFIG, [2, 3, 1], montecarlo.make_executor(2))
     assert [r["seed"] for r in serial] == [1, 2, 3]
     assert json.dumps(serial, sort_keys=True) == json.dumps(parallel, sort_keys=True)
+
+
+def test_process_workers_share_the_threads_instead_of_each_taking_them_all():
+    with compiled.thread_limit(4):
+        executor = montecarlo.make_executor(2)
+    try:
+        assert executor.submit(compiled.thread_count).result(timeout=60) == 2
+    finally:
+        executor.shutdown()
+    with compiled.thread_limit(1):
+        executor = montecarlo.make_executor(3)
+    try:
+        assert executor.submit(compiled.thread_count).result(timeout=60) == 1
+    finally:
+        executor.shutdown()
 
 
 def test_runs_are_seeded_and_differ_between_seeds(serial):
