@@ -12,7 +12,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -148,13 +149,17 @@ def _default_threads() -> int:
 _threads = _default_threads()
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+#: Held while the pool is checked, replaced or given work: callers on several threads at once
+#: must not submit to a pool that another has just shut down to replace it by a larger one.
+_pool_lock = threading.Lock()
 
 
 def _forget_the_pool() -> None:
     """In a forked child: only the forking thread exists there, so the parent's pool has no
-    workers and anything submitted to it would wait for ever; the child starts its own."""
-    global _pool, _pool_size
-    _pool, _pool_size = None, 0
+    workers and anything submitted to it would wait for ever (and the lock may have been held by
+    another thread of the parent); the child starts its own."""
+    global _pool, _pool_size, _pool_lock
+    _pool, _pool_size, _pool_lock = None, 0, threading.Lock()
 
 
 if hasattr(os, "register_at_fork"):
@@ -192,23 +197,27 @@ def in_parallel(task, n: int, min_items: int) -> None:
     """``task(lo, hi)`` over contiguous ranges that cover ``range(n)``, one range per thread,
     each at least ``min_items`` long (so small jobs stay on the calling thread, where a thread
     hand-over would cost more than it saves). ``task`` must release the GIL for the threads to
-    run at once (a :data:`recursion` kernel does) and must write disjoint outputs per range.
+    run at once (a :data:`recursion` kernel does), must write disjoint outputs per range and must
+    not call :func:`in_parallel` itself. Safe to call from several threads at once.
 
     The calling thread runs the first range itself; the others go to a pool started on first
-    use. An exception in any range is raised here after all ranges have finished."""
+    use. Every range has finished when this returns or raises; an exception of the calling
+    thread's range is raised first, else the first range's that failed."""
     parts = max(1, min(_threads, n // max(1, min_items)))
     if parts == 1:
         task(0, n)
         return
     global _pool, _pool_size
-    if _pool_size < parts - 1:
-        if _pool is not None:
-            _pool.shutdown(wait=False)
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
     bounds = [n * p // parts for p in range(parts + 1)]
-    others = [_pool.submit(task, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
+    with _pool_lock:
+        if _pool_size < parts - 1:
+            if _pool is not None:
+                _pool.shutdown(wait=False)  # what was queued there still runs
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
+        others = [_pool.submit(task, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
     try:
         task(bounds[0], bounds[1])
     finally:
-        for future in others:
-            future.result()
+        wait(others)
+    for future in others:
+        future.result()

@@ -336,19 +336,25 @@ def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True
 _MIN_INTERVALS_PER_THREAD = 32
 
 
-def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
-    """Check and lay out the samples, run :func:`_integrate_kernel` over the intervals (on
-    several threads when there are many); the covariance is left unset."""
+def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
+    """The samples and gyro biases checked (shapes; finite biases, named ``bias_name`` in the
+    error) and laid out for the kernels: ``(acc, gyro, dt, b_w_bar)``."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
         raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
     J, K = dt.shape
     ready = _kernel_array
-    b_w_bar = ready(b_w_bar, (J,), (3,), "b_w_bar")
+    b_w_bar = ready(b_w_bar, (J,), (3,), bias_name)
     if not np.all(np.isfinite(b_w_bar)):
-        raise ValueError(f"b_w (the gyro biases given): expected finite values, got {b_w_bar.tolist()}")
-    acc, gyro, dt = ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt")
+        raise ValueError(f"{bias_name}: expected finite values, got {b_w_bar.tolist()}")
+    return ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt"), b_w_bar
+
+
+def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
+    """:func:`_integrate_kernel` over the intervals of samples from :func:`_ready_samples` (on
+    several threads when there are many); the covariance is left unset."""
+    J = dt.shape[0]
     dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
     W = np.zeros((J, 3, 10))
     W[:, :, 0:3] = np.eye(3)
@@ -360,11 +366,13 @@ def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
 
 
 def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
-    """Check and lay out the inputs; integrate the intervals (:func:`_integrate`), chain the
-    reference states (:func:`_reference_chain`), then the covariances along them
-    (:func:`_covariance_kernel`, on several threads when there are many intervals); returns
-    ``(Preintegrated, reference states (J+1))``."""
-    J = np.shape(dt)[0]
+    """Check and lay out the inputs (the samples first); integrate the intervals
+    (:func:`_integrate`), chain the reference states (:func:`_reference_chain`), then the
+    covariances along them (:func:`_covariance_kernel`, on several threads when there are many
+    intervals); returns ``(Preintegrated, reference states (J+1))``. ``anchors`` None: none."""
+    acc, gyro, dt, b_w_bar = _ready_samples(acc, gyro, dt, b_w_bar, "start.b_w")
+    J = dt.shape[0]
+    anchors = anchors if anchors is not None else Anchors.none(J + 1)
     ready = _kernel_array
     b_f = ready(b_f, (J,), (3,), "b_f")
     g = ready(gravity, (), (3,), "gravity", broadcast=False)
@@ -384,7 +392,6 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
             raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
                              f"got {a[partial[0]].tolist()}")
     pre = _integrate(acc, gyro, dt, b_w_bar)
-    acc, gyro, dt = pre.samples
     ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
     _reference_chain(pre.dC, pre.W, pre.Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, ref_r, ref_v, ref_C)
     S, q, floor = np.empty((J, imu.STATE_DIM, imu.STATE_DIM)), noise.densities(), COVARIANCE_FLOOR**2
@@ -400,7 +407,7 @@ def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
     around gyro biases ``b_w_bar (J, 3)``, with the bias Jacobians, without the covariance (see
     :func:`integrate_with_covariance`). Compiled, on several cores when there are many intervals."""
-    return _integrate(acc, gyro, dt, b_w_bar)
+    return _integrate(*_ready_samples(acc, gyro, dt, b_w_bar, "b_w_bar"))
 
 
 def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.ImuNoise,
@@ -417,9 +424,7 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     reset by measurements, the smoother's initial trajectory. ``states`` keeps the biases of
     ``start``."""
     acc, gyro, dt = samples
-    J = np.shape(dt)[0]
-    return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors if anchors is not None else Anchors.none(J + 1),
-                noise, gravity)
+    return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors, noise, gravity)
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -143,17 +146,71 @@ def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
     assert seen[-1] == (0, 0)
 
 
-def test_in_parallel_raises_a_pieces_error_after_all_pieces_ran():
-    done = []
+def test_in_parallel_raises_only_after_every_piece_has_finished():
+    finished = []
 
     def task(lo, hi):
-        done.append(lo)
-        if lo > 0:
-            raise ValueError(f"piece {lo}")
+        if lo == 0:
+            time.sleep(0.05)
+        elif lo == 4:
+            raise ValueError("piece 4")
+        else:  # a slow piece, still running when piece 4 has failed
+            time.sleep(0.3)
+        finished.append(lo)
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 5"):
+    with compiled.thread_limit(3), pytest.raises(ValueError, match="piece 4"):
+        compiled.in_parallel(task, 12, 1)
+    assert sorted(finished) == [0, 8]
+
+
+def test_in_parallel_raises_the_calling_threads_own_error_first():
+    def task(lo, hi):
+        if lo == 0:
+            time.sleep(0.05)  # the other piece fails first
+        raise ValueError(f"piece {lo}")
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
         compiled.in_parallel(task, 10, 1)
-    assert sorted(done) == [0, 5]
+
+
+def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
+    """Callers on twelve threads at once, each asking for more pieces than the pool has workers
+    (so it is replaced by a larger one while others submit to it), with the interpreter switching
+    threads as often as it can: every piece runs exactly once and nothing fails. (Without the
+    lock, about one round in five raised "cannot schedule new futures after shutdown".)"""
+    callers, rounds = 12, 100
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        for _ in range(rounds):
+            compiled._forget_the_pool()
+            seen = [[] for _ in range(callers)]
+            errors = []
+            start = threading.Barrier(callers)
+
+            def caller(i, seen=seen, errors=errors, start=start):
+                def piece(lo, hi):
+                    for _ in range(200):  # some bytecode, so that the callers overlap
+                        pass
+                    seen[i].append((lo, hi))
+
+                start.wait()
+                try:
+                    compiled.in_parallel(piece, i + 2, 1)
+                except Exception as error:  # noqa: BLE001  (collected, asserted below)
+                    errors.append(repr(error))
+
+            with compiled.thread_limit(callers + 4):
+                threads = [threading.Thread(target=caller, args=(i,)) for i in range(callers)]
+                for thread in threads:
+                    thread.start()
+                for thread in threads:
+                    thread.join(timeout=60)
+            assert errors == []
+            for i, pieces in enumerate(seen):
+                assert sorted(pieces) == [(p, p + 1) for p in range(i + 2)]
+    finally:
+        sys.setswitchinterval(switch)
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])

@@ -458,6 +458,13 @@ def test_integrate_with_covariance_refuses_bad_input():
         preintegration.integrate(acc, gyro, dt, np.full((2, 1), 0.1))
     with pytest.raises(ValueError, match="start.v"):
         preintegration.integrate_with_covariance((acc, gyro, dt), start.replace(v=np.full(3, np.nan)), noise)
+    with pytest.raises(ValueError, match=r"start.b_w: expected finite"):
+        preintegration.integrate_with_covariance((acc, gyro, dt), start.replace(b_w=np.full(3, np.nan)), noise)
+    with pytest.raises(ValueError, match=r"b_w_bar: expected finite"):
+        preintegration.integrate(acc, gyro, dt, np.full((2, 3), np.inf))
+    # the samples are checked first: with bad samples AND a bad gravity, the samples are named
+    with pytest.raises(ValueError, match=r"acc, gyro \(J, K, 3\) and dt \(J, K\)"):
+        preintegration.integrate_with_covariance((acc, gyro, np.float64(0.01)), start, noise, gravity=-9.81)
     # a NaN reference is an error for noise_covariance (NaN would read as an unknown anchor)
     states = batch([start, start.replace(v=np.full(3, np.nan))])
     with pytest.raises(ValueError, match=r"reference.v\[1\]: expected finite"):
