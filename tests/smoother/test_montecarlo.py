@@ -22,17 +22,12 @@ def test_one_worker_and_several_give_identical_results(serial):
     assert json.dumps(serial, sort_keys=True) == json.dumps(parallel, sort_keys=True)
 
 
-def test_process_workers_share_the_threads_instead_of_each_taking_them_all():
-    with compiled.thread_limit(4):
-        executor = montecarlo.make_executor(2)
+@pytest.mark.parametrize("threads, workers, each", [(4, 2, 2), (1, 3, 1)])
+def test_process_workers_share_the_threads_instead_of_each_taking_them_all(threads, workers, each):
+    with compiled.thread_limit(threads):
+        executor = montecarlo.make_executor(workers)
     try:
-        assert executor.submit(compiled.thread_count).result(timeout=60) == 2
-    finally:
-        executor.shutdown()
-    with compiled.thread_limit(1):
-        executor = montecarlo.make_executor(3)
-    try:
-        assert executor.submit(compiled.thread_count).result(timeout=60) == 1
+        assert executor.submit(compiled.thread_count).result(timeout=60) == each
     finally:
         executor.shutdown()
 
