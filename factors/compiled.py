@@ -6,6 +6,10 @@ machine code on first use (cached on disk, so later processes start at once); Nu
 the same formulas spend nearly all their time in Python call overhead on 3x3 arrays. A kernel
 ``loop(flat_in, flat_out)`` loops over the first axis; :func:`apply_rows` gives it the
 vectorised interface of a NumPy function (``(..., *in_dims) -> (..., *out_dims)``).
+
+Work made of many independent pieces (the preintegration's intervals) runs on several threads
+with :func:`in_parallel`: the IMU kernels release the GIL, each thread takes a contiguous range
+of pieces and writes only their outputs, so the results do not depend on the thread count.
 """
 from __future__ import annotations
 
