@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from factors import scan, so3
-from factors.compiled import as_trailing, block_operation, recursion, rows
+from factors.compiled import as_trailing, block_operation, leaf, recursion, rows
 
 STATE_DIM = 15
 NOISE_DIM = 15
@@ -213,7 +213,7 @@ Q_SIZE = 37
 _W = 16
 
 
-@recursion
+@leaf
 def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
     rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
@@ -239,7 +239,7 @@ def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
     Q[_Q_DT] = dt
 
 
-@recursion
+@leaf
 def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
     """The step (eqs. 54-60) in place: ``r += dt C v``, ``v += dt (C^T g + f - w x v)``,
     ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples and ``E, Q`` from
