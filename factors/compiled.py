@@ -135,7 +135,7 @@ def common_shape(*shapes) -> tuple:
     return first if all(s == first for s in shapes) else np.broadcast_shapes(*shapes)
 
 
-@njit(cache=True)
+@exact_leaf
 def matmul_into(A, B, out) -> None:
     """``out = A B`` for small 2-d arrays of any layout (``out`` must not alias ``A`` or ``B``).
     Written out because Numba's ``@`` on matrices calls SciPy's BLAS, and SciPy is not a

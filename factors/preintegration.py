@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import imu, so3
-from factors.compiled import as_trailing, common_shape, in_parallel, matmul_into, recursion, rows as rows_of
+from factors.compiled import as_trailing, common_shape, in_parallel, leaf, matmul_into, recursion, rows as rows_of
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -477,7 +477,7 @@ _PRE_TAILS = ((3, 3), (3, 10), (3, 10), (3, 3), (3, 10, 3), (3, 10, 3), (3,))
 _STATE_TAILS = ((3,), (3,), (3, 3), (3,), (3,))
 
 
-@recursion
+@leaf
 def _correct(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out, JCd, E) -> None:
     """First-order gyro-bias correction of one interval: ``W + dW . d``, ``Rm + dRm . d``,
     ``exp(JC d) dC`` with ``d = b_w - b_w_bar``; ``JC d`` into ``JCd`` (3), ``E`` a 3x3 work array."""
@@ -499,13 +499,18 @@ def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out)
 
 
 @recursion
+def _residual_work() -> tuple:
+    """Work arrays of :func:`_residual_into`; allocate once per batch, reuse for every row."""
+    return (np.empty((3, 3)), np.empty((3, 10)), np.empty((3, 10)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty((3, 3)), np.empty((3, 3)), np.empty(10), np.empty(3), np.empty(3), np.empty(3), np.empty(3))
+
+
+@leaf
 def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
-                   jacobians, e, A, B) -> None:
+                   jacobians, e, A, B, work) -> None:
     """:func:`residual` of one interval (see its docstring for every formula): ``e`` (15) and,
-    with ``jacobians``, ``A = Ji``, ``B = Jj`` (15x15)."""
-    dC, W, Rm = np.empty((3, 3)), np.empty((3, 10)), np.empty((3, 10))
-    JCd, E, X, Y, M, z = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(10)
-    u, gamma, dr = np.empty(3), np.empty(3), np.empty(3)
+    with ``jacobians``, ``A = Ji``, ``B = Jj`` (15x15); ``work`` from :func:`_residual_work`."""
+    dC, W, Rm, E, X, Y, M, z, JCd, u, gamma, dr = work
     _correct(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, bwi, dC, W, Rm, JCd, E)
     C = Ci
     for a in range(3):
@@ -582,16 +587,17 @@ def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj,
 def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
                    jacobians, e, Ji, Jj):
     """:func:`_residual_into` for each row."""
+    work = _residual_work()
     for n in range(dC0.shape[0]):
         A, B = (Ji[n], Jj[n]) if jacobians else (Ji[0], Jj[0])
         _residual_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
-                       rj[n], vj[n], Cj[n], bfj[n], bwj[n], g, jacobians, e[n], A, B)
+                       rj[n], vj[n], Cj[n], bfj[n], bwj[n], g, jacobians, e[n], A, B, work)
 
 
 @recursion
 def _residual_one(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, Ci, ri, vi, bi, Cj, rj, vj, bj, g, jacobians, e, Ji, Jj):
     _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bi[:3], bi[3:], rj, vj, Cj, bj[:3], bj[3:], g,
-                   jacobians, e, Ji, Jj)
+                   jacobians, e, Ji, Jj, _residual_work())
 
 
 def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, gravity=imu.DEFAULT_GRAVITY,

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from factors.compiled import apply_rows
+from factors.compiled import apply_rows, exact_leaf
 
 #: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
 SMALL_ANGLE = 1e-4
@@ -110,7 +110,7 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@exact_leaf
 def matrix_to_quaternion(C) -> tuple:
     """Compiled core of :func:`from_matrix` for one 3x3 matrix: ``(q0, qx, qy, qz)``, ``q0 >= 0``."""
     c00, c11, c22 = C[0, 0], C[1, 1], C[2, 2]

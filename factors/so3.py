@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from factors import quaternion
-from factors.compiled import apply_rows, as_trailing, common_shape, rows
+from factors.compiled import apply_rows, as_trailing, common_shape, exact_leaf, rows
 
 #: Below this angle (rad) the coefficients that cancel are evaluated by their Taylor series.
 SERIES_ANGLE = 1e-2
@@ -98,7 +98,7 @@ def quadratic_entries(x: float, y: float, z: float, a: float, b: float) -> tuple
             -a * y + xz, a * x + yz, 1.0 - b * (x * x + y * y))
 
 
-@njit(cache=True)
+@exact_leaf
 def quadratic_into(x: float, y: float, z: float, a: float, b: float, out) -> None:
     """:func:`quadratic_entries` into the 3x3 array ``out``."""
     e = quadratic_entries(x, y, z, a, b)
@@ -107,14 +107,14 @@ def quadratic_into(x: float, y: float, z: float, a: float, b: float, out) -> Non
     out[2, 0], out[2, 1], out[2, 2] = e[6], e[7], e[8]
 
 
-@njit(cache=True)
+@exact_leaf
 def exp_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`exp`: Rodrigues' matrix of ``(x, y, z)`` into ``out`` (3x3)."""
     a, b, _ = coefficients(math.sqrt(x * x + y * y + z * z))
     quadratic_into(x, y, z, a, b, out)
 
 
-@njit(cache=True)
+@exact_leaf
 def gamma_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`gamma`."""
     _, b, c = coefficients(math.sqrt(x * x + y * y + z * z))
@@ -129,14 +129,14 @@ def exp_and_gamma_entries(x: float, y: float, z: float) -> tuple:
     return quadratic_entries(x, y, z, a, b), quadratic_entries(x, y, z, b, c)
 
 
-@njit(cache=True)
+@exact_leaf
 def gamma_inv_into(x: float, y: float, z: float, out) -> None:
     """Compiled core of :func:`gamma_inv`."""
     t = math.sqrt(x * x + y * y + z * z)
     quadratic_into(x, y, z, -0.5, _gamma_inv_coefficient(t), out)
 
 
-@njit(cache=True)
+@exact_leaf
 def log_of(C) -> tuple:
     """Compiled core of :func:`log` for one 3x3 rotation matrix: ``(x, y, z)``."""
     q0, qx, qy, qz = quaternion.matrix_to_quaternion(C)
