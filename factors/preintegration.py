@@ -186,24 +186,25 @@ def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
 @recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     """The recursions of the module docstring with the gyro-bias Jacobians ``JC, dW, dRm``, for
-    intervals ``lo <= j < hi``, sample by sample (outputs initialised by the caller). Intervals do
-    not depend on each other, so disjoint ranges can run on different threads.
+    intervals ``lo <= j < hi``, sample by sample, into the outputs' rows ``lo .. hi - 1`` (whatever
+    they held before). Intervals do not depend on each other, so disjoint ranges can run on
+    different threads.
 
     Layout: ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[..., l]`` live in flat rows of
     ``_IW`` columns while an interval is integrated (row ``a`` of ``W``; row ``3 l + a`` of
     ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is applied as a cross
     product. Samples with ``dt = 0`` are identity steps and skipped."""
     tmp = np.empty((3, 3))
-    rows = np.zeros(27 * _IW)  # one array (see _IW)
+    rows = np.empty(27 * _IW)  # one array (see _IW)
     Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
     dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:]
     for j in range(lo, hi):
         D, JCj = dC[j], JC[j]
+        rows[:] = 0.0  # W_0 = [I | 0 | 0 | 0], Rm_0 = 0, dW_0 = dRm_0 = 0, dC_0 = I, JC_0 = 0
         for a in range(3):
-            for c in range(10):
-                Wf[a * _IW + c], Rf[a * _IW + c] = W[j, a, c], Rm[j, a, c]
-                for l in range(3):
-                    dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c] = dW[j, a, c, l], dRm[j, a, c, l]
+            Wf[a * _IW + a] = 1.0
+            for b in range(3):
+                D[a, b], JCj[a, b] = (1.0 if a == b else 0.0), 0.0
         for k in range(dt.shape[1]):
             h = dt[j, k]
             if h <= 0.0:
@@ -359,11 +360,8 @@ def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """:func:`_integrate_kernel` over the intervals of samples from :func:`_ready_samples` (on
     several threads when there are many); the covariance is left unset."""
     J = dt.shape[0]
-    dC = np.broadcast_to(np.eye(3), (J, 3, 3)).copy()
-    W = np.zeros((J, 3, 10))
-    W[:, :, 0:3] = np.eye(3)
-    Rm, JC = np.zeros((J, 3, 10)), np.zeros((J, 3, 3))
-    dW, dRm = np.zeros((J, 3, 10, 3)), np.zeros((J, 3, 10, 3))
+    dC, W, Rm, JC = np.empty((J, 3, 3)), np.empty((J, 3, 10)), np.empty((J, 3, 10)), np.empty((J, 3, 3))
+    dW, dRm = np.empty((J, 3, 10, 3)), np.empty((J, 3, 10, 3))
     in_parallel(lambda lo, hi: _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm), J,
                 _MIN_INTERVALS_PER_THREAD)
     return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
