@@ -8,8 +8,9 @@ the same formulas spend nearly all their time in Python call overhead on 3x3 arr
 vectorised interface of a NumPy function (``(..., *in_dims) -> (..., *out_dims)``).
 
 Work made of many independent pieces (the preintegration's intervals) runs on several threads
-with :func:`in_parallel`: the IMU kernels release the GIL, each thread takes a contiguous range
-of pieces and writes only their outputs, so the results do not depend on the thread count.
+with :func:`in_parallel`: the IMU kernels release the GIL, the work is cut into contiguous ranges
+that whichever thread is free takes next, and each range writes only its own outputs, so the
+results do not depend on the thread count.
 """
 from __future__ import annotations
 
@@ -209,31 +210,55 @@ def thread_limit(n: int):
         set_thread_count(before)
 
 
-def in_parallel(task, n: int, min_items: int) -> None:
-    """``task(lo, hi)`` over contiguous ranges that cover ``range(n)``, one range per thread,
-    each at least ``min_items`` long (so small jobs stay on the calling thread, where a thread
-    hand-over would cost more than it saves). ``task`` must release the GIL for the threads to
-    run at once (a :data:`recursion` kernel does), must write disjoint outputs per range and must
-    not call :func:`in_parallel` itself. Safe to call from several threads at once.
+#: Pieces per thread that :func:`in_parallel` cuts the work into: threads that finish early take
+#: more, so a thread that starts late (a pool worker wakes up tens of microseconds after the
+#: hand-over) or runs slower (a core shared with another process) delays the whole by a fraction
+#: of a piece, not by its whole share.
+_PIECES_PER_THREAD = 8
 
-    The calling thread runs the first range itself; the others go to a pool started on first
-    use. Every range has finished when this returns or raises; an exception of the calling
-    thread's range is raised first, else the first range's that failed."""
+
+def in_parallel(task, n: int, min_items: int) -> None:
+    """``task(lo, hi)`` over contiguous ranges that cover ``range(n)``, each at least
+    ``min_items`` long (so small jobs stay on the calling thread, where a thread hand-over would
+    cost more than it saves), on up to :func:`thread_count` threads. ``task`` must release the GIL
+    for the threads to run at once (a :data:`recursion` kernel does), must write disjoint outputs
+    per range and must not call :func:`in_parallel` itself. Safe to call from several threads at
+    once.
+
+    The ranges (up to :data:`_PIECES_PER_THREAD` per thread) are handed out in order to whichever
+    thread is free: the calling thread and workers of a pool started on first use. Which thread
+    runs a range does not change what it computes. After a range fails no new one is started;
+    every range that started has finished when this returns or raises; an exception of the
+    calling thread is raised first, else the earliest failed range's."""
     parts = max(1, min(_threads, n // max(1, min_items)))
     if parts == 1:
         task(0, n)
         return
     global _pool, _pool_size
-    bounds = [n * p // parts for p in range(parts + 1)]
+    pieces = min(n // max(1, min_items), parts * _PIECES_PER_THREAD)
+    bounds = [n * p // pieces for p in range(pieces + 1)]
+    handed_out = iter(range(pieces))  # next() on it is atomic under the GIL
+    failures: list[tuple[int, BaseException]] = []
+
+    def run() -> None:
+        for p in handed_out:
+            if failures:
+                return
+            try:
+                task(bounds[p], bounds[p + 1])
+            except BaseException as error:
+                failures.append((p, error))
+                raise
+
     with _pool_lock:
         if _pool_size < parts - 1:
             if _pool is not None:
                 _pool.shutdown(wait=False)  # what was queued there still runs
             _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
-        others = [_pool.submit(task, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:])]
+        others = [_pool.submit(run) for _ in range(parts - 1)]
     try:
-        task(bounds[0], bounds[1])
+        run()
     finally:
         wait(others)
-    for future in others:
-        future.result()
+    if failures:
+        raise min(failures, key=lambda failure: failure[0])[1]

@@ -134,7 +134,14 @@ def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
     seen = []
     with compiled.thread_limit(3):
         compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 10, 2)
-    assert sorted(seen) == [(0, 3), (3, 6), (6, 10)]
+    assert sorted(seen) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]  # as many as min_items allows
+    seen.clear()
+    with compiled.thread_limit(2):  # at most _PIECES_PER_THREAD per thread
+        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 100, 1)
+    pieces = sorted(seen)
+    assert len(pieces) == 2 * compiled._PIECES_PER_THREAD
+    assert pieces[0][0] == 0 and pieces[-1][1] == 100
+    assert all(a[1] == b[0] for a, b in zip(pieces[:-1], pieces[1:]))
     seen.clear()
     with compiled.thread_limit(4):  # too few items for four pieces of at least 4
         compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 9, 4)
@@ -147,29 +154,63 @@ def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
 
 
 def test_in_parallel_raises_only_after_every_piece_has_finished():
-    finished = []
+    slow_started, finished = threading.Event(), []
 
     def task(lo, hi):
-        if lo == 0:
-            time.sleep(0.05)
-        elif lo == 4:
-            raise ValueError("piece 4")
-        else:  # a slow piece, still running when piece 4 has failed
-            time.sleep(0.3)
+        if lo == 0:  # fails while the other piece is still running
+            assert slow_started.wait(5)
+            raise ValueError("piece 0")
+        slow_started.set()
+        time.sleep(0.3)
         finished.append(lo)
 
-    with compiled.thread_limit(3), pytest.raises(ValueError, match="piece 4"):
-        compiled.in_parallel(task, 12, 1)
-    assert sorted(finished) == [0, 8]
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
+        compiled.in_parallel(task, 2, 1)
+    assert finished == [1]
+
+
+def test_in_parallel_starts_no_piece_after_one_has_failed():
+    other_started, started = threading.Event(), []
+
+    def task(lo, hi):
+        started.append(lo)
+        if lo == 0:  # handed out first; fails once the other thread has taken its first piece
+            assert other_started.wait(5)
+            raise ValueError("piece 0")
+        other_started.set()
+        time.sleep(0.05)
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
+        compiled.in_parallel(task, 10, 1)
+    assert sorted(started) == [0, 1]  # eight pieces never started
+
+
+def test_in_parallel_gives_the_remaining_pieces_to_the_thread_that_is_free():
+    caller = threading.current_thread()
+    ran_by = {}
+
+    def task(lo, hi):
+        if threading.current_thread() is caller:
+            time.sleep(0.3)  # the calling thread is held up on its first piece
+        ran_by[lo] = threading.current_thread() is caller
+
+    with compiled.thread_limit(2):
+        compiled.in_parallel(task, 8, 1)
+    assert sorted(ran_by) == list(range(8))
+    assert sum(ran_by.values()) == 1  # the worker ran the other seven
 
 
 def test_in_parallel_raises_the_calling_threads_own_error_first():
-    def task(lo, hi):
-        if lo == 0:
-            time.sleep(0.05)  # the other piece fails first
-        raise ValueError(f"piece {lo}")
+    caller = threading.current_thread()
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
+    def task(lo, hi):
+        if threading.current_thread() is caller:
+            time.sleep(0.1)  # the worker fails first
+            raise ValueError("the calling thread's error")
+        time.sleep(0.02)
+        raise ValueError("a worker's error")
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="the calling thread's error"):
         compiled.in_parallel(task, 10, 1)
 
 
@@ -240,7 +281,7 @@ def test_a_forked_child_runs_in_parallel_work_although_the_parent_had_started_it
     child = context.Process(target=_pieces_in_a_child, args=(queue,))
     child.start()
     try:
-        assert queue.get(timeout=60) == [(0, 2), (2, 4)]
+        assert queue.get(timeout=60) == [(0, 1), (1, 2), (2, 3), (3, 4)]
     finally:
         child.join(timeout=10)
         if child.is_alive():
