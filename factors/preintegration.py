@@ -389,6 +389,8 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
             raise ValueError(f"start.{name} (or the biases given): expected finite values, got {a.tolist()}")
     for name, a in (("r", anchor_r), ("C", anchor_C), ("world_v", anchor_v)):
         finite = np.isfinite(a.reshape(J + 1, -1))
+        if finite.all() or not finite.any():  # every keyframe known, or none: no row to check
+            continue
         partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
         if partial.size:
             raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
