@@ -325,10 +325,13 @@ def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, l
 def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True) -> np.ndarray:
     """``a`` of trailing shape ``tail`` (checked), its leading dimensions broadcast to ``lead``
     (with ``broadcast``; else they must be ``lead``), C-contiguous and writable, so the kernel is
-    compiled (and cached) for one layout only. A ValueError names ``name`` otherwise."""
+    compiled (and cached) for one layout only: ``a`` itself when it already is that (the kernels
+    only read their inputs), else a copy. A ValueError names ``name`` otherwise."""
     a = as_trailing(a, tail, name)
     shape = tuple(lead) + tuple(tail)
-    if not broadcast and a.shape != shape:
+    if a.shape == shape:
+        return np.require(a, float, ["C", "W"])
+    if not broadcast:
         raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
     try:
         return np.require(np.broadcast_to(a, shape), float, ["C", "W"])
@@ -343,7 +346,9 @@ _MIN_INTERVALS_PER_THREAD = 32
 
 def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
     """The samples and gyro biases checked (shapes; finite biases, named ``bias_name`` in the
-    error) and laid out for the kernels: ``(acc, gyro, dt, b_w_bar)``."""
+    error) and laid out for the kernels: ``(acc, gyro, dt, b_w_bar)``. The samples are copies:
+    :class:`Preintegrated` keeps them for re-integration, so they must not change with the
+    caller's arrays."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
@@ -353,7 +358,8 @@ def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
     b_w_bar = ready(b_w_bar, (J,), (3,), bias_name)
     if not np.all(np.isfinite(b_w_bar)):
         raise ValueError(f"{bias_name}: expected finite values, got {b_w_bar.tolist()}")
-    return ready(acc, (J, K), (3,), "acc"), ready(gyro, (J, K), (3,), "gyro"), ready(dt, (J, K), (), "dt"), b_w_bar
+    own = lambda a: np.array(a, dtype=float, order="C")  # noqa: E731  (always a copy, C-contiguous, writable)
+    return own(acc), own(gyro), own(dt), b_w_bar
 
 
 def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
