@@ -193,18 +193,20 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     Layout: ``W``, ``Rm`` and the slices ``dW[..., l]``, ``dRm[..., l]`` live in flat rows of
     ``_IW`` columns while an interval is integrated (row ``a`` of ``W``; row ``3 l + a`` of
     ``dW``), and every update is a column loop; ``A x = x - dt w x x`` is applied as a cross
-    product. Samples with ``dt = 0`` are identity steps and skipped."""
-    tmp = np.empty((3, 3))
-    rows = np.empty(27 * _IW)  # one array (see _IW)
+    product. ``dC`` and ``JC`` of the interval live in the same work array (copied out at its
+    end), so LLVM knows that no store into one of them changes another. Samples with ``dt = 0``
+    are identity steps and skipped."""
+    rows = np.empty(27 * _IW + 27)  # one array (see _IW)
     Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
-    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:]
+    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:27 * _IW]
+    D = rows[27 * _IW:27 * _IW + 9].reshape((3, 3))
+    JCj = rows[27 * _IW + 9:27 * _IW + 18].reshape((3, 3))
+    tmp = rows[27 * _IW + 18:].reshape((3, 3))
     for j in range(lo, hi):
-        D, JCj = dC[j], JC[j]
         rows[:] = 0.0  # W_0 = [I | 0 | 0 | 0], Rm_0 = 0, dW_0 = dRm_0 = 0, dC_0 = I, JC_0 = 0
         for a in range(3):
             Wf[a * _IW + a] = 1.0
-            for b in range(3):
-                D[a, b], JCj[a, b] = (1.0 if a == b else 0.0), 0.0
+            D[a, a] = 1.0
         for k in range(dt.shape[1]):
             h = dt[j, k]
             if h <= 0.0:
@@ -261,8 +263,12 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
                 for b in range(3):
                     JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
                     tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
-            D[:, :] = tmp
+            for a in range(3):
+                for b in range(3):
+                    D[a, b] = tmp[a, b]
         for a in range(3):
+            for b in range(3):
+                dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
             for c in range(10):
                 W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
                 for l in range(3):
