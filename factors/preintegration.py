@@ -316,7 +316,8 @@ def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, l
     C_i^T, I, I)``): ``S`` is the world-frame covariance ``T S T^T`` without a rotation pass.
     ``floor`` is added on the diagonal. Intervals are independent given the reference."""
     r, v, C, gamma = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty(3)
-    flat, work = np.empty(imu.STATE_DIM * imu._W), imu.prediction_work()
+    work = imu.prediction_work()
+    flat = work[0]
     for j in range(lo, hi):
         for a in range(3):
             gamma[a] = ref_C[j, 0, a] * g[0] + ref_C[j, 1, a] * g[1] + ref_C[j, 2, a] * g[2]
@@ -324,7 +325,7 @@ def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, l
             for b in range(3):
                 C[a, b] = 1.0 if a == b else 0.0
         flat[:] = 0.0
-        imu.predict_flat(r, v, C, b_f[j], b_w_bar[j], flat, acc[j], gyro[j], dt[j], q, gamma, work)
+        imu.predict_flat(r, v, C, b_f[j], b_w_bar[j], acc[j], gyro[j], dt[j], q, gamma, work)
         imu.symmetric_from_flat(flat, S[j], floor)
 
 
