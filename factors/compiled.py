@@ -217,7 +217,76 @@ def thread_limit(n: int):
 _PIECES_PER_THREAD = 8
 
 
-def in_parallel(task, n: int, min_items: int) -> None:
+class _Ranges:
+    """The ranges of one :func:`in_parallel` call and their hand-out: ``items`` numbers the
+    ranges of ``task`` ``0 .. pieces - 1``, then (with ``then``) those of ``then``; a condition
+    guards the progress of the scans and the failures."""
+
+    def __init__(self, bounds: list, task, scan, then):
+        self.bounds, self.task, self.scan, self.then = bounds, task, scan, then
+        self.pieces = len(bounds) - 1
+        self.items = iter(range(self.pieces * (1 if then is None else 2)))  # next() is atomic under the GIL
+        self.failures: list[tuple[int, BaseException]] = []
+        self.progress = threading.Condition()
+        self.tasks_done = [False] * self.pieces
+        self.scanned = 0  # ranges 0 .. scanned - 1 are scanned
+        self.scanning = False  # a thread is scanning: it also takes the ranges finished meanwhile
+
+    def run(self) -> None:
+        """Take ranges until none is left or one has failed (the caller of a failing stage
+        re-raises; the others stop at their next range)."""
+        for item in self.items:
+            if self.failures:
+                return
+            stage, p = divmod(item, self.pieces)
+            current = item
+            try:
+                if stage == 0:
+                    self.task(self.bounds[p], self.bounds[p + 1])
+                    if self.scan is not None:
+                        for current in self._scans_after(p):
+                            self.scan(self.bounds[current], self.bounds[current + 1])
+                elif self._scanned(p):
+                    self.then(self.bounds[p], self.bounds[p + 1])
+                else:
+                    return
+            except BaseException as error:
+                with self.progress:
+                    self.failures.append((current, error))
+                    self.progress.notify_all()
+                raise
+
+    def _scans_after(self, p: int):
+        """The ranges to scan (in order) now that range ``p``'s task has finished: those from
+        the first unscanned one whose tasks have all finished, unless another thread is scanning
+        (it takes them then). Each is counted as scanned when the caller asks for the next."""
+        with self.progress:
+            self.tasks_done[p] = True
+            if self.scanning:
+                return
+            self.scanning = True
+        while True:
+            with self.progress:
+                s = self.scanned
+                if s == self.pieces or not self.tasks_done[s] or self.failures:
+                    self.scanning = False
+                    return
+            yield s
+            with self.progress:
+                self.scanned = s + 1
+                self.progress.notify_all()
+
+    def _scanned(self, p: int) -> bool:
+        """Wait until range ``p`` is scanned; False if a range failed meanwhile. (Every task range
+        is handed out before any ``then`` range, so the ranges waited for are running on other
+        threads.)"""
+        with self.progress:
+            while self.scanned <= p and not self.failures:
+                self.progress.wait()
+            return not self.failures
+
+
+def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     """``task(lo, hi)`` over contiguous ranges that cover ``range(n)``, each at least
     ``min_items`` long (so small jobs stay on the calling thread, where a thread hand-over would
     cost more than it saves), on up to :func:`thread_count` threads. ``task`` must release the GIL
@@ -229,36 +298,36 @@ def in_parallel(task, n: int, min_items: int) -> None:
     thread is free: the calling thread and workers of a pool started on first use. Which thread
     runs a range does not change what it computes. After a range fails no new one is started;
     every range that started has finished when this returns or raises; an exception of the
-    calling thread is raised first, else the earliest failed range's."""
+    calling thread is raised first, else the earliest failed range's.
+
+    With ``scan`` and ``then`` (work whose second parallel part needs a sequential pass over the
+    first part's results, such as the preintegration's reference chain), each range goes through
+    three stages in one hand-over: ``task(lo, hi)``; ``scan(lo, hi)``, for one range at a time in
+    the order of the ranges, as soon as its task and the previous range's scan have finished (run
+    by the thread that finished the later of them); ``then(lo, hi)``, once its range's scan has
+    finished. On one thread: ``task(0, n)``, ``scan(0, n)``, ``then(0, n)``. This saves the hand-over
+    of a second call and the wait between them (about 0.2 ms of 4 in the preintegration of a
+    minute of data) and runs the scan while the other threads work."""
+    if (scan is None) != (then is None):
+        raise ValueError("in_parallel: expected both scan and then, or neither")
     parts = max(1, min(_threads, n // max(1, min_items)))
     if parts == 1:
-        task(0, n)
+        for stage in (task, scan, then):
+            if stage is not None:
+                stage(0, n)
         return
     global _pool, _pool_size
     pieces = min(n // max(1, min_items), parts * _PIECES_PER_THREAD)
-    bounds = [n * p // pieces for p in range(pieces + 1)]
-    handed_out = iter(range(pieces))  # next() on it is atomic under the GIL
-    failures: list[tuple[int, BaseException]] = []
-
-    def run() -> None:
-        for p in handed_out:
-            if failures:
-                return
-            try:
-                task(bounds[p], bounds[p + 1])
-            except BaseException as error:
-                failures.append((p, error))
-                raise
-
+    ranges = _Ranges([n * p // pieces for p in range(pieces + 1)], task, scan, then)
     with _pool_lock:
         if _pool_size < parts - 1:
             if _pool is not None:
                 _pool.shutdown(wait=False)  # what was queued there still runs
             _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
-        others = [_pool.submit(run) for _ in range(parts - 1)]
+        others = [_pool.submit(ranges.run) for _ in range(parts - 1)]
     try:
-        run()
+        ranges.run()
     finally:
         wait(others)
-    if failures:
-        raise min(failures, key=lambda failure: failure[0])[1]
+    if ranges.failures:
+        raise min(ranges.failures, key=lambda failure: failure[0])[1]

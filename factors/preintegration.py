@@ -169,15 +169,18 @@ class Anchors:
         return Anchors(np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan))
 
 
-@recursion
+@leaf
 def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
     """The reference state of keyframe ``j``: the prediction ``(r, v, C)`` (in place) replaced
     by the anchors that are known (finite): position, attitude, then body velocity ``C^T v_world``
     with the (possibly replaced) attitude."""
     if np.isfinite(anchor_r[j, 0]):
-        r[:] = anchor_r[j]
+        for a in range(3):
+            r[a] = anchor_r[j, a]
     if np.isfinite(anchor_C[j, 0, 0]):
-        C[:, :] = anchor_C[j]
+        for a in range(3):
+            for b in range(3):
+                C[a, b] = anchor_C[j, a, b]
     if np.isfinite(anchor_v[j, 0]):
         for a in range(3):
             v[a] = C[0, a] * anchor_v[j, 0] + C[1, a] * anchor_v[j, 1] + C[2, a] * anchor_v[j, 2]
@@ -276,17 +279,19 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
 
 
 @recursion
-def _reference_chain(dC, W, Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, ref_r, ref_v, ref_C):
-    """The reference states ``ref_* (J + 1)`` at the keyframes: ``(r0, v0, C0)`` for keyframe 0,
-    else the prediction from keyframe ``j - 1`` through the integrated interval (module
-    docstring: ``r + C Rm z``, ``W z``, ``C dC``), in both cases replaced by the known anchors
-    (:func:`_reference_at`). Sequential, but a few operations per interval."""
-    tmp, z, u = np.empty((3, 3)), np.zeros(10), np.empty(3)
-    r, v, C = r0.copy(), v0.copy(), C0.copy()
+def _reference_chain(dC, W, Rm, b_f, anchor_r, anchor_C, anchor_v, g, lo, hi, ref_r, ref_v, ref_C):
+    """The reference states ``ref_* [j + 1]`` at keyframes ``j + 1`` for ``lo <= j < hi``: the
+    prediction from keyframe ``j`` (``ref_*[j]``, which must be set) through the integrated
+    interval ``j`` (module docstring: ``r + C Rm z``, ``W z``, ``C dC``), replaced by the known
+    anchors (:func:`_reference_at`). Sequential, but a few operations per interval."""
+    work = np.empty(3 + 3 + 9 + 9 + 10 + 3)
+    r, v, C, tmp, z, u = work[:3], work[3:6], work[6:15].reshape((3, 3)), work[15:24].reshape((3, 3)), work[24:34], work[34:]
     z[6] = 1.0
-    for j in range(dC.shape[0]):
-        _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v)
-        ref_r[j], ref_v[j], ref_C[j] = r, v, C
+    for j in range(lo, hi):
+        for a in range(3):
+            r[a], v[a] = ref_r[j, a], ref_v[j, a]
+            for b in range(3):
+                C[a, b] = ref_C[j, a, b]
         for a in range(3):
             z[a], z[3 + a], z[7 + a] = v[a], C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2], -b_f[j, a]
         for a in range(3):
@@ -299,10 +304,11 @@ def _reference_chain(dC, W, Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g
             r[a] += C[a, 0] * u[0] + C[a, 1] * u[1] + C[a, 2] * u[2]
             for b in range(3):
                 tmp[a, b] = C[a, 0] * dC[j, 0, b] + C[a, 1] * dC[j, 1, b] + C[a, 2] * dC[j, 2, b]
-        C[:, :] = tmp
-    J = dC.shape[0]
-    _reference_at(J, r, v, C, anchor_r, anchor_C, anchor_v)
-    ref_r[J], ref_v[J], ref_C[J] = r, v, C
+        _reference_at(j + 1, r, v, tmp, anchor_r, anchor_C, anchor_v)
+        for a in range(3):
+            ref_r[j + 1, a], ref_v[j + 1, a] = r[a], v[a]
+            for b in range(3):
+                ref_C[j + 1, a, b] = tmp[a, b]
 
 
 @recursion
@@ -353,38 +359,44 @@ _MIN_INTERVALS_PER_THREAD = 32
 
 def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
     """The samples and gyro biases checked (shapes; finite biases, named ``bias_name`` in the
-    error) and laid out for the kernels: ``(acc, gyro, dt, b_w_bar)``. The samples are copies:
-    :class:`Preintegrated` keeps them for re-integration, so they must not change with the
-    caller's arrays."""
+    error) and laid out for the kernels: ``(acc, gyro, dt, b_w_bar)``, the samples as given when
+    they already are float and C-contiguous (the kernels only read them; :func:`_integration`
+    copies them)."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
         raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
-    J, K = dt.shape
-    ready = _kernel_array
-    b_w_bar = ready(b_w_bar, (J,), (3,), bias_name)
+    b_w_bar = _kernel_array(b_w_bar, (dt.shape[0],), (3,), bias_name)
     if not np.all(np.isfinite(b_w_bar)):
         raise ValueError(f"{bias_name}: expected finite values, got {b_w_bar.tolist()}")
-    own = lambda a: np.array(a, dtype=float, order="C")  # noqa: E731  (always a copy, C-contiguous, writable)
-    return own(acc), own(gyro), own(dt), b_w_bar
+    return np.require(acc, float, "C"), np.require(gyro, float, "C"), np.require(dt, float, "C"), b_w_bar
 
 
-def _integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
-    """:func:`_integrate_kernel` over the intervals of samples from :func:`_ready_samples` (on
-    several threads when there are many); the covariance is left unset."""
+def _integration(acc, gyro, dt, b_w_bar) -> tuple:
+    """``(pre, task)``: a :class:`Preintegrated` of samples from :func:`_ready_samples` whose
+    arrays are allocated but not filled (the covariance unset), and ``task(lo, hi)``, which fills
+    intervals ``lo .. hi - 1``: it copies their samples into ``pre.samples`` (:class:`Preintegrated`
+    keeps them for re-integration, so they must not change with the caller's arrays; copied range
+    by range, the copy is shared among the threads) and integrates them (:func:`_integrate_kernel`)."""
     J = dt.shape[0]
-    dC, W, Rm, JC = np.empty((J, 3, 3)), np.empty((J, 3, 10)), np.empty((J, 3, 10)), np.empty((J, 3, 3))
-    dW, dRm = np.empty((J, 3, 10, 3)), np.empty((J, 3, 10, 3))
-    in_parallel(lambda lo, hi: _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm), J,
-                _MIN_INTERVALS_PER_THREAD)
-    return Preintegrated(dC, W, Rm, JC, dW, dRm, b_w_bar.copy(), dt.sum(axis=1), (acc, gyro, dt))
+    own = np.empty_like(acc), np.empty_like(gyro), np.empty_like(dt)
+    pre = Preintegrated(np.empty((J, 3, 3)), np.empty((J, 3, 10)), np.empty((J, 3, 10)), np.empty((J, 3, 3)),
+                        np.empty((J, 3, 10, 3)), np.empty((J, 3, 10, 3)), b_w_bar.copy(), dt.sum(axis=1), own)
+
+    def task(lo: int, hi: int) -> None:
+        for mine, given in zip(own, (acc, gyro, dt)):
+            mine[lo:hi] = given[lo:hi]
+        _integrate_kernel(*own, pre.b_w_bar, lo, hi, pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm)
+
+    return pre, task
 
 
 def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
-    """Check and lay out the inputs (the samples first); integrate the intervals
-    (:func:`_integrate`), chain the reference states (:func:`_reference_chain`), then the
-    covariances along them (:func:`_covariance_kernel`, on several threads when there are many
-    intervals); returns ``(Preintegrated, reference states (J+1))``. ``anchors`` None: none."""
+    """Check and lay out the inputs (the samples first); then, in one :func:`in_parallel` pass
+    over the intervals, integrate them (:func:`_integration`), chain the reference states
+    (:func:`_reference_chain`, in order) and compute the covariances along them
+    (:func:`_covariance_kernel`); returns ``(Preintegrated, reference states (J+1))``.
+    ``anchors`` None: none."""
     acc, gyro, dt, b_w_bar = _ready_samples(acc, gyro, dt, b_w_bar, "start.b_w")
     J = dt.shape[0]
     anchors = anchors if anchors is not None else Anchors.none(J + 1)
@@ -408,14 +420,17 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
         if partial.size:
             raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
                              f"got {a[partial[0]].tolist()}")
-    pre = _integrate(acc, gyro, dt, b_w_bar)
+    pre, integrate_task = _integration(acc, gyro, dt, b_w_bar)
     ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
-    _reference_chain(pre.dC, pre.W, pre.Rm, b_f, anchor_r, anchor_C, anchor_v, r0, v0, C0, g, ref_r, ref_v, ref_C)
-    S, q, floor = np.empty((J, imu.STATE_DIM, imu.STATE_DIM)), noise.densities(), COVARIANCE_FLOOR**2
-    b_w = pre.b_w_bar
-    in_parallel(lambda lo, hi: _covariance_kernel(acc, gyro, dt, b_w, b_f, ref_v, ref_C, g, q, floor, lo, hi, S), J,
-                _MIN_INTERVALS_PER_THREAD)
-    pre.cov = S
+    ref_r[0], ref_v[0], ref_C[0] = r0, v0, C0
+    _reference_at(0, ref_r[0], ref_v[0], ref_C[0], anchor_r, anchor_C, anchor_v)
+    pre.cov = np.empty((J, imu.STATE_DIM, imu.STATE_DIM))
+    q, floor, (acc, gyro, dt), b_w = noise.densities(), COVARIANCE_FLOOR**2, pre.samples, pre.b_w_bar
+    in_parallel(integrate_task, J, _MIN_INTERVALS_PER_THREAD,
+                scan=lambda lo, hi: _reference_chain(pre.dC, pre.W, pre.Rm, b_f, anchor_r, anchor_C, anchor_v, g, lo,
+                                                     hi, ref_r, ref_v, ref_C),
+                then=lambda lo, hi: _covariance_kernel(acc, gyro, dt, b_w, b_f, ref_v, ref_C, g, q, floor, lo, hi,
+                                                       pre.cov))
     last = lambda a: np.concatenate([a, a[-1:]])  # noqa: E731  (the last keyframe keeps the last biases)
     return pre, imu.ImuState(ref_r, ref_v, ref_C, last(b_f), last(b_w))
 
@@ -424,7 +439,9 @@ def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
     """Preintegrate ``J`` intervals of padded samples ``acc, gyro (J, K, 3)``, ``dt (J, K)``
     around gyro biases ``b_w_bar (J, 3)``, with the bias Jacobians, without the covariance (see
     :func:`integrate_with_covariance`). Compiled, on several cores when there are many intervals."""
-    return _integrate(*_ready_samples(acc, gyro, dt, b_w_bar, "b_w_bar"))
+    pre, task = _integration(*_ready_samples(acc, gyro, dt, b_w_bar, "b_w_bar"))
+    in_parallel(task, len(pre), _MIN_INTERVALS_PER_THREAD)
+    return pre
 
 
 def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.ImuNoise,

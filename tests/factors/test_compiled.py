@@ -254,6 +254,76 @@ def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
         sys.setswitchinterval(switch)
 
 
+def _pipeline_log():
+    """``(log, stage)``: ``stage(name, delay_for=None)`` is a ``(lo, hi)`` callable that appends
+    ``(name, "start"/"end", lo, hi)`` to ``log``, sleeping in between for the ranges ``delay_for``
+    picks (``delay_for(lo, calling_thread) -> seconds``)."""
+    log, lock, caller = [], threading.Lock(), threading.current_thread()
+
+    def stage(name, delay_for=None):
+        def run(lo, hi):
+            with lock:
+                log.append((name, "start", lo, hi))
+            if delay_for is not None:
+                time.sleep(delay_for(lo, threading.current_thread() is caller))
+            with lock:
+                log.append((name, "end", lo, hi))
+        return run
+
+    return log, stage
+
+
+def test_in_parallel_pipeline_scans_in_order_and_runs_each_then_after_its_scan():
+    log, stage = _pipeline_log()
+    slow_first = lambda lo, on_caller: 0.2 if lo == 0 else 0.002  # noqa: E731  (range 0's task holds up the scan)
+    with compiled.thread_limit(2):
+        compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"), then=stage("then"))
+    at = {event[:3]: i for i, event in enumerate(log)}
+    ranges = sorted({(lo, hi) for _, _, lo, hi in log})
+    assert ranges[0][0] == 0 and ranges[-1][1] == 20 and len(ranges) == 10
+    assert all(a[1] == b[0] for a, b in zip(ranges[:-1], ranges[1:]))
+    scans = [(lo, hi) for name, when, lo, hi in log if name == "scan" and when == "start"]
+    assert scans == ranges  # one at a time, in order, each once
+    for (lo, hi), nxt in zip(ranges, ranges[1:] + [None]):
+        for name in ("task", "scan", "then"):
+            assert (name, "start", lo) in at and (name, "end", lo) in at  # every stage ran
+        assert at[("task", "end", lo)] < at[("scan", "start", lo)] < at[("scan", "end", lo)] < at[("then", "start", lo)]
+        if nxt is not None:
+            assert at[("scan", "end", lo)] < at[("scan", "start", nxt[0])]
+    # range 0's task ran 0.2 s: the other thread did the other tasks meanwhile, then waited for
+    # scan 0 before its first "then" (no "then" started before the slow task ended)
+    assert min(i for (name, when, lo), i in at.items() if name == "then") > at[("task", "end", 0)]
+
+
+def test_in_parallel_pipeline_on_one_thread_is_the_three_stages_in_turn():
+    log, stage = _pipeline_log()
+    with compiled.thread_limit(1):
+        compiled.in_parallel(stage("task"), 20, 2, scan=stage("scan"), then=stage("then"))
+    assert [(name, when) for name, when, _, _ in log] == [
+        ("task", "start"), ("task", "end"), ("scan", "start"), ("scan", "end"), ("then", "start"), ("then", "end")]
+    assert {(lo, hi) for *_, lo, hi in log} == {(0, 20)}
+    with pytest.raises(ValueError, match="both scan and then"):
+        compiled.in_parallel(stage("task"), 20, 2, scan=stage("scan"))
+
+
+def test_in_parallel_pipeline_stops_at_a_failed_scan_and_raises_it():
+    log, stage = _pipeline_log()
+    record = stage("scan")
+
+    def scan(lo, hi):
+        record(lo, hi)
+        if lo >= 6:
+            raise ValueError(f"scan of {lo}")
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="scan of 6"):
+        compiled.in_parallel(stage("task", lambda lo, on_caller: 0.01), 20, 2, scan=scan, then=stage("then"))
+    scanned = [lo for name, when, lo, _ in log if name == "scan" and when == "start"]
+    assert scanned == [0, 2, 4, 6]  # no scan after the failed one
+    assert all(lo < 6 for name, _, lo, _ in log if name == "then")  # no "then" whose scan did not finish
+    starts = {(name, lo) for name, when, lo, _ in log if when == "start"}
+    assert starts == {(name, lo) for name, when, lo, _ in log if when == "end"}  # all that started finished
+
+
 @pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])
 def test_a_thread_count_that_is_not_a_whole_number_above_zero_is_refused(bad):
     with pytest.raises(ValueError, match="thread count: expected a whole number"):
