@@ -381,23 +381,31 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
                    w0, w1, w2, g, E, Q)
 
 
+#: Length of the work array of :func:`predict_flat` (:func:`prediction_work`): the flat
+#: covariance (15 rows of ``_W``) first, then the scratch ``B``, ``Bt``, ``ABt``, ``E``, ``Q``.
+PREDICTION_WORK_SIZE = 48 * _W + 9 + Q_SIZE
+
+
 @block_operation
-def prediction_work() -> tuple:
-    """Work arrays of :func:`predict_flat`, ``(flat, E, Q, B, Bt, ABt)`` with ``flat`` the
-    covariance it steps (15 rows of ``_W``); allocate once, reuse. All are slices of ONE array,
-    allocated in the (inlined) caller: LLVM then sees that they cannot overlap and keeps values in
-    registers across stores into the others (4-5% faster than separate arrays)."""
-    rows = np.zeros(48 * _W + 9 + Q_SIZE)
-    return (rows[:15 * _W], rows[48 * _W:48 * _W + 9].reshape((3, 3)), rows[48 * _W + 9:], rows[15 * _W:24 * _W],
-            rows[24 * _W:39 * _W], rows[39 * _W:48 * _W])
+def prediction_work() -> np.ndarray:
+    """A work array for :func:`predict_flat` (zeros; allocate once, reuse): its first
+    ``15 * _W`` entries hold the covariance it steps, flat (:func:`flat_from_symmetric`,
+    :func:`symmetric_from_flat`)."""
+    return np.zeros(PREDICTION_WORK_SIZE)
 
 
 @block_operation
 def predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work) -> None:
-    """Every sample ``k`` with ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance
-    ``flat`` in place (``work`` from :func:`prediction_work`, ``flat = work[0]``, 15 rows of ``_W``,
-    see :func:`_covariance_step`)."""
-    flat, E, Q, B, Bt, ABt = work
+    """Every sample ``k`` with ``dt[k] > 0`` steps the state ``(r, v, C)`` and the covariance
+    held flat in ``work`` (:func:`prediction_work`, see :func:`_covariance_step`) in place.
+
+    The scratch arrays are slices of ``work``, which the caller allocates (this is inlined):
+    LLVM then sees that they cannot overlap and keeps values in registers across stores into
+    the others (4-5% faster than separate arrays). Passed in as an argument to a separately
+    compiled function instead, the covariance step runs twice as long: LLVM must then assume
+    that ``work`` may overlap the other arguments."""
+    flat, B, Bt, ABt = work[:15 * _W], work[15 * _W:24 * _W], work[24 * _W:39 * _W], work[39 * _W:48 * _W]
+    E, Q = work[48 * _W:48 * _W + 9].reshape((3, 3)), work[48 * _W + 9:]
     for k in range(dt.shape[0]):
         h = dt[k]
         if h <= 0.0:
@@ -409,13 +417,29 @@ def predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work) -> None:
 
 
 @block_operation
-def symmetric_from_flat(flat, P, floor) -> None:
-    """``P`` (15x15) = the symmetric part of the flat covariance ``flat``, plus ``floor`` on the
-    diagonal."""
+def clear_flat(work) -> None:
+    """The covariance held flat in ``work`` (:func:`prediction_work`) set to zero."""
+    for t in range(STATE_DIM * _W):
+        work[t] = 0.0
+
+
+@block_operation
+def flat_from_symmetric(P, work) -> None:
+    """The covariance held flat in ``work`` (:func:`prediction_work`) set to ``P`` (15x15)."""
     for i in range(STATE_DIM):
-        P[i, i] = flat[i * _W + i] + floor
-        for m in range(i + 1, STATE_DIM):
-            P[i, m] = P[m, i] = 0.5 * (flat[i * _W + m] + flat[m * _W + i])
+        for m in range(_W):
+            work[i * _W + m] = P[i, m] if m < STATE_DIM else 0.0
+
+
+@block_operation
+def symmetric_from_flat(work, P, floor) -> None:
+    """``P`` (15x15) = the symmetric part of the covariance held flat in ``work``, plus
+    ``floor`` on the diagonal. Row by row: contiguous stores (a mirror of the upper triangle
+    stores down the columns and took twice as long)."""
+    for i in range(STATE_DIM):
+        for m in range(STATE_DIM):
+            P[i, m] = 0.5 * (work[i * _W + m] + work[m * _W + i])
+        P[i, i] += floor
 
 
 @recursion
@@ -424,12 +448,9 @@ def predict_into(r, v, C, b_f, b_w, P, acc, gyro, dt, q_density, g) -> None:
     ``dt[k] > 0`` steps the state ``(r, v, C)`` and its covariance ``P`` (15x15, symmetric on
     return) in place (:func:`predict_flat`)."""
     work = prediction_work()
-    flat = work[0]
-    for i in range(STATE_DIM):
-        for m in range(STATE_DIM):
-            flat[i * _W + m] = P[i, m]
+    flat_from_symmetric(P, work)
     predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work)
-    symmetric_from_flat(flat, P, 0.0)
+    symmetric_from_flat(work, P, 0.0)
 
 
 @recursion

@@ -314,7 +314,7 @@ def _reference_chain(dC, W, Rm, b_f, anchor_r, anchor_C, anchor_v, g, lo, hi, re
 @recursion
 def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, lo, hi, S):
     """The covariance ``S[j]`` of intervals ``lo <= j < hi``: the EKF's prediction
-    (:func:`factors.imu.predict_into`, ``S <- F S F^T + G Q_d G^T`` from ``S = 0``) along the
+    (:func:`factors.imu.predict_flat`, ``S <- F S F^T + G Q_d G^T`` from ``S = 0``) along the
     reference trajectory from ``ref_v[j], ref_C[j]``, run directly in the residual's body-``i``
     coordinates: the primer's model is invariant under a rotation of the world, so starting at
     attitude ``I`` with gravity ``gamma = C_i^T g`` steps through ``dC_k`` in place of ``C_k``, and
@@ -323,16 +323,15 @@ def _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, ref_v, ref_C, g, q, floor, l
     ``floor`` is added on the diagonal. Intervals are independent given the reference."""
     r, v, C, gamma = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty(3)
     work = imu.prediction_work()
-    flat = work[0]
     for j in range(lo, hi):
         for a in range(3):
             gamma[a] = ref_C[j, 0, a] * g[0] + ref_C[j, 1, a] * g[1] + ref_C[j, 2, a] * g[2]
             r[a], v[a] = 0.0, ref_v[j, a]
             for b in range(3):
                 C[a, b] = 1.0 if a == b else 0.0
-        flat[:] = 0.0
+        imu.clear_flat(work)
         imu.predict_flat(r, v, C, b_f[j], b_w_bar[j], acc[j], gyro[j], dt[j], q, gamma, work)
-        imu.symmetric_from_flat(flat, S[j], floor)
+        imu.symmetric_from_flat(work, S[j], floor)
 
 
 def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True) -> np.ndarray:
