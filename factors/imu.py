@@ -213,52 +213,81 @@ Q_SIZE = 37
 _W = 16
 
 
+#: A step's numbers in one array (the argument of :func:`step_quantities` and
+#: :func:`step_state`): the state ``r``, ``v``, ``C`` (row-major), gravity ``g``, then ``E =
+#: exp(dt w)`` (row-major) and ``Q``. One array argument instead of six: each array passed to a
+#: compiled function costs a dozen words of call overhead.
+_S_R, _S_V, _S_C, _S_G, _S_E, _S_Q = 0, 3, 6, 15, 18, 27
+STEP_SIZE = _S_Q + Q_SIZE
+
+
 @leaf
-def step_quantities(C, v, w0, w1, w2, dt, g, E, Q) -> None:
-    """For the step of length ``dt`` from attitude ``C`` and body velocity ``v`` at the bias-free
-    rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` (3x3) and ``Q`` (see ``_Q_*``)."""
+def step_quantities(s, w0, w1, w2, dt) -> None:
+    """For the step of length ``dt`` from the attitude ``C`` and body velocity ``v`` in ``s``
+    (``_S_*``) at the bias-free rate ``w = (w0, w1, w2)``: ``E = exp(dt w)`` and ``Q`` (see
+    ``_Q_*``) into ``s``."""
     x, y, z = dt * w0, dt * w1, dt * w2
     Em, Gm = so3.exp_and_gamma_entries(x, y, z)  # exp(dt w), Gamma(dt w), row-major
-    E[0, 0], E[0, 1], E[0, 2] = Em[0], Em[1], Em[2]
-    E[1, 0], E[1, 1], E[1, 2] = Em[3], Em[4], Em[5]
-    E[2, 0], E[2, 1], E[2, 2] = Em[6], Em[7], Em[8]
-    v0, v1, v2 = v[0], v[1], v[2]
+    for t in range(9):
+        s[_S_E + t] = Em[t]
+    v0, v1, v2 = s[_S_V], s[_S_V + 1], s[_S_V + 2]
+    g0, g1, g2 = s[_S_G], s[_S_G + 1], s[_S_G + 2]
+    Q = _S_Q
     for i in range(3):
-        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
-        Q[_Q_C + 3 * i], Q[_Q_C + 3 * i + 1], Q[_Q_C + 3 * i + 2] = dt * c0, dt * c1, dt * c2
-        Q[_Q_CV + i] = dt * (c0 * v0 + c1 * v1 + c2 * v2)
+        c0, c1, c2 = s[_S_C + 3 * i], s[_S_C + 3 * i + 1], s[_S_C + 3 * i + 2]
+        s[Q + _Q_C + 3 * i], s[Q + _Q_C + 3 * i + 1], s[Q + _Q_C + 3 * i + 2] = dt * c0, dt * c1, dt * c2
+        s[Q + _Q_CV + i] = dt * (c0 * v0 + c1 * v1 + c2 * v2)
         for m in range(3):
-            Q[_Q_CGAMMA + 3 * i + m] = dt * (c0 * Gm[m] + c1 * Gm[3 + m] + c2 * Gm[6 + m])
+            s[Q + _Q_CGAMMA + 3 * i + m] = dt * (c0 * Gm[m] + c1 * Gm[3 + m] + c2 * Gm[6 + m])
         # row i of C^T g^x is (c x g)^T with c = column i of C
-        k0, k1, k2 = C[0, i], C[1, i], C[2, i]
-        Q[_Q_CTGX + 3 * i] = dt * (k1 * g[2] - k2 * g[1])
-        Q[_Q_CTGX + 3 * i + 1] = dt * (k2 * g[0] - k0 * g[2])
-        Q[_Q_CTGX + 3 * i + 2] = dt * (k0 * g[1] - k1 * g[0])
-    Q[_Q_W], Q[_Q_W + 1], Q[_Q_W + 2] = x, y, z
-    Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2] = dt * v0, dt * v1, dt * v2
-    Q[_Q_DT] = dt
+        k0, k1, k2 = s[_S_C + i], s[_S_C + 3 + i], s[_S_C + 6 + i]
+        s[Q + _Q_CTGX + 3 * i] = dt * (k1 * g2 - k2 * g1)
+        s[Q + _Q_CTGX + 3 * i + 1] = dt * (k2 * g0 - k0 * g2)
+        s[Q + _Q_CTGX + 3 * i + 2] = dt * (k0 * g1 - k1 * g0)
+    s[Q + _Q_W], s[Q + _Q_W + 1], s[Q + _Q_W + 2] = x, y, z
+    s[Q + _Q_V], s[Q + _Q_V + 1], s[Q + _Q_V + 2] = dt * v0, dt * v1, dt * v2
+    s[Q + _Q_DT] = dt
 
 
 @leaf
-def step_state(r, v, C, f0, f1, f2, w0, w1, w2, g, E, Q) -> None:
-    """The step (eqs. 54-60) in place: ``r += dt C v``, ``v += dt (C^T g + f - w x v)``,
-    ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples and ``E, Q`` from
-    :func:`step_quantities` at this state."""
-    h = Q[_Q_DT]
-    v0, v1, v2 = v[0], v[1], v[2]
-    tg0 = C[0, 0] * g[0] + C[1, 0] * g[1] + C[2, 0] * g[2]
-    tg1 = C[0, 1] * g[0] + C[1, 1] * g[1] + C[2, 1] * g[2]
-    tg2 = C[0, 2] * g[0] + C[1, 2] * g[1] + C[2, 2] * g[2]
-    r[0] += Q[_Q_CV]
-    r[1] += Q[_Q_CV + 1]
-    r[2] += Q[_Q_CV + 2]
-    v[0] = v0 + h * (tg0 + f0 - (w1 * v2 - w2 * v1))
-    v[1] = v1 + h * (tg1 + f1 - (w2 * v0 - w0 * v2))
-    v[2] = v2 + h * (tg2 + f2 - (w0 * v1 - w1 * v0))
+def step_state(s, f0, f1, f2, w0, w1, w2) -> None:
+    """The step (eqs. 54-60) of the state in ``s`` (``_S_*``) in place: ``r += dt C v``,
+    ``v += dt (C^T g + f - w x v)``, ``C <- C exp(dt w)``, with ``f, w`` the bias-free samples
+    and ``E, Q`` from :func:`step_quantities` at this state."""
+    h = s[_S_Q + _Q_DT]
+    v0, v1, v2 = s[_S_V], s[_S_V + 1], s[_S_V + 2]
+    g0, g1, g2 = s[_S_G], s[_S_G + 1], s[_S_G + 2]
+    C = _S_C
+    tg0 = s[C] * g0 + s[C + 3] * g1 + s[C + 6] * g2
+    tg1 = s[C + 1] * g0 + s[C + 4] * g1 + s[C + 7] * g2
+    tg2 = s[C + 2] * g0 + s[C + 5] * g1 + s[C + 8] * g2
     for i in range(3):
-        c0, c1, c2 = C[i, 0], C[i, 1], C[i, 2]
+        s[_S_R + i] += s[_S_Q + _Q_CV + i]
+    s[_S_V] = v0 + h * (tg0 + f0 - (w1 * v2 - w2 * v1))
+    s[_S_V + 1] = v1 + h * (tg1 + f1 - (w2 * v0 - w0 * v2))
+    s[_S_V + 2] = v2 + h * (tg2 + f2 - (w0 * v1 - w1 * v0))
+    for i in range(3):
+        c0, c1, c2 = s[C + 3 * i], s[C + 3 * i + 1], s[C + 3 * i + 2]
         for m in range(3):
-            C[i, m] = c0 * E[0, m] + c1 * E[1, m] + c2 * E[2, m]
+            s[C + 3 * i + m] = c0 * s[_S_E + m] + c1 * s[_S_E + 3 + m] + c2 * s[_S_E + 6 + m]
+
+
+@block_operation
+def _state_into(s, r, v, C, g) -> None:
+    """``r, v, C, g`` into the step array ``s``."""
+    for a in range(3):
+        s[_S_R + a], s[_S_V + a], s[_S_G + a] = r[a], v[a], g[a]
+        for b in range(3):
+            s[_S_C + 3 * a + b] = C[a, b]
+
+
+@block_operation
+def _state_from(s, r, v, C) -> None:
+    """``r, v, C`` from the step array ``s``."""
+    for a in range(3):
+        r[a], v[a] = s[_S_R + a], s[_S_V + a]
+        for b in range(3):
+            C[a, b] = s[_S_C + 3 * a + b]
 
 
 @block_operation
@@ -370,20 +399,21 @@ def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
 
 @recursion
 def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians):
-    E, Q = np.empty((3, 3)), np.empty(Q_SIZE)
+    s = np.empty(STEP_SIZE)
     for i in range(r.shape[0]):
         w0, w1, w2 = gyro[i, 0] - b_w[i, 0], gyro[i, 1] - b_w[i, 1], gyro[i, 2] - b_w[i, 2]
-        step_quantities(C[i], v[i], w0, w1, w2, dt[i], g, E, Q)
+        _state_into(s, r[i], v[i], C[i], g)
+        step_quantities(s, w0, w1, w2, dt[i])
         if jacobians:
-            _jacobians_into(Q, F[i], G[i])
-        out_r[i], out_v[i], out_C[i] = r[i], v[i], C[i]
-        step_state(out_r[i], out_v[i], out_C[i], acc[i, 0] - b_f[i, 0], acc[i, 1] - b_f[i, 1], acc[i, 2] - b_f[i, 2],
-                   w0, w1, w2, g, E, Q)
+            _jacobians_into(s[_S_Q:], F[i], G[i])
+        step_state(s, acc[i, 0] - b_f[i, 0], acc[i, 1] - b_f[i, 1], acc[i, 2] - b_f[i, 2], w0, w1, w2)
+        _state_from(s, out_r[i], out_v[i], out_C[i])
 
 
 #: Length of the work array of :func:`predict_flat` (:func:`prediction_work`): the flat
-#: covariance (15 rows of ``_W``) first, then the scratch ``B``, ``Bt``, ``ABt``, ``E``, ``Q``.
-PREDICTION_WORK_SIZE = 48 * _W + 9 + Q_SIZE
+#: covariance (15 rows of ``_W``) first, then the scratch ``B``, ``Bt``, ``ABt`` and the step
+#: array (``_S_*``).
+PREDICTION_WORK_SIZE = 48 * _W + STEP_SIZE
 
 
 @block_operation
@@ -405,15 +435,18 @@ def predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work) -> None:
     compiled function instead, the covariance step runs twice as long: LLVM must then assume
     that ``work`` may overlap the other arguments."""
     flat, B, Bt, ABt = work[:15 * _W], work[15 * _W:24 * _W], work[24 * _W:39 * _W], work[39 * _W:48 * _W]
-    E, Q = work[48 * _W:48 * _W + 9].reshape((3, 3)), work[48 * _W + 9:]
+    s = work[48 * _W:]
+    Q, sv = s[_S_Q:], s[_S_V:_S_V + 3]
+    _state_into(s, r, v, C, g)
     for k in range(dt.shape[0]):
         h = dt[k]
         if h <= 0.0:
             continue
         w0, w1, w2 = gyro[k, 0] - b_w[0], gyro[k, 1] - b_w[1], gyro[k, 2] - b_w[2]
-        step_quantities(C, v, w0, w1, w2, h, g, E, Q)
-        _covariance_step(flat, Q, q_density, v, B, Bt, ABt)
-        step_state(r, v, C, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2, g, E, Q)
+        step_quantities(s, w0, w1, w2, h)
+        _covariance_step(flat, Q, q_density, sv, B, Bt, ABt)
+        step_state(s, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2)
+    _state_from(s, r, v, C)
 
 
 @block_operation
