@@ -241,7 +241,7 @@ def test_gyro_bias_enters_to_first_order_and_relinearized_is_exact(seed):
 
     # negative control: the same interval with the bias Jacobians zeroed is only zeroth order
     frozen = preintegration.Preintegrated(pre.dC, pre.W, pre.Rm, 0 * pre.JC, 0 * pre.dW, 0 * pre.dRm,
-                                          pre.b_w_bar, pre.duration, pre.samples)
+                                          pre.b_w_bar, pre.samples)
     assert abs(_slope(sizes, _sweep_errors(frozen, x, exact)) - 1.0) < 0.1
 
     # relinearised at the new bias: exact again
