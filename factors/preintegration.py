@@ -41,10 +41,11 @@ Everything is vectorised over intervals: arrays of shape ``(J, K, ...)`` hold ``
 up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the identity step. The
 recursions are compiled loops over all samples (:mod:`factors.compiled`), with no Python per
 sample or per interval. Intervals are independent of each other except through the reference
-trajectory, so a whole run takes three phases: the recursions of every interval, split among the
-cores (:func:`factors.compiled.in_parallel`); the reference chain, sequential but a few operations
-per interval; the covariances along it, split among the cores again. Each interval's arithmetic
-is the same whichever thread runs it, so the results do not depend on the number of cores.
+trajectory, so a whole run is one pipeline over ranges of intervals
+(:func:`factors.compiled.in_parallel` with a scan): the recursions of each range, on whichever
+core is free; the reference chain through it, in order, a few operations per interval; the
+covariances along it, on whichever core is free. Each interval's arithmetic is the same whichever
+thread runs it, so the results do not depend on the number of cores.
 """
 from __future__ import annotations
 
@@ -453,8 +454,8 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
                               gravity=imu.DEFAULT_GRAVITY, anchors: Anchors | None = None):
     """Preintegrate ``J`` padded intervals ``samples = (acc, gyro, dt)`` around the biases of
     ``start`` (one state) with the bias Jacobians AND the residual covariance of every interval
-    (see :func:`noise_covariance`); returns ``(pre, states)``. Three compiled phases (module
-    docstring), the two heavy ones on several cores when there are many intervals.
+    (see :func:`noise_covariance`); returns ``(pre, states)``. One compiled pipeline (module
+    docstring), on several cores when there are many intervals.
 
     The covariance of interval ``i`` is evaluated along the reference trajectory from keyframe
     state ``states[i]``: ``states[0]`` is ``start``, ``states[i + 1]`` the prediction from
