@@ -221,28 +221,36 @@ _PIECES_PER_THREAD = 8
 
 class _Ranges:
     """The ranges of one :func:`in_parallel` call and their hand-out: ``items`` numbers the
-    ranges of ``task`` ``0 .. pieces - 1``, then (with ``then``) those of ``then``; a condition
-    guards the progress of the scans and the failures."""
+    ranges of ``task`` ``0 .. pieces - 1``, then (with ``then``) those of ``then``; one lock
+    guards the progress of the scans and the failures.
+
+    Ctrl-C: a KeyboardInterrupt reaches the calling thread between any two bytecodes, also
+    between taking a range and running it. Every exception that leaves :meth:`run` is therefore
+    recorded as a failure (no new range starts, the threads waiting for a scan wake up and stop),
+    and the lock is a plain ``threading.Lock``, whose ``with`` cannot be left held by an
+    interrupt (a ``Condition``'s own ``__enter__`` is Python code and can)."""
 
     def __init__(self, bounds: list, task, scan, then):
         self.bounds, self.task, self.scan, self.then = bounds, task, scan, then
         self.pieces = len(bounds) - 1
         self.items = iter(range(self.pieces * (1 if then is None else 2)))  # next() is atomic under the GIL
         self.failures: list[tuple[int, BaseException]] = []
-        self.progress = threading.Condition()
+        self.lock = threading.Lock()
+        self.progress = threading.Condition(self.lock)
         self.tasks_done = [False] * self.pieces
         self.scanned = 0  # ranges 0 .. scanned - 1 are scanned
         self.scanning = False  # a thread is scanning: it also takes the ranges finished meanwhile
 
     def run(self) -> None:
-        """Take ranges until none is left or one has failed (the caller of a failing stage
+        """Take ranges until none is left or one has failed (the thread whose stage failed
         re-raises; the others stop at their next range)."""
-        for item in self.items:
-            if self.failures:
-                return
-            stage, p = divmod(item, self.pieces)
-            current = item
-            try:
+        current = -1  # the item (or scan) being handled, for the order of the failures
+        try:
+            for item in self.items:
+                current = item
+                if self.failures:
+                    return
+                stage, p = divmod(item, self.pieces)
                 if stage == 0:
                     self.task(self.bounds[p], self.bounds[p + 1])
                     if self.scan is not None:
@@ -252,29 +260,34 @@ class _Ranges:
                     self.then(self.bounds[p], self.bounds[p + 1])
                 else:
                     return
-            except BaseException as error:
-                with self.progress:
-                    self.failures.append((current, error))
-                    self.progress.notify_all()
-                raise
+        except BaseException as error:
+            self.fail(current, error)
+            raise
+
+    def fail(self, index: int, error: BaseException) -> None:
+        """Record a failure (of item or scan ``index``; -1: outside the ranges, e.g. the calling
+        thread interrupted while it waits) and wake the threads waiting for a scan."""
+        with self.lock:
+            self.failures.append((index, error))
+            self.progress.notify_all()
 
     def _scans_after(self, p: int):
         """The ranges to scan (in order) now that range ``p``'s task has finished: those from
         the first unscanned one whose tasks have all finished, unless another thread is scanning
         (it takes them then). Each is counted as scanned when the caller asks for the next."""
-        with self.progress:
+        with self.lock:
             self.tasks_done[p] = True
             if self.scanning:
                 return
             self.scanning = True
         while True:
-            with self.progress:
+            with self.lock:
                 s = self.scanned
                 if s == self.pieces or not self.tasks_done[s] or self.failures:
                     self.scanning = False
                     return
             yield s
-            with self.progress:
+            with self.lock:
                 self.scanned = s + 1
                 self.progress.notify_all()
 
@@ -282,10 +295,25 @@ class _Ranges:
         """Wait until range ``p`` is scanned; False if a range failed meanwhile. (Every task range
         is handed out before any ``then`` range, so the ranges waited for are running on other
         threads.)"""
-        with self.progress:
+        with self.lock:
             while self.scanned <= p and not self.failures:
                 self.progress.wait()
             return not self.failures
+
+
+def _wait_for(others: list, ranges: _Ranges) -> None:
+    """Wait until the pool's share of ``ranges`` has finished, also through Ctrl-C: an interrupt
+    meanwhile is recorded as a failure (so no new range starts) and raised once all have."""
+    interrupt = None
+    while True:
+        try:
+            wait(others)
+            break
+        except BaseException as error:
+            ranges.fail(-1, error)
+            interrupt = interrupt or error
+    if interrupt is not None:
+        raise interrupt
 
 
 def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
@@ -299,8 +327,9 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     The ranges (up to :data:`_PIECES_PER_THREAD` per thread) are handed out in order to whichever
     thread is free: the calling thread and workers of a pool started on first use. Which thread
     runs a range does not change what it computes. After a range fails no new one is started;
-    every range that started has finished when this returns or raises; an exception of the
-    calling thread is raised first, else the earliest failed range's.
+    every range that started has finished when this returns or raises (also after a Ctrl-C); an
+    exception of the calling thread is raised first, else the earliest failed range's (the
+    ranges of ``task`` count before those of ``then``).
 
     With ``scan`` and ``then`` (work whose second parallel part needs a sequential pass over the
     first part's results, such as the preintegration's reference chain), each range goes through
@@ -321,15 +350,21 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     global _pool, _pool_size
     pieces = min(n // max(1, min_items), parts * _PIECES_PER_THREAD)
     ranges = _Ranges([n * p // pieces for p in range(pieces + 1)], task, scan, then)
-    with _pool_lock:
-        if _pool_size < parts - 1:
-            if _pool is not None:
-                _pool.shutdown(wait=False)  # what was queued there still runs
-            _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
-        others = [_pool.submit(ranges.run) for _ in range(parts - 1)]
+    others = []
     try:
+        with _pool_lock:
+            if _pool_size < parts - 1:
+                if _pool is not None:
+                    _pool.shutdown(wait=False)  # what was queued there still runs
+                _pool, _pool_size = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="boxplus"), parts - 1
+            for _ in range(parts - 1):
+                others.append(_pool.submit(ranges.run))
         ranges.run()
+    except BaseException as error:
+        if not any(error is failed for _, failed in ranges.failures):  # raised outside ranges.run
+            ranges.fail(-1, error)
+        raise
     finally:
-        wait(others)
+        _wait_for(others, ranges)
     if ranges.failures:
         raise min(ranges.failures, key=lambda failure: failure[0])[1]

@@ -277,7 +277,7 @@ def test_in_parallel_pipeline_scans_in_order_and_runs_each_then_after_its_scan()
     log, stage = _pipeline_log()
     slow_first = lambda lo, on_caller: 0.2 if lo == 0 else 0.002  # noqa: E731  (range 0's task holds up the scan)
     with compiled.thread_limit(2):
-        compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"), then=stage("then"))
+        _within(20, lambda: compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"), then=stage("then")))
     at = {event[:3]: i for i, event in enumerate(log)}
     ranges = sorted({(lo, hi) for _, _, lo, hi in log})
     assert ranges[0][0] == 0 and ranges[-1][1] == 20 and len(ranges) == 10
@@ -316,12 +316,168 @@ def test_in_parallel_pipeline_stops_at_a_failed_scan_and_raises_it():
             raise ValueError(f"scan of {lo}")
 
     with compiled.thread_limit(2), pytest.raises(ValueError, match="scan of 6"):
-        compiled.in_parallel(stage("task", lambda lo, on_caller: 0.01), 20, 2, scan=scan, then=stage("then"))
+        _within(20, lambda: compiled.in_parallel(stage("task", lambda lo, on_caller: 0.01), 20, 2, scan=scan,
+                                                 then=stage("then")))
     scanned = [lo for name, when, lo, _ in log if name == "scan" and when == "start"]
     assert scanned == [0, 2, 4, 6]  # no scan after the failed one
     assert all(lo < 6 for name, _, lo, _ in log if name == "then")  # no "then" whose scan did not finish
     starts = {(name, lo) for name, when, lo, _ in log if when == "start"}
     assert starts == {(name, lo) for name, when, lo, _ in log if when == "end"}  # all that started finished
+
+
+def _within(seconds, fn):
+    """``fn()`` on a thread of its own; fails the test if it has not returned after ``seconds``
+    (a hang), else returns its result or re-raises its exception."""
+    out = {}
+
+    def target():
+        try:
+            out["value"] = fn()
+        except BaseException as error:  # noqa: BLE001  (re-raised below, on the test's thread)
+            out["error"] = error
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    if thread.is_alive():
+        compiled._forget_the_pool()  # its workers may be stuck too: later tests get a new pool
+        pytest.fail(f"did not return within {seconds} s")
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+def test_in_parallel_pipeline_wakes_the_threads_waiting_for_a_scan_when_a_task_fails():
+    def task(lo, hi):
+        if lo == 0:  # meanwhile the other thread finishes the other tasks and waits for scan 0
+            time.sleep(0.2)
+            raise ValueError("task 0")
+
+    def run():
+        with compiled.thread_limit(2):
+            compiled.in_parallel(task, 8, 1, scan=lambda lo, hi: None, then=lambda lo, hi: None)
+
+    with pytest.raises(ValueError, match="task 0"):
+        _within(10, run)
+
+
+def test_in_parallel_pipeline_scans_one_at_a_time_while_tasks_finish_and_then_waits_for_the_scan():
+    log, stage = _pipeline_log()
+    slow_scan = stage("scan", lambda lo, on_caller: 0.03)  # tasks finish on both threads meanwhile
+    with compiled.thread_limit(2):
+        _within(20, lambda: compiled.in_parallel(stage("task", lambda lo, on_caller: 0.005), 16, 1, scan=slow_scan,
+                                                 then=stage("then")))
+    scans = [(when, lo) for name, when, lo, _ in log if name == "scan"]
+    assert scans == [(when, lo) for lo in range(16) for when in ("start", "end")]  # never two at once, each once
+    at = {event[:3]: i for i, event in enumerate(log)}
+    assert all(at[("scan", "end", lo)] < at[("then", "start", lo)] for lo in range(16))
+
+
+def test_in_parallel_pipeline_starts_no_scan_after_a_task_has_failed():
+    log, stage = _pipeline_log()
+
+    def task(lo, hi):
+        if lo == 0:  # the caller's first range: it ends after range 2 has failed on the worker
+            time.sleep(0.2)
+        elif lo == 2:
+            raise ValueError("task 2")
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="task 2"):
+        _within(10, lambda: compiled.in_parallel(task, 8, 1, scan=stage("scan"), then=stage("then")))
+    assert log == []  # range 0 finished after the failure: no scan, so no then
+
+
+def test_in_parallel_pipeline_raises_a_failed_then_and_starts_no_range_after_it():
+    log, stage = _pipeline_log()
+    record = stage("then")
+
+    def then(lo, hi):
+        record(lo, hi)
+        if lo == 3:
+            raise ValueError("then 3")
+        time.sleep(0.01)
+
+    with compiled.thread_limit(2), pytest.raises(ValueError, match="then 3"):
+        _within(10, lambda: compiled.in_parallel(stage("task"), 12, 1, scan=stage("scan"), then=then))
+    thens = [lo for name, when, lo, _ in log if name == "then" and when == "start"]
+    assert 3 in thens and max(thens) <= 4  # at most the range the other thread had already taken
+
+
+def test_in_parallel_raises_the_earliest_failed_range_not_the_first_to_fail():
+    caller, workers_ranges = threading.current_thread(), []
+    both_started = threading.Barrier(2, timeout=5)
+
+    def task(lo, hi):
+        if threading.current_thread() is caller:  # succeeds, after the workers' ranges failed
+            time.sleep(0.3)
+            return
+        workers_ranges.append(lo)
+        both_started.wait()  # both worker ranges run before either fails
+        if lo == min(workers_ranges):
+            time.sleep(0.1)  # the earlier range fails later
+        raise ValueError(f"range {lo}")
+
+    with compiled.thread_limit(3), pytest.raises(ValueError) as raised:
+        compiled.in_parallel(task, 3, 1)
+    assert str(raised.value) == f"range {min(workers_ranges)}"
+
+
+def test_in_parallel_pipeline_survives_an_interrupt_between_taking_a_range_and_running_it(monkeypatch):
+    """A Ctrl-C reaches the calling thread between any two bytecodes; here, as if one arrived
+    right after it took its second range (simulated by the ``divmod`` that follows): the range is
+    never run, so the scans cannot pass it and the other thread waits for one. The interrupt
+    must be recorded so that it wakes up: KeyboardInterrupt, no hang, everything that started
+    has finished."""
+    taken = []
+
+    def interrupted_divmod(a, b):
+        if threading.current_thread().name == "caller":
+            taken.append(a)
+            if len(taken) == 2:
+                raise KeyboardInterrupt
+        return divmod(a, b)
+
+    log, stage = _pipeline_log()
+    monkeypatch.setattr(compiled, "divmod", interrupted_divmod, raising=False)
+    def call():
+        threading.current_thread().name = "caller"
+        compiled.in_parallel(stage("task", lambda lo, on_caller: 0.02), 8, 1, scan=stage("scan"), then=stage("then"))
+
+    with compiled.thread_limit(2), pytest.raises(KeyboardInterrupt):
+        _within(10, call)
+    starts = {(name, lo) for name, when, lo, _ in log if when == "start"}
+    assert starts == {(name, lo) for name, when, lo, _ in log if when == "end"}
+    assert ("task", taken[1]) not in starts
+
+
+def test_in_parallel_pipeline_from_several_threads_at_once():
+    results, errors = [], []
+
+    def caller(i):
+        out = np.zeros(40)
+
+        def task(lo, hi):
+            out[lo:hi] = np.arange(lo, hi)
+
+        def scan(lo, hi):  # a running sum, in order
+            for k in range(lo, hi):
+                out[k] += out[k - 1] if k else 0.0
+
+        try:
+            compiled.in_parallel(task, 40, 2, scan=scan, then=lambda lo, hi: None)
+            results.append(out)
+        except Exception as error:  # noqa: BLE001  (collected, asserted below)
+            errors.append(repr(error))
+
+    with compiled.thread_limit(4):
+        threads = [threading.Thread(target=caller, args=(i,)) for i in range(6)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=30)
+    assert errors == [] and len(results) == 6
+    for out in results:
+        assert np.array_equal(out, np.cumsum(np.arange(40.0)))
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])
