@@ -277,7 +277,8 @@ def test_in_parallel_pipeline_scans_in_order_and_runs_each_then_after_its_scan()
     log, stage = _pipeline_log()
     slow_first = lambda lo, on_caller: 0.2 if lo == 0 else 0.002  # noqa: E731  (range 0's task holds up the scan)
     with compiled.thread_limit(2):
-        _within(20, lambda: compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"), then=stage("then")))
+        _within(20, lambda: compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"),
+                                                 then=stage("then")))
     at = {event[:3]: i for i, event in enumerate(log)}
     ranges = sorted({(lo, hi) for _, _, lo, hi in log})
     assert ranges[0][0] == 0 and ranges[-1][1] == 20 and len(ranges) == 10
