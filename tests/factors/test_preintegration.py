@@ -461,6 +461,9 @@ def test_integrate_with_covariance_refuses_bad_input():
         preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, gravity=-9.81)
     with pytest.raises(ValueError, match="b_w_bar"):
         preintegration.integrate(acc, gyro, dt, np.full((2, 1), 0.1))
+    with pytest.raises(ValueError, match=r"b_w_bar: expected shape \(2, 3\) \(or one that broadcasts to it\), "
+                                         r"got \(5, 3\)"):
+        preintegration.integrate(acc, gyro, dt, np.zeros((5, 3)))
     with pytest.raises(ValueError, match="start.v"):
         preintegration.integrate_with_covariance((acc, gyro, dt), start.replace(v=np.full(3, np.nan)), noise)
     with pytest.raises(ValueError, match=r"start.b_w: expected finite"):
