@@ -19,8 +19,9 @@ interleaved, medians taken, because the machine is noisy):
    each in a fresh child process after a warm-up and repeated there to about 15 minutes of data
    (mean): build (preintegration included) + optimise, covariances off; covariance time of the
    short runs;
-5. fixed-lag update times (lag 2 s, covariances off): incremental over 5 minutes, batch kind
-   over a shorter run (it is ~100x slower per update);
+5. fixed-lag update times (lag 2 s, covariances off): incremental over one hour (overall and per
+   tenth of the run: flat is part of the target), batch kind over a shorter run (it is ~100x
+   slower per update);
 6. peak resident memory of the one-hour batch run, measured in a child process (``os.wait4``
    gives that child's own ``ru_maxrss``).
 
@@ -76,7 +77,7 @@ class Settings:
     fixed_lag_batch_s: float  # batch-kind fixed-lag run [s]
 
 
-FULL = Settings(60.0, 7, 5, (1, 5, 15), (1, 5), True, 5.0, 60.0)
+FULL = Settings(60.0, 7, 5, (1, 5, 15), (1, 5), True, 60.0, 60.0)
 QUICK = Settings(20.0, 3, 1, (0.5, 1, 2), (0.5,), False, 1.0, 5.0)
 
 
@@ -359,11 +360,15 @@ def bench_scaling(s: Settings) -> dict:
 
 
 def fixed_lag_run(duration_s: float, kind: str) -> dict:
+    """Update times of one fixed-lag run, overall and per tenth of the run (flat over the run is
+    part of the target: a smoother whose cost grows with the data it has seen would drift off
+    real time in a long mission)."""
     problem = build_problem(_synthetic(duration_s), keyframe_rate=KEYFRAME_RATE)
     result = run_fixed_lag(problem, LAG_S, kind, covariances=False, progress=False)
     ms = 1e3 * result.update_s
     minutes = max(int(np.ceil(duration_s / 60.0 - 1e-9)), 1)  # the last keyframe (t = end) joins the last minute
     minute = np.minimum((problem.times - problem.times[0]) // 60.0, minutes - 1).astype(int)
+    tenths = np.array_split(ms, 10)
     return {
         "kind": kind, "seconds": duration_s, "updates": len(ms),
         "median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
@@ -371,6 +376,8 @@ def fixed_lag_run(duration_s: float, kind: str) -> dict:
         "first_minute_median_ms": float(np.median(ms[minute == minute.min()])),
         "last_minute_median_ms": float(np.median(ms[minute == minute.max()])),
         "per_minute_median_ms": [float(np.median(ms[minute == m])) for m in np.unique(minute)],
+        "per_tenth_median_ms": [float(np.median(t)) for t in tenths],
+        "per_tenth_p99_ms": [float(np.percentile(t, 99)) for t in tenths],
         "total_s": result.runtime_s,
     }
 
@@ -381,6 +388,8 @@ def bench_fixed_lag(s: Settings) -> dict:
     return {
         "fixed_lag_update_ms_median": inc["median_ms"],
         "fixed_lag_update_ms_p99": inc["p99_ms"],
+        # the worst tenth of the run: under 10 ms "flat over the run"
+        "fixed_lag_update_ms_p99_worst_tenth": max(inc["per_tenth_p99_ms"]),
         "fixed_lag_incremental": inc,
         "fixed_lag_batch_update_ms_median": bat["median_ms"],
         "fixed_lag_batch_update_ms_p99": bat["p99_ms"],
@@ -452,6 +461,7 @@ def _table_rows(r: dict) -> list:
         row("hour_batch_s", "s", "< 60", lambda v: v < 60.0),
         row("fixed_lag_update_ms_median", "ms", "<= 2", lambda v: v <= 2.0),
         row("fixed_lag_update_ms_p99", "ms", "<= 10", lambda v: v <= 10.0),
+        row("fixed_lag_update_ms_p99_worst_tenth", "ms", "<= 10", lambda v: v <= 10.0),
         row("fixed_lag_batch_update_ms_median", "ms"),
         row("fixed_lag_batch_update_ms_p99", "ms"),
         row("hour_peak_rss_mib", "MiB", "< 2048", lambda v: v < 2048.0),
@@ -503,8 +513,9 @@ def print_table(r: dict) -> None:
         f = r[key]
         print(f"fixed-lag {f['kind']} ({f['seconds']:g} s, lag {LAG_S:g} s, covariances=False): median "
               f"{f['median_ms']:.2f} ms, p99 {f['p99_ms']:.2f} ms, max {f['max_ms']:.1f} ms, {f['over_10ms']} of "
-              f"{f['updates']} > 10 ms; first / last minute median {f['first_minute_median_ms']:.2f} / "
-              f"{f['last_minute_median_ms']:.2f} ms")
+              f"{f['updates']} > 10 ms; per tenth of the run: median "
+              f"{' '.join(f'{x:.2f}' for x in f['per_tenth_median_ms'])} ms, p99 "
+              f"{' '.join(f'{x:.1f}' for x in f['per_tenth_p99_ms'])} ms")
     print(f"wall time of the benchmark: {r['benchmark_s']:.1f} s")
 
 
