@@ -33,6 +33,8 @@ import math
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from factors import custom, imu, preintegration, so3
 from factors import measurements as meas
@@ -40,6 +42,7 @@ from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.imu_factor import ImuFactor
 from factors.jacobians import check_factor
 from factors.keys import keyframe_keys
+import strategies
 from strategies import random_rotation
 
 GRAVITY = imu.DEFAULT_GRAVITY
@@ -366,6 +369,23 @@ def _wrap(residual, index: int, block: slice | None, delta: float):
         Js[index][rows] += delta
         return e, Js
     return wrong
+
+
+@settings(max_examples=200, deadline=None)
+@given(strategies.rotations(), strategies.rotation_vectors(),
+       st.lists(st.floats(-1e3, 1e3), min_size=6, max_size=6))
+def test_one_pose_residual_is_the_batched_one_bit_for_bit(C, error, positions):
+    """A factor's callback hands ONE pose to :func:`pose_residual`, which then skips the
+    broadcasting plumbing: same error and Jacobians, bit for bit, as the same pose in a batch of
+    one, for tiny, ordinary and near-pi attitude errors."""
+    r, mr = np.array(positions[:3]), np.array(positions[3:])
+    mC = so3.exp(error) @ C
+    e, (J_r, J_C) = meas.pose_residual(r, C, mr, mC, jacobians=True)
+    e_b, (J_r_b, J_C_b) = meas.pose_residual(r[None], C[None], mr[None], mC[None], jacobians=True)
+    assert e.shape == (6,) and J_r.shape == J_C.shape == (6, 3)
+    for one, batched in ((e, e_b), (J_r, J_r_b), (J_C, J_C_b)):
+        np.testing.assert_array_equal(one, batched[0])
+    np.testing.assert_array_equal(meas.pose_residual(r, C, mr, mC), e)
 
 
 def test_check_factor_fails_a_wrong_block_in_a_measurement_factor():
