@@ -41,6 +41,10 @@ from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
 
+#: Keyframes this close to the next update's marginalisation boundary (its time minus the lag)
+#: are read before it as well: GTSAM marginalises those strictly older than the boundary.
+_LAG_MARGIN_S = 1e-6
+
 #: Standard deviations of the weak prior added when an update is indeterminant.
 WEAK_PRIOR_SIGMAS = np.array([1e2] * 3 + [1e1] * 3 + [np.pi] * 3 + [1.0] * 3 + [0.1] * 3)
 
@@ -208,6 +212,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     smoother = _make_smoother(kind, lag_s)
     newest_states, newest_covs, update_s, recovered = [], [], [], []
     lagged_states: dict[int, imu.ImuState] = {}
+    read_after: dict[int, int] = {}  # keyframe -> the update after which lagged_states got it
     lagged_covs: dict[int, np.ndarray] = {}
     first = 0
     skipped = 0
@@ -225,9 +230,8 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             values = gtsam.Values()
             if k == 0:
                 guess = problem.initial_states[0]
-            else:
-                previous = read_state(smoother.calculateEstimate(), problem.keys[k - 1])
-                guess = problem.imu_factors[k - 1].predict(previous)
+            else:  # from the smoother's estimate of the previous keyframe after the last update
+                guess = problem.imu_factors[k - 1].predict(newest_states[-1])
             insert_state(values, keys, guess)
             stamps = gtsam.FixedLagSmootherKeyTimestampMap()
             for key in keys.all():
@@ -257,11 +261,22 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             update_s.append(time.perf_counter() - tick)
             present = set(int(key) for key in estimate.keys())
             while problem.keys[first].rot not in present:  # the window is contiguous: [first, k]
+                if read_after.get(first) != k - 1:  # GTSAM marginalised earlier than the rule below says
+                    raise RuntimeError(f"fixed-lag: keyframe {first} (t = {problem.times[first]:.6f} s) left the "
+                                       "window before its estimate was read")
                 first += 1
             in_window = range(first, k + 1)
-            for j in in_window:
-                lagged_states[j] = read_state(estimate, problem.keys[j])
-            newest_states.append(lagged_states[k])
+            newest_states.append(read_state(estimate, problem.keys[k]))
+            lagged_states[k], read_after[k] = newest_states[-1], k
+            # A keyframe's lagged estimate is the one of the last update that holds it: read the
+            # keyframes that the next update marginalises (older than its time minus the lag; a
+            # keyframe read too early, within the margin, is read again later), the whole window
+            # only where the covariances need it -- not all of it at every update.
+            boundary = problem.times[k + 1] - lag_s + _LAG_MARGIN_S if k + 1 < len(problem.times) else np.inf
+            for j in range(first, k):
+                if not covariances and problem.times[j] >= boundary:
+                    break
+                lagged_states[j], read_after[j] = read_state(estimate, problem.keys[j]), k
             if covariances:
                 covs = window_covariances(problem, smoother, estimate, first,
                                           imu.ImuState.stack([lagged_states[j] for j in in_window]))
@@ -274,7 +289,9 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
                       stacklevel=2)
     estimate = smoother.calculateEstimate()
     in_window = [k for k, kk in enumerate(problem.keys) if estimate.exists(kk.rot)]
-    window_states = imu.ImuState.stack([read_state(estimate, problem.keys[k]) for k in in_window])
+    for k in in_window:
+        lagged_states[k] = read_state(estimate, problem.keys[k])
+    window_states = imu.ImuState.stack([lagged_states[k] for k in in_window])
     window_cov = None
     if covariances:
         window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
+from smoother import fixed_lag
 from smoother.fixed_lag import KINDS, _make_smoother, run_fixed_lag
 from smoother.graph import build_problem
 
@@ -159,3 +160,28 @@ def test_the_smoother_keeps_its_factor_graph_to_the_window_over_a_long_run(kind)
         sizes.append(smoother.getFactors().size())
     assert max(sizes[100:]) <= 12, max(sizes[100:])
     assert sizes[-1] <= sizes[99] + 2, (sizes[99], sizes[-1])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_each_keyframe_keeps_the_estimate_of_the_last_update_that_held_it(gentle, kind):
+    """``lagged``: without covariances only the keyframes that the next update marginalises are
+    read; with them the whole window is read at every update. Both give the same estimates, bit
+    for bit; the last window's are the window's own, and the older ones are smoothed (they
+    differ from the filtered ``newest``)."""
+    partial = run_fixed_lag(cases.problem(gentle), 0.5, kind, covariances=False, progress=False)
+    whole = run_fixed_lag(cases.problem(gentle), 0.5, kind, covariances=True, progress=False)
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        np.testing.assert_array_equal(getattr(partial.lagged.states, name), getattr(whole.lagged.states, name))
+        np.testing.assert_array_equal(getattr(partial.lagged.states, name)[-len(partial.window.t):],
+                                      getattr(partial.window.states, name))
+    assert np.abs(partial.lagged.states.r[:-6] - partial.newest.states.r[:-6]).max(axis=1).min() > 0.0
+
+
+def test_a_keyframe_marginalised_before_it_was_read_is_an_error(gentle, monkeypatch):
+    """The smoother reads a keyframe just before the update that marginalises it; were GTSAM to
+    marginalise earlier than that rule says (simulated by a margin that reads more than a
+    keyframe period too late), the run stops with a clear error instead of returning an old
+    estimate."""
+    monkeypatch.setattr(fixed_lag, "_LAG_MARGIN_S", -0.15)
+    with pytest.raises(RuntimeError, match="left the window before its estimate was read"):
+        run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=False, progress=False)
