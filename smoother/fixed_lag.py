@@ -77,9 +77,9 @@ def _make_smoother(kind: str, lag_s: float):
     ``ISAM2Params`` by default): the smoother removes every factor that marginalisation
     replaces, and with the default each left an empty slot behind, so ISAM2's factor graph grew
     with the length of the run and so did every relinearisation (the update every 10th
-    keyframe, which sets the 99th percentile): +0.85 ms per hour, 7.7 -> 8.9 ms from the first
-    to the last 6 minutes of an hour at 10 Hz; with reuse the graph holds the window only and
-    those updates stay at 6.8 ms throughout (``benchmarks/run.py``)."""
+    keyframe, which sets the 99th percentile): 7.7 -> 8.9 ms from the first to the last 6
+    minutes of an hour at 10 Hz. With reuse the graph holds the window only and those updates
+    stay flat (``benchmarks/run.py``: median and 99th percentile per tenth of an hour)."""
     if kind == "batch":
         params = gtsam.LevenbergMarquardtParams()
         params.setLinearSolverType("MULTIFRONTAL_QR")
