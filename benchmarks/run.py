@@ -8,8 +8,10 @@ interleaved, medians taken, because the machine is noisy):
    states; on every core, and on one for comparison) per IMU sample, next to GTSAM's
    ``PreintegratedImuMeasurements.integrateMeasurement`` called per sample from Python (which
    always computes its 9x9 covariance and bias Jacobians too), one fresh PIM per keyframe
-   interval; for context also ``integrate`` alone (no covariance) and GTSAM's
-   ``PreintegratedCombinedMeasurements`` (15x15 covariance with the bias walk, like ours);
+   interval; for context also ``integrate`` alone (no covariance), GTSAM's
+   ``PreintegratedCombinedMeasurements`` (15x15 covariance with the bias walk, like ours), a
+   10-minute run, and a call's time split into a fixed cost per call and a marginal cost per
+   sample from the two runs;
 2. the EKF (``run_ekf``: 15-dim state, prediction and 10 Hz pose updates) per IMU sample, next to
    GTSAM's ``NavStateImuEKF.predict`` called per sample (9-dim NavState, no biases, no updates);
 3. KITTI: this project's batch smoother end to end (load, preintegrate, optimise) and GTSAM's
@@ -18,7 +20,7 @@ interleaved, medians taken, because the machine is noisy):
 4. synthetic batch solve (200 Hz IMU, 10 Hz keyframes and poses) of 1, 5, 15 and 60 minutes,
    each in a fresh child process after a warm-up and repeated there to about 15 minutes of data
    (mean): build (preintegration included) + optimise, covariances off; covariance time of the
-   short runs;
+   short runs; the growth of the cost per keyframe on a power law fitted through the lengths;
 5. fixed-lag update times (lag 2 s, covariances off): incremental over one hour (overall and per
    tenth of the run: flat is part of the target), batch kind over a shorter run (it is ~100x
    slower per update);
