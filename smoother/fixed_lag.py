@@ -94,9 +94,10 @@ def _make_smoother(kind: str, lag_s: float):
 
 
 def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first: int,
-                       states: imu.ImuState) -> np.ndarray:
+                       states: imu.ImuState, wanted=None) -> np.ndarray:
     """Primer-convention 15x15 covariances of the window's keyframes ``first, first + 1, ...``
-    (their states ``states``) from the smoother's current factors linearised at ``estimate``.
+    (their states ``states``) from the smoother's current factors linearised at ``estimate``;
+    of those at the window positions ``wanted`` only (0 = ``first``; default all).
 
     The project's own factors in the window are linearised together by the vectorised blocks
     of :mod:`smoother.solver` (no Python callback per factor), the smoother's marginal factors
@@ -106,6 +107,7 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
     (nearly singular: sparse GPS, which the QR-based smoothers accept) falls back to a dense
     pseudo-inverse of ``A^T A``, where an unconstrained direction shows as a large variance."""
     n = len(states)
+    wanted = range(n) if wanted is None else wanted
     dim = imu.STATE_DIM
     ours: dict[int, list[int]] = {}
     containers = gtsam.NonlinearFactorGraph()
@@ -131,12 +133,12 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
         used = [j for j in range(n) if np.any(dense[:, j * dim:(j + 1) * dim])]
         groups.append((tuple(used), [dense[:, j * dim:(j + 1) * dim] for j in used]))
     try:
-        return _sparse_marginals(groups, n)
+        return _sparse_marginals(groups, n, wanted)
     except RuntimeError:
-        return _dense_marginals(groups, n)
+        return _dense_marginals(groups, n, wanted)
 
 
-def _sparse_marginals(groups, n: int) -> np.ndarray:
+def _sparse_marginals(groups, n: int, wanted) -> np.ndarray:
     graph = gtsam.GaussianFactorGraph()
     for keys, blocks in groups:
         if len(keys) > 3:  # the Python JacobianFactor takes at most three keys
@@ -148,10 +150,10 @@ def _sparse_marginals(groups, n: int) -> np.ndarray:
     for j in range(n):
         zero.insert(j, np.zeros(imu.STATE_DIM))
     marginals = gtsam.Marginals(graph, zero)
-    return np.stack([marginals.marginalCovariance(j) for j in range(n)])
+    return np.stack([marginals.marginalCovariance(j) for j in wanted])
 
 
-def _dense_marginals(groups, n: int) -> np.ndarray:
+def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
     dim = imu.STATE_DIM
     rows = []
     for keys, blocks in groups:
@@ -162,7 +164,7 @@ def _dense_marginals(groups, n: int) -> np.ndarray:
     A = np.vstack(rows)
     cov = np.linalg.pinv(A.T @ A, hermitian=True)
     cov = 0.5 * (cov + cov.T)
-    return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in range(n)])
+    return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in wanted])
 
 
 def _container_rows(problem: Problem, containers, estimate, first: int, n: int) -> np.ndarray:
@@ -212,7 +214,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     smoother = _make_smoother(kind, lag_s)
     newest_states, newest_covs, update_s, recovered = [], [], [], []
     lagged_states: dict[int, imu.ImuState] = {}
-    read_after: dict[int, int] = {}  # keyframe -> the update after which lagged_states got it
+    taken_after: dict[int, int] = {}  # keyframe -> the update after which its lagged values were taken
     lagged_covs: dict[int, np.ndarray] = {}
     first = 0
     skipped = 0
@@ -261,26 +263,28 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             update_s.append(time.perf_counter() - tick)
             present = set(int(key) for key in estimate.keys())
             while problem.keys[first].rot not in present:  # the window is contiguous: [first, k]
-                if read_after.get(first) != k - 1:  # GTSAM marginalised earlier than the rule below says
+                if taken_after.get(first) != k - 1:  # GTSAM marginalised earlier than the rule below says
                     raise RuntimeError(f"fixed-lag: keyframe {first} (t = {problem.times[first]:.6f} s) left the "
-                                       "window before its estimate was read")
+                                       "window before its estimate was taken")
                 first += 1
             in_window = range(first, k + 1)
             newest_states.append(read_state(estimate, problem.keys[k]))
-            lagged_states[k], read_after[k] = newest_states[-1], k
-            # A keyframe's lagged estimate is the one of the last update that holds it: read the
-            # keyframes that the next update marginalises (older than its time minus the lag; a
-            # keyframe read too early, within the margin, is read again later), the whole window
-            # only where the covariances need it -- not all of it at every update.
+            # A keyframe's lagged estimate is the one of the last update that holds it: read (and
+            # take the covariance of) the keyframes that the next update marginalises (older than
+            # its time minus the lag; one read too early, within the margin, is read again later),
+            # not all the window at every update; its states all where the covariances need them
+            # as the linearisation point.
             boundary = problem.times[k + 1] - lag_s + _LAG_MARGIN_S if k + 1 < len(problem.times) else np.inf
-            for j in range(first, k):
-                if not covariances and problem.times[j] >= boundary:
-                    break
-                lagged_states[j], read_after[j] = read_state(estimate, problem.keys[j]), k
+            leaving = [j for j in range(first, k) if problem.times[j] < boundary]
+            for j in (range(first, k) if covariances else leaving):
+                lagged_states[j] = read_state(estimate, problem.keys[j])
+            lagged_states[k] = newest_states[-1]
+            taken_after.update((j, k) for j in leaving + [k])
             if covariances:
                 covs = window_covariances(problem, smoother, estimate, first,
-                                          imu.ImuState.stack([lagged_states[j] for j in in_window]))
-                for j, c in zip(in_window, covs):
+                                          imu.ImuState.stack([lagged_states[j] for j in in_window]),
+                                          [j - first for j in leaving + [k]])
+                for j, c in zip(leaving + [k], covs):
                     lagged_covs[j] = c
                 newest_covs.append(lagged_covs[k])
             bar.update(1)
@@ -295,6 +299,8 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     window_cov = None
     if covariances:
         window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states)
+        for k, c in zip(in_window, window_cov):
+            lagged_covs[k] = c
     newest = Trajectory(problem.times, imu.ImuState.stack(newest_states),
                         np.stack(newest_covs) if covariances else None)
     order = range(len(problem.times))

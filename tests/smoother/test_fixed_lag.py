@@ -177,11 +177,37 @@ def test_each_keyframe_keeps_the_estimate_of_the_last_update_that_held_it(gentle
     assert np.abs(partial.lagged.states.r[:-6] - partial.newest.states.r[:-6]).max(axis=1).min() > 0.0
 
 
-def test_a_keyframe_marginalised_before_it_was_read_is_an_error(gentle, monkeypatch):
-    """The smoother reads a keyframe just before the update that marginalises it; were GTSAM to
-    marginalise earlier than that rule says (simulated by a margin that reads more than a
-    keyframe period too late), the run stops with a clear error instead of returning an old
-    estimate."""
+@pytest.mark.parametrize("covariances", [False, True])
+def test_a_keyframe_marginalised_before_it_was_read_is_an_error(gentle, monkeypatch, covariances):
+    """The smoother takes a keyframe's estimate (and covariance) just before the update that
+    marginalises it; were GTSAM to marginalise earlier than that rule says (simulated by a margin
+    that takes them more than a keyframe period too late), the run stops with a clear error
+    instead of returning an older estimate."""
     monkeypatch.setattr(fixed_lag, "_LAG_MARGIN_S", -0.15)
-    with pytest.raises(RuntimeError, match="left the window before its estimate was read"):
-        run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=False, progress=False)
+    with pytest.raises(RuntimeError, match="left the window before its estimate was taken"):
+        run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=covariances, progress=False)
+
+
+def test_the_lagged_covariances_are_those_of_the_whole_window(gentle, monkeypatch):
+    """Each update takes the marginal covariances of the newest keyframe and of those that leave
+    with the next update only. Reference: the whole window's covariances at every update (taken
+    here beside the run), each keyframe's from the last update that held it, the newest's from its
+    own update -- equal bit for bit."""
+    every = fixed_lag.window_covariances
+    calls = []  # (first keyframe of the window, its covariances) per call
+
+    def whole_window_too(problem, smoother, estimate, first, states, wanted=None):
+        covs = every(problem, smoother, estimate, first, states)
+        calls.append((first, covs))
+        return covs if wanted is None else covs[list(wanted)]
+
+    monkeypatch.setattr(fixed_lag, "window_covariances", whole_window_too)
+    result = run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=True, progress=False)
+    lagged, newest = {}, []
+    for first, covs in calls[:-1]:  # one call per update, then one for the last window
+        lagged.update((first + i, c) for i, c in enumerate(covs))
+        newest.append(covs[-1])
+    assert len(newest) == len(result.newest.t)
+    np.testing.assert_array_equal(result.newest.cov, np.stack(newest))
+    np.testing.assert_array_equal(result.lagged.cov, np.stack([lagged[j] for j in range(len(result.lagged.t))]))
+    np.testing.assert_array_equal(result.window.cov, calls[-1][1])
