@@ -42,7 +42,8 @@ from smoother.progress import progress_bar
 KINDS = ("batch", "incremental")
 
 #: Keyframes this close to the next update's marginalisation boundary (its time minus the lag)
-#: are read before it as well: GTSAM marginalises those strictly older than the boundary.
+#: have their lagged values taken before it as well: GTSAM marginalises those strictly older than
+#: the boundary.
 _LAG_MARGIN_S = 1e-6
 
 #: Standard deviations of the weak prior added when an update is indeterminant.
@@ -269,11 +270,11 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
                 first += 1
             in_window = range(first, k + 1)
             newest_states.append(read_state(estimate, problem.keys[k]))
-            # A keyframe's lagged estimate is the one of the last update that holds it: read (and
-            # take the covariance of) the keyframes that the next update marginalises (older than
-            # its time minus the lag; one read too early, within the margin, is read again later),
-            # not all the window at every update; its states all where the covariances need them
-            # as the linearisation point.
+            # A keyframe's lagged estimate and covariance are those of the last update that holds
+            # it: take them for the keyframes that the next update marginalises (older than its
+            # time minus the lag; one taken too early, within the margin, is taken again later) and
+            # the newest, not for the whole window at every update. The covariances still need
+            # every window state (their linearisation point).
             boundary = problem.times[k + 1] - lag_s + _LAG_MARGIN_S if k + 1 < len(problem.times) else np.inf
             leaving = [j for j in range(first, k) if problem.times[j] < boundary]
             for j in (range(first, k) if covariances else leaving):
