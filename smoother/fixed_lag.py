@@ -1,9 +1,11 @@
 """Fixed-lag smoothing on GTSAM's ``BatchFixedLagSmoother`` / ``IncrementalFixedLagSmoother``.
 
-The factors of a :class:`smoother.graph.Problem` are fed keyframe by keyframe, in time order,
-each with the keyframe's time stamp; variables older than the lag (seconds) are marginalised by
-GTSAM. The new keyframe's initial value is the IMU prediction from the smoother's current
-estimate of the previous keyframe. After every update the newest state's estimate and, if asked,
+The factors of a :class:`smoother.graph.Problem` are made and fed keyframe by keyframe
+(``Problem.keyframe_factors``), in time order, each with the keyframe's time stamp; variables older
+than the lag (seconds) are marginalised by GTSAM, and the loop lets go of the factors GTSAM has
+marginalised, so what a run holds of the graph stays the size of the window however long it is.
+The new keyframe's initial value is the IMU prediction from the smoother's current estimate of
+the previous keyframe. After every update the newest state's estimate and, if asked,
 its 15x15 covariance (primer convention) are recorded; the smoothed window is returned at the end.
 
 GTSAM pitfalls handled here:
@@ -95,16 +97,17 @@ def _make_smoother(kind: str, lag_s: float):
 
 
 def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first: int,
-                       states: imu.ImuState, wanted=None) -> np.ndarray:
+                       states: imu.ImuState, rows_of: dict, wanted=None) -> np.ndarray:
     """Primer-convention 15x15 covariances of the window's keyframes ``first, first + 1, ...``
     (their states ``states``) from the smoother's current factors linearised at ``estimate``;
-    of those at the window positions ``wanted`` only (0 = ``first``; default all).
+    of those at the window positions ``wanted`` only (0 = ``first``; default all). ``rows_of``:
+    ``id(factor) -> (block index, row)`` of the project's factors in the smoother.
 
-    The project's own factors in the window are linearised together by the vectorised blocks
-    of :mod:`smoother.solver` (no Python callback per factor), the smoother's marginal factors
-    (``LinearContainerFactor``) by GTSAM with their ``Rot3`` columns moved into the primer's
-    chart (``J C^T``). The resulting linear system -- one 15-dim variable per window keyframe --
-    goes to ``gtsam.Marginals`` (sparse elimination). A window that Cholesky calls indeterminant
+    The project's own factors in the window (those in ``rows_of``) are linearised together by the
+    vectorised blocks of :mod:`smoother.solver` (no Python callback per factor), the smoother's
+    marginal factors (``LinearContainerFactor``) by GTSAM with their ``Rot3`` columns moved into
+    the primer's chart (``J C^T``). The resulting linear system -- one 15-dim variable per window
+    keyframe -- goes to ``gtsam.Marginals`` (sparse elimination). A window that Cholesky calls indeterminant
     (nearly singular: sparse GPS, which the QR-based smoothers accept) falls back to a dense
     pseudo-inverse of ``A^T A``, where an unconstrained direction shows as a large variance."""
     n = len(states)
@@ -117,7 +120,7 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
         f = factors.at(i)
         if f is None:
             continue
-        where = problem.rows_of.get(id(f))
+        where = rows_of.get(id(f))
         if where is None:
             containers.add(f)
         else:
@@ -220,21 +223,28 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     first = 0
     skipped = 0
     present: set[int] = set()
+    # the factors given to the smoother, by their earliest keyframe, until GTSAM marginalises it
+    # (and with it the factor); rows_of maps them to the problem's blocks for window_covariances
+    held: dict[int, list] = {}
+    rows_of: dict[int, tuple[int, int]] = {}
     with progress_bar(len(problem.times), f"fixed-lag ({kind})", progress) as bar:
         for k, t_k in enumerate(problem.times):
             keys = problem.keys[k]
             new_keys = set(keys.all())
             graph = gtsam.NonlinearFactorGraph()
-            for f in problem.factors_at[k]:
+            made = problem.keyframe_factors(k)
+            for f, where, oldest in zip(made.factors, made.rows, made.oldest):
                 if all(key in present or key in new_keys for key in f.keys()):
                     graph.add(f)
+                    held.setdefault(oldest, []).append(f)
+                    rows_of[id(f)] = where
                 else:
                     skipped += 1
             values = gtsam.Values()
             if k == 0:
                 guess = problem.initial_states[0]
             else:  # from the smoother's estimate of the previous keyframe after the last update
-                guess = problem.imu_factors[k - 1].predict(newest_states[-1])
+                guess = made.imu.predict(newest_states[-1])
             insert_state(values, keys, guess)
             stamps = gtsam.FixedLagSmootherKeyTimestampMap()
             for key in keys.all():
@@ -267,6 +277,8 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
                 if taken_after.get(first) != k - 1:  # GTSAM marginalised earlier than the rule below says
                     raise RuntimeError(f"fixed-lag: keyframe {first} (t = {problem.times[first]:.6f} s) left the "
                                        "window before its estimate was taken")
+                for f in held.pop(first, ()):  # marginalised with the keyframe: GTSAM has let go of it
+                    del rows_of[id(f)]
                 first += 1
             in_window = range(first, k + 1)
             newest_states.append(read_state(estimate, problem.keys[k]))
@@ -283,7 +295,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             taken_after.update((j, k) for j in leaving + [k])
             if covariances:
                 covs = window_covariances(problem, smoother, estimate, first,
-                                          imu.ImuState.stack([lagged_states[j] for j in in_window]),
+                                          imu.ImuState.stack([lagged_states[j] for j in in_window]), rows_of,
                                           [j - first for j in leaving + [k]])
                 for j, c in zip(leaving + [k], covs):
                     lagged_covs[j] = c
@@ -299,7 +311,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     window_states = imu.ImuState.stack([lagged_states[k] for k in in_window])
     window_cov = None
     if covariances:
-        window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states)
+        window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states, rows_of)
         for k, c in zip(in_window, window_cov):
             lagged_covs[k] = c
     newest = Trajectory(problem.times, imu.ImuState.stack(newest_states),

@@ -12,8 +12,9 @@ and, where positions are measured, the velocity is taken from their finite diffe
 initial trajectory is the reference along which each IMU factor's noise covariance is computed
 (one call: :func:`factors.preintegration.integrate_with_covariance`).
 
-The GTSAM factors (``Problem.graph`` and friends) are built on first use: the batch solver runs on
-the vectorised blocks and never needs them.
+The GTSAM factors are made keyframe by keyframe (``Problem.keyframe_factors``, what the fixed-lag
+smoothers take), and the whole GTSAM graph (``Problem.graph`` and friends) from them on first use:
+the batch solver runs on the vectorised blocks and never needs them.
 """
 from __future__ import annotations
 
@@ -90,11 +91,25 @@ def noise_model(cov: np.ndarray, robust=None):
 
 
 @dataclass
+class KeyframeFactors:
+    """The GTSAM factors that become available at one keyframe ``k`` (all their keyframes are
+    ``<= k``), in the order they are added: the prior (keyframe 0), the IMU factor from keyframe
+    ``k - 1`` (``imu``, None at keyframe 0), then the measurement factors whose latest keyframe is
+    ``k``, block by block. ``rows[i]`` is ``(block index, row)`` of ``factors[i]`` in the
+    problem's blocks, ``oldest[i]`` its earliest keyframe."""
+
+    imu: ImuFactor | None
+    factors: list
+    rows: list[tuple[int, int]]
+    oldest: list[int]
+
+
+@dataclass
 class GtsamGraph:
     """A problem's factors as GTSAM factors: the ``graph`` with its ``initial`` values, the IMU
-    factors, the factors grouped by the keyframe at which they become available (``factors_at``,
-    for fixed-lag smoothing) and ``rows_of``: ``id(gtsam factor) -> (block index, row)``, where
-    each factor sits in the problem's blocks."""
+    factors, the factors grouped by the keyframe at which they become available (``factors_at``)
+    and ``rows_of``: ``id(gtsam factor) -> (block index, row)``, where each factor sits in the
+    problem's blocks."""
 
     graph: gtsam.NonlinearFactorGraph
     initial: gtsam.Values
@@ -106,23 +121,27 @@ class GtsamGraph:
 @dataclass
 class Problem:
     """A dataset's factor graph, twice over: as vectorised :class:`smoother.solver.Block` s (the
-    batch solver's) and as GTSAM factors (:class:`GtsamGraph`: for GTSAM's optimisers, the
-    fixed-lag smoothers and the cross-checks) over the same residual functions. The GTSAM side
-    is built on first use (``gtsam_parts`` is None until then): the batch solver never needs it,
-    and building it took about half of the problem's construction."""
+    batch solver's) and as GTSAM factors over the same residual functions.
+
+    ``keyframe_factors(k)`` makes the GTSAM factors that become available at keyframe ``k``
+    (:class:`KeyframeFactors`), new ones at every call: the fixed-lag smoothers take them keyframe
+    by keyframe and let them go when GTSAM has marginalised them, so a run holds the window's
+    factors only. The whole GTSAM graph (:class:`GtsamGraph`: for GTSAM's optimisers and the
+    cross-checks) is built from them on first use (``gtsam_parts`` is None until then): the batch
+    solver never needs it, and building it took about half of the problem's construction."""
 
     times: np.ndarray
     keys: list[KeyframeKeys]
     initial_states: imu.ImuState
     blocks: list[Block]
-    build_gtsam: Callable[["Problem"], GtsamGraph] = field(repr=False)
+    keyframe_factors: Callable[[int], KeyframeFactors] = field(repr=False)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
     gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
 
     @property
     def gtsam(self) -> GtsamGraph:
         if self.gtsam_parts is None:
-            self.gtsam_parts = self.build_gtsam(self)
+            self.gtsam_parts = _whole_graph(self)
         return self.gtsam_parts
 
     @property
@@ -251,7 +270,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
-    measurements = []  # (spec, keyframes, data, cov, kernel) of each measurement block
+    measurements = []  # (block index, spec, keyframes, data, cov, kernel) of each measurement block
     for spec in _measurement_specs(dataset):
         rows = np.flatnonzero(np.all([_match(times, t) >= 0 for t in spec["times"]], axis=0))
         if rows.size == 0:
@@ -263,35 +282,48 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel, cov.shape[-1])))
         measurements.append((len(blocks) - 1, spec, kf, data, cov, kernel))
 
-    def build_gtsam(problem: Problem) -> GtsamGraph:
-        """The GTSAM factors; initial values from ``problem.initial_states`` at the time of the
-        first use (so a copy of the problem with other initial states gets its own)."""
-        factors_at: list[list] = [[] for _ in times]
-        factors_at[0].append(meas.state_prior_factor(keys[0], prior, dataset.initial_cov))
-        rows_of = {id(factors_at[0][0]): (1, 0)}
-        imu_factors = []
-        for k in range(1, len(times)):
-            f = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
-                          reintegration_threshold=reintegration_threshold)
-            imu_factors.append(f)
-            factors_at[k].append(f.factor)
-            rows_of[id(f.factor)] = (0, k - 1)
-        for block, spec, kf, data, cov, kernel in measurements:
-            for m in range(len(kf)):
-                factor = spec["factor"]([keys[k] for k in kf[m]], [a[m] for a in data], noise_model(cov[m], kernel))
-                factors_at[int(kf[m].max())].append(factor)
-                rows_of[id(factor)] = (block, m)
-        graph = gtsam.NonlinearFactorGraph()
-        for group in factors_at:
-            for f in group:
-                graph.add(f)
-        values = gtsam.Values()
-        for k, kk in enumerate(keys):
-            insert_state(values, kk, problem.initial_states[k])
-        return GtsamGraph(graph, values, imu_factors, factors_at, rows_of)
+    # the rows of each measurement block by the keyframe at which they become available (their
+    # latest): rows order[bounds[k]:bounds[k + 1]], ascending within a keyframe
+    available = []
+    for _, _, kf, _, _, _ in measurements:
+        latest = kf.max(axis=1)
+        order = np.argsort(latest, kind="stable")
+        available.append((order, np.searchsorted(latest[order], np.arange(len(times) + 1))))
 
-    return Problem(times, keys, initial_states, blocks, build_gtsam, dataset.gravity)
+    def keyframe_factors(k: int) -> KeyframeFactors:
+        """The GTSAM factors available at keyframe ``k`` (see :class:`Problem`)."""
+        if k == 0:
+            out = KeyframeFactors(None, [meas.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0])
+        else:
+            imu_factor = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
+                                   reintegration_threshold=reintegration_threshold)
+            out = KeyframeFactors(imu_factor, [imu_factor.factor], [(0, k - 1)], [k - 1])
+        for (block, spec, kf, data, cov, kernel), (order, bounds) in zip(measurements, available):
+            for m in order[bounds[k]:bounds[k + 1]]:
+                out.factors.append(spec["factor"]([keys[j] for j in kf[m]], [a[m] for a in data],
+                                                  noise_model(cov[m], kernel)))
+                out.rows.append((block, int(m)))
+                out.oldest.append(int(kf[m].min()))
+        return out
 
+    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity)
+
+
+
+def _whole_graph(problem: Problem) -> GtsamGraph:
+    """All of ``problem``'s GTSAM factors in one graph, with initial values from
+    ``problem.initial_states`` at the time of the call (so a copy of the problem with other
+    initial states gets its own)."""
+    groups = [problem.keyframe_factors(k) for k in range(len(problem.times))]
+    graph = gtsam.NonlinearFactorGraph()
+    for group in groups:
+        for f in group.factors:
+            graph.add(f)
+    values = gtsam.Values()
+    for k, kk in enumerate(problem.keys):
+        insert_state(values, kk, problem.initial_states[k])
+    rows_of = {id(f): where for group in groups for f, where in zip(group.factors, group.rows)}
+    return GtsamGraph(graph, values, [group.imu for group in groups[1:]], [group.factors for group in groups], rows_of)
 
 def _block_residual(spec: dict, data: list[np.ndarray]):
     """A vectorised block residual from a measurement spec: reads each slot's variables, calls the

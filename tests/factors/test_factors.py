@@ -28,7 +28,9 @@ the IMU factor and far more in the measurement factor.
 """
 from __future__ import annotations
 
+import gc
 import math
+import weakref
 
 import gtsam
 import numpy as np
@@ -421,7 +423,7 @@ def test_check_factor_fails_a_wrong_block_in_the_imu_factor(block, rows):
     assert checked("control", f.factor, values).ok
     model = noise_model("gaussian", pre.cov)
     keys = keyframe_keys(0).all() + keyframe_keys(1).all()
-    bad = custom_factor(model, keys, [ROT, VEC, VEC, BIAS] * 2, _wrap(f._residual, 3, rows, 1e-3))
+    bad = custom_factor(model, keys, [ROT, VEC, VEC, BIAS] * 2, _wrap(f._interval.residual, 3, rows, 1e-3))
     result = checked("control", bad, values)
     assert not result.ok
     assert [c.ok for c in result.comparisons] == [True, True, True, False, True, True, True, True]
@@ -496,6 +498,24 @@ def test_imu_factor_integrates_again_beyond_the_threshold():
     # the first-order model it replaced was measurably worse at this offset
     e_first = preintegration.residual(pre, x_i, x_j, GRAVITY)
     assert np.abs(e_first - e_exact).max() > 1e3 * np.abs(e - e_exact).max() + 1e-9
+
+
+def test_imu_factor_is_freed_when_nothing_refers_to_it_and_its_factor_outlives_it():
+    """GTSAM's C++ factor holds the Python callback; if that callback referred back to the
+    ImuFactor (which holds the factor), the cycle would run through C++, where Python's collector
+    cannot see it, and no IMU factor would ever be freed (every one a fixed-lag run made stayed in
+    memory). Dropped, the ImuFactor is gone at once; its GTSAM factor, still in a graph, keeps
+    working and re-integrating on its own."""
+    f, values, pre, exact, x_i, x_j = _reintegration_setup(np.array([0.0, 0.03, -0.01]))
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(f.factor)
+    alive = weakref.ref(f)
+    expected = f.factor.error(values)
+    f.factor.error(_reintegration_setup(np.zeros(3))[1])  # back at the original bias: integrated again
+    del f
+    gc.collect()
+    assert alive() is None
+    assert graph.error(values) == expected  # re-integrated once more, by the callback alone
 
 
 def test_imu_factor_keeps_its_integration_below_the_threshold():

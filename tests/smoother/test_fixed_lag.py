@@ -3,7 +3,9 @@ factors older than the lag, recovery, options. (Tracking of the EKF is in test_c
 from __future__ import annotations
 
 import functools
+import gc
 import warnings
+import weakref
 from dataclasses import replace
 
 import gtsam
@@ -130,13 +132,44 @@ def test_a_keyframe_without_imu_link_is_recovered_with_a_weak_prior(kind):
     data = simulate(profile="gentle", duration=1.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
     problem = build_problem(data)
     k = 5
-    imu_factor = problem.imu_factors[k - 1].factor
-    factors_at = [[f for f in group if f is not imu_factor] for group in problem.factors_at]
-    assert len(factors_at[k]) == len(problem.factors_at[k]) - 1
-    result = run_fixed_lag(replace(problem, gtsam_parts=replace(problem.gtsam, factors_at=factors_at)), 0.3, kind,
-                           progress=False)
+
+    def without_imu_factor(j):
+        made = problem.keyframe_factors(j)
+        if j == k:  # the factor goes; the interval's prediction (the initial guess) stays
+            assert made.factors[0] is made.imu.factor and len(made.factors) == 2
+            made = replace(made, factors=made.factors[1:], rows=made.rows[1:], oldest=made.oldest[1:])
+        return made
+
+    result = run_fixed_lag(replace(problem, keyframe_factors=without_imu_factor), 0.3, kind, progress=False)
     assert result.recovered == [k]
     assert np.all(np.isfinite(result.newest.states.r))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_run_holds_the_factors_of_its_window_only(kind, gentle):
+    """The loop makes each keyframe's factors when it reaches it and lets go of them when GTSAM
+    marginalises their keyframes, so what a run holds does not grow with its length. Watched
+    through weak references to everything made (41 keyframes at 10 Hz, lag 0.5 s: a window of 6
+    keyframes, an IMU and a pose factor each): when keyframe k's factors are made, at most 14 of
+    the GTSAM factors made before are alive (measured 12; with the whole problem's factors held,
+    81) and at most one ImuFactor, the previous keyframe's (GTSAM's factor keeps only what its
+    callback needs; with a callback that referred back to the ImuFactor, a reference cycle through
+    GTSAM's C++ objects would keep all 40 alive). After the run nothing is."""
+    problem = cases.problem(gentle)
+    imu_factors, factors, alive_at = [], [], []  # weak references; (IMU, all) alive at each keyframe
+
+    def watched(k):
+        alive_at.append(tuple(sum(r() is not None for r in refs) for refs in (imu_factors, factors)))
+        made = problem.keyframe_factors(k)
+        imu_factors.extend(weakref.ref(made.imu) for _ in range(made.imu is not None))
+        factors.extend(weakref.ref(f) for f in made.factors)
+        return made
+
+    run_fixed_lag(replace(problem, keyframe_factors=watched), 0.5, kind, covariances=True, progress=False)
+    gc.collect()
+    assert len(alive_at) == len(problem.times) == 41
+    assert max(a for a, _ in alive_at) <= 1 and max(b for _, b in alive_at) <= 14, alive_at
+    assert not any(r() is not None for r in imu_factors + factors)
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -196,8 +229,8 @@ def test_the_lagged_covariances_are_those_of_the_whole_window(gentle, monkeypatc
     every = fixed_lag.window_covariances
     calls = []  # (first keyframe of the window, its covariances) per call
 
-    def whole_window_too(problem, smoother, estimate, first, states, wanted=None):
-        covs = every(problem, smoother, estimate, first, states)
+    def whole_window_too(problem, smoother, estimate, first, states, rows_of, wanted=None):
+        covs = every(problem, smoother, estimate, first, states, rows_of)
         calls.append((first, covs))
         return covs if wanted is None else covs[list(wanted)]
 
