@@ -22,7 +22,8 @@ interleaved, medians taken, because the machine is noisy):
    (mean): build (preintegration included) + optimise, covariances off; covariance time of the
    short runs; the growth of the cost per keyframe on a power law fitted through the lengths;
 5. fixed-lag update times (lag 2 s, covariances off): incremental over one hour (overall and per
-   tenth of the run: flat is part of the target), batch kind over a shorter run (it is ~100x
+   tenth of the run: flat is part of the target; and the objects the run left for Python's
+   collector, which a flat run does not accumulate), batch kind over a shorter run (it is ~100x
    slower per update);
 6. peak resident memory of the one-hour batch run, measured in a child process (``os.wait4``
    gives that child's own ``ru_maxrss``).
@@ -34,6 +35,7 @@ Run: python benchmarks/run.py [--quick] [--json]
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import platform
@@ -402,7 +404,11 @@ def fixed_lag_run(duration_s: float, kind: str) -> dict:
     part of the target: a smoother whose cost grows with the data it has seen would drift off
     real time in a long mission)."""
     problem = build_problem(_synthetic(duration_s), keyframe_rate=KEYFRAME_RATE)
+    gc.collect()
+    objects_before = len(gc.get_objects())
     result = run_fixed_lag(problem, LAG_S, kind, covariances=False, progress=False)
+    gc.collect()
+    objects_added = len(gc.get_objects()) - objects_before  # what the run left behind for the collector
     ms = 1e3 * result.update_s
     minutes = max(int(np.ceil(duration_s / 60.0 - 1e-9)), 1)  # the last keyframe (t = end) joins the last minute
     minute = np.minimum((problem.times - problem.times[0]) // 60.0, minutes - 1).astype(int)
@@ -417,6 +423,7 @@ def fixed_lag_run(duration_s: float, kind: str) -> dict:
         "per_tenth_median_ms": [float(np.median(t)) for t in tenths],
         "per_tenth_p99_ms": [float(np.percentile(t, 99)) for t in tenths],
         "total_s": result.runtime_s,
+        "python_objects_added": objects_added,
     }
 
 
