@@ -7,7 +7,9 @@ dt ending at its own time stamp, as the example does), a BetweenFactorConstantBi
 a GPS factor at every K-th fix (sigma sqrt(0.07) m) and the example's priors. The bias between
 factor's sigma is sqrt(n) * metadata sigma with n either the samples of the interval ("interval",
 as in the C++ original) or the running count since the start ("cumulative", as the Python example
-counts it). Cholesky fails on this graph (indeterminant system: the example's pose prior leaves the
+counts it). A third native row replaces each ImuFactor and bias between factor by one
+CombinedImuFactor with the same noise (the bias walk inside the IMU factor, correlated with the
+navigation states: GTSAM's own version of this project's model, for comparison). Cholesky fails on this graph (indeterminant system: the example's pose prior leaves the
 position free), so the linear solver is QR.
 
 Prints JSON and a table: held-out RMS position error against the GPS fixes not used, and wall
@@ -29,18 +31,26 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from datasets import kitti
+from smoother.native import combined_params
 
 
-def native(gps_every: int, bias_count: str) -> dict:
+def native(gps_every: int, bias_count: str, factor: str = "imu") -> dict:
+    """GTSAM's pipeline; ``factor`` "imu" (ImuFactor + bias between factor, ``bias_count`` as
+    above) or "combined" (CombinedImuFactor, the walk's densities those of our model)."""
     meta = kitti.read_metadata()
     t_imu, dt_imu, acc, gyro = _raw_imu()
     t_gps, p_gps, _ = kitti.read_gps()
     first = 1
     tick = time.perf_counter()
-    params = gtsam.PreintegrationParams.MakeSharedU(9.8)
-    params.setAccelerometerCovariance(np.eye(3) * meta.accelerometer_sigma**2)
-    params.setGyroscopeCovariance(np.eye(3) * meta.gyroscope_sigma**2)
-    params.setIntegrationCovariance(np.eye(3) * meta.integration_sigma**2)
+    if factor == "combined":
+        params = combined_params(meta.noise(), kitti.GRAVITY)
+        pim_class = gtsam.PreintegratedCombinedMeasurements
+    else:
+        params = gtsam.PreintegrationParams.MakeSharedU(9.8)
+        params.setAccelerometerCovariance(np.eye(3) * meta.accelerometer_sigma**2)
+        params.setGyroscopeCovariance(np.eye(3) * meta.gyroscope_sigma**2)
+        params.setIntegrationCovariance(np.eye(3) * meta.integration_sigma**2)
+        pim_class = gtsam.PreintegratedImuMeasurements
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     pose0 = gtsam.Pose3(gtsam.Rot3(), p_gps[first])
     graph.add(gtsam.PriorFactorPose3(X(first), pose0, gtsam.noiseModel.Diagonal.Precisions([0, 0, 0, 1, 1, 1])))
@@ -58,7 +68,7 @@ def native(gps_every: int, bias_count: str) -> dict:
     running = 0
     j = np.searchsorted(t_imu, t_gps[first], side="left")
     for i in range(first + 1, len(t_gps)):
-        pim = gtsam.PreintegratedImuMeasurements(params, bias0)
+        pim = pim_class(params, bias0)
         n = 0
         while j < len(t_imu) and t_imu[j] <= t_gps[i]:
             if t_imu[j] >= t_gps[i - 1]:
@@ -67,10 +77,13 @@ def native(gps_every: int, bias_count: str) -> dict:
             j += 1
         running += n
         count = n if bias_count == "interval" else running
-        graph.add(gtsam.ImuFactor(X(i - 1), V(i - 1), X(i), V(i), B(i - 1), pim))
-        sig = np.sqrt(max(count, 1)) * np.array([meta.accelerometer_bias_sigma] * 3 + [meta.gyroscope_bias_sigma] * 3)
-        graph.add(gtsam.BetweenFactorConstantBias(B(i - 1), B(i), gtsam.imuBias.ConstantBias(),
-                                                  gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        if factor == "combined":
+            graph.add(gtsam.CombinedImuFactor(X(i - 1), V(i - 1), X(i), V(i), B(i - 1), B(i), pim))
+        else:
+            graph.add(gtsam.ImuFactor(X(i - 1), V(i - 1), X(i), V(i), B(i - 1), pim))
+            sig = np.sqrt(max(count, 1)) * np.array([meta.accelerometer_bias_sigma] * 3 + [meta.gyroscope_bias_sigma] * 3)
+            graph.add(gtsam.BetweenFactorConstantBias(B(i - 1), B(i), gtsam.imuBias.ConstantBias(),
+                                                      gtsam.noiseModel.Diagonal.Sigmas(sig)))
         nav = pim.predict(nav, bias0)
         pose = nav.pose()
         if (i % gps_every) == 0:
@@ -129,6 +142,7 @@ def main() -> None:
     rows = {
         "native_interval": native(args.gps_every, "interval"),
         "native_cumulative": native(args.gps_every, "cumulative"),
+        "native_combined": native(args.gps_every, "interval", factor="combined"),
         "ours_batch": ours(args.gps_every),
         "ours_batch_tuned_noise": ours(args.gps_every, tune_noise=True),
     }
