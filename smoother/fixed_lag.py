@@ -216,10 +216,13 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
         raise ValueError(f"lag must be positive, got {lag_s}")
     start = time.perf_counter()
     smoother = _make_smoother(kind, lag_s)
-    newest_states, newest_covs, update_s, recovered = [], [], [], []
-    lagged_states: dict[int, imu.ImuState] = {}
+    n = len(problem.times)
+    # the outputs, filled row by row (NaN until then: a row never filled fails Trajectory's checks)
+    newest, lagged = _unfilled_states(n), _unfilled_states(n)
+    newest_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
+    lagged_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
+    update_s, recovered = [], []
     taken_after: dict[int, int] = {}  # keyframe -> the update after which its lagged values were taken
-    lagged_covs: dict[int, np.ndarray] = {}
     first = 0
     skipped = 0
     present: set[int] = set()
@@ -244,7 +247,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             if k == 0:
                 guess = problem.initial_states[0]
             else:  # from the smoother's estimate of the previous keyframe after the last update
-                guess = made.imu.predict(newest_states[-1])
+                guess = made.imu.predict(newest_state)
             insert_state(values, keys, guess)
             stamps = gtsam.FixedLagSmootherKeyTimestampMap()
             for key in keys.all():
@@ -280,8 +283,8 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
                 for f in held.pop(first, ()):  # marginalised with the keyframe: GTSAM has let go of it
                     del rows_of[id(f)]
                 first += 1
-            in_window = range(first, k + 1)
-            newest_states.append(read_state(estimate, problem.keys[k]))
+            newest_state = read_state(estimate, problem.keys[k])
+            _put(newest, k, newest_state)
             # A keyframe's lagged estimate and covariance are those of the last update that holds
             # it: take them for the keyframes that the next update marginalises (older than its
             # time minus the lag; one taken too early, within the margin, is taken again later) and
@@ -290,16 +293,14 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
             boundary = problem.times[k + 1] - lag_s + _LAG_MARGIN_S if k + 1 < len(problem.times) else np.inf
             leaving = [j for j in range(first, k) if problem.times[j] < boundary]
             for j in (range(first, k) if covariances else leaving):
-                lagged_states[j] = read_state(estimate, problem.keys[j])
-            lagged_states[k] = newest_states[-1]
+                _put(lagged, j, read_state(estimate, problem.keys[j]))
+            _put(lagged, k, newest_state)
             taken_after.update((j, k) for j in leaving + [k])
             if covariances:
-                covs = window_covariances(problem, smoother, estimate, first,
-                                          imu.ImuState.stack([lagged_states[j] for j in in_window]), rows_of,
-                                          [j - first for j in leaving + [k]])
-                for j, c in zip(leaving + [k], covs):
-                    lagged_covs[j] = c
-                newest_covs.append(lagged_covs[k])
+                taken = leaving + [k]
+                lagged_cov[taken] = window_covariances(problem, smoother, estimate, first, lagged[first:k + 1],
+                                                       rows_of, [j - first for j in taken])
+                newest_cov[k] = lagged_cov[k]
             bar.update(1)
     if skipped:
         warnings.warn(f"{skipped} factors referred to variables older than the lag ({lag_s} s) and were skipped",
@@ -307,19 +308,24 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     estimate = smoother.calculateEstimate()
     in_window = [k for k, kk in enumerate(problem.keys) if estimate.exists(kk.rot)]
     for k in in_window:
-        lagged_states[k] = read_state(estimate, problem.keys[k])
-    window_states = imu.ImuState.stack([lagged_states[k] for k in in_window])
+        _put(lagged, k, read_state(estimate, problem.keys[k]))
+    window_states = lagged[in_window]
     window_cov = None
     if covariances:
         window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states, rows_of)
-        for k, c in zip(in_window, window_cov):
-            lagged_covs[k] = c
-    newest = Trajectory(problem.times, imu.ImuState.stack(newest_states),
-                        np.stack(newest_covs) if covariances else None)
-    order = range(len(problem.times))
-    lagged = Trajectory(problem.times, imu.ImuState.stack([lagged_states[j] for j in order]),
-                        np.stack([lagged_covs[j] for j in order]) if covariances else None)
-    window = Trajectory(problem.times[in_window], window_states, window_cov)
-    return FixedLagResult(newest, lagged, window, np.array(update_s), recovered, skipped,
-                          time.perf_counter() - start)
+        lagged_cov[in_window] = window_cov
+    return FixedLagResult(Trajectory(problem.times, newest, newest_cov), Trajectory(problem.times, lagged, lagged_cov),
+                          Trajectory(problem.times[in_window], window_states, window_cov), np.array(update_s),
+                          recovered, skipped, time.perf_counter() - start)
+
+
+def _unfilled_states(n: int) -> imu.ImuState:
+    """``n`` states to be filled row by row (:func:`_put`), NaN until then."""
+    return imu.ImuState(*(np.full((n,) + tail, np.nan) for tail in ((3,), (3,), (3, 3), (3,), (3,))))
+
+
+def _put(rows: imu.ImuState, k: int, state: imu.ImuState) -> None:
+    """Row ``k`` of ``rows`` set to the one state ``state``."""
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        getattr(rows, name)[k] = getattr(state, name)
 
