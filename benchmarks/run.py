@@ -213,6 +213,8 @@ def bench_preintegration(s: Settings) -> dict:
         "preintegration_marginal_us_per_sample": 1e6 * _median(marginal),
         "preintegration_fixed_ms_per_call": 1e3 * _median(fixed),
         "preintegration_one_thread_us_per_sample": us(_median(t["ours_one_thread"])),
+        # what the second thread gains: ~1 in the machine's fast moments, up to ~1.7 in its slow ones
+        "preintegration_two_thread_gain": _median(t["ours_one_thread"]) / _median(t["ours"]),
         "preintegration_threads": compiled.thread_count(),
         "preintegration_without_covariance_us_per_sample": us(_median(t["integrate"])),
         # the fastest repetition of each: what the code costs when the machine is quiet
@@ -480,6 +482,7 @@ def _table_rows(r: dict) -> list:
         row("preintegration_marginal_us_per_sample", "us"),
         row("preintegration_fixed_ms_per_call", "ms"),
         row("preintegration_one_thread_us_per_sample", "us"),
+        row("preintegration_two_thread_gain", "x"),
         row("preintegration_without_covariance_us_per_sample", "us"),
         row("gtsam_preintegration_us_per_sample", "us"),
         row("gtsam_combined_preintegration_us_per_sample", "us"),
