@@ -237,6 +237,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covarianc
     newest_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
     lagged_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
     update_s, recovered = [], []
+    newest_state = None  # the newest keyframe's estimate as read after the last update
     taken_after: dict[int, int] = {}  # keyframe -> the update after which its lagged values were taken
     first = 0
     skipped = 0
