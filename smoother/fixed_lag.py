@@ -151,17 +151,9 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     rank-deficient window, or a factor on more than three keyframes, which the Python
     ``JacobianFactor`` cannot hold -- goes to that dense pseudo-inverse."""
     if all(len(keys) <= 3 for keys, _ in groups):
-        graph = gtsam.GaussianFactorGraph()
-        for keys, blocks in groups:
-            args = [x for pair in zip(keys, blocks) for x in pair]
-            graph.add(gtsam.JacobianFactor(*args, np.zeros(blocks[0].shape[0]),
-                                           gtsam.noiseModel.Unit.Create(blocks[0].shape[0])))
+        graph = _linear_graph(groups)
         try:
-            zero = gtsam.VectorValues()
-            for j in range(n):
-                zero.insert(j, np.zeros(imu.STATE_DIM))
-            marginals = gtsam.Marginals(graph, zero)
-            return np.stack([marginals.marginalCovariance(j) for j in wanted])
+            return _cholesky_marginals(graph, n, wanted)
         except RuntimeError:
             pass
         try:
@@ -172,7 +164,29 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     return _dense_marginals(groups, n, wanted)
 
 
-def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
+def _linear_graph(groups) -> gtsam.GaussianFactorGraph:
+    """``groups`` (at most three positions per factor) as GTSAM ``JacobianFactor`` s on keys
+    ``0 .. n - 1``, unit noise (the rows are whitened already)."""
+    graph = gtsam.GaussianFactorGraph()
+    for keys, blocks in groups:
+        args = [x for pair in zip(keys, blocks) for x in pair]
+        graph.add(gtsam.JacobianFactor(*args, np.zeros(blocks[0].shape[0]),
+                                       gtsam.noiseModel.Unit.Create(blocks[0].shape[0])))
+    return graph
+
+
+def _cholesky_marginals(graph: gtsam.GaussianFactorGraph, n: int, wanted) -> np.ndarray:
+    """GTSAM's ``Marginals`` (Cholesky) of ``graph``'s keys ``wanted``; RuntimeError where GTSAM
+    calls the system indeterminant."""
+    zero = gtsam.VectorValues()
+    for j in range(n):
+        zero.insert(j, np.zeros(imu.STATE_DIM))
+    marginals = gtsam.Marginals(graph, zero)
+    return np.stack([marginals.marginalCovariance(j) for j in wanted])
+
+
+def _stacked_rows(groups, n: int) -> np.ndarray:
+    """``groups`` as one dense matrix of rows over the ``n`` window positions' 15 columns each."""
     dim = imu.STATE_DIM
     rows = []
     for keys, blocks in groups:
@@ -180,7 +194,12 @@ def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
         for j, A in zip(keys, blocks):
             part[:, j * dim:(j + 1) * dim] += A
         rows.append(part)
-    A = np.vstack(rows)
+    return np.vstack(rows)
+
+
+def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
+    dim = imu.STATE_DIM
+    A = _stacked_rows(groups, n)
     cov = np.linalg.pinv(A.T @ A, hermitian=True)
     cov = 0.5 * (cov + cov.T)
     return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in wanted])

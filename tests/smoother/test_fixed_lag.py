@@ -248,15 +248,8 @@ def test_the_lagged_covariances_are_those_of_the_whole_window(gentle, monkeypatc
 
 def _cholesky_refuses(groups, n: int) -> bool:
     """Whether GTSAM's Cholesky-based ``Marginals`` calls this window's linear system indeterminant."""
-    graph = gtsam.GaussianFactorGraph()
-    for keys, blocks in groups:
-        args = [x for pair in zip(keys, blocks) for x in pair]
-        graph.add(gtsam.JacobianFactor(*args, np.zeros(blocks[0].shape[0]), gtsam.noiseModel.Unit.Create(blocks[0].shape[0])))
-    zero = gtsam.VectorValues()
-    for j in range(n):
-        zero.insert(j, np.zeros(15))
     try:
-        gtsam.Marginals(graph, zero)
+        fixed_lag._cholesky_marginals(fixed_lag._linear_graph(groups), n, [0])
     except RuntimeError:
         return True
     return False
@@ -264,13 +257,7 @@ def _cholesky_refuses(groups, n: int) -> bool:
 
 def _svd_marginals(groups, n: int, wanted) -> np.ndarray:
     """Reference marginal covariances from an SVD of the window's stacked rows (no squaring)."""
-    rows = []
-    for keys, blocks in groups:
-        part = np.zeros((blocks[0].shape[0], 15 * n))
-        for j, A in zip(keys, blocks):
-            part[:, 15 * j:15 * (j + 1)] += A
-        rows.append(part)
-    _, s, vt = np.linalg.svd(np.vstack(rows), full_matrices=False)
+    _, s, vt = np.linalg.svd(fixed_lag._stacked_rows(groups, n), full_matrices=False)
     return np.stack([(vt[:, 15 * j:15 * (j + 1)].T / s**2) @ vt[:, 15 * j:15 * (j + 1)] for j in wanted])
 
 
