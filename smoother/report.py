@@ -53,17 +53,24 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     }
 
 
-def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
-    """RMS distance between measured positions and the estimate interpolated to their times
-    (fixes outside the estimate's time span are not counted)."""
+def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, distance)``: the times of the measured positions inside the estimate's time span and
+    the distance from each to the estimate interpolated linearly to its time (empty arrays when
+    there are none)."""
     if positions is None or len(positions) == 0:
-        return math.nan
+        return np.empty(0), np.empty(0)
     inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
-    if not inside.any():
-        return math.nan
     t = positions.t[inside]
     est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
-    return float(np.sqrt(np.mean(np.sum((est - positions.position[inside]) ** 2, axis=1))))
+    return t, np.linalg.norm(est - positions.position[inside], axis=1)
+
+
+def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
+    """RMS distance between measured positions and the estimate interpolated to their times
+    (:func:`position_errors`; fixes outside the estimate's time span are not counted; NaN when
+    none is left)."""
+    _, distance = position_errors(positions, estimate)
+    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
 
 def score(dataset: Dataset, estimate: Trajectory) -> dict:

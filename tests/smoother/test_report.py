@@ -68,6 +68,9 @@ def test_position_rmse_interpolates_and_ignores_fixes_outside_the_estimate():
     fixes = PositionMeasurements(t, position, np.eye(3))
     # inside: errors 3 and 4 (the estimate interpolates linearly in between), outside: ignored
     assert report.position_rmse(fixes, est) == pytest.approx(math.sqrt((9 + 16) / 2), rel=1e-12)
+    t_in, distance = report.position_errors(fixes, est)
+    np.testing.assert_array_equal(t_in, t[1:3])
+    np.testing.assert_allclose(distance, [3.0, 4.0], rtol=1e-12)
     assert math.isnan(report.position_rmse(None, est))
     assert math.isnan(report.position_rmse(fixes.subset([0, 3]), est))
 
