@@ -138,12 +138,6 @@ class Preintegrated:
         return fresh
 
 
-def _z(v_i, gamma, b_f) -> np.ndarray:
-    """``z = (v_i, gamma, 1, -b_f)`` (shape ``(..., 10)``)."""
-    one = np.ones(np.shape(v_i)[:-1] + (1,))
-    return np.concatenate([v_i, gamma, one, -np.asarray(b_f, dtype=float)], axis=-1)
-
-
 #: Row width of the kernel's flat work rows: W, Rm and each slice of their bias Jacobians have
 #: 10 columns, held in rows of 12 (three 4-wide SIMD registers) so that every column loop has a
 #: compile-time length over contiguous memory, which LLVM turns into SIMD instructions. The rows
@@ -501,17 +495,18 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
 def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:
     """The state at keyframe ``j`` predicted from ``state_i`` (biases held constant): exactly the
     sample-by-sample Euler-forward propagation when ``state_i.b_w == b_w_bar``, first order in
-    the gyro-bias offset otherwise."""
-    dC, W, Rm, _ = pre.corrected(state_i.b_w)
-    gamma = np.einsum("...ba,b->...a", state_i.C, np.asarray(gravity, dtype=float))
-    z = _z(state_i.v, gamma, state_i.b_f)
-    return imu.ImuState(
-        r=state_i.r + np.einsum("...ab,...bc,...c->...a", state_i.C, Rm, z),
-        v=np.einsum("...ac,...c->...a", W, z),
-        C=state_i.C @ dC,
-        b_f=state_i.b_f,
-        b_w=state_i.b_w,
-    )
+    the gyro-bias offset otherwise (module docstring: ``r_i + C_i Rm z``, ``W z``, ``C_i dC`` of the
+    corrected quantities). Vectorised over the intervals and states (broadcast); compiled
+    (:func:`_predict_into`)."""
+    lead = common_shape(pre.b_w_bar.shape[:-1], state_i.shape)
+    n = math.prod(lead)
+    args = (rows_of(lead, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
+            + rows_of(lead, [getattr(state_i, f) for f in ("r", "v", "C", "b_f", "b_w")], _STATE_TAILS))
+    r, v, C = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
+    _predict_rows(*args, as_trailing(gravity, (3,), "gravity"), r, v, C)
+    b_f, b_w = args[-2:]
+    return imu.ImuState(r.reshape(lead + (3,)), v.reshape(lead + (3,)), C.reshape(lead + (3, 3)),
+                        b_f.reshape(lead + (3,)).copy(), b_w.reshape(lead + (3,)).copy())
 
 
 #: Trailing shapes of the Preintegrated fields a residual reads, and of an ImuState's fields.
@@ -538,6 +533,33 @@ def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out)
     JCd, E = np.empty(3), np.empty((3, 3))
     for n in range(dC.shape[0]):
         _correct(dC[n], W[n], Rm[n], JC[n], dW[n], dRm[n], b_w_bar[n], b_w[n], dC_out[n], W_out[n], Rm_out[n], JCd, E)
+
+
+@leaf
+def _predict_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C, work) -> None:
+    """:func:`predict` of one interval into ``r, v, C``; ``work`` from :func:`_residual_work`."""
+    dC, W, Rm, E, z, JCd, u = work[0], work[1], work[2], work[3], work[7], work[8], work[9]
+    _correct(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, bwi, dC, W, Rm, JCd, E)
+    for a in range(3):
+        z[a], z[3 + a], z[7 + a] = vi[a], Ci[0, a] * g[0] + Ci[1, a] * g[1] + Ci[2, a] * g[2], -bfi[a]
+    z[6] = 1.0
+    for a in range(3):
+        rz, wz = 0.0, 0.0
+        for c in range(10):
+            rz += Rm[a, c] * z[c]
+            wz += W[a, c] * z[c]
+        u[a], v[a] = rz, wz
+    for a in range(3):
+        r[a] = ri[a] + Ci[a, 0] * u[0] + Ci[a, 1] * u[1] + Ci[a, 2] * u[2]
+    matmul_into(Ci, dC, C)
+
+
+@recursion
+def _predict_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C):
+    work = _residual_work()
+    for n in range(dC0.shape[0]):
+        _predict_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
+                      g, r[n], v[n], C[n], work)
 
 
 @recursion

@@ -130,6 +130,24 @@ def test_prediction_equals_sample_by_sample_euler_integration(x_i, K, rate, seed
     assert pre.duration == pytest.approx(dt.sum(), rel=4 * K * EPS)
 
 
+def test_prediction_from_one_state_through_several_intervals_broadcasts_every_field():
+    """One state, J intervals: J predictions, each that of its interval alone, and every field of
+    the result (the carried biases too) has the leading dimension J."""
+    rng = np.random.default_rng(5)
+    J, K = 4, 30
+    acc, gyro, dt = (np.stack(a) for a in zip(*[random_samples(rng, K, 2.0) for _ in range(J)]))
+    x_i = random_state(rng, "ordinary")
+    pre = preintegration.integrate(acc, gyro, dt, np.broadcast_to(x_i.b_w + 0.01, (J, 3)))  # first-order branch
+    predicted = preintegration.predict(pre, x_i, GRAVITY)
+    for name in ("r", "v", "b_f", "b_w"):
+        assert getattr(predicted, name).shape == (J, 3), name
+    assert predicted.C.shape == (J, 3, 3)
+    for j in range(J):
+        alone = preintegration.predict(pre[j], x_i, GRAVITY)
+        assert np.abs(imu.boxminus(predicted[j], alone)).max() <= 64 * EPS * max(1.0, np.abs(alone.r).max())
+        assert np.array_equal(predicted.b_f[j], x_i.b_f) and np.array_equal(predicted.b_w[j], x_i.b_w)
+
+
 def test_prediction_identity_long_fast_interval_with_large_biases():
     """The hardest fixed case: 400 samples of 10 ms (4 s), turn rates up to ~6 rad/s, gyro bias
     1 rad/s, accelerometer bias 2 m/s^2, positions ~100 m and speeds growing to tens of m/s."""
