@@ -55,7 +55,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import imu, so3
-from factors.compiled import as_trailing, common_shape, in_parallel, leaf, matmul_into, recursion, rows as rows_of
+from factors.compiled import (as_trailing, block_operation, common_shape, in_parallel, leaf, matmul_into, recursion,
+                              rows as rows_of)
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -185,6 +186,49 @@ def _reference_at(j, r, v, C, anchor_r, anchor_C, anchor_v) -> None:
             v[a] = C[0, a] * anchor_v[j, 0] + C[1, a] * anchor_v[j, 1] + C[2, a] * anchor_v[j, 2]
 
 
+@block_operation
+def _unit_cross(axis, x0, x1, x2) -> tuple:
+    """``e_axis x (x0, x1, x2)`` written out (no products with zero: with ``axis`` a constant the
+    branch disappears and the vector has two entries to compute, not six products)."""
+    if axis == 0:
+        return 0.0, -x2, x1
+    if axis == 1:
+        return x2, 0.0, -x0
+    return -x1, x0, 0.0
+
+
+@block_operation
+def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:
+    """One sample's step of the gyro-bias Jacobians along bias axis ``l`` (a constant where it is
+    inlined), slices ``dW[..., l]``, ``dRm[..., l]`` (rows ``3 l ..`` of ``dWf``, ``dRf``; module
+    docstring)::
+
+        dRm[l] += dt ((JC e_l)^x dC W + dC dW[l])            (dW at step k)
+        dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
+    """
+    u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
+    d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
+                                                   D[2, 0], D[2, 1], D[2, 2])
+    row = 3 * l * _IW
+    for c in range(_IW):
+        x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
+        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+        dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
+        dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
+        dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
+    for c in range(_IW):
+        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
+        c0, c1, c2 = _unit_cross(l, Wf[c], Wf[_IW + c], Wf[2 * _IW + c])
+        dWf[row + c] = y0 + h * (c0 - (w1 * y2 - w2 * y1))
+        dWf[row + _IW + c] = y1 + h * (c1 - (w2 * y0 - w0 * y2))
+        dWf[row + 2 * _IW + c] = y2 + h * (c2 - (w0 * y1 - w1 * y0))
+    # dC^T (JC e_l)^x: column m is dC^T (u x e_m) = -dC^T (e_m x u), into columns 3..5
+    for m in range(3):
+        x0, x1, x2 = _unit_cross(m, u0, u1, u2)
+        for a in range(3):
+            dWf[row + a * _IW + 3 + m] += h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
+
+
 @recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     """The recursions of the module docstring with the gyro-bias Jacobians ``JC, dW, dRm``, for
@@ -222,30 +266,10 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
                 dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
                 dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
                 dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
-            for l in range(3):
-                u0, u1, u2 = JCj[0, l], JCj[1, l], JCj[2, l]
-                e0, e1, e2 = (1.0 if l == 0 else 0.0), (1.0 if l == 1 else 0.0), (1.0 if l == 2 else 0.0)
-                row = 3 * l * _IW
-                # dRm[l] += dt ((JC e_l)^x dC W + dC dW[l]), with dW at step k
-                for c in range(_IW):
-                    x0, x1, x2 = dCW[c], dCW[_IW + c], dCW[2 * _IW + c]
-                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                    dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
-                    dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
-                    dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
-                # dW[l] <- A dW[l] + dt e_l x W - dt [0 | dC^T (JC e_l)^x | 0 | 0]
-                for c in range(_IW):
-                    y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
-                    x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-                    dWf[row + c] = y0 + h * ((e1 * x2 - e2 * x1) - (w1 * y2 - w2 * y1))
-                    dWf[row + _IW + c] = y1 + h * ((e2 * x0 - e0 * x2) - (w2 * y0 - w0 * y2))
-                    dWf[row + 2 * _IW + c] = y2 + h * ((e0 * x1 - e1 * x0) - (w0 * y1 - w1 * y0))
-                # dC^T (JC e_l)^x: column m is dC^T (u x e_m), into columns 3..5
-                for m in range(3):
-                    f0, f1, f2 = (1.0 if m == 0 else 0.0), (1.0 if m == 1 else 0.0), (1.0 if m == 2 else 0.0)
-                    x0, x1, x2 = u1 * f2 - u2 * f1, u2 * f0 - u0 * f2, u0 * f1 - u1 * f0
-                    for a in range(3):
-                        dWf[row + a * _IW + 3 + m] -= h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
+            # the three bias axes, each inlined with its axis a constant
+            _bias_slice_step(0, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+            _bias_slice_step(1, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+            _bias_slice_step(2, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
             # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
             for c in range(_IW):
                 x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
