@@ -31,6 +31,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from datasets import kitti
+from smoother import metrics
 from smoother.native import combined_params
 
 
@@ -136,29 +137,19 @@ def ours(gps_every: int, tune_noise: bool = False) -> dict:
             "states": len(problem.times), "errors": (t, distance)}
 
 
-def paired_difference(ours_errors: tuple, native_errors: tuple, gps_every: int, resamples: int = 4000) -> dict:
-    """Held-out RMS of ours minus native's, on the same fixes, with a 95% interval from a block
-    bootstrap: the held-out fixes between two used fixes form one block (their errors are
-    correlated along the gap), blocks are drawn with replacement (seeded) and both RMS figures are
-    recomputed from the same draw. An interval that excludes 0 is a difference this data can
-    resolve; one that contains it is not. Also counted: the gaps where ours is closer (mean squared
-    distance)."""
+def paired_difference(ours_errors: tuple, native_errors: tuple, gps_every: int) -> dict:
+    """Held-out RMS of ours minus native's on the same fixes, with a 95% block-bootstrap interval
+    (:func:`smoother.metrics.rmse_difference`): the held-out fixes between two used fixes form one
+    block (their errors are correlated along the gap). Also counted: the gaps where ours is closer
+    (mean squared distance)."""
     (t_a, d_a), (t_b, d_b) = ours_errors, native_errors
     if t_a.shape != t_b.shape or not np.allclose(t_a, t_b, rtol=0, atol=1e-6):
         raise ValueError("the two pipelines were evaluated on different held-out fixes")
     t_gps = kitti.read_gps()[0]
-    block = np.searchsorted(t_gps, t_b - 1e-6) // gps_every  # fix index // K: the gap it lies in
-    _, block = np.unique(block, return_inverse=True)
-    n_blocks = block.max() + 1
-    sums_a, sums_b = np.bincount(block, d_a**2, n_blocks), np.bincount(block, d_b**2, n_blocks)
-    counts = np.bincount(block, minlength=n_blocks)
-    draws = np.random.default_rng(0).integers(0, n_blocks, size=(resamples, n_blocks))
-    n = counts[draws].sum(axis=1)
-    diff = np.sqrt(sums_a[draws].sum(axis=1) / n) - np.sqrt(sums_b[draws].sum(axis=1) / n)
-    low, high = np.percentile(diff, [2.5, 97.5])
-    return {"rmse_difference_m": float(np.sqrt(np.mean(d_a**2)) - np.sqrt(np.mean(d_b**2))),
-            "ci95_m": [float(low), float(high)], "blocks": int(n_blocks), "fixes": int(len(d_a)),
-            "gaps_where_ours_is_closer": int(np.sum(sums_a < sums_b))}
+    gap = np.searchsorted(t_gps, t_b - 1e-6) // gps_every  # fix index // K: the gap it lies in
+    result = metrics.rmse_difference(d_a, d_b, gap)
+    return {"rmse_difference_m": result["difference"], "ci95_m": list(result["interval"]),
+            "blocks": result["blocks"], "fixes": int(len(d_a)), "gaps_where_ours_is_closer": result["blocks_a_lower"]}
 
 
 def main() -> None:

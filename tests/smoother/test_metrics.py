@@ -295,3 +295,50 @@ def test_agrees_with_evo(tmp_path, seed, align, delta, unit, all_pairs):
                 compared += 1
         assert mine["count"] == len(rpe_metric.error)
     assert compared == 28
+
+
+# ------------------------------------------------------------------------------------------
+# two estimators at the same points
+
+
+def test_rmse_difference_of_equal_errors_is_exactly_zero():
+    e = np.random.default_rng(0).rayleigh(1.0, 60)
+    out = metrics.rmse_difference(e, e.copy(), np.repeat(np.arange(12), 5))
+    assert out["difference"] == 0.0 and out["interval"] == (0.0, 0.0)
+    assert out["blocks"] == 12 and out["blocks_a_lower"] == 0
+
+
+def test_rmse_difference_resolves_a_uniformly_worse_estimator():
+    """a = 1.5 b at every point: the difference is 0.5 RMS(b), and every resample keeps a worse."""
+    b = np.random.default_rng(1).rayleigh(1.0, 200)
+    out = metrics.rmse_difference(1.5 * b, b, np.arange(200) // 10)
+    assert out["difference"] == pytest.approx(0.5 * np.sqrt(np.mean(b**2)), rel=1e-12)
+    low, high = out["interval"]
+    assert 0.0 < low < out["difference"] < high
+    assert out["blocks"] == 20 and out["blocks_a_lower"] == 0
+
+
+def test_rmse_difference_interval_reflects_correlation_within_blocks():
+    """Within each block a is offset from b by one shared random amount (correlated errors, no
+    difference on average): the interval over the 10 true blocks contains 0 and is much wider than
+    the one that (wrongly) treats the 400 points as independent."""
+    rng = np.random.default_rng(2)
+    block = np.arange(400) // 40
+    b = 2.0 + rng.normal(0.0, 0.05, 400)
+    a = b + rng.normal(0.0, 0.3, 10)[block]
+    by_block = metrics.rmse_difference(a, b, block)["interval"]
+    by_point = metrics.rmse_difference(a, b, np.arange(400))["interval"]
+    assert by_block[0] < 0.0 < by_block[1]
+    assert by_block[1] - by_block[0] > 3.0 * (by_point[1] - by_point[0])
+
+
+def test_rmse_difference_rejects_mismatched_or_bad_input():
+    e = np.ones(5)
+    with pytest.raises(ValueError, match="equal length"):
+        metrics.rmse_difference(e, np.ones(4), np.zeros(5))
+    with pytest.raises(ValueError, match="equal length"):
+        metrics.rmse_difference(e, e, np.zeros(4))
+    with pytest.raises(ValueError, match="finite"):
+        metrics.rmse_difference(np.r_[1.0, np.nan, 1, 1, 1], e, np.zeros(5))
+    with pytest.raises(ValueError, match="confidence"):
+        metrics.rmse_difference(e, e, np.zeros(5), confidence=1.0)
