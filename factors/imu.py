@@ -291,38 +291,70 @@ def _state_from(s, r, v, C) -> None:
 
 
 @block_operation
+def _put(out, t, value, B, X, accumulate) -> None:
+    """``out[t] = value``, or with ``accumulate`` (a constant where this is inlined)
+    ``out[t] += B[t] + X[t] + value``."""
+    if accumulate:
+        out[t] += B[t] + X[t] + value
+    else:
+        out[t] = value
+
+
+def _applying_A(accumulate: bool):
+    """``apply(X, Q, out, B)``: ``A X`` column by column with ``A = F - I`` (the rows in the module
+    docstring), ``X`` holding 15 rows and ``out`` 9 rows (the last six rows of ``F - I`` are zero)
+    of ``_W`` columns each, flat. Without ``accumulate`` ``out = A X`` (``B`` unused); with it
+    ``out += B + X + A X`` over those 9 rows: the covariance step's ``P += B + B^T + A B^T``
+    (``X = B^T``) in the same pass, without storing ``A B^T`` and reading it back (2-3% of the step)."""
+
+    @block_operation
+    def apply(X, Q, out, B) -> None:
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = (Q[_Q_C], Q[_Q_C + 1], Q[_Q_C + 2], Q[_Q_C + 3], Q[_Q_C + 4],
+                                                       Q[_Q_C + 5], Q[_Q_C + 6], Q[_Q_C + 7], Q[_Q_C + 8])
+        M = _Q_CTGX
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = (Q[M], Q[M + 1], Q[M + 2], Q[M + 3], Q[M + 4], Q[M + 5],
+                                                       Q[M + 6], Q[M + 7], Q[M + 8])
+        N = _Q_CGAMMA
+        g00, g01, g02, g10, g11, g12, g20, g21, g22 = (Q[N], Q[N + 1], Q[N + 2], Q[N + 3], Q[N + 4], Q[N + 5],
+                                                       Q[N + 6], Q[N + 7], Q[N + 8])
+        u0, u1, u2 = Q[_Q_CV], Q[_Q_CV + 1], Q[_Q_CV + 2]
+        a0, a1, a2 = Q[_Q_W], Q[_Q_W + 1], Q[_Q_W + 2]
+        b0, b1, b2 = Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2]
+        h = Q[_Q_DT]
+        for c in range(_W):
+            x0, x1, x2 = X[3 * _W + c], X[4 * _W + c], X[5 * _W + c]  # dv
+            p0, p1, p2 = X[6 * _W + c], X[7 * _W + c], X[8 * _W + c]  # dphi
+            s0, s1, s2 = X[12 * _W + c], X[13 * _W + c], X[14 * _W + c]  # db_w
+            # dr row: dt C dv - dt (C v) x dphi
+            _put(out, c, c00 * x0 + c01 * x1 + c02 * x2 - (u1 * p2 - u2 * p1), B, X, accumulate)
+            _put(out, _W + c, c10 * x0 + c11 * x1 + c12 * x2 - (u2 * p0 - u0 * p2), B, X, accumulate)
+            _put(out, 2 * _W + c, c20 * x0 + c21 * x1 + c22 * x2 - (u0 * p1 - u1 * p0), B, X, accumulate)
+            # dv row: dt C^T g^x dphi - dt w x dv - dt db_f - dt v x db_w
+            _put(out, 3 * _W + c, m00 * p0 + m01 * p1 + m02 * p2 - (a1 * x2 - a2 * x1) - h * X[9 * _W + c]
+                 - (b1 * s2 - b2 * s1), B, X, accumulate)
+            _put(out, 4 * _W + c, m10 * p0 + m11 * p1 + m12 * p2 - (a2 * x0 - a0 * x2) - h * X[10 * _W + c]
+                 - (b2 * s0 - b0 * s2), B, X, accumulate)
+            _put(out, 5 * _W + c, m20 * p0 + m21 * p1 + m22 * p2 - (a0 * x1 - a1 * x0) - h * X[11 * _W + c]
+                 - (b0 * s1 - b1 * s0), B, X, accumulate)
+            # dphi row: -dt C Gamma db_w
+            _put(out, 6 * _W + c, -(g00 * s0 + g01 * s1 + g02 * s2), B, X, accumulate)
+            _put(out, 7 * _W + c, -(g10 * s0 + g11 * s1 + g12 * s2), B, X, accumulate)
+            _put(out, 8 * _W + c, -(g20 * s0 + g21 * s1 + g22 * s2), B, X, accumulate)
+
+    return apply
+
+
+_A_into = _applying_A(False)
+#: ``P += B + X + A X`` on the first 9 rows (see :func:`_applying_A`).
+_add_A_plus = _applying_A(True)
+
+
+@block_operation
 def _apply_A(X, Q, out) -> None:
     """``out = (F - I) X`` column by column: ``X`` holds 15 rows and ``out`` 9 rows (the last six
     rows of ``F - I`` are zero) of ``_W`` columns each, flat. The rows of ``F - I`` are those in
     the module docstring."""
-    c00, c01, c02, c10, c11, c12, c20, c21, c22 = (Q[_Q_C], Q[_Q_C + 1], Q[_Q_C + 2], Q[_Q_C + 3], Q[_Q_C + 4],
-                                                   Q[_Q_C + 5], Q[_Q_C + 6], Q[_Q_C + 7], Q[_Q_C + 8])
-    M = _Q_CTGX
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = (Q[M], Q[M + 1], Q[M + 2], Q[M + 3], Q[M + 4], Q[M + 5],
-                                                   Q[M + 6], Q[M + 7], Q[M + 8])
-    N = _Q_CGAMMA
-    g00, g01, g02, g10, g11, g12, g20, g21, g22 = (Q[N], Q[N + 1], Q[N + 2], Q[N + 3], Q[N + 4], Q[N + 5],
-                                                   Q[N + 6], Q[N + 7], Q[N + 8])
-    u0, u1, u2 = Q[_Q_CV], Q[_Q_CV + 1], Q[_Q_CV + 2]
-    a0, a1, a2 = Q[_Q_W], Q[_Q_W + 1], Q[_Q_W + 2]
-    b0, b1, b2 = Q[_Q_V], Q[_Q_V + 1], Q[_Q_V + 2]
-    h = Q[_Q_DT]
-    for c in range(_W):
-        x0, x1, x2 = X[3 * _W + c], X[4 * _W + c], X[5 * _W + c]  # dv
-        p0, p1, p2 = X[6 * _W + c], X[7 * _W + c], X[8 * _W + c]  # dphi
-        s0, s1, s2 = X[12 * _W + c], X[13 * _W + c], X[14 * _W + c]  # db_w
-        # dr row: dt C dv - dt (C v) x dphi
-        out[c] = c00 * x0 + c01 * x1 + c02 * x2 - (u1 * p2 - u2 * p1)
-        out[_W + c] = c10 * x0 + c11 * x1 + c12 * x2 - (u2 * p0 - u0 * p2)
-        out[2 * _W + c] = c20 * x0 + c21 * x1 + c22 * x2 - (u0 * p1 - u1 * p0)
-        # dv row: dt C^T g^x dphi - dt w x dv - dt db_f - dt v x db_w
-        out[3 * _W + c] = m00 * p0 + m01 * p1 + m02 * p2 - (a1 * x2 - a2 * x1) - h * X[9 * _W + c] - (b1 * s2 - b2 * s1)
-        out[4 * _W + c] = m10 * p0 + m11 * p1 + m12 * p2 - (a2 * x0 - a0 * x2) - h * X[10 * _W + c] - (b2 * s0 - b0 * s2)
-        out[5 * _W + c] = m20 * p0 + m21 * p1 + m22 * p2 - (a0 * x1 - a1 * x0) - h * X[11 * _W + c] - (b0 * s1 - b1 * s0)
-        # dphi row: -dt C Gamma db_w
-        out[6 * _W + c] = -(g00 * s0 + g01 * s1 + g02 * s2)
-        out[7 * _W + c] = -(g10 * s0 + g11 * s1 + g12 * s2)
-        out[8 * _W + c] = -(g20 * s0 + g21 * s1 + g22 * s2)
+    _A_into(X, Q, out, X)
 
 
 @recursion
@@ -351,11 +383,12 @@ def _jacobians_into(Q, F, G) -> None:
 
 
 @block_operation
-def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
+def _covariance_step(P, Q, q, v, B, Bt) -> None:
     """``P <- F P F^T + G diag(q / dt) G^T`` in place, ``P`` flat (15 rows of ``_W``), at the
     step of ``Q`` from body velocity ``v``. ``F P F^T = P + B + B^T + A B^T`` with ``B = A P``
     (rows dr, dv, dphi only; ``Bt`` its transpose, padded with zero columns, so ``A B^T`` is
-    one more application of ``A``). The noise term, written out from ``G`` (``C C^T = I``)::
+    one more application of ``A``, added to ``P`` as it is computed). The noise term, written
+    out from ``G`` (``C C^T = I``)::
 
         dr,dr: dt q_v I     dv,dv: dt (q_f I - q_w v^x v^x)     dv,dphi: q_w (dt v)^x (dt C Gamma)^T / dt
         dphi,dphi: q_w (dt C Gamma)(dt C Gamma)^T / dt     db_f: dt q_bf I     db_w: dt q_bw I
@@ -366,10 +399,8 @@ def _covariance_step(P, Q, q, v, B, Bt, ABt) -> None:
     for k in range(STATE_DIM):
         for i in range(9):
             Bt[k * _W + i] = B[i * _W + k]
-    _apply_A(Bt, Q, ABt)
-    for t in range(9 * _W):  # flat loops over whole blocks of rows: one SIMD loop each
-        P[t] += B[t] + Bt[t] + ABt[t]
-    for t in range(9 * _W, STATE_DIM * _W):
+    _add_A_plus(Bt, Q, P, B)  # rows dr, dv, dphi: P += B + B^T + A B^T
+    for t in range(9 * _W, STATE_DIM * _W):  # rows db_f, db_w: P += B^T (a flat SIMD loop)
         P[t] += Bt[t]
     h = Q[_Q_DT]
     qw = q[NW.start]
@@ -411,9 +442,9 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
 
 
 #: Length of the work array of :func:`predict_flat` (:func:`prediction_work`): the flat
-#: covariance (15 rows of ``_W``) first, then the scratch ``B``, ``Bt``, ``ABt`` and the step
-#: array (``_S_*``).
-PREDICTION_WORK_SIZE = 48 * _W + STEP_SIZE
+#: covariance (15 rows of ``_W``) first, then the scratch ``B`` (9 rows) and ``Bt`` (15 rows)
+#: and the step array (``_S_*``).
+PREDICTION_WORK_SIZE = 39 * _W + STEP_SIZE
 
 
 @block_operation
@@ -434,8 +465,8 @@ def predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work) -> None:
     the others (4-5% faster than separate arrays). Passed in as an argument to a separately
     compiled function instead, the covariance step runs twice as long: LLVM must then assume
     that ``work`` may overlap the other arguments."""
-    flat, B, Bt, ABt = work[:15 * _W], work[15 * _W:24 * _W], work[24 * _W:39 * _W], work[39 * _W:48 * _W]
-    s = work[48 * _W:]
+    flat, B, Bt = work[:15 * _W], work[15 * _W:24 * _W], work[24 * _W:39 * _W]
+    s = work[39 * _W:]
     Q, sv = s[_S_Q:], s[_S_V:_S_V + 3]
     _state_into(s, r, v, C, g)
     for k in range(dt.shape[0]):
@@ -444,7 +475,7 @@ def predict_flat(r, v, C, b_f, b_w, acc, gyro, dt, q_density, g, work) -> None:
             continue
         w0, w1, w2 = gyro[k, 0] - b_w[0], gyro[k, 1] - b_w[1], gyro[k, 2] - b_w[2]
         step_quantities(s, w0, w1, w2, h)
-        _covariance_step(flat, Q, q_density, sv, B, Bt, ABt)
+        _covariance_step(flat, Q, q_density, sv, B, Bt)
         step_state(s, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2)
     _state_from(s, r, v, C)
 
