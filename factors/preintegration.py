@@ -216,8 +216,6 @@ def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:
         dRf[row + c] += h * (u1 * x2 - u2 * x1 + d00 * y0 + d01 * y1 + d02 * y2)
         dRf[row + _IW + c] += h * (u2 * x0 - u0 * x2 + d10 * y0 + d11 * y1 + d12 * y2)
         dRf[row + 2 * _IW + c] += h * (u0 * x1 - u1 * x0 + d20 * y0 + d21 * y1 + d22 * y2)
-    for c in range(_IW):
-        y0, y1, y2 = dWf[row + c], dWf[row + _IW + c], dWf[row + 2 * _IW + c]
         c0, c1, c2 = _unit_cross(l, Wf[c], Wf[_IW + c], Wf[2 * _IW + c])
         dWf[row + c] = y0 + h * (c0 - (w1 * y2 - w2 * y1))
         dWf[row + _IW + c] = y1 + h * (c1 - (w2 * y0 - w0 * y2))
