@@ -305,7 +305,8 @@ def _applying_A(accumulate: bool):
     docstring), ``X`` holding 15 rows and ``out`` 9 rows (the last six rows of ``F - I`` are zero)
     of ``_W`` columns each, flat. Without ``accumulate`` ``out = A X`` (``B`` unused); with it
     ``out += B + X + A X`` over those 9 rows: the covariance step's ``P += B + B^T + A B^T``
-    (``X = B^T``) in the same pass, without storing ``A B^T`` and reading it back (2-3% of the step)."""
+    (``X = B^T``) in the same pass, without storing ``A B^T`` and reading it back (3-4% of the
+    covariance kernel's time)."""
 
     @block_operation
     def apply(X, Q, out, B) -> None:
