@@ -342,3 +342,7 @@ def test_rmse_difference_rejects_mismatched_or_bad_input():
         metrics.rmse_difference(np.r_[1.0, np.nan, 1, 1, 1], e, np.zeros(5))
     with pytest.raises(ValueError, match="confidence"):
         metrics.rmse_difference(e, e, np.zeros(5), confidence=1.0)
+    with pytest.raises(ValueError, match="resamples"):
+        metrics.rmse_difference(e, e, np.zeros(5), resamples=0)
+    with pytest.raises(ValueError, match="equal length"):
+        metrics.rmse_difference(np.ones((5, 3)), np.ones((5, 3)), np.zeros(5))
