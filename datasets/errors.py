@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -47,9 +48,24 @@ class DataError(ValueError):
         super().__init__(f"{where}: found {_shown(found)}; expected {expected}")
 
 
+#: What ends a line in a text file: LF, CR LF or a lone CR. Not the other characters that
+#: ``str.splitlines`` also breaks at (form feed, U+2028, ...): inside a line they would split a
+#: comment and turn its tail into a data row.
+_LINE_END = re.compile(r"\r\n|\r|\n")
+
+
+def _split_lines(text: str) -> list[str]:
+    """``text`` cut at :data:`_LINE_END` (a final line end ends the last line, adds none)."""
+    lines = _LINE_END.split(text)
+    if lines[-1] == "":
+        lines.pop()
+    return lines
+
+
 def read_lines(path) -> list[str]:
-    """The lines of a UTF-8 text file (without line ends); a :class:`DataError` naming the file
-    if it is missing, unreadable or not text."""
+    """The lines of a UTF-8 text file (without line ends: LF, CR LF or CR; a leading byte-order
+    mark dropped); a :class:`DataError` naming the file if it is missing, unreadable or not text,
+    and the line of the first byte that is not UTF-8 or of the first NUL."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -62,12 +78,14 @@ def read_lines(path) -> list[str]:
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as error:
-        line = data[: error.start].count(b"\n") + 1
+        line = len(_LINE_END.split(data[: error.start].decode("utf-8")))  # valid up to the bad byte
         raise DataError(path, line, None, f"byte 0x{data[error.start]:02x}", "UTF-8 text") from None
+    if text.startswith("\ufeff"):
+        text = text[1:]
     if "\x00" in text:
-        line = text[: text.index("\x00")].count("\n") + 1
+        line = len(_LINE_END.split(text[: text.index("\x00")]))
         raise DataError(path, line, None, "a NUL character", "text") from None
-    return text.splitlines()
+    return _split_lines(text)
 
 
 def number(token: str, path, line: int, field: str) -> float:

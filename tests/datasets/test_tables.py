@@ -67,3 +67,38 @@ def test_a_bad_row_is_named_by_line_and_field(bad, field, found):
 def test_too_few_rows_is_an_error():
     with pytest.raises(DataError, match="at least 3 rows"):
         read_table("f.txt", ["0 1 2", "1 2 3"], FIELDS, 3, "rows")
+
+
+@pytest.mark.parametrize("end", ["\n", "\r\n", "\r"])
+def test_read_lines_cuts_at_line_ends_only(tmp_path, end):
+    """LF, CR LF and CR end lines; characters that str.splitlines would also cut at (form feed,
+    U+2028, NEL, ...) stay inside their line, so a comment cannot leak a data row."""
+    inside = ["\x0b", "\x0c", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029"]
+    lines = ["# t x y", "0.0 1 2"] + [f"# dropped:{c}0.05 99 99" for c in inside] + ["0.1 3 4"]
+    path = tmp_path / "t.txt"
+    path.write_bytes((end.join(lines) + end).encode())
+    assert errors.read_lines(path) == lines
+    values, numbers = read_table(path, errors.read_lines(path), FIELDS, 1, "rows")
+    assert np.array_equal(values, [[0.0, 1, 2], [0.1, 3, 4]]) and list(numbers) == [2, len(lines)]
+    path.write_bytes(end.join(lines).encode())  # no line end after the last line
+    assert errors.read_lines(path) == lines
+
+
+def test_read_lines_drops_a_byte_order_mark(tmp_path):
+    path = tmp_path / "bom.txt"
+    path.write_bytes("\ufeff# t x y\r\n0.0 1 2\r\n".encode())
+    assert errors.read_lines(path) == ["# t x y", "0.0 1 2"]
+    path.write_bytes("0.0 1 2\n\ufeff0.1 3 4\n".encode())  # only a leading one is a BOM
+    with pytest.raises(DataError) as info:
+        read_table(path, errors.read_lines(path), FIELDS, 1, "rows")
+    assert info.value.line == 2
+
+
+@pytest.mark.parametrize("end", ["\n", "\r\n", "\r"])
+def test_read_lines_names_the_line_of_a_bad_byte_or_nul(tmp_path, end):
+    path = tmp_path / "b.txt"
+    for bad, found in ((b"\xff", "byte 0xff"), (b"\x00", "a NUL character")):
+        path.write_bytes(end.join(["# c", "0.0 1 2", "0.1 3 4"]).encode() + bad + end.encode())
+        with pytest.raises(DataError) as info:
+            errors.read_lines(path)
+        assert (info.value.line, info.value.found) == (3, found)
