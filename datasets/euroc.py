@@ -36,9 +36,12 @@ times (ground truth, measurements) are float seconds relative to the FIRST IMU S
 DATASET, ``(t_ns - t_ns[0]) * 1e-9`` computed from integers, so they keep sub-microsecond
 precision (seconds since 1970 in a float64 only resolve ~0.2 us). The dataset covers the span of
 the ground truth: IMU samples before the first or after the last ground-truth stamp are dropped,
-and the ground truth is kept over the IMU samples' span. The initial state is the ground truth
-at the first IMU stamp, interpolated (linearly for vectors; ``C_a exp(s log(C_a^T C_b))`` for the
-attitude) between the two ground-truth samples around it.
+and the ground truth is kept over the IMU samples' span (at least two of its samples must lie
+there). The initial state is the ground truth at the first IMU stamp, interpolated (linearly for
+vectors; ``C_a exp(s log(C_a^T C_b))`` for the attitude) between the two ground-truth samples
+around it. A gap in the ground truth (a step longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical
+steps) within the IMU's span is reported in a warning naming its line; the body rates are never
+differenced across one (one-sided next to it).
 
 Noise: the densities of ``imu0/sensor.yaml`` (``accelerometer_noise_density``,
 ``gyroscope_noise_density``, ``accelerometer_random_walk``, ``gyroscope_random_walk``; EuRoC
@@ -57,6 +60,7 @@ from __future__ import annotations
 
 import bisect
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,6 +81,8 @@ GROUNDTRUTH_COLUMNS = [
 ]
 #: Accepted deviation of a ground-truth quaternion's norm from 1 (then normalised).
 QUATERNION_TOLERANCE = 1e-3
+#: A ground-truth step longer than this many typical steps is a gap (warned about, never bridged).
+GROUNDTRUTH_GAP_FACTOR = 5.0
 #: Accepted deviation of T_BS's rotation part from orthonormality.
 ROTATION_TOLERANCE = 1e-5
 #: Initial-state sigmas: position [m], velocity [m/s], attitude [rad], acc bias [m/s^2], gyro bias [rad/s].
@@ -128,9 +134,12 @@ def read_sensor_yaml(path) -> SensorYaml:
         if not match:
             raise DataError(path, index + 1, None, raw.strip(), "'key: value' (YAML)")
         key, rest = match.group(1), match.group(2).strip()
+        if key in where:  # YAML keys are unique; which one would count is anybody's guess
+            raise DataError(path, index + 1, key, f"a second '{key}:' (the first at line {where[key]})",
+                            "each key once")
         if key == "T_BS":
+            where[key] = index + 1
             T, index = _read_matrix_block(path, lines, index, rest)
-            where[key] = index
             continue
         values[key] = rest
         where[key] = index + 1
@@ -177,12 +186,19 @@ def _read_matrix_block(path, lines: list[str], index: int, rest: str):
             if not m:
                 raise DataError(path, index + 1, "T_BS", raw.strip(), "an indented 'cols:', 'rows:' or 'data:' line")
             key, value = m.group(1), m.group(2).strip()
+            if key in block_lines:
+                raise DataError(path, index + 1, f"T_BS.{key}",
+                                f"a second '{key}:' (the first at line {block_lines[key]})", "each key once")
             block_lines[key] = index + 1
             if key == "data":
                 if not value.startswith("["):
                     raise DataError(path, index + 1, "T_BS.data", value, "a list '[...]' of 16 numbers")
                 data_segments = [(index + 1, value[1:])]
                 while "]" not in data_segments[-1][1] and index + 1 < len(lines):
+                    following = lines[index + 1]
+                    if following[:1] not in " \t" and _strip_comment(following).strip():
+                        raise DataError(path, index + 2, "T_BS.data", following.strip(),
+                                        f"the closing ']' of the list opened at line {block_lines['data']} first")
                     index += 1
                     data_segments.append((index + 1, _strip_comment(lines[index]).strip()))
                 last_line, last = data_segments[-1]
@@ -328,12 +344,13 @@ class GroundTruthCsv:
     v_world: np.ndarray
     b_w: np.ndarray
     b_a: np.ndarray
+    lines: np.ndarray  # 1-based line of each row, for messages
 
 
 def read_groundtruth_csv(path) -> GroundTruthCsv:
     stamps, values, lines = _read_asl_csv(path, GROUNDTRUTH_COLUMNS)
     q = check_unit_quaternions(path, values[:, 3:7], lines, "q_RS_w q_RS_x q_RS_y q_RS_z", QUATERNION_TOLERANCE)
-    return GroundTruthCsv(stamps, values[:, 0:3], q, values[:, 7:10], values[:, 10:13], values[:, 13:16])
+    return GroundTruthCsv(stamps, values[:, 0:3], q, values[:, 7:10], values[:, 10:13], values[:, 13:16], lines)
 
 
 # ------------------------------------------------------------------------------------------
@@ -349,14 +366,40 @@ def _mav0(folder) -> Path:
     raise DataError(folder, None, None, "a folder without mav0/ or imu0/", "an EuRoC/ASL sequence folder (with mav0/)")
 
 
-def _body_rates(t: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """Body angular rate of the attitudes ``C`` at times ``t`` by central differences
-    (one-sided at the ends): ``w_k = log(C_a^T C_b) / (t_b - t_a)``."""
+def _body_rates(t: np.ndarray, C: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """Body angular rate of the attitudes ``C`` at times ``t`` by central differences,
+    ``w_k = log(C_a^T C_b) / (t_b - t_a)``, one-sided at the ends and next to a gap (``gap[k]``:
+    the step from sample ``k`` to ``k + 1`` is one): never across a gap. A sample with gaps on
+    both sides has no neighbour to difference with; its rate is zero."""
     n = len(t)
-    a = np.clip(np.arange(n) - 1, 0, n - 1)
-    b = np.clip(np.arange(n) + 1, 0, n - 1)
+    k = np.arange(n)
+    a = np.where((k > 0) & ~np.r_[True, gap], k - 1, k)
+    b = np.where((k < n - 1) & ~np.r_[gap, True], k + 1, k)
     rel = np.swapaxes(C[a], 1, 2) @ C[b]
-    return so3.log(rel) / (t[b] - t[a])[:, None]
+    span = t[b] - t[a]
+    return so3.log(rel) / np.where(span > 0, span, 1.0)[:, None]
+
+
+def _groundtruth_gaps(path, t_ns: np.ndarray, lines: np.ndarray, first_ns: int, last_ns: int) -> np.ndarray:
+    """Which steps of the ground truth are gaps (longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical
+    steps). Those that overlap the IMU's span ``[first_ns, last_ns]`` are reported in a warning
+    naming the file and the line after the longest: the body rates (hence the lever arm's
+    velocity) are never differenced across a gap, but the reference has holes there, and an
+    initial state inside one is interpolated across it."""
+    step = np.diff(t_ns)
+    gap = step > GROUNDTRUTH_GAP_FACTOR * np.median(step)
+    reported = gap & (t_ns[1:] > first_ns) & (t_ns[:-1] < last_ns)
+    if reported.any():
+        longest = int(np.argmax(np.where(reported, step, 0)))
+        message = (f"{path}: {int(reported.sum())} gap(s) in the ground truth longer than {GROUNDTRUTH_GAP_FACTOR:g} x "
+                   f"its typical step of {np.median(step) * 1e-9:.4g} s; the longest, {step[longest] * 1e-9:.4g} s, "
+                   f"ends at line {int(lines[longest + 1])}. Rates are not differenced across a gap")
+        k = int(np.searchsorted(t_ns, first_ns, side="right")) - 1
+        if k < len(gap) and gap[k] and t_ns[k] < first_ns:
+            message += (f"; the initial state (first IMU stamp) lies in the gap that ends at line {int(lines[k + 1])} "
+                        f"and is interpolated across it")
+        warnings.warn(message, stacklevel=3)
+    return gap
 
 
 def _noise_from_yaml(yaml: SensorYaml, path) -> ImuNoise:
@@ -425,13 +468,19 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     imu_ns, acc, gyro = imu_ns[inside], acc[inside], gyro[inside]
     t0_ns = int(imu_ns[0])
     gt_keep = (gt.t_ns >= t0_ns) & (gt.t_ns <= imu_ns[-1])
+    if np.count_nonzero(gt_keep) < 2:  # the truth would be empty: no reference, no measurements from it
+        raise DataError(
+            gt_csv, None, "timestamp", f"{np.count_nonzero(gt_keep)} ground-truth samples within the IMU samples' "
+            f"span [{t0_ns}, {int(imu_ns[-1])}] ns of {imu_csv}", "at least 2",
+        )
+    gap = _groundtruth_gaps(gt_csv, gt.t_ns, gt.lines, t0_ns, int(imu_ns[-1]))
 
     # Ground truth of S_gt -> the IMU frame.
     X = np.linalg.inv(gt_yaml.T_BS) @ imu_yaml.T_BS
     R_x, p_x = X[:3, :3], X[:3, 3]
     C_gt = quaternion.to_matrix(gt.q)
     t_gt = (gt.t_ns - gt.t_ns[0]) * 1e-9
-    w_gt = _body_rates(t_gt, C_gt)
+    w_gt = _body_rates(t_gt, C_gt, gap)
     C = C_gt @ R_x
     lever = C_gt @ p_x
     r = gt.p + lever

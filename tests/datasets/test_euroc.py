@@ -221,6 +221,24 @@ def test_flow_style_yaml_and_the_parser():
             assert y.values["rate_hz"] == "200" and y.values["gyroscope_random_walk"] == "1.9393e-05"
 
 
+
+@pytest.mark.parametrize("edit, line, field, found", [
+    # a second T_BS block (a leftover of an edit): which one counts would be a guess
+    (lambda text: text + "T_BS:\n  cols: 4\n  rows: 4\n  data: [1, 0, 0, 5, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n",
+     16, "T_BS", "a second 'T_BS:' (the first at line 7)"),
+    (lambda text: text + "rate_hz: 100\n", 16, "rate_hz", "a second 'rate_hz:' (the first at line 14)"),
+    (lambda text: text.replace("  rows: 4\n", "  rows: 4\n  rows: 4\n"), 10, "T_BS.rows", "a second 'rows:'"),
+    # a list that is never closed: named where the next key starts, not at the end of the file
+    (lambda text: text.replace("0.0, 0.0, 0.0, 1.0]", "0.0, 0.0, 0.0, 1.0"), 14, "T_BS.data", "rate_hz: 200"),
+])
+def test_sensor_yaml_duplicate_keys_and_an_unclosed_list(tmp_path, edit, line, field, found):
+    path = tmp_path / "sensor.yaml"
+    path.write_text(edit(_yaml(T_B_IMU)))
+    with pytest.raises(DataError) as info:
+        read_sensor_yaml(path)
+    assert (info.value.line, info.value.field) == (line, field) and found in str(info.value.found), str(info.value)
+
+
 def test_synthetic_measurements_from_truth(sequence):
     root = sequence[0]
     d = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
@@ -338,6 +356,44 @@ def test_no_overlap_and_no_folder(tmp_path):
         load_euroc(tmp_path)
     with pytest.raises(DataError, match="mav0"):
         load_euroc(tmp_path / "mav0" / "imu0" / "nothing")
+
+
+
+def test_a_ground_truth_without_samples_inside_the_imu_span_is_an_error(tmp_path):
+    """Its first and last rows span the IMU, so IMU samples remain, but no truth lies between
+    them: an empty reference (and no measurements from it) would follow silently."""
+    write_sequence(tmp_path, n_imu=401, n_gt=390)
+    path = tmp_path / GT
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0], lines[1], lines[-1]]) + "\n")
+    with pytest.raises(DataError, match=r"state_groundtruth_estimate0/data\.csv.*0 ground-truth samples within the "
+                                        r"IMU samples' span"):
+        load_euroc(tmp_path)
+
+
+def test_a_ground_truth_gap_is_reported_and_never_differenced_across(tmp_path):
+    """The lever arm's velocity needs the body rate of the ground truth: differenced across a
+    hole of a second it would be off; it is taken one-sided at the hole, and the hole is named."""
+    write_sequence(tmp_path, n_imu=801, n_gt=780)
+    path = tmp_path / GT
+    lines = path.read_text().splitlines()  # line 1 the header, line k + 2 sample k
+    path.write_text("\n".join(lines[:302] + lines[502:]) + "\n")  # samples 300 .. 499 removed: 1.005 s
+    with pytest.warns(UserWarning, match=r"data\.csv: 1 gap\(s\) in the ground truth .* the longest, 1\.005 s, ends "
+                                         r"at line 303\. Rates are not differenced across a gap$"):
+        d = load_euroc(tmp_path)
+    t_abs = (d.truth.t * 1e9 + (d.imu.t_ns[0] - NS0)) * 1e-9
+    C, _, v_world = imu_truth(t_abs)
+    error = np.abs(d.truth.states.v - np.einsum("nji,nj->ni", C, v_world)).max(axis=1)
+    assert error.max() < 1e-3, error.max()  # one-sided at the gap: first order in 5 ms (across it: ~0.1 m/s)
+
+
+def test_an_initial_state_inside_a_ground_truth_gap_is_reported(tmp_path):
+    write_sequence(tmp_path, n_imu=401, n_gt=390)
+    path = tmp_path / GT
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:2] + lines[60:]) + "\n")  # a hole from the first sample to the 59th
+    with pytest.warns(UserWarning, match=r"the initial state \(first IMU stamp\) lies in the gap that ends at line 3 "):
+        load_euroc(tmp_path)
 
 
 _TOKENS = st.sampled_from(
