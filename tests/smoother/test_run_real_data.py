@@ -60,3 +60,15 @@ def test_kitti_with_tuned_noise_beats_both_native_pipelines(tmp_path, capsys):
     assert document["batch"]["gps_heldout_rmse_m"] < 0.75
     tuning = document["_run"]["noise_tuning"]
     assert tuning["log_likelihood"] > tuning["initial_log_likelihood"] + 1000.0
+
+
+def test_kitti_fixed_lag_with_a_lag_shorter_than_the_gps_gaps_beats_the_ekf(tmp_path, capsys):
+    """GPS every 10 s, 1-s keyframes, a 2-s lag: each fix's correction must reach the states'
+    linearisation before they leave the window. With ISAM2 relinearising every 10th update (its
+    default) those updates fell on the fixes themselves, before their correction, and the
+    fixed-lag smoother's held-out RMS was 25.7 m, worse than the EKF's 14.2 m; relinearising at
+    every update gives 7.7 m."""
+    out = tmp_path / "kitti-lag2"
+    assert main(["run", "--dataset", "kitti", "--gps-every", "10", "--estimator", "fixed-lag", "--lag", "2",
+                 "--out", str(out), "--no-progress", "--no-covariance"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["fixed-lag"]["gps_heldout_rmse_m"] < 10.0
