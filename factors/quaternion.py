@@ -186,10 +186,13 @@ def exp(phi: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def quaternion_log(q0, qx, qy, qz) -> tuple:
-    """Compiled core of :func:`log` for one unit quaternion: the rotation vector ``(x, y, z)``."""
+    """Compiled core of :func:`log` for one unit quaternion: the rotation vector ``(x, y, z)``;
+    NaN if a component is not finite (or ``|qv|^2`` overflows, which no unit quaternion does)."""
     if q0 < 0.0:
         q0, qx, qy, qz = -q0, -qx, -qy, -qz
     s = math.sqrt(qx * qx + qy * qy + qz * qz)
+    if not (q0 < math.inf and s < math.inf):
+        return math.nan, math.nan, math.nan
     if s < 0.5 * SMALL_ANGLE:
         # 2 atan2(s, q0) / s as its series (2/q0)(1 - x^2/3 + x^4/5), x = s/q0 (q0 ~ 1 here)
         q0_safe = q0 if q0 > 0.0 else 1.0
@@ -209,7 +212,9 @@ def _log_rows(q, out):
 def log(q: np.ndarray) -> np.ndarray:
     """Rotation vector of a unit quaternion, ``|phi| <= pi`` (eq. 40; its Taylor form, led by
     ``2 qv``, below ``SMALL_ANGLE``). ``q`` and ``-q`` give the same vector except at exactly pi.
-    Compiled (:func:`quaternion_log`), vectorised over leading dimensions."""
+    A quaternion with a NaN or infinite component gives NaN, as ``so3.log`` of such a matrix does
+    (:func:`check_unit` rejects it with an error instead). Compiled (:func:`quaternion_log`),
+    vectorised over leading dimensions."""
     return apply_rows(_log_rows, q, (4,), (3,), "q")
 
 

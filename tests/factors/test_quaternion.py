@@ -176,6 +176,20 @@ def test_log_of_half_turns_raises_no_floating_point_warnings():
     assert max_abs(phis / math.pi, qs[:, 1:]) <= 4 * EPS
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("component", range(4))
+def test_log_of_a_non_finite_quaternion_is_nan_like_so3_log(bad, component):
+    # A NaN or infinite scalar part used to give [0, 0, 0] (the small-angle series swapped NaN for
+    # 1; inf made the scale 0), and an infinite vector part a mix of NaN and 0.
+    for base in (Q.identity(), -Q.exp([1e-6, 0, 0]), Q.exp([0.3, -2.5, 1.0])):
+        q = base.copy()
+        q[component] = bad
+        assert np.isnan(Q.log(q)).all(), q
+        C = Q.to_matrix(base)
+        C[component % 3, component // 3] = bad
+        assert np.isnan(so3.log(C)).all(), C
+
+
 def test_hamilton_product_of_the_units():
     i, j, k = (np.array(v, dtype=float) for v in ([0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]))
     # Hamilton: i j = k, j k = i, k i = j, i^2 = -1 (the JPL convention would give i j = -k)
