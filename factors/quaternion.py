@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from factors.compiled import apply_rows, exact_leaf
+from factors.compiled import apply_rows, as_trailing, exact_leaf
 
 #: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
 SMALL_ANGLE = 1e-4
@@ -32,8 +32,8 @@ UNIT_TOLERANCE = 1e-6
 
 
 
-def _split(q: np.ndarray):
-    q = np.asarray(q, dtype=float)
+def _split(q: np.ndarray, name: str = "q"):
+    q = as_trailing(q, (4,), name)
     return q[..., 0], q[..., 1:]
 
 
@@ -74,20 +74,20 @@ def _first_index(mask: np.ndarray) -> tuple:
 
 def normalize(q: np.ndarray) -> np.ndarray:
     """``q / |q|``."""
-    q = np.asarray(q, dtype=float)
+    q = as_trailing(q, (4,), "q")
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def canonical(q: np.ndarray) -> np.ndarray:
     """The representative of ``q`` with ``q0 >= 0`` (the same orientation)."""
-    q = np.asarray(q, dtype=float)
+    q = as_trailing(q, (4,), "q")
     return np.where(q[..., :1] < 0.0, -q, q)
 
 
 def rotate(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The coordinate map ``Phi(r)`` of eq. (35)."""
     q0, qv = _split(q)
-    r = np.asarray(r, dtype=float)
+    r = as_trailing(r, (3,), "r")
     dot = np.sum(qv * r, axis=-1, keepdims=True)
     return (2 * q0[..., None] ** 2 - 1) * r + 2 * q0[..., None] * np.cross(qv, r) + 2 * qv * dot
 
@@ -158,8 +158,8 @@ def from_matrix(C: np.ndarray) -> np.ndarray:
 
 def compose(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """``Phi1 o Phi2`` by eq. (37): ``(q0 p0 - qv.pv, q0 pv + p0 qv + qv x pv)``."""
-    q0, qv = _split(q1)
-    p0, pv = _split(q2)
+    q0, qv = _split(q1, "q1")
+    p0, pv = _split(q2, "q2")
     real = q0 * p0 - np.sum(qv * pv, axis=-1)
     imag = q0[..., None] * pv + p0[..., None] * qv + np.cross(qv, pv)
     return np.concatenate([real[..., None], imag], axis=-1)
@@ -167,13 +167,13 @@ def compose(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
 
 def inverse(q: np.ndarray) -> np.ndarray:
     """``Phi^-1``: the conjugate ``(q0, -qv)`` of a unit quaternion."""
-    q = np.asarray(q, dtype=float)
+    q = as_trailing(q, (4,), "q")
     return np.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
 
 
 def exp(phi: np.ndarray) -> np.ndarray:
     """Unit quaternion of the rotation vector ``phi`` (eq. 38; eq. 39 below ``SMALL_ANGLE``)."""
-    phi = np.asarray(phi, dtype=float)
+    phi = as_trailing(phi, (3,), "phi")
     t = np.linalg.norm(phi, axis=-1)
     small = t < SMALL_ANGLE
     t_safe = np.where(small, 1.0, t)
@@ -228,18 +228,20 @@ def to_rot3(q: np.ndarray):
     import gtsam
 
     q = normalize(q)
+    if q.ndim != 1:
+        raise ValueError(f"q: expected shape (4,) (one quaternion), got {q.shape}")
     return gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 def from_xyzw(q: np.ndarray) -> np.ndarray:
     """Reorder a scalar-last ``(qx, qy, qz, qw)`` array (TUM, ROS) to this module's scalar-first."""
-    q = np.asarray(q, dtype=float)
+    q = as_trailing(q, (4,), "q")
     return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
 def to_xyzw(q: np.ndarray) -> np.ndarray:
     """Reorder to scalar-last ``(qx, qy, qz, qw)``."""
-    q = np.asarray(q, dtype=float)
+    q = as_trailing(q, (4,), "q")
     return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
 

@@ -41,7 +41,7 @@ SERIES_ANGLE = 1e-2
 
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix ``v^x`` with ``v^x r = v x r`` (primer section II)."""
-    v = np.asarray(v, dtype=float)
+    v = as_trailing(v, (3,), "v")
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1] = -v[..., 2]
     out[..., 0, 2] = v[..., 1]
@@ -54,7 +54,7 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def vee(m: np.ndarray) -> np.ndarray:
     """Inverse of :func:`skew` on the skew-symmetric part of ``m``."""
-    m = np.asarray(m, dtype=float)
+    m = as_trailing(m, (3, 3), "m")
     return 0.5 * np.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
         axis=-1,
@@ -210,18 +210,18 @@ def log(C: np.ndarray) -> np.ndarray:
 
 def compose(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
     """``C(Phi1 o Phi2) = C1 C2`` (primer eq. 5)."""
-    return np.asarray(C1, dtype=float) @ np.asarray(C2, dtype=float)
+    return as_trailing(C1, (3, 3), "C1") @ as_trailing(C2, (3, 3), "C2")
 
 
 def inverse(C: np.ndarray) -> np.ndarray:
     """``C(Phi^-1) = C^T``."""
-    return np.swapaxes(np.asarray(C, dtype=float), -1, -2)
+    return np.swapaxes(as_trailing(C, (3, 3), "C"), -1, -2)
 
 
 def boxplus(C: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """``Phi [+] phi = exp(phi) o Phi`` (primer eq. 14): ``phi`` is expressed in the frame
     ``Phi`` maps INTO (the world frame for ``Phi_IB``)."""
-    return exp(phi) @ np.asarray(C, dtype=float)
+    return exp(phi) @ as_trailing(C, (3, 3), "C")
 
 
 def boxminus(C1: np.ndarray, C2: np.ndarray) -> np.ndarray:
@@ -253,7 +253,7 @@ def gamma_inv(phi: np.ndarray) -> np.ndarray:
 
 def project(M: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix to ``M`` (in the Frobenius norm), via the SVD."""
-    u, _, vt = np.linalg.svd(np.asarray(M, dtype=float))
+    u, _, vt = np.linalg.svd(as_trailing(M, (3, 3), "M"))
     d = np.sign(np.linalg.det(u @ vt))
     u = u.copy()
     u[..., :, 2] *= d[..., None]

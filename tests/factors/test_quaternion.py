@@ -394,6 +394,34 @@ def test_vectorised_functions_equal_loops(seed):
         assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
 
 
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: Q.exp([0.1, 0.2, 0.3, 0.4]), "phi: expected shape (..., 3), got (4,)"),
+        (lambda: Q.to_matrix([1.0, 0, 0, 0, 0]), "q: expected shape (..., 4), got (5,)"),
+        (lambda: Q.rotate([1.0, 0, 0], [1.0, 2, 3]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.rotate([1.0, 0, 0, 0], [1.0, 2, 3, 4]), "r: expected shape (..., 3), got (4,)"),
+        (lambda: Q.compose([1.0, 0, 0, 0, 0], [1.0, 0, 0, 0]), "q1: expected shape (..., 4), got (5,)"),
+        (lambda: Q.compose([1.0, 0, 0, 0], np.eye(3)), "q2: expected shape (..., 4), got (3, 3)"),
+        (lambda: Q.inverse([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.normalize([1.0, 0, 0, 0, 0]), "q: expected shape (..., 4), got (5,)"),
+        (lambda: Q.canonical([-1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.from_xyzw([0, 0, 1.0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.to_xyzw(1.0), "q: expected shape (..., 4), got ()"),
+        (lambda: Q.to_rot3([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.to_rot3(Q.identity(2)), "q: expected shape (4,) (one quaternion), got (2, 4)"),
+        (lambda: Q.log([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.from_matrix(np.eye(4)), "C: expected shape (..., 3, 3), got (4, 4)"),
+        (lambda: Q.to_rpy([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
+        (lambda: Q.from_rpy([0.1, 0.2]), "angles: expected shape (..., 3), got (2,)"),
+    ],
+)
+def test_wrong_trailing_shapes_raise_value_error_naming_the_argument(call, message):
+    # exp of a 4-vector used to return 5 numbers, to_matrix of a 5-vector the identity, ...
+    with pytest.raises(ValueError, match=re.escape(message)):
+        call()
+
+
 def test_identity_shapes():
     assert np.array_equal(Q.identity(), [1.0, 0, 0, 0])
     assert Q.identity(5).shape == (5, 4) and Q.identity((2, 3)).shape == (2, 3, 4)

@@ -15,6 +15,7 @@ algorithm (arccos-based log near pi: ~1e-8) would produce.
 from __future__ import annotations
 
 import math
+import re
 
 import gtsam
 import numpy as np
@@ -390,6 +391,30 @@ def test_vectorised_functions_equal_loops_of_single_calls(seed):
         # Elementwise code is bitwise identical; batched matmul and SVD may take other BLAS paths,
         # so allow round-off relative to the entry (4 EPS) with a floor far below any tiny angle.
         assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: so3.skew([1.0, 2, 3, 4]), "v: expected shape (..., 3), got (4,)"),
+        (lambda: so3.vee(np.eye(4)), "m: expected shape (..., 3, 3), got (4, 4)"),
+        (lambda: so3.exp([1.0, 2]), "phi: expected shape (..., 3), got (2,)"),
+        (lambda: so3.log(np.eye(4)), "C: expected shape (..., 3, 3), got (4, 4)"),
+        (lambda: so3.compose(np.eye(4), np.eye(4)), "C1: expected shape (..., 3, 3), got (4, 4)"),
+        (lambda: so3.compose(np.eye(3), np.ones(3)), "C2: expected shape (..., 3, 3), got (3,)"),
+        (lambda: so3.inverse(np.eye(2)), "C: expected shape (..., 3, 3), got (2, 2)"),
+        (lambda: so3.boxplus([1.0, 2, 3], np.zeros(3)), "C: expected shape (..., 3, 3), got (3,)"),
+        (lambda: so3.boxplus(np.eye(3), np.zeros(4)), "phi: expected shape (..., 3), got (4,)"),
+        (lambda: so3.boxminus(np.eye(3), np.eye(4)), "C2: expected shape (..., 3, 3), got (4, 4)"),
+        (lambda: so3.gamma(np.zeros((2, 4))), "phi: expected shape (..., 3), got (2, 4)"),
+        (lambda: so3.gamma_inv([0.1]), "phi: expected shape (..., 3), got (1,)"),
+        (lambda: so3.project(np.eye(4)), "M: expected shape (..., 3, 3), got (4, 4)"),
+    ],
+)
+def test_wrong_trailing_shapes_raise_value_error_naming_the_argument(call, message):
+    # skew of a 4-vector used to drop the 4th entry, vee of a 4x4 matrix to return [0, 0, 0], ...
+    with pytest.raises(ValueError, match=re.escape(message)):
+        call()
 
 
 def test_vectorised_functions_accept_a_single_leading_dimension_of_zero_length():
