@@ -101,6 +101,7 @@ def _norm(v: np.ndarray) -> np.ndarray:
 
 
 def _check_axis_angle(axis, angle):
+    """The checked unit ``axis`` and ``angle``, broadcast to their common leading shape."""
     axis = check_vector(axis, "axis")
     norm = np.linalg.norm(axis, axis=-1)
     if np.any(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE):
@@ -116,12 +117,12 @@ def _check_axis_angle(axis, angle):
     if not np.all(np.isfinite(angle)):
         raise ValueError("angle: expected finite values (radians)")
     try:
-        np.broadcast_shapes(axis.shape[:-1], angle.shape)
+        lead = np.broadcast_shapes(axis.shape[:-1], angle.shape)
     except ValueError:
         raise ValueError(
             f"angle: expected a shape broadcastable with axis.shape[:-1] = {axis.shape[:-1]}, got {angle.shape}"
         ) from None
-    return axis / norm[..., None], angle
+    return np.broadcast_to(axis / norm[..., None], lead + (3,)), np.broadcast_to(angle, lead)
 
 
 def to_matrix(axis, angle) -> np.ndarray:

@@ -1,5 +1,7 @@
 """Axis-angle and the logarithm's special cases (angle 0, angle pi), checked against
 factors.so3 (exp, and log, which is computed differently: through the quaternion)."""
+import math
+
 import numpy as np
 import pytest
 
@@ -158,6 +160,24 @@ def test_vectorised_and_scalar_inputs():
     np.testing.assert_allclose(C[2, 1], axis_angle.to_matrix(n[2, 1], angle[2, 1]))
     # one angle for many axes
     assert axis_angle.to_matrix(n, 0.5).shape == (3, 4, 3, 3)
+
+
+@pytest.mark.parametrize("axis_shape, angle_shape, lead", [
+    ((3,), (), ()), ((3, 3), (), (3,)), ((3,), (4,), (4,)), ((3, 3), (2, 1), (2, 3)), ((2, 1, 3), (4,), (2, 4)),
+])
+def test_axes_and_angles_broadcast_alike_in_every_form(axis_shape, angle_shape, lead):
+    # to_quaternion(np.eye(3), 1.0) used to fail in np.concatenate where to_matrix and
+    # to_rotation_vector broadcast the same arguments.
+    rng = np.random.default_rng(7)
+    n = random_axes(rng, math.prod(axis_shape[:-1])).reshape(axis_shape)
+    angle = rng.uniform(-4, 4, angle_shape)
+    C, phi, q = (f(n, angle) for f in (axis_angle.to_matrix, axis_angle.to_rotation_vector, axis_angle.to_quaternion))
+    assert (C.shape, phi.shape, q.shape) == (lead + (3, 3), lead + (3,), lead + (4,))
+    n_b, angle_b = np.broadcast_to(n, lead + (3,)), np.broadcast_to(angle, lead)
+    for i in np.ndindex(lead):
+        assert np.array_equal(q[i], axis_angle.to_quaternion(n_b[i], angle_b[i]))
+        assert np.array_equal(C[i], axis_angle.to_matrix(n_b[i], angle_b[i]))
+        assert np.array_equal(phi[i], axis_angle.to_rotation_vector(n_b[i], angle_b[i]))
 
 
 @pytest.mark.parametrize(
