@@ -103,12 +103,15 @@ def _one_pose_residual(r, C, measured_r, measured_C, jacobians: bool):
 
 def relative_pose_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, jacobians: bool = False):
     """``e = (C_i^T (r_j - r_i) - dr_meas, log(C_i^T C_j dC_meas^T))`` in body frame ``i``;
-    Jacobians for ``(C_i, r_i, C_j, r_j)``."""
+    Jacobians for ``(C_i, r_i, C_j, r_j)``. Vectorised over broadcast leading dimensions."""
     Cit = so3.inverse(C_i)
     u = np.einsum("...ab,...b->...a", Cit, np.asarray(r_j, dtype=float) - r_i)
     X = Cit @ C_j @ so3.inverse(measured_dC)
     e_phi = so3.log(X)
-    e = np.concatenate([u - measured_dr, e_phi], axis=-1)
+    e_r = u - measured_dr
+    if e_r.shape != e_phi.shape:  # some arguments batched (np.broadcast_arrays would cost a
+        e_r, e_phi = np.broadcast_arrays(e_r, e_phi)  # tenth of a factor callback every time)
+    e = np.concatenate([e_r, e_phi], axis=-1)
     if not jacobians:
         return e
     shape = e.shape[:-1]
@@ -179,11 +182,15 @@ def bias_factor(key: int, measured_bias, noise_model) -> gtsam.CustomFactor:
 
 def state_residual(C, r, v, b, prior, jacobians: bool = False):
     """``e = x [-] x_prior`` over the whole state, in error-state order ``(r, v, phi, b_f, b_w)``;
-    Jacobians for the variables ``(C, r, v, b)`` (the keyframe's Rot3, Point3, velocity, bias)."""
+    Jacobians for the variables ``(C, r, v, b)`` (the keyframe's Rot3, Point3, velocity, bias).
+    Vectorised over broadcast leading dimensions (of the variables and of ``prior``'s arrays)."""
     b = np.asarray(b, dtype=float)
     e_phi = so3.boxminus(C, prior.C)
-    e = np.concatenate([np.asarray(r) - prior.r, np.asarray(v) - prior.v, e_phi,
-                        b[..., :3] - prior.b_f, b[..., 3:] - prior.b_w], axis=-1)
+    parts = [np.asarray(r) - prior.r, np.asarray(v) - prior.v, e_phi,
+             b[..., :3] - prior.b_f, b[..., 3:] - prior.b_w]
+    if any(part.shape != e_phi.shape for part in parts):  # as in relative_pose_residual
+        parts = np.broadcast_arrays(*parts)
+    e = np.concatenate(parts, axis=-1)
     if not jacobians:
         return e
     shape = e.shape[:-1]

@@ -390,6 +390,58 @@ def test_one_pose_residual_is_the_batched_one_bit_for_bit(C, error, positions):
     np.testing.assert_array_equal(meas.pose_residual(r, C, mr, mC), e)
 
 
+def _batch_one(args: list, which: int, n: int = 5) -> list:
+    """``args`` with argument ``which`` replaced by ``n`` perturbed copies of it (the others single)."""
+    rng = np.random.default_rng(which)
+    one = np.asarray(args[which], dtype=float)
+    batch = (so3.exp(0.3 * rng.normal(size=(n, 3))) @ one if one.shape == (3, 3)
+             else one + rng.normal(size=(n,) + one.shape))
+    return args[:which] + [batch] + args[which + 1:]
+
+
+def _assert_rows_are_single_calls(residual, args: list, batched: list, n: int = 5) -> None:
+    e, Js = residual(*batched, jacobians=True)
+    assert e.shape[0] == n and all(J.shape[0] == n for J in Js)
+    np.testing.assert_array_equal(residual(*batched), e)
+    for k in range(n):
+        row = [a[k] if np.shape(a) != np.shape(s) else a for a, s in zip(batched, args)]
+        e_k, Js_k = residual(*row, jacobians=True)
+        np.testing.assert_allclose(e[k], e_k, rtol=1e-14, atol=1e-14)
+        for J, J_k in zip(Js, Js_k):
+            np.testing.assert_allclose(J[k], J_k, rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("which", range(6))
+def test_relative_pose_residual_broadcasts_when_only_some_arguments_are_batched(which):
+    # One batched argument among single ones used to fail in np.concatenate.
+    rng = np.random.default_rng(11)
+    C_i, C_j, dC = (random_rotation(rng, "ordinary") for _ in range(3))
+    args = [C_i, rng.normal(size=3), C_j, rng.normal(size=3), rng.normal(size=3), dC]
+    batched = _batch_one(args, which)
+    assert meas.relative_pose_residual(*batched).shape == (5, 6)
+    _assert_rows_are_single_calls(meas.relative_pose_residual, args, batched)
+
+
+@pytest.mark.parametrize("which", range(4))
+def test_state_residual_broadcasts_when_only_some_arguments_are_batched(which):
+    # The reviewer's case: C, v, b and the prior single, r of shape (5, 3) -> e of shape (5, 15).
+    rng = np.random.default_rng(12)
+    r, v, b_f, b_w = rng.normal(size=(4, 3))
+    prior = imu.ImuState(r, v, random_rotation(rng, "ordinary"), b_f, b_w)
+    args = [random_rotation(rng, "ordinary"), rng.normal(size=3), rng.normal(size=3), rng.normal(size=6)]
+    batched = _batch_one(args, which)
+
+    def residual(C, r, v, b, jacobians=False):
+        return meas.state_residual(C, r, v, b, prior, jacobians)
+
+    assert residual(*batched).shape == (5, 15)
+    _assert_rows_are_single_calls(residual, args, batched)
+    # a batched prior with single variables
+    priors = imu.ImuState(*(np.broadcast_to(a, (5,) + a.shape) for a in
+                            (prior.r, prior.v, prior.C, prior.b_f, prior.b_w)))
+    assert meas.state_residual(*args, priors).shape == (5, 15)
+
+
 def test_check_factor_fails_a_wrong_block_in_a_measurement_factor():
     """A pose factor whose rotation Jacobian is off by 1e-3 in every entry fails the check on the
     rotation key only; the same factor with the correct Jacobian passes."""
