@@ -2,8 +2,11 @@
 
 A quaternion is an array ``q = (q0, qx, qy, qz)`` of shape ``(..., 4)`` with ``q0`` the real part;
 every function is vectorised over leading dimensions. ``q`` and ``-q`` are the same orientation;
-functions that return a quaternion return the one with ``q0 >= 0`` unless said otherwise
-(``compose`` and ``inverse`` keep the sign their inputs imply).
+functions that return a quaternion return the one with ``q0 >= 0`` unless said otherwise:
+``compose``, ``inverse``, ``normalize`` and the reorderings ``from_xyzw``, ``to_xyzw`` keep the
+sign their inputs imply, and ``exp`` returns ``q0 = cos(|phi|/2)``, negative for ``|phi| > pi``.
+``exp`` is the exponential onto the unit quaternions, which cover each rotation twice: forced to
+``q0 >= 0`` it would jump at ``|phi| = pi`` and break ``exp(a phi) o exp(b phi) = exp((a + b) phi)``.
 
 The orientation ``Phi = q`` maps coordinates with eq. (35),
 ``Phi(r) = (2 q0^2 - 1) r + 2 q0 qv x r + 2 qv (qv . r)``, i.e. ``C(q)`` of eq. (36) is the usual
@@ -172,7 +175,8 @@ def inverse(q: np.ndarray) -> np.ndarray:
 
 
 def exp(phi: np.ndarray) -> np.ndarray:
-    """Unit quaternion of the rotation vector ``phi`` (eq. 38; eq. 39 below ``SMALL_ANGLE``)."""
+    """Unit quaternion of the rotation vector ``phi`` (eq. 38; eq. 39 below ``SMALL_ANGLE``), with
+    ``q0 = cos(|phi|/2)``: negative for ``|phi| > pi``, not canonicalised (see the module docstring)."""
     phi = as_trailing(phi, (3,), "phi")
     t = np.linalg.norm(phi, axis=-1)
     small = t < SMALL_ANGLE

@@ -211,6 +211,40 @@ def test_compose_inverse_identity(q1, q2, q3):
     assert max_abs(Q.rotate(q2, phi), phi) <= PRODUCT * np.abs(phi).max() + 1e-300
 
 
+#: The scalar part returned by each quaternion-valued function for arguments that give
+#: ``q0 < 0`` unless the function returns the representative with ``q0 >= 0``.
+SCALAR_PARTS = {
+    "exp": lambda: Q.exp([4.0, 0, 0])[0],
+    "compose": lambda: Q.compose(Q.exp([2.0, 0, 0]), Q.exp([2.0, 0, 0]))[0],
+    "inverse": lambda: Q.inverse([-1.0, 0, 0, 0])[0],
+    "normalize": lambda: Q.normalize([-2.0, 0, 0, 0])[0],
+    "from_xyzw": lambda: Q.from_xyzw([0, 0, 0, -1.0])[0],
+    "to_xyzw": lambda: Q.to_xyzw([-1.0, 0, 0, 0])[3],
+    "canonical": lambda: Q.canonical(Q.exp([4.0, 0, 0]))[0],
+    "identity": lambda: Q.identity()[0],
+    "from_matrix": lambda: Q.from_matrix(Q.to_matrix(Q.exp([4.0, 0, 0])))[0],
+    "from_rot3": lambda: Q.from_rot3(gtsam.Rot3.Quaternion(-0.6, 0.8, 0, 0))[0],
+    "from_rpy": lambda: Q.from_rpy([3.0, 1.0, -3.0])[0],
+}
+
+
+@pytest.mark.parametrize("name", SCALAR_PARTS)
+def test_the_module_docstring_names_every_function_that_can_return_q0_below_zero(name):
+    # The docstring promised q0 >= 0 "unless said otherwise" and named only compose and inverse,
+    # but exp([4, 0, 0]) has q0 = cos(2) < 0 (the exponential onto the double cover, kept as such),
+    # and normalize and the xyzw reorderings keep the sign they are given.
+    exceptions = Q.__doc__.split("\n\n")[1]
+    assert (SCALAR_PARTS[name]() < 0.0) == (f"``{name}``" in exceptions)
+
+
+def test_exp_is_the_exponential_onto_the_double_cover():
+    phi = np.array([1.0, 2.0, -0.5])
+    t = np.linalg.norm(phi)
+    assert Q.exp(phi)[0] == pytest.approx(math.cos(t / 2), abs=EPS)
+    for a, b in ((1.5, 2.1), (3.0, 4.0), (-2.0, 5.0)):
+        assert max_abs(Q.compose(Q.exp(a * phi), Q.exp(b * phi)), Q.exp((a + b) * phi)) <= PRODUCT
+
+
 # --------------------------------------------------------------------------- from_matrix (Shepperd)
 
 
