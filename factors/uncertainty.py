@@ -149,7 +149,7 @@ def chart_jacobian(C, source: str, target: str) -> np.ndarray:
         return np.broadcast_to(np.eye(3), C.shape).copy()
     if {source, target} == {"left", "right"}:
         left_from_right = primer_from_gtsam(C)  # the one chart adapter (factors.chart)
-        return np.swapaxes(left_from_right, -1, -2) if source == "left" else left_from_right.copy()
+        return (np.swapaxes(left_from_right, -1, -2) if source == "left" else left_from_right).copy()
     mu = so3.log(C)
     if target == "middle":
         return so3.gamma_inv(mu if source == "left" else -mu)

@@ -315,6 +315,18 @@ def test_chart_jacobians_compose():
     np.testing.assert_allclose(J[("left", "right")], C_MID.T, atol=0)
 
 
+@pytest.mark.parametrize("source", uncertainty.CHARTS)
+@pytest.mark.parametrize("target", uncertainty.CHARTS)
+def test_chart_jacobian_is_a_new_array_not_a_view_of_C(source, target):
+    # left -> right returned np.swapaxes(C): writing into the Jacobian changed the caller's C.
+    C = so3.exp(np.array([[0.3, -0.2, 0.9], [1.0, 2.0, -0.5]]))
+    before = C.copy()
+    J = uncertainty.chart_jacobian(C, source, target)
+    assert not np.shares_memory(J, C)
+    J[...] = 0.0
+    assert np.array_equal(C, before)
+
+
 def test_state_covariance_block_conversion_with_cross_terms():
     """A joint covariance (position 3, attitude 3 at index 3, velocity 3): converting the samples'
     attitude part exactly must give the converted covariance, cross-covariances included."""
