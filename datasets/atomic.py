@@ -29,7 +29,9 @@ def atomic_write(path, mode: str = "w", **open_kwargs):
 
     The file ends up as ``open(path, "w")`` would leave it: a symbolic link is written through
     (its target gets the new content, the link stays), an existing file keeps its permissions
-    and a new one gets the umask's."""
+    and a new one gets the umask's. A system error while writing (an ``OSError`` with an
+    ``errno``, a full disk say) that names no file, or the temporary one, is given ``path`` as
+    its file name, so that its message says which file could not be written."""
     path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = _create_beside(path)
@@ -41,7 +43,9 @@ def atomic_write(path, mode: str = "w", **open_kwargs):
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as error:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(error, OSError) and error.strerror and error.filename in (None, str(tmp)):
+            error.filename, error.filename2 = str(path), None
         raise

@@ -55,15 +55,17 @@ def _main(argv: list[str] | None) -> int:
     except KeyboardInterrupt:
         print("smoother: interrupted; files already written are complete and kept", file=sys.stderr)
         return 130
-    except (ValueError, RuntimeError, IndexError, ArithmeticError) as error:
-        # Data errors from the library (ValueError subclasses name file, field or time) and
+    except (ValueError, OSError, RuntimeError, IndexError, ArithmeticError) as error:
+        # Data errors from the library (ValueError subclasses name file, field or time), files
+        # that cannot be written (OSError; datasets.atomic.atomic_write names the file) and
         # failures inside GTSAM or NumPy: one line, no traceback; set SMOOTHER_DEBUG=1 for it.
         if os.environ.get("SMOOTHER_DEBUG"):
             raise
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
-        kind = "error" if isinstance(error, ValueError) else f"internal failure ({type(error).__name__})"
+        user = isinstance(error, (ValueError, OSError))
+        kind = "error" if user else f"internal failure ({type(error).__name__})"
         print(f"smoother: {kind}: {first}", file=sys.stderr)
-        return 2 if isinstance(error, ValueError) else 3
+        return 2 if user else 3
 
 
 if __name__ == "__main__":

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 from smoother.errors import UserError
 
@@ -29,6 +28,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.simulate import PROFILES
     from smoother import montecarlo
+    from smoother.commands import output_directory
     from smoother.commands.run import parse_robust
     from smoother.progress import progress_bar
 
@@ -45,7 +45,7 @@ def run(args) -> int:
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,
         robust=tuple(sorted(parse_robust(args.robust).items())),
     )
-    out = Path(args.out)
+    out = output_directory(args.out)
     seeds = range(args.first_seed, args.first_seed + args.runs)
     with progress_bar(args.runs, "monte carlo", None) as bar:
         try:

@@ -23,7 +23,10 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from smoother import plots
+    from smoother.commands import output_directory
 
+    if args.out is not None:
+        output_directory(args.out)
     for path in plots.plot_run(args.dir, estimators=args.estimators, out_dir=args.out):
         print(f"wrote {path}", file=sys.stderr)
     return 0

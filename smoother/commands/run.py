@@ -5,7 +5,6 @@ import dataclasses
 import math
 import sys
 import time
-from pathlib import Path
 
 from smoother.errors import UserError
 
@@ -78,6 +77,7 @@ def gate_probability(probability: float | None) -> float | None:
 
 def run(args) -> int:
     from smoother import report, sources
+    from smoother.commands import output_directory
     from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators
 
     options = sources.SourceOptions(
@@ -89,13 +89,14 @@ def run(args) -> int:
         raise UserError(f"--gps-every: expected a positive integer, got {args.gps_every}")
     if not args.lag > 0:
         raise UserError(f"--lag: expected a positive number of seconds, got {args.lag}")
-    dataset = sources.load(args.dataset, options)
     names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
         keyframe_rate=args.keyframe_rate, robust=parse_robust(args.robust),
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
     )
+    dataset = sources.load(args.dataset, options)
+    out = output_directory(args.out)
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()
     run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:]}
@@ -110,15 +111,15 @@ def run(args) -> int:
         raise UserError(str(error)) from None
     except KeyboardInterrupt:
         if estimates:
-            report.write_outputs(Path(args.out), dataset, estimates, {"interrupted": True})
+            report.write_outputs(out, dataset, estimates, {"interrupted": True})
             print(f"interrupted: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
         raise
-    metrics = report.write_outputs(Path(args.out), dataset, estimates,
+    metrics = report.write_outputs(out, dataset, estimates,
                                    {**run_info, "total_s": time.perf_counter() - started})
     if args.plot:
         from smoother import plots
 
-        for path in plots.plot_run(Path(args.out)):
+        for path in plots.plot_run(out):
             print(f"wrote {path}", file=sys.stderr)
     print(format_table(metrics))
     print(f"outputs in {args.out}/", file=sys.stderr)

@@ -61,3 +61,18 @@ def test_an_error_leaves_the_old_content_and_no_temporary_file(tmp_path):
             raise RuntimeError("interrupted")
     assert path.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_an_os_error_while_writing_names_the_file(tmp_path):
+    """A write failing with an OSError that names no file (a full disk) names the file being
+    written; the old content stays."""
+    import errno
+
+    path = tmp_path / "keep.txt"
+    path.write_text("old")
+    with pytest.raises(OSError) as caught:
+        with atomic_write(path):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert caught.value.filename == str(path) and str(path) in str(caught.value)
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]

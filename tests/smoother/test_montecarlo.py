@@ -93,6 +93,17 @@ def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
     assert fragment in err and "Traceback" not in err
 
 
+def test_cli_rejects_a_bad_out_before_any_run(tmp_path, capsys, monkeypatch):
+    """--out under a file: exit 2, one line naming --out and the path, before the first run."""
+    monkeypatch.setattr(montecarlo, "run_one", lambda *a: pytest.fail("a run started"))
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = blocker / "mc"
+    assert main(["montecarlo", "--runs", "2", "--duration", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"smoother: error: --out {out}: ") and len(err.splitlines()) == 1
+
+
 def test_dask_cluster_gives_the_same_results(serial):
     """The optional Dask path on a local in-process cluster (skipped without the 'dask' extra)."""
     distributed = pytest.importorskip("distributed")

@@ -184,3 +184,14 @@ def test_cli_plot(run_dir, tmp_path, capsys):
     assert cli.main(["plot", str(tmp_path / "empty-or-missing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("smoother: error: ") and "empty-or-missing" in err and len(err.splitlines()) == 1
+
+
+def test_cli_plot_with_a_bad_out_is_one_line(run_dir, tmp_path, capsys):
+    """--out under a file: exit 2, one line naming --out and the path, no figure drawn."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = blocker / "figures"
+    assert cli.main(["plot", str(run_dir), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"smoother: error: --out {out}: ") and len(err.splitlines()) == 1
+    assert not list(run_dir.glob("*.png"))

@@ -93,6 +93,37 @@ def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
     assert not out.exists()  # nothing written
 
 
+@pytest.mark.parametrize("where", ["an existing file", "a path under a file"])
+def test_a_bad_out_is_one_line_before_any_estimator_runs(tmp_path, capsys, monkeypatch, where):
+    """--out that cannot be a directory: exit 2, one line naming --out and the path, checked
+    before the estimators run (their results would otherwise be lost)."""
+    import smoother.pipeline
+
+    monkeypatch.setattr(smoother.pipeline, "run_estimators", lambda *a, **k: pytest.fail("estimators ran"))
+    blocker = tmp_path / "metrics.json"
+    blocker.write_text("{}")
+    out = blocker if where == "an existing file" else blocker / "run"
+    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 2
+    assert f"--out {out}: " in _one_line_error(capsys)
+    assert blocker.read_text() == "{}"
+
+
+def test_a_failure_while_writing_the_outputs_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
+    """An OSError after the estimators ran (here a full disk while writing metrics.json):
+    exit 2 and one line naming the file, no traceback."""
+    import errno
+
+    def full_disk(obj, handle, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report.json, "dump", full_disk)
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 2
+    line = _one_line_error(capsys)
+    assert str(out / "metrics.json") in line and "No space left on device" in line
+    assert not (out / "metrics.json").exists()
+
+
 @pytest.fixture()
 def good_run(tmp_path, capsys):
     """A finished cheap run (EKF, 1 s) whose metrics.json later runs must not spoil."""
