@@ -34,8 +34,6 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
             profile = arg or "gentle"
             if profile not in PROFILES:
                 raise UserError(f"--dataset synthetic:{profile}: unknown profile; expected one of {', '.join(PROFILES)}")
-            if not options.duration > 0:
-                raise UserError(f"--duration: expected a positive number of seconds, got {options.duration}")
             dataset = simulate(profile=profile, duration=options.duration, seed=options.seed,
                                outlier_fraction=options.outliers)
         elif kind == "kitti":

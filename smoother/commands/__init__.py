@@ -2,10 +2,34 @@
 each raises :class:`smoother.errors.UserError` naming the option, before any work starts."""
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 from smoother.errors import UserError
+
+
+def positive(option: str, value: float, what: str = "a number") -> None:
+    """``value`` must be a finite number > 0 (a rate, a sigma, a time)."""
+    if not (math.isfinite(value) and value > 0):
+        raise UserError(f"{option}: expected {what} > 0 (finite), got {value!r}")
+
+
+def duration(value: float) -> None:
+    """``--duration``: simulated seconds."""
+    positive("--duration", value, "a duration in seconds")
+
+
+def at_least(option: str, value: int, low: int) -> None:
+    """``value`` must be an integer >= ``low`` (a count, a seed)."""
+    if value < low:
+        raise UserError(f"{option}: expected an integer >= {low}, got {value}")
+
+
+def fraction(option: str, value: float) -> None:
+    """``value`` must be a fraction in [0, 1]."""
+    if not 0.0 <= value <= 1.0:
+        raise UserError(f"{option}: expected a fraction in [0, 1], got {value!r}")
 
 
 def output_directory(path) -> Path:

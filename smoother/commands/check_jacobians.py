@@ -15,10 +15,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from factors import jacobians, selfcheck
-    from smoother.errors import UserError
+    from smoother.commands import at_least
 
-    if args.samples < 1:
-        raise UserError(f"--samples: expected a positive number, got {args.samples}")
+    at_least("--samples", args.samples, 1)
     results = selfcheck.run_checks(samples=args.samples, seed=args.seed)
     if args.json:
         print(json.dumps([r.as_dict() for r in results], indent=2))

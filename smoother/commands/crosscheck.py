@@ -19,15 +19,15 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import PROFILES
+    from smoother.commands import at_least, duration, positive
     from smoother.crosscheck import CrosscheckOptions, TARGETS, crosscheck
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    if args.seeds < 2:
-        raise UserError(f"--seeds: expected at least 2 runs, got {args.seeds}")
-    if not args.duration > 0 or not args.lag > 0:
-        raise UserError("--duration and --lag must be positive")
+    at_least("--seeds", args.seeds, 2)
+    duration(args.duration)
+    positive("--lag", args.lag, "a lag in seconds")
     options = CrosscheckOptions(args.profile, args.seeds, args.first_seed, args.duration, args.lag)
     with progress_bar(args.seeds, f"crosscheck {args.profile}", None) as bar:
         result = crosscheck(options, progress=lambda seed: bar.update(1))

@@ -59,12 +59,12 @@ def run(args) -> int:
 
     from datasets.errors import DataError
     from smoother import metrics
+    from smoother.commands import positive
     from smoother.errors import UserError
 
     if not (math.isfinite(args.max_dt) and args.max_dt >= 0):
         raise UserError(f"--max-dt: expected a time in seconds >= 0, got {args.max_dt!r}")
-    if not (math.isfinite(args.delta) and args.delta > 0):
-        raise UserError(f"--delta: expected a number > 0, got {args.delta!r}")
+    positive("--delta", args.delta)
     if args.delta_unit == "frames" and args.delta != int(args.delta):
         raise UserError(f"--delta: expected a whole number of frames, got {args.delta!r}")
     trajectories = {}

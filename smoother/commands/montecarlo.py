@@ -28,18 +28,16 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.simulate import PROFILES
     from smoother import montecarlo
-    from smoother.commands import output_directory
+    from smoother.commands import at_least, duration, fraction, output_directory
     from smoother.commands.run import parse_robust
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    if args.runs < 2:
-        raise UserError(f"--runs: expected at least 2, got {args.runs}")
-    if args.workers < 1:
-        raise UserError(f"--workers: expected at least 1, got {args.workers}")
-    if not args.duration > 0:
-        raise UserError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    at_least("--runs", args.runs, 2)
+    at_least("--workers", args.workers, 1)
+    duration(args.duration)
+    fraction("--outliers", args.outliers)
     estimators = tuple(args.estimator or ("batch", "ekf"))
     config = montecarlo.MonteCarloConfig(
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,

@@ -77,18 +77,23 @@ def gate_probability(probability: float | None) -> float | None:
 
 def run(args) -> int:
     from smoother import report, sources
-    from smoother.commands import output_directory
+    from smoother.commands import at_least, duration, fraction, output_directory, positive
     from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators
 
+    duration(args.duration)
+    fraction("--outliers", args.outliers)
+    at_least("--gps-every", args.gps_every, 1)
+    for option, values in (("--pose-from-truth", args.pose_from_truth), ("--gps-from-truth", args.gps_from_truth)):
+        for value in values or ():
+            positive(option, value)
+    positive("--lag", args.lag, "a lag in seconds")
+    if args.keyframe_rate is not None:
+        positive("--keyframe-rate", args.keyframe_rate, "a rate")
     options = sources.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
         gps_from_truth=tuple(args.gps_from_truth) if args.gps_from_truth else None,
     )
-    if args.gps_every < 1:
-        raise UserError(f"--gps-every: expected a positive integer, got {args.gps_every}")
-    if not args.lag > 0:
-        raise UserError(f"--lag: expected a positive number of seconds, got {args.lag}")
     names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,

@@ -200,8 +200,11 @@ def test_crosscheck_command_exit_code_is_1_when_a_check_fails(capsys, monkeypatc
     ["crosscheck", "--profile", "wobbly"],
     ["crosscheck", "--duration", "0"],
     ["crosscheck", "--lag", "-1"],
+    ["crosscheck", "--duration", "inf"],
+    ["crosscheck", "--lag", "inf", "--seeds", "2", "--duration", "1"],
 ])
 def test_crosscheck_command_rejects_bad_options_in_one_line(argv, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("smoother: error: ") and err.count("\n") == 1 and "Traceback" not in err
+    assert argv[1] in err

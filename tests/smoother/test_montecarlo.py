@@ -86,6 +86,8 @@ def test_cli_writes_summary_and_plot(tmp_path, capsys):
     (["--workers", "0"], "--workers"),
     (["--profile", "loopy"], "--profile"),
     (["--duration", "-1"], "--duration"),
+    (["--duration", "inf"], "--duration"),
+    (["--outliers", "2"], "--outliers"),
 ])
 def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
     assert main(["montecarlo", "--out", str(tmp_path), *argv]) == 2

@@ -84,6 +84,17 @@ def _one_line_error(capsys) -> str:
     (["--robust", "pose=tukey:-2"], "--robust"),
     (["--lag", "0"], "--lag"),
     (["--ekf-gate", "1.5"], "--ekf-gate"),
+    (["--keyframe-rate", "-1"], "--keyframe-rate: expected a rate > 0 (finite), got -1.0"),
+    (["--keyframe-rate", "0"], "--keyframe-rate: expected a rate > 0 (finite), got 0.0"),
+    (["--keyframe-rate", "inf"], "--keyframe-rate: expected a rate > 0 (finite), got inf"),
+    (["--keyframe-rate", "nan"], "--keyframe-rate: expected a rate > 0 (finite), got nan"),
+    (["--duration", "inf"], "--duration"),
+    (["--dataset", "kitti", "--duration", "nan"], "--duration"),
+    (["--lag", "inf"], "--lag"),
+    (["--outliers", "1.5"], "--outliers"),
+    (["--outliers", "nan"], "--outliers"),
+    (["--pose-from-truth", "10", "0", "0.01"], "--pose-from-truth"),
+    (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
 ])
 def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
     out = tmp_path / "run"
