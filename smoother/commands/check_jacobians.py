@@ -18,6 +18,7 @@ def run(args) -> int:
     from smoother.commands import at_least
 
     at_least("--samples", args.samples, 1)
+    at_least("--seed", args.seed, 0)
     results = selfcheck.run_checks(samples=args.samples, seed=args.seed)
     if args.json:
         print(json.dumps([r.as_dict() for r in results], indent=2))

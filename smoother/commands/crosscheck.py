@@ -26,6 +26,7 @@ def run(args) -> int:
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
     at_least("--seeds", args.seeds, 2)
+    at_least("--first-seed", args.first_seed, 0)
     duration(args.duration)
     positive("--lag", args.lag, "a lag in seconds")
     options = CrosscheckOptions(args.profile, args.seeds, args.first_seed, args.duration, args.lag)

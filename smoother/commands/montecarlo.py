@@ -35,6 +35,7 @@ def run(args) -> int:
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
     at_least("--runs", args.runs, 2)
+    at_least("--first-seed", args.first_seed, 0)
     at_least("--workers", args.workers, 1)
     duration(args.duration)
     fraction("--outliers", args.outliers)

@@ -80,6 +80,7 @@ def run(args) -> int:
     from smoother.commands import at_least, duration, fraction, output_directory, positive
     from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators
 
+    at_least("--seed", args.seed, 0)
     duration(args.duration)
     fraction("--outliers", args.outliers)
     at_least("--gps-every", args.gps_every, 1)

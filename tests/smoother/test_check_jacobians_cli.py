@@ -84,6 +84,13 @@ def test_non_positive_samples_is_a_user_error(capsys, samples):
     assert err.startswith("smoother: error: --samples") and samples in err
 
 
+def test_a_negative_seed_is_a_user_error(capsys):
+    code, out, err = run(capsys, "--seed", "-1", "--samples", "1")
+    assert code == 2
+    assert out == ""
+    assert err.startswith("smoother: error: --seed") and "-1" in err
+
+
 def test_a_failing_check_makes_the_command_fail(capsys, monkeypatch):
     # Register a deliberately wrong "Jacobian" (twice the truth): the command must report it,
     # name it on stderr and exit 1, while the genuine checks still pass.

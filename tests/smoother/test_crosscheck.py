@@ -202,6 +202,7 @@ def test_crosscheck_command_exit_code_is_1_when_a_check_fails(capsys, monkeypatc
     ["crosscheck", "--lag", "-1"],
     ["crosscheck", "--duration", "inf"],
     ["crosscheck", "--lag", "inf", "--seeds", "2", "--duration", "1"],
+    ["crosscheck", "--first-seed", "-1", "--seeds", "2", "--duration", "1"],
 ])
 def test_crosscheck_command_rejects_bad_options_in_one_line(argv, capsys):
     assert main(argv) == 2

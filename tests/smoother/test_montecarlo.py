@@ -88,6 +88,7 @@ def test_cli_writes_summary_and_plot(tmp_path, capsys):
     (["--duration", "-1"], "--duration"),
     (["--duration", "inf"], "--duration"),
     (["--outliers", "2"], "--outliers"),
+    (["--first-seed", "-1"], "--first-seed"),
 ])
 def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
     assert main(["montecarlo", "--out", str(tmp_path), *argv]) == 2

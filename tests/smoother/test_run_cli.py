@@ -95,6 +95,7 @@ def _one_line_error(capsys) -> str:
     (["--outliers", "nan"], "--outliers"),
     (["--pose-from-truth", "10", "0", "0.01"], "--pose-from-truth"),
     (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
+    (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
 ])
 def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
     out = tmp_path / "run"
