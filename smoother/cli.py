@@ -55,13 +55,18 @@ def _main(argv: list[str] | None) -> int:
     except KeyboardInterrupt:
         print("smoother: interrupted; files already written are complete and kept", file=sys.stderr)
         return 130
-    except (ValueError, OSError, RuntimeError, IndexError, ArithmeticError) as error:
+    except (ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
         # Data errors from the library (ValueError subclasses name file, field or time), files
-        # that cannot be written (OSError; datasets.atomic.atomic_write names the file) and
-        # failures inside GTSAM or NumPy: one line, no traceback; set SMOOTHER_DEBUG=1 for it.
+        # that cannot be written (OSError; datasets.atomic.atomic_write names the file), data
+        # too large for the memory (NumPy names the size) and failures inside GTSAM or NumPy:
+        # one line, no traceback; set SMOOTHER_DEBUG=1 for it.
         if os.environ.get("SMOOTHER_DEBUG"):
             raise
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        if isinstance(error, MemoryError):
+            hint = "; try a shorter --duration" if "duration" in args else ""
+            print(f"smoother: error: out of memory ({first or 'no details'}){hint}", file=sys.stderr)
+            return 2
         user = isinstance(error, (ValueError, OSError))
         kind = "error" if user else f"internal failure ({type(error).__name__})"
         print(f"smoother: {kind}: {first}", file=sys.stderr)

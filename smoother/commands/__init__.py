@@ -8,6 +8,11 @@ from pathlib import Path
 
 from smoother.errors import UserError
 
+#: Longest ``--duration`` [s] accepted: over three years, 2e10 IMU samples at the simulator's
+#: 200 Hz, some 20 TB for the simulation alone (about 1 kB per sample). Shorter runs that do not
+#: fit in memory end in a one-line out-of-memory error (smoother.cli).
+MAX_DURATION_S = 1e8
+
 
 def positive(option: str, value: float, what: str = "a number") -> None:
     """``value`` must be a finite number > 0 (a rate, a sigma, a time)."""
@@ -16,8 +21,11 @@ def positive(option: str, value: float, what: str = "a number") -> None:
 
 
 def duration(value: float) -> None:
-    """``--duration``: simulated seconds."""
+    """``--duration``: simulated seconds, at most :data:`MAX_DURATION_S`."""
     positive("--duration", value, "a duration in seconds")
+    if value > MAX_DURATION_S:
+        raise UserError(f"--duration: expected at most {MAX_DURATION_S:.0f} s (over three years: the simulation "
+                        f"alone would need more than 20 TB of memory), got {value!r}")
 
 
 def at_least(option: str, value: int, low: int) -> None:

@@ -111,6 +111,21 @@ def test_bad_options(files, capsys, option):
     assert option[0] in err
 
 
+def test_running_out_of_memory_is_one_line(files, capsys, monkeypatch):
+    """A MemoryError is one line with exit 2 (no --duration hint: evaluate has no such option)."""
+    from smoother.commands import evaluate
+
+    def too_big(path):
+        raise MemoryError("Unable to allocate 8.0 GiB for an array with shape (1073741824,) and data type float64")
+
+    monkeypatch.setattr(evaluate, "_read", too_big)
+    ref, est = files
+    assert main(["evaluate", "--reference", str(ref), "--estimate", str(est)]) == 2
+    err = capsys.readouterr().err
+    assert err == "smoother: error: out of memory (Unable to allocate 8.0 GiB for an array with shape (1073741824,) " \
+                  "and data type float64)\n"
+
+
 def test_npz_estimates_with_covariances_give_the_nees_of_the_run(tmp_path, capsys):
     """A run directory's .npz against its truth.npz, unaligned: the NEES equals metrics.json's."""
     from smoother.cli import main as cli_main

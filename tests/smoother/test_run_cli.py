@@ -96,6 +96,8 @@ def _one_line_error(capsys) -> str:
     (["--pose-from-truth", "10", "0", "0.01"], "--pose-from-truth"),
     (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
+    (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
+    (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
 ])
 def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
     out = tmp_path / "run"
@@ -134,6 +136,23 @@ def test_a_failure_while_writing_the_outputs_is_one_line_naming_the_file(tmp_pat
     line = _one_line_error(capsys)
     assert str(out / "metrics.json") in line and "No space left on device" in line
     assert not (out / "metrics.json").exists()
+
+
+def test_running_out_of_memory_is_one_line_naming_the_size(tmp_path, capsys, monkeypatch):
+    """A MemoryError (here from the simulator, as NumPy raises it for a duration that is
+    allowed but too long for this machine): exit 2, one line with NumPy's size and a hint."""
+    import datasets.simulate
+
+    def too_big(*args, **kwargs):
+        raise MemoryError("Unable to allocate 14.6 TiB for an array with shape (2000000000001, 3) "
+                          "and data type float64")
+
+    monkeypatch.setattr(datasets.simulate, "simulate", too_big)
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "1e7", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 2
+    line = _one_line_error(capsys)
+    assert "out of memory (Unable to allocate 14.6 TiB" in line and line.endswith("try a shorter --duration")
+    assert not out.exists()
 
 
 @pytest.fixture()
