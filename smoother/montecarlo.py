@@ -70,9 +70,14 @@ def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, 
              out_dir: Path | None = None, on_done=None) -> list[dict]:
     """Every seed through :func:`run_one` -- in this process when ``executor`` is None, else on
     the executor or the Dask scheduler; results sorted by seed. With ``out_dir`` each finished
-    run is written at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them."""
+    run is written at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them;
+    the seed files of an earlier call into the same folder are removed first, so that ``runs/``
+    never mixes two configurations."""
     seeds = [int(s) for s in seeds]
     results = []
+    if out_dir is not None:
+        for stale in (Path(out_dir) / "runs").glob("seed_*.json"):
+            stale.unlink(missing_ok=True)
 
     def keep(result):
         results.append(result)

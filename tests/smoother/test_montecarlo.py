@@ -55,6 +55,9 @@ def test_finished_runs_are_written_as_they_complete(tmp_path):
     files = sorted(p.name for p in (tmp_path / "runs").iterdir())
     assert files == ["seed_5.json", "seed_6.json"]
     assert json.loads((tmp_path / "runs" / "seed_5.json").read_text()) == {r["seed"]: r for r in seen}[5]
+    # a second call into the same folder: its runs only, not those of the first (another config)
+    montecarlo.run_many(CONFIG, [6, 7], montecarlo.make_executor(1), out_dir=tmp_path)
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["seed_6.json", "seed_7.json"]
 
 
 def test_an_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
