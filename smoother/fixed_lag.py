@@ -23,7 +23,13 @@ GTSAM pitfalls handled here:
   weak prior around its prediction in the same update, and an update GTSAM still calls
   indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
   update that fails beyond that raises :class:`FixedLagFailed` naming the keyframe and time
-  instead of a bare GTSAM exception.
+  instead of a bare GTSAM exception;
+* ISAM2 relinearises at every update (:func:`_make_smoother`), so that a measurement's
+  correction reaches the states' linearisation before they leave the window;
+* the ``BatchFixedLagSmoother`` keeps the state at its window's edge linearised where it first
+  was (its ``enforceConsistency``, which the Python wrapper cannot turn off) and drifts off when
+  measurements are further apart than the lag: a warning says so. The incremental kind is the
+  default.
 """
 from __future__ import annotations
 
@@ -239,6 +245,26 @@ def _container_rows(problem: Problem, containers, estimate, first: int, n: int) 
     return out
 
 
+def _warn_of_sparse_measurements(problem: Problem, lag_s: float) -> None:
+    """Warn when measurements are further apart than the lag (keyframes measured by anything but
+    the IMU and the prior): GTSAM's ``BatchFixedLagSmoother`` keeps the linearisation point of the
+    state its marginal factor lands on fixed (its ``enforceConsistency``, on by default and not
+    settable from Python), so after dead reckoning through a whole window a measurement's
+    correction cannot reach that state's IMU factor. Levenberg-Marquardt then finds no descent
+    and stops, and the estimate drifts: a 120-s simulation with a position fix every 10 s and a
+    2-s lag ended 1.3 km off (the incremental smoother: 8 m, the EKF: 0.7 m), KITTI 11 m (7.7 m)."""
+    measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name not in ("imu", "prior")]
+    if not measured:
+        return
+    times = problem.times[np.unique(np.concatenate(measured))]
+    longest = float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
+    if longest > lag_s:
+        warnings.warn(f"fixed-lag (batch): measurements up to {longest:.3g} s apart, longer than the lag "
+                      f"({lag_s:g} s); GTSAM's BatchFixedLagSmoother can then drift far off (it keeps the states "
+                      f"at its window's edge linearised where dead reckoning put them). Use the incremental "
+                      f"smoother or a longer lag", stacklevel=3)
+
+
 def _weak_prior(keys, guess: imu.ImuState):
     return meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
 
@@ -253,11 +279,13 @@ def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
                           "Check the data around that time (an IMU gap, a measurement far off).")
 
 
-def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "batch", covariances: bool = True,
+def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", covariances: bool = True,
                   progress: bool | None = None) -> FixedLagResult:
     """Run a fixed-lag smoother over ``problem`` (see the module docstring)."""
     if not lag_s > 0:
         raise ValueError(f"lag must be positive, got {lag_s}")
+    if kind == "batch":
+        _warn_of_sparse_measurements(problem, lag_s)
     start = time.perf_counter()
     smoother = _make_smoother(kind, lag_s)
     n = len(problem.times)

@@ -94,6 +94,21 @@ def test_a_long_run_with_a_measurement_gap_keeps_working():
     assert cases.sigma_difference(newest.states[-1], final.states[-1], final.cov[-1]).max() < 0.2
 
 
+
+def test_the_batch_kind_warns_when_measurements_are_further_apart_than_the_lag():
+    """GTSAM's BatchFixedLagSmoother keeps its window's oldest state linearised where dead
+    reckoning put it (enforceConsistency, not settable from Python) and drifts off when a whole
+    window passes without a measurement: the 2-s pose gap of gap_run() with a 0.5-s lag is
+    named; a 3-s lag, or the incremental kind, needs no warning."""
+    data, problem, _ = gap_run()
+    with pytest.warns(UserWarning, match=r"fixed-lag \(batch\): measurements up to 2.1 s apart, longer than the lag "
+                                         r"\(0.5 s\)"):
+        run_fixed_lag(problem, 0.5, "batch", covariances=False, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        run_fixed_lag(problem, 3.0, "batch", covariances=False, progress=False)
+
+
 def test_factors_older_than_the_lag_are_skipped_with_a_warning():
     """Odometry between keyframes 1 s apart with a lag of 0.3 s: when such a factor becomes
     available its earlier keyframe has been marginalised; it is skipped (and counted) instead of
