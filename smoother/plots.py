@@ -33,9 +33,7 @@ from __future__ import annotations
 
 import json
 import math
-import pickle
 import sys
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,6 +47,7 @@ from datasets.types import Trajectory
 from factors import so3
 from factors.imu import ImuState
 from smoother import metrics
+from smoother.report import load_trajectory, read_npz
 from smoother.errors import UserError
 
 #: Resolution of every PNG [dots per inch].
@@ -134,48 +133,13 @@ class Run:
                 "label": name, **kwargs}
 
 
-_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError)
-
-
-def _check_npz(path: Path, expected: str) -> None:
-    try:
-        is_zip = zipfile.is_zipfile(path)
-    except OSError as error:
-        raise UserError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
-    if not is_zip:
-        raise UserError(f"{path}: not an .npz archive; expected {expected}")
-
-
-def _load_trajectory(path: Path) -> Trajectory:
-    expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
-    _check_npz(path, expected)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
-            if missing:
-                raise UserError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
-            states = ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
-            trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
-    except UserError:
-        raise
-    except _NPZ_ERRORS as error:
-        raise UserError(f"{path}: cannot read it ({error}); expected {expected}") from None
-    if len(trajectory) == 0:
-        raise UserError(f"{path}: the trajectory is empty; expected at least one state")
-    return trajectory
-
-
 def _load_gps(path: Path) -> Gps:
     expected = "an .npz with arrays t (M,), position (M, 3) and optionally cov (M, 3, 3) and heldout (M,) bool"
-    _check_npz(path, expected)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            t = np.asarray(data["t"], dtype=float)
-            position = np.asarray(data["position"], dtype=float)
-            cov = np.asarray(data["cov"], dtype=float) if "cov" in data else None
-            heldout = np.asarray(data["heldout"], dtype=bool) if "heldout" in data else np.zeros(len(t), bool)
-    except _NPZ_ERRORS as error:
-        raise UserError(f"{path}: cannot read it ({error}); expected {expected}") from None
+    with read_npz(path, expected) as data:
+        t = np.asarray(data["t"], dtype=float)
+        position = np.asarray(data["position"], dtype=float)
+        cov = np.asarray(data["cov"], dtype=float) if "cov" in data else None
+        heldout = np.asarray(data["heldout"], dtype=bool) if "heldout" in data else np.zeros(len(t), bool)
     n = len(t)
     if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
             or (cov is not None and cov.shape != (n, 3, 3))):
@@ -212,8 +176,8 @@ def load_run(run_dir, estimators=None) -> Run:
     for name in names:
         if name not in available:
             raise UserError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
-    estimates = {name: _load_trajectory(run_dir / f"{name}.npz") for name in names}
-    truth = _load_trajectory(run_dir / "truth.npz") if (run_dir / "truth.npz").exists() else None
+    estimates = {name: load_trajectory(run_dir / f"{name}.npz") for name in names}
+    truth = load_trajectory(run_dir / "truth.npz") if (run_dir / "truth.npz").exists() else None
     gps = _load_gps(run_dir / "gps.npz") if (run_dir / "gps.npz").exists() else None
     document: dict = {}
     path = run_dir / "metrics.json"

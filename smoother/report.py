@@ -13,8 +13,11 @@ written atomically.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import pickle
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +27,7 @@ from datasets.tum import write_tum
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from factors import imu
 from smoother import metrics
+from smoother.errors import UserError
 
 #: Largest time difference [s] at which an estimate is compared with a truth sample.
 MATCH_DT = 1e-6
@@ -104,11 +108,43 @@ def save_trajectory(path: Path, trajectory: Trajectory) -> None:
         np.savez(handle, **arrays)
 
 
+#: What reading a damaged or foreign ``.npz`` can raise (NumPy, zipfile, pickle refused).
+_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError)
+
+
+@contextlib.contextmanager
+def read_npz(path: Path, expected: str):
+    """The arrays of the ``.npz`` archive ``path`` (``np.load`` without pickles) inside the
+    block; a :class:`UserError` naming the file and ``expected`` when it is not such an archive,
+    cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g. a validation)."""
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as error:
+        raise UserError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
+    if not is_zip:
+        raise UserError(f"{path}: not an .npz archive; expected {expected}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            yield data
+    except UserError:
+        raise
+    except _NPZ_ERRORS as error:
+        raise UserError(f"{path}: cannot read it ({error}); expected {expected}") from None
+
+
 def load_trajectory(path: Path) -> Trajectory:
-    """Inverse of :func:`save_trajectory`."""
-    with np.load(path) as data:
+    """Inverse of :func:`save_trajectory`; a :class:`UserError` naming the file for anything
+    else (not an archive, missing arrays, arrays that do not make a trajectory, none at all)."""
+    expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
+    with read_npz(path, expected) as data:
+        missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
+        if missing:
+            raise UserError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
         states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
-        return Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
+        trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
+    if len(trajectory) == 0:
+        raise UserError(f"{path}: the trajectory is empty; expected at least one state")
+    return trajectory
 
 
 def save_gps(path: Path, dataset: Dataset) -> None:

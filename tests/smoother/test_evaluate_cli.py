@@ -140,3 +140,25 @@ def test_npz_estimates_with_covariances_give_the_nees_of_the_run(tmp_path, capsy
     assert cli_main(["evaluate", "--reference", str(out / "truth.npz"), "--estimate", str(out / "ekf.npz"),
                      "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["nees_mean"] is None
+
+
+def test_a_bad_npz_is_one_line_naming_the_file(files, capsys, tmp_path):
+    """Not an archive (NumPy read it as a pickle and asked for allow_pickle), an archive without
+    the arrays, and one whose covariances are not covariances: one line naming the file."""
+    import numpy as np
+
+    ref, _ = files
+    text = tmp_path / "text.npz"
+    text.write_text("not an archive\n")
+    err = _error(capsys, ["evaluate", "--reference", str(ref), "--estimate", str(text)])
+    assert str(text) in err and "not an .npz archive" in err
+    empty = tmp_path / "other.npz"
+    np.savez(empty, x=np.zeros(3))
+    err = _error(capsys, ["evaluate", "--reference", str(ref), "--estimate", str(empty)])
+    assert str(empty) in err and "missing array(s) t, r, v, C, b_f, b_w" in err
+    n = 4
+    bad_cov = tmp_path / "cov.npz"
+    np.savez(bad_cov, t=np.arange(n, dtype=float), r=np.zeros((n, 3)), v=np.zeros((n, 3)),
+             C=np.tile(np.eye(3), (n, 1, 1)), b_f=np.zeros((n, 3)), b_w=np.zeros((n, 3)), cov=-np.ones((n, 15, 15)))
+    err = _error(capsys, ["evaluate", "--reference", str(ref), "--estimate", str(bad_cov)])
+    assert str(bad_cov) in err and "Trajectory.cov" in err
