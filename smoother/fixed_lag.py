@@ -86,9 +86,8 @@ def _make_smoother(kind: str, lag_s: float):
     ISAM2 reuses the slots of removed factors (``findUnusedFactorSlots``, off in
     ``ISAM2Params`` by default): the smoother removes every factor that marginalisation
     replaces, and with the default each left an empty slot behind, so ISAM2's factor graph grew
-    with the length of the run and so did every relinearisation (the update every 10th
-    keyframe, which sets the 99th percentile): 7.7 -> 8.9 ms from the first to the last 6
-    minutes of an hour at 10 Hz. With reuse the graph holds the window only and those updates
+    with the length of the run and so did every relinearisation (the updates that set the 99th
+    percentile): 7.7 -> 8.9 ms from the first to the last 6 minutes of an hour at 10 Hz. With reuse the graph holds the window only and those updates
     stay flat (``benchmarks/run.py``: median and 99th percentile per tenth of an hour).
 
     ISAM2 considers relinearising at every update (``relinearizeSkip`` 1; GTSAM's default is
