@@ -113,12 +113,13 @@ def run(args) -> int:
         for name in names:
             print(f"running {name} ...", file=sys.stderr)
             estimates.update(run_estimators(dataset, [name], run_options))
-    except ValueError as error:
-        raise UserError(str(error)) from None
-    except KeyboardInterrupt:
+    except BaseException as error:  # keep what finished: an interruption, or a later estimator failing
         if estimates:
-            report.write_outputs(out, dataset, estimates, {"interrupted": True})
-            print(f"interrupted: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
+            stopped = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{name} failed"
+            report.write_outputs(out, dataset, estimates, {**run_info, "stopped": stopped})
+            print(f"{stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
+        if isinstance(error, ValueError):
+            raise UserError(str(error)) from None
         raise
     metrics = report.write_outputs(out, dataset, estimates,
                                    {**run_info, "total_s": time.perf_counter() - started})

@@ -185,6 +185,24 @@ def test_a_run_whose_estimator_fails_leaves_the_previous_metrics(good_run, capsy
     assert (out / "metrics.json").read_bytes() == before
 
 
+
+def test_a_later_estimator_failing_keeps_the_finished_ones(tmp_path, capsys, monkeypatch):
+    """batch, fixed-lag, then the EKF fails: exit 2 with its one-line error, and the two finished
+    estimates are written (their files and metrics, the run marked as stopped), as after Ctrl-C."""
+    import smoother.pipeline
+
+    def failing(*args, **kwargs):
+        raise ValueError("simulated estimator failure")
+
+    monkeypatch.setattr(smoother.pipeline, "run_ekf", failing)
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 2
+    assert "simulated estimator failure" in _one_line_error(capsys)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["_run"]["estimators"]) == {"batch", "fixed-lag"} and metrics["_run"]["stopped"] == "ekf failed"
+    assert (out / "batch.tum").exists() and (out / "fixed-lag.npz").exists() and not (out / "ekf.tum").exists()
+
+
 def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_run, capsys, monkeypatch):
     """Ctrl-C in the middle of writing metrics.json (after part of it was written): exit 130,
     the previous complete metrics.json is still there, no temporary file is left."""
