@@ -501,13 +501,7 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     imu = ImuSamples(t, acc, gyro, t_ns=imu_ns)
 
     sigmas = np.repeat(INITIAL_SIGMAS, 3)
-    pose = position = None
-    if pose_args is not None or gps_args is not None:
-        pose_seed, gps_seed = np.random.SeedSequence(seed).spawn(2)
-        if pose_args is not None:
-            pose = from_truth.pose_measurements_from_truth(truth, *pose_args, seed=pose_seed)
-        if gps_args is not None:
-            position = from_truth.position_measurements_from_truth(truth, *gps_args, seed=gps_seed)
+    pose, position = from_truth.measurements_from_truth(truth, pose_args, gps_args, seed)
     return Dataset(
         name="euroc", imu=imu, noise=noise, initial=initial, initial_cov=np.diag(sigmas**2),
         gravity=np.asarray(gravity, dtype=float), pose=pose, position=position, truth=truth,

@@ -13,7 +13,9 @@ Noise, in the primer's convention (DESIGN.md): position ``r_meas = r + n_r``,
 ``n_r ~ N(0, pos_sigma^2 I)``; attitude ``C_meas = exp(n) C``, ``n ~ N(0, rot_sigma^2 I)`` in WORLD
 coordinates (the left perturbation of eq. 63). The covariance stored with the measurements is
 exactly that of the noise drawn. ``seed`` is anything ``numpy.random.default_rng`` accepts; the
-same seed gives the same measurements.
+same seed gives the same measurements. Pose and position measurements of one dataset come from
+:func:`measurements_from_truth`, which gives each its own stream (one seed for both would draw the
+same position noise twice: GPS fixes perfectly correlated with the pose sensor's positions).
 """
 from __future__ import annotations
 
@@ -76,3 +78,23 @@ def position_measurements_from_truth(truth: Trajectory, rate_hz: float, pos_sigm
     rng = np.random.default_rng(seed)
     position = truth.position[k] + pos_sigma * rng.standard_normal((len(k), 3))
     return PositionMeasurements(truth.t[k], position, pos_sigma**2 * np.eye(3))
+
+
+def measurements_from_truth(truth: Trajectory, pose_from_truth=None, gps_from_truth=None, seed=0):
+    """``(pose, position)`` measurements drawn from ``truth``: ``pose_from_truth = (rate_hz,
+    pos_sigma, rot_sigma)`` and ``gps_from_truth = (rate_hz, pos_sigma)`` (None: none of that
+    kind), with independent noise streams spawned from ``seed`` (an integer >= 0). A ValueError
+    names which of the two is wrong."""
+    pose_seed, gps_seed = np.random.SeedSequence(seed).spawn(2)
+    pose = position = None
+    try:
+        if pose_from_truth is not None:
+            pose = pose_measurements_from_truth(truth, *pose_from_truth, seed=pose_seed)
+    except ValueError as error:
+        raise ValueError(f"pose_from_truth: {error}") from None
+    try:
+        if gps_from_truth is not None:
+            position = position_measurements_from_truth(truth, *gps_from_truth, seed=gps_seed)
+    except ValueError as error:
+        raise ValueError(f"gps_from_truth: {error}") from None
+    return pose, position

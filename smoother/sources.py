@@ -45,31 +45,33 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
 
             if not arg:
                 raise UserError("--dataset euroc:PATH needs the path of an EuRoC/ASL folder")
-            dataset = load_euroc(arg, pose_from_truth=options.pose_from_truth,
-                                 gps_from_truth=options.gps_from_truth, seed=options.seed)
+            dataset = load_euroc(arg)
         else:
             raise UserError(f"--dataset {spec!r}: expected synthetic[:PROFILE], kitti or euroc:PATH")
     except UserError:
         raise
     except (ValueError, OSError) as error:
         raise UserError(str(error)) from None
-    return _with_truth_measurements(dataset, options, kind)
+    return _with_truth_measurements(dataset, options)
 
 
-def _with_truth_measurements(dataset: Dataset, options: SourceOptions, kind: str) -> Dataset:
+def _with_truth_measurements(dataset: Dataset, options: SourceOptions) -> Dataset:
     """Add pose / GPS measurements drawn from the ground truth (``--pose-from-truth``,
-    ``--gps-from-truth``) for datasets other than EuRoC (whose loader does it itself)."""
-    if kind == "euroc" or (options.pose_from_truth is None and options.gps_from_truth is None):
+    ``--gps-from-truth``; :func:`datasets.from_truth.measurements_from_truth`, independent noise
+    streams from ``--seed``)."""
+    if options.pose_from_truth is None and options.gps_from_truth is None:
         return dataset
     if dataset.truth is None:
         raise UserError(f"--pose-from-truth/--gps-from-truth: dataset {dataset.name!r} has no ground truth")
-    from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
+    from datasets.from_truth import measurements_from_truth
 
-    changes = {}
-    if options.pose_from_truth is not None:
-        hz, pos, rot = options.pose_from_truth
-        changes["pose"] = pose_measurements_from_truth(dataset.truth, hz, pos, rot, seed=options.seed)
-    if options.gps_from_truth is not None:
-        hz, pos = options.gps_from_truth
-        changes["position"] = position_measurements_from_truth(dataset.truth, hz, pos, seed=options.seed)
+    try:
+        pose, position = measurements_from_truth(dataset.truth, options.pose_from_truth, options.gps_from_truth,
+                                                 options.seed)
+    except ValueError as error:  # "pose_from_truth: ..." -> "--pose-from-truth: ..."
+        option, _, reason = str(error).partition(": ")
+        raise UserError(f"--{option.replace('_', '-')}: {reason}") from None
+    changes = {"pose": pose} if pose is not None else {}
+    if position is not None:
+        changes["position"] = position
     return replace(dataset, **changes)

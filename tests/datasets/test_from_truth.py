@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datasets.from_truth import measurement_indices, pose_measurements_from_truth, position_measurements_from_truth
+from datasets.from_truth import (measurement_indices, measurements_from_truth, pose_measurements_from_truth,
+                                 position_measurements_from_truth)
 from datasets.types import Trajectory
 from factors import so3
 from factors.imu import ImuState
@@ -91,3 +92,23 @@ def test_bad_sigmas(kwargs):
     name = next(iter(kwargs))
     with pytest.raises(ValueError, match=name):
         pose_measurements_from_truth(_truth(), **args)
+
+
+def test_pose_and_gps_of_one_dataset_have_independent_noise():
+    """One seed for both kinds drew the same position noise twice: at a common rate the GPS fixes
+    sat exactly on the pose sensor's positions. Spawned streams: uncorrelated, and reproducible."""
+    truth = _truth(n=20001)
+    pose, gps = measurements_from_truth(truth, (20.0, 0.1, 0.01), (20.0, 0.1), seed=3)
+    assert np.array_equal(pose.t, gps.t)
+    k = np.searchsorted(truth.t, pose.t)
+    n_pose, n_gps = pose.position - truth.position[k], gps.position - truth.position[k]
+    assert abs(np.corrcoef(n_pose.ravel(), n_gps.ravel())[0, 1]) < 0.1  # 6000 pairs: |r| ~ 0.013
+    again, _ = measurements_from_truth(truth, (20.0, 0.1, 0.01), None, seed=3)
+    assert np.array_equal(again.position, pose.position) and np.array_equal(again.C, pose.C)
+
+
+@pytest.mark.parametrize("pose, gps, name", [((1e4, 0.1, 0.01), None, "pose_from_truth: rate_hz"),
+                                             (None, (10.0, -1.0), "gps_from_truth: pos_sigma")])
+def test_measurements_from_truth_names_the_kind_at_fault(pose, gps, name):
+    with pytest.raises(ValueError, match=name):
+        measurements_from_truth(_truth(), pose, gps)

@@ -95,6 +95,8 @@ def _one_line_error(capsys) -> str:
     (["--outliers", "nan"], "--outliers"),
     (["--pose-from-truth", "10", "0", "0.01"], "--pose-from-truth"),
     (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
+    # a value only the data can refuse: named by its option, not by the library's parameter
+    (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
     (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
     (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
