@@ -34,7 +34,12 @@ def atomic_write(path, mode: str = "w", **open_kwargs):
     its file name, so that its message says which file could not be written."""
     path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = _create_beside(path)
+    try:
+        fd, tmp = _create_beside(path)
+    except OSError as error:  # a full disk or a read-only folder: name the file meant, not the temporary one
+        if error.strerror:
+            error.filename, error.filename2 = str(path), None
+        raise
     try:
         with contextlib.suppress(FileNotFoundError):
             os.fchmod(fd, stat.S_IMODE(os.stat(path).st_mode))

@@ -76,3 +76,24 @@ def test_an_os_error_while_writing_names_the_file(tmp_path):
     assert caught.value.filename == str(path) and str(path) in str(caught.value)
     assert path.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_an_os_error_creating_the_temporary_file_names_the_file(tmp_path, monkeypatch):
+    """The temporary file cannot be made (a read-only folder, a full disk): the error names the
+    file meant, not the hidden temporary name; nothing is left behind."""
+    import errno
+
+    real_open = os.open
+
+    def refusing(name, *args, **kwargs):
+        if str(name).endswith(".tmp"):
+            raise OSError(errno.EROFS, "Read-only file system", str(name))
+        return real_open(name, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refusing)
+    path = tmp_path / "out.txt"
+    with pytest.raises(OSError) as caught:
+        with atomic_write(path) as handle:
+            handle.write("x")
+    assert caught.value.filename == str(path) and ".tmp" not in str(caught.value)
+    assert list(tmp_path.iterdir()) == []
