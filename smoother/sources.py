@@ -34,8 +34,12 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
             profile = arg or "gentle"
             if profile not in PROFILES:
                 raise UserError(f"--dataset synthetic:{profile}: unknown profile; expected one of {', '.join(PROFILES)}")
-            dataset = simulate(profile=profile, duration=options.duration, seed=options.seed,
-                               outlier_fraction=options.outliers)
+            try:
+                dataset = simulate(profile=profile, duration=options.duration, seed=options.seed,
+                                   outlier_fraction=options.outliers)
+            except ValueError as error:  # the other arguments are checked before, with their options' names
+                message = str(error)
+                raise UserError("--" + message if message.startswith("duration:") else message) from None
         elif kind == "kitti":
             from datasets.kitti import load_kitti
 
