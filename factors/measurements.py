@@ -25,6 +25,7 @@ from numba import njit
 from factors import so3
 from factors.compiled import as_trailing, common_shape, rows
 from factors.custom import BIAS, ROT, VEC, custom_factor
+from factors.sensor_models import odometry_residual
 
 def covariance_model(cov: np.ndarray):
     """A Gaussian GTSAM noise model of covariance ``cov``."""
@@ -103,26 +104,9 @@ def _one_pose_residual(r, C, measured_r, measured_C, jacobians: bool):
 
 def relative_pose_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, jacobians: bool = False):
     """``e = (C_i^T (r_j - r_i) - dr_meas, log(C_i^T C_j dC_meas^T))`` in body frame ``i``;
-    Jacobians for ``(C_i, r_i, C_j, r_j)``. Vectorised over broadcast leading dimensions."""
-    Cit = so3.inverse(C_i)
-    u = np.einsum("...ab,...b->...a", Cit, np.asarray(r_j, dtype=float) - r_i)
-    X = Cit @ C_j @ so3.inverse(measured_dC)
-    e_phi = so3.log(X)
-    e_r = u - measured_dr
-    if e_r.shape != e_phi.shape:  # some arguments batched (np.broadcast_arrays would cost a
-        e_r, e_phi = np.broadcast_arrays(e_r, e_phi)  # tenth of a factor callback every time)
-    e = np.concatenate([e_r, e_phi], axis=-1)
-    if not jacobians:
-        return e
-    shape = e.shape[:-1]
-    Ginv_Cit = so3.gamma_inv(e_phi) @ Cit
-    J_Ci, J_ri, J_Cj, J_rj = (np.zeros(shape + (6, 3)) for _ in range(4))
-    J_Ci[..., :3, :] = so3.skew(u) @ Cit
-    J_Ci[..., 3:, :] = -Ginv_Cit
-    J_ri[..., :3, :] = -Cit
-    J_Cj[..., 3:, :] = Ginv_Cit
-    J_rj[..., :3, :] = Cit
-    return e, [J_Ci, J_ri, J_Cj, J_rj]
+    Jacobians for ``(C_i, r_i, C_j, r_j)``. Vectorised over broadcast leading dimensions. The
+    IMU-centred case of :func:`factors.sensor_models.odometry_residual`."""
+    return odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, None, jacobians)
 
 
 def velocity_residual(v, measured, jacobians: bool = False):

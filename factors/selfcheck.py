@@ -242,6 +242,67 @@ def _imu_residual_jacobians(rng):
     return np.hstack([Ji, Jj]), np.hstack(num)
 
 
+def random_extrinsic(rng) -> np.ndarray:
+    """A 4x4 ``T_BS`` with a random rotation and a lever arm of up to ~2 m."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = random_rotation(rng), rng.normal(size=3)
+    return T
+
+
+def random_sensor_row(model, state, rng) -> np.ndarray:
+    """A measurement row of ``model`` (:mod:`factors.sensor_models`) near the prediction at
+    ``state`` (so the attitude residual stays small even where the attitude is near pi), with a
+    random extrinsic."""
+    from factors import sensor_models as sm
+
+    T = random_extrinsic(rng)
+    R = T[:3, :3]
+    z = state.r + state.C @ T[:3, 3] + rng.normal(size=3) * 0.1
+    Z = so3.boxplus(state.C @ R, rng.normal(size=3) * 0.1)
+    if model is sm.POSITION:
+        return sm.pack_position(z[None], T)[0]
+    if model is sm.ORIENTATION:
+        return sm.pack_orientation(Z[None], T)[0]
+    if model is sm.POSE:
+        return sm.pack_pose(z[None], Z[None], T)[0]
+    return sm.pack_velocity(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)) * 3, T)[0]
+
+
+def _sensor_model_H(name: str):
+    """The error-state Jacobian of a sensor model's kernel against central differences of its
+    residual over the state (boxplus perturbation), with a random extrinsic."""
+    def draw(rng):
+        from factors import imu, sensor_models as sm
+
+        model = getattr(sm, name)
+        x = _random_state(rng)
+        row = random_sensor_row(model, x, rng)
+        _, H = sm.evaluate_one(model, x, row)
+        num = _num(lambda s: sm.evaluate_one(model, s, row)[0], x, arg_kinds=[imu.StateManifold],
+                   value_kind="vector")[0]
+        return H, num
+
+    return draw
+
+
+def _odometry_jacobians(rng):
+    """The relative pose of a sensor with a random extrinsic (as :func:`_relative_pose_jacobians`)."""
+    from factors import sensor_models as sm
+
+    T = random_extrinsic(rng)
+    R = T[:3, :3]
+    Ci, dC = random_rotation(rng), random_rotation(rng)
+    Cj = Ci @ R @ random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG) @ dC @ R.T
+    ri, rj, dr = rng.normal(size=3) * 5, rng.normal(size=3) * 5, rng.normal(size=3)
+    _, J = sm.odometry_residual(Ci, ri, Cj, rj, dr, dC, T, jacobians=True)
+    num = _num(lambda a, b, c, d: sm.odometry_residual(a, b, c, d, dr, dC, T), Ci, ri, Cj, rj,
+               arg_kinds=["rotation", "vector", "rotation", "vector"], value_kind="vector")
+    return np.hstack(J), np.hstack(num)
+
+
 register("pose measurement H (61-63)", _pose_measurement_H)
+for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY"):
+    register(f"{_model.lower()} sensor with extrinsic T_BS, H", _sensor_model_H(_model))
+register("odometry of a sensor with extrinsic T_BS", _odometry_jacobians)
 register("relative pose residual", _relative_pose_jacobians)
 register("IMU factor residual (preintegrated)", _imu_residual_jacobians)

@@ -1,0 +1,270 @@
+"""Measurement models of sensors mounted anywhere on the body, in the primer's convention.
+
+A sensor's frame ``S`` is fixed to the body (IMU) frame ``B`` by its extrinsic ``T_BS``:
+``p_B = R_BS p_S + p_BS`` (``p_BS``, the sensor's origin in the IMU frame). With the state
+``x = (r, v, C, b_f, b_w)`` (world position, BODY velocity, ``C = C(Phi_IB)``, biases) the sensor
+frame's pose in the world is ``(r + C p_BS, C R_BS)``. The models (``docs/design.md``, sensors):
+
+=============  ===========================================  ====================================
+model          prediction ``h(x)``                          residual ``e``
+=============  ===========================================  ====================================
+position       ``r + C p_BS`` (a GNSS antenna)              ``h - z``
+orientation    ``C R_BS``                                   ``log(C R_BS Z^T)``
+pose           both of the above                            ``(r + C p_BS - z, log(C R_BS Z^T))``
+velocity       ``R_BS^T (v + (w - b_w) x p_BS)``            ``h - z``
+=============  ===========================================  ====================================
+
+``w`` is the gyro sample at the measurement time: the sensor frame moves with the body, so its
+velocity in its own frame is the body velocity plus the lever arm's ``omega x p_BS``, rotated into
+``S``. Noise: ``z = h + n`` for vectors; ``Z = exp(n) C_IS`` (world-frame attitude noise, as the
+pose sensor of primer eqs. 61-63) for attitudes, so ``e_phi`` has the covariance of ``n``.
+
+Jacobians with respect to the error state ``(dr, dv, dphi, db_f, db_w)`` (LEFT boxplus
+``C <- exp(dphi) C``), derived from the primer's identities:
+
+* ``d(C p)/dphi = -(C p)^x``: ``exp(dphi) C p ~ C p + dphi x C p`` (eqs. 3, 27);
+* ``d log(C R Z^T)/dphi = Gamma^-1(e)``: ``exp(dphi) X`` moves ``log X`` by ``Gamma^-1(log X) dphi``
+  (eqs. 24, 32);
+* ``d/db_w (w - b_w) x p = p^x`` (the cross product is linear; ``a x p = -p^x a``).
+
+Each model is ONE compiled kernel with the signature ``kernel(r, v, C, b_f, b_w, row, e, H)``:
+``row`` holds the measurement and the extrinsic (the layout is the model's ``pack``), ``e (d,)``
+receives the residual and ``H (d, 15)`` its error-state Jacobian (every entry written). The EKF
+(``smoother.ekf``), the batch solver's blocks and the GTSAM factors (:func:`sensor_factor`) all
+run these kernels; there is no second copy of any formula.
+
+Relative poses of a sensor (odometry of a drifting source) connect two states; their model is
+:func:`odometry_residual` (sensor frame ``S_i``; ``dr = R_BS^T C_i^T (r_j + C_j p - r_i - C_i p)``,
+``dC = R_BS^T C_i^T C_j R_BS``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import gtsam
+import numpy as np
+from numba import njit
+
+from factors import so3
+from factors.custom import BIAS, ROT, VEC, custom_factor
+from factors.imu import STATE_DIM, ImuState
+
+
+def extrinsic_parts(T_BS) -> tuple[np.ndarray, np.ndarray]:
+    """``(R_BS, p_BS)`` of a 4x4 extrinsic (identity when ``T_BS`` is None)."""
+    if T_BS is None:
+        return np.eye(3), np.zeros(3)
+    T = np.asarray(T_BS, dtype=float)
+    return T[:3, :3].copy(), T[:3, 3].copy()
+
+
+@njit(cache=True)
+def _rotated_lever_into(C, p, Cp, H_rows, first_row) -> None:
+    """``Cp = C p`` and ``H[first_row:first_row + 3, 6:9] = -(C p)^x``."""
+    for a in range(3):
+        Cp[a] = C[a, 0] * p[0] + C[a, 1] * p[1] + C[a, 2] * p[2]
+    x, y, z = Cp[0], Cp[1], Cp[2]
+    i = first_row
+    H_rows[i, 6], H_rows[i, 7], H_rows[i, 8] = 0.0, z, -y
+    H_rows[i + 1, 6], H_rows[i + 1, 7], H_rows[i + 1, 8] = -z, 0.0, x
+    H_rows[i + 2, 6], H_rows[i + 2, 7], H_rows[i + 2, 8] = y, -x, 0.0
+
+
+@njit(cache=True)
+def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
+    """``e[first_row:+3] = log(C R Z^T)`` and ``H[first_row:+3, 6:9] = Gamma^-1(e)``."""
+    CR = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
+    x, y, z = so3.boxminus_of(CR, Z)
+    e[first_row], e[first_row + 1], e[first_row + 2] = x, y, z
+    G = np.empty((3, 3))
+    so3.gamma_inv_into(x, y, z, G)
+    for a in range(3):
+        for b in range(3):
+            H[first_row + a, 6 + b] = G[a, b]
+
+
+# Row layouts (flat float64): position (z 3, p 3); orientation (Z 9, R 9); pose (z 3, Z 9, R 9, p 3);
+# velocity (z 3, w 3, R 9, p 3).
+
+
+@njit(cache=True)
+def position_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """Antenna position ``r + C p_BS`` minus the measured one; ``row = (z, p_BS)``."""
+    H[:, :] = 0.0
+    Cp = np.empty(3)
+    _rotated_lever_into(C, row[3:6], Cp, H, 0)
+    for a in range(3):
+        e[a] = r[a] + Cp[a] - row[a]
+        H[a, a] = 1.0
+
+
+@njit(cache=True)
+def orientation_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """``log(C R_BS Z^T)``; ``row = (Z, R_BS)`` (row-major 3x3 each)."""
+    H[:, :] = 0.0
+    _attitude_error_into(C, row[9:18].reshape((3, 3)), row[0:9].reshape((3, 3)), e, H, 0)
+
+
+@njit(cache=True)
+def pose_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """``(r + C p_BS - z, log(C R_BS Z^T))``; ``row = (z, Z, R_BS, p_BS)``."""
+    H[:, :] = 0.0
+    Cp = np.empty(3)
+    _rotated_lever_into(C, row[21:24], Cp, H, 0)
+    for a in range(3):
+        e[a] = r[a] + Cp[a] - row[a]
+        H[a, a] = 1.0
+    _attitude_error_into(C, row[12:21].reshape((3, 3)), row[3:12].reshape((3, 3)), e, H, 3)
+
+
+@njit(cache=True)
+def velocity_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """``R_BS^T (v + (w - b_w) x p_BS) - z``; ``row = (z, w, R_BS, p_BS)``."""
+    H[:, :] = 0.0
+    R = row[6:15].reshape((3, 3))
+    p = row[15:18]
+    wx, wy, wz = row[3] - b_w[0], row[4] - b_w[1], row[5] - b_w[2]
+    u = np.empty(3)  # v + omega x p, in the body frame
+    u[0] = v[0] + wy * p[2] - wz * p[1]
+    u[1] = v[1] + wz * p[0] - wx * p[2]
+    u[2] = v[2] + wx * p[1] - wy * p[0]
+    P = np.empty((3, 3))  # p^x = d(omega x p)/d b_w
+    P[0, 0], P[0, 1], P[0, 2] = 0.0, -p[2], p[1]
+    P[1, 0], P[1, 1], P[1, 2] = p[2], 0.0, -p[0]
+    P[2, 0], P[2, 1], P[2, 2] = -p[1], p[0], 0.0
+    for a in range(3):
+        e[a] = R[0, a] * u[0] + R[1, a] * u[1] + R[2, a] * u[2] - row[a]
+        for b in range(3):
+            H[a, 3 + b] = R[b, a]
+            H[a, 12 + b] = R[0, a] * P[0, b] + R[1, a] * P[1, b] + R[2, a] * P[2, b]
+
+
+def _flat(*arrays) -> np.ndarray:
+    n = len(arrays[0])
+    return np.concatenate([np.reshape(np.asarray(a, dtype=float), (n, -1)) for a in arrays], axis=1)
+
+
+def _repeat(a: np.ndarray, n: int) -> np.ndarray:
+    return np.broadcast_to(a, (n,) + a.shape)
+
+
+def pack_position(z, T_BS=None) -> np.ndarray:
+    z = np.asarray(z, dtype=float)
+    _, p = extrinsic_parts(T_BS)
+    return _flat(z, _repeat(p, len(z)))
+
+
+def pack_orientation(Z, T_BS=None) -> np.ndarray:
+    Z = np.asarray(Z, dtype=float)
+    R, _ = extrinsic_parts(T_BS)
+    return _flat(Z, _repeat(R, len(Z)))
+
+
+def pack_pose(z, Z, T_BS=None) -> np.ndarray:
+    z = np.asarray(z, dtype=float)
+    R, p = extrinsic_parts(T_BS)
+    return _flat(z, Z, _repeat(R, len(z)), _repeat(p, len(z)))
+
+
+def pack_velocity(z, w, T_BS=None) -> np.ndarray:
+    z = np.asarray(z, dtype=float)
+    R, p = extrinsic_parts(T_BS)
+    return _flat(z, w, _repeat(R, len(z)), _repeat(p, len(z)))
+
+
+#: Which GTSAM variables (keyframe keys) a model reads, by the error-state columns it may touch.
+_VARIABLE_COLUMNS = {"pos": slice(0, 3), "vel": slice(3, 6), "rot": slice(6, 9), "bias": slice(9, 15)}
+_VARIABLE_KINDS = {"pos": VEC, "vel": VEC, "rot": ROT, "bias": BIAS}
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """One measurement model: its residual dimension ``dim``, the row width of its data, its
+    compiled ``kernel`` (module docstring) and the keyframe variables it depends on
+    (``variables``, a subset of ``pos, vel, rot, bias``: the GTSAM keys of its factor)."""
+
+    name: str
+    dim: int
+    width: int
+    kernel: Callable
+    variables: tuple[str, ...]
+
+
+POSITION = SensorModel("position", 3, 6, position_kernel, ("pos", "rot"))
+ORIENTATION = SensorModel("orientation", 3, 18, orientation_kernel, ("rot",))
+POSE = SensorModel("pose", 6, 24, pose_kernel, ("pos", "rot"))
+VELOCITY = SensorModel("velocity", 3, 18, velocity_kernel, ("vel", "bias"))
+
+
+def evaluate_one(model: SensorModel, state: ImuState, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e (d,), H (d, 15))`` of one measurement ``row`` at one state."""
+    e, H = np.empty(model.dim), np.empty((model.dim, STATE_DIM))
+    model.kernel(*(np.ascontiguousarray(a, dtype=float) for a in (state.r, state.v, state.C, state.b_f, state.b_w)),
+                 np.ascontiguousarray(row, dtype=float), e, H)
+    return e, H
+
+
+def sensor_factor(model: SensorModel, keys, row, noise_model) -> gtsam.CustomFactor:
+    """A GTSAM factor of one measurement ``row`` on a keyframe's ``keys``
+    (:class:`factors.keys.KeyframeKeys`); only the variables the model reads become its keys, and
+    the rotation block passes through the chart adapter (:func:`factors.custom.custom_factor`)."""
+    row = np.ascontiguousarray(row, dtype=float)
+    names = model.variables
+    zero3 = np.zeros(3)
+
+    def residual(*args, jacobians):
+        given = dict(zip(names, args))
+        b = given.get("bias")
+        e, H = np.empty(model.dim), np.empty((model.dim, STATE_DIM))
+        model.kernel(given.get("pos", zero3), given.get("vel", zero3), given.get("rot", np.eye(3)),
+                     zero3 if b is None else b[:3].copy(), zero3 if b is None else b[3:].copy(), row, e, H)
+        return (e, [H[:, _VARIABLE_COLUMNS[n]] for n in names]) if jacobians else e
+
+    return custom_factor(noise_model, [getattr(keys, n) for n in names], [_VARIABLE_KINDS[n] for n in names],
+                         residual)
+
+
+def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, jacobians: bool = False):
+    """Relative pose of the sensor frame between two states, in ``S_i``:
+    ``e = (R^T C_i^T (r_j + C_j p - r_i - C_i p) - dr_meas, log(R^T C_i^T C_j R dC_meas^T))`` with
+    ``(R, p) = T_BS``; Jacobians for ``(C_i, r_i, C_j, r_j)``, vectorised over leading dimensions.
+
+    With ``w = r_j - r_i + C_j p``: ``d/dphi_i = R^T C_i^T w^x`` (the ``-C_i p`` term's motion
+    joins ``w``), ``d/dphi_j = -R^T C_i^T (C_j p)^x``; the rotation part moves by
+    ``-+Gamma^-1(e) R^T C_i^T`` for ``phi_i`` / ``phi_j`` (eq. 24 with ``exp(a) X = X exp(X^T a)``)."""
+    R, p = extrinsic_parts(T_BS)
+    C_i, C_j = np.asarray(C_i, dtype=float), np.asarray(C_j, dtype=float)
+    RtCit = R.T @ so3.inverse(C_i)
+    Cjp = C_j @ p
+    w = np.asarray(r_j, dtype=float) - r_i + Cjp
+    e_r = np.einsum("...ab,...b->...a", RtCit, w - C_i @ p) - measured_dr
+    e_phi = so3.log(RtCit @ C_j @ R @ so3.inverse(measured_dC))
+    if e_r.shape != e_phi.shape:
+        e_r, e_phi = np.broadcast_arrays(e_r, e_phi)
+    e = np.concatenate([e_r, e_phi], axis=-1)
+    if not jacobians:
+        return e
+    shape = e.shape[:-1]
+    G = so3.gamma_inv(e_phi) @ RtCit
+    J_Ci, J_ri, J_Cj, J_rj = (np.zeros(shape + (6, 3)) for _ in range(4))
+    J_Ci[..., :3, :] = RtCit @ so3.skew(w)
+    J_Ci[..., 3:, :] = -G
+    J_ri[..., :3, :] = -RtCit
+    J_Cj[..., :3, :] = -RtCit @ so3.skew(Cjp)
+    J_Cj[..., 3:, :] = G
+    J_rj[..., :3, :] = RtCit
+    return e, [J_Ci, J_ri, J_Cj, J_rj]
+
+
+def odometry_factor(keys_i, keys_j, measured_dr, measured_dC, T_BS, noise_model) -> gtsam.CustomFactor:
+    """Relative pose of a sensor between two keyframes (noise in ``S_i``, position first)."""
+    mr, mC = np.array(measured_dr, dtype=float), np.array(measured_dC, dtype=float)
+    T = None if T_BS is None else np.array(T_BS, dtype=float)
+    return custom_factor(
+        noise_model, [keys_i.rot, keys_i.pos, keys_j.rot, keys_j.pos], [ROT, VEC, ROT, VEC],
+        lambda Ci, ri, Cj, rj, jacobians: odometry_residual(Ci, ri, Cj, rj, mr, mC, T, jacobians),
+    )
