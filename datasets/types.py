@@ -80,16 +80,29 @@ def _rotations(name: str, C, n: int) -> np.ndarray:
     return C
 
 
+def _extrinsic(name: str, T_BS) -> np.ndarray | None:
+    """``T_BS`` as a 4x4 rigid transform (rotation to 1e-6, last row ``0 0 0 1``), or None."""
+    if T_BS is None:
+        return None
+    T = np.asarray(T_BS, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name}: expected a finite 4x4 transform, got shape {T.shape}")
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError(f"{name}: the last row must be 0 0 0 1, got {T[3].tolist()}")
+    _rotations(name + " rotation", T[None, :3, :3], 1)
+    return T
+
+
 class _Rows:
-    """Shared by the row-wise data types: ``len()`` and ``subset(index)`` (every array field,
-    re-validated by the constructor)."""
+    """Shared by the row-wise data types: ``len()`` and ``subset(index)`` (every array field but
+    the per-set extrinsic ``T_BS``, re-validated by the constructor)."""
 
     def __len__(self) -> int:
         return len(getattr(self, fields(self)[0].name))
 
     def subset(self, index):
-        return type(self)(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[index]
-                             for f in fields(self)})
+        return type(self)(**{f.name: getattr(self, f.name) if f.name == "T_BS" or getattr(self, f.name) is None
+                             else getattr(self, f.name)[index] for f in fields(self)})
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,45 +139,53 @@ class ImuSamples:
 
 @dataclass(frozen=True, eq=False)
 class PositionMeasurements(_Rows):
-    """World positions ``I_r`` [m] (GPS-like), covariance ``cov`` (N, 3, 3) [m^2]."""
+    """World positions [m] (GPS-like) of the sensor's origin: ``r + C p_BS`` with ``p_BS`` from
+    ``T_BS`` (None: at the IMU, ``r``); covariance ``cov`` (N, 3, 3) [m^2]."""
 
     t: np.ndarray
     position: np.ndarray
     cov: np.ndarray
+    T_BS: np.ndarray | None = None
 
     def __post_init__(self):
         t = _times("PositionMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "position", _array("PositionMeasurements.position", self.position, (3,), len(t)))
         object.__setattr__(self, "cov", _covariances("PositionMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "T_BS", _extrinsic("PositionMeasurements.T_BS", self.T_BS))
 
 
 
 @dataclass(frozen=True, eq=False)
 class OrientationMeasurements(_Rows):
-    """Attitudes ``C(Phi_IB)`` with ``C_meas = exp(n) C`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2]."""
+    """Attitudes of the sensor frame, ``C R_BS`` (``R_BS`` from ``T_BS``; None: the IMU's ``C``),
+    with ``C_meas = exp(n) C R_BS`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2] in world coordinates."""
 
     t: np.ndarray
     C: np.ndarray
     cov: np.ndarray
+    T_BS: np.ndarray | None = None
 
     def __post_init__(self):
         t = _times("OrientationMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "C", _rotations("OrientationMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", _covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "T_BS", _extrinsic("OrientationMeasurements.T_BS", self.T_BS))
 
 
 
 @dataclass(frozen=True, eq=False)
 class PoseMeasurements(_Rows):
-    """Pose-sensor readings (eqs. 61-63): position [m] and attitude; ``cov`` (N, 6, 6) over
+    """Pose-sensor readings (eqs. 61-63) of the sensor frame: position ``r + C p_BS`` [m] and
+    attitude ``C R_BS`` (``T_BS`` None: the IMU's own pose); ``cov`` (N, 6, 6) over
     ``(n_p, n_Phi)`` (position first, world-frame orientation noise second)."""
 
     t: np.ndarray
     position: np.ndarray
     C: np.ndarray
     cov: np.ndarray
+    T_BS: np.ndarray | None = None
 
     def __post_init__(self):
         t = _times("PoseMeasurements.t", self.t)
@@ -172,6 +193,29 @@ class PoseMeasurements(_Rows):
         object.__setattr__(self, "position", _array("PoseMeasurements.position", self.position, (3,), len(t)))
         object.__setattr__(self, "C", _rotations("PoseMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", _covariances("PoseMeasurements.cov", self.cov, len(t), 6))
+        object.__setattr__(self, "T_BS", _extrinsic("PoseMeasurements.T_BS", self.T_BS))
+
+
+@dataclass(frozen=True, eq=False)
+class VelocityMeasurements(_Rows):
+    """Linear velocity of the sensor frame in its own frame (wheel odometry's twist, a Doppler
+    sensor): ``R_BS^T (v + (w - b_w) x p_BS)`` with ``v`` the body velocity and ``w`` (``gyro``,
+    N x 3) the gyro sample at the measurement time (the lever arm's velocity); ``cov`` (N, 3, 3)
+    [m^2/s^2]; ``T_BS`` None: the IMU's body velocity."""
+
+    t: np.ndarray
+    velocity: np.ndarray
+    gyro: np.ndarray
+    cov: np.ndarray
+    T_BS: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = _times("VelocityMeasurements.t", self.t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "velocity", _array("VelocityMeasurements.velocity", self.velocity, (3,), len(t)))
+        object.__setattr__(self, "gyro", _array("VelocityMeasurements.gyro", self.gyro, (3,), len(t)))
+        object.__setattr__(self, "cov", _covariances("VelocityMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "T_BS", _extrinsic("VelocityMeasurements.T_BS", self.T_BS))
 
 
 
@@ -179,13 +223,15 @@ class PoseMeasurements(_Rows):
 class RelativePoseMeasurements(_Rows):
     """Odometry between times ``t_from`` and ``t_to``: ``dr = C_i^T (r_j - r_i)`` [m] (in the body
     frame at ``t_from``) and ``dC = C_i^T C_j``; noise ``dC_meas = exp(n_Phi) dC``,
-    ``dr_meas = dr + n_r`` with ``cov`` (N, 6, 6) over ``(n_r, n_Phi)``, both in frame ``i``."""
+    ``dr_meas = dr + n_r`` with ``cov`` (N, 6, 6) over ``(n_r, n_Phi)``, both in frame ``i``.
+    With ``T_BS`` the same of the sensor frame ``S`` (:func:`factors.sensor_models.odometry_residual`)."""
 
     t_from: np.ndarray
     t_to: np.ndarray
     dr: np.ndarray
     dC: np.ndarray
     cov: np.ndarray
+    T_BS: np.ndarray | None = None
 
     def __post_init__(self):
         t_from = _array("RelativePoseMeasurements.t_from", self.t_from, ())
@@ -199,6 +245,12 @@ class RelativePoseMeasurements(_Rows):
         object.__setattr__(self, "dr", _array("RelativePoseMeasurements.dr", self.dr, (3,), n))
         object.__setattr__(self, "dC", _rotations("RelativePoseMeasurements.dC", self.dC, n))
         object.__setattr__(self, "cov", _covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
+        object.__setattr__(self, "T_BS", _extrinsic("RelativePoseMeasurements.T_BS", self.T_BS))
+
+    @property
+    def t(self) -> np.ndarray:
+        """The later time of each measurement (when it becomes available)."""
+        return self.t_to
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,10 +293,26 @@ class Trajectory(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
+class Sensor:
+    """One aiding sensor's measurements: its ``name`` (unique in a dataset; metrics and plots use
+    it), its ``kind`` (a name of :data:`datasets.kinds.KINDS`), the measurements used
+    (``data``, that kind's data type) and those held out for evaluation (``heldout`` or None)."""
+
+    name: str
+    kind: str
+    data: object
+    heldout: object = None
+
+
+@dataclass(frozen=True, eq=False)
 class Dataset:
     """Everything an estimator needs: IMU samples, noise densities, gravity, an initial state with
     its 15x15 covariance, the measurements available (any may be None) and, where known, the
-    ground truth. ``heldout_positions`` are GPS fixes kept out of estimation for evaluation."""
+    ground truth. ``heldout_positions`` are GPS fixes kept out of estimation for evaluation.
+
+    Measurements come as the IMU-centred fields ``pose``, ``position``, ``orientation`` and
+    ``relative_pose`` (the built-in datasets) and as named ``sensors`` (:class:`Sensor`, each with
+    its kind and extrinsic; a rig's); :func:`datasets.kinds.sensors_of` lists both alike."""
 
     name: str
     imu: ImuSamples
@@ -258,6 +326,7 @@ class Dataset:
     relative_pose: RelativePoseMeasurements | None = None
     truth: Trajectory | None = None
     heldout_positions: PositionMeasurements | None = None
+    sensors: tuple = ()
 
     def __post_init__(self):
         cov = np.asarray(self.initial_cov, dtype=float)
@@ -328,6 +397,29 @@ class Dataset:
                 warnings.warn(f"Dataset.relative_pose: {int((~inside).sum())} of {len(m)} measurements reach outside "
                               f"the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
                 object.__setattr__(self, "relative_pose", m.subset(inside) if inside.any() else None)
+        object.__setattr__(self, "sensors", tuple(self._sensor_inside_imu_span(s) for s in self.sensors))
+
+    def _sensor_inside_imu_span(self, sensor: Sensor) -> Sensor:
+        """``sensor`` without the measurements outside the IMU span (warned about, as above); a
+        sensor left with no measurement is an error naming it (nothing of it could be used)."""
+        t0, t1 = self.t0, self.t1
+        parts = {}
+        for part in ("data", "heldout"):
+            m = getattr(sensor, part)
+            if m is None:
+                parts[part] = None
+                continue
+            first = getattr(m, "t_from", m.t)
+            inside = (first >= t0) & (m.t <= t1)
+            if not inside.any() and part == "data":
+                raise ValueError(f"sensor {sensor.name!r}: none of its {len(m)} measurements "
+                                 f"([{first.min():.6f}, {m.t.max():.6f}] s) lies in the IMU span "
+                                 f"[{t0:.6f}, {t1:.6f}] s (a time offset, or stamps in another clock?)")
+            if not inside.all():
+                warnings.warn(f"sensor {sensor.name!r}: {int((~inside).sum())} of {len(m)} {part} measurements "
+                              f"lie outside the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=4)
+            parts[part] = m if inside.all() else (m.subset(inside) if inside.any() else None)
+        return Sensor(sensor.name, sensor.kind, parts["data"], parts["heldout"])
 
     @property
     def t0(self) -> float:
@@ -338,6 +430,9 @@ class Dataset:
         return float(self.imu.t[-1])
 
     def measurement_times(self) -> np.ndarray:
-        """Sorted unique times of the absolute measurements (pose, position, orientation)."""
+        """Sorted unique times of the measurements (pose, position, orientation, and every time of
+        the named sensors: both ends of a relative one)."""
         parts = [m.t for m in (self.pose, self.position, self.orientation) if m is not None]
+        for s in self.sensors:
+            parts += [s.data.t_from, s.data.t_to] if hasattr(s.data, "t_from") else [s.data.t]
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0)

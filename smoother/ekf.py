@@ -21,9 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from datasets.kinds import KINDS, measure_into, model_index, quiet_dispatch, sensors_of
 from datasets.types import Dataset, Trajectory
-from factors import imu, measurements as meas
+from factors import imu
 from factors.compiled import matmul_into
+from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
@@ -80,45 +82,61 @@ class Ekf:
         self.state = imu.ImuState(r, v, C, b_f, b_w)
         return True
 
-    def update_position(self, measured, R) -> bool:
-        e, (J,) = meas.position_residual(self.state.r, measured, jacobians=True)
-        H = np.zeros((3, imu.STATE_DIM))
-        H[:, imu.R] = J
+    def update_sensor(self, kind: str, row: np.ndarray, R: np.ndarray) -> bool:
+        """Correct with one measurement of ``kind`` (a name of :data:`datasets.kinds.KINDS`; its
+        ``row`` laid out as the kind's ``pack`` does, extrinsic included): the residual and its
+        Jacobian from the model's kernel, the one the smoothers' factors run."""
+        e, H = evaluate_one(KINDS[kind].model, self.state, row)
         return self.update(e, H, R)
 
-    def update_orientation(self, measured_C, R) -> bool:
-        e, (J,) = meas.orientation_residual(self.state.C, measured_C, jacobians=True)
-        H = np.zeros((3, imu.STATE_DIM))
-        H[:, imu.PHI] = J
-        return self.update(e, H, R)
+    def update_position(self, measured, R, T_BS=None) -> bool:
+        return self.update_sensor("position", pack_position(np.reshape(measured, (1, 3)), T_BS)[0], R)
 
-    def update_pose(self, measured_r, measured_C, R) -> bool:
+    def update_orientation(self, measured_C, R, T_BS=None) -> bool:
+        return self.update_sensor("orientation", pack_orientation(np.reshape(measured_C, (1, 3, 3)), T_BS)[0], R)
+
+    def update_pose(self, measured_r, measured_C, R, T_BS=None) -> bool:
         """Primer section VI.D: ``H = [[I 0 0 0 0], [0 0 I 0 0]]`` at zero innovation; here the
-        exact Jacobian of the residual (``Gamma^-1(e)`` on the attitude block)."""
-        e, (J_r, J_C) = meas.pose_residual(self.state.r, self.state.C, measured_r, measured_C, jacobians=True)
-        H = np.zeros((6, imu.STATE_DIM))
-        H[:, imu.R] = J_r
-        H[:, imu.PHI] = J_C
-        return self.update(e, H, R)
+        exact Jacobian of the residual (``Gamma^-1(e)`` on the attitude block, the lever arm's
+        ``-(C p)^x`` with an extrinsic)."""
+        return self.update_sensor("pose", pack_pose(np.reshape(measured_r, (1, 3)),
+                                                    np.reshape(measured_C, (1, 3, 3)), T_BS)[0], R)
+
+
+@dataclass
+class Innovations:
+    """Every measurement update of a run: the sensor's name, its time, the residual's dimension,
+    the normalised innovation squared ``e^T S^-1 e`` and whether the gate accepted it (NaN and
+    False where the filter had diverged before it)."""
+
+    sensor: np.ndarray
+    t: np.ndarray
+    dim: np.ndarray
+    nis: np.ndarray
+    accepted: np.ndarray
 
 
 @dataclass
 class FilterResult:
-    """Estimates and covariances at every knot (start, each measurement time, end)."""
+    """Estimates and covariances at every knot (start, each measurement time, end), and the
+    innovations of every update (:class:`Innovations`)."""
 
     trajectory: Trajectory
     runtime_s: float
     rejected: int
     log_likelihood: float
+    innovations: Innovations | None = None
 
 
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
-    time with every measurement taken then (pose, then position, then orientation), record the
-    state after the updates. The loop over knots is compiled (:func:`_filter_knots`); it runs in
-    chunks so the progress bar moves and Ctrl-C stops it between chunks."""
+    time with every measurement taken then (sensor by sensor in the order of
+    :func:`datasets.kinds.sensors_of`), record the state after the updates. The loop over knots
+    is compiled (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C
+    stops it between chunks."""
     start = time.perf_counter()
-    if dataset.relative_pose is not None and len(dataset.relative_pose):
+    sensors = [s for s in sensors_of(dataset) if not KINDS[s.kind].relative]
+    if len(sensors) < len(sensors_of(dataset)):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
     knots = estimate_times(dataset)
     steps = imu_steps(dataset.imu, knots)
@@ -128,22 +146,75 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
     P = np.array(dataset.initial_cov, dtype=float)
     out = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
            np.empty((n, imu.STATE_DIM, imu.STATE_DIM)))
-    measurements = _measurements_at(dataset, knots)
+    updates = _Updates.of(sensors, knots)
     bounds = np.concatenate([[0], steps.knot_step]).astype(np.int64)
     stats = np.zeros(2)
     samples = (np.ascontiguousarray(steps.acc, dtype=float), np.ascontiguousarray(steps.gyro, dtype=float),
                np.ascontiguousarray(steps.dt, dtype=float))
-    with progress_bar(len(steps.dt), "EKF", progress) as bar:
+    with progress_bar(len(steps.dt), "EKF", progress) as bar, quiet_dispatch():
         for first in range(0, n, _KNOTS_PER_CALL):
             last = min(n, first + _KNOTS_PER_CALL)
-            diverged = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, *measurements,
-                                     dataset.noise.densities(), np.asarray(dataset.gravity, dtype=float),
-                                     _gates(gate_probability), *out, stats)
+            diverged = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
+                                     updates.model, updates.dim, updates.rows, updates.R, updates.nis,
+                                     updates.accepted, dataset.noise.densities(),
+                                     np.asarray(dataset.gravity, dtype=float), _gates(gate_probability), *out, stats)
             if diverged >= 0:
                 raise _divergence(knots[diverged], out[1][diverged], out[5][diverged])
             bar.update(int(bounds[last]) - bar.n)
     states = imu.ImuState(*out[:5])
-    return FilterResult(Trajectory(knots, states, out[5]), time.perf_counter() - start, int(stats[0]), float(stats[1]))
+    return FilterResult(Trajectory(knots, states, out[5]), time.perf_counter() - start, int(stats[0]), float(stats[1]),
+                        updates.innovations([s.name for s in sensors], knots))
+
+
+@dataclass
+class _Updates:
+    """The measurement updates of a run in the order the filter applies them, as flat arrays for
+    the compiled loop: those at knot ``k`` are ``start[k]:start[k + 1]``; each has its model's
+    index, dimension, kernel row (zero-padded to the widest) and noise (padded to 6x6); ``nis``
+    and ``accepted`` are filled by the loop."""
+
+    start: np.ndarray
+    model: np.ndarray
+    dim: np.ndarray
+    rows: np.ndarray
+    R: np.ndarray
+    sensor: np.ndarray
+    knot: np.ndarray
+    nis: np.ndarray
+    accepted: np.ndarray
+
+    @classmethod
+    def of(cls, sensors: list, knots: np.ndarray) -> "_Updates":
+        parts = []  # (knot, sensor index, model, rows, cov) per sensor
+        for index, sensor in enumerate(sensors):
+            kind, m = KINDS[sensor.kind], sensor.data
+            knot = np.searchsorted(knots, m.t)
+            if np.any(knots[np.minimum(knot, len(knots) - 1)] != m.t):
+                raise ValueError(f"sensor {sensor.name!r}: measurement times that are not knots")
+            parts.append((knot, np.full(len(m), index), model_index(kind), kind.pack(m), m.cov))
+        if not parts:
+            parts.append((np.zeros(0, int), np.zeros(0, int), 0, np.zeros((0, 1)), np.zeros((0, 1, 1))))
+        u = sum(len(p[0]) for p in parts)
+        width = max(p[3].shape[1] for p in parts)
+        rows, R = np.zeros((u, width)), np.zeros((u, 6, 6))
+        model, dim = np.empty(u, np.int64), np.empty(u, np.int64)
+        at = 0
+        for _, _, index, block, cov in parts:
+            rows[at:at + len(block), :block.shape[1]] = block
+            d = cov.shape[-1]
+            R[at:at + len(block), :d, :d] = cov
+            model[at:at + len(block)], dim[at:at + len(block)] = index, d
+            at += len(block)
+        knot = np.concatenate([p[0] for p in parts])
+        sensor = np.concatenate([p[1] for p in parts])
+        order = np.lexsort((sensor, knot))  # by knot, then sensor by sensor
+        start = np.searchsorted(knot[order], np.arange(len(knots) + 1)).astype(np.int64)
+        return cls(start, model[order], dim[order], rows[order], R[order], sensor[order], knot[order],
+                   np.full(u, np.nan), np.zeros(u, dtype=np.bool_))
+
+    def innovations(self, names: list[str], knots: np.ndarray) -> Innovations:
+        return Innovations(np.asarray(names, dtype=object)[self.sensor] if len(names) else np.zeros(0, dtype=object),
+                           knots[self.knot], self.dim.copy(), self.nis, self.accepted)
 
 
 #: Knots per call of the compiled loop (between two calls the progress bar moves and Ctrl-C is seen).
@@ -157,30 +228,6 @@ def _gates(probability: float | None) -> np.ndarray:
         for m in range(1, 7):
             gates[m] = chi2_quantile(probability, m)
     return gates
-
-
-def _measurements_at(dataset: Dataset, knots: np.ndarray) -> tuple:
-    """For pose, position and orientation: the row taken at each knot (-1 where none) and the
-    arrays of that type (empty of the right shape when the dataset has none)."""
-    def rows_at(times):
-        i = np.minimum(np.searchsorted(times, knots), max(len(times) - 1, 0))
-        hit = (len(times) > 0) & (np.asarray(times)[i] == knots) if len(times) else np.zeros(len(knots), bool)
-        return np.where(hit, i, -1).astype(np.int64)
-
-    none = np.empty(0)
-    pose, pos, ori = dataset.pose, dataset.position, dataset.orientation
-    return (
-        rows_at(pose.t if pose is not None else none),
-        *(np.ascontiguousarray(a, dtype=float) for a in (
-            (pose.position, pose.C, pose.cov) if pose is not None else (np.empty((0, 3)), np.empty((0, 3, 3)),
-                                                                        np.empty((0, 6, 6))))),
-        rows_at(pos.t if pos is not None else none),
-        *(np.ascontiguousarray(a, dtype=float) for a in (
-            (pos.position, pos.cov) if pos is not None else (np.empty((0, 3)), np.empty((0, 3, 3))))),
-        rows_at(ori.t if ori is not None else none),
-        *(np.ascontiguousarray(a, dtype=float) for a in (
-            (ori.C, ori.cov) if ori is not None else (np.empty((0, 3, 3)), np.empty((0, 3, 3))))),
-    )
 
 
 @njit(cache=True)
@@ -214,13 +261,14 @@ def _solve_lower(L, b, out) -> None:
 
 
 @njit(cache=True)
-def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
+def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> float:
     """The update of :meth:`Ekf.update` in place on the state arrays and ``P``.
 
     ``S = H P H^T + R = L L^T``; normalised innovation ``d2 = |L^-1 e|^2``; if ``d2`` passes the
     gate, ``K = P H^T S^-1`` (rows of ``K`` solved through ``L``), ``x <- x [+] (-K e)`` and
     Joseph's ``P <- (I - K H) P (I - K H)^T + K R K^T``; ``stats[0]`` counts rejections,
-    ``stats[1]`` accumulates ``log N(e; 0, S)``. A non-positive-definite ``S`` raises."""
+    ``stats[1]`` accumulates ``log N(e; 0, S)``. A non-positive-definite ``S`` raises. Returns
+    ``d2``, the normalised innovation squared."""
     m, n = e.shape[0], P.shape[0]
     PHt, S = np.empty((n, m)), np.empty((m, m))
     matmul_into(P, H.T, PHt)
@@ -238,7 +286,7 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
         logdet += 2.0 * math.log(L[i, i])
     if d2 > gates[m]:
         stats[0] += 1
-        return
+        return d2
     stats[1] -= 0.5 * (d2 + logdet + m * math.log(2.0 * math.pi))
     # K^T = S^-1 (P H^T)^T = L^-T L^-1 PHt^T, row by row of K
     K = np.empty((n, m))
@@ -269,33 +317,29 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> None:
             for k in range(m):
                 acc += KR[i, k] * K[j, k]
             P[i, j] = P[j, i] = acc
+    return d2
 
 
 @njit(cache=True)
-def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last,
-                  pose_row, pose_r, pose_C, pose_R, pos_row, pos_r, pos_R, ori_row, ori_C, ori_R,
-                  q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, nis,
+                  accepted, q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_ekf`: predict through the knot's IMU steps
-    (``bounds[k] .. bounds[k + 1]``), apply the measurements taken there, store the state.
-    Returns the first knot where the filter diverged (see :func:`_diverged`), else -1."""
+    (``bounds[k] .. bounds[k + 1]``), apply the updates taken there (``start[k] .. start[k + 1]``
+    of :class:`_Updates`, each through its model's kernel), store the state. Returns the first
+    knot where the filter diverged (see :func:`_diverged`), else -1."""
     n = P.shape[0]
     for knot in range(first, last):
         a, b = bounds[knot], bounds[knot + 1]
         imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
-        for kind in range(3):  # pose, position, orientation (the order of Ekf's update_* calls)
-            i = (pose_row, pos_row, ori_row)[kind][knot]
-            if i < 0 or _diverged(r, v, C, b_f, b_w, P):
+        for u in range(start[knot], start[knot + 1]):
+            if _diverged(r, v, C, b_f, b_w, P):
                 continue
-            m = 6 if kind == 0 else 3
-            e, H = np.empty(m), np.zeros((m, n))
-            if kind != 2:  # e_r = r - r_meas, de_r/dr = I
-                measured = pose_r[i] if kind == 0 else pos_r[i]
-                for k in range(3):
-                    e[k] = r[k] - measured[k]
-                    H[k, k] = 1.0
-            if kind != 1:  # e_phi = C [-] C_meas in the last three rows
-                meas.orientation_error_into(C, pose_C[i] if kind == 0 else ori_C[i], e[m - 3:], H[m - 3:, 6:9])
-            _kalman_update(r, v, C, b_f, b_w, P, e, H, (pose_R, pos_R, ori_R)[kind][i], gates, stats)
+            m = dim[u]
+            e, H = np.empty(m), np.empty((m, n))
+            measure_into(model[u], r, v, C, b_f, b_w, rows[u], e, H)
+            rejected = stats[0]
+            nis[u] = _kalman_update(r, v, C, b_f, b_w, P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats)
+            accepted[u] = stats[0] == rejected
         out_r[knot], out_v[knot], out_C[knot], out_b_f[knot], out_b_w[knot] = r, v, C, b_f, b_w
         out_P[knot] = P
         if _diverged(r, v, C, b_f, b_w, P):

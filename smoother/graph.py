@@ -24,11 +24,13 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from datasets.kinds import KINDS, measure_rows, sensors_of
 from datasets.types import Dataset
 from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
+from factors.sensor_models import odometry_factor, odometry_residual, sensor_factor
 from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
 
@@ -196,14 +198,17 @@ def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
     or more); NaN where unknown. Keyframe 0 is the dataset's initial state, never reset."""
     n = len(times)
     anchors = preintegration.Anchors.none(n)
-    for m in (dataset.position, dataset.pose):
-        if m is not None:
-            idx = _match(times, m.t)
-            anchors.r[idx[idx >= 0]] = m.position[idx >= 0]
-    for m in (dataset.orientation, dataset.pose):
-        if m is not None:
-            idx = _match(times, m.t)
-            anchors.C[idx[idx >= 0]] = m.C[idx >= 0]
+    # where several sensors anchor one keyframe, the later wins: a pose sensor's, which gives both
+    for sensor in sorted(sensors_of(dataset), key=lambda s: s.kind == "pose"):
+        anchor = KINDS[sensor.kind].anchor
+        if anchor is None:
+            continue
+        t, r, C = anchor(sensor.data)
+        idx = _match(times, t)
+        if r is not None:
+            anchors.r[idx[idx >= 0]] = r[idx >= 0]
+        if C is not None:
+            anchors.C[idx[idx >= 0]] = C[idx >= 0]
     has_r = np.isfinite(anchors.r[:, 0])
     if has_r.sum() >= 2:
         tr, rr = times[has_r], anchors.r[has_r]
@@ -246,8 +251,9 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
                   reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD) -> Problem:
     """The factor graph of ``dataset`` (see the module docstring).
 
-    ``robust`` maps a measurement type (``"pose"``, ``"position"``, ``"orientation"``,
-    ``"relative_pose"``) to a kernel spec ``(name, threshold)`` from :func:`robust_spec`.
+    ``robust`` maps a sensor's name (the built-in datasets' ``"pose"``, ``"position"``,
+    ``"orientation"``, ``"relative_pose"``; a rig's own names) to a kernel spec ``(name,
+    threshold)`` from :func:`robust_spec`.
     """
     robust = robust or {}
     times = estimate_times(dataset, keyframe_rate)
@@ -272,20 +278,20 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
     measurements = []  # (block index, spec, keyframes, data, cov, kernel) of each measurement block
     for spec in _measurement_specs(dataset):
-        rows = np.flatnonzero(np.all([_match(times, t) >= 0 for t in spec["times"]], axis=0))
-        if rows.size == 0:
-            continue
-        kf = np.stack([_match(times, t[rows]) for t in spec["times"]], axis=1)
-        data = [np.asarray(a)[rows] for a in spec["data"]]
-        cov = np.asarray(spec["cov"])[rows]
-        kernel = robust.get(spec["name"])
-        blocks.append(Block(spec["name"], kf, _block_residual(spec, data), whitening(cov), _robust_estimator(kernel, cov.shape[-1])))
-        measurements.append((len(blocks) - 1, spec, kf, data, cov, kernel))
+        matched = np.stack([_match(times, t) for t in spec.times], axis=1)
+        placed = np.all(matched >= 0, axis=1)
+        if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
+            raise ValueError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
+                             "no keyframe")
+        kf = matched
+        kernel = robust.get(spec.name)
+        blocks.append(Block(spec.name, kf, spec.residual, whitening(spec.cov), _robust_estimator(kernel, spec.cov.shape[-1])))
+        measurements.append((len(blocks) - 1, spec, kf, spec.cov, kernel))
 
     # the rows of each measurement block by the keyframe at which they become available (their
     # latest): rows order[bounds[k]:bounds[k + 1]], ascending within a keyframe
     available = []
-    for _, _, kf, _, _, _ in measurements:
+    for _, _, kf, _, _ in measurements:
         latest = kf.max(axis=1)
         order = np.argsort(latest, kind="stable")
         available.append((order, np.searchsorted(latest[order], np.arange(len(times) + 1))))
@@ -298,10 +304,9 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
             imu_factor = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
                                    reintegration_threshold=reintegration_threshold)
             out = KeyframeFactors(imu_factor, [imu_factor.factor], [(0, k - 1)], [k - 1])
-        for (block, spec, kf, data, cov, kernel), (order, bounds) in zip(measurements, available):
+        for (block, spec, kf, cov, kernel), (order, bounds) in zip(measurements, available):
             for m in order[bounds[k]:bounds[k + 1]]:
-                out.factors.append(spec["factor"]([keys[j] for j in kf[m]], [a[m] for a in data],
-                                                  noise_model(cov[m], kernel)))
+                out.factors.append(spec.factor([keys[j] for j in kf[m]], int(m), noise_model(cov[m], kernel)))
                 out.rows.append((block, int(m)))
                 out.oldest.append(int(kf[m].min()))
         return out
@@ -325,57 +330,47 @@ def _whole_graph(problem: Problem) -> GtsamGraph:
     rows_of = {id(f): where for group in groups for f, where in zip(group.factors, group.rows)}
     return GtsamGraph(graph, values, [group.imu for group in groups[1:]], [group.factors for group in groups], rows_of)
 
-def _block_residual(spec: dict, data: list[np.ndarray]):
-    """A vectorised block residual from a measurement spec: reads each slot's variables, calls the
-    spec's residual with the measurement arrays and places the Jacobians in error-state columns."""
-    def residual(slots, jacobians, rows):
-        args = []
-        for state, names in zip(slots, spec["variables"]):
-            args += [_variable(state, name) for name in names]
-        out = spec["residual"](*args, *(d[rows] for d in data), jacobians=jacobians)
+@dataclass
+class MeasurementSpec:
+    """One sensor's measurements as the graph needs them: ``times`` of the keyframes each
+    measurement connects (one array per keyframe it reads), the block ``residual(slots,
+    jacobians, rows)`` (:class:`smoother.solver.Block`), covariances, and ``factor(keys, m,
+    noise_model)`` making the GTSAM factor of measurement ``m``."""
+
+    name: str
+    times: list[np.ndarray]
+    residual: Callable
+    cov: np.ndarray
+    factor: Callable
+
+
+def _measurement_specs(dataset: Dataset) -> list[MeasurementSpec]:
+    """Each sensor of ``dataset`` (:func:`datasets.kinds.sensors_of`) through its kind's model."""
+    return [(_relative_spec if KINDS[s.kind].relative else _absolute_spec)(s) for s in sensors_of(dataset)]
+
+
+def _absolute_spec(sensor) -> MeasurementSpec:
+    kind, m = KINDS[sensor.kind], sensor.data
+    rows = kind.pack(m)
+
+    def residual(slots, jacobians, which):
+        e, H = measure_rows(kind, slots[0], rows[which])
+        return (e, [H]) if jacobians else e
+
+    return MeasurementSpec(sensor.name, [m.t], residual, m.cov,
+                           lambda kk, i, model: sensor_factor(kind.model, kk[0], rows[i], model))
+
+
+def _relative_spec(sensor) -> MeasurementSpec:
+    m = sensor.data
+
+    def residual(slots, jacobians, which):
+        a, b = slots
+        out = odometry_residual(a.C, a.r, b.C, b.r, m.dr[which], m.dC[which], m.T_BS, jacobians)
         if not jacobians:
             return out
-        e, Js = out
-        placed, i = [], 0
-        for names in spec["variables"]:
-            placed.append(_place(Js[i:i + len(names)], names))
-            i += len(names)
-        return e, placed
+        e, (J_Ci, J_ri, J_Cj, J_rj) = out
+        return e, [_place([J_Ci, J_ri], ["rot", "pos"]), _place([J_Cj, J_rj], ["rot", "pos"])]
 
-    return residual
-
-
-def _variable(state: imu.ImuState, name: str) -> np.ndarray:
-    return {"rot": state.C, "pos": state.r, "vel": state.v}[name]
-
-
-def _measurement_specs(dataset: Dataset) -> list[dict]:
-    """Each measurement type: times of the keyframes it connects, the variables it reads per
-    keyframe, its residual, its data arrays, covariances, and how to make one GTSAM factor."""
-    specs = []
-    if dataset.pose is not None:
-        m = dataset.pose
-        specs.append(dict(
-            name="pose", times=[m.t], variables=[["pos", "rot"]], residual=meas.pose_residual,
-            data=[m.position, m.C], cov=m.cov,
-            factor=lambda kk, d, model: meas.pose_factor(kk[0].pos, kk[0].rot, d[0], d[1], model)))
-    if dataset.position is not None:
-        m = dataset.position
-        specs.append(dict(
-            name="position", times=[m.t], variables=[["pos"]], residual=meas.position_residual,
-            data=[m.position], cov=m.cov,
-            factor=lambda kk, d, model: meas.position_factor(kk[0].pos, d[0], model)))
-    if dataset.orientation is not None:
-        m = dataset.orientation
-        specs.append(dict(
-            name="orientation", times=[m.t], variables=[["rot"]], residual=meas.orientation_residual,
-            data=[m.C], cov=m.cov,
-            factor=lambda kk, d, model: meas.orientation_factor(kk[0].rot, d[0], model)))
-    if dataset.relative_pose is not None:
-        m = dataset.relative_pose
-        specs.append(dict(
-            name="relative_pose", times=[m.t_from, m.t_to], variables=[["rot", "pos"], ["rot", "pos"]],
-            residual=meas.relative_pose_residual, data=[m.dr, m.dC], cov=m.cov,
-            factor=lambda kk, d, model: meas.relative_pose_factor(
-                kk[0].rot, kk[0].pos, kk[1].rot, kk[1].pos, d[0], d[1], model)))
-    return specs
+    return MeasurementSpec(sensor.name, [m.t_from, m.t_to], residual, m.cov,
+                           lambda kk, i, model: odometry_factor(kk[0], kk[1], m.dr[i], m.dC[i], m.T_BS, model))
