@@ -83,7 +83,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
+from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth, sensors_from_truth
 from datasets.trajectories import PROFILES, Profile
 from datasets.types import (
     Dataset,
@@ -99,7 +99,8 @@ from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 __all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 
 #: The independent random streams, in spawn order (never reorder: it would change every dataset).
-STREAMS = ("imu", "bias", "initial", "velocity", "pose", "position", "orientation", "relative_pose", "outliers")
+STREAMS = ("imu", "bias", "initial", "velocity", "pose", "position", "orientation", "relative_pose", "outliers",
+           "sensors")
 
 TRUTH_MODELS = ("discrete", "continuous")
 
@@ -246,6 +247,7 @@ def simulate(
     gravity=DEFAULT_GRAVITY,
     t0: float = 0.0,
     clean_imu: str = "matched",
+    sensors=(),
 ) -> SimulatedDataset:
     """Simulate an IMU dataset with measurements and ground truth (construction: module docstring).
 
@@ -267,7 +269,9 @@ def simulate(
     the bias block of ``initial_cov``; the initial bias estimate is 0). ``initial_sigma =
     (position [m], velocity [m/s], attitude [rad])``: spread of the initial estimate's error.
     ``outlier_fraction`` in [0, 1] of the pose measurements get an error of ``outlier_scale =
-    (metres, radians)``. ``gravity``: ``I_g`` [m/s^2].
+    (metres, radians)``. ``gravity``: ``I_g`` [m/s^2]. ``sensors``: further sensors of any kind,
+    mounted anywhere (:class:`datasets.from_truth.SensorSpec`), drawn by
+    :func:`datasets.from_truth.sensors_from_truth` with a noise stream of their own.
 
     Raises ``ValueError`` naming the option for any bad option.
     """
@@ -395,9 +399,10 @@ def simulate(
         dC = so3.boxplus(Ci_T @ states.C[j], rng.standard_normal((len(i), 3)) * sigma_relative[1])
         relative_pose = RelativePoseMeasurements(t[i], t[j], dr, dC, _covariance(*sigma_relative))
 
+    imu_samples = ImuSamples(t, acc, gyro)
     return SimulatedDataset(
         name=f"synthetic:{prof.name}",
-        imu=ImuSamples(t, acc, gyro),
+        imu=imu_samples,
         noise=noise,
         initial=initial,
         initial_cov=initial_cov,
@@ -407,6 +412,7 @@ def simulate(
         orientation=orientation,
         relative_pose=relative_pose,
         truth=truth_trajectory,
+        sensors=sensors_from_truth(truth_trajectory, imu_samples, sensors, seeds["sensors"]),
         clean_imu=ImuSamples(t, f_clean, w_clean),
         pose_outliers=pose_outliers,
         profile=prof.name,

@@ -21,12 +21,14 @@ ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
 @dataclass
 class Estimate:
-    """One estimator's trajectory (with covariances where computed) and wall time [s]."""
+    """One estimator's trajectory (with covariances where computed) and wall time [s]; the EKF's
+    carries its :class:`smoother.ekf.Innovations`."""
 
     name: str
     trajectory: Trajectory
     runtime_s: float
     details: dict
+    innovations: object = None
 
 
 @dataclass
@@ -67,5 +69,16 @@ def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions()) 
             })
         elif name == "ekf":
             r = run_ekf(dataset, options.ekf_gate, options.progress)
-            out[name] = Estimate(name, r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected})
+            out[name] = Estimate(name, r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected},
+                                 r.innovations)
     return out
+
+
+def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
+    """Each sensor's NIS through the EKF (:func:`smoother.diagnostics.sensor_consistency`): from
+    the EKF among ``estimates``, else from an EKF run made for it."""
+    from smoother.diagnostics import sensor_consistency as consistency
+
+    ekf = estimates.get("ekf")
+    innovations = ekf.innovations if ekf is not None else run_ekf(dataset, options.ekf_gate, False).innovations
+    return consistency(innovations)

@@ -78,7 +78,8 @@ def gate_probability(probability: float | None) -> float | None:
 def run(args) -> int:
     from smoother import report, sources
     from smoother.commands import at_least, duration, fraction, output_directory, positive
-    from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators
+    from smoother.diagnostics import consistency_warnings
+    from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators, sensor_consistency
 
     at_least("--seed", args.seed, 0)
     duration(args.duration)
@@ -121,6 +122,11 @@ def run(args) -> int:
         if isinstance(error, ValueError):
             raise UserError(str(error)) from None
         raise
+    consistency = {}
+    if estimates:
+        consistency = sensor_consistency(dataset, estimates, run_options)
+        for est in estimates.values():
+            est.details["sensors"] = consistency
     metrics = report.write_outputs(out, dataset, estimates,
                                    {**run_info, "total_s": time.perf_counter() - started})
     if args.plot:
@@ -129,6 +135,8 @@ def run(args) -> int:
         for path in plots.plot_run(out):
             print(f"wrote {path}", file=sys.stderr)
     print(format_table(metrics))
+    for line in consistency_warnings(consistency):
+        print(f"warning: {line}", file=sys.stderr)
     print(f"outputs in {args.out}/", file=sys.stderr)
     return 0
 

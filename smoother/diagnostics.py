@@ -1,0 +1,50 @@
+"""Per-sensor consistency: is each sensor's noise, extrinsic and time offset what its data show?
+
+Through the EKF, a measurement's normalised innovation squared ``NIS = e^T S^-1 e`` (``S = H P
+H^T + R``) is chi-square distributed with ``dim`` degrees of freedom when the model is right. Over
+a sensor's ``N`` updates the sum is chi-square with ``N dim`` degrees of freedom, so the mean NIS
+per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N dim)`` with 95%
+probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
+or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from smoother.ekf import Innovations
+from smoother.metrics import chi2_quantile
+
+#: Probability of the band within which a consistent sensor's mean NIS per dof lies.
+BAND_PROBABILITY = 0.95
+
+
+def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
+    """Per sensor: ``nis_per_dof`` (the mean NIS over its updates divided by the dimension),
+    ``band`` (:data:`BAND_PROBABILITY` interval of that mean for a consistent sensor), ``ok``
+    (inside the band), ``updates`` and ``rejected`` (by the EKF's gate) counts. Updates after a
+    divergence (NaN) are not counted."""
+    out = {}
+    for name in dict.fromkeys(innovations.sensor):
+        mine = (innovations.sensor == name) & np.isfinite(innovations.nis)
+        if not mine.any():
+            continue
+        dof = float(innovations.dim[mine].sum())
+        lo = chi2_quantile(0.5 * (1 - BAND_PROBABILITY), dof) / dof
+        hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
+        value = float(innovations.nis[mine].sum() / dof)
+        out[str(name)] = {"nis_per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi),
+                          "updates": int(mine.sum()), "rejected": int((~innovations.accepted[mine]).sum())}
+    return out
+
+
+def consistency_warnings(consistency: dict[str, dict]) -> list[str]:
+    """One line per sensor outside its band, naming what to check."""
+    lines = []
+    for name, c in consistency.items():
+        if c["ok"]:
+            continue
+        lo, hi = c["band"]
+        advice = ("check its sigma (too small), lever arm, rotation or time offset" if c["nis_per_dof"] > hi
+                  else "its sigma looks too large")
+        lines.append(f"{name}: NIS {c['nis_per_dof']:.3g} per dof, expected {lo:.2g}-{hi:.2g}: {advice}")
+    return lines
