@@ -504,5 +504,5 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     pose, position = from_truth.measurements_from_truth(truth, pose_args, gps_args, seed)
     return Dataset(
         name="euroc", imu=imu, noise=noise, initial=initial, initial_cov=np.diag(sigmas**2),
-        gravity=np.asarray(gravity, dtype=float), pose=pose, position=position, truth=truth,
+        gravity=np.asarray(gravity, dtype=float), pose=pose, position=position, truth=truth, time_origin_ns=t0_ns,
     )

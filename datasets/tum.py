@@ -50,10 +50,12 @@ def read_tum(path) -> Trajectory:
     return Trajectory(t, states)
 
 
-def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True) -> None:
+def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True, time_origin_ns: int | None = None) -> None:
     """Write a TUM file atomically from a :class:`Trajectory` or from arrays ``(t, r, C)``
     (``C`` body-to-world matrices of shape ``(N, 3, 3)``). With ``header`` a ``#`` comment line
-    naming the columns comes first."""
+    naming the columns comes first. With ``time_origin_ns`` (the data's own clock at ``t = 0``,
+    :attr:`datasets.types.Dataset.time_origin_ns`) the stamps are written in that clock, in
+    seconds with nine decimals computed from integer nanoseconds (EuRoC's stamps exactly)."""
     if isinstance(trajectory_or_t, Trajectory):
         if r is not None or C is not None:
             raise ValueError("write_tum: give either a Trajectory or (t, r, C), not both")
@@ -68,6 +70,15 @@ def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True) -> Non
     with atomic_write(path) as handle:
         if header:
             handle.write(HEADER + "\n")
+        stamps = ([repr(float(t)) for t in traj.t] if time_origin_ns is None
+                  else [format_ns(int(time_origin_ns) + int(ns)) for ns in np.round(traj.t * 1e9).astype(np.int64)])
         for k in range(len(traj)):
-            numbers = (traj.t[k], *traj.position[k], *q[k])
-            handle.write(" ".join(repr(float(x)) for x in numbers) + "\n")
+            numbers = (*traj.position[k], *q[k])
+            handle.write(stamps[k] + " " + " ".join(repr(float(x)) for x in numbers) + "\n")
+
+
+def format_ns(ns: int) -> str:
+    """Integer nanoseconds as seconds with nine decimals, exactly (``1403715273262142976`` ->
+    ``"1403715273.262142976"``)."""
+    sign, ns = ("-", -ns) if ns < 0 else ("", ns)
+    return f"{sign}{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"

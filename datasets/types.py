@@ -312,7 +312,12 @@ class Dataset:
 
     Measurements come as the IMU-centred fields ``pose``, ``position``, ``orientation`` and
     ``relative_pose`` (the built-in datasets) and as named ``sensors`` (:class:`Sensor`, each with
-    its kind and extrinsic; a rig's); :func:`datasets.kinds.sensors_of` lists both alike."""
+    its kind and extrinsic; a rig's); :func:`datasets.kinds.sensors_of` lists both alike.
+
+    ``time_origin_ns``: where the data have a clock of their own (EuRoC's nanosecond stamps, a
+    bag's header stamps since the epoch), its reading at ``t = 0``, in integer nanoseconds; times
+    inside stay small (float64 keeps sub-microsecond steps) and outputs are written in the data's
+    clock. None: the times are the data's own."""
 
     name: str
     imu: ImuSamples
@@ -327,6 +332,7 @@ class Dataset:
     truth: Trajectory | None = None
     heldout_positions: PositionMeasurements | None = None
     sensors: tuple = ()
+    time_origin_ns: int | None = None
 
     def __post_init__(self):
         cov = np.asarray(self.initial_cov, dtype=float)

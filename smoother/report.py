@@ -7,7 +7,8 @@ estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est
 ``gps_rmse_m`` over every fix and ``gps_heldout_rmse_m`` over the fixes held out of estimation,
 the estimate interpolated linearly to the fix times.
 
-A run directory holds ``<estimator>.tum`` (TUM trajectory), ``<estimator>.npz`` (the full states
+A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
+:attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states
 and covariances, for plots), ``truth.npz`` and ``gps.npz`` where known, and ``metrics.json``; every file is
 written atomically.
 """
@@ -168,7 +169,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
     out_dir.mkdir(parents=True, exist_ok=True)
     report: dict = {}
     for name, est in estimates.items():
-        write_tum(out_dir / f"{name}.tum", est.trajectory)
+        write_tum(out_dir / f"{name}.tum", est.trajectory, time_origin_ns=dataset.time_origin_ns)
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     # A directory reused for another dataset must not keep a previous run's reference.

@@ -43,6 +43,10 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
         elif kind == "kitti":
             from datasets.kitti import load_kitti
 
+            if arg:
+                raise UserError(f"--dataset {spec}: kitti takes no path (it is the KITTI example shipped inside "
+                                "the gtsam wheel); for a recording of your own write a rig file: --rig RIG.toml")
+
             dataset = load_kitti(gps_every=options.gps_every)
         elif kind == "euroc":
             from datasets.euroc import load_euroc

@@ -422,3 +422,18 @@ def test_fuzz_only_data_errors_naming_the_file(file, line, where, replace):
             assert str(path) in str(error), str(error)
         else:
             assert np.all(np.diff(d.imu.t_ns) > 0)
+
+
+def test_outputs_keep_the_sequence_stamps(sequence, tmp_path):
+    """A run's TUM files carry EuRoC's own nanosecond stamps (evo associates them with the
+    sequence's ground truth), not times from 0."""
+    from datasets.tum import format_ns
+    from smoother.cli import main
+
+    root = sequence[0]
+    data = load_euroc(root)
+    assert data.time_origin_ns == int(data.imu.t_ns[0])
+    assert main(["run", "--dataset", f"euroc:{root}", "--estimator", "ekf", "--gps-from-truth", "10", "0.5",
+                 "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    first = (tmp_path / "out" / "ekf.tum").read_text().splitlines()[1].split()[0]
+    assert first == format_ns(int(data.imu.t_ns[0]))

@@ -145,3 +145,17 @@ def test_fuzz_only_data_errors_naming_the_file(lines, where):
         else:
             assert np.all(np.diff(traj.t) > 0)
             assert np.all(np.isfinite(traj.position))
+
+
+def test_write_tum_in_the_data_clock_keeps_nanosecond_stamps(tmp_path):
+    """EuRoC-like stamps: an origin in integer nanoseconds plus small float times, written as the
+    exact stamps (evo then associates them with the sequence's own ground truth)."""
+    from datasets.tum import format_ns
+
+    origin = 1403715273262142976
+    t = np.array([0.0, 0.005, 1.25])
+    write_tum(tmp_path / "a.tum", t, np.zeros((3, 3)), np.broadcast_to(np.eye(3), (3, 3, 3)).copy(),
+              time_origin_ns=origin)
+    stamps = [line.split()[0] for line in (tmp_path / "a.tum").read_text().splitlines()[1:]]
+    assert stamps == ["1403715273.262142976", "1403715273.267142976", "1403715274.512142976"]
+    assert format_ns(-1_500_000_000) == "-1.500000000"

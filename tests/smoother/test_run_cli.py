@@ -276,3 +276,12 @@ def test_tune_noise_reports_and_records_the_tuning(tmp_path, capsys):
     assert set(tuning["scale"]) == {"acc", "gyro", "acc_bias", "gyro_bias"}
     assert tuning["log_likelihood"] >= tuning["initial_log_likelihood"]
     assert tuning["evaluations"] >= 9  # the start and both directions of each density at least
+
+
+def test_kitti_refuses_a_path(capsys):
+    """``--dataset kitti:PATH`` used to ignore the path and run the shipped data."""
+    from smoother.cli import main
+
+    assert main(["run", "--dataset", "kitti:/some/where", "--out", "unused"]) == 2
+    err = capsys.readouterr().err
+    assert "kitti takes no path" in err and "Traceback" not in err
