@@ -174,7 +174,7 @@ class FixStream(_Rows):
                 raise ValueError(f"FixStream.{name}: non-finite value at row {i}, a fix of status {status[i]}")
             if limit is not None and np.any(np.abs(value[valid]) > limit):
                 i = int(np.flatnonzero(valid & (np.abs(np.nan_to_num(value)) > limit))[0])
-                raise ValueError(f"FixStream.{name}: row {i}: {value[i]!r} is beyond +-{limit:g} degrees")
+                raise ValueError(f"FixStream.{name}: row {i}: {float(value[i])!r} is beyond +-{limit:g} degrees")
             object.__setattr__(self, name, value)
         object.__setattr__(self, "cov", _optional_covariances("FixStream.cov", self.cov, n, 3))
         object.__setattr__(self, "t_ns", _stamps("FixStream.t_ns", self.t_ns, n))
