@@ -77,8 +77,6 @@ def fixes_to_enu(fixes: FixStream, datum: Datum | None = None) -> EnuFixes:
     if datum is None:
         k = int(np.flatnonzero(valid)[0])
         datum = Datum(float(fixes.latitude[k]), float(fixes.longitude[k]), float(fixes.altitude[k]))
-    enu = geodetic_to_enu(fixes.latitude[valid], fixes.longitude[valid], fixes.altitude[valid], datum)
-    cov = None if fixes.cov is None else fixes.cov[valid]
-    if cov is not None and np.all(np.isnan(cov)):
-        cov = None
-    return EnuFixes(fixes.t[valid], enu, cov, datum, int((~valid).sum()))
+    kept = fixes.subset(valid)
+    enu = geodetic_to_enu(kept.latitude, kept.longitude, kept.altitude, datum)
+    return EnuFixes(kept.t, enu, kept.cov, datum, int((~valid).sum()))

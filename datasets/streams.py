@@ -65,7 +65,8 @@ def _stamps(name: str, t_ns, n: int) -> np.ndarray | None:
 
 
 def _optional_covariances(name: str, cov, n: int, dim: int) -> np.ndarray | None:
-    """None, or ``(n, dim, dim)`` covariances whose rows are valid or all NaN (unknown)."""
+    """None, or ``(n, dim, dim)`` covariances whose rows are valid or all NaN (unknown); None
+    when every row is unknown."""
     if cov is None:
         return None
     cov = np.array(cov, dtype=float)
@@ -73,7 +74,7 @@ def _optional_covariances(name: str, cov, n: int, dim: int) -> np.ndarray | None
         raise ValueError(f"{name}: expected shape ({n}, {dim}, {dim}), got {cov.shape}")
     unknown = np.all(np.isnan(cov), axis=(1, 2))
     if unknown.all():
-        raise ValueError(f"{name}: no row is known; give None instead")
+        return None
     check_covariances(name, cov[~unknown], int((~unknown).sum()), dim)
     return cov
 
