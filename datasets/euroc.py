@@ -50,15 +50,14 @@ gives them as continuous-time densities) where present, else :class:`ImuNoise`'s
 velocity, attitude, accelerometer bias, gyro bias; attitude in the world frame, left
 perturbation, as everywhere in the project).
 
-``sensor.yaml`` is read by a small parser (no PyYAML dependency): top-level ``key: value`` lines
-(``#`` comments allowed) and the ``T_BS`` block ``T_BS:`` / ``cols: 4`` / ``rows: 4`` /
-``data: [16 numbers]`` (the list may span lines; ``{cols: 4, rows: 4, data: [...]}`` on one line
-works too). ``T_BS`` must be a rigid transform: last row ``0 0 0 1`` and a rotation part with
-``|R R^T - I| <= 1e-5`` and det > 0 (it is then projected onto SO(3)).
+``sensor.yaml`` is read with PyYAML (:mod:`datasets.yamlfile`: OpenCV's ``%YAML:1.0`` first line is
+skipped, duplicate keys are an error naming both lines); its ``T_BS`` block is ``cols: 4``,
+``rows: 4``, ``data: [16 numbers]`` (row major, block or flow style). ``T_BS`` must be a rigid
+transform: last row ``0 0 0 1`` and a rotation part with ``|R R^T - I| <= 1e-5`` and det 1 within
+as much (it is then projected onto SO(3)).
 """
 from __future__ import annotations
 
-import bisect
 import re
 import warnings
 from dataclasses import dataclass
@@ -69,6 +68,8 @@ import numpy as np
 from datasets import from_truth
 from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
                              read_lines, table_fast)
+from datasets.kalibr import NOISE_KEYS, rigid_problem
+from datasets.yamlfile import YamlDocument, read_yaml
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors import quaternion, so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
@@ -87,13 +88,6 @@ GROUNDTRUTH_GAP_FACTOR = 5.0
 ROTATION_TOLERANCE = 1e-5
 #: Initial-state sigmas: position [m], velocity [m/s], attitude [rad], acc bias [m/s^2], gyro bias [rad/s].
 INITIAL_SIGMAS = (0.01, 0.01, 0.01, 0.05, 0.002)
-#: sensor.yaml keys of the IMU noise densities and the ImuNoise fields they set.
-NOISE_KEYS = {
-    "accelerometer_noise_density": "acc",
-    "gyroscope_noise_density": "gyro",
-    "accelerometer_random_walk": "acc_bias",
-    "gyroscope_random_walk": "gyro_bias",
-}
 
 
 # ------------------------------------------------------------------------------------------
@@ -102,154 +96,37 @@ NOISE_KEYS = {
 
 @dataclass(frozen=True)
 class SensorYaml:
-    """What is read from a ``sensor.yaml``: ``T_BS`` (4x4) and the top-level scalar values."""
+    """What is read from a ``sensor.yaml``: ``T_BS`` (4x4) and the whole file, for its other keys."""
 
     T_BS: np.ndarray
-    values: dict
-    lines: dict  # key -> 1-based line, for messages
-
-
-def _strip_comment(text: str) -> str:
-    return text.split("#", 1)[0].rstrip()
+    document: YamlDocument
 
 
 def read_sensor_yaml(path) -> SensorYaml:
-    """Read ``T_BS`` and the top-level scalars of an ASL ``sensor.yaml``."""
-    path = Path(path)
-    lines = read_lines(path)
-    values: dict = {}
-    where: dict = {}
-    index = 0
-    T = None
-    while index < len(lines):
-        raw = lines[index]
-        text = _strip_comment(raw)
-        if not text.strip() or text.lstrip().startswith("%"):
-            index += 1
-            continue
-        if raw[:1] in " \t":  # indented line outside a block we know: part of a block we skip
-            index += 1
-            continue
-        match = re.match(r"^([A-Za-z_][\w]*)\s*:(.*)$", text)
-        if not match:
-            raise DataError(path, index + 1, None, raw.strip(), "'key: value' (YAML)")
-        key, rest = match.group(1), match.group(2).strip()
-        if key in where:  # YAML keys are unique; which one would count is anybody's guess
-            raise DataError(path, index + 1, key, f"a second '{key}:' (the first at line {where[key]})",
-                            "each key once")
-        if key == "T_BS":
-            where[key] = index + 1
-            T, index = _read_matrix_block(path, lines, index, rest)
-            continue
-        values[key] = rest
-        where[key] = index + 1
-        index += 1
-    if T is None:
-        raise DataError(path, max(len(lines), 1), "T_BS", "no T_BS block", "a 'T_BS:' block with cols, rows, data")
-    return SensorYaml(T, values, where)
-
-
-def _read_matrix_block(path, lines: list[str], index: int, rest: str):
-    """Parse the ``T_BS`` block starting at line ``index``; returns (4x4 transform, next index)."""
-    start = index
-    block: dict = {}
-    block_lines: dict = {}
-    if rest:  # flow style: {cols: 4, rows: 4, data: [...]}, possibly over several lines
-        text = rest
-        while text.count("{") > text.count("}") and index + 1 < len(lines):
-            index += 1
-            text += " " + _strip_comment(lines[index]).strip()
-        index += 1
-        match = re.fullmatch(r"\{(.*)\}", text.strip())
-        if not match:
-            raise DataError(path, start + 1, "T_BS", rest, "a block of cols, rows, data")
-        body = match.group(1)
-        for key in ("cols", "rows"):
-            m = re.search(rf"\b{key}\s*:\s*([^,\]]+)", body)
-            if m:
-                block[key], block_lines[key] = m.group(1).strip(), start + 1
-        m = re.search(r"\bdata\s*:\s*\[([^\]]*)\]", body)
-        if m:
-            block["data"], block_lines["data"] = m.group(1), start + 1
-            data_segments = [(start + 1, m.group(1))]
-    else:
-        index += 1
-        while index < len(lines):
-            raw = lines[index]
-            text = _strip_comment(raw)
-            if not text.strip():
-                index += 1
-                continue
-            if raw[:1] not in " \t":
-                break
-            m = re.match(r"^\s+([A-Za-z_]\w*)\s*:(.*)$", text)
-            if not m:
-                raise DataError(path, index + 1, "T_BS", raw.strip(), "an indented 'cols:', 'rows:' or 'data:' line")
-            key, value = m.group(1), m.group(2).strip()
-            if key in block_lines:
-                raise DataError(path, index + 1, f"T_BS.{key}",
-                                f"a second '{key}:' (the first at line {block_lines[key]})", "each key once")
-            block_lines[key] = index + 1
-            if key == "data":
-                if not value.startswith("["):
-                    raise DataError(path, index + 1, "T_BS.data", value, "a list '[...]' of 16 numbers")
-                data_segments = [(index + 1, value[1:])]
-                while "]" not in data_segments[-1][1] and index + 1 < len(lines):
-                    following = lines[index + 1]
-                    if following[:1] not in " \t" and _strip_comment(following).strip():
-                        raise DataError(path, index + 2, "T_BS.data", following.strip(),
-                                        f"the closing ']' of the list opened at line {block_lines['data']} first")
-                    index += 1
-                    data_segments.append((index + 1, _strip_comment(lines[index]).strip()))
-                last_line, last = data_segments[-1]
-                if "]" not in last:
-                    raise DataError(path, last_line, "T_BS.data", "end of file", "a closing ']'")
-                if last.split("]", 1)[1].strip():
-                    raise DataError(path, last_line, "T_BS.data", lines[index].strip(), "nothing after ']'")
-                data_segments[-1] = (last_line, last.split("]", 1)[0])
-                value = " ".join(text for _, text in data_segments)
-            block[key] = value
-            index += 1
+    """Read an ASL ``sensor.yaml``: its ``T_BS`` block (``cols: 4``, ``rows: 4``, ``data:`` 16
+    numbers, row major) and the rest of the file."""
+    doc = read_yaml(path)
+    if not isinstance(doc.data, dict) or "T_BS" not in doc.data:
+        raise DataError(doc.path, max(doc.n_lines, 1), "T_BS", "no T_BS block", "a 'T_BS:' block with cols, rows, data")
+    if not isinstance(doc.data["T_BS"], dict):
+        raise doc.error(("T_BS",), doc.data["T_BS"], "a block of cols, rows, data")
     for key in ("cols", "rows"):
-        if key not in block:
-            raise DataError(path, start + 1, f"T_BS.{key}", "no such entry", f"'{key}: 4'")
-        if integer(block[key], path, block_lines[key], f"T_BS.{key}") != 4:
-            raise DataError(path, block_lines[key], f"T_BS.{key}", block[key], "4")
-    if "data" not in block:
-        raise DataError(path, start + 1, "T_BS.data", "no such entry", "'data: [...]' with 16 numbers")
-    line = block_lines["data"]
-    # Each number with the line it is on: offsets of the segments in the joined text.
-    joined, offsets = "", []
-    for seg_line, text in data_segments:
-        offsets.append(len(joined))
-        joined += text + " "
-    tokens, token_lines = [], []
-    position = 0
-    for piece in joined.split(","):
-        stripped = len(piece) - len(piece.lstrip())
-        where = position + (stripped if piece.strip() else 0)
-        token_lines.append(data_segments[bisect.bisect_right(offsets, where) - 1][0])
-        tokens.append(piece)
-        position += len(piece) + 1
-    pairs = [(tok.strip(), ln) for tok, ln in zip(tokens, token_lines)]
-    if pairs and pairs[-1][0] == "":
-        pairs = pairs[:-1]
-    end_line = data_segments[-1][0]
-    if len(pairs) != 16:
-        raise DataError(path, end_line, "T_BS.data", f"{len(pairs)} numbers", "16 numbers (4 x 4, row major)")
-    T = np.array([number(tok, path, ln, "T_BS.data") for tok, ln in pairs]).reshape(4, 4)
-    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise DataError(path, pairs[12][1], "T_BS.data", f"last row {T[3].tolist()}", "0, 0, 0, 1")
-    R = T[:3, :3]
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
-        raise DataError(
-            path, line, "T_BS.data", f"a rotation part with |R R^T - I| = {err:.3g}, det {np.linalg.det(R):.6g}",
-            f"a rotation (|R R^T - I| <= {ROTATION_TOLERANCE:g}, det > 0)",
-        )
-    T = T.copy()
-    T[:3, :3] = so3.project(R)
-    return T, index
+        value = doc.get(("T_BS", key))
+        if isinstance(value, bool) or value != 4:
+            raise doc.error(("T_BS", key), value, "4")
+    data = doc.get(("T_BS", "data"))
+    if not isinstance(data, list) or len(data) != 16:
+        found = f"{len(data)} numbers" if isinstance(data, list) else repr(data)
+        last = doc.line(("T_BS", "data", len(data) - 1)) if isinstance(data, list) and data else None
+        raise doc.error(("T_BS", "data"), found, "16 numbers (4 x 4, row major)", last)
+    T = np.array([doc.number(("T_BS", "data", i)) for i in range(16)]).reshape(4, 4)
+    problem = rigid_problem(T, ROTATION_TOLERANCE)
+    if problem is not None:
+        where = ("T_BS", "data", 12) if problem.startswith("last row") else ("T_BS", "data")
+        raise doc.error(where, problem, f"a rotation (|R R^T - I| <= {ROTATION_TOLERANCE:g}, det 1) "
+                                        "and a last row 0, 0, 0, 1")
+    T[:3, :3] = so3.project(T[:3, :3])
+    return SensorYaml(T, doc)
 
 
 # ------------------------------------------------------------------------------------------
@@ -402,15 +279,9 @@ def _groundtruth_gaps(path, t_ns: np.ndarray, lines: np.ndarray, first_ns: int, 
     return gap
 
 
-def _noise_from_yaml(yaml: SensorYaml, path) -> ImuNoise:
-    given = {}
-    for key, field in NOISE_KEYS.items():
-        if key in yaml.values:
-            value = number(yaml.values[key], path, yaml.lines[key], key)
-            if value < 0:
-                raise DataError(path, yaml.lines[key], key, yaml.values[key], "a density >= 0")
-            given[field] = value
-    return ImuNoise(**given)
+def _noise_from_yaml(yaml: SensorYaml) -> ImuNoise:
+    doc = yaml.document
+    return ImuNoise(**{field: doc.number((key,), minimum=0.0) for key, field in NOISE_KEYS.items() if key in doc.data})
 
 
 def _interpolate(truth_t_ns: np.ndarray, states: ImuState, t_ns: int) -> ImuState:
@@ -454,7 +325,7 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     imu_yaml = read_sensor_yaml(imu_yaml_path)
     gt_yaml = read_sensor_yaml(gt_yaml_path)
     if noise is None:
-        noise = _noise_from_yaml(imu_yaml, imu_yaml_path)
+        noise = _noise_from_yaml(imu_yaml)
     imu_ns, acc, gyro = read_imu_csv(imu_csv)
     gt = read_groundtruth_csv(gt_csv)
 

@@ -23,7 +23,7 @@ IMU_GAP_FACTOR = 5.0
 MAX_PLAUSIBLE_RATE = 35.0
 
 
-def _array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
+def check_array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
     """``value`` as a finite float array of shape ``(n,) + shape_tail``; a clear error otherwise."""
     a = np.asarray(value, dtype=float)
     expected = ("N",) + shape_tail if n is None else (n,) + shape_tail
@@ -35,8 +35,9 @@ def _array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndar
     return a
 
 
-def _times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
-    t = _array(name, t, ())
+def check_times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
+    """``t`` as a finite float array of shape ``(N,)``, strictly increasing unless told otherwise."""
+    t = check_array(name, t, ())
     if strictly_increasing and t.size > 1:
         step = np.diff(t)
         if np.any(step <= 0):
@@ -49,11 +50,13 @@ def _times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
     return t
 
 
-def _covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
+def check_covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
+    """``cov`` (one ``(dim, dim)`` matrix, broadcast, or ``(n, dim, dim)``) as symmetric positive
+    definite covariances of shape ``(n, dim, dim)``."""
     cov = np.asarray(cov, dtype=float)
     if cov.shape == (dim, dim):
         cov = np.broadcast_to(cov, (n, dim, dim)).copy()
-    cov = _array(name, cov, (dim, dim), n)
+    cov = check_array(name, cov, (dim, dim), n)
     asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
     scale = np.abs(cov).max(axis=(1, 2)) + 1e-300
     if np.any(asym > 1e-9 * scale):
@@ -70,8 +73,9 @@ def _covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
     return cov
 
 
-def _rotations(name: str, C, n: int) -> np.ndarray:
-    C = _array(name, C, (3, 3), n)
+def check_rotations(name: str, C, n: int) -> np.ndarray:
+    """``C`` as ``n`` rotation matrices (orthonormal within 1e-6, det > 0) of shape ``(n, 3, 3)``."""
+    C = check_array(name, C, (3, 3), n)
     err = np.abs(C @ np.swapaxes(C, 1, 2) - np.eye(3)).max(axis=(1, 2)) if n else np.zeros(0)
     det = np.linalg.det(C) if n else np.zeros(0)
     if np.any(err > 1e-6) or np.any(det <= 0):
@@ -80,17 +84,36 @@ def _rotations(name: str, C, n: int) -> np.ndarray:
     return C
 
 
+#: Accepted deviation of a rigid transform's rotation from orthonormality (and of det from 1).
+RIGID_TOLERANCE = 1e-6
+
+
+def rigid_problem(T, tolerance: float = RIGID_TOLERANCE) -> str | None:
+    """What keeps ``T`` from being a 4x4 rigid transform -- a finite 4x4 array with last row
+    ``0 0 0 1`` and a rotation part ``R`` with ``|R R^T - I| <= tolerance`` and
+    ``|det R - 1| <= tolerance`` -- or None if it is one."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"a matrix of shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "a matrix with non-finite entries"
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+        return f"last row {T[3].tolist()}"
+    R = T[:3, :3]
+    err, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
+    if err > tolerance or abs(det - 1) > tolerance:
+        return f"a rotation part with |R R^T - I| = {err:.3g}, det {det:.9g}"
+    return None
+
+
 def _extrinsic(name: str, T_BS) -> np.ndarray | None:
-    """``T_BS`` as a 4x4 rigid transform (rotation to 1e-6, last row ``0 0 0 1``), or None."""
+    """``T_BS`` as a 4x4 rigid transform (:func:`rigid_problem`), or None."""
     if T_BS is None:
         return None
-    T = np.asarray(T_BS, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name}: expected a finite 4x4 transform, got shape {T.shape}")
-    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise ValueError(f"{name}: the last row must be 0 0 0 1, got {T[3].tolist()}")
-    _rotations(name + " rotation", T[None, :3, :3], 1)
-    return T
+    problem = rigid_problem(T_BS)
+    if problem is not None:
+        raise ValueError(f"{name}: expected a 4x4 rigid transform, got {problem}")
+    return np.asarray(T_BS, dtype=float)
 
 
 class _Rows:
@@ -117,10 +140,10 @@ class ImuSamples:
     t_ns: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("ImuSamples.t", self.t)
+        t = check_times("ImuSamples.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "acc", _array("ImuSamples.acc", self.acc, (3,), len(t)))
-        object.__setattr__(self, "gyro", _array("ImuSamples.gyro", self.gyro, (3,), len(t)))
+        object.__setattr__(self, "acc", check_array("ImuSamples.acc", self.acc, (3,), len(t)))
+        object.__setattr__(self, "gyro", check_array("ImuSamples.gyro", self.gyro, (3,), len(t)))
         if self.t_ns is not None:
             t_ns = np.asarray(self.t_ns, dtype=np.int64)
             if t_ns.shape != t.shape:
@@ -148,10 +171,10 @@ class PositionMeasurements(_Rows):
     T_BS: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("PositionMeasurements.t", self.t)
+        t = check_times("PositionMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "position", _array("PositionMeasurements.position", self.position, (3,), len(t)))
-        object.__setattr__(self, "cov", _covariances("PositionMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "position", check_array("PositionMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "cov", check_covariances("PositionMeasurements.cov", self.cov, len(t), 3))
         object.__setattr__(self, "T_BS", _extrinsic("PositionMeasurements.T_BS", self.T_BS))
 
 
@@ -167,10 +190,10 @@ class OrientationMeasurements(_Rows):
     T_BS: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("OrientationMeasurements.t", self.t)
+        t = check_times("OrientationMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "C", _rotations("OrientationMeasurements.C", self.C, len(t)))
-        object.__setattr__(self, "cov", _covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "C", check_rotations("OrientationMeasurements.C", self.C, len(t)))
+        object.__setattr__(self, "cov", check_covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
         object.__setattr__(self, "T_BS", _extrinsic("OrientationMeasurements.T_BS", self.T_BS))
 
 
@@ -188,11 +211,11 @@ class PoseMeasurements(_Rows):
     T_BS: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("PoseMeasurements.t", self.t)
+        t = check_times("PoseMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "position", _array("PoseMeasurements.position", self.position, (3,), len(t)))
-        object.__setattr__(self, "C", _rotations("PoseMeasurements.C", self.C, len(t)))
-        object.__setattr__(self, "cov", _covariances("PoseMeasurements.cov", self.cov, len(t), 6))
+        object.__setattr__(self, "position", check_array("PoseMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "C", check_rotations("PoseMeasurements.C", self.C, len(t)))
+        object.__setattr__(self, "cov", check_covariances("PoseMeasurements.cov", self.cov, len(t), 6))
         object.__setattr__(self, "T_BS", _extrinsic("PoseMeasurements.T_BS", self.T_BS))
 
 
@@ -210,11 +233,11 @@ class VelocityMeasurements(_Rows):
     T_BS: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("VelocityMeasurements.t", self.t)
+        t = check_times("VelocityMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "velocity", _array("VelocityMeasurements.velocity", self.velocity, (3,), len(t)))
-        object.__setattr__(self, "gyro", _array("VelocityMeasurements.gyro", self.gyro, (3,), len(t)))
-        object.__setattr__(self, "cov", _covariances("VelocityMeasurements.cov", self.cov, len(t), 3))
+        object.__setattr__(self, "velocity", check_array("VelocityMeasurements.velocity", self.velocity, (3,), len(t)))
+        object.__setattr__(self, "gyro", check_array("VelocityMeasurements.gyro", self.gyro, (3,), len(t)))
+        object.__setattr__(self, "cov", check_covariances("VelocityMeasurements.cov", self.cov, len(t), 3))
         object.__setattr__(self, "T_BS", _extrinsic("VelocityMeasurements.T_BS", self.T_BS))
 
 
@@ -234,17 +257,17 @@ class RelativePoseMeasurements(_Rows):
     T_BS: np.ndarray | None = None
 
     def __post_init__(self):
-        t_from = _array("RelativePoseMeasurements.t_from", self.t_from, ())
+        t_from = check_array("RelativePoseMeasurements.t_from", self.t_from, ())
         n = len(t_from)
-        t_to = _array("RelativePoseMeasurements.t_to", self.t_to, (), n)
+        t_to = check_array("RelativePoseMeasurements.t_to", self.t_to, (), n)
         if np.any(t_to <= t_from):
             i = int(np.argmax(t_to <= t_from))
             raise ValueError(f"RelativePoseMeasurements: row {i}: t_to ({t_to[i]}) must be after t_from ({t_from[i]})")
         object.__setattr__(self, "t_from", t_from)
         object.__setattr__(self, "t_to", t_to)
-        object.__setattr__(self, "dr", _array("RelativePoseMeasurements.dr", self.dr, (3,), n))
-        object.__setattr__(self, "dC", _rotations("RelativePoseMeasurements.dC", self.dC, n))
-        object.__setattr__(self, "cov", _covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
+        object.__setattr__(self, "dr", check_array("RelativePoseMeasurements.dr", self.dr, (3,), n))
+        object.__setattr__(self, "dC", check_rotations("RelativePoseMeasurements.dC", self.dC, n))
+        object.__setattr__(self, "cov", check_covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
         object.__setattr__(self, "T_BS", _extrinsic("RelativePoseMeasurements.T_BS", self.T_BS))
 
     @property
@@ -265,7 +288,7 @@ class Trajectory(_Rows):
     cov: np.ndarray | None = None
 
     def __post_init__(self):
-        t = _times("Trajectory.t", self.t)
+        t = check_times("Trajectory.t", self.t)
         object.__setattr__(self, "t", t)
         n = len(t)
         s = self.states
@@ -273,14 +296,14 @@ class Trajectory(_Rows):
             a = getattr(s, name)
             if a.shape != (n, 3):
                 raise ValueError(f"Trajectory.states.{name}: expected shape ({n}, 3), got {a.shape}")
-        _rotations("Trajectory.states.C", s.C, n)
+        check_rotations("Trajectory.states.C", s.C, n)
         if not (np.all(np.isfinite(s.r)) and np.all(np.isfinite(s.C))):
             raise ValueError("Trajectory: positions and attitudes must be finite")
         if self.cov is not None:
             cov = np.asarray(self.cov, dtype=float)
             if cov.shape != (n, 15, 15):
                 raise ValueError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
-            object.__setattr__(self, "cov", _covariances("Trajectory.cov", cov, n, 15))
+            object.__setattr__(self, "cov", check_covariances("Trajectory.cov", cov, n, 15))
 
     @property
     def position(self) -> np.ndarray:
@@ -338,7 +361,7 @@ class Dataset:
         cov = np.asarray(self.initial_cov, dtype=float)
         if cov.shape != (15, 15):
             raise ValueError(f"Dataset.initial_cov: expected shape (15, 15), got {cov.shape}")
-        _covariances("Dataset.initial_cov", cov[None], 1, 15)
+        check_covariances("Dataset.initial_cov", cov[None], 1, 15)
         object.__setattr__(self, "initial_cov", cov)
         g = np.asarray(self.gravity, dtype=float)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
@@ -351,7 +374,7 @@ class Dataset:
             raise ValueError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")
         if not all(np.all(np.isfinite(getattr(s, n))) for n in ("r", "v", "C", "b_f", "b_w")):
             raise ValueError("Dataset.initial: non-finite value in the initial state")
-        _rotations("Dataset.initial.C", s.C[None], 1)
+        check_rotations("Dataset.initial.C", s.C[None], 1)
         self._check_imu_gaps()
         self._check_imu_units()
         self._drop_outside_imu_span()

@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "smoother.commands.check_jacobians",
     "smoother.commands.evaluate",
     "smoother.commands.plot",
+    "smoother.commands.allan",
 ]
 
 

@@ -34,8 +34,8 @@ from factors.sensor_models import odometry_factor, odometry_residual, sensor_fac
 from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
 
-#: Robust kernels selectable per measurement type, and the probability that sets each one's
-#: default threshold (see :func:`default_threshold`).
+#: Robust kernels selectable per measurement type (keyed by ``datasets.robust.ROBUST_KERNEL_NAMES``),
+#: and the probability that sets each one's default threshold (see :func:`default_threshold`).
 ROBUST_KERNELS = {
     "huber": (gtsam.noiseModel.mEstimator.Huber, 0.95),
     "cauchy": (gtsam.noiseModel.mEstimator.Cauchy, 0.95),
@@ -55,25 +55,6 @@ def default_threshold(kernel: str, dim: int) -> float:
     from smoother.metrics import chi2_quantile
 
     return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
-
-
-def robust_spec(text: str | None):
-    """Parse ``none``, ``huber``, ``cauchy:2.5``, ... into ``(name, threshold)`` (threshold None:
-    the dimension-aware default of :func:`default_threshold`) or None for no kernel."""
-    if text is None or text == "none":
-        return None
-    name, _, value = text.partition(":")
-    if name not in ROBUST_KERNELS:
-        raise ValueError(f"robust kernel {name!r}: expected one of none, {', '.join(ROBUST_KERNELS)}")
-    if not value:
-        return name, None
-    try:
-        threshold = float(value)
-    except ValueError:
-        raise ValueError(f"robust kernel threshold {value!r}: expected a number") from None
-    if not threshold > 0:
-        raise ValueError(f"robust kernel threshold must be positive, got {threshold}")
-    return name, threshold
 
 
 def _robust_estimator(spec, dim: int):
@@ -253,7 +234,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
 
     ``robust`` maps a sensor's name (the built-in datasets' ``"pose"``, ``"position"``,
     ``"orientation"``, ``"relative_pose"``; a rig's own names) to a kernel spec ``(name,
-    threshold)`` from :func:`robust_spec`.
+    threshold)`` from :func:`datasets.robust.robust_spec`.
     """
     robust = robust or {}
     times = estimate_times(dataset, keyframe_rate)

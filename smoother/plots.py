@@ -61,6 +61,7 @@ FIGSIZE = {
     "biases": (12.0, 10.5),
     "comparison": (12.0, 8.0),
     "montecarlo_nees": (11.0, 5.0),
+    "allan": (12.0, 5.0),
 }
 #: Estimators in the order they are drawn, with their colours (others get the next free colour).
 ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
@@ -691,3 +692,33 @@ def plot_montecarlo(summary, out_dir) -> Path:
         ax.set_title(f"Monte Carlo consistency: {summary.runs} runs")
         ax.legend(loc="upper right", fontsize=9)
         return _save(fig, out_dir, "montecarlo_nees")
+
+
+def plot_allan(result, out_dir) -> Path:
+    """``allan.png``: the Allan deviation of each accelerometer and gyro axis (a
+    :class:`datasets.allan.AllanResult`), log-log, with the fitted white-noise (slope -1/2) and
+    random-walk (slope +1/2) lines of each axis and the points where they are read (1 s, 3 s)."""
+    import matplotlib
+
+    from datasets.allan import WALK_TAU, WHITE_TAU
+
+    with matplotlib.rc_context(STYLE):
+        fig = _figure("allan")
+        panels = (("accelerometer", result.acc_adev, result.acc_white, result.acc_walk, "m/s$^2$"),
+                  ("gyro", result.gyro_adev, result.gyro_white, result.gyro_walk, "rad/s"))
+        tau = result.tau
+        for j, (name, adev, white, walk, unit) in enumerate(panels):
+            ax = fig.add_subplot(1, 2, j + 1)
+            for k, axis in enumerate("xyz"):
+                color = ("tab:blue", "tab:orange", "tab:green")[k]
+                ax.loglog(tau, adev[:, k], color=color, label=f"{axis}: N {white[k]:.3g}, K {walk[k]:.3g}")
+                ax.loglog(tau, white[k] / np.sqrt(tau / WHITE_TAU), color=color, lw=0.8, ls="--")
+                ax.loglog(tau, walk[k] * np.sqrt(tau / WALK_TAU), color=color, lw=0.8, ls=":")
+                ax.plot([WHITE_TAU, WALK_TAU], [white[k], walk[k]], "o", color=color, ms=4)
+            low, high = min(adev.min(), white.min(), walk.min()), max(adev.max(), white.max(), walk.max())
+            ax.set_ylim(low / 3, high * 3)  # the fitted lines run far beyond the data: keep them in view
+            ax.set_xlabel("cluster time $\\tau$ [s]")
+            ax.set_ylabel(f"Allan deviation [{unit}]")
+            ax.set_title(f"{name}: white noise N (--, read at 1 s), random walk K (:, read at 3 s)")
+            ax.legend(loc="upper center")
+        return _save(fig, out_dir, "allan")

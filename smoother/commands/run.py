@@ -49,7 +49,7 @@ def register(sub) -> None:
 
 def parse_robust(specs: list[str]) -> dict:
     """``["huber"]`` -> the same kernel for every type; ``["pose=cauchy:2"]`` -> per type."""
-    from smoother.graph import robust_spec
+    from datasets.robust import robust_spec
 
     types = ("pose", "position", "orientation", "relative_pose")
     out: dict = {}

@@ -9,12 +9,13 @@ import gtsam
 import numpy as np
 import pytest
 
+from datasets.robust import ROBUST_KERNEL_NAMES, robust_spec
 from datasets.simulate import simulate
 from factors import imu
 from smoother import batch
 from smoother.batch import IndeterminantSystem, solve_batch
 from smoother.errors import UserError
-from smoother.graph import ROBUST_KERNELS, build_problem, noise_model, robust_spec
+from smoother.graph import ROBUST_KERNELS, build_problem, noise_model
 
 import estimator_cases as cases
 
@@ -151,6 +152,10 @@ def test_robust_spec_parses_kernels(spec, expected):
 def test_robust_spec_rejects_junk_with_value_error(junk):
     with pytest.raises(ValueError):
         robust_spec(junk)
+
+
+def test_every_kernel_name_has_a_kernel():
+    assert sorted(ROBUST_KERNELS) == sorted(ROBUST_KERNEL_NAMES)
 
 
 @pytest.mark.parametrize("name", sorted(ROBUST_KERNELS))

@@ -6,7 +6,8 @@ from datasets.simulate import simulate
 from smoother import report
 from smoother.batch import solve_batch
 from smoother.ekf import run_ekf
-from smoother.graph import build_problem, robust_spec
+from datasets.robust import robust_spec
+from smoother.graph import build_problem
 
 KW = dict(profile="gentle", duration=10.0, seed=4, imu_rate=100.0)
 

@@ -1,0 +1,111 @@
+"""Allan deviation of a static IMU recording, and the four noise densities fitted to it.
+
+The overlapping Allan variance of a signal ``x`` sampled every ``dt`` at cluster time
+``tau = m dt`` is ``AVAR(tau) = < (theta[k + 2m] - 2 theta[k + m] + theta[k])^2 > / (2 tau^2)`` over
+every start ``k``, with ``theta`` the running integral of ``x`` (one cumulative sum, so each
+``tau`` costs one vectorised pass). Cluster sizes ``m`` are log-spaced from 1 to a quarter of the
+recording (:data:`POINTS` of them at most).
+
+On a log-log plot, white noise of density ``N`` gives the line ``ADEV = N / sqrt(tau)`` (slope
+-1/2) and a random walk of density ``K`` the line ``ADEV = K sqrt(tau / 3)`` (slope +1/2), so
+``N`` is the -1/2 line's value at ``tau = 1 s`` and ``K`` the +1/2 line's value at ``tau = 3 s``
+(the reading Kalibr's documentation and allan_variance_ros use). Each line is placed through the
+curve where its local slope (between neighbouring points) matches: left of the curve's minimum
+for the white noise, right of it for the random walk, at the first such point (the smallest
+``tau``: the most clusters, the least scatter) whose slope is within :data:`SLOPE_TOLERANCE` of the
+line's, else at the point whose slope is closest.
+
+Units: accelerometer ``N`` in m/s^2/sqrt(Hz) and ``K`` in m/s^3/sqrt(Hz); gyro ``N`` in
+rad/s/sqrt(Hz) and ``K`` in rad/s^2/sqrt(Hz): continuous-time densities as Kalibr's ``imu.yaml``
+and :class:`factors.imu.ImuNoise` hold them. The samples are taken as evenly spaced at the median
+step. The recording must be static (the IMU at rest, ideally for hours: the random-walk line needs
+cluster times well beyond the curve's minimum); what it measures are the sensor's densities, which
+are commonly inflated for estimation to cover unmodelled effects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.types import ImuSamples
+from factors.imu import ImuNoise
+
+#: Largest number of cluster times.
+POINTS = 100
+#: How close a local slope must be to a line's (-1/2 or +1/2) to place the line there.
+SLOPE_TOLERANCE = 0.1
+#: Where the white-noise and random-walk lines are read [s].
+WHITE_TAU, WALK_TAU = 1.0, 3.0
+
+
+def allan_deviation(x, dt: float, points: int = POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Overlapping Allan deviation of the columns of ``x`` (N,) or (N, k) sampled every ``dt``
+    [s]: ``(tau (M,), adev (M,) or (M, k))``."""
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    if n < 4:
+        raise ValueError(f"Allan deviation: expected at least 4 samples, got {n}")
+    theta = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)]) * dt
+    m = np.unique(np.floor(np.logspace(0, np.log10(max(n // 4, 1)), points)).astype(np.int64))
+    adev = np.empty((len(m),) + x.shape[1:])
+    for j, size in enumerate(m):
+        d = theta[2 * size:] - 2 * theta[size:-size] + theta[: -2 * size]
+        adev[j] = np.sqrt(np.mean(d**2, axis=0) / (2 * (size * dt) ** 2))
+    return m * dt, adev
+
+
+def fit_line(tau: np.ndarray, adev: np.ndarray, slope: float) -> float:
+    """The offset ``c`` of the line ``log10 ADEV = slope log10 tau + c`` placed on the curve as
+    the module docstring says (``slope`` -1/2: left of the minimum; +1/2: right of it)."""
+    lt, la = np.log10(tau), np.log10(adev)
+    local = np.diff(la) / np.diff(lt)
+    index = np.arange(len(local))
+    lowest = int(np.argmin(la))
+    region = index[index < lowest] if slope < 0 else index[index >= lowest]
+    if region.size == 0:
+        region = index
+    error = np.abs(local[region] - slope)
+    close = np.flatnonzero(error <= SLOPE_TOLERANCE)
+    i = region[close[0]] if close.size else region[np.argmin(error)]
+    return 0.5 * (la[i] + la[i + 1]) - slope * 0.5 * (lt[i] + lt[i + 1])
+
+
+def densities(tau: np.ndarray, adev: np.ndarray) -> tuple[float, float]:
+    """``(white-noise density N, random-walk density K)`` of one Allan-deviation curve."""
+    white = 10 ** (-0.5 * np.log10(WHITE_TAU) + fit_line(tau, adev, -0.5))
+    walk = 10 ** (0.5 * np.log10(WALK_TAU) + fit_line(tau, adev, 0.5))
+    return float(white), float(walk)
+
+
+@dataclass(frozen=True)
+class AllanResult:
+    """Allan deviations and fitted densities of a static IMU recording, per axis: ``tau`` (M,)
+    [s], ``acc_adev``, ``gyro_adev`` (M, 3), and ``acc_white``, ``acc_walk``, ``gyro_white``,
+    ``gyro_walk`` (3,) (units in the module docstring); ``dt`` the sample period used."""
+
+    tau: np.ndarray
+    acc_adev: np.ndarray
+    gyro_adev: np.ndarray
+    acc_white: np.ndarray
+    acc_walk: np.ndarray
+    gyro_white: np.ndarray
+    gyro_walk: np.ndarray
+    dt: float
+
+    def noise(self) -> ImuNoise:
+        """The densities for a rig file: the largest of the three axes for each."""
+        return ImuNoise(acc=float(self.acc_white.max()), gyro=float(self.gyro_white.max()),
+                        acc_bias=float(self.acc_walk.max()), gyro_bias=float(self.gyro_walk.max()))
+
+
+def allan(imu: ImuSamples, points: int = POINTS) -> AllanResult:
+    """Allan deviations of every accelerometer and gyro axis of ``imu`` and their densities."""
+    dt = float(np.median(np.diff(imu.t))) if len(imu) > 1 else 0.0
+    if not dt > 0:
+        raise ValueError("Allan deviation: expected at least two IMU samples")
+    tau, adev = allan_deviation(np.concatenate([imu.acc, imu.gyro], axis=1), dt, points)
+    if len(tau) < 3:
+        raise ValueError(f"Allan deviation: {len(imu)} IMU samples give too few cluster times; record longer")
+    fitted = np.array([densities(tau, adev[:, k]) for k in range(6)])
+    return AllanResult(tau, adev[:, :3], adev[:, 3:], fitted[:3, 0], fitted[:3, 1], fitted[3:, 0], fitted[3:, 1], dt)

@@ -1,0 +1,204 @@
+"""Reading sensor streams from ROS bags with the ``rosbags`` library (no ROS installation).
+
+Formats (chosen by the path): a ROS 1 ``.bag`` file; a ROS 2 bag folder (with its
+``metadata.yaml``), or one of its storage files on its own, ``.db3`` (sqlite3) or ``.mcap``.
+Message definitions come from the bag; a ROS 2 storage file without them is decoded with the
+standard ROS 2 Humble definitions.
+
+Messages and what they give (:mod:`datasets.streams` for the stream types and conventions):
+
+* ``sensor_msgs/msg/Imu`` -> :class:`datasets.types.ImuSamples`: ``linear_acceleration`` as
+  ``acc``, ``angular_velocity`` as ``gyro``; the orientation (and the covariances) are ignored.
+* ``nav_msgs/msg/Odometry`` -> :class:`PoseStream` (``pose.pose`` with ``pose.covariance``) or
+  :class:`TwistStream` (``twist.twist`` with ``twist.covariance``, in the child frame).
+* ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``PoseStamped`` and ``TransformStamped`` ->
+  :class:`PoseStream` (the last two without covariance).
+* ``sensor_msgs/msg/NavSatFix`` -> :class:`FixStream`. ``position_covariance`` is ENU, row major;
+  ``position_covariance_type`` is read per message: 0 (unknown) makes that fix's covariance
+  unknown (a NaN row), 2 (diagonal known) keeps the diagonal only, 1 (approximated) and 3 (known)
+  keep the whole matrix. A stream mixing known and unknown rows keeps both, row by row.
+
+Times are HEADER stamps, not the times the recorder received the messages; messages are sorted
+by them (a recorder stores them in arrival order). A covariance that is all zero or not positive
+definite counts as unknown for its message (:func:`datasets.streams.known_covariances`); ``cov``
+is None when no message of the stream has one. Quaternions must have norm 1 within
+:data:`QUATERNION_TOLERANCE` and are normalised.
+
+Errors are :class:`datasets.errors.DataError` naming the bag and the topic: a missing or unreadable
+bag, a topic that is not in the bag (the message lists the topics present with their types), a
+topic of another message type than the stream asked for (both named), an empty topic, two
+messages with the same stamp, a bad quaternion or non-finite values.
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from datasets.errors import DataError
+from datasets.streams import STATUS_NO_FIX, FixStream, PoseStream, TwistStream, known_covariances, seconds
+from datasets.types import ImuSamples
+from factors import quaternion
+
+IMU = "sensor_msgs/msg/Imu"
+ODOMETRY = "nav_msgs/msg/Odometry"
+POSE = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+TRANSFORM = "geometry_msgs/msg/TransformStamped"
+NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+
+#: Accepted deviation of a message's quaternion norm from 1 before it is normalised.
+QUATERNION_TOLERANCE = 1e-3
+
+_NO_COVARIANCE_6 = (0.0,) * 36
+
+
+def _vector(v) -> tuple:
+    return v.x, v.y, v.z
+
+
+def _pose_row(pose, cov) -> tuple:
+    """``x y z qw qx qy qz`` and the 36 covariance entries of a ``geometry_msgs/Pose``."""
+    q = pose.orientation
+    return (*_vector(pose.position), q.w, q.x, q.y, q.z, *cov)
+
+
+def _transform_row(m) -> tuple:
+    q = m.transform.rotation
+    return (*_vector(m.transform.translation), q.w, q.x, q.y, q.z, *_NO_COVARIANCE_6)
+
+
+def _fix_row(m) -> tuple:
+    kind = m.position_covariance_type
+    cov = np.asarray(m.position_covariance, dtype=float)
+    if kind == 0:
+        cov = np.full(9, np.nan)
+    elif kind == 2:
+        cov = np.diag(cov.reshape(3, 3).diagonal()).ravel()
+    return (m.latitude, m.longitude, m.altitude, m.status.status, *cov)
+
+
+#: Per stream: the message types that give it and how one message becomes a row of numbers.
+_ROWS = {
+    "IMU samples": {IMU: lambda m: (*_vector(m.linear_acceleration), *_vector(m.angular_velocity))},
+    "poses": {
+        ODOMETRY: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
+        POSE_WITH_COVARIANCE: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
+        POSE: lambda m: _pose_row(m.pose, _NO_COVARIANCE_6),
+        TRANSFORM: _transform_row,
+    },
+    "twists": {ODOMETRY: lambda m: (*_vector(m.twist.twist.linear), *_vector(m.twist.twist.angular),
+                                    *m.twist.covariance)},
+    "GNSS fixes": {NAV_SAT_FIX: _fix_row},
+}
+
+
+@contextlib.contextmanager
+def _opened(path: Path):
+    """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag."""
+    if not path.exists():
+        raise DataError(path, None, None, "no such file or folder", "a ROS bag (.bag, a ROS 2 bag folder, .db3, .mcap)")
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as error:  # rosbags raises its own errors, and OSError, KeyError, ... for damaged files
+        raise DataError(path, None, None, f"an unreadable bag ({type(error).__name__}: {error})",
+                        "a ROS bag (.bag, a ROS 2 bag folder, .db3, .mcap)") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _read(path, topic: str, stream: str) -> tuple[np.ndarray, np.ndarray]:
+    """The messages of ``topic`` as ``(header stamps [ns] int64, rows (N, m) float)`` sorted by
+    stamp, for the ``stream`` named (a key of :data:`_ROWS`)."""
+    path = Path(path)
+    wanted = _ROWS[stream]
+    with _opened(path) as reader:
+        topics = reader.topics
+        if topic not in topics:
+            present = ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(topics.items())) or "none"
+            raise DataError(path, None, "topic", topic, f"a topic of the bag; it has: {present}")
+        msgtype = topics[topic].msgtype
+        if msgtype not in wanted:
+            raise DataError(path, None, f"topic {topic}", f"messages of type {msgtype}",
+                            f"{stream}: {' or '.join(wanted)}")
+        row = wanted[msgtype]
+        stamps: list[int] = []
+        values: list[float] = []
+        for connection, _, raw in reader.messages(connections=topics[topic].connections):
+            message = reader.deserialize(raw, connection.msgtype)
+            stamps.append(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
+            values.extend(row(message))
+    if not stamps:
+        raise DataError(path, None, f"topic {topic}", "no messages", f"at least one message ({stream})")
+    t_ns = np.array(stamps, dtype=np.int64)
+    rows = np.array(values, dtype=float).reshape(len(stamps), -1)
+    order = np.argsort(t_ns, kind="stable")
+    t_ns, rows = t_ns[order], rows[order]
+    same = np.flatnonzero(np.diff(t_ns) == 0)
+    if same.size:
+        raise DataError(path, None, f"topic {topic}", f"{same.size} message(s) with the stamp of the message before "
+                        f"them (first at {int(t_ns[same[0]])} ns)", "distinct header stamps")
+    return t_ns, rows
+
+
+def _finite(path, topic: str, t_ns: np.ndarray, values: np.ndarray, what: str) -> np.ndarray:
+    bad = ~np.all(np.isfinite(values), axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise DataError(path, None, f"topic {topic}", f"a non-finite {what} at stamp {int(t_ns[i])} ns",
+                        f"finite values ({int(bad.sum())} message(s) have some)")
+    return values
+
+
+def _rotations(path, topic: str, t_ns: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(q_wxyz, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOLERANCE)
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(path, None, f"topic {topic}", f"a quaternion of norm {norm[i]:.9g} at stamp {int(t_ns[i])} ns",
+                        f"unit quaternions (norm 1 within {QUATERNION_TOLERANCE:g})")
+    return quaternion.to_matrix(q_wxyz / norm[:, None])
+
+
+def read_bag_imu(path, topic: str) -> ImuSamples:
+    """``sensor_msgs/msg/Imu`` messages of ``topic`` as IMU samples (``t_ns`` exact)."""
+    t_ns, rows = _read(path, topic, "IMU samples")
+    _finite(path, topic, t_ns, rows, "acceleration or angular rate")
+    return ImuSamples(seconds(t_ns), rows[:, 0:3], rows[:, 3:6], t_ns=t_ns)
+
+
+def read_bag_poses(path, topic: str) -> PoseStream:
+    """Poses of ``topic`` (Odometry, PoseWithCovarianceStamped, PoseStamped, TransformStamped)."""
+    t_ns, rows = _read(path, topic, "poses")
+    _finite(path, topic, t_ns, rows[:, :7], "position or orientation")
+    C = _rotations(path, topic, t_ns, rows[:, 3:7])
+    cov = known_covariances(rows[:, 7:].reshape(-1, 6, 6))
+    return PoseStream(seconds(t_ns), rows[:, 0:3], C, cov, t_ns)
+
+
+def read_bag_twists(path, topic: str) -> TwistStream:
+    """Twists (child frame) of the ``nav_msgs/msg/Odometry`` messages of ``topic``."""
+    t_ns, rows = _read(path, topic, "twists")
+    _finite(path, topic, t_ns, rows[:, :6], "velocity")
+    cov = known_covariances(rows[:, 6:].reshape(-1, 6, 6))
+    return TwistStream(seconds(t_ns), rows[:, 0:3], rows[:, 3:6], cov, t_ns)
+
+
+def read_bag_fixes(path, topic: str) -> FixStream:
+    """``sensor_msgs/msg/NavSatFix`` messages of ``topic``; NaN positions are allowed where the
+    status says there is no fix (see :class:`FixStream`)."""
+    t_ns, rows = _read(path, topic, "GNSS fixes")
+    status = rows[:, 3].astype(np.int64)
+    fixed = status > STATUS_NO_FIX
+    _finite(path, topic, t_ns[fixed], rows[fixed, :3], "latitude, longitude or altitude of a fix")
+    cov = known_covariances(rows[:, 4:].reshape(-1, 3, 3))
+    try:
+        return FixStream(seconds(t_ns), rows[:, 0], rows[:, 1], rows[:, 2], status, cov, t_ns)
+    except ValueError as error:
+        raise DataError(path, None, f"topic {topic}", str(error), "valid GNSS fixes") from None

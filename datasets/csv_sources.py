@@ -1,0 +1,163 @@
+"""Sensor streams from CSV files: the EuRoC/ASL layouts and one generic layout per stream.
+
+IMU samples: the EuRoC/ASL ``imu0/data.csv`` layout only (``#timestamp [ns],w_RS_S_x,w_RS_S_y,
+w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z``; read by :func:`datasets.euroc.read_imu_csv`, which finds the
+columns by name); times in integer nanoseconds since the epoch, kept exactly in ``t_ns``.
+
+Poses: the EuRoC/ASL ``state_groundtruth_estimate0/data.csv`` layout (``#timestamp,p_RS_R_x,...,
+q_RS_w,q_RS_x,q_RS_y,q_RS_z,...``; velocities and biases are ignored) or the generic layout below.
+A file whose header has a column ``t`` is generic; any other is read as EuRoC/ASL.
+
+Generic layouts: comma separated, the first non-blank line a header naming the columns (a
+leading ``#`` is allowed), in any order; ``t`` in seconds (since the epoch, or any origin shared
+by the rig's streams); blank lines and lines starting with ``#`` after the header are ignored.
+Optional columns come as a whole group or not at all; ``sigma_*`` are standard deviations (> 0)
+that make a diagonal covariance:
+
+============  ==========================  ===============================================
+stream        required columns            optional groups
+============  ==========================  ===============================================
+poses         ``t,x,y,z,qw,qx,qy,qz``     ``sigma_x,sigma_y,sigma_z`` with
+                                          ``sigma_rx,sigma_ry,sigma_rz`` [m, rad]
+velocities    ``t,vx,vy,vz``              ``wx,wy,wz`` [rad/s]; ``sigma_vx,sigma_vy,sigma_vz``
+                                          (and ``sigma_wx,sigma_wy,sigma_wz`` with ``wx..``)
+GNSS fixes    ``t,latitude,longitude,     ``status`` (integer, NavSatStatus: -1 no fix, 0 fix;
+              altitude``                  default 0); ``sigma_e,sigma_n,sigma_u`` [m]
+============  ==========================  ===============================================
+
+Poses: ``(x, y, z)`` the position [m] of the sensor frame in its world frame, ``(qw, qx, qy, qz)``
+the Hamilton quaternion of the sensor-to-world rotation, norm 1 within
+:data:`QUATERNION_TOLERANCE` (then normalised). Velocities: of the sensor frame, in the sensor
+frame [m/s]. Fixes: degrees and metres above the WGS-84 ellipsoid; every value must be a finite
+number, also in rows with ``status < 0`` (which :func:`datasets.gnss.fixes_to_enu` drops). See :mod:`datasets.streams` for the stream types.
+
+Every malformed file is one :class:`datasets.errors.DataError` naming the file, line and column.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from datasets import euroc
+from datasets.errors import DataError, check_increasing, check_unit_quaternions, read_lines, read_table
+from datasets.streams import FixStream, PoseStream, TwistStream, seconds
+from datasets.types import ImuSamples
+from factors import quaternion
+
+#: Accepted deviation of a quaternion's norm from 1 before it is normalised.
+QUATERNION_TOLERANCE = 1e-3
+
+POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
+POSE_SIGMAS = ["sigma_x", "sigma_y", "sigma_z", "sigma_rx", "sigma_ry", "sigma_rz"]
+VELOCITY_COLUMNS = ["t", "vx", "vy", "vz"]
+ANGULAR_COLUMNS = ["wx", "wy", "wz"]
+VELOCITY_SIGMAS = ["sigma_vx", "sigma_vy", "sigma_vz"]
+ANGULAR_SIGMAS = ["sigma_wx", "sigma_wy", "sigma_wz"]
+FIX_COLUMNS = ["t", "latitude", "longitude", "altitude"]
+FIX_SIGMAS = ["sigma_e", "sigma_n", "sigma_u"]
+
+
+def _header(path: Path, lines: list[str]) -> tuple[int, list[str]]:
+    """(0-based index, column names) of the first non-blank line."""
+    first = next((i for i, text in enumerate(lines) if text.strip()), None)
+    if first is None:
+        raise DataError(path, max(len(lines), 1), None, "an empty file", "a header line naming the columns")
+    return first, [name.strip() for name in lines[first].strip().lstrip("#").split(",")]
+
+
+def _generic(path: Path, required: list[str], groups: list[list[str]], what: str) -> dict:
+    """The columns of a generic-layout file by name (absent optional groups left out),
+    ``"lines"``: the 1-based line of each row, and ``"header_line"``."""
+    lines = read_lines(path)
+    index, names = _header(path, lines)
+    line = index + 1
+    allowed = required + [name for group in groups for name in group]
+    for name in names:
+        if name not in allowed:
+            raise DataError(path, line, name, "an unknown column", f"columns among {', '.join(allowed)}")
+        if names.count(name) > 1:
+            raise DataError(path, line, name, "this column twice", "each column once")
+    for name in required:
+        if name not in names:
+            raise DataError(path, line, name, "a header without this column", f"a column named {name}")
+    for group in groups:
+        present = [name for name in group if name in names]
+        if present and len(present) < len(group):
+            missing = next(name for name in group if name not in names)
+            raise DataError(path, line, missing, f"a header with {', '.join(present)} but not {missing}",
+                            f"all of {', '.join(group)} or none")
+    values, rows = read_table(path, lines, names, 1, what, delimiter=",", skip=index + 1)
+    columns = {name: values[:, j] for j, name in enumerate(names)}
+    check_increasing(path, columns["t"], rows, "t")
+    for name in names:
+        if name.startswith("sigma_") and np.any(columns[name] <= 0):
+            i = int(np.flatnonzero(columns[name] <= 0)[0])
+            raise DataError(path, int(rows[i]), name, repr(float(columns[name][i])), "a standard deviation > 0")
+    columns["lines"], columns["header_line"] = rows, line
+    return columns
+
+
+def _diagonal(columns: dict, names: list[str]) -> np.ndarray | None:
+    if names[0] not in columns:
+        return None
+    sigma = np.stack([columns[name] for name in names], axis=1)
+    return np.einsum("ni,ij->nij", sigma**2, np.eye(len(names)))
+
+
+def _is_generic(path: Path) -> bool:
+    lines = read_lines(path)
+    return "t" in _header(path, lines)[1]
+
+
+def read_csv_imu(path) -> ImuSamples:
+    """IMU samples of an EuRoC/ASL ``data.csv`` (see the module docstring)."""
+    t_ns, acc, gyro = euroc.read_imu_csv(path)
+    return ImuSamples(seconds(t_ns), acc, gyro, t_ns=t_ns)
+
+
+def read_csv_poses(path) -> PoseStream:
+    """Poses of a generic pose file or an EuRoC/ASL ground-truth file."""
+    path = Path(path)
+    if not _is_generic(path):
+        gt = euroc.read_groundtruth_csv(path)
+        return PoseStream(seconds(gt.t_ns), gt.p, quaternion.to_matrix(gt.q), None, gt.t_ns)
+    c = _generic(path, POSE_COLUMNS, [POSE_SIGMAS], "pose lines (" + ",".join(POSE_COLUMNS) + ")")
+    q = np.stack([c[name] for name in ("qw", "qx", "qy", "qz")], axis=1)
+    q = check_unit_quaternions(path, q, c["lines"], "qw qx qy qz", QUATERNION_TOLERANCE)
+    position = np.stack([c["x"], c["y"], c["z"]], axis=1)
+    return PoseStream(c["t"], position, quaternion.to_matrix(q), _diagonal(c, POSE_SIGMAS))
+
+
+def read_csv_twists(path) -> TwistStream:
+    """Velocities (and optionally angular rates) of a generic velocity file."""
+    path = Path(path)
+    c = _generic(path, VELOCITY_COLUMNS, [ANGULAR_COLUMNS, VELOCITY_SIGMAS, ANGULAR_SIGMAS],
+                 "velocity lines (" + ",".join(VELOCITY_COLUMNS) + ")")
+    angular = np.stack([c[name] for name in ANGULAR_COLUMNS], axis=1) if "wx" in c else None
+    has_sigma_v, has_sigma_w = "sigma_vx" in c, "sigma_wx" in c
+    if has_sigma_w != (angular is not None and has_sigma_v):
+        raise DataError(path, c["header_line"], "sigma_wx" if has_sigma_w else "sigma_vx",
+                        "standard deviations for only some of the velocity components",
+                        "sigma_v* and sigma_w* together with wx,wy,wz; sigma_v* alone without them")
+    sigmas = VELOCITY_SIGMAS + (ANGULAR_SIGMAS if angular is not None else [])
+    linear = np.stack([c[name] for name in ("vx", "vy", "vz")], axis=1)
+    return TwistStream(c["t"], linear, angular, _diagonal(c, sigmas))
+
+
+def read_csv_fixes(path) -> FixStream:
+    """GNSS fixes of a generic fix file."""
+    path = Path(path)
+    c = _generic(path, FIX_COLUMNS, [["status"], FIX_SIGMAS], "fix lines (" + ",".join(FIX_COLUMNS) + ")")
+    if "status" in c:
+        whole = c["status"] == np.round(c["status"])
+        if not whole.all():
+            i = int(np.flatnonzero(~whole)[0])
+            raise DataError(path, int(c["lines"][i]), "status", repr(float(c["status"][i])), "an integer")
+    for name, limit in (("latitude", 90.0), ("longitude", 180.0)):
+        beyond = np.abs(c[name]) > limit
+        if beyond.any():
+            i = int(np.flatnonzero(beyond)[0])
+            raise DataError(path, int(c["lines"][i]), name, repr(float(c[name][i])), f"degrees within +-{limit:g}")
+    status = c.get("status", np.zeros(len(c["t"]))).astype(np.int64)
+    return FixStream(c["t"], c["latitude"], c["longitude"], c["altitude"], status, _diagonal(c, FIX_SIGMAS))

@@ -1,0 +1,331 @@
+"""Rig files: the IMU and the aiding sensors of a recording, in TOML.
+
+:func:`load_rig` parses and checks a rig file into frozen dataclasses WITHOUT reading any data
+(only the small calibration files it names: a Kalibr ``imu.yaml``, a camchain). Paths in it are
+relative to the rig file's folder (``~`` expands); the :class:`Rig` holds sources with absolute
+paths, ready for :mod:`datasets.sources`. Example, with every key::
+
+    [imu]
+    source = "bag:run.bag"          # csv:FILE (EuRoC/ASL layout) | bag:FILE.bag (ROS 1)
+                                    # | bag:FOLDER or bag:FILE.db3 (ROS 2) | bag:FILE.mcap
+    topic = "/imu/data"             # bags only (and required for them)
+    accel_noise_density = 2.0e-3    # m/s^2/sqrt(Hz)  continuous-time densities, Kalibr imu.yaml units
+    gyro_noise_density = 1.7e-4     # rad/s/sqrt(Hz)
+    accel_random_walk = 3.0e-3      # m/s^3/sqrt(Hz)
+    gyro_random_walk = 1.9e-5       # rad/s^2/sqrt(Hz)
+    gravity = 9.81                  # optional, m/s^2 (magnitude; the world frame is z up)
+    kalibr = "imu.yaml"             # optional: the densities from a Kalibr imu.yaml (keys here override)
+
+    [datum]                         # optional origin of the local ENU frame (GNSS);
+    latitude = 47.0                 # default: the first valid GNSS fix
+    longitude = 8.0                 # degrees
+    altitude = 400.0                # metres above the WGS-84 ellipsoid
+
+    [[sensor]]                      # any number of sensors, each a [[sensor]] table
+    name = "gnss"                   # unique
+    kind = "gnss"                   # pose | position | gnss | orientation | velocity | odometry
+    source = "bag:run.bag"          # bag:..., csv:FILE or tum:FILE (poses only)
+    topic = "/fix"                  # bags only (and required for them)
+    T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]   # optional, default identity: the sensor
+                                    # frame S in the IMU frame B, p_B = T_BS p_S (EuRoC/Kalibr)
+    camchain = "camchain.yaml"      # optional instead of T_BS: a Kalibr camchain, with
+    camera = "cam0"                 # the camera whose T_cam_imu (= T_SB) is inverted
+    time_offset = 0.0               # optional, seconds added to this sensor's stamps
+    sigma = 1.0                     # optional: standard deviation(s) overriding the messages'
+                                    # covariance, one number (every axis) or a list (per axis)
+    every = 1                       # optional: use every k-th measurement, hold the rest out
+    robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
+
+Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
+``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
+kind reads from its source, and how many numbers its ``sigma`` takes, is the measurement kind's
+business: the rig only checks that the numbers are standard deviations (> 0).
+
+A bad rig file is one :class:`RigError` (a ``ValueError``) of one line naming the file, the key and
+what was expected, e.g. ``rig.toml: sensor[1] "gnss".T_BS: expected a rigid transform ...``.
+Sensors are counted from 1 in the order of their tables. Checked: TOML syntax (with its line),
+unknown keys (the closest known one suggested), types, missing required keys, a bag source
+without a topic or a file source with one, unknown schemes and kinds, a ``T_BS`` that is not a
+4x4 rigid transform (rotation orthonormal with det +1 to 1e-6, last row 0 0 0 1), both ``T_BS``
+and ``camchain``, duplicate sensor names, ``sigma`` <= 0, ``every`` < 1, a bad ``robust`` spec,
+a datum off the globe.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datasets.errors import DataError
+from datasets.gnss import Datum
+from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
+from datasets.kinds import KIND_NAMES
+from datasets.robust import robust_spec
+from datasets.sources import parse_spec
+from factors.imu import DEFAULT_GRAVITY, ImuNoise
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
+
+#: Rig keys of the four IMU densities and the :class:`ImuNoise` fields they set.
+NOISE_KEYS = {
+    "accel_noise_density": "acc",
+    "gyro_noise_density": "gyro",
+    "accel_random_walk": "acc_bias",
+    "gyro_random_walk": "gyro_bias",
+}
+TOP_KEYS = ("imu", "datum", "sensor")
+IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr")
+DATUM_KEYS = ("latitude", "longitude", "altitude")
+SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
+               "robust")
+
+
+class RigError(ValueError):
+    """A bad rig file: ``path``, ``key`` (e.g. ``sensor[1] "gnss".T_BS``, or None for the whole
+    file) and the message."""
+
+    def __init__(self, path, key: str | None, message: str):
+        self.path, self.key = str(path), key
+        super().__init__(f"{path}: {key}: {message}" if key else f"{path}: {message}")
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """The IMU: ``source`` (a spec with an absolute path), ``topic`` (bags) or None, the noise
+    densities and the magnitude of gravity [m/s^2]."""
+
+    source: str
+    topic: str | None
+    noise: ImuNoise
+    gravity: float
+
+
+@dataclass(frozen=True, eq=False)
+class SensorConfig:
+    """One aiding sensor: ``name``, ``kind`` (one of ``datasets.kinds.KIND_NAMES``), ``source``
+    (a spec with an absolute path), ``topic`` or None, ``T_BS`` (4, 4) (``p_B = T_BS p_S``),
+    ``time_offset`` [s] added to its stamps, ``sigma`` None or standard deviations of shape (d,)
+    (d = 1: the same for every axis), ``every`` (use every k-th measurement) and ``robust``,
+    None or a kernel spec ``(name, threshold or None)`` of :func:`datasets.robust.robust_spec`."""
+
+    name: str
+    kind: str
+    source: str
+    topic: str | None
+    T_BS: np.ndarray
+    time_offset: float
+    sigma: np.ndarray | None
+    every: int
+    robust: tuple | None
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A rig file read: its ``path``, the ``imu``, the ``datum`` (None: the first valid GNSS fix)
+    and the ``sensors`` in file order."""
+
+    path: Path
+    imu: ImuConfig
+    datum: Datum | None
+    sensors: tuple[SensorConfig, ...]
+
+
+class _Table:
+    """One TOML table being checked: typed getters that raise :class:`RigError` naming the key."""
+
+    def __init__(self, path, folder: Path, where: str, table, allowed: tuple):
+        self.path, self.folder, self.where = path, folder, where
+        if not isinstance(table, dict):
+            raise RigError(path, where, f"expected a table, got {_kind(table)}")
+        for key in table:
+            if key not in allowed:
+                close = difflib.get_close_matches(key, allowed, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise RigError(path, self.key(key), f"unknown key{hint}; expected one of {', '.join(allowed)}")
+        self.table = table
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def error(self, name: str, message: str) -> RigError:
+        return RigError(self.path, self.key(name), message)
+
+    def get(self, name: str, types: tuple, what: str, required: bool = False, default=None):
+        if name not in self.table:
+            if required:
+                raise self.error(name, f"missing; expected {what}")
+            return default
+        value = self.table[name]
+        if isinstance(value, bool) and bool not in types or not isinstance(value, types):
+            raise self.error(name, f"expected {what}, got {_kind(value)} {value!r}")
+        return value
+
+    def string(self, name: str, required: bool = False) -> str | None:
+        value = self.get(name, (str,), "a string", required)
+        if value is not None and not value.strip():
+            raise self.error(name, "expected a non-empty string")
+        return value
+
+    def number(self, name: str, required: bool = False, default=None, minimum=None, positive=False) -> float | None:
+        value = self.get(name, (int, float), "a number", required, default)
+        if value is None:
+            return None
+        if not math.isfinite(value):
+            raise self.error(name, f"expected a finite number, got {value!r}")
+        if minimum is not None and value < minimum or positive and value <= 0:
+            raise self.error(name, f"expected a number {'> 0' if positive else f'>= {minimum:g}'}, got {value!r}")
+        return float(value)
+
+    def file(self, name: str) -> Path | None:
+        value = self.string(name)
+        return None if value is None else self.folder / Path(value).expanduser()
+
+    def source(self, stream: str | None) -> tuple[str, str | None]:
+        """The source spec (absolute path) and its topic, checked together."""
+        spec = self.string("source", required=True)
+        try:
+            scheme, file = parse_spec(spec, self.folder, stream)
+        except ValueError as error:
+            raise self.error("source", str(error)) from None
+        topic = self.string("topic")
+        if scheme == "bag" and topic is None:
+            raise self.error("topic", f"missing; a bag source ({spec!r}) needs the topic to read")
+        if scheme != "bag" and topic is not None:
+            raise self.error("topic", f"only bag sources have topics, and {spec!r} is a {scheme}: source")
+        return f"{scheme}:{file}", topic
+
+
+def _kind(value) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array",
+            dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def _imu(path, folder: Path, table) -> ImuConfig:
+    t = _Table(path, folder, "imu", table, IMU_KEYS)
+    source, topic = t.source("IMU samples")
+    densities = {}
+    kalibr = t.file("kalibr")
+    if kalibr is not None:
+        try:
+            densities = read_kalibr_imu(kalibr)
+        except DataError as error:
+            raise t.error("kalibr", str(error)) from None
+    for key, field in NOISE_KEYS.items():
+        value = t.number(key, minimum=0.0)
+        if value is not None:
+            densities[field] = value
+        elif field not in densities:
+            raise t.error(key, "missing; expected a density >= 0" + (" (here or in the Kalibr file)" if kalibr else ""))
+    gravity = t.number("gravity", default=float(np.linalg.norm(DEFAULT_GRAVITY)), positive=True)
+    return ImuConfig(source, topic, ImuNoise(**densities), gravity)
+
+
+def _datum(path, folder: Path, table) -> Datum:
+    t = _Table(path, folder, "datum", table, DATUM_KEYS)
+    values = {name: t.number(name, required=True) for name in DATUM_KEYS}
+    for name, limit in (("latitude", 90.0), ("longitude", 180.0)):
+        if abs(values[name]) > limit:
+            raise t.error(name, f"expected degrees within +-{limit:g}, got {values[name]!r}")
+    return Datum(**values)
+
+
+def _transform(t: _Table) -> np.ndarray:
+    if "T_BS" in t.table and "camchain" in t.table:
+        raise t.error("camchain", "give either T_BS or camchain, not both")
+    if "camchain" in t.table or "camera" in t.table:
+        camchain, camera = t.file("camchain"), t.string("camera")
+        if camchain is None or camera is None:
+            missing = "camera" if camchain is not None else "camchain"
+            raise t.error(missing, "missing; camchain and camera come together")
+        try:
+            return read_camchain_T_BS(camchain, camera)
+        except DataError as error:
+            raise t.error("camchain", str(error)) from None
+    value = t.get("T_BS", (list,), "a 4x4 array of numbers (rows)", default=None)
+    if value is None:
+        return np.eye(4)
+    rows_ok = len(value) == 4 and all(isinstance(row, list) and len(row) == 4 for row in value)
+    if not rows_ok or any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in value for x in row):
+        raise t.error("T_BS", "expected a 4x4 array of numbers: 4 rows of 4")
+    T = np.array(value, dtype=float)
+    problem = rigid_problem(T)
+    if problem is not None:
+        raise t.error("T_BS", "expected a rigid transform (rotation orthonormal with det +1 to 1e-6, last row "
+                              f"0 0 0 1); got {problem}")
+    return T
+
+
+def _sigma(t: _Table) -> np.ndarray | None:
+    value = t.get("sigma", (int, float, list), "a standard deviation > 0 or a list of them", default=None)
+    if value is None:
+        return None
+    items = value if isinstance(value, list) else [value]
+    if not items or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in items):
+        raise t.error("sigma", f"expected a standard deviation > 0 or a non-empty list of them, got {value!r}")
+    sigma = np.array(items, dtype=float)
+    if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+        raise t.error("sigma", f"expected standard deviations > 0 (finite), got {value!r}")
+    return sigma
+
+
+def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
+    name = table.get("name") if isinstance(table, dict) else None
+    where = f'sensor[{index}] "{name}"' if isinstance(name, str) else f"sensor[{index}]"
+    t = _Table(path, folder, where, table, SENSOR_KEYS)
+    name = t.string("name", required=True)
+    kind = t.string("kind", required=True)
+    if kind not in KIND_NAMES:
+        close = difflib.get_close_matches(kind, KIND_NAMES, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise t.error("kind", f"unknown kind {kind!r}{hint}; expected one of {', '.join(KIND_NAMES)}")
+    source, topic = t.source(None)
+    every = t.get("every", (int,), "an integer >= 1", default=1)
+    if every < 1:
+        raise t.error("every", f"expected an integer >= 1, got {every!r}")
+    try:
+        robust = robust_spec(t.string("robust"))
+    except ValueError as error:
+        raise t.error("robust", str(error)) from None
+    return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
+                        time_offset=t.number("time_offset", default=0.0), sigma=_sigma(t), every=every, robust=robust)
+
+
+def load_rig(path) -> Rig:
+    """Read and check the rig file ``path`` (see the module docstring); reads no sensor data."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise RigError(path, None, "no such file") from None
+    except UnicodeDecodeError as error:
+        raise RigError(path, None, f"not UTF-8 text (byte {error.start})") from None
+    except OSError as error:
+        raise RigError(path, None, f"cannot be read ({error.strerror})") from None
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise RigError(path, None, f"TOML syntax error: {error}") from None
+    folder = path.absolute().parent
+    top = _Table(path, folder, "", document, TOP_KEYS)
+    if "imu" not in document:
+        raise RigError(path, "imu", "missing; expected an [imu] table")
+    imu = _imu(path, folder, document["imu"])
+    datum = _datum(path, folder, document["datum"]) if "datum" in document else None
+    sensors_table = top.table.get("sensor", [])
+    if not isinstance(sensors_table, list):
+        raise RigError(path, "sensor", f"expected an array of tables ([[sensor]]), got {_kind(sensors_table)}")
+    sensors = tuple(_sensor(path, folder, i + 1, table) for i, table in enumerate(sensors_table))
+    seen: dict = {}
+    for i, sensor in enumerate(sensors):
+        if sensor.name in seen:
+            raise RigError(path, f'sensor[{i + 1}] "{sensor.name}".name',
+                           f"a second sensor named {sensor.name!r}; sensor[{seen[sensor.name]}] has that name")
+        seen[sensor.name] = i + 1
+    return Rig(path=path, imu=imu, datum=datum, sensors=sensors)

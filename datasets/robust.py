@@ -1,0 +1,29 @@
+"""Robust-kernel specs, as ``smoother run --robust`` and a rig file's ``robust`` key write them:
+``none``, or a kernel name with an optional threshold, ``huber``, ``cauchy:2.5``, ``tukey:4``.
+
+Parsing needs no GTSAM: the kernels themselves (and their default thresholds) are
+``smoother.graph.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`.
+"""
+from __future__ import annotations
+
+#: The robust kernels by name.
+ROBUST_KERNEL_NAMES = ("huber", "cauchy", "tukey")
+
+
+def robust_spec(text: str | None):
+    """Parse ``none``, ``huber``, ``cauchy:2.5``, ... into ``(name, threshold)`` (threshold None:
+    the kernel's dimension-aware default) or None for no kernel; a ``ValueError`` otherwise."""
+    if text is None or text == "none":
+        return None
+    name, _, value = text.partition(":")
+    if name not in ROBUST_KERNEL_NAMES:
+        raise ValueError(f"robust kernel {name!r}: expected one of none, {', '.join(ROBUST_KERNEL_NAMES)}")
+    if not value:
+        return name, None
+    try:
+        threshold = float(value)
+    except ValueError:
+        raise ValueError(f"robust kernel threshold {value!r}: expected a number") from None
+    if not threshold > 0:
+        raise ValueError(f"robust kernel threshold must be positive, got {threshold}")
+    return name, threshold

@@ -1,0 +1,88 @@
+"""One entry point for reading a sensor stream named by a source spec.
+
+A spec is ``SCHEME:PATH`` with the path relative to ``base_dir`` (a rig file's folder) unless
+absolute; ``~`` expands to the home folder:
+
+* ``bag:PATH``: a ROS bag (:mod:`datasets.bags`): a ROS 1 ``.bag``, a ROS 2 bag folder, a
+  ``.db3`` or a ``.mcap`` file; needs a ``topic``.
+* ``csv:PATH``: a CSV file (:mod:`datasets.csv_sources`): EuRoC/ASL IMU or ground-truth layout,
+  or the generic layout of the stream asked for.
+* ``tum:PATH``: a TUM trajectory (:mod:`datasets.tum`), for poses only.
+
+What each scheme gives: IMU samples from ``bag`` and ``csv``; poses from all three; velocities
+(twists) and GNSS fixes from ``bag`` and ``csv``. Asking a scheme for a stream it cannot give, an
+unknown scheme, a bag without a topic or a file with one is one ``ValueError`` naming the spec;
+errors in the data are :class:`datasets.errors.DataError` naming the file (and topic or line).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from datasets.bags import read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
+from datasets.csv_sources import read_csv_fixes, read_csv_imu, read_csv_poses, read_csv_twists
+from datasets.streams import FixStream, PoseStream, TwistStream
+from datasets.tum import read_tum
+from datasets.types import ImuSamples
+
+
+def _tum_poses(path) -> PoseStream:
+    trajectory = read_tum(path)
+    return PoseStream(trajectory.t, trajectory.position, trajectory.C)
+
+
+#: For each stream, the schemes that give it and their readers (each takes a path, bags a topic too).
+READERS = {
+    "IMU samples": {"bag": read_bag_imu, "csv": read_csv_imu},
+    "poses": {"bag": read_bag_poses, "csv": read_csv_poses, "tum": _tum_poses},
+    "velocities": {"bag": read_bag_twists, "csv": read_csv_twists},
+    "GNSS fixes": {"bag": read_bag_fixes, "csv": read_csv_fixes},
+}
+SCHEMES = ("bag", "csv", "tum")
+
+
+def parse_spec(spec: str, base_dir=".", stream: str | None = None) -> tuple[str, Path]:
+    """``(scheme, path)`` of ``spec``, the path resolved against ``base_dir``; with ``stream`` (a
+    key of :data:`READERS`) the scheme must be able to give it. Reads nothing."""
+    if not isinstance(spec, str):
+        raise ValueError(f"source {spec!r}: expected a string SCHEME:PATH")
+    scheme, sep, rest = spec.partition(":")
+    if not sep or scheme not in SCHEMES:
+        raise ValueError(f"source {spec!r}: expected bag:PATH, csv:PATH or tum:PATH")
+    if not rest.strip():
+        raise ValueError(f"source {spec!r}: no path after '{scheme}:'")
+    if stream is not None and scheme not in READERS[stream]:
+        raise ValueError(f"source {spec!r}: a {scheme}: source has no {stream}; "
+                         f"{stream} come from {' or '.join(s + ':' for s in READERS[stream])}")
+    return scheme, Path(base_dir) / Path(rest).expanduser()
+
+
+def _read(stream: str, spec: str, topic: str | None, base_dir):
+    scheme, path = parse_spec(spec, base_dir, stream)
+    reader = READERS[stream][scheme]
+    if scheme == "bag":
+        if not topic:
+            raise ValueError(f"source {spec!r}: a bag needs a topic")
+        return reader(path, topic)
+    if topic is not None:
+        raise ValueError(f"source {spec!r}: a topic ({topic!r}) is only for bag sources")
+    return reader(path)
+
+
+def read_imu(spec: str, topic: str | None = None, base_dir=".") -> ImuSamples:
+    """IMU samples (``sensor_msgs/Imu`` of a bag, or an EuRoC/ASL CSV file)."""
+    return _read("IMU samples", spec, topic, base_dir)
+
+
+def read_poses(spec: str, topic: str | None = None, base_dir=".") -> PoseStream:
+    """Poses (bag: Odometry, PoseWithCovarianceStamped, PoseStamped, TransformStamped; CSV; TUM)."""
+    return _read("poses", spec, topic, base_dir)
+
+
+def read_twists(spec: str, topic: str | None = None, base_dir=".") -> TwistStream:
+    """Velocities in the sensor frame (bag: Odometry's twist; CSV)."""
+    return _read("velocities", spec, topic, base_dir)
+
+
+def read_fixes(spec: str, topic: str | None = None, base_dir=".") -> FixStream:
+    """GNSS fixes (bag: NavSatFix; CSV)."""
+    return _read("GNSS fixes", spec, topic, base_dir)

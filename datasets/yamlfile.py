@@ -1,0 +1,120 @@
+"""Reading YAML configuration files (ASL ``sensor.yaml``, Kalibr ``imu.yaml`` and camchains) with
+PyYAML, keeping the line of every key and list item for error messages.
+
+OpenCV writes ``%YAML:1.0`` as its first line, which is not YAML (PyYAML rejects it): that line is
+skipped (line numbers stay those of the file). OpenCV's ``!!opencv-matrix`` tag reads as a plain
+mapping. Duplicate keys, which YAML forbids and PyYAML would silently resolve to the last, are an
+error naming both lines. Every error is a :class:`datasets.errors.DataError` naming the file, the
+line and the key path (``T_BS.data``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from datasets.errors import DataError, read_lines
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` as a mapping."""
+
+
+_Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+
+
+def dotted(keys: tuple) -> str:
+    """A key path as text: ``("T_BS", "data", 3)`` -> ``T_BS.data[3]``."""
+    text = ""
+    for key in keys:
+        text += f"[{key}]" if isinstance(key, int) else (f".{key}" if text else str(key))
+    return text
+
+
+@dataclass(frozen=True)
+class YamlDocument:
+    """A YAML file read: ``data`` (dicts, lists, scalars), ``lines`` (key path -> 1-based line of
+    the key or list item), ``n_lines`` and ``path``."""
+
+    path: Path
+    data: object
+    lines: dict
+    n_lines: int
+
+    def line(self, keys: tuple) -> int | None:
+        """The line of ``keys``, or of its nearest enclosing key that has one."""
+        while keys and keys not in self.lines:
+            keys = keys[:-1]
+        return self.lines.get(keys)
+
+    def error(self, keys: tuple, found, expected: str, line: int | None = None) -> DataError:
+        """A :class:`DataError` about ``keys``, at its line unless ``line`` is given."""
+        return DataError(self.path, line or self.line(keys), dotted(keys) or None, found, expected)
+
+    def get(self, keys: tuple):
+        """The value at ``keys`` (a :class:`DataError` naming the first key missing)."""
+        value = self.data
+        for depth, key in enumerate(keys):
+            if isinstance(value, list) and isinstance(key, int) and 0 <= key < len(value):
+                value = value[key]
+                continue
+            if not isinstance(value, dict) or key not in value:
+                raise self.error(keys[: depth + 1], "no such key", f"a key '{key}'" +
+                                 (f" in {dotted(keys[:depth])}" if depth else ""))
+            value = value[key]
+        return value
+
+    def number(self, keys: tuple, minimum: float | None = None) -> float:
+        """The finite number at ``keys`` (>= ``minimum`` if given)."""
+        value = self.get(keys)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(keys, value, "a number")
+        if not math.isfinite(value):
+            raise self.error(keys, value, "a finite number")
+        if minimum is not None and value < minimum:
+            raise self.error(keys, value, f"a number >= {minimum:g}")
+        return float(value)
+
+
+def _walk(node, keys: tuple, lines: dict, path: Path) -> None:
+    """Record the line of every key and list item; reject duplicate keys."""
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else key_node.start_mark.line
+            here = keys + (key,)
+            line = key_node.start_mark.line + 1
+            if here in lines:
+                raise DataError(path, line, dotted(here), f"a second '{key}:' (the first at line {lines[here]})",
+                                "each key once")
+            lines[here] = line
+            _walk(value_node, here, lines, path)
+    elif isinstance(node, yaml.SequenceNode):
+        for index, item in enumerate(node.value):
+            lines[keys + (index,)] = item.start_mark.line + 1
+            _walk(item, keys + (index,), lines, path)
+
+
+def read_yaml(path) -> YamlDocument:
+    """Read a YAML file (see the module docstring)."""
+    path = Path(path)
+    text_lines = read_lines(path)
+    if text_lines and text_lines[0].startswith("%YAML:"):
+        text_lines[0] = ""
+    loader = _Loader("\n".join(text_lines) + "\n")
+    lines: dict = {}
+    try:
+        node = loader.get_single_node()
+        if node is not None:
+            _walk(node, (), lines, path)
+        data = None if node is None else loader.construct_document(node)
+    except yaml.MarkedYAMLError as error:
+        mark = error.problem_mark or error.context_mark
+        problem = " ".join(part for part in (error.context, error.problem) if part)
+        raise DataError(path, None if mark is None else mark.line + 1, None, problem, "valid YAML") from None
+    except yaml.YAMLError as error:
+        raise DataError(path, None, None, str(error), "valid YAML") from None
+    finally:
+        loader.dispose()
+    return YamlDocument(path, data, lines, len(text_lines))
