@@ -117,24 +117,13 @@ class SensorSpec:
     T_BS: np.ndarray | None = None
 
 
-def _kind_sigmas(spec: SensorSpec, dim: int) -> np.ndarray:
-    s = np.atleast_1d(np.asarray(spec.sigma, dtype=float))
-    if s.size == 1:
-        s = np.repeat(s, dim)
-    elif dim == 6 and s.size == 2:
-        s = np.repeat(s, 3)
-    if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError(f"sensor {spec.name!r}: sigma: expected 1 or {dim} numbers > 0, got {spec.sigma!r}")
-    return s
-
-
 def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tuple[Sensor, ...]:
     """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
     ``truth`` by its kind's stream (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
     :func:`measurement_indices` picks them, each sensor with its own noise stream spawned from
     ``seed`` (an integer or a ``numpy.random.SeedSequence``). ``imu`` gives the gyro readings a velocity sensor's lever arm needs (the sample held
     at each measurement time)."""
-    from datasets.kinds import KINDS
+    from datasets.kinds import KINDS, kind_sigmas
 
     specs = list(specs)
     root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
@@ -149,7 +138,7 @@ def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tup
         except ValueError as error:
             raise ValueError(f"sensor {spec.name!r}: {error}") from None
         held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
-        data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, _kind_sigmas(spec, kind.dim),
+        data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
                              np.random.default_rng(stream))
         out.append(Sensor(spec.name, spec.kind, data))
     return tuple(out)

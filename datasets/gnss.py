@@ -42,13 +42,15 @@ class Datum:
 class EnuFixes(NamedTuple):
     """Fixes in the local ENU frame: ``t`` (N,), ``enu`` (N, 3) [m], ``cov`` (N, 3, 3) or None
     (rows of NaN where a fix's covariance is unknown), the ``datum`` used and ``n_dropped``, the
-    number of fixes dropped for having no fix (``status < 0``)."""
+    number of fixes dropped for having no fix (``status < 0``), and ``t_ns``, the integer stamps
+    where the source has them (else None)."""
 
     t: np.ndarray
     enu: np.ndarray
     cov: np.ndarray | None
     datum: Datum
     n_dropped: int
+    t_ns: np.ndarray | None = None
 
 
 def geodetic_to_enu(latitude, longitude, altitude, datum: Datum) -> np.ndarray:
@@ -79,4 +81,4 @@ def fixes_to_enu(fixes: FixStream, datum: Datum | None = None) -> EnuFixes:
         datum = Datum(float(fixes.latitude[k]), float(fixes.longitude[k]), float(fixes.altitude[k]))
     kept = fixes.subset(valid)
     enu = geodetic_to_enu(kept.latitude, kept.longitude, kept.altitude, datum)
-    return EnuFixes(kept.t, enu, kept.cov, datum, int((~valid).sum()))
+    return EnuFixes(kept.t, enu, kept.cov, datum, int((~valid).sum()), kept.t_ns)

@@ -131,6 +131,20 @@ MODELS: tuple[sm.SensorModel, ...] = tuple(dict.fromkeys(k.model for k in KINDS.
 _KERNELS = tuple(m.kernel for m in MODELS)
 
 
+def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
+    """A sensor's noise sigmas for a ``dim``-dimensional residual: one number (every axis), one per
+    axis, or for 6-dim kinds ``(translation, rotation)``; a ValueError naming ``where`` else."""
+    s = np.atleast_1d(np.asarray(sigma, dtype=float))
+    if s.size == 1:
+        s = np.repeat(s, dim)
+    elif dim == 6 and s.size == 2:
+        s = np.repeat(s, 3)
+    if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        expected = f"1 or {dim} numbers > 0" + (" (or translation and rotation)" if dim == 6 else "")
+        raise ValueError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
+    return s
+
+
 def model_index(kind: Kind) -> int:
     """The index of ``kind``'s model in :data:`MODELS` (the first argument of :func:`measure_into`)."""
     return MODELS.index(kind.model)

@@ -61,12 +61,17 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
 def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
     """``(t, distance)``: the times of the measured positions inside the estimate's time span and
     the distance from each to the estimate interpolated linearly to its time (empty arrays when
-    there are none)."""
+    there are none). With a lever arm (``positions.T_BS``) the estimate's antenna, ``r + C p_BS``,
+    with ``C`` of the estimate's sample nearest in time (the fixes' times are keyframes)."""
     if positions is None or len(positions) == 0:
         return np.empty(0), np.empty(0)
     inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
     t = positions.t[inside]
     est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
+    if positions.T_BS is not None:
+        k = np.clip(np.searchsorted(estimate.t, t), 1, len(estimate.t) - 1)
+        k -= (t - estimate.t[k - 1]) < (estimate.t[k] - t)
+        est = est + estimate.C[k] @ positions.T_BS[:3, 3]
     return t, np.linalg.norm(est - positions.position[inside], axis=1)
 
 
@@ -87,7 +92,16 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
         parts = [p for p in (dataset.position, dataset.heldout_positions) if p is not None]
         out["gps_rmse_m"] = position_rmse(_merge(parts), estimate)
         out["gps_heldout_rmse_m"] = position_rmse(dataset.heldout_positions, estimate)
+    heldout = [s.heldout for s in dataset.sensors if s.kind in POSITION_KINDS and s.heldout is not None]
+    if heldout:  # a rig's position and GNSS sensors, each with its lever arm
+        distance = np.concatenate([position_errors(h, estimate)[1] for h in heldout]
+                                  + [position_errors(dataset.heldout_positions, estimate)[1]])
+        out["gps_heldout_rmse_m"] = float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
     return out
+
+
+#: The kinds whose held-out measurements are scored as positions (``gps_heldout_rmse_m``).
+POSITION_KINDS = ("position", "gnss")
 
 
 def _merge(parts: list[PositionMeasurements]) -> PositionMeasurements:
@@ -171,6 +185,9 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
     for name, est in estimates.items():
         write_tum(out_dir / f"{name}.tum", est.trajectory, time_origin_ns=dataset.time_origin_ns)
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
+        datum = getattr(dataset, "datum", None)
+        if datum is not None:
+            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     # A directory reused for another dataset must not keep a previous run's reference.
     for name in ("truth.npz", "gps.npz"):
@@ -183,6 +200,22 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         json.dump(_jsonable(document), handle, indent=2)
         handle.write("\n")
     return report
+
+
+def write_geojson(path: Path, trajectory: Trajectory, datum, name: str) -> None:
+    """The trajectory in latitude, longitude and altitude (WGS-84, about the local ENU frame's
+    ``datum``) as a GeoJSON ``LineString`` (longitude first, as GeoJSON orders them), atomically:
+    it opens in QGIS or any web map."""
+    from datasets.gnss import enu_to_geodetic
+
+    lat, lon, alt = enu_to_geodetic(trajectory.position, datum)
+    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(trajectory.t[0]),
+                                                 "t_end": float(trajectory.t[-1])},
+               "geometry": {"type": "LineString",
+                            "coordinates": np.stack([lon, lat, alt], axis=-1).round(9).tolist()}}
+    with atomic_write(path) as handle:
+        json.dump({"type": "FeatureCollection", "features": [feature]}, handle)
+        handle.write("\n")
 
 
 def _jsonable(x):

@@ -63,6 +63,20 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
     return _with_truth_measurements(dataset, options)
 
 
+def load_rig(path) -> tuple[Dataset, dict]:
+    """The recording a rig file describes (:func:`datasets.recording.load_recording`) and the
+    robust kernels its sensors ask for, by sensor name; errors become one-line UserErrors."""
+    from datasets.recording import load_recording
+    from datasets.rig import load_rig as read_rig
+
+    try:
+        rig = read_rig(path)
+        dataset = load_recording(rig)
+    except (ValueError, OSError) as error:
+        raise UserError(f"{path}: {error}" if str(path) not in str(error) else str(error)) from None
+    return dataset, {s.name: s.robust for s in rig.sensors if s.robust is not None}
+
+
 def _with_truth_measurements(dataset: Dataset, options: SourceOptions) -> Dataset:
     """Add pose / GPS measurements drawn from the ground truth (``--pose-from-truth``,
     ``--gps-from-truth``; :func:`datasets.from_truth.measurements_from_truth`, independent noise

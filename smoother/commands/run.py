@@ -11,8 +11,10 @@ from smoother.errors import UserError
 
 def register(sub) -> None:
     p = sub.add_parser("run", help="run batch, fixed-lag and/or EKF estimation on a dataset")
-    p.add_argument("--dataset", default="synthetic:gentle",
+    p.add_argument("--dataset", default=None,
                    help="synthetic[:PROFILE] (gentle, tumbling, static), kitti, or euroc:PATH (default synthetic:gentle)")
+    p.add_argument("--rig", default=None, metavar="RIG.toml",
+                   help="a recording of your own, described by a rig file (IMU, sensors, extrinsics; see the README)")
     p.add_argument("--estimator", default="all", choices=["batch", "fixed-lag", "ekf", "all"],
                    help="which estimator(s) to run (default all)")
     p.add_argument("--out", default="out", help="output directory (default ./out)")
@@ -47,18 +49,22 @@ def register(sub) -> None:
     p.set_defaults(handler=run)
 
 
-def parse_robust(specs: list[str]) -> dict:
-    """``["huber"]`` -> the same kernel for every type; ``["pose=cauchy:2"]`` -> per type."""
+#: The sensors of the built-in datasets, by the names ``--robust`` takes.
+BUILT_IN_SENSORS = ("pose", "position", "orientation", "relative_pose")
+
+
+def parse_robust(specs: list[str], types=BUILT_IN_SENSORS, defaults: dict | None = None) -> dict:
+    """``["huber"]`` -> the same kernel for every sensor in ``types``; ``["pose=cauchy:2"]`` -> per
+    sensor; over ``defaults`` (a rig file's per-sensor kernels)."""
     from datasets.robust import robust_spec
 
-    types = ("pose", "position", "orientation", "relative_pose")
-    out: dict = {}
+    out: dict = dict(defaults or {})
     for spec in specs:
         target, sep, kernel = spec.partition("=")
         if not sep:
             target, kernel = None, spec
         elif target not in types:
-            raise UserError(f"--robust {spec}: unknown measurement type {target!r}; expected one of {', '.join(types)}")
+            raise UserError(f"--robust {spec}: unknown sensor {target!r}; expected one of {', '.join(types)}")
         try:
             parsed = robust_spec(kernel)
         except ValueError as error:
@@ -97,12 +103,19 @@ def run(args) -> int:
         gps_from_truth=tuple(args.gps_from_truth) if args.gps_from_truth else None,
     )
     names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
+    if args.rig is not None and args.dataset is not None:
+        raise UserError("--rig and --dataset: give one of them")
+    if args.rig is not None:
+        dataset, rig_robust = sources.load_rig(args.rig)
+        robust = parse_robust(args.robust, [s.name for s in dataset.sensors], rig_robust)
+    else:
+        dataset = sources.load(args.dataset or "synthetic:gentle", options)
+        robust = parse_robust(args.robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
-        keyframe_rate=args.keyframe_rate, robust=parse_robust(args.robust),
+        keyframe_rate=args.keyframe_rate, robust=robust,
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
     )
-    dataset = sources.load(args.dataset, options)
     out = output_directory(args.out)
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()

@@ -1,0 +1,110 @@
+"""``smoother run --rig``: a recording the project has never seen, from its rig file alone.
+
+The recording is written by the test as a ROS 2 bag (MCAP): IMU, wheel odometry (``nav_msgs/
+Odometry``: the wheel frame's twist, the wheel frame rotated and away from the IMU) and GNSS fixes
+in latitude/longitude (``sensor_msgs/NavSatFix``) from an antenna on a lever arm, with header
+stamps in seconds since the epoch. No ground truth reaches the estimators."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from bagfiles import Messages, write_bag
+
+from datasets.from_truth import SensorSpec
+from datasets.gnss import Datum, geodetic_to_enu, enu_to_geodetic
+from datasets.simulate import simulate
+from datasets.tum import read_tum
+from factors import quaternion, so3
+from smoother.cli import main
+
+T0_NS = 1_700_000_000_000_000_000
+DATUM = Datum(47.3769, 8.5417, 408.0)
+WHEEL = np.eye(4)
+WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4]  # upside down, turned
+ANTENNA = np.eye(4)
+ANTENNA[:3, 3] = [0.3, 0.0, 0.95]
+
+
+def _matrix(T) -> str:
+    return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in T) + "]"
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("recording")
+    data = simulate("gentle", duration=60, seed=5, pose_rate=None, sensors=[
+        SensorSpec("gnss", "gnss", 1, 0.5, ANTENNA), SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)])
+    gnss, wheel = data.sensors
+    ns = lambda t: T0_NS + np.round(np.asarray(t) * 1e9).astype(np.int64)  # noqa: E731
+    m = Messages("mcap")
+    lat, lon, alt = enu_to_geodetic(gnss.data.position, DATUM)
+    fix_cov = np.diag([0.25, 0.25, 0.25])
+    topics = {
+        "/imu/data": ("sensor_msgs/msg/Imu", [m.imu(*row) for row in zip(ns(data.imu.t), data.imu.acc, data.imu.gyro)]),
+        "/wheel/odom": ("nav_msgs/msg/Odometry", [
+            m.odometry(t, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3), np.diag([0.0025] * 6))
+            for t, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
+        "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, a, b, c, 0, fix_cov, 3)
+                                               for t, a, b, c in zip(ns(gnss.data.t), lat, lon, alt)]),
+    }
+    bag = write_bag(folder / "run.mcap", "mcap", topics)
+    rig = folder / "rig.toml"
+    rig.write_text(f"""
+[imu]
+source = "bag:{bag.name}"
+topic = "/imu/data"
+accel_noise_density = {data.noise.acc}
+gyro_noise_density = {data.noise.gyro}
+accel_random_walk = {data.noise.acc_bias}
+gyro_random_walk = {data.noise.gyro_bias}
+
+[datum]
+latitude = {DATUM.latitude}
+longitude = {DATUM.longitude}
+altitude = {DATUM.altitude}
+
+[[sensor]]
+name = "gnss"
+kind = "gnss"
+source = "bag:{bag.name}"
+topic = "/fix"
+T_BS = {_matrix(ANTENNA)}
+every = 4
+
+[[sensor]]
+name = "wheel"
+kind = "velocity"
+source = "bag:{bag.name}"
+topic = "/wheel/odom"
+T_BS = {_matrix(WHEEL)}
+""")
+    out = folder / "out"
+    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress", "--no-covariance"]) == 0
+    return data, out
+
+
+def test_outputs_keep_the_bag_stamps_and_give_latitude_longitude(recording):
+    data, out = recording
+    for name in ("batch", "fixed-lag", "ekf"):
+        tum = read_tum(out / f"{name}.tum")
+        assert 1.7e9 <= tum.t[0] < tum.t[-1] < 1.7e9 + 61  # the bag's clock, not seconds from 0
+        geo = json.loads((out / f"{name}.geojson").read_text())
+        lon, lat, _ = np.array(geo["features"][0]["geometry"]["coordinates"]).T
+        assert abs(lat.mean() - DATUM.latitude) < 1e-3 and abs(lon.mean() - DATUM.longitude) < 1e-3
+
+
+def test_sensors_are_consistent_and_held_out_fixes_beat_interpolating_the_used_ones(recording):
+    """Every 4th fix used: the smoothers' held-out GNSS error is below that of interpolating the
+    used fixes (the antenna's lever arm included), and each sensor's NIS is in its band."""
+    data, out = recording
+    metrics = json.loads((out / "metrics.json").read_text())
+    gnss = data.sensors[0].data
+    used = np.arange(len(gnss)) % 4 == 0
+    interpolated = np.stack([np.interp(gnss.t[~used], gnss.t[used], gnss.position[used, a]) for a in range(3)], -1)
+    baseline = float(np.sqrt(np.mean(np.sum((interpolated - gnss.position[~used]) ** 2, axis=1))))
+    for name in ("batch", "fixed-lag"):
+        assert metrics[name]["gps_heldout_rmse_m"] < baseline, (name, metrics[name]["gps_heldout_rmse_m"], baseline)
+    for name, block in metrics["batch"]["sensors"].items():
+        assert block["ok"], (name, block)
