@@ -25,7 +25,7 @@ from numba import njit
 from factors import so3
 from factors.compiled import as_trailing, common_shape, rows
 from factors.custom import BIAS, ROT, VEC, custom_factor
-from factors.sensor_models import odometry_residual
+from factors.sensor_models import odometry_residual, orientation_error_into
 
 def covariance_model(cov: np.ndarray):
     """A Gaussian GTSAM noise model of covariance ``cov``."""
@@ -40,14 +40,6 @@ def position_residual(r, measured, jacobians: bool = False):
     """``e = r - r_meas`` (eq. 61); ``de/dr = I``."""
     e = np.asarray(r, dtype=float) - measured
     return (e, [_eye(e.shape[:-1])]) if jacobians else e
-
-
-@njit(cache=True)
-def orientation_error_into(C, measured, e, J) -> None:
-    """Compiled core of :func:`orientation_residual` for one attitude: ``e (3) = log(C C_meas^T)``
-    and ``J (3x3) = Gamma^-1(e)``; the EKF's compiled update calls it directly."""
-    e[0], e[1], e[2] = so3.boxminus_of(C, measured)
-    so3.gamma_inv_into(e[0], e[1], e[2], J)
 
 
 @njit(cache=True)

@@ -72,19 +72,24 @@ def _rotated_lever_into(C, p, Cp, H_rows, first_row) -> None:
 
 
 @njit(cache=True)
+def orientation_error_into(C, measured, e, J) -> None:
+    """``e (3) = log(C C_meas^T)`` and ``J (3x3) = Gamma^-1(e)`` for one attitude (eqs. 62, 63;
+    the derivative of log, eq. 32): the one attitude residual of the project
+    (:func:`factors.measurements.orientation_residual` and every sensor model run it)."""
+    e[0], e[1], e[2] = so3.boxminus_of(C, measured)
+    so3.gamma_inv_into(e[0], e[1], e[2], J)
+
+
+@njit(cache=True)
 def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
     """``e[first_row:+3] = log(C R Z^T)`` and ``H[first_row:+3, 6:9] = Gamma^-1(e)``."""
     CR = np.empty((3, 3))
     for a in range(3):
         for b in range(3):
             CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
-    x, y, z = so3.boxminus_of(CR, Z)
-    e[first_row], e[first_row + 1], e[first_row + 2] = x, y, z
     G = np.empty((3, 3))
-    so3.gamma_inv_into(x, y, z, G)
-    for a in range(3):
-        for b in range(3):
-            H[first_row + a, 6 + b] = G[a, b]
+    orientation_error_into(CR, Z, e[first_row:first_row + 3], G)
+    H[first_row:first_row + 3, 6:9] = G
 
 
 # Row layouts (flat float64): position (z 3, p 3); orientation (Z 9, R 9); pose (z 3, Z 9, R 9, p 3);
