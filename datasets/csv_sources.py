@@ -29,7 +29,8 @@ Poses: ``(x, y, z)`` the position [m] of the sensor frame in its world frame, ``
 the Hamilton quaternion of the sensor-to-world rotation, norm 1 within
 :data:`QUATERNION_TOLERANCE` (then normalised). Velocities: of the sensor frame, in the sensor
 frame [m/s]. Fixes: degrees and metres above the WGS-84 ellipsoid; every value must be a finite
-number, also in rows with ``status < 0`` (which :func:`datasets.gnss.fixes_to_enu` drops). See :mod:`datasets.streams` for the stream types.
+number, also in rows with ``status < 0`` (which :func:`datasets.gnss.fixes_to_enu` drops). See
+:mod:`datasets.streams` for the stream types.
 
 Every malformed file is one :class:`datasets.errors.DataError` naming the file, line and column.
 """

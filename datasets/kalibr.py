@@ -58,7 +58,8 @@ def read_camchain_T_BS(path, camera: str) -> np.ndarray:
         raise doc.error(keys, value, "a 4x4 list of numbers") from None
     problem = rigid_problem(T)
     if problem is not None:
-        raise doc.error(keys, problem, "a rigid transform (4x4, rotation part orthonormal with det 1, last row 0 0 0 1)")
+        raise doc.error(keys, problem,
+                        "a rigid transform (4x4, rotation part orthonormal with det 1, last row 0 0 0 1)")
     R, p = T[:3, :3], T[:3, 3]
     T_BS = np.eye(4)
     T_BS[:3, :3], T_BS[:3, 3] = R.T, -R.T @ p

@@ -22,7 +22,8 @@ class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` as a mapping."""
 
 
-_Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+_Loader.add_constructor("tag:yaml.org,2002:opencv-matrix",
+                        lambda loader, node: loader.construct_mapping(node, deep=True))
 
 
 def dotted(keys: tuple) -> str:

@@ -42,6 +42,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
+from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors import so3
@@ -699,8 +700,6 @@ def plot_allan(result, out_dir) -> Path:
     :class:`datasets.allan.AllanResult`), log-log, with the fitted white-noise (slope -1/2) and
     random-walk (slope +1/2) lines of each axis and the points where they are read (1 s, 3 s)."""
     import matplotlib
-
-    from datasets.allan import WALK_TAU, WHITE_TAU
 
     with matplotlib.rc_context(STYLE):
         fig = _figure("allan")

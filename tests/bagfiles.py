@@ -78,7 +78,8 @@ class Messages:
         status_msg = self.T["sensor_msgs/msg/NavSatStatus"](status=int(status), service=1)
         return self.T["sensor_msgs/msg/NavSatFix"](
             header=self.header(t_ns, "gps"), status=status_msg, latitude=float(lat), longitude=float(lon),
-            altitude=float(alt), position_covariance=np.ravel(cov).astype(float), position_covariance_type=int(cov_type))
+            altitude=float(alt), position_covariance=np.ravel(cov).astype(float),
+            position_covariance_type=int(cov_type))
 
 
 def write_bag(path: Path, fmt: str, topics: dict) -> Path:

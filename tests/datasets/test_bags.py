@@ -56,10 +56,12 @@ def _write(folder, fmt, data):
             data["pose_ns"], data["p"], q, data["cov"], data["v"], data["w"], data["twist_cov"])]),
         "/odom_nocov": ("nav_msgs/msg/Odometry", [m.odometry(t, p, qq, zero, v, w, zero) for t, p, qq, v, w in zip(
             data["pose_ns"], data["p"], q, data["v"], data["w"])]),
-        "/pose": ("geometry_msgs/msg/PoseStamped", [m.pose_stamped(*row) for row in zip(data["pose_ns"], data["p"], q)]),
+        "/pose": ("geometry_msgs/msg/PoseStamped", [m.pose_stamped(*row) for row in zip(data["pose_ns"], data["p"],
+                                                                                        q)]),
         "/pose_cov": ("geometry_msgs/msg/PoseWithCovarianceStamped", [
             m.pose_with_covariance(*row) for row in zip(data["pose_ns"], data["p"], q, data["cov"])]),
-        "/tf_base": ("geometry_msgs/msg/TransformStamped", [m.transform(*row) for row in zip(data["pose_ns"], data["p"], q)]),
+        "/tf_base": ("geometry_msgs/msg/TransformStamped", [m.transform(*row) for row in zip(data["pose_ns"],
+                                                                                               data["p"], q)]),
         "/fix": ("sensor_msgs/msg/NavSatFix", fixes),
         "/empty": ("sensor_msgs/msg/Imu", []),
     }

@@ -42,7 +42,8 @@ def test_euroc_ground_truth_layout(tmp_path):
                     "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
                     "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
                     "b_a_RS_S_z [m s^-2]\n"
-                    + "".join(f"{s},{','.join(repr(float(x)) for x in (*pp, *qq))}{rest}\n" for s, pp, qq in zip(t_ns, p, q)))
+                    + "".join(f"{s},{','.join(repr(float(x)) for x in (*pp, *qq))}{rest}\n"
+                              for s, pp, qq in zip(t_ns, p, q)))
     poses = read_csv_poses(path)
     assert np.array_equal(poses.t_ns, t_ns) and np.array_equal(poses.position, p) and poses.cov is None
     assert np.abs(poses.C - C).max() < 1e-14
@@ -69,7 +70,8 @@ def test_generic_velocities_and_fixes(tmp_path):
     t = 10 + 0.1 * np.arange(8)
     v, w = rng.normal(size=(8, 3)), rng.normal(size=(8, 3))
     path = tmp_path / "v.csv"
-    path.write_text("t,vx,vy,vz\n" + "".join(",".join(repr(float(x)) for x in (tt, *vv)) + "\n" for tt, vv in zip(t, v)))
+    path.write_text("t,vx,vy,vz\n" + "".join(",".join(repr(float(x)) for x in (tt, *vv)) + "\n"
+                                             for tt, vv in zip(t, v)))
     twists = read_csv_twists(path)
     assert np.array_equal(twists.linear, v) and twists.angular is None and twists.cov is None
     path.write_text("t,vx,vy,vz,wx,wy,wz,sigma_vx,sigma_vy,sigma_vz,sigma_wx,sigma_wy,sigma_wz\n" + "".join(

@@ -22,7 +22,8 @@ def test_imu_yaml_flat_or_in_one_imu_entry(tmp_path):
     path.write_text("imu0:\n  rostopic: /imu0\n" + "".join("  " + line + "\n" for line in DENSITIES.splitlines()))
     assert read_kalibr_imu(path) == EXPECTED
     path.write_text("imu0:\n  gyroscope_noise_density: -1.0\n")
-    with pytest.raises(DataError, match=r"line 2, field 'imu0.gyroscope_noise_density': found -1.0; expected a number >= 0"):
+    with pytest.raises(DataError,
+                       match=r"line 2, field 'imu0.gyroscope_noise_density': found -1.0; expected a number >= 0"):
         read_kalibr_imu(path)
     path.write_text("rostopic: /imu0\n")
     with pytest.raises(DataError, match="no noise densities"):
@@ -39,7 +40,8 @@ def test_camchain_T_cam_imu_is_inverted(tmp_path):
                     "cam1:\n  T_cam_imu: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n")
     T_BS = read_camchain_T_BS(path, "cam0")
     assert np.abs(T_BS @ T_cam_imu - np.eye(4)).max() < 1e-14
-    with pytest.raises(DataError, match=r"found \"no camera 'cam2'\"; expected one of the cameras in the file: cam0, cam1"):
+    with pytest.raises(DataError,
+                       match=r"found \"no camera 'cam2'\"; expected one of the cameras in the file: cam0, cam1"):
         read_camchain_T_BS(path, "cam2")
     path.write_text("cam0:\n  T_cam_imu: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]\n")
     with pytest.raises(DataError, match=r"line 2, field 'cam0.T_cam_imu': found 'a rotation part"):
