@@ -164,9 +164,13 @@ def load_trajectory(path: Path) -> Trajectory:
 
 def save_gps(path: Path, dataset: Dataset) -> None:
     """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
-    nothing when it has none."""
+    nothing when it has none. A rig's position and GNSS sensors count too (their antennas'
+    positions, as measured)."""
     parts = [(p, False) for p in [dataset.position] if p is not None]
     parts += [(p, True) for p in [dataset.heldout_positions] if p is not None]
+    for s in dataset.sensors:
+        if s.kind in POSITION_KINDS:
+            parts += [(p, flag) for p, flag in ((s.data, False), (s.heldout, True)) if p is not None]
     if not parts:
         return
     t = np.concatenate([p.t for p, _ in parts])

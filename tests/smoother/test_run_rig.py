@@ -108,3 +108,12 @@ def test_sensors_are_consistent_and_held_out_fixes_beat_interpolating_the_used_o
         assert metrics[name]["gps_heldout_rmse_m"] < baseline, (name, metrics[name]["gps_heldout_rmse_m"], baseline)
     for name, block in metrics["batch"]["sensors"].items():
         assert block["ok"], (name, block)
+
+
+def test_plots_of_a_recording_show_its_fixes(recording):
+    """``smoother plot`` on a rig's run: the GNSS fixes (used and held out) are in gps.npz."""
+    data, out = recording
+    gps = np.load(out / "gps.npz")
+    assert len(gps["t"]) == len(data.sensors[0].data) and gps["heldout"].sum() == len(data.sensors[0].data) * 3 // 4
+    assert main(["plot", str(out)]) == 0
+    assert (out / "trajectory.png").stat().st_size > 0
