@@ -8,7 +8,7 @@ Two engines over the same residuals:
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
   independent reference the tests compare against). Covariances from GTSAM's marginals are
-  converted with :func:`factors.chart.state_covariance_to_primer`.
+  converted with :func:`factors.uncertainty.state_covariance_to_primer`.
 
 Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. An indeterminant
 system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe and its time,
@@ -25,7 +25,7 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu
-from factors.chart import state_covariance_to_primer
+from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
 from smoother import solver
 from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, UserError, is_indeterminant
