@@ -28,7 +28,8 @@ from factors import imu
 from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
 from smoother import solver
-from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, UserError, is_indeterminant
+from factors.errors import InputError
+from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
 from smoother.graph import Problem, read_state
 
 OPTIMIZERS = solver.METHODS
@@ -102,9 +103,9 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 covariances: bool = True, engine: str = "vectorized") -> SmootherResult:
     """Optimise the whole graph from its initial values (see the module docstring)."""
     if optimizer not in OPTIMIZERS:
-        raise UserError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
+        raise InputError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
     if engine not in ENGINES:
-        raise UserError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
+        raise InputError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
     start = time.perf_counter()
     try:
         if engine == "vectorized":

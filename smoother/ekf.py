@@ -24,6 +24,7 @@ from numba import njit
 from datasets.types import Dataset, Trajectory
 from factors import imu, measurements as meas
 from factors.compiled import matmul_into
+from factors.errors import SolverError
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
@@ -308,7 +309,7 @@ DIVERGED_SPEED = 1e4
 DIVERGED_SPREAD = 1e6
 
 
-class FilterDiverged(ValueError):
+class FilterDiverged(SolverError, ValueError):
     """The EKF's state or covariance left any plausible range (non-finite or absurdly large)."""
 
 
