@@ -7,15 +7,16 @@ example), ``euroc`` (EuRoC/ASL folders), ``tum`` (TUM trajectory files), ``from_
 (measurements drawn from a ground truth), ``errors`` (:class:`DataError`, naming file, line and
 field of bad input), ``atomic`` (files written whole or not at all).
 
-The names below are importable from the package itself (``from datasets import simulate``); each
-is loaded on first use. This package depends on ``factors`` at most.
+The names below are importable from the package itself (``from datasets import Dataset``); each
+is loaded on first use. ``simulate`` is the simulator's module (``simulate.simulate(...)``): a
+package attribute named like a sub-module is that sub-module once anything has imported it. This package depends on ``factors`` at most.
 """
 from factors.exports import lazy_exports
 
 _EXPORTS = {
     **dict.fromkeys(("Dataset", "ImuSamples", "PositionMeasurements", "OrientationMeasurements",
                      "PoseMeasurements", "RelativePoseMeasurements", "Trajectory"), "datasets.types"),
-    **dict.fromkeys(("simulate", "PROFILES"), "datasets.simulate"),
+    "simulate": "datasets.simulate",  # the module: datasets.simulate.simulate(profile, duration, seed)
     "load_kitti": "datasets.kitti",
     "load_euroc": "datasets.euroc",
     **dict.fromkeys(("read_tum", "write_tum"), "datasets.tum"),

@@ -4,7 +4,7 @@ the ``smoother`` command line.
 A run: ``problem = build_problem(dataset)`` (keyframes, preintegrated IMU factors, measurement
 factors, the initial trajectory), then ``solve_batch(problem)``, ``run_fixed_lag(problem, lag_s)``
 or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and their 15x15
-covariances. ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them),
+covariances. ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
 ``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory.
 
 The names below are importable from the package itself (``from smoother import solve_batch``);
@@ -13,7 +13,6 @@ each is loaded on first use. This package depends on ``factors`` and ``datasets`
 from factors.exports import lazy_exports
 
 _EXPORTS = {
-    "metrics": "smoother.metrics",
     **dict.fromkeys(("build_problem", "Problem"), "smoother.graph"),
     **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch"),
     **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag"),
@@ -23,7 +22,8 @@ _EXPORTS = {
     **dict.fromkeys(("evaluate", "ate", "rpe", "nees", "rmse_difference"), "smoother.metrics"),
     **dict.fromkeys(("compare_with_truth", "position_errors", "save_trajectory", "load_trajectory"),
                     "smoother.report"),
-    **dict.fromkeys(("crosscheck", "CrosscheckOptions"), "smoother.crosscheck"),
+    **{name: f"smoother.{name}" for name in ("metrics", "crosscheck")},
+    "CrosscheckOptions": "smoother.crosscheck",
     "tune_noise": "smoother.tuning",
     "plot_run": "smoother.plots",
 }

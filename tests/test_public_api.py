@@ -27,6 +27,11 @@ def test_every_exported_name_resolves_to_its_modules_object(package):
         else:
             assert value is getattr(importlib.import_module(source), name), name
     assert set(module.__all__) <= set(dir(module))
+    # A package attribute named like one of its sub-modules becomes that sub-module as soon as
+    # anything imports it: only the sub-module itself may be exported under its name.
+    submodules = {path.stem for path in (ROOT / package).glob("*.py")}
+    assert not [name for name in module.__all__
+                if name in submodules and not isinstance(getattr(module, name), types.ModuleType)]
     with pytest.raises(AttributeError, match=f"module '{package}' has no attribute 'no_such_name'"):
         getattr(module, "no_such_name")
 
@@ -36,7 +41,7 @@ def test_the_readme_names_are_exported():
     import factors
     import smoother
 
-    assert {"simulate", "Dataset", "ImuSamples", "load_kitti", "load_euroc"} <= set(datasets.__all__)
+    assert {"simulate", "Dataset", "ImuSamples", "load_kitti", "load_euroc", "read_tum"} <= set(datasets.__all__)
     assert {"ImuState", "ImuNoise", "so3", "quaternion", "check_factor", "numerical_jacobian", "ImuFactor",
             "pose_factor", "position_factor"} <= set(factors.__all__)
     assert {"build_problem", "solve_batch", "run_fixed_lag", "run_ekf", "Ekf", "metrics"} <= set(smoother.__all__)
