@@ -1,6 +1,6 @@
 """Errors of the dataset loaders, and the small text-parsing helpers that raise them.
 
-Every malformed input becomes one :class:`DataError` (a ``ValueError``) whose message names the
+Every malformed input becomes one :class:`DataError` (an ``InputError``, so a ``ValueError``) whose message names the
 file, the 1-based line, the field, what was found and what was expected, e.g.::
 
     /data/imu.txt, line 12, field 'accelY': found 'nan'; expected a finite number
@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.errors import InputError
+
 #: Found values longer than this are shortened in messages (fuzzed input can be huge).
 _MAX_SHOWN = 60
 
@@ -30,8 +32,8 @@ def _shown(found) -> str:
     return text
 
 
-class DataError(ValueError):
-    """Malformed input data. ``path``, ``line`` (1-based, or None for the file as a whole),
+class DataError(InputError):
+    """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``). ``path``, ``line`` (1-based, or None for the file as a whole),
     ``field`` (or None), ``found`` and ``expected`` are kept as attributes."""
 
     def __init__(self, path, line: int | None, field: str | None, found, expected: str):

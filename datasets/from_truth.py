@@ -11,7 +11,7 @@ time) and each tick takes the first truth sample at or after it (a tolerance of 
 median truth step absorbs round-off in the ticks); a truth sample is used at most once. A rate
 above the truth's own rate is refused (it could not be delivered).
 
-Noise, in the primer's convention (DESIGN.md): position ``r_meas = r + n_r``,
+Noise, in the primer's convention (docs/design.md, section 7): position ``r_meas = r + n_r``,
 ``n_r ~ N(0, pos_sigma^2 I)``; attitude ``C_meas = exp(n) C``, ``n ~ N(0, rot_sigma^2 I)`` in WORLD
 coordinates (the left perturbation of eq. 63). The covariance stored with the measurements is
 exactly that of the noise drawn. ``seed`` is anything ``numpy.random.default_rng`` accepts; the

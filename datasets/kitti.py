@@ -82,7 +82,7 @@ import numpy as np
 
 from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, read_table, require_rows
 from datasets.types import Dataset, ImuSamples, PositionMeasurements
-from factors import quaternion
+from factors import euler
 from factors.imu import ImuNoise, ImuState
 
 IMU_FILE = "KittiEquivBiasedImu.txt"
@@ -223,7 +223,7 @@ def _initial_state(t_gps: np.ndarray, p_gps: np.ndarray) -> tuple[ImuState, np.n
         yaw = float(np.arctan2(horizontal[1], horizontal[0]))
     else:
         yaw, yaw_sigma = 0.0, np.pi
-    C = quaternion.rpy_to_matrix(np.array([0.0, 0.0, yaw]))
+    C = euler.rpy_to_matrix(np.array([0.0, 0.0, yaw]))
     state = ImuState(r=p_gps[0].copy(), v=C.T @ v_world, C=C, b_f=np.zeros(3), b_w=np.zeros(3))
     sigmas = np.concatenate([
         np.full(3, INITIAL_POSITION_SIGMA), np.full(3, INITIAL_VELOCITY_SIGMA),

@@ -1,6 +1,6 @@
 """The project's data types: a few NumPy arrays in a dataclass each, never objects per sample.
 
-Conventions (DESIGN.md section 1): times in seconds (float64; loaders with nanosecond stamps keep
+Conventions (docs/design.md, section 1): times in seconds (float64; loaders with nanosecond stamps keep
 them exactly in ``t_ns``), world frame ``I``, body = IMU frame ``B``, attitudes as body-to-world
 rotation matrices ``C(Phi_IB)`` of shape ``(N, 3, 3)``. Orientation covariances are in the
 primer's convention: ``C_meas = exp(n) C_true`` with ``n ~ N(0, cov)`` in WORLD coordinates.

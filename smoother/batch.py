@@ -8,7 +8,7 @@ Two engines over the same residuals:
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
   independent reference the tests compare against). Covariances from GTSAM's marginals are
-  converted with :func:`factors.chart.state_covariance_to_primer`.
+  converted with :func:`factors.uncertainty.state_covariance_to_primer`.
 
 Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. An indeterminant
 system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe and its time,
@@ -25,10 +25,11 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu
-from factors.chart import state_covariance_to_primer
+from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
 from smoother import solver
-from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, UserError, is_indeterminant
+from factors.errors import InputError
+from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
 from smoother.graph import Problem, read_state
 
 OPTIMIZERS = solver.METHODS
@@ -102,9 +103,9 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 covariances: bool = True, engine: str = "vectorized") -> SmootherResult:
     """Optimise the whole graph from its initial values (see the module docstring)."""
     if optimizer not in OPTIMIZERS:
-        raise UserError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
+        raise InputError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
     if engine not in ENGINES:
-        raise UserError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
+        raise InputError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
     start = time.perf_counter()
     try:
         if engine == "vectorized":

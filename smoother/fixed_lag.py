@@ -43,6 +43,7 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
+from factors.errors import SolverError
 from smoother.batch import is_indeterminant
 from smoother.graph import Problem, insert_state, read_state
 from smoother.solver import evaluate_block
@@ -268,7 +269,7 @@ def _weak_prior(keys, guess: imu.ImuState):
     return meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
 
 
-class FixedLagFailed(ValueError):
+class FixedLagFailed(SolverError, ValueError):
     """GTSAM's smoother failed at an update in a way that cannot be recovered."""
 
 

@@ -1,8 +1,9 @@
 """Trajectory evaluation: time association, alignment, ATE, RPE, NEES and chi-square bounds.
 
 Poses are ``(r, C)``: world positions ``(N, 3)`` and body-to-world attitudes ``(N, 3, 3)``
-(DESIGN.md). The definitions follow the usual ones of the TUM benchmark as evo implements them, so
-that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files (tested to 1e-9):
+(docs/design.md, section 1). The definitions follow the usual ones of the TUM benchmark as evo
+implements them, so that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files
+(tested to 1e-9):
 
 * :func:`associate`: nearest time stamps within ``max_dt``. The trajectory with fewer poses is
   walked (the estimate when both have as many), each of its stamps paired with the nearest stamp

@@ -46,10 +46,10 @@ from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors import so3
+from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import metrics
 from smoother.report import load_trajectory, read_npz
-from smoother.errors import UserError
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120
@@ -145,10 +145,10 @@ def _load_gps(path: Path) -> Gps:
     n = len(t)
     if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
             or (cov is not None and cov.shape != (n, 3, 3))):
-        raise UserError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
+        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
                         f"{'' if cov is None else f', cov {cov.shape}'}, heldout {heldout.shape}); expected {expected}")
     if n > 1 and np.any(np.diff(t) <= 0):
-        raise UserError(f"{path}: the times t must increase strictly")
+        raise InputError(f"{path}: the times t must increase strictly")
     return Gps(t, position, cov, heldout)
 
 
@@ -166,18 +166,18 @@ def estimator_names(run_dir: Path) -> list[str]:
 
 
 def load_run(run_dir, estimators=None) -> Run:
-    """Read a run directory; :class:`UserError` naming the file for anything missing or malformed."""
+    """Read a run directory; :class:`~factors.errors.InputError` naming the file for anything missing or malformed."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError(f"{run_dir}: not a directory; expected the output directory of smoother run")
+        raise InputError(f"{run_dir}: not a directory; expected the output directory of smoother run")
     available = estimator_names(run_dir)
     if not available:
-        raise UserError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
+        raise InputError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
                         f"(e.g. {', '.join(f'{n}.npz' for n in ESTIMATOR_ORDER)}) written by smoother run")
     names = available if not estimators else list(dict.fromkeys(estimators))
     for name in names:
         if name not in available:
-            raise UserError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
+            raise InputError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
     estimates = {name: load_trajectory(run_dir / f"{name}.npz") for name in names}
     truth = load_trajectory(run_dir / "truth.npz") if (run_dir / "truth.npz").exists() else None
     gps = _load_gps(run_dir / "gps.npz") if (run_dir / "gps.npz").exists() else None
@@ -187,9 +187,9 @@ def load_run(run_dir, estimators=None) -> Run:
         try:
             document = json.loads(path.read_text())
         except (OSError, ValueError) as error:
-            raise UserError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
+            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
         if not isinstance(document, dict):
-            raise UserError(f"{path}: expected a JSON object with one entry per estimator, "
+            raise InputError(f"{path}: expected a JSON object with one entry per estimator, "
                             f"got {type(document).__name__}")
     return Run(run_dir, estimates, truth, gps, document)
 

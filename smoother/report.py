@@ -27,8 +27,8 @@ from datasets.atomic import atomic_write
 from datasets.tum import write_tum
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from factors import imu
+from factors.errors import InputError
 from smoother import metrics
-from smoother.errors import UserError
 
 #: Largest time difference [s] at which an estimate is compared with a truth sample.
 MATCH_DT = 1e-6
@@ -130,35 +130,35 @@ _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pick
 @contextlib.contextmanager
 def read_npz(path: Path, expected: str):
     """The arrays of the ``.npz`` archive ``path`` (``np.load`` without pickles) inside the
-    block; a :class:`UserError` naming the file and ``expected`` when it is not such an archive,
+    block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not such an archive,
     cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g. a validation)."""
     try:
         is_zip = zipfile.is_zipfile(path)
     except OSError as error:
-        raise UserError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
+        raise InputError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
     if not is_zip:
-        raise UserError(f"{path}: not an .npz archive; expected {expected}")
+        raise InputError(f"{path}: not an .npz archive; expected {expected}")
     try:
         with np.load(path, allow_pickle=False) as data:
             yield data
-    except UserError:
+    except InputError:
         raise
     except _NPZ_ERRORS as error:
-        raise UserError(f"{path}: cannot read it ({error}); expected {expected}") from None
+        raise InputError(f"{path}: cannot read it ({error}); expected {expected}") from None
 
 
 def load_trajectory(path: Path) -> Trajectory:
-    """Inverse of :func:`save_trajectory`; a :class:`UserError` naming the file for anything
+    """Inverse of :func:`save_trajectory`; an :class:`~factors.errors.InputError` naming the file for anything
     else (not an archive, missing arrays, arrays that do not make a trajectory, none at all)."""
     expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
     with read_npz(path, expected) as data:
         missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
         if missing:
-            raise UserError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
+            raise InputError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
         states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
         trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
     if len(trajectory) == 0:
-        raise UserError(f"{path}: the trajectory is empty; expected at least one state")
+        raise InputError(f"{path}: the trajectory is empty; expected at least one state")
     return trajectory
 
 

@@ -132,8 +132,6 @@ def run(args) -> int:
             stopped = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{name} failed"
             report.write_outputs(out, dataset, estimates, {**run_info, "stopped": stopped})
             print(f"{stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
-        if isinstance(error, ValueError):
-            raise UserError(str(error)) from None
         raise
     consistency = {}
     if estimates:

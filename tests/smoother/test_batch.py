@@ -12,9 +12,9 @@ import pytest
 from datasets.robust import ROBUST_KERNEL_NAMES, robust_spec
 from datasets.simulate import simulate
 from factors import imu
+from factors.errors import SolverError
 from smoother import batch
 from smoother.batch import IndeterminantSystem, solve_batch
-from smoother.errors import UserError
 from smoother.graph import ROBUST_KERNELS, build_problem, noise_model
 
 import estimator_cases as cases
@@ -113,14 +113,14 @@ def _without_prior(problem):
 @pytest.mark.parametrize("optimizer", ["lm", "gn"])
 def test_an_indeterminant_system_names_the_keyframe(optimizer, engine):
     """No prior and no measurement: nothing fixes the start, the system is rank-deficient. The
-    error is IndeterminantSystem (a UserError the command line prints in one line), not GTSAM's
+    error is IndeterminantSystem (a SolverError the command line prints in one line), not GTSAM's
     bare RuntimeError, and it names a keyframe and its time."""
     data = simulate(profile="gentle", duration=1.0, seed=3, imu_rate=cases.IMU_RATE, pose_rate=None)
     problem = _without_prior(build_problem(data))
     assert len(problem.times) == 2
     with pytest.raises(IndeterminantSystem) as info:
         _solve(problem, optimizer, engine)
-    assert isinstance(info.value, UserError)
+    assert isinstance(info.value, SolverError)
     message = str(info.value)
     assert "keyframe 0 (t = 0.000000 s)" in message or "keyframe 1 (t = 1.000000 s)" in message, message
     assert "\n" not in message

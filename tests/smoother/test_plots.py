@@ -19,9 +19,9 @@ from datasets.atomic import atomic_write
 from datasets.simulate import simulate
 from datasets.types import Trajectory
 from factors import so3
+from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import cli, metrics, plots, report
-from smoother.errors import UserError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 ALL_FIGURES = ["trajectory", "position_error", "orientation_error", "nees", "biases", "comparison"]
@@ -146,29 +146,29 @@ def test_interpolate_is_exact_at_samples_and_geodesic_between():
 
 
 def test_missing_or_malformed_run_directory(tmp_path, run_dir):
-    with pytest.raises(UserError, match="no estimate found"):
+    with pytest.raises(InputError, match="no estimate found"):
         plots.plot_run(tmp_path)
-    with pytest.raises(UserError, match="not a directory"):
+    with pytest.raises(InputError, match="not a directory"):
         plots.plot_run(tmp_path / "nowhere")
-    with pytest.raises(UserError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
+    with pytest.raises(InputError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
         plots.load_run(run_dir, ["foo"])
 
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "ekf.npz").write_text("not an archive\n")
-    with pytest.raises(UserError, match=r"ekf\.npz: not an \.npz archive"):
+    with pytest.raises(InputError, match=r"ekf\.npz: not an \.npz archive"):
         plots.plot_run(bad)
     np.savez(bad / "ekf.npz", t=np.arange(3.0))
-    with pytest.raises(UserError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
+    with pytest.raises(InputError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
         plots.plot_run(bad)
     est = report.load_trajectory(run_dir / "ekf.npz")
     report.save_trajectory(bad / "ekf.npz", est)
     np.savez(bad / "gps.npz", t=np.arange(3.0), position=np.zeros((2, 3)))
-    with pytest.raises(UserError, match=r"gps\.npz: inconsistent shapes"):
+    with pytest.raises(InputError, match=r"gps\.npz: inconsistent shapes"):
         plots.load_run(bad)
     (bad / "gps.npz").unlink()
     (bad / "metrics.json").write_text("{ not json")
-    with pytest.raises(UserError, match=r"metrics\.json: cannot read it"):
+    with pytest.raises(InputError, match=r"metrics\.json: cannot read it"):
         plots.load_run(bad)
 
 
