@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from datasets.from_truth import SensorSpec
+from datasets.simulated_sensors import SensorSpec
 from datasets.initialise import InitialisationError, imu_from, initial_state, self_initialised
 from datasets.kinds import sensors_of
 from datasets.simulate import simulate

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datasets.from_truth import SensorSpec
+from datasets.simulated_sensors import SensorSpec
 from datasets.simulate import simulate
 from datasets.types import Sensor
 from factors import so3

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from bagfiles import Messages, write_bag
 
-from datasets.from_truth import SensorSpec
+from datasets.simulated_sensors import SensorSpec
 from datasets.gnss import Datum, geodetic_to_enu, enu_to_geodetic
 from datasets.simulate import simulate
 from datasets.tum import read_tum
