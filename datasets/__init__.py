@@ -4,7 +4,12 @@ the loaders.
 Modules: ``types`` (IMU samples, measurements, trajectories, a dataset), ``simulate`` (seeded
 trajectories with IMU and measurement streams), ``kitti`` (GTSAM's shipped KITTI IMU + GPS
 example), ``euroc`` (EuRoC/ASL folders), ``tum`` (TUM trajectory files), ``from_truth``
-(measurements drawn from a ground truth), ``errors`` (:class:`DataError`, naming file, line and
+(measurements drawn from a ground truth), ``simulated_sensors`` (sensors of any kind, mounted
+anywhere, in simulation), ``kinds`` (the registry of measurement kinds), ``rig`` (rig files),
+``recording`` (a rig's recording as a dataset), ``sources`` / ``bags`` / ``csv_sources`` (ROS
+bags, CSV and TUM streams), ``gnss`` (geodetic <-> local ENU), ``initialise`` (the initial state
+from the data), ``kalibr`` (Kalibr calibration files), ``allan`` (IMU noise from a static
+recording), ``errors`` (:class:`DataError`, naming file, line and
 field of bad input), ``atomic`` (files written whole or not at all).
 
 The names below are importable from the package itself (``from datasets import Dataset``); each
@@ -15,7 +20,13 @@ from factors.exports import lazy_exports
 
 _EXPORTS = {
     **dict.fromkeys(("Dataset", "ImuSamples", "PositionMeasurements", "OrientationMeasurements",
-                     "PoseMeasurements", "RelativePoseMeasurements", "Trajectory"), "datasets.types"),
+                     "PoseMeasurements", "RelativePoseMeasurements", "VelocityMeasurements", "Sensor",
+                     "Trajectory"), "datasets.types"),
+    **dict.fromkeys(("KINDS", "sensors_of"), "datasets.kinds"),
+    "SensorSpec": "datasets.simulated_sensors",
+    "load_rig": "datasets.rig",
+    "load_recording": "datasets.recording",
+    "self_initialised": "datasets.initialise",
     "simulate": "datasets.simulate",  # the module: datasets.simulate.simulate(profile, duration, seed)
     "load_kitti": "datasets.kitti",
     "load_euroc": "datasets.euroc",

@@ -5,7 +5,8 @@ Modules: ``so3`` (exp, log, ``Gamma``, boxplus/boxminus on rotation matrices), `
 ``axis_angle``, ``uncertainty`` (covariances of rotations in the left, right and middle charts),
 ``chart`` (the one adapter from the primer's left perturbation to GTSAM's right one), ``imu`` (the
 state, the noise and the primer's discrete IMU model), ``preintegration``, ``measurements`` (the
-residuals and factors of the aiding sensors), ``imu_factor``, ``jacobians`` (numerical Jacobians on
+residuals and factors of the IMU-centred aiding sensors and of priors), ``sensor_models`` (every
+sensor's model with its extrinsic: one compiled kernel each), ``imu_factor``, ``jacobians`` (numerical Jacobians on
 manifolds and the checker of any GTSAM factor), ``errors``.
 
 The names below are importable from the package itself (``from factors import ImuState``); each
@@ -16,7 +17,8 @@ from factors.exports import lazy_exports
 _EXPORTS = {
     **{name: f"factors.{name}" for name in (
         "so3", "quaternion", "euler", "axis_angle", "uncertainty", "chart", "imu", "preintegration",
-        "measurements", "jacobians")},
+        "measurements", "sensor_models", "jacobians")},
+    **dict.fromkeys(("sensor_factor", "odometry_factor", "SensorModel"), "factors.sensor_models"),
     **dict.fromkeys(("ImuState", "ImuNoise"), "factors.imu"),
     **dict.fromkeys(("Preintegrated", "integrate_with_covariance"), "factors.preintegration"),
     "ImuFactor": "factors.imu_factor",

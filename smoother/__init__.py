@@ -25,6 +25,7 @@ _EXPORTS = {
     **{name: f"smoother.{name}" for name in ("metrics", "crosscheck")},
     "CrosscheckOptions": "smoother.crosscheck",
     "tune_noise": "smoother.tuning",
+    **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnostics"),
     "plot_run": "smoother.plots",
 }
 __all__ = sorted(_EXPORTS)
