@@ -52,6 +52,19 @@ def _relative(t: np.ndarray, t_ns, origin_ns: int, offset: float) -> np.ndarray:
     return np.asarray(t, dtype=float) - origin_ns * 1e-9 + offset
 
 
+def _check_overlap(name: str, data, imu: ImuSamples, origin_ns: int) -> None:
+    """A sensor none of whose measurements lies in the IMU's span is an error naming both spans in
+    the data's clock (another clock, or a wrong time offset, is the usual cause)."""
+    first = getattr(data, "t_from", data.t)
+    if np.any((first >= imu.t[0]) & (data.t <= imu.t[-1])):
+        return
+    clock = origin_ns * 1e-9
+    raise ValueError(f"sensor {name!r}: none of its {len(data)} measurements ([{clock + first.min():.3f}, "
+                     f"{clock + data.t.max():.3f}] s, time offset included) lies in the IMU's span "
+                     f"[{clock + imu.t[0]:.3f}, {clock + imu.t[-1]:.3f}] s: stamps in another clock, or a wrong "
+                     "time_offset?")
+
+
 def _split_every(data, every: int):
     """``(used, held out)``: rows ``0, every, 2 every, ...`` and the rest (None if none)."""
     if every == 1:
@@ -97,6 +110,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
             message = str(error)
             raise type(error)(message if message.startswith("sensor ") else
                               f"sensor {config.name!r} ({config.kind}): {message}") from None
+        _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout))
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
