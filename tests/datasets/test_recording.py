@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rigfiles import imu_table, toml_matrix
 
 from datasets.kinds import sensors_of
 from datasets.recording import load_recording
@@ -18,9 +19,6 @@ T0_NS = 1_600_000_000_000_000_000
 CAMERA = np.eye(4)
 CAMERA[:3, :3], CAMERA[:3, 3] = so3.exp([0.2, -1.0, 0.3]), [0.1, 0.0, -0.2]
 
-
-def _matrix(T) -> str:
-    return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in T) + "]"
 
 
 @pytest.fixture(scope="module")
@@ -46,21 +44,13 @@ def _write(folder, data, camera_sigma=True, camera_offset_s=0.0, extra="", rig_o
                      f"{qq[0]:.17g},{qq[1]:.17g},{qq[2]:.17g},{qq[3]:.17g}{sig}")
     (folder / "camera.csv").write_text("\n".join(lines) + "\n")
     write_tum(folder / "vo.tum", T0_NS * 1e-9 + cam.t, cam.position, cam.C)
-    noise = data.noise
     rig = folder / "rig.toml"
-    rig.write_text(f"""
-[imu]
-source = "csv:imu.csv"
-accel_noise_density = {noise.acc}
-gyro_noise_density = {noise.gyro}
-accel_random_walk = {noise.acc_bias}
-gyro_random_walk = {noise.gyro_bias}
-
+    rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""
 [[sensor]]
 name = "camera"
 kind = "pose"
 source = "csv:camera.csv"
-T_BS = {_matrix(CAMERA)}
+T_BS = {toml_matrix(CAMERA)}
 time_offset = {camera_offset_s if rig_offset_s is None else rig_offset_s}
 every = 2
 {extra}

@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 from bagfiles import Messages, write_bag
+from rigfiles import imu_table, toml_matrix
 
 from datasets.simulated_sensors import SensorSpec
 from datasets.gnss import Datum, geodetic_to_enu, enu_to_geodetic
@@ -26,9 +27,6 @@ WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4] 
 ANTENNA = np.eye(4)
 ANTENNA[:3, 3] = [0.3, 0.0, 0.95]
 
-
-def _matrix(T) -> str:
-    return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in T) + "]"
 
 
 @pytest.fixture(scope="module")
@@ -51,15 +49,7 @@ def recording(tmp_path_factory):
     }
     bag = write_bag(folder / "run.mcap", "mcap", topics)
     rig = folder / "rig.toml"
-    rig.write_text(f"""
-[imu]
-source = "bag:{bag.name}"
-topic = "/imu/data"
-accel_noise_density = {data.noise.acc}
-gyro_noise_density = {data.noise.gyro}
-accel_random_walk = {data.noise.acc_bias}
-gyro_random_walk = {data.noise.gyro_bias}
-
+    rig.write_text(imu_table(f"bag:{bag.name}", data.noise, "/imu/data") + f"""
 [datum]
 latitude = {DATUM.latitude}
 longitude = {DATUM.longitude}
@@ -70,7 +60,7 @@ name = "gnss"
 kind = "gnss"
 source = "bag:{bag.name}"
 topic = "/fix"
-T_BS = {_matrix(ANTENNA)}
+T_BS = {toml_matrix(ANTENNA)}
 every = 4
 
 [[sensor]]
@@ -78,7 +68,7 @@ name = "wheel"
 kind = "velocity"
 source = "bag:{bag.name}"
 topic = "/wheel/odom"
-T_BS = {_matrix(WHEEL)}
+T_BS = {toml_matrix(WHEEL)}
 """)
     out = folder / "out"
     assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress", "--no-covariance"]) == 0
