@@ -37,6 +37,13 @@ def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
     return out
 
 
+def consistency_lines(consistency: dict[str, dict]) -> list[str]:
+    """One line per sensor: its NIS per dof against its band, and whether it fits."""
+    return [f"sensor {name}: NIS {c['nis_per_dof']:.3g} per dof over {c['updates']} updates, expected "
+            f"{c['band'][0]:.2g}-{c['band'][1]:.2g}: {'ok' if c['ok'] else 'OUT OF BAND'}"
+            for name, c in consistency.items()]
+
+
 def consistency_warnings(consistency: dict[str, dict]) -> list[str]:
     """One line per sensor outside its band, naming what to check."""
     lines = []

@@ -84,7 +84,7 @@ def gate_probability(probability: float | None) -> float | None:
 def run(args) -> int:
     from smoother import report, sources
     from smoother.commands import at_least, duration, fraction, output_directory, positive
-    from smoother.diagnostics import consistency_warnings
+    from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators, sensor_consistency
 
     at_least("--seed", args.seed, 0)
@@ -146,6 +146,8 @@ def run(args) -> int:
         for path in plots.plot_run(out):
             print(f"wrote {path}", file=sys.stderr)
     print(format_table(metrics))
+    for line in consistency_lines(consistency):
+        print(line, file=sys.stderr)
     for line in consistency_warnings(consistency):
         print(f"warning: {line}", file=sys.stderr)
     print(f"outputs in {args.out}/", file=sys.stderr)
