@@ -10,9 +10,12 @@ Two engines over the same residuals:
   independent reference the tests compare against). Covariances from GTSAM's marginals are
   converted with :func:`factors.chart.state_covariance_to_primer`.
 
-Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. An indeterminant
-system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe and its time,
-with a hint, instead of a bare GTSAM exception.
+Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. The vectorised
+engine's covariances come from the square-root information (QR), so a problem with a unique
+optimum has them however long it dead-reckons (:func:`smoother.solver.marginal_covariances`).
+An indeterminant system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe,
+its time and (vectorised covariances) the error-state components left free, with a hint, instead
+of a bare GTSAM exception.
 """
 from __future__ import annotations
 
@@ -53,11 +56,12 @@ class SmootherResult:
     runtime_s: float
 
 
-def _explained(keyframe: int | None, problem: Problem) -> IndeterminantSystem:
+def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
     where = ""
     if keyframe is not None and 0 <= keyframe < len(problem.times):
         where = f" near keyframe {keyframe} (t = {problem.times[keyframe]:.6f} s)"
-    return IndeterminantSystem(f"indeterminant system{where}: {_HINT}", keyframe)
+    what = f"it is free along {free}; " if free else ""
+    return IndeterminantSystem(f"indeterminant system{where}: {what}{_HINT}", keyframe, free)
 
 
 def _keyframe_of_gtsam_key(error: Exception, problem: Problem) -> int | None:
@@ -114,7 +118,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
         else:
             states, cov, cost, iterations = _gtsam_engine(problem, optimizer, max_iterations, covariances)
     except IndeterminantSystem as error:
-        raise _explained(error.keyframe, problem) from None
+        raise _explained(error.keyframe, problem, error.free) from None
     except RuntimeError as error:
         if is_indeterminant(error):
             raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None

@@ -11,7 +11,7 @@ import pytest
 
 from datasets.simulate import simulate
 from factors import imu
-from smoother import batch
+from smoother import batch, solver
 from smoother.batch import IndeterminantSystem, solve_batch
 from smoother.errors import UserError
 from smoother.graph import ROBUST_KERNELS, build_problem, noise_model, robust_spec
@@ -130,6 +130,54 @@ def test_without_the_prior_but_with_measurements_the_system_is_determined():
     biases), so the indeterminant case above really is about the missing constraints."""
     result = solve_batch(_without_prior(build_problem(small())))
     assert np.all(np.isfinite(result.trajectory.cov))
+
+
+@functools.lru_cache(maxsize=None)
+def dead_reckoned():
+    """IMU only for 6.6 s after the prior, keyframes at 20 Hz: a unique optimum whose rows are
+    badly conditioned (their condition number beyond 1e7: position is only dead-reckoned)."""
+    problem = build_problem(simulate(profile="gentle", duration=6.6, seed=0, pose_rate=None), keyframe_rate=20)
+    return problem, solve_batch(problem)
+
+
+def test_covariances_of_a_badly_conditioned_chain_equal_a_dense_reference():
+    """Cholesky of the information matrix (GTSAM's ``Marginals``) calls this chain indeterminant;
+    the batch's covariances equal those of the dense SVD of the same whitened rows to 1e-9 of the
+    largest entry (and to 1e-9 of each pair's standard deviations)."""
+    problem, result = dead_reckoned()
+    graph, _ = solver.linearize(problem.blocks, result.trajectory.states)
+    n = len(result.trajectory)
+    with pytest.raises(RuntimeError, match="ndetermina"):
+        gtsam.Marginals(graph, solver._to_vector_values(np.zeros((n, 15))))
+    A = graph.jacobian(gtsam.Ordering(list(range(n))))[0]
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    assert s[0] / s[-1] > 1e7
+    dense = (Vt.T / s**2) @ Vt
+    reference = np.stack([dense[15 * k:15 * k + 15, 15 * k:15 * k + 15] for k in range(n)])
+    cov = result.trajectory.cov
+    assert np.abs(cov - reference).max() < 1e-9 * np.abs(reference).max()
+    sd = np.sqrt(np.einsum("kii->ki", reference))
+    assert (np.abs(cov - reference) / (sd[:, :, None] * sd[:, None, :])).max() < 1e-9
+
+
+def test_an_unconstrained_yaw_is_named_in_the_error():
+    """The prior without its yaw (attitude about the world z axis) and no measurement: the whole
+    trajectory may turn about z through the origin. The error names that direction: attitude
+    about z and the positions it moves (x, y), nothing else."""
+    problem, _ = dead_reckoned()
+    blocks = []
+    for block in problem.blocks:
+        if block.name == "prior":
+            whiten = block.whiten.copy()
+            assert np.count_nonzero(whiten[0] - np.diag(np.diag(whiten[0]))) == 0  # diagonal prior
+            whiten[0, 8, 8] = 0.0  # error-state component 8: attitude about z (world)
+            block = replace(block, whiten=whiten)
+        blocks.append(block)
+    with pytest.raises(IndeterminantSystem) as info:
+        solve_batch(replace(problem, blocks=blocks))
+    message = str(info.value)
+    assert "free along position (world) x, y, attitude (world) about z;" in message, message
+    assert "\n" not in message
 
 
 # ------------------------------------------------------------------------------------------
