@@ -151,13 +151,22 @@ def _keyframe_of(error: RuntimeError) -> int | None:
 
 
 def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
+    """The least-squares solution of ``graph``: sparse Cholesky (GTSAM's default, the fastest), and
+    QR where Cholesky calls the system indeterminant -- a dead-reckoned stretch squares into an
+    information matrix it cannot factor, while the rows themselves determine the step. Without
+    that fallback Levenberg-Marquardt could only add damping there and crawled: 1867 iterations to
+    converge on 60 s of tumbling with a fix every 10 s and 10 Hz keyframes, 7 with it."""
     try:
         solution = graph.optimize()
     except RuntimeError as error:
-        if is_indeterminant(error):
-            k = _keyframe_of(error)
-            raise IndeterminantSystem(str(error), k) from None
-        raise
+        if not is_indeterminant(error):
+            raise
+        try:
+            solution = graph.optimize(gtsam.EliminateQR)
+        except RuntimeError as again:
+            if is_indeterminant(again):
+                raise IndeterminantSystem(str(again), _keyframe_of(again)) from None
+            raise
     return _to_array(solution, n)
 
 

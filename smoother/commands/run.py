@@ -22,6 +22,9 @@ def register(sub) -> None:
     p.add_argument("--fixed-lag-kind", default="incremental", choices=["incremental", "batch"],
                    help="GTSAM's IncrementalFixedLagSmoother (iSAM2) or BatchFixedLagSmoother")
     p.add_argument("--optimizer", default="lm", choices=["lm", "gn", "dogleg"], help="batch optimiser (default lm)")
+    p.add_argument("--max-iterations", type=int, default=100, metavar="N",
+                   help="iterations of the batch optimiser at most (default 100); metrics.json's batch 'converged' "
+                        "says whether it converged before them")
     p.add_argument("--keyframe-rate", type=float, default=None,
                    help="add keyframes on a fixed grid [Hz] besides the measurement times")
     p.add_argument("--robust", action="append", default=[], metavar="[TYPE=]KERNEL[:T]",
@@ -84,6 +87,7 @@ def run(args) -> int:
     duration(args.duration)
     fraction("--outliers", args.outliers)
     at_least("--gps-every", args.gps_every, 1)
+    at_least("--max-iterations", args.max_iterations, 1)
     for option, values in (("--pose-from-truth", args.pose_from_truth), ("--gps-from-truth", args.gps_from_truth)):
         for value in values or ():
             positive(option, value)
@@ -98,6 +102,7 @@ def run(args) -> int:
     names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
+        max_iterations=args.max_iterations,
         keyframe_rate=args.keyframe_rate, robust=parse_robust(args.robust),
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
     )

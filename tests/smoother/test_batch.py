@@ -180,6 +180,28 @@ def test_an_unconstrained_yaw_is_named_in_the_error():
     assert "\n" not in message
 
 
+@functools.lru_cache(maxsize=None)
+def sparse_fixes():
+    """60 s tumbling, a position fix every 10 s, keyframes at 10 Hz: long dead-reckoned stretches
+    whose lightly damped systems Cholesky calls indeterminant."""
+    data = simulate(profile="tumbling", duration=60.0, seed=0, pose_rate=None, position_rate=0.1)
+    return build_problem(data, keyframe_rate=10.0)
+
+
+def test_lm_converges_on_long_dead_reckoned_stretches_within_the_default_cap():
+    """Levenberg-Marquardt solves its steps with QR where Cholesky refuses them: it converges in
+    a few iterations (it used to be held at high damping and stop at the cap, 0.6 m off)."""
+    result = solve_batch(sparse_fixes(), covariances=False)
+    assert result.converged and result.iterations < 20, result.iterations
+
+
+def test_a_batch_stopped_at_its_cap_warns_and_says_it_did_not_converge():
+    with pytest.warns(UserWarning, match=r"batch \(lm\): stopped after 2 iterations without converging \(the last "
+                                         r"iteration still lowered the cost by [0-9.e+-]+ of itself\)"):
+        result = solve_batch(sparse_fixes(), max_iterations=2, covariances=False)
+    assert not result.converged and result.iterations == 2
+
+
 # ------------------------------------------------------------------------------------------
 # robust kernels
 

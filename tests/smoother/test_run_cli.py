@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -98,6 +99,7 @@ def _one_line_error(capsys) -> str:
     # a value only the data can refuse: named by its option, not by the library's parameter
     (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
+    (["--max-iterations", "0"], "--max-iterations: expected an integer >= 1, got 0"),
     (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
     (["--duration", "0.001"], "--duration: 0.001 s is shorter than one IMU step"),
     (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
@@ -276,3 +278,26 @@ def test_tune_noise_reports_and_records_the_tuning(tmp_path, capsys):
     assert set(tuning["scale"]) == {"acc", "gyro", "acc_bias", "gyro_bias"}
     assert tuning["log_likelihood"] >= tuning["initial_log_likelihood"]
     assert tuning["evaluations"] >= 9  # the start and both directions of each density at least
+
+
+def test_a_batch_stopped_by_max_iterations_says_so_in_a_warning_and_metrics(tmp_path, capsys):
+    """--max-iterations 1 on a problem LM needs more for: a warning naming the iterations and the
+    last relative decrease, and ``converged`` false in metrics.json (true with the default)."""
+    documents = {}
+    for cap in ("1", "100"):
+        out = tmp_path / cap
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            code = main(["run", "--duration", "4", "--estimator", "batch", "--out", str(out), "--no-progress",
+                         "--no-covariance", "--max-iterations", cap])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        documents[cap] = json.loads((out / "metrics.json").read_text())["batch"]
+        warned = [str(w.message) for w in caught if "without converging" in str(w.message)]
+        if cap == "1":
+            assert len(warned) == 1 and "stopped after 1 iterations" in warned[0], warned
+            assert "--max-iterations" in warned[0] and "lowered the cost by" in warned[0]
+        else:
+            assert not warned, warned
+    assert documents["1"]["converged"] is False and documents["1"]["iterations"] == 1
+    assert documents["100"]["converged"] is True and documents["100"]["iterations"] < 100
