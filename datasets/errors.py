@@ -32,9 +32,11 @@ def _shown(found) -> str:
 
 class DataError(ValueError):
     """Malformed input data. ``path``, ``line`` (1-based, or None for the file as a whole),
-    ``field`` (or None), ``found`` and ``expected`` are kept as attributes."""
+    ``field`` (or None), ``found`` and ``expected`` are kept as attributes. ``found`` is shortened
+    to :data:`_MAX_SHOWN` characters (it may be a whole fuzzed line) unless ``whole``: a text the
+    loader composed from parsed values, which must stay readable to the last digit."""
 
-    def __init__(self, path, line: int | None, field: str | None, found, expected: str):
+    def __init__(self, path, line: int | None, field: str | None, found, expected: str, whole: bool = False):
         self.path = str(path)
         self.line = line
         self.field = field
@@ -45,7 +47,7 @@ class DataError(ValueError):
             where += f", line {line}"
         if field is not None:
             where += f", field '{field}'"
-        super().__init__(f"{where}: found {_shown(found)}; expected {expected}")
+        super().__init__(f"{where}: found {found if whole else _shown(found)}; expected {expected}")
 
 
 #: What ends a line in a text file: LF, CR LF or a lone CR. Not the other characters that
@@ -147,7 +149,7 @@ def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
         show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))  # noqa: E731
         raise DataError(
             path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} ({show(t[i - 1])})",
-            "strictly increasing time stamps",
+            "strictly increasing time stamps", whole=True,
         )
 
 

@@ -145,3 +145,14 @@ def test_fuzz_only_data_errors_naming_the_file(lines, where):
         else:
             assert np.all(np.diff(traj.t) > 0)
             assert np.all(np.isfinite(traj.position))
+
+
+def test_a_duplicate_stamp_is_shown_whole(tmp_path):
+    """EuRoC-sized stamps with all their digits: both are in the message, not cut at 60 characters."""
+    path = tmp_path / "dup.txt"
+    path.write_text("1403715572.112143039 0 0 0 0 0 0 1\n1403715572.162142992 1 0 0 0 0 0 1\n"
+                    "1403715572.162142992 2 0 0 0 0 0 1\n")
+    with pytest.raises(DataError) as info:
+        read_tum(path)
+    message = str(info.value)
+    assert "found 1403715572.162143, a duplicate of line 2 (1403715572.162143); expected strictly" in message
