@@ -43,6 +43,9 @@ def register(sub) -> None:
     p.add_argument("--tune-noise", action="store_true",
                    help="first scale the IMU noise densities to maximise the likelihood of the measurements used "
                         "(EKF prediction errors; no truth, no held-out data), then run with them")
+    p.add_argument("--max-gyro-rate", type=float, default=None, metavar="RAD_S",
+                   help="accept gyro data up to this 99th-percentile rate [rad/s] (default 35, 2000 deg/s: beyond "
+                        "it the data are refused as probably in deg/s)")
     p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
     p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
     p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
@@ -79,6 +82,17 @@ def gate_probability(probability: float | None) -> float | None:
 
 
 def run(args) -> int:
+    from datasets.types import MAX_PLAUSIBLE_RATE, max_gyro_rate
+    from smoother.commands import positive
+
+    if args.max_gyro_rate is not None:
+        positive("--max-gyro-rate", args.max_gyro_rate, "a rate in rad/s")
+    # the whole run: datasets are re-made (measurements from truth, tuned noise) after loading
+    with max_gyro_rate(MAX_PLAUSIBLE_RATE if args.max_gyro_rate is None else args.max_gyro_rate):
+        return _run(args)
+
+
+def _run(args) -> int:
     from smoother import report, sources
     from smoother.commands import at_least, duration, fraction, output_directory, positive
     from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators

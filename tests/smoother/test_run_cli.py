@@ -100,6 +100,7 @@ def _one_line_error(capsys) -> str:
     (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
     (["--max-iterations", "0"], "--max-iterations: expected an integer >= 1, got 0"),
+    (["--max-gyro-rate", "0"], "--max-gyro-rate: expected a rate in rad/s > 0 (finite), got 0.0"),
     (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
     (["--duration", "0.001"], "--duration: 0.001 s is shorter than one IMU step"),
     (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
