@@ -28,7 +28,7 @@ def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
         assert (out / f"{name}.tum").exists()
         assert metrics[name]["compared_states"] > 10
         assert metrics[name]["ate_rmse_m"] is not None and metrics[name]["ate_rmse_m"] >= 0
-        assert metrics[name]["gps_rmse_m"] is not None
+        assert metrics[name]["gps_fit_residual_m"] is not None
 
 
 def test_gyro_data_in_deg_per_s_stop_the_run_naming_the_cause(tmp_path, capsys):
