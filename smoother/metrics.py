@@ -322,7 +322,7 @@ class Evaluation:
 
 
 def _span(t: np.ndarray) -> str:
-    return f"[{t[0]!r}, {t[-1]!r}]" if t.size else "[]"
+    return f"[{float(t[0])!r}, {float(t[-1])!r}]" if t.size else "[]"
 
 
 def _no_association(t_ref: np.ndarray, t_est: np.ndarray, max_dt: float, t_offset: float) -> str:
