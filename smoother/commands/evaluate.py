@@ -200,14 +200,16 @@ def _read(path, fmt: str = "auto", attitudes: bool = False) -> _Poses:
     if fmt == "kitti":
         r, C, _ = read_pose_file(path)
         return _Poses(None, r, C, fmt)
-    t, r, C, lines = (read_pose_csv if fmt == "euroc" else read_tum_poses)(path, duplicates=True, **(
-        {"attitudes": attitudes} if fmt == "tum" else {}))
+    if fmt == "euroc":
+        t, r, C, lines = read_pose_csv(path, duplicates=True)
+    else:
+        t, r, C, lines = read_tum_poses(path, duplicates=True, attitudes=attitudes)
+        fmt = "attitudes" if np.isnan(r).all() else "tum"
     repeated = duplicate_stamps(path, t, lines)
     if repeated:
         warnings.warn(f"{repeated}: kept, as evo keeps them (association pairs a stamp with the nearest, among equal "
                       f"ones the last before it or the first after it)", stacklevel=2)
-    return _Poses(t, r, C, "tum" if fmt == "tum" and not np.isnan(r).all() else
-                  ("attitudes" if fmt == "tum" else fmt))
+    return _Poses(t, r, C, fmt)
 
 
 def _nees(ref, est, result, align: str) -> float | None:
