@@ -3,19 +3,20 @@
 Two engines over the same residuals:
 
 * ``vectorized`` (default): :mod:`smoother.solver` -- every factor type linearised at once with
-  NumPy, GTSAM's sparse elimination for the steps and ``Marginals`` for the covariances, which
-  come out directly in the primer's convention. Linear in the length of the run.
+  NumPy, GTSAM's sparse elimination for the steps and its QR elimination for the covariances
+  (:func:`smoother.solver.marginal_covariances`), which come out directly in the primer's
+  convention. Linear in the length of the run.
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
   independent reference the tests compare against). Covariances from GTSAM's marginals are
   converted with :func:`factors.chart.state_covariance_to_primer`.
 
 Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. The vectorised
-engine's covariances come from the square-root information (QR), so a problem with a unique
-optimum has them however long it dead-reckons (:func:`smoother.solver.marginal_covariances`).
-An indeterminant system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe,
-its time and (vectorised covariances) the error-state components left free, with a hint, instead
-of a bare GTSAM exception.
+engine's covariances come from the square-root information, so a problem with a unique optimum
+has them however long it dead-reckons. An indeterminant system raises
+:class:`smoother.errors.IndeterminantSystem` naming the keyframe, its time and (vectorised
+covariances) the error-state components left free, with a hint, instead of a bare GTSAM
+exception.
 """
 from __future__ import annotations
 

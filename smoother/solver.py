@@ -5,7 +5,7 @@ hand each call a copy of the whole ``Values`` -- a batch solve of a long run bec
 and spends its time in Python call overhead. Here every factor type is evaluated for all its
 instances at once with NumPy (the SAME residual functions the ``CustomFactor`` wrappers call),
 and GTSAM does what it does best: the sparse linear algebra (``GaussianFactorGraph``
-elimination, ``Marginals``).
+elimination: Cholesky for the steps, QR where Cholesky refuses them and for the covariances).
 
 Variables: one 15-dim linear variable per keyframe (key = keyframe index), the primer's error
 state ``(dr, dv, dphi, db_f, db_w)``; a step is applied with :func:`factors.imu.boxplus` (LEFT
