@@ -161,11 +161,13 @@ def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
     except RuntimeError as error:
         if not is_indeterminant(error):
             raise
+        ordering = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
         try:
-            solution = graph.optimize(gtsam.EliminateQR)
+            solution = graph.optimize(ordering, gtsam.EliminateQR)
         except RuntimeError as again:
             if is_indeterminant(again):
-                raise IndeterminantSystem(str(again), _keyframe_of(again)) from None
+                key = _keyframe_of(again)
+                raise IndeterminantSystem(str(again), key, _free_after(graph, ordering, key)) from None
             raise
     return _to_array(solution, n)
 
