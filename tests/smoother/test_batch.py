@@ -123,6 +123,9 @@ def test_an_indeterminant_system_names_the_keyframe(optimizer, engine):
     message = str(info.value)
     assert "keyframe 0 (t = 0.000000 s)" in message or "keyframe 1 (t = 1.000000 s)" in message, message
     assert "\n" not in message
+    if engine in (None, "vectorized"):  # the vectorised engine also names what is free there
+        assert ("it is free along whole state" in message
+                or "it is free along position (world) x, y, z, velocity (body) x, y, z" in message), message
 
 
 def test_without_the_prior_but_with_measurements_the_system_is_determined():
