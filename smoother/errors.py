@@ -10,11 +10,13 @@ class UserError(InputError):
 
 class IndeterminantSystem(SolverError):
     """The linearised system is rank-deficient: some variable is not constrained by the factors.
-    ``keyframe`` is the keyframe GTSAM was eliminating when it noticed (or None)."""
+    ``keyframe`` is the keyframe GTSAM was eliminating when it noticed (or None); ``free`` names
+    the error-state components left free there, where known (or None)."""
 
-    def __init__(self, message: str, keyframe: int | None = None):
+    def __init__(self, message: str, keyframe: int | None = None, free: str | None = None):
         super().__init__(message)
         self.keyframe = keyframe
+        self.free = free
 
 
 def is_indeterminant(error: BaseException) -> bool:

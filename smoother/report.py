@@ -4,7 +4,10 @@ Against a ground truth (simulator, EuRoC): ``ate_rmse_m`` (position RMSE, no ali
 estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est``) and
 ``nees_mean``: the time average of the 6-dim pose NEES (position and primer-boxminus attitude,
 :func:`smoother.metrics.nees`) divided by 6, so 1 is consistent. Against GPS (KITTI):
-``gps_rmse_m`` over every fix and ``gps_heldout_rmse_m`` over the fixes held out of estimation,
+``gps_heldout_rmse_m`` over the fixes held out of estimation -- an accuracy -- and
+``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
+fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
+makes small without being accurate; estimators are compared by held-out fixes only. Both with
 the estimate interpolated linearly to the fix times.
 
 A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
@@ -79,8 +82,7 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
     """RMS distance between measured positions and the estimate interpolated to their times
     (:func:`position_errors`; fixes outside the estimate's time span are not counted; NaN when
     none is left)."""
-    _, distance = position_errors(positions, estimate)
-    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+    return _rms_distance([] if positions is None else [positions], estimate)
 
 
 def score(dataset: Dataset, estimate: Trajectory) -> dict:
@@ -88,29 +90,24 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
-    if dataset.position is not None or dataset.heldout_positions is not None:
-        parts = [p for p in (dataset.position, dataset.heldout_positions) if p is not None]
-        out["gps_rmse_m"] = position_rmse(_merge(parts), estimate)
-        out["gps_heldout_rmse_m"] = position_rmse(dataset.heldout_positions, estimate)
-    heldout = [s.heldout for s in dataset.sensors if s.kind in POSITION_KINDS and s.heldout is not None]
-    if heldout:  # a rig's position and GNSS sensors, each with its lever arm
-        distance = np.concatenate([position_errors(h, estimate)[1] for h in heldout]
-                                  + [position_errors(dataset.heldout_positions, estimate)[1]])
-        out["gps_heldout_rmse_m"] = float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+    positions = [s for s in dataset.sensors if s.kind in POSITION_KINDS]  # a rig's, each with its lever arm
+    used = [p for p in [dataset.position] if p is not None] + [s.data for s in positions]
+    heldout = [p for p in [dataset.heldout_positions] if p is not None] + [s.heldout for s in positions
+                                                                          if s.heldout is not None]
+    if used or heldout:
+        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
+        out["gps_fit_residual_m"] = _rms_distance(used, estimate)
     return out
+
+
+def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory) -> float:
+    """RMS of :func:`position_errors` over every fix of ``parts`` (NaN when none counts)."""
+    distance = np.concatenate([np.empty(0)] + [position_errors(p, estimate)[1] for p in parts])
+    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
 
 #: The kinds whose held-out measurements are scored as positions (``gps_heldout_rmse_m``).
 POSITION_KINDS = ("position", "gnss")
-
-
-def _merge(parts: list[PositionMeasurements]) -> PositionMeasurements:
-    t = np.concatenate([p.t for p in parts])
-    order = np.argsort(t, kind="stable")
-    keep = np.concatenate([[True], np.diff(t[order]) > 0])
-    idx = order[keep]
-    return PositionMeasurements(t[idx], np.concatenate([p.position for p in parts])[idx],
-                                np.concatenate([p.cov for p in parts])[idx])
 
 
 def save_trajectory(path: Path, trajectory: Trajectory) -> None:

@@ -113,6 +113,12 @@ def test_gps_reference(run_dir, tmp_path):
     run = plots.load_run(directory, ["ekf"])
     e = plots.errors_against_gps(run.gps, run.estimates["ekf"])
     assert e.dof == 3 and np.array_equal(e.heldout, heldout)
+    # comparison.png's bars: the held-out RMSE, and the residual to the used fixes labelled as such
+    bars = {key: (label, values) for key, label, values in plots._bar_values(run, "gps", {"ekf": e})}
+    assert bars["gps_heldout_rmse_m"][0] == "RMSE to held-out fixes [m]\n(accuracy)"
+    assert bars["gps_fit_residual_m"][0] == "residual to used fixes [m]\n(a fit, not accuracy)"
+    for key, mask in (("gps_heldout_rmse_m", heldout), ("gps_fit_residual_m", ~heldout)):
+        assert bars[key][1]["ekf"] == pytest.approx(np.sqrt(np.mean(np.sum(e.dr[mask] ** 2, axis=1))), rel=1e-12)
     # NEES only where the fix was held out (a used fix is not independent of the estimate)
     assert np.all(np.isfinite(e.nees[heldout])) and np.all(np.isnan(e.nees[~heldout]))
 

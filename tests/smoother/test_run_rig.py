@@ -14,10 +14,10 @@ from bagfiles import Messages, write_bag
 from rigfiles import imu_table, toml_matrix
 
 from datasets.simulated_sensors import SensorSpec
-from datasets.gnss import Datum, geodetic_to_enu, enu_to_geodetic
+from datasets.gnss import Datum, enu_to_geodetic
 from datasets.simulate import simulate
 from datasets.tum import read_tum
-from factors import quaternion, so3
+from factors import so3
 from smoother.cli import main
 
 T0_NS = 1_700_000_000_000_000_000
