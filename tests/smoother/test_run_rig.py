@@ -71,7 +71,7 @@ topic = "/wheel/odom"
 T_BS = {toml_matrix(WHEEL)}
 """)
     out = folder / "out"
-    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress", "--no-covariance"]) == 0
+    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress"]) == 0
     return data, out
 
 
