@@ -9,6 +9,12 @@ residuals and factors of the IMU-centred aiding sensors and of priors), ``sensor
 sensor's model with its extrinsic: one compiled kernel each), ``imu_factor``, ``jacobians`` (numerical Jacobians on
 manifolds and the checker of any GTSAM factor), ``errors``.
 
+The modules form layers, each importing only from its own and those below it (tested): support
+(``compiled``, ``scan``, ``errors``) -> rotation calculus (``quaternion``, ``so3``, ``axis_angle``,
+``euler``, ``derivatives``, ``uncertainty``, ``chart``) -> the IMU model (``imu``,
+``preintegration``) -> GTSAM factors (``custom``, ``keys``, ``measurements``, ``sensor_models``,
+``imu_factor``, ``jacobians``, ``selfcheck``).
+
 The names below are importable from the package itself (``from factors import ImuState``); each
 is loaded on first use. This package imports neither ``datasets`` nor ``smoother``.
 """

@@ -33,3 +33,22 @@ def test_the_packages_import_from_modules_not_from_the_public_exports():
     wrong = [f"{name} imports {other}" for name, imported in sorted(module_imports(ROOT, PACKAGES).items())
              for other in sorted(imported) if other in PACKAGES]
     assert wrong == []
+
+
+#: The layers inside ``factors``, lowest first: a module imports from its own layer or below.
+FACTOR_LAYERS = (
+    ("support", {"compiled", "scan", "imports", "exports", "errors"}),
+    ("rotation calculus", {"quaternion", "so3", "axis_angle", "euler", "derivatives", "uncertainty", "chart"}),
+    ("IMU model", {"imu", "preintegration"}),
+    ("GTSAM factors", {"custom", "keys", "measurements", "sensor_models", "imu_factor", "jacobians", "selfcheck"}),
+)
+
+
+def test_factors_is_layered_rotation_calculus_then_imu_model_then_gtsam_factors():
+    layer_of = {f"factors.{module}": rank for rank, (_, modules) in enumerate(FACTOR_LAYERS) for module in modules}
+    imports = module_imports(ROOT, ("factors",))
+    assert set(imports) - {"factors"} == set(layer_of), "every module of factors/ belongs to one layer"
+    upward = [f"{name} ({FACTOR_LAYERS[layer_of[name]][0]}) imports {other} ({FACTOR_LAYERS[layer_of[other]][0]})"
+              for name, imported in sorted(imports.items()) if name in layer_of
+              for other in sorted(imported) if other in layer_of and layer_of[other] > layer_of[name]]
+    assert upward == []
