@@ -61,13 +61,14 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     }
 
 
-def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
-    """``(t, distance)``: the times of the measured positions inside the estimate's time span and
-    the distance from each to the estimate interpolated linearly to its time (empty arrays when
-    there are none). With a lever arm (``positions.T_BS``) the estimate's antenna, ``r + C p_BS``,
-    with ``C`` of the estimate's sample nearest in time (the fixes' times are keyframes)."""
+def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, estimate - measured)``: the times of the measured positions inside the estimate's time
+    span and, for each, the estimate interpolated linearly to its time minus the measured position
+    (world axes; empty arrays when there are none). With a lever arm (``positions.T_BS``) the
+    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time (the
+    fixes' times are keyframes)."""
     if positions is None or len(positions) == 0:
-        return np.empty(0), np.empty(0)
+        return np.empty(0), np.empty((0, 3))
     inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
     t = positions.t[inside]
     est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
@@ -75,7 +76,13 @@ def position_errors(positions: PositionMeasurements | None, estimate: Trajectory
         k = np.clip(np.searchsorted(estimate.t, t), 1, len(estimate.t) - 1)
         k -= (t - estimate.t[k - 1]) < (estimate.t[k] - t)
         est = est + estimate.C[k] @ positions.T_BS[:3, 3]
-    return t, np.linalg.norm(est - positions.position[inside], axis=1)
+    return t, est - positions.position[inside]
+
+
+def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, distance)`` of :func:`position_residuals`."""
+    t, residual = position_residuals(positions, estimate)
+    return t, np.linalg.norm(residual, axis=1)
 
 
 def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
@@ -96,13 +103,17 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
                                                                           if s.heldout is not None]
     if used or heldout:
         out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
+        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, slice(0, 2))
+        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, slice(2, 3))
         out["gps_fit_residual_m"] = _rms_distance(used, estimate)
     return out
 
 
-def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory) -> float:
-    """RMS of :func:`position_errors` over every fix of ``parts`` (NaN when none counts)."""
-    distance = np.concatenate([np.empty(0)] + [position_errors(p, estimate)[1] for p in parts])
+def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
+    """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
+    ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
+    residual = np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts])
+    distance = np.linalg.norm(residual[:, axes], axis=1)
     return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
 
@@ -188,7 +199,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
         datum = getattr(dataset, "datum", None)
         if datum is not None:
-            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name)
+            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     # A directory reused for another dataset must not keep a previous run's reference.
     for name in ("truth.npz", "gps.npz"):
@@ -203,15 +214,17 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
     return report
 
 
-def write_geojson(path: Path, trajectory: Trajectory, datum, name: str) -> None:
+def write_geojson(path: Path, trajectory: Trajectory, datum, name: str, time_origin_ns: int | None = None) -> None:
     """The trajectory in latitude, longitude and altitude (WGS-84, about the local ENU frame's
     ``datum``) as a GeoJSON ``LineString`` (longitude first, as GeoJSON orders them), atomically:
-    it opens in QGIS or any web map."""
+    it opens in QGIS or any web map. Its ``t_start`` and ``t_end`` are in the data's clock
+    (seconds; ``time_origin_ns`` as :attr:`datasets.types.Dataset.time_origin_ns`)."""
+    clock = 0.0 if time_origin_ns is None else time_origin_ns * 1e-9
     from datasets.gnss import enu_to_geodetic
 
     lat, lon, alt = enu_to_geodetic(trajectory.position, datum)
-    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(trajectory.t[0]),
-                                                 "t_end": float(trajectory.t[-1])},
+    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(clock + trajectory.t[0]),
+                                                 "t_end": float(clock + trajectory.t[-1])},
                "geometry": {"type": "LineString",
                             "coordinates": np.stack([lon, lat, alt], axis=-1).round(9).tolist()}}
     with atomic_write(path) as handle:

@@ -83,6 +83,7 @@ def test_outputs_keep_the_bag_stamps_and_give_latitude_longitude(recording):
         geo = json.loads((out / f"{name}.geojson").read_text())
         lon, lat, _ = np.array(geo["features"][0]["geometry"]["coordinates"]).T
         assert abs(lat.mean() - DATUM.latitude) < 1e-3 and abs(lon.mean() - DATUM.longitude) < 1e-3
+        assert geo["features"][0]["properties"]["t_start"] == pytest.approx(tum.t[0], abs=1e-6)  # the data's clock
 
 
 def test_sensors_are_consistent_and_held_out_fixes_beat_interpolating_the_used_ones(recording):
@@ -107,3 +108,13 @@ def test_plots_of_a_recording_show_its_fixes(recording):
     assert len(gps["t"]) == len(data.sensors[0].data) and gps["heldout"].sum() == len(data.sensors[0].data) * 3 // 4
     assert main(["plot", str(out)]) == 0
     assert (out / "trajectory.png").stat().st_size > 0
+
+
+def test_held_out_error_splits_into_horizontal_and_vertical(recording):
+    """GNSS heights wander more than their horizontal positions: the two parts are reported too
+    (their squares add up to the 3-d figure)."""
+    _, out = recording
+    m = json.loads((out / "metrics.json").read_text())["batch"]
+    total = m["gps_heldout_horizontal_rmse_m"] ** 2 + m["gps_heldout_vertical_rmse_m"] ** 2
+    assert total == pytest.approx(m["gps_heldout_rmse_m"] ** 2, rel=1e-12)
+    assert m["sensors"]["gnss"]["through"] == "ekf"
