@@ -30,6 +30,7 @@ import numpy as np
 
 from datasets.types import ImuSamples
 from factors.imu import ImuNoise
+from factors.errors import InputError
 
 #: Largest number of cluster times.
 POINTS = 100
@@ -45,7 +46,7 @@ def allan_deviation(x, dt: float, points: int = POINTS) -> tuple[np.ndarray, np.
     x = np.asarray(x, dtype=float)
     n = len(x)
     if n < 4:
-        raise ValueError(f"Allan deviation: expected at least 4 samples, got {n}")
+        raise InputError(f"Allan deviation: expected at least 4 samples, got {n}")
     theta = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)]) * dt
     m = np.unique(np.floor(np.logspace(0, np.log10(max(n // 4, 1)), points)).astype(np.int64))
     adev = np.empty((len(m),) + x.shape[1:])
@@ -103,9 +104,9 @@ def allan(imu: ImuSamples, points: int = POINTS) -> AllanResult:
     """Allan deviations of every accelerometer and gyro axis of ``imu`` and their densities."""
     dt = float(np.median(np.diff(imu.t))) if len(imu) > 1 else 0.0
     if not dt > 0:
-        raise ValueError("Allan deviation: expected at least two IMU samples")
+        raise InputError("Allan deviation: expected at least two IMU samples")
     tau, adev = allan_deviation(np.concatenate([imu.acc, imu.gyro], axis=1), dt, points)
     if len(tau) < 3:
-        raise ValueError(f"Allan deviation: {len(imu)} IMU samples give too few cluster times; record longer")
+        raise InputError(f"Allan deviation: {len(imu)} IMU samples give too few cluster times; record longer")
     fitted = np.array([densities(tau, adev[:, k]) for k in range(6)])
     return AllanResult(tau, adev[:, :3], adev[:, 3:], fitted[:3, 0], fitted[:3, 1], fitted[3:, 0], fitted[3:, 1], dt)

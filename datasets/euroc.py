@@ -73,6 +73,7 @@ from datasets.yamlfile import YamlDocument, read_yaml
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors import quaternion, so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+from factors.errors import InputError
 
 IMU_COLUMNS = ["timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z"]
 GROUNDTRUTH_COLUMNS = [
@@ -312,9 +313,9 @@ def _triple(name: str, value, size: int):
     try:
         items = tuple(float(x) for x in value)
     except TypeError:
-        raise ValueError(f"{name}: expected a tuple of {size} numbers, got {value!r}") from None
+        raise InputError(f"{name}: expected a tuple of {size} numbers, got {value!r}") from None
     if len(items) != size:
-        raise ValueError(f"{name}: expected a tuple of {size} numbers, got {value!r}")
+        raise InputError(f"{name}: expected a tuple of {size} numbers, got {value!r}")
     return items
 
 

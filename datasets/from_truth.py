@@ -25,15 +25,16 @@ import numpy as np
 
 from datasets.types import PoseMeasurements, PositionMeasurements, Trajectory
 from factors import so3
+from factors.errors import InputError
 
 
 def _positive(name: str, value) -> float:
     try:
         value = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number > 0, got {value!r}") from None
+        raise InputError(f"{name}: expected a number > 0, got {value!r}") from None
     if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+        raise InputError(f"{name}: expected a finite number > 0, got {value!r}")
     return value
 
 
@@ -47,7 +48,7 @@ def measurement_indices(t: np.ndarray, rate_hz: float) -> np.ndarray:
         return np.zeros(1, dtype=int)
     step = float(np.median(np.diff(t)))
     if rate_hz * step > 1.0 + 1e-6:
-        raise ValueError(
+        raise InputError(
             f"rate_hz: {rate_hz:g} Hz is above the rate of the ground truth ({1.0 / step:g} Hz); "
             "measurements are taken at truth samples"
         )
@@ -93,10 +94,10 @@ def measurements_from_truth(truth: Trajectory, pose_from_truth=None, gps_from_tr
         if pose_from_truth is not None:
             pose = pose_measurements_from_truth(truth, *pose_from_truth, seed=pose_seed)
     except ValueError as error:
-        raise ValueError(f"pose_from_truth: {error}") from None
+        raise InputError(f"pose_from_truth: {error}") from None
     try:
         if gps_from_truth is not None:
             position = position_measurements_from_truth(truth, *gps_from_truth, seed=gps_seed)
     except ValueError as error:
-        raise ValueError(f"gps_from_truth: {error}") from None
+        raise InputError(f"gps_from_truth: {error}") from None
     return pose, position

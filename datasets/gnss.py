@@ -19,6 +19,7 @@ import numpy as np
 import pymap3d
 
 from datasets.streams import STATUS_NO_FIX, FixStream
+from factors.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -33,9 +34,9 @@ class Datum:
         for name, limit in (("latitude", 90.0), ("longitude", 180.0), ("altitude", None)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                raise ValueError(f"Datum.{name}: expected a finite number, got {value!r}")
+                raise InputError(f"Datum.{name}: expected a finite number, got {value!r}")
             if limit is not None and abs(value) > limit:
-                raise ValueError(f"Datum.{name}: expected degrees within +-{limit:g}, got {value!r}")
+                raise InputError(f"Datum.{name}: expected degrees within +-{limit:g}, got {value!r}")
             object.__setattr__(self, name, float(value))
 
 
@@ -75,7 +76,7 @@ def fixes_to_enu(fixes: FixStream, datum: Datum | None = None) -> EnuFixes:
     position."""
     valid = fixes.status > STATUS_NO_FIX
     if not valid.any():
-        raise ValueError(f"GNSS fixes: none of the {len(fixes)} has a position (all have status < 0)")
+        raise InputError(f"GNSS fixes: none of the {len(fixes)} has a position (all have status < 0)")
     if datum is None:
         k = int(np.flatnonzero(valid)[0])
         datum = Datum(float(fixes.latitude[k]), float(fixes.longitude[k]), float(fixes.altitude[k]))

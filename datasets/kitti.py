@@ -84,6 +84,7 @@ from datasets.errors import DataError, check_increasing, data_rows, parse_rows, 
 from datasets.types import Dataset, ImuSamples, PositionMeasurements
 from factors import euler, so3
 from factors.imu import ImuNoise, ImuState
+from factors.errors import InputError
 
 IMU_FILE = "KittiEquivBiasedImu.txt"
 METADATA_FILE = "KittiEquivBiasedImu_metadata.txt"
@@ -269,12 +270,12 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
     Paths default to GTSAM's installed example files.
     """
     if isinstance(gps_every, bool) or not isinstance(gps_every, (int, np.integer)) or gps_every < 1:
-        raise ValueError(f"gps_every: expected an integer >= 1, got {gps_every!r}")
+        raise InputError(f"gps_every: expected an integer >= 1, got {gps_every!r}")
     if isinstance(first_gps, bool) or not isinstance(first_gps, (int, np.integer)) or first_gps < 0:
-        raise ValueError(f"first_gps: expected an integer >= 0, got {first_gps!r}")
+        raise InputError(f"first_gps: expected an integer >= 0, got {first_gps!r}")
     gps_sigma = float(gps_sigma)
     if not np.isfinite(gps_sigma) or gps_sigma <= 0:
-        raise ValueError(f"gps_sigma: expected a finite sigma > 0, got {gps_sigma!r}")
+        raise InputError(f"gps_sigma: expected a finite sigma > 0, got {gps_sigma!r}")
     imu_path = _default(imu_path, IMU_FILE)
     gps_path = _default(gps_path, GPS_FILE)
     metadata_path = _default(metadata_path, METADATA_FILE)

@@ -34,6 +34,7 @@ from datasets.kinds import KINDS, Clock
 from datasets.rig import Rig
 from datasets.sources import read_imu
 from datasets.types import Dataset, ImuSamples, Sensor
+from factors.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,7 +60,7 @@ def _check_overlap(name: str, data, imu: ImuSamples, origin_ns: int) -> None:
     if np.any((first >= imu.t[0]) & (data.t <= imu.t[-1])):
         return
     clock = origin_ns * 1e-9
-    raise ValueError(f"sensor {name!r}: none of its {len(data)} measurements ([{clock + first.min():.3f}, "
+    raise InputError(f"sensor {name!r}: none of its {len(data)} measurements ([{clock + first.min():.3f}, "
                      f"{clock + data.t.max():.3f}] s, time offset included) lies in the IMU's span "
                      f"[{clock + imu.t[0]:.3f}, {clock + imu.t[-1]:.3f}] s: stamps in another clock, or a wrong "
                      "time_offset?")

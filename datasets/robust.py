@@ -5,6 +5,7 @@ Parsing needs no GTSAM: the kernels themselves (and their default thresholds) ar
 ``smoother.graph.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`.
 """
 from __future__ import annotations
+from factors.errors import InputError
 
 #: The robust kernels by name.
 ROBUST_KERNEL_NAMES = ("huber", "cauchy", "tukey")
@@ -17,13 +18,13 @@ def robust_spec(text: str | None):
         return None
     name, _, value = text.partition(":")
     if name not in ROBUST_KERNEL_NAMES:
-        raise ValueError(f"robust kernel {name!r}: expected one of none, {', '.join(ROBUST_KERNEL_NAMES)}")
+        raise InputError(f"robust kernel {name!r}: expected one of none, {', '.join(ROBUST_KERNEL_NAMES)}")
     if not value:
         return name, None
     try:
         threshold = float(value)
     except ValueError:
-        raise ValueError(f"robust kernel threshold {value!r}: expected a number") from None
+        raise InputError(f"robust kernel threshold {value!r}: expected a number") from None
     if not threshold > 0:
-        raise ValueError(f"robust kernel threshold must be positive, got {threshold}")
+        raise InputError(f"robust kernel threshold must be positive, got {threshold}")
     return name, threshold

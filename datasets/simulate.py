@@ -96,6 +96,7 @@ from datasets.types import (
 )
 from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
+from factors.errors import InputError
 
 __all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 
@@ -138,14 +139,14 @@ def _sigmas(name: str, value, count: int) -> np.ndarray:
     a = np.atleast_1d(np.asarray(value, dtype=float))
     if a.shape != (count,) or not np.all(np.isfinite(a)) or np.any(a < 0):
         what = "a sigma" if count == 1 else f"{count} sigmas"
-        raise ValueError(f"{name}: expected {what}, finite and >= 0, got {value!r}")
+        raise InputError(f"{name}: expected {what}, finite and >= 0, got {value!r}")
     return a
 
 
 def _positive_sigmas(name: str, value, count: int) -> np.ndarray:
     a = _sigmas(name, value, count)
     if np.any(a <= 0):
-        raise ValueError(f"{name}: measurement noise sigmas must be > 0 (a covariance must be invertible), got {value!r}")
+        raise InputError(f"{name}: measurement noise sigmas must be > 0 (a covariance must be invertible), got {value!r}")
     return a
 
 
@@ -155,11 +156,11 @@ def _stride(name: str, rate, imu_rate: float) -> int | None:
         return None
     rate = float(rate)
     if not np.isfinite(rate) or rate < 0:
-        raise ValueError(f"{name}: expected a rate in Hz > 0 (or None/0 for none), got {rate!r}")
+        raise InputError(f"{name}: expected a rate in Hz > 0 (or None/0 for none), got {rate!r}")
     ratio = imu_rate / rate
     stride = int(round(ratio))
     if stride < 1 or abs(ratio - stride) > _RATE_TOLERANCE * ratio:
-        raise ValueError(
+        raise InputError(
             f"{name}: imu_rate ({imu_rate:g} Hz) must be an integer multiple of {name} ({rate:g} Hz) "
             "so that measurement times are IMU sample times"
         )
@@ -170,7 +171,7 @@ def _profile(profile) -> Profile:
     if isinstance(profile, Profile):
         return profile
     if profile not in PROFILES:
-        raise ValueError(f"profile: unknown {profile!r}; choose one of {sorted(PROFILES)} or pass a Profile")
+        raise InputError(f"profile: unknown {profile!r}; choose one of {sorted(PROFILES)} or pass a Profile")
     return PROFILES[profile]
 
 
@@ -279,23 +280,23 @@ def simulate(
     prof = _profile(profile)
     duration, imu_rate, t0 = float(duration), float(imu_rate), float(t0)
     if not np.isfinite(imu_rate) or imu_rate <= 0:
-        raise ValueError(f"imu_rate: expected a rate in Hz > 0, got {imu_rate!r}")
+        raise InputError(f"imu_rate: expected a rate in Hz > 0, got {imu_rate!r}")
     if not np.isfinite(duration) or duration <= 0:
-        raise ValueError(f"duration: expected a duration in seconds > 0, got {duration!r}")
+        raise InputError(f"duration: expected a duration in seconds > 0, got {duration!r}")
     if not np.isfinite(t0):
-        raise ValueError(f"t0: expected a finite start time, got {t0!r}")
+        raise InputError(f"t0: expected a finite start time, got {t0!r}")
     steps = int(np.floor(duration * imu_rate * (1 + _RATE_TOLERANCE)))
     if steps < 1:
-        raise ValueError(f"duration: {duration!r} s is shorter than one IMU step (1/imu_rate = {1 / imu_rate:g} s)")
+        raise InputError(f"duration: {duration!r} s is shorter than one IMU step (1/imu_rate = {1 / imu_rate:g} s)")
     if clean_imu not in CLEAN_IMU_MODELS:
-        raise ValueError(f"clean_imu: expected one of {CLEAN_IMU_MODELS}, got {clean_imu!r}")
+        raise InputError(f"clean_imu: expected one of {CLEAN_IMU_MODELS}, got {clean_imu!r}")
     if truth not in TRUTH_MODELS:
-        raise ValueError(f"truth: expected one of {TRUTH_MODELS}, got {truth!r}")
+        raise InputError(f"truth: expected one of {TRUTH_MODELS}, got {truth!r}")
     if not isinstance(noise, ImuNoise):
-        raise ValueError(f"noise: expected an ImuNoise, got {type(noise).__name__}")
+        raise InputError(f"noise: expected an ImuNoise, got {type(noise).__name__}")
     g = np.asarray(gravity, dtype=float)
     if g.shape != (3,) or not np.all(np.isfinite(g)):
-        raise ValueError(f"gravity: expected a finite 3-vector, got {gravity!r}")
+        raise InputError(f"gravity: expected a finite 3-vector, got {gravity!r}")
     strides = {
         name: _stride(name, rate, imu_rate)
         for name, rate in (
@@ -315,7 +316,7 @@ def simulate(
     sigma_initial = _sigmas("initial_sigma", initial_sigma, 3)
     outlier_fraction = float(outlier_fraction)
     if not 0.0 <= outlier_fraction <= 1.0:
-        raise ValueError(f"outlier_fraction: expected a fraction in [0, 1], got {outlier_fraction!r}")
+        raise InputError(f"outlier_fraction: expected a fraction in [0, 1], got {outlier_fraction!r}")
     outlier_scale = _sigmas("outlier_scale", outlier_scale, 2)
     seeds = dict(zip(STREAMS, np.random.SeedSequence(seed).spawn(len(STREAMS))))
     rngs = {name: np.random.default_rng(s) for name, s in seeds.items()}

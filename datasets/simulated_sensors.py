@@ -14,6 +14,7 @@ import numpy as np
 from datasets.from_truth import measurement_indices
 from datasets.kinds import KINDS, kind_sigmas
 from datasets.types import ImuSamples, Sensor, Trajectory
+from factors.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -41,12 +42,12 @@ def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tup
     out = []
     for spec, stream in zip(specs, streams):
         if spec.kind not in KINDS:
-            raise ValueError(f"sensor {spec.name!r}: unknown kind {spec.kind!r}; expected one of {', '.join(KINDS)}")
+            raise InputError(f"sensor {spec.name!r}: unknown kind {spec.kind!r}; expected one of {', '.join(KINDS)}")
         kind = KINDS[spec.kind]
         try:
             k = measurement_indices(truth.t, spec.rate_hz)
         except ValueError as error:
-            raise ValueError(f"sensor {spec.name!r}: {error}") from None
+            raise InputError(f"sensor {spec.name!r}: {error}") from None
         held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
         data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
                              np.random.default_rng(stream))

@@ -23,6 +23,7 @@ from datasets.csv_sources import read_csv_fixes, read_csv_imu, read_csv_poses, r
 from datasets.streams import FixStream, PoseStream, TwistStream
 from datasets.tum import read_tum
 from datasets.types import ImuSamples
+from factors.errors import InputError
 
 
 def _tum_poses(path) -> PoseStream:
@@ -44,14 +45,14 @@ def parse_spec(spec: str, base_dir=".", stream: str | None = None) -> tuple[str,
     """``(scheme, path)`` of ``spec``, the path resolved against ``base_dir``; with ``stream`` (a
     key of :data:`READERS`) the scheme must be able to give it. Reads nothing."""
     if not isinstance(spec, str):
-        raise ValueError(f"source {spec!r}: expected a string SCHEME:PATH")
+        raise InputError(f"source {spec!r}: expected a string SCHEME:PATH")
     scheme, sep, rest = spec.partition(":")
     if not sep or scheme not in SCHEMES:
-        raise ValueError(f"source {spec!r}: expected bag:PATH, csv:PATH or tum:PATH")
+        raise InputError(f"source {spec!r}: expected bag:PATH, csv:PATH or tum:PATH")
     if not rest.strip():
-        raise ValueError(f"source {spec!r}: no path after '{scheme}:'")
+        raise InputError(f"source {spec!r}: no path after '{scheme}:'")
     if stream is not None and scheme not in READERS[stream]:
-        raise ValueError(f"source {spec!r}: a {scheme}: source has no {stream}; "
+        raise InputError(f"source {spec!r}: a {scheme}: source has no {stream}; "
                          f"{stream} come from {' or '.join(s + ':' for s in READERS[stream])}")
     return scheme, Path(base_dir) / Path(rest).expanduser()
 
@@ -61,10 +62,10 @@ def _read(stream: str, spec: str, topic: str | None, base_dir):
     reader = READERS[stream][scheme]
     if scheme == "bag":
         if not topic:
-            raise ValueError(f"source {spec!r}: a bag needs a topic")
+            raise InputError(f"source {spec!r}: a bag needs a topic")
         return reader(path, topic)
     if topic is not None:
-        raise ValueError(f"source {spec!r}: a topic ({topic!r}) is only for bag sources")
+        raise InputError(f"source {spec!r}: a topic ({topic!r}) is only for bag sources")
     return reader(path)
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.types import _Rows, check_array, check_covariances, check_rotations, check_times
+from factors.errors import InputError
 
 #: ``sensor_msgs/NavSatStatus.STATUS_NO_FIX``: a fix with a status below this carries no position.
 STATUS_NO_FIX = -1
@@ -60,7 +61,7 @@ def _stamps(name: str, t_ns, n: int) -> np.ndarray | None:
         return None
     t_ns = np.asarray(t_ns)
     if t_ns.shape != (n,) or not np.issubdtype(t_ns.dtype, np.integer):
-        raise ValueError(f"{name}: expected {n} integer nanosecond stamps, got shape {t_ns.shape} of {t_ns.dtype}")
+        raise InputError(f"{name}: expected {n} integer nanosecond stamps, got shape {t_ns.shape} of {t_ns.dtype}")
     return t_ns.astype(np.int64)
 
 
@@ -71,7 +72,7 @@ def _optional_covariances(name: str, cov, n: int, dim: int) -> np.ndarray | None
         return None
     cov = np.array(cov, dtype=float)
     if cov.shape != (n, dim, dim):
-        raise ValueError(f"{name}: expected shape ({n}, {dim}, {dim}), got {cov.shape}")
+        raise InputError(f"{name}: expected shape ({n}, {dim}, {dim}), got {cov.shape}")
     unknown = np.all(np.isnan(cov), axis=(1, 2))
     if unknown.all():
         return None
@@ -161,21 +162,21 @@ class FixStream(_Rows):
         object.__setattr__(self, "t", t)
         status = np.asarray(self.status)
         if status.shape != (n,) or not np.issubdtype(status.dtype, np.integer):
-            raise ValueError(f"FixStream.status: expected {n} integers, got shape {status.shape} of {status.dtype}")
+            raise InputError(f"FixStream.status: expected {n} integers, got shape {status.shape} of {status.dtype}")
         status = status.astype(np.int64)
         object.__setattr__(self, "status", status)
         valid = status > STATUS_NO_FIX
         for name, limit in (("latitude", 90.0), ("longitude", 180.0), ("altitude", None)):
             value = np.asarray(getattr(self, name), dtype=float)
             if value.shape != (n,):
-                raise ValueError(f"FixStream.{name}: expected shape ({n},), got {value.shape}")
+                raise InputError(f"FixStream.{name}: expected shape ({n},), got {value.shape}")
             bad = valid & ~np.isfinite(value)
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
-                raise ValueError(f"FixStream.{name}: non-finite value at row {i}, a fix of status {status[i]}")
+                raise InputError(f"FixStream.{name}: non-finite value at row {i}, a fix of status {status[i]}")
             if limit is not None and np.any(np.abs(value[valid]) > limit):
                 i = int(np.flatnonzero(valid & (np.abs(np.nan_to_num(value)) > limit))[0])
-                raise ValueError(f"FixStream.{name}: row {i}: {float(value[i])!r} is beyond +-{limit:g} degrees")
+                raise InputError(f"FixStream.{name}: row {i}: {float(value[i])!r} is beyond +-{limit:g} degrees")
             object.__setattr__(self, name, value)
         object.__setattr__(self, "cov", _optional_covariances("FixStream.cov", self.cov, n, 3))
         object.__setattr__(self, "t_ns", _stamps("FixStream.t_ns", self.t_ns, n))

@@ -26,6 +26,7 @@ from datasets.errors import check_increasing, check_unit_quaternions, data_lines
 from datasets.types import Trajectory
 from factors import quaternion
 from factors.imu import ImuState
+from factors.errors import InputError
 
 FIELDS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 #: An attitude-only file's fields (:func:`read_tum_poses`).
@@ -76,11 +77,11 @@ def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True, time_o
     seconds with nine decimals computed from integer nanoseconds (EuRoC's stamps exactly)."""
     if isinstance(trajectory_or_t, Trajectory):
         if r is not None or C is not None:
-            raise ValueError("write_tum: give either a Trajectory or (t, r, C), not both")
+            raise InputError("write_tum: give either a Trajectory or (t, r, C), not both")
         traj = trajectory_or_t
     else:
         if r is None or C is None:
-            raise ValueError("write_tum: (t, r, C) needs all three arrays")
+            raise InputError("write_tum: (t, r, C) needs all three arrays")
         n = len(np.atleast_1d(trajectory_or_t))
         z = np.zeros((n, 3))
         traj = Trajectory(trajectory_or_t, ImuState(r=r, v=z, C=C, b_f=z, b_w=z))

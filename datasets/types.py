@@ -17,6 +17,7 @@ import warnings
 import numpy as np
 
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
+from factors.errors import InputError
 
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
@@ -44,10 +45,10 @@ def check_array(name: str, value, shape_tail: tuple, n: int | None = None) -> np
     a = np.asarray(value, dtype=float)
     expected = ("N",) + shape_tail if n is None else (n,) + shape_tail
     if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail or (n is not None and a.shape[0] != n):
-        raise ValueError(f"{name}: expected shape {expected}, got {a.shape}")
+        raise InputError(f"{name}: expected shape {expected}, got {a.shape}")
     if not np.all(np.isfinite(a)):
         bad = np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1))[0][0]
-        raise ValueError(f"{name}: non-finite value (NaN or inf) at row {bad}")
+        raise InputError(f"{name}: non-finite value (NaN or inf) at row {bad}")
     return a
 
 
@@ -59,7 +60,7 @@ def check_times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
         if np.any(step <= 0):
             i = int(np.argmax(step <= 0))
             what = "duplicate" if step[i] == 0 else "decreasing"
-            raise ValueError(
+            raise InputError(
                 f"{name}: timestamps must increase strictly; row {i + 1} ({t[i + 1]!r}) is {what} "
                 f"after row {i} ({t[i]!r})"
             )
@@ -77,13 +78,13 @@ def check_covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
     scale = np.abs(cov).max(axis=(1, 2)) + 1e-300
     if np.any(asym > 1e-9 * scale):
         i = int(np.argmax(asym > 1e-9 * scale))
-        raise ValueError(f"{name}: covariance at row {i} is not symmetric")
+        raise InputError(f"{name}: covariance at row {i} is not symmetric")
     try:
         np.linalg.cholesky(cov)  # what whitening needs; ~7x faster than eigenvalues (N large: a trajectory)
     except np.linalg.LinAlgError:
         eig_min = np.linalg.eigvalsh(cov).min(axis=1)
         i = int(np.argmax(eig_min <= 0)) if np.any(eig_min <= 0) else int(np.argmin(eig_min))
-        raise ValueError(
+        raise InputError(
             f"{name}: covariance at row {i} is not positive definite (smallest eigenvalue {eig_min[i]:.3g})"
         ) from None
     return cov
@@ -96,7 +97,7 @@ def check_rotations(name: str, C, n: int) -> np.ndarray:
     det = np.linalg.det(C) if n else np.zeros(0)
     if np.any(err > 1e-6) or np.any(det <= 0):
         i = int(np.argmax((err > 1e-6) | (det <= 0)))
-        raise ValueError(f"{name}: row {i} is not a rotation matrix (|C C^T - I| = {err[i]:.3g}, det {det[i]:.6g})")
+        raise InputError(f"{name}: row {i} is not a rotation matrix (|C C^T - I| = {err[i]:.3g}, det {det[i]:.6g})")
     return C
 
 
@@ -128,7 +129,7 @@ def _extrinsic(name: str, T_BS) -> np.ndarray | None:
         return None
     problem = rigid_problem(T_BS)
     if problem is not None:
-        raise ValueError(f"{name}: expected a 4x4 rigid transform, got {problem}")
+        raise InputError(f"{name}: expected a 4x4 rigid transform, got {problem}")
     return np.asarray(T_BS, dtype=float)
 
 
@@ -163,7 +164,7 @@ class ImuSamples:
         if self.t_ns is not None:
             t_ns = np.asarray(self.t_ns, dtype=np.int64)
             if t_ns.shape != t.shape:
-                raise ValueError(f"ImuSamples.t_ns: expected shape {t.shape}, got {t_ns.shape}")
+                raise InputError(f"ImuSamples.t_ns: expected shape {t.shape}, got {t_ns.shape}")
             object.__setattr__(self, "t_ns", t_ns)
 
     def __len__(self) -> int:
@@ -278,7 +279,7 @@ class RelativePoseMeasurements(_Rows):
         t_to = check_array("RelativePoseMeasurements.t_to", self.t_to, (), n)
         if np.any(t_to <= t_from):
             i = int(np.argmax(t_to <= t_from))
-            raise ValueError(f"RelativePoseMeasurements: row {i}: t_to ({t_to[i]}) must be after t_from ({t_from[i]})")
+            raise InputError(f"RelativePoseMeasurements: row {i}: t_to ({t_to[i]}) must be after t_from ({t_from[i]})")
         object.__setattr__(self, "t_from", t_from)
         object.__setattr__(self, "t_to", t_to)
         object.__setattr__(self, "dr", check_array("RelativePoseMeasurements.dr", self.dr, (3,), n))
@@ -311,14 +312,14 @@ class Trajectory(_Rows):
         for name in ("r", "v", "b_f", "b_w"):
             a = getattr(s, name)
             if a.shape != (n, 3):
-                raise ValueError(f"Trajectory.states.{name}: expected shape ({n}, 3), got {a.shape}")
+                raise InputError(f"Trajectory.states.{name}: expected shape ({n}, 3), got {a.shape}")
         check_rotations("Trajectory.states.C", s.C, n)
         if not (np.all(np.isfinite(s.r)) and np.all(np.isfinite(s.C))):
-            raise ValueError("Trajectory: positions and attitudes must be finite")
+            raise InputError("Trajectory: positions and attitudes must be finite")
         if self.cov is not None:
             cov = np.asarray(self.cov, dtype=float)
             if cov.shape != (n, 15, 15):
-                raise ValueError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
+                raise InputError(f"Trajectory.cov: expected shape ({n}, 15, 15), got {cov.shape}")
             object.__setattr__(self, "cov", check_covariances("Trajectory.cov", cov, n, 15))
 
     @property
@@ -376,20 +377,20 @@ class Dataset:
     def __post_init__(self):
         cov = np.asarray(self.initial_cov, dtype=float)
         if cov.shape != (15, 15):
-            raise ValueError(f"Dataset.initial_cov: expected shape (15, 15), got {cov.shape}")
+            raise InputError(f"Dataset.initial_cov: expected shape (15, 15), got {cov.shape}")
         check_covariances("Dataset.initial_cov", cov[None], 1, 15)
         object.__setattr__(self, "initial_cov", cov)
         g = np.asarray(self.gravity, dtype=float)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise ValueError(f"Dataset.gravity: expected a finite 3-vector, got {g!r}")
+            raise InputError(f"Dataset.gravity: expected a finite 3-vector, got {g!r}")
         object.__setattr__(self, "gravity", g)
         if len(self.imu) < 2:
-            raise ValueError("Dataset.imu: at least two IMU samples are needed")
+            raise InputError("Dataset.imu: at least two IMU samples are needed")
         s = self.initial
         if any(np.shape(getattr(s, n)) != (3,) for n in ("r", "v", "b_f", "b_w")) or np.shape(s.C) != (3, 3):
-            raise ValueError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")
+            raise InputError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")
         if not all(np.all(np.isfinite(getattr(s, n))) for n in ("r", "v", "C", "b_f", "b_w")):
-            raise ValueError("Dataset.initial: non-finite value in the initial state")
+            raise InputError("Dataset.initial: non-finite value in the initial state")
         check_rotations("Dataset.initial.C", s.C[None], 1)
         self._check_imu_gaps()
         self._check_imu_units()
@@ -408,7 +409,7 @@ class Dataset:
         w = float(np.percentile(np.linalg.norm(self.imu.gyro, axis=1), 99))
         limit = _max_rate.get()
         if w > limit:
-            raise ValueError(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that "
+            raise InputError(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that "
                              f"no vehicle reaches; the data are probably in deg/s (convert them to rad/s), or, "
                              f"for a real case, raise the limit (smoother run --max-gyro-rate)")
 
@@ -461,7 +462,7 @@ class Dataset:
             first = getattr(m, "t_from", m.t)
             inside = (first >= t0) & (m.t <= t1)
             if not inside.any() and part == "data":
-                raise ValueError(f"sensor {sensor.name!r}: none of its {len(m)} measurements "
+                raise InputError(f"sensor {sensor.name!r}: none of its {len(m)} measurements "
                                  f"([{first.min():.6f}, {m.t.max():.6f}] s) lies in the IMU span "
                                  f"[{t0:.6f}, {t1:.6f}] s (a time offset, or stamps in another clock?)")
             if not inside.all():

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors import quaternion, so3
+from factors.errors import InputError
 
 #: Axis returned for the identity rotation (angle 0), where the axis is undefined.
 DEFAULT_AXIS = np.array([1.0, 0.0, 0.0])
@@ -48,12 +49,12 @@ def check_vector(v, name: str, size: int = 3) -> np.ndarray:
     try:
         v = np.asarray(v, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{name}: expected a float array of shape (..., {size}): {err}") from None
+        raise InputError(f"{name}: expected a float array of shape (..., {size}): {err}") from None
     if v.ndim < 1 or v.shape[-1] != size:
-        raise ValueError(f"{name}: expected shape (..., {size}), got {v.shape}")
+        raise InputError(f"{name}: expected shape (..., {size}), got {v.shape}")
     if not np.all(np.isfinite(v)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(v))[0])
-        raise ValueError(f"{name}: expected finite values, found {v[bad]} at index {bad}")
+        raise InputError(f"{name}: expected finite values, found {v[bad]} at index {bad}")
     return v
 
 
@@ -63,12 +64,12 @@ def check_matrix(M, name: str, size: int = 3) -> np.ndarray:
     try:
         M = np.asarray(M, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{name}: expected a float array of shape (..., {size}, {size}): {err}") from None
+        raise InputError(f"{name}: expected a float array of shape (..., {size}, {size}): {err}") from None
     if M.ndim < 2 or M.shape[-2:] != (size, size):
-        raise ValueError(f"{name}: expected shape (..., {size}, {size}), got {M.shape}")
+        raise InputError(f"{name}: expected shape (..., {size}, {size}), got {M.shape}")
     if not np.all(np.isfinite(M)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(M))[0])
-        raise ValueError(f"{name}: expected finite values, found {M[bad]} at index {bad}")
+        raise InputError(f"{name}: expected finite values, found {M[bad]} at index {bad}")
     return M
 
 
@@ -85,7 +86,7 @@ def check_rotation_matrix(C, name: str = "C", tolerance: float = ORTHONORMAL_TOL
     if np.any(bad):
         first = tuple(int(i) for i in np.argwhere(np.atleast_1d(bad))[0])
         index = first if C.ndim > 2 else ()
-        raise ValueError(
+        raise InputError(
             f"{name}: expected a rotation matrix (C^T C = I within {tolerance:g}, det C = +1); "
             f"the matrix at index {index} has max|C^T C - I| = {np.atleast_1d(err)[first]:.3g} "
             f"and det = {np.atleast_1d(det)[first]:.6g}"
@@ -106,20 +107,20 @@ def _check_axis_angle(axis, angle):
     norm = np.linalg.norm(axis, axis=-1)
     if np.any(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE):
         bad = tuple(int(i) for i in np.argwhere(np.atleast_1d(np.abs(norm - 1.0) > ORTHONORMAL_TOLERANCE))[0])
-        raise ValueError(
+        raise InputError(
             f"axis: expected unit vectors (norm 1 within {ORTHONORMAL_TOLERANCE:g}), "
             f"found norm {np.atleast_1d(norm)[bad]:.9g} at index {bad if axis.ndim > 1 else ()}"
         )
     try:
         angle = np.asarray(angle, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"angle: expected a float array of shape (...): {err}") from None
+        raise InputError(f"angle: expected a float array of shape (...): {err}") from None
     if not np.all(np.isfinite(angle)):
-        raise ValueError("angle: expected finite values (radians)")
+        raise InputError("angle: expected finite values (radians)")
     try:
         lead = np.broadcast_shapes(axis.shape[:-1], angle.shape)
     except ValueError:
-        raise ValueError(
+        raise InputError(
             f"angle: expected a shape broadcastable with axis.shape[:-1] = {axis.shape[:-1]}, got {angle.shape}"
         ) from None
     return np.broadcast_to(axis / norm[..., None], lead + (3,)), np.broadcast_to(angle, lead)

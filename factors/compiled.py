@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from factors.imports import dependencies, imports_of, package_modules
+from factors.errors import InputError
 
 
 def clear_stale_kernel_caches(root, packages, stamp: Path) -> list[str]:
@@ -120,7 +121,7 @@ def as_trailing(a, dims: tuple, name: str) -> np.ndarray:
     compiled kernels index them without bounds checks."""
     a = np.asarray(a, dtype=float)
     if a.ndim < len(dims) or a.shape[a.ndim - len(dims):] != tuple(dims):
-        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, dims))}), got {a.shape}")
+        raise InputError(f"{name}: expected shape (..., {', '.join(map(str, dims))}), got {a.shape}")
     return a
 
 
@@ -179,7 +180,7 @@ def _default_threads() -> int:
     text = os.environ.get("BOXPLUS_THREADS", "").strip()
     if text:
         if not text.isdigit() or int(text) < 1:
-            raise ValueError(f"BOXPLUS_THREADS: expected a whole number of threads >= 1, got {text!r}")
+            raise InputError(f"BOXPLUS_THREADS: expected a whole number of threads >= 1, got {text!r}")
         return int(text)
     try:
         return len(os.sched_getaffinity(0))
@@ -219,7 +220,7 @@ def set_thread_count(n: int) -> None:
     threads at once."""
     global _threads
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"thread count: expected a whole number of threads >= 1, got {n!r}")
+        raise InputError(f"thread count: expected a whole number of threads >= 1, got {n!r}")
     _threads = n
 
 
@@ -362,7 +363,7 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     of a second call and the wait between them (about 0.2 ms of 4 in the preintegration of a
     minute of data) and runs the scan while the other threads work."""
     if (scan is None) != (then is None):
-        raise ValueError("in_parallel: expected both scan and then, or neither")
+        raise InputError("in_parallel: expected both scan and then, or neither")
     parts = max(1, min(_threads, n // max(1, min_items)))
     if parts == 1:
         for stage in (task, scan, then):

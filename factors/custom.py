@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 
 from factors.chart import to_gtsam_chart
+from factors.errors import InputError
 
 ROT, VEC, BIAS = "rot", "vec", "bias"
 
@@ -27,7 +28,7 @@ def read(values: gtsam.Values, key: int, kind: str) -> np.ndarray:
         return values.atVector(key)
     if kind == BIAS:
         return values.atConstantBias(key).vector()
-    raise ValueError(f"unknown variable kind {kind!r}")
+    raise InputError(f"unknown variable kind {kind!r}")
 
 
 def custom_factor(noise_model, keys: Sequence[int], kinds: Sequence[str], residual: Callable) -> gtsam.CustomFactor:
@@ -38,7 +39,7 @@ def custom_factor(noise_model, keys: Sequence[int], kinds: Sequence[str], residu
     """
     keys, kinds = list(keys), list(kinds)
     if len(keys) != len(kinds):
-        raise ValueError(f"{len(keys)} keys but {len(kinds)} kinds")
+        raise InputError(f"{len(keys)} keys but {len(kinds)} kinds")
 
     def error(this, values, H):
         args = [read(values, k, kind) for k, kind in zip(keys, kinds)]

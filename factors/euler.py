@@ -49,6 +49,7 @@ import numpy as np
 
 from factors import quaternion
 from factors.axis_angle import check_rotation_matrix, check_vector
+from factors.errors import InputError
 
 _AXES = "xyz"
 
@@ -77,7 +78,7 @@ def parse(convention: str):
             hint = " (names are lower case; SciPy's case-coded names map through scipy_sequence)"
         elif isinstance(convention, str) and len(convention) == 3:
             hint = " (prefix 'r' for intrinsic/rotating or 's' for extrinsic/static axes)"
-        raise ValueError(
+        raise InputError(
             f"convention: expected one of the 24 names {', '.join(CONVENTIONS)}; got {convention!r}{hint}"
         )
     return convention[0] == "r", tuple(_AXES.index(a) for a in convention[1:])
@@ -109,10 +110,10 @@ def elementary(axis: int, angle) -> np.ndarray:
     about coordinate axis ``axis`` (0, 1, 2 or 'x', 'y', 'z'); shape ``(..., 3, 3)``."""
     if isinstance(axis, str):
         if axis not in _AXES:
-            raise ValueError(f"axis: expected 'x', 'y', 'z', 0, 1 or 2, got {axis!r}")
+            raise InputError(f"axis: expected 'x', 'y', 'z', 0, 1 or 2, got {axis!r}")
         axis = _AXES.index(axis)
     if axis not in (0, 1, 2):
-        raise ValueError(f"axis: expected 'x', 'y', 'z', 0, 1 or 2, got {axis!r}")
+        raise InputError(f"axis: expected 'x', 'y', 'z', 0, 1 or 2, got {axis!r}")
     angle = np.asarray(angle, dtype=float)
     c, s = np.cos(angle), np.sin(angle)
     p, q = (axis + 1) % 3, (axis + 2) % 3
@@ -205,7 +206,7 @@ def perturbation_jacobian(angles, convention: str, chart: str = "left") -> np.nd
     intrinsic, (i, j, k) = parse(convention)
     angles = _check_angles(angles)
     if chart not in ("left", "right"):
-        raise ValueError(f"chart: expected 'left' or 'right' (see uncertainty.convert_covariance for 'middle'), got {chart!r}")
+        raise InputError(f"chart: expected 'left' or 'right' (see uncertainty.convert_covariance for 'middle'), got {chart!r}")
     e = np.eye(3)
     a, b, c = angles[..., 0], angles[..., 1], angles[..., 2]
     if intrinsic:

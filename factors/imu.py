@@ -46,6 +46,7 @@ import numpy as np
 
 from factors import scan, so3
 from factors.compiled import as_trailing, block_operation, leaf, recursion, rows
+from factors.errors import InputError
 
 STATE_DIM = 15
 NOISE_DIM = 15
@@ -174,7 +175,7 @@ class ImuNoise:
         for name in ("acc", "gyro", "acc_bias", "gyro_bias", "velocity"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
-                raise ValueError(f"ImuNoise.{name}: expected a finite density >= 0, got {value!r}")
+                raise InputError(f"ImuNoise.{name}: expected a finite density >= 0, got {value!r}")
 
     def densities(self) -> np.ndarray:
         """The 15 noise densities squared (``diag R``), in the order ``(n_v, n_f, n_w, n_bf, n_bw)``."""

@@ -19,6 +19,7 @@ from factors import imu, preintegration
 from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.keys import KeyframeKeys
 from factors.measurements import covariance_model
+from factors.errors import InputError
 
 KINDS = [ROT, VEC, VEC, BIAS]
 
@@ -70,7 +71,7 @@ class ImuFactor:
                  gravity=imu.DEFAULT_GRAVITY, noise_model=None,
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
         if pre.cov is None and noise_model is None:
-            raise ValueError("ImuFactor: the preintegrated interval has no covariance; integrate it with "
+            raise InputError("ImuFactor: the preintegrated interval has no covariance; integrate it with "
                              "a reference state and noise, or pass a noise model")
         self._interval = _Interval(pre, np.asarray(gravity, dtype=float), float(reintegration_threshold))
         model = noise_model if noise_model is not None else covariance_model(pre.cov)

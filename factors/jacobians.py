@@ -19,6 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from factors import so3
+from factors.errors import InputError
 
 #: Default central-difference step: truncation O(eps^2) and round-off O(1e-16/eps) balance near 1e-5.
 DEFAULT_STEP = 1e-6
@@ -87,9 +88,9 @@ def _check_kind(kind, role: str) -> None:
     """Raise ``ValueError`` unless ``kind`` is ``"vector"``, ``"rotation"`` or a Manifold-like object."""
     if isinstance(kind, str):
         if kind not in (VECTOR, ROTATION):
-            raise ValueError(f"unknown {role} kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
+            raise InputError(f"unknown {role} kind {kind!r}; expected {VECTOR!r}, {ROTATION!r} or a Manifold")
     elif not all(hasattr(kind, member) for member in ("dim", "plus", "minus")):
-        raise ValueError(
+        raise InputError(
             f"{role} kind {kind!r} is neither {VECTOR!r}, {ROTATION!r} nor a Manifold (dim, plus, minus)"
         )
 
@@ -124,7 +125,7 @@ def numerical_jacobian(
     """
     kinds = list(arg_kinds) if arg_kinds is not None else [ROTATION if _is_rotation(a) else VECTOR for a in args]
     if len(kinds) != len(args):
-        raise ValueError(f"arg_kinds has {len(kinds)} entries for {len(args)} arguments")
+        raise InputError(f"arg_kinds has {len(kinds)} entries for {len(args)} arguments")
     for i, kind in enumerate(kinds):
         _check_kind(kind, f"argument {i}")
     if value_kind is not None:
@@ -173,7 +174,7 @@ def compare(name: str, analytic: np.ndarray, numerical: np.ndarray, atol: float,
     analytic = np.asarray(analytic, dtype=float)
     numerical = np.asarray(numerical, dtype=float)
     if analytic.shape != numerical.shape:
-        raise ValueError(f"{name}: analytic Jacobian has shape {analytic.shape}, numerical {numerical.shape}")
+        raise InputError(f"{name}: analytic Jacobian has shape {analytic.shape}, numerical {numerical.shape}")
     if not np.all(np.isfinite(analytic)):
         return Comparison(name, np.inf, np.inf, False)
     diff = np.abs(analytic - numerical)

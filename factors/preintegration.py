@@ -57,6 +57,7 @@ import numpy as np
 from factors import imu, so3
 from factors.compiled import (as_trailing, block_operation, common_shape, in_parallel, leaf, matmul_into, recursion,
                               rows as rows_of)
+from factors.errors import InputError
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.
@@ -367,12 +368,12 @@ def _kernel_array(a, lead: tuple, tail: tuple, name: str, broadcast: bool = True
     if a.shape == shape:
         return np.require(a, float, ["C", "W"])
     if not broadcast:
-        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+        raise InputError(f"{name}: expected shape {shape}, got {a.shape}")
     out = np.empty(shape)
     try:
         out[...] = a  # broadcasts, as np.broadcast_to would, at a fraction of its cost
     except ValueError:
-        raise ValueError(f"{name}: expected shape {shape} (or one that broadcasts to it), got {a.shape}") from None
+        raise InputError(f"{name}: expected shape {shape} (or one that broadcasts to it), got {a.shape}") from None
     return out
 
 
@@ -389,10 +390,10 @@ def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     if dt.ndim != 2 or acc.shape != dt.shape + (3,) or gyro.shape != dt.shape + (3,):
-        raise ValueError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
+        raise InputError(f"expected acc, gyro (J, K, 3) and dt (J, K), got {acc.shape}, {gyro.shape}, {dt.shape}")
     b_w_bar = _kernel_array(b_w_bar, (dt.shape[0],), (3,), bias_name)
     if not np.isfinite(b_w_bar).all():
-        raise ValueError(f"{bias_name}: expected finite values, got {b_w_bar.tolist()}")
+        raise InputError(f"{bias_name}: expected finite values, got {b_w_bar.tolist()}")
     return np.require(acc, float, "C"), np.require(gyro, float, "C"), np.require(dt, float, "C"), b_w_bar
 
 
@@ -430,19 +431,19 @@ def _run(acc, gyro, dt, b_w_bar, b_f, start, anchors, noise, gravity):
     anchor_r, anchor_C, anchor_v = (ready(a, (J + 1,), tail, "anchors." + name, broadcast=False) for a, tail, name in (
         (anchors.r, (3,), "r"), (anchors.C, (3, 3), "C"), (anchors.world_v, (3,), "world_v")))
     if start.shape != ():
-        raise ValueError(f"start: expected one state, got states of shape {start.shape}")
+        raise InputError(f"start: expected one state, got states of shape {start.shape}")
     r0, v0, C0 = (ready(a, (), tail, "start." + name, broadcast=False)
                   for a, tail, name in ((start.r, (3,), "r"), (start.v, (3,), "v"), (start.C, (3, 3), "C")))
     for name, a in (("r", r0), ("v", v0), ("C", C0), ("b_f", b_f)):
         if not np.isfinite(a).all():
-            raise ValueError(f"start.{name} (or the biases given): expected finite values, got {a.tolist()}")
+            raise InputError(f"start.{name} (or the biases given): expected finite values, got {a.tolist()}")
     for name, a in (("r", anchor_r), ("C", anchor_C), ("world_v", anchor_v)):
         finite = np.isfinite(a.reshape(J + 1, -1))
         if finite.all() or not finite.any():  # every keyframe known, or none: no row to check
             continue
         partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
         if partial.size:
-            raise ValueError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
+            raise InputError(f"anchors.{name}[{partial[0]}]: expected all finite (known) or all NaN (unknown), "
                              f"got {a[partial[0]].tolist()}")
     pre, integrate_task = _integration(acc, gyro, dt, b_w_bar)
     ref_r, ref_v, ref_C = np.empty((J + 1, 3)), np.empty((J + 1, 3)), np.empty((J + 1, 3, 3))
@@ -505,7 +506,7 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     for name, a in (("r", r), ("v", v), ("C", C), ("b_f", b_f), ("b_w", b_w)):
         bad = np.flatnonzero(~np.isfinite(a.reshape(J, -1)).all(axis=1))
         if bad.size:  # NaN would read as "unknown" in the anchors below
-            raise ValueError(f"reference.{name}[{bad[0]}]: expected finite values, got {a[bad[0]].tolist()}")
+            raise InputError(f"reference.{name}[{bad[0]}]: expected finite values, got {a[bad[0]].tolist()}")
     unknown = Anchors.none(1)  # keyframe J: not needed
     anchors = Anchors(np.concatenate([r, unknown.r]), np.concatenate([C, unknown.C]),
                       np.concatenate([np.einsum("jab,jb->ja", C, v), unknown.world_v]))
@@ -732,11 +733,11 @@ def residual_one(pre: Preintegrated, Ci, ri, vi, bi, Cj, rj, vj, bj, gravity, ja
     for the per-factor callback, where that plumbing cost more than the mathematics."""
     variables = (Ci, ri, vi, bi, Cj, rj, vj, bj)
     if pre.dC.shape != (3, 3) or np.shape(gravity) != (3,):
-        raise ValueError(f"residual_one: expected one interval and gravity (3,), got {pre.dC.shape[:-2]} "
+        raise InputError(f"residual_one: expected one interval and gravity (3,), got {pre.dC.shape[:-2]} "
                          f"intervals and gravity {np.shape(gravity)}")
     for x, shape in zip(variables, _ONE_SHAPES):
         if type(x) is not np.ndarray or x.shape != shape or x.dtype != np.float64:
-            raise ValueError(f"residual_one: expected float arrays of shapes {_ONE_SHAPES}, "
+            raise InputError(f"residual_one: expected float arrays of shapes {_ONE_SHAPES}, "
                              f"got {[np.shape(v) for v in variables]}")
     e = np.empty(15)
     Ji, Jj = np.empty((15, 15)), np.empty((15, 15))

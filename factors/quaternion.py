@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from factors.compiled import apply_rows, as_trailing, exact_leaf
+from factors.errors import InputError
 
 #: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
 SMALL_ANGLE = 1e-4
@@ -55,15 +56,15 @@ def check_unit(q: np.ndarray, name: str = "quaternion", tolerance: float = UNIT_
     """
     q = np.asarray(q, dtype=float)
     if q.shape[-1:] != (4,):
-        raise ValueError(f"{name}: expected shape (..., 4) (q0, qx, qy, qz), got {q.shape}")
+        raise InputError(f"{name}: expected shape (..., 4) (q0, qx, qy, qz), got {q.shape}")
     if not np.all(np.isfinite(q)):
         bad = _first_index(~np.isfinite(q).all(axis=-1))
-        raise ValueError(f"{name}: non-finite value at index {bad}")
+        raise InputError(f"{name}: non-finite value at index {bad}")
     norm = np.linalg.norm(q, axis=-1)
     off = np.abs(norm - 1.0) > tolerance
     if np.any(off):
         bad = _first_index(off)
-        raise ValueError(
+        raise InputError(
             f"{name}: not a unit quaternion at index {bad}: norm {norm[bad]:.9g}, "
             f"expected 1 within {tolerance:g}"
         )
@@ -233,7 +234,7 @@ def to_rot3(q: np.ndarray):
 
     q = normalize(q)
     if q.ndim != 1:
-        raise ValueError(f"q: expected shape (4,) (one quaternion), got {q.shape}")
+        raise InputError(f"q: expected shape (4,) (one quaternion), got {q.shape}")
     return gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from factors import derivatives as d
 from factors import jacobians, quaternion, so3
+from factors.errors import InputError
 
 #: Angles closer to pi than this are not used where a numerical step could cross pi (log jumps there).
 PI_MARGIN_FOR_LOG = 1e-4
@@ -33,7 +34,7 @@ def random_rotation_vector(rng: np.random.Generator, regime: str | None = None, 
     elif regime == "any":
         angle = rng.uniform(0, np.pi)
     else:
-        raise ValueError(f"unknown regime {regime!r}")
+        raise InputError(f"unknown regime {regime!r}")
     return angle * axis
 
 

@@ -59,6 +59,7 @@ import numpy as np
 from factors import euler, so3
 from factors.chart import primer_from_gtsam
 from factors.axis_angle import check_matrix, check_rotation_matrix, check_vector
+from factors.errors import InputError
 
 #: The chart names accepted by the functions of this module.
 CHARTS = ("left", "right", "middle")
@@ -69,7 +70,7 @@ SYMMETRY_TOLERANCE = 1e-8
 
 def _check_chart(chart, name: str, allowed=CHARTS) -> str:
     if chart not in allowed:
-        raise ValueError(f"{name}: expected one of {', '.join(map(repr, allowed))}, got {chart!r}")
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, allowed))}, got {chart!r}")
     return chart
 
 
@@ -81,21 +82,21 @@ def check_covariance(Sigma, name: str = "Sigma", size: int | None = None) -> np.
     try:
         S = np.asarray(Sigma, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{name}: expected a covariance matrix (..., n, n): {err}") from None
+        raise InputError(f"{name}: expected a covariance matrix (..., n, n): {err}") from None
     if S.ndim < 2 or S.shape[-1] != S.shape[-2] or (size is not None and S.shape[-1] != size):
         want = f"{size}, {size}" if size is not None else "n, n"
-        raise ValueError(f"{name}: expected a covariance of shape (..., {want}), got {S.shape}")
+        raise InputError(f"{name}: expected a covariance of shape (..., {want}), got {S.shape}")
     if size is None and S.shape[-1] < 3:
-        raise ValueError(f"{name}: expected n >= 3 (it must hold a rotation block), got {S.shape}")
+        raise InputError(f"{name}: expected n >= 3 (it must hold a rotation block), got {S.shape}")
     S = check_matrix(S, name, S.shape[-1])
     scale = np.abs(S).max(axis=(-2, -1), initial=0.0)
     asym = np.abs(S - np.swapaxes(S, -1, -2)).max(axis=(-2, -1))
     if np.any(asym > SYMMETRY_TOLERANCE * np.maximum(scale, 1e-300)):
-        raise ValueError(f"{name}: expected a symmetric matrix; max|S - S^T| = {np.max(asym):.3g}")
+        raise InputError(f"{name}: expected a symmetric matrix; max|S - S^T| = {np.max(asym):.3g}")
     S = 0.5 * (S + np.swapaxes(S, -1, -2))
     low = np.linalg.eigvalsh(S)[..., 0]
     if np.any(low < -1e-12 * np.maximum(scale, 1e-300)):
-        raise ValueError(
+        raise InputError(
             f"{name}: expected a positive semi-definite matrix; smallest eigenvalue {np.min(low):.3g}"
         )
     return S
@@ -168,7 +169,7 @@ def convert_covariance(Sigma, C, source: str, target: str, index: int = 0) -> np
     Sigma = check_covariance(Sigma)
     n = Sigma.shape[-1]
     if not isinstance(index, (int, np.integer)) or isinstance(index, bool) or not 0 <= index <= n - 3:
-        raise ValueError(f"index: expected an integer in [0, {n - 3}] (start of the rotation block), got {index!r}")
+        raise InputError(f"index: expected an integer in [0, {n - 3}] (start of the rotation block), got {index!r}")
     J = chart_jacobian(C, source, target)
     lead = np.broadcast_shapes(J.shape[:-2], Sigma.shape[:-2])
     T = np.broadcast_to(np.eye(n), lead + (n, n)).copy()
@@ -230,7 +231,7 @@ def _rotated_inputs(C_bar, Sigma, x, order, chart, orders):
     Sigma = check_covariance(Sigma, "Sigma", size=3)
     x = check_vector(x, "x")
     if isinstance(order, bool) or order not in orders:
-        raise ValueError(f"order: expected one of {orders}, got {order!r}")
+        raise InputError(f"order: expected one of {orders}, got {order!r}")
     _check_chart(chart, "chart", ("left", "right"))
     if chart == "right":  # exact: eps_l = C_bar eps_r
         Sigma = C_bar @ Sigma @ np.swapaxes(C_bar, -1, -2)

@@ -25,7 +25,7 @@ from datasets.kinds import KINDS, measure_into, model_index, quiet_dispatch, sen
 from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.compiled import matmul_into
-from factors.errors import SolverError
+from factors.errors import InputError, SolverError
 from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
@@ -71,7 +71,7 @@ class Ekf:
         R = np.ascontiguousarray(R, dtype=float)
         m = len(e)
         if H.shape != (m, imu.STATE_DIM) or R.shape != (m, m):
-            raise ValueError(f"update: expected H ({m}, 15) and R ({m}, {m}), got {H.shape} and {R.shape}")
+            raise InputError(f"update: expected H ({m}, 15) and R ({m}, {m}), got {H.shape} and {R.shape}")
         x = self.state
         r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x.r, x.v, x.C, x.b_f, x.b_w))
         stats = np.zeros(2)
@@ -191,7 +191,7 @@ class _Updates:
             kind, m = KINDS[sensor.kind], sensor.data
             knot = np.searchsorted(knots, m.t)
             if np.any(knots[np.minimum(knot, len(knots) - 1)] != m.t):
-                raise ValueError(f"sensor {sensor.name!r}: measurement times that are not knots")
+                raise InputError(f"sensor {sensor.name!r}: measurement times that are not knots")
             parts.append((knot, np.full(len(m), index), model_index(kind), kind.pack(m), m.cov))
         if not parts:
             parts.append((np.zeros(0, int), np.zeros(0, int), 0, np.zeros((0, 1)), np.zeros((0, 1, 1))))
@@ -277,7 +277,7 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> float:
     S += R
     L = np.empty((m, m))
     if not _cholesky(0.5 * (S + S.T), L):
-        raise ValueError("EKF update: the innovation covariance H P H^T + R is not positive definite")
+        raise SolverError("EKF update: the innovation covariance H P H^T + R is not positive definite")
     y = np.empty(m)
     _solve_lower(L, e, y)
     d2 = 0.0

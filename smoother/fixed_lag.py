@@ -43,7 +43,7 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
-from factors.errors import SolverError
+from factors.errors import InputError, SolverError
 from smoother.batch import is_indeterminant
 from smoother.graph import Problem, insert_state, read_state
 from smoother.errors import IndeterminantSystem
@@ -111,7 +111,7 @@ def _make_smoother(kind: str, lag_s: float):
         params.setFactorization("QR")
         params.findUnusedFactorSlots = True
         return gtsam.IncrementalFixedLagSmoother(lag_s, params)
-    raise ValueError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
+    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
 
 
 def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first: int,
@@ -283,7 +283,7 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", cov
                   progress: bool | None = None) -> FixedLagResult:
     """Run a fixed-lag smoother over ``problem`` (see the module docstring)."""
     if not lag_s > 0:
-        raise ValueError(f"lag must be positive, got {lag_s}")
+        raise InputError(f"lag must be positive, got {lag_s}")
     if kind == "batch":
         _warn_of_sparse_measurements(problem, lag_s)
     start = time.perf_counter()

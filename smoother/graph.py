@@ -33,6 +33,7 @@ from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, sensor_factor
 from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
+from factors.errors import InputError
 
 #: Robust kernels selectable per measurement type (keyed by ``datasets.robust.ROBUST_KERNEL_NAMES``),
 #: and the probability that sets each one's default threshold (see :func:`default_threshold`).
@@ -239,7 +240,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     robust = robust or {}
     times = estimate_times(dataset, keyframe_rate)
     if len(times) < 2:
-        raise ValueError("the dataset spans less than one keyframe interval")
+        raise InputError("the dataset spans less than one keyframe interval")
     keys = [keyframe_keys(k) for k in range(len(times))]
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
@@ -262,7 +263,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         matched = np.stack([_match(times, t) for t in spec.times], axis=1)
         placed = np.all(matched >= 0, axis=1)
         if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
-            raise ValueError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
+            raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
                              "no keyframe")
         kf = matched
         kernel = robust.get(spec.name)

@@ -48,6 +48,7 @@ from statistics import NormalDist
 import numpy as np
 
 from factors import so3
+from factors.errors import InputError
 
 ALIGN_MODES = ("se3", "sim3", "posyaw", "none")
 DELTA_UNITS = ("frames", "m", "s")
@@ -70,10 +71,10 @@ def associate(t_ref, t_est, max_dt: float = 0.01) -> tuple[np.ndarray, np.ndarra
     arrays must be sorted increasingly."""
     t_ref, t_est = np.asarray(t_ref, dtype=float), np.asarray(t_est, dtype=float)
     if not (np.isfinite(max_dt) and max_dt >= 0):
-        raise ValueError(f"max_dt: expected a finite time >= 0, got {max_dt!r}")
+        raise InputError(f"max_dt: expected a finite time >= 0, got {max_dt!r}")
     for name, t in (("t_ref", t_ref), ("t_est", t_est)):
         if t.ndim != 1 or (t.size > 1 and np.any(np.diff(t) < 0)):
-            raise ValueError(f"{name}: expected sorted 1-D time stamps")
+            raise InputError(f"{name}: expected sorted 1-D time stamps")
     if t_ref.size == 0 or t_est.size == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     est_drives = t_est.size <= t_ref.size
@@ -99,7 +100,7 @@ def umeyama(src, dst, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray,
     (fewer than 3, or all on one line)."""
     src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
-        raise ValueError(f"umeyama: expected two (N, 3) arrays of the same shape, got {src.shape} and {dst.shape}")
+        raise InputError(f"umeyama: expected two (N, 3) arrays of the same shape, got {src.shape} and {dst.shape}")
     n = len(src)
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     a, b = src - mu_s, dst - mu_d
@@ -107,7 +108,7 @@ def umeyama(src, dst, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray,
     u, d, vt = np.linalg.svd(cross)
     scale_ref = max(d[0], np.abs(cross).max(), 1e-300)
     if n < 3 or np.count_nonzero(d > 1e-12 * scale_ref) < 2:
-        raise ValueError(
+        raise InputError(
             f"alignment is degenerate: {n} point pairs that do not span a plane (need 3 or more, not collinear)"
         )
     sign = np.ones(3)
@@ -129,7 +130,7 @@ def align_posyaw(src, dst) -> tuple[np.ndarray, np.ndarray]:
     the centred points ``a``, ``b``; any yaw is optimal when that sum is 0, then 0 is used)."""
     src, dst = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) == 0:
-        raise ValueError(f"align_posyaw: expected two non-empty (N, 3) arrays, got {src.shape} and {dst.shape}")
+        raise InputError(f"align_posyaw: expected two non-empty (N, 3) arrays, got {src.shape} and {dst.shape}")
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     a, b = src - mu_s, dst - mu_d
     yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
@@ -147,7 +148,7 @@ def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, 
         return R, t, 1.0
     if mode == "none":
         return np.eye(3), np.zeros(3), 1.0
-    raise ValueError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {mode!r}")
+    raise InputError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {mode!r}")
 
 
 def apply_alignment(R, t, s, r, C) -> tuple[np.ndarray, np.ndarray]:
@@ -187,12 +188,12 @@ def rmse_difference(errors_a, errors_b, blocks, confidence: float = 0.95, resamp
     a, b = np.asarray(errors_a, dtype=float), np.asarray(errors_b, dtype=float)
     labels = np.asarray(blocks)
     if a.ndim != 1 or a.shape != b.shape or labels.shape != a.shape or a.size == 0:
-        raise ValueError(f"rmse_difference: expected errors_a, errors_b and blocks of one equal length > 0, got "
+        raise InputError(f"rmse_difference: expected errors_a, errors_b and blocks of one equal length > 0, got "
                          f"shapes {a.shape}, {b.shape}, {labels.shape}")
     if not (np.isfinite(a).all() and np.isfinite(b).all()):
-        raise ValueError("rmse_difference: expected finite errors")
+        raise InputError("rmse_difference: expected finite errors")
     if not 0.0 < confidence < 1.0 or resamples < 1:
-        raise ValueError(f"rmse_difference: expected 0 < confidence < 1 and resamples >= 1, got {confidence}, {resamples}")
+        raise InputError(f"rmse_difference: expected 0 < confidence < 1 and resamples >= 1, got {confidence}, {resamples}")
     _, block = np.unique(labels, return_inverse=True)
     n_blocks = int(block.max()) + 1
     sums_a, sums_b = np.bincount(block, a**2, n_blocks), np.bincount(block, b**2, n_blocks)
@@ -255,17 +256,17 @@ def rpe_pairs(est_r, t, delta, unit: str = "frames", all_pairs: bool = False, re
     n = len(est_r)
     if unit == "frames":
         if float(delta) != int(delta) or int(delta) < 1:
-            raise ValueError(f"delta: expected a whole number of frames >= 1, got {delta!r}")
+            raise InputError(f"delta: expected a whole number of frames >= 1, got {delta!r}")
         return _pairs_by_index(n, int(delta), all_pairs)
     if not (np.isfinite(delta) and delta > 0):
-        raise ValueError(f"delta: expected a number > 0, got {delta!r}")
+        raise InputError(f"delta: expected a number > 0, got {delta!r}")
     if unit == "m":
         step = np.linalg.norm(np.diff(np.asarray(est_r, dtype=float), axis=0), axis=1)
         acc = np.concatenate([[0.0], np.cumsum(step)])
     elif unit == "s":
         acc = np.asarray(t, dtype=float) - float(t[0])
     else:
-        raise ValueError(f"delta unit: expected one of {', '.join(DELTA_UNITS)}, got {unit!r}")
+        raise InputError(f"delta unit: expected one of {', '.join(DELTA_UNITS)}, got {unit!r}")
     return _pairs_by_accumulation(acc, float(delta), all_pairs, rel_tol * float(delta))
 
 
@@ -276,7 +277,7 @@ def rpe(ref_r, ref_C, est_r, est_C, delta=1, unit: str = "frames", all_pairs: bo
     ref_r, est_r = np.asarray(ref_r, dtype=float), np.asarray(est_r, dtype=float)
     ref_C, est_C = np.asarray(ref_C, dtype=float), np.asarray(est_C, dtype=float)
     if unit == "s" and t is None:
-        raise ValueError("rpe: unit 's' needs the times t")
+        raise InputError("rpe: unit 's' needs the times t")
     pairs = rpe_pairs(est_r, t, delta, unit, all_pairs)
     if not pairs:
         empty = np.zeros(0)
@@ -346,9 +347,9 @@ def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_d
     poses, default all), then ATE and RPE. A reference whose positions are all NaN (attitudes
     only) gives the rotation figures only, unaligned."""
     if align not in ALIGN_MODES:
-        raise ValueError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
+        raise InputError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
     if n_align is not None and n_align < 1:
-        raise ValueError(f"n_align: expected a number of poses >= 1, got {n_align!r}")
+        raise InputError(f"n_align: expected a number of poses >= 1, got {n_align!r}")
     t_ref, t_est = np.asarray(ref_t, dtype=float), np.asarray(est_t, dtype=float)
     # the offset goes onto the longer trajectory's stamps, as evo's association puts it
     if t_est.size > t_ref.size:
@@ -356,7 +357,7 @@ def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_d
     else:
         i_ref, i_est = associate(t_ref - t_offset, t_est, max_dt)
     if i_ref.size == 0:
-        raise ValueError(_no_association(t_ref, t_est, max_dt, t_offset))
+        raise InputError(_no_association(t_ref, t_est, max_dt, t_offset))
     rr, rC = np.asarray(ref_r, dtype=float)[i_ref], np.asarray(ref_C, dtype=float)[i_ref]
     er, eC = np.asarray(est_r, dtype=float)[i_est], np.asarray(est_C, dtype=float)[i_est]
     rotation_only = bool(np.isnan(rr).all())
@@ -395,17 +396,17 @@ def nees(truth, estimate, cov, part: str = "pose") -> np.ndarray:
     truth = getattr(truth, "states", truth)
     estimate = getattr(estimate, "states", estimate)
     if part not in NEES_PARTS:
-        raise ValueError(f"part: expected one of {', '.join(NEES_PARTS)}, got {part!r}")
+        raise InputError(f"part: expected one of {', '.join(NEES_PARTS)}, got {part!r}")
     idx = NEES_PARTS[part]
     cov = np.asarray(cov, dtype=float)
     if cov.shape[-2:] != (15, 15):
-        raise ValueError(f"cov: expected shape (..., 15, 15), got {cov.shape}")
+        raise InputError(f"cov: expected shape (..., 15, 15), got {cov.shape}")
     if part == "pose":
         e = pose_error(truth.r, truth.C, estimate.r, estimate.C)
     else:
         e = imu.boxminus(truth, estimate)[..., idx]
     if not np.all(np.isfinite(e)):
-        raise ValueError(f"nees: the {part} error is not finite (is the truth's velocity or bias unknown?)")
+        raise InputError(f"nees: the {part} error is not finite (is the truth's velocity or bias unknown?)")
     P = cov[..., idx[:, None], idx[None, :]]
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
@@ -470,7 +471,7 @@ def _gamma_q(a: float, x: float) -> float:
 def _check_dof(dof) -> float:
     dof = float(dof)
     if not (np.isfinite(dof) and dof > 0):
-        raise ValueError(f"dof: expected degrees of freedom > 0, got {dof!r}")
+        raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
     return dof
 
 
@@ -494,7 +495,7 @@ def chi2_quantile(p: float, dof: float) -> float:
             return 0.0
         if p == 1.0:
             return math.inf
-        raise ValueError(f"p: expected a probability in [0, 1], got {p!r}")
+        raise InputError(f"p: expected a probability in [0, 1], got {p!r}")
     a = 0.5 * dof
     z = NormalDist().inv_cdf(p)
     h = 2.0 / (9.0 * dof)
@@ -529,9 +530,9 @@ def nees_bounds(dim: int, runs: int = 1, confidence: float = 0.95) -> tuple[floa
     independent runs (at one time step): ``[q((1-c)/2), q((1+c)/2)] / runs`` with ``q`` the
     quantile of chi-square with ``runs * dim`` degrees of freedom."""
     if int(dim) != dim or dim < 1 or int(runs) != runs or runs < 1:
-        raise ValueError(f"nees_bounds: expected dim >= 1 and runs >= 1 (integers), got {dim!r}, {runs!r}")
+        raise InputError(f"nees_bounds: expected dim >= 1 and runs >= 1 (integers), got {dim!r}, {runs!r}")
     if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence: expected a probability in (0, 1), got {confidence!r}")
+        raise InputError(f"confidence: expected a probability in (0, 1), got {confidence!r}")
     dof = dim * runs
     alpha = 1.0 - confidence
     return chi2_quantile(0.5 * alpha, dof) / runs, chi2_quantile(1.0 - 0.5 * alpha, dof) / runs

@@ -18,6 +18,7 @@ import numpy as np
 
 from datasets.atomic import atomic_write
 from factors import compiled
+from factors.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,7 @@ def make_executor(workers: int) -> Executor | None:
     whose workers share this process's threads among them (:func:`factors.compiled.in_parallel`
     in each worker would otherwise use every core, ``workers`` times over)."""
     if workers < 1:
-        raise ValueError(f"workers: expected at least 1, got {workers}")
+        raise InputError(f"workers: expected at least 1, got {workers}")
     if workers == 1:
         return None
     share = max(1, compiled.thread_count() // workers)
@@ -91,7 +92,7 @@ def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, 
         try:
             from dask.distributed import Client, as_completed as dask_completed
         except ImportError:
-            raise ValueError("--dask needs the optional dependency: pip install 'boxplus-smoother[dask]'") from None
+            raise InputError("--dask needs the optional dependency: pip install 'boxplus-smoother[dask]'") from None
         with Client(dask_address) as client:
             futures = client.map(run_one, [config] * len(seeds), seeds, pure=False)
             for future in dask_completed(futures):

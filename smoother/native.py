@@ -24,6 +24,7 @@ from gtsam.symbol_shorthand import B, V, X
 from datasets.types import Dataset, Trajectory
 from factors import imu
 from smoother.timeline import estimate_times, imu_steps
+from factors.errors import InputError
 
 
 def combined_params(noise: imu.ImuNoise, gravity) -> gtsam.PreintegrationCombinedParams:
@@ -61,7 +62,7 @@ def solve_native(dataset: Dataset) -> Trajectory:
     """GTSAM's CombinedImuFactor graph of ``dataset`` (pose measurements only) solved with LM;
     the estimates in this project's state convention (body velocity, primer attitude)."""
     if dataset.pose is None:
-        raise ValueError("solve_native needs pose measurements")
+        raise InputError("solve_native needs pose measurements")
     times = estimate_times(dataset)
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()

@@ -15,6 +15,7 @@ from smoother.batch import solve_batch
 from smoother.ekf import run_ekf
 from smoother.fixed_lag import run_fixed_lag
 from smoother.graph import build_problem
+from factors.errors import InputError
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -50,7 +51,7 @@ def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions()) 
     """Run each estimator in ``names`` (a subset of :data:`ESTIMATORS`) on ``dataset``."""
     unknown = [n for n in names if n not in ESTIMATORS]
     if unknown:
-        raise ValueError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
+        raise InputError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
     out: dict[str, Estimate] = {}
     problem, build_s = None, 0.0
     if any(n in ("batch", "fixed-lag") for n in names):

@@ -30,6 +30,7 @@ import numpy as np
 
 from factors import imu
 from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
+from factors.errors import InputError
 
 DIM = imu.STATE_DIM
 METHODS = ("lm", "gn", "dogleg")
@@ -122,7 +123,7 @@ def linearize(blocks: list[Block], states: imu.ImuState) -> tuple[gtsam.Gaussian
     cost = 0.0
     for block in blocks:
         if block.keyframes.shape[1] > 2:
-            raise ValueError(f"block {block.name}: factors on more than two keyframes are not supported")
+            raise InputError(f"block {block.name}: factors on more than two keyframes are not supported")
         # in chunks, so the Jacobians of a long run stay in cache between evaluation and use
         for start in range(0, len(block), LINEARIZE_CHUNK):
             rows = slice(start, min(start + LINEARIZE_CHUNK, len(block)))
@@ -208,7 +209,7 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     Stops when the cost decreases by less than ``absolute_tolerance`` or by less than
     ``relative_tolerance`` of itself, or after ``max_iterations``."""
     if method not in METHODS:
-        raise ValueError(f"method {method!r}: expected one of {', '.join(METHODS)}")
+        raise InputError(f"method {method!r}: expected one of {', '.join(METHODS)}")
     n = len(initial)
     states = initial
     graph, cost = linearize(blocks, states)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.types import Dataset, ImuSamples
+from factors.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -43,13 +44,13 @@ def imu_steps(imu: ImuSamples, knots: np.ndarray) -> Steps:
     """Cut the IMU stream at ``knots`` (sorted, within ``[imu.t[0], imu.t[-1]]``)."""
     knots = np.asarray(knots, dtype=float)
     if not np.all(np.isfinite(knots)):  # a NaN passes every comparison below and yields NaN steps
-        raise ValueError(f"knot times must be finite, got {knots[~np.isfinite(knots)][:3]}")
+        raise InputError(f"knot times must be finite, got {knots[~np.isfinite(knots)][:3]}")
     if knots.size and (knots[0] < imu.t[0] or knots[-1] > imu.t[-1]):
-        raise ValueError(
+        raise InputError(
             f"knot times [{knots[0]}, {knots[-1]}] outside the IMU span [{imu.t[0]}, {imu.t[-1]}]"
         )
     if np.any(np.diff(knots) <= 0):
-        raise ValueError("knot times must increase strictly")
+        raise InputError("knot times must increase strictly")
     bounds = np.union1d(imu.t, knots)
     starts = bounds[:-1]
     sample = np.searchsorted(imu.t, starts, side="right") - 1

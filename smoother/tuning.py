@@ -31,6 +31,7 @@ from datasets.types import Dataset
 from factors.imu import ImuNoise
 from smoother.ekf import FilterDiverged, run_ekf
 from smoother.progress import progress_bar
+from factors.errors import InputError
 
 #: The :class:`factors.imu.ImuNoise` densities that are scaled, in search order.
 TUNED = ("acc", "gyro", "acc_bias", "gyro_bias")
@@ -66,10 +67,10 @@ def tune_noise(dataset: Dataset, step: float = 1.0, min_step: float = 0.25, max_
                min_gain: float = MIN_GAIN, progress: bool | None = None) -> NoiseTuning:
     """Maximum-likelihood factors of the IMU noise densities of ``dataset`` (module docstring)."""
     if all(KINDS[s.kind].relative for s in sensors_of(dataset)):
-        raise ValueError("noise tuning needs measurements the EKF uses (pose, position, GNSS, orientation or "
+        raise InputError("noise tuning needs measurements the EKF uses (pose, position, GNSS, orientation or "
                          "velocity): the likelihood is that of the measurements, and this dataset has none")
     if not (0 < min_step <= step and max_log10 > 0):
-        raise ValueError(f"tune_noise: expected 0 < min_step <= step and max_log10 > 0, got step={step}, "
+        raise InputError(f"tune_noise: expected 0 < min_step <= step and max_log10 > 0, got step={step}, "
                          f"min_step={min_step}, max_log10={max_log10}")
     base = dataset.noise
     active = [name for name in TUNED if getattr(base, name) > 0]

@@ -68,3 +68,17 @@ def test_the_command_line_reports_a_library_error_in_one_line_with_exit_code_2(e
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == f"smoother: error: {str(error).splitlines()[0]}"
     assert not any("Traceback" in line or "GTSAM's own text" in line for line in err)
+
+
+def test_nothing_raises_a_bare_value_error():
+    """Bad input is an ``InputError`` (still a ``ValueError`` for callers that catch that), so a
+    caller can tell the project's errors from NumPy's or GTSAM's by one base class."""
+    bare = []
+    for package in ("factors", "datasets", "smoother"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Raise) and node.exc is not None:
+                    call = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+                    if isinstance(call, ast.Name) and call.id == "ValueError":
+                        bare.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert bare == []

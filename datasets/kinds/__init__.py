@@ -28,6 +28,7 @@ from datasets.kinds import odometry, orientation, pose, position, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.types import Dataset, Sensor
 from factors import sensor_models as sm
+from factors.errors import InputError
 
 __all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "kind_sigmas", "measure_into", "measure_rows",
            "model_index", "quiet_dispatch", "sensors_of"]
@@ -98,12 +99,12 @@ def sensors_of(dataset: Dataset) -> list[Sensor]:
     names = [s.name for s in out]
     for s in out:
         if s.kind not in KINDS:
-            raise ValueError(f"sensor {s.name!r}: unknown kind {s.kind!r}; expected one of {', '.join(KINDS)}")
+            raise InputError(f"sensor {s.name!r}: unknown kind {s.kind!r}; expected one of {', '.join(KINDS)}")
         expected = KINDS[s.kind].data_type
         for part in (s.data, s.heldout):
             if part is not None and not isinstance(part, expected):
-                raise ValueError(f"sensor {s.name!r} of kind {s.kind!r}: expected {expected.__name__}, "
+                raise InputError(f"sensor {s.name!r} of kind {s.kind!r}: expected {expected.__name__}, "
                                  f"got {type(part).__name__}")
         if names.count(s.name) > 1:
-            raise ValueError(f"sensor name {s.name!r} is used twice")
+            raise InputError(f"sensor name {s.name!r} is used twice")
     return out

@@ -14,6 +14,7 @@ from typing import Callable
 import numpy as np
 
 from factors import sensor_models as sm
+from factors.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,7 @@ def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
         s = np.repeat(s, 3)
     if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
         expected = f"1 or {dim} numbers > 0" + (" (or translation and rotation)" if dim == 6 else "")
-        raise ValueError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
+        raise InputError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
     return s
 
 
@@ -76,7 +77,7 @@ def noise(sensor, dim: int, cov, n: int) -> np.ndarray:
     if sensor.sigma is not None:
         return np.broadcast_to(np.diag(kind_sigmas("sigma", sensor.sigma, dim) ** 2), (n, dim, dim)).copy()
     if cov is None or not np.all(np.isfinite(cov)):
-        raise ValueError(f"its messages carry no covariance{'' if cov is None else ' in every message'}; "
+        raise InputError(f"its messages carry no covariance{'' if cov is None else ' in every message'}; "
                          "give the sensor's sigma in the rig file")
     return np.asarray(cov)[:, :dim, :dim]
 

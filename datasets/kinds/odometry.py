@@ -9,6 +9,7 @@ from datasets.kinds.base import Kind, noise, noisy, poses
 from datasets.types import RelativePoseMeasurements
 from factors import so3
 from factors import sensor_models as sm
+from factors.errors import InputError
 
 
 def _relative(t, r, C, cov, T_BS):
@@ -29,7 +30,7 @@ def _read(sensor, clock):
     """Needs the rig's ``sigma``: a drifting source's pose covariances grow with the path and say
     nothing of one step."""
     if sensor.sigma is None:
-        raise ValueError("give sigma in the rig file, the noise of one step between consecutive poses "
+        raise InputError("give sigma in the rig file, the noise of one step between consecutive poses "
                          "(translation [m], rotation [rad])")
     stream, t = poses(sensor, clock)
     return _relative(t, stream.position, stream.C, noise(sensor, 6, None, len(t) - 1), sensor.T_BS), clock.datum
