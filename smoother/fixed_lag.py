@@ -339,10 +339,10 @@ class KeyframeWindow:
         return self._times[k]
 
     def leaving(self, t_next: float) -> list[int]:
-        """The window keyframes (newest excepted) that an update at ``t_next`` marginalises: older
-        than ``t_next`` minus the lag, within :data:`_LAG_MARGIN_S`."""
+        """The window keyframes (the newest too, after a gap longer than the lag) that an update
+        at ``t_next`` marginalises: older than ``t_next`` minus the lag, within :data:`_LAG_MARGIN_S`."""
         boundary = t_next - self.lag_s + _LAG_MARGIN_S
-        return [j for j in range(self.first, self.newest) if self._times[j] < boundary]
+        return [j for j in range(self.first, self.newest + 1) if self._times[j] < boundary]
 
     def taken(self, keyframes) -> None:
         """Record that the estimates of ``keyframes`` were read after the last update."""
@@ -437,13 +437,12 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", cov
             # it: take them for the keyframes that the next update marginalises and the newest,
             # not for the whole window at every update. The covariances still need every window
             # state (their linearisation point).
-            leaving = window.leaving(problem.times[k + 1]) if k + 1 < n else []
-            for j in (range(first, k) if covariances else leaving):
+            taken = sorted(set(window.leaving(problem.times[k + 1]) if k + 1 < n else []) | {k})
+            for j in (range(first, k) if covariances else taken[:-1]):
                 _put(lagged, j, window.state(j))
             _put(lagged, k, newest_state)
-            window.taken(leaving + [k])
+            window.taken(taken)
             if covariances:
-                taken = leaving + [k]
                 lagged_cov[taken] = window_covariances(problem.blocks, window.smoother, window.estimate, first,
                                                        lagged[first:k + 1], window.rows_of, [j - first for j in taken])
                 newest_cov[k] = lagged_cov[k]

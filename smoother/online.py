@@ -440,7 +440,7 @@ class OnlineSmoother:
                                             noise_model(item.spec.cov[item.row], setup.robust)))
             oldest.append(min(at))
             used.append(item)
-        leaving = self._read(window.leaving(t) if k else [])
+        leaving = self._read(window.leaving(t))
         window.update(t, factors, guess, oldest)
         self._hand_over([e for j, e in leaving if j < window.first])  # read in time: they have left
         done = time.perf_counter()
