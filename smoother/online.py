@@ -31,7 +31,10 @@ marginalises it (older than the new keyframe's time minus ``lag_s``), handed to 
 or queued for :meth:`OnlineSmoother.smoothed`; :meth:`OnlineSmoother.finish` makes the pending
 keyframes and hands over the rest of the window.
 
-No silent failures: besides the dropped measurements, a warning when measurements are further
+A relative measurement (odometry) whose earlier time is no keyframe in the window (it is older
+than the lag) is skipped: counted per sensor in ``skipped``, with a warning at the first.
+
+No silent failures: besides the dropped and skipped measurements, a warning when measurements are further
 apart than the lag (:func:`smoother.fixed_lag.sparse_measurement_warning`: keyframes then leave
 the window before the next measurement reaches them).
 
@@ -46,12 +49,14 @@ import time
 import warnings
 from dataclasses import dataclass, fields
 
+import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset, ImuSamples, Sensor, Trajectory
 from factors import imu, preintegration
 from factors import measurements as meas
+from factors.chart import state_covariance_to_primer
 from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
 from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning, window_covariances
@@ -137,6 +142,8 @@ class OnlineSmoother:
         self.reintegration_threshold = reintegration_threshold
         #: measurements dropped for arriving too late, per sensor
         self.dropped: dict[str, int] = {}
+        #: relative measurements skipped because their earlier time has left the window, per sensor
+        self.skipped: dict[str, int] = {}
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
         self.latency_s: list[float] = []
         #: the longest time between measurements seen so far [s] (the start counts as one)
@@ -265,9 +272,11 @@ class OnlineSmoother:
         arrived = time.perf_counter()
         for m, times in enumerate(stamps):
             latest = float(times.max())
-            if self._last_t is not None and (latest <= self._last_t or any(
-                    x <= self._last_t and x not in self._keyframe_t for x in times)):
+            if self._last_t is not None and latest <= self._last_t:
                 self._drop(sensor)
+                continue
+            if self._last_t is not None and any(x <= self._last_t and x not in self._keyframe_t for x in times):
+                self._skip(sensor)
                 continue
             self._seq += 1
             heapq.heappush(self._pending, _Pending(latest, sensor, tuple(float(x) for x in times), self._seq, spec, m,
@@ -382,6 +391,14 @@ class OnlineSmoother:
                           f"processed (more than max_delay_s = {self.max_delay_s:g} s behind the IMU) and was "
                           "dropped; the smoother counts such drops in .dropped", stacklevel=4)
 
+    def _skip(self, sensor: str) -> None:
+        first = sensor not in self.skipped
+        self.skipped[sensor] = self.skipped.get(sensor, 0) + 1
+        if first:
+            warnings.warn(f"online smoother: a measurement of {sensor!r} refers to a time that has left the window "
+                          f"(older than the lag, {self.lag_s:g} s, or no keyframe) and was skipped; the smoother "
+                          "counts such measurements in .skipped", stacklevel=4)
+
     def _next_grid(self, horizon: float) -> None:
         """The grid keyframes up to ``horizon``, except those within half an IMU interval of
         another keyframe."""
@@ -468,9 +485,20 @@ class OnlineSmoother:
                 warnings.warn(text, stacklevel=5)
 
     def _keyframe_covariances(self, wanted: list[int]) -> np.ndarray:
-        """The 15x15 marginal covariances of window keyframes ``wanted`` from the smoother's
-        factors (:func:`smoother.fixed_lag.window_covariances`, every factor linearised by GTSAM)."""
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
+        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
+        four variables, at its linearisation point; the newest keyframes sit at the root, so this
+        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
+        smoother's factors linearised by GTSAM (:func:`smoother.fixed_lag.window_covariances`)."""
         window = self._window
+        if self.kind == "incremental":
+            isam = window.smoother.getISAM2()
+            out = []
+            for j in wanted:
+                keys = keyframe_keys(j)
+                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+                out.append(state_covariance_to_primer(joint, window.estimate.atRot3(keys.rot)))
+            return np.stack(out)
         states = imu.ImuState.stack([window.state(j) for j in range(window.first, window.newest + 1)])
         return window_covariances([], window.smoother, window.estimate, window.first, states, {},
                                   [j - window.first for j in wanted])
@@ -499,13 +527,15 @@ class ReplayResult:
     """A dataset replayed through an :class:`OnlineSmoother`: ``smoothed``, each keyframe's
     estimate (and covariance) as it left the window; ``update_s`` the wall time of each update;
     ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
-    with ``realtime``); ``dropped`` late measurements per sensor; ``recovered`` keyframes that
+    with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
+    beyond the window, per sensor; ``recovered`` keyframes that
     needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay."""
 
     smoothed: Trajectory
     update_s: np.ndarray
     latency_s: np.ndarray
     dropped: dict
+    skipped: dict
     recovered: list
     longest_gap_s: float
     runtime_s: float
@@ -570,4 +600,4 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "incremental", keyf
     trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
                             np.stack([e.cov for e in smoothed]) if covariances else None)
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
-                        online.recovered, online.longest_gap_s, time.perf_counter() - start)
+                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - start)
