@@ -45,6 +45,7 @@ arrival to the update that used it.
 from __future__ import annotations
 
 import heapq
+import math
 import time
 import warnings
 from dataclasses import dataclass, fields
@@ -80,7 +81,7 @@ class SensorSetup:
     robust: tuple | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class OnlineEstimate:
     """A state at time ``t`` with its 15x15 covariance ``cov`` (None when the smoother computes
     no covariances)."""
@@ -162,13 +163,15 @@ class OnlineSmoother:
         self._gyro = np.empty((1024, 3))
         self._n = 0
         self._t0 = None
-        self._grid_next = 0  # the next grid index m of t0 + m / rate
+        self._grid_next = 0  # the index m of the next grid time t0 + m / rate
+        self._grid_t = np.inf  # that time (inf: no grid)
         self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
         self._last_t = None  # the newest keyframe's time
         self._last_measured_t = None
         # the IMU-rate prediction from the newest keyframe: state, covariance, time reached and the
         # sample held there
-        self._pred = None
+        self._pred = None  # (r, v, C, b_f, b_w) flat, 21 numbers
+        self._pred_parts = None
         self._pred_cov = None
         self._pred_t = None
         self._pred_held = 0
@@ -203,6 +206,35 @@ class OnlineSmoother:
         increasing time after every sample before. Makes the keyframes the stream has passed by
         ``max_delay_s``."""
         self._open()
+        n = self._n
+        if np.ndim(t) == 0 and np.shape(acc) == (3,) and np.shape(gyro) == (3,):  # one sample: kept lean
+            t = float(t)
+            if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
+                    and (n == 0 or t > self._t[n - 1])):
+                self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
+            if n == len(self._t):
+                self._grow(1)
+                n = self._n
+            self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
+            self._n = n + 1
+        else:
+            t, acc, gyro = self._checked_imu(t, acc, gyro)
+            if n + t.size > len(self._t):
+                self._grow(t.size)
+                n = self._n
+            self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
+            self._n = n + t.size
+        if self._t0 is None:
+            self._t0 = float(self._t[0])
+            self._grid_t = self._t0 if self.keyframe_rate else np.inf
+            self._ask(self._t0)
+        horizon = self._t[self._n - 1] - self.max_delay_s
+        if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
+            self._make_keyframes(horizon)
+
+    def _checked_imu(self, t, acc, gyro):
+        """IMU samples as arrays ``t (N,)``, ``acc, gyro (N, 3)``, or a ValueError naming the
+        argument that is wrong."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         acc = np.asarray(acc, dtype=float).reshape(-1, 3) if np.size(acc) == 3 * t.size else np.asarray(acc)
         gyro = np.asarray(gyro, dtype=float).reshape(-1, 3) if np.size(gyro) == 3 * t.size else np.asarray(gyro)
@@ -216,15 +248,7 @@ class OnlineSmoother:
             bad = t[0] if t[0] <= previous else t[1:][np.diff(t) <= 0][0]
             raise ValueError(f"add_imu: t: IMU samples must come in strictly increasing time; got t = {bad!r} "
                              f"after {previous if t[0] <= previous else t[np.argmax(np.diff(t) <= 0)]!r}")
-        self._grow(t.size)
-        self._t[self._n:self._n + t.size] = t
-        self._acc[self._n:self._n + t.size] = acc
-        self._gyro[self._n:self._n + t.size] = gyro
-        self._n += t.size
-        if self._t0 is None:
-            self._t0 = float(t[0])
-            self._ask(self._t0)
-        self._make_keyframes(self._t[self._n - 1] - self.max_delay_s)
+        return t, acc, gyro
 
     def add(self, sensor: str, t, *values, cov=None) -> None:
         """Measurements of ``sensor`` (a name of ``sensors``, or a kind's name for a sensor at the
@@ -316,14 +340,13 @@ class OnlineSmoother:
             raise ValueError("estimate: no keyframe yet (feed IMU samples first)")
         n, held = self._n, self._pred_held
         if n - 1 > held:
-            dt = np.diff(self._t[held:n])
-            dt[0] = self._t[held + 1] - self._pred_t
-            r, v, C, b_f, b_w = self._pred
-            imu.predict_into(r, v, C, b_f, b_w, self._pred_cov, self._acc[held:n - 1], self._gyro[held:n - 1], dt,
+            t = self._t
+            dt = t[held + 1:n] - t[held:n - 1]
+            dt[0] = t[held + 1] - self._pred_t
+            imu.predict_into(*self._pred_parts, self._pred_cov, self._acc[held:n - 1], self._gyro[held:n - 1], dt,
                              self._q, self.gravity)
-            self._pred_t, self._pred_held = float(self._t[n - 1]), n - 1
-        r, v, C, b_f, b_w = self._pred
-        return OnlineEstimate(self._pred_t, imu.ImuState(r.copy(), v.copy(), C.copy(), b_f.copy(), b_w.copy()),
+            self._pred_t, self._pred_held = float(t[n - 1]), n - 1
+        return OnlineEstimate(self._pred_t, imu.ImuState.of_flat(self._pred.copy()),
                               self._pred_cov.copy() if self.covariances else None)
 
     def smoothed(self):
@@ -362,11 +385,11 @@ class OnlineSmoother:
         return max(int(np.searchsorted(self._t[:self._n], t, side="right")) - 1, 0)
 
     def _grow(self, extra: int) -> None:
-        """Room for ``extra`` more samples; when the arrays are half used, those before the
-        sample held at the newest keyframe (which neither the next IMU factor nor the prediction
-        needs) are let go."""
+        """Room for ``extra`` more samples: those before the sample held at the newest keyframe
+        (which neither the next IMU factor nor the prediction needs) are let go, and the arrays
+        doubled if that is not enough."""
         base = self._held_at(self._last_t) if self._last_t is not None else 0
-        if base and (base > len(self._t) // 2 or self._n + extra > len(self._t)):
+        if base:
             keep = self._n - base
             for a in (self._t, self._acc, self._gyro):
                 a[:keep] = a[base:self._n]
@@ -400,15 +423,12 @@ class OnlineSmoother:
                           "counts such measurements in .skipped", stacklevel=4)
 
     def _next_grid(self, horizon: float) -> None:
-        """The grid keyframes up to ``horizon``, except those within half an IMU interval of
-        another keyframe."""
-        if not self.keyframe_rate or self._t0 is None:
-            return
-        while True:
-            g = self._t0 + self._grid_next / self.keyframe_rate
-            if g > horizon:
-                return
+        """Ask for the grid keyframes up to ``horizon``, except those within half an IMU
+        interval of another keyframe."""
+        while self._grid_t <= horizon:
+            g = self._grid_t
             self._grid_next += 1
+            self._grid_t = self._t0 + self._grid_next / self.keyframe_rate
             step = 0.5 * (self._t[self._n - 1] - self._t[self._n - 2]) if self._n > 1 else 0.0
             near = [x for x in self._knots if abs(x - g) < step]
             if not near and (self._last_t is None or g - self._last_t >= step):
@@ -471,7 +491,9 @@ class OnlineSmoother:
             self._last_measured_t = t
         cov = self._keyframe_covariances([k])[0] if self.covariances else np.zeros((imu.STATE_DIM, imu.STATE_DIM))
         s = window.newest_state
-        self._pred = tuple(np.array(a, dtype=float) for a in (s.r, s.v, s.C, s.b_f, s.b_w))
+        self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
+        x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
+        self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
         self._pred_cov = np.array(cov)
         self._pred_t, self._pred_held = t, self._held_at(t)
 
