@@ -407,20 +407,21 @@ class OnlineSmoother:
             heapq.heappush(self._knots, t)
 
     def _drop(self, sensor: str) -> None:
-        first = sensor not in self.dropped
-        self.dropped[sensor] = self.dropped.get(sensor, 0) + 1
-        if first:
-            warnings.warn(f"online smoother: a measurement of {sensor!r} arrived after its keyframe time had been "
-                          f"processed (more than max_delay_s = {self.max_delay_s:g} s behind the IMU) and was "
-                          "dropped; the smoother counts such drops in .dropped", stacklevel=4)
+        self._count(self.dropped, sensor, f"arrived after its keyframe time had been processed (more than "
+                                          f"max_delay_s = {self.max_delay_s:g} s behind the IMU) and was dropped",
+                    "dropped")
 
     def _skip(self, sensor: str) -> None:
-        first = sensor not in self.skipped
-        self.skipped[sensor] = self.skipped.get(sensor, 0) + 1
-        if first:
-            warnings.warn(f"online smoother: a measurement of {sensor!r} refers to a time that has left the window "
-                          f"(older than the lag, {self.lag_s:g} s, or no keyframe) and was skipped; the smoother "
-                          "counts such measurements in .skipped", stacklevel=4)
+        self._count(self.skipped, sensor, f"refers to a time that has left the window (older than the lag, "
+                                          f"{self.lag_s:g} s, or no keyframe) and was skipped", "skipped")
+
+    @staticmethod
+    def _count(counts: dict, sensor: str, what: str, attribute: str) -> None:
+        """Count one measurement of ``sensor`` in ``counts``, with a warning at its first."""
+        counts[sensor] = counts.get(sensor, 0) + 1
+        if counts[sensor] == 1:
+            warnings.warn(f"online smoother: a measurement of {sensor!r} {what}; the smoother counts such "
+                          f"measurements in .{attribute}", stacklevel=5)
 
     def _next_grid(self, horizon: float) -> None:
         """Ask for the grid keyframes up to ``horizon``, except those within half an IMU

@@ -176,3 +176,57 @@ def test_bad_input_is_refused_with_one_clear_error(gentle):
     with pytest.raises(ValueError, match="max_delay_s must be >= 0"):
         _smoother(data, max_delay_s=-1.0)
     assert [s.name for s in sensors_of(data)] == ["pose"]
+
+
+def test_a_rig_gives_its_sensors_their_extrinsic_time_offset_and_sigma(gentle, tmp_path):
+    """``OnlineSmoother.from_rig``: a pose sensor 0.3 m along the IMU's x axis, 0.25 s late on the
+    IMU clock, with sigmas in the rig and none in the stream; fed its own stamps, sensor-frame
+    poses and no covariance it gives the estimates of a smoother told the extrinsic and sigmas
+    directly and fed the IMU-clock stamps."""
+    from datasets.rig import ImuConfig, Rig, SensorConfig
+    from datasets.types import PoseMeasurements
+
+    data = cases.dataset(gentle)
+    T_BS = np.eye(4)
+    T_BS[0, 3] = 0.3
+    sigma = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005])
+    rig = Rig(tmp_path / "rig.toml", ImuConfig("csv:imu.csv", None, data.noise, float(-data.gravity[2])), None,
+              (SensorConfig("cam", "pose", "csv:cam.csv", None, T_BS, 0.25, sigma, 1, None),))
+    pose = data.pose
+    sensor_position = pose.position + np.einsum("nab,b->na", pose.C, T_BS[:3, 3])
+    from_rig = OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=LAG)
+    direct = _smoother(data, sensors={"cam": SensorSetup("pose", T_BS)})
+    direct.add_measurements("cam", PoseMeasurements(pose.t, sensor_position, pose.C,
+                                                    np.broadcast_to(np.diag(sigma**2), (len(pose), 6, 6)), T_BS))
+    stamps = pose.t - 0.25
+    from_rig.add("cam", stamps, sensor_position, pose.C)
+    for online in (from_rig, direct):
+        online.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
+        online.finish()
+    a, b = list(from_rig.smoothed()), list(direct.smoothed())
+    np.testing.assert_allclose([e.t for e in a], [e.t for e in b], rtol=0, atol=1e-12)
+    assert len(a) == len(pose)  # the measurements' keyframes (the first at the start)
+    for x, y in zip(a, b):
+        for name in NAMES:
+            np.testing.assert_allclose(getattr(x.state, name), getattr(y.state, name), rtol=0, atol=1e-6)
+
+
+def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counted():
+    """Odometry between keyframes 1 s apart: with a 0.3-s lag its earlier keyframe has left the
+    window when it arrives, so it is skipped, counted and warned of; with a 2-s lag every one is
+    used, and the estimates are the offline smoother's (within 5e-3 sigma)."""
+    from datasets.simulate import simulate
+
+    data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
+                    relative_pose_rate=1.0)
+    assert len(data.relative_pose) == 2
+    with pytest.warns(UserWarning, match="'relative_pose' refers to a time that has left the window"):
+        short = replay(data, 0.3, covariances=False, progress=False)
+    assert short.skipped == {"relative_pose": 2} and short.dropped == {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        long = replay(data, 2.0, covariances=False, progress=False)
+    assert long.skipped == {}
+    offline = run_fixed_lag(build_problem(data), 2.0, covariances=True, progress=False).lagged
+    np.testing.assert_array_equal(long.smoothed.t, offline.t)
+    assert cases.sigma_difference(long.smoothed.states, offline.states, offline.cov).max() < 5e-3
