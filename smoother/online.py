@@ -54,7 +54,7 @@ import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, sensors_of
-from datasets.types import Dataset, ImuSamples, Sensor, Trajectory
+from datasets.types import Dataset, Sensor, Trajectory
 from factors import imu, preintegration
 from factors import measurements as meas
 from factors.chart import state_covariance_to_primer
@@ -63,7 +63,7 @@ from factors.keys import keyframe_keys
 from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning, window_covariances
 from smoother.graph import measurement_spec, noise_model
 from smoother.progress import progress_bar
-from smoother.timeline import estimate_times, imu_steps
+from smoother.timeline import estimate_times, steps_between
 
 
 @dataclass(frozen=True)
@@ -458,10 +458,12 @@ class OnlineSmoother:
         else:
             lo = self._held_at(self._last_t)
             hi = int(np.searchsorted(self._t[:self._n], t, side="left")) + 1
-            steps = imu_steps(ImuSamples(self._t[lo:hi], self._acc[lo:hi], self._gyro[lo:hi]), [self._last_t, t])
+            steps = steps_between(self._t[lo:hi], self._acc[lo:hi], self._gyro[lo:hi], [self._last_t, t])
             start = window.newest_state
-            pre, _ = preintegration.integrate_with_covariance(steps.segments(), start, self.noise, self.gravity)
-            imu_factor = ImuFactor(pre[0], keyframe_keys(k - 1), keys, self.gravity,
+            a, b = steps.knot_step  # the steps from the newest keyframe to t
+            pre = preintegration.integrate_interval(steps.acc[a:b], steps.gyro[a:b], steps.dt[a:b], start, self.noise,
+                                                    self.gravity)
+            imu_factor = ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
                                    reintegration_threshold=self.reintegration_threshold)
             guess = imu_factor.predict(start)
             factors, oldest = [imu_factor.factor], [k - 1]
