@@ -1,12 +1,16 @@
 """Fixed-lag smoothing on GTSAM's ``BatchFixedLagSmoother`` / ``IncrementalFixedLagSmoother``.
 
-The factors of a :class:`smoother.graph.Problem` are made and fed keyframe by keyframe
-(``Problem.keyframe_factors``), in time order, each with the keyframe's time stamp; variables older
-than the lag (seconds) are marginalised by GTSAM, and the loop lets go of the factors GTSAM has
-marginalised, so what a run holds of the graph stays the size of the window however long it is.
-The new keyframe's initial value is the IMU prediction from the smoother's current estimate of
-the previous keyframe. After every update the newest state's estimate and, if asked,
-its 15x15 covariance (primer convention) are recorded; the smoothed window is returned at the end.
+One update loop, :class:`KeyframeWindow`, takes keyframes one at a time, in time order, each with
+its time stamp and its factors; variables older than the lag (seconds) are marginalised by GTSAM,
+and the loop lets go of the factors GTSAM has marginalised, so what a run holds of the graph stays
+the size of the window however long it is. Two things feed it: :func:`run_fixed_lag`, the factors
+of a whole :class:`smoother.graph.Problem` keyframe by keyframe (``Problem.keyframe_factors``), and
+:class:`smoother.online.OnlineSmoother`, keyframes made as IMU samples and measurements arrive
+(what ``smoother run --estimator fixed-lag`` replays a dataset through). The new keyframe's
+initial value is the IMU prediction from the smoother's current estimate of the previous
+keyframe. :func:`run_fixed_lag` records after every update the newest state's estimate and, if
+asked, its 15x15 covariance (primer convention); each keyframe's estimate as it leaves the window;
+and the smoothed window at the end.
 
 GTSAM pitfalls handled here:
 
@@ -26,10 +30,12 @@ GTSAM pitfalls handled here:
   instead of a bare GTSAM exception;
 * ISAM2 relinearises at every update (:func:`_make_smoother`), so that a measurement's
   correction reaches the states' linearisation before they leave the window;
-* the ``BatchFixedLagSmoother`` keeps the state at its window's edge linearised where it first
-  was (its ``enforceConsistency``, which the Python wrapper cannot turn off) and drifts off when
-  measurements are further apart than the lag: a warning says so. The incremental kind is the
-  default.
+* measurements further apart than the lag leave keyframes with their dead-reckoned estimates
+  (they leave the window before the next measurement reaches them), and the
+  ``BatchFixedLagSmoother``, which keeps the state at its window's edge linearised where it first
+  was (its ``enforceConsistency``, which the Python wrapper cannot turn off), drifts off besides:
+  a warning says so for either kind (:func:`sparse_measurement_warning`). The incremental kind is
+  the default.
 """
 from __future__ import annotations
 
