@@ -318,12 +318,16 @@ class OnlineSmoother:
                 self._ask(float(x))
 
     def finish(self) -> None:
-        """End of the streams: make every keyframe up to the last IMU sample, then hand over the
-        whole window (each keyframe as smoothed as it gets); a warning if the data ended further
-        from the last measurement than the lag. Nothing can be added afterwards."""
+        """End of the streams: make every keyframe up to the last IMU sample and one there (the
+        end of the data), then hand over the whole window (each keyframe as smoothed as it gets);
+        a warning if the data ended further from the last measurement than the lag. Nothing can
+        be added afterwards."""
         self._open()
         if self._n:
-            self._make_keyframes(self._t[self._n - 1])
+            end = float(self._t[self._n - 1])
+            if self._last_t is None or end > self._last_t:
+                self._ask(end)
+            self._make_keyframes(end)
         if self._last_t is not None and self._last_measured_t is not None:
             self._gap(self._last_t)
         if self._window.newest >= 0:

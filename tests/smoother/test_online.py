@@ -230,3 +230,19 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
     offline = run_fixed_lag(build_problem(data), 2.0, covariances=True, progress=False).lagged
     np.testing.assert_array_equal(long.smoothed.t, offline.t)
     assert cases.sigma_difference(long.smoothed.states, offline.states, offline.cov).max() < 5e-3
+
+
+def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
+    """With ``keyframe_rate`` and no keyframe asked for, the keyframes are those of the offline
+    graph with the same rate (``estimate_times``: the measurement times, the grid, the start and
+    the end of the data)."""
+    data = cases.dataset(gentle)
+    online = _smoother(data, keyframe_rate=25.0)
+    for i, t in enumerate(data.imu.t):
+        hit = np.flatnonzero(data.pose.t == t)
+        if hit.size:
+            m = int(hit[0])
+            online.add("pose", t, data.pose.position[m], data.pose.C[m], cov=data.pose.cov[m])
+        online.add_imu(t, data.imu.acc[i], data.imu.gyro[i])
+    online.finish()
+    np.testing.assert_array_equal([e.t for e in online.smoothed()], estimate_times(data, 25.0))
