@@ -1,6 +1,6 @@
 """Errors of the dataset loaders, and the small text-parsing helpers that raise them.
 
-Every malformed input becomes one :class:`DataError` (a ``ValueError``) whose message names the
+Every malformed input becomes one :class:`DataError` (an ``InputError``, so a ``ValueError``) whose message names the
 file, the 1-based line, the field, what was found and what was expected, e.g.::
 
     /data/imu.txt, line 12, field 'accelY': found 'nan'; expected a finite number
@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from factors.errors import InputError
+
 #: Found values longer than this are shortened in messages (fuzzed input can be huge).
 _MAX_SHOWN = 60
 
@@ -30,11 +32,13 @@ def _shown(found) -> str:
     return text
 
 
-class DataError(ValueError):
-    """Malformed input data. ``path``, ``line`` (1-based, or None for the file as a whole),
-    ``field`` (or None), ``found`` and ``expected`` are kept as attributes."""
+class DataError(InputError):
+    """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``). ``path``, ``line`` (1-based, or None for the file as a whole),
+    ``field`` (or None), ``found`` and ``expected`` are kept as attributes. ``found`` is shortened
+    to :data:`_MAX_SHOWN` characters (it may be a whole fuzzed line) unless ``whole``: a text the
+    loader composed from parsed values, which must stay readable to the last digit."""
 
-    def __init__(self, path, line: int | None, field: str | None, found, expected: str):
+    def __init__(self, path, line: int | None, field: str | None, found, expected: str, whole: bool = False):
         self.path = str(path)
         self.line = line
         self.field = field
@@ -45,7 +49,7 @@ class DataError(ValueError):
             where += f", line {line}"
         if field is not None:
             where += f", field '{field}'"
-        super().__init__(f"{where}: found {_shown(found)}; expected {expected}")
+        super().__init__(f"{where}: found {found if whole else _shown(found)}; expected {expected}")
 
 
 #: What ends a line in a text file: LF, CR LF or a lone CR. Not the other characters that
@@ -134,20 +138,21 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
     return out, ints
 
 
-def check_increasing(path, t: np.ndarray, lines, field: str) -> None:
-    """Raise a :class:`DataError` at the first time stamp that does not increase strictly."""
+def check_increasing(path, t: np.ndarray, lines, field: str, duplicates: bool = False) -> None:
+    """Raise a :class:`DataError` at the first time stamp that does not increase strictly (with
+    ``duplicates``: that decreases; a stamp equal to the one before passes)."""
     t = np.asarray(t)
     if t.size < 2:
         return
     step = np.diff(t)
-    bad = np.flatnonzero(step <= 0)
+    bad = np.flatnonzero(step < 0 if duplicates else step <= 0)
     if bad.size:
         i = int(bad[0]) + 1
         what = "a duplicate of" if step[i - 1] == 0 else "earlier than"
         show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))  # noqa: E731
         raise DataError(
             path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} ({show(t[i - 1])})",
-            "strictly increasing time stamps",
+            "increasing time stamps" if duplicates else "strictly increasing time stamps", whole=True,
         )
 
 
@@ -233,3 +238,16 @@ def require_rows(path, rows, n_lines: int, minimum: int, what: str) -> None:
         found = "an empty file" if n_lines == 0 else f"{len(rows)} data line{'s' if len(rows) != 1 else ''}"
         raise DataError(path, max(n_lines, 1) if len(rows) == 0 else rows[-1][0], None, found,
                         f"at least {minimum} {what}")
+
+
+def duplicate_stamps(path, t: np.ndarray, lines) -> str | None:
+    """None when the (non-decreasing) stamps ``t`` are all different, else one sentence naming the
+    file, how many stamps repeat the one before and the first of them with its line, stamps whole."""
+    t = np.asarray(t)
+    repeated = np.flatnonzero(np.diff(t) == 0) + 1 if t.size > 1 else np.zeros(0, dtype=int)
+    if repeated.size == 0:
+        return None
+    i = int(repeated[0])
+    show = int(t[i]) if np.issubdtype(t.dtype, np.integer) else repr(float(t[i]))
+    return (f"{path}: {repeated.size} time stamp(s) equal to the one before, the first at line {int(lines[i])} "
+            f"({show}, as line {int(lines[i - 1])})")

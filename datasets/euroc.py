@@ -137,9 +137,10 @@ def _normalise(name: str) -> str:
     return re.sub(r"\[[^\]]*\]", "", name).replace(" ", "").replace("\t", "").lower()
 
 
-def _read_asl_csv(path, columns: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _read_asl_csv(path, columns: list[str], duplicates: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read an ASL CSV file; returns (int64 stamps, float values of the other columns in the
-    order of ``columns[1:]``, 1-based line numbers)."""
+    order of ``columns[1:]``, 1-based line numbers). With ``duplicates`` a stamp may equal the one
+    before."""
     path = Path(path)
     lines = read_lines(path)
     first = next((i for i, text in enumerate(lines) if text.strip()), None)
@@ -177,7 +178,7 @@ def _read_asl_csv(path, columns: list[str]) -> tuple[np.ndarray, np.ndarray, np.
     if fast is not None and len(fast[1]) >= 2:  # every data line a plain row: NumPy's C parser
         values, stamps = fast
         line_numbers = np.array([line for line, _ in numbered], dtype=np.int64)
-        check_increasing(path, stamps, line_numbers, columns[0] + " [ns]")
+        check_increasing(path, stamps, line_numbers, columns[0] + " [ns]", duplicates)
         return stamps, values[:, order], line_numbers
     stamps, values, line_numbers = [], [], []
     for index in range(start, len(lines)):
@@ -201,7 +202,7 @@ def _read_asl_csv(path, columns: list[str]) -> tuple[np.ndarray, np.ndarray, np.
         found = "no data lines" if not stamps else "1 data line"
         raise DataError(path, len(lines), None, found, "at least 2 data lines")
     stamps, line_numbers = np.array(stamps, dtype=np.int64), np.array(line_numbers)
-    check_increasing(path, stamps, line_numbers, columns[0] + " [ns]")
+    check_increasing(path, stamps, line_numbers, columns[0] + " [ns]", duplicates)
     return stamps, np.array(values, dtype=float), line_numbers
 
 
@@ -228,6 +229,17 @@ def read_groundtruth_csv(path) -> GroundTruthCsv:
     stamps, values, lines = _read_asl_csv(path, GROUNDTRUTH_COLUMNS)
     q = check_unit_quaternions(path, values[:, 3:7], lines, "q_RS_w q_RS_x q_RS_y q_RS_z", QUATERNION_TOLERANCE)
     return GroundTruthCsv(stamps, values[:, 0:3], q, values[:, 7:10], values[:, 10:13], values[:, 13:16], lines)
+
+
+def read_pose_csv(path, duplicates: bool = False):
+    """The poses of an ASL CSV with at least the columns ``timestamp, p_RS_R_xyz, q_RS_wxyz`` (a
+    ground truth ``state_groundtruth_estimate0/data.csv``, or an estimate written that way), as
+    evo's ``euroc`` mode reads them: ``(t, r, C, lines)`` with ``t`` the nanosecond stamps divided
+    by 1e9 (seconds since the stamps' epoch), the frame ``S`` the file describes. With
+    ``duplicates`` a stamp may equal the one before."""
+    stamps, values, lines = _read_asl_csv(path, GROUNDTRUTH_COLUMNS[:8], duplicates)
+    q = check_unit_quaternions(path, values[:, 3:7], lines, "q_RS_w q_RS_x q_RS_y q_RS_z", QUATERNION_TOLERANCE)
+    return stamps / 1e9, values[:, 0:3], quaternion.to_matrix(q), lines
 
 
 # ------------------------------------------------------------------------------------------

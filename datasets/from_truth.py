@@ -1,6 +1,6 @@
-"""Synthetic measurements drawn from a ground-truth :class:`Trajectory`: pose and position
-(``pose_from_truth``, ``gps_from_truth``) and any kind of sensor with its extrinsic
-(:func:`sensors_from_truth`).
+"""Synthetic pose and position measurements drawn from a ground-truth :class:`Trajectory`
+(``pose_from_truth``, ``gps_from_truth``; any kind of sensor with its extrinsic:
+:mod:`datasets.simulated_sensors`).
 
 The one place where measurements are generated from a truth (EuRoC's ``pose_from_truth`` /
 ``gps_from_truth`` and any dataset with a ground truth use it).
@@ -11,7 +11,7 @@ time) and each tick takes the first truth sample at or after it (a tolerance of 
 median truth step absorbs round-off in the ticks); a truth sample is used at most once. A rate
 above the truth's own rate is refused (it could not be delivered).
 
-Noise, in the primer's convention (DESIGN.md): position ``r_meas = r + n_r``,
+Noise, in the primer's convention (docs/design.md, section 7): position ``r_meas = r + n_r``,
 ``n_r ~ N(0, pos_sigma^2 I)``; attitude ``C_meas = exp(n) C``, ``n ~ N(0, rot_sigma^2 I)`` in WORLD
 coordinates (the left perturbation of eq. 63). The covariance stored with the measurements is
 exactly that of the noise drawn. ``seed`` is anything ``numpy.random.default_rng`` accepts; the
@@ -21,11 +21,9 @@ same position noise twice: GPS fixes perfectly correlated with the pose sensor's
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from datasets.types import ImuSamples, PoseMeasurements, PositionMeasurements, Sensor, Trajectory
+from datasets.types import PoseMeasurements, PositionMeasurements, Trajectory
 from factors import so3
 
 
@@ -102,43 +100,3 @@ def measurements_from_truth(truth: Trajectory, pose_from_truth=None, gps_from_tr
     except ValueError as error:
         raise ValueError(f"gps_from_truth: {error}") from None
     return pose, position
-
-
-@dataclass(frozen=True)
-class SensorSpec:
-    """A simulated sensor: ``name``, ``kind`` (a name of :data:`datasets.kinds.KINDS`), rate
-    [Hz], noise ``sigma`` (one number, one per residual dimension, or for 6-dim kinds the pair
-    ``(translation [m], rotation [rad])``) and extrinsic ``T_BS`` (None: at the IMU)."""
-
-    name: str
-    kind: str
-    rate_hz: float
-    sigma: object
-    T_BS: np.ndarray | None = None
-
-
-def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tuple[Sensor, ...]:
-    """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
-    ``truth`` by its kind's stream (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
-    :func:`measurement_indices` picks them, each sensor with its own noise stream spawned from
-    ``seed`` (an integer or a ``numpy.random.SeedSequence``). ``imu`` gives the gyro readings a velocity sensor's lever arm needs (the sample held
-    at each measurement time)."""
-    from datasets.kinds import KINDS, kind_sigmas
-
-    specs = list(specs)
-    root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
-    streams = root.spawn(len(specs))
-    out = []
-    for spec, stream in zip(specs, streams):
-        if spec.kind not in KINDS:
-            raise ValueError(f"sensor {spec.name!r}: unknown kind {spec.kind!r}; expected one of {', '.join(KINDS)}")
-        kind = KINDS[spec.kind]
-        try:
-            k = measurement_indices(truth.t, spec.rate_hz)
-        except ValueError as error:
-            raise ValueError(f"sensor {spec.name!r}: {error}") from None
-        held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
-        data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
-                             np.random.default_rng(stream))
-        out.append(Sensor(spec.name, spec.kind, data))
-    return tuple(out)

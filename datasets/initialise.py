@@ -96,16 +96,17 @@ def _level(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> np.ndarray:
 
 
 def _travel_direction(sensors: list[Sensor]) -> np.ndarray:
-    """The body-frame direction of travel: a velocity sensor's mean measured direction rotated
-    into the body, else the body x axis."""
+    """The body-frame direction of travel: a velocity sensor's mean measured direction (while
+    faster than 0.5 m/s) rotated into the body, else the body x axis. The IMU may be mounted in
+    any orientation: whether the direction is horizontal is judged in the world frame, by
+    :func:`_heading_from_course`."""
     for s in sensors:
         if s.kind == "velocity" and len(s.data):
             R, _ = extrinsic_parts(s.data.T_BS)
             fast = np.linalg.norm(s.data.velocity, axis=1) > 0.5
             if fast.any():
                 d = R @ s.data.velocity[fast].mean(axis=0)
-                if np.linalg.norm(d[:2]) > 1e-3:
-                    return d / np.linalg.norm(d)
+                return d / np.linalg.norm(d)
     return np.array([1.0, 0.0, 0.0])
 
 
@@ -137,6 +138,11 @@ def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, sensors
     t_mid = 0.5 * (t_a + t_b)
     C_mid = level @ _attitude_change(imu, t_s, t_mid, np.zeros(3))  # heading 0 at t_s
     d_body_world = C_mid @ _travel_direction(sensors)
+    if np.linalg.norm(d_body_world[:2]) < 0.5:  # travelling along the IMU's x axis would go up or down
+        raise InitialisationError(
+            "cannot fix the initial heading from the course over ground: the direction of travel in the IMU frame "
+            "(a velocity sensor's, else the IMU's x axis) is not horizontal; add a velocity sensor (wheel "
+            "odometry) or a pose or orientation sensor")
     yaw = np.arctan2(d_world[1], d_world[0]) - np.arctan2(d_body_world[1], d_body_world[0])
     return so3.exp(np.array([0.0, 0.0, yaw])) @ level
 

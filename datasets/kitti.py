@@ -82,7 +82,7 @@ import numpy as np
 
 from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, read_table, require_rows
 from datasets.types import Dataset, ImuSamples, PositionMeasurements
-from factors import quaternion
+from factors import euler, so3
 from factors.imu import ImuNoise, ImuState
 
 IMU_FILE = "KittiEquivBiasedImu.txt"
@@ -214,6 +214,33 @@ def read_gps(path=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return values[:, 0], values[:, 1:4], line_numbers
 
 
+#: Fields of a KITTI odometry pose file line: the 3x4 matrix ``[R | p]`` row by row.
+POSE_FIELDS = [f"r{i}{j}" for i in range(1, 4) for j in range(1, 5)]
+#: Accepted deviation of a pose file's rotation from orthonormality (files carry 6-9 digits).
+POSE_ROTATION_TOLERANCE = 1e-4
+
+
+def read_pose_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A KITTI odometry pose file (evo's ``kitti`` mode): one pose per line, the 12 numbers of the
+    3x4 matrix ``[C | r]`` row by row, space separated -- the body-to-world rotation and the
+    position, with no time stamp (poses are paired by their line). Returns ``(r, C, lines)``;
+    each ``C`` must be a rotation within :data:`POSE_ROTATION_TOLERANCE` (``|C C^T - I|``,
+    det > 0) and is then projected onto SO(3)."""
+    path = Path(path)
+    lines = read_lines(path)
+    values, line_numbers = read_table(path, lines, POSE_FIELDS, 1, "pose line (12 numbers: a 3x4 matrix by rows)")
+    M = values.reshape(-1, 3, 4)
+    C = M[:, :, :3]
+    error = np.abs(C @ np.swapaxes(C, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((error > POSE_ROTATION_TOLERANCE) | (np.linalg.det(C) <= 0))
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(path, int(line_numbers[i]), "r11 ... r33", f"a matrix {error[i]:.3g} from orthonormal "
+                        f"(det {np.linalg.det(C[i]):.6g})",
+                        f"a rotation (|R R^T - I| <= {POSE_ROTATION_TOLERANCE:g}, det > 0)", whole=True)
+    return M[:, :, 3].copy(), so3.project(C), line_numbers
+
+
 def _initial_state(t_gps: np.ndarray, p_gps: np.ndarray) -> tuple[ImuState, np.ndarray]:
     """Initial state at fix 0 from fixes 0 and 1 (module docstring) and its covariance."""
     v_world = (p_gps[1] - p_gps[0]) / (t_gps[1] - t_gps[0])
@@ -223,7 +250,7 @@ def _initial_state(t_gps: np.ndarray, p_gps: np.ndarray) -> tuple[ImuState, np.n
         yaw = float(np.arctan2(horizontal[1], horizontal[0]))
     else:
         yaw, yaw_sigma = 0.0, np.pi
-    C = quaternion.rpy_to_matrix(np.array([0.0, 0.0, yaw]))
+    C = euler.rpy_to_matrix(np.array([0.0, 0.0, yaw]))
     state = ImuState(r=p_gps[0].copy(), v=C.T @ v_world, C=C, b_f=np.zeros(3), b_w=np.zeros(3))
     sigmas = np.concatenate([
         np.full(3, INITIAL_POSITION_SIGMA), np.full(3, INITIAL_VELOCITY_SIGMA),

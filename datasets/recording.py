@@ -9,15 +9,14 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
   nanoseconds). Inside, times count from the first IMU stamp (``Dataset.time_origin_ns``), so
   float64 keeps sub-microsecond steps; outputs are written in the data's clock again. A sensor's
   ``time_offset`` is added to its stamps first.
-* **Streams per kind**: ``pose`` and ``position`` read poses (a position sensor their positions);
-  ``orientation`` their attitudes; ``odometry`` consecutive poses as relative poses in the
-  earlier pose's frame; ``velocity`` twists (their linear part, the sensor frame's velocity in
-  its own frame); ``gnss`` fixes, in the local ENU frame about the rig's datum (default: the first
-  valid fix), fixes without a position dropped and counted.
+* **Streams per kind**: each kind reads its sensors (:attr:`datasets.kinds.base.Kind.read`):
+  ``pose`` and ``position`` poses (a position sensor their positions), ``orientation`` their
+  attitudes, ``odometry`` consecutive poses as relative poses in the earlier pose's frame,
+  ``velocity`` twists (their linear part, the sensor frame's velocity in its own frame), ``gnss``
+  fixes, in the local ENU frame about the rig's datum (default: the first valid fix), fixes without
+  a position dropped and counted.
 * **Noise**: a sensor's ``sigma`` overrides; otherwise the messages' covariances where every
-  message has one (``odometry`` always needs ``sigma``: its messages' covariances grow with the
-  path, a step's noise is not in them). Sigmas: one number, one per residual axis, or for 6-dim
-  kinds ``(translation, rotation)``.
+  message has one (:func:`datasets.kinds.base.noise`; ``odometry`` always needs ``sigma``).
 * **every = k**: measurements ``0, k, 2k, ...`` are used; the others are held out for evaluation
   (``Sensor.heldout``; for positions and GNSS the held-out error of ``metrics.json``).
 * **Gravity**: ``(0, 0, -g)`` in the world frame (z up; ENU with GNSS).
@@ -29,13 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.gnss import Datum, fixes_to_enu
+from datasets.gnss import Datum
 from datasets.initialise import imu_from, initial_state
-from datasets.kinds import KINDS, kind_sigmas
-from datasets.rig import Rig, SensorConfig
-from datasets.sources import read_fixes, read_imu, read_poses, read_twists
-from datasets.types import (Dataset, ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements,
-                            RelativePoseMeasurements, Sensor, VelocityMeasurements)
+from datasets.kinds import KINDS, Clock
+from datasets.rig import Rig
+from datasets.sources import read_imu
+from datasets.types import Dataset, ImuSamples, Sensor
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,49 +52,17 @@ def _relative(t: np.ndarray, t_ns, origin_ns: int, offset: float) -> np.ndarray:
     return np.asarray(t, dtype=float) - origin_ns * 1e-9 + offset
 
 
-def _noise(config: SensorConfig, dim: int, cov, n: int, where: str) -> np.ndarray:
-    """The sensor's covariances (module docstring), ``(n, dim, dim)``."""
-    if config.sigma is not None:
-        return np.broadcast_to(np.diag(kind_sigmas(where, config.sigma, dim) ** 2), (n, dim, dim)).copy()
-    if cov is None or not np.all(np.isfinite(cov)):
-        raise ValueError(f"{where}: its messages carry no covariance{'' if cov is None else ' in every message'}; "
-                         "give the sensor's sigma in the rig file")
-    return np.asarray(cov)[:, :dim, :dim]
-
-
-def _measurements(config: SensorConfig, gyro_at, origin_ns: int, datum: Datum | None):
-    """``(data, datum)``: the sensor's measurements (all of them) as its kind's data type."""
-    where = f"sensor {config.name!r} ({config.kind})"
-    T = config.T_BS
-    if config.kind == "gnss":
-        fixes = fixes_to_enu(read_fixes(config.source, config.topic), datum)
-        if fixes.n_dropped:
-            warnings.warn(f"{where}: {fixes.n_dropped} of {fixes.n_dropped + len(fixes.t)} fixes have no position "
-                          "(status 'no fix') and are dropped", stacklevel=3)
-        t = _relative(fixes.t, fixes.t_ns, origin_ns, config.time_offset)
-        return PositionMeasurements(t, fixes.enu, _noise(config, 3, fixes.cov, len(t), where), T), fixes.datum
-    if config.kind == "velocity":
-        twists = read_twists(config.source, config.topic)
-        t = _relative(twists.t, twists.t_ns, origin_ns, config.time_offset)
-        return VelocityMeasurements(t, twists.linear, gyro_at(t), _noise(config, 3, twists.cov, len(t), where), T), datum
-    poses = read_poses(config.source, config.topic)
-    t = _relative(poses.t, poses.t_ns, origin_ns, config.time_offset)
-    if config.kind == "pose":
-        return PoseMeasurements(t, poses.position, poses.C, _noise(config, 6, poses.cov, len(t), where), T), datum
-    if config.kind == "position":
-        return PositionMeasurements(t, poses.position, _noise(config, 3, poses.cov, len(t), where), T), datum
-    if config.kind == "orientation":
-        cov = None if poses.cov is None else poses.cov[:, 3:, 3:]
-        return OrientationMeasurements(t, poses.C, _noise(config, 3, cov, len(t), where), T), datum
-    if config.kind == "odometry":
-        if config.sigma is None:
-            raise ValueError(f"{where}: give sigma in the rig file, the noise of one step between consecutive poses "
-                             "(translation [m], rotation [rad])")
-        Ct = np.swapaxes(poses.C[:-1], 1, 2)
-        dr = np.einsum("nab,nb->na", Ct, poses.position[1:] - poses.position[:-1])
-        cov = _noise(config, 6, None, len(t) - 1, where)
-        return RelativePoseMeasurements(t[:-1], t[1:], dr, Ct @ poses.C[1:], cov, T), datum
-    raise ValueError(f"{where}: no reader for this kind")
+def _check_overlap(name: str, data, imu: ImuSamples, origin_ns: int) -> None:
+    """A sensor none of whose measurements lies in the IMU's span is an error naming both spans in
+    the data's clock (another clock, or a wrong time offset, is the usual cause)."""
+    first = getattr(data, "t_from", data.t)
+    if np.any((first >= imu.t[0]) & (data.t <= imu.t[-1])):
+        return
+    clock = origin_ns * 1e-9
+    raise ValueError(f"sensor {name!r}: none of its {len(data)} measurements ([{clock + first.min():.3f}, "
+                     f"{clock + data.t.max():.3f}] s, time offset included) lies in the IMU's span "
+                     f"[{clock + imu.t[0]:.3f}, {clock + imu.t[-1]:.3f}] s: stamps in another clock, or a wrong "
+                     "time_offset?")
 
 
 def _split_every(data, every: int):
@@ -135,13 +101,16 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     def gyro_at(t):  # the gyro sample held at each time (the lever arm's rate of a velocity sensor)
         return imu.gyro[np.clip(np.searchsorted(imu.t, t, side="right") - 1, 0, len(imu) - 1)]
 
-    datum, sensors = rig.datum, []
+    clock = Clock(lambda t, t_ns, offset: _relative(t, t_ns, origin_ns, offset), gyro_at, rig.datum)
+    sensors = []
     for config in rig.sensors:
         try:
-            data, datum = _measurements(config, gyro_at, origin_ns, datum)
+            data, clock.datum = KINDS[config.kind].read(config, clock)
         except ValueError as error:
             message = str(error)
-            raise type(error)(message if message.startswith("sensor ") else f"sensor {config.name!r}: {message}") from None
+            raise type(error)(message if message.startswith("sensor ") else
+                              f"sensor {config.name!r} ({config.kind}): {message}") from None
+        _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout))
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
@@ -149,4 +118,4 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,
                            initial_cov=cov, gravity=gravity, sensors=tuple(sensors), time_origin_ns=origin_ns,
-                           datum=datum)
+                           datum=clock.datum)

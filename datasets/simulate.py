@@ -83,7 +83,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth, sensors_from_truth
+from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
+from datasets.simulated_sensors import sensors_from_truth
 from datasets.trajectories import PROFILES, Profile
 from datasets.types import (
     Dataset,
@@ -270,8 +271,8 @@ def simulate(
     (position [m], velocity [m/s], attitude [rad])``: spread of the initial estimate's error.
     ``outlier_fraction`` in [0, 1] of the pose measurements get an error of ``outlier_scale =
     (metres, radians)``. ``gravity``: ``I_g`` [m/s^2]. ``sensors``: further sensors of any kind,
-    mounted anywhere (:class:`datasets.from_truth.SensorSpec`), drawn by
-    :func:`datasets.from_truth.sensors_from_truth` with a noise stream of their own.
+    mounted anywhere (:class:`datasets.simulated_sensors.SensorSpec`), drawn by
+    :func:`datasets.simulated_sensors.sensors_from_truth` with a noise stream of their own.
 
     Raises ``ValueError`` naming the option for any bad option.
     """

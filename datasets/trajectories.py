@@ -2,7 +2,7 @@
 
 A :class:`Profile` gives, at any times ``t``, the world position ``r(t)`` with its first and second
 derivatives and the attitude as ZYX Euler angles ``(roll, pitch, yaw)`` (``C = Rz(yaw) Ry(pitch)
-Rx(roll)``, :func:`factors.quaternion.rpy_to_matrix`) with their first derivatives, all in closed
+Rx(roll)``, :func:`factors.euler.rpy_to_matrix`) with their first derivatives, all in closed
 form. :meth:`Profile.evaluate` turns them into :class:`Kinematics`: attitude matrices, the body
 angular rate, the body velocity and the specific force of the primer's eq. (42).
 
@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from factors import euler, quaternion
+from factors import euler
 
 # --------------------------------------------------------------------------------------------
 # building blocks
@@ -124,7 +124,7 @@ class Profile:
         r, v, a, rpy, rpy_rate = (np.broadcast_to(x, t.shape + (3,)).astype(float) for x in (r, v, a, rpy, rpy_rate))
         return Kinematics(
             t=t, r=r, v=v, a=a, rpy=rpy, rpy_rate=rpy_rate,
-            C=quaternion.rpy_to_matrix(rpy), omega=body_rate_from_rpy(rpy, rpy_rate),
+            C=euler.rpy_to_matrix(rpy), omega=body_rate_from_rpy(rpy, rpy_rate),
         )
 
 

@@ -22,12 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
-from datasets.errors import check_increasing, check_unit_quaternions, read_lines, read_table
+from datasets.errors import check_increasing, check_unit_quaternions, data_lines, read_lines, read_table
 from datasets.types import Trajectory
 from factors import quaternion
 from factors.imu import ImuState
 
 FIELDS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+#: An attitude-only file's fields (:func:`read_tum_poses`).
+ATTITUDE_FIELDS = ["timestamp", "qx", "qy", "qz", "qw"]
 
 #: Accepted deviation of a quaternion's norm from 1 before it is normalised.
 QUATERNION_TOLERANCE = 1e-3
@@ -37,17 +39,33 @@ HEADER = "# timestamp tx ty tz qx qy qz qw (TUM; Hamilton quaternion of body-to-
 
 def read_tum(path) -> Trajectory:
     """Read a TUM trajectory file into a :class:`Trajectory` (velocities and biases NaN)."""
-    path = Path(path)
-    lines = read_lines(path)
-    values, line_numbers = read_table(path, lines, FIELDS, 1, "pose line ('t x y z qx qy qz qw')")
-    t = values[:, 0]
-    check_increasing(path, t, line_numbers, "timestamp")
-    q_xyzw = check_unit_quaternions(path, values[:, 4:8], line_numbers, "qx qy qz qw", QUATERNION_TOLERANCE)
-    C = quaternion.to_matrix(quaternion.from_xyzw(q_xyzw))
+    t, r, C, _ = read_tum_poses(path)
     n = len(t)
     nan = np.full((n, 3), np.nan)
-    states = ImuState(r=values[:, 1:4].copy(), v=nan, C=C, b_f=nan.copy(), b_w=nan.copy())
+    states = ImuState(r=r, v=nan, C=C, b_f=nan.copy(), b_w=nan.copy())
     return Trajectory(t, states)
+
+
+def read_tum_poses(path, duplicates: bool = False, attitudes: bool = False):
+    """The poses of a TUM file as arrays ``(t, r, C, lines)`` (``lines``: the 1-based line of each
+    pose), checked as :func:`read_tum` checks them. With ``duplicates`` a stamp may equal the one
+    before (:func:`datasets.errors.duplicate_stamps` tells). With ``attitudes`` the file may hold
+    attitudes only, ``t qx qy qz qw`` per line (:data:`ATTITUDE_FIELDS`, an IMU's own attitude
+    output): then ``r`` is NaN. Which of the two layouts a file has, its first data line says."""
+    path = Path(path)
+    lines = read_lines(path)
+    fields = FIELDS
+    if attitudes:
+        first = next((text for _, text in data_lines(lines)), "")
+        fields = ATTITUDE_FIELDS if len(first.split()) == len(ATTITUDE_FIELDS) else FIELDS
+    what = "pose line ('t x y z qx qy qz qw')" if fields is FIELDS else "attitude line ('t qx qy qz qw')"
+    values, line_numbers = read_table(path, lines, fields, 1, what)
+    t = values[:, 0]
+    check_increasing(path, t, line_numbers, "timestamp", duplicates)
+    q_xyzw = check_unit_quaternions(path, values[:, -4:], line_numbers, "qx qy qz qw", QUATERNION_TOLERANCE)
+    C = quaternion.to_matrix(quaternion.from_xyzw(q_xyzw))
+    r = values[:, 1:4].copy() if fields is FIELDS else np.full((len(t), 3), np.nan)
+    return t, r, C, line_numbers
 
 
 def write_tum(path, trajectory_or_t, r=None, C=None, header: bool = True, time_origin_ns: int | None = None) -> None:

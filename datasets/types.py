@@ -1,6 +1,6 @@
 """The project's data types: a few NumPy arrays in a dataclass each, never objects per sample.
 
-Conventions (DESIGN.md section 1): times in seconds (float64; loaders with nanosecond stamps keep
+Conventions (docs/design.md, section 1): times in seconds (float64; loaders with nanosecond stamps keep
 them exactly in ``t_ns``), world frame ``I``, body = IMU frame ``B``, attitudes as body-to-world
 rotation matrices ``C(Phi_IB)`` of shape ``(N, 3, 3)``. Orientation covariances are in the
 primer's convention: ``C_meas = exp(n) C_true`` with ``n ~ N(0, cov)`` in WORLD coordinates.
@@ -8,6 +8,8 @@ Every constructor validates shapes and values and raises ``ValueError`` naming t
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass, field, fields
 
 import warnings
@@ -19,8 +21,22 @@ from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
 IMU_GAP_FACTOR = 5.0
-#: Angular rates [rad/s] beyond which gyro data are reported as probably in deg/s.
+#: The 99th-percentile angular rate [rad/s] beyond which gyro data are refused as probably in
+#: deg/s: 35 rad/s (2000 deg/s, a MEMS gyro's full scale) is beyond what a vehicle turns at.
 MAX_PLAUSIBLE_RATE = 35.0
+_max_rate = contextvars.ContextVar("max_gyro_rate", default=MAX_PLAUSIBLE_RATE)
+
+
+@contextlib.contextmanager
+def max_gyro_rate(limit: float):
+    """Inside the block, datasets accept gyro data up to a 99th-percentile rate of ``limit``
+    [rad/s] instead of :data:`MAX_PLAUSIBLE_RATE` (the rare real case: a spinning projectile,
+    a rotor-mounted IMU). The loaders construct their datasets inside, so it reaches them too."""
+    token = _max_rate.set(float(limit))
+    try:
+        yield
+    finally:
+        _max_rate.reset(token)
 
 
 def check_array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
@@ -380,17 +396,21 @@ class Dataset:
         self._drop_outside_imu_span()
 
     def _check_imu_units(self) -> None:
-        """Warn when the IMU's magnitudes do not look like m/s^2 and rad/s: a median specific
-        force far from |g| (data in g, or in mm/s^2) or angular rates beyond 35 rad/s (deg/s)."""
+        """Warn when the specific force does not look like m/s^2 (a median far from |g|: data in g,
+        or in mm/s^2); refuse angular rates no vehicle reaches (a 99th percentile beyond
+        :data:`MAX_PLAUSIBLE_RATE`, or the limit of :func:`max_gyro_rate`): data in deg/s run on
+        to a wrong estimate that looks like a result."""
         g = float(np.linalg.norm(self.gravity))
         f = float(np.median(np.linalg.norm(self.imu.acc, axis=1)))
         if g > 0 and not 0.3 * g <= f <= 3.0 * g:
             warnings.warn(f"Dataset.imu.acc: median specific-force magnitude {f:.4g}; expected about |g| = "
                           f"{g:.4g} in m/s^2 (is the data in g, or in mm/s^2?)", stacklevel=3)
         w = float(np.percentile(np.linalg.norm(self.imu.gyro, axis=1), 99))
-        if w > MAX_PLAUSIBLE_RATE:
-            warnings.warn(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}; expected rad/s (below "
-                          f"{MAX_PLAUSIBLE_RATE:g}); is the data in deg/s?", stacklevel=3)
+        limit = _max_rate.get()
+        if w > limit:
+            raise ValueError(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that "
+                             f"no vehicle reaches; the data are probably in deg/s (convert them to rad/s), or, "
+                             f"for a real case, raise the limit (smoother run --max-gyro-rate)")
 
     def _check_imu_gaps(self) -> None:
         """Warn about gaps in the IMU stream longer than ``IMU_GAP_FACTOR`` typical periods: the

@@ -6,9 +6,9 @@ the body frame). By the adjoint identity (primer eq. 24), ``exp(phi) o Phi = Phi
 so a GTSAM increment ``d`` is the primer increment ``phi = C(Phi) d`` (:func:`primer_from_gtsam`).
 Hence a Jacobian ``J`` taken with respect to the primer increment becomes ``J @ C(Phi)`` with
 respect to GTSAM's (:func:`to_gtsam_chart`), and a covariance of GTSAM's increment becomes
-``C Sigma C^T`` in the primer's (:func:`state_covariance_to_primer`, through
-:mod:`factors.uncertainty`). Jacobians and covariances of vectors (positions, velocities, biases)
-are unchanged.
+``C Sigma C^T`` in the primer's (:mod:`factors.uncertainty`, which builds on this module:
+``covariance_right_to_left``, ``state_covariance_to_primer``). Jacobians and covariances of
+vectors (positions, velocities, biases) are unchanged.
 """
 from __future__ import annotations
 
@@ -31,13 +31,3 @@ def to_gtsam_chart(jacobian: np.ndarray, rotation) -> np.ndarray:
     ``gtsam.Rot3``); both arguments may carry matching leading dimensions."""
     return np.asarray(jacobian, dtype=float) @ primer_from_gtsam(rotation)
 
-
-def state_covariance_to_primer(cov_rpvb: np.ndarray, rotation) -> np.ndarray:
-    """A keyframe's joint covariance from GTSAM -- variables ``(Rot3, Point3, velocity, bias)`` in
-    that order, the ``Rot3`` block in GTSAM's right chart -- as the primer's 15x15 error-state
-    covariance ``(dr, dv, dphi, db_f, db_w)`` with the LEFT attitude increment ``dphi = C d``."""
-    from factors.uncertainty import covariance_right_to_left
-
-    order = np.r_[3:6, 6:9, 0:3, 9:15]  # (Rot3, Point3, V, bias) -> (r, v, phi, b_f, b_w)
-    cov = np.asarray(cov_rpvb, dtype=float)[np.ix_(order, order)]
-    return covariance_right_to_left(cov, _matrix(rotation), index=6)

@@ -15,6 +15,7 @@ results do not depend on the thread count.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import os
 import threading
@@ -25,42 +26,63 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from factors.imports import dependencies, imports_of, package_modules
 
-def clear_stale_kernel_caches(packages, stamp: Path) -> bool:
-    """Remove Numba's cached kernels (``__pycache__/*.nbi``, ``*.nbc``) of ``packages`` (source
-    directories) when their sources have changed since the fingerprint in ``stamp``; returns
-    whether it removed them.
 
-    Numba invalidates a cached kernel only when the kernel's OWN file changes, but a compiled
-    kernel contains the kernels it calls from other modules (``so3`` inside ``imu``, ``imu``
-    inside the EKF): after an edit of ``so3.py`` alone the cached IMU kernels would keep the old
-    mathematics. One fingerprint over every source file closes that gap (cost: a recompilation
-    after any edit). Unwritable directories are left as they are."""
-    digest = hashlib.sha256()
-    for package in packages:
-        for source in sorted(Path(package).glob("*.py")):
-            digest.update(source.name.encode() + b"\0" + source.read_bytes())
-    fingerprint = digest.hexdigest()
+def clear_stale_kernel_caches(root, packages, stamp: Path) -> list[str]:
+    """Remove Numba's cached kernels (``__pycache__/<module>.*.nbi``, ``*.nbc``) of every module
+    of ``packages`` (under ``root``) whose source, or the source of any module it imports within
+    the packages (directly or through others), has changed since the fingerprints in ``stamp``;
+    returns the names of those modules (all of them when there is no stamp yet).
+
+    Numba re-validates a cached kernel only against its OWN file, but a compiled kernel contains
+    the kernels it calls from other modules (``so3`` inside ``imu``, ``imu`` inside the EKF):
+    after an edit of ``so3.py`` alone the cached IMU kernels would keep the old mathematics. So
+    each module's fingerprint covers its own source and those of everything it imports
+    (:mod:`factors.imports`, which reads every import statement, also inside functions); an edit
+    recompiles the kernels of the edited module and of the modules that depend on it, and keeps
+    the rest (an edit of the plots drops nothing that is compiled). Numba names a cache file
+    after the module's file, ``<module>.<function>-<line>.<python>.nbi``. Unwritable directories
+    are left as they are."""
+    files = package_modules(root, packages)
     try:
-        if stamp.read_text() == fingerprint:
-            return False
-    except OSError:
-        pass
+        before = json.loads(stamp.read_text())  # {module: [source digest, fingerprint, imports]}
+    except (OSError, ValueError):
+        before = {}
+    if not isinstance(before, dict):
+        before = {}
+    digests = {name: hashlib.sha256(path.read_bytes()).hexdigest() for name, path in files.items()}
+    same_modules = before.keys() == files.keys()  # else an import may now name another module
+    graph = {}
+    for name in files:  # the imports of an unchanged source are those recorded (parsing costs ~3 ms a file)
+        known = before.get(name)
+        graph[name] = set(known[2]) if same_modules and known[0] == digests[name] else imports_of(name, files)
+    fingerprints = {}
+    for name in graph:
+        digest = hashlib.sha256()
+        for other in sorted(dependencies(graph, name)):
+            digest.update(f"{other}\0{digests[other]}\0".encode())
+        fingerprints[name] = digest.hexdigest()
+    after = {name: [digests[name], fingerprints[name], sorted(graph[name])] for name in files}
+    stale = [name for name in files if name not in before or before[name][1] != fingerprints[name]]
+    if after == before:
+        return []
     try:
-        for package in packages:
-            for cached in list(Path(package, "__pycache__").glob("*.nb[ic]")):
+        for name in stale:
+            path = files[name]
+            for cached in list(path.parent.joinpath("__pycache__").glob(f"{path.stem}.*.nb[ic]")):
                 cached.unlink(missing_ok=True)
         stamp.parent.mkdir(parents=True, exist_ok=True)
-        stamp.write_text(fingerprint)
+        stamp.write_text(json.dumps(after, indent=0, sort_keys=True))
     except OSError:
-        return False
-    return True
+        return []
+    return stale
 
 
 if "NUMBA_CACHE_DIR" not in os.environ:  # a cache directory of the user's own is theirs to manage
     _ROOT = Path(__file__).resolve().parent.parent
-    clear_stale_kernel_caches([_ROOT / name for name in ("factors", "datasets", "smoother")],
-                              _ROOT / "factors" / "__pycache__" / "kernel-sources.sha256")
+    clear_stale_kernel_caches(_ROOT, ("factors", "datasets", "smoother"),
+                              _ROOT / "factors" / "__pycache__" / "kernel-sources.json")
 
 #: Decorator of the IMU recursions (:mod:`factors.imu`, :mod:`factors.preintegration`): compiled,
 #: cached on disk, and allowed to fuse ``a * b + c`` into one fused multiply-add (Numba's

@@ -20,7 +20,7 @@ kept with its axis: ``to_matrix((a, b, c), 's' + ijk) == to_matrix((c, b, a), 'r
 
 Frames. ``C`` is the project's ``C(Phi_IB)``: it maps body coordinates to world coordinates,
 ``I_r = C B_r``; "fixed" axes are the world's, "moved" axes the body's. Roll, pitch, yaw
-``(r, p, y)`` in the project's convention (``quaternion.rpy_to_matrix``,
+``(r, p, y)`` in the project's convention (:func:`rpy_to_matrix`,
 ``C = R_z(y) R_y(p) R_x(r)``) is ``'sxyz'`` with angles ``(r, p, y)``, or ``'rzyx'`` with
 ``(y, p, r)`` (:data:`ROLL_PITCH_YAW`).
 
@@ -36,7 +36,7 @@ degenerate case) -- only a sum or difference of the first and third angles is de
 angle applied LAST in the body-fixed order -- the third angle of an intrinsic name, the first angle
 of an extrinsic name (for roll-pitch-yaw: the roll) -- is set to 0 and the other one carries the
 whole rotation, so ``to_matrix(from_matrix(C))`` still reproduces ``C``. This is the choice of
-``quaternion.matrix_to_rpy``. "Singular" means ``|cos b|`` (or ``|sin b|``), as read from ``C``,
+:func:`matrix_to_rpy`. "Singular" means ``|cos b|`` (or ``|sin b|``), as read from ``C``,
 below :data:`SINGULAR_TOLERANCE` (1e-14: exact lock computed in floating point gives about 1e-16;
 snapping to the singular solution moves ``C`` by at most about this much). Off the singularity the
 first angle is computed from what is left of ``C`` once the other two rotations are removed, not
@@ -234,3 +234,17 @@ def from_quaternion(q, convention: str) -> np.ndarray:
 def convert(angles, source: str, target: str) -> np.ndarray:
     """Re-express Euler angles given in convention ``source`` in convention ``target``."""
     return from_matrix(to_matrix(angles, source), target)
+
+
+def rpy_to_matrix(rpy) -> np.ndarray:
+    """``C = R_z(yaw) R_y(pitch) R_x(roll)`` for ``rpy = (roll, pitch, yaw)`` of shape ``(..., 3)``
+    (:data:`ROLL_PITCH_YAW`)."""
+    return to_matrix(rpy, ROLL_PITCH_YAW)
+
+
+def matrix_to_rpy(C) -> np.ndarray:
+    """``(roll, pitch, yaw)`` with ``C = R_z(yaw) R_y(pitch) R_x(roll)``, pitch in ``[-pi/2, pi/2]``.
+    At gimbal lock (``|cos(pitch)| <`` :data:`SINGULAR_TOLERANCE`) only ``yaw - roll`` (pitch
+    ``+pi/2``) or ``yaw + roll`` (pitch ``-pi/2``) is defined: roll is 0 and yaw carries the whole
+    rotation about the vertical, so :func:`rpy_to_matrix` of the result reproduces ``C``."""
+    return from_matrix(C, ROLL_PITCH_YAW)

@@ -1,4 +1,4 @@
-"""GTSAM keys of one keyframe: one chart-simple variable per quantity (DESIGN.md section 1).
+"""GTSAM keys of one keyframe: one chart-simple variable per quantity (docs/design.md, section 4).
 
 ``R(k)`` a ``Rot3`` for ``Phi_IB``, ``P(k)`` a ``Point3`` for ``I_r``, ``V(k)`` a 3-vector for the
 BODY-frame velocity, ``B(k)`` an ``imuBias.ConstantBias`` (accelerometer first, then gyro).

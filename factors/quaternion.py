@@ -247,38 +247,3 @@ def to_xyzw(q: np.ndarray) -> np.ndarray:
     """Reorder to scalar-last ``(qx, qy, qz, qw)``."""
     q = as_trailing(q, (4,), "q")
     return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
-
-
-#: Below this value of |cos(pitch)| roll and yaw are not separable (gimbal lock); the same
-#: tolerance as :data:`factors.euler.SINGULAR_TOLERANCE`, which these functions delegate to.
-GIMBAL_LOCK_COS = 1e-14
-
-
-def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
-    """``C = Rz(yaw) Ry(pitch) Rx(roll)`` for ``rpy = (roll, pitch, yaw)`` of shape ``(..., 3)``:
-    the static/extrinsic x-y-z sequence, ``factors.euler``'s ``"sxyz"``."""
-    from factors import euler
-
-    return euler.to_matrix(rpy, euler.ROLL_PITCH_YAW)
-
-
-def matrix_to_rpy(C: np.ndarray) -> np.ndarray:
-    """``(roll, pitch, yaw)`` with ``C = Rz(yaw) Ry(pitch) Rx(roll)``, pitch in [-pi/2, pi/2].
-
-    Gimbal lock (``|cos(pitch)| < GIMBAL_LOCK_COS``): only ``yaw - roll`` (pitch = +pi/2) or
-    ``yaw + roll`` (pitch = -pi/2) is defined; roll is then set to 0 and yaw carries the whole
-    rotation about the vertical, so ``rpy_to_matrix`` of the result still reproduces ``C``
-    (``factors.euler.from_matrix`` with ``"sxyz"``)."""
-    from factors import euler
-
-    return euler.from_matrix(C, euler.ROLL_PITCH_YAW)
-
-
-def from_rpy(rpy: np.ndarray) -> np.ndarray:
-    """Quaternion of ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    return from_matrix(rpy_to_matrix(rpy))
-
-
-def to_rpy(q: np.ndarray) -> np.ndarray:
-    """``(roll, pitch, yaw)`` of a quaternion; see :func:`matrix_to_rpy` for gimbal lock."""
-    return matrix_to_rpy(to_matrix(q))

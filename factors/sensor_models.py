@@ -97,14 +97,20 @@ def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
 
 
 @njit(cache=True)
+def _origin_error_into(r, C, z, p, e, H) -> None:
+    """``e[0:3] = r + C p - z``, ``H[0:3, 0:3] = I``, ``H[0:3, 6:9] = -(C p)^x``."""
+    Cp = np.empty(3)
+    _rotated_lever_into(C, p, Cp, H, 0)
+    for a in range(3):
+        e[a] = r[a] + Cp[a] - z[a]
+        H[a, a] = 1.0
+
+
+@njit(cache=True)
 def position_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
     """Antenna position ``r + C p_BS`` minus the measured one; ``row = (z, p_BS)``."""
     H[:, :] = 0.0
-    Cp = np.empty(3)
-    _rotated_lever_into(C, row[3:6], Cp, H, 0)
-    for a in range(3):
-        e[a] = r[a] + Cp[a] - row[a]
-        H[a, a] = 1.0
+    _origin_error_into(r, C, row[0:3], row[3:6], e, H)
 
 
 @njit(cache=True)
@@ -118,11 +124,7 @@ def orientation_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
 def pose_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
     """``(r + C p_BS - z, log(C R_BS Z^T))``; ``row = (z, Z, R_BS, p_BS)``."""
     H[:, :] = 0.0
-    Cp = np.empty(3)
-    _rotated_lever_into(C, row[21:24], Cp, H, 0)
-    for a in range(3):
-        e[a] = r[a] + Cp[a] - row[a]
-        H[a, a] = 1.0
+    _origin_error_into(r, C, row[0:3], row[21:24], e, H)
     _attitude_error_into(C, row[12:21].reshape((3, 3)), row[3:12].reshape((3, 3)), e, H, 3)
 
 

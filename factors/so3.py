@@ -1,7 +1,7 @@
 """Calculus on SO(3) in the primer's convention, on rotation matrices.
 
-Conventions (DESIGN.md section 1, Bloesch et al., "A Primer on the Differential Calculus of
-3D Orientations"):
+Conventions (docs/design.md, sections 1 and 3; Bloesch et al., "A Primer on the Differential
+Calculus of 3D Orientations"):
 
 * An orientation ``Phi`` is represented by its matrix ``C(Phi)``: ``Phi(r) = C(Phi) r``.
 * ``exp(phi)`` is Rodrigues' formula (primer eq. 21); ``log`` is its inverse on the closed ball

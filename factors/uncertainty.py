@@ -59,7 +59,6 @@ import numpy as np
 from factors import euler, so3
 from factors.chart import primer_from_gtsam
 from factors.axis_angle import check_matrix, check_rotation_matrix, check_vector
-from factors.quaternion import GIMBAL_LOCK_COS
 
 #: The chart names accepted by the functions of this module.
 CHARTS = ("left", "right", "middle")
@@ -190,6 +189,16 @@ def covariance_right_to_left(Sigma, C, index: int = 0) -> np.ndarray:
     return convert_covariance(Sigma, C, "right", "left", index)
 
 
+def state_covariance_to_primer(cov_rpvb: np.ndarray, rotation) -> np.ndarray:
+    """A keyframe's joint covariance from GTSAM -- variables ``(Rot3, Point3, velocity, bias)`` in
+    that order, the ``Rot3`` block in GTSAM's right chart -- as the primer's 15x15 error-state
+    covariance ``(dr, dv, dphi, db_f, db_w)`` with the LEFT attitude increment ``dphi = C d``
+    (``rotation``: the 3x3 matrix ``C`` or a ``gtsam.Rot3``)."""
+    order = np.r_[3:6, 6:9, 0:3, 9:15]  # (Rot3, Point3, V, bias) -> (r, v, phi, b_f, b_w)
+    cov = np.asarray(cov_rpvb, dtype=float)[np.ix_(order, order)]
+    return covariance_right_to_left(cov, primer_from_gtsam(rotation), index=6)
+
+
 def covariance_left_to_middle(Sigma, C, index: int = 0) -> np.ndarray:
     """Left -> middle (noise on ``log C``): ``Gamma(mu)^-1 Sigma Gamma(mu)^-T``, ``mu = log C``.
     First order."""
@@ -282,7 +291,7 @@ def covariance_to_euler(Sigma, C, convention: str = euler.ROLL_PITCH_YAW, chart:
     'middle'): ``E^-1 Sigma E^-T`` with ``E = euler.perturbation_jacobian``. For reports, e.g.
     roll-pitch-yaw standard deviations ``sqrt(diag)`` of the default ``'sxyz'``.
 
-    Entries are NaN where the angles are singular (``|det E| < quaternion.GIMBAL_LOCK_COS``:
+    Entries are NaN where the angles are singular (``|det E| < euler.SINGULAR_TOLERANCE``:
     gimbal lock / degenerate middle angle), where no finite covariance exists."""
     C = check_rotation_matrix(C)
     Sigma = check_covariance(Sigma, size=3)
@@ -293,7 +302,7 @@ def covariance_to_euler(Sigma, C, convention: str = euler.ROLL_PITCH_YAW, chart:
     angles = euler.from_matrix(C, convention)
     E = euler.perturbation_jacobian(angles, convention, chart)
     det = np.linalg.det(E)
-    singular = np.abs(det) < GIMBAL_LOCK_COS
+    singular = np.abs(det) < euler.SINGULAR_TOLERANCE
     E = np.where(singular[..., None, None], np.eye(3), E)
     Einv = np.linalg.inv(E)
     out = Einv @ Sigma @ np.swapaxes(Einv, -1, -2)

@@ -1,2 +1,32 @@
 """Graph building, batch and fixed-lag smoothing, the EKF, cross-checks, evaluation, plots and
-the command line. Depends on ``factors`` and ``datasets``."""
+the ``smoother`` command line.
+
+A run: ``problem = build_problem(dataset)`` (keyframes, preintegrated IMU factors, measurement
+factors, the initial trajectory), then ``solve_batch(problem)``, ``run_fixed_lag(problem, lag_s)``
+or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and their 15x15
+covariances. ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
+``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory.
+
+The names below are importable from the package itself (``from smoother import solve_batch``);
+each is loaded on first use. This package depends on ``factors`` and ``datasets``.
+"""
+from factors.exports import lazy_exports
+
+_EXPORTS = {
+    **dict.fromkeys(("build_problem", "Problem"), "smoother.graph"),
+    **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch"),
+    **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag"),
+    **dict.fromkeys(("run_ekf", "Ekf", "FilterResult", "FilterDiverged"), "smoother.ekf"),
+    "IndeterminantSystem": "smoother.errors",
+    **dict.fromkeys(("RunOptions", "run_estimators"), "smoother.pipeline"),
+    **dict.fromkeys(("evaluate", "ate", "rpe", "nees", "rmse_difference"), "smoother.metrics"),
+    **dict.fromkeys(("compare_with_truth", "position_errors", "save_trajectory", "load_trajectory"),
+                    "smoother.report"),
+    **{name: f"smoother.{name}" for name in ("metrics", "crosscheck")},
+    "CrosscheckOptions": "smoother.crosscheck",
+    "tune_noise": "smoother.tuning",
+    **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnostics"),
+    "plot_run": "smoother.plots",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -3,21 +3,26 @@
 Two engines over the same residuals:
 
 * ``vectorized`` (default): :mod:`smoother.solver` -- every factor type linearised at once with
-  NumPy, GTSAM's sparse elimination for the steps and ``Marginals`` for the covariances, which
-  come out directly in the primer's convention. Linear in the length of the run.
+  NumPy, GTSAM's sparse elimination for the steps and its QR elimination for the covariances
+  (:func:`smoother.solver.marginal_covariances`), which come out directly in the primer's
+  convention. Linear in the length of the run.
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
   independent reference the tests compare against). Covariances from GTSAM's marginals are
-  converted with :func:`factors.chart.state_covariance_to_primer`.
+  converted with :func:`factors.uncertainty.state_covariance_to_primer`.
 
-Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. An indeterminant
-system raises :class:`smoother.errors.IndeterminantSystem` naming the keyframe and its time,
-with a hint, instead of a bare GTSAM exception.
+Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. The vectorised
+engine's covariances come from the square-root information, so a problem with a unique optimum
+has them however long it dead-reckons. An indeterminant system raises
+:class:`smoother.errors.IndeterminantSystem` naming the keyframe, its time and (vectorised
+covariances) the error-state components left free, with a hint, instead of a bare GTSAM
+exception.
 """
 from __future__ import annotations
 
 import re
 import time
+import warnings
 from dataclasses import dataclass
 
 import gtsam
@@ -25,10 +30,11 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu
-from factors.chart import state_covariance_to_primer
+from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
 from smoother import solver
-from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, UserError, is_indeterminant
+from factors.errors import InputError
+from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
 from smoother.graph import Problem, read_state
 
 OPTIMIZERS = solver.METHODS
@@ -45,19 +51,23 @@ __all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_cov
 @dataclass
 class SmootherResult:
     """Estimates (and covariances, if computed) at every keyframe, the optimiser's final cost
-    (``sum rho(|e_w|)``, i.e. GTSAM's graph error) and iteration count, and the wall time."""
+    (``sum rho(|e_w|)``, i.e. GTSAM's graph error) and iteration count, the wall time, and
+    ``converged``: False when the optimiser stopped at ``max_iterations`` still decreasing the cost
+    (the estimate may be off the optimum; :func:`solve_batch` warns)."""
 
     trajectory: Trajectory
     error: float
     iterations: int
     runtime_s: float
+    converged: bool
 
 
-def _explained(keyframe: int | None, problem: Problem) -> IndeterminantSystem:
+def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
     where = ""
     if keyframe is not None and 0 <= keyframe < len(problem.times):
         where = f" near keyframe {keyframe} (t = {problem.times[keyframe]:.6f} s)"
-    return IndeterminantSystem(f"indeterminant system{where}: {_HINT}", keyframe)
+    what = f"it is free along {free}; " if free else ""
+    return IndeterminantSystem(f"indeterminant system{where}: {what}{_HINT}", keyframe, free)
 
 
 def _keyframe_of_gtsam_key(error: Exception, problem: Problem) -> int | None:
@@ -82,6 +92,8 @@ def keyframe_covariances(graph, values, keys: list[KeyframeKeys]) -> np.ndarray:
 
 
 def _gtsam_engine(problem: Problem, optimizer: str, max_iterations: int, covariances: bool):
+    """GTSAM's optimiser of ``optimizer`` on the graph: ``(states, covariances, cost, iterations,
+    converged)``; converged unless it used all ``max_iterations``."""
     if optimizer == "lm":
         params, cls = gtsam.LevenbergMarquardtParams(), gtsam.LevenbergMarquardtOptimizer
     elif optimizer == "gn":
@@ -93,31 +105,47 @@ def _gtsam_engine(problem: Problem, optimizer: str, max_iterations: int, covaria
     params.setAbsoluteErrorTol(1e-9)
     opt = cls(problem.graph, problem.initial, params)
     values = opt.optimize()
+    iterations = int(opt.iterations())
     cov = keyframe_covariances(problem.graph, values, problem.keys) if covariances else None
     states = imu.ImuState.stack([read_state(values, kk) for kk in problem.keys])
-    return states, cov, float(problem.graph.error(values)), int(opt.iterations())
+    return states, cov, float(problem.graph.error(values)), iterations, iterations < max_iterations
 
 
 def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 100,
                 covariances: bool = True, engine: str = "vectorized") -> SmootherResult:
-    """Optimise the whole graph from its initial values (see the module docstring)."""
+    """Optimise the whole graph from its initial values (see the module docstring); at most
+    ``max_iterations`` iterations, and a warning naming them and the last relative decrease of the
+    cost when they end before convergence (``SmootherResult.converged`` False)."""
     if optimizer not in OPTIMIZERS:
-        raise UserError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
+        raise InputError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
     if engine not in ENGINES:
-        raise UserError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
+        raise InputError(f"engine {engine!r}: expected one of {', '.join(ENGINES)}")
     start = time.perf_counter()
     try:
+        decrease = None
         if engine == "vectorized":
             result = solver.optimize(problem.blocks, problem.initial_states, optimizer, max_iterations)
-            states, cost, iterations = result.states, result.cost, result.iterations
+            states, cost, iterations, converged = result.states, result.cost, result.iterations, result.converged
+            if len(result.history) > 1:
+                decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
+            if not converged:  # before the covariances, which may fail away from the optimum
+                _warn_not_converged(optimizer, iterations, decrease)
             cov = solver.covariances(problem.blocks, states) if covariances else None
         else:
-            states, cov, cost, iterations = _gtsam_engine(problem, optimizer, max_iterations, covariances)
+            states, cov, cost, iterations, converged = _gtsam_engine(problem, optimizer, max_iterations, covariances)
+            if not converged:
+                _warn_not_converged(optimizer, iterations, decrease)
     except IndeterminantSystem as error:
-        raise _explained(error.keyframe, problem) from None
+        raise _explained(error.keyframe, problem, error.free) from None
     except RuntimeError as error:
         if is_indeterminant(error):
             raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None
         raise
     trajectory = Trajectory(problem.times, states, cov)
-    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start)
+    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged)
+
+
+def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:
+    last = "" if decrease is None else f" (the last iteration still lowered the cost by {decrease:.3g} of itself)"
+    warnings.warn(f"batch ({optimizer}): stopped after {iterations} iterations without converging{last}; the "
+                  f"estimate may be off the optimum: raise max_iterations (smoother run --max-iterations)", stacklevel=3)

@@ -8,6 +8,7 @@ import os
 import sys
 import warnings
 
+from factors.errors import BoxplusError
 from smoother.errors import UserError
 
 #: Modules that contribute sub-commands, in the order they are listed by ``smoother --help``.
@@ -50,25 +51,23 @@ def _main(argv: list[str] | None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except UserError as error:
-        print(f"smoother: error: {error}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("smoother: interrupted; files already written are complete and kept", file=sys.stderr)
         return 130
-    except (ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
-        # Data errors from the library (ValueError subclasses name file, field or time), files
-        # that cannot be written (OSError; datasets.atomic.atomic_write names the file), data
-        # too large for the memory (NumPy names the size) and failures inside GTSAM or NumPy:
-        # one line, no traceback; set SMOOTHER_DEBUG=1 for it.
-        if os.environ.get("SMOOTHER_DEBUG"):
+    except (BoxplusError, ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
+        # The library's own errors (factors.errors: bad input naming the file, field, option or
+        # time; an estimator that could not finish), other bad values (ValueError), files that
+        # cannot be written (OSError; datasets.atomic.atomic_write names the file), data too large
+        # for the memory (NumPy names the size) and failures inside GTSAM or NumPy: one line, no
+        # traceback (SMOOTHER_DEBUG=1 shows it for all but a bad command-line option).
+        if os.environ.get("SMOOTHER_DEBUG") and not isinstance(error, UserError):
             raise
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
         if isinstance(error, MemoryError):
             hint = "; try a shorter --duration" if "duration" in args else ""
             print(f"smoother: error: out of memory ({first or 'no details'}){hint}", file=sys.stderr)
             return 2
-        user = isinstance(error, (ValueError, OSError))
+        user = isinstance(error, (BoxplusError, ValueError, OSError))
         kind = "error" if user else f"internal failure ({type(error).__name__})"
         print(f"smoother: {kind}: {first}", file=sys.stderr)
         return 2 if user else 3

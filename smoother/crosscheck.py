@@ -1,4 +1,5 @@
-"""Cross-checks between the three estimators where theory says they must agree (DESIGN.md s. 3).
+"""Cross-checks between the three estimators where theory says they must agree (docs/design.md,
+section 9).
 
 On simulated runs (discrete-model truth, so no discretisation error pollutes the statistics):
 

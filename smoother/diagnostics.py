@@ -21,8 +21,9 @@ BAND_PROBABILITY = 0.95
 def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
     """Per sensor: ``nis_per_dof`` (the mean NIS over its updates divided by the dimension),
     ``band`` (:data:`BAND_PROBABILITY` interval of that mean for a consistent sensor), ``ok``
-    (inside the band), ``updates`` and ``rejected`` (by the EKF's gate) counts. Updates after a
-    divergence (NaN) are not counted."""
+    (inside the band), ``updates`` and ``rejected`` (by the EKF's gate) counts, and ``through``:
+    ``"ekf"`` (the figures are the EKF's innovations, a property of the sensor and the model, the
+    same in every estimator's block). Updates after a divergence (NaN) are not counted."""
     out = {}
     for name in dict.fromkeys(innovations.sensor):
         mine = (innovations.sensor == name) & np.isfinite(innovations.nis)
@@ -33,8 +34,16 @@ def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
         hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
         value = float(innovations.nis[mine].sum() / dof)
         out[str(name)] = {"nis_per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi),
-                          "updates": int(mine.sum()), "rejected": int((~innovations.accepted[mine]).sum())}
+                          "updates": int(mine.sum()), "rejected": int((~innovations.accepted[mine]).sum()),
+                          "through": "ekf"}
     return out
+
+
+def consistency_lines(consistency: dict[str, dict]) -> list[str]:
+    """One line per sensor: its NIS per dof against its band, and whether it fits."""
+    return [f"sensor {name}: NIS {c['nis_per_dof']:.3g} per dof over {c['updates']} updates, expected "
+            f"{c['band'][0]:.2g}-{c['band'][1]:.2g}: {'ok' if c['ok'] else 'OUT OF BAND'}"
+            for name, c in consistency.items()]
 
 
 def consistency_warnings(consistency: dict[str, dict]) -> list[str]:

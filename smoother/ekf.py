@@ -25,6 +25,7 @@ from datasets.kinds import KINDS, measure_into, model_index, quiet_dispatch, sen
 from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.compiled import matmul_into
+from factors.errors import SolverError
 from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
@@ -352,7 +353,7 @@ DIVERGED_SPEED = 1e4
 DIVERGED_SPREAD = 1e6
 
 
-class FilterDiverged(ValueError):
+class FilterDiverged(SolverError, ValueError):
     """The EKF's state or covariance left any plausible range (non-finite or absurdly large)."""
 
 

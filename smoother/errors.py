@@ -1,17 +1,22 @@
-"""Errors the command line reports in one line, without a traceback."""
+"""The smoother's errors (under :mod:`factors.errors`), and recognising GTSAM's
+indeterminant-system exception."""
+from factors.errors import InputError, SolverError
 
 
-class UserError(Exception):
-    """Bad input or options: the message names the file, line, field or option and what was expected."""
+class UserError(InputError):
+    """A bad command-line option or dataset spec (raised by ``smoother.commands`` and
+    ``smoother.sources``, never by the library): the message names the option and what was expected."""
 
 
-class IndeterminantSystem(UserError):
+class IndeterminantSystem(SolverError):
     """The linearised system is rank-deficient: some variable is not constrained by the factors.
-    ``keyframe`` is the keyframe GTSAM was eliminating when it noticed (or None)."""
+    ``keyframe`` is the keyframe GTSAM was eliminating when it noticed (or None); ``free`` names
+    the error-state components left free there, where known (or None)."""
 
-    def __init__(self, message: str, keyframe: int | None = None):
+    def __init__(self, message: str, keyframe: int | None = None, free: str | None = None):
         super().__init__(message)
         self.keyframe = keyframe
+        self.free = free
 
 
 def is_indeterminant(error: BaseException) -> bool:

@@ -49,10 +49,12 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors import measurements as meas
+from factors.errors import SolverError
 from smoother.batch import is_indeterminant
 from factors.keys import keyframe_keys
 from smoother.graph import Problem, insert_state, read_state
-from smoother.solver import evaluate_block
+from smoother.errors import IndeterminantSystem
+from smoother.solver import evaluate_block, marginal_covariances
 from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
@@ -167,10 +169,10 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
 
     Sparse elimination with Cholesky first (``gtsam.Marginals``, the fastest). GTSAM refuses it
     for windows it judges nearly indeterminant -- a third of them with keyframes 25 ms apart and
-    several kinds of measurement -- although they have full rank: those are eliminated with QR,
-    which works on the rows themselves rather than their squares (against an SVD of the rows, QR
-    and Cholesky are both within 1e-7 of the largest entry; the dense pseudo-inverse of ``A^T A``
-    that used to take these windows was 4e-5 off and 3x slower). What neither takes -- a
+    several kinds of measurement -- although they have full rank: those go to the square-root
+    information (:func:`smoother.solver.marginal_covariances`, QR), which works on the rows
+    themselves rather than their squares (the dense pseudo-inverse of ``A^T A`` that used to take
+    these windows was 4e-5 off and 3x slower). What neither takes -- a
     rank-deficient window, or a factor on more than three keyframes, which the Python
     ``JacobianFactor`` cannot hold -- goes to that dense pseudo-inverse."""
     if all(len(keys) <= 3 for keys, _ in groups):
@@ -180,9 +182,8 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
         except RuntimeError:
             pass
         try:
-            tree = graph.eliminateMultifrontal(gtsam.Ordering.OrderingType.COLAMD, gtsam.EliminateQR)
-            return np.stack([tree.marginalCovariance(j) for j in wanted])
-        except RuntimeError:
+            return marginal_covariances(graph, n, wanted)
+        except IndeterminantSystem:
             pass
     return _dense_marginals(groups, n, wanted)
 
@@ -297,7 +298,7 @@ def _weak_prior(keys, guess: imu.ImuState):
     return meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
 
 
-class FixedLagFailed(ValueError):
+class FixedLagFailed(SolverError, ValueError):
     """GTSAM's smoother failed at an update in a way that cannot be recovered."""
 
 

@@ -1,8 +1,9 @@
 """Trajectory evaluation: time association, alignment, ATE, RPE, NEES and chi-square bounds.
 
 Poses are ``(r, C)``: world positions ``(N, 3)`` and body-to-world attitudes ``(N, 3, 3)``
-(DESIGN.md). The definitions follow the usual ones of the TUM benchmark as evo implements them, so
-that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files (tested to 1e-9):
+(docs/design.md, section 1). The definitions follow the usual ones of the TUM benchmark as evo
+implements them, so that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files
+(tested to 1e-9):
 
 * :func:`associate`: nearest time stamps within ``max_dt``. The trajectory with fewer poses is
   walked (the estimate when both have as many), each of its stamps paired with the nearest stamp
@@ -12,7 +13,9 @@ that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the same files (tested 
   not here: about 2% of random stamp sets with such ties associate differently.)
 * :func:`umeyama`: least-squares similarity ``dst ~= s R src + t`` (Umeyama 1991); alignment
   ``'se3'`` is Umeyama without scale applied to the estimate (``r' = R r + t``, ``C' = R C``),
-  ``'posyaw'`` the 4-DoF alignment (translation and a rotation about the world z axis, the
+  ``'sim3'`` with scale (``r' = s R r + t``: a monocular trajectory, evo's ``--correct_scale``),
+  each fitted to all associated poses or to the first ``n_align`` (evo's ``--n_to_align``) and
+  applied to all, ``'posyaw'`` the 4-DoF alignment (translation and a rotation about the world z axis, the
   direction of gravity: what is unobservable for a visual-inertial or IMU+GPS estimator without
   an absolute heading), ``'none'`` no alignment.
 * ATE (:func:`ate`): translation error ``|r_ref - r_est'|`` and rotation error, the angle of
@@ -46,7 +49,7 @@ import numpy as np
 
 from factors import so3
 
-ALIGN_MODES = ("se3", "posyaw", "none")
+ALIGN_MODES = ("se3", "sim3", "posyaw", "none")
 DELTA_UNITS = ("frames", "m", "s")
 #: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
 NEES_PARTS = {
@@ -137,8 +140,8 @@ def align_posyaw(src, dst) -> tuple[np.ndarray, np.ndarray]:
 
 def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
     """``(R, t, s)`` that maps the estimate onto the reference for ``mode`` in :data:`ALIGN_MODES`."""
-    if mode == "se3":
-        return umeyama(est_r, ref_r, with_scale=False)
+    if mode in ("se3", "sim3"):
+        return umeyama(est_r, ref_r, with_scale=mode == "sim3")
     if mode == "posyaw":
         R, t = align_posyaw(est_r, ref_r)
         return R, t, 1.0
@@ -294,7 +297,9 @@ def rpe(ref_r, ref_C, est_r, est_C, delta=1, unit: str = "frames", all_pairs: bo
 
 @dataclass(frozen=True)
 class Evaluation:
-    """Result of :func:`evaluate`: association, alignment and the two error summaries."""
+    """Result of :func:`evaluate`: association, alignment (``align``: the mode applied) and the two
+    error summaries; ``rotation_only`` when the reference has attitudes only (its translation
+    statistics are then empty)."""
 
     i_ref: np.ndarray
     i_est: np.ndarray
@@ -303,6 +308,8 @@ class Evaluation:
     s: float
     ate: dict
     rpe: dict
+    align: str = "se3"
+    rotation_only: bool = False
 
     def as_dict(self) -> dict:
         """JSON-ready summary (statistics, alignment; no per-pose arrays)."""
@@ -311,23 +318,60 @@ class Evaluation:
             "alignment": {"R": self.R.tolist(), "t": self.t.tolist(), "s": self.s},
             "ate": {"translation_m": self.ate["translation"], "rotation_deg": self.ate["rotation"]},
             "rpe": {"translation_m": self.rpe["translation"], "rotation_deg": self.rpe["rotation"]},
+            "rotation_only": self.rotation_only,
         }
 
 
+def _span(t: np.ndarray) -> str:
+    return f"[{float(t[0])!r}, {float(t[-1])!r}]" if t.size else "[]"
+
+
+def _no_association(t_ref: np.ndarray, t_est: np.ndarray, max_dt: float, t_offset: float) -> str:
+    """Why nothing associates: the two time ranges, and the usual cause when their scales differ
+    by about 1e9 (nanoseconds against seconds) or they lie apart (another epoch: --t-offset)."""
+    shifted = f" (after --t-offset {t_offset:g} s)" if t_offset else ""
+    text = (f"no time stamps of the estimate are within max_dt = {max_dt:g} s of the reference's: the reference "
+            f"spans {_span(t_ref)} s, the estimate {_span(t_est + t_offset)} s{shifted}")
+    scales = [float(np.max(np.abs(t))) for t in (t_ref, t_est) if t.size]
+    if len(scales) == 2 and min(scales) > 0 and 1e7 < max(scales) / min(scales) < 1e11:
+        return text + "; one is probably in nanoseconds, the other in seconds"
+    return text + "; if they are on different clocks, shift the estimate with --t-offset"
+
+
 def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_dt: float = 0.01,
-             delta=1, delta_unit: str = "frames", all_pairs: bool = False) -> Evaluation:
-    """Associate, align the estimate onto the reference, then ATE and RPE."""
+             delta=1, delta_unit: str = "frames", all_pairs: bool = False, t_offset: float = 0.0,
+             n_align: int | None = None) -> Evaluation:
+    """Associate (the estimate's stamps shifted by ``t_offset``, as evo's ``--t_offset`` shifts
+    them), align the estimate onto the reference (fitted to the first ``n_align`` associated
+    poses, default all), then ATE and RPE. A reference whose positions are all NaN (attitudes
+    only) gives the rotation figures only, unaligned."""
     if align not in ALIGN_MODES:
         raise ValueError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
-    i_ref, i_est = associate(ref_t, est_t, max_dt)
+    if n_align is not None and n_align < 1:
+        raise ValueError(f"n_align: expected a number of poses >= 1, got {n_align!r}")
+    t_ref, t_est = np.asarray(ref_t, dtype=float), np.asarray(est_t, dtype=float)
+    # the offset goes onto the longer trajectory's stamps, as evo's association puts it
+    if t_est.size > t_ref.size:
+        i_ref, i_est = associate(t_ref, t_est + t_offset, max_dt)
+    else:
+        i_ref, i_est = associate(t_ref - t_offset, t_est, max_dt)
     if i_ref.size == 0:
-        raise ValueError(f"no time stamps of the estimate are within max_dt = {max_dt:g} s of the reference's")
+        raise ValueError(_no_association(t_ref, t_est, max_dt, t_offset))
     rr, rC = np.asarray(ref_r, dtype=float)[i_ref], np.asarray(ref_C, dtype=float)[i_ref]
     er, eC = np.asarray(est_r, dtype=float)[i_est], np.asarray(est_C, dtype=float)[i_est]
-    R, t, s = alignment(rr, er, align)
+    rotation_only = bool(np.isnan(rr).all())
+    if rotation_only:
+        align = "none"
+    fit = slice(None) if n_align is None else slice(0, n_align)
+    R, t, s = alignment(rr[fit], er[fit], align)
     er, eC = apply_alignment(R, t, s, er, eC)
-    tt = np.asarray(est_t, dtype=float)[i_est]
-    return Evaluation(i_ref, i_est, R, t, s, ate(rr, rC, er, eC), rpe(rr, rC, er, eC, delta, delta_unit, all_pairs, tt))
+    tt = t_est[i_est]
+    ate_result = ate(rr, rC, er, eC)
+    rpe_result = rpe(rr, rC, er, eC, delta, delta_unit, all_pairs, tt)
+    if rotation_only:
+        for result in (ate_result, rpe_result):
+            result["translation"], result["translation_errors"] = statistics([]), np.zeros(0)
+    return Evaluation(i_ref, i_est, R, t, s, ate_result, rpe_result, align, rotation_only)
 
 
 # ------------------------------------------------------------------------------------------

@@ -41,6 +41,7 @@ class RunOptions:
     lag_s: float = 2.0
     fixed_lag_kind: str = "incremental"
     optimizer: str = "lm"
+    max_iterations: int = 100
     keyframe_rate: float | None = None
     robust: dict | None = None
     ekf_gate: float | None = None  # chi-square gate probability
@@ -64,9 +65,10 @@ def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions()) 
         build_s = time.perf_counter() - tick
     for name in names:
         if name == "batch":
-            r = solve_batch(problem, options.optimizer, covariances=options.covariances)
+            r = solve_batch(problem, options.optimizer, options.max_iterations, options.covariances)
             out[name] = Estimate(name, r.trajectory, build_s + r.runtime_s,
-                                 {"iterations": r.iterations, "final_error": r.error, "graph_build_s": build_s})
+                                 {"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
+                                  "graph_build_s": build_s})
         elif name == "fixed-lag":
             r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                        options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)

@@ -46,10 +46,10 @@ from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors import so3
+from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import metrics
 from smoother.report import load_trajectory, read_npz
-from smoother.errors import UserError
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120
@@ -145,10 +145,10 @@ def _load_gps(path: Path) -> Gps:
     n = len(t)
     if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
             or (cov is not None and cov.shape != (n, 3, 3))):
-        raise UserError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
+        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
                         f"{'' if cov is None else f', cov {cov.shape}'}, heldout {heldout.shape}); expected {expected}")
     if n > 1 and np.any(np.diff(t) <= 0):
-        raise UserError(f"{path}: the times t must increase strictly")
+        raise InputError(f"{path}: the times t must increase strictly")
     return Gps(t, position, cov, heldout)
 
 
@@ -166,18 +166,18 @@ def estimator_names(run_dir: Path) -> list[str]:
 
 
 def load_run(run_dir, estimators=None) -> Run:
-    """Read a run directory; :class:`UserError` naming the file for anything missing or malformed."""
+    """Read a run directory; :class:`~factors.errors.InputError` naming the file for anything missing or malformed."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError(f"{run_dir}: not a directory; expected the output directory of smoother run")
+        raise InputError(f"{run_dir}: not a directory; expected the output directory of smoother run")
     available = estimator_names(run_dir)
     if not available:
-        raise UserError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
+        raise InputError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
                         f"(e.g. {', '.join(f'{n}.npz' for n in ESTIMATOR_ORDER)}) written by smoother run")
     names = available if not estimators else list(dict.fromkeys(estimators))
     for name in names:
         if name not in available:
-            raise UserError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
+            raise InputError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
     estimates = {name: load_trajectory(run_dir / f"{name}.npz") for name in names}
     truth = load_trajectory(run_dir / "truth.npz") if (run_dir / "truth.npz").exists() else None
     gps = _load_gps(run_dir / "gps.npz") if (run_dir / "gps.npz").exists() else None
@@ -187,9 +187,9 @@ def load_run(run_dir, estimators=None) -> Run:
         try:
             document = json.loads(path.read_text())
         except (OSError, ValueError) as error:
-            raise UserError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
+            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
         if not isinstance(document, dict):
-            raise UserError(f"{path}: expected a JSON object with one entry per estimator, "
+            raise InputError(f"{path}: expected a JSON object with one entry per estimator, "
                             f"got {type(document).__name__}")
     return Run(run_dir, estimates, truth, gps, document)
 
@@ -579,7 +579,8 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
         specs = [("ate_rmse_m", "ATE RMSE [m]"), ("rot_rmse_deg", "rotation RMSE [deg]"),
                  ("nees_mean", "mean NEES / dof")]
     else:
-        specs = [("gps_rmse_m", "RMSE to all GPS fixes [m]"), ("gps_heldout_rmse_m", "RMSE to held-out fixes [m]")]
+        specs = [("gps_heldout_rmse_m", "RMSE to held-out fixes [m]\n(accuracy)"),
+                 ("gps_fit_residual_m", "residual to used fixes [m]\n(a fit, not accuracy)")]
     specs.append(("runtime_s", "run time [s]"))
     out = []
     for key, label in specs:
@@ -597,8 +598,11 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
 
 
 def _computed_metric(key: str, e: Errors) -> float | None:
-    if key in ("ate_rmse_m", "gps_rmse_m"):
+    if key == "ate_rmse_m":
         return float(np.sqrt(np.mean(np.sum(e.dr ** 2, axis=1))))
+    if key in ("gps_heldout_rmse_m", "gps_fit_residual_m") and e.heldout is not None:
+        dr = e.dr[e.heldout if key == "gps_heldout_rmse_m" else ~e.heldout]
+        return float(np.sqrt(np.mean(np.sum(dr ** 2, axis=1)))) if len(dr) else None
     if key == "rot_rmse_deg" and e.dphi is not None:
         return float(np.degrees(np.sqrt(np.mean(np.sum(e.dphi ** 2, axis=1)))))
     if key == "nees_mean" and e.nees is not None:

@@ -4,7 +4,10 @@ Against a ground truth (simulator, EuRoC): ``ate_rmse_m`` (position RMSE, no ali
 estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est``) and
 ``nees_mean``: the time average of the 6-dim pose NEES (position and primer-boxminus attitude,
 :func:`smoother.metrics.nees`) divided by 6, so 1 is consistent. Against GPS (KITTI):
-``gps_rmse_m`` over every fix and ``gps_heldout_rmse_m`` over the fixes held out of estimation,
+``gps_heldout_rmse_m`` over the fixes held out of estimation -- an accuracy -- and
+``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
+fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
+makes small without being accurate; estimators are compared by held-out fixes only. Both with
 the estimate interpolated linearly to the fix times.
 
 A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
@@ -27,8 +30,8 @@ from datasets.atomic import atomic_write
 from datasets.tum import write_tum
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from factors import imu
+from factors.errors import InputError
 from smoother import metrics
-from smoother.errors import UserError
 
 #: Largest time difference [s] at which an estimate is compared with a truth sample.
 MATCH_DT = 1e-6
@@ -58,13 +61,14 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     }
 
 
-def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
-    """``(t, distance)``: the times of the measured positions inside the estimate's time span and
-    the distance from each to the estimate interpolated linearly to its time (empty arrays when
-    there are none). With a lever arm (``positions.T_BS``) the estimate's antenna, ``r + C p_BS``,
-    with ``C`` of the estimate's sample nearest in time (the fixes' times are keyframes)."""
+def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, estimate - measured)``: the times of the measured positions inside the estimate's time
+    span and, for each, the estimate interpolated linearly to its time minus the measured position
+    (world axes; empty arrays when there are none). With a lever arm (``positions.T_BS``) the
+    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time (the
+    fixes' times are keyframes)."""
     if positions is None or len(positions) == 0:
-        return np.empty(0), np.empty(0)
+        return np.empty(0), np.empty((0, 3))
     inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
     t = positions.t[inside]
     est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
@@ -72,15 +76,20 @@ def position_errors(positions: PositionMeasurements | None, estimate: Trajectory
         k = np.clip(np.searchsorted(estimate.t, t), 1, len(estimate.t) - 1)
         k -= (t - estimate.t[k - 1]) < (estimate.t[k] - t)
         est = est + estimate.C[k] @ positions.T_BS[:3, 3]
-    return t, np.linalg.norm(est - positions.position[inside], axis=1)
+    return t, est - positions.position[inside]
+
+
+def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, distance)`` of :func:`position_residuals`."""
+    t, residual = position_residuals(positions, estimate)
+    return t, np.linalg.norm(residual, axis=1)
 
 
 def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
     """RMS distance between measured positions and the estimate interpolated to their times
     (:func:`position_errors`; fixes outside the estimate's time span are not counted; NaN when
     none is left)."""
-    _, distance = position_errors(positions, estimate)
-    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+    return _rms_distance([] if positions is None else [positions], estimate)
 
 
 def score(dataset: Dataset, estimate: Trajectory) -> dict:
@@ -88,29 +97,28 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
-    if dataset.position is not None or dataset.heldout_positions is not None:
-        parts = [p for p in (dataset.position, dataset.heldout_positions) if p is not None]
-        out["gps_rmse_m"] = position_rmse(_merge(parts), estimate)
-        out["gps_heldout_rmse_m"] = position_rmse(dataset.heldout_positions, estimate)
-    heldout = [s.heldout for s in dataset.sensors if s.kind in POSITION_KINDS and s.heldout is not None]
-    if heldout:  # a rig's position and GNSS sensors, each with its lever arm
-        distance = np.concatenate([position_errors(h, estimate)[1] for h in heldout]
-                                  + [position_errors(dataset.heldout_positions, estimate)[1]])
-        out["gps_heldout_rmse_m"] = float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+    positions = [s for s in dataset.sensors if s.kind in POSITION_KINDS]  # a rig's, each with its lever arm
+    used = [p for p in [dataset.position] if p is not None] + [s.data for s in positions]
+    heldout = [p for p in [dataset.heldout_positions] if p is not None] + [s.heldout for s in positions
+                                                                          if s.heldout is not None]
+    if used or heldout:
+        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
+        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, slice(0, 2))
+        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, slice(2, 3))
+        out["gps_fit_residual_m"] = _rms_distance(used, estimate)
     return out
+
+
+def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
+    """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
+    ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
+    residual = np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts])
+    distance = np.linalg.norm(residual[:, axes], axis=1)
+    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
 
 #: The kinds whose held-out measurements are scored as positions (``gps_heldout_rmse_m``).
 POSITION_KINDS = ("position", "gnss")
-
-
-def _merge(parts: list[PositionMeasurements]) -> PositionMeasurements:
-    t = np.concatenate([p.t for p in parts])
-    order = np.argsort(t, kind="stable")
-    keep = np.concatenate([[True], np.diff(t[order]) > 0])
-    idx = order[keep]
-    return PositionMeasurements(t[idx], np.concatenate([p.position for p in parts])[idx],
-                                np.concatenate([p.cov for p in parts])[idx])
 
 
 def save_trajectory(path: Path, trajectory: Trajectory) -> None:
@@ -130,43 +138,47 @@ _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pick
 @contextlib.contextmanager
 def read_npz(path: Path, expected: str):
     """The arrays of the ``.npz`` archive ``path`` (``np.load`` without pickles) inside the
-    block; a :class:`UserError` naming the file and ``expected`` when it is not such an archive,
+    block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not such an archive,
     cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g. a validation)."""
     try:
         is_zip = zipfile.is_zipfile(path)
     except OSError as error:
-        raise UserError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
+        raise InputError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
     if not is_zip:
-        raise UserError(f"{path}: not an .npz archive; expected {expected}")
+        raise InputError(f"{path}: not an .npz archive; expected {expected}")
     try:
         with np.load(path, allow_pickle=False) as data:
             yield data
-    except UserError:
+    except InputError:
         raise
     except _NPZ_ERRORS as error:
-        raise UserError(f"{path}: cannot read it ({error}); expected {expected}") from None
+        raise InputError(f"{path}: cannot read it ({error}); expected {expected}") from None
 
 
 def load_trajectory(path: Path) -> Trajectory:
-    """Inverse of :func:`save_trajectory`; a :class:`UserError` naming the file for anything
+    """Inverse of :func:`save_trajectory`; an :class:`~factors.errors.InputError` naming the file for anything
     else (not an archive, missing arrays, arrays that do not make a trajectory, none at all)."""
     expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
     with read_npz(path, expected) as data:
         missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
         if missing:
-            raise UserError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
+            raise InputError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
         states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
         trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
     if len(trajectory) == 0:
-        raise UserError(f"{path}: the trajectory is empty; expected at least one state")
+        raise InputError(f"{path}: the trajectory is empty; expected at least one state")
     return trajectory
 
 
 def save_gps(path: Path, dataset: Dataset) -> None:
     """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
-    nothing when it has none."""
+    nothing when it has none. A rig's position and GNSS sensors count too (their antennas'
+    positions, as measured)."""
     parts = [(p, False) for p in [dataset.position] if p is not None]
     parts += [(p, True) for p in [dataset.heldout_positions] if p is not None]
+    for s in dataset.sensors:
+        if s.kind in POSITION_KINDS:
+            parts += [(p, flag) for p, flag in ((s.data, False), (s.heldout, True)) if p is not None]
     if not parts:
         return
     t = np.concatenate([p.t for p, _ in parts])
@@ -187,7 +199,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
         datum = getattr(dataset, "datum", None)
         if datum is not None:
-            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name)
+            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     # A directory reused for another dataset must not keep a previous run's reference.
     for name in ("truth.npz", "gps.npz"):
@@ -202,15 +214,17 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
     return report
 
 
-def write_geojson(path: Path, trajectory: Trajectory, datum, name: str) -> None:
+def write_geojson(path: Path, trajectory: Trajectory, datum, name: str, time_origin_ns: int | None = None) -> None:
     """The trajectory in latitude, longitude and altitude (WGS-84, about the local ENU frame's
     ``datum``) as a GeoJSON ``LineString`` (longitude first, as GeoJSON orders them), atomically:
-    it opens in QGIS or any web map."""
+    it opens in QGIS or any web map. Its ``t_start`` and ``t_end`` are in the data's clock
+    (seconds; ``time_origin_ns`` as :attr:`datasets.types.Dataset.time_origin_ns`)."""
+    clock = 0.0 if time_origin_ns is None else time_origin_ns * 1e-9
     from datasets.gnss import enu_to_geodetic
 
     lat, lon, alt = enu_to_geodetic(trajectory.position, datum)
-    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(trajectory.t[0]),
-                                                 "t_end": float(trajectory.t[-1])},
+    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(clock + trajectory.t[0]),
+                                                 "t_end": float(clock + trajectory.t[-1])},
                "geometry": {"type": "LineString",
                             "coordinates": np.stack([lon, lat, alt], axis=-1).round(9).tolist()}}
     with atomic_write(path) as handle:

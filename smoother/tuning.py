@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset
 from factors.imu import ImuNoise
 from smoother.ekf import FilterDiverged, run_ekf
@@ -64,9 +65,9 @@ MIN_GAIN = 1.92
 def tune_noise(dataset: Dataset, step: float = 1.0, min_step: float = 0.25, max_log10: float = 3.0,
                min_gain: float = MIN_GAIN, progress: bool | None = None) -> NoiseTuning:
     """Maximum-likelihood factors of the IMU noise densities of ``dataset`` (module docstring)."""
-    if all(getattr(dataset, name) is None for name in ("pose", "position", "orientation")):
-        raise ValueError("noise tuning needs pose, position or orientation measurements: the likelihood is "
-                         "that of the measurements, and this dataset has none")
+    if all(KINDS[s.kind].relative for s in sensors_of(dataset)):
+        raise ValueError("noise tuning needs measurements the EKF uses (pose, position, GNSS, orientation or "
+                         "velocity): the likelihood is that of the measurements, and this dataset has none")
     if not (0 < min_step <= step and max_log10 > 0):
         raise ValueError(f"tune_noise: expected 0 < min_step <= step and max_log10 > 0, got step={step}, "
                          f"min_step={min_step}, max_log10={max_log10}")

@@ -47,12 +47,9 @@ def run(args) -> int:
     out = output_directory(args.out)
     seeds = range(args.first_seed, args.first_seed + args.runs)
     with progress_bar(args.runs, "monte carlo", None) as bar:
-        try:
-            results = montecarlo.run_many(
-                config, seeds, None if args.dask else montecarlo.make_executor(args.workers),
-                dask_address=args.dask, out_dir=out, on_done=lambda r: bar.update(1))
-        except ValueError as error:
-            raise UserError(str(error)) from None
+        results = montecarlo.run_many(
+            config, seeds, None if args.dask else montecarlo.make_executor(args.workers),
+            dask_address=args.dask, out_dir=out, on_done=lambda r: bar.update(1))
     summary = montecarlo.aggregate(results, estimators)
     from datasets.atomic import atomic_write
 

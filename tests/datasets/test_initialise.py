@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from datasets.from_truth import SensorSpec
+from datasets.simulated_sensors import SensorSpec
 from datasets.initialise import InitialisationError, imu_from, initial_state, self_initialised
 from datasets.kinds import sensors_of
 from datasets.simulate import simulate
@@ -65,3 +65,43 @@ def test_imu_from_a_time_between_samples_holds_the_sample_before():
     cut = imu_from(data.imu, t_s)
     assert cut.t[0] == t_s and np.array_equal(cut.t[1:], data.imu.t[11:])
     assert np.array_equal(cut.gyro[0], data.imu.gyro[10]) and np.array_equal(cut.acc[1:], data.imu.acc[11:])
+
+
+def _remounted(data, R):
+    """``data`` as recorded by the same IMU mounted rotated by ``R`` (``C' = C R``): readings in
+    the new axes, the sensors' extrinsics re-expressed (the sensors stay where they are)."""
+    from dataclasses import replace
+
+    from datasets.types import ImuSamples, Sensor
+
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    sensors = []
+    for s in data.sensors:
+        m = replace(s.data, T_BS=T @ s.data.T_BS)
+        if s.kind == "velocity":
+            m = replace(m, gyro=m.gyro @ R)
+        sensors.append(Sensor(s.name, s.kind, m))
+    imu = ImuSamples(data.imu.t, data.imu.acc @ R, data.imu.gyro @ R)
+    return replace(data, imu=imu, sensors=tuple(sensors))
+
+
+def test_an_imu_on_its_side_gets_its_heading_from_the_wheels():
+    """The IMU's z axis horizontal (x pointing down): the wheel speed's direction, levelled in the
+    world, gives the heading (the IMU-frame x-y test used to reject it and take the IMU's x axis,
+    90 deg off on a real Husky recording)."""
+    data = simulate("gentle", duration=20, seed=2, pose_rate=None, sensors=[GNSS, WHEEL])
+    R = so3.exp([0.0, np.pi / 2, 0.0])  # body x -> world down
+    started = self_initialised(_remounted(data, R))
+    k = np.searchsorted(data.truth.t, started.t0)
+    error = np.linalg.norm(so3.boxminus(started.initial.C, data.truth.C[k] @ R))
+    assert error < 3 * np.sqrt(started.initial_cov[6:9, 6:9].diagonal().max()), np.rad2deg(error)
+    no_wheels = replace_sensors(_remounted(data, R), keep=("gnss",))
+    with pytest.raises(InitialisationError, match="is not horizontal"):
+        self_initialised(no_wheels)
+
+
+def replace_sensors(data, keep):
+    from dataclasses import replace
+
+    return replace(data, sensors=tuple(s for s in data.sensors if s.name in keep))

@@ -15,7 +15,7 @@ from datasets import simulate as sim
 from datasets.simulate import PROFILES, SimulatedDataset, euler_truth, simulate
 from datasets.trajectories import body_rate_from_rpy
 from datasets.types import Dataset
-from factors import imu, quaternion, so3
+from factors import euler, imu, so3
 from factors.imu import ImuNoise
 
 Z = 5.0
@@ -142,9 +142,9 @@ def test_body_rate_formula_against_euler_angle_matrices():
     rpy[:10, 1] = np.pi / 2  # gimbal lock is no problem for the forward formula
     rate = rng.normal(0, 3, (200, 3))
     h = 1e-6
-    dC = (quaternion.rpy_to_matrix(rpy + h * rate) - quaternion.rpy_to_matrix(rpy - h * rate)) / (2 * h)
+    dC = (euler.rpy_to_matrix(rpy + h * rate) - euler.rpy_to_matrix(rpy - h * rate)) / (2 * h)
     np.testing.assert_allclose(
-        so3.inverse(quaternion.rpy_to_matrix(rpy)) @ dC, so3.skew(body_rate_from_rpy(rpy, rate)), atol=1e-8
+        so3.inverse(euler.rpy_to_matrix(rpy)) @ dC, so3.skew(body_rate_from_rpy(rpy, rate)), atol=1e-8
     )
 
 
@@ -174,7 +174,7 @@ def test_velocity_acceleration_and_specific_force_are_the_derivatives_of_the_pos
 def test_gentle_heads_along_its_path():
     k = PROFILES["gentle"].evaluate(np.linspace(0, 60, 6001))
     heading = np.arctan2(k.v[:, 1], k.v[:, 0])
-    yaw = quaternion.matrix_to_rpy(k.C)[:, 2]
+    yaw = euler.matrix_to_rpy(k.C)[:, 2]
     np.testing.assert_allclose(np.angle(np.exp(1j * (yaw - heading))), 0.0, atol=1e-12)
     speed = np.linalg.norm(k.v, axis=1)
     assert 0.6 < speed.min() and speed.max() < 1.6 and abs(speed.mean() - 1.0) < 0.1
@@ -211,7 +211,7 @@ def test_static_measures_only_gravity(profile, truth):
     np.testing.assert_allclose(d.truth.states.r - d.truth.states.r[0], 0.0, atol=1e-12)
     np.testing.assert_allclose(d.truth.states.v, 0.0, atol=1e-12)
     np.testing.assert_array_equal(C - C[0], 0.0)
-    rpy = quaternion.matrix_to_rpy(C[0])
+    rpy = euler.matrix_to_rpy(C[0])
     if profile == "static":
         assert np.all(np.abs(rpy[:2]) > 0.05)  # tilted
     else:

@@ -159,3 +159,14 @@ def test_write_tum_in_the_data_clock_keeps_nanosecond_stamps(tmp_path):
     stamps = [line.split()[0] for line in (tmp_path / "a.tum").read_text().splitlines()[1:]]
     assert stamps == ["1403715273.262142976", "1403715273.267142976", "1403715274.512142976"]
     assert format_ns(-1_500_000_000) == "-1.500000000"
+
+
+def test_a_duplicate_stamp_is_shown_whole(tmp_path):
+    """EuRoC-sized stamps with all their digits: both are in the message, not cut at 60 characters."""
+    path = tmp_path / "dup.txt"
+    path.write_text("1403715572.112143039 0 0 0 0 0 0 1\n1403715572.162142992 1 0 0 0 0 0 1\n"
+                    "1403715572.162142992 2 0 0 0 0 0 1\n")
+    with pytest.raises(DataError) as info:
+        read_tum(path)
+    message = str(info.value)
+    assert "found 1403715572.162143, a duplicate of line 2 (1403715572.162143); expected strictly" in message

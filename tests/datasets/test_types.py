@@ -101,7 +101,6 @@ def test_rotation_check_names_the_row():
 @pytest.mark.parametrize("acc_scale, gyro_scale, fragment", [
     (1.0 / 9.81, 1.0, "is the data in g"),
     (1000.0, 1.0, "mm/s^2"),
-    (1.0, 57.3, "deg/s"),
 ])
 def test_implausible_imu_units_are_reported(acc_scale, gyro_scale, fragment):
     n = 101
@@ -110,6 +109,22 @@ def test_implausible_imu_units_are_reported(acc_scale, gyro_scale, fragment):
     samples = ImuSamples(t, np.tile([0.0, 0.0, 9.81], (n, 1)) * acc_scale, gyro)
     with pytest.warns(UserWarning, match=re.escape(fragment)):
         _dataset(imu=samples)
+
+
+def test_gyro_rates_no_vehicle_reaches_are_refused_unless_allowed():
+    """A turn at 1 rad/s written in deg/s (57.3 "rad/s", beyond the 35 rad/s limit): refused with
+    the likely cause; inside ``max_gyro_rate(100)`` accepted; at 30 rad/s accepted as is."""
+    from datasets.types import max_gyro_rate
+
+    n = 101
+    t = np.arange(n) / 100.0
+    acc = np.tile([0.0, 0.0, 9.81], (n, 1))
+    with pytest.raises(ValueError, match=re.escape("Dataset.imu.gyro: 99th percentile angular rate 57.3, above 35 "
+                                                   "rad/s that no vehicle reaches; the data are probably in deg/s")):
+        _dataset(imu=ImuSamples(t, acc, np.tile([0.0, 0.0, 57.3], (n, 1))))
+    with max_gyro_rate(100.0):
+        _dataset(imu=ImuSamples(t, acc, np.tile([0.0, 0.0, 57.3], (n, 1))))
+    _dataset(imu=ImuSamples(t, acc, np.tile([0.0, 0.0, 30.0], (n, 1))))
 
 
 def _cov_cases():

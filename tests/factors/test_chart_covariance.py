@@ -30,7 +30,8 @@ from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from factors import imu, so3
 from factors import measurements as meas
-from factors.chart import state_covariance_to_primer, to_gtsam_chart
+from factors.chart import to_gtsam_chart
+from factors.uncertainty import state_covariance_to_primer
 from factors.keys import keyframe_keys
 
 N_SAMPLES = 20000

@@ -99,35 +99,69 @@ def test_residual_one_equals_the_vectorised_residual_and_checks_its_inputs():
                                     *variables(states[0]), *variables(states[1]), g)
 
 
-def test_cached_kernels_are_cleared_when_any_source_changes(tmp_path):
-    """Numba re-validates a cached kernel only against its own file; the package clears every
-    cached kernel when any of its sources changes (a kernel inlines others' code)."""
+def test_an_edit_drops_the_cached_kernels_of_the_edited_module_and_its_dependants_only(tmp_path):
+    """Numba re-validates a cached kernel only against its own file, but a kernel inlines the
+    kernels it calls from other modules: an edit drops the caches of the edited module and of
+    every module that imports it, directly, through others, inside a function or relatively."""
     from factors.compiled import clear_stale_kernel_caches
 
-    a, b = tmp_path / "a", tmp_path / "b"
-    for package in (a, b):
-        (package / "__pycache__").mkdir(parents=True)
-        (package / "m.py").write_text("x = 1\n")
-    stamp = tmp_path / "stamp"
+    sources = {
+        "a/__init__.py": "",
+        "a/leaf.py": "x = 1\n",
+        "a/leafy.py": "x = 1\n",  # its cache files start with 'leaf' too
+        "a/mid.py": "def f():\n    from a import leaf\n    return leaf.x\n",
+        "b/top.py": "from a.mid import f\n",
+        "b/other.py": "x = 1\n",
+        "b/rel.py": "from . import other\n",
+    }
+    for name, text in sources.items():
+        (tmp_path / name).parent.joinpath("__pycache__").mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    stamp = tmp_path / "a" / "__pycache__" / "stamp.json"
+
+    def cache_all():
+        for name in sources:
+            path = tmp_path / name
+            for suffix in ("k-10.py311.nbi", "k-10.py311.1.nbc"):
+                path.parent.joinpath("__pycache__", f"{path.stem}.{suffix}").write_text("")
 
     def cached():
-        for package in (a, b):
-            for name in ("m.k-10.py311.nbi", "m.k-10.py311.1.nbc"):
-                (package / "__pycache__" / name).write_text("")
+        return sorted({f"{p.parent.parent.name}.{p.name.split('.')[0]}" for p in tmp_path.glob("*/__pycache__/*.nb?")})
 
-    cached()
-    assert clear_stale_kernel_caches([a, b], stamp)  # no fingerprint yet: cleared
-    assert not list(a.glob("__pycache__/*.nb?")) and stamp.exists()
-    cached()
-    assert not clear_stale_kernel_caches([a, b], stamp)  # unchanged sources: kept
-    assert len(list(b.glob("__pycache__/*.nb?"))) == 2
-    (b / "m.py").write_text("x = 2\n")  # an edit in ANOTHER package clears both
-    assert clear_stale_kernel_caches([a, b], stamp)
-    assert not list(a.glob("__pycache__/*.nb?")) and not list(b.glob("__pycache__/*.nb?"))
-    (a / "__pycache__" / "other.pyc").write_text("")
-    (b / "m.py").write_text("x = 3\n")
-    clear_stale_kernel_caches([a, b], stamp)
-    assert (a / "__pycache__" / "other.pyc").exists()  # only Numba's files go
+    def clear():
+        return clear_stale_kernel_caches(tmp_path, ("a", "b"), stamp)
+
+    everything = ["a.__init__", "a.leaf", "a.leafy", "a.mid", "b.other", "b.rel", "b.top"]
+    cache_all()
+    assert sorted(clear()) == ["a", "a.leaf", "a.leafy", "a.mid", "b.other", "b.rel", "b.top"]  # no stamp yet
+    assert cached() == []
+    cache_all()
+    assert clear() == [] and cached() == everything  # unchanged sources: kept
+    (tmp_path / "a/leaf.py").write_text("x = 2\n")
+    assert sorted(clear()) == ["a.leaf", "a.mid", "b.top"]
+    assert cached() == ["a.__init__", "a.leafy", "b.other", "b.rel"]
+    cache_all()
+    (tmp_path / "b/other.py").write_text("x = 2\n")
+    assert sorted(clear()) == ["b.other", "b.rel"]
+    assert cached() == ["a.__init__", "a.leaf", "a.leafy", "a.mid", "b.top"]
+    (tmp_path / "b/new.py").write_text("from a import leafy\n")  # a new module: its own caches only
+    assert clear() == ["b.new"]
+    (tmp_path / "a" / "__pycache__" / "other.pyc").write_text("")
+    (tmp_path / "a/leafy.py").write_text("x = 3\n")
+    assert sorted(clear()) == ["a.leafy", "b.new"]
+    assert (tmp_path / "a" / "__pycache__" / "other.pyc").exists()  # only Numba's files go
+
+
+def test_the_import_graph_reads_imports_inside_functions_and_relative_ones(tmp_path):
+    from factors.imports import cycles, module_imports
+
+    for name, text in {"p/__init__.py": "from .q import x\n", "p/q.py": "import os\nx = 1\n",
+                       "p/r.py": "def f():\n    import p.s\n", "p/s.py": "from p import r, q\n"}.items():
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_text(text)
+    graph = module_imports(tmp_path, ("p",))
+    assert graph == {"p": {"p.q"}, "p.q": set(), "p.r": {"p.s"}, "p.s": {"p.q", "p.r"}}
+    assert cycles(graph) == [["p.r", "p.s"]]
 
 
 def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():

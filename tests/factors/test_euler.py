@@ -1,11 +1,17 @@
 """The 24 Euler-angle conventions: definitions, round trips, singular cases, SciPy as an
-independent reference (test-only), the roll-pitch-yaw of factors.quaternion, and the Jacobian
+independent reference (test-only), the project's roll-pitch-yaw against GTSAM, and the Jacobian
 of the angles against central differences."""
+import math
+
+import gtsam
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from factors import euler, quaternion, so3
+from strategies import EPS
 
 TAU = 2 * np.pi
 
@@ -206,19 +212,48 @@ def test_scipy_name_mapping():
     assert np.abs(Rotation.from_euler("zyx", [a, b, c]).as_matrix() - euler.to_matrix([a, b, c], "rzyx")).max() > 0.1
 
 
-def test_roll_pitch_yaw_is_sxyz_and_matches_quaternion_module():
+def test_roll_pitch_yaw_is_sxyz_and_rzyx_with_the_angles_reversed():
     rng = np.random.default_rng(7)
     rpy = random_angles(rng, 1000)
     rpy[:, 1] /= 2
     assert euler.ROLL_PITCH_YAW == "sxyz"
-    np.testing.assert_allclose(euler.to_matrix(rpy, "sxyz"), quaternion.rpy_to_matrix(rpy), atol=1e-15)
-    np.testing.assert_allclose(euler.to_matrix(rpy[:, ::-1], "rzyx"), quaternion.rpy_to_matrix(rpy), atol=1e-15)
+    np.testing.assert_allclose(euler.rpy_to_matrix(rpy), euler.to_matrix(rpy[:, ::-1], "rzyx"), atol=1e-15)
     C = so3.exp(rng.normal(size=(1000, 3)))
-    np.testing.assert_allclose(euler.from_matrix(C, "sxyz"), quaternion.matrix_to_rpy(C), atol=1e-12)
-    # Same choice at gimbal lock (roll = 0).
-    rpy[:, 1] = np.where(rng.random(1000) < 0.5, np.pi / 2, -np.pi / 2)
-    C = quaternion.rpy_to_matrix(rpy)
-    np.testing.assert_allclose(euler.from_matrix(C, "sxyz"), quaternion.matrix_to_rpy(C), atol=1e-12)
+    np.testing.assert_allclose(euler.matrix_to_rpy(C)[:, ::-1], euler.from_matrix(C, "rzyx"), atol=1e-12)
+
+
+ROUNDOFF = 8 * EPS
+angle = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+def max_wrapped(a, b) -> float:
+    """Largest difference of two angle arrays, modulo 2 pi."""
+    return float(np.max(np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))))
+
+
+@given(angle, st.floats(-1.5, 1.5), angle)
+def test_rpy_against_gtsam_and_round_trip_away_from_gimbal_lock(roll, pitch, yaw):
+    rpy = np.array([roll, pitch, yaw])
+    C = euler.rpy_to_matrix(rpy)
+    assert np.abs(C - gtsam.Rot3.Ypr(yaw, pitch, roll).matrix()).max() <= ROUNDOFF
+    back = euler.matrix_to_rpy(C)
+    # angles are defined modulo 2 pi; cos(1.5) = 0.07 keeps the conditioning within 15x
+    assert max_wrapped(back, rpy) <= 15 * ROUNDOFF
+    assert max_wrapped(back, gtsam.Rot3(C).rpy()) <= 15 * ROUNDOFF
+
+
+@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
+@given(roll=angle, yaw=angle)
+@settings(max_examples=50)
+def test_rpy_at_gimbal_lock_reproduces_the_matrix(pitch, roll, yaw):
+    C = euler.rpy_to_matrix([roll, pitch, yaw])
+    rpy = euler.matrix_to_rpy(C)
+    assert rpy[0] == 0.0  # roll is set to 0 ...
+    assert abs(rpy[1] - pitch) <= 1e-7  # pitch is exact to sqrt(EPS) (atan2 of 1 against ~1e-17)
+    # ... and yaw carries yaw - roll (pitch +pi/2) or yaw + roll (pitch -pi/2), modulo 2 pi
+    expected = yaw - roll if pitch > 0 else yaw + roll
+    assert max_wrapped(rpy[2], expected) <= 4 * ROUNDOFF
+    assert np.abs(euler.rpy_to_matrix(rpy) - C).max() <= 4 * ROUNDOFF
 
 
 @pytest.mark.parametrize("convention", euler.CONVENTIONS)

@@ -9,7 +9,7 @@ angle regime (down to 1e-12 rad, and within 1e-12 rad of pi and at pi):
     q == exp(log(q)) up to sign        eqs. (38)-(41)
 
 plus the small-angle branches on both sides of ``quaternion.SMALL_ANGLE`` against 60-digit
-references, GTSAM and scipy interoperability, roll-pitch-yaw with gimbal lock, ``check_unit``
+references, GTSAM and scipy interoperability, ``check_unit``
 and vectorisation. Tolerances are in units of EPS = 2.2e-16 (see tests/factors/test_so3.py).
 """
 from __future__ import annotations
@@ -224,7 +224,6 @@ SCALAR_PARTS = {
     "identity": lambda: Q.identity()[0],
     "from_matrix": lambda: Q.from_matrix(Q.to_matrix(Q.exp([4.0, 0, 0])))[0],
     "from_rot3": lambda: Q.from_rot3(gtsam.Rot3.Quaternion(-0.6, 0.8, 0, 0))[0],
-    "from_rpy": lambda: Q.from_rpy([3.0, 1.0, -3.0])[0],
 }
 
 
@@ -303,49 +302,6 @@ def test_xyzw_reorder_round_trip_and_scipy(q):
     assert max_abs(Rotation.from_quat(xyzw).as_matrix(), Q.to_matrix(q)) <= PRODUCT
 
 
-# --------------------------------------------------------------------------- roll, pitch, yaw
-
-angle = st.floats(-math.pi, math.pi, allow_nan=False)
-
-
-def max_wrapped(a, b) -> float:
-    """Largest difference of two angle arrays, modulo 2 pi."""
-    return float(np.max(np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))))
-
-
-@given(angle, st.floats(-1.5, 1.5), angle)
-def test_rpy_against_gtsam_and_round_trip_away_from_gimbal_lock(roll, pitch, yaw):
-    rpy = np.array([roll, pitch, yaw])
-    C = Q.rpy_to_matrix(rpy)
-    assert max_abs(C, gtsam.Rot3.Ypr(yaw, pitch, roll).matrix()) <= ROUNDOFF
-    back = Q.matrix_to_rpy(C)
-    # angles are defined modulo 2 pi; cos(1.5) = 0.07 keeps the conditioning within 15x
-    assert max_wrapped(back, rpy) <= 15 * ROUNDOFF
-    assert max_wrapped(back, gtsam.Rot3(C).rpy()) <= 15 * ROUNDOFF
-
-
-@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
-@given(roll=angle, yaw=angle)
-@settings(max_examples=50)
-def test_rpy_at_gimbal_lock_reproduces_the_matrix(pitch, roll, yaw):
-    C = Q.rpy_to_matrix([roll, pitch, yaw])
-    rpy = Q.matrix_to_rpy(C)
-    assert rpy[0] == 0.0  # roll is set to 0 ...
-    assert abs(rpy[1] - pitch) <= 1e-7  # pitch is exact to sqrt(EPS) (atan2 of 1 against ~1e-17)
-    # ... and yaw carries yaw - roll (pitch +pi/2) or yaw + roll (pitch -pi/2), modulo 2 pi
-    expected = yaw - roll if pitch > 0 else yaw + roll
-    assert max_wrapped(rpy[2], expected) <= 4 * ROUNDOFF
-    assert max_abs(Q.rpy_to_matrix(rpy), C) <= 4 * ROUNDOFF
-
-
-@given(quaternions())
-def test_quaternion_rpy_helpers(q):
-    rpy = Q.to_rpy(q)
-    assert max_abs(rpy, Q.matrix_to_rpy(Q.to_matrix(q))) == 0.0
-    # the orientation survives the round trip at any pitch (at gimbal lock too, by construction)
-    assert same_orientation(Q.from_rpy(rpy), q) <= 1e-12
-
-
 # --------------------------------------------------------------------------- check_unit
 
 
@@ -417,9 +373,7 @@ def test_vectorised_functions_equal_loops(seed):
     cases = [
         (Q.rotate, (qb, rb)), (Q.to_matrix, (qb,)), (Q.compose, (qb, pb)), (Q.inverse, (qb,)),
         (Q.exp, (phis,)), (Q.log, (qb,)), (Q.from_matrix, (Q.to_matrix(qb),)), (Q.canonical, (qb,)),
-        (Q.normalize, (qb,)), (Q.to_xyzw, (qb,)), (Q.from_xyzw, (qb,)), (Q.to_rpy, (qb,)),
-        (Q.from_rpy, (Q.to_rpy(qb),)), (Q.rpy_to_matrix, (Q.to_rpy(qb),)), (Q.matrix_to_rpy, (Q.to_matrix(qb),)),
-        (Q.check_unit, (qb,)),
+        (Q.normalize, (qb,)), (Q.to_xyzw, (qb,)), (Q.from_xyzw, (qb,)), (Q.check_unit, (qb,)),
     ]
     for f, args in cases:
         batched = f(*args)
@@ -446,8 +400,6 @@ def test_vectorised_functions_equal_loops(seed):
         (lambda: Q.to_rot3(Q.identity(2)), "q: expected shape (4,) (one quaternion), got (2, 4)"),
         (lambda: Q.log([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
         (lambda: Q.from_matrix(np.eye(4)), "C: expected shape (..., 3, 3), got (4, 4)"),
-        (lambda: Q.to_rpy([1.0, 0, 0]), "q: expected shape (..., 4), got (3,)"),
-        (lambda: Q.from_rpy([0.1, 0.2]), "angles: expected shape (..., 3), got (2,)"),
     ],
 )
 def test_wrong_trailing_shapes_raise_value_error_naming_the_argument(call, message):

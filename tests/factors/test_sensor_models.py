@@ -89,7 +89,7 @@ def test_models_predict_the_sensor_frame():
     independently from the rigid-body formulas."""
     rng = np.random.default_rng(4)
     x, T = _state(rng, "any"), selfcheck.random_extrinsic(rng)
-    R, p = T[:3, :3], T[:3, 3]
+    p = T[:3, 3]
     w = rng.normal(size=3)
     T_IB = np.eye(4)
     T_IB[:3, :3], T_IB[:3, 3] = x.C, x.r

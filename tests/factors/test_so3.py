@@ -154,7 +154,7 @@ def test_exp_log_gamma_agree_with_gtsam(phi):
     C = so3.exp(phi)
     assert max_abs(C, gtsam.Rot3.Expmap(phi).matrix()) <= ROUNDOFF, "Expmap"
     assert max_abs(so3.log(C), gtsam.Rot3.Logmap(gtsam.Rot3(C))) <= ROUNDOFF * np.abs(phi).max() + 1e-300, "Logmap"
-    # GTSAM's ExpmapDerivative is the RIGHT Jacobian Gamma(-phi) = Gamma(phi)^T (DESIGN.md).
+    # GTSAM's ExpmapDerivative is the RIGHT Jacobian Gamma(-phi) = Gamma(phi)^T (docs/design.md, section 4).
     assert max_abs(so3.gamma(phi), gtsam.Rot3.ExpmapDerivative(-phi)) <= ROUNDOFF, "ExpmapDerivative"
     # GTSAM's LogmapDerivative switches to an approximation close to pi (we measured 2.6e-8 off
     # the exact inverse of its own ExpmapDerivative at pi - 1e-3), so compare below 3 rad only;

@@ -12,9 +12,9 @@ import pytest
 from datasets.robust import ROBUST_KERNEL_NAMES, robust_spec
 from datasets.simulate import simulate
 from factors import imu
-from smoother import batch
+from factors.errors import SolverError
+from smoother import batch, solver
 from smoother.batch import IndeterminantSystem, solve_batch
-from smoother.errors import UserError
 from smoother.graph import ROBUST_KERNELS, build_problem, noise_model
 
 import estimator_cases as cases
@@ -113,17 +113,20 @@ def _without_prior(problem):
 @pytest.mark.parametrize("optimizer", ["lm", "gn"])
 def test_an_indeterminant_system_names_the_keyframe(optimizer, engine):
     """No prior and no measurement: nothing fixes the start, the system is rank-deficient. The
-    error is IndeterminantSystem (a UserError the command line prints in one line), not GTSAM's
+    error is IndeterminantSystem (a SolverError the command line prints in one line), not GTSAM's
     bare RuntimeError, and it names a keyframe and its time."""
     data = simulate(profile="gentle", duration=1.0, seed=3, imu_rate=cases.IMU_RATE, pose_rate=None)
     problem = _without_prior(build_problem(data))
     assert len(problem.times) == 2
     with pytest.raises(IndeterminantSystem) as info:
         _solve(problem, optimizer, engine)
-    assert isinstance(info.value, UserError)
+    assert isinstance(info.value, SolverError)
     message = str(info.value)
     assert "keyframe 0 (t = 0.000000 s)" in message or "keyframe 1 (t = 1.000000 s)" in message, message
     assert "\n" not in message
+    if engine in (None, "vectorized"):  # the vectorised engine also names what is free there
+        assert ("it is free along whole state" in message
+                or "it is free along position (world) x, y, z, velocity (body) x, y, z" in message), message
 
 
 def test_without_the_prior_but_with_measurements_the_system_is_determined():
@@ -131,6 +134,76 @@ def test_without_the_prior_but_with_measurements_the_system_is_determined():
     biases), so the indeterminant case above really is about the missing constraints."""
     result = solve_batch(_without_prior(build_problem(small())))
     assert np.all(np.isfinite(result.trajectory.cov))
+
+
+@functools.lru_cache(maxsize=None)
+def dead_reckoned():
+    """IMU only for 6.6 s after the prior, keyframes at 20 Hz: a unique optimum whose rows are
+    badly conditioned (their condition number beyond 1e7: position is only dead-reckoned)."""
+    problem = build_problem(simulate(profile="gentle", duration=6.6, seed=0, pose_rate=None), keyframe_rate=20)
+    return problem, solve_batch(problem)
+
+
+def test_covariances_of_a_badly_conditioned_chain_equal_a_dense_reference():
+    """Cholesky of the information matrix (GTSAM's ``Marginals``) calls this chain indeterminant;
+    the batch's covariances equal those of the dense SVD of the same whitened rows to 1e-9 of the
+    largest entry (and to 1e-9 of each pair's standard deviations)."""
+    problem, result = dead_reckoned()
+    graph, _ = solver.linearize(problem.blocks, result.trajectory.states)
+    n = len(result.trajectory)
+    with pytest.raises(RuntimeError, match="ndetermina"):
+        gtsam.Marginals(graph, solver._to_vector_values(np.zeros((n, 15))))
+    A = graph.jacobian(gtsam.Ordering(list(range(n))))[0]
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    assert s[0] / s[-1] > 1e7
+    dense = (Vt.T / s**2) @ Vt
+    reference = np.stack([dense[15 * k:15 * k + 15, 15 * k:15 * k + 15] for k in range(n)])
+    cov = result.trajectory.cov
+    assert np.abs(cov - reference).max() < 1e-9 * np.abs(reference).max()
+    sd = np.sqrt(np.einsum("kii->ki", reference))
+    assert (np.abs(cov - reference) / (sd[:, :, None] * sd[:, None, :])).max() < 1e-9
+
+
+def test_an_unconstrained_yaw_is_named_in_the_error():
+    """The prior without its yaw (attitude about the world z axis) and no measurement: the whole
+    trajectory may turn about z through the origin. The error names that direction: attitude
+    about z and the positions it moves (x, y), nothing else."""
+    problem, _ = dead_reckoned()
+    blocks = []
+    for block in problem.blocks:
+        if block.name == "prior":
+            whiten = block.whiten.copy()
+            assert np.count_nonzero(whiten[0] - np.diag(np.diag(whiten[0]))) == 0  # diagonal prior
+            whiten[0, 8, 8] = 0.0  # error-state component 8: attitude about z (world)
+            block = replace(block, whiten=whiten)
+        blocks.append(block)
+    with pytest.raises(IndeterminantSystem) as info:
+        solve_batch(replace(problem, blocks=blocks))
+    message = str(info.value)
+    assert "free along position (world) x, y, attitude (world) about z;" in message, message
+    assert "\n" not in message
+
+
+@functools.lru_cache(maxsize=None)
+def sparse_fixes():
+    """60 s tumbling, a position fix every 10 s, keyframes at 10 Hz: long dead-reckoned stretches
+    whose lightly damped systems Cholesky calls indeterminant."""
+    data = simulate(profile="tumbling", duration=60.0, seed=0, pose_rate=None, position_rate=0.1)
+    return build_problem(data, keyframe_rate=10.0)
+
+
+def test_lm_converges_on_long_dead_reckoned_stretches_within_the_default_cap():
+    """Levenberg-Marquardt solves its steps with QR where Cholesky refuses them: it converges in
+    a few iterations (it used to be held at high damping and stop at the cap, 0.6 m off)."""
+    result = solve_batch(sparse_fixes(), covariances=False)
+    assert result.converged and result.iterations < 20, result.iterations
+
+
+def test_a_batch_stopped_at_its_cap_warns_and_says_it_did_not_converge():
+    with pytest.warns(UserWarning, match=r"batch \(lm\): stopped after 2 iterations without converging \(the last "
+                                         r"iteration still lowered the cost by [0-9.e+-]+ of itself\)"):
+        result = solve_batch(sparse_fixes(), max_iterations=2, covariances=False)
+    assert not result.converged and result.iterations == 2
 
 
 # ------------------------------------------------------------------------------------------

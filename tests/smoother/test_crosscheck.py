@@ -1,4 +1,4 @@
-"""The cross-checks of DESIGN.md section 3 as tests on small cases, and ``smoother crosscheck``.
+"""The cross-checks of docs/design.md section 9 as tests on small cases, and ``smoother crosscheck``.
 
 Tolerances (the project's targets, smoother.crosscheck.TARGETS):
 

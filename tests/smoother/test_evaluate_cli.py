@@ -115,7 +115,7 @@ def test_running_out_of_memory_is_one_line(files, capsys, monkeypatch):
     """A MemoryError is one line with exit 2 (no --duration hint: evaluate has no such option)."""
     from smoother.commands import evaluate
 
-    def too_big(path):
+    def too_big(path, *args, **kwargs):
         raise MemoryError("Unable to allocate 8.0 GiB for an array with shape (1073741824,) and data type float64")
 
     monkeypatch.setattr(evaluate, "_read", too_big)

@@ -19,9 +19,9 @@ from datasets.atomic import atomic_write
 from datasets.simulate import simulate
 from datasets.types import Trajectory
 from factors import so3
+from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import cli, metrics, plots, report
-from smoother.errors import UserError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 ALL_FIGURES = ["trajectory", "position_error", "orientation_error", "nees", "biases", "comparison"]
@@ -113,6 +113,12 @@ def test_gps_reference(run_dir, tmp_path):
     run = plots.load_run(directory, ["ekf"])
     e = plots.errors_against_gps(run.gps, run.estimates["ekf"])
     assert e.dof == 3 and np.array_equal(e.heldout, heldout)
+    # comparison.png's bars: the held-out RMSE, and the residual to the used fixes labelled as such
+    bars = {key: (label, values) for key, label, values in plots._bar_values(run, "gps", {"ekf": e})}
+    assert bars["gps_heldout_rmse_m"][0] == "RMSE to held-out fixes [m]\n(accuracy)"
+    assert bars["gps_fit_residual_m"][0] == "residual to used fixes [m]\n(a fit, not accuracy)"
+    for key, mask in (("gps_heldout_rmse_m", heldout), ("gps_fit_residual_m", ~heldout)):
+        assert bars[key][1]["ekf"] == pytest.approx(np.sqrt(np.mean(np.sum(e.dr[mask] ** 2, axis=1))), rel=1e-12)
     # NEES only where the fix was held out (a used fix is not independent of the estimate)
     assert np.all(np.isfinite(e.nees[heldout])) and np.all(np.isnan(e.nees[~heldout]))
 
@@ -146,29 +152,29 @@ def test_interpolate_is_exact_at_samples_and_geodesic_between():
 
 
 def test_missing_or_malformed_run_directory(tmp_path, run_dir):
-    with pytest.raises(UserError, match="no estimate found"):
+    with pytest.raises(InputError, match="no estimate found"):
         plots.plot_run(tmp_path)
-    with pytest.raises(UserError, match="not a directory"):
+    with pytest.raises(InputError, match="not a directory"):
         plots.plot_run(tmp_path / "nowhere")
-    with pytest.raises(UserError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
+    with pytest.raises(InputError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
         plots.load_run(run_dir, ["foo"])
 
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "ekf.npz").write_text("not an archive\n")
-    with pytest.raises(UserError, match=r"ekf\.npz: not an \.npz archive"):
+    with pytest.raises(InputError, match=r"ekf\.npz: not an \.npz archive"):
         plots.plot_run(bad)
     np.savez(bad / "ekf.npz", t=np.arange(3.0))
-    with pytest.raises(UserError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
+    with pytest.raises(InputError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
         plots.plot_run(bad)
     est = report.load_trajectory(run_dir / "ekf.npz")
     report.save_trajectory(bad / "ekf.npz", est)
     np.savez(bad / "gps.npz", t=np.arange(3.0), position=np.zeros((2, 3)))
-    with pytest.raises(UserError, match=r"gps\.npz: inconsistent shapes"):
+    with pytest.raises(InputError, match=r"gps\.npz: inconsistent shapes"):
         plots.load_run(bad)
     (bad / "gps.npz").unlink()
     (bad / "metrics.json").write_text("{ not json")
-    with pytest.raises(UserError, match=r"metrics\.json: cannot read it"):
+    with pytest.raises(InputError, match=r"metrics\.json: cannot read it"):
         plots.load_run(bad)
 
 

@@ -7,12 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datasets.from_truth import SensorSpec
+from datasets.simulated_sensors import SensorSpec
 from datasets.simulate import simulate
 from datasets.types import Sensor
 from factors import so3
 from smoother import report
-from smoother.diagnostics import consistency_warnings, sensor_consistency
+from smoother.diagnostics import consistency_lines, consistency_warnings, sensor_consistency
 from smoother.pipeline import run_estimators
 
 
@@ -73,3 +73,5 @@ def test_nis_names_each_misplaced_sensor_and_passes_the_right_ones(runs):
     lines = consistency_warnings(wrong)
     assert len(lines) == 3 and all("lever arm" in line for line in lines)
     assert consistency_warnings(right) == []
+    assert [line.rsplit(": ", 1)[1] for line in consistency_lines(wrong)] == ["OUT OF BAND"] * 3
+    assert all(line.endswith(": ok") for line in consistency_lines(right))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -61,6 +62,22 @@ def test_format_table_marks_missing_values():
     assert batch.split() == ["batch", "0.5000", "-", "2.0000"]
 
 
+def test_the_table_ranks_by_held_out_fixes_and_labels_the_fit_residual():
+    """KITTI with every fix used (issue figures): the fixed-lag smoother fits the used fixes more
+    closely (0.32 m against 0.65 m) at a far higher cost; held out, the batch is the more accurate.
+    The table ranks by the held-out RMSE only and says what the residual is."""
+    table = format_table({"batch": {"gps_heldout_rmse_m": 1.41, "gps_fit_residual_m": 0.65, "runtime_s": 1.0},
+                          "fixed-lag": {"gps_heldout_rmse_m": 1.75, "gps_fit_residual_m": 0.32, "runtime_s": 2.0},
+                          "ekf": {"gps_heldout_rmse_m": 14.2, "gps_fit_residual_m": 0.9, "runtime_s": 0.5}})
+    lines = table.splitlines()
+    assert lines[0].split() == ["estimator", "held-out", "[m]", "fit", "resid", "[m]", "time", "[s]"]
+    assert lines[4] == "ranked by held-out RMSE: batch < fixed-lag < ekf"
+    assert lines[5] == "fit resid: RMS distance to the fixes the estimators used -- a residual, not an accuracy"
+    every_fix_used = format_table({"batch": {"gps_heldout_rmse_m": float("nan"), "gps_fit_residual_m": 0.65},
+                                   "fixed-lag": {"gps_heldout_rmse_m": float("nan"), "gps_fit_residual_m": 0.32}})
+    assert "no held-out fixes: no ranking (hold fixes out with --gps-every K > 1)" in every_fix_used.splitlines()
+
+
 def _one_line_error(capsys) -> str:
     """The error is the last line of stderr, one line (progress notes such as 'running ekf ...'
     may come before it), without a traceback."""
@@ -98,6 +115,8 @@ def _one_line_error(capsys) -> str:
     # a value only the data can refuse: named by its option, not by the library's parameter
     (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
+    (["--max-iterations", "0"], "--max-iterations: expected an integer >= 1, got 0"),
+    (["--max-gyro-rate", "0"], "--max-gyro-rate: expected a rate in rad/s > 0 (finite), got 0.0"),
     (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
     (["--duration", "0.001"], "--duration: 0.001 s is shorter than one IMU step"),
     (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
@@ -285,3 +304,26 @@ def test_kitti_refuses_a_path(capsys):
     assert main(["run", "--dataset", "kitti:/some/where", "--out", "unused"]) == 2
     err = capsys.readouterr().err
     assert "kitti takes no path" in err and "Traceback" not in err
+
+
+def test_a_batch_stopped_by_max_iterations_says_so_in_a_warning_and_metrics(tmp_path, capsys):
+    """--max-iterations 1 on a problem LM needs more for: a warning naming the iterations and the
+    last relative decrease, and ``converged`` false in metrics.json (true with the default)."""
+    documents = {}
+    for cap in ("1", "100"):
+        out = tmp_path / cap
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            code = main(["run", "--duration", "4", "--estimator", "batch", "--out", str(out), "--no-progress",
+                         "--no-covariance", "--max-iterations", cap])
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        documents[cap] = json.loads((out / "metrics.json").read_text())["batch"]
+        warned = [str(w.message) for w in caught if "without converging" in str(w.message)]
+        if cap == "1":
+            assert len(warned) == 1 and "stopped after 1 iterations" in warned[0], warned
+            assert "--max-iterations" in warned[0] and "lowered the cost by" in warned[0]
+        else:
+            assert not warned, warned
+    assert documents["1"]["converged"] is False and documents["1"]["iterations"] == 1
+    assert documents["100"]["converged"] is True and documents["100"]["iterations"] < 100

@@ -28,7 +28,30 @@ def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
         assert (out / f"{name}.tum").exists()
         assert metrics[name]["compared_states"] > 10
         assert metrics[name]["ate_rmse_m"] is not None and metrics[name]["ate_rmse_m"] >= 0
-        assert metrics[name]["gps_rmse_m"] is not None
+        assert metrics[name]["gps_fit_residual_m"] is not None
+
+
+def test_gyro_data_in_deg_per_s_stop_the_run_naming_the_cause(tmp_path, capsys):
+    """The EuRoC folder's gyro columns written in deg/s (99th percentile ~200 "rad/s"): the run
+    stops with one line naming the rate, deg/s and the option; --max-gyro-rate lets it run."""
+    import numpy as np
+
+    _euroc_writer()(tmp_path / "seq")
+    imu_csv = tmp_path / "seq" / "mav0" / "imu0" / "data.csv"
+    lines = imu_csv.read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    for row in rows:
+        row[1:4] = [repr(float(x) * 180.0 / np.pi) for x in row[1:4]]
+    imu_csv.write_text("\n".join([lines[0]] + [",".join(row) for row in rows]) + "\n")
+    base = ["run", "--dataset", f"euroc:{tmp_path / 'seq'}", "--pose-from-truth", "20", "0.05", "0.01",
+            "--estimator", "ekf", "--no-progress"]
+    assert main(base + ["--out", str(tmp_path / "refused")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("smoother: error: Dataset.imu.gyro: 99th percentile angular rate "), err
+    assert "probably in deg/s" in err[-1] and "--max-gyro-rate" in err[-1]
+    assert not (tmp_path / "refused" / "metrics.json").exists()
+    assert main(base + ["--out", str(tmp_path / "accepted"), "--max-gyro-rate", "1000"]) == 0
+    assert (tmp_path / "accepted" / "metrics.json").exists()
 
 
 def test_euroc_without_a_folder_is_a_one_line_error(tmp_path, capsys):

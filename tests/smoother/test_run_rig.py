@@ -11,12 +11,13 @@ import json
 import numpy as np
 import pytest
 from bagfiles import Messages, write_bag
+from rigfiles import imu_table, toml_matrix
 
-from datasets.from_truth import SensorSpec
-from datasets.gnss import Datum, geodetic_to_enu, enu_to_geodetic
+from datasets.simulated_sensors import SensorSpec
+from datasets.gnss import Datum, enu_to_geodetic
 from datasets.simulate import simulate
 from datasets.tum import read_tum
-from factors import quaternion, so3
+from factors import so3
 from smoother.cli import main
 
 T0_NS = 1_700_000_000_000_000_000
@@ -26,9 +27,6 @@ WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4] 
 ANTENNA = np.eye(4)
 ANTENNA[:3, 3] = [0.3, 0.0, 0.95]
 
-
-def _matrix(T) -> str:
-    return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in T) + "]"
 
 
 @pytest.fixture(scope="module")
@@ -51,15 +49,7 @@ def recording(tmp_path_factory):
     }
     bag = write_bag(folder / "run.mcap", "mcap", topics)
     rig = folder / "rig.toml"
-    rig.write_text(f"""
-[imu]
-source = "bag:{bag.name}"
-topic = "/imu/data"
-accel_noise_density = {data.noise.acc}
-gyro_noise_density = {data.noise.gyro}
-accel_random_walk = {data.noise.acc_bias}
-gyro_random_walk = {data.noise.gyro_bias}
-
+    rig.write_text(imu_table(f"bag:{bag.name}", data.noise, "/imu/data") + f"""
 [datum]
 latitude = {DATUM.latitude}
 longitude = {DATUM.longitude}
@@ -70,7 +60,7 @@ name = "gnss"
 kind = "gnss"
 source = "bag:{bag.name}"
 topic = "/fix"
-T_BS = {_matrix(ANTENNA)}
+T_BS = {toml_matrix(ANTENNA)}
 every = 4
 
 [[sensor]]
@@ -78,10 +68,10 @@ name = "wheel"
 kind = "velocity"
 source = "bag:{bag.name}"
 topic = "/wheel/odom"
-T_BS = {_matrix(WHEEL)}
+T_BS = {toml_matrix(WHEEL)}
 """)
     out = folder / "out"
-    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress", "--no-covariance"]) == 0
+    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress"]) == 0
     return data, out
 
 
@@ -93,6 +83,7 @@ def test_outputs_keep_the_bag_stamps_and_give_latitude_longitude(recording):
         geo = json.loads((out / f"{name}.geojson").read_text())
         lon, lat, _ = np.array(geo["features"][0]["geometry"]["coordinates"]).T
         assert abs(lat.mean() - DATUM.latitude) < 1e-3 and abs(lon.mean() - DATUM.longitude) < 1e-3
+        assert geo["features"][0]["properties"]["t_start"] == pytest.approx(tum.t[0], abs=1e-6)  # the data's clock
 
 
 def test_sensors_are_consistent_and_held_out_fixes_beat_interpolating_the_used_ones(recording):
@@ -108,6 +99,25 @@ def test_sensors_are_consistent_and_held_out_fixes_beat_interpolating_the_used_o
         assert metrics[name]["gps_heldout_rmse_m"] < baseline, (name, metrics[name]["gps_heldout_rmse_m"], baseline)
     for name, block in metrics["batch"]["sensors"].items():
         assert block["ok"], (name, block)
+
+
+def test_plots_of_a_recording_show_its_fixes(recording):
+    """``smoother plot`` on a rig's run: the GNSS fixes (used and held out) are in gps.npz."""
+    data, out = recording
+    gps = np.load(out / "gps.npz")
+    assert len(gps["t"]) == len(data.sensors[0].data) and gps["heldout"].sum() == len(data.sensors[0].data) * 3 // 4
+    assert main(["plot", str(out)]) == 0
+    assert (out / "trajectory.png").stat().st_size > 0
+
+
+def test_held_out_error_splits_into_horizontal_and_vertical(recording):
+    """GNSS heights wander more than their horizontal positions: the two parts are reported too
+    (their squares add up to the 3-d figure)."""
+    _, out = recording
+    m = json.loads((out / "metrics.json").read_text())["batch"]
+    total = m["gps_heldout_horizontal_rmse_m"] ** 2 + m["gps_heldout_vertical_rmse_m"] ** 2
+    assert total == pytest.approx(m["gps_heldout_rmse_m"] ** 2, rel=1e-12)
+    assert m["sensors"]["gnss"]["through"] == "ekf"
 
 
 def test_realtime_replay_reports_latency_and_gives_the_same_estimates(recording, capsys):

@@ -51,7 +51,7 @@ def test_zero_densities_stay_zero_and_factors_stay_within_bounds():
 
 def test_a_dataset_without_measurements_is_refused():
     data = dataclasses.replace(_simulated(), position=None, orientation=None)
-    with pytest.raises(ValueError, match="needs pose, position or orientation measurements"):
+    with pytest.raises(ValueError, match="needs measurements the EKF uses"):
         tune_noise(data, progress=False)
 
 
@@ -59,3 +59,15 @@ def test_a_dataset_without_measurements_is_refused():
 def test_invalid_search_settings_are_refused(options):
     with pytest.raises(ValueError, match="expected 0 < min_step <= step and max_log10 > 0"):
         tune_noise(_simulated(), progress=False, **options)
+
+
+def test_a_rig_with_named_sensors_can_be_tuned_and_one_with_odometry_only_cannot():
+    """The likelihood comes from every sensor the EKF uses, a rig's named ones included (a rig
+    with GNSS was refused as having no measurements)."""
+    from datasets.simulated_sensors import SensorSpec
+
+    rig = simulate("gentle", duration=5, seed=1, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 2, 0.3)])
+    assert tune_noise(rig, min_step=1.0, max_log10=1.0, progress=False).evaluations > 1
+    odometry = simulate("gentle", duration=5, seed=1, pose_rate=None, sensors=[SensorSpec("vo", "odometry", 5, (0.02, 0.01))])
+    with pytest.raises(ValueError, match="noise tuning needs measurements the EKF uses"):
+        tune_noise(odometry, progress=False)

@@ -1,0 +1,94 @@
+"""What every measurement kind declares (:class:`Kind`), and the helpers the kinds share.
+
+A kind module (``pose.py``, ``velocity.py``, ...) holds everything of one kind but the residual's
+mathematics (its :class:`factors.sensor_models.SensorModel`): how its measurements are laid out
+as the model's kernel rows, how the simulator draws them from a ground truth, what they say about
+the initial trajectory, and how a rig's sensor of that kind is read from its source. The registry
+(:mod:`datasets.kinds`) lists the kinds.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from factors import sensor_models as sm
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One measurement kind.
+
+    ``name``: what a rig file's ``kind`` and the command line call it; ``data_type``: its
+    measurements' dataclass; ``dim``: the residual's dimension; ``model``: the one-state model
+    (None for a relative kind, which connects two keyframes); ``pack(data) -> (N, width)``: the
+    model's kernel rows; ``simulate(truth, k, gyro, T_BS, sigma (dim,), rng)``: measurements at
+    truth samples ``k`` (``gyro`` the IMU's readings there); ``anchor(data) -> (t, r or None, C or
+    None)``: the IMU positions and attitudes the measurements imply (they reset the dead reckoning
+    of the smoothers' initial trajectory), or None; ``read(sensor, clock) -> (data, datum)``: a
+    rig's sensor (:class:`datasets.rig.SensorConfig`) read from its source (:class:`Clock`)."""
+
+    name: str
+    data_type: type
+    dim: int
+    model: sm.SensorModel | None
+    pack: Callable | None
+    simulate: Callable
+    anchor: Callable | None
+    read: Callable
+
+    @property
+    def relative(self) -> bool:
+        return self.model is None
+
+
+@dataclass
+class Clock:
+    """What a kind's reader needs besides its sensor's configuration: ``stamps(t, t_ns, offset)``
+    turns a source's stamps into the dataset's times (:mod:`datasets.recording`), ``gyro_at(t)``
+    gives the IMU's gyro reading held at each time, ``datum`` the local ENU frame's origin (None
+    until a GNSS reader sets it from its first fix)."""
+
+    stamps: Callable
+    gyro_at: Callable
+    datum: object = None
+
+
+def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
+    """A sensor's noise sigmas for a ``dim``-dimensional residual: one number (every axis), one per
+    axis, or for 6-dim kinds ``(translation, rotation)``; a ValueError naming ``where`` else."""
+    s = np.atleast_1d(np.asarray(sigma, dtype=float))
+    if s.size == 1:
+        s = np.repeat(s, dim)
+    elif dim == 6 and s.size == 2:
+        s = np.repeat(s, 3)
+    if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        expected = f"1 or {dim} numbers > 0" + (" (or translation and rotation)" if dim == 6 else "")
+        raise ValueError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
+    return s
+
+
+def noise(sensor, dim: int, cov, n: int) -> np.ndarray:
+    """A rig sensor's covariances ``(n, dim, dim)``: its ``sigma`` if given, else the messages'
+    ``cov`` when every message has one (the leading ``dim`` block); a ValueError asking for
+    ``sigma`` else."""
+    if sensor.sigma is not None:
+        return np.broadcast_to(np.diag(kind_sigmas("sigma", sensor.sigma, dim) ** 2), (n, dim, dim)).copy()
+    if cov is None or not np.all(np.isfinite(cov)):
+        raise ValueError(f"its messages carry no covariance{'' if cov is None else ' in every message'}; "
+                         "give the sensor's sigma in the rig file")
+    return np.asarray(cov)[:, :dim, :dim]
+
+
+def noisy(x: np.ndarray, sigma: np.ndarray, rng) -> np.ndarray:
+    """``x`` plus independent Gaussian noise of ``sigma`` per column."""
+    return x + sigma * rng.standard_normal(x.shape)
+
+
+def poses(sensor, clock: Clock):
+    """``(stream, t)``: a sensor's poses (:func:`datasets.sources.read_poses`) and their times."""
+    from datasets.sources import read_poses
+
+    stream = read_poses(sensor.source, sensor.topic)
+    return stream, clock.stamps(stream.t, stream.t_ns, sensor.time_offset)

@@ -1,0 +1,31 @@
+"""The ``orientation`` kind: a sensor frame's attitude in the world, ``C R_BS`` (an AHRS, the
+attitude part of poses)."""
+from __future__ import annotations
+
+import numpy as np
+
+from datasets.kinds.base import Kind, noise, poses
+from datasets.types import OrientationMeasurements
+from factors import so3
+from factors import sensor_models as sm
+
+
+def _simulate(truth, k, gyro, T_BS, sigma, rng):
+    R, _ = sm.extrinsic_parts(T_BS)
+    Z = so3.boxplus(truth.C[k] @ R, sigma * rng.standard_normal((len(k), 3)))
+    return OrientationMeasurements(truth.t[k], Z, np.diag(sigma**2), T_BS)
+
+
+def _anchor(m):
+    R, _ = sm.extrinsic_parts(m.T_BS)
+    return m.t, None, m.C @ R.T
+
+
+def _read(sensor, clock):
+    stream, t = poses(sensor, clock)
+    cov = None if stream.cov is None else stream.cov[:, 3:, 3:]
+    return OrientationMeasurements(t, stream.C, noise(sensor, 3, cov, len(t)), sensor.T_BS), clock.datum
+
+
+KIND = Kind("orientation", OrientationMeasurements, 3, sm.ORIENTATION, lambda m: sm.pack_orientation(m.C, m.T_BS),
+            _simulate, _anchor, _read)

@@ -1,0 +1,32 @@
+"""The ``pose`` kind: a sensor frame's position and attitude in the world (a camera's visual
+odometry in a fixed map, motion capture), ``(r + C p_BS, C R_BS)``."""
+from __future__ import annotations
+
+import numpy as np
+
+from datasets.kinds.base import Kind, noise, noisy, poses
+from datasets.types import PoseMeasurements
+from factors import so3
+from factors import sensor_models as sm
+
+
+def _simulate(truth, k, gyro, T_BS, sigma, rng):
+    R, p = sm.extrinsic_parts(T_BS)
+    z = noisy(truth.position[k] + truth.C[k] @ p, sigma[:3], rng)
+    Z = so3.boxplus(truth.C[k] @ R, sigma[3:] * rng.standard_normal((len(k), 3)))
+    return PoseMeasurements(truth.t[k], z, Z, np.diag(sigma**2), T_BS)
+
+
+def _anchor(m):
+    R, p = sm.extrinsic_parts(m.T_BS)
+    C = m.C @ R.T
+    return m.t, m.position - C @ p, C
+
+
+def _read(sensor, clock):
+    stream, t = poses(sensor, clock)
+    return PoseMeasurements(t, stream.position, stream.C, noise(sensor, 6, stream.cov, len(t)), sensor.T_BS), clock.datum
+
+
+KIND = Kind("pose", PoseMeasurements, 6, sm.POSE, lambda m: sm.pack_pose(m.position, m.C, m.T_BS), _simulate,
+            _anchor, _read)

@@ -1,0 +1,49 @@
+"""The ``position`` and ``gnss`` kinds: a sensor's origin in the world, ``r + C p_BS`` (a GNSS
+antenna on its lever arm). ``position`` reads the positions of poses; ``gnss`` reads fixes in
+latitude, longitude and altitude and converts them to the local ENU frame about the datum."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from datasets.kinds.base import Kind, noise, noisy, poses
+from datasets.types import PositionMeasurements
+from factors import sensor_models as sm
+
+
+def _simulate(truth, k, gyro, T_BS, sigma, rng):
+    _, p = sm.extrinsic_parts(T_BS)
+    z = truth.position[k] + truth.C[k] @ p
+    return PositionMeasurements(truth.t[k], noisy(z, sigma, rng), np.diag(sigma**2), T_BS)
+
+
+def _anchor(m):
+    return m.t, m.position, None  # the lever arm is left in: initial values only
+
+
+def _read_positions(sensor, clock):
+    stream, t = poses(sensor, clock)
+    return PositionMeasurements(t, stream.position, noise(sensor, 3, stream.cov, len(t)), sensor.T_BS), clock.datum
+
+
+def _read_fixes(sensor, clock):
+    """Fixes without a position (status "no fix") are dropped and counted in a warning; the
+    first valid fix sets the datum when the rig gives none."""
+    from datasets.gnss import fixes_to_enu
+    from datasets.sources import read_fixes
+
+    fixes = fixes_to_enu(read_fixes(sensor.source, sensor.topic), clock.datum)
+    if fixes.n_dropped:
+        warnings.warn(f"sensor {sensor.name!r}: {fixes.n_dropped} of {fixes.n_dropped + len(fixes.t)} fixes have no "
+                      "position (status 'no fix') and are dropped", stacklevel=4)
+    t = clock.stamps(fixes.t, fixes.t_ns, sensor.time_offset)
+    return PositionMeasurements(t, fixes.enu, noise(sensor, 3, fixes.cov, len(t)), sensor.T_BS), fixes.datum
+
+
+def _pack(m):
+    return sm.pack_position(m.position, m.T_BS)
+
+
+POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions)
+GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes)

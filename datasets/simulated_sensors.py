@@ -1,0 +1,54 @@
+"""Simulated sensors of any kind, mounted anywhere on the body, drawn from a ground truth.
+
+Each :class:`SensorSpec` names a kind of :data:`datasets.kinds.KINDS`, a rate, a noise and an
+extrinsic; :func:`sensors_from_truth` draws its measurements with the kind's own stream
+(:attr:`datasets.kinds.base.Kind.simulate`) at truth samples (:func:`datasets.from_truth.
+measurement_indices`), each sensor with a noise stream of its own.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.from_truth import measurement_indices
+from datasets.kinds import KINDS, kind_sigmas
+from datasets.types import ImuSamples, Sensor, Trajectory
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """A simulated sensor: ``name``, ``kind`` (a name of :data:`datasets.kinds.KINDS`), rate
+    [Hz], noise ``sigma`` (one number, one per residual dimension, or for 6-dim kinds the pair
+    ``(translation [m], rotation [rad])``) and extrinsic ``T_BS`` (None: at the IMU)."""
+
+    name: str
+    kind: str
+    rate_hz: float
+    sigma: object
+    T_BS: np.ndarray | None = None
+
+
+def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tuple[Sensor, ...]:
+    """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
+    ``truth`` by its kind's stream (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
+    :func:`measurement_indices` picks them, each sensor with its own noise stream spawned from
+    ``seed`` (an integer or a ``numpy.random.SeedSequence``). ``imu`` gives the gyro readings a velocity sensor's lever arm needs (the sample held
+    at each measurement time)."""
+    specs = list(specs)
+    root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    streams = root.spawn(len(specs))
+    out = []
+    for spec, stream in zip(specs, streams):
+        if spec.kind not in KINDS:
+            raise ValueError(f"sensor {spec.name!r}: unknown kind {spec.kind!r}; expected one of {', '.join(KINDS)}")
+        kind = KINDS[spec.kind]
+        try:
+            k = measurement_indices(truth.t, spec.rate_hz)
+        except ValueError as error:
+            raise ValueError(f"sensor {spec.name!r}: {error}") from None
+        held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
+        data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
+                             np.random.default_rng(stream))
+        out.append(Sensor(spec.name, spec.kind, data))
+    return tuple(out)

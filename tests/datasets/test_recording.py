@@ -1,0 +1,89 @@
+"""A rig's recording as a dataset (datasets.recording), from CSV and TUM files the test writes:
+stamps in the data's clock, extrinsics and time offsets applied, every-k hold-out, and one clear
+line for each way a sensor's data can be unusable."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rigfiles import imu_table, toml_matrix
+
+from datasets.kinds import sensors_of
+from datasets.recording import load_recording
+from datasets.rig import load_rig
+from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
+from datasets.tum import write_tum
+from factors import quaternion, so3
+
+T0_NS = 1_600_000_000_000_000_000
+CAMERA = np.eye(4)
+CAMERA[:3, :3], CAMERA[:3, 3] = so3.exp([0.2, -1.0, 0.3]), [0.1, 0.0, -0.2]
+
+
+
+@pytest.fixture(scope="module")
+def data():
+    return simulate("gentle", duration=6, seed=9, pose_rate=None,
+                    sensors=[SensorSpec("camera", "pose", 10, (0.02, 0.01), CAMERA)])
+
+
+def _write(folder, data, camera_sigma=True, camera_offset_s=0.0, extra="", rig_offset_s=None):
+    ns = T0_NS + np.round(data.imu.t * 1e9).astype(np.int64)
+    rows = ["#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+            "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"]
+    rows += [f"{n},{g[0]:.17g},{g[1]:.17g},{g[2]:.17g},{a[0]:.17g},{a[1]:.17g},{a[2]:.17g}"
+             for n, g, a in zip(ns, data.imu.gyro, data.imu.acc)]
+    (folder / "imu.csv").write_text("\n".join(rows) + "\n")
+    cam = data.sensors[0].data
+    q = quaternion.from_matrix(cam.C)
+    header = "t,x,y,z,qw,qx,qy,qz" + (",sigma_x,sigma_y,sigma_z,sigma_rx,sigma_ry,sigma_rz" if camera_sigma else "")
+    lines = [header]
+    for t, p, qq in zip(cam.t, cam.position, q):
+        sig = ",0.02,0.02,0.02,0.01,0.01,0.01" if camera_sigma else ""
+        lines.append(f"{T0_NS * 1e-9 + t - camera_offset_s:.17g},{p[0]:.17g},{p[1]:.17g},{p[2]:.17g},"
+                     f"{qq[0]:.17g},{qq[1]:.17g},{qq[2]:.17g},{qq[3]:.17g}{sig}")
+    (folder / "camera.csv").write_text("\n".join(lines) + "\n")
+    write_tum(folder / "vo.tum", T0_NS * 1e-9 + cam.t, cam.position, cam.C)
+    rig = folder / "rig.toml"
+    rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""
+[[sensor]]
+name = "camera"
+kind = "pose"
+source = "csv:camera.csv"
+T_BS = {toml_matrix(CAMERA)}
+time_offset = {camera_offset_s if rig_offset_s is None else rig_offset_s}
+every = 2
+{extra}
+""")
+    return rig
+
+
+def test_a_recording_keeps_its_clock_its_extrinsics_and_holds_out(tmp_path, data):
+    rig = _write(tmp_path, data, camera_offset_s=0.25)
+    recording = load_recording(load_rig(rig))
+    assert recording.time_origin_ns == T0_NS
+    (camera,) = sensors_of(recording)
+    assert camera.kind == "pose" and np.array_equal(camera.data.T_BS, CAMERA)
+    truth = data.sensors[0].data
+    # the 0.25 s the file was early is added back; every 2nd used, the others held out
+    np.testing.assert_allclose(camera.data.t, truth.t[::2], atol=1e-6)
+    np.testing.assert_allclose(camera.heldout.t, truth.t[1::2], atol=1e-6)
+    np.testing.assert_allclose(camera.data.cov[0].diagonal(), [4e-4] * 3 + [1e-4] * 3)
+    # self-initialised at the first pose: the IMU's state there, from the camera and its extrinsic
+    k = np.searchsorted(data.truth.t, recording.t0 - 1e-9)
+    assert abs(recording.t0 - data.truth.t[k]) < 1e-6
+    assert np.linalg.norm(recording.initial.r - data.truth.position[k]) < 0.2
+    assert np.linalg.norm(so3.boxminus(recording.initial.C, data.truth.C[k])) < 0.05
+
+
+@pytest.mark.parametrize("edit, message", [
+    (dict(camera_sigma=False), "sensor 'camera' (pose): its messages carry no covariance; give the sensor's sigma"),
+    (dict(extra='[[sensor]]\nname = "vo"\nkind = "odometry"\nsource = "tum:vo.tum"'),
+     "sensor 'vo' (odometry): give sigma in the rig file, the noise of one step"),
+    (dict(rig_offset_s=1e6), "sensor 'camera': none of its"),  # stamps in another clock
+])
+def test_unusable_sensor_data_is_one_line_naming_the_sensor(tmp_path, data, edit, message):
+    rig = _write(tmp_path, data, **edit)
+    with pytest.raises(ValueError) as error:
+        load_recording(load_rig(rig))
+    assert message in str(error.value) and "\n" not in str(error.value)

@@ -1,0 +1,70 @@
+"""One exception hierarchy (factors/errors.py): everything the project raises on purpose is a
+``BoxplusError``; bad input an ``InputError`` (and a ``ValueError``), an estimator that could not
+finish a ``SolverError``; the library never raises the command line's ``UserError``, and the
+command line turns any of them into one line and exit code 2."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from datasets.errors import DataError
+from factors.errors import BoxplusError, InputError, SolverError
+from factors.imports import package_modules
+from smoother.ekf import FilterDiverged
+from smoother.errors import IndeterminantSystem, UserError
+from smoother.fixed_lag import FixedLagFailed
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("error, bases", [
+    (DataError, (InputError, ValueError)),
+    (UserError, (InputError, ValueError)),
+    (IndeterminantSystem, (SolverError,)),
+    (FilterDiverged, (SolverError, ValueError)),
+    (FixedLagFailed, (SolverError, ValueError)),
+])
+def test_every_error_of_the_project_is_a_boxplus_error(error, bases):
+    assert issubclass(error, BoxplusError) and all(issubclass(error, base) for base in bases)
+
+
+def test_only_the_command_line_raises_its_user_error():
+    """``UserError`` names a command-line option; the library raises ``InputError`` (e.g.
+    ``solve_batch`` with an unknown optimizer) and the command line words it."""
+    command_line = ("smoother.cli", "smoother.errors", "smoother.sources")
+    users = [name for name, path in package_modules(ROOT, ("factors", "datasets", "smoother")).items()
+             if not name.startswith("smoother.commands") and name not in command_line
+             and any(isinstance(node, ast.Name) and node.id == "UserError" or
+                     isinstance(node, ast.alias) and node.name == "UserError" for node in ast.walk(ast.parse(path.read_bytes())))]
+    assert users == []
+
+
+def test_a_bad_optimizer_name_is_an_input_error():
+    from datasets.simulate import simulate
+    from smoother.batch import solve_batch
+    from smoother.graph import build_problem
+
+    with pytest.raises(InputError, match="optimizer 'newton': expected one of lm, gn, dogleg") as info:
+        solve_batch(build_problem(simulate(duration=0.5, seed=0)), optimizer="newton")
+    assert not isinstance(info.value, UserError)
+
+
+@pytest.mark.parametrize("error", [
+    IndeterminantSystem("indeterminant system near keyframe 3\nGTSAM's own text"),
+    FilterDiverged("the EKF diverged at t = 1.000000 s"),
+    InputError("engine 'x': expected one of vectorized, gtsam"),
+])
+def test_the_command_line_reports_a_library_error_in_one_line_with_exit_code_2(error, monkeypatch, capsys, tmp_path):
+    import smoother.pipeline
+    from smoother.cli import main
+
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(smoother.pipeline, "run_estimators", fail)
+    assert main(["run", "--duration", "1", "--no-progress", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"smoother: error: {str(error).splitlines()[0]}"
+    assert not any("Traceback" in line or "GTSAM's own text" in line for line in err)
