@@ -57,9 +57,9 @@ from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset, Sensor, Trajectory
 from factors import imu, preintegration
 from factors import measurements as meas
-from factors.chart import state_covariance_to_primer
 from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
+from factors.uncertainty import state_covariance_to_primer
 from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning, window_covariances
 from smoother.graph import measurement_spec, noise_model
 from smoother.progress import progress_bar
