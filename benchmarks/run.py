@@ -535,7 +535,12 @@ def online_against_native(duration_s: float) -> dict:
     ends = np.searchsorted(t, m.t)  # the sample at each pose time (poses fall on samples)
     assert np.array_equal(t[ends], m.t)
     native_side = _NativeFixedLag(dataset)
-    online = OnlineSmoother.for_dataset(dataset, lag_s=LAG_S)
+    published = [None]  # the smoothed keyframes go on as a robot's would: here, the newest is kept
+
+    def publish(estimate) -> None:
+        published[0] = estimate
+
+    online = OnlineSmoother.for_dataset(dataset, lag_s=LAG_S, on_smoothed=publish)
     online.add_imu(times[0], acc[0], gyro[0])
     dts = np.diff(t).tolist()
     native_ms, online_ms = [], []
