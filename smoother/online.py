@@ -10,8 +10,9 @@ on the IMU's clock.
 
 Keyframes. Keyframe 0 is at the first IMU sample, with the prior ``(initial, initial_cov)``. Every
 measurement time is a keyframe (both ends of a relative pose), and so is every time given to
-:meth:`OnlineSmoother.keyframe_at` and, with ``keyframe_rate``, a grid ``t0 + m / rate`` (grid
-times within half an IMU interval of another keyframe are left out). Consecutive keyframes are
+:meth:`OnlineSmoother.keyframe_at`, with ``keyframe_rate`` a grid ``t0 + m / rate`` (grid
+times within half an IMU interval of another keyframe are left out), and the last IMU sample at
+:meth:`OnlineSmoother.finish`. Consecutive keyframes are
 joined by the project's IMU factor, preintegrated when the later keyframe is made, its noise
 covariance evaluated along the prediction from the smoother's newest estimate.
 
@@ -31,8 +32,9 @@ marginalises it (older than the new keyframe's time minus ``lag_s``), handed to 
 or queued for :meth:`OnlineSmoother.smoothed`; :meth:`OnlineSmoother.finish` makes the pending
 keyframes and hands over the rest of the window.
 
-A relative measurement (odometry) whose earlier time is no keyframe in the window (it is older
-than the lag) is skipped: counted per sensor in ``skipped``, with a warning at the first.
+A relative measurement (odometry) whose earlier time is no keyframe in the window when it arrives
+or when its later keyframe is made (it is older than the lag) is skipped: counted per sensor in
+``skipped``, with a warning at the first.
 
 No silent failures: besides the dropped and skipped measurements, a warning when measurements are further
 apart than the lag (:func:`smoother.fixed_lag.sparse_measurement_warning`: keyframes then leave
@@ -477,6 +479,9 @@ class OnlineSmoother:
             item = heapq.heappop(self._pending)
             if item.latest < t:  # before the first keyframe
                 self._drop(item.sensor)
+                continue
+            if any(x not in self._keyframe_t for x in item.times):  # its earlier keyframe left the window
+                self._skip(item.sensor)
                 continue
             at = [self._keyframe_t[x] for x in item.times]
             setup, _ = self._setup(item.sensor)

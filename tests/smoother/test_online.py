@@ -213,8 +213,9 @@ def test_a_rig_gives_its_sensors_their_extrinsic_time_offset_and_sigma(gentle, t
 
 def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counted():
     """Odometry between keyframes 1 s apart: with a 0.3-s lag its earlier keyframe has left the
-    window when it arrives, so it is skipped, counted and warned of; with a 2-s lag every one is
-    used, and the estimates are the offline smoother's (within 5e-3 sigma)."""
+    window when it arrives (or, given in advance, when its later keyframe is made), so it is
+    skipped, counted and warned of; with a 2-s lag every one is used, and the estimates are the
+    offline smoother's (within 5e-3 sigma)."""
     from datasets.simulate import simulate
 
     data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
@@ -223,6 +224,13 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
     with pytest.warns(UserWarning, match="'relative_pose' refers to a time that has left the window"):
         short = replay(data, 0.3, covariances=False, progress=False)
     assert short.skipped == {"relative_pose": 2} and short.dropped == {}
+    # given before the IMU reaches them, they wait; their earlier keyframes leave all the same
+    ahead = OnlineSmoother(data.initial, data.initial_cov, data.noise, gravity=data.gravity, lag_s=0.3)
+    ahead.add_measurements("odometry", data.relative_pose)
+    ahead.add_measurements("pose", data.pose)
+    with pytest.warns(UserWarning, match="'odometry' refers to a time that has left the window"):
+        ahead.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
+    assert ahead.skipped == {"odometry": 2}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         long = replay(data, 2.0, covariances=False, progress=False)
