@@ -26,7 +26,16 @@ interleaved, medians taken, because the machine is noisy):
    collector, which a flat run does not accumulate), batch kind over a shorter run (it is ~100x
    slower per update);
 6. peak resident memory of the one-hour batch run, measured in a child process (``os.wait4``
-   gives that child's own ``ru_maxrss``).
+   gives that child's own ``ru_maxrss``);
+7. online fixed-lag smoothing, keyframe by keyframe side by side with GTSAM's own path (200 Hz IMU,
+   10 Hz keyframes and poses, lag 2 s, one hour; covariances off on both sides): GTSAM's
+   ``IncrementalFixedLagSmoother`` (default ``ISAM2Params``) on ``CombinedImuFactor`` and
+   ``PriorFactorPose3``, preintegrated by ``PreintegratedCombinedMeasurements.integrateMeasurement``
+   per sample from Python, against :class:`smoother.online.OnlineSmoother` fed ``add_imu`` per
+   sample and ``add("pose", ...)``. The whole loop per keyframe on each side: the samples of the
+   interval in, the update, the newest estimate out (``calculateEstimate`` / ``estimate()``); the
+   two smoothers step in turn, one keyframe each, so a slow spell of the machine hits both. Also
+   ``estimate()`` called after every IMU sample between keyframes (us per call).
 
 Run: python benchmarks/run.py [--quick] [--json]
 ``--quick`` runs a reduced set in about a minute (shorter runs, fewer repetitions, no hour run:
@@ -63,6 +72,7 @@ from smoother.batch import solve_batch  # noqa: E402
 from smoother.ekf import run_ekf  # noqa: E402
 from smoother.fixed_lag import run_fixed_lag  # noqa: E402
 from smoother.graph import build_problem  # noqa: E402
+from smoother.online import OnlineSmoother  # noqa: E402
 from smoother.timeline import estimate_times, imu_steps  # noqa: E402
 
 KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
@@ -80,10 +90,11 @@ class Settings:
     hour: bool
     fixed_lag_min: float  # incremental fixed-lag run [min]
     fixed_lag_batch_s: float  # batch-kind fixed-lag run [s]
+    online_min: float  # online against native fixed-lag run [min]
 
 
-FULL = Settings(60.0, 600.0, 7, 5, (1, 5, 15), (1, 5), True, 60.0, 60.0)
-QUICK = Settings(20.0, 60.0, 3, 1, (0.5, 1, 2), (0.5,), False, 1.0, 5.0)
+FULL = Settings(60.0, 600.0, 7, 5, (1, 5, 15), (1, 5), True, 60.0, 60.0, 60.0)
+QUICK = Settings(20.0, 60.0, 3, 1, (0.5, 1, 2), (0.5,), False, 1.0, 5.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -145,6 +156,7 @@ def warm_up() -> None:
         run_fixed_lag(build_problem(dataset, keyframe_rate=KEYFRAME_RATE), LAG_S, kind, covariances=False,
                       progress=False)
     kitti_native.ours(10)
+    online_against_native(5.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -450,6 +462,138 @@ def bench_fixed_lag(s: Settings) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
+# 7. online fixed-lag against GTSAM's native fixed-lag path
+
+
+class _NativeFixedLag:
+    """GTSAM's own fixed-lag path, as its examples write it: ``Pose3`` + world velocity +
+    ``ConstantBias`` per keyframe, ``CombinedImuFactor`` between keyframes preintegrated per
+    sample from Python, poses as ``PriorFactorPose3``, ``IncrementalFixedLagSmoother`` with
+    default ``ISAM2Params``."""
+
+    def __init__(self, dataset):
+        from gtsam.symbol_shorthand import B, V, X
+
+        self.X, self.V, self.B = X, V, B
+        self.params = native.combined_params(dataset.noise, dataset.gravity)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(LAG_S, gtsam.ISAM2Params())
+        x0, P0 = dataset.initial, dataset.initial_cov
+        pose0 = gtsam.Pose3(gtsam.Rot3(x0.C), x0.r)
+        self.nav = gtsam.NavState(pose0, x0.C @ x0.v)
+        self.bias = gtsam.imuBias.ConstantBias(x0.b_f, x0.b_w)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        graph.add(gtsam.PriorFactorPose3(X(0), pose0, gtsam.noiseModel.Isotropic.Sigma(6, 0.01)))
+        graph.add(gtsam.PriorFactorVector(V(0), self.nav.velocity(), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+        graph.add(gtsam.PriorFactorConstantBias(B(0), self.bias, gtsam.noiseModel.Gaussian.Covariance(P0[9:15, 9:15])))
+        values.insert(X(0), pose0)
+        values.insert(V(0), self.nav.velocity())
+        values.insert(B(0), self.bias)
+        self._update(graph, values, 0, float(dataset.imu.t[0]))
+        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(np.sqrt(np.diag(dataset.pose.cov[0]))[[3, 4, 5, 0, 1, 2]])
+        self.k = 0
+
+    def _update(self, graph, values, k, t) -> None:
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key in (self.X(k), self.V(k), self.B(k)):
+            stamps.insert((key, t))
+        self.smoother.update(graph, values, stamps)
+        estimate = self.smoother.calculateEstimate()
+        self.nav = gtsam.NavState(estimate.atPose3(self.X(k)), estimate.atVector(self.V(k)))
+        self.bias = estimate.atConstantBias(self.B(k))
+
+    def keyframe(self, acc, gyro, dt, t, position, C) -> None:
+        """The samples of one interval (lists), the pose at its end, one update, the estimate."""
+        X, V, B, k = self.X, self.V, self.B, self.k + 1
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
+        for a, w, h in zip(acc, gyro, dt):
+            pim.integrateMeasurement(a, w, h)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
+        graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(gtsam.Rot3(C), position), self.pose_noise))
+        predicted = pim.predict(self.nav, self.bias)
+        values.insert(X(k), predicted.pose())
+        values.insert(V(k), predicted.velocity())
+        values.insert(B(k), self.bias)
+        self._update(graph, values, k, t)
+        self.k = k
+
+
+def _percentiles(ms: np.ndarray) -> dict:
+    tenths = np.array_split(ms, 10)
+    return {"median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
+            "per_tenth_median_ms": [float(np.median(x)) for x in tenths],
+            "per_tenth_p99_ms": [float(np.percentile(x, 99)) for x in tenths]}
+
+
+def online_against_native(duration_s: float) -> dict:
+    """Whole loop per keyframe of both smoothers, stepping in turn (section 7 of the module
+    docstring); the first 2 s (the window filling) are left out of the statistics."""
+    dataset = _synthetic(duration_s)
+    m = dataset.pose
+    t, acc, gyro = dataset.imu.t, list(dataset.imu.acc), list(dataset.imu.gyro)
+    times = t.tolist()
+    ends = np.searchsorted(t, m.t)  # the sample at each pose time (poses fall on samples)
+    assert np.array_equal(t[ends], m.t)
+    native_side = _NativeFixedLag(dataset)
+    published = [None]  # the smoothed keyframes go on as a robot's would: here, the newest is kept
+
+    def publish(estimate) -> None:
+        published[0] = estimate
+
+    online = OnlineSmoother.for_dataset(dataset, lag_s=LAG_S, on_smoothed=publish)
+    online.add_imu(times[0], acc[0], gyro[0])
+    dts = np.diff(t).tolist()
+    native_ms, online_ms = [], []
+    first = 1 if ends[0] == 0 else 0
+    previous = 0
+    for i in range(first, len(ends)):
+        end = int(ends[i])
+        tick = time.perf_counter()
+        native_side.keyframe(acc[previous:end], gyro[previous:end], dts[previous:end], times[end], m.position[i], m.C[i])
+        native_ms.append(time.perf_counter() - tick)
+        tick = time.perf_counter()
+        for j in range(previous + 1, end):
+            online.add_imu(times[j], acc[j], gyro[j])
+        online.add("pose", times[end], m.position[i], m.C[i], cov=m.cov[i])
+        online.add_imu(times[end], acc[end], gyro[end])
+        online.estimate()
+        online_ms.append(time.perf_counter() - tick)
+        previous = end
+    skip = int(LAG_S * KEYFRAME_RATE)
+    native_ms, online_ms = 1e3 * np.array(native_ms[skip:]), 1e3 * np.array(online_ms[skip:])
+    # estimate() at IMU rate: after every sample between keyframes, a short second pass
+    short = _synthetic(min(duration_s, 60.0))
+    online = OnlineSmoother.for_dataset(short, lag_s=LAG_S)
+    keyframe_times = set(short.pose.t.tolist())
+    estimate_s = []
+    pose_row = {tt: i for i, tt in enumerate(short.pose.t.tolist())}
+    for j, tt in enumerate(short.imu.t.tolist()):
+        if tt in pose_row:
+            i = pose_row[tt]
+            online.add("pose", tt, short.pose.position[i], short.pose.C[i], cov=short.pose.cov[i])
+        online.add_imu(tt, short.imu.acc[j], short.imu.gyro[j])
+        tick = time.perf_counter()
+        online.estimate()
+        if tt not in keyframe_times:
+            estimate_s.append(time.perf_counter() - tick)
+    return {"seconds": duration_s, "keyframes": len(online_ms), "native": _percentiles(native_ms),
+            "online": _percentiles(online_ms), "online_estimate_us": 1e6 * float(np.median(estimate_s)),
+            "online_estimate_us_p99": 1e6 * float(np.percentile(estimate_s, 99))}
+
+
+def bench_online(s: Settings) -> dict:
+    r = online_against_native(60.0 * s.online_min)
+    return {
+        "online_loop_ms_median": r["online"]["median_ms"],
+        "online_loop_ms_p99": r["online"]["p99_ms"],
+        "native_fixed_lag_loop_ms_median": r["native"]["median_ms"],
+        "native_fixed_lag_loop_ms_p99": r["native"]["p99_ms"],
+        "online_estimate_us": r["online_estimate_us"],
+        "online_run": r,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
 # report
 
 
@@ -523,6 +667,13 @@ def _table_rows(r: dict) -> list:
         row("fixed_lag_batch_update_ms_median", "ms"),
         row("fixed_lag_batch_update_ms_p99", "ms"),
         row("hour_peak_rss_mib", "MiB", "< 2048", lambda v: v < 2048.0),
+        row("online_loop_ms_median", "ms", f"<= native ({r['native_fixed_lag_loop_ms_median']:.3f})",
+            lambda v: v <= r["native_fixed_lag_loop_ms_median"]),
+        row("online_loop_ms_p99", "ms", f"<= native ({r['native_fixed_lag_loop_ms_p99']:.3f})",
+            lambda v: v <= r["native_fixed_lag_loop_ms_p99"]),
+        row("native_fixed_lag_loop_ms_median", "ms"),
+        row("native_fixed_lag_loop_ms_p99", "ms"),
+        row("online_estimate_us", "us", "< 5", lambda v: v < 5.0),
     ]
     return rows
 
@@ -574,6 +725,15 @@ def print_table(r: dict) -> None:
               f"{f['updates']} > 10 ms; per tenth of the run: median "
               f"{' '.join(f'{x:.2f}' for x in f['per_tenth_median_ms'])} ms, p99 "
               f"{' '.join(f'{x:.1f}' for x in f['per_tenth_p99_ms'])} ms")
+    o = r["online_run"]
+    for side in ("online", "native"):
+        f = o[side]
+        print(f"{side} fixed-lag whole loop per keyframe ({o['seconds']:g} s, {o['keyframes']} keyframes): median "
+              f"{f['median_ms']:.3f} ms, p99 {f['p99_ms']:.3f} ms, max {f['max_ms']:.1f} ms; per tenth of the run: "
+              f"median {' '.join(f'{x:.3f}' for x in f['per_tenth_median_ms'])} ms, p99 "
+              f"{' '.join(f'{x:.2f}' for x in f['per_tenth_p99_ms'])} ms")
+    print(f"online estimate() after every IMU sample between keyframes: median {o['online_estimate_us']:.2f} us, "
+          f"p99 {o['online_estimate_us_p99']:.2f} us")
     print(f"wall time of the benchmark: {r['benchmark_s']:.1f} s")
 
 
@@ -595,7 +755,7 @@ def main() -> None:
     warm_up()
     if not args.json:
         print(f"[{time.perf_counter() - tick:6.1f} s] warm-up done (kernels compiled or loaded)", file=sys.stderr)
-    for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_scaling, bench_fixed_lag):
+    for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_scaling, bench_fixed_lag, bench_online):
         result.update(bench(s))
         if not args.json:
             print(f"[{time.perf_counter() - tick:6.1f} s] {bench.__name__} done", file=sys.stderr)

@@ -92,6 +92,16 @@ class ImuState:
         return ImuState(z, z.copy(), np.broadcast_to(np.eye(3), shape + (3, 3)).copy(), z.copy(), z.copy())
 
     @staticmethod
+    def of_flat(x: np.ndarray) -> "ImuState":
+        """One state VIEWING the float array ``x (21,)`` laid out ``(r, v, C row by row, b_f,
+        b_w)``: no copy and no conversion (the per-sample path of an IMU-rate estimate)."""
+        out = object.__new__(ImuState)
+        for name, part in zip(("r", "v", "C", "b_f", "b_w"),
+                              (x[0:3], x[3:6], x[6:15].reshape(3, 3), x[15:18], x[18:21])):
+            object.__setattr__(out, name, part)
+        return out
+
+    @staticmethod
     def stack(states: list["ImuState"]) -> "ImuState":
         return ImuState(*(np.stack([getattr(s, n) for s in states]) for n in ("r", "v", "C", "b_f", "b_w")))
 

@@ -486,6 +486,23 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors, noise, gravity)
 
 
+def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, gravity) -> Preintegrated:
+    """One interval of samples ``acc, gyro (K, 3)``, ``dt (K,)`` preintegrated around the biases
+    of ``start`` with its covariance along ``start``: what :func:`integrate_with_covariance` gives
+    for ``J = 1`` without anchors, bit for bit, as one interval (no leading dimension), through
+    the same kernels without its checks -- the per-keyframe path of an online smoother, whose
+    samples and states are checked where they enter. Float arrays, finite, as documented there."""
+    acc, gyro, dt = (np.ascontiguousarray(a, dtype=float)[None] for a in (acc, gyro, dt))
+    b_w, b_f = np.array(start.b_w, dtype=float)[None], np.array(start.b_f, dtype=float)[None]
+    pre, task = _integration(acc, gyro, dt, b_w)
+    task(0, 1)
+    pre.cov = np.empty((1, imu.STATE_DIM, imu.STATE_DIM))
+    ref_v, ref_C = np.array(start.v, dtype=float)[None], np.array(start.C, dtype=float)[None]
+    _covariance_kernel(*pre.samples, pre.b_w_bar, b_f, ref_v, ref_C, np.asarray(gravity, dtype=float),
+                       noise.densities(), COVARIANCE_FLOOR**2, 0, 1, pre.cov)
+    return pre[0]
+
+
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
                      gravity=imu.DEFAULT_GRAVITY) -> np.ndarray:
     """Covariance ``(J, 15, 15)`` of the IMU residual of ``J`` padded intervals ``samples = (acc,

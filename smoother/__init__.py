@@ -4,7 +4,8 @@ the ``smoother`` command line.
 A run: ``problem = build_problem(dataset)`` (keyframes, preintegrated IMU factors, measurement
 factors, the initial trajectory), then ``solve_batch(problem)``, ``run_fixed_lag(problem, lag_s)``
 or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and their 15x15
-covariances. ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
+covariances. ``OnlineSmoother`` is the fixed-lag smoother fed sample by sample as data arrive
+(``replay`` feeds it a whole dataset). ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
 ``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory.
 
 The names below are importable from the package itself (``from smoother import solve_batch``);
@@ -16,6 +17,7 @@ _EXPORTS = {
     **dict.fromkeys(("build_problem", "Problem"), "smoother.graph"),
     **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch"),
     **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag"),
+    **dict.fromkeys(("OnlineSmoother", "OnlineEstimate", "SensorSetup", "replay", "ReplayResult"), "smoother.online"),
     **dict.fromkeys(("run_ekf", "Ekf", "FilterResult", "FilterDiverged"), "smoother.ekf"),
     "IndeterminantSystem": "smoother.errors",
     **dict.fromkeys(("RunOptions", "run_estimators"), "smoother.pipeline"),

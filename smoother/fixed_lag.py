@@ -1,12 +1,16 @@
 """Fixed-lag smoothing on GTSAM's ``BatchFixedLagSmoother`` / ``IncrementalFixedLagSmoother``.
 
-The factors of a :class:`smoother.graph.Problem` are made and fed keyframe by keyframe
-(``Problem.keyframe_factors``), in time order, each with the keyframe's time stamp; variables older
-than the lag (seconds) are marginalised by GTSAM, and the loop lets go of the factors GTSAM has
-marginalised, so what a run holds of the graph stays the size of the window however long it is.
-The new keyframe's initial value is the IMU prediction from the smoother's current estimate of
-the previous keyframe. After every update the newest state's estimate and, if asked,
-its 15x15 covariance (primer convention) are recorded; the smoothed window is returned at the end.
+One update loop, :class:`KeyframeWindow`, takes keyframes one at a time, in time order, each with
+its time stamp and its factors; variables older than the lag (seconds) are marginalised by GTSAM,
+and the loop lets go of the factors GTSAM has marginalised, so what a run holds of the graph stays
+the size of the window however long it is. Two things feed it: :func:`run_fixed_lag`, the factors
+of a whole :class:`smoother.graph.Problem` keyframe by keyframe (``Problem.keyframe_factors``), and
+:class:`smoother.online.OnlineSmoother`, keyframes made as IMU samples and measurements arrive
+(what ``smoother run --estimator fixed-lag`` replays a dataset through). The new keyframe's
+initial value is the IMU prediction from the smoother's current estimate of the previous
+keyframe. :func:`run_fixed_lag` records after every update the newest state's estimate and, if
+asked, its 15x15 covariance (primer convention); each keyframe's estimate as it leaves the window;
+and the smoothed window at the end.
 
 GTSAM pitfalls handled here:
 
@@ -26,10 +30,12 @@ GTSAM pitfalls handled here:
   instead of a bare GTSAM exception;
 * ISAM2 relinearises at every update (:func:`_make_smoother`), so that a measurement's
   correction reaches the states' linearisation before they leave the window;
-* the ``BatchFixedLagSmoother`` keeps the state at its window's edge linearised where it first
-  was (its ``enforceConsistency``, which the Python wrapper cannot turn off) and drifts off when
-  measurements are further apart than the lag: a warning says so. The incremental kind is the
-  default.
+* measurements further apart than the lag leave keyframes with their dead-reckoned estimates
+  (they leave the window before the next measurement reaches them), and the
+  ``BatchFixedLagSmoother``, which keeps the state at its window's edge linearised where it first
+  was (its ``enforceConsistency``, which the Python wrapper cannot turn off), drifts off besides:
+  a warning says so for either kind (:func:`sparse_measurement_warning`). The incremental kind is
+  the default.
 """
 from __future__ import annotations
 
@@ -45,6 +51,7 @@ from factors import imu
 from factors import measurements as meas
 from factors.errors import InputError, SolverError
 from smoother.batch import is_indeterminant
+from factors.keys import keyframe_keys
 from smoother.graph import Problem, insert_state, read_state
 from smoother.errors import IndeterminantSystem
 from smoother.solver import evaluate_block, marginal_covariances
@@ -114,12 +121,13 @@ def _make_smoother(kind: str, lag_s: float):
     raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
 
 
-def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first: int,
+def window_covariances(blocks: list, smoother, estimate: gtsam.Values, first: int,
                        states: imu.ImuState, rows_of: dict, wanted=None) -> np.ndarray:
     """Primer-convention 15x15 covariances of the window's keyframes ``first, first + 1, ...``
-    (their states ``states``) from the smoother's current factors linearised at ``estimate``;
-    of those at the window positions ``wanted`` only (0 = ``first``; default all). ``rows_of``:
-    ``id(factor) -> (block index, row)`` of the project's factors in the smoother.
+    (their states ``states``, their variables ``factors.keys.keyframe_keys``) from the smoother's
+    current factors linearised at ``estimate``; of those at the window positions ``wanted`` only
+    (0 = ``first``; default all). ``rows_of``: ``id(factor) -> (block index, row)`` of the
+    project's factors in the smoother, rows of ``blocks`` (a :class:`smoother.graph.Problem`'s).
 
     The project's own factors in the window (those in ``rows_of``) are linearised together by the
     vectorised blocks of :mod:`smoother.solver` (no Python callback per factor), the smoother's
@@ -143,13 +151,13 @@ def window_covariances(problem: Problem, smoother, estimate: gtsam.Values, first
             ours.setdefault(where[0], []).append(where[1])
     groups = []  # (window keyframes, [A per keyframe]) of one factor each
     for b, block_rows in ours.items():
-        block = problem.blocks[b]
+        block = blocks[b]
         idx = np.array(block_rows)
         ev = evaluate_block(block, states, True, idx, keyframe_offset=first)
         local = block.keyframes[idx] - first
         groups += [(tuple(int(j) for j in local[m]), [A[m] for A in ev.A]) for m in range(len(idx))]
     if containers.size():
-        dense = _container_rows(problem, containers, estimate, first, n)
+        dense = _container_rows(containers, estimate, first, n)
         used = [j for j in range(n) if np.any(dense[:, j * dim:(j + 1) * dim])]
         groups.append((tuple(used), [dense[:, j * dim:(j + 1) * dim] for j in used]))
     return _window_marginals(groups, n, wanted)
@@ -221,7 +229,7 @@ def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
     return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in wanted])
 
 
-def _container_rows(problem: Problem, containers, estimate, first: int, n: int) -> np.ndarray:
+def _container_rows(containers, estimate, first: int, n: int) -> np.ndarray:
     """Dense rows of GTSAM's marginal factors in the window's primer columns."""
     keys = sorted({int(k) for i in range(containers.size()) for k in containers.at(i).keys()})
     linear = containers.linearize(estimate)
@@ -231,7 +239,7 @@ def _container_rows(problem: Problem, containers, estimate, first: int, n: int) 
     column = 0
     slots = {}
     for j in range(first, first + n):
-        kk = problem.keys[j]
+        kk = keyframe_keys(j)
         base = (j - first) * imu.STATE_DIM
         slots[kk.rot] = (base + 6, estimate.atRot3(kk.rot).matrix().T)  # d = C^T phi
         slots[kk.pos] = (base + 0, None)
@@ -245,24 +253,45 @@ def _container_rows(problem: Problem, containers, estimate, first: int, n: int) 
     return out
 
 
-def _warn_of_sparse_measurements(problem: Problem, lag_s: float) -> None:
-    """Warn when measurements are further apart than the lag (keyframes measured by anything but
-    the IMU and the prior): GTSAM's ``BatchFixedLagSmoother`` keeps the linearisation point of the
-    state its marginal factor lands on fixed (its ``enforceConsistency``, on by default and not
-    settable from Python), so after dead reckoning through a whole window a measurement's
-    correction cannot reach that state's IMU factor. Levenberg-Marquardt then finds no descent
-    and stops, and the estimate drifts: a 120-s simulation with a position fix every 10 s and a
-    2-s lag ended 1.3 km off (the incremental smoother: 8 m, the EKF: 0.7 m), KITTI 11 m (7.7 m)."""
+def _measured_gap(problem: Problem) -> float:
+    """The longest time between consecutive keyframes measured by anything but the IMU and the
+    prior, the first and last keyframes included (inf when nothing is measured)."""
     measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name not in ("imu", "prior")]
     if not measured:
-        return
+        return np.inf
     times = problem.times[np.unique(np.concatenate(measured))]
-    longest = float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
-    if longest > lag_s:
-        warnings.warn(f"fixed-lag (batch): measurements up to {longest:.3g} s apart, longer than the lag "
-                      f"({lag_s:g} s); GTSAM's BatchFixedLagSmoother can then drift far off (it keeps the states "
-                      f"at its window's edge linearised where dead reckoning put them). Use the incremental "
-                      f"smoother or a longer lag", stacklevel=3)
+    return float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
+
+
+def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str | None:
+    """The warning when measurements are ``longest_s`` apart, longer than the lag; None if not.
+
+    Either kind: a keyframe's fixed-lag estimate is the one it has when it leaves the window, so a
+    keyframe that leaves before the next measurement arrives keeps the dead-reckoned estimate
+    from the last one: on KITTI with every 20th GPS fix (20 s apart) the incremental smoother
+    ends ~50 m off the held-out fixes at a 2-s lag and ~35 m at 0.5 s. The batch kind is worse:
+    GTSAM's ``BatchFixedLagSmoother`` keeps the linearisation point of the state its marginal
+    factor lands on fixed (its ``enforceConsistency``, on by default and not settable from
+    Python), so after dead reckoning through a whole window a measurement's correction cannot
+    reach that state's IMU factor, Levenberg-Marquardt finds no descent and stops, and the
+    estimate drifts: a 120-s simulation with a position fix every 10 s and a 2-s lag ended 1.3 km
+    off (the incremental smoother: 8 m, the EKF: 0.7 m)."""
+    if not longest_s > lag_s:
+        return None
+    text = (f"fixed-lag ({kind}): measurements up to {longest_s:.3g} s apart, longer than the lag ({lag_s:g} s): "
+            "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
+            "estimates")
+    if kind == "batch":
+        text += (" (GTSAM's BatchFixedLagSmoother can drift far off: it keeps the states at its window's edge "
+                 "linearised where dead reckoning put them; use the incremental smoother)")
+    return text + f". Choose a lag of at least {longest_s:.3g} s (the longest gap between measurements)"
+
+
+def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> None:
+    """Warn (:func:`sparse_measurement_warning`) when measurements are further apart than the lag."""
+    text = sparse_measurement_warning(longest_s, lag_s, kind)
+    if text is not None:
+        warnings.warn(text, stacklevel=3)
 
 
 def _weak_prior(keys, guess: imu.ImuState):
@@ -279,117 +308,167 @@ def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
                           "Check the data around that time (an IMU gap, a measurement far off).")
 
 
+class KeyframeWindow:
+    """GTSAM's fixed-lag smoother of ``kind`` fed one keyframe at a time: the one update loop of
+    :func:`run_fixed_lag` (a whole problem's keyframes) and :class:`smoother.online.OnlineSmoother`
+    (keyframes made as samples arrive).
+
+    Keyframe ``k`` (0, 1, ... in the order given) has the variables ``factors.keys.keyframe_keys(k)``
+    and a time stamp; :meth:`update` adds it with its factors (the module docstring's pitfalls:
+    factors on marginalised variables skipped and counted, a weak prior where nothing ties the
+    keyframe to the window or GTSAM calls the update indeterminant). The window is the keyframes
+    ``first .. newest``; :meth:`leaving` names those the next update will marginalise, whose
+    estimates the caller reads before that update (:meth:`taken` records it, and an update after
+    which a keyframe is gone that was not read raises)."""
+
+    def __init__(self, lag_s: float, kind: str = "incremental"):
+        if not lag_s > 0:
+            raise InputError(f"lag must be positive, got {lag_s}")
+        self.smoother = _make_smoother(kind, lag_s)
+        self.lag_s = float(lag_s)
+        self.kind = kind
+        self.first = 0  # the oldest keyframe in the window
+        self.newest = -1  # the newest keyframe (-1 before the first update)
+        self.estimate: gtsam.Values | None = None  # the smoother's estimate after the last update
+        self.newest_state: imu.ImuState | None = None  # the newest keyframe's, read from ``estimate``
+        self.recovered: list[int] = []
+        self.skipped = 0
+        self.update_s: list[float] = []
+        #: ``id(factor) -> tag`` of the factors given with a tag, while GTSAM holds them
+        self.rows_of: dict[int, object] = {}
+        self._times: dict[int, float] = {}  # the window's keyframe times
+        self._present: set[int] = set()
+        self._held: dict[int, list] = {}  # the factors by their earliest keyframe, until marginalised
+        self._taken_after: dict[int, int] = {}  # keyframe -> the update after which it was read
+
+    def time(self, k: int) -> float:
+        """The time stamp of window keyframe ``k``."""
+        return self._times[k]
+
+    def leaving(self, t_next: float) -> list[int]:
+        """The window keyframes (the newest too, after a gap longer than the lag) that an update
+        at ``t_next`` marginalises: older than ``t_next`` minus the lag, within :data:`_LAG_MARGIN_S`."""
+        boundary = t_next - self.lag_s + _LAG_MARGIN_S
+        return [j for j in range(self.first, self.newest + 1) if self._times[j] < boundary]
+
+    def taken(self, keyframes) -> None:
+        """Record that the estimates of ``keyframes`` were read after the last update."""
+        self._taken_after.update((j, self.newest) for j in keyframes)
+
+    def update(self, t: float, factors: list, guess: imu.ImuState, oldest: list[int], tags=None) -> imu.ImuState:
+        """Add the next keyframe at time ``t`` (after the newest) with ``factors`` (GTSAM factors on
+        it and older window keyframes; ``oldest[i]`` the earliest keyframe of ``factors[i]``,
+        ``tags[i]`` kept in :attr:`rows_of` unless None) and the initial value ``guess``; returns
+        its estimate. Raises :class:`FixedLagFailed` where GTSAM cannot go on."""
+        k = self.newest + 1
+        keys = keyframe_keys(k)
+        new_keys = set(keys.all())
+        graph = gtsam.NonlinearFactorGraph()
+        tags = tags if tags is not None else [None] * len(factors)
+        for f, tag, first_k in zip(factors, tags, oldest):
+            if all(key in self._present or key in new_keys for key in f.keys()):
+                graph.add(f)
+                self._held.setdefault(first_k, []).append(f)
+                if tag is not None:
+                    self.rows_of[id(f)] = tag
+            else:
+                self.skipped += 1
+        values = gtsam.Values()
+        insert_state(values, keys, guess)
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key in keys.all():
+            stamps.insert((key, float(t)))
+        linked = k == 0 or any(
+            any(key in new_keys for key in graph.at(i).keys()) and any(key in self._present for key in graph.at(i).keys())
+            for i in range(graph.size()))
+        if not linked:  # nothing ties the new keyframe to the window (no IMU factor): weak prior
+            graph.add(_weak_prior(keys, guess))
+            self.recovered.append(k)
+        tick = time.perf_counter()
+        try:
+            self.smoother.update(graph, values, stamps)
+        except RuntimeError as error:
+            if not is_indeterminant(error) or not linked:
+                raise _update_failed(k, t, error) from None
+            self.recovered.append(k)
+            weak = gtsam.NonlinearFactorGraph()
+            weak.add(_weak_prior(keys, guess))
+            try:
+                self.smoother.update(weak, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+            except (RuntimeError, IndexError) as again:
+                raise _update_failed(k, t, again) from None
+        except IndexError as error:  # ISAM2's Bayes tree is inconsistent: cannot continue
+            raise _update_failed(k, t, error) from None
+        self.estimate = self.smoother.calculateEstimate()
+        self.update_s.append(time.perf_counter() - tick)
+        self.newest = k
+        self._times[k] = float(t)
+        self._present = set(int(key) for key in self.estimate.keys())
+        while keyframe_keys(self.first).rot not in self._present:  # the window is contiguous: [first, k]
+            if self._taken_after.pop(self.first, None) != k - 1:  # GTSAM marginalised earlier than leaving() says
+                raise RuntimeError(f"fixed-lag: keyframe {self.first} (t = {self._times[self.first]:.6f} s) left "
+                                   "the window before its estimate was taken")
+            for f in self._held.pop(self.first, ()):  # marginalised with the keyframe: GTSAM has let go of it
+                self.rows_of.pop(id(f), None)
+            del self._times[self.first]
+            self.first += 1
+        self.newest_state = read_state(self.estimate, keys)
+        return self.newest_state
+
+    def state(self, k: int) -> imu.ImuState:
+        """Window keyframe ``k``'s estimate after the last update."""
+        return read_state(self.estimate, keyframe_keys(k))
+
+
 def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", covariances: bool = True,
                   progress: bool | None = None) -> FixedLagResult:
-    """Run a fixed-lag smoother over ``problem`` (see the module docstring)."""
-    if not lag_s > 0:
-        raise InputError(f"lag must be positive, got {lag_s}")
-    if kind == "batch":
-        _warn_of_sparse_measurements(problem, lag_s)
+    """Run a fixed-lag smoother over ``problem`` (see the module docstring): its keyframes through
+    one :class:`KeyframeWindow`."""
+    window = KeyframeWindow(lag_s, kind)
+    warn_of_sparse_measurements(_measured_gap(problem), lag_s, kind)
     start = time.perf_counter()
-    smoother = _make_smoother(kind, lag_s)
     n = len(problem.times)
     # the outputs, filled row by row (NaN until then: a row never filled fails Trajectory's checks)
     newest, lagged = _unfilled_states(n), _unfilled_states(n)
     newest_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
     lagged_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
-    update_s, recovered = [], []
-    newest_state = None  # the newest keyframe's estimate as read after the last update
-    taken_after: dict[int, int] = {}  # keyframe -> the update after which its lagged values were taken
-    first = 0
-    skipped = 0
-    present: set[int] = set()
-    # the factors given to the smoother, by their earliest keyframe, until GTSAM marginalises it
-    # (and with it the factor); rows_of maps them to the problem's blocks for window_covariances
-    held: dict[int, list] = {}
-    rows_of: dict[int, tuple[int, int]] = {}
     with progress_bar(len(problem.times), f"fixed-lag ({kind})", progress) as bar:
         for k, t_k in enumerate(problem.times):
-            keys = problem.keys[k]
-            new_keys = set(keys.all())
-            graph = gtsam.NonlinearFactorGraph()
             made = problem.keyframe_factors(k)
-            for f, where, oldest in zip(made.factors, made.rows, made.oldest):
-                if all(key in present or key in new_keys for key in f.keys()):
-                    graph.add(f)
-                    held.setdefault(oldest, []).append(f)
-                    rows_of[id(f)] = where
-                else:
-                    skipped += 1
-            values = gtsam.Values()
-            if k == 0:
-                guess = problem.initial_states[0]
-            else:  # from the smoother's estimate of the previous keyframe after the last update
-                guess = made.imu.predict(newest_state)
-            insert_state(values, keys, guess)
-            stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-            for key in keys.all():
-                stamps.insert((key, float(t_k)))
-            linked = k == 0 or any(
-                any(key in new_keys for key in graph.at(i).keys()) and any(key in present for key in graph.at(i).keys())
-                for i in range(graph.size()))
-            if not linked:  # nothing ties the new keyframe to the window (no IMU factor): weak prior
-                graph.add(_weak_prior(keys, guess))
-                recovered.append(k)
-            tick = time.perf_counter()
-            try:
-                smoother.update(graph, values, stamps)
-            except RuntimeError as error:
-                if not is_indeterminant(error) or not linked:
-                    raise _update_failed(k, t_k, error) from None
-                recovered.append(k)
-                weak = gtsam.NonlinearFactorGraph()
-                weak.add(_weak_prior(keys, guess))
-                try:
-                    smoother.update(weak, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
-                except (RuntimeError, IndexError) as again:
-                    raise _update_failed(k, t_k, again) from None
-            except IndexError as error:  # ISAM2's Bayes tree is inconsistent: cannot continue
-                raise _update_failed(k, t_k, error) from None
-            estimate = smoother.calculateEstimate()
-            update_s.append(time.perf_counter() - tick)
-            present = set(int(key) for key in estimate.keys())
-            while problem.keys[first].rot not in present:  # the window is contiguous: [first, k]
-                if taken_after.get(first) != k - 1:  # GTSAM marginalised earlier than the rule below says
-                    raise RuntimeError(f"fixed-lag: keyframe {first} (t = {problem.times[first]:.6f} s) left the "
-                                       "window before its estimate was taken")
-                for f in held.pop(first, ()):  # marginalised with the keyframe: GTSAM has let go of it
-                    del rows_of[id(f)]
-                first += 1
-            newest_state = read_state(estimate, problem.keys[k])
+            # the initial value: from the smoother's estimate of the previous keyframe after the last update
+            guess = problem.initial_states[0] if k == 0 else made.imu.predict(window.newest_state)
+            newest_state = window.update(t_k, made.factors, guess, made.oldest, made.rows)
+            first = window.first
             _put(newest, k, newest_state)
             # A keyframe's lagged estimate and covariance are those of the last update that holds
-            # it: take them for the keyframes that the next update marginalises (older than its
-            # time minus the lag; one taken too early, within the margin, is taken again later) and
-            # the newest, not for the whole window at every update. The covariances still need
-            # every window state (their linearisation point).
-            boundary = problem.times[k + 1] - lag_s + _LAG_MARGIN_S if k + 1 < len(problem.times) else np.inf
-            leaving = [j for j in range(first, k) if problem.times[j] < boundary]
-            for j in (range(first, k) if covariances else leaving):
-                _put(lagged, j, read_state(estimate, problem.keys[j]))
+            # it: take them for the keyframes that the next update marginalises and the newest,
+            # not for the whole window at every update. The covariances still need every window
+            # state (their linearisation point).
+            taken = sorted(set(window.leaving(problem.times[k + 1]) if k + 1 < n else []) | {k})
+            for j in (range(first, k) if covariances else taken[:-1]):
+                _put(lagged, j, window.state(j))
             _put(lagged, k, newest_state)
-            taken_after.update((j, k) for j in leaving + [k])
+            window.taken(taken)
             if covariances:
-                taken = leaving + [k]
-                lagged_cov[taken] = window_covariances(problem, smoother, estimate, first, lagged[first:k + 1],
-                                                       rows_of, [j - first for j in taken])
+                lagged_cov[taken] = window_covariances(problem.blocks, window.smoother, window.estimate, first,
+                                                       lagged[first:k + 1], window.rows_of, [j - first for j in taken])
                 newest_cov[k] = lagged_cov[k]
             bar.update(1)
-    if skipped:
-        warnings.warn(f"{skipped} factors referred to variables older than the lag ({lag_s} s) and were skipped",
-                      stacklevel=2)
-    estimate = smoother.calculateEstimate()
-    in_window = [k for k, kk in enumerate(problem.keys) if estimate.exists(kk.rot)]
+    if window.skipped:
+        warnings.warn(f"{window.skipped} factors referred to variables older than the lag ({lag_s} s) and were "
+                      "skipped", stacklevel=2)
+    in_window = list(range(window.first, window.newest + 1))
     for k in in_window:
-        _put(lagged, k, read_state(estimate, problem.keys[k]))
+        _put(lagged, k, window.state(k))
     window_states = lagged[in_window]
     window_cov = None
     if covariances:
-        window_cov = window_covariances(problem, smoother, estimate, in_window[0], window_states, rows_of)
+        window_cov = window_covariances(problem.blocks, window.smoother, window.estimate, in_window[0], window_states,
+                                        window.rows_of)
         lagged_cov[in_window] = window_cov
     return FixedLagResult(Trajectory(problem.times, newest, newest_cov), Trajectory(problem.times, lagged, lagged_cov),
-                          Trajectory(problem.times[in_window], window_states, window_cov), np.array(update_s),
-                          recovered, skipped, time.perf_counter() - start)
+                          Trajectory(problem.times[in_window], window_states, window_cov), np.array(window.update_s),
+                          window.recovered, window.skipped, time.perf_counter() - start)
 
 
 def _unfilled_states(n: int) -> imu.ImuState:

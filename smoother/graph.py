@@ -326,9 +326,14 @@ class MeasurementSpec:
     factor: Callable
 
 
+def measurement_spec(sensor) -> MeasurementSpec:
+    """The measurements of one :class:`datasets.types.Sensor` through its kind's model."""
+    return (_relative_spec if KINDS[sensor.kind].relative else _absolute_spec)(sensor)
+
+
 def _measurement_specs(dataset: Dataset) -> list[MeasurementSpec]:
     """Each sensor of ``dataset`` (:func:`datasets.kinds.sensors_of`) through its kind's model."""
-    return [(_relative_spec if KINDS[s.kind].relative else _absolute_spec)(s) for s in sensors_of(dataset)]
+    return [measurement_spec(s) for s in sensors_of(dataset)]
 
 
 def _absolute_spec(sensor) -> MeasurementSpec:

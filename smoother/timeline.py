@@ -51,12 +51,18 @@ def imu_steps(imu: ImuSamples, knots: np.ndarray) -> Steps:
         )
     if np.any(np.diff(knots) <= 0):
         raise InputError("knot times must increase strictly")
-    bounds = np.union1d(imu.t, knots)
+    return steps_between(imu.t, imu.acc, imu.gyro, knots)
+
+
+def steps_between(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, knots) -> Steps:
+    """:func:`imu_steps` of the samples ``t (N,)``, ``acc, gyro (N, 3)`` (checked by the caller:
+    increasing times; ``knots`` increasing, finite, within ``[t[0], t[-1]]``)."""
+    bounds = np.union1d(t, knots)
     starts = bounds[:-1]
-    sample = np.searchsorted(imu.t, starts, side="right") - 1
+    sample = np.searchsorted(t, starts, side="right") - 1
     return Steps(
-        acc=imu.acc[sample],
-        gyro=imu.gyro[sample],
+        acc=acc[sample],
+        gyro=gyro[sample],
         dt=np.diff(bounds),
         t=starts,
         knot_step=np.searchsorted(bounds, knots),

@@ -23,6 +23,14 @@ def register(sub) -> None:
     p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
     p.add_argument("--fixed-lag-kind", default="incremental", choices=["incremental", "batch"],
                    help="GTSAM's IncrementalFixedLagSmoother (iSAM2) or BatchFixedLagSmoother")
+    p.add_argument("--max-delay", type=float, default=0.0, metavar="S",
+                   help="fixed-lag: how late [s] a measurement may arrive behind the IMU stream and still be used "
+                        "(later ones are dropped and counted; default 0)")
+    p.add_argument("--realtime", action="store_true",
+                   help="fixed-lag: replay the data at its own pace through the online smoother and report the "
+                        "latency from each measurement's arrival to the updated estimate (median, p99, max)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="with --realtime: replay this many times faster than recorded (default 1)")
     p.add_argument("--optimizer", default="lm", choices=["lm", "gn", "dogleg"], help="batch optimiser (default lm)")
     p.add_argument("--max-iterations", type=int, default=100, metavar="N",
                    help="iterations of the batch optimiser at most (default 100); metrics.json's batch 'converged' "
@@ -113,6 +121,12 @@ def _run(args) -> int:
         for value in values or ():
             positive(option, value)
     positive("--lag", args.lag, "a lag in seconds")
+    if not (math.isfinite(args.max_delay) and args.max_delay >= 0):
+        raise UserError(f"--max-delay: expected a time in seconds >= 0 (finite), got {args.max_delay!r}")
+    positive("--speed", args.speed, "a factor")
+    if args.realtime and args.estimator not in ("fixed-lag", "all"):
+        raise UserError(f"--realtime replays through the fixed-lag smoother; it does not apply to --estimator "
+                        f"{args.estimator}")
     if args.keyframe_rate is not None:
         positive("--keyframe-rate", args.keyframe_rate, "a rate")
     options = sources.SourceOptions(
@@ -134,6 +148,7 @@ def _run(args) -> int:
         max_iterations=args.max_iterations,
         keyframe_rate=args.keyframe_rate, robust=robust,
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
+        max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
     )
     out = output_directory(args.out)
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
@@ -165,6 +180,10 @@ def _run(args) -> int:
         for path in plots.plot_run(out):
             print(f"wrote {path}", file=sys.stderr)
     print(format_table(metrics))
+    latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
+    if latency is not None:
+        print(f"fixed-lag latency, measurement arrival to updated estimate ({latency['measurements']} measurements): "
+              f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
     for line in consistency_warnings(consistency):

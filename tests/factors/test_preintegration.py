@@ -436,6 +436,21 @@ def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_
         assert np.allclose(states.r, anchors.r) and np.allclose(states.C, anchors.C)
 
 
+def test_integrate_interval_is_integrate_with_covariance_of_one_interval():
+    """The unchecked one-interval path gives what the checked call gives for ``J = 1``, bit for
+    bit: every preintegrated quantity, the samples it keeps, and the covariance."""
+    rng = np.random.default_rng(7)
+    acc, gyro, dt = padded_intervals(rng, [23])
+    start = random_state(rng)
+    noise = imu.ImuNoise(acc=0.02, gyro=2e-3, acc_bias=1e-3, gyro_bias=1e-4, velocity=1e-3)
+    whole, _ = preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY)
+    one = preintegration.integrate_interval(acc[0], gyro[0], dt[0], start, noise, GRAVITY)
+    for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "b_w_bar", "cov"):
+        assert np.array_equal(getattr(one, name), getattr(whole[0], name)), name
+    for mine, theirs in zip(one.samples, whole[0].samples):
+        assert np.array_equal(mine, theirs)
+
+
 def test_results_do_not_depend_on_the_number_of_threads(monkeypatch):
     """Intervals are split among threads in contiguous ranges; each interval's arithmetic is the
     same whichever thread runs it, so the results are identical bit for bit."""

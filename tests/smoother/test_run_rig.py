@@ -118,3 +118,24 @@ def test_held_out_error_splits_into_horizontal_and_vertical(recording):
     total = m["gps_heldout_horizontal_rmse_m"] ** 2 + m["gps_heldout_vertical_rmse_m"] ** 2
     assert total == pytest.approx(m["gps_heldout_rmse_m"] ** 2, rel=1e-12)
     assert m["sensors"]["gnss"]["through"] == "ekf"
+
+
+def test_realtime_replay_reports_latency_and_gives_the_same_estimates(recording, capsys):
+    """``--realtime`` (here 20 times the recorded pace) replays the bag sample by sample through
+    the online smoother and reports the latency from a measurement's arrival to the updated
+    estimate (median, p99, max; in metrics.json too); the estimates are those of the replay as
+    fast as it goes, whatever the pace."""
+    data, out = recording
+    rig = out.parent / "rig.toml"
+    realtime = out.parent / "realtime"
+    args = ["run", "--rig", str(rig), "--estimator", "fixed-lag", "--no-progress", "--no-covariance"]
+    assert main(args + ["--out", str(realtime), "--realtime", "--speed", "20"]) == 0
+    printed = capsys.readouterr().out
+    assert "fixed-lag latency, measurement arrival to updated estimate" in printed
+    assert all(word in printed for word in ("median", "p99", "max"))
+    latency = json.loads((realtime / "metrics.json").read_text())["fixed-lag"]["latency_ms"]
+    used = int(np.ceil(len(data.sensors[0].data) / 4)) + len(data.sensors[1].data)
+    assert latency["measurements"] >= used - 2 and 0 < latency["median"] <= latency["p99"] <= latency["max"]
+    a, b = read_tum(out / "fixed-lag.tum"), read_tum(realtime / "fixed-lag.tum")
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.position, b.position)

@@ -1,0 +1,638 @@
+"""Online fixed-lag smoothing: IMU samples and measurements fed as they arrive, the state at IMU
+rate, each keyframe's smoothed estimate as it leaves the window.
+
+:class:`OnlineSmoother` is GTSAM's fixed-lag smoother (:class:`smoother.fixed_lag.KeyframeWindow`,
+the loop :func:`smoother.fixed_lag.run_fixed_lag` runs too) fed from streams. Conventions are the
+project's: state ``x = (r, v, C, b_f, b_w)`` (world position, BODY velocity, body-to-world
+attitude, accelerometer and gyro biases), 15x15 covariances in the primer's error state
+``(dr, dv, dphi, db_f, db_w)`` with the LEFT perturbation ``C <- exp(dphi) C``, times in seconds
+on the IMU's clock.
+
+Keyframes. Keyframe 0 is at the first IMU sample, with the prior ``(initial, initial_cov)``. Every
+measurement time is a keyframe (both ends of a relative pose), and so is every time given to
+:meth:`OnlineSmoother.keyframe_at`, with ``keyframe_rate`` a grid ``t0 + m / rate`` (grid
+times within half an IMU interval of another keyframe are left out), and the last IMU sample at
+:meth:`OnlineSmoother.finish`. Consecutive keyframes are
+joined by the project's IMU factor, preintegrated when the later keyframe is made, its noise
+covariance evaluated along the prediction from the smoother's newest estimate.
+
+Time order. IMU samples must come in strictly increasing time (a ValueError otherwise). A
+keyframe at time ``t`` is made -- and the smoother updated with it -- once the IMU stream has
+reached ``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
+and are sorted into time. A measurement whose time is at or before the newest keyframe already
+made (it arrived later than ``max_delay_s`` behind the IMU) is dropped: counted per sensor in
+``dropped``, with a warning at its sensor's first drop. ``max_delay_s`` is thus also the delay
+of every measurement's effect on the estimates.
+
+Outputs. :meth:`OnlineSmoother.estimate` is the state at the newest IMU time: the EKF's
+per-sample prediction (:func:`factors.imu.predict_into`, the filter's own step) from the
+newest keyframe's estimate, no re-solve; with ``covariances`` its 15x15 covariance too, from the
+keyframe's marginal. A keyframe's smoothed estimate is the one it has just before the update that
+marginalises it (older than the new keyframe's time minus ``lag_s``), handed to ``on_smoothed``
+or queued for :meth:`OnlineSmoother.smoothed`; :meth:`OnlineSmoother.finish` makes the pending
+keyframes and hands over the rest of the window.
+
+A relative measurement (odometry) whose earlier time is no keyframe in the window when it arrives
+or when its later keyframe is made (it is older than the lag) is skipped: counted per sensor in
+``skipped``, with a warning at the first.
+
+No silent failures: besides the dropped and skipped measurements, a warning when measurements are further
+apart than the lag (:func:`smoother.fixed_lag.sparse_measurement_warning`: keyframes then leave
+the window before the next measurement reaches them).
+
+:func:`replay` feeds a whole :class:`datasets.types.Dataset` through an :class:`OnlineSmoother`,
+at once or at the data's own pace (``realtime``), measuring each measurement's latency from its
+arrival to the update that used it.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import time
+import warnings
+from dataclasses import dataclass, fields
+
+import gtsam
+import numpy as np
+
+from datasets.kinds import KINDS, sensors_of
+from datasets.types import Dataset, Sensor, Trajectory
+from factors import imu, preintegration
+from factors import measurements as meas
+from factors.imu_factor import ImuFactor
+from factors.keys import keyframe_keys
+from factors.uncertainty import state_covariance_to_primer
+from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning, window_covariances
+from smoother.graph import measurement_spec, noise_model
+from smoother.progress import progress_bar
+from smoother.timeline import estimate_times, steps_between
+from factors.errors import InputError
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    """An aiding sensor of an :class:`OnlineSmoother`: its ``kind`` (a name of
+    :data:`datasets.kinds.KINDS`), extrinsic ``T_BS`` (4x4, ``p_B = T_BS p_S``; None: at the IMU),
+    ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
+    measurement comes without a covariance; None: every measurement brings one) and ``robust``
+    (None or a kernel spec of :func:`datasets.robust.robust_spec`)."""
+
+    kind: str
+    T_BS: np.ndarray | None = None
+    time_offset: float = 0.0
+    sigma: np.ndarray | None = None
+    robust: tuple | None = None
+
+
+@dataclass(slots=True)
+class OnlineEstimate:
+    """A state at time ``t`` with its 15x15 covariance ``cov`` (None when the smoother computes
+    no covariances)."""
+
+    t: float
+    state: imu.ImuState
+    cov: np.ndarray | None
+
+
+@dataclass(order=True)
+class _Pending:
+    """A measurement waiting for its keyframe: sorted by its latest time, then sensor and row,
+    so that the factors of a keyframe do not depend on the order of arrival."""
+
+    latest: float
+    sensor: str
+    times: tuple
+    seq: int
+    spec: object = None
+    row: int = 0
+    arrived: float = 0.0
+
+
+class OnlineSmoother:
+    """Fixed-lag smoothing fed sample by sample (module docstring).
+
+    ``initial``, ``initial_cov``: the state at the first IMU sample and its 15x15 covariance;
+    ``noise`` (:class:`factors.imu.ImuNoise`) and ``gravity`` (world frame, m/s^2); ``sensors``:
+    name -> :class:`SensorSetup` (a kind's name can always be used as a sensor at the IMU with no
+    time offset); ``lag_s`` the window [s]; ``kind`` GTSAM's ``"incremental"`` or ``"batch"``
+    smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
+    behind the IMU stream; ``covariances``: compute keyframe covariances (the newest keyframe's,
+    for :meth:`estimate`, and each smoothed keyframe's); ``on_smoothed(OnlineEstimate)``: called
+    with each keyframe leaving the window (None: they are queued for :meth:`smoothed`)."""
+
+    def __init__(self, initial: imu.ImuState, initial_cov, noise: imu.ImuNoise, sensors: dict | None = None,
+                 lag_s: float = 2.0, kind: str = "incremental", keyframe_rate: float | None = None,
+                 max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
+                 on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
+        self._window = KeyframeWindow(lag_s, kind)
+        if not max_delay_s >= 0:
+            raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
+        if keyframe_rate is not None and not keyframe_rate > 0:
+            raise InputError(f"keyframe_rate must be positive or None, got {keyframe_rate}")
+        initial_cov = np.asarray(initial_cov, dtype=float)
+        if initial_cov.shape != (imu.STATE_DIM, imu.STATE_DIM):
+            raise InputError(f"initial_cov: expected shape (15, 15), got {initial_cov.shape}")
+        self._sensors = dict(sensors or {})
+        for name, setup in self._sensors.items():
+            if not isinstance(setup, SensorSetup) or setup.kind not in KINDS:
+                raise InputError(f"sensors[{name!r}]: expected a SensorSetup of a kind in {', '.join(KINDS)}, "
+                                 f"got {setup!r}")
+        self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
+        self.gravity = np.asarray(gravity, dtype=float)
+        self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
+        self.keyframe_rate = keyframe_rate
+        self.covariances = covariances
+        self.on_smoothed = on_smoothed
+        self.reintegration_threshold = reintegration_threshold
+        #: measurements dropped for arriving too late, per sensor
+        self.dropped: dict[str, int] = {}
+        #: relative measurements skipped because their earlier time has left the window, per sensor
+        self.skipped: dict[str, int] = {}
+        #: wall time [s] from each used measurement's arrival to the end of the update that used it
+        self.latency_s: list[float] = []
+        #: the longest time between measurements seen so far [s] (the start counts as one)
+        self.longest_gap_s = 0.0
+        self._warned_gap = False
+        self._finished = False
+        self._queue: list[OnlineEstimate] = []
+        self._pending: list[_Pending] = []  # heap
+        self._knots: list[float] = []  # heap of keyframe times asked for
+        self._knot_set: set[float] = set()
+        self._seq = 0
+        # the IMU stream: growing arrays, [0, _n) in use (from the sample held at the newest keyframe
+        # on, at least: what the next IMU factor and the prediction need)
+        self._t = np.empty(1024)
+        self._acc = np.empty((1024, 3))
+        self._gyro = np.empty((1024, 3))
+        self._n = 0
+        self._t0 = None
+        self._grid_next = 0  # the index m of the next grid time t0 + m / rate
+        self._grid_t = np.inf  # that time (inf: no grid)
+        self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
+        self._last_t = None  # the newest keyframe's time
+        self._last_measured_t = None
+        # the IMU-rate prediction from the newest keyframe: state, covariance, time reached and the
+        # sample held there
+        self._pred = None  # (r, v, C, b_f, b_w) flat, 21 numbers
+        self._pred_parts = None
+        self._pred_cov = None
+        self._pred_t = None
+        self._pred_held = 0
+        self._q = noise.densities()
+
+    @classmethod
+    def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":
+        """A smoother with ``dataset``'s IMU noise, gravity, initial state and covariance and its
+        sensors (:func:`datasets.kinds.sensors_of`: kinds and extrinsics; their time offsets are in
+        the dataset's stamps already), ``robust`` kernels by sensor name; ``options`` as the
+        constructor's. The data themselves are not fed (:func:`replay` does)."""
+        robust = robust or {}
+        sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name))
+                   for s in sensors_of(dataset)}
+        return cls(dataset.initial, dataset.initial_cov, dataset.noise, sensors, gravity=dataset.gravity, **options)
+
+    @classmethod
+    def from_rig(cls, rig, initial: imu.ImuState, initial_cov, **options) -> "OnlineSmoother":
+        """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
+        gravity, each sensor's kind, extrinsic, time offset, sigma and robust kernel), starting
+        from ``initial`` with ``initial_cov`` at the first IMU sample; ``options`` as the
+        constructor's."""
+        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust) for s in rig.sensors}
+        return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
+                   **options)
+
+    # -- input ------------------------------------------------------------------------------------
+
+    def add_imu(self, t, acc, gyro) -> None:
+        """One IMU sample (``t`` a number, ``acc``, ``gyro`` 3-vectors: specific force [m/s^2] and
+        angular rate [rad/s] in the body frame) or many (``t (N,)``, ``(N, 3)``), in strictly
+        increasing time after every sample before. Makes the keyframes the stream has passed by
+        ``max_delay_s``."""
+        self._open()
+        n = self._n
+        if np.ndim(t) == 0 and np.shape(acc) == (3,) and np.shape(gyro) == (3,):  # one sample: kept lean
+            t = float(t)
+            if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
+                    and (n == 0 or t > self._t[n - 1])):
+                self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
+            if n == len(self._t):
+                self._grow(1)
+                n = self._n
+            self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
+            self._n = n + 1
+        else:
+            t, acc, gyro = self._checked_imu(t, acc, gyro)
+            if n + t.size > len(self._t):
+                self._grow(t.size)
+                n = self._n
+            self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
+            self._n = n + t.size
+        if self._t0 is None:
+            self._t0 = float(self._t[0])
+            self._grid_t = self._t0 if self.keyframe_rate else np.inf
+            self._ask(self._t0)
+        horizon = self._t[self._n - 1] - self.max_delay_s
+        if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
+            self._make_keyframes(horizon)
+
+    def _checked_imu(self, t, acc, gyro):
+        """IMU samples as arrays ``t (N,)``, ``acc, gyro (N, 3)``, or a ValueError naming the
+        argument that is wrong."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        acc = np.asarray(acc, dtype=float).reshape(-1, 3) if np.size(acc) == 3 * t.size else np.asarray(acc)
+        gyro = np.asarray(gyro, dtype=float).reshape(-1, 3) if np.size(gyro) == 3 * t.size else np.asarray(gyro)
+        for name, a in (("acc", acc), ("gyro", gyro)):
+            if a.shape != (t.size, 3) or not np.all(np.isfinite(a)):
+                raise InputError(f"add_imu: {name}: expected {t.size} finite 3-vectors, got shape {np.shape(a)}")
+        if t.ndim != 1 or not np.all(np.isfinite(t)):
+            raise InputError(f"add_imu: t: expected finite times, got {t.tolist()[:3]}")
+        previous = self._t[self._n - 1] if self._n else -np.inf
+        if t[0] <= previous or np.any(np.diff(t) <= 0):
+            bad = t[0] if t[0] <= previous else t[1:][np.diff(t) <= 0][0]
+            raise InputError(f"add_imu: t: IMU samples must come in strictly increasing time; got t = {bad!r} "
+                             f"after {previous if t[0] <= previous else t[np.argmax(np.diff(t) <= 0)]!r}")
+        return t, acc, gyro
+
+    def add(self, sensor: str, t, *values, cov=None) -> None:
+        """Measurements of ``sensor`` (a name of ``sensors``, or a kind's name for a sensor at the
+        IMU): the fields of its kind's data type after the time(s) (:mod:`datasets.types`; e.g.
+        ``add("pose", t, position, C)``, ``add("position", t, position)``, ``add("velocity", t,
+        velocity, gyro)``, ``add("odometry", t_from, t_to, dr, dC)``), one measurement or arrays
+        of them, with ``cov`` ((d, d) or (N, d, d); default from the sensor's sigma). Stamps
+        are the sensor's, its time offset is added here."""
+        self._open()
+        setup, kind = self._setup(sensor)
+        single = np.ndim(t) == 0
+        data_fields = [f.name for f in fields(kind.data_type) if f.name not in ("cov", "T_BS")]
+        if len(values) != len(data_fields) - 1:
+            raise InputError(f"add({sensor!r}): expected {', '.join(data_fields)} (and cov), got "
+                             f"{len(values) + 1} values")
+        columns = [np.atleast_1d(np.asarray(t, dtype=float))] + [np.asarray(v, dtype=float) for v in values]
+        if single:
+            columns = [columns[0]] + [v[None] for v in columns[1:]]
+        n = len(columns[0])
+        if cov is None:
+            if setup.sigma is None:
+                raise InputError(f"add({sensor!r}): cov: expected a covariance (the sensor has no sigma)")
+            sigma = np.broadcast_to(np.asarray(setup.sigma, dtype=float), (kind.dim,))
+            cov = np.diag(sigma**2)
+        cov = np.asarray(cov, dtype=float)
+        cov = np.broadcast_to(cov, (n,) + cov.shape[-2:]) if cov.ndim == 2 else cov
+        try:
+            data = kind.data_type(*columns, cov, setup.T_BS)
+        except ValueError as error:
+            raise InputError(f"add({sensor!r}): {error}") from None
+        self.add_measurements(sensor, data)
+
+    def add_measurements(self, sensor: str, data) -> None:
+        """Measurements of ``sensor`` given as its kind's data type (:mod:`datasets.types`, the
+        sensor's extrinsic inside it; stamps the sensor's, its time offset added here)."""
+        self._open()
+        setup, kind = self._setup(sensor)
+        if not isinstance(data, kind.data_type):
+            raise InputError(f"add_measurements({sensor!r}): data: expected {kind.data_type.__name__}, "
+                             f"got {type(data).__name__}")
+        spec = measurement_spec(Sensor(sensor, setup.kind, data))
+        stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
+        if not np.all(np.isfinite(stamps)):
+            raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
+        arrived = time.perf_counter()
+        for m, times in enumerate(stamps):
+            latest = float(times.max())
+            if self._last_t is not None and latest <= self._last_t:
+                self._drop(sensor)
+                continue
+            if self._last_t is not None and any(x <= self._last_t and x not in self._keyframe_t for x in times):
+                self._skip(sensor)
+                continue
+            self._seq += 1
+            heapq.heappush(self._pending, _Pending(latest, sensor, tuple(float(x) for x in times), self._seq, spec, m,
+                                                   arrived))
+            for x in times:
+                if self._last_t is None or x > self._last_t:
+                    self._ask(float(x))
+
+    def keyframe_at(self, t) -> None:
+        """Ask for keyframes (estimates) at the times ``t`` (IMU clock); those at or before the
+        newest keyframe already made are ignored."""
+        self._open()
+        for x in np.atleast_1d(np.asarray(t, dtype=float)):
+            if self._last_t is None or x > self._last_t:
+                self._ask(float(x))
+
+    def finish(self) -> None:
+        """End of the streams: make every keyframe up to the last IMU sample and one there (the
+        end of the data), then hand over the whole window (each keyframe as smoothed as it gets);
+        a warning if the data ended further from the last measurement than the lag. Nothing can
+        be added afterwards."""
+        self._open()
+        if self._n:
+            end = float(self._t[self._n - 1])
+            if self._last_t is None or end > self._last_t:
+                self._ask(end)
+            self._make_keyframes(end)
+        if self._last_t is not None and self._last_measured_t is not None:
+            self._gap(self._last_t)
+        if self._window.newest >= 0:
+            self._hand_over([e for _, e in self._read(range(self._window.first, self._window.newest + 1))])
+        self._finished = True
+
+    # -- output -----------------------------------------------------------------------------------
+
+    def estimate(self) -> OnlineEstimate:
+        """The state at the newest IMU sample: the per-sample prediction from the newest
+        keyframe's estimate (the EKF's step, through the samples since), and its covariance
+        with ``covariances``. A ValueError before the first keyframe."""
+        if self._pred is None:
+            raise InputError("estimate: no keyframe yet (feed IMU samples first)")
+        n, held = self._n, self._pred_held
+        if n - 1 > held:
+            t = self._t
+            dt = t[held + 1:n] - t[held:n - 1]
+            dt[0] = t[held + 1] - self._pred_t
+            imu.predict_into(*self._pred_parts, self._pred_cov, self._acc[held:n - 1], self._gyro[held:n - 1], dt,
+                             self._q, self.gravity)
+            self._pred_t, self._pred_held = float(t[n - 1]), n - 1
+        return OnlineEstimate(self._pred_t, imu.ImuState.of_flat(self._pred.copy()),
+                              self._pred_cov.copy() if self.covariances else None)
+
+    def smoothed(self):
+        """The keyframes that left the window since the last call (oldest first), as
+        :class:`OnlineEstimate` s; empty when ``on_smoothed`` takes them."""
+        while self._queue:
+            yield self._queue.pop(0)
+
+    @property
+    def update_s(self) -> list[float]:
+        """Wall time of each smoother update [s]."""
+        return self._window.update_s
+
+    @property
+    def recovered(self) -> list[int]:
+        """Keyframes (by number) that needed a weak prior."""
+        return self._window.recovered
+
+    # -- inside -----------------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        if self._finished:
+            raise InputError("the smoother has finished: nothing can be added")
+
+    def _setup(self, sensor: str):
+        setup = self._sensors.get(sensor)
+        if setup is None:
+            if sensor not in KINDS:
+                raise InputError(f"sensor: unknown sensor {sensor!r}; expected one of "
+                                 f"{', '.join(list(self._sensors) + list(KINDS))}")
+            setup = SensorSetup(sensor)
+        return setup, KINDS[setup.kind]
+
+    def _held_at(self, t: float) -> int:
+        """The index of the IMU sample held at time ``t`` (the last at or before it)."""
+        return max(int(np.searchsorted(self._t[:self._n], t, side="right")) - 1, 0)
+
+    def _grow(self, extra: int) -> None:
+        """Room for ``extra`` more samples: those before the sample held at the newest keyframe
+        (which neither the next IMU factor nor the prediction needs) are let go, and the arrays
+        doubled if that is not enough."""
+        base = self._held_at(self._last_t) if self._last_t is not None else 0
+        if base:
+            keep = self._n - base
+            for a in (self._t, self._acc, self._gyro):
+                a[:keep] = a[base:self._n]
+            self._n = keep
+            self._pred_held -= base
+        if self._n + extra > len(self._t):
+            size = max(2 * len(self._t), self._n + extra)
+            self._t = np.resize(self._t, size)
+            self._acc = np.resize(self._acc, (size, 3))
+            self._gyro = np.resize(self._gyro, (size, 3))
+
+    def _ask(self, t: float) -> None:
+        if t not in self._knot_set:
+            self._knot_set.add(t)
+            heapq.heappush(self._knots, t)
+
+    def _drop(self, sensor: str) -> None:
+        self._count(self.dropped, sensor, f"arrived after its keyframe time had been processed (more than "
+                                          f"max_delay_s = {self.max_delay_s:g} s behind the IMU) and was dropped",
+                    "dropped")
+
+    def _skip(self, sensor: str) -> None:
+        self._count(self.skipped, sensor, f"refers to a time that has left the window (older than the lag, "
+                                          f"{self.lag_s:g} s, or no keyframe) and was skipped", "skipped")
+
+    @staticmethod
+    def _count(counts: dict, sensor: str, what: str, attribute: str) -> None:
+        """Count one measurement of ``sensor`` in ``counts``, with a warning at its first."""
+        counts[sensor] = counts.get(sensor, 0) + 1
+        if counts[sensor] == 1:
+            warnings.warn(f"online smoother: a measurement of {sensor!r} {what}; the smoother counts such "
+                          f"measurements in .{attribute}", stacklevel=5)
+
+    def _next_grid(self, horizon: float) -> None:
+        """Ask for the grid keyframes up to ``horizon``, except those within half an IMU
+        interval of another keyframe."""
+        while self._grid_t <= horizon:
+            g = self._grid_t
+            self._grid_next += 1
+            self._grid_t = self._t0 + self._grid_next / self.keyframe_rate
+            step = 0.5 * (self._t[self._n - 1] - self._t[self._n - 2]) if self._n > 1 else 0.0
+            near = [x for x in self._knots if abs(x - g) < step]
+            if not near and (self._last_t is None or g - self._last_t >= step):
+                self._ask(g)
+
+    def _make_keyframes(self, horizon: float) -> None:
+        """Make every keyframe asked for at or before ``horizon`` (and the IMU's end)."""
+        self._next_grid(horizon)
+        end = self._t[self._n - 1]
+        while self._knots and self._knots[0] <= horizon and self._knots[0] <= end:
+            t = heapq.heappop(self._knots)
+            self._knot_set.discard(t)
+            if t < self._t0:  # before the IMU: nothing to anchor it
+                continue
+            self._keyframe(t)
+
+    def _keyframe(self, t: float) -> None:
+        """Make the keyframe at ``t``: its IMU factor, the measurements at ``t``, one update."""
+        window = self._window
+        k = window.newest + 1
+        keys = keyframe_keys(k)
+        if k == 0:
+            guess = self.initial
+            factors = [meas.state_prior_factor(keys, self.initial, self.initial_cov)]
+            oldest = [0]
+        else:
+            lo = self._held_at(self._last_t)
+            hi = int(np.searchsorted(self._t[:self._n], t, side="left")) + 1
+            steps = steps_between(self._t[lo:hi], self._acc[lo:hi], self._gyro[lo:hi], [self._last_t, t])
+            start = window.newest_state
+            a, b = steps.knot_step  # the steps from the newest keyframe to t
+            pre = preintegration.integrate_interval(steps.acc[a:b], steps.gyro[a:b], steps.dt[a:b], start, self.noise,
+                                                    self.gravity)
+            imu_factor = ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
+                                   reintegration_threshold=self.reintegration_threshold)
+            guess = imu_factor.predict(start)
+            factors, oldest = [imu_factor.factor], [k - 1]
+        self._keyframe_t[t] = k
+        used = []
+        while self._pending and self._pending[0].latest <= t:
+            item = heapq.heappop(self._pending)
+            if item.latest < t:  # before the first keyframe
+                self._drop(item.sensor)
+                continue
+            if any(x not in self._keyframe_t for x in item.times):  # its earlier keyframe left the window
+                self._skip(item.sensor)
+                continue
+            at = [self._keyframe_t[x] for x in item.times]
+            setup, _ = self._setup(item.sensor)
+            factors.append(item.spec.factor([keyframe_keys(j) for j in at], item.row,
+                                            noise_model(item.spec.cov[item.row], setup.robust)))
+            oldest.append(min(at))
+            used.append(item)
+        leaving = self._read(window.leaving(t))
+        window.update(t, factors, guess, oldest)
+        self._hand_over([e for j, e in leaving if j < window.first])  # read in time: they have left
+        done = time.perf_counter()
+        self.latency_s += [done - item.arrived for item in used]
+        self._keyframe_t = {x: j for x, j in self._keyframe_t.items() if j >= window.first}  # the window's
+        self._last_t = t
+        if used:
+            if self._last_measured_t is None:
+                self._last_measured_t = self._t0
+            self._gap(t)
+            self._last_measured_t = t
+        cov = self._keyframe_covariances([k])[0] if self.covariances else np.zeros((imu.STATE_DIM, imu.STATE_DIM))
+        s = window.newest_state
+        self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
+        x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
+        self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
+        self._pred_cov = np.array(cov)
+        self._pred_t, self._pred_held = t, self._held_at(t)
+
+    def _gap(self, t: float) -> None:
+        gap = t - self._last_measured_t
+        self.longest_gap_s = max(self.longest_gap_s, gap)
+        if not self._warned_gap:
+            text = sparse_measurement_warning(gap, self.lag_s, self.kind)
+            if text is not None:
+                self._warned_gap = True
+                warnings.warn(text, stacklevel=5)
+
+    def _keyframe_covariances(self, wanted: list[int]) -> np.ndarray:
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
+        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
+        four variables, at its linearisation point; the newest keyframes sit at the root, so this
+        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
+        smoother's factors linearised by GTSAM (:func:`smoother.fixed_lag.window_covariances`)."""
+        window = self._window
+        if self.kind == "incremental":
+            isam = window.smoother.getISAM2()
+            out = []
+            for j in wanted:
+                keys = keyframe_keys(j)
+                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+                out.append(state_covariance_to_primer(joint, window.estimate.atRot3(keys.rot)))
+            return np.stack(out)
+        states = imu.ImuState.stack([window.state(j) for j in range(window.first, window.newest + 1)])
+        return window_covariances([], window.smoother, window.estimate, window.first, states, {},
+                                  [j - window.first for j in wanted])
+
+    def _read(self, keyframes) -> list[tuple[int, OnlineEstimate]]:
+        """The estimates of window ``keyframes`` now (recorded as read, see
+        :meth:`smoother.fixed_lag.KeyframeWindow.taken`)."""
+        keyframes = list(keyframes)
+        if not keyframes:
+            return []
+        covs = self._keyframe_covariances(keyframes) if self.covariances else [None] * len(keyframes)
+        self._window.taken(keyframes)
+        return [(j, OnlineEstimate(self._window.time(j), self._window.state(j), cov)) for j, cov in zip(keyframes, covs)]
+
+    def _hand_over(self, estimates: list[OnlineEstimate]) -> None:
+        """Hand ``estimates`` of keyframes that left the window to ``on_smoothed`` or the queue."""
+        for out in estimates:
+            if self.on_smoothed is not None:
+                self.on_smoothed(out)
+            else:
+                self._queue.append(out)
+
+
+@dataclass
+class ReplayResult:
+    """A dataset replayed through an :class:`OnlineSmoother`: ``smoothed``, each keyframe's
+    estimate (and covariance) as it left the window; ``update_s`` the wall time of each update;
+    ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
+    with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
+    beyond the window, per sensor; ``recovered`` keyframes that
+    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay."""
+
+    smoothed: Trajectory
+    update_s: np.ndarray
+    latency_s: np.ndarray
+    dropped: dict
+    skipped: dict
+    recovered: list
+    longest_gap_s: float
+    runtime_s: float
+
+
+def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "incremental", keyframe_rate: float | None = None,
+           robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
+           speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
+    """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
+    in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
+    sample of the same time; keyframes are asked for at :func:`smoother.timeline.estimate_times`
+    (measurements, held-out fixes, the ends, the ``keyframe_rate`` grid), those of the batch
+    smoother's graph. ``realtime``: at the data's own pace (``speed`` times it), sample by
+    sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
+    IMU in chunks between measurements)."""
+    if not speed > 0:
+        raise InputError(f"speed must be positive, got {speed}")
+    smoothed: list[OnlineEstimate] = []
+    online = OnlineSmoother.for_dataset(dataset, robust, lag_s=lag_s, kind=kind, max_delay_s=max_delay_s,
+                                        covariances=covariances, on_smoothed=smoothed.append)
+    online.keyframe_at(estimate_times(dataset, keyframe_rate))
+    sensors = sensors_of(dataset)
+    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
+    which = np.concatenate([np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
+    rows = np.concatenate([np.arange(len(a)) for a in arrival]).astype(int)
+    at = np.concatenate(arrival) if arrival else np.zeros(0)
+    order = np.lexsort((rows, which, at))
+    imu_t = dataset.imu.t
+    start = time.perf_counter()
+
+    def wait(t: float) -> None:
+        if realtime:
+            delay = start + (t - imu_t[0]) / speed - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+
+    def feed(i: int, j: int) -> None:
+        if realtime:
+            for m in range(i, j):
+                wait(imu_t[m])
+                online.add_imu(imu_t[m], dataset.imu.acc[m], dataset.imu.gyro[m])
+                online.estimate()
+        elif j > i:
+            online.add_imu(imu_t[i:j], dataset.imu.acc[i:j], dataset.imu.gyro[i:j])
+
+    fed = 0
+    with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
+        groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
+        for group in groups:
+            t = at[group[0]]
+            upto = int(np.searchsorted(imu_t, t, side="left"))
+            feed(fed, upto)
+            bar.update(upto - fed)
+            fed = upto
+            wait(t)
+            for i in np.unique(which[group]):
+                online.add_measurements(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
+        feed(fed, len(imu_t))
+        bar.update(len(imu_t) - fed)
+        online.finish()
+    smoothed.sort(key=lambda e: e.t)
+    trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
+                            np.stack([e.cov for e in smoothed]) if covariances else None)
+    return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
+                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - start)
