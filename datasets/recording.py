@@ -56,6 +56,8 @@ def _relative(t: np.ndarray, t_ns, origin_ns: int, offset: float) -> np.ndarray:
 def _check_overlap(name: str, data, imu: ImuSamples, origin_ns: int) -> None:
     """A sensor none of whose measurements lies in the IMU's span is an error naming both spans in
     the data's clock (another clock, or a wrong time offset, is the usual cause)."""
+    if len(data) == 0:
+        raise InputError(f"sensor {name!r}: its source holds no measurement")
     first = getattr(data, "t_from", data.t)
     if np.any((first >= imu.t[0]) & (data.t <= imu.t[-1])):
         return
@@ -107,10 +109,10 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     for config in rig.sensors:
         try:
             data, clock.datum = KINDS[config.kind].read(config, clock)
-        except ValueError as error:
+        except ValueError as error:  # a reader's DataError names its file; say which sensor it was
             message = str(error)
-            raise type(error)(message if message.startswith("sensor ") else
-                              f"sensor {config.name!r} ({config.kind}): {message}") from None
+            raise InputError(message if message.startswith("sensor ") else
+                             f"sensor {config.name!r} ({config.kind}): {message}") from error
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout))

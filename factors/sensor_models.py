@@ -48,6 +48,7 @@ from numba import njit
 
 from factors import so3
 from factors.custom import BIAS, ROT, VEC, custom_factor
+from factors.errors import InputError
 from factors.imu import STATE_DIM, ImuState
 
 
@@ -151,8 +152,21 @@ def velocity_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
 
 
 def _flat(*arrays) -> np.ndarray:
-    n = len(arrays[0])
+    """Rows of the measurements ``arrays`` (each with a leading dimension N: one row a
+    measurement; a single measurement is refused rather than read as N rows)."""
+    first = np.asarray(arrays[0], dtype=float)
+    if first.ndim < 2:
+        raise InputError(f"pack: expected measurements with a leading dimension (N, ...), got shape {first.shape}")
+    n = len(first)
     return np.concatenate([np.reshape(np.asarray(a, dtype=float), (n, -1)) for a in arrays], axis=1)
+
+
+def _checked_row(model: "SensorModel", row) -> np.ndarray:
+    row = np.ascontiguousarray(row, dtype=float)
+    if row.shape != (model.width,):
+        raise InputError(f"{model.name} measurement row: expected {model.width} numbers (its pack_* layout), "
+                         f"got shape {row.shape}")
+    return row
 
 
 def _repeat(a: np.ndarray, n: int) -> np.ndarray:
@@ -211,7 +225,7 @@ def evaluate_one(model: SensorModel, state: ImuState, row: np.ndarray) -> tuple[
     """``(e (d,), H (d, 15))`` of one measurement ``row`` at one state."""
     e, H = np.empty(model.dim), np.empty((model.dim, STATE_DIM))
     model.kernel(*(np.ascontiguousarray(a, dtype=float) for a in (state.r, state.v, state.C, state.b_f, state.b_w)),
-                 np.ascontiguousarray(row, dtype=float), e, H)
+                 _checked_row(model, row), e, H)
     return e, H
 
 
@@ -219,7 +233,7 @@ def sensor_factor(model: SensorModel, keys, row, noise_model) -> gtsam.CustomFac
     """A GTSAM factor of one measurement ``row`` on a keyframe's ``keys``
     (:class:`factors.keys.KeyframeKeys`); only the variables the model reads become its keys, and
     the rotation block passes through the chart adapter (:func:`factors.custom.custom_factor`)."""
-    row = np.ascontiguousarray(row, dtype=float)
+    row = _checked_row(model, row)
     names = model.variables
     zero3 = np.zeros(3)
 

@@ -2,7 +2,8 @@
 
 Prediction per IMU step with ``F``, ``G`` and ``Q_d = diag(R_i / dt)`` (between two updates all
 steps at once, :meth:`Ekf.predict_steps`, the same recursion unrolled); updates linearise the
-same measurement residuals the smoother's factors use (:mod:`factors.measurements`), so the
+same measurement models the smoother's factors use (:mod:`factors.sensor_models`, through the
+kinds' registry :mod:`datasets.kinds`), so the
 innovation of an attitude is the boxminus ``C [-] C_meas`` and the correction is applied with
 the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Joseph form, kept
 symmetric. An optional chi-square gate rejects measurements whose normalised innovation is
@@ -87,6 +88,10 @@ class Ekf:
         """Correct with one measurement of ``kind`` (a name of :data:`datasets.kinds.KINDS`; its
         ``row`` laid out as the kind's ``pack`` does, extrinsic included): the residual and its
         Jacobian from the model's kernel, the one the smoothers' factors run."""
+        if kind not in KINDS or KINDS[kind].relative:
+            one_state = [name for name, k in KINDS.items() if not k.relative]
+            raise InputError(f"update_sensor: kind {kind!r}: expected one of {', '.join(one_state)} (a relative kind "
+                             "needs a cloned past state, which this filter does not keep)")
         e, H = evaluate_one(KINDS[kind].model, self.state, row)
         return self.update(e, H, R)
 

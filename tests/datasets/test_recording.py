@@ -87,3 +87,24 @@ def test_unusable_sensor_data_is_one_line_naming_the_sensor(tmp_path, data, edit
     with pytest.raises(ValueError) as error:
         load_recording(load_rig(rig))
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_malformed_sensor_file_is_one_line_naming_the_sensor_and_the_file(tmp_path, data):
+    """A reader's DataError (file, line, field) with the sensor's name before it -- it used to be
+    rebuilt from its message alone and failed with a TypeError traceback."""
+    rig = _write(tmp_path, data)
+    lines = (tmp_path / "camera.csv").read_text().splitlines()
+    lines[3] = lines[3].replace(",", ",x", 1)
+    (tmp_path / "camera.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError) as error:
+        load_recording(load_rig(rig))
+    message = str(error.value)
+    assert message.startswith("sensor 'camera' (pose): ") and "camera.csv, line 4" in message and "\n" not in message
+
+
+def test_a_source_without_measurements_is_named(tmp_path, data):
+    rig = _write(tmp_path, data)
+    (tmp_path / "camera.csv").write_text("t,x,y,z,qw,qx,qy,qz,sigma_x,sigma_y,sigma_z,sigma_rx,sigma_ry,sigma_rz\n")
+    with pytest.raises(ValueError, match="camera") as error:
+        load_recording(load_rig(rig))
+    assert "\n" not in str(error.value) and "zero-size" not in str(error.value)

@@ -101,3 +101,21 @@ def test_models_predict_the_sensor_frame():
     e, _ = sm.evaluate_one(sm.VELOCITY, x, sm.pack_velocity((T_IS[:3, :3].T @ world_velocity_of_S)[None],
                                                              w[None], T)[0])
     np.testing.assert_allclose(e, 0, atol=1e-12)
+
+
+def test_rows_of_the_wrong_width_and_single_measurements_are_refused():
+    """A row of another layout would be read past its end by the compiled kernel; a single
+    measurement given to pack_* would be read as three rows."""
+    from factors.errors import InputError
+    from smoother.ekf import Ekf
+
+    x = imu.ImuState.identity()
+    with pytest.raises(InputError, match="position measurement row: expected 6 numbers"):
+        sm.evaluate_one(sm.POSITION, x, np.zeros(5))
+    with pytest.raises(InputError, match="expected 24 numbers"):
+        sm.sensor_factor(sm.POSE, keyframe_keys(0), np.zeros(6), gtsam.noiseModel.Unit.Create(6))
+    with pytest.raises(InputError, match="leading dimension"):
+        sm.pack_position([1.0, 2.0, 3.0])
+    ekf = Ekf(x, np.eye(15), imu.ImuNoise())
+    with pytest.raises(InputError, match="a relative kind needs a cloned past state"):
+        ekf.update_sensor("odometry", np.zeros(6), np.eye(6))
