@@ -1,22 +1,30 @@
 """The initial state of a recording without ground truth, from the IMU and the sensors alone.
 
-The estimate starts at the first measurement that fixes a position (a pose, position or GNSS
-sensor's; without any, at the first IMU sample, with the world origin there). At that time ``t_s``:
+The estimate starts at ``t_s``, the first measurement at or after the first IMU sample that fixes a
+position (a pose, position or GNSS sensor's; without any, the first IMU sample, with the world
+origin there). Only measurements at or after ``t_s`` are used:
 
 * **attitude**: from the pose or orientation measurement nearest to ``t_s`` (``C_IB = Z R_BS^T``,
-  carried to ``t_s`` through the gyro readings in between); otherwise roll and pitch from the
-  mean specific force of the first :data:`LEVEL_WINDOW_S` seconds (at rest ``f = -C^T g``) and the
-  heading from the course over ground: the first two position fixes at least
-  :data:`COURSE_DISTANCE_M` apart, against the body's direction of travel (a velocity sensor's
-  measured direction, else the body x axis), carried back to ``t_s`` through the gyro;
-* **position**: the first fix minus its lever arm, ``r = z - C p_BS``;
-* **velocity**: zero when the IMU is at rest at ``t_s`` (angular rate below
-  :data:`REST_RATE` and specific force within :data:`REST_FORCE` of ``|g|``); else from the
-  velocity sensor's measurement nearest ``t_s`` or from the fixes' finite differences;
+  carried to ``t_s`` through the gyro); otherwise roll and pitch from the mean specific force over
+  :data:`LEVEL_WINDOW_S` (at rest ``f = -C^T g``; while accelerating good to about ``a / g``, so
+  the level sigma is wider when the IMU is not at rest) and the heading from the course over
+  ground: the first two fixes a baseline apart (at least :data:`COURSE_DISTANCE_M` and five
+  times the fixes' noise), against the body's direction of travel over that stretch (the velocity
+  sensor's measurements then, signed: reversing counts; without one the body x axis, i.e. the
+  vehicle is assumed to drive forwards), carried back to ``t_s`` through the gyro. Its sigma is
+  that of the baseline's direction plus the gyro-bias drift over the carry;
+* **position**: the fix at ``t_s`` minus its lever arm, ``r = z - C p_BS``;
+* **velocity**: from the velocity sensor's measurement nearest ``t_s`` (within
+  :data:`VELOCITY_WINDOW_S`) when there is one; else zero when the IMU is at rest (mean angular
+  rate below :data:`REST_RATE`, specific force within :data:`REST_FORCE` of ``|g|``) and the fixes
+  do not move; else a straight line through the fixes of the first :data:`VELOCITY_WINDOW_S`
+  seconds, with the sigma of that fit;
 * **biases**: zero, with the prior sigmas given.
 
-Each part comes with the uncertainty of how it was found (:func:`initial_state`'s covariance).
-When the data cannot fix the attitude, one :class:`InitialisationError` says what is missing.
+The measurements that fix the start are applied again at ``t_s`` by the estimators; so that they
+do not count twice, the parts taken from them enter the prior with :data:`PRIOR_INFLATION` times
+their sigma. When the data cannot fix the attitude, one :class:`InitialisationError` says what is
+missing.
 """
 from __future__ import annotations
 
@@ -27,19 +35,23 @@ from factors import preintegration, so3
 from factors.imu import STATE_DIM, ImuState
 from factors.sensor_models import extrinsic_parts
 
-#: Seconds of IMU data averaged for roll and pitch.
+#: Seconds of IMU data averaged for roll and pitch (and the rest test).
 LEVEL_WINDOW_S = 0.5
-#: A fix pair at least this far apart [m] gives the course over ground.
+#: The course over ground needs fixes at least this far apart [m] (and five times their noise).
 COURSE_DISTANCE_M = 5.0
-#: At rest: angular rate below this [rad/s] and specific force within this of |g| [m/s^2].
+#: Seconds over which the velocity is taken from the velocity sensor or the fixes.
+VELOCITY_WINDOW_S = 2.0
+#: At rest: mean angular rate below this [rad/s], specific force within this of |g| [m/s^2].
 REST_RATE = 0.05
 REST_FORCE = 0.3
-#: 1-sigma of the parts found from the IMU: level (roll, pitch) [rad], course heading [rad],
-#: velocity from finite differences [m/s], a resting velocity [m/s].
+#: 1-sigma of parts found from the IMU: level at rest / while moving [rad], a resting velocity
+#: [m/s], a velocity nothing measures [m/s].
 LEVEL_SIGMA = np.deg2rad(2.0)
-COURSE_SIGMA = np.deg2rad(10.0)
-MOVING_VELOCITY_SIGMA = 1.0
+MOVING_LEVEL_SIGMA = np.deg2rad(10.0)
 REST_VELOCITY_SIGMA = 0.05
+UNKNOWN_VELOCITY_SIGMA = 10.0
+#: The prior's sigma of parts taken from a measurement the estimators apply again, in its sigmas.
+PRIOR_INFLATION = 10.0
 
 _POSITION_KINDS = ("pose", "position", "gnss")
 _ATTITUDE_KINDS = ("pose", "orientation")
@@ -50,9 +62,21 @@ class InitialisationError(ValueError):
 
 
 def start_time(imu: ImuSamples, sensors: list[Sensor]) -> float:
-    """``t_s``: the first position measurement's time (module docstring), or the IMU's first."""
-    firsts = [float(s.data.t[0]) for s in sensors if s.kind in _POSITION_KINDS and len(s.data)]
-    return max(min(firsts), float(imu.t[0])) if firsts else float(imu.t[0])
+    """``t_s``: the first position measurement at or after the first IMU sample (module
+    docstring), or the IMU's first sample."""
+    t0 = float(imu.t[0])
+    firsts = [float(s.data.t[s.data.t >= t0][0]) for s in sensors
+              if s.kind in _POSITION_KINDS and len(s.data) and np.any(s.data.t >= t0)]
+    return min(firsts) if firsts else t0
+
+
+def _from_start(sensors: list[Sensor], t_s: float, kinds) -> list:
+    """The data of ``sensors`` of ``kinds`` from ``t_s`` on (sensors left with none dropped)."""
+    out = []
+    for s in sensors:
+        if s.kind in kinds and len(s.data) and np.any(s.data.t >= t_s):
+            out.append((s, s.data.subset(s.data.t >= t_s)))
+    return out
 
 
 def _attitude_change(imu: ImuSamples, t_a: float, t_b: float, b_w: np.ndarray) -> np.ndarray:
@@ -73,10 +97,12 @@ def _nearest(t: np.ndarray, time: float) -> int:
 
 
 def _window(imu: ImuSamples, t_s: float):
+    """The IMU readings of the :data:`LEVEL_WINDOW_S` after ``t_s`` (at least the two samples
+    nearest to it)."""
     inside = (imu.t >= t_s) & (imu.t <= t_s + LEVEL_WINDOW_S)
     if inside.sum() < 2:
         inside = np.zeros(len(imu), bool)
-        inside[:2] = True
+        inside[np.argsort(np.abs(imu.t - t_s))[:2]] = True
     return imu.acc[inside], imu.gyro[inside]
 
 
@@ -95,62 +121,95 @@ def _level(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> np.ndarray:
     return so3.exp(axis / s * np.arctan2(s, c))
 
 
-def _travel_direction(sensors: list[Sensor]) -> np.ndarray:
-    """The body-frame direction of travel: a velocity sensor's mean measured direction (while
-    faster than 0.5 m/s) rotated into the body, else the body x axis. The IMU may be mounted in
-    any orientation: whether the direction is horizontal is judged in the world frame, by
-    :func:`_heading_from_course`."""
-    for s in sensors:
-        if s.kind == "velocity" and len(s.data):
-            R, _ = extrinsic_parts(s.data.T_BS)
-            fast = np.linalg.norm(s.data.velocity, axis=1) > 0.5
-            if fast.any():
-                d = R @ s.data.velocity[fast].mean(axis=0)
+def _travel_direction(velocity: list, t_a: float, t_b: float) -> np.ndarray:
+    """The body-frame direction of travel between ``t_a`` and ``t_b``: the signed mean of a velocity
+    sensor's measurements there (faster than 0.5 m/s), rotated into the body; else the body x axis
+    (a vehicle driving forwards). Whether it is horizontal is judged in the world frame, by
+    :func:`_heading_from_course` (the IMU may be mounted in any orientation)."""
+    for s, m in velocity:
+        R, _ = extrinsic_parts(m.T_BS)
+        inside = (m.t >= t_a) & (m.t <= t_b) & (np.linalg.norm(m.velocity, axis=1) > 0.5)
+        if inside.any():
+            d = R @ m.velocity[inside].mean(axis=0)
+            if np.linalg.norm(d) > 0.25:
                 return d / np.linalg.norm(d)
     return np.array([1.0, 0.0, 0.0])
 
 
-def _course(sensors: list[Sensor]):
-    """``(t_a, t_b, world direction)`` of the first fix pair at least COURSE_DISTANCE_M apart
-    (horizontal), or None."""
-    for s in sensors:
-        if s.kind not in ("position", "gnss") or len(s.data) < 2:
+def _horizontal_sigma(m, k: int) -> float:
+    """The larger horizontal sigma of fix ``k`` [m]."""
+    return float(np.sqrt(max(m.cov[k, 0, 0], m.cov[k, 1, 1])))
+
+
+def _course(fixes: list):
+    """``(t_a, t_b, world direction, sigma [rad])`` of the earliest, shortest stretch of fixes
+    ``a .. b`` whose horizontal baseline is at least COURSE_DISTANCE_M and five times the two
+    fixes' combined noise (so that it is motion, not noise), or None."""
+    for s, m in fixes:
+        if s.kind not in ("position", "gnss") or len(m) < 2:
             continue
-        z = s.data.position
-        moved = np.linalg.norm(z[:, :2] - z[0, :2], axis=1) >= COURSE_DISTANCE_M
-        if moved.any():
-            b = int(np.argmax(moved))
-            a = max(b - 1, 0)
-            while a > 0 and np.linalg.norm(z[b, :2] - z[a, :2]) < COURSE_DISTANCE_M:
-                a -= 1
-            d = z[b] - z[a]
-            return float(s.data.t[a]), float(s.data.t[b]), d / np.linalg.norm(d)
+        z = m.position
+        for b in range(1, len(m)):
+            for a in range(b - 1, -1, -1):  # the latest start that is far enough back: a short chord
+                noise = float(np.hypot(_horizontal_sigma(m, a), _horizontal_sigma(m, b)))
+                baseline = float(np.linalg.norm(z[b, :2] - z[a, :2]))
+                if baseline >= max(COURSE_DISTANCE_M, 5.0 * noise):
+                    d = z[b] - z[a]
+                    return float(m.t[a]), float(m.t[b]), d / np.linalg.norm(d), float(np.arctan2(noise, baseline))
     return None
 
 
-def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, sensors: list[Sensor]):
-    """The level attitude turned about the vertical so that the body's direction of travel,
-    midway through the course's fix pair, points along the course (carried back to ``t_s``)."""
-    course = _course(sensors)
+def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: list, velocity: list, gyro_bias_sigma):
+    """``(C, heading sigma)``: the level attitude turned about the vertical so that the body's
+    direction of travel, midway through the course's fix pair, points along the course (carried
+    back to ``t_s``), or None without a course."""
+    course = _course(fixes)
     if course is None:
         return None
-    t_a, t_b, d_world = course
+    t_a, t_b, d_world, sigma = course
     t_mid = 0.5 * (t_a + t_b)
     C_mid = level @ _attitude_change(imu, t_s, t_mid, np.zeros(3))  # heading 0 at t_s
-    d_body_world = C_mid @ _travel_direction(sensors)
+    d_body_world = C_mid @ _travel_direction(velocity, t_a, t_b)
     if np.linalg.norm(d_body_world[:2]) < 0.5:  # travelling along the IMU's x axis would go up or down
         raise InitialisationError(
             "cannot fix the initial heading from the course over ground: the direction of travel in the IMU frame "
             "(a velocity sensor's, else the IMU's x axis) is not horizontal; add a velocity sensor (wheel "
             "odometry) or a pose or orientation sensor")
     yaw = np.arctan2(d_world[1], d_world[0]) - np.arctan2(d_body_world[1], d_body_world[0])
-    return so3.exp(np.array([0.0, 0.0, yaw])) @ level
+    return so3.exp(np.array([0.0, 0.0, yaw])) @ level, sigma + gyro_bias_sigma * abs(t_mid - t_s)
 
 
-def _at_rest(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> bool:
+def _imu_at_rest(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> bool:
+    """The window's mean angular rate below REST_RATE and its mean specific force within
+    REST_FORCE of ``|g|`` (means: a noisy unit's single samples exceed both while at rest)."""
     acc, gyro = _window(imu, t_s)
-    return bool(np.linalg.norm(gyro, axis=1).max() < REST_RATE
-                and np.abs(np.linalg.norm(acc, axis=1) - np.linalg.norm(gravity)).max() < REST_FORCE)
+    return bool(np.linalg.norm(gyro.mean(axis=0)) < REST_RATE
+                and abs(np.linalg.norm(acc.mean(axis=0)) - np.linalg.norm(gravity)) < REST_FORCE)
+
+
+def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
+    """``(body velocity, sigma)`` at ``t_s`` (module docstring)."""
+    for s, m in velocity:
+        k = _nearest(m.t, t_s)
+        if abs(m.t[k] - t_s) <= VELOCITY_WINDOW_S:
+            R, p = extrinsic_parts(m.T_BS)
+            lever = np.cross(m.gyro[k], p)
+            return R @ m.velocity[k] - lever, float(np.sqrt(np.max(np.diag(m.cov[k])))) + 0.1
+    window = [(s, m.subset(m.t <= t_s + VELOCITY_WINDOW_S)) for s, m in fixes if s.kind in ("position", "gnss")]
+    window = [(s, m) for s, m in window if len(m) >= 2]
+    if window:
+        s, m = max(window, key=lambda sm: len(sm[1]))
+        dt = float(m.t[-1] - m.t[0])
+        slope = np.polyfit(m.t - m.t[0], m.position, 1)[0]  # the world velocity of a line through the fixes
+        noise = float(np.sqrt(np.max(m.cov[:, [0, 1, 2], [0, 1, 2]])))
+        sigma = np.sqrt(12.0 / len(m)) * noise / dt + 0.5  # a fit's slope sigma, and what it may change meanwhile
+        moved = np.linalg.norm(m.position[-1] - m.position[0]) > 3.0 * np.sqrt(2.0) * noise
+        if not moved and _imu_at_rest(imu, t_s, gravity):
+            return np.zeros(3), REST_VELOCITY_SIGMA
+        return C.T @ slope, sigma
+    if _imu_at_rest(imu, t_s, gravity):
+        return np.zeros(3), REST_VELOCITY_SIGMA
+    return np.zeros(3), UNKNOWN_VELOCITY_SIGMA
 
 
 def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0.1, 0.01)):
@@ -161,52 +220,39 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
     t_s = start_time(imu, sensors)
     sigma = np.zeros(STATE_DIM)
     sigma[9:12], sigma[12:15] = bias_sigma
+    fixes = _from_start(sensors, t_s, _POSITION_KINDS)
+    velocity = _from_start(sensors, t_s, ("velocity",))
 
     # attitude
-    attitude = [s for s in sensors if s.kind in _ATTITUDE_KINDS and len(s.data)]
+    attitude = _from_start(sensors, t_s, _ATTITUDE_KINDS)
     if attitude:
-        s = min(attitude, key=lambda s: abs(s.data.t[_nearest(s.data.t, t_s)] - t_s))
-        k = _nearest(s.data.t, t_s)
-        R, _ = extrinsic_parts(s.data.T_BS)
-        C = s.data.C[k] @ R.T @ _attitude_change(imu, float(s.data.t[k]), t_s, np.zeros(3))
+        s, m = min(attitude, key=lambda sm: float(sm[1].t[0]))
+        R, _ = extrinsic_parts(m.T_BS)
+        C = m.C[0] @ R.T @ _attitude_change(imu, float(m.t[0]), t_s, np.zeros(3))
         block = slice(3, 6) if s.kind == "pose" else slice(0, 3)
-        sigma[6:9] = np.sqrt(np.diag(s.data.cov[k])[block]) + bias_sigma[1] * abs(float(s.data.t[k]) - t_s)
+        sigma[6:9] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[block]) + bias_sigma[1] * float(m.t[0] - t_s)
     else:
         level = _level(imu, t_s, gravity)
-        C = _heading_from_course(level, imu, t_s, sensors)
-        if C is None:
+        found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1])
+        if found is None:
             raise InitialisationError(
                 "cannot fix the initial heading: no pose or orientation sensor, and no position/GNSS fixes "
-                f"{COURSE_DISTANCE_M:g} m apart to take the course over ground from (add a pose or orientation "
-                "sensor, or record the vehicle moving)")
-        sigma[6:9] = [LEVEL_SIGMA, LEVEL_SIGMA, COURSE_SIGMA]
+                f"{COURSE_DISTANCE_M:g} m (and five times their noise) apart to take the course over ground from "
+                "(add a pose or orientation sensor, or record the vehicle moving)")
+        C, heading_sigma = found
+        level_sigma = LEVEL_SIGMA if _imu_at_rest(imu, t_s, gravity) else MOVING_LEVEL_SIGMA
+        sigma[6:9] = [level_sigma, level_sigma, heading_sigma]
 
     # position
-    fixes = [s for s in sensors if s.kind in _POSITION_KINDS and len(s.data)]
     r = np.zeros(3)
     sigma[0:3] = 1e-3  # without fixes the world origin is the start
     if fixes:
-        s = min(fixes, key=lambda s: float(s.data.t[0]))
-        _, p = extrinsic_parts(s.data.T_BS)
-        r = s.data.position[0] - C @ p
-        sigma[0:3] = np.sqrt(np.diag(s.data.cov[0])[:3]) + np.linalg.norm(p) * sigma[6:9].max()
+        s, m = min(fixes, key=lambda sm: float(sm[1].t[0]))
+        _, p = extrinsic_parts(m.T_BS)
+        r = m.position[0] - C @ p
+        sigma[0:3] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[:3]) + np.linalg.norm(p) * sigma[6:9].max()
 
-    # velocity
-    v = np.zeros(3)
-    sigma[3:6] = REST_VELOCITY_SIGMA
-    if not _at_rest(imu, t_s, gravity):
-        sigma[3:6] = MOVING_VELOCITY_SIGMA
-        velocity = [s for s in sensors if s.kind == "velocity" and len(s.data)]
-        if velocity:
-            s = velocity[0]
-            k = _nearest(s.data.t, t_s)
-            R, p = extrinsic_parts(s.data.T_BS)
-            v = R @ s.data.velocity[k] - np.cross(s.data.gyro[k], p)
-        else:
-            positions = [s for s in fixes if s.kind in ("position", "gnss") and len(s.data) >= 2]
-            if positions:
-                z, t = positions[0].data.position, positions[0].data.t
-                v = C.T @ ((z[1] - z[0]) / (t[1] - t[0]))
+    v, sigma[3:6] = _velocity(imu, t_s, gravity, C, velocity, fixes)
     state = ImuState(r=r, v=v, C=so3.project(C), b_f=np.zeros(3), b_w=np.zeros(3))
     return t_s, state, np.diag(sigma**2)
 

@@ -414,7 +414,7 @@ def simulate(
         orientation=orientation,
         relative_pose=relative_pose,
         truth=truth_trajectory,
-        sensors=sensors_from_truth(truth_trajectory, imu_samples, sensors, seeds["sensors"]),
+        sensors=sensors_from_truth(truth_trajectory, imu_samples, sensors, seeds["sensors"], w_clean, noise.gyro),
         clean_imu=ImuSamples(t, f_clean, w_clean),
         pose_outliers=pose_outliers,
         profile=prof.name,

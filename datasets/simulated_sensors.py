@@ -13,6 +13,7 @@ import numpy as np
 
 from datasets.from_truth import measurement_indices
 from datasets.kinds import KINDS, kind_sigmas
+from datasets.kinds.base import ImuAt
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors.errors import InputError
 
@@ -30,12 +31,15 @@ class SensorSpec:
     T_BS: np.ndarray | None = None
 
 
-def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tuple[Sensor, ...]:
+def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0, true_rate=None,
+                       gyro_density: float = 0.0) -> tuple[Sensor, ...]:
     """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
     ``truth`` by its kind's stream (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
     :func:`measurement_indices` picks them, each sensor with its own noise stream spawned from
-    ``seed`` (an integer or a ``numpy.random.SeedSequence``). ``imu`` gives the gyro readings a velocity sensor's lever arm needs (the sample held
-    at each measurement time)."""
+    ``seed`` (an integer or a ``numpy.random.SeedSequence``). ``imu`` gives the gyro readings a
+    velocity sensor keeps (the sample held at each measurement time), ``true_rate`` (the body
+    rates at the IMU's times; default the readings minus the true bias) the motion it measures,
+    ``gyro_density`` [rad/s/sqrt(Hz)] the readings' white noise its covariance accounts for."""
     specs = list(specs)
     root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     streams = root.spawn(len(specs))
@@ -49,7 +53,9 @@ def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0) -> tup
         except ValueError as error:
             raise InputError(f"sensor {spec.name!r}: {error}") from None
         held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
-        data = kind.simulate(truth, k, imu.gyro[held], spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
+        rate = imu.gyro[held] - truth.states.b_w[k] if true_rate is None else np.asarray(true_rate)[held]
+        at = ImuAt(imu.gyro[held], rate, gyro_density**2 / float(np.median(np.diff(imu.t))))
+        data = kind.simulate(truth, k, at, spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),
                              np.random.default_rng(stream))
         out.append(Sensor(spec.name, spec.kind, data))
     return tuple(out)

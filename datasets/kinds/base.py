@@ -9,7 +9,7 @@ the initial trajectory, and how a rig's sensor of that kind is read from its sou
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -24,8 +24,8 @@ class Kind:
     ``name``: what a rig file's ``kind`` and the command line call it; ``data_type``: its
     measurements' dataclass; ``dim``: the residual's dimension; ``model``: the one-state model
     (None for a relative kind, which connects two keyframes); ``pack(data) -> (N, width)``: the
-    model's kernel rows; ``simulate(truth, k, gyro, T_BS, sigma (dim,), rng)``: measurements at
-    truth samples ``k`` (``gyro`` the IMU's readings there); ``anchor(data) -> (t, r or None, C or
+    model's kernel rows; ``simulate(truth, k, imu, T_BS, sigma (dim,), rng)``: measurements at
+    truth samples ``k`` (``imu`` an :class:`ImuAt` there); ``anchor(data) -> (t, r or None, C or
     None)``: the IMU positions and attitudes the measurements imply (they reset the dead reckoning
     of the smoothers' initial trajectory), or None; ``read(sensor, clock) -> (data, datum)``: a
     rig's sensor (:class:`datasets.rig.SensorConfig`) read from its source (:class:`Clock`)."""
@@ -44,15 +44,27 @@ class Kind:
         return self.model is None
 
 
+class ImuAt(NamedTuple):
+    """What the IMU says at a sensor's measurement times: ``gyro`` the readings held there (N, 3),
+    ``rate`` the true body rates (N, 3; in simulation), ``gyro_variance`` the variance of one
+    reading's white noise per axis (``density^2 / dt``) [rad^2/s^2]."""
+
+    gyro: np.ndarray
+    rate: np.ndarray
+    gyro_variance: float
+
+
 @dataclass
 class Clock:
     """What a kind's reader needs besides its sensor's configuration: ``stamps(t, t_ns, offset)``
     turns a source's stamps into the dataset's times (:mod:`datasets.recording`), ``gyro_at(t)``
-    gives the IMU's gyro reading held at each time, ``datum`` the local ENU frame's origin (None
-    until a GNSS reader sets it from its first fix)."""
+    gives the IMU's gyro reading held at each time, ``gyro_variance`` the variance of one reading's
+    white noise (``density^2 / dt``), ``datum`` the local ENU frame's origin (None until a GNSS
+    reader sets it from its first fix)."""
 
     stamps: Callable
     gyro_at: Callable
+    gyro_variance: float
     datum: object = None
 
 

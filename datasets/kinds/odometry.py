@@ -18,7 +18,7 @@ def _relative(t, r, C, cov, T_BS):
     return RelativePoseMeasurements(t[:-1], t[1:], dr, Ct @ C[1:], cov, T_BS)
 
 
-def _simulate(truth, k, gyro, T_BS, sigma, rng):
+def _simulate(truth, k, imu, T_BS, sigma, rng):
     R, p = sm.extrinsic_parts(T_BS)
     exact = _relative(truth.t[k], truth.position[k] + truth.C[k] @ p, truth.C[k] @ R, np.diag(sigma**2), T_BS)
     n = len(exact)

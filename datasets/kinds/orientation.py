@@ -10,7 +10,7 @@ from factors import so3
 from factors import sensor_models as sm
 
 
-def _simulate(truth, k, gyro, T_BS, sigma, rng):
+def _simulate(truth, k, imu, T_BS, sigma, rng):
     R, _ = sm.extrinsic_parts(T_BS)
     Z = so3.boxplus(truth.C[k] @ R, sigma * rng.standard_normal((len(k), 3)))
     return OrientationMeasurements(truth.t[k], Z, np.diag(sigma**2), T_BS)

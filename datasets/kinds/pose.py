@@ -10,7 +10,7 @@ from factors import so3
 from factors import sensor_models as sm
 
 
-def _simulate(truth, k, gyro, T_BS, sigma, rng):
+def _simulate(truth, k, imu, T_BS, sigma, rng):
     R, p = sm.extrinsic_parts(T_BS)
     z = noisy(truth.position[k] + truth.C[k] @ p, sigma[:3], rng)
     Z = so3.boxplus(truth.C[k] @ R, sigma[3:] * rng.standard_normal((len(k), 3)))

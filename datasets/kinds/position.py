@@ -12,7 +12,7 @@ from datasets.types import PositionMeasurements
 from factors import sensor_models as sm
 
 
-def _simulate(truth, k, gyro, T_BS, sigma, rng):
+def _simulate(truth, k, imu, T_BS, sigma, rng):
     _, p = sm.extrinsic_parts(T_BS)
     z = truth.position[k] + truth.C[k] @ p
     return PositionMeasurements(truth.t[k], noisy(z, sigma, rng), np.diag(sigma**2), T_BS)
