@@ -137,6 +137,14 @@ def _run(args) -> int:
     names = list(ESTIMATORS) if args.estimator == "all" else [args.estimator]
     if args.rig is not None and args.dataset is not None:
         raise UserError("--rig and --dataset: give one of them")
+    if args.rig is not None:  # options that shape a built-in dataset would be ignored silently
+        for option, value, default in (("--duration", args.duration, 30.0), ("--outliers", args.outliers, 0.0),
+                                       ("--gps-every", args.gps_every, 1), ("--pose-from-truth", args.pose_from_truth, None),
+                                       ("--gps-from-truth", args.gps_from_truth, None)):
+            if value != default:
+                raise UserError(f"{option} shapes a built-in dataset, not a recording; with --rig, hold fixes out with "
+                                "a sensor's `every` in the rig file" if option == "--gps-every" else
+                                f"{option} shapes a built-in dataset, not a recording given by --rig")
     if args.rig is not None:
         dataset, rig_robust = sources.load_rig(args.rig)
         robust = parse_robust(args.robust, [s.name for s in dataset.sensors], rig_robust)
