@@ -65,8 +65,9 @@ def position_residuals(positions: PositionMeasurements | None, estimate: Traject
     """``(t, estimate - measured)``: the times of the measured positions inside the estimate's time
     span and, for each, the estimate interpolated linearly to its time minus the measured position
     (world axes; empty arrays when there are none). With a lever arm (``positions.T_BS``) the
-    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time (the
-    fixes' times are keyframes)."""
+    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time: exact
+    for a run's own estimates (the fixes' times are keyframes), an approximation for a trajectory
+    sampled elsewhere."""
     if positions is None or len(positions) == 0:
         return np.empty(0), np.empty((0, 3))
     inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])

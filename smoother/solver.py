@@ -166,11 +166,17 @@ def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
         try:
             solution = graph.optimize(ordering, gtsam.EliminateQR)
         except RuntimeError as again:
-            if is_indeterminant(again):
-                key = _keyframe_of(again)
-                raise IndeterminantSystem(str(again), key, _free_after(graph, ordering, key)) from None
-            raise
+            raise _named_free(again, graph, ordering) from None
     return _to_array(solution, n)
+
+
+def _named_free(error: RuntimeError, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Exception:
+    """GTSAM's indeterminant-system ``error`` under QR as :class:`IndeterminantSystem` naming the
+    keyframe and its free components; any other error as it is."""
+    if not is_indeterminant(error):
+        return error
+    key = _keyframe_of(error)
+    return IndeterminantSystem(str(error), key, _free_after(graph, ordering, key))
 
 
 def _to_array(vv: gtsam.VectorValues, n: int) -> np.ndarray:
@@ -325,10 +331,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None) -
     try:
         net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
     except RuntimeError as error:
-        if is_indeterminant(error):
-            key = _keyframe_of(error)
-            raise IndeterminantSystem(str(error), key, _free_after(graph, ordering, key)) from None
-        raise
+        raise _named_free(error, graph, ordering) from None
     conditionals = [net.at(i) for i in range(net.size())]
     tolerance = RANK_TOLERANCE * max(np.max(np.abs(np.diag(c.R()))) for c in conditionals)
     sigma: dict[tuple[int, int], np.ndarray] = {}
