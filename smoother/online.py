@@ -47,6 +47,7 @@ arrival to the update that used it.
 from __future__ import annotations
 
 import heapq
+from collections import deque
 import math
 import time
 import warnings
@@ -55,8 +56,8 @@ from dataclasses import dataclass, fields
 import gtsam
 import numpy as np
 
-from datasets.kinds import KINDS, sensors_of
-from datasets.types import Dataset, Sensor, Trajectory
+from datasets.kinds import KINDS, kind_sigmas, sensors_of
+from datasets.types import Dataset, Sensor, Trajectory, check_covariances
 from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
@@ -127,16 +128,21 @@ class OnlineSmoother:
         self._window = KeyframeWindow(lag_s, kind)
         if not max_delay_s >= 0:
             raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
-        if keyframe_rate is not None and not keyframe_rate > 0:
-            raise InputError(f"keyframe_rate must be positive or None, got {keyframe_rate}")
+        if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
+            raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
+        if not np.all(np.isfinite(initial_cov)):
+            raise InputError("initial_cov: expected finite numbers")
         initial_cov = np.asarray(initial_cov, dtype=float)
         if initial_cov.shape != (imu.STATE_DIM, imu.STATE_DIM):
             raise InputError(f"initial_cov: expected shape (15, 15), got {initial_cov.shape}")
+        check_covariances("initial_cov", initial_cov[None], 1, imu.STATE_DIM)  # symmetric, positive definite
         self._sensors = dict(sensors or {})
         for name, setup in self._sensors.items():
             if not isinstance(setup, SensorSetup) or setup.kind not in KINDS:
                 raise InputError(f"sensors[{name!r}]: expected a SensorSetup of a kind in {', '.join(KINDS)}, "
                                  f"got {setup!r}")
+            if setup.sigma is not None:
+                kind_sigmas(f"sensors[{name!r}]", setup.sigma, KINDS[setup.kind].dim)
         self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
         self.gravity = np.asarray(gravity, dtype=float)
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
@@ -154,7 +160,7 @@ class OnlineSmoother:
         self.longest_gap_s = 0.0
         self._warned_gap = False
         self._finished = False
-        self._queue: list[OnlineEstimate] = []
+        self._queue: deque[OnlineEstimate] = deque()
         self._pending: list[_Pending] = []  # heap
         self._knots: list[float] = []  # heap of keyframe times asked for
         self._knot_set: set[float] = set()
@@ -244,6 +250,8 @@ class OnlineSmoother:
         for name, a in (("acc", acc), ("gyro", gyro)):
             if a.shape != (t.size, 3) or not np.all(np.isfinite(a)):
                 raise InputError(f"add_imu: {name}: expected {t.size} finite 3-vectors, got shape {np.shape(a)}")
+        if t.size == 0:
+            raise InputError("add_imu: t: expected at least one sample, got none")
         if t.ndim != 1 or not np.all(np.isfinite(t)):
             raise InputError(f"add_imu: t: expected finite times, got {t.tolist()[:3]}")
         previous = self._t[self._n - 1] if self._n else -np.inf
@@ -274,8 +282,7 @@ class OnlineSmoother:
         if cov is None:
             if setup.sigma is None:
                 raise InputError(f"add({sensor!r}): cov: expected a covariance (the sensor has no sigma)")
-            sigma = np.broadcast_to(np.asarray(setup.sigma, dtype=float), (kind.dim,))
-            cov = np.diag(sigma**2)
+            cov = np.diag(kind_sigmas(f"sensors[{sensor!r}]", setup.sigma, kind.dim) ** 2)
         cov = np.asarray(cov, dtype=float)
         cov = np.broadcast_to(cov, (n,) + cov.shape[-2:]) if cov.ndim == 2 else cov
         try:
@@ -316,7 +323,10 @@ class OnlineSmoother:
         """Ask for keyframes (estimates) at the times ``t`` (IMU clock); those at or before the
         newest keyframe already made are ignored."""
         self._open()
-        for x in np.atleast_1d(np.asarray(t, dtype=float)):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if not np.all(np.isfinite(t)):
+            raise InputError(f"keyframe_at: t: expected finite times, got {t[~np.isfinite(t)][:3].tolist()}")
+        for x in t:
             if self._last_t is None or x > self._last_t:
                 self._ask(float(x))
 
@@ -331,7 +341,11 @@ class OnlineSmoother:
             if self._last_t is None or end > self._last_t:
                 self._ask(end)
             self._make_keyframes(end)
-        if self._last_t is not None and self._last_measured_t is not None:
+        while self._pending:  # after the last IMU sample (or no IMU at all): nothing to anchor them
+            self._drop(heapq.heappop(self._pending).sensor, "lies after the last IMU sample and was dropped")
+        if self._last_t is not None:
+            if self._last_measured_t is None:  # nothing measured at all: the whole run is one gap
+                self._last_measured_t = self._t0
             self._gap(self._last_t)
         if self._window.newest >= 0:
             self._hand_over([e for _, e in self._read(range(self._window.first, self._window.newest + 1))])
@@ -360,7 +374,7 @@ class OnlineSmoother:
         """The keyframes that left the window since the last call (oldest first), as
         :class:`OnlineEstimate` s; empty when ``on_smoothed`` takes them."""
         while self._queue:
-            yield self._queue.pop(0)
+            yield self._queue.popleft()
 
     @property
     def update_s(self) -> list[float]:
@@ -413,10 +427,10 @@ class OnlineSmoother:
             self._knot_set.add(t)
             heapq.heappush(self._knots, t)
 
-    def _drop(self, sensor: str) -> None:
-        self._count(self.dropped, sensor, f"arrived after its keyframe time had been processed (more than "
-                                          f"max_delay_s = {self.max_delay_s:g} s behind the IMU) and was dropped",
-                    "dropped")
+    def _drop(self, sensor: str, why: str | None = None) -> None:
+        self._count(self.dropped, sensor, why or (f"arrived after its keyframe time had been processed (more than "
+                                                  f"max_delay_s = {self.max_delay_s:g} s behind the IMU) and was "
+                                                  "dropped"), "dropped")
 
     def _skip(self, sensor: str) -> None:
         self._count(self.skipped, sensor, f"refers to a time that has left the window (older than the lag, "
@@ -474,17 +488,16 @@ class OnlineSmoother:
                                    reintegration_threshold=self.reintegration_threshold)
             guess = imu_factor.predict(start)
             factors, oldest = [imu_factor.factor], [k - 1]
-        self._keyframe_t[t] = k
         used = []
         while self._pending and self._pending[0].latest <= t:
             item = heapq.heappop(self._pending)
             if item.latest < t:  # before the first keyframe
-                self._drop(item.sensor)
+                self._drop(item.sensor, "lies before the IMU's first sample and was dropped" if k == 0 else None)
                 continue
-            if any(x not in self._keyframe_t for x in item.times):  # its earlier keyframe left the window
+            if any(x not in self._keyframe_t and x != t for x in item.times):  # its earlier keyframe left
                 self._skip(item.sensor)
                 continue
-            at = [self._keyframe_t[x] for x in item.times]
+            at = [k if x == t else self._keyframe_t[x] for x in item.times]
             setup, _ = self._setup(item.sensor)
             factors.append(item.spec.factor([keyframe_keys(j) for j in at], item.row,
                                             noise_model(item.spec.cov[item.row], setup.robust)))
@@ -492,9 +505,9 @@ class OnlineSmoother:
             used.append(item)
         leaving = self._read(window.leaving(t))
         window.update(t, factors, guess, oldest)
-        self._hand_over([e for j, e in leaving if j < window.first])  # read in time: they have left
-        done = time.perf_counter()
-        self.latency_s += [done - item.arrived for item in used]
+        # every piece of state follows the update before anything is handed over: a caller's
+        # on_smoothed that raises leaves the smoother consistent
+        self._keyframe_t[t] = k
         self._keyframe_t = {x: j for x, j in self._keyframe_t.items() if j >= window.first}  # the window's
         self._last_t = t
         if used:
@@ -509,6 +522,9 @@ class OnlineSmoother:
         self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
         self._pred_cov = np.array(cov)
         self._pred_t, self._pred_held = t, self._held_at(t)
+        done = time.perf_counter()  # the updated estimate is ready (its covariance included)
+        self.latency_s += [done - item.arrived for item in used]
+        self._hand_over([e for j, e in leaving if j < window.first])  # read in time: they have left
 
     def _gap(self, t: float) -> None:
         gap = t - self._last_measured_t

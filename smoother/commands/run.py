@@ -127,6 +127,10 @@ def _run(args) -> int:
     if args.realtime and args.estimator not in ("fixed-lag", "all"):
         raise UserError(f"--realtime replays through the fixed-lag smoother; it does not apply to --estimator "
                         f"{args.estimator}")
+    if args.max_delay and args.estimator not in ("fixed-lag", "all"):
+        raise UserError(f"--max-delay applies to the fixed-lag smoother, not to --estimator {args.estimator}")
+    if args.speed != 1.0 and not args.realtime:
+        raise UserError("--speed sets the pace of --realtime; give --realtime too")
     if args.keyframe_rate is not None:
         positive("--keyframe-rate", args.keyframe_rate, "a rate")
     options = sources.SourceOptions(

@@ -327,3 +327,12 @@ def test_a_batch_stopped_by_max_iterations_says_so_in_a_warning_and_metrics(tmp_
             assert not warned, warned
     assert documents["1"]["converged"] is False and documents["1"]["iterations"] == 1
     assert documents["100"]["converged"] is True and documents["100"]["iterations"] < 100
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--estimator", "ekf", "--max-delay", "3"], "--max-delay applies to the fixed-lag smoother"),
+    (["--speed", "7"], "--speed sets the pace of --realtime"),
+])
+def test_options_that_would_be_ignored_are_refused(tmp_path, capsys, args, message):
+    assert main(["run", "--duration", "2", "--out", str(tmp_path / "o"), *args]) == 2
+    assert message in capsys.readouterr().err
