@@ -121,19 +121,22 @@ def _level(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> np.ndarray:
     return so3.exp(axis / s * np.arctan2(s, c))
 
 
-def _travel_direction(velocity: list, t_a: float, t_b: float) -> np.ndarray:
+def _travel_direction(velocity: list, t_a: float, t_b: float):
     """The body-frame direction of travel between ``t_a`` and ``t_b``: the signed mean of a velocity
     sensor's measurements there (faster than 0.5 m/s), rotated into the body; else the body x axis
     (a vehicle driving forwards). Whether it is horizontal is judged in the world frame, by
-    :func:`_heading_from_course` (the IMU may be mounted in any orientation)."""
+    :func:`_heading_from_course` (the IMU may be mounted in any orientation). Returns the direction
+    and where it came from (for the message when it is not horizontal)."""
     for s, m in velocity:
         R, _ = extrinsic_parts(m.T_BS)
         inside = (m.t >= t_a) & (m.t <= t_b) & (np.linalg.norm(m.velocity, axis=1) > 0.5)
         if inside.any():
             d = R @ m.velocity[inside].mean(axis=0)
             if np.linalg.norm(d) > 0.25:
-                return d / np.linalg.norm(d)
-    return np.array([1.0, 0.0, 0.0])
+                return d / np.linalg.norm(d), (f"velocity sensor {s.name!r}'s measured direction: check the rotation "
+                                               "of its T_BS, the sensor frame in the IMU frame")
+    return np.array([1.0, 0.0, 0.0]), ("IMU's x axis, taken as the direction of travel without a velocity "
+                                       "sensor: add one (wheel odometry), or a pose or orientation sensor")
 
 
 def _horizontal_sigma(m, k: int) -> float:
@@ -169,12 +172,11 @@ def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: 
     t_a, t_b, d_world, sigma = course
     t_mid = 0.5 * (t_a + t_b)
     C_mid = level @ _attitude_change(imu, t_s, t_mid, np.zeros(3))  # heading 0 at t_s
-    d_body_world = C_mid @ _travel_direction(velocity, t_a, t_b)
-    if np.linalg.norm(d_body_world[:2]) < 0.5:  # travelling along the IMU's x axis would go up or down
-        raise InitialisationError(
-            "cannot fix the initial heading from the course over ground: the direction of travel in the IMU frame "
-            "(a velocity sensor's, else the IMU's x axis) is not horizontal; add a velocity sensor (wheel "
-            "odometry) or a pose or orientation sensor")
+    d_body, source = _travel_direction(velocity, t_a, t_b)
+    d_body_world = C_mid @ d_body
+    if np.linalg.norm(d_body_world[:2]) < 0.5:  # the vehicle would travel up or down
+        raise InitialisationError("cannot fix the initial heading from the course over ground: the direction of "
+                                  f"travel in the IMU frame is not horizontal; it is the {source}")
     yaw = np.arctan2(d_world[1], d_world[0]) - np.arctan2(d_body_world[1], d_body_world[0])
     return so3.exp(np.array([0.0, 0.0, yaw])) @ level, sigma + gyro_bias_sigma * abs(t_mid - t_s)
 

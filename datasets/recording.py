@@ -79,18 +79,20 @@ def _split_every(data, every: int):
 def _from(sensors: list[Sensor], t_s: float) -> list[Sensor]:
     """The sensors' measurements from the start time on (the estimate starts at the first position
     fix); how many earlier ones are left out is said once."""
-    out, left = [], 0
+    out, left = [], {}
     for s in sensors:
         parts = []
         for m in (s.data, s.heldout):
             keep = None if m is None else getattr(m, "t_from", m.t) >= t_s
-            left += 0 if m is None else int((~keep).sum())
+            if m is not None and not keep.all():
+                left[s.name] = left.get(s.name, 0) + int((~keep).sum())
             parts.append(None if m is None or not keep.any() else (m if keep.all() else m.subset(keep)))
         if parts[0] is not None:  # a sensor with nothing left is dropped (counted above)
             out.append(Sensor(s.name, s.kind, *parts))
     if left:
+        counts = ", ".join(f"{n} of {name!r}" for name, n in left.items())
         warnings.warn(f"the estimate starts at the first position fix, {t_s:.3f} s after the first IMU sample; "
-                      f"{left} measurements before it are not used", stacklevel=3)
+                      f"the measurements before it are not used ({counts})", stacklevel=3)
     return out
 
 

@@ -254,9 +254,10 @@ def _container_rows(containers, estimate, first: int, n: int) -> np.ndarray:
 
 
 def _measured_gap(problem: Problem) -> float:
-    """The longest time between consecutive keyframes measured by anything but the IMU and the
-    prior, the first and last keyframes included (inf when nothing is measured)."""
-    measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name not in ("imu", "prior")]
+    """The longest time between consecutive keyframes with an absolute measurement (one that fixes a
+    position or an attitude: :attr:`Problem.absolute`; velocities and relative poses do not end
+    dead reckoning), the first and last keyframes included (inf when there is none)."""
+    measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name in problem.absolute]
     if not measured:
         return np.inf
     times = problem.times[np.unique(np.concatenate(measured))]
@@ -278,13 +279,14 @@ def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str
     off (the incremental smoother: 8 m, the EKF: 0.7 m)."""
     if not longest_s > lag_s:
         return None
-    text = (f"fixed-lag ({kind}): measurements up to {longest_s:.3g} s apart, longer than the lag ({lag_s:g} s): "
+    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.3g} s apart, "
+            f"longer than the lag ({lag_s:g} s): "
             "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
             "estimates")
     if kind == "batch":
         text += (" (GTSAM's BatchFixedLagSmoother can drift far off: it keeps the states at its window's edge "
                  "linearised where dead reckoning put them; use the incremental smoother)")
-    return text + f". Choose a lag of at least {longest_s:.3g} s (the longest gap between measurements)"
+    return text + f". Choose a lag of at least {longest_s:.3g} s (the longest gap between absolute measurements)"
 
 
 def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> None:

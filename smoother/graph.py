@@ -121,6 +121,8 @@ class Problem:
     keyframe_factors: Callable[[int], KeyframeFactors] = field(repr=False)
     gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
     gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
+    #: The names of the blocks of absolute measurements (:attr:`datasets.kinds.base.Kind.absolute`).
+    absolute: frozenset = frozenset()
 
     @property
     def gtsam(self) -> GtsamGraph:
@@ -293,7 +295,8 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
                 out.oldest.append(int(kf[m].min()))
         return out
 
-    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity)
+    absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)
+    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute)
 
 
 

@@ -156,7 +156,8 @@ class OnlineSmoother:
         self.skipped: dict[str, int] = {}
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
         self.latency_s: list[float] = []
-        #: the longest time between measurements seen so far [s] (the start counts as one)
+        #: the longest time between absolute measurements (they fix a position or an attitude) seen so
+        #: far [s] (the start counts as one)
         self.longest_gap_s = 0.0
         self._warned_gap = False
         self._finished = False
@@ -510,7 +511,7 @@ class OnlineSmoother:
         self._keyframe_t[t] = k
         self._keyframe_t = {x: j for x, j in self._keyframe_t.items() if j >= window.first}  # the window's
         self._last_t = t
-        if used:
+        if any(self._setup(item.sensor)[1].absolute for item in used):  # dead reckoning ends here
             if self._last_measured_t is None:
                 self._last_measured_t = self._t0
             self._gap(t)

@@ -43,6 +43,12 @@ class Kind:
     def relative(self) -> bool:
         return self.model is None
 
+    @property
+    def absolute(self) -> bool:
+        """Whether the kind fixes a position or an attitude in the world (it has an anchor): what
+        ends a stretch of dead reckoning. Velocities and relative poses do not."""
+        return self.anchor is not None
+
 
 class ImuAt(NamedTuple):
     """What the IMU says at a sensor's measurement times: ``gyro`` the readings held there (N, 3),

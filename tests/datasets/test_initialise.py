@@ -97,8 +97,16 @@ def test_an_imu_on_its_side_gets_its_heading_from_the_wheels():
     error = np.linalg.norm(so3.boxminus(started.initial.C, data.truth.C[k] @ R))
     assert error < 3 * np.sqrt(started.initial_cov[6:9, 6:9].diagonal().max()), np.rad2deg(error)
     no_wheels = replace_sensors(_remounted(data, R), keep=("gnss",))
-    with pytest.raises(InitialisationError, match="is not horizontal"):
+    with pytest.raises(InitialisationError, match="is not horizontal; it is the IMU's x axis"):
         self_initialised(no_wheels)
+    from dataclasses import replace as _replace
+
+    sideways = _remounted(data, R)
+    wheel = sideways.sensors[1]  # its T_BS left as if the IMU were not remounted: the wheel frame turned up
+    wrong = _replace(sideways, sensors=(sideways.sensors[0], _replace(wheel, data=_replace(
+        wheel.data, T_BS=data.sensors[1].data.T_BS))))
+    with pytest.raises(InitialisationError, match="velocity sensor 'wheel'.s measured direction: check the rotation"):
+        self_initialised(wrong)
 
 
 def replace_sensors(data, keep):

@@ -104,7 +104,7 @@ def test_either_kind_warns_when_measurements_are_further_apart_than_the_lag(kind
     state linearised where dead reckoning put it): the 2-s pose gap of gap_run() with a 0.5-s
     lag is named, with the lag that would cover it; a 3-s lag needs no warning."""
     data, problem, _ = gap_run()
-    with pytest.warns(UserWarning, match=rf"fixed-lag \({kind}\): measurements up to 2.1 s apart, longer than the "
+    with pytest.warns(UserWarning, match=rf"fixed-lag \({kind}\): absolute measurements \(fixes, poses, attitudes\) up to 2.1 s apart, longer than the "
                                          r"lag \(0.5 s\).*Choose a lag of at least 2.1 s"):
         run_fixed_lag(problem, 0.5, kind, covariances=False, progress=False)
     with warnings.catch_warnings():

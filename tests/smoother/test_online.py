@@ -143,7 +143,7 @@ def test_the_lag_warning_fires_on_kitti_with_every_20th_fix_and_not_on_the_defau
 
     kitti = sources.load("kitti", sources.SourceOptions(gps_every=20))
     for lag in (2.0, 0.5):
-        with pytest.warns(UserWarning, match=rf"fixed-lag \(incremental\): measurements up to 19 s apart, longer "
+        with pytest.warns(UserWarning, match=rf"fixed-lag \(incremental\): absolute measurements \(fixes, poses, attitudes\) up to 19 s apart, longer "
                                              rf"than the lag \({lag:g} s\).*Choose a lag of at least 19 s"):
             result = replay(kitti, lag, covariances=False, progress=False)
         assert result.longest_gap_s > 18.0
@@ -318,3 +318,21 @@ def test_a_callback_that_raises_once_leaves_the_smoother_consistent(gentle):
     clean, caught = run(None), run(3)
     assert len(clean) - len(caught) <= 1  # only the estimate whose hand-over raised is missing
     assert max(np.linalg.norm(clean[t] - caught[t]) for t in caught) < 1e-9
+
+
+def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds():
+    """Wheel speeds at 10 Hz do not end dead reckoning: with fixes 2 s apart a 0.5-s lag is
+    warned of (the check counted the wheel speeds' 0.1 s and stayed silent), both offline and
+    online; with a lag over the fixes' gap it is not."""
+    from datasets.simulated_sensors import SensorSpec
+    from datasets.simulate import simulate
+
+    data = simulate("gentle", duration=8, seed=1, pose_rate=None, sensors=[
+        SensorSpec("gnss", "gnss", 0.5, 0.3), SensorSpec("wheel", "velocity", 10, 0.05)])
+    for lag, warned in ((0.5, True), (3.0, False)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            run_fixed_lag(build_problem(data), lag, progress=False)
+            replay(data, lag, progress=False)
+        hits = [w for w in caught if "longer than the lag" in str(w.message)]
+        assert (len(hits) >= 2) == warned, (lag, [str(w.message) for w in caught])
