@@ -71,7 +71,7 @@ topic = "/wheel/odom"
 T_BS = {toml_matrix(WHEEL)}
 """)
     out = folder / "out"
-    assert main(["run", "--rig", str(rig), "--estimator", "all", "--out", str(out), "--no-progress"]) == 0
+    assert main(["run", "--rig", str(rig), "--estimator", "all", "--lag", "5", "--out", str(out), "--no-progress"]) == 0
     return data, out
 
 
@@ -128,7 +128,7 @@ def test_realtime_replay_reports_latency_and_gives_the_same_estimates(recording,
     data, out = recording
     rig = out.parent / "rig.toml"
     realtime = out.parent / "realtime"
-    args = ["run", "--rig", str(rig), "--estimator", "fixed-lag", "--no-progress", "--no-covariance"]
+    args = ["run", "--rig", str(rig), "--estimator", "fixed-lag", "--lag", "5", "--no-progress", "--no-covariance"]
     assert main(args + ["--out", str(realtime), "--realtime", "--speed", "20"]) == 0
     printed = capsys.readouterr().out
     assert "fixed-lag latency, measurement arrival to updated estimate" in printed
