@@ -110,3 +110,27 @@ def allan(imu: ImuSamples, points: int = POINTS) -> AllanResult:
         raise InputError(f"Allan deviation: {len(imu)} IMU samples give too few cluster times; record longer")
     fitted = np.array([densities(tau, adev[:, k]) for k in range(6)])
     return AllanResult(tau, adev[:, :3], adev[:, 3:], fitted[:3, 0], fitted[:3, 1], fitted[3:, 0], fitted[3:, 1], dt)
+
+
+#: A recording moves when a 1-s mean angular rate exceeds this [rad/s] or a 1-s mean specific
+#: force departs from the recording's mean by more than this [m/s^2] (a bias walk does neither).
+MOVING_RATE = 0.1
+MOVING_FORCE = 1.0
+
+
+def motion(imu: ImuSamples) -> str | None:
+    """What shows that ``imu`` was not at rest (turning or accelerating, judged on 1-s means), or
+    None: the Allan deviation of a moving IMU describes its motion, not its noise."""
+    per_second = max(int(round(1.0 / float(np.median(np.diff(imu.t))))), 1)
+    n = len(imu) // per_second
+    if n < 2:
+        return None
+    gyro = imu.gyro[:n * per_second].reshape(n, per_second, 3).mean(axis=1)
+    acc = imu.acc[:n * per_second].reshape(n, per_second, 3).mean(axis=1)
+    rate = float(np.linalg.norm(gyro, axis=1).max())
+    force = float(np.linalg.norm(acc - acc.mean(axis=0), axis=1).max())
+    if rate > MOVING_RATE:
+        return f"a 1-s mean angular rate of {rate:.3g} rad/s (turning)"
+    if force > MOVING_FORCE:
+        return f"1-s mean specific forces {force:.3g} m/s^2 from their mean (accelerating or tilting)"
+    return None

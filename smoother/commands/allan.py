@@ -47,13 +47,17 @@ def imu_block(result, source: str, topic: str | None, n: int) -> str:
 
 
 def run(args) -> int:
-    from datasets.allan import allan
+    from datasets.allan import allan, motion
     from datasets.sources import read_imu
     from smoother.commands import output_directory
     from smoother.plots import plot_allan
 
     out = output_directory(args.out)
     imu = read_imu(args.source, args.topic)
+    moving = motion(imu)
+    if moving is not None:
+        print(f"warning: {args.source} does not look static ({moving}): the densities below describe its motion, "
+              "not the sensor's noise", file=sys.stderr)
     result = allan(imu)
     print(imu_block(result, args.source, args.topic, len(imu)))
     print(f"wrote {plot_allan(result, out)}", file=sys.stderr)

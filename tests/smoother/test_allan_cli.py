@@ -36,7 +36,7 @@ def test_block_pastes_into_a_rig_and_the_figure_is_written(tmp_path, capsys):
     for name in ("acc", "gyro", "acc_bias", "gyro_bias"):  # printed with 5 significant digits
         assert abs(getattr(rig.imu.noise, name) / getattr(expected, name) - 1) < 1e-4
     assert (tmp_path / "out" / "allan.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "allan.png" in out.err
+    assert "allan.png" in out.err and "does not look static" not in out.err
 
 
 def test_bag_source_and_errors(tmp_path, capsys):
@@ -51,3 +51,17 @@ def test_bag_source_and_errors(tmp_path, capsys):
     assert main(["allan", "tum:traj.txt", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "a tum: source has no IMU samples" in err
+
+
+def test_a_recording_that_moves_is_warned_of(tmp_path, capsys):
+    """The Allan deviation of a moving IMU describes its motion: a warning says so (the static
+    recording above gets none)."""
+    x = _static_imu(n=3000)
+    t = np.arange(len(x)) * 0.01
+    x[:, 5] += 0.5 * (t > 10)  # a turn at 0.5 rad/s after 10 s
+    path = tmp_path / "imu.csv"
+    stamps = 1_600_000_000_000_000_000 + DT_NS * np.arange(len(x))
+    path.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
+        f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps, x)))
+    assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
+    assert "does not look static (a 1-s mean angular rate of 0.5" in capsys.readouterr().err
