@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datasets.types import ImuSamples, Sensor
+from datasets.types import (ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements, Sensor,
+                            VelocityMeasurements)
 from factors import preintegration, so3
 from factors.imu import STATE_DIM, ImuState
 from factors.sensor_models import extrinsic_parts
@@ -53,8 +54,9 @@ UNKNOWN_VELOCITY_SIGMA = 10.0
 #: The prior's sigma of parts taken from a measurement the estimators apply again, in its sigmas.
 PRIOR_INFLATION = 10.0
 
-_POSITION_KINDS = ("pose", "position", "gnss")
-_ATTITUDE_KINDS = ("pose", "orientation")
+#: What fixes a position (any kind measuring these data types) and what an attitude.
+_POSITION_TYPES = (PoseMeasurements, PositionMeasurements)
+_ATTITUDE_TYPES = (PoseMeasurements, OrientationMeasurements)
 
 
 class InitialisationError(ValueError):
@@ -66,15 +68,16 @@ def start_time(imu: ImuSamples, sensors: list[Sensor]) -> float:
     docstring), or the IMU's first sample."""
     t0 = float(imu.t[0])
     firsts = [float(s.data.t[s.data.t >= t0][0]) for s in sensors
-              if s.kind in _POSITION_KINDS and len(s.data) and np.any(s.data.t >= t0)]
+              if isinstance(s.data, _POSITION_TYPES) and len(s.data) and np.any(s.data.t >= t0)]
     return min(firsts) if firsts else t0
 
 
-def _from_start(sensors: list[Sensor], t_s: float, kinds) -> list:
-    """The data of ``sensors`` of ``kinds`` from ``t_s`` on (sensors left with none dropped)."""
+def _from_start(sensors: list[Sensor], t_s: float, types) -> list:
+    """``(sensor, data)`` of the ``sensors`` whose data are of ``types``, from ``t_s`` on (sensors
+    left with none dropped)."""
     out = []
     for s in sensors:
-        if s.kind in kinds and len(s.data) and np.any(s.data.t >= t_s):
+        if isinstance(s.data, types) and len(s.data) and np.any(s.data.t >= t_s):
             out.append((s, s.data.subset(s.data.t >= t_s)))
     return out
 
@@ -84,7 +87,7 @@ def _attitude_change(imu: ImuSamples, t_a: float, t_b: float, b_w: np.ndarray) -
     the next sample, as the estimators step) integrated by the preintegration's recursion."""
     lo, hi = min(t_a, t_b), max(t_a, t_b)
     bounds = np.union1d(imu.t[(imu.t > lo) & (imu.t < hi)], [lo, hi])
-    held = np.clip(np.searchsorted(imu.t, bounds[:-1], side="right") - 1, 0, len(imu) - 1)
+    held = imu.held(bounds[:-1])
     dt = np.diff(bounds)
     if dt.size == 0:
         return np.eye(3)
@@ -149,7 +152,7 @@ def _course(fixes: list):
     ``a .. b`` whose horizontal baseline is at least COURSE_DISTANCE_M and five times the two
     fixes' combined noise (so that it is motion, not noise), or None."""
     for s, m in fixes:
-        if s.kind not in ("position", "gnss") or len(m) < 2:
+        if not isinstance(m, PositionMeasurements) or len(m) < 2:
             continue
         z = m.position
         for b in range(1, len(m)):
@@ -197,7 +200,7 @@ def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
             R, p = extrinsic_parts(m.T_BS)
             lever = np.cross(m.gyro[k], p)
             return R @ m.velocity[k] - lever, float(np.sqrt(np.max(np.diag(m.cov[k])))) + 0.1
-    window = [(s, m.subset(m.t <= t_s + VELOCITY_WINDOW_S)) for s, m in fixes if s.kind in ("position", "gnss")]
+    window = [(s, m.subset(m.t <= t_s + VELOCITY_WINDOW_S)) for s, m in fixes if isinstance(m, PositionMeasurements)]
     window = [(s, m) for s, m in window if len(m) >= 2]
     if window:
         s, m = max(window, key=lambda sm: len(sm[1]))
@@ -222,16 +225,16 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
     t_s = start_time(imu, sensors)
     sigma = np.zeros(STATE_DIM)
     sigma[9:12], sigma[12:15] = bias_sigma
-    fixes = _from_start(sensors, t_s, _POSITION_KINDS)
-    velocity = _from_start(sensors, t_s, ("velocity",))
+    fixes = _from_start(sensors, t_s, _POSITION_TYPES)
+    velocity = _from_start(sensors, t_s, (VelocityMeasurements,))
 
     # attitude
-    attitude = _from_start(sensors, t_s, _ATTITUDE_KINDS)
+    attitude = _from_start(sensors, t_s, _ATTITUDE_TYPES)
     if attitude:
         s, m = min(attitude, key=lambda sm: float(sm[1].t[0]))
         R, _ = extrinsic_parts(m.T_BS)
         C = m.C[0] @ R.T @ _attitude_change(imu, float(m.t[0]), t_s, np.zeros(3))
-        block = slice(3, 6) if s.kind == "pose" else slice(0, 3)
+        block = slice(3, 6) if isinstance(m, PoseMeasurements) else slice(0, 3)
         sigma[6:9] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[block]) + bias_sigma[1] * float(m.t[0] - t_s)
     else:
         level = _level(imu, t_s, gravity)

@@ -104,7 +104,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     imu = ImuSamples(_relative(imu.t, imu.t_ns, origin_ns, 0.0), imu.acc, imu.gyro, imu.t_ns)
 
     def gyro_at(t):  # the gyro sample held at each time (the lever arm's rate of a velocity sensor)
-        return imu.gyro[np.clip(np.searchsorted(imu.t, t, side="right") - 1, 0, len(imu) - 1)]
+        return imu.gyro[imu.held(t)]
 
     gyro_variance = rig.imu.noise.gyro**2 / float(np.median(np.diff(imu.t)))
     clock = Clock(lambda t, t_ns, offset: _relative(t, t_ns, origin_ns, offset), gyro_at, gyro_variance, rig.datum)

@@ -52,7 +52,7 @@ def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0, true_r
             k = measurement_indices(truth.t, spec.rate_hz)
         except ValueError as error:
             raise InputError(f"sensor {spec.name!r}: {error}") from None
-        held = np.clip(np.searchsorted(imu.t, truth.t[k], side="right") - 1, 0, len(imu) - 1)
+        held = imu.held(truth.t[k])
         rate = imu.gyro[held] - truth.states.b_w[k] if true_rate is None else np.asarray(true_rate)[held]
         at = ImuAt(imu.gyro[held], rate, gyro_density**2 / float(np.median(np.diff(imu.t))))
         data = kind.simulate(truth, k, at, spec.T_BS, kind_sigmas(f"sensor {spec.name!r}", spec.sigma, kind.dim),

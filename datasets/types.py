@@ -170,6 +170,11 @@ class ImuSamples:
     def __len__(self) -> int:
         return len(self.t)
 
+    def held(self, t) -> np.ndarray:
+        """The index of the sample held at each time ``t`` (the last at or before it: the
+        zero-order hold every estimator steps with; the first sample before the stream starts)."""
+        return np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 1)
+
     def slice(self, start: int, stop: int) -> "ImuSamples":
         return ImuSamples(
             self.t[start:stop], self.acc[start:stop], self.gyro[start:stop],

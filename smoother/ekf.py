@@ -141,8 +141,9 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
     is compiled (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C
     stops it between chunks."""
     start = time.perf_counter()
-    sensors = [s for s in sensors_of(dataset) if not KINDS[s.kind].relative]
-    if len(sensors) < len(sensors_of(dataset)):
+    every = sensors_of(dataset)
+    sensors = [s for s in every if not KINDS[s.kind].relative]
+    if len(sensors) < len(every):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
     knots = estimate_times(dataset)
     steps = imu_steps(dataset.imu, knots)

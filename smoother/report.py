@@ -98,7 +98,7 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
-    positions = [s for s in dataset.sensors if s.kind in POSITION_KINDS]  # a rig's, each with its lever arm
+    positions = [s for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]  # a rig's, with lever arms
     used = [p for p in [dataset.position] if p is not None] + [s.data for s in positions]
     heldout = [p for p in [dataset.heldout_positions] if p is not None] + [s.heldout for s in positions
                                                                           if s.heldout is not None]
@@ -117,9 +117,6 @@ def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=
     distance = np.linalg.norm(residual[:, axes], axis=1)
     return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
-
-#: The kinds whose held-out measurements are scored as positions (``gps_heldout_rmse_m``).
-POSITION_KINDS = ("position", "gnss")
 
 
 def save_trajectory(path: Path, trajectory: Trajectory) -> None:
@@ -178,7 +175,7 @@ def save_gps(path: Path, dataset: Dataset) -> None:
     parts = [(p, False) for p in [dataset.position] if p is not None]
     parts += [(p, True) for p in [dataset.heldout_positions] if p is not None]
     for s in dataset.sensors:
-        if s.kind in POSITION_KINDS:
+        if isinstance(s.data, PositionMeasurements):
             parts += [(p, flag) for p, flag in ((s.data, False), (s.heldout, True)) if p is not None]
     if not parts:
         return
