@@ -249,36 +249,97 @@ def sensor_factor(model: SensorModel, keys, row, noise_model) -> gtsam.CustomFac
                          residual)
 
 
-def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, jacobians: bool = False):
+#: Row layout of a relative pose (odometry) measurement: ``(dr 3, dC 9, R_BS 9, p_BS 3)``.
+ODOMETRY_WIDTH = 24
+
+
+def pack_odometry(dr, dC, T_BS=None) -> np.ndarray:
+    dr = np.asarray(dr, dtype=float)
+    R, p = extrinsic_parts(T_BS)
+    return _flat(dr, dC, _repeat(R, len(dr)), _repeat(p, len(dr)))
+
+
+@njit(cache=True)
+def odometry_kernel(r_i, C_i, r_j, C_j, row, e, H) -> None:
     """Relative pose of the sensor frame between two states, in ``S_i``:
     ``e = (R^T C_i^T (r_j + C_j p - r_i - C_i p) - dr_meas, log(R^T C_i^T C_j R dC_meas^T))`` with
-    ``(R, p) = T_BS``; Jacobians for ``(C_i, r_i, C_j, r_j)``, vectorised over leading dimensions.
+    ``row = (dr_meas, dC_meas, R, p)`` (:data:`ODOMETRY_WIDTH`); ``H (6, 30)``: the error-state
+    Jacobians of state ``i`` (columns 0-14) and ``j`` (15-29), every entry written.
 
-    With ``w = r_j - r_i + C_j p``: ``d/dphi_i = R^T C_i^T w^x`` (the ``-C_i p`` term's motion
-    joins ``w``), ``d/dphi_j = -R^T C_i^T (C_j p)^x``; the rotation part moves by
-    ``-+Gamma^-1(e) R^T C_i^T`` for ``phi_i`` / ``phi_j`` (eq. 24 with ``exp(a) X = X exp(X^T a)``)."""
-    R, p = extrinsic_parts(T_BS)
-    C_i, C_j = np.asarray(C_i, dtype=float), np.asarray(C_j, dtype=float)
-    RtCit = R.T @ so3.inverse(C_i)
-    Cjp = C_j @ p
-    w = np.asarray(r_j, dtype=float) - r_i + Cjp
-    e_r = np.einsum("...ab,...b->...a", RtCit, w - C_i @ p) - measured_dr
-    e_phi = so3.log(RtCit @ C_j @ R @ so3.inverse(measured_dC))
-    if e_r.shape != e_phi.shape:
-        e_r, e_phi = np.broadcast_arrays(e_r, e_phi)
-    e = np.concatenate([e_r, e_phi], axis=-1)
+    With ``w = r_j - r_i + C_j p`` and ``M = R^T C_i^T``: ``d e_r/dphi_i = M w^x`` (the ``-C_i p``
+    term's motion joins ``w``), ``d e_r/dphi_j = -M (C_j p)^x``, ``d e_r/dr_i = -M``,
+    ``d e_r/dr_j = M``; the rotation part moves by ``-+Gamma^-1(e) M`` for ``phi_i`` / ``phi_j``
+    (eq. 24 with ``exp(a) X = X exp(X^T a)``)."""
+    H[:, :] = 0.0
+    R = row[12:21].reshape((3, 3))
+    p = row[21:24]
+    M = np.empty((3, 3))  # R^T C_i^T
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = R[0, a] * C_i[b, 0] + R[1, a] * C_i[b, 1] + R[2, a] * C_i[b, 2]
+    Cjp, Cip, w, d = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    for a in range(3):
+        Cjp[a] = C_j[a, 0] * p[0] + C_j[a, 1] * p[1] + C_j[a, 2] * p[2]
+        Cip[a] = C_i[a, 0] * p[0] + C_i[a, 1] * p[1] + C_i[a, 2] * p[2]
+    for a in range(3):
+        w[a] = r_j[a] - r_i[a] + Cjp[a]
+        d[a] = w[a] - Cip[a]
+    for a in range(3):
+        e[a] = M[a, 0] * d[0] + M[a, 1] * d[1] + M[a, 2] * d[2] - row[a]
+    X = np.empty((3, 3))  # M C_j R dC_meas^T
+    Y = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            Y[a, b] = M[a, 0] * C_j[0, b] + M[a, 1] * C_j[1, b] + M[a, 2] * C_j[2, b]
+    for a in range(3):
+        for b in range(3):
+            X[a, b] = Y[a, 0] * R[0, b] + Y[a, 1] * R[1, b] + Y[a, 2] * R[2, b]
+    Z = row[3:12].reshape((3, 3))
+    for a in range(3):
+        for b in range(3):
+            Y[a, b] = X[a, 0] * Z[b, 0] + X[a, 1] * Z[b, 1] + X[a, 2] * Z[b, 2]
+    e[3], e[4], e[5] = so3.log_of(Y)
+    G = np.empty((3, 3))
+    so3.gamma_inv_into(e[3], e[4], e[5], G)
+    for a in range(3):
+        for b in range(3):
+            g = G[a, 0] * M[0, b] + G[a, 1] * M[1, b] + G[a, 2] * M[2, b]
+            H[3 + a, 6 + b] = -g
+            H[3 + a, 21 + b] = g
+            H[a, b] = -M[a, b]
+            H[a, 15 + b] = M[a, b]
+    for b in range(3):  # columns of M w^x and -M (C_j p)^x: M (w x unit_b) etc.
+        ux0, ux1, ux2 = (0.0, w[2], -w[1]) if b == 0 else ((-w[2], 0.0, w[0]) if b == 1 else (w[1], -w[0], 0.0))
+        uy0, uy1, uy2 = ((0.0, Cjp[2], -Cjp[1]) if b == 0 else
+                         ((-Cjp[2], 0.0, Cjp[0]) if b == 1 else (Cjp[1], -Cjp[0], 0.0)))
+        for a in range(3):
+            H[a, 6 + b] = M[a, 0] * ux0 + M[a, 1] * ux1 + M[a, 2] * ux2
+            H[a, 21 + b] = -(M[a, 0] * uy0 + M[a, 1] * uy1 + M[a, 2] * uy2)
+
+
+@njit(cache=True)
+def _odometry_rows(r_i, C_i, r_j, C_j, rows, e, H) -> None:
+    for n in range(rows.shape[0]):
+        odometry_kernel(r_i[n], C_i[n], r_j[n], C_j[n], rows[n], e[n], H[n])
+
+
+def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, jacobians: bool = False):
+    """:func:`odometry_kernel` vectorised over broadcast leading dimensions: ``e (..., 6)`` and,
+    with ``jacobians``, ``[J_Ci, J_ri, J_Cj, J_rj]`` (each ``(..., 6, 3)``)."""
+    C_i, r_i, C_j, r_j = (np.asarray(a, dtype=float) for a in (C_i, r_i, C_j, r_j))
+    measured_dr, measured_dC = np.asarray(measured_dr, dtype=float), np.asarray(measured_dC, dtype=float)
+    lead = np.broadcast_shapes(C_i.shape[:-2], r_i.shape[:-1], C_j.shape[:-2], r_j.shape[:-1],
+                               measured_dr.shape[:-1], measured_dC.shape[:-2])
+    n = int(np.prod(lead, dtype=int))
+    flat = lambda a, tail: np.ascontiguousarray(np.broadcast_to(a, lead + tail).reshape((n,) + tail))  # noqa: E731
+    rows = pack_odometry(flat(measured_dr, (3,)), flat(measured_dC, (3, 3)), T_BS)
+    e, H = np.empty((n, 6)), np.empty((n, 6, 30))
+    _odometry_rows(flat(r_i, (3,)), flat(C_i, (3, 3)), flat(r_j, (3,)), flat(C_j, (3, 3)), rows, e, H)
+    e = e.reshape(lead + (6,))
     if not jacobians:
         return e
-    shape = e.shape[:-1]
-    G = so3.gamma_inv(e_phi) @ RtCit
-    J_Ci, J_ri, J_Cj, J_rj = (np.zeros(shape + (6, 3)) for _ in range(4))
-    J_Ci[..., :3, :] = RtCit @ so3.skew(w)
-    J_Ci[..., 3:, :] = -G
-    J_ri[..., :3, :] = -RtCit
-    J_Cj[..., :3, :] = -RtCit @ so3.skew(Cjp)
-    J_Cj[..., 3:, :] = G
-    J_rj[..., :3, :] = RtCit
-    return e, [J_Ci, J_ri, J_Cj, J_rj]
+    H = H.reshape(lead + (6, 30))
+    return e, [H[..., 6:9], H[..., 0:3], H[..., 21:24], H[..., 15:18]]
 
 
 def odometry_factor(keys_i, keys_j, measured_dr, measured_dC, T_BS, noise_model) -> gtsam.CustomFactor:

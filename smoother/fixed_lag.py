@@ -47,12 +47,14 @@ import gtsam
 import numpy as np
 
 from datasets.types import Trajectory
-from factors import imu
+from factors import imu, preintegration
 from factors import measurements as meas
+from factors.imu_factor import ImuFactor
+from factors.uncertainty import state_covariance_to_primer
 from factors.errors import InputError, SolverError
 from smoother.batch import is_indeterminant
 from factors.keys import keyframe_keys
-from smoother.graph import Problem, insert_state, read_state
+from smoother.graph import Problem, insert_state, noise_model, read_state
 from smoother.errors import IndeterminantSystem
 from smoother.solver import evaluate_block, marginal_covariances
 from smoother.progress import progress_bar
@@ -323,10 +325,13 @@ class KeyframeWindow:
     estimates the caller reads before that update (:meth:`taken` records it, and an update after
     which a keyframe is gone that was not read raises)."""
 
-    def __init__(self, lag_s: float, kind: str = "incremental"):
+    def __init__(self, lag_s: float, kind: str = "incremental", gravity=imu.DEFAULT_GRAVITY,
+                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
         if not lag_s > 0:
             raise InputError(f"lag must be positive, got {lag_s}")
         self.smoother = _make_smoother(kind, lag_s)
+        self.gravity = np.asarray(gravity, dtype=float)
+        self.threshold = float(reintegration_threshold)
         self.lag_s = float(lag_s)
         self.kind = kind
         self.first = 0  # the oldest keyframe in the window
@@ -420,6 +425,46 @@ class KeyframeWindow:
     def state(self, k: int) -> imu.ImuState:
         """Window keyframe ``k``'s estimate after the last update."""
         return read_state(self.estimate, keyframe_keys(k))
+
+    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None) -> imu.ImuState:
+        """:meth:`update` with the keyframe's factors made here: the IMU factor of the
+        preintegrated interval ``pre`` from the newest keyframe (None: none), the factors of
+        ``measurements`` (``(spec, m, keyframes, robust)``: measurement ``m`` of a
+        :class:`smoother.graph.MeasurementSpec`, the keyframes it reads, a robust spec or None)
+        and a ``prior`` ``(state, cov)`` on the new keyframe (:class:`smoother.sliding_window.SlidingWindow`
+        takes the same)."""
+        k = self.newest + 1
+        keys = keyframe_keys(k)
+        factors, oldest = [], []
+        if prior is not None:
+            factors.append(meas.state_prior_factor(keys, *prior))
+            oldest.append(k)
+        if pre is not None and k > 0:
+            factors.append(ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
+                                     reintegration_threshold=self.threshold).factor)
+            oldest.append(k - 1)
+        for spec, m, keyframes, robust in measurements:
+            factors.append(spec.factor([keyframe_keys(j) for j in keyframes], m, noise_model(spec.cov[m], robust)))
+            oldest.append(min(keyframes))
+        return self.update(t, factors, guess, oldest)
+
+    def covariances(self, wanted) -> np.ndarray:
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
+        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
+        four variables, at its linearisation point; the newest keyframes sit at the root, so this
+        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
+        smoother's factors linearised by GTSAM (:func:`window_covariances`)."""
+        if self.kind == "incremental":
+            isam = self.smoother.getISAM2()
+            out = []
+            for j in wanted:
+                keys = keyframe_keys(j)
+                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+                out.append(state_covariance_to_primer(joint, self.estimate.atRot3(keys.rot)))
+            return np.stack(out)
+        states = imu.ImuState.stack([self.state(j) for j in range(self.first, self.newest + 1)])
+        return window_covariances([], self.smoother, self.estimate, self.first, states, {},
+                                  [j - self.first for j in wanted])
 
 
 def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", covariances: bool = True,

@@ -24,13 +24,13 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from datasets.kinds import KINDS, measure_rows, sensors_of
+from datasets.kinds import KINDS, measure_rows, model_index, sensors_of
 from datasets.types import Dataset
 from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
-from factors.sensor_models import odometry_factor, odometry_residual, sensor_factor
+from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.solver import Block, whitening
 from smoother.timeline import estimate_times, imu_steps
 from factors.errors import InputError
@@ -58,12 +58,17 @@ def default_threshold(kernel: str, dim: int) -> float:
     return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
 
 
+def robust_threshold(spec, dim: int) -> float:
+    """The threshold of a kernel spec ``(name, threshold or None)`` on a ``dim``-dimensional factor."""
+    name, threshold = spec
+    return float(threshold) if threshold is not None else default_threshold(name, dim)
+
+
 def _robust_estimator(spec, dim: int):
     if spec is None:
         return None
-    name, threshold = spec
-    kernel, _ = ROBUST_KERNELS[name]
-    return kernel.Create(threshold if threshold is not None else default_threshold(name, dim))
+    kernel, _ = ROBUST_KERNELS[spec[0]]
+    return kernel.Create(robust_threshold(spec, dim))
 
 
 def noise_model(cov: np.ndarray, robust=None):
@@ -315,6 +320,10 @@ def _whole_graph(problem: Problem) -> GtsamGraph:
     rows_of = {id(f): where for group in groups for f, where in zip(group.factors, group.rows)}
     return GtsamGraph(graph, values, [group.imu for group in groups[1:]], [group.factors for group in groups], rows_of)
 
+#: :attr:`MeasurementSpec.model` of a relative pose (odometry: :func:`factors.sensor_models.odometry_kernel`)
+RELATIVE_MODEL = -1
+
+
 @dataclass
 class MeasurementSpec:
     """One sensor's measurements as the graph needs them: ``times`` of the keyframes each
@@ -327,6 +336,10 @@ class MeasurementSpec:
     residual: Callable
     cov: np.ndarray
     factor: Callable
+    #: the model's index in :data:`datasets.kinds.MODELS` (:data:`RELATIVE_MODEL` for odometry)
+    #: and the measurements' packed rows, as the compiled kernels take them
+    model: int = -1
+    rows: np.ndarray | None = None
 
 
 def measurement_spec(sensor) -> MeasurementSpec:
@@ -348,7 +361,8 @@ def _absolute_spec(sensor) -> MeasurementSpec:
         return (e, [H]) if jacobians else e
 
     return MeasurementSpec(sensor.name, [m.t], residual, m.cov,
-                           lambda kk, i, model: sensor_factor(kind.model, kk[0], rows[i], model))
+                           lambda kk, i, model: sensor_factor(kind.model, kk[0], rows[i], model),
+                           model_index(kind), rows)
 
 
 def _relative_spec(sensor) -> MeasurementSpec:
@@ -363,4 +377,5 @@ def _relative_spec(sensor) -> MeasurementSpec:
         return e, [_place([J_Ci, J_ri], ["rot", "pos"]), _place([J_Cj, J_rj], ["rot", "pos"])]
 
     return MeasurementSpec(sensor.name, [m.t_from, m.t_to], residual, m.cov,
-                           lambda kk, i, model: odometry_factor(kk[0], kk[1], m.dr[i], m.dC[i], m.T_BS, model))
+                           lambda kk, i, model: odometry_factor(kk[0], kk[1], m.dr[i], m.dC[i], m.T_BS, model),
+                           RELATIVE_MODEL, pack_odometry(m.dr, m.dC, m.T_BS))

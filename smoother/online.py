@@ -53,21 +53,27 @@ import time
 import warnings
 from dataclasses import dataclass, fields
 
-import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, kind_sigmas, sensors_of
 from datasets.types import Dataset, Sensor, Trajectory, check_covariances
 from factors import imu, preintegration
-from factors import measurements as meas
-from factors.imu_factor import ImuFactor
-from factors.keys import keyframe_keys
-from factors.uncertainty import state_covariance_to_primer
-from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning, window_covariances
-from smoother.graph import measurement_spec, noise_model
+from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning
+from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
+from smoother.graph import measurement_spec
+from smoother.sliding_window import SlidingWindow
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, steps_between
 from factors.errors import InputError
+
+
+def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float):
+    """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag_kinds.FIXED_LAG_KINDS`)."""
+    if kind == "sliding":
+        return SlidingWindow(lag_s, gravity, reintegration_threshold)
+    if kind in ("incremental", "batch"):
+        return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
+    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
 
 
 @dataclass(frozen=True)
@@ -122,10 +128,9 @@ class OnlineSmoother:
     with each keyframe leaving the window (None: they are queued for :meth:`smoothed`)."""
 
     def __init__(self, initial: imu.ImuState, initial_cov, noise: imu.ImuNoise, sensors: dict | None = None,
-                 lag_s: float = 2.0, kind: str = "incremental", keyframe_rate: float | None = None,
+                 lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
                  max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
                  on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
-        self._window = KeyframeWindow(lag_s, kind)
         if not max_delay_s >= 0:
             raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
         if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
@@ -145,6 +150,7 @@ class OnlineSmoother:
                 kind_sigmas(f"sensors[{name!r}]", setup.sigma, KINDS[setup.kind].dim)
         self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
         self.gravity = np.asarray(gravity, dtype=float)
+        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold)
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
@@ -469,14 +475,13 @@ class OnlineSmoother:
             self._keyframe(t)
 
     def _keyframe(self, t: float) -> None:
-        """Make the keyframe at ``t``: its IMU factor, the measurements at ``t``, one update."""
+        """Make the keyframe at ``t``: its IMU interval, the measurements at ``t``, one update."""
         window = self._window
         k = window.newest + 1
-        keys = keyframe_keys(k)
+        pre, prior = None, None
         if k == 0:
             guess = self.initial
-            factors = [meas.state_prior_factor(keys, self.initial, self.initial_cov)]
-            oldest = [0]
+            prior = (self.initial, self.initial_cov)
         else:
             lo = self._held_at(self._last_t)
             hi = int(np.searchsorted(self._t[:self._n], t, side="left")) + 1
@@ -485,11 +490,8 @@ class OnlineSmoother:
             a, b = steps.knot_step  # the steps from the newest keyframe to t
             pre = preintegration.integrate_interval(steps.acc[a:b], steps.gyro[a:b], steps.dt[a:b], start, self.noise,
                                                     self.gravity)
-            imu_factor = ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
-                                   reintegration_threshold=self.reintegration_threshold)
-            guess = imu_factor.predict(start)
-            factors, oldest = [imu_factor.factor], [k - 1]
-        used = []
+            guess = preintegration.predict(pre, start, self.gravity)
+        used, measurements = [], []
         while self._pending and self._pending[0].latest <= t:
             item = heapq.heappop(self._pending)
             if item.latest < t:  # before the first keyframe
@@ -499,13 +501,10 @@ class OnlineSmoother:
                 self._skip(item.sensor)
                 continue
             at = [k if x == t else self._keyframe_t[x] for x in item.times]
-            setup, _ = self._setup(item.sensor)
-            factors.append(item.spec.factor([keyframe_keys(j) for j in at], item.row,
-                                            noise_model(item.spec.cov[item.row], setup.robust)))
-            oldest.append(min(at))
+            measurements.append((item.spec, item.row, at, self._setup(item.sensor)[0].robust))
             used.append(item)
         leaving = self._read(window.leaving(t))
-        window.update(t, factors, guess, oldest)
+        window.add_keyframe(t, guess, pre, measurements, prior)
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k
@@ -537,23 +536,8 @@ class OnlineSmoother:
                 warnings.warn(text, stacklevel=5)
 
     def _keyframe_covariances(self, wanted: list[int]) -> np.ndarray:
-        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
-        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
-        four variables, at its linearisation point; the newest keyframes sit at the root, so this
-        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
-        smoother's factors linearised by GTSAM (:func:`smoother.fixed_lag.window_covariances`)."""
-        window = self._window
-        if self.kind == "incremental":
-            isam = window.smoother.getISAM2()
-            out = []
-            for j in wanted:
-                keys = keyframe_keys(j)
-                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
-                out.append(state_covariance_to_primer(joint, window.estimate.atRot3(keys.rot)))
-            return np.stack(out)
-        states = imu.ImuState.stack([window.state(j) for j in range(window.first, window.newest + 1)])
-        return window_covariances([], window.smoother, window.estimate, window.first, states, {},
-                                  [j - window.first for j in wanted])
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``."""
+        return self._window.covariances(wanted)
 
     def _read(self, keyframes) -> list[tuple[int, OnlineEstimate]]:
         """The estimates of window ``keyframes`` now (recorded as read, see
@@ -593,7 +577,7 @@ class ReplayResult:
     runtime_s: float
 
 
-def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "incremental", keyframe_rate: float | None = None,
+def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
            robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
            speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
     """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)

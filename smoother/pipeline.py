@@ -40,7 +40,7 @@ class RunOptions:
     """Options shared by the estimators (the command line's flags)."""
 
     lag_s: float = 2.0
-    fixed_lag_kind: str = "incremental"
+    fixed_lag_kind: str = "sliding"
     optimizer: str = "lm"
     max_iterations: int = 100
     keyframe_rate: float | None = None

@@ -7,6 +7,7 @@ import sys
 import time
 
 from smoother.errors import UserError
+from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 
 
 def register(sub) -> None:
@@ -21,8 +22,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the simulator and of synthetic measurements")
     p.add_argument("--duration", type=float, default=30.0, help="simulated duration [s] (default 30)")
     p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
-    p.add_argument("--fixed-lag-kind", default="incremental", choices=["incremental", "batch"],
-                   help="GTSAM's IncrementalFixedLagSmoother (iSAM2) or BatchFixedLagSmoother")
+    p.add_argument("--fixed-lag-kind", default="sliding", choices=list(FIXED_LAG_KINDS),
+                   help="the compiled sliding window (default), GTSAM's IncrementalFixedLagSmoother (iSAM2) or "
+                        "BatchFixedLagSmoother")
     p.add_argument("--max-delay", type=float, default=0.0, metavar="S",
                    help="fixed-lag: how late [s] a measurement may arrive behind the IMU stream and still be used "
                         "(later ones are dropped and counted; default 0)")

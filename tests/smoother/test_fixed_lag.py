@@ -137,7 +137,7 @@ def test_lag_must_be_positive(lag, gentle):
 
 def test_unknown_kind_is_refused(gentle):
     with pytest.raises(ValueError, match="kind"):
-        run_fixed_lag(cases.problem(gentle), 1.0, "sliding")
+        run_fixed_lag(cases.problem(gentle), 1.0, "window")
 
 
 @pytest.mark.parametrize("kind", KINDS)
