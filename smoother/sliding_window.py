@@ -58,6 +58,9 @@ DIM = imu.STATE_DIM
 #: Robust kernels by their code in the compiled loop (0: none).
 ROBUST_CODES = {"huber": 1, "cauchy": 2, "tukey": 3}
 _MAX_DIM = 6  # the widest measurement residual (pose, odometry)
+#: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
+#: dot products of the linear algebra into SIMD code.
+_FAST = {"reassoc", "contract"}
 
 
 @dataclass
@@ -91,11 +94,6 @@ def _robust_scale(code, k, norm) -> float:
         u = 1.0 - (norm / k) ** 2
         return u
     return 1.0
-
-
-#: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
-#: dot products of the normal equations into SIMD code.
-_FAST = {"reassoc", "contract"}
 
 
 @njit(cache=True, fastmath=_FAST)
