@@ -1,8 +1,11 @@
 """Online fixed-lag smoothing: IMU samples and measurements fed as they arrive, the state at IMU
 rate, each keyframe's smoothed estimate as it leaves the window.
 
-:class:`OnlineSmoother` is GTSAM's fixed-lag smoother (:class:`smoother.fixed_lag.KeyframeWindow`,
-the loop :func:`smoother.fixed_lag.run_fixed_lag` runs too) fed from streams. Conventions are the
+:class:`OnlineSmoother` is a fixed-lag smoother fed from streams: of ``kind`` ``"sliding"`` (the
+default; the compiled window of :mod:`smoother.sliding_window`) or GTSAM's ``"incremental"`` /
+``"batch"`` (:class:`smoother.fixed_lag.KeyframeWindow`, the loop
+:func:`smoother.fixed_lag.run_fixed_lag` runs too); both windows take a keyframe as its IMU
+interval, its measurements and its initial value (``add_keyframe``). Conventions are the
 project's: state ``x = (r, v, C, b_f, b_w)`` (world position, BODY velocity, body-to-world
 attitude, accelerometer and gyro biases), 15x15 covariances in the primer's error state
 ``(dr, dv, dphi, db_f, db_w)`` with the LEFT perturbation ``C <- exp(dphi) C``, times in seconds
@@ -121,8 +124,8 @@ class OnlineSmoother:
     ``initial``, ``initial_cov``: the state at the first IMU sample and its 15x15 covariance;
     ``noise`` (:class:`factors.imu.ImuNoise`) and ``gravity`` (world frame, m/s^2); ``sensors``:
     name -> :class:`SensorSetup` (a kind's name can always be used as a sensor at the IMU with no
-    time offset); ``lag_s`` the window [s]; ``kind`` GTSAM's ``"incremental"`` or ``"batch"``
-    smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
+    time offset); ``lag_s`` the window [s]; ``kind`` the compiled ``"sliding"`` window or GTSAM's
+    ``"incremental"`` or ``"batch"`` smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
     behind the IMU stream; ``covariances``: compute keyframe covariances (the newest keyframe's,
     for :meth:`estimate`, and each smoothed keyframe's); ``on_smoothed(OnlineEstimate)``: called
     with each keyframe leaving the window (None: they are queued for :meth:`smoothed`)."""
