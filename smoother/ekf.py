@@ -28,6 +28,7 @@ from factors import imu
 from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
 from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
+from smoother.small_linalg import cholesky_into
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps
@@ -238,26 +239,6 @@ def _gates(probability: float | None) -> np.ndarray:
 
 
 @njit(cache=True)
-def _cholesky(S, L) -> bool:
-    """Lower Cholesky factor of the small SPD matrix ``S`` into ``L``; False if not positive definite."""
-    m = S.shape[0]
-    for i in range(m):
-        for j in range(i + 1):
-            acc = S[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            if i == j:
-                if not acc > 0.0:
-                    return False
-                L[i, i] = math.sqrt(acc)
-            else:
-                L[i, j] = acc / L[j, j]
-        for j in range(i + 1, m):
-            L[i, j] = 0.0
-    return True
-
-
-@njit(cache=True)
 def _solve_lower(L, b, out) -> None:
     """``out = L^-1 b`` (forward substitution)."""
     for i in range(L.shape[0]):
@@ -282,7 +263,7 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> float:
     matmul_into(H, PHt, S)
     S += R
     L = np.empty((m, m))
-    if not _cholesky(0.5 * (S + S.T), L):
+    if not cholesky_into(0.5 * (S + S.T), L):
         raise SolverError("EKF update: the innovation covariance H P H^T + R is not positive definite")
     y = np.empty(m)
     _solve_lower(L, e, y)

@@ -52,6 +52,7 @@ from factors.preintegration import _residual_into, _residual_work
 from factors.sensor_models import ODOMETRY_WIDTH, odometry_kernel
 from smoother.fixed_lag import WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.graph import RELATIVE_MODEL, robust_threshold
+from smoother.small_linalg import cholesky_into
 from smoother.solver import whitening
 
 DIM = imu.STATE_DIM
@@ -118,10 +119,9 @@ def _whiten(W, e, J, d, ncol, ew, JT, Jt0) -> None:
 
 
 @njit(cache=True, fastmath=_FAST)
-def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
-    """Add a factor's ``J^T J`` and ``J^T e`` (``JT``: its whitened Jacobian transposed, ``d``
-    columns; keyframe ``a`` in rows ``ca:ca+15``, keyframe ``b > a`` in ``cb:cb+15``; ``b = -1``
-    for a one-keyframe factor)."""
+def _add_diagonal(Hb, g, a, ca, JT, ew, d) -> None:
+    """Add ``J_a^T J_a`` and ``J_a^T e`` of a factor to keyframe ``a``'s diagonal block (``JT``: its
+    whitened Jacobian transposed, ``d`` columns; keyframe ``a`` in rows ``ca:ca+15``)."""
     for p in range(DIM):
         s = 0.0
         for i in range(d):
@@ -134,20 +134,18 @@ def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
             Hb[a, 0, p, q] += s
             if q != p:
                 Hb[a, 0, q, p] += s
+
+
+@njit(cache=True, fastmath=_FAST)
+def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
+    """Add a factor's ``J^T J`` and ``J^T e`` (``JT``: its whitened Jacobian transposed, ``d``
+    columns; keyframe ``a`` in rows ``ca:ca+15``, keyframe ``b > a`` in ``cb:cb+15``; ``b = -1``
+    for a one-keyframe factor)."""
+    _add_diagonal(Hb, g, a, ca, JT, ew, d)
     if b < 0:
         return
+    _add_diagonal(Hb, g, b, cb, JT, ew, d)
     for p in range(DIM):
-        s = 0.0
-        for i in range(d):
-            s += JT[cb + p, i] * ew[i]
-        g[b * DIM + p] += s
-        for q in range(p + 1):
-            s = 0.0
-            for i in range(d):
-                s += JT[cb + p, i] * JT[cb + q, i]
-            Hb[b, 0, p, q] += s
-            if q != p:
-                Hb[b, 0, q, p] += s
         for q in range(DIM):
             s = 0.0
             for i in range(d):
@@ -186,7 +184,7 @@ def _linearise(first, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dR
             continue
         d = dims[f]
         i = k0 % cap
-        if model[f] == -1:
+        if model[f] == RELATIVE_MODEL:
             j = k1 % cap
             odometry_kernel(r[i], C[i], r[j], C[j], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
@@ -200,7 +198,7 @@ def _linearise(first, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dR
             scale = _robust_scale(rcode[f], rk[f], np.sqrt(norm))
             ew[:d] *= scale
             JT[:, :d] *= scale
-        if model[f] == -1:
+        if model[f] == RELATIVE_MODEL:
             _add_normal(Hb, g, k0 - first, 0, k1 - first, DIM, JT, ew, d)
         else:
             _add_normal(Hb, g, k0 - first, 0, -1, 0, JT, ew, d)
@@ -253,25 +251,6 @@ def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, first
 
 
 @njit(cache=True)
-def _cholesky_block(M, L) -> bool:
-    """``L`` lower with ``L L^T = M`` (15x15); False if ``M`` is not positive definite."""
-    for i in range(DIM):
-        for j in range(i + 1):
-            s = M[i, j]
-            for c in range(j):
-                s -= L[i, c] * L[j, c]
-            if i == j:
-                if not s > 1e-300:
-                    return False
-                L[i, i] = np.sqrt(s)
-            else:
-                L[i, j] = s / L[j, j]
-        for j in range(i + 1, DIM):
-            L[i, j] = 0.0
-    return True
-
-
-@njit(cache=True)
 def _factorise(Hb, L) -> int:
     """Block-banded Cholesky ``H = L L^T`` (``L[k, s]``: block ``(k, k - s)``); returns -1, or the
     block whose pivot failed."""
@@ -311,7 +290,7 @@ def _factorise(Hb, L) -> int:
         for p in range(DIM):  # symmetric: the lower triangle is what the block Cholesky reads
             for q in range(p + 1, DIM):
                 M[p, q] = M[q, p]
-        if not _cholesky_block(M, L[k, 0]):
+        if not cholesky_into(M, L[k, 0]):
             return k
     return -1
 
@@ -383,25 +362,6 @@ def _step(first, n, cap, delta, r, v, C, bf, bw) -> None:
 
 
 @njit(cache=True)
-def _cholesky_dense(A, L) -> bool:
-    """``L`` lower with ``L L^T = A`` (any size); False if ``A`` is not positive definite."""
-    n = A.shape[0]
-    L[:, :] = 0.0
-    for i in range(n):
-        for j in range(i + 1):
-            s = A[i, j]
-            for c in range(j):
-                s -= L[i, c] * L[j, c]
-            if i == j:
-                if not s > 1e-300:
-                    return False
-                L[i, i] = np.sqrt(s)
-            else:
-                L[i, j] = s / L[j, j]
-    return True
-
-
-@njit(cache=True)
 def _solve_lower(L, B) -> None:
     """``B <- L^-1 B`` in place (``L`` lower triangular)."""
     n, m = B.shape
@@ -431,7 +391,7 @@ def _schur(Hb, g, nl):
     m0 = nl * DIM
     Lll = np.empty((m0, m0))
     Hs, gs = np.empty((N - m0, N - m0)), np.empty(N - m0)
-    if not _cholesky_dense(H[:m0, :m0].copy(), Lll):
+    if not cholesky_into(H[:m0, :m0].copy(), Lll):
         return Hs, gs, False
     Y = np.empty((m0, N - m0 + 1))
     Y[:, :N - m0] = H[:m0, m0:]
@@ -456,7 +416,7 @@ def _whitening_into(cov, W) -> bool:
     matrix); False if ``cov`` is not positive definite."""
     d = cov.shape[0]
     L = np.empty((d, d))
-    if not _cholesky_dense(cov, L):
+    if not cholesky_into(cov, L):
         return False
     W[:d, :d] = 0.0
     for c in range(d):
@@ -759,7 +719,7 @@ def _square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g``: Cholesky, or for a semi-definite ``H``
     (directions the marginalised factors did not inform) its eigen-decomposition without them."""
     Lc = np.empty_like(H)
-    if _cholesky_dense(H, Lc):
+    if cholesky_into(H, Lc):
         e0 = g[:, None].copy()
         _solve_lower(Lc, e0)
         return Lc.T.copy(), e0[:, 0]
