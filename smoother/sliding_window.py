@@ -445,23 +445,19 @@ class SlidingWindow:
     """The compiled fixed-lag smoother (module docstring), fed one keyframe at a time.
 
     ``lag_s``: keyframes older than the newest one's time minus the lag leave at the next update;
-    ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's;
-    ``iterations``: Gauss-Newton steps per update. Keyframe ``k`` (0, 1, ...) has a time stamp and
+    ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's. Keyframe ``k`` (0, 1, ...) has a time stamp and
     the window is ``first .. newest``; :meth:`leaving` names the keyframes the next update
     marginalises, which the caller reads (and records with :meth:`taken`) before it."""
 
     kind = "sliding"
 
     def __init__(self, lag_s: float, gravity=imu.DEFAULT_GRAVITY,
-                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD, iterations: int = 1):
+                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
         if not lag_s > 0:
             raise InputError(f"lag must be positive, got {lag_s}")
-        if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
-            raise InputError(f"iterations: expected a positive integer, got {iterations!r}")
         self.lag_s = float(lag_s)
         self.gravity = np.asarray(gravity, dtype=float)
         self.threshold = float(reintegration_threshold)
-        self.iterations = int(iterations)
         self.first, self.newest = 0, -1
         self.recovered: list[int] = []
         self.skipped = 0
@@ -571,8 +567,7 @@ class SlidingWindow:
         if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
             self._add_prior(k, guess, np.diag(WEAK_PRIOR_SIGMAS ** 2))
             self.recovered.append(k)
-        for _ in range(self.iterations):
-            self._gauss_newton_step(t)
+        self._gauss_newton_step(t)
         self.update_s.append(time.perf_counter() - tick)
         return self.newest_state
 
@@ -593,13 +588,15 @@ class SlidingWindow:
 
     # -- inside -----------------------------------------------------------------------------------
 
-    def _store_interval(self, s: int, pre) -> None:
+    def _store_interval(self, s: int, pre, whiten: bool = True) -> None:
+        """Keep interval ``pre`` at slot ``s``; ``whiten``: its covariance is new (an interval
+        integrated again keeps its covariance, and so its whitening)."""
         self._has_imu[s] = True
         self._pre[s] = pre
         for name, value in (("_dC", pre.dC), ("_Wp", pre.W), ("_Rm", pre.Rm), ("_JC", pre.JC), ("_dW", pre.dW),
                             ("_dRm", pre.dRm), ("_bwbar", pre.b_w_bar)):
             getattr(self, name)[s] = value
-        if not _whitening_into(pre.cov, self._Wimu[s]):
+        if whiten and not _whitening_into(pre.cov, self._Wimu[s]):
             raise InputError("the IMU interval's covariance is not positive definite")
 
     def _add_measurement(self, model: int, row, cov, robust, keyframes) -> None:
@@ -632,7 +629,7 @@ class SlidingWindow:
         drift = np.max(np.abs(self._bw[earlier] - self._bwbar[later]), axis=1)
         for j, i in zip(later[(drift > self.threshold) & self._has_imu[later]],
                         earlier[(drift > self.threshold) & self._has_imu[later]]):
-            self._store_interval(j, self._pre[j].relinearized(self._bw[i]))
+            self._store_interval(j, self._pre[j].relinearized(self._bw[i]), whiten=False)
 
     def _bandwidth(self) -> int:
         S = 1
