@@ -62,6 +62,10 @@ _MAX_DIM = 6  # the widest measurement residual (pose, odometry)
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.
 _FAST = {"reassoc", "contract"}
+#: How far a keyframe's estimate may move from its linearisation point before its factors are
+#: linearised again, per error-state component ``(dr [m], dv [m/s], dphi [rad], db_f [m/s^2],
+#: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component).
+RELINEARISATION_THRESHOLD = np.zeros(15)
 
 
 @dataclass
@@ -140,8 +144,10 @@ def _add_diagonal(Hb, g, a, ca, JT, ew, d) -> None:
 def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
     """Add a factor's ``J^T J`` and ``J^T e`` (``JT``: its whitened Jacobian transposed, ``d``
     columns; keyframe ``a`` in rows ``ca:ca+15``, keyframe ``b > a`` in ``cb:cb+15``; ``b = -1``
-    for a one-keyframe factor)."""
-    _add_diagonal(Hb, g, a, ca, JT, ew, d)
+    for a one-keyframe factor). Block rows are counted from the first row assembled: a keyframe
+    before it (``a < 0``) gets nothing on its own row, only its coupling in row ``b``."""
+    if a >= 0:
+        _add_diagonal(Hb, g, a, ca, JT, ew, d)
     if b < 0:
         return
     _add_diagonal(Hb, g, b, cb, JT, ew, d)
@@ -154,17 +160,17 @@ def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
 
 
 @njit(cache=True)
-def _linearise(first, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
+def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
                m, mk, model, rows, dims, Wm, rcode, rk, Hb, g) -> None:
-    """Add to ``Hb``, ``g`` the factors whose earliest keyframe is before ``cut`` (all: ``cut`` past
-    the newest): the IMU intervals (stored at the slot of their later keyframe) and the
-    measurements ``0 .. m - 1``. Keyframe ``k`` is at slot ``k % cap``, block ``k - first``."""
+    """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
+    equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
+    IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``,
+    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
     work = _residual_work()
     e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
     J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((2 * DIM, DIM)), np.empty((2 * DIM, DIM)), np.empty(DIM)
     n = Hb.shape[0]
-    for blk in range(1, n):
-        k = first + blk
+    for k in range(max(lo, first + 1), lo + n):
         if k - 1 >= cut:
             break
         j = k % cap
@@ -176,11 +182,11 @@ def _linearise(first, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dR
         J[:, :DIM] = A
         J[:, DIM:] = B
         _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
-        _add_normal(Hb, g, blk - 1, 0, blk, DIM, JT, ew, DIM)
+        _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
     H = np.empty((_MAX_DIM, 2 * DIM))
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
-        if k0 >= cut:
+        if k0 >= cut or k1 < lo:
             continue
         d = dims[f]
         i = k0 % cap
@@ -199,15 +205,16 @@ def _linearise(first, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dR
             ew[:d] *= scale
             JT[:, :d] *= scale
         if model[f] == RELATIVE_MODEL:
-            _add_normal(Hb, g, k0 - first, 0, k1 - first, DIM, JT, ew, d)
+            _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
         else:
-            _add_normal(Hb, g, k0 - first, 0, -1, 0, JT, ew, d)
+            _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
 
 
 @njit(cache=True)
-def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, first, Hb, g) -> None:
+def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, lo, Hb, g) -> None:
     """Add the linear prior ``e = R (x [-] x_lin) + e0`` on keyframes ``blocks`` (global numbers,
-    ascending) to ``Hb``, ``g``."""
+    ascending), linearised at the state arrays given, to the rows ``lo ..`` of ``Hb``, ``g`` (block
+    row 0 = keyframe ``lo``)."""
     P = blocks.shape[0]
     N = DIM * P
     dx = np.zeros(N)
@@ -234,14 +241,16 @@ def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, first
                     s += R[row, a * DIM + 6 + q] * D[a, q, c]
                 J[row, a * DIM + 6 + c] = s
     for a in range(P):
-        ba = blocks[a] - first
+        ba = blocks[a] - lo
+        if ba < 0:
+            continue
         for p in range(DIM):
             s = 0.0
             for row in range(N):
                 s += J[row, a * DIM + p] * e[row]
             g[ba * DIM + p] += s
         for b in range(a + 1):
-            bb = blocks[b] - first
+            bb = blocks[b] - lo
             for p in range(DIM):
                 for q in range(DIM):
                     s = 0.0
@@ -251,36 +260,39 @@ def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, first
 
 
 @njit(cache=True)
-def _factorise(Hb, L) -> int:
-    """Block-banded Cholesky ``H = L L^T`` (``L[k, s]``: block ``(k, k - s)``); returns -1, or the
-    block whose pivot failed."""
-    n, S1 = Hb.shape[0], Hb.shape[1]
-    S = S1 - 1
+def _factorise(Hr, L, first, start, newest, cap, S) -> int:
+    """Rows ``start .. newest`` of the block-banded Cholesky factor ``H = L L^T`` of the window
+    ``first .. newest`` (bandwidth ``S``): ``Hr[k - start, s]`` is block ``(k, k - s)`` of ``H``,
+    ``L[k % cap, s]`` block ``(k, k - s)`` of ``L`` (the rows before ``start`` are kept: they
+    depend on the rows of ``H`` before ``start`` only). Returns -1, or the keyframe whose pivot
+    failed."""
     M = np.empty((DIM, DIM))
-    for k in range(n):
-        for s in range(min(k, S), 0, -1):
+    for k in range(start, newest + 1):
+        top = min(k - first, S)
+        row = k % cap
+        for s in range(top, 0, -1):
             j = k - s
-            M[:, :] = Hb[k, s]
-            for i in range(max(k - S, 0), j):  # blocks left of j in both rows k and j
-                if j - i <= S:
-                    A, B = L[k, k - i], L[j, j - i]
-                    for p in range(DIM):
-                        for q in range(DIM):
-                            acc = 0.0
-                            for c in range(DIM):
-                                acc += A[p, c] * B[q, c]
-                            M[p, q] -= acc
-            Ljj = L[j, 0]
-            X = L[k, s]
+            jrow = j % cap
+            M[:, :] = Hr[k - start, s]
+            for i in range(max(k - top, j - min(j - first, S)), j):  # blocks left of j in rows k and j
+                A, B = L[row, k - i], L[jrow, j - i]
+                for p in range(DIM):
+                    for q in range(DIM):
+                        acc = 0.0
+                        for c in range(DIM):
+                            acc += A[p, c] * B[q, c]
+                        M[p, q] -= acc
+            Ljj = L[jrow, 0]
+            X = L[row, s]
             for p in range(DIM):  # X Ljj^T = M, row by row (forward substitution)
                 for q in range(DIM):
                     acc = M[p, q]
                     for c in range(q):
                         acc -= X[p, c] * Ljj[q, c]
                     X[p, q] = acc / Ljj[q, q]
-        M[:, :] = Hb[k, 0]
-        for s in range(1, min(k, S) + 1):
-            A = L[k, s]
+        M[:, :] = Hr[k - start, 0]
+        for s in range(1, top + 1):
+            A = L[row, s]
             for p in range(DIM):
                 for q in range(p + 1):
                     acc = 0.0
@@ -290,75 +302,96 @@ def _factorise(Hb, L) -> int:
         for p in range(DIM):  # symmetric: the lower triangle is what the block Cholesky reads
             for q in range(p + 1, DIM):
                 M[p, q] = M[q, p]
-        if not cholesky_into(M, L[k, 0]):
+        if not cholesky_into(M, L[row, 0]):
             return k
     return -1
 
 
 @njit(cache=True)
-def _forward(L, b, first_block) -> None:
-    """``b <- L^-1 b`` in place (``b (n*15, m)``; blocks before ``first_block`` are zero)."""
-    n, S = L.shape[0], L.shape[1] - 1
-    m = b.shape[1]
-    for k in range(first_block, n):
-        for s in range(1, min(k - first_block, S) + 1):
-            A = L[k, s]
+def _forward(L, b, first, start, zero_before, newest, cap, S) -> None:
+    """``b <- L^-1 b`` for the rows ``start .. newest`` of the window ``first .. newest``, in
+    place (``b[k % cap]`` the ``(15, m)`` block of keyframe ``k``; the rows before ``start`` are
+    solved already, those before ``zero_before`` are zero)."""
+    m = b.shape[2]
+    for k in range(start, newest + 1):
+        row = k % cap
+        for s in range(1, min(k - max(first, zero_before), S) + 1):
+            A, x = L[row, s], b[(k - s) % cap]
             for p in range(DIM):
                 for c in range(m):
                     acc = 0.0
                     for q in range(DIM):
-                        acc += A[p, q] * b[(k - s) * DIM + q, c]
-                    b[k * DIM + p, c] -= acc
-        Lkk = L[k, 0]
+                        acc += A[p, q] * x[q, c]
+                    b[row, p, c] -= acc
+        Lkk = L[row, 0]
         for c in range(m):
             for p in range(DIM):
-                acc = b[k * DIM + p, c]
+                acc = b[row, p, c]
                 for q in range(p):
-                    acc -= Lkk[p, q] * b[k * DIM + q, c]
-                b[k * DIM + p, c] = acc / Lkk[p, p]
+                    acc -= Lkk[p, q] * b[row, q, c]
+                b[row, p, c] = acc / Lkk[p, p]
 
 
 @njit(cache=True)
-def _backward(L, b, last_block) -> None:
-    """``b <- L^-T b`` in place, blocks ``n - 1`` down to ``last_block``."""
-    n, S = L.shape[0], L.shape[1] - 1
-    m = b.shape[1]
-    for k in range(n - 1, last_block - 1, -1):
-        for s in range(1, min(n - 1 - k, S) + 1):
-            A = L[k + s, s]  # block (k + s, k)
+def _backward(L, b, stop, newest, cap, S) -> None:
+    """``b <- L^-T b`` in place, rows ``newest`` down to ``stop`` (``b`` as :func:`_forward`'s)."""
+    m = b.shape[2]
+    for k in range(newest, stop - 1, -1):
+        row = k % cap
+        for s in range(1, min(newest - k, S) + 1):
+            A, x = L[(k + s) % cap, s], b[(k + s) % cap]  # block (k + s, k)
             for p in range(DIM):
                 for c in range(m):
                     acc = 0.0
                     for q in range(DIM):
-                        acc += A[q, p] * b[(k + s) * DIM + q, c]
-                    b[k * DIM + p, c] -= acc
-        Lkk = L[k, 0]
+                        acc += A[q, p] * x[q, c]
+                    b[row, p, c] -= acc
+        Lkk = L[row, 0]
         for c in range(m):
             for p in range(DIM - 1, -1, -1):
-                acc = b[k * DIM + p, c]
+                acc = b[row, p, c]
                 for q in range(p + 1, DIM):
-                    acc -= Lkk[q, p] * b[k * DIM + q, c]
-                b[k * DIM + p, c] = acc / Lkk[p, p]
+                    acc -= Lkk[q, p] * b[row, q, c]
+                b[row, p, c] = acc / Lkk[p, p]
 
 
 @njit(cache=True)
-def _step(first, n, cap, delta, r, v, C, bf, bw) -> None:
-    """``x <- x [+] delta`` for the window's keyframes (left attitude increment)."""
+def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> None:
+    """``x = theta [+] delta`` for the window's keyframes (left attitude increment)."""
     E = np.empty((3, 3))
-    T = np.empty((3, 3))
-    for blk in range(n):
-        s = (first + blk) % cap
-        o = blk * DIM
+    for k in range(first, newest + 1):
+        s = k % cap
         for c in range(3):
-            r[s, c] += delta[o + c]
-            v[s, c] += delta[o + 3 + c]
-            bf[s, c] += delta[o + 9 + c]
-            bw[s, c] += delta[o + 12 + c]
-        so3.exp_into(delta[o + 6], delta[o + 7], delta[o + 8], E)
+            xr[s, c] = r[s, c] + delta[s, c, 0]
+            xv[s, c] = v[s, c] + delta[s, 3 + c, 0]
+            xbf[s, c] = bf[s, c] + delta[s, 9 + c, 0]
+            xbw[s, c] = bw[s, c] + delta[s, 12 + c, 0]
+        so3.exp_into(delta[s, 6, 0], delta[s, 7, 0], delta[s, 8, 0], E)
         for a in range(3):
             for b in range(3):
-                T[a, b] = E[a, 0] * C[s, 0, b] + E[a, 1] * C[s, 1, b] + E[a, 2] * C[s, 2, b]
-        C[s] = T
+                xC[s, a, b] = E[a, 0] * C[s, 0, b] + E[a, 1] * C[s, 1, b] + E[a, 2] * C[s, 2, b]
+
+
+@njit(cache=True)
+def _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved) -> int:
+    """Move the linearisation point ``theta`` of each window keyframe whose offset ``delta`` exceeds
+    ``threshold`` in any component to its estimate (``theta <- theta [+] delta = x``,
+    ``delta <- 0``), flagging it in ``moved``; returns the oldest moved keyframe, or -1."""
+    oldest = -1
+    for k in range(first, newest + 1):
+        s = k % cap
+        moved[s] = False
+        for i in range(DIM):
+            if abs(delta[s, i, 0]) > threshold[i]:
+                moved[s] = True
+                break
+        if moved[s]:
+            if oldest < 0:
+                oldest = k
+            r[s, :], v[s, :], bf[s, :], bw[s, :] = xr[s], xv[s], xbf[s], xbw[s]
+            C[s, :, :] = xC[s]
+            delta[s] = 0.0
+    return oldest
 
 
 @njit(cache=True)
@@ -445,26 +478,38 @@ class SlidingWindow:
     """The compiled fixed-lag smoother (module docstring), fed one keyframe at a time.
 
     ``lag_s``: keyframes older than the newest one's time minus the lag leave at the next update;
-    ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's. Keyframe ``k`` (0, 1, ...) has a time stamp and
+    ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's;
+    ``relinearisation_threshold`` (15 numbers in the error state's units, or one for all): a
+    keyframe is linearised again when its offset from its linearisation point exceeds it in any
+    component (0: every keyframe at every update). Keyframe ``k`` (0, 1, ...) has a time stamp and
     the window is ``first .. newest``; :meth:`leaving` names the keyframes the next update
     marginalises, which the caller reads (and records with :meth:`taken`) before it."""
 
     kind = "sliding"
 
     def __init__(self, lag_s: float, gravity=imu.DEFAULT_GRAVITY,
-                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
+                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
+                 relinearisation_threshold=None):
         if not lag_s > 0:
             raise InputError(f"lag must be positive, got {lag_s}")
+        threshold = RELINEARISATION_THRESHOLD if relinearisation_threshold is None else relinearisation_threshold
+        threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (DIM,)).copy()
+        if not np.all(threshold >= 0):
+            raise InputError(f"relinearisation_threshold: expected numbers >= 0, got {threshold.tolist()}")
         self.lag_s = float(lag_s)
         self.gravity = np.asarray(gravity, dtype=float)
         self.threshold = float(reintegration_threshold)
+        self.relinearisation_threshold = threshold
         self.first, self.newest = 0, -1
         self.recovered: list[int] = []
         self.skipped = 0
         self.update_s: list[float] = []
+        #: keyframes linearised again at each update
+        self.relinearised: list[int] = []
         self._taken_after: dict[int, int] = {}
         self._priors: list[_LinearPrior] = []
-        self._L = None  # the last factorisation (its blocks: keyframes first .. newest)
+        self._S = 1  # the bandwidth of the factor L
+        self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -472,7 +517,9 @@ class SlidingWindow:
     # -- storage ----------------------------------------------------------------------------------
 
     def _allocate_keyframes(self, cap: int) -> None:
-        shapes = {"_t": (), "_r": (3,), "_v": (3,), "_C": (3, 3), "_bf": (3,), "_bw": (3,), "_dC": (3, 3),
+        shapes = {"_t": (), "_r": (3,), "_v": (3,), "_C": (3, 3), "_bf": (3,), "_bw": (3,),
+                  "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
+                  "_L": (self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
                   "_bwbar": (3,), "_Wimu": (DIM, DIM)}
         old = {name: getattr(self, name, None) for name in shapes}
@@ -481,6 +528,7 @@ class SlidingWindow:
         for name, tail in shapes.items():
             setattr(self, name, np.zeros((cap,) + tail))
         self._has_imu = np.zeros(cap, dtype=np.bool_)
+        self._moved = np.zeros(cap, dtype=np.bool_)
         self._pre = [None] * cap
         for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
             a, b = k % old_cap, k % cap
@@ -499,8 +547,11 @@ class SlidingWindow:
                 fresh[:m] = getattr(self, name)[:m]
             setattr(self, name, fresh)
 
-    def _state_arrays(self):
+    def _linearisation_points(self):
         return self._r, self._v, self._C, self._bf, self._bw
+
+    def _estimates(self):
+        return self._xr, self._xv, self._xC, self._xbf, self._xbw
 
     # -- the KeyframeWindow interface -----------------------------------------------------------
 
@@ -526,8 +577,8 @@ class SlidingWindow:
     def state(self, k: int) -> imu.ImuState:
         """Window keyframe ``k``'s estimate after the last update."""
         s = k % self._cap
-        return imu.ImuState(self._r[s].copy(), self._v[s].copy(), self._C[s].copy(), self._bf[s].copy(),
-                            self._bw[s].copy())
+        return imu.ImuState(self._xr[s].copy(), self._xv[s].copy(), self._xC[s].copy(), self._xbf[s].copy(),
+                            self._xbw[s].copy())
 
     @property
     def newest_state(self) -> imu.ImuState:
@@ -538,17 +589,21 @@ class SlidingWindow:
         interval ``pre`` from the newest keyframe (one :class:`factors.preintegration.Preintegrated`
         interval with its covariance; None: no IMU factor), ``measurements`` (``(spec, m,
         keyframes, robust)``: measurement ``m`` of a :class:`smoother.graph.MeasurementSpec`, the
-        keyframes it reads, a robust spec or None) and ``prior`` ``(state, cov)`` on the new keyframe; one Gauss-Newton step; returns the new keyframe's estimate.
+        keyframes it reads, a robust spec or None) and ``prior`` ``(state, cov)`` on the new
+        keyframe; one update (module docstring); returns the new keyframe's estimate.
         Measurements reading a keyframe that has left are skipped and counted in ``skipped``."""
         tick = time.perf_counter()
         k = self.newest + 1
+        self._relinearise()
         self._marginalise(self.leaving(t))
         if k - self.first + 1 > self._cap:
             self._allocate_keyframes(2 * self._cap)
         s = k % self._cap
         self._t[s] = t
-        for name, value in zip(("_r", "_v", "_C", "_bf", "_bw"), (guess.r, guess.v, guess.C, guess.b_f, guess.b_w)):
-            getattr(self, name)[s] = value
+        for arrays in (self._linearisation_points(), self._estimates()):
+            for a, value in zip(arrays, (guess.r, guess.v, guess.C, guess.b_f, guess.b_w)):
+                a[s] = value
+        self._dx[s] = 0.0
         self._has_imu[s] = False
         self._pre[s] = None
         linked = k == 0
@@ -567,7 +622,7 @@ class SlidingWindow:
         if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
             self._add_prior(k, guess, np.diag(WEAK_PRIOR_SIGMAS ** 2))
             self.recovered.append(k)
-        self._gauss_newton_step(t)
+        self._solve(t)
         self.update_s.append(time.perf_counter() - tick)
         return self.newest_state
 
@@ -575,14 +630,14 @@ class SlidingWindow:
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted`` at the
         last linearisation: blocks of ``H^-1``."""
         out = []
+        b = np.zeros((self._cap, DIM, DIM))
         for k in wanted:
-            blk = k - self.first
-            n = self._L.shape[0]
-            b = np.zeros((n * DIM, DIM))
-            b[blk * DIM:(blk + 1) * DIM] = np.eye(DIM)
-            _forward(self._L, b, blk)
-            _backward(self._L, b, blk)
-            cov = b[blk * DIM:(blk + 1) * DIM]
+            for j in range(k, self.newest + 1):
+                b[j % self._cap] = 0.0
+            b[k % self._cap] = np.eye(DIM)
+            _forward(self._L, b, self.first, k, k, self.newest, self._cap, self._S)
+            _backward(self._L, b, k, self.newest, self._cap, self._S)
+            cov = b[k % self._cap]
             out.append(0.5 * (cov + cov.T))
         return np.stack(out)
 
@@ -620,16 +675,24 @@ class SlidingWindow:
                                          state.C[None].copy(), state.b_f[None].copy(), state.b_w[None].copy(),
                                          whitening(cov), np.zeros(DIM)))
 
-    def _reintegrate(self) -> None:
-        """Integrate again the intervals whose earlier keyframe's gyro bias moved beyond the threshold."""
-        ks = np.arange(self.first + 1, self.newest + 1)
-        if not ks.size:
+    def _relinearise(self) -> None:
+        """Move the linearisation points of the keyframes that moved beyond the threshold to their
+        estimates, integrate again the intervals out of those whose gyro bias moved beyond the
+        reintegration threshold, and mark the rows of ``L`` their factors change as stale."""
+        if self.newest < 0:
             return
-        later, earlier = ks % self._cap, (ks - 1) % self._cap
-        drift = np.max(np.abs(self._bw[earlier] - self._bwbar[later]), axis=1)
-        for j, i in zip(later[(drift > self.threshold) & self._has_imu[later]],
-                        earlier[(drift > self.threshold) & self._has_imu[later]]):
-            self._store_interval(j, self._pre[j].relinearized(self._bw[i]), whiten=False)
+        oldest = _relinearise(self.first, self.newest, self._cap, self._dx, self.relinearisation_threshold,
+                              *self._linearisation_points(), *self._estimates(), self._moved)
+        if oldest < 0:
+            return
+        moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
+        self.relinearised.append(len(moved))
+        for i in moved:
+            j = (i + 1) % self._cap
+            if i < self.newest and self._has_imu[j] and np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j])) > self.threshold:
+                self._store_interval(j, self._pre[j].relinearized(self._bw[i % self._cap]), whiten=False)
+        # the factors of a moved keyframe reach at most the bandwidth back
+        self._stale = min(self._stale, oldest - self._bandwidth())
 
     def _bandwidth(self) -> int:
         S = 1
@@ -639,39 +702,51 @@ class SlidingWindow:
             S = max(S, int(p.keyframes[-1] - p.keyframes[0]))
         return S
 
-    def _normal_equations(self, cut: int, n: int, S: int):
+    def _normal_equations(self, lo: int, cut: int, n: int, S: int):
+        """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
+        factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)`` and ``g``."""
         Hb = np.zeros((n, S + 1, DIM, DIM))
         g = np.zeros(n * DIM)
         with _compiling():
-            _linearise(self.first, cut, self._cap, *self._state_arrays(), self._has_imu, self._dC, self._Wp, self._Rm,
-                       self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity, self._m, self._mk,
-                       self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk, Hb, g)
+            _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
+                       self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
+                       self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk, Hb, g)
         for p in self._priors:
-            if p.keyframes[0] < cut:
-                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, self._cap, *self._state_arrays(),
-                            self.first, Hb, g)
+            if p.keyframes[0] < cut and p.keyframes[-1] >= lo:
+                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, self._cap,
+                            *self._linearisation_points(), lo, Hb, g)
         return Hb, g
 
-    def _gauss_newton_step(self, t: float) -> None:
-        n = self.newest - self.first + 1
-        self._reintegrate()
-        Hb, g = self._normal_equations(self.newest + 1, n, self._bandwidth())
-        L = np.zeros_like(Hb)
-        failed = _factorise(Hb, L)
+    def _solve(self, t: float) -> None:
+        """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
+        keyframes linearised again, and everything after them), solve ``H delta = -g`` at the
+        linearisation points, set the estimates to ``theta [+] delta``."""
+        S = self._bandwidth()
+        if S != self._S:  # a new bandwidth: L anew
+            self._S = S
+            self._L = np.zeros((self._cap, S + 1, DIM, DIM))
+            self._stale = self.first
+        start = max(min(self._stale, self.newest - S), self.first)
+        Hr, g = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
+        failed = _factorise(Hr, self._L, self.first, start, self.newest, self._cap, S)
         if failed >= 0:
-            k = self.first + failed
+            self._stale = self.first  # the next update factorises the whole window again
             raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
-                                 f"information of keyframe {k} (t = {self.time(k):.6f} s) is not positive definite. "
-                                 "Check the data around that time (an IMU gap, a measurement far off).")
-        delta = -g[:, None]
-        _forward(L, delta, 0)
-        _backward(L, delta, 0)
-        _step(self.first, n, self._cap, delta[:, 0], *self._state_arrays())
-        self._L = L
+                                 f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
+                                 "definite. Check the data around that time (an IMU gap, a measurement far off).")
+        for k in range(start, self.newest + 1):
+            self._y[k % self._cap, :, 0] = -g[(k - start) * DIM:(k - start + 1) * DIM]
+        _forward(self._L, self._y, self.first, start, self.first, self.newest, self._cap, S)
+        self._dx[:] = self._y
+        _backward(self._L, self._dx, self.first, self.newest, self._cap, S)
+        _boxplus(self.first, self.newest, self._cap, self._dx, *self._linearisation_points(), *self._estimates())
+        self._stale = self.newest + 1
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
-        complement onto the keyframes they also touch, a :class:`_LinearPrior` at the current estimate."""
+        complement onto the keyframes they also touch, a :class:`_LinearPrior` at their
+        linearisation points. The rows of ``L`` after ``leaving`` stay: eliminating the oldest
+        keyframes first, they are the factor of that Schur complement already."""
         if not leaving:
             return
         for j in leaving:
@@ -682,7 +757,7 @@ class SlidingWindow:
         S = self._bandwidth()
         nl = cut - self.first
         n = min(self.newest - self.first + 1, nl + S)
-        Hb, g = self._normal_equations(cut, n, S)
+        Hb, g = self._normal_equations(self.first, cut, n, S)
         Hs, gs, ok = _schur(Hb, g, nl)
         if not ok:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
@@ -707,8 +782,7 @@ class SlidingWindow:
             R, e0 = _square_root(Hs, gs)
             keyframes = np.array([cut + b for b in touched])
             slots = keyframes % self._cap
-            self._priors.append(_LinearPrior(keyframes, self._r[slots].copy(), self._v[slots].copy(),
-                                             self._C[slots].copy(), self._bf[slots].copy(), self._bw[slots].copy(),
+            self._priors.append(_LinearPrior(keyframes, *(a[slots].copy() for a in self._linearisation_points()),
                                              R, e0))
 
 

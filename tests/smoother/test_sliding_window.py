@@ -31,32 +31,98 @@ def _banded(rng, n: int, S: int) -> tuple[np.ndarray, np.ndarray]:
     return Hb, H
 
 
+def _ring(Hb: np.ndarray, first: int, cap: int) -> np.ndarray:
+    """The keyframe blocks ``Hb`` (keyframes ``first ..``) in ring slots ``k % cap``."""
+    out = np.zeros((cap,) + Hb.shape[1:])
+    for b in range(len(Hb)):
+        out[(first + b) % cap] = Hb[b]
+    return out
+
+
+def _solve(L, g, first, n, cap, S):
+    """``H^-1 g`` through the ring factor ``L`` (window ``first .. first + n - 1``)."""
+    y = _ring(-g.reshape(n, DIM, 1), first, cap)
+    sw._forward(L, y, first, first, first, first + n - 1, cap, S)
+    sw._backward(L, y, first, first + n - 1, cap, S)
+    return -np.concatenate([y[(first + b) % cap, :, 0] for b in range(n)])
+
+
 @pytest.mark.parametrize("n, S", [(1, 1), (6, 1), (7, 2), (5, 4)])
 def test_banded_cholesky_solve_and_covariances_equal_dense_numpy(n, S):
+    """Window keyframes 5 .. 5 + n - 1 in a ring of 8 slots (it wraps round)."""
     rng = np.random.default_rng(n * 10 + S)
     Hb, H = _banded(rng, n, S)
-    L = np.zeros_like(Hb)
-    assert sw._factorise(Hb, L) == -1
+    first, cap = 5, 8
+    L = np.zeros((cap, S + 1, DIM, DIM))
+    assert sw._factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
     g = rng.normal(size=n * DIM)
-    x = g[:, None].copy()
-    sw._forward(L, x, 0)
-    sw._backward(L, x, 0)
-    np.testing.assert_allclose(x[:, 0], np.linalg.solve(H, g), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(_solve(L, g, first, n, cap, S), np.linalg.solve(H, g), rtol=1e-9, atol=1e-12)
     inverse = np.linalg.inv(H)
     for j in range(n):
-        b = np.zeros((n * DIM, DIM))
-        b[j * DIM:(j + 1) * DIM] = np.eye(DIM)
-        sw._forward(L, b, j)
-        sw._backward(L, b, j)
-        np.testing.assert_allclose(b[j * DIM:(j + 1) * DIM], inverse[j * DIM:(j + 1) * DIM, j * DIM:(j + 1) * DIM],
+        b = np.zeros((cap, DIM, DIM))
+        b[(first + j) % cap] = np.eye(DIM)
+        sw._forward(L, b, first, first + j, first + j, first + n - 1, cap, S)
+        sw._backward(L, b, first + j, first + n - 1, cap, S)
+        np.testing.assert_allclose(b[(first + j) % cap], inverse[j * DIM:(j + 1) * DIM, j * DIM:(j + 1) * DIM],
                                    rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("S", [1, 2])
+def test_rows_factorised_again_from_a_keyframe_on_equal_a_whole_factorisation(S):
+    """Changing the rows of ``H`` from keyframe ``b0`` on and factorising only those rows again
+    gives the factor of the new matrix, and the forward solution kept for the rows before ``b0``
+    stays valid."""
+    rng = np.random.default_rng(S)
+    n, first, cap, b0 = 7, 3, 8, 4
+    Hb, H = _banded(rng, n, S)
+    L = np.zeros((cap, S + 1, DIM, DIM))
+    assert sw._factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
+    g = rng.normal(size=n * DIM)
+    y = _ring(-g.reshape(n, DIM, 1), first, cap)
+    sw._forward(L, y, first, first, first, first + n - 1, cap, S)
+    J = rng.normal(size=(DIM, DIM * (S + 1)))  # a factor on keyframes b0 .. b0 + S (within the band)
+    H2 = H.copy()
+    H2[b0 * DIM:(b0 + S + 1) * DIM, b0 * DIM:(b0 + S + 1) * DIM] += J.T @ J
+    Hb2 = Hb.copy()
+    for k in range(b0, n):
+        for s in range(min(k, S) + 1):
+            Hb2[k, s] = H2[k * DIM:(k + 1) * DIM, (k - s) * DIM:(k - s + 1) * DIM]
+    g2 = g.copy()
+    g2[b0 * DIM:] += rng.normal(size=(n - b0) * DIM)
+    assert sw._factorise(Hb2[b0:], L, first, first + b0, first + n - 1, cap, S) == -1
+    for k in range(b0, n):
+        y[(first + k) % cap, :, 0] = -g2[k * DIM:(k + 1) * DIM]
+    sw._forward(L, y, first, first + b0, first, first + n - 1, cap, S)
+    sw._backward(L, y, first, first + n - 1, cap, S)
+    x = -np.concatenate([y[(first + b) % cap, :, 0] for b in range(n)])
+    np.testing.assert_allclose(x, np.linalg.solve(H2, g2), rtol=1e-8, atol=1e-11)
+
+
+def test_the_rows_after_marginalised_keyframes_factor_their_schur_complement():
+    """Eliminating the oldest keyframes first, the factor's rows after them (and their forward
+    solution) are those of the Schur complement: marginalising needs no new factorisation."""
+    rng = np.random.default_rng(3)
+    n, S, nl, cap = 6, 2, 2, 8
+    Hb, H = _banded(rng, n, S)
+    g = rng.normal(size=n * DIM)
+    L = np.zeros((cap, S + 1, DIM, DIM))
+    assert sw._factorise(Hb, L, 0, 0, n - 1, cap, S) == -1
+    m = nl * DIM
+    Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
+    gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
+    y = _ring(-g.reshape(n, DIM, 1), 0, cap)
+    sw._forward(L, y, 0, 0, 0, n - 1, cap, S)
+    sw._backward(L, y, nl, n - 1, cap, S)  # the window is now nl .. n - 1
+    x = -np.concatenate([y[b % cap, :, 0] for b in range(nl, n)])
+    np.testing.assert_allclose(x, np.linalg.solve(Hs, gs), rtol=1e-8, atol=1e-11)
+    np.testing.assert_allclose(_solve(L, gs, nl, n - nl, cap, S), np.linalg.solve(Hs, gs), rtol=1e-8, atol=1e-11)
 
 
 def test_an_indefinite_block_is_named():
     rng = np.random.default_rng(0)
     Hb, _ = _banded(rng, 4, 1)
     Hb[2, 0] -= 1e6 * np.eye(DIM)
-    assert sw._factorise(Hb, np.zeros_like(Hb)) == 2
+    assert sw._factorise(Hb, np.zeros((8, 2, DIM, DIM)), 0, 0, 3, 8, 1) == 2
 
 
 @pytest.mark.parametrize("nl", [1, 2])
