@@ -64,8 +64,11 @@ _MAX_DIM = 6  # the widest measurement residual (pose, odometry)
 _FAST = {"reassoc", "contract"}
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
 #: linearised again, per error-state component ``(dr [m], dv [m/s], dphi [rad], db_f [m/s^2],
-#: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component).
-RELINEARISATION_THRESHOLD = np.zeros(15)
+#: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component). The residuals are linear in
+#: position and accelerometer bias and bilinear in velocity and attitude, so attitude and gyro
+#: bias carry the nonlinearity: 1 mrad and 1e-4 rad/s keep the estimates within 0.01 sigma of
+#: relinearising everything at every update on the benchmark's run (``docs/performance.md``).
+RELINEARISATION_THRESHOLD = np.array([0.05] * 3 + [0.05] * 3 + [1e-3] * 3 + [0.05] * 3 + [1e-4] * 3)
 
 
 @dataclass
@@ -370,6 +373,52 @@ def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -
         for a in range(3):
             for b in range(3):
                 xC[s, a, b] = E[a, 0] * C[s, 0, b] + E[a, 1] * C[s, 1, b] + E[a, 2] * C[s, 2, b]
+
+
+@njit(cache=True)
+def _solve_rows(Hr, g, L, y, delta, first, start, newest, cap, S, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> int:
+    """One update's linear algebra: the rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`),
+    the forward solution ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``;
+    the rows before kept), ``delta = L^-T y`` and the estimates ``theta [+] delta``
+    (:func:`_boxplus`). Returns -1, or the keyframe whose pivot failed (nothing else done)."""
+    failed = _factorise(Hr, L, first, start, newest, cap, S)
+    if failed >= 0:
+        return failed
+    for k in range(start, newest + 1):
+        s = k % cap
+        for p in range(DIM):
+            y[s, p, 0] = -g[(k - start) * DIM + p]
+    _forward(L, y, first, start, first, newest, cap, S)
+    for k in range(first, newest + 1):
+        s = k % cap
+        for p in range(DIM):
+            delta[s, p, 0] = y[s, p, 0]
+    _backward(L, delta, first, newest, cap, S)
+    _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw)
+    return -1
+
+
+@njit(cache=True)
+def _max_span(mk, m) -> int:
+    """The longest span (later minus earlier keyframe) of measurements ``0 .. m - 1``, at least 1."""
+    S = 1
+    for f in range(m):
+        S = max(S, mk[f, 1] - mk[f, 0])
+    return S
+
+
+@njit(cache=True)
+def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk) -> int:
+    """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
+    rest; returns their number."""
+    n = 0
+    for f in range(m):
+        if mk[f, 0] >= cut:
+            if n != f:
+                mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
+                Wm[n], rcode[n], rk[n] = Wm[f], rcode[f], rk[f]
+            n += 1
+    return n
 
 
 @njit(cache=True)
@@ -695,9 +744,8 @@ class SlidingWindow:
         self._stale = min(self._stale, oldest - self._bandwidth())
 
     def _bandwidth(self) -> int:
-        S = 1
-        if self._m:
-            S = max(S, int(np.max(self._mk[:self._m, 1] - self._mk[:self._m, 0])))
+        """How many keyframes back the longest factor reaches (IMU factors: 1)."""
+        S = _max_span(self._mk, self._m)
         for p in self._priors:
             S = max(S, int(p.keyframes[-1] - p.keyframes[0]))
         return S
@@ -728,18 +776,13 @@ class SlidingWindow:
             self._stale = self.first
         start = max(min(self._stale, self.newest - S), self.first)
         Hr, g = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
-        failed = _factorise(Hr, self._L, self.first, start, self.newest, self._cap, S)
+        failed = _solve_rows(Hr, g, self._L, self._y, self._dx, self.first, start, self.newest, self._cap, S,
+                             *self._linearisation_points(), *self._estimates())
         if failed >= 0:
             self._stale = self.first  # the next update factorises the whole window again
             raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
                                  f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
                                  "definite. Check the data around that time (an IMU gap, a measurement far off).")
-        for k in range(start, self.newest + 1):
-            self._y[k % self._cap, :, 0] = -g[(k - start) * DIM:(k - start + 1) * DIM]
-        _forward(self._L, self._y, self.first, start, self.first, self.newest, self._cap, S)
-        self._dx[:] = self._y
-        _backward(self._L, self._dx, self.first, self.newest, self._cap, S)
-        _boxplus(self.first, self.newest, self._cap, self._dx, *self._linearisation_points(), *self._estimates())
         self._stale = self.newest + 1
 
     def _marginalise(self, leaving: list[int]) -> None:
@@ -766,11 +809,8 @@ class SlidingWindow:
         # keep the keyframes the marginal ties (non-zero information)
         touched = np.flatnonzero(np.any(Hs.reshape(n - nl, DIM * Hs.shape[1]) != 0.0, axis=1))
         self._priors = [p for p in self._priors if p.keyframes[0] >= cut]
-        keep = self._mk[:self._m, 0] >= cut
-        for name in ("_mk", "_model", "_rows", "_dims", "_Wm", "_rcode", "_rk"):
-            a = getattr(self, name)
-            a[:int(keep.sum())] = a[:self._m][keep]
-        self._m = int(keep.sum())
+        self._m = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims, self._Wm,
+                                     self._rcode, self._rk)
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None
