@@ -10,9 +10,10 @@ origin there). Only measurements at or after ``t_s`` are used:
   the level sigma is wider when the IMU is not at rest) and the heading from the course over
   ground: the first two fixes a baseline apart (at least :data:`COURSE_DISTANCE_M` and five
   times the fixes' noise), against the body's direction of travel over that stretch (the velocity
-  sensor's measurements then, signed: reversing counts; without one the body x axis, i.e. the
-  vehicle is assumed to drive forwards), carried back to ``t_s`` through the gyro. Its sigma is
-  that of the baseline's direction plus the gyro-bias drift over the carry;
+  sensor's measurements then, signed: reversing counts; without one the vehicle's forward
+  direction in the IMU frame, ``forward``, by default the IMU's x axis: the vehicle is assumed to
+  drive forwards), carried back to ``t_s`` through the gyro. Its sigma is that of the baseline's
+  direction plus the gyro-bias drift over the carry;
 * **position**: the fix at ``t_s`` minus its lever arm, ``r = z - C p_BS``;
 * **velocity**: from the velocity sensor's measurement nearest ``t_s`` (within
   :data:`VELOCITY_WINDOW_S`) when there is one; else zero when the IMU is at rest (mean angular
@@ -36,6 +37,8 @@ from factors import preintegration, so3
 from factors.imu import STATE_DIM, ImuState
 from factors.sensor_models import extrinsic_parts
 
+#: The vehicle's forward direction in the IMU frame unless a rig says otherwise: the IMU's x axis.
+FORWARD = (1.0, 0.0, 0.0)
 #: Seconds of IMU data averaged for roll and pitch (and the rest test).
 LEVEL_WINDOW_S = 0.5
 #: The course over ground needs fixes at least this far apart [m] (and five times their noise).
@@ -124,9 +127,9 @@ def _level(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> np.ndarray:
     return so3.exp(axis / s * np.arctan2(s, c))
 
 
-def _travel_direction(velocity: list, t_a: float, t_b: float):
+def _travel_direction(velocity: list, t_a: float, t_b: float, forward: np.ndarray):
     """The body-frame direction of travel between ``t_a`` and ``t_b``: the signed mean of a velocity
-    sensor's measurements there (faster than 0.5 m/s), rotated into the body; else the body x axis
+    sensor's measurements there (faster than 0.5 m/s), rotated into the body; else ``forward``
     (a vehicle driving forwards). Whether it is horizontal is judged in the world frame, by
     :func:`_heading_from_course` (the IMU may be mounted in any orientation). Returns the direction
     and where it came from (for the message when it is not horizontal)."""
@@ -138,8 +141,10 @@ def _travel_direction(velocity: list, t_a: float, t_b: float):
             if np.linalg.norm(d) > 0.25:
                 return d / np.linalg.norm(d), (f"velocity sensor {s.name!r}'s measured direction: check the rotation "
                                                "of its T_BS, the sensor frame in the IMU frame")
-    return np.array([1.0, 0.0, 0.0]), ("IMU's x axis, taken as the direction of travel without a velocity "
-                                       "sensor: add one (wheel odometry), or a pose or orientation sensor")
+    return forward / np.linalg.norm(forward), (
+        f"vehicle's forward direction in the IMU frame, {np.round(forward, 3).tolist()} (the rig's [imu] forward), "
+        "taken as the direction of travel without a velocity sensor: set it, or add a velocity sensor "
+        "(wheel odometry), or a pose or orientation sensor")
 
 
 def _horizontal_sigma(m, k: int) -> float:
@@ -165,7 +170,8 @@ def _course(fixes: list):
     return None
 
 
-def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: list, velocity: list, gyro_bias_sigma):
+def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: list, velocity: list, gyro_bias_sigma,
+                         forward: np.ndarray):
     """``(C, heading sigma)``: the level attitude turned about the vertical so that the body's
     direction of travel, midway through the course's fix pair, points along the course (carried
     back to ``t_s``), or None without a course."""
@@ -175,7 +181,7 @@ def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: 
     t_a, t_b, d_world, sigma = course
     t_mid = 0.5 * (t_a + t_b)
     C_mid = level @ _attitude_change(imu, t_s, t_mid, np.zeros(3))  # heading 0 at t_s
-    d_body, source = _travel_direction(velocity, t_a, t_b)
+    d_body, source = _travel_direction(velocity, t_a, t_b, forward)
     d_body_world = C_mid @ d_body
     if np.linalg.norm(d_body_world[:2]) < 0.5:  # the vehicle would travel up or down
         raise InitialisationError("cannot fix the initial heading from the course over ground: the direction of "
@@ -217,10 +223,11 @@ def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
     return np.zeros(3), UNKNOWN_VELOCITY_SIGMA
 
 
-def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0.1, 0.01)):
+def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0.1, 0.01), forward=FORWARD):
     """``(t_s, state, cov)``: the start time, the state there and its 15x15 covariance
     (error-state order) found as the module docstring says. ``bias_sigma = (accelerometer
-    [m/s^2], gyro [rad/s])`` is the biases' prior."""
+    [m/s^2], gyro [rad/s])`` is the biases' prior; ``forward`` the vehicle's forward direction in
+    the IMU frame (any length)."""
     gravity = np.asarray(gravity, dtype=float)
     t_s = start_time(imu, sensors)
     sigma = np.zeros(STATE_DIM)
@@ -238,7 +245,7 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
         sigma[6:9] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[block]) + bias_sigma[1] * float(m.t[0] - t_s)
     else:
         level = _level(imu, t_s, gravity)
-        found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1])
+        found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1], np.asarray(forward, dtype=float))
         if found is None:
             raise InitialisationError(
                 "cannot fix the initial heading: no pose or orientation sensor, and no position/GNSS fixes "
@@ -275,12 +282,13 @@ def imu_from(imu: ImuSamples, t_s: float) -> ImuSamples:
                       np.concatenate([imu.gyro[k:k + 1], later.gyro]), t_ns)
 
 
-def self_initialised(dataset, bias_sigma=(0.1, 0.01)):
-    """``dataset`` started at :func:`start_time` with the state :func:`initial_state` finds,
-    its own initial state and covariance (and any ground truth) left unused."""
+def self_initialised(dataset, bias_sigma=(0.1, 0.01), forward=FORWARD):
+    """``dataset`` started at :func:`start_time` with the state :func:`initial_state` finds
+    (``bias_sigma``, ``forward`` as there), its own initial state and covariance (and any ground
+    truth) left unused."""
     from dataclasses import replace
 
     from datasets.kinds import sensors_of
 
-    t_s, state, cov = initial_state(dataset.imu, sensors_of(dataset), dataset.gravity, bias_sigma)
+    t_s, state, cov = initial_state(dataset.imu, sensors_of(dataset), dataset.gravity, bias_sigma, forward)
     return replace(dataset, imu=imu_from(dataset.imu, t_s), initial=state, initial_cov=cov)

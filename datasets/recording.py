@@ -120,7 +120,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout))
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
-    t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma)
+    t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,
                            initial_cov=cov, gravity=gravity, sensors=tuple(sensors), time_origin_ns=origin_ns,

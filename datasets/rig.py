@@ -15,6 +15,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     gyro_random_walk = 1.9e-5       # rad/s^2/sqrt(Hz)
     gravity = 9.81                  # optional, m/s^2 (magnitude; the world frame is z up)
     kalibr = "imu.yaml"             # optional: the densities from a Kalibr imu.yaml (keys here override)
+    forward = [1, 0, 0]             # optional: the vehicle's forward direction in the IMU frame (the
+                                    # heading from the GNSS course without a velocity sensor)
 
     [datum]                         # optional origin of the local ENU frame (GNSS);
     latitude = 47.0                 # default: the first valid GNSS fix
@@ -62,6 +64,7 @@ import numpy as np
 
 from datasets.errors import DataError
 from datasets.gnss import Datum
+from datasets.initialise import FORWARD
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
 from datasets.kinds import KIND_NAMES
 from datasets.robust import robust_spec
@@ -81,7 +84,7 @@ NOISE_KEYS = {
     "gyro_random_walk": "gyro_bias",
 }
 TOP_KEYS = ("imu", "datum", "sensor")
-IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr")
+IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
                "robust")
@@ -99,12 +102,14 @@ class RigError(ValueError):
 @dataclass(frozen=True)
 class ImuConfig:
     """The IMU: ``source`` (a spec with an absolute path), ``topic`` (bags) or None, the noise
-    densities and the magnitude of gravity [m/s^2]."""
+    densities, the magnitude of gravity [m/s^2] and the vehicle's ``forward`` direction in the IMU
+    frame (a unit 3-vector)."""
 
     source: str
     topic: str | None
     noise: ImuNoise
     gravity: float
+    forward: tuple = FORWARD
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,7 +229,17 @@ def _imu(path, folder: Path, table) -> ImuConfig:
         elif field not in densities:
             raise t.error(key, "missing; expected a density >= 0" + (" (here or in the Kalibr file)" if kalibr else ""))
     gravity = t.number("gravity", default=float(np.linalg.norm(DEFAULT_GRAVITY)), positive=True)
-    return ImuConfig(source, topic, ImuNoise(**densities), gravity)
+    return ImuConfig(source, topic, ImuNoise(**densities), gravity, _forward(t))
+
+
+def _forward(t: _Table) -> tuple:
+    value = t.get("forward", (list,), "the vehicle's forward direction in the IMU frame: 3 numbers", default=FORWARD)
+    if (len(value) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+            or not all(math.isfinite(x) for x in value) or math.hypot(*value) == 0.0):
+        raise t.error("forward", f"expected the vehicle's forward direction in the IMU frame: 3 finite numbers, not "
+                                 f"all zero (e.g. [-1, 0, 0] for an IMU whose x axis points backwards), got {value!r}")
+    norm = math.hypot(*value)
+    return tuple(float(x) / norm for x in value)
 
 
 def _datum(path, folder: Path, table) -> Datum:

@@ -97,7 +97,8 @@ def test_an_imu_on_its_side_gets_its_heading_from_the_wheels():
     error = np.linalg.norm(so3.boxminus(started.initial.C, data.truth.C[k] @ R))
     assert error < 3 * np.sqrt(started.initial_cov[6:9, 6:9].diagonal().max()), np.rad2deg(error)
     no_wheels = replace_sensors(_remounted(data, R), keep=("gnss",))
-    with pytest.raises(InitialisationError, match="is not horizontal; it is the IMU's x axis"):
+    with pytest.raises(InitialisationError, match="is not horizontal; it is the vehicle's forward direction in the "
+                                                  r"IMU frame, \[1.0, 0.0, 0.0\] \(the rig's \[imu\] forward\)"):
         self_initialised(no_wheels)
     from dataclasses import replace as _replace
 
@@ -107,6 +108,21 @@ def test_an_imu_on_its_side_gets_its_heading_from_the_wheels():
         wheel.data, T_BS=data.sensors[1].data.T_BS))))
     with pytest.raises(InitialisationError, match="velocity sensor 'wheel'.s measured direction: check the rotation"):
         self_initialised(wrong)
+
+
+def test_an_imu_mounted_backwards_needs_the_vehicles_forward_direction():
+    """GNSS only, the IMU turned 180 deg about its z axis (x pointing backwards): taking the IMU's
+    x axis as the direction of travel starts the heading 180 deg off; given ``forward = (-1, 0,
+    0)`` the start is within its own 3 sigma."""
+    data = simulate("gentle", duration=20, seed=2, pose_rate=None, sensors=[GNSS])
+    R = so3.exp([0.0, 0.0, np.pi])
+    backwards = _remounted(data, R)
+    k = np.searchsorted(data.truth.t, self_initialised(backwards).t0)
+    wrong = np.linalg.norm(so3.boxminus(self_initialised(backwards).initial.C, data.truth.C[k] @ R))
+    assert wrong > np.deg2rad(150.0), np.rad2deg(wrong)
+    started = self_initialised(backwards, forward=(-1.0, 0.0, 0.0))
+    error = np.linalg.norm(so3.boxminus(started.initial.C, data.truth.C[k] @ R))
+    assert error < 3 * np.sqrt(started.initial_cov[6:9, 6:9].diagonal().max()), np.rad2deg(error)
 
 
 def replace_sensors(data, keep):

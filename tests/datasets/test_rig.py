@@ -26,6 +26,7 @@ topic = "/fix"
 T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]
 """
 FULL = IMU + """gravity = 9.80665
+forward = [-2, 0, 0]
 
 [datum]
 latitude = 47.0
@@ -56,6 +57,7 @@ def test_a_full_rig(tmp_path):
     assert rig.imu.source == f"bag:{tmp_path / 'run.bag'}" and rig.imu.topic == "/imu/data"
     assert rig.imu.noise == ImuNoise(acc=2.0e-3, gyro=1.7e-4, acc_bias=3.0e-3, gyro_bias=1.9e-5)
     assert rig.imu.gravity == 9.80665 and rig.datum == Datum(47.0, 8.0, 400.0)
+    assert rig.imu.forward == (-1.0, 0.0, 0.0)  # a direction: any length
     gnss, mocap = rig.sensors
     assert (gnss.name, gnss.kind, gnss.topic, gnss.time_offset, gnss.every, gnss.robust) == (
         "gnss", "gnss", "/fix", -0.02, 2, ("cauchy", 3.0))
@@ -68,6 +70,7 @@ def test_a_full_rig(tmp_path):
 def test_defaults_and_no_sensors(tmp_path):
     rig = load_rig(_rig(tmp_path, IMU.replace('"bag:run.bag"\ntopic = "/imu/data"', '"csv:imu0/data.csv"')))
     assert rig.imu.topic is None and rig.imu.gravity == pytest.approx(9.81) and rig.datum is None
+    assert rig.imu.forward == (1.0, 0.0, 0.0)
     assert rig.sensors == ()
 
 
@@ -140,6 +143,12 @@ NOT_RIGID = "[[1,0,0,0],[0,1,0,0],[0,0,1.001,0],[0,0,0,1]]"
               "T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]\ncamchain = 'c.yaml'\ncamera = 'cam0'"),
      "rig.toml: sensor[1] \"gnss\".camchain: give either T_BS or camchain, not both"),
     (_replace("[imu]", "[[imu]]"), "rig.toml: imu: expected a table, got an array"),
+    (_replace("forward = [-2, 0, 0]", "forward = [0, 0, 0]"),
+     "rig.toml: imu.forward: expected the vehicle's forward direction in the IMU frame: 3 finite numbers, not all "
+     "zero (e.g. [-1, 0, 0] for an IMU whose x axis points backwards), got [0, 0, 0]"),
+    (_replace("forward = [-2, 0, 0]", "forward = [1, 0]"), "rig.toml: imu.forward: expected the vehicle's forward"),
+    (_replace("forward = [-2, 0, 0]", 'forward = "-x"'),
+     "rig.toml: imu.forward: expected the vehicle's forward direction in the IMU frame: 3 numbers, got a string"),
     (lambda text: IMU + '[sensor]\nname = "gnss"\n',
      "rig.toml: sensor: expected an array of tables ([[sensor]]), got a table"),
     (_replace("gravity = 9.80665", "gravity = 9.80665 m/s^2"), "rig.toml: TOML syntax error: Expected newline or end "
