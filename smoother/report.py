@@ -8,7 +8,8 @@ estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est
 ``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
 fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
 makes small without being accurate; estimators are compared by held-out fixes only. Both with
-the estimate interpolated linearly to the fix times.
+the estimate interpolated linearly to the fix times. :func:`interpolation_baseline` is the
+yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
 
 A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
 :attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states
@@ -108,6 +109,34 @@ def score(dataset: Dataset, estimate: Trajectory) -> dict:
         out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, slice(2, 3))
         out["gps_fit_residual_m"] = _rms_distance(used, estimate)
     return out
+
+
+def interpolation_baseline(dataset: Dataset) -> dict | None:
+    """What connecting the dots gives, the yardstick of the held-out metrics: each position or
+    GNSS stream's used fixes interpolated linearly (per world axis) to the times of its held-out
+    fixes between its first and last used fix. ``gps_heldout_rmse_m`` and its horizontal and
+    vertical parts (as :func:`score`'s) and ``heldout_fixes`` (how many counted); None without
+    held-out fixes inside the used ones' span. (An estimator's held-out figure also counts the
+    held-out fixes after the last used one, inside its own span.)"""
+    pairs = [(dataset.position, dataset.heldout_positions)] + [
+        (s.data, s.heldout) for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
+    residuals = [np.empty((0, 3))]
+    for used, held in pairs:
+        if used is None or held is None or len(used) < 2:
+            continue
+        inside = (held.t >= used.t[0]) & (held.t <= used.t[-1])
+        t = held.t[inside]
+        interpolated = np.stack([np.interp(t, used.t, used.position[:, a]) for a in range(3)], axis=-1)
+        residuals.append(interpolated - held.position[inside])
+    residual = np.concatenate(residuals)
+    if not len(residual):
+        return None
+
+    def rms(axes):
+        return float(np.sqrt(np.mean(np.sum(residual[:, axes] ** 2, axis=1))))
+
+    return {"gps_heldout_rmse_m": rms(slice(0, 3)), "gps_heldout_horizontal_rmse_m": rms(slice(0, 2)),
+            "gps_heldout_vertical_rmse_m": rms(slice(2, 3)), "heldout_fixes": int(len(residual))}
 
 
 def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:

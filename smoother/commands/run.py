@@ -186,6 +186,9 @@ def _run(args) -> int:
         consistency = sensor_consistency(dataset, estimates, run_options)
         for est in estimates.values():
             est.details["sensors"] = consistency
+    baseline = report.interpolation_baseline(dataset)
+    if baseline is not None:
+        run_info["interpolated_fixes"] = baseline
     metrics = report.write_outputs(out, dataset, estimates,
                                    {**run_info, "total_s": time.perf_counter() - started})
     if args.plot:
@@ -194,6 +197,10 @@ def _run(args) -> int:
         for path in plots.plot_run(out):
             print(f"wrote {path}", file=sys.stderr)
     print(format_table(metrics))
+    if baseline is not None:
+        print(f"the used fixes interpolated, no IMU ({baseline['heldout_fixes']} held-out fixes between them): "
+              f"held-out {baseline['gps_heldout_rmse_m']:.4f} m, horizontal "
+              f"{baseline['gps_heldout_horizontal_rmse_m']:.4f} m, vertical {baseline['gps_heldout_vertical_rmse_m']:.4f} m")
     latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
     if latency is not None:
         print(f"fixed-lag latency, measurement arrival to updated estimate ({latency['measurements']} measurements): "
