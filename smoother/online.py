@@ -226,28 +226,46 @@ class OnlineSmoother:
         ``max_delay_s``."""
         self._open()
         n = self._n
-        if np.ndim(t) == 0 and np.shape(acc) == (3,) and np.shape(gyro) == (3,):  # one sample: kept lean
-            t = float(t)
-            if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
-                    and (n == 0 or t > self._t[n - 1])):
-                self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
-            if n == len(self._t):
-                self._grow(1)
-                n = self._n
-            self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
-            self._n = n + 1
-        else:
-            t, acc, gyro = self._checked_imu(t, acc, gyro)
-            if n + t.size > len(self._t):
-                self._grow(t.size)
-                n = self._n
-            self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
-            self._n = n + t.size
+        if np.shape(acc) == (3,) and np.shape(gyro) == (3,) and (type(t) is float or np.ndim(t) == 0):
+            self._add_one_imu(float(t), acc, gyro)  # one sample: kept lean
+            return
+        t, acc, gyro = self._checked_imu(t, acc, gyro)
+        if n + t.size > len(self._t):
+            self._grow(t.size)
+            n = self._n
+        self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
+        self._n = n + t.size
         if self._t0 is None:
-            self._t0 = float(self._t[0])
-            self._grid_t = self._t0 if self.keyframe_rate else np.inf
-            self._ask(self._t0)
-        horizon = self._t[self._n - 1] - self.max_delay_s
+            self._started()
+        self._reach(self._t[self._n - 1] - self.max_delay_s)
+
+    def _add_one_imu(self, t: float, acc, gyro) -> None:
+        """:meth:`add_imu` of one sample (``acc``, ``gyro`` of shape (3,)) with as few NumPy calls as
+        it takes: the checks of :meth:`_checked_imu` run only when the quick test (finite, after the
+        newest sample) fails, to raise their error."""
+        n = self._n
+        if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
+                and (n == 0 or t > self._t[n - 1])):
+            self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
+        if n == len(self._t):
+            self._grow(1)
+            n = self._n
+        self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
+        self._n = n + 1
+        if self._t0 is None:
+            self._started()
+        self._reach(t - self.max_delay_s)
+
+    def _started(self) -> None:
+        """At the first IMU sample(s): the first sample's time is the first keyframe's and the grid's
+        start."""
+        self._t0 = float(self._t[0])
+        self._grid_t = self._t0 if self.keyframe_rate else np.inf
+        self._ask(self._t0)
+
+    def _reach(self, horizon: float) -> None:
+        """The IMU stream has reached ``horizon`` (its newest time less ``max_delay_s``): make the
+        keyframes asked for up to there, if any."""
         if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
             self._make_keyframes(horizon)
 
