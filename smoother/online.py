@@ -66,7 +66,7 @@ from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 from smoother.graph import measurement_spec
 from smoother.sliding_window import SlidingWindow
 from smoother.progress import progress_bar
-from smoother.timeline import estimate_times, steps_between
+from smoother.timeline import estimate_times, interval_steps
 from factors.errors import InputError
 
 
@@ -504,13 +504,9 @@ class OnlineSmoother:
             guess = self.initial
             prior = (self.initial, self.initial_cov)
         else:
-            lo = self._held_at(self._last_t)
-            hi = int(np.searchsorted(self._t[:self._n], t, side="left")) + 1
-            steps = steps_between(self._t[lo:hi], self._acc[lo:hi], self._gyro[lo:hi], [self._last_t, t])
+            acc, gyro, dt = interval_steps(self._t[:self._n], self._acc, self._gyro, self._last_t, t)
             start = window.newest_state
-            a, b = steps.knot_step  # the steps from the newest keyframe to t
-            pre = preintegration.integrate_interval(steps.acc[a:b], steps.gyro[a:b], steps.dt[a:b], start, self.noise,
-                                                    self.gravity)
+            pre = preintegration.integrate_interval(acc, gyro, dt, start, self.noise, self.gravity)
             guess = preintegration.predict(pre, start, self.gravity)
         used, measurements = [], []
         while self._pending and self._pending[0].latest <= t:
