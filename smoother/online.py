@@ -49,6 +49,7 @@ arrival to the update that used it.
 """
 from __future__ import annotations
 
+import functools
 import heapq
 from collections import deque
 import math
@@ -77,6 +78,13 @@ def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float
     if kind in ("incremental", "batch"):
         return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
     raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
+
+
+@functools.cache
+def _value_fields(data_type) -> tuple[str, ...]:
+    """The fields of a measurement data type (:mod:`datasets.types`) that :meth:`OnlineSmoother.add`
+    takes as values: all but ``cov`` and ``T_BS``."""
+    return tuple(f.name for f in fields(data_type) if f.name not in ("cov", "T_BS"))
 
 
 @dataclass(frozen=True)
@@ -299,7 +307,7 @@ class OnlineSmoother:
         self._open()
         setup, kind = self._setup(sensor)
         single = np.ndim(t) == 0
-        data_fields = [f.name for f in fields(kind.data_type) if f.name not in ("cov", "T_BS")]
+        data_fields = _value_fields(kind.data_type)
         if len(values) != len(data_fields) - 1:
             raise InputError(f"add({sensor!r}): expected {', '.join(data_fields)} (and cov), got "
                              f"{len(values) + 1} values")
@@ -329,7 +337,7 @@ class OnlineSmoother:
                              f"got {type(data).__name__}")
         spec = measurement_spec(Sensor(sensor, setup.kind, data))
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
-        if not np.all(np.isfinite(stamps)):
+        if not np.isfinite(stamps).all():
             raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
         arrived = time.perf_counter()
         for m, times in enumerate(stamps):
