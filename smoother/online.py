@@ -533,19 +533,20 @@ class OnlineSmoother:
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k
-        self._keyframe_t = {x: j for x, j in self._keyframe_t.items() if j >= window.first}  # the window's
+        while next(iter(self._keyframe_t.values())) < window.first:  # the window's only (in time order)
+            del self._keyframe_t[next(iter(self._keyframe_t))]
         self._last_t = t
         if any(self._setup(item.sensor)[1].absolute for item in used):  # dead reckoning ends here
             if self._last_measured_t is None:
                 self._last_measured_t = self._t0
             self._gap(t)
             self._last_measured_t = t
-        cov = self._keyframe_covariances([k])[0] if self.covariances else np.zeros((imu.STATE_DIM, imu.STATE_DIM))
+        self._pred_cov = (np.array(self._keyframe_covariances([k])[0]) if self.covariances
+                          else np.zeros((imu.STATE_DIM, imu.STATE_DIM)))
         s = window.newest_state
         self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
         x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
         self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
-        self._pred_cov = np.array(cov)
         self._pred_t, self._pred_held = t, self._held_at(t)
         done = time.perf_counter()  # the updated estimate is ready (its covariance included)
         self.latency_s += [done - item.arrived for item in used]
