@@ -49,6 +49,7 @@ arrival to the update that used it.
 """
 from __future__ import annotations
 
+import functools
 import heapq
 from collections import deque
 import math
@@ -66,7 +67,7 @@ from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 from smoother.graph import measurement_spec
 from smoother.sliding_window import SlidingWindow
 from smoother.progress import progress_bar
-from smoother.timeline import estimate_times, steps_between
+from smoother.timeline import estimate_times, interval_steps
 from factors.errors import InputError
 
 
@@ -77,6 +78,13 @@ def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float
     if kind in ("incremental", "batch"):
         return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
     raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
+
+
+@functools.cache
+def _value_fields(data_type) -> tuple[str, ...]:
+    """The fields of a measurement data type (:mod:`datasets.types`) that :meth:`OnlineSmoother.add`
+    takes as values: all but ``cov`` and ``T_BS``."""
+    return tuple(f.name for f in fields(data_type) if f.name not in ("cov", "T_BS"))
 
 
 @dataclass(frozen=True)
@@ -226,28 +234,46 @@ class OnlineSmoother:
         ``max_delay_s``."""
         self._open()
         n = self._n
-        if np.ndim(t) == 0 and np.shape(acc) == (3,) and np.shape(gyro) == (3,):  # one sample: kept lean
-            t = float(t)
-            if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
-                    and (n == 0 or t > self._t[n - 1])):
-                self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
-            if n == len(self._t):
-                self._grow(1)
-                n = self._n
-            self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
-            self._n = n + 1
-        else:
-            t, acc, gyro = self._checked_imu(t, acc, gyro)
-            if n + t.size > len(self._t):
-                self._grow(t.size)
-                n = self._n
-            self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
-            self._n = n + t.size
+        if np.shape(acc) == (3,) and np.shape(gyro) == (3,) and (type(t) is float or np.ndim(t) == 0):
+            self._add_one_imu(float(t), acc, gyro)  # one sample: kept lean
+            return
+        t, acc, gyro = self._checked_imu(t, acc, gyro)
+        if n + t.size > len(self._t):
+            self._grow(t.size)
+            n = self._n
+        self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
+        self._n = n + t.size
         if self._t0 is None:
-            self._t0 = float(self._t[0])
-            self._grid_t = self._t0 if self.keyframe_rate else np.inf
-            self._ask(self._t0)
-        horizon = self._t[self._n - 1] - self.max_delay_s
+            self._started()
+        self._reach(self._t[self._n - 1] - self.max_delay_s)
+
+    def _add_one_imu(self, t: float, acc, gyro) -> None:
+        """:meth:`add_imu` of one sample (``acc``, ``gyro`` of shape (3,)) with as few NumPy calls as
+        it takes: the checks of :meth:`_checked_imu` run only when the quick test (finite, after the
+        newest sample) fails, to raise their error."""
+        n = self._n
+        if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
+                and (n == 0 or t > self._t[n - 1])):
+            self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
+        if n == len(self._t):
+            self._grow(1)
+            n = self._n
+        self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
+        self._n = n + 1
+        if self._t0 is None:
+            self._started()
+        self._reach(t - self.max_delay_s)
+
+    def _started(self) -> None:
+        """At the first IMU sample(s): the first sample's time is the first keyframe's and the grid's
+        start."""
+        self._t0 = float(self._t[0])
+        self._grid_t = self._t0 if self.keyframe_rate else np.inf
+        self._ask(self._t0)
+
+    def _reach(self, horizon: float) -> None:
+        """The IMU stream has reached ``horizon`` (its newest time less ``max_delay_s``): make the
+        keyframes asked for up to there, if any."""
         if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
             self._make_keyframes(horizon)
 
@@ -281,7 +307,7 @@ class OnlineSmoother:
         self._open()
         setup, kind = self._setup(sensor)
         single = np.ndim(t) == 0
-        data_fields = [f.name for f in fields(kind.data_type) if f.name not in ("cov", "T_BS")]
+        data_fields = _value_fields(kind.data_type)
         if len(values) != len(data_fields) - 1:
             raise InputError(f"add({sensor!r}): expected {', '.join(data_fields)} (and cov), got "
                              f"{len(values) + 1} values")
@@ -311,7 +337,7 @@ class OnlineSmoother:
                              f"got {type(data).__name__}")
         spec = measurement_spec(Sensor(sensor, setup.kind, data))
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
-        if not np.all(np.isfinite(stamps)):
+        if not np.isfinite(stamps).all():
             raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
         arrived = time.perf_counter()
         for m, times in enumerate(stamps):
@@ -486,13 +512,9 @@ class OnlineSmoother:
             guess = self.initial
             prior = (self.initial, self.initial_cov)
         else:
-            lo = self._held_at(self._last_t)
-            hi = int(np.searchsorted(self._t[:self._n], t, side="left")) + 1
-            steps = steps_between(self._t[lo:hi], self._acc[lo:hi], self._gyro[lo:hi], [self._last_t, t])
+            acc, gyro, dt = interval_steps(self._t[:self._n], self._acc, self._gyro, self._last_t, t)
             start = window.newest_state
-            a, b = steps.knot_step  # the steps from the newest keyframe to t
-            pre = preintegration.integrate_interval(steps.acc[a:b], steps.gyro[a:b], steps.dt[a:b], start, self.noise,
-                                                    self.gravity)
+            pre = preintegration.integrate_interval(acc, gyro, dt, start, self.noise, self.gravity)
             guess = preintegration.predict(pre, start, self.gravity)
         used, measurements = [], []
         while self._pending and self._pending[0].latest <= t:
@@ -511,19 +533,20 @@ class OnlineSmoother:
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k
-        self._keyframe_t = {x: j for x, j in self._keyframe_t.items() if j >= window.first}  # the window's
+        while next(iter(self._keyframe_t.values())) < window.first:  # the window's only (in time order)
+            del self._keyframe_t[next(iter(self._keyframe_t))]
         self._last_t = t
         if any(self._setup(item.sensor)[1].absolute for item in used):  # dead reckoning ends here
             if self._last_measured_t is None:
                 self._last_measured_t = self._t0
             self._gap(t)
             self._last_measured_t = t
-        cov = self._keyframe_covariances([k])[0] if self.covariances else np.zeros((imu.STATE_DIM, imu.STATE_DIM))
+        self._pred_cov = (np.array(self._keyframe_covariances([k])[0]) if self.covariances
+                          else np.zeros((imu.STATE_DIM, imu.STATE_DIM)))
         s = window.newest_state
         self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
         x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
         self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
-        self._pred_cov = np.array(cov)
         self._pred_t, self._pred_held = t, self._held_at(t)
         done = time.perf_counter()  # the updated estimate is ready (its covariance included)
         self.latency_s += [done - item.arrived for item in used]

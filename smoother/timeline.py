@@ -69,6 +69,18 @@ def steps_between(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, knots) -> St
     )
 
 
+def interval_steps(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, t_from: float, t_to: float) -> tuple:
+    """The steps of :func:`steps_between` ``(t, acc, gyro, [t_from, t_to])`` from its first knot to its
+    second, bit for bit, as ``(acc, gyro, dt)`` (``acc``, ``gyro`` views of the samples'), without
+    its sort: one interval of an online smoother, at every keyframe. ``t[0] <= t_from < t_to``,
+    the samples checked by the caller."""
+    first = int(np.searchsorted(t, t_from, side="right")) - 1  # the sample held at t_from
+    stop = int(np.searchsorted(t, t_to, side="left"))  # the samples before t_to
+    bounds = np.empty(stop - first + 1)
+    bounds[0], bounds[1:-1], bounds[-1] = t_from, t[first + 1:stop], t_to
+    return acc[first:stop], gyro[first:stop], np.diff(bounds)
+
+
 def estimate_times(dataset: Dataset, grid_rate: float | None = None) -> np.ndarray:
     """Where the estimators report states (the smoothers' keyframes, the EKF's knots): every
     measurement time (pose, position, orientation, both ends of each relative pose, every sensor's),

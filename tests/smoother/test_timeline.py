@@ -3,7 +3,8 @@
 What is proved here: a knot strictly inside an IMU interval splits it into two steps that hold
 the same sample (zero-order hold); a knot on a sample time adds no step; the steps tile the IMU
 span (sum of dt = span, every dt > 0, start times = the merged time grid); ``knot_step`` points at
-the step that starts at each knot; ``segments()`` returns the steps between consecutive knots
+the step that starts at each knot; ``interval_steps`` (one interval, the online smoother's) gives the same steps between two knots
+bit for bit; ``segments()`` returns the steps between consecutive knots
 padded with ``dt = 0`` (and zero samples), so that preintegrating the segments reproduces the
 sample-by-sample integration of the steps at every knot; knots outside the IMU span or not
 strictly increasing raise ``ValueError``.
@@ -21,7 +22,7 @@ from hypothesis import strategies as st
 
 from datasets.types import ImuSamples
 from factors import imu, preintegration, so3
-from smoother.timeline import imu_steps
+from smoother.timeline import imu_steps, interval_steps, steps_between
 
 EPS = float(np.finfo(float).eps)
 
@@ -154,6 +155,19 @@ def test_steps_tile_the_span_with_zero_order_hold(case):
         assert np.array_equal(gyro[j, :n], steps.gyro[start:start + n])
         assert not dt[j, n:].any() and not acc[j, n:].any() and not gyro[j, n:].any()
         assert abs(dt[j].sum() - (knots[j + 1] - knots[j])) <= 4 * (n + 1) * EPS * max(abs(t[0]), abs(t[-1]), span)
+
+
+@settings(max_examples=100, deadline=None)
+@given(streams_and_knots())
+def test_interval_steps_are_those_of_steps_between_bit_for_bit(case):
+    t, knots = case
+    imu_data = samples(t)
+    for t_from, t_to in zip(knots[:-1], knots[1:]):
+        steps = steps_between(imu_data.t, imu_data.acc, imu_data.gyro, [t_from, t_to])
+        a, b = steps.knot_step
+        acc, gyro, dt = interval_steps(imu_data.t, imu_data.acc, imu_data.gyro, t_from, t_to)
+        assert np.array_equal(acc, steps.acc[a:b]) and np.array_equal(gyro, steps.gyro[a:b])
+        assert np.array_equal(dt, steps.dt[a:b])
 
 
 def test_preintegrated_segments_reproduce_the_steps_at_every_knot():
