@@ -486,21 +486,34 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors, noise, gravity)
 
 
-def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, gravity) -> Preintegrated:
+def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, gravity) -> tuple:
     """One interval of samples ``acc, gyro (K, 3)``, ``dt (K,)`` preintegrated around the biases
-    of ``start`` with its covariance along ``start``: what :func:`integrate_with_covariance` gives
-    for ``J = 1`` without anchors, bit for bit, as one interval (no leading dimension), through
-    the same kernels without its checks -- the per-keyframe path of an online smoother, whose
-    samples and states are checked where they enter. Float arrays, finite, as documented there."""
-    acc, gyro, dt = (np.ascontiguousarray(a, dtype=float)[None] for a in (acc, gyro, dt))
-    b_w, b_f = np.array(start.b_w, dtype=float)[None], np.array(start.b_f, dtype=float)[None]
-    pre, task = _integration(acc, gyro, dt, b_w)
-    task(0, 1)
-    pre.cov = np.empty((1, imu.STATE_DIM, imu.STATE_DIM))
-    ref_v, ref_C = np.array(start.v, dtype=float)[None], np.array(start.C, dtype=float)[None]
-    _covariance_kernel(*pre.samples, pre.b_w_bar, b_f, ref_v, ref_C, np.asarray(gravity, dtype=float),
-                       noise.densities(), COVARIANCE_FLOOR**2, 0, 1, pre.cov)
-    return pre[0]
+    of ``start`` with its covariance along ``start`` -- what :func:`integrate_with_covariance`
+    gives for ``J = 1`` without anchors, as one interval (no leading dimension) -- and the state
+    :func:`predict` gives from ``start`` through it: ``(Preintegrated, ImuState)``, the same kernels
+    in one compiled call (:func:`_interval_kernel`) without the checks: the per-keyframe path of an
+    online smoother, whose samples and states are checked where they enter. Float arrays, finite,
+    as documented there; the samples are copied (the interval keeps them to integrate again)."""
+    acc, gyro, dt = (np.array(a, dtype=float)[None] for a in (acc, gyro, dt))
+    pre = Preintegrated(np.empty((1, 3, 3)), np.empty((1, 3, 10)), np.empty((1, 3, 10)), np.empty((1, 3, 3)),
+                        np.empty((1, 3, 10, 3)), np.empty((1, 3, 10, 3)), np.array(start.b_w, dtype=float)[None],
+                        (acc, gyro, dt), np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
+    r, v, C = np.empty((1, 3)), np.empty((1, 3)), np.empty((1, 3, 3))
+    _interval_kernel(acc, gyro, dt, pre.b_w_bar, np.array(start.b_f, dtype=float)[None],
+                     np.array(start.r, dtype=float)[None], np.array(start.v, dtype=float)[None],
+                     np.array(start.C, dtype=float)[None], np.asarray(gravity, dtype=float), noise.densities(),
+                     COVARIANCE_FLOOR**2, pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.cov, r, v, C)
+    return pre[0], imu.ImuState(r[0], v[0], C[0], np.array(start.b_f, dtype=float), pre.b_w_bar[0].copy())
+
+
+@recursion
+def _interval_kernel(acc, gyro, dt, b_w_bar, b_f, r0, v0, C0, g, q, floor, dC, W, Rm, JC, dW, dRm, cov, r, v, C):
+    """:func:`integrate_interval`'s one compiled call over one interval (leading dimension 1):
+    :func:`_integrate_kernel`, :func:`_covariance_kernel` along the start ``(r0, v0, C0)`` and
+    :func:`_predict_rows` from it (biases ``b_f``, ``b_w_bar``) into ``r, v, C``."""
+    _integrate_kernel(acc, gyro, dt, b_w_bar, 0, 1, dC, W, Rm, JC, dW, dRm)
+    _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, v0, C0, g, q, floor, 0, 1, cov)
+    _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C)
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,

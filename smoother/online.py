@@ -514,8 +514,7 @@ class OnlineSmoother:
         else:
             acc, gyro, dt = interval_steps(self._t[:self._n], self._acc, self._gyro, self._last_t, t)
             start = window.newest_state
-            pre = preintegration.integrate_interval(acc, gyro, dt, start, self.noise, self.gravity)
-            guess = preintegration.predict(pre, start, self.gravity)
+            pre, guess = preintegration.integrate_interval(acc, gyro, dt, start, self.noise, self.gravity)
         used, measurements = [], []
         while self._pending and self._pending[0].latest <= t:
             item = heapq.heappop(self._pending)

@@ -436,19 +436,28 @@ def test_integrate_with_covariance_is_integrate_plus_noise_covariance_along_the_
         assert np.allclose(states.r, anchors.r) and np.allclose(states.C, anchors.C)
 
 
-def test_integrate_interval_is_integrate_with_covariance_of_one_interval():
-    """The unchecked one-interval path gives what the checked call gives for ``J = 1``, bit for
-    bit: every preintegrated quantity, the samples it keeps, and the covariance."""
+def test_integrate_interval_is_integrate_with_covariance_of_one_interval_and_predict():
+    """The unchecked one-interval path gives what the checked call gives for ``J = 1`` (every
+    preintegrated quantity, the covariance, bit for bit or to round-off where the kernels are
+    compiled into another caller; the samples it keeps exactly, as copies) and the prediction
+    :func:`predict` gives from the start through it."""
     rng = np.random.default_rng(7)
     acc, gyro, dt = padded_intervals(rng, [23])
     start = random_state(rng)
     noise = imu.ImuNoise(acc=0.02, gyro=2e-3, acc_bias=1e-3, gyro_bias=1e-4, velocity=1e-3)
     whole, _ = preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY)
-    one = preintegration.integrate_interval(acc[0], gyro[0], dt[0], start, noise, GRAVITY)
+    given = acc[0].copy()
+    one, predicted = preintegration.integrate_interval(given, gyro[0], dt[0], start, noise, GRAVITY)
     for name in ("dC", "W", "Rm", "JC", "dW", "dRm", "b_w_bar", "cov"):
-        assert np.array_equal(getattr(one, name), getattr(whole[0], name)), name
+        mine, theirs = getattr(one, name), getattr(whole[0], name)
+        np.testing.assert_allclose(mine, theirs, rtol=1e-13, atol=1e-13 * np.abs(theirs).max(), err_msg=name)
     for mine, theirs in zip(one.samples, whole[0].samples):
         assert np.array_equal(mine, theirs)
+    given[:] = 0.0  # the interval keeps its own samples
+    assert np.array_equal(one.samples[0], acc[0])
+    expected = preintegration.predict(whole[0], start, GRAVITY)
+    assert imu.boxminus(predicted, expected).max() < 1e-12
+    assert np.array_equal(predicted.b_f, start.b_f) and np.array_equal(predicted.b_w, start.b_w)
 
 
 def test_results_do_not_depend_on_the_number_of_threads(monkeypatch):
