@@ -385,14 +385,17 @@ def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -
 
 
 @njit(cache=True)
-def _solve_rows(Hr, g, L, y, delta, first, start, newest, cap, S, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> int:
+def _solve_rows(Hr, g, L, y, delta, first, start, newest, cap, S, threshold, moved, r, v, C, bf, bw, xr, xv, xC,
+                xbf, xbw):
     """One update's linear algebra: the rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`),
     the forward solution ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``;
-    the rows before kept), ``delta = L^-T y`` and the estimates ``theta [+] delta``
-    (:func:`_boxplus`). Returns -1, or the keyframe whose pivot failed (nothing else done)."""
+    the rows before kept), ``delta = L^-T y``, the estimates ``theta [+] delta`` (:func:`_boxplus`),
+    then the keyframes whose offset exceeds ``threshold`` linearised again
+    (:func:`_relinearise`). Returns ``(failed, oldest)``: -1 or the keyframe whose pivot failed
+    (nothing else done), and -1 or the oldest keyframe linearised again."""
     failed = _factorise(Hr, L, first, start, newest, cap, S)
     if failed >= 0:
-        return failed
+        return failed, -1
     for k in range(start, newest + 1):
         s = k % cap
         for p in range(DIM):
@@ -404,30 +407,22 @@ def _solve_rows(Hr, g, L, y, delta, first, start, newest, cap, S, r, v, C, bf, b
             delta[s, p, 0] = y[s, p, 0]
     _backward(L, delta, first, newest, cap, S)
     _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw)
-    return -1
+    return -1, _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved)
 
 
 @njit(cache=True)
-def _max_span(mk, m) -> int:
-    """The longest span (later minus earlier keyframe) of measurements ``0 .. m - 1``, at least 1."""
-    S = 1
-    for f in range(m):
-        S = max(S, mk[f, 1] - mk[f, 0])
-    return S
-
-
-@njit(cache=True)
-def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk) -> int:
+def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk):
     """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
-    rest; returns their number."""
-    n = 0
+    rest; returns their number and the longest span (later minus earlier keyframe) among them."""
+    n, span = 0, 0
     for f in range(m):
         if mk[f, 0] >= cut:
             if n != f:
                 mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
                 Wm[n], rcode[n], rk[n] = Wm[f], rcode[f], rk[f]
+            span = max(span, mk[n, 1] - mk[n, 0])
             n += 1
-    return n
+    return n, span
 
 
 @njit(cache=True)
@@ -502,19 +497,38 @@ def _schur(Hb, g, nl):
 
 
 @njit(cache=True)
-def _informed_blocks(H):
-    """The numbers of the 15-blocks of ``H`` whose rows are not all zero."""
-    n = H.shape[0] // DIM
+def _marginal_prior(Hb, g, nl):
+    """The linear prior that replaces the first ``nl`` blocks of the block-banded ``(Hb, g)``:
+    their Schur complement (:func:`_schur`) on the blocks it informs (rows not all zero),
+    ``touched`` (their numbers after the first ``nl``), as ``R`` (upper triangular, ``R^T R =
+    H_s``) and ``e0`` (``R^T e0 = g_s``). Returns ``(status, touched, A, b)``: status 0 with
+    ``(R, e0)``; 1 when ``H_ll`` is not positive definite; 2 when ``H_s`` is only semi-definite,
+    with ``(H_s, g_s)`` on the touched blocks for :func:`_semidefinite_square_root`."""
+    Hs, gs, ok = _schur(Hb, g, nl)
+    if not ok:
+        return 1, np.empty(0, dtype=np.int64), Hs, gs
+    n = Hs.shape[0] // DIM
     keep = np.zeros(n, dtype=np.bool_)
     for b in range(n):
         for p in range(b * DIM, (b + 1) * DIM):
-            for q in range(H.shape[1]):
-                if H[p, q] != 0.0:
+            for q in range(Hs.shape[1]):
+                if Hs[p, q] != 0.0:
                     keep[b] = True
-                    break
-            if keep[b]:
-                break
-    return np.flatnonzero(keep)
+    touched = np.flatnonzero(keep)
+    m = touched.size * DIM
+    Ht, gt = np.empty((m, m)), np.empty(m)
+    for a in range(touched.size):
+        for p in range(DIM):
+            gt[a * DIM + p] = gs[touched[a] * DIM + p]
+            for b in range(touched.size):
+                for q in range(DIM):
+                    Ht[a * DIM + p, b * DIM + q] = Hs[touched[a] * DIM + p, touched[b] * DIM + q]
+    Lc = np.empty((m, m))
+    if not cholesky_into(Ht, Lc):
+        return 2, touched, Ht, gt
+    e0 = gt.reshape(m, 1).copy()
+    _solve_lower(Lc, e0)
+    return 0, touched, Lc.T.copy(), e0[:, 0].copy()
 
 
 @njit(cache=True)
@@ -583,6 +597,7 @@ class SlidingWindow:
         self._taken_after: dict[int, int] = {}
         self._priors: list[_LinearPrior] = []
         self._S = 1  # the bandwidth of the factor L
+        self._spans = [0, 0]  # the longest span of the measurements, of the priors
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
@@ -668,7 +683,6 @@ class SlidingWindow:
         Measurements reading a keyframe that has left are skipped and counted in ``skipped``."""
         tick = time.perf_counter()
         k = self.newest + 1
-        self._relinearise()
         self._marginalise(self.leaving(t))
         if k - self.first + 1 > self._cap:
             self._allocate_keyframes(2 * self._cap)
@@ -734,6 +748,7 @@ class SlidingWindow:
         f = self._m
         d = cov.shape[-1]
         self._mk[f] = (min(keyframes), max(keyframes))
+        self._spans[0] = max(self._spans[0], max(keyframes) - min(keyframes))
         self._model[f] = model
         self._rows[f, :len(row)] = row
         self._dims[f] = d
@@ -749,16 +764,10 @@ class SlidingWindow:
                                          state.C[None].copy(), state.b_f[None].copy(), state.b_w[None].copy(),
                                          whitening(cov), np.zeros(DIM)))
 
-    def _relinearise(self) -> None:
-        """Move the linearisation points of the keyframes that moved beyond the threshold to their
-        estimates, integrate again the intervals out of those whose gyro bias moved beyond the
-        reintegration threshold, and mark the rows of ``L`` their factors change as stale."""
-        if self.newest < 0:
-            return
-        oldest = _relinearise(self.first, self.newest, self._cap, self._dx, self.relinearisation_threshold,
-                              *self._linearisation_points(), *self._estimates(), self._moved)
-        if oldest < 0:
-            return
+    def _relinearised(self, oldest: int) -> None:
+        """After :func:`_solve_rows` linearised keyframes ``oldest ..`` (those flagged) again:
+        integrate again the intervals out of those whose gyro bias moved beyond the reintegration
+        threshold, and mark the rows of ``L`` their factors change as stale."""
         moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
         self.relinearised.append(len(moved))
         for i in moved:
@@ -770,10 +779,7 @@ class SlidingWindow:
 
     def _bandwidth(self) -> int:
         """How many keyframes back the longest factor reaches (IMU factors: 1)."""
-        S = _max_span(self._mk, self._m)
-        for p in self._priors:
-            S = max(S, int(p.keyframes[-1] - p.keyframes[0]))
-        return S
+        return max(1, *self._spans)
 
     def _normal_equations(self, lo: int, cut: int, n: int, S: int):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
@@ -801,14 +807,17 @@ class SlidingWindow:
             self._stale = self.first
         start = max(min(self._stale, self.newest - S), self.first)
         Hr, g = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
-        failed = _solve_rows(Hr, g, self._L, self._y, self._dx, self.first, start, self.newest, self._cap, S,
-                             *self._linearisation_points(), *self._estimates())
+        failed, oldest = _solve_rows(Hr, g, self._L, self._y, self._dx, self.first, start, self.newest, self._cap, S,
+                                     self.relinearisation_threshold, self._moved, *self._linearisation_points(),
+                                     *self._estimates())
         if failed >= 0:
             self._stale = self.first  # the next update factorises the whole window again
             raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
                                  f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
                                  "definite. Check the data around that time (an IMU gap, a measurement far off).")
         self._stale = self.newest + 1
+        if oldest >= 0:
+            self._relinearised(oldest)
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
@@ -826,42 +835,34 @@ class SlidingWindow:
         nl = cut - self.first
         n = min(self.newest - self.first + 1, nl + S)
         Hb, g = self._normal_equations(self.first, cut, n, S)
-        Hs, gs, ok = _schur(Hb, g, nl)
-        if not ok:
+        status, touched, A, b = _marginal_prior(Hb, g, nl)
+        if status == 1:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
                                  f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
                                  "is not positive definite. Check the data around that time.")
         self._priors = [p for p in self._priors if p.keyframes[0] >= cut]
-        self._m = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims, self._Wm,
-                                     self._rcode, self._rk)
+        self._m, self._spans[0] = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
+                                                     self._Wm, self._rcode, self._rk)
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None
         self.first = cut
-        touched = _informed_blocks(Hs)  # keep the keyframes the marginal ties (non-zero information)
-        if touched.size:
-            if touched.size < n - nl:
-                idx = (touched[:, None] * DIM + np.arange(DIM)).ravel()
-                Hs, gs = Hs[np.ix_(idx, idx)], gs[idx]
-            R, e0 = _square_root(Hs, gs)
+        if touched.size:  # keep the keyframes the marginal ties (non-zero information)
+            R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
             keyframes = cut + touched
             slots = keyframes % self._cap
             self._priors.append(_LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0))
+        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors), default=0)
 
 
-def _square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g``: Cholesky, or for a semi-definite ``H``
-    (directions the marginalised factors did not inform) its eigen-decomposition without them."""
-    Lc = np.empty_like(H)
-    if cholesky_into(H, Lc):
-        e0 = g[:, None].copy()
-        _solve_lower(Lc, e0)
-        return Lc.T.copy(), e0[:, 0]
-    else:
-        lam, V = np.linalg.eigh(0.5 * (H + H.T))
-        keep = lam > 1e-12 * max(lam.max(), 1e-300)
-        R = np.sqrt(lam[keep])[:, None] * V[:, keep].T
-        R = np.vstack([R, np.zeros((len(H) - R.shape[0], len(H)))])
-        e0 = np.zeros(len(H))
-        e0[:int(keep.sum())] = (V[:, keep].T @ g) / np.sqrt(lam[keep])
-        return R, e0
+def _semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g`` for a positive semi-definite ``H`` (the
+    directions the marginalised factors did not inform left out, through its eigen-decomposition;
+    ``g`` has no part along them)."""
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    keep = lam > 1e-12 * max(lam.max(), 1e-300)
+    R = np.sqrt(lam[keep])[:, None] * V[:, keep].T
+    R = np.vstack([R, np.zeros((len(H) - R.shape[0], len(H)))])
+    e0 = np.zeros(len(H))
+    e0[:int(keep.sum())] = (V[:, keep].T @ g) / np.sqrt(lam[keep])
+    return R, e0
