@@ -15,9 +15,11 @@ from dataclasses import dataclass, field, fields
 import warnings
 
 import numpy as np
+from numba import njit
 
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 from factors.errors import InputError
+from factors.small_linalg import cholesky_into
 
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
@@ -69,40 +71,74 @@ def check_times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
 
 def check_covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
     """``cov`` (one ``(dim, dim)`` matrix, broadcast, or ``(n, dim, dim)``) as symmetric positive
-    definite covariances of shape ``(n, dim, dim)``."""
+    definite covariances of shape ``(n, dim, dim)`` (:func:`_covariance_defect`)."""
     cov = np.asarray(cov, dtype=float)
     if cov.shape == (dim, dim):
         cov = np.broadcast_to(cov, (n, dim, dim)).copy()
     cov = check_array(name, cov, (dim, dim), n)
-    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
-    scale = np.abs(cov).max(axis=(1, 2)) + 1e-300
-    if (asym > 1e-9 * scale).any():
-        i = int(np.argmax(asym > 1e-9 * scale))
+    i, defect = _covariance_defect(np.ascontiguousarray(cov))
+    if defect == 1:
         raise InputError(f"{name}: covariance at row {i} is not symmetric")
-    try:
-        np.linalg.cholesky(cov)  # what whitening needs; ~7x faster than eigenvalues (N large: a trajectory)
-    except np.linalg.LinAlgError:
-        eig_min = np.linalg.eigvalsh(cov).min(axis=1)
-        i = int(np.argmax(eig_min <= 0)) if np.any(eig_min <= 0) else int(np.argmin(eig_min))
-        raise InputError(
-            f"{name}: covariance at row {i} is not positive definite (smallest eigenvalue {eig_min[i]:.3g})"
-        ) from None
+    if defect == 2:
+        raise InputError(f"{name}: covariance at row {i} is not positive definite (smallest eigenvalue "
+                         f"{np.linalg.eigvalsh(cov[i]).min():.3g})")
     return cov
 
 
-_EYE3 = np.eye(3)
-_EYE3.flags.writeable = False
+@njit(cache=True)
+def _covariance_defect(cov):
+    """``(row, 1)`` for the first of the matrices ``cov (n, d, d)`` that is not symmetric (an
+    entry off its transpose's by more than 1e-9 times the largest), else ``(row, 2)`` for the
+    first that is not positive definite (its Cholesky factorisation, what whitening needs, fails),
+    else ``(-1, 0)``."""
+    n, d = cov.shape[0], cov.shape[1]
+    for i in range(n):
+        scale, asym = 1e-300, 0.0
+        for a in range(d):
+            for b in range(d):
+                scale = max(scale, abs(cov[i, a, b]))
+                asym = max(asym, abs(cov[i, a, b] - cov[i, b, a]))
+        if asym > 1e-9 * scale:
+            return i, 1
+    L = np.empty((d, d))
+    for i in range(n):
+        if not cholesky_into(cov[i], L):
+            return i, 2
+    return -1, 0
 
 
 def check_rotations(name: str, C, n: int) -> np.ndarray:
-    """``C`` as ``n`` rotation matrices (orthonormal within 1e-6, det > 0) of shape ``(n, 3, 3)``."""
+    """``C`` as ``n`` rotation matrices (orthonormal within 1e-6, det > 0) of shape ``(n, 3, 3)``
+    (:func:`_rotation_defect`)."""
     C = check_array(name, C, (3, 3), n)
-    err = np.abs(C @ np.swapaxes(C, 1, 2) - _EYE3).max(axis=(1, 2)) if n else np.zeros(0)
-    det = np.linalg.det(C) if n else np.zeros(0)
-    if (err > 1e-6).any() or (det <= 0).any():
-        i = int(np.argmax((err > 1e-6) | (det <= 0)))
-        raise InputError(f"{name}: row {i} is not a rotation matrix (|C C^T - I| = {err[i]:.3g}, det {det[i]:.6g})")
+    i, err, det = _rotation_defect(np.ascontiguousarray(C))
+    if i >= 0:
+        raise InputError(f"{name}: row {i} is not a rotation matrix (|C C^T - I| = {err:.3g}, det {det:.6g})")
     return C
+
+
+@njit(cache=True)
+def _rotation_defect(C):
+    """``(row, |C C^T - I|, det C)`` of the first of the matrices ``C (n, 3, 3)`` that is not a
+    rotation (an entry of ``C C^T - I`` beyond 1e-6, or ``det C <= 0``), or ``(-1, 0, 0)``."""
+    for i in range(C.shape[0]):
+        err, det = _orthonormality(C[i])
+        if err > 1e-6 or det <= 0.0:
+            return i, err, det
+    return -1, 0.0, 0.0
+
+
+@njit(cache=True)
+def _orthonormality(M):
+    """``(max |M M^T - I|, det M)`` of a 3x3 matrix."""
+    err = 0.0
+    for a in range(3):
+        for b in range(3):
+            s = M[a, 0] * M[b, 0] + M[a, 1] * M[b, 1] + M[a, 2] * M[b, 2]
+            err = max(err, abs(s - 1.0) if a == b else abs(s))
+    det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+           + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+    return err, det
 
 
 #: Accepted deviation of a rigid transform's rotation from orthonormality (and of det from 1).
@@ -116,12 +152,11 @@ def rigid_problem(T, tolerance: float = RIGID_TOLERANCE) -> str | None:
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4):
         return f"a matrix of shape {T.shape}"
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         return "a matrix with non-finite entries"
-    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+    if max(abs(T[3, 0]), abs(T[3, 1]), abs(T[3, 2]), abs(T[3, 3] - 1.0)) > 1e-9:
         return f"last row {T[3].tolist()}"
-    R = T[:3, :3]
-    err, det = np.abs(R @ R.T - np.eye(3)).max(), np.linalg.det(R)
+    err, det = _orthonormality(np.ascontiguousarray(T[:3, :3]))
     if err > tolerance or abs(det - 1) > tolerance:
         return f"a rotation part with |R R^T - I| = {err:.3g}, det {det:.9g}"
     return None

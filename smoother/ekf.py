@@ -28,7 +28,7 @@ from factors import imu
 from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
 from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
-from smoother.small_linalg import cholesky_into
+from factors.small_linalg import cholesky_into
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, imu_steps

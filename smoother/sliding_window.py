@@ -60,7 +60,7 @@ from factors.preintegration import _residual_into, _residual_work
 from factors.sensor_models import ODOMETRY_WIDTH, odometry_kernel
 from smoother.fixed_lag import WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.graph import RELATIVE_MODEL, robust_threshold
-from smoother.small_linalg import cholesky_into
+from factors.small_linalg import cholesky_into
 from smoother.solver import whitening
 
 DIM = imu.STATE_DIM
