@@ -294,3 +294,41 @@ def test_relinearising_less_often_stays_close_to_relinearising_everything(gentle
     assert relinearised[0] < 0.75 * relinearised[1], relinearised
     with pytest.raises(ValueError, match="relinearisation_threshold"):
         sw.SlidingWindow(0.5, relinearisation_threshold=-1.0)
+
+
+def test_a_large_correction_is_taken_in_steps_no_longer_than_the_attitude_limit(gentle):
+    """The start's heading 1 rad off (with a prior that allows it): the first poses call for a turn
+    of about 1 rad, which the window takes in steps of at most ``MAX_ATTITUDE_STEP`` per update
+    along the Gauss-Newton direction, and it still ends on the truth (within 3 sigma)."""
+    from dataclasses import replace
+
+    from factors import imu, so3
+
+    data = cases.dataset(gentle)
+    initial = replace(data.initial, C=so3.exp(np.array([0.0, 0.0, 1.0])) @ data.initial.C)
+    cov = data.initial_cov.copy()
+    cov[8, 8] = 2.0 ** 2
+    windows, headings = [], []
+    init, solve = sw.SlidingWindow.__init__, sw.SlidingWindow._solve
+
+    def recorded(window, *args, **kwargs):
+        init(window, *args, **kwargs)
+        windows.append(window)
+
+    def solve_and_record(window, t):
+        before = [window._xC[k % window._cap].copy() for k in range(window.first, window.newest)]
+        solve(window, t)
+        after = [window._xC[k % window._cap] for k in range(window.first, window.newest)]
+        headings.append(max((np.linalg.norm(so3.boxminus(b, a)) for a, b in zip(after, before)), default=0.0))
+
+    sw.SlidingWindow.__init__, sw.SlidingWindow._solve = recorded, solve_and_record
+    try:
+        result = replay(replace(data, initial=initial, initial_cov=cov), 0.5, "sliding", covariances=True,
+                        progress=False)
+    finally:
+        sw.SlidingWindow.__init__, sw.SlidingWindow._solve = init, solve
+    assert windows[0].shortened > 0
+    assert max(headings) <= sw.MAX_ATTITUDE_STEP + 1e-9, max(headings)
+    last = result.smoothed
+    error = imu.boxminus(last.states[-1], data.truth.states[np.searchsorted(data.truth.t, last.t[-1])])
+    assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(last.cov[-1]))), error
