@@ -96,9 +96,7 @@ class ImuState:
         """One state VIEWING the float array ``x (21,)`` laid out ``(r, v, C row by row, b_f,
         b_w)``: no copy and no conversion (the per-sample path of an IMU-rate estimate)."""
         out = object.__new__(ImuState)
-        for name, part in zip(("r", "v", "C", "b_f", "b_w"),
-                              (x[0:3], x[3:6], x[6:15].reshape(3, 3), x[15:18], x[18:21])):
-            object.__setattr__(out, name, part)
+        out.__dict__.update(r=x[0:3], v=x[3:6], C=x[6:15].reshape(3, 3), b_f=x[15:18], b_w=x[18:21])  # frozen
         return out
 
     @staticmethod

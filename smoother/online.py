@@ -62,6 +62,7 @@ import numpy as np
 from datasets.kinds import KINDS, kind_sigmas, sensors_of
 from datasets.types import Dataset, Sensor, Trajectory, check_covariances
 from factors import imu, preintegration
+from factors.compiled import recursion
 from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning
 from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 from smoother.graph import measurement_spec
@@ -69,6 +70,17 @@ from smoother.sliding_window import SlidingWindow
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, interval_steps
 from factors.errors import InputError
+
+
+@recursion
+def _predict_to(t, acc, gyro, held, n, t_from, r, v, C, b_f, b_w, P, q, g) -> None:
+    """The state ``(r, v, C, b_f, b_w)`` and covariance ``P`` at ``t_from`` (where sample ``held``
+    is held) stepped in place to ``t[n - 1]`` through the samples ``held .. n - 2``
+    (:func:`factors.imu.predict_into`, the EKF's step), in one compiled call per estimate."""
+    dt = np.empty(n - 1 - held)
+    for k in range(dt.size):
+        dt[k] = t[held + k + 1] - (t_from if k == 0 else t[held + k])
+    imu.predict_into(r, v, C, b_f, b_w, P, acc[held:n - 1], gyro[held:n - 1], dt, q, g)
 
 
 def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float):
@@ -397,12 +409,9 @@ class OnlineSmoother:
             raise InputError("estimate: no keyframe yet (feed IMU samples first)")
         n, held = self._n, self._pred_held
         if n - 1 > held:
-            t = self._t
-            dt = t[held + 1:n] - t[held:n - 1]
-            dt[0] = t[held + 1] - self._pred_t
-            imu.predict_into(*self._pred_parts, self._pred_cov, self._acc[held:n - 1], self._gyro[held:n - 1], dt,
-                             self._q, self.gravity)
-            self._pred_t, self._pred_held = float(t[n - 1]), n - 1
+            _predict_to(self._t, self._acc, self._gyro, held, n, self._pred_t, *self._pred_parts, self._pred_cov,
+                        self._q, self.gravity)
+            self._pred_t, self._pred_held = float(self._t[n - 1]), n - 1
         return OnlineEstimate(self._pred_t, imu.ImuState.of_flat(self._pred.copy()),
                               self._pred_cov.copy() if self.covariances else None)
 
