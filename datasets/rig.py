@@ -48,7 +48,8 @@ what was expected, e.g. ``rig.toml: sensor[1] "gnss".T_BS: expected a rigid tran
 Sensors are counted from 1 in the order of their tables. Checked: TOML syntax (with its line),
 unknown keys (the closest known one suggested), types, missing required keys, a bag source
 without a topic or a file source with one, unknown schemes and kinds, a ``T_BS`` that is not a
-4x4 rigid transform (rotation orthonormal with det +1 to 1e-6, last row 0 0 0 1), both ``T_BS``
+4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;
+within it the rotation is taken to the nearest one), both ``T_BS``
 and ``camchain``, duplicate sensor names, ``sigma`` <= 0, ``every`` < 1, a bad ``robust`` spec,
 a datum off the globe.
 """
@@ -69,6 +70,7 @@ from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
 from datasets.kinds import KIND_NAMES
 from datasets.robust import robust_spec
 from datasets.sources import parse_spec
+from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise
 
 if sys.version_info >= (3, 11):
@@ -84,6 +86,9 @@ NOISE_KEYS = {
     "gyro_random_walk": "gyro_bias",
 }
 TOP_KEYS = ("imu", "datum", "sensor")
+#: How far a rig file's T_BS rotation may be from orthonormal: written by hand to a few decimals, it
+#: is taken to the nearest rotation (a rotation rounded to 6 decimals is ~1e-5 off).
+T_BS_TOLERANCE = 1e-4
 IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
@@ -270,10 +275,11 @@ def _transform(t: _Table) -> np.ndarray:
     if not rows_ok or any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in value for x in row):
         raise t.error("T_BS", "expected a 4x4 array of numbers: 4 rows of 4")
     T = np.array(value, dtype=float)
-    problem = rigid_problem(T)
+    problem = rigid_problem(T, T_BS_TOLERANCE)
     if problem is not None:
-        raise t.error("T_BS", "expected a rigid transform (rotation orthonormal with det +1 to 1e-6, last row "
-                              f"0 0 0 1); got {problem}")
+        raise t.error("T_BS", f"expected a rigid transform (rotation orthonormal with det +1 to {T_BS_TOLERANCE:g}, "
+                              f"last row 0 0 0 1); got {problem}")
+    T[:3, :3] = so3.project(T[:3, :3])
     return T
 
 

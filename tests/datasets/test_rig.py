@@ -98,6 +98,18 @@ def _replace(old, new):
 NOT_RIGID = "[[1,0,0,0],[0,1,0,0],[0,0,1.001,0],[0,0,0,1]]"
 
 
+def test_a_rotation_rounded_by_hand_is_taken_to_the_nearest_one(tmp_path):
+    """A T_BS rotation written to 6 decimals (1e-5 from orthonormal) is accepted and made exactly
+    orthonormal; the translation is kept."""
+    R = so3.exp(np.array([0.3, -0.2, 1.1]))
+    rows = ",".join("[" + ",".join(f"{x:.6f}" for x in list(R[i]) + [0.5 * i]) + "]" for i in range(3))
+    rig = load_rig(_rig(tmp_path, FULL.replace("T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]",
+                                               f"T_BS = [{rows},[0,0,0,1]]")))
+    T = rig.sensors[0].T_BS
+    assert np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() < 1e-14
+    assert np.abs(T[:3, :3] - R).max() < 1e-6 and T[:3, 3].tolist() == [0.0, 0.5, 1.0]
+
+
 @pytest.mark.parametrize("edit, message", [
     (_replace("accel_noise_density", "acel_noise_density"),
      "rig.toml: imu.acel_noise_density: unknown key (did you mean 'accel_noise_density'?); expected one of source,"),
@@ -113,7 +125,7 @@ NOT_RIGID = "[[1,0,0,0],[0,1,0,0],[0,0,1.001,0],[0,0,0,1]]"
     (_replace('sigma = 0.01', 'sigma = 0.01\ntopic = "/x"'),
      "rig.toml: sensor[2] \"mocap\".topic: only bag sources have"),
     (_replace("T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]", "T_BS = " + NOT_RIGID),
-     "rig.toml: sensor[1] \"gnss\".T_BS: expected a rigid transform (rotation orthonormal with det +1 to 1e-6, "
+     "rig.toml: sensor[1] \"gnss\".T_BS: expected a rigid transform (rotation orthonormal with det +1 to 0.0001, "
      "last row 0 0 0 1); got a rotation part with"),
     (_replace("[0,0,0,1]]", "[0,0,1,1]]"), "rig.toml: sensor[1] \"gnss\".T_BS: expected a rigid transform"),
     (_replace("T_BS = [[1,0,0,0],", "T_BS = ["), "rig.toml: sensor[1] \"gnss\".T_BS: expected a 4x4 array of numbers"),
