@@ -139,6 +139,26 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
             "gps_heldout_vertical_rmse_m": rms(slice(2, 3)), "heldout_fixes": int(len(residual))}
 
 
+def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None:
+    """How alike the estimate's residuals at consecutive used fixes are: their lag-one
+    autocorrelation (each position or GNSS stream's residual series less its mean, per world
+    axis, pooled). Near 0 the fixes' errors are white; well above 0 the receiver's error drifts
+    slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
+    RMSE favours interpolation over an estimator that does not model that drift. None with fewer
+    than three fixes."""
+    parts = [p for p in [dataset.position] if p is not None] + [
+        s.data for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
+    num = den = 0.0
+    for p in parts:
+        _, residual = position_residuals(p, estimate)
+        if len(residual) < 3:
+            continue
+        residual = residual - residual.mean(axis=0)
+        num += float(np.sum(residual[1:] * residual[:-1]))
+        den += float(np.sum(residual * residual))
+    return num / den if den > 0 else None
+
+
 def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
     """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
     ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""

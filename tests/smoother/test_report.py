@@ -92,6 +92,34 @@ def test_score_reports_the_heldout_rmse_and_the_fit_residual_apart():
     assert 0.3 < m["gps_heldout_rmse_m"] < 2.0  # 3-D noise of 0.5 m per axis: ~0.87 m expected
 
 
+def _fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
+    """The truth as the estimate and fixes of it with AR(1) errors (``phi`` the correlation from one
+    fix to the next, 0.5 m), every ``every``-th used and the rest held out."""
+    t = np.arange(n) * 0.1
+    rng = np.random.default_rng(5)
+    e = np.zeros((n, 3))
+    for k in range(1, n):
+        e[k] = phi * e[k - 1] + np.sqrt(1 - phi**2) * rng.normal(scale=0.5, size=3)
+    truth = Trajectory(t, _truth(1).states[np.zeros(n, dtype=int)].replace(r=np.outer(t, [1.0, 0.2, 0.0])))
+    fixes = PositionMeasurements(t, truth.states.r + e, 0.25 * np.eye(3))
+    used = np.arange(n) % every == 0
+    data = simulate(profile="gentle", duration=t[-1] + 0.1, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+    return replace(data, position=fixes.subset(used), heldout_positions=fixes.subset(~used), truth=None), truth
+
+
+def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
+    """Interpolating the used fixes at the held-out times: with white fix errors the truth itself
+    beats it; with errors that drift slowly (correlation 0.98 from fix to fix, 0.92 over the used
+    fixes' spacing) interpolation beats even the truth, and the residuals at consecutive used fixes
+    say so (their correlation near 0.92, against near 0 for white errors)."""
+    for phi, truth_wins, rho in ((0.0, True, 0.0), (0.98, False, 0.98**4)):
+        data, truth = _fixes_with_noise(phi)
+        baseline = report.interpolation_baseline(data)
+        assert baseline["heldout_fixes"] == len(data.heldout_positions) - 3  # those after the last used fix
+        assert (report.score(data, truth)["gps_heldout_rmse_m"] < baseline["gps_heldout_rmse_m"]) == truth_wins
+        assert report.residual_correlation(data, truth) == pytest.approx(rho, abs=0.08)
+
+
 @pytest.mark.parametrize("with_cov", [True, False])
 def test_trajectory_npz_round_trip(tmp_path, with_cov):
     truth = _truth()

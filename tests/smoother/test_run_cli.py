@@ -12,7 +12,7 @@ import pytest
 from datasets.tum import read_tum
 from smoother import report
 from smoother.cli import main
-from smoother.commands.run import format_table
+from smoother.commands.run import format_table, interpolation_note
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -76,6 +76,24 @@ def test_the_table_ranks_by_held_out_fixes_and_labels_the_fit_residual():
     every_fix_used = format_table({"batch": {"gps_heldout_rmse_m": float("nan"), "gps_fit_residual_m": 0.65},
                                    "fixed-lag": {"gps_heldout_rmse_m": float("nan"), "gps_fit_residual_m": 0.32}})
     assert "no held-out fixes: no ranking (hold fixes out with --gps-every K > 1)" in every_fix_used.splitlines()
+
+
+def test_when_interpolation_wins_the_note_says_whether_the_fixes_drift():
+    """Only when interpolating the used fixes beats every smoother: with fix errors that drift
+    (the residuals at consecutive used fixes correlated) the note points to the drift and an
+    independent reference; with white ones, to the rig."""
+    from types import SimpleNamespace
+
+    from test_report import _fixes_with_noise
+
+    for phi, words in ((0.98, "drifts slowly over the fix spacing"), (0.0, "the fixes look independent")):
+        data, truth = _fixes_with_noise(phi)
+        baseline = report.interpolation_baseline(data)
+        estimates = {"batch": SimpleNamespace(trajectory=truth)}
+        losing = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] + 0.1}}
+        assert words in interpolation_note(baseline, losing, estimates, data)
+        winning = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] - 0.1}}
+        assert interpolation_note(baseline, winning, estimates, data) is None
 
 
 def _one_line_error(capsys) -> str:
