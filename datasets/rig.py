@@ -279,7 +279,7 @@ def _transform(t: _Table) -> np.ndarray:
     if problem is not None:
         raise t.error("T_BS", f"expected a rigid transform (rotation orthonormal with det +1 to {T_BS_TOLERANCE:g}, "
                               f"last row 0 0 0 1); got {problem}")
-    if rigid_problem(T) is not None:  # rounded: the nearest rotation (an exact one is kept as written)
+    if rigid_problem(T, 1e-12) is not None:  # rounded: the nearest rotation (an exact one is kept as written)
         T[:3, :3] = so3.project(T[:3, :3])
     return T
 
