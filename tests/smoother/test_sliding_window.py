@@ -226,7 +226,7 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
     """After each update -- rows factorised again only from the oldest change on, keyframes
     marginalised without a new factorisation -- the window's factor and offsets equal a
     factorisation of the whole window's normal equations at the linearisation points, made from
-    scratch (to 1e-9 relative). An update that ends by linearising keyframes again leaves the rows
+    scratch (factor to 1e-9 relative, offsets to 1e-6 of the largest). An update that ends by linearising keyframes again leaves the rows
     from theirs on stale (the next update factorises them again): the rows before must still agree."""
     data = cases.dataset(gentle)
     checked = {"whole": 0, "before the stale rows": 0}
@@ -246,8 +246,10 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
         if valid == n:
             delta = np.linalg.solve(_dense(Hb), -g)
             slots = np.arange(window.first, window.newest + 1) % cap
-            np.testing.assert_allclose(window._dx[slots, :, 0].ravel(), delta, rtol=1e-7,
-                                       atol=1e-9 * np.abs(delta).max())
+            # (a dense solve of H, conditioned as it is, against the banded one: 1e-6 of the largest
+            # offset; a stale row or a wrong prior is wrong at the offsets' own size)
+            np.testing.assert_allclose(window._dx[slots, :, 0].ravel(), delta, rtol=1e-6,
+                                       atol=1e-6 * np.abs(delta).max())
             checked["whole"] += 1
         elif valid > 0:
             checked["before the stale rows"] += 1
