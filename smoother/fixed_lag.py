@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections import deque
 from dataclasses import dataclass
 
 import gtsam
@@ -65,6 +66,10 @@ KINDS = ("batch", "incremental")
 #: have their lagged values taken before it as well: GTSAM marginalises those strictly older than
 #: the boundary.
 _LAG_MARGIN_S = 1e-6
+
+#: How many of the latest entries the timing records keep (``update_s``, an online smoother's
+#: ``latency_s``): every update of a day at 10 Hz (~30 MB), and no more on a robot that runs for weeks.
+HISTORY = 1_000_000
 
 #: Standard deviations of the weak prior added when an update is indeterminant.
 WEAK_PRIOR_SIGMAS = np.array([1e2] * 3 + [1e1] * 3 + [np.pi] * 3 + [1.0] * 3 + [0.1] * 3)
@@ -340,7 +345,7 @@ class KeyframeWindow:
         self.newest_state: imu.ImuState | None = None  # the newest keyframe's, read from ``estimate``
         self.recovered: list[int] = []
         self.skipped = 0
-        self.update_s: list[float] = []
+        self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: ``id(factor) -> tag`` of the factors given with a tag, while GTSAM holds them
         self.rows_of: dict[int, object] = {}
         self._times: dict[int, float] = {}  # the window's keyframe times

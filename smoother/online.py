@@ -63,7 +63,7 @@ from datasets.kinds import KINDS, kind_sigmas, sensors_of
 from datasets.types import Dataset, Sensor, Trajectory, check_covariances
 from factors import imu, preintegration
 from factors.compiled import recursion
-from smoother.fixed_lag import KeyframeWindow, sparse_measurement_warning
+from smoother.fixed_lag import HISTORY, KeyframeWindow, sparse_measurement_warning
 from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 from smoother.graph import measurement_spec
 from smoother.sliding_window import SlidingWindow
@@ -184,7 +184,8 @@ class OnlineSmoother:
         #: relative measurements skipped because their earlier time has left the window, per sensor
         self.skipped: dict[str, int] = {}
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
-        self.latency_s: list[float] = []
+        #: (the latest :data:`smoother.fixed_lag.HISTORY`)
+        self.latency_s: deque[float] = deque(maxlen=HISTORY)
         #: the longest time between absolute measurements (they fix a position or an attitude) seen so
         #: far [s] (the start counts as one)
         self.longest_gap_s = 0.0
@@ -422,8 +423,8 @@ class OnlineSmoother:
             yield self._queue.popleft()
 
     @property
-    def update_s(self) -> list[float]:
-        """Wall time of each smoother update [s]."""
+    def update_s(self) -> deque[float]:
+        """Wall time of each smoother update [s] (the latest :data:`smoother.fixed_lag.HISTORY`)."""
         return self._window.update_s
 
     @property

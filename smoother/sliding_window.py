@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -60,7 +61,7 @@ from factors import imu, preintegration, so3
 from factors.errors import InputError
 from factors.preintegration import _residual_into, _residual_work
 from factors.sensor_models import ODOMETRY_WIDTH, odometry_kernel
-from smoother.fixed_lag import WEAK_PRIOR_SIGMAS, FixedLagFailed
+from smoother.fixed_lag import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.graph import RELATIVE_MODEL, robust_threshold
 from factors.small_linalg import cholesky_into
 from smoother.solver import whitening
@@ -621,9 +622,9 @@ class SlidingWindow:
         self.first, self.newest = 0, -1
         self.recovered: list[int] = []
         self.skipped = 0
-        self.update_s: list[float] = []
+        self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: keyframes linearised again at each update that linearised any again
-        self.relinearised: list[int] = []
+        self.relinearised: deque[int] = deque(maxlen=HISTORY)
         #: updates whose step was shortened (MAX_ATTITUDE_STEP)
         self.shortened = 0
         self._taken_after: dict[int, int] = {}

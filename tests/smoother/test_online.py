@@ -346,3 +346,16 @@ def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds(
             replay(data, lag, progress=False)
         hits = [w for w in caught if "longer than the lag" in str(w.message)]
         assert (len(hits) >= 2) == warned, (lag, [str(w.message) for w in caught])
+
+
+def test_the_timing_records_keep_only_the_latest_entries(gentle, monkeypatch):
+    """A robot runs for weeks: ``update_s`` and ``latency_s`` keep the latest
+    :data:`smoother.fixed_lag.HISTORY` entries (here 5), not every update since the start."""
+    from smoother import fixed_lag, online as online_module, sliding_window
+
+    for module in (fixed_lag, online_module, sliding_window):
+        monkeypatch.setattr(module, "HISTORY", 5)
+    data = cases.dataset(gentle)
+    result = replay(data, LAG, "sliding", covariances=False, progress=False)
+    assert len(result.update_s) == 5 and len(result.latency_s) == 5
+    assert len(result.smoothed.t) > 30  # far more updates than that
