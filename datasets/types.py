@@ -74,7 +74,7 @@ def check_covariances(name: str, cov, n: int, dim: int) -> np.ndarray:
     definite covariances of shape ``(n, dim, dim)`` (:func:`_covariance_defect`)."""
     cov = np.asarray(cov, dtype=float)
     if cov.shape == (dim, dim):
-        cov = np.broadcast_to(cov, (n, dim, dim)).copy()
+        cov = np.repeat(cov[None], n, axis=0)
     cov = check_array(name, cov, (dim, dim), n)
     i, defect = _covariance_defect(np.ascontiguousarray(cov))
     if defect == 1:

@@ -327,13 +327,10 @@ class OnlineSmoother:
         columns = [np.atleast_1d(np.asarray(t, dtype=float))] + [np.asarray(v, dtype=float) for v in values]
         if single:
             columns = [columns[0]] + [v[None] for v in columns[1:]]
-        n = len(columns[0])
         if cov is None:
             if setup.sigma is None:
                 raise InputError(f"add({sensor!r}): cov: expected a covariance (the sensor has no sigma)")
             cov = np.diag(kind_sigmas(f"sensors[{sensor!r}]", setup.sigma, kind.dim) ** 2)
-        cov = np.asarray(cov, dtype=float)
-        cov = np.broadcast_to(cov, (n,) + cov.shape[-2:]) if cov.ndim == 2 else cov
         try:
             data = kind.data_type(*columns, cov, setup.T_BS)
         except ValueError as error:
