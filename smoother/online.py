@@ -210,6 +210,7 @@ class OnlineSmoother:
         self._last_measured_t = None
         # the IMU-rate prediction from the newest keyframe: state, covariance, time reached and the
         # sample held there
+        self._newest = None  # the newest keyframe's estimate (what the next IMU interval starts from)
         self._pred = None  # (r, v, C, b_f, b_w) flat, 21 numbers
         self._pred_parts = None
         self._pred_cov = None
@@ -520,8 +521,7 @@ class OnlineSmoother:
             prior = (self.initial, self.initial_cov)
         else:
             acc, gyro, dt = interval_steps(self._t[:self._n], self._acc, self._gyro, self._last_t, t)
-            start = window.newest_state
-            pre, guess = preintegration.integrate_interval(acc, gyro, dt, start, self.noise, self.gravity)
+            pre, guess = preintegration.integrate_interval(acc, gyro, dt, self._newest, self.noise, self.gravity)
         used, measurements = [], []
         while self._pending and self._pending[0].latest <= t:
             item = heapq.heappop(self._pending)
@@ -535,7 +535,7 @@ class OnlineSmoother:
             measurements.append((item.spec, item.row, at, self._setup(item.sensor)[0].robust))
             used.append(item)
         leaving = self._read(window.leaving(t))
-        window.add_keyframe(t, guess, pre, measurements, prior)
+        self._newest = window.add_keyframe(t, guess, pre, measurements, prior)  # its estimate after the update
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k
@@ -549,7 +549,7 @@ class OnlineSmoother:
             self._last_measured_t = t
         self._pred_cov = (np.array(self._keyframe_covariances([k])[0]) if self.covariances
                           else np.zeros((imu.STATE_DIM, imu.STATE_DIM)))
-        s = window.newest_state
+        s = self._newest
         self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
         x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
         self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
