@@ -43,6 +43,10 @@ No silent failures: besides the dropped and skipped measurements, a warning when
 apart than the lag (:func:`smoother.fixed_lag.sparse_measurement_warning`: keyframes then leave
 the window before the next measurement reaches them).
 
+The first :class:`OnlineSmoother` of a process loads (or compiles) every compiled kernel of the
+loop by feeding a throwaway smoother 0.8 s of made-up data, so that a robot's first keyframes and
+first marginalisation do not stall on it.
+
 :func:`replay` feeds a whole :class:`datasets.types.Dataset` through an :class:`OnlineSmoother`,
 at once or at the data's own pace (``realtime``), measuring each measurement's latency from its
 arrival to the update that used it.
@@ -217,6 +221,7 @@ class OnlineSmoother:
         self._pred_t = None
         self._pred_held = 0
         self._q = noise.densities()
+        _warm_up()
 
     @classmethod
     def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":
@@ -588,6 +593,33 @@ class OnlineSmoother:
                 self.on_smoothed(out)
             else:
                 self._queue.append(out)
+
+
+_warm = False
+
+
+def _warm_up() -> None:
+    """Load (or compile) every kernel the loop calls -- the checks of an IMU sample and of a pose,
+    the interval's preintegration and prediction, the window's update and marginalisation, the
+    per-sample estimate -- once per process, by feeding a throwaway smoother half a second of a
+    resting IMU and three poses: otherwise the first keyframes and the first marginalisation of a
+    robot's run stall by the loading (10-250 ms)."""
+    global _warm
+    if _warm:
+        return
+    _warm = True
+    t = np.arange(0.0, 0.8, 0.01)
+    start = imu.ImuState.identity()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        warm = OnlineSmoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
+        for k, tk in enumerate(t):
+            warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
+            if k % 10 == 5:
+                warm.add("pose", tk, np.zeros(3), np.eye(3), cov=1e-4 * np.eye(6))
+            if k > 5:
+                warm.estimate()
+        warm.finish()
 
 
 @dataclass
