@@ -641,7 +641,7 @@ class SlidingWindow:
     def _allocate_keyframes(self, cap: int) -> None:
         shapes = {"_t": (), "_r": (3,), "_v": (3,), "_C": (3, 3), "_bf": (3,), "_bw": (3,),
                   "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
-                  "_L": (self._S + 1, DIM, DIM), "_dC": (3, 3),
+                  "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
                   "_bwbar": (3,), "_Wimu": (DIM, DIM)}
         old = {name: getattr(self, name, None) for name in shapes}
@@ -713,10 +713,23 @@ class SlidingWindow:
         keyframes, robust)``: measurement ``m`` of a :class:`smoother.graph.MeasurementSpec`, the
         keyframes it reads, a robust spec or None) and ``prior`` ``(state, cov)`` on the new
         keyframe; one update (module docstring); returns the new keyframe's estimate.
-        Measurements reading a keyframe that has left are skipped and counted in ``skipped``."""
+        Measurements reading a keyframe that leaves are skipped and counted in ``skipped``. What
+        can be refused (a covariance that is not positive definite, an unknown robust kernel) is
+        refused before the window changes."""
         tick = time.perf_counter()
         k = self.newest + 1
-        self._marginalise(self.leaving(t))
+        leaving = self.leaving(t)
+        first = leaving[-1] + 1 if leaving else self.first
+        interval = None
+        if pre is not None and k > 0:
+            interval = np.zeros((DIM, DIM))
+            if not _whitening_into(pre.cov, interval):
+                raise InputError("the IMU interval's covariance is not positive definite")
+        factors = [self._measurement_row(spec, m, keyframes, robust) for spec, m, keyframes, robust in measurements
+                   if min(keyframes) >= first]
+        priors = [] if prior is None else [(prior[0], whitening(prior[1]))]
+        self.skipped += len(measurements) - len(factors)
+        self._marginalise(leaving)
         if k - self.first + 1 > self._cap:
             self._allocate_keyframes(2 * self._cap)
         s = k % self._cap
@@ -727,22 +740,19 @@ class SlidingWindow:
         self._dx[s] = 0.0
         self._has_imu[s] = False
         self._pre[s] = None
-        linked = k == 0
-        if pre is not None and k > 0:
-            self._store_interval(s, pre)
-            linked = True
-        for spec, m, keyframes, robust in measurements:
-            if min(keyframes) < self.first:
-                self.skipped += 1
-                continue
-            self._add_measurement(spec.model, spec.rows[m], spec.cov[m], robust, keyframes)
-            linked = linked or (len(keyframes) > 1 and min(keyframes) < k)
+        linked = k == 0 or interval is not None
+        if interval is not None:
+            self._store_interval(s, pre, interval)
+        for row in factors:
+            self._add_measurement(*row)
+            keyframes = row[-1]
+            linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
         self.newest = k
-        if prior is not None:
-            self._add_prior(k, prior[0], prior[1])
         if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
-            self._add_prior(k, guess, np.diag(WEAK_PRIOR_SIGMAS ** 2))
+            priors.append((guess, whitening(np.diag(WEAK_PRIOR_SIGMAS ** 2))))
             self.recovered.append(k)
+        for state, R in priors:
+            self._add_prior(k, state, R)
         self._solve(t)
         self.update_s.append(time.perf_counter() - tick)
         return self.newest_state
@@ -764,38 +774,54 @@ class SlidingWindow:
 
     # -- inside -----------------------------------------------------------------------------------
 
-    def _store_interval(self, s: int, pre, whiten: bool = True) -> None:
-        """Keep interval ``pre`` at slot ``s``; ``whiten``: its covariance is new (an interval
-        integrated again keeps its covariance, and so its whitening)."""
+    def _store_interval(self, s: int, pre, whitening_matrix=None) -> None:
+        """Keep interval ``pre`` at slot ``s``, with the whitening of its covariance (None: keep the
+        slot's: an interval integrated again keeps its covariance)."""
         self._has_imu[s] = True
         self._pre[s] = pre
         for name, value in (("_dC", pre.dC), ("_Wp", pre.W), ("_Rm", pre.Rm), ("_JC", pre.JC), ("_dW", pre.dW),
                             ("_dRm", pre.dRm), ("_bwbar", pre.b_w_bar)):
             getattr(self, name)[s] = value
-        if whiten and not _whitening_into(pre.cov, self._Wimu[s]):
-            raise InputError("the IMU interval's covariance is not positive definite")
+        if whitening_matrix is not None:
+            self._Wimu[s] = whitening_matrix
 
-    def _add_measurement(self, model: int, row, cov, robust, keyframes) -> None:
+    @staticmethod
+    def _measurement_row(spec, m: int, keyframes, robust) -> tuple:
+        """Measurement ``m`` of ``spec`` as the arguments of :meth:`_add_measurement`, checked:
+        its covariance's whitening (an InputError if it is not positive definite) and robust code."""
+        cov = np.ascontiguousarray(spec.cov[m], dtype=float)
+        d = cov.shape[-1]
+        W = np.zeros((_MAX_DIM, _MAX_DIM))
+        if not _whitening_into(cov, W):
+            raise InputError(f"a measurement's covariance is not positive definite: {cov.tolist()}")
+        if robust is not None and robust[0] not in ROBUST_CODES:
+            raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
+        code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
+        return spec.model, spec.rows[m], W, d, code, k, keyframes
+
+    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes) -> None:
+        """Append a checked measurement (:meth:`_measurement_row`); the rows of ``L`` from its
+        oldest keyframe on are stale."""
         if self._m == len(self._mk):
             self._allocate_measurements(2 * len(self._mk))
         f = self._m
-        d = cov.shape[-1]
         self._mk[f] = (min(keyframes), max(keyframes))
         self._spans[0] = max(self._spans[0], max(keyframes) - min(keyframes))
         self._model[f] = model
         self._rows[f, :len(row)] = row
         self._dims[f] = d
-        self._Wm[f] = 0.0
-        if not _whitening_into(np.ascontiguousarray(cov, dtype=float), self._Wm[f]):
-            raise InputError(f"a measurement's covariance is not positive definite: {cov.tolist()}")
-        self._rcode[f] = 0 if robust is None else ROBUST_CODES[robust[0]]
-        self._rk[f] = 0.0 if robust is None else robust_threshold(robust, d)
+        self._Wm[f] = W
+        self._rcode[f] = code
+        self._rk[f] = k
         self._m = f + 1
+        self._stale = min(self._stale, min(keyframes))
 
-    def _add_prior(self, k: int, state: imu.ImuState, cov) -> None:
+    def _add_prior(self, k: int, state: imu.ImuState, R: np.ndarray) -> None:
+        """A prior ``R (x_k [-] state)`` on keyframe ``k`` (``R`` the whitening of its covariance)."""
         self._priors.append(_LinearPrior(np.array([k]), state.r[None].copy(), state.v[None].copy(),
                                          state.C[None].copy(), state.b_f[None].copy(), state.b_w[None].copy(),
-                                         whitening(cov), np.zeros(DIM)))
+                                         R, np.zeros(DIM)))
+        self._stale = min(self._stale, k)
 
     def _relinearised(self, oldest: int) -> None:
         """After :func:`_solve_rows` linearised keyframes ``oldest ..`` (those flagged) again:
@@ -806,7 +832,7 @@ class SlidingWindow:
         for i in moved:
             j = (i + 1) % self._cap
             if i < self.newest and self._has_imu[j] and np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j])) > self.threshold:
-                self._store_interval(j, self._pre[j].relinearized(self._bw[i % self._cap]), whiten=False)
+                self._store_interval(j, self._pre[j].relinearized(self._bw[i % self._cap]))
         # the factors of a moved keyframe reach at most the bandwidth back
         self._stale = min(self._stale, oldest - self._bandwidth())
 
@@ -833,12 +859,14 @@ class SlidingWindow:
         """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
         keyframes linearised again, and everything after them), solve ``H delta = -g`` at the
         linearisation points, set the estimates to ``theta [+] delta``."""
-        S = self._bandwidth()
-        if S != self._S:  # a new bandwidth: L anew
-            self._S = S
-            self._L = np.zeros((self._cap, S + 1, DIM, DIM))
-            self._stale = self.first
-        start = max(min(self._stale, self.newest - S), self.first)
+        reach = self._bandwidth()
+        if reach > self._S:  # a wider band: L anew, the whole window factorised
+            self._L = np.zeros((self._cap, reach + 1, DIM, DIM))
+            self._S, self._stale = reach, self.first
+        start = max(min(self._stale, self.newest - reach), self.first)
+        if start == self.first:  # factorised whole: the band the factors need now (it narrows as they leave)
+            self._S = reach
+        S = self._S
         Hr, g = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
         failed, oldest, shortened = _solve_rows(Hr, g, self._L, self._y, self._dx, self.first, start, self.newest,
                                                 self._cap, S, self.relinearisation_threshold, MAX_ATTITUDE_STEP,
@@ -890,13 +918,17 @@ class SlidingWindow:
 
 
 def _semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g`` for a positive semi-definite ``H`` (the
-    directions the marginalised factors did not inform left out, through its eigen-decomposition;
-    ``g`` has no part along them)."""
-    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g`` for a positive semi-definite ``H``, the
+    directions the marginalised factors did not inform left out: those of the eigenvalues below
+    1e-12 of ``H`` scaled to a unit diagonal (each state component in its own units: a short IMU
+    interval's position information reaches 1e14 beside a bias's 1e2, which a cut-off relative to
+    the largest eigenvalue would drop); ``g`` has no part along them."""
+    d = np.sqrt(np.maximum(np.diag(H), 0.0))
+    d[d == 0.0] = 1.0
+    lam, V = np.linalg.eigh(0.5 * (H + H.T) / np.outer(d, d))
     keep = lam > 1e-12 * max(lam.max(), 1e-300)
-    R = np.sqrt(lam[keep])[:, None] * V[:, keep].T
+    R = np.sqrt(lam[keep])[:, None] * V[:, keep].T * d[None, :]
     R = np.vstack([R, np.zeros((len(H) - R.shape[0], len(H)))])
     e0 = np.zeros(len(H))
-    e0[:int(keep.sum())] = (V[:, keep].T @ g) / np.sqrt(lam[keep])
+    e0[:int(keep.sum())] = (V[:, keep].T @ (g / d)) / np.sqrt(lam[keep])
     return R, e0
