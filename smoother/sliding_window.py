@@ -758,8 +758,9 @@ class SlidingWindow:
         return self.newest_state
 
     def covariances(self, wanted) -> np.ndarray:
-        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted`` at the
-        last linearisation: blocks of ``H^-1``."""
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
+        of ``H^-1`` with ``H`` at the linearisation points of the last update's solve (before the
+        keyframes it moved far enough were linearised again)."""
         out = []
         b = np.zeros((self._cap, DIM, DIM))
         for k in wanted:
