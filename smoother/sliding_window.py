@@ -617,7 +617,7 @@ class SlidingWindow:
             raise InputError(f"relinearisation_threshold: expected numbers >= 0, got {threshold.tolist()}")
         self.lag_s = float(lag_s)
         self.gravity = np.asarray(gravity, dtype=float)
-        self.threshold = float(reintegration_threshold)
+        self.reintegration_threshold = float(reintegration_threshold)
         self.relinearisation_threshold = threshold
         self.first, self.newest = 0, -1
         self.recovered: list[int] = []
@@ -629,7 +629,7 @@ class SlidingWindow:
         self.shortened = 0
         self._taken_after: dict[int, int] = {}
         self._priors: list[_LinearPrior] = []
-        self._S = 1  # the bandwidth of the factor L
+        self._S = 1  # the band L is factorised with (at least the factors' reach; narrowed at whole factorisations)
         self._spans = [0, 0]  # the longest span of the measurements, of the priors
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._allocate_keyframes(64)
@@ -639,6 +639,7 @@ class SlidingWindow:
     # -- storage ----------------------------------------------------------------------------------
 
     def _allocate_keyframes(self, cap: int) -> None:
+        """Ring arrays for ``cap`` keyframes (slot ``k % cap``), the window's moved over."""
         shapes = {"_t": (), "_r": (3,), "_v": (3,), "_C": (3, 3), "_bf": (3,), "_bw": (3,),
                   "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
                   "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
@@ -659,6 +660,7 @@ class SlidingWindow:
             self._has_imu[b], self._pre[b] = old_imu[a], old_pre[a]
 
     def _allocate_measurements(self, cap: int) -> None:
+        """Measurement tables for ``cap`` rows, the current ones kept."""
         m = getattr(self, "_m", 0)
         shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((ODOMETRY_WIDTH,), float),
                   "_dims": ((), np.int64), "_Wm": ((_MAX_DIM, _MAX_DIM), float), "_rcode": ((), np.int64),
@@ -670,9 +672,11 @@ class SlidingWindow:
             setattr(self, name, fresh)
 
     def _linearisation_points(self):
+        """The ``theta`` arrays ``(r, v, C, b_f, b_w)`` by slot."""
         return self._r, self._v, self._C, self._bf, self._bw
 
     def _estimates(self):
+        """The estimate arrays ``theta [+] delta`` by slot."""
         return self._xr, self._xv, self._xC, self._xbf, self._xbw
 
     # -- the KeyframeWindow interface -----------------------------------------------------------
@@ -832,7 +836,8 @@ class SlidingWindow:
         self.relinearised.append(len(moved))
         for i in moved:
             j = (i + 1) % self._cap
-            if i < self.newest and self._has_imu[j] and np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j])) > self.threshold:
+            drift = np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j]))
+            if i < self.newest and self._has_imu[j] and drift > self.reintegration_threshold:
                 self._store_interval(j, self._pre[j].relinearized(self._bw[i % self._cap]))
         # the factors of a moved keyframe reach at most the bandwidth back
         self._stale = min(self._stale, oldest - self._bandwidth())
