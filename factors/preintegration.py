@@ -397,16 +397,22 @@ def _ready_samples(acc, gyro, dt, b_w_bar, bias_name: str) -> tuple:
     return np.require(acc, float, "C"), np.require(gyro, float, "C"), np.require(dt, float, "C"), b_w_bar
 
 
+def _unfilled(samples: tuple, b_w_bar: np.ndarray) -> Preintegrated:
+    """A :class:`Preintegrated` of the padded ``samples = (acc, gyro, dt)`` (kept as given) around
+    ``b_w_bar``, its arrays allocated for the kernels to fill (no covariance)."""
+    J = samples[2].shape[0]
+    return Preintegrated(np.empty((J, 3, 3)), np.empty((J, 3, 10)), np.empty((J, 3, 10)), np.empty((J, 3, 3)),
+                         np.empty((J, 3, 10, 3)), np.empty((J, 3, 10, 3)), b_w_bar, samples)
+
+
 def _integration(acc, gyro, dt, b_w_bar) -> tuple:
     """``(pre, task)``: a :class:`Preintegrated` of samples from :func:`_ready_samples` whose
     arrays are allocated but not filled (the covariance unset), and ``task(lo, hi)``, which fills
     intervals ``lo .. hi - 1``: it copies their samples into ``pre.samples`` (:class:`Preintegrated`
     keeps them for re-integration, so they must not change with the caller's arrays; copied range
     by range, the copy is shared among the threads) and integrates them (:func:`_integrate_kernel`)."""
-    J = dt.shape[0]
     own = np.empty_like(acc), np.empty_like(gyro), np.empty_like(dt)
-    pre = Preintegrated(np.empty((J, 3, 3)), np.empty((J, 3, 10)), np.empty((J, 3, 10)), np.empty((J, 3, 3)),
-                        np.empty((J, 3, 10, 3)), np.empty((J, 3, 10, 3)), b_w_bar.copy(), own)
+    pre = _unfilled(own, b_w_bar.copy())
 
     def task(lo: int, hi: int) -> None:
         for mine, given in zip(own, (acc, gyro, dt)):
@@ -495,9 +501,8 @@ def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, 
     online smoother, whose samples and states are checked where they enter. Float arrays, finite,
     as documented there; the samples are copied (the interval keeps them to integrate again)."""
     acc, gyro, dt = (np.array(a, dtype=float)[None] for a in (acc, gyro, dt))
-    pre = Preintegrated(np.empty((1, 3, 3)), np.empty((1, 3, 10)), np.empty((1, 3, 10)), np.empty((1, 3, 3)),
-                        np.empty((1, 3, 10, 3)), np.empty((1, 3, 10, 3)), np.array(start.b_w, dtype=float)[None],
-                        (acc, gyro, dt), np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
+    pre = _unfilled((acc, gyro, dt), np.array(start.b_w, dtype=float)[None])
+    pre.cov = np.empty((1, imu.STATE_DIM, imu.STATE_DIM))
     r, v, C = np.empty((1, 3)), np.empty((1, 3)), np.empty((1, 3, 3))
     _interval_kernel(acc, gyro, dt, pre.b_w_bar, np.array(start.b_f, dtype=float)[None],
                      np.array(start.r, dtype=float)[None], np.array(start.v, dtype=float)[None],

@@ -379,19 +379,12 @@ def _backward(L, b, stop, newest, cap, S) -> None:
 
 @njit(cache=True)
 def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> None:
-    """``x = theta [+] delta`` for the window's keyframes (left attitude increment)."""
-    E = np.empty((3, 3))
+    """``x = theta [+] delta`` for the window's keyframes (:func:`factors.imu.boxplus_into`: the
+    left attitude increment)."""
     for k in range(first, newest + 1):
         s = k % cap
-        for c in range(3):
-            xr[s, c] = r[s, c] + delta[s, c, 0]
-            xv[s, c] = v[s, c] + delta[s, 3 + c, 0]
-            xbf[s, c] = bf[s, c] + delta[s, 9 + c, 0]
-            xbw[s, c] = bw[s, c] + delta[s, 12 + c, 0]
-        so3.exp_into(delta[s, 6, 0], delta[s, 7, 0], delta[s, 8, 0], E)
-        for a in range(3):
-            for b in range(3):
-                xC[s, a, b] = E[a, 0] * C[s, 0, b] + E[a, 1] * C[s, 1, b] + E[a, 2] * C[s, 2, b]
+        xr[s], xv[s], xC[s], xbf[s], xbw[s] = r[s], v[s], C[s], bf[s], bw[s]
+        imu.boxplus_into(xr[s], xv[s], xC[s], xbf[s], xbw[s], delta[s, :, 0])
 
 
 @njit(cache=True)
