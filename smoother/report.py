@@ -94,15 +94,21 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
     return _rms_distance([] if positions is None else [positions], estimate)
 
 
+def position_streams(dataset: Dataset) -> list[tuple]:
+    """Each stream of position fixes as ``(used, held out)`` (either may be None): the dataset's
+    own (KITTI's GPS) and each position or GNSS sensor's (a rig's, with its lever arm)."""
+    return [(dataset.position, dataset.heldout_positions)] + [
+        (s.data, s.heldout) for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
+
+
 def score(dataset: Dataset, estimate: Trajectory) -> dict:
     """Every metric the dataset allows for one estimate."""
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
-    positions = [s for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]  # a rig's, with lever arms
-    used = [p for p in [dataset.position] if p is not None] + [s.data for s in positions]
-    heldout = [p for p in [dataset.heldout_positions] if p is not None] + [s.heldout for s in positions
-                                                                          if s.heldout is not None]
+    streams = position_streams(dataset)
+    used = [u for u, _ in streams if u is not None]
+    heldout = [h for _, h in streams if h is not None]
     if used or heldout:
         out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
         out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, slice(0, 2))
@@ -118,10 +124,8 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
     vertical parts (as :func:`score`'s) and ``heldout_fixes`` (how many counted); None without
     held-out fixes inside the used ones' span. (An estimator's held-out figure also counts the
     held-out fixes after the last used one, inside its own span.)"""
-    pairs = [(dataset.position, dataset.heldout_positions)] + [
-        (s.data, s.heldout) for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
     residuals = [np.empty((0, 3))]
-    for used, held in pairs:
+    for used, held in position_streams(dataset):
         if used is None or held is None or len(used) < 2:
             continue
         inside = (held.t >= used.t[0]) & (held.t <= used.t[-1])
@@ -146,10 +150,10 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None
     slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
     RMSE favours interpolation over an estimator that does not model that drift. None with fewer
     than three fixes."""
-    parts = [p for p in [dataset.position] if p is not None] + [
-        s.data for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
     num = den = 0.0
-    for p in parts:
+    for p, _ in position_streams(dataset):
+        if p is None:
+            continue
         _, residual = position_residuals(p, estimate)
         if len(residual) < 3:
             continue
@@ -221,11 +225,7 @@ def save_gps(path: Path, dataset: Dataset) -> None:
     """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
     nothing when it has none. A rig's position and GNSS sensors count too (their antennas'
     positions, as measured)."""
-    parts = [(p, False) for p in [dataset.position] if p is not None]
-    parts += [(p, True) for p in [dataset.heldout_positions] if p is not None]
-    for s in dataset.sensors:
-        if isinstance(s.data, PositionMeasurements):
-            parts += [(p, flag) for p, flag in ((s.data, False), (s.heldout, True)) if p is not None]
+    parts = [(p, flag) for pair in position_streams(dataset) for p, flag in zip(pair, (False, True)) if p is not None]
     if not parts:
         return
     t = np.concatenate([p.t for p, _ in parts])
