@@ -152,9 +152,7 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None
     than three fixes."""
     num = den = 0.0
     for p, _ in position_streams(dataset):
-        if p is None:
-            continue
-        _, residual = position_residuals(p, estimate)
+        _, residual = position_residuals(p, estimate)  # empty for None
         if len(residual) < 3:
             continue
         residual = residual - residual.mean(axis=0)
