@@ -476,9 +476,10 @@ def integrate(acc, gyro, dt, b_w_bar) -> Preintegrated:
 
 
 def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.ImuNoise,
-                              gravity=imu.DEFAULT_GRAVITY, anchors: Anchors | None = None):
+                              gravity=imu.DEFAULT_GRAVITY, anchors: Anchors | None = None, biases: tuple | None = None):
     """Preintegrate ``J`` padded intervals ``samples = (acc, gyro, dt)`` around the biases of
-    ``start`` (one state) with the bias Jacobians AND the residual covariance of every interval
+    ``start`` (one state), or around ``biases = (b_f, b_w)`` (``(J, 3)`` each, one pair per
+    interval), with the bias Jacobians AND the residual covariance of every interval
     (see :func:`noise_covariance`); returns ``(pre, states)``. One compiled pipeline (module
     docstring), on several cores when there are many intervals.
 
@@ -486,10 +487,11 @@ def integrate_with_covariance(samples: tuple, start: imu.ImuState, noise: imu.Im
     state ``states[i]``: ``states[0]`` is ``start``, ``states[i + 1]`` the prediction from
     ``states[i]`` (:func:`predict`), each (``states[0]`` too) replaced where ``anchors`` (``J + 1``
     keyframes, default none) knows the position, attitude or world velocity -- dead reckoning
-    reset by measurements, the smoother's initial trajectory. ``states`` keeps the biases of
-    ``start``."""
+    reset by measurements, the smoother's initial trajectory. ``states`` keeps the biases
+    integrated around (the last keyframe those of the last interval)."""
     acc, gyro, dt = samples
-    return _run(acc, gyro, dt, start.b_w, start.b_f, start, anchors, noise, gravity)
+    b_f, b_w = (start.b_f, start.b_w) if biases is None else biases
+    return _run(acc, gyro, dt, b_w, b_f, start, anchors, noise, gravity)
 
 
 def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, gravity) -> tuple:

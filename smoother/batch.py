@@ -60,6 +60,9 @@ class SmootherResult:
     iterations: int
     runtime_s: float
     converged: bool
+    #: The joint covariance blocks ``{(a, b): Sigma_ab}`` of every two keyframes that share a factor
+    #: (``vectorized`` engine with covariances; :func:`smoother.solver.marginal_covariances`).
+    joint: dict | None = None
 
 
 def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
@@ -130,8 +133,9 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
                 _warn_not_converged(optimizer, iterations, decrease)
-            cov = solver.covariances(problem.blocks, states) if covariances else None
+            cov, joint = solver.covariances(problem.blocks, states, pairs=True) if covariances else (None, None)
         else:
+            joint = None
             states, cov, cost, iterations, converged = _gtsam_engine(problem, optimizer, max_iterations, covariances)
             if not converged:
                 _warn_not_converged(optimizer, iterations, decrease)
@@ -142,7 +146,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
             raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None
         raise
     trajectory = Trajectory(problem.times, states, cov)
-    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged)
+    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged, joint)
 
 
 def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:

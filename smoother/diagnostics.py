@@ -7,7 +7,9 @@ per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N di
 probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
 or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
 
-Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
+The smoothers' own residuals are judged the same way (:mod:`smoother.residual_consistency`),
+and the IMU factors' among them: :func:`consistency_lines` shows each sensor through every
+estimator. Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
 large by construction). Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so
 a real sensor with slightly correlated errors falls outside it: ``ok`` states the statistics, and
 a warning names a sensor only when its NIS per dof is also a factor :data:`WARN_FACTOR` or more
@@ -27,13 +29,23 @@ BAND_PROBABILITY = 0.95
 WARN_FACTOR = 2.0
 
 
+def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
+    """A sum of squared normalised errors against its chi-square distribution: ``per_dof``
+    (``total / dof``), ``band`` (the :data:`BAND_PROBABILITY` interval of ``per_dof`` for a model
+    that fits), ``ok`` (inside it), ``measurements`` (``count``), ``dof`` and ``statistic``:
+    ``"nis"`` (the EKF's innovations) or ``"residual"`` (a smoother's own residuals,
+    :mod:`smoother.residual_consistency`)."""
+    lo = chi2_quantile(0.5 * (1 - BAND_PROBABILITY), dof) / dof
+    hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
+    value = total / dof
+    return {"per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi), "measurements": int(count),
+            "dof": dof, "statistic": statistic}
+
+
 def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
-    """Per sensor: ``nis_per_dof`` (the mean NIS over its updates divided by the dimension),
-    ``band`` (:data:`BAND_PROBABILITY` interval of that mean for a consistent sensor), ``ok``
-    (inside the band), ``updates`` and ``rejected`` (by the EKF's gate) counts, and ``through``:
-    ``"ekf"`` (the figures are the EKF's innovations, a property of the sensor and the model, the
-    same in every estimator's block). Only accepted updates count (module docstring); updates after
-    a divergence (NaN) not at all."""
+    """Per sensor, the :func:`verdict` of its NIS through the EKF, and ``rejected``: the updates
+    the EKF's gate refused. Only accepted updates count (module docstring); updates after a
+    divergence (NaN) not at all."""
     out = {}
     for name in dict.fromkeys(innovations.sensor):
         ours = (innovations.sensor == name) & np.isfinite(innovations.nis)
@@ -41,30 +53,79 @@ def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
         if not mine.any():
             continue
         dof = float(innovations.dim[mine].sum())
-        lo = chi2_quantile(0.5 * (1 - BAND_PROBABILITY), dof) / dof
-        hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
-        value = float(innovations.nis[mine].sum() / dof)
-        out[str(name)] = {"nis_per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi),
-                          "updates": int(mine.sum()), "rejected": int((ours & ~innovations.accepted).sum()),
-                          "through": "ekf"}
+        out[str(name)] = {**verdict(float(innovations.nis[mine].sum()), dof, int(mine.sum()), "nis"),
+                          "rejected": int((ours & ~innovations.accepted).sum())}
     return out
 
 
-def consistency_lines(consistency: dict[str, dict]) -> list[str]:
-    """One line per sensor: its NIS per dof against its band, and whether it fits."""
-    return [f"sensor {name}: NIS {c['nis_per_dof']:.3g} per dof over {c['updates']} updates, expected "
-            f"{c['band'][0]:.2g}-{c['band'][1]:.2g}: {'ok' if c['ok'] else 'OUT OF BAND'}"
-            for name, c in consistency.items()]
+def overall(consistency: dict[str, dict]) -> dict | None:
+    """The :func:`verdict` of all of one estimator's verdicts together (their sums and degrees of
+    freedom added), or None without any."""
+    if not consistency:
+        return None
+    parts = list(consistency.values())
+    total = sum(c["per_dof"] * c["dof"] for c in parts)
+    return verdict(total, sum(c["dof"] for c in parts), sum(c["measurements"] for c in parts), parts[0]["statistic"])
 
 
-def consistency_warnings(consistency: dict[str, dict]) -> list[str]:
-    """One line per sensor outside its band by more than :data:`WARN_FACTOR`, naming what to check."""
+def far_above(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is above its band and :data:`WARN_FACTOR` or more above 1."""
+    return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
+
+
+def _far_off(c: dict) -> bool:
+    return not c["ok"] and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
+
+
+def _by_sensor(by_estimator: dict[str, dict]) -> dict[str, dict]:
+    """``{estimator: {sensor: verdict}}`` -> ``{sensor: {estimator: verdict}}``, sensors in the
+    order first met, the IMU last."""
+    out: dict[str, dict] = {}
+    for estimator, consistency in by_estimator.items():
+        for sensor, c in consistency.items():
+            out.setdefault(sensor, {})[estimator] = c
+    return dict(sorted(out.items(), key=lambda item: item[0] == IMU))
+
+
+#: The name the IMU factors' verdict goes by (:mod:`smoother.residual_consistency`).
+IMU = "imu"
+_STATISTIC = {"nis": "NIS", "residual": "residuals"}
+
+
+def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
+    """One line per sensor (the IMU last): each estimator's figure per dof with its statistic and
+    band, and whether it fits."""
     lines = []
-    for name, c in consistency.items():
-        if c["ok"] or 1.0 / WARN_FACTOR < c["nis_per_dof"] < WARN_FACTOR:
+    for sensor, verdicts in _by_sensor(by_estimator).items():
+        count = max(c["measurements"] for c in verdicts.values())
+        parts = [f"{estimator} {_STATISTIC[c['statistic']]} {c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) "
+                 f"{'ok' if c['ok'] else 'OUT OF BAND'}" for estimator, c in verdicts.items()]
+        name = "imu" if sensor == IMU else f"sensor {sensor}"
+        lines.append(f"{name} ({count} {'factors' if sensor == IMU else 'measurements'}), per dof: " + "; ".join(parts))
+    return lines
+
+
+def consistency_warnings(by_estimator: dict[str, dict]) -> list[str]:
+    """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
+    naming what to check. When the IMU's own residuals are far above their band, the IMU is named
+    first and the other sensors' lines say that their misfit may follow from it."""
+    by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
+    imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
+    lines = []
+    for sensor, verdicts in by_sensor.items():
+        off = {e: c for e, c in verdicts.items() if _far_off(c)}
+        if not off:
             continue
-        lo, hi = c["band"]
-        advice = ("check its sigma (too small), lever arm, rotation or time offset" if c["nis_per_dof"] > hi
+        figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
+                            for e, c in off.items())
+        if sensor == IMU:
+            lines.append(f"imu: residuals per dof {figures}: the IMU's data do not fit its model -- check its units "
+                         "(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities")
+            continue
+        high = any(c["per_dof"] > c["band"][1] for c in off.values())
+        advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
                   else "its sigma looks too large")
-        lines.append(f"{name}: NIS {c['nis_per_dof']:.3g} per dof, expected {lo:.2g}-{hi:.2g}: {advice}")
+        if high and imu_off:
+            advice += "; the IMU's own residuals are far out of band too, so the IMU is the likelier cause"
+        lines.append(f"{sensor}: per dof {figures}: {advice}")
     return lines

@@ -25,7 +25,7 @@ import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, measure_rows, model_index, sensors_of
-from datasets.types import Dataset
+from datasets.types import Dataset, Trajectory
 from factors import imu, preintegration
 from factors import measurements as meas
 from factors.imu_factor import ImuFactor
@@ -207,6 +207,26 @@ def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
     return anchors
 
 
+def _started_from(estimate: Trajectory, times: np.ndarray) -> tuple[preintegration.Anchors, tuple]:
+    """Anchors and per-interval biases that start the graph at ``estimate`` (an EKF's run over the
+    same data): every keyframe that is one of the estimate's times is anchored at its position,
+    attitude and velocity (keyframe 0 too); one between them (a grid keyframe) is predicted from
+    the keyframe before; each interval is integrated around the biases the estimate has at its
+    start. A filter carries what every measurement so far implies -- a gyro bias, a heading --
+    which dead reckoning from the prior does not: the optimiser starts near the optimum."""
+    held = np.clip(np.searchsorted(estimate.t, times + MATCH_TOLERANCE, side="right") - 1, 0, len(estimate.t) - 1)
+    at = np.abs(estimate.t[held] - times) <= MATCH_TOLERANCE
+    states = estimate.states[held]
+    anchors = preintegration.Anchors.none(len(times))
+    anchors.r[at], anchors.C[at], anchors.world_v[at] = states.r[at], states.C[at], states.world_velocity()[at]
+    return anchors, (states.b_f[:-1], states.b_w[:-1])
+
+
+#: Largest difference [s] between a keyframe's time and an estimate's for :func:`_started_from`
+#: to take the estimate's state there.
+MATCH_TOLERANCE = 1e-9
+
+
 _SLOTS = {"rot": imu.PHI, "pos": imu.R, "vel": imu.V, "bias": slice(9, 15)}
 
 
@@ -237,12 +257,14 @@ def _imu_block(pre: preintegration.Preintegrated, gravity: np.ndarray, threshold
 
 
 def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: dict | None = None,
-                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD) -> Problem:
+                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
+                  start: Trajectory | None = None) -> Problem:
     """The factor graph of ``dataset`` (see the module docstring).
 
     ``robust`` maps a sensor's name (the built-in datasets' ``"pose"``, ``"position"``,
     ``"orientation"``, ``"relative_pose"``; a rig's own names) to a kernel spec ``(name,
-    threshold)`` from :func:`datasets.robust.robust_spec`.
+    threshold)`` from :func:`datasets.robust.robust_spec`. ``start``: an estimate of the run (an
+    EKF's) to start from instead of dead reckoning (:func:`_started_from`).
     """
     robust = robust or {}
     times = estimate_times(dataset, keyframe_rate)
@@ -251,10 +273,11 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     keys = [keyframe_keys(k) for k in range(len(times))]
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
-    # initial trajectory: dead reckoning from the initial state, reset by the measurements; the
-    # IMU factors' covariances are evaluated along it (one call does both)
+    # initial trajectory: dead reckoning from the initial state, reset by the measurements (or by
+    # the estimate given); the IMU factors' covariances are evaluated along it (one call does both)
+    anchors, biases = (_anchors(dataset, times), None) if start is None else _started_from(start, times)
     pre, initial_states = preintegration.integrate_with_covariance((acc, gyro, dt), dataset.initial, dataset.noise,
-                                                                   dataset.gravity, _anchors(dataset, times))
+                                                                   dataset.gravity, anchors, biases)
 
     blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]
     prior = dataset.initial

@@ -9,6 +9,7 @@ makes them as the data arrive), so their differences are the estimators', not th
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,8 +18,9 @@ from datasets.types import Dataset, Trajectory
 from smoother.batch import solve_batch
 from smoother.ekf import run_ekf
 from smoother.graph import build_problem
-from factors.errors import InputError
+from factors.errors import BoxplusError, InputError
 from smoother.online import replay
+from smoother.residual_consistency import smoother_consistency
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -26,13 +28,17 @@ ESTIMATORS = ("batch", "fixed-lag", "ekf")
 @dataclass
 class Estimate:
     """One estimator's trajectory (with covariances where computed) and wall time [s]; the EKF's
-    carries its :class:`smoother.ekf.Innovations`."""
+    carries its :class:`smoother.ekf.Innovations`. An estimator that failed (``failed``: why, one
+    line) has no trajectory."""
 
     name: str
-    trajectory: Trajectory
+    trajectory: Trajectory | None
     runtime_s: float
     details: dict
     innovations: object = None
+    failed: str | None = None
+    #: Per-sensor verdicts computed with the estimate (the batch's, which need its joint covariances).
+    consistency: dict | None = None
 
 
 @dataclass
@@ -53,46 +59,135 @@ class RunOptions:
     speed: float = 1.0
 
 
-def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions()) -> dict[str, Estimate]:
-    """Run each estimator in ``names`` (a subset of :data:`ESTIMATORS`) on ``dataset``."""
+def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False) -> dict[str, Estimate]:
+    """Run each estimator in ``names`` (a subset of :data:`ESTIMATORS`) on ``dataset``, in the
+    order of ``names`` (:func:`estimate_each`)."""
+    return dict(estimate_each(dataset, names, options, keep_going))
+
+
+def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False,
+                  announce: Callable[[str], None] | None = None) -> Iterator[tuple[str, Estimate]]:
+    """Run the estimators ``names`` on ``dataset`` and yield ``(name, Estimate)`` as each finishes,
+    so that a caller keeps what finished when a later one is interrupted. ``announce(name)`` is
+    called as each starts.
+
+    The batch smoother starts from the EKF's estimate (:func:`smoother.graph.build_problem`'s
+    ``start``): the EKF runs first when both are asked for, and otherwise for the batch alone (its
+    time counted in the batch's); where the EKF fails, from dead reckoning. ``details["start"]``
+    says which. ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed``
+    set (its error in one line) and the others still run; otherwise its exception propagates."""
     unknown = [n for n in names if n not in ESTIMATORS]
     if unknown:
         raise InputError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
-    out: dict[str, Estimate] = {}
-    problem, build_s = None, 0.0
-    if "batch" in names:
+    both = "ekf" in names and "batch" in names
+    order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
+    ekf: Estimate | None = None
+    for name in order:
+        if announce is not None:
+            announce(name)
         tick = time.perf_counter()
-        problem = build_problem(dataset, options.keyframe_rate, options.robust)
-        build_s = time.perf_counter() - tick
-    for name in names:
-        if name == "batch":
-            r = solve_batch(problem, options.optimizer, options.max_iterations, options.covariances)
-            out[name] = Estimate(name, r.trajectory, build_s + r.runtime_s,
-                                 {"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
-                                  "graph_build_s": build_s})
-        elif name == "fixed-lag":
-            r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
-                       options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
-            details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
-                       "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
-                       "longest_measurement_gap_s": r.longest_gap_s}
-            if options.realtime and len(r.latency_s):
-                ms = 1e3 * r.latency_s
-                details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
-                                         "max": float(ms.max()), "measurements": len(ms)}
-            out[name] = Estimate(name, r.smoothed, r.runtime_s, details)
-        elif name == "ekf":
-            r = run_ekf(dataset, options.ekf_gate, options.progress)
-            out[name] = Estimate(name, r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected},
-                                 r.innovations)
-    return out
+        try:
+            estimate = (_batch(dataset, options, ekf) if name == "batch" else
+                        _fixed_lag(dataset, options) if name == "fixed-lag" else _ekf(dataset, options))
+        except Exception as error:
+            if not keep_going:
+                raise
+            estimate = Estimate(name, None, time.perf_counter() - tick, {}, failed=_one_line(error))
+        if name == "ekf":
+            ekf = estimate
+        yield name, estimate
+
+
+def _one_line(error: Exception) -> str:
+    """An estimator's failure in one line: the project's own errors by their message, anything else
+    by its type too."""
+    text = " ".join(str(error).split())
+    return text if isinstance(error, BoxplusError) else f"{type(error).__name__}: {text}"
+
+
+def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
+    r = run_ekf(dataset, options.ekf_gate, options.progress)
+    return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations)
+
+
+def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estimate:
+    """The batch smoother started from ``ekf``'s estimate (an EKF run for it when None)."""
+    tick = time.perf_counter()
+    details: dict = {}
+    if ekf is None:
+        try:
+            ekf = _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False))
+        except Exception as error:  # the batch can still start from dead reckoning
+            ekf = Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
+        details["start_ekf_s"] = time.perf_counter() - tick
+    details["start"] = "ekf" if ekf.failed is None else f"dead reckoning (the EKF failed: {ekf.failed})"
+    problem = build_problem(dataset, options.keyframe_rate, options.robust,
+                            start=None if ekf.failed is not None else ekf.trajectory)
+    build_s = time.perf_counter() - tick
+    r = solve_batch(problem, options.optimizer, options.max_iterations, options.covariances)
+    details.update({"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
+                    "graph_build_s": build_s})
+    # the verdicts need the joint covariances, which only this call has
+    consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint)
+    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency)
+
+
+def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
+    r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
+               options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
+    details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
+               "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
+               "longest_measurement_gap_s": r.longest_gap_s}
+    if options.realtime and len(r.latency_s):
+        ms = 1e3 * r.latency_s
+        details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
+                                 "max": float(ms.max()), "measurements": len(ms)}
+    return Estimate("fixed-lag", r.smoothed, r.runtime_s, details)
 
 
 def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
-    """Each sensor's NIS through the EKF (:func:`smoother.diagnostics.sensor_consistency`): from
-    the EKF among ``estimates``, else from an EKF run made for it."""
-    from smoother.diagnostics import sensor_consistency as consistency
+    """Each estimator's own verdict on each sensor, ``{estimator: {sensor: verdict}}``
+    (:func:`smoother.diagnostics.verdict`): the EKF's innovations
+    (:func:`smoother.diagnostics.sensor_consistency`), the batch smoother's residuals with their
+    leverages (computed with its covariances, ``details["sensors"]``), the fixed-lag smoother's
+    residuals of the factors on one keyframe at its estimates
+    (:func:`smoother.residual_consistency.smoother_consistency`, over the graph of the same
+    keyframes). An estimator without covariances or that failed has none."""
+    from smoother.diagnostics import sensor_consistency as innovation_consistency
 
-    ekf = estimates.get("ekf")
-    innovations = ekf.innovations if ekf is not None else run_ekf(dataset, options.ekf_gate, False).innovations
-    return consistency(innovations)
+    out = {}
+    for name, est in estimates.items():
+        if est.failed is not None:
+            continue
+        if name == "ekf":
+            out[name] = innovation_consistency(est.innovations)
+        elif name == "batch":
+            out[name] = est.consistency or {}
+        else:
+            problem = build_problem(dataset, options.keyframe_rate, options.robust)
+            t = est.trajectory
+            same = len(t.t) == len(problem.times) and np.allclose(t.t, problem.times, rtol=0, atol=1e-9)
+            out[name] = smoother_consistency(problem.blocks, t.states, t.cov) if same else {}
+    return out
+
+
+def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
+    """Record each estimator's verdicts in its details: ``sensors`` (per sensor), ``fit`` (all
+    together, :func:`smoother.diagnostics.overall`) and, when the fit is far above its band
+    (:func:`smoother.diagnostics.far_above`: the estimate does not explain its own data, whatever
+    the optimiser reported), ``doubtful`` with why."""
+    from smoother.diagnostics import far_above, overall
+
+    for name, est in estimates.items():
+        ours = consistency.get(name, {})
+        est.details["sensors"] = ours
+        fit = overall(ours)
+        if fit is None:
+            continue
+        est.details["fit"] = fit
+        if far_above(fit):
+            worst = max(ours, key=lambda k: ours[k]["per_dof"])
+            est.details["doubtful"] = (f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} "
+                                       f"are {fit['per_dof']:.3g} per dof, expected {fit['band'][0]:.2g}-"
+                                       f"{fit['band'][1]:.2g} (worst: {worst}, {ours[worst]['per_dof']:.3g}): the "
+                                       "estimate does not fit the data; it may be wrong")

@@ -235,11 +235,15 @@ def save_gps(path: Path, dataset: Dataset) -> None:
 
 
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
-    """Write every estimate (TUM + npz), the truth (npz) and ``metrics.json``; return the metrics."""
+    """Write every estimate (TUM + npz), the truth (npz) and ``metrics.json``; return the metrics.
+    An estimator that failed has its reason in ``metrics.json`` (``failed``) and no files."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     report: dict = {}
     for name, est in estimates.items():
+        if est.failed is not None:  # no trajectory: why, in metrics.json
+            report[name] = {"failed": est.failed, "runtime_s": est.runtime_s, **est.details}
+            continue
         write_tum(out_dir / f"{name}.tum", est.trajectory, time_origin_ns=dataset.time_origin_ns)
         save_trajectory(out_dir / f"{name}.npz", est.trajectory)
         datum = getattr(dataset, "datum", None)

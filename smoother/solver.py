@@ -298,11 +298,12 @@ def _dogleg_step(graph: gtsam.GaussianFactorGraph, n: int, radius: float) -> np.
     return sd + tau * d
 
 
-def covariances(blocks: list[Block], states: imu.ImuState, which=None) -> np.ndarray:
+def covariances(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False):
     """Marginal 15x15 covariances (primer convention) of the keyframes ``which`` (default all),
-    from the linearisation at ``states`` (:func:`marginal_covariances`)."""
+    from the linearisation at ``states`` (:func:`marginal_covariances`; with ``pairs`` also the
+    joint blocks it computes on the way)."""
     graph, _ = linearize(blocks, states)
-    return marginal_covariances(graph, len(states), which)
+    return marginal_covariances(graph, len(states), which, pairs)
 
 
 #: The error state's quantities, three components each, in their order.
@@ -310,7 +311,7 @@ QUANTITIES = ("position (world) ", "velocity (body) ", "attitude (world) about "
               "gyro bias ")
 
 
-def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None) -> np.ndarray:
+def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False):
     """Marginal covariances of the variables ``which`` (default all) of the whitened linear system
     ``graph`` on the 15-dim keys ``0 .. n - 1``, from its square-root information.
 
@@ -326,7 +327,11 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None) -
 
     A variable the rows do not determine -- GTSAM finds too few rows for it, or a pivot of its
     ``R_i`` is below ``RANK_TOLERANCE`` times the largest -- raises :class:`IndeterminantSystem`
-    naming its key and the error-state components left free there (:func:`free_components`)."""
+    naming its key and the error-state components left free there (:func:`free_components`).
+
+    ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed
+    (``Sigma_ba = Sigma_ab^T``). Every two variables that share a factor are a conditional and its
+    parent, so it holds the joint covariance of every factor's variables."""
     ordering = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
         net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
@@ -355,7 +360,8 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None) -
             own = own + cross @ K.T
         sigma[(frontal, frontal)] = 0.5 * (own + own.T)
     which = range(n) if which is None else which
-    return np.stack([sigma[(int(k), int(k))] for k in which])
+    marginals = np.stack([sigma[(int(k), int(k))] for k in which])
+    return (marginals, sigma) if pairs else marginals
 
 
 #: Pivots of the square-root information below this fraction of the largest count as zero: the

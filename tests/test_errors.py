@@ -63,7 +63,7 @@ def test_the_command_line_reports_a_library_error_in_one_line_with_exit_code_2(e
     def fail(*args, **kwargs):
         raise error
 
-    monkeypatch.setattr(smoother.pipeline, "run_estimators", fail)
+    monkeypatch.setattr(smoother.pipeline, "estimate_each", fail)
     assert main(["run", "--duration", "1", "--no-progress", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == f"smoother: error: {str(error).splitlines()[0]}"

@@ -112,7 +112,7 @@ def _run(args) -> int:
     from smoother import report, sources
     from smoother.commands import at_least, duration, fraction, output_directory, positive
     from smoother.diagnostics import consistency_lines, consistency_warnings
-    from smoother.pipeline import ESTIMATORS, RunOptions, run_estimators, sensor_consistency
+    from smoother.pipeline import ESTIMATORS, RunOptions, estimate_each, judged, sensor_consistency
 
     at_least("--seed", args.seed, 0)
     duration(args.duration)
@@ -171,21 +171,21 @@ def _run(args) -> int:
     if args.tune_noise:
         dataset, run_info["noise_tuning"] = tuned(dataset, args.progress)
     estimates = {}
+    announce = lambda name: print(f"running {name} ...", file=sys.stderr)  # noqa: E731
     try:
-        for name in names:
-            print(f"running {name} ...", file=sys.stderr)
-            estimates.update(run_estimators(dataset, [name], run_options))
-    except BaseException as error:  # keep what finished: an interruption, or a later estimator failing
+        for name, estimate in estimate_each(dataset, names, run_options, keep_going=True, announce=announce):
+            estimates[name] = estimate
+            if estimate.failed is not None:
+                print(f"{name} failed: {estimate.failed}", file=sys.stderr)
+    except BaseException as error:  # keep what finished: an interruption
         if estimates:
-            stopped = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{name} failed"
-            report.write_outputs(out, dataset, estimates, {**run_info, "stopped": stopped})
+            stopped = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{type(error).__name__}: {error}"
+            report.write_outputs(out, dataset, _in_order(estimates, names), {**run_info, "stopped": stopped})
             print(f"{stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
         raise
-    consistency = {}
-    if estimates:
-        consistency = sensor_consistency(dataset, estimates, run_options)
-        for est in estimates.values():
-            est.details["sensors"] = consistency
+    estimates = _in_order(estimates, names)
+    consistency = sensor_consistency(dataset, estimates, run_options)
+    judged(estimates, consistency)
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
@@ -212,8 +212,20 @@ def _run(args) -> int:
         print(line, file=sys.stderr)
     for line in consistency_warnings(consistency):
         print(f"warning: {line}", file=sys.stderr)
+    for name, est in estimates.items():
+        if "doubtful" in est.details:
+            print(f"warning: {name} is doubtful: {est.details['doubtful']}", file=sys.stderr)
+    failed = [name for name, est in estimates.items() if est.failed is not None]
     print(f"outputs in {args.out}/", file=sys.stderr)
+    if failed:
+        print(f"{', '.join(failed)} failed (why: above and in metrics.json)", file=sys.stderr)
+        return 2
     return 0
+
+
+def _in_order(estimates: dict, names: list[str]) -> dict:
+    """``estimates`` in the order the estimators were asked for (the EKF runs before the batch)."""
+    return {name: estimates[name] for name in names if name in estimates}
 
 
 def tuned(dataset, progress: bool | None):
@@ -263,13 +275,17 @@ def format_table(metrics: dict) -> str:
                ("gps_heldout_rmse_m", "held-out [m]"), ("gps_fit_residual_m", "fit resid [m]"),
                ("runtime_s", "time [s]")]
     present = [(k, h) for k, h in columns if any(k in m for m in metrics.values())]
-    lines = [f"{'estimator':<10}" + "".join(f"{h:>14}" for _, h in present)]
+    lines = [f"{'estimator':<14}" + "".join(f"{h:>14}" for _, h in present)]
     for name, m in metrics.items():
+        if "failed" in m:
+            lines.append(f"{name:<14}  failed: {m['failed']}")
+            continue
+        name = name + " (?)" if "doubtful" in m else name
         cells = []
         for k, _ in present:
             v = m.get(k, math.nan)
             cells.append(f"{v:>14.4f}" if v is not None and math.isfinite(v) else f"{'-':>14}")
-        lines.append(f"{name:<10}" + "".join(cells))
+        lines.append(f"{name:<14}" + "".join(cells))
     if any(k == "gps_fit_residual_m" for k, _ in present):
         heldout = {name: m.get("gps_heldout_rmse_m") for name, m in metrics.items()}
         heldout = {name: v for name, v in heldout.items() if v is not None and math.isfinite(v)}
@@ -278,4 +294,6 @@ def format_table(metrics: dict) -> str:
         else:
             lines.append("no held-out fixes: no ranking (hold fixes out with --gps-every K > 1)")
         lines.append("fit resid: RMS distance to the fixes the estimators used -- a residual, not an accuracy")
+    if any("doubtful" in m for m in metrics.values()):
+        lines.append("(?): doubtful -- the estimate does not fit its own data (the warning below says how far)")
     return "\n".join(lines)

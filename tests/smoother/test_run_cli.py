@@ -153,7 +153,7 @@ def test_a_bad_out_is_one_line_before_any_estimator_runs(tmp_path, capsys, monke
     before the estimators run (their results would otherwise be lost)."""
     import smoother.pipeline
 
-    monkeypatch.setattr(smoother.pipeline, "run_estimators", lambda *a, **k: pytest.fail("estimators ran"))
+    monkeypatch.setattr(smoother.pipeline, "estimate_each", lambda *a, **k: pytest.fail("estimators ran"))
     blocker = tmp_path / "metrics.json"
     blocker.write_text("{}")
     out = blocker if where == "an existing file" else blocker / "run"
@@ -211,24 +211,10 @@ def test_a_run_with_bad_options_leaves_the_previous_metrics(good_run, capsys):
     assert (out / "metrics.json").read_bytes() == before
 
 
-def test_a_run_whose_estimator_fails_leaves_the_previous_metrics(good_run, capsys, monkeypatch):
-    """An estimator failing with a ValueError: exit 2, one line, metrics.json untouched."""
-    import smoother.pipeline
-
-    def failing(*args, **kwargs):
-        raise ValueError("simulated estimator failure")
-
-    monkeypatch.setattr(smoother.pipeline, "run_ekf", failing)
-    out, before = good_run
-    assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--seed", "3"]) == 2
-    assert "simulated estimator failure" in _one_line_error(capsys)
-    assert (out / "metrics.json").read_bytes() == before
-
-
-
-def test_a_later_estimator_failing_keeps_the_finished_ones(tmp_path, capsys, monkeypatch):
-    """batch, fixed-lag, then the EKF fails: exit 2 with its one-line error, and the two finished
-    estimates are written (their files and metrics, the run marked as stopped), as after Ctrl-C."""
+def test_a_failing_estimator_is_reported_and_the_others_run(tmp_path, capsys, monkeypatch):
+    """The EKF fails: exit 2 naming it; the batch (started from dead reckoning, since the EKF it
+    starts from failed) and the fixed-lag smoother still run and are written; metrics.json and the
+    table say why the EKF failed."""
     import smoother.pipeline
 
     def failing(*args, **kwargs):
@@ -237,10 +223,21 @@ def test_a_later_estimator_failing_keeps_the_finished_ones(tmp_path, capsys, mon
     monkeypatch.setattr(smoother.pipeline, "run_ekf", failing)
     out = tmp_path / "run"
     assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 2
-    assert "simulated estimator failure" in _one_line_error(capsys)
+    captured = capsys.readouterr()
+    assert "ekf failed: ValueError: simulated estimator failure" in captured.err
+    assert "failed: ValueError: simulated estimator failure" in captured.out  # the table's row
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["_run"]["estimators"]) == {"batch", "fixed-lag"} and metrics["_run"]["stopped"] == "ekf failed"
+    assert metrics["_run"]["estimators"] == ["batch", "fixed-lag", "ekf"] and "stopped" not in metrics["_run"]
+    assert metrics["ekf"]["failed"] == "ValueError: simulated estimator failure"
+    assert metrics["batch"]["start"].startswith("dead reckoning (the EKF failed")
     assert (out / "batch.tum").exists() and (out / "fixed-lag.npz").exists() and not (out / "ekf.tum").exists()
+
+
+def test_the_batch_starts_from_the_ekf(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "2", "--estimator", "batch", "--out", str(out), "--no-progress"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["batch"]["start"] == "ekf" and metrics["batch"]["start_ekf_s"] > 0
 
 
 def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_run, capsys, monkeypatch):
@@ -267,7 +264,7 @@ def test_failures_inside_the_library_are_one_line_without_traceback(monkeypatch,
     def boom(*args, **kwargs):
         raise RuntimeError("\nIndeterminate linear system detected while working near variable\n42")
 
-    monkeypatch.setattr(smoother.pipeline, "run_estimators", boom)
+    monkeypatch.setattr(smoother.pipeline, "estimate_each", boom)
     from smoother.cli import main as cli_main
 
     assert cli_main(["run", "--duration", "1", "--out", str(tmp_path)]) == 3

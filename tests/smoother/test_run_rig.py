@@ -122,7 +122,7 @@ def test_held_out_error_splits_into_horizontal_and_vertical(recording):
     m = json.loads((out / "metrics.json").read_text())["batch"]
     total = m["gps_heldout_horizontal_rmse_m"] ** 2 + m["gps_heldout_vertical_rmse_m"] ** 2
     assert total == pytest.approx(m["gps_heldout_rmse_m"] ** 2, rel=1e-12)
-    assert m["sensors"]["gnss"]["through"] == "ekf"
+    assert m["sensors"]["gnss"]["statistic"] == "residual"
 
 
 def test_realtime_replay_reports_latency_and_gives_the_same_estimates(recording, capsys):

@@ -1,0 +1,73 @@
+"""Per-sensor consistency through a smoother: each factor block's own normalised residuals.
+
+The EKF judges a sensor by its innovations (:mod:`smoother.diagnostics`); a smoother by its
+residuals at its own estimate. A measurement's residual ``e = h(x^) - z`` at an estimate
+conditioned on data that include ``z`` has, to first order, the covariance ``R - J P J^T``
+(``R`` the measurement's covariance, ``J`` the residual's Jacobian with respect to the variables
+the factor reads, ``P`` their joint posterior covariance): smaller than the innovation's, by the
+factor's *leverage* ``h = tr(R^-1 J P J^T)``, between 0 (the other data determine the state) and
+``d`` (this measurement alone does). With ``W`` the whitening of ``R`` and ``A = W J``::
+
+    E |W e|^2 = d - h,        h = tr(A P A^T)
+
+so over a sensor's rows ``sum |W e|^2 / sum (d_i - h_i)`` is 1 for a sensor whose model fits, and
+the sum is approximately chi-square with ``sum (d_i - h_i)`` degrees of freedom, which gives its
+band (:data:`smoother.diagnostics.BAND_PROBABILITY`). The leverages of all factors add up to the
+number of estimated variables: the residuals of a least-squares fit have ``m - n`` degrees of
+freedom.
+
+A factor on one keyframe needs that keyframe's marginal covariance; one on two keyframes (the IMU
+factors, odometry) the joint covariance of both (the batch smoother's
+:attr:`smoother.batch.SmootherResult.joint`). The IMU block's figure is the IMU's own verdict:
+its residuals out of band point at the IMU (units, saturation, noise densities), not at the
+sensors beside it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from smoother.diagnostics import verdict
+from smoother.solver import Block
+
+#: Blocks with no verdict of their own (the prior on the first keyframe is not a sensor).
+NOT_JUDGED = ("prior",)
+
+
+def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None = None) -> dict | None:
+    """The verdict (:func:`smoother.diagnostics.verdict`) of one block's residuals at ``states``
+    (one per keyframe), with the keyframes' marginal covariances ``cov (n, 15, 15)`` and, for
+    factors on two keyframes, ``joint`` (``{(a, b): Sigma_ab}``); None where those are missing.
+    The residuals are whitened, not robustly reweighted: a robust kernel's outliers count, as
+    they are in the data."""
+    kf = block.keyframes
+    if kf.shape[1] == 2 and joint is None:
+        return None
+    slots = [states[kf[:, s]] for s in range(kf.shape[1])]
+    e, Js = block.residual(slots, True, slice(None))
+    e_w = np.einsum("mab,mb->ma", block.whiten, e)
+    A = [block.whiten @ J for J in Js]
+    lev = np.einsum("mij,mjk,mik->m", A[0], cov[kf[:, 0]], A[0])
+    if kf.shape[1] == 2:
+        cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in kf])
+        lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
+        lev += np.einsum("mij,mjk,mik->m", A[1], cov[kf[:, 1]], A[1])
+    d = e_w.shape[1]
+    dof = float(np.sum(np.clip(d - lev, 0.0, d)))
+    if not dof > 0.0 or not np.isfinite(e_w).all():
+        return None
+    return verdict(float(np.sum(e_w * e_w)), dof, len(kf), "residual")
+
+
+def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None) -> dict:
+    """:func:`block_consistency` of every block but :data:`NOT_JUDGED`, by block name (a sensor's
+    name; ``"imu"`` for the IMU factors); blocks without the covariances they need are left out."""
+    if cov is None:
+        return {}
+    out = {}
+    for block in blocks:
+        if block.name in NOT_JUDGED or len(block) == 0:
+            continue
+        c = block_consistency(block, states, cov, joint)
+        if c is not None:
+            out[block.name] = c
+    return out
