@@ -857,7 +857,27 @@ class SlidingWindow:
     def _solve(self, t: float) -> None:
         """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
         keyframes linearised again, and everything after them), solve ``H delta = -g`` at the
-        linearisation points, set the estimates to ``theta [+] delta``."""
+        linearisation points, set the estimates to ``theta [+] delta``. A keyframe whose
+        information is not positive definite (nothing in the window determines some part of it)
+        gets a weak prior about its estimate (:data:`WEAK_PRIOR_SIGMAS`, recorded in
+        ``recovered``) and the window is factorised again; if it still fails, the update does."""
+        for attempt in range(2):
+            failed = self._solve_once()
+            if failed < 0:
+                return
+            self._stale = self.first  # the next factorisation covers the whole window again
+            if attempt == 0:
+                self._add_prior(failed, self.state(failed), whitening(np.diag(WEAK_PRIOR_SIGMAS ** 2)))
+                self.recovered.append(failed)
+        raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
+                             f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
+                             "definite even with a weak prior on it: the window's information spans more orders of "
+                             "magnitude than double precision holds (keyframes a few microseconds apart, or a sensor "
+                             "many orders more precise than the rest)")
+
+    def _solve_once(self) -> int:
+        """One factorisation and solve of :meth:`_solve`; returns -1, or the keyframe whose pivot
+        failed (the estimates then unchanged)."""
         reach = self._bandwidth()
         if reach > self._S:  # a wider band: L anew, the whole window factorised
             self._L = np.zeros((self._cap, reach + 1, DIM, DIM))
@@ -871,14 +891,12 @@ class SlidingWindow:
                                                 self._cap, S, self.relinearisation_threshold, MAX_ATTITUDE_STEP,
                                                 self._moved, *self._linearisation_points(), *self._estimates())
         if failed >= 0:
-            self._stale = self.first  # the next update factorises the whole window again
-            raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
-                                 f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
-                                 "definite. Check the data around that time (an IMU gap, a measurement far off).")
+            return failed
         self._stale = self.newest + 1
         self.shortened += shortened
         if oldest >= 0:
             self._relinearised(oldest)
+        return -1
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
