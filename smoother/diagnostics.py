@@ -11,7 +11,9 @@ Only the updates the filter accepted count (a gate's rejections are counted apar
 large by construction). Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so
 a real sensor with slightly correlated errors falls outside it: ``ok`` states the statistics, and
 a warning names a sensor only when its NIS per dof is also a factor :data:`WARN_FACTOR` or more
-away from 1 -- a sigma, extrinsic or time offset that is actually wrong.
+away from 1 -- a sigma, extrinsic or time offset that is actually wrong. When the IMU itself has
+findings (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), every
+sensor's NIS is a symptom of them first: the warning then names the IMU as the likelier cause.
 """
 from __future__ import annotations
 
@@ -57,14 +59,19 @@ def consistency_lines(consistency: dict[str, dict]) -> list[str]:
             for name, c in consistency.items()]
 
 
-def consistency_warnings(consistency: dict[str, dict]) -> list[str]:
-    """One line per sensor outside its band by more than :data:`WARN_FACTOR`, naming what to check."""
+def consistency_warnings(consistency: dict[str, dict], imu_findings=()) -> list[str]:
+    """One line per sensor outside its band by more than :data:`WARN_FACTOR`, naming what to check:
+    with ``imu_findings`` (:class:`datasets.imu_health.ImuFinding` s) the IMU first."""
     lines = []
+    kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
     for name, c in consistency.items():
         if c["ok"] or 1.0 / WARN_FACTOR < c["nis_per_dof"] < WARN_FACTOR:
             continue
         lo, hi = c["band"]
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if c["nis_per_dof"] > hi
                   else "its sigma looks too large")
+        if kinds:
+            advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this NIS a symptom of "
+                      f"it; if the IMU is cleared, {advice}")
         lines.append(f"{name}: NIS {c['nis_per_dof']:.3g} per dof, expected {lo:.2g}-{hi:.2g}: {advice}")
     return lines
