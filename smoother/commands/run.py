@@ -56,8 +56,8 @@ def register(sub) -> None:
                    help="first scale the IMU noise densities to maximise the likelihood of the measurements used "
                         "(EKF prediction errors; no truth, no held-out data), then run with them")
     p.add_argument("--max-gyro-rate", type=float, default=None, metavar="RAD_S",
-                   help="accept gyro data up to this 99th-percentile rate [rad/s] (default 35, 2000 deg/s: beyond "
-                        "it the data are refused as probably in deg/s)")
+                   help="accept gyro data up to this rate [rad/s], as a 99th percentile and on each sample's axes "
+                        "(default 35, 2000 deg/s: beyond it the data are refused as probably in deg/s)")
     p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
     p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
     p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
