@@ -129,9 +129,9 @@ def imu_gaps(t: np.ndarray, typical: float | None = None, where: str = "Dataset.
     if not long.size:
         return dt[long], None
     i = int(long[np.argmax(dt[long])])
-    return dt[long], (f"{where}: {long.size} gap(s) longer than {IMU_GAP_FACTOR:g} x the typical period ({typical:.4g} s); "
-            f"the longest is {dt[i]:.4g} s after t = {t[i]:.6f} s"
-            + (f" (row {i})" if rows else "") + "; each is bridged by holding the sample before it")
+    return dt[long], (f"{where}: {long.size} gap(s) longer than {IMU_GAP_FACTOR:g} x the typical period "
+                      f"({typical:.4g} s); the longest is {dt[i]:.4g} s after t = {t[i]:.6f} s"
+                      + (f" (row {i})" if rows else "") + "; each is bridged by holding the sample before it")
 
 
 def check_times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
