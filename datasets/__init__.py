@@ -9,8 +9,9 @@ anywhere, in simulation), ``kinds`` (the registry of measurement kinds), ``rig``
 ``recording`` (a rig's recording as a dataset), ``sources`` / ``bags`` / ``csv_sources`` (ROS
 bags, CSV and TUM streams), ``gnss`` (geodetic <-> local ENU), ``initialise`` (the initial state
 from the data), ``kalibr`` (Kalibr calibration files), ``allan`` (IMU noise from a static
-recording), ``errors`` (:class:`DataError`, naming file, line and
-field of bad input), ``atomic`` (files written whole or not at all).
+recording), ``imu_health`` (the IMU's own faults: clipping, spikes, gaps, wrong units), ``errors``
+(:class:`DataError`, naming file, line and field of bad input), ``atomic`` (files written whole or
+not at all).
 
 The names below are importable from the package itself (``from datasets import Dataset``); each
 is loaded on first use. ``simulate`` is the simulator's module (``simulate.simulate(...)``): a

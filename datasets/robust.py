@@ -28,3 +28,16 @@ def robust_spec(text: str | None):
     if not threshold > 0:
         raise InputError(f"robust kernel threshold must be positive, got {threshold}")
     return name, threshold
+
+
+def check_robust(name: str, spec) -> None:
+    """``spec`` as :func:`robust_spec` returns it -- None, or ``(kernel name, threshold)`` with a
+    threshold None or positive and finite -- or an InputError naming ``name``."""
+    if spec is None:
+        return
+    if not (isinstance(spec, tuple) and len(spec) == 2 and spec[0] in ROBUST_KERNEL_NAMES):
+        raise InputError(f"{name}: expected None or (kernel, threshold) with a kernel of "
+                         f"{', '.join(ROBUST_KERNEL_NAMES)} (datasets.robust.robust_spec), got {spec!r}")
+    threshold = spec[1]
+    if threshold is not None and not (isinstance(threshold, (int, float)) and 0 < threshold < float("inf")):
+        raise InputError(f"{name}: threshold: expected None or a positive, finite number, got {threshold!r}")

@@ -24,17 +24,30 @@ from factors.small_linalg import cholesky_into
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
 IMU_GAP_FACTOR = 5.0
+#: An IMU interval longer than this [s] is no gap but a jump of the clock (or stamps of another
+#: clock): refused, since dead reckoning across it is meaningless.
+MAX_IMU_GAP_S = 3600.0
 #: The 99th-percentile angular rate [rad/s] beyond which gyro data are refused as probably in
-#: deg/s: 35 rad/s (2000 deg/s, a MEMS gyro's full scale) is beyond what a vehicle turns at.
+#: deg/s: 35 rad/s (2000 deg/s, a MEMS gyro's full scale) is beyond what a vehicle turns at. No
+#: single sample may exceed it on any axis either (a gyro reads nothing beyond its full scale).
 MAX_PLAUSIBLE_RATE = 35.0
+#: The specific force [m/s^2] no accelerometer axis reads beyond: about 200 g, the full scale of
+#: high-g MEMS accelerometers (a navigation IMU's is 2-40 g). A sample beyond it is corrupt.
+MAX_PLAUSIBLE_SPECIFIC_FORCE = 2000.0
+#: The largest plausible coordinate of a position or displacement measurement [m] (five times
+#: the geostationary orbit's radius: room for Earth-centred coordinates).
+MAX_PLAUSIBLE_DISTANCE = 2e8
+#: The largest plausible component of a velocity measurement [m/s] (above orbital speed).
+MAX_PLAUSIBLE_SPEED = 1e4
 _max_rate = contextvars.ContextVar("max_gyro_rate", default=MAX_PLAUSIBLE_RATE)
 
 
 @contextlib.contextmanager
 def max_gyro_rate(limit: float):
-    """Inside the block, datasets accept gyro data up to a 99th-percentile rate of ``limit``
-    [rad/s] instead of :data:`MAX_PLAUSIBLE_RATE` (the rare real case: a spinning projectile,
-    a rotor-mounted IMU). The loaders construct their datasets inside, so it reaches them too."""
+    """Inside the block, datasets and online smoothers made there accept gyro data up to
+    ``limit`` [rad/s] (a 99th-percentile rate, and each sample's axes) instead of
+    :data:`MAX_PLAUSIBLE_RATE` (the rare real case: a spinning projectile, a rotor-mounted IMU).
+    The loaders construct their datasets inside, so it reaches them too."""
     token = _max_rate.set(float(limit))
     try:
         yield
@@ -42,16 +55,83 @@ def max_gyro_rate(limit: float):
         _max_rate.reset(token)
 
 
-def check_array(name: str, value, shape_tail: tuple, n: int | None = None) -> np.ndarray:
-    """``value`` as a finite float array of shape ``(n,) + shape_tail``; a clear error otherwise."""
-    a = np.asarray(value, dtype=float)
+def gyro_rate_limit() -> float:
+    """The angular rate [rad/s] in force (:func:`max_gyro_rate`, default :data:`MAX_PLAUSIBLE_RATE`)."""
+    return _max_rate.get()
+
+
+def check_array(name: str, value, shape_tail: tuple, n: int | None = None, t=None) -> np.ndarray:
+    """``value`` as a finite float array of shape ``(n,) + shape_tail``; a clear error otherwise
+    (naming the row, and its time where the rows' times ``t`` are given)."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected an array of numbers, got {type(value).__name__}") from None
     expected = ("N",) + shape_tail if n is None else (n,) + shape_tail
     if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail or (n is not None and a.shape[0] != n):
         raise InputError(f"{name}: expected shape {expected}, got {a.shape}")
     if not np.isfinite(a).all():  # the method: np.all's dispatch costs as much as the test, per row
         bad = np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1))[0][0]
-        raise InputError(f"{name}: non-finite value (NaN or inf) at row {bad}")
+        raise InputError(f"{name}: non-finite value (NaN or inf) at {_row(bad, t)}")
     return a
+
+
+def _row(i: int, t=None) -> str:
+    """``row i``, with its time where the times ``t`` are known (and finite)."""
+    if t is None or not np.isfinite(t[i]):
+        return f"row {i}"
+    return f"row {i} (t = {float(t[i]):.6f} s)"
+
+
+def check_magnitude(name: str, a: np.ndarray, limit: float, unit: str, t=None, why: str = "") -> np.ndarray:
+    """``a`` (rows of finite numbers) with no entry beyond ``+-limit``; an error naming the row
+    (and its time, where ``t`` is given), the value and the limit otherwise (``why``: what a value
+    beyond it probably means)."""
+    if a.size and not np.abs(a).max() <= limit:
+        bad = int(np.argmax(np.abs(a.reshape(a.shape[0], -1)).max(axis=1) > limit))
+        value = a.reshape(a.shape[0], -1)[bad]
+        value = value[np.argmax(np.abs(value))]
+        raise InputError(f"{name}: {value:.4g} {unit} at {_row(bad, t)} is beyond the plausible +-{limit:g} {unit}"
+                         + (f" ({why})" if why else ""))
+    return a
+
+
+def check_imu_range(prefix: str, t, acc: np.ndarray, gyro: np.ndarray, rate_limit: float | None = None) -> None:
+    """No axis of ``acc`` beyond :data:`MAX_PLAUSIBLE_SPECIFIC_FORCE`, none of ``gyro`` beyond
+    ``rate_limit`` (default :func:`gyro_rate_limit`): such a sample is corrupt (or in other units);
+    an error naming the field (``prefix`` + ``acc`` / ``gyro``), the row and its time otherwise."""
+    check_magnitude(f"{prefix}acc", acc, MAX_PLAUSIBLE_SPECIFIC_FORCE, "m/s^2", t,
+                    "beyond any accelerometer's range: a corrupt sample, or data in mm/s^2")
+    check_magnitude(f"{prefix}gyro", gyro, gyro_rate_limit() if rate_limit is None else rate_limit, "rad/s", t,
+                    "beyond a MEMS gyro's full scale: a corrupt sample, or data in deg/s; for a real case, raise "
+                    "the limit (smoother run --max-gyro-rate)")
+
+
+def imu_gaps(t: np.ndarray, typical: float | None = None, where: str = "Dataset.imu",
+             rows: bool = True) -> tuple[np.ndarray, str | None]:
+    """The rule for the intervals of IMU times ``t``: one longer than :data:`MAX_IMU_GAP_S` is
+    an error (a clock jump); those longer than :data:`IMU_GAP_FACTOR` ``typical`` periods (default:
+    the median interval) are gaps, bridged by holding the sample before each (zero-order hold,
+    only as good as the motion is steady there). Returns the gaps' lengths and the warning about
+    them (how many, the longest, its start and length; ``rows``: its row too), or None. ``where``
+    names the stream."""
+    dt = np.diff(t)
+    if dt.size == 0:
+        return dt, None
+    jump = np.flatnonzero(dt > MAX_IMU_GAP_S)
+    if jump.size:
+        i = int(jump[0])
+        raise InputError(f"{where}: t: a step of {dt[i]:.6g} s after t = {t[i]:.6f} s" + (f" (row {i})" if rows else "")
+                         + f", beyond any plausible gap ({MAX_IMU_GAP_S:g} s): a jump of the clock, or stamps of "
+                         "another clock")
+    typical = float(np.median(dt)) if typical is None else typical
+    long = np.flatnonzero(dt > IMU_GAP_FACTOR * typical)
+    if not long.size:
+        return dt[long], None
+    i = int(long[np.argmax(dt[long])])
+    return dt[long], (f"{where}: {long.size} gap(s) longer than {IMU_GAP_FACTOR:g} x the typical period "
+                      f"({typical:.4g} s); the longest is {dt[i]:.4g} s after t = {t[i]:.6f} s"
+                      + (f" (row {i})" if rows else "") + "; each is bridged by holding the sample before it")
 
 
 def check_times(name: str, t, strictly_increasing: bool = True) -> np.ndarray:
@@ -105,6 +185,12 @@ def _covariance_defect(cov):
         if not cholesky_into(cov[i], L):
             return i, 2
     return -1, 0
+
+
+def _distances(name: str, value, t: np.ndarray) -> np.ndarray:
+    """Positions or displacements [m] at times ``t``: finite, shape ``(len(t), 3)``, no coordinate
+    beyond :data:`MAX_PLAUSIBLE_DISTANCE`."""
+    return check_magnitude(name, check_array(name, value, (3,), len(t), t), MAX_PLAUSIBLE_DISTANCE, "m", t)
 
 
 def check_rotations(name: str, C, n: int) -> np.ndarray:
@@ -162,7 +248,7 @@ def rigid_problem(T, tolerance: float = RIGID_TOLERANCE) -> str | None:
     return None
 
 
-def _extrinsic(name: str, T_BS) -> np.ndarray | None:
+def check_extrinsic(name: str, T_BS) -> np.ndarray | None:
     """``T_BS`` as a 4x4 rigid transform (:func:`rigid_problem`), or None."""
     if T_BS is None:
         return None
@@ -170,6 +256,23 @@ def _extrinsic(name: str, T_BS) -> np.ndarray | None:
     if problem is not None:
         raise InputError(f"{name}: expected a 4x4 rigid transform, got {problem}")
     return np.asarray(T_BS, dtype=float)
+
+
+def check_state(name: str, state) -> ImuState:
+    """``state`` as one :class:`ImuState`: 3-vectors ``r``, ``v``, ``b_f``, ``b_w`` and a rotation
+    matrix ``C``, all finite; an error naming the field otherwise."""
+    if not isinstance(state, ImuState):
+        raise InputError(f"{name}: expected an ImuState, got {type(state).__name__}")
+    for field_name in ("r", "v", "b_f", "b_w"):
+        check_array(f"{name}.{field_name}", getattr(state, field_name), (), 3)
+    check_rotations(f"{name}.C", np.asarray(state.C, dtype=float)[None], 1)
+    return state
+
+
+def check_state_covariance(name: str, cov) -> np.ndarray:
+    """``cov`` as one symmetric positive definite 15x15 error-state covariance."""
+    cov = check_array(name, cov, (15,), 15)
+    return check_covariances(name, cov[None], 1, 15)[0]
 
 
 class _Rows:
@@ -198,8 +301,8 @@ class ImuSamples:
     def __post_init__(self):
         t = check_times("ImuSamples.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "acc", check_array("ImuSamples.acc", self.acc, (3,), len(t)))
-        object.__setattr__(self, "gyro", check_array("ImuSamples.gyro", self.gyro, (3,), len(t)))
+        object.__setattr__(self, "acc", check_array("ImuSamples.acc", self.acc, (3,), len(t), t))
+        object.__setattr__(self, "gyro", check_array("ImuSamples.gyro", self.gyro, (3,), len(t), t))
         if self.t_ns is not None:
             t_ns = np.asarray(self.t_ns, dtype=np.int64)
             if t_ns.shape != t.shape:
@@ -234,9 +337,9 @@ class PositionMeasurements(_Rows):
     def __post_init__(self):
         t = check_times("PositionMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "position", check_array("PositionMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "position", _distances("PositionMeasurements.position", self.position, t))
         object.__setattr__(self, "cov", check_covariances("PositionMeasurements.cov", self.cov, len(t), 3))
-        object.__setattr__(self, "T_BS", _extrinsic("PositionMeasurements.T_BS", self.T_BS))
+        object.__setattr__(self, "T_BS", check_extrinsic("PositionMeasurements.T_BS", self.T_BS))
 
 
 
@@ -255,7 +358,7 @@ class OrientationMeasurements(_Rows):
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "C", check_rotations("OrientationMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", check_covariances("OrientationMeasurements.cov", self.cov, len(t), 3))
-        object.__setattr__(self, "T_BS", _extrinsic("OrientationMeasurements.T_BS", self.T_BS))
+        object.__setattr__(self, "T_BS", check_extrinsic("OrientationMeasurements.T_BS", self.T_BS))
 
 
 
@@ -274,10 +377,10 @@ class PoseMeasurements(_Rows):
     def __post_init__(self):
         t = check_times("PoseMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "position", check_array("PoseMeasurements.position", self.position, (3,), len(t)))
+        object.__setattr__(self, "position", _distances("PoseMeasurements.position", self.position, t))
         object.__setattr__(self, "C", check_rotations("PoseMeasurements.C", self.C, len(t)))
         object.__setattr__(self, "cov", check_covariances("PoseMeasurements.cov", self.cov, len(t), 6))
-        object.__setattr__(self, "T_BS", _extrinsic("PoseMeasurements.T_BS", self.T_BS))
+        object.__setattr__(self, "T_BS", check_extrinsic("PoseMeasurements.T_BS", self.T_BS))
 
 
 @dataclass(frozen=True, eq=False)
@@ -296,10 +399,14 @@ class VelocityMeasurements(_Rows):
     def __post_init__(self):
         t = check_times("VelocityMeasurements.t", self.t)
         object.__setattr__(self, "t", t)
-        object.__setattr__(self, "velocity", check_array("VelocityMeasurements.velocity", self.velocity, (3,), len(t)))
-        object.__setattr__(self, "gyro", check_array("VelocityMeasurements.gyro", self.gyro, (3,), len(t)))
+        velocity = check_array("VelocityMeasurements.velocity", self.velocity, (3,), len(t), t)
+        object.__setattr__(self, "velocity", check_magnitude("VelocityMeasurements.velocity", velocity,
+                                                             MAX_PLAUSIBLE_SPEED, "m/s", t))
+        gyro = check_array("VelocityMeasurements.gyro", self.gyro, (3,), len(t), t)
+        object.__setattr__(self, "gyro", check_magnitude("VelocityMeasurements.gyro", gyro, gyro_rate_limit(),
+                                                         "rad/s", t, "beyond a MEMS gyro's full scale"))
         object.__setattr__(self, "cov", check_covariances("VelocityMeasurements.cov", self.cov, len(t), 3))
-        object.__setattr__(self, "T_BS", _extrinsic("VelocityMeasurements.T_BS", self.T_BS))
+        object.__setattr__(self, "T_BS", check_extrinsic("VelocityMeasurements.T_BS", self.T_BS))
 
 
 
@@ -326,10 +433,10 @@ class RelativePoseMeasurements(_Rows):
             raise InputError(f"RelativePoseMeasurements: row {i}: t_to ({t_to[i]}) must be after t_from ({t_from[i]})")
         object.__setattr__(self, "t_from", t_from)
         object.__setattr__(self, "t_to", t_to)
-        object.__setattr__(self, "dr", check_array("RelativePoseMeasurements.dr", self.dr, (3,), n))
+        object.__setattr__(self, "dr", _distances("RelativePoseMeasurements.dr", self.dr, t_to))
         object.__setattr__(self, "dC", check_rotations("RelativePoseMeasurements.dC", self.dC, n))
         object.__setattr__(self, "cov", check_covariances("RelativePoseMeasurements.cov", self.cov, n, 6))
-        object.__setattr__(self, "T_BS", _extrinsic("RelativePoseMeasurements.T_BS", self.T_BS))
+        object.__setattr__(self, "T_BS", check_extrinsic("RelativePoseMeasurements.T_BS", self.T_BS))
 
     @property
     def t(self) -> np.ndarray:
@@ -419,23 +526,11 @@ class Dataset:
     time_origin_ns: int | None = None
 
     def __post_init__(self):
-        cov = np.asarray(self.initial_cov, dtype=float)
-        if cov.shape != (15, 15):
-            raise InputError(f"Dataset.initial_cov: expected shape (15, 15), got {cov.shape}")
-        check_covariances("Dataset.initial_cov", cov[None], 1, 15)
-        object.__setattr__(self, "initial_cov", cov)
-        g = np.asarray(self.gravity, dtype=float)
-        if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise InputError(f"Dataset.gravity: expected a finite 3-vector, got {g!r}")
-        object.__setattr__(self, "gravity", g)
+        object.__setattr__(self, "initial_cov", check_state_covariance("Dataset.initial_cov", self.initial_cov))
+        object.__setattr__(self, "gravity", check_array("Dataset.gravity", self.gravity, (), 3))
         if len(self.imu) < 2:
             raise InputError("Dataset.imu: at least two IMU samples are needed")
-        s = self.initial
-        if any(np.shape(getattr(s, n)) != (3,) for n in ("r", "v", "b_f", "b_w")) or np.shape(s.C) != (3, 3):
-            raise InputError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")
-        if not all(np.all(np.isfinite(getattr(s, n))) for n in ("r", "v", "C", "b_f", "b_w")):
-            raise InputError("Dataset.initial: non-finite value in the initial state")
-        check_rotations("Dataset.initial.C", s.C[None], 1)
+        check_state("Dataset.initial", self.initial)
         self._check_imu_gaps()
         self._check_imu_units()
         self._drop_outside_imu_span()
@@ -451,25 +546,18 @@ class Dataset:
             warnings.warn(f"Dataset.imu.acc: median specific-force magnitude {f:.4g}; expected about |g| = "
                           f"{g:.4g} in m/s^2 (is the data in g, or in mm/s^2?)", stacklevel=3)
         w = float(np.percentile(np.linalg.norm(self.imu.gyro, axis=1), 99))
-        limit = _max_rate.get()
+        limit = gyro_rate_limit()
         if w > limit:
             raise InputError(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that "
                              f"no vehicle reaches; the data are probably in deg/s (convert them to rad/s), or, "
                              f"for a real case, raise the limit (smoother run --max-gyro-rate)")
+        check_imu_range("Dataset.imu.", self.imu.t, self.imu.acc, self.imu.gyro)
 
     def _check_imu_gaps(self) -> None:
-        """Warn about gaps in the IMU stream longer than ``IMU_GAP_FACTOR`` typical periods: the
-        Euler step holds the sample before a gap over the whole gap (zero-order hold), which is
-        only as good as the motion is steady there."""
-        dt = np.diff(self.imu.t)
-        typical = float(np.median(dt))
-        long = np.flatnonzero(dt > IMU_GAP_FACTOR * typical)
-        if long.size:
-            i = int(long[np.argmax(dt[long])])
-            warnings.warn(
-                f"Dataset.imu: {long.size} gap(s) longer than {IMU_GAP_FACTOR:g} x the typical period "
-                f"({typical:.4g} s); the longest is {dt[i]:.4g} s after t = {self.imu.t[i]:.6f} s (row {i}); "
-                "each is bridged by holding the sample before it", stacklevel=3)
+        """Warn about gaps in the IMU stream, refuse a clock jump (:func:`imu_gaps`)."""
+        _, text = imu_gaps(self.imu.t)
+        if text is not None:
+            warnings.warn(text, stacklevel=3)
 
     def _drop_outside_imu_span(self) -> None:
         """Measurements outside ``[t0, t1]`` cannot be predicted by the IMU: they are dropped with

@@ -13,7 +13,9 @@ estimator. Only the updates the filter accepted count (a gate's rejections are c
 large by construction). Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so
 a real sensor with slightly correlated errors falls outside it: ``ok`` states the statistics, and
 a warning names a sensor only when its NIS per dof is also a factor :data:`WARN_FACTOR` or more
-away from 1 -- a sigma, extrinsic or time offset that is actually wrong.
+away from 1 -- a sigma, extrinsic or time offset that is actually wrong. When the IMU itself has
+findings (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), every
+sensor's NIS is a symptom of them first: the warning then names the IMU as the likelier cause.
 """
 from __future__ import annotations
 
@@ -105,12 +107,14 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     return lines
 
 
-def consistency_warnings(by_estimator: dict[str, dict]) -> list[str]:
+def consistency_warnings(by_estimator: dict[str, dict], imu_findings=()) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    naming what to check. When the IMU's own residuals are far above their band, the IMU is named
-    first and the other sensors' lines say that their misfit may follow from it."""
+    naming what to check. When the IMU's own residuals are far above their band, or its raw data
+    have ``imu_findings`` (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and
+    the other sensors' lines say that their misfit may follow from it."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
+    kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
     lines = []
     for sensor, verdicts in by_sensor.items():
         off = {e: c for e, c in verdicts.items() if _far_off(c)}
@@ -125,7 +129,10 @@ def consistency_warnings(by_estimator: dict[str, dict]) -> list[str]:
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
                   else "its sigma looks too large")
-        if high and imu_off:
+        if kinds:
+            advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
+                      f"of it; if the IMU is cleared, {advice}")
+        elif high and imu_off:
             advice += "; the IMU's own residuals are far out of band too, so the IMU is the likelier cause"
         lines.append(f"{sensor}: per dof {figures}: {advice}")
     return lines

@@ -19,8 +19,15 @@ times within half an IMU interval of another keyframe are left out), and the las
 joined by the project's IMU factor, preintegrated when the later keyframe is made, its noise
 covariance evaluated along the prediction from the smoother's newest estimate.
 
-Time order. IMU samples must come in strictly increasing time (a ValueError otherwise). A
-keyframe at time ``t`` is made -- and the smoother updated with it -- once the IMU stream has
+Time order. IMU samples must come in strictly increasing time: a sample at or before the newest
+one is an error (an :class:`factors.errors.InputError`, a ValueError; IMU samples are never
+reordered). An interval longer than :data:`datasets.types.IMU_GAP_FACTOR` typical periods (the
+median interval of the samples seen, once there are :data:`TYPICAL_INTERVALS`) is a gap, bridged
+by holding the sample before it as the offline path does (:func:`datasets.types.imu_gaps`, the
+same rule and message): counted in ``imu_gaps`` with the longest in ``longest_imu_gap_s``, a
+warning at the first and at each longer than all before; one longer than
+:data:`datasets.types.MAX_IMU_GAP_S` is a jump of the clock, refused, as is a measurement stamped
+that far after the newest IMU sample. A keyframe at time ``t`` is made -- and the smoother updated with it -- once the IMU stream has
 reached ``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
 and are sorted into time. A measurement whose time is at or before the newest keyframe already
 made (it arrived later than ``max_delay_s`` behind the IMU) is dropped: counted per sensor in
@@ -43,6 +50,15 @@ No silent failures: besides the dropped and skipped measurements, a warning when
 apart than the lag (:func:`smoother.fixed_lag.sparse_measurement_warning`: keyframes then leave
 the window before the next measurement reaches them).
 
+Bad input. Every value is checked as the offline data types check it (:mod:`datasets.types`):
+the initial state (a rotation matrix ``C``, finite 3-vectors), a symmetric positive definite
+initial covariance, each sensor's setup, and every sample: finite, and no axis beyond the
+plausible ranges (:data:`datasets.types.MAX_PLAUSIBLE_SPECIFIC_FORCE`, the gyro rate limit of
+:func:`datasets.types.max_gyro_rate` in force when the smoother is made, the measurements'
+distance and speed limits). What fails is refused with an InputError naming the argument or
+field, the expected and found shape or the sample's time; the sample is not taken and the smoother
+stays usable.
+
 The first :class:`OnlineSmoother` of a process loads (or compiles) every compiled kernel of the
 loop by feeding a throwaway smoother 0.8 s of made-up data, so that a robot's first keyframes and
 first marginalisation do not stall on it.
@@ -64,7 +80,10 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from datasets.kinds import KINDS, kind_sigmas, sensors_of
-from datasets.types import Dataset, Sensor, Trajectory, check_covariances
+from datasets.robust import check_robust
+from datasets.types import (MAX_IMU_GAP_S, MAX_PLAUSIBLE_SPECIFIC_FORCE, IMU_GAP_FACTOR, Dataset, Sensor, Trajectory,
+                            check_array, check_extrinsic, check_imu_range, check_state, check_state_covariance,
+                            check_times, gyro_rate_limit, imu_gaps)
 from factors import imu, preintegration
 from factors.compiled import recursion
 from smoother.fixed_lag import HISTORY, KeyframeWindow, sparse_measurement_warning
@@ -74,6 +93,9 @@ from smoother.sliding_window import SlidingWindow
 from smoother.progress import progress_bar
 from smoother.timeline import estimate_times, interval_steps
 from factors.errors import InputError
+
+#: The IMU's typical period is known (and gaps are judged) once this many intervals have come.
+TYPICAL_INTERVALS = 20
 
 
 @recursion
@@ -109,13 +131,26 @@ class SensorSetup:
     :data:`datasets.kinds.KINDS`), extrinsic ``T_BS`` (4x4, ``p_B = T_BS p_S``; None: at the IMU),
     ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
     measurement comes without a covariance; None: every measurement brings one) and ``robust``
-    (None or a kernel spec of :func:`datasets.robust.robust_spec`)."""
+    (None or a kernel spec of :func:`datasets.robust.robust_spec`). Each is checked when made: an
+    InputError naming the field otherwise."""
 
     kind: str
     T_BS: np.ndarray | None = None
     time_offset: float = 0.0
     sigma: np.ndarray | None = None
     robust: tuple | None = None
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise InputError(f"SensorSetup.kind: expected one of {', '.join(KINDS)}, got {self.kind!r}")
+        object.__setattr__(self, "T_BS", check_extrinsic("SensorSetup.T_BS", self.T_BS))
+        offset = check_array("SensorSetup.time_offset", [self.time_offset], ())[0]
+        if not abs(offset) <= MAX_IMU_GAP_S:
+            raise InputError(f"SensorSetup.time_offset: expected at most {MAX_IMU_GAP_S:g} s either way, got {offset!r}")
+        object.__setattr__(self, "time_offset", float(offset))
+        if self.sigma is not None:
+            kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
+        check_robust("SensorSetup.robust", self.robust)
 
 
 @dataclass(slots=True)
@@ -162,21 +197,18 @@ class OnlineSmoother:
             raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
         if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
             raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
-        if not np.all(np.isfinite(initial_cov)):
-            raise InputError("initial_cov: expected finite numbers")
-        initial_cov = np.asarray(initial_cov, dtype=float)
-        if initial_cov.shape != (imu.STATE_DIM, imu.STATE_DIM):
-            raise InputError(f"initial_cov: expected shape (15, 15), got {initial_cov.shape}")
-        check_covariances("initial_cov", initial_cov[None], 1, imu.STATE_DIM)  # symmetric, positive definite
+        if not (lag_s > 0 and math.isfinite(lag_s)):
+            raise InputError(f"lag_s: expected a positive, finite lag in seconds, got {lag_s!r}")
+        check_state("initial", initial)  # a rotation, finite 3-vectors
+        initial_cov = check_state_covariance("initial_cov", initial_cov)  # symmetric, positive definite
+        if not isinstance(noise, imu.ImuNoise):
+            raise InputError(f"noise: expected an ImuNoise, got {type(noise).__name__}")
         self._sensors = dict(sensors or {})
         for name, setup in self._sensors.items():
-            if not isinstance(setup, SensorSetup) or setup.kind not in KINDS:
-                raise InputError(f"sensors[{name!r}]: expected a SensorSetup of a kind in {', '.join(KINDS)}, "
-                                 f"got {setup!r}")
-            if setup.sigma is not None:
-                kind_sigmas(f"sensors[{name!r}]", setup.sigma, KINDS[setup.kind].dim)
+            if not isinstance(setup, SensorSetup):
+                raise InputError(f"sensors[{name!r}]: expected a SensorSetup, got {setup!r}")
         self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
-        self.gravity = np.asarray(gravity, dtype=float)
+        self.gravity = check_array("gravity", gravity, (), 3)
         self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold)
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
@@ -194,6 +226,9 @@ class OnlineSmoother:
         #: far [s] (the start counts as one)
         self.longest_gap_s = 0.0
         self._warned_gap = False
+        #: IMU gaps bridged so far (:func:`datasets.types.imu_gaps`), and the longest of them [s]
+        self.imu_gaps = 0
+        self.longest_imu_gap_s = 0.0
         self._finished = False
         self._queue: deque[OnlineEstimate] = deque()
         self._pending: list[_Pending] = []  # heap
@@ -206,6 +241,15 @@ class OnlineSmoother:
         self._acc = np.empty((1024, 3))
         self._gyro = np.empty((1024, 3))
         self._n = 0
+        self._t_last = -math.inf  # the newest sample's time
+        # the hot path's bounds: an interval up to _gap_limit (IMU_GAP_FACTOR typical periods, once
+        # known), squared norms up to the ranges' (below them every axis is in range), and the
+        # sample count at which the arrays are full or the typical period is due
+        self._typical = None
+        self._gap_limit = MAX_IMU_GAP_S
+        self._rate_limit = gyro_rate_limit()
+        self._acc2, self._rate2 = MAX_PLAUSIBLE_SPECIFIC_FORCE ** 2, self._rate_limit ** 2
+        self._room = TYPICAL_INTERVALS + 1
         self._t0 = None
         self._grid_next = 0  # the index m of the next grid time t0 + m / rate
         self._grid_t = np.inf  # that time (inf: no grid)
@@ -247,41 +291,83 @@ class OnlineSmoother:
     # -- input ------------------------------------------------------------------------------------
 
     def add_imu(self, t, acc, gyro) -> None:
-        """One IMU sample (``t`` a number, ``acc``, ``gyro`` 3-vectors: specific force [m/s^2] and
-        angular rate [rad/s] in the body frame) or many (``t (N,)``, ``(N, 3)``), in strictly
-        increasing time after every sample before. Makes the keyframes the stream has passed by
+        """One IMU sample (``t`` a number, ``acc``, ``gyro`` of shape (3,): specific force [m/s^2]
+        and angular rate [rad/s] in the body frame) or N samples (``t`` of shape (N,), ``acc``,
+        ``gyro`` of shape (N, 3)), in strictly increasing time after every sample before; other
+        shapes, non-finite or implausible values and time steps back are refused (module
+        docstring), with nothing taken. Makes the keyframes the stream has passed by
         ``max_delay_s``."""
         self._open()
-        n = self._n
-        if np.shape(acc) == (3,) and np.shape(gyro) == (3,) and (type(t) is float or np.ndim(t) == 0):
+        if (type(t) is float or np.ndim(t) == 0) and np.shape(acc) == (3,) and np.shape(gyro) == (3,):
             self._add_one_imu(float(t), acc, gyro)  # one sample: kept lean
             return
-        t, acc, gyro = self._checked_imu(t, acc, gyro)
+        t, acc, gyro = self._checked_imu(*_imu_arrays(t, acc, gyro), stacklevel=4)
+        n = self._n
         if n + t.size > len(self._t):
             self._grow(t.size)
             n = self._n
         self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
         self._n = n + t.size
+        self._t_last = float(t[-1])
+        if self._typical is None and self._n > TYPICAL_INTERVALS:
+            self._know_typical(stacklevel=4)
         if self._t0 is None:
             self._started()
-        self._reach(self._t[self._n - 1] - self.max_delay_s)
+        self._reach(self._t_last - self.max_delay_s)
 
     def _add_one_imu(self, t: float, acc, gyro) -> None:
-        """:meth:`add_imu` of one sample (``acc``, ``gyro`` of shape (3,)) with as few NumPy calls as
-        it takes: the checks of :meth:`_checked_imu` run only when the quick test (finite, after the
-        newest sample) fails, to raise their error."""
+        """:meth:`add_imu` of one sample (``acc``, ``gyro`` of shape (3,)) with as few operations as
+        it takes: a few scalar comparisons (a step forward within the gap limit; the squared norms
+        within the squared ranges, NaN failing them all); only when one fails do the checks of
+        :meth:`_checked_imu` run, to raise their error or warn about a gap."""
+        try:
+            a0, a1, a2 = acc.tolist() if type(acc) is np.ndarray else acc
+            w0, w1, w2 = gyro.tolist() if type(gyro) is np.ndarray else gyro
+            quick = (0.0 < t - self._t_last <= self._gap_limit and a0 * a0 + a1 * a1 + a2 * a2 <= self._acc2
+                     and w0 * w0 + w1 * w1 + w2 * w2 <= self._rate2)
+        except TypeError:  # not numbers: the checks name the argument
+            quick = False
+        if not quick:
+            self._checked_imu(*_imu_arrays(t, acc, gyro), stacklevel=5)
         n = self._n
-        if not (math.isfinite(t + acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2])
-                and (n == 0 or t > self._t[n - 1])):
-            self._checked_imu(t, acc, gyro)  # raises the error that names what is wrong
-        if n == len(self._t):
-            self._grow(1)
+        if n == self._room:
+            self._make_room()
             n = self._n
         self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
         self._n = n + 1
+        self._t_last = t
         if self._t0 is None:
             self._started()
         self._reach(t - self.max_delay_s)
+
+    def _make_room(self) -> None:
+        """At ``_room`` samples: grow the arrays if they are full, learn the typical period when due."""
+        if self._n == len(self._t):
+            self._grow(1)
+        if self._typical is None and self._n > TYPICAL_INTERVALS:
+            self._know_typical(stacklevel=6)
+        self._room = len(self._t)
+
+    def _know_typical(self, stacklevel: int) -> None:
+        """The typical period: the median interval of the samples kept (at least
+        :data:`TYPICAL_INTERVALS`); the first time, the intervals so far are judged by it too."""
+        t = self._t[:self._n]
+        first = self._typical is None
+        self._typical = float(np.median(np.diff(t)))
+        self._gap_limit = min(IMU_GAP_FACTOR * self._typical, MAX_IMU_GAP_S)
+        if first:
+            self._gaps(t, stacklevel)
+
+    def _gaps(self, t: np.ndarray, stacklevel: int) -> None:
+        """Count the gaps between the times ``t`` (the newest sample kept, then new ones), with a
+        warning at the first and at each longer than all before."""
+        gaps, text = imu_gaps(t, self._typical if self._typical is not None else math.inf,
+                              "online smoother: add_imu", rows=False)
+        if gaps.size:
+            if gaps.max() > self.longest_imu_gap_s:
+                warnings.warn(f"{text} (gaps are counted in .imu_gaps)", stacklevel=stacklevel)
+            self.imu_gaps += gaps.size
+            self.longest_imu_gap_s = max(self.longest_imu_gap_s, float(gaps.max()))
 
     def _started(self) -> None:
         """At the first IMU sample(s): the first sample's time is the first keyframe's and the grid's
@@ -296,24 +382,25 @@ class OnlineSmoother:
         if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
             self._make_keyframes(horizon)
 
-    def _checked_imu(self, t, acc, gyro):
-        """IMU samples as arrays ``t (N,)``, ``acc, gyro (N, 3)``, or a ValueError naming the
-        argument that is wrong."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        acc = np.asarray(acc, dtype=float).reshape(-1, 3) if np.size(acc) == 3 * t.size else np.asarray(acc)
-        gyro = np.asarray(gyro, dtype=float).reshape(-1, 3) if np.size(gyro) == 3 * t.size else np.asarray(gyro)
-        for name, a in (("acc", acc), ("gyro", gyro)):
-            if a.shape != (t.size, 3) or not np.all(np.isfinite(a)):
-                raise InputError(f"add_imu: {name}: expected {t.size} finite 3-vectors, got shape {np.shape(a)}")
-        if t.size == 0:
-            raise InputError("add_imu: t: expected at least one sample, got none")
-        if t.ndim != 1 or not np.all(np.isfinite(t)):
-            raise InputError(f"add_imu: t: expected finite times, got {t.tolist()[:3]}")
-        previous = self._t[self._n - 1] if self._n else -np.inf
-        if t[0] <= previous or np.any(np.diff(t) <= 0):
-            bad = t[0] if t[0] <= previous else t[1:][np.diff(t) <= 0][0]
-            raise InputError(f"add_imu: t: IMU samples must come in strictly increasing time; got t = {bad!r} "
-                             f"after {previous if t[0] <= previous else t[np.argmax(np.diff(t) <= 0)]!r}")
+    def _checked_imu(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, stacklevel: int):
+        """IMU samples ``t (N,)``, ``acc, gyro (N, 3)`` (:func:`_imu_arrays`) checked as the
+        offline data types check them -- finite, in range (:func:`datasets.types.check_imu_range`),
+        in strictly increasing time after the newest sample, no clock jump -- or an InputError
+        naming the field and the sample's time; the gaps among them counted and warned about."""
+        check_array("add_imu: t", t, ())
+        check_array("add_imu: acc", acc, (3,), t.size, t)
+        check_array("add_imu: gyro", gyro, (3,), t.size, t)
+        if self._n and t[0] <= self._t_last:
+            raise InputError(f"add_imu: t: IMU samples must come in strictly increasing time; got t = {float(t[0])!r} "
+                             f"after {self._t_last!r} (a step back of {self._t_last - t[0]:.6g} s; samples are "
+                             "never reordered)")
+        check_times("add_imu: t", t)
+        check_imu_range("add_imu: ", t, acc, gyro, self._rate_limit)
+        span = t if not self._n else np.concatenate([[self._t_last], t])
+        if self._typical is None:  # judged once the typical period is known (_know_typical)
+            imu_gaps(span, math.inf, "online smoother: add_imu", rows=False)  # a clock jump only
+        else:
+            self._gaps(span, stacklevel)
         return t, acc, gyro
 
     def add(self, sensor: str, t, *values, cov=None) -> None:
@@ -355,6 +442,10 @@ class OnlineSmoother:
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
         if not np.isfinite(stamps).all():
             raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
+        if self._n and stamps.max() > self._t_last + MAX_IMU_GAP_S:
+            raise InputError(f"add_measurements({sensor!r}): t: {stamps.max():.6f} s on the IMU clock lies "
+                             f"{stamps.max() - self._t_last:.6g} s after the newest IMU sample, beyond any plausible "
+                             f"delay ({MAX_IMU_GAP_S:g} s): a stamp of another clock, or a wrong time offset")
         arrived = time.perf_counter()
         for m, times in enumerate(stamps):
             latest = float(times.max())
@@ -459,6 +550,9 @@ class OnlineSmoother:
         (which neither the next IMU factor nor the prediction needs) are let go, and the arrays
         doubled if that is not enough."""
         base = self._held_at(self._last_t) if self._last_t is not None else 0
+        if self._typical is not None and self._n > TYPICAL_INTERVALS:  # follow the stream's rate
+            self._typical = float(np.median(np.diff(self._t[:self._n])))
+            self._gap_limit = min(IMU_GAP_FACTOR * self._typical, MAX_IMU_GAP_S)
         if base:
             keep = self._n - base
             for a in (self._t, self._acc, self._gyro):
@@ -470,6 +564,7 @@ class OnlineSmoother:
             self._t = np.resize(self._t, size)
             self._acc = np.resize(self._acc, (size, 3))
             self._gyro = np.resize(self._gyro, (size, 3))
+        self._room = len(self._t)
 
     def _ask(self, t: float) -> None:
         if t not in self._knot_set:
@@ -593,6 +688,31 @@ class OnlineSmoother:
                 self.on_smoothed(out)
             else:
                 self._queue.append(out)
+
+
+def _imu_arrays(t, acc, gyro) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``add_imu``'s arguments as arrays ``t (N,)``, ``acc, gyro (N, 3)``: one sample is ``t`` a
+    number with 3-vectors, N samples ``t`` of shape (N,) with (N, 3) arrays; any other shape is an
+    InputError naming the argument with the shapes expected and got (nothing is reshaped)."""
+    arrays = []
+    for name, value in (("t", t), ("acc", acc), ("gyro", gyro)):
+        try:
+            arrays.append(np.asarray(value, dtype=float))
+        except (TypeError, ValueError):
+            raise InputError(f"add_imu: {name}: expected numbers, got {type(value).__name__}") from None
+    t, acc, gyro = arrays
+    if t.ndim == 0:
+        expected, what = (3,), "one sample (t a number)"
+    elif t.ndim == 1:
+        expected, what = (t.size, 3), f"{t.size} samples (t of shape ({t.size},))"
+    else:
+        raise InputError(f"add_imu: t: expected a number (one sample) or shape (N,) (N samples), got shape {t.shape}")
+    if t.size == 0:
+        raise InputError("add_imu: t: expected at least one sample, got none")
+    for name, a in (("acc", acc), ("gyro", gyro)):
+        if a.shape != expected:
+            raise InputError(f"add_imu: {name}: expected shape {expected} for {what}, got {a.shape}")
+    return np.atleast_1d(t), np.atleast_2d(acc), np.atleast_2d(gyro)
 
 
 _warm = False

@@ -56,8 +56,8 @@ def register(sub) -> None:
                    help="first scale the IMU noise densities to maximise the likelihood of the measurements used "
                         "(EKF prediction errors; no truth, no held-out data), then run with them")
     p.add_argument("--max-gyro-rate", type=float, default=None, metavar="RAD_S",
-                   help="accept gyro data up to this 99th-percentile rate [rad/s] (default 35, 2000 deg/s: beyond "
-                        "it the data are refused as probably in deg/s)")
+                   help="accept gyro data up to this rate [rad/s], as a 99th percentile and on each sample's axes "
+                        "(default 35, 2000 deg/s: beyond it the data are refused as probably in deg/s)")
     p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
     p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
     p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
@@ -111,6 +111,7 @@ def run(args) -> int:
 def _run(args) -> int:
     from smoother import report, sources
     from smoother.commands import at_least, duration, fraction, output_directory, positive
+    from datasets.imu_health import findings_record
     from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.pipeline import ESTIMATORS, RunOptions, estimate_each, judged, sensor_consistency
 
@@ -167,7 +168,8 @@ def _run(args) -> int:
     out = output_directory(args.out)
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()
-    run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:]}
+    imu_findings = imu_health(dataset)
+    run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "imu": findings_record(imu_findings)}
     if args.tune_noise:
         dataset, run_info["noise_tuning"] = tuned(dataset, args.progress)
     estimates = {}
@@ -210,7 +212,7 @@ def _run(args) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    for line in consistency_warnings(consistency):
+    for line in consistency_warnings(consistency, imu_findings):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
@@ -226,6 +228,19 @@ def _run(args) -> int:
 def _in_order(estimates: dict, names: list[str]) -> dict:
     """``estimates`` in the order the estimators were asked for (the EKF runs before the batch)."""
     return {name: estimates[name] for name in names if name in estimates}
+
+
+def imu_health(dataset) -> list:
+    """The findings about the dataset's IMU itself (:func:`datasets.imu_health.inspect_imu`), each
+    printed as a ``warning: imu:`` line."""
+    import numpy as np
+
+    from datasets.imu_health import inspect_imu
+
+    findings = inspect_imu(dataset.imu.t, dataset.imu.acc, dataset.imu.gyro, float(np.linalg.norm(dataset.gravity)))
+    for finding in findings:
+        print(f"warning: imu: {finding.message}", file=sys.stderr)
+    return findings
 
 
 def tuned(dataset, progress: bool | None):

@@ -12,6 +12,7 @@ from hypothesis.extra import numpy as hnp
 from datasets.types import (Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
                             RelativePoseMeasurements)
 from factors import imu, so3
+from factors.errors import InputError
 
 
 def _imu(n=101, rate=100.0, t0=0.0):
@@ -98,17 +99,33 @@ def test_rotation_check_names_the_row():
         PoseMeasurements([0.0, 1.0, 2.0], np.zeros((3, 3)), C, np.eye(6))
 
 
-@pytest.mark.parametrize("acc_scale, gyro_scale, fragment", [
-    (1.0 / 9.81, 1.0, "is the data in g"),
-    (1000.0, 1.0, "mm/s^2"),
-])
-def test_implausible_imu_units_are_reported(acc_scale, gyro_scale, fragment):
+def test_an_accelerometer_in_g_is_reported():
     n = 101
     t = np.arange(n) / 100.0
-    gyro = np.tile([0.0, 0.0, 1.0], (n, 1)) * gyro_scale
-    samples = ImuSamples(t, np.tile([0.0, 0.0, 9.81], (n, 1)) * acc_scale, gyro)
-    with pytest.warns(UserWarning, match=re.escape(fragment)):
+    samples = ImuSamples(t, np.tile([0.0, 0.0, 1.0], (n, 1)), np.tile([0.0, 0.0, 1.0], (n, 1)))
+    with pytest.warns(UserWarning, match=re.escape("is the data in g")):
         _dataset(imu=samples)
+
+
+def test_samples_beyond_any_imu_range_are_refused_with_their_time_and_field():
+    """An accelerometer in mm/s^2 (9810 on z at rest), one absurd accelerometer sample and one gyro
+    sample beyond the full scale of the rate limit: refused, naming the field, row and time."""
+    n = 101
+    t = np.arange(n) / 100.0
+    acc, gyro = np.tile([0.0, 0.0, 9.81], (n, 1)), np.zeros((n, 3))
+    with pytest.warns(UserWarning, match=re.escape("mm/s^2")), pytest.raises(
+            InputError, match=re.escape("Dataset.imu.acc: 9810 m/s^2 at row 0 (t = 0.000000 s) is beyond the "
+                                        "plausible +-2000 m/s^2")):
+        _dataset(imu=ImuSamples(t, acc * 1000.0, gyro))
+    bad = acc.copy()
+    bad[40, 1] = 1e31
+    with pytest.raises(InputError, match=re.escape("Dataset.imu.acc: 1e+31 m/s^2 at row 40 (t = 0.400000 s)")):
+        _dataset(imu=ImuSamples(t, bad, gyro))
+    bad = gyro.copy()
+    bad[7, 2] = -40.0
+    with pytest.raises(InputError, match=re.escape("Dataset.imu.gyro: -40 rad/s at row 7 (t = 0.070000 s) is beyond "
+                                                   "the plausible +-35 rad/s")):
+        _dataset(imu=ImuSamples(t, acc, bad))
 
 
 def test_gyro_rates_no_vehicle_reaches_are_refused_unless_allowed():

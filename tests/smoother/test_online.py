@@ -4,6 +4,7 @@ ones are dropped and counted, ``estimate()`` is the EKF's prediction from the ne
 lag-versus-gap warning, and clear errors for bad input."""
 from __future__ import annotations
 
+import re
 import warnings
 from dataclasses import replace
 
@@ -172,7 +173,7 @@ def test_bad_input_is_refused_with_one_clear_error(gentle):
     online.add_imu(data.imu.t[:3], data.imu.acc[:3], data.imu.gyro[:3])
     with pytest.raises(ValueError, match=r"add_imu: t: IMU samples must come in strictly increasing time"):
         online.add_imu(data.imu.t[1], data.imu.acc[1], data.imu.gyro[1])
-    with pytest.raises(ValueError, match=r"add_imu: acc: expected 1 finite 3-vectors"):
+    with pytest.raises(ValueError, match=re.escape("add_imu: acc: expected shape (3,) for one sample (t a number), got (2,)")):
         online.add_imu(data.imu.t[3], [1.0, 2.0], data.imu.gyro[3])
     with pytest.raises(ValueError, match="sensor: unknown sensor 'lidar'"):
         online.add("lidar", 0.1, [0.0, 0.0, 0.0])
@@ -283,7 +284,7 @@ def test_review_findings_stay_fixed(recwarn):
         OnlineSmoother(x0, P0, ImuNoise(), keyframe_rate=np.inf)
     with _pytest.raises(InputError, match="initial_cov"):
         OnlineSmoother(x0, -np.eye(15), ImuNoise())
-    with _pytest.raises(InputError, match=r"sensors\['gps'\]: sigma"):
+    with _pytest.raises(InputError, match=r"SensorSetup: sigma"):
         OnlineSmoother(x0, P0, ImuNoise(), sensors={"gps": SensorSetup("position", sigma=[1.0, 2.0])})
     online = OnlineSmoother(x0, P0, ImuNoise(), lag_s=0.5)
     with _pytest.raises(InputError, match="keyframe_at: t: expected finite times"):
@@ -359,3 +360,207 @@ def test_the_timing_records_keep_only_the_latest_entries(gentle, monkeypatch):
     result = replay(data, LAG, "sliding", covariances=False, progress=False)
     assert len(result.update_s) == 5 and len(result.latency_s) == 5
     assert len(result.smoothed.t) > 30  # far more updates than that
+
+
+def _resting(n: int, rate: float = 200.0, t0: float = 0.0):
+    """``n`` samples of an IMU at rest at ``rate`` Hz from ``t0``: times, specific force, rates."""
+    return t0 + np.arange(n) / rate, np.tile([0.0, 0.0, 9.81], (n, 1)), np.zeros((n, 3))
+
+
+def _plain(**options):
+    from factors.imu import ImuNoise, ImuState
+
+    return OnlineSmoother(ImuState.identity(), np.eye(15) * 0.01, ImuNoise(), lag_s=0.5, **options)
+
+
+def test_imu_arrays_of_any_other_shape_are_refused_never_reshaped():
+    """One sample is ``t`` a number with 3-vectors, N samples ``t (N,)`` with ``(N, 3)`` arrays:
+    samples given as (3, N) (which a reshape would scramble), a single time with (1, 3) rows or
+    (N,) times with one 3-vector are refused naming the argument and both shapes, and nothing is
+    taken."""
+    from factors.errors import InputError
+
+    t, acc, gyro = _resting(5)
+    online = _plain()
+    with pytest.raises(InputError, match=re.escape("add_imu: acc: expected shape (5, 3) for 5 samples (t of shape "
+                                                   "(5,)), got (3, 5)")):
+        online.add_imu(t, acc.T, gyro)
+    with pytest.raises(InputError, match=re.escape("add_imu: gyro: expected shape (5, 3) for 5 samples")):
+        online.add_imu(t, acc, gyro.T)
+    with pytest.raises(InputError, match=re.escape("add_imu: acc: expected shape (3,) for one sample (t a number), "
+                                                   "got (1, 3)")):
+        online.add_imu(t[0], acc[:1], gyro[0])
+    with pytest.raises(InputError, match=re.escape("add_imu: acc: expected shape (1, 3) for 1 samples (t of shape "
+                                                   "(1,)), got (3,)")):
+        online.add_imu(t[:1], acc[0], gyro[0])
+    with pytest.raises(InputError, match=re.escape("add_imu: t: expected a number (one sample) or shape (N,)")):
+        online.add_imu(t.reshape(5, 1), acc, gyro)
+    with pytest.raises(InputError, match="add_imu: acc: expected numbers"):
+        online.add_imu(t[0], ["a", "b", "c"], gyro[0])
+    assert online._n == 0
+    online.add_imu(t[:3], acc[:3], gyro[:3])  # three samples, (3, 3): rows are samples, by the contract
+    online.add_imu(t[3], acc[3], gyro[3])
+    assert online._n == 4
+
+
+def test_the_initial_state_covariance_and_sensor_setups_are_checked_at_construction():
+    """An initial attitude 2 I (no rotation), a non-symmetric or non-positive-definite initial
+    covariance, wrong shapes, a wrong gravity or noise, and sensor setups with a skewed
+    extrinsic, a NaN time offset or a malformed robust kernel: refused at construction naming the
+    field."""
+    from factors.errors import InputError
+    from factors.imu import ImuNoise, ImuState
+
+    x0, P0, noise = ImuState.identity(), np.eye(15) * 0.01, ImuNoise()
+    cases_ = [
+        (dict(initial=replace(x0, C=2 * np.eye(3))), r"initial.C: row 0 is not a rotation matrix"),
+        (dict(initial=replace(x0, r=np.zeros(2))), re.escape("initial.r: expected shape (3,), got (2,)")),
+        (dict(initial=replace(x0, v=np.array([0, np.nan, 0]))), r"initial.v: non-finite value"),
+        (dict(initial="identity"), "initial: expected an ImuState, got str"),
+        (dict(initial_cov=P0 + np.triu(np.full((15, 15), 1e-3), 1)), "initial_cov: covariance at row 0 is not symmetric"),
+        (dict(initial_cov=P0 - 0.02 * np.eye(15)), "initial_cov: covariance at row 0 is not positive definite"),
+        (dict(initial_cov=np.eye(14)), re.escape("initial_cov: expected shape (15, 15), got (14, 14)")),
+        (dict(noise=(1e-3, 1e-4)), "noise: expected an ImuNoise, got tuple"),
+        (dict(gravity=[0, 0]), re.escape("gravity: expected shape (3,), got (2,)")),
+        (dict(lag_s=np.inf), "lag_s: expected a positive, finite lag"),
+    ]
+    for change, message in cases_:
+        arguments = dict(initial=x0, initial_cov=P0, noise=noise) | change
+        with pytest.raises(InputError, match=message):
+            OnlineSmoother(arguments.pop("initial"), arguments.pop("initial_cov"), arguments.pop("noise"), **arguments)
+    skewed = np.eye(4)
+    skewed[0, 1] = 0.1
+    with pytest.raises(InputError, match="SensorSetup.T_BS: expected a 4x4 rigid transform"):
+        SensorSetup("position", T_BS=skewed)
+    with pytest.raises(InputError, match="SensorSetup.time_offset: non-finite value"):
+        SensorSetup("position", time_offset=np.nan)
+    with pytest.raises(InputError, match="SensorSetup.robust: expected None or"):
+        SensorSetup("position", robust="huber")
+    with pytest.raises(InputError, match="SensorSetup.kind: expected one of"):
+        SensorSetup("lidar")
+
+
+def test_nan_inf_and_absurd_samples_are_refused_with_their_time_and_field():
+    """NaN, inf and 1e31 in one sample or in a batch, and in a measurement's fields: refused,
+    naming the field and the sample's time; the limits are the offline data types' (an axis
+    beyond 2000 m/s^2 or beyond the gyro rate limit, positions beyond the distance limit); the
+    refused sample is not taken and the stream goes on."""
+    from datasets.types import max_gyro_rate
+    from factors.errors import InputError
+
+    t, acc, gyro = _resting(40)
+    online = _plain()
+    online.add_imu(t[:10], acc[:10], gyro[:10])
+    for field, value, message in (("acc", np.nan, "non-finite value (NaN or inf) at row 0 (t = 0.050000 s)"),
+                                  ("gyro", np.inf, "non-finite value (NaN or inf) at row 0 (t = 0.050000 s)"),
+                                  ("acc", 1e31, "1e+31 m/s^2 at row 0 (t = 0.050000 s) is beyond the plausible "
+                                                "+-2000 m/s^2"),
+                                  ("gyro", -40.0, "-40 rad/s at row 0 (t = 0.050000 s) is beyond the plausible "
+                                                  "+-35 rad/s")):
+        sample = {"acc": acc[10].copy(), "gyro": gyro[10].copy()}
+        sample[field][1] = value
+        with pytest.raises(InputError, match=re.escape(f"add_imu: {field}: {message}")):
+            online.add_imu(t[10], sample["acc"], sample["gyro"])
+    with pytest.raises(InputError, match=re.escape("add_imu: t: non-finite value")):
+        online.add_imu(np.nan, acc[10], gyro[10])
+    batch = acc[10:20].copy()
+    batch[4, 2] = 1e31
+    with pytest.raises(InputError, match=re.escape("add_imu: acc: 1e+31 m/s^2 at row 4 (t = 0.070000 s)")):
+        online.add_imu(t[10:20], batch, gyro[10:20])
+    assert online._n == 10
+    online.add_imu(t[10], acc[10], gyro[10])  # the stream goes on
+    online.add_imu(t[11:20], acc[11:20], gyro[11:20])
+    assert online._n == 20
+    with pytest.raises(InputError, match=re.escape("add('position'): PositionMeasurements.position: 1e+31 m at row 0 "
+                                                   "(t = 0.080000 s) is beyond the plausible")):
+        online.add("position", t[16], [1e31, 0.0, 0.0], cov=np.eye(3))
+    with pytest.raises(InputError, match=re.escape("add('position'): PositionMeasurements.position: non-finite value "
+                                                   "(NaN or inf) at row 0 (t = 0.080000 s)")):
+        online.add("position", t[16], [0.0, np.nan, 0.0], cov=np.eye(3))
+    with pytest.raises(InputError, match=re.escape("add('velocity'): VelocityMeasurements.velocity: 1e+31 m/s")):
+        online.add("velocity", t[16], [1e31, 0.0, 0.0], np.zeros(3), cov=np.eye(3))
+    with max_gyro_rate(100.0):  # the limit in force when the smoother is made
+        fast = _plain()
+    fast.add_imu(t[0], acc[0], [0.0, 0.0, 60.0])
+    with pytest.raises(InputError, match=re.escape("add_imu: gyro: 120 rad/s at row 0 (t = 0.005000 s) is beyond the "
+                                                   "plausible +-100 rad/s")):
+        fast.add_imu(t[1], acc[1], [0.0, 0.0, 120.0])
+
+
+def test_a_step_back_in_time_is_an_error_and_a_measurement_from_another_clock_is_refused():
+    """IMU samples are never reordered: a sample at or before the newest (one sample, or inside
+    or at the start of a batch) is an error naming both times and the step back; measurements
+    within ``max_delay_s`` are sorted into time, later ones dropped and counted (as documented),
+    one stamped an hour after the IMU is refused."""
+    from factors.errors import InputError
+
+    t, acc, gyro = _resting(60)
+    online = _plain()
+    online.add_imu(t[:30], acc[:30], gyro[:30])
+    with pytest.raises(InputError, match=re.escape(f"add_imu: t: IMU samples must come in strictly increasing time; "
+                                                   f"got t = {float(t[28])!r} after {float(t[29])!r} (a step back of 0.005 s; "
+                                                   "samples are never reordered)")):
+        online.add_imu(t[28], acc[28], gyro[28])
+    with pytest.raises(InputError, match="add_imu: t: IMU samples must come in strictly increasing time"):
+        online.add_imu(t[29], acc[29], gyro[29])
+    with pytest.raises(InputError, match="add_imu: t: IMU samples must come in strictly increasing time"):
+        online.add_imu(t[25:35], acc[25:35], gyro[25:35])
+    inside = t[30:40].copy()
+    inside[[4, 5]] = inside[[5, 4]]
+    with pytest.raises(InputError, match=re.escape("add_imu: t: timestamps must increase strictly; row 5")):
+        online.add_imu(inside, acc[30:40], gyro[30:40])
+    online.add("position", t[10], np.zeros(3), cov=np.eye(3))  # older than the newest keyframe (t = 0)? no: kept
+    online.add_imu(t[30:], acc[30:], gyro[30:])
+    with pytest.warns(UserWarning, match="was dropped"):
+        online.add("position", t[5], np.zeros(3), cov=np.eye(3))  # its keyframe time has been processed
+    assert online.dropped == {"position": 1}
+    with pytest.raises(InputError, match=r"add_measurements\('position'\): t: 3600.3.* s on the IMU clock lies "
+                                         r"3600.* s after the newest IMU sample"):
+        online.add("position", t[-1] + 3600.01, np.zeros(3), cov=np.eye(3))
+
+
+def test_an_imu_gap_is_warned_of_as_offline_and_a_clock_jump_is_refused():
+    """A 10-s gap in a 200 Hz stream is bridged with the offline path's warning (the same rule and
+    text from :func:`datasets.types.imu_gaps`: its length and start) and counted, fed sample by
+    sample or in one batch, also inside the first samples (before the typical period is known);
+    a step of more than an hour is refused, online and offline."""
+    from datasets.types import Dataset, ImuSamples
+    from factors.errors import InputError
+    from factors.imu import ImuNoise, ImuState
+
+    t, acc, gyro = _resting(400)
+    t[300:] += 10.0
+    expected = ("1 gap(s) longer than 5 x the typical period (0.005 s); the longest is 10 s after t = 1.495000 s; "
+                "each is bridged by holding the sample before it")
+    for feed in ("one by one", "in a batch", "early"):
+        online = _plain()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if feed == "one by one":
+                for k in range(len(t)):
+                    online.add_imu(t[k], acc[k], gyro[k])
+            elif feed == "in a batch":
+                online.add_imu(t[:200], acc[:200], gyro[:200])
+                online.add_imu(t[200:], acc[200:], gyro[200:])
+            else:
+                early = np.r_[t[:10], t[10:30] + 10.0]
+                for k in range(len(early)):
+                    online.add_imu(early[k], acc[k], gyro[k])
+        texts = [str(w.message) for w in caught]
+        assert len(texts) == 1 and online.imu_gaps == 1, (feed, texts)
+        if feed != "early":
+            assert texts[0] == f"online smoother: add_imu: {expected} (gaps are counted in .imu_gaps)"
+            assert online.longest_imu_gap_s == pytest.approx(10.005)
+    with pytest.warns(UserWarning, match=re.escape(f"Dataset.imu: {expected.replace('; each', ' (row 299); each')}")):
+        Dataset("gap", ImuSamples(t, acc, gyro), ImuNoise(), ImuState.identity(), np.eye(15))
+    online = _plain()
+    online.add_imu(t[:50], acc[:50], gyro[:50])
+    with pytest.raises(InputError, match=re.escape("online smoother: add_imu: t: a step of 7200 s after t = 0.245000 s, "
+                                                   "beyond any plausible gap (3600 s): a jump of the clock")):
+        online.add_imu(t[49] + 7200.0, acc[50], gyro[50])
+    with pytest.raises(InputError, match="a jump of the clock"):
+        online.add_imu(t[50:60] + 7200.0, acc[50:60], gyro[50:60])
+    online.add_imu(t[50], acc[50], gyro[50])  # nothing was taken
+    t[300:] += 7200.0
+    with pytest.raises(InputError, match=re.escape("Dataset.imu: t: a step of 7210.01 s after t = 1.495000 s (row 299)")):
+        Dataset("jump", ImuSamples(t, acc, gyro), ImuNoise(), ImuState.identity(), np.eye(15))

@@ -114,3 +114,21 @@ def test_the_gyro_noise_through_a_long_lever_arm_is_in_the_velocity_noise():
     own_noise_only = replace(data, sensors=(Sensor("wheel", "velocity", replace(sensor.data, cov=np.eye(3) * 0.05**2)),))
     without = sensor_consistency(run_ekf(own_noise_only).innovations)["wheel"]["per_dof"]
     assert 0.8 < with_term < 1.25 and without > 3.0, (with_term, without)
+
+
+def test_an_out_of_band_sensor_names_the_imu_first_when_the_imu_has_findings():
+    """The advice of :func:`smoother.diagnostics.consistency_warnings`: a sensor's sigma, lever arm
+    or time offset without IMU findings; the IMU (its findings by sensor and kind) with them."""
+    from datasets.imu_health import ImuFinding
+
+    consistency = {"ekf": {"wheels": {"per_dof": 1130.0, "band": [0.9, 1.1], "ok": False, "measurements": 300},
+                           "gps": {"per_dof": 1.0, "band": [0.9, 1.1], "ok": True, "measurements": 30}}}
+    plain = consistency_warnings(consistency)
+    assert plain == ["wheels: per dof ekf 1.13e+03 (expected 0.9-1.1): check its sigma (too small), lever arm, "
+                     "rotation or time offset"]
+    spike = ImuFinding("spike", "gyro", 12.0, 12.0, 1, "gyro: 1 spike(s) ...")
+    gap = ImuFinding("gap", "timing", 3.0, 13.0, 2000, "timing: ...")
+    [line] = consistency_warnings(consistency, [spike, gap])
+    assert line == ("wheels: per dof ekf 1.13e+03 (expected 0.9-1.1): the IMU is the likelier cause (gyro spike, gap: "
+                    "see the 'imu:' warnings), this misfit a symptom of it; if the IMU is cleared, check its sigma "
+                    "(too small), lever arm, rotation or time offset")

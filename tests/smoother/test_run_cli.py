@@ -351,3 +351,39 @@ def test_a_batch_stopped_by_max_iterations_says_so_in_a_warning_and_metrics(tmp_
 def test_options_that_would_be_ignored_are_refused(tmp_path, capsys, args, message):
     assert main(["run", "--duration", "2", "--out", str(tmp_path / "o"), *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_an_imu_fault_is_named_as_one_and_the_sensors_nis_as_its_symptom(monkeypatch, capsys, tmp_path):
+    """A vibrating vehicle (1 g at 5 Hz on z for 3 s) on an accelerometer of +-2 g range: the
+    clipped samples are a ``warning: imu:`` line and ``_run.imu`` in metrics.json, and the pose
+    sensor's NIS, far out of band, is named as the IMU's symptom; a clean run has no finding."""
+    import dataclasses
+
+    import smoother.sources
+    from datasets.types import ImuSamples
+
+    real = smoother.sources.load
+
+    def clipped(spec, options):
+        dataset = real(spec, options)
+        t, acc = dataset.imu.t, dataset.imu.acc.copy()
+        during = (t >= 2.0) & (t < 5.0)
+        acc[during, 2] += 2 * 9.80665 * np.sin(2 * np.pi * 5 * t[during])
+        acc = np.clip(acc, -2 * 9.80665, 2 * 9.80665)
+        return dataclasses.replace(dataset, imu=ImuSamples(t, acc, dataset.imu.gyro))
+
+    out = tmp_path / "clean"
+    assert main(["run", "--duration", "8", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
+    assert "imu:" not in capsys.readouterr().err
+    assert json.loads((out / "metrics.json").read_text())["_run"]["imu"] == {"ok": True, "findings": []}
+    monkeypatch.setattr(smoother.sources, "load", clipped)
+    out = tmp_path / "clipped"
+    assert main(["run", "--duration", "8", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    imu_lines = [line for line in err.splitlines() if line.startswith("warning: imu:")]
+    assert len(imu_lines) == 1 and "accelerometer: " in imu_lines[0] and "saturated" in imu_lines[0], err
+    record = json.loads((out / "metrics.json").read_text())["_run"]["imu"]
+    assert record["ok"] is False and [f["what"] for f in record["findings"]] == ["saturation"]
+    assert 2.0 <= record["findings"][0]["t_start"] and record["findings"][0]["t_end"] < 5.0
+    pose = [line for line in err.splitlines() if line.startswith("warning: pose: per dof")]
+    assert pose and "the IMU is the likelier cause (accelerometer saturation" in pose[0], err
