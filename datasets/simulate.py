@@ -232,7 +232,7 @@ def simulate(
     duration: float = 60.0,
     seed: int = 0,
     imu_rate: float = 200.0,
-    noise: ImuNoise = ImuNoise(),
+    noise: ImuNoise = ImuNoise(velocity=0.0),
     truth: str = "discrete",
     pose_rate: float | None = 10.0,
     pose_sigma=(0.05, 0.01),
@@ -256,7 +256,9 @@ def simulate(
     ``profile``: a name in :data:`PROFILES` (``gentle``, ``tumbling``, ``static``,
     ``static_level``) or a :class:`~datasets.trajectories.Profile`. ``duration`` [s] and
     ``imu_rate`` [Hz]: ``floor(duration * imu_rate) + 1`` samples from ``t0``. ``seed``: every
-    random draw. ``noise``: the IMU noise densities (also stored as ``Dataset.noise``).
+    random draw. ``noise``: the IMU noise densities (also stored as ``Dataset.noise``); by
+    default without the velocity noise ``n_v`` (the discrete truth is the Euler model itself, so
+    the estimators' model is then exactly the truth's).
     ``truth``: ``"discrete"`` (the Euler model's propagation of the clean IMU) or
     ``"continuous"`` (the analytic motion). ``clean_imu``: ``"analytic"`` (eq. 42 at the sample
     times) or ``"matched"`` (the samples whose Euler propagation follows the profile exactly).

@@ -259,7 +259,7 @@ def test_euler_truth_with_velocity_noise_matches_the_model_step():
 
 
 def test_noise_free_imu_integrated_from_the_true_start_reproduces_the_truth():
-    quiet = ImuNoise(acc=0, gyro=0, acc_bias=0, gyro_bias=0)
+    quiet = ImuNoise(acc=0, gyro=0, acc_bias=0, gyro_bias=0, velocity=0)
     d = simulate("tumbling", duration=10.0, noise=quiet, initial_bias_sigma=(0, 0))
     np.testing.assert_array_equal(d.imu.acc, d.clean_imu.acc)
     again = imu.integrate(d.truth.states[0], d.imu.acc[:-1], d.imu.gyro[:-1], np.diff(d.imu.t), d.gravity)
