@@ -184,6 +184,12 @@ class _Rows:
                              else getattr(self, f.name)[index] for f in fields(self)})
 
 
+#: The fewest IMU samples a recording can have, and why: the sampling interval (and with it the
+#: noise of one step) is measured between two samples, and every estimator steps from one to the next.
+MIN_IMU_SAMPLES = 2
+MIN_IMU_SAMPLES_WHY = "the estimators step from one sample to the next and take the IMU's rate from their spacing"
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSamples:
     """IMU samples: specific force ``acc`` [m/s^2] and angular rate ``gyro`` [rad/s] in the body
@@ -428,8 +434,8 @@ class Dataset:
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise InputError(f"Dataset.gravity: expected a finite 3-vector, got {g!r}")
         object.__setattr__(self, "gravity", g)
-        if len(self.imu) < 2:
-            raise InputError("Dataset.imu: at least two IMU samples are needed")
+        if len(self.imu) < MIN_IMU_SAMPLES:
+            raise InputError(f"Dataset.imu: at least {MIN_IMU_SAMPLES} IMU samples are needed ({MIN_IMU_SAMPLES_WHY})")
         s = self.initial
         if any(np.shape(getattr(s, n)) != (3,) for n in ("r", "v", "b_f", "b_w")) or np.shape(s.C) != (3, 3):
             raise InputError("Dataset.initial: expected one state (3-vectors and a 3x3 attitude)")

@@ -84,7 +84,8 @@ class Messages:
 
 def write_bag(path: Path, fmt: str, topics: dict) -> Path:
     """Write ``topics`` (name -> ``(message type, [messages])``, messages in the order given,
-    each recorded 1 ms after its header stamp) into a new bag of format ``fmt`` at ``path``."""
+    each recorded 1 ms after its header stamp; or ``(message type, [messages], [receive times
+    in ns])``) into a new bag of format ``fmt`` at ``path``."""
     store = Messages(fmt).store
     if fmt == "ros1":
         writer = Writer1(path)
@@ -94,9 +95,10 @@ def write_bag(path: Path, fmt: str, topics: dict) -> Path:
         writer = Writer2(path, version=9, storage_plugin=plugin)
         serialize = store.serialize_cdr
     with writer:
-        for topic, (msgtype, messages) in topics.items():
+        for topic, (msgtype, messages, *received) in topics.items():
             connection = writer.add_connection(topic, msgtype, typestore=store)
-            for message in messages:
+            for k, message in enumerate(messages):
                 stamp = message.header.stamp
-                writer.write(connection, stamp.sec * 10**9 + stamp.nanosec + 1_000_000, serialize(message, msgtype))
+                at = int(received[0][k]) if received else stamp.sec * 10**9 + stamp.nanosec + 1_000_000
+                writer.write(connection, at, serialize(message, msgtype))
     return path
