@@ -65,3 +65,22 @@ def test_a_recording_that_moves_is_warned_of(tmp_path, capsys):
         f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps, x)))
     assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
     assert "does not look static (a 1-s mean angular rate of 0.5" in capsys.readouterr().err
+
+
+def test_a_recording_too_short_for_the_random_walk_says_so(tmp_path, capsys):
+    """Two seconds at rest: the block gives the white-noise densities and leaves the random walks
+    out (commented, to be filled in); a warning says how long a recording they need."""
+    x = _static_imu(n=200)
+    x[:, :] = x[0] + 2e-2 * np.random.default_rng(5).normal(size=x.shape)  # white noise only
+    path = tmp_path / "imu.csv"
+    stamps = 1_600_000_000_000_000_000 + DT_NS * np.arange(len(x))
+    path.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
+        f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps, x)))
+    assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr()
+    block = out.out.splitlines()
+    assert any(line.startswith("accel_noise_density = ") for line in block)
+    for key in ("accel_random_walk", "gyro_random_walk"):
+        assert not any(line.startswith(key) for line in block) and f"# {key} = ?" in out.out
+    assert "warning: random walk not estimated" in out.err and "record at least" in out.err
+    assert (tmp_path / "out" / "allan.png").exists()
