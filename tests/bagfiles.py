@@ -82,13 +82,16 @@ class Messages:
             position_covariance_type=int(cov_type))
 
 
-def write_bag(path: Path, fmt: str, topics: dict) -> Path:
+def write_bag(path: Path, fmt: str, topics: dict, bz2: bool = False) -> Path:
     """Write ``topics`` (name -> ``(message type, [messages])``, messages in the order given,
     each recorded 1 ms after its header stamp; or ``(message type, [messages], [receive times
-    in ns])``) into a new bag of format ``fmt`` at ``path``."""
+    in ns])``) into a new bag of format ``fmt`` at ``path`` (ROS 1 with ``bz2``: its chunks
+    compressed)."""
     store = Messages(fmt).store
     if fmt == "ros1":
         writer = Writer1(path)
+        if bz2:
+            writer.set_compression(Writer1.CompressionFormat.BZ2)
         serialize = store.serialize_ros1
     else:
         plugin = StoragePlugin.SQLITE3 if fmt == "sqlite3" else StoragePlugin.MCAP

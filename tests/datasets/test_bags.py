@@ -135,26 +135,26 @@ def test_a_file_that_is_no_bag(tmp_path):
         read_bag_imu(path, "/imu")
 
 
-def _imu_bag(folder, fmt, stamps_ns, received_ns=None, seed=0):
+def _imu_bag(folder, fmt, stamps_ns, received_ns=None, seed=0, bz2=False):
     """A bag of ``sensor_msgs/Imu`` messages on ``/imu`` with the header stamps given (random,
-    non-zero readings); returns ``(bag, acc, gyro)``."""
+    non-zero readings; ROS 1 chunks compressed with ``bz2``); returns ``(bag, acc, gyro)``."""
     rng = np.random.default_rng(seed)
     acc, gyro = rng.normal(size=(len(stamps_ns), 3)) + 1.0, rng.normal(size=(len(stamps_ns), 3)) + 1.0
     m = Messages(fmt)
     messages = [m.imu(t, a, g) for t, a, g in zip(stamps_ns, acc, gyro)]
     topic = ("sensor_msgs/msg/Imu", messages) + (() if received_ns is None else (received_ns,))
     folder.mkdir(parents=True, exist_ok=True)
-    return write_bag(bag_path(folder, fmt), fmt, {"/imu": topic}), acc, gyro
+    return write_bag(bag_path(folder, fmt), fmt, {"/imu": topic}, bz2=bz2), acc, gyro
 
 
-@pytest.mark.parametrize("fmt", FORMATS)
-def test_a_damaged_bag_reads_whole_or_is_one_error(tmp_path, fmt):
+@pytest.mark.parametrize("fmt, bz2", [(fmt, False) for fmt in FORMATS] + [("ros1", True)])
+def test_a_damaged_bag_reads_whole_or_is_one_error(tmp_path, fmt, bz2):
     """64 bytes zeroed at offsets through the whole file: every read is either the package's
     error naming the bag and the topic, or all the messages with their stamps. (A message's
     payload has no checksum in these formats: bytes zeroed inside the readings change the
     message they hit, and only it.)"""
     stamps = T0_NS + STEP_NS * np.arange(200)
-    bag, acc, gyro = _imu_bag(tmp_path, fmt, stamps)
+    bag, acc, gyro = _imu_bag(tmp_path, fmt, stamps, bz2=bz2)
     storage = bag if fmt == "ros1" else storage_file(bag, fmt)
     original = storage.read_bytes()
     errors = reads = 0
