@@ -21,11 +21,11 @@ Messages and what they give (:mod:`datasets.streams` for the stream types and co
 Times are HEADER stamps, not the times the recorder received the messages. Messages are taken
 in the order the bag stores them (the recorder's receive times), never re-sorted, and their
 stamps must increase strictly in that order: the rule of the CSV readers
-(:func:`datasets.errors.check_increasing`), so that a clock stepping back or a repeated stamp is an
-error naming the bag, the topic, the message and both stamps. A covariance that is all zero or not positive
-definite counts as unknown for its message (:func:`datasets.streams.known_covariances`); ``cov``
-is None when no message of the stream has one. Quaternions must have norm 1 within
-:data:`QUATERNION_TOLERANCE` and are normalised.
+(:func:`datasets.errors.check_increasing`), so that a clock stepping back or a repeated stamp is
+an error naming the bag, the topic, the message and both stamps. A covariance that is all zero
+or not positive definite counts as unknown for its message
+(:func:`datasets.streams.known_covariances`); ``cov`` is None when no message of the stream has
+one. Quaternions must have norm 1 within :data:`QUATERNION_TOLERANCE` and are normalised.
 
 Errors are :class:`datasets.errors.DataError` naming the bag and the topic: a missing or unreadable
 bag, a damaged one (anything rosbags raises while reading or deserialising a message, or fewer
@@ -155,7 +155,7 @@ def _messages(path: Path, reader, topic: str, msgtype: str, row) -> tuple[list[i
                         f"({_cause(error)})", expected, whole=True) from None
     if len(stamps) != info.msgcount:
         raise DataError(path, None, f"topic {topic}", f"a damaged bag: {len(stamps)} message(s) could be read",
-                        expected)
+                        expected, whole=True)
     return stamps, values
 
 
@@ -206,8 +206,8 @@ def read_bag_imu(path, topic: str) -> ImuSamples:
     :data:`~datasets.types.MIN_IMU_SAMPLES` of them."""
     t_ns, rows = _read(path, topic, "IMU samples")
     if len(t_ns) < MIN_IMU_SAMPLES:
-        raise DataError(path, None, f"topic {topic}", f"{len(t_ns)} message", f"at least {MIN_IMU_SAMPLES} IMU "
-                        f"samples ({MIN_IMU_SAMPLES_WHY})")
+        raise DataError(path, None, f"topic {topic}", f"{len(t_ns)} message{'s' if len(t_ns) != 1 else ''}",
+                        f"at least {MIN_IMU_SAMPLES} IMU samples ({MIN_IMU_SAMPLES_WHY})")
     _finite(path, topic, t_ns, rows, "acceleration or angular rate")
     return ImuSamples(seconds(t_ns), rows[:, 0:3], rows[:, 3:6], t_ns=t_ns)
 

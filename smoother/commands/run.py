@@ -111,8 +111,8 @@ def run(args) -> int:
 def _run(args) -> int:
     from smoother import sources
     from smoother.commands import at_least, duration, fraction, positive
-    from smoother.pipeline import ESTIMATORS, RunOptions
     from smoother.commands.run_directory import RunDirectory
+    from smoother.pipeline import ESTIMATORS, RunOptions
 
     at_least("--seed", args.seed, 0)
     duration(args.duration)
@@ -170,8 +170,9 @@ def _run(args) -> int:
 
 def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     """Run the estimators ``names`` on ``dataset`` and write the run into ``out`` (a locked
-    :class:`~smoother.commands.run_directory.RunDirectory`). Stopped early (Ctrl-C, SIGTERM, an estimator
-    failing) the finished estimators are written with ``stopped`` in ``metrics.json``."""
+    :class:`~smoother.commands.run_directory.RunDirectory`). Stopped early (Ctrl-C, SIGTERM, an
+    estimator failing) the finished estimators are written with ``stopped`` in ``metrics.json``;
+    after Ctrl-C or SIGTERM that is one line on stderr and the exit code 130 or 143."""
     from smoother import report
     from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.pipeline import run_estimators, sensor_consistency
