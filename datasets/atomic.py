@@ -54,3 +54,107 @@ def atomic_write(path, mode: str = "w", **open_kwargs):
         if isinstance(error, OSError) and error.strerror and error.filename in (None, str(tmp)):
             error.filename, error.filename2 = str(path), None
         raise
+
+
+#: Names of the hidden folders :func:`staging` writes into: ``.staging-<pid>-<random>``.
+STAGING_PREFIX = ".staging-"
+
+
+class Staging:
+    """A fresh hidden folder ``path`` inside ``folder``, whose files :meth:`commit` moves into
+    ``folder`` together (made by :func:`staging`)."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(os.path.realpath(folder))
+        while True:
+            path = self.folder / f"{STAGING_PREFIX}{os.getpid()}-{secrets.token_hex(4)}"
+            try:
+                path.mkdir(mode=0o777)
+                break
+            except FileExistsError:
+                continue
+        self.path = path
+
+    def names(self) -> list[str]:
+        """The files written into the staging folder so far (temporary ones of
+        :func:`atomic_write` excepted), sorted."""
+        return sorted(p.name for p in self.path.iterdir() if not p.name.endswith(".tmp"))
+
+    def commit(self, remove=(), last: str | None = None) -> None:
+        """Move every staged file onto its namesake in ``folder`` (``os.replace``: each one
+        atomically, a file already there keeping its permissions, a symbolic link there written
+        through), ``last`` after all others, then delete the files of ``folder`` named in
+        ``remove``, then the staging folder. SIGINT and SIGTERM wait until this is done, so that
+        no interruption leaves some files moved and others not."""
+        names = self.names()
+        names.sort(key=lambda name: name == last)
+        with _signals_held():
+            for name in names:
+                target = Path(os.path.realpath(self.folder / name))
+                with contextlib.suppress(FileNotFoundError):
+                    os.chmod(self.path / name, stat.S_IMODE(os.stat(target).st_mode))
+                os.replace(self.path / name, target)
+            for name in remove:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self.folder / name)
+            self.discard()
+
+    def discard(self) -> None:
+        """Delete the staging folder and what is in it (this process made it: nothing else is)."""
+        if self.path.exists():
+            for entry in self.path.iterdir():
+                entry.unlink()
+            self.path.rmdir()
+
+    def final(self, path) -> Path:
+        """Where the staged file ``path`` goes: its namesake in ``folder`` (other paths unchanged)."""
+        path = Path(path)
+        return self.folder / path.name if Path(os.path.realpath(path)).parent == self.path else path
+
+
+@contextlib.contextmanager
+def staging(folder):
+    """A :class:`Staging` folder inside ``folder`` for the block to write into and commit. When
+    the block raises (Ctrl-C, a full disk) the staging folder is deleted and ``folder`` keeps
+    what it had; an ``OSError`` naming a staged file (as :func:`atomic_write` names it) is made
+    to name the file of ``folder`` it was meant for."""
+    try:
+        stage = Staging(folder)
+    except OSError as error:
+        if error.strerror:
+            error.filename, error.filename2 = str(folder), None
+        raise
+    try:
+        yield stage
+    except BaseException as error:
+        with contextlib.suppress(OSError):
+            stage.discard()
+        if isinstance(error, OSError) and error.filename is not None:
+            error.filename = str(stage.final(error.filename))
+        raise
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """SIGINT and SIGTERM, when Python handles them, held until the block ends and then raised
+    again (as the handlers in place would have raised them). Only the main thread handles
+    signals: elsewhere the block runs as it is."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = {}
+    for number in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(number)
+        if callable(handler):  # a Python handler (Ctrl-C's default is one); SIG_DFL/SIG_IGN stay
+            previous[number] = signal.signal(number, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        for number in dict.fromkeys(pending):
+            previous[number](number, None)

@@ -18,16 +18,21 @@ Messages and what they give (:mod:`datasets.streams` for the stream types and co
   unknown (a NaN row), 2 (diagonal known) keeps the diagonal only, 1 (approximated) and 3 (known)
   keep the whole matrix. A stream mixing known and unknown rows keeps both, row by row.
 
-Times are HEADER stamps, not the times the recorder received the messages; messages are sorted
-by them (a recorder stores them in arrival order). A covariance that is all zero or not positive
-definite counts as unknown for its message (:func:`datasets.streams.known_covariances`); ``cov``
-is None when no message of the stream has one. Quaternions must have norm 1 within
-:data:`QUATERNION_TOLERANCE` and are normalised.
+Times are HEADER stamps, not the times the recorder received the messages. Messages are taken
+in the order the bag stores them (the recorder's receive times), never re-sorted, and their
+stamps must increase strictly in that order: the rule of the CSV readers
+(:func:`datasets.errors.check_increasing`), so that a clock stepping back or a repeated stamp is
+an error naming the bag, the topic, the message and both stamps. A covariance that is all zero
+or not positive definite counts as unknown for its message
+(:func:`datasets.streams.known_covariances`); ``cov`` is None when no message of the stream has
+one. Quaternions must have norm 1 within :data:`QUATERNION_TOLERANCE` and are normalised.
 
 Errors are :class:`datasets.errors.DataError` naming the bag and the topic: a missing or unreadable
-bag, a topic that is not in the bag (the message lists the topics present with their types), a
-topic of another message type than the stream asked for (both named), an empty topic, two
-messages with the same stamp, a bad quaternion or non-finite values.
+bag, a damaged one (anything rosbags raises while reading or deserialising a message, or fewer
+messages than the bag's index lists), a topic that is not in the bag (the message lists the
+topics present with their types), a topic of another message type than the stream asked for (both
+named), an empty topic, stamps out of order, fewer IMU messages than
+:data:`datasets.types.MIN_IMU_SAMPLES`, a bad quaternion or non-finite values.
 """
 from __future__ import annotations
 
@@ -38,9 +43,9 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from datasets.errors import DataError
+from datasets.errors import DataError, check_increasing
 from datasets.streams import STATUS_NO_FIX, FixStream, PoseStream, TwistStream, known_covariances, seconds
-from datasets.types import ImuSamples
+from datasets.types import MIN_IMU_SAMPLES, MIN_IMU_SAMPLES_WHY, ImuSamples
 from factors import quaternion
 
 IMU = "sensor_msgs/msg/Imu"
@@ -96,29 +101,71 @@ _ROWS = {
 }
 
 
+#: What a bag's path may be, for the errors.
+_A_BAG = "a ROS bag (.bag, a ROS 2 bag folder, .db3, .mcap)"
+#: Longest text of a rosbags exception quoted in an error.
+_MAX_CAUSE = 100
+
+
+def _cause(error: Exception) -> str:
+    """``Type: message`` of an exception from inside rosbags, shortened."""
+    text = f"{type(error).__name__}: {error}".strip().rstrip(":")
+    return text if len(text) <= _MAX_CAUSE else text[: _MAX_CAUSE - 3] + "..."
+
+
 @contextlib.contextmanager
-def _opened(path: Path):
-    """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag."""
+def _opened(path: Path, topic: str):
+    """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag and ``topic``."""
     if not path.exists():
-        raise DataError(path, None, None, "no such file or folder", "a ROS bag (.bag, a ROS 2 bag folder, .db3, .mcap)")
+        raise DataError(path, None, f"topic {topic}", "no such file or folder", _A_BAG)
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
+    except MemoryError:
+        raise
     except Exception as error:  # rosbags raises its own errors, and OSError, KeyError, ... for damaged files
-        raise DataError(path, None, None, f"an unreadable bag ({type(error).__name__}: {error})",
-                        "a ROS bag (.bag, a ROS 2 bag folder, .db3, .mcap)") from None
+        raise DataError(path, None, f"topic {topic}", f"an unreadable bag ({_cause(error)})", _A_BAG,
+                        whole=True) from None
     try:
         yield reader
     finally:
-        reader.close()
+        with contextlib.suppress(Exception):  # closing what was only read; an error here changes nothing
+            reader.close()
+
+
+def _messages(path: Path, reader, topic: str, msgtype: str, row) -> tuple[list[int], list[float]]:
+    """Header stamps [ns] and the values of every message of ``topic`` (of type ``msgtype``,
+    each made a row by ``row``), in the order the bag stores them. Whatever fails inside rosbags
+    while reading or deserialising (a damaged bag raises anything from its own errors to
+    ``AssertionError`` or ``struct.error``), and a bag that yields fewer or more messages than its
+    index lists, is one :class:`DataError` naming the bag, the topic and the message."""
+    info = reader.topics[topic]
+    stamps: list[int] = []
+    values: list[float] = []
+    expected = f"a readable bag with the {info.msgcount} {msgtype} message(s) its index lists on the topic"
+    try:
+        for connection, _, raw in reader.messages(connections=info.connections):
+            message = reader.deserialize(raw, connection.msgtype)
+            stamps.append(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
+            values.extend(row(message))
+    except MemoryError:
+        raise
+    except Exception as error:
+        raise DataError(path, None, f"topic {topic}", f"a damaged bag: message {len(stamps) + 1} cannot be read "
+                        f"({_cause(error)})", expected, whole=True) from None
+    if len(stamps) != info.msgcount:
+        raise DataError(path, None, f"topic {topic}", f"a damaged bag: {len(stamps)} message(s) could be read",
+                        expected, whole=True)
+    return stamps, values
 
 
 def _read(path, topic: str, stream: str) -> tuple[np.ndarray, np.ndarray]:
-    """The messages of ``topic`` as ``(header stamps [ns] int64, rows (N, m) float)`` sorted by
-    stamp, for the ``stream`` named (a key of :data:`_ROWS`)."""
+    """The messages of ``topic`` as ``(header stamps [ns] int64, rows (N, m) float)`` in the
+    order the bag stores them, the stamps strictly increasing, for the ``stream`` named (a key
+    of :data:`_ROWS`)."""
     path = Path(path)
     wanted = _ROWS[stream]
-    with _opened(path) as reader:
+    with _opened(path, topic) as reader:
         topics = reader.topics
         if topic not in topics:
             present = ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(topics.items())) or "none"
@@ -127,24 +174,12 @@ def _read(path, topic: str, stream: str) -> tuple[np.ndarray, np.ndarray]:
         if msgtype not in wanted:
             raise DataError(path, None, f"topic {topic}", f"messages of type {msgtype}",
                             f"{stream}: {' or '.join(wanted)}")
-        row = wanted[msgtype]
-        stamps: list[int] = []
-        values: list[float] = []
-        for connection, _, raw in reader.messages(connections=topics[topic].connections):
-            message = reader.deserialize(raw, connection.msgtype)
-            stamps.append(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
-            values.extend(row(message))
+        stamps, values = _messages(path, reader, topic, msgtype, wanted[msgtype])
     if not stamps:
         raise DataError(path, None, f"topic {topic}", "no messages", f"at least one message ({stream})")
     t_ns = np.array(stamps, dtype=np.int64)
-    rows = np.array(values, dtype=float).reshape(len(stamps), -1)
-    order = np.argsort(t_ns, kind="stable")
-    t_ns, rows = t_ns[order], rows[order]
-    same = np.flatnonzero(np.diff(t_ns) == 0)
-    if same.size:
-        raise DataError(path, None, f"topic {topic}", f"{same.size} message(s) with the stamp of the message before "
-                        f"them (first at {int(t_ns[same[0]])} ns)", "distinct header stamps")
-    return t_ns, rows
+    check_increasing(path, t_ns, np.arange(1, len(t_ns) + 1), f"topic {topic}, header stamp [ns]", counted="message")
+    return t_ns, np.array(values, dtype=float).reshape(len(stamps), -1)
 
 
 def _finite(path, topic: str, t_ns: np.ndarray, values: np.ndarray, what: str) -> np.ndarray:
@@ -167,8 +202,12 @@ def _rotations(path, topic: str, t_ns: np.ndarray, q_wxyz: np.ndarray) -> np.nda
 
 
 def read_bag_imu(path, topic: str) -> ImuSamples:
-    """``sensor_msgs/msg/Imu`` messages of ``topic`` as IMU samples (``t_ns`` exact)."""
+    """``sensor_msgs/msg/Imu`` messages of ``topic`` as IMU samples (``t_ns`` exact), at least
+    :data:`~datasets.types.MIN_IMU_SAMPLES` of them."""
     t_ns, rows = _read(path, topic, "IMU samples")
+    if len(t_ns) < MIN_IMU_SAMPLES:
+        raise DataError(path, None, f"topic {topic}", f"{len(t_ns)} message{'s' if len(t_ns) != 1 else ''}",
+                        f"at least {MIN_IMU_SAMPLES} IMU samples ({MIN_IMU_SAMPLES_WHY})")
     _finite(path, topic, t_ns, rows, "acceleration or angular rate")
     return ImuSamples(seconds(t_ns), rows[:, 0:3], rows[:, 3:6], t_ns=t_ns)
 

@@ -138,9 +138,13 @@ def parse_rows(path, rows: list[tuple[int, list[str]]], fields: list[str],
     return out, ints
 
 
-def check_increasing(path, t: np.ndarray, lines, field: str, duplicates: bool = False) -> None:
+def check_increasing(path, t: np.ndarray, lines, field: str, duplicates: bool = False, counted: str = "line") -> None:
     """Raise a :class:`DataError` at the first time stamp that does not increase strictly (with
-    ``duplicates``: that decreases; a stamp equal to the one before passes)."""
+    ``duplicates``: that decreases; a stamp equal to the one before passes). The one time-order
+    rule of every reader: stamps are taken in the order the file holds them, never re-sorted.
+    ``lines`` says where each stamp is: 1-based lines of a text file (``counted`` "line": the
+    error's place), or the 1-based index of a bag topic's message (``counted`` "message": named
+    in the error beside the two stamps)."""
     t = np.asarray(t)
     if t.size < 2:
         return
@@ -150,10 +154,13 @@ def check_increasing(path, t: np.ndarray, lines, field: str, duplicates: bool = 
         i = int(bad[0]) + 1
         what = "a duplicate of" if step[i - 1] == 0 else "earlier than"
         show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))  # noqa: E731
-        raise DataError(
-            path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} ({show(t[i - 1])})",
-            "increasing time stamps" if duplicates else "strictly increasing time stamps", whole=True,
-        )
+        expected = "increasing time stamps" if duplicates else "strictly increasing time stamps"
+        if counted == "line":
+            raise DataError(path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} "
+                            f"({show(t[i - 1])})", expected, whole=True)
+        raise DataError(path, None, field, f"{counted} {int(lines[i])} stamped {show(t[i])}, {what} {counted} "
+                        f"{int(lines[i - 1])} ({show(t[i - 1])})", f"{expected}, {counted} after {counted}",
+                        whole=True)
 
 
 def check_unit_quaternions(path, q: np.ndarray, lines, field: str, tolerance: float) -> np.ndarray:

@@ -18,7 +18,9 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
 * **Noise**: a sensor's ``sigma`` overrides; otherwise the messages' covariances where every
   message has one (:func:`datasets.kinds.base.noise`; ``odometry`` always needs ``sigma``).
 * **every = k**: measurements ``0, k, 2k, ...`` are used; the others are held out for evaluation
-  (``Sensor.heldout``; for positions and GNSS the held-out error of ``metrics.json``).
+  (``Sensor.heldout``; for positions and GNSS the held-out error of ``metrics.json``). When the
+  start cannot be found from the measurements used but can from all of one sensor's, the error
+  is a :class:`~datasets.rig.RigError` naming that sensor's ``every``.
 * **Gravity**: ``(0, 0, -g)`` in the world frame (z up; ENU with GNSS).
 """
 from __future__ import annotations
@@ -29,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.gnss import Datum
-from datasets.initialise import imu_from, initial_state
+from datasets.initialise import InitialisationError, imu_from, initial_state
 from datasets.kinds import KINDS, Clock
-from datasets.rig import Rig
+from datasets.rig import Rig, RigError, sensor_key
 from datasets.sources import read_imu
 from datasets.types import Dataset, ImuSamples, Sensor
 from factors.errors import InputError
@@ -76,6 +78,29 @@ def _split_every(data, every: int):
     return data.subset(used), (data.subset(~used) if (~used).any() else None)
 
 
+def _every_is_why(rig: Rig, error: InitialisationError, sensors: list[Sensor], whole: list, start) -> ValueError:
+    """The error to give when ``start`` (the initialisation, on a list of sensors) failed with
+    ``error``: if using all of one sensor's measurements, not only every k-th, lets it succeed,
+    a :class:`~datasets.rig.RigError` naming that sensor's ``every`` key, how many measurements
+    it leaves and how many there are; else ``error`` itself."""
+    for index, (config, sensor, data) in enumerate(zip(rig.sensors, sensors, whole)):
+        if config.every == 1:
+            continue
+        trial = list(sensors)
+        trial[index] = Sensor(sensor.name, sensor.kind, data, None)
+        try:
+            start(trial)
+        except InitialisationError:
+            continue
+        failed = str(error).split(":")[0]  # "cannot fix the initial heading"
+        need = failed[len("cannot "):] if failed.startswith("cannot ") else "start the estimate"
+        return RigError(rig.path, sensor_key(index + 1, config.name, "every"),
+                        f"{config.every} leaves {len(sensor.data)} of the sensor's {len(data)} measurements for "
+                        f"estimation: too few to {need}, which all {len(data)} would; use a smaller every (the "
+                        "measurements between those used are held out)")
+    return error
+
+
 def _from(sensors: list[Sensor], t_s: float) -> list[Sensor]:
     """The sensors' measurements from the start time on (the estimate starts at the first position
     fix); how many earlier ones are left out is said once."""
@@ -108,7 +133,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
 
     gyro_variance = rig.imu.noise.gyro**2 / float(np.median(np.diff(imu.t)))
     clock = Clock(lambda t, t_ns, offset: _relative(t, t_ns, origin_ns, offset), gyro_at, gyro_variance, rig.datum)
-    sensors = []
+    sensors, whole = [], []  # each sensor's measurements split by its `every`, and all of them
     for config in rig.sensors:
         try:
             data, clock.datum = KINDS[config.kind].read(config, clock)
@@ -119,8 +144,13 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout))
+        whole.append(data)
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
-    t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)
+    try:
+        t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)
+    except InitialisationError as error:
+        raise _every_is_why(rig, error, sensors, whole, lambda s: initial_state(imu, s, gravity, bias_sigma,
+                                                                                 rig.imu.forward)) from None
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,
                            initial_cov=cov, gravity=gravity, sensors=tuple(sensors), time_origin_ns=origin_ns,

@@ -297,9 +297,16 @@ def _sigma(t: _Table) -> np.ndarray | None:
     return sigma
 
 
+def sensor_key(index: int, name, key: str | None = None) -> str:
+    """How errors name the ``index``-th sensor table (from 1), ``name`` (if a string) and one of
+    its keys: ``sensor[2] "gnss".every``."""
+    where = f'sensor[{index}] "{name}"' if isinstance(name, str) else f"sensor[{index}]"
+    return where if key is None else f"{where}.{key}"
+
+
 def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     name = table.get("name") if isinstance(table, dict) else None
-    where = f'sensor[{index}] "{name}"' if isinstance(name, str) else f"sensor[{index}]"
+    where = sensor_key(index, name)
     t = _Table(path, folder, where, table, SENSOR_KEYS)
     name = t.string("name", required=True)
     kind = t.string("kind", required=True)
@@ -347,7 +354,7 @@ def load_rig(path) -> Rig:
     seen: dict = {}
     for i, sensor in enumerate(sensors):
         if sensor.name in seen:
-            raise RigError(path, f'sensor[{i + 1}] "{sensor.name}".name',
+            raise RigError(path, sensor_key(i + 1, sensor.name, "name"),
                            f"a second sensor named {sensor.name!r}; sensor[{seen[sensor.name]}] has that name")
         seen[sensor.name] = i + 1
     return Rig(path=path, imu=imu, datum=datum, sensors=sensors)

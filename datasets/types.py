@@ -287,6 +287,12 @@ class _Rows:
                              else getattr(self, f.name)[index] for f in fields(self)})
 
 
+#: The fewest IMU samples a recording can have, and why: the sampling interval (and with it the
+#: noise of one step) is measured between two samples, and every estimator steps from one to the next.
+MIN_IMU_SAMPLES = 2
+MIN_IMU_SAMPLES_WHY = "the estimators step from one sample to the next and take the IMU's rate from their spacing"
+
+
 @dataclass(frozen=True, eq=False)
 class ImuSamples:
     """IMU samples: specific force ``acc`` [m/s^2] and angular rate ``gyro`` [rad/s] in the body
@@ -528,8 +534,8 @@ class Dataset:
     def __post_init__(self):
         object.__setattr__(self, "initial_cov", check_state_covariance("Dataset.initial_cov", self.initial_cov))
         object.__setattr__(self, "gravity", check_array("Dataset.gravity", self.gravity, (), 3))
-        if len(self.imu) < 2:
-            raise InputError("Dataset.imu: at least two IMU samples are needed")
+        if len(self.imu) < MIN_IMU_SAMPLES:
+            raise InputError(f"Dataset.imu: at least {MIN_IMU_SAMPLES} IMU samples are needed ({MIN_IMU_SAMPLES_WHY})")
         check_state("Dataset.initial", self.initial)
         self._check_imu_gaps()
         self._check_imu_units()

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
+import signal
 import sys
+import threading
 import warnings
 
 from factors.errors import BoxplusError
-from smoother.errors import UserError
+from smoother.errors import Terminated, UserError, interruption
 
 #: Modules that contribute sub-commands, in the order they are listed by ``smoother --help``.
 COMMAND_MODULES = [
@@ -38,10 +41,29 @@ def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"smoother: warning: {message}\n"
 
 
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """Inside the block SIGTERM raises :class:`~smoother.errors.Terminated` (in the main thread;
+    elsewhere signals cannot be handled and nothing changes); the previous handler afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     previous, warnings.formatwarning = warnings.formatwarning, _format_warning  # one line per warning
     try:
-        return _main(argv)
+        with _sigterm_raises():
+            return _main(argv)
     finally:
         warnings.formatwarning = previous
 
@@ -51,9 +73,10 @@ def _main(argv: list[str] | None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except KeyboardInterrupt:
-        print("smoother: interrupted; files already written are complete and kept", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as error:  # Ctrl-C, or SIGTERM (Terminated)
+        stopped, code = interruption(error)
+        print(f"smoother: {stopped}; files already written are complete and kept", file=sys.stderr)
+        return code
     except (BoxplusError, ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
         # The library's own errors (factors.errors: bad input naming the file, field, option or
         # time; an estimator that could not finish), other bad values (ValueError), files that
@@ -62,7 +85,9 @@ def _main(argv: list[str] | None) -> int:
         # traceback (SMOOTHER_DEBUG=1 shows it for all but a bad command-line option).
         if os.environ.get("SMOOTHER_DEBUG") and not isinstance(error, UserError):
             raise
-        first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        text = (f"{error.filename}: {error.strerror}" if isinstance(error, OSError) and error.filename
+                and error.strerror else str(error)).strip()
+        first = text.splitlines()[0] if text else ""
         if isinstance(error, MemoryError):
             hint = "; try a shorter --duration" if "duration" in args else ""
             print(f"smoother: error: out of memory ({first or 'no details'}){hint}", file=sys.stderr)

@@ -1,11 +1,27 @@
-"""The smoother's errors (under :mod:`factors.errors`), and recognising GTSAM's
-indeterminant-system exception."""
+"""The smoother's errors (under :mod:`factors.errors`), a stop by SIGTERM, and recognising
+GTSAM's indeterminant-system exception."""
+import signal
+
 from factors.errors import InputError, SolverError
 
 
 class UserError(InputError):
     """A bad command-line option or dataset spec (raised by ``smoother.commands`` and
     ``smoother.sources``, never by the library): the message names the option and what was expected."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``kill``, ``timeout``, systemd and job schedulers send), raised in the main
+    thread as Ctrl-C raises ``KeyboardInterrupt`` (``smoother.cli`` installs the handler): whatever
+    keeps finished work on Ctrl-C keeps it on SIGTERM too."""
+
+
+def interruption(error: KeyboardInterrupt) -> tuple[str, int]:
+    """``(what stopped the command, its exit code)``: ``("terminated", 143)`` for SIGTERM,
+    ``("interrupted", 130)`` for Ctrl-C -- 128 plus the signal's number, as shells report it."""
+    if isinstance(error, Terminated):
+        return "terminated", 128 + signal.SIGTERM
+    return "interrupted", 128 + signal.SIGINT
 
 
 class IndeterminantSystem(SolverError):

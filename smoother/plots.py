@@ -714,11 +714,13 @@ def plot_allan(result, out_dir) -> Path:
             ax = fig.add_subplot(1, 2, j + 1)
             for k, axis in enumerate("xyz"):
                 color = ("tab:blue", "tab:orange", "tab:green")[k]
-                ax.loglog(tau, adev[:, k], color=color, label=f"{axis}: N {white[k]:.3g}, K {walk[k]:.3g}")
+                known = f"{walk[k]:.3g}" if np.isfinite(walk[k]) else "not estimated"
+                ax.loglog(tau, adev[:, k], color=color, label=f"{axis}: N {white[k]:.3g}, K {known}")
                 ax.loglog(tau, white[k] / np.sqrt(tau / WHITE_TAU), color=color, lw=0.8, ls="--")
                 ax.loglog(tau, walk[k] * np.sqrt(tau / WALK_TAU), color=color, lw=0.8, ls=":")
                 ax.plot([WHITE_TAU, WALK_TAU], [white[k], walk[k]], "o", color=color, ms=4)
-            low, high = min(adev.min(), white.min(), walk.min()), max(adev.max(), white.max(), walk.max())
+            low = min(adev.min(), white.min(), np.nanmin(walk, initial=np.inf))  # NaN: a walk not estimated
+            high = max(adev.max(), white.max(), np.nanmax(walk, initial=0.0))
             ax.set_ylim(low / 3, high * 3)  # the fitted lines run far beyond the data: keep them in view
             ax.set_xlabel("cluster time $\\tau$ [s]")
             ax.set_ylabel(f"Allan deviation [{unit}]")

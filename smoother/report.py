@@ -14,7 +14,9 @@ yardstick for the held-out figures: the used fixes interpolated to the held-out 
 A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
 :attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states
 and covariances, for plots), ``truth.npz`` and ``gps.npz`` where known, and ``metrics.json``; every file is
-written atomically.
+written atomically. :func:`write_outputs` writes them into a folder; ``smoother run`` writes
+them through :class:`smoother.commands.run_directory.RunDirectory` (one run at a time, the
+previous run's files replaced together).
 """
 from __future__ import annotations
 
@@ -235,8 +237,11 @@ def save_gps(path: Path, dataset: Dataset) -> None:
 
 
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
-    """Write every estimate (TUM + npz), the truth (npz) and ``metrics.json``; return the metrics.
-    An estimator that failed has its reason in ``metrics.json`` (``failed``) and no files."""
+    """Write every estimate (TUM + npz, GeoJSON with a datum), the truth and the fixes (npz) where
+    known and ``metrics.json`` into ``out_dir``; return the metrics. An estimator that failed has
+    its reason in ``metrics.json`` (``failed``) and no files. Files of these names already there
+    are overwritten, others left (a run directory's one-run rule is
+    :class:`smoother.commands.run_directory.RunDirectory`'s)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     report: dict = {}
@@ -250,9 +255,6 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         if datum is not None:
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
-    # A directory reused for another dataset must not keep a previous run's reference.
-    for name in ("truth.npz", "gps.npz"):
-        (out_dir / name).unlink(missing_ok=True)
     if dataset.truth is not None:
         save_trajectory(out_dir / "truth.npz", dataset.truth)
     save_gps(out_dir / "gps.npz", dataset)

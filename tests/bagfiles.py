@@ -82,21 +82,26 @@ class Messages:
             position_covariance_type=int(cov_type))
 
 
-def write_bag(path: Path, fmt: str, topics: dict) -> Path:
+def write_bag(path: Path, fmt: str, topics: dict, bz2: bool = False) -> Path:
     """Write ``topics`` (name -> ``(message type, [messages])``, messages in the order given,
-    each recorded 1 ms after its header stamp) into a new bag of format ``fmt`` at ``path``."""
+    each recorded 1 ms after its header stamp; or ``(message type, [messages], [receive times
+    in ns])``) into a new bag of format ``fmt`` at ``path`` (ROS 1 with ``bz2``: its chunks
+    compressed)."""
     store = Messages(fmt).store
     if fmt == "ros1":
         writer = Writer1(path)
+        if bz2:
+            writer.set_compression(Writer1.CompressionFormat.BZ2)
         serialize = store.serialize_ros1
     else:
         plugin = StoragePlugin.SQLITE3 if fmt == "sqlite3" else StoragePlugin.MCAP
         writer = Writer2(path, version=9, storage_plugin=plugin)
         serialize = store.serialize_cdr
     with writer:
-        for topic, (msgtype, messages) in topics.items():
+        for topic, (msgtype, messages, *received) in topics.items():
             connection = writer.add_connection(topic, msgtype, typestore=store)
-            for message in messages:
+            for k, message in enumerate(messages):
                 stamp = message.header.stamp
-                writer.write(connection, stamp.sec * 10**9 + stamp.nanosec + 1_000_000, serialize(message, msgtype))
+                at = int(received[0][k]) if received else stamp.sec * 10**9 + stamp.nanosec + 1_000_000
+                writer.write(connection, at, serialize(message, msgtype))
     return path

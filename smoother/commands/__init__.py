@@ -1,5 +1,6 @@
 """Sub-commands of the ``smoother`` command line, one module each, and the checks they share:
-each raises :class:`smoother.errors.UserError` naming the option, before any work starts."""
+each raises :class:`smoother.errors.UserError` naming the option, before any work starts.
+:mod:`smoother.commands.run_directory` is ``smoother run``'s output directory."""
 from __future__ import annotations
 
 import math

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
+import numpy as np
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -24,25 +26,32 @@ def register(sub) -> None:
     p.set_defaults(handler=run)
 
 
+#: Per density: the rig file's key, the ImuNoise field, the per-axis values' attribute of an
+#: AllanResult and the unit.
+_KEYS = (("accel_noise_density", "acc", "acc_white", "m/s^2/sqrt(Hz), largest axis"),
+         ("gyro_noise_density", "gyro", "gyro_white", "rad/s/sqrt(Hz)"),
+         ("accel_random_walk", "acc_bias", "acc_walk", "m/s^3/sqrt(Hz)"),
+         ("gyro_random_walk", "gyro_bias", "gyro_walk", "rad/s^2/sqrt(Hz)"))
+
+
 def imu_block(result, source: str, topic: str | None, n: int) -> str:
-    """The densities as a rig file's ``[imu]`` block, with the per-axis values as comments."""
-    noise = result.noise()
+    """The densities as a rig file's ``[imu]`` block, with the per-axis values as comments; a
+    random walk the data do not show is left out of the block (commented, to be filled in)."""
+    largest = result.largest()
     rows = [
         f"# Allan deviation of {n} samples at {1 / result.dt:.6g} Hz ({n * result.dt:.1f} s)",
         f"# {'per axis':<28}{'x':>12}{'y':>12}{'z':>12}",
     ]
-    for label, values in (("accel_noise_density", result.acc_white), ("gyro_noise_density", result.gyro_white),
-                          ("accel_random_walk", result.acc_walk), ("gyro_random_walk", result.gyro_walk)):
-        rows.append(f"# {label:<28}" + "".join(f"{v:>12.4e}" for v in values))
+    for key, _, axes, _ in _KEYS:
+        rows.append(f"# {key:<28}" + "".join(f"{'-' if np.isnan(v) else f'{v:.4e}':>12}"
+                                             for v in getattr(result, axes)))
     rows += ["[imu]", f"source = {json.dumps(source)}"]  # a JSON string is a TOML basic string
     if topic is not None:
         rows.append(f"topic = {json.dumps(topic)}")
-    rows += [
-        f"accel_noise_density = {noise.acc:.4e}    # m/s^2/sqrt(Hz), largest axis",
-        f"gyro_noise_density = {noise.gyro:.4e}     # rad/s/sqrt(Hz)",
-        f"accel_random_walk = {noise.acc_bias:.4e}    # m/s^3/sqrt(Hz)",
-        f"gyro_random_walk = {noise.gyro_bias:.4e}     # rad/s^2/sqrt(Hz)",
-    ]
+    for key, field, _, unit in _KEYS:
+        value = largest[field]
+        rows.append(f"# {key} = ?    # not estimated: the recording is too short (see the warning)"
+                    if np.isnan(value) else f"{key} = {value:.4e}    # {unit}")
     return "\n".join(rows)
 
 
@@ -60,5 +69,7 @@ def run(args) -> int:
               "not the sensor's noise", file=sys.stderr)
     result = allan(imu)
     print(imu_block(result, args.source, args.topic, len(imu)))
+    if result.walk_note() is not None:
+        print(f"warning: {result.walk_note()}", file=sys.stderr)
     print(f"wrote {plot_allan(result, out)}", file=sys.stderr)
     return 0

@@ -6,7 +6,7 @@ import math
 import sys
 import time
 
-from smoother.errors import UserError
+from smoother.errors import UserError, interruption
 from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 
 
@@ -109,11 +109,10 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from smoother import report, sources
-    from smoother.commands import at_least, duration, fraction, output_directory, positive
-    from datasets.imu_health import findings_record
-    from smoother.diagnostics import consistency_lines, consistency_warnings
-    from smoother.pipeline import ESTIMATORS, RunOptions, estimate_each, judged, sensor_consistency
+    from smoother import sources
+    from smoother.commands import at_least, duration, fraction, positive
+    from smoother.commands.run_directory import RunDirectory
+    from smoother.pipeline import ESTIMATORS, RunOptions
 
     at_least("--seed", args.seed, 0)
     duration(args.duration)
@@ -165,7 +164,21 @@ def _run(args) -> int:
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
         max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
     )
-    out = output_directory(args.out)
+    with RunDirectory(args.out) as out:  # locked for the run, before any estimator starts
+        return _estimate(args, dataset, names, run_options, out)
+
+
+def _estimate(args, dataset, names: list[str], run_options, out) -> int:
+    """Run the estimators ``names`` on ``dataset`` and write the run into ``out`` (a locked
+    :class:`~smoother.commands.run_directory.RunDirectory`). An estimator that fails is reported
+    (table, stderr, ``metrics.json``) and the others run; the exit code is then 2. Stopped early
+    (Ctrl-C, SIGTERM) the finished estimators are written with ``stopped`` in ``metrics.json``,
+    one line on stderr and the exit code 130 or 143."""
+    from datasets.imu_health import findings_record
+    from smoother import report
+    from smoother.diagnostics import consistency_lines, consistency_warnings
+    from smoother.pipeline import estimate_each, judged, sensor_consistency
+
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()
     imu_findings = imu_health(dataset)
@@ -180,24 +193,33 @@ def _run(args) -> int:
             if estimate.failed is not None:
                 print(f"{name} failed: {estimate.failed}", file=sys.stderr)
     except BaseException as error:  # keep what finished: an interruption
-        if estimates:
-            stopped = "interrupted" if isinstance(error, KeyboardInterrupt) else f"{type(error).__name__}: {error}"
-            report.write_outputs(out, dataset, _in_order(estimates, names), {**run_info, "stopped": stopped})
-            print(f"{stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}", file=sys.stderr)
-        raise
+        if not estimates or not isinstance(error, KeyboardInterrupt):
+            raise
+        stopped, code = interruption(error)
+        estimates = _in_order(estimates, names)
+        with out.outputs() as stage:
+            report.write_outputs(stage, dataset, estimates, {**run_info, "stopped": stopped})
+        _say_removed(out)
+        print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
+              f"metrics.json says stopped: {stopped}", file=sys.stderr)
+        return code
     estimates = _in_order(estimates, names)
     consistency = sensor_consistency(dataset, estimates, run_options)
     judged(estimates, consistency)
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
-    metrics = report.write_outputs(out, dataset, estimates,
-                                   {**run_info, "total_s": time.perf_counter() - started})
+    with out.outputs() as stage:
+        metrics = report.write_outputs(stage, dataset, estimates,
+                                       {**run_info, "total_s": time.perf_counter() - started})
+    _say_removed(out)
     if args.plot:
         from smoother import plots
 
-        for path in plots.plot_run(out):
-            print(f"wrote {path}", file=sys.stderr)
+        with out.outputs(replace=False) as stage:
+            figures = plots.plot_run(out.path, out_dir=stage)
+        for path in figures:
+            print(f"wrote {out.final(path)}", file=sys.stderr)
     print(format_table(metrics))
     if baseline is not None:
         print(f"the used fixes interpolated, no IMU ({baseline['heldout_fixes']} held-out fixes between them): "
@@ -241,6 +263,13 @@ def imu_health(dataset) -> list:
     for finding in findings:
         print(f"warning: imu: {finding.message}", file=sys.stderr)
     return findings
+
+
+def _say_removed(out) -> None:
+    """Name on stderr the previous run's files the last write into ``out`` deleted."""
+    if out.removed:
+        print(f"removed the previous run's {', '.join(out.removed)} from {out.path} (a run directory holds one run)",
+              file=sys.stderr)
 
 
 def tuned(dataset, progress: bool | None):

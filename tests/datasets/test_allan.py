@@ -42,3 +42,20 @@ def test_too_short():
         allan(ImuSamples([0.0], np.zeros((1, 3)), np.zeros((1, 3))))
     with pytest.raises(ValueError, match="too few cluster times"):
         allan(ImuSamples(np.arange(8.0), np.zeros((8, 3)), np.zeros((8, 3))))
+
+
+def test_a_random_walk_the_recording_cannot_show_is_not_estimated():
+    """Two seconds of a good IMU (random walks far below the white noise): the white noise is
+    measured, the random walks are NaN, and the note asks for a longer recording. With 10
+    independent clusters at most at 0.2 s the curve cannot rise with the +1/2 slope yet."""
+    rng = np.random.default_rng(3)
+    n, white, walk = 200, WHITE, WHITE / 100
+    x = white / np.sqrt(DT) * rng.normal(size=(n, 6)) + np.cumsum(walk * np.sqrt(DT) * rng.normal(size=(n, 6)), axis=0)
+    result = allan(ImuSamples(DT * np.arange(n), x[:, :3], x[:, 3:]))
+    assert np.abs(np.r_[result.acc_white, result.gyro_white] / WHITE - 1).max() < 0.3
+    assert np.all(np.isnan(result.acc_walk)) and np.all(np.isnan(result.gyro_walk))
+    assert result.record_s == pytest.approx(2.0) and result.walk_record_s >= 3 * result.record_s and result.walk_beyond
+    note = result.walk_note()
+    assert "random walk not estimated (accelerometer x" in note and f"record at least {result.walk_record_s:.4g} s" in note
+    with pytest.raises(ValueError, match="random walk not estimated"):
+        result.noise()

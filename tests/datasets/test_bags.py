@@ -42,7 +42,7 @@ def _write(folder, fmt, data):
     q = quaternion.from_matrix(data["C"])
     n_pose = len(data["pose_ns"])
     imu = [m.imu(*row) for row in zip(data["imu_ns"], data["acc"], data["gyro"])]
-    imu[3], imu[4] = imu[4], imu[3]  # recorded out of stamp order: read back sorted by header stamp
+    imu[3], imu[4] = imu[4], imu[3]  # written out of order, received in stamp order: read in receive order
     cov_type = [3, 2, 0] * n_pose
     status = [0] * n_pose
     status[1] = -1  # no fix: NaN position, no covariance
@@ -131,5 +131,100 @@ def test_errors_name_the_bag_and_the_topic(bag, tmp_path):
 def test_a_file_that_is_no_bag(tmp_path):
     path = tmp_path / "run.bag"
     path.write_text("not a bag\n")
-    with pytest.raises(DataError, match=r"run\.bag: found 'an unreadable bag"):
+    with pytest.raises(DataError, match=r"run\.bag, field 'topic /imu': found an unreadable bag"):
         read_bag_imu(path, "/imu")
+
+
+def _imu_bag(folder, fmt, stamps_ns, received_ns=None, seed=0, bz2=False):
+    """A bag of ``sensor_msgs/Imu`` messages on ``/imu`` with the header stamps given (random,
+    non-zero readings; ROS 1 chunks compressed with ``bz2``); returns ``(bag, acc, gyro)``."""
+    rng = np.random.default_rng(seed)
+    acc, gyro = rng.normal(size=(len(stamps_ns), 3)) + 1.0, rng.normal(size=(len(stamps_ns), 3)) + 1.0
+    m = Messages(fmt)
+    messages = [m.imu(t, a, g) for t, a, g in zip(stamps_ns, acc, gyro)]
+    topic = ("sensor_msgs/msg/Imu", messages) + (() if received_ns is None else (received_ns,))
+    folder.mkdir(parents=True, exist_ok=True)
+    return write_bag(bag_path(folder, fmt), fmt, {"/imu": topic}, bz2=bz2), acc, gyro
+
+
+@pytest.mark.parametrize("fmt, bz2", [(fmt, False) for fmt in FORMATS] + [("ros1", True)])
+def test_a_damaged_bag_reads_whole_or_is_one_error(tmp_path, fmt, bz2):
+    """64 bytes zeroed at offsets through the whole file: every read is either the package's
+    error naming the bag and the topic, or all the messages with their stamps. (A message's
+    payload has no checksum in these formats: bytes zeroed inside the readings change the
+    message they hit, and only it.)"""
+    stamps = T0_NS + STEP_NS * np.arange(200)
+    bag, acc, gyro = _imu_bag(tmp_path, fmt, stamps, bz2=bz2)
+    storage = bag if fmt == "ros1" else storage_file(bag, fmt)
+    original = storage.read_bytes()
+    errors = reads = 0
+    for offset in range(0, len(original), len(original) // 48):
+        damaged = bytearray(original)
+        damaged[offset:offset + 64] = bytes(64)
+        storage.write_bytes(bytes(damaged))
+        try:
+            imu = read_bag_imu(bag, "/imu")
+        except DataError as error:
+            assert str(bag) in str(error) and "topic /imu" in str(error), (offset, str(error))
+            errors += 1
+            continue
+        reads += 1
+        assert np.array_equal(imu.t_ns, stamps), offset
+        changed = np.any((imu.acc != acc) | (imu.gyro != gyro), axis=1)
+        assert changed.sum() <= 2, offset  # 64 bytes reach into two messages of ~300 bytes at most
+    assert errors and reads  # both outcomes occur: the offsets hit the bag's structure and its payloads
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_a_clock_stepping_back_is_refused_as_in_a_csv_file(tmp_path, fmt):
+    """Header stamps stepping back 5 s at message 101 (received in order): the bag reader stops
+    as the CSV reader stops on the same stamps, naming the bag, the topic, the message and both
+    stamps; nothing is re-sorted."""
+    from datasets.csv_sources import read_csv_imu
+
+    stamps = T0_NS + STEP_NS * np.arange(200)
+    stamps[100:] -= 5_000_000_000
+    bag, acc, gyro = _imu_bag(tmp_path, fmt, stamps, received_ns=T0_NS + STEP_NS * np.arange(200) + 1_000_000)
+    with pytest.raises(DataError) as info:
+        read_bag_imu(bag, "/imu")
+    assert str(info.value) == (
+        f"{bag}, field 'topic /imu, header stamp [ns]': found message 101 stamped {stamps[100]}, earlier than "
+        f"message 100 ({stamps[99]}); expected strictly increasing time stamps, message after message")
+
+    csv = tmp_path / "imu.csv"
+    csv.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
+        f"{t},{g[0]},{g[1]},{g[2]},{a[0]},{a[1]},{a[2]}\n" for t, a, g in zip(stamps, acc, gyro)))
+    with pytest.raises(DataError, match=rf"line 102, field 'timestamp \[ns\]': found {stamps[100]}, earlier than line "
+                                        rf"101 \({stamps[99]}\); expected strictly increasing"):
+        read_csv_imu(csv)
+
+
+@pytest.mark.parametrize("reader, topic", [(read_bag_poses, "/pose"), (read_bag_fixes, "/fix"),
+                                           (read_bag_twists, "/odom")])
+def test_every_stream_keeps_the_time_order_rule(tmp_path, reader, topic):
+    """Poses, fixes and twists: a stamp repeated (message 3 as message 2), received in order,
+    is refused as the IMU's would be."""
+    m = Messages("ros1")
+    stamps = T0_NS + STEP_NS * np.array([0, 1, 1, 2])
+    p, q, cov = np.zeros(3), (1.0, 0.0, 0.0, 0.0), np.eye(6)
+    messages = {
+        "/pose": ("geometry_msgs/msg/PoseStamped", [m.pose_stamped(t, p, q) for t in stamps]),
+        "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, 47.0, 8.0, 400.0, 0, np.eye(3), 3) for t in stamps]),
+        "/odom": ("nav_msgs/msg/Odometry", [m.odometry(t, p, q, cov, p, p, cov) for t in stamps]),
+    }
+    msgtype, topic_messages = messages[topic]
+    bag = write_bag(tmp_path / "run.bag", "ros1",
+                    {topic: (msgtype, topic_messages, T0_NS + STEP_NS * np.arange(4) + 1_000_000)})
+    with pytest.raises(DataError, match=rf"field 'topic {topic}, header stamp \[ns\]': found message 3 stamped "
+                                        rf"{stamps[2]}, a duplicate of message 2 \({stamps[1]}\)"):
+        reader(bag, topic)
+
+
+def test_an_imu_topic_of_one_message_is_refused(tmp_path):
+    """One IMU message is no IMU stream: refused by the reader with how many there are, how many
+    are needed and why."""
+    bag, _, _ = _imu_bag(tmp_path, "ros1", [T0_NS])
+    with pytest.raises(DataError) as info:
+        read_bag_imu(bag, "/imu")
+    assert str(info.value).startswith(f"{bag}, field 'topic /imu': found '1 message'; expected at least 2 IMU samples "
+                                      "(the estimators step from one sample to the next")

@@ -27,13 +27,18 @@ def data():
                     sensors=[SensorSpec("camera", "pose", 10, (0.02, 0.01), CAMERA)])
 
 
-def _write(folder, data, camera_sigma=True, camera_offset_s=0.0, extra="", rig_offset_s=None):
+def _imu_csv(folder, data):
+    """The simulated IMU samples as an EuRoC/ASL ``imu.csv``, stamped from T0_NS."""
     ns = T0_NS + np.round(data.imu.t * 1e9).astype(np.int64)
     rows = ["#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
             "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"]
     rows += [f"{n},{g[0]:.17g},{g[1]:.17g},{g[2]:.17g},{a[0]:.17g},{a[1]:.17g},{a[2]:.17g}"
              for n, g, a in zip(ns, data.imu.gyro, data.imu.acc)]
     (folder / "imu.csv").write_text("\n".join(rows) + "\n")
+
+
+def _write(folder, data, camera_sigma=True, camera_offset_s=0.0, extra="", rig_offset_s=None):
+    _imu_csv(folder, data)
     cam = data.sensors[0].data
     q = quaternion.from_matrix(cam.C)
     header = "t,x,y,z,qw,qx,qy,qz" + (",sigma_x,sigma_y,sigma_z,sigma_rx,sigma_ry,sigma_rz" if camera_sigma else "")
@@ -108,3 +113,55 @@ def test_a_source_without_measurements_is_named(tmp_path, data):
     with pytest.raises(ValueError, match="camera") as error:
         load_recording(load_rig(rig))
     assert "\n" not in str(error.value) and "zero-size" not in str(error.value)
+
+
+def test_an_imu_bag_of_one_message_is_refused_before_anything_else(tmp_path, data):
+    """One IMU message in the bag: one line naming the bag and the topic, how many samples and
+    how many are needed, before any other sensor is looked at (no warning, no NaN)."""
+    import warnings
+
+    from bagfiles import Messages, write_bag
+
+    m = Messages("ros1")
+    write_bag(tmp_path / "run.bag", "ros1", {"/imu": ("sensor_msgs/msg/Imu", [m.imu(T0_NS, (0, 0, 9.81), (0, 0, 0))])})
+    _write(tmp_path, data)
+    rig = tmp_path / "rig.toml"
+    rig.write_text(rig.read_text().replace('source = "csv:imu.csv"', 'source = "bag:run.bag"\ntopic = "/imu"', 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError) as error:
+            load_recording(load_rig(rig))
+    assert str(error.value).startswith(f"{tmp_path / 'run.bag'}, field 'topic /imu': found '1 message'; expected at "
+                                       "least 2 IMU samples (the estimators step from one sample to the next")
+
+
+def test_an_every_that_leaves_too_few_fixes_is_named_as_the_cause(tmp_path):
+    """GNSS alone gives the heading through the course over ground; `every` = 10^9 leaves the
+    first fix only. The error names the sensor's `every` key and the counts, not only the
+    heading it could not find; with every = 1 the same recording starts."""
+    from datasets.gnss import Datum, enu_to_geodetic
+
+    data = simulate("gentle", duration=20, seed=5, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)])
+    _imu_csv(tmp_path, data)
+    fixes = data.sensors[0].data
+    lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
+    (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
+        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n" for t, a, b, c in zip(fixes.t, lat, lon, alt)))
+    rig = tmp_path / "rig.toml"
+    for every in (1000000000, 1):
+        rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""
+[[sensor]]
+name = "gnss"
+kind = "gnss"
+source = "csv:gnss.csv"
+every = {every}
+""")
+        if every == 1:
+            assert len(sensors_of(load_recording(load_rig(rig)))[0].data) > 1
+            continue
+        with pytest.raises(ValueError) as error:
+            load_recording(load_rig(rig))
+        assert str(error.value) == (
+            f'{rig}: sensor[1] "gnss".every: 1000000000 leaves 1 of the sensor\'s {len(fixes)} measurements for '
+            f"estimation: too few to fix the initial heading, which all {len(fixes)} would; use a smaller every "
+            "(the measurements between those used are held out)")

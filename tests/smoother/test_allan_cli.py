@@ -21,12 +21,17 @@ def _static_imu(n=30_000, seed=3):
     return x
 
 
-def test_block_pastes_into_a_rig_and_the_figure_is_written(tmp_path, capsys):
-    x = _static_imu()
-    path = tmp_path / "imu.csv"
+def _write_csv(path, x):
+    """Samples ``x`` (acc, gyro per row) as an EuRoC/ASL IMU CSV, 100 Hz."""
     stamps = 1_600_000_000_000_000_000 + DT_NS * np.arange(len(x))
     path.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
         f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps, x)))
+
+
+def test_block_pastes_into_a_rig_and_the_figure_is_written(tmp_path, capsys):
+    x = _static_imu()
+    path = tmp_path / "imu.csv"
+    _write_csv(path, x)
     assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr()
     (tmp_path / "rig.toml").write_text(out.out)
@@ -60,8 +65,23 @@ def test_a_recording_that_moves_is_warned_of(tmp_path, capsys):
     t = np.arange(len(x)) * 0.01
     x[:, 5] += 0.5 * (t > 10)  # a turn at 0.5 rad/s after 10 s
     path = tmp_path / "imu.csv"
-    stamps = 1_600_000_000_000_000_000 + DT_NS * np.arange(len(x))
-    path.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
-        f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps, x)))
+    _write_csv(path, x)
     assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
     assert "does not look static (a 1-s mean angular rate of 0.5" in capsys.readouterr().err
+
+
+def test_a_recording_too_short_for_the_random_walk_says_so(tmp_path, capsys):
+    """Two seconds at rest: the block gives the white-noise densities and leaves the random walks
+    out (commented, to be filled in); a warning says how long a recording they need."""
+    x = 2e-2 * np.random.default_rng(5).normal(size=(200, 6))  # white noise only
+    x[:, 2] += 9.81
+    path = tmp_path / "imu.csv"
+    _write_csv(path, x)
+    assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr()
+    block = out.out.splitlines()
+    assert any(line.startswith("accel_noise_density = ") for line in block)
+    for key in ("accel_random_walk", "gyro_random_walk"):
+        assert not any(line.startswith(key) for line in block) and f"# {key} = ?" in out.out
+    assert "warning: random walk not estimated" in out.err and "record at least" in out.err
+    assert (tmp_path / "out" / "allan.png").exists()

@@ -186,17 +186,3 @@ def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
 def test_jsonable_turns_numpy_and_non_finite_values_into_json():
     out = report._jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
     assert json.loads(json.dumps(out)) == {"a": None, "b": [3, [1.5, None]], "c": [1, "x"]}
-
-
-def test_a_reused_directory_keeps_no_reference_of_an_earlier_run(tmp_path):
-    """truth.npz / gps.npz belong to the dataset of the LAST run: a run without truth into a
-    directory that held one removes it (plots would otherwise draw another dataset's truth)."""
-    from dataclasses import replace
-
-    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    truth = data.truth.subset(np.arange(0, 25, 5))
-    out = tmp_path / "run"
-    report.write_outputs(out, data, _estimates(truth), {})
-    assert (out / "truth.npz").exists()
-    report.write_outputs(out, replace(data, truth=None), _estimates(truth), {})
-    assert not (out / "truth.npz").exists()

@@ -240,6 +240,25 @@ def test_the_batch_starts_from_the_ekf(tmp_path, capsys):
     assert metrics["batch"]["start"] == "ekf" and metrics["batch"]["start_ekf_s"] > 0
 
 
+def test_ctrl_c_after_the_batch_keeps_it_with_one_line(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the fixed-lag smoother runs: exit 130, the EKF and batch estimates written
+    with stopped: interrupted, and one line on stderr saying so."""
+    import smoother.pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(smoother.pipeline, "replay", interrupted)
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 130
+    said = [line for line in capsys.readouterr().err.splitlines()
+            if not line.startswith(("dataset ", "running "))]
+    assert said == [f"smoother: interrupted: wrote the finished estimators (batch, ekf) to {out}; metrics.json says "
+                    "stopped: interrupted"], said
+    assert json.loads((out / "metrics.json").read_text())["_run"]["stopped"] == "interrupted"
+    assert (out / "batch.tum").exists() and (out / "ekf.tum").exists() and not (out / "fixed-lag.tum").exists()
+
+
 def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_run, capsys, monkeypatch):
     """Ctrl-C in the middle of writing metrics.json (after part of it was written): exit 130,
     the previous complete metrics.json is still there, no temporary file is left."""

@@ -1,0 +1,191 @@
+"""``smoother run --out DIR``: a run directory holds one run. A re-run replaces the previous run's
+files (and only the tool's), a failure while writing (a full disk) leaves the previous run whole,
+a second run into a directory in use is refused at once, and SIGTERM keeps the finished
+estimators as Ctrl-C does. The last two run ``smoother run`` as a child process."""
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datasets.atomic import STAGING_PREFIX
+from smoother import report
+from smoother.cli import main
+from smoother.commands.run_directory import LOCK, RunDirectory, run_files
+
+ROOT = Path(__file__).resolve().parents[2]
+ESTIMATORS = ("batch", "fixed-lag", "ekf")
+#: A run long enough that the fixed-lag smoother is still running when the child is signalled.
+CHILD_RUN = ["--duration", "300", "--estimator", "all", "--no-covariance", "--no-progress"]
+
+
+def _files(folder: Path) -> dict:
+    """Every file below ``folder`` (hidden ones and those in subfolders too) and its bytes; the
+    lock file is left out."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != LOCK}
+
+
+def test_a_rerun_replaces_the_previous_runs_files_and_nothing_else(tmp_path, capsys):
+    """All three estimators with plots, then the EKF alone into the same directory: the first
+    run's batch and fixed-lag files and its figures go (named on stderr); the user's own files,
+    also those named like the tool's in a subfolder, stay."""
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "2", "--estimator", "all", "--out", str(out), "--no-progress", "--plot"]) == 0
+    assert {"batch.tum", "fixed-lag.npz", "trajectory.png"} <= {p.name for p in out.iterdir()}
+    (out / "notes.txt").write_text("mine")
+    (out / "batch.tum.orig").write_text("mine")
+    (out / "old").mkdir()
+    (out / "old" / "batch.tum").write_text("mine")
+    capsys.readouterr()
+
+    assert main(["run", "--duration", "2", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    names = {p.name for p in out.iterdir()}
+    assert names == {"ekf.tum", "ekf.npz", "truth.npz", "metrics.json", "notes.txt", "batch.tum.orig", "old", LOCK}
+    assert (out / "old" / "batch.tum").read_text() == "mine"
+    removed = next(line for line in err.splitlines() if line.startswith("removed the previous run's"))
+    assert "batch.tum" in removed and "fixed-lag.npz" in removed and "trajectory.png" in removed, removed
+    assert str(out) in removed and "notes.txt" not in removed
+    assert json.loads((out / "metrics.json").read_text())["_run"]["estimators"] == ["ekf"]
+
+
+def test_a_reference_of_an_earlier_run_is_not_kept(tmp_path):
+    """truth.npz belongs to the dataset of the last run: a run without truth into a directory that
+    held one removes it (plots would otherwise draw another dataset's truth)."""
+    from dataclasses import replace
+
+    from datasets.simulate import simulate
+    from smoother.pipeline import Estimate
+
+    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=100.0, pose_rate=None)
+    estimates = {"ekf": Estimate("ekf", data.truth, 0.1, {})}
+    with RunDirectory(tmp_path / "run") as out:
+        with out.outputs() as stage:
+            report.write_outputs(stage, data, estimates)
+        assert (tmp_path / "run" / "truth.npz").exists()
+        with out.outputs() as stage:
+            report.write_outputs(stage, replace(data, truth=None), estimates)
+    assert not (tmp_path / "run" / "truth.npz").exists() and out.removed == ["truth.npz"]
+
+
+def test_a_full_disk_midway_leaves_the_previous_run_whole(tmp_path, capsys, monkeypatch):
+    """The disk fills while the second estimate's .npz is written (after other files of the run
+    were): one line naming that file of the run directory and the reason; the previous run's
+    files are all there, unchanged, and nothing of the failed run is left (no staging folder)."""
+    out = tmp_path / "run"
+    assert main(["run", "--duration", "2", "--estimator", "all", "--out", str(out), "--no-progress",
+                 "--no-covariance"]) == 0
+    before = _files(out)
+    capsys.readouterr()
+
+    real_savez, calls = np.savez, []
+
+    def filling(handle, **arrays):
+        calls.append(handle)
+        if len(calls) == 2:
+            handle.write(b"PK\x03\x04 half an archive")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_savez(handle, **arrays)
+
+    monkeypatch.setattr(np, "savez", filling)
+    assert main(["run", "--duration", "2", "--estimator", "all", "--out", str(out), "--no-progress",
+                 "--no-covariance", "--seed", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"smoother: error: {out / 'fixed-lag.npz'}: No space left on device", err
+    assert _files(out) == before
+    assert not [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX) or p.name.endswith(".tmp")]
+
+
+def test_staging_left_by_a_killed_run_is_cleared_of_the_tools_files_only(tmp_path):
+    """A run killed with SIGKILL leaves its staging folder: the next run deletes the run files
+    in it, and the folder only when that empties it."""
+    out = tmp_path / "run"
+    stale, kept = out / f"{STAGING_PREFIX}123-abcd", out / f"{STAGING_PREFIX}456-ef01"
+    for folder in (stale, kept):
+        folder.mkdir(parents=True)
+        (folder / "batch.tum").write_text("half")
+        (folder / ".metrics.json.0a1b2c3d.tmp").write_text("{")
+    (kept / "mine.txt").write_text("mine")
+    with RunDirectory(out):
+        pass
+    assert not stale.exists() and [p.name for p in kept.iterdir()] == ["mine.txt"]
+
+
+def test_every_output_of_a_run_is_declared():
+    """The one list of run files covers what report and plots write (the estimators' files, the
+    references, the metrics and the run figures)."""
+    from smoother.plots import FIGSIZE
+
+    names = run_files()
+    assert {f"{e}.{ext}" for e in ESTIMATORS for ext in ("tum", "npz", "geojson")} <= names
+    assert {"truth.npz", "gps.npz", "metrics.json"} <= names
+    assert {f"{stem}.png" for stem in FIGSIZE if stem not in ("montecarlo_nees", "allan")} <= names
+
+
+def _child(out: Path) -> subprocess.Popen:
+    """``smoother run`` on the simulator into ``out`` as a child process, stderr piped."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    return subprocess.Popen([sys.executable, "-m", "smoother.cli", "run", *CHILD_RUN, "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _wait_for(child: subprocess.Popen, words: str) -> list[str]:
+    """The child's stderr lines up to the first that starts with ``words``."""
+    lines = []
+    for line in child.stderr:
+        lines.append(line.rstrip("\n"))
+        if line.startswith(words):
+            return lines
+    child.wait()
+    pytest.fail(f"the child ended (exit {child.returncode}) before {words!r}: {lines}")
+
+
+def test_sigterm_keeps_the_finished_estimators(tmp_path):
+    """SIGTERM while the fixed-lag smoother runs (the EKF and the batch smoother finished): exit 143, one line
+    on stderr, the finished estimators written, metrics.json saying stopped: terminated."""
+    out = tmp_path / "run"
+    child = _child(out)
+    try:
+        _wait_for(child, "running fixed-lag")
+        child.send_signal(signal.SIGTERM)
+        rest = child.stderr.read().splitlines()
+        assert child.wait() == 128 + signal.SIGTERM, rest
+    finally:
+        child.kill()
+        child.wait()
+    said = [line for line in rest if not line.startswith("running ")]
+    assert len(said) == 1 and said[0].startswith("smoother: terminated: wrote the finished estimators (batch, ekf)"), rest
+    run = json.loads((out / "metrics.json").read_text())["_run"]
+    assert run["stopped"] == "terminated" and run["estimators"] == ["batch", "ekf"]
+    for name in ESTIMATORS:
+        for suffix in (".tum", ".npz"):
+            assert (out / f"{name}{suffix}").exists() == (name in run["estimators"]), (name, suffix)
+    report.load_trajectory(out / "batch.npz")
+
+
+def test_a_second_run_into_a_directory_in_use_is_refused_at_once(tmp_path, capsys, monkeypatch):
+    """While a run writes into DIR (a child process), a second run into DIR stops before its
+    estimators with one line naming DIR and the other run's process id; the first run goes on."""
+    import smoother.pipeline
+
+    out = tmp_path / "run"
+    child = _child(out)
+    try:
+        _wait_for(child, "running batch")
+        monkeypatch.setattr(smoother.pipeline, "run_estimators", lambda *a, **k: pytest.fail("estimators ran"))
+        assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1] == (f"smoother: error: --out {out}: another smoother run (pid {child.pid}) is writing into "
+                           "this directory; wait for it to end or choose another --out"), err
+        assert child.poll() is None
+    finally:
+        child.kill()
+        child.wait()
