@@ -47,7 +47,7 @@ from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors.errors import InputError
 from smoother import metrics
-from smoother.report import load_trajectory, read_npz
+from smoother.report import load_trajectory, read_npz, truth_at
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120
@@ -219,9 +219,10 @@ def _safe_nees(e: np.ndarray, P: np.ndarray) -> np.ndarray | None:
 
 
 def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | None:
-    """Errors at the estimate's times inside the truth's span (None if there are none); the
-    pose NEES with the (r, phi) block of the covariance."""
-    T, _, inside = truth.interpolate(estimate.t)
+    """Errors at the estimate's times inside the truth's span and outside its gaps (as the
+    metrics: :func:`smoother.report.truth_at`; None if there are none); the pose NEES with the
+    (r, phi) block of the covariance."""
+    T, inside = truth_at(truth, estimate.t)
     if not inside.any():
         return None
     E = estimate.states[inside]

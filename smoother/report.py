@@ -50,15 +50,22 @@ FULL_TRUTH_COVERAGE = 0.9
 TRUTH_GAP_FACTOR = GROUNDTRUTH_GAP_FACTOR
 
 
+def truth_at(truth: Trajectory, t: np.ndarray) -> tuple:
+    """``(states, inside)``: the truth interpolated to the times ``t`` in its span and not inside
+    one of its gaps (a step longer than :data:`TRUTH_GAP_FACTOR` typical ones: never bridged),
+    and the mask of those times (:meth:`datasets.types.Trajectory.interpolate`)."""
+    step = None if len(truth) < 2 else TRUTH_GAP_FACTOR * float(np.median(np.diff(truth.t)))
+    states, _, inside = truth.interpolate(t, max_step=step)
+    return states, inside
+
+
 def compare_with_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     """The estimate against the truth at every state of the estimate in the truth's span, the
-    truth interpolated to its time (:meth:`datasets.types.Trajectory.interpolate`; a state inside
-    a gap of the truth, a step of more than :data:`TRUTH_GAP_FACTOR` typical ones, is not
+    truth interpolated to its time (:func:`truth_at`: a state inside a gap of the truth is not
     compared): ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` (NaN when none is
     compared), ``position_errors`` [m] and the pose NEES of each state, ``nees`` (None without
     covariances). One place for the run's metrics, the Monte Carlo runs and the cross-checks."""
-    step = None if len(truth) < 2 else TRUTH_GAP_FACTOR * float(np.median(np.diff(truth.t)))
-    T, _, inside = truth.interpolate(estimate.t, max_step=step)
+    T, inside = truth_at(truth, estimate.t)
     E = estimate.states[inside]
     result = metrics.ate(T.r, T.C, E.r, E.C)
     nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[inside], "pose")
@@ -96,7 +103,7 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
                    ate_note=f"not scored against the truth: {where}{worst}; a score needs at least "
                             f"{MIN_COMPARED_STATES} states over {MIN_TRUTH_COVERAGE:.0%} of the estimate's span")
     elif coverage < FULL_TRUTH_COVERAGE:
-        out["ate_note"] = f"scored over part of the run only: {where} ({coverage:.0%}); the truth covers no more"
+        out["ate_note"] = f"scored over part of the run only: {where} ({coverage:.0%})"
     return out
 
 
