@@ -34,12 +34,15 @@ in R; ``b_w_RS_S``, ``b_a_RS_S`` the gyro and accelerometer biases in S):
 Times: ``ImuSamples.t_ns`` keeps the integer stamps exactly; ``ImuSamples.t`` and all other
 times (ground truth, measurements) are float seconds relative to the FIRST IMU STAMP OF THE
 DATASET, ``(t_ns - t_ns[0]) * 1e-9`` computed from integers, so they keep sub-microsecond
-precision (seconds since 1970 in a float64 only resolve ~0.2 us). The dataset covers the span of
-the ground truth: IMU samples before the first or after the last ground-truth stamp are dropped,
-and the ground truth is kept over the IMU samples' span (at least two of its samples must lie
-there). The initial state is the ground truth at the first IMU stamp, interpolated (linearly for
-vectors; ``C_a exp(s log(C_a^T C_b))`` for the attitude) between the two ground-truth samples
-around it. A gap in the ground truth (a step longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical
+precision (seconds since 1970 in a float64 only resolve ~0.2 us). The dataset starts at the first
+IMU sample at or after the first ground-truth stamp (the initial state is the truth's) and keeps
+every IMU sample after it, also those after the ground truth's end (estimated on, and scored
+only where the truth is: :func:`smoother.report.against_truth`); a warning says how many IMU
+samples lie outside the truth's span on either side and how much of the IMU's span the truth
+covers. The ground truth is kept over the IMU samples' span (at least two IMU samples and two of
+its samples must lie in the other's span). The initial state is the ground truth at the first
+IMU stamp, interpolated (:meth:`datasets.types.Trajectory.interpolate`: linearly for vectors,
+along the geodesic for the attitude) between the two ground-truth samples around it. A gap in the ground truth (a step longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical
 steps) within the IMU's span is reported in a warning naming its line; the body rates are never
 differenced across one (one-sided next to it).
 
@@ -292,21 +295,29 @@ def _groundtruth_gaps(path, t_ns: np.ndarray, lines: np.ndarray, first_ns: int, 
     return gap
 
 
+def _report_uncovered(imu_csv, gt_csv, imu_ns: np.ndarray, gt_ns: np.ndarray) -> None:
+    """Warn of the IMU samples outside the ground truth's span: those before its first stamp are
+    left out (the initial state is the truth's), those after its last are kept (estimated on,
+    scored nowhere); the warning says how many, and how much of the IMU's span the truth covers."""
+    before, after = imu_ns < gt_ns[0], imu_ns > gt_ns[-1]
+    if not before.any() and not after.any():
+        return
+    seconds = lambda a, b: (int(b) - int(a)) * 1e-9  # noqa: E731 (from integers: exact to the ns)
+    covered = seconds(max(gt_ns[0], imu_ns[0]), min(gt_ns[-1], imu_ns[-1]))
+    parts = []
+    if before.any():
+        parts.append(f"the {int(before.sum())} IMU samples before its first stamp "
+                     f"({seconds(imu_ns[0], gt_ns[0]):.4g} s) are left out (the initial state is the truth's)")
+    if after.any():
+        parts.append(f"the {int(after.sum())} after its last stamp ({seconds(gt_ns[-1], imu_ns[-1]):.4g} s) are "
+                     f"kept: estimated, not scored")
+    warnings.warn(f"{gt_csv}: the ground truth covers {covered:.4g} s of the {seconds(imu_ns[0], imu_ns[-1]):.4g} s "
+                  f"of {imu_csv}: " + "; ".join(parts), stacklevel=3)
+
+
 def _noise_from_yaml(yaml: SensorYaml) -> ImuNoise:
     doc = yaml.document
     return ImuNoise(**{field: doc.number((key,), minimum=0.0) for key, field in NOISE_KEYS.items() if key in doc.data})
-
-
-def _interpolate(truth_t_ns: np.ndarray, states: ImuState, t_ns: int) -> ImuState:
-    """The truth at ``t_ns`` (inside the truth's span) by linear/geodesic interpolation."""
-    k = int(np.searchsorted(truth_t_ns, t_ns, side="right")) - 1
-    if truth_t_ns[k] == t_ns or k == len(truth_t_ns) - 1:
-        return states[k]
-    s = float(t_ns - truth_t_ns[k]) / float(truth_t_ns[k + 1] - truth_t_ns[k])
-    a, b = states[k], states[k + 1]
-    C = a.C @ so3.exp(s * so3.log(a.C.T @ b.C))
-    lerp = lambda x, y: (1 - s) * x + s * y  # noqa: E731
-    return ImuState(lerp(a.r, b.r), lerp(a.v, b.v), C, lerp(a.b_f, b.b_f), lerp(a.b_w, b.b_w))
 
 
 def _triple(name: str, value, size: int):
@@ -342,14 +353,17 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     imu_ns, acc, gyro = read_imu_csv(imu_csv)
     gt = read_groundtruth_csv(gt_csv)
 
-    # The dataset spans the IMU samples inside the ground truth's span.
+    # The dataset starts at the first IMU sample the ground truth can initialise and keeps every
+    # IMU sample after it; what lies outside the truth's span is said, never dropped unsaid.
     inside = (imu_ns >= gt.t_ns[0]) & (imu_ns <= gt.t_ns[-1])
     if np.count_nonzero(inside) < 2:
         raise DataError(
             imu_csv, None, "timestamp", f"{np.count_nonzero(inside)} IMU samples within the ground truth's span "
             f"[{int(gt.t_ns[0])}, {int(gt.t_ns[-1])}] ns of {gt_csv}", "at least 2",
         )
-    imu_ns, acc, gyro = imu_ns[inside], acc[inside], gyro[inside]
+    _report_uncovered(imu_csv, gt_csv, imu_ns, gt.t_ns)
+    keep = imu_ns >= gt.t_ns[0]
+    imu_ns, acc, gyro = imu_ns[keep], acc[keep], gyro[keep]
     t0_ns = int(imu_ns[0])
     gt_keep = (gt.t_ns >= t0_ns) & (gt.t_ns <= imu_ns[-1])
     if np.count_nonzero(gt_keep) < 2:  # the truth would be empty: no reference, no measurements from it
@@ -372,7 +386,9 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     v_body = np.einsum("nji,nj->ni", C, v_world)
     states = ImuState(r=r, v=v_body, C=C, b_f=gt.b_a @ R_x, b_w=gt.b_w @ R_x)
 
-    initial = _interpolate(gt.t_ns, states, t0_ns)
+    k = min(int(np.searchsorted(gt.t_ns, t0_ns, side="right")) - 1, len(gt.t_ns) - 2)  # the samples around t0
+    around = Trajectory((gt.t_ns[k:k + 2] - t0_ns) * 1e-9, states[k:k + 2])
+    initial = around.interpolate([0.0])[0][0]
     truth_t = (gt.t_ns[gt_keep] - t0_ns) * 1e-9
     if np.any(np.diff(truth_t) <= 0):
         raise DataError(gt_csv, None, "timestamp [ns]", "stamps that coincide in float64 seconds",

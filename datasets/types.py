@@ -17,6 +17,7 @@ import warnings
 import numpy as np
 from numba import njit
 
+from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 from factors.errors import InputError
 from factors.small_linalg import cholesky_into
@@ -27,6 +28,9 @@ IMU_GAP_FACTOR = 5.0
 #: An IMU interval longer than this [s] is no gap but a jump of the clock (or stamps of another
 #: clock): refused, since dead reckoning across it is meaningless.
 MAX_IMU_GAP_S = 3600.0
+#: Time difference [s] within which two stamps are the same instant (round-off of stamps written
+#: and read again): :meth:`Trajectory.interpolate` takes such a sample as it is.
+SAME_INSTANT_S = 1e-6
 #: The 99th-percentile angular rate [rad/s] beyond which gyro data are refused as probably in
 #: deg/s: 35 rad/s (2000 deg/s, a MEMS gyro's full scale) is beyond what a vehicle turns at. No
 #: single sample may exceed it on any axis either (a gyro reads nothing beyond its full scale).
@@ -486,6 +490,40 @@ class Trajectory(_Rows):
     @property
     def C(self) -> np.ndarray:
         return self.states.C
+
+    def interpolate(self, t, max_step: float | None = None) -> tuple[ImuState, np.ndarray | None, np.ndarray]:
+        """The states (and covariances, element-wise linear) at times ``t``, and the mask of the
+        ``t`` that lie in the trajectory's span (within :data:`SAME_INSTANT_S` of its ends) and, with
+        ``max_step``, not inside a step between samples longer than it (a gap, never bridged); the
+        returned states cover only those. A time within :data:`SAME_INSTANT_S` of a sample takes
+        that sample as it is; otherwise positions, velocities and biases are interpolated
+        linearly and the attitude along the geodesic ``exp(w log(C_b C_a^T)) C_a`` (primer
+        [+]/[-], :mod:`factors.so3`), ``w`` the fraction of the step."""
+        tt, s, cov = self.t, self.states, self.cov
+        t = np.asarray(t, dtype=float)
+        inside = (t >= tt[0] - SAME_INSTANT_S) & (t <= tt[-1] + SAME_INSTANT_S)
+        if len(tt) == 1:
+            k = np.zeros(int(inside.sum()), dtype=int)
+            return s[k], None if cov is None else cov[k], inside
+        a_all = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 2)
+        b_all = a_all + 1
+        near_all = np.where(np.abs(tt[a_all] - t) <= np.abs(tt[b_all] - t), a_all, b_all)
+        exact_all = np.abs(tt[near_all] - t) <= SAME_INSTANT_S
+        if max_step is not None:
+            inside &= exact_all | (tt[b_all] - tt[a_all] <= max_step)
+        tq, a, near, exact = t[inside], a_all[inside], near_all[inside], exact_all[inside]
+        w = np.clip((tq - tt[a]) / (tt[a + 1] - tt[a]), 0.0, 1.0)
+        b = np.where(exact, near, a + 1)
+        a = np.where(exact, near, a)
+        w = np.where(exact, 0.0, w)
+
+        def lerp(x):
+            shape = (-1,) + (1,) * (x.ndim - 1)
+            return (1.0 - w.reshape(shape)) * x[a] + w.reshape(shape) * x[b]
+
+        C = so3.boxplus(s.C[a], w[:, None] * so3.boxminus(s.C[b], s.C[a]))
+        states = ImuState(r=lerp(s.r), v=lerp(s.v), C=C, b_f=lerp(s.b_f), b_w=lerp(s.b_w))
+        return states, None if cov is None else lerp(cov), inside
 
 
 

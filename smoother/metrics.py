@@ -17,7 +17,11 @@ implements them, so that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the
   each fitted to all associated poses or to the first ``n_align`` (evo's ``--n_to_align``) and
   applied to all, ``'posyaw'`` the 4-DoF alignment (translation and a rotation about the world z axis, the
   direction of gravity: what is unobservable for a visual-inertial or IMU+GPS estimator without
-  an absolute heading), ``'none'`` no alignment.
+  an absolute heading), ``'translation'`` the translation only, ``'none'`` no alignment. Every
+  fit reports its conditioning (:func:`fit_alignment`): on positions near a line (a straight
+  drive) the rotation about that line is fitted to the errors and can be anything, so a rotation
+  the positions do not determine is not applied: the next well-posed alignment is, with a note
+  (evo applies it regardless).
 * ATE (:func:`ate`): translation error ``|r_ref - r_est'|`` and rotation error, the angle of
   ``C_ref^T C_est'`` in degrees, per associated pose, after alignment; statistics
   (:func:`statistics`): RMSE, mean, median, std (population), min, max, SSE.
@@ -50,7 +54,7 @@ import numpy as np
 from factors import so3
 from factors.errors import InputError
 
-ALIGN_MODES = ("se3", "sim3", "posyaw", "none")
+ALIGN_MODES = ("se3", "sim3", "posyaw", "translation", "none")
 DELTA_UNITS = ("frames", "m", "s")
 #: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
 NEES_PARTS = {
@@ -139,16 +143,134 @@ def align_posyaw(src, dst) -> tuple[np.ndarray, np.ndarray]:
     return R, mu_d - R @ mu_s
 
 
-def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` that maps the estimate onto the reference for ``mode`` in :data:`ALIGN_MODES`."""
-    if mode in ("se3", "sim3"):
-        return umeyama(est_r, ref_r, with_scale=mode == "sim3")
-    if mode == "posyaw":
-        R, t = align_posyaw(est_r, ref_r)
-        return R, t, 1.0
+#: An alignment's rotation about an axis is determined when the positions spread about that axis
+#: (RMS distance from it) at least this fraction of their RMS distance from their centroid. On a
+#: nearly straight drive the spread about the line of travel is small, and the rotation about it
+#: is fitted to the errors: it can be anything.
+ALIGNMENT_MIN_SPREAD = 0.05
+#: A determined rotation whose fit leaves a residual across the axis that a rotation of more than
+#: this [deg] about it would explain (``atan(residual / spread)``) is applied with a warning.
+ALIGNMENT_UNCERTAIN_DEG = 10.0
+#: Rotation part of each alignment mode ('full', 'yaw' about the world z axis, 'none') and whether it
+#: fits a scale; the applied alignment's name for each pair.
+_MODE_PARTS = {"se3": ("full", False), "sim3": ("full", True), "posyaw": ("yaw", False), "translation": ("none", False)}
+_MODE_NAMES = {**{parts: name for name, parts in _MODE_PARTS.items()}, ("yaw", True): "posyaw+scale",
+               ("none", True): "translation+scale"}
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The alignment :func:`fit_alignment` applies, ``(R, t, s)`` (``r' = s R r + t``, ``C' = R C``):
+    ``mode`` the one applied, ``requested`` the one asked for, ``conditioning`` how well the data
+    determine its rotation (None for ``'none'``; :func:`fit_alignment`) and ``note``, when the two
+    modes differ, why."""
+
+    R: np.ndarray
+    t: np.ndarray
+    s: float
+    mode: str
+    requested: str
+    conditioning: dict | None = None
+    note: str | None = None
+
+    def as_dict(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist(), "s": self.s, "mode": self.mode,
+                "requested": self.requested, "conditioning": self.conditioning, "note": self.note}
+
+
+def _fit_parts(rotation: str, with_scale: bool, src: np.ndarray, dst: np.ndarray) -> tuple:
+    """``(R, t, s)`` of one rotation part ('full': :func:`umeyama`; 'yaw': :func:`align_posyaw`;
+    'none': the identity) with the least-squares scale ``sum(b . R a) / sum(|a|^2)`` of the
+    centred points when ``with_scale``."""
+    if rotation == "full":
+        return umeyama(src, dst, with_scale)
+    R = align_posyaw(src, dst)[0] if rotation == "yaw" else np.eye(3)
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    s = float(np.sum(b * (a @ R.T)) / np.sum(a * a)) if with_scale and np.sum(a * a) > 0 else 1.0
+    return R, dst.mean(axis=0) - s * R @ src.mean(axis=0), s
+
+
+def _conditioning(rotation: str, src: np.ndarray, dst: np.ndarray, fit: tuple | None) -> dict:
+    """How well ``src -> dst`` determine a rotation part ('full' or 'yaw'): the singular values
+    [m^2] of the centred cross-covariance ``B^T A / n`` (two near zero: the points lie near a line,
+    and the rotation about it is not determined); ``spread_m``, the RMS distance of the positions
+    from the least determined axis through their centroid (for 'full' their principal axis, for
+    'yaw' the vertical; the smaller of the reference's and the fitted estimate's) and ``extent_m``,
+    their RMS distance from the centroid; ``determined`` (:data:`ALIGNMENT_MIN_SPREAD`);
+    ``residual_m``, the fit's RMS residual across the axis, and ``uncertainty_deg``, the rotation
+    about it that residual would explain, ``atan(residual / spread)`` (NaN without a fit)."""
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    d = np.linalg.svd(b.T @ a / len(src), compute_uv=False)
+    R, t, s = fit if fit is not None else (np.eye(3), np.zeros(3), 1.0)
+    fitted = s * a @ R.T
+
+    def axis_of(x):
+        if rotation == "yaw" or len(x) < 2 or not np.any(x):
+            return np.array([0.0, 0.0, 1.0])
+        return np.linalg.svd(x, full_matrices=False)[2][0]
+
+    def across(x, axis):  # the RMS of the rows of x perpendicular to the axis
+        return math.sqrt(float(np.mean(np.sum((x - np.outer(x @ axis, axis)) ** 2, axis=1))))
+
+    axis = axis_of(b)
+    spread = min(across(b, axis), across(fitted, axis_of(fitted)))
+    extent = math.sqrt(float(np.mean(np.sum(b * b, axis=1))))
+    residual = across(dst - (s * src @ R.T + t), axis) if fit is not None else math.nan
+    determined = (fit is not None and len(src) >= (3 if rotation == "full" else 2) and spread > 0
+                  and spread >= ALIGNMENT_MIN_SPREAD * extent)
+    return {"singular_values_m2": [float(x) for x in d], "spread_m": spread, "extent_m": extent,
+            "determined": bool(determined), "residual_m": residual,
+            "uncertainty_deg": math.degrees(math.atan2(residual, spread)) if fit is not None else math.nan}
+
+
+def fit_alignment(ref_r, est_r, mode: str = "se3") -> Alignment:
+    """The alignment of the estimate onto the reference for ``mode`` in :data:`ALIGN_MODES`, with
+    its conditioning (:func:`_conditioning`). When the positions do not determine the rotation of
+    ``mode`` (their spread about its least determined axis under :data:`ALIGNMENT_MIN_SPREAD` of
+    their extent: a nearly straight drive for 'se3' and 'sim3', a vertical or no motion for
+    'posyaw'), the next well-posed one is applied instead -- the rotation about gravity only
+    ('posyaw', what a visual-inertial or IMU + GNSS evaluation aligns anyway; '+scale' from
+    'sim3'), else none ('translation') -- and ``note`` says so with the figures; a rotation that
+    is determined but leaves a residual worth more than :data:`ALIGNMENT_UNCERTAIN_DEG` about
+    that axis is applied, and ``note`` says how uncertain it is."""
+    if mode not in ALIGN_MODES:
+        raise InputError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {mode!r}")
     if mode == "none":
-        return np.eye(3), np.zeros(3), 1.0
-    raise InputError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {mode!r}")
+        return Alignment(np.eye(3), np.zeros(3), 1.0, "none", "none")
+    src, dst = np.asarray(est_r, dtype=float), np.asarray(ref_r, dtype=float)
+    rotation, with_scale = _MODE_PARTS[mode]
+    chain = {"full": ("full", "yaw", "none"), "yaw": ("yaw", "none"), "none": ("none",)}[rotation]
+    first = conditioning = None
+    for part in chain:
+        try:
+            fit = _fit_parts(part, with_scale, src, dst)
+        except InputError:  # umeyama on points that span no plane
+            fit = None
+        conditioning = None if part == "none" else _conditioning(part, src, dst, fit)
+        first = first or conditioning
+        if part == "none" or conditioning["determined"]:
+            break
+    applied = _MODE_NAMES[(part, with_scale)]
+    axis = "about the line the positions lie along" if rotation == "full" else "about the vertical"
+    note = None
+    if applied != mode:
+        note = (f"{mode} alignment is degenerate: the rotation {axis} is not determined by {len(src)} positions "
+                f"spread {first['spread_m']:.3g} m about it, under {ALIGNMENT_MIN_SPREAD:.0%} of their "
+                f"{first['extent_m']:.3g} m extent (singular values "
+                f"{', '.join(f'{x:.3g}' for x in first['singular_values_m2'])} m^2); {applied} applied instead")
+    elif conditioning is not None and conditioning["uncertainty_deg"] > ALIGNMENT_UNCERTAIN_DEG:
+        axis = "about the positions' principal axis" if rotation == "full" else "about the vertical"
+        note = (f"{mode} alignment is poorly determined: its residual across the axis, "
+                f"{conditioning['residual_m']:.3g} m RMS, against the positions' spread of "
+                f"{conditioning['spread_m']:.3g} m about it, would be a rotation of "
+                f"{conditioning['uncertainty_deg']:.3g} deg {axis}: the rotation figures are that uncertain")
+    return Alignment(*fit, applied, mode, first, note)
+
+
+def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` of :func:`fit_alignment`."""
+    a = fit_alignment(ref_r, est_r, mode)
+    return a.R, a.t, a.s
 
 
 def apply_alignment(R, t, s, r, C) -> tuple[np.ndarray, np.ndarray]:
@@ -298,9 +420,9 @@ def rpe(ref_r, ref_C, est_r, est_C, delta=1, unit: str = "frames", all_pairs: bo
 
 @dataclass(frozen=True)
 class Evaluation:
-    """Result of :func:`evaluate`: association, alignment (``align``: the mode applied) and the two
-    error summaries; ``rotation_only`` when the reference has attitudes only (its translation
-    statistics are then empty)."""
+    """Result of :func:`evaluate`: association, alignment (``align``: the mode applied; ``fit``: it
+    with its conditioning, :func:`fit_alignment`) and the two error summaries; ``rotation_only``
+    when the reference has attitudes only (its translation statistics are then empty)."""
 
     i_ref: np.ndarray
     i_est: np.ndarray
@@ -311,12 +433,14 @@ class Evaluation:
     rpe: dict
     align: str = "se3"
     rotation_only: bool = False
+    fit: Alignment | None = None
 
     def as_dict(self) -> dict:
-        """JSON-ready summary (statistics, alignment; no per-pose arrays)."""
+        """JSON-ready summary (statistics, alignment with its conditioning; no per-pose arrays)."""
+        fitted = self.fit or Alignment(self.R, self.t, self.s, self.align, self.align)
         return {
             "pairs": int(len(self.i_ref)),
-            "alignment": {"R": self.R.tolist(), "t": self.t.tolist(), "s": self.s},
+            "alignment": fitted.as_dict(),
             "ate": {"translation_m": self.ate["translation"], "rotation_deg": self.ate["rotation"]},
             "rpe": {"translation_m": self.rpe["translation"], "rotation_deg": self.rpe["rotation"]},
             "rotation_only": self.rotation_only,
@@ -344,8 +468,10 @@ def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_d
              n_align: int | None = None) -> Evaluation:
     """Associate (the estimate's stamps shifted by ``t_offset``, as evo's ``--t_offset`` shifts
     them), align the estimate onto the reference (fitted to the first ``n_align`` associated
-    poses, default all), then ATE and RPE. A reference whose positions are all NaN (attitudes
-    only) gives the rotation figures only, unaligned."""
+    poses, default all; an ``align`` whose rotation those positions do not determine gives way to
+    a well-posed one, said in the result's ``fit.note``: :func:`fit_alignment`), then ATE and RPE.
+    A reference whose positions are all NaN (attitudes only) gives the rotation figures only,
+    unaligned."""
     if align not in ALIGN_MODES:
         raise InputError(f"align: expected one of {', '.join(ALIGN_MODES)}, got {align!r}")
     if n_align is not None and n_align < 1:
@@ -363,16 +489,16 @@ def evaluate(ref_t, ref_r, ref_C, est_t, est_r, est_C, align: str = "se3", max_d
     rotation_only = bool(np.isnan(rr).all())
     if rotation_only:
         align = "none"
-    fit = slice(None) if n_align is None else slice(0, n_align)
-    R, t, s = alignment(rr[fit], er[fit], align)
-    er, eC = apply_alignment(R, t, s, er, eC)
+    first = slice(None) if n_align is None else slice(0, n_align)
+    fit = fit_alignment(rr[first], er[first], align)
+    er, eC = apply_alignment(fit.R, fit.t, fit.s, er, eC)
     tt = t_est[i_est]
     ate_result = ate(rr, rC, er, eC)
     rpe_result = rpe(rr, rC, er, eC, delta, delta_unit, all_pairs, tt)
     if rotation_only:
         for result in (ate_result, rpe_result):
             result["translation"], result["translation_errors"] = statistics([]), np.zeros(0)
-    return Evaluation(i_ref, i_est, R, t, s, ate_result, rpe_result, align, rotation_only)
+    return Evaluation(i_ref, i_est, fit.R, fit.t, fit.s, ate_result, rpe_result, fit.mode, rotation_only, fit)
 
 
 # ------------------------------------------------------------------------------------------

@@ -45,11 +45,9 @@ from matplotlib.ticker import FuncFormatter
 from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
-from factors import so3
 from factors.errors import InputError
-from factors.imu import ImuState
 from smoother import metrics
-from smoother.report import load_trajectory, read_npz
+from smoother.report import load_trajectory, read_npz, truth_at
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120
@@ -76,8 +74,6 @@ GPS_COLOR = "tab:red"
 HELDOUT_COLOR = "tab:purple"
 #: Files of a run directory that are not estimates.
 RESERVED = ("truth", "gps")
-#: Time difference [s] within which an estimate and a reference sample are the same instant.
-MATCH_DT = 1e-6
 #: Confidence of the NEES band.
 NEES_CONFIDENCE = 0.95
 AXES = ("x", "y", "z")
@@ -198,44 +194,6 @@ def load_run(run_dir, estimators=None) -> Run:
 # errors against the truth or the GPS fixes
 
 
-def _nearest(t_ref: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each ``t``: index of the nearest ``t_ref`` and whether it is within :data:`MATCH_DT`."""
-    k = np.clip(np.searchsorted(t_ref, t), 1, max(len(t_ref) - 1, 1)) if len(t_ref) > 1 else np.zeros(len(t), int)
-    if len(t_ref) > 1:
-        k = np.where(np.abs(t_ref[k - 1] - t) <= np.abs(t_ref[k] - t), k - 1, k)
-    return k, np.abs(t_ref[k] - t) <= MATCH_DT
-
-
-def interpolate(trajectory: Trajectory, t: np.ndarray) -> tuple[ImuState, np.ndarray | None, np.ndarray]:
-    """States (and covariances, element-wise linear) of ``trajectory`` at times ``t``, and the mask
-    of the ``t`` inside its span; returned arrays cover only those. A time within
-    :data:`MATCH_DT` of a sample takes that sample exactly; otherwise positions, velocities and
-    biases are interpolated linearly and the attitude along the geodesic
-    ``exp(w log(C_b C_a^T)) C_a``."""
-    tt = trajectory.t
-    t = np.asarray(t, dtype=float)
-    inside = (t >= tt[0] - MATCH_DT) & (t <= tt[-1] + MATCH_DT)
-    tq = t[inside]
-    s, cov = trajectory.states, trajectory.cov
-    near, exact = _nearest(tt, tq)
-    if len(tt) == 1:
-        return s[near], None if cov is None else cov[near], inside
-    a = np.clip(np.searchsorted(tt, tq, side="right") - 1, 0, len(tt) - 2)
-    w = np.clip((tq - tt[a]) / (tt[a + 1] - tt[a]), 0.0, 1.0)
-    a = np.where(exact, near, a)
-    b = np.where(exact, near, a + 1)
-    w = np.where(exact, 0.0, w)
-
-    def lerp(x):
-        shape = (-1,) + (1,) * (x.ndim - 1)
-        return (1.0 - w.reshape(shape)) * x[a] + w.reshape(shape) * x[b]
-
-    dC = so3.boxminus(s.C[b], s.C[a])
-    C = so3.boxplus(s.C[a], w[:, None] * dC)
-    states = ImuState(r=lerp(s.r), v=lerp(s.v), C=C, b_f=lerp(s.b_f), b_w=lerp(s.b_w))
-    return states, None if cov is None else lerp(cov), inside
-
-
 @dataclass(frozen=True)
 class Errors:
     """One estimator's errors against a reference at times ``t`` (absolute, not shifted):
@@ -261,9 +219,10 @@ def _safe_nees(e: np.ndarray, P: np.ndarray) -> np.ndarray | None:
 
 
 def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | None:
-    """Errors at the estimate's times inside the truth's span (None if there are none); the
-    pose NEES with the (r, phi) block of the covariance."""
-    T, _, inside = interpolate(truth, estimate.t)
+    """Errors at the estimate's times inside the truth's span and outside its gaps (as the
+    metrics: :func:`smoother.report.truth_at`; None if there are none); the pose NEES with the
+    (r, phi) block of the covariance."""
+    T, inside = truth_at(truth, estimate.t)
     if not inside.any():
         return None
     E = estimate.states[inside]
@@ -287,7 +246,7 @@ def errors_against_gps(gps: Gps, estimate: Trajectory) -> Errors | None:
     estimate); a fix the estimator used pulled the estimate towards itself, so its residual is
     smaller than that. The NEES is therefore computed over the held-out fixes only (NaN at the
     others, None if there are none)."""
-    E, cov, inside = interpolate(estimate, gps.t)
+    E, cov, inside = estimate.interpolate(gps.t)
     if not inside.any():
         return None
     dr = gps.position[inside] - E.r
@@ -574,7 +533,8 @@ def plot_biases(run: Run, out_dir: Path) -> Path:
 
 
 def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]:
-    """``(key, label, {name: value})`` for the bars; values from metrics.json, else computed."""
+    """``(key, label, {name: value})`` for the bars; values from metrics.json (a null there is
+    not drawn), else, without metrics.json's entry, computed."""
     if kind == "truth":
         specs = [("ate_rmse_m", "ATE RMSE [m]"), ("rot_rmse_deg", "rotation RMSE [deg]"),
                  ("nees_mean", "mean NEES / dof")]
@@ -587,9 +547,10 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
         values = {}
         for name in run.estimates:
             entry = run.metrics.get(name)
-            v = entry.get(key) if isinstance(entry, dict) else None
-            if v is None and name in errors:
-                v = _computed_metric(key, errors[name])
+            if isinstance(entry, dict) and key in entry:
+                v = entry[key]  # null there (a figure not scored, e.g. over too few states) stays out
+            else:
+                v = _computed_metric(key, errors[name]) if name in errors else None
             if isinstance(v, (int, float)) and math.isfinite(v):
                 values[name] = float(v)
         if values:

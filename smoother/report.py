@@ -1,9 +1,12 @@
 """Scoring estimates against a dataset's reference and writing a run's outputs.
 
-Against a ground truth (simulator, EuRoC): ``ate_rmse_m`` (position RMSE, no alignment: truth and
-estimate share the world frame), ``rot_rmse_deg`` (RMS angle of ``C_true^T C_est``) and
-``nees_mean``: the time average of the 6-dim pose NEES (position and primer-boxminus attitude,
-:func:`smoother.metrics.nees`) divided by 6, so 1 is consistent. Against GPS (KITTI):
+Against a ground truth (simulator, EuRoC), at every state of the estimate in the truth's span
+with the truth interpolated to its time (:func:`compare_with_truth`): ``ate_rmse_m`` (position
+RMSE, no alignment: truth and estimate share the world frame), ``rot_rmse_deg`` (RMS angle of
+``C_true^T C_est``) and ``nees_mean``: the time average of the 6-dim pose NEES (position and
+primer-boxminus attitude, :func:`smoother.metrics.nees`) divided by 6, so 1 is consistent; over
+too few states or too short a part of the run they are null and ``ate_note`` says why
+(:func:`against_truth`). Against GPS (KITTI):
 ``gps_heldout_rmse_m`` over the fixes held out of estimation -- an accuracy -- and
 ``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
 fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
@@ -13,10 +16,11 @@ yardstick for the held-out figures: the used fixes interpolated to the held-out 
 
 A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
 :attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states
-and covariances, for plots), ``truth.npz`` and ``gps.npz`` where known, and ``metrics.json``; every file is
-written atomically. :func:`write_outputs` writes them into a folder; ``smoother run`` writes
-them through :class:`smoother.commands.run_directory.RunDirectory` (one run at a time, the
-previous run's files replaced together).
+and covariances, times from the run's start and the clock's origin beside them), ``truth.npz``
+and ``gps.npz`` where known, and ``metrics.json``; every file is written atomically.
+:func:`write_outputs` writes them into a folder; ``smoother run`` writes them through
+:class:`smoother.commands.run_directory.RunDirectory` (one run at a time, the previous run's
+files replaced together).
 """
 from __future__ import annotations
 
@@ -30,38 +34,80 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
+from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
+from datasets.kinds import sensors_of
 from datasets.tum import write_tum
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from factors import imu
 from factors.errors import InputError
 from smoother import metrics
 
-#: Largest time difference [s] at which an estimate is compared with a truth sample.
-MATCH_DT = 1e-6
+#: A figure against the truth needs at least this many compared states ...
+MIN_COMPARED_STATES = 10
+#: ... spread over at least this fraction of the estimate's time span; short of it the figures
+#: are null in metrics.json, with ``ate_note`` saying why.
+MIN_TRUTH_COVERAGE = 0.5
+#: A scored figure over less than this fraction of the estimate's span carries an ``ate_note``.
+FULL_TRUTH_COVERAGE = 0.9
+#: A truth step longer than this many typical steps is a gap: no state inside one is compared.
+TRUTH_GAP_FACTOR = GROUNDTRUTH_GAP_FACTOR
+
+
+def truth_at(truth: Trajectory, t: np.ndarray) -> tuple:
+    """``(states, inside)``: the truth interpolated to the times ``t`` in its span and not inside
+    one of its gaps (a step longer than :data:`TRUTH_GAP_FACTOR` typical ones: never bridged),
+    and the mask of those times (:meth:`datasets.types.Trajectory.interpolate`)."""
+    step = None if len(truth) < 2 else TRUTH_GAP_FACTOR * float(np.median(np.diff(truth.t)))
+    states, _, inside = truth.interpolate(t, max_step=step)
+    return states, inside
 
 
 def compare_with_truth(truth: Trajectory, estimate: Trajectory) -> dict:
-    """The estimate against the truth at the estimate's times (associated within ``MATCH_DT``):
-    ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` and the pose NEES of each
-    state, ``nees`` (None without covariances). One place for the run's metrics, the Monte Carlo
-    runs and the cross-checks."""
-    i_truth, i_est = metrics.associate(truth.t, estimate.t, MATCH_DT)
-    T, E = truth.states[i_truth], estimate.states[i_est]
+    """The estimate against the truth at every state of the estimate in the truth's span, the
+    truth interpolated to its time (:func:`truth_at`: a state inside a gap of the truth is not
+    compared): ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` (NaN when none is
+    compared), ``position_errors`` [m] and the pose NEES of each state, ``nees`` (None without
+    covariances). One place for the run's metrics, the Monte Carlo runs and the cross-checks."""
+    T, inside = truth_at(truth, estimate.t)
+    E = estimate.states[inside]
     result = metrics.ate(T.r, T.C, E.r, E.C)
-    nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[i_est], "pose")
-    return {"t": estimate.t[i_est], "ate_rmse_m": result["translation"]["rmse"],
-            "rot_rmse_deg": result["rotation"]["rmse"], "nees": nees}
+    nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[inside], "pose")
+    return {"t": estimate.t[inside], "ate_rmse_m": result["translation"]["rmse"],
+            "rot_rmse_deg": result["rotation"]["rmse"], "position_errors": result["translation_errors"],
+            "nees": nees}
 
 
 def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
-    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (pose NEES / 6; NaN without covariances)."""
+    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (pose NEES / 6; NaN without covariances) of
+    :func:`compare_with_truth`, ``compared_states`` and ``compared_coverage`` (the compared
+    states' time span over the estimate's). Over fewer than :data:`MIN_COMPARED_STATES` states or less
+    than :data:`MIN_TRUTH_COVERAGE` of the estimate's span the three figures are NaN (null in
+    metrics.json) and ``ate_note`` says why; below :data:`FULL_TRUTH_COVERAGE` the figures stand,
+    and ``ate_note`` says over how much of the run."""
     c = compare_with_truth(truth, estimate)
-    return {
+    n = len(c["t"])
+    span = float(estimate.t[-1] - estimate.t[0])
+    covered = float(c["t"][-1] - c["t"][0]) if n else 0.0
+    coverage = covered / span if span > 0 else float(n > 0)
+    out = {
         "ate_rmse_m": c["ate_rmse_m"],
         "rot_rmse_deg": c["rot_rmse_deg"],
-        "nees_mean": math.nan if c["nees"] is None else float(np.mean(c["nees"]) / 6.0),
-        "compared_states": int(len(c["t"])),
+        "nees_mean": math.nan if c["nees"] is None or not n else float(np.mean(c["nees"]) / 6.0),
+        "compared_states": n,
+        "compared_coverage": coverage,
     }
+    overlap = max(0.0, min(float(truth.t[-1]), float(estimate.t[-1])) - max(float(truth.t[0]), float(estimate.t[0])))
+    where = (f"{n} of the estimate's {len(estimate)} states lie in the truth's span, over {covered:.4g} s of the "
+             f"estimate's {span:.4g} s" + (f" (the truth covers {overlap:.4g} s of it)"
+                                         if overlap < FULL_TRUTH_COVERAGE * span else ""))
+    if n < MIN_COMPARED_STATES or coverage < MIN_TRUTH_COVERAGE:
+        worst = f" (position errors there up to {float(np.max(c['position_errors'])):.4g} m)" if n else ""
+        out.update(ate_rmse_m=math.nan, rot_rmse_deg=math.nan, nees_mean=math.nan,
+                   ate_note=f"not scored against the truth: {where}{worst}; a score needs at least "
+                            f"{MIN_COMPARED_STATES} states over {MIN_TRUTH_COVERAGE:.0%} of the estimate's span")
+    elif coverage < FULL_TRUTH_COVERAGE:
+        out["ate_note"] = f"scored over part of the run only: {where} ({coverage:.0%})"
+    return out
 
 
 def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
@@ -172,12 +218,17 @@ def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=
 
 
 
-def save_trajectory(path: Path, trajectory: Trajectory) -> None:
-    """A trajectory with its covariances as ``.npz`` (atomic)."""
+def save_trajectory(path: Path, trajectory: Trajectory, time_origin_ns: int | None = None) -> None:
+    """A trajectory with its covariances as ``.npz`` (atomic); with ``time_origin_ns`` (the data
+    clock's reading at ``t = 0``, :attr:`datasets.types.Dataset.time_origin_ns`) that too, as the
+    0-d int64 array ``time_origin_ns``: the stamps in the data's clock are ``t + time_origin_ns
+    * 1e-9`` (:func:`load_stamped_trajectory`)."""
     s = trajectory.states
     arrays = {"t": trajectory.t, "r": s.r, "v": s.v, "C": s.C, "b_f": s.b_f, "b_w": s.b_w}
     if trajectory.cov is not None:
         arrays["cov"] = trajectory.cov
+    if time_origin_ns is not None:
+        arrays["time_origin_ns"] = np.int64(time_origin_ns)
     with atomic_write(path, "wb") as handle:
         np.savez(handle, **arrays)
 
@@ -207,18 +258,33 @@ def read_npz(path: Path, expected: str):
 
 
 def load_trajectory(path: Path) -> Trajectory:
-    """Inverse of :func:`save_trajectory`; an :class:`~factors.errors.InputError` naming the file for anything
-    else (not an archive, missing arrays, arrays that do not make a trajectory, none at all)."""
-    expected = "an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15)"
+    """Inverse of :func:`save_trajectory`, times from the run's start (see
+    :func:`load_stamped_trajectory` for the data's clock)."""
+    return load_stamped_trajectory(path)[0]
+
+
+def load_stamped_trajectory(path: Path) -> tuple[Trajectory, int | None]:
+    """``(trajectory, time_origin_ns)`` of a file :func:`save_trajectory` wrote (``time_origin_ns``
+    None when it has none: its times are the data's own); an :class:`~factors.errors.InputError`
+    naming the file for anything else (not an archive, missing arrays, arrays that do not make a
+    trajectory, none at all)."""
+    expected = ("an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15) "
+                "and time_origin_ns (an integer)")
     with read_npz(path, expected) as data:
         missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
         if missing:
             raise InputError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
         states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
         trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
+        origin = None
+        if "time_origin_ns" in data:
+            value = data["time_origin_ns"]
+            if value.shape != () or value.dtype.kind not in "iu":
+                raise InputError(f"{path}: time_origin_ns is {value.dtype} of shape {value.shape}; expected {expected}")
+            origin = int(value)
     if len(trajectory) == 0:
         raise InputError(f"{path}: the trajectory is empty; expected at least one state")
-    return trajectory
+    return trajectory, origin
 
 
 def save_gps(path: Path, dataset: Dataset) -> None:
@@ -231,17 +297,25 @@ def save_gps(path: Path, dataset: Dataset) -> None:
     t = np.concatenate([p.t for p, _ in parts])
     order = np.argsort(t, kind="stable")
     with atomic_write(path, "wb") as handle:
+        clock = {} if dataset.time_origin_ns is None else {"time_origin_ns": np.int64(dataset.time_origin_ns)}
         np.savez(handle, t=t[order], position=np.concatenate([p.position for p, _ in parts])[order],
                  cov=np.concatenate([p.cov for p, _ in parts])[order],
-                 heldout=np.concatenate([np.full(len(p), flag) for p, flag in parts])[order])
+                 heldout=np.concatenate([np.full(len(p), flag) for p, flag in parts])[order], **clock)
+
+
+def aiding_sensors(dataset: Dataset) -> list[str]:
+    """The names of the dataset's aiding sensors (:func:`datasets.kinds.sensors_of`); none: the
+    run is dead reckoning, the IMU alone."""
+    return [s.name for s in sensors_of(dataset)]
 
 
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
-    """Write every estimate (TUM + npz, GeoJSON with a datum), the truth and the fixes (npz) where
-    known and ``metrics.json`` into ``out_dir``; return the metrics. An estimator that failed has
-    its reason in ``metrics.json`` (``failed``) and no files. Files of these names already there
-    are overwritten, others left (a run directory's one-run rule is
-    :class:`smoother.commands.run_directory.RunDirectory`'s)."""
+    """Write every estimate (TUM + npz, both in the data's clock; GeoJSON with a datum), the truth
+    and the fixes (npz) where known and ``metrics.json`` (its ``_run`` with ``extra``, the
+    estimators, ``aiding_sensors`` and ``dead_reckoning``: true without any) into ``out_dir``;
+    return the metrics. An estimator that failed has its reason in ``metrics.json`` (``failed``)
+    and no files. Files of these names already there are overwritten, others left (a run
+    directory's one-run rule is :class:`smoother.commands.run_directory.RunDirectory`'s)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     report: dict = {}
@@ -250,15 +324,17 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
             report[name] = {"failed": est.failed, "runtime_s": est.runtime_s, **est.details}
             continue
         write_tum(out_dir / f"{name}.tum", est.trajectory, time_origin_ns=dataset.time_origin_ns)
-        save_trajectory(out_dir / f"{name}.npz", est.trajectory)
+        save_trajectory(out_dir / f"{name}.npz", est.trajectory, dataset.time_origin_ns)
         datum = getattr(dataset, "datum", None)
         if datum is not None:
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
         report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
     if dataset.truth is not None:
-        save_trajectory(out_dir / "truth.npz", dataset.truth)
+        save_trajectory(out_dir / "truth.npz", dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / "gps.npz", dataset)
-    document = {**report, "_run": {**(extra or {}), "estimators": list(estimates)}}
+    aiding = aiding_sensors(dataset)
+    document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
+                                   "dead_reckoning": not aiding}}
     with atomic_write(out_dir / "metrics.json") as handle:
         json.dump(_jsonable(document), handle, indent=2)
         handle.write("\n")

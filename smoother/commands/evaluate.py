@@ -7,7 +7,9 @@ else TUM): TUM files, EuRoC CSV (``state_groundtruth_estimate0/data.csv``: nanos
 read as evo's ``euroc`` mode reads them), KITTI pose files (no stamps: both files must be KITTI,
 paired line by line, as in evo's ``kitti`` mode), a run directory's ``.npz``, and a reference with
 attitudes only (``t qx qy qz qw`` a line: an IMU's own attitude output), which gives the rotation
-figures only. Time stamps equal to the one before are kept, as evo keeps them, with a warning.
+figures only. A run's ``.npz`` is read in the data's clock (its ``time_origin_ns`` added), so it
+compares with the recording's own reference as its ``.tum`` does. Time stamps equal to the one
+before are kept, as evo keeps them, with a warning.
 """
 from __future__ import annotations
 
@@ -40,9 +42,11 @@ def register(sub) -> None:
     p.add_argument("--format", choices=FORMATS, default="auto",
                    help="format of both files: tum, euroc (CSV, ns stamps), kitti (3x4 matrices, no stamps: "
                         "paired by line), npz; default auto: recognised per file")
-    p.add_argument("--align", choices=["se3", "sim3", "posyaw", "none"], default="se3",
+    p.add_argument("--align", choices=["se3", "sim3", "posyaw", "translation", "none"], default="se3",
                    help="alignment of the estimate: se3 (Umeyama, default), sim3 (Umeyama with scale: monocular "
-                        "trajectories), posyaw (translation + yaw), none")
+                        "trajectories), posyaw (translation + yaw), translation, none. A rotation the positions do "
+                        "not determine (a nearly straight drive) is not fitted: the next well-posed alignment is "
+                        "applied, with a warning")
     p.add_argument("--n-to-align", type=int, default=None, metavar="N",
                    help="fit the alignment to the first N associated poses only (default all)")
     p.add_argument("--t-offset", type=float, default=0.0, metavar="S",
@@ -63,8 +67,9 @@ def _table(result, args, n_ref: int, n_est: int) -> str:
         rows.append("alignment: none (the reference has attitudes only: rotation figures only)")
     else:
         fitted = "" if args.n_to_align is None else f", fitted to the first {min(args.n_to_align, len(result.i_ref))} poses"
-        scale = f"s = {result.s:.6g}, " if result.align == "sim3" else ""
-        rows.append(f"alignment: {result.align}" + ("" if result.align == "none" else
+        scale = f"s = {result.s:.6g}, " if "sim3" in result.align or "scale" in result.align else ""
+        instead = "" if result.align == args.align else f" instead of {args.align}, whose rotation is not determined"
+        rows.append(f"alignment: {result.align}{instead}" + ("" if result.align == "none" else
                     f" ({scale}t = [{', '.join(f'{x:.4f}' for x in result.t)}] m{fitted})"))
     rows += ["", f"{'':<22}{'rmse':>12}{'mean':>12}{'median':>12}{'std':>12}{'min':>12}{'max':>12}{'n':>7}"]
     unit = {"frames": "frames", "m": "m", "s": "s"}[args.delta_unit]
@@ -129,6 +134,8 @@ def run(args) -> int:
     except ValueError as error:
         raise UserError(f"{args.estimate} against {args.reference}: {error}") from None
     nees = _nees(ref, est, result, result.align)
+    if result.fit is not None and result.fit.note:
+        warnings.warn(result.fit.note, stacklevel=2)
     if args.json:
         out = result.as_dict()
         out["nees_mean"] = nees
@@ -191,12 +198,13 @@ def _read(path, fmt: str = "auto", attitudes: bool = False) -> _Poses:
     from datasets.euroc import read_pose_csv
     from datasets.kitti import read_pose_file
     from datasets.tum import read_tum_poses
-    from smoother.report import load_trajectory
+    from smoother.report import load_stamped_trajectory
 
     fmt = _format_of(path) if fmt == "auto" else fmt
-    if fmt == "npz":
-        trajectory = load_trajectory(path)
-        return _Poses(trajectory.t, trajectory.position, trajectory.C, fmt, trajectory.states, trajectory.cov)
+    if fmt == "npz":  # stamped in the data's clock, as the run's .tum files are
+        trajectory, origin_ns = load_stamped_trajectory(path)
+        t = trajectory.t if origin_ns is None else trajectory.t + origin_ns * 1e-9
+        return _Poses(t, trajectory.position, trajectory.C, fmt, trajectory.states, trajectory.cov)
     if fmt == "kitti":
         r, C, _ = read_pose_file(path)
         return _Poses(None, r, C, fmt)

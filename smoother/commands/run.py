@@ -220,7 +220,10 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             figures = plots.plot_run(out.path, out_dir=stage)
         for path in figures:
             print(f"wrote {out.final(path)}", file=sys.stderr)
-    print(format_table(metrics))
+    print(format_table(metrics, dead_reckoning=not report.aiding_sensors(dataset)))
+    for name, m in metrics.items():
+        if m.get("ate_note"):
+            print(f"warning: {name}: {m['ate_note']}", file=sys.stderr)
     if baseline is not None:
         print(f"the used fixes interpolated, no IMU ({baseline['heldout_fixes']} held-out fixes between them): "
               f"held-out {baseline['gps_heldout_rmse_m']:.4f} m, horizontal "
@@ -311,25 +314,42 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
                "the fixes look independent: check the IMU noise, the sensors' sigmas, extrinsics and time offsets"))
 
 
-def format_table(metrics: dict) -> str:
-    """One line per estimator with the headline metrics that exist. Against GPS, two closing lines:
-    the estimators ranked by their held-out RMSE (an accuracy), and what the fit residual is --
-    the distance to fixes an estimator used, which no ranking may rest on."""
+#: The table's cell for a figure against the truth that is not scored (metrics.json: ``ate_note``).
+UNSCORED = "unscored"
+#: The figures that :func:`smoother.report.against_truth` leaves unscored together.
+TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
+
+
+def format_table(metrics: dict, dead_reckoning: bool = False) -> str:
+    """One line per estimator with the headline metrics that exist; a figure against the truth
+    that is not scored (too few states compared, metrics.json's ``ate_note``) shows
+    :data:`UNSCORED`, and a closing line says so. Against GPS, two closing lines: the estimators
+    ranked by their held-out RMSE (an accuracy), and what the fit residual is -- the distance to
+    fixes an estimator used, which no ranking may rest on. With ``dead_reckoning`` (no aiding
+    sensor) a closing line says that the estimates are the IMU's alone."""
     columns = [("ate_rmse_m", "ATE [m]"), ("rot_rmse_deg", "rot [deg]"), ("nees_mean", "NEES/dim"),
                ("gps_heldout_rmse_m", "held-out [m]"), ("gps_fit_residual_m", "fit resid [m]"),
                ("runtime_s", "time [s]")]
     present = [(k, h) for k, h in columns if any(k in m for m in metrics.values())]
+    def finite(v) -> bool:
+        return v is not None and math.isfinite(v)
+
     lines = [f"{'estimator':<14}" + "".join(f"{h:>14}" for _, h in present)]
+    unscored = [name for name, m in metrics.items() if m.get("ate_note") and not finite(m.get("ate_rmse_m"))]
     for name, m in metrics.items():
         if "failed" in m:
             lines.append(f"{name:<14}  failed: {m['failed']}")
             continue
-        name = name + " (?)" if "doubtful" in m else name
+        shown, name = name, name + " (?)" if "doubtful" in m else name
         cells = []
         for k, _ in present:
             v = m.get(k, math.nan)
-            cells.append(f"{v:>14.4f}" if v is not None and math.isfinite(v) else f"{'-':>14}")
+            cell = f"{v:.4f}" if finite(v) else UNSCORED if shown in unscored and k in TRUTH_FIGURES else "-"
+            cells.append(f"{cell:>14}")
         lines.append(f"{name:<14}" + "".join(cells))
+    if unscored:
+        lines.append(f"{UNSCORED}: {', '.join(unscored)} compared with the truth at too few states or over too little "
+                     "of the run (the warning below; metrics.json: ate_note)")
     if any(k == "gps_fit_residual_m" for k, _ in present):
         heldout = {name: m.get("gps_heldout_rmse_m") for name, m in metrics.items()}
         heldout = {name: v for name, v in heldout.items() if v is not None and math.isfinite(v)}
@@ -340,4 +360,7 @@ def format_table(metrics: dict) -> str:
         lines.append("fit resid: RMS distance to the fixes the estimators used -- a residual, not an accuracy")
     if any("doubtful" in m for m in metrics.values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the warning below says how far)")
+    if dead_reckoning:
+        lines.append("dead reckoning: no aiding sensor, the IMU alone; the errors grow without bound "
+                     "(metrics.json: _run.dead_reckoning)")
     return "\n".join(lines)

@@ -14,6 +14,8 @@ from datasets.errors import DataError
 from datasets.euroc import GROUNDTRUTH_COLUMNS, IMU_COLUMNS, load_euroc, read_sensor_yaml
 from factors import quaternion, so3
 
+pytestmark = pytest.mark.filterwarnings("ignore:.*the ground truth covers .* s of the:UserWarning")
+
 NS0 = 1403636579758555392  # a real EuRoC first stamp: far beyond float64's integer precision
 IMU_STEP = 5_000_000
 GT_OFFSET = 51_300_000  # the ground truth starts 51.3 ms after the IMU, off the IMU's grid
@@ -91,8 +93,10 @@ def _csv(path: Path, columns, stamps, values, style="units", order=None):
 
 
 def write_sequence(root: Path, n_imu=401, n_gt=370, style="units", gt_style=None, order=None, flow=False,
-                   T_imu=T_B_IMU, T_gt=T_B_GT, seed=0):
-    """An ASL folder ``root/mav0`` with a moving IMU; returns the IMU stamps and readings."""
+                   T_imu=T_B_IMU, T_gt=T_B_GT, seed=0, gt_offset=GT_OFFSET):
+    """An ASL folder ``root/mav0`` with a moving IMU, its ground truth starting ``gt_offset`` ns
+    after it (on the IMU's grid when a multiple of IMU_STEP, as in EuRoC); returns the IMU stamps
+    and readings."""
     rng = np.random.default_rng(seed)
     mav0 = root / "mav0"
     (mav0 / "imu0").mkdir(parents=True, exist_ok=True)
@@ -102,7 +106,7 @@ def write_sequence(root: Path, n_imu=401, n_gt=370, style="units", gt_style=None
     readings[:, 5] += 9.81  # a plausible specific force (the loader warns about implausible units)
     _csv(mav0 / "imu0" / "data.csv", IMU_COLUMNS, imu_ns, readings, style,
          order=None if order is None else [0] + [1 + j for j in order[:6]])
-    gt_ns = NS0 + GT_OFFSET + IMU_STEP * np.arange(n_gt, dtype=np.int64)
+    gt_ns = NS0 + gt_offset + IMU_STEP * np.arange(n_gt, dtype=np.int64)
     C, r, v = imu_truth((gt_ns - NS0) * 1e-9)
     C_gt = C @ R_X.T
     lever = C_gt @ P_X
@@ -128,10 +132,14 @@ def sequence(tmp_path):
 
 def test_frames_times_and_initial_state(sequence):
     root, imu_ns, readings, gt_ns = sequence
-    d = load_euroc(root)
+    with pytest.warns(UserWarning, match=r"data\.csv: the ground truth covers 1\.845 s of the 2 s of .*imu0/data\.csv: "
+                                         r"the 11 IMU samples before its first stamp \(0\.0513 s\) are left out \(the "
+                                         r"initial state is the truth's\); the 21 after its last stamp \(0\.1037 s\) are "
+                                         r"kept: estimated, not scored$"):
+        d = load_euroc(root)
     assert d.name == "euroc"
-    # IMU samples inside the ground truth's span, stamps exact, t relative to the first of them.
-    keep = (imu_ns >= gt_ns[0]) & (imu_ns <= gt_ns[-1])
+    # IMU samples from the ground truth's first stamp on, stamps exact, t relative to the first of them.
+    keep = imu_ns >= gt_ns[0]
     assert np.array_equal(d.imu.t_ns, imu_ns[keep]) and d.imu.t_ns.dtype == np.int64
     assert d.imu.t_ns[0] == NS0 + 11 * IMU_STEP
     assert np.array_equal(d.imu.t, (imu_ns[keep] - imu_ns[keep][0]) * 1e-9)
@@ -360,15 +368,29 @@ def test_no_overlap_and_no_folder(tmp_path):
 
 
 def test_a_ground_truth_without_samples_inside_the_imu_span_is_an_error(tmp_path):
-    """Its first and last rows span the IMU, so IMU samples remain, but no truth lies between
-    them: an empty reference (and no measurements from it) would follow silently."""
+    """Its first and last rows span the IMU, so IMU samples remain, but only the last row lies in
+    the IMU's span: a reference of one sample (and no measurements from it) would follow silently."""
     write_sequence(tmp_path, n_imu=401, n_gt=390)
     path = tmp_path / GT
     lines = path.read_text().splitlines()
     path.write_text("\n".join([lines[0], lines[1], lines[-1]]) + "\n")
-    with pytest.raises(DataError, match=r"state_groundtruth_estimate0/data\.csv.*0 ground-truth samples within the "
+    with pytest.raises(DataError, match=r"state_groundtruth_estimate0/data\.csv.*1 ground-truth samples within the "
                                         r"IMU samples' span"):
         load_euroc(tmp_path)
+
+
+def test_a_short_ground_truth_keeps_the_imu_and_says_how_much_it_covers(tmp_path):
+    """A ground truth cut to its first two rows (on the IMU's grid): every IMU sample from its first
+    stamp on is kept (not the two inside its 5 ms), and the warning says the truth covers 0.005 s
+    of the 2 s and that the rest is estimated, not scored."""
+    imu_ns, _, _ = write_sequence(tmp_path, gt_offset=10 * IMU_STEP)
+    path = tmp_path / GT
+    path.write_text("\n".join(path.read_text().splitlines()[:3]) + "\n")
+    with pytest.warns(UserWarning, match=r"data\.csv: the ground truth covers 0\.005 s of the 2 s of .*imu0/data\.csv: "
+                                         r"the 10 IMU samples before its first stamp \(0\.05 s\) are left out .*; the "
+                                         r"389 after its last stamp \(1\.945 s\) are kept: estimated, not scored$"):
+        d = load_euroc(tmp_path)
+    assert np.array_equal(d.imu.t_ns, imu_ns[10:]) and len(d.truth) == 2
 
 
 def test_a_ground_truth_gap_is_reported_and_never_differenced_across(tmp_path):

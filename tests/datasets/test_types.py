@@ -9,8 +9,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from datasets.types import (Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
-                            RelativePoseMeasurements)
+from datasets.types import (SAME_INSTANT_S, Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
+                            RelativePoseMeasurements, Trajectory)
 from factors import imu, so3
 from factors.errors import InputError
 
@@ -166,3 +166,28 @@ def test_trajectory_covariances_are_checked(cov, fragment):
     with pytest.raises(ValueError, match=re.escape("Trajectory.cov")) as info:
         Trajectory(np.arange(3.0), states, cov)
     assert fragment in str(info.value)
+
+
+def _two_states(t=(0.0, 1.0), phi=(0.0, 0.0, 0.8)):
+    C = np.stack([np.eye(3), so3.exp(phi)])
+    states = imu.ImuState(r=np.array([[0.0, 0, 0], [2.0, 0, 0]]), v=np.zeros((2, 3)), C=C,
+                          b_f=np.zeros((2, 3)), b_w=np.zeros((2, 3)))
+    return Trajectory(np.array(t), states, np.stack([np.eye(15), 3 * np.eye(15)]))
+
+
+def test_interpolate_is_exact_at_samples_and_geodesic_between():
+    traj = _two_states()
+    s, cov, inside = traj.interpolate(np.array([-1.0, 0.0, 0.25, 1.0 + 0.5 * SAME_INSTANT_S, 2.0]))
+    assert inside.tolist() == [False, True, True, True, False]
+    np.testing.assert_allclose(s.r[:, 0], [0.0, 0.5, 2.0])
+    np.testing.assert_allclose(s.C[0], traj.C[0], atol=0)
+    np.testing.assert_allclose(s.C[2], traj.C[1], atol=0)
+    np.testing.assert_allclose(s.C[1], so3.exp(0.25 * np.array([0.0, 0.0, 0.8])), atol=1e-12)
+    np.testing.assert_allclose(cov[1], 1.5 * np.eye(15))
+
+
+def test_interpolate_bridges_no_step_longer_than_max_step():
+    traj = _two_states()
+    _, _, inside = traj.interpolate(np.array([0.0, 0.5, 1.0]), max_step=0.5)
+    assert inside.tolist() == [True, False, True]  # the samples themselves stay
+    assert traj.interpolate(np.array([0.5]), max_step=1.0)[2].tolist() == [True]

@@ -98,10 +98,44 @@ def test_no_association_and_degenerate_alignment(files, capsys, tmp_path):
     line = tmp_path / "line.txt"
     t = read_tum(ref).t[:3]
     write_tum(line, t, np.outer([0.0, 1.0, 2.0], [1.0, 0.0, 0.0]), np.tile(np.eye(3), (3, 1, 1)))
-    err = _error(capsys, ["evaluate", "--reference", str(ref), "--estimate", str(line)])
-    assert "degenerate" in err
-    # posyaw needs no spread: it works on the same files
+    # three points on a line fix no rotation about it: posyaw instead, said in a warning and the JSON
+    with pytest.warns(UserWarning, match=r"se3 alignment is degenerate: the rotation about the line the positions lie "
+                                         r"along is not determined by 3 positions spread 0 m about it.*; posyaw "
+                                         r"applied instead$"):
+        assert main(["evaluate", "--reference", str(ref), "--estimate", str(line), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["align"] == out["alignment"]["mode"] == "posyaw" and out["alignment"]["requested"] == "se3"
+    assert out["alignment"]["conditioning"]["determined"] is False
+    assert max(out["alignment"]["conditioning"]["singular_values_m2"][1:]) < 1e-12
     assert main(["evaluate", "--reference", str(ref), "--estimate", str(line), "--align", "posyaw"]) == 0
+
+
+def test_a_straight_drive_is_aligned_about_gravity_with_a_warning(tmp_path, capsys):
+    """--align se3 on a nearly straight drive: a warning with the conditioning, the table names the
+    alignment applied, the JSON carries it, and the rotation ATE is the true 7 deg (Umeyama's
+    roll about the road made it 75.7 deg)."""
+    from test_metrics import straight_drive
+
+    (t, r, C), (r_est, C_est) = straight_drive()
+    ref, est = tmp_path / "ref.tum", tmp_path / "est.tum"
+    write_tum(ref, t, r, C)
+    write_tum(est, t, r_est, C_est)
+    argv = ["evaluate", "--reference", str(ref), "--estimate", str(est), "--align", "se3"]
+    with pytest.warns(UserWarning, match=r"^se3 alignment is degenerate: the rotation about the line the positions lie "
+                                         r"along is not determined by 301 positions spread 0\.0\d+ m about it, under 5% "
+                                         r"of their 86\.\d m extent \(singular values .* m\^2\); posyaw applied instead$"):
+        assert main(argv) == 0
+    table = capsys.readouterr().out
+    assert "alignment: posyaw instead of se3, whose rotation is not determined" in table
+    rotation = next(line for line in table.splitlines() if line.startswith("ATE rotation [deg]"))
+    assert float(rotation.split()[3]) == pytest.approx(7.0, abs=0.05)
+    with pytest.warns(UserWarning, match="degenerate"):
+        assert main(argv + ["--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["align"] == "posyaw" and out["alignment"]["requested"] == "se3"
+    assert out["alignment"]["note"].endswith("posyaw applied instead")
+    assert out["alignment"]["conditioning"]["determined"] is False
+    assert out["ate"]["rotation_deg"]["rmse"] == pytest.approx(7.0, abs=0.05)
 
 
 @pytest.mark.parametrize("option", [["--max-dt", "-1"], ["--delta", "0"], ["--delta", "1.5"], ["--max-dt", "nan"]])

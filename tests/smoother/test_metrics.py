@@ -4,6 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from datasets.simulate import simulate
+from datasets.trajectories import Sinusoids, sinusoid_profile
 from datasets.tum import write_tum
 from factors import imu, so3
 from factors.imu import ImuState
@@ -85,6 +87,70 @@ def test_posyaw_recovers_yaw_and_translation_only():
     # with a roll in the true offset, the result is still a rotation about z
     R, _ = align_posyaw(src, src @ so3.exp([0.3, 0.0, 2.5]).T)
     assert R[2, 2] == 1.0 and R[0, 2] == R[2, 0] == 0.0
+
+
+#: A straight road at 10 m/s with a 5 cm weave (the simulator's profile; no turn, level).
+STRAIGHT = sinusoid_profile("straight", "a straight road at 10 m/s, a 5 cm weave",
+                            position=(Sinusoids(slope=10.0), Sinusoids(terms=((0.05, 0.4, 0.0),)), Sinusoids(offset=1.0)),
+                            attitude=(Sinusoids(), Sinusoids(), Sinusoids()))
+
+
+def straight_drive(roll_error_deg: float = 7.0, seed: int = 4):
+    """30 s of :data:`STRAIGHT` at 10 Hz and an estimate of it: positions drifting as a random walk
+    (5 cm a step, about 0.6 m at the end), every attitude rolled ``roll_error_deg`` about the road
+    (the true rotation error), the whole in another frame (yaw 0.6 rad, an offset). Returns the
+    reference ``(t, r, C)`` and the estimate ``(r, C)``."""
+    truth = simulate(profile=STRAIGHT, duration=30.0, seed=0, pose_rate=None).truth.subset(slice(0, None, 20))
+    drift = np.cumsum(np.random.default_rng(seed).normal(scale=0.05, size=(len(truth), 3)), axis=0)
+    R, offset = so3.exp([0.0, 0.0, 0.6]), np.array([3.0, -2.0, 0.5])
+    r_est, C_est = _transform(R, offset, truth.position + drift, so3.exp([np.radians(roll_error_deg), 0.0, 0.0]) @ truth.C)
+    return (truth.t, truth.position, truth.C), (r_est, C_est)
+
+
+def test_a_straight_drive_is_not_rolled_about_the_road():
+    """Positions near a line fix no rotation about it: Umeyama's se3 fits that roll to the drift
+    (a rotation ATE of 75.7 deg here for a true 7 deg). The fit reports its conditioning and, the
+    rotation not being determined, aligns position and yaw only: the rotation ATE stays 7 deg."""
+    (t, r, C), (r_est, C_est) = straight_drive()
+    result = evaluate(t, r, C, t, r_est, C_est, align="se3")
+    assert result.ate["rotation"]["rmse"] == pytest.approx(7.0, abs=0.05)
+    assert result.align == result.fit.mode == "posyaw" and result.fit.requested == "se3"
+    conditioning = result.fit.conditioning
+    assert not conditioning["determined"] and conditioning["spread_m"] < 0.05 * conditioning["extent_m"]
+    values = conditioning["singular_values_m2"]
+    assert values[1] < 1e-5 * values[0] and values[2] < 1e-5 * values[0]
+    assert result.fit.note.startswith("se3 alignment is degenerate: the rotation about the line the positions lie "
+                                      "along is not determined by 301 positions spread ")
+    assert result.fit.note.endswith("; posyaw applied instead")
+    # sim3 keeps its scale, about gravity
+    scaled = evaluate(t, r, C, t, 0.5 * r_est, C_est, align="sim3")
+    assert scaled.align == "posyaw+scale" and scaled.s == pytest.approx(2.0, rel=0.02)
+    assert scaled.ate["rotation"]["rmse"] == pytest.approx(7.0, abs=0.05)
+
+
+def test_alignments_that_fix_no_rotation_fall_back_to_a_translation():
+    """An elevator (a vertical line) fixes neither the rotation about it nor a yaw; standing still
+    fixes no rotation at all: the translation is aligned, and the note says so."""
+    t = np.arange(40.0)
+    rise = np.outer(t, [0.0, 0.0, 0.5]) + np.random.default_rng(0).normal(scale=1e-3, size=(40, 3))
+    C = np.tile(np.eye(3), (40, 1, 1))
+    for mode in ("se3", "posyaw"):
+        fit = metrics.fit_alignment(rise + [1.0, 2.0, 3.0], rise, mode)
+        assert fit.mode == "translation" and np.array_equal(fit.R, np.eye(3))
+        assert np.allclose(fit.t, [1.0, 2.0, 3.0]) and f"{mode} alignment is degenerate" in fit.note
+    still = np.zeros((5, 3))
+    assert evaluate(t[:5], still, C[:5], t[:5], still + 1.0, C[:5]).align == "translation"
+
+
+def test_a_well_spread_trajectory_keeps_its_alignment_and_a_loose_fit_is_said():
+    t, r, C = _walk()
+    fit = metrics.fit_alignment(r, r @ so3.exp([0.1, 0.2, 0.3]).T, "se3")
+    assert fit.mode == "se3" and fit.note is None and fit.conditioning["determined"]
+    assert fit.conditioning["uncertainty_deg"] < 1e-6
+    # errors as large as the trajectory's spread: applied, with how uncertain its rotation is
+    noisy = r + np.random.default_rng(3).normal(scale=0.5 * r.std(), size=r.shape)
+    loose = metrics.fit_alignment(r, noisy, "se3")
+    assert loose.mode == "se3" and loose.note.startswith("se3 alignment is poorly determined: its residual across")
 
 
 @pytest.mark.parametrize("mode", ["se3", "posyaw"])

@@ -17,7 +17,7 @@ import pytest
 
 from datasets.atomic import atomic_write
 from datasets.simulate import simulate
-from datasets.types import Trajectory
+from datasets.types import SAME_INSTANT_S, Trajectory
 from factors import so3
 from factors.errors import InputError
 from factors.imu import ImuState
@@ -128,27 +128,12 @@ def test_errors_against_truth_match_metrics(run_dir):
     run = plots.load_run(run_dir, ["batch"])
     est = run.estimates["batch"]
     e = plots.errors_against_truth(run.truth, est)
-    i_truth, i_est = metrics.associate(run.truth.t, est.t, plots.MATCH_DT)
+    i_truth, i_est = metrics.associate(run.truth.t, est.t, SAME_INSTANT_S)
     assert len(i_est) == len(est) == len(e.t)
     T = run.truth.states[i_truth]
     expected = metrics.pose_error(T.r, T.C, est.states.r, est.states.C)
     np.testing.assert_allclose(np.hstack([e.dr, e.dphi]), expected, atol=1e-12)
     np.testing.assert_allclose(e.nees, metrics.nees(T, est.states, est.cov, "pose"), rtol=1e-10)
-
-
-def test_interpolate_is_exact_at_samples_and_geodesic_between():
-    phi = np.array([0.0, 0.0, 0.8])
-    C = np.stack([np.eye(3), so3.exp(phi)])
-    states = ImuState(r=np.array([[0.0, 0, 0], [2.0, 0, 0]]), v=np.zeros((2, 3)), C=C,
-                      b_f=np.zeros((2, 3)), b_w=np.zeros((2, 3)))
-    traj = Trajectory(np.array([0.0, 1.0]), states, np.stack([np.eye(15), 3 * np.eye(15)]))
-    s, cov, inside = plots.interpolate(traj, np.array([-1.0, 0.0, 0.25, 1.0, 2.0]))
-    assert inside.tolist() == [False, True, True, True, False]
-    np.testing.assert_allclose(s.r[:, 0], [0.0, 0.5, 2.0])
-    np.testing.assert_allclose(s.C[0], C[0], atol=0)
-    np.testing.assert_allclose(s.C[2], C[1], atol=0)
-    np.testing.assert_allclose(s.C[1], so3.exp(0.25 * phi), atol=1e-12)
-    np.testing.assert_allclose(cov[1], 1.5 * np.eye(15))
 
 
 def test_missing_or_malformed_run_directory(tmp_path, run_dir):

@@ -13,6 +13,7 @@ from datasets.simulate import simulate
 from datasets.tum import read_tum
 from datasets.types import PositionMeasurements, Trajectory
 from factors import so3
+from factors.errors import InputError
 from smoother import report
 from smoother.pipeline import Estimate
 
@@ -21,9 +22,13 @@ import estimator_cases as cases
 ANGLE = np.radians(2.0)
 
 
-def _truth(n: int = 5) -> Trajectory:
-    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    return data.truth.subset(np.arange(0, 5 * n, 5))
+def _data():
+    return simulate(profile="tumbling", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
+
+
+def _truth(n: int = 12) -> Trajectory:
+    """Every fifth truth sample, ``n`` of them (enough states to score: report.MIN_COMPARED_STATES)."""
+    return _data().truth.subset(np.arange(0, 5 * n, 5))
 
 
 def _offset_estimate(truth: Trajectory, with_cov: bool = True) -> Trajectory:
@@ -47,17 +52,66 @@ def test_against_truth_on_a_known_error():
     assert m["ate_rmse_m"] == pytest.approx(0.5, rel=1e-12)
     assert m["rot_rmse_deg"] == pytest.approx(2.0, rel=1e-9)
     assert m["nees_mean"] == pytest.approx((0.25 / 0.01 + ANGLE**2 / 1e-4) / 6.0, rel=1e-9)
-    assert m["compared_states"] == 5
+    assert m["compared_states"] == 12 and m["compared_coverage"] == 1.0 and "ate_note" not in m
 
 
-def test_against_truth_compares_only_states_at_truth_times_and_needs_covariances_for_nees():
+def test_against_truth_needs_covariances_for_nees():
     truth = _truth()
-    est = _offset_estimate(truth, with_cov=False)
-    m = report.against_truth(truth, est)
+    m = report.against_truth(truth, _offset_estimate(truth, with_cov=False))
     assert math.isnan(m["nees_mean"]) and m["ate_rmse_m"] == pytest.approx(0.5)
-    # an estimate 1 ms off the truth samples (tolerance 1e-6 s) is compared nowhere
-    shifted = Trajectory(est.t + 1e-3, est.states)
-    assert report.against_truth(truth, shifted)["compared_states"] == 0
+
+
+def test_states_between_truth_samples_are_compared_with_the_truth_interpolated_to_them():
+    """An estimate whose states fall between the truth's samples (an EKF's at measurement times)
+    is compared at every one of them, the truth interpolated (linearly, geodesically): the known
+    0.5 m / 2 deg error is found to the interpolation's error, not missed for want of equal stamps."""
+    dense = simulate(profile="gentle", duration=3.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None).truth
+    truth = dense.subset(slice(0, None, 5))  # 20 Hz
+    between = dense.subset(np.flatnonzero(np.arange(len(dense)) % 5 == 2)[:-1])  # none on a 20 Hz sample
+    m = report.against_truth(truth, _offset_estimate(between, with_cov=False))
+    assert m["compared_states"] == len(between) > 50
+    assert m["ate_rmse_m"] == pytest.approx(0.5, abs=1e-3) and m["rot_rmse_deg"] == pytest.approx(2.0, abs=0.01)
+
+
+def test_an_ate_over_too_few_states_is_no_number_and_says_why():
+    """Dead reckoning through an EKF that reports only its first and last states: the first on a
+    truth sample (error 0), the last between two, 31 m off. The figures are NaN (null in
+    metrics.json) and the note gives the count, the span and the error at those states -- not an
+    ATE from the one state that lies on a truth sample."""
+    truth = _truth()
+    t = np.array([truth.t[0], 0.5 * (truth.t[-2] + truth.t[-1])])
+    est = Trajectory(t, truth.interpolate(t)[0])
+    est = Trajectory(t, est.states.replace(r=est.states.r + [[0.0, 0.0, 0.0], [31.0, 0.0, 0.0]]))
+    m = report.against_truth(truth, est)
+    assert m["compared_states"] == 2
+    assert all(math.isnan(m[k]) for k in ("ate_rmse_m", "rot_rmse_deg", "nees_mean"))
+    assert m["ate_note"].startswith("not scored against the truth: 2 of the estimate's 2 states lie in the truth's span")
+    assert "position errors there up to 31 m" in m["ate_note"] and "at least 10 states over 50%" in m["ate_note"]
+
+
+def test_an_ate_over_part_of_the_run_says_so_and_below_half_is_no_number():
+    """A truth that ends before the estimate: over 60% of its span the figures stand with a note,
+    over 30% they are not scored."""
+    truth = _data().truth
+    est = _offset_estimate(truth, with_cov=False)
+    for share, scored in ((0.6, True), (0.3, False)):
+        short = truth.subset(truth.t <= truth.t[0] + share * (truth.t[-1] - truth.t[0]))
+        m = report.against_truth(short, est)
+        assert m["compared_coverage"] == pytest.approx(share, abs=0.03)
+        assert (m["ate_rmse_m"] == pytest.approx(0.5)) if scored else math.isnan(m["ate_rmse_m"])
+        assert m["ate_note"].startswith("scored over part of the run only" if scored else "not scored")
+
+
+def test_states_inside_a_gap_of_the_truth_are_not_compared():
+    """The truth across a hole of half a second is not interpolated: a state inside it would be
+    scored against a straight line the motion never took."""
+    truth = _data().truth
+    holed = truth.subset((truth.t < 0.3) | (truth.t > 0.8))
+    between = truth.subset(slice(0, -1))
+    between = Trajectory(between.t + 0.004, between.states)  # 4 ms after each 100 Hz sample
+    m = report.against_truth(holed, _offset_estimate(between, with_cov=False))
+    assert m["compared_states"] == np.count_nonzero((between.t < 0.29) | (between.t > 0.81)) == len(holed) - 2
+    assert m["ate_rmse_m"] == pytest.approx(0.5, abs=0.01)
 
 
 def test_position_rmse_interpolates_and_ignores_fixes_outside_the_estimate():
@@ -133,6 +187,19 @@ def test_trajectory_npz_round_trip(tmp_path, with_cov):
         np.testing.assert_array_equal(back.cov, est.cov)
     else:
         assert back.cov is None
+    assert report.load_stamped_trajectory(tmp_path / "x.npz")[1] is None
+
+
+def test_a_trajectory_npz_carries_the_data_clock(tmp_path):
+    """The clock's origin beside times from the start: EuRoC's 1403636579758555392 ns, exactly."""
+    est = _offset_estimate(_truth())
+    report.save_trajectory(tmp_path / "x.npz", est, time_origin_ns=1403636579758555392)
+    back, origin = report.load_stamped_trajectory(tmp_path / "x.npz")
+    assert origin == 1403636579758555392 and np.array_equal(back.t, est.t)
+    arrays = dict(np.load(tmp_path / "x.npz"))
+    np.savez(tmp_path / "bad.npz", **{**arrays, "time_origin_ns": np.array([1.5, 2.0])})
+    with pytest.raises(InputError, match=r"bad\.npz: time_origin_ns is float64 of shape \(2,\); expected"):
+        report.load_stamped_trajectory(tmp_path / "bad.npz")
 
 
 def _estimates(truth):
@@ -143,13 +210,14 @@ def _estimates(truth):
 
 
 def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
-    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    truth = data.truth.subset(np.arange(0, 25, 5))
+    data = _data()
+    truth = _truth()
     metrics = report.write_outputs(tmp_path / "run", data, _estimates(truth), {"seed": 7})
     names = {p.name for p in (tmp_path / "run").iterdir()}
     assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
     document = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert document["_run"] == {"seed": 7, "estimators": ["ekf", "batch"]}
+    assert document["_run"] == {"seed": 7, "estimators": ["ekf", "batch"], "aiding_sensors": [],
+                                "dead_reckoning": True}
     assert document["ekf"]["ate_rmse_m"] == pytest.approx(0.5)
     assert document["ekf"]["runtime_s"] == 0.25 and document["ekf"]["rejected_measurements"] == 0
     assert document["batch"]["nees_mean"] is None  # NaN (no covariances) is written as null
@@ -165,8 +233,7 @@ def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
     """metrics.json is written atomically: an error in the middle of writing it (here json.dump
     fails after writing part of the document) leaves the previous complete file, and no
     temporary file behind."""
-    data = simulate(profile="tumbling", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    truth = data.truth.subset(np.arange(0, 25, 5))
+    data, truth = _data(), _truth()
     out = tmp_path / "run"
     report.write_outputs(out, data, _estimates(truth), {"first": True})
     before = (out / "metrics.json").read_bytes()

@@ -62,6 +62,22 @@ def test_format_table_marks_missing_values():
     assert batch.split() == ["batch", "0.5000", "-", "2.0000"]
 
 
+def test_format_table_marks_unscored_figures_and_dead_reckoning():
+    """A figure against the truth over too few states is no number: 'unscored' (not the '-' of a
+    figure that does not exist), a closing line says where the reason is; an IMU-only run says so."""
+    note = "not scored against the truth: 1 of the estimate's 2 states lie in the truth's span"
+    table = format_table({"ekf": {"ate_rmse_m": float("nan"), "rot_rmse_deg": float("nan"), "nees_mean": float("nan"),
+                                  "ate_note": note, "runtime_s": 1.0},
+                          "batch": {"ate_rmse_m": 0.5, "rot_rmse_deg": 1.0, "nees_mean": None, "runtime_s": 2.0}},
+                         dead_reckoning=True)
+    lines = table.splitlines()
+    assert lines[1].split() == ["ekf", "unscored", "unscored", "unscored", "1.0000"]
+    assert lines[2].split() == ["batch", "0.5000", "1.0000", "-", "2.0000"]
+    assert lines[3].startswith("unscored: ekf compared with the truth at too few states")
+    assert lines[4].startswith("dead reckoning: no aiding sensor, the IMU alone")
+    assert "dead reckoning" not in format_table({"batch": {"ate_rmse_m": 0.5}})
+
+
 def test_the_table_ranks_by_held_out_fixes_and_labels_the_fit_residual():
     """KITTI with every fix used (issue figures): the fixed-lag smoother fits the used fixes more
     closely (0.32 m against 0.65 m) at a far higher cost; held out, the batch is the more accurate.

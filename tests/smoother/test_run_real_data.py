@@ -9,12 +9,22 @@ import pytest
 from smoother.cli import main
 
 
-def _euroc_writer():
+def _euroc_module():
     path = Path(__file__).parents[1] / "datasets" / "test_euroc.py"
     spec = importlib.util.spec_from_file_location("euroc_folder_writer", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return module.write_sequence
+    return module
+
+
+def _euroc_writer():
+    return _euroc_module().write_sequence
+
+
+def _run(capsys, *argv) -> tuple[int, str, str]:
+    code = main(["run", *argv, "--no-progress"])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
 
 
 def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
@@ -29,6 +39,83 @@ def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
         assert metrics[name]["compared_states"] > 10
         assert metrics[name]["ate_rmse_m"] is not None and metrics[name]["ate_rmse_m"] >= 0
         assert metrics[name]["gps_fit_residual_m"] is not None
+    assert metrics["_run"]["aiding_sensors"] == ["pose", "position"] and metrics["_run"]["dead_reckoning"] is False
+
+
+def test_dead_reckoning_is_said_and_an_ate_over_one_state_is_not_a_number(tmp_path, capsys):
+    """EuRoC without an aiding sensor, the EKF: its states are the first and the last IMU sample
+    only, and only the first lies on a truth sample (the last ground-truth row moved 1 ms off the
+    IMU's grid). Comparing exactly coinciding stamps scored that one state: ATE 0.0000 from
+    compared_states 1, the last state far off. The table marks the figures unscored, stderr says
+    why, metrics.json has them null with ate_note, and the run says it is dead reckoning."""
+    module = _euroc_module()
+    seq = tmp_path / "seq"
+    module.write_sequence(seq, gt_offset=10 * module.IMU_STEP)
+    gt = seq / module.GT
+    lines = gt.read_text().splitlines()
+    stamp, rest = lines[-1].split(",", 1)
+    lines[-1] = f"{int(stamp) + 1_000_000},{rest}"
+    gt.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    code, table, err = _run(capsys, "--dataset", f"euroc:{seq}", "--estimator", "ekf", "--out", str(out))
+    assert code == 0, err
+    rows = table.splitlines()
+    assert rows[1].split() == ["ekf", "unscored", "unscored", "unscored", rows[1].split()[-1]]
+    assert "dead reckoning: no aiding sensor, the IMU alone; the errors grow without bound" in table
+    document = json.loads((out / "metrics.json").read_text())
+    ekf = document["ekf"]
+    assert ekf["ate_rmse_m"] is None and ekf["rot_rmse_deg"] is None and ekf["nees_mean"] is None
+    assert ekf["compared_states"] == 1
+    assert ekf["ate_note"].startswith("not scored against the truth: 1 of the estimate's 2 states lie in the truth's "
+                                      "span")
+    assert f"warning: ekf: {ekf['ate_note']}" in err.splitlines()
+    assert document["_run"]["dead_reckoning"] is True and document["_run"]["aiding_sensors"] == []
+
+
+def test_a_ground_truth_of_two_rows_scores_nothing_and_keeps_the_imu(tmp_path, capsys):
+    """A ground truth cut to two rows: the IMU after it is kept and estimated (the loader says the
+    truth covers 0.005 s of 2 s), and no ATE is printed from the two states it covers."""
+    module = _euroc_module()
+    seq = tmp_path / "seq"
+    module.write_sequence(seq, gt_offset=10 * module.IMU_STEP)
+    gt = seq / module.GT
+    gt.write_text("\n".join(gt.read_text().splitlines()[:3]) + "\n")
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match="the ground truth covers 0.005 s of the 2 s"):
+        code, table, err = _run(capsys, "--dataset", f"euroc:{seq}", "--estimator", "ekf", "--out", str(out))
+    assert code == 0, err
+    assert "dataset euroc: 391 IMU samples over 2.0 s" in err  # not the 2 of the truth's 5 ms
+    ekf = json.loads((out / "metrics.json").read_text())["ekf"]
+    assert ekf["ate_rmse_m"] is None and "the truth covers 0.005 s of it" in ekf["ate_note"]
+    assert table.splitlines()[1].split()[1] == "unscored"
+
+
+def test_a_run_npz_is_in_the_data_clock_and_evaluates_against_the_recording_reference(tmp_path, capsys):
+    """EuRoC's clock starts at 1.4e9 s: the run's .npz carries that origin, so `smoother evaluate`
+    pairs it with a TUM reference in the data's clock (the .npz is the output with covariances) and
+    gives the NEES, the run's own within the association's 1.3 ms at the first state."""
+    from datasets.euroc import load_euroc
+    from datasets.tum import write_tum
+    from smoother.report import load_stamped_trajectory
+
+    seq = tmp_path / "seq"
+    _euroc_writer()(seq)
+    out = tmp_path / "out"
+    code, _, err = _run(capsys, "--dataset", f"euroc:{seq}", "--estimator", "ekf", "--gps-from-truth", "20", "0.1",
+                        "--out", str(out))
+    assert code == 0, err
+    data = load_euroc(seq)
+    trajectory, origin = load_stamped_trajectory(out / "ekf.npz")
+    assert origin == data.time_origin_ns and trajectory.t[0] == 0.0
+    reference = tmp_path / "reference.tum"
+    write_tum(reference, data.truth.t, data.truth.position, data.truth.C, time_origin_ns=data.time_origin_ns)
+    assert main(["evaluate", "--reference", str(reference), "--estimate", str(out / "ekf.npz"), "--align", "none",
+                 "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    run = json.loads((out / "metrics.json").read_text())["ekf"]
+    assert result["pairs"] >= run["compared_states"] - 1 > 30
+    assert result["nees_mean"] == pytest.approx(run["nees_mean"], rel=0.05)
+    assert result["ate"]["translation_m"]["rmse"] == pytest.approx(run["ate_rmse_m"], rel=0.05)
 
 
 def test_gyro_data_in_deg_per_s_stop_the_run_naming_the_cause(tmp_path, capsys):
