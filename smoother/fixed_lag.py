@@ -39,6 +39,7 @@ GTSAM pitfalls handled here:
 """
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from collections import deque
@@ -286,14 +287,19 @@ def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str
     off (the incremental smoother: 8 m, the EKF: 0.7 m)."""
     if not longest_s > lag_s:
         return None
-    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.3g} s apart, "
+    digits = 3  # enough to tell the gap from the lag (2.0019 s beside a 2-s lag is not "2 s")
+    while digits < 12 and float(f"{longest_s:.{digits}g}") <= lag_s:
+        digits += 1
+    step = 10.0 ** (math.floor(math.log10(longest_s)) - digits + 1)
+    enough = math.ceil(longest_s / step) * step  # rounded up: a lag that does reach the gap
+    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.{digits}g} s apart, "
             f"longer than the lag ({lag_s:g} s): "
             "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
             "estimates")
     if kind == "batch":
         text += (" (GTSAM's BatchFixedLagSmoother can drift far off: it keeps the states at its window's edge "
                  "linearised where dead reckoning put them; use the incremental smoother)")
-    return text + f". Choose a lag of at least {longest_s:.3g} s (the longest gap between absolute measurements)"
+    return text + f". Choose a lag of at least {enough:.{digits}g} s (the longest gap between absolute measurements)"
 
 
 def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> None:

@@ -172,10 +172,10 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
 
 
 def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
-    """Record each estimator's verdicts in its details: ``sensors`` (per sensor), ``fit`` (all
-    together, :func:`smoother.diagnostics.overall`) and, when the fit is far above its band
-    (:func:`smoother.diagnostics.far_above`: the estimate does not explain its own data, whatever
-    the optimiser reported), ``doubtful`` with why."""
+    """Record each estimator's verdicts in its details: ``sensors`` (per sensor) and ``fit`` (all
+    together, :func:`smoother.diagnostics.overall`) and, when the fit or any one verdict is far
+    above its band (:func:`smoother.diagnostics.far_above`: the estimate does not explain that
+    part of its own data, whatever the optimiser reported), ``doubtful`` with why."""
     from smoother.diagnostics import far_above, overall
 
     for name, est in estimates.items():
@@ -185,9 +185,11 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
         if fit is None:
             continue
         est.details["fit"] = fit
-        if far_above(fit):
+        off = [k for k, c in ours.items() if far_above(c)]
+        if far_above(fit) or off:
             worst = max(ours, key=lambda k: ours[k]["per_dof"])
             est.details["doubtful"] = (f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} "
-                                       f"are {fit['per_dof']:.3g} per dof, expected {fit['band'][0]:.2g}-"
-                                       f"{fit['band'][1]:.2g} (worst: {worst}, {ours[worst]['per_dof']:.3g}): the "
-                                       "estimate does not fit the data; it may be wrong")
+                                       f"are {fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-"
+                                       f"{fit['band'][1]:.2g}), those of {', '.join(off) or worst} far above their band "
+                                       f"(worst: {worst}, {ours[worst]['per_dof']:.3g}): the model does not fit "
+                                       "the data, so the estimate may be wrong and its covariances too small")

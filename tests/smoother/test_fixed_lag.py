@@ -301,3 +301,15 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
     errors = [np.abs(out - ref).max() / np.abs(ref).max()
               for groups, n, wanted, out in refused for ref in [_svd_marginals(groups, n, wanted)]]
     assert max(errors) <= 1e-6, max(errors)
+
+
+def test_the_lag_warning_tells_a_gap_from_the_lag_and_suggests_a_lag_that_reaches_it():
+    """A gap of 2.0019 s beside a 2-s lag is not printed as "2 s", and the lag suggested is rounded
+    up, never below the gap."""
+    from smoother.fixed_lag import sparse_measurement_warning
+
+    text = sparse_measurement_warning(2.0019, 2.0, "sliding")
+    assert "up to 2.002 s apart" in text and "at least 2.002 s" in text
+    suggested = float(sparse_measurement_warning(4.0012, 2.0, "sliding").split("at least ")[1].split(" s")[0])
+    assert suggested >= 4.0012
+    assert sparse_measurement_warning(2.0, 2.0, "sliding") is None

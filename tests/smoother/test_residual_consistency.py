@@ -84,7 +84,7 @@ def test_an_estimate_that_does_not_fit_its_data_is_doubtful_whatever_the_optimis
     estimates, _ = gyro_in_degrees
     for name, est in estimates.items():
         assert est.failed is None
-        assert "does not fit the data" in est.details["doubtful"], name
+        assert "the model does not fit the data" in est.details["doubtful"], name
     assert estimates["batch"].details["converged"] in (True, False)  # reported beside it, not instead
 
 
