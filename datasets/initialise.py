@@ -34,6 +34,7 @@ import numpy as np
 from datasets.types import (ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements, Sensor,
                             VelocityMeasurements)
 from factors import preintegration, so3
+from factors.errors import InputError
 from factors.imu import STATE_DIM, ImuState
 from factors.sensor_models import extrinsic_parts
 
@@ -62,7 +63,7 @@ _POSITION_TYPES = (PoseMeasurements, PositionMeasurements)
 _ATTITUDE_TYPES = (PoseMeasurements, OrientationMeasurements)
 
 
-class InitialisationError(ValueError):
+class InitialisationError(InputError):
     """The data cannot fix the initial state; the message says what is missing."""
 
 

@@ -64,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.errors import DataError
+from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
@@ -95,7 +96,7 @@ SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", 
                "robust")
 
 
-class RigError(ValueError):
+class RigError(InputError):
     """A bad rig file: ``path``, ``key`` (e.g. ``sensor[1] "gnss".T_BS``, or None for the whole
     file) and the message."""
 

@@ -30,6 +30,22 @@ def test_every_error_of_the_project_is_a_boxplus_error(error, bases):
     assert issubclass(error, BoxplusError) and all(issubclass(error, base) for base in bases)
 
 
+def test_every_exception_class_the_packages_define_derives_from_the_base():
+    """Not a list to keep up: every exception class defined in any module of the three packages
+    (``KeyboardInterrupt``'s kin for signals aside) is a ``BoxplusError``."""
+    import importlib
+    import inspect
+
+    outside = []
+    for name in package_modules(ROOT, ("factors", "datasets", "smoother")):
+        module = importlib.import_module(name)
+        for cls in vars(module).values():
+            if (inspect.isclass(cls) and issubclass(cls, BaseException) and cls.__module__ == name
+                    and not issubclass(cls, (BoxplusError, KeyboardInterrupt))):
+                outside.append(f"{name}.{cls.__name__}")
+    assert outside == []
+
+
 def test_only_the_command_line_raises_its_user_error():
     """``UserError`` names a command-line option; the library raises ``InputError`` (e.g.
     ``solve_batch`` with an unknown optimizer) and the command line words it."""
