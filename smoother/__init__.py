@@ -3,8 +3,9 @@ the ``smoother`` command line.
 
 A run: ``problem = build_problem(dataset)`` (keyframes, preintegrated IMU factors, measurement
 factors, the initial trajectory), then ``solve_batch(problem)``, ``run_fixed_lag(problem, lag_s)``
-or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and their 15x15
-covariances. ``OnlineSmoother`` is the fixed-lag smoother fed sample by sample as data arrive
+or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and (where
+computed) their 15x15 covariances; ``run_estimators`` runs any of them on a dataset, an
+estimator that failed with no trajectory and its reason. ``OnlineSmoother`` is the fixed-lag smoother fed sample by sample as data arrive
 (``replay`` feeds it a whole dataset). ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
 ``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory.
 
