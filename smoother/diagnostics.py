@@ -133,6 +133,10 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=()) -> list
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
                       f"of it; if the IMU is cleared, {advice}")
         elif high and imu_off:
-            advice += "; the IMU's own residuals are far out of band too, so the IMU is the likelier cause"
+            imu_worst = max(by_sensor[IMU][e]["per_dof"] for e in imu_off)
+            if imu_worst >= max(c["per_dof"] for c in off.values()):
+                advice += "; the IMU's own residuals are further out of band, so the IMU is the likelier cause"
+            else:
+                advice += f"; the IMU's own residuals are out of band too ({imu_worst:.3g} per dof): check both"
         lines.append(f"{sensor}: per dof {figures}: {advice}")
     return lines

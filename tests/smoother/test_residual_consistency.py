@@ -98,3 +98,17 @@ def test_a_right_rig_is_neither_warned_of_nor_doubtful():
     assert not any("doubtful" in est.details for est in estimates.values())
     assert set(consistency["batch"]) == {"gnss", "wheels", "imu"}
     assert set(consistency["fixed-lag"]) == {"gnss", "wheels"}  # its IMU factors' joint covariances are not kept
+
+
+def test_an_imu_slightly_out_of_band_is_not_blamed_for_a_sensor_far_worse():
+    """The IMU's residuals at 2.02 per dof, a GNSS's at 5.68 (a real bag with a GNSS sigma too
+    small): the IMU is mentioned, not named the likelier cause."""
+    def c(value, lo=0.9, hi=1.1):
+        return {"per_dof": value, "band": [lo, hi], "ok": lo <= value <= hi, "measurements": 100, "dof": 100.0,
+                "statistic": "residual"}
+
+    lines = consistency_warnings({"batch": {"gnss": c(5.68), "imu": c(2.02)}})
+    gnss = next(line for line in lines if line.startswith("gnss"))
+    assert "likelier cause" not in gnss and "out of band too (2.02 per dof): check both" in gnss
+    lines = consistency_warnings({"batch": {"gnss": c(5.68), "imu": c(600.0)}})
+    assert "the IMU is the likelier cause" in next(line for line in lines if line.startswith("gnss"))
