@@ -42,20 +42,32 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
     kf = block.keyframes
     if kf.shape[1] == 2 and joint is None:
         return None
-    slots = [states[kf[:, s]] for s in range(kf.shape[1])]
-    e, Js = block.residual(slots, True, slice(None))
-    e_w = np.einsum("mab,mb->ma", block.whiten, e)
-    A = [block.whiten @ J for J in Js]
-    lev = np.einsum("mij,mjk,mik->m", A[0], cov[kf[:, 0]], A[0])
-    if kf.shape[1] == 2:
-        cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in kf])
-        lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
-        lev += np.einsum("mij,mjk,mik->m", A[1], cov[kf[:, 1]], A[1])
-    d = e_w.shape[1]
-    dof = float(np.sum(np.clip(d - lev, 0.0, d)))
-    if not dof > 0.0 or not np.isfinite(e_w).all():
+    total, dof = 0.0, 0.0
+    for start in range(0, len(kf), CHUNK):  # in chunks: a long run's Jacobians need not all be held at once
+        rows = slice(start, min(start + CHUNK, len(kf)))
+        chunk = kf[rows]
+        slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
+        e, Js = block.residual(slots, True, rows)
+        whiten = block.whiten[rows]
+        e_w = np.einsum("mab,mb->ma", whiten, e)
+        if not np.isfinite(e_w).all():
+            return None
+        A = [whiten @ J for J in Js]
+        lev = np.einsum("mij,mjk,mik->m", A[0], cov[chunk[:, 0]], A[0])
+        if chunk.shape[1] == 2:
+            cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in chunk])
+            lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
+            lev += np.einsum("mij,mjk,mik->m", A[1], cov[chunk[:, 1]], A[1])
+        d = e_w.shape[1]
+        total += float(np.sum(e_w * e_w))
+        dof += float(np.sum(np.clip(d - lev, 0.0, d)))
+    if not dof > 0.0:
         return None
-    return verdict(float(np.sum(e_w * e_w)), dof, len(kf), "residual")
+    return verdict(total, dof, len(kf), "residual")
+
+
+#: Factors evaluated at once by :func:`block_consistency` (a few MB of Jacobians).
+CHUNK = 1024
 
 
 def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None) -> dict:

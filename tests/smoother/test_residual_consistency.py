@@ -112,3 +112,17 @@ def test_an_imu_slightly_out_of_band_is_not_blamed_for_a_sensor_far_worse():
     assert "likelier cause" not in gnss and "out of band too (2.02 per dof): check both" in gnss
     lines = consistency_warnings({"batch": {"gnss": c(5.68), "imu": c(600.0)}})
     assert "the IMU is the likelier cause" in next(line for line in lines if line.startswith("gnss"))
+
+
+def test_evaluating_in_chunks_changes_nothing(monkeypatch):
+    import smoother.residual_consistency as rc
+
+    data = simulate("gentle", duration=3, seed=5, pose_rate=None, sensors=[SensorSpec("wheels", "velocity", 20, 0.05)])
+    problem, result = _solved(data)
+    t = result.trajectory
+    whole = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
+    monkeypatch.setattr(rc, "CHUNK", 7)
+    chunked = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
+    for a, b in zip(whole, chunked):
+        assert a["measurements"] == b["measurements"]
+        assert a["per_dof"] == pytest.approx(b["per_dof"], rel=1e-12) and a["dof"] == pytest.approx(b["dof"], rel=1e-12)
