@@ -179,8 +179,8 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     for windows it judges nearly indeterminant -- a third of them with keyframes 25 ms apart and
     several kinds of measurement -- although they have full rank: those go to the square-root
     information (:func:`smoother.solver.marginal_covariances`, QR), which works on the rows
-    themselves rather than their squares (the dense pseudo-inverse of ``A^T A`` that used to take
-    these windows was 4e-5 off and 3x slower). What neither takes -- a
+    themselves rather than their squares (a dense pseudo-inverse of ``A^T A`` is 4e-5 off on these
+    windows and 3x slower). What neither takes -- a
     rank-deficient window, or a factor on more than three keyframes, which the Python
     ``JacobianFactor`` cannot hold -- goes to that dense pseudo-inverse."""
     if all(len(keys) <= 3 for keys, _ in groups):
