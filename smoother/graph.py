@@ -266,7 +266,6 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     threshold)`` from :func:`datasets.robust.robust_spec`. ``start``: an estimate of the run (an
     EKF's) to start from instead of dead reckoning (:func:`_started_from`).
     """
-    robust = robust or {}
     times = estimate_times(dataset, keyframe_rate)
     if len(times) < 2:
         raise InputError("the dataset spans less than one keyframe interval")
@@ -288,17 +287,10 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
-    measurements = []  # (block index, spec, keyframes, data, cov, kernel) of each measurement block
-    for spec in _measurement_specs(dataset):
-        matched = np.stack([_match(times, t) for t in spec.times], axis=1)
-        placed = np.all(matched >= 0, axis=1)
-        if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
-            raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
-                             "no keyframe")
-        kf = matched
-        kernel = robust.get(spec.name)
-        blocks.append(Block(spec.name, kf, spec.residual, whitening(spec.cov), _robust_estimator(kernel, spec.cov.shape[-1])))
-        measurements.append((len(blocks) - 1, spec, kf, spec.cov, kernel))
+    measurements = []  # (block index, spec, keyframes, cov, kernel) of each measurement block
+    for block, spec, kernel in measurement_blocks(dataset, times, robust):
+        blocks.append(block)
+        measurements.append((len(blocks) - 1, spec, block.keyframes, spec.cov, kernel))
 
     # the rows of each measurement block by the keyframe at which they become available (their
     # latest): rows order[bounds[k]:bounds[k + 1]], ascending within a keyframe
@@ -326,6 +318,24 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)
     return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute)
 
+
+
+def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None = None) -> list[tuple]:
+    """``(Block, MeasurementSpec, kernel spec or None)`` of each sensor of ``dataset`` on the
+    keyframes ``times`` (every measurement time must be one): the measurement factors of
+    :func:`build_problem`, without the IMU's."""
+    robust = robust or {}
+    out = []
+    for spec in _measurement_specs(dataset):
+        kf = np.stack([_match(times, t) for t in spec.times], axis=1)
+        placed = np.all(kf >= 0, axis=1)
+        if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
+            raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
+                             "no keyframe")
+        kernel = robust.get(spec.name)
+        block = Block(spec.name, kf, spec.residual, whitening(spec.cov), _robust_estimator(kernel, spec.cov.shape[-1]))
+        out.append((block, spec, kernel))
+    return out
 
 
 def _whole_graph(problem: Problem) -> GtsamGraph:

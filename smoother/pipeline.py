@@ -17,10 +17,11 @@ import numpy as np
 from datasets.types import Dataset, Trajectory
 from smoother.batch import solve_batch
 from smoother.ekf import run_ekf
-from smoother.graph import build_problem
+from smoother.graph import build_problem, measurement_blocks
 from factors.errors import BoxplusError, InputError
 from smoother.online import replay
 from smoother.residual_consistency import smoother_consistency
+from smoother.timeline import estimate_times
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -151,8 +152,8 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
     (:func:`smoother.diagnostics.sensor_consistency`), the batch smoother's residuals with their
     leverages (computed with its covariances, ``details["sensors"]``), the fixed-lag smoother's
     residuals of the factors on one keyframe at its estimates
-    (:func:`smoother.residual_consistency.smoother_consistency`, over the graph of the same
-    keyframes). An estimator without covariances or that failed has none."""
+    (:func:`smoother.residual_consistency.smoother_consistency` over the measurement factors on
+    its keyframes). An estimator without covariances or that failed has none."""
     from smoother.diagnostics import sensor_consistency as innovation_consistency
 
     out = {}
@@ -163,11 +164,12 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
             out[name] = innovation_consistency(est.innovations)
         elif name == "batch":
             out[name] = est.consistency or {}
-        else:
-            problem = build_problem(dataset, options.keyframe_rate, options.robust)
+        else:  # its keyframes are the batch's: the measurement factors on them, at its estimates
             t = est.trajectory
-            same = len(t.t) == len(problem.times) and np.allclose(t.t, problem.times, rtol=0, atol=1e-9)
-            out[name] = smoother_consistency(problem.blocks, t.states, t.cov) if same else {}
+            times = estimate_times(dataset, options.keyframe_rate)
+            same = len(t.t) == len(times) and np.allclose(t.t, times, rtol=0, atol=1e-9)
+            blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust)] if same else []
+            out[name] = smoother_consistency(blocks, t.states, t.cov)
     return out
 
 
