@@ -6,16 +6,20 @@ a sensor's ``N`` updates the sum is chi-square with ``N dim`` degrees of freedom
 per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N dim)`` with 95%
 probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
 or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
+Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
+large by construction).
 
-The smoothers' own residuals are judged the same way (:mod:`smoother.residual_consistency`),
-and the IMU factors' among them: :func:`consistency_lines` shows each sensor through every
-estimator. Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
-large by construction). Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so
-a real sensor with slightly correlated errors falls outside it: ``ok`` states the statistics, and
-a warning names a sensor only when its NIS per dof is also a factor :data:`WARN_FACTOR` or more
-away from 1 -- a sigma, extrinsic or time offset that is actually wrong. When the IMU itself has
-findings (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), every
-sensor's NIS is a symptom of them first: the warning then names the IMU as the likelier cause.
+The smoothers' own residuals are judged the same way, with the degrees of freedom their fit leaves
+them (:mod:`smoother.residual_consistency`), and the IMU factors' among them:
+:func:`consistency_lines` shows each sensor through every estimator.
+
+Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so a real sensor with
+slightly correlated errors falls outside it: ``ok`` states the statistics, and a warning names a
+sensor only when its figure is also a factor :data:`WARN_FACTOR` or more away from 1 -- a sigma,
+extrinsic or time offset that is actually wrong. When the IMU itself has findings
+(:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
+residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
+names the IMU as the likelier cause.
 """
 from __future__ import annotations
 

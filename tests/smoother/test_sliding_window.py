@@ -442,3 +442,38 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
     data, result = run(ImuNoise().velocity)
     error = np.linalg.norm(result.smoothed.position - data.truth.position[0], axis=1)
     assert result.recovered == [] and error.max() < 10.0
+
+
+def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goes_on(monkeypatch):
+    """The factorisation refusing keyframe 7 once (as a numerically singular window would): the
+    window adds a weak prior on it, records it in ``recovered``, factorises again and carries on;
+    the run ends as accurate as without the refusal (the weak prior is 1e2 m, 1e1 m/s, pi rad)."""
+    data = simulate("gentle", duration=4, seed=2)
+    clean = replay(data, lag_s=1.0)
+    solve_rows, refused = sw._solve_rows, []
+
+    def refusing_once(Hr, g, L, y, delta, first, start, newest, *rest):
+        if newest == 9 and not refused:
+            refused.append(7)
+            return 7, -1, False
+        return solve_rows(Hr, g, L, y, delta, first, start, newest, *rest)
+
+    monkeypatch.setattr(sw, "_solve_rows", refusing_once)
+    result = replay(data, lag_s=1.0)
+    assert refused == [7] and result.recovered == [7]
+    diff = np.abs(result.smoothed.position - clean.smoothed.position).max()
+    assert diff < 1e-3, diff
+
+
+def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_why(monkeypatch):
+    from smoother.fixed_lag import FixedLagFailed
+
+    data = simulate("gentle", duration=2, seed=2)
+
+    def refusing(Hr, g, L, y, delta, first, start, newest, *rest):
+        return (newest, -1, False) if newest == 5 else solve_rows(Hr, g, L, y, delta, first, start, newest, *rest)
+
+    solve_rows = sw._solve_rows
+    monkeypatch.setattr(sw, "_solve_rows", refusing)
+    with pytest.raises(FixedLagFailed, match="even with a weak prior on it: the window's information spans"):
+        replay(data, lag_s=1.0)
