@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets import from_truth
+from datasets.simulated_sensors import truth_sensors
 from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
                              read_lines, table_fast)
 from datasets.kalibr import NOISE_KEYS, rigid_problem
@@ -335,9 +335,9 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     """An EuRoC/ASL sequence as a :class:`Dataset` named ``"euroc"`` (see the module docstring).
 
     ``pose_from_truth=(rate_hz, pos_sigma_m, rot_sigma_rad)`` and ``gps_from_truth=(rate_hz,
-    pos_sigma_m)`` add synthetic pose / position measurements from the ground truth
-    (:mod:`datasets.from_truth`; orientation noise ``C_meas = exp(n) C``), seeded by ``seed``
-    (the two streams get independent generators spawned from it).
+    pos_sigma_m)`` add sensors ``pose`` and ``gps`` drawn from the ground truth
+    (:func:`datasets.simulated_sensors.truth_sensors`; orientation noise ``C_meas = exp(n) C``),
+    seeded by ``seed`` (each sensor its own stream).
     """
     pose_args = None if pose_from_truth is None else _triple("pose_from_truth", pose_from_truth, 3)
     gps_args = None if gps_from_truth is None else _triple("gps_from_truth", gps_from_truth, 2)
@@ -401,8 +401,8 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     imu = ImuSamples(t, acc, gyro, t_ns=imu_ns)
 
     sigmas = np.repeat(INITIAL_SIGMAS, 3)
-    pose, position = from_truth.measurements_from_truth(truth, pose_args, gps_args, seed)
     return Dataset(
         name="euroc", imu=imu, noise=noise, initial=initial, initial_cov=np.diag(sigmas**2),
-        gravity=np.asarray(gravity, dtype=float), pose=pose, position=position, truth=truth, time_origin_ns=t0_ns,
+        gravity=np.asarray(gravity, dtype=float), sensors=truth_sensors(truth, imu, pose_args, gps_args, seed),
+        truth=truth, time_origin_ns=t0_ns,
     )

@@ -46,9 +46,9 @@ example's GPS prior has precision ``1 / 0.07`` on each position axis). Fix numbe
 ``first_gps`` (0-based, default 1 like the example, because the IMU record has a lone first
 sample followed by a 1.9 s gap) is the start: it defines the initial position and the dataset
 begins at its time. Of the later fixes, fix number ``i`` of the file (0-based, counted as GTSAM's
-example counts them) is a measurement (``Dataset.position``) when ``i % gps_every == 0`` -- the
-example's rule, so ``gps_every=10`` uses the same fixes 10, 20, ... as the example -- and held
-out (``Dataset.heldout_positions``) otherwise; the first fix itself is in neither (it is the
+example counts them) is a measurement of the sensor ``gps`` (kind ``position``) when
+``i % gps_every == 0`` -- the example's rule, so ``gps_every=10`` uses the same fixes 10, 20, ...
+as the example -- and held out (the sensor's ``heldout``) otherwise; the first fix itself is in neither (it is the
 initial position's prior). Fixes after the last IMU sample are dropped.
 
 Times: measurement times are kept exactly as in the file; a fix between two IMU samples is not
@@ -81,7 +81,8 @@ from pathlib import Path
 import numpy as np
 
 from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, read_table, require_rows
-from datasets.types import Dataset, ImuSamples, PositionMeasurements
+from datasets.kinds.position import POSITION
+from datasets.types import Dataset, ImuSamples, PositionMeasurements, Sensor
 from factors import euler, so3
 from factors.imu import ImuNoise, ImuState
 from factors.errors import InputError
@@ -99,6 +100,8 @@ METADATA_FIELDS = [
 
 #: Gravity of GTSAM's KITTI example (``MakeSharedU(9.8)``).
 GRAVITY = np.array([0.0, 0.0, -9.8])
+#: The name of the GPS receiver's sensor (what ``--robust gps=...`` and the outputs call it).
+GPS_SENSOR = "gps"
 #: GPS position variance of GTSAM's example (precision 1/0.07 per axis).
 GPS_VARIANCE = 0.07
 #: Largest accepted |dt - (t_k - t_{k-1})| [s].
@@ -337,5 +340,5 @@ def load_kitti(imu_path=None, gps_path=None, metadata_path=None, *, gps_every: i
     heldout = PositionMeasurements(t_gps[held], p_gps[held], cov) if held.size else None
     return Dataset(
         name="kitti", imu=samples, noise=meta.noise(), initial=initial, initial_cov=initial_cov,
-        gravity=GRAVITY.copy(), position=position, heldout_positions=heldout,
+        gravity=GRAVITY.copy(), sensors=(Sensor(GPS_SENSOR, POSITION.name, position, heldout),),
     )

@@ -48,20 +48,22 @@ w_k^x) v_k + dt_k (C_k^T g + f_k)``; both are prefix products of small matrices 
 homogeneous form), evaluated by recursive doubling in ``log2 N`` batched matrix products. It
 equals :func:`factors.imu.integrate` to round-off (tested); it is about 100x faster.
 
-Measurements, all from the truth (whichever was chosen), at their own rates (pose and position by
-:mod:`datasets.from_truth`, the project's one generator of those, with this module's seeds):
+Measurements, all from the truth (whichever was chosen): named sensors of any kind of the
+registry (:data:`datasets.kinds.KINDS`), each drawn by its kind's own simulator
+(:attr:`datasets.kinds.base.Kind.simulate`, through :func:`datasets.simulated_sensors.sensors_from_truth`)
+at truth samples, with a noise stream of its own derived from its name. ``<kind>_rate=`` [Hz] (and
+``<kind>_sigma=``, else the kind's ``default_sigma``) adds a sensor of that kind at the IMU, named
+after its kind; ``sensors=`` adds sensors mounted anywhere (:class:`~datasets.simulated_sensors.SensorSpec`).
+By default a ``pose`` sensor at 10 Hz. The kinds' simulators, in the primer's convention: a position
+``r~ = r + C p_BS + n``; an attitude ``C~ = exp(n) C R_BS`` (world-frame noise, eqs. 61-63); a
+relative pose between consecutive times ``i -> j`` of its stream in frame ``i``; their covariances
+those of the noise drawn.
 
-* pose (eqs. 61-63): ``r~ = r + n_p``, ``C~ = exp(n_Phi) C``; ``n_p ~ N(0, sp^2 I)``,
-  ``n_Phi ~ N(0, sa^2 I)`` (world frame), ``cov = diag(sp^2 I, sa^2 I)``, ``(sp, sa) = pose_sigma``.
-* position (GPS): ``r~ = r + n``, ``n ~ N(0, position_sigma^2 I)``.
-* orientation: ``C~ = exp(n) C``, ``n ~ N(0, orientation_sigma^2 I)``.
-* relative pose between consecutive times ``i -> j`` of its stream: ``dr~ = C_i^T (r_j - r_i) +
-  n_r``, ``dC~ = exp(n_Phi) C_i^T C_j``, noise in frame ``i``, ``cov = diag(sr^2 I, sa^2 I)``.
-* outliers: ``round(outlier_fraction * len(pose))`` pose measurements, chosen uniformly without
-  replacement, get their position moved by ``outlier_scale[0]`` metres in a uniformly random
-  direction and their attitude rotated by ``outlier_scale[1]`` radians about a uniformly random
-  axis (``C~ <- exp(angle axis) C~``); their indices are ``SimulatedDataset.pose_outliers``. Their
-  ``cov`` still states the nominal noise: that is what makes them outliers.
+Outliers: ``round(outlier_fraction * N)`` of the ``N`` measurements of each sensor whose kind can be
+corrupted (:attr:`~datasets.kinds.base.Kind.corrupt`: positions moved by ``outlier_scale[0]``
+metres, attitudes turned by ``outlier_scale[1]`` radians, in uniformly random directions), chosen
+uniformly without replacement; their indices are ``SimulatedDataset.outliers[name]``. Their
+``cov`` still states the nominal noise: that is what makes them outliers.
 
 Initial estimate. ``Dataset.initial_cov = diag(s_r^2 I, s_v^2 I, s_phi^2 I, s_bf^2 I, s_bw^2 I)``
 (error-state order of :mod:`factors.imu`) with ``(s_r, s_v, s_phi) = initial_sigma`` and
@@ -74,8 +76,9 @@ state is not perturbed and its variance is floored at ``MIN_SIGMA^2`` so that th
 positive definite, as :class:`~datasets.types.Dataset` requires.
 
 Randomness. ``np.random.SeedSequence(seed).spawn`` gives one independent generator per role
-(:data:`STREAMS`), always all of them and in a fixed order, so switching a measurement type on or
-off, or changing its rate, changes nothing else; the same seed gives the same dataset.
+(:data:`STREAMS`), always all of them and in a fixed order, and each sensor's noise stream is
+derived from its name, so switching a sensor on or off, or changing its rate, changes nothing
+else; the same seed gives the same dataset.
 """
 from __future__ import annotations
 
@@ -83,17 +86,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from datasets.from_truth import pose_measurements_from_truth, position_measurements_from_truth
-from datasets.simulated_sensors import sensors_from_truth
+from datasets.kinds import KINDS
+from datasets.simulated_sensors import SensorSpec, sensors_from_truth
 from datasets.trajectories import PROFILES, Profile
-from datasets.types import (
-    Dataset,
-    ImuSamples,
-    OrientationMeasurements,
-    PoseMeasurements,
-    RelativePoseMeasurements,
-    Trajectory,
-)
+from datasets.types import Dataset, ImuSamples, Sensor, Trajectory
 from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 from factors.errors import InputError
@@ -101,8 +97,12 @@ from factors.errors import InputError
 __all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 
 #: The independent random streams, in spawn order (never reorder: it would change every dataset).
-STREAMS = ("imu", "bias", "initial", "velocity", "pose", "position", "orientation", "relative_pose", "outliers",
-           "sensors")
+STREAMS = ("imu", "bias", "initial", "velocity", "outliers", "sensors")
+
+#: The sensors simulated unless ``<kind>_rate=`` options say otherwise (a pose sensor at 10 Hz).
+DEFAULT_RATES = {"pose_rate": 10.0}
+#: The names of those sensors (each named after its kind).
+DEFAULT_SENSOR_NAMES = tuple(option.removesuffix("_rate") for option in DEFAULT_RATES)
 
 TRUTH_MODELS = ("discrete", "continuous")
 
@@ -119,12 +119,12 @@ _RATE_TOLERANCE = 1e-9
 class SimulatedDataset(Dataset):
     """A :class:`~datasets.types.Dataset` with what only a simulator knows.
 
-    ``clean_imu``: the noise- and bias-free IMU signals at the same times; ``pose_outliers``:
-    indices (into ``pose``) of the measurements given a gross error; ``profile``,
+    ``clean_imu``: the noise- and bias-free IMU signals at the same times; ``outliers``: per
+    sensor name, the indices (into its measurements) of those given a gross error; ``profile``,
     ``truth_model``, ``seed``: how it was made."""
 
     clean_imu: ImuSamples | None = None
-    pose_outliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    outliers: dict = field(default_factory=dict)
     profile: str = ""
     truth_model: str = ""
     seed: int | None = None
@@ -218,9 +218,36 @@ def _matched_signals(profile: Profile, t: np.ndarray, gravity: np.ndarray):
 # the simulator
 
 
-def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
-    u = rng.standard_normal((n, 3))
-    return u / np.linalg.norm(u, axis=1, keepdims=True)
+def _sensors_at_imu(rates: dict, imu_rate: float) -> list[SensorSpec]:
+    """The sensors the ``<kind>_rate`` / ``<kind>_sigma`` options ask for (module docstring)."""
+    known = {f"{k}_{what}" for k in KINDS for what in ("rate", "sigma")}
+    for option in rates:
+        if option not in known:
+            raise InputError(f"simulate: unknown option {option!r}; sensors at the IMU are asked for with "
+                             f"<kind>_rate and <kind>_sigma, kind one of {', '.join(KINDS)}")
+    specs = []
+    for name, kind in KINDS.items():
+        rate = rates.get(f"{name}_rate")
+        if _stride(f"{name}_rate", rate, imu_rate) is None:
+            continue
+        sigma = rates.get(f"{name}_sigma", kind.default_sigma)
+        _positive_sigmas(f"{name}_sigma", sigma, np.size(sigma))
+        specs.append(SensorSpec(name, name, float(rate), sigma))
+    return specs
+
+
+def _with_outliers(sensors, fraction: float, scale: np.ndarray, rng) -> tuple[tuple[Sensor, ...], dict]:
+    """``sensors`` with ``round(fraction * N)`` of each corruptible one's ``N`` measurements made
+    outliers (module docstring), and their indices per sensor name."""
+    out, index = [], {}
+    for s in sensors:
+        corrupt = KINDS[s.kind].corrupt
+        n_out = int(round(fraction * len(s.data))) if corrupt is not None else 0
+        if n_out:
+            index[s.name] = np.sort(rng.choice(len(s.data), size=n_out, replace=False))
+            s = Sensor(s.name, s.kind, corrupt(s.data, index[s.name], scale, rng), s.heldout)
+        out.append(s)
+    return tuple(out), index
 
 
 def _covariance(*sigma_blocks) -> np.ndarray:
@@ -234,14 +261,6 @@ def simulate(
     imu_rate: float = 200.0,
     noise: ImuNoise = ImuNoise(velocity=0.0),
     truth: str = "discrete",
-    pose_rate: float | None = 10.0,
-    pose_sigma=(0.05, 0.01),
-    position_rate: float | None = None,
-    position_sigma: float = 0.5,
-    orientation_rate: float | None = None,
-    orientation_sigma: float = 0.01,
-    relative_pose_rate: float | None = None,
-    relative_pose_sigma=(0.02, 0.005),
     initial_bias_sigma=(0.1, 0.01),
     initial_sigma=(0.1, 0.1, 0.02),
     outlier_fraction: float = 0.0,
@@ -250,6 +269,7 @@ def simulate(
     t0: float = 0.0,
     clean_imu: str = "matched",
     sensors=(),
+    **rates,
 ) -> SimulatedDataset:
     """Simulate an IMU dataset with measurements and ground truth (construction: module docstring).
 
@@ -263,21 +283,21 @@ def simulate(
     ``"continuous"`` (the analytic motion). ``clean_imu``: ``"analytic"`` (eq. 42 at the sample
     times) or ``"matched"`` (the samples whose Euler propagation follows the profile exactly).
 
-    Measurements (rate [Hz] None or 0 = none; ``imu_rate`` must be an integer multiple; the first
-    is at ``t0``): ``pose_rate`` with ``pose_sigma = (position [m], attitude [rad])``;
-    ``position_rate`` (GPS) with ``position_sigma`` [m]; ``orientation_rate`` with
-    ``orientation_sigma`` [rad]; ``relative_pose_rate`` with ``relative_pose_sigma =
-    (translation [m], rotation [rad])`` between consecutive times of that stream.
+    Sensors at the IMU, by kind (``rates``): ``<kind>_rate`` [Hz] (None or 0: none; ``imu_rate``
+    must be an integer multiple; the first measurement is at ``t0``) for any kind of
+    :data:`datasets.kinds.KINDS`, with ``<kind>_sigma`` (one number, one per residual dimension,
+    or for 6-dim kinds ``(translation [m], rotation [rad])``; default the kind's
+    ``default_sigma``); the sensor is named after its kind. Unless given, :data:`DEFAULT_RATES`.
+    ``sensors``: further sensors of any kind, mounted anywhere
+    (:class:`datasets.simulated_sensors.SensorSpec`).
 
     ``initial_bias_sigma = (acc [m/s^2], gyro [rad/s])``: spread of the true initial biases (and
     the bias block of ``initial_cov``; the initial bias estimate is 0). ``initial_sigma =
     (position [m], velocity [m/s], attitude [rad])``: spread of the initial estimate's error.
-    ``outlier_fraction`` in [0, 1] of the pose measurements get an error of ``outlier_scale =
-    (metres, radians)``. ``gravity``: ``I_g`` [m/s^2]. ``sensors``: further sensors of any kind,
-    mounted anywhere (:class:`datasets.simulated_sensors.SensorSpec`), drawn by
-    :func:`datasets.simulated_sensors.sensors_from_truth` with a noise stream of their own.
+    ``outlier_fraction`` in [0, 1] of the measurements of each sensor whose kind can be corrupted
+    get an error of ``outlier_scale = (metres, radians)``. ``gravity``: ``I_g`` [m/s^2].
 
-    Raises ``ValueError`` naming the option for any bad option.
+    Raises an InputError naming the option for any bad option.
     """
     prof = _profile(profile)
     duration, imu_rate, t0 = float(duration), float(imu_rate), float(t0)
@@ -299,21 +319,7 @@ def simulate(
     g = np.asarray(gravity, dtype=float)
     if g.shape != (3,) or not np.all(np.isfinite(g)):
         raise InputError(f"gravity: expected a finite 3-vector, got {gravity!r}")
-    strides = {
-        name: _stride(name, rate, imu_rate)
-        for name, rate in (
-            ("pose_rate", pose_rate), ("position_rate", position_rate),
-            ("orientation_rate", orientation_rate), ("relative_pose_rate", relative_pose_rate),
-        )
-    }
-    sigma_pose = _positive_sigmas("pose_sigma", pose_sigma, 2) if strides["pose_rate"] else None
-    sigma_position = _positive_sigmas("position_sigma", position_sigma, 1) if strides["position_rate"] else None
-    sigma_orientation = (
-        _positive_sigmas("orientation_sigma", orientation_sigma, 1) if strides["orientation_rate"] else None
-    )
-    sigma_relative = (
-        _positive_sigmas("relative_pose_sigma", relative_pose_sigma, 2) if strides["relative_pose_rate"] else None
-    )
+    shorthand = _sensors_at_imu({**DEFAULT_RATES, **rates}, imu_rate)
     sigma_bias = _sigmas("initial_bias_sigma", initial_bias_sigma, 2)
     sigma_initial = _sigmas("initial_sigma", initial_sigma, 3)
     outlier_fraction = float(outlier_fraction)
@@ -365,45 +371,12 @@ def simulate(
     )
     initial_cov = _covariance(*np.maximum(np.concatenate([sigma_initial, sigma_bias]), MIN_SIGMA))
 
-    # --- measurements (pose and GPS by datasets.from_truth; its ticks t0 + k / rate fall on the
-    # samples k * stride exactly because the rates were checked to divide imu_rate)
+    # --- measurements: every sensor by its kind's simulator, then the outliers
     truth_trajectory = Trajectory(t, states)
-
-    def indices(stride):
-        return np.arange(0, n, stride)
-
-    pose = None
-    pose_outliers = np.zeros(0, dtype=int)
-    if strides["pose_rate"]:
-        pose = pose_measurements_from_truth(truth_trajectory, pose_rate, *sigma_pose, seed=seeds["pose"])
-        n_out = int(round(outlier_fraction * len(pose)))
-        if n_out:
-            rng = rngs["outliers"]
-            pose_outliers = np.sort(rng.choice(len(pose), size=n_out, replace=False))
-            position, C = pose.position.copy(), pose.C.copy()
-            position[pose_outliers] += outlier_scale[0] * _unit_vectors(rng, n_out)
-            C[pose_outliers] = so3.boxplus(C[pose_outliers], outlier_scale[1] * _unit_vectors(rng, n_out))
-            pose = PoseMeasurements(pose.t, position, C, pose.cov)
-    position = None
-    if strides["position_rate"]:
-        position = position_measurements_from_truth(truth_trajectory, position_rate, *sigma_position, seed=seeds["position"])
-    orientation = None
-    if strides["orientation_rate"]:
-        k = indices(strides["orientation_rate"])
-        noisy = so3.boxplus(states.C[k], rngs["orientation"].standard_normal((len(k), 3)) * sigma_orientation[0])
-        orientation = OrientationMeasurements(t[k], noisy, _covariance(*sigma_orientation))
-    relative_pose = None
-    if strides["relative_pose_rate"]:
-        k = indices(strides["relative_pose_rate"])
-        i, j = k[:-1], k[1:]
-        rng = rngs["relative_pose"]
-        Ci_T = so3.inverse(states.C[i])
-        dr = np.einsum("kij,kj->ki", Ci_T, states.r[j] - states.r[i])
-        dr = dr + rng.standard_normal((len(i), 3)) * sigma_relative[0]
-        dC = so3.boxplus(Ci_T @ states.C[j], rng.standard_normal((len(i), 3)) * sigma_relative[1])
-        relative_pose = RelativePoseMeasurements(t[i], t[j], dr, dC, _covariance(*sigma_relative))
-
     imu_samples = ImuSamples(t, acc, gyro)
+    drawn = sensors_from_truth(truth_trajectory, imu_samples, [*shorthand, *sensors], seeds["sensors"], w_clean,
+                               noise.gyro)
+    drawn, outliers = _with_outliers(drawn, outlier_fraction, outlier_scale, rngs["outliers"])
     return SimulatedDataset(
         name=f"synthetic:{prof.name}",
         imu=imu_samples,
@@ -411,14 +384,10 @@ def simulate(
         initial=initial,
         initial_cov=initial_cov,
         gravity=g.copy(),
-        pose=pose,
-        position=position,
-        orientation=orientation,
-        relative_pose=relative_pose,
         truth=truth_trajectory,
-        sensors=sensors_from_truth(truth_trajectory, imu_samples, sensors, seeds["sensors"], w_clean, noise.gyro),
+        sensors=drawn,
         clean_imu=ImuSamples(t, f_clean, w_clean),
-        pose_outliers=pose_outliers,
+        outliers=outliers,
         profile=prof.name,
         truth_model=truth,
         seed=seed,

@@ -542,12 +542,10 @@ class Sensor:
 @dataclass(frozen=True, eq=False)
 class Dataset:
     """Everything an estimator needs: IMU samples, noise densities, gravity, an initial state with
-    its 15x15 covariance, the measurements available (any may be None) and, where known, the
-    ground truth. ``heldout_positions`` are GPS fixes kept out of estimation for evaluation.
-
-    Measurements come as the IMU-centred fields ``pose``, ``position``, ``orientation`` and
-    ``relative_pose`` (the built-in datasets) and as named ``sensors`` (:class:`Sensor`, each with
-    its kind and extrinsic; a rig's); :func:`datasets.kinds.sensors_of` lists both alike.
+    its 15x15 covariance, the aiding ``sensors`` (:class:`Sensor`: each named, of a kind of
+    :data:`datasets.kinds.KINDS`, with its measurements used and held out) and, where known, the
+    ground truth. The sensors are the one store of measurements: the built-in datasets, the
+    simulator and a rig's recording all make named sensors.
 
     ``time_origin_ns``: where the data have a clock of their own (EuRoC's nanosecond stamps, a
     bag's header stamps since the epoch), its reading at ``t = 0``, in integer nanoseconds; times
@@ -560,13 +558,8 @@ class Dataset:
     initial: ImuState
     initial_cov: np.ndarray
     gravity: np.ndarray = field(default_factory=lambda: DEFAULT_GRAVITY.copy())
-    pose: PoseMeasurements | None = None
-    position: PositionMeasurements | None = None
-    orientation: OrientationMeasurements | None = None
-    relative_pose: RelativePoseMeasurements | None = None
-    truth: Trajectory | None = None
-    heldout_positions: PositionMeasurements | None = None
     sensors: tuple = ()
+    truth: Trajectory | None = None
     time_origin_ns: int | None = None
 
     def __post_init__(self):
@@ -575,9 +568,34 @@ class Dataset:
         if len(self.imu) < MIN_IMU_SAMPLES:
             raise InputError(f"Dataset.imu: at least {MIN_IMU_SAMPLES} IMU samples are needed ({MIN_IMU_SAMPLES_WHY})")
         check_state("Dataset.initial", self.initial)
+        self._check_sensors()
         self._check_imu_gaps()
         self._check_imu_units()
-        self._drop_outside_imu_span()
+        object.__setattr__(self, "sensors", tuple(self._sensor_inside_imu_span(s) for s in self.sensors))
+
+    def _check_sensors(self) -> None:
+        """``sensors`` is a sequence of :class:`Sensor` with names used once."""
+        if isinstance(self.sensors, Sensor) or not isinstance(self.sensors, (tuple, list)):
+            raise InputError(f"Dataset.sensors: expected a tuple of Sensor, got {type(self.sensors).__name__}")
+        names = []
+        for i, s in enumerate(self.sensors):
+            if not isinstance(s, Sensor):
+                raise InputError(f"Dataset.sensors[{i}]: expected a Sensor, got {type(s).__name__}")
+            if s.name in names:
+                raise InputError(f"sensor name {s.name!r} is used twice")
+            names.append(s.name)
+        object.__setattr__(self, "sensors", tuple(self.sensors))
+
+    def sensor(self, name: str) -> Sensor:
+        """The sensor called ``name``; an InputError listing the sensors there are else."""
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        raise InputError(f"{self.name}: no sensor {name!r}; its sensors: {', '.join(self.sensor_names) or 'none'}")
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.sensors)
 
     def _check_imu_units(self) -> None:
         """Warn when the specific force does not look like m/s^2 (a median far from |g|: data in g,
@@ -603,28 +621,6 @@ class Dataset:
         if text is not None:
             warnings.warn(text, stacklevel=3)
 
-    def _drop_outside_imu_span(self) -> None:
-        """Measurements outside ``[t0, t1]`` cannot be predicted by the IMU: they are dropped with
-        a warning naming the field and how many (documented behaviour, not an error)."""
-        t0, t1 = self.t0, self.t1
-        for name in ("pose", "position", "orientation", "heldout_positions"):
-            m = getattr(self, name)
-            if m is None:
-                continue
-            inside = (m.t >= t0) & (m.t <= t1)
-            if not inside.all():
-                warnings.warn(f"Dataset.{name}: {int((~inside).sum())} of {len(m)} measurements lie outside the "
-                              f"IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
-                object.__setattr__(self, name, m.subset(inside) if inside.any() else None)
-        m = self.relative_pose
-        if m is not None:
-            inside = (m.t_from >= t0) & (m.t_to <= t1)
-            if not inside.all():
-                warnings.warn(f"Dataset.relative_pose: {int((~inside).sum())} of {len(m)} measurements reach outside "
-                              f"the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
-                object.__setattr__(self, "relative_pose", m.subset(inside) if inside.any() else None)
-        object.__setattr__(self, "sensors", tuple(self._sensor_inside_imu_span(s) for s in self.sensors))
-
     def _sensor_inside_imu_span(self, sensor: Sensor) -> Sensor:
         """``sensor`` without the measurements outside the IMU span (warned about, as above); a
         sensor left with no measurement is an error naming it (nothing of it could be used)."""
@@ -643,7 +639,7 @@ class Dataset:
                                  f"[{t0:.6f}, {t1:.6f}] s (a time offset, or stamps in another clock?)")
             if not inside.all():
                 warnings.warn(f"sensor {sensor.name!r}: {int((~inside).sum())} of {len(m)} {part} measurements "
-                              f"lie outside the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=4)
+                              f"lie outside the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
             parts[part] = m if inside.all() else (m.subset(inside) if inside.any() else None)
         return Sensor(sensor.name, sensor.kind, parts["data"], parts["heldout"])
 
@@ -656,9 +652,7 @@ class Dataset:
         return float(self.imu.t[-1])
 
     def measurement_times(self) -> np.ndarray:
-        """Sorted unique times of the measurements (pose, position, orientation, and every time of
-        the named sensors: both ends of a relative one)."""
-        parts = [m.t for m in (self.pose, self.position, self.orientation) if m is not None]
-        for s in self.sensors:
-            parts += [s.data.t_from, s.data.t_to] if hasattr(s.data, "t_from") else [s.data.t]
+        """Sorted unique times of the sensors' measurements used (both ends of a relative one)."""
+        data = [s.data for s in self.sensors if s.data is not None]
+        parts = [m.t for m in data] + [m.t_from for m in data if hasattr(m, "t_from")]
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0)

@@ -18,7 +18,7 @@ import numpy as np
 from factors import imu, preintegration
 from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.keys import KeyframeKeys
-from factors.measurements import covariance_model
+from factors.priors import covariance_model
 from factors.errors import InputError
 
 KINDS = [ROT, VEC, VEC, BIAS]

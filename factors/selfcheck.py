@@ -4,7 +4,8 @@ Each entry of :data:`CHECKS` draws one random point from a generator and returns
 Jacobian and the central-difference one (:func:`factors.jacobians.numerical_jacobian`).
 :func:`run_checks` evaluates each entry at many points -- rotations of ordinary size, tiny ones
 (1e-9 to 1e-6 rad) and ones within 1e-3 rad of pi -- and keeps the worst error.
-``smoother check-jacobians`` prints the result.
+``smoother check-jacobians`` prints the result. The measurement models' checks are registered by
+the kinds registry (:mod:`datasets.kinds`), one per kind, from each kind's random row.
 """
 from __future__ import annotations
 
@@ -188,41 +189,13 @@ register("IMU process F (54-60)", _process_F)
 register("IMU process G (54-60)", _process_G)
 
 
-def _random_state(rng):
+def random_state(rng):
+    """A random IMU state: positions of ~10 m, velocities of ~5 m/s, an attitude of any regime
+    (:func:`random_rotation`), biases of ordinary size."""
     from factors import imu
 
     return imu.ImuState(r=rng.normal(size=3) * 10, v=rng.normal(size=3) * 5, C=random_rotation(rng),
                         b_f=rng.normal(size=3) * 0.5, b_w=rng.normal(size=3) * 0.2)
-
-
-def _pose_measurement_H(rng):
-    """The pose sensor's H (primer VI.D) as the Jacobian of the residual e(x) = (r - r~, C [-] C~)
-    with respect to the error state."""
-    from factors import imu, measurements
-
-    x = _random_state(rng)
-    r_m, C_m = x.r + rng.normal(size=3) * 0.1, so3.boxplus(x.C, rng.normal(size=3) * 0.1)
-    _, (J_r, J_C) = measurements.pose_residual(x.r, x.C, r_m, C_m, jacobians=True)
-    H = np.zeros((6, imu.STATE_DIM))
-    H[:, imu.R], H[:, imu.PHI] = J_r, J_C
-    num = _num(lambda s: measurements.pose_residual(s.r, s.C, r_m, C_m), x,
-               arg_kinds=[imu.StateManifold], value_kind="vector")[0]
-    return H, num
-
-
-def _relative_pose_jacobians(rng):
-    """The odometry residual at random poses whose residual rotation ``C_i^T C_j dC^T`` keeps
-    ``PI_MARGIN_FOR_LOG`` from pi, where ``log`` (and so the central differences) jumps."""
-    from factors import measurements
-
-    Ci, dC = random_rotation(rng), random_rotation(rng)
-    Cj = Ci @ random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG) @ dC
-    ri, rj = rng.normal(size=3) * 5, rng.normal(size=3) * 5
-    dr = rng.normal(size=3)
-    _, J = measurements.relative_pose_residual(Ci, ri, Cj, rj, dr, dC, jacobians=True)
-    num = _num(lambda a, b, c, d: measurements.relative_pose_residual(a, b, c, d, dr, dC), Ci, ri, Cj, rj,
-               arg_kinds=["rotation", "vector", "rotation", "vector"], value_kind="vector")
-    return np.hstack(J), np.hstack(num)
 
 
 def _imu_residual_jacobians(rng):
@@ -233,7 +206,7 @@ def _imu_residual_jacobians(rng):
     n = rng.integers(10, 60)
     acc, gyro = rng.normal(size=(1, n, 3)) * 3, rng.normal(size=(1, n, 3)) * 3
     dt = np.full((1, n), rng.uniform(2e-3, 1e-2))
-    xi = _random_state(rng)
+    xi = random_state(rng)
     pre = preintegration.integrate(acc, gyro, dt, xi.b_w[None])[0]
     xi = xi.replace(b_w=xi.b_w + rng.normal(size=3) * 0.01)
     xj = imu.boxplus(preintegration.predict(pre, xi), rng.normal(size=15) * 0.05)
@@ -250,60 +223,4 @@ def random_extrinsic(rng) -> np.ndarray:
     return T
 
 
-def random_sensor_row(model, state, rng) -> np.ndarray:
-    """A measurement row of ``model`` (:mod:`factors.sensor_models`) near the prediction at
-    ``state`` (so the attitude residual stays small even where the attitude is near pi), with a
-    random extrinsic."""
-    from factors import sensor_models as sm
-
-    T = random_extrinsic(rng)
-    R = T[:3, :3]
-    z = state.r + state.C @ T[:3, 3] + rng.normal(size=3) * 0.1
-    Z = so3.boxplus(state.C @ R, rng.normal(size=3) * 0.1)
-    if model is sm.POSITION:
-        return sm.pack_position(z[None], T)[0]
-    if model is sm.ORIENTATION:
-        return sm.pack_orientation(Z[None], T)[0]
-    if model is sm.POSE:
-        return sm.pack_pose(z[None], Z[None], T)[0]
-    return sm.pack_velocity(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)) * 3, T)[0]
-
-
-def _sensor_model_H(name: str):
-    """The error-state Jacobian of a sensor model's kernel against central differences of its
-    residual over the state (boxplus perturbation), with a random extrinsic."""
-    def draw(rng):
-        from factors import imu, sensor_models as sm
-
-        model = getattr(sm, name)
-        x = _random_state(rng)
-        row = random_sensor_row(model, x, rng)
-        _, H = sm.evaluate_one(model, x, row)
-        num = _num(lambda s: sm.evaluate_one(model, s, row)[0], x, arg_kinds=[imu.StateManifold],
-                   value_kind="vector")[0]
-        return H, num
-
-    return draw
-
-
-def _odometry_jacobians(rng):
-    """The relative pose of a sensor with a random extrinsic (as :func:`_relative_pose_jacobians`)."""
-    from factors import sensor_models as sm
-
-    T = random_extrinsic(rng)
-    R = T[:3, :3]
-    Ci, dC = random_rotation(rng), random_rotation(rng)
-    Cj = Ci @ R @ random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG) @ dC @ R.T
-    ri, rj, dr = rng.normal(size=3) * 5, rng.normal(size=3) * 5, rng.normal(size=3)
-    _, J = sm.odometry_residual(Ci, ri, Cj, rj, dr, dC, T, jacobians=True)
-    num = _num(lambda a, b, c, d: sm.odometry_residual(a, b, c, d, dr, dC, T), Ci, ri, Cj, rj,
-               arg_kinds=["rotation", "vector", "rotation", "vector"], value_kind="vector")
-    return np.hstack(J), np.hstack(num)
-
-
-register("pose measurement H (61-63)", _pose_measurement_H)
-for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY"):
-    register(f"{_model.lower()} sensor with extrinsic T_BS, H", _sensor_model_H(_model))
-register("odometry of a sensor with extrinsic T_BS", _odometry_jacobians)
-register("relative pose residual", _relative_pose_jacobians)
 register("IMU factor residual (preintegrated)", _imu_residual_jacobians)

@@ -52,6 +52,13 @@ from factors.errors import InputError
 from factors.imu import STATE_DIM, ImuState
 
 
+#: The widest kernel row and the largest residual dimension the estimators hold room for (the EKF's
+#: batched updates, the sliding window's measurement store); the kinds registry refuses a kind
+#: beyond them.
+MAX_ROW_WIDTH = 24
+MAX_RESIDUAL_DIM = 6
+
+
 def extrinsic_parts(T_BS) -> tuple[np.ndarray, np.ndarray]:
     """``(R_BS, p_BS)`` of a 4x4 extrinsic (identity when ``T_BS`` is None)."""
     if T_BS is None:
@@ -76,7 +83,7 @@ def _rotated_lever_into(C, p, Cp, H_rows, first_row) -> None:
 def orientation_error_into(C, measured, e, J) -> None:
     """``e (3) = log(C C_meas^T)`` and ``J (3x3) = Gamma^-1(e)`` for one attitude (eqs. 62, 63;
     the derivative of log, eq. 32): the one attitude residual of the project
-    (:func:`factors.measurements.orientation_residual` and every sensor model run it)."""
+    (every sensor model's attitude part runs it)."""
     e[0], e[1], e[2] = so3.boxminus_of(C, measured)
     so3.gamma_inv_into(e[0], e[1], e[2], J)
 
@@ -341,6 +348,19 @@ def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, j
         return e
     H = H.reshape(lead + (6, 30))
     return e, [H[..., 6:9], H[..., 0:3], H[..., 21:24], H[..., 15:18]]
+
+
+def evaluate_pair(state_i: ImuState, state_j: ImuState, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e (6,), H (6, 30))`` of one relative pose ``row`` (:func:`pack_odometry`) between two
+    states, ``H`` over both error states side by side."""
+    row = np.ascontiguousarray(row, dtype=float)
+    if row.shape != (ODOMETRY_WIDTH,):
+        raise InputError(f"odometry measurement row: expected {ODOMETRY_WIDTH} numbers (the pack_odometry layout), "
+                         f"got shape {row.shape}")
+    e, H = np.empty(6), np.empty((6, 2 * STATE_DIM))
+    parts = [np.ascontiguousarray(a, dtype=float) for a in (state_i.r, state_i.C, state_j.r, state_j.C)]
+    odometry_kernel(*parts, row, e, H)
+    return e, H
 
 
 def odometry_factor(keys_i, keys_j, measured_dr, measured_dC, T_BS, noise_model) -> gtsam.CustomFactor:

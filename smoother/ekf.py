@@ -27,7 +27,7 @@ from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
-from factors.sensor_models import evaluate_one, pack_orientation, pack_pose, pack_position
+from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from factors.small_linalg import cholesky_into
 from smoother.metrics import chi2_quantile
 from smoother.progress import progress_bar
@@ -95,19 +95,6 @@ class Ekf:
                              "needs a cloned past state, which this filter does not keep)")
         e, H = evaluate_one(KINDS[kind].model, self.state, row)
         return self.update(e, H, R)
-
-    def update_position(self, measured, R, T_BS=None) -> bool:
-        return self.update_sensor("position", pack_position(np.reshape(measured, (1, 3)), T_BS)[0], R)
-
-    def update_orientation(self, measured_C, R, T_BS=None) -> bool:
-        return self.update_sensor("orientation", pack_orientation(np.reshape(measured_C, (1, 3, 3)), T_BS)[0], R)
-
-    def update_pose(self, measured_r, measured_C, R, T_BS=None) -> bool:
-        """Primer section VI.D: ``H = [[I 0 0 0 0], [0 0 I 0 0]]`` at zero innovation; here the
-        exact Jacobian of the residual (``Gamma^-1(e)`` on the attitude block, the lever arm's
-        ``-(C p)^x`` with an extrinsic)."""
-        return self.update_sensor("pose", pack_pose(np.reshape(measured_r, (1, 3)),
-                                                    np.reshape(measured_C, (1, 3, 3)), T_BS)[0], R)
 
 
 @dataclass
@@ -204,7 +191,7 @@ class _Updates:
             parts.append((np.zeros(0, int), np.zeros(0, int), 0, np.zeros((0, 1)), np.zeros((0, 1, 1))))
         u = sum(len(p[0]) for p in parts)
         width = max(p[3].shape[1] for p in parts)
-        rows, R = np.zeros((u, width)), np.zeros((u, 6, 6))
+        rows, R = np.zeros((u, width)), np.zeros((u, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM))
         model, dim = np.empty(u, np.int64), np.empty(u, np.int64)
         at = 0
         for _, _, index, block, cov in parts:

@@ -50,7 +50,7 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu, preintegration
-from factors import measurements as meas
+from factors import priors
 from factors.imu_factor import ImuFactor
 from factors.uncertainty import state_covariance_to_primer
 from factors.errors import InputError, SolverError
@@ -310,7 +310,7 @@ def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> No
 
 
 def _weak_prior(keys, guess: imu.ImuState):
-    return meas.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
+    return priors.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
 
 
 class FixedLagFailed(SolverError, ValueError):
@@ -448,7 +448,7 @@ class KeyframeWindow:
         keys = keyframe_keys(k)
         factors, oldest = [], []
         if prior is not None:
-            factors.append(meas.state_prior_factor(keys, *prior))
+            factors.append(priors.state_prior_factor(keys, *prior))
             oldest.append(k)
         if pre is not None and k > 0:
             factors.append(ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,

@@ -27,7 +27,7 @@ import numpy as np
 from datasets.kinds import KINDS, measure_rows, model_index, sensors_of
 from datasets.types import Dataset, Trajectory
 from factors import imu, preintegration
-from factors import measurements as meas
+from factors import priors
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
@@ -73,7 +73,7 @@ def _robust_estimator(spec, dim: int):
 
 def noise_model(cov: np.ndarray, robust=None):
     """A Gaussian model of ``cov``, wrapped in a robust kernel ``(name, threshold)`` if given."""
-    base = meas.covariance_model(cov)
+    base = priors.covariance_model(cov)
     if robust is None:
         return base
     return gtsam.noiseModel.Robust.Create(_robust_estimator(robust, np.shape(cov)[-1]), base)
@@ -187,12 +187,9 @@ def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
     or more); NaN where unknown. Keyframe 0 is the dataset's initial state, never reset."""
     n = len(times)
     anchors = preintegration.Anchors.none(n)
-    # where several sensors anchor one keyframe, the later wins: a pose sensor's, which gives both
-    for sensor in sorted(sensors_of(dataset), key=lambda s: s.kind == "pose"):
-        anchor = KINDS[sensor.kind].anchor
-        if anchor is None:
-            continue
-        t, r, C = anchor(sensor.data)
+    # where several sensors anchor one keyframe, the later wins: one that gives both position and attitude
+    implied = [KINDS[s.kind].anchor(s.data) for s in sensors_of(dataset) if KINDS[s.kind].anchor is not None]
+    for t, r, C in sorted(implied, key=lambda a: a[1] is not None and a[2] is not None):
         idx = _match(times, t)
         if r is not None:
             anchors.r[idx[idx >= 0]] = r[idx >= 0]
@@ -261,8 +258,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
                   start: Trajectory | None = None) -> Problem:
     """The factor graph of ``dataset`` (see the module docstring).
 
-    ``robust`` maps a sensor's name (the built-in datasets' ``"pose"``, ``"position"``,
-    ``"orientation"``, ``"relative_pose"``; a rig's own names) to a kernel spec ``(name,
+    ``robust`` maps a sensor's name (``Dataset.sensors``) to a kernel spec ``(name,
     threshold)`` from :func:`datasets.robust.robust_spec`. ``start``: an estimate of the run (an
     EKF's) to start from instead of dead reckoning (:func:`_started_from`).
     """
@@ -283,7 +279,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
 
     def prior_residual(slots, jacobians, rows):
         s = slots[0]
-        out = meas.state_residual(s.C, s.r, s.v, np.concatenate([s.b_f, s.b_w], axis=-1), prior, jacobians)
+        out = priors.state_residual(s.C, s.r, s.v, np.concatenate([s.b_f, s.b_w], axis=-1), prior, jacobians)
         return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
@@ -303,7 +299,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     def keyframe_factors(k: int) -> KeyframeFactors:
         """The GTSAM factors available at keyframe ``k`` (see :class:`Problem`)."""
         if k == 0:
-            out = KeyframeFactors(None, [meas.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0])
+            out = KeyframeFactors(None, [priors.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0])
         else:
             imu_factor = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
                                    reintegration_threshold=reintegration_threshold)

@@ -28,7 +28,7 @@ class MonteCarloConfig:
     estimators: tuple = ("batch", "ekf")
     lag_s: float = 2.0
     outliers: float = 0.0
-    robust: tuple = ()  # ((type, (kernel, threshold)), ...) as hashable pairs
+    robust: tuple = ()  # ((sensor name, (kernel, threshold)), ...) as hashable pairs
 
 
 def run_one(config: MonteCarloConfig, seed: int) -> dict:

@@ -21,7 +21,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from datasets.types import Dataset, Trajectory
+from datasets.kinds import sensors_of
+from datasets.types import Dataset, PoseMeasurements, Trajectory
 from factors import imu
 from smoother.timeline import estimate_times, imu_steps
 from factors.errors import InputError
@@ -59,10 +60,13 @@ def _pose_noise(cov6: np.ndarray, C: np.ndarray):
 
 
 def solve_native(dataset: Dataset) -> Trajectory:
-    """GTSAM's CombinedImuFactor graph of ``dataset`` (pose measurements only) solved with LM;
-    the estimates in this project's state convention (body velocity, primer attitude)."""
-    if dataset.pose is None:
-        raise InputError("solve_native needs pose measurements")
+    """GTSAM's CombinedImuFactor graph of ``dataset`` (one pose sensor at the IMU, nothing else)
+    solved with LM; the estimates in this project's state convention (body velocity, primer
+    attitude)."""
+    poses = [s.data for s in sensors_of(dataset) if isinstance(s.data, PoseMeasurements) and s.data.T_BS is None]
+    if len(poses) != 1 or len(sensors_of(dataset)) != 1:
+        raise InputError(f"solve_native needs one pose sensor at the IMU and no other; {dataset.name} has "
+                         f"{', '.join(dataset.sensor_names) or 'no sensor'}")
     times = estimate_times(dataset)
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
@@ -86,7 +90,7 @@ def solve_native(dataset: Dataset) -> Trajectory:
         values.insert(X(k), nav.pose())
         values.insert(V(k), nav.velocity())
         values.insert(B(k), bias0)
-    m = dataset.pose
+    m = poses[0]
     index = np.searchsorted(times, m.t)
     for i, k in enumerate(index):
         if k < len(times) and times[k] == m.t[i]:

@@ -75,7 +75,7 @@ from collections import deque
 import math
 import time
 import warnings
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -119,12 +119,6 @@ def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float
 
 
 @functools.cache
-def _value_fields(data_type) -> tuple[str, ...]:
-    """The fields of a measurement data type (:mod:`datasets.types`) that :meth:`OnlineSmoother.add`
-    takes as values: all but ``cov`` and ``T_BS``."""
-    return tuple(f.name for f in fields(data_type) if f.name not in ("cov", "T_BS"))
-
-
 @dataclass(frozen=True)
 class SensorSetup:
     """An aiding sensor of an :class:`OnlineSmoother`: its ``kind`` (a name of
@@ -413,7 +407,7 @@ class OnlineSmoother:
         self._open()
         setup, kind = self._setup(sensor)
         single = np.ndim(t) == 0
-        data_fields = _value_fields(kind.data_type)
+        data_fields = (*kind.times, *kind.fields)
         if len(values) != len(data_fields) - 1:
             raise InputError(f"add({sensor!r}): expected {', '.join(data_fields)} (and cov), got "
                              f"{len(values) + 1} values")

@@ -143,10 +143,11 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
 
 
 def position_streams(dataset: Dataset) -> list[tuple]:
-    """Each stream of position fixes as ``(used, held out)`` (either may be None): the dataset's
-    own (KITTI's GPS) and each position or GNSS sensor's (a rig's, with its lever arm)."""
-    return [(dataset.position, dataset.heldout_positions)] + [
-        (s.data, s.heldout) for s in dataset.sensors if isinstance(s.data, PositionMeasurements)]
+    """Each sensor's stream of position fixes (any kind measuring :class:`PositionMeasurements`:
+    KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(used, held out)``
+    (either may be None)."""
+    return [(s.data, s.heldout) for s in dataset.sensors
+            if isinstance(s.heldout if s.data is None else s.data, PositionMeasurements)]
 
 
 def score(dataset: Dataset, estimate: Trajectory) -> dict:

@@ -78,22 +78,20 @@ def load_rig(path) -> tuple[Dataset, dict]:
 
 
 def _with_truth_measurements(dataset: Dataset, options: SourceOptions) -> Dataset:
-    """Add pose / GPS measurements drawn from the ground truth (``--pose-from-truth``,
-    ``--gps-from-truth``; :func:`datasets.from_truth.measurements_from_truth`, independent noise
-    streams from ``--seed``)."""
+    """Add the sensors ``pose`` / ``gps`` drawn from the ground truth (``--pose-from-truth``,
+    ``--gps-from-truth``; :func:`datasets.simulated_sensors.truth_sensors`, independent noise
+    streams from ``--seed``), in place of any of the same name."""
     if options.pose_from_truth is None and options.gps_from_truth is None:
         return dataset
     if dataset.truth is None:
         raise UserError(f"--pose-from-truth/--gps-from-truth: dataset {dataset.name!r} has no ground truth")
-    from datasets.from_truth import measurements_from_truth
+    from datasets.simulated_sensors import truth_sensors
 
     try:
-        pose, position = measurements_from_truth(dataset.truth, options.pose_from_truth, options.gps_from_truth,
-                                                 options.seed)
+        drawn = truth_sensors(dataset.truth, dataset.imu, options.pose_from_truth, options.gps_from_truth,
+                              options.seed)
     except ValueError as error:  # "pose_from_truth: ..." -> "--pose-from-truth: ..."
         option, _, reason = str(error).partition(": ")
         raise UserError(f"--{option.replace('_', '-')}: {reason}") from None
-    changes = {"pose": pose} if pose is not None else {}
-    if position is not None:
-        changes["position"] = position
-    return replace(dataset, **changes)
+    names = {s.name for s in drawn}
+    return replace(dataset, sensors=tuple(s for s in dataset.sensors if s.name not in names) + drawn)

@@ -83,14 +83,10 @@ def interval_steps(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, t_from: flo
 
 def estimate_times(dataset: Dataset, grid_rate: float | None = None) -> np.ndarray:
     """Where the estimators report states (the smoothers' keyframes, the EKF's knots): every
-    measurement time (pose, position, orientation, both ends of each relative pose, every sensor's),
-    the times of held-out fixes and held-out sensor measurements (only their times: an evaluation wants estimates there), the start and end of
+    measurement time of every sensor (both ends of a relative one), the times of held-out
+    measurements (only their times: an evaluation wants estimates there), the start and end of
     the IMU data, and optionally a grid of ``grid_rate`` Hz; all within the IMU span."""
     parts = [dataset.measurement_times(), [dataset.t0, dataset.t1]]
-    if dataset.relative_pose is not None:
-        parts += [dataset.relative_pose.t_from, dataset.relative_pose.t_to]
-    if dataset.heldout_positions is not None:
-        parts.append(dataset.heldout_positions.t)
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
     if grid_rate:
         # Grid times as t0 + k / rate (correctly rounded, like the measurement ticks; arange's

@@ -10,7 +10,10 @@ rig's sensor of that kind is read. Each kind lives in a module of this package (
 :func:`factors.sensor_models.odometry_residual`, the EKF does not.
 
 Adding a kind: a module with its :class:`~datasets.kinds.base.Kind` (and its model, if new, with
-a kernel of the common signature), its tests, and one line in :data:`KINDS`.
+a kernel of the common signature), its tests, and one line in :data:`KINDS`. The registry checks
+what the kind declares (:func:`registered`) and registers its model's Jacobian check with
+:mod:`factors.selfcheck` (``smoother check-jacobians`` runs it); the every-kind tests
+(``tests/datasets/test_every_kind.py``) run over the registry.
 
 The compiled :func:`measure_into` dispatches to a model's kernel by its index in :data:`MODELS`;
 the EKF's loop and the batch solver's blocks call it, so neither knows any kind by name.
@@ -24,20 +27,56 @@ import numpy as np
 from numba import literal_unroll, njit
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
+from dataclasses import fields as dataclass_fields
+
 from datasets.kinds import odometry, orientation, pose, position, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.types import Dataset, Sensor
+from factors import imu, jacobians, selfcheck
 from factors import sensor_models as sm
 from factors.errors import InputError
 
-__all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "kind_sigmas", "measure_into", "measure_rows",
-           "model_index", "quiet_dispatch", "sensors_of"]
+__all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "evaluate", "kind_sigmas", "measure_into",
+           "measure_rows", "model_index", "quiet_dispatch", "registered", "sensors_of"]
+
+
+def registered(*kinds: Kind) -> dict[str, Kind]:
+    """The kinds by name, each checked against the rules the estimators rely on: a unique name;
+    a residual of at most :data:`factors.sensor_models.MAX_RESIDUAL_DIM` and kernel rows of at
+    most :data:`factors.sensor_models.MAX_ROW_WIDTH` numbers (the room the EKF and the sliding
+    window hold); a model of the kind's dimension; a data type whose fields are the kind's
+    ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``default_sigma`` that
+    :func:`kind_sigmas` reads; a ``random_row`` of the declared width. A ValueError naming the
+    kind and the rule else."""
+    out: dict[str, Kind] = {}
+    for k in kinds:
+        def refuse(rule: str):
+            raise ValueError(f"measurement kind {k.name!r}: {rule}")
+
+        if k.name in out:
+            refuse("the name is registered twice")
+        if not 1 <= k.dim <= sm.MAX_RESIDUAL_DIM:
+            refuse(f"residual dimension {k.dim}; expected 1 .. {sm.MAX_RESIDUAL_DIM}")
+        if k.model is not None and k.model.dim != k.dim:
+            refuse(f"its model {k.model.name!r} has dimension {k.model.dim}, the kind {k.dim}")
+        if not 1 <= k.width <= sm.MAX_ROW_WIDTH:
+            refuse(f"row width {k.width}; expected 1 .. {sm.MAX_ROW_WIDTH}")
+        expected = (*k.times, *k.fields, "cov", "T_BS")
+        found = tuple(f.name for f in dataclass_fields(k.data_type))
+        if found != expected:
+            refuse(f"{k.data_type.__name__} has the fields {found}; the kind declares {expected}")
+        kind_sigmas(f"measurement kind {k.name!r}: default_sigma", k.default_sigma, k.dim)
+        _, row = k.random_row(np.random.default_rng(0))
+        if np.shape(row) != (k.width,):
+            refuse(f"random_row gives a row of shape {np.shape(row)}; expected ({k.width},)")
+        out[k.name] = k
+    return out
 
 
 #: The registry: every kind, by name. Adding a kind is a module of its own and a line here.
-KINDS: dict[str, Kind] = {k.name: k for k in (
+KINDS: dict[str, Kind] = registered(
     pose.KIND, position.POSITION, position.GNSS, orientation.KIND, velocity.KIND, odometry.KIND,
-)}
+)
 
 #: The kinds of aiding sensor, by the name a rig file's ``kind`` and the command line use.
 KIND_NAMES = tuple(KINDS)
@@ -88,16 +127,38 @@ def measure_rows(kind: Kind, states, rows: np.ndarray) -> tuple[np.ndarray, np.n
     return e, H
 
 
+def evaluate(kind: Kind, state, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e, H)`` of one measurement ``row`` of ``kind`` at ``state`` (for a relative kind the
+    pair ``(x_i, x_j)``, ``H`` over both error states side by side)."""
+    if kind.relative:
+        return sm.evaluate_pair(*state, row)
+    return sm.evaluate_one(kind.model, state, row)
+
+
+def _model_check(kind: Kind):
+    """The self-check of ``kind``'s model: its analytic error-state Jacobian at a random row
+    (:attr:`Kind.random_row`) against central differences of its residual (boxplus on the state)."""
+    def draw(rng):
+        state, row = kind.random_row(rng)
+        states = state if kind.relative else (state,)
+        _, H = evaluate(kind, state, row)
+        numerical = jacobians.numerical_jacobian(
+            lambda *s: evaluate(kind, s if kind.relative else s[0], row)[0], *states,
+            arg_kinds=[imu.StateManifold] * len(states), value_kind="vector")
+        return H, np.hstack(numerical)
+
+    return draw
+
+
+for _kind in KINDS.values():
+    selfcheck.register(f"{_kind.name} measurement: H of its residual, extrinsic T_BS", _model_check(_kind))
+
+
 def sensors_of(dataset: Dataset) -> list[Sensor]:
-    """Every sensor of ``dataset``: the IMU-centred fields as sensors named after their field
-    (``pose``, ``position``, ``orientation``, ``relative_pose`` of kind ``odometry``), then the
-    named ``sensors``. Each sensor's kind is checked against :data:`KINDS` and its data type."""
-    legacy = [Sensor(name, kind, getattr(dataset, name)) for name, kind in (
-        ("pose", "pose"), ("position", "position"), ("orientation", "orientation"), ("relative_pose", "odometry"))
-        if getattr(dataset, name) is not None]
-    out = legacy + list(dataset.sensors)
-    names = [s.name for s in out]
-    for s in out:
+    """The aiding sensors of ``dataset`` (those with measurements to use; a sensor whose every
+    measurement is held out only scores), each one's kind checked against :data:`KINDS` and its
+    measurements against the kind's data type."""
+    for s in dataset.sensors:
         if s.kind not in KINDS:
             raise InputError(f"sensor {s.name!r}: unknown kind {s.kind!r}; expected one of {', '.join(KINDS)}")
         expected = KINDS[s.kind].data_type
@@ -105,6 +166,4 @@ def sensors_of(dataset: Dataset) -> list[Sensor]:
             if part is not None and not isinstance(part, expected):
                 raise InputError(f"sensor {s.name!r} of kind {s.kind!r}: expected {expected.__name__}, "
                                  f"got {type(part).__name__}")
-        if names.count(s.name) > 1:
-            raise InputError(f"sensor name {s.name!r} is used twice")
-    return out
+    return [s for s in dataset.sensors if s.data is not None]

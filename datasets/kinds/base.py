@@ -14,21 +14,33 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from factors import sensor_models as sm
+from factors import so3
 from factors.errors import InputError
 
 
 @dataclass(frozen=True)
 class Kind:
-    """One measurement kind.
+    """One measurement kind: everything the rest of the project knows of it.
 
-    ``name``: what a rig file's ``kind`` and the command line call it; ``data_type``: its
-    measurements' dataclass; ``dim``: the residual's dimension; ``model``: the one-state model
-    (None for a relative kind, which connects two keyframes); ``pack(data) -> (N, width)``: the
-    model's kernel rows; ``simulate(truth, k, imu, T_BS, sigma (dim,), rng)``: measurements at
-    truth samples ``k`` (``imu`` an :class:`ImuAt` there); ``anchor(data) -> (t, r or None, C or
-    None)``: the IMU positions and attitudes the measurements imply (they reset the dead reckoning
-    of the smoothers' initial trajectory), or None; ``read(sensor, clock) -> (data, datum)``: a
-    rig's sensor (:class:`datasets.rig.SensorConfig`) read from its source (:class:`Clock`)."""
+    ``name``: what a rig file's ``kind``, the simulator's ``<name>_rate`` and the command line call
+    it; ``data_type``: its measurements' dataclass, whose fields are ``times`` (``("t",)``, or
+    ``("t_from", "t_to")`` for a relative kind), then ``fields`` (the measured values), then
+    ``cov`` and ``T_BS``, in that order (``OnlineSmoother.add`` takes the values in it);
+    ``dim``: the residual's dimension; ``model``: the one-state model (None for a relative kind,
+    which connects two keyframes through :func:`factors.sensor_models.odometry_kernel`);
+    ``pack(data) -> (N, width)``: the model's kernel rows; ``simulate(truth, k, imu, T_BS, sigma
+    (dim,), rng)``: measurements at truth samples ``k`` (``imu`` an :class:`ImuAt` there);
+    ``anchor(data) -> (t, r or None, C or None)``: the IMU positions and attitudes the
+    measurements imply (they reset the dead reckoning of the smoothers' initial trajectory), or
+    None; ``read(sensor, clock) -> (data, datum)``: a rig's sensor
+    (:class:`datasets.rig.SensorConfig`) read from its source (:class:`Clock`);
+    ``random_row(rng) -> (state, row)``: a random state (for a relative kind the pair ``(x_i,
+    x_j)``) and a measurement row near its prediction, with a random extrinsic (the Jacobian
+    self-check and the every-kind tests evaluate the model there); ``default_sigma``: the
+    simulator's noise when none is given (as :func:`kind_sigmas` reads it); ``corrupt(data,
+    index, scale, rng)``: the data with the measurements ``index`` made outliers, moved by
+    ``scale = (metres, radians)`` in random directions (None: the simulator cannot corrupt this
+    kind). The registry (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
     data_type: type
@@ -38,6 +50,11 @@ class Kind:
     simulate: Callable
     anchor: Callable | None
     read: Callable
+    fields: tuple[str, ...]
+    random_row: Callable
+    default_sigma: tuple
+    times: tuple[str, ...] = ("t",)
+    corrupt: Callable | None = None
 
     @property
     def relative(self) -> bool:
@@ -48,6 +65,11 @@ class Kind:
         """Whether the kind fixes a position or an attitude in the world (it has an anchor): what
         ends a stretch of dead reckoning. Velocities and relative poses do not."""
         return self.anchor is not None
+
+    @property
+    def width(self) -> int:
+        """The width of its kernel rows."""
+        return sm.ODOMETRY_WIDTH if self.relative else self.model.width
 
 
 class ImuAt(NamedTuple):
@@ -111,3 +133,21 @@ def poses(sensor, clock: Clock):
 
     stream = read_poses(sensor.source, sensor.topic)
     return stream, clock.stamps(stream.t, stream.t_ns, sensor.time_offset)
+
+
+def unit_vectors(rng, n: int) -> np.ndarray:
+    """``n`` directions uniform on the sphere (N, 3)."""
+    u = rng.standard_normal((n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def near_prediction(state, rng):
+    """``(T_BS, z, Z)``: a random extrinsic, and a sensor position ``z`` and attitude ``Z`` near
+    what ``state`` predicts for it (0.1 m, 0.1 rad of noise: the attitude residual stays small
+    even where the attitude is near pi)."""
+    from factors.selfcheck import random_extrinsic
+
+    T = random_extrinsic(rng)
+    z = state.r + state.C @ T[:3, 3] + rng.normal(size=3) * 0.1
+    Z = so3.boxplus(state.C @ T[:3, :3], rng.normal(size=3) * 0.1)
+    return T, z, Z

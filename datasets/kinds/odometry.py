@@ -10,6 +10,7 @@ from datasets.types import RelativePoseMeasurements
 from factors import so3
 from factors import sensor_models as sm
 from factors.errors import InputError
+from factors.selfcheck import PI_MARGIN_FOR_LOG, random_extrinsic, random_rotation, random_state
 
 
 def _relative(t, r, C, cov, T_BS):
@@ -36,4 +37,15 @@ def _read(sensor, clock):
     return _relative(t, stream.position, stream.C, noise(sensor, 6, None, len(t) - 1), sensor.T_BS), clock.datum
 
 
-KIND = Kind("odometry", RelativePoseMeasurements, 6, None, None, _simulate, None, _read)
+def _random_row(rng):
+    """Two states whose sensor frames' relative rotation differs from the measured one by a random
+    rotation of any size short of pi (the residual's log is defined), random lever arms."""
+    T = random_extrinsic(rng)
+    R = T[:3, :3]
+    xi, xj, dC = random_state(rng), random_state(rng), random_rotation(rng)
+    xj = xj.replace(C=xi.C @ R @ random_rotation(rng, pi_margin=PI_MARGIN_FOR_LOG) @ dC @ R.T)
+    return (xi, xj), sm.pack_odometry(rng.normal(size=(1, 3)), dC[None], T)[0]
+
+
+KIND = Kind("odometry", RelativePoseMeasurements, 6, None, None, _simulate, None, _read, fields=("dr", "dC"),
+            random_row=_random_row, default_sigma=(0.02, 0.005), times=("t_from", "t_to"))

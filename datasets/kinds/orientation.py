@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from datasets.kinds.base import Kind, noise, poses
+from datasets.kinds.base import Kind, near_prediction, noise, poses, unit_vectors
 from datasets.types import OrientationMeasurements
 from factors import so3
 from factors import sensor_models as sm
+from factors.selfcheck import random_state
 
 
 def _simulate(truth, k, imu, T_BS, sigma, rng):
@@ -27,5 +28,19 @@ def _read(sensor, clock):
     return OrientationMeasurements(t, stream.C, noise(sensor, 3, cov, len(t)), sensor.T_BS), clock.datum
 
 
+def _random_row(rng):
+    x = random_state(rng)
+    T, _, Z = near_prediction(x, rng)
+    return x, sm.pack_orientation(Z[None], T)[0]
+
+
+def _corrupt(m, index, scale, rng):
+    """Attitudes turned by ``scale[1]`` rad."""
+    C = m.C.copy()
+    C[index] = so3.boxplus(C[index], scale[1] * unit_vectors(rng, len(index)))
+    return OrientationMeasurements(m.t, C, m.cov, m.T_BS)
+
+
 KIND = Kind("orientation", OrientationMeasurements, 3, sm.ORIENTATION, lambda m: sm.pack_orientation(m.C, m.T_BS),
-            _simulate, _anchor, _read)
+            _simulate, _anchor, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
+            corrupt=_corrupt)

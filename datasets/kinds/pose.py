@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from datasets.kinds.base import Kind, noise, noisy, poses
+from datasets.kinds.base import Kind, near_prediction, noise, noisy, poses, unit_vectors
 from datasets.types import PoseMeasurements
 from factors import so3
 from factors import sensor_models as sm
+from factors.selfcheck import random_state
 
 
 def _simulate(truth, k, imu, T_BS, sigma, rng):
@@ -28,5 +29,20 @@ def _read(sensor, clock):
     return PoseMeasurements(t, stream.position, stream.C, noise(sensor, 6, stream.cov, len(t)), sensor.T_BS), clock.datum
 
 
+def _random_row(rng):
+    x = random_state(rng)
+    T, z, Z = near_prediction(x, rng)
+    return x, sm.pack_pose(z[None], Z[None], T)[0]
+
+
+def _corrupt(m, index, scale, rng):
+    """Positions moved by ``scale[0]`` metres, then attitudes turned by ``scale[1]`` rad."""
+    position, C = m.position.copy(), m.C.copy()
+    position[index] += scale[0] * unit_vectors(rng, len(index))
+    C[index] = so3.boxplus(C[index], scale[1] * unit_vectors(rng, len(index)))
+    return PoseMeasurements(m.t, position, C, m.cov, m.T_BS)
+
+
 KIND = Kind("pose", PoseMeasurements, 6, sm.POSE, lambda m: sm.pack_pose(m.position, m.C, m.T_BS), _simulate,
-            _anchor, _read)
+            _anchor, _read, fields=("position", "C"), random_row=_random_row, default_sigma=(0.05, 0.01),
+            corrupt=_corrupt)

@@ -7,9 +7,10 @@ import warnings
 
 import numpy as np
 
-from datasets.kinds.base import Kind, noise, noisy, poses
+from datasets.kinds.base import Kind, near_prediction, noise, noisy, poses, unit_vectors
 from datasets.types import PositionMeasurements
 from factors import sensor_models as sm
+from factors.selfcheck import random_state
 
 
 def _simulate(truth, k, imu, T_BS, sigma, rng):
@@ -45,5 +46,20 @@ def _pack(m):
     return sm.pack_position(m.position, m.T_BS)
 
 
-POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions)
-GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes)
+def _random_row(rng):
+    x = random_state(rng)
+    T, z, _ = near_prediction(x, rng)
+    return x, sm.pack_position(z[None], T)[0]
+
+
+def _corrupt(m, index, scale, rng):
+    """Positions moved by ``scale[0]`` metres."""
+    position = m.position.copy()
+    position[index] += scale[0] * unit_vectors(rng, len(index))
+    return PositionMeasurements(m.t, position, m.cov, m.T_BS)
+
+
+_DECLARED = dict(fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=_corrupt)
+POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions,
+                **_DECLARED)
+GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes, **_DECLARED)

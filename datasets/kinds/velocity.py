@@ -10,6 +10,7 @@ import numpy as np
 from datasets.kinds.base import Kind, noise, noisy
 from datasets.types import VelocityMeasurements
 from factors import sensor_models as sm
+from factors.selfcheck import random_extrinsic, random_state
 
 
 def with_gyro_noise(m: VelocityMeasurements, gyro_variance: float) -> VelocityMeasurements:
@@ -38,5 +39,10 @@ def _read(sensor, clock):
     return with_gyro_noise(m, clock.gyro_variance), clock.datum
 
 
+def _random_row(rng):
+    return random_state(rng), sm.pack_velocity(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)) * 3,
+                                               random_extrinsic(rng))[0]
+
+
 KIND = Kind("velocity", VelocityMeasurements, 3, sm.VELOCITY, lambda m: sm.pack_velocity(m.velocity, m.gyro, m.T_BS),
-            _simulate, None, _read)
+            _simulate, None, _read, fields=("velocity", "gyro"), random_row=_random_row, default_sigma=(0.05,))

@@ -14,6 +14,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    import datasets.kinds  # noqa: F401  (registers every kind's measurement-model check)
     from factors import jacobians, selfcheck
     from smoother.commands import at_least
 

@@ -19,14 +19,15 @@ def register(sub) -> None:
     p.add_argument("--estimator", action="append", choices=["batch", "fixed-lag", "ekf"],
                    help="estimators to run (repeatable; default batch and ekf)")
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of pose measurements made outliers")
-    p.add_argument("--robust", action="append", default=[], metavar="[TYPE=]KERNEL[:T]")
+    p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",
+                   help="robust kernel none|huber|cauchy|tukey[:T] for every sensor or the one named (pose)")
     p.add_argument("--out", default="montecarlo", help="output directory (default ./montecarlo)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
-    from datasets.simulate import PROFILES
+    from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
     from smoother import montecarlo
     from smoother.commands import at_least, duration, fraction, output_directory
     from smoother.commands.run import parse_robust
@@ -42,7 +43,7 @@ def run(args) -> int:
     estimators = tuple(args.estimator or ("batch", "ekf"))
     config = montecarlo.MonteCarloConfig(
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,
-        robust=tuple(sorted(parse_robust(args.robust).items())),
+        robust=tuple(sorted(parse_robust(args.robust, DEFAULT_SENSOR_NAMES).items())),
     )
     out = output_directory(args.out)
     seeds = range(args.first_seed, args.first_seed + args.runs)

@@ -39,9 +39,9 @@ def register(sub) -> None:
                         "says whether it converged before them")
     p.add_argument("--keyframe-rate", type=float, default=None,
                    help="add keyframes on a fixed grid [Hz] besides the measurement times")
-    p.add_argument("--robust", action="append", default=[], metavar="[TYPE=]KERNEL[:T]",
-                   help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for all measurement "
-                        "types or one (pose, position, orientation, relative_pose); repeatable")
+    p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",
+                   help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for every sensor or "
+                        "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of simulated pose measurements made gross outliers")
@@ -65,13 +65,9 @@ def register(sub) -> None:
     p.set_defaults(handler=run)
 
 
-#: The sensors of the built-in datasets, by the names ``--robust`` takes.
-BUILT_IN_SENSORS = ("pose", "position", "orientation", "relative_pose")
-
-
-def parse_robust(specs: list[str], types=BUILT_IN_SENSORS, defaults: dict | None = None) -> dict:
-    """``["huber"]`` -> the same kernel for every sensor in ``types``; ``["pose=cauchy:2"]`` -> per
-    sensor; over ``defaults`` (a rig file's per-sensor kernels)."""
+def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
+    """``["huber"]`` -> the same kernel for every sensor named in ``types``; ``["pose=cauchy:2"]``
+    -> per sensor; over ``defaults`` (a rig file's per-sensor kernels)."""
     from datasets.robust import robust_spec
 
     out: dict = dict(defaults or {})
@@ -153,10 +149,9 @@ def _run(args) -> int:
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
     if args.rig is not None:
         dataset, rig_robust = sources.load_rig(args.rig)
-        robust = parse_robust(args.robust, [s.name for s in dataset.sensors], rig_robust)
     else:
-        dataset = sources.load(args.dataset or "synthetic:gentle", options)
-        robust = parse_robust(args.robust)
+        dataset, rig_robust = sources.load(args.dataset or "synthetic:gentle", options), None
+    robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
         max_iterations=args.max_iterations,
