@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import warnings
 
@@ -596,6 +596,13 @@ class Dataset:
     @property
     def sensor_names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.sensors)
+
+    def with_sensor(self, name: str, **changes) -> "Dataset":
+        """This dataset with the sensor ``name``'s fields changed (``data=``, ``heldout=``, ...;
+        :func:`dataclasses.replace`); an InputError if there is no such sensor."""
+        self.sensor(name)
+        sensors = tuple(replace(s, **changes) if s.name == name else s for s in self.sensors)
+        return replace(self, sensors=sensors)
 
     def _check_imu_units(self) -> None:
         """Warn when the specific force does not look like m/s^2 (a median far from |g|: data in g,

@@ -250,19 +250,19 @@ def test_sensor_yaml_duplicate_keys_and_an_unclosed_list(tmp_path, edit, line, f
 def test_synthetic_measurements_from_truth(sequence):
     root = sequence[0]
     d = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
-    assert d.pose is not None and d.position is not None
-    assert set(d.pose.t) <= set(d.truth.t) and set(d.position.t) <= set(d.truth.t)
-    assert np.allclose(np.diff(d.pose.t), 0.05) and np.allclose(np.diff(d.position.t), 0.1)
-    assert np.allclose(d.pose.cov[0], np.diag([1e-4] * 3 + [2.5e-5] * 3))
+    assert d.sensor("pose").data is not None and d.sensor("position").data is not None
+    assert set(d.sensor("pose").data.t) <= set(d.truth.t) and set(d.sensor("position").data.t) <= set(d.truth.t)
+    assert np.allclose(np.diff(d.sensor("pose").data.t), 0.05) and np.allclose(np.diff(d.sensor("position").data.t), 0.1)
+    assert np.allclose(d.sensor("pose").data.cov[0], np.diag([1e-4] * 3 + [2.5e-5] * 3))
     again = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
-    assert np.array_equal(d.pose.position, again.pose.position) and np.array_equal(d.pose.C, again.pose.C)
+    assert np.array_equal(d.sensor("pose").data.position, again.pose.position) and np.array_equal(d.sensor("pose").data.C, again.pose.C)
     other = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), seed=4)
-    assert not np.allclose(d.pose.position, other.pose.position) and other.position is None
+    assert not np.allclose(d.sensor("pose").data.position, other.sensor("pose").data.position) and other.sensor("position").data is None
     # The two streams are independent: at common times their position noises differ.
-    common, i, j = np.intersect1d(d.pose.t, d.position.t, return_indices=True)
+    common, i, j = np.intersect1d(d.sensor("pose").data.t, d.sensor("position").data.t, return_indices=True)
     k = np.searchsorted(d.truth.t, common)
-    e_pose = (d.pose.position[i] - d.truth.position[k]) / 0.01
-    e_gps = (d.position.position[j] - d.truth.position[k]) / 0.1
+    e_pose = (d.sensor("pose").data.position[i] - d.truth.position[k]) / 0.01
+    e_gps = (d.sensor("position").data.position[j] - d.truth.position[k]) / 0.1
     assert not np.allclose(e_pose, e_gps)
     with pytest.raises(ValueError, match="pose_from_truth"):
         load_euroc(root, pose_from_truth=(20, 0.01))

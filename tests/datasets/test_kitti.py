@@ -65,10 +65,10 @@ def test_gps_every_partitions_the_fixes(real_files):
     t_gps, _, _ = read_gps(real_files[kitti.GPS_FILE])
     later = t_gps[2:]  # the fixes after fix 1, the first
     # GTSAM's example's rule: fix i of the file is used when i % 10 == 0 (fixes 10, 20, ...)
-    assert np.array_equal(d.position.t, t_gps[10::10][: len(d.position.t)])
-    assert len(d.position.t) == np.sum(np.arange(2, 2 + len(later)) % 10 == 0)
-    assert np.array_equal(np.sort(np.concatenate([d.position.t, d.heldout_positions.t])), later)
-    assert not set(d.position.t) & set(d.heldout_positions.t)
+    assert np.array_equal(d.sensor("gps").data.t, t_gps[10::10][: len(d.sensor("gps").data.t)])
+    assert len(d.sensor("gps").data.t) == np.sum(np.arange(2, 2 + len(later)) % 10 == 0)
+    assert np.array_equal(np.sort(np.concatenate([d.sensor("gps").data.t, d.sensor("gps").heldout.t])), later)
+    assert not set(d.sensor("gps").data.t) & set(d.sensor("gps").heldout.t)
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="gps_every"):
             load_kitti(gps_every=bad)
@@ -99,8 +99,8 @@ def test_initial_state_agrees_with_a_gtsam_solution(real):
 
     d = real
     n = 20
-    t_fix = np.concatenate([[d.t0], d.position.t[:n]])
-    p_fix = np.vstack([d.initial.r, d.position.position[:n]])
+    t_fix = np.concatenate([[d.t0], d.sensor("gps").data.t[:n]])
+    p_fix = np.vstack([d.initial.r, d.sensor("gps").data.position[:n]])
     params = gtsam.PreintegrationParams.MakeSharedU(9.8)
     params.setAccelerometerCovariance(np.eye(3) * d.noise.acc**2)
     params.setGyroscopeCovariance(np.eye(3) * d.noise.gyro**2)
@@ -168,7 +168,7 @@ def test_used_fixes_are_counted_from_the_start_of_the_file_like_the_example(tmp_
     used and 3 is held out (counting after the first would use 3)."""
     paths = _write_small(tmp_path)
     d = load_kitti(**paths, first_gps=1, gps_every=2)
-    assert np.allclose(d.position.t, [1002.0, 1004.0]) and np.allclose(d.heldout_positions.t, [1003.0])
+    assert np.allclose(d.sensor("gps").data.t, [1002.0, 1004.0]) and np.allclose(d.sensor("gps").heldout.t, [1003.0])
 
 
 def test_small_files_with_explicit_paths(tmp_path):
@@ -176,7 +176,7 @@ def test_small_files_with_explicit_paths(tmp_path):
     d = load_kitti(**paths, first_gps=0, gps_every=2)
     assert d.imu.t[0] == 1000.0 and len(d.imu) == 501
     # fixes 1..4 after the first: 2 and 4 used, 1 and 3 held out
-    assert np.allclose(d.position.t, [1002.0, 1004.0]) and np.allclose(d.heldout_positions.t, [1001.0, 1003.0])
+    assert np.allclose(d.sensor("gps").data.t, [1002.0, 1004.0]) and np.allclose(d.sensor("gps").heldout.t, [1001.0, 1003.0])
     # initial state: first fix, course along +x (yaw 0), body velocity (5, 0, 0)
     assert np.array_equal(d.initial.r, [0.0, 1.0, 0.5])
     assert np.allclose(d.initial.C, np.eye(3)) and np.allclose(d.initial.v, [5.0, 0.0, 0.0])
@@ -194,7 +194,7 @@ def test_gps_fix_between_imu_samples(tmp_path):
     d = load_kitti(**paths, first_gps=0)
     imu_all, _ = read_imu(paths["imu_path"])
     assert d.imu.t[0] == gps[0]
-    assert np.array_equal(d.position.t, gps[1:])  # not moved to IMU stamps
+    assert np.array_equal(d.sensor("gps").data.t, gps[1:])  # not moved to IMU stamps
     k = int(np.searchsorted(imu_all.t, gps[0])) - 1  # the sample before the fix
     assert imu_all.t[k] < gps[0] < imu_all.t[k + 1]
     assert np.array_equal(d.imu.gyro[0], imu_all.gyro[k])
@@ -208,7 +208,7 @@ def test_gps_fix_between_imu_samples(tmp_path):
 def test_fixes_after_the_imu_are_dropped_and_before_it_refused(tmp_path):
     paths = _write_small(tmp_path, gps_times=1000.0 + np.array([0.0, 1.0, 2.0, 7.0, 9.0]))
     d = load_kitti(**paths, first_gps=0)
-    assert np.allclose(d.position.t, [1001.0, 1002.0])
+    assert np.allclose(d.sensor("gps").data.t, [1001.0, 1002.0])
     paths = _write_small(tmp_path, gps_times=np.array([999.0, 1001.0, 1002.0]))
     with pytest.raises(DataError, match=r"gps\.txt, line 2, field 'Time'.*within the IMU samples"):
         load_kitti(**paths, first_gps=0)
@@ -275,7 +275,7 @@ def test_malformed_copies_of_the_real_files(tmp_path, real_files):
     paths["gps_path"].write_text("\n".join(gps) + "\n")
     paths["imu_path"].write_text("\n".join(imu) + "\n")
     d = load_kitti(**paths)
-    assert d.t1 == float(imu[-1].split()[0]) and d.position.t[-1] == float(gps[-1].split(",")[0])
+    assert d.t1 == float(imu[-1].split()[0]) and d.sensor("gps").data.t[-1] == float(gps[-1].split(",")[0])
     # a NaN gyro reading on line 1234
     bad = list(imu)
     fields = bad[1233].split(" ")

@@ -61,7 +61,7 @@ def assert_same_dataset(a: Dataset, b: Dataset):
 
 
 def test_same_seed_same_dataset_and_different_seeds_differ():
-    kw = dict(profile="gentle", duration=5.0, position_rate=5.0, relative_pose_rate=10.0)
+    kw = dict(profile="gentle", duration=5.0, position_rate=5.0, odometry_rate=10.0)
     a, b, c = simulate(seed=3, **kw), simulate(seed=3, **kw), simulate(seed=4, **kw)
     assert isinstance(a, Dataset) and isinstance(a, SimulatedDataset)
     assert a.name == "synthetic:gentle"
@@ -80,7 +80,7 @@ def test_same_seed_same_dataset_and_different_seeds_differ():
 def test_switching_measurements_on_or_off_changes_nothing_else():
     base = simulate("tumbling", duration=3.0, seed=11)
     more = simulate("tumbling", duration=3.0, seed=11, position_rate=20.0, orientation_rate=4.0,
-                    relative_pose_rate=5.0, outlier_fraction=0.0)
+                    odometry_rate=5.0, outlier_fraction=0.0)
     assert_same_dataset(base, more)
     slower_pose = simulate("tumbling", duration=3.0, seed=11, pose_rate=5.0)
     np.testing.assert_array_equal(base.imu.acc, slower_pose.imu.acc)
@@ -328,7 +328,7 @@ def long_run():
     return simulate(
         "tumbling", duration=1000.0, imu_rate=RATE, seed=7, noise=NOISE, clean_imu="matched",
         pose_rate=RATE, pose_sigma=(0.05, 0.01), position_rate=RATE, position_sigma=0.5,
-        orientation_rate=RATE, orientation_sigma=0.02, relative_pose_rate=RATE, relative_pose_sigma=(0.02, 0.005),
+        orientation_rate=RATE, orientation_sigma=0.02, odometry_rate=RATE, odometry_sigma=(0.02, 0.005),
     )
 
 
@@ -364,28 +364,28 @@ def test_velocity_noise_enters_the_discrete_truth(long_run):
 def test_measurement_noise_has_the_declared_covariances(long_run):
     d = long_run
     s = d.truth.states
-    k = np.searchsorted(d.imu.t, d.pose.t)
+    k = np.searchsorted(d.imu.t, d.sensor("pose").data.t)
     # pose: the declared covariance, and the one asked for
-    np.testing.assert_array_equal(d.pose.cov[0], np.diag([0.05**2] * 3 + [0.01**2] * 3))
-    declared = np.diagonal(d.pose.cov, axis1=1, axis2=2)
-    assert_variance(d.pose.position - s.r[k], declared[:, :3].mean(0), "pose position noise")
-    n_phi = so3.boxminus(d.pose.C, s.C[k])  # C_meas = exp(n) C
+    np.testing.assert_array_equal(d.sensor("pose").data.cov[0], np.diag([0.05**2] * 3 + [0.01**2] * 3))
+    declared = np.diagonal(d.sensor("pose").data.cov, axis1=1, axis2=2)
+    assert_variance(d.sensor("pose").data.position - s.r[k], declared[:, :3].mean(0), "pose position noise")
+    n_phi = so3.boxminus(d.sensor("pose").data.C, s.C[k])  # C_meas = exp(n) C
     assert_variance(n_phi, declared[:, 3:].mean(0), "pose attitude noise (world frame)")
-    assert_white(np.hstack([d.pose.position - s.r[k], n_phi]), "pose noise")
+    assert_white(np.hstack([d.sensor("pose").data.position - s.r[k], n_phi]), "pose noise")
     # GPS
-    k = np.searchsorted(d.imu.t, d.position.t)
-    np.testing.assert_array_equal(d.position.cov[0], 0.25 * np.eye(3))
-    assert_variance(d.position.position - s.r[k], 0.5**2, "GPS noise")
+    k = np.searchsorted(d.imu.t, d.sensor("position").data.t)
+    np.testing.assert_array_equal(d.sensor("position").data.cov[0], 0.25 * np.eye(3))
+    assert_variance(d.sensor("position").data.position - s.r[k], 0.5**2, "GPS noise")
     # orientation
-    k = np.searchsorted(d.imu.t, d.orientation.t)
-    np.testing.assert_array_equal(d.orientation.cov[0], 0.02**2 * np.eye(3))
-    assert_variance(so3.boxminus(d.orientation.C, s.C[k]), 0.02**2, "orientation noise")
+    k = np.searchsorted(d.imu.t, d.sensor("orientation").data.t)
+    np.testing.assert_array_equal(d.sensor("orientation").data.cov[0], 0.02**2 * np.eye(3))
+    assert_variance(so3.boxminus(d.sensor("orientation").data.C, s.C[k]), 0.02**2, "orientation noise")
 
 
 def test_relative_pose_noise_is_in_frame_i(long_run):
     d = long_run
     s = d.truth.states
-    rp = d.relative_pose
+    rp = d.sensor("odometry").data
     i, j = np.searchsorted(d.imu.t, rp.t_from), np.searchsorted(d.imu.t, rp.t_to)
     np.testing.assert_array_equal(i[1:], j[:-1])  # consecutive
     Ci_T = so3.inverse(s.C[i])
@@ -400,20 +400,20 @@ def test_attitude_noise_is_applied_on_the_left():
     """With isotropic noise ``exp(n) C`` and ``C exp(n)`` have the same distribution, so no
     statistic can tell them apart: check the construction itself against the documented streams
     (one generator per role, spawned in the order of ``STREAMS``)."""
-    d = simulate("tumbling", duration=2.0, seed=9, pose_rate=50.0, relative_pose_rate=25.0)
+    d = simulate("tumbling", duration=2.0, seed=9, pose_rate=50.0, odometry_rate=25.0)
     seeds = np.random.SeedSequence(9).spawn(len(sim.STREAMS))
     s = d.truth.states
     rng = np.random.default_rng(seeds[sim.STREAMS.index("pose")])
     k = np.arange(0, len(d.imu), 4)
     n_p, n_phi = rng.standard_normal((len(k), 3)) * 0.05, rng.standard_normal((len(k), 3)) * 0.01
-    np.testing.assert_allclose(d.pose.position, s.r[k] + n_p, rtol=0, atol=1e-14)
-    np.testing.assert_allclose(d.pose.C, so3.exp(n_phi) @ s.C[k], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(d.sensor("pose").data.position, s.r[k] + n_p, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(d.sensor("pose").data.C, so3.exp(n_phi) @ s.C[k], rtol=0, atol=1e-14)
     rng = np.random.default_rng(seeds[sim.STREAMS.index("relative_pose")])
     i, j = np.arange(0, len(d.imu) - 8, 8), np.arange(8, len(d.imu), 8)
     n_r, n_phi = rng.standard_normal((len(i), 3)) * 0.02, rng.standard_normal((len(i), 3)) * 0.005
     Ci_T = so3.inverse(s.C[i])
-    np.testing.assert_allclose(d.relative_pose.dr, np.einsum("kij,kj->ki", Ci_T, s.r[j] - s.r[i]) + n_r, atol=1e-14)
-    np.testing.assert_allclose(d.relative_pose.dC, so3.exp(n_phi) @ Ci_T @ s.C[j], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(d.sensor("odometry").data.dr, np.einsum("kij,kj->ki", Ci_T, s.r[j] - s.r[i]) + n_r, atol=1e-14)
+    np.testing.assert_allclose(d.sensor("odometry").data.dC, so3.exp(n_phi) @ Ci_T @ s.C[j], rtol=0, atol=1e-14)
 
 
 def test_initial_estimate_error_is_a_draw_from_initial_cov():
@@ -455,18 +455,18 @@ def test_zero_initial_sigma_means_known_exactly(truth, clean_imu):
 
 def test_measurement_times_are_imu_sample_times():
     d = simulate("gentle", duration=60.0, t0=12.5, imu_rate=200.0, pose_rate=10.0, position_rate=1.0,
-                 orientation_rate=40.0, relative_pose_rate=5.0)
+                 orientation_rate=40.0, odometry_rate=5.0)
     t = d.imu.t
     assert len(t) == 12001 and t[0] == 12.5 and t[-1] == pytest.approx(72.5, abs=1e-12)
     np.testing.assert_allclose(np.diff(t), 1 / 200, rtol=0, atol=1e-12)
     for times, stride, count in [
-        (d.pose.t, 20, 601), (d.position.t, 200, 61), (d.orientation.t, 5, 2401), (d.relative_pose.t_from, 40, 300),
+        (d.sensor("pose").data.t, 20, 601), (d.sensor("position").data.t, 200, 61), (d.sensor("orientation").data.t, 5, 2401), (d.sensor("odometry").data.t_from, 40, 300),
     ]:
         assert len(times) == count
         k = np.searchsorted(t, times)
         np.testing.assert_array_equal(t[k], times)  # the same floats, not just close
         np.testing.assert_array_equal(k, stride * np.arange(count))  # first at t0, exact rate
-    np.testing.assert_array_equal(d.relative_pose.t_to[:-1], d.relative_pose.t_from[1:])
+    np.testing.assert_array_equal(d.sensor("odometry").data.t_to[:-1], d.sensor("odometry").data.t_from[1:])
     np.testing.assert_array_equal(d.truth.t, t)
     assert np.isin(d.measurement_times(), t).all()
 
@@ -476,16 +476,16 @@ def test_outliers_corrupt_the_chosen_pose_measurements_only():
     dirty = simulate("gentle", duration=20.0, seed=2, outlier_fraction=0.1, outlier_scale=(4.0, 0.8))
     assert len(clean.pose_outliers) == 0
     out = dirty.pose_outliers
-    assert len(out) == round(0.1 * len(dirty.pose)) == 20 and len(np.unique(out)) == 20
+    assert len(out) == round(0.1 * len(dirty.sensor("pose").data)) == 20 and len(np.unique(out)) == 20
     other = simulate("gentle", duration=20.0, seed=3, outlier_fraction=0.1).pose_outliers
-    assert not np.array_equal(out, other) and out.max() > len(dirty.pose) // 2  # drawn, not the first ones
-    keep = np.setdiff1d(np.arange(len(dirty.pose)), out)
-    np.testing.assert_array_equal(dirty.pose.position[keep], clean.pose.position[keep])
-    np.testing.assert_array_equal(dirty.pose.C[keep], clean.pose.C[keep])
-    np.testing.assert_allclose(np.linalg.norm(dirty.pose.position[out] - clean.pose.position[out], axis=1), 4.0)
-    angle = np.linalg.norm(so3.boxminus(dirty.pose.C[out], clean.pose.C[out]), axis=1)
+    assert not np.array_equal(out, other) and out.max() > len(dirty.sensor("pose").data) // 2  # drawn, not the first ones
+    keep = np.setdiff1d(np.arange(len(dirty.sensor("pose").data)), out)
+    np.testing.assert_array_equal(dirty.sensor("pose").data.position[keep], clean.sensor("pose").data.position[keep])
+    np.testing.assert_array_equal(dirty.sensor("pose").data.C[keep], clean.sensor("pose").data.C[keep])
+    np.testing.assert_allclose(np.linalg.norm(dirty.sensor("pose").data.position[out] - clean.sensor("pose").data.position[out], axis=1), 4.0)
+    angle = np.linalg.norm(so3.boxminus(dirty.sensor("pose").data.C[out], clean.sensor("pose").data.C[out]), axis=1)
     np.testing.assert_allclose(angle, 0.8, atol=1e-12)
-    np.testing.assert_array_equal(dirty.pose.cov, clean.pose.cov)  # nominal covariance: that is the point
+    np.testing.assert_array_equal(dirty.sensor("pose").data.cov, clean.sensor("pose").data.cov)  # nominal covariance: that is the point
     assert_same_dataset(clean, simulate("gentle", duration=20.0, seed=2, outlier_fraction=0.0))
     np.testing.assert_array_equal(clean.imu.acc, dirty.imu.acc)
 
@@ -496,7 +496,7 @@ def test_outliers_corrupt_the_chosen_pose_measurements_only():
         (dict(pose_rate=30.0), "pose_rate"),
         (dict(position_rate=7.0), "position_rate"),
         (dict(orientation_rate=400.0), "orientation_rate"),
-        (dict(relative_pose_rate=-5.0), "relative_pose_rate"),
+        (dict(odometry_rate=-5.0), "relative_pose_rate"),
         (dict(duration=-1.0), "duration"),
         (dict(duration=0.0), "duration"),
         (dict(duration=0.001), "duration"),  # shorter than one IMU step
@@ -520,6 +520,6 @@ def test_bad_options_raise_value_error_naming_the_option(options, name):
 
 
 def test_rates_of_none_or_zero_mean_no_measurement():
-    d = simulate("static", duration=1.0, pose_rate=0, position_rate=None, orientation_rate=0.0, relative_pose_rate=None)
-    assert d.pose is None and d.position is None and d.orientation is None and d.relative_pose is None
+    d = simulate("static", duration=1.0, pose_rate=0, position_rate=None, orientation_rate=0.0, odometry_rate=None)
+    assert d.sensor("pose").data is None and d.sensor("position").data is None and d.sensor("orientation").data is None and d.sensor("odometry").data is None
     assert len(d.pose_outliers) == 0

@@ -14,12 +14,29 @@ import pytest
 
 from datasets.simulate import simulate
 from factors import imu, so3
-from factors import measurements as meas
+from factors import sensor_models as sm
 from smoother import metrics
 from smoother.ekf import Ekf, run_ekf
 from smoother.timeline import estimate_times, imu_steps
 
 import estimator_cases as cases
+
+
+def _update_pose(ekf, r, C, R) -> bool:
+    return ekf.update_sensor("pose", sm.pack_pose(np.reshape(r, (1, 3)), np.reshape(C, (1, 3, 3)))[0], R)
+
+
+def _update_position(ekf, z, R) -> bool:
+    return ekf.update_sensor("position", sm.pack_position(np.reshape(z, (1, 3)))[0], R)
+
+
+def _update_orientation(ekf, C, R) -> bool:
+    return ekf.update_sensor("orientation", sm.pack_orientation(np.reshape(C, (1, 3, 3)))[0], R)
+
+
+def _pose_residual(x, r, C):
+    """``(e, H)`` of a pose measurement at the IMU (the pose model's kernel)."""
+    return sm.evaluate_one(sm.POSE, x, sm.pack_pose(np.reshape(r, (1, 3)), np.reshape(C, (1, 3, 3)))[0])
 
 
 def _initial_ekf(noise=imu.ImuNoise(velocity=1e-3), seed=0):
@@ -131,21 +148,19 @@ def test_covariance_prediction_equals_F_P_Ft_plus_G_Qd_Gt_by_hand():
 def test_update_matches_the_kalman_equations_by_hand():
     """A pose update with moderate noise: dx = -K e with K = P H^T S^-1, the state corrected with
     the boxplus, P = (I - K H) P (the Joseph form equals it for the optimal gain), computed here
-    with the residual and Jacobian of factors.measurements."""
+    with the residual and Jacobian of the pose model's kernel."""
     ekf = _initial_ekf()
     _predict_some(ekf)
     x, P = ekf.state, ekf.P.copy()
     measured_r = x.r + [0.05, -0.02, 0.03]
     measured_C = so3.exp([0.01, -0.02, 0.015]) @ x.C
     R = np.diag(np.repeat([0.05, 0.01], 3) ** 2)
-    e, (J_r, J_C) = meas.pose_residual(x.r, x.C, measured_r, measured_C, jacobians=True)
-    H = np.zeros((6, 15))
-    H[:, imu.R], H[:, imu.PHI] = J_r, J_C
+    e, H = _pose_residual(x, measured_r, measured_C)
     K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
     expected_state = imu.boxplus(x, -K @ e)
     expected_P = (np.eye(15) - K @ H) @ P
 
-    assert ekf.update_pose(measured_r, measured_C, R)
+    assert _update_pose(ekf, measured_r, measured_C, R)
     for name in ("r", "v", "C", "b_f", "b_w"):
         np.testing.assert_allclose(getattr(ekf.state, name), getattr(expected_state, name), rtol=0, atol=1e-12)
     np.testing.assert_allclose(ekf.P, expected_P, rtol=0, atol=1e-9 * np.abs(P).max())
@@ -161,7 +176,7 @@ def test_precise_position_measurement_pulls_the_state_onto_it():
     _predict_some(ekf)
     target = ekf.state.r + [0.3, -0.2, 0.1]
     R = (1e-6) ** 2 * np.eye(3)
-    assert ekf.update_position(target, R)
+    assert _update_position(ekf, target, R)
     np.testing.assert_allclose(ekf.state.r, target, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ekf.P[imu.R, imu.R], R, rtol=0, atol=1e-3 * R[0, 0])
 
@@ -175,7 +190,7 @@ def test_precise_pose_measurement_pulls_position_and_attitude_onto_it():
     measured_r = ekf.state.r + [0.2, 0.1, -0.3]
     measured_C = so3.exp([0.06, -0.05, 0.06]) @ ekf.state.C
     R = np.diag([1e-12] * 3 + [1e-14] * 3)
-    assert ekf.update_pose(measured_r, measured_C, R)
+    assert _update_pose(ekf, measured_r, measured_C, R)
     np.testing.assert_allclose(ekf.state.r, measured_r, rtol=0, atol=1e-9)
     assert np.linalg.norm(so3.boxminus(ekf.state.C, measured_C)) < 1e-9
 
@@ -184,7 +199,7 @@ def test_orientation_update_pulls_the_attitude_onto_a_precise_measurement():
     ekf = _initial_ekf()
     _predict_some(ekf)
     measured_C = so3.exp([-0.04, 0.03, 0.02]) @ ekf.state.C
-    assert ekf.update_orientation(measured_C, 1e-14 * np.eye(3))
+    assert _update_orientation(ekf, measured_C, 1e-14 * np.eye(3))
     assert np.linalg.norm(so3.boxminus(ekf.state.C, measured_C)) < 1e-9
 
 
@@ -204,15 +219,13 @@ def test_joseph_form_keeps_the_covariance_symmetric_positive_definite():
         _predict_some(ekf, steps=3, seed=k)
         measured_r = ekf.state.r + 1e-7 * rng.normal(size=3)
         measured_C = so3.exp(1e-8 * rng.normal(size=3)) @ ekf.state.C
-        e, (J_r, J_C) = meas.pose_residual(ekf.state.r, ekf.state.C, measured_r, measured_C, jacobians=True)
-        H = np.zeros((6, 15))
-        H[:, imu.R], H[:, imu.PHI] = J_r, J_C
+        e, H = _pose_residual(ekf.state, measured_r, measured_C)
         P = ekf.P
         K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
         short = P - K @ H @ P
         short_error = np.abs(np.diag(short)[imu.R] / R[0, 0] - 1.0).max()
         worst_short_error = max(worst_short_error, short_error)
-        assert ekf.update_pose(measured_r, measured_C, R)
+        assert _update_pose(ekf, measured_r, measured_C, R)
         np.testing.assert_array_equal(ekf.P, ekf.P.T)
         eigenvalues = np.linalg.eigvalsh(ekf.P)
         assert eigenvalues.min() > 0, f"update {k}: smallest eigenvalue {eigenvalues.min():.3g}"
@@ -230,11 +243,11 @@ def test_gate_rejects_a_gross_outlier_and_counts_it():
     _predict_some(ekf)
     x, P = ekf.state, ekf.P.copy()
     R = np.diag(np.repeat([0.05, 0.01], 3) ** 2)
-    assert not ekf.update_pose(x.r + [3.0, 4.0, 0.0], so3.exp([0.5, 0, 0]) @ x.C, R)
+    assert not _update_pose(ekf, x.r + [3.0, 4.0, 0.0], so3.exp([0.5, 0, 0]) @ x.C, R)
     assert ekf.rejected == 1
     assert ekf.state is x
     np.testing.assert_array_equal(ekf.P, P)
-    assert ekf.update_pose(x.r, x.C, R)
+    assert _update_pose(ekf, x.r, x.C, R)
     assert ekf.rejected == 1
 
 
@@ -245,10 +258,10 @@ def test_run_ekf_gate_rejects_exactly_the_simulated_outliers():
     more accurate than the ungated one."""
     data = simulate(profile="gentle", duration=4.0, seed=2, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
                     outlier_fraction=0.1)
-    assert len(data.pose_outliers) == 4
+    assert len(data.outliers["pose"]) == 4
     gated = run_ekf(data, gate_probability=0.999, progress=False)
     plain = run_ekf(data, progress=False)
-    assert gated.rejected == len(data.pose_outliers)
+    assert gated.rejected == len(data.outliers["pose"])
     assert plain.rejected == 0
     ate_gated = cases.position_rmse(data, gated.trajectory)
     ate_plain = cases.position_rmse(data, plain.trajectory)
@@ -259,14 +272,14 @@ def test_run_ekf_reports_every_knot(gentle):
     """States at the start, at every measurement time and at the end, covariances with them."""
     data = cases.dataset(gentle)
     traj = cases.ekf(gentle).trajectory
-    np.testing.assert_array_equal(traj.t, np.union1d(data.pose.t, [data.t0, data.t1]))
+    np.testing.assert_array_equal(traj.t, np.union1d(data.sensor("pose").data.t, [data.t0, data.t1]))
     assert traj.cov.shape == (len(traj.t), 15, 15)
     assert np.all(np.linalg.eigvalsh(traj.cov).min(axis=1) > 0)
 
 
 def test_run_ekf_warns_that_relative_poses_are_not_used():
     data = simulate(profile="gentle", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
-                    relative_pose_rate=5.0)
+                    odometry_rate=5.0)
     with pytest.warns(UserWarning, match="relative-pose"):
         run_ekf(data, progress=False)
 
@@ -330,7 +343,7 @@ def test_gate_threshold_follows_the_innovation_dimension():
     # a position innovation with e^T S^-1 e = 19 along the first eigenvector of S
     w, V = np.linalg.eigh(S_pos)
     offset = V[:, 0] * np.sqrt(19.0 * w[0])
-    assert not ekf.update_position(x.r + offset, 0.01 * np.eye(3))
+    assert not _update_position(ekf, x.r + offset, 0.01 * np.eye(3))
     assert ekf.rejected == 1
 
 
@@ -343,15 +356,13 @@ def test_log_likelihood_accumulates_the_innovation_densities():
     R = np.diag(np.repeat([0.05, 0.01], 3) ** 2)
     x = ekf.state
     measured_r, measured_C = x.r + [0.02, -0.01, 0.03], so3.exp([0.004, 0.0, -0.002]) @ x.C
-    e, (J_r, J_C) = meas.pose_residual(x.r, x.C, measured_r, measured_C, jacobians=True)
-    H = np.zeros((6, 15))
-    H[:, imu.R], H[:, imu.PHI] = J_r, J_C
+    e, H = _pose_residual(x, measured_r, measured_C)
     expected = multivariate_normal(np.zeros(6), H @ ekf.P @ H.T + R).logpdf(e)
-    assert ekf.update_pose(measured_r, measured_C, R)
+    assert _update_pose(ekf, measured_r, measured_C, R)
     assert ekf.log_likelihood == pytest.approx(expected, rel=1e-12)
     ekf.gate_probability = 0.999
     before = ekf.log_likelihood
-    assert not ekf.update_pose(ekf.state.r + [5.0, 0, 0], ekf.state.C, R)
+    assert not _update_pose(ekf, ekf.state.r + [5.0, 0, 0], ekf.state.C, R)
     assert ekf.log_likelihood == before
 
 
@@ -374,12 +385,12 @@ def test_a_diverging_filter_stops_with_an_error_naming_the_time():
 
 def test_run_ekf_equals_the_filter_driven_step_by_step():
     """The compiled filter loop of run_ekf equals the Ekf class driven knot by knot from Python
-    (predict_steps, then update_pose, update_position, update_orientation at their times), with
+    (predict_steps, then the pose, position and orientation updates at their times), with
     all three measurement types, a gate and a rejected outlier."""
     data = simulate("tumbling", duration=6.0, seed=2, pose_rate=2.0, position_rate=5.0, orientation_rate=4.0)
-    pose = data.pose
+    pose = data.sensor("pose").data
     bad = dataclasses.replace(pose, position=pose.position + np.where(np.arange(len(pose.t)) == 4, 50.0, 0.0)[:, None])
-    data = dataclasses.replace(data, pose=bad)
+    data = data.with_sensor("pose", data=bad)
     result = run_ekf(data, gate_probability=0.999, progress=False)
 
     knots = estimate_times(data)
@@ -389,9 +400,9 @@ def test_run_ekf_equals_the_filter_driven_step_by_step():
     for k, (t, stop) in enumerate(zip(knots, samples.knot_step)):
         ekf.predict_steps(samples.acc[start:stop], samples.gyro[start:stop], samples.dt[start:stop])
         start = stop
-        for m, update in ((data.pose, lambda i: ekf.update_pose(data.pose.position[i], data.pose.C[i], data.pose.cov[i])),
-                          (data.position, lambda i: ekf.update_position(data.position.position[i], data.position.cov[i])),
-                          (data.orientation, lambda i: ekf.update_orientation(data.orientation.C[i], data.orientation.cov[i]))):
+        for m, update in ((data.sensor("pose").data, lambda i: _update_pose(ekf, data.sensor("pose").data.position[i], data.sensor("pose").data.C[i], data.sensor("pose").data.cov[i])),
+                          (data.sensor("position").data, lambda i: _update_position(ekf, data.sensor("position").data.position[i], data.sensor("position").data.cov[i])),
+                          (data.sensor("orientation").data, lambda i: _update_orientation(ekf, data.sensor("orientation").data.C[i], data.sensor("orientation").data.cov[i]))):
             hit = np.flatnonzero(m.t == t)
             if len(hit):
                 update(hit[0])
@@ -416,10 +427,12 @@ def test_the_compiled_filter_needs_no_scipy(tmp_path):
         "sys.modules['scipy'] = None\n"
         "import numpy as np\n"
         "from factors import imu, so3\n"
+        "from factors.sensor_models import pack_pose\n"
         "from smoother.ekf import Ekf\n"
         "ekf = Ekf(imu.ImuState.identity(), np.eye(15) * 0.01, imu.ImuNoise())\n"
         "ekf.predict_steps(np.tile([0, 0, 9.81], (5, 1)), np.full((5, 3), 0.1), np.full(5, 0.01))\n"
-        "assert ekf.update_pose(ekf.state.r + 0.01, so3.exp([0.01, 0, 0]) @ ekf.state.C, np.eye(6) * 1e-4)\n"
+        "row = pack_pose([ekf.state.r + 0.01], [so3.exp([0.01, 0, 0]) @ ekf.state.C])[0]\n"
+        "assert ekf.update_sensor('pose', row, np.eye(6) * 1e-4)\n"
     )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)

@@ -53,9 +53,9 @@ def gap_run():
     """10 s gentle run, poses at 10 Hz except in [4, 6) s, lag 0.5 s (incremental smoother): the
     one warning is that of the gap (test_either_kind_warns_...)."""
     data = simulate(profile="gentle", duration=10.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
-    keep = (data.pose.t < 4.0) | (data.pose.t >= 6.0)
-    gapped = replace(data, pose=data.pose.subset(keep))
-    assert len(gapped.pose) == len(data.pose) - 20
+    keep = (data.sensor("pose").data.t < 4.0) | (data.sensor("pose").data.t >= 6.0)
+    gapped = replace(data, pose=data.sensor("pose").data.subset(keep))
+    assert len(gapped.sensor("pose").data) == len(data.sensor("pose").data) - 20
     problem = build_problem(gapped)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -117,8 +117,8 @@ def test_factors_older_than_the_lag_are_skipped_with_a_warning():
     available its earlier keyframe has been marginalised; it is skipped (and counted) instead of
     failing GTSAM. With a 2 s lag the same factors are all used."""
     data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
-                    relative_pose_rate=1.0)
-    assert len(data.relative_pose) == 2
+                    odometry_rate=1.0)
+    assert len(data.sensor("odometry").data) == 2
     with pytest.warns(UserWarning, match="2 factors referred to variables older than the lag"):
         short = run_fixed_lag(build_problem(data), 0.3, "incremental", covariances=False, progress=False)
     assert short.skipped_factors == 2
@@ -285,7 +285,7 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
     by QR, are within 1e-6 of the largest entry of those from an SVD of the window's rows (measured
     7e-8; the dense pseudo-inverse of A^T A that took these windows before was up to 4e-5 off)."""
     data = simulate(profile="gentle", duration=6.0, seed=5, imu_rate=200.0, pose_rate=5.0,
-                    position_rate=8.0, orientation_rate=4.0, relative_pose_rate=2.0)
+                    position_rate=8.0, orientation_rate=4.0, odometry_rate=2.0)
     refused = []
     solve = fixed_lag._window_marginals
 

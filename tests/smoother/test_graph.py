@@ -37,7 +37,7 @@ def _symbols(factor) -> list[tuple[str, int]]:
 def test_keyframes_are_the_measurement_times_plus_start_and_end():
     data = mixed()
     problem = build_problem(data)
-    expected = np.unique(np.concatenate([data.pose.t, data.position.t, data.orientation.t, [data.t0, data.t1]]))
+    expected = np.unique(np.concatenate([data.sensor("pose").data.t, data.sensor("position").data.t, data.sensor("orientation").data.t, [data.t0, data.t1]]))
     np.testing.assert_array_equal(problem.times, expected)
     assert data.t1 not in set(data.measurement_times())  # the end really is an extra keyframe
     # the EKF reports at exactly the same times, so the estimators can be compared state by state
@@ -66,7 +66,7 @@ def test_grid_coinciding_with_measurement_times_adds_no_near_duplicate_keyframes
         times = build_problem(data, keyframe_rate=rate).times
         assert np.diff(times).min() >= 0.5 * IMU_STEP, (rate, np.diff(times).min())
     problem = build_problem(data, keyframe_rate=10.0)
-    np.testing.assert_array_equal(problem.times, data.pose.t)
+    np.testing.assert_array_equal(problem.times, data.sensor("pose").data.t)
     result = solve_batch(problem, covariances=False)
     assert np.all(np.isfinite(result.trajectory.states.r))
 
@@ -79,7 +79,7 @@ def test_graph_holds_the_prior_one_imu_factor_per_interval_and_every_measurement
     data = mixed()
     problem = build_problem(data)
     K = len(problem.times)
-    expected = 1 + (K - 1) + len(data.pose) + len(data.position) + len(data.orientation)
+    expected = 1 + (K - 1) + len(data.sensor("pose").data) + len(data.sensor("position").data) + len(data.sensor("orientation").data)
     assert problem.graph.size() == expected
     assert sum(len(group) for group in problem.factors_at) == expected
     for k in range(1, K):
@@ -113,9 +113,9 @@ def test_relative_pose_factors_join_the_right_keyframes():
     between the keyframes at t_from and t_to, announced at t_to; evaluated at the TRUE states its
     error is exactly the measurement noise, (C_i^T (r_j - r_i) - dr~, log(C_i^T C_j dC~^T))."""
     data = simulate(profile="tumbling", duration=1.0, seed=6, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
-                    relative_pose_rate=5.0)
+                    odometry_rate=5.0)
     problem = build_problem(data)
-    rel = data.relative_pose
+    rel = data.sensor("odometry").data
     truth = cases.truth_at(data, problem.times)
     values = gtsam.Values()
     for k, keys in enumerate(problem.keys):
@@ -159,18 +159,18 @@ def test_initial_values_equal_the_measurements_where_measured():
     problem = build_problem(data)
     x = problem.initial_states
     index = {t: k for k, t in enumerate(problem.times)}
-    assert data.pose.t[0] == data.position.t[0] == data.orientation.t[0] == data.t0
-    pose_k = [index[t] for t in data.pose.t[1:]]
-    gps_k = [index[t] for t in data.position.t[1:]]
-    att_k = [index[t] for t in data.orientation.t[1:]]
-    np.testing.assert_array_equal(x.r[pose_k], data.pose.position[1:])
-    np.testing.assert_array_equal(x.C[pose_k], data.pose.C[1:])
+    assert data.sensor("pose").data.t[0] == data.sensor("position").data.t[0] == data.sensor("orientation").data.t[0] == data.t0
+    pose_k = [index[t] for t in data.sensor("pose").data.t[1:]]
+    gps_k = [index[t] for t in data.sensor("position").data.t[1:]]
+    att_k = [index[t] for t in data.sensor("orientation").data.t[1:]]
+    np.testing.assert_array_equal(x.r[pose_k], data.sensor("pose").data.position[1:])
+    np.testing.assert_array_equal(x.C[pose_k], data.sensor("pose").data.C[1:])
     gps_only = [m for m, k in enumerate(gps_k) if k not in pose_k]
     assert gps_only
-    np.testing.assert_array_equal(x.r[[gps_k[m] for m in gps_only]], data.position.position[1:][gps_only])
+    np.testing.assert_array_equal(x.r[[gps_k[m] for m in gps_only]], data.sensor("position").data.position[1:][gps_only])
     att_only = [m for m, k in enumerate(att_k) if k not in pose_k]
     assert att_only
-    np.testing.assert_array_equal(x.C[[att_k[m] for m in att_only]], data.orientation.C[1:][att_only])
+    np.testing.assert_array_equal(x.C[[att_k[m] for m in att_only]], data.sensor("orientation").data.C[1:][att_only])
 
     unmeasured_r = [k for k in range(1, len(problem.times)) if k not in pose_k and k not in gps_k]
     unmeasured_C = [k for k in range(1, len(problem.times)) if k not in pose_k and k not in att_k]

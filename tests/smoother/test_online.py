@@ -27,7 +27,7 @@ NAMES = ("r", "v", "C", "b_f", "b_w")
 def _arrivals(data, delays=None):
     """``(arrival time, row)`` of each pose measurement of ``data`` (arriving at its time plus
     ``delays``), in order of arrival."""
-    t = data.pose.t + (0.0 if delays is None else delays)
+    t = data.sensor("pose").data.t + (0.0 if delays is None else delays)
     order = np.argsort(t, kind="stable")
     return [(float(t[m]), int(m)) for m in order]
 
@@ -41,7 +41,7 @@ def _stream(data, online, arrivals, estimates=None, knots=None):
     for i, t in enumerate(np.append(data.imu.t, np.inf)):
         while a < len(arrivals) and arrivals[a][0] <= t:
             m = arrivals[a][1]
-            online.add("pose", data.pose.t[m], data.pose.position[m], data.pose.C[m], cov=data.pose.cov[m])
+            online.add("pose", data.sensor("pose").data.t[m], data.sensor("pose").data.position[m], data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
             a += 1
         if i == len(data.imu):
             break
@@ -100,19 +100,19 @@ def test_measurements_late_within_max_delay_change_nothing_later_ones_are_droppe
     data = cases.dataset(gentle)
     in_order = _stream(data, _smoother(data), _arrivals(data))
     rng = np.random.default_rng(3)
-    late = rng.uniform(0.0, 0.29, len(data.pose))
+    late = rng.uniform(0.0, 0.29, len(data.sensor("pose").data))
     shuffled = _stream(data, _smoother(data, max_delay_s=0.3), _arrivals(data, late))
     assert [e.t for e in shuffled] == [e.t for e in in_order]
     for a, b in zip(shuffled, in_order):
         _assert_same_states(a.state, b.state)
 
-    too_late = np.sort(rng.choice(np.arange(5, len(data.pose) - 5), 5, replace=False))
+    too_late = np.sort(rng.choice(np.arange(5, len(data.sensor("pose").data) - 5), 5, replace=False))
     late[too_late] = 0.5
     online = _smoother(data, max_delay_s=0.3)
     with pytest.warns(UserWarning, match="'pose' arrived after its keyframe time had been processed"):
         dropped = _stream(data, online, _arrivals(data, late))
     assert online.dropped == {"pose": 5}
-    kept = replace(data, pose=data.pose.subset(np.setdiff1d(np.arange(len(data.pose)), too_late)))
+    kept = replace(data, pose=data.sensor("pose").data.subset(np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
     without = _stream(kept, _smoother(kept), _arrivals(kept), knots=estimate_times(data))
     assert [e.t for e in dropped] == [e.t for e in without]
     for a, b in zip(dropped, without):
@@ -200,7 +200,7 @@ def test_a_rig_gives_its_sensors_their_extrinsic_time_offset_and_sigma(gentle, t
     sigma = np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005])
     rig = Rig(tmp_path / "rig.toml", ImuConfig("csv:imu.csv", None, data.noise, float(-data.gravity[2])), None,
               (SensorConfig("cam", "pose", "csv:cam.csv", None, T_BS, 0.25, sigma, 1, None),))
-    pose = data.pose
+    pose = data.sensor("pose").data
     sensor_position = pose.position + np.einsum("nab,b->na", pose.C, T_BS[:3, 3])
     from_rig = OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=LAG)
     direct = _smoother(data, sensors={"cam": SensorSetup("pose", T_BS)})
@@ -227,15 +227,15 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
     from datasets.simulate import simulate
 
     data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
-                    relative_pose_rate=1.0)
-    assert len(data.relative_pose) == 2
+                    odometry_rate=1.0)
+    assert len(data.sensor("odometry").data) == 2
     with pytest.warns(UserWarning, match="'relative_pose' refers to a time that has left the window"):
         short = replay(data, 0.3, covariances=False, progress=False)
     assert short.skipped == {"relative_pose": 2} and short.dropped == {}
     # given before the IMU reaches them, they wait; their earlier keyframes leave all the same
     ahead = OnlineSmoother(data.initial, data.initial_cov, data.noise, gravity=data.gravity, lag_s=0.3)
-    ahead.add_measurements("odometry", data.relative_pose)
-    ahead.add_measurements("pose", data.pose)
+    ahead.add_measurements("odometry", data.sensor("odometry").data)
+    ahead.add_measurements("pose", data.sensor("pose").data)
     with pytest.warns(UserWarning, match="'odometry' refers to a time that has left the window"):
         ahead.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
     assert ahead.skipped == {"odometry": 2}
@@ -258,10 +258,10 @@ def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
     data = cases.dataset(gentle)
     online = _smoother(data, keyframe_rate=25.0)
     for i, t in enumerate(data.imu.t):
-        hit = np.flatnonzero(data.pose.t == t)
+        hit = np.flatnonzero(data.sensor("pose").data.t == t)
         if hit.size:
             m = int(hit[0])
-            online.add("pose", t, data.pose.position[m], data.pose.C[m], cov=data.pose.cov[m])
+            online.add("pose", t, data.sensor("pose").data.position[m], data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
         online.add_imu(t, data.imu.acc[i], data.imu.gyro[i])
     online.finish()
     np.testing.assert_array_equal([e.t for e in online.smoothed()], estimate_times(data, 25.0))
@@ -316,8 +316,8 @@ def test_a_callback_that_raises_once_leaves_the_smoother_consistent(gentle):
 
         online = OnlineSmoother(data.initial, data.initial_cov, data.noise, gravity=data.gravity, lag_s=0.3,
                                 on_smoothed=publish)
-        online.keyframe_at(data.pose.t)
-        online.add_measurements("pose", data.pose)
+        online.keyframe_at(data.sensor("pose").data.t)
+        online.add_measurements("pose", data.sensor("pose").data)
         for i, t in enumerate(data.imu.t):
             try:
                 online.add_imu(t, data.imu.acc[i], data.imu.gyro[i])

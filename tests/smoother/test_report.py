@@ -134,7 +134,7 @@ def test_score_reports_the_heldout_rmse_and_the_fit_residual_apart():
     (no figure mixes the two, as the distance to every fix did)."""
     data = simulate(profile="gentle", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None,
                     position_rate=10.0, position_sigma=0.5)
-    used, held = data.position.subset(slice(0, None, 2)), data.position.subset(slice(1, None, 2))
+    used, held = data.sensor("position").data.subset(slice(0, None, 2)), data.sensor("position").data.subset(slice(1, None, 2))
     data = replace(data, position=used, heldout_positions=held)
     m = report.score(data, data.truth)  # the truth itself as the estimate: errors = GPS noise
     assert set(m) >= {"ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_fit_residual_m", "gps_heldout_rmse_m"}
@@ -169,7 +169,7 @@ def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
     for phi, truth_wins, rho in ((0.0, True, 0.0), (0.98, False, 0.98**4)):
         data, truth = _fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
-        assert baseline["heldout_fixes"] == len(data.heldout_positions) - 3  # those after the last used fix
+        assert baseline["heldout_fixes"] == len(data.sensor("position").heldout) - 3  # those after the last used fix
         assert (report.score(data, truth)["gps_heldout_rmse_m"] < baseline["gps_heldout_rmse_m"]) == truth_wins
         assert report.residual_correlation(data, truth) == pytest.approx(rho, abs=0.08)
 

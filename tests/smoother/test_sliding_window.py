@@ -398,7 +398,7 @@ def test_a_refused_keyframe_leaves_the_window_as_it_was(gentle):
     online.add_imu(data.imu.t[:150], data.imu.acc[:150], data.imu.gyro[:150])
     window = online._window
     before = (window.first, window.newest, window._m, len(window._priors), window.skipped)
-    spec = measurement_spec(Sensor("pose", "pose", data.pose.subset(slice(0, 1))))
+    spec = measurement_spec(Sensor("pose", "pose", data.sensor("pose").data.subset(slice(0, 1))))
     state = window.newest_state
     t = window.time(window.newest) + 1.0  # the older keyframes would leave
     spec.cov[0] = -np.eye(6)

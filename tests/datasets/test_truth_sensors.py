@@ -1,12 +1,11 @@
-"""Pose and position measurements drawn from a ground truth."""
+"""Sensors drawn from a ground truth: the measurement ticks, the kinds' noise, the streams."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from datasets.from_truth import (measurement_indices, measurements_from_truth, pose_measurements_from_truth,
-                                 position_measurements_from_truth)
-from datasets.types import Trajectory
+from datasets.simulated_sensors import SensorSpec, measurement_indices, sensor_stream, sensors_from_truth, truth_sensors
+from datasets.types import ImuSamples, Trajectory
 from factors import so3
 from factors.imu import ImuState
 
@@ -17,14 +16,22 @@ def _truth(n=2001, rate=200.0, t0=0.0, seed=0):
     r = np.cumsum(rng.normal(scale=0.01, size=(n, 3)), axis=0)
     C = so3.exp(np.cumsum(rng.normal(scale=0.01, size=(n, 3)), axis=0))
     z = np.full((n, 3), np.nan)
-    return Trajectory(t, ImuState(r, z, C, z, z))
+    return Trajectory(t, ImuState(r, z, C, np.zeros((n, 3)), np.zeros((n, 3))))
+
+
+def _imu(truth):
+    return ImuSamples(truth.t, np.zeros((len(truth.t), 3)), np.zeros((len(truth.t), 3)))
+
+
+def _drawn(truth, *specs, seed=0):
+    return {s.name: s.data for s in sensors_from_truth(truth, _imu(truth), specs, seed)}
 
 
 def test_indices_every_tenth_sample_and_exact_times():
     truth = _truth()
     k = measurement_indices(truth.t, 20.0)
     assert np.array_equal(k, np.arange(0, 2001, 10))
-    m = position_measurements_from_truth(truth, 20.0, 0.1, seed=1)
+    m = _drawn(truth, SensorSpec("gps", "position", 20.0, 0.1))["gps"]
     assert np.array_equal(m.t, truth.t[k])  # exact truth stamps, never interpolated
 
 
@@ -45,10 +52,10 @@ def test_rate_above_the_truth_rate_is_refused():
 def test_pose_noise_is_the_primers_left_perturbation_with_the_stated_covariance():
     truth = _truth()
     pos_sigma, rot_sigma, seed = 0.05, 0.02, 7
-    m = pose_measurements_from_truth(truth, 100.0, pos_sigma, rot_sigma, seed=seed)
+    m = _drawn(truth, SensorSpec("pose", "pose", 100.0, (pos_sigma, rot_sigma)), seed=seed)["pose"]
     k = measurement_indices(truth.t, 100.0)
-    # Reproduce the draws: positions first, then attitude noise, from default_rng(seed).
-    rng = np.random.default_rng(seed)
+    # Reproduce the draws: positions first, then attitude noise, from the sensor's own stream.
+    rng = np.random.default_rng(sensor_stream(np.random.SeedSequence(seed), "pose"))
     n_p = pos_sigma * rng.standard_normal((len(k), 3))
     n_phi = rot_sigma * rng.standard_normal((len(k), 3))
     assert np.allclose(m.position - truth.position[k], n_p, atol=1e-15)
@@ -61,54 +68,51 @@ def test_pose_noise_is_the_primers_left_perturbation_with_the_stated_covariance(
 
 def test_noise_statistics_match_the_sigmas():
     truth = _truth(n=40001)
-    m = pose_measurements_from_truth(truth, 200.0, 0.3, 0.01, seed=3)
+    drawn = _drawn(truth, SensorSpec("pose", "pose", 200.0, (0.3, 0.01)), SensorSpec("gps", "position", 200.0, 0.5),
+                   seed=3)
+    m, g = drawn["pose"], drawn["gps"]
     k = measurement_indices(truth.t, 200.0)
     e_p = m.position - truth.position[k]
     e_r = so3.boxminus(m.C, truth.C[k])
     # 40001 samples per axis: the sample std is within 2% of sigma with overwhelming probability.
     assert np.allclose(e_p.std(axis=0), 0.3, rtol=0.02)
     assert np.allclose(e_r.std(axis=0), 0.01, rtol=0.02)
-    g = position_measurements_from_truth(truth, 200.0, 0.5, seed=4)
     assert np.allclose((g.position - truth.position[k]).std(axis=0), 0.5, rtol=0.02)
     assert np.allclose(g.cov, 0.25 * np.eye(3))
 
 
-def test_seeded_and_reproducible():
+def test_seeded_reproducible_and_independent_of_the_other_sensors():
     truth = _truth()
-    a = pose_measurements_from_truth(truth, 10.0, 0.1, 0.01, seed=5)
-    b = pose_measurements_from_truth(truth, 10.0, 0.1, 0.01, seed=5)
-    c = pose_measurements_from_truth(truth, 10.0, 0.1, 0.01, seed=6)
+    spec = SensorSpec("pose", "pose", 10.0, (0.1, 0.01))
+    a = _drawn(truth, spec, seed=5)["pose"]
+    b = _drawn(truth, SensorSpec("gps", "position", 5.0, 1.0), spec, seed=5)["pose"]
+    c = _drawn(truth, spec, seed=6)["pose"]
     assert np.array_equal(a.position, b.position) and np.array_equal(a.C, b.C)
     assert not np.allclose(a.position, c.position)
-    gen = np.random.default_rng(5)
-    d = pose_measurements_from_truth(truth, 10.0, 0.1, 0.01, seed=gen)
-    assert np.array_equal(a.position, d.position)
 
 
-@pytest.mark.parametrize("kwargs", [dict(pos_sigma=0.0), dict(pos_sigma=-1.0), dict(rot_sigma=np.inf)])
-def test_bad_sigmas(kwargs):
-    args = dict(rate_hz=10.0, pos_sigma=0.1, rot_sigma=0.01)
-    args.update(kwargs)
-    name = next(iter(kwargs))
-    with pytest.raises(ValueError, match=name):
-        pose_measurements_from_truth(_truth(), **args)
+def test_bad_sigmas_name_the_sensor():
+    for sigma in (0.0, -1.0, np.inf, (0.1, 0.2, 0.3)):
+        with pytest.raises(ValueError, match="sensor 'pose'.*sigma"):
+            _drawn(_truth(), SensorSpec("pose", "pose", 10.0, sigma))
 
 
 def test_pose_and_gps_of_one_dataset_have_independent_noise():
-    """One seed for both kinds drew the same position noise twice: at a common rate the GPS fixes
-    sat exactly on the pose sensor's positions. Spawned streams: uncorrelated, and reproducible."""
+    """Each sensor its own stream: at a common rate the GPS fixes do not sit on the pose sensor's
+    positions, and each is reproducible on its own."""
     truth = _truth(n=20001)
-    pose, gps = measurements_from_truth(truth, (20.0, 0.1, 0.01), (20.0, 0.1), seed=3)
+    pose, gps = (s.data for s in truth_sensors(truth, _imu(truth), (20.0, 0.1, 0.01), (20.0, 0.1), seed=3))
     assert np.array_equal(pose.t, gps.t)
     k = np.searchsorted(truth.t, pose.t)
     n_pose, n_gps = pose.position - truth.position[k], gps.position - truth.position[k]
     assert abs(np.corrcoef(n_pose.ravel(), n_gps.ravel())[0, 1]) < 0.1  # 6000 pairs: |r| ~ 0.013
-    again, _ = measurements_from_truth(truth, (20.0, 0.1, 0.01), None, seed=3)
-    assert np.array_equal(again.position, pose.position) and np.array_equal(again.C, pose.C)
+    (again,) = truth_sensors(truth, _imu(truth), (20.0, 0.1, 0.01), None, seed=3)
+    assert np.array_equal(again.data.position, pose.position) and np.array_equal(again.data.C, pose.C)
 
 
-@pytest.mark.parametrize("pose, gps, name", [((1e4, 0.1, 0.01), None, "pose_from_truth: rate_hz"),
-                                             (None, (10.0, -1.0), "gps_from_truth: pos_sigma")])
-def test_measurements_from_truth_names_the_kind_at_fault(pose, gps, name):
+@pytest.mark.parametrize("pose, gps, name", [((1e4, 0.1, 0.01), None, "pose_from_truth: .*rate_hz"),
+                                             (None, (10.0, -1.0), "gps_from_truth: .*sigma")])
+def test_truth_sensors_name_the_option_at_fault(pose, gps, name):
+    truth = _truth()
     with pytest.raises(ValueError, match=name):
-        measurements_from_truth(_truth(), pose, gps)
+        truth_sensors(truth, _imu(truth), pose, gps)
