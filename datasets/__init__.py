@@ -3,9 +3,8 @@ the loaders.
 
 Modules: ``types`` (IMU samples, measurements, trajectories, a dataset), ``simulate`` (seeded
 trajectories with IMU and measurement streams), ``kitti`` (GTSAM's shipped KITTI IMU + GPS
-example), ``euroc`` (EuRoC/ASL folders), ``tum`` (TUM trajectory files), ``from_truth``
-(measurements drawn from a ground truth), ``simulated_sensors`` (sensors of any kind, mounted
-anywhere, in simulation), ``kinds`` (the registry of measurement kinds), ``rig`` (rig files),
+example), ``euroc`` (EuRoC/ASL folders), ``tum`` (TUM trajectory files), ``simulated_sensors``
+(sensors of any kind, mounted anywhere, drawn from a ground truth), ``kinds`` (the registry of measurement kinds), ``rig`` (rig files),
 ``recording`` (a rig's recording as a dataset), ``sources`` / ``bags`` / ``csv_sources`` (ROS
 bags, CSV and TUM streams), ``gnss`` (geodetic <-> local ENU), ``initialise`` (the initial state
 from the data), ``kalibr`` (Kalibr calibration files), ``allan`` (IMU noise from a static
@@ -24,7 +23,7 @@ _EXPORTS = {
                      "PoseMeasurements", "RelativePoseMeasurements", "VelocityMeasurements", "Sensor",
                      "Trajectory"), "datasets.types"),
     **dict.fromkeys(("KINDS", "sensors_of"), "datasets.kinds"),
-    "SensorSpec": "datasets.simulated_sensors",
+    **dict.fromkeys(("SensorSpec", "sensors_from_truth", "truth_sensors"), "datasets.simulated_sensors"),
     "load_rig": "datasets.rig",
     "load_recording": "datasets.recording",
     "self_initialised": "datasets.initialise",
@@ -32,7 +31,6 @@ _EXPORTS = {
     "load_kitti": "datasets.kitti",
     "load_euroc": "datasets.euroc",
     **dict.fromkeys(("read_tum", "write_tum"), "datasets.tum"),
-    "measurements_from_truth": "datasets.from_truth",
     "DataError": "datasets.errors",
 }
 __all__ = sorted(_EXPORTS)

@@ -68,7 +68,6 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.simulated_sensors import truth_sensors
 from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
                              read_lines, table_fast)
 from datasets.kalibr import NOISE_KEYS, rigid_problem
@@ -76,7 +75,6 @@ from datasets.yamlfile import YamlDocument, read_yaml
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors import quaternion, so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
-from factors.errors import InputError
 
 IMU_COLUMNS = ["timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z"]
 GROUNDTRUTH_COLUMNS = [
@@ -320,27 +318,12 @@ def _noise_from_yaml(yaml: SensorYaml) -> ImuNoise:
     return ImuNoise(**{field: doc.number((key,), minimum=0.0) for key, field in NOISE_KEYS.items() if key in doc.data})
 
 
-def _triple(name: str, value, size: int):
-    try:
-        items = tuple(float(x) for x in value)
-    except TypeError:
-        raise InputError(f"{name}: expected a tuple of {size} numbers, got {value!r}") from None
-    if len(items) != size:
-        raise InputError(f"{name}: expected a tuple of {size} numbers, got {value!r}")
-    return items
-
-
-def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noise: ImuNoise | None = None,
-               gravity=DEFAULT_GRAVITY) -> Dataset:
+def load_euroc(folder, *, noise: ImuNoise | None = None, gravity=DEFAULT_GRAVITY) -> Dataset:
     """An EuRoC/ASL sequence as a :class:`Dataset` named ``"euroc"`` (see the module docstring).
 
-    ``pose_from_truth=(rate_hz, pos_sigma_m, rot_sigma_rad)`` and ``gps_from_truth=(rate_hz,
-    pos_sigma_m)`` add sensors ``pose`` and ``gps`` drawn from the ground truth
-    (:func:`datasets.simulated_sensors.truth_sensors`; orientation noise ``C_meas = exp(n) C``),
-    seeded by ``seed`` (each sensor its own stream).
+    It has no aiding sensor of its own: sensors drawn from its ground truth are added with
+    :func:`datasets.simulated_sensors.truth_sensors` (``smoother run --pose-from-truth``).
     """
-    pose_args = None if pose_from_truth is None else _triple("pose_from_truth", pose_from_truth, 3)
-    gps_args = None if gps_from_truth is None else _triple("gps_from_truth", gps_from_truth, 2)
     mav0 = _mav0(folder)
     imu_yaml_path = mav0 / "imu0" / "sensor.yaml"
     gt_yaml_path = mav0 / "state_groundtruth_estimate0" / "sensor.yaml"
@@ -403,6 +386,5 @@ def load_euroc(folder, *, pose_from_truth=None, gps_from_truth=None, seed=0, noi
     sigmas = np.repeat(INITIAL_SIGMAS, 3)
     return Dataset(
         name="euroc", imu=imu, noise=noise, initial=initial, initial_cov=np.diag(sigmas**2),
-        gravity=np.asarray(gravity, dtype=float), sensors=truth_sensors(truth, imu, pose_args, gps_args, seed),
-        truth=truth, time_origin_ns=t0_ns,
+        gravity=np.asarray(gravity, dtype=float), truth=truth, time_origin_ns=t0_ns,
     )

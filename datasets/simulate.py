@@ -86,7 +86,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from datasets.kinds import KINDS
+from datasets.kinds import KINDS, kind_sigmas
 from datasets.simulated_sensors import SensorSpec, sensors_from_truth
 from datasets.trajectories import PROFILES, Profile
 from datasets.types import Dataset, ImuSamples, Sensor, Trajectory
@@ -140,13 +140,6 @@ def _sigmas(name: str, value, count: int) -> np.ndarray:
     if a.shape != (count,) or not np.all(np.isfinite(a)) or np.any(a < 0):
         what = "a sigma" if count == 1 else f"{count} sigmas"
         raise InputError(f"{name}: expected {what}, finite and >= 0, got {value!r}")
-    return a
-
-
-def _positive_sigmas(name: str, value, count: int) -> np.ndarray:
-    a = _sigmas(name, value, count)
-    if np.any(a <= 0):
-        raise InputError(f"{name}: measurement noise sigmas must be > 0 (a covariance must be invertible), got {value!r}")
     return a
 
 
@@ -230,8 +223,7 @@ def _sensors_at_imu(rates: dict, imu_rate: float) -> list[SensorSpec]:
         rate = rates.get(f"{name}_rate")
         if _stride(f"{name}_rate", rate, imu_rate) is None:
             continue
-        sigma = rates.get(f"{name}_sigma", kind.default_sigma)
-        _positive_sigmas(f"{name}_sigma", sigma, np.size(sigma))
+        sigma = kind_sigmas(f"{name}_sigma", rates.get(f"{name}_sigma", kind.default_sigma), kind.dim)
         specs.append(SensorSpec(name, name, float(rate), sigma))
     return specs
 

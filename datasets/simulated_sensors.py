@@ -113,10 +113,12 @@ def truth_sensors(truth: Trajectory, imu: ImuSamples, pose_from_truth=None, gps_
     sensor ``gps`` of kind ``position`` (None: not that one), with noise streams from ``seed``.
     An InputError names the option that is wrong."""
     specs = []
-    for option, value, name, kind in (("pose_from_truth", pose_from_truth, "pose", "pose"),
-                                      ("gps_from_truth", gps_from_truth, "gps", "position")):
+    for option, value, name, kind, size in (("pose_from_truth", pose_from_truth, "pose", "pose", 3),
+                                            ("gps_from_truth", gps_from_truth, "gps", "position", 2)):
         if value is None:
             continue
+        if np.ndim(value) != 1 or len(value) != size:
+            raise InputError(f"{option}: expected {size} numbers (rate [Hz], then the sigmas), got {value!r}")
         try:
             specs.append(SensorSpec(name, kind, value[0], tuple(value[1:])))
             sensors_from_truth(truth, imu, specs[-1:], seed)

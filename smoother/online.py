@@ -118,7 +118,6 @@ def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float
     raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
 
 
-@functools.cache
 @dataclass(frozen=True)
 class SensorSetup:
     """An aiding sensor of an :class:`OnlineSmoother`: its ``kind`` (a name of
@@ -774,9 +773,10 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     online.keyframe_at(estimate_times(dataset, keyframe_rate))
     sensors = sensors_of(dataset)
     arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
-    which = np.concatenate([np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
-    rows = np.concatenate([np.arange(len(a)) for a in arrival]).astype(int)
-    at = np.concatenate(arrival) if arrival else np.zeros(0)
+    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
+    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
+    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
+    at = np.concatenate(none + arrival)
     order = np.lexsort((rows, which, at))
     imu_t = dataset.imu.t
     start = time.perf_counter()

@@ -43,7 +43,7 @@ def test_the_readme_names_are_exported():
 
     assert {"simulate", "Dataset", "ImuSamples", "load_kitti", "load_euroc", "read_tum"} <= set(datasets.__all__)
     assert {"ImuState", "ImuNoise", "so3", "quaternion", "check_factor", "numerical_jacobian", "ImuFactor",
-            "pose_factor", "position_factor"} <= set(factors.__all__)
+            "sensor_factor", "odometry_factor", "state_prior_factor"} <= set(factors.__all__)
     assert {"build_problem", "solve_batch", "run_fixed_lag", "run_ekf", "Ekf", "metrics"} <= set(smoother.__all__)
 
 

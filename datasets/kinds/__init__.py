@@ -46,12 +46,12 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
     most :data:`factors.sensor_models.MAX_ROW_WIDTH` numbers (the room the EKF and the sliding
     window hold); a model of the kind's dimension; a data type whose fields are the kind's
     ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``default_sigma`` that
-    :func:`kind_sigmas` reads; a ``random_row`` of the declared width. A ValueError naming the
-    kind and the rule else."""
+    :func:`kind_sigmas` reads; a ``random_row`` of the declared width. An error naming the
+    kind and the rule else (an InputError)."""
     out: dict[str, Kind] = {}
     for k in kinds:
         def refuse(rule: str):
-            raise ValueError(f"measurement kind {k.name!r}: {rule}")
+            raise InputError(f"measurement kind {k.name!r}: {rule}")
 
         if k.name in out:
             refuse("the name is registered twice")

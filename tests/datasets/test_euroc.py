@@ -247,25 +247,33 @@ def test_sensor_yaml_duplicate_keys_and_an_unclosed_list(tmp_path, edit, line, f
     assert (info.value.line, info.value.field) == (line, field) and found in str(info.value.found), str(info.value)
 
 
-def test_synthetic_measurements_from_truth(sequence):
-    root = sequence[0]
-    d = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
-    assert d.sensor("pose").data is not None and d.sensor("position").data is not None
-    assert set(d.sensor("pose").data.t) <= set(d.truth.t) and set(d.sensor("position").data.t) <= set(d.truth.t)
-    assert np.allclose(np.diff(d.sensor("pose").data.t), 0.05) and np.allclose(np.diff(d.sensor("position").data.t), 0.1)
-    assert np.allclose(d.sensor("pose").data.cov[0], np.diag([1e-4] * 3 + [2.5e-5] * 3))
-    again = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), gps_from_truth=(10, 0.1), seed=3)
-    assert np.array_equal(d.sensor("pose").data.position, again.pose.position) and np.array_equal(d.sensor("pose").data.C, again.pose.C)
-    other = load_euroc(root, pose_from_truth=(20, 0.01, 0.005), seed=4)
-    assert not np.allclose(d.sensor("pose").data.position, other.sensor("pose").data.position) and other.sensor("position").data is None
-    # The two streams are independent: at common times their position noises differ.
-    common, i, j = np.intersect1d(d.sensor("pose").data.t, d.sensor("position").data.t, return_indices=True)
+def test_sensors_drawn_from_the_ground_truth(sequence):
+    """An EuRoC sequence has no aiding sensor of its own; sensors drawn from its ground truth sit
+    on truth samples at their rates with the stated covariance, reproducibly, each with a stream
+    of its own."""
+    from datasets.simulated_sensors import truth_sensors
+
+    d = load_euroc(sequence[0])
+    assert d.sensors == ()
+
+    def drawn(pose, gps, seed):
+        return {s.name: s.data for s in truth_sensors(d.truth, d.imu, pose, gps, seed)}
+
+    m = drawn((20, 0.01, 0.005), (10, 0.1), 3)
+    assert set(m["pose"].t) <= set(d.truth.t) and set(m["gps"].t) <= set(d.truth.t)
+    assert np.allclose(np.diff(m["pose"].t), 0.05) and np.allclose(np.diff(m["gps"].t), 0.1)
+    assert np.allclose(m["pose"].cov[0], np.diag([1e-4] * 3 + [2.5e-5] * 3))
+    again = drawn((20, 0.01, 0.005), (10, 0.1), 3)
+    assert np.array_equal(m["pose"].position, again["pose"].position) and np.array_equal(m["pose"].C, again["pose"].C)
+    other = drawn((20, 0.01, 0.005), None, 4)
+    assert not np.allclose(m["pose"].position, other["pose"].position) and "gps" not in other
+    common, i, j = np.intersect1d(m["pose"].t, m["gps"].t, return_indices=True)
     k = np.searchsorted(d.truth.t, common)
-    e_pose = (d.sensor("pose").data.position[i] - d.truth.position[k]) / 0.01
-    e_gps = (d.sensor("position").data.position[j] - d.truth.position[k]) / 0.1
+    e_pose = (m["pose"].position[i] - d.truth.position[k]) / 0.01
+    e_gps = (m["gps"].position[j] - d.truth.position[k]) / 0.1
     assert not np.allclose(e_pose, e_gps)
     with pytest.raises(ValueError, match="pose_from_truth"):
-        load_euroc(root, pose_from_truth=(20, 0.01))
+        truth_sensors(d.truth, d.imu, (20, 0.01), None)
 
 
 # ------------------------------------------------------------------------------------------

@@ -47,10 +47,10 @@ def test_real_data_noise_gravity_and_start(real, real_files):
     assert real.imu.t[0] == t_gps[1]
     assert np.array_equal(real.initial.r, p_gps[1])
     # All later fixes are measurements with gps_every=1; GTSAM's example's GPS variance.
-    assert np.array_equal(real.position.t, t_gps[2:])
-    assert np.array_equal(real.position.position, p_gps[2:])
-    assert real.heldout_positions is None
-    assert np.allclose(real.position.cov, 0.07 * np.eye(3))
+    assert np.array_equal(real.sensor("gps").data.t, t_gps[2:])
+    assert np.array_equal(real.sensor("gps").data.position, p_gps[2:])
+    assert real.sensor("gps").heldout is None
+    assert np.allclose(real.sensor("gps").data.cov, 0.07 * np.eye(3))
     # The lone first IMU sample and the 1.9 s gap are left out; the rest is a 100 Hz stream that
     # misses a sample here and there.
     assert np.diff(real.imu.t).max() < 0.021
@@ -79,8 +79,8 @@ def test_gps_frame_turns_with_the_imu(real):
     like the IMU's (a left-handed or z-down frame would turn the other way)."""
     t = real.imu.t
     yaw = np.concatenate([[0.0], np.cumsum(real.imu.gyro[:-1, 2] * np.diff(t))])
-    gps_t = np.concatenate([[t[0]], real.position.t])
-    gps_p = np.vstack([real.initial.r, real.position.position])
+    gps_t = np.concatenate([[t[0]], real.sensor("gps").data.t])
+    gps_p = np.vstack([real.initial.r, real.sensor("gps").data.position])
     vel = np.diff(gps_p[:, :2], axis=0) / np.diff(gps_t)[:, None]
     mid = 0.5 * (gps_t[1:] + gps_t[:-1])
     course = np.unwrap(np.arctan2(vel[:, 1], vel[:, 0]))

@@ -13,6 +13,7 @@ import pytest
 
 from datasets import simulate as sim
 from datasets.simulate import PROFILES, SimulatedDataset, euler_truth, simulate
+from datasets.simulated_sensors import sensor_stream
 from datasets.trajectories import body_rate_from_rpy
 from datasets.types import Dataset
 from factors import euler, imu, so3
@@ -52,8 +53,8 @@ def assert_same_dataset(a: Dataset, b: Dataset):
     for name in ("r", "v", "C", "b_f", "b_w"):
         np.testing.assert_array_equal(getattr(a.truth.states, name), getattr(b.truth.states, name))
         np.testing.assert_array_equal(getattr(a.initial, name), getattr(b.initial, name))
-    np.testing.assert_array_equal(a.pose.position, b.pose.position)
-    np.testing.assert_array_equal(a.pose.C, b.pose.C)
+    np.testing.assert_array_equal(a.sensor("pose").data.position, b.sensor("pose").data.position)
+    np.testing.assert_array_equal(a.sensor("pose").data.C, b.sensor("pose").data.C)
 
 
 # ------------------------------------------------------------------------------------------
@@ -66,12 +67,12 @@ def test_same_seed_same_dataset_and_different_seeds_differ():
     assert isinstance(a, Dataset) and isinstance(a, SimulatedDataset)
     assert a.name == "synthetic:gentle"
     assert_same_dataset(a, b)
-    np.testing.assert_array_equal(a.position.position, b.position.position)
-    np.testing.assert_array_equal(a.relative_pose.dr, b.relative_pose.dr)
+    np.testing.assert_array_equal(a.sensor("position").data.position, b.sensor("position").data.position)
+    np.testing.assert_array_equal(a.sensor("odometry").data.dr, b.sensor("odometry").data.dr)
     for x, y in [
         (a.imu.acc, c.imu.acc), (a.imu.gyro, c.imu.gyro), (a.truth.states.b_f, c.truth.states.b_f),
-        (a.pose.position, c.pose.position), (a.position.position, c.position.position),
-        (a.relative_pose.dr, c.relative_pose.dr), (a.initial.r, c.initial.r),
+        (a.sensor("pose").data.position, c.sensor("pose").data.position), (a.sensor("position").data.position, c.sensor("position").data.position),
+        (a.sensor("odometry").data.dr, c.sensor("odometry").data.dr), (a.initial.r, c.initial.r),
     ]:
         assert np.all(x != y)  # every random element differs, not just some
     np.testing.assert_array_equal(a.clean_imu.acc, c.clean_imu.acc)  # the motion does not depend on the seed
@@ -86,7 +87,7 @@ def test_switching_measurements_on_or_off_changes_nothing_else():
     np.testing.assert_array_equal(base.imu.acc, slower_pose.imu.acc)
     np.testing.assert_array_equal(base.truth.states.b_w, slower_pose.truth.states.b_w)
     no_pose = simulate("tumbling", duration=3.0, seed=11, pose_rate=None)
-    assert no_pose.pose is None
+    assert no_pose.sensor_names == ()
     np.testing.assert_array_equal(base.imu.gyro, no_pose.imu.gyro)
 
 
@@ -399,16 +400,16 @@ def test_relative_pose_noise_is_in_frame_i(long_run):
 def test_attitude_noise_is_applied_on_the_left():
     """With isotropic noise ``exp(n) C`` and ``C exp(n)`` have the same distribution, so no
     statistic can tell them apart: check the construction itself against the documented streams
-    (one generator per role, spawned in the order of ``STREAMS``)."""
+    (each sensor's stream derived from the ``sensors`` role's by its name)."""
     d = simulate("tumbling", duration=2.0, seed=9, pose_rate=50.0, odometry_rate=25.0)
-    seeds = np.random.SeedSequence(9).spawn(len(sim.STREAMS))
+    root = np.random.SeedSequence(9).spawn(len(sim.STREAMS))[sim.STREAMS.index("sensors")]
     s = d.truth.states
-    rng = np.random.default_rng(seeds[sim.STREAMS.index("pose")])
+    rng = np.random.default_rng(sensor_stream(root, "pose"))
     k = np.arange(0, len(d.imu), 4)
     n_p, n_phi = rng.standard_normal((len(k), 3)) * 0.05, rng.standard_normal((len(k), 3)) * 0.01
     np.testing.assert_allclose(d.sensor("pose").data.position, s.r[k] + n_p, rtol=0, atol=1e-14)
     np.testing.assert_allclose(d.sensor("pose").data.C, so3.exp(n_phi) @ s.C[k], rtol=0, atol=1e-14)
-    rng = np.random.default_rng(seeds[sim.STREAMS.index("relative_pose")])
+    rng = np.random.default_rng(sensor_stream(root, "odometry"))
     i, j = np.arange(0, len(d.imu) - 8, 8), np.arange(8, len(d.imu), 8)
     n_r, n_phi = rng.standard_normal((len(i), 3)) * 0.02, rng.standard_normal((len(i), 3)) * 0.005
     Ci_T = so3.inverse(s.C[i])
@@ -474,10 +475,10 @@ def test_measurement_times_are_imu_sample_times():
 def test_outliers_corrupt_the_chosen_pose_measurements_only():
     clean = simulate("gentle", duration=20.0, seed=2)
     dirty = simulate("gentle", duration=20.0, seed=2, outlier_fraction=0.1, outlier_scale=(4.0, 0.8))
-    assert len(clean.pose_outliers) == 0
-    out = dirty.pose_outliers
+    assert clean.outliers == {}
+    out = dirty.outliers["pose"]
     assert len(out) == round(0.1 * len(dirty.sensor("pose").data)) == 20 and len(np.unique(out)) == 20
-    other = simulate("gentle", duration=20.0, seed=3, outlier_fraction=0.1).pose_outliers
+    other = simulate("gentle", duration=20.0, seed=3, outlier_fraction=0.1).outliers["pose"]
     assert not np.array_equal(out, other) and out.max() > len(dirty.sensor("pose").data) // 2  # drawn, not the first ones
     keep = np.setdiff1d(np.arange(len(dirty.sensor("pose").data)), out)
     np.testing.assert_array_equal(dirty.sensor("pose").data.position[keep], clean.sensor("pose").data.position[keep])
@@ -496,7 +497,9 @@ def test_outliers_corrupt_the_chosen_pose_measurements_only():
         (dict(pose_rate=30.0), "pose_rate"),
         (dict(position_rate=7.0), "position_rate"),
         (dict(orientation_rate=400.0), "orientation_rate"),
-        (dict(odometry_rate=-5.0), "relative_pose_rate"),
+        (dict(odometry_rate=-5.0), "odometry_rate"),
+        (dict(odometry_sigma=(0.1, 0.2, 0.3), odometry_rate=1.0), "odometry_sigma"),
+        (dict(wheel_rate=1.0), "unknown option 'wheel_rate'"),
         (dict(duration=-1.0), "duration"),
         (dict(duration=0.0), "duration"),
         (dict(duration=0.001), "duration"),  # shorter than one IMU step
@@ -521,5 +524,4 @@ def test_bad_options_raise_value_error_naming_the_option(options, name):
 
 def test_rates_of_none_or_zero_mean_no_measurement():
     d = simulate("static", duration=1.0, pose_rate=0, position_rate=None, orientation_rate=0.0, odometry_rate=None)
-    assert d.sensor("pose").data is None and d.sensor("position").data is None and d.sensor("orientation").data is None and d.sensor("odometry").data is None
-    assert len(d.pose_outliers) == 0
+    assert d.sensors == () and d.outliers == {}

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from datasets.types import (SAME_INSTANT_S, Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
-                            RelativePoseMeasurements, Trajectory)
+                            RelativePoseMeasurements, Sensor, Trajectory)
 from factors import imu, so3
 from factors.errors import InputError
 
@@ -30,17 +30,17 @@ def _dataset(**kw):
 def test_measurements_outside_the_imu_span_are_dropped_with_a_warning():
     t = np.array([-0.5, 0.0, 0.5, 1.0, 1.5])
     gps = PositionMeasurements(t, np.zeros((5, 3)), np.eye(3))
-    with pytest.warns(UserWarning, match=r"Dataset.position: 2 of 5 .* outside the IMU span"):
-        d = _dataset(position=gps)
-    np.testing.assert_array_equal(d.position.t, [0.0, 0.5, 1.0])
+    with pytest.warns(UserWarning, match=r"sensor 'gps': 2 of 5 .* outside the IMU span"):
+        d = _dataset(sensors=(Sensor("gps", "position", gps),))
+    np.testing.assert_array_equal(d.sensor("gps").data.t, [0.0, 0.5, 1.0])
 
 
 def test_relative_poses_reaching_outside_the_span_are_dropped():
     rel = RelativePoseMeasurements([0.0, 0.8], [0.5, 1.2], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)),
                                    np.eye(6))
-    with pytest.warns(UserWarning, match="relative_pose: 1 of 2"):
-        d = _dataset(relative_pose=rel)
-    assert len(d.relative_pose) == 1
+    with pytest.warns(UserWarning, match="sensor 'wheels': 1 of 2"):
+        d = _dataset(sensors=(Sensor("wheels", "odometry", rel),))
+    assert len(d.sensor("wheels").data) == 1
 
 
 def test_an_imu_gap_is_reported_with_its_time_and_length():
@@ -53,7 +53,22 @@ def test_an_imu_gap_is_reported_with_its_time_and_length():
 def test_clean_data_gives_no_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _dataset(pose=PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6)))
+        pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+        _dataset(sensors=(Sensor("pose", "pose", pose),))
+
+
+def test_sensors_are_named_once_and_found_by_name():
+    pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+    d = _dataset(sensors=[Sensor("a", "pose", pose)])
+    assert d.sensors == (d.sensor("a"),) and d.sensor_names == ("a",)
+    with pytest.raises(InputError, match="no sensor 'b'; its sensors: a"):
+        d.sensor("b")
+    with pytest.raises(InputError, match="sensor name 'a' is used twice"):
+        _dataset(sensors=(Sensor("a", "pose", pose), Sensor("a", "pose", pose)))
+    with pytest.raises(InputError, match=r"Dataset.sensors\[0\]: expected a Sensor"):
+        _dataset(sensors=(pose,))
+    thinned = d.with_sensor("a", data=pose.subset(np.array([True, False])))
+    assert len(thinned.sensor("a").data) == 1 and len(d.sensor("a").data) == 2
 
 
 @pytest.mark.parametrize("field, value, fragment", [

@@ -16,7 +16,7 @@ KW = dict(profile="gentle", duration=10.0, seed=4, imu_rate=100.0)
 def runs():
     clean = simulate(**KW)
     dirty = simulate(**KW, outlier_fraction=0.05)
-    assert len(dirty.pose_outliers) == 5  # 5% of the 101 poses, each moved 5 m / 1 rad
+    assert len(dirty.outliers["pose"]) == 5  # 5% of the 101 poses, each moved 5 m / 1 rad
     return clean, dirty
 
 
@@ -43,6 +43,6 @@ def test_ekf_gate_keeps_the_filter_on_track(runs):
     reference = _ate(clean, run_ekf(clean, progress=False).trajectory)
     plain = run_ekf(dirty, progress=False)
     gated = run_ekf(dirty, gate_probability=0.999, progress=False)
-    assert gated.rejected >= len(dirty.pose_outliers)
+    assert gated.rejected >= len(dirty.outliers["pose"])
     assert _ate(dirty, plain.trajectory) > 2.0 * reference
     assert _ate(dirty, gated.trajectory) < 1.2 * reference

@@ -50,7 +50,7 @@ def test_zero_densities_stay_zero_and_factors_stay_within_bounds():
 
 
 def test_a_dataset_without_measurements_is_refused():
-    data = dataclasses.replace(_simulated(), position=None, orientation=None)
+    data = dataclasses.replace(_simulated(), sensors=())
     with pytest.raises(ValueError, match="needs measurements the EKF uses"):
         tune_noise(data, progress=False)
 
