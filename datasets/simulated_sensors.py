@@ -123,5 +123,5 @@ def truth_sensors(truth: Trajectory, imu: ImuSamples, pose_from_truth=None, gps_
             specs.append(SensorSpec(name, kind, value[0], tuple(value[1:])))
             sensors_from_truth(truth, imu, specs[-1:], seed)
         except ValueError as error:
-            raise InputError(f"{option}: {error}") from None
+            raise InputError(f"{option}: {str(error).removeprefix(f'sensor {name!r}: ')}") from None
     return sensors_from_truth(truth, imu, specs, seed)

@@ -54,7 +54,7 @@ def gap_run():
     one warning is that of the gap (test_either_kind_warns_...)."""
     data = simulate(profile="gentle", duration=10.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
     keep = (data.sensor("pose").data.t < 4.0) | (data.sensor("pose").data.t >= 6.0)
-    gapped = replace(data, pose=data.sensor("pose").data.subset(keep))
+    gapped = data.with_sensor("pose", data=data.sensor("pose").data.subset(keep))
     assert len(gapped.sensor("pose").data) == len(data.sensor("pose").data) - 20
     problem = build_problem(gapped)
     with warnings.catch_warnings(record=True) as caught:
@@ -67,9 +67,9 @@ def gap_run():
 def test_a_long_run_with_a_measurement_gap_keeps_working():
     """Lag 0.5 s over 10 s (20 lags), no pose for 2 s: no exception, every estimate and
     covariance finite, no update needed a recovery; at the first keyframe after the gap the
-    error is larger than anywhere before it (the gap is real: 2 s of dead reckoning), and one
-    second after the gap the error is back to normal: RMS over [7, 10] s at most 1.5 times the
-    RMS over [0, 4) s (measured 0.027 m against 0.049 m)."""
+    position sigma is larger than anywhere before it (the gap is real: 2 s of dead reckoning),
+    and one second after the gap the error is back to normal: RMS over [7, 10] s at most 1.5
+    times the RMS over [0, 4) s (0.028 against 0.050 m here; over seeds 0-5, 0.6-0.9 times)."""
     data, problem, result = gap_run()
     newest = result.newest
     assert np.all(np.isfinite(newest.states.r)) and np.all(np.isfinite(newest.states.v))
@@ -80,8 +80,9 @@ def test_a_long_run_with_a_measurement_gap_keeps_working():
     assert not np.any((t > 3.95) & (t < 6.0))  # no keyframe inside the gap
     error = np.linalg.norm(newest.states.r - cases.truth_at(data, t).r, axis=1)
     before, after = error[t < 4.0], error[t >= 7.0]
-    at_gap_end = error[np.searchsorted(t, 6.0)]
-    assert at_gap_end > before.max(), (at_gap_end, before.max())
+    sigma = np.sqrt(np.trace(newest.cov[:, 0:3, 0:3], axis1=1, axis2=2))
+    at_gap_end = sigma[np.searchsorted(t, 6.0)]
+    assert at_gap_end > sigma[t < 4.0].max(), (at_gap_end, sigma[t < 4.0].max())
     rms_before, rms_after = np.sqrt(np.mean(before**2)), np.sqrt(np.mean(after**2))
     assert rms_after <= 1.5 * rms_before, (rms_after, rms_before)
     # the window at the end is the last 0.5 s only: the smoother did marginalise all along

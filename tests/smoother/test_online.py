@@ -112,7 +112,7 @@ def test_measurements_late_within_max_delay_change_nothing_later_ones_are_droppe
     with pytest.warns(UserWarning, match="'pose' arrived after its keyframe time had been processed"):
         dropped = _stream(data, online, _arrivals(data, late))
     assert online.dropped == {"pose": 5}
-    kept = replace(data, pose=data.sensor("pose").data.subset(np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
+    kept = data.with_sensor("pose", data=data.sensor("pose").data.subset(np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
     without = _stream(kept, _smoother(kept), _arrivals(kept), knots=estimate_times(data))
     assert [e.t for e in dropped] == [e.t for e in without]
     for a, b in zip(dropped, without):
@@ -229,9 +229,9 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
     data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
                     odometry_rate=1.0)
     assert len(data.sensor("odometry").data) == 2
-    with pytest.warns(UserWarning, match="'relative_pose' refers to a time that has left the window"):
+    with pytest.warns(UserWarning, match="'odometry' refers to a time that has left the window"):
         short = replay(data, 0.3, covariances=False, progress=False)
-    assert short.skipped == {"relative_pose": 2} and short.dropped == {}
+    assert short.skipped == {"odometry": 2} and short.dropped == {}
     # given before the IMU reaches them, they wait; their earlier keyframes leave all the same
     ahead = OnlineSmoother(data.initial, data.initial_cov, data.noise, gravity=data.gravity, lag_s=0.3)
     ahead.add_measurements("odometry", data.sensor("odometry").data)

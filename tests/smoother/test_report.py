@@ -11,7 +11,7 @@ import pytest
 
 from datasets.simulate import simulate
 from datasets.tum import read_tum
-from datasets.types import PositionMeasurements, Trajectory
+from datasets.types import PositionMeasurements, Sensor, Trajectory
 from factors import so3
 from factors.errors import InputError
 from smoother import report
@@ -135,7 +135,7 @@ def test_score_reports_the_heldout_rmse_and_the_fit_residual_apart():
     data = simulate(profile="gentle", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None,
                     position_rate=10.0, position_sigma=0.5)
     used, held = data.sensor("position").data.subset(slice(0, None, 2)), data.sensor("position").data.subset(slice(1, None, 2))
-    data = replace(data, position=used, heldout_positions=held)
+    data = data.with_sensor("position", data=used, heldout=held)
     m = report.score(data, data.truth)  # the truth itself as the estimate: errors = GPS noise
     assert set(m) >= {"ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_fit_residual_m", "gps_heldout_rmse_m"}
     assert "gps_rmse_m" not in m
@@ -158,7 +158,7 @@ def _fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
     fixes = PositionMeasurements(t, truth.states.r + e, 0.25 * np.eye(3))
     used = np.arange(n) % every == 0
     data = simulate(profile="gentle", duration=t[-1] + 0.1, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    return replace(data, position=fixes.subset(used), heldout_positions=fixes.subset(~used), truth=None), truth
+    return replace(data, sensors=(Sensor("gps", "position", fixes.subset(used), fixes.subset(~used)),), truth=None), truth
 
 
 def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
@@ -169,7 +169,7 @@ def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
     for phi, truth_wins, rho in ((0.0, True, 0.0), (0.98, False, 0.98**4)):
         data, truth = _fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
-        assert baseline["heldout_fixes"] == len(data.sensor("position").heldout) - 3  # those after the last used fix
+        assert baseline["heldout_fixes"] == len(data.sensor("gps").heldout) - 3  # those after the last used fix
         assert (report.score(data, truth)["gps_heldout_rmse_m"] < baseline["gps_heldout_rmse_m"]) == truth_wins
         assert report.residual_correlation(data, truth) == pytest.approx(rho, abs=0.08)
 

@@ -39,7 +39,7 @@ def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
         assert metrics[name]["compared_states"] > 10
         assert metrics[name]["ate_rmse_m"] is not None and metrics[name]["ate_rmse_m"] >= 0
         assert metrics[name]["gps_fit_residual_m"] is not None
-    assert metrics["_run"]["aiding_sensors"] == ["pose", "position"] and metrics["_run"]["dead_reckoning"] is False
+    assert metrics["_run"]["aiding_sensors"] == ["pose", "gps"] and metrics["_run"]["dead_reckoning"] is False
 
 
 def test_dead_reckoning_is_said_and_an_ate_over_one_state_is_not_a_number(tmp_path, capsys):
