@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.kinds import KINDS, kind_sigmas
+from datasets.kinds import KINDS, kind_sigmas, pose, position
 from datasets.kinds.base import ImuAt
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors.errors import InputError
@@ -79,9 +79,9 @@ def sensor_stream(root: np.random.SeedSequence, name: str) -> np.random.SeedSequ
 def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0, true_rate=None,
                        gyro_density: float = 0.0) -> tuple[Sensor, ...]:
     """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
-    ``truth`` by its kind's stream (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
-    :func:`measurement_indices` picks them, each sensor with its own noise stream spawned from
-    ``seed`` (an integer or a ``numpy.random.SeedSequence``) and its name (:func:`sensor_stream`). ``imu`` gives the gyro readings a
+    ``truth`` by its kind's simulator (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
+    :func:`measurement_indices` picks them, each sensor with its own noise stream from ``seed``
+    (an integer or a ``numpy.random.SeedSequence``) and its name (:func:`sensor_stream`). ``imu`` gives the gyro readings a
     velocity sensor keeps (the sample held at each measurement time), ``true_rate`` (the body
     rates at the IMU's times; default the readings minus the true bias) the motion it measures,
     ``gyro_density`` [rad/s/sqrt(Hz)] the readings' white noise its covariance accounts for."""
@@ -113,8 +113,8 @@ def truth_sensors(truth: Trajectory, imu: ImuSamples, pose_from_truth=None, gps_
     sensor ``gps`` of kind ``position`` (None: not that one), with noise streams from ``seed``.
     An InputError names the option that is wrong."""
     specs = []
-    for option, value, name, kind, size in (("pose_from_truth", pose_from_truth, "pose", "pose", 3),
-                                            ("gps_from_truth", gps_from_truth, "gps", "position", 2)):
+    for option, value, name, kind, size in (("pose_from_truth", pose_from_truth, "pose", pose.KIND.name, 3),
+                                            ("gps_from_truth", gps_from_truth, "gps", position.POSITION.name, 2)):
         if value is None:
             continue
         if np.ndim(value) != 1 or len(value) != size:
