@@ -94,10 +94,11 @@ _children_lock = threading.Lock()
 _stopping = threading.Event()
 
 
-def run_recording(recording: Recording) -> dict:
-    """Run ``recording`` in a child process (module docstring) and return :func:`result_of` it.
-    Never raises for the recording's sake: a folder that cannot be made, a run that fails or a
-    child that dies is a result with ``failure``."""
+def run_recording(recording: Recording) -> dict | None:
+    """Run ``recording`` in a child process (module docstring) and return :func:`result_of` it;
+    None when the fleet was stopped (:func:`forward`) before it started. Never raises for the
+    recording's sake: a folder that cannot be made, a run that fails or a child that dies is a
+    result with ``failure``."""
     out = Path(recording.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -109,7 +110,7 @@ def run_recording(recording: Recording) -> dict:
         with open(out / LOG, "w") as log:
             with _children_lock:  # started and registered at once: forward() misses no child
                 if _stopping.is_set():
-                    return {**failed(recording, "not run: the fleet was stopped first"), "stopped": "not started"}
+                    return None
                 child = subprocess.Popen([sys.executable, "-m", "smoother.cli", *recording.argv()],
                                          stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
                                          start_new_session=True)
@@ -220,7 +221,7 @@ def _why(code: int, estimators: dict, log: Path | None) -> str:
 
 def run_local(items: list[Recording], workers: int, on_result) -> None:
     """Run ``items`` on this machine, ``workers`` at a time; ``on_result(result)`` in this thread
-    as each ends, in the order they end. Ctrl-C or SIGTERM (:class:`~smoother.errors.Terminated`):
+    as each ends, in the order they end (never for one that did not start). Ctrl-C or SIGTERM (:class:`~smoother.errors.Terminated`):
     nothing more starts, the signal goes on to the running recordings, their results are passed
     on, and the interruption is raised again."""
     pending = iter(items)
@@ -237,8 +238,7 @@ def run_local(items: list[Recording], workers: int, on_result) -> None:
             while running:
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 for future in done:
-                    item = running.pop(future)
-                    on_result(_result(future.result, item))
+                    _pass_on(on_result, _result(future.result, running.pop(future)))
                 refill()
         except KeyboardInterrupt as error:
             for future in running:
@@ -246,8 +246,13 @@ def run_local(items: list[Recording], workers: int, on_result) -> None:
             forward(signal.SIGTERM if isinstance(error, Terminated) else signal.SIGINT)
             for future, item in running.items():
                 if not future.cancelled():
-                    on_result(_result(future.result, item))
+                    _pass_on(on_result, _result(future.result, item))
             raise
+
+
+def _pass_on(on_result, result: dict | None) -> None:
+    if result is not None:
+        on_result(result)
 
 
 def _result(get, item: Recording) -> dict:
@@ -288,8 +293,7 @@ def run_on_dask(items: list[Recording], address: str, on_result) -> None:
         try:
             refill()
             for future in completed:
-                item = running.pop(future)
-                on_result(_result(future.result, item))
+                _pass_on(on_result, _result(future.result, running.pop(future)))
                 refill()
         except KeyboardInterrupt:
             client.cancel(list(running))
