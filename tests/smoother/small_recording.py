@@ -1,6 +1,7 @@
-"""A small recording written by a test as a real user's would be: a ROS 2 bag (MCAP) of the
-simulator's IMU (100 Hz), GNSS fixes in latitude/longitude (2 Hz, antenna on a lever arm) and wheel
-odometry twists (10 Hz), header stamps since the epoch, and its rig file with a datum."""
+"""A recording written by a test as a real user's would be: a ROS 2 bag (MCAP) of the simulator's
+IMU, GNSS fixes in latitude/longitude (``sensor_msgs/NavSatFix``, the antenna on a lever arm) and
+wheel odometry (``nav_msgs/Odometry``: the wheel frame's twist, the wheel frame rotated and away from
+the IMU), header stamps in seconds since the epoch, and its rig file with a datum."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,21 +13,24 @@ from rigfiles import imu_table, toml_matrix
 from datasets.gnss import Datum, enu_to_geodetic
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
+from factors import so3
 
 T0_NS = 1_700_000_000_000_000_000
 DATUM = Datum(47.3769, 8.5417, 408.0)
 ANTENNA = np.eye(4)
 ANTENNA[:3, 3] = [0.3, 0.0, 0.95]
 WHEEL = np.eye(4)
-WHEEL[:3, 3] = [-0.8, 0.3, -0.4]
+WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4]  # upside down, turned
 
 
-def write_recording(folder: Path, name: str = "rig", duration: float = 10.0, seed: int = 1):
+def write_recording(folder: Path, name: str = "rig", duration: float = 10.0, seed: int = 1, imu_rate: float = 100.0,
+                    gnss_rate: float = 2.0, every: int = 2):
     """``(rig file, simulated dataset)``: the bag ``<name>.mcap`` and the rig file ``<name>.toml``
-    in ``folder``."""
+    in ``folder``, of ``duration`` seconds of the ``gentle`` profile: IMU at ``imu_rate``, fixes
+    at ``gnss_rate`` (every ``every``-th used), wheel twists at 10 Hz."""
     folder.mkdir(parents=True, exist_ok=True)
-    data = simulate("gentle", duration=duration, seed=seed, imu_rate=100.0, pose_rate=None, sensors=[
-        SensorSpec("gnss", "gnss", 2, 0.5, ANTENNA), SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)])
+    data = simulate("gentle", duration=duration, seed=seed, imu_rate=imu_rate, pose_rate=None, sensors=[
+        SensorSpec("gnss", "gnss", gnss_rate, 0.5, ANTENNA), SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)])
     gnss, wheel = data.sensors
     ns = lambda t: T0_NS + np.round(np.asarray(t) * 1e9).astype(np.int64)  # noqa: E731
     m = Messages("mcap")
@@ -53,7 +57,7 @@ kind = "gnss"
 source = "bag:{bag.name}"
 topic = "/fix"
 T_BS = {toml_matrix(ANTENNA)}
-every = 2
+every = {every}
 
 [[sensor]]
 name = "wheel"
