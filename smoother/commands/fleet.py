@@ -90,15 +90,16 @@ def format_table(results: list[dict]) -> str:
     sensor's; ``(?)`` after a doubtful estimator; a recording or estimator that failed says why
     on its line."""
     present = [(k, h) for k, h in COLUMNS if any(k in e for r in results for e in r["estimators"].values())]
-    lines = [f"{'recording':<20}{'estimator':<14}" + "".join(f"{h:>14}" for _, h in present)
+    width = max([len("recording")] + [len(r["recording"]) for r in results]) + 2
+    lines = [f"{'recording':<{width}}{'estimator':<16}" + "".join(f"{h:>14}" for _, h in present)
              + f"  {'fit/dof':<12}sensors (per dof)"]
     for r in results:
         if not r["estimators"]:
-            lines.append(f"{r['recording']:<20}failed: {r['failure']}")
+            lines.append(f"{r['recording']:<{width}}failed: {r['failure']}")
             continue
         for name, e in r["estimators"].items():
             label = f"{name} (?)" if e.get("doubtful") else name
-            head = f"{r['recording']:<20}{label:<14}"
+            head = f"{r['recording']:<{width}}{label:<16}"
             if "failed" in e:
                 lines.append(f"{head}failed: {e['failed']}")
                 continue
@@ -107,7 +108,7 @@ def format_table(results: list[dict]) -> str:
             sensors = ", ".join(f"{s} {_verdict(v)}" for s, v in e["sensors"].items()) or "-"
             lines.append(f"{head}{cells}  {fit:<12}{sensors}")
         if r["failure"] and not any("failed" in e for e in r["estimators"].values()):
-            lines.append(f"{r['recording']:<20}failed: {r['failure']}")
+            lines.append(f"{r['recording']:<{width}}failed: {r['failure']}")
     if any(e.get("doubtful") for r in results for e in r["estimators"].values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the recording's run.log says how far)")
     return "\n".join(lines)
