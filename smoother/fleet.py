@@ -37,7 +37,9 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
-from smoother.errors import Terminated, UserError
+from smoother.commands.run_directory import METRICS
+from factors.errors import InputError
+from smoother.errors import Terminated
 
 #: What a recording's run printed (stdout and stderr), in its folder.
 LOG = "run.log"
@@ -72,13 +74,13 @@ class Recording:
 
 def recordings(rigs, out_dir, run_options=(), threads: int | None = None) -> list[Recording]:
     """The recordings of the rig files ``rigs``, each into ``out_dir/<rig file stem>``; a
-    :class:`~smoother.errors.UserError` when two rig files share a stem (their folders would be
+    :class:`~factors.errors.InputError` when two rig files share a stem (their folders would be
     one)."""
     seen: dict[str, str] = {}
     for rig in rigs:
         stem = Path(rig).stem
         if stem in seen:
-            raise UserError(f"{seen[stem]} and {rig}: both would be run into {Path(out_dir) / stem}/ (a recording's "
+            raise InputError(f"{seen[stem]} and {rig}: both would be run into {Path(out_dir) / stem}/ (a recording's "
                             "folder is its rig file's name without .toml); rename one of them")
         seen[stem] = str(rig)
     out_dir = Path(out_dir).resolve()
@@ -100,9 +102,11 @@ def run_recording(recording: Recording) -> dict | None:
     recording's sake: a folder that cannot be made, a run that fails or a child that dies is a
     result with ``failure``."""
     out = Path(recording.out)
+    if _stopping.is_set():
+        return None
     try:
         out.mkdir(parents=True, exist_ok=True)
-        before = _signature(out / "metrics.json")
+        before = _signature(out / METRICS)
         env = dict(os.environ)
         threads = recording.threads or _dask_share()
         if threads is not None and "BOXPLUS_THREADS" not in os.environ:
@@ -122,7 +126,7 @@ def run_recording(recording: Recording) -> dict | None:
                     _children.discard(child)
     except OSError as error:
         return failed(recording, f"cannot run it: {error.filename or out}: {error.strerror or error}")
-    metrics = out / "metrics.json"
+    metrics = out / METRICS
     return result_of(recording, code, metrics if _signature(metrics) != before else None, out / LOG)
 
 
@@ -158,8 +162,9 @@ def _dask_share() -> int | None:
     return max(1, cores // max(1, worker.state.nthreads))
 
 
-def failed(recording: Recording, why: str, code: int | None = None) -> dict:
-    """The result of a recording that gave no run: ``failure`` says why, in one line."""
+def failed(recording: Recording, why: str | None, code: int | None = None) -> dict:
+    """The result of a recording without estimates: ``failure`` says why, in one line (the keys
+    of :func:`result_of`)."""
     return {"recording": recording.name, "rig": recording.rig, "out": recording.out, "exit_code": code,
             "failure": why, "estimators": {}}
 
@@ -266,18 +271,18 @@ def _result(get, item: Recording) -> dict:
 
 def run_on_dask(items: list[Recording], address: str, on_result) -> None:
     """Run ``items`` through the Dask scheduler at ``address`` (:func:`run_local`'s contract; on
-    an interruption the recordings not started are cancelled). A
-    :class:`~smoother.errors.UserError` without the optional dependency ``distributed`` or when
+    an interruption the recordings not started are cancelled). An
+    :class:`~factors.errors.InputError` without the optional dependency ``distributed`` or when
     the scheduler cannot be reached."""
     try:
         from distributed import Client, as_completed
     except ImportError:
-        raise UserError("--dask needs Dask's distributed package, an optional dependency: "
-                        "pip install 'boxplus-smoother[dask]'") from None
+        raise InputError("a Dask scheduler needs Dask's distributed package, an optional dependency: "
+                         "pip install 'boxplus-smoother[dask]'") from None
     try:
         client = Client(address)
     except (OSError, ValueError, TypeError) as error:  # a timeout is an OSError
-        raise UserError(f"--dask {address}: cannot reach the scheduler ({type(error).__name__}: {error})") from None
+        raise InputError(f"the Dask scheduler {address} cannot be reached ({type(error).__name__}: {error})") from None
     with client:
         pending = iter(items)
         running: dict = {}  # future -> recording

@@ -1,6 +1,7 @@
 """A run's estimates as an MCAP file of ROS 2 messages (``smoother run --mcap``: ``estimates.mcap``),
 for Foxglove, ``ros2 bag`` and ``rosbags``; written with rosbags' ROS 2 writer (MCAP storage, zstd
-chunks; the message definitions are those of ROS 2 Humble, the same in Jazzy).
+chunks; the message definitions are those of ROS 2 Humble, whose types Jazzy keeps -- same type
+hashes -- adding constants such as ``NavSatStatus.SERVICE_UNKNOWN = 0``, the fixes' ``service``).
 
 Topics (an estimator's name with ``-`` as ``_``, which ROS names do not allow):
 
