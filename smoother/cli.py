@@ -17,6 +17,7 @@ from smoother.errors import Terminated, UserError, interruption
 #: Modules that contribute sub-commands, in the order they are listed by ``smoother --help``.
 COMMAND_MODULES = [
     "smoother.commands.run",
+    "smoother.commands.fleet",
     "smoother.commands.crosscheck",
     "smoother.commands.montecarlo",
     "smoother.commands.check_jacobians",

@@ -60,6 +60,9 @@ def register(sub) -> None:
                         "(default 35, 2000 deg/s: beyond it the data are refused as probably in deg/s)")
     p.add_argument("--no-covariance", action="store_true", help="skip marginal covariances (faster; no NEES)")
     p.add_argument("--plot", action="store_true", help="also write the plots (PNG) into the output directory")
+    p.add_argument("--mcap", action="store_true",
+                   help="also write estimates.mcap: the estimates as ROS 2 messages (Odometry, /tf, NavSatFix) for "
+                        "Foxglove, ros2 bag and rosbags")
     p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show progress bars")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="never show progress bars")
     p.set_defaults(handler=run)
@@ -193,7 +196,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         stopped, code = interruption(error)
         estimates = _in_order(estimates, names)
         with out.outputs() as stage:
-            report.write_outputs(stage, dataset, estimates, {**run_info, "stopped": stopped})
+            _write_outputs(args, stage, dataset, estimates, {**run_info, "stopped": stopped})
         _say_removed(out)
         print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
               f"metrics.json says stopped: {stopped}", file=sys.stderr)
@@ -205,8 +208,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
     with out.outputs() as stage:
-        metrics = report.write_outputs(stage, dataset, estimates,
-                                       {**run_info, "total_s": time.perf_counter() - started})
+        metrics = _write_outputs(args, stage, dataset, estimates, {**run_info, "total_s": time.perf_counter() - started})
     _say_removed(out)
     if args.plot:
         from smoother import plots
@@ -243,6 +245,20 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         print(f"{', '.join(failed)} failed (why: above and in metrics.json)", file=sys.stderr)
         return 2
     return 0
+
+
+def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict) -> dict:
+    """The run's files (:func:`smoother.report.write_outputs`) and, with ``--mcap``, its MCAP
+    (:func:`smoother.mcap_export.write_mcap`), into the staging folder ``stage``; the metrics."""
+    from smoother import report
+    from smoother.commands.run_directory import MCAP
+
+    metrics = report.write_outputs(stage, dataset, estimates, run_info)
+    if args.mcap:
+        from smoother.mcap_export import write_mcap
+
+        write_mcap(stage / MCAP, dataset, estimates)
+    return metrics
 
 
 def _in_order(estimates: dict, names: list[str]) -> dict:

@@ -2,8 +2,8 @@
 
 * **What a run writes**, by name (:func:`run_files`, the one list of them): per estimator of
   :data:`smoother.pipeline.ESTIMATORS` its ``.tum``, ``.npz`` and ``.geojson``; ``truth.npz``,
-  ``gps.npz``, ``metrics.json``; the figures of :mod:`smoother.plots` (``--plot``, or
-  ``smoother plot DIR``). Nothing else in the directory is ever deleted or changed.
+  ``gps.npz``, ``metrics.json``; ``estimates.mcap`` (``--mcap``, :mod:`smoother.mcap_export`);
+  the figures of :mod:`smoother.plots` (``--plot``, or ``smoother plot DIR``). Nothing else in the directory is ever deleted or changed.
 * **One run at a time**: a run holds an exclusive ``flock`` on :data:`LOCK` (a hidden file in the
   directory, holding the run's process id) from before its estimators start until it ends; a
   second run into the same directory is refused at once, naming the directory and the other run's
@@ -20,6 +20,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -33,6 +34,8 @@ ESTIMATE_SUFFIXES = (".tum", ".npz", ".geojson")
 #: The references (a ground truth, GNSS fixes) and the metrics of a run.
 REFERENCES = ("truth.npz", "gps.npz")
 METRICS = "metrics.json"
+#: The run's estimates as ROS 2 messages (``--mcap``).
+MCAP = "estimates.mcap"
 #: The figures of a run directory (:func:`smoother.plots.plot_run`), as ``<name>.png``.
 FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
 #: Lock errors of a file system without locks: the run goes on, unguarded, with a warning.
@@ -44,7 +47,7 @@ def run_files() -> frozenset[str]:
     from smoother.pipeline import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
-                     + list(REFERENCES) + [METRICS] + [f"{figure}.png" for figure in FIGURES])
+                     + list(REFERENCES) + [METRICS, MCAP] + [f"{figure}.png" for figure in FIGURES])
 
 
 class RunDirectory:
@@ -99,15 +102,20 @@ class RunDirectory:
 
     def _clear_stale_staging(self) -> None:
         """Staging folders of a run that was killed (SIGKILL, power loss): with the lock held no
-        other run owns one. Their run files are deleted, then the folder if that emptied it."""
+        other run owns one. Their run files are deleted (and the hidden folder a run file was being
+        written through, :func:`smoother.mcap_export.write_mcap`'s), then the folder if that emptied it."""
         names = run_files()
         for folder in self.path.glob(f"{STAGING_PREFIX}*"):
             if not folder.is_dir() or folder.is_symlink():
                 continue
             for entry in folder.iterdir():
                 stem = entry.name.rsplit(".", 2)[0].lstrip(".") if entry.name.endswith(".tmp") else entry.name
-                if entry.is_file() and stem in names:
+                if stem not in names or entry.is_symlink():
+                    continue
+                if entry.is_file():
                     entry.unlink()
+                elif entry.is_dir():
+                    shutil.rmtree(entry, ignore_errors=True)
             with contextlib.suppress(OSError):
                 folder.rmdir()
 

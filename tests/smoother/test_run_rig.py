@@ -1,75 +1,24 @@
 """``smoother run --rig``: a recording the project has never seen, from its rig file alone.
 
-The recording is written by the test as a ROS 2 bag (MCAP): IMU, wheel odometry (``nav_msgs/
-Odometry``: the wheel frame's twist, the wheel frame rotated and away from the IMU) and GNSS fixes
-in latitude/longitude (``sensor_msgs/NavSatFix``) from an antenna on a lever arm, with header
-stamps in seconds since the epoch. No ground truth reaches the estimators."""
+The recording is written by the test as a ROS 2 bag (MCAP, ``small_recording.write_recording``):
+IMU, wheel odometry and GNSS fixes in latitude/longitude from an antenna on a lever arm, with
+header stamps in seconds since the epoch. No ground truth reaches the estimators."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
 import pytest
-from bagfiles import Messages, write_bag
-from rigfiles import imu_table, toml_matrix
+from small_recording import DATUM, write_recording
 
-from datasets.simulated_sensors import SensorSpec
-from datasets.gnss import Datum, enu_to_geodetic
-from datasets.simulate import simulate
 from datasets.tum import read_tum
-from factors import so3
 from smoother.cli import main
-
-T0_NS = 1_700_000_000_000_000_000
-DATUM = Datum(47.3769, 8.5417, 408.0)
-WHEEL = np.eye(4)
-WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4]  # upside down, turned
-ANTENNA = np.eye(4)
-ANTENNA[:3, 3] = [0.3, 0.0, 0.95]
-
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     folder = tmp_path_factory.mktemp("recording")
-    data = simulate("gentle", duration=60, seed=5, pose_rate=None, sensors=[
-        SensorSpec("gnss", "gnss", 1, 0.5, ANTENNA), SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)])
-    gnss, wheel = data.sensors
-    ns = lambda t: T0_NS + np.round(np.asarray(t) * 1e9).astype(np.int64)  # noqa: E731
-    m = Messages("mcap")
-    lat, lon, alt = enu_to_geodetic(gnss.data.position, DATUM)
-    fix_cov = np.diag([0.25, 0.25, 0.25])
-    topics = {
-        "/imu/data": ("sensor_msgs/msg/Imu", [m.imu(*row) for row in zip(ns(data.imu.t), data.imu.acc, data.imu.gyro)]),
-        "/wheel/odom": ("nav_msgs/msg/Odometry", [
-            m.odometry(t, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3), np.diag([0.0025] * 6))
-            for t, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
-        "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, a, b, c, 0, fix_cov, 3)
-                                               for t, a, b, c in zip(ns(gnss.data.t), lat, lon, alt)]),
-    }
-    bag = write_bag(folder / "run.mcap", "mcap", topics)
-    rig = folder / "rig.toml"
-    rig.write_text(imu_table(f"bag:{bag.name}", data.noise, "/imu/data") + f"""
-[datum]
-latitude = {DATUM.latitude}
-longitude = {DATUM.longitude}
-altitude = {DATUM.altitude}
-
-[[sensor]]
-name = "gnss"
-kind = "gnss"
-source = "bag:{bag.name}"
-topic = "/fix"
-T_BS = {toml_matrix(ANTENNA)}
-every = 4
-
-[[sensor]]
-name = "wheel"
-kind = "velocity"
-source = "bag:{bag.name}"
-topic = "/wheel/odom"
-T_BS = {toml_matrix(WHEEL)}
-""")
+    rig, data = write_recording(folder, "rig", duration=60, seed=5, imu_rate=200.0, gnss_rate=1.0, every=4)
     out = folder / "out"
     assert main(["run", "--rig", str(rig), "--estimator", "all", "--lag", "5", "--out", str(out), "--no-progress"]) == 0
     return data, out
