@@ -132,7 +132,7 @@ def ours(gps_every: int, tune_noise: bool = False) -> dict:
     problem = build_problem(dataset)
     result = solve_batch(problem, covariances=False)
     elapsed = time.perf_counter() - tick
-    t, distance = report.position_errors(dataset.heldout_positions, result.trajectory)
+    t, distance = report.position_errors(dataset.sensor("gps").heldout, result.trajectory)
     return {"heldout_rmse_m": float(np.sqrt(np.mean(distance**2))), "compute_s": elapsed,
             "states": len(problem.times), "errors": (t, distance)}
 

@@ -267,7 +267,7 @@ def bench_ekf(s: Settings) -> dict:
         "ekf_us_per_sample": ours,
         "gtsam_ekf_us_per_sample": theirs,
         "ekf_ratio_vs_gtsam": ours / theirs,
-        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.pose)} pose updates, {n} samples, median of {s.repeats}",
+        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.sensor('pose').data)} pose updates, {n} samples, median of {s.repeats}",
     }
 
 
@@ -489,7 +489,7 @@ class _NativeFixedLag:
         values.insert(V(0), self.nav.velocity())
         values.insert(B(0), self.bias)
         self._update(graph, values, 0, float(dataset.imu.t[0]))
-        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(np.sqrt(np.diag(dataset.pose.cov[0]))[[3, 4, 5, 0, 1, 2]])
+        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))[[3, 4, 5, 0, 1, 2]])
         self.k = 0
 
     def _update(self, graph, values, k, t) -> None:
@@ -529,7 +529,7 @@ def online_against_native(duration_s: float) -> dict:
     """Whole loop per keyframe of both smoothers, stepping in turn (section 7 of the module
     docstring); the first 2 s (the window filling) are left out of the statistics."""
     dataset = _synthetic(duration_s)
-    m = dataset.pose
+    m = dataset.sensor("pose").data
     t, acc, gyro = dataset.imu.t, list(dataset.imu.acc), list(dataset.imu.gyro)
     times = t.tolist()
     ends = np.searchsorted(t, m.t)  # the sample at each pose time (poses fall on samples)
@@ -564,13 +564,13 @@ def online_against_native(duration_s: float) -> dict:
     # estimate() at IMU rate: after every sample between keyframes, a short second pass
     short = _synthetic(min(duration_s, 60.0))
     online = OnlineSmoother.for_dataset(short, lag_s=LAG_S)
-    keyframe_times = set(short.pose.t.tolist())
+    keyframe_times = set(short.sensor("pose").data.t.tolist())
     estimate_s = []
-    pose_row = {tt: i for i, tt in enumerate(short.pose.t.tolist())}
+    pose_row = {tt: i for i, tt in enumerate(short.sensor("pose").data.t.tolist())}
     for j, tt in enumerate(short.imu.t.tolist()):
         if tt in pose_row:
             i = pose_row[tt]
-            online.add("pose", tt, short.pose.position[i], short.pose.C[i], cov=short.pose.cov[i])
+            online.add("pose", tt, short.sensor("pose").data.position[i], short.sensor("pose").data.C[i], cov=short.sensor("pose").data.cov[i])
         online.add_imu(tt, short.imu.acc[j], short.imu.gyro[j])
         tick = time.perf_counter()
         online.estimate()

@@ -140,7 +140,7 @@ def test_the_world_frame_is_map_with_a_position_sensor_and_odom_without():
     assert frame(pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)]) == "map"
     assert frame(pose_rate=None, position_rate=2.0) == "map"
     assert frame(pose_rate=None, sensors=[SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)],
-                 orientation_rate=10.0, relative_pose_rate=5.0) == "odom"
+                 orientation_rate=10.0, odometry_rate=5.0) == "odom"
     assert frame(pose_rate=None) == "odom"  # dead reckoning
 
 
