@@ -542,8 +542,9 @@ def nees(truth, estimate, cov, part: str = "pose") -> np.ndarray:
 def chi2_quantile(p: float, dof: float) -> float:
     """The ``x`` with ``P(X <= x) = p`` for ``X`` chi-square with ``dof`` degrees of freedom
     (``scipy.stats.chi2.ppf``; 0 at ``p = 0``, inf at ``p = 1``); an InputError for ``p`` outside
-    [0, 1] or ``dof`` not a positive finite number. SciPy's statistics are imported here, at the
-    first call, not with the module: importing them takes longer than most commands run."""
+    [0, 1] or ``dof`` not a positive finite number. ``scipy.stats`` is imported here, at the
+    first call, not with the module: its import takes a good part of a second, which a command
+    that needs no quantile does not pay."""
     dof = float(dof)
     if not (math.isfinite(dof) and dof > 0):
         raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
