@@ -95,6 +95,8 @@ class ImuBuffer:
         self.t_last = float(t[-1])
         if self._typical is None and self.n > TYPICAL_INTERVALS:
             self._know_typical(stacklevel=self._stack + 3)
+        # where add_one acts next: when the arrays are full, or when the typical period is due
+        self._room = len(self.t) if self._typical is not None else TYPICAL_INTERVALS + 1
 
     def add_one(self, t: float, acc, gyro) -> None:
         """One sample (``acc``, ``gyro`` of shape (3,)) with as few operations as it takes: a few
