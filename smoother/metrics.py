@@ -531,7 +531,13 @@ def nees(truth, estimate, cov, part: str = "pose") -> np.ndarray:
         e = imu.boxminus(truth, estimate)[..., idx]
     if not np.all(np.isfinite(e)):
         raise InputError(f"nees: the {part} error is not finite (is the truth's velocity or bias unknown?)")
-    P = cov[..., idx[:, None], idx[None, :]]
+    return nees_from(e, cov[..., idx[:, None], idx[None, :]])
+
+
+def nees_from(e, P) -> np.ndarray:
+    """``e^T P^-1 e`` of errors ``e`` (..., d) with covariances ``P`` (..., d, d): the NEES of
+    :func:`nees`, and of any error with its covariance (a fix's residual, the plots' NEES)."""
+    e = np.asarray(e, dtype=float)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 
