@@ -3,7 +3,7 @@
 
 A measurement waits until the keyframe at its latest time is made; those of a keyframe come out
 sorted by latest time, sensor and row (:class:`Pending`), so a keyframe's factors do not depend
-on the order of arrival. What can no longer reach the window is refused, counted per sensor with
+on the order of arrival. What is too old to reach the window is refused, counted per sensor with
 a warning at the sensor's first:
 
 - ``dropped``: its latest time is at or before the newest keyframe made (it arrived later than

@@ -338,11 +338,11 @@ def test_imu_factor_error_is_the_residual_whitened_by_its_covariance():
 
 
 def test_imu_factor_on_a_one_sample_interval_has_a_finite_error():
-    """Regression: with ``ImuNoise.velocity = 0`` (the default) the position of a ONE-sample
-    interval is deterministic (``r_j = r_i + dt C_i v_i``); the propagated covariance's position
-    block is exactly zero and, before ``preintegration.COVARIANCE_FLOOR`` was added, the factor's
-    Gaussian model was singular and its error NaN (graphs get such intervals when two knots fall
-    within one IMU period)."""
+    """With ``ImuNoise.velocity = 0`` (the default) the position of a ONE-sample interval is
+    deterministic (``r_j = r_i + dt C_i v_i``): the propagated covariance's position block is
+    exactly zero, and ``preintegration.COVARIANCE_FLOOR`` keeps the factor's Gaussian model
+    regular, so its error is finite (graphs get such intervals when two knots fall within one IMU
+    period)."""
     rng = np.random.default_rng(12)
     acc, gyro, dt = np.array([[0.1, 0.2, 9.8]]), np.array([[0.3, -0.2, 0.1]]), np.array([5e-3])
     x_i = random_state(rng)
@@ -413,7 +413,7 @@ def _assert_rows_are_single_calls(residual, args: list, batched: list, n: int = 
 
 @pytest.mark.parametrize("which", range(6))
 def test_relative_pose_residual_broadcasts_when_only_some_arguments_are_batched(which):
-    # One batched argument among single ones used to fail in np.concatenate.
+    # Any one argument batched (5 of it), the others single: 5 residuals, each the single call's.
     rng = np.random.default_rng(11)
     C_i, C_j, dC = (random_rotation(rng, "ordinary") for _ in range(3))
     args = [C_i, rng.normal(size=3), C_j, rng.normal(size=3), rng.normal(size=3), dC]
@@ -424,7 +424,7 @@ def test_relative_pose_residual_broadcasts_when_only_some_arguments_are_batched(
 
 @pytest.mark.parametrize("which", range(4))
 def test_state_residual_broadcasts_when_only_some_arguments_are_batched(which):
-    # The reviewer's case: C, v, b and the prior single, r of shape (5, 3) -> e of shape (5, 15).
+    # Any one argument batched (5 of it), the others and the prior single: e of shape (5, 15).
     rng = np.random.default_rng(12)
     r, v, b_f, b_w = rng.normal(size=(4, 3))
     prior = imu.ImuState(r, v, random_rotation(rng, "ordinary"), b_f, b_w)
