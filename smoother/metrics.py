@@ -36,9 +36,8 @@ implements them, so that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the
   (``factors.imu``: vectors subtract, attitude ``log(C_true C_est^T)``, a world-frame LEFT
   perturbation), ``NEES = e^T P^-1 e`` with P the matching block of the 15x15 error-state
   covariance; ``part='pose'`` uses ``(r, phi)``: rows/cols 0:3 and 6:9 (6 dims).
-* Chi-square: :func:`chi2_cdf`, :func:`chi2_quantile` (exact, by the regularised incomplete gamma
-  function, no scipy) and :func:`nees_bounds` (two-sided interval of the NEES averaged over M
-  runs: ``M * mean ~ chi2(M d)``).
+* Chi-square: :func:`chi2_quantile` (SciPy's, as ``scipy.stats.chi2.ppf``) and :func:`nees_bounds`
+  (two-sided interval of the NEES averaged over M runs: ``M * mean ~ chi2(M d)``).
 * Two estimators on the same reference points: :func:`rmse_difference`, the difference of their
   RMS errors with a block-bootstrap interval (errors along a trajectory are correlated, so whole
   blocks of them are resampled, not single points).
@@ -47,7 +46,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from statistics import NormalDist
 
 import numpy as np
 
@@ -533,122 +531,36 @@ def nees(truth, estimate, cov, part: str = "pose") -> np.ndarray:
         e = imu.boxminus(truth, estimate)[..., idx]
     if not np.all(np.isfinite(e)):
         raise InputError(f"nees: the {part} error is not finite (is the truth's velocity or bias unknown?)")
-    P = cov[..., idx[:, None], idx[None, :]]
+    return nees_from(e, cov[..., idx[:, None], idx[None, :]])
+
+
+def nees_from(e, P) -> np.ndarray:
+    """``e^T P^-1 e`` of errors ``e`` (..., d) with covariances ``P`` (..., d, d): the NEES of
+    :func:`nees`, and of any error with its covariance (a fix's residual, the plots' NEES)."""
+    e = np.asarray(e, dtype=float)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 
 # ------------------------------------------------------------------------------------------
-# chi-square distribution without scipy
-
-_EPS = 1e-16
-_MAX_TERMS = 100000
-
-
-def _gamma_p_series(a: float, x: float) -> float:
-    """P(a, x) = x^a e^-x / Gamma(a + 1) * sum_n x^n / ((a + 1) ... (a + n)), good for x < a + 1."""
-    term = 1.0 / a
-    total = term
-    for n in range(1, _MAX_TERMS):
-        term *= x / (a + n)
-        total += term
-        if abs(term) < abs(total) * _EPS:
-            break
-    return total * math.exp(a * math.log(x) - x - math.lgamma(a))
-
-
-def _gamma_q_fraction(a: float, x: float) -> float:
-    """Q(a, x) = 1 - P(a, x) by its continued fraction (modified Lentz), good for x >= a + 1."""
-    tiny = 1e-300
-    b = x + 1.0 - a
-    c = 1.0 / tiny
-    d = 1.0 / b
-    h = d
-    for i in range(1, _MAX_TERMS):
-        an = -i * (i - a)
-        b += 2.0
-        d = an * d + b
-        d = tiny if abs(d) < tiny else d
-        c = b + an / c
-        c = tiny if abs(c) < tiny else c
-        d = 1.0 / d
-        delta = d * c
-        h *= delta
-        if abs(delta - 1.0) < _EPS:
-            break
-    return math.exp(a * math.log(x) - x - math.lgamma(a)) * h
-
-
-def _gamma_p(a: float, x: float) -> float:
-    if x <= 0:
-        return 0.0
-    if x < a + 1.0:
-        return _gamma_p_series(a, x)
-    return 1.0 - _gamma_q_fraction(a, x)
-
-
-def _gamma_q(a: float, x: float) -> float:
-    if x <= 0:
-        return 1.0
-    if x < a + 1.0:
-        return 1.0 - _gamma_p_series(a, x)
-    return _gamma_q_fraction(a, x)
-
-
-def _check_dof(dof) -> float:
-    dof = float(dof)
-    if not (np.isfinite(dof) and dof > 0):
-        raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
-    return dof
-
-
-def chi2_cdf(x: float, dof: float) -> float:
-    """P(X <= x) for X ~ chi-square with ``dof`` degrees of freedom."""
-    return _gamma_p(0.5 * _check_dof(dof), 0.5 * float(x))
-
-
-def chi2_sf(x: float, dof: float) -> float:
-    """P(X > x), accurate in the upper tail."""
-    return _gamma_q(0.5 * _check_dof(dof), 0.5 * float(x))
+# chi-square quantiles (SciPy's)
 
 
 def chi2_quantile(p: float, dof: float) -> float:
-    """The ``x`` with ``chi2_cdf(x, dof) = p``, by safeguarded Newton iteration on the regularised
-    incomplete gamma function from a Wilson-Hilferty start (relative accuracy ~1e-12)."""
-    dof = _check_dof(dof)
+    """The ``x`` with ``P(X <= x) = p`` for ``X`` chi-square with ``dof`` degrees of freedom (0 at
+    ``p = 0``, inf at ``p = 1``); an InputError for ``p`` outside [0, 1] or ``dof`` not a positive
+    finite number. SciPy's: ``2 gammaincinv(dof / 2, p)``, the inverse regularised incomplete gamma
+    function that ``scipy.stats.chi2.ppf`` evaluates, bit for bit. It is imported from
+    ``scipy.special`` at the first call: every run with aiding sensors needs quantiles (the
+    sensors' verdicts), and ``scipy.stats`` takes about five times as long to import."""
+    dof = float(dof)
+    if not (math.isfinite(dof) and dof > 0):
+        raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
     p = float(p)
-    if not 0.0 < p < 1.0:
-        if p == 0.0:
-            return 0.0
-        if p == 1.0:
-            return math.inf
+    if not 0.0 <= p <= 1.0:
         raise InputError(f"p: expected a probability in [0, 1], got {p!r}")
-    a = 0.5 * dof
-    z = NormalDist().inv_cdf(p)
-    h = 2.0 / (9.0 * dof)
-    x = dof * max(1.0 - h + z * math.sqrt(h), 1e-3) ** 3
-    upper_tail = p > 0.5
-    target = 1.0 - p if upper_tail else p
-    lo, hi = 0.0, math.inf
+    from scipy.special import gammaincinv
 
-    def residual(v):  # increasing in v
-        return (target - _gamma_q(a, 0.5 * v)) if upper_tail else (_gamma_p(a, 0.5 * v) - target)
-
-    for _ in range(200):
-        f = residual(x)
-        if f > 0:
-            hi = min(hi, x)
-        else:
-            lo = max(lo, x)
-        log_density = (a - 1.0) * math.log(0.5 * x) - 0.5 * x - math.lgamma(a) - math.log(2.0) if x > 0 else -math.inf
-        density = math.exp(log_density)
-        step = f / density if density > 0 else math.inf
-        new = x - step
-        if not (lo < new < hi) or not math.isfinite(new):
-            new = 0.5 * (lo + hi) if math.isfinite(hi) else 2.0 * x + 1.0
-        if abs(new - x) <= 1e-14 * max(abs(x), 1e-300):
-            return new
-        x = new
-    return x
+    return float(2.0 * gammaincinv(0.5 * dof, p))
 
 
 def nees_bounds(dim: int, runs: int = 1, confidence: float = 0.95) -> tuple[float, float]:

@@ -22,13 +22,14 @@ covariance evaluated along the prediction from the smoother's newest estimate.
 Time order. IMU samples must come in strictly increasing time: a sample at or before the newest
 one is an error (an :class:`factors.errors.InputError`, a ValueError; IMU samples are never
 reordered). An interval longer than :data:`datasets.types.IMU_GAP_FACTOR` typical periods (the
-median interval of the samples seen, once there are :data:`TYPICAL_INTERVALS`) is a gap, bridged
-by holding the sample before it as the offline path does (:func:`datasets.types.imu_gaps`, the
-same rule and message): counted in ``imu_gaps`` with the longest in ``longest_imu_gap_s``, a
-warning at the first and at each longer than all before; one longer than
-:data:`datasets.types.MAX_IMU_GAP_S` is a jump of the clock, refused, as is a measurement stamped
-that far after the newest IMU sample. A keyframe at time ``t`` is made -- and the smoother updated with it -- once the IMU stream has
-reached ``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
+median interval of the samples seen, once there are
+:data:`smoother.online_imu.TYPICAL_INTERVALS`) is a gap, bridged by holding the sample before it
+as the offline path does (:func:`datasets.types.imu_gaps`, the same rule and message): counted
+in ``imu_gaps`` with the longest in ``longest_imu_gap_s``, a warning at the first and at each
+longer than all before; one longer than :data:`datasets.types.MAX_IMU_GAP_S` is a jump of the
+clock, refused, as is a measurement stamped that far after the newest IMU sample. A keyframe at
+time ``t`` is made -- and the smoother updated with it -- once the IMU stream has reached
+``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
 and are sorted into time. A measurement whose time is at or before the newest keyframe already
 made (it arrived later than ``max_delay_s`` behind the IMU) is dropped: counted per sensor in
 ``dropped``, with a warning at its sensor's first drop. ``max_delay_s`` is thus also the delay
@@ -59,6 +60,13 @@ distance and speed limits). What fails is refused with an InputError naming the 
 field, the expected and found shape or the sample's time; the sample is not taken and the smoother
 stays usable.
 
+The parts, one job each: :mod:`smoother.online_imu` (the IMU stream and its checks),
+:mod:`smoother.online_schedule` (the keyframe times), :mod:`smoother.online_pending` (the
+measurements waiting for their keyframe, late ones sorted into time, those too old refused),
+:mod:`smoother.online_handover` (the keyframes leaving the window, to the caller) and
+:mod:`smoother.online_prediction` (the state at IMU rate); :class:`OnlineSmoother` composes them
+with the keyframe window.
+
 The first :class:`OnlineSmoother` of a process loads (or compiles) every compiled kernel of the
 loop by feeding a throwaway smoother 0.8 s of made-up data, so that a robot's first keyframes and
 first marginalisation do not stall on it.
@@ -69,45 +77,31 @@ arrival to the update that used it.
 """
 from __future__ import annotations
 
-import functools
-import heapq
-from collections import deque
 import math
 import time
 import warnings
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from datasets.kinds import KINDS, kind_sigmas, sensors_of
 from datasets.robust import check_robust
-from datasets.types import (MAX_IMU_GAP_S, MAX_PLAUSIBLE_SPECIFIC_FORCE, IMU_GAP_FACTOR, Dataset, Sensor, Trajectory,
-                            check_array, check_extrinsic, check_imu_range, check_state, check_state_covariance,
-                            check_times, gyro_rate_limit, imu_gaps)
+from datasets.types import (MAX_IMU_GAP_S, Dataset, Sensor, Trajectory, check_array, check_extrinsic, check_state,
+                            check_state_covariance)
 from factors import imu, preintegration
-from factors.compiled import recursion
+from factors.errors import InputError
 from smoother.fixed_lag import HISTORY, KeyframeWindow, sparse_measurement_warning
 from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
 from smoother.graph import measurement_spec
-from smoother.sliding_window import SlidingWindow
+from smoother.online_handover import HandOver, OnlineEstimate
+from smoother.online_imu import ImuBuffer
+from smoother.online_pending import PendingMeasurements
+from smoother.online_prediction import ImuRatePrediction
+from smoother.online_schedule import KeyframeSchedule
 from smoother.progress import progress_bar
+from smoother.sliding_window import SlidingWindow
 from smoother.timeline import estimate_times, interval_steps
-from factors.errors import InputError
-
-#: The IMU's typical period is known (and gaps are judged) once this many intervals have come.
-TYPICAL_INTERVALS = 20
-
-
-@recursion
-def _predict_to(t, acc, gyro, held, n, t_from, r, v, C, b_f, b_w, P, q, g) -> None:
-    """The state ``(r, v, C, b_f, b_w)`` and covariance ``P`` at ``t_from`` (where sample ``held``
-    is held) stepped in place to ``t[n - 1]`` through the samples ``held .. n - 2``
-    (:func:`factors.imu.predict_into`, the EKF's step), in one compiled call per estimate."""
-    dt = np.empty(n - 1 - held)
-    for k in range(dt.size):
-        dt[k] = t[held + k + 1] - (t_from if k == 0 else t[held + k])
-    imu.predict_into(r, v, C, b_f, b_w, P, acc[held:n - 1], gyro[held:n - 1], dt, q, g)
-
 
 def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float):
     """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag_kinds.FIXED_LAG_KINDS`)."""
@@ -146,30 +140,6 @@ class SensorSetup:
         check_robust("SensorSetup.robust", self.robust)
 
 
-@dataclass(slots=True)
-class OnlineEstimate:
-    """A state at time ``t`` with its 15x15 covariance ``cov`` (None when the smoother computes
-    no covariances)."""
-
-    t: float
-    state: imu.ImuState
-    cov: np.ndarray | None
-
-
-@dataclass(order=True)
-class _Pending:
-    """A measurement waiting for its keyframe: sorted by its latest time, then sensor and row,
-    so that the factors of a keyframe do not depend on the order of arrival."""
-
-    latest: float
-    sensor: str
-    times: tuple
-    seq: int
-    spec: object = None
-    row: int = 0
-    arrived: float = 0.0
-
-
 class OnlineSmoother:
     """Fixed-lag smoothing fed sample by sample (module docstring).
 
@@ -180,7 +150,14 @@ class OnlineSmoother:
     ``"incremental"`` or ``"batch"`` smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
     behind the IMU stream; ``covariances``: compute keyframe covariances (the newest keyframe's,
     for :meth:`estimate`, and each smoothed keyframe's); ``on_smoothed(OnlineEstimate)``: called
-    with each keyframe leaving the window (None: they are queued for :meth:`smoothed`)."""
+    with each keyframe leaving the window (None: they are queued for :meth:`smoothed`).
+
+    It composes the parts, one job each: the IMU stream (:class:`smoother.online_imu.ImuBuffer`),
+    the keyframe times (:class:`smoother.online_schedule.KeyframeSchedule`), the measurements
+    waiting for their keyframe (:class:`smoother.online_pending.PendingMeasurements`), the
+    keyframe window (:func:`make_window`), the hand-over of the keyframes leaving it
+    (:class:`smoother.online_handover.HandOver`) and the state at IMU rate
+    (:class:`smoother.online_prediction.ImuRatePrediction`)."""
 
     def __init__(self, initial: imu.ImuState, initial_cov, noise: imu.ImuNoise, sensors: dict | None = None,
                  lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
@@ -206,12 +183,7 @@ class OnlineSmoother:
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
-        self.on_smoothed = on_smoothed
         self.reintegration_threshold = reintegration_threshold
-        #: measurements dropped for arriving too late, per sensor
-        self.dropped: dict[str, int] = {}
-        #: relative measurements skipped because their earlier time has left the window, per sensor
-        self.skipped: dict[str, int] = {}
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
         #: (the latest :data:`smoother.fixed_lag.HISTORY`)
         self.latency_s: deque[float] = deque(maxlen=HISTORY)
@@ -219,45 +191,16 @@ class OnlineSmoother:
         #: far [s] (the start counts as one)
         self.longest_gap_s = 0.0
         self._warned_gap = False
-        #: IMU gaps bridged so far (:func:`datasets.types.imu_gaps`), and the longest of them [s]
-        self.imu_gaps = 0
-        self.longest_imu_gap_s = 0.0
         self._finished = False
-        self._queue: deque[OnlineEstimate] = deque()
-        self._pending: list[_Pending] = []  # heap
-        self._knots: list[float] = []  # heap of keyframe times asked for
-        self._knot_set: set[float] = set()
-        self._seq = 0
-        # the IMU stream: growing arrays, [0, _n) in use (from the sample held at the newest keyframe
-        # on, at least: what the next IMU factor and the prediction need)
-        self._t = np.empty(1024)
-        self._acc = np.empty((1024, 3))
-        self._gyro = np.empty((1024, 3))
-        self._n = 0
-        self._t_last = -math.inf  # the newest sample's time
-        # the hot path's bounds: an interval up to _gap_limit (IMU_GAP_FACTOR typical periods, once
-        # known), squared norms up to the ranges' (below them every axis is in range), and the
-        # sample count at which the arrays are full or the typical period is due
-        self._typical = None
-        self._gap_limit = MAX_IMU_GAP_S
-        self._rate_limit = gyro_rate_limit()
-        self._acc2, self._rate2 = MAX_PLAUSIBLE_SPECIFIC_FORCE ** 2, self._rate_limit ** 2
-        self._room = TYPICAL_INTERVALS + 1
-        self._t0 = None
-        self._grid_next = 0  # the index m of the next grid time t0 + m / rate
-        self._grid_t = np.inf  # that time (inf: no grid)
+        self._imu = ImuBuffer(stacklevel=2)  # warnings name add_imu's caller
+        self._schedule = KeyframeSchedule(keyframe_rate)
+        self._pending = PendingMeasurements(self.max_delay_s, self.lag_s)
+        self._hand = HandOver(self._window, covariances, on_smoothed)
+        self._prediction = ImuRatePrediction(noise, self.gravity, covariances)
         self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
         self._last_t = None  # the newest keyframe's time
         self._last_measured_t = None
-        # the IMU-rate prediction from the newest keyframe: state, covariance, time reached and the
-        # sample held there
         self._newest = None  # the newest keyframe's estimate (what the next IMU interval starts from)
-        self._pred = None  # (r, v, C, b_f, b_w) flat, 21 numbers
-        self._pred_parts = None
-        self._pred_cov = None
-        self._pred_t = None
-        self._pred_held = 0
-        self._q = noise.densities()
         _warm_up()
 
     @classmethod
@@ -291,110 +234,16 @@ class OnlineSmoother:
         docstring), with nothing taken. Makes the keyframes the stream has passed by
         ``max_delay_s``."""
         self._open()
+        stream = self._imu
         if (type(t) is float or np.ndim(t) == 0) and np.shape(acc) == (3,) and np.shape(gyro) == (3,):
-            self._add_one_imu(float(t), acc, gyro)  # one sample: kept lean
-            return
-        t, acc, gyro = self._checked_imu(*_imu_arrays(t, acc, gyro), stacklevel=4)
-        n = self._n
-        if n + t.size > len(self._t):
-            self._grow(t.size)
-            n = self._n
-        self._t[n:n + t.size], self._acc[n:n + t.size], self._gyro[n:n + t.size] = t, acc, gyro
-        self._n = n + t.size
-        self._t_last = float(t[-1])
-        if self._typical is None and self._n > TYPICAL_INTERVALS:
-            self._know_typical(stacklevel=4)
-        if self._t0 is None:
-            self._started()
-        self._reach(self._t_last - self.max_delay_s)
-
-    def _add_one_imu(self, t: float, acc, gyro) -> None:
-        """:meth:`add_imu` of one sample (``acc``, ``gyro`` of shape (3,)) with as few operations as
-        it takes: a few scalar comparisons (a step forward within the gap limit; the squared norms
-        within the squared ranges, NaN failing them all); only when one fails do the checks of
-        :meth:`_checked_imu` run, to raise their error or warn about a gap."""
-        try:
-            a0, a1, a2 = acc.tolist() if type(acc) is np.ndarray else acc
-            w0, w1, w2 = gyro.tolist() if type(gyro) is np.ndarray else gyro
-            quick = (0.0 < t - self._t_last <= self._gap_limit and a0 * a0 + a1 * a1 + a2 * a2 <= self._acc2
-                     and w0 * w0 + w1 * w1 + w2 * w2 <= self._rate2)
-        except TypeError:  # not numbers: the checks name the argument
-            quick = False
-        if not quick:
-            self._checked_imu(*_imu_arrays(t, acc, gyro), stacklevel=5)
-        n = self._n
-        if n == self._room:
-            self._make_room()
-            n = self._n
-        self._t[n], self._acc[n], self._gyro[n] = t, acc, gyro
-        self._n = n + 1
-        self._t_last = t
-        if self._t0 is None:
-            self._started()
-        self._reach(t - self.max_delay_s)
-
-    def _make_room(self) -> None:
-        """At ``_room`` samples: grow the arrays if they are full, learn the typical period when due."""
-        if self._n == len(self._t):
-            self._grow(1)
-        if self._typical is None and self._n > TYPICAL_INTERVALS:
-            self._know_typical(stacklevel=6)
-        self._room = len(self._t)
-
-    def _know_typical(self, stacklevel: int) -> None:
-        """The typical period: the median interval of the samples kept (at least
-        :data:`TYPICAL_INTERVALS`); the first time, the intervals so far are judged by it too."""
-        t = self._t[:self._n]
-        first = self._typical is None
-        self._typical = float(np.median(np.diff(t)))
-        self._gap_limit = min(IMU_GAP_FACTOR * self._typical, MAX_IMU_GAP_S)
-        if first:
-            self._gaps(t, stacklevel)
-
-    def _gaps(self, t: np.ndarray, stacklevel: int) -> None:
-        """Count the gaps between the times ``t`` (the newest sample kept, then new ones), with a
-        warning at the first and at each longer than all before."""
-        gaps, text = imu_gaps(t, self._typical if self._typical is not None else math.inf,
-                              "online smoother: add_imu", rows=False)
-        if gaps.size:
-            if gaps.max() > self.longest_imu_gap_s:
-                warnings.warn(f"{text} (gaps are counted in .imu_gaps)", stacklevel=stacklevel)
-            self.imu_gaps += gaps.size
-            self.longest_imu_gap_s = max(self.longest_imu_gap_s, float(gaps.max()))
-
-    def _started(self) -> None:
-        """At the first IMU sample(s): the first sample's time is the first keyframe's and the grid's
-        start."""
-        self._t0 = float(self._t[0])
-        self._grid_t = self._t0 if self.keyframe_rate else np.inf
-        self._ask(self._t0)
-
-    def _reach(self, horizon: float) -> None:
-        """The IMU stream has reached ``horizon`` (its newest time less ``max_delay_s``): make the
-        keyframes asked for up to there, if any."""
-        if (self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon:
-            self._make_keyframes(horizon)
-
-    def _checked_imu(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, stacklevel: int):
-        """IMU samples ``t (N,)``, ``acc, gyro (N, 3)`` (:func:`_imu_arrays`) checked as the
-        offline data types check them -- finite, in range (:func:`datasets.types.check_imu_range`),
-        in strictly increasing time after the newest sample, no clock jump -- or an InputError
-        naming the field and the sample's time; the gaps among them counted and warned about."""
-        check_array("add_imu: t", t, ())
-        check_array("add_imu: acc", acc, (3,), t.size, t)
-        check_array("add_imu: gyro", gyro, (3,), t.size, t)
-        if self._n and t[0] <= self._t_last:
-            raise InputError(f"add_imu: t: IMU samples must come in strictly increasing time; got t = {float(t[0])!r} "
-                             f"after {self._t_last!r} (a step back of {self._t_last - t[0]:.6g} s; samples are "
-                             "never reordered)")
-        check_times("add_imu: t", t)
-        check_imu_range("add_imu: ", t, acc, gyro, self._rate_limit)
-        span = t if not self._n else np.concatenate([[self._t_last], t])
-        if self._typical is None:  # judged once the typical period is known (_know_typical)
-            imu_gaps(span, math.inf, "online smoother: add_imu", rows=False)  # a clock jump only
+            stream.add_one(float(t), acc, gyro)  # one sample: kept lean
         else:
-            self._gaps(span, stacklevel)
-        return t, acc, gyro
+            stream.add(t, acc, gyro)
+        if self._schedule.t0 is None:  # the first sample: the first keyframe's time
+            self._schedule.start(float(stream.t[0]))
+        horizon = stream.t_last - self.max_delay_s
+        if self._schedule.due(horizon):
+            self._make_keyframes(horizon)
 
     def add(self, sensor: str, t, *values, cov=None) -> None:
         """Measurements of ``sensor`` (a name of ``sensors``, or a kind's name for a sensor at the
@@ -435,25 +284,18 @@ class OnlineSmoother:
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
         if not np.isfinite(stamps).all():
             raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
-        if self._n and stamps.max() > self._t_last + MAX_IMU_GAP_S:
+        stream = self._imu
+        if stream.n and stamps.max() > stream.t_last + MAX_IMU_GAP_S:
             raise InputError(f"add_measurements({sensor!r}): t: {stamps.max():.6f} s on the IMU clock lies "
-                             f"{stamps.max() - self._t_last:.6g} s after the newest IMU sample, beyond any plausible "
+                             f"{stamps.max() - stream.t_last:.6g} s after the newest IMU sample, beyond any plausible "
                              f"delay ({MAX_IMU_GAP_S:g} s): a stamp of another clock, or a wrong time offset")
         arrived = time.perf_counter()
         for m, times in enumerate(stamps):
-            latest = float(times.max())
-            if self._last_t is not None and latest <= self._last_t:
-                self._drop(sensor)
-                continue
-            if self._last_t is not None and any(x <= self._last_t and x not in self._keyframe_t for x in times):
-                self._skip(sensor)
-                continue
-            self._seq += 1
-            heapq.heappush(self._pending, _Pending(latest, sensor, tuple(float(x) for x in times), self._seq, spec, m,
-                                                   arrived))
-            for x in times:
-                if self._last_t is None or x > self._last_t:
-                    self._ask(float(x))
+            times = tuple(float(x) for x in times)
+            if self._pending.offer(sensor, times, spec, m, arrived, self._last_t, self._keyframe_t):
+                for x in times:
+                    if self._last_t is None or x > self._last_t:
+                        self._schedule.ask(x)
 
     def keyframe_at(self, t) -> None:
         """Ask for keyframes (estimates) at the times ``t`` (IMU clock); those at or before the
@@ -464,7 +306,7 @@ class OnlineSmoother:
             raise InputError(f"keyframe_at: t: expected finite times, got {t[~np.isfinite(t)][:3].tolist()}")
         for x in t:
             if self._last_t is None or x > self._last_t:
-                self._ask(float(x))
+                self._schedule.ask(float(x))
 
     def finish(self) -> None:
         """End of the streams: make every keyframe up to the last IMU sample and one there (the
@@ -472,19 +314,20 @@ class OnlineSmoother:
         a warning if the data ended further from the last measurement than the lag. Nothing can
         be added afterwards."""
         self._open()
-        if self._n:
-            end = float(self._t[self._n - 1])
+        stream = self._imu
+        if stream.n:
+            end = float(stream.t[stream.n - 1])
             if self._last_t is None or end > self._last_t:
-                self._ask(end)
+                self._schedule.ask(end)
             self._make_keyframes(end)
-        while self._pending:  # after the last IMU sample (or no IMU at all): nothing to anchor them
-            self._drop(heapq.heappop(self._pending).sensor, "lies after the last IMU sample and was dropped")
+        # after the last IMU sample (or no IMU at all): nothing to anchor them
+        self._pending.drop_all("lies after the last IMU sample and was dropped")
         if self._last_t is not None:
             if self._last_measured_t is None:  # nothing measured at all: the whole run is one gap
-                self._last_measured_t = self._t0
+                self._last_measured_t = self._schedule.t0
             self._gap(self._last_t)
         if self._window.newest >= 0:
-            self._hand_over([e for _, e in self._read(range(self._window.first, self._window.newest + 1))])
+            self._hand.give([e for _, e in self._hand.read(range(self._window.first, self._window.newest + 1))])
         self._finished = True
 
     # -- output -----------------------------------------------------------------------------------
@@ -493,21 +336,41 @@ class OnlineSmoother:
         """The state at the newest IMU sample: the per-sample prediction from the newest
         keyframe's estimate (the EKF's step, through the samples since), and its covariance
         with ``covariances``. A ValueError before the first keyframe."""
-        if self._pred is None:
-            raise InputError("estimate: no keyframe yet (feed IMU samples first)")
-        n, held = self._n, self._pred_held
-        if n - 1 > held:
-            _predict_to(self._t, self._acc, self._gyro, held, n, self._pred_t, *self._pred_parts, self._pred_cov,
-                        self._q, self.gravity)
-            self._pred_t, self._pred_held = float(self._t[n - 1]), n - 1
-        return OnlineEstimate(self._pred_t, imu.ImuState.of_flat(self._pred.copy()),
-                              self._pred_cov.copy() if self.covariances else None)
+        return self._prediction.at(self._imu)
 
     def smoothed(self):
         """The keyframes that left the window since the last call (oldest first), as
         :class:`OnlineEstimate` s; empty when ``on_smoothed`` takes them."""
-        while self._queue:
-            yield self._queue.popleft()
+        return self._hand.smoothed()
+
+    @property
+    def on_smoothed(self):
+        """Called with each keyframe's :class:`OnlineEstimate` as it leaves the window (None: queued)."""
+        return self._hand.on_smoothed
+
+    @on_smoothed.setter
+    def on_smoothed(self, callback) -> None:
+        self._hand.on_smoothed = callback
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Measurements dropped for arriving too late (or outside the IMU's span), per sensor."""
+        return self._pending.dropped
+
+    @property
+    def skipped(self) -> dict[str, int]:
+        """Relative measurements skipped because their earlier time had left the window, per sensor."""
+        return self._pending.skipped
+
+    @property
+    def imu_gaps(self) -> int:
+        """IMU gaps bridged so far (:func:`datasets.types.imu_gaps`)."""
+        return self._imu.imu_gaps
+
+    @property
+    def longest_imu_gap_s(self) -> float:
+        """The longest IMU gap bridged so far [s]."""
+        return self._imu.longest_imu_gap_s
 
     @property
     def update_s(self) -> deque[float]:
@@ -518,6 +381,11 @@ class OnlineSmoother:
     def recovered(self) -> list[int]:
         """Keyframes (by number) that needed a weak prior."""
         return self._window.recovered
+
+    @property
+    def _n(self) -> int:
+        """The IMU samples kept."""
+        return self._imu.n
 
     # -- inside -----------------------------------------------------------------------------------
 
@@ -534,100 +402,32 @@ class OnlineSmoother:
             setup = SensorSetup(sensor)
         return setup, KINDS[setup.kind]
 
-    def _held_at(self, t: float) -> int:
-        """The index of the IMU sample held at time ``t`` (the last at or before it)."""
-        return max(int(np.searchsorted(self._t[:self._n], t, side="right")) - 1, 0)
-
-    def _grow(self, extra: int) -> None:
-        """Room for ``extra`` more samples: those before the sample held at the newest keyframe
-        (which neither the next IMU factor nor the prediction needs) are let go, and the arrays
-        doubled if that is not enough."""
-        base = self._held_at(self._last_t) if self._last_t is not None else 0
-        if self._typical is not None and self._n > TYPICAL_INTERVALS:  # follow the stream's rate
-            self._typical = float(np.median(np.diff(self._t[:self._n])))
-            self._gap_limit = min(IMU_GAP_FACTOR * self._typical, MAX_IMU_GAP_S)
-        if base:
-            keep = self._n - base
-            for a in (self._t, self._acc, self._gyro):
-                a[:keep] = a[base:self._n]
-            self._n = keep
-            self._pred_held -= base
-        if self._n + extra > len(self._t):
-            size = max(2 * len(self._t), self._n + extra)
-            self._t = np.resize(self._t, size)
-            self._acc = np.resize(self._acc, (size, 3))
-            self._gyro = np.resize(self._gyro, (size, 3))
-        self._room = len(self._t)
-
-    def _ask(self, t: float) -> None:
-        if t not in self._knot_set:
-            self._knot_set.add(t)
-            heapq.heappush(self._knots, t)
-
-    def _drop(self, sensor: str, why: str | None = None) -> None:
-        self._count(self.dropped, sensor, why or (f"arrived after its keyframe time had been processed (more than "
-                                                  f"max_delay_s = {self.max_delay_s:g} s behind the IMU) and was "
-                                                  "dropped"), "dropped")
-
-    def _skip(self, sensor: str) -> None:
-        self._count(self.skipped, sensor, f"refers to a time that has left the window (older than the lag, "
-                                          f"{self.lag_s:g} s, or no keyframe) and was skipped", "skipped")
-
-    @staticmethod
-    def _count(counts: dict, sensor: str, what: str, attribute: str) -> None:
-        """Count one measurement of ``sensor`` in ``counts``, with a warning at its first."""
-        counts[sensor] = counts.get(sensor, 0) + 1
-        if counts[sensor] == 1:
-            warnings.warn(f"online smoother: a measurement of {sensor!r} {what}; the smoother counts such "
-                          f"measurements in .{attribute}", stacklevel=5)
-
-    def _next_grid(self, horizon: float) -> None:
-        """Ask for the grid keyframes up to ``horizon``, except those within half an IMU
-        interval of another keyframe."""
-        while self._grid_t <= horizon:
-            g = self._grid_t
-            self._grid_next += 1
-            self._grid_t = self._t0 + self._grid_next / self.keyframe_rate
-            step = 0.5 * (self._t[self._n - 1] - self._t[self._n - 2]) if self._n > 1 else 0.0
-            near = [x for x in self._knots if abs(x - g) < step]
-            if not near and (self._last_t is None or g - self._last_t >= step):
-                self._ask(g)
-
     def _make_keyframes(self, horizon: float) -> None:
-        """Make every keyframe asked for at or before ``horizon`` (and the IMU's end)."""
-        self._next_grid(horizon)
-        end = self._t[self._n - 1]
-        while self._knots and self._knots[0] <= horizon and self._knots[0] <= end:
-            t = heapq.heappop(self._knots)
-            self._knot_set.discard(t)
-            if t < self._t0:  # before the IMU: nothing to anchor it
-                continue
+        """Make every keyframe asked for at or before ``horizon`` (and the IMU's end), the grid's
+        among them."""
+        stream = self._imu
+        n = stream.n
+        step = 0.5 * (stream.t[n - 1] - stream.t[n - 2]) if n > 1 else 0.0
+        self._schedule.grid_up_to(horizon, step, self._last_t)
+        end = stream.t[n - 1]
+        while (t := self._schedule.next_due(horizon, end)) is not None:
             self._keyframe(t)
 
     def _keyframe(self, t: float) -> None:
         """Make the keyframe at ``t``: its IMU interval, the measurements at ``t``, one update."""
-        window = self._window
+        window, stream = self._window, self._imu
         k = window.newest + 1
         pre, prior = None, None
         if k == 0:
             guess = self.initial
             prior = (self.initial, self.initial_cov)
         else:
-            acc, gyro, dt = interval_steps(self._t[:self._n], self._acc, self._gyro, self._last_t, t)
+            acc, gyro, dt = interval_steps(stream.t[:stream.n], stream.acc, stream.gyro, self._last_t, t)
             pre, guess = preintegration.integrate_interval(acc, gyro, dt, self._newest, self.noise, self.gravity)
-        used, measurements = [], []
-        while self._pending and self._pending[0].latest <= t:
-            item = heapq.heappop(self._pending)
-            if item.latest < t:  # before the first keyframe
-                self._drop(item.sensor, "lies before the IMU's first sample and was dropped" if k == 0 else None)
-                continue
-            if any(x not in self._keyframe_t and x != t for x in item.times):  # its earlier keyframe left
-                self._skip(item.sensor)
-                continue
-            at = [k if x == t else self._keyframe_t[x] for x in item.times]
-            measurements.append((item.spec, item.row, at, self._setup(item.sensor)[0].robust))
-            used.append(item)
-        leaving = self._read(window.leaving(t))
+        used = self._pending.due(t, k == 0, self._keyframe_t)
+        measurements = [(item.spec, item.row, [k if x == t else self._keyframe_t[x] for x in item.times],
+                         self._setup(item.sensor)[0].robust) for item in used]
+        leaving = self._hand.read(window.leaving(t))
         self._newest = window.add_keyframe(t, guess, pre, measurements, prior)  # its estimate after the update
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
@@ -635,21 +435,17 @@ class OnlineSmoother:
         while next(iter(self._keyframe_t.values())) < window.first:  # the window's only (in time order)
             del self._keyframe_t[next(iter(self._keyframe_t))]
         self._last_t = t
+        stream.keep_from = t  # the next IMU interval and the prediction start at the sample held here
         if any(self._setup(item.sensor)[1].absolute for item in used):  # dead reckoning ends here
             if self._last_measured_t is None:
-                self._last_measured_t = self._t0
+                self._last_measured_t = self._schedule.t0
             self._gap(t)
             self._last_measured_t = t
-        self._pred_cov = (np.array(self._keyframe_covariances([k])[0]) if self.covariances
-                          else np.zeros((imu.STATE_DIM, imu.STATE_DIM)))
-        s = self._newest
-        self._pred = np.concatenate([s.r, s.v, np.ravel(s.C), s.b_f, s.b_w]).astype(float)
-        x = imu.ImuState.of_flat(self._pred)  # the kernel steps these views of it in place
-        self._pred_parts = (x.r, x.v, x.C, x.b_f, x.b_w)
-        self._pred_t, self._pred_held = t, self._held_at(t)
+        self._prediction.restart(t, self._newest, window.covariances([k])[0] if self.covariances else None,
+                                 stream.released + stream.held_at(t))
         done = time.perf_counter()  # the updated estimate is ready (its covariance included)
         self.latency_s += [done - item.arrived for item in used]
-        self._hand_over([e for j, e in leaving if j < window.first])  # read in time: they have left
+        self._hand.give([e for j, e in leaving if j < window.first])  # read in time: they have left
 
     def _gap(self, t: float) -> None:
         gap = t - self._last_measured_t
@@ -659,53 +455,6 @@ class OnlineSmoother:
             if text is not None:
                 self._warned_gap = True
                 warnings.warn(text, stacklevel=5)
-
-    def _keyframe_covariances(self, wanted: list[int]) -> np.ndarray:
-        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``."""
-        return self._window.covariances(wanted)
-
-    def _read(self, keyframes) -> list[tuple[int, OnlineEstimate]]:
-        """The estimates of window ``keyframes`` now (recorded as read, see
-        :meth:`smoother.fixed_lag.KeyframeWindow.taken`)."""
-        keyframes = list(keyframes)
-        if not keyframes:
-            return []
-        covs = self._keyframe_covariances(keyframes) if self.covariances else [None] * len(keyframes)
-        self._window.taken(keyframes)
-        return [(j, OnlineEstimate(self._window.time(j), self._window.state(j), cov)) for j, cov in zip(keyframes, covs)]
-
-    def _hand_over(self, estimates: list[OnlineEstimate]) -> None:
-        """Hand ``estimates`` of keyframes that left the window to ``on_smoothed`` or the queue."""
-        for out in estimates:
-            if self.on_smoothed is not None:
-                self.on_smoothed(out)
-            else:
-                self._queue.append(out)
-
-
-def _imu_arrays(t, acc, gyro) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``add_imu``'s arguments as arrays ``t (N,)``, ``acc, gyro (N, 3)``: one sample is ``t`` a
-    number with 3-vectors, N samples ``t`` of shape (N,) with (N, 3) arrays; any other shape is an
-    InputError naming the argument with the shapes expected and got (nothing is reshaped)."""
-    arrays = []
-    for name, value in (("t", t), ("acc", acc), ("gyro", gyro)):
-        try:
-            arrays.append(np.asarray(value, dtype=float))
-        except (TypeError, ValueError):
-            raise InputError(f"add_imu: {name}: expected numbers, got {type(value).__name__}") from None
-    t, acc, gyro = arrays
-    if t.ndim == 0:
-        expected, what = (3,), "one sample (t a number)"
-    elif t.ndim == 1:
-        expected, what = (t.size, 3), f"{t.size} samples (t of shape ({t.size},))"
-    else:
-        raise InputError(f"add_imu: t: expected a number (one sample) or shape (N,) (N samples), got shape {t.shape}")
-    if t.size == 0:
-        raise InputError("add_imu: t: expected at least one sample, got none")
-    for name, a in (("acc", acc), ("gyro", gyro)):
-        if a.shape != expected:
-            raise InputError(f"add_imu: {name}: expected shape {expected} for {what}, got {a.shape}")
-    return np.atleast_1d(t), np.atleast_2d(acc), np.atleast_2d(gyro)
 
 
 _warm = False

@@ -46,8 +46,8 @@ from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors.errors import InputError
-from smoother import metrics
-from smoother.report import load_trajectory, read_npz, truth_at
+from smoother import metrics, report
+from smoother.report import fix_residuals, load_trajectory, read_npz, truth_at
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120
@@ -211,27 +211,25 @@ class Errors:
     heldout: np.ndarray | None = None
 
 
-def _safe_nees(e: np.ndarray, P: np.ndarray) -> np.ndarray | None:
+def _nees_or_none(compute) -> np.ndarray | None:
+    """``compute()`` (a NEES of :mod:`smoother.metrics`), None where a covariance is singular."""
     try:
-        return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
+        return compute()
     except np.linalg.LinAlgError:
         return None
 
 
 def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | None:
     """Errors at the estimate's times inside the truth's span and outside its gaps (as the
-    metrics: :func:`smoother.report.truth_at`; None if there are none); the pose NEES with the
-    (r, phi) block of the covariance."""
+    metrics: :func:`smoother.report.truth_at`; None if there are none); the pose NEES of
+    :func:`smoother.metrics.nees`, the one ``metrics.json``'s ``nees_mean`` averages."""
     T, inside = truth_at(truth, estimate.t)
     if not inside.any():
         return None
     E = estimate.states[inside]
     cov = None if estimate.cov is None else estimate.cov[inside]
     e = metrics.pose_error(T.r, T.C, E.r, E.C)
-    nees = None
-    if cov is not None:
-        idx = metrics.NEES_PARTS["pose"]
-        nees = _safe_nees(e, cov[:, idx[:, None], idx[None, :]])
+    nees = None if cov is None else _nees_or_none(lambda: metrics.nees(T, E, cov, "pose"))
     return Errors(
         t=estimate.t[inside], dr=e[:, :3], P_r=None if cov is None else cov[:, 0:3, 0:3],
         dphi=e[:, 3:], P_phi=None if cov is None else cov[:, 6:9, 6:9], nees=nees, dof=6,
@@ -239,24 +237,26 @@ def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | No
 
 
 def errors_against_gps(gps: Gps, estimate: Trajectory) -> Errors | None:
-    """Fix minus estimate (interpolated linearly to the fix times, as ``metrics.json``'s GPS RMSEs
-    are) with covariance ``P_est + R_fix`` (None if no fix lies inside the estimate's span).
+    """Fix minus estimate at the fixes inside the estimate's span: the residuals of
+    ``metrics.json``'s GPS RMSEs (:func:`smoother.report.fix_residuals`, negated), with covariance
+    ``P_est + R_fix`` (``P_est`` interpolated to the fix times); None if no fix lies inside.
 
     ``P_est + R_fix`` is the residual's covariance only for a HELD-OUT fix (independent of the
     estimate); a fix the estimator used pulled the estimate towards itself, so its residual is
     smaller than that. The NEES is therefore computed over the held-out fixes only (NaN at the
     others, None if there are none)."""
-    E, cov, inside = estimate.interpolate(gps.t)
+    inside, residual = fix_residuals(gps.t, gps.position, estimate)
     if not inside.any():
         return None
-    dr = gps.position[inside] - E.r
+    dr = -residual
     heldout = gps.heldout[inside]
     P = None
-    if cov is not None:
+    if estimate.cov is not None:
+        cov = estimate.interpolate(gps.t[inside])[1]
         P = cov[:, 0:3, 0:3] + (0.0 if gps.cov is None else gps.cov[inside])
     nees = None
     if P is not None and heldout.any():
-        values = _safe_nees(dr[heldout], P[heldout])
+        values = _nees_or_none(lambda: metrics.nees_from(dr[heldout], P[heldout]))
         if values is not None:
             nees = np.full(len(dr), np.nan)
             nees[heldout] = values
@@ -534,7 +534,8 @@ def plot_biases(run: Run, out_dir: Path) -> Path:
 
 def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]:
     """``(key, label, {name: value})`` for the bars; values from metrics.json (a null there is
-    not drawn), else, without metrics.json's entry, computed."""
+    not drawn), else, without metrics.json's entry, computed as :mod:`smoother.report` computes
+    them (:func:`_computed_metrics`)."""
     if kind == "truth":
         specs = [("ate_rmse_m", "ATE RMSE [m]"), ("rot_rmse_deg", "rotation RMSE [deg]"),
                  ("nees_mean", "mean NEES / dof")]
@@ -542,6 +543,7 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
         specs = [("gps_heldout_rmse_m", "RMSE to held-out fixes [m]\n(accuracy)"),
                  ("gps_fit_residual_m", "residual to used fixes [m]\n(a fit, not accuracy)")]
     specs.append(("runtime_s", "run time [s]"))
+    computed: dict = {}
     out = []
     for key, label in specs:
         values = {}
@@ -549,8 +551,12 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
             entry = run.metrics.get(name)
             if isinstance(entry, dict) and key in entry:
                 v = entry[key]  # null there (a figure not scored, e.g. over too few states) stays out
+            elif name in errors:
+                if name not in computed:
+                    computed[name] = _computed_metrics(run, name, errors[name])
+                v = computed[name].get(key)
             else:
-                v = _computed_metric(key, errors[name]) if name in errors else None
+                v = None
             if isinstance(v, (int, float)) and math.isfinite(v):
                 values[name] = float(v)
         if values:
@@ -558,17 +564,16 @@ def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]
     return out
 
 
-def _computed_metric(key: str, e: Errors) -> float | None:
-    if key == "ate_rmse_m":
-        return float(np.sqrt(np.mean(np.sum(e.dr ** 2, axis=1))))
-    if key in ("gps_heldout_rmse_m", "gps_fit_residual_m") and e.heldout is not None:
-        dr = e.dr[e.heldout if key == "gps_heldout_rmse_m" else ~e.heldout]
-        return float(np.sqrt(np.mean(np.sum(dr ** 2, axis=1)))) if len(dr) else None
-    if key == "rot_rmse_deg" and e.dphi is not None:
-        return float(np.degrees(np.sqrt(np.mean(np.sum(e.dphi ** 2, axis=1)))))
-    if key == "nees_mean" and e.nees is not None:
-        return float(np.mean(e.nees) / e.dof)
-    return None
+def _computed_metrics(run: Run, name: str, e: Errors) -> dict:
+    """The figures ``metrics.json`` would hold for estimator ``name``: against the truth those of
+    :func:`smoother.report.against_truth`; against GPS the RMS distance
+    (:func:`smoother.report.rms_distance`) of the held-out and of the used fixes' residuals."""
+    if run.truth is not None:
+        return report.against_truth(run.truth, run.estimates[name])
+    if e.heldout is None:
+        return {}
+    return {"gps_heldout_rmse_m": report.rms_distance(e.dr[e.heldout]),
+            "gps_fit_residual_m": report.rms_distance(e.dr[~e.heldout])}
 
 
 def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:

@@ -119,14 +119,37 @@ def position_residuals(positions: PositionMeasurements | None, estimate: Traject
     sampled elsewhere."""
     if positions is None or len(positions) == 0:
         return np.empty(0), np.empty((0, 3))
-    inside = (positions.t >= estimate.t[0]) & (positions.t <= estimate.t[-1])
-    t = positions.t[inside]
-    est = np.stack([np.interp(t, estimate.t, estimate.position[:, a]) for a in range(3)], axis=-1)
-    if positions.T_BS is not None:
+    inside, residual = fix_residuals(positions.t, positions.position, estimate, positions.T_BS)
+    return positions.t[inside], residual
+
+
+def fix_residuals(t: np.ndarray, position: np.ndarray, estimate: Trajectory, T_BS=None) -> tuple:
+    """``(inside, estimate - measured)`` of positions measured at times ``t`` (M,): the mask of
+    those inside the estimate's time span and, for each of them, the estimate interpolated
+    linearly to its time (its antenna ``r + C p_BS`` with a lever arm ``T_BS``, as
+    :func:`position_residuals`) minus ``position``. The one definition of a fix's residual: the
+    metrics' and the plots'."""
+    inside = (t >= estimate.t[0]) & (t <= estimate.t[-1])
+    t = t[inside]
+    est = interpolate_positions(t, estimate.t, estimate.position)
+    if T_BS is not None:
         k = np.clip(np.searchsorted(estimate.t, t), 1, len(estimate.t) - 1)
         k -= (t - estimate.t[k - 1]) < (estimate.t[k] - t)
-        est = est + estimate.C[k] @ positions.T_BS[:3, 3]
-    return t, est - positions.position[inside]
+        est = est + estimate.C[k] @ T_BS[:3, 3]
+    return inside, est - position[inside]
+
+
+def interpolate_positions(t: np.ndarray, t_known: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """``positions`` (N, 3) known at times ``t_known`` interpolated linearly, per world axis, to
+    the times ``t`` inside their span."""
+    return np.stack([np.interp(t, t_known, positions[:, a]) for a in range(3)], axis=-1)
+
+
+def rms_distance(residual: np.ndarray, axes=slice(0, 3)) -> float:
+    """The RMS length of the ``residual`` rows (M, 3) in the world ``axes`` (horizontal ``0:2``,
+    vertical ``2:3``); NaN without rows."""
+    distance = np.linalg.norm(residual[:, axes], axis=1)
+    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
 
 
 def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
@@ -179,17 +202,13 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
             continue
         inside = (held.t >= used.t[0]) & (held.t <= used.t[-1])
         t = held.t[inside]
-        interpolated = np.stack([np.interp(t, used.t, used.position[:, a]) for a in range(3)], axis=-1)
-        residuals.append(interpolated - held.position[inside])
+        residuals.append(interpolate_positions(t, used.t, used.position) - held.position[inside])
     residual = np.concatenate(residuals)
     if not len(residual):
         return None
-
-    def rms(axes):
-        return float(np.sqrt(np.mean(np.sum(residual[:, axes] ** 2, axis=1))))
-
-    return {"gps_heldout_rmse_m": rms(slice(0, 3)), "gps_heldout_horizontal_rmse_m": rms(slice(0, 2)),
-            "gps_heldout_vertical_rmse_m": rms(slice(2, 3)), "heldout_fixes": int(len(residual))}
+    return {"gps_heldout_rmse_m": rms_distance(residual), "gps_heldout_horizontal_rmse_m":
+            rms_distance(residual, slice(0, 2)), "gps_heldout_vertical_rmse_m": rms_distance(residual, slice(2, 3)),
+            "heldout_fixes": int(len(residual))}
 
 
 def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None:
@@ -213,9 +232,8 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None
 def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
     """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
     ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
-    residual = np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts])
-    distance = np.linalg.norm(residual[:, axes], axis=1)
-    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+    return rms_distance(np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts]),
+                        axes)
 
 
 

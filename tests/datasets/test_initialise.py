@@ -88,8 +88,7 @@ def _remounted(data, R):
 
 def test_an_imu_on_its_side_gets_its_heading_from_the_wheels():
     """The IMU's z axis horizontal (x pointing down): the wheel speed's direction, levelled in the
-    world, gives the heading (the IMU-frame x-y test used to reject it and take the IMU's x axis,
-    90 deg off on a real Husky recording)."""
+    world, gives the heading, not the IMU's x axis (90 deg off on a real Husky recording)."""
     data = simulate("gentle", duration=20, seed=2, pose_rate=None, sensors=[GNSS, WHEEL])
     R = so3.exp([0.0, np.pi / 2, 0.0])  # body x -> world down
     started = self_initialised(_remounted(data, R))

@@ -95,8 +95,8 @@ def test_unusable_sensor_data_is_one_line_naming_the_sensor(tmp_path, data, edit
 
 
 def test_a_malformed_sensor_file_is_one_line_naming_the_sensor_and_the_file(tmp_path, data):
-    """A reader's DataError (file, line, field) with the sensor's name before it -- it used to be
-    rebuilt from its message alone and failed with a TypeError traceback."""
+    """A reader's DataError (file, line, field) with the sensor's name before it, as one line, no
+    traceback."""
     rig = _write(tmp_path, data)
     lines = (tmp_path / "camera.csv").read_text().splitlines()
     lines[3] = lines[3].replace(",", ",x", 1)

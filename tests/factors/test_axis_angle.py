@@ -166,8 +166,8 @@ def test_vectorised_and_scalar_inputs():
     ((3,), (), ()), ((3, 3), (), (3,)), ((3,), (4,), (4,)), ((3, 3), (2, 1), (2, 3)), ((2, 1, 3), (4,), (2, 4)),
 ])
 def test_axes_and_angles_broadcast_alike_in_every_form(axis_shape, angle_shape, lead):
-    # to_quaternion(np.eye(3), 1.0) used to fail in np.concatenate where to_matrix and
-    # to_rotation_vector broadcast the same arguments.
+    # to_quaternion broadcasts axes and angles as to_matrix and to_rotation_vector do, e.g.
+    # (np.eye(3), 1.0): three axes, one angle.
     rng = np.random.default_rng(7)
     n = random_axes(rng, math.prod(axis_shape[:-1])).reshape(axis_shape)
     angle = rng.uniform(-4, 4, angle_shape)

@@ -337,11 +337,11 @@ def test_imu_factor_error_is_the_residual_whitened_by_its_covariance():
 
 
 def test_imu_factor_on_a_one_sample_interval_has_a_finite_error():
-    """Regression: with ``ImuNoise.velocity = 0`` (the default) the position of a ONE-sample
-    interval is deterministic (``r_j = r_i + dt C_i v_i``); the propagated covariance's position
-    block is exactly zero and, before ``preintegration.COVARIANCE_FLOOR`` was added, the factor's
-    Gaussian model was singular and its error NaN (graphs get such intervals when two knots fall
-    within one IMU period)."""
+    """With ``ImuNoise.velocity = 0`` (the default) the position of a ONE-sample interval is
+    deterministic (``r_j = r_i + dt C_i v_i``): the propagated covariance's position block is
+    exactly zero, and ``preintegration.COVARIANCE_FLOOR`` keeps the factor's Gaussian model
+    regular, so its error is finite (graphs get such intervals when two knots fall within one IMU
+    period)."""
     rng = np.random.default_rng(12)
     acc, gyro, dt = np.array([[0.1, 0.2, 9.8]]), np.array([[0.3, -0.2, 0.1]]), np.array([5e-3])
     x_i = random_state(rng)

@@ -179,8 +179,8 @@ def test_log_of_half_turns_raises_no_floating_point_warnings():
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("component", range(4))
 def test_log_of_a_non_finite_quaternion_is_nan_like_so3_log(bad, component):
-    # A NaN or infinite scalar part used to give [0, 0, 0] (the small-angle series swapped NaN for
-    # 1; inf made the scale 0), and an infinite vector part a mix of NaN and 0.
+    # A NaN or infinite component anywhere makes every component of the log NaN, near the
+    # identity (the small-angle series) too, as so3.log does for a matrix.
     for base in (Q.identity(), -Q.exp([1e-6, 0, 0]), Q.exp([0.3, -2.5, 1.0])):
         q = base.copy()
         q[component] = bad
@@ -403,7 +403,7 @@ def test_vectorised_functions_equal_loops(seed):
     ],
 )
 def test_wrong_trailing_shapes_raise_value_error_naming_the_argument(call, message):
-    # exp of a 4-vector used to return 5 numbers, to_matrix of a 5-vector the identity, ...
+    # A 4-vector to exp, a 5-vector to to_matrix, ...: each refused naming the argument and shape.
     with pytest.raises(ValueError, match=re.escape(message)):
         call()
 

@@ -412,7 +412,7 @@ def test_vectorised_functions_equal_loops_of_single_calls(seed):
     ],
 )
 def test_wrong_trailing_shapes_raise_value_error_naming_the_argument(call, message):
-    # skew of a 4-vector used to drop the 4th entry, vee of a 4x4 matrix to return [0, 0, 0], ...
+    # A 4-vector to skew, a 4x4 matrix to vee, ...: each refused naming the argument and shape.
     with pytest.raises(ValueError, match=re.escape(message)):
         call()
 

@@ -194,7 +194,7 @@ def sparse_fixes():
 
 def test_lm_converges_on_long_dead_reckoned_stretches_within_the_default_cap():
     """Levenberg-Marquardt solves its steps with QR where Cholesky refuses them: it converges in
-    a few iterations (it used to be held at high damping and stop at the cap, 0.6 m off)."""
+    a few iterations, well within the cap."""
     result = solve_batch(sparse_fixes(), covariances=False)
     assert result.converged and result.iterations < 20, result.iterations
 

@@ -415,7 +415,7 @@ def test_run_ekf_equals_the_filter_driven_step_by_step():
 
 
 def test_the_compiled_filter_needs_no_scipy(tmp_path):
-    """SciPy is a test dependency only: Numba's ``@`` on matrices would need its BLAS. A fresh
+    """The kernels load no SciPy (Numba's ``@`` on matrices would need its BLAS). A fresh
     interpreter with SciPy made unimportable and an empty Numba cache (so every kernel compiles
     anew) predicts and updates."""
     import os

@@ -11,7 +11,7 @@ from factors import imu, so3
 from factors.imu import ImuState
 from smoother import metrics
 from smoother.metrics import (
-    align_posyaw, associate, ate, chi2_cdf, chi2_quantile, chi2_sf, evaluate, nees, nees_bounds, rpe, rpe_pairs,
+    align_posyaw, associate, ate, chi2_quantile, evaluate, nees, nees_bounds, rpe, rpe_pairs,
     umeyama,
 )
 
@@ -266,32 +266,45 @@ def test_nees_monte_carlo_consistent_only_in_the_left_world_convention():
 
 
 # ------------------------------------------------------------------------------------------
-# chi-square without scipy
+# chi-square (SciPy's) and the NEES band
 
 
-def test_chi2_against_scipy():
-    stats = pytest.importorskip("scipy.stats")
-    for dof in (1, 2, 3, 6, 9, 15, 60, 600, 6000, 45000):
-        for p in (1e-9, 1e-4, 0.005, 0.025, 0.05, 0.5, 0.95, 0.975, 0.995, 1 - 1e-6):
-            ref = stats.chi2.ppf(p, dof)
-            assert chi2_quantile(p, dof) == pytest.approx(ref, rel=1e-9), (p, dof)
-            assert chi2_cdf(ref, dof) == pytest.approx(p, rel=1e-9, abs=1e-15)
-            assert chi2_sf(ref, dof) == pytest.approx(1 - p, rel=1e-8, abs=1e-15)
-    for dim, runs in ((3, 1), (6, 50), (15, 100)):
-        lo, hi = nees_bounds(dim, runs, 0.95)
-        assert lo == pytest.approx(stats.chi2.ppf(0.025, dim * runs) / runs, rel=1e-9)
-        assert hi == pytest.approx(stats.chi2.ppf(0.975, dim * runs) / runs, rel=1e-9)
-
-
-def test_chi2_known_values_and_arguments():
+def test_the_nees_band_and_its_arguments():
+    """The band of one run's 1-dof NEES is [z_0.025^2, z_0.975^2] = [0.000982, 5.02]; averaged
+    over M runs it narrows around 1 per dof; p outside [0, 1], dof or runs below 1 are refused."""
+    lo, hi = nees_bounds(1, 1, 0.95)
+    assert lo == pytest.approx(0.0009820691171752583, rel=1e-9) and hi == pytest.approx(5.023886187314888, rel=1e-9)
+    lo, hi = nees_bounds(6, 1000, 0.95)
+    assert 5.6 < lo < 6.0 < hi < 6.4
     assert chi2_quantile(0.95, 1) == pytest.approx(1.959963984540054**2, rel=1e-12)
-    assert chi2_cdf(2.0, 2) == pytest.approx(1 - np.exp(-1.0), rel=1e-14)
+    from scipy.stats import chi2
+
+    for p, dof in ((1e-9, 1), (0.025, 6), (0.5, 15), (0.975, 6000), (1 - 1e-6, 45000)):
+        assert chi2_quantile(p, dof) == chi2.ppf(p, dof), (p, dof)  # SciPy's own chi-square, bit for bit
     assert chi2_quantile(0.0, 3) == 0.0 and chi2_quantile(1.0, 3) == np.inf
-    for bad in ((1.5, 3), (0.5, 0), (0.5, -1)):
+    for bad in ((1.5, 3), (np.nan, 3), (0.5, 0), (0.5, -1), (0.5, np.inf)):
         with pytest.raises(ValueError):
             chi2_quantile(*bad)
     with pytest.raises(ValueError):
         nees_bounds(0, 10)
+
+
+def test_the_quantiles_import_scipy_special_at_the_first_call_and_never_scipy_stats():
+    """Importing the metrics and the modules that take chi-square quantiles (EKF gate, robust
+    kernels' thresholds, the sensors' verdicts) imports no ``scipy.special``; the first quantile
+    does, and ``scipy.stats`` (five times slower to import) is never imported."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "import smoother.metrics, smoother.ekf, smoother.graph, smoother.diagnostics\n"
+        "assert 'scipy.special' not in sys.modules, 'imported with the modules'\n"
+        "smoother.metrics.nees_bounds(6, 10)\n"
+        "assert 'scipy.special' in sys.modules and 'scipy.stats' not in sys.modules\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 # ------------------------------------------------------------------------------------------

@@ -267,11 +267,11 @@ def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
     np.testing.assert_array_equal([e.t for e in online.smoothed()], estimate_times(data, 25.0))
 
 
-def test_review_findings_stay_fixed(recwarn):
-    """Bad input is one clear line (a NaN keyframe time used to leave the smoother silently without
-    any keyframe, an infinite grid rate hung, a sigma of the wrong length and a covariance that is
-    not positive definite reached NumPy or GTSAM); what finish() cannot place is dropped and
-    counted (it was kept silently); a run without measurements reports its whole span as the gap."""
+def test_bad_settings_are_one_line_and_what_finish_cannot_place_is_dropped_and_counted(recwarn):
+    """Bad input is one clear InputError: an infinite grid rate, a covariance that is not positive
+    definite, a sigma of the wrong length, a NaN keyframe time, no samples; what finish() cannot
+    place (a measurement after the last IMU sample) is dropped and counted; a run without
+    measurements reports its whole span as the gap."""
     import numpy as np
     import pytest as _pytest
 
@@ -301,8 +301,7 @@ def test_review_findings_stay_fixed(recwarn):
 
 def test_a_callback_that_raises_once_leaves_the_smoother_consistent(gentle):
     """on_smoothed is called after the smoother's own state has moved on: a caller that catches
-    its callback's error and goes on gets the estimates of a run without the error (they were
-    0.05 m off when the hand-over came before the bookkeeping)."""
+    its callback's error and goes on gets the estimates of a run without the error (to 1e-9 m)."""
     data = cases.dataset(gentle)
 
     def run(fail_at):
@@ -333,7 +332,7 @@ def test_a_callback_that_raises_once_leaves_the_smoother_consistent(gentle):
 
 def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds():
     """Wheel speeds at 10 Hz do not end dead reckoning: with fixes 2 s apart a 0.5-s lag is
-    warned of (the check counted the wheel speeds' 0.1 s and stayed silent), both offline and
+    warned of (the wheel speeds' 0.1 s do not count as measurements' spacing), both offline and
     online; with a lag over the fixes' gap it is not."""
     from datasets.simulated_sensors import SensorSpec
     from datasets.simulate import simulate

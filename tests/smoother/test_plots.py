@@ -186,3 +186,67 @@ def test_cli_plot_with_a_bad_out_is_one_line(run_dir, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"smoother: error: --out {out}: ") and len(err.splitlines()) == 1
     assert not list(run_dir.glob("*.png"))
+
+
+def _gps_run(run_dir: Path, tmp_path: Path) -> Path:
+    """A copy of the run directory without truth and metrics, with GPS fixes every 10th truth
+    sample (every third used, the rest held out)."""
+    directory = _copy(run_dir, tmp_path, without=["truth.npz", "metrics.json"])
+    truth = report.load_trajectory(run_dir / "truth.npz")
+    rng = np.random.default_rng(3)
+    idx = np.arange(5, len(truth), 10)
+    with atomic_write(directory / "gps.npz", "wb") as handle:
+        np.savez(handle, t=truth.t[idx], position=truth.position[idx] + 0.05 * rng.standard_normal((len(idx), 3)),
+                 cov=np.broadcast_to(0.05 ** 2 * np.eye(3), (len(idx), 3, 3)), heldout=np.arange(len(idx)) % 3 != 0)
+    return directory
+
+
+def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_path):
+    """The arrays behind the figures are the report's and the metrics' own, bit for bit: the GPS
+    residuals (:func:`smoother.report.fix_residuals`), the held-out fixes' NEES
+    (:func:`smoother.metrics.nees_from` of the residual and ``P_est + R_fix``), the pose NEES
+    against the truth (:func:`smoother.report.compare_with_truth`), and, without metrics.json,
+    the bars' figures (:func:`smoother.report.against_truth`, :func:`smoother.report.position_rmse`)."""
+    from datasets.types import PositionMeasurements
+
+    gps_run = plots.load_run(_gps_run(run_dir, tmp_path), ["ekf"])
+    g, est = gps_run.gps, gps_run.estimates["ekf"]
+    e = plots.errors_against_gps(g, est)
+    inside, residual = report.fix_residuals(g.t, g.position, est)
+    np.testing.assert_array_equal(e.dr, -residual)
+    h = e.heldout
+    P = est.interpolate(g.t[inside])[1][:, :3, :3] + g.cov[inside]
+    np.testing.assert_array_equal(e.nees[h], metrics.nees_from(residual[h], P[h]))
+    bars = {key: values["ekf"] for key, _, values in plots._bar_values(gps_run, "gps", {"ekf": e})}
+    for key, rows in (("gps_heldout_rmse_m", g.heldout), ("gps_fit_residual_m", ~g.heldout)):
+        fixes = PositionMeasurements(g.t[rows], g.position[rows], g.cov[rows])
+        assert bars[key] == report.position_rmse(fixes, est), key
+
+    run = plots.load_run(run_dir)
+    for name, est in run.estimates.items():
+        e = plots.errors_against_truth(run.truth, est)
+        np.testing.assert_array_equal(e.nees, report.compare_with_truth(run.truth, est)["nees"])
+    bare = plots.Run(run.run_dir, run.estimates, run.truth, None, {})  # no metrics.json
+    errors = plots.reference_errors(bare)[1]
+    for key, _, values in plots._bar_values(bare, "truth", errors):
+        if key != "runtime_s":
+            assert values == {n: report.against_truth(run.truth, est)[key] for n, est in run.estimates.items()}, key
+
+
+def test_the_nees_figure_draws_the_errors_nees(run_dir, tmp_path, monkeypatch):
+    """nees.png's line of each estimator is its NEES at its times (clipped at the axis' bottom only)."""
+    drawn = []
+
+    def keep(fig, out_dir, stem):
+        drawn.extend((ax.get_lines()[1].get_xydata(), ax.get_ylim()[0]) for ax in fig.axes if ax.get_lines())
+        fig.clear()
+        return Path(out_dir) / f"{stem}.png"
+
+    monkeypatch.setattr(plots, "_save", keep)
+    run = plots.load_run(run_dir)
+    kind, errors = plots.reference_errors(run)
+    plots.plot_nees(run, tmp_path, kind, errors)
+    assert len(drawn) == len(errors) == 3
+    for (xy, bottom), e in zip(drawn, errors.values()):
+        np.testing.assert_array_equal(xy[:, 0], e.t - run.t0)
+        np.testing.assert_array_equal(xy[:, 1], np.clip(e.nees, bottom, None))

@@ -348,7 +348,7 @@ def test_tune_noise_reports_and_records_the_tuning(tmp_path, capsys):
 
 
 def test_kitti_refuses_a_path(capsys):
-    """``--dataset kitti:PATH`` used to ignore the path and run the shipped data."""
+    """``--dataset kitti:PATH`` is refused in one line (KITTI is the shipped data; it takes no path)."""
     from smoother.cli import main
 
     assert main(["run", "--dataset", "kitti:/some/where", "--out", "unused"]) == 2

@@ -97,7 +97,7 @@ def test_realtime_replay_reports_latency_and_gives_the_same_estimates(recording,
 
 @pytest.mark.parametrize("option, value", [("--gps-every", "10"), ("--duration", "5"), ("--outliers", "0.1")])
 def test_options_of_the_built_in_datasets_are_refused_with_a_rig(recording, capsys, option, value):
-    """They used to be ignored without a word (``--gps-every`` is the rig's ``every``)."""
+    """Each is refused with exit 2, not ignored (``--gps-every`` is the rig's ``every``)."""
     _, out = recording
     assert main(["run", "--rig", str(out.parent / "rig.toml"), option, value, "--out", str(out.parent / "x")]) == 2
     assert f"{option} shapes a built-in dataset" in capsys.readouterr().err

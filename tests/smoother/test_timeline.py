@@ -87,8 +87,8 @@ def test_knots_outside_the_imu_span_raise(knots):
 
 
 def test_nan_knots_raise():
-    """Regression: a NaN knot passed both the span and the ordering check (every comparison with
-    NaN is False) and produced NaN steps and a decreasing ``knot_step``."""
+    """A NaN knot is refused as not finite (it would pass a span and an ordering check: every
+    comparison with NaN is False)."""
     for knots in ([0.0, np.nan, 3.0], [np.nan]):
         with pytest.raises(ValueError, match="finite"):
             imu_steps(samples([0.0, 1.0, 2.0, 3.0]), knots)
