@@ -85,7 +85,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.kinds import KINDS, kind_sigmas, sensors_of
+from datasets.kinds import KINDS, kind_sigmas, pose, sensors_of
 from datasets.robust import check_robust
 from datasets.types import (MAX_IMU_GAP_S, Dataset, Sensor, Trajectory, check_array, check_extrinsic, check_state,
                             check_state_covariance)
@@ -478,7 +478,7 @@ def _warm_up() -> None:
         for k, tk in enumerate(t):
             warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
             if k % 10 == 5:
-                warm.add("pose", tk, np.zeros(3), np.eye(3), cov=1e-4 * np.eye(6))
+                warm.add(pose.KIND.name, tk, np.zeros(3), np.eye(3), cov=1e-4 * np.eye(6))
             if k > 5:
                 warm.estimate()
         warm.finish()

@@ -8,7 +8,7 @@ the initial trajectory, and how a rig's sensor of that kind is read from its sou
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -139,6 +139,20 @@ def unit_vectors(rng, n: int) -> np.ndarray:
     """``n`` directions uniform on the sphere (N, 3)."""
     u = rng.standard_normal((n, 3))
     return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def displaced(m, index, scale, rng):
+    """``m`` (a data type with a ``position`` and/or an attitude ``C`` field) with the
+    measurements ``index`` made outliers: positions moved by ``scale[0]`` metres, then attitudes
+    turned by ``scale[1]`` rad (``C <- exp(angle axis) C``), in uniformly random directions."""
+    changes = {}
+    if hasattr(m, "position"):
+        changes["position"] = m.position.copy()
+        changes["position"][index] += scale[0] * unit_vectors(rng, len(index))
+    if hasattr(m, "C"):
+        changes["C"] = m.C.copy()
+        changes["C"][index] = so3.boxplus(m.C[index], scale[1] * unit_vectors(rng, len(index)))
+    return replace(m, **changes)
 
 
 def near_prediction(state, rng):

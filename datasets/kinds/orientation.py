@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from datasets.kinds.base import Kind, near_prediction, noise, poses, unit_vectors
+from datasets.kinds.base import Kind, displaced, near_prediction, noise, poses
 from datasets.types import OrientationMeasurements
 from factors import so3
 from factors import sensor_models as sm
@@ -34,13 +34,7 @@ def _random_row(rng):
     return x, sm.pack_orientation(Z[None], T)[0]
 
 
-def _corrupt(m, index, scale, rng):
-    """Attitudes turned by ``scale[1]`` rad."""
-    C = m.C.copy()
-    C[index] = so3.boxplus(C[index], scale[1] * unit_vectors(rng, len(index)))
-    return OrientationMeasurements(m.t, C, m.cov, m.T_BS)
-
 
 KIND = Kind("orientation", OrientationMeasurements, 3, sm.ORIENTATION, lambda m: sm.pack_orientation(m.C, m.T_BS),
             _simulate, _anchor, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
-            corrupt=_corrupt)
+            corrupt=displaced)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from datasets.kinds.base import Kind, near_prediction, noise, noisy, poses, unit_vectors
+from datasets.kinds.base import Kind, displaced, near_prediction, noise, noisy, poses
 from datasets.types import PoseMeasurements
 from factors import so3
 from factors import sensor_models as sm
@@ -35,14 +35,7 @@ def _random_row(rng):
     return x, sm.pack_pose(z[None], Z[None], T)[0]
 
 
-def _corrupt(m, index, scale, rng):
-    """Positions moved by ``scale[0]`` metres, then attitudes turned by ``scale[1]`` rad."""
-    position, C = m.position.copy(), m.C.copy()
-    position[index] += scale[0] * unit_vectors(rng, len(index))
-    C[index] = so3.boxplus(C[index], scale[1] * unit_vectors(rng, len(index)))
-    return PoseMeasurements(m.t, position, C, m.cov, m.T_BS)
-
 
 KIND = Kind("pose", PoseMeasurements, 6, sm.POSE, lambda m: sm.pack_pose(m.position, m.C, m.T_BS), _simulate,
             _anchor, _read, fields=("position", "C"), random_row=_random_row, default_sigma=(0.05, 0.01),
-            corrupt=_corrupt)
+            corrupt=displaced)

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from datasets.kinds.base import Kind, near_prediction, noise, noisy, poses, unit_vectors
+from datasets.kinds.base import Kind, displaced, near_prediction, noise, noisy, poses
 from datasets.types import PositionMeasurements
 from factors import sensor_models as sm
 from factors.selfcheck import random_state
@@ -52,14 +52,8 @@ def _random_row(rng):
     return x, sm.pack_position(z[None], T)[0]
 
 
-def _corrupt(m, index, scale, rng):
-    """Positions moved by ``scale[0]`` metres."""
-    position = m.position.copy()
-    position[index] += scale[0] * unit_vectors(rng, len(index))
-    return PositionMeasurements(m.t, position, m.cov, m.T_BS)
 
-
-_DECLARED = dict(fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=_corrupt)
+_DECLARED = dict(fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=displaced)
 POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions,
                 **_DECLARED)
 GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes, **_DECLARED)
