@@ -16,7 +16,10 @@ interleaved, medians taken, because the machine is noisy):
    GTSAM's ``NavStateImuEKF.predict`` called per sample (9-dim NavState, no biases, no updates);
 3. KITTI: this project's batch smoother end to end (load, preintegrate, optimise) and GTSAM's
    native ImuFactor graph with LM (``benchmarks/kitti_native.py``, whose time excludes reading
-   the files), held-out RMS with every 10th fix;
+   the files), held-out RMS with every 10th fix; and the whole process of each, started cold
+   (Numba's kernels cached on disk, nothing else warm): ``smoother run --dataset kitti --estimator
+   batch --gps-every 10`` against ``kitti_native.py --native-only`` (GTSAM and NumPy only), the
+   two started in turn;
 4. synthetic batch solve (200 Hz IMU, 10 Hz keyframes and poses) of 1, 5, 15 and 60 minutes,
    each in a fresh child process after a warm-up and repeated there to about 15 minutes of data
    (mean): build (preintegration included) + optimise, covariances off; covariance time of the
@@ -37,7 +40,7 @@ interleaved, medians taken, because the machine is noisy):
    two smoothers step in turn, one keyframe each, so a slow spell of the machine hits both. Also
    ``estimate()`` called after every IMU sample between keyframes (us per call).
 
-Run: python benchmarks/run.py [--quick] [--json]
+Run: python benchmarks/run.py [--quick] [--json] [--whole-process]
 ``--quick`` runs a reduced set in about a minute (shorter runs, fewer repetitions, no hour run:
 ``hour_*`` are null).
 """
@@ -85,6 +88,7 @@ class Settings:
     preint_long_s: float  # a longer preintegration run, for the cost per call and per sample
     repeats: int  # repetitions of the cheap figures
     kitti_repeats: int
+    process_repeats: int  # whole-process KITTI runs of each side (started in turn)
     scaling_min: tuple  # run lengths of the batch scaling figure [min] (without the hour)
     covariance_min: tuple  # lengths whose covariance time is measured too
     hour: bool
@@ -93,8 +97,8 @@ class Settings:
     online_min: float  # online against native fixed-lag run [min]
 
 
-FULL = Settings(60.0, 600.0, 7, 5, (1, 5, 15), (1, 5), True, 60.0, 60.0, 60.0)
-QUICK = Settings(20.0, 60.0, 3, 1, (0.5, 1, 2), (0.5,), False, 1.0, 5.0, 1.0)
+FULL = Settings(60.0, 600.0, 7, 5, 9, (1, 5, 15), (1, 5), True, 60.0, 60.0, 60.0)
+QUICK = Settings(20.0, 60.0, 3, 1, 5, (0.5, 1, 2), (0.5,), False, 1.0, 5.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -306,6 +310,40 @@ def bench_kitti(s: Settings, gps_every: int = 10) -> dict:
 
 # ------------------------------------------------------------------------------------------------
 # 4. linear scaling of the batch smoother (and 6. memory of the hour run)
+
+
+#: The whole-process KITTI commands: ours as a user types it, GTSAM's own pipeline alone.
+KITTI_PROCESS = {
+    "ours": ["-m", "smoother.cli", "run", "--dataset", "kitti", "--estimator", "batch", "--gps-every", "10"],
+    "native": [str(Path(__file__).resolve().parent / "kitti_native.py"), "--native-only", "--gps-every", "10"],
+}
+
+
+def bench_kitti_process(s: Settings) -> dict:
+    """Wall time of each whole KITTI process (interpreter start to exit), the two started in turn,
+    ``process_repeats`` times each after one untimed round, in a scratch directory (ours writes
+    its outputs there); the ratio of the medians, and the spread of the ratios round by round. Each
+    process is cold but for Numba's on-disk cache, which the untimed round filled."""
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    times = {name: [] for name in KITTI_PROCESS}
+    with tempfile.TemporaryDirectory() as scratch:
+        for round_ in range(s.process_repeats + 1):
+            for name, command in KITTI_PROCESS.items():
+                tick = time.perf_counter()
+                subprocess.run([sys.executable, *command], cwd=scratch, env=env, check=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                if round_:
+                    times[name].append(time.perf_counter() - tick)
+    ours, theirs = _median(times["ours"]), _median(times["native"])
+    rounds = [a / b for a, b in zip(times["ours"], times["native"])]
+    return {
+        "kitti_whole_process_s": ours,
+        "kitti_native_whole_process_s": theirs,
+        "kitti_whole_process_ratio": ours / theirs,
+        "kitti_whole_process_run": {name: [round(x, 3) for x in xs] for name, xs in times.items()}
+        | {"ratio_per_round_min_max": [round(min(rounds), 3), round(max(rounds), 3)]},
+    }
 
 
 def _peak_rss_mib() -> float:
@@ -647,6 +685,9 @@ def _table_rows(r: dict) -> list:
         row("kitti_rmse_m", "m", f"<= native ({r['kitti_native_rmse_m']:.2f})",
             lambda v: v <= r["kitti_native_rmse_m"]),
         row("kitti_native_rmse_m", "m"),
+        row("kitti_whole_process_ratio", "x", "<= 1 (ours / native, whole process)", lambda v: v <= 1.0),
+        row("kitti_whole_process_s", "s"),
+        row("kitti_native_whole_process_s", "s"),
     ]
     for run in r["scaling"]:
         rows.append((f"batch {run['minutes']:g} min: total s ({run['keyframes']} kf)", run["total_s"], "s", "", None))
@@ -697,7 +738,7 @@ def print_table(r: dict) -> None:
         ok = "" if met is None else ("yes" if met else "NO")
         print(f"{name:<{width}}  {_fmt(value):>10} {unit:<4}  {target:<28} {ok}")
     print()
-    for key in ("preintegration_run", "ekf_run", "kitti_run"):
+    for key in ("preintegration_run", "ekf_run", "kitti_run", "kitti_whole_process_run"):
         print(f"{key}: {r[key]}")
     print(f"preintegration: GTSAM / ours = {r['preintegration_speedup_vs_gtsam']:.3g}; "
           f"EKF: ours / GTSAM = {r['ekf_ratio_vs_gtsam']:.3g} (GTSAM's NavStateImuEKF: 9-dim, predict only; "
@@ -741,6 +782,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="reduced set, about a minute, no hour run")
     parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    parser.add_argument("--whole-process", action="store_true",
+                        help="only the whole-process KITTI figure (kitti_whole_process_ratio)")
     parser.add_argument("--child-batch", type=float, metavar="MIN", help=argparse.SUPPRESS)
     parser.add_argument("--covariances", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
@@ -750,12 +793,17 @@ def main() -> None:
         print(json.dumps(batch_run(args.child_batch, args.covariances, memory=True, repeats=args.repeats)))
         return
     s = QUICK if args.quick else FULL
+    if args.whole_process:
+        result = bench_kitti_process(s)
+        print(json.dumps(result, indent=2))
+        return
     tick = time.perf_counter()
     result = {"quick": args.quick, "machine": machine()}
     warm_up()
     if not args.json:
         print(f"[{time.perf_counter() - tick:6.1f} s] warm-up done (kernels compiled or loaded)", file=sys.stderr)
-    for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_scaling, bench_fixed_lag, bench_online):
+    for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_kitti_process, bench_scaling, bench_fixed_lag,
+                  bench_online):
         result.update(bench(s))
         if not args.json:
             print(f"[{time.perf_counter() - tick:6.1f} s] {bench.__name__} done", file=sys.stderr)

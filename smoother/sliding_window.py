@@ -41,7 +41,10 @@ window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
 * the marginal covariance of a window keyframe is its block of ``H^-1`` (two banded triangular
   solves with 15 right-hand sides).
 
-The interface is :class:`smoother.fixed_lag.KeyframeWindow`'s (``leaving``, ``taken``,
+The block-banded linear algebra is :mod:`smoother.banded`'s, the normal equations
+:mod:`smoother.normal_equations`'s; this module keeps the window: its keyframes in ring slots, the
+update, relinearisation and marginalisation. The interface is
+:class:`smoother.fixed_lag.KeyframeWindow`'s (``leaving``, ``taken``,
 ``add_keyframe``, ``state``, ``covariances``), so :class:`smoother.online.OnlineSmoother` drives
 either.
 """
@@ -51,28 +54,24 @@ import math
 import time
 from collections import deque
 from contextlib import nullcontext
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from datasets.kinds import measure_into, quiet_dispatch
-from factors import imu, preintegration, so3
+from datasets.kinds import quiet_dispatch
+from factors import imu, preintegration
 from factors.errors import InputError
-from factors.preintegration import _residual_into, _residual_work
-from factors.sensor_models import ODOMETRY_WIDTH, odometry_kernel
+from factors.sensor_models import ODOMETRY_WIDTH
+# _schur, _robust_scale: the window's compiled parts stay reachable under this module's name
+from smoother.banded import (_backward, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
+                             _semidefinite_square_root)
 from smoother.fixed_lag import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
-from smoother.graph import RELATIVE_MODEL, robust_threshold
-from factors.small_linalg import cholesky_into
+from smoother.graph import robust_threshold
+from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _LinearPrior, _prior_into,  # noqa: F401
+                                       _robust_scale, _whitening_into)
 from smoother.solver import whitening
 
 DIM = imu.STATE_DIM
-#: Robust kernels by their code in the compiled loop (0: none).
-ROBUST_CODES = {"huber": 1, "cauchy": 2, "tukey": 3}
-_MAX_DIM = 6  # the widest measurement residual (pose, odometry)
-#: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
-#: dot products of the linear algebra into SIMD code.
-_FAST = {"reassoc", "contract"}
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
 #: linearised again, per error-state component ``(dr [m], dv [m/s], dphi [rad], db_f [m/s^2],
 #: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component). The residuals are linear in
@@ -90,291 +89,7 @@ RELINEARISATION_THRESHOLD = np.array([0.05] * 3 + [0.05] * 3 + [5e-3] * 3 + [0.0
 MAX_ATTITUDE_STEP = 0.2
 
 
-@dataclass
-class _LinearPrior:
-    """``e(x) = R (x [-] x_lin) + e0`` on the window keyframes ``keyframes`` (ascending; their
-    linearisation points ``r, v, C, b_f, b_w`` row by row)."""
-
-    keyframes: np.ndarray
-    r: np.ndarray
-    v: np.ndarray
-    C: np.ndarray
-    b_f: np.ndarray
-    b_w: np.ndarray
-    R: np.ndarray
-    e0: np.ndarray
-
-
 # -- compiled parts -------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def _robust_scale(code, k, norm) -> float:
-    """``sqrt(w(|e_w|))`` of GTSAM's mEstimator ``code`` (:data:`ROBUST_CODES`) at threshold ``k``."""
-    if code == 1:  # Huber
-        return 1.0 if norm <= k else np.sqrt(k / norm)
-    if code == 2:  # Cauchy
-        return np.sqrt(k * k / (k * k + norm * norm))
-    if code == 3:  # Tukey
-        if norm > k:
-            return 0.0
-        u = 1.0 - (norm / k) ** 2
-        return u
-    return 1.0
-
-
-@njit(cache=True, fastmath=_FAST)
-def _whiten(W, e, J, d, ncol, ew, JT, Jt0) -> None:
-    """``ew = W e`` and ``JT = (W J)^T`` for the first ``d`` rows (``W`` lower triangular; ``JT``
-    holds the whitened Jacobian transposed, so that the normal equations read contiguous rows;
-    ``Jt0`` work space)."""
-    for a in range(d):
-        s = 0.0
-        for b in range(a + 1):
-            s += W[a, b] * e[b]
-        ew[a] = s
-    for c in range(ncol):
-        for b in range(d):
-            Jt0[c, b] = J[b, c]
-    for c in range(ncol):
-        for a in range(d):
-            s = 0.0
-            for b in range(a + 1):
-                s += W[a, b] * Jt0[c, b]
-            JT[c, a] = s
-
-
-@njit(cache=True, fastmath=_FAST)
-def _add_diagonal(Hb, g, a, ca, JT, ew, d) -> None:
-    """Add ``J_a^T J_a`` and ``J_a^T e`` of a factor to keyframe ``a``'s diagonal block (``JT``: its
-    whitened Jacobian transposed, ``d`` columns; keyframe ``a`` in rows ``ca:ca+15``)."""
-    for p in range(DIM):
-        s = 0.0
-        for i in range(d):
-            s += JT[ca + p, i] * ew[i]
-        g[a * DIM + p] += s
-        for q in range(p + 1):
-            s = 0.0
-            for i in range(d):
-                s += JT[ca + p, i] * JT[ca + q, i]
-            Hb[a, 0, p, q] += s
-            if q != p:
-                Hb[a, 0, q, p] += s
-
-
-@njit(cache=True, fastmath=_FAST)
-def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
-    """Add a factor's ``J^T J`` and ``J^T e`` (``JT``: its whitened Jacobian transposed, ``d``
-    columns; keyframe ``a`` in rows ``ca:ca+15``, keyframe ``b > a`` in ``cb:cb+15``; ``b = -1``
-    for a one-keyframe factor). Block rows are counted from the first row assembled: a keyframe
-    before it (``a < 0``) gets nothing on its own row, only its coupling in row ``b``."""
-    if a >= 0:
-        _add_diagonal(Hb, g, a, ca, JT, ew, d)
-    if b < 0:
-        return
-    _add_diagonal(Hb, g, b, cb, JT, ew, d)
-    for p in range(DIM):
-        for q in range(DIM):
-            s = 0.0
-            for i in range(d):
-                s += JT[cb + p, i] * JT[ca + q, i]
-            Hb[b, b - a, p, q] += s
-
-
-@njit(cache=True)
-def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
-               m, mk, model, rows, dims, Wm, rcode, rk, Hb, g) -> None:
-    """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
-    equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
-    IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``,
-    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
-    work = _residual_work()
-    e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
-    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((2 * DIM, DIM)), np.empty((2 * DIM, DIM)), np.empty(DIM)
-    n = Hb.shape[0]
-    for k in range(max(lo, first + 1), lo + n):
-        if k - 1 >= cut:
-            break
-        j = k % cap
-        if not has_imu[j]:
-            continue
-        i = (k - 1) % cap
-        _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
-                       r[j], v[j], C[j], bf[j], bw[j], gravity, True, e, A, B, work)
-        J[:, :DIM] = A
-        J[:, DIM:] = B
-        _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
-        _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
-    H = np.empty((_MAX_DIM, 2 * DIM))
-    for f in range(m):
-        k0, k1 = mk[f, 0], mk[f, 1]
-        if k0 >= cut or k1 < lo:
-            continue
-        d = dims[f]
-        i = k0 % cap
-        if model[f] == RELATIVE_MODEL:
-            j = k1 % cap
-            odometry_kernel(r[i], C[i], r[j], C[j], rows[f], e[:d], H[:d])
-            _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
-        else:
-            measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], H[:d, :DIM])
-            _whiten(Wm[f], e, H, d, DIM, ew, JT, Jt0)
-        if rcode[f] != 0:
-            norm = 0.0
-            for a in range(d):
-                norm += ew[a] * ew[a]
-            scale = _robust_scale(rcode[f], rk[f], np.sqrt(norm))
-            ew[:d] *= scale
-            JT[:, :d] *= scale
-        if model[f] == RELATIVE_MODEL:
-            _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
-        else:
-            _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
-
-
-@njit(cache=True)
-def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, lo, Hb, g) -> None:
-    """Add the linear prior ``e = R (x [-] x_lin) + e0`` on keyframes ``blocks`` (global numbers,
-    ascending), linearised at the state arrays given, to the rows ``lo ..`` of ``Hb``, ``g`` (block
-    row 0 = keyframe ``lo``)."""
-    P = blocks.shape[0]
-    N = DIM * P
-    dx = np.zeros(N)
-    D = np.zeros((P, 3, 3))  # Gamma^-1 of each attitude difference
-    for a in range(P):
-        s = blocks[a] % cap
-        for c in range(3):
-            dx[a * DIM + c] = r[s, c] - xr[a, c]
-            dx[a * DIM + 3 + c] = v[s, c] - xv[a, c]
-            dx[a * DIM + 9 + c] = bf[s, c] - xbf[a, c]
-            dx[a * DIM + 12 + c] = bw[s, c] - xbw[a, c]
-        p0, p1, p2 = so3.boxminus_of(C[s], xC[a])
-        dx[a * DIM + 6], dx[a * DIM + 7], dx[a * DIM + 8] = p0, p1, p2
-        so3.gamma_inv_into(p0, p1, p2, D[a])
-    e = e0.copy()
-    J = R.copy()  # R times the block diagonal (I, I, Gamma^-1, I, I)
-    for row in range(N):
-        for col in range(N):
-            e[row] += R[row, col] * dx[col]
-        for a in range(P):
-            for c in range(3):
-                s = 0.0
-                for q in range(3):
-                    s += R[row, a * DIM + 6 + q] * D[a, q, c]
-                J[row, a * DIM + 6 + c] = s
-    for a in range(P):
-        ba = blocks[a] - lo
-        if ba < 0:
-            continue
-        for p in range(DIM):
-            s = 0.0
-            for row in range(N):
-                s += J[row, a * DIM + p] * e[row]
-            g[ba * DIM + p] += s
-        for b in range(a + 1):
-            bb = blocks[b] - lo
-            for p in range(DIM):
-                for q in range(DIM):
-                    s = 0.0
-                    for row in range(N):
-                        s += J[row, a * DIM + p] * J[row, b * DIM + q]
-                    Hb[ba, ba - bb, p, q] += s
-
-
-@njit(cache=True)
-def _factorise(Hr, L, first, start, newest, cap, S) -> int:
-    """Rows ``start .. newest`` of the block-banded Cholesky factor ``H = L L^T`` of the window
-    ``first .. newest`` (bandwidth ``S``): ``Hr[k - start, s]`` is block ``(k, k - s)`` of ``H``,
-    ``L[k % cap, s]`` block ``(k, k - s)`` of ``L`` (the rows before ``start`` are kept: they
-    depend on the rows of ``H`` before ``start`` only). Returns -1, or the keyframe whose pivot
-    failed."""
-    M = np.empty((DIM, DIM))
-    for k in range(start, newest + 1):
-        top = min(k - first, S)
-        row = k % cap
-        for s in range(top, 0, -1):
-            j = k - s
-            jrow = j % cap
-            M[:, :] = Hr[k - start, s]
-            for i in range(max(k - top, j - min(j - first, S)), j):  # blocks left of j in rows k and j
-                A, B = L[row, k - i], L[jrow, j - i]
-                for p in range(DIM):
-                    for q in range(DIM):
-                        acc = 0.0
-                        for c in range(DIM):
-                            acc += A[p, c] * B[q, c]
-                        M[p, q] -= acc
-            Ljj = L[jrow, 0]
-            X = L[row, s]
-            for p in range(DIM):  # X Ljj^T = M, row by row (forward substitution)
-                for q in range(DIM):
-                    acc = M[p, q]
-                    for c in range(q):
-                        acc -= X[p, c] * Ljj[q, c]
-                    X[p, q] = acc / Ljj[q, q]
-        M[:, :] = Hr[k - start, 0]
-        for s in range(1, top + 1):
-            A = L[row, s]
-            for p in range(DIM):
-                for q in range(p + 1):
-                    acc = 0.0
-                    for c in range(DIM):
-                        acc += A[p, c] * A[q, c]
-                    M[p, q] -= acc
-        for p in range(DIM):  # symmetric: the lower triangle is what the block Cholesky reads
-            for q in range(p + 1, DIM):
-                M[p, q] = M[q, p]
-        if not cholesky_into(M, L[row, 0]):
-            return k
-    return -1
-
-
-@njit(cache=True)
-def _forward(L, b, first, start, zero_before, newest, cap, S) -> None:
-    """``b <- L^-1 b`` for the rows ``start .. newest`` of the window ``first .. newest``, in
-    place (``b[k % cap]`` the ``(15, m)`` block of keyframe ``k``; the rows before ``start`` are
-    solved already, those before ``zero_before`` are zero)."""
-    m = b.shape[2]
-    for k in range(start, newest + 1):
-        row = k % cap
-        for s in range(1, min(k - max(first, zero_before), S) + 1):
-            A, x = L[row, s], b[(k - s) % cap]
-            for p in range(DIM):
-                for c in range(m):
-                    acc = 0.0
-                    for q in range(DIM):
-                        acc += A[p, q] * x[q, c]
-                    b[row, p, c] -= acc
-        Lkk = L[row, 0]
-        for c in range(m):
-            for p in range(DIM):
-                acc = b[row, p, c]
-                for q in range(p):
-                    acc -= Lkk[p, q] * b[row, q, c]
-                b[row, p, c] = acc / Lkk[p, p]
-
-
-@njit(cache=True)
-def _backward(L, b, stop, newest, cap, S) -> None:
-    """``b <- L^-T b`` in place, rows ``newest`` down to ``stop`` (``b`` as :func:`_forward`'s)."""
-    m = b.shape[2]
-    for k in range(newest, stop - 1, -1):
-        row = k % cap
-        for s in range(1, min(newest - k, S) + 1):
-            A, x = L[(k + s) % cap, s], b[(k + s) % cap]  # block (k + s, k)
-            for p in range(DIM):
-                for c in range(m):
-                    acc = 0.0
-                    for q in range(DIM):
-                        acc += A[q, p] * x[q, c]
-                    b[row, p, c] -= acc
-        Lkk = L[row, 0]
-        for c in range(m):
-            for p in range(DIM - 1, -1, -1):
-                acc = b[row, p, c]
-                for q in range(p + 1, DIM):
-                    acc -= Lkk[q, p] * b[row, q, c]
-                b[row, p, c] = acc / Lkk[p, p]
 
 
 @njit(cache=True)
@@ -469,105 +184,6 @@ def _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, 
             C[s, :, :] = xC[s]
             delta[s] = 0.0
     return oldest
-
-
-@njit(cache=True)
-def _solve_lower(L, B) -> None:
-    """``B <- L^-1 B`` in place (``L`` lower triangular)."""
-    n, m = B.shape
-    for c in range(m):
-        for i in range(n):
-            s = B[i, c]
-            for j in range(i):
-                s -= L[i, j] * B[j, c]
-            B[i, c] = s / L[i, i]
-
-
-@njit(cache=True)
-def _schur(Hb, g, nl):
-    """The Schur complement of the first ``nl`` blocks of the block-banded ``(Hb, g)``:
-    ``(H_mm - H_ml H_ll^-1 H_lm, g_m - H_ml H_ll^-1 g_l)`` and True, or False if ``H_ll`` is not
-    positive definite."""
-    n, S1 = Hb.shape[0], Hb.shape[1]
-    N = n * DIM
-    H = np.zeros((N, N))
-    for k in range(n):
-        for s in range(min(k, S1 - 1) + 1):
-            j = k - s
-            for p in range(DIM):
-                for q in range(DIM):
-                    H[k * DIM + p, j * DIM + q] = Hb[k, s, p, q]
-                    H[j * DIM + q, k * DIM + p] = Hb[k, s, p, q]
-    m0 = nl * DIM
-    Lll = np.empty((m0, m0))
-    Hs, gs = np.empty((N - m0, N - m0)), np.empty(N - m0)
-    if not cholesky_into(H[:m0, :m0].copy(), Lll):
-        return Hs, gs, False
-    Y = np.empty((m0, N - m0 + 1))
-    Y[:, :N - m0] = H[:m0, m0:]
-    Y[:, N - m0] = g[:m0]
-    _solve_lower(Lll, Y)
-    for a in range(N - m0):
-        for b in range(N - m0):
-            s = H[m0 + a, m0 + b]
-            for c in range(m0):
-                s -= Y[c, a] * Y[c, b]
-            Hs[a, b] = s
-        s = g[m0 + a]
-        for c in range(m0):
-            s -= Y[c, a] * Y[c, N - m0]
-        gs[a] = s
-    return Hs, gs, True
-
-
-@njit(cache=True)
-def _marginal_prior(Hb, g, nl):
-    """The linear prior that replaces the first ``nl`` blocks of the block-banded ``(Hb, g)``:
-    their Schur complement (:func:`_schur`) on the blocks it informs (rows not all zero),
-    ``touched`` (their numbers after the first ``nl``), as ``R`` (upper triangular, ``R^T R =
-    H_s``) and ``e0`` (``R^T e0 = g_s``). Returns ``(status, touched, A, b)``: status 0 with
-    ``(R, e0)``; 1 when ``H_ll`` is not positive definite; 2 when ``H_s`` is only semi-definite,
-    with ``(H_s, g_s)`` on the touched blocks for :func:`_semidefinite_square_root`."""
-    Hs, gs, ok = _schur(Hb, g, nl)
-    if not ok:
-        return 1, np.empty(0, dtype=np.int64), Hs, gs
-    n = Hs.shape[0] // DIM
-    keep = np.zeros(n, dtype=np.bool_)
-    for b in range(n):
-        for p in range(b * DIM, (b + 1) * DIM):
-            for q in range(Hs.shape[1]):
-                if Hs[p, q] != 0.0:
-                    keep[b] = True
-    touched = np.flatnonzero(keep)
-    m = touched.size * DIM
-    Ht, gt = np.empty((m, m)), np.empty(m)
-    for a in range(touched.size):
-        for p in range(DIM):
-            gt[a * DIM + p] = gs[touched[a] * DIM + p]
-            for b in range(touched.size):
-                for q in range(DIM):
-                    Ht[a * DIM + p, b * DIM + q] = Hs[touched[a] * DIM + p, touched[b] * DIM + q]
-    Lc = np.empty((m, m))
-    if not cholesky_into(Ht, Lc):
-        return 2, touched, Ht, gt
-    e0 = gt.reshape(m, 1).copy()
-    _solve_lower(Lc, e0)
-    return 0, touched, Lc.T.copy(), e0[:, 0].copy()
-
-
-@njit(cache=True)
-def _whitening_into(cov, W) -> bool:
-    """``W = L^-1`` with ``cov = L L^T`` (:func:`smoother.solver.whitening`, compiled for one
-    matrix); False if ``cov`` is not positive definite."""
-    d = cov.shape[0]
-    L = np.empty((d, d))
-    if not cholesky_into(cov, L):
-        return False
-    W[:d, :d] = 0.0
-    for c in range(d):
-        W[c, c] = 1.0
-    _solve_lower(L, W[:d, :d])
-    return True
 
 
 # -- the window -----------------------------------------------------------------------------------
@@ -932,20 +548,3 @@ class SlidingWindow:
             slots = keyframes % self._cap
             self._priors.append(_LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0))
         self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors), default=0)
-
-
-def _semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g`` for a positive semi-definite ``H``, the
-    directions the marginalised factors did not inform left out: those of the eigenvalues below
-    1e-12 of ``H`` scaled to a unit diagonal (each state component in its own units: a short IMU
-    interval's position information reaches 1e14 beside a bias's 1e2, which a cut-off relative to
-    the largest eigenvalue would drop); ``g`` has no part along them."""
-    d = np.sqrt(np.maximum(np.diag(H), 0.0))
-    d[d == 0.0] = 1.0
-    lam, V = np.linalg.eigh(0.5 * (H + H.T) / np.outer(d, d))
-    keep = lam > 1e-12 * max(lam.max(), 1e-300)
-    R = np.sqrt(lam[keep])[:, None] * V[:, keep].T * d[None, :]
-    R = np.vstack([R, np.zeros((len(H) - R.shape[0], len(H)))])
-    e0 = np.zeros(len(H))
-    e0[:int(keep.sum())] = (V[:, keep].T @ (g / d)) / np.sqrt(lam[keep])
-    return R, e0

@@ -1,0 +1,237 @@
+"""The sliding window's normal equations (:mod:`smoother.sliding_window`), compiled: the factors
+on the window's keyframes, linearised at their linearisation points, whitened and robustly
+reweighted, summed into the block-banded ``H = sum J^T J`` and ``g = sum J^T e`` in the layout
+of :mod:`smoother.banded` (``Hb (n, S + 1, 15, 15)``, block row 0 = the first keyframe
+assembled; window keyframe ``k``'s arrays at ring slot ``k % cap``).
+
+The factors: the IMU intervals (:func:`factors.preintegration._residual_into`), the sensor
+measurements (:func:`datasets.kinds.measure_into`, :func:`factors.sensor_models.odometry_kernel`
+for a relative pose) with GTSAM's Huber, Cauchy and Tukey weights, and linear priors
+(:class:`_LinearPrior`: the marginals of keyframes that left the window, and priors on one
+keyframe).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from datasets.kinds import measure_into
+from factors import imu, so3
+from factors.preintegration import _residual_into, _residual_work
+from factors.sensor_models import odometry_kernel
+from factors.small_linalg import cholesky_into
+from smoother.banded import _solve_lower
+from smoother.graph import RELATIVE_MODEL
+
+DIM = imu.STATE_DIM
+#: Robust kernels by their code in the compiled loop (0: none).
+ROBUST_CODES = {"huber": 1, "cauchy": 2, "tukey": 3}
+_MAX_DIM = 6  # the widest measurement residual (pose, odometry)
+#: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
+#: dot products of the linear algebra into SIMD code.
+_FAST = {"reassoc", "contract"}
+
+
+@dataclass
+class _LinearPrior:
+    """``e(x) = R (x [-] x_lin) + e0`` on the window keyframes ``keyframes`` (ascending; their
+    linearisation points ``r, v, C, b_f, b_w`` row by row)."""
+
+    keyframes: np.ndarray
+    r: np.ndarray
+    v: np.ndarray
+    C: np.ndarray
+    b_f: np.ndarray
+    b_w: np.ndarray
+    R: np.ndarray
+    e0: np.ndarray
+
+
+@njit(cache=True)
+def _robust_scale(code, k, norm) -> float:
+    """``sqrt(w(|e_w|))`` of GTSAM's mEstimator ``code`` (:data:`ROBUST_CODES`) at threshold ``k``."""
+    if code == 1:  # Huber
+        return 1.0 if norm <= k else np.sqrt(k / norm)
+    if code == 2:  # Cauchy
+        return np.sqrt(k * k / (k * k + norm * norm))
+    if code == 3:  # Tukey
+        if norm > k:
+            return 0.0
+        u = 1.0 - (norm / k) ** 2
+        return u
+    return 1.0
+
+
+@njit(cache=True, fastmath=_FAST)
+def _whiten(W, e, J, d, ncol, ew, JT, Jt0) -> None:
+    """``ew = W e`` and ``JT = (W J)^T`` for the first ``d`` rows (``W`` lower triangular; ``JT``
+    holds the whitened Jacobian transposed, so that the normal equations read contiguous rows;
+    ``Jt0`` work space)."""
+    for a in range(d):
+        s = 0.0
+        for b in range(a + 1):
+            s += W[a, b] * e[b]
+        ew[a] = s
+    for c in range(ncol):
+        for b in range(d):
+            Jt0[c, b] = J[b, c]
+    for c in range(ncol):
+        for a in range(d):
+            s = 0.0
+            for b in range(a + 1):
+                s += W[a, b] * Jt0[c, b]
+            JT[c, a] = s
+
+
+@njit(cache=True, fastmath=_FAST)
+def _add_diagonal(Hb, g, a, ca, JT, ew, d) -> None:
+    """Add ``J_a^T J_a`` and ``J_a^T e`` of a factor to keyframe ``a``'s diagonal block (``JT``: its
+    whitened Jacobian transposed, ``d`` columns; keyframe ``a`` in rows ``ca:ca+15``)."""
+    for p in range(DIM):
+        s = 0.0
+        for i in range(d):
+            s += JT[ca + p, i] * ew[i]
+        g[a * DIM + p] += s
+        for q in range(p + 1):
+            s = 0.0
+            for i in range(d):
+                s += JT[ca + p, i] * JT[ca + q, i]
+            Hb[a, 0, p, q] += s
+            if q != p:
+                Hb[a, 0, q, p] += s
+
+
+@njit(cache=True, fastmath=_FAST)
+def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
+    """Add a factor's ``J^T J`` and ``J^T e`` (``JT``: its whitened Jacobian transposed, ``d``
+    columns; keyframe ``a`` in rows ``ca:ca+15``, keyframe ``b > a`` in ``cb:cb+15``; ``b = -1``
+    for a one-keyframe factor). Block rows are counted from the first row assembled: a keyframe
+    before it (``a < 0``) gets nothing on its own row, only its coupling in row ``b``."""
+    if a >= 0:
+        _add_diagonal(Hb, g, a, ca, JT, ew, d)
+    if b < 0:
+        return
+    _add_diagonal(Hb, g, b, cb, JT, ew, d)
+    for p in range(DIM):
+        for q in range(DIM):
+            s = 0.0
+            for i in range(d):
+                s += JT[cb + p, i] * JT[ca + q, i]
+            Hb[b, b - a, p, q] += s
+
+
+@njit(cache=True)
+def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
+               m, mk, model, rows, dims, Wm, rcode, rk, Hb, g) -> None:
+    """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
+    equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
+    IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``,
+    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
+    work = _residual_work()
+    e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
+    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((2 * DIM, DIM)), np.empty((2 * DIM, DIM)), np.empty(DIM)
+    n = Hb.shape[0]
+    for k in range(max(lo, first + 1), lo + n):
+        if k - 1 >= cut:
+            break
+        j = k % cap
+        if not has_imu[j]:
+            continue
+        i = (k - 1) % cap
+        _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
+                       r[j], v[j], C[j], bf[j], bw[j], gravity, True, e, A, B, work)
+        J[:, :DIM] = A
+        J[:, DIM:] = B
+        _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
+        _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
+    H = np.empty((_MAX_DIM, 2 * DIM))
+    for f in range(m):
+        k0, k1 = mk[f, 0], mk[f, 1]
+        if k0 >= cut or k1 < lo:
+            continue
+        d = dims[f]
+        i = k0 % cap
+        if model[f] == RELATIVE_MODEL:
+            j = k1 % cap
+            odometry_kernel(r[i], C[i], r[j], C[j], rows[f], e[:d], H[:d])
+            _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
+        else:
+            measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], H[:d, :DIM])
+            _whiten(Wm[f], e, H, d, DIM, ew, JT, Jt0)
+        if rcode[f] != 0:
+            norm = 0.0
+            for a in range(d):
+                norm += ew[a] * ew[a]
+            scale = _robust_scale(rcode[f], rk[f], np.sqrt(norm))
+            ew[:d] *= scale
+            JT[:, :d] *= scale
+        if model[f] == RELATIVE_MODEL:
+            _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
+        else:
+            _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
+
+
+@njit(cache=True)
+def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, lo, Hb, g) -> None:
+    """Add the linear prior ``e = R (x [-] x_lin) + e0`` on keyframes ``blocks`` (global numbers,
+    ascending), linearised at the state arrays given, to the rows ``lo ..`` of ``Hb``, ``g`` (block
+    row 0 = keyframe ``lo``)."""
+    P = blocks.shape[0]
+    N = DIM * P
+    dx = np.zeros(N)
+    D = np.zeros((P, 3, 3))  # Gamma^-1 of each attitude difference
+    for a in range(P):
+        s = blocks[a] % cap
+        for c in range(3):
+            dx[a * DIM + c] = r[s, c] - xr[a, c]
+            dx[a * DIM + 3 + c] = v[s, c] - xv[a, c]
+            dx[a * DIM + 9 + c] = bf[s, c] - xbf[a, c]
+            dx[a * DIM + 12 + c] = bw[s, c] - xbw[a, c]
+        p0, p1, p2 = so3.boxminus_of(C[s], xC[a])
+        dx[a * DIM + 6], dx[a * DIM + 7], dx[a * DIM + 8] = p0, p1, p2
+        so3.gamma_inv_into(p0, p1, p2, D[a])
+    e = e0.copy()
+    J = R.copy()  # R times the block diagonal (I, I, Gamma^-1, I, I)
+    for row in range(N):
+        for col in range(N):
+            e[row] += R[row, col] * dx[col]
+        for a in range(P):
+            for c in range(3):
+                s = 0.0
+                for q in range(3):
+                    s += R[row, a * DIM + 6 + q] * D[a, q, c]
+                J[row, a * DIM + 6 + c] = s
+    for a in range(P):
+        ba = blocks[a] - lo
+        if ba < 0:
+            continue
+        for p in range(DIM):
+            s = 0.0
+            for row in range(N):
+                s += J[row, a * DIM + p] * e[row]
+            g[ba * DIM + p] += s
+        for b in range(a + 1):
+            bb = blocks[b] - lo
+            for p in range(DIM):
+                for q in range(DIM):
+                    s = 0.0
+                    for row in range(N):
+                        s += J[row, a * DIM + p] * J[row, b * DIM + q]
+                    Hb[ba, ba - bb, p, q] += s
+
+
+@njit(cache=True)
+def _whitening_into(cov, W) -> bool:
+    """``W = L^-1`` with ``cov = L L^T`` (:func:`smoother.solver.whitening`, compiled for one
+    matrix); False if ``cov`` is not positive definite."""
+    d = cov.shape[0]
+    L = np.empty((d, d))
+    if not cholesky_into(cov, L):
+        return False
+    W[:d, :d] = 0.0
+    for c in range(d):
+        W[c, c] = 1.0
+    _solve_lower(L, W[:d, :d])
+    return True
