@@ -20,7 +20,7 @@ from numba import njit
 from datasets.kinds import measure_into
 from factors import imu, so3
 from factors.preintegration import _residual_into, _residual_work
-from factors.sensor_models import odometry_kernel
+from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
 from factors.small_linalg import cholesky_into
 from smoother.banded import _solve_lower
 from smoother.graph import RELATIVE_MODEL
@@ -28,7 +28,7 @@ from smoother.graph import RELATIVE_MODEL
 DIM = imu.STATE_DIM
 #: Robust kernels by their code in the compiled loop (0: none).
 ROBUST_CODES = {"huber": 1, "cauchy": 2, "tukey": 3}
-_MAX_DIM = 6  # the widest measurement residual (pose, odometry)
+_MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admits
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.
 _FAST = {"reassoc", "contract"}

@@ -61,7 +61,7 @@ from numba import njit
 from datasets.kinds import quiet_dispatch
 from factors import imu, preintegration
 from factors.errors import InputError
-from factors.sensor_models import ODOMETRY_WIDTH
+from factors.sensor_models import MAX_ROW_WIDTH
 # _schur, _robust_scale: the window's compiled parts stay reachable under this module's name
 from smoother.banded import (_backward, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
                              _semidefinite_square_root)
@@ -271,7 +271,7 @@ class SlidingWindow:
     def _allocate_measurements(self, cap: int) -> None:
         """Measurement tables for ``cap`` rows, the current ones kept."""
         m = getattr(self, "_m", 0)
-        shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((ODOMETRY_WIDTH,), float),
+        shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
                   "_dims": ((), np.int64), "_Wm": ((_MAX_DIM, _MAX_DIM), float), "_rcode": ((), np.int64),
                   "_rk": ((), float)}
         for name, (tail, dtype) in shapes.items():
