@@ -37,6 +37,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
                                     # covariance, one number (every axis) or a list (per axis)
     every = 1                       # optional: use every k-th measurement, hold the rest out
     robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
+    roll_pitch_only = false         # optional, orientation sensors only: use roll and pitch, not the
+                                    # heading (an AHRS without a magnetometer; the kind roll_pitch)
 
 Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
 ``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
@@ -51,7 +53,8 @@ without a topic or a file source with one, unknown schemes and kinds, a ``T_BS``
 4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;
 within it the rotation is taken to the nearest one), both ``T_BS``
 and ``camchain``, duplicate sensor names, ``sigma`` <= 0, ``every`` < 1, a bad ``robust`` spec,
-a datum off the globe.
+a datum off the globe, ``roll_pitch_only`` that is not a boolean or on a sensor of another kind
+than ``orientation``.
 """
 from __future__ import annotations
 
@@ -93,7 +96,7 @@ T_BS_TOLERANCE = 1e-4
 IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
-               "robust")
+               "robust", "roll_pitch_only")
 
 
 class RigError(InputError):
@@ -315,6 +318,7 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
         close = difflib.get_close_matches(kind, KIND_NAMES, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise t.error("kind", f"unknown kind {kind!r}{hint}; expected one of {', '.join(KIND_NAMES)}")
+    kind = _roll_pitch_only(t, kind)
     source, topic = t.source(None)
     every = t.get("every", (int,), "an integer >= 1", default=1)
     if every < 1:
@@ -325,6 +329,22 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
         raise t.error("robust", str(error)) from None
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
                         time_offset=t.number("time_offset", default=0.0), sigma=_sigma(t), every=every, robust=robust)
+
+
+def roll_pitch_kind(kind: str, roll_pitch_only: bool, error) -> str:
+    """The kind of a sensor declared ``kind`` with ``roll_pitch_only``: ``roll_pitch`` for an
+    ``orientation`` sensor that uses only its roll and pitch. ``roll_pitch_only`` on another kind
+    raises ``error(message)`` (an exception naming the key or field)."""
+    if not roll_pitch_only:
+        return kind
+    if kind != "orientation":
+        raise error(f"expected only on an orientation sensor; this one is of kind {kind!r}")
+    return "roll_pitch"
+
+
+def _roll_pitch_only(t: _Table, kind: str) -> str:
+    value = t.get("roll_pitch_only", (bool,), "true or false", default=False)
+    return roll_pitch_kind(kind, value, lambda message: t.error("roll_pitch_only", message))
 
 
 def load_rig(path) -> Rig:

@@ -110,6 +110,33 @@ class PoseStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
+class AttitudeStream(_Rows):
+    """Attitudes of a frame in the world: ``C`` (N, 3, 3) the frame-to-world rotation, as the
+    attitude part of a :class:`PoseStream` or the ``orientation`` of ``sensor_msgs/Imu`` (REP-145:
+    the attitude of the message's frame in an east-north-up world). ``cov`` (N, 3, 3) [rad^2] is
+    over a small rotation about the world's fixed ``x, y, z`` axes, ``C_meas = exp(n) C`` (the
+    primer's left perturbation; ``orientation_covariance``'s "row major about x, y, z axes")."""
+
+    t: np.ndarray
+    C: np.ndarray
+    cov: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("AttitudeStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "C", check_rotations("AttitudeStream.C", self.C, n))
+        object.__setattr__(self, "cov", _optional_covariances("AttitudeStream.cov", self.cov, n, 3))
+        object.__setattr__(self, "t_ns", _stamps("AttitudeStream.t_ns", self.t_ns, n))
+
+    @classmethod
+    def of_poses(cls, poses: PoseStream) -> "AttitudeStream":
+        """The attitudes of ``poses`` with the rotation block of their covariances."""
+        return cls(poses.t, poses.C, None if poses.cov is None else poses.cov[:, 3:, 3:], poses.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class TwistStream(_Rows):
     """Velocities of a frame expressed in that frame (``nav_msgs/Odometry``'s twist is in the
     child frame): ``linear`` (N, 3) [m/s] and ``angular`` (N, 3) [rad/s], or None where the

@@ -266,6 +266,8 @@ def random_sensor_row(model, state, rng) -> np.ndarray:
         return sm.pack_orientation(Z[None], T)[0]
     if model is sm.POSE:
         return sm.pack_pose(z[None], Z[None], T)[0]
+    if model is sm.ROLL_PITCH:  # the measured heading anything: the model must not care
+        return sm.pack_orientation((so3.exp(np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi)])) @ Z)[None], T)[0]
     return sm.pack_velocity(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)) * 3, T)[0]
 
 
@@ -302,7 +304,7 @@ def _odometry_jacobians(rng):
 
 
 register("pose measurement H (61-63)", _pose_measurement_H)
-for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY"):
+for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY", "ROLL_PITCH"):
     register(f"{_model.lower()} sensor with extrinsic T_BS, H", _sensor_model_H(_model))
 register("odometry of a sensor with extrinsic T_BS", _odometry_jacobians)
 register("relative pose residual", _relative_pose_jacobians)

@@ -12,6 +12,7 @@ position       ``r + C p_BS`` (a GNSS antenna)              ``h - z``
 orientation    ``C R_BS``                                   ``log(C R_BS Z^T)``
 pose           both of the above                            ``(r + C p_BS - z, log(C R_BS Z^T))``
 velocity       ``R_BS^T (v + (w - b_w) x p_BS)``            ``h - z``
+roll_pitch     ``u = R_BS^T C^T e_z`` (up, in ``S``)        ``((Z u)_y, -(Z u)_x)``
 =============  ===========================================  ====================================
 
 ``w`` is the gyro sample at the measurement time: the sensor frame moves with the body, so its
@@ -94,7 +95,7 @@ def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
 
 
 # Row layouts (flat float64): position (z 3, p 3); orientation (Z 9, R 9); pose (z 3, Z 9, R 9, p 3);
-# velocity (z 3, w 3, R 9, p 3).
+# velocity (z 3, w 3, R 9, p 3); roll_pitch (Z 9, R 9).
 
 
 @njit(cache=True)
@@ -149,6 +150,47 @@ def velocity_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
         for b in range(3):
             H[a, 3 + b] = R[b, a]
             H[a, 12 + b] = R[0, a] * P[0, b] + R[1, a] * P[1, b] + R[2, a] * P[2, b]
+
+
+@njit(cache=True)
+def roll_pitch_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """The attitude error without its heading: the tilt between the measured and the predicted
+    vertical. ``row = (Z, R_BS)`` as :func:`orientation_kernel`'s; ``e (2)``, ``H (2, 15)``.
+
+    With ``M = Z R_BS^T C^T`` (``= E^T`` for the attitude error ``E = C R_BS Z^T``), ``M e_z = Z u``
+    is the predicted up direction of the sensor frame, ``u = R_BS^T C^T e_z``, carried into the
+    world by the MEASURED attitude; it is ``e_z`` when the two agree in roll and pitch, whatever
+    their headings. The residual is its horizontal part turned by 90 degrees,
+    ``e = ((M e_z)_y, -(M e_z)_x)``:
+
+    * heading-free: a turn of the state about the world vertical, ``C <- Rz C``, leaves ``u``
+      (``Rz^T e_z = e_z``) and so ``e`` exactly unchanged; ``H``'s column of ``dphi_z`` is 0;
+    * small errors: ``E = exp(eps)`` gives ``M e_z = e_z - eps x e_z``, i.e. ``e = (eps_x, eps_y)``
+      to first order, the tilt components of ``log(C R_BS Z^T)``; with the measurement noise
+      ``Z = exp(n) C R_BS`` (world axes) ``e = -(n_x, n_y)``: its covariance is the upper-left
+      2x2 block of the attitude covariance, and the noise about the vertical does not enter;
+    * defined at every attitude, upside-down and any heading included: ``e`` is a smooth function
+      of ``C`` (no angle is extracted); ``|e| = sin`` of the angle between the two verticals, 0
+      only when they agree or are opposite (a tilt error of 180 degrees, no AHRS's output);
+    * Jacobian: ``d(C^T a)/dphi = C^T a^x`` (the coordinate map of the inverse, primer eqs. 27,
+      28: ``(exp(dphi) C)^T a ~ C^T (a - dphi x a) = C^T a + C^T a^x dphi``), so
+      ``d(M e_z)/dphi = M e_z^x``, whose columns are ``(M[:, 1], -M[:, 0], 0)``.
+    """
+    H[:, :] = 0.0
+    Z = row[0:9].reshape((3, 3))
+    R = row[9:18].reshape((3, 3))
+    CR = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
+    M = np.empty((3, 3))  # Z (C R)^T
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = Z[a, 0] * CR[b, 0] + Z[a, 1] * CR[b, 1] + Z[a, 2] * CR[b, 2]
+    e[0] = M[1, 2]
+    e[1] = -M[0, 2]
+    H[0, 6], H[0, 7] = M[1, 1], -M[1, 0]
+    H[1, 6], H[1, 7] = -M[0, 1], M[0, 0]
 
 
 def _flat(*arrays) -> np.ndarray:
@@ -220,6 +262,7 @@ POSITION = SensorModel("position", 3, 6, position_kernel, ("pos", "rot"))
 ORIENTATION = SensorModel("orientation", 3, 18, orientation_kernel, ("rot",))
 POSE = SensorModel("pose", 6, 24, pose_kernel, ("pos", "rot"))
 VELOCITY = SensorModel("velocity", 3, 18, velocity_kernel, ("vel", "bias"))
+ROLL_PITCH = SensorModel("roll_pitch", 2, 18, roll_pitch_kernel, ("rot",))
 
 
 def evaluate_one(model: SensorModel, state: ImuState, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

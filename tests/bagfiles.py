@@ -48,10 +48,12 @@ class Messages:
     def pose(self, p, q):
         return self.T["geometry_msgs/msg/Pose"](position=self.point(p), orientation=self.quaternion(q))
 
-    def imu(self, t_ns, acc, gyro):
+    def imu(self, t_ns, acc, gyro, q_wxyz=None, orientation_cov=None):
+        """An Imu message; without ``q_wxyz`` REP-145's "no orientation" (covariance -1)."""
+        cov = np.full(9, -1.0) if q_wxyz is None else np.ravel(orientation_cov).astype(float)
         return self.T["sensor_msgs/msg/Imu"](
-            header=self.header(t_ns, "imu"), orientation=self.quaternion((1, 0, 0, 0)),
-            orientation_covariance=np.full(9, -1.0), angular_velocity=self.vector(gyro),
+            header=self.header(t_ns, "imu"), orientation=self.quaternion((1, 0, 0, 0) if q_wxyz is None else q_wxyz),
+            orientation_covariance=cov, angular_velocity=self.vector(gyro),
             angular_velocity_covariance=np.zeros(9), linear_acceleration=self.vector(acc),
             linear_acceleration_covariance=np.zeros(9))
 

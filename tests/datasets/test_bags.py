@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from bagfiles import FORMATS, Messages, bag_path, storage_file, write_bag
 
-from datasets.bags import read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
+from datasets.bags import read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
 from datasets.errors import DataError
 from datasets.simulate import simulate
 from datasets.streams import seconds
@@ -34,6 +34,7 @@ def data():
         "cov": np.array([_cov(rng, 6) for _ in poses]), "twist_cov": np.array([_cov(rng, 6) for _ in poses]),
         "lat": 47.0 + rng.normal(scale=1e-4, size=len(poses)), "lon": 8.0 + rng.normal(scale=1e-4, size=len(poses)),
         "alt": 400 + rng.normal(size=len(poses)), "fix_cov": np.array([_cov(rng, 3) for _ in poses]),
+        "ahrs_cov": np.array([_cov(rng, 3) * 1e-4 for _ in poses]),
     }
 
 
@@ -63,6 +64,8 @@ def _write(folder, fmt, data):
         "/tf_base": ("geometry_msgs/msg/TransformStamped", [m.transform(*row) for row in zip(data["pose_ns"],
                                                                                                data["p"], q)]),
         "/fix": ("sensor_msgs/msg/NavSatFix", fixes),
+        "/ahrs": ("sensor_msgs/msg/Imu", [m.imu(t, a, w, qq, c) for t, a, w, qq, c in zip(
+            data["pose_ns"], data["acc"], data["gyro"], q, data["ahrs_cov"])]),
         "/empty": ("sensor_msgs/msg/Imu", []),
     }
     return write_bag(bag_path(folder, fmt), fmt, topics)
@@ -109,6 +112,27 @@ def test_fixes_with_covariance_types_per_message(bag, data):
     assert np.array_equal(fixes.cov[0], data["fix_cov"][0])  # type 3, known
     assert np.array_equal(fixes.cov[1], np.diag(np.diag(data["fix_cov"][1])))  # type 2: the diagonal only
     assert np.all(np.isnan(fixes.cov[2]))  # type 0: unknown
+
+
+def test_attitudes_of_an_imu_topic_and_of_poses(bag, data):
+    """An Imu topic's orientation with its orientation_covariance (row major, 3x3); a pose
+    topic's attitude with the rotation block of its covariance."""
+    ahrs = read_bag_attitudes(bag[1], "/ahrs")
+    assert np.array_equal(ahrs.t_ns, data["pose_ns"]) and np.abs(ahrs.C - data["C"]).max() < 1e-14
+    assert np.array_equal(ahrs.cov, data["ahrs_cov"])
+    poses = read_bag_attitudes(bag[1], "/odom")
+    assert np.abs(poses.C - data["C"]).max() < 1e-14 and np.array_equal(poses.cov, data["cov"][:, 3:, 3:])
+    assert read_bag_attitudes(bag[1], "/pose").cov is None
+
+
+def test_an_imu_without_orientation_is_refused_as_attitudes_in_one_line(bag):
+    """REP-145: orientation_covariance[0] = -1 says the IMU gives no orientation."""
+    fmt, path = bag
+    with pytest.raises(DataError) as info:
+        read_bag_attitudes(path, "/imu")
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "topic /imu" in message, message
+    assert "without an orientation (orientation_covariance[0] = -1, REP-145)" in message, message
 
 
 def test_errors_name_the_bag_and_the_topic(bag, tmp_path):
