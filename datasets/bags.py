@@ -16,6 +16,9 @@ Messages and what they give (:mod:`datasets.streams` for the stream types and co
   refused as attitudes.
 * ``nav_msgs/msg/Odometry`` -> :class:`PoseStream` (``pose.pose`` with ``pose.covariance``) or
   :class:`TwistStream` (``twist.twist`` with ``twist.covariance``, in the child frame).
+* ``geometry_msgs/msg/TwistWithCovarianceStamped`` and ``TwistStamped`` -> :class:`TwistStream`
+  (the twist in the header's frame, the sensor's: a GNSS receiver's velocity, a DVL; the latter
+  without covariance).
 * ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``PoseStamped`` and ``TransformStamped`` ->
   :class:`PoseStream` (the last two without covariance); every pose message also gives
   attitudes (:class:`AttitudeStream`, the rotation block of its covariance).
@@ -61,6 +64,8 @@ POSE = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM = "geometry_msgs/msg/TransformStamped"
 NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+TWIST = "geometry_msgs/msg/TwistStamped"
+TWIST_WITH_COVARIANCE = "geometry_msgs/msg/TwistWithCovarianceStamped"
 
 #: Accepted deviation of a message's quaternion norm from 1 before it is normalised.
 QUATERNION_TOLERANCE = 1e-3
@@ -81,6 +86,11 @@ def _pose_row(pose, cov) -> tuple:
 def _transform_row(m) -> tuple:
     q = m.transform.rotation
     return (*_vector(m.transform.translation), q.w, q.x, q.y, q.z, *_NO_COVARIANCE_6)
+
+
+def _twist_row(twist, cov) -> tuple:
+    """``vx vy vz wx wy wz`` and the 36 covariance entries of a ``geometry_msgs/Twist``."""
+    return (*_vector(twist.linear), *_vector(twist.angular), *cov)
 
 
 def _fix_row(m) -> tuple:
@@ -121,8 +131,11 @@ _ROWS = {
     "IMU samples": {IMU: lambda m: (*_vector(m.linear_acceleration), *_vector(m.angular_velocity))},
     "poses": _POSE_ROWS,
     "attitudes": {IMU: _imu_attitude_row, **{k: _attitude_of_pose(row) for k, row in _POSE_ROWS.items()}},
-    "twists": {ODOMETRY: lambda m: (*_vector(m.twist.twist.linear), *_vector(m.twist.twist.angular),
-                                    *m.twist.covariance)},
+    "twists": {
+        ODOMETRY: lambda m: _twist_row(m.twist.twist, m.twist.covariance),
+        TWIST_WITH_COVARIANCE: lambda m: _twist_row(m.twist.twist, m.twist.covariance),
+        TWIST: lambda m: _twist_row(m.twist, _NO_COVARIANCE_6),
+    },
     "GNSS fixes": {NAV_SAT_FIX: _fix_row},
 }
 
@@ -265,7 +278,8 @@ def read_bag_attitudes(path, topic: str) -> AttitudeStream:
 
 
 def read_bag_twists(path, topic: str) -> TwistStream:
-    """Twists (child frame) of the ``nav_msgs/msg/Odometry`` messages of ``topic``."""
+    """Twists of ``topic``: ``nav_msgs/msg/Odometry`` (child frame), ``TwistWithCovarianceStamped``
+    or ``TwistStamped``."""
     t_ns, rows = _read(path, topic, "twists")
     _finite(path, topic, t_ns, rows[:, :6], "velocity")
     cov = known_covariances(rows[:, 6:].reshape(-1, 6, 6))

@@ -91,7 +91,8 @@ def read_attitudes(spec: str, topic: str | None = None, base_dir=".") -> Attitud
 
 
 def read_twists(spec: str, topic: str | None = None, base_dir=".") -> TwistStream:
-    """Velocities in the sensor frame (bag: Odometry's twist; CSV)."""
+    """Velocities in the sensor frame (bag: Odometry's twist, TwistStamped,
+    TwistWithCovarianceStamped; CSV)."""
     return _read("velocities", spec, topic, base_dir)
 
 

@@ -64,6 +64,16 @@ class Messages:
             covariance=np.ravel(twist_cov))
         return self.T["nav_msgs/msg/Odometry"](header=self.header(t_ns), child_frame_id="base", pose=pose, twist=twist)
 
+    def twist(self, v, w):
+        return self.T["geometry_msgs/msg/Twist"](linear=self.vector(v), angular=self.vector(w))
+
+    def twist_stamped(self, t_ns, v, w):
+        return self.T["geometry_msgs/msg/TwistStamped"](header=self.header(t_ns, "sensor"), twist=self.twist(v, w))
+
+    def twist_with_covariance(self, t_ns, v, w, cov):
+        twist = self.T["geometry_msgs/msg/TwistWithCovariance"](twist=self.twist(v, w), covariance=np.ravel(cov))
+        return self.T["geometry_msgs/msg/TwistWithCovarianceStamped"](header=self.header(t_ns, "sensor"), twist=twist)
+
     def pose_stamped(self, t_ns, p, q):
         return self.T["geometry_msgs/msg/PoseStamped"](header=self.header(t_ns), pose=self.pose(p, q))
 

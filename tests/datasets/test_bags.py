@@ -64,6 +64,10 @@ def _write(folder, fmt, data):
         "/tf_base": ("geometry_msgs/msg/TransformStamped", [m.transform(*row) for row in zip(data["pose_ns"],
                                                                                                data["p"], q)]),
         "/fix": ("sensor_msgs/msg/NavSatFix", fixes),
+        "/twist": ("geometry_msgs/msg/TwistStamped", [m.twist_stamped(*row) for row in zip(
+            data["pose_ns"], data["v"], data["w"])]),
+        "/twist_cov": ("geometry_msgs/msg/TwistWithCovarianceStamped", [m.twist_with_covariance(*row) for row in zip(
+            data["pose_ns"], data["v"], data["w"], data["twist_cov"])]),
         "/ahrs": ("sensor_msgs/msg/Imu", [m.imu(t, a, w, qq, c) for t, a, w, qq, c in zip(
             data["pose_ns"], data["acc"], data["gyro"], q, data["ahrs_cov"])]),
         "/empty": ("sensor_msgs/msg/Imu", []),
@@ -96,10 +100,17 @@ def test_poses_of_every_message_type(bag, data, topic, has_cov):
         assert poses.cov is None
 
 
-def test_twists_of_odometry(bag, data):
-    twists = read_bag_twists(bag[1], "/odom")
+@pytest.mark.parametrize("topic, has_cov", [("/odom", True), ("/twist_cov", True), ("/twist", False),
+                                            ("/odom_nocov", False)])
+def test_twists_of_every_message_type(bag, data, topic, has_cov):
+    """Odometry's twist, TwistWithCovarianceStamped and TwistStamped (no covariance)."""
+    twists = read_bag_twists(bag[1], topic)
+    assert np.array_equal(twists.t_ns, data["pose_ns"])
     assert np.array_equal(twists.linear, data["v"]) and np.array_equal(twists.angular, data["w"])
-    assert np.array_equal(twists.cov, data["twist_cov"]) and read_bag_twists(bag[1], "/odom_nocov").cov is None
+    if has_cov:
+        assert np.array_equal(twists.cov, data["twist_cov"])
+    else:
+        assert twists.cov is None
 
 
 def test_fixes_with_covariance_types_per_message(bag, data):
