@@ -27,6 +27,11 @@ Messages and what they give (:mod:`datasets.streams` for the stream types and co
   unknown (a NaN row), 2 (diagonal known) keeps the diagonal only, 1 (approximated) and 3 (known)
   keep the whole matrix. A stream mixing known and unknown rows keeps both, row by row.
 
+* ``sensor_msgs/msg/FluidPressure`` -> :class:`PressureStream` (``fluid_pressure`` [Pa] with
+  ``variance``, 0 meaning unknown).
+* ``sensor_msgs/msg/MagneticField`` -> :class:`MagneticFieldStream` (``magnetic_field`` [T] in
+  the header's frame with ``magnetic_field_covariance``, row major; all zero: unknown).
+
 Times are HEADER stamps, not the times the recorder received the messages. Messages are taken
 in the order the bag stores them (the recorder's receive times), never re-sorted, and their
 stamps must increase strictly in that order: the rule of the CSV readers
@@ -53,8 +58,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from datasets.errors import DataError, check_increasing
-from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, PoseStream, TwistStream, known_covariances,
-                              seconds)
+from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, MagneticFieldStream, PoseStream,
+                              PressureStream, TwistStream, known_covariances, seconds)
 from datasets.types import MIN_IMU_SAMPLES, MIN_IMU_SAMPLES_WHY, ImuSamples
 from factors import quaternion
 
@@ -64,6 +69,8 @@ POSE = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM = "geometry_msgs/msg/TransformStamped"
 NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+FLUID_PRESSURE = "sensor_msgs/msg/FluidPressure"
+MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
 TWIST = "geometry_msgs/msg/TwistStamped"
 TWIST_WITH_COVARIANCE = "geometry_msgs/msg/TwistWithCovarianceStamped"
 
@@ -137,6 +144,8 @@ _ROWS = {
         TWIST: lambda m: _twist_row(m.twist, _NO_COVARIANCE_6),
     },
     "GNSS fixes": {NAV_SAT_FIX: _fix_row},
+    "pressures": {FLUID_PRESSURE: lambda m: (m.fluid_pressure, m.variance)},
+    "magnetic fields": {MAGNETIC_FIELD: lambda m: (*_vector(m.magnetic_field), *m.magnetic_field_covariance)},
 }
 
 
@@ -298,3 +307,25 @@ def read_bag_fixes(path, topic: str) -> FixStream:
         return FixStream(seconds(t_ns), rows[:, 0], rows[:, 1], rows[:, 2], status, cov, t_ns)
     except ValueError as error:
         raise DataError(path, None, f"topic {topic}", str(error), "valid GNSS fixes") from None
+
+
+def read_bag_pressures(path, topic: str) -> PressureStream:
+    """``sensor_msgs/msg/FluidPressure`` messages of ``topic`` (a barometer)."""
+    t_ns, rows = _read(path, topic, "pressures")
+    _finite(path, topic, t_ns, rows[:, :1], "pressure")
+    bad = np.flatnonzero(rows[:, 0] <= 0)
+    if bad.size:
+        raise DataError(path, None, f"topic {topic}", f"a pressure of {rows[bad[0], 0]!r} Pa at stamp "
+                        f"{int(t_ns[bad[0]])} ns", "pressures > 0 in pascals", whole=True)
+    return PressureStream(seconds(t_ns), rows[:, 0], rows[:, 1], t_ns)
+
+
+def read_bag_magnetic_fields(path, topic: str) -> MagneticFieldStream:
+    """``sensor_msgs/msg/MagneticField`` messages of ``topic`` (a magnetometer)."""
+    t_ns, rows = _read(path, topic, "magnetic fields")
+    _finite(path, topic, t_ns, rows[:, :3], "magnetic field")
+    zero = np.flatnonzero(np.linalg.norm(rows[:, :3], axis=1) == 0)
+    if zero.size:
+        raise DataError(path, None, f"topic {topic}", f"a zero field at stamp {int(t_ns[zero[0]])} ns",
+                        "measured fields (not all zero)", whole=True)
+    return MagneticFieldStream(seconds(t_ns), rows[:, :3], known_covariances(rows[:, 3:].reshape(-1, 3, 3)), t_ns)

@@ -16,7 +16,8 @@ are used:
   drive forwards), carried back to ``t_s`` through the gyro. Its sigma is that of the baseline's
   direction plus the gyro-bias drift over the carry. Without any position sensor (and so no
   course) the heading is 0 at ``t_s`` by definition of the odometry frame, with the sigma
-  :data:`ODOMETRY_FRAME_SIGMA`;
+  :data:`ODOMETRY_FRAME_SIGMA`. A magnetometer gives the heading before the course does: the first
+  reading's direction against the world field's, sigma :data:`MAGNETIC_HEADING_SIGMA`;
 * **position**: the fix at ``t_s`` minus its lever arm, ``r = z - C p_BS``; without a position
   sensor the world origin, with the sigma :data:`ODOMETRY_FRAME_SIGMA` (the start defines the
   frame; the estimators' covariances grow from there);
@@ -38,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from datasets.kinds.magnetometer import MagneticFieldMeasurements, heading
 from datasets.types import (ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements, Sensor,
                             VelocityMeasurements)
 from factors import preintegration, so3
@@ -68,9 +70,13 @@ PRIOR_INFLATION = 10.0
 #: (the world origin) and, without an absolute attitude, the heading [rad] (0).
 ODOMETRY_FRAME_SIGMA = 1e-3
 
-#: What fixes a position (any kind measuring these data types) and what an attitude.
+#: What fixes a position (any kind measuring these data types), what an attitude and what a heading.
 _POSITION_TYPES = (PoseMeasurements, PositionMeasurements)
 _ATTITUDE_TYPES = (PoseMeasurements, OrientationMeasurements)
+_HEADING_TYPES = _ATTITUDE_TYPES + (MagneticFieldMeasurements,)
+#: 1-sigma [rad] of a heading from a magnetometer's first reading (its direction's noise, the
+#: level's error carried into the heading and the local disturbances of the field together).
+MAGNETIC_HEADING_SIGMA = np.deg2rad(10.0)
 
 
 class InitialisationError(InputError):
@@ -82,8 +88,8 @@ class WorldFrame:
     """The world frame of a run's estimates. ``odometry``: no sensor measures an absolute position
     (no pose, position or GNSS sensor), so the world origin is the start (REP-105's ``odom``
     frame; with one, ``map``); ``relative_heading``: no sensor measures an absolute heading either
-    (no pose or orientation sensor; a ``roll_pitch`` sensor gives none), so the yaw is 0 at the
-    start and relative to it."""
+    (no pose, orientation or magnetometer sensor; a ``roll_pitch`` sensor gives none), so the yaw
+    is 0 at the start and relative to it."""
 
     odometry: bool
     relative_heading: bool
@@ -114,7 +120,7 @@ def world_frame(sensors: list[Sensor]) -> WorldFrame:
         return any(isinstance(s.data, types) and len(s.data) for s in sensors)
 
     odometry = not measures(_POSITION_TYPES)
-    return WorldFrame(odometry, odometry and not measures(_ATTITUDE_TYPES))
+    return WorldFrame(odometry, odometry and not measures(_HEADING_TYPES))
 
 
 def is_odometry_frame(sensors: list[Sensor]) -> bool:
@@ -247,6 +253,19 @@ def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: 
     return so3.exp(np.array([0.0, 0.0, yaw])) @ level, sigma + gyro_bias_sigma * abs(t_mid - t_s)
 
 
+def _heading_from_field(level: np.ndarray, imu: ImuSamples, t_s: float, fields: list, gyro_bias_sigma):
+    """``(C, heading sigma)``: the level attitude turned about the vertical so that the first
+    magnetometer reading's direction, carried back to ``t_s`` through the gyro, points along the
+    world field's horizontal direction; or None without a magnetometer."""
+    if not fields:
+        return None
+    _, m = min(fields, key=lambda sm: float(sm[1].t[0]))
+    t_m = float(m.t[0])
+    C_m = level @ _attitude_change(imu, t_s, t_m, np.zeros(3))  # heading 0 at t_s
+    yaw = heading(m, C_m)
+    return so3.exp(np.array([0.0, 0.0, yaw])) @ level, MAGNETIC_HEADING_SIGMA + gyro_bias_sigma * abs(t_m - t_s)
+
+
 def _imu_at_rest(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> bool:
     """The window's mean angular rate below REST_RATE and its mean specific force within
     REST_FORCE of ``|g|`` (means: a noisy unit's single samples exceed both while at rest)."""
@@ -302,7 +321,11 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
         sigma[6:9] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[block]) + bias_sigma[1] * float(m.t[0] - t_s)
     else:
         level = _level(imu, t_s, gravity)
-        found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1], np.asarray(forward, dtype=float))
+        found = _heading_from_field(level, imu, t_s, _from_start(sensors, t_s, (MagneticFieldMeasurements,)),
+                                    bias_sigma[1])
+        if found is None:
+            found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1],
+                                         np.asarray(forward, dtype=float))
         if found is None and is_odometry_frame(sensors):
             found = level, ODOMETRY_FRAME_SIGMA  # the start's heading defines the frame
         if found is None:

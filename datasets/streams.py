@@ -165,6 +165,59 @@ class TwistStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
+class PressureStream(_Rows):
+    """Static pressures (``sensor_msgs/FluidPressure``, a barometer): ``pressure`` (N,) [Pa],
+    finite and > 0, with ``variance`` (N,) [Pa^2] (NaN where unknown; None when no row has one:
+    ROS's 0 is "unknown")."""
+
+    t: np.ndarray
+    pressure: np.ndarray
+    variance: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("PressureStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        pressure = check_array("PressureStream.pressure", self.pressure, (), n)
+        if np.any(pressure <= 0):
+            i = int(np.flatnonzero(pressure <= 0)[0])
+            raise InputError(f"PressureStream.pressure: row {i}: {float(pressure[i])!r} Pa; expected a pressure > 0")
+        object.__setattr__(self, "pressure", pressure)
+        if self.variance is not None:
+            variance = np.array(self.variance, dtype=float)
+            if variance.shape != (n,):
+                raise InputError(f"PressureStream.variance: expected shape ({n},), got {variance.shape}")
+            variance[~(variance > 0)] = np.nan  # 0 (ROS's "unknown"), negative or NaN
+            object.__setattr__(self, "variance", None if np.isnan(variance).all() else variance)
+        object.__setattr__(self, "t_ns", _stamps("PressureStream.t_ns", self.t_ns, n))
+
+
+@dataclass(frozen=True, eq=False)
+class MagneticFieldStream(_Rows):
+    """Magnetic fields measured in the sensor's frame (``sensor_msgs/MagneticField``, a
+    magnetometer): ``field`` (N, 3) [T], finite and not zero; ``cov`` (N, 3, 3) [T^2] in the
+    sensor frame (NaN rows unknown; None when no row has one)."""
+
+    t: np.ndarray
+    field: np.ndarray
+    cov: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("MagneticFieldStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        field = check_array("MagneticFieldStream.field", self.field, (3,), n)
+        zero = np.flatnonzero(np.linalg.norm(field, axis=1) == 0)
+        if zero.size:
+            raise InputError(f"MagneticFieldStream.field: row {int(zero[0])}: a zero field; expected a measured field")
+        object.__setattr__(self, "field", field)
+        object.__setattr__(self, "cov", _optional_covariances("MagneticFieldStream.cov", self.cov, n, 3))
+        object.__setattr__(self, "t_ns", _stamps("MagneticFieldStream.t_ns", self.t_ns, n))
+
+
+@dataclass(frozen=True, eq=False)
 class FixStream(_Rows):
     """GNSS fixes (``sensor_msgs/NavSatFix``): ``latitude``, ``longitude`` [deg] and
     ``altitude`` [m] above the WGS-84 ellipsoid, each (N,); ``status`` (N,) int, ``NavSatStatus``'s

@@ -266,6 +266,11 @@ def random_sensor_row(model, state, rng) -> np.ndarray:
         return sm.pack_orientation(Z[None], T)[0]
     if model is sm.POSE:
         return sm.pack_pose(z[None], Z[None], T)[0]
+    if model is sm.ALTITUDE:
+        return sm.pack_altitude(z[None, 2], T)[0]
+    if model is sm.MAGNETOMETER:  # a measured direction ~0.1 rad from the predicted one
+        m = rng.normal(size=3)
+        return sm.pack_magnetometer((so3.exp(rng.normal(size=3) * 0.1) @ R.T @ state.C.T @ m)[None], m, T)[0]
     if model is sm.ROLL_PITCH:  # the measured heading anything: the model must not care
         return sm.pack_orientation((so3.exp(np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi)])) @ Z)[None], T)[0]
     return sm.pack_velocity(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)) * 3, T)[0]
@@ -304,7 +309,7 @@ def _odometry_jacobians(rng):
 
 
 register("pose measurement H (61-63)", _pose_measurement_H)
-for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY", "ROLL_PITCH"):
+for _model in ("POSITION", "ORIENTATION", "POSE", "VELOCITY", "ROLL_PITCH", "ALTITUDE", "MAGNETOMETER"):
     register(f"{_model.lower()} sensor with extrinsic T_BS, H", _sensor_model_H(_model))
 register("odometry of a sensor with extrinsic T_BS", _odometry_jacobians)
 register("relative pose residual", _relative_pose_jacobians)

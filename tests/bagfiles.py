@@ -74,6 +74,14 @@ class Messages:
         twist = self.T["geometry_msgs/msg/TwistWithCovariance"](twist=self.twist(v, w), covariance=np.ravel(cov))
         return self.T["geometry_msgs/msg/TwistWithCovarianceStamped"](header=self.header(t_ns, "sensor"), twist=twist)
 
+    def fluid_pressure(self, t_ns, pressure, variance):
+        return self.T["sensor_msgs/msg/FluidPressure"](header=self.header(t_ns, "baro"), fluid_pressure=float(pressure),
+                                                       variance=float(variance))
+
+    def magnetic_field(self, t_ns, field, cov):
+        return self.T["sensor_msgs/msg/MagneticField"](header=self.header(t_ns, "mag"), magnetic_field=self.vector(field),
+                                                       magnetic_field_covariance=np.ravel(cov).astype(float))
+
     def pose_stamped(self, t_ns, p, q):
         return self.T["geometry_msgs/msg/PoseStamped"](header=self.header(t_ns), pose=self.pose(p, q))
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from bagfiles import FORMATS, Messages, bag_path, storage_file, write_bag
 
-from datasets.bags import read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
+from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
+                           read_bag_pressures, read_bag_twists)
 from datasets.errors import DataError
 from datasets.simulate import simulate
 from datasets.streams import seconds
@@ -35,6 +36,8 @@ def data():
         "lat": 47.0 + rng.normal(scale=1e-4, size=len(poses)), "lon": 8.0 + rng.normal(scale=1e-4, size=len(poses)),
         "alt": 400 + rng.normal(size=len(poses)), "fix_cov": np.array([_cov(rng, 3) for _ in poses]),
         "ahrs_cov": np.array([_cov(rng, 3) * 1e-4 for _ in poses]),
+        "pressure": 95_000 + rng.normal(size=len(poses)) * 10, "pressure_var": np.r_[0.0, np.full(len(poses) - 1, 4.0)],
+        "field": rng.normal(size=(len(poses), 3)) * 3e-5, "field_cov": np.array([_cov(rng, 3) * 1e-14 for _ in poses]),
     }
 
 
@@ -68,6 +71,10 @@ def _write(folder, fmt, data):
             data["pose_ns"], data["v"], data["w"])]),
         "/twist_cov": ("geometry_msgs/msg/TwistWithCovarianceStamped", [m.twist_with_covariance(*row) for row in zip(
             data["pose_ns"], data["v"], data["w"], data["twist_cov"])]),
+        "/pressure": ("sensor_msgs/msg/FluidPressure", [m.fluid_pressure(*row) for row in zip(
+            data["pose_ns"], data["pressure"], data["pressure_var"])]),
+        "/mag": ("sensor_msgs/msg/MagneticField", [m.magnetic_field(*row) for row in zip(
+            data["pose_ns"], data["field"], data["field_cov"])]),
         "/ahrs": ("sensor_msgs/msg/Imu", [m.imu(t, a, w, qq, c) for t, a, w, qq, c in zip(
             data["pose_ns"], data["acc"], data["gyro"], q, data["ahrs_cov"])]),
         "/empty": ("sensor_msgs/msg/Imu", []),
@@ -134,6 +141,17 @@ def test_attitudes_of_an_imu_topic_and_of_poses(bag, data):
     poses = read_bag_attitudes(bag[1], "/odom")
     assert np.abs(poses.C - data["C"]).max() < 1e-14 and np.array_equal(poses.cov, data["cov"][:, 3:, 3:])
     assert read_bag_attitudes(bag[1], "/pose").cov is None
+
+
+def test_pressures_and_magnetic_fields(bag, data):
+    """FluidPressure with its variance (0: unknown, NaN) and MagneticField with its covariance."""
+    pressures = read_bag_pressures(bag[1], "/pressure")
+    assert np.array_equal(pressures.t_ns, data["pose_ns"]) and np.array_equal(pressures.pressure, data["pressure"])
+    assert np.isnan(pressures.variance[0]) and np.array_equal(pressures.variance[1:], data["pressure_var"][1:])
+    fields = read_bag_magnetic_fields(bag[1], "/mag")
+    assert np.array_equal(fields.field, data["field"]) and np.array_equal(fields.cov, data["field_cov"])
+    with pytest.raises(DataError, match=r"topic /mag.*sensor_msgs/msg/MagneticField.*pressures: sensor_msgs/msg/Fluid"):
+        read_bag_pressures(bag[1], "/mag")
 
 
 def test_an_imu_without_orientation_is_refused_as_attitudes_in_one_line(bag):

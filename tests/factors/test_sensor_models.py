@@ -15,7 +15,7 @@ from factors.jacobians import check_factor
 from factors.keys import keyframe_keys
 from smoother.graph import insert_state
 
-MODELS = [sm.POSITION, sm.ORIENTATION, sm.POSE, sm.VELOCITY, sm.ROLL_PITCH]
+MODELS = [sm.POSITION, sm.ORIENTATION, sm.POSE, sm.VELOCITY, sm.ROLL_PITCH, sm.ALTITUDE, sm.MAGNETOMETER]
 
 
 def _state(rng, regime):
