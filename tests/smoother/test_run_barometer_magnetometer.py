@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 from bagfiles import Messages, write_bag
-from rigfiles import imu_table
+from rigfiles import imu_table, sensor_table
 
 from datasets.kinds import altitude
 from datasets.simulate import simulate
@@ -42,17 +42,12 @@ def test_magnetometer_gives_the_heading_and_barometer_the_height(tmp_path):
                                                    for k, d in zip(ns(mag.data.t), mag.data.direction)]),
     }
     bag = write_bag(tmp_path / "run", "sqlite3", topics)
-    sensors = "".join(f"""
-[[sensor]]
-name = "{name}"
-kind = "{kind}"
-source = "bag:{bag.name}"
-topic = "{topic}"
-{extra}""" for name, kind, topic, extra in (
-        ("wheel", "velocity", "/odom", ""), ("baro", "altitude", "/pressure", ""),
-        ("mag", "magnetometer", "/mag", "declination = 2.0\ninclination = 60.0\n")))
+    source = f"bag:{bag.name}"
+    sensors = (sensor_table("wheel", "velocity", source, 'topic = "/odom"')
+               + sensor_table("baro", "altitude", source, 'topic = "/pressure"')
+               + sensor_table("mag", "magnetometer", source, 'topic = "/mag"\ndeclination = 2.0\ninclination = 60.0'))
     rig = tmp_path / "rig.toml"
-    rig.write_text(imu_table(f"bag:{bag.name}", data.noise, "/imu") + sensors)
+    rig.write_text(imu_table(source, data.noise, "/imu") + sensors)
     out = tmp_path / "out"
     assert main(["run", "--rig", str(rig), "--estimator", "all", "--lag", "3", "--out", str(out), "--no-progress"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())

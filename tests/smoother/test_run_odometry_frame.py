@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 from bagfiles import Messages, write_bag
-from rigfiles import imu_table, toml_matrix
+from rigfiles import imu_table, sensor_table, toml_matrix
 
 from datasets.initialise import is_odometry_frame, self_initialised, world_frame
 from datasets.kinds import sensors_of
@@ -67,23 +67,11 @@ def recording(tmp_path_factory):
 
 
 def _rig(folder, bag, data, attitude: str | None = None, name: str = "rig") -> str:
-    text = imu_table(f"bag:{bag.name}", data.noise, "/imu/data") + f"""
-[[sensor]]
-name = "wheel"
-kind = "velocity"
-source = "bag:{bag.name}"
-topic = "/wheel/odom"
-T_BS = {toml_matrix(WHEEL)}
-"""
+    source = f"bag:{bag.name}"
+    text = imu_table(source, data.noise, "/imu/data") + sensor_table(
+        "wheel", "velocity", source, f'topic = "/wheel/odom"\nT_BS = {toml_matrix(WHEEL)}')
     if attitude is not None:
-        text += f"""
-[[sensor]]
-name = "ahrs"
-kind = "orientation"
-source = "bag:{bag.name}"
-{attitude}
-every = 3
-"""
+        text += sensor_table("ahrs", "orientation", source, f"{attitude}\nevery = 3")
     path = folder / f"{name}.toml"
     path.write_text(text)
     return str(path)
