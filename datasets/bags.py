@@ -8,15 +8,29 @@ standard ROS 2 Humble definitions.
 Messages and what they give (:mod:`datasets.streams` for the stream types and conventions):
 
 * ``sensor_msgs/msg/Imu`` -> :class:`datasets.types.ImuSamples`: ``linear_acceleration`` as
-  ``acc``, ``angular_velocity`` as ``gyro``; the orientation (and the covariances) are ignored.
+  ``acc``, ``angular_velocity`` as ``gyro`` (the covariances are ignored); and, read as
+  attitudes, :class:`AttitudeStream`: ``orientation`` (REP-145: the attitude of the message's
+  frame in an east-north-up world) with ``orientation_covariance`` (row major, a small rotation
+  about the world's fixed x, y, z axes: ``C_meas = exp(n) C``, the primer's left perturbation).
+  A first covariance element of -1 is REP-145's "this IMU gives no orientation": such a topic is
+  refused as attitudes.
 * ``nav_msgs/msg/Odometry`` -> :class:`PoseStream` (``pose.pose`` with ``pose.covariance``) or
   :class:`TwistStream` (``twist.twist`` with ``twist.covariance``, in the child frame).
+* ``geometry_msgs/msg/TwistWithCovarianceStamped`` and ``TwistStamped`` -> :class:`TwistStream`
+  (the twist in the header's frame, the sensor's: a GNSS receiver's velocity, a DVL; the latter
+  without covariance).
 * ``geometry_msgs/msg/PoseWithCovarianceStamped``, ``PoseStamped`` and ``TransformStamped`` ->
-  :class:`PoseStream` (the last two without covariance).
+  :class:`PoseStream` (the last two without covariance); every pose message also gives
+  attitudes (:class:`AttitudeStream`, the rotation block of its covariance).
 * ``sensor_msgs/msg/NavSatFix`` -> :class:`FixStream`. ``position_covariance`` is ENU, row major;
   ``position_covariance_type`` is read per message: 0 (unknown) makes that fix's covariance
   unknown (a NaN row), 2 (diagonal known) keeps the diagonal only, 1 (approximated) and 3 (known)
   keep the whole matrix. A stream mixing known and unknown rows keeps both, row by row.
+
+* ``sensor_msgs/msg/FluidPressure`` -> :class:`PressureStream` (``fluid_pressure`` [Pa] with
+  ``variance``, 0 meaning unknown).
+* ``sensor_msgs/msg/MagneticField`` -> :class:`MagneticFieldStream` (``magnetic_field`` [T] in
+  the header's frame with ``magnetic_field_covariance``, row major; all zero: unknown).
 
 Times are HEADER stamps, not the times the recorder received the messages. Messages are taken
 in the order the bag stores them (the recorder's receive times), never re-sorted, and their
@@ -44,7 +58,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from datasets.errors import DataError, check_increasing
-from datasets.streams import STATUS_NO_FIX, FixStream, PoseStream, TwistStream, known_covariances, seconds
+from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, MagneticFieldStream, PoseStream,
+                              PressureStream, TwistStream, known_covariances, seconds)
 from datasets.types import MIN_IMU_SAMPLES, MIN_IMU_SAMPLES_WHY, ImuSamples
 from factors import quaternion
 
@@ -54,6 +69,10 @@ POSE = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM = "geometry_msgs/msg/TransformStamped"
 NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+FLUID_PRESSURE = "sensor_msgs/msg/FluidPressure"
+MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
+TWIST = "geometry_msgs/msg/TwistStamped"
+TWIST_WITH_COVARIANCE = "geometry_msgs/msg/TwistWithCovarianceStamped"
 
 #: Accepted deviation of a message's quaternion norm from 1 before it is normalised.
 QUATERNION_TOLERANCE = 1e-3
@@ -76,6 +95,11 @@ def _transform_row(m) -> tuple:
     return (*_vector(m.transform.translation), q.w, q.x, q.y, q.z, *_NO_COVARIANCE_6)
 
 
+def _twist_row(twist, cov) -> tuple:
+    """``vx vy vz wx wy wz`` and the 36 covariance entries of a ``geometry_msgs/Twist``."""
+    return (*_vector(twist.linear), *_vector(twist.angular), *cov)
+
+
 def _fix_row(m) -> tuple:
     kind = m.position_covariance_type
     cov = np.asarray(m.position_covariance, dtype=float)
@@ -86,18 +110,42 @@ def _fix_row(m) -> tuple:
     return (m.latitude, m.longitude, m.altitude, m.status.status, *cov)
 
 
+def _imu_attitude_row(m) -> tuple:
+    q = m.orientation
+    return (q.w, q.x, q.y, q.z, *m.orientation_covariance)
+
+
+#: The pose messages and how one becomes a row (position, quaternion wxyz, 36 covariance entries).
+_POSE_ROWS = {
+    ODOMETRY: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
+    POSE_WITH_COVARIANCE: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
+    POSE: lambda m: _pose_row(m.pose, _NO_COVARIANCE_6),
+    TRANSFORM: _transform_row,
+}
+
+
+def _attitude_of_pose(row):
+    """A pose row made an attitude row: quaternion and the rotation block of the covariance."""
+    def attitude(m) -> tuple:
+        values = row(m)
+        cov = np.asarray(values[7:], dtype=float).reshape(6, 6)[3:, 3:]
+        return (*values[3:7], *cov.ravel())
+    return attitude
+
+
 #: Per stream: the message types that give it and how one message becomes a row of numbers.
 _ROWS = {
     "IMU samples": {IMU: lambda m: (*_vector(m.linear_acceleration), *_vector(m.angular_velocity))},
-    "poses": {
-        ODOMETRY: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
-        POSE_WITH_COVARIANCE: lambda m: _pose_row(m.pose.pose, m.pose.covariance),
-        POSE: lambda m: _pose_row(m.pose, _NO_COVARIANCE_6),
-        TRANSFORM: _transform_row,
+    "poses": _POSE_ROWS,
+    "attitudes": {IMU: _imu_attitude_row, **{k: _attitude_of_pose(row) for k, row in _POSE_ROWS.items()}},
+    "twists": {
+        ODOMETRY: lambda m: _twist_row(m.twist.twist, m.twist.covariance),
+        TWIST_WITH_COVARIANCE: lambda m: _twist_row(m.twist.twist, m.twist.covariance),
+        TWIST: lambda m: _twist_row(m.twist, _NO_COVARIANCE_6),
     },
-    "twists": {ODOMETRY: lambda m: (*_vector(m.twist.twist.linear), *_vector(m.twist.twist.angular),
-                                    *m.twist.covariance)},
     "GNSS fixes": {NAV_SAT_FIX: _fix_row},
+    "pressures": {FLUID_PRESSURE: lambda m: (m.fluid_pressure, m.variance)},
+    "magnetic fields": {MAGNETIC_FIELD: lambda m: (*_vector(m.magnetic_field), *m.magnetic_field_covariance)},
 }
 
 
@@ -221,8 +269,26 @@ def read_bag_poses(path, topic: str) -> PoseStream:
     return PoseStream(seconds(t_ns), rows[:, 0:3], C, cov, t_ns)
 
 
+def read_bag_attitudes(path, topic: str) -> AttitudeStream:
+    """Attitudes of ``topic``: the ``orientation`` of ``sensor_msgs/msg/Imu`` messages, or the
+    attitude of pose messages (module docstring). An Imu message whose orientation covariance
+    starts with -1 (REP-145: no orientation) makes the topic a :class:`DataError`."""
+    t_ns, rows = _read(path, topic, "attitudes")
+    none = np.flatnonzero(rows[:, 4] == -1.0)
+    if none.size:
+        raise DataError(path, None, f"topic {topic}",
+                        f"{none.size} of {len(t_ns)} messages without an orientation (orientation_covariance[0] = -1, "
+                        f"REP-145), the first at stamp {int(t_ns[none[0]])} ns",
+                        "an IMU that estimates its orientation (an AHRS), or another topic for this orientation sensor",
+                        whole=True)
+    _finite(path, topic, t_ns, rows[:, :4], "orientation")
+    C = _rotations(path, topic, t_ns, rows[:, 0:4])
+    return AttitudeStream(seconds(t_ns), C, known_covariances(rows[:, 4:].reshape(-1, 3, 3)), t_ns)
+
+
 def read_bag_twists(path, topic: str) -> TwistStream:
-    """Twists (child frame) of the ``nav_msgs/msg/Odometry`` messages of ``topic``."""
+    """Twists of ``topic``: ``nav_msgs/msg/Odometry`` (child frame), ``TwistWithCovarianceStamped``
+    or ``TwistStamped``."""
     t_ns, rows = _read(path, topic, "twists")
     _finite(path, topic, t_ns, rows[:, :6], "velocity")
     cov = known_covariances(rows[:, 6:].reshape(-1, 6, 6))
@@ -241,3 +307,25 @@ def read_bag_fixes(path, topic: str) -> FixStream:
         return FixStream(seconds(t_ns), rows[:, 0], rows[:, 1], rows[:, 2], status, cov, t_ns)
     except ValueError as error:
         raise DataError(path, None, f"topic {topic}", str(error), "valid GNSS fixes") from None
+
+
+def read_bag_pressures(path, topic: str) -> PressureStream:
+    """``sensor_msgs/msg/FluidPressure`` messages of ``topic`` (a barometer)."""
+    t_ns, rows = _read(path, topic, "pressures")
+    _finite(path, topic, t_ns, rows[:, :1], "pressure")
+    bad = np.flatnonzero(rows[:, 0] <= 0)
+    if bad.size:
+        raise DataError(path, None, f"topic {topic}", f"a pressure of {rows[bad[0], 0]!r} Pa at stamp "
+                        f"{int(t_ns[bad[0]])} ns", "pressures > 0 in pascals", whole=True)
+    return PressureStream(seconds(t_ns), rows[:, 0], rows[:, 1], t_ns)
+
+
+def read_bag_magnetic_fields(path, topic: str) -> MagneticFieldStream:
+    """``sensor_msgs/msg/MagneticField`` messages of ``topic`` (a magnetometer)."""
+    t_ns, rows = _read(path, topic, "magnetic fields")
+    _finite(path, topic, t_ns, rows[:, :3], "magnetic field")
+    zero = np.flatnonzero(np.linalg.norm(rows[:, :3], axis=1) == 0)
+    if zero.size:
+        raise DataError(path, None, f"topic {topic}", f"a zero field at stamp {int(t_ns[zero[0]])} ns",
+                        "measured fields (not all zero)", whole=True)
+    return MagneticFieldStream(seconds(t_ns), rows[:, :3], known_covariances(rows[:, 3:].reshape(-1, 3, 3)), t_ns)

@@ -23,6 +23,9 @@ velocities    ``t,vx,vy,vz``              ``wx,wy,wz`` [rad/s]; ``sigma_vx,sigma
                                           (and ``sigma_wx,sigma_wy,sigma_wz`` with ``wx..``)
 GNSS fixes    ``t,latitude,longitude,     ``status`` (integer, NavSatStatus: -1 no fix, 0 fix;
               altitude``                  default 0); ``sigma_e,sigma_n,sigma_u`` [m]
+pressures     ``t,pressure`` [Pa]         ``sigma_pressure`` [Pa]
+magnetic      ``t,mx,my,mz`` [T]          ``sigma_mx,sigma_my,sigma_mz`` [T]
+fields
 ============  ==========================  ===============================================
 
 Poses: ``(x, y, z)`` the position [m] of the sensor frame in its world frame, ``(qw, qx, qy, qz)``
@@ -42,7 +45,7 @@ import numpy as np
 
 from datasets import euroc
 from datasets.errors import DataError, check_increasing, check_unit_quaternions, read_lines, read_table
-from datasets.streams import FixStream, PoseStream, TwistStream, seconds
+from datasets.streams import FixStream, MagneticFieldStream, PoseStream, PressureStream, TwistStream, seconds
 from datasets.types import ImuSamples
 from factors import quaternion
 
@@ -57,6 +60,10 @@ VELOCITY_SIGMAS = ["sigma_vx", "sigma_vy", "sigma_vz"]
 ANGULAR_SIGMAS = ["sigma_wx", "sigma_wy", "sigma_wz"]
 FIX_COLUMNS = ["t", "latitude", "longitude", "altitude"]
 FIX_SIGMAS = ["sigma_e", "sigma_n", "sigma_u"]
+PRESSURE_COLUMNS = ["t", "pressure"]
+PRESSURE_SIGMAS = ["sigma_pressure"]
+MAGNETIC_COLUMNS = ["t", "mx", "my", "mz"]
+MAGNETIC_SIGMAS = ["sigma_mx", "sigma_my", "sigma_mz"]
 
 
 def _header(path: Path, lines: list[str]) -> tuple[int, list[str]]:
@@ -162,3 +169,25 @@ def read_csv_fixes(path) -> FixStream:
             raise DataError(path, int(c["lines"][i]), name, repr(float(c[name][i])), f"degrees within +-{limit:g}")
     status = c.get("status", np.zeros(len(c["t"]))).astype(np.int64)
     return FixStream(c["t"], c["latitude"], c["longitude"], c["altitude"], status, _diagonal(c, FIX_SIGMAS))
+
+
+def read_csv_pressures(path) -> PressureStream:
+    """Pressures of a generic pressure file (a barometer)."""
+    path = Path(path)
+    c = _generic(path, PRESSURE_COLUMNS, [PRESSURE_SIGMAS], "pressure lines (" + ",".join(PRESSURE_COLUMNS) + ")")
+    bad = np.flatnonzero(c["pressure"] <= 0)
+    if bad.size:
+        raise DataError(path, int(c["lines"][bad[0]]), "pressure", repr(float(c["pressure"][bad[0]])),
+                        "a pressure > 0 in pascals")
+    return PressureStream(c["t"], c["pressure"], c["sigma_pressure"] ** 2 if "sigma_pressure" in c else None)
+
+
+def read_csv_magnetic_fields(path) -> MagneticFieldStream:
+    """Magnetic fields of a generic magnetometer file."""
+    path = Path(path)
+    c = _generic(path, MAGNETIC_COLUMNS, [MAGNETIC_SIGMAS], "magnetic field lines (" + ",".join(MAGNETIC_COLUMNS) + ")")
+    field = np.stack([c[name] for name in ("mx", "my", "mz")], axis=1)
+    zero = np.flatnonzero(np.linalg.norm(field, axis=1) == 0)
+    if zero.size:
+        raise DataError(path, int(c["lines"][zero[0]]), "mx,my,mz", "a zero field", "a measured field (not all zero)")
+    return MagneticFieldStream(c["t"], field, _diagonal(c, MAGNETIC_SIGMAS))

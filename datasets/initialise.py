@@ -2,7 +2,8 @@
 
 The estimate starts at ``t_s``, the first measurement at or after the first IMU sample that fixes a
 position (a pose, position or GNSS sensor's; without any, the first IMU sample, with the world
-origin there). Only measurements at or after ``t_s`` are used:
+origin there: an odometry-frame run, :func:`world_frame`). Only measurements at or after ``t_s``
+are used:
 
 * **attitude**: from the pose or orientation measurement nearest to ``t_s`` (``C_IB = Z R_BS^T``,
   carried to ``t_s`` through the gyro); otherwise roll and pitch from the mean specific force over
@@ -13,8 +14,13 @@ origin there). Only measurements at or after ``t_s`` are used:
   sensor's measurements then, signed: reversing counts; without one the vehicle's forward
   direction in the IMU frame, ``forward``, by default the IMU's x axis: the vehicle is assumed to
   drive forwards), carried back to ``t_s`` through the gyro. Its sigma is that of the baseline's
-  direction plus the gyro-bias drift over the carry;
-* **position**: the fix at ``t_s`` minus its lever arm, ``r = z - C p_BS``;
+  direction plus the gyro-bias drift over the carry. Without any position sensor (and so no
+  course) the heading is 0 at ``t_s`` by definition of the odometry frame, with the sigma
+  :data:`ODOMETRY_FRAME_SIGMA`. A magnetometer gives the heading before the course does: the first
+  reading's direction against the world field's, sigma :data:`MAGNETIC_HEADING_SIGMA`;
+* **position**: the fix at ``t_s`` minus its lever arm, ``r = z - C p_BS``; without a position
+  sensor the world origin, with the sigma :data:`ODOMETRY_FRAME_SIGMA` (the start defines the
+  frame; the estimators' covariances grow from there);
 * **velocity**: from the velocity sensor's measurement nearest ``t_s`` (within
   :data:`VELOCITY_WINDOW_S`) when there is one; else zero when the IMU is at rest (mean angular
   rate below :data:`REST_RATE`, specific force within :data:`REST_FORCE` of ``|g|``) and the fixes
@@ -29,8 +35,11 @@ missing.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from datasets.kinds.magnetometer import MagneticFieldMeasurements, heading
 from datasets.types import (ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements, Sensor,
                             VelocityMeasurements)
 from factors import preintegration, so3
@@ -57,14 +66,67 @@ REST_VELOCITY_SIGMA = 0.05
 UNKNOWN_VELOCITY_SIGMA = 10.0
 #: The prior's sigma of parts taken from a measurement the estimators apply again, in its sigmas.
 PRIOR_INFLATION = 10.0
+#: 1-sigma of what an odometry-frame run's start defines rather than measures: the position [m]
+#: (the world origin) and, without an absolute attitude, the heading [rad] (0).
+ODOMETRY_FRAME_SIGMA = 1e-3
 
-#: What fixes a position (any kind measuring these data types) and what an attitude.
+#: What fixes a position (any kind measuring these data types), what an attitude and what a heading.
 _POSITION_TYPES = (PoseMeasurements, PositionMeasurements)
 _ATTITUDE_TYPES = (PoseMeasurements, OrientationMeasurements)
+_HEADING_TYPES = _ATTITUDE_TYPES + (MagneticFieldMeasurements,)
+#: 1-sigma [rad] of a heading from a magnetometer's first reading (its direction's noise, the
+#: level's error carried into the heading and the local disturbances of the field together).
+MAGNETIC_HEADING_SIGMA = np.deg2rad(10.0)
 
 
 class InitialisationError(InputError):
     """The data cannot fix the initial state; the message says what is missing."""
+
+
+@dataclass(frozen=True)
+class WorldFrame:
+    """The world frame of a run's estimates. ``odometry``: no sensor measures an absolute position
+    (no pose, position or GNSS sensor), so the world origin is the start (REP-105's ``odom``
+    frame; with one, ``map``); ``relative_heading``: no sensor measures an absolute heading either
+    (no pose, orientation or magnetometer sensor; a ``roll_pitch`` sensor gives none), so the yaw
+    is 0 at the start and relative to it."""
+
+    odometry: bool
+    relative_heading: bool
+
+    @property
+    def frame_id(self) -> str:
+        """REP-105's name of the frame: ``odom`` or ``map``."""
+        return "odom" if self.odometry else "map"
+
+    def describe(self) -> dict:
+        """What ``metrics.json`` records (``_run.world_frame``)."""
+        return {"frame_id": self.frame_id, "position": "relative to the start" if self.odometry else "absolute",
+                "yaw": "relative to the start" if self.relative_heading else "absolute"}
+
+    def note(self) -> str | None:
+        """The line a run's table closes with in the odometry frame, None otherwise."""
+        if not self.odometry:
+            return None
+        what = "position and yaw are" if self.relative_heading else "position is"
+        return (f"odometry frame: no absolute position sensor; {what} relative to the start "
+                "(metrics.json: _run.world_frame)")
+
+
+def world_frame(sensors: list[Sensor]) -> WorldFrame:
+    """The :class:`WorldFrame` of a run on ``sensors`` (:func:`datasets.kinds.sensors_of` of a
+    dataset)."""
+    def measures(types) -> bool:
+        return any(isinstance(s.data, types) and len(s.data) for s in sensors)
+
+    odometry = not measures(_POSITION_TYPES)
+    return WorldFrame(odometry, odometry and not measures(_HEADING_TYPES))
+
+
+def is_odometry_frame(sensors: list[Sensor]) -> bool:
+    """Whether a run on ``sensors`` is in the odometry frame (no absolute position sensor: the
+    world origin is the start; :class:`WorldFrame`)."""
+    return world_frame(sensors).odometry
 
 
 def start_time(imu: ImuSamples, sensors: list[Sensor]) -> float:
@@ -191,6 +253,19 @@ def _heading_from_course(level: np.ndarray, imu: ImuSamples, t_s: float, fixes: 
     return so3.exp(np.array([0.0, 0.0, yaw])) @ level, sigma + gyro_bias_sigma * abs(t_mid - t_s)
 
 
+def _heading_from_field(level: np.ndarray, imu: ImuSamples, t_s: float, fields: list, gyro_bias_sigma):
+    """``(C, heading sigma)``: the level attitude turned about the vertical so that the first
+    magnetometer reading's direction, carried back to ``t_s`` through the gyro, points along the
+    world field's horizontal direction; or None without a magnetometer."""
+    if not fields:
+        return None
+    _, m = min(fields, key=lambda sm: float(sm[1].t[0]))
+    t_m = float(m.t[0])
+    C_m = level @ _attitude_change(imu, t_s, t_m, np.zeros(3))  # heading 0 at t_s
+    yaw = heading(m, C_m)
+    return so3.exp(np.array([0.0, 0.0, yaw])) @ level, MAGNETIC_HEADING_SIGMA + gyro_bias_sigma * abs(t_m - t_s)
+
+
 def _imu_at_rest(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> bool:
     """The window's mean angular rate below REST_RATE and its mean specific force within
     REST_FORCE of ``|g|`` (means: a noisy unit's single samples exceed both while at rest)."""
@@ -246,7 +321,13 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
         sigma[6:9] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[block]) + bias_sigma[1] * float(m.t[0] - t_s)
     else:
         level = _level(imu, t_s, gravity)
-        found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1], np.asarray(forward, dtype=float))
+        found = _heading_from_field(level, imu, t_s, _from_start(sensors, t_s, (MagneticFieldMeasurements,)),
+                                    bias_sigma[1])
+        if found is None:
+            found = _heading_from_course(level, imu, t_s, fixes, velocity, bias_sigma[1],
+                                         np.asarray(forward, dtype=float))
+        if found is None and is_odometry_frame(sensors):
+            found = level, ODOMETRY_FRAME_SIGMA  # the start's heading defines the frame
         if found is None:
             raise InitialisationError(
                 "cannot fix the initial heading: no pose or orientation sensor, and no position/GNSS fixes "
@@ -258,7 +339,7 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
 
     # position
     r = np.zeros(3)
-    sigma[0:3] = 1e-3  # without fixes the world origin is the start
+    sigma[0:3] = ODOMETRY_FRAME_SIGMA  # without fixes the world origin is the start
     if fixes:
         s, m = min(fixes, key=lambda sm: float(sm[1].t[0]))
         _, p = extrinsic_parts(m.T_BS)

@@ -26,6 +26,7 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     [[sensor]]                      # any number of sensors, each a [[sensor]] table
     name = "gnss"                   # unique
     kind = "gnss"                   # pose | position | gnss | orientation | velocity | odometry
+                                    # | altitude | magnetometer
     source = "bag:run.bag"          # bag:..., csv:FILE or tum:FILE (poses only)
     topic = "/fix"                  # bags only (and required for them)
     T_BS = [[1,0,0,0],[0,1,0,0],[0,0,1,0.5],[0,0,0,1]]   # optional, default identity: the sensor
@@ -37,6 +38,10 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
                                     # covariance, one number (every axis) or a list (per axis)
     every = 1                       # optional: use every k-th measurement, hold the rest out
     robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
+    roll_pitch_only = false         # optional, orientation sensors only: use roll and pitch, not the
+                                    # heading (an AHRS without a magnetometer; the kind roll_pitch)
+    declination = 2.5               # magnetometers only, and required for them: the world field's
+    inclination = 63.0              # declination (east of north) and inclination (down), degrees
 
 Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
 ``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
@@ -51,7 +56,9 @@ without a topic or a file source with one, unknown schemes and kinds, a ``T_BS``
 4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;
 within it the rotation is taken to the nearest one), both ``T_BS``
 and ``camchain``, duplicate sensor names, ``sigma`` <= 0, ``every`` < 1, a bad ``robust`` spec,
-a datum off the globe.
+a datum off the globe, ``roll_pitch_only`` that is not a boolean or on a sensor of another kind
+than ``orientation``, a magnetometer without ``declination`` (within +-180 degrees) and
+``inclination`` (within +-90) or either on another kind.
 """
 from __future__ import annotations
 
@@ -93,7 +100,7 @@ T_BS_TOLERANCE = 1e-4
 IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
-               "robust")
+               "robust", "roll_pitch_only", "declination", "inclination")
 
 
 class RigError(InputError):
@@ -124,7 +131,8 @@ class SensorConfig:
     (a spec with an absolute path), ``topic`` or None, ``T_BS`` (4, 4) (``p_B = T_BS p_S``),
     ``time_offset`` [s] added to its stamps, ``sigma`` None or standard deviations of shape (d,)
     (d = 1: the same for every axis), ``every`` (use every k-th measurement) and ``robust``,
-    None or a kernel spec ``(name, threshold or None)`` of :func:`datasets.robust.robust_spec`."""
+    None or a kernel spec ``(name, threshold or None)`` of :func:`datasets.robust.robust_spec`;
+    for a magnetometer the world field's ``declination`` and ``inclination`` [deg] (else None)."""
 
     name: str
     kind: str
@@ -135,6 +143,8 @@ class SensorConfig:
     sigma: np.ndarray | None
     every: int
     robust: tuple | None
+    declination: float | None = None
+    inclination: float | None = None
 
 
 @dataclass(frozen=True)
@@ -315,6 +325,7 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
         close = difflib.get_close_matches(kind, KIND_NAMES, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise t.error("kind", f"unknown kind {kind!r}{hint}; expected one of {', '.join(KIND_NAMES)}")
+    kind = _roll_pitch_only(t, kind)
     source, topic = t.source(None)
     every = t.get("every", (int,), "an integer >= 1", default=1)
     if every < 1:
@@ -324,7 +335,42 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     except ValueError as error:
         raise t.error("robust", str(error)) from None
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
-                        time_offset=t.number("time_offset", default=0.0), sigma=_sigma(t), every=every, robust=robust)
+                        time_offset=t.number("time_offset", default=0.0), sigma=_sigma(t), every=every, robust=robust,
+                        **_field_angles(t, kind))
+
+
+def roll_pitch_kind(kind: str, roll_pitch_only: bool, error) -> str:
+    """The kind of a sensor declared ``kind`` with ``roll_pitch_only``: ``roll_pitch`` for an
+    ``orientation`` sensor that uses only its roll and pitch. ``roll_pitch_only`` on another kind
+    raises ``error(message)`` (an exception naming the key or field)."""
+    if not roll_pitch_only:
+        return kind
+    if kind != "orientation":
+        raise error(f"expected only on an orientation sensor; this one is of kind {kind!r}")
+    return "roll_pitch"
+
+
+def _field_angles(t: _Table, kind: str) -> dict:
+    """A magnetometer's ``declination`` and ``inclination`` (required, degrees); none for others."""
+    if kind != "magnetometer":
+        for key in ("declination", "inclination"):
+            if key in t.table:
+                raise t.error(key, f"expected only on a magnetometer; this sensor is of kind {kind!r}")
+        return {}
+    angles = {}
+    for key, limit, what in (("declination", 180.0, "east of true north"), ("inclination", 90.0, "below the horizontal")):
+        value = t.number(key)
+        if value is None:
+            raise t.error(key, f"missing; a magnetometer needs the world field's {key} in degrees ({what})")
+        if abs(value) > limit:
+            raise t.error(key, f"expected degrees within +-{limit:g} ({what}), got {value!r}")
+        angles[key] = value
+    return angles
+
+
+def _roll_pitch_only(t: _Table, kind: str) -> str:
+    value = t.get("roll_pitch_only", (bool,), "true or false", default=False)
+    return roll_pitch_kind(kind, value, lambda message: t.error("roll_pitch_only", message))
 
 
 def load_rig(path) -> Rig:

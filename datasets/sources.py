@@ -9,8 +9,9 @@ absolute; ``~`` expands to the home folder:
   or the generic layout of the stream asked for.
 * ``tum:PATH``: a TUM trajectory (:mod:`datasets.tum`), for poses only.
 
-What each scheme gives: IMU samples from ``bag`` and ``csv``; poses from all three; velocities
-(twists) and GNSS fixes from ``bag`` and ``csv``. Asking a scheme for a stream it cannot give, an
+What each scheme gives: IMU samples from ``bag`` and ``csv``; poses and attitudes from all three;
+velocities (twists), GNSS fixes, pressures and magnetic fields from ``bag`` and ``csv``. Asking a
+scheme for a stream it cannot give, an
 unknown scheme, a bag without a topic or a file with one is one ``ValueError`` naming the spec;
 errors in the data are :class:`datasets.errors.DataError` naming the file (and topic or line).
 """
@@ -18,9 +19,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from datasets.bags import read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
-from datasets.csv_sources import read_csv_fixes, read_csv_imu, read_csv_poses, read_csv_twists
-from datasets.streams import FixStream, PoseStream, TwistStream
+from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
+                           read_bag_pressures, read_bag_twists)
+from datasets.csv_sources import (read_csv_fixes, read_csv_imu, read_csv_magnetic_fields, read_csv_poses,
+                                  read_csv_pressures, read_csv_twists)
+from datasets.streams import AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PressureStream, TwistStream
 from datasets.tum import read_tum
 from datasets.types import ImuSamples
 from factors.errors import InputError
@@ -31,12 +34,19 @@ def _tum_poses(path) -> PoseStream:
     return PoseStream(trajectory.t, trajectory.position, trajectory.C)
 
 
+def _attitudes_of(read_poses):
+    return lambda path: AttitudeStream.of_poses(read_poses(path))
+
+
 #: For each stream, the schemes that give it and their readers (each takes a path, bags a topic too).
 READERS = {
     "IMU samples": {"bag": read_bag_imu, "csv": read_csv_imu},
     "poses": {"bag": read_bag_poses, "csv": read_csv_poses, "tum": _tum_poses},
+    "attitudes": {"bag": read_bag_attitudes, "csv": _attitudes_of(read_csv_poses), "tum": _attitudes_of(_tum_poses)},
     "velocities": {"bag": read_bag_twists, "csv": read_csv_twists},
     "GNSS fixes": {"bag": read_bag_fixes, "csv": read_csv_fixes},
+    "pressures": {"bag": read_bag_pressures, "csv": read_csv_pressures},
+    "magnetic fields": {"bag": read_bag_magnetic_fields, "csv": read_csv_magnetic_fields},
 }
 SCHEMES = ("bag", "csv", "tum")
 
@@ -79,11 +89,28 @@ def read_poses(spec: str, topic: str | None = None, base_dir=".") -> PoseStream:
     return _read("poses", spec, topic, base_dir)
 
 
+def read_attitudes(spec: str, topic: str | None = None, base_dir=".") -> AttitudeStream:
+    """Attitudes (bag: ``sensor_msgs/Imu``'s orientation, or any pose message's; the attitudes of
+    a pose CSV or TUM file)."""
+    return _read("attitudes", spec, topic, base_dir)
+
+
 def read_twists(spec: str, topic: str | None = None, base_dir=".") -> TwistStream:
-    """Velocities in the sensor frame (bag: Odometry's twist; CSV)."""
+    """Velocities in the sensor frame (bag: Odometry's twist, TwistStamped,
+    TwistWithCovarianceStamped; CSV)."""
     return _read("velocities", spec, topic, base_dir)
 
 
 def read_fixes(spec: str, topic: str | None = None, base_dir=".") -> FixStream:
     """GNSS fixes (bag: NavSatFix; CSV)."""
     return _read("GNSS fixes", spec, topic, base_dir)
+
+
+def read_pressures(spec: str, topic: str | None = None, base_dir=".") -> PressureStream:
+    """Static pressures of a barometer (bag: FluidPressure; CSV)."""
+    return _read("pressures", spec, topic, base_dir)
+
+
+def read_magnetic_fields(spec: str, topic: str | None = None, base_dir=".") -> MagneticFieldStream:
+    """Magnetic fields in the sensor frame (bag: MagneticField; CSV)."""
+    return _read("magnetic fields", spec, topic, base_dir)

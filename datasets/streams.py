@@ -110,6 +110,33 @@ class PoseStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
+class AttitudeStream(_Rows):
+    """Attitudes of a frame in the world: ``C`` (N, 3, 3) the frame-to-world rotation, as the
+    attitude part of a :class:`PoseStream` or the ``orientation`` of ``sensor_msgs/Imu`` (REP-145:
+    the attitude of the message's frame in an east-north-up world). ``cov`` (N, 3, 3) [rad^2] is
+    over a small rotation about the world's fixed ``x, y, z`` axes, ``C_meas = exp(n) C`` (the
+    primer's left perturbation; ``orientation_covariance``'s "row major about x, y, z axes")."""
+
+    t: np.ndarray
+    C: np.ndarray
+    cov: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("AttitudeStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "C", check_rotations("AttitudeStream.C", self.C, n))
+        object.__setattr__(self, "cov", _optional_covariances("AttitudeStream.cov", self.cov, n, 3))
+        object.__setattr__(self, "t_ns", _stamps("AttitudeStream.t_ns", self.t_ns, n))
+
+    @classmethod
+    def of_poses(cls, poses: PoseStream) -> "AttitudeStream":
+        """The attitudes of ``poses`` with the rotation block of their covariances."""
+        return cls(poses.t, poses.C, None if poses.cov is None else poses.cov[:, 3:, 3:], poses.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class TwistStream(_Rows):
     """Velocities of a frame expressed in that frame (``nav_msgs/Odometry``'s twist is in the
     child frame): ``linear`` (N, 3) [m/s] and ``angular`` (N, 3) [rad/s], or None where the
@@ -135,6 +162,59 @@ class TwistStream(_Rows):
         dim = 3 if self.angular is None else 6
         object.__setattr__(self, "cov", _optional_covariances("TwistStream.cov", self.cov, n, dim))
         object.__setattr__(self, "t_ns", _stamps("TwistStream.t_ns", self.t_ns, n))
+
+
+@dataclass(frozen=True, eq=False)
+class PressureStream(_Rows):
+    """Static pressures (``sensor_msgs/FluidPressure``, a barometer): ``pressure`` (N,) [Pa],
+    finite and > 0, with ``variance`` (N,) [Pa^2] (NaN where unknown; None when no row has one:
+    ROS's 0 is "unknown")."""
+
+    t: np.ndarray
+    pressure: np.ndarray
+    variance: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("PressureStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        pressure = check_array("PressureStream.pressure", self.pressure, (), n)
+        if np.any(pressure <= 0):
+            i = int(np.flatnonzero(pressure <= 0)[0])
+            raise InputError(f"PressureStream.pressure: row {i}: {float(pressure[i])!r} Pa; expected a pressure > 0")
+        object.__setattr__(self, "pressure", pressure)
+        if self.variance is not None:
+            variance = np.array(self.variance, dtype=float)
+            if variance.shape != (n,):
+                raise InputError(f"PressureStream.variance: expected shape ({n},), got {variance.shape}")
+            variance[~(variance > 0)] = np.nan  # 0 (ROS's "unknown"), negative or NaN
+            object.__setattr__(self, "variance", None if np.isnan(variance).all() else variance)
+        object.__setattr__(self, "t_ns", _stamps("PressureStream.t_ns", self.t_ns, n))
+
+
+@dataclass(frozen=True, eq=False)
+class MagneticFieldStream(_Rows):
+    """Magnetic fields measured in the sensor's frame (``sensor_msgs/MagneticField``, a
+    magnetometer): ``field`` (N, 3) [T], finite and not zero; ``cov`` (N, 3, 3) [T^2] in the
+    sensor frame (NaN rows unknown; None when no row has one)."""
+
+    t: np.ndarray
+    field: np.ndarray
+    cov: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("MagneticFieldStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        field = check_array("MagneticFieldStream.field", self.field, (3,), n)
+        zero = np.flatnonzero(np.linalg.norm(field, axis=1) == 0)
+        if zero.size:
+            raise InputError(f"MagneticFieldStream.field: row {int(zero[0])}: a zero field; expected a measured field")
+        object.__setattr__(self, "field", field)
+        object.__setattr__(self, "cov", _optional_covariances("MagneticFieldStream.cov", self.cov, n, 3))
+        object.__setattr__(self, "t_ns", _stamps("MagneticFieldStream.t_ns", self.t_ns, n))
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,6 +12,10 @@ position       ``r + C p_BS`` (a GNSS antenna)              ``h - z``
 orientation    ``C R_BS``                                   ``log(C R_BS Z^T)``
 pose           both of the above                            ``(r + C p_BS - z, log(C R_BS Z^T))``
 velocity       ``R_BS^T (v + (w - b_w) x p_BS)``            ``h - z``
+roll_pitch     ``u = R_BS^T C^T e_z`` (up, in ``S``)        ``((Z u)_y, -(Z u)_x)``
+altitude       ``e_z^T (r + C p_BS)`` (a barometer)         ``h - z``
+magnetometer   ``u = R_BS^T C^T m`` (the field's direction  ``B_z^T u`` (``B_z``: a basis of the
+               ``m`` in ``S``)                              plane normal to the measured ``z``)
 =============  ===========================================  ====================================
 
 ``w`` is the gyro sample at the measurement time: the sensor frame moves with the body, so its
@@ -101,7 +105,7 @@ def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
 
 
 # Row layouts (flat float64): position (z 3, p 3); orientation (Z 9, R 9); pose (z 3, Z 9, R 9, p 3);
-# velocity (z 3, w 3, R 9, p 3).
+# velocity (z 3, w 3, R 9, p 3); roll_pitch (Z 9, R 9); altitude (z 1, p 3); magnetometer (z 3, B 6, m 3, R 9).
 
 
 @njit(cache=True)
@@ -158,6 +162,89 @@ def velocity_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
             H[a, 12 + b] = R[0, a] * P[0, b] + R[1, a] * P[1, b] + R[2, a] * P[2, b]
 
 
+@njit(cache=True)
+def roll_pitch_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """The attitude error without its heading: the tilt between the measured and the predicted
+    vertical. ``row = (Z, R_BS)`` as :func:`orientation_kernel`'s; ``e (2)``, ``H (2, 15)``.
+
+    With ``M = Z R_BS^T C^T`` (``= E^T`` for the attitude error ``E = C R_BS Z^T``), ``M e_z = Z u``
+    is the predicted up direction of the sensor frame, ``u = R_BS^T C^T e_z``, carried into the
+    world by the MEASURED attitude; it is ``e_z`` when the two agree in roll and pitch, whatever
+    their headings. The residual is its horizontal part turned by 90 degrees,
+    ``e = ((M e_z)_y, -(M e_z)_x)``:
+
+    * heading-free: a turn of the state about the world vertical, ``C <- Rz C``, leaves ``u``
+      (``Rz^T e_z = e_z``) and so ``e`` exactly unchanged; ``H``'s column of ``dphi_z`` is 0;
+    * small errors: ``E = exp(eps)`` gives ``M e_z = e_z - eps x e_z``, i.e. ``e = (eps_x, eps_y)``
+      to first order, the tilt components of ``log(C R_BS Z^T)``; with the measurement noise
+      ``Z = exp(n) C R_BS`` (world axes) ``e = -(n_x, n_y)``: its covariance is the upper-left
+      2x2 block of the attitude covariance, and the noise about the vertical does not enter;
+    * defined at every attitude, upside-down and any heading included: ``e`` is a smooth function
+      of ``C`` (no angle is extracted); ``|e| = sin`` of the angle between the two verticals, 0
+      only when they agree or are opposite (a tilt error of 180 degrees, no AHRS's output);
+    * Jacobian: ``d(C^T a)/dphi = C^T a^x`` (the coordinate map of the inverse, primer eqs. 27,
+      28: ``(exp(dphi) C)^T a ~ C^T (a - dphi x a) = C^T a + C^T a^x dphi``), so
+      ``d(M e_z)/dphi = M e_z^x``, whose columns are ``(M[:, 1], -M[:, 0], 0)``.
+    """
+    H[:, :] = 0.0
+    Z = row[0:9].reshape((3, 3))
+    R = row[9:18].reshape((3, 3))
+    CR = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            CR[a, b] = C[a, 0] * R[0, b] + C[a, 1] * R[1, b] + C[a, 2] * R[2, b]
+    M = np.empty((3, 3))  # Z (C R)^T
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = Z[a, 0] * CR[b, 0] + Z[a, 1] * CR[b, 1] + Z[a, 2] * CR[b, 2]
+    e[0] = M[1, 2]
+    e[1] = -M[0, 2]
+    H[0, 6], H[0, 7] = M[1, 1], -M[1, 0]
+    H[1, 6], H[1, 7] = -M[0, 1], M[0, 0]
+
+
+@njit(cache=True)
+def altitude_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """The height of the sensor's origin, ``e_z^T (r + C p_BS)``, minus the measured one;
+    ``row = (z, p_BS)``. ``H = [e_z^T, 0, -e_z^T (C p)^x, 0, 0]`` (``d(C p)/dphi = -(C p)^x``)."""
+    H[:, :] = 0.0
+    p = row[1:4]
+    x = C[0, 0] * p[0] + C[0, 1] * p[1] + C[0, 2] * p[2]
+    y = C[1, 0] * p[0] + C[1, 1] * p[1] + C[1, 2] * p[2]
+    z = C[2, 0] * p[0] + C[2, 1] * p[1] + C[2, 2] * p[2]
+    e[0] = r[2] + z - row[0]
+    H[0, 2] = 1.0
+    H[0, 6], H[0, 7] = y, -x
+
+
+@njit(cache=True)
+def magnetometer_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
+    """The direction of the world's magnetic field in the sensor frame against the measured one:
+    ``row = (z, b_1, b_2, m, R_BS)`` with ``z`` the measured unit direction, ``b_1, b_2`` an
+    orthonormal basis of the plane normal to it (:func:`pack_magnetometer`), ``m`` the world
+    field's unit direction. ``e (2) = (b_i^T u)`` with ``u = R_BS^T C^T m``: the components of
+    the predicted direction across the measured one, 0 when they agree (``|e|`` the sine of the
+    angle between them). With ``g_i = C R_BS b_i`` (world) ``e_i = g_i^T m`` and, by
+    ``d(C^T m)/dphi = C^T m^x`` (primer eqs. 27, 28), ``d e_i/dphi = b_i^T R^T C^T m^x =
+    (g_i x m)^T``. Measurement noise ``n`` on the field vector ``f`` (sensor frame) moves ``z`` by
+    ``(I - z z^T) n / |f|``, so ``cov(e) = B^T cov(n) B / |f|^2``."""
+    H[:, :] = 0.0
+    R = row[12:21].reshape((3, 3))
+    m = row[9:12]
+    for i in range(2):
+        b = row[3 + 3 * i: 6 + 3 * i]
+        g = np.empty(3)  # C R b
+        for a in range(3):
+            s = 0.0
+            for k in range(3):
+                s += (C[a, 0] * R[0, k] + C[a, 1] * R[1, k] + C[a, 2] * R[2, k]) * b[k]
+            g[a] = s
+        e[i] = g[0] * m[0] + g[1] * m[1] + g[2] * m[2]
+        H[i, 6] = g[1] * m[2] - g[2] * m[1]
+        H[i, 7] = g[2] * m[0] - g[0] * m[2]
+        H[i, 8] = g[0] * m[1] - g[1] * m[0]
+
+
 def _flat(*arrays) -> np.ndarray:
     """Rows of the measurements ``arrays`` (each with a leading dimension N: one row a
     measurement; a single measurement is refused rather than read as N rows)."""
@@ -205,6 +292,33 @@ def pack_velocity(z, w, T_BS=None) -> np.ndarray:
     return _flat(z, w, _repeat(R, len(z)), _repeat(p, len(z)))
 
 
+def pack_altitude(z, T_BS=None) -> np.ndarray:
+    z = np.asarray(z, dtype=float)
+    _, p = extrinsic_parts(T_BS)
+    return _flat(np.reshape(z, (-1, 1)), _repeat(p, len(z)))
+
+
+def normal_basis(z) -> np.ndarray:
+    """``(N, 2, 3)``: for each unit vector ``z`` (N, 3) two unit vectors normal to it and to each
+    other, ``(b_1, b_2, z)`` right-handed (``b_1`` from the axis least aligned with ``z``)."""
+    z = np.asarray(z, dtype=float)
+    axis = np.where((np.abs(z[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    b1 = axis - np.sum(axis * z, axis=1, keepdims=True) * z
+    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
+    return np.stack([b1, np.cross(z, b1)], axis=1)
+
+
+def pack_magnetometer(z, m, T_BS=None) -> np.ndarray:
+    """Rows of measured field directions ``z`` (N, 3; made unit) against the world field's
+    direction ``m`` ((3,) or (N, 3); made unit)."""
+    z = np.asarray(z, dtype=float)
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    m = np.broadcast_to(np.asarray(m, dtype=float), z.shape)
+    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
+    R, _ = extrinsic_parts(T_BS)
+    return _flat(z, normal_basis(z), m, _repeat(R, len(z)))
+
+
 #: Which GTSAM variables (keyframe keys) a model reads, by the error-state columns it may touch.
 _VARIABLE_COLUMNS = {"pos": slice(0, 3), "vel": slice(3, 6), "rot": slice(6, 9), "bias": slice(9, 15)}
 _VARIABLE_KINDS = {"pos": VEC, "vel": VEC, "rot": ROT, "bias": BIAS}
@@ -227,6 +341,9 @@ POSITION = SensorModel("position", 3, 6, position_kernel, ("pos", "rot"))
 ORIENTATION = SensorModel("orientation", 3, 18, orientation_kernel, ("rot",))
 POSE = SensorModel("pose", 6, 24, pose_kernel, ("pos", "rot"))
 VELOCITY = SensorModel("velocity", 3, 18, velocity_kernel, ("vel", "bias"))
+ROLL_PITCH = SensorModel("roll_pitch", 2, 18, roll_pitch_kernel, ("rot",))
+ALTITUDE = SensorModel("altitude", 1, 4, altitude_kernel, ("pos", "rot"))
+MAGNETOMETER = SensorModel("magnetometer", 2, 21, magnetometer_kernel, ("rot",))
 
 
 def evaluate_one(model: SensorModel, state: ImuState, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -118,16 +118,22 @@ class SensorSetup:
     :data:`datasets.kinds.KINDS`), extrinsic ``T_BS`` (4x4, ``p_B = T_BS p_S``; None: at the IMU),
     ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
     measurement comes without a covariance; None: every measurement brings one) and ``robust``
-    (None or a kernel spec of :func:`datasets.robust.robust_spec`). Each is checked when made: an
-    InputError naming the field otherwise."""
+    (None or a kernel spec of :func:`datasets.robust.robust_spec`); ``roll_pitch_only`` makes an
+    ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file. Each
+    is checked when made: an InputError naming the field otherwise."""
 
     kind: str
     T_BS: np.ndarray | None = None
     time_offset: float = 0.0
     sigma: np.ndarray | None = None
     robust: tuple | None = None
+    roll_pitch_only: bool = False
 
     def __post_init__(self):
+        from datasets.rig import roll_pitch_kind
+
+        object.__setattr__(self, "kind", roll_pitch_kind(
+            self.kind, self.roll_pitch_only, lambda message: InputError(f"SensorSetup.roll_pitch_only: {message}")))
         if self.kind not in KINDS:
             raise InputError(f"SensorSetup.kind: expected one of {', '.join(KINDS)}, got {self.kind!r}")
         object.__setattr__(self, "T_BS", check_extrinsic("SensorSetup.T_BS", self.T_BS))

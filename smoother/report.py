@@ -35,6 +35,7 @@ import numpy as np
 
 from datasets.atomic import atomic_write
 from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
+from datasets.initialise import world_frame
 from datasets.kinds import sensors_of
 from datasets.tum import write_tum
 from datasets.types import Dataset, PositionMeasurements, Trajectory
@@ -331,7 +332,8 @@ def aiding_sensors(dataset: Dataset) -> list[str]:
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
     """Write every estimate (TUM + npz, both in the data's clock; GeoJSON with a datum), the truth
     and the fixes (npz) where known and ``metrics.json`` (its ``_run`` with ``extra``, the
-    estimators, ``aiding_sensors`` and ``dead_reckoning``: true without any) into ``out_dir``;
+    estimators, ``aiding_sensors``, ``dead_reckoning``: true without any, and ``world_frame``:
+    :meth:`datasets.initialise.WorldFrame.describe`) into ``out_dir``;
     return the metrics. An estimator that failed has its reason in ``metrics.json`` (``failed``)
     and no files. Files of these names already there are overwritten, others left (a run
     directory's one-run rule is :class:`smoother.commands.run_directory.RunDirectory`'s)."""
@@ -353,7 +355,8 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
     save_gps(out_dir / "gps.npz", dataset)
     aiding = aiding_sensors(dataset)
     document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
-                                   "dead_reckoning": not aiding}}
+                                   "dead_reckoning": not aiding,
+                                   "world_frame": world_frame(sensors_of(dataset)).describe()}}
     with atomic_write(out_dir / "metrics.json") as handle:
         json.dump(_jsonable(document), handle, indent=2)
         handle.write("\n")

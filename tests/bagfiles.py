@@ -48,10 +48,12 @@ class Messages:
     def pose(self, p, q):
         return self.T["geometry_msgs/msg/Pose"](position=self.point(p), orientation=self.quaternion(q))
 
-    def imu(self, t_ns, acc, gyro):
+    def imu(self, t_ns, acc, gyro, q_wxyz=None, orientation_cov=None):
+        """An Imu message; without ``q_wxyz`` REP-145's "no orientation" (covariance -1)."""
+        cov = np.full(9, -1.0) if q_wxyz is None else np.ravel(orientation_cov).astype(float)
         return self.T["sensor_msgs/msg/Imu"](
-            header=self.header(t_ns, "imu"), orientation=self.quaternion((1, 0, 0, 0)),
-            orientation_covariance=np.full(9, -1.0), angular_velocity=self.vector(gyro),
+            header=self.header(t_ns, "imu"), orientation=self.quaternion((1, 0, 0, 0) if q_wxyz is None else q_wxyz),
+            orientation_covariance=cov, angular_velocity=self.vector(gyro),
             angular_velocity_covariance=np.zeros(9), linear_acceleration=self.vector(acc),
             linear_acceleration_covariance=np.zeros(9))
 
@@ -61,6 +63,24 @@ class Messages:
             twist=self.T["geometry_msgs/msg/Twist"](linear=self.vector(v), angular=self.vector(w)),
             covariance=np.ravel(twist_cov))
         return self.T["nav_msgs/msg/Odometry"](header=self.header(t_ns), child_frame_id="base", pose=pose, twist=twist)
+
+    def twist(self, v, w):
+        return self.T["geometry_msgs/msg/Twist"](linear=self.vector(v), angular=self.vector(w))
+
+    def twist_stamped(self, t_ns, v, w):
+        return self.T["geometry_msgs/msg/TwistStamped"](header=self.header(t_ns, "sensor"), twist=self.twist(v, w))
+
+    def twist_with_covariance(self, t_ns, v, w, cov):
+        twist = self.T["geometry_msgs/msg/TwistWithCovariance"](twist=self.twist(v, w), covariance=np.ravel(cov))
+        return self.T["geometry_msgs/msg/TwistWithCovarianceStamped"](header=self.header(t_ns, "sensor"), twist=twist)
+
+    def fluid_pressure(self, t_ns, pressure, variance):
+        return self.T["sensor_msgs/msg/FluidPressure"](header=self.header(t_ns, "baro"), fluid_pressure=float(pressure),
+                                                       variance=float(variance))
+
+    def magnetic_field(self, t_ns, field, cov):
+        return self.T["sensor_msgs/msg/MagneticField"](header=self.header(t_ns, "mag"), magnetic_field=self.vector(field),
+                                                       magnetic_field_covariance=np.ravel(cov).astype(float))
 
     def pose_stamped(self, t_ns, p, q):
         return self.T["geometry_msgs/msg/PoseStamped"](header=self.header(t_ns), pose=self.pose(p, q))

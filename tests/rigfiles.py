@@ -15,3 +15,9 @@ def imu_table(source: str, noise, topic: str | None = None) -> str:
     lines += [f"accel_noise_density = {noise.acc}", f"gyro_noise_density = {noise.gyro}",
               f"accel_random_walk = {noise.acc_bias}", f"gyro_random_walk = {noise.gyro_bias}"]
     return "\n".join(lines) + "\n"
+
+
+def sensor_table(name: str, kind: str, source: str, extra: str = "") -> str:
+    """A ``[[sensor]]`` table: ``name``, ``kind``, ``source`` and the TOML lines ``extra``
+    (a topic, ``T_BS``, ...)."""
+    return f'\n[[sensor]]\nname = "{name}"\nkind = "{kind}"\nsource = "{source}"\n{extra.strip()}\n'

@@ -5,7 +5,8 @@ its measurement model (:class:`factors.sensor_models.SensorModel`: residual, Jac
 factor, EKF update all run the model's one compiled kernel), how its measurements become the
 kernel's rows, how the simulator draws them, what they say about the initial trajectory and how a
 rig's sensor of that kind is read. Each kind lives in a module of this package (``pose``,
-``position`` with ``gnss``, ``orientation``, ``velocity``, ``odometry``). A relative kind
+``position`` with ``gnss``, ``orientation``, ``roll_pitch``, ``velocity``, ``odometry``,
+``altitude``, ``magnetometer``). A relative kind
 (``odometry``) connects two keyframes and has no one-state model: the smoothers use it through
 :func:`factors.sensor_models.odometry_residual`, the EKF does not.
 
@@ -29,7 +30,7 @@ from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from dataclasses import fields as dataclass_fields
 
-from datasets.kinds import odometry, orientation, pose, position, velocity
+from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, position, roll_pitch, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.types import Dataset, Sensor
 from factors import imu, jacobians, selfcheck
@@ -75,7 +76,8 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
 
 #: The registry: every kind, by name. Adding a kind is a module of its own and a line here.
 KINDS: dict[str, Kind] = registered(
-    pose.KIND, position.POSITION, position.GNSS, orientation.KIND, velocity.KIND, odometry.KIND,
+    pose.KIND, position.POSITION, position.GNSS, orientation.KIND, roll_pitch.KIND, velocity.KIND, odometry.KIND,
+    altitude.KIND, magnetometer.KIND,
 )
 
 #: The kinds of aiding sensor, by the name a rig file's ``kind`` and the command line use.

@@ -1,10 +1,10 @@
-"""The ``orientation`` kind: a sensor frame's attitude in the world, ``C R_BS`` (an AHRS, the
-attitude part of poses)."""
+"""The ``orientation`` kind: a sensor frame's attitude in the world, ``C R_BS`` (an AHRS: the
+``orientation`` of ``sensor_msgs/Imu``; the attitude part of poses)."""
 from __future__ import annotations
 
 import numpy as np
 
-from datasets.kinds.base import Kind, displaced, near_prediction, noise, poses
+from datasets.kinds.base import Kind, displaced, near_prediction, noise
 from datasets.types import OrientationMeasurements
 from factors import so3
 from factors import sensor_models as sm
@@ -22,10 +22,18 @@ def _anchor(m):
     return m.t, None, m.C @ R.T
 
 
+def attitudes(sensor, clock):
+    """``(stream, t)``: a sensor's attitudes (:func:`datasets.sources.read_attitudes`: an Imu
+    topic's orientation or any poses') and their times."""
+    from datasets.sources import read_attitudes
+
+    stream = read_attitudes(sensor.source, sensor.topic)
+    return stream, clock.stamps(stream.t, stream.t_ns, sensor.time_offset)
+
+
 def _read(sensor, clock):
-    stream, t = poses(sensor, clock)
-    cov = None if stream.cov is None else stream.cov[:, 3:, 3:]
-    return OrientationMeasurements(t, stream.C, noise(sensor, 3, cov, len(t)), sensor.T_BS), clock.datum
+    stream, t = attitudes(sensor, clock)
+    return OrientationMeasurements(t, stream.C, noise(sensor, 3, stream.cov, len(t)), sensor.T_BS), clock.datum
 
 
 def _random_row(rng):

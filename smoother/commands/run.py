@@ -173,6 +173,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     (Ctrl-C, SIGTERM) the finished estimators are written with ``stopped`` in ``metrics.json``,
     one line on stderr and the exit code 130 or 143."""
     from datasets.imu_health import findings_record
+    from datasets.initialise import world_frame
+    from datasets.kinds import sensors_of
     from smoother import report
     from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.pipeline import estimate_each, judged, sensor_consistency
@@ -217,7 +219,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             figures = plots.plot_run(out.path, out_dir=stage)
         for path in figures:
             print(f"wrote {out.final(path)}", file=sys.stderr)
-    print(format_table(metrics, dead_reckoning=not report.aiding_sensors(dataset)))
+    print(format_table(metrics, dead_reckoning=not report.aiding_sensors(dataset),
+                       frame_note=world_frame(sensors_of(dataset)).note()))
     for name, m in metrics.items():
         if m.get("ate_note"):
             print(f"warning: {name}: {m['ate_note']}", file=sys.stderr)
@@ -331,13 +334,14 @@ UNSCORED = "unscored"
 TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 
-def format_table(metrics: dict, dead_reckoning: bool = False) -> str:
+def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None) -> str:
     """One line per estimator with the headline metrics that exist; a figure against the truth
     that is not scored (too few states compared, metrics.json's ``ate_note``) shows
     :data:`UNSCORED`, and a closing line says so. Against GPS, two closing lines: the estimators
     ranked by their held-out RMSE (an accuracy), and what the fit residual is -- the distance to
     fixes an estimator used, which no ranking may rest on. With ``dead_reckoning`` (no aiding
-    sensor) a closing line says that the estimates are the IMU's alone."""
+    sensor) a closing line says that the estimates are the IMU's alone; ``frame_note``
+    (:meth:`datasets.initialise.WorldFrame.note`) closes an odometry-frame run's table."""
     columns = [("ate_rmse_m", "ATE [m]"), ("rot_rmse_deg", "rot [deg]"), ("nees_mean", "NEES/dim"),
                ("gps_heldout_rmse_m", "held-out [m]"), ("gps_fit_residual_m", "fit resid [m]"),
                ("runtime_s", "time [s]")]
@@ -374,4 +378,6 @@ def format_table(metrics: dict, dead_reckoning: bool = False) -> str:
     if dead_reckoning:
         lines.append("dead reckoning: no aiding sensor, the IMU alone; the errors grow without bound "
                      "(metrics.json: _run.dead_reckoning)")
+    if frame_note:
+        lines.append(frame_note)
     return "\n".join(lines)

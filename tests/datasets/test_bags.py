@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from bagfiles import FORMATS, Messages, bag_path, storage_file, write_bag
 
-from datasets.bags import read_bag_fixes, read_bag_imu, read_bag_poses, read_bag_twists
+from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
+                           read_bag_pressures, read_bag_twists)
 from datasets.errors import DataError
 from datasets.simulate import simulate
 from datasets.streams import seconds
@@ -34,6 +35,9 @@ def data():
         "cov": np.array([_cov(rng, 6) for _ in poses]), "twist_cov": np.array([_cov(rng, 6) for _ in poses]),
         "lat": 47.0 + rng.normal(scale=1e-4, size=len(poses)), "lon": 8.0 + rng.normal(scale=1e-4, size=len(poses)),
         "alt": 400 + rng.normal(size=len(poses)), "fix_cov": np.array([_cov(rng, 3) for _ in poses]),
+        "ahrs_cov": np.array([_cov(rng, 3) * 1e-4 for _ in poses]),
+        "pressure": 95_000 + rng.normal(size=len(poses)) * 10, "pressure_var": np.r_[0.0, np.full(len(poses) - 1, 4.0)],
+        "field": rng.normal(size=(len(poses), 3)) * 3e-5, "field_cov": np.array([_cov(rng, 3) * 1e-14 for _ in poses]),
     }
 
 
@@ -63,6 +67,16 @@ def _write(folder, fmt, data):
         "/tf_base": ("geometry_msgs/msg/TransformStamped", [m.transform(*row) for row in zip(data["pose_ns"],
                                                                                                data["p"], q)]),
         "/fix": ("sensor_msgs/msg/NavSatFix", fixes),
+        "/twist": ("geometry_msgs/msg/TwistStamped", [m.twist_stamped(*row) for row in zip(
+            data["pose_ns"], data["v"], data["w"])]),
+        "/twist_cov": ("geometry_msgs/msg/TwistWithCovarianceStamped", [m.twist_with_covariance(*row) for row in zip(
+            data["pose_ns"], data["v"], data["w"], data["twist_cov"])]),
+        "/pressure": ("sensor_msgs/msg/FluidPressure", [m.fluid_pressure(*row) for row in zip(
+            data["pose_ns"], data["pressure"], data["pressure_var"])]),
+        "/mag": ("sensor_msgs/msg/MagneticField", [m.magnetic_field(*row) for row in zip(
+            data["pose_ns"], data["field"], data["field_cov"])]),
+        "/ahrs": ("sensor_msgs/msg/Imu", [m.imu(t, a, w, qq, c) for t, a, w, qq, c in zip(
+            data["pose_ns"], data["acc"], data["gyro"], q, data["ahrs_cov"])]),
         "/empty": ("sensor_msgs/msg/Imu", []),
     }
     return write_bag(bag_path(folder, fmt), fmt, topics)
@@ -93,10 +107,17 @@ def test_poses_of_every_message_type(bag, data, topic, has_cov):
         assert poses.cov is None
 
 
-def test_twists_of_odometry(bag, data):
-    twists = read_bag_twists(bag[1], "/odom")
+@pytest.mark.parametrize("topic, has_cov", [("/odom", True), ("/twist_cov", True), ("/twist", False),
+                                            ("/odom_nocov", False)])
+def test_twists_of_every_message_type(bag, data, topic, has_cov):
+    """Odometry's twist, TwistWithCovarianceStamped and TwistStamped (no covariance)."""
+    twists = read_bag_twists(bag[1], topic)
+    assert np.array_equal(twists.t_ns, data["pose_ns"])
     assert np.array_equal(twists.linear, data["v"]) and np.array_equal(twists.angular, data["w"])
-    assert np.array_equal(twists.cov, data["twist_cov"]) and read_bag_twists(bag[1], "/odom_nocov").cov is None
+    if has_cov:
+        assert np.array_equal(twists.cov, data["twist_cov"])
+    else:
+        assert twists.cov is None
 
 
 def test_fixes_with_covariance_types_per_message(bag, data):
@@ -109,6 +130,38 @@ def test_fixes_with_covariance_types_per_message(bag, data):
     assert np.array_equal(fixes.cov[0], data["fix_cov"][0])  # type 3, known
     assert np.array_equal(fixes.cov[1], np.diag(np.diag(data["fix_cov"][1])))  # type 2: the diagonal only
     assert np.all(np.isnan(fixes.cov[2]))  # type 0: unknown
+
+
+def test_attitudes_of_an_imu_topic_and_of_poses(bag, data):
+    """An Imu topic's orientation with its orientation_covariance (row major, 3x3); a pose
+    topic's attitude with the rotation block of its covariance."""
+    ahrs = read_bag_attitudes(bag[1], "/ahrs")
+    assert np.array_equal(ahrs.t_ns, data["pose_ns"]) and np.abs(ahrs.C - data["C"]).max() < 1e-14
+    assert np.array_equal(ahrs.cov, data["ahrs_cov"])
+    poses = read_bag_attitudes(bag[1], "/odom")
+    assert np.abs(poses.C - data["C"]).max() < 1e-14 and np.array_equal(poses.cov, data["cov"][:, 3:, 3:])
+    assert read_bag_attitudes(bag[1], "/pose").cov is None
+
+
+def test_pressures_and_magnetic_fields(bag, data):
+    """FluidPressure with its variance (0: unknown, NaN) and MagneticField with its covariance."""
+    pressures = read_bag_pressures(bag[1], "/pressure")
+    assert np.array_equal(pressures.t_ns, data["pose_ns"]) and np.array_equal(pressures.pressure, data["pressure"])
+    assert np.isnan(pressures.variance[0]) and np.array_equal(pressures.variance[1:], data["pressure_var"][1:])
+    fields = read_bag_magnetic_fields(bag[1], "/mag")
+    assert np.array_equal(fields.field, data["field"]) and np.array_equal(fields.cov, data["field_cov"])
+    with pytest.raises(DataError, match=r"topic /mag.*sensor_msgs/msg/MagneticField.*pressures: sensor_msgs/msg/Fluid"):
+        read_bag_pressures(bag[1], "/mag")
+
+
+def test_an_imu_without_orientation_is_refused_as_attitudes_in_one_line(bag):
+    """REP-145: orientation_covariance[0] = -1 says the IMU gives no orientation."""
+    fmt, path = bag
+    with pytest.raises(DataError) as info:
+        read_bag_attitudes(path, "/imu")
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "topic /imu" in message, message
+    assert "without an orientation (orientation_covariance[0] = -1, REP-145)" in message, message
 
 
 def test_errors_name_the_bag_and_the_topic(bag, tmp_path):

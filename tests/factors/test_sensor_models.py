@@ -5,6 +5,10 @@ Jacobian against its numerical twin at random states and extrinsics, attitudes o
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import strategies as S
 
 from datasets.kinds import KINDS, evaluate
 from factors import imu, selfcheck, so3
@@ -122,3 +126,70 @@ def test_rows_of_the_wrong_width_and_single_measurements_are_refused():
     ekf = Ekf(x, np.eye(15), imu.ImuNoise())
     with pytest.raises(InputError, match="a relative kind needs a cloned past state"):
         ekf.update_sensor("odometry", np.zeros(6), np.eye(6))
+
+
+def _yawed(angle, C):
+    return so3.exp(np.array([0.0, 0.0, angle])) @ C
+
+
+@settings(max_examples=1000)
+@given(S.imu_states(), S.rotations(), S.rotation_vectors("any"), st.floats(-np.pi, np.pi))
+def test_roll_pitch_jacobian_equals_central_differences_at_1000_points(x, R, tilt, heading):
+    """At attitudes of every regime (below 1e-6 rad, ordinary, within 1e-3 of pi), extrinsic
+    rotations of every regime, measured tilts up to pi and any measured heading."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    Z = _yawed(heading, so3.exp(0.3 / np.pi * tilt) @ x.C @ R)  # tilted by up to 0.3 rad
+    row = sm.pack_orientation(Z[None], T)[0]
+    _, H = sm.evaluate_one(sm.ROLL_PITCH, x, row)
+    num = selfcheck._num(lambda s: sm.evaluate_one(sm.ROLL_PITCH, s, row)[0], x, arg_kinds=[imu.StateManifold],
+                         value_kind="vector")[0]
+    np.testing.assert_allclose(H, num, atol=1e-6, rtol=1e-6)
+
+
+@settings(max_examples=300)
+@given(S.imu_states(), S.rotations(), st.floats(-np.pi, np.pi), st.floats(-np.pi, np.pi))
+def test_roll_pitch_ignores_both_headings(x, R, state_heading, measured_heading):
+    """Turning the state about the world vertical changes neither the residual nor its Jacobian;
+    turning the measurement turns the residual within the horizontal plane, its size kept."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    Z = so3.boxplus(x.C @ R, np.array([0.05, -0.03, 0.4]))
+    row = sm.pack_orientation(Z[None], T)[0]
+    e, H = sm.evaluate_one(sm.ROLL_PITCH, x, row)
+    e_turned, H_turned = sm.evaluate_one(sm.ROLL_PITCH, x.replace(C=_yawed(state_heading, x.C)), row)
+    np.testing.assert_allclose(e_turned, e, atol=1e-12)
+    np.testing.assert_allclose(H[:, 8], 0.0, atol=0.0)
+    np.testing.assert_allclose(H_turned[:, 8], 0.0, atol=0.0)
+    e_meas, _ = sm.evaluate_one(sm.ROLL_PITCH, x, sm.pack_orientation(_yawed(measured_heading, Z)[None], T)[0])
+    np.testing.assert_allclose(np.linalg.norm(e_meas), np.linalg.norm(e), atol=1e-12)
+
+
+@given(S.rotations(), S.rotations(), S.rotation_vectors("tiny"))
+def test_roll_pitch_is_the_tilt_part_of_the_attitude_error_for_small_errors(C, R, eps):
+    """``e = (eps_x, eps_y)`` of ``eps = log(C R Z^T)`` to first order, also upside down and at
+    any heading (tiny errors: the second-order part is below 1e-12)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    Z = so3.exp(-eps) @ C @ R  # so that C R Z^T = exp(eps)
+    x = imu.ImuState.identity().replace(C=C)
+    e, _ = sm.evaluate_one(sm.ROLL_PITCH, x, sm.pack_orientation(Z[None], T)[0])
+    full, _ = sm.evaluate_one(sm.ORIENTATION, x, sm.pack_orientation(Z[None], T)[0])
+    np.testing.assert_allclose(e, full[:2], atol=1e-12)
+
+
+def test_roll_pitch_noise_has_the_covariance_of_the_attitudes_horizontal_block():
+    """With ``Z = exp(n) Rz(psi) C R`` -- noise about the axes of the sensor's own world, whose
+    heading is off by any ``psi`` -- the residuals' covariance is ``cov(n)[:2, :2]`` (Monte Carlo,
+    40 000 draws of a correlated 3x3 attitude covariance)."""
+    rng = np.random.default_rng(11)
+    x = _state(rng, "any")
+    T = selfcheck.random_extrinsic(rng)
+    A = rng.normal(size=(3, 3)) * 0.01
+    cov = A @ A.T
+    n = rng.multivariate_normal(np.zeros(3), cov, size=40_000)
+    psi = rng.uniform(-np.pi, np.pi, len(n))
+    Z = so3.exp(n) @ so3.exp(psi[:, None] * np.array([0.0, 0.0, 1.0])) @ (x.C @ T[:3, :3])
+    rows = sm.pack_orientation(Z, T)
+    e = np.array([sm.evaluate_one(sm.ROLL_PITCH, x, row)[0] for row in rows])
+    np.testing.assert_allclose(np.cov(e.T), cov[:2, :2], rtol=0.05, atol=2e-7)

@@ -217,7 +217,9 @@ def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
     assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
     document = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert document["_run"] == {"seed": 7, "estimators": ["ekf", "batch"], "aiding_sensors": [],
-                                "dead_reckoning": True}
+                                "dead_reckoning": True, "world_frame": {
+                                    "frame_id": "odom", "position": "relative to the start",
+                                    "yaw": "relative to the start"}}
     assert document["ekf"]["ate_rmse_m"] == pytest.approx(0.5)
     assert document["ekf"]["runtime_s"] == 0.25 and document["ekf"]["rejected_measurements"] == 0
     assert document["batch"]["nees_mean"] is None  # NaN (no covariances) is written as null
