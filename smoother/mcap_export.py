@@ -17,7 +17,7 @@ Conventions:
 * **Stamps**: header stamps (and each message's log time) in the data's own clock,
   ``Dataset.time_origin_ns + round(t * 1e9)`` nanoseconds, as ``.tum`` and ``.npz`` keep them
   (:func:`smoother.report.save_trajectory`); from 0 when the data have no clock of their own.
-* **Frames**: ``header.frame_id`` is the world frame, :func:`world_frame` (REP-105's ``map`` when a
+* **Frames**: ``header.frame_id`` is the world frame, :func:`datasets.initialise.world_frame` (REP-105's ``map`` when a
   sensor fixes the position in the world, ``odom`` otherwise); ``child_frame_id`` is ``base_link``,
   which here is the IMU frame ``B`` itself: the estimate is of the IMU, and a rig names no other
   body frame (its ``forward`` is a direction in the IMU frame, its sensors' ``T_BS`` place them in
@@ -61,15 +61,14 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.kinds import KINDS, sensors_of
+from datasets.initialise import world_frame
+from datasets.kinds import sensors_of
 from datasets.types import Dataset
 from factors import imu, quaternion
 from factors.errors import InputError
 
 #: The child frame of every pose and transform: the IMU frame (see the module docstring).
 BASE_LINK = "base_link"
-#: REP-105's world frames: with a sensor fixing the position in the world, and without one.
-MAP, ODOM = "map", "odom"
 #: Whose estimate ``/tf`` carries: the first of these that finished.
 TF_ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -78,18 +77,6 @@ _TF = "tf2_msgs/msg/TFMessage"
 _FIX = "sensor_msgs/msg/NavSatFix"
 #: The error-state components of a pose covariance, in ROS's order (x y z, rotations about x y z).
 _POSE = np.r_[imu.R, imu.PHI]
-
-
-def world_frame(dataset: Dataset) -> str:
-    """The name of the run's world frame (REP-105): ``map`` when some sensor of ``dataset`` fixes
-    the position in the world (its kind's anchor gives positions: a pose, position or GNSS
-    sensor), ``odom`` otherwise -- the frame of a run that only knows where it started (attitude
-    sensors, velocities and relative poses fix no position)."""
-    for sensor in sensors_of(dataset):
-        kind = KINDS[sensor.kind]
-        if kind.absolute and kind.anchor(sensor.data)[1] is not None:
-            return MAP
-    return ODOM
 
 
 def topic(estimator: str, leaf: str) -> str:
@@ -201,7 +188,7 @@ def _fix_messages(build, trajectory, ns, datum):
 def streams(dataset: Dataset, estimates: dict, store) -> list[tuple[str, str, object]]:
     """``(topic, message type, messages)`` of every topic of the file, each ``messages`` an
     iterator of ``(stamp [ns], message)`` in time order (see the module docstring)."""
-    build = _Messages(store, world_frame(dataset))
+    build = _Messages(store, world_frame(sensors_of(dataset)).frame_id)
     finished = {name: est.trajectory for name, est in estimates.items() if est.failed is None}
     datum = getattr(dataset, "datum", None)
     out = []

@@ -13,6 +13,8 @@ from small_recording import DATUM, WHEEL, write_recording
 
 from datasets.atomic import STAGING_PREFIX
 from datasets.gnss import enu_to_geodetic
+from datasets.initialise import world_frame
+from datasets.kinds import sensors_of
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import imu, quaternion
@@ -134,7 +136,7 @@ def test_the_world_frame_is_map_with_a_position_sensor_and_odom_without():
     """REP-105: a pose, position or GNSS sensor fixes the position in the world (``map``);
     attitudes, velocities and relative poses alone leave it relative to the start (``odom``)."""
     def frame(**kwargs):
-        return mcap_export.world_frame(simulate("gentle", duration=2.0, imu_rate=100.0, **kwargs))
+        return world_frame(sensors_of(simulate("gentle", duration=2.0, imu_rate=100.0, **kwargs))).frame_id
 
     assert frame() == "map"  # poses
     assert frame(pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)]) == "map"
