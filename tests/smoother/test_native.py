@@ -46,3 +46,14 @@ def test_trajectories_agree_with_combined_imu_factor(case):
     truth = dataset.truth.states[np.searchsorted(dataset.truth.t, ours.t)]
     ate = [np.sqrt(np.mean(np.sum((truth.r - s.states.r) ** 2, axis=1))) for s in (ours, native)]
     assert ate[0] < 2 * ate[1] and ate[1] < 3 * ate[0]
+
+
+def test_solve_native_refuses_a_dataset_other_than_one_pose_sensor_at_the_imu():
+    """GTSAM's native graph here takes one pose sensor at the IMU; anything else is refused with
+    the sensors named, not solved wrongly."""
+    from factors.errors import InputError
+
+    with pytest.raises(InputError, match="one pose sensor at the IMU and no other; synthetic:gentle has pose, position"):
+        solve_native(simulate("gentle", duration=1.0, position_rate=1.0))
+    with pytest.raises(InputError, match="has no sensor"):
+        solve_native(simulate("gentle", duration=1.0, pose_rate=None))
