@@ -573,6 +573,22 @@ def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians
     return next_state, F.reshape(shape + (STATE_DIM, STATE_DIM)), G.reshape(shape + (STATE_DIM, NOISE_DIM))
 
 
+def state_derivative(state: ImuState, acc, gyro, gravity=DEFAULT_GRAVITY) -> np.ndarray:
+    """The error-state rate ``(..., 15)`` of the continuous model at ``state`` with the IMU
+    reading ``acc, gyro``: ``(C v, f - b_f + C^T g - w x v, C w, 0, 0)`` with ``w = gyro - b_w``
+    (the attitude's rate as a LEFT, world-frame increment: ``d/dt C = (C w)^x C``). The Euler
+    step of :func:`propagate` is linear in ``dt`` in these coordinates: ``propagate(state, acc,
+    gyro, dt) [-] state = dt * state_derivative(...)``."""
+    acc, gyro = np.asarray(acc, dtype=float), np.asarray(gyro, dtype=float)
+    w = gyro - state.b_w
+    out = np.zeros(np.broadcast_shapes(state.shape, acc.shape[:-1], gyro.shape[:-1]) + (STATE_DIM,))
+    out[..., R] = np.einsum("...ij,...j->...i", state.C, state.v)
+    out[..., V] = (acc - state.b_f + np.einsum("...ji,j->...i", state.C, np.asarray(gravity, dtype=float))
+                   - np.cross(w, state.v))
+    out[..., PHI] = np.einsum("...ij,...j->...i", state.C, w)
+    return out
+
+
 def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", gravity=DEFAULT_GRAVITY):
     """The EKF prediction through many samples: :func:`propagate` applied to ``acc[..., k],
     gyro[..., k], dt[..., k]`` in order, and ``S <- F S F^T + G Q_d G^T`` with

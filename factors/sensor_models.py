@@ -328,22 +328,31 @@ _VARIABLE_KINDS = {"pos": VEC, "vel": VEC, "rot": ROT, "bias": BIAS}
 class SensorModel:
     """One measurement model: its residual dimension ``dim``, the row width of its data, its
     compiled ``kernel`` (module docstring) and the keyframe variables it depends on
-    (``variables``, a subset of ``pos, vel, rot, bias``: the GTSAM keys of its factor)."""
+    (``variables``, a subset of ``pos, vel, rot, bias``: the GTSAM keys of its factor).
+
+    Where its rows hold the extrinsic (what a calibration replaces, :mod:`factors.calibration`):
+    ``rotation_at``, the first of the nine numbers of ``R_BS`` (row-major), ``lever_at``, the first
+    of the three of ``p_BS`` (None: the model does not read it); ``scaled``, how many leading
+    residual rows are ``h - z`` with ``z = row[:scaled]`` a reading that a sensor's scale
+    multiplies (a velocity; 0: none)."""
 
     name: str
     dim: int
     width: int
     kernel: Callable
     variables: tuple[str, ...]
+    rotation_at: int | None = None
+    lever_at: int | None = None
+    scaled: int = 0
 
 
-POSITION = SensorModel("position", 3, 6, position_kernel, ("pos", "rot"))
-ORIENTATION = SensorModel("orientation", 3, 18, orientation_kernel, ("rot",))
-POSE = SensorModel("pose", 6, 24, pose_kernel, ("pos", "rot"))
-VELOCITY = SensorModel("velocity", 3, 18, velocity_kernel, ("vel", "bias"))
-ROLL_PITCH = SensorModel("roll_pitch", 2, 18, roll_pitch_kernel, ("rot",))
-ALTITUDE = SensorModel("altitude", 1, 4, altitude_kernel, ("pos", "rot"))
-MAGNETOMETER = SensorModel("magnetometer", 2, 21, magnetometer_kernel, ("rot",))
+POSITION = SensorModel("position", 3, 6, position_kernel, ("pos", "rot"), lever_at=3)
+ORIENTATION = SensorModel("orientation", 3, 18, orientation_kernel, ("rot",), rotation_at=9)
+POSE = SensorModel("pose", 6, 24, pose_kernel, ("pos", "rot"), rotation_at=12, lever_at=21)
+VELOCITY = SensorModel("velocity", 3, 18, velocity_kernel, ("vel", "bias"), rotation_at=6, lever_at=15, scaled=3)
+ROLL_PITCH = SensorModel("roll_pitch", 2, 18, roll_pitch_kernel, ("rot",), rotation_at=9)
+ALTITUDE = SensorModel("altitude", 1, 4, altitude_kernel, ("pos", "rot"), lever_at=1)
+MAGNETOMETER = SensorModel("magnetometer", 2, 21, magnetometer_kernel, ("rot",), rotation_at=12)
 
 
 def evaluate_one(model: SensorModel, state: ImuState, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -376,6 +385,9 @@ def sensor_factor(model: SensorModel, keys, row, noise_model) -> gtsam.CustomFac
 
 #: Row layout of a relative pose (odometry) measurement: ``(dr 3, dC 9, R_BS 9, p_BS 3)``.
 ODOMETRY_WIDTH = 24
+#: Where an odometry row holds its extrinsic, and the residual rows a scale multiplies (``dr``),
+#: as :class:`SensorModel` declares them for the one-state models.
+ODOMETRY_ROTATION_AT, ODOMETRY_LEVER_AT, ODOMETRY_SCALED = 12, 21, 3
 
 
 def pack_odometry(dr, dC, T_BS=None) -> np.ndarray:
@@ -446,6 +458,16 @@ def odometry_kernel(r_i, C_i, r_j, C_j, row, e, H) -> None:
 def _odometry_rows(r_i, C_i, r_j, C_j, rows, e, H) -> None:
     for n in range(rows.shape[0]):
         odometry_kernel(r_i[n], C_i[n], r_j[n], C_j[n], rows[n], e[n], H[n])
+
+
+def odometry_rows(states_i: ImuState, states_j: ImuState, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e (N, 6), H (N, 6, 30))`` of relative pose ``rows`` (:func:`pack_odometry`) between the
+    states ``states_i`` and ``states_j`` (leading dimension N each)."""
+    n = len(rows)
+    e, H = np.empty((n, 6)), np.empty((n, 6, 2 * STATE_DIM))
+    parts = [np.ascontiguousarray(a, dtype=float) for a in (states_i.r, states_i.C, states_j.r, states_j.C)]
+    _odometry_rows(parts[0], parts[1], parts[2], parts[3], np.ascontiguousarray(rows, dtype=float), e, H)
+    return e, H
 
 
 def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, jacobians: bool = False):

@@ -33,11 +33,12 @@ from dataclasses import fields as dataclass_fields
 from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, position, roll_pitch, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.types import Dataset, Sensor
-from factors import imu, jacobians, selfcheck
+from factors import calibration, imu, jacobians, selfcheck
 from factors import sensor_models as sm
 from factors.errors import InputError
+from factors.selfcheck import random_rotation
 
-__all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "evaluate", "kind_sigmas", "measure_into",
+__all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into",
            "measure_rows", "model_index", "quiet_dispatch", "registered", "sensors_of"]
 
 
@@ -137,6 +138,46 @@ def evaluate(kind: Kind, state, row: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return sm.evaluate_one(kind.model, state, row)
 
 
+def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravity=imu.DEFAULT_GRAVITY):
+    """``(e, H, H_c)`` of ``kind``'s measurement ``rows`` through the calibration ``c``
+    (:class:`factors.calibration.Calibration`; :func:`factors.calibration.calibrated_residual`):
+    ``states`` one :class:`factors.imu.ImuState` with leading dimension N, for a relative kind
+    the pair ``(states_i, states_j)`` (``H`` over both error states side by side, ``imu_at`` a
+    pair of ``(acc, gyro)``); ``imu_at`` None when the time offset is not estimated."""
+    rows = np.ascontiguousarray(rows, dtype=float)
+    if kind.relative:
+        return calibration.calibrated_odometry_residual(*states, rows, c, imu_at, gravity)
+    return calibration.calibrated_residual(kind.model, lambda s, r: measure_rows(kind, s, r), states, rows, c,
+                                           imu_at, gravity)
+
+
+def _calibration_check(kind: Kind):
+    """The self-check of ``kind``'s calibrated residual: its Jacobians with respect to the state(s)
+    and to every calibration part, at a random row, a random calibration (rotation of any regime,
+    lever arm ~1 m, time offset of either sign, scale ~1) and a random IMU reading, against
+    central differences."""
+    def draw(rng):
+        state, row = kind.random_row(rng)
+        states = state if kind.relative else (state,)
+        c = calibration.Calibration(float(rng.choice([-1, 1]) * rng.uniform(1e-3, 0.3)), random_rotation(rng),
+                                    rng.normal(size=3), float(1 + 0.05 * rng.normal()))
+        readings = [(rng.normal(size=(1, 3)) * 3, rng.normal(size=(1, 3)) * 3) for _ in states]
+        at = tuple(readings) if kind.relative else readings[0]
+
+        def e_of(*args):
+            lead = tuple(s[None] for s in args[:-1])
+            return calibrated_rows(kind, lead if kind.relative else lead[0], row[None], args[-1], at)[0][0]
+
+        _, H, H_c = calibrated_rows(kind, tuple(s[None] for s in states) if kind.relative else state[None],
+                                    row[None], c, at)
+        numerical = jacobians.numerical_jacobian(
+            e_of, *states, c, arg_kinds=[imu.StateManifold] * len(states) + [calibration.CalibrationManifold],
+            value_kind="vector")
+        return np.hstack([H[0], H_c[0]]), np.hstack(numerical)
+
+    return draw
+
+
 def _model_check(kind: Kind):
     """The self-check of ``kind``'s model: its analytic error-state Jacobian at a random row
     (:attr:`Kind.random_row`) against central differences of its residual (boxplus on the state)."""
@@ -154,6 +195,8 @@ def _model_check(kind: Kind):
 
 for _kind in KINDS.values():
     selfcheck.register(f"{_kind.name} measurement: H of its residual, extrinsic T_BS", _model_check(_kind))
+    selfcheck.register(f"{_kind.name} measurement through its calibration: H and H_c (time offset, rotation, "
+                       "lever arm, scale)", _calibration_check(_kind))
 
 
 def sensors_of(dataset: Dataset) -> list[Sensor]:
