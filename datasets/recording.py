@@ -26,7 +26,7 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -113,7 +113,7 @@ def _from(sensors: list[Sensor], t_s: float) -> list[Sensor]:
                 left[s.name] = left.get(s.name, 0) + int((~keep).sum())
             parts.append(None if m is None or not keep.any() else (m if keep.all() else m.subset(keep)))
         if parts[0] is not None:  # a sensor with nothing left is dropped (counted above)
-            out.append(Sensor(s.name, s.kind, *parts))
+            out.append(replace(s, data=parts[0], heldout=parts[1]))
     if left:
         counts = ", ".join(f"{n} of {name!r}" for name, n in left.items())
         warnings.warn(f"the estimate starts at the first position fix, {t_s:.3f} s after the first IMU sample; "

@@ -82,7 +82,7 @@ else; the same seed gives the same dataset.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -237,7 +237,7 @@ def _with_outliers(sensors, fraction: float, scale: np.ndarray, rng) -> tuple[tu
         n_out = int(round(fraction * len(s.data))) if corrupt is not None else 0
         if n_out:
             index[s.name] = np.sort(rng.choice(len(s.data), size=n_out, replace=False))
-            s = Sensor(s.name, s.kind, corrupt(s.data, index[s.name], scale, rng), s.heldout)
+            s = replace(s, data=corrupt(s.data, index[s.name], scale, rng))
         out.append(s)
     return tuple(out), index
 

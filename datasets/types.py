@@ -531,12 +531,15 @@ class Trajectory(_Rows):
 class Sensor:
     """One aiding sensor's measurements: its ``name`` (unique in a dataset; metrics and plots use
     it), its ``kind`` (a name of :data:`datasets.kinds.KINDS`), the measurements used
-    (``data``, that kind's data type) and those held out for evaluation (``heldout`` or None)."""
+    (``data``, that kind's data type) and those held out for evaluation (``heldout`` or None);
+    ``calibrate``: what of its calibration the batch smoother estimates, about the ``T_BS`` and
+    stamps of its data (a :class:`factors.calibration.CalibrationPrior`), or None."""
 
     name: str
     kind: str
     data: object
     heldout: object = None
+    calibrate: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -648,7 +651,7 @@ class Dataset:
                 warnings.warn(f"sensor {sensor.name!r}: {int((~inside).sum())} of {len(m)} {part} measurements "
                               f"lie outside the IMU span [{t0:.6f}, {t1:.6f}] s and are dropped", stacklevel=3)
             parts[part] = m if inside.all() else (m.subset(inside) if inside.any() else None)
-        return Sensor(sensor.name, sensor.kind, parts["data"], parts["heldout"])
+        return replace(sensor, data=parts["data"], heldout=parts["heldout"])
 
     @property
     def t0(self) -> float:

@@ -248,3 +248,68 @@ def applicable(model: sm.SensorModel | None) -> tuple[str, ...]:
         return PARTS
     return tuple(p for p, ok in zip(PARTS, (True, model.rotation_at is not None, model.lever_at is not None,
                                             model.scaled > 0)) if ok)
+
+
+@dataclass(frozen=True)
+class CalibrationPrior:
+    """What a sensor's calibration is to estimate: ``parts`` (of :data:`PARTS`), and the prior's
+    standard deviations about the values given (the extrinsic ``T_BS`` and the stamps' offset,
+    scale 1): ``time_offset`` [s], ``rotation`` [rad, each axis of the left chart],
+    ``lever_arm`` [m, each axis], ``scale``."""
+
+    parts: tuple[str, ...]
+    time_offset: float = 0.1
+    rotation: float = 0.1
+    lever_arm: float = 0.2
+    scale: float = 0.05
+
+    def __post_init__(self):
+        parts = tuple(self.parts)
+        if not parts:
+            raise InputError("calibration: expected at least one part to estimate, of " + ", ".join(PARTS))
+        columns(parts)
+        if len(set(parts)) != len(parts):
+            raise InputError(f"calibration: a part is named twice in {list(parts)}")
+        for name in ("time_offset", "rotation", "lever_arm", "scale"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"calibration: {name}_sigma: expected a number > 0, got {value!r}")
+        object.__setattr__(self, "parts", tuple(p for p in PARTS if p in parts))
+
+    @property
+    def columns(self) -> np.ndarray:
+        return columns(self.parts)
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        """The prior's standard deviations of the estimated coordinates (:attr:`columns`)."""
+        full = np.repeat([self.time_offset, self.rotation, self.lever_arm, self.scale], [1, 3, 3, 1])
+        return full[self.columns]
+
+
+@dataclass(frozen=True)
+class CalibrationSet:
+    """The calibration variables of a problem: each sensor's ``name``, its current ``values``, its
+    ``priors`` (:class:`CalibrationPrior`: which coordinates are variables, with their sigmas) and
+    the prior's ``means`` (the values given). A step ``delta`` is one array per sensor over its
+    estimated coordinates."""
+
+    names: tuple[str, ...]
+    values: tuple[Calibration, ...]
+    priors: tuple[CalibrationPrior, ...]
+    means: tuple[Calibration, ...]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def dims(self) -> list[int]:
+        return [len(p.columns) for p in self.priors]
+
+    def boxplus(self, delta) -> "CalibrationSet":
+        moved = []
+        for c, prior, d in zip(self.values, self.priors, delta):
+            full = np.zeros(CALIBRATION_DIM)
+            full[prior.columns] = d
+            moved.append(c.boxplus(full))
+        return CalibrationSet(self.names, tuple(moved), self.priors, self.means)

@@ -63,6 +63,10 @@ class SmootherResult:
     #: The joint covariance blocks ``{(a, b): Sigma_ab}`` of every two keyframes that share a factor
     #: (``vectorized`` engine with covariances; :func:`smoother.solver.marginal_covariances`).
     joint: dict | None = None
+    #: The calibration variables at the optimum (:class:`factors.calibration.CalibrationSet`) and
+    #: each one's marginal covariance over its estimated coordinates (with covariances), or None.
+    calibration: object = None
+    calibration_cov: list | None = None
 
 
 def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
@@ -126,15 +130,25 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
     start = time.perf_counter()
     try:
         decrease = None
+        calibration, calibration_cov = None, None
         if engine == "vectorized":
-            result = solver.optimize(problem.blocks, problem.initial_states, optimizer, max_iterations)
+            result = solver.optimize(problem.blocks, problem.initial_states, optimizer, max_iterations,
+                                     calibration=problem.calibration)
             states, cost, iterations, converged = result.states, result.cost, result.iterations, result.converged
+            calibration = result.calibration
             if len(result.history) > 1:
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
                 _warn_not_converged(optimizer, iterations, decrease)
-            cov, joint = solver.covariances(problem.blocks, states, pairs=True) if covariances else (None, None)
+            cov, joint = (solver.covariances(problem.blocks, states, pairs=True, calibration=calibration)
+                          if covariances else (None, None))
+            if covariances and calibration is not None:
+                n = len(states)
+                calibration_cov = [joint[(n + j, n + j)] for j in range(len(calibration))]
         else:
+            if problem.calibration is not None:
+                raise InputError(f"the gtsam engine does not estimate calibrations (sensors "
+                                 f"{', '.join(problem.calibration.names)}): use the vectorized engine")
             joint = None
             states, cov, cost, iterations, converged = _gtsam_engine(problem, optimizer, max_iterations, covariances)
             if not converged:
@@ -146,7 +160,8 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
             raise _explained(_keyframe_of_gtsam_key(error, problem), problem) from None
         raise
     trajectory = Trajectory(problem.times, states, cov)
-    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged, joint)
+    return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged, joint,
+                          calibration, calibration_cov)
 
 
 def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:

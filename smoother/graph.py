@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from datasets.kinds import KINDS, measure_rows, model_index, sensors_of
+from datasets.kinds import KINDS, calibrated_rows, measure_rows, model_index, sensors_of
 from datasets.types import Dataset, Trajectory
-from factors import imu, preintegration
+from factors import calibration, imu, preintegration
 from factors import priors
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
@@ -128,6 +128,10 @@ class Problem:
     gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
     #: The names of the blocks of absolute measurements (:attr:`datasets.kinds.base.Kind.absolute`).
     absolute: frozenset = frozenset()
+    #: The calibration variables (:class:`factors.calibration.CalibrationSet`) of the sensors that
+    #: ask for them (:attr:`datasets.types.Sensor.calibrate`), at their initial values, or None.
+    #: Only the vectorised blocks read them; ``keyframe_factors`` keep the values given.
+    calibration: calibration.CalibrationSet | None = None
 
     @property
     def gtsam(self) -> GtsamGraph:
@@ -284,9 +288,12 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
 
     blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
     measurements = []  # (block index, spec, keyframes, cov, kernel) of each measurement block
-    for block, spec, kernel in measurement_blocks(dataset, times, robust):
+    calibrations = calibration_set(dataset)
+    for block, spec, kernel in measurement_blocks(dataset, times, robust, calibrations):
         blocks.append(block)
         measurements.append((len(blocks) - 1, spec, block.keyframes, spec.cov, kernel))
+    if calibrations is not None:
+        blocks.extend(calibration_prior_blocks(calibrations))
 
     # the rows of each measurement block by the keyframe at which they become available (their
     # latest): rows order[bounds[k]:bounds[k + 1]], ascending within a keyframe
@@ -312,26 +319,97 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
         return out
 
     absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)
-    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute)
+    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute,
+                   calibration=calibrations)
+
+
+def calibration_set(dataset: Dataset) -> calibration.CalibrationSet | None:
+    """The calibration variables of the sensors of ``dataset`` that ask for them
+    (:attr:`datasets.types.Sensor.calibrate`), starting at the values given (their data's
+    ``T_BS``, no further time offset, scale 1), or None. A part the sensor's kind cannot estimate
+    (:func:`factors.calibration.applicable`) is refused, naming the sensor."""
+    asking = [s for s in sensors_of(dataset) if s.calibrate is not None]
+    if not asking:
+        return None
+    for s in asking:
+        if not isinstance(s.calibrate, calibration.CalibrationPrior):
+            raise InputError(f"sensor {s.name!r}: calibrate: expected a factors.calibration.CalibrationPrior, "
+                             f"got {type(s.calibrate).__name__}")
+        kind = KINDS[s.kind]
+        can = calibration.applicable(kind.model)
+        wrong = [p for p in s.calibrate.parts if p not in can]
+        if wrong:
+            raise InputError(f"sensor {s.name!r} (kind {s.kind}): cannot estimate {', '.join(wrong)}; "
+                             f"a {s.kind} sensor can estimate {', '.join(can)}")
+    means = tuple(calibration.Calibration.of(s.data.T_BS) for s in asking)
+    return calibration.CalibrationSet(tuple(s.name for s in asking), means, tuple(s.calibrate for s in asking), means)
+
+
+def calibration_prior_blocks(calibrations: calibration.CalibrationSet) -> list[Block]:
+    """One block per calibration variable: its prior (:func:`factors.calibration.prior_residual`)."""
+    out = []
+    for j, (name, prior, mean) in enumerate(zip(calibrations.names, calibrations.priors, calibrations.means)):
+        def residual(slots, jacobians, rows, c, prior=prior, mean=mean):
+            e, J = calibration.prior_residual(c, mean, prior.columns)
+            return (e[None], [J[None]]) if jacobians else e[None]
+
+        whiten = np.diag(1.0 / prior.sigmas)[None]
+        out.append(Block(f"calibration prior {name}", np.zeros((1, 0), dtype=int), residual, whiten, calibration=j))
+    return out
 
 
 
-def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None = None) -> list[tuple]:
+def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None = None,
+                       calibrations: calibration.CalibrationSet | None = None) -> list[tuple]:
     """``(Block, MeasurementSpec, kernel spec or None)`` of each sensor of ``dataset`` on the
     keyframes ``times`` (every measurement time must be one): the measurement factors of
-    :func:`build_problem`, without the IMU's."""
+    :func:`build_problem`, without the IMU's. A sensor among ``calibrations``' names reads its
+    calibration variable (:func:`calibrated_residual`); the others, and every sensor without
+    ``calibrations``, use the values given."""
     robust = robust or {}
     out = []
-    for spec in _measurement_specs(dataset):
+    names = () if calibrations is None else calibrations.names
+    for sensor, spec in zip(sensors_of(dataset), _measurement_specs(dataset)):
         kf = np.stack([_match(times, t) for t in spec.times], axis=1)
         placed = np.all(kf >= 0, axis=1)
         if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
             raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
                              "no keyframe")
         kernel = robust.get(spec.name)
-        block = Block(spec.name, kf, spec.residual, whitening(spec.cov), _robust_estimator(kernel, spec.cov.shape[-1]))
+        robust_estimator = _robust_estimator(kernel, spec.cov.shape[-1])
+        if spec.name in names:
+            j = names.index(spec.name)
+            residual = calibrated_residual(sensor, spec, dataset, calibrations.priors[j])
+            block = Block(spec.name, kf, residual, whitening(spec.cov), robust_estimator, calibration=j)
+        else:
+            block = Block(spec.name, kf, spec.residual, whitening(spec.cov), robust_estimator)
         out.append((block, spec, kernel))
     return out
+
+
+def calibrated_residual(sensor, spec: "MeasurementSpec", dataset: Dataset, prior: calibration.CalibrationPrior):
+    """The block residual of ``sensor``'s measurements through its calibration variable
+    (:func:`datasets.kinds.calibrated_rows`): Jacobians of the slots' states, then of the
+    estimated calibration coordinates. With a time offset among them, the IMU reading held at each
+    measurement's stamp(s) enters (:meth:`datasets.types.ImuSamples.held`)."""
+    kind = KINDS[sensor.kind]
+    cols = prior.columns
+    readings = None
+    if "time_offset" in prior.parts:
+        held = [dataset.imu.held(t) for t in spec.times]
+        readings = [(dataset.imu.acc[k], dataset.imu.gyro[k]) for k in held]
+
+    def residual(slots, jacobians, which, c):
+        at = None if readings is None else [(acc[which], gyro[which]) for acc, gyro in readings]
+        states = tuple(slots) if kind.relative else slots[0]
+        e, H, H_c = calibrated_rows(kind, states, spec.rows[which], c,
+                                    None if at is None else (tuple(at) if kind.relative else at[0]), dataset.gravity)
+        if not jacobians:
+            return e
+        parts = [H[:, :, :imu.STATE_DIM], H[:, :, imu.STATE_DIM:]] if kind.relative else [H]
+        return e, [*parts, H_c[:, :, cols]]
+
+    return residual
 
 
 def _whole_graph(problem: Problem) -> GtsamGraph:

@@ -9,7 +9,11 @@ elimination: Cholesky for the steps, QR where Cholesky refuses them and for the 
 
 Variables: one 15-dim linear variable per keyframe (key = keyframe index), the primer's error
 state ``(dr, dv, dphi, db_f, db_w)``; a step is applied with :func:`factors.imu.boxplus` (LEFT
-attitude increment), so covariances come out directly in the primer's convention.
+attitude increment), so covariances come out directly in the primer's convention. A problem may
+add calibration variables (:class:`factors.calibration.CalibrationSet`): sensor ``j``'s is the
+linear variable ``n + j`` (``n`` keyframes) over its estimated coordinates, stepped with
+:meth:`~factors.calibration.CalibrationSet.boxplus`; they take part in every step and covariance
+like the keyframes.
 
 A :class:`Block` holds the factors of one kind: their keyframe indices, a vectorised residual
 returning errors and Jacobians in error-state columns, the whitening matrices of their
@@ -45,7 +49,12 @@ class Block:
     :class:`factors.imu.ImuState` per slot (leading dimension = number of rows) and returns
     ``e`` and, with ``jacobians``, a list of ``n`` arrays ``(rows, d, 15)``; ``whiten (M, d, d)``
     with ``|whiten e|^2 = e^T cov^-1 e``; ``robust``: a GTSAM mEstimator or None;
-    ``before_linearize(states)``: an optional hook (the IMU block re-integrates there)."""
+    ``before_linearize(states)``: an optional hook (the IMU block re-integrates there);
+    ``calibration``: the index of the calibration variable every factor of the block also reads
+    (:class:`factors.calibration.CalibrationSet`), or None. The residual of such a block takes that
+    variable's current :class:`~factors.calibration.Calibration` as a fourth argument and returns
+    one more Jacobian, ``(rows, d, k)`` over its ``k`` estimated coordinates, after the slots'
+    (a block may read the calibration alone: ``keyframes`` of shape ``(1, 0)``, its prior)."""
 
     name: str
     keyframes: np.ndarray
@@ -53,6 +62,7 @@ class Block:
     whiten: np.ndarray
     robust: object | None = None
     before_linearize: Callable | None = None
+    calibration: int | None = None
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -71,17 +81,29 @@ class _Evaluated:
     loss: float
 
 
+def block_residual(block: Block, slots: list, jacobians: bool, rows, calibration=None):
+    """``block.residual`` of the factors ``rows`` at the states ``slots``, handed the current value
+    of its calibration variable from ``calibration`` (a :class:`factors.calibration.CalibrationSet`)
+    when it reads one."""
+    if block.calibration is None:
+        return block.residual(slots, jacobians, rows)
+    if calibration is None:
+        raise InputError(f"block {block.name}: it reads calibration variable {block.calibration}, and none was given")
+    return block.residual(slots, jacobians, rows, calibration.values[block.calibration])
+
+
 def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(None),
-              keyframe_offset: int = 0) -> _Evaluated:
+                   keyframe_offset: int = 0, calibration=None) -> _Evaluated:
     """Whitened (and robustly reweighted) residuals and Jacobians of the factors ``rows`` of
-    ``block``; ``states[k - keyframe_offset]`` is the state of keyframe ``k``."""
+    ``block``; ``states[k - keyframe_offset]`` is the state of keyframe ``k``; ``calibration``
+    the calibration variables' values (:func:`block_residual`)."""
     keyframes = block.keyframes[rows] - keyframe_offset
     whiten = block.whiten[rows]
     slots = [states[keyframes[:, s]] for s in range(keyframes.shape[1])]
     if jacobians:
-        e, Js = block.residual(slots, True, rows)
+        e, Js = block_residual(block, slots, True, rows, calibration)
     else:
-        e, Js = block.residual(slots, False, rows), None
+        e, Js = block_residual(block, slots, False, rows, calibration), None
     e_w = np.einsum("mab,mb->ma", whiten, e)
     if block.robust is None:
         loss = 0.5 * float(np.sum(e_w * e_w))
@@ -100,9 +122,9 @@ def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=sli
     return _Evaluated(e_w, A, loss)
 
 
-def total_cost(blocks: list[Block], states: imu.ImuState) -> float:
+def total_cost(blocks: list[Block], states: imu.ImuState, calibration=None) -> float:
     """``sum rho(|e_w|)`` over every factor (``|e_w|^2 / 2`` without a robust kernel)."""
-    return sum(evaluate_block(b, states, False).loss for b in blocks)
+    return sum(evaluate_block(b, states, False, calibration=calibration).loss for b in blocks)
 
 
 _UNIT = {}
@@ -114,31 +136,37 @@ def _unit(d: int):
     return _UNIT[d]
 
 
-def linearize(blocks: list[Block], states: imu.ImuState) -> tuple[gtsam.GaussianFactorGraph, float]:
-    """The Gauss-Newton system ``|A delta - b|^2`` at ``states`` (``b = -e``) and the cost there."""
+def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tuple[gtsam.GaussianFactorGraph, float]:
+    """The Gauss-Newton system ``|A delta - b|^2`` at ``states`` and the calibration variables'
+    values ``calibration`` (``b = -e``; a calibrated block's factors also on key ``n + j``), and
+    the cost there."""
     for b in blocks:
         if b.before_linearize is not None:
             b.before_linearize(states)
     graph = gtsam.GaussianFactorGraph()
     cost = 0.0
+    n = len(states)
     for block in blocks:
         if block.keyframes.shape[1] > 2:
             raise InputError(f"block {block.name}: factors on more than two keyframes are not supported")
+        extra = () if block.calibration is None else (n + block.calibration,)
         # in chunks, so the Jacobians of a long run stay in cache between evaluation and use
         for start in range(0, len(block), LINEARIZE_CHUNK):
             rows = slice(start, min(start + LINEARIZE_CHUNK, len(block)))
-            ev = evaluate_block(block, states, True, rows)
+            ev = evaluate_block(block, states, True, rows, calibration=calibration)
             cost += ev.loss
             model = _unit(ev.e.shape[1])
             keys = block.keyframes[rows]
-            if keys.shape[1] == 1:
-                for m in range(len(keys)):
-                    graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], -ev.e[m], model))
-            else:
-                for m in range(len(keys)):
-                    graph.add(gtsam.JacobianFactor(int(keys[m, 0]), ev.A[0][m], int(keys[m, 1]), ev.A[1][m],
-                                                   -ev.e[m], model))
+            for m in range(len(keys)):
+                terms = [(int(k), A[m]) for k, A in zip((*keys[m], *extra), ev.A)]
+                graph.add(_jacobian_factor(terms, -ev.e[m], model))
     return graph, cost
+
+
+def _jacobian_factor(terms: list[tuple[int, np.ndarray]], b: np.ndarray, model) -> gtsam.JacobianFactor:
+    """A JacobianFactor of one to three ``(key, A)`` terms."""
+    flat = [x for term in terms for x in term]
+    return gtsam.JacobianFactor(*flat, b, model)
 
 
 #: Factors of a block linearised at once (a few MB of Jacobians: cache-resident, so the cost per
@@ -151,7 +179,7 @@ def _keyframe_of(error: RuntimeError) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
+def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout") -> np.ndarray:
     """The least-squares solution of ``graph``: sparse Cholesky (GTSAM's default, the fastest), and
     QR where Cholesky calls the system indeterminant -- a dead-reckoned stretch squares into an
     information matrix it cannot factor, while the rows themselves determine the step. Without
@@ -167,7 +195,7 @@ def _solve(graph: gtsam.GaussianFactorGraph, n: int) -> np.ndarray:
             solution = graph.optimize(ordering, gtsam.EliminateQR)
         except RuntimeError as again:
             raise _named_free(again, graph, ordering) from None
-    return _to_array(solution, n)
+    return layout.flat(solution)
 
 
 def _named_free(error: RuntimeError, graph: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering) -> Exception:
@@ -179,24 +207,51 @@ def _named_free(error: RuntimeError, graph: gtsam.GaussianFactorGraph, ordering:
     return IndeterminantSystem(str(error), key, _free_after(graph, ordering, key))
 
 
-def _to_array(vv: gtsam.VectorValues, n: int) -> np.ndarray:
-    return np.stack([vv.at(k) for k in range(n)])
+@dataclass(frozen=True)
+class Layout:
+    """The linear variables of a problem: ``n`` keyframes (keys ``0 .. n - 1``, 15 each), then the
+    calibration variables (keys ``n + j``, ``extra[j]`` each). A step is one flat vector in key
+    order."""
+
+    n: int
+    extra: tuple[int, ...] = ()
+
+    def dim(self, key: int) -> int:
+        return DIM if key < self.n else self.extra[key - self.n]
+
+    @property
+    def keys(self) -> range:
+        return range(self.n + len(self.extra))
+
+    def flat(self, vv: gtsam.VectorValues) -> np.ndarray:
+        return np.concatenate([vv.at(k) for k in self.keys])
+
+    def vector_values(self, delta: np.ndarray) -> gtsam.VectorValues:
+        vv, at = gtsam.VectorValues(), 0
+        for k in self.keys:
+            vv.insert(k, delta[at:at + self.dim(k)])
+            at += self.dim(k)
+        return vv
+
+    def apply(self, states: imu.ImuState, calibration, delta: np.ndarray):
+        """``(states [+] delta_x, calibration [+] delta_c)``."""
+        moved = imu.boxplus(states, delta[:self.n * DIM].reshape(self.n, DIM))
+        if calibration is None:
+            return moved, None
+        bounds = np.cumsum([self.n * DIM, *self.extra])
+        return moved, calibration.boxplus(np.split(delta[bounds[0]:], bounds[1:-1] - bounds[0]))
+
+    @staticmethod
+    def of(states: imu.ImuState, calibration=None) -> "Layout":
+        return Layout(len(states), () if calibration is None else tuple(calibration.dims))
 
 
-def _to_vector_values(delta: np.ndarray) -> gtsam.VectorValues:
-    vv = gtsam.VectorValues()
-    for k, d in enumerate(delta):
-        vv.insert(k, d)
-    return vv
-
-
-def _damped(graph: gtsam.GaussianFactorGraph, n: int, lam: float) -> gtsam.GaussianFactorGraph:
+def _damped(graph: gtsam.GaussianFactorGraph, layout: Layout, lam: float) -> gtsam.GaussianFactorGraph:
     damped = gtsam.GaussianFactorGraph()
     damped.push_back(graph)
-    A = np.sqrt(lam) * np.eye(DIM)
-    zero, model = np.zeros(DIM), _unit(DIM)
-    for k in range(n):
-        damped.add(gtsam.JacobianFactor(k, A, zero, model))
+    for k in layout.keys:
+        d = layout.dim(k)
+        damped.add(gtsam.JacobianFactor(k, np.sqrt(lam) * np.eye(d), np.zeros(d), _unit(d)))
     return damped
 
 
@@ -207,18 +262,23 @@ class SolverResult:
     iterations: int
     converged: bool
     history: list = field(default_factory=list)
+    #: The calibration variables at the optimum (:class:`factors.calibration.CalibrationSet`), if any.
+    calibration: object = None
 
 
 def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max_iterations: int = 100,
-             relative_tolerance: float = 1e-9, absolute_tolerance: float = 1e-9) -> SolverResult:
-    """Minimise the blocks' cost from ``initial`` (see the module docstring for the methods).
-    Stops when the cost decreases by less than ``absolute_tolerance`` or by less than
-    ``relative_tolerance`` of itself, or after ``max_iterations``."""
+             relative_tolerance: float = 1e-9, absolute_tolerance: float = 1e-9,
+             calibration=None) -> SolverResult:
+    """Minimise the blocks' cost from ``initial`` and the calibration variables' values
+    ``calibration`` (a :class:`factors.calibration.CalibrationSet` or None; see the module
+    docstring for the methods). Stops when the cost decreases by less than
+    ``absolute_tolerance`` or by less than ``relative_tolerance`` of itself, or after
+    ``max_iterations``."""
     if method not in METHODS:
         raise InputError(f"method {method!r}: expected one of {', '.join(METHODS)}")
-    n = len(initial)
+    layout = Layout.of(initial, calibration)
     states = initial
-    graph, cost = linearize(blocks, states)
+    graph, cost = linearize(blocks, states, calibration)
     history = [cost]
     lam, radius = 1e-5, 1.0
     converged = False
@@ -227,10 +287,10 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
         accepted = False
         for _ in range(30):  # inner loop: damping / trust-region adjustments
             if method == "gn":
-                delta = _solve(graph, n)
+                delta = _solve(graph, layout)
             elif method == "lm":
                 try:
-                    delta = _solve(_damped(graph, n, lam), n)
+                    delta = _solve(_damped(graph, layout, lam), layout)
                 except IndeterminantSystem:
                     # as GTSAM's LM does: a damped system too poorly conditioned to factor
                     # counts as a rejected step; more damping, and try again
@@ -239,9 +299,9 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                         break
                     continue
             else:
-                delta = _dogleg_step(graph, n, radius)
-            trial = imu.boxplus(states, delta)
-            trial_cost = total_cost(blocks, trial)
+                delta = _dogleg_step(graph, layout, radius)
+            trial, trial_calibration = layout.apply(states, calibration, delta)
+            trial_cost = total_cost(blocks, trial, trial_calibration)
             if method == "gn":
                 accepted = True  # Gauss-Newton takes every step
                 break
@@ -252,14 +312,14 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                     break
                 # At the minimum the linear model promises a decrease at round-off level and no
                 # damping can realise it: stop there instead of raising lambda to its bound.
-                promised = cost - graph.error(_to_vector_values(delta))
+                promised = cost - graph.error(layout.vector_values(delta))
                 if promised <= max(absolute_tolerance, relative_tolerance * cost):
                     break
                 lam *= 10.0
                 if lam > 1e10:
                     break
             else:
-                predicted = cost - graph.error(_to_vector_values(delta))
+                predicted = cost - graph.error(layout.vector_values(delta))
                 rho = (cost - trial_cost) / predicted if predicted > 0 else -1.0
                 step = np.linalg.norm(delta)
                 if rho > 0.75:
@@ -275,20 +335,20 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
             converged = True  # no step decreases the cost: a (local) minimum at this precision
             break
         decrease = cost - trial_cost
-        states = trial
-        graph, cost = linearize(blocks, states)
+        states, calibration = trial, trial_calibration
+        graph, cost = linearize(blocks, states, calibration)
         history.append(cost)
         if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(cost, 1e-300):
             converged = True
             break
-    return SolverResult(states, cost, iterations, converged, history)
+    return SolverResult(states, cost, iterations, converged, history, calibration)
 
 
-def _dogleg_step(graph: gtsam.GaussianFactorGraph, n: int, radius: float) -> np.ndarray:
-    gn = _solve(graph, n)
+def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float) -> np.ndarray:
+    gn = _solve(graph, layout)
     if np.linalg.norm(gn) <= radius:
         return gn
-    sd = _to_array(graph.optimizeGradientSearch(), n)
+    sd = layout.flat(graph.optimizeGradientSearch())
     sd_norm = np.linalg.norm(sd)
     if sd_norm >= radius:
         return sd * (radius / sd_norm)
@@ -298,12 +358,13 @@ def _dogleg_step(graph: gtsam.GaussianFactorGraph, n: int, radius: float) -> np.
     return sd + tau * d
 
 
-def covariances(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False):
+def covariances(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False, calibration=None):
     """Marginal 15x15 covariances (primer convention) of the keyframes ``which`` (default all),
-    from the linearisation at ``states`` (:func:`marginal_covariances`; with ``pairs`` also the
-    joint blocks it computes on the way)."""
-    graph, _ = linearize(blocks, states)
-    return marginal_covariances(graph, len(states), which, pairs)
+    from the linearisation at ``states`` and ``calibration`` (:func:`marginal_covariances`; with
+    ``pairs`` also the joint blocks it computes on the way, those of the calibration variables,
+    keys ``n + j``, among them)."""
+    graph, _ = linearize(blocks, states, calibration)
+    return marginal_covariances(graph, len(states), which, pairs, Layout.of(states, calibration))
 
 
 #: The error state's quantities, three components each, in their order.
@@ -311,9 +372,11 @@ QUANTITIES = ("position (world) ", "velocity (body) ", "attitude (world) about "
               "gyro bias ")
 
 
-def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False):
-    """Marginal covariances of the variables ``which`` (default all) of the whitened linear system
-    ``graph`` on the 15-dim keys ``0 .. n - 1``, from its square-root information.
+def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False,
+                         layout: Layout | None = None):
+    """Marginal covariances of the variables ``which`` (default all keyframes) of the whitened
+    linear system ``graph`` on the 15-dim keys ``0 .. n - 1`` (and the keys of ``layout``'s
+    calibration variables, if given), from its square-root information.
 
     GTSAM eliminates ``graph`` with QR (COLAMD ordering) into conditionals ``R_i x_i + S_i x_P(i)``,
     which work on the rows themselves: the condition number that matters is that of the rows, not
@@ -332,6 +395,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed
     (``Sigma_ba = Sigma_ab^T``). Every two variables that share a factor are a conditional and its
     parent, so it holds the joint covariance of every factor's variables."""
+    layout = layout or Layout(n)
     ordering = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
         net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
@@ -343,10 +407,10 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     for conditional in reversed(conditionals):
         keys = [int(k) for k in conditional.keys()]
         frontal, parents = keys[0], keys[1:]
-        R = conditional.R()  # upper triangular, 15x15
+        R = conditional.R()  # upper triangular, the frontal variable's dimension
         if np.min(np.abs(np.diag(R))) <= tolerance:
             raise IndeterminantSystem(f"indeterminant linear system near variable {frontal}", frontal,
-                                      free_components(R, tolerance))
+                                      free_components(R, tolerance) if frontal < n else None)
         R_inv = np.linalg.inv(R)
         own = R_inv @ R_inv.T
         if parents:
@@ -355,8 +419,9 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
                     for a in parents]
             K = -R_inv @ conditional.S()  # Sigma_iP = K Sigma_PP
             cross = K @ np.vstack(rows)
+            bounds = np.cumsum([0, *(layout.dim(p) for p in parents)])
             for j, parent in enumerate(parents):
-                sigma[(frontal, parent)] = cross[:, j * DIM:(j + 1) * DIM]
+                sigma[(frontal, parent)] = cross[:, bounds[j]:bounds[j + 1]]
             own = own + cross @ K.T
         sigma[(frontal, frontal)] = 0.5 * (own + own.T)
     which = range(n) if which is None else which
