@@ -143,7 +143,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
                              f"sensor {config.name!r} ({config.kind}): {message}") from error
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
-        sensors.append(Sensor(config.name, config.kind, used, heldout))
+        sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate))
         whole.append(data)
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
     try:

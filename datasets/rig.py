@@ -42,6 +42,12 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
                                     # heading (an AHRS without a magnetometer; the kind roll_pitch)
     declination = 2.5               # magnetometers only, and required for them: the world field's
     inclination = 63.0              # declination (east of north) and inclination (down), degrees
+    estimate = ["rotation", "scale"]  # optional: what of its calibration the batch smoother
+                                    # estimates, any of time_offset, rotation, lever_arm, scale
+    time_offset_sigma = 0.1         # optional priors about the values given: s (default 0.1),
+    rotation_sigma = 0.1            # rad (0.1), m (0.2), and about a scale of 1 (0.05)
+    lever_arm_sigma = 0.2
+    scale_sigma = 0.05
 
 Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
 ``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
@@ -56,7 +62,9 @@ without a topic or a file source with one, unknown schemes and kinds, a ``T_BS``
 4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;
 within it the rotation is taken to the nearest one), both ``T_BS``
 and ``camchain``, duplicate sensor names, ``sigma`` <= 0, ``every`` < 1, a bad ``robust`` spec,
-a datum off the globe, ``roll_pitch_only`` that is not a boolean or on a sensor of another kind
+a datum off the globe, an ``estimate`` naming a part that is not one or that the kind cannot
+estimate (a rotation of a position sensor), a ``*_sigma`` of the calibration without ``estimate``,
+``roll_pitch_only`` that is not a boolean or on a sensor of another kind
 than ``orientation``, a magnetometer without ``declination`` (within +-180 degrees) and
 ``inclination`` (within +-90) or either on another kind.
 """
@@ -75,10 +83,11 @@ from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
-from datasets.kinds import KIND_NAMES
+from datasets.kinds import KIND_NAMES, KINDS
 from datasets.robust import robust_spec
 from datasets.sources import parse_spec
 from factors import so3
+from factors.calibration import PARTS, CalibrationPrior, applicable
 from factors.imu import DEFAULT_GRAVITY, ImuNoise
 
 if sys.version_info >= (3, 11):
@@ -99,8 +108,10 @@ TOP_KEYS = ("imu", "datum", "sensor")
 T_BS_TOLERANCE = 1e-4
 IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
+#: The keys of a sensor's calibration (:func:`_calibration`): what to estimate and the priors' sigmas.
+CALIBRATION_KEYS = ("estimate", "time_offset_sigma", "rotation_sigma", "lever_arm_sigma", "scale_sigma")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
-               "robust", "roll_pitch_only", "declination", "inclination")
+               "robust", "roll_pitch_only", "declination", "inclination", *CALIBRATION_KEYS)
 
 
 class RigError(InputError):
@@ -132,7 +143,9 @@ class SensorConfig:
     ``time_offset`` [s] added to its stamps, ``sigma`` None or standard deviations of shape (d,)
     (d = 1: the same for every axis), ``every`` (use every k-th measurement) and ``robust``,
     None or a kernel spec ``(name, threshold or None)`` of :func:`datasets.robust.robust_spec`;
-    for a magnetometer the world field's ``declination`` and ``inclination`` [deg] (else None)."""
+    for a magnetometer the world field's ``declination`` and ``inclination`` [deg] (else None);
+    ``calibrate``: what of its calibration to estimate (a
+    :class:`factors.calibration.CalibrationPrior`), or None."""
 
     name: str
     kind: str
@@ -145,6 +158,7 @@ class SensorConfig:
     robust: tuple | None
     declination: float | None = None
     inclination: float | None = None
+    calibrate: CalibrationPrior | None = None
 
 
 @dataclass(frozen=True)
@@ -334,9 +348,33 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
         robust = robust_spec(t.string("robust"))
     except ValueError as error:
         raise t.error("robust", str(error)) from None
+    time_offset = t.number("time_offset", default=0.0)
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
-                        time_offset=t.number("time_offset", default=0.0), sigma=_sigma(t), every=every, robust=robust,
-                        **_field_angles(t, kind))
+                        time_offset=time_offset, sigma=_sigma(t), every=every, robust=robust,
+                        **_field_angles(t, kind), calibrate=_calibration(t, kind, time_offset))
+
+
+def _calibration(t: "_Table", kind: str, time_offset: float) -> CalibrationPrior | None:
+    """The sensor's ``estimate = [...]`` (any of time_offset, rotation, lever_arm, scale that its
+    kind can estimate) with the priors' ``<part>_sigma`` keys; None without ``estimate`` (a sigma
+    key without it is refused: it would do nothing)."""
+    parts = t.get("estimate", (list,), f"a list of any of {', '.join(PARTS)}", default=None)
+    sigmas = {key: t.number(key, default=None, positive=True) for key in CALIBRATION_KEYS[1:]}
+    if parts is None:
+        given = [key for key, value in sigmas.items() if value is not None]
+        if given:
+            raise t.error(given[0], "has no effect without estimate = [...] naming what to estimate")
+        return None
+    can = applicable(KINDS[kind].model)
+    for part in parts:
+        if not isinstance(part, str) or part not in PARTS:
+            raise t.error("estimate", f"expected a list of any of {', '.join(PARTS)}, got {parts!r}")
+        if part not in can:
+            raise t.error("estimate", f"a {kind} sensor cannot estimate its {part}; it can estimate {', '.join(can)}")
+    if not parts or len(set(parts)) != len(parts):
+        raise t.error("estimate", f"expected a non-empty list of distinct parts of {', '.join(PARTS)}, got {parts!r}")
+    given = {key.removesuffix("_sigma"): value for key, value in sigmas.items() if value is not None}
+    return CalibrationPrior(tuple(parts), **given, stamp_offset=time_offset)
 
 
 def roll_pitch_kind(kind: str, roll_pitch_only: bool, error) -> str:

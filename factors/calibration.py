@@ -262,6 +262,9 @@ class CalibrationPrior:
     rotation: float = 0.1
     lever_arm: float = 0.2
     scale: float = 0.05
+    #: The time offset already added to the sensor's stamps (a rig's ``time_offset``): a
+    #: calibrated offset is reported as this plus the one estimated beyond it.
+    stamp_offset: float = 0.0
 
     def __post_init__(self):
         parts = tuple(self.parts)

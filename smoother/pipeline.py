@@ -16,6 +16,7 @@ import numpy as np
 
 from datasets.types import Dataset, Trajectory
 from smoother.batch import solve_batch
+from smoother.calibration_report import calibration_records
 from smoother.ekf import run_ekf
 from smoother.graph import build_problem, measurement_blocks
 from factors.errors import BoxplusError, InputError
@@ -108,7 +109,8 @@ def _one_line(error: Exception) -> str:
 
 def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
     r = run_ekf(dataset, options.ekf_gate, options.progress)
-    return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations)
+    return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected, **_given_values_note(dataset)},
+                    r.innovations)
 
 
 def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estimate:
@@ -125,12 +127,27 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
     problem = build_problem(dataset, options.keyframe_rate, options.robust,
                             start=None if ekf.failed is not None else ekf.trajectory)
     build_s = time.perf_counter() - tick
-    r = solve_batch(problem, options.optimizer, options.max_iterations, options.covariances)
+    # a calibration is never reported without its sigma: its covariance is computed whatever --no-covariance says
+    covariances = options.covariances or problem.calibration is not None
+    r = solve_batch(problem, options.optimizer, options.max_iterations, covariances)
     details.update({"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
                     "graph_build_s": build_s})
+    if r.calibration is not None:
+        details["calibration"], details["calibration_observability"] = calibration_records(r.calibration,
+                                                                                           r.calibration_cov)
     # the verdicts need the joint covariances, which only this call has
-    consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint)
+    consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)
     return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency)
+
+
+def _given_values_note(dataset: Dataset) -> dict:
+    """What the estimators other than the batch say of the calibrations a dataset asks for: they
+    use the values given."""
+    asking = [s.name for s in dataset.sensors if s.calibrate is not None]
+    if not asking:
+        return {}
+    return {"calibration_note": f"used the values given for {', '.join(asking)}; the batch smoother estimates "
+                                "calibrations (a rig run writes them into calibrated.toml for the next run)"}
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
@@ -138,7 +155,7 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
-               "longest_measurement_gap_s": r.longest_gap_s}
+               "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset)}
     if options.realtime and len(r.latency_s):
         ms = 1e3 * r.latency_s
         details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),

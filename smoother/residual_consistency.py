@@ -27,27 +27,29 @@ from __future__ import annotations
 import numpy as np
 
 from smoother.diagnostics import verdict
-from smoother.solver import Block
+from smoother.solver import Block, block_residual
 
 #: Blocks with no verdict of their own (the prior on the first keyframe is not a sensor).
 NOT_JUDGED = ("prior",)
 
 
-def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None = None) -> dict | None:
+def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None = None,
+                      calibration=None) -> dict | None:
     """The verdict (:func:`smoother.diagnostics.verdict`) of one block's residuals at ``states``
     (one per keyframe), with the keyframes' marginal covariances ``cov (n, 15, 15)`` and, for
     factors on two keyframes, ``joint`` (``{(a, b): Sigma_ab}``); None where those are missing.
     The residuals are whitened, not robustly reweighted: a robust kernel's outliers count, as
-    they are in the data."""
+    they are in the data. A block that reads a calibration variable (``calibration``'s values;
+    key ``n + j`` of ``joint``) counts that variable's share of the leverage too."""
     kf = block.keyframes
-    if kf.shape[1] == 2 and joint is None:
+    if (kf.shape[1] == 2 or block.calibration is not None) and joint is None:
         return None
     total, dof = 0.0, 0.0
     for start in range(0, len(kf), CHUNK):  # in chunks: a long run's Jacobians need not all be held at once
         rows = slice(start, min(start + CHUNK, len(kf)))
         chunk = kf[rows]
         slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
-        e, Js = block.residual(slots, True, rows)
+        e, Js = block_residual(block, slots, True, rows, calibration)
         whiten = block.whiten[rows]
         e_w = np.einsum("mab,mb->ma", whiten, e)
         if not np.isfinite(e_w).all():
@@ -58,6 +60,8 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
             cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in chunk])
             lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
             lev += np.einsum("mij,mjk,mik->m", A[1], cov[chunk[:, 1]], A[1])
+        if block.calibration is not None:
+            lev += _calibration_leverage(A, chunk, len(states) + block.calibration, joint)
         d = e_w.shape[1]
         total += float(np.sum(e_w * e_w))
         dof += float(np.sum(np.clip(d - lev, 0.0, d)))
@@ -66,20 +70,35 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
     return verdict(total, dof, len(kf), "residual")
 
 
+def _calibration_leverage(A: list, keyframes: np.ndarray, key: int, joint: dict) -> np.ndarray:
+    """The calibration variable ``key``'s terms of each factor's leverage: ``A_c P_cc A_c^T``
+    and twice ``A_s P_sc A_c^T`` for each keyframe slot ``s`` (``A`` the slots' whitened
+    Jacobians, then the calibration's)."""
+    A_c = A[-1]
+    lev = np.einsum("mij,jk,mik->m", A_c, joint[(key, key)], A_c)
+    for s in range(keyframes.shape[1]):
+        cross = np.stack([joint[(int(k), key)] if (int(k), key) in joint else joint[(key, int(k))].T
+                          for k in keyframes[:, s]])
+        lev += 2.0 * np.einsum("mij,mjk,mik->m", A[s], cross, A_c)
+    return lev
+
+
 #: Factors evaluated at once by :func:`block_consistency` (a few MB of Jacobians).
 CHUNK = 1024
 
 
-def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None) -> dict:
-    """:func:`block_consistency` of every block but :data:`NOT_JUDGED`, by block name (a sensor's
-    name; ``"imu"`` for the IMU factors); blocks without the covariances they need are left out."""
+def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None,
+                         calibration=None) -> dict:
+    """:func:`block_consistency` of every block but :data:`NOT_JUDGED` and the calibrations'
+    priors (blocks on no keyframe), by block name (a sensor's name; ``"imu"`` for the IMU
+    factors); blocks without the covariances they need are left out."""
     if cov is None:
         return {}
     out = {}
     for block in blocks:
-        if block.name in NOT_JUDGED or len(block) == 0:
+        if block.name in NOT_JUDGED or len(block) == 0 or block.keyframes.shape[1] == 0:
             continue
-        c = block_consistency(block, states, cov, joint)
+        c = block_consistency(block, states, cov, joint, calibration)
         if c is not None:
             out[block.name] = c
     return out

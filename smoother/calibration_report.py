@@ -1,0 +1,95 @@
+"""What a run says of the calibrations it estimated: ``metrics.json``'s record, the printed table,
+and which coordinates the data did not fix.
+
+A calibrated sensor's record (``metrics.json``: ``<estimator>.calibration.<sensor>``) has, for
+each part estimated, exactly these keys (conventions of :mod:`factors.calibration`):
+``time_offset_s`` (the whole offset to add to the sensor's stamps: the one given plus the one
+estimated) and ``time_offset_sigma_s``; ``T_BS`` (the estimated extrinsic, 4x4 rows, ``p_B = T_BS
+p_S``) with ``rotation_sigma_rad`` (3, about the IMU frame's axes of the left chart) and/or
+``lever_arm_m`` (= the translation of ``T_BS``) with ``lever_arm_sigma_m`` (3); ``scale`` and
+``scale_sigma``. Nothing estimated is recorded without its sigma.
+
+Observability: a coordinate whose posterior sigma is at least :data:`UNOBSERVED_RATIO` of its
+prior's was not fixed by the data -- a lever arm without rotation of the vehicle, the roll of a
+speed sensor about its own axis, a time offset while standing still -- and stays at its prior;
+``<estimator>.calibration_observability.<sensor>`` gives every coordinate's ratio and the table
+says which stayed at their prior.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from factors import so3
+from factors.calibration import PART_COLUMNS
+
+#: Posterior over prior sigma from which a coordinate counts as not observed (the data shrank
+#: its uncertainty by less than 10 %).
+UNOBSERVED_RATIO = 0.9
+
+_AXES = ("x", "y", "z")
+
+
+def _coordinate_names(parts) -> list[str]:
+    names = []
+    for part in parts:
+        width = PART_COLUMNS[part].stop - PART_COLUMNS[part].start
+        names += [part] if width == 1 else [f"{part} {a}" for a in _AXES]
+    return names
+
+
+def calibration_records(calibration, covariances) -> tuple[dict, dict]:
+    """``({sensor: record}, {sensor: {coordinate: posterior sigma / prior sigma}})`` of a
+    solution's calibration variables (:class:`factors.calibration.CalibrationSet`) with their
+    marginal covariances (one per sensor over its estimated coordinates)."""
+    records, ratios = {}, {}
+    for name, value, prior, cov in zip(calibration.names, calibration.values, calibration.priors, covariances):
+        sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        at = dict(zip(prior.parts, np.split(sigma, np.cumsum([PART_COLUMNS[p].stop - PART_COLUMNS[p].start
+                                                              for p in prior.parts])[:-1])))
+        record: dict = {}
+        if "time_offset" in at:
+            record["time_offset_s"] = prior.stamp_offset + value.time_offset
+            record["time_offset_sigma_s"] = float(at["time_offset"][0])
+        if "rotation" in at or "lever_arm" in at:
+            record["T_BS"] = value.T_BS.tolist()
+        if "rotation" in at:
+            record["rotation_sigma_rad"] = at["rotation"].tolist()
+        if "lever_arm" in at:
+            record["lever_arm_m"] = value.p.tolist()
+            record["lever_arm_sigma_m"] = at["lever_arm"].tolist()
+        if "scale" in at:
+            record["scale"] = value.scale
+            record["scale_sigma"] = float(at["scale"][0])
+        records[name] = record
+        ratios[name] = dict(zip(_coordinate_names(prior.parts), (sigma / prior.sigmas).tolist()))
+    return records, ratios
+
+
+def unobserved(ratios: dict) -> list[str]:
+    """The coordinates of one sensor's ratios that the data did not fix (:data:`UNOBSERVED_RATIO`)."""
+    return [c for c, r in ratios.items() if r >= UNOBSERVED_RATIO]
+
+
+def calibration_lines(records: dict, ratios: dict) -> list[str]:
+    """The printed table of one estimator's calibrations: a line per sensor and part, each value
+    with its sigma, and the coordinates that stayed at their prior."""
+    lines = []
+    for name, r in records.items():
+        parts = []
+        if "time_offset_s" in r:
+            parts.append(f"time offset {r['time_offset_s']:+.4f} +- {r['time_offset_sigma_s']:.4f} s")
+        if "rotation_sigma_rad" in r:
+            angles = np.degrees(so3.log(np.asarray(r["T_BS"])[:3, :3]))
+            sig = np.degrees(r["rotation_sigma_rad"])
+            parts.append("R_BS rotation vector (" + ", ".join(f"{a:+.3f} +- {s:.3f}" for a, s in zip(angles, sig))
+                         + ") deg")
+        if "lever_arm_m" in r:
+            parts.append("lever arm (" + ", ".join(f"{a:+.4f} +- {s:.4f}" for a, s in
+                                                   zip(r["lever_arm_m"], r["lever_arm_sigma_m"])) + ") m")
+        if "scale" in r:
+            parts.append(f"scale {r['scale']:.5f} +- {r['scale_sigma']:.5f}")
+        left = unobserved(ratios.get(name, {}))
+        note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
+                f"{', '.join(left)}") if left else ""
+        lines.append(f"calibration {name}: " + "; ".join(parts) + note)
+    return lines
