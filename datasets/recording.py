@@ -137,6 +137,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     for config in rig.sensors:
         try:
             data, clock.datum = KINDS[config.kind].read(config, clock)
+            data = KINDS[config.kind].unscaled(data, config.scale)
         except ValueError as error:  # a reader's DataError names its file; say which sensor it was
             message = str(error)
             raise InputError(message if message.startswith("sensor ") else

@@ -42,6 +42,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
                                     # heading (an AHRS without a magnetometer; the kind roll_pitch)
     declination = 2.5               # magnetometers only, and required for them: the world field's
     inclination = 63.0              # declination (east of north) and inclination (down), degrees
+    scale = 1.0                     # optional, velocity and odometry only: what the sensor reads
+                                    # per unit of the truth (its readings are divided by it)
     estimate = ["rotation", "scale"]  # optional: what of its calibration the batch smoother
                                     # estimates, any of time_offset, rotation, lever_arm, scale
     time_offset_sigma = 0.1         # optional priors about the values given: s (default 0.1),
@@ -111,7 +113,7 @@ DATUM_KEYS = ("latitude", "longitude", "altitude")
 #: The keys of a sensor's calibration (:func:`_calibration`): what to estimate and the priors' sigmas.
 CALIBRATION_KEYS = ("estimate", "time_offset_sigma", "rotation_sigma", "lever_arm_sigma", "scale_sigma")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
-               "robust", "roll_pitch_only", "declination", "inclination", *CALIBRATION_KEYS)
+               "robust", "roll_pitch_only", "declination", "inclination", "scale", *CALIBRATION_KEYS)
 
 
 class RigError(InputError):
@@ -144,7 +146,8 @@ class SensorConfig:
     (d = 1: the same for every axis), ``every`` (use every k-th measurement) and ``robust``,
     None or a kernel spec ``(name, threshold or None)`` of :func:`datasets.robust.robust_spec`;
     for a magnetometer the world field's ``declination`` and ``inclination`` [deg] (else None);
-    ``calibrate``: what of its calibration to estimate (a
+    ``scale``: what a velocity or odometry sensor reads per unit of the truth (its readings are
+    divided by it); ``calibrate``: what of its calibration to estimate (a
     :class:`factors.calibration.CalibrationPrior`), or None."""
 
     name: str
@@ -158,6 +161,7 @@ class SensorConfig:
     robust: tuple | None
     declination: float | None = None
     inclination: float | None = None
+    scale: float = 1.0
     calibrate: CalibrationPrior | None = None
 
 
@@ -351,7 +355,16 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     time_offset = t.number("time_offset", default=0.0)
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
                         time_offset=time_offset, sigma=_sigma(t), every=every, robust=robust,
-                        **_field_angles(t, kind), calibrate=_calibration(t, kind, time_offset))
+                        **_field_angles(t, kind), scale=_scale(t, kind),
+                        calibrate=_calibration(t, kind, time_offset))
+
+
+def _scale(t: "_Table", kind: str) -> float:
+    """The sensor's ``scale`` (default 1), on the kinds with scaled readings only."""
+    scale = t.number("scale", default=1.0, positive=True)
+    if scale != 1.0 and KINDS[kind].scaled_field is None:
+        raise t.error("scale", f"a {kind} sensor has no scale (velocity and odometry sensors have)")
+    return scale
 
 
 def _calibration(t: "_Table", kind: str, time_offset: float) -> CalibrationPrior | None:

@@ -9,17 +9,18 @@ p_S``) with ``rotation_sigma_rad`` (3, about the IMU frame's axes of the left ch
 ``lever_arm_m`` (= the translation of ``T_BS``) with ``lever_arm_sigma_m`` (3); ``scale`` and
 ``scale_sigma``. Nothing estimated is recorded without its sigma.
 
-Observability: a coordinate whose posterior sigma is at least :data:`UNOBSERVED_RATIO` of its
-prior's was not fixed by the data -- a lever arm without rotation of the vehicle, the roll of a
-speed sensor about its own axis, a time offset while standing still -- and stays at its prior;
-``<estimator>.calibration_observability.<sensor>`` gives every coordinate's ratio and the table
-says which stayed at their prior.
+Against the prior (``<estimator>.calibration_against_prior.<sensor>``): ``sigma_ratio``, each
+estimated coordinate's posterior sigma over its prior's; ``unobserved``, the coordinates whose
+ratio is at least :data:`UNOBSERVED_RATIO` -- the data did not fix them (a lever arm without
+rotation of the vehicle, the roll of a speed sensor about its own axis, a time offset while
+standing still) and they stay at their prior; ``rotation_change_rad`` and
+``lever_arm_change_m``, how far the estimate moved from the values given (the rotation as
+``log(R R_given^T)``, IMU frame).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from factors import so3
 from factors.calibration import PART_COLUMNS
 
 #: Posterior over prior sigma from which a coordinate counts as not observed (the data shrank
@@ -38,11 +39,12 @@ def _coordinate_names(parts) -> list[str]:
 
 
 def calibration_records(calibration, covariances) -> tuple[dict, dict]:
-    """``({sensor: record}, {sensor: {coordinate: posterior sigma / prior sigma}})`` of a
-    solution's calibration variables (:class:`factors.calibration.CalibrationSet`) with their
-    marginal covariances (one per sensor over its estimated coordinates)."""
-    records, ratios = {}, {}
-    for name, value, prior, cov in zip(calibration.names, calibration.values, calibration.priors, covariances):
+    """``({sensor: record}, {sensor: against the prior})`` (module docstring) of a solution's
+    calibration variables (:class:`factors.calibration.CalibrationSet`) with their marginal
+    covariances (one per sensor over its estimated coordinates)."""
+    records, against = {}, {}
+    for name, value, prior, mean, cov in zip(calibration.names, calibration.values, calibration.priors,
+                                             calibration.means, covariances):
         sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         at = dict(zip(prior.parts, np.split(sigma, np.cumsum([PART_COLUMNS[p].stop - PART_COLUMNS[p].start
                                                               for p in prior.parts])[:-1])))
@@ -61,34 +63,37 @@ def calibration_records(calibration, covariances) -> tuple[dict, dict]:
             record["scale"] = value.scale
             record["scale_sigma"] = float(at["scale"][0])
         records[name] = record
-        ratios[name] = dict(zip(_coordinate_names(prior.parts), (sigma / prior.sigmas).tolist()))
-    return records, ratios
+        ratios = dict(zip(_coordinate_names(prior.parts), (sigma / prior.sigmas).tolist()))
+        change = value.boxminus(mean)
+        against[name] = {"sigma_ratio": ratios, "unobserved": [c for c, r in ratios.items() if r >= UNOBSERVED_RATIO]}
+        if "rotation" in prior.parts:
+            against[name]["rotation_change_rad"] = change[1:4].tolist()
+        if "lever_arm" in prior.parts:
+            against[name]["lever_arm_change_m"] = change[4:7].tolist()
+    return records, against
 
 
-def unobserved(ratios: dict) -> list[str]:
-    """The coordinates of one sensor's ratios that the data did not fix (:data:`UNOBSERVED_RATIO`)."""
-    return [c for c, r in ratios.items() if r >= UNOBSERVED_RATIO]
-
-
-def calibration_lines(records: dict, ratios: dict) -> list[str]:
-    """The printed table of one estimator's calibrations: a line per sensor and part, each value
-    with its sigma, and the coordinates that stayed at their prior."""
+def calibration_lines(records: dict, against: dict) -> list[str]:
+    """The printed table of one estimator's calibrations: a line per sensor, each value with its
+    sigma (a rotation as its change from the one given, in degrees about the IMU frame's axes),
+    and the coordinates that stayed at their prior."""
     lines = []
     for name, r in records.items():
+        a = against.get(name, {})
         parts = []
         if "time_offset_s" in r:
             parts.append(f"time offset {r['time_offset_s']:+.4f} +- {r['time_offset_sigma_s']:.4f} s")
         if "rotation_sigma_rad" in r:
-            angles = np.degrees(so3.log(np.asarray(r["T_BS"])[:3, :3]))
+            angles = np.degrees(a.get("rotation_change_rad", [np.nan] * 3))
             sig = np.degrees(r["rotation_sigma_rad"])
-            parts.append("R_BS rotation vector (" + ", ".join(f"{a:+.3f} +- {s:.3f}" for a, s in zip(angles, sig))
+            parts.append("rotation turned by (" + ", ".join(f"{x:+.3f} +- {s:.3f}" for x, s in zip(angles, sig))
                          + ") deg")
         if "lever_arm_m" in r:
             parts.append("lever arm (" + ", ".join(f"{a:+.4f} +- {s:.4f}" for a, s in
                                                    zip(r["lever_arm_m"], r["lever_arm_sigma_m"])) + ") m")
         if "scale" in r:
             parts.append(f"scale {r['scale']:.5f} +- {r['scale_sigma']:.5f}")
-        left = unobserved(ratios.get(name, {}))
+        left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""
         lines.append(f"calibration {name}: " + "; ".join(parts) + note)

@@ -133,7 +133,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
     details.update({"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
                     "graph_build_s": build_s})
     if r.calibration is not None:
-        details["calibration"], details["calibration_observability"] = calibration_records(r.calibration,
+        details["calibration"], details["calibration_against_prior"] = calibration_records(r.calibration,
                                                                                            r.calibration_cov)
     # the verdicts need the joint covariances, which only this call has
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)

@@ -47,7 +47,8 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
     a residual of at most :data:`factors.sensor_models.MAX_RESIDUAL_DIM` and kernel rows of at
     most :data:`factors.sensor_models.MAX_ROW_WIDTH` numbers (the room the EKF and the sliding
     window hold); a model of the kind's dimension; a data type whose fields are the kind's
-    ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``default_sigma`` that
+    ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``scaled_field`` exactly where the
+    model has scaled rows; a ``default_sigma`` that
     :func:`kind_sigmas` reads; a ``random_row`` of the declared width. An error naming the
     kind and the rule else (an InputError)."""
     out: dict[str, Kind] = {}
@@ -68,6 +69,9 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
         if found != expected:
             refuse(f"{k.data_type.__name__} has the fields {found}; the kind declares {expected}")
         kind_sigmas(f"measurement kind {k.name!r}: default_sigma", k.default_sigma, k.dim)
+        scaled_rows = sm.ODOMETRY_SCALED if k.relative else k.model.scaled
+        if (k.scaled_field is None) != (scaled_rows == 0):
+            refuse(f"scaled_field {k.scaled_field!r}, and its model has {scaled_rows} scaled rows")
         _, row = k.random_row(np.random.default_rng(0))
         if np.shape(row) != (k.width,):
             refuse(f"random_row gives a row of shape {np.shape(row)}; expected ({k.width},)")

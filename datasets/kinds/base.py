@@ -40,7 +40,9 @@ class Kind:
     simulator's noise when none is given (as :func:`kind_sigmas` reads it); ``corrupt(data,
     index, scale, rng)``: the data with the measurements ``index`` made outliers, moved by
     ``scale = (metres, radians)`` in random directions (None: the simulator cannot corrupt this
-    kind). The registry (:func:`datasets.kinds.registered`) checks these declarations."""
+    kind); ``scaled_field``: the field of readings that a sensor's scale multiplies (what it reads
+    per unit of the truth; the model's :attr:`~factors.sensor_models.SensorModel.scaled` rows),
+    None if none. The registry (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
     data_type: type
@@ -55,6 +57,21 @@ class Kind:
     default_sigma: tuple
     times: tuple[str, ...] = ("t",)
     corrupt: Callable | None = None
+    scaled_field: str | None = None
+
+    def unscaled(self, data, scale: float):
+        """``data`` with its :attr:`scaled_field` divided by ``scale`` and its covariance by
+        ``scale^2`` (the readings of a sensor that reads ``scale`` per unit of the truth, as the
+        truth); only the scaled rows' block of the covariance changes."""
+        if scale == 1.0:
+            return data
+        if self.scaled_field is None:
+            raise InputError(f"a {self.name} sensor has no scale")
+        k = np.shape(getattr(data, self.scaled_field))[-1]
+        f = np.ones(self.dim)
+        f[:k] = 1.0 / scale
+        return replace(data, **{self.scaled_field: getattr(data, self.scaled_field) / scale},
+                       cov=data.cov * f[:, None] * f[None, :])
 
     @property
     def relative(self) -> bool:

@@ -176,6 +176,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.initialise import world_frame
     from datasets.kinds import sensors_of
     from smoother import report
+    from smoother.calibration_report import calibration_lines
     from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.pipeline import estimate_each, judged, sensor_consistency
 
@@ -231,6 +232,13 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         note = interpolation_note(baseline, metrics, estimates, dataset)
         if note:
             print(f"note: {note}", file=sys.stderr)
+    for name, m in metrics.items():
+        if m.get("calibration"):
+            print(f"{name}:")
+            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {})):
+                print(f"  {line}")
+    if args.rig is not None and metrics.get("batch", {}).get("calibration"):
+        print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)
     latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
     if latency is not None:
         print(f"fixed-lag latency, measurement arrival to updated estimate ({latency['measurements']} measurements): "
@@ -261,6 +269,16 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict) -> dic
         from smoother.mcap_export import write_mcap
 
         write_mcap(stage / MCAP, dataset, estimates)
+    records = metrics.get("batch", {}).get("calibration")
+    if args.rig is not None and records:
+        from datasets.rig import load_rig
+        from datasets.rig_writer import calibrated_rig_text
+        from smoother.commands.run_directory import CALIBRATED_RIG
+
+        from datasets.atomic import atomic_write
+
+        with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
+            handle.write(calibrated_rig_text(load_rig(args.rig), records))
     return metrics
 
 

@@ -36,6 +36,8 @@ REFERENCES = ("truth.npz", "gps.npz")
 METRICS = "metrics.json"
 #: The run's estimates as ROS 2 messages (``--mcap``).
 MCAP = "estimates.mcap"
+#: The rig with the batch smoother's calibration written in (a rig run that estimates one).
+CALIBRATED_RIG = "calibrated.toml"
 #: The figures of a run directory (:func:`smoother.plots.plot_run`), as ``<name>.png``.
 FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
 #: Lock errors of a file system without locks: the run goes on, unguarded, with a warning.
@@ -47,7 +49,7 @@ def run_files() -> frozenset[str]:
     from smoother.pipeline import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
-                     + list(REFERENCES) + [METRICS, MCAP] + [f"{figure}.png" for figure in FIGURES])
+                     + list(REFERENCES) + [METRICS, MCAP, CALIBRATED_RIG] + [f"{figure}.png" for figure in FIGURES])
 
 
 class RunDirectory:
