@@ -1,0 +1,146 @@
+"""The batch smoother's calibration of simulated rigs with known errors: each error recovered
+within 3 posterior sigma, the calibration's NEES in its chi-square band over 20 seeds, what the
+data cannot fix left at its prior and said so, a right calibration left (nearly) alone."""
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
+from datasets.trajectories import Sinusoids, sinusoid_profile
+from factors import imu, so3
+from factors.calibration import CalibrationPrior
+from smoother.batch import solve_batch
+from smoother.calibration_report import UNOBSERVED_RATIO, calibration_records
+from smoother.graph import build_problem
+from smoother.metrics import chi2_quantile
+
+#: A 3 deg pitched and 1 deg yawed speed sensor.
+PITCHED = np.eye(4)
+PITCHED[:3, :3] = so3.exp(np.radians([0.0, 3.0, 1.0]))
+#: Straight along the IMU's x axis with a varying speed, never turning: a lever arm and a speed
+#: sensor's roll about its own axis are not observable on it.
+STRAIGHT = sinusoid_profile("straight", "along x at 1.5-2.5 m/s, level, never turning",
+                            (Sinusoids(slope=2.0, terms=((1.0, 0.5, 0.0),)), Sinusoids(), Sinusoids()),
+                            (Sinusoids(), Sinusoids(), Sinusoids()))
+
+
+def _solve(dataset):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = solve_batch(build_problem(dataset))
+    records, against = calibration_records(result.calibration, result.calibration_cov)
+    return result, records, against
+
+
+def _rig(seed: int, duration: float = 30.0, profile="gentle", **kw):
+    """A wheel speed sensor (velocity, 10 Hz) pitched 3 deg and yawed 1 deg, reading 1 % low, and a
+    GNSS antenna (5 Hz) 0.5 m above the IMU whose fixes are stamped 0.1 s late; returned with the
+    values a user would write: identity mountings, no offsets."""
+    antenna = np.eye(4)
+    antenna[:3, 3] = [0.0, 0.0, 0.5]
+    data = simulate(profile, duration=duration, seed=seed, pose_rate=0, **kw,
+                    sensors=(SensorSpec("wheels", "velocity", 10.0, 0.05, PITCHED), SensorSpec("gnss", "gnss", 5.0, 0.1,
+                                                                                             antenna)))
+    wheels, gnss = data.sensor("wheels").data, data.sensor("gnss").data
+    data = data.with_sensor("wheels", data=replace(wheels, velocity=0.99 * wheels.velocity, cov=0.99**2 * wheels.cov,
+                                                   T_BS=np.eye(4)))
+    late = gnss.t + 0.1 <= data.imu.t[-1]
+    return data.with_sensor("gnss", data=replace(gnss.subset(late), t=gnss.t[late] + 0.1, T_BS=np.eye(4)))
+
+
+#: The true errors in the calibration's coordinates about the values written: wheels' rotation
+#: (log(R_true R_given^T)) and scale; the fixes' time offset (taken 0.1 s before their stamps) and
+#: the antenna's lever arm.
+TRUE_ROTATION = so3.log(PITCHED[:3, :3])
+
+
+def test_batch_recovers_a_delay_a_mounting_a_lever_arm_and_a_scale_within_3_sigma():
+    data = _rig(1)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+    result, records, against = _solve(data)
+    wheels, gnss = records["wheels"], records["gnss"]
+    rotation = np.array(against["wheels"]["rotation_change_rad"])
+    # pitch and yaw of the speed sensor; its roll about its own axis is weakly observable here
+    assert np.all(np.abs(rotation[1:] - TRUE_ROTATION[1:]) < 3 * np.array(wheels["rotation_sigma_rad"])[1:]), records
+    assert abs(wheels["scale"] - 0.99) < 3 * wheels["scale_sigma"] and wheels["scale_sigma"] < 0.01
+    assert abs(gnss["time_offset_s"] + 0.1) < 3 * gnss["time_offset_sigma_s"] and gnss["time_offset_sigma_s"] < 0.05
+    assert np.all(np.abs(np.array(gnss["lever_arm_m"]) - [0, 0, 0.5]) < 3 * np.array(gnss["lever_arm_sigma_m"]))
+    assert np.array(gnss["lever_arm_sigma_m"]).max() < 0.1
+    assert set(wheels) == {"T_BS", "rotation_sigma_rad", "scale", "scale_sigma"}
+    assert set(gnss) == {"time_offset_s", "time_offset_sigma_s", "T_BS", "lever_arm_m", "lever_arm_sigma_m"}
+
+
+def test_calibration_nees_over_20_seeds_is_in_its_chi_square_band():
+    """The wheels' pitch, yaw and scale and the fixes' delay (4 dof per seed): the sum of their
+    normalised squared errors over 20 seeds lies in the 99 % chi-square band of 80 dof."""
+    total, dof = 0.0, 0
+    for seed in range(20):
+        data = _rig(100 + seed, duration=15.0)
+        data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+        data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset",)))
+        result, _, _ = _solve(data)
+        wheels, gnss = result.calibration.values
+        P_w, P_g = result.calibration_cov
+        error = np.r_[so3.boxminus(wheels.R, PITCHED[:3, :3]), wheels.scale - 0.99]
+        keep = [1, 2, 3]  # pitch, yaw, scale (the roll about the sensor's axis is barely observed)
+        total += float(error[keep] @ np.linalg.solve(P_w[np.ix_(keep, keep)], error[keep]))
+        total += float((gnss.time_offset + 0.1) ** 2 / P_g[0, 0])
+        dof += 4
+    assert chi2_quantile(0.005, dof) <= total <= chi2_quantile(0.995, dof), (total, dof)
+
+
+def test_what_the_data_cannot_fix_stays_at_its_prior_and_is_reported():
+    """Driving straight without turning: the antenna's lever arm along the way and the speed
+    sensor's roll about its own axis are not observable; standing still, no time offset is."""
+    data = _rig(2, duration=20.0, profile=STRAIGHT, initial_sigma=(5.0, 0.1, 0.01))
+    data = data.with_sensor("wheels", data=replace(data.sensor("wheels").data, T_BS=PITCHED),
+                            calibrate=CalibrationPrior(("rotation",)))
+    data = data.with_sensor("gnss", calibrate=CalibrationPrior(("lever_arm",)))
+    result, records, against = _solve(data)
+    assert "rotation x" in against["wheels"]["unobserved"], against
+    assert not {"rotation y", "rotation z"} & set(against["wheels"]["unobserved"]), against
+    assert {"lever_arm x", "lever_arm y", "lever_arm z"} <= set(against["gnss"]["unobserved"]), against
+    assert np.allclose(against["gnss"]["lever_arm_change_m"], 0.0, atol=0.1 * 0.2)
+
+    still = simulate("static", duration=10.0, seed=3, pose_rate=0, sensors=(SensorSpec("gnss", "gnss", 5.0, 0.2),))
+    still = still.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset",)))
+    _, records, against = _solve(still)
+    assert against["gnss"]["unobserved"] == ["time_offset"]
+    assert against["gnss"]["sigma_ratio"]["time_offset"] >= UNOBSERVED_RATIO
+    assert abs(records["gnss"]["time_offset_s"]) < 0.01
+
+
+def test_calibrating_a_wheel_time_offset_that_is_right_changes_the_trajectory_by_less_than_a_tenth_sigma():
+    """Two minutes with GNSS and wheels whose values are right: estimating the wheels' time offset
+    moves the trajectory by less than 0.1 of its sigma (RMS over the keyframes, each position,
+    velocity and attitude component). A calibration that carries information of its own -- a
+    mounting rotation, through which the wheels tell the attitude -- moves the states it was
+    correlated with by up to about their sigma when freed (``P_xc P_cc^-1`` times its error), as
+    any least-squares fit does; that is not tested against 0.1."""
+    data = simulate("gentle", duration=120.0, seed=4, pose_rate=0,
+                    sensors=(SensorSpec("wheels", "velocity", 10.0, 0.05, PITCHED), SensorSpec("gnss", "gnss", 5.0, 0.2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        given = solve_batch(build_problem(data))
+    calibrated, _, _ = _solve(data.with_sensor("wheels", calibrate=CalibrationPrior(("time_offset",))))
+    sigma = np.sqrt(np.diagonal(given.trajectory.cov, axis1=1, axis2=2))
+    moved = imu.boxminus(calibrated.trajectory.states, given.trajectory.states) / sigma
+    assert np.sqrt(np.mean(moved[:, :9] ** 2, axis=0)).max() < 0.1
+
+
+@pytest.mark.parametrize("parts, kind, message", [
+    (("rotation",), "gnss", "cannot estimate rotation"),
+    (("scale",), "gnss", "cannot estimate scale"),
+])
+def test_a_part_the_kind_cannot_estimate_is_refused_naming_the_sensor(parts, kind, message):
+    from factors.errors import InputError
+
+    data = simulate("gentle", duration=3.0, seed=0, pose_rate=0, sensors=(SensorSpec("antenna", kind, 5.0, 0.2),))
+    with pytest.raises(InputError, match=f"sensor 'antenna' .*{message}"):
+        build_problem(data.with_sensor("antenna", calibrate=CalibrationPrior(parts)))

@@ -1,0 +1,96 @@
+"""Self-calibration through a rig file: ``estimate = [...]`` in the rig, the printed table,
+``metrics.json``'s records, ``calibrated.toml`` and the next run from it."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from rigfiles import toml_matrix
+from small_recording import WHEEL, write_recording
+
+from datasets.rig import RigError, load_rig
+from factors import so3
+from smoother.cli import main
+
+#: The wheel frame as a user would write it: 3 deg of pitch and 1 deg of yaw off the truth.
+WRITTEN = WHEEL.copy()
+WRITTEN[:3, :3] = so3.exp(np.radians([0.0, 3.0, 1.0])) @ WHEEL[:3, :3]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("calibration")
+    rig, data = write_recording(folder, duration=20.0)
+    return folder, rig.read_text()
+
+
+def _rig(folder, text: str, wheel_extra: str, name: str) -> str:
+    """The recording's rig with the wheel's T_BS as written and ``wheel_extra`` keys."""
+    text = text.replace(f"T_BS = {toml_matrix(WHEEL)}", f"T_BS = {toml_matrix(WRITTEN)}\n{wheel_extra}")
+    path = folder / f"{name}.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def _run(rig, out) -> dict:
+    assert main(["run", "--rig", rig, "--estimator", "batch", "--out", str(out), "--no-progress"]) == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_a_rig_run_calibrates_prints_records_and_writes_a_rig_the_next_run_reproduces(recording, tmp_path, capsys):
+    folder, text = recording
+    rig = _rig(folder, text, 'scale = 1.02\nestimate = ["rotation", "scale"]\nrotation_sigma = 0.1', "calibrate")
+    metrics = _run(rig, tmp_path / "first")
+    printed = capsys.readouterr().out
+    record = metrics["batch"]["calibration"]["wheel"]
+    assert set(record) == {"T_BS", "rotation_sigma_rad", "scale", "scale_sigma"}
+    assert "calibration wheel: rotation turned by (" in printed and " +- " in printed
+    # the truth: the written mounting turned back by (0, -3, -1) deg, and readings 1/1.02 of the truth
+    change = np.degrees(metrics["batch"]["calibration_against_prior"]["wheel"]["rotation_change_rad"])
+    sigma = np.degrees(record["rotation_sigma_rad"])
+    assert np.all(np.abs(change[1:] - [-3.0, -1.0]) < 3 * sigma[1:]), (change, sigma)
+    assert abs(record["scale"] - 1 / 1.02) < 3 * record["scale_sigma"]
+
+    calibrated = tmp_path / "first" / "calibrated.toml"
+    again = load_rig(calibrated)  # a rig file, paths absolute, the values written in
+    wheel = next(s for s in again.sensors if s.name == "wheel")
+    assert wheel.calibrate is None and np.allclose(wheel.T_BS, record["T_BS"], atol=1e-12)
+    assert wheel.scale == pytest.approx(1.02 * record["scale"])
+    assert "# calibrated by the batch smoother" in calibrated.read_text()
+
+    second = _run(str(calibrated), tmp_path / "second")
+    assert "calibration" not in second["batch"]
+    first_npz, second_npz = (np.load(tmp_path / d / "batch.npz") for d in ("first", "second"))
+    sigma_r = np.sqrt(np.diagonal(first_npz["cov"], axis1=1, axis2=2))[:, :3]
+    assert np.abs(second_npz["r"] - first_npz["r"]).max(axis=0).max() < 0.1 * sigma_r.min()
+
+
+def test_a_time_offset_is_reported_as_the_whole_offset_and_written_so(recording, tmp_path):
+    folder, text = recording
+    text = text.replace('topic = "/fix"\n', 'topic = "/fix"\ntime_offset = 0.05\nestimate = ["time_offset"]\n')
+    metrics = _run(_rig(folder, text, "", "offset"), tmp_path / "run")
+    record = metrics["batch"]["calibration"]["gnss"]
+    assert set(record) == {"time_offset_s", "time_offset_sigma_s"}
+    assert abs(record["time_offset_s"]) < 3 * record["time_offset_sigma_s"]  # the truth: 0, not the 0.05 written
+    gnss = next(s for s in load_rig(tmp_path / "run" / "calibrated.toml").sensors if s.name == "gnss")
+    assert gnss.time_offset == pytest.approx(record["time_offset_s"])
+
+
+@pytest.mark.parametrize("extra, key, message", [
+    ('estimate = ["mounting"]', "estimate", "expected a list of any of time_offset, rotation, lever_arm, scale"),
+    ('rotation_sigma = 0.1', "rotation_sigma", "has no effect without estimate"),
+    ('estimate = ["scale"]\nscale_sigma = -1.0', "scale_sigma", "expected a number > 0"),
+    ('estimate = []', "estimate", "non-empty"),
+])
+def test_bad_calibration_keys_name_the_file_and_the_key(recording, extra, key, message):
+    folder, text = recording
+    with pytest.raises(RigError, match=rf'bad\.toml: sensor\[2\] "wheel"\.{key}: .*{message}'):
+        load_rig(_rig(folder, text, extra, "bad"))
+
+
+def test_a_part_the_kind_cannot_estimate_is_refused_in_the_rig(recording):
+    folder, text = recording
+    text = text.replace('topic = "/fix"\n', 'topic = "/fix"\nestimate = ["rotation"]\nscale = 1.1\n')
+    with pytest.raises(RigError, match=r'sensor\[1\] "gnss"\.(estimate: a gnss sensor cannot estimate its rotation|scale)'):
+        load_rig(_rig(folder, text, "", "kind"))
