@@ -463,6 +463,33 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
         _state_from(s, out_r[i], out_v[i], out_C[i])
 
 
+@recursion
+def transition_into(r, v, C, b_f, b_w, acc, gyro, dt, g, Phi) -> None:
+    """``Phi (15, 15) <- F_K ... F_1 Phi``: the error-state transition of the samples ``k`` with
+    ``dt[k] > 0`` (the steps :func:`predict_into` takes), the state ``(r, v, C)`` stepped along in
+    place. What carries a covariance between the state and constants outside it (calibrations)
+    through the prediction: ``P_xc <- Phi P_xc``."""
+    s = np.empty(STEP_SIZE)
+    F, G, T = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, NOISE_DIM)), np.empty((STATE_DIM, STATE_DIM))
+    _state_into(s, r, v, C, g)
+    for k in range(dt.shape[0]):
+        h = dt[k]
+        if h <= 0.0:
+            continue
+        w0, w1, w2 = gyro[k, 0] - b_w[0], gyro[k, 1] - b_w[1], gyro[k, 2] - b_w[2]
+        step_quantities(s, w0, w1, w2, h)
+        _jacobians_into(s[_S_Q:], F, G)
+        for i in range(STATE_DIM):
+            for j in range(Phi.shape[1]):
+                acc_ij = 0.0
+                for m in range(STATE_DIM):
+                    acc_ij += F[i, m] * Phi[m, j]
+                T[i, j] = acc_ij
+        Phi[:, :] = T
+        step_state(s, acc[k, 0] - b_f[0], acc[k, 1] - b_f[1], acc[k, 2] - b_f[2], w0, w1, w2)
+    _state_from(s, r, v, C)
+
+
 #: Length of the work array of :func:`predict_flat` (:func:`prediction_work`): the flat
 #: covariance (15 rows of ``_W``) first, then the scratch ``B`` (9 rows) and ``Bt`` (15 rows)
 #: and the step array (``_S_*``).

@@ -77,7 +77,7 @@ class Ekf:
         x = self.state
         r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x.r, x.v, x.C, x.b_f, x.b_w))
         stats = np.zeros(2)
-        _kalman_update(r, v, C, b_f, b_w, self.P, e, H, R, _gates(self.gate_probability), stats)
+        _kalman_update(r, v, C, b_f, b_w, self.P, e, H, R, gate_thresholds(self.gate_probability), stats)
         if stats[0]:
             self.rejected += 1
             return False
@@ -120,6 +120,10 @@ class FilterResult:
     rejected: int
     log_likelihood: float
     innovations: Innovations | None = None
+    #: With calibrations as augmented states (:mod:`smoother.ekf_calibrated`): their values at the
+    #: end of the data (:class:`factors.calibration.CalibrationSet`) and covariance blocks.
+    calibration: object = None
+    calibration_cov: list | None = None
 
 
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
@@ -152,9 +156,9 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
             diverged = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
                                      updates.model, updates.dim, updates.rows, updates.R, updates.nis,
                                      updates.accepted, dataset.noise.densities(),
-                                     np.asarray(dataset.gravity, dtype=float), _gates(gate_probability), *out, stats)
+                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability), *out, stats)
             if diverged >= 0:
-                raise _divergence(knots[diverged], out[1][diverged], out[5][diverged])
+                raise divergence_error(knots[diverged], out[1][diverged], out[5][diverged])
             bar.update(int(bounds[last]) - bar.n)
     states = imu.ImuState(*out[:5])
     return FilterResult(Trajectory(knots, states, out[5]), time.perf_counter() - start, int(stats[0]), float(stats[1]),
@@ -216,7 +220,7 @@ class _Updates:
 _KNOTS_PER_CALL = 256
 
 
-def _gates(probability: float | None) -> np.ndarray:
+def gate_thresholds(probability: float | None) -> np.ndarray:
     """Chi-square gate per measurement dimension (index m), infinite without a gate."""
     gates = np.full(7, np.inf)
     if probability is not None:
@@ -339,7 +343,7 @@ def _diverged(r, v, C, b_f, b_w, P) -> bool:
     return not math.isfinite(total) or speed > DIVERGED_SPEED or np.trace(P) > DIVERGED_SPREAD**2
 
 
-def _divergence(t: float, v: np.ndarray, P: np.ndarray) -> FilterDiverged:
+def divergence_error(t: float, v: np.ndarray, P: np.ndarray) -> FilterDiverged:
     return FilterDiverged(
         f"the EKF diverged at t = {t:.6f} s (|v| = {np.linalg.norm(v):.3g} m/s, sqrt(trace P) = "
         f"{np.sqrt(abs(np.trace(P))):.3g}): the linearisation failed, typically after a long stretch "

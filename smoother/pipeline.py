@@ -18,7 +18,8 @@ from datasets.types import Dataset, Trajectory
 from smoother.batch import solve_batch
 from smoother.calibration_report import calibration_records
 from smoother.ekf import run_ekf
-from smoother.graph import build_problem, measurement_blocks
+from smoother.ekf_calibrated import run_calibrated_ekf
+from smoother.graph import build_problem, calibration_set, measurement_blocks
 from factors.errors import BoxplusError, InputError
 from smoother.online import replay
 from smoother.residual_consistency import smoother_consistency
@@ -108,9 +109,15 @@ def _one_line(error: Exception) -> str:
 
 
 def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
-    r = run_ekf(dataset, options.ekf_gate, options.progress)
-    return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected, **_given_values_note(dataset)},
-                    r.innovations)
+    """The EKF; with calibrations asked for, with them as augmented states (:mod:`smoother.ekf_calibrated`)."""
+    calibrations = calibration_set(dataset)
+    if calibrations is None:
+        r = run_ekf(dataset, options.ekf_gate, options.progress)
+        return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations)
+    r = run_calibrated_ekf(dataset, calibrations, options.ekf_gate, options.progress)
+    details = {"rejected_measurements": r.rejected}
+    details["calibration"], details["calibration_against_prior"] = calibration_records(r.calibration, r.calibration_cov)
+    return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations)
 
 
 def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estimate:
@@ -141,13 +148,13 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
 
 
 def _given_values_note(dataset: Dataset) -> dict:
-    """What the estimators other than the batch say of the calibrations a dataset asks for: they
-    use the values given."""
+    """What the fixed-lag smoother says of the calibrations a dataset asks for: it uses the values
+    given."""
     asking = [s.name for s in dataset.sensors if s.calibrate is not None]
     if not asking:
         return {}
-    return {"calibration_note": f"used the values given for {', '.join(asking)}; the batch smoother estimates "
-                                "calibrations (a rig run writes them into calibrated.toml for the next run)"}
+    return {"calibration_note": f"used the values given for {', '.join(asking)}; the batch smoother and the EKF "
+                                "estimate calibrations (a rig run writes the batch's into calibrated.toml)"}
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
