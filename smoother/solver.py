@@ -156,17 +156,18 @@ def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tu
             ev = evaluate_block(block, states, True, rows, calibration=calibration)
             cost += ev.loss
             model = _unit(ev.e.shape[1])
-            keys = block.keyframes[rows]
-            for m in range(len(keys)):
-                terms = [(int(k), A[m]) for k, A in zip((*keys[m], *extra), ev.A)]
-                graph.add(_jacobian_factor(terms, -ev.e[m], model))
+            keys = [*block.keyframes[rows].T.tolist(), *([[extra[0]] * len(ev.e)] if extra else [])]
+            A, b = ev.A, -ev.e
+            if len(keys) == 1:
+                for m, k in enumerate(keys[0]):
+                    graph.add(gtsam.JacobianFactor(k, A[0][m], b[m], model))
+            elif len(keys) == 2:
+                for m, (k0, k1) in enumerate(zip(*keys)):
+                    graph.add(gtsam.JacobianFactor(k0, A[0][m], k1, A[1][m], b[m], model))
+            else:
+                for m, (k0, k1, k2) in enumerate(zip(*keys)):
+                    graph.add(gtsam.JacobianFactor(k0, A[0][m], k1, A[1][m], k2, A[2][m], b[m], model))
     return graph, cost
-
-
-def _jacobian_factor(terms: list[tuple[int, np.ndarray]], b: np.ndarray, model) -> gtsam.JacobianFactor:
-    """A JacobianFactor of one to three ``(key, A)`` terms."""
-    flat = [x for term in terms for x in term]
-    return gtsam.JacobianFactor(*flat, b, model)
 
 
 #: Factors of a block linearised at once (a few MB of Jacobians: cache-resident, so the cost per

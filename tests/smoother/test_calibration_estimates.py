@@ -144,3 +144,29 @@ def test_a_part_the_kind_cannot_estimate_is_refused_naming_the_sensor(parts, kin
     data = simulate("gentle", duration=3.0, seed=0, pose_rate=0, sensors=(SensorSpec("antenna", kind, 5.0, 0.2),))
     with pytest.raises(InputError, match=f"sensor 'antenna' .*{message}"):
         build_problem(data.with_sensor("antenna", calibrate=CalibrationPrior(parts)))
+
+
+def test_the_ekf_estimates_the_same_calibration_as_the_batch_within_2_sigma():
+    """The EKF with the calibrations as augmented states: every error recovered within 3 of its
+    sigmas, and each value within 2 of the EKF's sigmas of the batch smoother's."""
+    from smoother.pipeline import run_estimators
+
+    data = _rig(1, duration=30.0)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        estimates = run_estimators(data, ["ekf", "batch"])
+    ekf, batch = (estimates[n].details for n in ("ekf", "batch"))
+    w, g = ekf["calibration"]["wheels"], ekf["calibration"]["gnss"]
+    rotation = np.array(ekf["calibration_against_prior"]["wheels"]["rotation_change_rad"])
+    assert np.all(np.abs(rotation[1:] - TRUE_ROTATION[1:]) < 3 * np.array(w["rotation_sigma_rad"])[1:])
+    assert abs(w["scale"] - 0.99) < 3 * w["scale_sigma"]
+    assert abs(g["time_offset_s"] + 0.1) < 3 * g["time_offset_sigma_s"]
+    assert np.all(np.abs(np.array(g["lever_arm_m"]) - [0, 0, 0.5]) < 3 * np.array(g["lever_arm_sigma_m"]))
+    b_rotation = np.array(batch["calibration_against_prior"]["wheels"]["rotation_change_rad"])
+    assert np.all(np.abs(rotation - b_rotation) < 2 * np.array(w["rotation_sigma_rad"]))
+    assert abs(w["scale"] - batch["calibration"]["wheels"]["scale"]) < 2 * w["scale_sigma"]
+    assert abs(g["time_offset_s"] - batch["calibration"]["gnss"]["time_offset_s"]) < 2 * g["time_offset_sigma_s"]
+    assert np.all(np.abs(np.subtract(g["lever_arm_m"], batch["calibration"]["gnss"]["lever_arm_m"]))
+                  < 2 * np.array(g["lever_arm_sigma_m"]))
