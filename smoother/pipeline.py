@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,6 +42,8 @@ class Estimate:
     failed: str | None = None
     #: Per-sensor verdicts computed with the estimate (the batch's, which need its joint covariances).
     consistency: dict | None = None
+    #: The calibrations it estimated (:class:`factors.calibration.CalibrationSet`), if any.
+    calibration: object = None
 
 
 @dataclass
@@ -117,11 +119,12 @@ def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
     r = run_calibrated_ekf(dataset, calibrations, options.ekf_gate, options.progress)
     details = {"rejected_measurements": r.rejected}
     details["calibration"], details["calibration_against_prior"] = calibration_records(r.calibration, r.calibration_cov)
-    return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations)
+    return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations, calibration=r.calibration)
 
 
 def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estimate:
-    """The batch smoother started from ``ekf``'s estimate (an EKF run for it when None)."""
+    """The batch smoother started from ``ekf``'s estimate (an EKF run for it when None), its
+    calibrations from the EKF's where it estimated them (the priors stay about the values given)."""
     tick = time.perf_counter()
     details: dict = {}
     if ekf is None:
@@ -133,6 +136,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
     details["start"] = "ekf" if ekf.failed is None else f"dead reckoning (the EKF failed: {ekf.failed})"
     problem = build_problem(dataset, options.keyframe_rate, options.robust,
                             start=None if ekf.failed is not None else ekf.trajectory)
+    if problem.calibration is not None and ekf.calibration is not None:  # the filter's calibration too
+        problem = replace(problem, calibration=replace(problem.calibration, values=ekf.calibration.values))
     build_s = time.perf_counter() - tick
     # a calibration is never reported without its sigma: its covariance is computed whatever --no-covariance says
     covariances = options.covariances or problem.calibration is not None
