@@ -635,6 +635,35 @@ def bench_online(s: Settings) -> dict:
 # report
 
 
+def _calibration_rigs(duration_s: float):
+    """60 s of a 100 Hz IMU with wheels (10 Hz), GNSS (5 Hz) and an AHRS (10 Hz), as given and
+    with the wheels' rotation, scale and time offset, the fixes' time offset and lever arm and the
+    AHRS's rotation to estimate (12 calibration coordinates)."""
+    from datasets.simulated_sensors import SensorSpec
+    from factors.calibration import CalibrationPrior
+
+    data = simulate("gentle", duration=duration_s, seed=1, imu_rate=100.0, pose_rate=0, sensors=(
+        SensorSpec("wheels", "velocity", 10.0, 0.05), SensorSpec("gnss", "gnss", 5.0, 0.2),
+        SensorSpec("ahrs", "orientation", 10.0, 0.02)))
+    calibrating = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale", "time_offset")))
+    calibrating = calibrating.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+    return data, calibrating.with_sensor("ahrs", calibrate=CalibrationPrior(("rotation",)))
+
+
+def bench_calibration(s: Settings) -> dict:
+    """The batch smoother (build + optimise + covariances) on :func:`_calibration_rigs`, without and
+    with the calibrations, interleaved; the median of their ratio is ``batch_calibration_ratio``."""
+    plain, calibrating = _calibration_rigs(60.0)
+    run = {name: (lambda d=d: solve_batch(build_problem(d))) for name, d in (("plain", plain),
+                                                                               ("calibrating", calibrating))}
+    for fn in run.values():
+        fn()  # first calls
+    times = _interleaved(run, s.repeats)
+    ratios = [c / p for p, c in zip(times["plain"], times["calibrating"])]
+    return {"batch_calibration_ratio": _median(ratios), "batch_uncalibrated_s": _median(times["plain"]),
+            "batch_calibrated_s": _median(times["calibrating"])}
+
+
 def machine() -> dict:
     model = "unknown"
     try:
@@ -686,6 +715,9 @@ def _table_rows(r: dict) -> list:
             lambda v: v <= r["kitti_native_rmse_m"]),
         row("kitti_native_rmse_m", "m"),
         row("kitti_whole_process_ratio", "x", "<= 1 (ours / native, whole process)", lambda v: v <= 1.0),
+        row("batch_calibration_ratio", "x", "<= 1.5 (calibrating / not, 60 s, 3 sensors)", lambda v: v <= 1.5),
+        row("batch_uncalibrated_s", "s"),
+        row("batch_calibrated_s", "s"),
         row("kitti_whole_process_s", "s"),
         row("kitti_native_whole_process_s", "s"),
     ]
@@ -803,7 +835,7 @@ def main() -> None:
     if not args.json:
         print(f"[{time.perf_counter() - tick:6.1f} s] warm-up done (kernels compiled or loaded)", file=sys.stderr)
     for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_kitti_process, bench_scaling, bench_fixed_lag,
-                  bench_online):
+                  bench_online, bench_calibration):
         result.update(bench(s))
         if not args.json:
             print(f"[{time.perf_counter() - tick:6.1f} s] {bench.__name__} done", file=sys.stderr)

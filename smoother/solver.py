@@ -185,13 +185,19 @@ def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout") -> np.ndarray:
     QR where Cholesky calls the system indeterminant -- a dead-reckoned stretch squares into an
     information matrix it cannot factor, while the rows themselves determine the step. Without
     that fallback Levenberg-Marquardt could only add damping there and crawled: 1867 iterations to
-    converge on 60 s of tumbling with a fix every 10 s and 10 Hz keyframes, 7 with it."""
+    converge on 60 s of tumbling with a fix every 10 s and 10 Hz keyframes, 7 with it.
+
+    Calibration variables are eliminated last (:meth:`Layout.ordering`): every keyframe's
+    conditional then has them among its parents, the dense border of an arrowhead system, and no
+    keyframe is eliminated after them (COLAMD alone placed them among the last keyframes, whose
+    Cholesky pivots then failed on systems QR solves with a condition number of 4e5)."""
+    ordering = layout.ordering(graph)
     try:
-        solution = graph.optimize()
+        solution = graph.optimize() if ordering is None else graph.optimize(ordering)
     except RuntimeError as error:
         if not is_indeterminant(error):
             raise
-        ordering = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+        ordering = ordering or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
         try:
             solution = graph.optimize(ordering, gtsam.EliminateQR)
         except RuntimeError as again:
@@ -219,6 +225,13 @@ class Layout:
 
     def dim(self, key: int) -> int:
         return DIM if key < self.n else self.extra[key - self.n]
+
+    def ordering(self, graph: gtsam.GaussianFactorGraph) -> gtsam.Ordering | None:
+        """COLAMD with the calibration variables last, or None (GTSAM's default) without any."""
+        if not self.extra:
+            return None
+        last = gtsam.KeyVector(list(range(self.n, self.n + len(self.extra))))
+        return gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(graph, last)
 
     @property
     def keys(self) -> range:
@@ -397,7 +410,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     (``Sigma_ba = Sigma_ab^T``). Every two variables that share a factor are a conditional and its
     parent, so it holds the joint covariance of every factor's variables."""
     layout = layout or Layout(n)
-    ordering = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
         net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
     except RuntimeError as error:

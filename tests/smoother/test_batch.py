@@ -152,7 +152,7 @@ def test_covariances_of_a_badly_conditioned_chain_equal_a_dense_reference():
     graph, _ = solver.linearize(problem.blocks, result.trajectory.states)
     n = len(result.trajectory)
     with pytest.raises(RuntimeError, match="ndetermina"):
-        gtsam.Marginals(graph, solver._to_vector_values(np.zeros((n, 15))))
+        gtsam.Marginals(graph, solver.Layout(n).vector_values(np.zeros(n * 15)))
     A = graph.jacobian(gtsam.Ordering(list(range(n))))[0]
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     assert s[0] / s[-1] > 1e7
