@@ -1,0 +1,333 @@
+"""Which calibration a sensor's misfit points at: its residuals regressed on the pattern that each
+calibration error leaves in them.
+
+Model. A sensor's residual at the estimate is ``e_i = h(x_i; c) - z_i`` (``d`` numbers per
+measurement ``i``, the kind's kernel, :mod:`factors.sensor_models`) with the calibration ``c``
+the rig states. Were the measurements made with ``c + dc``, then to first order
+
+    e_i = X_i dc + n_i,        X_i = -de_i/dc,
+
+each candidate calibration with its own columns of ``X_i`` (``d x k``), in the units of the rig's
+``estimate = [...]`` keys:
+
+* ``scale`` ``s`` (what the sensor reads per unit of the truth; the correction is ``s - 1``):
+  ``z = s h`` gives ``e = -(s - 1) h``: the pattern is minus the prediction ``h_i = e_i + z_i``
+  (a wheel speed reading 1 % low, ``s = 0.99``: the residual is +1 % of the speed, along the
+  direction of travel). Kinds: :data:`SCALED_KINDS`.
+* ``time_offset`` ``d`` [s] (the measurement was taken at ``t_stamp + d``; ``d`` is what to add to
+  the rig's ``time_offset``): ``z = h(x(t + d))`` gives ``e = -d dh/dt`` with ``dh/dt = H_i
+  xdot_i``, ``H_i`` the residual's error-state Jacobian and ``xdot`` the state's rate in the
+  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)``: a position through the velocity, an
+  attitude through the angular rate, a velocity through the specific force. ``f, w`` are the
+  IMU's readings less the estimate's biases, averaged over :data:`AVERAGE_S` about ``t_i`` (one
+  sample's noise in a regressor would bias the fit towards 0). A velocity sensor's lever-arm term
+  ``w x p`` also changes with the angular acceleration; that part is neglected.
+* ``rotation`` ``phi`` [rad] (``R_BS <- exp(phi) R_BS``, ``phi`` in the IMU frame): for a
+  velocity sensor ``e = -R_BS^T u^x phi`` with ``u = v + w x p_BS`` the sensor's velocity in the
+  IMU frame: a pitched sensor reads a constant fraction of the speed vertically, a yawed one
+  laterally; an attitude sensor's residual is moved by ``phi`` (seen in the world frame). Kinds
+  with a frame.
+* ``lever_arm`` ``dp`` [m] (``p_BS <- p_BS + dp``, IMU frame): a position's residual is ``-C dp``
+  (an offset fixed in the IMU frame, which turns with the vehicle), a velocity's ``-R_BS^T (w x
+  dp)`` (with the angular rate). Kinds with a position, or a velocity through the lever arm.
+
+The rotation and lever-arm columns are central differences of the kind's kernel in the extrinsic
+(the estimators' own model; linear in ``dp``, smooth in ``phi``). A candidate whose columns are
+zero for every measurement does not enter the kind's residual and is no candidate. Relative kinds
+(odometry, two states per measurement) are not analysed.
+
+Fits. With ``W_i`` the whitening of a measurement's covariance, ``b_i = W_i e_i`` and ``A_i = W_i
+X_i``, and a weak prior ``dc ~ N(0, PRIOR_SIGMA^2)`` (so that a calibration the data do not fix
+keeps about its prior's sigma instead of making the fit singular):
+
+* :func:`fit_residuals`: ``dc`` by weighted least squares on one sensor's residuals alone (the
+  EKF's innovations). The estimate has already absorbed the part of a calibration error that the
+  states can follow (a filter leans its velocity towards a scaled wheel speed), so the value is
+  biased towards 0 by that part: it names the cause; its size is the smoother's.
+* :func:`fit_in_problem`: ``dc`` as a Gauss-Newton step of the batch smoother's whole linearised
+  problem at its optimum with ``dc`` added to that sensor's factors, every state free (a sparse QR
+  through GTSAM, ``dc`` eliminated last): the states give back what they had absorbed, and the
+  marginal covariance of ``dc`` is the joint problem's.
+
+Sigmas. The formal covariance assumes the stated sigmas and white errors; both are what is in
+doubt, so it is scaled by the variance per degree of freedom of the sensor's whitened residuals
+after the fit (either way: a sigma stated too large is the case to see through) and by ``(1 +
+rho) / (1 - rho)`` with ``rho > 0`` the lag-1 autocorrelation of those residuals from one
+measurement to the next (the variance of a mean of AR(1) errors; ``rho`` at most
+:data:`MAX_RHO`). A candidate's ``share`` is the decrease of the cost that only it explains, its
+Wald statistic ``dc_c^T Sigma_cc^-1 dc_c`` (formal covariance), over the sensor's ``sum |b_i|^2``.
+A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its share is
+at least :data:`MATERIAL_SHARE`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import gtsam
+import numpy as np
+
+from datasets.kinds import KINDS, measure_rows
+from datasets.types import ImuSamples, Sensor, Trajectory
+from factors import imu, so3
+from factors.sensor_models import extrinsic_parts
+from smoother.solver import Block, evaluate_block, linearize, whitening
+
+#: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
+#: each correction (scale - 1, s, rad, m).
+PRIOR_SIGMA = {"scale": 1.0, "time_offset": 1.0, "rotation": 1.0, "lever_arm": 10.0}
+#: The kinds whose reading can be off by a scale (the prediction is the scaled quantity).
+SCALED_KINDS = ("velocity",)
+#: A component is significant beyond this many sigmas.
+SIGNIFICANCE = 5.0
+#: A suggested cause explains at least this fraction of the sensor's residual sum of squares.
+MATERIAL_SHARE = 0.1
+#: Half the window [s] over which the IMU's readings are averaged for the time-offset pattern.
+AVERAGE_S = 0.05
+#: The largest lag-1 autocorrelation the sigmas are inflated for.
+MAX_RHO = 0.95
+#: Step of the central differences in the extrinsic [rad, m].
+_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class Cause:
+    """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
+    correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
+    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
+    docstring)."""
+
+    calibration: str
+    value: np.ndarray
+    sigma: np.ndarray
+    share: float
+
+    @property
+    def significant(self) -> np.ndarray:
+        """Per component: ``|value| > SIGNIFICANCE sigma``."""
+        return np.abs(self.value) > SIGNIFICANCE * self.sigma
+
+    @property
+    def suggested(self) -> bool:
+        return bool(self.significant.any()) and self.share >= MATERIAL_SHARE
+
+    def text(self) -> str:
+        """The fit in the rig's units, e.g. ``scale 0.9900 +- 0.0004``, ``time offset -0.100 s +-
+        0.004 s``, ``rotation about y +3.00 deg +- 0.05 deg``, ``lever arm x +0.50 m +- 0.01 m``
+        (rotation and lever arm: the significant axes of the IMU frame)."""
+        if self.calibration == "scale":
+            return f"scale {_pm(1.0 + self.value[0], self.sigma[0], '', signed=False)}"
+        if self.calibration == "time_offset":
+            return f"time offset {_pm(self.value[0], self.sigma[0], ' s')}"
+        axes = np.flatnonzero(self.significant)
+        if self.calibration == "rotation":
+            return "rotation " + ", ".join(
+                f"about {'xyz'[a]} {_pm(np.degrees(self.value[a]), np.degrees(self.sigma[a]), ' deg')}" for a in axes)
+        return "lever arm " + ", ".join(f"{'xyz'[a]} {_pm(self.value[a], self.sigma[a], ' m')}" for a in axes)
+
+
+def _pm(value: float, sigma: float, unit: str, signed: bool = True) -> str:
+    """``value +- sigma`` to the sigma's first two significant digits."""
+    digits = max(0, 1 - int(np.floor(np.log10(sigma)))) if sigma > 0 else 3
+    return f"{value:{'+' if signed else ''}.{digits}f}{unit} +- {sigma:.{digits}f}{unit}"
+
+
+def hint(causes: list[Cause]) -> str | None:
+    """The suggested ``causes`` in one phrase with the rig key that estimates them, e.g. ``scale
+    0.9900 +- 0.0004 (explains 93 % of its residuals): add estimate = ["scale"]``; None without
+    any."""
+    chosen = [c for c in causes if c.suggested]
+    if not chosen:
+        return None
+    keys = ", ".join(f'"{c.calibration}"' for c in chosen)
+    return (", ".join(f"{c.text()} (explains {100 * min(c.share, 1.0):.0f} % of its residuals)" for c in chosen)
+            + f": add estimate = [{keys}]")
+
+
+def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity) -> tuple:
+    """``(e (N, d), {calibration: X (N, d, k)})``: the kernel's residuals of ``sensor``'s
+    measurements at ``states`` (one per measurement) and each candidate's columns ``X = -de/dc``
+    (module docstring); candidates that do not enter the kind's residual are left out."""
+    kind, m = KINDS[sensor.kind], sensor.data
+    e, H = measure_rows(kind, states, kind.pack(m))
+    out = {}
+    if kind.name in SCALED_KINDS:
+        out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
+    f, w = _averaged_imu(imu_samples, m.t, AVERAGE_S)
+    f, w = f - states.b_f, w - states.b_w
+    C, v = states.C, states.v
+    xdot = np.zeros((len(v), imu.STATE_DIM))
+    xdot[:, imu.R] = np.einsum("nij,nj->ni", C, v)
+    xdot[:, imu.V] = np.einsum("nji,j->ni", C, np.asarray(gravity, dtype=float)) + f - np.cross(w, v)
+    xdot[:, imu.PHI] = np.einsum("nij,nj->ni", C, w)
+    out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
+    R, p = extrinsic_parts(m.T_BS)
+    for name, moved in (("rotation", lambda s: (so3.exp(s) @ R, p)), ("lever_arm", lambda s: (R, p + s))):
+        columns = np.stack([_kernel_difference(kind, m, states, moved, _STEP * a) for a in np.eye(3)], axis=-1)
+        if np.any(columns != 0.0):
+            out[name] = columns
+    return e, out
+
+
+def _kernel_difference(kind, m, states, moved, step) -> np.ndarray:
+    """``-de/dc`` along ``step`` by central differences: the kernel's residuals with the extrinsic
+    ``moved(+step)`` and ``moved(-step)``."""
+    def residual(s):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = moved(s)
+        return measure_rows(kind, states, kind.pack(replace(m, T_BS=T)))[0]
+
+    return -(residual(step) - residual(-step)) / (2.0 * np.linalg.norm(step))
+
+
+def _averaged_imu(samples: ImuSamples, t: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean specific force and angular rate of the samples in ``[t - half, t + half]`` (at
+    least the sample held at ``t``), by cumulative sums."""
+    held = samples.held(t)
+    lo = np.minimum(np.searchsorted(samples.t, t - half, side="left"), held)
+    hi = np.maximum(np.searchsorted(samples.t, t + half, side="right"), held + 1)
+    means = []
+    for x in (samples.acc, samples.gyro):
+        total = np.concatenate([np.zeros((1, 3)), np.cumsum(x, axis=0)])
+        means.append((total[hi] - total[lo]) / (hi - lo)[:, None])
+    return means[0], means[1]
+
+
+def _whitened(sensor: Sensor, e: np.ndarray, X: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``b = W e (N, d)`` and ``A = W X (N, d, k)``, the candidates' columns side by side."""
+    W = whitening(sensor.data.cov)
+    return np.einsum("nab,nb->na", W, e), np.einsum("nab,nbk->nak", W, np.concatenate(list(X.values()), axis=2))
+
+
+def _prior(X: dict) -> np.ndarray:
+    """The weak prior's sigma per column of the candidates ``X``."""
+    return np.concatenate([np.full(x.shape[2], PRIOR_SIGMA[name]) for name, x in X.items()])
+
+
+def fit_residuals(sensor: Sensor, estimate: Trajectory, imu_samples: ImuSamples, gravity,
+                  residuals: np.ndarray | None = None) -> list[Cause]:
+    """Every candidate of ``sensor`` fitted to its residuals alone (module docstring): the
+    regressors at ``estimate`` (interpolated to the measurement times), ``residuals (N, d)`` the
+    ones to explain (the EKF's innovations; rows with a NaN are left out), default the kernel's at
+    ``estimate``. ``[]`` for a relative kind or measurements outside the estimate's span."""
+    if KINDS[sensor.kind].relative:
+        return []
+    states, _, inside = estimate.interpolate(sensor.data.t)
+    if not inside.all():
+        return []
+    e, X = patterns(sensor, states, imu_samples, gravity)
+    if residuals is not None:
+        e = np.asarray(residuals, dtype=float)
+    b, A = _whitened(sensor, e, X)
+    ok = np.isfinite(b).all(axis=1)
+    b, A = b[ok], A[ok]
+    flat = A.reshape(-1, A.shape[2])
+    information = flat.T @ flat + np.diag(_prior(X) ** -2.0)
+    cov = np.linalg.inv(information)
+    value = cov @ (flat.T @ b.ravel())
+    return _causes(X, value, cov, _alone(information, value, X), b, b - np.einsum("nak,k->na", A, value))
+
+
+def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
+                   gravity) -> dict[str, list[Cause]]:
+    """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at its
+    optimum ``states``, one per keyframe; relative kinds left out) fitted together as one
+    Gauss-Newton step of the whole problem with each sensor's calibration added to its factors
+    (module docstring): a misfit that one sensor's calibration explains is not put on another's.
+    By sensor name."""
+    graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states)
+    parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
+    for sensor in (s for s in sensors if not KINDS[s.kind].relative):
+        [block] = [b for b in blocks if b.name == sensor.name]
+        kf = block.keyframes[:, 0]
+        e, X = patterns(sensor, states[kf], imu_samples, gravity)
+        ev = evaluate_block(block, states, True)
+        b, A = _whitened(sensor, e, X)
+        A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
+        key = len(states) + len(parts)
+        unit = gtsam.noiseModel.Unit.Create(b.shape[1])
+        for i in range(len(kf)):
+            graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))  # de/dc = -X
+        prior = _prior(X)
+        graph.add(gtsam.JacobianFactor(key, np.diag(1.0 / prior), np.zeros(len(prior)),
+                                       gtsam.noiseModel.Unit.Create(len(prior))))
+        parts[sensor.name] = (key, X, kf, ev, A)
+    if not parts:
+        return {}
+    keys = [part[0] for part in parts.values()]
+    colamd = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    ordering = gtsam.Ordering()
+    for j in [colamd.at(j) for j in range(colamd.size()) if colamd.at(j) not in keys] + keys:
+        ordering.push_back(j)
+    net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
+    step = net.optimize()
+    # the calibrations, eliminated last, are the last conditionals: their joint square-root information
+    tail = [net.at(j) for j in range(net.size() - len(keys), net.size())]
+    R = _square_root(tail, {part[0]: part[4].shape[2] for part in parts.values()})
+    R_inv = np.linalg.inv(R)
+    cov = R_inv @ R_inv.T
+    value = np.concatenate([step.at(part[0]) for part in parts.values()])
+    out, at = {}, 0
+    for name, (key, X, kf, ev, A) in parts.items():
+        mine = slice(at, at + A.shape[2])
+        # the decrease each candidate makes alone, the other calibrations held at 0
+        information = (R.T @ R)[mine, mine]
+        gradient = (R.T @ (R @ value))[mine]
+        dx = np.stack([step.at(int(j)) for j in kf])
+        after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx) - np.einsum("nak,k->na", A, value[mine])
+        out[name] = _causes(X, value[mine], cov[mine, mine], _alone(information, np.linalg.solve(information, gradient), X),
+                            ev.e, after)
+        at = mine.stop
+    return out
+
+
+def _square_root(conditionals: list, sizes: dict[int, int]) -> np.ndarray:
+    """The upper-triangular square-root information of the variables eliminated last, from their
+    ``conditionals`` (in elimination order; each one's parents among the variables after it) and
+    each variable's dimension by key (``sizes``, in the same order)."""
+    offset = dict(zip(sizes, np.cumsum([0, *sizes.values()])))
+    n = sum(sizes.values())
+    out = np.zeros((n, n))
+    for c in conditionals:
+        frontal, *parents = [int(k) for k in c.keys()]
+        rows = slice(offset[frontal], offset[frontal] + sizes[frontal])
+        out[rows, rows] = c.R()
+        column = 0
+        S = c.S()
+        for parent in parents:
+            out[rows, offset[parent]:offset[parent] + sizes[parent]] = S[:, column:column + sizes[parent]]
+            column += sizes[parent]
+    return out
+
+
+def _alone(information: np.ndarray, value: np.ndarray, X: dict) -> np.ndarray:
+    """Per candidate of ``X``, the decrease of the quadratic cost ``(c - value)^T information (c -
+    value)`` (the fit's, its minimum at ``value``) from ``c = 0`` when only that candidate's
+    components are free: ``g_S^T information_SS^-1 g_S`` with ``g = information value``."""
+    g = information @ value
+    out, at = [], 0
+    for x in X.values():
+        S = slice(at, at + x.shape[2])
+        out.append(float(g[S] @ np.linalg.solve(information[S, S], g[S])))
+        at = S.stop
+    return np.array(out)
+
+
+def _causes(X: dict, value: np.ndarray, cov: np.ndarray, decrease: np.ndarray, before: np.ndarray,
+            after: np.ndarray) -> list[Cause]:
+    """One :class:`Cause` per candidate of ``X`` from the fit's ``value``, formal ``cov`` and the
+    ``decrease`` of the cost each candidate makes alone (:func:`_alone`), with the sensor's
+    whitened residuals ``before`` and ``after`` the fit (``(N, d)``) for the sigmas' scaling and
+    the shares (module docstring)."""
+    n, d = after.shape
+    k = len(value)
+    variance = float(np.sum(after * after)) / max(n * d - k, 1)
+    lag = float(np.sum(after[1:] * after[:-1]))
+    rho = min(max(lag / float(np.sum(after * after)), 0.0), MAX_RHO) if n > 1 and np.any(after) else 0.0
+    sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))
+    total = float(np.sum(before * before))
+    out, at = [], 0
+    for (name, x), drop in zip(X.items(), decrease):
+        mine = slice(at, at + x.shape[2])
+        out.append(Cause(name, value[mine].copy(), sigma[mine], drop / total if total > 0 else 0.0))
+        at = mine.stop
+    return out
