@@ -16,7 +16,11 @@ them (:mod:`smoother.residual_consistency`), and the IMU factors' among them:
 Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so a real sensor with
 slightly correlated errors falls outside it: ``ok`` states the statistics, and a warning names a
 sensor only when its figure is also a factor :data:`WARN_FACTOR` or more away from 1 -- a sigma,
-extrinsic or time offset that is actually wrong. When the IMU itself has findings
+extrinsic or time offset that is actually wrong. Such a warning names first the calibration the
+sensor's residuals point at, where :mod:`smoother.misfit_causes` finds one (a scale, a time
+offset, a rotation or a lever arm, with its fitted value), and the sigma after it: a systematic
+pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it.
+When the IMU itself has findings
 (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
 residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
 names the IMU as the likelier cause.
@@ -111,11 +115,14 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     return lines
 
 
-def consistency_warnings(by_estimator: dict[str, dict], imu_findings=()) -> list[str]:
+def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    naming what to check. When the IMU's own residuals are far above their band, or its raw data
-    have ``imu_findings`` (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and
-    the other sensors' lines say that their misfit may follow from it."""
+    naming what to check. ``causes``: per sensor, the calibration its residuals point at
+    (:func:`smoother.misfit_causes.hints`); a sensor's line names it first, before its sigma
+    (a systematic pattern also makes a sigma look too large or too small). When the IMU's own
+    residuals are far above their band, or its raw data have ``imu_findings``
+    (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
+    lines say that their misfit may follow from it."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -133,6 +140,11 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=()) -> list
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
                   else "its sigma looks too large")
+        pattern = (causes or {}).get(sensor)
+        if pattern is not None:
+            advice = (f"its residuals point at {pattern}; " +
+                      ("if that is not it, check its sigma (too small)" if high
+                       else "then judge its sigma again (it looks too large)"))
         if kinds:
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
                       f"of it; if the IMU is cleared, {advice}")

@@ -280,6 +280,36 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     return out
 
 
+def innovation_causes(sensor: Sensor, innovations, estimate: Trajectory, imu_samples: ImuSamples, gravity) -> list[Cause]:
+    """:func:`fit_residuals` of ``sensor``'s accepted innovations (:class:`smoother.ekf.Innovations`)
+    with the regressors at the filter's ``estimate``; ``[]`` when the filter has none of them."""
+    mine = innovations.sensor == sensor.name
+    if mine.sum() != len(sensor.data.t):
+        return []
+    e = np.where(innovations.accepted[mine, None], innovations.e[mine, :KINDS[sensor.kind].dim], np.nan)
+    return fit_residuals(sensor, estimate, imu_samples, gravity, e)
+
+
+def hints(dataset, estimates: dict) -> dict[str, str]:
+    """Per sensor of ``dataset`` with a suggested cause, :func:`hint` of the batch smoother's fits
+    (:attr:`smoother.pipeline.Estimate.causes`) or, without them, of the EKF's innovations, saying
+    which; ``estimates`` as :func:`smoother.pipeline.run_estimators` returns them."""
+    batch, ekf = estimates.get("batch"), estimates.get("ekf")
+    out = {}
+    for sensor in dataset.sensors:
+        if batch is not None and batch.causes is not None:
+            causes, source = batch.causes.get(sensor.name, []), "the batch smoother's residuals"
+        elif ekf is not None and ekf.failed is None:
+            causes = innovation_causes(sensor, ekf.innovations, ekf.trajectory, dataset.imu, dataset.gravity)
+            source = "the EKF's innovations"
+        else:
+            continue
+        text = hint(causes)
+        if text is not None:
+            out[sensor.name] = f"{text} (from {source})"
+    return out
+
+
 def _square_root(conditionals: list, sizes: dict[int, int]) -> np.ndarray:
     """The upper-triangular square-root information of the variables eliminated last, from their
     ``conditionals`` (in elimination order; each one's parents among the variables after it) and

@@ -177,6 +177,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.kinds import sensors_of
     from smoother import report
     from smoother.diagnostics import consistency_lines, consistency_warnings
+    from smoother.misfit_causes import hints
     from smoother.pipeline import estimate_each, judged, sensor_consistency
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
@@ -237,7 +238,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    for line in consistency_warnings(consistency, imu_findings):
+    for line in consistency_warnings(consistency, imu_findings, hints(dataset, estimates)):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
