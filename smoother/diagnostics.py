@@ -83,7 +83,9 @@ def far_above(c: dict) -> bool:
     return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
 
 
-def _far_off(c: dict) -> bool:
+def far_off(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is outside its band and :data:`WARN_FACTOR` or more from 1 (a
+    warning's condition)."""
     return not c["ok"] and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
 
 
@@ -128,7 +130,7 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes:
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
     lines = []
     for sensor, verdicts in by_sensor.items():
-        off = {e: c for e, c in verdicts.items() if _far_off(c)}
+        off = {e: c for e, c in verdicts.items() if far_off(c)}
         if not off:
             continue
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"

@@ -100,16 +100,14 @@ class Ekf:
 @dataclass
 class Innovations:
     """Every measurement update of a run: the sensor's name, its time, the residual's dimension,
-    the normalised innovation squared ``e^T S^-1 e``, whether the gate accepted it (NaN and
-    False where the filter had diverged before it) and the innovation ``e`` itself (the residual
-    at the predicted state; ``(U, MAX_RESIDUAL_DIM)``, its first ``dim`` numbers, NaN after)."""
+    the normalised innovation squared ``e^T S^-1 e`` and whether the gate accepted it (NaN and
+    False where the filter had diverged before it)."""
 
     sensor: np.ndarray
     t: np.ndarray
     dim: np.ndarray
     nis: np.ndarray
     accepted: np.ndarray
-    e: np.ndarray
 
 
 @dataclass
@@ -153,7 +151,7 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
             last = min(n, first + _KNOTS_PER_CALL)
             diverged = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
                                      updates.model, updates.dim, updates.rows, updates.R, updates.nis,
-                                     updates.innovation, updates.accepted, dataset.noise.densities(),
+                                     updates.accepted, dataset.noise.densities(),
                                      np.asarray(dataset.gravity, dtype=float), _gates(gate_probability), *out, stats)
             if diverged >= 0:
                 raise _divergence(knots[diverged], out[1][diverged], out[5][diverged])
@@ -167,8 +165,8 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
 class _Updates:
     """The measurement updates of a run in the order the filter applies them, as flat arrays for
     the compiled loop: those at knot ``k`` are ``start[k]:start[k + 1]``; each has its model's
-    index, dimension, kernel row (zero-padded to the widest) and noise (padded to 6x6); ``nis``,
-    ``innovation`` and ``accepted`` are filled by the loop."""
+    index, dimension, kernel row (zero-padded to the widest) and noise (padded to 6x6); ``nis``
+    and ``accepted`` are filled by the loop."""
 
     start: np.ndarray
     model: np.ndarray
@@ -178,7 +176,6 @@ class _Updates:
     sensor: np.ndarray
     knot: np.ndarray
     nis: np.ndarray
-    innovation: np.ndarray
     accepted: np.ndarray
 
     @classmethod
@@ -208,11 +205,11 @@ class _Updates:
         order = np.lexsort((sensor, knot))  # by knot, then sensor by sensor
         start = np.searchsorted(knot[order], np.arange(len(knots) + 1)).astype(np.int64)
         return cls(start, model[order], dim[order], rows[order], R[order], sensor[order], knot[order],
-                   np.full(u, np.nan), np.full((u, MAX_RESIDUAL_DIM), np.nan), np.zeros(u, dtype=np.bool_))
+                   np.full(u, np.nan), np.zeros(u, dtype=np.bool_))
 
     def innovations(self, names: list[str], knots: np.ndarray) -> Innovations:
         return Innovations(np.asarray(names, dtype=object)[self.sensor] if len(names) else np.zeros(0, dtype=object),
-                           knots[self.knot], self.dim.copy(), self.nis, self.accepted, self.innovation)
+                           knots[self.knot], self.dim.copy(), self.nis, self.accepted)
 
 
 #: Knots per call of the compiled loop (between two calls the progress bar moves and Ctrl-C is seen).
@@ -300,10 +297,10 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> float:
 
 @njit(cache=True)
 def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, nis,
-                  innovation, accepted, q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+                  accepted, q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_ekf`: predict through the knot's IMU steps
     (``bounds[k] .. bounds[k + 1]``), apply the updates taken there (``start[k] .. start[k + 1]``
-    of :class:`_Updates`, each through its model's kernel, its innovation recorded), store the state. Returns the first
+    of :class:`_Updates`, each through its model's kernel), store the state. Returns the first
     knot where the filter diverged (see :func:`_diverged`), else -1."""
     n = P.shape[0]
     for knot in range(first, last):
@@ -315,7 +312,6 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             m = dim[u]
             e, H = np.empty(m), np.empty((m, n))
             measure_into(model[u], r, v, C, b_f, b_w, rows[u], e, H)
-            innovation[u, :m] = e
             rejected = stats[0]
             nis[u] = _kalman_update(r, v, C, b_f, b_w, P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats)
             accepted[u] = stats[0] == rejected

@@ -36,26 +36,27 @@ The rotation and lever-arm columns are central differences of the kind's kernel 
 zero for every measurement does not enter the kind's residual and is no candidate. Relative kinds
 (odometry, two states per measurement) are not analysed.
 
-Fits. With ``W_i`` the whitening of a measurement's covariance, ``b_i = W_i e_i`` and ``A_i = W_i
-X_i``, and a weak prior ``dc ~ N(0, PRIOR_SIGMA^2)`` (so that a calibration the data do not fix
-keeps about its prior's sigma instead of making the fit singular):
-
-* :func:`fit_residuals`: ``dc`` by weighted least squares on one sensor's residuals alone (the
-  EKF's innovations). The estimate has already absorbed the part of a calibration error that the
-  states can follow (a filter leans its velocity towards a scaled wheel speed), so the value is
-  biased towards 0 by that part: it names the cause; its size is the smoother's.
-* :func:`fit_in_problem`: ``dc`` as a Gauss-Newton step of the batch smoother's whole linearised
-  problem at its optimum with ``dc`` added to that sensor's factors, every state free (a sparse QR
-  through GTSAM, ``dc`` eliminated last): the states give back what they had absorbed, and the
-  marginal covariance of ``dc`` is the joint problem's.
+Fit. A sensor's residuals at an estimate hold only the part of a calibration error that the
+states could not follow: a filter leans its velocity on a wheel speed read 1 % low (on a
+simulated car its innovations keep 0.08 % of it, and point at a scale for a pitched sensor); a
+smoother's residuals keep a share that depends on what else fixes the motion. So the corrections of every sensor are fitted together with the states, as one
+Gauss-Newton step of the batch smoother's whole problem linearised at the estimate
+(:func:`fit_in_problem`): with ``W_i`` the whitening of a measurement's covariance the sensor's
+rows ``W_i (e_i + H_i dx_i) - W_i X_i dc`` beside every other factor's, a weak prior ``dc ~ N(0,
+PRIOR_SIGMA^2)`` (a calibration the data do not fix keeps about its prior's sigma instead of
+making the system singular), solved by sparse QR through GTSAM with the calibrations eliminated
+last, whose conditionals give their joint covariance. A misfit that one sensor's calibration
+explains is then not put on another's, and the states give back what they had absorbed. From
+the batch's optimum this is the first step of the calibrated problem; from the EKF's estimate,
+one step of the batch problem from it (:func:`causes_at`).
 
 Sigmas. The formal covariance assumes the stated sigmas and white errors; both are what is in
 doubt, so it is scaled by the variance per degree of freedom of the sensor's whitened residuals
 after the fit (either way: a sigma stated too large is the case to see through) and by ``(1 +
 rho) / (1 - rho)`` with ``rho > 0`` the lag-1 autocorrelation of those residuals from one
 measurement to the next (the variance of a mean of AR(1) errors; ``rho`` at most
-:data:`MAX_RHO`). A candidate's ``share`` is the decrease of the cost that only it explains, its
-Wald statistic ``dc_c^T Sigma_cc^-1 dc_c`` (formal covariance), over the sensor's ``sum |b_i|^2``.
+:data:`MAX_RHO`). A candidate's ``share`` is the decrease of the step's cost that it makes alone
+(every other calibration held at 0, :func:`_alone`) over the sensor's ``sum |W_i e_i|^2``.
 A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its share is
 at least :data:`MATERIAL_SHARE`.
 """
@@ -66,10 +67,12 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from datasets.kinds import KINDS, measure_rows
+from datasets.kinds import KINDS, measure_rows, sensors_of
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
+from smoother.diagnostics import IMU, far_off
+from smoother.graph import build_problem
 from smoother.solver import Block, evaluate_block, linearize, whitening
 
 #: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
@@ -94,7 +97,7 @@ class Cause:
     """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
     correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
     [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
-    docstring)."""
+    docstring; above 1 where the correction also explains other sensors' residuals)."""
 
     calibration: str
     value: np.ndarray
@@ -203,30 +206,6 @@ def _prior(X: dict) -> np.ndarray:
     return np.concatenate([np.full(x.shape[2], PRIOR_SIGMA[name]) for name, x in X.items()])
 
 
-def fit_residuals(sensor: Sensor, estimate: Trajectory, imu_samples: ImuSamples, gravity,
-                  residuals: np.ndarray | None = None) -> list[Cause]:
-    """Every candidate of ``sensor`` fitted to its residuals alone (module docstring): the
-    regressors at ``estimate`` (interpolated to the measurement times), ``residuals (N, d)`` the
-    ones to explain (the EKF's innovations; rows with a NaN are left out), default the kernel's at
-    ``estimate``. ``[]`` for a relative kind or measurements outside the estimate's span."""
-    if KINDS[sensor.kind].relative:
-        return []
-    states, _, inside = estimate.interpolate(sensor.data.t)
-    if not inside.all():
-        return []
-    e, X = patterns(sensor, states, imu_samples, gravity)
-    if residuals is not None:
-        e = np.asarray(residuals, dtype=float)
-    b, A = _whitened(sensor, e, X)
-    ok = np.isfinite(b).all(axis=1)
-    b, A = b[ok], A[ok]
-    flat = A.reshape(-1, A.shape[2])
-    information = flat.T @ flat + np.diag(_prior(X) ** -2.0)
-    cov = np.linalg.inv(information)
-    value = cov @ (flat.T @ b.ravel())
-    return _causes(X, value, cov, _alone(information, value, X), b, b - np.einsum("nak,k->na", A, value))
-
-
 def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
                    gravity) -> dict[str, list[Cause]]:
     """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at its
@@ -280,33 +259,37 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     return out
 
 
-def innovation_causes(sensor: Sensor, innovations, estimate: Trajectory, imu_samples: ImuSamples, gravity) -> list[Cause]:
-    """:func:`fit_residuals` of ``sensor``'s accepted innovations (:class:`smoother.ekf.Innovations`)
-    with the regressors at the filter's ``estimate``; ``[]`` when the filter has none of them."""
-    mine = innovations.sensor == sensor.name
-    if mine.sum() != len(sensor.data.t):
-        return []
-    e = np.where(innovations.accepted[mine, None], innovations.e[mine, :KINDS[sensor.kind].dim], np.nan)
-    return fit_residuals(sensor, estimate, imu_samples, gravity, e)
+def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None) -> dict[str, list[Cause]]:
+    """:func:`fit_in_problem` of every sensor of ``dataset`` in its batch problem
+    (:func:`smoother.graph.build_problem` with ``keyframe_rate`` and ``robust``) started from
+    ``estimate`` (any estimator's, over the same data): one Gauss-Newton step from there, the
+    states and the calibrations together."""
+    problem = build_problem(dataset, keyframe_rate, robust, start=estimate)
+    return fit_in_problem(problem.blocks, problem.initial_states, sensors_of(dataset), dataset.imu, dataset.gravity)
 
 
-def hints(dataset, estimates: dict) -> dict[str, str]:
-    """Per sensor of ``dataset`` with a suggested cause, :func:`hint` of the batch smoother's fits
-    (:attr:`smoother.pipeline.Estimate.causes`) or, without them, of the EKF's innovations, saying
-    which; ``estimates`` as :func:`smoother.pipeline.run_estimators` returns them."""
-    batch, ekf = estimates.get("batch"), estimates.get("ekf")
+#: The estimators whose estimate :func:`hints` starts from, the first that ran.
+STARTS = ("batch", "fixed-lag", "ekf")
+
+
+def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,
+          robust: dict | None = None) -> dict[str, str]:
+    """Per sensor of ``dataset`` with a suggested cause, its :func:`hint` from :func:`causes_at`
+    the first estimate of :data:`STARTS` that ran (``estimates`` as
+    :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` without a sensor
+    far out of its band in ``consistency`` (:func:`smoother.diagnostics.far_off`: nothing to
+    explain) or without an estimate."""
+    if not any(far_off(c) for verdicts in consistency.values() for name, c in verdicts.items() if name != IMU):
+        return {}
+    ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
+    if not ran:
+        return {}
+    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust)
     out = {}
-    for sensor in dataset.sensors:
-        if batch is not None and batch.causes is not None:
-            causes, source = batch.causes.get(sensor.name, []), "the batch smoother's residuals"
-        elif ekf is not None and ekf.failed is None:
-            causes = innovation_causes(sensor, ekf.innovations, ekf.trajectory, dataset.imu, dataset.gravity)
-            source = "the EKF's innovations"
-        else:
-            continue
-        text = hint(causes)
+    for name, fits in causes.items():
+        text = hint(fits)
         if text is not None:
-            out[sensor.name] = f"{text} (from {source})"
+            out[name] = f"{text} (a Gauss-Newton step of the batch problem with it, from the {ran[0]}'s estimate)"
     return out
 
 

@@ -17,10 +17,8 @@ import numpy as np
 from datasets.types import Dataset, Trajectory
 from smoother.batch import solve_batch
 from smoother.ekf import run_ekf
-from datasets.kinds import sensors_of
 from smoother.graph import build_problem, measurement_blocks
 from factors.errors import BoxplusError, InputError
-from smoother.misfit_causes import fit_in_problem
 from smoother.online import replay
 from smoother.residual_consistency import smoother_consistency
 from smoother.timeline import estimate_times
@@ -42,9 +40,6 @@ class Estimate:
     failed: str | None = None
     #: Per-sensor verdicts computed with the estimate (the batch's, which need its joint covariances).
     consistency: dict | None = None
-    #: Per sensor, the calibrations its residuals point at (the batch's, which need its problem:
-    #: :func:`smoother.misfit_causes.fit_in_problem`); None where they could not be fitted.
-    causes: dict | None = None
 
 
 @dataclass
@@ -135,11 +130,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
                     "graph_build_s": build_s})
     # the verdicts need the joint covariances, which only this call has
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint)
-    try:
-        causes = fit_in_problem(problem.blocks, r.trajectory.states, sensors_of(dataset), dataset.imu, dataset.gravity)
-    except RuntimeError:  # GTSAM's: a system its QR cannot factor, even with the calibrations' priors
-        causes = None
-    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency, causes=causes)
+    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency)
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:

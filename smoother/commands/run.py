@@ -238,7 +238,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    for line in consistency_warnings(consistency, imu_findings, hints(dataset, estimates)):
+    causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    for line in consistency_warnings(consistency, imu_findings, causes):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
