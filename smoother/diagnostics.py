@@ -124,7 +124,9 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes:
     (a systematic pattern also makes a sigma look too large or too small). When the IMU's own
     residuals are far above their band, or its raw data have ``imu_findings``
     (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
-    lines say that their misfit may follow from it."""
+    lines say that their misfit may follow from it -- but for a sensor with a cause, whose
+    calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
+    those sensors instead (its findings still come first)."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -136,8 +138,11 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes:
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
                             for e, c in off.items())
         if sensor == IMU:
+            explained = [name for name, theirs in by_sensor.items() if name != IMU and name in (causes or {})
+                         and any(far_off(c) for c in theirs.values())]
+            symptom = f", or see the calibration of {', '.join(explained)} below (it bends the motion)" if explained else ""
             lines.append(f"imu: residuals per dof {figures}: the IMU's data do not fit its model -- check its units "
-                         "(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities")
+                         f"(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities{symptom}")
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
@@ -150,7 +155,7 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes:
         if kinds:
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
                       f"of it; if the IMU is cleared, {advice}")
-        elif high and imu_off:
+        elif high and imu_off and pattern is None:
             imu_worst = max(by_sensor[IMU][e]["per_dof"] for e in imu_off)
             if imu_worst >= max(c["per_dof"] for c in off.values()):
                 advice += "; the IMU's own residuals are further out of band, so the IMU is the likelier cause"

@@ -52,7 +52,12 @@ one step of the batch problem from it (:func:`causes_at`).
 
 Sigmas. The formal covariance assumes the stated sigmas and white errors; both are what is in
 doubt, so it is scaled by the variance per degree of freedom of the sensor's whitened residuals
-after the fit (either way: a sigma stated too large is the case to see through) and by ``(1 +
+after the fit (either way: a sigma stated too large is the case to see through), its degrees of
+freedom those that the batch smoother's verdict counts at the estimate (each measurement's ``d``
+less its leverage, :mod:`smoother.residual_consistency`) less the corrections fitted -- where
+another estimator's verdict does not count them, ``n d`` would overstate them for a sensor that
+pins the states (its residuals are small by leverage, not by precision), and the variance is
+taken as at least 1 instead -- and by ``(1 +
 rho) / (1 - rho)`` with ``rho > 0`` the lag-1 autocorrelation of those residuals from one
 measurement to the next (the variance of a mean of AR(1) errors; ``rho`` at most
 :data:`MAX_RHO`). A candidate's ``share`` is the decrease of the step's cost that it makes alone
@@ -207,12 +212,14 @@ def _prior(X: dict) -> np.ndarray:
 
 
 def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
-                   gravity) -> dict[str, list[Cause]]:
-    """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at its
-    optimum ``states``, one per keyframe; relative kinds left out) fitted together as one
-    Gauss-Newton step of the whole problem with each sensor's calibration added to its factors
-    (module docstring): a misfit that one sensor's calibration explains is not put on another's.
-    By sensor name."""
+                   gravity, dof: dict[str, float] | None = None) -> dict[str, list[Cause]]:
+    """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at
+    ``states``, one per keyframe; relative kinds left out) fitted together as one Gauss-Newton
+    step of the whole problem with each sensor's calibration added to its factors (module
+    docstring): a misfit that one sensor's calibration explains is not put on another's. ``dof``:
+    per sensor, the degrees of freedom its residuals leave at ``states`` (the batch smoother's
+    verdict, :mod:`smoother.residual_consistency`); a sensor without it has its variance taken as
+    at least the one its sigma states. By sensor name."""
     graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states)
     parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
     for sensor in (s for s in sensors if not KINDS[s.kind].relative):
@@ -254,18 +261,20 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
         dx = np.stack([step.at(int(j)) for j in kf])
         after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx) - np.einsum("nak,k->na", A, value[mine])
         out[name] = _causes(X, value[mine], cov[mine, mine], _alone(information, np.linalg.solve(information, gradient), X),
-                            ev.e, after)
+                            ev.e, after, (dof or {}).get(name))
         at = mine.stop
     return out
 
 
-def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None) -> dict[str, list[Cause]]:
+def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None,
+              dof: dict[str, float] | None = None) -> dict[str, list[Cause]]:
     """:func:`fit_in_problem` of every sensor of ``dataset`` in its batch problem
     (:func:`smoother.graph.build_problem` with ``keyframe_rate`` and ``robust``) started from
     ``estimate`` (any estimator's, over the same data): one Gauss-Newton step from there, the
-    states and the calibrations together."""
+    states and the calibrations together; ``dof`` as :func:`fit_in_problem` takes it."""
     problem = build_problem(dataset, keyframe_rate, robust, start=estimate)
-    return fit_in_problem(problem.blocks, problem.initial_states, sensors_of(dataset), dataset.imu, dataset.gravity)
+    return fit_in_problem(problem.blocks, problem.initial_states, sensors_of(dataset), dataset.imu, dataset.gravity,
+                          dof)
 
 
 #: The estimators whose estimate :func:`hints` starts from, the first that ran.
@@ -284,12 +293,14 @@ def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | No
     ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
     if not ran:
         return {}
-    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust)
+    # the batch's verdicts count each measurement's leverage at its estimate (fit_in_problem)
+    dof = {name: c["dof"] for name, c in consistency.get("batch", {}).items()} if ran[0] == "batch" else None
+    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust, dof)
     out = {}
     for name, fits in causes.items():
         text = hint(fits)
         if text is not None:
-            out[name] = f"{text} (a Gauss-Newton step of the batch problem with it, from the {ran[0]}'s estimate)"
+            out[name] = f"{text} (fitted from the {ran[0]}'s estimate)"
     return out
 
 
@@ -326,14 +337,15 @@ def _alone(information: np.ndarray, value: np.ndarray, X: dict) -> np.ndarray:
 
 
 def _causes(X: dict, value: np.ndarray, cov: np.ndarray, decrease: np.ndarray, before: np.ndarray,
-            after: np.ndarray) -> list[Cause]:
+            after: np.ndarray, dof: float | None) -> list[Cause]:
     """One :class:`Cause` per candidate of ``X`` from the fit's ``value``, formal ``cov`` and the
     ``decrease`` of the cost each candidate makes alone (:func:`_alone`), with the sensor's
     whitened residuals ``before`` and ``after`` the fit (``(N, d)``) for the sigmas' scaling and
-    the shares (module docstring)."""
+    the shares, and the degrees of freedom of ``before`` (None: unknown; module docstring)."""
     n, d = after.shape
     k = len(value)
-    variance = float(np.sum(after * after)) / max(n * d - k, 1)
+    squares = float(np.sum(after * after))
+    variance = squares / max(dof - k, 1.0) if dof is not None else max(squares / max(n * d - k, 1), 1.0)
     lag = float(np.sum(after[1:] * after[:-1]))
     rho = min(max(lag / float(np.sum(after * after)), 0.0), MAX_RHO) if n > 1 and np.any(after) else 0.0
     sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))

@@ -76,7 +76,9 @@ def runs():
     runs = {}
     for name, data in out.items():
         estimates = run_estimators(data, ["batch", "ekf"])
-        runs[name] = (data, estimates, {e: causes_at(data, estimates[e].trajectory) for e in estimates})
+        dof = {sensor: c["dof"] for sensor, c in estimates["batch"].consistency.items()}
+        runs[name] = (data, estimates, {"batch": causes_at(data, estimates["batch"].trajectory, dof=dof),
+                                        "ekf": causes_at(data, estimates["ekf"].trajectory)})
     return runs
 
 
@@ -121,8 +123,8 @@ def test_hints_start_from_the_batch_and_else_from_another_estimate(runs):
     consistency = sensor_consistency(data, estimates)
     batch = hints(data, estimates, consistency)
     assert set(batch) == {"gnss"} and batch["gnss"].startswith("time offset -0.09")
-    assert batch["gnss"].endswith("from the batch's estimate)")
-    assert hints(data, {"ekf": estimates["ekf"]}, consistency)["gnss"].endswith("from the ekf's estimate)")
+    assert batch["gnss"].endswith("(fitted from the batch's estimate)")
+    assert hints(data, {"ekf": estimates["ekf"]}, consistency)["gnss"].endswith("(fitted from the ekf's estimate)")
     right, right_estimates, _ = runs["right"]
     assert hints(right, right_estimates, sensor_consistency(right, right_estimates)) == {}
 
@@ -140,8 +142,30 @@ def test_the_run_warning_says_the_pattern_before_the_sigma(runs):
               if line.startswith("wheels")]
     assert 'its residuals point at scale 0.99' in line and 'add estimate = ["scale"]' in line, line
     assert line.index("scale") < line.index("sigma"), line
-    fit = _by_name(causes_at(data, estimates["batch"].trajectory)["wheels"])["scale"]
+    dof = {sensor: c["dof"] for sensor, c in consistency["batch"].items()}
+    fit = _by_name(causes_at(data, estimates["batch"].trajectory, dof=dof)["wheels"])["scale"]
     assert abs(fit.value[0] + 0.01) < 3 * fit.sigma[0], fit
+
+
+def test_a_calibration_error_is_not_put_on_the_imu(runs):
+    """A GNSS delay bends the estimate, and the IMU factors' residuals go out of band with it: the
+    IMU's warning names the GNSS's calibration, whose own warning does not call the IMU the likelier
+    cause."""
+    data, estimates, _ = runs["delay"]
+    consistency = sensor_consistency(data, estimates)
+    lines = consistency_warnings(consistency, (), hints(data, estimates, consistency))
+    [imu] = [line for line in lines if line.startswith("imu:")]
+    [gnss] = [line for line in lines if line.startswith("gnss:")]
+    assert imu.endswith("or see the calibration of gnss below (it bends the motion)"), imu
+    assert "time offset -0.09" in gnss and "likelier" not in gnss, gnss
+    assert "likelier cause" in " ".join(consistency_warnings(consistency))  # without the causes, as before
+
+
+def test_a_warning_too_high_says_the_pattern_then_the_sigma():
+    consistency = {"batch": {"wheels": {"per_dof": 6.0, "band": [0.9, 1.1], "ok": False, "measurements": 600}}}
+    [line] = consistency_warnings(consistency, (), {"wheels": 'scale 0.99 +- 0.001: add estimate = ["scale"]'})
+    assert line == ('wheels: per dof batch 6 (expected 0.9-1.1): its residuals point at scale 0.99 +- 0.001: add '
+                    'estimate = ["scale"]; if that is not it, check its sigma (too small)')
 
 
 def test_texts_in_the_rigs_units():
