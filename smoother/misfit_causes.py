@@ -252,16 +252,16 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     R_inv = np.linalg.inv(R)
     cov = R_inv @ R_inv.T
     value = np.concatenate([step.at(part[0]) for part in parts.values()])
+    information = R.T @ R
+    gradient = information @ value
     out, at = {}, 0
     for name, (key, X, kf, ev, A) in parts.items():
         mine = slice(at, at + A.shape[2])
-        # the decrease each candidate makes alone, the other calibrations held at 0
-        information = (R.T @ R)[mine, mine]
-        gradient = (R.T @ (R @ value))[mine]
+        # the decrease each candidate makes alone, every other calibration held at 0
+        alone = _alone(information[mine, mine], np.linalg.solve(information[mine, mine], gradient[mine]), X)
         dx = np.stack([step.at(int(j)) for j in kf])
         after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx) - np.einsum("nak,k->na", A, value[mine])
-        out[name] = _causes(X, value[mine], cov[mine, mine], _alone(information, np.linalg.solve(information, gradient), X),
-                            ev.e, after, (dof or {}).get(name))
+        out[name] = _causes(X, value[mine], cov[mine, mine], alone, ev.e, after, (dof or {}).get(name))
         at = mine.stop
     return out
 
