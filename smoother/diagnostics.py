@@ -119,9 +119,10 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
 
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    naming what to check. ``causes``: per sensor, the calibration its residuals point at
-    (:func:`smoother.misfit_causes.hints`); a sensor's line names it first, before its sigma
-    (a systematic pattern also makes a sigma look too large or too small). When the IMU's own
+    naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
+    calibration its residuals point at, :func:`smoother.misfit_causes.hints`) however near its
+    band: a sensor's line names that first, before its sigma (a systematic pattern also makes a
+    sigma look too large or too small). When the IMU's own
     residuals are far above their band, or its raw data have ``imu_findings``
     (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
     lines say that their misfit may follow from it -- but for a sensor with a cause, whose
@@ -131,23 +132,25 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes:
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
     lines = []
+    causes = {name: text for name, text in (causes or {}).items() if name in by_sensor and name != IMU}
     for sensor, verdicts in by_sensor.items():
         off = {e: c for e, c in verdicts.items() if far_off(c)}
-        if not off:
+        pattern = causes.get(sensor)
+        if not off and pattern is None:
             continue
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
-                            for e, c in off.items())
+                            for e, c in (off or verdicts).items())
+        if not off:  # near its band: the calibration it points at is the finding
+            lines.append(f"{sensor}: per dof {figures}: its residuals point at {pattern}")
+            continue
         if sensor == IMU:
-            explained = [name for name, theirs in by_sensor.items() if name != IMU and name in (causes or {})
-                         and any(far_off(c) for c in theirs.values())]
-            symptom = f", or see the calibration of {', '.join(explained)} below (it bends the motion)" if explained else ""
+            symptom = f", or see the calibration of {', '.join(causes)} below (it bends the motion)" if causes else ""
             lines.append(f"imu: residuals per dof {figures}: the IMU's data do not fit its model -- check its units "
                          f"(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities{symptom}")
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
                   else "its sigma looks too large")
-        pattern = (causes or {}).get(sensor)
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high

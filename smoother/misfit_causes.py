@@ -76,7 +76,6 @@ from datasets.kinds import KINDS, measure_rows, sensors_of
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
-from smoother.diagnostics import IMU, far_off
 from smoother.graph import build_problem
 from smoother.solver import Block, evaluate_block, linearize, whitening
 
@@ -285,10 +284,11 @@ def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | No
           robust: dict | None = None) -> dict[str, str]:
     """Per sensor of ``dataset`` with a suggested cause, its :func:`hint` from :func:`causes_at`
     the first estimate of :data:`STARTS` that ran (``estimates`` as
-    :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` without a sensor
-    far out of its band in ``consistency`` (:func:`smoother.diagnostics.far_off`: nothing to
-    explain) or without an estimate."""
-    if not any(far_off(c) for verdicts in consistency.values() for name, c in verdicts.items() if name != IMU):
+    :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` when every verdict
+    of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
+    The sensor suggested need not be the one out of its band: a wheel's pitch that the states
+    absorb shows in the fixes'."""
+    if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
         return {}
     ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
     if not ran:
