@@ -117,7 +117,8 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     return lines
 
 
-def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(), causes: dict[str, str] | None = None) -> list[str]:
+def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
+                         causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
     naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
     calibration its residuals point at, :func:`smoother.misfit_causes.hints`) however near its

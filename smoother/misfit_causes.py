@@ -39,8 +39,9 @@ zero for every measurement does not enter the kind's residual and is no candidat
 Fit. A sensor's residuals at an estimate hold only the part of a calibration error that the
 states could not follow: a filter leans its velocity on a wheel speed read 1 % low (on a
 simulated car its innovations keep 0.08 % of it, and point at a scale for a pitched sensor); a
-smoother's residuals keep a share that depends on what else fixes the motion. So the corrections of every sensor are fitted together with the states, as one
-Gauss-Newton step of the batch smoother's whole problem linearised at the estimate
+smoother's residuals keep a share that depends on what else fixes the motion. So the
+corrections of every sensor are fitted together with the states, as one Gauss-Newton step of
+the batch smoother's whole problem linearised at the estimate
 (:func:`fit_in_problem`): with ``W_i`` the whitening of a measurement's covariance the sensor's
 rows ``W_i (e_i + H_i dx_i) - W_i X_i dc`` beside every other factor's, a weak prior ``dc ~ N(0,
 PRIOR_SIGMA^2)`` (a calibration the data do not fix keeps about its prior's sigma instead of
@@ -250,7 +251,9 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     R = _square_root(tail, {part[0]: part[4].shape[2] for part in parts.values()})
     R_inv = np.linalg.inv(R)
     cov = R_inv @ R_inv.T
-    value = np.concatenate([step.at(part[0]) for part in parts.values()])
+    flat = step.vector()  # by key: the keyframes' steps, then the calibrations in the order of parts
+    n = len(states) * imu.STATE_DIM
+    dx_all, value = flat[:n].reshape(len(states), imu.STATE_DIM), flat[n:]
     information = R.T @ R
     gradient = information @ value
     out, at = {}, 0
@@ -258,8 +261,7 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
         mine = slice(at, at + A.shape[2])
         # the decrease each candidate makes alone, every other calibration held at 0
         alone = _alone(information[mine, mine], np.linalg.solve(information[mine, mine], gradient[mine]), X)
-        dx = np.stack([step.at(int(j)) for j in kf])
-        after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx) - np.einsum("nak,k->na", A, value[mine])
+        after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx_all[kf]) - np.einsum("nak,k->na", A, value[mine])
         out[name] = _causes(X, value[mine], cov[mine, mine], alone, ev.e, after, (dof or {}).get(name))
         at = mine.stop
     return out

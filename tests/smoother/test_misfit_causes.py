@@ -212,7 +212,8 @@ def test_the_time_offset_pattern_is_minus_the_rate_of_the_prediction(truth_case,
     after, before = (measure_rows(KINDS[kind], truth.states[k + s], rows)[0] for s in (1, -1))
     rate = (after - before) / (truth.t[k + 1] - truth.t[k - 1])[:, None]
     scale = np.abs(rate).max()
-    assert np.abs(X["time_offset"][inner, :, 0] + rate).max() < 0.02 * scale, np.abs(X["time_offset"][inner, :, 0] + rate).max()
+    off = np.abs(X["time_offset"][inner, :, 0] + rate).max()
+    assert off < 0.02 * scale, (off, scale)
 
 
 @settings(max_examples=10, deadline=None)
@@ -246,7 +247,8 @@ def test_smoother_run_on_a_rig_names_a_mounting_off_by_a_pitch(tmp_path, capsys)
     wrong = WHEEL.copy()
     wrong[:3, :3] = so3.exp([0.0, np.radians(5.0), 0.0]) @ WHEEL[:3, :3]
     rig.write_text(rig.read_text().replace(f"T_BS = {toml_matrix(WHEEL)}", f"T_BS = {toml_matrix(wrong)}"))
-    assert main(["run", "--rig", str(rig), "--estimator", "batch", "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    out = tmp_path / "out"
+    assert main(["run", "--rig", str(rig), "--estimator", "batch", "--out", str(out), "--no-progress"]) == 0
     [line] = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: wheel:")]
     assert "its residuals point at rotation about y -" in line and 'add estimate = ["rotation"]' in line, line
     pitch = float(line.split("rotation about y ")[1].split(" deg")[0])
