@@ -49,7 +49,9 @@ making the system singular), solved by sparse QR through GTSAM with the calibrat
 last, whose conditionals give their joint covariance. A misfit that one sensor's calibration
 explains is then not put on another's, and the states give back what they had absorbed. From
 the batch's optimum this is the first step of the calibrated problem; from the EKF's estimate,
-one step of the batch problem from it (:func:`causes_at`).
+one step of the batch problem from it (:func:`causes_at`). The values are first-order: a rotation
+``phi`` leaves errors of order ``phi^2 / 2`` in the others (a wheel pitched by 3.8 deg reads
+``cos(phi)`` of its speed forward: 0.22 % beside its scale), which the calibrated run removes.
 
 Sigmas. The formal covariance assumes the stated sigmas and white errors; both are what is in
 doubt, so it is scaled by the variance per degree of freedom of the sensor's whitened residuals
@@ -58,13 +60,18 @@ freedom those that the batch smoother's verdict counts at the estimate (each mea
 less its leverage, :mod:`smoother.residual_consistency`) less the corrections fitted -- where
 another estimator's verdict does not count them, ``n d`` would overstate them for a sensor that
 pins the states (its residuals are small by leverage, not by precision), and the variance is
-taken as at least 1 instead -- and by ``(1 +
-rho) / (1 - rho)`` with ``rho > 0`` the lag-1 autocorrelation of those residuals from one
-measurement to the next (the variance of a mean of AR(1) errors; ``rho`` at most
-:data:`MAX_RHO`). A candidate's ``share`` is the decrease of the step's cost that it makes alone
-(every other calibration held at 0, :func:`_alone`) over the sensor's ``sum |W_i e_i|^2``.
-A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its share is
-at least :data:`MATERIAL_SHARE`.
+taken as at least 1 instead -- and by ``(1 + rho) / (1 - rho)`` with ``rho > 0`` the lag-1
+autocorrelation of those residuals from one measurement to the next (the variance of a mean of
+AR(1) errors; ``rho`` at most :data:`MAX_RHO`).
+
+Shares. A candidate's ``gain`` is the decrease of the step's cost it adds to the sensor's other
+significant candidates (every other sensor's calibration held at 0, :func:`_gains`), its
+``share`` ``gain / (gain + sum |r_i|^2)`` with ``r_i`` the sensor's whitened residuals after the
+fit: the part of what is left without it that it explains. A pitch that explains most of a
+wheel's residuals leaves its scale a share of the rest, and two candidates that cancel each other
+(a time offset and a lever arm along the direction of travel, at the usual speed) have little
+gain each. A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its
+share is at least :data:`MATERIAL_SHARE`.
 """
 from __future__ import annotations
 
@@ -102,7 +109,7 @@ class Cause:
     """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
     correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
     [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
-    docstring; above 1 where the correction also explains other sensors' residuals)."""
+    docstring)."""
 
     calibration: str
     value: np.ndarray
@@ -259,10 +266,9 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     out, at = {}, 0
     for name, (key, X, kf, ev, A) in parts.items():
         mine = slice(at, at + A.shape[2])
-        # the decrease each candidate makes alone, every other calibration held at 0
-        alone = _alone(information[mine, mine], np.linalg.solve(information[mine, mine], gradient[mine]), X)
         after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx_all[kf]) - np.einsum("nak,k->na", A, value[mine])
-        out[name] = _causes(X, value[mine], cov[mine, mine], alone, ev.e, after, (dof or {}).get(name))
+        out[name] = _causes(X, value[mine], cov[mine, mine], information[mine, mine], gradient[mine], after,
+                            (dof or {}).get(name))
         at = mine.stop
     return out
 
@@ -325,36 +331,44 @@ def _square_root(conditionals: list, sizes: dict[int, int]) -> np.ndarray:
     return out
 
 
-def _alone(information: np.ndarray, value: np.ndarray, X: dict) -> np.ndarray:
-    """Per candidate of ``X``, the decrease of the quadratic cost ``(c - value)^T information (c -
-    value)`` (the fit's, its minimum at ``value``) from ``c = 0`` when only that candidate's
-    components are free: ``g_S^T information_SS^-1 g_S`` with ``g = information value``."""
-    g = information @ value
-    out, at = [], 0
-    for x in X.values():
-        S = slice(at, at + x.shape[2])
-        out.append(float(g[S] @ np.linalg.solve(information[S, S], g[S])))
-        at = S.stop
+def _gains(information: np.ndarray, g: np.ndarray, X: dict, significant: list[bool]) -> np.ndarray:
+    """Per candidate of ``X``, the decrease of the fit's quadratic cost ``c^T information c - 2 g^T
+    c`` from ``c = 0`` that it adds to the ``significant`` candidates' but its own, every other
+    component held at 0: with ``D(S) = g_S^T information_SS^-1 g_S``, ``D(S + j) - D(S - j)``."""
+    bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
+    columns = [np.arange(bounds[j], bounds[j + 1]) for j in range(len(X))]
+
+    def decrease(members):
+        if not members:
+            return 0.0
+        cols = np.concatenate([columns[m] for m in members])
+        return float(g[cols] @ np.linalg.solve(information[np.ix_(cols, cols)], g[cols]))
+
+    chosen = [j for j, yes in enumerate(significant) if yes]
+    out = []
+    for j in range(len(X)):
+        others = [m for m in chosen if m != j]
+        out.append(decrease(others + [j]) - decrease(others))
     return np.array(out)
 
 
-def _causes(X: dict, value: np.ndarray, cov: np.ndarray, decrease: np.ndarray, before: np.ndarray,
+def _causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray, gradient: np.ndarray,
             after: np.ndarray, dof: float | None) -> list[Cause]:
-    """One :class:`Cause` per candidate of ``X`` from the fit's ``value``, formal ``cov`` and the
-    ``decrease`` of the cost each candidate makes alone (:func:`_alone`), with the sensor's
-    whitened residuals ``before`` and ``after`` the fit (``(N, d)``) for the sigmas' scaling and
-    the shares, and the degrees of freedom of ``before`` (None: unknown; module docstring)."""
+    """One :class:`Cause` per candidate of ``X`` from the fit's ``value`` and formal ``cov``, the
+    quadratic model of the cost in the sensor's candidates (``information``, ``gradient``: every
+    other calibration held at 0), the sensor's whitened residuals ``after`` the fit ``(N, d)`` and
+    the degrees of freedom of its residuals before it (None: unknown), for the sigmas and the
+    shares (module docstring)."""
     n, d = after.shape
     k = len(value)
     squares = float(np.sum(after * after))
     variance = squares / max(dof - k, 1.0) if dof is not None else max(squares / max(n * d - k, 1), 1.0)
     lag = float(np.sum(after[1:] * after[:-1]))
-    rho = min(max(lag / float(np.sum(after * after)), 0.0), MAX_RHO) if n > 1 and np.any(after) else 0.0
+    rho = min(max(lag / squares, 0.0), MAX_RHO) if n > 1 and squares > 0 else 0.0
     sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))
-    total = float(np.sum(before * before))
-    out, at = [], 0
-    for (name, x), drop in zip(X.items(), decrease):
-        mine = slice(at, at + x.shape[2])
-        out.append(Cause(name, value[mine].copy(), sigma[mine], drop / total if total > 0 else 0.0))
-        at = mine.stop
-    return out
+    bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
+    parts = [slice(bounds[j], bounds[j + 1]) for j in range(len(X))]
+    significant = [bool(np.any(np.abs(value[S]) > SIGNIFICANCE * sigma[S])) for S in parts]
+    gains = _gains(information, gradient, X, significant)
+    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0)
+            for name, S, gain in zip(X, parts, gains)]
