@@ -19,7 +19,9 @@ sensor only when its figure is also a factor :data:`WARN_FACTOR` or more away fr
 extrinsic or time offset that is actually wrong. Such a warning names first the calibration the
 sensor's residuals point at, where :mod:`smoother.misfit_causes` finds one (a scale, a time
 offset, a rotation or a lever arm, with its fitted value), and the sigma after it: a systematic
-pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it.
+pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it. A
+sensor with such a finding is warned of however near its band it is: the states may have
+followed its error, which then shows in the other sensors.
 When the IMU itself has findings
 (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
 residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
