@@ -7,7 +7,8 @@ or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the state
 computed) their 15x15 covariances; ``run_estimators`` runs any of them on a dataset, an
 estimator that failed with no trajectory and its reason. ``OnlineSmoother`` is the fixed-lag smoother fed sample by sample as data arrive
 (``replay`` feeds it a whole dataset). ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
-``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory.
+``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory,
+``causes_at`` fits the calibrations a sensor's misfit points at (the warnings' hints).
 
 The names below are importable from the package itself (``from smoother import solve_batch``);
 each is loaded on first use. This package depends on ``factors`` and ``datasets``.
@@ -29,6 +30,7 @@ _EXPORTS = {
     "CrosscheckOptions": "smoother.crosscheck",
     "tune_noise": "smoother.tuning",
     **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnostics"),
+    **dict.fromkeys(("causes_at", "Cause"), "smoother.misfit_causes"),
     "plot_run": "smoother.plots",
 }
 __all__ = sorted(_EXPORTS)

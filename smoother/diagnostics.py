@@ -16,7 +16,13 @@ them (:mod:`smoother.residual_consistency`), and the IMU factors' among them:
 Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so a real sensor with
 slightly correlated errors falls outside it: ``ok`` states the statistics, and a warning names a
 sensor only when its figure is also a factor :data:`WARN_FACTOR` or more away from 1 -- a sigma,
-extrinsic or time offset that is actually wrong. When the IMU itself has findings
+extrinsic or time offset that is actually wrong. Such a warning names first the calibration the
+sensor's residuals point at, where :mod:`smoother.misfit_causes` finds one (a scale, a time
+offset, a rotation or a lever arm, with its fitted value), and the sigma after it: a systematic
+pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it. A
+sensor with such a finding is warned of however near its band it is: the states may have
+followed its error, which then shows in the other sensors.
+When the IMU itself has findings
 (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
 residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
 names the IMU as the likelier cause.
@@ -79,7 +85,9 @@ def far_above(c: dict) -> bool:
     return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
 
 
-def _far_off(c: dict) -> bool:
+def far_off(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is outside its band and :data:`WARN_FACTOR` or more from 1 (a
+    warning's condition)."""
     return not c["ok"] and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
 
 
@@ -111,32 +119,49 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     return lines
 
 
-def consistency_warnings(by_estimator: dict[str, dict], imu_findings=()) -> list[str]:
+def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
+                         causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    naming what to check. When the IMU's own residuals are far above their band, or its raw data
-    have ``imu_findings`` (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and
-    the other sensors' lines say that their misfit may follow from it."""
+    naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
+    calibration its residuals point at, :func:`smoother.misfit_causes.hints`) however near its
+    band: a sensor's line names that first, before its sigma (a systematic pattern also makes a
+    sigma look too large or too small). When the IMU's own
+    residuals are far above their band, or its raw data have ``imu_findings``
+    (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
+    lines say that their misfit may follow from it -- but for a sensor with a cause, whose
+    calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
+    those sensors instead (its findings still come first)."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
     lines = []
+    causes = {name: text for name, text in (causes or {}).items() if name in by_sensor and name != IMU}
     for sensor, verdicts in by_sensor.items():
-        off = {e: c for e, c in verdicts.items() if _far_off(c)}
-        if not off:
+        off = {e: c for e, c in verdicts.items() if far_off(c)}
+        pattern = causes.get(sensor)
+        if not off and pattern is None:
             continue
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
-                            for e, c in off.items())
+                            for e, c in (off or verdicts).items())
+        if not off:  # near its band: the calibration it points at is the finding
+            lines.append(f"{sensor}: per dof {figures}: its residuals point at {pattern}")
+            continue
         if sensor == IMU:
+            symptom = f", or see the calibration of {', '.join(causes)} below (it bends the motion)" if causes else ""
             lines.append(f"imu: residuals per dof {figures}: the IMU's data do not fit its model -- check its units "
-                         "(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities")
+                         f"(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities{symptom}")
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
                   else "its sigma looks too large")
+        if pattern is not None:
+            advice = (f"its residuals point at {pattern}; " +
+                      ("if that is not it, check its sigma (too small)" if high
+                       else "then judge its sigma again (it looks too large)"))
         if kinds:
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
                       f"of it; if the IMU is cleared, {advice}")
-        elif high and imu_off:
+        elif high and imu_off and pattern is None:
             imu_worst = max(by_sensor[IMU][e]["per_dof"] for e in imu_off)
             if imu_worst >= max(c["per_dof"] for c in off.values()):
                 advice += "; the IMU's own residuals are further out of band, so the IMU is the likelier cause"

@@ -178,6 +178,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother import report
     from smoother.calibration_report import calibration_lines
     from smoother.diagnostics import consistency_lines, consistency_warnings
+    from smoother.misfit_causes import hints
     from smoother.pipeline import estimate_each, judged, sensor_consistency
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
@@ -245,7 +246,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    for line in consistency_warnings(consistency, imu_findings):
+    causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    for line in consistency_warnings(consistency, imu_findings, causes):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
