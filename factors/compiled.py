@@ -153,7 +153,7 @@ def rows(lead: tuple, arrays, tails) -> list:
         if a.shape != shape:
             a = np.broadcast_to(a, shape)
         if not (a.flags.c_contiguous and a.flags.writeable):
-            a = np.array(a)
+            a = np.array(a, order="C")
         out.append(a.reshape((n,) + tuple(t)))
     return out
 

@@ -235,8 +235,9 @@ def _whitening_into(cov, W) -> bool:
     L = np.empty((d, d))
     if not cholesky_into(cov, L):
         return False
-    W[:d, :d] = 0.0
+    Wd = np.zeros((d, d))  # C-contiguous, as the banded solves' blocks: one compiled _solve_lower
     for c in range(d):
-        W[c, c] = 1.0
-    _solve_lower(L, W[:d, :d])
+        Wd[c, c] = 1.0
+    _solve_lower(L, Wd)
+    W[:d, :d] = Wd
     return True
