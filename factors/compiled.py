@@ -126,10 +126,12 @@ def as_trailing(a, dims: tuple, name: str) -> np.ndarray:
 
 
 def apply_rows(loop, a, in_dims: tuple, out_dims: tuple, name: str) -> np.ndarray:
-    """``loop(flat, out)`` over ``a`` of shape ``(..., *in_dims)``, returning ``(..., *out_dims)``."""
+    """``loop(flat, out)`` over ``a`` of shape ``(..., *in_dims)``, returning ``(..., *out_dims)``.
+    ``flat`` is C-contiguous and writable (a copy of ``a`` where it is not), the one layout the
+    kernels are compiled for."""
     a = as_trailing(a, in_dims, name)
     lead = a.shape[: a.ndim - len(in_dims)]
-    flat = np.ascontiguousarray(a.reshape((-1,) + tuple(in_dims)))
+    flat = np.require(a.reshape((-1,) + tuple(in_dims)), np.float64, ["C", "W"])
     out = np.empty((flat.shape[0],) + tuple(out_dims))
     loop(flat, out)
     return out.reshape(lead + tuple(out_dims))
@@ -137,9 +139,10 @@ def apply_rows(loop, a, in_dims: tuple, out_dims: tuple, name: str) -> np.ndarra
 
 def rows(lead: tuple, arrays, tails) -> list:
     """Each array broadcast to ``lead + tail`` (its own trailing shape ``tail``) and flattened to
-    contiguous rows ``(prod(lead),) + tail`` -- the layout the compiled row loops take. Arrays
-    already in that shape and layout are reshaped views (this sits on the per-factor callback
-    path, so the common case does no copying and few checks)."""
+    contiguous, writable rows ``(prod(lead),) + tail`` -- the one layout the compiled row loops are
+    compiled for (a read-only array, such as a broadcast, would compile and cache a second copy of
+    the kernel). Arrays already in that shape and layout are reshaped views (this sits on the
+    per-factor callback path, so the common case does no copying and few checks)."""
     lead = tuple(lead)
     n = math.prod(lead)
     out = []
@@ -149,8 +152,8 @@ def rows(lead: tuple, arrays, tails) -> list:
             a = np.asarray(a, dtype=float)
         if a.shape != shape:
             a = np.broadcast_to(a, shape)
-        if not a.flags.c_contiguous:
-            a = np.ascontiguousarray(a)
+        if not (a.flags.c_contiguous and a.flags.writeable):
+            a = np.array(a, order="C")
         out.append(a.reshape((n,) + tuple(t)))
     return out
 

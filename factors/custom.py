@@ -21,9 +21,10 @@ ROT, VEC, BIAS = "rot", "vec", "bias"
 
 
 def read(values: gtsam.Values, key: int, kind: str) -> np.ndarray:
-    """A variable of ``values`` as the array the residuals take."""
+    """A variable of ``values`` as the array the residuals take (C-contiguous: GTSAM's matrices are
+    column-major, and the compiled kernels are compiled for row-major arrays only)."""
     if kind == ROT:
-        return values.atRot3(key).matrix()
+        return np.ascontiguousarray(values.atRot3(key).matrix())
     if kind == VEC:
         return values.atVector(key)
     if kind == BIAS:

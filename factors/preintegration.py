@@ -502,13 +502,13 @@ def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, 
     in one compiled call (:func:`_interval_kernel`) without the checks: the per-keyframe path of an
     online smoother, whose samples and states are checked where they enter. Float arrays, finite,
     as documented there; the samples are copied (the interval keeps them to integrate again)."""
-    acc, gyro, dt = (np.array(a, dtype=float)[None] for a in (acc, gyro, dt))
-    pre = _unfilled((acc, gyro, dt), np.array(start.b_w, dtype=float)[None])
+    acc, gyro, dt = (np.array(a, dtype=float, order="C")[None] for a in (acc, gyro, dt))
+    pre = _unfilled((acc, gyro, dt), np.array(start.b_w, dtype=float, order="C")[None])
     pre.cov = np.empty((1, imu.STATE_DIM, imu.STATE_DIM))
     r, v, C = np.empty((1, 3)), np.empty((1, 3)), np.empty((1, 3, 3))
-    _interval_kernel(acc, gyro, dt, pre.b_w_bar, np.array(start.b_f, dtype=float)[None],
-                     np.array(start.r, dtype=float)[None], np.array(start.v, dtype=float)[None],
-                     np.array(start.C, dtype=float)[None], np.asarray(gravity, dtype=float), noise.densities(),
+    own = lambda a: np.array(a, dtype=float, order="C")  # noqa: E731  (the kernels' one layout)
+    _interval_kernel(acc, gyro, dt, pre.b_w_bar, own(start.b_f)[None], own(start.r)[None], own(start.v)[None],
+                     own(start.C)[None], own(gravity), noise.densities(),
                      COVARIANCE_FLOOR**2, pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.cov, r, v, C)
     return pre[0], imu.ImuState(r[0], v[0], C[0], np.array(start.b_f, dtype=float), pre.b_w_bar[0].copy())
 
@@ -517,9 +517,12 @@ def integrate_interval(acc, gyro, dt, start: imu.ImuState, noise: imu.ImuNoise, 
 def _interval_kernel(acc, gyro, dt, b_w_bar, b_f, r0, v0, C0, g, q, floor, dC, W, Rm, JC, dW, dRm, cov, r, v, C):
     """:func:`integrate_interval`'s one compiled call over one interval (leading dimension 1):
     :func:`_integrate_kernel`, :func:`_covariance_kernel` along the start ``(r0, v0, C0)`` and
-    :func:`_predict_rows` from it (biases ``b_f``, ``b_w_bar``) into ``r, v, C``."""
-    _integrate_kernel(acc, gyro, dt, b_w_bar, 0, 1, dC, W, Rm, JC, dW, dRm)
-    _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, v0, C0, g, q, floor, 0, 1, cov)
+    :func:`_predict_rows` from it (biases ``b_f``, ``b_w_bar``) into ``r, v, C``. The interval range
+    is run-time integers, so these are the copies of the kernels that :func:`_run` calls (literal
+    ``0, 1`` would compile a second copy of each)."""
+    lo, hi = np.int64(0), np.int64(1)
+    _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm)
+    _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, v0, C0, g, q, floor, lo, hi, cov)
     _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C)
 
 

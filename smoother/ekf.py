@@ -250,7 +250,7 @@ def _kalman_update(r, v, C, b_f, b_w, P, e, H, R, gates, stats) -> float:
     ``d2``, the normalised innovation squared."""
     m, n = e.shape[0], P.shape[0]
     PHt, S = np.empty((n, m)), np.empty((m, m))
-    matmul_into(P, H.T, PHt)
+    matmul_into(P, np.ascontiguousarray(H.T), PHt)  # C-contiguous: matmul_into's one compiled layout
     matmul_into(H, PHt, S)
     S += R
     L = np.empty((m, m))

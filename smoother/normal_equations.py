@@ -32,6 +32,9 @@ _MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admi
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.
 _FAST = {"reassoc", "contract"}
+#: ``jacobians`` of the IMU residual as a run-time flag: a literal ``True`` would compile a second
+#: copy of :func:`factors.preintegration._residual_into` beside the batch solver's.
+_WITH_JACOBIANS = np.bool_(True)
 
 
 @dataclass
@@ -141,12 +144,14 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             continue
         i = (k - 1) % cap
         _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
-                       r[j], v[j], C[j], bf[j], bw[j], gravity, True, e, A, B, work)
+                       r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, B, work)
         J[:, :DIM] = A
         J[:, DIM:] = B
         _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
         _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
-    H = np.empty((_MAX_DIM, 2 * DIM))
+    # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
+    # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
+    H, Hm = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM))
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         if k0 >= cut or k1 < lo:
@@ -158,8 +163,8 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             odometry_kernel(r[i], C[i], r[j], C[j], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
         else:
-            measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], H[:d, :DIM])
-            _whiten(Wm[f], e, H, d, DIM, ew, JT, Jt0)
+            measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
+            _whiten(Wm[f], e, Hm, d, DIM, ew, JT, Jt0)
         if rcode[f] != 0:
             norm = 0.0
             for a in range(d):
@@ -230,8 +235,9 @@ def _whitening_into(cov, W) -> bool:
     L = np.empty((d, d))
     if not cholesky_into(cov, L):
         return False
-    W[:d, :d] = 0.0
+    Wd = np.zeros((d, d))  # C-contiguous, as the banded solves' blocks: one compiled _solve_lower
     for c in range(d):
-        W[c, c] = 1.0
-    _solve_lower(L, W[:d, :d])
+        Wd[c, c] = 1.0
+    _solve_lower(L, Wd)
+    W[:d, :d] = Wd
     return True

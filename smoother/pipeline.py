@@ -21,7 +21,6 @@ from smoother.ekf import run_ekf
 from smoother.ekf_calibrated import run_calibrated_ekf
 from smoother.graph import build_problem, calibration_set, measurement_blocks
 from factors.errors import BoxplusError, InputError
-from smoother.online import replay
 from smoother.residual_consistency import smoother_consistency
 from smoother.timeline import estimate_times
 
@@ -163,6 +162,8 @@ def _given_values_note(dataset: Dataset) -> dict:
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
+    from smoother.online import replay  # the online smoother and its window: not loaded for a batch or EKF run
+
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,

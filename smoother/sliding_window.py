@@ -99,7 +99,7 @@ def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -
     for k in range(first, newest + 1):
         s = k % cap
         xr[s], xv[s], xC[s], xbf[s], xbw[s] = r[s], v[s], C[s], bf[s], bw[s]
-        imu.boxplus_into(xr[s], xv[s], xC[s], xbf[s], xbw[s], delta[s, :, 0])
+        imu.boxplus_into(xr[s], xv[s], xC[s], xbf[s], xbw[s], delta[s].reshape(delta.shape[1]))  # C, as the EKF's
 
 
 @njit(cache=True)
