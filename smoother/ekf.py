@@ -126,6 +126,18 @@ class FilterResult:
     calibration_cov: list | None = None
 
 
+def filter_inputs(dataset: Dataset) -> tuple[list, np.ndarray, object]:
+    """``(sensors, knots, steps)`` of a filter run: the one-state sensors (relative poses need a
+    cloned past state: left out, with a warning), the knots (:func:`smoother.timeline.estimate_times`)
+    and the IMU steps between them."""
+    every = sensors_of(dataset)
+    sensors = [s for s in every if not KINDS[s.kind].relative]
+    if len(sensors) < len(every):
+        warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=3)
+    knots = estimate_times(dataset)
+    return sensors, knots, imu_steps(dataset.imu, knots)
+
+
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
     time with every measurement taken then (sensor by sensor in the order of
@@ -133,12 +145,7 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
     is compiled (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C
     stops it between chunks."""
     start = time.perf_counter()
-    every = sensors_of(dataset)
-    sensors = [s for s in every if not KINDS[s.kind].relative]
-    if len(sensors) < len(every):
-        warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
-    knots = estimate_times(dataset)
-    steps = imu_steps(dataset.imu, knots)
+    sensors, knots, steps = filter_inputs(dataset)
     n = len(knots)
     x0 = dataset.initial
     r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x0.r, x0.v, x0.C, x0.b_f, x0.b_w))

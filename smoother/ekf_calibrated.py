@@ -21,18 +21,17 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import numpy as np
 
-from datasets.kinds import KINDS, calibrated_rows, sensors_of
+from datasets.kinds import KINDS, calibrated_rows
 from datasets.types import Dataset, Trajectory
 from factors import calibration, imu
 from factors.errors import SolverError
 from factors.sensor_models import evaluate_one
-from smoother.ekf import DIVERGED_SPEED, DIVERGED_SPREAD, FilterResult, Innovations, divergence_error, gate_thresholds
+from smoother.ekf import (DIVERGED_SPEED, DIVERGED_SPREAD, FilterResult, Innovations, divergence_error, filter_inputs,
+                          gate_thresholds)
 from smoother.progress import progress_bar
-from smoother.timeline import estimate_times, imu_steps
 
 D = imu.STATE_DIM
 
@@ -53,12 +52,7 @@ def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSe
     calibrations at the end of the data and their covariance blocks (``calibration``,
     ``calibration_cov``)."""
     start = time.perf_counter()
-    every = sensors_of(dataset)
-    sensors = [s for s in every if not KINDS[s.kind].relative]
-    if len(sensors) < len(every):
-        warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=2)
-    knots = estimate_times(dataset)
-    steps = imu_steps(dataset.imu, knots)
+    sensors, knots, steps = filter_inputs(dataset)
     bounds = np.concatenate([[0], steps.knot_step]).astype(np.int64)
     acc, gyro, dt = (np.ascontiguousarray(a, dtype=float) for a in (steps.acc, steps.gyro, steps.dt))
     dims = calibrations.dims
