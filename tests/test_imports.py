@@ -40,7 +40,7 @@ FACTOR_LAYERS = (
     ("support", {"compiled", "scan", "imports", "exports", "errors", "small_linalg"}),
     ("rotation calculus", {"quaternion", "so3", "axis_angle", "euler", "derivatives", "uncertainty", "chart"}),
     ("IMU model", {"imu", "preintegration"}),
-    ("GTSAM factors", {"custom", "keys", "priors", "sensor_models", "imu_factor", "jacobians", "selfcheck"}),
+    ("GTSAM factors", {"custom", "keys", "priors", "sensor_models", "imu_factor", "jacobians", "selfcheck", "calibration"}),
 )
 
 
