@@ -81,7 +81,7 @@ import math
 import time
 import warnings
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -89,7 +89,7 @@ from datasets.kinds import KINDS, kind_sigmas, pose, sensors_of
 from datasets.robust import check_robust
 from datasets.types import (MAX_IMU_GAP_S, Dataset, Sensor, Trajectory, check_array, check_extrinsic, check_state,
                             check_state_covariance)
-from factors import imu, preintegration
+from factors import calibration, imu, preintegration
 from factors.errors import InputError
 from smoother.fixed_lag import HISTORY, KeyframeWindow, sparse_measurement_warning
 from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
@@ -103,10 +103,15 @@ from smoother.progress import progress_bar
 from smoother.sliding_window import SlidingWindow
 from smoother.timeline import estimate_times, interval_steps
 
-def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float):
-    """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag_kinds.FIXED_LAG_KINDS`)."""
+def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float, calibrations=None):
+    """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag_kinds.FIXED_LAG_KINDS`),
+    with the calibration variables ``calibrations`` (a
+    :class:`smoother.window_calibration.WindowCalibration`; the compiled window only) or None."""
     if kind == "sliding":
-        return SlidingWindow(lag_s, gravity, reintegration_threshold)
+        return SlidingWindow(lag_s, gravity, reintegration_threshold, calibration=calibrations)
+    if calibrations is not None:
+        raise InputError(f"fixed-lag smoother kind {kind!r} cannot estimate calibrations (sensors "
+                         f"{', '.join(calibrations.set.names)} ask for them): use kind 'sliding'")
     if kind in ("incremental", "batch"):
         return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
     raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
@@ -119,8 +124,11 @@ class SensorSetup:
     ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
     measurement comes without a covariance; None: every measurement brings one) and ``robust``
     (None or a kernel spec of :func:`datasets.robust.robust_spec`); ``roll_pitch_only`` makes an
-    ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file. Each
-    is checked when made: an InputError naming the field otherwise."""
+    ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file;
+    ``calibrate`` (a :class:`factors.calibration.CalibrationPrior`, the rig file's ``estimate``
+    and ``*_sigma`` keys) makes parts of its calibration variables, estimated about ``T_BS`` and
+    ``time_offset`` (the ``"sliding"`` window only). Each is checked when made: an InputError
+    naming the field otherwise."""
 
     kind: str
     T_BS: np.ndarray | None = None
@@ -128,6 +136,7 @@ class SensorSetup:
     sigma: np.ndarray | None = None
     robust: tuple | None = None
     roll_pitch_only: bool = False
+    calibrate: calibration.CalibrationPrior | None = None
 
     def __post_init__(self):
         from datasets.rig import roll_pitch_kind
@@ -144,6 +153,21 @@ class SensorSetup:
         if self.sigma is not None:
             kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
         check_robust("SensorSetup.robust", self.robust)
+        if self.calibrate is not None:
+            if not isinstance(self.calibrate, calibration.CalibrationPrior):
+                raise InputError("SensorSetup.calibrate: expected a factors.calibration.CalibrationPrior, got "
+                                 f"{type(self.calibrate).__name__}")
+            can = calibration.applicable(KINDS[self.kind].model)
+            wrong = [p for p in self.calibrate.parts if p not in can]
+            if wrong:
+                raise InputError(f"SensorSetup.calibrate: a {self.kind} sensor cannot estimate {', '.join(wrong)}; "
+                                 f"it can estimate {', '.join(can)}")
+            given = self.calibrate.stamp_offset
+            if self.time_offset != 0.0 and given != self.time_offset:  # the offset its stamps get
+                if given != 0.0:
+                    raise InputError(f"SensorSetup.calibrate: stamp_offset {given!r} differs from time_offset "
+                                     f"{self.time_offset!r}")
+                object.__setattr__(self, "calibrate", replace(self.calibrate, stamp_offset=self.time_offset))
 
 
 class OnlineSmoother:
@@ -185,7 +209,7 @@ class OnlineSmoother:
                 raise InputError(f"sensors[{name!r}]: expected a SensorSetup, got {setup!r}")
         self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
         self.gravity = check_array("gravity", gravity, (), 3)
-        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold)
+        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold, self._calibrations())
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
@@ -212,21 +236,25 @@ class OnlineSmoother:
     @classmethod
     def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":
         """A smoother with ``dataset``'s IMU noise, gravity, initial state and covariance and its
-        sensors (:func:`datasets.kinds.sensors_of`: kinds and extrinsics; their time offsets are in
-        the dataset's stamps already), ``robust`` kernels by sensor name; ``options`` as the
-        constructor's. The data themselves are not fed (:func:`replay` does)."""
+        sensors (:func:`datasets.kinds.sensors_of`: kinds, extrinsics and, for the ``"sliding"``
+        window, what of their calibrations to estimate; their time offsets are in the dataset's
+        stamps already), ``robust`` kernels by sensor name; ``options`` as the constructor's. The
+        data themselves are not fed (:func:`replay` does)."""
         robust = robust or {}
-        sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name))
+        calibrating = options.get("kind", "sliding") == "sliding"
+        sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name),
+                                       calibrate=s.calibrate if calibrating else None)
                    for s in sensors_of(dataset)}
         return cls(dataset.initial, dataset.initial_cov, dataset.noise, sensors, gravity=dataset.gravity, **options)
 
     @classmethod
     def from_rig(cls, rig, initial: imu.ImuState, initial_cov, **options) -> "OnlineSmoother":
         """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
-        gravity, each sensor's kind, extrinsic, time offset, sigma and robust kernel), starting
-        from ``initial`` with ``initial_cov`` at the first IMU sample; ``options`` as the
-        constructor's."""
-        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust) for s in rig.sensors}
+        gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
+        to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
+        ``options`` as the constructor's."""
+        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate)
+                   for s in rig.sensors}
         return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
                    **options)
 
@@ -359,6 +387,13 @@ class OnlineSmoother:
         self._hand.on_smoothed = callback
 
     @property
+    def calibration(self):
+        """``(values, covariances)`` of the calibration variables after the last update (a
+        :class:`factors.calibration.CalibrationSet` and each sensor's marginal covariance over its
+        estimated coordinates), or None when no sensor asks for one."""
+        return getattr(self._window, "calibration", None)
+
+    @property
     def dropped(self) -> dict[str, int]:
         """Measurements dropped for arriving too late (or outside the IMU's span), per sensor."""
         return self._pending.dropped
@@ -408,6 +443,19 @@ class OnlineSmoother:
             setup = SensorSetup(sensor)
         return setup, KINDS[setup.kind]
 
+    def _calibrations(self):
+        """The window's calibration variables for the sensors whose setup asks for them, about
+        their extrinsics given (:class:`smoother.window_calibration.WindowCalibration`), or None."""
+        asking = {name: setup for name, setup in self._sensors.items() if setup.calibrate is not None}
+        if not asking:
+            return None
+        from smoother.window_calibration import WindowCalibration
+
+        means = tuple(calibration.Calibration.of(setup.T_BS) for setup in asking.values())
+        priors = tuple(setup.calibrate for setup in asking.values())
+        chosen = calibration.CalibrationSet(tuple(asking), means, priors, means)
+        return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()}, self.gravity)
+
     def _make_keyframes(self, horizon: float) -> None:
         """Make every keyframe asked for at or before ``horizon`` (and the IMU's end), the grid's
         among them."""
@@ -434,7 +482,11 @@ class OnlineSmoother:
         measurements = [(item.spec, item.row, [k if x == t else self._keyframe_t[x] for x in item.times],
                          self._setup(item.sensor)[0].robust) for item in used]
         leaving = self._hand.read(window.leaving(t))
-        self._newest = window.add_keyframe(t, guess, pre, measurements, prior)  # its estimate after the update
+        extra = {}
+        if self.calibration is not None:  # what a calibrated time offset steps with
+            i = stream.held_at(t)
+            extra["held"] = (stream.acc[i], stream.gyro[i])
+        self._newest = window.add_keyframe(t, guess, pre, measurements, prior, **extra)  # its estimate after the update
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k
@@ -497,7 +549,9 @@ class ReplayResult:
     ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
     with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
     beyond the window, per sensor; ``recovered`` keyframes that
-    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay."""
+    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay;
+    ``calibration`` ``(values, covariances)`` of the calibration variables at the end
+    (:attr:`OnlineSmoother.calibration`), or None."""
 
     smoothed: Trajectory
     update_s: np.ndarray
@@ -507,6 +561,7 @@ class ReplayResult:
     recovered: list
     longest_gap_s: float
     runtime_s: float
+    calibration: tuple | None = None
 
 
 def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
@@ -570,4 +625,5 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
                             np.stack([e.cov for e in smoothed]) if covariances else None)
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
-                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began)
+                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
+                        online.calibration)

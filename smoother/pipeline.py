@@ -151,14 +151,14 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
     return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency)
 
 
-def _given_values_note(dataset: Dataset) -> dict:
-    """What the fixed-lag smoother says of the calibrations a dataset asks for: it uses the values
-    given."""
+def _given_values_note(dataset: Dataset, kind: str) -> dict:
+    """What a fixed-lag smoother of ``kind`` other than the compiled window says of the
+    calibrations a dataset asks for: it uses the values given."""
     asking = [s.name for s in dataset.sensors if s.calibrate is not None]
-    if not asking:
+    if not asking or kind == "sliding":
         return {}
-    return {"calibration_note": f"used the values given for {', '.join(asking)}; the batch smoother and the EKF "
-                                "estimate calibrations (a rig run writes the batch's into calibrated.toml)"}
+    return {"calibration_note": f"used the values given for {', '.join(asking)}; the {kind} fixed-lag smoother "
+                                "estimates no calibration (the 'sliding' one, the batch smoother and the EKF do)"}
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
@@ -168,7 +168,9 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
-               "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset)}
+               "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind)}
+    if r.calibration is not None:
+        details["calibration"], details["calibration_against_prior"] = calibration_records(*r.calibration)
     if options.realtime and len(r.latency_s):
         ms = 1e3 * r.latency_s
         details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),

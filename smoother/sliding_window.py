@@ -70,6 +70,7 @@ from smoother.graph import robust_threshold
 from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _LinearPrior, _prior_into,  # noqa: F401
                                        _robust_scale, _whitening_into)
 from smoother.solver import whitening
+from smoother.window_calibration import BorderedPrior, WindowCalibration
 
 DIM = imu.STATE_DIM
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
@@ -103,50 +104,47 @@ def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -
 
 
 @njit(cache=True)
-def _solve_rows(Hr, g, L, y, delta, first, start, newest, cap, S, threshold, max_turn, moved, r, v, C, bf, bw, xr, xv,
-                xC, xbf, xbw):
-    """One update's linear algebra: the rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`),
-    the forward solution ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``;
-    the rows before kept), ``delta = L^-T y`` -- the whole step from the offsets before shortened
-    so that no attitude turns by more than ``max_turn`` [rad] -- the estimates ``theta [+] delta``
-    (:func:`_boxplus`), then the keyframes whose offset exceeds ``threshold`` linearised again
-    (:func:`_relinearise`). Returns ``(failed, oldest, shortened)``: -1 or the keyframe whose pivot
-    failed (nothing else done), -1 or the oldest keyframe linearised again, and whether the step
-    was shortened."""
+def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
+    """The rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`) and the forward solution
+    ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``; the rows before kept).
+    Returns -1, or the keyframe whose pivot failed (nothing else done)."""
     failed = _factorise(Hr, L, first, start, newest, cap, S)
     if failed >= 0:
-        return failed, -1, False
-    n = newest - first + 1
-    before = np.empty((n, DIM))
-    for k in range(first, newest + 1):
-        s = k % cap
-        for p in range(DIM):
-            before[k - first, p] = delta[s, p, 0]
+        return failed
     for k in range(start, newest + 1):
         s = k % cap
         for p in range(DIM):
             y[s, p, 0] = -g[(k - start) * DIM + p]
     _forward(L, y, first, start, first, newest, cap, S)
-    for k in range(first, newest + 1):
-        s = k % cap
-        for p in range(DIM):
-            delta[s, p, 0] = y[s, p, 0]
+    return -1
+
+
+@njit(cache=True)
+def _step(L, delta, before, first, newest, cap, S, threshold, max_turn, moved, r, v, C, bf, bw, xr, xv, xC, xbf,
+          xbw):
+    """The rest of an update, ``delta`` holding the forward solution (less the calibrations'
+    share, :mod:`smoother.window_calibration`) and ``before`` the offsets of the last update:
+    ``delta = L^-T delta``, the whole step from ``before`` shortened so that no attitude turns by
+    more than ``max_turn`` [rad], the estimates ``theta [+] delta`` (:func:`_boxplus`), then the
+    keyframes whose offset exceeds ``threshold`` linearised again (:func:`_relinearise`). Returns
+    ``(oldest, a)``: -1 or the oldest keyframe linearised again, and the factor the step was
+    shortened by (1: not shortened)."""
     _backward(L, delta, first, newest, cap, S)
     turn = 0.0
     for k in range(first, newest + 1):
         s = k % cap
-        d0, d1, d2 = (delta[s, 6, 0] - before[k - first, 6], delta[s, 7, 0] - before[k - first, 7],
-                      delta[s, 8, 0] - before[k - first, 8])
+        d0, d1, d2 = (delta[s, 6, 0] - before[s, 6, 0], delta[s, 7, 0] - before[s, 7, 0],
+                      delta[s, 8, 0] - before[s, 8, 0])
         turn = max(turn, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
-    shortened = turn > max_turn
-    if shortened:  # along the Gauss-Newton step, no further than max_turn in attitude
+    a = 1.0
+    if turn > max_turn:  # along the Gauss-Newton step, no further than max_turn in attitude
         a = max_turn / turn
         for k in range(first, newest + 1):
             s = k % cap
             for p in range(DIM):
-                delta[s, p, 0] = before[k - first, p] + a * (delta[s, p, 0] - before[k - first, p])
+                delta[s, p, 0] = before[s, p, 0] + a * (delta[s, p, 0] - before[s, p, 0])
     _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw)
-    return -1, _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved), shortened
+    return _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved), a
 
 
 @njit(cache=True)
@@ -211,13 +209,15 @@ class SlidingWindow:
     keyframe is linearised again when its offset from its linearisation point exceeds it in any
     component (0: every keyframe at every update). Keyframe ``k`` (0, 1, ...) has a time stamp and
     the window is ``first .. newest``; :meth:`leaving` names the keyframes the next update
-    marginalises, which the caller reads (and records with :meth:`taken`) before it."""
+    marginalises, which the caller reads (and records with :meth:`taken`) before it.
+    ``calibration``: the calibration variables
+    (:class:`smoother.window_calibration.WindowCalibration`), the window's dense border, or None."""
 
     kind = "sliding"
 
     def __init__(self, lag_s: float, gravity=imu.DEFAULT_GRAVITY,
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
-                 relinearisation_threshold=None):
+                 relinearisation_threshold=None, calibration: WindowCalibration | None = None):
         if not lag_s > 0:
             raise InputError(f"lag must be positive, got {lag_s}")
         threshold = RELINEARISATION_THRESHOLD if relinearisation_threshold is None else relinearisation_threshold
@@ -241,6 +241,9 @@ class SlidingWindow:
         self._S = 1  # the band L is factorised with (at least the factors' reach; narrowed at whole factorisations)
         self._spans = [0, 0]  # the longest span of the measurements, of the priors
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
+        self._cal = calibration
+        nc = 0 if calibration is None else calibration.nc
+        self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -253,7 +256,7 @@ class SlidingWindow:
                   "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
                   "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
-                  "_bwbar": (3,), "_Wimu": (DIM, DIM)}
+                  "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2])}
         old = {name: getattr(self, name, None) for name in shapes}
         old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
         self._cap = cap
@@ -319,13 +322,16 @@ class SlidingWindow:
     def newest_state(self) -> imu.ImuState:
         return self.state(self.newest)
 
-    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None) -> imu.ImuState:
+    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None,
+                     held=None) -> imu.ImuState:
         """Add keyframe ``newest + 1`` at ``t`` with the initial value ``guess``, the preintegrated
         interval ``pre`` from the newest keyframe (one :class:`factors.preintegration.Preintegrated`
         interval with its covariance; None: no IMU factor), ``measurements`` (``(spec, m,
         keyframes, robust)``: measurement ``m`` of a :class:`smoother.graph.MeasurementSpec`, the
-        keyframes it reads, a robust spec or None) and ``prior`` ``(state, cov)`` on the new
-        keyframe; one update (module docstring); returns the new keyframe's estimate.
+        keyframes it reads, a robust spec or None), ``prior`` ``(state, cov)`` on the new
+        keyframe and ``held`` ``(acc, gyro)``, the IMU reading held at ``t`` (what a calibrated
+        time offset steps with; None: zero); one update (module docstring); returns the new
+        keyframe's estimate.
         Measurements reading a keyframe that leaves are skipped and counted in ``skipped``. What
         can be refused (a covariance that is not positive definite, an unknown robust kernel) is
         refused before the window changes."""
@@ -351,13 +357,19 @@ class SlidingWindow:
             for a, value in zip(arrays, (guess.r, guess.v, guess.C, guess.b_f, guess.b_w)):
                 a[s] = value
         self._dx[s] = 0.0
+        self._hacc[s], self._hgyro[s] = (0.0, 0.0) if held is None else held
         self._has_imu[s] = False
         self._pre[s] = None
         linked = k == 0 or interval is not None
         if interval is not None:
             self._store_interval(s, pre, interval)
         for row in factors:
-            self._add_measurement(*row)
+            spec, _, data, W, _, code, threshold, keyframes = row
+            if self._cal is not None and self._cal.reads(spec):
+                self._cal.add(spec.name, keyframes, data, W, code, threshold)
+                self._stale = min(self._stale, min(keyframes))
+            else:
+                self._add_measurement(*row[1:])
             keyframes = row[-1]
             linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
         self.newest = k
@@ -373,9 +385,16 @@ class SlidingWindow:
     def covariances(self, wanted) -> np.ndarray:
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
         of ``H^-1`` with ``H`` at the linearisation points of the last update's solve (before the
-        keyframes it moved far enough were linearised again)."""
+        keyframes it moved far enough were linearised again; with calibrations, ``A^-1`` plus their
+        share, :mod:`smoother.window_calibration`)."""
         out = []
         b = np.zeros((self._cap, DIM, DIM))
+        border = None
+        if self._cal is not None:
+            W = self._Z.copy()  # W = L_A^-T Z, then its rows times L_D^-T
+            _backward(self._L, W, self.first, self.newest, self._cap, self._S)
+            inv = np.linalg.inv(self._cal.L_D)
+            border = W @ inv.T
         for k in wanted:
             for j in range(k, self.newest + 1):
                 b[j % self._cap] = 0.0
@@ -383,8 +402,18 @@ class SlidingWindow:
             _forward(self._L, b, self.first, k, k, self.newest, self._cap, self._S)
             _backward(self._L, b, k, self.newest, self._cap, self._S)
             cov = b[k % self._cap]
+            if border is not None:
+                cov = cov + border[k % self._cap] @ border[k % self._cap].T
             out.append(0.5 * (cov + cov.T))
         return np.stack(out)
+
+    @property
+    def calibration(self):
+        """The calibration variables after the last update and their marginal covariances
+        (:meth:`smoother.window_calibration.WindowCalibration.estimate`, ``.covariance``), or None."""
+        if self._cal is None:
+            return None
+        return self._cal.estimate(), self._cal.covariance()
 
     # -- inside -----------------------------------------------------------------------------------
 
@@ -401,7 +430,7 @@ class SlidingWindow:
 
     @staticmethod
     def _measurement_row(spec, m: int, keyframes, robust) -> tuple:
-        """Measurement ``m`` of ``spec`` as the arguments of :meth:`_add_measurement`, checked:
+        """Measurement ``m`` of ``spec`` as ``spec`` and the arguments of :meth:`_add_measurement`, checked:
         its covariance's whitening (an InputError if it is not positive definite) and robust code."""
         cov = np.ascontiguousarray(spec.cov[m], dtype=float)
         d = cov.shape[-1]
@@ -411,7 +440,7 @@ class SlidingWindow:
         if robust is not None and robust[0] not in ROBUST_CODES:
             raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
         code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
-        return spec.model, spec.rows[m], W, d, code, k, keyframes
+        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes
 
     def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes) -> None:
         """Append a checked measurement (:meth:`_measurement_row`); the rows of ``L`` from its
@@ -453,11 +482,24 @@ class SlidingWindow:
 
     def _bandwidth(self) -> int:
         """How many keyframes back the longest factor reaches (IMU factors: 1)."""
-        return max(1, *self._spans)
+        return max(1, *self._spans, 0 if self._cal is None else self._cal.span())
 
-    def _normal_equations(self, lo: int, cut: int, n: int, S: int):
+    def _states(self, keyframes) -> imu.ImuState:
+        """The linearisation points of window keyframes ``keyframes`` (an array)."""
+        slots = np.asarray(keyframes) % self._cap
+        return imu.ImuState(*(a[slots] for a in self._linearisation_points()))
+
+    def _held(self, keyframes):
+        """The IMU readings ``(acc, gyro)`` held at the times of keyframes ``keyframes``."""
+        slots = np.asarray(keyframes) % self._cap
+        return self._hacc[slots], self._hgyro[slots]
+
+    def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
-        factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)`` and ``g``."""
+        factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
+        and, with calibrations, their border ``(B, D, g_c)``
+        (:meth:`smoother.window_calibration.WindowCalibration.normal_equations`; the
+        calibrations' own priors when ``solving``), else None."""
         Hb = np.zeros((n, S + 1, DIM, DIM))
         g = np.zeros(n * DIM)
         with _compiling():
@@ -468,7 +510,10 @@ class SlidingWindow:
             if p.keyframes[0] < cut and p.keyframes[-1] >= lo:
                 _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, self._cap,
                             *self._linearisation_points(), lo, Hb, g)
-        return Hb, g
+        border = None
+        if self._cal is not None:
+            border = self._cal.normal_equations(self._states, self._held, lo, cut, Hb, g, solving)
+        return Hb, g, border
 
     def _solve(self, t: float) -> None:
         """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
@@ -502,16 +547,52 @@ class SlidingWindow:
         if start == self.first:  # factorised whole: the band the factors need now (it narrows as they leave)
             self._S = reach
         S = self._S
-        Hr, g = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
-        failed, oldest, shortened = _solve_rows(Hr, g, self._L, self._y, self._dx, self.first, start, self.newest,
-                                                self._cap, S, self.relinearisation_threshold, MAX_ATTITUDE_STEP,
-                                                self._moved, *self._linearisation_points(), *self._estimates())
+        Hr, g, border = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
+        failed = _factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
         if failed >= 0:
             return failed
+        before = self._dx.copy()
+        self._dx[:] = self._y
+        if border is not None:
+            before_c = self._cal.delta.copy()
+            failed = self._border_step(border, start)
+            if failed >= 0:
+                return failed
+        oldest, a = _step(self._L, self._dx, before, self.first, self.newest, self._cap, S,
+                          self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
+                          *self._estimates())
         self._stale = self.newest + 1
-        self.shortened += shortened
+        self.shortened += a < 1.0
+        if border is not None:
+            self._cal.delta = before_c + a * (self._cal.delta - before_c)
+            if self._cal.relinearise():  # every factor reading a calibration changes
+                self._stale = min(self._stale, max(self._cal.oldest(self.first), self.first))
         if oldest >= 0:
             self._relinearised(oldest)
+        return -1
+
+    def _border_step(self, border, start: int) -> int:
+        """The calibrations' part of an update (:mod:`smoother.window_calibration`): the rows
+        ``start ..`` of ``Z = L_A^-1 B``, ``L_D``, ``delta_c``, and ``y_A - Z delta_c`` into the
+        offsets (which the backward solve turns into ``delta_A``). Returns -1, or the newest
+        keyframe when the calibrations' Schur complement is not positive definite."""
+        B, D, gc = border
+        cap = self._cap
+        slots = np.arange(start, self.newest + 1) % cap
+        self._Z[slots] = B
+        _forward(self._L, self._Z, self.first, start, self.first, self.newest, cap, self._S)
+        window = np.arange(self.first, self.newest + 1) % cap
+        Z, y = self._Z[window], self._y[window, :, 0]
+        Sc = D - np.einsum("kpa,kpb->ab", Z, Z)
+        try:
+            L_D = np.linalg.cholesky(0.5 * (Sc + Sc.T))
+        except np.linalg.LinAlgError:
+            return self.newest
+        self._cal.L_D = L_D
+        y_c = np.linalg.solve(L_D, -gc - np.einsum("kpa,kp->a", Z, y))
+        delta_c = np.linalg.solve(L_D.T, y_c)
+        self._cal.delta = delta_c
+        self._dx[window, :, 0] -= Z @ delta_c
         return -1
 
     def _marginalise(self, leaving: list[int]) -> None:
@@ -529,8 +610,18 @@ class SlidingWindow:
         S = self._bandwidth()
         nl = cut - self.first
         n = min(self.newest - self.first + 1, nl + S)
-        Hb, g = self._normal_equations(self.first, cut, n, S)
-        status, touched, A, b = _marginal_prior(Hb, g, nl)
+        Hb, g, border = self._normal_equations(self.first, cut, n, S, solving=False)
+        bordered = border is not None and (np.any(border[0]) or np.any(border[1]))
+        if bordered:  # the marginal informs a calibration: a prior on it too
+            status, touched, A, b = self._cal.bordered_marginal(Hb, g, *border, nl)
+            if status == 0:
+                try:
+                    Lc = np.linalg.cholesky(A)
+                    A, b, status = Lc.T, np.linalg.solve(Lc, b), 0
+                except np.linalg.LinAlgError:
+                    status = 2
+        else:
+            status, touched, A, b = _marginal_prior(Hb, g, nl)
         if status == 1:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
                                  f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
@@ -541,8 +632,14 @@ class SlidingWindow:
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None
+        if self._cal is not None:
+            self._cal.drop_before(cut)
         self.first = cut
-        if touched.size:  # keep the keyframes the marginal ties (non-zero information)
+        if bordered:
+            R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
+            keyframes = cut + touched
+            self._cal.add_prior(BorderedPrior(keyframes, self._states(keyframes), tuple(self._cal.theta), R, e0))
+        elif touched.size:  # keep the keyframes the marginal ties (non-zero information)
             R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
             keyframes = cut + touched
             slots = keyframes % self._cap
