@@ -467,11 +467,13 @@ class SlidingWindow:
         self._stale = min(self._stale, k)
 
     def _relinearised(self, oldest: int) -> None:
-        """After :func:`_solve_rows` linearised keyframes ``oldest ..`` (those flagged) again:
+        """After :func:`_step` linearised keyframes ``oldest ..`` (those flagged) again:
         integrate again the intervals out of those whose gyro bias moved beyond the reintegration
         threshold, and mark the rows of ``L`` their factors change as stale."""
         moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
         self.relinearised.append(len(moved))
+        if self._cal is not None:
+            self._cal.moved(moved)
         for i in moved:
             j = (i + 1) % self._cap
             drift = np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j]))
@@ -638,7 +640,9 @@ class SlidingWindow:
         if bordered:
             R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
             keyframes = cut + touched
-            self._cal.add_prior(BorderedPrior(keyframes, self._states(keyframes), tuple(self._cal.theta), R, e0))
+            # at its own linearisation points: e = e0, J = R (Gamma^-1(0) = I)
+            self._cal.add_prior(BorderedPrior(keyframes, self._states(keyframes), tuple(self._cal.theta), R, e0,
+                                              (e0, R)))
         elif touched.size:  # keep the keyframes the marginal ties (non-zero information)
             R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
             keyframes = cut + touched

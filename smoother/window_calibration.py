@@ -45,9 +45,11 @@ from factors.errors import InputError
 DIM = imu.STATE_DIM
 #: How far a calibration may move from its linearisation point before the factors reading it are
 #: linearised again, per coordinate ``(dd [s], rho [rad] x3, dp [m] x3, ds)``. The calibrated
-#: residuals are linear in the scale and the lever arm and nearly linear in small rotations and
-#: time offsets; what a threshold leaves out is second order in it.
-RELINEARISATION_THRESHOLD = np.array([2e-3] + [2e-3] * 3 + [0.01] * 3 + [5e-4])
+#: residuals are linear in the lever arm, in the scale but for its product with the state's
+#: Jacobian, and in a time offset but for the attitude's ``exp(d C w)``; a rotation's
+#: ``exp(rho)`` is linear to first order: what a threshold leaves out is second order in it
+#: (0.01 rad: 1e-4 rad).
+RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [2e-3])
 
 
 @dataclass
@@ -62,37 +64,52 @@ class BorderedPrior:
     c_lin: tuple
     R: np.ndarray
     e0: np.ndarray
+    #: ``(e, J)`` at the current linearisation points, or None when one of them moved
+    linearised: tuple | None = None
 
 
 class _SensorRows:
-    """The calibrated measurements of one sensor in the window, as arrays (oldest first)."""
+    """The calibrated measurements of one sensor in the window, as arrays (oldest first): their
+    keyframes ``k (n, 2)``, rows, whitening, robust code and threshold, and the whitened, robustly
+    reweighted residual ``ew`` and Jacobians ``Jx`` (states), ``Jc`` (the estimated calibration
+    coordinates) at the linearisation points, valid where ``fresh``."""
+
+    _FIELDS = ("k", "rows", "W", "code", "threshold", "ew", "Jx", "Jc", "fresh")
 
     def __init__(self, kind_name: str, columns: np.ndarray, offset: int):
         self.kind = KINDS[kind_name]
         self.columns, self.offset = columns, offset
         self.width = len(columns)
+        d, states = self.kind.dim, 2 if self.kind.relative else 1
         self.k = np.zeros((0, 2), dtype=np.int64)
-        self.rows = self.W = self.code = self.threshold = None
+        self.rows = self.W = None
+        self.code, self.threshold = np.zeros(0, dtype=np.int64), np.zeros(0)
+        self.ew, self.Jx, self.Jc = np.zeros((0, d)), np.zeros((0, d, states * DIM)), np.zeros((0, d, self.width))
+        self.fresh = np.zeros(0, dtype=bool)
 
     def __len__(self) -> int:
         return len(self.k)
 
     def add(self, keyframes, row, W, code: int, threshold: float) -> None:
-        k = np.array([[min(keyframes), max(keyframes)]], dtype=np.int64)
-        fresh = (np.asarray(row, dtype=float)[None], np.asarray(W, dtype=float)[None], np.array([code]),
-                 np.array([threshold], dtype=float))
-        if self.rows is None:
-            self.rows, self.W, self.code, self.threshold = fresh
-        else:
-            self.rows, self.W, self.code, self.threshold = (np.concatenate([a, b]) for a, b in zip(
-                (self.rows, self.W, self.code, self.threshold), fresh))
-        self.k = np.concatenate([self.k, k])
+        d = self.kind.dim
+        new = {"k": np.array([[min(keyframes), max(keyframes)]], dtype=np.int64),
+               "rows": np.asarray(row, dtype=float)[None], "W": np.asarray(W, dtype=float)[None, :d, :d],
+               "code": np.array([code]), "threshold": np.array([threshold], dtype=float),
+               "ew": np.zeros((1,) + self.ew.shape[1:]), "Jx": np.zeros((1,) + self.Jx.shape[1:]),
+               "Jc": np.zeros((1,) + self.Jc.shape[1:]), "fresh": np.zeros(1, dtype=bool)}
+        for name, value in new.items():
+            old = getattr(self, name)
+            setattr(self, name, value if old is None else np.concatenate([old, value]))
 
     def keep(self, mask: np.ndarray) -> None:
-        self.k = self.k[mask]
-        if self.rows is not None:
-            self.rows, self.W, self.code, self.threshold = (a[mask] for a in (self.rows, self.W, self.code,
-                                                                              self.threshold))
+        for name in self._FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, value[mask])
+
+    def moved(self, keyframes) -> None:
+        """Keyframes ``keyframes`` were linearised again: the measurements reading them are stale."""
+        self.fresh &= ~np.isin(self.k, keyframes).any(axis=1)
 
 
 def _robust_scales(code: np.ndarray, k: np.ndarray, norm: np.ndarray) -> np.ndarray:
@@ -155,6 +172,20 @@ class WindowCalibration:
         cov = inv.T @ inv
         return [cov[a:b, a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
+    def moved(self, keyframes) -> None:
+        """Keyframes ``keyframes`` were linearised again: the factors reading them are stale."""
+        for rows in self.sensors.values():
+            rows.moved(keyframes)
+        for p in self.priors:
+            if np.isin(p.keyframes, keyframes).any():
+                p.linearised = None
+
+    def _all_stale(self) -> None:
+        for rows in self.sensors.values():
+            rows.fresh[:] = False
+        for p in self.priors:
+            p.linearised = None
+
     def relinearise(self) -> bool:
         """Move the linearisation point of each calibration whose offset exceeds
         :data:`RELINEARISATION_THRESHOLD` to its estimate; True if any moved."""
@@ -167,6 +198,8 @@ class WindowCalibration:
                 self.delta[a:b] = 0.0
                 moved = True
         self.relinearised += moved
+        if moved:  # every factor reading a calibration
+            self._all_stale()
         return moved
 
     # -- the factors ----------------------------------------------------------------------------
@@ -232,27 +265,29 @@ class WindowCalibration:
     def _measurements(self, rows: _SensorRows, j: int, use: np.ndarray, states, held, lo: int, Hb, g, B, D, gc):
         """One sensor's calibrated measurements ``use``, linearised and whitened, robustly
         reweighted, added (:meth:`normal_equations`)."""
-        k = rows.k[use]
         kind = rows.kind
-        c = self.theta[j]
-        with_time = "time_offset" in self.set.priors[j].parts
-        if kind.relative:
-            x = (states(k[:, 0]), states(k[:, 1]))
-            at = (held(k[:, 0]), held(k[:, 1])) if with_time else None
-        else:
-            x = states(k[:, 0])
-            at = held(k[:, 0]) if with_time else None
-        e, H, Hc = calibrated_rows(kind, x, rows.rows[use], c, at, self.gravity)
-        W = rows.W[use]
-        d = e.shape[1]
-        W = W[:, :d, :d]
-        ew = np.einsum("nab,nb->na", W, e)
-        Jx = W @ H
-        Jc = W @ Hc[:, :, rows.columns]
-        code = rows.code[use]
-        if np.any(code):
-            s = _robust_scales(code, rows.threshold[use], np.linalg.norm(ew, axis=1))
-            ew, Jx, Jc = ew * s[:, None], Jx * s[:, None, None], Jc * s[:, None, None]
+        stale = np.flatnonzero(use & ~rows.fresh)
+        if stale.size:  # linearised where their linearisation points moved (or new)
+            k = rows.k[stale]
+            with_time = "time_offset" in self.set.priors[j].parts
+            if kind.relative:
+                x = (states(k[:, 0]), states(k[:, 1]))
+                at = (held(k[:, 0]), held(k[:, 1])) if with_time else None
+            else:
+                x = states(k[:, 0])
+                at = held(k[:, 0]) if with_time else None
+            e, H, Hc = calibrated_rows(kind, x, rows.rows[stale], self.theta[j], at, self.gravity)
+            W = rows.W[stale]
+            ew = np.einsum("nab,nb->na", W, e)
+            Jx = W @ H
+            Jc = W @ Hc[:, :, rows.columns]
+            code = rows.code[stale]
+            if np.any(code):
+                s = _robust_scales(code, rows.threshold[stale], np.linalg.norm(ew, axis=1))
+                ew, Jx, Jc = ew * s[:, None], Jx * s[:, None, None], Jc * s[:, None, None]
+            rows.ew[stale], rows.Jx[stale], rows.Jc[stale] = ew, Jx, Jc
+            rows.fresh[stale] = True
+        k, ew, Jx, Jc = rows.k[use], rows.ew[use], rows.Jx[use], rows.Jc[use]
         a, b = rows.offset, rows.offset + rows.width
         D[a:b, a:b] += np.einsum("nda,ndb->ab", Jc, Jc)
         gc[a:b] += np.einsum("nda,nd->a", Jc, ew)
@@ -276,6 +311,28 @@ class WindowCalibration:
 
     def _prior(self, p: BorderedPrior, states, lo: int, Hb, g, B, D, gc) -> None:
         """A bordered prior, linearised at the current points, added (:meth:`normal_equations`)."""
+        if p.linearised is None:
+            p.linearised = self._linearised_prior(p, states)
+        e, J = p.linearised
+        P = len(p.keyframes)
+        Nx = P * DIM
+        Jc = J[:, Nx:]
+        D += Jc.T @ Jc
+        gc += Jc.T @ e
+        n = Hb.shape[0]
+        for a_ in range(P):
+            ka = int(p.keyframes[a_]) - lo
+            if not 0 <= ka < n:
+                continue
+            Ja = J[:, a_ * DIM:(a_ + 1) * DIM]
+            g[ka * DIM:(ka + 1) * DIM] += Ja.T @ e
+            B[ka] += Ja.T @ Jc
+            for b_ in range(a_ + 1):
+                kb = int(p.keyframes[b_]) - lo
+                Hb[ka, ka - kb] += Ja.T @ J[:, b_ * DIM:(b_ + 1) * DIM]
+
+    def _linearised_prior(self, p: BorderedPrior, states) -> tuple[np.ndarray, np.ndarray]:
+        """``(e, J)`` of a bordered prior at the current linearisation points."""
         P = len(p.keyframes)
         dx, blocks = np.zeros((0, DIM)), np.zeros((0, DIM, DIM))
         if P:  # a marginal may inform the calibrations alone
@@ -298,20 +355,7 @@ class WindowCalibration:
         for j, Jj in enumerate(Jcs):
             a, b = Nx + self.offsets[j], Nx + self.offsets[j + 1]
             J[:, a:b] = p.R[:, a:b] @ Jj
-        Jc = J[:, Nx:]
-        D += Jc.T @ Jc
-        gc += Jc.T @ e
-        n = Hb.shape[0]
-        for a_ in range(P):
-            ka = int(p.keyframes[a_]) - lo
-            if not 0 <= ka < n:
-                continue
-            Ja = J[:, a_ * DIM:(a_ + 1) * DIM]
-            g[ka * DIM:(ka + 1) * DIM] += Ja.T @ e
-            B[ka] += Ja.T @ Jc
-            for b_ in range(a_ + 1):
-                kb = int(p.keyframes[b_]) - lo
-                Hb[ka, ka - kb] += Ja.T @ J[:, b_ * DIM:(b_ + 1) * DIM]
+        return e, J
 
     def bordered_marginal(self, Hb: np.ndarray, g: np.ndarray, B: np.ndarray, D: np.ndarray, gc: np.ndarray,
                           nl: int):

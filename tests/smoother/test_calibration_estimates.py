@@ -3,6 +3,7 @@ within 3 posterior sigma, the calibration's NEES in its chi-square band over 20 
 data cannot fix left at its prior and said so, a right calibration left (nearly) alone."""
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import replace
 
@@ -146,20 +147,19 @@ def test_a_part_the_kind_cannot_estimate_is_refused_naming_the_sensor(parts, kin
         build_problem(data.with_sensor("antenna", calibrate=CalibrationPrior(parts)))
 
 
-def test_the_ekf_estimates_the_same_calibration_as_the_batch_within_2_sigma():
-    """The EKF with the calibrations as augmented states: every error recovered within 3 of its
-    sigmas, and each value within 2 of the EKF's sigmas of the batch smoother's."""
+@pytest.mark.parametrize("estimator", ["ekf", "fixed-lag"])
+def test_the_ekf_and_the_fixed_lag_smoother_estimate_the_batch_calibration_within_2_sigma(estimator):
+    """The EKF with the calibrations as augmented states, the fixed-lag smoother with them as the
+    window's border: every error recovered within 3 of the estimator's sigmas, and each value
+    within 2 of them of the batch smoother's."""
     from smoother.pipeline import run_estimators
 
-    data = _rig(1, duration=30.0)
-    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
-    data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        estimates = run_estimators(data, ["ekf", "batch"])
-    ekf, batch = (estimates[n].details for n in ("ekf", "batch"))
-    w, g = ekf["calibration"]["wheels"], ekf["calibration"]["gnss"]
-    rotation = np.array(ekf["calibration_against_prior"]["wheels"]["rotation_change_rad"])
+        found = run_estimators(_calibrating_rig(), [estimator])[estimator].details
+    batch = _batch_details()
+    w, g = found["calibration"]["wheels"], found["calibration"]["gnss"]
+    rotation = np.array(found["calibration_against_prior"]["wheels"]["rotation_change_rad"])
     assert np.all(np.abs(rotation[1:] - TRUE_ROTATION[1:]) < 3 * np.array(w["rotation_sigma_rad"])[1:])
     assert abs(w["scale"] - 0.99) < 3 * w["scale_sigma"]
     assert abs(g["time_offset_s"] + 0.1) < 3 * g["time_offset_sigma_s"]
@@ -170,3 +170,23 @@ def test_the_ekf_estimates_the_same_calibration_as_the_batch_within_2_sigma():
     assert abs(g["time_offset_s"] - batch["calibration"]["gnss"]["time_offset_s"]) < 2 * g["time_offset_sigma_s"]
     assert np.all(np.abs(np.subtract(g["lever_arm_m"], batch["calibration"]["gnss"]["lever_arm_m"]))
                   < 2 * np.array(g["lever_arm_sigma_m"]))
+    assert set(w) == set(batch["calibration"]["wheels"]) and set(g) == set(batch["calibration"]["gnss"])
+
+
+@functools.cache
+def _calibrating_rig():
+    """:func:`_rig` (seed 1, 30 s) with the wheels' rotation and scale and the fixes' delay and
+    lever arm to estimate."""
+    data = _rig(1, duration=30.0)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+
+
+@functools.cache
+def _batch_details() -> dict:
+    """The batch smoother's details on :func:`_calibrating_rig` (run once)."""
+    from smoother.pipeline import run_estimators
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return run_estimators(_calibrating_rig(), ["batch"])["batch"].details

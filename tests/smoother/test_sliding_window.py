@@ -253,7 +253,7 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
     def solve_and_check(window, t):
         solve(window, t)
         n, S, cap = window.newest - window.first + 1, window._S, window._cap
-        Hb, g = window._normal_equations(window.first, window.newest + 1, n, S)
+        Hb, g, _ = window._normal_equations(window.first, window.newest + 1, n, S)
         L = np.zeros_like(window._L)
         assert sw._factorise(Hb, L, window.first, window.first, window.newest, cap, S) == -1
         valid = min(window._stale, window.newest + 1) - window.first  # the rows still up to date
@@ -372,7 +372,7 @@ def test_a_measurement_on_older_keyframes_only_refactorises_from_them(gentle, mo
         solve(window, t)
         if window._stale <= window.newest:  # relinearised at the end of the update: rows stale until the next
             return
-        Hb, g = window._normal_equations(window.first, window.newest + 1, window.newest - window.first + 1,
+        Hb, g, _ = window._normal_equations(window.first, window.newest + 1, window.newest - window.first + 1,
                                          window._S)
         H = _dense(Hb)
         delta = np.linalg.solve(H, -g)
@@ -450,15 +450,15 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
     the run ends as accurate as without the refusal (the weak prior is 1e2 m, 1e1 m/s, pi rad)."""
     data = simulate("gentle", duration=4, seed=2)
     clean = replay(data, lag_s=1.0)
-    solve_rows, refused = sw._solve_rows, []
+    factorise_forward, refused = sw._factorise_forward, []
 
-    def refusing_once(Hr, g, L, y, delta, first, start, newest, *rest):
+    def refusing_once(Hr, g, L, y, first, start, newest, *rest):
         if newest == 9 and not refused:
             refused.append(7)
-            return 7, -1, False
-        return solve_rows(Hr, g, L, y, delta, first, start, newest, *rest)
+            return 7
+        return factorise_forward(Hr, g, L, y, first, start, newest, *rest)
 
-    monkeypatch.setattr(sw, "_solve_rows", refusing_once)
+    monkeypatch.setattr(sw, "_factorise_forward", refusing_once)
     result = replay(data, lag_s=1.0)
     assert refused == [7] and result.recovered == [7]
     diff = np.abs(result.smoothed.position - clean.smoothed.position).max()
@@ -470,10 +470,10 @@ def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_w
 
     data = simulate("gentle", duration=2, seed=2)
 
-    def refusing(Hr, g, L, y, delta, first, start, newest, *rest):
-        return (newest, -1, False) if newest == 5 else solve_rows(Hr, g, L, y, delta, first, start, newest, *rest)
+    def refusing(Hr, g, L, y, first, start, newest, *rest):
+        return newest if newest == 5 else factorise_forward(Hr, g, L, y, first, start, newest, *rest)
 
-    solve_rows = sw._solve_rows
-    monkeypatch.setattr(sw, "_solve_rows", refusing)
+    factorise_forward = sw._factorise_forward
+    monkeypatch.setattr(sw, "_factorise_forward", refusing)
     with pytest.raises(FixedLagFailed, match="even with a weak prior on it: the window's information spans"):
         replay(data, lag_s=1.0)
