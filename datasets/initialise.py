@@ -22,10 +22,14 @@ are used:
   sensor the world origin, with the sigma :data:`ODOMETRY_FRAME_SIGMA` (the start defines the
   frame; the estimators' covariances grow from there);
 * **velocity**: from the velocity sensor's measurement nearest ``t_s`` (within
-  :data:`VELOCITY_WINDOW_S`) when there is one; else zero when the IMU is at rest (mean angular
-  rate below :data:`REST_RATE`, specific force within :data:`REST_FORCE` of ``|g|``) and the fixes
-  do not move; else a straight line through the fixes of the first :data:`VELOCITY_WINDOW_S`
-  seconds, with the sigma of that fit;
+  :data:`VELOCITY_WINDOW_S`) when there is one; else a straight line through the fixes of the
+  first :data:`VELOCITY_WINDOW_S` seconds, with the sigma of that fit, each axis judged by its
+  own noise (a receiver's vertical sigma is twice its horizontal one: a car cruising at 10 m/s
+  moves 20 m in 2 s, less than three times a 5-m vertical sigma but forty horizontal ones); when
+  no axis's slope is three of its sigmas from zero and the IMU is at rest (mean angular rate
+  below :data:`REST_RATE`, specific force within :data:`REST_FORCE` of ``|g|`` -- which a
+  constant-velocity cruise satisfies too), zero, with the sigma the fixes leave
+  (:data:`REST_VELOCITY_SIGMA` at least); without fixes, zero at rest, else unknown;
 * **biases**: zero, with the prior sigmas given.
 
 The measurements that fix the start are applied again at ``t_s`` by the estimators; so that they
@@ -288,12 +292,12 @@ def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
         s, m = max(window, key=lambda sm: len(sm[1]))
         dt = float(m.t[-1] - m.t[0])
         slope = np.polyfit(m.t - m.t[0], m.position, 1)[0]  # the world velocity of a line through the fixes
-        noise = float(np.sqrt(np.max(m.cov[:, [0, 1, 2], [0, 1, 2]])))
-        sigma = np.sqrt(12.0 / len(m)) * noise / dt + 0.5  # a fit's slope sigma, and what it may change meanwhile
-        moved = np.linalg.norm(m.position[-1] - m.position[0]) > 3.0 * np.sqrt(2.0) * noise
-        if not moved and _imu_at_rest(imu, t_s, gravity):
-            return np.zeros(3), REST_VELOCITY_SIGMA
-        return C.T @ slope, sigma
+        noise = np.sqrt(np.max(m.cov[:, [0, 1, 2], [0, 1, 2]], axis=0))  # each axis's
+        fit_sigma = np.sqrt(12.0 / len(m)) * noise / dt  # a fit's slope sigma, per axis
+        moving = bool(np.any(np.abs(slope) > 3.0 * fit_sigma))
+        if not moving and _imu_at_rest(imu, t_s, gravity):  # or cruising too slowly for the fixes to tell
+            return np.zeros(3), max(REST_VELOCITY_SIGMA, float(np.max(np.abs(slope) + fit_sigma)))
+        return C.T @ slope, float(fit_sigma.max()) + 0.5  # and what it may change meanwhile
     if _imu_at_rest(imu, t_s, gravity):
         return np.zeros(3), REST_VELOCITY_SIGMA
     return np.zeros(3), UNKNOWN_VELOCITY_SIGMA

@@ -2,8 +2,8 @@
 
 The matrices are symmetric positive definite, in blocks of ``DIM = 15`` (one keyframe's error
 state), block-banded with bandwidth ``S``: block ``(k, j)`` is zero when ``k - j > S``. Nothing
-outside the band is stored; there is no dense border (a linear prior on several keyframes widens
-the band to its span instead).
+outside the band is stored (a linear prior on several keyframes widens the band to its span; the
+calibration variables' dense border is :mod:`smoother.window_calibration`'s).
 
 Two layouts:
 

@@ -209,7 +209,9 @@ class OnlineSmoother:
                 raise InputError(f"sensors[{name!r}]: expected a SensorSetup, got {setup!r}")
         self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
         self.gravity = check_array("gravity", gravity, (), 3)
-        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold, self._calibrations())
+        calibrations = self._calibrations()
+        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold, calibrations)
+        self._window_calibrates = calibrations is not None
         self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
@@ -483,7 +485,7 @@ class OnlineSmoother:
                          self._setup(item.sensor)[0].robust) for item in used]
         leaving = self._hand.read(window.leaving(t))
         extra = {}
-        if self.calibration is not None:  # what a calibrated time offset steps with
+        if self._window_calibrates:  # what a calibrated time offset steps with
             i = stream.held_at(t)
             extra["held"] = (stream.acc[i], stream.gyro[i])
         self._newest = window.add_keyframe(t, guess, pre, measurements, prior, **extra)  # its estimate after the update

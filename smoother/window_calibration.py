@@ -289,8 +289,9 @@ class WindowCalibration:
             rows.fresh[stale] = True
         k, ew, Jx, Jc = rows.k[use], rows.ew[use], rows.Jx[use], rows.Jc[use]
         a, b = rows.offset, rows.offset + rows.width
-        D[a:b, a:b] += np.einsum("nda,ndb->ab", Jc, Jc)
-        gc[a:b] += np.einsum("nda,nd->a", Jc, ew)
+        flat = Jc.reshape(-1, rows.width)
+        D[a:b, a:b] += flat.T @ flat
+        gc[a:b] += flat.T @ ew.reshape(-1)
         ends = [(k[:, 0], Jx[:, :, :DIM])] + ([(k[:, 1], Jx[:, :, DIM:])] if kind.relative else [])
         n = Hb.shape[0]
         for kk, J in ends:

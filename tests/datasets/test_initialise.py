@@ -139,7 +139,8 @@ YAW = np.deg2rad(30.0)
 
 def _straight_drive(speed, t_imu=(0.0, 60.0), t_gnss=(0.0, 60.0), gnss_rate=1.0, gnss_sigma=0.1, wheels=True):
     """``(imu, sensors)``: a vehicle along the 30-deg line at ``speed(t)`` [m/s] (body x forward),
-    fixes of ``gnss_sigma`` at ``gnss_rate`` over ``t_gnss``, wheel speeds at 10 Hz over the IMU's span."""
+    fixes of ``gnss_sigma`` (one for all axes, or east, north, up) at ``gnss_rate`` over ``t_gnss``,
+    wheel speeds at 10 Hz over the IMU's span."""
     from datasets.types import ImuSamples, PositionMeasurements, Sensor, VelocityMeasurements
 
     t = np.arange(*t_imu, 0.01)
@@ -148,8 +149,9 @@ def _straight_drive(speed, t_imu=(0.0, 60.0), t_gnss=(0.0, 60.0), gnss_rate=1.0,
     travelled = np.cumsum(speed(fine)) * 0.001
     heading = np.array([np.cos(YAW), np.sin(YAW), 0.0])
     tf = np.arange(*t_gnss, 1.0 / gnss_rate)
-    z = np.interp(tf, fine, travelled)[:, None] * heading + np.random.default_rng(0).normal(size=(len(tf), 3)) * gnss_sigma
-    sensors = [Sensor("gnss", "gnss", PositionMeasurements(tf, z, np.eye(3) * gnss_sigma**2))]
+    sigma = np.broadcast_to(np.asarray(gnss_sigma, dtype=float), (3,))
+    z = np.interp(tf, fine, travelled)[:, None] * heading + np.random.default_rng(0).normal(size=(len(tf), 3)) * sigma
+    sensors = [Sensor("gnss", "gnss", PositionMeasurements(tf, z, np.diag(sigma**2)))]
     if wheels:
         tv = t[::10]
         sensors.append(Sensor("wheel", "velocity", VelocityMeasurements(
@@ -181,6 +183,35 @@ def test_noisy_fixes_give_a_velocity_with_an_honest_sigma():
     imu, sensors = _straight_drive(lambda t: np.zeros_like(t), gnss_rate=10.0, gnss_sigma=1.5, wheels=False)
     v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
     assert np.linalg.norm(v) < 3 * sigma and sigma < 2.0
+
+
+@pytest.mark.parametrize("speed", [10.0, 3.0])
+def test_cruising_with_a_receivers_vertical_sigma_twice_its_horizontal_is_not_taken_for_rest(speed):
+    """A smooth cruise (the IMU reads as at rest) with 10 Hz fixes of 2.5 m horizontal, 5 m
+    vertical sigma: 2 s of fixes move 20 m at 10 m/s -- less than three times the vertical sigma
+    times sqrt(2), the threshold the largest sigma once set, which took the car for parked with
+    0.05 m/s -- but forty horizontal sigmas of the line's slope. At 3 m/s the slope is still many
+    of its sigmas from zero. Either way the velocity is within its sigma of the truth."""
+    from datasets.initialise import REST_VELOCITY_SIGMA, _velocity
+
+    imu, sensors = _straight_drive(lambda t: np.full_like(t, speed), gnss_rate=10.0, gnss_sigma=(2.5, 2.5, 5.0),
+                                   wheels=False)
+    truth = speed * np.array([np.cos(YAW), np.sin(YAW), 0.0])
+    v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+    assert sigma > REST_VELOCITY_SIGMA and np.linalg.norm(v - truth) < 3 * sigma, (v, sigma)
+    _, state, cov = initial_state(imu, sensors, GRAVITY)
+    assert np.abs(state.C @ state.v - truth).max() < 3 * np.sqrt(cov[3, 3])
+
+
+def test_parked_with_a_quiet_imu_and_fixes_that_cannot_tell_the_velocity_is_zero_within_what_they_allow():
+    """Parked, fixes of 2.5 / 5 m: zero, with a sigma of the fixes' slope (not the 0.05 m/s of a
+    rest the fixes cannot confirm); with centimetre fixes, the rest's own 0.05 m/s."""
+    from datasets.initialise import REST_VELOCITY_SIGMA, _velocity
+
+    for gnss_sigma, most in (((2.5, 2.5, 5.0), 10.0), (0.02, REST_VELOCITY_SIGMA)):
+        imu, sensors = _straight_drive(lambda t: np.zeros_like(t), gnss_rate=10.0, gnss_sigma=gnss_sigma, wheels=False)
+        v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+        assert np.all(v == 0) and REST_VELOCITY_SIGMA <= sigma <= most, (gnss_sigma, sigma)
 
 
 def test_fixes_before_the_imu_starts_are_not_taken_for_its_position():
