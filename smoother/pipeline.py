@@ -175,7 +175,8 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
         ms = 1e3 * r.latency_s
         details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
                                  "max": float(ms.max()), "measurements": len(ms)}
-    return Estimate("fixed-lag", r.smoothed, r.runtime_s, details)
+    return Estimate("fixed-lag", r.smoothed, r.runtime_s, details,
+                    calibration=None if r.calibration is None else r.calibration[0])
 
 
 def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
@@ -200,8 +201,9 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
             t = est.trajectory
             times = estimate_times(dataset, options.keyframe_rate)
             same = len(t.t) == len(times) and np.allclose(t.t, times, rtol=0, atol=1e-9)
-            blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust)] if same else []
-            out[name] = smoother_consistency(blocks, t.states, t.cov)
+            # its calibrations, where it estimated them, in the residuals (the values given otherwise)
+            blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust, est.calibration)] if same else []
+            out[name] = smoother_consistency(blocks, t.states, t.cov, calibration=est.calibration)
     return out
 
 
