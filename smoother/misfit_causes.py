@@ -219,15 +219,18 @@ def _prior(X: dict) -> np.ndarray:
 
 
 def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
-                   gravity, dof: dict[str, float] | None = None) -> dict[str, list[Cause]]:
+                   gravity, dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
     """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at
     ``states``, one per keyframe; relative kinds left out) fitted together as one Gauss-Newton
     step of the whole problem with each sensor's calibration added to its factors (module
     docstring): a misfit that one sensor's calibration explains is not put on another's. ``dof``:
     per sensor, the degrees of freedom its residuals leave at ``states`` (the batch smoother's
     verdict, :mod:`smoother.residual_consistency`); a sensor without it has its variance taken as
-    at least the one its sigma states. By sensor name."""
-    graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states)
+    at least the one its sigma states. ``calibration``: the values of the calibration variables
+    the blocks read (:class:`factors.calibration.CalibrationSet`; keys ``n + j``, free in the step
+    like the states), or None. By sensor name."""
+    graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states, calibration)
+    estimated = 0 if calibration is None else len(calibration)
     parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
     for sensor in (s for s in sensors if not KINDS[s.kind].relative):
         [block] = [b for b in blocks if b.name == sensor.name]
@@ -236,7 +239,7 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
         ev = evaluate_block(block, states, True)
         b, A = _whitened(sensor, e, X)
         A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
-        key = len(states) + len(parts)
+        key = len(states) + estimated + len(parts)
         unit = gtsam.noiseModel.Unit.Create(b.shape[1])
         for i in range(len(kf)):
             graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))  # de/dc = -X
@@ -258,8 +261,9 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     R = _square_root(tail, {part[0]: part[4].shape[2] for part in parts.values()})
     R_inv = np.linalg.inv(R)
     cov = R_inv @ R_inv.T
-    flat = step.vector()  # by key: the keyframes' steps, then the calibrations in the order of parts
+    flat = step.vector()  # by key: the keyframes' steps, the calibration variables', then the candidates
     n = len(states) * imu.STATE_DIM
+    flat = np.concatenate([flat[:n], flat[n + (0 if calibration is None else sum(calibration.dims)):]])
     dx_all, value = flat[:n].reshape(len(states), imu.STATE_DIM), flat[n:]
     information = R.T @ R
     gradient = information @ value
@@ -274,14 +278,20 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
 
 
 def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None,
-              dof: dict[str, float] | None = None) -> dict[str, list[Cause]]:
-    """:func:`fit_in_problem` of every sensor of ``dataset`` in its batch problem
-    (:func:`smoother.graph.build_problem` with ``keyframe_rate`` and ``robust``) started from
-    ``estimate`` (any estimator's, over the same data): one Gauss-Newton step from there, the
-    states and the calibrations together; ``dof`` as :func:`fit_in_problem` takes it."""
+              dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
+    """:func:`fit_in_problem` of every sensor of ``dataset`` that estimates no calibration of its
+    own, in its batch problem (:func:`smoother.graph.build_problem` with ``keyframe_rate`` and
+    ``robust``) started from ``estimate`` (any estimator's, over the same data) and from the
+    calibrations it estimated (``calibration``; None: the values given): one Gauss-Newton step
+    from there, the states, the estimated calibrations and the candidates together; ``dof`` as
+    :func:`fit_in_problem` takes it."""
     problem = build_problem(dataset, keyframe_rate, robust, start=estimate)
-    return fit_in_problem(problem.blocks, problem.initial_states, sensors_of(dataset), dataset.imu, dataset.gravity,
-                          dof)
+    values = problem.calibration
+    if values is not None and calibration is not None:
+        values = calibration
+    candidates = [s for s in sensors_of(dataset) if s.calibrate is None]
+    return fit_in_problem(problem.blocks, problem.initial_states, candidates, dataset.imu, dataset.gravity, dof,
+                          values)
 
 
 #: The estimators whose estimate :func:`hints` starts from, the first that ran.
@@ -303,7 +313,8 @@ def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | No
         return {}
     # the batch's verdicts count each measurement's leverage at its estimate (fit_in_problem)
     dof = {name: c["dof"] for name, c in consistency.get("batch", {}).items()} if ran[0] == "batch" else None
-    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust, dof)
+    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust, dof,
+                       estimates[ran[0]].calibration)
     out = {}
     for name, fits in causes.items():
         text = hint(fits)

@@ -148,7 +148,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
                                                                                            r.calibration_cov)
     # the verdicts need the joint covariances, which only this call has
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)
-    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency)
+    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency,
+                    calibration=r.calibration)
 
 
 def _given_values_note(dataset: Dataset, kind: str) -> dict:

@@ -2,6 +2,7 @@
 pattern against its definition, each injected rig error (a 1 % wheel-speed scale, a pitched speed
 sensor, a GNSS delay, a GNSS lever arm) named with its size by the batch smoother's joint fit, and
 a rig without errors named nothing."""
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -150,6 +151,20 @@ def test_hints_start_from_the_batch_and_else_from_another_estimate(runs):
     assert hints(data, {"ekf": estimates["ekf"]}, consistency)["gnss"].endswith("(fitted from the ekf's estimate)")
     right, right_estimates, _ = runs["right"]
     assert hints(right, right_estimates, sensor_consistency(right, right_estimates)) == {}
+
+
+def test_with_a_sensor_that_calibrates_the_others_are_fitted_at_its_estimated_calibration():
+    """The wheels read 1 % low and estimate their scale; the fixes are stamped 0.1 s late and
+    estimate nothing: the hint names the fixes' delay, fitted with the wheels' scale at the
+    batch's estimate (and free with the states), and says nothing of the wheels, which calibrate."""
+    from factors.calibration import CalibrationPrior
+
+    data = _delayed(_scaled(_car(seed=2), 0.99)).with_sensor("wheels", calibrate=CalibrationPrior(("scale",)))
+    estimates = run_estimators(data, ["batch"])
+    told = hints(data, estimates, sensor_consistency(data, estimates))
+    assert set(told) == {"gnss"}, told
+    value, sigma = map(float, re.match(r"time offset (\S+) s \+- (\S+) s", told["gnss"]).groups())
+    assert abs(value + 0.1) < 3 * sigma, told
 
 
 def test_the_run_warning_says_the_pattern_before_the_sigma(runs):
