@@ -357,6 +357,8 @@ class SlidingWindow:
             for a, value in zip(arrays, (guess.r, guess.v, guess.C, guess.b_f, guess.b_w)):
                 a[s] = value
         self._dx[s] = 0.0
+        if held is None and self._cal is not None and self._cal.steps_in_time:
+            raise InputError("add_keyframe: held: a calibrated time offset needs the IMU reading held at the keyframe")
         self._hacc[s], self._hgyro[s] = (0.0, 0.0) if held is None else held
         self._has_imu[s] = False
         self._pre[s] = None
@@ -500,8 +502,8 @@ class SlidingWindow:
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
         factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
         and, with calibrations, their border ``(B, D, g_c)``
-        (:meth:`smoother.window_calibration.WindowCalibration.normal_equations`; the
-        calibrations' own priors when ``solving``), else None."""
+        (:meth:`smoother.window_calibration.WindowCalibration.normal_equations`; when
+        ``solving``, the calibrations' own priors and every bordered prior too), else None."""
         Hb = np.zeros((n, S + 1, DIM, DIM))
         g = np.zeros(n * DIM)
         with _compiling():
@@ -557,9 +559,14 @@ class SlidingWindow:
         self._dx[:] = self._y
         if border is not None:
             before_c = self._cal.delta.copy()
-            failed = self._border_step(border, start)
-            if failed >= 0:
-                return failed
+            if not self._border_step(border, start):
+                self._dx[:] = before  # the estimates unchanged
+                self._stale = self.first
+                raise FixedLagFailed(
+                    f"the fixed-lag smoother failed at keyframe {self.newest} (t = {self.time(self.newest):.6f} s): "
+                    f"the calibrations of {', '.join(self._cal.set.names)} have an information that is not positive "
+                    "definite after the keyframes' share (their priors' sigmas span more orders of magnitude than "
+                    "the data determine them to, or a sensor is many orders more precise than the rest)")
         oldest, a = _step(self._L, self._dx, before, self.first, self.newest, self._cap, S,
                           self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
                           *self._estimates())
@@ -573,11 +580,11 @@ class SlidingWindow:
             self._relinearised(oldest)
         return -1
 
-    def _border_step(self, border, start: int) -> int:
+    def _border_step(self, border, start: int) -> bool:
         """The calibrations' part of an update (:mod:`smoother.window_calibration`): the rows
         ``start ..`` of ``Z = L_A^-1 B``, ``L_D``, ``delta_c``, and ``y_A - Z delta_c`` into the
-        offsets (which the backward solve turns into ``delta_A``). Returns -1, or the newest
-        keyframe when the calibrations' Schur complement is not positive definite."""
+        offsets (which the backward solve turns into ``delta_A``). False (the offsets and the
+        calibrations untouched) when the calibrations' Schur complement is not positive definite."""
         B, D, gc = border
         cap = self._cap
         slots = np.arange(start, self.newest + 1) % cap
@@ -589,19 +596,21 @@ class SlidingWindow:
         try:
             L_D = np.linalg.cholesky(0.5 * (Sc + Sc.T))
         except np.linalg.LinAlgError:
-            return self.newest
+            return False
         self._cal.L_D = L_D
         y_c = np.linalg.solve(L_D, -gc - np.einsum("kpa,kp->a", Z, y))
         delta_c = np.linalg.solve(L_D.T, y_c)
         self._cal.delta = delta_c
         self._dx[window, :, 0] -= Z @ delta_c
-        return -1
+        return True
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
         complement onto the keyframes they also touch, a :class:`_LinearPrior` at their
-        linearisation points. The rows of ``L`` after ``leaving`` stay: eliminating the oldest
-        keyframes first, they are the factor of that Schur complement already."""
+        linearisation points -- a :class:`smoother.window_calibration.BorderedPrior` on the
+        calibrations too when it informs them. The rows of ``L`` (and of the border ``Z``) after
+        ``leaving`` stay: eliminating the oldest keyframes first, they are the factor of that
+        Schur complement already."""
         if not leaving:
             return
         for j in leaving:

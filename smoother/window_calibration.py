@@ -149,8 +149,11 @@ class WindowCalibration:
             self.sensors[name] = _SensorRows(kinds[name], prior.columns, int(self.offsets[j]))
         self.priors: list[BorderedPrior] = []
         self.relinearised = 0
-        #: the Cholesky factor ``L_D`` of the last solve's calibration Schur complement
-        self.L_D = np.eye(self.nc)
+        #: whether a time offset is estimated (the residuals then step with the IMU reading held)
+        self.steps_in_time = any("time_offset" in p.parts for p in calibrations.priors)
+        #: the Cholesky factor ``L_D`` of the last solve's calibration Schur complement (before
+        #: the first: the priors' square-root information)
+        self.L_D = np.diag(1.0 / np.concatenate([p.sigmas for p in calibrations.priors]))
 
     # -- the variables --------------------------------------------------------------------------
 
@@ -222,7 +225,7 @@ class WindowCalibration:
 
     def oldest(self, default: int) -> int:
         """The oldest keyframe a factor reading a calibration reads (``default`` if none)."""
-        firsts = [int(r.k[0, 0]) for r in self.sensors.values() if len(r)]
+        firsts = [int(r.k[:, 0].min()) for r in self.sensors.values() if len(r)]
         firsts += [int(p.keyframes[0]) for p in self.priors if p.keyframes.size]
         return min(firsts, default=default)
 

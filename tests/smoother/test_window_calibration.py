@@ -105,3 +105,39 @@ def test_sensor_setup_checks_what_it_is_to_calibrate():
     # the offset its stamps get is the one the estimate is reported beyond
     setup = SensorSetup("gnss", time_offset=0.1, calibrate=CalibrationPrior(("time_offset",)))
     assert setup.calibrate.stamp_offset == 0.1
+
+
+def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibrations(monkeypatch):
+    """The calibrations' Schur complement refused at the tenth update (as a numerically singular
+    one would be): the update stops with one line naming the calibrations, the window's offsets
+    as the ninth left them (not its forward solution)."""
+    from smoother.fixed_lag import FixedLagFailed
+
+    data = _calibrating_rig(3.0)
+    border_step, after = sw.SlidingWindow._border_step, []
+    solve_once = sw.SlidingWindow._solve_once
+
+    def refusing_the_tenth(window, border, start):
+        return False if window.newest == 9 else border_step(window, border, start)
+
+    def recording(window):
+        out = solve_once(window)
+        after.append(window._dx.copy())
+        return out
+
+    monkeypatch.setattr(sw.SlidingWindow, "_border_step", refusing_the_tenth)
+    monkeypatch.setattr(sw.SlidingWindow, "_solve_once", recording)
+    online = OnlineSmoother.for_dataset(data, lag_s=1.0)
+    online.keyframe_at(data.imu.t[0] + 0.05 * np.arange(20))
+    with pytest.raises(FixedLagFailed, match="the calibrations of wheels, gnss have an information that is not"):
+        online.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
+    assert online._window.newest == 9 and np.abs(after[-1]).max() > 0
+    np.testing.assert_array_equal(online._window._dx, after[-1])
+
+
+def test_a_calibrated_time_offset_without_the_imu_reading_is_refused():
+    data = _calibrating_rig(2.0)
+    online = OnlineSmoother.for_dataset(data, lag_s=1.0)
+    window = online._window
+    with pytest.raises(InputError, match="a calibrated time offset needs the IMU reading held"):
+        window.add_keyframe(0.0, data.initial, prior=(data.initial, data.initial_cov))
