@@ -290,6 +290,19 @@ class CalibrationPrior:
         return full[self.columns]
 
 
+def checked_prior(prior, kind: str, model: sm.SensorModel | None, where: str) -> "CalibrationPrior":
+    """``prior``, a :class:`CalibrationPrior` whose parts a ``kind`` sensor (its ``model``) can
+    estimate (:func:`applicable`), or an InputError naming ``where``."""
+    if not isinstance(prior, CalibrationPrior):
+        raise InputError(f"{where}: expected a factors.calibration.CalibrationPrior, got {type(prior).__name__}")
+    can = applicable(model)
+    wrong = [p for p in prior.parts if p not in can]
+    if wrong:
+        raise InputError(f"{where}: a {kind} sensor cannot estimate {', '.join(wrong)}; it can estimate "
+                         f"{', '.join(can)}")
+    return prior
+
+
 @dataclass(frozen=True)
 class CalibrationSet:
     """The calibration variables of a problem: each sensor's ``name``, its current ``values``, its
@@ -301,6 +314,13 @@ class CalibrationSet:
     values: tuple[Calibration, ...]
     priors: tuple[CalibrationPrior, ...]
     means: tuple[Calibration, ...]
+
+    @staticmethod
+    def given(names, extrinsics, priors) -> "CalibrationSet":
+        """The variables of sensors ``names`` starting at, and with priors about, the values given:
+        each extrinsic ``T_BS`` (None: at the IMU), no further time offset, scale 1."""
+        means = tuple(Calibration.of(T) for T in extrinsics)
+        return CalibrationSet(tuple(names), means, tuple(priors), means)
 
     def __len__(self) -> int:
         return len(self.names)

@@ -331,18 +331,9 @@ def calibration_set(dataset: Dataset) -> calibration.CalibrationSet | None:
     asking = [s for s in sensors_of(dataset) if s.calibrate is not None]
     if not asking:
         return None
-    for s in asking:
-        if not isinstance(s.calibrate, calibration.CalibrationPrior):
-            raise InputError(f"sensor {s.name!r}: calibrate: expected a factors.calibration.CalibrationPrior, "
-                             f"got {type(s.calibrate).__name__}")
-        kind = KINDS[s.kind]
-        can = calibration.applicable(kind.model)
-        wrong = [p for p in s.calibrate.parts if p not in can]
-        if wrong:
-            raise InputError(f"sensor {s.name!r} (kind {s.kind}): cannot estimate {', '.join(wrong)}; "
-                             f"a {s.kind} sensor can estimate {', '.join(can)}")
-    means = tuple(calibration.Calibration.of(s.data.T_BS) for s in asking)
-    return calibration.CalibrationSet(tuple(s.name for s in asking), means, tuple(s.calibrate for s in asking), means)
+    priors = [calibration.checked_prior(s.calibrate, s.kind, KINDS[s.kind].model,
+                                        f"sensor {s.name!r} (kind {s.kind}): calibrate") for s in asking]
+    return calibration.CalibrationSet.given([s.name for s in asking], [s.data.T_BS for s in asking], priors)
 
 
 def calibration_prior_blocks(calibrations: calibration.CalibrationSet) -> list[Block]:

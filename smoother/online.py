@@ -154,14 +154,7 @@ class SensorSetup:
             kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
         check_robust("SensorSetup.robust", self.robust)
         if self.calibrate is not None:
-            if not isinstance(self.calibrate, calibration.CalibrationPrior):
-                raise InputError("SensorSetup.calibrate: expected a factors.calibration.CalibrationPrior, got "
-                                 f"{type(self.calibrate).__name__}")
-            can = calibration.applicable(KINDS[self.kind].model)
-            wrong = [p for p in self.calibrate.parts if p not in can]
-            if wrong:
-                raise InputError(f"SensorSetup.calibrate: a {self.kind} sensor cannot estimate {', '.join(wrong)}; "
-                                 f"it can estimate {', '.join(can)}")
+            calibration.checked_prior(self.calibrate, self.kind, KINDS[self.kind].model, "SensorSetup.calibrate")
             given = self.calibrate.stamp_offset
             if self.time_offset != 0.0 and given != self.time_offset:  # the offset its stamps get
                 if given != 0.0:
@@ -453,9 +446,8 @@ class OnlineSmoother:
             return None
         from smoother.window_calibration import WindowCalibration
 
-        means = tuple(calibration.Calibration.of(setup.T_BS) for setup in asking.values())
-        priors = tuple(setup.calibrate for setup in asking.values())
-        chosen = calibration.CalibrationSet(tuple(asking), means, priors, means)
+        chosen = calibration.CalibrationSet.given(asking, [s.T_BS for s in asking.values()],
+                                                  [s.calibrate for s in asking.values()])
         return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()}, self.gravity)
 
     def _make_keyframes(self, horizon: float) -> None:

@@ -41,6 +41,7 @@ from datasets.kinds import KINDS, calibrated_rows
 from factors import calibration, imu, so3
 from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError
+from smoother.normal_equations import _robust_scale
 
 DIM = imu.STATE_DIM
 #: How far a calibration may move from its linearisation point before the factors reading it are
@@ -110,20 +111,6 @@ class _SensorRows:
     def moved(self, keyframes) -> None:
         """Keyframes ``keyframes`` were linearised again: the measurements reading them are stale."""
         self.fresh &= ~np.isin(self.k, keyframes).any(axis=1)
-
-
-def _robust_scales(code: np.ndarray, k: np.ndarray, norm: np.ndarray) -> np.ndarray:
-    """``sqrt(w(|e_w|))`` of GTSAM's Huber (1), Cauchy (2) and Tukey (3) weights, elementwise
-    (:func:`smoother.normal_equations._robust_scale` over arrays)."""
-    out = np.ones_like(norm)
-    safe = np.maximum(norm, 1e-300)
-    huber = (code == 1) & (norm > k)
-    out[huber] = np.sqrt(k[huber] / safe[huber])
-    cauchy = code == 2
-    out[cauchy] = np.sqrt(k[cauchy] ** 2 / (k[cauchy] ** 2 + norm[cauchy] ** 2))
-    tukey = code == 3
-    out[tukey] = np.where(norm[tukey] > k[tukey], 0.0, 1.0 - (norm[tukey] / np.maximum(k[tukey], 1e-300)) ** 2)
-    return out
 
 
 class WindowCalibration:
@@ -285,8 +272,9 @@ class WindowCalibration:
             Jx = W @ H
             Jc = W @ Hc[:, :, rows.columns]
             code = rows.code[stale]
-            if np.any(code):
-                s = _robust_scales(code, rows.threshold[stale], np.linalg.norm(ew, axis=1))
+            if np.any(code):  # GTSAM's weights, the formula the compiled factors use
+                norms = np.linalg.norm(ew, axis=1)
+                s = np.array([_robust_scale(c_, k_, x_) for c_, k_, x_ in zip(code, rows.threshold[stale], norms)])
                 ew, Jx, Jc = ew * s[:, None], Jx * s[:, None, None], Jc * s[:, None, None]
             rows.ew[stale], rows.Jx[stale], rows.Jc[stale] = ew, Jx, Jc
             rows.fresh[stale] = True
