@@ -54,13 +54,14 @@ To first order the IMU reading's noise does not enter (it reaches the residual m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from factors import imu, so3
 from factors import sensor_models as sm
+from factors.compiled import leaf, recursion, rows
 from factors.errors import InputError
+from factors.imu import STATE_DIM
 
 #: The parts of a calibration, in the order of its error coordinates, and their columns there.
 PARTS = ("time_offset", "rotation", "lever_arm", "scale")
@@ -133,111 +134,199 @@ def prior_residual(c: Calibration, mean: Calibration, which: np.ndarray) -> tupl
     return full[which], J[np.ix_(which, which)]
 
 
-#: The residual rows through which ``R_BS`` enters, where not all (a pose's attitude; its
-#: position rows read the lever arm alone).
-_ATTITUDE_ROWS = {"pose": slice(3, 6)}
+#: A calibration as the compiled kernels read it (:func:`packed`): ``(d, R_BS row-major (9),
+#: p_BS (3), s)``.
+PACKED_SIZE = 14
+_R_AT, _P_AT, _S_AT = 1, 10, 13
 
 
-def _with_extrinsic(rows: np.ndarray, rotation_at, lever_at, c: Calibration) -> np.ndarray:
-    """``rows`` with the calibrated ``R_BS`` and ``p_BS`` in their slots."""
-    out = np.array(rows, dtype=float)
-    if rotation_at is not None:
-        out[:, rotation_at:rotation_at + 9] = c.R.reshape(9)
-    if lever_at is not None:
-        out[:, lever_at:lever_at + 3] = c.p
-    return out
+def packed(c: Calibration) -> np.ndarray:
+    """``c`` as the compiled kernels read it (:data:`PACKED_SIZE` numbers)."""
+    return np.concatenate([[c.time_offset], np.asarray(c.R, dtype=float).reshape(9), c.p, [c.scale]])
 
 
-def _one_state_extrinsic_jacobians(model: sm.SensorModel, states: imu.ImuState, rows: np.ndarray, H: np.ndarray):
-    """``(de/drho, de/dp)`` (N, d, 3) each, of the unscaled residual (module docstring)."""
-    n, d = H.shape[0], H.shape[1]
-    J_rho, J_p = np.zeros((n, d, 3)), np.zeros((n, d, 3))
-    C = states.C
-    if model.name == "velocity":
-        omega = rows[:, 3:6] - states.b_w
-        p = rows[:, model.lever_at:model.lever_at + 3]
-        u = states.v + np.cross(omega, p)
-        H_v = H[:, :, 3:6]
-        J_rho = H_v @ so3.skew(u)
-        J_p = H_v @ so3.skew(omega)
-        return J_rho, J_p
-    if model.lever_at is not None:  # through r + C p
-        J_p = H[:, :, 0:3] @ C
-    if model.rotation_at is not None:  # through the attitude C R_BS
-        rows_of_attitude = _ATTITUDE_ROWS.get(model.name, slice(None))
-        J_rho[:, rows_of_attitude] = H[:, rows_of_attitude, 6:9] @ C
-    return J_rho, J_p
+#: The residual rows through whose attitude ``R_BS`` enters, where not all (a pose's; its position
+#: rows read the lever arm alone).
+_ATTITUDE_ROWS = {"pose": (3, 6)}
+#: The models whose extrinsic enters through the sensor frame's velocity ``R_BS^T (v + w x p)``,
+#: with the place of the gyro reading ``w`` in their rows.
+_THROUGH_VELOCITY = {"velocity": 3}
 
 
-def _scaled(e0: np.ndarray, H_parts: list[np.ndarray], z: np.ndarray, k: int, s: float):
-    """Apply the scale to the first ``k`` residual rows: ``e = s (e0 + z) - z``, Jacobians times
-    ``s``; returns ``(e, parts, de/ds)``."""
-    e = e0.copy()
-    ds = np.zeros(e0.shape)
-    if k:
-        h = e0[:, :k] + z
-        e[:, :k] = s * h - z
-        ds[:, :k] = h
-        for J in H_parts:
-            J[:, :k] *= s
-    return e, H_parts, ds
+def layout(model: sm.SensorModel) -> np.ndarray:
+    """How a one-state ``model``'s rows and residual read a calibration, for
+    :func:`one_state_into`: ``(rotation_at, lever_at, scaled, gyro_at, first, end)`` -- where its
+    rows hold ``R_BS`` and ``p_BS`` (-1: they do not), its scaled rows, the place of the gyro
+    reading in a row whose velocity reads the extrinsic (-1: it enters through the attitude ``C
+    R_BS`` and the position ``r + C p``), and the residual rows ``first:end`` whose attitude reads
+    ``R_BS``."""
+    first, end = _ATTITUDE_ROWS.get(model.name, (0, model.dim))
+    return np.array([-1 if model.rotation_at is None else model.rotation_at,
+                     -1 if model.lever_at is None else model.lever_at, model.scaled,
+                     _THROUGH_VELOCITY.get(model.name, -1), first, end], dtype=np.int64)
 
 
-def _stepped(states: imu.ImuState, imu_at, d: float, gravity):
-    """The states one Euler step of ``d`` away, the step's ``F`` and the states' rates (None
-    without ``imu_at``)."""
+@leaf
+def calibrated_row_into(row, rotation_at, lever_at, cal, out) -> None:
+    """``out = row`` with the packed calibration ``cal``'s ``R_BS`` and ``p_BS`` in their slots
+    (-1: none)."""
+    for a in range(row.shape[0]):
+        out[a] = row[a]
+    if rotation_at >= 0:
+        for a in range(9):
+            out[rotation_at + a] = cal[_R_AT + a]
+    if lever_at >= 0:
+        for a in range(3):
+            out[lever_at + a] = cal[_P_AT + a]
+
+
+@leaf
+def _scale_into(e0, row, scaled, s, e, H, Hc) -> None:
+    """The scale on the first ``scaled`` residual rows: ``e = s (e0 + z) - z`` (``z =
+    row[:scaled]``), their state and other calibration columns times ``s``, ``Hc[:, 7] = e0 +
+    z`` there (0 below)."""
+    d = e0.shape[0]
+    for a in range(d):
+        e[a] = e0[a]
+        Hc[a, 7] = 0.0
+    for a in range(min(scaled, d)):
+        h = e0[a] + row[a]
+        e[a] = s * h - row[a]
+        Hc[a, 7] = h
+        for c in range(H.shape[1]):
+            H[a, c] *= s
+        for c in range(7):
+            Hc[a, c] *= s
+
+
+@leaf
+def _through_step(H0, F, rate, at, with_time, H, Hc) -> None:
+    """Columns ``at:at+15`` of the state Jacobian ``H = H0 F`` (``H0`` without ``with_time``) and
+    the time offset's column ``Hc[:, 0] += H0 rate`` of one state's part of a residual."""
+    for a in range(H0.shape[0]):
+        if with_time:
+            t = 0.0
+            for b in range(STATE_DIM):
+                t += H0[a, at + b] * rate[b]
+            Hc[a, 0] += t
+            for c in range(STATE_DIM):
+                acc = 0.0
+                for b in range(STATE_DIM):
+                    acc += H0[a, at + b] * F[b, c]
+                H[a, at + c] = acc
+        else:
+            for c in range(STATE_DIM):
+                H[a, at + c] = H0[a, at + c]
+
+
+@leaf
+def one_state_into(lay, v, C, b_w, row, e0, H0, F, rate, with_time, s, e, H, Hc) -> None:
+    """A one-state model's calibrated residual (module docstring) from the model's own ``e0 (d)``,
+    ``H0 (d, 15)``, evaluated at the stepped state (whose ``v, C, b_w`` are given) with the
+    calibrated ``row``; the step's ``F`` and the state's ``rate`` where ``with_time``; ``lay`` the
+    model's :func:`layout`, ``s`` the scale. Writes ``e (d)``, ``H (d, 15)``, ``Hc (d, 8)``."""
+    d = e0.shape[0]
+    lever_at, gyro_at = lay[1], lay[3]
+    for a in range(d):
+        for c in range(CALIBRATION_DIM):
+            Hc[a, c] = 0.0
+    _through_step(H0, F, rate, 0, with_time, H, Hc)
+    if gyro_at >= 0:  # R_BS^T (v + w x p): rotation H_v u^x, lever arm H_v w^x
+        w0, w1, w2 = row[gyro_at] - b_w[0], row[gyro_at + 1] - b_w[1], row[gyro_at + 2] - b_w[2]
+        p0, p1, p2 = row[lever_at], row[lever_at + 1], row[lever_at + 2]
+        u0, u1, u2 = v[0] + w1 * p2 - w2 * p1, v[1] + w2 * p0 - w0 * p2, v[2] + w0 * p1 - w1 * p0
+        for a in range(d):
+            h0, h1, h2 = H0[a, 3], H0[a, 4], H0[a, 5]
+            Hc[a, 1], Hc[a, 2], Hc[a, 3] = h1 * u2 - h2 * u1, h2 * u0 - h0 * u2, h0 * u1 - h1 * u0
+            Hc[a, 4], Hc[a, 5], Hc[a, 6] = h1 * w2 - h2 * w1, h2 * w0 - h0 * w2, h0 * w1 - h1 * w0
+    else:
+        if lever_at >= 0:  # through r + C p: H_r C
+            for a in range(d):
+                for c in range(3):
+                    Hc[a, 4 + c] = H0[a, 0] * C[0, c] + H0[a, 1] * C[1, c] + H0[a, 2] * C[2, c]
+        if lay[0] >= 0:  # through the attitude C R_BS: H_phi C
+            for a in range(lay[4], lay[5]):
+                for c in range(3):
+                    Hc[a, 1 + c] = H0[a, 6] * C[0, c] + H0[a, 7] * C[1, c] + H0[a, 8] * C[2, c]
+    _scale_into(e0, row, lay[2], s, e, H, Hc)
+
+
+@recursion
+def calibrated_odometry_into(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, row, cal, with_time, acc_i, gyro_i,
+                             acc_j, gyro_j, g, e, H, Hc) -> None:
+    """``e (6)``, ``H (6, 30)``, ``H_c (6, 8)`` of one relative pose ``row``
+    (:func:`factors.sensor_models.pack_odometry`) between two states through the packed
+    calibration ``cal`` (module docstring), with the IMU readings held at the two stamps where
+    ``with_time``."""
+    xr_i, xv_i, xC_i, xr_j, xv_j, xC_j = r_i.copy(), v_i.copy(), C_i.copy(), r_j.copy(), v_j.copy(), C_j.copy()
+    F_i, F_j = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, STATE_DIM))
+    rate_i, rate_j = np.empty(STATE_DIM), np.empty(STATE_DIM)
+    if with_time:
+        imu.stepped_into(r_i, v_i, C_i, bf_i, bw_i, acc_i, gyro_i, cal[0], g, xr_i, xv_i, xC_i, F_i, rate_i)
+        imu.stepped_into(r_j, v_j, C_j, bf_j, bw_j, acc_j, gyro_j, cal[0], g, xr_j, xv_j, xC_j, F_j, rate_j)
+    calibrated = np.empty(sm.ODOMETRY_WIDTH)
+    calibrated_row_into(row, sm.ODOMETRY_ROTATION_AT, sm.ODOMETRY_LEVER_AT, cal, calibrated)
+    e0, H0 = np.empty(6), np.empty((6, 2 * STATE_DIM))
+    sm.odometry_kernel(xr_i, xC_i, xr_j, xC_j, calibrated, e0, H0)
+    for a in range(6):
+        for c in range(CALIBRATION_DIM):
+            Hc[a, c] = 0.0
+    _through_step(H0, F_i, rate_i, 0, with_time, H, Hc)
+    _through_step(H0, F_j, rate_j, STATE_DIM, with_time, H, Hc)
+    D, dC = np.empty(3), np.empty((3, 3))
+    for a in range(3):
+        D[a] = xr_j[a] - xr_i[a]
+        for b in range(3):
+            D[a] += (xC_j[a, b] - xC_i[a, b]) * cal[_P_AT + b]
+            dC[a, b] = xC_j[a, b] - xC_i[a, b]
+    K = np.empty((3, 3))  # H_rj D^x
+    for a in range(3):
+        h0, h1, h2 = H0[a, 15], H0[a, 16], H0[a, 17]
+        K[a, 0], K[a, 1], K[a, 2] = h1 * D[2] - h2 * D[1], h2 * D[0] - h0 * D[2], h0 * D[1] - h1 * D[0]
+    for a in range(3):
+        for c in range(3):
+            Hc[a, 1 + c] = K[a, 0] * xC_i[0, c] + K[a, 1] * xC_i[1, c] + K[a, 2] * xC_i[2, c]
+            Hc[3 + a, 1 + c] = H0[3 + a, 21] * dC[0, c] + H0[3 + a, 22] * dC[1, c] + H0[3 + a, 23] * dC[2, c]
+            Hc[a, 4 + c] = H0[a, 15] * dC[0, c] + H0[a, 16] * dC[1, c] + H0[a, 17] * dC[2, c]
+    _scale_into(e0, calibrated, sm.ODOMETRY_SCALED, cal[_S_AT], e, H, Hc)
+
+
+@recursion
+def _calibrated_odometry_rows(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, rows, cal, with_time, acc_i,
+                              gyro_i, acc_j, gyro_j, g, e, H, Hc) -> None:
+    for n in range(rows.shape[0]):
+        calibrated_odometry_into(r_i[n], v_i[n], C_i[n], bf_i[n], bw_i[n], r_j[n], v_j[n], C_j[n], bf_j[n], bw_j[n],
+                                 rows[n], cal, with_time, acc_i[n], gyro_i[n], acc_j[n], gyro_j[n], g, e[n], H[n],
+                                 Hc[n])
+
+
+def state_rows(states: imu.ImuState, n: int) -> list:
+    """``(r, v, C, b_f, b_w)`` of ``states`` as the compiled row loops take them (``n`` rows)."""
+    return rows((n,), (states.r, states.v, states.C, states.b_f, states.b_w), ((3,), (3,), (3, 3), (3,), (3,)))
+
+
+def readings(imu_at, n: int) -> tuple[bool, list]:
+    """``(with_time, [acc, gyro])`` of the IMU readings held at ``n`` stamps (None: no time
+    offset, zeros)."""
     if imu_at is None:
-        return states, None, None
-    acc, gyro = imu_at
-    moved, F, _ = imu.propagate(states, acc, gyro, np.full(len(states), d), gravity)
-    return moved, F, imu.state_derivative(states, acc, gyro, gravity)
+        return False, [np.zeros((n, 3)), np.zeros((n, 3))]
+    return True, rows((n,), imu_at, ((3,), (3,)))
 
 
-def calibrated_residual(model: sm.SensorModel, measure: Callable, states: imu.ImuState, rows: np.ndarray,
-                        c: Calibration, imu_at=None, gravity=imu.DEFAULT_GRAVITY):
-    """``(e (N, d), H (N, d, 15), H_c (N, d, 8))`` of one-state measurement ``rows`` at
-    ``states`` through the calibration ``c`` (module docstring). ``measure(states, rows) -> (e,
-    H)`` runs the model's kernel over rows (:func:`datasets.kinds.measure_rows`); ``imu_at =
-    (acc, gyro)`` (N, 3) each, the IMU reading held at each measurement's stamp, or None when the
-    time offset is not a variable (then ``x' = x`` and its column is 0)."""
-    moved, F, rate = _stepped(states, imu_at, c.time_offset, gravity)
-    calibrated = _with_extrinsic(rows, model.rotation_at, model.lever_at, c)
-    e0, H = measure(moved, calibrated)
-    J_rho, J_p = _one_state_extrinsic_jacobians(model, moved, calibrated, H)
-    J_t = np.zeros(e0.shape) if rate is None else np.einsum("nab,nb->na", H, rate)
-    H_state = H if F is None else H @ F
-    e, (H_state, J_t3, J_rho, J_p), J_s = _scaled(e0, [H_state, J_t[..., None], J_rho, J_p],
-                                                  calibrated[:, :model.scaled], model.scaled, c.scale)
-    return e, H_state, np.concatenate([J_t3, J_rho, J_p, J_s[..., None]], axis=2)
-
-
-def calibrated_odometry_residual(states_i: imu.ImuState, states_j: imu.ImuState, rows: np.ndarray, c: Calibration,
+def calibrated_odometry_residual(states_i: imu.ImuState, states_j: imu.ImuState, rows_: np.ndarray, c: Calibration,
                                  imu_at=None, gravity=imu.DEFAULT_GRAVITY):
-    """``(e (N, 6), H (N, 6, 30), H_c (N, 6, 8))`` of relative pose ``rows``
+    """``(e (N, 6), H (N, 6, 30), H_c (N, 6, 8))`` of relative pose ``rows_``
     (:func:`factors.sensor_models.pack_odometry`) between ``states_i`` and ``states_j`` through
-    ``c``; ``imu_at = ((acc_i, gyro_i), (acc_j, gyro_j))`` at the two stamps, or None."""
-    at_i, at_j = (None, None) if imu_at is None else imu_at
-    moved_i, F_i, rate_i = _stepped(states_i, at_i, c.time_offset, gravity)
-    moved_j, F_j, rate_j = _stepped(states_j, at_j, c.time_offset, gravity)
-    calibrated = _with_extrinsic(rows, sm.ODOMETRY_ROTATION_AT, sm.ODOMETRY_LEVER_AT, c)
-    e0, H = sm.odometry_rows(moved_i, moved_j, calibrated)
-    n = len(rows)
-    C_i, C_j = moved_i.C, moved_j.C
-    D = (moved_j.r + C_j @ c.p) - (moved_i.r + C_i @ c.p)
-    J_rho, J_p = np.zeros((n, 6, 3)), np.zeros((n, 6, 3))
-    H_rj, H_phij = H[:, 0:3, 15:18], H[:, 3:6, 21:24]
-    J_rho[:, 0:3] = H_rj @ so3.skew(D) @ C_i
-    J_rho[:, 3:6] = H_phij @ (C_j - C_i)
-    J_p[:, 0:3] = H_rj @ (C_j - C_i)
-    J_t = np.zeros((n, 6))
-    H_state = H.copy()
-    if rate_i is not None:
-        J_t = np.einsum("nab,nb->na", H[:, :, :15], rate_i) + np.einsum("nab,nb->na", H[:, :, 15:], rate_j)
-        H_state[:, :, :15] = H[:, :, :15] @ F_i
-        H_state[:, :, 15:] = H[:, :, 15:] @ F_j
-    e, (H_state, J_t3, J_rho, J_p), J_s = _scaled(e0, [H_state, J_t[..., None], J_rho, J_p],
-                                                  calibrated[:, :sm.ODOMETRY_SCALED], sm.ODOMETRY_SCALED, c.scale)
-    return e, H_state, np.concatenate([J_t3, J_rho, J_p, J_s[..., None]], axis=2)
+    ``c``; ``imu_at = ((acc_i, gyro_i), (acc_j, gyro_j))`` at the two stamps, or None
+    (:func:`calibrated_odometry_into`)."""
+    n = len(rows_)
+    with_time, at_i = readings(None if imu_at is None else imu_at[0], n)
+    _, at_j = readings(None if imu_at is None else imu_at[1], n)
+    e, H, Hc = np.empty((n, 6)), np.empty((n, 6, 2 * STATE_DIM)), np.empty((n, 6, CALIBRATION_DIM))
+    _calibrated_odometry_rows(*state_rows(states_i, n), *state_rows(states_j, n),
+                              np.ascontiguousarray(rows_, dtype=float), packed(c), with_time, *at_i, *at_j,
+                              np.asarray(gravity, dtype=float), e, H, Hc)
+    return e, H, Hc
 
 
 def applicable(model: sm.SensorModel | None) -> tuple[str, ...]:

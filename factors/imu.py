@@ -600,20 +600,60 @@ def propagate(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY, jacobians
     return next_state, F.reshape(shape + (STATE_DIM, STATE_DIM)), G.reshape(shape + (STATE_DIM, NOISE_DIM))
 
 
+@leaf
+def state_rate_into(v, C, b_f, b_w, acc, gyro, g, out) -> None:
+    """``out (15) <-`` the error-state rate of the continuous model at one state with the IMU
+    reading ``acc, gyro`` (:func:`state_derivative`)."""
+    w0, w1, w2 = gyro[0] - b_w[0], gyro[1] - b_w[1], gyro[2] - b_w[2]
+    for a in range(3):
+        out[a] = C[a, 0] * v[0] + C[a, 1] * v[1] + C[a, 2] * v[2]
+        out[6 + a] = C[a, 0] * w0 + C[a, 1] * w1 + C[a, 2] * w2
+        out[3 + a] = acc[a] - b_f[a] + C[0, a] * g[0] + C[1, a] * g[1] + C[2, a] * g[2]
+    out[3] -= w1 * v[2] - w2 * v[1]
+    out[4] -= w2 * v[0] - w0 * v[2]
+    out[5] -= w0 * v[1] - w1 * v[0]
+    for a in range(9, STATE_DIM):
+        out[a] = 0.0
+
+
+@recursion
+def _state_rate_rows(v, C, b_f, b_w, acc, gyro, g, out) -> None:
+    for i in range(v.shape[0]):
+        state_rate_into(v[i], C[i], b_f[i], b_w[i], acc[i], gyro[i], g, out[i])
+
+
+@recursion
+def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, rate) -> None:
+    """One Euler step of ``dt`` of one state (:func:`propagate`): the next state into ``out_r,
+    out_v, out_C`` (the biases do not move), its transition ``F (15, 15)``, and the state's rate
+    ``rate (15)`` before the step (:func:`state_rate_into`): what a time offset ``dt`` of a
+    measurement moves its state by, and the derivative of that with respect to ``dt``."""
+    s = np.empty(STEP_SIZE)
+    w0, w1, w2 = gyro[0] - b_w[0], gyro[1] - b_w[1], gyro[2] - b_w[2]
+    state_rate_into(v, C, b_f, b_w, acc, gyro, g, rate)
+    _state_into(s, r, v, C, g)
+    step_quantities(s, w0, w1, w2, dt)
+    G = np.empty((STATE_DIM, NOISE_DIM))
+    _jacobians_into(s[_S_Q:], F, G)
+    step_state(s, acc[0] - b_f[0], acc[1] - b_f[1], acc[2] - b_f[2], w0, w1, w2)
+    _state_from(s, out_r, out_v, out_C)
+
+
 def state_derivative(state: ImuState, acc, gyro, gravity=DEFAULT_GRAVITY) -> np.ndarray:
     """The error-state rate ``(..., 15)`` of the continuous model at ``state`` with the IMU
     reading ``acc, gyro``: ``(C v, f - b_f + C^T g - w x v, C w, 0, 0)`` with ``w = gyro - b_w``
     (the attitude's rate as a LEFT, world-frame increment: ``d/dt C = (C w)^x C``). The Euler
     step of :func:`propagate` is linear in ``dt`` in these coordinates: ``propagate(state, acc,
-    gyro, dt) [-] state = dt * state_derivative(...)``."""
-    acc, gyro = np.asarray(acc, dtype=float), np.asarray(gyro, dtype=float)
-    w = gyro - state.b_w
-    out = np.zeros(np.broadcast_shapes(state.shape, acc.shape[:-1], gyro.shape[:-1]) + (STATE_DIM,))
-    out[..., R] = np.einsum("...ij,...j->...i", state.C, state.v)
-    out[..., V] = (acc - state.b_f + np.einsum("...ji,j->...i", state.C, np.asarray(gravity, dtype=float))
-                   - np.cross(w, state.v))
-    out[..., PHI] = np.einsum("...ij,...j->...i", state.C, w)
-    return out
+    gyro, dt) [-] state = dt * state_derivative(...)``. Compiled (:func:`state_rate_into`)."""
+    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
+    g = as_trailing(gravity, (3,), "gravity")
+    shape = np.broadcast_shapes(state.shape, acc.shape[:-1], gyro.shape[:-1])
+    vec = (3,)
+    v, C, b_f, b_w, acc, gyro = rows(shape, (state.v, state.C, state.b_f, state.b_w, acc, gyro),
+                                     (vec, (3, 3), vec, vec, vec, vec))
+    out = np.empty((len(v), STATE_DIM))
+    _state_rate_rows(v, C, b_f, b_w, acc, gyro, g, out)
+    return out.reshape(shape + (STATE_DIM,))
 
 
 def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", gravity=DEFAULT_GRAVITY):

@@ -38,7 +38,7 @@ from factors import sensor_models as sm
 from factors.errors import InputError
 from factors.selfcheck import random_rotation
 
-__all__ = ["KINDS", "KIND_NAMES", "MODELS", "Clock", "Kind", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into",
+__all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into",
            "measure_rows", "model_index", "quiet_dispatch", "registered", "sensors_of"]
 
 
@@ -142,17 +142,55 @@ def evaluate(kind: Kind, state, row: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return sm.evaluate_one(kind.model, state, row)
 
 
+#: Each one-state model's calibration layout (:func:`factors.calibration.layout`), by its index
+#: in :data:`MODELS`.
+LAYOUTS = np.stack([calibration.layout(m) for m in MODELS])
+
+
+@njit(cache=True)
+def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc) -> None:
+    """``e (d)``, ``H (d, 15)``, ``H_c (d, 8)`` of one measurement ``row`` of ``MODELS[model]``
+    (its layout ``lay``, :data:`LAYOUTS`) at one state through the packed calibration ``cal``
+    (:func:`factors.calibration.packed`): the model's kernel at the state one Euler step of the
+    time offset away (with the IMU reading ``acc, gyro`` held at the stamp, where
+    ``with_time``), with the calibrated extrinsic in its row
+    (:func:`factors.calibration.one_state_into`)."""
+    d = e.shape[0]
+    xr, xv, xC = r.copy(), v.copy(), C.copy()
+    F, rate = np.empty((imu.STATE_DIM, imu.STATE_DIM)), np.empty(imu.STATE_DIM)
+    if with_time:
+        imu.stepped_into(r, v, C, b_f, b_w, acc, gyro, cal[0], g, xr, xv, xC, F, rate)
+    calibrated = np.empty(row.shape[0])
+    calibration.calibrated_row_into(row, lay[0], lay[1], cal, calibrated)
+    e0, H0 = np.empty(d), np.empty((d, imu.STATE_DIM))
+    measure_into(model, xr, xv, xC, b_f, b_w, calibrated, e0, H0)
+    calibration.one_state_into(lay, xv, xC, b_w, calibrated, e0, H0, F, rate, with_time, cal[13], e, H, Hc)
+
+
+@njit(cache=True)
+def _calibrated_rows(model, lay, r, v, C, b_f, b_w, rows, cal, with_time, acc, gyro, g, e, H, Hc) -> None:
+    for n in range(rows.shape[0]):
+        calibrated_into(model, lay, r[n], v[n], C[n], b_f[n], b_w[n], rows[n], cal, with_time, acc[n], gyro[n], g,
+                        e[n], H[n], Hc[n])
+
+
 def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravity=imu.DEFAULT_GRAVITY):
     """``(e, H, H_c)`` of ``kind``'s measurement ``rows`` through the calibration ``c``
-    (:class:`factors.calibration.Calibration`; :func:`factors.calibration.calibrated_residual`):
-    ``states`` one :class:`factors.imu.ImuState` with leading dimension N, for a relative kind
-    the pair ``(states_i, states_j)`` (``H`` over both error states side by side, ``imu_at`` a
-    pair of ``(acc, gyro)``); ``imu_at`` None when the time offset is not estimated."""
+    (:class:`factors.calibration.Calibration`; :func:`calibrated_into`,
+    :func:`factors.calibration.calibrated_odometry_into`): ``states`` one
+    :class:`factors.imu.ImuState` with leading dimension N, for a relative kind the pair
+    ``(states_i, states_j)`` (``H`` over both error states side by side, ``imu_at`` a pair of
+    ``(acc, gyro)``); ``imu_at`` None when the time offset is not estimated."""
     rows = np.ascontiguousarray(rows, dtype=float)
     if kind.relative:
         return calibration.calibrated_odometry_residual(*states, rows, c, imu_at, gravity)
-    return calibration.calibrated_residual(kind.model, lambda s, r: measure_rows(kind, s, r), states, rows, c,
-                                           imu_at, gravity)
+    n, i = len(rows), model_index(kind)
+    with_time, at = calibration.readings(imu_at, n)
+    e, H, Hc = np.empty((n, kind.dim)), np.empty((n, kind.dim, imu.STATE_DIM)), np.empty((n, kind.dim, 8))
+    with quiet_dispatch():
+        _calibrated_rows(i, LAYOUTS[i], *calibration.state_rows(states, n), rows, calibration.packed(c), with_time,
+                         *at, np.asarray(gravity, dtype=float), e, H, Hc)
+    return e, H, Hc
 
 
 def _calibration_check(kind: Kind):
