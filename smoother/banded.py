@@ -3,7 +3,7 @@
 The matrices are symmetric positive definite, in blocks of ``DIM = 15`` (one keyframe's error
 state), block-banded with bandwidth ``S``: block ``(k, j)`` is zero when ``k - j > S``. Nothing
 outside the band is stored (a linear prior on several keyframes widens the band to its span; the
-calibration variables' dense border is :mod:`smoother.window_calibration`'s).
+calibration variables' dense border, ``nc`` columns beside it, is stored apart).
 
 Two layouts:
 
@@ -17,7 +17,8 @@ Two layouts:
 Row ``k`` of ``L`` depends on the rows of ``H`` up to ``k`` only: :func:`_factorise` computes rows
 ``start ..`` and keeps the ones before, and :func:`_forward` continues a forward solution from a
 row on. Eliminating the leading blocks first, the rows of ``L`` after them are the factor of their
-Schur complement (:func:`_schur`, :func:`_marginal_prior`). ``docs/design.md`` (fixed-lag
+Schur complement (:func:`_schur`, :func:`_marginal_prior`; both with the calibrations' dense border
+of :mod:`smoother.window_calibration`, which :func:`_border_solve` solves for). ``docs/design.md`` (fixed-lag
 smoothing) gives the derivation.
 """
 from __future__ import annotations
@@ -137,14 +138,21 @@ def _solve_lower(L, B) -> None:
             B[i, c] = s / L[i, i]
 
 
+def no_border(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The border ``(B, D, g_c)`` of a system of ``n`` keyframe blocks without calibrations."""
+    return np.zeros((n, DIM, 0)), np.zeros((0, 0)), np.zeros(0)
+
+
 @njit(cache=True)
-def _schur(Hb, g, nl):
-    """The Schur complement of the first ``nl`` blocks of the block-banded ``(Hb, g)``:
-    ``(H_mm - H_ml H_ll^-1 H_lm, g_m - H_ml H_ll^-1 g_l)`` and True, or False if ``H_ll`` is not
-    positive definite."""
-    n, S1 = Hb.shape[0], Hb.shape[1]
+def _schur(Hb, g, B, D, gc, nl):
+    """The Schur complement of the first ``nl`` blocks of the block-banded ``(Hb, g)`` bordered by
+    ``nc`` calibration coordinates (``B (n, 15, nc)`` their coupling with each block, ``D (nc,
+    nc)``, ``g_c (nc)`` their own; ``nc = 0``: no border): ``(H_mm - H_ml H_ll^-1 H_lm, g_m -
+    H_ml H_ll^-1 g_l)`` over the remaining blocks, then the calibrations, and True, or False if
+    ``H_ll`` is not positive definite."""
+    n, S1, nc = Hb.shape[0], Hb.shape[1], D.shape[0]
     N = n * DIM
-    H = np.zeros((N, N))
+    H = np.zeros((N + nc, N + nc))
     for k in range(n):
         for s in range(min(k, S1 - 1) + 1):
             j = k - s
@@ -152,40 +160,50 @@ def _schur(Hb, g, nl):
                 for q in range(DIM):
                     H[k * DIM + p, j * DIM + q] = Hb[k, s, p, q]
                     H[j * DIM + q, k * DIM + p] = Hb[k, s, p, q]
-    m0 = nl * DIM
+        for p in range(DIM):
+            for c in range(nc):
+                H[k * DIM + p, N + c] = B[k, p, c]
+                H[N + c, k * DIM + p] = B[k, p, c]
+    H[N:, N:] = D
+    full = np.empty(N + nc)
+    full[:N] = g
+    full[N:] = gc
+    m0, M = nl * DIM, N + nc
     Lll = np.empty((m0, m0))
-    Hs, gs = np.empty((N - m0, N - m0)), np.empty(N - m0)
+    Hs, gs = np.empty((M - m0, M - m0)), np.empty(M - m0)
     if not cholesky_into(H[:m0, :m0].copy(), Lll):
         return Hs, gs, False
-    Y = np.empty((m0, N - m0 + 1))
-    Y[:, :N - m0] = H[:m0, m0:]
-    Y[:, N - m0] = g[:m0]
+    Y = np.empty((m0, M - m0 + 1))
+    Y[:, :M - m0] = H[:m0, m0:]
+    Y[:, M - m0] = full[:m0]
     _solve_lower(Lll, Y)
-    for a in range(N - m0):
-        for b in range(N - m0):
+    for a in range(M - m0):
+        for b in range(M - m0):
             s = H[m0 + a, m0 + b]
             for c in range(m0):
                 s -= Y[c, a] * Y[c, b]
             Hs[a, b] = s
-        s = g[m0 + a]
+        s = full[m0 + a]
         for c in range(m0):
-            s -= Y[c, a] * Y[c, N - m0]
+            s -= Y[c, a] * Y[c, M - m0]
         gs[a] = s
     return Hs, gs, True
 
 
 @njit(cache=True)
-def _marginal_prior(Hb, g, nl):
-    """The linear prior that replaces the first ``nl`` blocks of the block-banded ``(Hb, g)``:
-    their Schur complement (:func:`_schur`) on the blocks it informs (rows not all zero),
-    ``touched`` (their numbers after the first ``nl``), as ``R`` (upper triangular, ``R^T R =
-    H_s``) and ``e0`` (``R^T e0 = g_s``). Returns ``(status, touched, A, b)``: status 0 with
-    ``(R, e0)``; 1 when ``H_ll`` is not positive definite; 2 when ``H_s`` is only semi-definite,
-    with ``(H_s, g_s)`` on the touched blocks for :func:`_semidefinite_square_root`."""
-    Hs, gs, ok = _schur(Hb, g, nl)
+def _marginal_prior(Hb, g, B, D, gc, nl):
+    """The linear prior that replaces the first ``nl`` blocks of the block-banded ``(Hb, g)`` with
+    the border ``(B, D, g_c)`` (:func:`_schur`): their Schur complement on the blocks it informs
+    (rows not all zero), ``touched`` (their numbers after the first ``nl``), and on every
+    calibration coordinate, as ``R`` (upper triangular, ``R^T R = H_s``) and ``e0`` (``R^T e0 =
+    g_s``). Returns ``(status, touched, A, b)``: status 0 with ``(R, e0)``; 1 when ``H_ll`` is
+    not positive definite; 2 when ``H_s`` is only semi-definite, with ``(H_s, g_s)`` on the
+    touched blocks and the calibrations for :func:`_semidefinite_square_root`."""
+    Hs, gs, ok = _schur(Hb, g, B, D, gc, nl)
     if not ok:
         return 1, np.empty(0, dtype=np.int64), Hs, gs
-    n = Hs.shape[0] // DIM
+    nc = D.shape[0]
+    n = (Hs.shape[0] - nc) // DIM
     keep = np.zeros(n, dtype=np.bool_)
     for b in range(n):
         for p in range(b * DIM, (b + 1) * DIM):
@@ -193,20 +211,78 @@ def _marginal_prior(Hb, g, nl):
                 if Hs[p, q] != 0.0:
                     keep[b] = True
     touched = np.flatnonzero(keep)
-    m = touched.size * DIM
-    Ht, gt = np.empty((m, m)), np.empty(m)
+    at = np.empty(touched.size * DIM + nc, dtype=np.int64)
     for a in range(touched.size):
         for p in range(DIM):
-            gt[a * DIM + p] = gs[touched[a] * DIM + p]
-            for b in range(touched.size):
-                for q in range(DIM):
-                    Ht[a * DIM + p, b * DIM + q] = Hs[touched[a] * DIM + p, touched[b] * DIM + q]
+            at[a * DIM + p] = touched[a] * DIM + p
+    for c in range(nc):
+        at[touched.size * DIM + c] = n * DIM + c
+    m = at.size
+    Ht, gt = np.empty((m, m)), np.empty(m)
+    for a in range(m):
+        gt[a] = gs[at[a]]
+        for b in range(m):
+            Ht[a, b] = Hs[at[a], at[b]]
     Lc = np.empty((m, m))
     if not cholesky_into(Ht, Lc):
         return 2, touched, Ht, gt
     e0 = gt.reshape(m, 1).copy()
     _solve_lower(Lc, e0)
     return 0, touched, Lc.T.copy(), e0[:, 0].copy()
+
+
+@njit(cache=True)
+def _border_solve(L, Z, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold) -> int:
+    """The border's part of a solve of the bordered window (:mod:`smoother.window_calibration`):
+    the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
+    ``nc`` calibration coordinates; ``Z`` by slot like ``L``), ``L_D L_D^T = D - Z^T Z``,
+    ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y`` the forward solution, and ``dx -= Z
+    delta_c`` over the window (which the backward solve turns into the keyframes' step). Returns
+    1 when some ``|delta_c|`` exceeds its ``threshold``, else 0; -1, ``L_D``, ``delta_c`` and
+    ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""
+    nc = D.shape[0]
+    for k in range(start, newest + 1):
+        Z[k % cap] = B[k - start]
+    _forward(L, Z, first, start, first, newest, cap, S)
+    Sc, rhs = D.copy(), np.empty(nc)
+    for a in range(nc):
+        rhs[a] = -gc[a]
+    for k in range(first, newest + 1):
+        s = k % cap
+        for a in range(nc):
+            acc = 0.0
+            for p in range(DIM):
+                acc += Z[s, p, a] * y[s, p, 0]
+            rhs[a] -= acc
+            for b in range(a + 1):
+                acc = 0.0
+                for p in range(DIM):
+                    acc += Z[s, p, a] * Z[s, p, b]
+                Sc[a, b] -= acc
+    factor = np.empty((nc, nc))  # cholesky_into reads the lower triangle
+    if not cholesky_into(Sc, factor):
+        return -1
+    x = rhs.reshape(nc, 1).copy()
+    _solve_lower(factor, x)
+    for a in range(nc - 1, -1, -1):  # L_D^T delta = x
+        acc = x[a, 0]
+        for b in range(a + 1, nc):
+            acc -= factor[b, a] * x[b, 0]
+        x[a, 0] = acc / factor[a, a]
+    L_D[:, :] = factor
+    exceeds = 0
+    for a in range(nc):
+        delta_c[a] = x[a, 0]
+        if abs(x[a, 0]) > threshold[a]:
+            exceeds = 1
+    for k in range(first, newest + 1):
+        s = k % cap
+        for p in range(DIM):
+            acc = 0.0
+            for a in range(nc):
+                acc += Z[s, p, a] * x[a, 0]
+            dx[s, p, 0] -= acc
+    return exceeds
 
 
 def _semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,13 +12,14 @@ keyframe).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
-from datasets.kinds import measure_into
+from datasets.kinds import calibrated_into, measure_into
 from factors import imu, so3
+from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into
 from factors.preintegration import _residual_into, _residual_work
 from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
 from factors.small_linalg import cholesky_into
@@ -39,8 +40,11 @@ _WITH_JACOBIANS = np.bool_(True)
 
 @dataclass
 class _LinearPrior:
-    """``e(x) = R (x [-] x_lin) + e0`` on the window keyframes ``keyframes`` (ascending; their
-    linearisation points ``r, v, C, b_f, b_w`` row by row)."""
+    """``e(x, c) = R [x [-] x_lin; dc] + e0`` on the window keyframes ``keyframes`` (ascending;
+    their linearisation points ``r, v, C, b_f, b_w`` row by row) and, where ``c_lin`` is given
+    (a marginal that informs the calibrations, :mod:`smoother.window_calibration`), on every
+    calibration: ``dc`` their error coordinates ``c [-] c_lin`` at the calibrations'
+    linearisation points and ``Jdc`` its Jacobian (block diagonal; empty without ``c_lin``)."""
 
     keyframes: np.ndarray
     r: np.ndarray
@@ -50,6 +54,12 @@ class _LinearPrior:
     b_w: np.ndarray
     R: np.ndarray
     e0: np.ndarray
+    c_lin: tuple | None = None
+    dc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    Jdc: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: a bordered prior's share of the calibrations' ``(D, g_c)`` when last linearised (its
+    #: keyframes and the calibrations unchanged since while its keyframes' rows are not stale)
+    own: tuple | None = None
 
 
 @njit(cache=True)
@@ -126,15 +136,76 @@ def _add_normal(Hb, g, a, ca, b, cb, JT, ew, d) -> None:
 
 
 @njit(cache=True)
+def _add_own(D, gc, cols, Df, gf) -> None:
+    """Add a calibrated factor's ``J_c^T J_c`` and ``J_c^T e`` (``Df (8, 8)``, ``gf (8)`` over
+    the calibration's error coordinates) to ``D``, ``g_c`` (coordinate ``i`` in border column
+    ``cols[i]``, -1: not estimated)."""
+    for i in range(CALIBRATION_DIM):
+        if cols[i] < 0:
+            continue
+        gc[cols[i]] += gf[i]
+        for j in range(CALIBRATION_DIM):
+            if cols[j] >= 0:
+                D[cols[i], cols[j]] += Df[i, j]
+
+
+@njit(cache=True, fastmath=_FAST)
+def _add_border(B, Df, gf, a, ca, b, cb, cs, cols, JT, ew, d) -> None:
+    """A calibrated factor's share of the border: ``J_k^T J_c`` added to the rows of ``B`` of
+    keyframes ``a`` (rows ``ca:ca+15`` of ``JT``) and ``b`` (``cb``; -1: a one-keyframe factor;
+    a keyframe outside the rows assembled gets nothing), and its ``J_c^T J_c``, ``J_c^T e`` into
+    ``Df``, ``gf`` (:func:`_add_own`); ``JT`` rows ``cs + i`` hold the calibration's error
+    coordinate ``i``, which is border column ``cols[i]`` (-1: not estimated)."""
+    n = B.shape[0]
+    Df[:, :] = 0.0
+    gf[:] = 0.0
+    for i in range(CALIBRATION_DIM):
+        ci = cols[i]
+        if ci < 0:
+            continue
+        s = 0.0
+        for t in range(d):
+            s += JT[cs + i, t] * ew[t]
+        gf[i] = s
+        for j in range(CALIBRATION_DIM):
+            if cols[j] < 0:
+                continue
+            s = 0.0
+            for t in range(d):
+                s += JT[cs + i, t] * JT[cs + j, t]
+            Df[i, j] = s
+        for k, ck in ((a, ca), (b, cb)):
+            if k < 0 or k >= n:
+                continue
+            for p in range(DIM):
+                s = 0.0
+                for t in range(d):
+                    s += JT[ck + p, t] * JT[cs + i, t]
+                B[k, p, ci] += s
+
+
+@njit(cache=True)
 def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
-               m, mk, model, rows, dims, Wm, rcode, rk, Hb, g) -> None:
+               m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg, cal, cal_time, cal_cols, layouts, hacc, hgyro,
+               Hb, g, B, D, gc) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
     IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``,
-    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
+    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``.
+
+    A measurement ``f`` with ``mcal[f] = j >= 0`` reads calibration ``j`` (packed ``cal[j]``,
+    :func:`factors.calibration.packed`; its time offset stepped with the IMU reading held at the
+    keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error coordinates in the border's
+    columns ``cal_cols[j]``, -1 where not estimated; ``layouts``:
+    :data:`datasets.kinds.LAYOUTS`): it adds its border rows to ``B`` (block row 0 = keyframe
+    ``lo``) and, whichever keyframes it reads, its share to ``D``, ``g_c``, kept in ``mD[f]``,
+    ``mg[f]``. One whose keyframes are all before ``lo`` adds what it kept: its keyframes have not
+    been linearised again since it was last linearised (their rows of ``L`` would then be
+    stale), nor has its calibration (every row reading one is stale then)."""
     work = _residual_work()
-    e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
-    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((2 * DIM, DIM)), np.empty((2 * DIM, DIM)), np.empty(DIM)
+    e, A, Bi = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
+    wide = 2 * DIM + CALIBRATION_DIM  # a relative pose's two states and a calibration's coordinates
+    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((wide, DIM)), np.empty((wide, DIM)), np.empty(DIM)
     n = Hb.shape[0]
     for k in range(max(lo, first + 1), lo + n):
         if k - 1 >= cut:
@@ -144,23 +215,43 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             continue
         i = (k - 1) % cap
         _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
-                       r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, B, work)
+                       r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, Bi, work)
         J[:, :DIM] = A
-        J[:, DIM:] = B
+        J[:, DIM:] = Bi
         _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
         _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
-    # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
-    H, Hm = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM))
+    # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each; Jc, a
+    # calibrated factor's states and calibration side by side
+    H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
+    Jc = np.empty((_MAX_DIM, wide))
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
-        if k0 >= cut or k1 < lo:
+        j = mcal[f]
+        if k0 >= cut or (k1 < lo and j < 0):
+            continue
+        if k1 < lo:  # j >= 0
+            _add_own(D, gc, cal_cols[j], mD[f], mg[f])
             continue
         d = dims[f]
         i = k0 % cap
-        if model[f] == RELATIVE_MODEL:
-            j = k1 % cap
-            odometry_kernel(r[i], C[i], r[j], C[j], rows[f], e[:d], H[:d])
+        relative = model[f] == RELATIVE_MODEL
+        width = 2 * DIM if relative else DIM
+        if j >= 0:
+            i1 = k1 % cap
+            if relative:
+                calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
+                                         cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
+                                         H[:d], Hc[:d])
+                Jc[:d, :width] = H[:d]
+            else:
+                calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j],
+                                cal_time[j], hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d])
+                Jc[:d, :width] = Hm[:d]
+            Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
+            _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)
+        elif relative:
+            odometry_kernel(r[i], C[i], r[k1 % cap], C[k1 % cap], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
         else:
             measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
@@ -172,21 +263,26 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             scale = _robust_scale(rcode[f], rk[f], np.sqrt(norm))
             ew[:d] *= scale
             JT[:, :d] *= scale
-        if model[f] == RELATIVE_MODEL:
+        if j >= 0:
+            _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo if relative else -1, DIM, width, cal_cols[j], JT, ew, d)
+            _add_own(D, gc, cal_cols[j], mD[f], mg[f])
+        if relative:
             _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
         else:
             _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
 
 
 @njit(cache=True)
-def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, lo, Hb, g) -> None:
-    """Add the linear prior ``e = R (x [-] x_lin) + e0`` on keyframes ``blocks`` (global numbers,
-    ascending), linearised at the state arrays given, to the rows ``lo ..`` of ``Hb``, ``g`` (block
-    row 0 = keyframe ``lo``)."""
+def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, dc, Jdc, cap, r, v, C, bf, bw, lo, Hb, g, B, D, gc) -> None:
+    """Add the linear prior ``e = R [x [-] x_lin; dc] + e0`` on keyframes ``blocks`` (global
+    numbers, ascending) and, where ``dc`` is not empty, on the border's calibration coordinates
+    (:class:`_LinearPrior`), linearised at the state arrays given, to the rows ``lo ..`` of
+    ``Hb``, ``g`` (block row 0 = keyframe ``lo``) and to ``B``, ``D``, ``g_c``."""
     P = blocks.shape[0]
     N = DIM * P
+    nb = dc.shape[0]
     dx = np.zeros(N)
-    D = np.zeros((P, 3, 3))  # Gamma^-1 of each attitude difference
+    Dg = np.zeros((P, 3, 3))  # Gamma^-1 of each attitude difference
     for a in range(P):
         s = blocks[a] % cap
         for c in range(3):
@@ -196,35 +292,59 @@ def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, cap, r, v, C, bf, bw, lo, H
             dx[a * DIM + 12 + c] = bw[s, c] - xbw[a, c]
         p0, p1, p2 = so3.boxminus_of(C[s], xC[a])
         dx[a * DIM + 6], dx[a * DIM + 7], dx[a * DIM + 8] = p0, p1, p2
-        so3.gamma_inv_into(p0, p1, p2, D[a])
+        so3.gamma_inv_into(p0, p1, p2, Dg[a])
     e = e0.copy()
-    J = R.copy()  # R times the block diagonal (I, I, Gamma^-1, I, I)
-    for row in range(N):
+    J = R.copy()  # R times the block diagonal (I, I, Gamma^-1, I, I; Jdc)
+    for row in range(R.shape[0]):
         for col in range(N):
             e[row] += R[row, col] * dx[col]
+        for col in range(nb):
+            e[row] += R[row, N + col] * dc[col]
         for a in range(P):
             for c in range(3):
                 s = 0.0
                 for q in range(3):
-                    s += R[row, a * DIM + 6 + q] * D[a, q, c]
+                    s += R[row, a * DIM + 6 + q] * Dg[a, q, c]
                 J[row, a * DIM + 6 + c] = s
+        for c in range(nb):
+            s = 0.0
+            for q in range(nb):
+                s += R[row, N + q] * Jdc[q, c]
+            J[row, N + c] = s
+    n = B.shape[0]
     for a in range(P):
         ba = blocks[a] - lo
         if ba < 0:
             continue
         for p in range(DIM):
             s = 0.0
-            for row in range(N):
+            for row in range(R.shape[0]):
                 s += J[row, a * DIM + p] * e[row]
             g[ba * DIM + p] += s
+            if ba < n:
+                for c in range(nb):
+                    s = 0.0
+                    for row in range(R.shape[0]):
+                        s += J[row, a * DIM + p] * J[row, N + c]
+                    B[ba, p, c] += s
         for b in range(a + 1):
             bb = blocks[b] - lo
             for p in range(DIM):
                 for q in range(DIM):
                     s = 0.0
-                    for row in range(N):
+                    for row in range(R.shape[0]):
                         s += J[row, a * DIM + p] * J[row, b * DIM + q]
                     Hb[ba, ba - bb, p, q] += s
+    for c in range(nb):
+        s = 0.0
+        for row in range(R.shape[0]):
+            s += J[row, N + c] * e[row]
+        gc[c] += s
+        for q in range(nb):
+            s = 0.0
+            for row in range(R.shape[0]):
+                s += J[row, N + c] * J[row, N + q]
+            D[c, q] += s
 
 
 @njit(cache=True)

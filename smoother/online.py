@@ -448,7 +448,7 @@ class OnlineSmoother:
 
         chosen = calibration.CalibrationSet.given(asking, [s.T_BS for s in asking.values()],
                                                   [s.calibrate for s in asking.values()])
-        return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()}, self.gravity)
+        return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()})
 
     def _make_keyframes(self, horizon: float) -> None:
         """Make every keyframe asked for at or before ``horizon`` (and the IMU's end), the grid's

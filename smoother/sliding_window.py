@@ -58,19 +58,19 @@ from contextlib import nullcontext
 import numpy as np
 from numba import njit
 
-from datasets.kinds import quiet_dispatch
+from datasets.kinds import LAYOUTS, quiet_dispatch
 from factors import imu, preintegration
 from factors.errors import InputError
 from factors.sensor_models import MAX_ROW_WIDTH
 # _schur, _robust_scale: the window's compiled parts stay reachable under this module's name
-from smoother.banded import (_backward, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
-                             _semidefinite_square_root)
+from smoother.banded import (_backward, _border_solve, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
+                             _semidefinite_square_root, no_border)
 from smoother.fixed_lag import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.graph import robust_threshold
 from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _LinearPrior, _prior_into,  # noqa: F401
                                        _robust_scale, _whitening_into)
 from smoother.solver import whitening
-from smoother.window_calibration import BorderedPrior, WindowCalibration
+from smoother.window_calibration import WindowCalibration
 
 DIM = imu.STATE_DIM
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
@@ -148,7 +148,7 @@ def _step(L, delta, before, first, newest, cap, S, threshold, max_turn, moved, r
 
 
 @njit(cache=True)
-def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk):
+def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg):
     """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
     rest; returns their number and the longest span (later minus earlier keyframe) among them."""
     n, span = 0, 0
@@ -156,7 +156,7 @@ def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk):
         if mk[f, 0] >= cut:
             if n != f:
                 mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
-                Wm[n], rcode[n], rk[n] = Wm[f], rcode[f], rk[f]
+                Wm[n], rcode[n], rk[n], mcal[n], mD[n], mg[n] = Wm[f], rcode[f], rk[f], mcal[f], mD[f], mg[f]
             span = max(span, mk[n, 1] - mk[n, 0])
             n += 1
     return n, span
@@ -243,6 +243,7 @@ class SlidingWindow:
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
+        self._no_calibration = (np.zeros((0, 14)), np.zeros(0, dtype=np.bool_), np.zeros((0, 8), dtype=np.int64))
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
@@ -276,7 +277,7 @@ class SlidingWindow:
         m = getattr(self, "_m", 0)
         shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
                   "_dims": ((), np.int64), "_Wm": ((_MAX_DIM, _MAX_DIM), float), "_rcode": ((), np.int64),
-                  "_rk": ((), float)}
+                  "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float)}
         for name, (tail, dtype) in shapes.items():
             fresh = np.zeros((cap,) + tail, dtype=dtype)
             if m:
@@ -366,12 +367,7 @@ class SlidingWindow:
         if interval is not None:
             self._store_interval(s, pre, interval)
         for row in factors:
-            spec, _, data, W, _, code, threshold, keyframes = row
-            if self._cal is not None and self._cal.reads(spec):
-                self._cal.add(spec.name, keyframes, data, W, code, threshold)
-                self._stale = min(self._stale, min(keyframes))
-            else:
-                self._add_measurement(*row[1:])
+            self._add_measurement(*row[1:], -1 if self._cal is None else self._cal.index.get(row[0].name, -1))
             keyframes = row[-1]
             linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
         self.newest = k
@@ -444,9 +440,10 @@ class SlidingWindow:
         code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
         return spec, spec.model, spec.rows[m], W, d, code, k, keyframes
 
-    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes) -> None:
-        """Append a checked measurement (:meth:`_measurement_row`); the rows of ``L`` from its
-        oldest keyframe on are stale."""
+    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, calibration: int) -> None:
+        """Append a checked measurement (:meth:`_measurement_row`) that reads ``calibration`` (its
+        index in the window's calibrations, -1: none); the rows of ``L`` from its oldest keyframe
+        on are stale."""
         if self._m == len(self._mk):
             self._allocate_measurements(2 * len(self._mk))
         f = self._m
@@ -458,6 +455,7 @@ class SlidingWindow:
         self._Wm[f] = W
         self._rcode[f] = code
         self._rk[f] = k
+        self._mcal[f] = calibration
         self._m = f + 1
         self._stale = min(self._stale, min(keyframes))
 
@@ -474,8 +472,6 @@ class SlidingWindow:
         threshold, and mark the rows of ``L`` their factors change as stale."""
         moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
         self.relinearised.append(len(moved))
-        if self._cal is not None:
-            self._cal.moved(moved)
         for i in moved:
             j = (i + 1) % self._cap
             drift = np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j]))
@@ -486,7 +482,7 @@ class SlidingWindow:
 
     def _bandwidth(self) -> int:
         """How many keyframes back the longest factor reaches (IMU factors: 1)."""
-        return max(1, *self._spans, 0 if self._cal is None else self._cal.span())
+        return max(1, *self._spans)
 
     def _states(self, keyframes) -> imu.ImuState:
         """The linearisation points of window keyframes ``keyframes`` (an array)."""
@@ -501,23 +497,43 @@ class SlidingWindow:
     def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
         factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
-        and, with calibrations, their border ``(B, D, g_c)``
-        (:meth:`smoother.window_calibration.WindowCalibration.normal_equations`; when
-        ``solving``, the calibrations' own priors and every bordered prior too), else None."""
+        and their border ``(B, D, g_c)`` on the calibrations (``nc = 0`` columns without;
+        :mod:`smoother.window_calibration`): ``D``, ``g_c`` of every factor reading a calibration
+        that begins before ``cut``, whichever rows it reaches, and of the priors on the
+        calibrations alone; when ``solving``, of every bordered prior and of the calibrations'
+        own priors too."""
         Hb = np.zeros((n, S + 1, DIM, DIM))
         g = np.zeros(n * DIM)
+        cal = self._cal
+        B, D, gc = no_border(n) if cal is None else (np.zeros((n, DIM, cal.nc)), np.zeros((cal.nc, cal.nc)),
+                                                     np.zeros(cal.nc))
+        packed, with_time, columns = self._no_calibration if cal is None else (cal.packed, cal.with_time, cal.columns)
         with _compiling():
             _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
-                       self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk, Hb, g)
+                       self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
+                       self._mcal, self._mD, self._mg, packed, with_time, columns, LAYOUTS, self._hacc, self._hgyro, Hb, g, B, D, gc)
+        plain = None if cal is not None else (B, D, gc)
         for p in self._priors:
-            if p.keyframes[0] < cut and p.keyframes[-1] >= lo:
-                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, self._cap,
-                            *self._linearisation_points(), lo, Hb, g)
-        border = None
-        if self._cal is not None:
-            border = self._cal.normal_equations(self._states, self._held, lo, cut, Hb, g, solving)
-        return Hb, g, border
+            bordered = p.c_lin is not None
+            reaches = p.keyframes.size and p.keyframes[0] < cut and p.keyframes[-1] >= lo
+            if not (reaches or (bordered and (solving or not p.keyframes.size))):
+                continue
+            if not bordered:
+                plain = no_border(n) if plain is None else plain
+                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
+                            *self._linearisation_points(), lo, Hb, g, *plain)
+                continue
+            if reaches or p.own is None:  # a bordered prior's share of D, g_c, kept as a calibrated row's is
+                p.own = np.zeros((cal.nc, cal.nc)), np.zeros(cal.nc)
+                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
+                            *self._linearisation_points(), lo, Hb, g, B, *p.own)
+            D += p.own[0]
+            gc += p.own[1]
+        if cal is not None and solving:
+            D += cal.own_prior[0]
+            gc += cal.own_prior[1]
+        return Hb, g, (B, D, gc)
 
     def _solve(self, t: float) -> None:
         """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
@@ -557,9 +573,11 @@ class SlidingWindow:
             return failed
         before = self._dx.copy()
         self._dx[:] = self._y
-        if border is not None:
+        exceeds = False
+        if self._cal is not None:
             before_c = self._cal.delta.copy()
-            if not self._border_step(border, start):
+            exceeds = self._border_step(border, start)
+            if exceeds is None:
                 self._dx[:] = before  # the estimates unchanged
                 self._stale = self.first
                 raise FixedLagFailed(
@@ -572,43 +590,51 @@ class SlidingWindow:
                           *self._estimates())
         self._stale = self.newest + 1
         self.shortened += a < 1.0
-        if border is not None:
-            self._cal.delta = before_c + a * (self._cal.delta - before_c)
-            if self._cal.relinearise():  # every factor reading a calibration changes
-                self._stale = min(self._stale, max(self._cal.oldest(self.first), self.first))
+        if self._cal is not None:
+            if a < 1.0:  # the calibrations' step shortened with the keyframes'
+                self._cal.delta = before_c + a * (self._cal.delta - before_c)
+            if (exceeds or a < 1.0) and self._cal.relinearise():  # every factor reading a calibration changes
+                self._calibrations_moved()
         if oldest >= 0:
             self._relinearised(oldest)
         return -1
 
-    def _border_step(self, border, start: int) -> bool:
-        """The calibrations' part of an update (:mod:`smoother.window_calibration`): the rows
+    def _border_step(self, border, start: int) -> bool | None:
+        """The calibrations' part of an update (:func:`smoother.banded._border_solve`): the rows
         ``start ..`` of ``Z = L_A^-1 B``, ``L_D``, ``delta_c``, and ``y_A - Z delta_c`` into the
-        offsets (which the backward solve turns into ``delta_A``). False (the offsets and the
-        calibrations untouched) when the calibrations' Schur complement is not positive definite."""
+        offsets (which the backward solve turns into ``delta_A``). Returns whether a calibration's
+        offset exceeds its relinearisation threshold; None (the offsets and the calibrations
+        untouched) when the calibrations' Schur complement is not positive definite."""
         B, D, gc = border
-        cap = self._cap
-        slots = np.arange(start, self.newest + 1) % cap
-        self._Z[slots] = B
-        _forward(self._L, self._Z, self.first, start, self.first, self.newest, cap, self._S)
-        window = np.arange(self.first, self.newest + 1) % cap
-        Z, y = self._Z[window], self._y[window, :, 0]
-        Sc = D - np.einsum("kpa,kpb->ab", Z, Z)
-        try:
-            L_D = np.linalg.cholesky(0.5 * (Sc + Sc.T))
-        except np.linalg.LinAlgError:
-            return False
-        self._cal.L_D = L_D
-        y_c = np.linalg.solve(L_D, -gc - np.einsum("kpa,kp->a", Z, y))
-        delta_c = np.linalg.solve(L_D.T, y_c)
+        delta_c = np.empty(self._cal.nc)
+        code = _border_solve(self._L, self._Z, B, D, gc, self._y, self._dx, self.first, start, self.newest,
+                             self._cap, self._S, self._cal.L_D, delta_c, self._cal.thresholds)
+        if code < 0:
+            return None
         self._cal.delta = delta_c
-        self._dx[window, :, 0] -= Z @ delta_c
-        return True
+        return code == 1
+
+    def _calibrations_moved(self) -> None:
+        """After calibrations were linearised again: the bordered priors' calibration coordinates
+        anew, and the rows of ``L`` (and of the border) of every keyframe a factor reading a
+        calibration reads are stale."""
+        oldest = self.newest + 1
+        for p in self._priors:
+            if p.c_lin is not None:
+                p.dc, p.Jdc = self._cal.border_of(p.c_lin)
+                p.own = None
+                if p.keyframes.size:
+                    oldest = min(oldest, int(p.keyframes[0]))
+        reads = self._mcal[:self._m] >= 0
+        if reads.any():
+            oldest = min(oldest, int(self._mk[:self._m][reads, 0].min()))
+        self._stale = min(self._stale, max(oldest, self.first))
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
         complement onto the keyframes they also touch, a :class:`_LinearPrior` at their
-        linearisation points -- a :class:`smoother.window_calibration.BorderedPrior` on the
-        calibrations too when it informs them. The rows of ``L`` (and of the border ``Z``) after
+        linearisation points -- on the calibrations too when it informs them, which also takes
+        in the priors on the calibrations alone. The rows of ``L`` (and of the border ``Z``) after
         ``leaving`` stay: eliminating the oldest keyframes first, they are the factor of that
         Schur complement already."""
         if not leaving:
@@ -621,40 +647,30 @@ class SlidingWindow:
         S = self._bandwidth()
         nl = cut - self.first
         n = min(self.newest - self.first + 1, nl + S)
-        Hb, g, border = self._normal_equations(self.first, cut, n, S, solving=False)
-        bordered = border is not None and (np.any(border[0]) or np.any(border[1]))
-        if bordered:  # the marginal informs a calibration: a prior on it too
-            status, touched, A, b = self._cal.bordered_marginal(Hb, g, *border, nl)
-            if status == 0:
-                try:
-                    Lc = np.linalg.cholesky(A)
-                    A, b, status = Lc.T, np.linalg.solve(Lc, b), 0
-                except np.linalg.LinAlgError:
-                    status = 2
-        else:
-            status, touched, A, b = _marginal_prior(Hb, g, nl)
+        Hb, g, (B, D, gc) = self._normal_equations(self.first, cut, n, S, solving=False)
+        bordered = self._cal is not None and D.any()  # (B != 0 puts its J_c^T J_c != 0 in D)
+        if not bordered:
+            B, D, gc = no_border(n)
+        status, touched, A, b = _marginal_prior(Hb, g, B, D, gc, nl)
         if status == 1:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
                                  f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
                                  "is not positive definite. Check the data around that time.")
-        self._priors = [p for p in self._priors if p.keyframes[0] >= cut]
+        # the priors it replaced: those reaching a leaving keyframe, and those on the calibrations alone
+        self._priors = [p for p in self._priors
+                        if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
         self._m, self._spans[0] = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
-                                                     self._Wm, self._rcode, self._rk)
+                                                     self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg)
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None
-        if self._cal is not None:
-            self._cal.drop_before(cut)
         self.first = cut
-        if bordered:
-            R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
-            keyframes = cut + touched
-            # at its own linearisation points: e = e0, J = R (Gamma^-1(0) = I)
-            self._cal.add_prior(BorderedPrior(keyframes, self._states(keyframes), tuple(self._cal.theta), R, e0,
-                                              (e0, R)))
-        elif touched.size:  # keep the keyframes the marginal ties (non-zero information)
+        if touched.size or bordered:  # keep what the marginal ties (non-zero information)
             R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
             keyframes = cut + touched
             slots = keyframes % self._cap
-            self._priors.append(_LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0))
+            prior = _LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0)
+            if bordered:  # at the calibrations' linearisation points: dc = 0, its Jacobian I
+                prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
+            self._priors.append(prior)
         self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors), default=0)

@@ -132,7 +132,7 @@ def test_schur_complement_equals_dense_numpy(nl):
     rng = np.random.default_rng(nl)
     Hb, H = _banded(rng, 4, 1)
     g = rng.normal(size=len(H))
-    Hs, gs, ok = sw._schur(Hb, g, nl)
+    Hs, gs, ok = sw._schur(Hb, g, *sw.no_border(4), nl)
     m = nl * DIM
     assert ok
     X = np.linalg.solve(H[:m, :m], np.concatenate([H[:m, m:], g[:m, None]], axis=1))
@@ -145,7 +145,7 @@ def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
     rng = np.random.default_rng(nl)
     Hb, H = _banded(rng, 4, 2)
     g = rng.normal(size=len(H))
-    status, touched, R, e0 = sw._marginal_prior(Hb, g, nl)
+    status, touched, R, e0 = sw._marginal_prior(Hb, g, *sw.no_border(4), nl)
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
@@ -154,6 +154,35 @@ def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
     assert status == 0 and touched.tolist() == informed and np.allclose(np.triu(R), R)
     np.testing.assert_allclose(R.T @ R, Hs[np.ix_(keep, keep)], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(R.T @ e0, gs[keep], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("nl", [1, 2])
+def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_complement(nl):
+    """With three calibration coordinates coupled to every keyframe: the prior is on the informed
+    keyframes and the calibrations, the Schur complement of the dense bordered system."""
+    rng = np.random.default_rng(10 + nl)
+    _, A = _banded(rng, 4, 2)
+    nc, N = 3, len(A)
+    H = np.zeros((N + nc, N + nc))
+    H[:N, :N] = A
+    for k in range(4):  # a calibrated factor on each keyframe
+        J = rng.normal(size=(5, DIM + nc))
+        at = np.r_[k * DIM:(k + 1) * DIM, N:N + nc]
+        H[np.ix_(at, at)] += J.T @ J
+    Hb = np.zeros((4, 3, DIM, DIM))
+    for k in range(4):
+        for s_ in range(min(k, 2) + 1):
+            Hb[k, s_] = H[k * DIM:(k + 1) * DIM, (k - s_) * DIM:(k - s_ + 1) * DIM]
+    g = rng.normal(size=N + nc)
+    B = H[:N, N:].reshape(4, DIM, nc).copy()
+    status, touched, R, e0 = sw._marginal_prior(Hb, g[:N], B, H[N:, N:].copy(), g[N:], nl)
+    m = nl * DIM
+    Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
+    gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
+    keep = np.concatenate([(touched[:, None] * DIM + np.arange(DIM)).ravel(), (4 - nl) * DIM + np.arange(nc)])
+    assert status == 0 and touched.tolist() == list(range(4 - nl)) and np.allclose(np.triu(R), R)
+    np.testing.assert_allclose(R.T @ R, Hs[np.ix_(keep, keep)], rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(R.T @ e0, gs[keep], rtol=1e-9, atol=1e-8)
 
 
 def test_a_semidefinite_marginal_keeps_only_the_informed_directions():
@@ -167,14 +196,14 @@ def test_a_semidefinite_marginal_keeps_only_the_informed_directions():
     Hb = np.zeros((2, 2, DIM, DIM))
     Hb[0, 0], Hb[1, 0], Hb[1, 1] = H[:DIM, :DIM], H[DIM:, DIM:], H[DIM:, :DIM]
     g = A.T @ rng.normal(size=40)
-    status, touched, Hs, gs = sw._marginal_prior(Hb, g, 1)
+    status, touched, Hs, gs = sw._marginal_prior(Hb, g, *sw.no_border(2), 1)
     assert status == 2 and touched.tolist() == [0]
     R, e0 = sw._semidefinite_square_root(Hs, gs)
     np.testing.assert_allclose(R.T @ R, Hs, rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(R.T @ e0, gs, rtol=1e-8, atol=1e-8)
     assert np.count_nonzero(np.abs(R).sum(axis=1) > 1e-9) == 10
     Hb[0, 0] = -np.eye(DIM)
-    assert sw._marginal_prior(Hb, g, 1)[0] == 1
+    assert sw._marginal_prior(Hb, g, *sw.no_border(2), 1)[0] == 1
 
 
 def test_the_semidefinite_square_root_keeps_weak_directions_beside_strong_ones():
