@@ -29,6 +29,7 @@ import json
 import math
 import pickle
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -166,20 +167,33 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
     return _rms_distance([] if positions is None else [positions], estimate)
 
 
-def position_streams(dataset: Dataset) -> list[tuple]:
+def position_streams(dataset: Dataset, calibration=None) -> list[tuple]:
     """Each sensor's stream of position fixes (any kind measuring :class:`PositionMeasurements`:
     KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(used, held out)``
-    (either may be None)."""
-    return [(s.data, s.heldout) for s in dataset.sensors
-            if isinstance(s.heldout if s.data is None else s.data, PositionMeasurements)]
+    (either may be None). With an estimator's ``calibration``
+    (:class:`factors.calibration.CalibrationSet`), a calibrated sensor's fixes as that estimate
+    has them: taken at their stamps plus the estimated time offset, at the estimated lever arm."""
+    calibrated = {} if calibration is None else dict(zip(calibration.names, calibration.values))
+    out = []
+    for s in dataset.sensors:
+        if not isinstance(s.heldout if s.data is None else s.data, PositionMeasurements):
+            continue
+        c = calibrated.get(s.name)
+        if c is None:
+            out.append((s.data, s.heldout))
+            continue
+        out.append(tuple(None if p is None else replace(p, t=p.t + c.time_offset, T_BS=c.T_BS)
+                         for p in (s.data, s.heldout)))
+    return out
 
 
-def score(dataset: Dataset, estimate: Trajectory) -> dict:
-    """Every metric the dataset allows for one estimate."""
+def score(dataset: Dataset, estimate: Trajectory, calibration=None) -> dict:
+    """Every metric the dataset allows for one estimate (the fixes of the sensors it calibrated
+    at its ``calibration``, :func:`position_streams`)."""
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
-    streams = position_streams(dataset)
+    streams = position_streams(dataset, calibration)
     used = [u for u, _ in streams if u is not None]
     heldout = [h for _, h in streams if h is not None]
     if used or heldout:
@@ -212,15 +226,15 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
             "heldout_fixes": int(len(residual))}
 
 
-def residual_correlation(dataset: Dataset, estimate: Trajectory) -> float | None:
+def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=None) -> float | None:
     """How alike the estimate's residuals at consecutive used fixes are: their lag-one
     autocorrelation (each position or GNSS stream's residual series less its mean, per world
     axis, pooled). Near 0 the fixes' errors are white; well above 0 the receiver's error drifts
     slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
     RMSE favours interpolation over an estimator that does not model that drift. None with fewer
-    than three fixes."""
+    than three fixes. ``calibration`` as :func:`score`'s."""
     num = den = 0.0
-    for p, _ in position_streams(dataset):
+    for p, _ in position_streams(dataset, calibration):
         _, residual = position_residuals(p, estimate)  # empty for None
         if len(residual) < 3:
             continue
@@ -349,7 +363,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         datum = getattr(dataset, "datum", None)
         if datum is not None:
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
-        report[name] = {**score(dataset, est.trajectory), "runtime_s": est.runtime_s, **est.details}
+        report[name] = {**score(dataset, est.trajectory, est.calibration), "runtime_s": est.runtime_s, **est.details}
     if dataset.truth is not None:
         save_trajectory(out_dir / "truth.npz", dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / "gps.npz", dataset)

@@ -337,7 +337,7 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
     if not smoothers or min(smoothers.values()) <= baseline["gps_heldout_rmse_m"]:
         return None
     best = min(smoothers, key=smoothers.get)
-    rho = report.residual_correlation(dataset, estimates[best].trajectory)
+    rho = report.residual_correlation(dataset, estimates[best].trajectory, estimates[best].calibration)
     if rho is None:
         return None
     return (f"interpolating the used fixes scores better on the held-out fixes than the smoothers; {best}'s "

@@ -340,8 +340,10 @@ def _spd(seed):
 def test_project_recovers_the_rotation_of_a_polar_decomposition(C, seed):
     assert max_abs(so3.project(C), C) <= ROUNDOFF
     # M = C S with S symmetric positive definite: the nearest rotation is C (polar decomposition).
+    # The SVD's backward error, p(3) eps |M| (LAPACK's p(n) a modest polynomial), moves the polar
+    # factor by up to that over sigma_min: p(3) eps cond(S), measured up to 12 eps cond(S).
     S_ = _spd(seed)
-    assert max_abs(so3.project(C @ S_), C) <= 10 * EPS * np.linalg.cond(S_)
+    assert max_abs(so3.project(C @ S_), C) <= 30 * EPS * np.linalg.cond(S_)
 
 
 @pytest.mark.parametrize("seed", range(20))
