@@ -59,7 +59,7 @@ import numpy as np
 
 from factors import imu, so3
 from factors import sensor_models as sm
-from factors.compiled import leaf, recursion, rows
+from factors.compiled import block_operation, leaf, recursion, rows
 from factors.errors import InputError
 from factors.imu import STATE_DIM
 
@@ -251,35 +251,71 @@ def one_state_into(lay, v, C, b_w, row, e0, H0, F, rate, with_time, s, e, H, Hc)
     _scale_into(e0, row, lay[2], s, e, H, Hc)
 
 
+_STATE_PART = 3 + 3 + 9 + STATE_DIM * STATE_DIM + STATE_DIM
+#: Length of the work array of one calibrated residual (:func:`work_array`): per state its stepped
+#: copy ``(r, v, C)``, the step's transition and the state's rate; the calibrated row; the model's
+#: residual and Jacobian; the Euler step's own work. Allocated once per loop over measurements,
+#: not per measurement.
+WORK_SIZE = (2 * _STATE_PART + sm.MAX_ROW_WIDTH + sm.MAX_RESIDUAL_DIM * (1 + 2 * STATE_DIM)
+             + imu.STEPPED_WORK)
+
+
+@recursion
+def work_array() -> np.ndarray:
+    """A work array for :func:`calibrated_odometry_into` and
+    :func:`datasets.kinds.calibrated_into` (:data:`WORK_SIZE`)."""
+    return np.empty(WORK_SIZE)
+
+
+@block_operation
+def state_part(work, i):
+    """State ``i``'s (0, 1) part of ``work``: views ``(r, v, C, F, rate)``."""
+    o = i * _STATE_PART
+    return (work[o:o + 3], work[o + 3:o + 6], work[o + 6:o + 15].reshape((3, 3)),
+            work[o + 15:o + 240].reshape((STATE_DIM, STATE_DIM)), work[o + 240:o + _STATE_PART])
+
+
+@block_operation
+def model_part(work, width, d, ncol):
+    """The rest of ``work``: views ``(calibrated row (width), e0 (d), H0 (d, ncol), step work)``."""
+    o = 2 * _STATE_PART
+    row = work[o:o + width]
+    o += sm.MAX_ROW_WIDTH
+    e0 = work[o:o + d]
+    o += sm.MAX_RESIDUAL_DIM
+    H0 = work[o:o + d * ncol].reshape((d, ncol))
+    o += sm.MAX_RESIDUAL_DIM * 2 * STATE_DIM
+    return row, e0, H0, work[o:o + imu.STEPPED_WORK]
+
+
 @recursion
 def calibrated_odometry_into(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, row, cal, with_time, acc_i, gyro_i,
-                             acc_j, gyro_j, g, e, H, Hc) -> None:
+                             acc_j, gyro_j, g, e, H, Hc, work) -> None:
     """``e (6)``, ``H (6, 30)``, ``H_c (6, 8)`` of one relative pose ``row``
     (:func:`factors.sensor_models.pack_odometry`) between two states through the packed
     calibration ``cal`` (module docstring), with the IMU readings held at the two stamps where
-    ``with_time``."""
-    xr_i, xv_i, xC_i, xr_j, xv_j, xC_j = r_i.copy(), v_i.copy(), C_i.copy(), r_j.copy(), v_j.copy(), C_j.copy()
-    F_i, F_j = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, STATE_DIM))
-    rate_i, rate_j = np.empty(STATE_DIM), np.empty(STATE_DIM)
+    ``with_time``; ``work`` from :func:`work_array`."""
+    xr_i, xv_i, xC_i, F_i, rate_i = state_part(work, 0)
+    xr_j, xv_j, xC_j, F_j, rate_j = state_part(work, 1)
+    calibrated, e0, H0, step = model_part(work, row.shape[0], 6, 2 * STATE_DIM)
     if with_time:
-        imu.stepped_into(r_i, v_i, C_i, bf_i, bw_i, acc_i, gyro_i, cal[0], g, xr_i, xv_i, xC_i, F_i, rate_i)
-        imu.stepped_into(r_j, v_j, C_j, bf_j, bw_j, acc_j, gyro_j, cal[0], g, xr_j, xv_j, xC_j, F_j, rate_j)
-    calibrated = np.empty(sm.ODOMETRY_WIDTH)
+        imu.stepped_into(r_i, v_i, C_i, bf_i, bw_i, acc_i, gyro_i, cal[0], g, xr_i, xv_i, xC_i, F_i, rate_i, step)
+        imu.stepped_into(r_j, v_j, C_j, bf_j, bw_j, acc_j, gyro_j, cal[0], g, xr_j, xv_j, xC_j, F_j, rate_j, step)
+    else:
+        xr_i[:], xC_i[:, :], xr_j[:], xC_j[:, :] = r_i, C_i, r_j, C_j
     calibrated_row_into(row, sm.ODOMETRY_ROTATION_AT, sm.ODOMETRY_LEVER_AT, cal, calibrated)
-    e0, H0 = np.empty(6), np.empty((6, 2 * STATE_DIM))
     sm.odometry_kernel(xr_i, xC_i, xr_j, xC_j, calibrated, e0, H0)
     for a in range(6):
         for c in range(CALIBRATION_DIM):
             Hc[a, c] = 0.0
     _through_step(H0, F_i, rate_i, 0, with_time, H, Hc)
     _through_step(H0, F_j, rate_j, STATE_DIM, with_time, H, Hc)
-    D, dC = np.empty(3), np.empty((3, 3))
+    D, dC, K = np.empty(3), np.empty((3, 3)), np.empty((3, 3))  # D, C_j - C_i, H_rj D^x
     for a in range(3):
         D[a] = xr_j[a] - xr_i[a]
         for b in range(3):
             D[a] += (xC_j[a, b] - xC_i[a, b]) * cal[_P_AT + b]
             dC[a, b] = xC_j[a, b] - xC_i[a, b]
-    K = np.empty((3, 3))  # H_rj D^x
     for a in range(3):
         h0, h1, h2 = H0[a, 15], H0[a, 16], H0[a, 17]
         K[a, 0], K[a, 1], K[a, 2] = h1 * D[2] - h2 * D[1], h2 * D[0] - h0 * D[2], h0 * D[1] - h1 * D[0]
@@ -294,10 +330,11 @@ def calibrated_odometry_into(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_
 @recursion
 def _calibrated_odometry_rows(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, rows, cal, with_time, acc_i,
                               gyro_i, acc_j, gyro_j, g, e, H, Hc) -> None:
+    work = work_array()
     for n in range(rows.shape[0]):
         calibrated_odometry_into(r_i[n], v_i[n], C_i[n], bf_i[n], bw_i[n], r_j[n], v_j[n], C_j[n], bf_j[n], bw_j[n],
                                  rows[n], cal, with_time, acc_i[n], gyro_i[n], acc_j[n], gyro_j[n], g, e[n], H[n],
-                                 Hc[n])
+                                 Hc[n], work)
 
 
 def state_rows(states: imu.ImuState, n: int) -> list:

@@ -19,7 +19,7 @@ from numba import njit
 
 from datasets.kinds import calibrated_into, measure_into
 from factors import imu, so3
-from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into
+from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into, work_array
 from factors.preintegration import _residual_into, _residual_work
 from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
 from factors.small_linalg import cholesky_into
@@ -225,6 +225,7 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
     # calibrated factor's states and calibration side by side
     H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
     Jc = np.empty((_MAX_DIM, wide))
+    cal_work = work_array()
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         j = mcal[f]
@@ -242,11 +243,11 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             if relative:
                 calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
                                          cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
-                                         H[:d], Hc[:d])
+                                         H[:d], Hc[:d], cal_work)
                 Jc[:d, :width] = H[:d]
             else:
                 calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j],
-                                cal_time[j], hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d])
+                                cal_time[j], hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], cal_work)
                 Jc[:d, :width] = Hm[:d]
             Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
             _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)

@@ -280,14 +280,22 @@ class SolverResult:
     calibration: object = None
 
 
+#: The optimisation stops when a step lowers the cost by less than this: in the quadratic model a
+#: step's decrease is half its squared length in the whitened metric, so the step moved the
+#: estimate by less than ``sqrt(2e-4) = 0.014`` of its sigma in any direction (and the steps after
+#: it, shrinking, by less again). GTSAM's default (1e-5 relative) stops a cost of 1e4 at 0.1 in it,
+#: half a sigma in the worst direction.
+ABSOLUTE_TOLERANCE = 1e-4
+
+
 def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max_iterations: int = 100,
-             relative_tolerance: float = 1e-9, absolute_tolerance: float = 1e-9,
+             relative_tolerance: float = 1e-9, absolute_tolerance: float = ABSOLUTE_TOLERANCE,
              calibration=None) -> SolverResult:
     """Minimise the blocks' cost from ``initial`` and the calibration variables' values
     ``calibration`` (a :class:`factors.calibration.CalibrationSet` or None; see the module
-    docstring for the methods). Stops when the cost decreases by less than
-    ``absolute_tolerance`` or by less than ``relative_tolerance`` of itself, or after
-    ``max_iterations``."""
+    docstring for the methods). Stops when a step decreases the cost by less than
+    ``absolute_tolerance`` (:data:`ABSOLUTE_TOLERANCE`) or by less than ``relative_tolerance`` of
+    itself, keeping that step, or after ``max_iterations``."""
     if method not in METHODS:
         raise InputError(f"method {method!r}: expected one of {', '.join(METHODS)}")
     layout = Layout.of(initial, calibration)
@@ -350,11 +358,13 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
             break
         decrease = cost - trial_cost
         states, calibration = trial, trial_calibration
-        graph, cost = linearize(blocks, states, calibration)
-        history.append(cost)
-        if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(cost, 1e-300):
+        if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(trial_cost, 1e-300):
+            cost = trial_cost  # converged: the step kept, no further linearisation
+            history.append(cost)
             converged = True
             break
+        graph, cost = linearize(blocks, states, calibration)
+        history.append(cost)
     return SolverResult(states, cost, iterations, converged, history, calibration)
 
 

@@ -147,31 +147,33 @@ def evaluate(kind: Kind, state, row: np.ndarray) -> tuple[np.ndarray, np.ndarray
 LAYOUTS = np.stack([calibration.layout(m) for m in MODELS])
 
 
-@njit(cache=True)
-def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc) -> None:
+@njit(inline="always")
+def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc, work) -> None:
     """``e (d)``, ``H (d, 15)``, ``H_c (d, 8)`` of one measurement ``row`` of ``MODELS[model]``
     (its layout ``lay``, :data:`LAYOUTS`) at one state through the packed calibration ``cal``
     (:func:`factors.calibration.packed`): the model's kernel at the state one Euler step of the
     time offset away (with the IMU reading ``acc, gyro`` held at the stamp, where
     ``with_time``), with the calibrated extrinsic in its row
-    (:func:`factors.calibration.one_state_into`)."""
+    (:func:`factors.calibration.one_state_into`); ``work`` from
+    :func:`factors.calibration.work_array`."""
     d = e.shape[0]
-    xr, xv, xC = r.copy(), v.copy(), C.copy()
-    F, rate = np.empty((imu.STATE_DIM, imu.STATE_DIM)), np.empty(imu.STATE_DIM)
+    xr, xv, xC, F, rate = calibration.state_part(work, 0)
+    calibrated, e0, H0, step = calibration.model_part(work, row.shape[0], d, imu.STATE_DIM)
     if with_time:
-        imu.stepped_into(r, v, C, b_f, b_w, acc, gyro, cal[0], g, xr, xv, xC, F, rate)
-    calibrated = np.empty(row.shape[0])
+        imu.stepped_into(r, v, C, b_f, b_w, acc, gyro, cal[0], g, xr, xv, xC, F, rate, step)
+    else:
+        xr[:], xv[:], xC[:, :] = r, v, C
     calibration.calibrated_row_into(row, lay[0], lay[1], cal, calibrated)
-    e0, H0 = np.empty(d), np.empty((d, imu.STATE_DIM))
     measure_into(model, xr, xv, xC, b_f, b_w, calibrated, e0, H0)
     calibration.one_state_into(lay, xv, xC, b_w, calibrated, e0, H0, F, rate, with_time, cal[13], e, H, Hc)
 
 
 @njit(cache=True)
 def _calibrated_rows(model, lay, r, v, C, b_f, b_w, rows, cal, with_time, acc, gyro, g, e, H, Hc) -> None:
+    work = calibration.work_array()
     for n in range(rows.shape[0]):
         calibrated_into(model, lay, r[n], v[n], C[n], b_f[n], b_w[n], rows[n], cal, with_time, acc[n], gyro[n], g,
-                        e[n], H[n], Hc[n])
+                        e[n], H[n], Hc[n], work)
 
 
 def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravity=imu.DEFAULT_GRAVITY):

@@ -44,7 +44,8 @@ def _estimate(truth: Trajectory, sigmas, rng) -> SimpleNamespace:
     )
     diag = np.repeat([sr, 0.01, sphi, sbf, sbw], 3) ** 2
     cov = np.broadcast_to(np.diag(diag), (n, 15, 15)).copy()
-    return SimpleNamespace(trajectory=Trajectory(truth.t[idx], states, cov), runtime_s=0.5, details={}, failed=None)
+    return SimpleNamespace(trajectory=Trajectory(truth.t[idx], states, cov), runtime_s=0.5, details={}, failed=None,
+                           calibration=None)
 
 
 @pytest.fixture(scope="module")
