@@ -626,7 +626,7 @@ def _state_rate_rows(v, C, b_f, b_w, acc, gyro, g, out) -> None:
 STEPPED_WORK = STEP_SIZE + STATE_DIM * NOISE_DIM
 
 
-@block_operation
+@recursion
 def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, rate, work) -> None:
     """One Euler step of ``dt`` of one state (:func:`propagate`): the next state into ``out_r,
     out_v, out_C`` (the biases do not move), its transition ``F (15, 15)``, and the state's rate

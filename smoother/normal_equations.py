@@ -33,6 +33,8 @@ _MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admi
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.
 _FAST = {"reassoc", "contract"}
+#: The widest whitened Jacobian: a relative pose's two states and a calibration's coordinates.
+_WIDE = 2 * DIM + CALIBRATION_DIM
 #: ``jacobians`` of the IMU residual as a run-time flag: a literal ``True`` would compile a second
 #: copy of :func:`factors.preintegration._residual_into` beside the batch solver's.
 _WITH_JACOBIANS = np.bool_(True)
@@ -185,27 +187,39 @@ def _add_border(B, Df, gf, a, ca, b, cb, cs, cols, JT, ew, d) -> None:
 
 
 @njit(cache=True)
+def _reweight(code, k, JT, ew, d) -> None:
+    """A whitened factor (``JT``, ``ew``: :func:`_whiten`, ``d`` rows) reweighted in place by
+    GTSAM's robust kernel ``code`` at threshold ``k`` (0: none)."""
+    if code != 0:
+        norm = 0.0
+        for a in range(d):
+            norm += ew[a] * ew[a]
+        scale = _robust_scale(code, k, np.sqrt(norm))
+        ew[:d] *= scale
+        JT[:, :d] *= scale
+
+
+@njit(cache=True)
+def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
+    """A whitened factor on keyframes ``k0`` (and ``k1`` where ``relative``) added to the rows of
+    ``Hb``, ``g`` from keyframe ``lo`` on."""
+    if relative:
+        _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
+    else:
+        _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
+
+
+@njit(cache=True)
 def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
-               m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg, cal, cal_time, cal_cols, layouts, hacc, hgyro,
-               Hb, g, B, D, gc) -> None:
+               m, mk, model, rows, dims, Wm, rcode, rk, mcal, Hb, g) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
-    IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``,
-    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``.
-
-    A measurement ``f`` with ``mcal[f] = j >= 0`` reads calibration ``j`` (packed ``cal[j]``,
-    :func:`factors.calibration.packed`; its time offset stepped with the IMU reading held at the
-    keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error coordinates in the border's
-    columns ``cal_cols[j]``, -1 where not estimated; ``layouts``:
-    :data:`datasets.kinds.LAYOUTS`): it adds its border rows to ``B`` (block row 0 = keyframe
-    ``lo``) and, whichever keyframes it reads, its share to ``D``, ``g_c``, kept in ``mD[f]``,
-    ``mg[f]``. One whose keyframes are all before ``lo`` adds what it kept: its keyframes have not
-    been linearised again since it was last linearised (their rows of ``L`` would then be
-    stale), nor has its calibration (every row reading one is stale then)."""
+    IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``
+    that read no calibration (``mcal[f] < 0``; the others: :func:`_linearise_calibrated`),
+    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
     work = _residual_work()
-    e, A, Bi = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
-    wide = 2 * DIM + CALIBRATION_DIM  # a relative pose's two states and a calibration's coordinates
-    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((wide, DIM)), np.empty((wide, DIM)), np.empty(DIM)
+    e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
+    J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM)), np.empty(DIM)
     n = Hb.shape[0]
     for k in range(max(lo, first + 1), lo + n):
         if k - 1 >= cut:
@@ -215,62 +229,76 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
             continue
         i = (k - 1) % cap
         _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
-                       r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, Bi, work)
+                       r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, B, work)
         J[:, :DIM] = A
-        J[:, DIM:] = Bi
+        J[:, DIM:] = B
         _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
         _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
-    # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each; Jc, a
-    # calibrated factor's states and calibration side by side
-    H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
-    Jc = np.empty((_MAX_DIM, wide))
-    cal_work = work_array()
+    # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
+    H, Hm = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM))
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
-        j = mcal[f]
-        if k0 >= cut or (k1 < lo and j < 0):
-            continue
-        if k1 < lo:  # j >= 0
-            _add_own(D, gc, cal_cols[j], mD[f], mg[f])
+        if k0 >= cut or k1 < lo or mcal[f] >= 0:
             continue
         d = dims[f]
         i = k0 % cap
         relative = model[f] == RELATIVE_MODEL
-        width = 2 * DIM if relative else DIM
-        if j >= 0:
-            i1 = k1 % cap
-            if relative:
-                calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
-                                         cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
-                                         H[:d], Hc[:d], cal_work)
-                Jc[:d, :width] = H[:d]
-            else:
-                calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j],
-                                cal_time[j], hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], cal_work)
-                Jc[:d, :width] = Hm[:d]
-            Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
-            _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)
-        elif relative:
+        if relative:
             odometry_kernel(r[i], C[i], r[k1 % cap], C[k1 % cap], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
         else:
             measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
             _whiten(Wm[f], e, Hm, d, DIM, ew, JT, Jt0)
-        if rcode[f] != 0:
-            norm = 0.0
-            for a in range(d):
-                norm += ew[a] * ew[a]
-            scale = _robust_scale(rcode[f], rk[f], np.sqrt(norm))
-            ew[:d] *= scale
-            JT[:, :d] *= scale
-        if j >= 0:
-            _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo if relative else -1, DIM, width, cal_cols[j], JT, ew, d)
+        _reweight(rcode[f], rk[f], JT, ew, d)
+        _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
+
+
+@njit(cache=True)
+def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
+                          mg, cal, cal_time, cal_cols, layouts, hacc, hgyro, Hb, g, B, D, gc) -> None:
+    """:func:`_linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
+    (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
+    reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
+    coordinates in the border's columns ``cal_cols[j]``, -1 where not estimated; ``layouts``:
+    :data:`datasets.kinds.LAYOUTS`): each adds its rows to ``Hb``, ``g``, its border rows to
+    ``B`` (block row 0 = keyframe ``lo``) and, whichever keyframes it reads, its share to ``D``,
+    ``g_c``, kept in ``mD[f]``, ``mg[f]``. One whose keyframes are all before ``lo`` adds what it
+    kept: its keyframes have not been linearised again since it was last linearised (their rows
+    of ``L`` would then be stale), nor has its calibration (every row reading one is stale then).
+    A separate kernel: a window without calibrations never compiles the calibrated residuals."""
+    e, ew = np.empty(DIM), np.empty(DIM)
+    JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))
+    H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
+    Jc = np.empty((_MAX_DIM, _WIDE))  # the factor's states and calibration side by side
+    work = work_array()
+    for f in range(m):
+        k0, k1 = mk[f, 0], mk[f, 1]
+        j = mcal[f]
+        if k0 >= cut or j < 0:
+            continue
+        if k1 < lo:
             _add_own(D, gc, cal_cols[j], mD[f], mg[f])
+            continue
+        d = dims[f]
+        i, i1 = k0 % cap, k1 % cap
+        relative = model[f] == RELATIVE_MODEL
+        width = 2 * DIM if relative else DIM
         if relative:
-            _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
+            calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
+                                     cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
+                                     H[:d], Hc[:d], work)
+            Jc[:d, :width] = H[:d]
         else:
-            _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
+            calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j], cal_time[j],
+                            hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], work)
+            Jc[:d, :width] = Hm[:d]
+        Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
+        _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)
+        _reweight(rcode[f], rk[f], JT, ew, d)
+        _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo if relative else -1, DIM, width, cal_cols[j], JT, ew, d)
+        _add_own(D, gc, cal_cols[j], mD[f], mg[f])
+        _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
 
 
 @njit(cache=True)

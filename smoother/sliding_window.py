@@ -67,8 +67,8 @@ from smoother.banded import (_backward, _border_solve, _factorise, _forward, _ma
                              _semidefinite_square_root, no_border)
 from smoother.fixed_lag import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.graph import robust_threshold
-from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _LinearPrior, _prior_into,  # noqa: F401
-                                       _robust_scale, _whitening_into)
+from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _linearise_calibrated,  # noqa: F401
+                                       _LinearPrior, _prior_into, _robust_scale, _whitening_into)
 from smoother.solver import whitening
 from smoother.window_calibration import WindowCalibration
 
@@ -243,7 +243,6 @@ class SlidingWindow:
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
-        self._no_calibration = (np.zeros((0, 14)), np.zeros(0, dtype=np.bool_), np.zeros((0, 8), dtype=np.int64))
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
@@ -507,12 +506,16 @@ class SlidingWindow:
         cal = self._cal
         B, D, gc = no_border(n) if cal is None else (np.zeros((n, DIM, cal.nc)), np.zeros((cal.nc, cal.nc)),
                                                      np.zeros(cal.nc))
-        packed, with_time, columns = self._no_calibration if cal is None else (cal.packed, cal.with_time, cal.columns)
         with _compiling():
             _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
                        self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
-                       self._mcal, self._mD, self._mg, packed, with_time, columns, LAYOUTS, self._hacc, self._hgyro, Hb, g, B, D, gc)
+                       self._mcal, Hb, g)
+            if cal is not None:
+                _linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
+                                      self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
+                                      self._mcal, self._mD, self._mg, cal.packed, cal.with_time, cal.columns, LAYOUTS,
+                                      self._hacc, self._hgyro, Hb, g, B, D, gc)
         plain = None if cal is not None else (B, D, gc)
         for p in self._priors:
             bordered = p.c_lin is not None

@@ -147,7 +147,7 @@ def evaluate(kind: Kind, state, row: np.ndarray) -> tuple[np.ndarray, np.ndarray
 LAYOUTS = np.stack([calibration.layout(m) for m in MODELS])
 
 
-@njit(inline="always")
+@njit(cache=True)
 def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc, work) -> None:
     """``e (d)``, ``H (d, 15)``, ``H_c (d, 8)`` of one measurement ``row`` of ``MODELS[model]``
     (its layout ``lay``, :data:`LAYOUTS`) at one state through the packed calibration ``cal``
