@@ -18,6 +18,7 @@ import hashlib
 import json
 import math
 import os
+import signal
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
@@ -327,6 +328,33 @@ class _Ranges:
             return not self.failures
 
 
+@contextmanager
+def _interrupts_held():
+    """Ctrl-C and SIGTERM held back inside the block (in the main thread, where Python runs signal
+    handlers; elsewhere nothing changes), then handled by the handlers that were set. Their
+    handlers raise: raised inside :meth:`ThreadPoolExecutor.submit`, between its taking a lock and
+    the ``with`` block that releases it, the exception left the executors' global shutdown lock
+    held, and the process hung at exit waiting for it (a recording SIGTERMed during its
+    preintegration)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+    previous = {s: signal.signal(s, lambda signum, frame: held.append((signum, frame)))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for signum, frame in held[:1]:
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, frame)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
+
+
 def _wait_for(others: list, ranges: _Ranges) -> None:
     """Wait until the pool's share of ``ranges`` has finished, also through Ctrl-C: an interrupt
     meanwhile is recorded as a failure (so no new range starts) and raised once all have."""
@@ -378,7 +406,7 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     ranges = _Ranges([n * p // pieces for p in range(pieces + 1)], task, scan, then)
     others = []
     try:
-        with _pool_lock:
+        with _interrupts_held(), _pool_lock:
             if _pool_size < parts - 1:
                 if _pool is not None:
                     _pool.shutdown(wait=False)  # what was queued there still runs

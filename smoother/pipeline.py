@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.types import Dataset, Trajectory
+from smoother import kernel_warm_up
 from smoother.batch import solve_batch
 from smoother.calibration_report import calibration_records
 from smoother.ekf import run_ekf
@@ -79,27 +80,36 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     ``start``): the EKF runs first when both are asked for, and otherwise for the batch alone (its
     time counted in the batch's); where the EKF fails, from dead reckoning. ``details["start"]``
     says which. ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed``
-    set (its error in one line) and the others still run; otherwise its exception propagates."""
+    set (its error in one line) and the others still run; otherwise its exception propagates.
+    While the others run, the sliding window's kernels compile in a second process when they are
+    not on disk yet (:mod:`smoother.kernel_warm_up`)."""
     unknown = [n for n in names if n not in ESTIMATORS]
     if unknown:
         raise InputError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
     both = "ekf" in names and "batch" in names
     order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
     ekf: Estimate | None = None
-    for name in order:
-        if announce is not None:
-            announce(name)
-        tick = time.perf_counter()
-        try:
-            estimate = (_batch(dataset, options, ekf) if name == "batch" else
-                        _fixed_lag(dataset, options) if name == "fixed-lag" else _ekf(dataset, options))
-        except Exception as error:
-            if not keep_going:
-                raise
-            estimate = Estimate(name, None, time.perf_counter() - tick, {}, failed=_one_line(error))
-        if name == "ekf":
-            ekf = estimate
-        yield name, estimate
+    warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
+    try:
+        for name in order:
+            if announce is not None:
+                announce(name)
+            if name == "fixed-lag" and warm_up is not None:
+                warm_up.wait()
+            tick = time.perf_counter()
+            try:
+                estimate = (_batch(dataset, options, ekf) if name == "batch" else
+                            _fixed_lag(dataset, options) if name == "fixed-lag" else _ekf(dataset, options))
+            except Exception as error:
+                if not keep_going:
+                    raise
+                estimate = Estimate(name, None, time.perf_counter() - tick, {}, failed=_one_line(error))
+            if name == "ekf":
+                ekf = estimate
+            yield name, estimate
+    finally:
+        if warm_up is not None:
+            warm_up.close()
 
 
 def _one_line(error: Exception) -> str:

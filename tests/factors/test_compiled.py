@@ -485,6 +485,39 @@ def test_in_parallel_pipeline_survives_an_interrupt_between_taking_a_range_and_r
     assert ("task", taken[1]) not in starts
 
 
+def test_a_signal_while_the_pool_takes_work_is_handled_after_it_with_the_pool_s_locks_free(monkeypatch):
+    """SIGINT sent from inside ``ThreadPoolExecutor.submit`` (where its handler's exception could
+    leave the executors' global shutdown lock held, and the process hang at exit): handled once
+    the work is handed out -- KeyboardInterrupt from in_parallel, every range that started has
+    finished, the lock free, the handler set before in place again."""
+    import concurrent.futures.thread as pool_threads
+    import os
+    import signal
+
+    submit = pool_threads.ThreadPoolExecutor.submit
+    inside = []
+
+    def signalled_submit(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        inside.append(True)  # bytecodes after the signal: its handler did not raise in here
+        return submit(self, *args, **kwargs)
+
+    monkeypatch.setattr(pool_threads.ThreadPoolExecutor, "submit", signalled_submit)
+    started, ended = [], []
+
+    def task(lo, hi):
+        started.append(lo)
+        ended.append(lo)
+
+    before = signal.getsignal(signal.SIGINT)
+    with compiled.thread_limit(2), pytest.raises(KeyboardInterrupt):
+        compiled.in_parallel(task, 8, 1)
+    assert inside and sorted(started) == sorted(ended)
+    assert pool_threads._global_shutdown_lock.acquire(blocking=False)
+    pool_threads._global_shutdown_lock.release()
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_in_parallel_pipeline_from_several_threads_at_once():
     results, errors = [], []
 
