@@ -340,8 +340,9 @@ def _interrupts_held():
         yield
         return
     held = []
+    # (a handler set outside Python reads as None and could not be put back: left alone)
     previous = {s: signal.signal(s, lambda signum, frame: held.append((signum, frame)))
-                for s in (signal.SIGINT, signal.SIGTERM)}
+                for s in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(s) is not None}
     try:
         yield
     finally:
