@@ -676,4 +676,4 @@ class SlidingWindow:
             if bordered:  # at the calibrations' linearisation points: dc = 0, its Jacobian I
                 prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
             self._priors.append(prior)
-        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors), default=0)
+        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors if p.keyframes.size), default=0)
