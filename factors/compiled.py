@@ -21,7 +21,7 @@ import os
 import signal
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -329,31 +329,30 @@ class _Ranges:
 
 
 @contextmanager
-def _interrupts_held():
+def interrupts_held():
     """Ctrl-C and SIGTERM held back inside the block (in the main thread, where Python runs signal
-    handlers; elsewhere nothing changes), then handled by the handlers that were set. Their
-    handlers raise: raised inside :meth:`ThreadPoolExecutor.submit`, between its taking a lock and
-    the ``with`` block that releases it, the exception left the executors' global shutdown lock
-    held, and the process hung at exit waiting for it (a recording SIGTERMed during its
-    preintegration)."""
+    handlers; elsewhere nothing changes), then raised again, in the order they came, through the
+    handlers that were set. Their handlers raise: raised inside
+    :meth:`ThreadPoolExecutor.submit`, between its taking a lock and the ``with`` block that
+    releases it, the exception left the executors' global shutdown lock held, and the process hung
+    at exit waiting for it (a recording SIGTERMed during its preintegration). Each handler is put
+    back whatever happens meanwhile; one set outside Python (read as None: it could not be put
+    back) is left alone."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     held = []
-    # (a handler set outside Python reads as None and could not be put back: left alone)
-    previous = {s: signal.signal(s, lambda signum, frame: held.append((signum, frame)))
-                for s in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(s) is not None}
     try:
-        yield
+        with ExitStack() as restore:
+            for s in (signal.SIGINT, signal.SIGTERM):
+                previous = signal.getsignal(s)
+                if previous is not None:
+                    signal.signal(s, lambda signum, frame: held.append(signum))
+                    restore.callback(signal.signal, s, previous)
+            yield
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-        for signum, frame in held[:1]:
-            handler = previous[signum]
-            if callable(handler):
-                handler(signum, frame)
-            elif handler == signal.SIG_DFL:
-                signal.raise_signal(signum)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)
 
 
 def _wait_for(others: list, ranges: _Ranges) -> None:
@@ -407,7 +406,7 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     ranges = _Ranges([n * p // pieces for p in range(pieces + 1)], task, scan, then)
     others = []
     try:
-        with _interrupts_held(), _pool_lock:
+        with interrupts_held(), _pool_lock:
             if _pool_size < parts - 1:
                 if _pool is not None:
                     _pool.shutdown(wait=False)  # what was queued there still runs

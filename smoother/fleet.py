@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from smoother.commands.run_directory import METRICS
+from factors.compiled import interrupts_held
 from factors.errors import InputError
 from smoother.errors import Terminated
 
@@ -236,7 +237,8 @@ def run_local(items: list[Recording], workers: int, on_result) -> None:
 
         def refill():
             for item in itertools.islice(pending, max(0, AHEAD * workers - len(running))):
-                running[pool.submit(run_recording, item)] = item
+                with interrupts_held():  # a signal's exception inside submit could leave its lock held
+                    running[pool.submit(run_recording, item)] = item
 
         try:
             refill()

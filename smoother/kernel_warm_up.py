@@ -20,6 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from factors.compiled import thread_count
+
 #: How long the fixed-lag smoother waits for the child [s] before it compiles on its own.
 WAIT_S = 300.0
 
@@ -58,12 +60,12 @@ class WarmUp:
 
 def start(order, fixed_lag_kind: str) -> WarmUp | None:
     """A warm-up child when the estimators in ``order`` run the sliding window after another one,
-    its kernels are not on disk (:func:`cold`) and the process may use more than one core; else
-    None."""
+    its kernels are not on disk (:func:`cold`) and the process may use more than one thread
+    (:func:`factors.compiled.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
+    cores); else None."""
     if fixed_lag_kind != "sliding" or "fixed-lag" not in order or list(order)[0] == "fixed-lag":
         return None
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    if cores < 2 or not cold():
+    if thread_count() < 2 or not cold():
         return None
     root = Path(__file__).resolve().parents[1]
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}

@@ -89,8 +89,9 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     both = "ekf" in names and "batch" in names
     order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
     ekf: Estimate | None = None
-    warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
+    warm_up = None
     try:
+        warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
         for name in order:
             if announce is not None:
                 announce(name)

@@ -518,6 +518,27 @@ def test_a_signal_while_the_pool_takes_work_is_handled_after_it_with_the_pool_s_
     assert signal.getsignal(signal.SIGINT) is before
 
 
+def test_every_signal_held_is_raised_again_in_order_through_the_handlers_put_back():
+    """SIGTERM (its handler records) then SIGINT inside the block: nothing runs inside; after it
+    the SIGTERM handler runs, then Ctrl-C's KeyboardInterrupt; both handlers are those set before."""
+    import os
+    import signal
+
+    seen = []
+    before_int = signal.getsignal(signal.SIGINT)
+    before_term = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append("term"))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with compiled.interrupts_held():
+                os.kill(os.getpid(), signal.SIGTERM)
+                os.kill(os.getpid(), signal.SIGINT)
+                seen.append("inside")
+        assert seen == ["inside", "term"]
+        assert signal.getsignal(signal.SIGINT) is before_int
+    finally:
+        signal.signal(signal.SIGTERM, before_term)
+
+
 def test_in_parallel_pipeline_from_several_threads_at_once():
     results, errors = [], []
 

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from factors.compiled import thread_count
+
 #: Runs the three estimators, and the fixed-lag smoother through GTSAM's factors (whose callbacks
 #: run the kernels on GTSAM's arrays), on a short simulation in a fresh process with an empty
 #: kernel cache (so every kernel is compiled there, also those called only from other kernels), then prints, for every compiled function of the package that
@@ -62,6 +64,6 @@ def test_every_kernel_is_compiled_for_one_layout(first_run):
     assert first_run["layouts"] == {}
 
 
-@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the warm-up runs only with a second core")
+@pytest.mark.skipif(thread_count() < 2, reason="the warm-up runs only with a second thread")
 def test_the_first_run_loads_the_window_kernels_the_warm_up_child_compiled(first_run):
     assert first_run["warm_up"] == {"exit": [0], "hits": 1, "misses": 0}
