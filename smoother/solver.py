@@ -226,6 +226,12 @@ class Layout:
     def dim(self, key: int) -> int:
         return DIM if key < self.n else self.extra[key - self.n]
 
+    def calibration_columns(self) -> dict:
+        """``{n + j: slice}``: where each calibration variable's coordinates sit when all of
+        them are stacked in key order."""
+        bounds = np.cumsum([0, *self.extra])
+        return {self.n + j: slice(int(bounds[j]), int(bounds[j + 1])) for j in range(len(self.extra))}
+
     def ordering(self, graph: gtsam.GaussianFactorGraph) -> gtsam.Ordering | None:
         """COLAMD with the calibration variables last, or None (GTSAM's default) without any."""
         if not self.extra:
@@ -402,15 +408,24 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     linear system ``graph`` on the 15-dim keys ``0 .. n - 1`` (and the keys of ``layout``'s
     calibration variables, if given), from its square-root information.
 
-    GTSAM eliminates ``graph`` with QR (COLAMD ordering) into conditionals ``R_i x_i + S_i x_P(i)``,
-    which work on the rows themselves: the condition number that matters is that of the rows, not
-    of their squares (``A^T A``), so a long dead-reckoned stretch -- whose information matrix
-    Cholesky declares indeterminant -- still factors. The covariance blocks follow from the
-    selected-inversion recursion over the conditionals in reverse elimination order,
-    ``Sigma_iP = -R_i^-1 S_i Sigma_PP`` and ``Sigma_ii = R_i^-1 (R_i^-T - S_i Sigma_Pi)``: a
-    conditional's parents were eliminated after it and are pairwise parents of one another, so
-    every block the recursion needs is computed before it is used. (GTSAM's own
-    ``marginalCovariance`` goes through Cholesky-based shortcuts and loses those digits again.)
+    GTSAM eliminates ``graph`` with QR (COLAMD ordering, the calibration variables last) into
+    conditionals ``R_i x_i + S_i x_P(i) = d_i``, which work on the rows themselves: the condition
+    number that matters is that of the rows, not of their squares (``A^T A``), so a long
+    dead-reckoned stretch -- whose information matrix Cholesky declares indeterminant -- still
+    factors. The covariance blocks follow from the selected-inversion recursion over the
+    conditionals in reverse elimination order, ``Sigma_iP = K_i Sigma_PP`` and
+    ``Sigma_ii = R_i^-1 R_i^-T + Sigma_iP K_i^T`` with ``K_i = -R_i^-1 S_i``: a conditional's
+    parents were eliminated after it and are pairwise parents of one another, so every block the
+    recursion needs is computed before it is used. (GTSAM's own ``marginalCovariance`` goes
+    through Cholesky-based shortcuts and loses those digits again.)
+
+    With calibration variables ``c`` (the dense border: every keyframe's conditional may have them
+    among its parents) the keyframes' recursion runs on their keyframe parents alone, which gives
+    the covariances given ``c``, ``Sigma^c``; the conditionals' calibration columns give the gain
+    of the keyframes' mean on ``c``, ``G_i = K_i,x G_P + K_i,c``; and the law of total covariance
+    adds what ``c``'s own uncertainty contributes: ``Sigma_ab = Sigma^c_ab + G_a Sigma_cc G_b^T``,
+    ``Sigma_ic = G_i Sigma_cc``. The same blocks as the recursion over every parent, at the cost of
+    the plain chain's recursion and a few products.
 
     A variable the rows do not determine -- GTSAM finds too few rows for it, or a pivot of its
     ``R_i`` is below ``RANK_TOLERANCE`` times the largest -- raises :class:`IndeterminantSystem`
@@ -426,31 +441,107 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     except RuntimeError as error:
         raise _named_free(error, graph, ordering) from None
     conditionals = [net.at(i) for i in range(net.size())]
-    tolerance = RANK_TOLERANCE * max(np.max(np.abs(np.diag(c.R()))) for c in conditionals)
-    sigma: dict[tuple[int, int], np.ndarray] = {}
-    for conditional in reversed(conditionals):
-        keys = [int(k) for k in conditional.keys()]
-        frontal, parents = keys[0], keys[1:]
-        R = conditional.R()  # upper triangular, the frontal variable's dimension
-        if np.min(np.abs(np.diag(R))) <= tolerance:
-            raise IndeterminantSystem(f"indeterminant linear system near variable {frontal}", frontal,
-                                      free_components(R, tolerance) if frontal < n else None)
-        R_inv = np.linalg.inv(R)
-        own = R_inv @ R_inv.T
-        if parents:
-            # Sigma_PP, assembled from the blocks of the parents (all computed: see the docstring)
-            rows = [np.hstack([sigma[(a, b)] if (a, b) in sigma else sigma[(b, a)].T for b in parents])
-                    for a in parents]
-            K = -R_inv @ conditional.S()  # Sigma_iP = K Sigma_PP
-            cross = K @ np.vstack(rows)
-            bounds = np.cumsum([0, *(layout.dim(p) for p in parents)])
+    keys = [[int(k) for k in c.keys()] for c in conditionals]
+    R_inv, own = _inverted(conditionals, keys, n)
+    columns = layout.calibration_columns()  # key n + j: its columns in the stacked calibrations
+    nc = sum(layout.extra)
+    sigma: dict[tuple[int, int], np.ndarray] = {}  # Sigma^c between keyframes; Sigma between calibrations
+    gain: dict[int, np.ndarray] = {}  # G_i (15, nc) of each keyframe
+    for i in reversed(range(len(conditionals))):
+        frontal, parents = keys[i][0], keys[i][1:]
+        if not parents:
+            sigma[(frontal, frontal)] = own[i]
+            continue
+        K = -R_inv[i] @ conditionals[i].S()
+        bounds = [0]
+        for p in parents:
+            bounds.append(bounds[-1] + layout.dim(p))
+        # a keyframe's recursion runs over its keyframe parents, a calibration's over all of its
+        kept = [j for j, p in enumerate(parents) if p < n or frontal >= n]
+        if len(kept) == 1:
+            K_kept = K[:, bounds[kept[0]]:bounds[kept[0] + 1]]
+            cross = K_kept @ sigma[(parents[kept[0]], parents[kept[0]])]
+            sigma[(frontal, parents[kept[0]])] = cross
+        elif kept:
+            # Sigma_PP over the kept parents (all computed: see the docstring)
+            rows = [np.hstack([sigma[(parents[a], parents[b])] if (parents[a], parents[b]) in sigma
+                               else sigma[(parents[b], parents[a])].T for b in kept]) for a in kept]
+            K_kept = K if len(kept) == len(parents) else np.hstack([K[:, bounds[j]:bounds[j + 1]] for j in kept])
+            cross = K_kept @ np.vstack(rows)
+            at = 0
+            for j in kept:
+                width = bounds[j + 1] - bounds[j]
+                sigma[(frontal, parents[j])] = cross[:, at:at + width]
+                at += width
+        if kept:
+            both = own[i] + cross @ K_kept.T
+            sigma[(frontal, frontal)] = 0.5 * (both + both.T)
+        else:
+            sigma[(frontal, frontal)] = own[i]
+        if frontal < n and nc:
+            G = np.zeros((K.shape[0], nc))
             for j, parent in enumerate(parents):
-                sigma[(frontal, parent)] = cross[:, bounds[j]:bounds[j + 1]]
-            own = own + cross @ K.T
-        sigma[(frontal, frontal)] = 0.5 * (own + own.T)
+                block = K[:, bounds[j]:bounds[j + 1]]
+                if parent < n:
+                    G += block @ gain[parent]
+                else:
+                    G[:, columns[parent]] += block
+            gain[frontal] = G
+    if nc:
+        _add_calibration_share(sigma, gain, layout, columns)
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
     return (marginals, sigma) if pairs else marginals
+
+
+def _inverted(conditionals: list, keys: list, n: int) -> tuple[list, list]:
+    """``R_i^-1`` and ``R_i^-1 R_i^-T`` of every conditional, inverted together where their
+    dimensions agree; :class:`IndeterminantSystem` where a pivot of ``R_i`` is at most
+    ``RANK_TOLERANCE`` times the largest of them all (:func:`marginal_covariances`)."""
+    R = [c.R() for c in conditionals]  # upper triangular, the frontal variable's dimension
+    groups: dict[int, list[int]] = {}
+    for i, r in enumerate(R):
+        groups.setdefault(r.shape[0], []).append(i)
+    stacks = {d: np.stack([R[i] for i in which]) for d, which in groups.items()}
+    pivots = {d: np.abs(np.diagonal(stack, axis1=1, axis2=2)) for d, stack in stacks.items()}
+    tolerance = RANK_TOLERANCE * max(p.max() for p in pivots.values())
+    weak = [which[j] for d, which in groups.items() for j in np.flatnonzero(pivots[d].min(axis=1) <= tolerance)]
+    if weak:
+        i = max(weak)  # the one eliminated last: the first the recursion meets
+        frontal = keys[i][0]
+        raise IndeterminantSystem(f"indeterminant linear system near variable {frontal}", frontal,
+                                  free_components(R[i], tolerance) if frontal < n else None)
+    R_inv, own = [None] * len(R), [None] * len(R)
+    for d, which in groups.items():
+        inv = np.linalg.inv(stacks[d])
+        product = inv @ inv.transpose(0, 2, 1)
+        for j, i in enumerate(which):
+            R_inv[i], own[i] = inv[j], product[j]
+    return R_inv, own
+
+
+def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dict) -> None:
+    """Turn the keyframes' blocks of ``sigma`` from covariances given the calibrations into
+    marginal ones (:func:`marginal_covariances`: ``+ G_a Sigma_cc G_b^T``), and add the blocks
+    between each keyframe and each calibration variable (``G_i Sigma_cc``), in place."""
+    n = layout.n
+    calibrations = list(columns)
+    S_cc = np.vstack([np.hstack([sigma[(a, b)] if (a, b) in sigma else sigma[(b, a)].T for b in calibrations])
+                      for a in calibrations])
+    frames = list(gain)
+    at = {k: i for i, k in enumerate(frames)}
+    G = np.stack([gain[k] for k in frames])
+    GS = G @ S_cc
+    between = [pair for pair in sigma if pair[0] < n]  # both keyframes: no other keyframe block yet
+    a = np.array([at[p[0]] for p in between])
+    b = np.array([at[p[1]] for p in between])
+    blocks = np.stack([sigma[p] for p in between]) + GS[a] @ G[b].transpose(0, 2, 1)
+    same = a == b
+    blocks[same] = 0.5 * (blocks[same] + blocks[same].transpose(0, 2, 1))
+    sigma.update(zip(between, blocks))
+    for k, G_S in zip(frames, GS):
+        for key in calibrations:
+            sigma[(k, key)] = G_S[:, columns[key]]
 
 
 #: Pivots of the square-root information below this fraction of the largest count as zero: the

@@ -335,3 +335,33 @@ def test_a_start_keeps_grid_keyframes_between_its_states_predicted():
     warm = solve_batch(gridded, covariances=False)
     cold = solve_batch(build_problem(data, keyframe_rate=25.0), covariances=False)
     assert np.abs(warm.trajectory.position - cold.trajectory.position).max() < 1e-3
+
+
+def test_covariances_with_calibrations_equal_a_dense_reference():
+    """With calibration variables (the dense border), every block the batch returns -- keyframe
+    with keyframe, keyframe with calibration, calibration with calibration -- equals that of the
+    dense SVD of the same whitened rows, to 1e-9 of each pair's standard deviations."""
+    from datasets.simulated_sensors import SensorSpec
+    from factors.calibration import CalibrationPrior
+
+    data = simulate(profile="gentle", duration=4.0, seed=3, pose_rate=0, sensors=(
+        SensorSpec("wheels", "velocity", 10.0, 0.05), SensorSpec("gnss", "gnss", 5.0, 0.2)))
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale", "time_offset")))
+    data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+    problem = build_problem(data)
+    result = solve_batch(problem)
+    states, calibration = result.trajectory.states, result.calibration
+    graph, _ = solver.linearize(problem.blocks, states, calibration)
+    layout = solver.Layout.of(states, calibration)
+    A = graph.jacobian(gtsam.Ordering(list(layout.keys)))[0]
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    dense = (Vt.T / s**2) @ Vt
+    at = np.cumsum([0, *(layout.dim(k) for k in layout.keys)])
+    block = lambda a, b: dense[at[a]:at[a + 1], at[b]:at[b + 1]]  # noqa: E731
+    n = layout.n
+    assert len(result.joint) >= 2 * n + 2 * (n + 1)  # chain, calibrations, and each keyframe with each
+    for (a, b), sigma_ab in result.joint.items():
+        sd = np.sqrt(np.diag(block(a, a)))[:, None] * np.sqrt(np.diag(block(b, b)))[None, :]
+        assert (np.abs(sigma_ab - block(a, b)) / sd).max() < 1e-9, (a, b)
+    for j, cov in enumerate(result.calibration_cov):
+        np.testing.assert_allclose(cov, block(n + j, n + j), rtol=1e-9, atol=0)
