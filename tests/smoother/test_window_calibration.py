@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from factors import so3
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother import sliding_window as sw
@@ -142,3 +143,45 @@ def test_a_calibrated_time_offset_without_the_imu_reading_is_refused():
     window = online._window
     with pytest.raises(InputError, match="a calibrated time offset needs the IMU reading held"):
         window.add_keyframe(0.0, data.initial, prior=(data.initial, data.initial_cov))
+
+
+def _tied_through_the_calibration(lag_s: float, duration: float):
+    """A window fed keyframes at the wheels' 10 Hz with no IMU between them, each with a prior
+    about its true state and one wheel-speed reading through the calibrated rotation and scale."""
+    from factors.calibration import CalibrationSet
+    from smoother.graph import measurement_spec
+    from smoother.window_calibration import WindowCalibration
+
+    data = _rig(2, duration=duration)
+    prior = CalibrationPrior(("rotation", "scale"))
+    calibrations = WindowCalibration(CalibrationSet.given(["wheels"], [np.eye(4)], [prior]), {"wheels": "velocity"})
+    window = sw.SlidingWindow(lag_s, calibration=calibrations)
+    wheels = data.sensor("wheels").data
+    spec = measurement_spec(data.sensor("wheels"))
+    truth, _, inside = data.truth.interpolate(wheels.t)
+    assert inside.all()
+    cov = np.diag(np.r_[[0.1] * 3, [0.05] * 3, [0.01] * 3, [0.05] * 3, [0.01] * 3] ** 2)
+    calibration_only = 0
+    for m, t in enumerate(wheels.t):
+        window.taken(window.leaving(float(t)))
+        window.add_keyframe(float(t), truth[m], None, [(spec, m, [window.newest + 1], None)], prior=(truth[m], cov))
+        calibration_only += any(p.keyframes.size == 0 for p in window._priors)
+    return window, calibration_only
+
+
+def test_keyframes_tied_only_through_a_calibration_leave_a_prior_on_it_alone():
+    """Each leaving keyframe informs no keyframe left, only the calibration: its marginal is a
+    prior on the calibration alone (spanning no keyframes), kept until it joins the next marginal.
+    The calibration after 6 s with a 0.5 s lag is that of a window that keeps every keyframe, to
+    0.1 of its sigma (the marginals keep their linearisation points; a window that keeps every
+    keyframe moves them), and so is its covariance, to 0.05 of the products of the sigmas."""
+    short, calibration_only = _tied_through_the_calibration(0.5, 6.0)
+    whole, _ = _tied_through_the_calibration(100.0, 6.0)
+    assert short.first > 50 and whole.first == 0
+    assert calibration_only > 50
+    (got,), (cov,) = short.calibration[0].values, short.calibration[1]
+    (want,), (cov_whole,) = whole.calibration[0].values, whole.calibration[1]
+    sigma = np.sqrt(np.diag(cov_whole))
+    difference = np.r_[so3.log(got.R @ want.R.T), got.scale - want.scale]
+    assert np.all(np.abs(difference) < 0.1 * sigma), difference / sigma
+    assert (np.abs(cov - cov_whole) / np.outer(sigma, sigma)).max() < 0.05
