@@ -4,8 +4,8 @@ estimators.
 Numba compiles a kernel the first time it runs and keeps it on disk (``cache=True``); a first run
 -- a fresh install, an edited kernel -- spends most of its time compiling, one kernel after the
 other, on one core. When a run asks for the sliding-window fixed-lag smoother after other
-estimators and the window's kernels are not on disk yet (:func:`cold`; with calibrations, those
-of its calibrated measurements too), :func:`start` compiles them in a child process on another core: it runs the window over a few seconds of simulated data
+estimators and the window's kernels are not on disk yet (:func:`cold`), :func:`start` compiles
+them in a child process on another core: it runs the window over a few seconds of simulated data
 and writes nothing but Numba's cache. The fixed-lag smoother waits for it (:meth:`WarmUp.wait`)
 and then loads the kernels from disk instead of compiling them again. Nothing depends on the child:
 if it fails, is slow or is killed, the smoother compiles what it still needs itself.
@@ -26,18 +26,16 @@ from factors.compiled import thread_count
 WAIT_S = 300.0
 
 
-def cold(calibrated: bool = False) -> bool:
-    """Whether a kernel the window will run is not in Numba's disk cache: its main one, and with
-    ``calibrated`` the pass over its calibrated measurements (False when it cannot be told:
-    Numba's JIT disabled, or a Numba without this cache layout)."""
-    from smoother.normal_equations import _linearise, _linearise_calibrated
+def cold() -> bool:
+    """Whether the sliding window's main kernel is not in Numba's disk cache (False when it cannot
+    be told: Numba's JIT disabled, or a Numba without this cache layout)."""
+    from smoother.normal_equations import _linearise
 
-    kernels = (_linearise, _linearise_calibrated) if calibrated else (_linearise,)
     try:
-        indices = [Path(kernel._cache._cache_file._index_path) for kernel in kernels]
+        index = Path(_linearise._cache._cache_file._index_path)
     except AttributeError:
         return False
-    return not all(index.exists() for index in indices)
+    return not index.exists()
 
 
 class WarmUp:
@@ -60,48 +58,34 @@ class WarmUp:
             self._process.wait()
 
 
-def start(order, fixed_lag_kind: str, calibrated: bool = False) -> WarmUp | None:
+def start(order, fixed_lag_kind: str) -> WarmUp | None:
     """A warm-up child when the estimators in ``order`` run the sliding window after another one,
-    the kernels it will run are not on disk (:func:`cold`; ``calibrated``: the window estimates
-    calibrations) and the process may use more than one thread
+    its kernels are not on disk (:func:`cold`) and the process may use more than one thread
     (:func:`factors.compiled.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
     cores); else None."""
     if fixed_lag_kind != "sliding" or "fixed-lag" not in order or list(order)[0] == "fixed-lag":
         return None
-    if thread_count() < 2 or not cold(calibrated):
+    if thread_count() < 2 or not cold():
         return None
     root = Path(__file__).resolve().parents[1]
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    command = [sys.executable, "-m", "smoother.kernel_warm_up", *([CALIBRATED] if calibrated else [])]
-    process = subprocess.Popen(command, cwd=root, env=environment,
+    process = subprocess.Popen([sys.executable, "-m", "smoother.kernel_warm_up"], cwd=root, env=environment,
                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return WarmUp(process)
 
 
-#: The child's argument for a window with calibrations.
-CALIBRATED = "--calibrated"
-
-
-def _compile(calibrated: bool) -> None:
+def _compile() -> None:
     """The child: the sliding window over 3 s of the simulator's default run (every kernel an
-    update, a marginalisation and the covariances call), and with ``calibrated`` again with the
-    pose sensor's time offset, rotation and lever arm estimated (the calibrated pass compiles
-    every kind's calibrated residual at once)."""
+    update, a marginalisation and the covariances call)."""
     import warnings
 
     from datasets.simulate import simulate
-    from factors.calibration import CalibrationPrior
     from smoother.online import replay
 
-    data = simulate("gentle", duration=3.0, seed=0)
-    runs = [data]
-    if calibrated:
-        runs.append(data.with_sensor("pose", calibrate=CalibrationPrior(("time_offset", "rotation", "lever_arm"))))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for run in runs:
-            replay(run, 1.0, "sliding", covariances=True, progress=False)
+        replay(simulate("gentle", duration=3.0, seed=0), 1.0, "sliding", covariances=True, progress=False)
 
 
 if __name__ == "__main__":
-    _compile(CALIBRATED in sys.argv[1:])
+    _compile()

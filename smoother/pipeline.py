@@ -91,8 +91,7 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     ekf: Estimate | None = None
     warm_up = None
     try:
-        calibrated = any(s.calibrate is not None for s in dataset.sensors)
-        warm_up = kernel_warm_up.start(order, options.fixed_lag_kind, calibrated)  # None unless kernels are to compile
+        warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
         for name in order:
             if announce is not None:
                 announce(name)

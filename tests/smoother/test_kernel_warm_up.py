@@ -3,8 +3,6 @@ a child starts, and that the run waits for it and stops it (that its cache is th
 loads: tests/smoother/test_kernel_layouts.py, which pays for a first run already)."""
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import pytest
 
 from smoother import kernel_warm_up, pipeline
@@ -34,7 +32,7 @@ class _Child:
 def test_a_child_starts_only_when_the_window_runs_after_others_with_its_kernels_not_on_disk(
         monkeypatch, order, kind, cold, cores, starts):
     started = []
-    monkeypatch.setattr(kernel_warm_up, "cold", lambda calibrated: cold)
+    monkeypatch.setattr(kernel_warm_up, "cold", lambda: cold)
     monkeypatch.setattr(kernel_warm_up, "thread_count", lambda: cores)
     monkeypatch.setattr(kernel_warm_up.subprocess, "Popen", lambda *a, **k: started.append(a) or object())
     assert (kernel_warm_up.start(order, kind) is not None) == starts
@@ -43,28 +41,11 @@ def test_a_child_starts_only_when_the_window_runs_after_others_with_its_kernels_
 
 def test_the_run_waits_for_the_child_before_the_fixed_lag_smoother_and_stops_it_at_the_end(monkeypatch):
     child, seen = _Child(), []
-    asked = []
-    monkeypatch.setattr(pipeline.kernel_warm_up, "start", lambda order, kind, calibrated: asked.append(calibrated) or child)
+    monkeypatch.setattr(pipeline.kernel_warm_up, "start", lambda order, kind: child)
     for name in ("ekf", "batch", "fixed-lag"):
         monkeypatch.setattr(pipeline, f"_{name.replace('-', '_')}",
                             lambda *a, name=name, **k: seen.append((name, list(child.calls))) or name)
-    calibrating = SimpleNamespace(sensors=(SimpleNamespace(calibrate=None), SimpleNamespace(calibrate=object())))
-    out = dict(pipeline.estimate_each(calibrating, ["ekf", "batch", "fixed-lag"]))
+    out = dict(pipeline.estimate_each(object(), ["ekf", "batch", "fixed-lag"]))
     assert list(out) == ["ekf", "batch", "fixed-lag"]
     assert seen == [("ekf", []), ("batch", []), ("fixed-lag", ["wait"])]
     assert child.calls == ["wait", "close"]
-    assert asked == [True]  # a sensor to calibrate: the child compiles the calibrated pass too
-
-
-@pytest.mark.parametrize("calibrated", [False, True])
-def test_cold_asks_for_the_calibrated_pass_only_when_the_window_calibrates(monkeypatch, tmp_path, calibrated):
-    """A window without calibrations never runs the calibrated pass, so its missing cache does not
-    make the run cold; one with calibrations is cold while either kernel is missing."""
-    from smoother import normal_equations
-
-    present = tmp_path / "present.nbi"
-    present.touch()
-    for kernel, index in ((normal_equations._linearise, present),
-                          (normal_equations._linearise_calibrated, tmp_path / "missing.nbi")):
-        monkeypatch.setattr(kernel, "_cache", SimpleNamespace(_cache_file=SimpleNamespace(_index_path=str(index))))
-    assert kernel_warm_up.cold(calibrated) == calibrated
