@@ -383,24 +383,30 @@ class SlidingWindow:
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
         of ``H^-1`` with ``H`` at the linearisation points of the last update's solve (before the
         keyframes it moved far enough were linearised again; with calibrations, ``A^-1`` plus their
-        share, :mod:`smoother.window_calibration`)."""
-        out = []
-        b = np.zeros((self._cap, DIM, DIM))
+        share, :mod:`smoother.window_calibration`). Keyframe ``k``'s block takes a forward and a
+        backward solve over the keyframes ``k .. newest`` (the rows of ``L`` before ``k`` do not
+        enter it), and its calibrations' share the rows from the oldest wanted on of
+        ``W = L_A^-T Z``: the newest keyframe's costs a block, the oldest's the window."""
+        wanted = [int(k) for k in wanted]
+        if not wanted:
+            return np.zeros((0, DIM, DIM))
+        cap = self._cap
         border = None
         if self._cal is not None:
-            W = self._Z.copy()  # W = L_A^-T Z, then its rows times L_D^-T
-            _backward(self._L, W, self.first, self.newest, self._cap, self._S)
-            inv = np.linalg.inv(self._cal.L_D)
-            border = W @ inv.T
+            W = self._Z.copy()  # its rows min(wanted) .. newest: the backward solve reaches them first
+            _backward(self._L, W, min(wanted), self.newest, cap, self._S)
+            border = W, np.linalg.inv(self._cal.L_D)
+        b = np.empty((cap, DIM, DIM))
+        out = []
         for k in wanted:
-            for j in range(k, self.newest + 1):
-                b[j % self._cap] = 0.0
-            b[k % self._cap] = np.eye(DIM)
-            _forward(self._L, b, self.first, k, k, self.newest, self._cap, self._S)
-            _backward(self._L, b, k, self.newest, self._cap, self._S)
-            cov = b[k % self._cap]
+            b[np.arange(k, self.newest + 1) % cap] = 0.0
+            b[k % cap] = np.eye(DIM)
+            _forward(self._L, b, self.first, k, k, self.newest, cap, self._S)
+            _backward(self._L, b, k, self.newest, cap, self._S)
+            cov = b[k % cap]
             if border is not None:
-                cov = cov + border[k % self._cap] @ border[k % self._cap].T
+                w = border[0][k % cap] @ border[1].T
+                cov = cov + w @ w.T
             out.append(0.5 * (cov + cov.T))
         return np.stack(out)
 

@@ -41,8 +41,8 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch():
     bordered normal equations at the linearisation points, made from scratch, to a backward
     error below 1e-14 (a calibration 1 % off gives 1e-13 and more: the system's condition number
     is ~1e13, so comparing against a dense solve would measure the dense solve's rounding), and
-    the newest keyframe's and the calibrations' marginal covariances are the blocks of its
-    inverse (to 2e-3; the calibrations' share of the keyframe's, which a window without the
+    the newest keyframe's, one inside the window's and the calibrations' marginal covariances are
+    the blocks of its inverse (to 2e-3; the calibrations' share of the keyframe's, which a window without the
     border would leave out, is tens of times that)."""
     data = _calibrating_rig(15.0)
     checked = []
@@ -66,6 +66,10 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch():
         window_cov = window.covariances([window.newest])[0]
         size = np.abs(cov[newest, newest]).max()
         assert np.abs(window_cov - cov[newest, newest]).max() < 2e-3 * size
+        middle = n // 2  # the solves from a keyframe inside the window on
+        got_middle = window.covariances([window.first + middle, window.newest])[0]
+        reference = cov[middle * DIM:(middle + 1) * DIM, middle * DIM:(middle + 1) * DIM]
+        assert np.abs(got_middle - reference).max() < 2e-3 * np.abs(reference).max()
         share = window_cov - np.linalg.inv(H[:n * DIM, :n * DIM])[newest, newest]
         cal = window._cal
         for (a, b), block in zip(zip(cal.offsets[:-1], cal.offsets[1:]), cal.covariance()):
