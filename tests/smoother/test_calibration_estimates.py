@@ -96,6 +96,30 @@ def test_calibration_nees_over_20_seeds_is_in_its_chi_square_band():
     assert chi2_quantile(0.005, dof) <= total <= chi2_quantile(0.995, dof), (total, dof)
 
 
+def test_the_fixes_delay_and_lever_arm_together_are_consistent_over_20_seeds():
+    """The fixes' delay and the antenna's lever arm estimated together (4 dof per seed, strongly
+    correlated: a lever arm along the way looks like a delay). The antenna sits 2.5 prior sigmas
+    from the prior's mean, so the estimate is pulled towards it, by ``-P Lambda_0 (c - c_0)`` on
+    average (``P`` its covariance, ``Lambda_0`` the prior's information; ~1 sigma on the height
+    here): once that pull is taken off, the errors' normalised squares over 20 seeds, with the
+    estimate's covariance over the noise ``P - P Lambda_0 P``, lie in the 99 % chi-square band of
+    80 dof."""
+    prior = CalibrationPrior(("time_offset", "lever_arm"))
+    truth, mean = np.array([-0.1, 0.0, 0.0, 0.5]), np.zeros(4)
+    information = np.diag(1.0 / prior.sigmas ** 2)
+    total, dof = 0.0, 0
+    for seed in range(20):
+        data = _rig(100 + seed, duration=15.0)
+        data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+        result, _, _ = _solve(data.with_sensor("gnss", calibrate=prior))
+        gnss, P = result.calibration.values[1], result.calibration_cov[1]
+        pull = -P @ information @ (truth - mean)
+        error = np.r_[gnss.time_offset, gnss.p] - truth - pull
+        total += float(error @ np.linalg.solve(P - P @ information @ P, error))
+        dof += 4
+    assert chi2_quantile(0.005, dof) <= total <= chi2_quantile(0.995, dof), (total, dof)
+
+
 def test_what_the_data_cannot_fix_stays_at_its_prior_and_is_reported():
     """Driving straight without turning: the antenna's lever arm along the way and the speed
     sensor's roll about its own axis are not observable; standing still, no time offset is."""
