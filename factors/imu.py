@@ -379,14 +379,22 @@ def _apply_A(X, Q, out) -> None:
     _A_into(X, Q, out, X)
 
 
+#: Length of the work array of :func:`_jacobians_into`.
+JACOBIANS_WORK = (STATE_DIM + 9) * _W
+
+
 @recursion
-def _jacobians_into(Q, F, G) -> None:
-    """Dense ``F = I + A`` and ``G`` (module docstring) from the step's ``Q``."""
-    eye, A = np.zeros(STATE_DIM * _W), np.empty(9 * _W)
+def _jacobians_into(Q, F, G, work) -> None:
+    """Dense ``F = I + A`` and ``G`` (module docstring) from the step's ``Q``; ``work``:
+    :data:`JACOBIANS_WORK` numbers the caller owns (this runs once per sample or measurement)."""
+    eye, A = work[:STATE_DIM * _W], work[STATE_DIM * _W:JACOBIANS_WORK]
+    eye[:] = 0.0
     for k in range(STATE_DIM):
         eye[k * _W + k] = 1.0
     _apply_A(eye, Q, A)
-    F[:, :] = np.eye(STATE_DIM)
+    for i in range(STATE_DIM):
+        for k in range(STATE_DIM):
+            F[i, k] = 1.0 if i == k else 0.0
     for i in range(9):
         for k in range(STATE_DIM):
             F[i, k] += A[i * _W + k]
@@ -452,13 +460,13 @@ def _covariance_step(P, Q, q, v, B, Bt) -> None:
 
 @recursion
 def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, G, jacobians):
-    s = np.empty(STEP_SIZE)
+    s, work = np.empty(STEP_SIZE), np.empty(JACOBIANS_WORK)
     for i in range(r.shape[0]):
         w0, w1, w2 = gyro[i, 0] - b_w[i, 0], gyro[i, 1] - b_w[i, 1], gyro[i, 2] - b_w[i, 2]
         _state_into(s, r[i], v[i], C[i], g)
         step_quantities(s, w0, w1, w2, dt[i])
         if jacobians:
-            _jacobians_into(s[_S_Q:], F[i], G[i])
+            _jacobians_into(s[_S_Q:], F[i], G[i], work)
         step_state(s, acc[i, 0] - b_f[i, 0], acc[i, 1] - b_f[i, 1], acc[i, 2] - b_f[i, 2], w0, w1, w2)
         _state_from(s, out_r[i], out_v[i], out_C[i])
 
@@ -469,7 +477,7 @@ def transition_into(r, v, C, b_f, b_w, acc, gyro, dt, g, Phi) -> None:
     ``dt[k] > 0`` (the steps :func:`predict_into` takes), the state ``(r, v, C)`` stepped along in
     place. What carries a covariance between the state and constants outside it (calibrations)
     through the prediction: ``P_xc <- Phi P_xc``."""
-    s = np.empty(STEP_SIZE)
+    s, work = np.empty(STEP_SIZE), np.empty(JACOBIANS_WORK)
     F, G, T = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, NOISE_DIM)), np.empty((STATE_DIM, STATE_DIM))
     _state_into(s, r, v, C, g)
     for k in range(dt.shape[0]):
@@ -478,7 +486,7 @@ def transition_into(r, v, C, b_f, b_w, acc, gyro, dt, g, Phi) -> None:
             continue
         w0, w1, w2 = gyro[k, 0] - b_w[0], gyro[k, 1] - b_w[1], gyro[k, 2] - b_w[2]
         step_quantities(s, w0, w1, w2, h)
-        _jacobians_into(s[_S_Q:], F, G)
+        _jacobians_into(s[_S_Q:], F, G, work)
         for i in range(STATE_DIM):
             for j in range(Phi.shape[1]):
                 acc_ij = 0.0
@@ -623,7 +631,7 @@ def _state_rate_rows(v, C, b_f, b_w, acc, gyro, g, out) -> None:
 
 
 #: Length of the work array of :func:`stepped_into`.
-STEPPED_WORK = STEP_SIZE + STATE_DIM * NOISE_DIM
+STEPPED_WORK = STEP_SIZE + STATE_DIM * NOISE_DIM + JACOBIANS_WORK
 
 
 @recursion
@@ -638,8 +646,8 @@ def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, ra
     state_rate_into(v, C, b_f, b_w, acc, gyro, g, rate)
     _state_into(s, r, v, C, g)
     step_quantities(s, w0, w1, w2, dt)
-    G = work[STEP_SIZE:].reshape((STATE_DIM, NOISE_DIM))
-    _jacobians_into(s[_S_Q:], F, G)
+    G = work[STEP_SIZE:STEP_SIZE + STATE_DIM * NOISE_DIM].reshape((STATE_DIM, NOISE_DIM))
+    _jacobians_into(s[_S_Q:], F, G, work[STEP_SIZE + STATE_DIM * NOISE_DIM:])
     step_state(s, acc[0] - b_f[0], acc[1] - b_f[1], acc[2] - b_f[2], w0, w1, w2)
     _state_from(s, out_r, out_v, out_C)
 

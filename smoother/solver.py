@@ -288,10 +288,12 @@ class SolverResult:
 
 #: The optimisation stops when a step lowers the cost by less than this: in the quadratic model a
 #: step's decrease is half its squared length in the whitened metric, so the step moved the
-#: estimate by less than ``sqrt(2e-4) = 0.014`` of its sigma in any direction (and the steps after
-#: it, shrinking, by less again). GTSAM's default (1e-5 relative) stops a cost of 1e4 at 0.1 in it,
-#: half a sigma in the worst direction.
-ABSOLUTE_TOLERANCE = 1e-4
+#: estimate by less than ``sqrt(2e-3) = 0.045`` of its sigma in any direction, and the steps after
+#: it, shrinking, less again: where the convergence is linear (a calibrated problem, whose
+#: Gauss-Newton model leaves out the curvature of weakly determined calibrations), the next step
+#: moved the positions of a 60-s rig by 0.0016 of their sigma, and KITTI's by 0.0005. GTSAM's
+#: default (1e-5 relative) stops a cost of 1e4 at 0.1 in it, half a sigma in the worst direction.
+ABSOLUTE_TOLERANCE = 1e-3
 
 
 def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max_iterations: int = 100,
