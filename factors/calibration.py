@@ -181,18 +181,26 @@ def calibrated_row_into(row, rotation_at, lever_at, cal, out) -> None:
 
 
 @leaf
-def _scale_into(e0, row, scaled, s, e, H, Hc) -> None:
+def scaled_error_into(e0, row, scaled, s, e) -> None:
     """The scale on the first ``scaled`` residual rows: ``e = s (e0 + z) - z`` (``z =
-    row[:scaled]``), their state and other calibration columns times ``s``, ``Hc[:, 7] = e0 +
-    z`` there (0 below)."""
+    row[:scaled]``), ``e0`` on the others."""
     d = e0.shape[0]
     for a in range(d):
         e[a] = e0[a]
+    for a in range(min(scaled, d)):
+        e[a] = s * (e0[a] + row[a]) - row[a]
+
+
+@leaf
+def _scale_into(e0, row, scaled, s, e, H, Hc) -> None:
+    """:func:`scaled_error_into`, with the scaled rows' state and other calibration columns times
+    ``s`` and ``Hc[:, 7] = e0 + z`` there (0 below)."""
+    d = e0.shape[0]
+    scaled_error_into(e0, row, scaled, s, e)
+    for a in range(d):
         Hc[a, 7] = 0.0
     for a in range(min(scaled, d)):
-        h = e0[a] + row[a]
-        e[a] = s * h - row[a]
-        Hc[a, 7] = h
+        Hc[a, 7] = e0[a] + row[a]
         for c in range(H.shape[1]):
             H[a, c] *= s
         for c in range(7):
@@ -290,21 +298,27 @@ def model_part(work, width, d, ncol):
 
 @recursion
 def calibrated_odometry_into(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, row, cal, with_time, acc_i, gyro_i,
-                             acc_j, gyro_j, g, e, H, Hc, work) -> None:
+                             acc_j, gyro_j, g, e, H, Hc, work, jacobians) -> None:
     """``e (6)``, ``H (6, 30)``, ``H_c (6, 8)`` of one relative pose ``row``
     (:func:`factors.sensor_models.pack_odometry`) between two states through the packed
     calibration ``cal`` (module docstring), with the IMU readings held at the two stamps where
-    ``with_time``; ``work`` from :func:`work_array`."""
+    ``with_time``; ``e`` alone (``H``, ``H_c`` untouched) without ``jacobians``; ``work`` from
+    :func:`work_array`."""
     xr_i, xv_i, xC_i, F_i, rate_i = state_part(work, 0)
     xr_j, xv_j, xC_j, F_j, rate_j = state_part(work, 1)
     calibrated, e0, H0, step = model_part(work, row.shape[0], 6, 2 * STATE_DIM)
     if with_time:
-        imu.stepped_into(r_i, v_i, C_i, bf_i, bw_i, acc_i, gyro_i, cal[0], g, xr_i, xv_i, xC_i, F_i, rate_i, step)
-        imu.stepped_into(r_j, v_j, C_j, bf_j, bw_j, acc_j, gyro_j, cal[0], g, xr_j, xv_j, xC_j, F_j, rate_j, step)
+        imu.stepped_into(r_i, v_i, C_i, bf_i, bw_i, acc_i, gyro_i, cal[0], g, xr_i, xv_i, xC_i, F_i, rate_i, step,
+                         jacobians)
+        imu.stepped_into(r_j, v_j, C_j, bf_j, bw_j, acc_j, gyro_j, cal[0], g, xr_j, xv_j, xC_j, F_j, rate_j, step,
+                         jacobians)
     else:
         xr_i[:], xC_i[:, :], xr_j[:], xC_j[:, :] = r_i, C_i, r_j, C_j
     calibrated_row_into(row, sm.ODOMETRY_ROTATION_AT, sm.ODOMETRY_LEVER_AT, cal, calibrated)
     sm.odometry_kernel(xr_i, xC_i, xr_j, xC_j, calibrated, e0, H0)
+    if not jacobians:
+        scaled_error_into(e0, calibrated, sm.ODOMETRY_SCALED, cal[_S_AT], e)
+        return
     for a in range(6):
         for c in range(CALIBRATION_DIM):
             Hc[a, c] = 0.0
@@ -329,12 +343,12 @@ def calibrated_odometry_into(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_
 
 @recursion
 def _calibrated_odometry_rows(r_i, v_i, C_i, bf_i, bw_i, r_j, v_j, C_j, bf_j, bw_j, rows, cal, with_time, acc_i,
-                              gyro_i, acc_j, gyro_j, g, e, H, Hc) -> None:
+                              gyro_i, acc_j, gyro_j, g, e, H, Hc, jacobians) -> None:
     work = work_array()
     for n in range(rows.shape[0]):
         calibrated_odometry_into(r_i[n], v_i[n], C_i[n], bf_i[n], bw_i[n], r_j[n], v_j[n], C_j[n], bf_j[n], bw_j[n],
-                                 rows[n], cal, with_time, acc_i[n], gyro_i[n], acc_j[n], gyro_j[n], g, e[n], H[n],
-                                 Hc[n], work)
+                                 rows[n], cal, with_time, acc_i[n], gyro_i[n], acc_j[n], gyro_j[n], g, e[n],
+                                 H[n if jacobians else 0], Hc[n if jacobians else 0], work, jacobians)
 
 
 def state_rows(states: imu.ImuState, n: int) -> list:
@@ -351,19 +365,20 @@ def readings(imu_at, n: int) -> tuple[bool, list]:
 
 
 def calibrated_odometry_residual(states_i: imu.ImuState, states_j: imu.ImuState, rows_: np.ndarray, c: Calibration,
-                                 imu_at=None, gravity=imu.DEFAULT_GRAVITY):
+                                 imu_at=None, gravity=imu.DEFAULT_GRAVITY, jacobians: bool = True):
     """``(e (N, 6), H (N, 6, 30), H_c (N, 6, 8))`` of relative pose ``rows_``
     (:func:`factors.sensor_models.pack_odometry`) between ``states_i`` and ``states_j`` through
     ``c``; ``imu_at = ((acc_i, gyro_i), (acc_j, gyro_j))`` at the two stamps, or None
-    (:func:`calibrated_odometry_into`)."""
+    (:func:`calibrated_odometry_into`); without ``jacobians`` ``(e, None, None)``."""
     n = len(rows_)
     with_time, at_i = readings(None if imu_at is None else imu_at[0], n)
     _, at_j = readings(None if imu_at is None else imu_at[1], n)
-    e, H, Hc = np.empty((n, 6)), np.empty((n, 6, 2 * STATE_DIM)), np.empty((n, 6, CALIBRATION_DIM))
+    m = n if jacobians else 1  # the Jacobians' rows written (one scratch row without)
+    e, H, Hc = np.empty((n, 6)), np.empty((m, 6, 2 * STATE_DIM)), np.empty((m, 6, CALIBRATION_DIM))
     _calibrated_odometry_rows(*state_rows(states_i, n), *state_rows(states_j, n),
                               np.ascontiguousarray(rows_, dtype=float), packed(c), with_time, *at_i, *at_j,
-                              np.asarray(gravity, dtype=float), e, H, Hc)
-    return e, H, Hc
+                              np.asarray(gravity, dtype=float), e, H, Hc, jacobians)
+    return (e, H, Hc) if jacobians else (e, None, None)
 
 
 def applicable(model: sm.SensorModel | None) -> tuple[str, ...]:

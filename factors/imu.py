@@ -635,19 +635,21 @@ STEPPED_WORK = STEP_SIZE + STATE_DIM * NOISE_DIM + JACOBIANS_WORK
 
 
 @recursion
-def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, rate, work) -> None:
+def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, rate, work, jacobians) -> None:
     """One Euler step of ``dt`` of one state (:func:`propagate`): the next state into ``out_r,
     out_v, out_C`` (the biases do not move), its transition ``F (15, 15)``, and the state's rate
     ``rate (15)`` before the step (:func:`state_rate_into`): what a time offset ``dt`` of a
-    measurement moves its state by, and the derivative of that with respect to ``dt``. ``work``:
-    :data:`STEPPED_WORK` numbers the caller owns (this runs once per measurement)."""
+    measurement moves its state by, and the derivative of that with respect to ``dt`` (``F``
+    only where ``jacobians``). ``work``: :data:`STEPPED_WORK` numbers the caller owns (this runs
+    once per measurement)."""
     s = work[:STEP_SIZE]
     w0, w1, w2 = gyro[0] - b_w[0], gyro[1] - b_w[1], gyro[2] - b_w[2]
     state_rate_into(v, C, b_f, b_w, acc, gyro, g, rate)
     _state_into(s, r, v, C, g)
     step_quantities(s, w0, w1, w2, dt)
-    G = work[STEP_SIZE:STEP_SIZE + STATE_DIM * NOISE_DIM].reshape((STATE_DIM, NOISE_DIM))
-    _jacobians_into(s[_S_Q:], F, G, work[STEP_SIZE + STATE_DIM * NOISE_DIM:])
+    if jacobians:
+        G = work[STEP_SIZE:STEP_SIZE + STATE_DIM * NOISE_DIM].reshape((STATE_DIM, NOISE_DIM))
+        _jacobians_into(s[_S_Q:], F, G, work[STEP_SIZE + STATE_DIM * NOISE_DIM:])
     step_state(s, acc[0] - b_f[0], acc[1] - b_f[1], acc[2] - b_f[2], w0, w1, w2)
     _state_from(s, out_r, out_v, out_C)
 

@@ -394,7 +394,8 @@ def calibrated_residual(sensor, spec: "MeasurementSpec", dataset: Dataset, prior
         at = None if readings is None else [(acc[which], gyro[which]) for acc, gyro in readings]
         states = tuple(slots) if kind.relative else slots[0]
         e, H, H_c = calibrated_rows(kind, states, spec.rows[which], c,
-                                    None if at is None else (tuple(at) if kind.relative else at[0]), dataset.gravity)
+                                    None if at is None else (tuple(at) if kind.relative else at[0]), dataset.gravity,
+                                    jacobians)
         if not jacobians:
             return e
         parts = [H[:, :, :imu.STATE_DIM], H[:, :, imu.STATE_DIM:]] if kind.relative else [H]

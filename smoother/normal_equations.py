@@ -287,11 +287,11 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
         if relative:
             calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
                                      cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
-                                     H[:d], Hc[:d], work)
+                                     H[:d], Hc[:d], work, True)
             Jc[:d, :width] = H[:d]
         else:
             calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j], cal_time[j],
-                            hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], work)
+                            hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], work, True)
             Jc[:d, :width] = Hm[:d]
         Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
         _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)

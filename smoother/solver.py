@@ -180,7 +180,7 @@ def _keyframe_of(error: RuntimeError) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout") -> np.ndarray:
+def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout", ordering: gtsam.Ordering | None) -> np.ndarray:
     """The least-squares solution of ``graph``: sparse Cholesky (GTSAM's default, the fastest), and
     QR where Cholesky calls the system indeterminant -- a dead-reckoned stretch squares into an
     information matrix it cannot factor, while the rows themselves determine the step. Without
@@ -190,8 +190,8 @@ def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout") -> np.ndarray:
     Calibration variables are eliminated last (:meth:`Layout.ordering`): every keyframe's
     conditional then has them among its parents, the dense border of an arrowhead system, and no
     keyframe is eliminated after them (COLAMD alone placed them among the last keyframes, whose
-    Cholesky pivots then failed on systems QR solves with a condition number of 4e5)."""
-    ordering = layout.ordering(graph)
+    Cholesky pivots then failed on systems QR solves with a condition number of 4e5). ``ordering``:
+    :meth:`Layout.ordering` of a graph with the same factors' keys (None: GTSAM's default)."""
     try:
         solution = graph.optimize() if ordering is None else graph.optimize(ordering)
     except RuntimeError as error:
@@ -309,6 +309,9 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     layout = Layout.of(initial, calibration)
     states = initial
     graph, cost = linearize(blocks, states, calibration)
+    # the factors' keys are the same at every linearisation, and damping adds unary factors only:
+    # one elimination ordering serves every step
+    ordering = layout.ordering(graph)
     history = [cost]
     lam, radius = 1e-5, 1.0
     converged = False
@@ -317,10 +320,10 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
         accepted = False
         for _ in range(30):  # inner loop: damping / trust-region adjustments
             if method == "gn":
-                delta = _solve(graph, layout)
+                delta = _solve(graph, layout, ordering)
             elif method == "lm":
                 try:
-                    delta = _solve(_damped(graph, layout, lam), layout)
+                    delta = _solve(_damped(graph, layout, lam), layout, ordering)
                 except IndeterminantSystem:
                     # as GTSAM's LM does: a damped system too poorly conditioned to factor
                     # counts as a rejected step; more damping, and try again
@@ -329,7 +332,7 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                         break
                     continue
             else:
-                delta = _dogleg_step(graph, layout, radius)
+                delta = _dogleg_step(graph, layout, radius, ordering)
             trial, trial_calibration = layout.apply(states, calibration, delta)
             trial_cost = total_cost(blocks, trial, trial_calibration)
             if method == "gn":
@@ -376,8 +379,9 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     return SolverResult(states, cost, iterations, converged, history, calibration)
 
 
-def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float) -> np.ndarray:
-    gn = _solve(graph, layout)
+def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float,
+                 ordering: gtsam.Ordering | None) -> np.ndarray:
+    gn = _solve(graph, layout, ordering)
     if np.linalg.norm(gn) <= radius:
         return gn
     sd = layout.flat(graph.optimizeGradientSearch())

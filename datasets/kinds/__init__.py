@@ -148,51 +148,59 @@ LAYOUTS = np.stack([calibration.layout(m) for m in MODELS])
 
 
 @njit(cache=True)
-def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc, work) -> None:
+def calibrated_into(model, lay, r, v, C, b_f, b_w, row, cal, with_time, acc, gyro, g, e, H, Hc, work,
+                    jacobians) -> None:
     """``e (d)``, ``H (d, 15)``, ``H_c (d, 8)`` of one measurement ``row`` of ``MODELS[model]``
     (its layout ``lay``, :data:`LAYOUTS`) at one state through the packed calibration ``cal``
     (:func:`factors.calibration.packed`): the model's kernel at the state one Euler step of the
     time offset away (with the IMU reading ``acc, gyro`` held at the stamp, where
     ``with_time``), with the calibrated extrinsic in its row
-    (:func:`factors.calibration.one_state_into`); ``work`` from
-    :func:`factors.calibration.work_array`."""
+    (:func:`factors.calibration.one_state_into`); ``e`` alone (``H``, ``H_c`` untouched)
+    without ``jacobians``; ``work`` from :func:`factors.calibration.work_array`."""
     d = e.shape[0]
     xr, xv, xC, F, rate = calibration.state_part(work, 0)
     calibrated, e0, H0, step = calibration.model_part(work, row.shape[0], d, imu.STATE_DIM)
     if with_time:
-        imu.stepped_into(r, v, C, b_f, b_w, acc, gyro, cal[0], g, xr, xv, xC, F, rate, step)
+        imu.stepped_into(r, v, C, b_f, b_w, acc, gyro, cal[0], g, xr, xv, xC, F, rate, step, jacobians)
     else:
         xr[:], xv[:], xC[:, :] = r, v, C
     calibration.calibrated_row_into(row, lay[0], lay[1], cal, calibrated)
     measure_into(model, xr, xv, xC, b_f, b_w, calibrated, e0, H0)
-    calibration.one_state_into(lay, xv, xC, b_w, calibrated, e0, H0, F, rate, with_time, cal[13], e, H, Hc)
+    if jacobians:
+        calibration.one_state_into(lay, xv, xC, b_w, calibrated, e0, H0, F, rate, with_time, cal[13], e, H, Hc)
+    else:
+        calibration.scaled_error_into(e0, calibrated, lay[2], cal[13], e)
 
 
 @njit(cache=True)
-def _calibrated_rows(model, lay, r, v, C, b_f, b_w, rows, cal, with_time, acc, gyro, g, e, H, Hc) -> None:
+def _calibrated_rows(model, lay, r, v, C, b_f, b_w, rows, cal, with_time, acc, gyro, g, e, H, Hc, jacobians) -> None:
     work = calibration.work_array()
     for n in range(rows.shape[0]):
+        j = n if jacobians else 0
         calibrated_into(model, lay, r[n], v[n], C[n], b_f[n], b_w[n], rows[n], cal, with_time, acc[n], gyro[n], g,
-                        e[n], H[n], Hc[n], work)
+                        e[n], H[j], Hc[j], work, jacobians)
 
 
-def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravity=imu.DEFAULT_GRAVITY):
+def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravity=imu.DEFAULT_GRAVITY,
+                    jacobians: bool = True):
     """``(e, H, H_c)`` of ``kind``'s measurement ``rows`` through the calibration ``c``
     (:class:`factors.calibration.Calibration`; :func:`calibrated_into`,
     :func:`factors.calibration.calibrated_odometry_into`): ``states`` one
     :class:`factors.imu.ImuState` with leading dimension N, for a relative kind the pair
     ``(states_i, states_j)`` (``H`` over both error states side by side, ``imu_at`` a pair of
-    ``(acc, gyro)``); ``imu_at`` None when the time offset is not estimated."""
+    ``(acc, gyro)``); ``imu_at`` None when the time offset is not estimated. Without
+    ``jacobians``: ``(e, None, None)`` (what a cost needs, at a fraction of the work)."""
     rows = np.ascontiguousarray(rows, dtype=float)
     if kind.relative:
-        return calibration.calibrated_odometry_residual(*states, rows, c, imu_at, gravity)
+        return calibration.calibrated_odometry_residual(*states, rows, c, imu_at, gravity, jacobians)
     n, i = len(rows), model_index(kind)
     with_time, at = calibration.readings(imu_at, n)
-    e, H, Hc = np.empty((n, kind.dim)), np.empty((n, kind.dim, imu.STATE_DIM)), np.empty((n, kind.dim, 8))
+    m = n if jacobians else 1  # the Jacobians' rows written (one scratch row without)
+    e, H, Hc = np.empty((n, kind.dim)), np.empty((m, kind.dim, imu.STATE_DIM)), np.empty((m, kind.dim, 8))
     with quiet_dispatch():
         _calibrated_rows(i, LAYOUTS[i], *calibration.state_rows(states, n), rows, calibration.packed(c), with_time,
-                         *at, np.asarray(gravity, dtype=float), e, H, Hc)
-    return e, H, Hc
+                         *at, np.asarray(gravity, dtype=float), e, H, Hc, jacobians)
+    return (e, H, Hc) if jacobians else (e, None, None)
 
 
 def _calibration_check(kind: Kind):

@@ -77,6 +77,21 @@ def test_calibrated_jacobians_equal_central_differences_at_1000_points(kind):
     assert worst < 1e-6, worst
 
 
+@pytest.mark.parametrize("kind", KINDS.values(), ids=lambda k: k.name)
+def test_the_residual_without_jacobians_is_the_residual_with_them(kind):
+    """What a cost evaluates (``jacobians=False``: no step transition, no chain rule) is bit for
+    bit the residual of the full evaluation, with and without a time offset of either sign."""
+    rng = np.random.default_rng(7 + sum(map(ord, kind.name)))
+    for group in range(6):
+        states, rows, readings = _points(kind, rng, 20)
+        c = _random_calibration(rng, -1.0 if group % 2 else 1.0)
+        at = readings if group < 4 else None
+        full = calibrated_rows(kind, states, rows, c, at)
+        alone = calibrated_rows(kind, states, rows, c, at, jacobians=False)
+        assert alone[1] is None and alone[2] is None
+        np.testing.assert_array_equal(alone[0], full[0])
+
+
 @given(rotation_vectors(), st.floats(-0.5, 0.5), st.floats(0.5, 1.5))
 @settings(max_examples=200, deadline=None)
 def test_boxplus_and_boxminus_are_inverse(phi, dt, scale):
