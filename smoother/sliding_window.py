@@ -383,32 +383,30 @@ class SlidingWindow:
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
         of ``H^-1`` with ``H`` at the linearisation points of the last update's solve (before the
         keyframes it moved far enough were linearised again; with calibrations, ``A^-1`` plus their
-        share, :mod:`smoother.window_calibration`). Keyframe ``k``'s block takes a forward and a
-        backward solve over the keyframes ``k .. newest`` (the rows of ``L`` before ``k`` do not
-        enter it), and its calibrations' share the rows from the oldest wanted on of
-        ``W = L_A^-T Z``: the newest keyframe's costs a block, the oldest's the window."""
-        wanted = [int(k) for k in wanted]
-        if not wanted:
-            return np.zeros((0, DIM, DIM))
+        share, :mod:`smoother.window_calibration`). With ``X = L_A^-1 E_k`` (``E_k`` keyframe
+        ``k``'s columns of the identity; its blocks before ``k`` are zero) keyframe ``k``'s block
+        of ``A^-1 = L_A^-T L_A^-1`` is ``X^T X``, and its row of ``W = L_A^-T Z`` is ``X^T Z``: one
+        forward solve over the keyframes ``k .. newest`` and two products -- the newest keyframe's
+        costs a block, the oldest's the window."""
         cap = self._cap
-        border = None
+        Sigma_cc = None
         if self._cal is not None:
-            W = self._Z.copy()  # its rows min(wanted) .. newest: the backward solve reaches them first
-            _backward(self._L, W, min(wanted), self.newest, cap, self._S)
-            border = W, np.linalg.inv(self._cal.L_D)
+            inv = np.linalg.inv(self._cal.L_D)
+            Sigma_cc = inv.T @ inv
         b = np.empty((cap, DIM, DIM))
         out = []
-        for k in wanted:
-            b[np.arange(k, self.newest + 1) % cap] = 0.0
+        for k in (int(k) for k in wanted):
+            slots = np.arange(k, self.newest + 1) % cap
+            b[slots] = 0.0
             b[k % cap] = np.eye(DIM)
             _forward(self._L, b, self.first, k, k, self.newest, cap, self._S)
-            _backward(self._L, b, k, self.newest, cap, self._S)
-            cov = b[k % cap]
-            if border is not None:
-                w = border[0][k % cap] @ border[1].T
-                cov = cov + w @ w.T
+            X = b[slots].reshape(-1, DIM)
+            cov = X.T @ X
+            if Sigma_cc is not None:
+                W = X.T @ self._Z[slots].reshape(-1, self._Z.shape[2])
+                cov = cov + W @ Sigma_cc @ W.T
             out.append(0.5 * (cov + cov.T))
-        return np.stack(out)
+        return np.stack(out) if out else np.zeros((0, DIM, DIM))
 
     @property
     def calibration(self):
