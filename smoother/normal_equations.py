@@ -38,6 +38,10 @@ _WIDE = 2 * DIM + CALIBRATION_DIM
 #: ``jacobians`` of the IMU residual as a run-time flag: a literal ``True`` would compile a second
 #: copy of :func:`factors.preintegration._residual_into` beside the batch solver's.
 _WITH_JACOBIANS = np.bool_(True)
+#: The same for the integers the kernels pass their helpers: a literal argument compiles a copy
+#: of the helper for its value (five of :func:`_add_diagonal`, three each of :func:`_whiten` and
+#: :func:`_add_normal`, on a first run's critical path).
+_AT_ZERO, _AT_DIM, _NO_KEYFRAME = np.int64(0), np.int64(DIM), np.int64(-1)
 
 
 @dataclass
@@ -204,9 +208,9 @@ def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
     """A whitened factor on keyframes ``k0`` (and ``k1`` where ``relative``) added to the rows of
     ``Hb``, ``g`` from keyframe ``lo`` on."""
     if relative:
-        _add_normal(Hb, g, k0 - lo, 0, k1 - lo, DIM, JT, ew, d)
+        _add_normal(Hb, g, k0 - lo, _AT_ZERO, k1 - lo, _AT_DIM, JT, ew, d)
     else:
-        _add_normal(Hb, g, k0 - lo, 0, -1, 0, JT, ew, d)
+        _add_normal(Hb, g, k0 - lo, _AT_ZERO, _NO_KEYFRAME, _AT_ZERO, JT, ew, d)
 
 
 @njit(cache=True)
@@ -232,8 +236,8 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
                        r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, B, work)
         J[:, :DIM] = A
         J[:, DIM:] = B
-        _whiten(Wimu[j], e, J, DIM, 2 * DIM, ew, JT, Jt0)
-        _add_normal(Hb, g, k - 1 - lo, 0, k - lo, DIM, JT, ew, DIM)
+        _whiten(Wimu[j], e, J, _AT_DIM, 2 * _AT_DIM, ew, JT, Jt0)
+        _add_normal(Hb, g, k - 1 - lo, _AT_ZERO, k - lo, _AT_DIM, JT, ew, _AT_DIM)
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
     # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
     H, Hm = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM))
@@ -246,10 +250,10 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
         relative = model[f] == RELATIVE_MODEL
         if relative:
             odometry_kernel(r[i], C[i], r[k1 % cap], C[k1 % cap], rows[f], e[:d], H[:d])
-            _whiten(Wm[f], e, H, d, 2 * DIM, ew, JT, Jt0)
+            _whiten(Wm[f], e, H, d, 2 * _AT_DIM, ew, JT, Jt0)
         else:
             measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
-            _whiten(Wm[f], e, Hm, d, DIM, ew, JT, Jt0)
+            _whiten(Wm[f], e, Hm, d, _AT_DIM, ew, JT, Jt0)
         _reweight(rcode[f], rk[f], JT, ew, d)
         _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
 
