@@ -92,6 +92,11 @@ def orientation_error_into(C, measured, e, J) -> None:
     so3.gamma_inv_into(e[0], e[1], e[2], J)
 
 
+#: The residual rows where an orientation's and a pose's attitude errors begin, as run-time values:
+#: literal arguments would compile a copy of :func:`_attitude_error_into` for each.
+_ORIENTATION_ROWS, _POSE_ATTITUDE_ROWS = np.int64(0), np.int64(3)
+
+
 @njit(cache=True)
 def _attitude_error_into(C, R, Z, e, H, first_row) -> None:
     """``e[first_row:+3] = log(C R Z^T)`` and ``H[first_row:+3, 6:9] = Gamma^-1(e)``."""
@@ -129,7 +134,7 @@ def position_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
 def orientation_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
     """``log(C R_BS Z^T)``; ``row = (Z, R_BS)`` (row-major 3x3 each)."""
     H[:, :] = 0.0
-    _attitude_error_into(C, row[9:18].reshape((3, 3)), row[0:9].reshape((3, 3)), e, H, 0)
+    _attitude_error_into(C, row[9:18].reshape((3, 3)), row[0:9].reshape((3, 3)), e, H, _ORIENTATION_ROWS)
 
 
 @njit(cache=True)
@@ -137,7 +142,7 @@ def pose_kernel(r, v, C, b_f, b_w, row, e, H) -> None:
     """``(r + C p_BS - z, log(C R_BS Z^T))``; ``row = (z, Z, R_BS, p_BS)``."""
     H[:, :] = 0.0
     _origin_error_into(r, C, row[0:3], row[21:24], e, H)
-    _attitude_error_into(C, row[12:21].reshape((3, 3)), row[3:12].reshape((3, 3)), e, H, 3)
+    _attitude_error_into(C, row[12:21].reshape((3, 3)), row[3:12].reshape((3, 3)), e, H, _POSE_ATTITUDE_ROWS)
 
 
 @njit(cache=True)
