@@ -457,6 +457,8 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
         frontal, parents = keys[i][0], keys[i][1:]
         if not parents:
             sigma[(frontal, frontal)] = own[i]
+            if frontal < n and nc:  # its mean does not depend on the calibrations
+                gain[frontal] = np.zeros((own[i].shape[0], nc))
             continue
         K = -R_inv[i] @ conditionals[i].S()
         bounds = [0]

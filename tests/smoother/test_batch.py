@@ -365,3 +365,27 @@ def test_covariances_with_calibrations_equal_a_dense_reference():
         assert (np.abs(sigma_ab - block(a, b)) / sd).max() < 1e-9, (a, b)
     for j, cov in enumerate(result.calibration_cov):
         np.testing.assert_allclose(cov, block(n + j, n + j), rtol=1e-9, atol=0)
+
+
+def test_covariances_with_calibrations_where_a_keyframe_does_not_reach_them():
+    """A keyframe whose rows share nothing with the others or the calibrations (its conditional
+    has no parents) keeps its own covariance, and the others still get the calibrations' share:
+    every marginal equals the dense inverse of the information."""
+    rng = np.random.default_rng(0)
+    n, nc = 4, 2
+    graph = gtsam.GaussianFactorGraph()
+    unit = gtsam.noiseModel.Unit
+    for k in range(n):
+        graph.add(gtsam.JacobianFactor(k, rng.normal(size=(15, 15)) + 5 * np.eye(15), rng.normal(size=15),
+                                       unit.Create(15)))
+    graph.add(gtsam.JacobianFactor(0, rng.normal(size=(15, 15)), 1, rng.normal(size=(15, 15)), rng.normal(size=15),
+                                   unit.Create(15)))
+    graph.add(gtsam.JacobianFactor(2, rng.normal(size=(3, 15)), n, rng.normal(size=(3, nc)), rng.normal(size=3),
+                                   unit.Create(3)))
+    graph.add(gtsam.JacobianFactor(n, np.eye(nc), np.zeros(nc), unit.Create(nc)))
+    marginals, joint = solver.marginal_covariances(graph, n, None, True, solver.Layout(n, (nc,)))
+    A = graph.jacobian(gtsam.Ordering(list(range(n + 1))))[0]
+    dense = np.linalg.inv(A.T @ A)
+    for k in range(n):
+        np.testing.assert_allclose(marginals[k], dense[15 * k:15 * k + 15, 15 * k:15 * k + 15], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(joint[(2, n)], dense[30:45, 60:], rtol=0, atol=1e-12)
