@@ -364,6 +364,14 @@ def readings(imu_at, n: int) -> tuple[bool, list]:
     return True, rows((n,), imu_at, ((3,), (3,)))
 
 
+def residual_arrays(n: int, d: int, state_width: int, jacobians: bool) -> tuple:
+    """``e (n, d)``, ``H``, ``H_c`` for ``n`` calibrated residuals of dimension ``d`` over
+    ``state_width`` error-state columns: ``n`` rows of the Jacobians, or one scratch row of each
+    without ``jacobians`` (the row loops then write none of them)."""
+    m = n if jacobians else 1
+    return np.empty((n, d)), np.empty((m, d, state_width)), np.empty((m, d, CALIBRATION_DIM))
+
+
 def calibrated_odometry_residual(states_i: imu.ImuState, states_j: imu.ImuState, rows_: np.ndarray, c: Calibration,
                                  imu_at=None, gravity=imu.DEFAULT_GRAVITY, jacobians: bool = True):
     """``(e (N, 6), H (N, 6, 30), H_c (N, 6, 8))`` of relative pose ``rows_``
@@ -373,8 +381,7 @@ def calibrated_odometry_residual(states_i: imu.ImuState, states_j: imu.ImuState,
     n = len(rows_)
     with_time, at_i = readings(None if imu_at is None else imu_at[0], n)
     _, at_j = readings(None if imu_at is None else imu_at[1], n)
-    m = n if jacobians else 1  # the Jacobians' rows written (one scratch row without)
-    e, H, Hc = np.empty((n, 6)), np.empty((m, 6, 2 * STATE_DIM)), np.empty((m, 6, CALIBRATION_DIM))
+    e, H, Hc = residual_arrays(n, 6, 2 * STATE_DIM, jacobians)
     _calibrated_odometry_rows(*state_rows(states_i, n), *state_rows(states_j, n),
                               np.ascontiguousarray(rows_, dtype=float), packed(c), with_time, *at_i, *at_j,
                               np.asarray(gravity, dtype=float), e, H, Hc, jacobians)

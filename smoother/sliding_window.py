@@ -389,10 +389,7 @@ class SlidingWindow:
         forward solve over the keyframes ``k .. newest`` and two products -- the newest keyframe's
         costs a block, the oldest's the window."""
         cap = self._cap
-        Sigma_cc = None
-        if self._cal is not None:
-            inv = np.linalg.inv(self._cal.L_D)
-            Sigma_cc = inv.T @ inv
+        Sigma_cc = None if self._cal is None else self._cal.joint_covariance()
         b = np.empty((cap, DIM, DIM))
         out = []
         for k in (int(k) for k in wanted):

@@ -119,11 +119,16 @@ class WindowCalibration:
                        for j, t in enumerate(self.theta))
         return CalibrationSet(self.set.names, values, self.set.priors, self.set.means)
 
-    def covariance(self) -> list[np.ndarray]:
-        """Each sensor's marginal covariance over its estimated coordinates:
-        blocks of ``(L_D L_D^T)^-1``."""
+    def joint_covariance(self) -> np.ndarray:
+        """The calibrations' joint marginal covariance over the border's columns,
+        ``(L_D L_D^T)^-1``."""
         inv = np.linalg.inv(self.L_D)
-        cov = inv.T @ inv
+        return inv.T @ inv
+
+    def covariance(self) -> list[np.ndarray]:
+        """Each sensor's marginal covariance over its estimated coordinates: blocks of
+        :meth:`joint_covariance`."""
+        cov = self.joint_covariance()
         return [cov[a:b, a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
     def relinearise(self) -> bool:

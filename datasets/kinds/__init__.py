@@ -195,8 +195,7 @@ def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravit
         return calibration.calibrated_odometry_residual(*states, rows, c, imu_at, gravity, jacobians)
     n, i = len(rows), model_index(kind)
     with_time, at = calibration.readings(imu_at, n)
-    m = n if jacobians else 1  # the Jacobians' rows written (one scratch row without)
-    e, H, Hc = np.empty((n, kind.dim)), np.empty((m, kind.dim, imu.STATE_DIM)), np.empty((m, kind.dim, 8))
+    e, H, Hc = calibration.residual_arrays(n, kind.dim, imu.STATE_DIM, jacobians)
     with quiet_dispatch():
         _calibrated_rows(i, LAYOUTS[i], *calibration.state_rows(states, n), rows, calibration.packed(c), with_time,
                          *at, np.asarray(gravity, dtype=float), e, H, Hc, jacobians)
