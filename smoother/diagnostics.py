@@ -122,7 +122,7 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
                          causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
+    with the figure of every estimator outside its band, naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
     calibration its residuals point at, :func:`smoother.misfit_causes.hints`) however near its
     band: a sensor's line names that first, before its sigma (a systematic pattern also makes a
     sigma look too large or too small). When the IMU's own
@@ -141,8 +141,11 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         pattern = causes.get(sensor)
         if not off and pattern is None:
             continue
+        # once a sensor warns, every estimator whose figure is out of its band is named, not only
+        # those far enough off to raise the warning
+        shown = {e: c for e, c in verdicts.items() if not c["ok"]} if off else verdicts
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
-                            for e, c in (off or verdicts).items())
+                            for e, c in shown.items())
         if not off:  # near its band: the calibration it points at is the finding
             lines.append(f"{sensor}: per dof {figures}: its residuals point at {pattern}")
             continue

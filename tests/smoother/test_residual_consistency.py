@@ -114,6 +114,20 @@ def test_an_imu_slightly_out_of_band_is_not_blamed_for_a_sensor_far_worse():
     assert "the IMU is the likelier cause" in next(line for line in lines if line.startswith("gnss"))
 
 
+def test_a_sensor_s_warning_names_every_estimator_out_of_its_band():
+    """The car's GNSS with a delay and a lever arm left out: batch 2.01 and EKF 2.21 per dof raise
+    the warning, the fixed-lag smoother's 1.99 (out of band, not twice off) is in it too; one in
+    its band is not."""
+    def c(value, lo=0.93, hi=1.1):
+        return {"per_dof": value, "band": [lo, hi], "ok": lo <= value <= hi, "measurements": 579, "dof": 1737.0,
+                "statistic": "residual"}
+
+    [line] = consistency_warnings({"batch": {"gnss": c(2.01)}, "fixed-lag": {"gnss": c(1.99)},
+                                   "ekf": {"gnss": c(2.21)}, "other": {"gnss": c(1.0)}})
+    assert "batch 2.01" in line and "fixed-lag 1.99" in line and "ekf 2.21" in line and "other" not in line
+    assert consistency_warnings({"fixed-lag": {"gnss": c(1.99)}}) == []  # alone it warns of nothing
+
+
 def test_evaluating_in_chunks_changes_nothing(monkeypatch):
     import smoother.residual_consistency as rc
 
