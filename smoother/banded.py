@@ -196,13 +196,15 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
     the border ``(B, D, g_c)`` (:func:`_schur`): their Schur complement on the blocks it informs
     (rows not all zero), ``touched`` (their numbers after the first ``nl``), and on every
     calibration coordinate, as ``R`` (upper triangular, ``R^T R = H_s``) and ``e0`` (``R^T e0 =
-    g_s``). Returns ``(status, touched, A, b)``: status 0 with ``(R, e0)``; 1 when ``H_ll`` is
-    not positive definite; 2 when ``H_s`` is only semi-definite, with ``(H_s, g_s)`` on the
-    touched blocks and the calibrations for :func:`_semidefinite_square_root`."""
+    g_s``). Returns ``(status, touched, A, b, D_s, g_cs)``: status 0 with ``(R, e0)``; 1 when
+    ``H_ll`` is not positive definite; 2 when ``H_s`` is only semi-definite, with ``(H_s, g_s)``
+    on the touched blocks and the calibrations for :func:`_semidefinite_square_root`. ``(D_s,
+    g_cs)``: the calibrations' block of ``(H_s, g_s)`` -- the prior's own share of ``(D, g_c)``
+    where it is made (``R_c^T R_c``, ``R_c^T e0`` with ``R_c`` its calibration columns)."""
+    nc = D.shape[0]
     Hs, gs, ok = _schur(Hb, g, B, D, gc, nl)
     if not ok:
-        return 1, np.empty(0, dtype=np.int64), Hs, gs
-    nc = D.shape[0]
+        return 1, np.empty(0, dtype=np.int64), Hs, gs, np.empty((nc, nc)), np.empty(nc)
     n = (Hs.shape[0] - nc) // DIM
     keep = np.zeros(n, dtype=np.bool_)
     for b in range(n):
@@ -223,12 +225,13 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
         gt[a] = gs[at[a]]
         for b in range(m):
             Ht[a, b] = Hs[at[a], at[b]]
+    own_D, own_g = Ht[m - nc:, m - nc:].copy(), gt[m - nc:].copy()
     Lc = np.empty((m, m))
     if not cholesky_into(Ht, Lc):
-        return 2, touched, Ht, gt
+        return 2, touched, Ht, gt, own_D, own_g
     e0 = gt.reshape(m, 1).copy()
     _solve_lower(Lc, e0)
-    return 0, touched, Lc.T.copy(), e0[:, 0].copy()
+    return 0, touched, Lc.T.copy(), e0[:, 0].copy(), own_D, own_g
 
 
 @njit(cache=True)

@@ -120,6 +120,24 @@ def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
 
 
 @njit(cache=True)
+def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, B, D, gc, dx, L_D, delta_c,
+                              threshold):
+    """A bordered window's :func:`_factorise_forward`, then ``dx = y`` over the window and the
+    border's part (:func:`smoother.banded._border_solve`: ``Z``, ``L_D``, ``delta_c``, ``dx -=
+    Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
+    :func:`_factorise_forward`'s (``code`` 0, nothing else done), else -1 and the border's code
+    (1: some ``|delta_c|`` exceeds its ``threshold``, 0: none, -1: the calibrations' Schur
+    complement is not positive definite, ``dx = y``)."""
+    failed = _factorise_forward(Hr, g, L, y, first, start, newest, cap, S)
+    if failed >= 0:
+        return failed, 0
+    for k in range(first, newest + 1):
+        s = k % cap
+        dx[s] = y[s]
+    return -1, _border_solve(L, Z, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold)
+
+
+@njit(cache=True)
 def _step(L, delta, before, first, newest, cap, S, threshold, max_turn, moved, r, v, C, bf, bw, xr, xv, xC, xbf,
           xbw):
     """The rest of an update, ``delta`` holding the forward solution (less the calibrations'
@@ -572,16 +590,22 @@ class SlidingWindow:
             self._S = reach
         S = self._S
         Hr, g, border = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
-        failed = _factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
-        if failed >= 0:
-            return failed
         before = self._dx.copy()
-        self._dx[:] = self._y
-        exceeds = False
-        if self._cal is not None:
-            before_c = self._cal.delta.copy()
-            exceeds = self._border_step(border, start)
-            if exceeds is None:
+        if self._cal is None:
+            failed = _factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
+            if failed >= 0:
+                return failed
+            self._dx[:] = self._y
+            exceeds = False
+        else:
+            before_c, delta_c = self._cal.delta.copy(), np.empty(self._cal.nc)
+            failed, code = _factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
+                                                     self._cap, S, self._Z, *border, self._dx, self._cal.L_D, delta_c,
+                                                     self._cal.thresholds)
+            if failed >= 0:
+                return failed
+            exceeds = code == 1
+            if code < 0:
                 self._dx[:] = before  # the estimates unchanged
                 self._stale = self.first
                 raise FixedLagFailed(
@@ -589,6 +613,7 @@ class SlidingWindow:
                     f"the calibrations of {', '.join(self._cal.set.names)} have an information that is not positive "
                     "definite after the keyframes' share (their priors' sigmas span more orders of magnitude than "
                     "the data determine them to, or a sensor is many orders more precise than the rest)")
+            self._cal.delta = delta_c
         oldest, a = _step(self._L, self._dx, before, self.first, self.newest, self._cap, S,
                           self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
                           *self._estimates())
@@ -602,21 +627,6 @@ class SlidingWindow:
         if oldest >= 0:
             self._relinearised(oldest)
         return -1
-
-    def _border_step(self, border, start: int) -> bool | None:
-        """The calibrations' part of an update (:func:`smoother.banded._border_solve`): the rows
-        ``start ..`` of ``Z = L_A^-1 B``, ``L_D``, ``delta_c``, and ``y_A - Z delta_c`` into the
-        offsets (which the backward solve turns into ``delta_A``). Returns whether a calibration's
-        offset exceeds its relinearisation threshold; None (the offsets and the calibrations
-        untouched) when the calibrations' Schur complement is not positive definite."""
-        B, D, gc = border
-        delta_c = np.empty(self._cal.nc)
-        code = _border_solve(self._L, self._Z, B, D, gc, self._y, self._dx, self.first, start, self.newest,
-                             self._cap, self._S, self._cal.L_D, delta_c, self._cal.thresholds)
-        if code < 0:
-            return None
-        self._cal.delta = delta_c
-        return code == 1
 
     def _calibrations_moved(self) -> None:
         """After calibrations were linearised again: the bordered priors' calibration coordinates
@@ -655,7 +665,7 @@ class SlidingWindow:
         bordered = self._cal is not None and D.any()  # (B != 0 puts its J_c^T J_c != 0 in D)
         if not bordered:
             B, D, gc = no_border(n)
-        status, touched, A, b = _marginal_prior(Hb, g, B, D, gc, nl)
+        status, touched, A, b, own_D, own_g = _marginal_prior(Hb, g, B, D, gc, nl)
         if status == 1:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
                                  f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
@@ -676,5 +686,6 @@ class SlidingWindow:
             prior = _LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0)
             if bordered:  # at the calibrations' linearisation points: dc = 0, its Jacobian I
                 prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
+                prior.own = own_D, own_g
             self._priors.append(prior)
         self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors if p.keyframes.size), default=0)

@@ -205,7 +205,7 @@ def test_the_schur_complement_is_scipys(n, S, nl):
     scale = np.sqrt(np.outer(np.diag(Hs_expected), np.diag(Hs_expected)))
     np.testing.assert_allclose(Hs / scale, Hs_expected / scale, atol=1e-9)
     np.testing.assert_allclose(gs, gs_expected, rtol=1e-8, atol=1e-10 * np.abs(gs_expected).max())
-    status, touched, R, e0 = banded._marginal_prior(_blocks(H, S), g, *banded.no_border(n), nl)
+    status, touched, R, e0, _, _ = banded._marginal_prior(_blocks(H, S), g, *banded.no_border(n), nl)
     keep = (touched[:, None] * DIM + np.arange(DIM)).ravel()
     informed = [b for b in range(n - nl) if np.any(Hs_expected[b * DIM:(b + 1) * DIM] != 0.0)]
     assert status == 0 and touched.tolist() == informed

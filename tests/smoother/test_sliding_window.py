@@ -145,7 +145,7 @@ def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
     rng = np.random.default_rng(nl)
     Hb, H = _banded(rng, 4, 2)
     g = rng.normal(size=len(H))
-    status, touched, R, e0 = sw._marginal_prior(Hb, g, *sw.no_border(4), nl)
+    status, touched, R, e0, _, _ = sw._marginal_prior(Hb, g, *sw.no_border(4), nl)
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
@@ -159,7 +159,8 @@ def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
 @pytest.mark.parametrize("nl", [1, 2])
 def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_complement(nl):
     """With three calibration coordinates coupled to every keyframe: the prior is on the informed
-    keyframes and the calibrations, the Schur complement of the dense bordered system."""
+    keyframes and the calibrations, the Schur complement of the dense bordered system, and its
+    own share of the calibrations' ``(D, g_c)`` is that complement's calibration block."""
     rng = np.random.default_rng(10 + nl)
     _, A = _banded(rng, 4, 2)
     nc, N = 3, len(A)
@@ -175,7 +176,7 @@ def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_co
             Hb[k, s_] = H[k * DIM:(k + 1) * DIM, (k - s_) * DIM:(k - s_ + 1) * DIM]
     g = rng.normal(size=N + nc)
     B = H[:N, N:].reshape(4, DIM, nc).copy()
-    status, touched, R, e0 = sw._marginal_prior(Hb, g[:N], B, H[N:, N:].copy(), g[N:], nl)
+    status, touched, R, e0, own_D, own_g = sw._marginal_prior(Hb, g[:N], B, H[N:, N:].copy(), g[N:], nl)
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
@@ -183,6 +184,8 @@ def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_co
     assert status == 0 and touched.tolist() == list(range(4 - nl)) and np.allclose(np.triu(R), R)
     np.testing.assert_allclose(R.T @ R, Hs[np.ix_(keep, keep)], rtol=1e-9, atol=1e-8)
     np.testing.assert_allclose(R.T @ e0, gs[keep], rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(own_D, R[:, -nc:].T @ R[:, -nc:], rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(own_g, R[:, -nc:].T @ e0, rtol=1e-9, atol=1e-8)
 
 
 def test_a_semidefinite_marginal_keeps_only_the_informed_directions():
@@ -196,7 +199,7 @@ def test_a_semidefinite_marginal_keeps_only_the_informed_directions():
     Hb = np.zeros((2, 2, DIM, DIM))
     Hb[0, 0], Hb[1, 0], Hb[1, 1] = H[:DIM, :DIM], H[DIM:, DIM:], H[DIM:, :DIM]
     g = A.T @ rng.normal(size=40)
-    status, touched, Hs, gs = sw._marginal_prior(Hb, g, *sw.no_border(2), 1)
+    status, touched, Hs, gs, _, _ = sw._marginal_prior(Hb, g, *sw.no_border(2), 1)
     assert status == 2 and touched.tolist() == [0]
     R, e0 = sw._semidefinite_square_root(Hs, gs)
     np.testing.assert_allclose(R.T @ R, Hs, rtol=1e-8, atol=1e-8)

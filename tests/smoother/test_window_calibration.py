@@ -120,18 +120,18 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
     from smoother.fixed_lag import FixedLagFailed
 
     data = _calibrating_rig(3.0)
-    border_step, after = sw.SlidingWindow._border_step, []
+    factorise_forward_border, after = sw._factorise_forward_border, []
     solve_once = sw.SlidingWindow._solve_once
 
-    def refusing_the_tenth(window, border, start):
-        return None if window.newest == 9 else border_step(window, border, start)
+    def refusing_the_tenth(Hr, g, L, y, first, start, newest, *rest):
+        return (-1, -1) if newest == 9 else factorise_forward_border(Hr, g, L, y, first, start, newest, *rest)
 
     def recording(window):
         out = solve_once(window)
         after.append(window._dx.copy())
         return out
 
-    monkeypatch.setattr(sw.SlidingWindow, "_border_step", refusing_the_tenth)
+    monkeypatch.setattr(sw, "_factorise_forward_border", refusing_the_tenth)
     monkeypatch.setattr(sw.SlidingWindow, "_solve_once", recording)
     online = OnlineSmoother.for_dataset(data, lag_s=1.0)
     online.keyframe_at(data.imu.t[0] + 0.05 * np.arange(20))
