@@ -53,9 +53,11 @@ from factors.errors import InputError
 #: linearised again, per coordinate ``(dd [s], rho [rad] x3, dp [m] x3, ds)``. The calibrated
 #: residuals are linear in the lever arm, in the scale but for its product with the state's
 #: Jacobian, and in a time offset but for the attitude's ``exp(d C w)``; a rotation's
-#: ``exp(rho)`` is linear to first order: what a threshold leaves out is second order in it
-#: (0.01 rad: 1e-4 rad).
-RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [2e-3])
+#: ``exp(rho)`` is linear to first order. What a threshold leaves out is second order, and the
+#: thresholds hold it to the same fraction of the first-order change it goes with, 0.5 %: ``|rho|
+#: / 2`` for a rotation (0.01 rad), ``|ds| / s`` for the scale's product with the state's
+#: Jacobian (5e-3), ``|dd| |w| / 2`` for a time offset's attitude (0.01 s at 1 rad/s).
+RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [5e-3])
 
 
 class WindowCalibration:
@@ -77,6 +79,8 @@ class WindowCalibration:
         self.index = {name: j for j, name in enumerate(calibrations.names)}
         self.theta = list(calibrations.values)
         self.offsets = np.concatenate([[0], np.cumsum(calibrations.dims)]).astype(int)
+        self._columns = [p.columns for p in calibrations.priors]  # each sensor's estimated coordinates
+        self._sigmas = [p.sigmas for p in calibrations.priors]
         self.nc = int(self.offsets[-1])
         self.delta = np.zeros(self.nc)
         self.relinearised = 0
@@ -84,13 +88,13 @@ class WindowCalibration:
         #: whether a time offset is estimated (the residuals then step with the IMU reading held)
         self.steps_in_time = bool(self.with_time.any())
         self.columns = np.full((len(calibrations), CALIBRATION_DIM), -1, dtype=np.int64)
-        for j, prior in enumerate(calibrations.priors):
-            self.columns[j, prior.columns] = self.offsets[j] + np.arange(len(prior.columns))
+        for j, which in enumerate(self._columns):
+            self.columns[j, which] = self.offsets[j] + np.arange(len(which))
         #: the Cholesky factor ``L_D`` of the last solve's calibration Schur complement (before
         #: the first: the priors' square-root information)
-        self.L_D = np.diag(1.0 / np.concatenate([p.sigmas for p in calibrations.priors]))
+        self.L_D = np.diag(1.0 / np.concatenate(self._sigmas))
         #: :data:`RELINEARISATION_THRESHOLD` over the border's columns
-        self.thresholds = np.concatenate([RELINEARISATION_THRESHOLD[p.columns] for p in calibrations.priors])
+        self.thresholds = np.concatenate([RELINEARISATION_THRESHOLD[which] for which in self._columns])
         #: a bordered prior's ``(dc, Jdc)`` made at the linearisation points (:meth:`border_of`)
         self.at_linearisation = np.zeros(self.nc), np.eye(self.nc)
         self._linearised()
@@ -100,9 +104,9 @@ class WindowCalibration:
         equations there, ``(D, g_c)`` (both change only when a calibration is linearised again)."""
         self.packed = np.stack([calibration.packed(t) for t in self.theta])
         D, gc = np.zeros((self.nc, self.nc)), np.zeros(self.nc)
-        for j, (t, prior, mean) in enumerate(zip(self.theta, self.set.priors, self.set.means)):
-            e, J = calibration.prior_residual(t, mean, prior.columns)
-            Jw, ew = J / prior.sigmas[:, None], e / prior.sigmas
+        for j, (t, mean, sigmas) in enumerate(zip(self.theta, self.set.means, self._sigmas)):
+            e, J = calibration.prior_residual(t, mean, self._columns[j])
+            Jw, ew = J / sigmas[:, None], e / sigmas
             a, b = self.offsets[j], self.offsets[j + 1]
             D[a:b, a:b] = Jw.T @ Jw
             gc[a:b] = Jw.T @ ew
@@ -110,7 +114,7 @@ class WindowCalibration:
 
     def _full(self, j: int, d: np.ndarray) -> np.ndarray:
         out = np.zeros(CALIBRATION_DIM)
-        out[self.set.priors[j].columns] = d
+        out[self._columns[j]] = d
         return out
 
     def estimate(self) -> CalibrationSet:
@@ -141,7 +145,7 @@ class WindowCalibration:
         for j, t in enumerate(self.theta):
             a, b = self.offsets[j], self.offsets[j + 1]
             d = self.delta[a:b]
-            if np.any(np.abs(d) > RELINEARISATION_THRESHOLD[self.set.priors[j].columns]):
+            if np.any(np.abs(d) > self.thresholds[a:b]):
                 self.theta[j] = t.boxplus(self._full(j, d))
                 self.delta[a:b] = 0.0
                 moved = True
@@ -157,5 +161,5 @@ class WindowCalibration:
         dc, Jdc = np.zeros(self.nc), np.zeros((self.nc, self.nc))
         for j, (t, c) in enumerate(zip(self.theta, c_lin)):
             a, b = self.offsets[j], self.offsets[j + 1]
-            dc[a:b], Jdc[a:b, a:b] = calibration.prior_residual(t, c, self.set.priors[j].columns)
+            dc[a:b], Jdc[a:b, a:b] = calibration.prior_residual(t, c, self._columns[j])
         return dc, Jdc
