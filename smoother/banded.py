@@ -235,33 +235,40 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
 
 
 @njit(cache=True)
-def _border_solve(L, Z, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold) -> int:
+def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold) -> int:
     """The border's part of a solve of the bordered window (:mod:`smoother.window_calibration`):
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
-    ``nc`` calibration coordinates; ``Z`` by slot like ``L``), ``L_D L_D^T = D - Z^T Z``,
-    ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y`` the forward solution, and ``dx -= Z
-    delta_c`` over the window (which the backward solve turns into the keyframes' step). Returns
-    1 when some ``|delta_c|`` exceeds its ``threshold``, else 0; -1, ``L_D``, ``delta_c`` and
-    ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""
+    ``nc`` calibration coordinates; ``Z`` by slot like ``L``) and of their products ``ZZ[k % cap]
+    = Z_k^T [Z_k, y_k]`` (``(nc, nc + 1)``, which like ``Z_k`` and ``y_k`` stay while row ``k`` of
+    ``L`` does), ``L_D L_D^T = D - Z^T Z``, ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y``
+    the forward solution, and ``dx -= Z delta_c`` over the window (which the backward solve turns
+    into the keyframes' step). Returns 1 when some ``|delta_c|`` exceeds its ``threshold``, else
+    0; -1, ``L_D``, ``delta_c`` and ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""
     nc = D.shape[0]
     for k in range(start, newest + 1):
         Z[k % cap] = B[k - start]
     _forward(L, Z, first, start, first, newest, cap, S)
+    for k in range(start, newest + 1):
+        s = k % cap
+        for a in range(nc):
+            for b in range(a + 1):
+                acc = 0.0
+                for p in range(DIM):
+                    acc += Z[s, p, a] * Z[s, p, b]
+                ZZ[s, a, b] = acc
+            acc = 0.0
+            for p in range(DIM):
+                acc += Z[s, p, a] * y[s, p, 0]
+            ZZ[s, a, nc] = acc
     Sc, rhs = D.copy(), np.empty(nc)
     for a in range(nc):
         rhs[a] = -gc[a]
     for k in range(first, newest + 1):
         s = k % cap
         for a in range(nc):
-            acc = 0.0
-            for p in range(DIM):
-                acc += Z[s, p, a] * y[s, p, 0]
-            rhs[a] -= acc
+            rhs[a] -= ZZ[s, a, nc]
             for b in range(a + 1):
-                acc = 0.0
-                for p in range(DIM):
-                    acc += Z[s, p, a] * Z[s, p, b]
-                Sc[a, b] -= acc
+                Sc[a, b] -= ZZ[s, a, b]
     factor = np.empty((nc, nc))  # cholesky_into reads the lower triangle
     if not cholesky_into(Sc, factor):
         return -1

@@ -120,11 +120,11 @@ def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
 
 
 @njit(cache=True)
-def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, B, D, gc, dx, L_D, delta_c,
+def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, B, D, gc, dx, L_D, delta_c,
                               threshold):
     """A bordered window's :func:`_factorise_forward`, then ``dx = y`` over the window and the
-    border's part (:func:`smoother.banded._border_solve`: ``Z``, ``L_D``, ``delta_c``, ``dx -=
-    Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
+    border's part (:func:`smoother.banded._border_solve`: ``Z``, ``ZZ``, ``L_D``, ``delta_c``,
+    ``dx -= Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
     :func:`_factorise_forward`'s (``code`` 0, nothing else done), else -1 and the border's code
     (1: some ``|delta_c|`` exceeds its ``threshold``, 0: none, -1: the calibrations' Schur
     complement is not positive definite, ``dx = y``)."""
@@ -134,7 +134,7 @@ def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, B, D
     for k in range(first, newest + 1):
         s = k % cap
         dx[s] = y[s]
-    return -1, _border_solve(L, Z, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold)
+    return -1, _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold)
 
 
 @njit(cache=True)
@@ -262,6 +262,7 @@ class SlidingWindow:
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
+        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded._border_solve)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -274,7 +275,8 @@ class SlidingWindow:
                   "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
                   "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
-                  "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2])}
+                  "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2]),
+                  "_ZZ": self._ZZ.shape[1:]}
         old = {name: getattr(self, name, None) for name in shapes}
         old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
         self._cap = cap
@@ -523,8 +525,12 @@ class SlidingWindow:
         Hb = np.zeros((n, S + 1, DIM, DIM))
         g = np.zeros(n * DIM)
         cal = self._cal
-        B, D, gc = no_border(n) if cal is None else (np.zeros((n, DIM, cal.nc)), np.zeros((cal.nc, cal.nc)),
-                                                     np.zeros(cal.nc))
+        if cal is None:
+            B, D, gc = no_border(n)
+        else:  # D, g_c from the calibrations' own priors when solving
+            B = np.zeros((n, DIM, cal.nc))
+            D, gc = (cal.own_prior[0].copy(), cal.own_prior[1].copy()) if solving else (np.zeros((cal.nc, cal.nc)),
+                                                                                         np.zeros(cal.nc))
         with _compiling():
             _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
@@ -552,9 +558,6 @@ class SlidingWindow:
                             *self._linearisation_points(), lo, Hb, g, B, *p.own)
             D += p.own[0]
             gc += p.own[1]
-        if cal is not None and solving:
-            D += cal.own_prior[0]
-            gc += cal.own_prior[1]
         return Hb, g, (B, D, gc)
 
     def _solve(self, t: float) -> None:
@@ -600,8 +603,8 @@ class SlidingWindow:
         else:
             before_c, delta_c = self._cal.delta.copy(), np.empty(self._cal.nc)
             failed, code = _factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
-                                                     self._cap, S, self._Z, *border, self._dx, self._cal.L_D, delta_c,
-                                                     self._cal.thresholds)
+                                                     self._cap, S, self._Z, self._ZZ, *border, self._dx,
+                                                     self._cal.L_D, delta_c, self._cal.thresholds)
             if failed >= 0:
                 return failed
             exceeds = code == 1

@@ -34,7 +34,7 @@ def _bordered(Hb, g, border):
     return H, np.concatenate([g, gc])
 
 
-def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch():
+def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch(monkeypatch):
     """After each update whose rows are all up to date -- the border's rows of the factor kept
     from the oldest change on, keyframes marginalised into bordered priors without a new
     factorisation -- the keyframes' and the calibrations' offsets solve the whole window's
@@ -43,13 +43,35 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch():
     is ~1e13, so comparing against a dense solve would measure the dense solve's rounding), and
     the newest keyframe's, one inside the window's and the calibrations' marginal covariances are
     the blocks of its inverse (to 2e-3; the calibrations' share of the keyframe's, which a window without the
-    border would leave out, is tens of times that)."""
+    border would leave out, is tens of times that). Halfway, before an update that keeps the rows
+    before its change, the window moves to a ring of twice the slots (as when it outgrows its
+    ring): the factor's rows, the border's and their products go with it. After each
+    factorisation the border's products ``Z_k^T [Z_k, y_k]`` kept by slot are those of its rows
+    over the whole window."""
     data = _calibrating_rig(15.0)
-    checked = []
-    solve = sw.SlidingWindow._solve
+    checked, grown, kept_rows = [], [], []
+    solve, factorise = sw.SlidingWindow._solve, sw._factorise_forward_border
+
+    def factorise_and_check_products(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, *rest):
+        out = factorise(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, *rest)
+        if out[0] < 0:
+            slots = np.arange(first, newest + 1) % cap
+            nc = Z.shape[2]
+            want = np.einsum("kpa,kpb->kab", Z[slots], np.concatenate([Z[slots], y[slots]], axis=2))
+            lower = np.tril(np.ones((nc, nc + 1), dtype=bool))
+            got = ZZ[slots][:, lower]
+            assert np.allclose(got, want[:, lower], rtol=1e-12, atol=1e-12 * np.abs(want).max())
+            kept_rows.append(start > first)
+        return out
+
+    monkeypatch.setattr(sw, "_factorise_forward_border", factorise_and_check_products)
 
     def solve_and_check(window, t):
         shortened = window.shortened
+        keeps_rows = min(window._stale, window.newest - window._bandwidth()) > window.first
+        if window._cal is not None and not grown and t > 7.5 and keeps_rows:
+            window._allocate_keyframes(2 * window._cap)
+            grown.append(len(checked))
         solve(window, t)
         valid = min(window._stale, window.newest + 1) - window.first
         n = window.newest - window.first + 1
@@ -89,6 +111,8 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch():
     assert max(p for p, _, _ in checked) > 0  # bordered marginal priors in the window
     assert checked[-1][1] > 0  # the calibrations were linearised again on the way
     assert max(s for _, _, s in checked) > 0.05
+    assert grown and len(checked) > grown[0] + 20, (grown, len(checked))
+    assert sum(kept_rows) > 20  # products kept from earlier factorisations were checked
 
 
 def test_a_gtsam_fixed_lag_smoother_refuses_calibrations_naming_the_sensors():
