@@ -16,6 +16,12 @@ rotation of the vehicle, the roll of a speed sensor about its own axis, a time o
 standing still) and they stay at their prior; ``rotation_change_rad`` and
 ``lever_arm_change_m``, how far the estimate moved from the values given (the rotation as
 ``log(R R_given^T)``, IMU frame).
+
+The sigmas are the model's: they take each sensor's noise as given. Where the estimator's own
+residuals (or innovations) of a calibrated sensor are out of their band, the printed line says by
+how much its residuals would scale them (the square root of their figure per dof, least squares'
+a-posteriori variance factor): a calibration fitted to a sensor whose sigma is several times too
+small is as overconfident as that sensor.
 """
 from __future__ import annotations
 
@@ -73,10 +79,13 @@ def calibration_records(calibration, covariances) -> tuple[dict, dict]:
     return records, against
 
 
-def calibration_lines(records: dict, against: dict) -> list[str]:
+def calibration_lines(records: dict, against: dict, verdicts: dict | None = None) -> list[str]:
     """The printed table of one estimator's calibrations: a line per sensor, each value with its
     sigma (a rotation as its change from the one given, in degrees about the IMU frame's axes),
-    and the coordinates that stayed at their prior."""
+    the coordinates that stayed at their prior, and, where the estimator's verdict on the sensor
+    (``verdicts``: ``{sensor: verdict}``, :func:`smoother.diagnostics.verdict`) is out of its
+    band, what its residuals say of those sigmas (module docstring)."""
+    verdicts = verdicts or {}
     lines = []
     for name, r in records.items():
         a = against.get(name, {})
@@ -96,5 +105,16 @@ def calibration_lines(records: dict, against: dict) -> list[str]:
         left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""
-        lines.append(f"calibration {name}: " + "; ".join(parts) + note)
+        lines.append(f"calibration {name}: " + "; ".join(parts) + note + _fit_note(verdicts.get(name)))
     return lines
+
+
+def _fit_note(verdict: dict | None) -> str:
+    """What a sensor's out-of-band verdict says of its calibration's sigmas ('' when in band)."""
+    if not verdict or verdict.get("ok", True) or not verdict.get("per_dof", 0.0) > 0.0:
+        return ""
+    lo, hi = verdict["band"]
+    what = "residuals" if verdict.get("statistic") == "residual" else "NIS"
+    return (f"; its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.2g}-{hi:.2g}): these sigmas take its "
+            f"noise as given; by its {what} they would be {np.sqrt(verdict['per_dof']):.2g}x these -- set its "
+            "sigma before trusting this calibration")

@@ -236,7 +236,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     for name, m in metrics.items():
         if m.get("calibration"):
             print(f"{name}:")
-            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {})):
+            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}), m.get("sensors")):
                 print(f"  {line}")
     if args.rig is not None and metrics.get("batch", {}).get("calibration"):
         print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)

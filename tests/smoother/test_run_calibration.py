@@ -46,6 +46,7 @@ def test_a_rig_run_calibrates_prints_records_and_writes_a_rig_the_next_run_repro
     record = metrics["batch"]["calibration"]["wheel"]
     assert set(record) == {"T_BS", "rotation_sigma_rad", "scale", "scale_sigma"}
     assert "calibration wheel: rotation turned by (" in printed and " +- " in printed
+    assert metrics["batch"]["sensors"]["wheel"]["ok"] and "per dof (band" not in printed  # its sigma is right
     # the truth: the written mounting turned back by (0, -3, -1) deg, and readings 1/1.02 of the truth
     change = np.degrees(metrics["batch"]["calibration_against_prior"]["wheel"]["rotation_change_rad"])
     sigma = np.degrees(record["rotation_sigma_rad"])
@@ -78,6 +79,20 @@ def test_a_time_offset_is_reported_as_the_whole_offset_and_written_so(recording,
         return
     gnss = next(s for s in load_rig(tmp_path / "run" / "calibrated.toml").sensors if s.name == "gnss")
     assert gnss.time_offset == pytest.approx(record["time_offset_s"])
+
+
+def test_a_calibration_fitted_to_a_sensor_whose_sigma_is_too_small_says_how_overconfident_it_is(recording, tmp_path,
+                                                                                                capsys):
+    """The wheel's sigma written a quarter of its noise's: its residuals are ~16 per dof, and the
+    calibration line says its sigmas are that many times too small (the square root of it)."""
+    folder, text = recording
+    rig = _rig(folder, text, 'sigma = 0.0125\nestimate = ["rotation", "scale"]', "overconfident")
+    metrics = _run(rig, tmp_path / "run")
+    line = next(line for line in capsys.readouterr().out.splitlines() if "calibration wheel:" in line)
+    verdict = metrics["batch"]["sensors"]["wheel"]
+    assert not verdict["ok"] and verdict["per_dof"] > 8.0, verdict
+    assert f"its residuals are {verdict['per_dof']:.3g} per dof" in line, line
+    assert f"by its residuals they would be {np.sqrt(verdict['per_dof']):.2g}x these" in line, line
 
 
 @pytest.mark.parametrize("extra, key, message", [
