@@ -20,8 +20,9 @@ standing still) and they stay at their prior; ``rotation_change_rad`` and
 The sigmas are the model's: they take each sensor's noise as given. Where the estimator's own
 residuals (or innovations) of a calibrated sensor are out of their band, the printed line says by
 how much its residuals would scale them (the square root of their figure per dof, least squares'
-a-posteriori variance factor): a calibration fitted to a sensor whose sigma is several times too
-small is as overconfident as that sensor.
+a-posteriori variance factor): a calibration fitted to a sensor whose residuals are several times
+larger than its sigma says -- the sigma written too small, or the IMU's noise -- is as
+overconfident as they are.
 """
 from __future__ import annotations
 
@@ -116,5 +117,5 @@ def _fit_note(verdict: dict | None) -> str:
     lo, hi = verdict["band"]
     what = "residuals" if verdict.get("statistic") == "residual" else "NIS"
     return (f"; its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.2g}-{hi:.2g}): these sigmas take its "
-            f"noise as given; by its {what} they would be {np.sqrt(verdict['per_dof']):.2g}x these -- set its "
-            "sigma before trusting this calibration")
+            f"noise as given; by its {what} they would be {np.sqrt(verdict['per_dof']):.2g}x these -- trust this "
+            "calibration once they are in band (the warnings below say what to check)")
