@@ -22,7 +22,12 @@ residuals (or innovations) of a calibrated sensor are out of their band, the pri
 how much its residuals would scale them (the square root of their figure per dof, least squares'
 a-posteriori variance factor): a calibration fitted to a sensor whose residuals are several times
 larger than its sigma says -- the sigma written too small, or the IMU's noise -- is as
-overconfident as they are.
+overconfident as they are. The sigmas also take the sensor's errors as independent: where its
+residuals at consecutive fixes are alike (a receiver's error drifting slower than its fixes come,
+lag-one correlation ``rho``), the fixes carry less information than that, and the line says by how
+much at most the sigmas are understated, ``sqrt((1 + rho) / (1 - rho))`` (an AR(1) error's
+variance inflation for a slowly varying regressor: a constant lever arm, a time offset read
+through a smooth velocity), when that is :data:`CORRELATION_FACTOR` or more.
 """
 from __future__ import annotations
 
@@ -33,6 +38,10 @@ from factors.calibration import PART_COLUMNS
 #: Posterior over prior sigma from which a coordinate counts as not observed (the data shrank
 #: its uncertainty by less than 10 %).
 UNOBSERVED_RATIO = 0.9
+
+#: From how large a factor on the sigmas the correlation of a sensor's residuals is said
+#: (``rho`` 0.38 and more).
+CORRELATION_FACTOR = 1.5
 
 _AXES = ("x", "y", "z")
 
@@ -80,13 +89,16 @@ def calibration_records(calibration, covariances) -> tuple[dict, dict]:
     return records, against
 
 
-def calibration_lines(records: dict, against: dict, verdicts: dict | None = None) -> list[str]:
+def calibration_lines(records: dict, against: dict, verdicts: dict | None = None,
+                      correlations: dict | None = None) -> list[str]:
     """The printed table of one estimator's calibrations: a line per sensor, each value with its
     sigma (a rotation as its change from the one given, in degrees about the IMU frame's axes),
-    the coordinates that stayed at their prior, and, where the estimator's verdict on the sensor
-    (``verdicts``: ``{sensor: verdict}``, :func:`smoother.diagnostics.verdict`) is out of its
-    band, what its residuals say of those sigmas (module docstring)."""
-    verdicts = verdicts or {}
+    the coordinates that stayed at their prior, and what its residuals say of those sigmas
+    (module docstring): where the estimator's verdict on the sensor (``verdicts``: ``{sensor:
+    verdict}``, :func:`smoother.diagnostics.verdict`) is out of its band, and where its residuals'
+    lag-one correlation (``correlations``: ``{sensor: rho}``, position fixes,
+    :func:`smoother.report.residual_correlation`) is high."""
+    verdicts, correlations = verdicts or {}, correlations or {}
     lines = []
     for name, r in records.items():
         a = against.get(name, {})
@@ -106,16 +118,30 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
         left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""
-        lines.append(f"calibration {name}: " + "; ".join(parts) + note + _fit_note(verdicts.get(name)))
+        fit = _fit_note(verdicts.get(name), correlations.get(name))
+        lines.append(f"calibration {name}: " + "; ".join(parts) + note + fit)
     return lines
 
 
-def _fit_note(verdict: dict | None) -> str:
-    """What a sensor's out-of-band verdict says of its calibration's sigmas ('' when in band)."""
-    if not verdict or verdict.get("ok", True) or not verdict.get("per_dof", 0.0) > 0.0:
+def _fit_note(verdict: dict | None, rho: float | None) -> str:
+    """What a sensor's verdict and residual correlation say of its calibration's sigmas (module
+    docstring; '' when neither does)."""
+    said, factor = [], 1.0
+    misfit = bool(verdict) and not verdict.get("ok", True) and verdict.get("per_dof", 0.0) > 0.0
+    if misfit:
+        lo, hi = verdict["band"]
+        what = "residuals" if verdict.get("statistic") == "residual" else "NIS"
+        said.append(f"its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.2g}-{hi:.2g}), the sigmas take its "
+                    "noise as given")
+        factor *= float(np.sqrt(verdict["per_dof"]))
+    correlated = float(np.sqrt((1.0 + rho) / (1.0 - rho))) if rho is not None and 0.0 < rho < 1.0 else 1.0
+    if correlated >= CORRELATION_FACTOR:
+        said.append(f"its residuals at consecutive fixes are {rho:.2f} alike (lag-one correlation), the sigmas "
+                    "take its errors as independent")
+        factor *= correlated
+    if not said:
         return ""
-    lo, hi = verdict["band"]
-    what = "residuals" if verdict.get("statistic") == "residual" else "NIS"
-    return (f"; its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.2g}-{hi:.2g}): these sigmas take its "
-            f"noise as given; by its {what} they would be {np.sqrt(verdict['per_dof']):.2g}x these -- trust this "
-            "calibration once they are in band (the warnings below say what to check)")
+    bound = "" if correlated < CORRELATION_FACTOR else "up to "
+    advice = ("trust this calibration once they fit (the warnings below say what to check)" if misfit
+              else "fixes further apart (the rig's `every`) carry nearly as much and are nearer independent")
+    return f"; {'; '.join(said)}: by its residuals they would be {bound}{factor:.2g}x these -- {advice}"

@@ -167,16 +167,18 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
     return _rms_distance([] if positions is None else [positions], estimate)
 
 
-def position_streams(dataset: Dataset, calibration=None) -> list[tuple]:
+def position_streams(dataset: Dataset, calibration=None, sensor: str | None = None) -> list[tuple]:
     """Each sensor's stream of position fixes (any kind measuring :class:`PositionMeasurements`:
     KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(used, held out)``
-    (either may be None). With an estimator's ``calibration``
+    (either may be None); with ``sensor``, that sensor's alone. With an estimator's ``calibration``
     (:class:`factors.calibration.CalibrationSet`), a calibrated sensor's fixes as that estimate
     has them: taken at their stamps plus the estimated time offset, at the estimated lever arm."""
     calibrated = {} if calibration is None else dict(zip(calibration.names, calibration.values))
     out = []
     for s in dataset.sensors:
         if not isinstance(s.heldout if s.data is None else s.data, PositionMeasurements):
+            continue
+        if sensor is not None and s.name != sensor:
             continue
         c = calibrated.get(s.name)
         if c is None:
@@ -226,15 +228,17 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
             "heldout_fixes": int(len(residual))}
 
 
-def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=None) -> float | None:
+def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=None,
+                         sensor: str | None = None) -> float | None:
     """How alike the estimate's residuals at consecutive used fixes are: their lag-one
     autocorrelation (each position or GNSS stream's residual series less its mean, per world
     axis, pooled). Near 0 the fixes' errors are white; well above 0 the receiver's error drifts
     slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
     RMSE favours interpolation over an estimator that does not model that drift. None with fewer
-    than three fixes. ``calibration`` as :func:`score`'s."""
+    than three fixes. ``calibration`` as :func:`score`'s; with ``sensor``, that sensor's fixes
+    alone."""
     num = den = 0.0
-    for p, _ in position_streams(dataset, calibration):
+    for p, _ in position_streams(dataset, calibration, sensor):
         _, residual = position_residuals(p, estimate)  # empty for None
         if len(residual) < 3:
             continue

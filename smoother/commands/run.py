@@ -235,8 +235,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             print(f"note: {note}", file=sys.stderr)
     for name, m in metrics.items():
         if m.get("calibration"):
+            est = estimates[name]
+            correlations = {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s)
+                            for s in m["calibration"]}
             print(f"{name}:")
-            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}), m.get("sensors")):
+            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}), m.get("sensors"),
+                                          correlations):
                 print(f"  {line}")
     if args.rig is not None and metrics.get("batch", {}).get("calibration"):
         print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)

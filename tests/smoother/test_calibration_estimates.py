@@ -217,30 +217,59 @@ def _batch_details() -> dict:
         return run_estimators(_calibrating_rig(), ["batch"])["batch"].details
 
 
-def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfident():
-    """GTSAM's KITTI example data (every 10th fix used), its GPS's time offset and lever arm
-    estimated: the OXTS unit gives its fixes at the IMU, in its own clock (the truth: zero), but
-    the fixes' residuals are ~20 per dof of the example's 0.26-m sigma, and the calibration leans
-    on them: the lever arm and the time offset land over 3 of their sigmas from zero, within 3 of
-    the sigmas the residuals give them, and the printed line says by how much they are
-    understated."""
+@pytest.mark.parametrize("every", [10, 1])
+def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfident(every):
+    """GTSAM's KITTI example data, every 10th fix used or all of them, its GPS's time offset and
+    lever arm estimated: the OXTS unit gives its fixes at the IMU, in its own clock (the truth:
+    zero), but the fixes' residuals are far out of band of the example's 0.26-m sigma (~20 per
+    dof with every 10th fix) or, at 10 Hz, 0.9 alike from fix to fix, and the calibration leans on
+    them: it lands over 3 of its sigmas from zero, within 3 of the sigmas its residuals give it,
+    and the printed line says by how much they are understated."""
     from datasets import kitti
+    from smoother import report
     from smoother.calibration_report import calibration_lines
     from smoother.pipeline import RunOptions, estimate_each, sensor_consistency
 
-    data = kitti.load_kitti(gps_every=10).with_sensor(kitti.GPS_SENSOR,
-                                                      calibrate=CalibrationPrior(("time_offset", "lever_arm")))
+    gps = kitti.GPS_SENSOR
+    data = kitti.load_kitti(gps_every=every).with_sensor(gps, calibrate=CalibrationPrior(("time_offset", "lever_arm")))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         estimates = dict(estimate_each(data, ["batch"], RunOptions()))
-    verdict = sensor_consistency(data, estimates)["batch"][kitti.GPS_SENSOR]
-    details = estimates["batch"].details
-    record = details["calibration"][kitti.GPS_SENSOR]
+    batch = estimates["batch"]
+    verdict = sensor_consistency(data, estimates)["batch"][gps]
+    rho = report.residual_correlation(data, batch.trajectory, batch.calibration, gps)
+    record = batch.details["calibration"][gps]
     value = np.array([record["time_offset_s"], *record["lever_arm_m"][:2]])
     sigma = np.array([record["time_offset_sigma_s"], *record["lever_arm_sigma_m"][:2]])
-    factor = np.sqrt(verdict["per_dof"])
-    assert not verdict["ok"] and factor > 3.0, verdict
-    assert np.max(np.abs(value) / sigma) > 3.0, (value, sigma)
+    assert not verdict["ok"], verdict
+    correlated = np.sqrt((1 + rho) / (1 - rho))
+    factor = np.sqrt(verdict["per_dof"]) * (correlated if correlated >= 1.5 else 1.0)
+    assert (rho > 0.8) == (every == 1), rho
+    assert factor > 3.0 and np.max(np.abs(value) / sigma) > 3.0, (value, sigma, factor)
     assert np.all(np.abs(value) / (factor * sigma) < 3.0), (value, sigma, factor)
-    line, = calibration_lines(details["calibration"], details["calibration_against_prior"], {kitti.GPS_SENSOR: verdict})
-    assert f"by its residuals they would be {factor:.2g}x these" in line, line
+    line, = calibration_lines(batch.details["calibration"], batch.details["calibration_against_prior"], {gps: verdict},
+                              {gps: rho})
+    assert f"they would be {'up to ' if every == 1 else ''}{factor:.2g}x these" in line, line
+    assert (f"{rho:.2f} alike" in line) == (every == 1), line
+
+
+def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas():
+    """In band and nearly independent: nothing; 4 per dof: 2x, and the warnings to follow;
+    in band but 0.8 alike from fix to fix: up to 3x (sqrt(1.8 / 0.2)), and thinner fixes."""
+    from smoother.calibration_report import calibration_lines
+
+    records = {"gnss": {"time_offset_s": 0.1, "time_offset_sigma_s": 0.01}}
+    fits = {"per_dof": 1.0, "band": [0.8, 1.2], "ok": True, "statistic": "residual"}
+    misfit = {**fits, "per_dof": 4.0, "ok": False}
+
+    def line(verdict, rho):
+        return calibration_lines(records, {}, {"gnss": verdict}, {"gnss": rho})[0]
+
+    assert line(fits, 0.1) == line(None, None) == "calibration gnss: time offset +0.1000 +- 0.0100 s"
+    assert line(misfit, None).endswith("the sigmas take its noise as given: by its residuals they would be 2x "
+                                       "these -- trust this calibration once they fit (the warnings below say what "
+                                       "to check)")
+    correlated = line(fits, 0.8)
+    assert "0.80 alike" in correlated and "they would be up to 3x these" in correlated, correlated
+    assert "the rig's `every`" in correlated and "per dof" not in correlated
+    assert "up to 6x these" in line(misfit, 0.8)
