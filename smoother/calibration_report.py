@@ -18,22 +18,25 @@ standing still) and they stay at their prior; ``rotation_change_rad`` and
 ``log(R R_given^T)``, IMU frame).
 
 The sigmas are the model's: they take each sensor's noise as given. Where the estimator's own
-residuals (or innovations) of a calibrated sensor are out of their band, the printed line says by
-how much its residuals would scale them (the square root of their figure per dof, least squares'
-a-posteriori variance factor): a calibration fitted to a sensor whose residuals are several times
-larger than its sigma says -- the sigma written too small, or the IMU's noise -- is as
-overconfident as they are. The sigmas also take the sensor's errors as independent: where its
-residuals at consecutive fixes are alike (a receiver's error drifting slower than its fixes come,
-lag-one correlation ``rho``), the fixes carry less information than that, and the line says by how
-much at most the sigmas are understated, ``sqrt((1 + rho) / (1 - rho))`` (an AR(1) error's
-variance inflation for a slowly varying regressor: a constant lever arm, a time offset read
-through a smooth velocity), when that is :data:`CORRELATION_FACTOR` or more.
+residuals (or the EKF's innovations) of a calibrated sensor are out of their band as far as a
+warning takes (:func:`smoother.diagnostics.far_off`), the printed line says by how much they would
+scale the sigmas: the square root of their figure per dof, least squares' a-posteriori variance
+factor (for innovations, whose covariance holds the state's share too, at least that). A
+calibration fitted to a sensor whose residuals are several times larger than its sigma says --
+the sigma written too small, or the IMU's noise -- is as overconfident as they are. The sigmas
+also take the sensor's errors as independent: where its residuals at consecutive fixes are alike
+(a receiver's error drifting slower than its fixes come, lag-one correlation ``rho``), the fixes
+carry less information than that, and the line gives the factor ``sqrt((1 + rho) / (1 - rho))``
+when it is :data:`CORRELATION_FACTOR` or more: an AR(1) error's variance inflation for a slowly
+varying regressor (a constant lever arm, a time offset read through a smooth velocity); an
+error drifting otherwise, or one the estimate partly follows, can inflate it more.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from factors.calibration import PART_COLUMNS
+from smoother.diagnostics import far_off
 
 #: Posterior over prior sigma from which a coordinate counts as not observed (the data shrank
 #: its uncertainty by less than 10 %).
@@ -126,22 +129,25 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
 def _fit_note(verdict: dict | None, rho: float | None) -> str:
     """What a sensor's verdict and residual correlation say of its calibration's sigmas (module
     docstring; '' when neither does)."""
-    said, factor = [], 1.0
-    misfit = bool(verdict) and not verdict.get("ok", True) and verdict.get("per_dof", 0.0) > 0.0
+    said, factor, qualifier = [], 1.0, ""
+    misfit = bool(verdict) and far_off(verdict)
     if misfit:
         lo, hi = verdict["band"]
-        what = "residuals" if verdict.get("statistic") == "residual" else "NIS"
-        said.append(f"its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.2g}-{hi:.2g}), the sigmas take its "
+        what = "residuals" if verdict["statistic"] == "residual" else "innovations"
+        said.append(f"its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.3g}-{hi:.3g}), the sigmas take its "
                     "noise as given")
         factor *= float(np.sqrt(verdict["per_dof"]))
+        if verdict["statistic"] != "residual":  # S = H P H^T + R: R is off by more than S
+            qualifier = "at least about "
     correlated = float(np.sqrt((1.0 + rho) / (1.0 - rho))) if rho is not None and 0.0 < rho < 1.0 else 1.0
     if correlated >= CORRELATION_FACTOR:
-        said.append(f"its residuals at consecutive fixes are {rho:.2f} alike (lag-one correlation), the sigmas "
-                    "take its errors as independent")
+        said.append(f"its residuals' lag-one correlation is {rho:.2f}, the sigmas take its errors as independent")
         factor *= correlated
+        qualifier = "about "
     if not said:
         return ""
-    bound = "" if correlated < CORRELATION_FACTOR else "up to "
     advice = ("trust this calibration once they fit (the warnings below say what to check)" if misfit
-              else "fixes further apart (the rig's `every`) carry nearly as much and are nearer independent")
-    return f"; {'; '.join(said)}: by its residuals they would be {bound}{factor:.2g}x these -- {advice}"
+              else "fixes further apart (a rig's `every`, `--gps-every`) carry nearly as much and are nearer "
+                   "independent")
+    ar1 = " if its errors drift as AR(1)" if correlated >= CORRELATION_FACTOR else ""
+    return f"; {'; '.join(said)}: by its residuals they would be {qualifier}{factor:.2g}x these{ar1} -- {advice}"

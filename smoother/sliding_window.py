@@ -262,7 +262,7 @@ class SlidingWindow:
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
-        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded._border_solve)
+        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (lower triangle; banded._border_solve)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0

@@ -249,27 +249,35 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
     assert np.all(np.abs(value) / (factor * sigma) < 3.0), (value, sigma, factor)
     line, = calibration_lines(batch.details["calibration"], batch.details["calibration_against_prior"], {gps: verdict},
                               {gps: rho})
-    assert f"they would be {'up to ' if every == 1 else ''}{factor:.2g}x these" in line, line
-    assert (f"{rho:.2f} alike" in line) == (every == 1), line
+    assert f"they would be {'about ' if every == 1 else ''}{factor:.2g}x these" in line, line
+    assert (f"lag-one correlation is {rho:.2f}" in line) == (every == 1), line
 
 
 def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas():
-    """In band and nearly independent: nothing; 4 per dof: 2x, and the warnings to follow;
-    in band but 0.8 alike from fix to fix: up to 3x (sqrt(1.8 / 0.2)), and thinner fixes."""
+    """Nothing while the residuals fit as far as a warning goes (in band, or out of it by less
+    than 2x) and their lag-one correlation puts less than 1.5x on the sigmas (rho < 0.385);
+    4 per dof: 2x, and the warnings to follow; 0.2 per dof: 0.45x; the EKF's innovations at 4
+    per dof: at least about 2x; 0.8 alike from fix to fix: about 3x (sqrt(1.8 / 0.2)), and fixes
+    further apart."""
     from smoother.calibration_report import calibration_lines
 
     records = {"gnss": {"time_offset_s": 0.1, "time_offset_sigma_s": 0.01}}
     fits = {"per_dof": 1.0, "band": [0.8, 1.2], "ok": True, "statistic": "residual"}
-    misfit = {**fits, "per_dof": 4.0, "ok": False}
 
-    def line(verdict, rho):
+    def line(verdict, rho=None):
         return calibration_lines(records, {}, {"gnss": verdict}, {"gnss": rho})[0]
 
-    assert line(fits, 0.1) == line(None, None) == "calibration gnss: time offset +0.1000 +- 0.0100 s"
-    assert line(misfit, None).endswith("the sigmas take its noise as given: by its residuals they would be 2x "
-                                       "these -- trust this calibration once they fit (the warnings below say what "
-                                       "to check)")
+    plain = "calibration gnss: time offset +0.1000 +- 0.0100 s"
+    assert line(None) == line(fits, 0.35) == line({**fits, "per_dof": 1.6, "ok": False}) == plain
+    assert line({**fits, "per_dof": 4.0, "ok": False}).endswith(
+        "its residuals are 4 per dof (band 0.8-1.2), the sigmas take its noise as given: by its residuals they would "
+        "be 2x these -- trust this calibration once they fit (the warnings below say what to check)")
+    assert "they would be 0.45x these" in line({**fits, "per_dof": 0.2, "ok": False})
+    ekf = line({**fits, "per_dof": 4.0, "ok": False, "statistic": "nis"})
+    assert "its innovations are 4 per dof" in ekf and "they would be at least about 2x these" in ekf, ekf
     correlated = line(fits, 0.8)
-    assert "0.80 alike" in correlated and "they would be up to 3x these" in correlated, correlated
-    assert "the rig's `every`" in correlated and "per dof" not in correlated
-    assert "up to 6x these" in line(misfit, 0.8)
+    assert "lag-one correlation is 0.80" in correlated and "they would be about 3x these if its errors drift as AR(1)" \
+        in correlated, correlated
+    assert "`every`" in correlated and "per dof" not in correlated
+    assert "lag-one correlation is 0.40" in line(fits, 0.4)
+    assert "about 6x these" in line({**fits, "per_dof": 4.0, "ok": False}, 0.8)

@@ -196,6 +196,18 @@ def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
         assert report.residual_correlation(data, truth) == pytest.approx(rho, abs=0.08)
 
 
+def test_each_position_sensor_has_its_own_residual_correlation():
+    """Two position sensors, one drifting (0.98 from fix to fix, 0.92 over the used fixes'
+    spacing), one white: each sensor's correlation is its own, the pooled one between them."""
+    drifting, truth = _fixes_with_noise(0.98)
+    white, _ = _fixes_with_noise(0.0)
+    data = replace(drifting, sensors=(drifting.sensor("gps"), replace(white.sensor("gps"), name="rtk")))
+    own = {name: report.residual_correlation(data, truth, sensor=name) for name in ("gps", "rtk")}
+    assert own["gps"] == pytest.approx(0.98 ** 4, abs=0.08) and own["rtk"] == pytest.approx(0.0, abs=0.08), own
+    assert own["rtk"] + 0.1 < report.residual_correlation(data, truth) < own["gps"] - 0.1
+    assert report.residual_correlation(data, truth, sensor="wheels") is None
+
+
 @pytest.mark.parametrize("with_cov", [True, False])
 def test_trajectory_npz_round_trip(tmp_path, with_cov):
     truth = _truth()

@@ -95,6 +95,26 @@ def test_a_calibration_fitted_to_a_sensor_whose_sigma_is_too_small_says_how_over
     assert f"by its residuals they would be {np.sqrt(verdict['per_dof']):.2g}x these" in line, line
 
 
+def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlation(recording, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """The printed calibration line of the GNSS carries its own fixes' lag-one correlation (here
+    made 0.9, as a 10-Hz receiver's drifting error gives)."""
+    from smoother import report
+
+    folder, text = recording
+    text = text.replace('topic = "/fix"\n', 'topic = "/fix"\nestimate = ["time_offset"]\n')
+    correlation, asked = report.residual_correlation, []
+
+    def drifting(dataset, estimate, calibration=None, sensor=None):
+        asked.append(sensor)
+        return 0.9 if sensor == "gnss" else correlation(dataset, estimate, calibration, sensor)
+
+    monkeypatch.setattr(report, "residual_correlation", drifting)
+    _run(_rig(folder, text, "", "drifting"), tmp_path / "run")
+    line = next(line for line in capsys.readouterr().out.splitlines() if "calibration gnss:" in line)
+    assert asked == ["gnss"] and "lag-one correlation is 0.90" in line, (asked, line)
+
+
 @pytest.mark.parametrize("extra, key, message", [
     ('estimate = ["mounting"]', "estimate", "expected a list of any of time_offset, rotation, lever_arm, scale"),
     ('rotation_sigma = 0.1', "rotation_sigma", "has no effect without estimate"),
