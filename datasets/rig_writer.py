@@ -43,9 +43,12 @@ def _table(lines: list[str], header: str, table: dict) -> None:
     lines.append("")
 
 
-def calibrated_rig_text(rig: Rig, records: dict) -> str:
+def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -> str:
     """The TOML text of ``rig`` (its file re-read) with the calibration ``records``
-    (``{sensor: record}``, :func:`smoother.calibration_report.calibration_records`) written in."""
+    (``{sensor: record}``, :func:`smoother.calibration_report.calibration_records`) written in,
+    and beside a sensor's values, as a comment, its caution (``cautions``: ``{sensor: text}``,
+    '' for none; :func:`smoother.calibration_report.fit_note`)."""
+    cautions = cautions or {}
     with open(rig.path, "rb") as f:
         raw = tomllib.load(f)
     imu = dict(raw["imu"])
@@ -75,6 +78,8 @@ def calibrated_rig_text(rig: Rig, records: dict) -> str:
             asked = {key: out.pop(key) for key in CALIBRATION_KEYS if key in out}
             out["# calibrated"] = ("calibrated by the batch smoother; estimated with "
                                    + ", ".join(f"{k} = {_value(v)}" for k, v in asked.items()))
+            if cautions.get(config.name):
+                out["# caution"] = f"caution: {cautions[config.name]}"
         elif "camchain" in out:
             out["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
             out.pop("camchain")

@@ -121,14 +121,15 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
         left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""
-        fit = _fit_note(verdicts.get(name), correlations.get(name))
-        lines.append(f"calibration {name}: " + "; ".join(parts) + note + fit)
+        fit = fit_note(verdicts.get(name), correlations.get(name))
+        lines.append(f"calibration {name}: " + "; ".join(parts) + note + (f"; {fit}" if fit else ""))
     return lines
 
 
-def _fit_note(verdict: dict | None, rho: float | None) -> str:
-    """What a sensor's verdict and residual correlation say of its calibration's sigmas (module
-    docstring; '' when neither does)."""
+def fit_note(verdict: dict | None, rho: float | None) -> str:
+    """What an estimator's verdict on a calibrated sensor (:func:`smoother.diagnostics.verdict`)
+    and its residuals' lag-one correlation ``rho`` (position fixes; None otherwise) say of its
+    calibration's sigmas (module docstring), or '' when neither says anything."""
     said, factor, qualifier = [], 1.0, ""
     misfit = bool(verdict) and far_off(verdict)
     if misfit:
@@ -150,4 +151,4 @@ def _fit_note(verdict: dict | None, rho: float | None) -> str:
               else "fixes further apart (a rig's `every`, `--gps-every`) carry nearly as much and are nearer "
                    "independent")
     ar1 = " if its errors drift as AR(1)" if correlated >= CORRELATION_FACTOR else ""
-    return f"; {'; '.join(said)}: by its residuals they would be {qualifier}{factor:.2g}x these{ar1} -- {advice}"
+    return f"{'; '.join(said)}: by its residuals they would be {qualifier}{factor:.2g}x these{ar1} -- {advice}"

@@ -211,8 +211,10 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
+    correlations = _calibration_correlations(dataset, estimates)
     with out.outputs() as stage:
-        metrics = _write_outputs(args, stage, dataset, estimates, {**run_info, "total_s": time.perf_counter() - started})
+        metrics = _write_outputs(args, stage, dataset, estimates, {**run_info, "total_s": time.perf_counter() - started},
+                                 correlations)
     _say_removed(out)
     if args.plot:
         from smoother import plots
@@ -235,12 +237,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             print(f"note: {note}", file=sys.stderr)
     for name, m in metrics.items():
         if m.get("calibration"):
-            est = estimates[name]
-            correlations = {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s)
-                            for s in m["calibration"]}
             print(f"{name}:")
             for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}), m.get("sensors"),
-                                          correlations):
+                                          correlations.get(name)):
                 print(f"  {line}")
     if args.rig is not None and metrics.get("batch", {}).get("calibration"):
         print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)
@@ -264,9 +263,23 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     return 0
 
 
-def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict) -> dict:
+def _calibration_correlations(dataset, estimates: dict) -> dict:
+    """``{estimator: {sensor: rho}}``: the lag-one correlation of each calibrated position
+    sensor's residuals at the estimator's calibration (:func:`smoother.report.residual_correlation`;
+    None for other kinds)."""
+    from smoother import report
+
+    return {name: {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s)
+                   for s in est.details.get("calibration", {})}
+            for name, est in estimates.items() if est.details.get("calibration")}
+
+
+def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None) -> dict:
     """The run's files (:func:`smoother.report.write_outputs`) and, with ``--mcap``, its MCAP
-    (:func:`smoother.mcap_export.write_mcap`), into the staging folder ``stage``; the metrics."""
+    (:func:`smoother.mcap_export.write_mcap`), into the staging folder ``stage``; the metrics.
+    ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
+    on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
+    (:func:`smoother.calibration_report.fit_note`)."""
     from smoother import report
     from smoother.commands.run_directory import MCAP
 
@@ -283,8 +296,12 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict) -> dic
 
         from datasets.atomic import atomic_write
 
+        from smoother.calibration_report import fit_note
+
+        verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})
+        cautions = {s: fit_note(verdicts.get(s), rhos.get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
-            handle.write(calibrated_rig_text(load_rig(args.rig), records))
+            handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions))
     return metrics
 
 

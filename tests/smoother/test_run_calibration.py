@@ -58,7 +58,7 @@ def test_a_rig_run_calibrates_prints_records_and_writes_a_rig_the_next_run_repro
     wheel = next(s for s in again.sensors if s.name == "wheel")
     assert wheel.calibrate is None and np.allclose(wheel.T_BS, record["T_BS"], atol=1e-12)
     assert wheel.scale == pytest.approx(1.02 * record["scale"])
-    assert "# calibrated by the batch smoother" in calibrated.read_text()
+    assert "# calibrated by the batch smoother" in calibrated.read_text() and "# caution" not in calibrated.read_text()
 
     second = _run(str(calibrated), tmp_path / "second")
     assert "calibration" not in second["batch"]
@@ -93,6 +93,8 @@ def test_a_calibration_fitted_to_a_sensor_whose_sigma_is_too_small_says_how_over
     assert not verdict["ok"] and verdict["per_dof"] > 8.0, verdict
     assert f"its residuals are {verdict['per_dof']:.3g} per dof" in line, line
     assert f"by its residuals they would be {np.sqrt(verdict['per_dof']):.2g}x these" in line, line
+    caution = line[line.index("its residuals are"):]  # the line's note, also beside the values for the next run
+    assert f"# caution: {caution}" in (tmp_path / "run" / "calibrated.toml").read_text().splitlines(), caution
 
 
 def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlation(recording, tmp_path, capsys,
