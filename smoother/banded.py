@@ -240,7 +240,8 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
     ``nc`` calibration coordinates; ``Z`` by slot like ``L``) and of their products ``ZZ[k % cap]
     = Z_k^T [Z_k, y_k]`` (``(nc, nc + 1)``, the lower triangle of ``Z_k^T Z_k`` and the column
-    ``Z_k^T y_k``, which like ``Z_k`` and ``y_k`` stay while row ``k`` of ``L`` does), ``L_D L_D^T = D - Z^T Z``, ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y``
+    ``Z_k^T y_k``, which like ``Z_k`` and ``y_k`` stay while row ``k`` of ``L`` does), ``L_D
+    L_D^T = D - Z^T Z`` from their sums, ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y``
     the forward solution, and ``dx -= Z delta_c`` over the window (which the backward solve turns
     into the keyframes' step). Returns 1 when some ``|delta_c|`` exceeds its ``threshold``, else
     0; -1, ``L_D``, ``delta_c`` and ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""

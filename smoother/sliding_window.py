@@ -262,7 +262,7 @@ class SlidingWindow:
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.window_calibration)
-        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (lower triangle; banded._border_solve)
+        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded._border_solve)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -529,8 +529,7 @@ class SlidingWindow:
             B, D, gc = no_border(n)
         else:  # D, g_c from the calibrations' own priors when solving
             B = np.zeros((n, DIM, cal.nc))
-            D, gc = (cal.own_prior[0].copy(), cal.own_prior[1].copy()) if solving else (np.zeros((cal.nc, cal.nc)),
-                                                                                         np.zeros(cal.nc))
+            D, gc = (a.copy() if solving else np.zeros_like(a) for a in cal.own_prior)
         with _compiling():
             _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,

@@ -213,8 +213,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         run_info["interpolated_fixes"] = baseline
     correlations = _calibration_correlations(dataset, estimates)
     with out.outputs() as stage:
-        metrics = _write_outputs(args, stage, dataset, estimates, {**run_info, "total_s": time.perf_counter() - started},
-                                 correlations)
+        run_info["total_s"] = time.perf_counter() - started
+        metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations)
     _say_removed(out)
     if args.plot:
         from smoother import plots
