@@ -23,7 +23,9 @@ are used:
   frame; the estimators' covariances grow from there);
 * **velocity**: from the velocity sensor's measurement nearest ``t_s`` (within
   :data:`VELOCITY_WINDOW_S`) when there is one; else a straight line through the fixes of the
-  first :data:`VELOCITY_WINDOW_S` seconds, with the sigma of that fit, each axis judged by its
+  first :data:`VELOCITY_WINDOW_S` seconds (fewer than two there: through the first two, their
+  mean velocity, with :data:`UNKNOWN_VELOCITY_SIGMA` when they show motion -- how the velocity
+  changed between them the fixes cannot tell), with the sigma of that fit, each axis judged by its
   own noise (a receiver's vertical sigma is twice its horizontal one: a car cruising at 10 m/s
   moves 20 m in 2 s, less than three times a 5-m vertical sigma but forty horizontal ones); when
   no axis's slope is three of its sigmas from zero and the IMU is at rest (mean angular rate
@@ -286,7 +288,7 @@ def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
             R, p = extrinsic_parts(m.T_BS)
             lever = np.cross(m.gyro[k], p)
             return R @ m.velocity[k] - lever, float(np.sqrt(np.max(np.diag(m.cov[k])))) + 0.1
-    window = [(s, m.subset(m.t <= t_s + VELOCITY_WINDOW_S)) for s, m in fixes if isinstance(m, PositionMeasurements)]
+    window = [(s, _first_fixes(m, t_s)) for s, m in fixes if isinstance(m, PositionMeasurements)]
     window = [(s, m) for s, m in window if len(m) >= 2]
     if window:
         s, m = max(window, key=lambda sm: len(sm[1]))
@@ -297,10 +299,20 @@ def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
         moving = bool(np.any(np.abs(slope) > 3.0 * fit_sigma))
         if not moving and _imu_at_rest(imu, t_s, gravity):  # or cruising too slowly for the fixes to tell
             return np.zeros(3), max(REST_VELOCITY_SIGMA, float(np.max(np.abs(slope) + fit_sigma)))
+        if dt > VELOCITY_WINDOW_S:  # the mean velocity of a longer stretch: how it changed there is unknown
+            return C.T @ slope, max(UNKNOWN_VELOCITY_SIGMA, float(fit_sigma.max()) + 0.5)
         return C.T @ slope, float(fit_sigma.max()) + 0.5  # and what it may change meanwhile
     if _imu_at_rest(imu, t_s, gravity):
         return np.zeros(3), REST_VELOCITY_SIGMA
     return np.zeros(3), UNKNOWN_VELOCITY_SIGMA
+
+
+def _first_fixes(m: PositionMeasurements, t_s: float) -> PositionMeasurements:
+    """The fixes of ``m`` from ``t_s`` to ``t_s + VELOCITY_WINDOW_S``, or its first two from
+    ``t_s`` on when that window holds fewer (fixes further apart, or a sensor's ``every``)."""
+    after = m.subset(m.t >= t_s)
+    early = after.subset(after.t <= t_s + VELOCITY_WINDOW_S)
+    return early if len(early) >= 2 else after.subset(np.arange(len(after)) < 2)
 
 
 def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0.1, 0.01), forward=FORWARD):

@@ -214,6 +214,24 @@ def test_parked_with_a_quiet_imu_and_fixes_that_cannot_tell_the_velocity_is_zero
         assert np.all(v == 0) and REST_VELOCITY_SIGMA <= sigma <= most, (gnss_sigma, sigma)
 
 
+@pytest.mark.parametrize("speed", [10.0, 0.0])
+def test_fixes_further_apart_than_the_velocity_window_give_their_mean_velocity_not_a_rest(speed):
+    """A smooth cruise (the IMU reads as at rest) with one fix every 10 s (a sensor's ``every``
+    thinning 1-Hz fixes, as on KITTI): the two first fixes' mean velocity with the unknown
+    velocity's sigma, not a rest of 0.05 m/s that took a car at 9 m/s for parked; parked, the
+    same fixes still say zero."""
+    from datasets.initialise import REST_VELOCITY_SIGMA, UNKNOWN_VELOCITY_SIGMA, _velocity
+
+    imu, sensors = _straight_drive(lambda t: np.full_like(t, speed), gnss_rate=0.1, wheels=False)
+    truth = speed * np.array([np.cos(YAW), np.sin(YAW), 0.0])
+    v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+    assert np.linalg.norm(v - truth) < 0.1, v
+    assert sigma == (UNKNOWN_VELOCITY_SIGMA if speed else REST_VELOCITY_SIGMA), sigma
+    if speed:  # (parked, nothing gives the heading: refused, as it should be)
+        _, state, cov = initial_state(imu, sensors, GRAVITY)
+        assert np.abs(state.C @ state.v - truth).max() < 0.1 and np.sqrt(cov[3, 3]) >= UNKNOWN_VELOCITY_SIGMA
+
+
 def test_fixes_before_the_imu_starts_are_not_taken_for_its_position():
     imu, sensors = _straight_drive(lambda t: np.full_like(t, 10.0), t_imu=(10.0, 60.0), t_gnss=(0.0, 60.0))
     t_s, state, _ = initial_state(imu, sensors, GRAVITY)

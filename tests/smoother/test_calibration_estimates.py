@@ -222,7 +222,7 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
     """GTSAM's KITTI example data, every 10th fix used or all of them, its GPS's time offset and
     lever arm estimated: the OXTS unit gives its fixes at the IMU, in its own clock (the truth:
     zero), but the fixes' residuals are far out of band of the example's 0.26-m sigma (~20 per
-    dof with every 10th fix) or, at 10 Hz, 0.9 alike from fix to fix, and the calibration leans on
+    dof with every 10th fix) or, at 1 Hz, 0.9 alike from fix to fix, and the calibration leans on
     them: it lands over 3 of its sigmas from zero, within 3 of the sigmas its residuals give it,
     and the printed line says by how much they are understated."""
     from datasets import kitti
