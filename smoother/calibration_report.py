@@ -126,6 +126,20 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
     return lines
 
 
+def verdicts_for(estimator: str, verdicts: dict) -> dict:
+    """``estimator``'s verdicts ``{sensor: verdict}`` out of every estimator's (``{estimator:
+    {sensor: verdict}}``), a sensor it judged none of (the fixed-lag smoother, which keeps no
+    covariances of the states with the calibrations, judges no calibrated sensor) taken from the
+    batch smoother's, else the EKF's, marked ``by`` with whose: the sensor's misfit is the data's
+    and the model's, and it says as much of this estimator's sigmas."""
+    out = dict(verdicts.get(estimator) or {})
+    for other in ("batch", "ekf"):
+        for sensor, v in (verdicts.get(other) or {}).items():
+            if other != estimator and sensor not in out:
+                out[sensor] = {**v, "by": other}
+    return out
+
+
 def fit_note(verdict: dict | None, rho: float | None) -> str:
     """What an estimator's verdict on a calibrated sensor (:func:`smoother.diagnostics.verdict`)
     and its residuals' lag-one correlation ``rho`` (position fixes; None otherwise) say of its
@@ -135,7 +149,8 @@ def fit_note(verdict: dict | None, rho: float | None) -> str:
     if misfit:
         lo, hi = verdict["band"]
         what = "residuals" if verdict["statistic"] == "residual" else "innovations"
-        said.append(f"its {what} are {verdict['per_dof']:.3g} per dof (band {lo:.3g}-{hi:.3g}), the sigmas take its "
+        whose = f"its {what} by the {verdict['by']}" if "by" in verdict else f"its {what}"
+        said.append(f"{whose} are {verdict['per_dof']:.3g} per dof (band {lo:.3g}-{hi:.3g}), the sigmas take its "
                     "noise as given")
         factor *= float(np.sqrt(verdict["per_dof"]))
         if verdict["statistic"] != "residual":  # S = H P H^T + R: R is off by more than S

@@ -176,7 +176,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.initialise import world_frame
     from datasets.kinds import sensors_of
     from smoother import report
-    from smoother.calibration_report import calibration_lines
+    from smoother.calibration_report import calibration_lines, verdicts_for
     from smoother.diagnostics import consistency_lines, consistency_warnings
     from smoother.misfit_causes import hints
     from smoother.pipeline import estimate_each, judged, sensor_consistency
@@ -235,11 +235,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         note = interpolation_note(baseline, metrics, estimates, dataset)
         if note:
             print(f"note: {note}", file=sys.stderr)
+    verdicts = {name: m.get("sensors", {}) for name, m in metrics.items()}
     for name, m in metrics.items():
         if m.get("calibration"):
             print(f"{name}:")
-            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}), m.get("sensors"),
-                                          correlations.get(name)):
+            for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}),
+                                          verdicts_for(name, verdicts), correlations.get(name)):
                 print(f"  {line}")
     if args.rig is not None and metrics.get("batch", {}).get("calibration"):
         print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)

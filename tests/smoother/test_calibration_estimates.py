@@ -281,3 +281,16 @@ def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas()
     assert "`every`" in correlated and "per dof" not in correlated
     assert "lag-one correlation is 0.40" in line(fits, 0.4)
     assert "about 6x these" in line({**fits, "per_dof": 4.0, "ok": False}, 0.8)
+
+
+def test_an_estimator_without_its_own_verdict_on_a_sensor_takes_the_batch_s_then_the_ekf_s_and_says_whose():
+    from smoother.calibration_report import calibration_lines, verdicts_for
+
+    mine, batch, ekf = ({"per_dof": x, "band": [0.8, 1.2], "ok": False, "statistic": s}
+                        for x, s in ((4.0, "residual"), (9.0, "residual"), (16.0, "nis")))
+    every = {"fixed-lag": {"wheel": mine}, "batch": {"gnss": batch}, "ekf": {"gnss": ekf, "ahrs": ekf}}
+    got = verdicts_for("fixed-lag", every)
+    assert got == {"wheel": mine, "gnss": {**batch, "by": "batch"}, "ahrs": {**ekf, "by": "ekf"}}
+    assert verdicts_for("batch", every)["gnss"] is batch and "by" not in verdicts_for("ekf", every)["gnss"]
+    records = {"gnss": {"time_offset_s": 0.1, "time_offset_sigma_s": 0.01}}
+    assert "its residuals by the batch are 9 per dof" in calibration_lines(records, {}, got)[0]

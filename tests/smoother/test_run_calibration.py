@@ -87,14 +87,18 @@ def test_a_calibration_fitted_to_a_sensor_whose_sigma_is_too_small_says_how_over
     calibration line says its sigmas are that many times too small (the square root of it)."""
     folder, text = recording
     rig = _rig(folder, text, 'sigma = 0.0125\nestimate = ["rotation", "scale"]', "overconfident")
-    metrics = _run(rig, tmp_path / "run")
-    line = next(line for line in capsys.readouterr().out.splitlines() if "calibration wheel:" in line)
+    metrics = _run(rig, tmp_path / "run", "all")
+    lines = [line for line in capsys.readouterr().out.splitlines() if "calibration wheel:" in line]
+    line = next(x for x in lines if "its residuals are" in x)  # the batch's (the EKF's says innovations)
     verdict = metrics["batch"]["sensors"]["wheel"]
     assert not verdict["ok"] and verdict["per_dof"] > 8.0, verdict
     assert f"its residuals are {verdict['per_dof']:.3g} per dof" in line, line
     assert f"by its residuals they would be {np.sqrt(verdict['per_dof']):.2g}x these" in line, line
     caution = line[line.index("its residuals are"):]  # the line's note, also beside the values for the next run
     assert f"# caution: {caution}" in (tmp_path / "run" / "calibrated.toml").read_text().splitlines(), caution
+    # the fixed-lag smoother judges no calibrated sensor: its line says the batch's verdict, and whose
+    assert "wheel" not in metrics["fixed-lag"]["sensors"]
+    assert sum(f"its residuals by the batch are {verdict['per_dof']:.3g} per dof" in x for x in lines) == 1, lines
 
 
 def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlation(recording, tmp_path, capsys,
