@@ -162,7 +162,7 @@ def fit_note(verdict: dict | None, rho: float | None) -> str:
         qualifier = "about "
     if not said:
         return ""
-    advice = ("trust this calibration once they fit (the warnings below say what to check)" if misfit
+    advice = ("trust this calibration once they fit (the run's warnings say what to check)" if misfit
               else "fixes further apart (a rig's `every`, `--gps-every`) carry nearly as much and are nearer "
                    "independent")
     ar1 = " if its errors drift as AR(1)" if correlated >= CORRELATION_FACTOR else ""

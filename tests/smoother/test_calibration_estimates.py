@@ -271,7 +271,7 @@ def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas()
     assert line(None) == line(fits, 0.35) == line({**fits, "per_dof": 1.6, "ok": False}) == plain
     assert line({**fits, "per_dof": 4.0, "ok": False}).endswith(
         "its residuals are 4 per dof (band 0.8-1.2), the sigmas take its noise as given: by its residuals they would "
-        "be 2x these -- trust this calibration once they fit (the warnings below say what to check)")
+        "be 2x these -- trust this calibration once they fit (the run's warnings say what to check)")
     assert "they would be 0.45x these" in line({**fits, "per_dof": 0.2, "ok": False})
     ekf = line({**fits, "per_dof": 4.0, "ok": False, "statistic": "nis"})
     assert "its innovations are 4 per dof" in ekf and "they would be at least about 2x these" in ekf, ekf
