@@ -235,7 +235,7 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
 
 
 @njit(cache=True)
-def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold) -> int:
+def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction, limits) -> int:
     """The border's part of a solve of the bordered window (:mod:`smoother.window_calibration`):
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
     ``nc`` calibration coordinates; ``Z`` by slot like ``L``) and of their products ``ZZ[k % cap]
@@ -243,8 +243,11 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     ``Z_k^T y_k``, which like ``Z_k`` and ``y_k`` stay while row ``k`` of ``L`` does), ``L_D
     L_D^T = D - Z^T Z`` from their sums, ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y``
     the forward solution, and ``dx -= Z delta_c`` over the window (which the backward solve turns
-    into the keyframes' step). Returns 1 when some ``|delta_c|`` exceeds its ``threshold``, else
-    0; -1, ``L_D``, ``delta_c`` and ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""
+    into the keyframes' step. ``limits`` gets each coordinate's limit, the larger of its
+    ``threshold`` and ``fraction`` of its marginal sigma (the square root of the diagonal of
+    ``(L_D L_D^T)^-1``: the squared norms of ``L_D^-1``'s columns). Returns 1 when some
+    ``|delta_c|`` exceeds its limit, else 0; -1, ``L_D``, ``delta_c``, ``limits`` and ``dx``
+    untouched, when ``D - Z^T Z`` is not positive definite."""
     nc = D.shape[0]
     for k in range(start, newest + 1):
         Z[k % cap] = B[k - start]
@@ -281,10 +284,22 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
             acc -= factor[b, a] * x[b, 0]
         x[a, 0] = acc / factor[a, a]
     L_D[:, :] = factor
+    inv = np.zeros((nc, nc))  # L_D^-1: coordinate a's marginal variance is the squared norm of its column
+    for a in range(nc):
+        inv[a, a] = 1.0 / factor[a, a]
+        for i in range(a + 1, nc):
+            acc = 0.0
+            for b in range(a, i):
+                acc -= factor[i, b] * inv[b, a]
+            inv[i, a] = acc / factor[i, i]
     exceeds = 0
     for a in range(nc):
         delta_c[a] = x[a, 0]
-        if abs(x[a, 0]) > threshold[a]:
+        var = 0.0
+        for i in range(a, nc):
+            var += inv[i, a] * inv[i, a]
+        limits[a] = max(threshold[a], fraction * np.sqrt(var))
+        if abs(x[a, 0]) > limits[a]:
             exceeds = 1
     for k in range(first, newest + 1):
         s = k % cap

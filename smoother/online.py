@@ -558,6 +558,35 @@ class ReplayResult:
     calibration: tuple | None = None
 
 
+def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate: float | None = None,
+              **options) -> OnlineSmoother:
+    """The :class:`OnlineSmoother` that :func:`replay` feeds ``dataset`` to
+    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes asked for at
+    :func:`smoother.timeline.estimate_times`."""
+    online = OnlineSmoother.for_dataset(dataset, robust, **options)
+    online.keyframe_at(estimate_times(dataset, keyframe_rate))
+    return online
+
+
+def arrivals(dataset: Dataset):
+    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp: one
+    ``(t, upto, arrived)`` per arrival time ``t``, ``upto`` the number of IMU samples before it
+    (which arrive first) and ``arrived`` the ``(sensor name, measurements)`` that arrive then."""
+    sensors = sensors_of(dataset)
+    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
+    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
+    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
+    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
+    at = np.concatenate(none + arrival)
+    order = np.lexsort((rows, which, at))
+    groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
+    for group in groups:
+        t = at[group[0]]
+        arrived = [(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
+                   for i in np.unique(which[group])]
+        yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
+
+
 def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
            robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
            speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
@@ -572,16 +601,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
         raise InputError(f"speed must be positive, got {speed}")
     smoothed: list[OnlineEstimate] = []
     began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
-    online = OnlineSmoother.for_dataset(dataset, robust, lag_s=lag_s, kind=kind, max_delay_s=max_delay_s,
-                                        covariances=covariances, on_smoothed=smoothed.append)
-    online.keyframe_at(estimate_times(dataset, keyframe_rate))
-    sensors = sensors_of(dataset)
-    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
-    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
-    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
-    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
-    at = np.concatenate(none + arrival)
-    order = np.lexsort((rows, which, at))
+    online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
+                       covariances=covariances, on_smoothed=smoothed.append)
     imu_t = dataset.imu.t
     start = time.perf_counter()
 
@@ -602,16 +623,13 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
 
     fed = 0
     with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
-        groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
-        for group in groups:
-            t = at[group[0]]
-            upto = int(np.searchsorted(imu_t, t, side="left"))
+        for t, upto, arrived in arrivals(dataset):
             feed(fed, upto)
             bar.update(upto - fed)
             fed = upto
             wait(t)
-            for i in np.unique(which[group]):
-                online.add_measurements(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
+            for name, data in arrived:
+                online.add_measurements(name, data)
         feed(fed, len(imu_t))
         bar.update(len(imu_t) - fed)
         online.finish()

@@ -70,7 +70,7 @@ from smoother.graph import robust_threshold
 from smoother.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _linearise_calibrated,  # noqa: F401
                                        _LinearPrior, _prior_into, _robust_scale, _whitening_into)
 from smoother.solver import whitening
-from smoother.window_calibration import WindowCalibration
+from smoother.window_calibration import RELINEARISATION_SIGMA_FRACTION, WindowCalibration
 
 DIM = imu.STATE_DIM
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
@@ -121,20 +121,21 @@ def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
 
 @njit(cache=True)
 def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, B, D, gc, dx, L_D, delta_c,
-                              threshold):
+                              threshold, fraction, limits):
     """A bordered window's :func:`_factorise_forward`, then ``dx = y`` over the window and the
     border's part (:func:`smoother.banded._border_solve`: ``Z``, ``ZZ``, ``L_D``, ``delta_c``,
-    ``dx -= Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
+    ``limits``, ``dx -= Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
     :func:`_factorise_forward`'s (``code`` 0, nothing else done), else -1 and the border's code
-    (1: some ``|delta_c|`` exceeds its ``threshold``, 0: none, -1: the calibrations' Schur
-    complement is not positive definite, ``dx = y``)."""
+    (1: some ``|delta_c|`` exceeds its limit, 0: none, -1: the calibrations' Schur complement is
+    not positive definite, ``dx = y``)."""
     failed = _factorise_forward(Hr, g, L, y, first, start, newest, cap, S)
     if failed >= 0:
         return failed, 0
     for k in range(first, newest + 1):
         s = k % cap
         dx[s] = y[s]
-    return -1, _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold)
+    return -1, _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold,
+                             fraction, limits)
 
 
 @njit(cache=True)
@@ -529,7 +530,8 @@ class SlidingWindow:
             B, D, gc = no_border(n)
         else:  # D, g_c from the calibrations' own priors when solving
             B = np.zeros((n, DIM, cal.nc))
-            D, gc = (a.copy() if solving else np.zeros_like(a) for a in cal.own_prior)
+            D, gc = (cal.own_prior[0].copy(), cal.own_prior[1].copy()) if solving else (np.zeros((cal.nc, cal.nc)),
+                                                                                        np.zeros(cal.nc))
         with _compiling():
             _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
@@ -546,17 +548,24 @@ class SlidingWindow:
             reaches = p.keyframes.size and p.keyframes[0] < cut and p.keyframes[-1] >= lo
             if not (reaches or (bordered and (solving or not p.keyframes.size))):
                 continue
+            # a bordered prior's share of D, g_c is kept as a calibrated row's is, but for one the
+            # marginal being made replaces
+            keeps = bordered and (solving or not reaches)
             if not bordered:
-                plain = no_border(n) if plain is None else plain
-                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
-                            *self._linearisation_points(), lo, Hb, g, *plain)
-                continue
-            if reaches or p.own is None:  # a bordered prior's share of D, g_c, kept as a calibrated row's is
+                plain = into = no_border(n) if plain is None else plain
+            elif not keeps:
+                into = B, D, gc
+            elif reaches or p.own is None:
                 p.own = np.zeros((cal.nc, cal.nc)), np.zeros(cal.nc)
+                into = (B, *p.own)
+            else:
+                into = None
+            if into is not None:
                 _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
-                            *self._linearisation_points(), lo, Hb, g, B, *p.own)
-            D += p.own[0]
-            gc += p.own[1]
+                            *self._linearisation_points(), lo, Hb, g, *into)
+            if keeps:
+                D += p.own[0]
+                gc += p.own[1]
         return Hb, g, (B, D, gc)
 
     def _solve(self, t: float) -> None:
@@ -603,7 +612,8 @@ class SlidingWindow:
             before_c, delta_c = self._cal.delta.copy(), np.empty(self._cal.nc)
             failed, code = _factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
                                                      self._cap, S, self._Z, self._ZZ, *border, self._dx,
-                                                     self._cal.L_D, delta_c, self._cal.thresholds)
+                                                     self._cal.L_D, delta_c, self._cal.thresholds,
+                                                     RELINEARISATION_SIGMA_FRACTION, self._cal.limits)
             if failed >= 0:
                 return failed
             exceeds = code == 1
