@@ -235,7 +235,8 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
 
 
 @njit(cache=True)
-def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction, limits) -> int:
+def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction,
+                  limits) -> int:
     """The border's part of a solve of the bordered window (:mod:`smoother.window_calibration`):
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
     ``nc`` calibration coordinates; ``Z`` by slot like ``L``) and of their products ``ZZ[k % cap]

@@ -256,5 +256,6 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
     assert 0 < calibrations.relinearised < 0.6 * thresholds_alone.relinearised, (calibrations.relinearised,
                                                                               thresholds_alone.relinearised)
     sigma = np.sqrt(np.diag(calibrations.joint_covariance()))
-    np.testing.assert_allclose(calibrations.limits, np.maximum(calibrations.thresholds, wc.RELINEARISATION_SIGMA_FRACTION * sigma), rtol=1e-9)
-    assert (calibrations.limits > calibrations.thresholds).any() and (calibrations.limits == calibrations.thresholds).any()
+    limits = np.maximum(calibrations.thresholds, wc.RELINEARISATION_SIGMA_FRACTION * sigma)
+    np.testing.assert_allclose(calibrations.limits, limits, rtol=1e-9)
+    assert (limits > calibrations.thresholds).any() and (limits == calibrations.thresholds).any()
