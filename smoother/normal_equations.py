@@ -260,7 +260,7 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
 
 @njit(cache=True)
 def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
-                          mg, cal, cal_time, cal_cols, layouts, hacc, hgyro, Hb, g, B, D, gc) -> None:
+                          mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, Hb, g, B, D, gc) -> None:
     """:func:`_linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
     (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
     reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
@@ -270,18 +270,30 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
     ``g_c``, kept in ``mD[f]``, ``mg[f]``. One whose keyframes are all before ``lo`` adds what it
     kept: its keyframes have not been linearised again since it was last linearised (their rows
     of ``L`` would then be stale), nor has its calibration (every row reading one is stale then).
-    A separate kernel: a window without calibrations never compiles the calibrated residuals."""
+    The one-keyframe ones on a keyframe also keep the sum of what they add to its rows, ``kH``,
+    ``kg``, ``kB`` at its slot (its diagonal block, ``g`` and ``B`` rows): where ``kept`` holds
+    for its slot (the caller clears it when the keyframe or a calibration is linearised again
+    or a measurement joins it) they add that sum instead of being linearised again; the others
+    are linearised, their sums kept and ``kept`` set. A separate kernel: a window without
+    calibrations never compiles the calibrated residuals."""
     e, ew = np.empty(DIM), np.empty(DIM)
     JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))
     H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
     Jc = np.empty((_MAX_DIM, _WIDE))  # the factor's states and calibration side by side
     work = work_array()
+    n = Hb.shape[0]
+    for k in range(lo, min(cut, lo + n)):  # the sums not kept, made anew below
+        s = k % cap
+        if not kept[s]:
+            kH[s] = 0.0
+            kg[s] = 0.0
+            kB[s] = 0.0
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         j = mcal[f]
         if k0 >= cut or j < 0:
             continue
-        if k1 < lo:
+        if k1 < lo or (model[f] != RELATIVE_MODEL and kept[k0 % cap]):
             _add_own(D, gc, cal_cols[j], mD[f], mg[f])
             continue
         d = dims[f]
@@ -300,9 +312,22 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
         Jc[:d, width:width + CALIBRATION_DIM] = Hc[:d]
         _whiten(Wm[f], e, Jc, d, width + CALIBRATION_DIM, ew, JT, Jt0)
         _reweight(rcode[f], rk[f], JT, ew, d)
-        _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo if relative else -1, DIM, width, cal_cols[j], JT, ew, d)
+        if relative:
+            _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo, DIM, width, cal_cols[j], JT, ew, d)
+            _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
+        else:  # into its keyframe's sums, added below
+            _add_border(kB[i], mD[f], mg[f], _AT_ZERO, 0, _NO_KEYFRAME, DIM, width, cal_cols[j], JT, ew, d)
+            _add_diagonal(kH[i], kg[i], 0, _AT_ZERO, JT, ew, d)
         _add_own(D, gc, cal_cols[j], mD[f], mg[f])
-        _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
+    for k in range(lo, min(cut, lo + n)):
+        s, a = k % cap, k - lo
+        kept[s] = True
+        for p in range(DIM):
+            g[a * DIM + p] += kg[s, p]
+            for q in range(DIM):
+                Hb[a, 0, p, q] += kH[s, 0, 0, p, q]
+            for c in range(B.shape[2]):
+                B[a, p, c] += kB[s, 0, p, c]
 
 
 @njit(cache=True)

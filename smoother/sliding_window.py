@@ -277,20 +277,22 @@ class SlidingWindow:
                   "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
                   "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2]),
-                  "_ZZ": self._ZZ.shape[1:]}
+                  "_ZZ": self._ZZ.shape[1:], "_kH": (1, 1, DIM, DIM), "_kg": (DIM,), "_kB": (1, DIM, self._Z.shape[2])}
         old = {name: getattr(self, name, None) for name in shapes}
         old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
+        old_kept = getattr(self, "_kept", None)
         self._cap = cap
         for name, tail in shapes.items():
             setattr(self, name, np.zeros((cap,) + tail))
         self._has_imu = np.zeros(cap, dtype=np.bool_)
+        self._kept = np.zeros(cap, dtype=np.bool_)  # whether _kH, _kg, _kB hold the keyframe's sums (_linearise_calibrated)
         self._moved = np.zeros(cap, dtype=np.bool_)
         self._pre = [None] * cap
         for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
             a, b = k % old_cap, k % cap
             for name in shapes:
                 getattr(self, name)[b] = old[name][a]
-            self._has_imu[b], self._pre[b] = old_imu[a], old_pre[a]
+            self._has_imu[b], self._pre[b], self._kept[b] = old_imu[a], old_pre[a], old_kept[a]
 
     def _allocate_measurements(self, cap: int) -> None:
         """Measurement tables for ``cap`` rows, the current ones kept."""
@@ -381,7 +383,7 @@ class SlidingWindow:
         if held is None and self._cal is not None and self._cal.steps_in_time:
             raise InputError("add_keyframe: held: a calibrated time offset needs the IMU reading held at the keyframe")
         self._hacc[s], self._hgyro[s] = (0.0, 0.0) if held is None else held
-        self._has_imu[s] = False
+        self._has_imu[s] = self._kept[s] = False
         self._pre[s] = None
         linked = k == 0 or interval is not None
         if interval is not None:
@@ -464,7 +466,7 @@ class SlidingWindow:
     def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, calibration: int) -> None:
         """Append a checked measurement (:meth:`_measurement_row`) that reads ``calibration`` (its
         index in the window's calibrations, -1: none); the rows of ``L`` from its oldest keyframe
-        on are stale."""
+        on are stale, and the sums that keyframe's calibrated measurements keep are dropped."""
         if self._m == len(self._mk):
             self._allocate_measurements(2 * len(self._mk))
         f = self._m
@@ -479,6 +481,7 @@ class SlidingWindow:
         self._mcal[f] = calibration
         self._m = f + 1
         self._stale = min(self._stale, min(keyframes))
+        self._kept[min(keyframes) % self._cap] = False
 
     def _add_prior(self, k: int, state: imu.ImuState, R: np.ndarray) -> None:
         """A prior ``R (x_k [-] state)`` on keyframe ``k`` (``R`` the whitening of its covariance)."""
@@ -490,9 +493,11 @@ class SlidingWindow:
     def _relinearised(self, oldest: int) -> None:
         """After :func:`_step` linearised keyframes ``oldest ..`` (those flagged) again:
         integrate again the intervals out of those whose gyro bias moved beyond the reintegration
-        threshold, and mark the rows of ``L`` their factors change as stale."""
+        threshold, drop the sums their calibrated measurements keep (``_kept``) and mark the rows
+        of ``L`` their factors change as stale."""
         moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
         self.relinearised.append(len(moved))
+        self._kept[self._moved] = False
         for i in moved:
             j = (i + 1) % self._cap
             drift = np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j]))
@@ -540,7 +545,8 @@ class SlidingWindow:
             if cal is not None:
                 _linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
                                       self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
-                                      self._mcal, self._mD, self._mg, cal.packed, cal.with_time, cal.columns, LAYOUTS,
+                                      self._mcal, self._mD, self._mg, self._kH, self._kg, self._kB, self._kept,
+                                      cal.packed, cal.with_time, cal.columns, LAYOUTS,
                                       self._hacc, self._hgyro, Hb, g, B, D, gc)
         plain = None if cal is not None else (B, D, gc)
         for p in self._priors:
@@ -642,8 +648,8 @@ class SlidingWindow:
 
     def _calibrations_moved(self) -> None:
         """After calibrations were linearised again: the bordered priors' calibration coordinates
-        anew, and the rows of ``L`` (and of the border) of every keyframe a factor reading a
-        calibration reads are stale."""
+        anew, the sums the calibrated measurements keep dropped, and the rows of ``L`` (and of the
+        border) of every keyframe a factor reading a calibration reads are stale."""
         oldest = self.newest + 1
         for p in self._priors:
             if p.c_lin is not None:
@@ -651,6 +657,7 @@ class SlidingWindow:
                 p.own = None
                 if p.keyframes.size:
                     oldest = min(oldest, int(p.keyframes[0]))
+        self._kept[:] = False
         reads = self._mcal[:self._m] >= 0
         if reads.any():
             oldest = min(oldest, int(self._mk[:self._m][reads, 0].min()))

@@ -36,7 +36,9 @@ block of ``A^-1`` plus ``W_k (L_D L_D^T)^-1 W_k^T`` with ``W = L_A^-T Z``.
 
 Everything an update evaluates is compiled: the calibrated residuals
 (:func:`datasets.kinds.calibrated_into`, :func:`factors.calibration.calibrated_odometry_into`)
-and the border's sums in :func:`smoother.normal_equations._linearise`, the bordered priors in
+and the border's sums in :func:`smoother.normal_equations._linearise_calibrated` (each
+keyframe's one-keyframe calibrated measurements keep what they add to its rows until it or a
+calibration is linearised again), the bordered priors in
 :func:`smoother.normal_equations._prior_into`, the border's solve
 (:func:`smoother.banded._border_solve`) and the bordered marginal
 (:func:`smoother.banded._marginal_prior`). This class holds the variables: their linearisation

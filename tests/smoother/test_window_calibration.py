@@ -77,7 +77,11 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch(mo
         n = window.newest - window.first + 1
         if window._cal is None or valid != n or window.shortened != shortened:
             return  # (the kernels' warm-up window has no calibration)
+        kept = [a.copy() for a in (window._kept, window._kH, window._kg, window._kB, window._mD, window._mg)]
+        window._kept[:] = False  # every measurement linearised anew, what the window keeps left as it was
         Hb, g, border = window._normal_equations(window.first, window.newest + 1, n, window._S)
+        for a, b in zip((window._kept, window._kH, window._kg, window._kB, window._mD, window._mg), kept):
+            a[...] = b
         H, rhs = _bordered(Hb, g, border)
         slots = np.arange(window.first, window.newest + 1) % window._cap
         got = np.concatenate([window._dx[slots, :, 0].ravel(), window._cal.delta])
@@ -173,9 +177,11 @@ def test_a_calibrated_time_offset_without_the_imu_reading_is_refused():
         window.add_keyframe(0.0, data.initial, prior=(data.initial, data.initial_cov))
 
 
-def _tied_through_the_calibration(lag_s: float, duration: float):
+def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = False, after_update=None):
     """A window fed keyframes at the wheels' 10 Hz with no IMU between them, each with a prior
-    about its true state and one wheel-speed reading through the calibrated rotation and scale."""
+    about its true state and one wheel-speed reading through the calibrated rotation and scale
+    (``late``: every third update also the previous reading, on the keyframe before;
+    ``after_update(window)`` called after each update)."""
     from factors.calibration import CalibrationSet
     from smoother.graph import measurement_spec
     from smoother.window_calibration import WindowCalibration
@@ -192,8 +198,13 @@ def _tied_through_the_calibration(lag_s: float, duration: float):
     calibration_only = 0
     for m, t in enumerate(wheels.t):
         window.taken(window.leaving(float(t)))
-        window.add_keyframe(float(t), truth[m], None, [(spec, m, [window.newest + 1], None)], prior=(truth[m], cov))
+        readings = [(spec, m, [window.newest + 1], None)]
+        if late and m % 3 == 2:
+            readings.append((spec, m - 1, [window.newest], None))
+        window.add_keyframe(float(t), truth[m], None, readings, prior=(truth[m], cov))
         calibration_only += any(p.keyframes.size == 0 for p in window._priors)
+        if after_update is not None:
+            after_update(window)
     return window, calibration_only
 
 
@@ -259,3 +270,27 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
     limits = np.maximum(calibrations.thresholds, wc.RELINEARISATION_SIGMA_FRACTION * sigma)
     np.testing.assert_allclose(calibrations.limits, limits, rtol=1e-9)
     assert (limits > calibrations.thresholds).any() and (limits == calibrations.thresholds).any()
+
+
+def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_made_anew():
+    """The sums a keyframe's calibrated one-keyframe measurements keep for its rows (``_kH``,
+    ``_kg``, ``_kB``) against every measurement linearised anew, after every update: the same
+    normal equations to rounding -- also when a reading joins a keyframe after its sums were kept
+    (every third update, on the keyframe before) and as the calibration is linearised again."""
+    compared = []
+
+    def compare(window):
+        n = window.newest - window.first + 1
+        lo, cut = window.first, window.newest + 1
+        kept = window._normal_equations(lo, cut, n, window._S)
+        saved = [a.copy() for a in (window._kept, window._kH, window._kg, window._kB)]
+        window._kept[:] = False
+        fresh = window._normal_equations(lo, cut, n, window._S)
+        for a, b in zip((window._kept, window._kH, window._kg, window._kB), saved):
+            a[...] = b
+        for got, want in zip((kept[0], kept[1], *kept[2]), (fresh[0], fresh[1], *fresh[2])):
+            np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+        compared.append(window._cal.relinearised)
+
+    _tied_through_the_calibration(0.5, 3.0, late=True, after_update=compare)
+    assert len(compared) > 25 and compared[-1] > 0, compared
