@@ -154,17 +154,18 @@ class WindowCalibration:
         cov = self.joint_covariance()
         return [cov[a:b, a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
-    def relinearise(self) -> bool:
-        """Move the linearisation point of each calibration whose offset exceeds its
-        :attr:`limits` in some coordinate to its estimate; True if any moved (every factor reading
-        a calibration is then stale)."""
-        if not (np.abs(self.delta) > self.limits).any():
+    def relinearise(self, fraction: float = 1.0) -> bool:
+        """Move the linearisation point of each calibration whose offset exceeds ``fraction`` of
+        its :attr:`limits` in some coordinate to its estimate; True if any moved (every factor
+        reading a calibration is then stale)."""
+        limits = fraction * self.limits
+        if not (np.abs(self.delta) > limits).any():
             return False
         moved = False
         for j, t in enumerate(self.theta):
             a, b = self.offsets[j], self.offsets[j + 1]
             d = self.delta[a:b]
-            if np.any(np.abs(d) > self.limits[a:b]):
+            if np.any(np.abs(d) > limits[a:b]):
                 self.theta[j] = t.boxplus(self._full(j, d))
                 self.delta[a:b] = 0.0
                 moved = True
