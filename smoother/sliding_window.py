@@ -17,7 +17,8 @@ window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
   ``theta``s, give ``H = sum J^T J``, ``g = sum J^T e`` over whitened, robustly reweighted
   residuals (GTSAM's Huber, Cauchy and Tukey weights), and each update solves ``H delta = -g``.
   A keyframe is linearised again (``theta <- theta [+] delta``, ``delta <- 0``) when its offset
-  exceeds :data:`RELINEARISATION_THRESHOLD` in any component; a step that would turn an attitude
+  exceeds :data:`RELINEARISATION_THRESHOLD` in any component, or :data:`EARLY_RELINEARISATION`
+  of it where an update assembles its factors' rows anyway; a step that would turn an attitude
   further than :data:`MAX_ATTITUDE_STEP` is shortened along its direction;
 * keyframes in time order and factors that couple keyframes at most ``S`` apart (IMU factors 1,
   a relative pose its span, the marginal prior what it ties) make ``H`` block-banded; its
