@@ -80,7 +80,7 @@ DIM = imu.STATE_DIM
 #: position and accelerometer bias, bilinear in velocity and attitude and nearly linear in the gyro
 #: bias, so what is left out is second order in these offsets: on the benchmark's run the
 #: estimates stay within 0.02 sigma of relinearising every keyframe at every update
-#: (``docs/performance.md``), with 0.5 keyframes relinearised per update instead of all 20.
+#: (``docs/performance.md``), with about 0.1 keyframes relinearised per update instead of all 20.
 RELINEARISATION_THRESHOLD = np.array([0.05] * 3 + [0.05] * 3 + [5e-3] * 3 + [0.05] * 3 + [2e-3] * 3)
 #: An update that assembles the rows from some keyframe on anyway first linearises again, at no
 #: assembly of its own, what those rows hold and has moved this fraction of the way to being
