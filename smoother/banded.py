@@ -178,11 +178,12 @@ def _schur(Hb, g, B, D, gc, nl):
     Y[:, M - m0] = full[:m0]
     _solve_lower(Lll, Y)
     for a in range(M - m0):
-        for b in range(M - m0):
+        for b in range(a + 1):  # symmetric: the lower triangle, mirrored
             s = H[m0 + a, m0 + b]
             for c in range(m0):
                 s -= Y[c, a] * Y[c, b]
             Hs[a, b] = s
+            Hs[b, a] = s
         s = full[m0 + a]
         for c in range(m0):
             s -= Y[c, a] * Y[c, M - m0]

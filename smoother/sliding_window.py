@@ -662,8 +662,9 @@ class SlidingWindow:
         whose factors lie wholly in them (``start + reach ..``, ``reach`` the factors' reach) and
         whose offset exceeds :data:`EARLY_RELINEARISATION` of the threshold, and, when they are
         the whole window, the calibrations whose offset exceeds that fraction of their limits;
-        no row before ``start`` becomes stale."""
-        if start + reach <= self.newest:
+        no row before ``start`` becomes stale (nor anything moves when those keyframes are the newest
+        alone: it was added at its estimate)."""
+        if start + reach < self.newest:
             oldest = _relinearise(start + reach, self.newest, self._cap, self._dx,
                                   EARLY_RELINEARISATION * self.relinearisation_threshold,
                                   *self._linearisation_points(), *self._estimates(), self._moved)
@@ -707,7 +708,7 @@ class SlidingWindow:
         nl = cut - self.first
         n = min(self.newest - self.first + 1, nl + S)
         Hb, g, (B, D, gc) = self._normal_equations(self.first, cut, n, S, solving=False)
-        bordered = self._cal is not None and D.any()  # (B != 0 puts its J_c^T J_c != 0 in D)
+        bordered = self._cal is not None and np.count_nonzero(D) > 0  # (B != 0 puts its J_c^T J_c != 0 in D)
         if not bordered:
             B, D, gc = no_border(n)
         status, touched, A, b, own_D, own_g = _marginal_prior(Hb, g, B, D, gc, nl)
