@@ -223,21 +223,34 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
     """Record each estimator's verdicts in its details: ``sensors`` (per sensor) and ``fit`` (all
     together, :func:`smoother.diagnostics.overall`) and, when the fit or any one verdict is far
     above its band (:func:`smoother.diagnostics.far_above`: the estimate does not explain that
-    part of its own data, whatever the optimiser reported), ``doubtful`` with why."""
+    part of its own data, whatever the optimiser reported), ``doubtful`` with why. A sensor whose
+    calibration an estimator estimated but could not judge itself (the fixed-lag smoother keeps no
+    covariances of its states with the calibrations) counts by the verdict of another estimator
+    of the same model on the same data (:func:`smoother.calibration_report.verdicts_for`)."""
+    from smoother.calibration_report import verdicts_for
     from smoother.diagnostics import far_above, overall
 
     for name, est in estimates.items():
         ours = consistency.get(name, {})
         est.details["sensors"] = ours
+        why = []
         fit = overall(ours)
-        if fit is None:
-            continue
-        est.details["fit"] = fit
-        off = [k for k, c in ours.items() if far_above(c)]
-        if far_above(fit) or off:
-            worst = max(ours, key=lambda k: ours[k]["per_dof"])
-            est.details["doubtful"] = (f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} "
-                                       f"are {fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-"
-                                       f"{fit['band'][1]:.2g}), those of {', '.join(off) or worst} far above their band "
-                                       f"(worst: {worst}, {ours[worst]['per_dof']:.3g}): the model does not fit "
-                                       "the data, so the estimate may be wrong and its covariances too small")
+        if fit is not None:
+            est.details["fit"] = fit
+            off = [k for k, c in ours.items() if far_above(c)]
+            if far_above(fit) or off:
+                worst = max(ours, key=lambda k: ours[k]["per_dof"])
+                why.append(f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} are "
+                           f"{fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-{fit['band'][1]:.2g}), those "
+                           f"of {', '.join(off) or worst} far above their band (worst: {worst}, "
+                           f"{ours[worst]['per_dof']:.3g})")
+        calibrated = () if est.calibration is None else est.calibration.names
+        borrowed = {k: v for k, v in verdicts_for(name, consistency).items()
+                    if k in calibrated and k not in ours and far_above(v)}
+        if borrowed:
+            why.append("its calibrated " + ", ".join(
+                f"{k}, which it does not judge itself, is {v['per_dof']:.3g} per dof by the {v['by']} (expected "
+                f"{v['band'][0]:.2g}-{v['band'][1]:.2g})" for k, v in borrowed.items()))
+        if why:
+            est.details["doubtful"] = "; ".join(why) + (": the model does not fit the data, so the estimate may be "
+                                                        "wrong and its covariances too small")

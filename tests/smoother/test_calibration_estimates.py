@@ -294,3 +294,28 @@ def test_an_estimator_without_its_own_verdict_on_a_sensor_takes_the_batch_s_then
     assert verdicts_for("batch", every)["gnss"] is batch and "by" not in verdicts_for("ekf", every)["gnss"]
     records = {"gnss": {"time_offset_s": 0.1, "time_offset_sigma_s": 0.01}}
     assert "its residuals by the batch are 9 per dof" in calibration_lines(records, {}, got)[0]
+
+
+def test_an_estimator_is_doubtful_by_another_s_verdict_only_on_a_sensor_it_calibrated_and_could_not_judge():
+    """The fixed-lag smoother estimated the GNSS's calibration and judged only the wheel: the
+    batch's verdict on the GNSS far above its band makes it doubtful, saying whose; the AHRS,
+    which it did not calibrate, and the batch's own verdicts count for nothing here."""
+    from types import SimpleNamespace
+
+    from smoother.pipeline import judged
+
+    def verdict(x, s="residual"):
+        return {"per_dof": x, "band": [0.8, 1.2], "ok": 0.8 <= x <= 1.2, "statistic": s, "measurements": 100,
+                "dof": 100.0}
+
+    def estimate(calibrated):
+        return SimpleNamespace(details={}, calibration=SimpleNamespace(names=calibrated) if calibrated else None)
+
+    for gnss, doubtful in ((9.0, True), (1.0, False)):
+        every = {"fixed-lag": {"wheel": verdict(1.0)}, "batch": {"gnss": verdict(gnss), "ahrs": verdict(9.0)}}
+        estimates = {"fixed-lag": estimate(("gnss",)), "batch": estimate(())}
+        judged(estimates, every)
+        said = estimates["fixed-lag"].details.get("doubtful", "")
+        assert ("its calibrated gnss, which it does not judge itself, is 9 per dof by the batch (expected 0.8-1.2)"
+                in said) == doubtful, said
+        assert "ahrs" not in said

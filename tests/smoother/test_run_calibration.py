@@ -96,9 +96,12 @@ def test_a_calibration_fitted_to_a_sensor_whose_sigma_is_too_small_says_how_over
     assert f"by its residuals they would be {np.sqrt(verdict['per_dof']):.2g}x these" in line, line
     caution = line[line.index("its residuals are"):]  # the line's note, also beside the values for the next run
     assert f"# caution: {caution}" in (tmp_path / "run" / "calibrated.toml").read_text().splitlines(), caution
-    # the fixed-lag smoother judges no calibrated sensor: its line says the batch's verdict, and whose
+    # the fixed-lag smoother judges no calibrated sensor: its line says the batch's verdict, and whose,
+    # and it is doubtful by it (the same model on the same data)
     assert "wheel" not in metrics["fixed-lag"]["sensors"]
     assert sum(f"its residuals by the batch are {verdict['per_dof']:.3g} per dof" in x for x in lines) == 1, lines
+    assert (f"its calibrated wheel, which it does not judge itself, is {verdict['per_dof']:.3g} per dof by the batch"
+            in metrics["fixed-lag"]["doubtful"]), metrics["fixed-lag"].get("doubtful")
 
 
 def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlation(recording, tmp_path, capsys,
