@@ -702,16 +702,19 @@ def _lockstep(datasets) -> list:
     """Replay ``datasets`` -- one recording, each with its own sensor setup -- through one online
     smoother each (lag 2 s, no covariances) as a robot would feed it: each arrival
     (:func:`smoother.online.arrivals`) -- the IMU samples before it one by one, its measurements,
-    then ``estimate()`` -- handed to every smoother before the next. Each smoother's ``(loop,
-    update)`` times [s]: of each arrival (about one keyframe each), of each window update."""
+    then ``estimate()`` -- handed to every smoother before the next, in turn first (what the
+    caches keep from one smoother's step is the other's loss). Each smoother's ``(loop, update)``
+    times [s]: of each arrival (about one keyframe each) after the first 2 s, as
+    :func:`online_against_native` leaves out the window filling, and of each window update."""
     from smoother.online import arrivals, replaying
 
     smoothers = [replaying(d, lag_s=2.0, covariances=False) for d in datasets]
     loops = [[] for _ in smoothers]
     imu_data, fed = datasets[0].imu, 0
     t, acc, gyro = imu_data.t.tolist(), list(imu_data.acc), list(imu_data.gyro)
-    for _, upto, arrived in [*arrivals(datasets[0]), (None, len(t), [])]:
-        for online, loop in zip(smoothers, loops):
+    for i, (at, upto, arrived) in enumerate(arrivals(datasets[0])):
+        for j in (range(len(smoothers)) if i % 2 == 0 else reversed(range(len(smoothers)))):
+            online = smoothers[j]
             tick = time.perf_counter()
             for m in range(fed, upto):
                 online.add_imu(t[m], acc[m], gyro[m])
@@ -719,11 +722,14 @@ def _lockstep(datasets) -> list:
                 online.add_measurements(name, data)
             if upto:
                 online.estimate()
-            loop.append(time.perf_counter() - tick)
+            if at >= t[0] + LAG_S:
+                loops[j].append(time.perf_counter() - tick)
         fed = upto
     for online in smoothers:
+        for m in range(fed, len(t)):
+            online.add_imu(t[m], acc[m], gyro[m])
         online.finish()
-    return [(np.array(loop[:-1]), np.array(online.update_s)) for online, loop in zip(smoothers, loops)]
+    return [(np.array(loop), np.array(online.update_s)) for online, loop in zip(smoothers, loops)]
 
 
 def machine() -> dict:

@@ -237,7 +237,7 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
 
 @njit(cache=True)
 def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction,
-                  limits) -> int:
+                  widest, limits) -> int:
     """The border's part of a solve of the bordered window (:mod:`smoother.window_calibration`):
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
     ``nc`` calibration coordinates; ``Z`` by slot like ``L``) and of their products ``ZZ[k % cap]
@@ -247,7 +247,8 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     the forward solution, and ``dx -= Z delta_c`` over the window (which the backward solve turns
     into the keyframes' step. ``limits`` gets each coordinate's limit, the larger of its
     ``threshold`` and ``fraction`` of its marginal sigma (the square root of the diagonal of
-    ``(L_D L_D^T)^-1``: the squared norms of ``L_D^-1``'s columns). Returns 1 when some
+    ``(L_D L_D^T)^-1``: the squared norms of ``L_D^-1``'s columns), at most ``widest`` times the
+    threshold. Returns 1 when some
     ``|delta_c|`` exceeds its limit, else 0; -1, ``L_D``, ``delta_c``, ``limits`` and ``dx``
     untouched, when ``D - Z^T Z`` is not positive definite."""
     nc = D.shape[0]
@@ -300,7 +301,7 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
         var = 0.0
         for i in range(a, nc):
             var += inv[i, a] * inv[i, a]
-        limits[a] = max(threshold[a], fraction * np.sqrt(var))
+        limits[a] = max(threshold[a], min(fraction * np.sqrt(var), widest * threshold[a]))
         if abs(x[a, 0]) > limits[a]:
             exceeds = 1
     for k in range(first, newest + 1):

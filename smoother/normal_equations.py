@@ -272,9 +272,10 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
     of ``L`` would then be stale), nor has its calibration (every row reading one is stale then).
     The one-keyframe ones on a keyframe also keep the sum of what they add to its rows, ``kH``,
     ``kg``, ``kB`` at its slot (its diagonal block, ``g`` and ``B`` rows): where ``kept`` holds
-    for its slot (the caller clears it when the keyframe or a calibration is linearised again
-    or a measurement joins it) they add that sum instead of being linearised again; the others
-    are linearised, their sums kept and ``kept`` set. A separate kernel: a window without
+    for its slot (the caller clears it when a keyframe takes the slot, when the keyframe or a
+    calibration is linearised again and when a measurement joins it, and moves sums and flags
+    with the slots when the ring grows) they add that sum instead of being linearised again;
+    the others are linearised, their sums kept and ``kept`` set. A separate kernel: a window without
     calibrations never compiles the calibrated residuals."""
     e, ew = np.empty(DIM), np.empty(DIM)
     JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))

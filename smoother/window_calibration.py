@@ -63,16 +63,23 @@ from factors.errors import InputError
 #: attitude (0.01 s at 1 rad/s).
 RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [5e-3])
 #: While a calibration coordinate is still uncertain its offset may also reach this fraction of
-#: its marginal sigma ``sigma`` (the last solve's, from ``L_D``) before it is linearised again:
-#: the offset's second-order term, ``c delta^2`` with ``c`` its curvature relative to its slope
-#: (1/2 for a rotation, ``|w| / 2`` for a time offset), moves the estimate by ``c kappa^2 sigma``
-#: sigmas at ``delta = kappa sigma``: 0.0125 sigma at kappa = 0.5 for sigmas up to 0.1 rad
-#: (0.1 s at 1 rad/s) -- as little as the thresholds leave once the data have fixed it. Early in
-#: a recording, where a calibration is still far from what the data will give it and moves at
-#: every update, this keeps it from being linearised again -- and the whole window factorised
-#: again -- at nearly every update (on the benchmark's minute 31 times instead of 75, the
-#: estimates as close to relinearising everything at every update).
+#: its marginal sigma ``sigma`` (the last solve's, from ``L_D``) before it is linearised again, up
+#: to :data:`RELINEARISATION_WIDEST` times its threshold. The offset's own second-order term,
+#: ``c delta^2`` with ``c`` its curvature relative to its slope (1/2 for a rotation, ``|w| / 2``
+#: for a time offset), moves the estimate by ``c kappa^2 sigma`` sigmas at ``delta = kappa
+#: sigma``: 0.0125 sigma at kappa = 0.5 for sigmas up to 0.1 rad (0.1 s at 1 rad/s), the
+#: defaults' priors; its products with the keyframes' offsets (the scale's with the state's
+#: Jacobian) are measured rather than bounded: against relinearising everything at every update
+#: the estimates stay within 0.2 sigma (tests). Early in a recording, where a calibration is
+#: still far from what the data will give it and moves at every update, this keeps it from
+#: being linearised again -- and the whole window factorised again -- at nearly every update (on
+#: the benchmark's minute 31 times instead of 75, the estimates as close to relinearising
+#: everything at every update).
 RELINEARISATION_SIGMA_FRACTION = 0.5
+#: The widest limit, in thresholds (:data:`RELINEARISATION_SIGMA_FRACTION`): half a prior sigma of
+#: the defaults' (0.05 rad, 0.05 s, 0.025 of scale), so that a prior written wider does not let
+#: the offset grow past where the bound above holds.
+RELINEARISATION_WIDEST = 5.0
 
 
 class WindowCalibration:
@@ -112,7 +119,8 @@ class WindowCalibration:
         self.thresholds = np.concatenate([RELINEARISATION_THRESHOLD[which] for which in self._columns])
         #: the offsets beyond which the last solve found the border's coordinates due to be linearised
         #: again: the larger of the threshold and :data:`RELINEARISATION_SIGMA_FRACTION` of the
-        #: coordinate's marginal sigma (:func:`smoother.banded._border_solve`)
+        #: coordinate's marginal sigma, at most :data:`RELINEARISATION_WIDEST` thresholds
+        #: (:func:`smoother.banded._border_solve`)
         self.limits = self.thresholds.copy()
         #: a bordered prior's ``(dc, Jdc)`` made at the linearisation points (:meth:`border_of`)
         self.at_linearisation = np.zeros(self.nc), np.eye(self.nc)

@@ -177,11 +177,13 @@ def test_a_calibrated_time_offset_without_the_imu_reading_is_refused():
         window.add_keyframe(0.0, data.initial, prior=(data.initial, data.initial_cov))
 
 
-def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = False, after_update=None):
+def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = False, bare_every: int = 0,
+                                  after_update=None):
     """A window fed keyframes at the wheels' 10 Hz with no IMU between them, each with a prior
     about its true state and one wheel-speed reading through the calibrated rotation and scale
     (``late``: every third update also the previous reading, on the keyframe before;
-    ``after_update(window)`` called after each update)."""
+    ``bare_every``: every so many keyframes without its reading; ``after_update(window)`` called
+    after each update)."""
     from factors.calibration import CalibrationSet
     from smoother.graph import measurement_spec
     from smoother.window_calibration import WindowCalibration
@@ -198,7 +200,7 @@ def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = Fa
     calibration_only = 0
     for m, t in enumerate(wheels.t):
         window.taken(window.leaving(float(t)))
-        readings = [(spec, m, [window.newest + 1], None)]
+        readings = [] if bare_every and m % bare_every == 1 else [(spec, m, [window.newest + 1], None)]
         if late and m % 3 == 2:
             readings.append((spec, m - 1, [window.newest], None))
         window.add_keyframe(float(t), truth[m], None, readings, prior=(truth[m], cov))
@@ -267,16 +269,26 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
     assert 0 < calibrations.relinearised < 0.6 * thresholds_alone.relinearised, (calibrations.relinearised,
                                                                               thresholds_alone.relinearised)
     sigma = np.sqrt(np.diag(calibrations.joint_covariance()))
-    limits = np.maximum(calibrations.thresholds, wc.RELINEARISATION_SIGMA_FRACTION * sigma)
+    limits = np.maximum(calibrations.thresholds, np.minimum(wc.RELINEARISATION_SIGMA_FRACTION * sigma,
+                                                            wc.RELINEARISATION_WIDEST * calibrations.thresholds))
     np.testing.assert_allclose(calibrations.limits, limits, rtol=1e-9)
     assert (limits > calibrations.thresholds).any() and (limits == calibrations.thresholds).any()
 
 
-def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_made_anew():
+@pytest.mark.parametrize("lag_s, duration, moves", [(0.5, 8.0, True), (0.5, 8.0, False), (8.0, 9.0, True)])
+def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_made_anew(lag_s, duration, moves,
+                                                                                    monkeypatch):
     """The sums a keyframe's calibrated one-keyframe measurements keep for its rows (``_kH``,
     ``_kg``, ``_kB``) against every measurement linearised anew, after every update: the same
     normal equations to rounding -- also when a reading joins a keyframe after its sums were kept
-    (every third update, on the keyframe before) and as the calibration is linearised again."""
+    (every third update, on the keyframe before), as the calibration is linearised again, when a
+    keyframe without a reading takes a slot whose sums were kept (a 0.5-s lag: the ring's 64
+    slots go round; with the calibration never linearised again, which would clear every sum) and
+    when the ring grows (an 8-s lag: 80 keyframes in the window)."""
+    from smoother import window_calibration as wc
+
+    if not moves:
+        monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", np.full_like(wc.RELINEARISATION_THRESHOLD, 1e9))
     compared = []
 
     def compare(window):
@@ -292,5 +304,6 @@ def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_ma
             np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
         compared.append(window._cal.relinearised)
 
-    _tied_through_the_calibration(0.5, 3.0, late=True, after_update=compare)
-    assert len(compared) > 25 and compared[-1] > 0, compared
+    window, _ = _tied_through_the_calibration(lag_s, duration, late=True, bare_every=5, after_update=compare)
+    assert len(compared) > 75 and (compared[-1] > 0) == moves, compared
+    assert window.newest >= 64 and (window._cap > 64) == (lag_s > 6.4), (window.newest, window._cap)
