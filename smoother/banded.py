@@ -245,12 +245,11 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     ``Z_k^T y_k``, which like ``Z_k`` and ``y_k`` stay while row ``k`` of ``L`` does), ``L_D
     L_D^T = D - Z^T Z`` from their sums, ``delta_c = -(L_D L_D^T)^-1 (g_c + Z^T y)`` with ``y``
     the forward solution, and ``dx -= Z delta_c`` over the window (which the backward solve turns
-    into the keyframes' step. ``limits`` gets each coordinate's limit, the larger of its
+    into the keyframes' step). ``limits`` gets each coordinate's limit: the larger of its
     ``threshold`` and ``fraction`` of its marginal sigma (the square root of the diagonal of
     ``(L_D L_D^T)^-1``: the squared norms of ``L_D^-1``'s columns), at most ``widest`` times the
-    threshold. Returns 1 when some
-    ``|delta_c|`` exceeds its limit, else 0; -1, ``L_D``, ``delta_c``, ``limits`` and ``dx``
-    untouched, when ``D - Z^T Z`` is not positive definite."""
+    threshold. Returns 1 when some ``|delta_c|`` exceeds its limit, else 0; -1, ``L_D``,
+    ``delta_c``, ``limits`` and ``dx`` untouched, when ``D - Z^T Z`` is not positive definite."""
     nc = D.shape[0]
     for k in range(start, newest + 1):
         Z[k % cap] = B[k - start]
