@@ -51,7 +51,7 @@ def native(gps_every: int, bias_count: str, factor: str = "imu") -> dict:
     tick = time.perf_counter()
     if factor == "combined":
         from datasets import kitti
-        from smoother.native import combined_params
+        from smoother.evaluation.native import combined_params
 
         params = combined_params(kitti.read_metadata().noise(), kitti.GRAVITY)
         pim_class = gtsam.PreintegratedCombinedMeasurements
@@ -140,14 +140,14 @@ def _raw_metadata() -> dict:
 
 def ours(gps_every: int, tune_noise: bool = False) -> dict:
     """Our batch smoother, load + build + solve; with ``tune_noise`` the IMU noise is first tuned
-    to the maximum likelihood of the used fixes (:mod:`smoother.tuning`; its time included)."""
+    to the maximum likelihood of the used fixes (:mod:`smoother.diagnosis.noise_tuning`; its time included)."""
     import dataclasses
 
     from datasets import kitti
-    from smoother import report
-    from smoother.batch import solve_batch
-    from smoother.graph import build_problem
-    from smoother.tuning import tune_noise as tune
+    from smoother.evaluation import scoring as report
+    from smoother.batch.solve import solve_batch
+    from smoother.model.problem import build_problem
+    from smoother.diagnosis.noise_tuning import tune_noise as tune
 
     tick = time.perf_counter()
     dataset = kitti.load_kitti(gps_every=gps_every)
@@ -163,11 +163,11 @@ def ours(gps_every: int, tune_noise: bool = False) -> dict:
 
 def paired_difference(ours_errors: tuple, native_errors: tuple, gps_every: int) -> dict:
     """Held-out RMS of ours minus native's on the same fixes, with a 95% block-bootstrap interval
-    (:func:`smoother.metrics.rmse_difference`): the held-out fixes between two used fixes form one
+    (:func:`smoother.evaluation.metrics.rmse_difference`): the held-out fixes between two used fixes form one
     block (their errors are correlated along the gap). Also counted: the gaps where ours is closer
     (mean squared distance)."""
     from datasets import kitti
-    from smoother import metrics
+    from smoother.evaluation import metrics
 
     (t_a, d_a), (t_b, d_b) = ours_errors, native_errors
     if t_a.shape != t_b.shape or not np.allclose(t_a, t_b, rtol=0, atol=1e-6):

@@ -34,7 +34,7 @@ interleaved, medians taken, because the machine is noisy):
    10 Hz keyframes and poses, lag 2 s, one hour; covariances off on both sides): GTSAM's
    ``IncrementalFixedLagSmoother`` (default ``ISAM2Params``) on ``CombinedImuFactor`` and
    ``PriorFactorPose3``, preintegrated by ``PreintegratedCombinedMeasurements.integrateMeasurement``
-   per sample from Python, against :class:`smoother.online.OnlineSmoother` fed ``add_imu`` per
+   per sample from Python, against :class:`smoother.online.smoother.OnlineSmoother` fed ``add_imu`` per
    sample and ``add("pose", ...)``. The whole loop per keyframe on each side: the samples of the
    interval in, the update, the newest estimate out (``calculateEstimate`` / ``estimate()``); the
    two smoothers step in turn, one keyframe each, so a slow spell of the machine hits both. Also
@@ -74,13 +74,14 @@ import kitti_native  # noqa: E402  (a sibling script, not a package)
 from datasets import kitti  # noqa: E402
 from datasets.simulate import simulate  # noqa: E402
 from factors import compiled, preintegration  # noqa: E402
-from smoother import native, solver  # noqa: E402
-from smoother.batch import solve_batch  # noqa: E402
-from smoother.ekf import run_ekf  # noqa: E402
-from smoother.fixed_lag import run_fixed_lag  # noqa: E402
-from smoother.graph import build_problem  # noqa: E402
-from smoother.online import OnlineSmoother  # noqa: E402
-from smoother.timeline import estimate_times, imu_steps  # noqa: E402
+from smoother.evaluation import native  # noqa: E402
+from smoother.model import blocks as solver  # noqa: E402
+from smoother.batch.solve import solve_batch  # noqa: E402
+from smoother.ekf.filter import run_ekf  # noqa: E402
+from smoother.fixed_lag.gtsam_window import run_fixed_lag  # noqa: E402
+from smoother.model.problem import build_problem  # noqa: E402
+from smoother.online.smoother import OnlineSmoother  # noqa: E402
+from smoother.model.timeline import estimate_times, imu_steps  # noqa: E402
 
 KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
 LAG_S = 2.0
@@ -701,12 +702,12 @@ def _online_calibration(plain, repeats: int) -> dict:
 def _lockstep(datasets) -> list:
     """Replay ``datasets`` -- one recording, each with its own sensor setup -- through one online
     smoother each (lag 2 s, no covariances) as a robot would feed it: each arrival
-    (:func:`smoother.online.arrivals`) -- the IMU samples before it one by one, its measurements,
+    (:func:`smoother.online.smoother.arrivals`) -- the IMU samples before it one by one, its measurements,
     then ``estimate()`` -- handed to every smoother before the next, in turn first (what the
     caches keep from one smoother's step is the other's loss). Each smoother's ``(loop, update)``
     times [s]: of each arrival (about one keyframe each) after the first 2 s, as
     :func:`online_against_native` leaves out the window filling, and of each window update."""
-    from smoother.online import arrivals, replaying
+    from smoother.online.smoother import arrivals, replaying
 
     smoothers = [replaying(d, lag_s=2.0, covariances=False) for d in datasets]
     loops = [[] for _ in smoothers]

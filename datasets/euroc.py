@@ -37,7 +37,7 @@ DATASET, ``(t_ns - t_ns[0]) * 1e-9`` computed from integers, so they keep sub-mi
 precision (seconds since 1970 in a float64 only resolve ~0.2 us). The dataset starts at the first
 IMU sample at or after the first ground-truth stamp (the initial state is the truth's) and keeps
 every IMU sample after it, also those after the ground truth's end (estimated on, and scored
-only where the truth is: :func:`smoother.report.against_truth`); a warning says how many IMU
+only where the truth is: :func:`smoother.evaluation.scoring.against_truth`); a warning says how many IMU
 samples lie outside the truth's span on either side and how much of the IMU's span the truth
 covers. The ground truth is kept over the IMU samples' span (at least two IMU samples and two of
 its samples must lie in the other's span). The initial state is the ground truth at the first

@@ -1,7 +1,7 @@
 """A rig file written back: the user's rig with calibrated values in it (``calibrated.toml``).
 
 The file is the rig as read (:func:`datasets.rig.load_rig` checked it) with, for each calibrated
-sensor, the values the batch smoother estimated (:mod:`smoother.calibration_report`'s records):
+sensor, the values the batch smoother estimated (:mod:`smoother.diagnosis.calibration_report`'s records):
 ``T_BS`` (replacing a ``camchain``), ``time_offset`` and ``scale``; its ``estimate`` and
 ``*_sigma`` keys become a comment, so the next run uses the values as given (put them back to
 refine further). Paths become absolute (the file is written beside the run's outputs, not the
@@ -45,9 +45,9 @@ def _table(lines: list[str], header: str, table: dict) -> None:
 
 def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -> str:
     """The TOML text of ``rig`` (its file re-read) with the calibration ``records``
-    (``{sensor: record}``, :func:`smoother.calibration_report.calibration_records`) written in,
+    (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`) written in,
     and beside a sensor's values, as a comment, its caution (``cautions``: ``{sensor: text}``,
-    '' for none; :func:`smoother.calibration_report.fit_note`)."""
+    '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`)."""
     cautions = cautions or {}
     with open(rig.path, "rb") as f:
         raw = tomllib.load(f)

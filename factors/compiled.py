@@ -169,7 +169,7 @@ def common_shape(*shapes) -> tuple:
 def matmul_into(A, B, out) -> None:
     """``out = A B`` for small 2-d arrays of any layout (``out`` must not alias ``A`` or ``B``).
     Written out because Numba's ``@`` on matrices calls SciPy's BLAS: the kernels load no SciPy
-    (slow to import; only the chi-square quantiles of :mod:`smoother.metrics` use it)."""
+    (slow to import; only the chi-square quantiles of :mod:`smoother.evaluation.metrics` use it)."""
     for a in range(A.shape[0]):
         for b in range(B.shape[1]):
             acc = 0.0

@@ -8,8 +8,8 @@
   a diverged filter, a failed smoother update).
 
 The classes that name a particular failure derive from these: ``datasets.errors.DataError``,
-``smoother.errors.IndeterminantSystem``, ``smoother.ekf.FilterDiverged``,
-``smoother.fixed_lag.FixedLagFailed``. The command line (``smoother.cli``) turns any of them into
+``smoother.errors.IndeterminantSystem``, ``smoother.ekf.filter.FilterDiverged``,
+``smoother.fixed_lag.gtsam_window.FixedLagFailed``. The command line (``smoother.cli``) turns any of them into
 a one-line message and an exit code.
 """
 

@@ -10,8 +10,8 @@ import importlib
 def lazy_exports(namespace: dict, exports: dict[str, str]):
     """``(__getattr__, __dir__)`` for the package whose module namespace is ``namespace``:
     ``exports`` maps each public name to the module that defines it (a name equal to that
-    module's last component is the module itself, e.g. ``"so3": "factors.so3"``). A name is
-    looked up once, then kept in the namespace."""
+    module's last component is the module itself, e.g. ``"so3": "factors.so3"`` or ``"metrics":
+    "smoother.evaluation.metrics"``). A name is looked up once, then kept in the namespace."""
     package = namespace["__name__"]
 
     def __getattr__(name: str):
@@ -19,7 +19,7 @@ def lazy_exports(namespace: dict, exports: dict[str, str]):
         if name not in exports:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
         module = importlib.import_module(exports[name])
-        value = module if exports[name] == f"{package}.{name}" else getattr(module, name)
+        value = module if exports[name].rsplit(".", 1)[-1] == name else getattr(module, name)
         namespace[name] = value
         return value
 

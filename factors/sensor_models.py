@@ -34,7 +34,7 @@ Jacobians with respect to the error state ``(dr, dv, dphi, db_f, db_w)`` (LEFT b
 Each model is ONE compiled kernel with the signature ``kernel(r, v, C, b_f, b_w, row, e, H)``:
 ``row`` holds the measurement and the extrinsic (the layout is the model's ``pack``), ``e (d,)``
 receives the residual and ``H (d, 15)`` its error-state Jacobian (every entry written). The EKF
-(``smoother.ekf``), the batch solver's blocks and the GTSAM factors (:func:`sensor_factor`) all
+(``smoother.ekf.filter``), the batch solver's blocks and the GTSAM factors (:func:`sensor_factor`) all
 run these kernels; there is no second copy of any formula.
 
 Relative poses of a sensor (odometry of a drifting source) connect two states; their model is

@@ -1,5 +1,5 @@
 """Compiled linear algebra on small dense matrices, shared by the EKF's update, the sliding
-window (:mod:`smoother.sliding_window`) and the data types' checks (:mod:`datasets.types`): calls
+window (:mod:`smoother.fixed_lag.sliding.window`) and the data types' checks (:mod:`datasets.types`): calls
 into LAPACK cost more than the arithmetic at these sizes (3 to a few hundred rows)."""
 from __future__ import annotations
 

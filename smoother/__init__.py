@@ -16,22 +16,22 @@ each is loaded on first use. This package depends on ``factors`` and ``datasets`
 from factors.exports import lazy_exports
 
 _EXPORTS = {
-    **dict.fromkeys(("build_problem", "Problem"), "smoother.graph"),
-    **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch"),
-    **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag"),
-    **dict.fromkeys(("OnlineSmoother", "OnlineEstimate", "SensorSetup", "replay", "ReplayResult"), "smoother.online"),
-    **dict.fromkeys(("run_ekf", "Ekf", "FilterResult", "FilterDiverged"), "smoother.ekf"),
+    **dict.fromkeys(("build_problem", "Problem"), "smoother.model.problem"),
+    **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch.solve"),
+    **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag.gtsam_window"),
+    **dict.fromkeys(("OnlineSmoother", "OnlineEstimate", "SensorSetup", "replay", "ReplayResult"), "smoother.online.smoother"),
+    **dict.fromkeys(("run_ekf", "Ekf", "FilterResult", "FilterDiverged"), "smoother.ekf.filter"),
     "IndeterminantSystem": "smoother.errors",
     **dict.fromkeys(("RunOptions", "run_estimators"), "smoother.pipeline"),
-    **dict.fromkeys(("evaluate", "ate", "rpe", "nees", "rmse_difference"), "smoother.metrics"),
+    **dict.fromkeys(("evaluate", "ate", "rpe", "nees", "rmse_difference"), "smoother.evaluation.metrics"),
     **dict.fromkeys(("compare_with_truth", "position_errors", "save_trajectory", "load_trajectory",
-                     "load_stamped_trajectory"), "smoother.report"),
-    **{name: f"smoother.{name}" for name in ("metrics", "crosscheck")},
-    "CrosscheckOptions": "smoother.crosscheck",
-    "tune_noise": "smoother.tuning",
-    **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnostics"),
-    **dict.fromkeys(("causes_at", "Cause"), "smoother.misfit_causes"),
-    "plot_run": "smoother.plots",
+                     "load_stamped_trajectory"), "smoother.evaluation.scoring"),
+    **{name: f"smoother.evaluation.{name}" for name in ("metrics", "crosscheck")},
+    "CrosscheckOptions": "smoother.evaluation.crosscheck",
+    "tune_noise": "smoother.diagnosis.noise_tuning",
+    **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnosis.verdicts"),
+    **dict.fromkeys(("causes_at", "Cause"), "smoother.diagnosis.misfit_causes"),
+    "plot_run": "smoother.outputs.plots",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

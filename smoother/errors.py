@@ -7,7 +7,7 @@ from factors.errors import InputError, SolverError
 
 class UserError(InputError):
     """A bad command-line option or dataset spec (raised by ``smoother.commands`` and
-    ``smoother.sources``, never by the library): the message names the option and what was expected."""
+    ``smoother.commands.dataset_specs``, never by the library): the message names the option and what was expected."""
 
 
 class Terminated(KeyboardInterrupt):

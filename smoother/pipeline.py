@@ -1,9 +1,9 @@
 """Running the estimators on a dataset: one call per estimator, one result type for all.
 
 ``batch`` (the whole graph), ``fixed-lag`` (GTSAM's fixed-lag smoother fed the data in order of
-arrival, :func:`smoother.online.replay`; each keyframe's estimate when it leaves the window, i.e.
+arrival, :func:`smoother.online.smoother.replay`; each keyframe's estimate when it leaves the window, i.e.
 smoothed over the lag) and ``ekf`` (the primer's filter) see the same dataset; the two smoothers
-have the same keyframes and factors (:func:`smoother.graph.build_problem`; the online smoother
+have the same keyframes and factors (:func:`smoother.model.problem.build_problem`; the online smoother
 makes them as the data arrive), so their differences are the estimators', not the model's.
 """
 from __future__ import annotations
@@ -15,15 +15,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.types import Dataset, Trajectory
-from smoother import kernel_warm_up
-from smoother.batch import solve_batch
-from smoother.calibration_report import calibration_records
-from smoother.ekf import run_ekf
-from smoother.ekf_calibrated import run_calibrated_ekf
-from smoother.graph import build_problem, calibration_set, measurement_blocks
+from smoother.online import warm_up as kernel_warm_up
+from smoother.batch.solve import solve_batch
+from smoother.diagnosis.calibration_report import calibration_records
+from smoother.ekf.filter import run_ekf
+from smoother.ekf.calibrated import run_calibrated_ekf
+from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from factors.errors import BoxplusError, InputError
-from smoother.residual_consistency import smoother_consistency
-from smoother.timeline import estimate_times
+from smoother.diagnosis.residual_consistency import smoother_consistency
+from smoother.model.timeline import estimate_times
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -31,7 +31,7 @@ ESTIMATORS = ("batch", "fixed-lag", "ekf")
 @dataclass
 class Estimate:
     """One estimator's trajectory (with covariances where computed) and wall time [s]; the EKF's
-    carries its :class:`smoother.ekf.Innovations`. An estimator that failed (``failed``: why, one
+    carries its :class:`smoother.ekf.filter.Innovations`. An estimator that failed (``failed``: why, one
     line) has no trajectory."""
 
     name: str
@@ -76,13 +76,13 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     so that a caller keeps what finished when a later one is interrupted. ``announce(name)`` is
     called as each starts.
 
-    The batch smoother starts from the EKF's estimate (:func:`smoother.graph.build_problem`'s
+    The batch smoother starts from the EKF's estimate (:func:`smoother.model.problem.build_problem`'s
     ``start``): the EKF runs first when both are asked for, and otherwise for the batch alone (its
     time counted in the batch's); where the EKF fails, from dead reckoning. ``details["start"]``
     says which. ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed``
     set (its error in one line) and the others still run; otherwise its exception propagates.
     While the others run, the sliding window's kernels compile in a second process when they are
-    not on disk yet (:mod:`smoother.kernel_warm_up`)."""
+    not on disk yet (:mod:`smoother.online.warm_up`)."""
     unknown = [n for n in names if n not in ESTIMATORS]
     if unknown:
         raise InputError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
@@ -121,7 +121,7 @@ def _one_line(error: Exception) -> str:
 
 
 def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
-    """The EKF; with calibrations asked for, with them as augmented states (:mod:`smoother.ekf_calibrated`)."""
+    """The EKF; with calibrations asked for, with them as augmented states (:mod:`smoother.ekf.calibrated`)."""
     calibrations = calibration_set(dataset)
     if calibrations is None:
         r = run_ekf(dataset, options.ekf_gate, options.progress)
@@ -174,7 +174,7 @@ def _given_values_note(dataset: Dataset, kind: str) -> dict:
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
-    from smoother.online import replay  # the online smoother and its window: not loaded for a batch or EKF run
+    from smoother.online.smoother import replay  # the online smoother and its window: not loaded for a batch or EKF run
 
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
@@ -193,13 +193,13 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
 
 def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
     """Each estimator's own verdict on each sensor, ``{estimator: {sensor: verdict}}``
-    (:func:`smoother.diagnostics.verdict`): the EKF's innovations
-    (:func:`smoother.diagnostics.sensor_consistency`), the batch smoother's residuals with their
+    (:func:`smoother.diagnosis.verdicts.verdict`): the EKF's innovations
+    (:func:`smoother.diagnosis.verdicts.sensor_consistency`), the batch smoother's residuals with their
     leverages (computed with its covariances, ``details["sensors"]``), the fixed-lag smoother's
     residuals of the factors on one keyframe at its estimates
-    (:func:`smoother.residual_consistency.smoother_consistency` over the measurement factors on
+    (:func:`smoother.diagnosis.residual_consistency.smoother_consistency` over the measurement factors on
     its keyframes). An estimator without covariances or that failed has none."""
-    from smoother.diagnostics import sensor_consistency as innovation_consistency
+    from smoother.diagnosis.verdicts import sensor_consistency as innovation_consistency
 
     out = {}
     for name, est in estimates.items():
@@ -221,14 +221,14 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
 
 def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
     """Record each estimator's verdicts in its details: ``sensors`` (per sensor) and ``fit`` (all
-    together, :func:`smoother.diagnostics.overall`) and, when the fit or any one verdict is far
-    above its band (:func:`smoother.diagnostics.far_above`: the estimate does not explain that
+    together, :func:`smoother.diagnosis.verdicts.overall`) and, when the fit or any one verdict is far
+    above its band (:func:`smoother.diagnosis.verdicts.far_above`: the estimate does not explain that
     part of its own data, whatever the optimiser reported), ``doubtful`` with why. A sensor whose
     calibration an estimator estimated but could not judge itself (the fixed-lag smoother keeps no
     covariances of its states with the calibrations) counts by the verdict of another estimator
-    of the same model on the same data (:func:`smoother.calibration_report.verdicts_for`)."""
-    from smoother.calibration_report import verdicts_for
-    from smoother.diagnostics import far_above, overall
+    of the same model on the same data (:func:`smoother.diagnosis.calibration_report.verdicts_for`)."""
+    from smoother.diagnosis.calibration_report import verdicts_for
+    from smoother.diagnosis.verdicts import far_above, overall
 
     for name, est in estimates.items():
         ours = consistency.get(name, {})

@@ -12,9 +12,9 @@ import pytest
 from datasets.errors import DataError
 from factors.errors import BoxplusError, InputError, SolverError
 from factors.imports import package_modules
-from smoother.ekf import FilterDiverged
+from smoother.ekf.filter import FilterDiverged
 from smoother.errors import IndeterminantSystem, UserError
-from smoother.fixed_lag import FixedLagFailed
+from smoother.fixed_lag.gtsam_window import FixedLagFailed
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,7 +49,7 @@ def test_every_exception_class_the_packages_define_derives_from_the_base():
 def test_only_the_command_line_raises_its_user_error():
     """``UserError`` names a command-line option; the library raises ``InputError`` (e.g.
     ``solve_batch`` with an unknown optimizer) and the command line words it."""
-    command_line = ("smoother.cli", "smoother.errors", "smoother.sources")
+    command_line = ("smoother.cli", "smoother.errors", "smoother.commands.dataset_specs")
     users = [name for name, path in package_modules(ROOT, ("factors", "datasets", "smoother")).items()
              if not name.startswith("smoother.commands") and name not in command_line
              and any(isinstance(node, ast.Name) and node.id == "UserError" or
@@ -59,8 +59,8 @@ def test_only_the_command_line_raises_its_user_error():
 
 def test_a_bad_optimizer_name_is_an_input_error():
     from datasets.simulate import simulate
-    from smoother.batch import solve_batch
-    from smoother.graph import build_problem
+    from smoother.batch.solve import solve_batch
+    from smoother.model.problem import build_problem
 
     with pytest.raises(InputError, match="optimizer 'newton': expected one of lm, gn, dogleg") as info:
         solve_batch(build_problem(simulate(duration=0.5, seed=0)), optimizer="newton")

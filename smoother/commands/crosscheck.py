@@ -20,7 +20,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.simulate import PROFILES
     from smoother.commands import at_least, duration, positive
-    from smoother.crosscheck import CrosscheckOptions, TARGETS, crosscheck
+    from smoother.evaluation.crosscheck import CrosscheckOptions, TARGETS, crosscheck
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:

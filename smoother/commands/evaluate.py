@@ -94,7 +94,7 @@ def run(args) -> int:
     import math
 
     from datasets.errors import DataError
-    from smoother import metrics
+    from smoother.evaluation import metrics
     from smoother.commands import at_least, positive
     from smoother.errors import UserError
 
@@ -198,7 +198,7 @@ def _read(path, fmt: str = "auto", attitudes: bool = False) -> _Poses:
     from datasets.euroc import read_pose_csv
     from datasets.kitti import read_pose_file
     from datasets.tum import read_tum_poses
-    from smoother.report import load_stamped_trajectory
+    from smoother.evaluation.scoring import load_stamped_trajectory
 
     fmt = _format_of(path) if fmt == "auto" else fmt
     if fmt == "npz":  # stamped in the data's clock, as the run's .tum files are
@@ -226,7 +226,7 @@ def _nees(ref, est, result, align: str) -> float | None:
     move the estimate by an amount its covariance knows nothing about (a position-fitted
     rotation of 0.1 deg is several attitude sigmas of a good smoother), so no NEES then; nor
     against a reference with attitudes only."""
-    from smoother import metrics
+    from smoother.evaluation import metrics
 
     if est.cov is None or align != "none" or result.rotation_only:
         return None

@@ -1,5 +1,5 @@
 """``smoother fleet``: many recordings, each as ``smoother run --rig`` runs it, in one command;
-``DIR/summary.json`` and a table per recording and estimator (:mod:`smoother.fleet`)."""
+``DIR/summary.json`` and a table per recording and estimator (:mod:`smoother.commands.fleet_runner`)."""
 from __future__ import annotations
 
 import json
@@ -36,7 +36,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.compiled import thread_count
-    from smoother import fleet
+    from smoother.commands import fleet_runner as fleet
     from smoother.commands import at_least, output_directory, positive
     from smoother.progress import progress_bar
 

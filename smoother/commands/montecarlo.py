@@ -28,7 +28,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother import montecarlo
+    from smoother.evaluation import montecarlo
     from smoother.commands import at_least, duration, fraction, output_directory
     from smoother.commands.run import parse_robust
     from smoother.progress import progress_bar
@@ -56,7 +56,7 @@ def run(args) -> int:
 
     with atomic_write(out / "summary.json") as handle:
         json.dump(summary.as_dict(), handle, indent=2)
-    from smoother import plots
+    from smoother.outputs import plots
 
     path = plots.plot_montecarlo(summary, out)
     if args.json:

@@ -1,4 +1,4 @@
-"""``smoother plot DIR``: the figures of a run directory (see :mod:`smoother.plots`) as PNG files."""
+"""``smoother plot DIR``: the figures of a run directory (see :mod:`smoother.outputs.plots`) as PNG files."""
 from __future__ import annotations
 
 import sys
@@ -22,7 +22,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from smoother import plots
+    from smoother.outputs import plots
     from smoother.commands import output_directory
 
     if args.out is not None:

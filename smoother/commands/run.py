@@ -7,7 +7,7 @@ import sys
 import time
 
 from smoother.errors import UserError, interruption
-from smoother.fixed_lag_kinds import FIXED_LAG_KINDS
+from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
 
 
 def register(sub) -> None:
@@ -108,7 +108,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from smoother import sources
+    from smoother.commands import dataset_specs as sources
     from smoother.commands import at_least, duration, fraction, positive
     from smoother.commands.run_directory import RunDirectory
     from smoother.pipeline import ESTIMATORS, RunOptions
@@ -175,10 +175,10 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.imu_health import findings_record
     from datasets.initialise import world_frame
     from datasets.kinds import sensors_of
-    from smoother import report
-    from smoother.calibration_report import calibration_lines, verdicts_for
-    from smoother.diagnostics import consistency_lines, consistency_warnings
-    from smoother.misfit_causes import hints
+    from smoother.evaluation import scoring as report
+    from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
+    from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
+    from smoother.diagnosis.misfit_causes import hints
     from smoother.pipeline import estimate_each, judged, sensor_consistency
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
@@ -217,7 +217,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations)
     _say_removed(out)
     if args.plot:
-        from smoother import plots
+        from smoother.outputs import plots
 
         with out.outputs(replace=False) as stage:
             figures = plots.plot_run(out.path, out_dir=stage)
@@ -266,9 +266,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
 
 def _calibration_correlations(dataset, estimates: dict) -> dict:
     """``{estimator: {sensor: rho}}``: the lag-one correlation of each calibrated position
-    sensor's residuals at the estimator's calibration (:func:`smoother.report.residual_correlation`;
+    sensor's residuals at the estimator's calibration (:func:`smoother.evaluation.scoring.residual_correlation`;
     None for other kinds)."""
-    from smoother import report
+    from smoother.evaluation import scoring as report
 
     return {name: {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s)
                    for s in est.details.get("calibration", {})}
@@ -276,17 +276,17 @@ def _calibration_correlations(dataset, estimates: dict) -> dict:
 
 
 def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None) -> dict:
-    """The run's files (:func:`smoother.report.write_outputs`) and, with ``--mcap``, its MCAP
-    (:func:`smoother.mcap_export.write_mcap`), into the staging folder ``stage``; the metrics.
+    """The run's files (:func:`smoother.evaluation.scoring.write_outputs`) and, with ``--mcap``, its MCAP
+    (:func:`smoother.outputs.mcap.write_mcap`), into the staging folder ``stage``; the metrics.
     ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
     on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
-    (:func:`smoother.calibration_report.fit_note`)."""
-    from smoother import report
+    (:func:`smoother.diagnosis.calibration_report.fit_note`)."""
+    from smoother.evaluation import scoring as report
     from smoother.commands.run_directory import MCAP
 
     metrics = report.write_outputs(stage, dataset, estimates, run_info)
     if args.mcap:
-        from smoother.mcap_export import write_mcap
+        from smoother.outputs.mcap import write_mcap
 
         write_mcap(stage / MCAP, dataset, estimates)
     records = metrics.get("batch", {}).get("calibration")
@@ -297,7 +297,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
 
         from datasets.atomic import atomic_write
 
-        from smoother.calibration_report import fit_note
+        from smoother.diagnosis.calibration_report import fit_note
 
         verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})
         cautions = {s: fit_note(verdicts.get(s), rhos.get(s)) for s in records}
@@ -332,9 +332,9 @@ def _say_removed(out) -> None:
 
 
 def tuned(dataset, progress: bool | None):
-    """``dataset`` with its IMU noise tuned (:func:`smoother.tuning.tune_noise`) and the record of
+    """``dataset`` with its IMU noise tuned (:func:`smoother.diagnosis.noise_tuning.tune_noise`) and the record of
     the tuning for ``metrics.json``; the factors are reported on stderr."""
-    from smoother.tuning import tune_noise
+    from smoother.diagnosis.noise_tuning import tune_noise
 
     print("tuning the IMU noise (maximum likelihood of the measurements used) ...", file=sys.stderr)
     try:
@@ -351,8 +351,8 @@ def tuned(dataset, progress: bool | None):
 def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) -> str | None:
     """When interpolating the used fixes beats every smoother's held-out RMSE: why that need not
     mean the smoothers are less accurate (the best smoother's residuals at consecutive used fixes,
-    :func:`smoother.report.residual_correlation`)."""
-    from smoother import report
+    :func:`smoother.evaluation.scoring.residual_correlation`)."""
+    from smoother.evaluation import scoring as report
 
     smoothers = {name: metrics[name].get("gps_heldout_rmse_m") for name in ("batch", "fixed-lag") if name in metrics}
     smoothers = {name: v for name, v in smoothers.items() if v is not None and math.isfinite(v)}
@@ -372,7 +372,7 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
 
 #: The table's cell for a figure against the truth that is not scored (metrics.json: ``ate_note``).
 UNSCORED = "unscored"
-#: The figures that :func:`smoother.report.against_truth` leaves unscored together.
+#: The figures that :func:`smoother.evaluation.scoring.against_truth` leaves unscored together.
 TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 

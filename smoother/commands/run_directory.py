@@ -2,8 +2,8 @@
 
 * **What a run writes**, by name (:func:`run_files`, the one list of them): per estimator of
   :data:`smoother.pipeline.ESTIMATORS` its ``.tum``, ``.npz`` and ``.geojson``; ``truth.npz``,
-  ``gps.npz``, ``metrics.json``; ``estimates.mcap`` (``--mcap``, :mod:`smoother.mcap_export`);
-  the figures of :mod:`smoother.plots` (``--plot``, or ``smoother plot DIR``). Nothing else in the directory is ever deleted or changed.
+  ``gps.npz``, ``metrics.json``; ``estimates.mcap`` (``--mcap``, :mod:`smoother.outputs.mcap`);
+  the figures of :mod:`smoother.outputs.plots` (``--plot``, or ``smoother plot DIR``). Nothing else in the directory is ever deleted or changed.
 * **One run at a time**: a run holds an exclusive ``flock`` on :data:`LOCK` (a hidden file in the
   directory, holding the run's process id) from before its estimators start until it ends; a
   second run into the same directory is refused at once, naming the directory and the other run's
@@ -38,7 +38,7 @@ METRICS = "metrics.json"
 MCAP = "estimates.mcap"
 #: The rig with the batch smoother's calibration written in (a rig run that estimates one).
 CALIBRATED_RIG = "calibrated.toml"
-#: The figures of a run directory (:func:`smoother.plots.plot_run`), as ``<name>.png``.
+#: The figures of a run directory (:func:`smoother.outputs.plots.plot_run`), as ``<name>.png``.
 FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
 #: Lock errors of a file system without locks: the run goes on, unguarded, with a warning.
 _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
@@ -105,7 +105,7 @@ class RunDirectory:
     def _clear_stale_staging(self) -> None:
         """Staging folders of a run that was killed (SIGKILL, power loss): with the lock held no
         other run owns one. Their run files are deleted (and the hidden folder a run file was being
-        written through, :func:`smoother.mcap_export.write_mcap`'s), then the folder if that emptied it."""
+        written through, :func:`smoother.outputs.mcap.write_mcap`'s), then the folder if that emptied it."""
         names = run_files()
         for folder in self.path.glob(f"{STAGING_PREFIX}*"):
             if not folder.is_dir() or folder.is_symlink():

@@ -18,8 +18,8 @@ from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import sensor_models as sm
 from factors.selfcheck import random_extrinsic
-from smoother.graph import measurement_spec
-from smoother.online import OnlineSmoother, SensorSetup
+from smoother.model.problem import measurement_spec
+from smoother.online.smoother import OnlineSmoother, SensorSetup
 from smoother.pipeline import RunOptions, run_estimators
 
 EVERY_KIND = pytest.mark.parametrize("kind", KINDS.values(), ids=lambda k: k.name)

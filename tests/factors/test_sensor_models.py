@@ -15,7 +15,7 @@ from factors import imu, selfcheck, so3
 from factors import sensor_models as sm
 from factors.jacobians import check_factor
 from factors.keys import keyframe_keys
-from smoother.graph import insert_state
+from smoother.model.problem import insert_state
 
 ONE_STATE = [k for k in KINDS.values() if not k.relative]
 
@@ -110,7 +110,7 @@ def test_rows_of_the_wrong_width_and_single_measurements_are_refused():
     """A row of another layout would be read past its end by the compiled kernel; a single
     measurement given to pack_* would be read as three rows."""
     from factors.errors import InputError
-    from smoother.ekf import Ekf
+    from smoother.ekf.filter import Ekf
 
     x = imu.ImuState.identity()
     with pytest.raises(InputError, match="position measurement row: expected 6 numbers"):

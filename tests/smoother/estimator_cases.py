@@ -3,7 +3,7 @@
 Every case is short (a few seconds at ``IMU_RATE`` = 100 Hz with 10 Hz pose measurements), so an
 EKF run costs a few hundred predictions and a batch solve a few dozen keyframes. Results are
 cached with ``functools.lru_cache`` on their (hashable) arguments; the fixtures in
-``conftest.py`` hand them out. Every estimator run gets its OWN :class:`smoother.graph.Problem`
+``conftest.py`` hand them out. Every estimator run gets its OWN :class:`smoother.model.problem.Problem`
 (the IMU factors re-integrate themselves when a gyro bias moves, so a problem is stateful and
 sharing one between a batch solve and a fixed-lag run would couple the two).
 """
@@ -18,8 +18,8 @@ import numpy as np
 from datasets.simulate import simulate
 from datasets.types import Dataset, Trajectory
 from factors import imu
-from smoother.ekf import FilterResult, run_ekf
-from smoother.crosscheck import sigma_difference  # noqa: F401  (used by the tests as cases.sigma_difference)
+from smoother.ekf.filter import FilterResult, run_ekf
+from smoother.evaluation.crosscheck import sigma_difference  # noqa: F401  (used by the tests as cases.sigma_difference)
 
 # The smoothers are imported where used, so that the EKF tests do not depend on them.
 
@@ -46,8 +46,8 @@ def dataset(spec: CaseSpec) -> Dataset:
 
 
 def problem(spec: CaseSpec):
-    """A fresh :class:`smoother.graph.Problem` (not cached: see the module docstring)."""
-    from smoother.graph import build_problem
+    """A fresh :class:`smoother.model.problem.Problem` (not cached: see the module docstring)."""
+    from smoother.model.problem import build_problem
 
     return build_problem(dataset(spec))
 
@@ -59,8 +59,8 @@ def ekf(spec: CaseSpec) -> FilterResult:
 
 @functools.lru_cache(maxsize=None)
 def batch(spec: CaseSpec):
-    """``(problem, smoother.batch.SmootherResult)`` of the default batch solve."""
-    from smoother.batch import solve_batch
+    """``(problem, smoother.batch.solve.SmootherResult)`` of the default batch solve."""
+    from smoother.batch.solve import solve_batch
 
     p = problem(spec)
     return p, solve_batch(p)
@@ -68,8 +68,8 @@ def batch(spec: CaseSpec):
 
 @functools.lru_cache(maxsize=None)
 def fixed_lag(spec: CaseSpec, kind: str, lag_s: float):
-    """``(problem, smoother.fixed_lag.FixedLagResult)``."""
-    from smoother.fixed_lag import run_fixed_lag
+    """``(problem, smoother.fixed_lag.gtsam_window.FixedLagResult)``."""
+    from smoother.fixed_lag.gtsam_window import run_fixed_lag
 
     p = problem(spec)
     with warnings.catch_warnings():

@@ -1,4 +1,4 @@
-"""The sliding window's block-banded linear algebra (:mod:`smoother.banded`) against SciPy's banded
+"""The sliding window's block-banded linear algebra (:mod:`smoother.fixed_lag.sliding.banded`) against SciPy's banded
 Cholesky (``scipy.linalg.cholesky_banded``, ``solveh_banded``) on the window's shapes: blocks of
 15, bandwidths 1 (IMU factors only) to 4 (a relative pose or a marginal prior spanning keyframes),
 windows of up to 24 keyframes in a ring that wraps round, well and badly conditioned."""
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.linalg import LinAlgError, cholesky_banded, solveh_banded
 
-from smoother import banded
-from smoother.banded import DIM
+from smoother.fixed_lag.sliding import banded
+from smoother.fixed_lag.sliding.banded import DIM
 
 SHAPES = [(1, 1), (2, 1), (20, 1), (13, 2), (24, 3), (9, 4)]
 

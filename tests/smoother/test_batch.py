@@ -13,9 +13,10 @@ from datasets.robust import ROBUST_KERNEL_NAMES, robust_spec
 from datasets.simulate import simulate
 from factors import imu
 from factors.errors import SolverError
-from smoother import batch, solver
-from smoother.batch import IndeterminantSystem, solve_batch
-from smoother.graph import ROBUST_KERNELS, build_problem, noise_model
+from smoother.batch import solve as batch
+from smoother.model import blocks as solver
+from smoother.batch.solve import IndeterminantSystem, solve_batch
+from smoother.model.problem import ROBUST_KERNELS, build_problem, noise_model
 
 import estimator_cases as cases
 
@@ -65,7 +66,7 @@ def test_linearizing_in_chunks_changes_nothing(monkeypatch):
     """The vectorised engine linearises each block in chunks of factors (cache-sized for long
     runs); chunks of 4 factors (blocks of 20 and 21 split unevenly) give the reference optimum
     exactly: the same factors, the same arithmetic."""
-    from smoother import solver
+    from smoother.model import blocks as solver
 
     monkeypatch.setattr(solver, "LINEARIZE_CHUNK", 4)
     result = solve_batch(build_problem(small()), "lm")
@@ -261,7 +262,7 @@ def test_robust_kernels_are_accepted_on_clean_data(name):
 
 
 def test_default_thresholds_scale_with_the_factor_dimension():
-    from smoother.graph import default_threshold
+    from smoother.model.problem import default_threshold
 
     assert default_threshold("huber", 1) == pytest.approx(1.959964, abs=1e-5)
     assert default_threshold("huber", 6) == pytest.approx(3.548, abs=1e-3)
@@ -308,7 +309,7 @@ def test_started_from_the_ekf_the_batch_reaches_the_same_optimum_in_a_few_iterat
     interval integrated around its biases) 3; both end at the same trajectory (1.2 mm apart, the
     IMU factors' covariances being evaluated along the two starts; the error is 0.11 m)."""
     from datasets.simulated_sensors import SensorSpec
-    from smoother.ekf import run_ekf
+    from smoother.ekf.filter import run_ekf
 
     data = simulate("gentle", duration=61, seed=3, imu_rate=100, pose_rate=None, initial_bias_sigma=(0.05, 0.07),
                     sensors=[SensorSpec("ahrs", "orientation", 50, 0.01), SensorSpec("wheels", "velocity", 50, 0.05)])
@@ -323,7 +324,7 @@ def test_started_from_the_ekf_the_batch_reaches_the_same_optimum_in_a_few_iterat
 def test_a_start_keeps_grid_keyframes_between_its_states_predicted():
     """A start whose times are a subset of the keyframes (a grid added): the keyframes it has are
     anchored at it, the others predicted from the keyframe before; the optimum is the same."""
-    from smoother.ekf import run_ekf
+    from smoother.ekf.filter import run_ekf
 
     data = simulate("gentle", duration=4, seed=1)
     ekf = run_ekf(data).trajectory

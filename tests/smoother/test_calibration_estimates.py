@@ -16,10 +16,10 @@ from datasets.simulated_sensors import SensorSpec
 from datasets.trajectories import Sinusoids, sinusoid_profile
 from factors import imu, so3
 from factors.calibration import CalibrationPrior
-from smoother.batch import solve_batch
-from smoother.calibration_report import UNOBSERVED_RATIO, calibration_records
-from smoother.graph import build_problem
-from smoother.metrics import chi2_quantile
+from smoother.batch.solve import solve_batch
+from smoother.diagnosis.calibration_report import UNOBSERVED_RATIO, calibration_records
+from smoother.model.problem import build_problem
+from smoother.evaluation.metrics import chi2_quantile
 
 #: A 3 deg pitched and 1 deg yawed speed sensor.
 PITCHED = np.eye(4)
@@ -226,8 +226,8 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
     them: it lands over 3 of its sigmas from zero, within 3 of the sigmas its residuals give it,
     and the printed line says by how much they are understated."""
     from datasets import kitti
-    from smoother import report
-    from smoother.calibration_report import calibration_lines
+    from smoother.evaluation import scoring as report
+    from smoother.diagnosis.calibration_report import calibration_lines
     from smoother.pipeline import RunOptions, estimate_each, sensor_consistency
 
     gps = kitti.GPS_SENSOR
@@ -259,7 +259,7 @@ def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas()
     4 per dof: 2x, and the warnings to follow; 0.2 per dof: 0.45x; the EKF's innovations at 4
     per dof: at least about 2x; 0.8 alike from fix to fix: about 3x (sqrt(1.8 / 0.2)), and fixes
     further apart."""
-    from smoother.calibration_report import calibration_lines
+    from smoother.diagnosis.calibration_report import calibration_lines
 
     records = {"gnss": {"time_offset_s": 0.1, "time_offset_sigma_s": 0.01}}
     fits = {"per_dof": 1.0, "band": [0.8, 1.2], "ok": True, "statistic": "residual"}
@@ -284,7 +284,7 @@ def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas()
 
 
 def test_an_estimator_without_its_own_verdict_on_a_sensor_takes_the_batch_s_then_the_ekf_s_and_says_whose():
-    from smoother.calibration_report import calibration_lines, verdicts_for
+    from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
 
     mine, batch, ekf = ({"per_dof": x, "band": [0.8, 1.2], "ok": False, "statistic": s}
                         for x, s in ((4.0, "residual"), (9.0, "residual"), (16.0, "nis")))

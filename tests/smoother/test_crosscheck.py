@@ -1,6 +1,6 @@
 """The cross-checks of docs/design.md section 9 as tests on small cases, and ``smoother crosscheck``.
 
-Tolerances (the project's targets, smoother.crosscheck.TARGETS):
+Tolerances (the project's targets, smoother.evaluation.crosscheck.TARGETS):
 
 * prediction identity < 1e-9: the IMU factor and the EKF run the same Euler model, so they
   differ by round-off only (measured ~1e-15);
@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
-from smoother import metrics
-from smoother.batch import solve_batch
+from smoother.evaluation import metrics
+from smoother.batch.solve import solve_batch
 from smoother.cli import main
-from smoother.crosscheck import TARGETS, prediction_error
-from smoother.ekf import Ekf
-from smoother.fixed_lag import KINDS
-from smoother.graph import build_problem
-from smoother.timeline import imu_steps
+from smoother.evaluation.crosscheck import TARGETS, prediction_error
+from smoother.ekf.filter import Ekf
+from smoother.fixed_lag.gtsam_window import KINDS
+from smoother.model.problem import build_problem
+from smoother.model.timeline import imu_steps
 
 import estimator_cases as cases
 
@@ -38,7 +38,7 @@ import estimator_cases as cases
 
 def _ekf_prediction(data, start, k0, k1, times, drop_sample=False):
     """The EKF's propagation of ``start`` over the dataset's IMU samples between keyframe times
-    ``times[k0]`` and ``times[k1]`` (cut by smoother.timeline, as run_ekf does)."""
+    ``times[k0]`` and ``times[k1]`` (cut by smoother.model.timeline, as run_ekf does)."""
     steps = imu_steps(data.imu, times)
     ekf = Ekf(start, np.zeros((15, 15)), data.noise, data.gravity)
     for s in range(steps.knot_step[k0], steps.knot_step[k1]):

@@ -15,9 +15,9 @@ import pytest
 from datasets.simulate import simulate
 from factors import imu, so3
 from factors import sensor_models as sm
-from smoother import metrics
-from smoother.ekf import Ekf, run_ekf
-from smoother.timeline import estimate_times, imu_steps
+from smoother.evaluation import metrics
+from smoother.ekf.filter import Ekf, run_ekf
+from smoother.model.timeline import estimate_times, imu_steps
 
 import estimator_cases as cases
 
@@ -369,7 +369,7 @@ def test_log_likelihood_accumulates_the_innovation_densities():
 def test_a_diverging_filter_stops_with_an_error_naming_the_time():
     """A filter whose state has run away (here: forced through its initial state or covariance)
     stops with an error naming the knot's time, instead of writing a trajectory of NaNs or 1e9 m."""
-    from smoother.ekf import FilterDiverged
+    from smoother.ekf.filter import FilterDiverged
 
     data = simulate("gentle", duration=1.0, seed=0)
     first = estimate_times(data)[0]
@@ -428,7 +428,7 @@ def test_the_compiled_filter_needs_no_scipy(tmp_path):
         "import numpy as np\n"
         "from factors import imu, so3\n"
         "from factors.sensor_models import pack_pose\n"
-        "from smoother.ekf import Ekf\n"
+        "from smoother.ekf.filter import Ekf\n"
         "ekf = Ekf(imu.ImuState.identity(), np.eye(15) * 0.01, imu.ImuNoise())\n"
         "ekf.predict_steps(np.tile([0, 0, 9.81], (5, 1)), np.full((5, 3), 0.1), np.full(5, 0.01))\n"
         "row = pack_pose([ekf.state.r + 0.01], [so3.exp([0.01, 0, 0]) @ ekf.state.C])[0]\n"

@@ -8,7 +8,7 @@ import pytest
 
 from datasets.tum import read_tum, write_tum
 from factors import so3
-from smoother import metrics
+from smoother.evaluation import metrics
 from smoother.cli import build_parser, main
 
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
-from smoother import fixed_lag
-from smoother.fixed_lag import KINDS, _make_smoother, run_fixed_lag
-from smoother.graph import build_problem
+from smoother.fixed_lag import gtsam_window as fixed_lag
+from smoother.fixed_lag.gtsam_window import KINDS, _make_smoother, run_fixed_lag
+from smoother.model.problem import build_problem
 
 import estimator_cases as cases
 
@@ -91,7 +91,7 @@ def test_a_long_run_with_a_measurement_gap_keeps_working():
     # last state within 0.2 batch sigma (measured 0.08; the EKF, which linearised the first
     # update after the gap about a 2 s dead-reckoning prediction and never again, is 0.96 sigma
     # off in the accelerometer bias there)
-    from smoother.batch import solve_batch
+    from smoother.batch.solve import solve_batch
 
     final = solve_batch(build_problem(data)).trajectory
     assert cases.sigma_difference(newest.states[-1], final.states[-1], final.cov[-1]).max() < 0.2
@@ -307,7 +307,7 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
 def test_the_lag_warning_tells_a_gap_from_the_lag_and_suggests_a_lag_that_reaches_it():
     """A gap of 2.0019 s beside a 2-s lag is not printed as "2 s", and the lag suggested is rounded
     up, never below the gap."""
-    from smoother.fixed_lag import sparse_measurement_warning
+    from smoother.fixed_lag.gtsam_window import sparse_measurement_warning
 
     text = sparse_measurement_warning(2.0019, 2.0, "sliding")
     assert "up to 2.002 s apart" in text and "at least 2.002 s" in text

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from small_recording import write_recording
 
-from smoother import fleet
+from smoother.commands import fleet_runner as fleet
 from smoother.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,8 +10,8 @@ import pytest
 
 from datasets.simulate import simulate
 from factors import so3
-from smoother.ekf import run_ekf
-from smoother.graph import build_problem, insert_state
+from smoother.ekf.filter import run_ekf
+from smoother.model.problem import build_problem, insert_state
 
 import estimator_cases as cases
 
@@ -59,7 +59,7 @@ def test_grid_coinciding_with_measurement_times_adds_no_near_duplicate_keyframes
     """A 10 Hz grid over 10 Hz poses: the grid times are the measurement times, so the keyframes
     are exactly those; no two keyframes closer than half an IMU step (an ulp-off duplicate makes
     a ~1e-16 s IMU interval with a ~0 covariance), and the batch solve works."""
-    from smoother.batch import solve_batch
+    from smoother.batch.solve import solve_batch
 
     data = simulate(profile="gentle", duration=2.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
     for rate in (10.0, 5.0, 25.0):
@@ -97,7 +97,7 @@ def test_gtsam_graph_is_built_on_first_use_only():
     """The batch solver works on the vectorised blocks: solving does not build the GTSAM factors
     (about half of the construction time); the first access builds them once, with the initial
     values of the problem's initial states."""
-    from smoother.batch import solve_batch
+    from smoother.batch.solve import solve_batch
 
     problem = build_problem(mixed())
     solve_batch(problem, covariances=False)

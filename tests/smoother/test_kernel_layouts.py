@@ -26,8 +26,8 @@ import json, sys
 from numba.core import types
 from numba.core.registry import CPUDispatcher
 from datasets.simulate import simulate
-from smoother import kernel_warm_up
-from smoother.normal_equations import _linearise
+from smoother.online import warm_up as kernel_warm_up
+from smoother.fixed_lag.sliding.normal_equations import _linearise
 from smoother.pipeline import run_estimators, RunOptions
 
 children = []

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from smoother import kernel_warm_up, pipeline
+from smoother import pipeline
+from smoother.online import warm_up as kernel_warm_up
 
 
 class _Child:

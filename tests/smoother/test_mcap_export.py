@@ -18,7 +18,9 @@ from datasets.kinds import sensors_of
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import imu, quaternion
-from smoother import mcap_export, report, sources
+from smoother.outputs import mcap as mcap_export
+from smoother.evaluation import scoring as report
+from smoother.commands import dataset_specs as sources
 from smoother.cli import main
 from smoother.commands.run_directory import LOCK, RunDirectory
 

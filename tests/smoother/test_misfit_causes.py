@@ -1,4 +1,4 @@
-"""The calibration a sensor's misfit points at (:mod:`smoother.misfit_causes`): each cause's
+"""The calibration a sensor's misfit points at (:mod:`smoother.diagnosis.misfit_causes`): each cause's
 pattern against its definition, each injected rig error (a 1 % wheel-speed scale, a pitched speed
 sensor, a GNSS delay, a GNSS lever arm) named with its size by the batch smoother's joint fit, and
 a rig without errors named nothing."""
@@ -19,8 +19,8 @@ from datasets.simulated_sensors import SensorSpec
 from datasets.types import Trajectory
 from factors import so3
 from smoother.cli import main
-from smoother.diagnostics import consistency_warnings
-from smoother.misfit_causes import Cause, causes_at, hint, hints, patterns
+from smoother.diagnosis.verdicts import consistency_warnings
+from smoother.diagnosis.misfit_causes import Cause, causes_at, hint, hints, patterns
 from smoother.pipeline import run_estimators, sensor_consistency
 
 #: A car-like figure-eight: the simulator's gentle one 10 times wider (100 m x 50 m, 7-15 m/s),

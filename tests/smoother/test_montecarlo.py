@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from factors import compiled
-from smoother import montecarlo
+from smoother.evaluation import montecarlo
 from smoother.cli import main
 
 CONFIG = montecarlo.MonteCarloConfig(profile="gentle", duration=2.0, estimators=("batch", "ekf"))

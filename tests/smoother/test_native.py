@@ -4,9 +4,9 @@ import pytest
 
 from datasets.simulate import simulate
 from factors import imu
-from smoother.batch import solve_batch
-from smoother.graph import build_problem
-from smoother.native import combined_params, native_preintegration, solve_native
+from smoother.batch.solve import solve_batch
+from smoother.model.problem import build_problem
+from smoother.evaluation.native import combined_params, native_preintegration, solve_native
 
 
 @pytest.fixture(scope="module", params=["gentle", "tumbling"])

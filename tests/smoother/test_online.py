@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from datasets.kinds import sensors_of
-from smoother.ekf import Ekf
-from smoother.fixed_lag import run_fixed_lag
-from smoother.graph import build_problem
-from smoother.online import OnlineSmoother, SensorSetup, replay
-from smoother.timeline import estimate_times
+from smoother.ekf.filter import Ekf
+from smoother.fixed_lag.gtsam_window import run_fixed_lag
+from smoother.model.problem import build_problem
+from smoother.online.smoother import OnlineSmoother, SensorSetup, replay
+from smoother.model.timeline import estimate_times
 
 import estimator_cases as cases
 
@@ -147,7 +147,7 @@ def test_the_lag_warning_fires_on_kitti_with_every_20th_fix_and_not_on_the_defau
     are dead reckoning between fixes (tens of metres off the held-out fixes), and the replay says
     so, naming the lag that would cover the gaps; the default simulated run (poses at 10 Hz, lag
     2 s) runs without a warning."""
-    from smoother import sources
+    from smoother.commands import dataset_specs as sources
 
     kitti = sources.load("kitti", sources.SourceOptions(gps_every=20))
     for lag in (2.0, 0.5):
@@ -277,7 +277,7 @@ def test_bad_settings_are_one_line_and_what_finish_cannot_place_is_dropped_and_c
 
     from factors.errors import InputError
     from factors.imu import ImuNoise, ImuState
-    from smoother.online import OnlineSmoother, SensorSetup
+    from smoother.online.smoother import OnlineSmoother, SensorSetup
 
     x0, P0 = ImuState.identity(), np.eye(15) * 0.01
     with _pytest.raises(InputError, match="keyframe_rate"):
@@ -350,8 +350,10 @@ def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds(
 
 def test_the_timing_records_keep_only_the_latest_entries(gentle, monkeypatch):
     """A robot runs for weeks: ``update_s`` and ``latency_s`` keep the latest
-    :data:`smoother.fixed_lag.HISTORY` entries (here 5), not every update since the start."""
-    from smoother import fixed_lag, online as online_module, sliding_window
+    :data:`smoother.fixed_lag.gtsam_window.HISTORY` entries (here 5), not every update since the start."""
+    from smoother.fixed_lag import gtsam_window as fixed_lag
+    from smoother.fixed_lag.sliding import window as sliding_window
+    from smoother.online import smoother as online_module
 
     for module in (fixed_lag, online_module, sliding_window):
         monkeypatch.setattr(module, "HISTORY", 5)

@@ -12,12 +12,12 @@ import pytest
 
 from factors import imu
 from factors.errors import InputError
-from smoother.ekf import Ekf
-from smoother.online_handover import HandOver, OnlineEstimate
-from smoother.online_imu import TYPICAL_INTERVALS, ImuBuffer
-from smoother.online_pending import PendingMeasurements
-from smoother.online_prediction import ImuRatePrediction
-from smoother.online_schedule import KeyframeSchedule
+from smoother.ekf.filter import Ekf
+from smoother.online.handover import HandOver, OnlineEstimate
+from smoother.online.imu_buffer import TYPICAL_INTERVALS, ImuBuffer
+from smoother.online.pending import PendingMeasurements
+from smoother.online.prediction import ImuRatePrediction
+from smoother.online.schedule import KeyframeSchedule
 
 
 def _resting(n: int, rate: float = 200.0):
@@ -58,7 +58,7 @@ def test_the_buffer_lets_go_only_samples_before_the_one_held_at_keep_from_and_co
 def test_a_batch_then_single_samples_beyond_the_first_arrays_are_all_taken():
     """400 samples in one call, then 1600 one by one (past the 1024 the arrays first hold): the
     smoother takes every one and its estimate reaches the last."""
-    from smoother.online import OnlineSmoother
+    from smoother.online.smoother import OnlineSmoother
 
     t, acc, gyro = _resting(2000)
     online = OnlineSmoother(imu.ImuState.identity(), np.eye(15) * 0.01, imu.ImuNoise(), lag_s=0.5)

@@ -1,7 +1,7 @@
 """Plots of a run directory: the PNG files, their sizes, runs without truth or with GPS fixes,
 errors for missing or malformed inputs, and ``smoother plot DIR`` in-process.
 
-The run directory is written by :func:`smoother.report.write_outputs` from a 3 s simulated
+The run directory is written by :func:`smoother.evaluation.scoring.write_outputs` from a 3 s simulated
 dataset and hand-made estimates (the truth perturbed, with matching covariances), so that the
 tests exercise the real file format without running the estimators.
 """
@@ -21,7 +21,10 @@ from datasets.types import SAME_INSTANT_S, Trajectory
 from factors import so3
 from factors.errors import InputError
 from factors.imu import ImuState
-from smoother import cli, metrics, plots, report
+from smoother import cli
+from smoother.evaluation import metrics
+from smoother.evaluation import scoring as report
+from smoother.outputs import plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 ALL_FIGURES = ["trajectory", "position_error", "orientation_error", "nees", "biases", "comparison"]
@@ -204,10 +207,10 @@ def _gps_run(run_dir: Path, tmp_path: Path) -> Path:
 
 def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_path):
     """The arrays behind the figures are the report's and the metrics' own, bit for bit: the GPS
-    residuals (:func:`smoother.report.fix_residuals`), the held-out fixes' NEES
-    (:func:`smoother.metrics.nees_from` of the residual and ``P_est + R_fix``), the pose NEES
-    against the truth (:func:`smoother.report.compare_with_truth`), and, without metrics.json,
-    the bars' figures (:func:`smoother.report.against_truth`, :func:`smoother.report.position_rmse`)."""
+    residuals (:func:`smoother.evaluation.scoring.fix_residuals`), the held-out fixes' NEES
+    (:func:`smoother.evaluation.metrics.nees_from` of the residual and ``P_est + R_fix``), the pose NEES
+    against the truth (:func:`smoother.evaluation.scoring.compare_with_truth`), and, without metrics.json,
+    the bars' figures (:func:`smoother.evaluation.scoring.against_truth`, :func:`smoother.evaluation.scoring.position_rmse`)."""
     from datasets.types import PositionMeasurements
 
     gps_run = plots.load_run(_gps_run(run_dir, tmp_path), ["ekf"])

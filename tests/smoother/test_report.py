@@ -14,7 +14,7 @@ from datasets.tum import read_tum
 from datasets.types import PositionMeasurements, Sensor, Trajectory
 from factors import so3
 from factors.errors import InputError
-from smoother import report
+from smoother.evaluation import scoring as report
 from smoother.pipeline import Estimate
 
 import estimator_cases as cases

@@ -10,11 +10,11 @@ from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from datasets.types import ImuSamples, max_gyro_rate
 from factors.imu import ImuNoise
-from smoother.batch import solve_batch
-from smoother.diagnostics import consistency_lines, consistency_warnings
-from smoother.graph import build_problem
+from smoother.batch.solve import solve_batch
+from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
+from smoother.model.problem import build_problem
 from smoother.pipeline import judged, run_estimators, sensor_consistency
-from smoother.residual_consistency import block_consistency
+from smoother.diagnosis.residual_consistency import block_consistency
 
 
 def _solved(data):
@@ -129,7 +129,7 @@ def test_a_sensor_s_warning_names_every_estimator_out_of_its_band():
 
 
 def test_evaluating_in_chunks_changes_nothing(monkeypatch):
-    import smoother.residual_consistency as rc
+    import smoother.diagnosis.residual_consistency as rc
 
     data = simulate("gentle", duration=3, seed=5, pose_rate=None, sensors=[SensorSpec("wheels", "velocity", 20, 0.05)])
     problem, result = _solved(data)

@@ -11,8 +11,8 @@ from datasets.simulated_sensors import SensorSpec
 from datasets.simulate import simulate
 from datasets.types import Sensor
 from factors import so3
-from smoother import report
-from smoother.diagnostics import consistency_lines, consistency_warnings, sensor_consistency
+from smoother.evaluation import scoring as report
+from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings, sensor_consistency
 from smoother.pipeline import run_estimators
 from smoother.pipeline import sensor_consistency as every_estimators_verdicts
 
@@ -88,7 +88,7 @@ def test_every_estimator_names_each_misplaced_sensor_and_passes_the_right_ones(r
 def test_gated_updates_leave_the_nis_and_a_mildly_inconsistent_sensor_is_not_warned_of():
     """With a gate rejecting gross outliers, the NIS is that of the accepted updates (the rejected
     ones are counted); a sensor outside its band by less than a factor 2 is not warned of."""
-    from smoother.ekf import run_ekf
+    from smoother.ekf.filter import run_ekf
 
     data = simulate("gentle", duration=10, seed=1, outlier_fraction=0.02)
     consistency = sensor_consistency(run_ekf(data, gate_probability=0.999).innovations)["pose"]
@@ -104,7 +104,7 @@ def test_the_gyro_noise_through_a_long_lever_arm_is_in_the_velocity_noise():
     for the reading's noise: NIS 1.13 per dof (0.95 on another seed; 1.07 for the same wheel at the
     IMU), against 4.4 without that term."""
     from factors.imu import ImuNoise
-    from smoother.ekf import run_ekf
+    from smoother.ekf.filter import run_ekf
 
     wheel = _T([0, 0, 0.3], [1.2, 0.8, 0.6])
     data = simulate("gentle", duration=20, seed=4, noise=ImuNoise(gyro=5e-3), pose_rate=None, sensors=[
@@ -116,7 +116,7 @@ def test_the_gyro_noise_through_a_long_lever_arm_is_in_the_velocity_noise():
 
 
 def test_an_out_of_band_sensor_names_the_imu_first_when_the_imu_has_findings():
-    """The advice of :func:`smoother.diagnostics.consistency_warnings`: a sensor's sigma, lever arm
+    """The advice of :func:`smoother.diagnosis.verdicts.consistency_warnings`: a sensor's sigma, lever arm
     or time offset without IMU findings; the IMU (its findings by sensor and kind) with them."""
     from datasets.imu_health import ImuFinding
 

@@ -108,7 +108,7 @@ def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlat
                                                                                    monkeypatch):
     """The printed calibration line of the GNSS carries its own fixes' lag-one correlation (here
     made 0.9, as a 10-Hz receiver's drifting error gives)."""
-    from smoother import report
+    from smoother.evaluation import scoring as report
 
     folder, text = recording
     text = text.replace('topic = "/fix"\n', 'topic = "/fix"\nestimate = ["time_offset"]\n')

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from datasets.tum import read_tum
-from smoother import report
+from smoother.evaluation import scoring as report
 from smoother.cli import main
 from smoother.commands.run import format_table, interpolation_note
 
@@ -259,12 +259,12 @@ def test_the_batch_starts_from_the_ekf(tmp_path, capsys):
 def test_ctrl_c_after_the_batch_keeps_it_with_one_line(tmp_path, capsys, monkeypatch):
     """Ctrl-C while the fixed-lag smoother runs: exit 130, the EKF and batch estimates written
     with stopped: interrupted, and one line on stderr saying so."""
-    import smoother.online
+    import smoother.online.smoother
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(smoother.online, "replay", interrupted)  # the pipeline imports it when the fixed-lag runs
+    monkeypatch.setattr(smoother.online.smoother, "replay", interrupted)  # the pipeline imports it when the fixed-lag runs
     out = tmp_path / "run"
     assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 130
     said = [line for line in capsys.readouterr().err.splitlines()
@@ -317,16 +317,16 @@ def test_warnings_are_one_readable_line(monkeypatch, capsys, tmp_path):
     previous format is restored afterwards."""
     import warnings as pywarnings
 
-    import smoother.sources
+    import smoother.commands.dataset_specs
     from smoother.cli import main as cli_main
 
-    real, seen = smoother.sources.load, []
+    real, seen = smoother.commands.dataset_specs.load, []
 
     def load_and_format(spec, options):
         seen.append(pywarnings.formatwarning("Dataset.position: 2 of 5 dropped", UserWarning, "types.py", 1))
         return real(spec, options)
 
-    monkeypatch.setattr(smoother.sources, "load", load_and_format)
+    monkeypatch.setattr(smoother.commands.dataset_specs, "load", load_and_format)
     before = pywarnings.formatwarning
     assert cli_main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(tmp_path), "--no-progress"]) == 0
     assert seen == ["smoother: warning: Dataset.position: 2 of 5 dropped\n"]
@@ -394,10 +394,10 @@ def test_an_imu_fault_is_named_as_one_and_the_sensors_nis_as_its_symptom(monkeyp
     sensor's NIS, far out of band, is named as the IMU's symptom; a clean run has no finding."""
     import dataclasses
 
-    import smoother.sources
+    import smoother.commands.dataset_specs
     from datasets.types import ImuSamples
 
-    real = smoother.sources.load
+    real = smoother.commands.dataset_specs.load
 
     def clipped(spec, options):
         dataset = real(spec, options)
@@ -411,7 +411,7 @@ def test_an_imu_fault_is_named_as_one_and_the_sensors_nis_as_its_symptom(monkeyp
     assert main(["run", "--duration", "8", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
     assert "imu:" not in capsys.readouterr().err
     assert json.loads((out / "metrics.json").read_text())["_run"]["imu"] == {"ok": True, "findings": []}
-    monkeypatch.setattr(smoother.sources, "load", clipped)
+    monkeypatch.setattr(smoother.commands.dataset_specs, "load", clipped)
     out = tmp_path / "clipped"
     assert main(["run", "--duration", "8", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 0
     err = capsys.readouterr().err

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from datasets.atomic import STAGING_PREFIX
-from smoother import report
+from smoother.evaluation import scoring as report
 from smoother.cli import main
 from smoother.commands.run_directory import LOCK, RunDirectory, run_files
 
@@ -122,7 +122,7 @@ def test_staging_left_by_a_killed_run_is_cleared_of_the_tools_files_only(tmp_pat
 def test_every_output_of_a_run_is_declared():
     """The one list of run files covers what report and plots write (the estimators' files, the
     references, the metrics and the run figures)."""
-    from smoother.plots import FIGSIZE
+    from smoother.outputs.plots import FIGSIZE
 
     names = run_files()
     assert {f"{e}.{ext}" for e in ESTIMATORS for ext in ("tum", "npz", "geojson")} <= names

@@ -1,4 +1,4 @@
-"""The compiled sliding-window fixed-lag smoother (:mod:`smoother.sliding_window`): its linear
+"""The compiled sliding-window fixed-lag smoother (:mod:`smoother.fixed_lag.sliding.window`): its linear
 algebra against dense NumPy, its robust weights against GTSAM's, and its estimates against the
 batch smoother where they must agree (a window longer than the run marginalises nothing)."""
 from __future__ import annotations
@@ -10,10 +10,10 @@ import pytest
 from datasets.simulate import simulate
 from factors.imu import ImuNoise
 import estimator_cases as cases
-from smoother import sliding_window as sw
-from smoother.batch import solve_batch
-from smoother.graph import build_problem
-from smoother.online import replay
+from smoother.fixed_lag.sliding import window as sw
+from smoother.batch.solve import solve_batch
+from smoother.model.problem import build_problem
+from smoother.online.smoother import replay
 
 DIM = sw.DIM
 
@@ -255,7 +255,7 @@ def test_an_imu_gap_longer_than_the_lag_keeps_its_imu_factor(gentle):
     """The newest keyframe stays until the next is added: keyframes 1 s apart with a 0.3-s lag
     are tied by their IMU factors, no weak prior; with nothing measured the estimates are the dead
     reckoning from the initial state, as GTSAM's incremental smoother's (equal within 1e-6 m)."""
-    from smoother.online import OnlineSmoother
+    from smoother.online.smoother import OnlineSmoother
 
     data = cases.dataset(gentle)
     recovered, positions = {}, {}
@@ -460,8 +460,8 @@ def test_a_refused_keyframe_leaves_the_window_as_it_was(gentle):
     """A measurement whose covariance is not positive definite, or whose robust kernel is unknown,
     is refused before anything changes: no keyframe marginalised, no measurement appended."""
     from datasets.types import Sensor
-    from smoother.graph import measurement_spec
-    from smoother.online import OnlineSmoother
+    from smoother.model.problem import measurement_spec
+    from smoother.online.smoother import OnlineSmoother
 
     data = cases.dataset(gentle)
     online = OnlineSmoother.for_dataset(data, lag_s=0.3)
@@ -492,7 +492,7 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
 
     from datasets.simulated_sensors import SensorSpec
     from datasets.types import Sensor, VelocityMeasurements
-    from smoother.fixed_lag import FixedLagFailed
+    from smoother.fixed_lag.gtsam_window import FixedLagFailed
 
     def run(velocity_density):
         noise = ImuNoise(acc=1.8e-2, gyro=3.7e-3, acc_bias=3e-3, gyro_bias=5e-4, velocity=velocity_density)
@@ -536,7 +536,7 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
 
 
 def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_why(monkeypatch):
-    from smoother.fixed_lag import FixedLagFailed
+    from smoother.fixed_lag.gtsam_window import FixedLagFailed
 
     data = simulate("gentle", duration=2, seed=2)
 

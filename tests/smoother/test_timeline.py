@@ -1,4 +1,4 @@
-"""smoother.timeline: the IMU stream cut at knot times into Euler-forward steps.
+"""smoother.model.timeline: the IMU stream cut at knot times into Euler-forward steps.
 
 What is proved here: a knot strictly inside an IMU interval splits it into two steps that hold
 the same sample (zero-order hold); a knot on a sample time adds no step; the steps tile the IMU
@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 
 from datasets.types import ImuSamples
 from factors import imu, preintegration, so3
-from smoother.timeline import imu_steps, interval_steps, steps_between
+from smoother.model.timeline import imu_steps, interval_steps, steps_between
 
 EPS = float(np.finfo(float).eps)
 

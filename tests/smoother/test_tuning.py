@@ -8,8 +8,8 @@ import pytest
 
 from datasets.simulate import simulate
 from factors.imu import ImuNoise
-from smoother.ekf import run_ekf
-from smoother.tuning import TUNED, tune_noise
+from smoother.ekf.filter import run_ekf
+from smoother.diagnosis.noise_tuning import TUNED, tune_noise
 
 NOISE = ImuNoise(acc=0.05, gyro=0.005, acc_bias=1e-3, gyro_bias=1e-4)
 

@@ -1,5 +1,5 @@
 """Calibration variables in the sliding window: the dense border of its banded system
-(:mod:`smoother.window_calibration`), kept across updates and marginalisations, against a
+(:mod:`smoother.fixed_lag.sliding.calibration`), kept across updates and marginalisations, against a
 solve of the whole bordered system made from scratch; the online smoother's ``calibrate``."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from factors import so3
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
-from smoother import sliding_window as sw
-from smoother.online import OnlineSmoother, SensorSetup, make_window, replay
+from smoother.fixed_lag.sliding import window as sw
+from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window, replay
 from test_calibration_estimates import _rig
 from test_sliding_window import _dense
 
@@ -145,7 +145,7 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
     """The calibrations' Schur complement refused at the tenth update (as a numerically singular
     one would be): the update stops with one line naming the calibrations, the window's offsets
     as the ninth left them (not its forward solution)."""
-    from smoother.fixed_lag import FixedLagFailed
+    from smoother.fixed_lag.gtsam_window import FixedLagFailed
 
     data = _calibrating_rig(3.0)
     factorise_forward_border, after = sw._factorise_forward_border, []
@@ -185,8 +185,8 @@ def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = Fa
     ``bare_every``: every so many keyframes without its reading; ``after_update(window)`` called
     after each update)."""
     from factors.calibration import CalibrationSet
-    from smoother.graph import measurement_spec
-    from smoother.window_calibration import WindowCalibration
+    from smoother.model.problem import measurement_spec
+    from smoother.fixed_lag.sliding.calibration import WindowCalibration
 
     data = _rig(2, duration=duration)
     prior = CalibrationPrior(("rotation", "scale"))
@@ -237,7 +237,7 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
     27 against 59 on these 15 s, which begin with every calibration at its prior). After an
     update each coordinate's limit is the larger of its threshold and half its marginal sigma."""
     from factors.calibration import prior_residual
-    from smoother import window_calibration as wc
+    from smoother.fixed_lag.sliding import calibration as wc
     import estimator_cases as cases
 
     data = _calibrating_rig(15.0)
@@ -285,7 +285,7 @@ def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_ma
     keyframe without a reading takes a slot whose sums were kept (a 0.5-s lag: the ring's 64
     slots go round; with the calibration never linearised again, which would clear every sum) and
     when the ring grows (an 8-s lag: 80 keyframes in the window)."""
-    from smoother import window_calibration as wc
+    from smoother.fixed_lag.sliding import calibration as wc
 
     if not moves:
         monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", np.full_like(wc.RELINEARISATION_THRESHOLD, 1e9))

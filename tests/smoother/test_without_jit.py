@@ -21,9 +21,9 @@ CASE = """
 import sys
 import numpy as np
 from datasets.simulate import simulate
-from smoother.batch import solve_batch
-from smoother.ekf import run_ekf
-from smoother.graph import build_problem
+from smoother.batch.solve import solve_batch
+from smoother.ekf.filter import run_ekf
+from smoother.model.problem import build_problem
 
 data = simulate(profile="tumbling", duration=1.0, seed=3)
 batch, ekf = solve_batch(build_problem(data)).trajectory, run_ekf(data).trajectory

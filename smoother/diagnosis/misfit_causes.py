@@ -1,0 +1,385 @@
+"""Which calibration a sensor's misfit points at: its residuals regressed on the pattern that each
+calibration error leaves in them.
+
+Model. A sensor's residual at the estimate is ``e_i = h(x_i; c) - z_i`` (``d`` numbers per
+measurement ``i``, the kind's kernel, :mod:`factors.sensor_models`) with the calibration ``c``
+the rig states. Were the measurements made with ``c + dc``, then to first order
+
+    e_i = X_i dc + n_i,        X_i = -de_i/dc,
+
+each candidate calibration with its own columns of ``X_i`` (``d x k``), in the units of the rig's
+``estimate = [...]`` keys:
+
+* ``scale`` ``s`` (what the sensor reads per unit of the truth; the correction is ``s - 1``):
+  ``z = s h`` gives ``e = -(s - 1) h``: the pattern is minus the prediction ``h_i = e_i + z_i``
+  (a wheel speed reading 1 % low, ``s = 0.99``: the residual is +1 % of the speed, along the
+  direction of travel). Kinds: :data:`SCALED_KINDS`.
+* ``time_offset`` ``d`` [s] (the measurement was taken at ``t_stamp + d``; ``d`` is what to add to
+  the rig's ``time_offset``): ``z = h(x(t + d))`` gives ``e = -d dh/dt`` with ``dh/dt = H_i
+  xdot_i``, ``H_i`` the residual's error-state Jacobian and ``xdot`` the state's rate in the
+  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)``: a position through the velocity, an
+  attitude through the angular rate, a velocity through the specific force. ``f, w`` are the
+  IMU's readings less the estimate's biases, averaged over :data:`AVERAGE_S` about ``t_i`` (one
+  sample's noise in a regressor would bias the fit towards 0). A velocity sensor's lever-arm term
+  ``w x p`` also changes with the angular acceleration; that part is neglected.
+* ``rotation`` ``phi`` [rad] (``R_BS <- exp(phi) R_BS``, ``phi`` in the IMU frame): for a
+  velocity sensor ``e = -R_BS^T u^x phi`` with ``u = v + w x p_BS`` the sensor's velocity in the
+  IMU frame: a pitched sensor reads a constant fraction of the speed vertically, a yawed one
+  laterally; an attitude sensor's residual is moved by ``phi`` (seen in the world frame). Kinds
+  with a frame.
+* ``lever_arm`` ``dp`` [m] (``p_BS <- p_BS + dp``, IMU frame): a position's residual is ``-C dp``
+  (an offset fixed in the IMU frame, which turns with the vehicle), a velocity's ``-R_BS^T (w x
+  dp)`` (with the angular rate). Kinds with a position, or a velocity through the lever arm.
+
+The rotation and lever-arm columns are central differences of the kind's kernel in the extrinsic
+(the estimators' own model; linear in ``dp``, smooth in ``phi``). A candidate whose columns are
+zero for every measurement does not enter the kind's residual and is no candidate. Relative kinds
+(odometry, two states per measurement) are not analysed.
+
+Fit. A sensor's residuals at an estimate hold only the part of a calibration error that the
+states could not follow: a filter leans its velocity on a wheel speed read 1 % low (on a
+simulated car its innovations keep 0.08 % of it, and point at a scale for a pitched sensor); a
+smoother's residuals keep a share that depends on what else fixes the motion. So the
+corrections of every sensor are fitted together with the states, as one Gauss-Newton step of
+the batch smoother's whole problem linearised at the estimate
+(:func:`fit_in_problem`): with ``W_i`` the whitening of a measurement's covariance the sensor's
+rows ``W_i (e_i + H_i dx_i) - W_i X_i dc`` beside every other factor's, a weak prior ``dc ~ N(0,
+PRIOR_SIGMA^2)`` (a calibration the data do not fix keeps about its prior's sigma instead of
+making the system singular), solved by sparse QR through GTSAM with the calibrations eliminated
+last, whose conditionals give their joint covariance. A misfit that one sensor's calibration
+explains is then not put on another's, and the states give back what they had absorbed. From
+the batch's optimum this is the first step of the calibrated problem; from the EKF's estimate,
+one step of the batch problem from it (:func:`causes_at`). The values are first-order: a rotation
+``phi`` leaves errors of order ``phi^2 / 2`` in the others (a wheel pitched by 3.8 deg reads
+``cos(phi)`` of its speed forward: 0.22 % beside its scale), which the calibrated run removes.
+
+Sigmas. The formal covariance assumes the stated sigmas and white errors; both are what is in
+doubt, so it is scaled by the variance per degree of freedom of the sensor's whitened residuals
+after the fit (either way: a sigma stated too large is the case to see through), its degrees of
+freedom those that the batch smoother's verdict counts at the estimate (each measurement's ``d``
+less its leverage, :mod:`smoother.diagnosis.residual_consistency`) less the corrections fitted -- where
+another estimator's verdict does not count them, ``n d`` would overstate them for a sensor that
+pins the states (its residuals are small by leverage, not by precision), and the variance is
+taken as at least 1 instead -- and by ``(1 + rho) / (1 - rho)`` with ``rho > 0`` the lag-1
+autocorrelation of those residuals from one measurement to the next (the variance of a mean of
+AR(1) errors; ``rho`` at most :data:`MAX_RHO`).
+
+Shares. A candidate's ``gain`` is the decrease of the step's cost it adds to the sensor's other
+significant candidates (every other sensor's calibration held at 0, :func:`_gains`), its
+``share`` ``gain / (gain + sum |r_i|^2)`` with ``r_i`` the sensor's whitened residuals after the
+fit: the part of what is left without it that it explains. A pitch that explains most of a
+wheel's residuals leaves its scale a share of the rest, and two candidates that cancel each other
+(a time offset and a lever arm along the direction of travel, at the usual speed) have little
+gain each. A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its
+share is at least :data:`MATERIAL_SHARE`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import gtsam
+import numpy as np
+
+from datasets.kinds import KINDS, measure_rows, sensors_of
+from datasets.types import ImuSamples, Sensor, Trajectory
+from factors import imu, so3
+from factors.sensor_models import extrinsic_parts
+from smoother.model.problem import build_problem
+from smoother.model.blocks import Block, evaluate_block, linearize, whitening
+
+#: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
+#: each correction (scale - 1, s, rad, m).
+PRIOR_SIGMA = {"scale": 1.0, "time_offset": 1.0, "rotation": 1.0, "lever_arm": 10.0}
+#: The kinds whose reading can be off by a scale (the prediction is the scaled quantity).
+SCALED_KINDS = ("velocity",)
+#: A component is significant beyond this many sigmas.
+SIGNIFICANCE = 5.0
+#: A suggested cause explains at least this fraction of the sensor's residual sum of squares.
+MATERIAL_SHARE = 0.1
+#: Half the window [s] over which the IMU's readings are averaged for the time-offset pattern.
+AVERAGE_S = 0.05
+#: The largest lag-1 autocorrelation the sigmas are inflated for.
+MAX_RHO = 0.95
+#: Step of the central differences in the extrinsic [rad, m].
+_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class Cause:
+    """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
+    correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
+    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
+    docstring)."""
+
+    calibration: str
+    value: np.ndarray
+    sigma: np.ndarray
+    share: float
+
+    @property
+    def significant(self) -> np.ndarray:
+        """Per component: ``|value| > SIGNIFICANCE sigma``."""
+        return np.abs(self.value) > SIGNIFICANCE * self.sigma
+
+    @property
+    def suggested(self) -> bool:
+        return bool(self.significant.any()) and self.share >= MATERIAL_SHARE
+
+    def text(self) -> str:
+        """The fit in the rig's units, e.g. ``scale 0.9900 +- 0.0004``, ``time offset -0.100 s +-
+        0.004 s``, ``rotation about y +3.00 deg +- 0.05 deg``, ``lever arm x +0.50 m +- 0.01 m``
+        (rotation and lever arm: the significant axes of the IMU frame)."""
+        if self.calibration == "scale":
+            return f"scale {_pm(1.0 + self.value[0], self.sigma[0], '', signed=False)}"
+        if self.calibration == "time_offset":
+            return f"time offset {_pm(self.value[0], self.sigma[0], ' s')}"
+        axes = np.flatnonzero(self.significant)
+        if self.calibration == "rotation":
+            return "rotation " + ", ".join(
+                f"about {'xyz'[a]} {_pm(np.degrees(self.value[a]), np.degrees(self.sigma[a]), ' deg')}" for a in axes)
+        return "lever arm " + ", ".join(f"{'xyz'[a]} {_pm(self.value[a], self.sigma[a], ' m')}" for a in axes)
+
+
+def _pm(value: float, sigma: float, unit: str, signed: bool = True) -> str:
+    """``value +- sigma`` to the sigma's first two significant digits."""
+    digits = max(0, 1 - int(np.floor(np.log10(sigma)))) if sigma > 0 else 3
+    return f"{value:{'+' if signed else ''}.{digits}f}{unit} +- {sigma:.{digits}f}{unit}"
+
+
+def hint(causes: list[Cause]) -> str | None:
+    """The suggested ``causes`` in one phrase with the rig key that estimates them, e.g. ``scale
+    0.9900 +- 0.0004 (explains 93 % of its residuals): add estimate = ["scale"]``; None without
+    any."""
+    chosen = [c for c in causes if c.suggested]
+    if not chosen:
+        return None
+    keys = ", ".join(f'"{c.calibration}"' for c in chosen)
+    return (", ".join(f"{c.text()} (explains {100 * min(c.share, 1.0):.0f} % of its residuals)" for c in chosen)
+            + f": add estimate = [{keys}]")
+
+
+def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity) -> tuple:
+    """``(e (N, d), {calibration: X (N, d, k)})``: the kernel's residuals of ``sensor``'s
+    measurements at ``states`` (one per measurement) and each candidate's columns ``X = -de/dc``
+    (module docstring); candidates that do not enter the kind's residual are left out."""
+    kind, m = KINDS[sensor.kind], sensor.data
+    e, H = measure_rows(kind, states, kind.pack(m))
+    out = {}
+    if kind.name in SCALED_KINDS:
+        out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
+    f, w = _averaged_imu(imu_samples, m.t, AVERAGE_S)
+    f, w = f - states.b_f, w - states.b_w
+    C, v = states.C, states.v
+    xdot = np.zeros((len(v), imu.STATE_DIM))
+    xdot[:, imu.R] = np.einsum("nij,nj->ni", C, v)
+    xdot[:, imu.V] = np.einsum("nji,j->ni", C, np.asarray(gravity, dtype=float)) + f - np.cross(w, v)
+    xdot[:, imu.PHI] = np.einsum("nij,nj->ni", C, w)
+    out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
+    R, p = extrinsic_parts(m.T_BS)
+    for name, moved in (("rotation", lambda s: (so3.exp(s) @ R, p)), ("lever_arm", lambda s: (R, p + s))):
+        columns = np.stack([_kernel_difference(kind, m, states, moved, _STEP * a) for a in np.eye(3)], axis=-1)
+        if np.any(columns != 0.0):
+            out[name] = columns
+    return e, out
+
+
+def _kernel_difference(kind, m, states, moved, step) -> np.ndarray:
+    """``-de/dc`` along ``step`` by central differences: the kernel's residuals with the extrinsic
+    ``moved(+step)`` and ``moved(-step)``."""
+    def residual(s):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = moved(s)
+        return measure_rows(kind, states, kind.pack(replace(m, T_BS=T)))[0]
+
+    return -(residual(step) - residual(-step)) / (2.0 * np.linalg.norm(step))
+
+
+def _averaged_imu(samples: ImuSamples, t: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean specific force and angular rate of the samples in ``[t - half, t + half]`` (at
+    least the sample held at ``t``), by cumulative sums."""
+    held = samples.held(t)
+    lo = np.minimum(np.searchsorted(samples.t, t - half, side="left"), held)
+    hi = np.maximum(np.searchsorted(samples.t, t + half, side="right"), held + 1)
+    means = []
+    for x in (samples.acc, samples.gyro):
+        total = np.concatenate([np.zeros((1, 3)), np.cumsum(x, axis=0)])
+        means.append((total[hi] - total[lo]) / (hi - lo)[:, None])
+    return means[0], means[1]
+
+
+def _whitened(sensor: Sensor, e: np.ndarray, X: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``b = W e (N, d)`` and ``A = W X (N, d, k)``, the candidates' columns side by side."""
+    W = whitening(sensor.data.cov)
+    return np.einsum("nab,nb->na", W, e), np.einsum("nab,nbk->nak", W, np.concatenate(list(X.values()), axis=2))
+
+
+def _prior(X: dict) -> np.ndarray:
+    """The weak prior's sigma per column of the candidates ``X``."""
+    return np.concatenate([np.full(x.shape[2], PRIOR_SIGMA[name]) for name, x in X.items()])
+
+
+def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
+                   gravity, dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
+    """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at
+    ``states``, one per keyframe; relative kinds left out) fitted together as one Gauss-Newton
+    step of the whole problem with each sensor's calibration added to its factors (module
+    docstring): a misfit that one sensor's calibration explains is not put on another's. ``dof``:
+    per sensor, the degrees of freedom its residuals leave at ``states`` (the batch smoother's
+    verdict, :mod:`smoother.diagnosis.residual_consistency`); a sensor without it has its variance taken as
+    at least the one its sigma states. ``calibration``: the values of the calibration variables
+    the blocks read (:class:`factors.calibration.CalibrationSet`; keys ``n + j``, free in the step
+    like the states), or None. By sensor name."""
+    graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states, calibration)
+    estimated = 0 if calibration is None else len(calibration)
+    parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
+    for sensor in (s for s in sensors if not KINDS[s.kind].relative):
+        [block] = [b for b in blocks if b.name == sensor.name]
+        kf = block.keyframes[:, 0]
+        e, X = patterns(sensor, states[kf], imu_samples, gravity)
+        ev = evaluate_block(block, states, True)
+        b, A = _whitened(sensor, e, X)
+        A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
+        key = len(states) + estimated + len(parts)
+        unit = gtsam.noiseModel.Unit.Create(b.shape[1])
+        for i in range(len(kf)):
+            graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))  # de/dc = -X
+        prior = _prior(X)
+        graph.add(gtsam.JacobianFactor(key, np.diag(1.0 / prior), np.zeros(len(prior)),
+                                       gtsam.noiseModel.Unit.Create(len(prior))))
+        parts[sensor.name] = (key, X, kf, ev, A)
+    if not parts:
+        return {}
+    keys = [part[0] for part in parts.values()]
+    colamd = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    ordering = gtsam.Ordering()
+    for j in [colamd.at(j) for j in range(colamd.size()) if colamd.at(j) not in keys] + keys:
+        ordering.push_back(j)
+    net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
+    step = net.optimize()
+    # the calibrations, eliminated last, are the last conditionals: their joint square-root information
+    tail = [net.at(j) for j in range(net.size() - len(keys), net.size())]
+    R = _square_root(tail, {part[0]: part[4].shape[2] for part in parts.values()})
+    R_inv = np.linalg.inv(R)
+    cov = R_inv @ R_inv.T
+    flat = step.vector()  # by key: the keyframes' steps, the calibration variables', then the candidates
+    n = len(states) * imu.STATE_DIM
+    flat = np.concatenate([flat[:n], flat[n + (0 if calibration is None else sum(calibration.dims)):]])
+    dx_all, value = flat[:n].reshape(len(states), imu.STATE_DIM), flat[n:]
+    information = R.T @ R
+    gradient = information @ value
+    out, at = {}, 0
+    for name, (key, X, kf, ev, A) in parts.items():
+        mine = slice(at, at + A.shape[2])
+        after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx_all[kf]) - np.einsum("nak,k->na", A, value[mine])
+        out[name] = _causes(X, value[mine], cov[mine, mine], information[mine, mine], gradient[mine], after,
+                            (dof or {}).get(name))
+        at = mine.stop
+    return out
+
+
+def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None,
+              dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
+    """:func:`fit_in_problem` of every sensor of ``dataset`` that estimates no calibration of its
+    own, in its batch problem (:func:`smoother.model.problem.build_problem` with ``keyframe_rate`` and
+    ``robust``) started from ``estimate`` (any estimator's, over the same data) and from the
+    calibrations it estimated (``calibration``; None: the values given): one Gauss-Newton step
+    from there, the states, the estimated calibrations and the candidates together; ``dof`` as
+    :func:`fit_in_problem` takes it."""
+    problem = build_problem(dataset, keyframe_rate, robust, start=estimate)
+    values = problem.calibration
+    if values is not None and calibration is not None:
+        values = calibration
+    candidates = [s for s in sensors_of(dataset) if s.calibrate is None]
+    return fit_in_problem(problem.blocks, problem.initial_states, candidates, dataset.imu, dataset.gravity, dof,
+                          values)
+
+
+#: The estimators whose estimate :func:`hints` starts from, the first that ran.
+STARTS = ("batch", "fixed-lag", "ekf")
+
+
+def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,
+          robust: dict | None = None) -> dict[str, str]:
+    """Per sensor of ``dataset`` with a suggested cause, its :func:`hint` from :func:`causes_at`
+    the first estimate of :data:`STARTS` that ran (``estimates`` as
+    :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` when every verdict
+    of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
+    The sensor suggested need not be the one out of its band: a wheel's pitch that the states
+    absorb shows in the fixes'."""
+    if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
+        return {}
+    ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
+    if not ran:
+        return {}
+    # the batch's verdicts count each measurement's leverage at its estimate (fit_in_problem)
+    dof = {name: c["dof"] for name, c in consistency.get("batch", {}).items()} if ran[0] == "batch" else None
+    causes = causes_at(dataset, estimates[ran[0]].trajectory, keyframe_rate, robust, dof,
+                       estimates[ran[0]].calibration)
+    out = {}
+    for name, fits in causes.items():
+        text = hint(fits)
+        if text is not None:
+            out[name] = f"{text} (fitted from the {ran[0]}'s estimate)"
+    return out
+
+
+def _square_root(conditionals: list, sizes: dict[int, int]) -> np.ndarray:
+    """The upper-triangular square-root information of the variables eliminated last, from their
+    ``conditionals`` (in elimination order; each one's parents among the variables after it) and
+    each variable's dimension by key (``sizes``, in the same order)."""
+    offset = dict(zip(sizes, np.cumsum([0, *sizes.values()])))
+    n = sum(sizes.values())
+    out = np.zeros((n, n))
+    for c in conditionals:
+        frontal, *parents = [int(k) for k in c.keys()]
+        rows = slice(offset[frontal], offset[frontal] + sizes[frontal])
+        out[rows, rows] = c.R()
+        column = 0
+        S = c.S()
+        for parent in parents:
+            out[rows, offset[parent]:offset[parent] + sizes[parent]] = S[:, column:column + sizes[parent]]
+            column += sizes[parent]
+    return out
+
+
+def _gains(information: np.ndarray, g: np.ndarray, X: dict, significant: list[bool]) -> np.ndarray:
+    """Per candidate of ``X``, the decrease of the fit's quadratic cost ``c^T information c - 2 g^T
+    c`` from ``c = 0`` that it adds to the ``significant`` candidates' but its own, every other
+    component held at 0: with ``D(S) = g_S^T information_SS^-1 g_S``, ``D(S + j) - D(S - j)``."""
+    bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
+    columns = [np.arange(bounds[j], bounds[j + 1]) for j in range(len(X))]
+
+    def decrease(members):
+        if not members:
+            return 0.0
+        cols = np.concatenate([columns[m] for m in members])
+        return float(g[cols] @ np.linalg.solve(information[np.ix_(cols, cols)], g[cols]))
+
+    chosen = [j for j, yes in enumerate(significant) if yes]
+    out = []
+    for j in range(len(X)):
+        others = [m for m in chosen if m != j]
+        out.append(decrease(others + [j]) - decrease(others))
+    return np.array(out)
+
+
+def _causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray, gradient: np.ndarray,
+            after: np.ndarray, dof: float | None) -> list[Cause]:
+    """One :class:`Cause` per candidate of ``X`` from the fit's ``value`` and formal ``cov``, the
+    quadratic model of the cost in the sensor's candidates (``information``, ``gradient``: every
+    other calibration held at 0), the sensor's whitened residuals ``after`` the fit ``(N, d)`` and
+    the degrees of freedom of its residuals before it (None: unknown), for the sigmas and the
+    shares (module docstring)."""
+    n, d = after.shape
+    k = len(value)
+    squares = float(np.sum(after * after))
+    variance = squares / max(dof - k, 1.0) if dof is not None else max(squares / max(n * d - k, 1), 1.0)
+    lag = float(np.sum(after[1:] * after[:-1]))
+    rho = min(max(lag / squares, 0.0), MAX_RHO) if n > 1 and squares > 0 else 0.0
+    sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))
+    bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
+    parts = [slice(bounds[j], bounds[j + 1]) for j in range(len(X))]
+    significant = [bool(np.any(np.abs(value[S]) > SIGNIFICANCE * sigma[S])) for S in parts]
+    gains = _gains(information, gradient, X, significant)
+    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0)
+            for name, S, gain in zip(X, parts, gains)]

@@ -1,0 +1,104 @@
+"""Per-sensor consistency through a smoother: each factor block's own normalised residuals.
+
+The EKF judges a sensor by its innovations (:mod:`smoother.diagnosis.verdicts`); a smoother by its
+residuals at its own estimate. A measurement's residual ``e = h(x^) - z`` at an estimate
+conditioned on data that include ``z`` has, to first order, the covariance ``R - J P J^T``
+(``R`` the measurement's covariance, ``J`` the residual's Jacobian with respect to the variables
+the factor reads, ``P`` their joint posterior covariance): smaller than the innovation's, by the
+factor's *leverage* ``h = tr(R^-1 J P J^T)``, between 0 (the other data determine the state) and
+``d`` (this measurement alone does). With ``W`` the whitening of ``R`` and ``A = W J``::
+
+    E |W e|^2 = d - h,        h = tr(A P A^T)
+
+so over a sensor's rows ``sum |W e|^2 / sum (d_i - h_i)`` is 1 for a sensor whose model fits, and
+the sum is approximately chi-square with ``sum (d_i - h_i)`` degrees of freedom, which gives its
+band (:data:`smoother.diagnosis.verdicts.BAND_PROBABILITY`). The leverages of all factors add up to the
+number of estimated variables: the residuals of a least-squares fit have ``m - n`` degrees of
+freedom.
+
+A factor on one keyframe needs that keyframe's marginal covariance; one on two keyframes (the IMU
+factors, odometry) the joint covariance of both (the batch smoother's
+:attr:`smoother.batch.solve.SmootherResult.joint`). The IMU block's figure is the IMU's own verdict:
+its residuals out of band point at the IMU (units, saturation, noise densities), not at the
+sensors beside it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from smoother.diagnosis.verdicts import verdict
+from smoother.model.blocks import Block, block_residual
+
+#: Blocks with no verdict of their own (the prior on the first keyframe is not a sensor).
+NOT_JUDGED = ("prior",)
+
+
+def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None = None,
+                      calibration=None) -> dict | None:
+    """The verdict (:func:`smoother.diagnosis.verdicts.verdict`) of one block's residuals at ``states``
+    (one per keyframe), with the keyframes' marginal covariances ``cov (n, 15, 15)`` and, for
+    factors on two keyframes, ``joint`` (``{(a, b): Sigma_ab}``); None where those are missing.
+    The residuals are whitened, not robustly reweighted: a robust kernel's outliers count, as
+    they are in the data. A block that reads a calibration variable (``calibration``'s values;
+    key ``n + j`` of ``joint``) counts that variable's share of the leverage too."""
+    kf = block.keyframes
+    if (kf.shape[1] == 2 or block.calibration is not None) and joint is None:
+        return None
+    total, dof = 0.0, 0.0
+    for start in range(0, len(kf), CHUNK):  # in chunks: a long run's Jacobians need not all be held at once
+        rows = slice(start, min(start + CHUNK, len(kf)))
+        chunk = kf[rows]
+        slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
+        e, Js = block_residual(block, slots, True, rows, calibration)
+        whiten = block.whiten[rows]
+        e_w = np.einsum("mab,mb->ma", whiten, e)
+        if not np.isfinite(e_w).all():
+            return None
+        A = [whiten @ J for J in Js]
+        lev = np.einsum("mij,mjk,mik->m", A[0], cov[chunk[:, 0]], A[0])
+        if chunk.shape[1] == 2:
+            cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in chunk])
+            lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
+            lev += np.einsum("mij,mjk,mik->m", A[1], cov[chunk[:, 1]], A[1])
+        if block.calibration is not None:
+            lev += _calibration_leverage(A, chunk, len(states) + block.calibration, joint)
+        d = e_w.shape[1]
+        total += float(np.sum(e_w * e_w))
+        dof += float(np.sum(np.clip(d - lev, 0.0, d)))
+    if not dof > 0.0:
+        return None
+    return verdict(total, dof, len(kf), "residual")
+
+
+def _calibration_leverage(A: list, keyframes: np.ndarray, key: int, joint: dict) -> np.ndarray:
+    """The calibration variable ``key``'s terms of each factor's leverage: ``A_c P_cc A_c^T``
+    and twice ``A_s P_sc A_c^T`` for each keyframe slot ``s`` (``A`` the slots' whitened
+    Jacobians, then the calibration's)."""
+    A_c = A[-1]
+    lev = np.einsum("mij,jk,mik->m", A_c, joint[(key, key)], A_c)
+    for s in range(keyframes.shape[1]):
+        cross = np.stack([joint[(int(k), key)] if (int(k), key) in joint else joint[(key, int(k))].T
+                          for k in keyframes[:, s]])
+        lev += 2.0 * np.einsum("mij,mjk,mik->m", A[s], cross, A_c)
+    return lev
+
+
+#: Factors evaluated at once by :func:`block_consistency` (a few MB of Jacobians).
+CHUNK = 1024
+
+
+def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None,
+                         calibration=None) -> dict:
+    """:func:`block_consistency` of every block but :data:`NOT_JUDGED` and the calibrations'
+    priors (blocks on no keyframe), by block name (a sensor's name; ``"imu"`` for the IMU
+    factors); blocks without the covariances they need are left out."""
+    if cov is None:
+        return {}
+    out = {}
+    for block in blocks:
+        if block.name in NOT_JUDGED or len(block) == 0 or block.keyframes.shape[1] == 0:
+            continue
+        c = block_consistency(block, states, cov, joint, calibration)
+        if c is not None:
+            out[block.name] = c
+    return out

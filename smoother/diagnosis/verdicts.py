@@ -1,0 +1,174 @@
+"""Per-sensor consistency: is each sensor's noise, extrinsic and time offset what its data show?
+
+Through the EKF, a measurement's normalised innovation squared ``NIS = e^T S^-1 e`` (``S = H P
+H^T + R``) is chi-square distributed with ``dim`` degrees of freedom when the model is right. Over
+a sensor's ``N`` updates the sum is chi-square with ``N dim`` degrees of freedom, so the mean NIS
+per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N dim)`` with 95%
+probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
+or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
+Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
+large by construction).
+
+The smoothers' own residuals are judged the same way, with the degrees of freedom their fit leaves
+them (:mod:`smoother.diagnosis.residual_consistency`), and the IMU factors' among them:
+:func:`consistency_lines` shows each sensor through every estimator.
+
+Over many updates the band is narrow (about +-1% for 10^4 GNSS fixes), so a real sensor with
+slightly correlated errors falls outside it: ``ok`` states the statistics, and a warning names a
+sensor only when its figure is also a factor :data:`WARN_FACTOR` or more away from 1 -- a sigma,
+extrinsic or time offset that is actually wrong. Such a warning names first the calibration the
+sensor's residuals point at, where :mod:`smoother.diagnosis.misfit_causes` finds one (a scale, a time
+offset, a rotation or a lever arm, with its fitted value), and the sigma after it: a systematic
+pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it. A
+sensor with such a finding is warned of however near its band it is: the states may have
+followed its error, which then shows in the other sensors.
+When the IMU itself has findings
+(:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
+residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
+names the IMU as the likelier cause.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from smoother.ekf.filter import Innovations
+from smoother.evaluation.metrics import chi2_quantile
+
+#: Probability of the band within which a consistent sensor's mean NIS per dof lies.
+BAND_PROBABILITY = 0.95
+#: A sensor is warned about when its NIS per dof is outside the band and outside
+#: ``[1 / WARN_FACTOR, WARN_FACTOR]``.
+WARN_FACTOR = 2.0
+
+
+def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
+    """A sum of squared normalised errors against its chi-square distribution: ``per_dof``
+    (``total / dof``), ``band`` (the :data:`BAND_PROBABILITY` interval of ``per_dof`` for a model
+    that fits), ``ok`` (inside it), ``measurements`` (``count``), ``dof`` and ``statistic``:
+    ``"nis"`` (the EKF's innovations) or ``"residual"`` (a smoother's own residuals,
+    :mod:`smoother.diagnosis.residual_consistency`)."""
+    lo = chi2_quantile(0.5 * (1 - BAND_PROBABILITY), dof) / dof
+    hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
+    value = total / dof
+    return {"per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi), "measurements": int(count),
+            "dof": dof, "statistic": statistic}
+
+
+def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
+    """Per sensor, the :func:`verdict` of its NIS through the EKF, and ``rejected``: the updates
+    the EKF's gate refused. Only accepted updates count (module docstring); updates after a
+    divergence (NaN) not at all."""
+    out = {}
+    for name in dict.fromkeys(innovations.sensor):
+        ours = (innovations.sensor == name) & np.isfinite(innovations.nis)
+        mine = ours & innovations.accepted
+        if not mine.any():
+            continue
+        dof = float(innovations.dim[mine].sum())
+        out[str(name)] = {**verdict(float(innovations.nis[mine].sum()), dof, int(mine.sum()), "nis"),
+                          "rejected": int((ours & ~innovations.accepted).sum())}
+    return out
+
+
+def overall(consistency: dict[str, dict]) -> dict | None:
+    """The :func:`verdict` of all of one estimator's verdicts together (their sums and degrees of
+    freedom added), or None without any."""
+    if not consistency:
+        return None
+    parts = list(consistency.values())
+    total = sum(c["per_dof"] * c["dof"] for c in parts)
+    return verdict(total, sum(c["dof"] for c in parts), sum(c["measurements"] for c in parts), parts[0]["statistic"])
+
+
+def far_above(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is above its band and :data:`WARN_FACTOR` or more above 1."""
+    return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
+
+
+def far_off(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is outside its band and :data:`WARN_FACTOR` or more from 1 (a
+    warning's condition)."""
+    return not c["ok"] and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
+
+
+def _by_sensor(by_estimator: dict[str, dict]) -> dict[str, dict]:
+    """``{estimator: {sensor: verdict}}`` -> ``{sensor: {estimator: verdict}}``, sensors in the
+    order first met, the IMU last."""
+    out: dict[str, dict] = {}
+    for estimator, consistency in by_estimator.items():
+        for sensor, c in consistency.items():
+            out.setdefault(sensor, {})[estimator] = c
+    return dict(sorted(out.items(), key=lambda item: item[0] == IMU))
+
+
+#: The name the IMU factors' verdict goes by (:mod:`smoother.diagnosis.residual_consistency`).
+IMU = "imu"
+_STATISTIC = {"nis": "NIS", "residual": "residuals"}
+
+
+def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
+    """One line per sensor (the IMU last): each estimator's figure per dof with its statistic and
+    band, and whether it fits."""
+    lines = []
+    for sensor, verdicts in _by_sensor(by_estimator).items():
+        count = max(c["measurements"] for c in verdicts.values())
+        parts = [f"{estimator} {_STATISTIC[c['statistic']]} {c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) "
+                 f"{'ok' if c['ok'] else 'OUT OF BAND'}" for estimator, c in verdicts.items()]
+        name = "imu" if sensor == IMU else f"sensor {sensor}"
+        lines.append(f"{name} ({count} {'factors' if sensor == IMU else 'measurements'}), per dof: " + "; ".join(parts))
+    return lines
+
+
+def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
+                         causes: dict[str, str] | None = None) -> list[str]:
+    """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
+    with the figure of every estimator outside its band, naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
+    calibration its residuals point at, :func:`smoother.diagnosis.misfit_causes.hints`) however near its
+    band: a sensor's line names that first, before its sigma (a systematic pattern also makes a
+    sigma look too large or too small). When the IMU's own
+    residuals are far above their band, or its raw data have ``imu_findings``
+    (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
+    lines say that their misfit may follow from it -- but for a sensor with a cause, whose
+    calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
+    those sensors instead (its findings still come first)."""
+    by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
+    imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
+    kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
+    lines = []
+    causes = {name: text for name, text in (causes or {}).items() if name in by_sensor and name != IMU}
+    for sensor, verdicts in by_sensor.items():
+        off = {e: c for e, c in verdicts.items() if far_off(c)}
+        pattern = causes.get(sensor)
+        if not off and pattern is None:
+            continue
+        # once a sensor warns, every estimator whose figure is out of its band is named, not only
+        # those far enough off to raise the warning
+        shown = {e: c for e, c in verdicts.items() if not c["ok"]} if off else verdicts
+        figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
+                            for e, c in shown.items())
+        if not off:  # near its band: the calibration it points at is the finding
+            lines.append(f"{sensor}: per dof {figures}: its residuals point at {pattern}")
+            continue
+        if sensor == IMU:
+            symptom = f", or see the calibration of {', '.join(causes)} below (it bends the motion)" if causes else ""
+            lines.append(f"imu: residuals per dof {figures}: the IMU's data do not fit its model -- check its units "
+                         f"(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities{symptom}")
+            continue
+        high = any(c["per_dof"] > c["band"][1] for c in off.values())
+        advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
+                  else "its sigma looks too large")
+        if pattern is not None:
+            advice = (f"its residuals point at {pattern}; " +
+                      ("if that is not it, check its sigma (too small)" if high
+                       else "then judge its sigma again (it looks too large)"))
+        if kinds:
+            advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
+                      f"of it; if the IMU is cleared, {advice}")
+        elif high and imu_off and pattern is None:
+            imu_worst = max(by_sensor[IMU][e]["per_dof"] for e in imu_off)
+            if imu_worst >= max(c["per_dof"] for c in off.values()):
+                advice += "; the IMU's own residuals are further out of band, so the IMU is the likelier cause"
+            else:
+                advice += f"; the IMU's own residuals are out of band too ({imu_worst:.3g} per dof): check both"
+        lines.append(f"{sensor}: per dof {figures}: {advice}")
+    return lines

@@ -1,0 +1,136 @@
+"""Cross-checks between the three estimators where theory says they must agree (docs/design.md,
+section 9).
+
+On simulated runs (discrete-model truth, so no discretisation error pollutes the statistics):
+
+* ``prediction_max_abs_error``: the IMU factor's prediction of keyframe ``j`` from ``i`` against
+  the EKF's sample-by-sample propagation of the same samples (same model: round-off, < 1e-9);
+* ``final_state_max_sigma``: batch smoother versus EKF at the LAST state, in EKF standard
+  deviations (filtering and smoothing coincide at the end of the data up to linearisation);
+  ``final_cov_trace_ratio``: trace of the batch's last-state covariance over the EKF's;
+* ``fixed_lag_max_sigma``: the fixed-lag smoother's newest state against the EKF at every
+  keyframe (both are filters up to linearisation);
+* ``ate_rmse_m`` per estimator (the smoothed trajectory at least as accurate as the filtered);
+* ``nees_mean`` per estimator over all seeds and times (pose NEES / 6) and the 95% chi-square
+  interval of a per-time average over the seeds, ``nees_bounds(6, seeds) / 6``; the average over
+  time of correlated per-time averages varies less than one of them, so the interval is
+  conservative (a consistent estimator passes it with more than 95% probability).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.simulate import simulate
+from factors import imu
+from smoother.evaluation import metrics
+from smoother.batch.solve import solve_batch
+from smoother.ekf.filter import Ekf, run_ekf
+from smoother.fixed_lag.gtsam_window import run_fixed_lag
+from smoother.model.problem import build_problem
+from smoother.evaluation.scoring import compare_with_truth
+
+TARGETS = {
+    "prediction_max_abs_error": 1e-9,
+    "final_state_max_sigma": 0.1,
+    "final_cov_trace_ratio_tolerance": 0.1,
+    "fixed_lag_max_sigma": 0.2,
+}
+
+
+@dataclass
+class CrosscheckOptions:
+    profile: str = "gentle"
+    seeds: int = 5
+    first_seed: int = 0
+    duration: float = 20.0
+    lag_s: float = 2.0
+    fixed_lag_kind: str = "incremental"
+
+
+def prediction_error(problem, dataset, intervals: int = 5) -> float:
+    """Largest |factor prediction - EKF propagation| over r, v, C entries for a few intervals."""
+    worst = 0.0
+    for k in np.linspace(0, len(problem.imu_factors) - 1, intervals).astype(int):
+        factor = problem.imu_factors[k]
+        # At the factor's own linearisation point (it may have been integrated again during
+        # optimisation) the prediction is exact, not first order in the gyro-bias offset.
+        start = problem.initial_states[k].replace(b_w=factor.pre.b_w_bar)
+        ekf = Ekf(start, np.zeros((15, 15)), dataset.noise, dataset.gravity)
+        acc, gyro, dt = factor.pre.samples
+        for a, g, h in zip(acc, gyro, dt):
+            ekf.predict(a, g, h)
+        predicted = factor.predict(start)
+        for name in ("r", "v", "C"):
+            worst = max(worst, float(np.max(np.abs(getattr(predicted, name) - getattr(ekf.state, name)))))
+    return worst
+
+
+def sigma_difference(a: imu.ImuState, b: imu.ImuState, cov: np.ndarray) -> np.ndarray:
+    """``|a [-] b|`` per error-state component in standard deviations of ``cov``."""
+    return np.abs(imu.boxminus(a, b)) / np.sqrt(np.einsum("...ii->...i", cov))
+
+
+def one_seed(options: CrosscheckOptions, seed: int) -> dict:
+    """All the figures for one simulated run."""
+    dataset = simulate(profile=options.profile, duration=options.duration, seed=seed)
+    problem = build_problem(dataset)
+    batch = solve_batch(problem).trajectory
+    ekf = run_ekf(dataset, progress=False).trajectory
+    fixed = run_fixed_lag(problem, options.lag_s, options.fixed_lag_kind, progress=False).newest
+    i_ekf = np.searchsorted(ekf.t, problem.times)
+    if not np.array_equal(ekf.t[i_ekf], problem.times):
+        raise RuntimeError("EKF and smoother keyframe times differ")
+    out = {
+        "prediction_max_abs_error": prediction_error(problem, dataset),
+        "final_state_max_sigma": float(sigma_difference(batch.states[-1], ekf.states[-1], ekf.cov[-1]).max()),
+        "final_cov_trace_ratio": float(np.trace(batch.cov[-1]) / np.trace(ekf.cov[-1])),
+        "fixed_lag_max_sigma": float(sigma_difference(fixed.states, ekf.states[i_ekf], ekf.cov[i_ekf]).max()),
+        "ate_rmse_m": {},
+        "nees": {},
+    }
+    for name, traj in (("batch", batch), ("fixed-lag", fixed), ("ekf", ekf.subset(i_ekf))):
+        c = compare_with_truth(dataset.truth, traj)
+        out["ate_rmse_m"][name] = c["ate_rmse_m"]
+        out["nees"][name] = c["nees"] / 6.0
+    return out
+
+
+def crosscheck(options: CrosscheckOptions, progress=None) -> dict:
+    """Run :func:`one_seed` for every seed and aggregate (see the module docstring)."""
+    runs = []
+    for seed in range(options.first_seed, options.first_seed + options.seeds):
+        runs.append(one_seed(options, seed))
+        if progress is not None:
+            progress(seed)
+    names = ("batch", "fixed-lag", "ekf")
+    low, high = (b / 6.0 for b in metrics.nees_bounds(6, options.seeds))
+    nees_mean = {n: float(np.mean([r["nees"][n] for r in runs])) for n in names}
+    ate = {n: float(np.mean([r["ate_rmse_m"][n] for r in runs])) for n in names}
+    result = {
+        "profile": options.profile,
+        "seeds": options.seeds,
+        "duration_s": options.duration,
+        "prediction_max_abs_error": max(r["prediction_max_abs_error"] for r in runs),
+        "final_state_max_sigma": max(r["final_state_max_sigma"] for r in runs),
+        "final_cov_trace_ratio": float(np.mean([r["final_cov_trace_ratio"] for r in runs])),
+        "final_cov_trace_ratio_range": [min(r["final_cov_trace_ratio"] for r in runs),
+                                        max(r["final_cov_trace_ratio"] for r in runs)],
+        "fixed_lag_max_sigma": max(r["fixed_lag_max_sigma"] for r in runs),
+        "ate_rmse_m": ate,
+        "nees_mean": nees_mean,
+        "nees_interval_95": [low, high],
+    }
+    checks = {
+        "prediction": result["prediction_max_abs_error"] < TARGETS["prediction_max_abs_error"],
+        "final_state": result["final_state_max_sigma"] < TARGETS["final_state_max_sigma"],
+        "final_cov": all(abs(x - 1.0) <= TARGETS["final_cov_trace_ratio_tolerance"]
+                         for x in result["final_cov_trace_ratio_range"]),
+        "fixed_lag": result["fixed_lag_max_sigma"] < TARGETS["fixed_lag_max_sigma"],
+        "smoothed_at_least_as_accurate": ate["batch"] <= ate["ekf"],
+        "nees": all(low <= nees_mean[n] <= high for n in names),
+    }
+    result["checks"] = checks
+    result["ok"] = all(checks.values())
+    return result

@@ -1,0 +1,143 @@
+"""Monte Carlo runs of the simulator through the estimators, on any ``concurrent.futures``
+executor or on a Dask cluster, with results that do not depend on which.
+
+Each run is a pure function of its configuration and its seed (:func:`run_one`): it simulates,
+runs the estimators and returns plain numbers (metrics and the per-keyframe pose NEES). Runs are
+collected by seed, so 1 worker, several processes or a Dask cluster give identical results.
+:func:`aggregate` averages the NEES over runs per keyframe and compares it with the two-sided
+95% chi-square interval of an average of ``runs`` independent 6-dim NEES.
+"""
+from __future__ import annotations
+
+import json
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from datasets.atomic import atomic_write
+from factors import compiled
+from factors.errors import InputError
+
+
+@dataclass(frozen=True)
+class MonteCarloConfig:
+    profile: str = "gentle"
+    duration: float = 10.0
+    estimators: tuple = ("batch", "ekf")
+    lag_s: float = 2.0
+    outliers: float = 0.0
+    robust: tuple = ()  # ((sensor name, (kernel, threshold)), ...) as hashable pairs
+
+
+def run_one(config: MonteCarloConfig, seed: int) -> dict:
+    """One seeded run: ``{"seed", <estimator>: {"ate_rmse_m", "rot_rmse_deg", "nees_mean",
+    "nees": [...] per keyframe, "t": [...]}}``. Plain lists and floats only (picklable, JSON)."""
+    from datasets.simulate import simulate
+    from smoother.pipeline import RunOptions, run_estimators
+    from smoother.evaluation.scoring import compare_with_truth
+
+    dataset = simulate(profile=config.profile, duration=config.duration, seed=seed,
+                       outlier_fraction=config.outliers)
+    options = RunOptions(lag_s=config.lag_s, robust=dict(config.robust) or None, progress=False)
+    estimates = run_estimators(dataset, list(config.estimators), options)
+    out: dict = {"seed": int(seed)}
+    for name, est in estimates.items():
+        c = compare_with_truth(dataset.truth, est.trajectory)
+        out[name] = {
+            "ate_rmse_m": c["ate_rmse_m"],
+            "rot_rmse_deg": c["rot_rmse_deg"],
+            "nees_mean": float(np.mean(c["nees"]) / 6.0),
+            "t": c["t"].tolist(),
+            "nees": c["nees"].tolist(),
+        }
+    return out
+
+
+def make_executor(workers: int) -> Executor | None:
+    """None (runs in this process, in seed order) for one worker, a process pool otherwise,
+    whose workers share this process's threads among them (:func:`factors.compiled.in_parallel`
+    in each worker would otherwise use every core, ``workers`` times over)."""
+    if workers < 1:
+        raise InputError(f"workers: expected at least 1, got {workers}")
+    if workers == 1:
+        return None
+    share = max(1, compiled.thread_count() // workers)
+    return ProcessPoolExecutor(max_workers=workers, initializer=compiled.set_thread_count, initargs=(share,))
+
+
+def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, dask_address: str | None = None,
+             out_dir: Path | None = None, on_done=None) -> list[dict]:
+    """Every seed through :func:`run_one` -- in this process when ``executor`` is None, else on
+    the executor or the Dask scheduler; results sorted by seed. With ``out_dir`` each finished
+    run is written at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them;
+    the seed files of an earlier call into the same folder are removed first, so that ``runs/``
+    never mixes two configurations."""
+    seeds = [int(s) for s in seeds]
+    results = []
+    if out_dir is not None:
+        for stale in (Path(out_dir) / "runs").glob("seed_*.json"):
+            stale.unlink(missing_ok=True)
+
+    def keep(result):
+        results.append(result)
+        if out_dir is not None:
+            with atomic_write(Path(out_dir) / "runs" / f"seed_{result['seed']}.json") as handle:
+                json.dump(result, handle)
+        if on_done is not None:
+            on_done(result)
+
+    if dask_address is not None:
+        try:
+            from dask.distributed import Client, as_completed as dask_completed
+        except ImportError:
+            raise InputError("--dask needs the optional dependency: pip install 'boxplus-smoother[dask]'") from None
+        with Client(dask_address) as client:
+            futures = client.map(run_one, [config] * len(seeds), seeds, pure=False)
+            for future in dask_completed(futures):
+                keep(future.result())
+    elif executor is None:
+        for seed in seeds:
+            keep(run_one(config, seed))
+    else:
+        futures = [executor.submit(run_one, config, s) for s in seeds]
+        try:
+            for future in as_completed(futures):
+                keep(future.result())
+        finally:
+            executor.shutdown(wait=False, cancel_futures=True)
+    return sorted(results, key=lambda r: r["seed"])
+
+
+@dataclass
+class Summary:
+    runs: int
+    estimators: dict = field(default_factory=dict)
+    nees_interval_95: tuple = (0.0, 0.0)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def aggregate(results: list[dict], estimators) -> Summary:
+    """Mean metrics over runs, and the per-keyframe NEES averaged over runs with the share of
+    keyframes inside the 95% interval of ``chi2(6 runs) / runs``."""
+    from smoother.evaluation import metrics
+
+    runs = len(results)
+    low, high = metrics.nees_bounds(6, runs)
+    summary = Summary(runs=runs, nees_interval_95=(low / 6.0, high / 6.0))
+    for name in estimators:
+        per_run = [r[name] for r in results]
+        n = min(len(p["nees"]) for p in per_run)
+        nees = np.mean([p["nees"][:n] for p in per_run], axis=0)
+        summary.estimators[name] = {
+            "ate_rmse_m": float(np.mean([p["ate_rmse_m"] for p in per_run])),
+            "rot_rmse_deg": float(np.mean([p["rot_rmse_deg"] for p in per_run])),
+            "nees_mean": float(np.mean(nees) / 6.0),
+            "nees_share_inside_95": float(np.mean((nees >= low) & (nees <= high))),
+            "t": per_run[0]["t"][:n],
+            "nees_per_keyframe": (nees / 6.0).tolist(),
+        }
+    return summary

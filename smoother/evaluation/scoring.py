@@ -1,0 +1,413 @@
+"""Scoring estimates against a dataset's reference and writing a run's outputs.
+
+Against a ground truth (simulator, EuRoC), at every state of the estimate in the truth's span
+with the truth interpolated to its time (:func:`compare_with_truth`): ``ate_rmse_m`` (position
+RMSE, no alignment: truth and estimate share the world frame), ``rot_rmse_deg`` (RMS angle of
+``C_true^T C_est``) and ``nees_mean``: the time average of the 6-dim pose NEES (position and
+primer-boxminus attitude, :func:`smoother.evaluation.metrics.nees`) divided by 6, so 1 is consistent; over
+too few states or too short a part of the run they are null and ``ate_note`` says why
+(:func:`against_truth`). Against GPS (KITTI):
+``gps_heldout_rmse_m`` over the fixes held out of estimation -- an accuracy -- and
+``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
+fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
+makes small without being accurate; estimators are compared by held-out fixes only. Both with
+the estimate interpolated linearly to the fix times. :func:`interpolation_baseline` is the
+yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
+
+A run directory holds ``<estimator>.tum`` (TUM trajectory, stamped in the data's own clock:
+:attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states
+and covariances, times from the run's start and the clock's origin beside them), ``truth.npz``
+and ``gps.npz`` where known, and ``metrics.json``; every file is written atomically.
+:func:`write_outputs` writes them into a folder; ``smoother run`` writes them through
+:class:`smoother.commands.run_directory.RunDirectory` (one run at a time, the previous run's
+files replaced together).
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import pickle
+import zipfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from datasets.atomic import atomic_write
+from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
+from datasets.initialise import world_frame
+from datasets.kinds import sensors_of
+from datasets.tum import write_tum
+from datasets.types import Dataset, PositionMeasurements, Trajectory
+from factors import imu
+from factors.errors import InputError
+from smoother.evaluation import metrics
+
+#: A figure against the truth needs at least this many compared states ...
+MIN_COMPARED_STATES = 10
+#: ... spread over at least this fraction of the estimate's time span; short of it the figures
+#: are null in metrics.json, with ``ate_note`` saying why.
+MIN_TRUTH_COVERAGE = 0.5
+#: A scored figure over less than this fraction of the estimate's span carries an ``ate_note``.
+FULL_TRUTH_COVERAGE = 0.9
+#: A truth step longer than this many typical steps is a gap: no state inside one is compared.
+TRUTH_GAP_FACTOR = GROUNDTRUTH_GAP_FACTOR
+
+
+def truth_at(truth: Trajectory, t: np.ndarray) -> tuple:
+    """``(states, inside)``: the truth interpolated to the times ``t`` in its span and not inside
+    one of its gaps (a step longer than :data:`TRUTH_GAP_FACTOR` typical ones: never bridged),
+    and the mask of those times (:meth:`datasets.types.Trajectory.interpolate`)."""
+    step = None if len(truth) < 2 else TRUTH_GAP_FACTOR * float(np.median(np.diff(truth.t)))
+    states, _, inside = truth.interpolate(t, max_step=step)
+    return states, inside
+
+
+def compare_with_truth(truth: Trajectory, estimate: Trajectory) -> dict:
+    """The estimate against the truth at every state of the estimate in the truth's span, the
+    truth interpolated to its time (:func:`truth_at`: a state inside a gap of the truth is not
+    compared): ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` (NaN when none is
+    compared), ``position_errors`` [m] and the pose NEES of each state, ``nees`` (None without
+    covariances). One place for the run's metrics, the Monte Carlo runs and the cross-checks."""
+    T, inside = truth_at(truth, estimate.t)
+    E = estimate.states[inside]
+    result = metrics.ate(T.r, T.C, E.r, E.C)
+    nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[inside], "pose")
+    return {"t": estimate.t[inside], "ate_rmse_m": result["translation"]["rmse"],
+            "rot_rmse_deg": result["rotation"]["rmse"], "position_errors": result["translation_errors"],
+            "nees": nees}
+
+
+def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
+    """``ate_rmse_m``, ``rot_rmse_deg``, ``nees_mean`` (pose NEES / 6; NaN without covariances) of
+    :func:`compare_with_truth`, ``compared_states`` and ``compared_coverage`` (the compared
+    states' time span over the estimate's). Over fewer than :data:`MIN_COMPARED_STATES` states or less
+    than :data:`MIN_TRUTH_COVERAGE` of the estimate's span the three figures are NaN (null in
+    metrics.json) and ``ate_note`` says why; below :data:`FULL_TRUTH_COVERAGE` the figures stand,
+    and ``ate_note`` says over how much of the run."""
+    c = compare_with_truth(truth, estimate)
+    n = len(c["t"])
+    span = float(estimate.t[-1] - estimate.t[0])
+    covered = float(c["t"][-1] - c["t"][0]) if n else 0.0
+    coverage = covered / span if span > 0 else float(n > 0)
+    out = {
+        "ate_rmse_m": c["ate_rmse_m"],
+        "rot_rmse_deg": c["rot_rmse_deg"],
+        "nees_mean": math.nan if c["nees"] is None or not n else float(np.mean(c["nees"]) / 6.0),
+        "compared_states": n,
+        "compared_coverage": coverage,
+    }
+    overlap = max(0.0, min(float(truth.t[-1]), float(estimate.t[-1])) - max(float(truth.t[0]), float(estimate.t[0])))
+    where = (f"{n} of the estimate's {len(estimate)} states lie in the truth's span, over {covered:.4g} s of the "
+             f"estimate's {span:.4g} s" + (f" (the truth covers {overlap:.4g} s of it)"
+                                         if overlap < FULL_TRUTH_COVERAGE * span else ""))
+    if n < MIN_COMPARED_STATES or coverage < MIN_TRUTH_COVERAGE:
+        worst = f" (position errors there up to {float(np.max(c['position_errors'])):.4g} m)" if n else ""
+        out.update(ate_rmse_m=math.nan, rot_rmse_deg=math.nan, nees_mean=math.nan,
+                   ate_note=f"not scored against the truth: {where}{worst}; a score needs at least "
+                            f"{MIN_COMPARED_STATES} states over {MIN_TRUTH_COVERAGE:.0%} of the estimate's span")
+    elif coverage < FULL_TRUTH_COVERAGE:
+        out["ate_note"] = f"scored over part of the run only: {where} ({coverage:.0%})"
+    return out
+
+
+def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, estimate - measured)``: the times of the measured positions inside the estimate's time
+    span and, for each, the estimate interpolated linearly to its time minus the measured position
+    (world axes; empty arrays when there are none). With a lever arm (``positions.T_BS``) the
+    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time: exact
+    for a run's own estimates (the fixes' times are keyframes), an approximation for a trajectory
+    sampled elsewhere."""
+    if positions is None or len(positions) == 0:
+        return np.empty(0), np.empty((0, 3))
+    inside, residual = fix_residuals(positions.t, positions.position, estimate, positions.T_BS)
+    return positions.t[inside], residual
+
+
+def fix_residuals(t: np.ndarray, position: np.ndarray, estimate: Trajectory, T_BS=None) -> tuple:
+    """``(inside, estimate - measured)`` of positions measured at times ``t`` (M,): the mask of
+    those inside the estimate's time span and, for each of them, the estimate interpolated
+    linearly to its time (its antenna ``r + C p_BS`` with a lever arm ``T_BS``, as
+    :func:`position_residuals`) minus ``position``. The one definition of a fix's residual: the
+    metrics' and the plots'."""
+    inside = (t >= estimate.t[0]) & (t <= estimate.t[-1])
+    t = t[inside]
+    est = interpolate_positions(t, estimate.t, estimate.position)
+    if T_BS is not None:
+        k = np.clip(np.searchsorted(estimate.t, t), 1, len(estimate.t) - 1)
+        k -= (t - estimate.t[k - 1]) < (estimate.t[k] - t)
+        est = est + estimate.C[k] @ T_BS[:3, 3]
+    return inside, est - position[inside]
+
+
+def interpolate_positions(t: np.ndarray, t_known: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """``positions`` (N, 3) known at times ``t_known`` interpolated linearly, per world axis, to
+    the times ``t`` inside their span."""
+    return np.stack([np.interp(t, t_known, positions[:, a]) for a in range(3)], axis=-1)
+
+
+def rms_distance(residual: np.ndarray, axes=slice(0, 3)) -> float:
+    """The RMS length of the ``residual`` rows (M, 3) in the world ``axes`` (horizontal ``0:2``,
+    vertical ``2:3``); NaN without rows."""
+    distance = np.linalg.norm(residual[:, axes], axis=1)
+    return float(np.sqrt(np.mean(distance**2))) if distance.size else math.nan
+
+
+def position_errors(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+    """``(t, distance)`` of :func:`position_residuals`."""
+    t, residual = position_residuals(positions, estimate)
+    return t, np.linalg.norm(residual, axis=1)
+
+
+def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) -> float:
+    """RMS distance between measured positions and the estimate interpolated to their times
+    (:func:`position_errors`; fixes outside the estimate's time span are not counted; NaN when
+    none is left)."""
+    return _rms_distance([] if positions is None else [positions], estimate)
+
+
+def position_streams(dataset: Dataset, calibration=None, sensor: str | None = None) -> list[tuple]:
+    """Each sensor's stream of position fixes (any kind measuring :class:`PositionMeasurements`:
+    KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(used, held out)``
+    (either may be None); with ``sensor``, that sensor's alone. With an estimator's ``calibration``
+    (:class:`factors.calibration.CalibrationSet`), a calibrated sensor's fixes as that estimate
+    has them: taken at their stamps plus the estimated time offset, at the estimated lever arm."""
+    calibrated = {} if calibration is None else dict(zip(calibration.names, calibration.values))
+    out = []
+    for s in dataset.sensors:
+        if not isinstance(s.heldout if s.data is None else s.data, PositionMeasurements):
+            continue
+        if sensor is not None and s.name != sensor:
+            continue
+        c = calibrated.get(s.name)
+        if c is None:
+            out.append((s.data, s.heldout))
+            continue
+        out.append(tuple(None if p is None else replace(p, t=p.t + c.time_offset, T_BS=c.T_BS)
+                         for p in (s.data, s.heldout)))
+    return out
+
+
+def score(dataset: Dataset, estimate: Trajectory, calibration=None) -> dict:
+    """Every metric the dataset allows for one estimate (the fixes of the sensors it calibrated
+    at its ``calibration``, :func:`position_streams`)."""
+    out: dict = {}
+    if dataset.truth is not None:
+        out.update(against_truth(dataset.truth, estimate))
+    streams = position_streams(dataset, calibration)
+    used = [u for u, _ in streams if u is not None]
+    heldout = [h for _, h in streams if h is not None]
+    if used or heldout:
+        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
+        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, slice(0, 2))
+        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, slice(2, 3))
+        out["gps_fit_residual_m"] = _rms_distance(used, estimate)
+    return out
+
+
+def interpolation_baseline(dataset: Dataset) -> dict | None:
+    """What connecting the dots gives, the yardstick of the held-out metrics: each position or
+    GNSS stream's used fixes interpolated linearly (per world axis) to the times of its held-out
+    fixes between its first and last used fix. ``gps_heldout_rmse_m`` and its horizontal and
+    vertical parts (as :func:`score`'s) and ``heldout_fixes`` (how many counted); None without
+    held-out fixes inside the used ones' span. (An estimator's held-out figure also counts the
+    held-out fixes after the last used one, inside its own span.)"""
+    residuals = [np.empty((0, 3))]
+    for used, held in position_streams(dataset):
+        if used is None or held is None or len(used) < 2:
+            continue
+        inside = (held.t >= used.t[0]) & (held.t <= used.t[-1])
+        t = held.t[inside]
+        residuals.append(interpolate_positions(t, used.t, used.position) - held.position[inside])
+    residual = np.concatenate(residuals)
+    if not len(residual):
+        return None
+    return {"gps_heldout_rmse_m": rms_distance(residual), "gps_heldout_horizontal_rmse_m":
+            rms_distance(residual, slice(0, 2)), "gps_heldout_vertical_rmse_m": rms_distance(residual, slice(2, 3)),
+            "heldout_fixes": int(len(residual))}
+
+
+def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=None,
+                         sensor: str | None = None) -> float | None:
+    """How alike the estimate's residuals at consecutive used fixes are: their lag-one
+    autocorrelation (each position or GNSS stream's residual series less its mean, per world
+    axis, pooled). Near 0 the fixes' errors are white; well above 0 the receiver's error drifts
+    slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
+    RMSE favours interpolation over an estimator that does not model that drift. None with fewer
+    than three fixes. ``calibration`` as :func:`score`'s; with ``sensor``, that sensor's fixes
+    alone."""
+    num = den = 0.0
+    for p, _ in position_streams(dataset, calibration, sensor):
+        _, residual = position_residuals(p, estimate)  # empty for None
+        if len(residual) < 3:
+            continue
+        residual = residual - residual.mean(axis=0)
+        num += float(np.sum(residual[1:] * residual[:-1]))
+        den += float(np.sum(residual * residual))
+    return num / den if den > 0 else None
+
+
+def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
+    """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
+    ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
+    return rms_distance(np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts]),
+                        axes)
+
+
+
+def save_trajectory(path: Path, trajectory: Trajectory, time_origin_ns: int | None = None) -> None:
+    """A trajectory with its covariances as ``.npz`` (atomic); with ``time_origin_ns`` (the data
+    clock's reading at ``t = 0``, :attr:`datasets.types.Dataset.time_origin_ns`) that too, as the
+    0-d int64 array ``time_origin_ns``: the stamps in the data's clock are ``t + time_origin_ns
+    * 1e-9`` (:func:`load_stamped_trajectory`)."""
+    s = trajectory.states
+    arrays = {"t": trajectory.t, "r": s.r, "v": s.v, "C": s.C, "b_f": s.b_f, "b_w": s.b_w}
+    if trajectory.cov is not None:
+        arrays["cov"] = trajectory.cov
+    if time_origin_ns is not None:
+        arrays["time_origin_ns"] = np.int64(time_origin_ns)
+    with atomic_write(path, "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+#: What reading a damaged or foreign ``.npz`` can raise (NumPy, zipfile, pickle refused).
+_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError)
+
+
+@contextlib.contextmanager
+def read_npz(path: Path, expected: str):
+    """The arrays of the ``.npz`` archive ``path`` (``np.load`` without pickles) inside the
+    block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not such an archive,
+    cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g. a validation)."""
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as error:
+        raise InputError(f"{path}: cannot read it ({error.strerror or error}); expected {expected}") from None
+    if not is_zip:
+        raise InputError(f"{path}: not an .npz archive; expected {expected}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            yield data
+    except InputError:
+        raise
+    except _NPZ_ERRORS as error:
+        raise InputError(f"{path}: cannot read it ({error}); expected {expected}") from None
+
+
+def load_trajectory(path: Path) -> Trajectory:
+    """Inverse of :func:`save_trajectory`, times from the run's start (see
+    :func:`load_stamped_trajectory` for the data's clock)."""
+    return load_stamped_trajectory(path)[0]
+
+
+def load_stamped_trajectory(path: Path) -> tuple[Trajectory, int | None]:
+    """``(trajectory, time_origin_ns)`` of a file :func:`save_trajectory` wrote (``time_origin_ns``
+    None when it has none: its times are the data's own); an :class:`~factors.errors.InputError`
+    naming the file for anything else (not an archive, missing arrays, arrays that do not make a
+    trajectory, none at all)."""
+    expected = ("an .npz written by smoother run with arrays t, r, v, C, b_f, b_w and optionally cov (N, 15, 15) "
+                "and time_origin_ns (an integer)")
+    with read_npz(path, expected) as data:
+        missing = [k for k in ("t", "r", "v", "C", "b_f", "b_w") if k not in data]
+        if missing:
+            raise InputError(f"{path}: missing array(s) {', '.join(missing)}; expected {expected}")
+        states = imu.ImuState(r=data["r"], v=data["v"], C=data["C"], b_f=data["b_f"], b_w=data["b_w"])
+        trajectory = Trajectory(data["t"], states, data["cov"] if "cov" in data else None)
+        origin = None
+        if "time_origin_ns" in data:
+            value = data["time_origin_ns"]
+            if value.shape != () or value.dtype.kind not in "iu":
+                raise InputError(f"{path}: time_origin_ns is {value.dtype} of shape {value.shape}; expected {expected}")
+            origin = int(value)
+    if len(trajectory) == 0:
+        raise InputError(f"{path}: the trajectory is empty; expected at least one state")
+    return trajectory, origin
+
+
+def save_gps(path: Path, dataset: Dataset) -> None:
+    """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
+    nothing when it has none. A rig's position and GNSS sensors count too (their antennas'
+    positions, as measured)."""
+    parts = [(p, flag) for pair in position_streams(dataset) for p, flag in zip(pair, (False, True)) if p is not None]
+    if not parts:
+        return
+    t = np.concatenate([p.t for p, _ in parts])
+    order = np.argsort(t, kind="stable")
+    with atomic_write(path, "wb") as handle:
+        clock = {} if dataset.time_origin_ns is None else {"time_origin_ns": np.int64(dataset.time_origin_ns)}
+        np.savez(handle, t=t[order], position=np.concatenate([p.position for p, _ in parts])[order],
+                 cov=np.concatenate([p.cov for p, _ in parts])[order],
+                 heldout=np.concatenate([np.full(len(p), flag) for p, flag in parts])[order], **clock)
+
+
+def aiding_sensors(dataset: Dataset) -> list[str]:
+    """The names of the dataset's aiding sensors (:func:`datasets.kinds.sensors_of`); none: the
+    run is dead reckoning, the IMU alone."""
+    return [s.name for s in sensors_of(dataset)]
+
+
+def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
+    """Write every estimate (TUM + npz, both in the data's clock; GeoJSON with a datum), the truth
+    and the fixes (npz) where known and ``metrics.json`` (its ``_run`` with ``extra``, the
+    estimators, ``aiding_sensors``, ``dead_reckoning``: true without any, and ``world_frame``:
+    :meth:`datasets.initialise.WorldFrame.describe`) into ``out_dir``;
+    return the metrics. An estimator that failed has its reason in ``metrics.json`` (``failed``)
+    and no files. Files of these names already there are overwritten, others left (a run
+    directory's one-run rule is :class:`smoother.commands.run_directory.RunDirectory`'s)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    for name, est in estimates.items():
+        if est.failed is not None:  # no trajectory: why, in metrics.json
+            report[name] = {"failed": est.failed, "runtime_s": est.runtime_s, **est.details}
+            continue
+        write_tum(out_dir / f"{name}.tum", est.trajectory, time_origin_ns=dataset.time_origin_ns)
+        save_trajectory(out_dir / f"{name}.npz", est.trajectory, dataset.time_origin_ns)
+        datum = getattr(dataset, "datum", None)
+        if datum is not None:
+            write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
+        report[name] = {**score(dataset, est.trajectory, est.calibration), "runtime_s": est.runtime_s, **est.details}
+    if dataset.truth is not None:
+        save_trajectory(out_dir / "truth.npz", dataset.truth, dataset.time_origin_ns)
+    save_gps(out_dir / "gps.npz", dataset)
+    aiding = aiding_sensors(dataset)
+    document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
+                                   "dead_reckoning": not aiding,
+                                   "world_frame": world_frame(sensors_of(dataset)).describe()}}
+    with atomic_write(out_dir / "metrics.json") as handle:
+        json.dump(_jsonable(document), handle, indent=2)
+        handle.write("\n")
+    return report
+
+
+def write_geojson(path: Path, trajectory: Trajectory, datum, name: str, time_origin_ns: int | None = None) -> None:
+    """The trajectory in latitude, longitude and altitude (WGS-84, about the local ENU frame's
+    ``datum``) as a GeoJSON ``LineString`` (longitude first, as GeoJSON orders them), atomically:
+    it opens in QGIS or any web map. Its ``t_start`` and ``t_end`` are in the data's clock
+    (seconds; ``time_origin_ns`` as :attr:`datasets.types.Dataset.time_origin_ns`)."""
+    clock = 0.0 if time_origin_ns is None else time_origin_ns * 1e-9
+    from datasets.gnss import enu_to_geodetic
+
+    lat, lon, alt = enu_to_geodetic(trajectory.position, datum)
+    feature = {"type": "Feature", "properties": {"name": name, "t_start": float(clock + trajectory.t[0]),
+                                                 "t_end": float(clock + trajectory.t[-1])},
+               "geometry": {"type": "LineString",
+                            "coordinates": np.stack([lon, lat, alt], axis=-1).round(9).tolist()}}
+    with atomic_write(path) as handle:
+        json.dump({"type": "FeatureCollection", "features": [feature]}, handle)
+        handle.write("\n")
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return None if not math.isfinite(float(x)) else float(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    return x

@@ -1,0 +1,541 @@
+"""Fixed-lag smoothing on GTSAM's ``BatchFixedLagSmoother`` / ``IncrementalFixedLagSmoother``.
+
+One update loop, :class:`KeyframeWindow`, takes keyframes one at a time, in time order, each with
+its time stamp and its factors; variables older than the lag (seconds) are marginalised by GTSAM,
+and the loop lets go of the factors GTSAM has marginalised, so what a run holds of the graph stays
+the size of the window however long it is. Two things feed it: :func:`run_fixed_lag`, the factors
+of a whole :class:`smoother.model.problem.Problem` keyframe by keyframe (``Problem.keyframe_factors``), and
+:class:`smoother.online.smoother.OnlineSmoother`, keyframes made as IMU samples and measurements arrive
+(what ``smoother run --estimator fixed-lag`` replays a dataset through). The new keyframe's
+initial value is the IMU prediction from the smoother's current estimate of the previous
+keyframe. :func:`run_fixed_lag` records after every update the newest state's estimate and, if
+asked, its 15x15 covariance (primer convention); each keyframe's estimate as it leaves the window;
+and the smoothed window at the end.
+
+GTSAM pitfalls handled here:
+
+* the Python ``BatchFixedLagSmoother`` has no ``marginalCovariance``: covariances come from the
+  smoother's current factors (its marginal factors included), linearised and eliminated
+  (:func:`window_covariances`: Cholesky, QR for the windows GTSAM's Cholesky calls nearly
+  indeterminant, a dense pseudo-inverse as the last resort), which works for both smoothers,
+  gives the joint block of the keyframe's four variables, and survives nearly singular windows;
+* both smoothers factorise with QR: with Cholesky, sparse GPS (KITTI) is declared
+  indeterminant within seconds and ISAM2 cannot continue after a failed update;
+* a factor that refers to a variable already marginalised out (a relative pose longer than the
+  lag) would make GTSAM fail: it is skipped with a warning;
+* a keyframe that no factor ties to the window (no IMU factor: a gap in the IMU data) gets a
+  weak prior around its prediction in the same update, and an update GTSAM still calls
+  indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
+  update that fails beyond that raises :class:`FixedLagFailed` naming the keyframe and time
+  instead of a bare GTSAM exception;
+* ISAM2 relinearises at every update (:func:`_make_smoother`), so that a measurement's
+  correction reaches the states' linearisation before they leave the window;
+* measurements further apart than the lag leave keyframes with their dead-reckoned estimates
+  (they leave the window before the next measurement reaches them), and the
+  ``BatchFixedLagSmoother``, which keeps the state at its window's edge linearised where it first
+  was (its ``enforceConsistency``, which the Python wrapper cannot turn off), drifts off besides:
+  a warning says so for either kind (:func:`sparse_measurement_warning`). The incremental kind is
+  the default.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections import deque
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from datasets.types import Trajectory
+from factors import imu, preintegration
+from factors import priors
+from factors.imu_factor import ImuFactor
+from factors.uncertainty import state_covariance_to_primer
+from factors.errors import InputError, SolverError
+from smoother.batch.solve import is_indeterminant
+from factors.keys import keyframe_keys
+from smoother.model.problem import Problem, insert_state, noise_model, read_state
+from smoother.errors import IndeterminantSystem
+from smoother.model.blocks import evaluate_block, marginal_covariances
+from smoother.progress import progress_bar
+
+KINDS = ("batch", "incremental")
+
+#: Keyframes this close to the next update's marginalisation boundary (its time minus the lag)
+#: have their lagged values taken before it as well: GTSAM marginalises those strictly older than
+#: the boundary.
+_LAG_MARGIN_S = 1e-6
+
+#: How many of the latest entries the timing records keep (``update_s``, an online smoother's
+#: ``latency_s``): every update of a day at 10 Hz (~30 MB), and no more on a robot that runs for weeks.
+HISTORY = 1_000_000
+
+#: Standard deviations of the weak prior added when an update is indeterminant.
+WEAK_PRIOR_SIGMAS = np.array([1e2] * 3 + [1e1] * 3 + [np.pi] * 3 + [1.0] * 3 + [0.1] * 3)
+
+
+@dataclass
+class FixedLagResult:
+    """``newest``: the newest state's estimate (and covariance) after each update, at the
+    keyframe times -- a filtered estimate; ``lagged``: each keyframe's estimate (and covariance)
+    at the last update that still held it, i.e. smoothed with up to ``lag`` seconds of later
+    data -- the fixed-lag smoother's own output; ``window``: the estimates of the last window;
+    ``update_s``: wall time of each update; ``recovered``: keyframes where a weak prior was
+    needed."""
+
+    newest: Trajectory
+    lagged: Trajectory
+    window: Trajectory
+    update_s: np.ndarray
+    recovered: list
+    skipped_factors: int
+    runtime_s: float
+
+
+def _make_smoother(kind: str, lag_s: float):
+    """GTSAM's smoother of ``kind`` with QR factorisation: Cholesky declares the nearly
+    singular systems of sparse GPS (KITTI, a fix every 10 s with 1 s keyframes) indeterminant
+    at the velocity variables within seconds, and ISAM2 cannot continue after a failed update;
+    QR solves them (the price is about 1.5x per update).
+
+    ISAM2 reuses the slots of removed factors (``findUnusedFactorSlots``, off in
+    ``ISAM2Params`` by default): the smoother removes every factor that marginalisation
+    replaces, and with the default each left an empty slot behind, so ISAM2's factor graph grew
+    with the length of the run and so did every relinearisation (the updates that set the 99th
+    percentile): 7.7 -> 8.9 ms from the first to the last 6 minutes of an hour at 10 Hz. With reuse the graph holds the window only and those updates
+    stay flat (``benchmarks/run.py``: median and 99th percentile per tenth of an hour).
+
+    ISAM2 considers relinearising at every update (``relinearizeSkip`` 1; GTSAM's default is
+    every 10th), of the variables whose estimate moved more than 0.05 from their linearisation
+    point. With every 10th update and a measurement every 10th keyframe (KITTI: 1-s keyframes, a
+    GPS fix every 10 s) the relinearisations fell on the measured keyframes, before their
+    correction, so a corrected state left a window shorter than 10 s still linearised where dead
+    reckoning had put it (median 39 m away) and its marginal was built there: held-out RMS
+    25.7 m at a 2-s lag, against 7.7 m now (the EKF: 14.2 m). A threshold of 1e-3 with
+    relinearisation at every update costs ~6 ms per update; 0.05 costs ~1.2 ms."""
+    if kind == "batch":
+        params = gtsam.LevenbergMarquardtParams()
+        params.setLinearSolverType("MULTIFRONTAL_QR")
+        return gtsam.BatchFixedLagSmoother(lag_s, params)
+    if kind == "incremental":
+        params = gtsam.ISAM2Params()
+        params.relinearizeSkip = 1
+        params.setRelinearizeThreshold(0.05)
+        params.setFactorization("QR")
+        params.findUnusedFactorSlots = True
+        return gtsam.IncrementalFixedLagSmoother(lag_s, params)
+    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
+
+
+def window_covariances(blocks: list, smoother, estimate: gtsam.Values, first: int,
+                       states: imu.ImuState, rows_of: dict, wanted=None) -> np.ndarray:
+    """Primer-convention 15x15 covariances of the window's keyframes ``first, first + 1, ...``
+    (their states ``states``, their variables ``factors.keys.keyframe_keys``) from the smoother's
+    current factors linearised at ``estimate``; of those at the window positions ``wanted`` only
+    (0 = ``first``; default all). ``rows_of``: ``id(factor) -> (block index, row)`` of the
+    project's factors in the smoother, rows of ``blocks`` (a :class:`smoother.model.problem.Problem`'s).
+
+    The project's own factors in the window (those in ``rows_of``) are linearised together by the
+    vectorised blocks of :mod:`smoother.model.blocks` (no Python callback per factor), the smoother's
+    marginal factors (``LinearContainerFactor``) by GTSAM with their ``Rot3`` columns moved into
+    the primer's chart (``J C^T``). The resulting linear system -- one 15-dim variable per window
+    keyframe -- is solved for the marginals by :func:`_window_marginals`."""
+    n = len(states)
+    wanted = range(n) if wanted is None else wanted
+    dim = imu.STATE_DIM
+    ours: dict[int, list[int]] = {}
+    containers = gtsam.NonlinearFactorGraph()
+    factors = smoother.getFactors()
+    for i in range(factors.size()):
+        f = factors.at(i)
+        if f is None:
+            continue
+        where = rows_of.get(id(f))
+        if where is None:
+            containers.add(f)
+        else:
+            ours.setdefault(where[0], []).append(where[1])
+    groups = []  # (window keyframes, [A per keyframe]) of one factor each
+    for b, block_rows in ours.items():
+        block = blocks[b]
+        idx = np.array(block_rows)
+        ev = evaluate_block(block, states, True, idx, keyframe_offset=first)
+        local = block.keyframes[idx] - first
+        groups += [(tuple(int(j) for j in local[m]), [A[m] for A in ev.A]) for m in range(len(idx))]
+    if containers.size():
+        dense = _container_rows(containers, estimate, first, n)
+        used = [j for j in range(n) if np.any(dense[:, j * dim:(j + 1) * dim])]
+        groups.append((tuple(used), [dense[:, j * dim:(j + 1) * dim] for j in used]))
+    return _window_marginals(groups, n, wanted)
+
+
+def _window_marginals(groups, n: int, wanted) -> np.ndarray:
+    """Marginal covariances of the window positions ``wanted`` (``n`` 15-dim variables) of the
+    whitened linear system ``groups`` (``(positions, [A per position])`` per factor).
+
+    Sparse elimination with Cholesky first (``gtsam.Marginals``, the fastest). GTSAM refuses it
+    for windows it judges nearly indeterminant -- a third of them with keyframes 25 ms apart and
+    several kinds of measurement -- although they have full rank: those go to the square-root
+    information (:func:`smoother.model.blocks.marginal_covariances`, QR), which works on the rows
+    themselves rather than their squares (a dense pseudo-inverse of ``A^T A`` is 4e-5 off on these
+    windows and 3x slower). What neither takes -- a
+    rank-deficient window, or a factor on more than three keyframes, which the Python
+    ``JacobianFactor`` cannot hold -- goes to that dense pseudo-inverse."""
+    if all(len(keys) <= 3 for keys, _ in groups):
+        graph = _linear_graph(groups)
+        try:
+            return _cholesky_marginals(graph, n, wanted)
+        except RuntimeError:
+            pass
+        try:
+            return marginal_covariances(graph, n, wanted)
+        except IndeterminantSystem:
+            pass
+    return _dense_marginals(groups, n, wanted)
+
+
+def _linear_graph(groups) -> gtsam.GaussianFactorGraph:
+    """``groups`` (at most three positions per factor) as GTSAM ``JacobianFactor`` s on keys
+    ``0 .. n - 1``, unit noise (the rows are whitened already)."""
+    graph = gtsam.GaussianFactorGraph()
+    for keys, blocks in groups:
+        args = [x for pair in zip(keys, blocks) for x in pair]
+        graph.add(gtsam.JacobianFactor(*args, np.zeros(blocks[0].shape[0]),
+                                       gtsam.noiseModel.Unit.Create(blocks[0].shape[0])))
+    return graph
+
+
+def _cholesky_marginals(graph: gtsam.GaussianFactorGraph, n: int, wanted) -> np.ndarray:
+    """GTSAM's ``Marginals`` (Cholesky) of ``graph``'s keys ``wanted``; RuntimeError where GTSAM
+    calls the system indeterminant."""
+    zero = gtsam.VectorValues()
+    for j in range(n):
+        zero.insert(j, np.zeros(imu.STATE_DIM))
+    marginals = gtsam.Marginals(graph, zero)
+    return np.stack([marginals.marginalCovariance(j) for j in wanted])
+
+
+def _stacked_rows(groups, n: int) -> np.ndarray:
+    """``groups`` as one dense matrix of rows over the ``n`` window positions' 15 columns each."""
+    dim = imu.STATE_DIM
+    rows = []
+    for keys, blocks in groups:
+        part = np.zeros((blocks[0].shape[0], n * dim))
+        for j, A in zip(keys, blocks):
+            part[:, j * dim:(j + 1) * dim] += A
+        rows.append(part)
+    return np.vstack(rows)
+
+
+def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
+    dim = imu.STATE_DIM
+    A = _stacked_rows(groups, n)
+    cov = np.linalg.pinv(A.T @ A, hermitian=True)
+    cov = 0.5 * (cov + cov.T)
+    return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in wanted])
+
+
+def _container_rows(containers, estimate, first: int, n: int) -> np.ndarray:
+    """Dense rows of GTSAM's marginal factors in the window's primer columns."""
+    keys = sorted({int(k) for i in range(containers.size()) for k in containers.at(i).keys()})
+    linear = containers.linearize(estimate)
+    A, _ = linear.jacobian(gtsam.Ordering(keys))
+    dims = [estimate.zeroVectors().at(k).shape[0] for k in keys]
+    out = np.zeros((A.shape[0], n * imu.STATE_DIM))
+    column = 0
+    slots = {}
+    for j in range(first, first + n):
+        kk = keyframe_keys(j)
+        base = (j - first) * imu.STATE_DIM
+        slots[kk.rot] = (base + 6, estimate.atRot3(kk.rot).matrix().T)  # d = C^T phi
+        slots[kk.pos] = (base + 0, None)
+        slots[kk.vel] = (base + 3, None)
+        slots[kk.bias] = (base + 9, None)
+    for key, d in zip(keys, dims):
+        block = A[:, column:column + d]
+        start, to_gtsam = slots[key]
+        out[:, start:start + d] += block if to_gtsam is None else block @ to_gtsam
+        column += d
+    return out
+
+
+def _measured_gap(problem: Problem) -> float:
+    """The longest time between consecutive keyframes with an absolute measurement (one that fixes a
+    position or an attitude: :attr:`Problem.absolute`; velocities and relative poses do not end
+    dead reckoning), the first and last keyframes included (inf when there is none)."""
+    measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name in problem.absolute]
+    if not measured:
+        return np.inf
+    times = problem.times[np.unique(np.concatenate(measured))]
+    return float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
+
+
+def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str | None:
+    """The warning when measurements are ``longest_s`` apart, longer than the lag; None if not.
+
+    Either kind: a keyframe's fixed-lag estimate is the one it has when it leaves the window, so a
+    keyframe that leaves before the next measurement arrives keeps the dead-reckoned estimate
+    from the last one: on KITTI with every 20th GPS fix (20 s apart) the incremental smoother
+    ends ~50 m off the held-out fixes at a 2-s lag and ~35 m at 0.5 s. The batch kind is worse:
+    GTSAM's ``BatchFixedLagSmoother`` keeps the linearisation point of the state its marginal
+    factor lands on fixed (its ``enforceConsistency``, on by default and not settable from
+    Python), so after dead reckoning through a whole window a measurement's correction cannot
+    reach that state's IMU factor, Levenberg-Marquardt finds no descent and stops, and the
+    estimate drifts: a 120-s simulation with a position fix every 10 s and a 2-s lag ended 1.3 km
+    off (the incremental smoother: 8 m, the EKF: 0.7 m)."""
+    if not longest_s > lag_s:
+        return None
+    digits = 3  # enough to tell the gap from the lag (2.0019 s beside a 2-s lag is not "2 s")
+    while digits < 12 and float(f"{longest_s:.{digits}g}") <= lag_s:
+        digits += 1
+    step = 10.0 ** (math.floor(math.log10(longest_s)) - digits + 1)
+    enough = math.ceil(longest_s / step) * step  # rounded up: a lag that does reach the gap
+    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.{digits}g} s apart, "
+            f"longer than the lag ({lag_s:g} s): "
+            "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
+            "estimates")
+    if kind == "batch":
+        text += (" (GTSAM's BatchFixedLagSmoother can drift far off: it keeps the states at its window's edge "
+                 "linearised where dead reckoning put them; use the incremental smoother)")
+    return text + f". Choose a lag of at least {enough:.{digits}g} s (the longest gap between absolute measurements)"
+
+
+def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> None:
+    """Warn (:func:`sparse_measurement_warning`) when measurements are further apart than the lag."""
+    text = sparse_measurement_warning(longest_s, lag_s, kind)
+    if text is not None:
+        warnings.warn(text, stacklevel=3)
+
+
+def _weak_prior(keys, guess: imu.ImuState):
+    return priors.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
+
+
+class FixedLagFailed(SolverError, ValueError):
+    """GTSAM's smoother failed at an update in a way that cannot be recovered."""
+
+
+def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
+    first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    return FixedLagFailed(f"the fixed-lag smoother failed at keyframe {k} (t = {t:.6f} s): {first_line}. "
+                          "Check the data around that time (an IMU gap, a measurement far off).")
+
+
+class KeyframeWindow:
+    """GTSAM's fixed-lag smoother of ``kind`` fed one keyframe at a time: the one update loop of
+    :func:`run_fixed_lag` (a whole problem's keyframes) and :class:`smoother.online.smoother.OnlineSmoother`
+    (keyframes made as samples arrive).
+
+    Keyframe ``k`` (0, 1, ... in the order given) has the variables ``factors.keys.keyframe_keys(k)``
+    and a time stamp; :meth:`update` adds it with its factors (the module docstring's pitfalls:
+    factors on marginalised variables skipped and counted, a weak prior where nothing ties the
+    keyframe to the window or GTSAM calls the update indeterminant). The window is the keyframes
+    ``first .. newest``; :meth:`leaving` names those the next update will marginalise, whose
+    estimates the caller reads before that update (:meth:`taken` records it, and an update after
+    which a keyframe is gone that was not read raises)."""
+
+    def __init__(self, lag_s: float, kind: str = "incremental", gravity=imu.DEFAULT_GRAVITY,
+                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
+        if not lag_s > 0:
+            raise InputError(f"lag must be positive, got {lag_s}")
+        self.smoother = _make_smoother(kind, lag_s)
+        self.gravity = np.asarray(gravity, dtype=float)
+        self.threshold = float(reintegration_threshold)
+        self.lag_s = float(lag_s)
+        self.kind = kind
+        self.first = 0  # the oldest keyframe in the window
+        self.newest = -1  # the newest keyframe (-1 before the first update)
+        self.estimate: gtsam.Values | None = None  # the smoother's estimate after the last update
+        self.newest_state: imu.ImuState | None = None  # the newest keyframe's, read from ``estimate``
+        self.recovered: list[int] = []
+        self.skipped = 0
+        self.update_s: deque[float] = deque(maxlen=HISTORY)
+        #: ``id(factor) -> tag`` of the factors given with a tag, while GTSAM holds them
+        self.rows_of: dict[int, object] = {}
+        self._times: dict[int, float] = {}  # the window's keyframe times
+        self._present: set[int] = set()
+        self._held: dict[int, list] = {}  # the factors by their earliest keyframe, until marginalised
+        self._taken_after: dict[int, int] = {}  # keyframe -> the update after which it was read
+
+    def time(self, k: int) -> float:
+        """The time stamp of window keyframe ``k``."""
+        return self._times[k]
+
+    def leaving(self, t_next: float) -> list[int]:
+        """The window keyframes (the newest too, after a gap longer than the lag) that an update
+        at ``t_next`` marginalises: older than ``t_next`` minus the lag, within :data:`_LAG_MARGIN_S`."""
+        boundary = t_next - self.lag_s + _LAG_MARGIN_S
+        return [j for j in range(self.first, self.newest + 1) if self._times[j] < boundary]
+
+    def taken(self, keyframes) -> None:
+        """Record that the estimates of ``keyframes`` were read after the last update."""
+        self._taken_after.update((j, self.newest) for j in keyframes)
+
+    def update(self, t: float, factors: list, guess: imu.ImuState, oldest: list[int], tags=None) -> imu.ImuState:
+        """Add the next keyframe at time ``t`` (after the newest) with ``factors`` (GTSAM factors on
+        it and older window keyframes; ``oldest[i]`` the earliest keyframe of ``factors[i]``,
+        ``tags[i]`` kept in :attr:`rows_of` unless None) and the initial value ``guess``; returns
+        its estimate. Raises :class:`FixedLagFailed` where GTSAM cannot go on."""
+        k = self.newest + 1
+        keys = keyframe_keys(k)
+        new_keys = set(keys.all())
+        graph = gtsam.NonlinearFactorGraph()
+        tags = tags if tags is not None else [None] * len(factors)
+        for f, tag, first_k in zip(factors, tags, oldest):
+            if all(key in self._present or key in new_keys for key in f.keys()):
+                graph.add(f)
+                self._held.setdefault(first_k, []).append(f)
+                if tag is not None:
+                    self.rows_of[id(f)] = tag
+            else:
+                self.skipped += 1
+        values = gtsam.Values()
+        insert_state(values, keys, guess)
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        for key in keys.all():
+            stamps.insert((key, float(t)))
+        linked = k == 0 or any(
+            any(key in new_keys for key in graph.at(i).keys()) and any(key in self._present for key in graph.at(i).keys())
+            for i in range(graph.size()))
+        if not linked:  # nothing ties the new keyframe to the window (no IMU factor): weak prior
+            graph.add(_weak_prior(keys, guess))
+            self.recovered.append(k)
+        tick = time.perf_counter()
+        try:
+            self.smoother.update(graph, values, stamps)
+        except RuntimeError as error:
+            if not is_indeterminant(error) or not linked:
+                raise _update_failed(k, t, error) from None
+            self.recovered.append(k)
+            weak = gtsam.NonlinearFactorGraph()
+            weak.add(_weak_prior(keys, guess))
+            try:
+                self.smoother.update(weak, gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap())
+            except (RuntimeError, IndexError) as again:
+                raise _update_failed(k, t, again) from None
+        except IndexError as error:  # ISAM2's Bayes tree is inconsistent: cannot continue
+            raise _update_failed(k, t, error) from None
+        self.estimate = self.smoother.calculateEstimate()
+        self.update_s.append(time.perf_counter() - tick)
+        self.newest = k
+        self._times[k] = float(t)
+        self._present = set(int(key) for key in self.estimate.keys())
+        while keyframe_keys(self.first).rot not in self._present:  # the window is contiguous: [first, k]
+            if self._taken_after.pop(self.first, None) != k - 1:  # GTSAM marginalised earlier than leaving() says
+                raise RuntimeError(f"fixed-lag: keyframe {self.first} (t = {self._times[self.first]:.6f} s) left "
+                                   "the window before its estimate was taken")
+            for f in self._held.pop(self.first, ()):  # marginalised with the keyframe: GTSAM has let go of it
+                self.rows_of.pop(id(f), None)
+            del self._times[self.first]
+            self.first += 1
+        self.newest_state = read_state(self.estimate, keys)
+        return self.newest_state
+
+    def state(self, k: int) -> imu.ImuState:
+        """Window keyframe ``k``'s estimate after the last update."""
+        return read_state(self.estimate, keyframe_keys(k))
+
+    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None) -> imu.ImuState:
+        """:meth:`update` with the keyframe's factors made here: the IMU factor of the
+        preintegrated interval ``pre`` from the newest keyframe (None: none), the factors of
+        ``measurements`` (``(spec, m, keyframes, robust)``: measurement ``m`` of a
+        :class:`smoother.model.problem.MeasurementSpec`, the keyframes it reads, a robust spec or None)
+        and a ``prior`` ``(state, cov)`` on the new keyframe (:class:`smoother.fixed_lag.sliding.window.SlidingWindow`
+        takes the same)."""
+        k = self.newest + 1
+        keys = keyframe_keys(k)
+        factors, oldest = [], []
+        if prior is not None:
+            factors.append(priors.state_prior_factor(keys, *prior))
+            oldest.append(k)
+        if pre is not None and k > 0:
+            factors.append(ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
+                                     reintegration_threshold=self.threshold).factor)
+            oldest.append(k - 1)
+        for spec, m, keyframes, robust in measurements:
+            factors.append(spec.factor([keyframe_keys(j) for j in keyframes], m, noise_model(spec.cov[m], robust)))
+            oldest.append(min(keyframes))
+        return self.update(t, factors, guess, oldest)
+
+    def covariances(self, wanted) -> np.ndarray:
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
+        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
+        four variables, at its linearisation point; the newest keyframes sit at the root, so this
+        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
+        smoother's factors linearised by GTSAM (:func:`window_covariances`)."""
+        if self.kind == "incremental":
+            isam = self.smoother.getISAM2()
+            out = []
+            for j in wanted:
+                keys = keyframe_keys(j)
+                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+                out.append(state_covariance_to_primer(joint, self.estimate.atRot3(keys.rot)))
+            return np.stack(out)
+        states = imu.ImuState.stack([self.state(j) for j in range(self.first, self.newest + 1)])
+        return window_covariances([], self.smoother, self.estimate, self.first, states, {},
+                                  [j - self.first for j in wanted])
+
+
+def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", covariances: bool = True,
+                  progress: bool | None = None) -> FixedLagResult:
+    """Run a fixed-lag smoother over ``problem`` (see the module docstring): its keyframes through
+    one :class:`KeyframeWindow`."""
+    window = KeyframeWindow(lag_s, kind)
+    warn_of_sparse_measurements(_measured_gap(problem), lag_s, kind)
+    start = time.perf_counter()
+    n = len(problem.times)
+    # the outputs, filled row by row (NaN until then: a row never filled fails Trajectory's checks)
+    newest, lagged = _unfilled_states(n), _unfilled_states(n)
+    newest_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
+    lagged_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
+    with progress_bar(len(problem.times), f"fixed-lag ({kind})", progress) as bar:
+        for k, t_k in enumerate(problem.times):
+            made = problem.keyframe_factors(k)
+            # the initial value: from the smoother's estimate of the previous keyframe after the last update
+            guess = problem.initial_states[0] if k == 0 else made.imu.predict(window.newest_state)
+            newest_state = window.update(t_k, made.factors, guess, made.oldest, made.rows)
+            first = window.first
+            _put(newest, k, newest_state)
+            # A keyframe's lagged estimate and covariance are those of the last update that holds
+            # it: take them for the keyframes that the next update marginalises and the newest,
+            # not for the whole window at every update. The covariances still need every window
+            # state (their linearisation point).
+            taken = sorted(set(window.leaving(problem.times[k + 1]) if k + 1 < n else []) | {k})
+            for j in (range(first, k) if covariances else taken[:-1]):
+                _put(lagged, j, window.state(j))
+            _put(lagged, k, newest_state)
+            window.taken(taken)
+            if covariances:
+                lagged_cov[taken] = window_covariances(problem.blocks, window.smoother, window.estimate, first,
+                                                       lagged[first:k + 1], window.rows_of, [j - first for j in taken])
+                newest_cov[k] = lagged_cov[k]
+            bar.update(1)
+    if window.skipped:
+        warnings.warn(f"{window.skipped} factors referred to variables older than the lag ({lag_s} s) and were "
+                      "skipped", stacklevel=2)
+    in_window = list(range(window.first, window.newest + 1))
+    for k in in_window:
+        _put(lagged, k, window.state(k))
+    window_states = lagged[in_window]
+    window_cov = None
+    if covariances:
+        window_cov = window_covariances(problem.blocks, window.smoother, window.estimate, in_window[0], window_states,
+                                        window.rows_of)
+        lagged_cov[in_window] = window_cov
+    return FixedLagResult(Trajectory(problem.times, newest, newest_cov), Trajectory(problem.times, lagged, lagged_cov),
+                          Trajectory(problem.times[in_window], window_states, window_cov), np.array(window.update_s),
+                          window.recovered, window.skipped, time.perf_counter() - start)
+
+
+def _unfilled_states(n: int) -> imu.ImuState:
+    """``n`` states to be filled row by row (:func:`_put`), NaN until then."""
+    return imu.ImuState(*(np.full((n,) + tail, np.nan) for tail in ((3,), (3,), (3, 3), (3,), (3,))))
+
+
+def _put(rows: imu.ImuState, k: int, state: imu.ImuState) -> None:
+    """Row ``k`` of ``rows`` set to the one state ``state``."""
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        getattr(rows, name)[k] = getattr(state, name)
+

@@ -1,0 +1,740 @@
+"""The project's own fixed-lag smoother: a sliding window of keyframes solved incrementally on
+the compiled residuals, the keyframes that leave it marginalised into a linear prior.
+
+Why: GTSAM's fixed-lag smoothers call every project factor back through Python at each
+relinearisation (a ``CustomFactor`` per factor, each handed a copy of the ``Values``); that
+overhead, not the mathematics, set the cost of an online update. Here a whole update is a few
+compiled calls over flat arrays: the IMU residual (:func:`factors.preintegration._residual_into`),
+the sensor kernels (:func:`datasets.kinds.measure_into`,
+:func:`factors.sensor_models.odometry_kernel`), the same code the batch solver, the GTSAM factors
+and the EKF run. ``docs/design.md`` (fixed-lag smoothing) gives the derivation in full.
+
+The mathematics, in the primer's convention (error state ``(dr, dv, dphi, db_f, db_w)`` of each
+window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
+
+* ISAM2's scheme on a chain: keyframe ``k`` has a linearisation point ``theta_k`` and an offset
+  ``delta_k``, its estimate is ``theta_k [+] delta_k``; the factors, linearised at the
+  ``theta``s, give ``H = sum J^T J``, ``g = sum J^T e`` over whitened, robustly reweighted
+  residuals (GTSAM's Huber, Cauchy and Tukey weights), and each update solves ``H delta = -g``.
+  A keyframe is linearised again (``theta <- theta [+] delta``, ``delta <- 0``) when its offset
+  exceeds :data:`RELINEARISATION_THRESHOLD` in any component, or :data:`EARLY_RELINEARISATION`
+  of it where an update assembles its factors' rows anyway; a step that would turn an attitude
+  further than :data:`MAX_ATTITUDE_STEP` is shortened along its direction;
+* keyframes in time order and factors that couple keyframes at most ``S`` apart (IMU factors 1,
+  a relative pose its span, the marginal prior what it ties) make ``H`` block-banded; its
+  Cholesky factor ``L`` (oldest keyframe first) keeps the band. Row ``k`` of ``L`` depends on the
+  rows of ``H`` up to ``k`` only, so an update factorises again from the oldest changed row on
+  (the new keyframe's factors reach ``S`` back; a relinearised keyframe's as far) and keeps the
+  forward solution ``y = L^-1 (-g)`` of the rows before it; one backward solve gives every
+  ``delta``;
+* a keyframe older than the newest keyframe's time minus the lag is marginalised before the next
+  keyframe is added: the factors touching it, linearised at the ``theta``s, are replaced by
+  their Schur complement onto the keyframes they also touch, kept as the linear prior
+  ``e(x) = R (x [-] x_lin) + e0`` with ``R^T R = H_mm - H_ml H_ll^-1 H_lm`` and ``R^T e0 = g_m -
+  H_ml H_ll^-1 g_l`` at ``x_lin = theta`` (GTSAM keeps its marginals the same way, as linear
+  factors at their linearisation point); ``[-]`` is the state's boxminus, whose attitude
+  Jacobian is ``Gamma^-1(log(C C_lin^T))`` (eqs. 24, 32). The prior at keyframe 0 is such a prior
+  too (``R`` the whitening of the initial covariance, ``e0 = 0``). Eliminating the oldest
+  keyframes first, the rows of ``L`` after them are already the factor of that Schur complement
+  (and ``y``'s rows its forward solution): no new factorisation;
+* the newest keyframe never leaves before the next one is added, so an IMU gap longer than the
+  lag keeps its IMU factor (GTSAM's smoothers drop it and need a weak prior);
+* the marginal covariance of a window keyframe is its block of ``H^-1`` (two banded triangular
+  solves with 15 right-hand sides).
+
+The block-banded linear algebra is :mod:`smoother.fixed_lag.sliding.banded`'s, the normal equations
+:mod:`smoother.fixed_lag.sliding.normal_equations`'s; this module keeps the window: its keyframes in ring slots, the
+update, relinearisation and marginalisation. The interface is
+:class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`'s (``leaving``, ``taken``,
+``add_keyframe``, ``state``, ``covariances``), so :class:`smoother.online.smoother.OnlineSmoother` drives
+either.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from contextlib import nullcontext
+
+import numpy as np
+from numba import njit
+
+from datasets.kinds import LAYOUTS, quiet_dispatch
+from factors import imu, preintegration
+from factors.errors import InputError
+from factors.sensor_models import MAX_ROW_WIDTH
+# _schur, _robust_scale: the window's compiled parts stay reachable under this module's name
+from smoother.fixed_lag.sliding.banded import (_backward, _border_solve, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
+                             _semidefinite_square_root, no_border)
+from smoother.fixed_lag.gtsam_window import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
+from smoother.model.problem import robust_threshold
+from smoother.fixed_lag.sliding.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _linearise_calibrated,  # noqa: F401
+                                       _LinearPrior, _prior_into, _robust_scale, _whitening_into)
+from smoother.model.blocks import whitening
+from smoother.fixed_lag.sliding.calibration import RELINEARISATION_SIGMA_FRACTION, RELINEARISATION_WIDEST, WindowCalibration
+
+DIM = imu.STATE_DIM
+#: How far a keyframe's estimate may move from its linearisation point before its factors are
+#: linearised again, per error-state component ``(dr [m], dv [m/s], dphi [rad], db_f [m/s^2],
+#: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component). The residuals are linear in
+#: position and accelerometer bias, bilinear in velocity and attitude and nearly linear in the gyro
+#: bias, so what is left out is second order in these offsets: on the benchmark's run the
+#: estimates stay within 0.02 sigma of relinearising every keyframe at every update
+#: (``docs/performance.md``), with about 0.1 keyframes relinearised per update instead of all 20.
+RELINEARISATION_THRESHOLD = np.array([0.05] * 3 + [0.05] * 3 + [5e-3] * 3 + [0.05] * 3 + [2e-3] * 3)
+#: An update that assembles the rows from some keyframe on anyway first linearises again, at no
+#: assembly of its own, what those rows hold and has moved this fraction of the way to being
+#: linearised again: each keyframe whose factors lie wholly in them with an offset beyond this
+#: fraction of :data:`RELINEARISATION_THRESHOLD`, and, when they are the whole window, each
+#: calibration beyond this fraction of its limit (:mod:`smoother.fixed_lag.sliding.calibration`). A keyframe
+#: or a calibration so reset no longer forces a deeper update of its own a few updates later. On
+#: the benchmark's minute with the wheels calibrated, the share of updates that assemble more than
+#: three rows falls from 0.20 to 0.13; without calibration from 0.13 to 0.085.
+EARLY_RELINEARISATION = 0.5
+#: No update turns an attitude further than this [rad]: a longer Gauss-Newton step -- a large
+#: correction, such as a fix after a long dead-reckoned gap, taken from linearisation points that
+#: far off -- is shortened to it along its direction (every offset scaled alike), and the next
+#: updates go on from there. Without it a start whose heading nothing observed for minutes, then
+#: fixes 10 s apart with a 2-s lag, swung the heading round and ran 190 m off (a real recording;
+#: with it 7.6 m, GTSAM's ISAM2 7.2 m).
+MAX_ATTITUDE_STEP = 0.2
+
+
+# -- compiled parts -------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> None:
+    """``x = theta [+] delta`` for the window's keyframes (:func:`factors.imu.boxplus_into`: the
+    left attitude increment)."""
+    for k in range(first, newest + 1):
+        s = k % cap
+        xr[s], xv[s], xC[s], xbf[s], xbw[s] = r[s], v[s], C[s], bf[s], bw[s]
+        imu.boxplus_into(xr[s], xv[s], xC[s], xbf[s], xbw[s], delta[s].reshape(delta.shape[1]))  # C, as the EKF's
+
+
+@njit(cache=True)
+def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
+    """The rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`) and the forward solution
+    ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``; the rows before kept).
+    Returns -1, or the keyframe whose pivot failed (nothing else done)."""
+    failed = _factorise(Hr, L, first, start, newest, cap, S)
+    if failed >= 0:
+        return failed
+    for k in range(start, newest + 1):
+        s = k % cap
+        for p in range(DIM):
+            y[s, p, 0] = -g[(k - start) * DIM + p]
+    _forward(L, y, first, start, first, newest, cap, S)
+    return -1
+
+
+@njit(cache=True)
+def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, B, D, gc, dx, L_D, delta_c,
+                              threshold, fraction, widest, limits):
+    """A bordered window's :func:`_factorise_forward`, then ``dx = y`` over the window and the
+    border's part (:func:`smoother.fixed_lag.sliding.banded._border_solve`: ``Z``, ``ZZ``, ``L_D``, ``delta_c``,
+    ``limits``, ``dx -= Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
+    :func:`_factorise_forward`'s (``code`` 0, nothing else done), else -1 and the border's code
+    (1: some ``|delta_c|`` exceeds its limit, 0: none, -1: the calibrations' Schur complement is
+    not positive definite, ``dx = y``)."""
+    failed = _factorise_forward(Hr, g, L, y, first, start, newest, cap, S)
+    if failed >= 0:
+        return failed, 0
+    for k in range(first, newest + 1):
+        s = k % cap
+        dx[s] = y[s]
+    return -1, _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold,
+                             fraction, widest, limits)
+
+
+@njit(cache=True)
+def _step(L, delta, before, first, newest, cap, S, threshold, max_turn, moved, r, v, C, bf, bw, xr, xv, xC, xbf,
+          xbw):
+    """The rest of an update, ``delta`` holding the forward solution (less the calibrations'
+    share, :mod:`smoother.fixed_lag.sliding.calibration`) and ``before`` the offsets of the last update:
+    ``delta = L^-T delta``, the whole step from ``before`` shortened so that no attitude turns by
+    more than ``max_turn`` [rad], the estimates ``theta [+] delta`` (:func:`_boxplus`), then the
+    keyframes whose offset exceeds ``threshold`` linearised again (:func:`_relinearise`). Returns
+    ``(oldest, a)``: -1 or the oldest keyframe linearised again, and the factor the step was
+    shortened by (1: not shortened)."""
+    _backward(L, delta, first, newest, cap, S)
+    turn = 0.0
+    for k in range(first, newest + 1):
+        s = k % cap
+        d0, d1, d2 = (delta[s, 6, 0] - before[s, 6, 0], delta[s, 7, 0] - before[s, 7, 0],
+                      delta[s, 8, 0] - before[s, 8, 0])
+        turn = max(turn, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+    a = 1.0
+    if turn > max_turn:  # along the Gauss-Newton step, no further than max_turn in attitude
+        a = max_turn / turn
+        for k in range(first, newest + 1):
+            s = k % cap
+            for p in range(DIM):
+                delta[s, p, 0] = before[s, p, 0] + a * (delta[s, p, 0] - before[s, p, 0])
+    _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw)
+    return _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved), a
+
+
+@njit(cache=True)
+def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg):
+    """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
+    rest; returns their number and the longest span (later minus earlier keyframe) among them."""
+    n, span = 0, 0
+    for f in range(m):
+        if mk[f, 0] >= cut:
+            if n != f:
+                mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
+                Wm[n], rcode[n], rk[n], mcal[n], mD[n], mg[n] = Wm[f], rcode[f], rk[f], mcal[f], mD[f], mg[f]
+            span = max(span, mk[n, 1] - mk[n, 0])
+            n += 1
+    return n, span
+
+
+@njit(cache=True)
+def _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved) -> int:
+    """Move the linearisation point ``theta`` of each window keyframe whose offset ``delta`` exceeds
+    ``threshold`` in any component to its estimate (``theta <- theta [+] delta = x``,
+    ``delta <- 0``), flagging it in ``moved``; returns the oldest moved keyframe, or -1."""
+    oldest = -1
+    for k in range(first, newest + 1):
+        s = k % cap
+        moved[s] = False
+        for i in range(DIM):
+            if abs(delta[s, i, 0]) > threshold[i]:
+                moved[s] = True
+                break
+        if moved[s]:
+            if oldest < 0:
+                oldest = k
+            r[s, :], v[s, :], bf[s, :], bw[s, :] = xr[s], xv[s], xbf[s], xbw[s]
+            C[s, :, :] = xC[s]
+            delta[s] = 0.0
+    return oldest
+
+
+# -- the window -----------------------------------------------------------------------------------
+
+
+_compiled = False
+
+
+def _compiling():
+    """:func:`datasets.kinds.quiet_dispatch` around the first call (which compiles or loads
+    :func:`_linearise`), nothing after: the warning filters cost more than an update's mathematics."""
+    global _compiled
+    if _compiled:
+        return nullcontext()
+    _compiled = True
+    return quiet_dispatch()
+
+
+class SlidingWindow:
+    """The compiled fixed-lag smoother (module docstring), fed one keyframe at a time.
+
+    ``lag_s``: keyframes older than the newest one's time minus the lag leave at the next update;
+    ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's;
+    ``relinearisation_threshold`` (15 numbers in the error state's units, or one for all): a
+    keyframe is linearised again when its offset from its linearisation point exceeds it in any
+    component (0: every keyframe at every update). Keyframe ``k`` (0, 1, ...) has a time stamp and
+    the window is ``first .. newest``; :meth:`leaving` names the keyframes the next update
+    marginalises, which the caller reads (and records with :meth:`taken`) before it.
+    ``calibration``: the calibration variables
+    (:class:`smoother.fixed_lag.sliding.calibration.WindowCalibration`), the window's dense border, or None."""
+
+    kind = "sliding"
+
+    def __init__(self, lag_s: float, gravity=imu.DEFAULT_GRAVITY,
+                 reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
+                 relinearisation_threshold=None, calibration: WindowCalibration | None = None):
+        if not lag_s > 0:
+            raise InputError(f"lag must be positive, got {lag_s}")
+        threshold = RELINEARISATION_THRESHOLD if relinearisation_threshold is None else relinearisation_threshold
+        threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (DIM,)).copy()
+        if not np.all(threshold >= 0):
+            raise InputError(f"relinearisation_threshold: expected numbers >= 0, got {threshold.tolist()}")
+        self.lag_s = float(lag_s)
+        self.gravity = np.asarray(gravity, dtype=float)
+        self.reintegration_threshold = float(reintegration_threshold)
+        self.relinearisation_threshold = threshold
+        self.first, self.newest = 0, -1
+        self.recovered: list[int] = []
+        self.skipped = 0
+        self.update_s: deque[float] = deque(maxlen=HISTORY)
+        #: keyframes linearised again, one entry each time any were: at the end of an update, or early,
+        #: before its assembly (an update can have two)
+        self.relinearised: deque[int] = deque(maxlen=HISTORY)
+        #: updates whose step was shortened (MAX_ATTITUDE_STEP)
+        self.shortened = 0
+        self._taken_after: dict[int, int] = {}
+        self._priors: list[_LinearPrior] = []
+        self._S = 1  # the band L is factorised with (at least the factors' reach; narrowed at whole factorisations)
+        self._spans = [0, 0]  # the longest span of the measurements, of the priors
+        self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
+        self._cal = calibration
+        nc = 0 if calibration is None else calibration.nc
+        self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.fixed_lag.sliding.calibration)
+        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded._border_solve)
+        self._allocate_keyframes(64)
+        self._allocate_measurements(64)
+        self._m = 0
+
+    # -- storage ----------------------------------------------------------------------------------
+
+    def _allocate_keyframes(self, cap: int) -> None:
+        """Ring arrays for ``cap`` keyframes (slot ``k % cap``), the window's moved over."""
+        shapes = {"_t": (), "_r": (3,), "_v": (3,), "_C": (3, 3), "_bf": (3,), "_bw": (3,),
+                  "_xr": (3,), "_xv": (3,), "_xC": (3, 3), "_xbf": (3,), "_xbw": (3,), "_dx": (DIM, 1), "_y": (DIM, 1),
+                  "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
+                  "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
+                  "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2]),
+                  "_ZZ": self._ZZ.shape[1:], "_kH": (1, 1, DIM, DIM), "_kg": (DIM,), "_kB": (1, DIM, self._Z.shape[2])}
+        old = {name: getattr(self, name, None) for name in shapes}
+        old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
+        old_kept = getattr(self, "_kept", None)
+        self._cap = cap
+        for name, tail in shapes.items():
+            setattr(self, name, np.zeros((cap,) + tail))
+        self._has_imu = np.zeros(cap, dtype=np.bool_)
+        self._kept = np.zeros(cap, dtype=np.bool_)  # whether _kH, _kg, _kB hold the keyframe's sums (_linearise_calibrated)
+        self._moved = np.zeros(cap, dtype=np.bool_)
+        self._pre = [None] * cap
+        for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
+            a, b = k % old_cap, k % cap
+            for name in shapes:
+                getattr(self, name)[b] = old[name][a]
+            self._has_imu[b], self._pre[b], self._kept[b] = old_imu[a], old_pre[a], old_kept[a]
+
+    def _allocate_measurements(self, cap: int) -> None:
+        """Measurement tables for ``cap`` rows, the current ones kept."""
+        m = getattr(self, "_m", 0)
+        shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
+                  "_dims": ((), np.int64), "_Wm": ((_MAX_DIM, _MAX_DIM), float), "_rcode": ((), np.int64),
+                  "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float)}
+        for name, (tail, dtype) in shapes.items():
+            fresh = np.zeros((cap,) + tail, dtype=dtype)
+            if m:
+                fresh[:m] = getattr(self, name)[:m]
+            setattr(self, name, fresh)
+
+    def _linearisation_points(self):
+        """The ``theta`` arrays ``(r, v, C, b_f, b_w)`` by slot."""
+        return self._r, self._v, self._C, self._bf, self._bw
+
+    def _estimates(self):
+        """The estimate arrays ``theta [+] delta`` by slot."""
+        return self._xr, self._xv, self._xC, self._xbf, self._xbw
+
+    # -- the KeyframeWindow interface -----------------------------------------------------------
+
+    def time(self, k: int) -> float:
+        """The time stamp of window keyframe ``k``."""
+        return float(self._t[k % self._cap])
+
+    def leaving(self, t_next: float) -> list[int]:
+        """The window keyframes an update at ``t_next`` marginalises: older than ``t_next`` minus the
+        lag (as GTSAM's smoothers count it), never the newest."""
+        boundary = t_next - self.lag_s
+        out = []
+        for j in range(self.first, self.newest):
+            if self.time(j) >= boundary:
+                break
+            out.append(j)
+        return out
+
+    def taken(self, keyframes) -> None:
+        """Record that the estimates of ``keyframes`` were read after the last update."""
+        self._taken_after.update((j, self.newest) for j in keyframes)
+
+    def state(self, k: int) -> imu.ImuState:
+        """Window keyframe ``k``'s estimate after the last update."""
+        s = k % self._cap
+        return imu.ImuState(self._xr[s].copy(), self._xv[s].copy(), self._xC[s].copy(), self._xbf[s].copy(),
+                            self._xbw[s].copy())
+
+    @property
+    def newest_state(self) -> imu.ImuState:
+        return self.state(self.newest)
+
+    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None,
+                     held=None) -> imu.ImuState:
+        """Add keyframe ``newest + 1`` at ``t`` with the initial value ``guess``, the preintegrated
+        interval ``pre`` from the newest keyframe (one :class:`factors.preintegration.Preintegrated`
+        interval with its covariance; None: no IMU factor), ``measurements`` (``(spec, m,
+        keyframes, robust)``: measurement ``m`` of a :class:`smoother.model.problem.MeasurementSpec`, the
+        keyframes it reads, a robust spec or None), ``prior`` ``(state, cov)`` on the new
+        keyframe and ``held`` ``(acc, gyro)``, the IMU reading held at ``t`` (what a calibrated
+        time offset steps with; None: zero); one update (module docstring); returns the new
+        keyframe's estimate.
+        Measurements reading a keyframe that leaves are skipped and counted in ``skipped``. What
+        can be refused (a covariance that is not positive definite, an unknown robust kernel) is
+        refused before the window changes."""
+        tick = time.perf_counter()
+        k = self.newest + 1
+        leaving = self.leaving(t)
+        first = leaving[-1] + 1 if leaving else self.first
+        interval = None
+        if pre is not None and k > 0:
+            interval = np.zeros((DIM, DIM))
+            if not _whitening_into(pre.cov, interval):
+                raise InputError("the IMU interval's covariance is not positive definite")
+        factors = [self._measurement_row(spec, m, keyframes, robust) for spec, m, keyframes, robust in measurements
+                   if min(keyframes) >= first]
+        priors = [] if prior is None else [(prior[0], whitening(prior[1]))]
+        self.skipped += len(measurements) - len(factors)
+        self._marginalise(leaving)
+        if k - self.first + 1 > self._cap:
+            self._allocate_keyframes(2 * self._cap)
+        s = k % self._cap
+        self._t[s] = t
+        for arrays in (self._linearisation_points(), self._estimates()):
+            for a, value in zip(arrays, (guess.r, guess.v, guess.C, guess.b_f, guess.b_w)):
+                a[s] = value
+        self._dx[s] = 0.0
+        if held is None and self._cal is not None and self._cal.steps_in_time:
+            raise InputError("add_keyframe: held: a calibrated time offset needs the IMU reading held at the keyframe")
+        self._hacc[s], self._hgyro[s] = (0.0, 0.0) if held is None else held
+        self._has_imu[s] = self._kept[s] = False
+        self._pre[s] = None
+        linked = k == 0 or interval is not None
+        if interval is not None:
+            self._store_interval(s, pre, interval)
+        for row in factors:
+            self._add_measurement(*row[1:], -1 if self._cal is None else self._cal.index.get(row[0].name, -1))
+            keyframes = row[-1]
+            linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
+        self.newest = k
+        if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
+            priors.append((guess, whitening(np.diag(WEAK_PRIOR_SIGMAS ** 2))))
+            self.recovered.append(k)
+        for state, R in priors:
+            self._add_prior(k, state, R)
+        self._solve(t)
+        self.update_s.append(time.perf_counter() - tick)
+        return self.newest_state
+
+    def covariances(self, wanted) -> np.ndarray:
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
+        of ``H^-1`` with ``H`` at the linearisation points of the last update's solve (before the
+        keyframes it moved far enough were linearised again; with calibrations, ``A^-1`` plus their
+        share, :mod:`smoother.fixed_lag.sliding.calibration`). With ``X = L_A^-1 E_k`` (``E_k`` keyframe
+        ``k``'s columns of the identity; its blocks before ``k`` are zero) keyframe ``k``'s block
+        of ``A^-1 = L_A^-T L_A^-1`` is ``X^T X``, and its row of ``W = L_A^-T Z`` is ``X^T Z``: one
+        forward solve over the keyframes ``k .. newest`` and two products -- the newest keyframe's
+        costs a block, the oldest's the window."""
+        cap = self._cap
+        Sigma_cc = None if self._cal is None else self._cal.joint_covariance()
+        b = np.empty((cap, DIM, DIM))
+        out = []
+        for k in (int(k) for k in wanted):
+            slots = np.arange(k, self.newest + 1) % cap
+            b[slots] = 0.0
+            b[k % cap] = np.eye(DIM)
+            _forward(self._L, b, self.first, k, k, self.newest, cap, self._S)
+            X = b[slots].reshape(-1, DIM)
+            cov = X.T @ X
+            if Sigma_cc is not None:
+                W = X.T @ self._Z[slots].reshape(-1, self._Z.shape[2])
+                cov = cov + W @ Sigma_cc @ W.T
+            out.append(0.5 * (cov + cov.T))
+        return np.stack(out) if out else np.zeros((0, DIM, DIM))
+
+    @property
+    def calibration(self):
+        """The calibration variables after the last update and their marginal covariances
+        (:meth:`smoother.fixed_lag.sliding.calibration.WindowCalibration.estimate`, ``.covariance``), or None."""
+        if self._cal is None:
+            return None
+        return self._cal.estimate(), self._cal.covariance()
+
+    # -- inside -----------------------------------------------------------------------------------
+
+    def _store_interval(self, s: int, pre, whitening_matrix=None) -> None:
+        """Keep interval ``pre`` at slot ``s``, with the whitening of its covariance (None: keep the
+        slot's: an interval integrated again keeps its covariance)."""
+        self._has_imu[s] = True
+        self._pre[s] = pre
+        for name, value in (("_dC", pre.dC), ("_Wp", pre.W), ("_Rm", pre.Rm), ("_JC", pre.JC), ("_dW", pre.dW),
+                            ("_dRm", pre.dRm), ("_bwbar", pre.b_w_bar)):
+            getattr(self, name)[s] = value
+        if whitening_matrix is not None:
+            self._Wimu[s] = whitening_matrix
+
+    @staticmethod
+    def _measurement_row(spec, m: int, keyframes, robust) -> tuple:
+        """Measurement ``m`` of ``spec`` as ``spec`` and the arguments of :meth:`_add_measurement`, checked:
+        its covariance's whitening (an InputError if it is not positive definite) and robust code."""
+        cov = np.ascontiguousarray(spec.cov[m], dtype=float)
+        d = cov.shape[-1]
+        W = np.zeros((_MAX_DIM, _MAX_DIM))
+        if not _whitening_into(cov, W):
+            raise InputError(f"a measurement's covariance is not positive definite: {cov.tolist()}")
+        if robust is not None and robust[0] not in ROBUST_CODES:
+            raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
+        code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
+        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes
+
+    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, calibration: int) -> None:
+        """Append a checked measurement (:meth:`_measurement_row`) that reads ``calibration`` (its
+        index in the window's calibrations, -1: none); the rows of ``L`` from its oldest keyframe
+        on are stale, and the sums that keyframe's calibrated measurements keep are dropped."""
+        if self._m == len(self._mk):
+            self._allocate_measurements(2 * len(self._mk))
+        f = self._m
+        self._mk[f] = (min(keyframes), max(keyframes))
+        self._spans[0] = max(self._spans[0], max(keyframes) - min(keyframes))
+        self._model[f] = model
+        self._rows[f, :len(row)] = row
+        self._dims[f] = d
+        self._Wm[f] = W
+        self._rcode[f] = code
+        self._rk[f] = k
+        self._mcal[f] = calibration
+        self._m = f + 1
+        self._stale = min(self._stale, min(keyframes))
+        self._kept[min(keyframes) % self._cap] = False
+
+    def _add_prior(self, k: int, state: imu.ImuState, R: np.ndarray) -> None:
+        """A prior ``R (x_k [-] state)`` on keyframe ``k`` (``R`` the whitening of its covariance)."""
+        self._priors.append(_LinearPrior(np.array([k]), state.r[None].copy(), state.v[None].copy(),
+                                         state.C[None].copy(), state.b_f[None].copy(), state.b_w[None].copy(),
+                                         R, np.zeros(DIM)))
+        self._stale = min(self._stale, k)
+
+    def _relinearised(self, oldest: int) -> None:
+        """After keyframes ``oldest ..`` (those flagged in ``_moved``) were linearised again, at the end
+        of an update (:func:`_step`) or before its assembly (:meth:`_relinearise_early`):
+        integrate again the intervals out of those whose gyro bias moved beyond the reintegration
+        threshold, drop the sums their calibrated measurements keep (``_kept``) and mark the rows
+        of ``L`` their factors change as stale."""
+        moved = [k for k in range(oldest, self.newest + 1) if self._moved[k % self._cap]]
+        self.relinearised.append(len(moved))
+        self._kept[self._moved] = False
+        for i in moved:
+            j = (i + 1) % self._cap
+            drift = np.max(np.abs(self._bw[i % self._cap] - self._bwbar[j]))
+            if i < self.newest and self._has_imu[j] and drift > self.reintegration_threshold:
+                self._store_interval(j, self._pre[j].relinearized(self._bw[i % self._cap]))
+        # the factors of a moved keyframe reach at most the bandwidth back
+        self._stale = min(self._stale, oldest - self._bandwidth())
+
+    def _bandwidth(self) -> int:
+        """How many keyframes back the longest factor reaches (IMU factors: 1)."""
+        return max(1, *self._spans)
+
+    def _states(self, keyframes) -> imu.ImuState:
+        """The linearisation points of window keyframes ``keyframes`` (an array)."""
+        slots = np.asarray(keyframes) % self._cap
+        return imu.ImuState(*(a[slots] for a in self._linearisation_points()))
+
+    def _held(self, keyframes):
+        """The IMU readings ``(acc, gyro)`` held at the times of keyframes ``keyframes``."""
+        slots = np.asarray(keyframes) % self._cap
+        return self._hacc[slots], self._hgyro[slots]
+
+    def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
+        """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
+        factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
+        and their border ``(B, D, g_c)`` on the calibrations (``nc = 0`` columns without;
+        :mod:`smoother.fixed_lag.sliding.calibration`): ``D``, ``g_c`` of every factor reading a calibration
+        that begins before ``cut``, whichever rows it reaches, and of the priors on the
+        calibrations alone; when ``solving``, of every bordered prior and of the calibrations'
+        own priors too."""
+        Hb = np.zeros((n, S + 1, DIM, DIM))
+        g = np.zeros(n * DIM)
+        cal = self._cal
+        if cal is None:
+            B, D, gc = no_border(n)
+        else:  # D, g_c from the calibrations' own priors when solving
+            B = np.zeros((n, DIM, cal.nc))
+            D, gc = (cal.own_prior[0].copy(), cal.own_prior[1].copy()) if solving else (np.zeros((cal.nc, cal.nc)),
+                                                                                        np.zeros(cal.nc))
+        with _compiling():
+            _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
+                       self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
+                       self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
+                       self._mcal, Hb, g)
+            if cal is not None:
+                _linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
+                                      self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
+                                      self._mcal, self._mD, self._mg, self._kH, self._kg, self._kB, self._kept,
+                                      cal.packed, cal.with_time, cal.columns, LAYOUTS,
+                                      self._hacc, self._hgyro, Hb, g, B, D, gc)
+        plain = None if cal is not None else (B, D, gc)
+        for p in self._priors:
+            bordered = p.c_lin is not None
+            reaches = p.keyframes.size and p.keyframes[0] < cut and p.keyframes[-1] >= lo
+            if not (reaches or (bordered and (solving or not p.keyframes.size))):
+                continue
+            # a bordered prior's share of D, g_c is kept as a calibrated row's is, but for one the
+            # marginal being made replaces
+            keeps = bordered and (solving or not reaches)
+            if not bordered:
+                plain = into = no_border(n) if plain is None else plain
+            elif not keeps:
+                into = B, D, gc
+            elif reaches or p.own is None:
+                p.own = np.zeros((cal.nc, cal.nc)), np.zeros(cal.nc)
+                into = (B, *p.own)
+            else:
+                into = None
+            if into is not None:
+                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
+                            *self._linearisation_points(), lo, Hb, g, *into)
+            if keeps:
+                D += p.own[0]
+                gc += p.own[1]
+        return Hb, g, (B, D, gc)
+
+    def _solve(self, t: float) -> None:
+        """Factorise the rows of ``H`` that changed (those of the new keyframe's factors and of the
+        keyframes linearised again, and everything after them), solve ``H delta = -g`` at the
+        linearisation points, set the estimates to ``theta [+] delta``. A keyframe whose
+        information is not positive definite (nothing in the window determines some part of it)
+        gets a weak prior about its estimate (:data:`WEAK_PRIOR_SIGMAS`, recorded in
+        ``recovered``) and the window is factorised again; if it still fails, the update does."""
+        for attempt in range(2):
+            failed = self._solve_once()
+            if failed < 0:
+                return
+            self._stale = self.first  # the next factorisation covers the whole window again
+            if attempt == 0:
+                self._add_prior(failed, self.state(failed), whitening(np.diag(WEAK_PRIOR_SIGMAS ** 2)))
+                self.recovered.append(failed)
+        raise FixedLagFailed(f"the fixed-lag smoother failed at keyframe {self.newest} (t = {t:.6f} s): the "
+                             f"information of keyframe {failed} (t = {self.time(failed):.6f} s) is not positive "
+                             "definite even with a weak prior on it: the window's information spans more orders of "
+                             "magnitude than double precision holds (keyframes a few microseconds apart, or a sensor "
+                             "many orders more precise than the rest)")
+
+    def _solve_once(self) -> int:
+        """One factorisation and solve of :meth:`_solve`; returns -1, or the keyframe whose pivot
+        failed (the estimates then unchanged)."""
+        reach = self._bandwidth()
+        if reach > self._S:  # a wider band: L anew, the whole window factorised
+            self._L = np.zeros((self._cap, reach + 1, DIM, DIM))
+            self._S, self._stale = reach, self.first
+        start = max(min(self._stale, self.newest - reach), self.first)
+        self._relinearise_early(start, reach)
+        if start == self.first:  # factorised whole: the band the factors need now (it narrows as they leave)
+            self._S = reach
+        S = self._S
+        Hr, g, border = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
+        before = self._dx.copy()
+        if self._cal is None:
+            failed = _factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
+            if failed >= 0:
+                return failed
+            self._dx[:] = self._y
+            exceeds = False
+        else:
+            before_c, delta_c = self._cal.delta.copy(), np.empty(self._cal.nc)
+            failed, code = _factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
+                                                     self._cap, S, self._Z, self._ZZ, *border, self._dx,
+                                                     self._cal.L_D, delta_c, self._cal.thresholds,
+                                                     RELINEARISATION_SIGMA_FRACTION, RELINEARISATION_WIDEST,
+                                                     self._cal.limits)
+            if failed >= 0:
+                return failed
+            exceeds = code == 1
+            if code < 0:
+                self._dx[:] = before  # the estimates unchanged
+                self._stale = self.first
+                raise FixedLagFailed(
+                    f"the fixed-lag smoother failed at keyframe {self.newest} (t = {self.time(self.newest):.6f} s): "
+                    f"the calibrations of {', '.join(self._cal.set.names)} have an information that is not positive "
+                    "definite after the keyframes' share (their priors' sigmas span more orders of magnitude than "
+                    "the data determine them to, or a sensor is many orders more precise than the rest)")
+            self._cal.delta = delta_c
+        oldest, a = _step(self._L, self._dx, before, self.first, self.newest, self._cap, S,
+                          self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
+                          *self._estimates())
+        self._stale = self.newest + 1
+        self.shortened += a < 1.0
+        if self._cal is not None:
+            if a < 1.0:  # the calibrations' step shortened with the keyframes'
+                self._cal.delta = before_c + a * (self._cal.delta - before_c)
+            if (exceeds or a < 1.0) and self._cal.relinearise():  # every factor reading a calibration changes
+                self._calibrations_moved()
+        if oldest >= 0:
+            self._relinearised(oldest)
+        return -1
+
+    def _relinearise_early(self, start: int, reach: int) -> None:
+        """Before the rows from keyframe ``start`` on are assembled: linearise again the keyframes
+        whose factors lie wholly in them (``start + reach ..``, ``reach`` the factors' reach) and
+        whose offset exceeds :data:`EARLY_RELINEARISATION` of the threshold, and, when they are
+        the whole window, the calibrations whose offset exceeds that fraction of their limits;
+        no row before ``start`` becomes stale (nor anything moves when those keyframes are the newest
+        alone: it was added at its estimate)."""
+        if start + reach < self.newest:
+            oldest = _relinearise(start + reach, self.newest, self._cap, self._dx,
+                                  EARLY_RELINEARISATION * self.relinearisation_threshold,
+                                  *self._linearisation_points(), *self._estimates(), self._moved)
+            if oldest >= 0:
+                self._relinearised(oldest)
+        if self._cal is not None and start == self.first and self._cal.relinearise(EARLY_RELINEARISATION):
+            self._calibrations_moved()
+
+    def _calibrations_moved(self) -> None:
+        """After calibrations were linearised again: the bordered priors' calibration coordinates
+        anew, the sums the calibrated measurements keep dropped, and the rows of ``L`` (and of the
+        border) of every keyframe a factor reading a calibration reads are stale."""
+        oldest = self.newest + 1
+        for p in self._priors:
+            if p.c_lin is not None:
+                p.dc, p.Jdc = self._cal.border_of(p.c_lin)
+                p.own = None
+                if p.keyframes.size:
+                    oldest = min(oldest, int(p.keyframes[0]))
+        self._kept[:] = False
+        reads = self._mcal[:self._m] >= 0
+        if reads.any():
+            oldest = min(oldest, int(self._mk[:self._m][reads, 0].min()))
+        self._stale = min(self._stale, max(oldest, self.first))
+
+    def _marginalise(self, leaving: list[int]) -> None:
+        """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
+        complement onto the keyframes they also touch, a :class:`_LinearPrior` at their
+        linearisation points -- on the calibrations too when it informs them, which also takes
+        in the priors on the calibrations alone. The rows of ``L`` (and of the border ``Z``) after
+        ``leaving`` stay: eliminating the oldest keyframes first, they are the factor of that
+        Schur complement already."""
+        if not leaving:
+            return
+        for j in leaving:
+            if self._taken_after.pop(j, None) != self.newest:
+                raise RuntimeError(f"fixed-lag: keyframe {j} (t = {self.time(j):.6f} s) left the window before its "
+                                   "estimate was taken")
+        cut = leaving[-1] + 1
+        S = self._bandwidth()
+        nl = cut - self.first
+        n = min(self.newest - self.first + 1, nl + S)
+        Hb, g, (B, D, gc) = self._normal_equations(self.first, cut, n, S, solving=False)
+        bordered = self._cal is not None and np.count_nonzero(D) > 0  # (B != 0 puts its J_c^T J_c != 0 in D)
+        if not bordered:
+            B, D, gc = no_border(n)
+        status, touched, A, b, own_D, own_g = _marginal_prior(Hb, g, B, D, gc, nl)
+        if status == 1:
+            raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
+                                 f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
+                                 "is not positive definite. Check the data around that time.")
+        # the priors it replaced: those reaching a leaving keyframe, and those on the calibrations alone
+        self._priors = [p for p in self._priors
+                        if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
+        self._m, self._spans[0] = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
+                                                     self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg)
+        for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
+            self._has_imu[k % self._cap] = False
+            self._pre[k % self._cap] = None
+        self.first = cut
+        if touched.size or bordered:  # keep what the marginal ties (non-zero information)
+            R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
+            keyframes = cut + touched
+            slots = keyframes % self._cap
+            prior = _LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0)
+            if bordered:  # at the calibrations' linearisation points: dc = 0, its Jacobian I
+                prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
+                prior.own = own_D, own_g
+            self._priors.append(prior)
+        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors if p.keyframes.size), default=0)

@@ -1,0 +1,480 @@
+"""Building the factor graph of a dataset: keyframes, IMU factors, measurement factors, priors
+and initial values.
+
+Keyframes sit at :func:`smoother.model.timeline.estimate_times`: every measurement time, held-out fix
+times, the start and end of the IMU data, and optionally a fixed grid (``keyframe_rate``). Keyframe 0 carries a joint prior from ``dataset.initial`` and
+``dataset.initial_cov``. Consecutive keyframes are joined by an IMU factor
+(:class:`factors.imu_factor.ImuFactor`); every interval is preintegrated in one batched call.
+
+Initial values come from dead reckoning and the measurements: keyframe ``k`` starts as the IMU
+prediction from keyframe ``k-1``; a measured position or attitude then replaces the predicted one
+and, where positions are measured, the velocity is taken from their finite differences. The same
+initial trajectory is the reference along which each IMU factor's noise covariance is computed
+(one call: :func:`factors.preintegration.integrate_with_covariance`).
+
+The GTSAM factors are made keyframe by keyframe (``Problem.keyframe_factors``, what the fixed-lag
+smoothers take), and the whole GTSAM graph (``Problem.graph`` and friends) from them on first use:
+the batch solver runs on the vectorised blocks and never needs them.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from datasets.kinds import KINDS, calibrated_rows, measure_rows, model_index, sensors_of
+from datasets.types import Dataset, Trajectory
+from factors import calibration, imu, preintegration
+from factors import priors
+from factors.imu_factor import ImuFactor
+from factors.keys import KeyframeKeys, keyframe_keys
+from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
+from smoother.model.blocks import Block, whitening
+from smoother.model.timeline import estimate_times, imu_steps
+from factors.errors import InputError
+
+#: Robust kernels selectable per measurement type (keyed by ``datasets.robust.ROBUST_KERNEL_NAMES``),
+#: and the probability that sets each one's default threshold (see :func:`default_threshold`).
+ROBUST_KERNELS = {
+    "huber": (gtsam.noiseModel.mEstimator.Huber, 0.95),
+    "cauchy": (gtsam.noiseModel.mEstimator.Cauchy, 0.95),
+    "tukey": (gtsam.noiseModel.mEstimator.Tukey, 0.999),
+}
+
+
+def default_threshold(kernel: str, dim: int) -> float:
+    """The default threshold of a kernel on a ``dim``-dimensional factor.
+
+    GTSAM's ``Robust`` noise model applies the kernel to the NORM of the whole whitened error,
+    which for an inlier is chi-distributed with ``dim`` degrees of freedom (mean ~2.35 for a
+    6-dim pose). The textbook constants (Huber 1.345, ...) are for a scalar residual and would
+    down-weight nearly every inlier of a pose factor. The default is therefore
+    ``sqrt(chi2_dim(p))``: Huber and Cauchy leave 95% of inliers at full weight, Tukey (which
+    rejects completely beyond it) 99.9%."""
+    from smoother.evaluation.metrics import chi2_quantile
+
+    return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
+
+
+def robust_threshold(spec, dim: int) -> float:
+    """The threshold of a kernel spec ``(name, threshold or None)`` on a ``dim``-dimensional factor."""
+    name, threshold = spec
+    return float(threshold) if threshold is not None else default_threshold(name, dim)
+
+
+def _robust_estimator(spec, dim: int):
+    if spec is None:
+        return None
+    kernel, _ = ROBUST_KERNELS[spec[0]]
+    return kernel.Create(robust_threshold(spec, dim))
+
+
+def noise_model(cov: np.ndarray, robust=None):
+    """A Gaussian model of ``cov``, wrapped in a robust kernel ``(name, threshold)`` if given."""
+    base = priors.covariance_model(cov)
+    if robust is None:
+        return base
+    return gtsam.noiseModel.Robust.Create(_robust_estimator(robust, np.shape(cov)[-1]), base)
+
+
+@dataclass
+class KeyframeFactors:
+    """The GTSAM factors that become available at one keyframe ``k`` (all their keyframes are
+    ``<= k``), in the order they are added: the prior (keyframe 0), the IMU factor from keyframe
+    ``k - 1`` (``imu``, None at keyframe 0), then the measurement factors whose latest keyframe is
+    ``k``, block by block. ``rows[i]`` is ``(block index, row)`` of ``factors[i]`` in the
+    problem's blocks, ``oldest[i]`` its earliest keyframe."""
+
+    imu: ImuFactor | None
+    factors: list
+    rows: list[tuple[int, int]]
+    oldest: list[int]
+
+
+@dataclass
+class GtsamGraph:
+    """A problem's factors as GTSAM factors: the ``graph`` with its ``initial`` values, the IMU
+    factors, the factors grouped by the keyframe at which they become available (``factors_at``)
+    and ``rows_of``: ``id(gtsam factor) -> (block index, row)``, where each factor sits in the
+    problem's blocks."""
+
+    graph: gtsam.NonlinearFactorGraph
+    initial: gtsam.Values
+    imu_factors: list[ImuFactor]
+    factors_at: list[list]
+    rows_of: dict
+
+
+@dataclass
+class Problem:
+    """A dataset's factor graph, twice over: as vectorised :class:`smoother.model.blocks.Block` s (the
+    batch solver's) and as GTSAM factors over the same residual functions.
+
+    ``keyframe_factors(k)`` makes the GTSAM factors that become available at keyframe ``k``
+    (:class:`KeyframeFactors`), new ones at every call: the fixed-lag smoothers take them keyframe
+    by keyframe and let them go when GTSAM has marginalised them, so a run holds the window's
+    factors only. The whole GTSAM graph (:class:`GtsamGraph`: for GTSAM's optimisers and the
+    cross-checks) is built from them on first use (``gtsam_parts`` is None until then): the batch
+    solver never needs it, and building it took about half of the problem's construction."""
+
+    times: np.ndarray
+    keys: list[KeyframeKeys]
+    initial_states: imu.ImuState
+    blocks: list[Block]
+    keyframe_factors: Callable[[int], KeyframeFactors] = field(repr=False)
+    gravity: np.ndarray = field(default_factory=lambda: imu.DEFAULT_GRAVITY.copy())
+    gtsam_parts: GtsamGraph | None = field(default=None, repr=False)
+    #: The names of the blocks of absolute measurements (:attr:`datasets.kinds.base.Kind.absolute`).
+    absolute: frozenset = frozenset()
+    #: The calibration variables (:class:`factors.calibration.CalibrationSet`) of the sensors that
+    #: ask for them (:attr:`datasets.types.Sensor.calibrate`), at their initial values, or None.
+    #: Only the vectorised blocks read them; ``keyframe_factors`` keep the values given.
+    calibration: calibration.CalibrationSet | None = None
+
+    @property
+    def gtsam(self) -> GtsamGraph:
+        if self.gtsam_parts is None:
+            self.gtsam_parts = _whole_graph(self)
+        return self.gtsam_parts
+
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        return self.gtsam.graph
+
+    @property
+    def initial(self) -> gtsam.Values:
+        return self.gtsam.initial
+
+    @property
+    def imu_factors(self) -> list[ImuFactor]:
+        return self.gtsam.imu_factors
+
+    @property
+    def factors_at(self) -> list[list]:
+        return self.gtsam.factors_at
+
+    @property
+    def rows_of(self) -> dict:
+        return self.gtsam.rows_of
+
+
+def _match(times: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Keyframe index of each time in ``t`` (which must all be keyframe times), -1 if outside."""
+    i = np.searchsorted(times, t)
+    ok = (i < len(times)) & (times[np.minimum(i, len(times) - 1)] == t)
+    return np.where(ok, i, -1)
+
+
+def insert_state(values: gtsam.Values, keys: KeyframeKeys, state: imu.ImuState) -> None:
+    """Insert one state's variables (Rot3, Point3, velocity, bias) under ``keys``."""
+    values.insert(keys.rot, gtsam.Rot3(state.C))
+    values.insert(keys.pos, gtsam.Point3(*state.r))
+    values.insert(keys.vel, np.array(state.v, dtype=float))
+    values.insert(keys.bias, gtsam.imuBias.ConstantBias(state.b_f, state.b_w))
+
+
+def read_state(values: gtsam.Values, keys: KeyframeKeys) -> imu.ImuState:
+    """The state of one keyframe from GTSAM values."""
+    b = values.atConstantBias(keys.bias).vector()
+    return imu.ImuState(
+        r=values.atPoint3(keys.pos), v=values.atVector(keys.vel), C=values.atRot3(keys.rot).matrix(),
+        b_f=b[:3], b_w=b[3:],
+    )
+
+
+def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
+    """What the measurements say about keyframes ``1 ..``, to reset the dead reckoning of the
+    initial trajectory: measured positions and attitudes at the keyframes they fall on, and the
+    world velocity interpolated from the finite differences of the positions (when there are two
+    or more); NaN where unknown. Keyframe 0 is the dataset's initial state, never reset."""
+    n = len(times)
+    anchors = preintegration.Anchors.none(n)
+    # where several sensors anchor one keyframe, the later wins: one that gives both position and attitude
+    implied = [KINDS[s.kind].anchor(s.data) for s in sensors_of(dataset) if KINDS[s.kind].anchor is not None]
+    for t, r, C in sorted(implied, key=lambda a: a[1] is not None and a[2] is not None):
+        idx = _match(times, t)
+        if r is not None:
+            anchors.r[idx[idx >= 0]] = r[idx >= 0]
+        if C is not None:
+            anchors.C[idx[idx >= 0]] = C[idx >= 0]
+    has_r = np.isfinite(anchors.r[:, 0])
+    if has_r.sum() >= 2:
+        tr, rr = times[has_r], anchors.r[has_r]
+        gradient = np.gradient(rr, tr, axis=0)
+        anchors.world_v[:] = np.stack([np.interp(times, tr, gradient[:, a]) for a in range(3)], axis=-1)
+    anchors.r[0], anchors.C[0], anchors.world_v[0] = np.nan, np.nan, np.nan
+    return anchors
+
+
+def _started_from(estimate: Trajectory, times: np.ndarray) -> tuple[preintegration.Anchors, tuple]:
+    """Anchors and per-interval biases that start the graph at ``estimate`` (an EKF's run over the
+    same data): every keyframe that is one of the estimate's times is anchored at its position,
+    attitude and velocity (keyframe 0 too); one between them (a grid keyframe) is predicted from
+    the keyframe before; each interval is integrated around the biases the estimate has at its
+    start. A filter carries what every measurement so far implies -- a gyro bias, a heading --
+    which dead reckoning from the prior does not: the optimiser starts near the optimum."""
+    held = np.clip(np.searchsorted(estimate.t, times + MATCH_TOLERANCE, side="right") - 1, 0, len(estimate.t) - 1)
+    at = np.abs(estimate.t[held] - times) <= MATCH_TOLERANCE
+    states = estimate.states[held]
+    anchors = preintegration.Anchors.none(len(times))
+    anchors.r[at], anchors.C[at], anchors.world_v[at] = states.r[at], states.C[at], states.world_velocity()[at]
+    return anchors, (states.b_f[:-1], states.b_w[:-1])
+
+
+#: Largest difference [s] between a keyframe's time and an estimate's for :func:`_started_from`
+#: to take the estimate's state there.
+MATCH_TOLERANCE = 1e-9
+
+
+_SLOTS = {"rot": imu.PHI, "pos": imu.R, "vel": imu.V, "bias": slice(9, 15)}
+
+
+def _place(jacobians: list[np.ndarray], variables: list[str]) -> np.ndarray:
+    """Per-variable Jacobians (primer convention) -> one (..., d, 15) error-state Jacobian."""
+    d = jacobians[0].shape[-2]
+    out = np.zeros(jacobians[0].shape[:-2] + (d, imu.STATE_DIM))
+    for J, name in zip(jacobians, variables):
+        out[..., _SLOTS[name]] = J
+    return out
+
+
+def _imu_block(pre: preintegration.Preintegrated, gravity: np.ndarray, threshold: float) -> Block:
+    def residual(slots, jacobians, rows):
+        intervals = pre if isinstance(rows, slice) and rows == slice(None) else pre[rows]
+        out = preintegration.residual(intervals, slots[0], slots[1], gravity, jacobians)
+        return (out[0], list(out[1])) if jacobians else out
+
+    def reintegrate(states):
+        drift = np.max(np.abs(states.b_w[:-1] - pre.b_w_bar), axis=1)
+        moved = np.flatnonzero(drift > threshold)
+        if moved.size:
+            pre.assign(moved, pre[moved].relinearized(states.b_w[moved]))
+
+    n = len(pre)
+    keyframes = np.stack([np.arange(n), np.arange(1, n + 1)], axis=1)
+    return Block("imu", keyframes, residual, whitening(pre.cov), None, reintegrate)
+
+
+def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: dict | None = None,
+                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
+                  start: Trajectory | None = None) -> Problem:
+    """The factor graph of ``dataset`` (see the module docstring).
+
+    ``robust`` maps a sensor's name (``Dataset.sensors``) to a kernel spec ``(name,
+    threshold)`` from :func:`datasets.robust.robust_spec`. ``start``: an estimate of the run (an
+    EKF's) to start from instead of dead reckoning (:func:`_started_from`).
+    """
+    times = estimate_times(dataset, keyframe_rate)
+    if len(times) < 2:
+        raise InputError("the dataset spans less than one keyframe interval")
+    keys = [keyframe_keys(k) for k in range(len(times))]
+    steps = imu_steps(dataset.imu, times)
+    acc, gyro, dt = steps.segments()
+    # initial trajectory: dead reckoning from the initial state, reset by the measurements (or by
+    # the estimate given); the IMU factors' covariances are evaluated along it (one call does both)
+    anchors, biases = (_anchors(dataset, times), None) if start is None else _started_from(start, times)
+    pre, initial_states = preintegration.integrate_with_covariance((acc, gyro, dt), dataset.initial, dataset.noise,
+                                                                   dataset.gravity, anchors, biases)
+
+    blocks: list[Block] = [_imu_block(pre, dataset.gravity, reintegration_threshold)]
+    prior = dataset.initial
+
+    def prior_residual(slots, jacobians, rows):
+        s = slots[0]
+        out = priors.state_residual(s.C, s.r, s.v, np.concatenate([s.b_f, s.b_w], axis=-1), prior, jacobians)
+        return (out[0], [_place(out[1], ["rot", "pos", "vel", "bias"])]) if jacobians else out
+
+    blocks.append(Block("prior", np.zeros((1, 1), dtype=int), prior_residual, whitening(dataset.initial_cov[None])))
+    measurements = []  # (block index, spec, keyframes, cov, kernel) of each measurement block
+    calibrations = calibration_set(dataset)
+    for block, spec, kernel in measurement_blocks(dataset, times, robust, calibrations):
+        blocks.append(block)
+        measurements.append((len(blocks) - 1, spec, block.keyframes, spec.cov, kernel))
+    if calibrations is not None:
+        blocks.extend(calibration_prior_blocks(calibrations))
+
+    # the rows of each measurement block by the keyframe at which they become available (their
+    # latest): rows order[bounds[k]:bounds[k + 1]], ascending within a keyframe
+    available = []
+    for _, _, kf, _, _ in measurements:
+        latest = kf.max(axis=1)
+        order = np.argsort(latest, kind="stable")
+        available.append((order, np.searchsorted(latest[order], np.arange(len(times) + 1))))
+
+    def keyframe_factors(k: int) -> KeyframeFactors:
+        """The GTSAM factors available at keyframe ``k`` (see :class:`Problem`)."""
+        if k == 0:
+            out = KeyframeFactors(None, [priors.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0])
+        else:
+            imu_factor = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
+                                   reintegration_threshold=reintegration_threshold)
+            out = KeyframeFactors(imu_factor, [imu_factor.factor], [(0, k - 1)], [k - 1])
+        for (block, spec, kf, cov, kernel), (order, bounds) in zip(measurements, available):
+            for m in order[bounds[k]:bounds[k + 1]]:
+                out.factors.append(spec.factor([keys[j] for j in kf[m]], int(m), noise_model(cov[m], kernel)))
+                out.rows.append((block, int(m)))
+                out.oldest.append(int(kf[m].min()))
+        return out
+
+    absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)
+    return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute,
+                   calibration=calibrations)
+
+
+def calibration_set(dataset: Dataset) -> calibration.CalibrationSet | None:
+    """The calibration variables of the sensors of ``dataset`` that ask for them
+    (:attr:`datasets.types.Sensor.calibrate`), starting at the values given (their data's
+    ``T_BS``, no further time offset, scale 1), or None. A part the sensor's kind cannot estimate
+    (:func:`factors.calibration.applicable`) is refused, naming the sensor."""
+    asking = [s for s in sensors_of(dataset) if s.calibrate is not None]
+    if not asking:
+        return None
+    priors = [calibration.checked_prior(s.calibrate, s.kind, KINDS[s.kind].model,
+                                        f"sensor {s.name!r} (kind {s.kind}): calibrate") for s in asking]
+    return calibration.CalibrationSet.given([s.name for s in asking], [s.data.T_BS for s in asking], priors)
+
+
+def calibration_prior_blocks(calibrations: calibration.CalibrationSet) -> list[Block]:
+    """One block per calibration variable: its prior (:func:`factors.calibration.prior_residual`)."""
+    out = []
+    for j, (name, prior, mean) in enumerate(zip(calibrations.names, calibrations.priors, calibrations.means)):
+        def residual(slots, jacobians, rows, c, prior=prior, mean=mean):
+            e, J = calibration.prior_residual(c, mean, prior.columns)
+            return (e[None], [J[None]]) if jacobians else e[None]
+
+        whiten = np.diag(1.0 / prior.sigmas)[None]
+        out.append(Block(f"calibration prior {name}", np.zeros((1, 0), dtype=int), residual, whiten, calibration=j))
+    return out
+
+
+
+def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None = None,
+                       calibrations: calibration.CalibrationSet | None = None) -> list[tuple]:
+    """``(Block, MeasurementSpec, kernel spec or None)`` of each sensor of ``dataset`` on the
+    keyframes ``times`` (every measurement time must be one): the measurement factors of
+    :func:`build_problem`, without the IMU's. A sensor among ``calibrations``' names reads its
+    calibration variable (:func:`calibrated_residual`); the others, and every sensor without
+    ``calibrations``, use the values given."""
+    robust = robust or {}
+    out = []
+    names = () if calibrations is None else calibrations.names
+    for sensor, spec in zip(sensors_of(dataset), _measurement_specs(dataset)):
+        kf = np.stack([_match(times, t) for t in spec.times], axis=1)
+        placed = np.all(kf >= 0, axis=1)
+        if not placed.all():  # every measurement time is a keyframe (timeline.estimate_times): a defect if not
+            raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
+                             "no keyframe")
+        kernel = robust.get(spec.name)
+        robust_estimator = _robust_estimator(kernel, spec.cov.shape[-1])
+        if spec.name in names:
+            j = names.index(spec.name)
+            residual = calibrated_residual(sensor, spec, dataset, calibrations.priors[j])
+            block = Block(spec.name, kf, residual, whitening(spec.cov), robust_estimator, calibration=j)
+        else:
+            block = Block(spec.name, kf, spec.residual, whitening(spec.cov), robust_estimator)
+        out.append((block, spec, kernel))
+    return out
+
+
+def calibrated_residual(sensor, spec: "MeasurementSpec", dataset: Dataset, prior: calibration.CalibrationPrior):
+    """The block residual of ``sensor``'s measurements through its calibration variable
+    (:func:`datasets.kinds.calibrated_rows`): Jacobians of the slots' states, then of the
+    estimated calibration coordinates. With a time offset among them, the IMU reading held at each
+    measurement's stamp(s) enters (:meth:`datasets.types.ImuSamples.held`)."""
+    kind = KINDS[sensor.kind]
+    cols = prior.columns
+    readings = None
+    if "time_offset" in prior.parts:
+        held = [dataset.imu.held(t) for t in spec.times]
+        readings = [(dataset.imu.acc[k], dataset.imu.gyro[k]) for k in held]
+
+    def residual(slots, jacobians, which, c):
+        at = None if readings is None else [(acc[which], gyro[which]) for acc, gyro in readings]
+        states = tuple(slots) if kind.relative else slots[0]
+        e, H, H_c = calibrated_rows(kind, states, spec.rows[which], c,
+                                    None if at is None else (tuple(at) if kind.relative else at[0]), dataset.gravity,
+                                    jacobians)
+        if not jacobians:
+            return e
+        parts = [H[:, :, :imu.STATE_DIM], H[:, :, imu.STATE_DIM:]] if kind.relative else [H]
+        return e, [*parts, H_c[:, :, cols]]
+
+    return residual
+
+
+def _whole_graph(problem: Problem) -> GtsamGraph:
+    """All of ``problem``'s GTSAM factors in one graph, with initial values from
+    ``problem.initial_states`` at the time of the call (so a copy of the problem with other
+    initial states gets its own)."""
+    groups = [problem.keyframe_factors(k) for k in range(len(problem.times))]
+    graph = gtsam.NonlinearFactorGraph()
+    for group in groups:
+        for f in group.factors:
+            graph.add(f)
+    values = gtsam.Values()
+    for k, kk in enumerate(problem.keys):
+        insert_state(values, kk, problem.initial_states[k])
+    rows_of = {id(f): where for group in groups for f, where in zip(group.factors, group.rows)}
+    return GtsamGraph(graph, values, [group.imu for group in groups[1:]], [group.factors for group in groups], rows_of)
+
+#: :attr:`MeasurementSpec.model` of a relative pose (odometry: :func:`factors.sensor_models.odometry_kernel`)
+RELATIVE_MODEL = -1
+
+
+@dataclass
+class MeasurementSpec:
+    """One sensor's measurements as the graph needs them: ``times`` of the keyframes each
+    measurement connects (one array per keyframe it reads), the block ``residual(slots,
+    jacobians, rows)`` (:class:`smoother.model.blocks.Block`), covariances, and ``factor(keys, m,
+    noise_model)`` making the GTSAM factor of measurement ``m``."""
+
+    name: str
+    times: list[np.ndarray]
+    residual: Callable
+    cov: np.ndarray
+    factor: Callable
+    #: the model's index in :data:`datasets.kinds.MODELS` (:data:`RELATIVE_MODEL` for odometry)
+    #: and the measurements' packed rows, as the compiled kernels take them
+    model: int = -1
+    rows: np.ndarray | None = None
+
+
+def measurement_spec(sensor) -> MeasurementSpec:
+    """The measurements of one :class:`datasets.types.Sensor` through its kind's model."""
+    return (_relative_spec if KINDS[sensor.kind].relative else _absolute_spec)(sensor)
+
+
+def _measurement_specs(dataset: Dataset) -> list[MeasurementSpec]:
+    """Each sensor of ``dataset`` (:func:`datasets.kinds.sensors_of`) through its kind's model."""
+    return [measurement_spec(s) for s in sensors_of(dataset)]
+
+
+def _absolute_spec(sensor) -> MeasurementSpec:
+    kind, m = KINDS[sensor.kind], sensor.data
+    rows = kind.pack(m)
+
+    def residual(slots, jacobians, which):
+        e, H = measure_rows(kind, slots[0], rows[which])
+        return (e, [H]) if jacobians else e
+
+    return MeasurementSpec(sensor.name, [m.t], residual, m.cov,
+                           lambda kk, i, model: sensor_factor(kind.model, kk[0], rows[i], model),
+                           model_index(kind), rows)
+
+
+def _relative_spec(sensor) -> MeasurementSpec:
+    m = sensor.data
+
+    def residual(slots, jacobians, which):
+        a, b = slots
+        out = odometry_residual(a.C, a.r, b.C, b.r, m.dr[which], m.dC[which], m.T_BS, jacobians)
+        if not jacobians:
+            return out
+        e, (J_Ci, J_ri, J_Cj, J_rj) = out
+        return e, [_place([J_Ci, J_ri], ["rot", "pos"]), _place([J_Cj, J_rj], ["rot", "pos"])]
+
+    return MeasurementSpec(sensor.name, [m.t_from, m.t_to], residual, m.cov,
+                           lambda kk, i, model: odometry_factor(kk[0], kk[1], m.dr[i], m.dC[i], m.T_BS, model),
+                           RELATIVE_MODEL, pack_odometry(m.dr, m.dC, m.T_BS))

@@ -1,0 +1,641 @@
+"""Online fixed-lag smoothing: IMU samples and measurements fed as they arrive, the state at IMU
+rate, each keyframe's smoothed estimate as it leaves the window.
+
+:class:`OnlineSmoother` is a fixed-lag smoother fed from streams: of ``kind`` ``"sliding"`` (the
+default; the compiled window of :mod:`smoother.fixed_lag.sliding.window`) or GTSAM's ``"incremental"`` /
+``"batch"`` (:class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`, the loop
+:func:`smoother.fixed_lag.gtsam_window.run_fixed_lag` runs too); both windows take a keyframe as its IMU
+interval, its measurements and its initial value (``add_keyframe``). Conventions are the
+project's: state ``x = (r, v, C, b_f, b_w)`` (world position, BODY velocity, body-to-world
+attitude, accelerometer and gyro biases), 15x15 covariances in the primer's error state
+``(dr, dv, dphi, db_f, db_w)`` with the LEFT perturbation ``C <- exp(dphi) C``, times in seconds
+on the IMU's clock.
+
+Keyframes. Keyframe 0 is at the first IMU sample, with the prior ``(initial, initial_cov)``. Every
+measurement time is a keyframe (both ends of a relative pose), and so is every time given to
+:meth:`OnlineSmoother.keyframe_at`, with ``keyframe_rate`` a grid ``t0 + m / rate`` (grid
+times within half an IMU interval of another keyframe are left out), and the last IMU sample at
+:meth:`OnlineSmoother.finish`. Consecutive keyframes are
+joined by the project's IMU factor, preintegrated when the later keyframe is made, its noise
+covariance evaluated along the prediction from the smoother's newest estimate.
+
+Time order. IMU samples must come in strictly increasing time: a sample at or before the newest
+one is an error (an :class:`factors.errors.InputError`, a ValueError; IMU samples are never
+reordered). An interval longer than :data:`datasets.types.IMU_GAP_FACTOR` typical periods (the
+median interval of the samples seen, once there are
+:data:`smoother.online.imu_buffer.TYPICAL_INTERVALS`) is a gap, bridged by holding the sample before it
+as the offline path does (:func:`datasets.types.imu_gaps`, the same rule and message): counted
+in ``imu_gaps`` with the longest in ``longest_imu_gap_s``, a warning at the first and at each
+longer than all before; one longer than :data:`datasets.types.MAX_IMU_GAP_S` is a jump of the
+clock, refused, as is a measurement stamped that far after the newest IMU sample. A keyframe at
+time ``t`` is made -- and the smoother updated with it -- once the IMU stream has reached
+``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
+and are sorted into time. A measurement whose time is at or before the newest keyframe already
+made (it arrived later than ``max_delay_s`` behind the IMU) is dropped: counted per sensor in
+``dropped``, with a warning at its sensor's first drop. ``max_delay_s`` is thus also the delay
+of every measurement's effect on the estimates.
+
+Outputs. :meth:`OnlineSmoother.estimate` is the state at the newest IMU time: the EKF's
+per-sample prediction (:func:`factors.imu.predict_into`, the filter's own step) from the
+newest keyframe's estimate, no re-solve; with ``covariances`` its 15x15 covariance too, from the
+keyframe's marginal. A keyframe's smoothed estimate is the one it has just before the update that
+marginalises it (older than the new keyframe's time minus ``lag_s``), handed to ``on_smoothed``
+or queued for :meth:`OnlineSmoother.smoothed`; :meth:`OnlineSmoother.finish` makes the pending
+keyframes and hands over the rest of the window.
+
+A relative measurement (odometry) whose earlier time is no keyframe in the window when it arrives
+or when its later keyframe is made (it is older than the lag) is skipped: counted per sensor in
+``skipped``, with a warning at the first.
+
+No silent failures: besides the dropped and skipped measurements, a warning when measurements are further
+apart than the lag (:func:`smoother.fixed_lag.gtsam_window.sparse_measurement_warning`: keyframes then leave
+the window before the next measurement reaches them).
+
+Bad input. Every value is checked as the offline data types check it (:mod:`datasets.types`):
+the initial state (a rotation matrix ``C``, finite 3-vectors), a symmetric positive definite
+initial covariance, each sensor's setup, and every sample: finite, and no axis beyond the
+plausible ranges (:data:`datasets.types.MAX_PLAUSIBLE_SPECIFIC_FORCE`, the gyro rate limit of
+:func:`datasets.types.max_gyro_rate` in force when the smoother is made, the measurements'
+distance and speed limits). What fails is refused with an InputError naming the argument or
+field, the expected and found shape or the sample's time; the sample is not taken and the smoother
+stays usable.
+
+The parts, one job each: :mod:`smoother.online.imu_buffer` (the IMU stream and its checks),
+:mod:`smoother.online.schedule` (the keyframe times), :mod:`smoother.online.pending` (the
+measurements waiting for their keyframe, late ones sorted into time, those too old refused),
+:mod:`smoother.online.handover` (the keyframes leaving the window, to the caller) and
+:mod:`smoother.online.prediction` (the state at IMU rate); :class:`OnlineSmoother` composes them
+with the keyframe window.
+
+The first :class:`OnlineSmoother` of a process loads (or compiles) every compiled kernel of the
+loop by feeding a throwaway smoother 0.8 s of made-up data, so that a robot's first keyframes and
+first marginalisation do not stall on it.
+
+:func:`replay` feeds a whole :class:`datasets.types.Dataset` through an :class:`OnlineSmoother`,
+at once or at the data's own pace (``realtime``), measuring each measurement's latency from its
+arrival to the update that used it.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from datasets.kinds import KINDS, kind_sigmas, pose, sensors_of
+from datasets.robust import check_robust
+from datasets.types import (MAX_IMU_GAP_S, Dataset, Sensor, Trajectory, check_array, check_extrinsic, check_state,
+                            check_state_covariance)
+from factors import calibration, imu, preintegration
+from factors.errors import InputError
+from smoother.fixed_lag.gtsam_window import HISTORY, KeyframeWindow, sparse_measurement_warning
+from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
+from smoother.model.problem import measurement_spec
+from smoother.online.handover import HandOver, OnlineEstimate
+from smoother.online.imu_buffer import ImuBuffer
+from smoother.online.pending import PendingMeasurements
+from smoother.online.prediction import ImuRatePrediction
+from smoother.online.schedule import KeyframeSchedule
+from smoother.progress import progress_bar
+from smoother.fixed_lag.sliding.window import SlidingWindow
+from smoother.model.timeline import estimate_times, interval_steps
+
+def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float, calibrations=None):
+    """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag.kinds.FIXED_LAG_KINDS`),
+    with the calibration variables ``calibrations`` (a
+    :class:`smoother.fixed_lag.sliding.calibration.WindowCalibration`; the compiled window only) or None."""
+    if kind == "sliding":
+        return SlidingWindow(lag_s, gravity, reintegration_threshold, calibration=calibrations)
+    if calibrations is not None:
+        raise InputError(f"fixed-lag smoother kind {kind!r} cannot estimate calibrations (sensors "
+                         f"{', '.join(calibrations.set.names)} ask for them): use kind 'sliding'")
+    if kind in ("incremental", "batch"):
+        return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
+    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    """An aiding sensor of an :class:`OnlineSmoother`: its ``kind`` (a name of
+    :data:`datasets.kinds.KINDS`), extrinsic ``T_BS`` (4x4, ``p_B = T_BS p_S``; None: at the IMU),
+    ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
+    measurement comes without a covariance; None: every measurement brings one) and ``robust``
+    (None or a kernel spec of :func:`datasets.robust.robust_spec`); ``roll_pitch_only`` makes an
+    ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file;
+    ``calibrate`` (a :class:`factors.calibration.CalibrationPrior`, the rig file's ``estimate``
+    and ``*_sigma`` keys) makes parts of its calibration variables, estimated about ``T_BS`` and
+    ``time_offset`` (the ``"sliding"`` window only). Each is checked when made: an InputError
+    naming the field otherwise."""
+
+    kind: str
+    T_BS: np.ndarray | None = None
+    time_offset: float = 0.0
+    sigma: np.ndarray | None = None
+    robust: tuple | None = None
+    roll_pitch_only: bool = False
+    calibrate: calibration.CalibrationPrior | None = None
+
+    def __post_init__(self):
+        from datasets.rig import roll_pitch_kind
+
+        object.__setattr__(self, "kind", roll_pitch_kind(
+            self.kind, self.roll_pitch_only, lambda message: InputError(f"SensorSetup.roll_pitch_only: {message}")))
+        if self.kind not in KINDS:
+            raise InputError(f"SensorSetup.kind: expected one of {', '.join(KINDS)}, got {self.kind!r}")
+        object.__setattr__(self, "T_BS", check_extrinsic("SensorSetup.T_BS", self.T_BS))
+        offset = check_array("SensorSetup.time_offset", [self.time_offset], ())[0]
+        if not abs(offset) <= MAX_IMU_GAP_S:
+            raise InputError(f"SensorSetup.time_offset: expected at most {MAX_IMU_GAP_S:g} s either way, got {offset!r}")
+        object.__setattr__(self, "time_offset", float(offset))
+        if self.sigma is not None:
+            kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
+        check_robust("SensorSetup.robust", self.robust)
+        if self.calibrate is not None:
+            calibration.checked_prior(self.calibrate, self.kind, KINDS[self.kind].model, "SensorSetup.calibrate")
+            given = self.calibrate.stamp_offset
+            if self.time_offset != 0.0 and given != self.time_offset:  # the offset its stamps get
+                if given != 0.0:
+                    raise InputError(f"SensorSetup.calibrate: stamp_offset {given!r} differs from time_offset "
+                                     f"{self.time_offset!r}")
+                object.__setattr__(self, "calibrate", replace(self.calibrate, stamp_offset=self.time_offset))
+
+
+class OnlineSmoother:
+    """Fixed-lag smoothing fed sample by sample (module docstring).
+
+    ``initial``, ``initial_cov``: the state at the first IMU sample and its 15x15 covariance;
+    ``noise`` (:class:`factors.imu.ImuNoise`) and ``gravity`` (world frame, m/s^2); ``sensors``:
+    name -> :class:`SensorSetup` (a kind's name can always be used as a sensor at the IMU with no
+    time offset); ``lag_s`` the window [s]; ``kind`` the compiled ``"sliding"`` window or GTSAM's
+    ``"incremental"`` or ``"batch"`` smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
+    behind the IMU stream; ``covariances``: compute keyframe covariances (the newest keyframe's,
+    for :meth:`estimate`, and each smoothed keyframe's); ``on_smoothed(OnlineEstimate)``: called
+    with each keyframe leaving the window (None: they are queued for :meth:`smoothed`).
+
+    It composes the parts, one job each: the IMU stream (:class:`smoother.online.imu_buffer.ImuBuffer`),
+    the keyframe times (:class:`smoother.online.schedule.KeyframeSchedule`), the measurements
+    waiting for their keyframe (:class:`smoother.online.pending.PendingMeasurements`), the
+    keyframe window (:func:`make_window`), the hand-over of the keyframes leaving it
+    (:class:`smoother.online.handover.HandOver`) and the state at IMU rate
+    (:class:`smoother.online.prediction.ImuRatePrediction`)."""
+
+    def __init__(self, initial: imu.ImuState, initial_cov, noise: imu.ImuNoise, sensors: dict | None = None,
+                 lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
+                 max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
+                 on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
+        if not max_delay_s >= 0:
+            raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
+        if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
+            raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
+        if not (lag_s > 0 and math.isfinite(lag_s)):
+            raise InputError(f"lag_s: expected a positive, finite lag in seconds, got {lag_s!r}")
+        check_state("initial", initial)  # a rotation, finite 3-vectors
+        initial_cov = check_state_covariance("initial_cov", initial_cov)  # symmetric, positive definite
+        if not isinstance(noise, imu.ImuNoise):
+            raise InputError(f"noise: expected an ImuNoise, got {type(noise).__name__}")
+        self._sensors = dict(sensors or {})
+        for name, setup in self._sensors.items():
+            if not isinstance(setup, SensorSetup):
+                raise InputError(f"sensors[{name!r}]: expected a SensorSetup, got {setup!r}")
+        self.initial, self.initial_cov, self.noise = initial, initial_cov, noise
+        self.gravity = check_array("gravity", gravity, (), 3)
+        calibrations = self._calibrations()
+        self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold, calibrations)
+        self._window_calibrates = calibrations is not None
+        self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
+        self.keyframe_rate = keyframe_rate
+        self.covariances = covariances
+        self.reintegration_threshold = reintegration_threshold
+        #: wall time [s] from each used measurement's arrival to the end of the update that used it
+        #: (the latest :data:`smoother.fixed_lag.gtsam_window.HISTORY`)
+        self.latency_s: deque[float] = deque(maxlen=HISTORY)
+        #: the longest time between absolute measurements (they fix a position or an attitude) seen so
+        #: far [s] (the start counts as one)
+        self.longest_gap_s = 0.0
+        self._warned_gap = False
+        self._finished = False
+        self._imu = ImuBuffer(stacklevel=2)  # warnings name add_imu's caller
+        self._schedule = KeyframeSchedule(keyframe_rate)
+        self._pending = PendingMeasurements(self.max_delay_s, self.lag_s)
+        self._hand = HandOver(self._window, covariances, on_smoothed)
+        self._prediction = ImuRatePrediction(noise, self.gravity, covariances)
+        self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
+        self._last_t = None  # the newest keyframe's time
+        self._last_measured_t = None
+        self._newest = None  # the newest keyframe's estimate (what the next IMU interval starts from)
+        _warm_up()
+
+    @classmethod
+    def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":
+        """A smoother with ``dataset``'s IMU noise, gravity, initial state and covariance and its
+        sensors (:func:`datasets.kinds.sensors_of`: kinds, extrinsics and, for the ``"sliding"``
+        window, what of their calibrations to estimate; their time offsets are in the dataset's
+        stamps already), ``robust`` kernels by sensor name; ``options`` as the constructor's. The
+        data themselves are not fed (:func:`replay` does)."""
+        robust = robust or {}
+        calibrating = options.get("kind", "sliding") == "sliding"
+        sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name),
+                                       calibrate=s.calibrate if calibrating else None)
+                   for s in sensors_of(dataset)}
+        return cls(dataset.initial, dataset.initial_cov, dataset.noise, sensors, gravity=dataset.gravity, **options)
+
+    @classmethod
+    def from_rig(cls, rig, initial: imu.ImuState, initial_cov, **options) -> "OnlineSmoother":
+        """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
+        gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
+        to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
+        ``options`` as the constructor's."""
+        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate)
+                   for s in rig.sensors}
+        return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
+                   **options)
+
+    # -- input ------------------------------------------------------------------------------------
+
+    def add_imu(self, t, acc, gyro) -> None:
+        """One IMU sample (``t`` a number, ``acc``, ``gyro`` of shape (3,): specific force [m/s^2]
+        and angular rate [rad/s] in the body frame) or N samples (``t`` of shape (N,), ``acc``,
+        ``gyro`` of shape (N, 3)), in strictly increasing time after every sample before; other
+        shapes, non-finite or implausible values and time steps back are refused (module
+        docstring), with nothing taken. Makes the keyframes the stream has passed by
+        ``max_delay_s``."""
+        self._open()
+        stream = self._imu
+        if (type(t) is float or np.ndim(t) == 0) and np.shape(acc) == (3,) and np.shape(gyro) == (3,):
+            stream.add_one(float(t), acc, gyro)  # one sample: kept lean
+        else:
+            stream.add(t, acc, gyro)
+        if self._schedule.t0 is None:  # the first sample: the first keyframe's time
+            self._schedule.start(float(stream.t[0]))
+        horizon = stream.t_last - self.max_delay_s
+        if self._schedule.due(horizon):
+            self._make_keyframes(horizon)
+
+    def add(self, sensor: str, t, *values, cov=None) -> None:
+        """Measurements of ``sensor`` (a name of ``sensors``, or a kind's name for a sensor at the
+        IMU): the fields of its kind's data type after the time(s) (:mod:`datasets.types`; e.g.
+        ``add("pose", t, position, C)``, ``add("position", t, position)``, ``add("velocity", t,
+        velocity, gyro)``, ``add("odometry", t_from, t_to, dr, dC)``), one measurement or arrays
+        of them, with ``cov`` ((d, d) or (N, d, d); default from the sensor's sigma). Stamps
+        are the sensor's, its time offset is added here."""
+        self._open()
+        setup, kind = self._setup(sensor)
+        single = np.ndim(t) == 0
+        data_fields = (*kind.times, *kind.fields)
+        if len(values) != len(data_fields) - 1:
+            raise InputError(f"add({sensor!r}): expected {', '.join(data_fields)} (and cov), got "
+                             f"{len(values) + 1} values")
+        columns = [np.atleast_1d(np.asarray(t, dtype=float))] + [np.asarray(v, dtype=float) for v in values]
+        if single:
+            columns = [columns[0]] + [v[None] for v in columns[1:]]
+        if cov is None:
+            if setup.sigma is None:
+                raise InputError(f"add({sensor!r}): cov: expected a covariance (the sensor has no sigma)")
+            cov = np.diag(kind_sigmas(f"sensors[{sensor!r}]", setup.sigma, kind.dim) ** 2)
+        try:
+            data = kind.data_type(*columns, cov, setup.T_BS)
+        except ValueError as error:
+            raise InputError(f"add({sensor!r}): {error}") from None
+        self.add_measurements(sensor, data)
+
+    def add_measurements(self, sensor: str, data) -> None:
+        """Measurements of ``sensor`` given as its kind's data type (:mod:`datasets.types`, the
+        sensor's extrinsic inside it; stamps the sensor's, its time offset added here)."""
+        self._open()
+        setup, kind = self._setup(sensor)
+        if not isinstance(data, kind.data_type):
+            raise InputError(f"add_measurements({sensor!r}): data: expected {kind.data_type.__name__}, "
+                             f"got {type(data).__name__}")
+        spec = measurement_spec(Sensor(sensor, setup.kind, data))
+        stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
+        if not np.isfinite(stamps).all():
+            raise InputError(f"add_measurements({sensor!r}): t: expected finite times")
+        stream = self._imu
+        if stream.n and stamps.max() > stream.t_last + MAX_IMU_GAP_S:
+            raise InputError(f"add_measurements({sensor!r}): t: {stamps.max():.6f} s on the IMU clock lies "
+                             f"{stamps.max() - stream.t_last:.6g} s after the newest IMU sample, beyond any plausible "
+                             f"delay ({MAX_IMU_GAP_S:g} s): a stamp of another clock, or a wrong time offset")
+        arrived = time.perf_counter()
+        for m, times in enumerate(stamps):
+            times = tuple(float(x) for x in times)
+            if self._pending.offer(sensor, times, spec, m, arrived, self._last_t, self._keyframe_t):
+                for x in times:
+                    if self._last_t is None or x > self._last_t:
+                        self._schedule.ask(x)
+
+    def keyframe_at(self, t) -> None:
+        """Ask for keyframes (estimates) at the times ``t`` (IMU clock); those at or before the
+        newest keyframe already made are ignored."""
+        self._open()
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if not np.all(np.isfinite(t)):
+            raise InputError(f"keyframe_at: t: expected finite times, got {t[~np.isfinite(t)][:3].tolist()}")
+        for x in t:
+            if self._last_t is None or x > self._last_t:
+                self._schedule.ask(float(x))
+
+    def finish(self) -> None:
+        """End of the streams: make every keyframe up to the last IMU sample and one there (the
+        end of the data), then hand over the whole window (each keyframe as smoothed as it gets);
+        a warning if the data ended further from the last measurement than the lag. Nothing can
+        be added afterwards."""
+        self._open()
+        stream = self._imu
+        if stream.n:
+            end = float(stream.t[stream.n - 1])
+            if self._last_t is None or end > self._last_t:
+                self._schedule.ask(end)
+            self._make_keyframes(end)
+        # after the last IMU sample (or no IMU at all): nothing to anchor them
+        self._pending.drop_all("lies after the last IMU sample and was dropped")
+        if self._last_t is not None:
+            if self._last_measured_t is None:  # nothing measured at all: the whole run is one gap
+                self._last_measured_t = self._schedule.t0
+            self._gap(self._last_t)
+        if self._window.newest >= 0:
+            self._hand.give([e for _, e in self._hand.read(range(self._window.first, self._window.newest + 1))])
+        self._finished = True
+
+    # -- output -----------------------------------------------------------------------------------
+
+    def estimate(self) -> OnlineEstimate:
+        """The state at the newest IMU sample: the per-sample prediction from the newest
+        keyframe's estimate (the EKF's step, through the samples since), and its covariance
+        with ``covariances``. A ValueError before the first keyframe."""
+        return self._prediction.at(self._imu)
+
+    def smoothed(self):
+        """The keyframes that left the window since the last call (oldest first), as
+        :class:`OnlineEstimate` s; empty when ``on_smoothed`` takes them."""
+        return self._hand.smoothed()
+
+    @property
+    def on_smoothed(self):
+        """Called with each keyframe's :class:`OnlineEstimate` as it leaves the window (None: queued)."""
+        return self._hand.on_smoothed
+
+    @on_smoothed.setter
+    def on_smoothed(self, callback) -> None:
+        self._hand.on_smoothed = callback
+
+    @property
+    def calibration(self):
+        """``(values, covariances)`` of the calibration variables after the last update (a
+        :class:`factors.calibration.CalibrationSet` and each sensor's marginal covariance over its
+        estimated coordinates), or None when no sensor asks for one."""
+        return getattr(self._window, "calibration", None)
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Measurements dropped for arriving too late (or outside the IMU's span), per sensor."""
+        return self._pending.dropped
+
+    @property
+    def skipped(self) -> dict[str, int]:
+        """Relative measurements skipped because their earlier time had left the window, per sensor."""
+        return self._pending.skipped
+
+    @property
+    def imu_gaps(self) -> int:
+        """IMU gaps bridged so far (:func:`datasets.types.imu_gaps`)."""
+        return self._imu.imu_gaps
+
+    @property
+    def longest_imu_gap_s(self) -> float:
+        """The longest IMU gap bridged so far [s]."""
+        return self._imu.longest_imu_gap_s
+
+    @property
+    def update_s(self) -> deque[float]:
+        """Wall time of each smoother update [s] (the latest :data:`smoother.fixed_lag.gtsam_window.HISTORY`)."""
+        return self._window.update_s
+
+    @property
+    def recovered(self) -> list[int]:
+        """Keyframes (by number) that needed a weak prior."""
+        return self._window.recovered
+
+    @property
+    def _n(self) -> int:
+        """The IMU samples kept."""
+        return self._imu.n
+
+    # -- inside -----------------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        if self._finished:
+            raise InputError("the smoother has finished: nothing can be added")
+
+    def _setup(self, sensor: str):
+        setup = self._sensors.get(sensor)
+        if setup is None:
+            if sensor not in KINDS:
+                raise InputError(f"sensor: unknown sensor {sensor!r}; expected one of "
+                                 f"{', '.join(list(self._sensors) + list(KINDS))}")
+            setup = SensorSetup(sensor)
+        return setup, KINDS[setup.kind]
+
+    def _calibrations(self):
+        """The window's calibration variables for the sensors whose setup asks for them, about
+        their extrinsics given (:class:`smoother.fixed_lag.sliding.calibration.WindowCalibration`), or None."""
+        asking = {name: setup for name, setup in self._sensors.items() if setup.calibrate is not None}
+        if not asking:
+            return None
+        from smoother.fixed_lag.sliding.calibration import WindowCalibration
+
+        chosen = calibration.CalibrationSet.given(asking, [s.T_BS for s in asking.values()],
+                                                  [s.calibrate for s in asking.values()])
+        return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()})
+
+    def _make_keyframes(self, horizon: float) -> None:
+        """Make every keyframe asked for at or before ``horizon`` (and the IMU's end), the grid's
+        among them."""
+        stream = self._imu
+        n = stream.n
+        step = 0.5 * (stream.t[n - 1] - stream.t[n - 2]) if n > 1 else 0.0
+        self._schedule.grid_up_to(horizon, step, self._last_t)
+        end = stream.t[n - 1]
+        while (t := self._schedule.next_due(horizon, end)) is not None:
+            self._keyframe(t)
+
+    def _keyframe(self, t: float) -> None:
+        """Make the keyframe at ``t``: its IMU interval, the measurements at ``t``, one update."""
+        window, stream = self._window, self._imu
+        k = window.newest + 1
+        pre, prior = None, None
+        if k == 0:
+            guess = self.initial
+            prior = (self.initial, self.initial_cov)
+        else:
+            acc, gyro, dt = interval_steps(stream.t[:stream.n], stream.acc, stream.gyro, self._last_t, t)
+            pre, guess = preintegration.integrate_interval(acc, gyro, dt, self._newest, self.noise, self.gravity)
+        used = self._pending.due(t, k == 0, self._keyframe_t)
+        measurements = [(item.spec, item.row, [k if x == t else self._keyframe_t[x] for x in item.times],
+                         self._setup(item.sensor)[0].robust) for item in used]
+        leaving = self._hand.read(window.leaving(t))
+        extra = {}
+        if self._window_calibrates:  # what a calibrated time offset steps with
+            i = stream.held_at(t)
+            extra["held"] = (stream.acc[i], stream.gyro[i])
+        self._newest = window.add_keyframe(t, guess, pre, measurements, prior, **extra)  # its estimate after the update
+        # every piece of state follows the update before anything is handed over: a caller's
+        # on_smoothed that raises leaves the smoother consistent
+        self._keyframe_t[t] = k
+        while next(iter(self._keyframe_t.values())) < window.first:  # the window's only (in time order)
+            del self._keyframe_t[next(iter(self._keyframe_t))]
+        self._last_t = t
+        stream.keep_from = t  # the next IMU interval and the prediction start at the sample held here
+        if any(self._setup(item.sensor)[1].absolute for item in used):  # dead reckoning ends here
+            if self._last_measured_t is None:
+                self._last_measured_t = self._schedule.t0
+            self._gap(t)
+            self._last_measured_t = t
+        self._prediction.restart(t, self._newest, window.covariances([k])[0] if self.covariances else None,
+                                 stream.released + stream.held_at(t))
+        done = time.perf_counter()  # the updated estimate is ready (its covariance included)
+        self.latency_s += [done - item.arrived for item in used]
+        self._hand.give([e for j, e in leaving if j < window.first])  # read in time: they have left
+
+    def _gap(self, t: float) -> None:
+        gap = t - self._last_measured_t
+        self.longest_gap_s = max(self.longest_gap_s, gap)
+        if not self._warned_gap:
+            text = sparse_measurement_warning(gap, self.lag_s, self.kind)
+            if text is not None:
+                self._warned_gap = True
+                warnings.warn(text, stacklevel=5)
+
+
+_warm = False
+
+
+def _warm_up() -> None:
+    """Load (or compile) every kernel the loop calls -- the checks of an IMU sample and of a pose,
+    the interval's preintegration and prediction, the window's update and marginalisation, the
+    per-sample estimate -- once per process, by feeding a throwaway smoother half a second of a
+    resting IMU and three poses: otherwise the first keyframes and the first marginalisation of a
+    robot's run stall by the loading (10-250 ms)."""
+    global _warm
+    if _warm:
+        return
+    _warm = True
+    t = np.arange(0.0, 0.8, 0.01)
+    start = imu.ImuState.identity()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        warm = OnlineSmoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
+        for k, tk in enumerate(t):
+            warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
+            if k % 10 == 5:
+                warm.add(pose.KIND.name, tk, np.zeros(3), np.eye(3), cov=1e-4 * np.eye(6))
+            if k > 5:
+                warm.estimate()
+        warm.finish()
+
+
+@dataclass
+class ReplayResult:
+    """A dataset replayed through an :class:`OnlineSmoother`: ``smoothed``, each keyframe's
+    estimate (and covariance) as it left the window; ``update_s`` the wall time of each update;
+    ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
+    with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
+    beyond the window, per sensor; ``recovered`` keyframes that
+    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay;
+    ``calibration`` ``(values, covariances)`` of the calibration variables at the end
+    (:attr:`OnlineSmoother.calibration`), or None."""
+
+    smoothed: Trajectory
+    update_s: np.ndarray
+    latency_s: np.ndarray
+    dropped: dict
+    skipped: dict
+    recovered: list
+    longest_gap_s: float
+    runtime_s: float
+    calibration: tuple | None = None
+
+
+def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate: float | None = None,
+              **options) -> OnlineSmoother:
+    """The :class:`OnlineSmoother` that :func:`replay` feeds ``dataset`` to
+    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes asked for at
+    :func:`smoother.model.timeline.estimate_times`."""
+    online = OnlineSmoother.for_dataset(dataset, robust, **options)
+    online.keyframe_at(estimate_times(dataset, keyframe_rate))
+    return online
+
+
+def arrivals(dataset: Dataset):
+    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp: one
+    ``(t, upto, arrived)`` per arrival time ``t``, ``upto`` the number of IMU samples before it
+    (which arrive first) and ``arrived`` the ``(sensor name, measurements)`` that arrive then."""
+    sensors = sensors_of(dataset)
+    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
+    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
+    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
+    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
+    at = np.concatenate(none + arrival)
+    order = np.lexsort((rows, which, at))
+    groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
+    for group in groups:
+        t = at[group[0]]
+        arrived = [(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
+                   for i in np.unique(which[group])]
+        yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
+
+
+def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
+           robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
+           speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
+    """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
+    in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
+    sample of the same time; keyframes are asked for at :func:`smoother.model.timeline.estimate_times`
+    (measurements, held-out fixes, the ends, the ``keyframe_rate`` grid), those of the batch
+    smoother's graph. ``realtime``: at the data's own pace (``speed`` times it), sample by
+    sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
+    IMU in chunks between measurements)."""
+    if not speed > 0:
+        raise InputError(f"speed must be positive, got {speed}")
+    smoothed: list[OnlineEstimate] = []
+    began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
+    online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
+                       covariances=covariances, on_smoothed=smoothed.append)
+    imu_t = dataset.imu.t
+    start = time.perf_counter()
+
+    def wait(t: float) -> None:
+        if realtime:
+            delay = start + (t - imu_t[0]) / speed - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+
+    def feed(i: int, j: int) -> None:
+        if realtime:
+            for m in range(i, j):
+                wait(imu_t[m])
+                online.add_imu(imu_t[m], dataset.imu.acc[m], dataset.imu.gyro[m])
+                online.estimate()
+        elif j > i:
+            online.add_imu(imu_t[i:j], dataset.imu.acc[i:j], dataset.imu.gyro[i:j])
+
+    fed = 0
+    with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
+        for t, upto, arrived in arrivals(dataset):
+            feed(fed, upto)
+            bar.update(upto - fed)
+            fed = upto
+            wait(t)
+            for name, data in arrived:
+                online.add_measurements(name, data)
+        feed(fed, len(imu_t))
+        bar.update(len(imu_t) - fed)
+        online.finish()
+    smoothed.sort(key=lambda e: e.t)
+    trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
+                            np.stack([e.cov for e in smoothed]) if covariances else None)
+    return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
+                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
+                        online.calibration)

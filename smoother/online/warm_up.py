@@ -1,0 +1,91 @@
+"""The sliding window's kernels compiled in a second process while this one runs the other
+estimators.
+
+Numba compiles a kernel the first time it runs and keeps it on disk (``cache=True``); a first run
+-- a fresh install, an edited kernel -- spends most of its time compiling, one kernel after the
+other, on one core. When a run asks for the sliding-window fixed-lag smoother after other
+estimators and the window's kernels are not on disk yet (:func:`cold`), :func:`start` compiles
+them in a child process on another core: it runs the window over a few seconds of simulated data
+and writes nothing but Numba's cache. The fixed-lag smoother waits for it (:meth:`WarmUp.wait`)
+and then loads the kernels from disk instead of compiling them again. Nothing depends on the child:
+if it fails, is slow or is killed, the smoother compiles what it still needs itself.
+
+Numba writes each cache file whole under a temporary name and renames it, so a process that reads
+the cache while another writes it sees a kernel or none.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from factors.compiled import thread_count
+
+#: How long the fixed-lag smoother waits for the child [s] before it compiles on its own.
+WAIT_S = 300.0
+
+
+def cold() -> bool:
+    """Whether the sliding window's main kernel is not in Numba's disk cache (False when it cannot
+    be told: Numba's JIT disabled, or a Numba without this cache layout)."""
+    from smoother.fixed_lag.sliding.normal_equations import _linearise
+
+    try:
+        index = Path(_linearise._cache._cache_file._index_path)
+    except AttributeError:
+        return False
+    return not index.exists()
+
+
+class WarmUp:
+    """A running warm-up child (:func:`start`)."""
+
+    def __init__(self, process: subprocess.Popen):
+        self._process = process
+
+    def wait(self) -> None:
+        """Until the child is done (at most :data:`WAIT_S`; then it is stopped)."""
+        try:
+            self._process.wait(timeout=WAIT_S)
+        except subprocess.TimeoutExpired:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the child if it still runs."""
+        if self._process.poll() is None:
+            self._process.kill()
+            self._process.wait()
+
+
+def start(order, fixed_lag_kind: str) -> WarmUp | None:
+    """A warm-up child when the estimators in ``order`` run the sliding window after another one,
+    its kernels are not on disk (:func:`cold`) and the process may use more than one thread
+    (:func:`factors.compiled.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
+    cores); else None."""
+    if fixed_lag_kind != "sliding" or "fixed-lag" not in order or list(order)[0] == "fixed-lag":
+        return None
+    if thread_count() < 2 or not cold():
+        return None
+    root = Path(__file__).resolve().parents[1]
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    process = subprocess.Popen([sys.executable, "-m", "smoother.online.warm_up"], cwd=root, env=environment,
+                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return WarmUp(process)
+
+
+def _compile() -> None:
+    """The child: the sliding window over 3 s of the simulator's default run (every kernel an
+    update, a marginalisation and the covariances call)."""
+    import warnings
+
+    from datasets.simulate import simulate
+    from smoother.online.smoother import replay
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        replay(simulate("gentle", duration=3.0, seed=0), 1.0, "sliding", covariances=True, progress=False)
+
+
+if __name__ == "__main__":
+    _compile()
