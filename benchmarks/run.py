@@ -75,7 +75,7 @@ from datasets import kitti  # noqa: E402
 from datasets.simulate import simulate  # noqa: E402
 from factors import compiled, preintegration  # noqa: E402
 from smoother.evaluation import native  # noqa: E402
-from smoother.model import blocks as solver  # noqa: E402
+from smoother.model.covariances import covariances_at  # noqa: E402
 from smoother.batch.solve import solve_batch  # noqa: E402
 from smoother.ekf.filter import run_ekf  # noqa: E402
 from smoother.fixed_lag.gtsam_window import run_fixed_lag  # noqa: E402
@@ -405,7 +405,7 @@ def batch_run(minutes: float, covariances: bool = False, memory: bool = False, r
     if memory:
         out["peak_rss_mib_after"] = stages
     if covariances:
-        out["covariance_s"] = _clock(lambda: solver.covariances(problem.blocks, result.trajectory.states))[0]
+        out["covariance_s"] = _clock(lambda: covariances_at(problem.blocks, result.trajectory.states))[0]
     return out
 
 

@@ -1,5 +1,6 @@
 """The smoother's errors (under :mod:`factors.errors`), a stop by SIGTERM, and recognising
 GTSAM's indeterminant-system exception."""
+import re
 import signal
 
 from factors.errors import InputError, SolverError
@@ -38,10 +39,14 @@ class IndeterminantSystem(SolverError):
 def is_indeterminant(error: BaseException) -> bool:
     """Whether ``error`` is GTSAM's indeterminant-system exception. GTSAM 4.3.0 spells it
     "Indeterminate linear system ... near variable\n<key> (Symbol: ...)" (older versions
-    "Indeterminant"): match both, and any whitespace before the key (``INDETERMINANT_KEY``)."""
+    "Indeterminant"): match both."""
     text = str(error)
     return "ndeterminate" in text or "ndeterminant" in text
 
 
-#: The key GTSAM names in its indeterminant-system message (group 1).
-INDETERMINANT_KEY = r"near variable\s+(\d+)"
+
+def indeterminant_key(error: BaseException) -> int | None:
+    """The key GTSAM names in its indeterminant-system message ("near variable\n<key>", any
+    whitespace before the key), or None."""
+    match = re.search(r"near variable\s+(\d+)", str(error))
+    return int(match.group(1)) if match else None

@@ -4,7 +4,7 @@ Two engines over the same residuals:
 
 * ``vectorized`` (default): :mod:`smoother.model.blocks` -- every factor type linearised at once with
   NumPy, GTSAM's sparse elimination for the steps and its QR elimination for the covariances
-  (:func:`smoother.model.blocks.marginal_covariances`), which come out directly in the primer's
+  (:func:`smoother.model.covariances.marginal_covariances`), which come out directly in the primer's
   convention. Linear in the length of the run.
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
@@ -20,7 +20,6 @@ exception.
 """
 from __future__ import annotations
 
-import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -32,12 +31,13 @@ from datasets.types import Trajectory
 from factors import imu
 from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
-from smoother.model import blocks as solver
+from smoother.batch.optimiser import METHODS, optimize
+from smoother.model.covariances import covariances_at
 from factors.errors import InputError
-from smoother.errors import INDETERMINANT_KEY, IndeterminantSystem, is_indeterminant
+from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
 from smoother.model.problem import Problem, read_state
 
-OPTIMIZERS = solver.METHODS
+OPTIMIZERS = METHODS
 ENGINES = ("vectorized", "gtsam")
 
 _HINT = ("the factors do not constrain every variable there. Typical causes: a stretch with no "
@@ -61,7 +61,7 @@ class SmootherResult:
     runtime_s: float
     converged: bool
     #: The joint covariance blocks ``{(a, b): Sigma_ab}`` of every two keyframes that share a factor
-    #: (``vectorized`` engine with covariances; :func:`smoother.model.blocks.marginal_covariances`).
+    #: (``vectorized`` engine with covariances; :func:`smoother.model.covariances.marginal_covariances`).
     joint: dict | None = None
     #: The calibration variables at the optimum (:class:`factors.calibration.CalibrationSet`) and
     #: each one's marginal covariance over its estimated coordinates (with covariances), or None.
@@ -78,9 +78,8 @@ def _explained(keyframe: int | None, problem: Problem, free: str | None = None) 
 
 
 def _keyframe_of_gtsam_key(error: Exception, problem: Problem) -> int | None:
-    match = re.search(INDETERMINANT_KEY, str(error))
-    if match:
-        key = int(match.group(1))
+    key = indeterminant_key(error)
+    if key is not None:
         for k, kk in enumerate(problem.keys):
             if key in kk.all():
                 return k
@@ -132,7 +131,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
         decrease = None
         calibration, calibration_cov = None, None
         if engine == "vectorized":
-            result = solver.optimize(problem.blocks, problem.initial_states, optimizer, max_iterations,
+            result = optimize(problem.blocks, problem.initial_states, optimizer, max_iterations,
                                      calibration=problem.calibration)
             states, cost, iterations, converged = result.states, result.cost, result.iterations, result.converged
             calibration = result.calibration
@@ -140,7 +139,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
                 _warn_not_converged(optimizer, iterations, decrease)
-            cov, joint = (solver.covariances(problem.blocks, states, pairs=True, calibration=calibration)
+            cov, joint = (covariances_at(problem.blocks, states, pairs=True, calibration=calibration)
                           if covariances else (None, None))
             if covariances and calibration is not None:
                 n = len(states)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from smoother.ekf.filter import Innovations
-from smoother.evaluation.metrics import chi2_quantile
+from smoother.stats import per_dof_band
 
 #: Probability of the band within which a consistent sensor's mean NIS per dof lies.
 BAND_PROBABILITY = 0.95
@@ -47,8 +47,7 @@ def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
     that fits), ``ok`` (inside it), ``measurements`` (``count``), ``dof`` and ``statistic``:
     ``"nis"`` (the EKF's innovations) or ``"residual"`` (a smoother's own residuals,
     :mod:`smoother.diagnosis.residual_consistency`)."""
-    lo = chi2_quantile(0.5 * (1 - BAND_PROBABILITY), dof) / dof
-    hi = chi2_quantile(0.5 * (1 + BAND_PROBABILITY), dof) / dof
+    lo, hi = per_dof_band(dof, BAND_PROBABILITY)
     value = total / dof
     return {"per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi), "measurements": int(count),
             "dof": dof, "statistic": statistic}

@@ -29,7 +29,7 @@ from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from factors.small_linalg import cholesky_into
-from smoother.evaluation.metrics import chi2_quantile
+from smoother.stats import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.model.timeline import estimate_times, imu_steps
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from datasets.simulate import simulate
 from factors import imu
-from smoother.evaluation import metrics
+from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
 from smoother.fixed_lag.gtsam_window import run_fixed_lag
@@ -105,7 +105,7 @@ def crosscheck(options: CrosscheckOptions, progress=None) -> dict:
         if progress is not None:
             progress(seed)
     names = ("batch", "fixed-lag", "ekf")
-    low, high = (b / 6.0 for b in metrics.nees_bounds(6, options.seeds))
+    low, high = (b / 6.0 for b in stats.nees_bounds(6, options.seeds))
     nees_mean = {n: float(np.mean([r["nees"][n] for r in runs])) for n in names}
     ate = {n: float(np.mean([r["ate_rmse_m"][n] for r in runs])) for n in names}
     result = {

@@ -36,8 +36,7 @@ implements them, so that the numbers agree with ``evo_ape`` / ``evo_rpe`` on the
   (``factors.imu``: vectors subtract, attitude ``log(C_true C_est^T)``, a world-frame LEFT
   perturbation), ``NEES = e^T P^-1 e`` with P the matching block of the 15x15 error-state
   covariance; ``part='pose'`` uses ``(r, phi)``: rows/cols 0:3 and 6:9 (6 dims).
-* Chi-square: :func:`chi2_quantile` (SciPy's, as ``scipy.stats.chi2.ppf``) and :func:`nees_bounds`
-  (two-sided interval of the NEES averaged over M runs: ``M * mean ~ chi2(M d)``).
+* Chi-square quantiles and the NEES intervals: :mod:`smoother.stats`.
 * Two estimators on the same reference points: :func:`rmse_difference`, the difference of their
   RMS errors with a block-bootstrap interval (errors along a trajectory are correlated, so whole
   blocks of them are resampled, not single points).
@@ -539,38 +538,3 @@ def nees_from(e, P) -> np.ndarray:
     :func:`nees`, and of any error with its covariance (a fix's residual, the plots' NEES)."""
     e = np.asarray(e, dtype=float)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
-
-
-# ------------------------------------------------------------------------------------------
-# chi-square quantiles (SciPy's)
-
-
-def chi2_quantile(p: float, dof: float) -> float:
-    """The ``x`` with ``P(X <= x) = p`` for ``X`` chi-square with ``dof`` degrees of freedom (0 at
-    ``p = 0``, inf at ``p = 1``); an InputError for ``p`` outside [0, 1] or ``dof`` not a positive
-    finite number. SciPy's: ``2 gammaincinv(dof / 2, p)``, the inverse regularised incomplete gamma
-    function that ``scipy.stats.chi2.ppf`` evaluates, bit for bit. It is imported from
-    ``scipy.special`` at the first call: every run with aiding sensors needs quantiles (the
-    sensors' verdicts), and ``scipy.stats`` takes about five times as long to import."""
-    dof = float(dof)
-    if not (math.isfinite(dof) and dof > 0):
-        raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
-    p = float(p)
-    if not 0.0 <= p <= 1.0:
-        raise InputError(f"p: expected a probability in [0, 1], got {p!r}")
-    from scipy.special import gammaincinv
-
-    return float(2.0 * gammaincinv(0.5 * dof, p))
-
-
-def nees_bounds(dim: int, runs: int = 1, confidence: float = 0.95) -> tuple[float, float]:
-    """Two-sided ``confidence`` interval for the NEES of dimension ``dim`` averaged over ``runs``
-    independent runs (at one time step): ``[q((1-c)/2), q((1+c)/2)] / runs`` with ``q`` the
-    quantile of chi-square with ``runs * dim`` degrees of freedom."""
-    if int(dim) != dim or dim < 1 or int(runs) != runs or runs < 1:
-        raise InputError(f"nees_bounds: expected dim >= 1 and runs >= 1 (integers), got {dim!r}, {runs!r}")
-    if not 0.0 < confidence < 1.0:
-        raise InputError(f"confidence: expected a probability in (0, 1), got {confidence!r}")
-    dof = dim * runs
-    alpha = 1.0 - confidence
-    return chi2_quantile(0.5 * alpha, dof) / runs, chi2_quantile(1.0 - 0.5 * alpha, dof) / runs

@@ -123,10 +123,10 @@ class Summary:
 def aggregate(results: list[dict], estimators) -> Summary:
     """Mean metrics over runs, and the per-keyframe NEES averaged over runs with the share of
     keyframes inside the 95% interval of ``chi2(6 runs) / runs``."""
-    from smoother.evaluation import metrics
+    from smoother import stats
 
     runs = len(results)
-    low, high = metrics.nees_bounds(6, runs)
+    low, high = stats.nees_bounds(6, runs)
     summary = Summary(runs=runs, nees_interval_95=(low / 6.0, high / 6.0))
     for name in estimators:
         per_run = [r[name] for r in results]

@@ -54,11 +54,11 @@ from factors import priors
 from factors.imu_factor import ImuFactor
 from factors.uncertainty import state_covariance_to_primer
 from factors.errors import InputError, SolverError
-from smoother.batch.solve import is_indeterminant
 from factors.keys import keyframe_keys
 from smoother.model.problem import Problem, insert_state, noise_model, read_state
-from smoother.errors import IndeterminantSystem
-from smoother.model.blocks import evaluate_block, marginal_covariances
+from smoother.errors import IndeterminantSystem, is_indeterminant
+from smoother.model.blocks import evaluate_block
+from smoother.model.covariances import marginal_covariances
 from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
@@ -178,7 +178,7 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     Sparse elimination with Cholesky first (``gtsam.Marginals``, the fastest). GTSAM refuses it
     for windows it judges nearly indeterminant -- a third of them with keyframes 25 ms apart and
     several kinds of measurement -- although they have full rank: those go to the square-root
-    information (:func:`smoother.model.blocks.marginal_covariances`, QR), which works on the rows
+    information (:func:`smoother.model.covariances.marginal_covariances`, QR), which works on the rows
     themselves rather than their squares (a dense pseudo-inverse of ``A^T A`` is 4e-5 off on these
     windows and 3x slower). What neither takes -- a
     rank-deficient window, or a factor on more than three keyframes, which the Python

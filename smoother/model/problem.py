@@ -53,7 +53,7 @@ def default_threshold(kernel: str, dim: int) -> float:
     down-weight nearly every inlier of a pose factor. The default is therefore
     ``sqrt(chi2_dim(p))``: Huber and Cauchy leave 95% of inliers at full weight, Tukey (which
     rejects completely beyond it) 99.9%."""
-    from smoother.evaluation.metrics import chi2_quantile
+    from smoother.stats import chi2_quantile
 
     return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
 

@@ -46,6 +46,7 @@ from datasets.allan import WALK_TAU, WHITE_TAU
 from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors.errors import InputError
+from smoother import stats
 from smoother.evaluation import metrics
 from smoother.evaluation import scoring as report
 from smoother.evaluation.scoring import fix_residuals, load_trajectory, read_npz, truth_at
@@ -444,7 +445,7 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     """NEES per time and estimator with the two-sided chi-square band of one run."""
     names = [n for n in errors if errors[n].nees is not None]
     dof = errors[names[0]].dof
-    lo, hi = metrics.nees_bounds(dof, 1, NEES_CONFIDENCE)
+    lo, hi = stats.nees_bounds(dof, 1, NEES_CONFIDENCE)
     fig = _figure("nees")
     axes = fig.subplots(len(names), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
     t0 = run.t0

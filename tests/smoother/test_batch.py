@@ -14,8 +14,10 @@ from datasets.simulate import simulate
 from factors import imu
 from factors.errors import SolverError
 from smoother.batch import solve as batch
-from smoother.model import blocks as solver
-from smoother.batch.solve import IndeterminantSystem, solve_batch
+from smoother.batch.solve import solve_batch
+from smoother.errors import IndeterminantSystem
+from smoother.model.blocks import Layout, linearize
+from smoother.model.covariances import marginal_covariances
 from smoother.model.problem import ROBUST_KERNELS, build_problem, noise_model
 
 import estimator_cases as cases
@@ -150,10 +152,10 @@ def test_covariances_of_a_badly_conditioned_chain_equal_a_dense_reference():
     the batch's covariances equal those of the dense SVD of the same whitened rows to 1e-9 of the
     largest entry (and to 1e-9 of each pair's standard deviations)."""
     problem, result = dead_reckoned()
-    graph, _ = solver.linearize(problem.blocks, result.trajectory.states)
+    graph, _ = linearize(problem.blocks, result.trajectory.states)
     n = len(result.trajectory)
     with pytest.raises(RuntimeError, match="ndetermina"):
-        gtsam.Marginals(graph, solver.Layout(n).vector_values(np.zeros(n * 15)))
+        gtsam.Marginals(graph, Layout(n).vector_values(np.zeros(n * 15)))
     A = graph.jacobian(gtsam.Ordering(list(range(n))))[0]
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     assert s[0] / s[-1] > 1e7
@@ -352,8 +354,8 @@ def test_covariances_with_calibrations_equal_a_dense_reference():
     problem = build_problem(data)
     result = solve_batch(problem)
     states, calibration = result.trajectory.states, result.calibration
-    graph, _ = solver.linearize(problem.blocks, states, calibration)
-    layout = solver.Layout.of(states, calibration)
+    graph, _ = linearize(problem.blocks, states, calibration)
+    layout = Layout.of(states, calibration)
     A = graph.jacobian(gtsam.Ordering(list(layout.keys)))[0]
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     dense = (Vt.T / s**2) @ Vt
@@ -384,7 +386,7 @@ def test_covariances_with_calibrations_where_a_keyframe_does_not_reach_them():
     graph.add(gtsam.JacobianFactor(2, rng.normal(size=(3, 15)), n, rng.normal(size=(3, nc)), rng.normal(size=3),
                                    unit.Create(3)))
     graph.add(gtsam.JacobianFactor(n, np.eye(nc), np.zeros(nc), unit.Create(nc)))
-    marginals, joint = solver.marginal_covariances(graph, n, None, True, solver.Layout(n, (nc,)))
+    marginals, joint = marginal_covariances(graph, n, None, True, Layout(n, (nc,)))
     A = graph.jacobian(gtsam.Ordering(list(range(n + 1))))[0]
     dense = np.linalg.inv(A.T @ A)
     for k in range(n):

@@ -19,7 +19,7 @@ from factors.calibration import CalibrationPrior
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.calibration_report import UNOBSERVED_RATIO, calibration_records
 from smoother.model.problem import build_problem
-from smoother.evaluation.metrics import chi2_quantile
+from smoother.stats import chi2_quantile
 
 #: A 3 deg pitched and 1 deg yawed speed sensor.
 PITCHED = np.eye(4)

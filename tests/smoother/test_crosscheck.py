@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
+from smoother import stats
 from smoother.evaluation import metrics
 from smoother.batch.solve import solve_batch
 from smoother.cli import main
@@ -152,7 +153,7 @@ def test_batch_nees_is_consistent_over_monte_carlo_runs(profile):
     for the time average, as explained in test_ekf.py; smoothed errors are even more strongly
     correlated over time than filtered ones, so one run alone says little: 0.5-0.8 here)."""
     runs = 30
-    lo, hi = (b / 6.0 for b in metrics.nees_bounds(6, runs))
+    lo, hi = (b / 6.0 for b in stats.nees_bounds(6, runs))
     values = []
     for seed in range(runs):
         data = simulate(profile=profile, duration=5.0, seed=1000 + seed, imu_rate=cases.IMU_RATE,
@@ -186,7 +187,7 @@ def test_crosscheck_command_prints_json_and_exits_by_ok(capsys):
     assert (result["profile"], result["seeds"], result["duration_s"]) == ("gentle", 2, 3.0)
     for key in ("ate_rmse_m", "nees_mean"):
         assert set(result[key]) == {"batch", "fixed-lag", "ekf"}
-    np.testing.assert_allclose(result["nees_interval_95"], np.array(metrics.nees_bounds(6, 2)) / 6.0, rtol=1e-12)
+    np.testing.assert_allclose(result["nees_interval_95"], np.array(stats.nees_bounds(6, 2)) / 6.0, rtol=1e-12)
     # each check is what it says about the figures
     assert result["checks"]["prediction"] == (result["prediction_max_abs_error"] < TARGETS["prediction_max_abs_error"])
     assert result["checks"]["final_state"] == (result["final_state_max_sigma"] < TARGETS["final_state_max_sigma"])

@@ -15,6 +15,7 @@ import pytest
 from datasets.simulate import simulate
 from factors import imu, so3
 from factors import sensor_models as sm
+from smoother import stats
 from smoother.evaluation import metrics
 from smoother.ekf.filter import Ekf, run_ekf
 from smoother.model.timeline import estimate_times, imu_steps
@@ -299,7 +300,7 @@ def test_nees_is_consistent_over_monte_carlo_runs(profile):
     How the interval is built: at one time the NEES of a consistent filter is chi2(6); summed
     over M independent runs it is chi2(6M), so the per-time average over runs, divided by 6, lies
     in [q_0.025, q_0.975](chi2(6M)) / (6M) with probability 95%
-    (``metrics.nees_bounds(6, M) / 6``). We test the average of those per-time averages over the
+    (``stats.nees_bounds(6, M) / 6``). We test the average of those per-time averages over the
     51 knots; the knots of one run are positively correlated, so averaging them shrinks the
     spread below that of one per-time average: the interval is conservative (a consistent
     filter passes with more than 95% probability; a filter whose covariance is off by 25% in
@@ -310,8 +311,8 @@ def test_nees_is_consistent_over_monte_carlo_runs(profile):
     the initial error. The full 15-dimensional NEES (velocity and biases included) is tested in
     the same way.
     """
-    lo, hi = (b / 6.0 for b in metrics.nees_bounds(6, MC_RUNS))
-    lo15, hi15 = (b / 15.0 for b in metrics.nees_bounds(15, MC_RUNS))
+    lo, hi = (b / 6.0 for b in stats.nees_bounds(6, MC_RUNS))
+    lo15, hi15 = (b / 15.0 for b in stats.nees_bounds(15, MC_RUNS))
     assert hi / lo < 1.6  # the interval is narrow enough to detect a 25% covariance error
     pose, full = [], []
     for seed in range(MC_RUNS):
@@ -334,7 +335,7 @@ def test_gate_threshold_follows_the_innovation_dimension():
     """A 3-dim position update is gated at chi2_3(p), not at the 6-dim pose threshold: a
     normalised innovation of 19 (between chi2_3(0.999) = 16.3 and chi2_6(0.999) = 22.5) is
     rejected as a position update, which a 6-dim threshold would have let through."""
-    assert metrics.chi2_quantile(0.999, 3) < 19.0 < metrics.chi2_quantile(0.999, 6)
+    assert stats.chi2_quantile(0.999, 3) < 19.0 < stats.chi2_quantile(0.999, 6)
     ekf = _initial_ekf()
     ekf.gate_probability = 0.999
     _predict_some(ekf)

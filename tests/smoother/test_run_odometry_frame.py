@@ -85,7 +85,7 @@ def _run(rig, out, estimators="all") -> dict:
 def _truth_in_odometry_frame(data, estimate):
     """The truth's final position and attitude in the odometry frame the estimate started: its
     start moved to the origin and turned about the vertical as the estimate's start is."""
-    t, r, C = estimate["t"], estimate["r"], estimate["C"]
+    t, C = estimate["t"], estimate["C"]
     states, _, _ = data.truth.interpolate(t[[0, -1]] + data.imu.t[0])  # the bag's clock starts at the IMU's
     turn = so3.exp(np.array([0.0, 0.0, _yaw(C[0] @ states.C[0].T)]))
     return turn @ (states.r[1] - states.r[0]), turn @ states.C[1]

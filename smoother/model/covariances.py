@@ -1,0 +1,166 @@
+"""Marginal and joint covariances of a whitened linear system's variables, in the primer's
+convention, from its square-root information (QR elimination and a selected-inversion recursion):
+the batch smoother's keyframes and calibrations, GTSAM's fixed-lag windows, the factors' leverages."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from factors import imu
+
+from smoother.errors import IndeterminantSystem
+from smoother.model.blocks import Block, Layout, linearize
+from smoother.model.rank import RANK_TOLERANCE, free_components, indeterminant_error
+
+
+def covariances_at(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False, calibration=None):
+    """Marginal 15x15 covariances (primer convention) of the keyframes ``which`` (default all),
+    from the linearisation at ``states`` and ``calibration`` (:func:`marginal_covariances`; with
+    ``pairs`` also the joint blocks it computes on the way, those of the calibration variables,
+    keys ``n + j``, among them)."""
+    graph, _ = linearize(blocks, states, calibration)
+    return marginal_covariances(graph, len(states), which, pairs, Layout.of(states, calibration))
+
+
+def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False,
+                         layout: Layout | None = None):
+    """Marginal covariances of the variables ``which`` (default all keyframes) of the whitened
+    linear system ``graph`` on the 15-dim keys ``0 .. n - 1`` (and the keys of ``layout``'s
+    calibration variables, if given), from its square-root information.
+
+    GTSAM eliminates ``graph`` with QR (COLAMD ordering, the calibration variables last) into
+    conditionals ``R_i x_i + S_i x_P(i) = d_i``, which work on the rows themselves: the condition
+    number that matters is that of the rows, not of their squares (``A^T A``), so a long
+    dead-reckoned stretch -- whose information matrix Cholesky declares indeterminant -- still
+    factors. The covariance blocks follow from the selected-inversion recursion over the
+    conditionals in reverse elimination order, ``Sigma_iP = K_i Sigma_PP`` and
+    ``Sigma_ii = R_i^-1 R_i^-T + Sigma_iP K_i^T`` with ``K_i = -R_i^-1 S_i``: a conditional's
+    parents were eliminated after it and are pairwise parents of one another, so every block the
+    recursion needs is computed before it is used. (GTSAM's own ``marginalCovariance`` goes
+    through Cholesky-based shortcuts and loses those digits again.)
+
+    With calibration variables ``c`` (the dense border: every keyframe's conditional may have them
+    among its parents) the keyframes' recursion runs on their keyframe parents alone, which gives
+    the covariances given ``c``, ``Sigma^c``; the conditionals' calibration columns give the gain
+    of the keyframes' mean on ``c``, ``G_i = K_i,x G_P + K_i,c``; and the law of total covariance
+    adds what ``c``'s own uncertainty contributes: ``Sigma_ab = Sigma^c_ab + G_a Sigma_cc G_b^T``,
+    ``Sigma_ic = G_i Sigma_cc``. The same blocks as the recursion over every parent, at the cost of
+    the plain chain's recursion and a few products.
+
+    A variable the rows do not determine -- GTSAM finds too few rows for it, or a pivot of its
+    ``R_i`` is below ``RANK_TOLERANCE`` times the largest -- raises :class:`IndeterminantSystem`
+    naming its key and the error-state components left free there (:func:`free_components`).
+
+    ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed
+    (``Sigma_ba = Sigma_ab^T``). Every two variables that share a factor are a conditional and its
+    parent, so it holds the joint covariance of every factor's variables."""
+    layout = layout or Layout(n)
+    ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    try:
+        net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
+    except RuntimeError as error:
+        raise indeterminant_error(error, graph, ordering) from None
+    conditionals = [net.at(i) for i in range(net.size())]
+    keys = [[int(k) for k in c.keys()] for c in conditionals]
+    R_inv, own = _inverted(conditionals, keys, n)
+    columns = layout.calibration_columns()  # key n + j: its columns in the stacked calibrations
+    nc = sum(layout.extra)
+    sigma: dict[tuple[int, int], np.ndarray] = {}  # Sigma^c between keyframes; Sigma between calibrations
+    gain: dict[int, np.ndarray] = {}  # G_i (15, nc) of each keyframe
+    for i in reversed(range(len(conditionals))):
+        frontal, parents = keys[i][0], keys[i][1:]
+        if not parents:
+            sigma[(frontal, frontal)] = own[i]
+            if frontal < n and nc:  # its mean does not depend on the calibrations
+                gain[frontal] = np.zeros((own[i].shape[0], nc))
+            continue
+        K = -R_inv[i] @ conditionals[i].S()
+        bounds = [0]
+        for p in parents:
+            bounds.append(bounds[-1] + layout.dim(p))
+        # a keyframe's recursion runs over its keyframe parents, a calibration's over all of its
+        kept = [j for j, p in enumerate(parents) if p < n or frontal >= n]
+        if len(kept) == 1:
+            K_kept = K[:, bounds[kept[0]]:bounds[kept[0] + 1]]
+            cross = K_kept @ sigma[(parents[kept[0]], parents[kept[0]])]
+            sigma[(frontal, parents[kept[0]])] = cross
+        elif kept:
+            # Sigma_PP over the kept parents (all computed: see the docstring)
+            rows = [np.hstack([sigma[(parents[a], parents[b])] if (parents[a], parents[b]) in sigma
+                               else sigma[(parents[b], parents[a])].T for b in kept]) for a in kept]
+            K_kept = K if len(kept) == len(parents) else np.hstack([K[:, bounds[j]:bounds[j + 1]] for j in kept])
+            cross = K_kept @ np.vstack(rows)
+            at = 0
+            for j in kept:
+                width = bounds[j + 1] - bounds[j]
+                sigma[(frontal, parents[j])] = cross[:, at:at + width]
+                at += width
+        if kept:
+            both = own[i] + cross @ K_kept.T
+            sigma[(frontal, frontal)] = 0.5 * (both + both.T)
+        else:
+            sigma[(frontal, frontal)] = own[i]
+        if frontal < n and nc:
+            G = np.zeros((K.shape[0], nc))
+            for j, parent in enumerate(parents):
+                block = K[:, bounds[j]:bounds[j + 1]]
+                if parent < n:
+                    G += block @ gain[parent]
+                else:
+                    G[:, columns[parent]] += block
+            gain[frontal] = G
+    if nc:
+        _add_calibration_share(sigma, gain, layout, columns)
+    which = range(n) if which is None else which
+    marginals = np.stack([sigma[(int(k), int(k))] for k in which])
+    return (marginals, sigma) if pairs else marginals
+
+
+def _inverted(conditionals: list, keys: list, n: int) -> tuple[list, list]:
+    """``R_i^-1`` and ``R_i^-1 R_i^-T`` of every conditional, inverted together where their
+    dimensions agree; :class:`IndeterminantSystem` where a pivot of ``R_i`` is at most
+    ``RANK_TOLERANCE`` times the largest of them all (:func:`marginal_covariances`)."""
+    R = [c.R() for c in conditionals]  # upper triangular, the frontal variable's dimension
+    groups: dict[int, list[int]] = {}
+    for i, r in enumerate(R):
+        groups.setdefault(r.shape[0], []).append(i)
+    stacks = {d: np.stack([R[i] for i in which]) for d, which in groups.items()}
+    pivots = {d: np.abs(np.diagonal(stack, axis1=1, axis2=2)) for d, stack in stacks.items()}
+    tolerance = RANK_TOLERANCE * max(p.max() for p in pivots.values())
+    weak = [which[j] for d, which in groups.items() for j in np.flatnonzero(pivots[d].min(axis=1) <= tolerance)]
+    if weak:
+        i = max(weak)  # the one eliminated last: the first the recursion meets
+        frontal = keys[i][0]
+        raise IndeterminantSystem(f"indeterminant linear system near variable {frontal}", frontal,
+                                  free_components(R[i], tolerance) if frontal < n else None)
+    R_inv, own = [None] * len(R), [None] * len(R)
+    for d, which in groups.items():
+        inv = np.linalg.inv(stacks[d])
+        product = inv @ inv.transpose(0, 2, 1)
+        for j, i in enumerate(which):
+            R_inv[i], own[i] = inv[j], product[j]
+    return R_inv, own
+
+
+def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dict) -> None:
+    """Turn the keyframes' blocks of ``sigma`` from covariances given the calibrations into
+    marginal ones (:func:`marginal_covariances`: ``+ G_a Sigma_cc G_b^T``), and add the blocks
+    between each keyframe and each calibration variable (``G_i Sigma_cc``), in place."""
+    n = layout.n
+    calibrations = list(columns)
+    S_cc = np.vstack([np.hstack([sigma[(a, b)] if (a, b) in sigma else sigma[(b, a)].T for b in calibrations])
+                      for a in calibrations])
+    frames = list(gain)
+    at = {k: i for i, k in enumerate(frames)}
+    G = np.stack([gain[k] for k in frames])
+    GS = G @ S_cc
+    between = [pair for pair in sigma if pair[0] < n]  # both keyframes: no other keyframe block yet
+    a = np.array([at[p[0]] for p in between])
+    b = np.array([at[p[1]] for p in between])
+    blocks = np.stack([sigma[p] for p in between]) + GS[a] @ G[b].transpose(0, 2, 1)
+    same = a == b
+    blocks[same] = 0.5 * (blocks[same] + blocks[same].transpose(0, 2, 1))
+    sigma.update(zip(between, blocks))
+    for k, G_S in zip(frames, GS):
+        for key in calibrations:
+            sigma[(k, key)] = G_S[:, columns[key]]

@@ -1,0 +1,48 @@
+"""Chi-square quantiles and the bands built from them, in one place: the sensors' verdicts, the
+EKF's innovation gate, the robust kernels' default thresholds and the NEES intervals of the
+evaluation all take theirs from here."""
+from __future__ import annotations
+
+import math
+
+from factors.errors import InputError
+
+
+def chi2_quantile(p: float, dof: float) -> float:
+    """The ``x`` with ``P(X <= x) = p`` for ``X`` chi-square with ``dof`` degrees of freedom (0 at
+    ``p = 0``, inf at ``p = 1``); an InputError for ``p`` outside [0, 1] or ``dof`` not a positive
+    finite number. SciPy's: ``2 gammaincinv(dof / 2, p)``, the inverse regularised incomplete gamma
+    function that ``scipy.stats.chi2.ppf`` evaluates, bit for bit. It is imported from
+    ``scipy.special`` at the first call: every run with aiding sensors needs quantiles (the
+    sensors' verdicts), and ``scipy.stats`` takes about five times as long to import."""
+    dof = float(dof)
+    if not (math.isfinite(dof) and dof > 0):
+        raise InputError(f"dof: expected degrees of freedom > 0, got {dof!r}")
+    p = float(p)
+    if not 0.0 <= p <= 1.0:
+        raise InputError(f"p: expected a probability in [0, 1], got {p!r}")
+    from scipy.special import gammaincinv
+
+    return float(2.0 * gammaincinv(0.5 * dof, p))
+
+
+def nees_bounds(dim: int, runs: int = 1, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``confidence`` interval for the NEES of dimension ``dim`` averaged over ``runs``
+    independent runs (at one time step): ``[q((1-c)/2), q((1+c)/2)] / runs`` with ``q`` the
+    quantile of chi-square with ``runs * dim`` degrees of freedom."""
+    if int(dim) != dim or dim < 1 or int(runs) != runs or runs < 1:
+        raise InputError(f"nees_bounds: expected dim >= 1 and runs >= 1 (integers), got {dim!r}, {runs!r}")
+    if not 0.0 < confidence < 1.0:
+        raise InputError(f"confidence: expected a probability in (0, 1), got {confidence!r}")
+    dof = dim * runs
+    alpha = 1.0 - confidence
+    return chi2_quantile(0.5 * alpha, dof) / runs, chi2_quantile(1.0 - 0.5 * alpha, dof) / runs
+
+
+def per_dof_band(dof: float, probability: float) -> tuple[float, float]:
+    """The two-sided ``probability`` interval of a chi-square variable with ``dof`` degrees of
+    freedom divided by ``dof`` (the band of a mean squared normalised error per degree of
+    freedom for a model that fits)."""
+    lo = chi2_quantile(0.5 * (1 - probability), dof) / dof
+    hi = chi2_quantile(0.5 * (1 + probability), dof) / dof
+    return lo, hi
