@@ -2,7 +2,7 @@
 ``none``, or a kernel name with an optional threshold, ``huber``, ``cauchy:2.5``, ``tukey:4``.
 
 Parsing needs no GTSAM: the kernels themselves (and their default thresholds) are
-``smoother.model.problem.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`.
+``smoother.model.robust.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`.
 """
 from __future__ import annotations
 from factors.errors import InputError

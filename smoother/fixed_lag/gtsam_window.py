@@ -55,7 +55,8 @@ from factors.imu_factor import ImuFactor
 from factors.uncertainty import state_covariance_to_primer
 from factors.errors import InputError, SolverError
 from factors.keys import keyframe_keys
-from smoother.model.problem import Problem, insert_state, noise_model, read_state
+from smoother.model.problem import Problem, insert_state, read_state
+from smoother.model.robust import noise_model
 from smoother.errors import IndeterminantSystem, is_indeterminant
 from smoother.model.blocks import evaluate_block
 from smoother.model.covariances import marginal_covariances

@@ -32,51 +32,9 @@ from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.model.blocks import Block, whitening
+from smoother.model.robust import noise_model, robust_estimator
 from smoother.model.timeline import estimate_times, imu_steps
 from factors.errors import InputError
-
-#: Robust kernels selectable per measurement type (keyed by ``datasets.robust.ROBUST_KERNEL_NAMES``),
-#: and the probability that sets each one's default threshold (see :func:`default_threshold`).
-ROBUST_KERNELS = {
-    "huber": (gtsam.noiseModel.mEstimator.Huber, 0.95),
-    "cauchy": (gtsam.noiseModel.mEstimator.Cauchy, 0.95),
-    "tukey": (gtsam.noiseModel.mEstimator.Tukey, 0.999),
-}
-
-
-def default_threshold(kernel: str, dim: int) -> float:
-    """The default threshold of a kernel on a ``dim``-dimensional factor.
-
-    GTSAM's ``Robust`` noise model applies the kernel to the NORM of the whole whitened error,
-    which for an inlier is chi-distributed with ``dim`` degrees of freedom (mean ~2.35 for a
-    6-dim pose). The textbook constants (Huber 1.345, ...) are for a scalar residual and would
-    down-weight nearly every inlier of a pose factor. The default is therefore
-    ``sqrt(chi2_dim(p))``: Huber and Cauchy leave 95% of inliers at full weight, Tukey (which
-    rejects completely beyond it) 99.9%."""
-    from smoother.stats import chi2_quantile
-
-    return float(np.sqrt(chi2_quantile(ROBUST_KERNELS[kernel][1], dim)))
-
-
-def robust_threshold(spec, dim: int) -> float:
-    """The threshold of a kernel spec ``(name, threshold or None)`` on a ``dim``-dimensional factor."""
-    name, threshold = spec
-    return float(threshold) if threshold is not None else default_threshold(name, dim)
-
-
-def _robust_estimator(spec, dim: int):
-    if spec is None:
-        return None
-    kernel, _ = ROBUST_KERNELS[spec[0]]
-    return kernel.Create(robust_threshold(spec, dim))
-
-
-def noise_model(cov: np.ndarray, robust=None):
-    """A Gaussian model of ``cov``, wrapped in a robust kernel ``(name, threshold)`` if given."""
-    base = priors.covariance_model(cov)
-    if robust is None:
-        return base
-    return gtsam.noiseModel.Robust.Create(_robust_estimator(robust, np.shape(cov)[-1]), base)
 
 
 @dataclass
@@ -349,7 +307,6 @@ def calibration_prior_blocks(calibrations: calibration.CalibrationSet) -> list[B
     return out
 
 
-
 def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None = None,
                        calibrations: calibration.CalibrationSet | None = None) -> list[tuple]:
     """``(Block, MeasurementSpec, kernel spec or None)`` of each sensor of ``dataset`` on the
@@ -367,13 +324,13 @@ def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None 
             raise InputError(f"sensor {spec.name!r}: {int((~placed).sum())} of {len(placed)} measurements fall on "
                              "no keyframe")
         kernel = robust.get(spec.name)
-        robust_estimator = _robust_estimator(kernel, spec.cov.shape[-1])
+        estimator = robust_estimator(kernel, spec.cov.shape[-1])
         if spec.name in names:
             j = names.index(spec.name)
             residual = calibrated_residual(sensor, spec, dataset, calibrations.priors[j])
-            block = Block(spec.name, kf, residual, whitening(spec.cov), robust_estimator, calibration=j)
+            block = Block(spec.name, kf, residual, whitening(spec.cov), estimator, calibration=j)
         else:
-            block = Block(spec.name, kf, spec.residual, whitening(spec.cov), robust_estimator)
+            block = Block(spec.name, kf, spec.residual, whitening(spec.cov), estimator)
         out.append((block, spec, kernel))
     return out
 

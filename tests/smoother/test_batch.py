@@ -18,7 +18,8 @@ from smoother.batch.solve import solve_batch
 from smoother.errors import IndeterminantSystem
 from smoother.model.blocks import Layout, linearize
 from smoother.model.covariances import marginal_covariances
-from smoother.model.problem import ROBUST_KERNELS, build_problem, noise_model
+from smoother.model.problem import build_problem
+from smoother.model.robust import ROBUST_KERNELS, noise_model
 
 import estimator_cases as cases
 
@@ -264,7 +265,7 @@ def test_robust_kernels_are_accepted_on_clean_data(name):
 
 
 def test_default_thresholds_scale_with_the_factor_dimension():
-    from smoother.model.problem import default_threshold
+    from smoother.model.robust import default_threshold
 
     assert default_threshold("huber", 1) == pytest.approx(1.959964, abs=1e-5)
     assert default_threshold("huber", 6) == pytest.approx(3.548, abs=1e-3)

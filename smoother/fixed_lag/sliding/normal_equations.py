@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from datasets.kinds import calibrated_into, measure_into
+from datasets.robust import ROBUST_KERNEL_NAMES
 from factors import imu, so3
 from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into, work_array
 from factors.preintegration import _residual_into, _residual_work
@@ -27,8 +28,9 @@ from smoother.fixed_lag.sliding.banded import _solve_lower
 from smoother.model.problem import RELATIVE_MODEL
 
 DIM = imu.STATE_DIM
-#: Robust kernels by their code in the compiled loop (0: none).
-ROBUST_CODES = {"huber": 1, "cauchy": 2, "tukey": 3}
+#: Robust kernels by their code in the compiled loop (0: none), in the order of
+#: :data:`datasets.robust.ROBUST_KERNEL_NAMES`, which :func:`_robust_scale`'s branches follow.
+ROBUST_CODES = {name: code for code, name in enumerate(ROBUST_KERNEL_NAMES, start=1)}
 _MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admits
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.

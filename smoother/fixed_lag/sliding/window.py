@@ -67,7 +67,7 @@ from factors.sensor_models import MAX_ROW_WIDTH
 from smoother.fixed_lag.sliding.banded import (_backward, _border_solve, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
                              _semidefinite_square_root, no_border)
 from smoother.fixed_lag.gtsam_window import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
-from smoother.model.problem import robust_threshold
+from smoother.model.robust import robust_threshold
 from smoother.fixed_lag.sliding.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _linearise_calibrated,  # noqa: F401
                                        _LinearPrior, _prior_into, _robust_scale, _whitening_into)
 from smoother.model.blocks import whitening
