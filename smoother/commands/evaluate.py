@@ -97,6 +97,7 @@ def run(args) -> int:
     from smoother.evaluation import metrics
     from smoother.commands import at_least, positive
     from smoother.errors import UserError
+    from smoother.outputs.files import jsonable
 
     if not (math.isfinite(args.max_dt) and args.max_dt >= 0):
         raise UserError(f"--max-dt: expected a time in seconds >= 0, got {args.max_dt!r}")
@@ -143,7 +144,7 @@ def run(args) -> int:
                     "formats": {"reference": ref.format, "estimate": est.format}, "t_offset": args.t_offset,
                     "n_to_align": args.n_to_align, "max_dt": args.max_dt,
                     "rpe_delta": {"value": delta, "unit": args.delta_unit}})
-        print(json.dumps(_clean(out), indent=2, allow_nan=False))
+        print(json.dumps(jsonable(out), indent=2, allow_nan=False))
     else:
         print(_table(result, args, len(ref), len(est)))
         if nees is not None:
@@ -198,7 +199,7 @@ def _read(path, fmt: str = "auto", attitudes: bool = False) -> _Poses:
     from datasets.euroc import read_pose_csv
     from datasets.kitti import read_pose_file
     from datasets.tum import read_tum_poses
-    from smoother.evaluation.scoring import load_stamped_trajectory
+    from smoother.outputs.files import load_stamped_trajectory
 
     fmt = _format_of(path) if fmt == "auto" else fmt
     if fmt == "npz":  # stamped in the data's clock, as the run's .tum files are
@@ -232,25 +233,4 @@ def _nees(ref, est, result, align: str) -> float | None:
         return None
     nees = metrics.nees(ref.states[result.i_ref], est.states[result.i_est], est.cov[result.i_est], "pose")
     return float(np.mean(nees) / 6.0)
-
-
-def _finite(obj) -> bool:
-    if isinstance(obj, float):
-        return obj == obj and obj not in (float("inf"), float("-inf"))
-    if isinstance(obj, dict):
-        return all(_finite(v) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return all(_finite(v) for v in obj)
-    return True
-
-
-def _clean(obj):
-    """NaN/inf -> None so that the output is valid JSON (e.g. RPE with no pairs)."""
-    if isinstance(obj, float):
-        return obj if _finite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
 

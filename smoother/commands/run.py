@@ -176,6 +176,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.initialise import world_frame
     from datasets.kinds import sensors_of
     from smoother.evaluation import scoring as report
+    from smoother.outputs import files
     from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.diagnosis.misfit_causes import hints
@@ -223,7 +224,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             figures = plots.plot_run(out.path, out_dir=stage)
         for path in figures:
             print(f"wrote {out.final(path)}", file=sys.stderr)
-    print(format_table(metrics, dead_reckoning=not report.aiding_sensors(dataset),
+    print(format_table(metrics, dead_reckoning=not files.aiding_sensors(dataset),
                        frame_note=world_frame(sensors_of(dataset)).note()))
     for name, m in metrics.items():
         if m.get("ate_note"):
@@ -281,10 +282,10 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
     ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
     on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
     (:func:`smoother.diagnosis.calibration_report.fit_note`)."""
-    from smoother.evaluation import scoring as report
+    from smoother.outputs import files
     from smoother.commands.run_directory import MCAP
 
-    metrics = report.write_outputs(stage, dataset, estimates, run_info)
+    metrics = files.write_outputs(stage, dataset, estimates, run_info)
     if args.mcap:
         from smoother.outputs.mcap import write_mcap
 

@@ -49,7 +49,8 @@ from factors.errors import InputError
 from smoother import stats
 from smoother.evaluation import metrics
 from smoother.evaluation import scoring as report
-from smoother.evaluation.scoring import fix_residuals, load_trajectory, read_npz, truth_at
+from smoother.evaluation.scoring import fix_residuals, truth_at
+from smoother.outputs.files import load_trajectory, read_npz
 
 #: Resolution of every PNG [dots per inch].
 DPI = 120

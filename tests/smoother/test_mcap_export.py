@@ -19,7 +19,7 @@ from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import imu, quaternion
 from smoother.outputs import mcap as mcap_export
-from smoother.evaluation import scoring as report
+from smoother.outputs import files
 from smoother.commands import dataset_specs as sources
 from smoother.cli import main
 from smoother.commands.run_directory import LOCK, RunDirectory
@@ -61,7 +61,7 @@ def test_odometry_of_each_estimator_is_its_npz(run):
     dataset, _ = sources.load_rig(rig)
     gyro_variance = dataset.noise.gyro**2 / np.median(np.diff(dataset.imu.t))
     for name in ESTIMATORS:
-        trajectory, origin = report.load_stamped_trajectory(out / f"{name}.npz")
+        trajectory, origin = files.load_stamped_trajectory(out / f"{name}.npz")
         msgtype, got = messages[f"/{name.replace('-', '_')}/odometry"]
         assert msgtype == "nav_msgs/msg/Odometry" and len(got) == len(trajectory)
         s, P = trajectory.states, trajectory.cov
@@ -86,7 +86,7 @@ def test_odometry_of_each_estimator_is_its_npz(run):
 
 def test_tf_carries_the_batch_estimate(run):
     _, out, messages = run
-    trajectory, origin = report.load_stamped_trajectory(out / "batch.npz")
+    trajectory, origin = files.load_stamped_trajectory(out / "batch.npz")
     msgtype, got = messages["/tf"]
     assert msgtype == "tf2_msgs/msg/TFMessage" and len(got) == len(trajectory)
     for k, (at, m) in enumerate(got):
@@ -101,7 +101,7 @@ def test_tf_carries_the_batch_estimate(run):
 def test_fixes_give_latitude_longitude_with_the_position_covariance(run):
     _, out, messages = run
     for name in ESTIMATORS:
-        trajectory, origin = report.load_stamped_trajectory(out / f"{name}.npz")
+        trajectory, origin = files.load_stamped_trajectory(out / f"{name}.npz")
         msgtype, got = messages[f"/{name.replace('-', '_')}/fix"]
         assert msgtype == "sensor_msgs/msg/NavSatFix" and len(got) == len(trajectory)
         lat, lon, alt = enu_to_geodetic(trajectory.position, DATUM)

@@ -24,6 +24,7 @@ from factors.imu import ImuState
 from smoother import cli
 from smoother.evaluation import metrics
 from smoother.evaluation import scoring as report
+from smoother.outputs import files
 from smoother.outputs import plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -57,7 +58,7 @@ def run_dir(tmp_path_factory) -> Path:
     rng = np.random.default_rng(7)
     estimates = {name: _estimate(dataset.truth, sig, rng) for name, sig in SIGMAS.items()}
     out = tmp_path_factory.mktemp("run")
-    report.write_outputs(out, dataset, estimates, {"dataset": "test"})
+    files.write_outputs(out, dataset, estimates, {"dataset": "test"})
     return out
 
 
@@ -104,7 +105,7 @@ def test_without_truth_or_gps_draws_what_it_can(run_dir, tmp_path, capsys):
 def test_gps_reference(run_dir, tmp_path):
     """KITTI-like: no truth, GPS fixes (every third used, the rest held out) in gps.npz."""
     directory = _copy(run_dir, tmp_path, without=["truth.npz"])
-    truth = report.load_trajectory(run_dir / "truth.npz")
+    truth = files.load_trajectory(run_dir / "truth.npz")
     rng = np.random.default_rng(3)
     idx = np.arange(5, len(truth), 10)
     heldout = np.arange(len(idx)) % 3 != 0
@@ -156,8 +157,8 @@ def test_missing_or_malformed_run_directory(tmp_path, run_dir):
     np.savez(bad / "ekf.npz", t=np.arange(3.0))
     with pytest.raises(InputError, match=r"ekf\.npz: missing array\(s\) r, v, C, b_f, b_w"):
         plots.plot_run(bad)
-    est = report.load_trajectory(run_dir / "ekf.npz")
-    report.save_trajectory(bad / "ekf.npz", est)
+    est = files.load_trajectory(run_dir / "ekf.npz")
+    files.save_trajectory(bad / "ekf.npz", est)
     np.savez(bad / "gps.npz", t=np.arange(3.0), position=np.zeros((2, 3)))
     with pytest.raises(InputError, match=r"gps\.npz: inconsistent shapes"):
         plots.load_run(bad)
@@ -196,7 +197,7 @@ def _gps_run(run_dir: Path, tmp_path: Path) -> Path:
     """A copy of the run directory without truth and metrics, with GPS fixes every 10th truth
     sample (every third used, the rest held out)."""
     directory = _copy(run_dir, tmp_path, without=["truth.npz", "metrics.json"])
-    truth = report.load_trajectory(run_dir / "truth.npz")
+    truth = files.load_trajectory(run_dir / "truth.npz")
     rng = np.random.default_rng(3)
     idx = np.arange(5, len(truth), 10)
     with atomic_write(directory / "gps.npz", "wb") as handle:

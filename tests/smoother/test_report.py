@@ -15,6 +15,7 @@ from datasets.types import PositionMeasurements, Sensor, Trajectory
 from factors import so3
 from factors.errors import InputError
 from smoother.evaluation import scoring as report
+from smoother.outputs import files
 from smoother.pipeline import Estimate
 
 import estimator_cases as cases
@@ -212,8 +213,8 @@ def test_each_position_sensor_has_its_own_residual_correlation():
 def test_trajectory_npz_round_trip(tmp_path, with_cov):
     truth = _truth()
     est = _offset_estimate(truth, with_cov)
-    report.save_trajectory(tmp_path / "x.npz", est)
-    back = report.load_trajectory(tmp_path / "x.npz")
+    files.save_trajectory(tmp_path / "x.npz", est)
+    back = files.load_trajectory(tmp_path / "x.npz")
     np.testing.assert_array_equal(back.t, est.t)
     for name in ("r", "v", "C", "b_f", "b_w"):
         np.testing.assert_array_equal(getattr(back.states, name), getattr(est.states, name))
@@ -221,19 +222,19 @@ def test_trajectory_npz_round_trip(tmp_path, with_cov):
         np.testing.assert_array_equal(back.cov, est.cov)
     else:
         assert back.cov is None
-    assert report.load_stamped_trajectory(tmp_path / "x.npz")[1] is None
+    assert files.load_stamped_trajectory(tmp_path / "x.npz")[1] is None
 
 
 def test_a_trajectory_npz_carries_the_data_clock(tmp_path):
     """The clock's origin beside times from the start: EuRoC's 1403636579758555392 ns, exactly."""
     est = _offset_estimate(_truth())
-    report.save_trajectory(tmp_path / "x.npz", est, time_origin_ns=1403636579758555392)
-    back, origin = report.load_stamped_trajectory(tmp_path / "x.npz")
+    files.save_trajectory(tmp_path / "x.npz", est, time_origin_ns=1403636579758555392)
+    back, origin = files.load_stamped_trajectory(tmp_path / "x.npz")
     assert origin == 1403636579758555392 and np.array_equal(back.t, est.t)
     arrays = dict(np.load(tmp_path / "x.npz"))
     np.savez(tmp_path / "bad.npz", **{**arrays, "time_origin_ns": np.array([1.5, 2.0])})
     with pytest.raises(InputError, match=r"bad\.npz: time_origin_ns is float64 of shape \(2,\); expected"):
-        report.load_stamped_trajectory(tmp_path / "bad.npz")
+        files.load_stamped_trajectory(tmp_path / "bad.npz")
 
 
 def _estimates(truth):
@@ -246,7 +247,7 @@ def _estimates(truth):
 def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
     data = _data()
     truth = _truth()
-    metrics = report.write_outputs(tmp_path / "run", data, _estimates(truth), {"seed": 7})
+    metrics = files.write_outputs(tmp_path / "run", data, _estimates(truth), {"seed": 7})
     names = {p.name for p in (tmp_path / "run").iterdir()}
     assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
     document = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -261,7 +262,7 @@ def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
     tum = read_tum(tmp_path / "run" / "ekf.tum")
     np.testing.assert_array_equal(tum.t, truth.t)
     np.testing.assert_allclose(tum.position, truth.position + [0.3, 0.4, 0.0], rtol=0, atol=1e-12)
-    saved_truth = report.load_trajectory(tmp_path / "run" / "truth.npz")
+    saved_truth = files.load_trajectory(tmp_path / "run" / "truth.npz")
     np.testing.assert_array_equal(saved_truth.t, data.truth.t)
 
 
@@ -271,21 +272,21 @@ def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
     temporary file behind."""
     data, truth = _data(), _truth()
     out = tmp_path / "run"
-    report.write_outputs(out, data, _estimates(truth), {"first": True})
+    files.write_outputs(out, data, _estimates(truth), {"first": True})
     before = (out / "metrics.json").read_bytes()
 
     def broken_dump(obj, handle, **kwargs):
         handle.write('{"ekf": {"ate_rmse_m": 0.')
         raise OSError("disk full")
 
-    monkeypatch.setattr(report.json, "dump", broken_dump)
+    monkeypatch.setattr(files.json, "dump", broken_dump)
     with pytest.raises(OSError, match="disk full"):
-        report.write_outputs(out, data, _estimates(truth), {"first": False})
+        files.write_outputs(out, data, _estimates(truth), {"first": False})
     assert (out / "metrics.json").read_bytes() == before
     assert json.loads(before)["_run"]["first"] is True
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
 
 
 def test_jsonable_turns_numpy_and_non_finite_values_into_json():
-    out = report._jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
+    out = files.jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
     assert json.loads(json.dumps(out)) == {"a": None, "b": [3, [1.5, None]], "c": [1, "x"]}

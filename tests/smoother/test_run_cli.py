@@ -11,6 +11,7 @@ import pytest
 
 from datasets.tum import read_tum
 from smoother.evaluation import scoring as report
+from smoother.outputs import files
 from smoother.cli import main
 from smoother.commands.run import format_table, interpolation_note
 
@@ -29,14 +30,14 @@ def test_run_all_estimators_writes_trajectories_truth_metrics_and_a_table(tmp_pa
 
     document = json.loads((out / "metrics.json").read_text())
     assert set(ESTIMATORS) <= set(document)
-    truth = report.load_trajectory(out / "truth.npz")
+    truth = files.load_trajectory(out / "truth.npz")
     for name in ESTIMATORS:
         m = document[name]
         for key in ("ate_rmse_m", "rot_rmse_deg", "nees_mean", "runtime_s"):
             assert isinstance(m[key], float) and math.isfinite(m[key]), (name, key, m.get(key))
         # sane values on a 4 s gentle run with 10 Hz poses (0.05 m, 0.01 rad): errors of a few cm
         assert m["ate_rmse_m"] < 0.2 and m["rot_rmse_deg"] < 2.0 and 0.1 < m["nees_mean"] < 10.0
-        traj = report.load_trajectory(out / f"{name}.npz")
+        traj = files.load_trajectory(out / f"{name}.npz")
         tum = read_tum(out / f"{name}.tum")
         np.testing.assert_array_equal(tum.t, traj.t)
         np.testing.assert_allclose(tum.position, traj.position, rtol=0, atol=1e-12)
@@ -186,7 +187,7 @@ def test_a_failure_while_writing_the_outputs_is_one_line_naming_the_file(tmp_pat
     def full_disk(obj, handle, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(report.json, "dump", full_disk)
+    monkeypatch.setattr(files.json, "dump", full_disk)
     out = tmp_path / "run"
     assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--no-progress"]) == 2
     line = _one_line_error(capsys)
@@ -283,7 +284,7 @@ def test_a_run_interrupted_while_writing_metrics_leaves_the_previous_file(good_r
         raise KeyboardInterrupt
 
     out, before = good_run
-    monkeypatch.setattr(report.json, "dump", interrupted_dump)
+    monkeypatch.setattr(files.json, "dump", interrupted_dump)
     assert main(["run", "--duration", "1", "--estimator", "ekf", "--out", str(out), "--seed", "3"]) == 130
     assert "interrupted" in capsys.readouterr().err
     assert (out / "metrics.json").read_bytes() == before

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from datasets.atomic import STAGING_PREFIX
-from smoother.evaluation import scoring as report
+from smoother.outputs import files
 from smoother.cli import main
 from smoother.commands.run_directory import LOCK, RunDirectory, run_files
 
@@ -69,10 +69,10 @@ def test_a_reference_of_an_earlier_run_is_not_kept(tmp_path):
     estimates = {"ekf": Estimate("ekf", data.truth, 0.1, {})}
     with RunDirectory(tmp_path / "run") as out:
         with out.outputs() as stage:
-            report.write_outputs(stage, data, estimates)
+            files.write_outputs(stage, data, estimates)
         assert (tmp_path / "run" / "truth.npz").exists()
         with out.outputs() as stage:
-            report.write_outputs(stage, replace(data, truth=None), estimates)
+            files.write_outputs(stage, replace(data, truth=None), estimates)
     assert not (tmp_path / "run" / "truth.npz").exists() and out.removed == ["truth.npz"]
 
 
@@ -168,7 +168,7 @@ def test_sigterm_keeps_the_finished_estimators(tmp_path):
     for name in ESTIMATORS:
         for suffix in (".tum", ".npz"):
             assert (out / f"{name}{suffix}").exists() == (name in run["estimators"]), (name, suffix)
-    report.load_trajectory(out / "batch.npz")
+    files.load_trajectory(out / "batch.npz")
 
 
 def test_a_second_run_into_a_directory_in_use_is_refused_at_once(tmp_path, capsys, monkeypatch):

@@ -96,7 +96,7 @@ def test_a_run_npz_is_in_the_data_clock_and_evaluates_against_the_recording_refe
     gives the NEES, the run's own within the association's 1.3 ms at the first state."""
     from datasets.euroc import load_euroc
     from datasets.tum import write_tum
-    from smoother.evaluation.scoring import load_stamped_trajectory
+    from smoother.outputs.files import load_stamped_trajectory
 
     seq = tmp_path / "seq"
     _euroc_writer()(seq)
