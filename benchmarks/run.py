@@ -707,7 +707,7 @@ def _lockstep(datasets) -> list:
     caches keep from one smoother's step is the other's loss). Each smoother's ``(loop, update)``
     times [s]: of each arrival (about one keyframe each) after the first 2 s, as
     :func:`online_against_native` leaves out the window filling, and of each window update."""
-    from smoother.online.smoother import arrivals, replaying
+    from smoother.online.replay import arrivals, replaying
 
     smoothers = [replaying(d, lag_s=2.0, covariances=False) for d in datasets]
     loops = [[] for _ in smoothers]

@@ -174,7 +174,7 @@ def _given_values_note(dataset: Dataset, kind: str) -> dict:
 
 
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
-    from smoother.online.smoother import replay  # the online smoother and its window: not loaded for a batch or EKF run
+    from smoother.online.replay import replay
 
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)

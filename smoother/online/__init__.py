@@ -9,7 +9,7 @@ from factors.exports import lazy_exports
 _EXPORTS = {
     **dict.fromkeys(("OnlineSmoother", "SensorSetup", "make_window"), "smoother.online.smoother"),
     "OnlineEstimate": "smoother.online.handover",
-    **dict.fromkeys(("replay", "ReplayResult", "arrivals", "replaying"), "smoother.online.smoother"),
+    **dict.fromkeys(("replay", "ReplayResult", "arrivals", "replaying"), "smoother.online.replay"),
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

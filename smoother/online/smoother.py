@@ -85,23 +85,35 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from datasets.kinds import KINDS, kind_sigmas, pose, sensors_of
+from datasets.kinds import KINDS, kind_sigmas, sensors_of
 from datasets.robust import check_robust
-from datasets.types import (MAX_IMU_GAP_S, Dataset, Sensor, Trajectory, check_array, check_extrinsic, check_state,
-                            check_state_covariance)
+from datasets.types import (
+    MAX_IMU_GAP_S,
+    Dataset,
+    Sensor,
+    check_array,
+    check_extrinsic,
+    check_state,
+    check_state_covariance,
+)
 from factors import calibration, imu, preintegration
 from factors.errors import InputError
-from smoother.fixed_lag.gtsam_window import HISTORY, KeyframeWindow, sparse_measurement_warning
+from smoother.fixed_lag.gtsam_window import (
+    HISTORY,
+    KeyframeWindow,
+    sparse_measurement_warning,
+)
 from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
+from smoother.fixed_lag.sliding.window import SlidingWindow
 from smoother.model.problem import measurement_spec
+from smoother.model.timeline import interval_steps
+from smoother.online import warm_up
 from smoother.online.handover import HandOver, OnlineEstimate
 from smoother.online.imu_buffer import ImuBuffer
 from smoother.online.pending import PendingMeasurements
 from smoother.online.prediction import ImuRatePrediction
 from smoother.online.schedule import KeyframeSchedule
-from smoother.progress import progress_bar
-from smoother.fixed_lag.sliding.window import SlidingWindow
-from smoother.model.timeline import estimate_times, interval_steps
+
 
 def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float, calibrations=None):
     """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag.kinds.FIXED_LAG_KINDS`),
@@ -226,7 +238,7 @@ class OnlineSmoother:
         self._last_t = None  # the newest keyframe's time
         self._last_measured_t = None
         self._newest = None  # the newest keyframe's estimate (what the next IMU interval starts from)
-        _warm_up()
+        warm_up.in_this_process()
 
     @classmethod
     def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":
@@ -509,133 +521,3 @@ class OnlineSmoother:
                 warnings.warn(text, stacklevel=5)
 
 
-_warm = False
-
-
-def _warm_up() -> None:
-    """Load (or compile) every kernel the loop calls -- the checks of an IMU sample and of a pose,
-    the interval's preintegration and prediction, the window's update and marginalisation, the
-    per-sample estimate -- once per process, by feeding a throwaway smoother half a second of a
-    resting IMU and three poses: otherwise the first keyframes and the first marginalisation of a
-    robot's run stall by the loading (10-250 ms)."""
-    global _warm
-    if _warm:
-        return
-    _warm = True
-    t = np.arange(0.0, 0.8, 0.01)
-    start = imu.ImuState.identity()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        warm = OnlineSmoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
-        for k, tk in enumerate(t):
-            warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
-            if k % 10 == 5:
-                warm.add(pose.KIND.name, tk, np.zeros(3), np.eye(3), cov=1e-4 * np.eye(6))
-            if k > 5:
-                warm.estimate()
-        warm.finish()
-
-
-@dataclass
-class ReplayResult:
-    """A dataset replayed through an :class:`OnlineSmoother`: ``smoothed``, each keyframe's
-    estimate (and covariance) as it left the window; ``update_s`` the wall time of each update;
-    ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
-    with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
-    beyond the window, per sensor; ``recovered`` keyframes that
-    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay;
-    ``calibration`` ``(values, covariances)`` of the calibration variables at the end
-    (:attr:`OnlineSmoother.calibration`), or None."""
-
-    smoothed: Trajectory
-    update_s: np.ndarray
-    latency_s: np.ndarray
-    dropped: dict
-    skipped: dict
-    recovered: list
-    longest_gap_s: float
-    runtime_s: float
-    calibration: tuple | None = None
-
-
-def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate: float | None = None,
-              **options) -> OnlineSmoother:
-    """The :class:`OnlineSmoother` that :func:`replay` feeds ``dataset`` to
-    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes asked for at
-    :func:`smoother.model.timeline.estimate_times`."""
-    online = OnlineSmoother.for_dataset(dataset, robust, **options)
-    online.keyframe_at(estimate_times(dataset, keyframe_rate))
-    return online
-
-
-def arrivals(dataset: Dataset):
-    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp: one
-    ``(t, upto, arrived)`` per arrival time ``t``, ``upto`` the number of IMU samples before it
-    (which arrive first) and ``arrived`` the ``(sensor name, measurements)`` that arrive then."""
-    sensors = sensors_of(dataset)
-    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
-    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
-    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
-    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
-    at = np.concatenate(none + arrival)
-    order = np.lexsort((rows, which, at))
-    groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
-    for group in groups:
-        t = at[group[0]]
-        arrived = [(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
-                   for i in np.unique(which[group])]
-        yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
-
-
-def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
-           robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
-           speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
-    """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
-    in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
-    sample of the same time; keyframes are asked for at :func:`smoother.model.timeline.estimate_times`
-    (measurements, held-out fixes, the ends, the ``keyframe_rate`` grid), those of the batch
-    smoother's graph. ``realtime``: at the data's own pace (``speed`` times it), sample by
-    sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
-    IMU in chunks between measurements)."""
-    if not speed > 0:
-        raise InputError(f"speed must be positive, got {speed}")
-    smoothed: list[OnlineEstimate] = []
-    began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
-    online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
-                       covariances=covariances, on_smoothed=smoothed.append)
-    imu_t = dataset.imu.t
-    start = time.perf_counter()
-
-    def wait(t: float) -> None:
-        if realtime:
-            delay = start + (t - imu_t[0]) / speed - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-
-    def feed(i: int, j: int) -> None:
-        if realtime:
-            for m in range(i, j):
-                wait(imu_t[m])
-                online.add_imu(imu_t[m], dataset.imu.acc[m], dataset.imu.gyro[m])
-                online.estimate()
-        elif j > i:
-            online.add_imu(imu_t[i:j], dataset.imu.acc[i:j], dataset.imu.gyro[i:j])
-
-    fed = 0
-    with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
-        for t, upto, arrived in arrivals(dataset):
-            feed(fed, upto)
-            bar.update(upto - fed)
-            fed = upto
-            wait(t)
-            for name, data in arrived:
-                online.add_measurements(name, data)
-        feed(fed, len(imu_t))
-        bar.update(len(imu_t) - fed)
-        online.finish()
-    smoothed.sort(key=lambda e: e.t)
-    trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
-                            np.stack([e.cov for e in smoothed]) if covariances else None)
-    return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
-                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
-                        online.calibration)

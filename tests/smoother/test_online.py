@@ -15,7 +15,8 @@ from datasets.kinds import sensors_of
 from smoother.ekf.filter import Ekf
 from smoother.fixed_lag.gtsam_window import run_fixed_lag
 from smoother.model.problem import build_problem
-from smoother.online.smoother import OnlineSmoother, SensorSetup, replay
+from smoother.online.smoother import OnlineSmoother, SensorSetup
+from smoother.online.replay import replay
 from smoother.model.timeline import estimate_times
 
 import estimator_cases as cases

@@ -118,7 +118,7 @@ def test_imu_and_wheels_alone_run_in_the_odometry_frame(recording, tmp_path, cap
 def test_the_python_api_and_the_online_smoother_start_in_the_odometry_frame(recording):
     """A dataset of IMU + wheels self-initialises at the world origin with heading 0 (level by
     the shortest turn, about a horizontal axis), and the online smoother runs from there."""
-    from smoother.online.smoother import replay
+    from smoother.online.replay import replay
 
     data, _, _ = recording
     started = self_initialised(data)

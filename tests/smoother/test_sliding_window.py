@@ -13,7 +13,7 @@ import estimator_cases as cases
 from smoother.fixed_lag.sliding import window as sw
 from smoother.batch.solve import solve_batch
 from smoother.model.problem import build_problem
-from smoother.online.smoother import replay
+from smoother.online.replay import replay
 
 DIM = sw.DIM
 

@@ -12,7 +12,8 @@ from factors import so3
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother.fixed_lag.sliding import window as sw
-from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window, replay
+from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window
+from smoother.online.replay import replay
 from test_calibration_estimates import _rig
 from test_sliding_window import _dense
 

@@ -1,0 +1,125 @@
+"""A recorded dataset fed through an :class:`~smoother.online.smoother.OnlineSmoother` in order of
+arrival (:func:`replay`; ``smoother run --estimator fixed-lag``), optionally at its own pace
+(``realtime``), with what came out of it: every keyframe's smoothed estimate, the updates' times,
+the measurements' latencies, what was dropped or skipped."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from datasets.kinds import sensors_of
+from datasets.types import Dataset, Trajectory
+from factors import imu
+from factors.errors import InputError
+from smoother.model.problem import measurement_spec
+from smoother.model.timeline import estimate_times
+from smoother.online.handover import OnlineEstimate
+from smoother.online.smoother import OnlineSmoother
+from smoother.progress import progress_bar
+
+
+@dataclass
+class ReplayResult:
+    """A dataset replayed through an :class:`OnlineSmoother`: ``smoothed``, each keyframe's
+    estimate (and covariance) as it left the window; ``update_s`` the wall time of each update;
+    ``latency_s`` each used measurement's, from its arrival to the end of its update (meaningful
+    with ``realtime``); ``dropped`` late measurements and ``skipped`` relative ones reaching back
+    beyond the window, per sensor; ``recovered`` keyframes that
+    needed a weak prior; ``longest_gap_s`` between measurements; ``runtime_s`` the whole replay;
+    ``calibration`` ``(values, covariances)`` of the calibration variables at the end
+    (:attr:`OnlineSmoother.calibration`), or None."""
+
+    smoothed: Trajectory
+    update_s: np.ndarray
+    latency_s: np.ndarray
+    dropped: dict
+    skipped: dict
+    recovered: list
+    longest_gap_s: float
+    runtime_s: float
+    calibration: tuple | None = None
+
+
+def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate: float | None = None,
+              **options) -> OnlineSmoother:
+    """The :class:`OnlineSmoother` that :func:`replay` feeds ``dataset`` to
+    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes asked for at
+    :func:`smoother.model.timeline.estimate_times`."""
+    online = OnlineSmoother.for_dataset(dataset, robust, **options)
+    online.keyframe_at(estimate_times(dataset, keyframe_rate))
+    return online
+
+
+def arrivals(dataset: Dataset):
+    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp: one
+    ``(t, upto, arrived)`` per arrival time ``t``, ``upto`` the number of IMU samples before it
+    (which arrive first) and ``arrived`` the ``(sensor name, measurements)`` that arrive then."""
+    sensors = sensors_of(dataset)
+    arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
+    none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
+    which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
+    rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
+    at = np.concatenate(none + arrival)
+    order = np.lexsort((rows, which, at))
+    groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
+    for group in groups:
+        t = at[group[0]]
+        arrived = [(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
+                   for i in np.unique(which[group])]
+        yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
+
+
+def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
+           robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
+           speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
+    """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
+    in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
+    sample of the same time; keyframes are asked for at :func:`smoother.model.timeline.estimate_times`
+    (measurements, held-out fixes, the ends, the ``keyframe_rate`` grid), those of the batch
+    smoother's graph. ``realtime``: at the data's own pace (``speed`` times it), sample by
+    sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
+    IMU in chunks between measurements)."""
+    if not speed > 0:
+        raise InputError(f"speed must be positive, got {speed}")
+    smoothed: list[OnlineEstimate] = []
+    began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
+    online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
+                       covariances=covariances, on_smoothed=smoothed.append)
+    imu_t = dataset.imu.t
+    start = time.perf_counter()
+
+    def wait(t: float) -> None:
+        if realtime:
+            delay = start + (t - imu_t[0]) / speed - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+
+    def feed(i: int, j: int) -> None:
+        if realtime:
+            for m in range(i, j):
+                wait(imu_t[m])
+                online.add_imu(imu_t[m], dataset.imu.acc[m], dataset.imu.gyro[m])
+                online.estimate()
+        elif j > i:
+            online.add_imu(imu_t[i:j], dataset.imu.acc[i:j], dataset.imu.gyro[i:j])
+
+    fed = 0
+    with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
+        for t, upto, arrived in arrivals(dataset):
+            feed(fed, upto)
+            bar.update(upto - fed)
+            fed = upto
+            wait(t)
+            for name, data in arrived:
+                online.add_measurements(name, data)
+        feed(fed, len(imu_t))
+        bar.update(len(imu_t) - fed)
+        online.finish()
+    smoothed.sort(key=lambda e: e.t)
+    trajectory = Trajectory(np.array([e.t for e in smoothed]), imu.ImuState.stack([e.state for e in smoothed]),
+                            np.stack([e.cov for e in smoothed]) if covariances else None)
+    return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
+                        dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
+                        online.calibration)
