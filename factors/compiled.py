@@ -178,7 +178,7 @@ def matmul_into(A, B, out) -> None:
             out[a, b] = acc
 
 
-def _default_threads() -> int:
+def default_threads() -> int:
     """``BOXPLUS_THREADS`` if set (e.g. 1 when several processes share the cores), else the
     number of cores this process may run on."""
     text = os.environ.get("BOXPLUS_THREADS", "").strip()
@@ -192,7 +192,7 @@ def _default_threads() -> int:
         return os.cpu_count() or 1
 
 
-_threads = _default_threads()
+_threads = default_threads()
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 #: Held while the pool is checked, replaced or given work: callers on several threads at once
@@ -200,7 +200,7 @@ _pool_size = 0
 _pool_lock = threading.Lock()
 
 
-def _forget_the_pool() -> None:
+def forget_the_pool() -> None:
     """In a forked child: only the forking thread exists there, so the parent's pool has no
     workers and anything submitted to it would wait for ever (and the lock may have been held by
     another thread of the parent); the child starts its own."""
@@ -209,7 +209,7 @@ def _forget_the_pool() -> None:
 
 
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_the_pool)
+    os.register_at_fork(after_in_child=forget_the_pool)
 
 
 def thread_count() -> int:
@@ -220,7 +220,7 @@ def thread_count() -> int:
 def set_thread_count(n: int) -> None:
     """Let :func:`in_parallel` use at most ``n`` threads from now on in this process (e.g. in
     each worker of a process pool, so that the workers do not oversubscribe the cores; the
-    default is :func:`_default_threads`). Process-wide: not for changing the limit from several
+    default is :func:`default_threads`). Process-wide: not for changing the limit from several
     threads at once."""
     global _threads
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
@@ -243,7 +243,7 @@ def thread_limit(n: int):
 #: more, so a thread that starts late (a pool worker wakes up tens of microseconds after the
 #: hand-over) or runs slower (a core shared with another process) delays the whole by a fraction
 #: of a piece, not by its whole share.
-_PIECES_PER_THREAD = 8
+PIECES_PER_THREAD = 8
 
 
 class _Ranges:
@@ -378,7 +378,7 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
     per range and must not call :func:`in_parallel` itself. Safe to call from several threads at
     once.
 
-    The ranges (up to :data:`_PIECES_PER_THREAD` per thread) are handed out in order to whichever
+    The ranges (up to :data:`PIECES_PER_THREAD` per thread) are handed out in order to whichever
     thread is free: the calling thread and workers of a pool started on first use. Which thread
     runs a range does not change what it computes. After a range fails no new one is started;
     every range that started has finished when this returns or raises (also after a Ctrl-C); an
@@ -402,7 +402,7 @@ def in_parallel(task, n: int, min_items: int, scan=None, then=None) -> None:
                 stage(0, n)
         return
     global _pool, _pool_size
-    pieces = min(n // max(1, min_items), parts * _PIECES_PER_THREAD)
+    pieces = min(n // max(1, min_items), parts * PIECES_PER_THREAD)
     ranges = _Ranges([n * p // pieces for p in range(pieces + 1)], task, scan, then)
     others = []
     try:

@@ -600,7 +600,7 @@ def _corrected_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, b_w, dC_out, W_out, Rm_out)
 
 @leaf
 def _predict_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C, work) -> None:
-    """:func:`predict` of one interval into ``r, v, C``; ``work`` from :func:`_residual_work`."""
+    """:func:`predict` of one interval into ``r, v, C``; ``work`` from :func:`residual_work`."""
     dC, W, Rm, E, z, JCd, u = work[0], work[1], work[2], work[3], work[7], work[8], work[9]
     _correct(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, bwi, dC, W, Rm, JCd, E)
     for a in range(3):
@@ -619,24 +619,24 @@ def _predict_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r
 
 @recursion
 def _predict_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C):
-    work = _residual_work()
+    work = residual_work()
     for n in range(dC0.shape[0]):
         _predict_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
                       g, r[n], v[n], C[n], work)
 
 
 @recursion
-def _residual_work() -> tuple:
-    """Work arrays of :func:`_residual_into`; allocate once per batch, reuse for every row."""
+def residual_work() -> tuple:
+    """Work arrays of :func:`residual_into`; allocate once per batch, reuse for every row."""
     return (np.empty((3, 3)), np.empty((3, 10)), np.empty((3, 10)), np.empty((3, 3)), np.empty((3, 3)),
             np.empty((3, 3)), np.empty((3, 3)), np.empty(10), np.empty(3), np.empty(3), np.empty(3), np.empty(3))
 
 
 @leaf
-def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
+def residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
                    jacobians, e, A, B, work) -> None:
     """:func:`residual` of one interval (see its docstring for every formula): ``e`` (15) and,
-    with ``jacobians``, ``A = Ji``, ``B = Jj`` (15x15); ``work`` from :func:`_residual_work`."""
+    with ``jacobians``, ``A = Ji``, ``B = Jj`` (15x15); ``work`` from :func:`residual_work`."""
     dC, W, Rm, E, X, Y, M, z, JCd, u, gamma, dr = work
     _correct(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, bwi, dC, W, Rm, JCd, E)
     C = Ci
@@ -713,18 +713,18 @@ def _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj,
 @recursion
 def _residual_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, rj, vj, Cj, bfj, bwj, g,
                    jacobians, e, Ji, Jj):
-    """:func:`_residual_into` for each row."""
-    work = _residual_work()
+    """:func:`residual_into` for each row."""
+    work = residual_work()
     for n in range(dC0.shape[0]):
         A, B = (Ji[n], Jj[n]) if jacobians else (Ji[0], Jj[0])
-        _residual_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
+        residual_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
                        rj[n], vj[n], Cj[n], bfj[n], bwj[n], g, jacobians, e[n], A, B, work)
 
 
 @recursion
 def _residual_one(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, Ci, ri, vi, bi, Cj, rj, vj, bj, g, jacobians, e, Ji, Jj):
-    _residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bi[:3], bi[3:], rj, vj, Cj, bj[:3], bj[3:], g,
-                   jacobians, e, Ji, Jj, _residual_work())
+    residual_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bi[:3], bi[3:], rj, vj, Cj, bj[:3], bj[3:], g,
+                   jacobians, e, Ji, Jj, residual_work())
 
 
 def residual(pre: Preintegrated, state_i: imu.ImuState, state_j: imu.ImuState, gravity=imu.DEFAULT_GRAVITY,
@@ -769,7 +769,7 @@ _ONE_SHAPES = ((3, 3), (3,), (3,), (6,)) * 2
 def residual_one(pre: Preintegrated, Ci, ri, vi, bi, Cj, rj, vj, bj, gravity, jacobians: bool = False):
     """:func:`residual` of ONE interval from a factor's variables as GTSAM hands them over
     (attitude matrix, position, body velocity and the bias 6-vector ``(b_f, b_w)`` of keyframes
-    ``i`` and ``j``): the same compiled core (:func:`_residual_into`) without the batch plumbing,
+    ``i`` and ``j``): the same compiled core (:func:`residual_into`) without the batch plumbing,
     for the per-factor callback, where that plumbing cost more than the mathematics."""
     variables = (Ci, ri, vi, bi, Cj, rj, vj, bj)
     if pre.dC.shape != (3, 3) or np.shape(gravity) != (3,):

@@ -28,7 +28,7 @@ GTSAM pitfalls handled here:
   indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
   update that fails beyond that raises :class:`FixedLagFailed` naming the keyframe and time
   instead of a bare GTSAM exception;
-* ISAM2 relinearises at every update (:func:`_make_smoother`), so that a measurement's
+* ISAM2 relinearises at every update (:func:`make_smoother`), so that a measurement's
   correction reaches the states' linearisation before they leave the window;
 * measurements further apart than the lag leave keyframes with their dead-reckoned estimates
   (they leave the window before the next measurement reaches them), and the
@@ -49,17 +49,16 @@ import gtsam
 import numpy as np
 
 from datasets.types import Trajectory
-from factors import imu, preintegration
-from factors import priors
-from factors.imu_factor import ImuFactor
-from factors.uncertainty import state_covariance_to_primer
+from factors import imu, preintegration, priors
 from factors.errors import InputError, SolverError
+from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
-from smoother.model.problem import Problem, insert_state, read_state
-from smoother.model.robust import noise_model
+from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem, is_indeterminant
 from smoother.model.blocks import evaluate_block
 from smoother.model.covariances import marginal_covariances
+from smoother.model.problem import Problem, insert_state, read_state
+from smoother.model.robust import noise_model
 from smoother.progress import progress_bar
 
 KINDS = ("batch", "incremental")
@@ -95,7 +94,7 @@ class FixedLagResult:
     runtime_s: float
 
 
-def _make_smoother(kind: str, lag_s: float):
+def make_smoother(kind: str, lag_s: float):
     """GTSAM's smoother of ``kind`` with QR factorisation: Cholesky declares the nearly
     singular systems of sparse GPS (KITTI, a fix every 10 s with 1 s keyframes) indeterminant
     at the velocity variables within seconds, and ISAM2 cannot continue after a failed update;
@@ -142,7 +141,7 @@ def window_covariances(blocks: list, smoother, estimate: gtsam.Values, first: in
     vectorised blocks of :mod:`smoother.model.blocks` (no Python callback per factor), the smoother's
     marginal factors (``LinearContainerFactor``) by GTSAM with their ``Rot3`` columns moved into
     the primer's chart (``J C^T``). The resulting linear system -- one 15-dim variable per window
-    keyframe -- is solved for the marginals by :func:`_window_marginals`."""
+    keyframe -- is solved for the marginals by :func:`window_marginals`."""
     n = len(states)
     wanted = range(n) if wanted is None else wanted
     dim = imu.STATE_DIM
@@ -169,10 +168,10 @@ def window_covariances(blocks: list, smoother, estimate: gtsam.Values, first: in
         dense = _container_rows(containers, estimate, first, n)
         used = [j for j in range(n) if np.any(dense[:, j * dim:(j + 1) * dim])]
         groups.append((tuple(used), [dense[:, j * dim:(j + 1) * dim] for j in used]))
-    return _window_marginals(groups, n, wanted)
+    return window_marginals(groups, n, wanted)
 
 
-def _window_marginals(groups, n: int, wanted) -> np.ndarray:
+def window_marginals(groups, n: int, wanted) -> np.ndarray:
     """Marginal covariances of the window positions ``wanted`` (``n`` 15-dim variables) of the
     whitened linear system ``groups`` (``(positions, [A per position])`` per factor).
 
@@ -185,9 +184,9 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     rank-deficient window, or a factor on more than three keyframes, which the Python
     ``JacobianFactor`` cannot hold -- goes to that dense pseudo-inverse."""
     if all(len(keys) <= 3 for keys, _ in groups):
-        graph = _linear_graph(groups)
+        graph = linear_graph(groups)
         try:
-            return _cholesky_marginals(graph, n, wanted)
+            return cholesky_marginals(graph, n, wanted)
         except RuntimeError:
             pass
         try:
@@ -197,7 +196,7 @@ def _window_marginals(groups, n: int, wanted) -> np.ndarray:
     return _dense_marginals(groups, n, wanted)
 
 
-def _linear_graph(groups) -> gtsam.GaussianFactorGraph:
+def linear_graph(groups) -> gtsam.GaussianFactorGraph:
     """``groups`` (at most three positions per factor) as GTSAM ``JacobianFactor`` s on keys
     ``0 .. n - 1``, unit noise (the rows are whitened already)."""
     graph = gtsam.GaussianFactorGraph()
@@ -208,7 +207,7 @@ def _linear_graph(groups) -> gtsam.GaussianFactorGraph:
     return graph
 
 
-def _cholesky_marginals(graph: gtsam.GaussianFactorGraph, n: int, wanted) -> np.ndarray:
+def cholesky_marginals(graph: gtsam.GaussianFactorGraph, n: int, wanted) -> np.ndarray:
     """GTSAM's ``Marginals`` (Cholesky) of ``graph``'s keys ``wanted``; RuntimeError where GTSAM
     calls the system indeterminant."""
     zero = gtsam.VectorValues()
@@ -218,7 +217,7 @@ def _cholesky_marginals(graph: gtsam.GaussianFactorGraph, n: int, wanted) -> np.
     return np.stack([marginals.marginalCovariance(j) for j in wanted])
 
 
-def _stacked_rows(groups, n: int) -> np.ndarray:
+def stacked_rows(groups, n: int) -> np.ndarray:
     """``groups`` as one dense matrix of rows over the ``n`` window positions' 15 columns each."""
     dim = imu.STATE_DIM
     rows = []
@@ -232,7 +231,7 @@ def _stacked_rows(groups, n: int) -> np.ndarray:
 
 def _dense_marginals(groups, n: int, wanted) -> np.ndarray:
     dim = imu.STATE_DIM
-    A = _stacked_rows(groups, n)
+    A = stacked_rows(groups, n)
     cov = np.linalg.pinv(A.T @ A, hermitian=True)
     cov = 0.5 * (cov + cov.T)
     return np.stack([cov[j * dim:(j + 1) * dim, j * dim:(j + 1) * dim] for j in wanted])
@@ -341,7 +340,7 @@ class KeyframeWindow:
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
         if not lag_s > 0:
             raise InputError(f"lag must be positive, got {lag_s}")
-        self.smoother = _make_smoother(kind, lag_s)
+        self.smoother = make_smoother(kind, lag_s)
         self.gravity = np.asarray(gravity, dtype=float)
         self.threshold = float(reintegration_threshold)
         self.lag_s = float(lag_s)

@@ -20,8 +20,16 @@ import warnings
 
 import numpy as np
 
-from datasets.types import (MAX_IMU_GAP_S, MAX_PLAUSIBLE_SPECIFIC_FORCE, IMU_GAP_FACTOR, check_array,
-                            check_imu_range, check_times, gyro_rate_limit, imu_gaps)
+from datasets.types import (
+    IMU_GAP_FACTOR,
+    MAX_IMU_GAP_S,
+    MAX_PLAUSIBLE_SPECIFIC_FORCE,
+    check_array,
+    check_imu_range,
+    check_times,
+    gyro_rate_limit,
+    imu_gaps,
+)
 from factors.errors import InputError
 
 #: The IMU's typical period is known (and gaps are judged) once this many intervals have come.

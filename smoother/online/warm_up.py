@@ -35,10 +35,10 @@ WAIT_S = 300.0
 def cold() -> bool:
     """Whether the sliding window's main kernel is not in Numba's disk cache (False when it cannot
     be told: Numba's JIT disabled, or a Numba without this cache layout)."""
-    from smoother.fixed_lag.sliding.normal_equations import _linearise
+    from smoother.fixed_lag.sliding.normal_equations import linearise
 
     try:
-        index = Path(_linearise._cache._cache_file._index_path)
+        index = Path(linearise._cache._cache_file._index_path)
     except AttributeError:
         return False
     return not index.exists()

@@ -95,7 +95,7 @@ def stamps_ns(t: np.ndarray, time_origin_ns: int | None) -> np.ndarray:
     return ns
 
 
-class _Messages:
+class Messages:
     """Builders of the ROS 2 messages of :func:`write_mcap` from arrays, one message at a time."""
 
     def __init__(self, store, frame: str):
@@ -188,7 +188,7 @@ def _fix_messages(build, trajectory, ns, datum):
 def streams(dataset: Dataset, estimates: dict, store) -> list[tuple[str, str, object]]:
     """``(topic, message type, messages)`` of every topic of the file, each ``messages`` an
     iterator of ``(stamp [ns], message)`` in time order (see the module docstring)."""
-    build = _Messages(store, world_frame(sensors_of(dataset)).frame_id)
+    build = Messages(store, world_frame(sensors_of(dataset)).frame_id)
     finished = {name: est.trajectory for name, est in estimates.items() if est.failed is None}
     datum = getattr(dataset, "datum", None)
     out = []

@@ -535,7 +535,7 @@ def plot_biases(run: Run, out_dir: Path) -> Path:
     return _save(fig, out_dir, "biases")
 
 
-def _bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]:
+def bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]:
     """``(key, label, {name: value})`` for the bars; values from metrics.json (a null there is
     not drawn), else, without metrics.json's entry, computed as :mod:`smoother.evaluation.scoring` computes
     them (:func:`_computed_metrics`)."""
@@ -581,7 +581,7 @@ def _computed_metrics(run: Run, name: str, e: Errors) -> dict:
 
 def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     """Position error norm over time of all estimators on one axis set, and metric bars."""
-    bars = _bar_values(run, kind, errors)
+    bars = bar_values(run, kind, errors)
     fig = _figure("comparison")
     grid = fig.add_gridspec(2, max(len(bars), 1), height_ratios=[1.5, 1.0])
     ax = fig.add_subplot(grid[0, :])

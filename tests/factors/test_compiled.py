@@ -170,10 +170,10 @@ def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
         compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 10, 2)
     assert sorted(seen) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]  # as many as min_items allows
     seen.clear()
-    with compiled.thread_limit(2):  # at most _PIECES_PER_THREAD per thread
+    with compiled.thread_limit(2):  # at most PIECES_PER_THREAD per thread
         compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 100, 1)
     pieces = sorted(seen)
-    assert len(pieces) == 2 * compiled._PIECES_PER_THREAD
+    assert len(pieces) == 2 * compiled.PIECES_PER_THREAD
     assert pieces[0][0] == 0 and pieces[-1][1] == 100
     assert all(a[1] == b[0] for a, b in zip(pieces[:-1], pieces[1:]))
     seen.clear()
@@ -258,7 +258,7 @@ def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
     sys.setswitchinterval(1e-6)
     try:
         for _ in range(rounds):
-            compiled._forget_the_pool()
+            compiled.forget_the_pool()
             seen = [[] for _ in range(callers)]
             errors = []
             start = threading.Barrier(callers)
@@ -375,7 +375,7 @@ def _within(seconds, fn):
     thread.start()
     thread.join(seconds)
     if thread.is_alive():
-        compiled._forget_the_pool()  # its workers may be stuck too: later tests get a new pool
+        compiled.forget_the_pool()  # its workers may be stuck too: later tests get a new pool
         pytest.fail(f"did not return within {seconds} s")
     if "error" in out:
         raise out["error"]
@@ -605,10 +605,10 @@ def test_a_forked_child_runs_in_parallel_work_although_the_parent_had_started_it
 
 def test_the_default_thread_count_comes_from_boxplus_threads_when_set(monkeypatch):
     monkeypatch.setenv("BOXPLUS_THREADS", "3")
-    assert compiled._default_threads() == 3
+    assert compiled.default_threads() == 3
     monkeypatch.setenv("BOXPLUS_THREADS", " ")
-    assert compiled._default_threads() >= 1  # unset: the cores this process may use
+    assert compiled.default_threads() >= 1  # unset: the cores this process may use
     for bad in ("0", "two", "-1", "1.5"):
         monkeypatch.setenv("BOXPLUS_THREADS", bad)
         with pytest.raises(ValueError, match="BOXPLUS_THREADS: expected a whole number"):
-            compiled._default_threads()
+            compiled.default_threads()

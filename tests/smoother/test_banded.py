@@ -58,7 +58,7 @@ def _dense_factor(L: np.ndarray, first: int, n: int, cap: int, S: int) -> np.nda
 def _factorised(H: np.ndarray, S: int, first: int, cap: int) -> np.ndarray:
     n = len(H) // DIM
     L = np.zeros((cap, S + 1, DIM, DIM))
-    assert banded._factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S) == -1
+    assert banded.factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S) == -1
     return L
 
 
@@ -68,8 +68,8 @@ def _solved(L: np.ndarray, B: np.ndarray, first: int, cap: int, S: int) -> np.nd
     b = np.zeros((cap, DIM, B.shape[1]))
     for k in range(n):
         b[(first + k) % cap] = B[k * DIM:(k + 1) * DIM]
-    banded._forward(L, b, first, first, first, first + n - 1, cap, S)
-    banded._backward(L, b, first, first + n - 1, cap, S)
+    banded.forward_solve(L, b, first, first, first, first + n - 1, cap, S)
+    banded.backward_solve(L, b, first, first + n - 1, cap, S)
     return np.concatenate([b[(first + k) % cap] for k in range(n)])
 
 
@@ -163,7 +163,7 @@ def test_refactorising_from_a_row_on_is_scipys_factor_of_the_changed_matrix(n, S
     H2 = H.copy()
     H2[start * DIM:, start * DIM:] += J.T @ J
     rows = _blocks(H2, S)[start:]
-    assert banded._factorise(rows, L, first, first + start, first + n - 1, cap, S) == -1
+    assert banded.factorise(rows, L, first, first + start, first + n - 1, cap, S) == -1
     expected = cholesky_banded(_scipy_band(H2, S), lower=True)
     dense = _dense_factor(L, first, n, cap, S)
     for offset in range(expected.shape[0]):
@@ -182,7 +182,7 @@ def test_a_matrix_that_is_not_positive_definite_is_refused_at_its_first_failing_
         cholesky_banded(_scipy_band(H, S), lower=True)
     first, cap = _ring(n)
     L = np.zeros((cap, S + 1, DIM, DIM))
-    failed = banded._factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S)
+    failed = banded.factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S)
     leading = [np.linalg.eigvalsh(H[:(k + 1) * DIM, :(k + 1) * DIM]).min() > 0 for k in range(n)]
     assert failed == first + leading.index(False) == first + bad
 
@@ -200,12 +200,12 @@ def test_the_schur_complement_is_scipys(n, S, nl):
     X = solveh_banded(_scipy_band(H[:m, :m], min(S, nl - 1)), np.column_stack([H[:m, m:], g[:m]]), lower=True)
     Hs_expected = H[m:, m:] - H[m:, :m] @ X[:, :-1]
     gs_expected = g[m:] - H[m:, :m] @ X[:, -1]
-    Hs, gs, ok = banded._schur(_blocks(H, S), g, *banded.no_border(n), nl)
+    Hs, gs, ok = banded.schur(_blocks(H, S), g, *banded.no_border(n), nl)
     assert ok
     scale = np.sqrt(np.outer(np.diag(Hs_expected), np.diag(Hs_expected)))
     np.testing.assert_allclose(Hs / scale, Hs_expected / scale, atol=1e-9)
     np.testing.assert_allclose(gs, gs_expected, rtol=1e-8, atol=1e-10 * np.abs(gs_expected).max())
-    status, touched, R, e0, _, _ = banded._marginal_prior(_blocks(H, S), g, *banded.no_border(n), nl)
+    status, touched, R, e0, _, _ = banded.marginal_prior(_blocks(H, S), g, *banded.no_border(n), nl)
     keep = (touched[:, None] * DIM + np.arange(DIM)).ravel()
     informed = [b for b in range(n - nl) if np.any(Hs_expected[b * DIM:(b + 1) * DIM] != 0.0)]
     assert status == 0 and touched.tolist() == informed

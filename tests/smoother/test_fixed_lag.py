@@ -14,7 +14,7 @@ import pytest
 
 from datasets.simulate import simulate
 from smoother.fixed_lag import gtsam_window as fixed_lag
-from smoother.fixed_lag.gtsam_window import KINDS, _make_smoother, run_fixed_lag
+from smoother.fixed_lag.gtsam_window import KINDS, make_smoother, run_fixed_lag
 from smoother.model.problem import build_problem
 
 import estimator_cases as cases
@@ -197,7 +197,7 @@ def test_the_smoother_keeps_its_factor_graph_to_the_window_over_a_long_run(kind)
     grows with the run and every relinearisation with it (ISAM2's default). A chain of 3-vector
     variables at 10 Hz, lag 0.5 s: after 300 updates the graph holds about the window's six
     factors plus a marginal, as after 100 (without slot reuse: 300 slots)."""
-    smoother = _make_smoother(kind, 0.5)
+    smoother = make_smoother(kind, 0.5)
     noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.1)
     sizes = []
     for k in range(300):
@@ -268,7 +268,7 @@ def test_the_lagged_covariances_are_those_of_the_whole_window(gentle, monkeypatc
 def _cholesky_refuses(groups, n: int) -> bool:
     """Whether GTSAM's Cholesky-based ``Marginals`` calls this window's linear system indeterminant."""
     try:
-        fixed_lag._cholesky_marginals(fixed_lag._linear_graph(groups), n, [0])
+        fixed_lag.cholesky_marginals(fixed_lag.linear_graph(groups), n, [0])
     except RuntimeError:
         return True
     return False
@@ -276,7 +276,7 @@ def _cholesky_refuses(groups, n: int) -> bool:
 
 def _svd_marginals(groups, n: int, wanted) -> np.ndarray:
     """Reference marginal covariances from an SVD of the window's stacked rows (no squaring)."""
-    _, s, vt = np.linalg.svd(fixed_lag._stacked_rows(groups, n), full_matrices=False)
+    _, s, vt = np.linalg.svd(fixed_lag.stacked_rows(groups, n), full_matrices=False)
     return np.stack([(vt[:, 15 * j:15 * (j + 1)].T / s**2) @ vt[:, 15 * j:15 * (j + 1)] for j in wanted])
 
 
@@ -288,7 +288,7 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
     data = simulate(profile="gentle", duration=6.0, seed=5, imu_rate=200.0, pose_rate=5.0,
                     position_rate=8.0, orientation_rate=4.0, odometry_rate=2.0)
     refused = []
-    solve = fixed_lag._window_marginals
+    solve = fixed_lag.window_marginals
 
     def recording(groups, n, wanted):
         out = solve(groups, n, wanted)
@@ -296,7 +296,7 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
             refused.append((groups, n, list(wanted), out))
         return out
 
-    monkeypatch.setattr(fixed_lag, "_window_marginals", recording)
+    monkeypatch.setattr(fixed_lag, "window_marginals", recording)
     run_fixed_lag(build_problem(data, keyframe_rate=10.0), 0.8, "incremental", covariances=True, progress=False)
     assert len(refused) >= 10, len(refused)
     errors = [np.abs(out - ref).max() / np.abs(ref).max()

@@ -164,8 +164,8 @@ def test_a_failure_while_writing_leaves_the_previous_run_whole(tmp_path, monkeyp
         written.append(1)
         return original(self, *a)
 
-    original = mcap_export._Messages.odometry
-    monkeypatch.setattr(mcap_export._Messages, "odometry", failing)
+    original = mcap_export.Messages.odometry
+    monkeypatch.setattr(mcap_export.Messages, "odometry", failing)
     assert main(args + ["--mcap"]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != LOCK} == before

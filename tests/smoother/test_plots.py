@@ -119,7 +119,7 @@ def test_gps_reference(run_dir, tmp_path):
     e = plots.errors_against_gps(run.gps, run.estimates["ekf"])
     assert e.dof == 3 and np.array_equal(e.heldout, heldout)
     # comparison.png's bars: the held-out RMSE, and the residual to the used fixes labelled as such
-    bars = {key: (label, values) for key, label, values in plots._bar_values(run, "gps", {"ekf": e})}
+    bars = {key: (label, values) for key, label, values in plots.bar_values(run, "gps", {"ekf": e})}
     assert bars["gps_heldout_rmse_m"][0] == "RMSE to held-out fixes [m]\n(accuracy)"
     assert bars["gps_fit_residual_m"][0] == "residual to used fixes [m]\n(a fit, not accuracy)"
     for key, mask in (("gps_heldout_rmse_m", heldout), ("gps_fit_residual_m", ~heldout)):
@@ -222,7 +222,7 @@ def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_
     h = e.heldout
     P = est.interpolate(g.t[inside])[1][:, :3, :3] + g.cov[inside]
     np.testing.assert_array_equal(e.nees[h], metrics.nees_from(residual[h], P[h]))
-    bars = {key: values["ekf"] for key, _, values in plots._bar_values(gps_run, "gps", {"ekf": e})}
+    bars = {key: values["ekf"] for key, _, values in plots.bar_values(gps_run, "gps", {"ekf": e})}
     for key, rows in (("gps_heldout_rmse_m", g.heldout), ("gps_fit_residual_m", ~g.heldout)):
         fixes = PositionMeasurements(g.t[rows], g.position[rows], g.cov[rows])
         assert bars[key] == report.position_rmse(fixes, est), key
@@ -233,7 +233,7 @@ def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_
         np.testing.assert_array_equal(e.nees, report.compare_with_truth(run.truth, est)["nees"])
     bare = plots.Run(run.run_dir, run.estimates, run.truth, None, {})  # no metrics.json
     errors = plots.reference_errors(bare)[1]
-    for key, _, values in plots._bar_values(bare, "truth", errors):
+    for key, _, values in plots.bar_values(bare, "truth", errors):
         if key != "runtime_s":
             assert values == {n: report.against_truth(run.truth, est)[key] for n, est in run.estimates.items()}, key
 

@@ -3,15 +3,16 @@ algebra against dense NumPy, its robust weights against GTSAM's, and its estimat
 batch smoother where they must agree (a window longer than the run marginalises nothing)."""
 from __future__ import annotations
 
+import estimator_cases as cases
 import gtsam
 import numpy as np
 import pytest
 
 from datasets.simulate import simulate
 from factors.imu import ImuNoise
-import estimator_cases as cases
-from smoother.fixed_lag.sliding import window as sw
 from smoother.batch.solve import solve_batch
+from smoother.fixed_lag.sliding import banded, kernels, normal_equations
+from smoother.fixed_lag.sliding import window as sw
 from smoother.model.problem import build_problem
 from smoother.online.replay import replay
 
@@ -44,8 +45,8 @@ def _ring(Hb: np.ndarray, first: int, cap: int) -> np.ndarray:
 def _solve(L, g, first, n, cap, S):
     """``H^-1 g`` through the ring factor ``L`` (window ``first .. first + n - 1``)."""
     y = _ring(-g.reshape(n, DIM, 1), first, cap)
-    sw._forward(L, y, first, first, first, first + n - 1, cap, S)
-    sw._backward(L, y, first, first + n - 1, cap, S)
+    banded.forward_solve(L, y, first, first, first, first + n - 1, cap, S)
+    banded.backward_solve(L, y, first, first + n - 1, cap, S)
     return -np.concatenate([y[(first + b) % cap, :, 0] for b in range(n)])
 
 
@@ -56,15 +57,15 @@ def test_banded_cholesky_solve_and_covariances_equal_dense_numpy(n, S):
     Hb, H = _banded(rng, n, S)
     first, cap = 5, 8
     L = np.zeros((cap, S + 1, DIM, DIM))
-    assert sw._factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
+    assert banded.factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
     g = rng.normal(size=n * DIM)
     np.testing.assert_allclose(_solve(L, g, first, n, cap, S), np.linalg.solve(H, g), rtol=1e-9, atol=1e-12)
     inverse = np.linalg.inv(H)
     for j in range(n):
         b = np.zeros((cap, DIM, DIM))
         b[(first + j) % cap] = np.eye(DIM)
-        sw._forward(L, b, first, first + j, first + j, first + n - 1, cap, S)
-        sw._backward(L, b, first + j, first + n - 1, cap, S)
+        banded.forward_solve(L, b, first, first + j, first + j, first + n - 1, cap, S)
+        banded.backward_solve(L, b, first + j, first + n - 1, cap, S)
         np.testing.assert_allclose(b[(first + j) % cap], inverse[j * DIM:(j + 1) * DIM, j * DIM:(j + 1) * DIM],
                                    rtol=1e-8, atol=1e-12)
 
@@ -78,10 +79,10 @@ def test_rows_factorised_again_from_a_keyframe_on_equal_a_whole_factorisation(S)
     n, first, cap, b0 = 7, 3, 8, 4
     Hb, H = _banded(rng, n, S)
     L = np.zeros((cap, S + 1, DIM, DIM))
-    assert sw._factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
+    assert banded.factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
     g = rng.normal(size=n * DIM)
     y = _ring(-g.reshape(n, DIM, 1), first, cap)
-    sw._forward(L, y, first, first, first, first + n - 1, cap, S)
+    banded.forward_solve(L, y, first, first, first, first + n - 1, cap, S)
     J = rng.normal(size=(DIM, DIM * (S + 1)))  # a factor on keyframes b0 .. b0 + S (within the band)
     H2 = H.copy()
     H2[b0 * DIM:(b0 + S + 1) * DIM, b0 * DIM:(b0 + S + 1) * DIM] += J.T @ J
@@ -91,11 +92,11 @@ def test_rows_factorised_again_from_a_keyframe_on_equal_a_whole_factorisation(S)
             Hb2[k, s] = H2[k * DIM:(k + 1) * DIM, (k - s) * DIM:(k - s + 1) * DIM]
     g2 = g.copy()
     g2[b0 * DIM:] += rng.normal(size=(n - b0) * DIM)
-    assert sw._factorise(Hb2[b0:], L, first, first + b0, first + n - 1, cap, S) == -1
+    assert banded.factorise(Hb2[b0:], L, first, first + b0, first + n - 1, cap, S) == -1
     for k in range(b0, n):
         y[(first + k) % cap, :, 0] = -g2[k * DIM:(k + 1) * DIM]
-    sw._forward(L, y, first, first + b0, first, first + n - 1, cap, S)
-    sw._backward(L, y, first, first + n - 1, cap, S)
+    banded.forward_solve(L, y, first, first + b0, first, first + n - 1, cap, S)
+    banded.backward_solve(L, y, first, first + n - 1, cap, S)
     x = -np.concatenate([y[(first + b) % cap, :, 0] for b in range(n)])
     np.testing.assert_allclose(x, np.linalg.solve(H2, g2), rtol=1e-8, atol=1e-11)
 
@@ -108,13 +109,13 @@ def test_the_rows_after_marginalised_keyframes_factor_their_schur_complement():
     Hb, H = _banded(rng, n, S)
     g = rng.normal(size=n * DIM)
     L = np.zeros((cap, S + 1, DIM, DIM))
-    assert sw._factorise(Hb, L, 0, 0, n - 1, cap, S) == -1
+    assert banded.factorise(Hb, L, 0, 0, n - 1, cap, S) == -1
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
     y = _ring(-g.reshape(n, DIM, 1), 0, cap)
-    sw._forward(L, y, 0, 0, 0, n - 1, cap, S)
-    sw._backward(L, y, nl, n - 1, cap, S)  # the window is now nl .. n - 1
+    banded.forward_solve(L, y, 0, 0, 0, n - 1, cap, S)
+    banded.backward_solve(L, y, nl, n - 1, cap, S)  # the window is now nl .. n - 1
     x = -np.concatenate([y[b % cap, :, 0] for b in range(nl, n)])
     np.testing.assert_allclose(x, np.linalg.solve(Hs, gs), rtol=1e-8, atol=1e-11)
     np.testing.assert_allclose(_solve(L, gs, nl, n - nl, cap, S), np.linalg.solve(Hs, gs), rtol=1e-8, atol=1e-11)
@@ -124,7 +125,7 @@ def test_an_indefinite_block_is_named():
     rng = np.random.default_rng(0)
     Hb, _ = _banded(rng, 4, 1)
     Hb[2, 0] -= 1e6 * np.eye(DIM)
-    assert sw._factorise(Hb, np.zeros((8, 2, DIM, DIM)), 0, 0, 3, 8, 1) == 2
+    assert banded.factorise(Hb, np.zeros((8, 2, DIM, DIM)), 0, 0, 3, 8, 1) == 2
 
 
 @pytest.mark.parametrize("nl", [1, 2])
@@ -132,7 +133,7 @@ def test_schur_complement_equals_dense_numpy(nl):
     rng = np.random.default_rng(nl)
     Hb, H = _banded(rng, 4, 1)
     g = rng.normal(size=len(H))
-    Hs, gs, ok = sw._schur(Hb, g, *sw.no_border(4), nl)
+    Hs, gs, ok = banded.schur(Hb, g, *banded.no_border(4), nl)
     m = nl * DIM
     assert ok
     X = np.linalg.solve(H[:m, :m], np.concatenate([H[:m, m:], g[:m, None]], axis=1))
@@ -145,7 +146,7 @@ def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
     rng = np.random.default_rng(nl)
     Hb, H = _banded(rng, 4, 2)
     g = rng.normal(size=len(H))
-    status, touched, R, e0, _, _ = sw._marginal_prior(Hb, g, *sw.no_border(4), nl)
+    status, touched, R, e0, _, _ = banded.marginal_prior(Hb, g, *banded.no_border(4), nl)
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
@@ -176,7 +177,7 @@ def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_co
             Hb[k, s_] = H[k * DIM:(k + 1) * DIM, (k - s_) * DIM:(k - s_ + 1) * DIM]
     g = rng.normal(size=N + nc)
     B = H[:N, N:].reshape(4, DIM, nc).copy()
-    status, touched, R, e0, own_D, own_g = sw._marginal_prior(Hb, g[:N], B, H[N:, N:].copy(), g[N:], nl)
+    status, touched, R, e0, own_D, own_g = banded.marginal_prior(Hb, g[:N], B, H[N:, N:].copy(), g[N:], nl)
     m = nl * DIM
     Hs = H[m:, m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], H[:m, m:])
     gs = g[m:] - H[m:, :m] @ np.linalg.solve(H[:m, :m], g[:m])
@@ -199,14 +200,14 @@ def test_a_semidefinite_marginal_keeps_only_the_informed_directions():
     Hb = np.zeros((2, 2, DIM, DIM))
     Hb[0, 0], Hb[1, 0], Hb[1, 1] = H[:DIM, :DIM], H[DIM:, DIM:], H[DIM:, :DIM]
     g = A.T @ rng.normal(size=40)
-    status, touched, Hs, gs, _, _ = sw._marginal_prior(Hb, g, *sw.no_border(2), 1)
+    status, touched, Hs, gs, _, _ = banded.marginal_prior(Hb, g, *banded.no_border(2), 1)
     assert status == 2 and touched.tolist() == [0]
-    R, e0 = sw._semidefinite_square_root(Hs, gs)
+    R, e0 = banded.semidefinite_square_root(Hs, gs)
     np.testing.assert_allclose(R.T @ R, Hs, rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(R.T @ e0, gs, rtol=1e-8, atol=1e-8)
     assert np.count_nonzero(np.abs(R).sum(axis=1) > 1e-9) == 10
     Hb[0, 0] = -np.eye(DIM)
-    assert sw._marginal_prior(Hb, g, *sw.no_border(2), 1)[0] == 1
+    assert banded.marginal_prior(Hb, g, *banded.no_border(2), 1)[0] == 1
 
 
 def test_the_semidefinite_square_root_keeps_weak_directions_beside_strong_ones():
@@ -219,20 +220,20 @@ def test_the_semidefinite_square_root_keeps_weak_directions_beside_strong_ones()
     H[:4, :4] = Q @ np.diag([1e14, 1e2, 0.0, 0.0]) @ Q.T
     H[10, 10] = 1e2
     g = H @ rng.normal(size=DIM)
-    R, e0 = sw._semidefinite_square_root(H, g)
+    R, e0 = banded.semidefinite_square_root(H, g)
     assert np.count_nonzero(np.abs(R).sum(axis=1) > 0) == 3
     np.testing.assert_allclose(R.T @ R, H, rtol=1e-9, atol=1e-9 * np.abs(H).max())
     np.testing.assert_allclose(R.T @ e0, g, rtol=1e-7, atol=1e-7 * np.abs(g).max())
 
 
-@pytest.mark.parametrize("name", sorted(sw.ROBUST_CODES))
+@pytest.mark.parametrize("name", sorted(normal_equations.ROBUST_CODES))
 def test_robust_weights_are_gtsams(name):
     estimators = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
                   "tukey": gtsam.noiseModel.mEstimator.Tukey}
     k = 2.5
     kernel = estimators[name].Create(k)
     for norm in (0.0, 0.3, 2.4, 2.5, 2.6, 7.0, 100.0):
-        assert sw._robust_scale(sw.ROBUST_CODES[name], k, norm) ** 2 == pytest.approx(kernel.weight(norm), abs=1e-12)
+        assert normal_equations.robust_scale(normal_equations.ROBUST_CODES[name], k, norm) ** 2 == pytest.approx(kernel.weight(norm), abs=1e-12)
 
 
 def test_a_window_longer_than_the_run_reaches_the_batch_optimum(gentle):
@@ -287,7 +288,7 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
         n, S, cap = window.newest - window.first + 1, window._S, window._cap
         Hb, g, _ = window._normal_equations(window.first, window.newest + 1, n, S)
         L = np.zeros_like(window._L)
-        assert sw._factorise(Hb, L, window.first, window.first, window.newest, cap, S) == -1
+        assert banded.factorise(Hb, L, window.first, window.first, window.newest, cap, S) == -1
         valid = min(window._stale, window.newest + 1) - window.first  # the rows still up to date
         slots = np.arange(window.first, window.first + valid) % cap
         for s in range(min(S, valid - 1) + 1):
@@ -520,7 +521,7 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
     the run ends as accurate as without the refusal (the weak prior is 1e2 m, 1e1 m/s, pi rad)."""
     data = simulate("gentle", duration=4, seed=2)
     clean = replay(data, lag_s=1.0)
-    factorise_forward, refused = sw._factorise_forward, []
+    factorise_forward, refused = kernels.factorise_forward, []
 
     def refusing_once(Hr, g, L, y, first, start, newest, *rest):
         if newest == 9 and not refused:
@@ -528,7 +529,7 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
             return 7
         return factorise_forward(Hr, g, L, y, first, start, newest, *rest)
 
-    monkeypatch.setattr(sw, "_factorise_forward", refusing_once)
+    monkeypatch.setattr(sw, "factorise_forward", refusing_once)
     result = replay(data, lag_s=1.0)
     assert refused == [7] and result.recovered == [7]
     diff = np.abs(result.smoothed.position - clean.smoothed.position).max()
@@ -543,7 +544,7 @@ def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_w
     def refusing(Hr, g, L, y, first, start, newest, *rest):
         return newest if newest == 5 else factorise_forward(Hr, g, L, y, first, start, newest, *rest)
 
-    factorise_forward = sw._factorise_forward
-    monkeypatch.setattr(sw, "_factorise_forward", refusing)
+    factorise_forward = kernels.factorise_forward
+    monkeypatch.setattr(sw, "factorise_forward", refusing)
     with pytest.raises(FixedLagFailed, match="even with a weak prior on it: the window's information spans"):
         replay(data, lag_s=1.0)

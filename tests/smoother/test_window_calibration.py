@@ -7,15 +7,16 @@ import warnings
 
 import numpy as np
 import pytest
+from test_calibration_estimates import _rig
+from test_sliding_window import _dense
 
 from factors import so3
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
+from smoother.fixed_lag.sliding import kernels
 from smoother.fixed_lag.sliding import window as sw
-from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window
 from smoother.online.replay import replay
-from test_calibration_estimates import _rig
-from test_sliding_window import _dense
+from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window
 
 DIM = sw.DIM
 
@@ -51,7 +52,7 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch(mo
     over the whole window."""
     data = _calibrating_rig(15.0)
     checked, grown, kept_rows = [], [], []
-    solve, factorise = sw.SlidingWindow._solve, sw._factorise_forward_border
+    solve, factorise = sw.SlidingWindow._solve, kernels.factorise_forward_border
 
     def factorise_and_check_products(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, *rest):
         out = factorise(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, *rest)
@@ -65,7 +66,7 @@ def test_the_bordered_window_is_the_whole_bordered_system_solved_from_scratch(mo
             kept_rows.append(start > first)
         return out
 
-    monkeypatch.setattr(sw, "_factorise_forward_border", factorise_and_check_products)
+    monkeypatch.setattr(sw, "factorise_forward_border", factorise_and_check_products)
 
     def solve_and_check(window, t):
         shortened = window.shortened
@@ -149,7 +150,7 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
     from smoother.fixed_lag.gtsam_window import FixedLagFailed
 
     data = _calibrating_rig(3.0)
-    factorise_forward_border, after = sw._factorise_forward_border, []
+    factorise_forward_border, after = kernels.factorise_forward_border, []
     solve_once = sw.SlidingWindow._solve_once
 
     def refusing_the_tenth(Hr, g, L, y, first, start, newest, *rest):
@@ -160,7 +161,7 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
         after.append(window._dx.copy())
         return out
 
-    monkeypatch.setattr(sw, "_factorise_forward_border", refusing_the_tenth)
+    monkeypatch.setattr(sw, "factorise_forward_border", refusing_the_tenth)
     monkeypatch.setattr(sw.SlidingWindow, "_solve_once", recording)
     online = OnlineSmoother.for_dataset(data, lag_s=1.0)
     online.keyframe_at(data.imu.t[0] + 0.05 * np.arange(20))
@@ -186,8 +187,8 @@ def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = Fa
     ``bare_every``: every so many keyframes without its reading; ``after_update(window)`` called
     after each update)."""
     from factors.calibration import CalibrationSet
-    from smoother.model.problem import measurement_spec
     from smoother.fixed_lag.sliding.calibration import WindowCalibration
+    from smoother.model.problem import measurement_spec
 
     data = _rig(2, duration=duration)
     prior = CalibrationPrior(("rotation", "scale"))
@@ -237,9 +238,10 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
     0.37 and 0.46), with fewer than 0.6 of the relinearisations of the thresholds alone (measured
     27 against 59 on these 15 s, which begin with every calibration at its prior). After an
     update each coordinate's limit is the larger of its threshold and half its marginal sigma."""
+    import estimator_cases as cases
+
     from factors.calibration import prior_residual
     from smoother.fixed_lag.sliding import calibration as wc
-    import estimator_cases as cases
 
     data = _calibrating_rig(15.0)
     made = []

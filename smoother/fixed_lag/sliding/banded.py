@@ -14,11 +14,11 @@ Two layouts:
   ``(k, k - s)`` of ``L``, ``b[k % cap]`` the ``(15, m)`` rows of keyframe ``k``. The window is
   keyframes ``first .. newest``.
 
-Row ``k`` of ``L`` depends on the rows of ``H`` up to ``k`` only: :func:`_factorise` computes rows
-``start ..`` and keeps the ones before, and :func:`_forward` continues a forward solution from a
+Row ``k`` of ``L`` depends on the rows of ``H`` up to ``k`` only: :func:`factorise` computes rows
+``start ..`` and keeps the ones before, and :func:`forward_solve` continues a forward solution from a
 row on. Eliminating the leading blocks first, the rows of ``L`` after them are the factor of their
-Schur complement (:func:`_schur`, :func:`_marginal_prior`; both with the calibrations' dense border
-of :mod:`smoother.fixed_lag.sliding.calibration`, which :func:`_border_solve` solves for). ``docs/design.md`` (fixed-lag
+Schur complement (:func:`schur`, :func:`marginal_prior`; both with the calibrations' dense border
+of :mod:`smoother.fixed_lag.sliding.calibration`, which :func:`border_solve` solves for). ``docs/design.md`` (fixed-lag
 smoothing) gives the derivation.
 """
 from __future__ import annotations
@@ -31,7 +31,7 @@ from factors.small_linalg import cholesky_into
 
 
 @njit(cache=True)
-def _factorise(Hr, L, first, start, newest, cap, S) -> int:
+def factorise(Hr, L, first, start, newest, cap, S) -> int:
     """Rows ``start .. newest`` of the block-banded Cholesky factor ``H = L L^T`` of the window
     ``first .. newest`` (bandwidth ``S``): ``Hr[k - start, s]`` is block ``(k, k - s)`` of ``H``,
     ``L[k % cap, s]`` block ``(k, k - s)`` of ``L`` (the rows before ``start`` are kept: they
@@ -79,7 +79,7 @@ def _factorise(Hr, L, first, start, newest, cap, S) -> int:
 
 
 @njit(cache=True)
-def _forward(L, b, first, start, zero_before, newest, cap, S) -> None:
+def forward_solve(L, b, first, start, zero_before, newest, cap, S) -> None:
     """``b <- L^-1 b`` for the rows ``start .. newest`` of the window ``first .. newest``, in
     place (``b[k % cap]`` the ``(15, m)`` block of keyframe ``k``; the rows before ``start`` are
     solved already, those before ``zero_before`` are zero)."""
@@ -104,8 +104,8 @@ def _forward(L, b, first, start, zero_before, newest, cap, S) -> None:
 
 
 @njit(cache=True)
-def _backward(L, b, stop, newest, cap, S) -> None:
-    """``b <- L^-T b`` in place, rows ``newest`` down to ``stop`` (``b`` as :func:`_forward`'s)."""
+def backward_solve(L, b, stop, newest, cap, S) -> None:
+    """``b <- L^-T b`` in place, rows ``newest`` down to ``stop`` (``b`` as :func:`forward_solve`'s)."""
     m = b.shape[2]
     for k in range(newest, stop - 1, -1):
         row = k % cap
@@ -127,7 +127,7 @@ def _backward(L, b, stop, newest, cap, S) -> None:
 
 
 @njit(cache=True)
-def _solve_lower(L, B) -> None:
+def solve_lower(L, B) -> None:
     """``B <- L^-1 B`` in place (``L`` lower triangular)."""
     n, m = B.shape
     for c in range(m):
@@ -144,7 +144,7 @@ def no_border(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _schur(Hb, g, B, D, gc, nl):
+def schur(Hb, g, B, D, gc, nl):
     """The Schur complement of the first ``nl`` blocks of the block-banded ``(Hb, g)`` bordered by
     ``nc`` calibration coordinates (``B (n, 15, nc)`` their coupling with each block, ``D (nc,
     nc)``, ``g_c (nc)`` their own; ``nc = 0``: no border): ``(H_mm - H_ml H_ll^-1 H_lm, g_m -
@@ -176,7 +176,7 @@ def _schur(Hb, g, B, D, gc, nl):
     Y = np.empty((m0, M - m0 + 1))
     Y[:, :M - m0] = H[:m0, m0:]
     Y[:, M - m0] = full[:m0]
-    _solve_lower(Lll, Y)
+    solve_lower(Lll, Y)
     for a in range(M - m0):
         for b in range(a + 1):  # symmetric: the lower triangle, mirrored
             s = H[m0 + a, m0 + b]
@@ -192,18 +192,18 @@ def _schur(Hb, g, B, D, gc, nl):
 
 
 @njit(cache=True)
-def _marginal_prior(Hb, g, B, D, gc, nl):
+def marginal_prior(Hb, g, B, D, gc, nl):
     """The linear prior that replaces the first ``nl`` blocks of the block-banded ``(Hb, g)`` with
-    the border ``(B, D, g_c)`` (:func:`_schur`): their Schur complement on the blocks it informs
+    the border ``(B, D, g_c)`` (:func:`schur`): their Schur complement on the blocks it informs
     (rows not all zero), ``touched`` (their numbers after the first ``nl``), and on every
     calibration coordinate, as ``R`` (upper triangular, ``R^T R = H_s``) and ``e0`` (``R^T e0 =
     g_s``). Returns ``(status, touched, A, b, D_s, g_cs)``: status 0 with ``(R, e0)``; 1 when
     ``H_ll`` is not positive definite; 2 when ``H_s`` is only semi-definite, with ``(H_s, g_s)``
-    on the touched blocks and the calibrations for :func:`_semidefinite_square_root`. ``(D_s,
+    on the touched blocks and the calibrations for :func:`semidefinite_square_root`. ``(D_s,
     g_cs)``: the calibrations' block of ``(H_s, g_s)`` -- the prior's own share of ``(D, g_c)``
     where it is made (``R_c^T R_c``, ``R_c^T e0`` with ``R_c`` its calibration columns)."""
     nc = D.shape[0]
-    Hs, gs, ok = _schur(Hb, g, B, D, gc, nl)
+    Hs, gs, ok = schur(Hb, g, B, D, gc, nl)
     if not ok:
         return 1, np.empty(0, dtype=np.int64), Hs, gs, np.empty((nc, nc)), np.empty(nc)
     n = (Hs.shape[0] - nc) // DIM
@@ -231,12 +231,12 @@ def _marginal_prior(Hb, g, B, D, gc, nl):
     if not cholesky_into(Ht, Lc):
         return 2, touched, Ht, gt, own_D, own_g
     e0 = gt.reshape(m, 1).copy()
-    _solve_lower(Lc, e0)
+    solve_lower(Lc, e0)
     return 0, touched, Lc.T.copy(), e0[:, 0].copy(), own_D, own_g
 
 
 @njit(cache=True)
-def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction,
+def border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold, fraction,
                   widest, limits) -> int:
     """The border's part of a solve of the bordered window (:mod:`smoother.fixed_lag.sliding.calibration`):
     the rows ``start ..`` of ``Z = L^-1 B`` (``B[k - start]`` keyframe ``k``'s coupling with the
@@ -253,7 +253,7 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     nc = D.shape[0]
     for k in range(start, newest + 1):
         Z[k % cap] = B[k - start]
-    _forward(L, Z, first, start, first, newest, cap, S)
+    forward_solve(L, Z, first, start, first, newest, cap, S)
     for k in range(start, newest + 1):
         s = k % cap
         for a in range(nc):
@@ -279,7 +279,7 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     if not cholesky_into(Sc, factor):
         return -1
     x = rhs.reshape(nc, 1).copy()
-    _solve_lower(factor, x)
+    solve_lower(factor, x)
     for a in range(nc - 1, -1, -1):  # L_D^T delta = x
         acc = x[a, 0]
         for b in range(a + 1, nc):
@@ -313,7 +313,7 @@ def _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, 
     return exceeds
 
 
-def _semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def semidefinite_square_root(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(R, e0)`` with ``R^T R = H`` and ``R^T e0 = g`` for a positive semi-definite ``H``, the
     directions the marginalised factors did not inform left out: those of the eigenvalues below
     1e-12 of ``H`` scaled to a unit diagonal (each state component in its own units: a short IMU

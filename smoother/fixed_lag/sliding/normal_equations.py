@@ -4,10 +4,10 @@ reweighted, summed into the block-banded ``H = sum J^T J`` and ``g = sum J^T e``
 of :mod:`smoother.fixed_lag.sliding.banded` (``Hb (n, S + 1, 15, 15)``, block row 0 = the first keyframe
 assembled; window keyframe ``k``'s arrays at ring slot ``k % cap``).
 
-The factors: the IMU intervals (:func:`factors.preintegration._residual_into`), the sensor
+The factors: the IMU intervals (:func:`factors.preintegration.residual_into`), the sensor
 measurements (:func:`datasets.kinds.measure_into`, :func:`factors.sensor_models.odometry_kernel`
 for a relative pose) with GTSAM's Huber, Cauchy and Tukey weights, and linear priors
-(:class:`_LinearPrior`: the marginals of keyframes that left the window, and priors on one
+(:class:`LinearPrior`: the marginals of keyframes that left the window, and priors on one
 keyframe).
 """
 from __future__ import annotations
@@ -21,24 +21,24 @@ from datasets.kinds import calibrated_into, measure_into
 from datasets.robust import ROBUST_KERNEL_NAMES
 from factors import imu, so3
 from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into, work_array
-from factors.preintegration import _residual_into, _residual_work
+from factors.preintegration import residual_into, residual_work
 from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
 from factors.small_linalg import cholesky_into
-from smoother.fixed_lag.sliding.banded import _solve_lower
+from smoother.fixed_lag.sliding.banded import solve_lower
 from smoother.model.problem import RELATIVE_MODEL
 
 DIM = imu.STATE_DIM
 #: Robust kernels by their code in the compiled loop (0: none), in the order of
-#: :data:`datasets.robust.ROBUST_KERNEL_NAMES`, which :func:`_robust_scale`'s branches follow.
+#: :data:`datasets.robust.ROBUST_KERNEL_NAMES`, which :func:`robust_scale`'s branches follow.
 ROBUST_CODES = {name: code for code, name in enumerate(ROBUST_KERNEL_NAMES, start=1)}
-_MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admits
+MAX_DIM = MAX_RESIDUAL_DIM  # the widest measurement residual the registry admits
 #: Reassociation and contraction only (no assumptions about NaN or infinities): lets LLVM turn the
 #: dot products of the linear algebra into SIMD code.
 _FAST = {"reassoc", "contract"}
 #: The widest whitened Jacobian: a relative pose's two states and a calibration's coordinates.
 _WIDE = 2 * DIM + CALIBRATION_DIM
 #: ``jacobians`` of the IMU residual as a run-time flag: a literal ``True`` would compile a second
-#: copy of :func:`factors.preintegration._residual_into` beside the batch solver's.
+#: copy of :func:`factors.preintegration.residual_into` beside the batch solver's.
 _WITH_JACOBIANS = np.bool_(True)
 #: The same for the integers the kernels pass their helpers: a literal argument compiles a copy
 #: of the helper for its value (five of :func:`_add_diagonal`, three each of :func:`_whiten` and
@@ -47,7 +47,7 @@ _AT_ZERO, _AT_DIM, _NO_KEYFRAME = np.int64(0), np.int64(DIM), np.int64(-1)
 
 
 @dataclass
-class _LinearPrior:
+class LinearPrior:
     """``e(x, c) = R [x [-] x_lin; dc] + e0`` on the window keyframes ``keyframes`` (ascending;
     their linearisation points ``r, v, C, b_f, b_w`` row by row) and, where ``c_lin`` is given
     (a marginal that informs the calibrations, :mod:`smoother.fixed_lag.sliding.calibration`), on every
@@ -71,7 +71,7 @@ class _LinearPrior:
 
 
 @njit(cache=True)
-def _robust_scale(code, k, norm) -> float:
+def robust_scale(code, k, norm) -> float:
     """``sqrt(w(|e_w|))`` of GTSAM's mEstimator ``code`` (:data:`ROBUST_CODES`) at threshold ``k``."""
     if code == 1:  # Huber
         return 1.0 if norm <= k else np.sqrt(k / norm)
@@ -200,7 +200,7 @@ def _reweight(code, k, JT, ew, d) -> None:
         norm = 0.0
         for a in range(d):
             norm += ew[a] * ew[a]
-        scale = _robust_scale(code, k, np.sqrt(norm))
+        scale = robust_scale(code, k, np.sqrt(norm))
         ew[:d] *= scale
         JT[:, :d] *= scale
 
@@ -216,14 +216,14 @@ def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
 
 
 @njit(cache=True)
-def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
+def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
                m, mk, model, rows, dims, Wm, rcode, rk, mcal, Hb, g) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
     IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``
-    that read no calibration (``mcal[f] < 0``; the others: :func:`_linearise_calibrated`),
+    that read no calibration (``mcal[f] < 0``; the others: :func:`linearise_calibrated`),
     linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
-    work = _residual_work()
+    work = residual_work()
     e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
     J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM)), np.empty(DIM)
     n = Hb.shape[0]
@@ -234,7 +234,7 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
         if not has_imu[j]:
             continue
         i = (k - 1) % cap
-        _residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
+        residual_into(dC[j], Wp[j], Rm[j], JC[j], dW[j], dRm[j], bwbar[j], r[i], v[i], C[i], bf[i], bw[i],
                        r[j], v[j], C[j], bf[j], bw[j], gravity, _WITH_JACOBIANS, e, A, B, work)
         J[:, :DIM] = A
         J[:, DIM:] = B
@@ -242,7 +242,7 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
         _add_normal(Hb, g, k - 1 - lo, _AT_ZERO, k - lo, _AT_DIM, JT, ew, _AT_DIM)
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
     # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
-    H, Hm = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM))
+    H, Hm = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM))
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         if k0 >= cut or k1 < lo or mcal[f] >= 0:
@@ -261,9 +261,9 @@ def _linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW
 
 
 @njit(cache=True)
-def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
+def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
                           mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, Hb, g, B, D, gc) -> None:
-    """:func:`_linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
+    """:func:`linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
     (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
     reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
     coordinates in the border's columns ``cal_cols[j]``, -1 where not estimated; ``layouts``:
@@ -281,8 +281,8 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
     calibrations never compiles the calibrated residuals."""
     e, ew = np.empty(DIM), np.empty(DIM)
     JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))
-    H, Hm, Hc = np.empty((_MAX_DIM, 2 * DIM)), np.empty((_MAX_DIM, DIM)), np.empty((_MAX_DIM, CALIBRATION_DIM))
-    Jc = np.empty((_MAX_DIM, _WIDE))  # the factor's states and calibration side by side
+    H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
+    Jc = np.empty((MAX_DIM, _WIDE))  # the factor's states and calibration side by side
     work = work_array()
     n = Hb.shape[0]
     for k in range(lo, min(cut, lo + n)):  # the sums not kept, made anew below
@@ -334,10 +334,10 @@ def _linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, 
 
 
 @njit(cache=True)
-def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, dc, Jdc, cap, r, v, C, bf, bw, lo, Hb, g, B, D, gc) -> None:
+def prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, dc, Jdc, cap, r, v, C, bf, bw, lo, Hb, g, B, D, gc) -> None:
     """Add the linear prior ``e = R [x [-] x_lin; dc] + e0`` on keyframes ``blocks`` (global
     numbers, ascending) and, where ``dc`` is not empty, on the border's calibration coordinates
-    (:class:`_LinearPrior`), linearised at the state arrays given, to the rows ``lo ..`` of
+    (:class:`LinearPrior`), linearised at the state arrays given, to the rows ``lo ..`` of
     ``Hb``, ``g`` (block row 0 = keyframe ``lo``) and to ``B``, ``D``, ``g_c``."""
     P = blocks.shape[0]
     N = DIM * P
@@ -409,16 +409,16 @@ def _prior_into(blocks, xr, xv, xC, xbf, xbw, R, e0, dc, Jdc, cap, r, v, C, bf, 
 
 
 @njit(cache=True)
-def _whitening_into(cov, W) -> bool:
+def whitening_into(cov, W) -> bool:
     """``W = L^-1`` with ``cov = L L^T`` (:func:`smoother.model.blocks.whitening`, compiled for one
     matrix); False if ``cov`` is not positive definite."""
     d = cov.shape[0]
     L = np.empty((d, d))
     if not cholesky_into(cov, L):
         return False
-    Wd = np.zeros((d, d))  # C-contiguous, as the banded solves' blocks: one compiled _solve_lower
+    Wd = np.zeros((d, d))  # C-contiguous, as the banded solves' blocks: one compiled solve_lower
     for c in range(d):
         Wd[c, c] = 1.0
-    _solve_lower(L, Wd)
+    solve_lower(L, Wd)
     W[:d, :d] = Wd
     return True

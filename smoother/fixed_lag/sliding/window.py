@@ -51,27 +51,46 @@ either.
 """
 from __future__ import annotations
 
-import math
 import time
 from collections import deque
 from contextlib import nullcontext
 
 import numpy as np
-from numba import njit
 
 from datasets.kinds import LAYOUTS, quiet_dispatch
 from factors import imu, preintegration
 from factors.errors import InputError
 from factors.sensor_models import MAX_ROW_WIDTH
-# _schur, _robust_scale: the window's compiled parts stay reachable under this module's name
-from smoother.fixed_lag.sliding.banded import (_backward, _border_solve, _factorise, _forward, _marginal_prior, _schur,  # noqa: F401
-                             _semidefinite_square_root, no_border)
 from smoother.fixed_lag.gtsam_window import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
-from smoother.model.robust import robust_threshold
-from smoother.fixed_lag.sliding.normal_equations import (_MAX_DIM, ROBUST_CODES, _linearise, _linearise_calibrated,  # noqa: F401
-                                       _LinearPrior, _prior_into, _robust_scale, _whitening_into)
+from smoother.fixed_lag.sliding.banded import (
+    forward_solve,
+    marginal_prior,
+    no_border,
+    semidefinite_square_root,
+)
+from smoother.fixed_lag.sliding.calibration import (
+    RELINEARISATION_SIGMA_FRACTION,
+    RELINEARISATION_WIDEST,
+    WindowCalibration,
+)
+from smoother.fixed_lag.sliding.kernels import (
+    drop_measurements,
+    factorise_forward,
+    factorise_forward_border,
+    relinearise_offsets,
+    step_window,
+)
+from smoother.fixed_lag.sliding.normal_equations import (
+    MAX_DIM,
+    ROBUST_CODES,
+    LinearPrior,
+    linearise,
+    linearise_calibrated,
+    prior_into,
+    whitening_into,
+)
 from smoother.model.blocks import whitening
-from smoother.fixed_lag.sliding.calibration import RELINEARISATION_SIGMA_FRACTION, RELINEARISATION_WIDEST, WindowCalibration
+from smoother.model.robust import robust_threshold
 
 DIM = imu.STATE_DIM
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
@@ -100,128 +119,12 @@ EARLY_RELINEARISATION = 0.5
 MAX_ATTITUDE_STEP = 0.2
 
 
-# -- compiled parts -------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw) -> None:
-    """``x = theta [+] delta`` for the window's keyframes (:func:`factors.imu.boxplus_into`: the
-    left attitude increment)."""
-    for k in range(first, newest + 1):
-        s = k % cap
-        xr[s], xv[s], xC[s], xbf[s], xbw[s] = r[s], v[s], C[s], bf[s], bw[s]
-        imu.boxplus_into(xr[s], xv[s], xC[s], xbf[s], xbw[s], delta[s].reshape(delta.shape[1]))  # C, as the EKF's
-
-
-@njit(cache=True)
-def _factorise_forward(Hr, g, L, y, first, start, newest, cap, S) -> int:
-    """The rows ``start ..`` of ``L`` from ``Hr`` (:func:`_factorise`) and the forward solution
-    ``y = L^-1 (-g)`` from row ``start`` on (``g``'s rows from ``start``; the rows before kept).
-    Returns -1, or the keyframe whose pivot failed (nothing else done)."""
-    failed = _factorise(Hr, L, first, start, newest, cap, S)
-    if failed >= 0:
-        return failed
-    for k in range(start, newest + 1):
-        s = k % cap
-        for p in range(DIM):
-            y[s, p, 0] = -g[(k - start) * DIM + p]
-    _forward(L, y, first, start, first, newest, cap, S)
-    return -1
-
-
-@njit(cache=True)
-def _factorise_forward_border(Hr, g, L, y, first, start, newest, cap, S, Z, ZZ, B, D, gc, dx, L_D, delta_c,
-                              threshold, fraction, widest, limits):
-    """A bordered window's :func:`_factorise_forward`, then ``dx = y`` over the window and the
-    border's part (:func:`smoother.fixed_lag.sliding.banded._border_solve`: ``Z``, ``ZZ``, ``L_D``, ``delta_c``,
-    ``limits``, ``dx -= Z delta_c``) in the same call. Returns ``(failed, code)``: ``failed`` as
-    :func:`_factorise_forward`'s (``code`` 0, nothing else done), else -1 and the border's code
-    (1: some ``|delta_c|`` exceeds its limit, 0: none, -1: the calibrations' Schur complement is
-    not positive definite, ``dx = y``)."""
-    failed = _factorise_forward(Hr, g, L, y, first, start, newest, cap, S)
-    if failed >= 0:
-        return failed, 0
-    for k in range(first, newest + 1):
-        s = k % cap
-        dx[s] = y[s]
-    return -1, _border_solve(L, Z, ZZ, B, D, gc, y, dx, first, start, newest, cap, S, L_D, delta_c, threshold,
-                             fraction, widest, limits)
-
-
-@njit(cache=True)
-def _step(L, delta, before, first, newest, cap, S, threshold, max_turn, moved, r, v, C, bf, bw, xr, xv, xC, xbf,
-          xbw):
-    """The rest of an update, ``delta`` holding the forward solution (less the calibrations'
-    share, :mod:`smoother.fixed_lag.sliding.calibration`) and ``before`` the offsets of the last update:
-    ``delta = L^-T delta``, the whole step from ``before`` shortened so that no attitude turns by
-    more than ``max_turn`` [rad], the estimates ``theta [+] delta`` (:func:`_boxplus`), then the
-    keyframes whose offset exceeds ``threshold`` linearised again (:func:`_relinearise`). Returns
-    ``(oldest, a)``: -1 or the oldest keyframe linearised again, and the factor the step was
-    shortened by (1: not shortened)."""
-    _backward(L, delta, first, newest, cap, S)
-    turn = 0.0
-    for k in range(first, newest + 1):
-        s = k % cap
-        d0, d1, d2 = (delta[s, 6, 0] - before[s, 6, 0], delta[s, 7, 0] - before[s, 7, 0],
-                      delta[s, 8, 0] - before[s, 8, 0])
-        turn = max(turn, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
-    a = 1.0
-    if turn > max_turn:  # along the Gauss-Newton step, no further than max_turn in attitude
-        a = max_turn / turn
-        for k in range(first, newest + 1):
-            s = k % cap
-            for p in range(DIM):
-                delta[s, p, 0] = before[s, p, 0] + a * (delta[s, p, 0] - before[s, p, 0])
-    _boxplus(first, newest, cap, delta, r, v, C, bf, bw, xr, xv, xC, xbf, xbw)
-    return _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved), a
-
-
-@njit(cache=True)
-def _drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg):
-    """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
-    rest; returns their number and the longest span (later minus earlier keyframe) among them."""
-    n, span = 0, 0
-    for f in range(m):
-        if mk[f, 0] >= cut:
-            if n != f:
-                mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
-                Wm[n], rcode[n], rk[n], mcal[n], mD[n], mg[n] = Wm[f], rcode[f], rk[f], mcal[f], mD[f], mg[f]
-            span = max(span, mk[n, 1] - mk[n, 0])
-            n += 1
-    return n, span
-
-
-@njit(cache=True)
-def _relinearise(first, newest, cap, delta, threshold, r, v, C, bf, bw, xr, xv, xC, xbf, xbw, moved) -> int:
-    """Move the linearisation point ``theta`` of each window keyframe whose offset ``delta`` exceeds
-    ``threshold`` in any component to its estimate (``theta <- theta [+] delta = x``,
-    ``delta <- 0``), flagging it in ``moved``; returns the oldest moved keyframe, or -1."""
-    oldest = -1
-    for k in range(first, newest + 1):
-        s = k % cap
-        moved[s] = False
-        for i in range(DIM):
-            if abs(delta[s, i, 0]) > threshold[i]:
-                moved[s] = True
-                break
-        if moved[s]:
-            if oldest < 0:
-                oldest = k
-            r[s, :], v[s, :], bf[s, :], bw[s, :] = xr[s], xv[s], xbf[s], xbw[s]
-            C[s, :, :] = xC[s]
-            delta[s] = 0.0
-    return oldest
-
-
-# -- the window -----------------------------------------------------------------------------------
-
-
 _compiled = False
 
 
 def _compiling():
     """:func:`datasets.kinds.quiet_dispatch` around the first call (which compiles or loads
-    :func:`_linearise`), nothing after: the warning filters cost more than an update's mathematics."""
+    :func:`linearise`), nothing after: the warning filters cost more than an update's mathematics."""
     global _compiled
     if _compiled:
         return nullcontext()
@@ -267,14 +170,14 @@ class SlidingWindow:
         #: updates whose step was shortened (MAX_ATTITUDE_STEP)
         self.shortened = 0
         self._taken_after: dict[int, int] = {}
-        self._priors: list[_LinearPrior] = []
+        self._priors: list[LinearPrior] = []
         self._S = 1  # the band L is factorised with (at least the factors' reach; narrowed at whole factorisations)
         self._spans = [0, 0]  # the longest span of the measurements, of the priors
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.fixed_lag.sliding.calibration)
-        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded._border_solve)
+        self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded.border_solve)
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -296,7 +199,7 @@ class SlidingWindow:
         for name, tail in shapes.items():
             setattr(self, name, np.zeros((cap,) + tail))
         self._has_imu = np.zeros(cap, dtype=np.bool_)
-        self._kept = np.zeros(cap, dtype=np.bool_)  # whether _kH, _kg, _kB hold the keyframe's sums (_linearise_calibrated)
+        self._kept = np.zeros(cap, dtype=np.bool_)  # whether _kH, _kg, _kB hold the keyframe's sums (linearise_calibrated)
         self._moved = np.zeros(cap, dtype=np.bool_)
         self._pre = [None] * cap
         for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
@@ -309,7 +212,7 @@ class SlidingWindow:
         """Measurement tables for ``cap`` rows, the current ones kept."""
         m = getattr(self, "_m", 0)
         shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
-                  "_dims": ((), np.int64), "_Wm": ((_MAX_DIM, _MAX_DIM), float), "_rcode": ((), np.int64),
+                  "_dims": ((), np.int64), "_Wm": ((MAX_DIM, MAX_DIM), float), "_rcode": ((), np.int64),
                   "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float)}
         for name, (tail, dtype) in shapes.items():
             fresh = np.zeros((cap,) + tail, dtype=dtype)
@@ -376,7 +279,7 @@ class SlidingWindow:
         interval = None
         if pre is not None and k > 0:
             interval = np.zeros((DIM, DIM))
-            if not _whitening_into(pre.cov, interval):
+            if not whitening_into(pre.cov, interval):
                 raise InputError("the IMU interval's covariance is not positive definite")
         factors = [self._measurement_row(spec, m, keyframes, robust) for spec, m, keyframes, robust in measurements
                    if min(keyframes) >= first]
@@ -430,7 +333,7 @@ class SlidingWindow:
             slots = np.arange(k, self.newest + 1) % cap
             b[slots] = 0.0
             b[k % cap] = np.eye(DIM)
-            _forward(self._L, b, self.first, k, k, self.newest, cap, self._S)
+            forward_solve(self._L, b, self.first, k, k, self.newest, cap, self._S)
             X = b[slots].reshape(-1, DIM)
             cov = X.T @ X
             if Sigma_cc is not None:
@@ -466,8 +369,8 @@ class SlidingWindow:
         its covariance's whitening (an InputError if it is not positive definite) and robust code."""
         cov = np.ascontiguousarray(spec.cov[m], dtype=float)
         d = cov.shape[-1]
-        W = np.zeros((_MAX_DIM, _MAX_DIM))
-        if not _whitening_into(cov, W):
+        W = np.zeros((MAX_DIM, MAX_DIM))
+        if not whitening_into(cov, W):
             raise InputError(f"a measurement's covariance is not positive definite: {cov.tolist()}")
         if robust is not None and robust[0] not in ROBUST_CODES:
             raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
@@ -496,7 +399,7 @@ class SlidingWindow:
 
     def _add_prior(self, k: int, state: imu.ImuState, R: np.ndarray) -> None:
         """A prior ``R (x_k [-] state)`` on keyframe ``k`` (``R`` the whitening of its covariance)."""
-        self._priors.append(_LinearPrior(np.array([k]), state.r[None].copy(), state.v[None].copy(),
+        self._priors.append(LinearPrior(np.array([k]), state.r[None].copy(), state.v[None].copy(),
                                          state.C[None].copy(), state.b_f[None].copy(), state.b_w[None].copy(),
                                          R, np.zeros(DIM)))
         self._stale = min(self._stale, k)
@@ -550,12 +453,12 @@ class SlidingWindow:
             D, gc = (cal.own_prior[0].copy(), cal.own_prior[1].copy()) if solving else (np.zeros((cal.nc, cal.nc)),
                                                                                         np.zeros(cal.nc))
         with _compiling():
-            _linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
+            linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
                        self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
                        self._mcal, Hb, g)
             if cal is not None:
-                _linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
+                linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
                                       self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
                                       self._mcal, self._mD, self._mg, self._kH, self._kg, self._kB, self._kept,
                                       cal.packed, cal.with_time, cal.columns, LAYOUTS,
@@ -579,7 +482,7 @@ class SlidingWindow:
             else:
                 into = None
             if into is not None:
-                _prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
+                prior_into(p.keyframes, p.r, p.v, p.C, p.b_f, p.b_w, p.R, p.e0, p.dc, p.Jdc, self._cap,
                             *self._linearisation_points(), lo, Hb, g, *into)
             if keeps:
                 D += p.own[0]
@@ -622,14 +525,14 @@ class SlidingWindow:
         Hr, g, border = self._normal_equations(start, self.newest + 1, self.newest - start + 1, S)
         before = self._dx.copy()
         if self._cal is None:
-            failed = _factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
+            failed = factorise_forward(Hr, g, self._L, self._y, self.first, start, self.newest, self._cap, S)
             if failed >= 0:
                 return failed
             self._dx[:] = self._y
             exceeds = False
         else:
             before_c, delta_c = self._cal.delta.copy(), np.empty(self._cal.nc)
-            failed, code = _factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
+            failed, code = factorise_forward_border(Hr, g, self._L, self._y, self.first, start, self.newest,
                                                      self._cap, S, self._Z, self._ZZ, *border, self._dx,
                                                      self._cal.L_D, delta_c, self._cal.thresholds,
                                                      RELINEARISATION_SIGMA_FRACTION, RELINEARISATION_WIDEST,
@@ -646,7 +549,7 @@ class SlidingWindow:
                     "definite after the keyframes' share (their priors' sigmas span more orders of magnitude than "
                     "the data determine them to, or a sensor is many orders more precise than the rest)")
             self._cal.delta = delta_c
-        oldest, a = _step(self._L, self._dx, before, self.first, self.newest, self._cap, S,
+        oldest, a = step_window(self._L, self._dx, before, self.first, self.newest, self._cap, S,
                           self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
                           *self._estimates())
         self._stale = self.newest + 1
@@ -668,7 +571,7 @@ class SlidingWindow:
         no row before ``start`` becomes stale (nor anything moves when those keyframes are the newest
         alone: it was added at its estimate)."""
         if start + reach < self.newest:
-            oldest = _relinearise(start + reach, self.newest, self._cap, self._dx,
+            oldest = relinearise_offsets(start + reach, self.newest, self._cap, self._dx,
                                   EARLY_RELINEARISATION * self.relinearisation_threshold,
                                   *self._linearisation_points(), *self._estimates(), self._moved)
             if oldest >= 0:
@@ -695,7 +598,7 @@ class SlidingWindow:
 
     def _marginalise(self, leaving: list[int]) -> None:
         """Replace the factors touching ``leaving`` (the oldest window keyframes) by their Schur
-        complement onto the keyframes they also touch, a :class:`_LinearPrior` at their
+        complement onto the keyframes they also touch, a :class:`LinearPrior` at their
         linearisation points -- on the calibrations too when it informs them, which also takes
         in the priors on the calibrations alone. The rows of ``L`` (and of the border ``Z``) after
         ``leaving`` stay: eliminating the oldest keyframes first, they are the factor of that
@@ -714,7 +617,7 @@ class SlidingWindow:
         bordered = self._cal is not None and np.count_nonzero(D) > 0  # (B != 0 puts its J_c^T J_c != 0 in D)
         if not bordered:
             B, D, gc = no_border(n)
-        status, touched, A, b, own_D, own_g = _marginal_prior(Hb, g, B, D, gc, nl)
+        status, touched, A, b, own_D, own_g = marginal_prior(Hb, g, B, D, gc, nl)
         if status == 1:
             raise FixedLagFailed(f"the fixed-lag smoother cannot marginalise keyframes {self.first}..{cut - 1} "
                                  f"(t = {self.time(self.first):.6f}..{self.time(cut - 1):.6f} s): their information "
@@ -722,17 +625,17 @@ class SlidingWindow:
         # the priors it replaced: those reaching a leaving keyframe, and those on the calibrations alone
         self._priors = [p for p in self._priors
                         if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
-        self._m, self._spans[0] = _drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
+        self._m, self._spans[0] = drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
                                                      self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg)
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None
         self.first = cut
         if touched.size or bordered:  # keep what the marginal ties (non-zero information)
-            R, e0 = (A, b) if status == 0 else _semidefinite_square_root(A, b)
+            R, e0 = (A, b) if status == 0 else semidefinite_square_root(A, b)
             keyframes = cut + touched
             slots = keyframes % self._cap
-            prior = _LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0)
+            prior = LinearPrior(keyframes, *(a[slots] for a in self._linearisation_points()), R, e0)
             if bordered:  # at the calibrations' linearisation points: dc = 0, its Jacobian I
                 prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
                 prior.own = own_D, own_g
