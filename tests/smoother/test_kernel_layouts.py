@@ -1,7 +1,7 @@
 """Each compiled kernel is compiled for one argument layout: the estimators, the batch solver's
 blocks and the Python wrappers all pass C-contiguous, writable float64 arrays, so a first run
 compiles (and caches) one copy of each kernel, not one per caller. The same first run compiles the
-sliding window's kernels in a second process (smoother/kernel_warm_up.py), from whose cache the
+sliding window's kernels in a second process (smoother/online/warm_up.py), from whose cache the
 run then loads them."""
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from numba.core import types
 from numba.core.registry import CPUDispatcher
 from datasets.simulate import simulate
 from smoother.online import warm_up as kernel_warm_up
-from smoother.fixed_lag.sliding.normal_equations import _linearise
+from smoother.fixed_lag.sliding.normal_equations import linearise
 from smoother.pipeline import run_estimators, RunOptions
 
 children = []
@@ -36,7 +36,7 @@ kernel_warm_up.start = lambda *args: children.append(start(*args)) or children[-
 dataset = simulate("gentle", duration=3.0, seed=0)
 run_estimators(dataset, ("batch", "fixed-lag", "ekf"), RunOptions(progress=False))
 warm_up = {"exit": [c._process.returncode for c in children if c is not None],
-           "hits": sum(_linearise.stats.cache_hits.values()), "misses": sum(_linearise.stats.cache_misses.values())}
+           "hits": sum(linearise.stats.cache_hits.values()), "misses": sum(linearise.stats.cache_misses.values())}
 run_estimators(dataset, ("fixed-lag",), RunOptions(fixed_lag_kind="incremental", progress=False))
 found = {}
 for name, module in list(sys.modules.items()):

@@ -1,4 +1,4 @@
-"""The sliding window's kernels compiled in a second process (smoother/kernel_warm_up.py): when
+"""The sliding window's kernels compiled in a second process (smoother/online/warm_up.py): when
 a child starts, and that the run waits for it and stops it (that its cache is the one the run
 loads: tests/smoother/test_kernel_layouts.py, which pays for a first run already)."""
 from __future__ import annotations

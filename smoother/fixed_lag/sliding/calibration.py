@@ -24,7 +24,7 @@ stale.
 
 Marginalising the oldest keyframes replaces the factors touching them by their Schur complement
 onto the keyframes they also touch AND the calibrations: a bordered prior ``e = R ([x [-] x_lin;
-c [-] c_lin]) + e0`` (:class:`smoother.fixed_lag.sliding.normal_equations._LinearPrior` with ``c_lin``; a prior on
+c [-] c_lin]) + e0`` (:class:`smoother.fixed_lag.sliding.normal_equations.LinearPrior` with ``c_lin``; a prior on
 the calibrations alone, when no keyframe is left that the marginal informs, joins the next
 marginal). Eliminating the oldest keyframes first, the rows of ``L_A``
 and ``Z`` after them are the factor of that Schur complement already (the trailing part of a
@@ -39,9 +39,9 @@ Everything an update evaluates is compiled: the calibrated residuals
 and the border's sums in :func:`smoother.fixed_lag.sliding.normal_equations._linearise_calibrated` (each
 keyframe's one-keyframe calibrated measurements keep what they add to its rows until it or a
 calibration is linearised again), the bordered priors in
-:func:`smoother.fixed_lag.sliding.normal_equations._prior_into`, the border's solve
-(:func:`smoother.fixed_lag.sliding.banded._border_solve`) and the bordered marginal
-(:func:`smoother.fixed_lag.sliding.banded._marginal_prior`). This class holds the variables: their linearisation
+:func:`smoother.fixed_lag.sliding.normal_equations.prior_into`, the border's solve
+(:func:`smoother.fixed_lag.sliding.banded.border_solve`) and the bordered marginal
+(:func:`smoother.fixed_lag.sliding.banded.marginal_prior`). This class holds the variables: their linearisation
 points (packed for those kernels), offsets, ``L_D`` and their own priors.
 """
 from __future__ import annotations
@@ -120,7 +120,7 @@ class WindowCalibration:
         #: the offsets beyond which the last solve found the border's coordinates due to be linearised
         #: again: the larger of the threshold and :data:`RELINEARISATION_SIGMA_FRACTION` of the
         #: coordinate's marginal sigma, at most :data:`RELINEARISATION_WIDEST` thresholds
-        #: (:func:`smoother.fixed_lag.sliding.banded._border_solve`)
+        #: (:func:`smoother.fixed_lag.sliding.banded.border_solve`)
         self.limits = self.thresholds.copy()
         #: a bordered prior's ``(dc, Jdc)`` made at the linearisation points (:meth:`border_of`)
         self.at_linearisation = np.zeros(self.nc), np.eye(self.nc)

@@ -4,7 +4,7 @@ the compiled residuals, the keyframes that leave it marginalised into a linear p
 Why: GTSAM's fixed-lag smoothers call every project factor back through Python at each
 relinearisation (a ``CustomFactor`` per factor, each handed a copy of the ``Values``); that
 overhead, not the mathematics, set the cost of an online update. Here a whole update is a few
-compiled calls over flat arrays: the IMU residual (:func:`factors.preintegration._residual_into`),
+compiled calls over flat arrays: the IMU residual (:func:`factors.preintegration.residual_into`),
 the sensor kernels (:func:`datasets.kinds.measure_into`,
 :func:`factors.sensor_models.odometry_kernel`), the same code the batch solver, the GTSAM factors
 and the EKF run. ``docs/design.md`` (fixed-lag smoothing) gives the derivation in full.
