@@ -49,7 +49,8 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
     window hold); a model of the kind's dimension; a data type whose fields are the kind's
     ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``scaled_field`` exactly where the
     model has scaled rows; a ``default_sigma`` that
-    :func:`kind_sigmas` reads; a ``random_row`` of the declared width. An error naming the
+    :func:`kind_sigmas` reads; a ``random_row`` of the declared width; ``noise_groups`` with distinct
+    names whose axes partition the residual's. An error naming the
     kind and the rule else (an InputError)."""
     out: dict[str, Kind] = {}
     for k in kinds:
@@ -72,6 +73,10 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
         scaled_rows = sm.ODOMETRY_SCALED if k.relative else k.model.scaled
         if (k.scaled_field is None) != (scaled_rows == 0):
             refuse(f"scaled_field {k.scaled_field!r}, and its model has {scaled_rows} scaled rows")
+        axes = sorted(a for _, group in k.axis_groups for a in group)
+        names = [name for name, _ in k.axis_groups]
+        if axes != list(range(k.dim)) or len(set(names)) != len(names):
+            refuse(f"noise_groups {k.noise_groups}: expected distinct names whose axes partition 0 .. {k.dim - 1}")
         _, row = k.random_row(np.random.default_rng(0))
         if np.shape(row) != (k.width,):
             refuse(f"random_row gives a row of shape {np.shape(row)}; expected ({k.width},)")

@@ -42,7 +42,10 @@ class Kind:
     ``scale = (metres, radians)`` in random directions (None: the simulator cannot corrupt this
     kind); ``scaled_field``: the field of readings that a sensor's scale multiplies (what it reads
     per unit of the truth; the model's :attr:`~factors.sensor_models.SensorModel.scaled` rows),
-    None if none. The registry (:func:`datasets.kinds.registered`) checks these declarations."""
+    None if none; ``noise_groups``: the residual's axes in the groups whose noise is estimated
+    apart (``((name, axes), ...)``, a partition of ``range(dim)``: a GNSS's horizontal and vertical,
+    a velocity's forward, lateral and vertical); default one group of every axis. The registry
+    (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
     data_type: type
@@ -58,6 +61,12 @@ class Kind:
     times: tuple[str, ...] = ("t",)
     corrupt: Callable | None = None
     scaled_field: str | None = None
+    noise_groups: tuple = ()
+
+    @property
+    def axis_groups(self) -> tuple:
+        """:attr:`noise_groups`, or one group ``("all", every axis)`` when none is declared."""
+        return self.noise_groups or (("all", tuple(range(self.dim))),)
 
     def unscaled(self, data, scale: float):
         """``data`` with its :attr:`scaled_field` divided by ``scale`` and its covariance by
