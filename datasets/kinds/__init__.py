@@ -73,8 +73,8 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
         scaled_rows = sm.ODOMETRY_SCALED if k.relative else k.model.scaled
         if (k.scaled_field is None) != (scaled_rows == 0):
             refuse(f"scaled_field {k.scaled_field!r}, and its model has {scaled_rows} scaled rows")
-        axes = sorted(a for _, group in k.axis_groups for a in group)
-        names = [name for name, _ in k.axis_groups]
+        axes = sorted(a for _, group, _ in k.axis_groups for a in group)
+        names = [name for name, _, _ in k.axis_groups]
         if axes != list(range(k.dim)) or len(set(names)) != len(names):
             refuse(f"noise_groups {k.noise_groups}: expected distinct names whose axes partition 0 .. {k.dim - 1}")
         _, row = k.random_row(np.random.default_rng(0))

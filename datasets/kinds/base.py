@@ -43,8 +43,9 @@ class Kind:
     kind); ``scaled_field``: the field of readings that a sensor's scale multiplies (what it reads
     per unit of the truth; the model's :attr:`~factors.sensor_models.SensorModel.scaled` rows),
     None if none; ``noise_groups``: the residual's axes in the groups whose noise is estimated
-    apart (``((name, axes), ...)``, a partition of ``range(dim)``: a GNSS's horizontal and vertical,
-    a velocity's forward, lateral and vertical); default one group of every axis. The registry
+    apart, with the unit of their sigmas (``((name, axes, unit), ...)``, the axes a partition of
+    ``range(dim)``: a GNSS's horizontal and vertical, a velocity's forward, lateral and vertical);
+    default one group of every axis in the unit of the first declared group, or none. The registry
     (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
@@ -65,8 +66,8 @@ class Kind:
 
     @property
     def axis_groups(self) -> tuple:
-        """:attr:`noise_groups`, or one group ``("all", every axis)`` when none is declared."""
-        return self.noise_groups or (("all", tuple(range(self.dim))),)
+        """:attr:`noise_groups`, or one group ``("all", every axis, "")`` when none is declared."""
+        return self.noise_groups or (("all", tuple(range(self.dim)), ""),)
 
     def unscaled(self, data, scale: float):
         """``data`` with its :attr:`scaled_field` divided by ``scale`` and its covariance by

@@ -53,7 +53,7 @@ def _random_row(rng):
 
 
 
-_DECLARED = dict(noise_groups=(("horizontal", (0, 1)), ("vertical", (2,))), fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=displaced)
+_DECLARED = dict(noise_groups=(("horizontal", (0, 1), "m"), ("vertical", (2,), "m")), fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=displaced)
 POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions,
                 **_DECLARED)
 GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes, **_DECLARED)

@@ -1,0 +1,493 @@
+"""The noise of the IMU and of the aiding sensors estimated by the batch smoother: variance
+components (Helmert/Foerstner), equivalent to restricted maximum likelihood (docs/design.md,
+"Noise from the data").
+
+Model. Every factor ``k`` has a residual ``e_k`` whose covariance is a known function of a few
+positive scale factors ``theta_g`` (one per noise group ``g``), at ``theta = 1`` the covariance
+the rig states:
+
+* an IMU factor, ``Sigma_k = sum_c theta_c N_kc + N_k0``: the preintegrated covariance is linear
+  in the four densities squared (accelerometer and gyro white noise, accelerometer and gyro bias
+  random walk), so it splits into four parts ``N_kc`` -- each the same propagation with one
+  density alone (:func:`factors.preintegration.noise_covariance`) -- and the rest ``N_k0`` (the
+  velocity noise of the Euler step and the floor), which is not estimated;
+* a sensor's measurement, ``R_k = D R_k0 D`` with ``D = diag(sqrt(theta_g(a)))`` over the
+  residual's axes ``a``, each axis in one of its kind's groups
+  (:attr:`datasets.kinds.base.Kind.axis_groups`: a GNSS's horizontal and vertical, ...).
+
+With ``psi_g = log theta_g``, ``V_kg = dSigma_k / dpsi_g`` (``theta_c N_kc``;
+``(S_g R_k + R_k S_g) / 2`` with ``S_g`` the group's axes). The restricted likelihood's score
+and (expected) information at the batch optimum are
+
+    s_g  = 1/2 (sum_k w_k^T V_kg w_k  -  tr(P_R V_g)),          w_k = Sigma_k^-1 e_k
+    F_gh = 1/2 tr(P_R V_g P_R V_h),                             P_R = Sigma^-1 - Sigma^-1 J P J^T Sigma^-1
+
+with ``J`` the whitened system's Jacobian and ``P`` the estimate's covariance. In whitened
+coordinates (``W_k`` the whitening of ``Sigma_k``, ``u_k = W_k e_k``, ``U_kg = W_k V_kg W_k^T``,
+``H_k = W_k J_k P J_k^T W_k^T`` the factor's hat block, whose trace is its leverage):
+
+    s_g = 1/2 sum_k (u_k^T U_kg u_k - tr((I - H_k) U_kg))
+    r_g = sum_k tr((I - H_k) U_kg)               the group's redundancy
+
+``tr(P_R V_g)`` needs only the diagonal blocks of ``P_R``, so the score is exact. The information
+keeps the diagonal blocks too (``F_gh ~ 1/2 sum_k tr((I - H_k) U_kg (I - H_k) U_kh)``): the terms
+left out, between factors, are squares of off-diagonal hat blocks, so the information is
+underestimated and the reported standard deviations err on the large side. Fisher scoring,
+``psi <- psi + F^-1 s``, then re-solving the batch with the new covariances, converges to the
+restricted-likelihood estimate, where ``sum_k u_k^T U_kg u_k = r_g``: Foerstner's condition, each
+group's weighted squared residuals equal to its redundancy. ``sd(psi) = sqrt((F^-1)_gg)``.
+
+Groups the data cannot tell apart -- white noise against random walk over a short run, where
+their estimates' correlation (from ``F^-1``) exceeds :data:`MERGE_CORRELATION` -- share one
+factor and are reported merged; a group whose factor the data fix no better than a factor of
+``exp(MAX_LOG_SD)`` in variance keeps the rig's value and is reported as not estimable.
+
+Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
+:data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
+(a gross outlier says nothing about the inliers' noise; the kernel's own weights would still let
+it inflate the factor), and the remaining redundancy is scaled by the truncated chi-square's
+mean, so that the estimate stays consistent for inliers.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from datasets.kinds import KINDS, sensors_of
+from datasets.types import Dataset
+from factors import imu, preintegration
+from factors.errors import InputError
+from smoother.batch.solve import SmootherResult, solve_batch
+from smoother.model.blocks import Block, block_residual, whitening
+from smoother.model.problem import Problem
+from smoother.model.timeline import imu_steps
+from smoother.stats import chi2_quantile
+
+#: The IMU's four estimated densities: ``(ImuNoise field, name, rig key, unit)``.
+IMU_COMPONENTS = (
+    ("acc", "accelerometer white noise", "accel_noise_density", "m/s^2/sqrt(Hz)"),
+    ("gyro", "gyro white noise", "gyro_noise_density", "rad/s/sqrt(Hz)"),
+    ("acc_bias", "accelerometer bias random walk", "accel_random_walk", "m/s^3/sqrt(Hz)"),
+    ("gyro_bias", "gyro bias random walk", "gyro_random_walk", "rad/s^2/sqrt(Hz)"),
+)
+#: The block of the IMU factors (:func:`smoother.model.problem.build_problem`).
+IMU_BLOCK = "imu"
+#: Two groups whose log-factors' estimates correlate beyond this share one factor.
+MERGE_CORRELATION = 0.9
+#: A group whose log-variance factor has a standard deviation beyond this keeps the rig's value.
+MAX_LOG_SD = 1.0
+#: Robust groups: a factor beyond this quantile of chi-square (its dimension) is an outlier.
+TRUNCATION_PROBABILITY = 0.999
+#: Iterations end when no log-factor moves by more than this fraction of its standard deviation.
+STEP_TOLERANCE = 0.1
+#: A parameter not fixed to :data:`MAX_LOG_SD` after this many iterations keeps the rig's value.
+WEAK_AFTER = 2
+#: ... or after this many.
+MAX_ITERATIONS = 25
+#: No Fisher-scoring step changes a variance factor by more than ``exp`` of this.
+MAX_LOG_STEP = 3.0
+#: Factors evaluated at once.
+CHUNK = 1024
+
+
+@dataclass(frozen=True)
+class NoiseGroup:
+    """One estimated noise group: ``sensor`` (the block's name; ``"imu"`` for the IMU), ``part``
+    (an IMU density, :data:`IMU_COMPONENTS`, or a kind's axis group), ``axes`` (a sensor
+    group's residual axes; None for the IMU) and ``unit`` (of its density or sigma)."""
+
+    sensor: str
+    part: str
+    axes: tuple | None = None
+    unit: str = ""
+
+    @property
+    def name(self) -> str:
+        return f"{self.sensor}.{self.part}"
+
+
+@dataclass(frozen=True)
+class GroupFit:
+    """What the data say of one group: ``factor`` on its density or sigma (the variance's square
+    root: 2 means the noise is twice what the rig states) with its standard deviation
+    ``factor_sd``, ``redundancy`` (the degrees of freedom its residuals carry), ``value`` (the
+    density or sigma in the rig's units, the rig's times ``factor``; a sensor whose covariances
+    vary gives its median), ``merged_with`` (groups sharing its factor), ``estimable`` (False:
+    the rig's value kept, ``factor`` 1) and ``note`` (why, when not estimable)."""
+
+    group: NoiseGroup
+    factor: float
+    factor_sd: float
+    redundancy: float
+    value: float | None
+    unit: str
+    merged_with: tuple[str, ...] = ()
+    estimable: bool = True
+    note: str = ""
+
+    def record(self) -> dict:
+        """``metrics.json``'s record of the group."""
+        return {"factor": self.factor, "factor_sd": self.factor_sd, "redundancy": self.redundancy,
+                "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
+                "estimable": self.estimable, **({"note": self.note} if self.note else {})}
+
+
+@dataclass
+class NoiseFit:
+    """The fitted noise: each group's :class:`GroupFit`, the iterations, whether they converged,
+    and the factors to apply (:meth:`applied`)."""
+
+    groups: list[GroupFit]
+    iterations: int
+    converged: bool
+    runtime_s: float = 0.0
+
+    def factor_of(self, sensor: str, part: str) -> float:
+        for g in self.groups:
+            if g.group.sensor == sensor and g.group.part == part:
+                return g.factor
+        return 1.0
+
+    def noise(self, noise: imu.ImuNoise) -> imu.ImuNoise:
+        """The IMU's densities with the fitted factors."""
+        return replace(noise, **{field: getattr(noise, field) * self.factor_of(IMU_BLOCK, field)
+                                 for field, *_ in IMU_COMPONENTS})
+
+    def axis_factors(self, sensor: str, dim: int) -> np.ndarray:
+        """The factor on each of the sensor's residual axes (ones where none was fitted)."""
+        out = np.ones(dim)
+        for g in self.groups:
+            if g.group.sensor == sensor and g.group.axes is not None:
+                out[list(g.group.axes)] = g.factor
+        return out
+
+    def applied(self, dataset: Dataset) -> Dataset:
+        """``dataset`` with the fitted noise: the IMU's densities and every fitted sensor's
+        covariances (used and held out) scaled, ``D R D`` with ``D`` the axes' factors."""
+        sensors = []
+        for sensor in dataset.sensors:
+            f = self.axis_factors(sensor.name, KINDS[sensor.kind].dim)
+            if np.all(f == 1.0):
+                sensors.append(sensor)
+                continue
+            scale = f[:, None] * f[None, :]
+            data = replace(sensor.data, cov=sensor.data.cov * scale)
+            heldout = None if sensor.heldout is None else replace(sensor.heldout, cov=sensor.heldout.cov * scale)
+            sensors.append(replace(sensor, data=data, heldout=heldout))
+        return replace(dataset, noise=self.noise(dataset.noise), sensors=tuple(sensors))
+
+    def record(self) -> dict:
+        """``metrics.json``'s ``noise`` record: ``{group name: GroupFit.record()}``, and ``_fit``."""
+        return {**{g.group.name: g.record() for g in self.groups},
+                "_fit": {"iterations": self.iterations, "converged": self.converged, "runtime_s": self.runtime_s}}
+
+
+def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:
+    """The groups of the sensors named in ``which`` (``"imu"`` for the IMU's four densities; a
+    sensor's name for its kind's axis groups); an InputError naming an unknown one."""
+    names = {s.name: s for s in sensors_of(dataset)}
+    groups = []
+    for name in which:
+        if name == IMU_BLOCK:
+            groups += [NoiseGroup(IMU_BLOCK, field, None, unit) for field, _, _, unit in IMU_COMPONENTS]
+        elif name in names:
+            groups += [NoiseGroup(name, part, tuple(axes), unit) for part, axes, unit in KINDS[names[name].kind].axis_groups]
+        else:
+            raise InputError(f"noise estimation: no sensor {name!r}; expected imu or one of {', '.join(names)}")
+    return groups
+
+
+def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, which, optimizer: str = "lm",
+                   max_iterations: int = 100) -> tuple[NoiseFit, SmootherResult]:
+    """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
+    (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
+    ``dataset``, with covariances). Returns the fit and the batch estimate with the fitted noise.
+    Every other group keeps the rig's noise."""
+    import time
+
+    start = time.perf_counter()
+    if result.joint is None or result.trajectory.cov is None:
+        raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
+    groups = noise_groups(dataset, which)
+    model = _NoiseModel(dataset, problem, groups)
+    psi = np.zeros(len(groups))
+    ties = [[g] for g in range(len(groups))]  # the parameters: groups sharing one factor (the rest: the rig's)
+    notes: dict[int, str] = {}
+    converged, iterations = False, 0
+    states, calibration = result.trajectory.states, result.calibration
+    for iterations in range(1, MAX_ITERATIONS + 1):
+        blocks = model.blocks(psi, states)
+        result = solve_batch(replace(problem, blocks=blocks, initial_states=states, calibration=calibration),
+                             optimizer, max_iterations)
+        states, calibration = result.trajectory.states, result.calibration
+        quadratic, expected, information, redundancy = model.statistics(blocks, result, psi)
+        while (merged := _merge_candidate(_parameter_information(information, ties), ties)) is not None:
+            a, b = merged  # one factor for both from here on, starting between them
+            ties[a] = ties[a] + ties.pop(b)
+            psi[ties[a]] = np.mean(psi[ties[a]])
+        F = _parameter_information(information, ties)
+        sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
+        step = _scoring_step(F, np.array([sum(quadratic[g] for g in tie) for tie in ties]),
+                             np.array([sum(expected[g] for g in tie) for tie in ties]))
+        for j, tie in enumerate(ties):
+            psi[tie] += step[j]
+        import os
+        if os.environ.get('VCE_DEBUG'): print(iterations, ties, np.round(psi, 3), np.round(step, 3), np.round(sd, 3))
+        settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
+        # a parameter the data fix no better than MAX_LOG_SD keeps the rig's value: at once after the
+        # first re-weighted solve (it would otherwise wander for many iterations), or once the rest settle
+        weak = [j for j in range(len(ties)) if sd[j] > MAX_LOG_SD and (settled or iterations >= WEAK_AFTER)]
+        for j in sorted(weak, reverse=True):
+            for g in ties[j]:
+                psi[g] = 0.0
+                notes[g] = _not_estimable(sd[j], sum(redundancy[t] for t in ties[j]))
+            del ties[j]
+        if settled and not weak or not ties:
+            converged = True
+            break
+    else:
+        warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
+                      "used", stacklevel=2)
+    cov_psi = _pseudo_inverse(_parameter_information(information, ties)) if ties else np.zeros((0, 0))
+    fits = []
+    for g, group in enumerate(groups):
+        j = next((j for j, tie in enumerate(ties) if g in tie), None)
+        factor = math.exp(0.5 * psi[g])
+        if j is None:
+            fits.append(GroupFit(group, 1.0, float("nan"), float(redundancy[g]), model.value(group, 1.0),
+                                 group.unit, (), False, notes.get(g, "not estimated")))
+            continue
+        sd_psi = math.sqrt(max(cov_psi[j, j], 0.0))
+        others = tuple(groups[t].name for t in ties[j] if t != g)
+        fits.append(GroupFit(group, factor, 0.5 * factor * sd_psi, float(redundancy[g]), model.value(group, factor),
+                             group.unit, others))
+    fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
+    return fit, result
+
+
+def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:
+    """``(groups, parameters)``: 1 where a group takes a parameter."""
+    T = np.zeros((n, len(ties)))
+    for j, tie in enumerate(ties):
+        T[tie, j] = 1.0
+    return T
+
+
+def _pseudo_inverse(F: np.ndarray) -> np.ndarray:
+    """The (pseudo-)inverse of a symmetric information matrix."""
+    return np.linalg.pinv(0.5 * (F + F.T), rcond=1e-12)
+
+
+def _not_estimable(sd: float, redundancy: float) -> str:
+    """Why a group keeps the rig's value, from its log-variance factor's standard deviation."""
+    how = (f"the data fix its sigma only within a factor of {math.exp(0.5 * sd):.2g}" if sd < 10.0
+           else "the data do not determine it")
+    return f"not estimable: {how} (redundancy {redundancy:.2g})"
+
+
+def _scoring_step(F: np.ndarray, quadratic: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    """The step of the log-factors: Fisher scoring on the variance factors themselves,
+    ``theta_new / theta = 1 + F~^-1 s`` with ``s = (q - r) / 2``, where ``F~`` has the correlations of
+    the approximate information ``F`` and the diagonal ``r / 2`` (a group alone then takes
+    Foerstner's step ``theta <- theta q / r`` exactly, and correlated groups move together as the
+    information says). A ratio that comes out below 0.05 is Foerstner's instead (the linear step
+    leaves the positive factors there), every step within ``exp(+-MAX_LOG_STEP)``."""
+    q, r = np.maximum(quadratic, 1e-300), np.maximum(expected, 1e-300)
+    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
+    scaled = np.sqrt(0.5 * r)
+    F_tilde = (F / np.outer(d, d)) * np.outer(scaled, scaled)
+    ratio = 1.0 + _pseudo_inverse(F_tilde) @ (0.5 * (q - r))
+    fallback = ~(ratio > 0.05)
+    ratio[fallback] = q[fallback] / r[fallback]
+    return np.clip(np.log(ratio), -MAX_LOG_STEP, MAX_LOG_STEP)
+
+
+def _parameter_information(information: np.ndarray, ties: list[list[int]]) -> np.ndarray:
+    """The information of the parameters, each shared by the groups of its tie."""
+    T = _tie_matrix(ties, len(information))
+    return T.T @ information @ T
+
+
+def _merge_candidate(F: np.ndarray, ties: list) -> tuple[int, int] | None:
+    """The two parameters whose estimates correlate most, if beyond :data:`MERGE_CORRELATION`."""
+    if len(ties) < 2:
+        return None
+    C = _pseudo_inverse(F)
+    d = np.sqrt(np.maximum(np.diag(C), 1e-300))
+    rho = np.abs(C / np.outer(d, d))
+    np.fill_diagonal(rho, 0.0)
+    a, b = np.unravel_index(np.argmax(rho), rho.shape)
+    if rho[a, b] <= MERGE_CORRELATION:
+        return None
+    return (int(min(a, b)), int(max(a, b)))
+
+
+class _NoiseModel:
+    """The factors' covariances as functions of the log-factors ``psi``, and the restricted
+    likelihood's score and information at a batch estimate (module docstring)."""
+
+    def __init__(self, dataset: Dataset, problem: Problem, groups: list[NoiseGroup]):
+        self.dataset, self.problem, self.groups = dataset, problem, groups
+        self.block_index = {b.name: i for i, b in enumerate(problem.blocks)}
+        for g in groups:
+            if g.sensor not in self.block_index:
+                raise InputError(f"noise estimation: sensor {g.sensor!r} has no factors in the problem")
+        # each sensor block's covariances as the rig states them (R_0 = (W^T W)^-1)
+        self.R0 = {}
+        for g in groups:
+            if g.axes is not None and g.sensor not in self.R0:
+                W = problem.blocks[self.block_index[g.sensor]].whiten
+                self.R0[g.sensor] = np.linalg.inv(np.einsum("mki,mkj->mij", W, W))
+        self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
+        steps = imu_steps(dataset.imu, problem.times)
+        self.samples = steps.segments()
+
+    def value(self, group: NoiseGroup, factor: float) -> float | None:
+        """The group's density or (median) sigma with ``factor`` applied, in the rig's units."""
+        if group.axes is None:
+            return float(getattr(self.dataset.noise, group.part) * factor)
+        R = self.R0[group.sensor]
+        sigma = np.sqrt(np.diagonal(R, axis1=1, axis2=2)[:, list(group.axes)])
+        return float(np.median(sigma) * factor)
+
+    def _imu_parts(self, states):
+        """The IMU factors' covariance parts along ``states``: ``(N (4, J, 15, 15), N_0)``."""
+        noise = self.dataset.noise
+        zero = replace(noise, acc=0.0, gyro=0.0, acc_bias=0.0, gyro_bias=0.0)
+        reference = states[:-1]
+        rest = preintegration.noise_covariance(self.samples, reference, zero, self.dataset.gravity)
+        parts = []
+        for field, *_ in IMU_COMPONENTS:
+            alone = replace(zero, velocity=0.0, **{field: getattr(noise, field)})
+            floor = preintegration.COVARIANCE_FLOOR**2 * np.eye(imu.STATE_DIM)
+            parts.append(preintegration.noise_covariance(self.samples, reference, alone, self.dataset.gravity) - floor)
+        return np.stack(parts), rest
+
+    def blocks(self, psi: np.ndarray, states) -> list[Block]:
+        """The problem's blocks with the covariances of ``psi`` (the IMU's along ``states``)."""
+        theta = np.exp(psi)
+        blocks = list(self.problem.blocks)
+        imu_groups = [i for i, g in enumerate(self.groups) if g.axes is None]
+        if imu_groups:
+            if self.imu_parts is None:
+                self.imu_parts = self._imu_parts(states)
+            parts, rest = self.imu_parts
+            factors = np.ones(len(IMU_COMPONENTS))
+            for i in imu_groups:
+                factors[[f for f, *_ in IMU_COMPONENTS].index(self.groups[i].part)] = theta[i]
+            cov = np.einsum("c,cjab->jab", factors, parts) + rest
+            b = self.block_index[IMU_BLOCK]
+            blocks[b] = replace(blocks[b], whiten=whitening(cov))
+        for sensor, R0 in self.R0.items():
+            f = np.ones(R0.shape[-1])
+            for i, g in enumerate(self.groups):
+                if g.sensor == sensor:
+                    f[list(g.axes)] = np.sqrt(theta[i])
+            b = self.block_index[sensor]
+            blocks[b] = replace(blocks[b], whiten=whitening(R0 * f[:, None] * f[None, :]))
+        return blocks
+
+    def _derivatives(self, block_name: str, rows: slice, psi: np.ndarray, W: np.ndarray) -> dict[int, np.ndarray]:
+        """``{group: U_kg (M, d, d)}``: the whitened derivatives of the factors ``rows``' covariances."""
+        theta = np.exp(psi)
+        out = {}
+        if block_name == IMU_BLOCK:
+            parts, _ = self.imu_parts
+            for i, g in enumerate(self.groups):
+                if g.axes is None:
+                    c = [f for f, *_ in IMU_COMPONENTS].index(g.part)
+                    V = theta[i] * parts[c][rows]
+                    out[i] = W @ V @ np.swapaxes(W, -1, -2)
+            return out
+        W_inv = np.linalg.inv(W)
+        for i, g in enumerate(self.groups):
+            if g.sensor == block_name:
+                S = np.zeros(W.shape[-1])
+                S[list(g.axes)] = 1.0
+                A = W * S[None, None, :] @ W_inv  # W S W^-1
+                out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
+        return out
+
+    def statistics(self, blocks: list[Block], result: SmootherResult, psi: np.ndarray):
+        """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
+        ``result``: each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R V_g)`` (scaled by
+        the truncated mean where outliers are left out: the score is half their difference), the
+        approximate information and the redundancy."""
+        G = len(self.groups)
+        quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
+        states, cov, joint = result.trajectory.states, result.trajectory.cov, result.joint
+        n = len(states)
+        for name in dict.fromkeys(g.sensor for g in self.groups):
+            block = blocks[self.block_index[name]]
+            kf = block.keyframes
+            d = None
+            for start in range(0, len(kf), CHUNK):
+                rows = slice(start, min(start + CHUNK, len(kf)))
+                chunk = kf[rows]
+                slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
+                e, Js = block_residual(block, slots, True, rows, result.calibration)
+                W = block.whiten[rows]
+                u = np.einsum("mab,mb->ma", W, e)
+                d = u.shape[1]
+                A = [W @ J for J in Js]
+                H = _hat(A, chunk, n + block.calibration if block.calibration is not None else None, cov, joint)
+                Q = np.eye(d)[None] - H
+                keep = np.ones(len(u), dtype=bool)
+                correction = 1.0
+                if block.robust is not None:
+                    c = chi2_quantile(TRUNCATION_PROBABILITY, d)
+                    keep = np.einsum("ma,ma->m", u, u) <= c
+                    correction = _truncated_mean(d, c)
+                U = self._derivatives(name, rows, psi, W)
+                for i, Ui in U.items():
+                    quad = np.einsum("ma,mab,mb->m", u, Ui, u)[keep]
+                    r = np.einsum("mab,mba->m", Q, Ui)[keep]
+                    quadratic[i] += quad.sum()
+                    expected[i] += correction * r.sum()
+                    redundancy[i] += r.sum()
+                    QU_i = (Q @ Ui)[keep]
+                    for j, Uj in U.items():
+                        if j < i:
+                            continue
+                        QU_j = (Q @ Uj)[keep]
+                        value = 0.5 * np.einsum("mab,mba->", QU_i, QU_j)
+                        information[i, j] += value
+                        if j != i:
+                            information[j, i] += value
+        return quadratic, expected, information, redundancy
+
+
+def _hat(A: list, keyframes: np.ndarray, calibration_key: int | None, cov: np.ndarray, joint: dict) -> np.ndarray:
+    """Each factor's hat block ``A P A^T`` (whitened Jacobians ``A``: its keyframe slots', then its
+    calibration variable's), ``P`` the joint covariance of the variables it reads."""
+    keys = [keyframes[:, s] for s in range(keyframes.shape[1])]
+    if calibration_key is not None:
+        keys.append(np.full(len(keyframes), calibration_key))
+    H = 0.0
+    for a, (Aa, ka) in enumerate(zip(A, keys)):
+        for b, (Ab, kb) in enumerate(zip(A, keys)):
+            if b < a:
+                continue
+            if a == b and calibration_key is None or (a == b and a < keyframes.shape[1]):
+                P = cov[ka]
+            else:
+                P = np.stack([_joint_block(joint, int(x), int(y)) for x, y in zip(ka, kb)])
+            term = Aa @ P @ np.swapaxes(Ab, -1, -2)
+            H = H + (term if a == b else term + np.swapaxes(term, -1, -2))
+    return H
+
+
+def _joint_block(joint: dict, a: int, b: int) -> np.ndarray:
+    return joint[(a, b)] if (a, b) in joint else joint[(b, a)].T
+
+
+def _truncated_mean(d: int, c: float) -> float:
+    """``E[X | X <= c] / d`` for ``X`` chi-square with ``d`` degrees of freedom:
+    ``P(chi2_{d+2} <= c) / P(chi2_d <= c)``."""
+    from scipy.special import gammainc
+
+    return float(gammainc(0.5 * (d + 2), 0.5 * c) / gammainc(0.5 * d, 0.5 * c))
+
