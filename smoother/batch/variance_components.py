@@ -234,8 +234,6 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                              np.array([sum(expected[g] for g in tie) for tie in ties]))
         for j, tie in enumerate(ties):
             psi[tie] += step[j]
-        import os
-        if os.environ.get('VCE_DEBUG'): print(iterations, ties, np.round(psi, 3), np.round(step, 3), np.round(sd, 3))
         settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
         # a parameter the data fix no better than MAX_LOG_SD keeps the rig's value: at once after the
         # first re-weighted solve (it would otherwise wander for many iterations), or once the rest settle
