@@ -39,8 +39,8 @@ group's weighted squared residuals equal to its redundancy. ``sd(psi) = sqrt((F^
 
 Groups the data cannot tell apart -- white noise against random walk over a short run, where
 their estimates' correlation (from ``F^-1``) exceeds :data:`MERGE_CORRELATION` -- share one
-factor and are reported merged; a group whose factor the data fix no better than a factor of
-``exp(MAX_LOG_SD)`` in variance keeps the rig's value and is reported as not estimable.
+factor and are reported merged; a group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom keeps the rig's value and
+is reported as not estimable.
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -60,7 +60,9 @@ from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset
 from factors import imu, preintegration
 from factors.errors import InputError
+from smoother.batch.optimiser import gauss_newton_step
 from smoother.batch.solve import SmootherResult, solve_batch
+from smoother.model.covariances import marginal_covariances
 from smoother.model.blocks import Block, block_residual, whitening
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
@@ -77,14 +79,14 @@ IMU_COMPONENTS = (
 IMU_BLOCK = "imu"
 #: Two groups whose log-factors' estimates correlate beyond this share one factor.
 MERGE_CORRELATION = 0.9
-#: A group whose log-variance factor has a standard deviation beyond this keeps the rig's value.
-MAX_LOG_SD = 1.0
+#: A group whose residuals carry fewer degrees of freedom than this keeps the rig's value.
+MIN_REDUNDANCY = 2.0
 #: Robust groups: a factor beyond this quantile of chi-square (its dimension) is an outlier.
 TRUNCATION_PROBABILITY = 0.999
 #: Iterations end when no log-factor moves by more than this fraction of its standard deviation.
 STEP_TOLERANCE = 0.1
-#: A parameter not fixed to :data:`MAX_LOG_SD` after this many iterations keeps the rig's value.
-WEAK_AFTER = 2
+#: A parameter short of :data:`MIN_REDUNDANCY` after this many iterations keeps the rig's value.
+WEAK_AFTER = 8
 #: ... or after this many.
 MAX_ITERATIONS = 25
 #: No Fisher-scoring step changes a variance factor by more than ``exp`` of this.
@@ -218,12 +220,15 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     notes: dict[int, str] = {}
     converged, iterations = False, 0
     states, calibration = result.trajectory.states, result.calibration
+    accelerator = _Squarem()
     for iterations in range(1, MAX_ITERATIONS + 1):
+        # one Gauss-Newton step to the optimum of the new weights, and the covariances of the
+        # system it solved: the weights change little from one iteration to the next
         blocks = model.blocks(psi, states)
-        result = solve_batch(replace(problem, blocks=blocks, initial_states=states, calibration=calibration),
-                             optimizer, max_iterations)
-        states, calibration = result.trajectory.states, result.calibration
-        quadratic, expected, information, redundancy = model.statistics(blocks, result, psi)
+        states, calibration, graph, layout = gauss_newton_step(blocks, states, calibration)
+        cov, joint = marginal_covariances(graph, len(states), None, True, layout)
+        quadratic, expected, information, redundancy = model.statistics(blocks, states, calibration, cov, joint, psi)
+        structure = len(ties)
         while (merged := _merge_candidate(_parameter_information(information, ties), ties)) is not None:
             a, b = merged  # one factor for both from here on, starting between them
             ties[a] = ties[a] + ties.pop(b)
@@ -232,23 +237,37 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
         step = _scoring_step(F, np.array([sum(quadratic[g] for g in tie) for tie in ties]),
                              np.array([sum(expected[g] for g in tie) for tie in ties]))
-        for j, tie in enumerate(ties):
-            psi[tie] += step[j]
         settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
-        # a parameter the data fix no better than MAX_LOG_SD keeps the rig's value: at once after the
-        # first re-weighted solve (it would otherwise wander for many iterations), or once the rest settle
-        weak = [j for j in range(len(ties)) if sd[j] > MAX_LOG_SD and (settled or iterations >= WEAK_AFTER)]
+        # a parameter with too little redundancy keeps the rig's value: once the rest settle, when it
+        # still falls (heading for a zero variance, it would move on for ever) or after WEAK_AFTER
+        # iterations; one that rises may be a density the rig states far too small
+        share = np.array([sum(redundancy[g] for g in tie) for tie in ties])
+        weak = [j for j in range(len(ties))
+                if share[j] < MIN_REDUNDANCY and (settled or step[j] <= 0.0 or iterations >= WEAK_AFTER)]
+        if settled and not weak:
+            psi = _with_step(psi, ties, step)
+            converged = True
+            break
+        x = np.array([psi[tie[0]] for tie in ties])
+        if weak or len(ties) != structure:
+            accelerator.reset()
+            nxt = x + step
+        else:
+            nxt = accelerator.next(x, step, sd)
+        psi = _with_step(psi, ties, nxt - x)
         for j in sorted(weak, reverse=True):
             for g in ties[j]:
                 psi[g] = 0.0
-                notes[g] = _not_estimable(sd[j], sum(redundancy[t] for t in ties[j]))
+                notes[g] = _not_estimable(sd[j], share[j])
             del ties[j]
-        if settled and not weak or not ties:
+        if not ties:
             converged = True
             break
     else:
         warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
                       "used", stacklevel=2)
+    result = solve_batch(replace(problem, blocks=model.blocks(psi, states), initial_states=states,
+                                 calibration=calibration), optimizer, max_iterations)
     cov_psi = _pseudo_inverse(_parameter_information(information, ties)) if ties else np.zeros((0, 0))
     fits = []
     for g, group in enumerate(groups):
@@ -277,6 +296,57 @@ def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:
 def _pseudo_inverse(F: np.ndarray) -> np.ndarray:
     """The (pseudo-)inverse of a symmetric information matrix."""
     return np.linalg.pinv(0.5 * (F + F.T), rcond=1e-12)
+
+
+def _with_step(psi: np.ndarray, ties: list[list[int]], step: np.ndarray) -> np.ndarray:
+    """``psi`` with each parameter's ``step`` added to the groups of its tie."""
+    out = psi.copy()
+    for j, tie in enumerate(ties):
+        out[tie] += step[j]
+    return out
+
+
+class _Squarem:
+    """Squared extrapolation (SQUAREM, Varadhan and Roland 2008) of the fixed-point map
+    ``x -> x + step(x)``, whose convergence is linear (as an EM algorithm's) where groups are
+    correlated: after two plain steps ``x0 -> x1 -> x2`` the next point is
+    ``x0 - 2 a r + a^2 v`` with ``r = x1 - x0``, ``v = x2 - 2 x1 + x0``, ``a = -|r| / |v|`` (at most
+    -1: ``a = -1`` is ``x2``). The step taken from an extrapolated point is kept only if it is
+    shorter, in standard deviations, than the last plain step; else the plain point ``x2`` is
+    taken again. :meth:`reset` when the parameters change (a merge, a group dropped)."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.trail: list[tuple[np.ndarray, np.ndarray]] = []  # (x, x + step) of consecutive plain steps
+        self.extrapolated: tuple | None = None  # (plain x2, its step length) while at an extrapolated point
+
+    def next(self, x: np.ndarray, step: np.ndarray, sd: np.ndarray) -> np.ndarray:
+        """The next point after evaluating ``step`` at ``x`` (``sd`` the parameters' standard deviations)."""
+        length = float(np.linalg.norm(step / np.maximum(sd, 1e-3)))
+        if self.extrapolated is not None:
+            plain, plain_length = self.extrapolated
+            self.extrapolated = None
+            if length > plain_length:
+                self.trail = []
+                return plain
+            self.trail = [(x, x + step)]
+            return x + step
+        self.trail.append((x, x + step))
+        if len(self.trail) < 2 or not np.allclose(self.trail[-2][1], self.trail[-1][0]):
+            self.trail = self.trail[-1:]
+            return x + step
+        (x0, x1), (_, x2) = self.trail[-2], self.trail[-1]
+        r, v = x1 - x0, x2 - 2.0 * x1 + x0
+        if not np.linalg.norm(v) > 0.0:
+            return x2
+        a = min(-float(np.linalg.norm(r) / np.linalg.norm(v)), -1.0)
+        target = x0 - 2.0 * a * r + a * a * v
+        target = x2 + np.clip(target - x2, -MAX_LOG_STEP, MAX_LOG_STEP)
+        self.extrapolated = (x2, length)
+        self.trail = []
+        return target
 
 
 def _not_estimable(sd: float, redundancy: float) -> str:
@@ -409,14 +479,14 @@ class _NoiseModel:
                 out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
         return out
 
-    def statistics(self, blocks: list[Block], result: SmootherResult, psi: np.ndarray):
+    def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray):
         """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
-        ``result``: each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R V_g)`` (scaled by
+        ``states`` and the calibration variables' values ``calibration`` (marginal covariances
+        ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R V_g)`` (scaled by
         the truncated mean where outliers are left out: the score is half their difference), the
         approximate information and the redundancy."""
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
-        states, cov, joint = result.trajectory.states, result.trajectory.cov, result.joint
         n = len(states)
         for name in dict.fromkeys(g.sensor for g in self.groups):
             block = blocks[self.block_index[name]]
@@ -426,7 +496,7 @@ class _NoiseModel:
                 rows = slice(start, min(start + CHUNK, len(kf)))
                 chunk = kf[rows]
                 slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
-                e, Js = block_residual(block, slots, True, rows, result.calibration)
+                e, Js = block_residual(block, slots, True, rows, calibration)
                 W = block.whiten[rows]
                 u = np.einsum("mab,mb->ma", W, e)
                 d = u.shape[1]
