@@ -59,7 +59,8 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         states, P = trajectory.states[k], trajectory.cov[k]
         rows = kind.pack(held)[found]
         R = held.cov[found]
-        j = None if calibration is None or sensor.name not in calibration.names else calibration.names.index(sensor.name)
+        calibrated = calibration is not None and sensor.name in calibration.names
+        j = calibration.names.index(sensor.name) if calibrated else None
         if j is None:
             e, H = measure_rows(kind, states, rows)
         else:
