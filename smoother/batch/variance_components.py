@@ -16,31 +16,40 @@ the rig states:
   (:attr:`datasets.kinds.base.Kind.axis_groups`: a GNSS's horizontal and vertical, ...).
 
 With ``psi_g = log theta_g``, ``V_kg = dSigma_k / dpsi_g`` (``theta_c N_kc``;
-``(S_g R_k + R_k S_g) / 2`` with ``S_g`` the group's axes). The restricted likelihood's score
-and (expected) information at the batch optimum are
+``(S_g R_k + R_k S_g) / 2`` with ``S_g`` the group's axes). The restricted likelihood's score at
+the batch optimum is
 
-    s_g  = 1/2 (sum_k w_k^T V_kg w_k  -  tr(P_R V_g)),          w_k = Sigma_k^-1 e_k
-    F_gh = 1/2 tr(P_R V_g P_R V_h),                             P_R = Sigma^-1 - Sigma^-1 J P J^T Sigma^-1
+    s_g = 1/2 (sum_k w_k^T V_kg w_k  -  tr(P_R V_g)),          w_k = Sigma_k^-1 e_k,
+    P_R = Sigma^-1 - Sigma^-1 J P J^T Sigma^-1
 
-with ``J`` the whitened system's Jacobian and ``P`` the estimate's covariance. In whitened
-coordinates (``W_k`` the whitening of ``Sigma_k``, ``u_k = W_k e_k``, ``U_kg = W_k V_kg W_k^T``,
+with ``J`` the system's Jacobian and ``P`` the estimate's covariance. In whitened coordinates
+(``W_k`` the whitening of ``Sigma_k``, ``u_k = W_k e_k``, ``U_kg = W_k V_kg W_k^T``,
 ``H_k = W_k J_k P J_k^T W_k^T`` the factor's hat block, whose trace is its leverage):
 
-    s_g = 1/2 sum_k (u_k^T U_kg u_k - tr((I - H_k) U_kg))
-    r_g = sum_k tr((I - H_k) U_kg)               the group's redundancy
+    s_g = 1/2 (q_g - r_g),    q_g = sum_k u_k^T U_kg u_k,    r_g = sum_k tr((I - H_k) U_kg)
 
-``tr(P_R V_g)`` needs only the diagonal blocks of ``P_R``, so the score is exact. The information
-keeps the diagonal blocks too (``F_gh ~ 1/2 sum_k tr((I - H_k) U_kg (I - H_k) U_kh)``): the terms
-left out, between factors, are squares of off-diagonal hat blocks, so the information is
-underestimated and the reported standard deviations err on the large side. Fisher scoring,
-``psi <- psi + F^-1 s``, then re-solving the batch with the new covariances, converges to the
-restricted-likelihood estimate, where ``sum_k u_k^T U_kg u_k = r_g``: Foerstner's condition, each
-group's weighted squared residuals equal to its redundancy. ``sd(psi) = sqrt((F^-1)_gg)``.
+``r_g`` is the group's redundancy, and ``tr(P_R V_g)`` needs only the diagonal blocks of ``P_R``,
+so the score is exact. At the estimate ``q_g = r_g``: each group's weighted squared residuals
+equal its redundancy (Foerstner's condition).
 
-Groups the data cannot tell apart -- white noise against random walk over a short run, where
-their estimates' correlation (from ``F^-1``) exceeds :data:`MERGE_CORRELATION` -- share one
-factor and are reported merged; a group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom keeps the rig's value and
-is reported as not estimable.
+The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)`` needs ``P_R`` whole. Its diagonal blocks alone
+(``1/2 sum_k tr((I - H_k) U_kg (I - H_k) U_kh)``) are close for a sensor's measurements, which
+carry little leverage each, and far too small for the IMU's factors, chained through the
+keyframes (a tenth of the curvature of a gyro's white noise on a simulated rig): the columns of
+the IMU's components are therefore differenced from the exact score (the observed information).
+The iterations: far from the estimate (some ``q_g / r_g`` beyond ``exp(+-NEAR)``), Fisher scoring
+on the variance factors with the local information's correlations and ``r / 2`` on its diagonal,
+which for a group alone is Foerstner's ``theta <- theta q / r`` and never overshoots; near it,
+damped Newton steps with the observed information, kept current by secant updates, which follow
+the ridges of correlated components (white noise against random walk) that Foerstner's step
+crawls along. Each iteration re-weights, takes one Gauss-Newton step of the batch problem to the
+optimum of the new weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
+
+Components of one sensor that the data cannot tell apart -- white noise against random walk over
+a short run, where their estimates' correlation exceeds :data:`MERGE_CORRELATION` -- share one
+factor and are reported merged; a group whose residuals carry less than :data:`MIN_REDUNDANCY`
+degrees of freedom, or whose factor the data fix no better than :data:`MAX_LOG_SD`, keeps the
+rig's value and is reported as not estimable.
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -79,8 +88,11 @@ IMU_COMPONENTS = (
 IMU_BLOCK = "imu"
 #: Two groups whose log-factors' estimates correlate beyond this share one factor.
 MERGE_CORRELATION = 0.9
-#: A group whose residuals carry fewer degrees of freedom than this keeps the rig's value.
+#: A group whose residuals carry fewer degrees of freedom than this keeps the rig's value ...
 MIN_REDUNDANCY = 2.0
+#: ... and so does one whose log-variance factor's standard deviation exceeds this (its sigma
+#: known only within a factor of 2.1: a flat likelihood, often heading for a zero variance).
+MAX_LOG_SD = 1.5
 #: Robust groups: a factor beyond this quantile of chi-square (its dimension) is an outlier.
 TRUNCATION_PROBABILITY = 0.999
 #: Iterations end when no log-factor moves by more than this fraction of its standard deviation.
@@ -91,6 +103,13 @@ WEAK_AFTER = 8
 MAX_ITERATIONS = 25
 #: No Fisher-scoring step changes a variance factor by more than ``exp`` of this.
 MAX_LOG_STEP = 3.0
+#: Near the optimum (every parameter's ``q / r`` within ``exp(+-NEAR)``) the steps are Newton's.
+NEAR = 0.5
+#: The share of a Newton step taken first (the observed information is exact only where it was
+#: differenced); it grows by half at each step that does not turn back, and halves at each that does.
+FIRST_DAMPING = 0.5
+#: The step of the log-factors by which the observed information is differenced.
+DIFFERENCE_STEP = 0.05
 #: Factors evaluated at once.
 CHUNK = 1024
 
@@ -220,46 +239,70 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     notes: dict[int, str] = {}
     converged, iterations = False, 0
     states, calibration = result.trajectory.states, result.calibration
-    accelerator = _Squarem()
-    for iterations in range(1, MAX_ITERATIONS + 1):
-        # one Gauss-Newton step to the optimum of the new weights, and the covariances of the
-        # system it solved: the weights change little from one iteration to the next
+
+    def evaluate(psi, states, calibration):
+        """One Gauss-Newton step to the optimum of the weights of ``psi`` (the weights change
+        little from one evaluation to the next) and the statistics there, with the covariances of
+        the system the step solved."""
         blocks = model.blocks(psi, states)
         states, calibration, graph, layout = gauss_newton_step(blocks, states, calibration)
         cov, joint = marginal_covariances(graph, len(states), None, True, layout)
-        quadratic, expected, information, redundancy = model.statistics(blocks, states, calibration, cov, joint, psi)
-        structure = len(ties)
-        while (merged := _merge_candidate(_parameter_information(information, ties), ties)) is not None:
-            a, b = merged  # one factor for both from here on, starting between them
+        return states, calibration, model.statistics(blocks, states, calibration, cov, joint, psi)
+
+    information = None  # the parameters' information once near the optimum (observed), else None
+    last = None  # (psi, score) of the last Newton step, for the secant update of the information
+    damping = FIRST_DAMPING
+    for iterations in range(1, MAX_ITERATIONS + 1):
+        before = (states, calibration)
+        states, calibration, (quadratic, expected, approximate, redundancy) = evaluate(psi, *before)
+        q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
+        near = bool(np.all(np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR))
+        if near and information is None:
+            information = _observed_information(evaluate, psi, before, ties, 0.5 * (q - r),
+                                                _parameter_information(approximate, ties), model.leveraged)
+            last = None
+        elif near and last is not None:
+            information = _secant_update(information, psi_of(psi, ties) - last[0], last[1] - 0.5 * (q - r))
+        F = information if near else _parameter_information(approximate, ties)
+        cov_psi = _pseudo_inverse(F)
+        sd = np.sqrt(np.maximum(np.diag(cov_psi), 0.0))
+        s = 0.5 * (q - r)
+        newton = np.clip(cov_psi @ s, -MAX_LOG_STEP, MAX_LOG_STEP)
+        if near:
+            turned = last is not None and np.any(newton * last[2] < 0.0)
+            if turned and np.any(np.abs(newton) > 0.5 * np.abs(last[2])):
+                damping *= 0.5  # the step turned back: the information is off along it
+            else:
+                damping = min(1.0, 1.5 * damping)
+            step = damping * newton
+            last = (psi_of(psi, ties), s, step)
+        else:
+            step = _far_step(F, q, r)
+        settled = near and np.all(np.abs(newton) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
+        psi = _with_step(psi, ties, step)
+        if not settled and iterations < WEAK_AFTER:
+            continue
+        # settled (or long enough): two parameters the data do not tell apart share one factor
+        # from here on; one with too little redundancy keeps the rig's value
+        share = _per_parameter(redundancy, ties)
+        weak = [j for j in range(len(ties)) if (share[j] < MIN_REDUNDANCY and (settled or step[j] <= 0.0))
+                or (near and sd[j] > MAX_LOG_SD)]
+        merged = _merge_candidate(F, ties, groups) if settled and not weak else None
+        if weak:
+            for j in sorted(weak, reverse=True):
+                for g in ties[j]:
+                    psi[g] = 0.0
+                    notes[g] = _not_estimable(sd[j], share[j])
+                del ties[j]
+        elif merged is not None:
+            a, b = merged
             ties[a] = ties[a] + ties.pop(b)
             psi[ties[a]] = np.mean(psi[ties[a]])
-        F = _parameter_information(information, ties)
-        sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
-        step = _scoring_step(F, np.array([sum(quadratic[g] for g in tie) for tie in ties]),
-                             np.array([sum(expected[g] for g in tie) for tie in ties]))
-        settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
-        # a parameter with too little redundancy keeps the rig's value: once the rest settle, when it
-        # still falls (heading for a zero variance, it would move on for ever) or after WEAK_AFTER
-        # iterations; one that rises may be a density the rig states far too small
-        share = np.array([sum(redundancy[g] for g in tie) for tie in ties])
-        weak = [j for j in range(len(ties))
-                if share[j] < MIN_REDUNDANCY and (settled or step[j] <= 0.0 or iterations >= WEAK_AFTER)]
-        if settled and not weak:
-            psi = _with_step(psi, ties, step)
+        elif settled:
             converged = True
             break
-        x = np.array([psi[tie[0]] for tie in ties])
-        if weak or len(ties) != structure:
-            accelerator.reset()
-            nxt = x + step
-        else:
-            nxt = accelerator.next(x, step, sd)
-        psi = _with_step(psi, ties, nxt - x)
-        for j in sorted(weak, reverse=True):
-            for g in ties[j]:
-                psi[g] = 0.0
-                notes[g] = _not_estimable(sd[j], share[j])
-            del ties[j]
+        if merged is not None or weak:
+            information, last, damping = None, None, FIRST_DAMPING
         if not ties:
             converged = True
             break
@@ -268,7 +311,9 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                       "used", stacklevel=2)
     result = solve_batch(replace(problem, blocks=model.blocks(psi, states), initial_states=states,
                                  calibration=calibration), optimizer, max_iterations)
-    cov_psi = _pseudo_inverse(_parameter_information(information, ties)) if ties else np.zeros((0, 0))
+    if ties:
+        cov_psi = _pseudo_inverse(information if information is not None else
+                                  _parameter_information(approximate, ties))
     fits = []
     for g, group in enumerate(groups):
         j = next((j for j, tie in enumerate(ties) if g in tie), None)
@@ -306,49 +351,6 @@ def _with_step(psi: np.ndarray, ties: list[list[int]], step: np.ndarray) -> np.n
     return out
 
 
-class _Squarem:
-    """Squared extrapolation (SQUAREM, Varadhan and Roland 2008) of the fixed-point map
-    ``x -> x + step(x)``, whose convergence is linear (as an EM algorithm's) where groups are
-    correlated: after two plain steps ``x0 -> x1 -> x2`` the next point is
-    ``x0 - 2 a r + a^2 v`` with ``r = x1 - x0``, ``v = x2 - 2 x1 + x0``, ``a = -|r| / |v|`` (at most
-    -1: ``a = -1`` is ``x2``). The step taken from an extrapolated point is kept only if it is
-    shorter, in standard deviations, than the last plain step; else the plain point ``x2`` is
-    taken again. :meth:`reset` when the parameters change (a merge, a group dropped)."""
-
-    def __init__(self):
-        self.reset()
-
-    def reset(self) -> None:
-        self.trail: list[tuple[np.ndarray, np.ndarray]] = []  # (x, x + step) of consecutive plain steps
-        self.extrapolated: tuple | None = None  # (plain x2, its step length) while at an extrapolated point
-
-    def next(self, x: np.ndarray, step: np.ndarray, sd: np.ndarray) -> np.ndarray:
-        """The next point after evaluating ``step`` at ``x`` (``sd`` the parameters' standard deviations)."""
-        length = float(np.linalg.norm(step / np.maximum(sd, 1e-3)))
-        if self.extrapolated is not None:
-            plain, plain_length = self.extrapolated
-            self.extrapolated = None
-            if length > plain_length:
-                self.trail = []
-                return plain
-            self.trail = [(x, x + step)]
-            return x + step
-        self.trail.append((x, x + step))
-        if len(self.trail) < 2 or not np.allclose(self.trail[-2][1], self.trail[-1][0]):
-            self.trail = self.trail[-1:]
-            return x + step
-        (x0, x1), (_, x2) = self.trail[-2], self.trail[-1]
-        r, v = x1 - x0, x2 - 2.0 * x1 + x0
-        if not np.linalg.norm(v) > 0.0:
-            return x2
-        a = min(-float(np.linalg.norm(r) / np.linalg.norm(v)), -1.0)
-        target = x0 - 2.0 * a * r + a * a * v
-        target = x2 + np.clip(target - x2, -MAX_LOG_STEP, MAX_LOG_STEP)
-        self.extrapolated = (x2, length)
-        self.trail = []
-        return target
-
-
 def _not_estimable(sd: float, redundancy: float) -> str:
     """Why a group keeps the rig's value, from its log-variance factor's standard deviation."""
     how = (f"the data fix its sigma only within a factor of {math.exp(0.5 * sd):.2g}" if sd < 10.0
@@ -356,21 +358,62 @@ def _not_estimable(sd: float, redundancy: float) -> str:
     return f"not estimable: {how} (redundancy {redundancy:.2g})"
 
 
-def _scoring_step(F: np.ndarray, quadratic: np.ndarray, expected: np.ndarray) -> np.ndarray:
-    """The step of the log-factors: Fisher scoring on the variance factors themselves,
-    ``theta_new / theta = 1 + F~^-1 s`` with ``s = (q - r) / 2``, where ``F~`` has the correlations of
-    the approximate information ``F`` and the diagonal ``r / 2`` (a group alone then takes
-    Foerstner's step ``theta <- theta q / r`` exactly, and correlated groups move together as the
-    information says). A ratio that comes out below 0.05 is Foerstner's instead (the linear step
-    leaves the positive factors there), every step within ``exp(+-MAX_LOG_STEP)``."""
-    q, r = np.maximum(quadratic, 1e-300), np.maximum(expected, 1e-300)
+def psi_of(psi: np.ndarray, ties: list[list[int]]) -> np.ndarray:
+    """The parameters' values: each tie's log-factor."""
+    return np.array([psi[tie[0]] for tie in ties])
+
+
+def _per_parameter(values: np.ndarray, ties: list[list[int]]) -> np.ndarray:
+    """The groups' ``values`` summed over each tie."""
+    return np.array([sum(values[g] for g in tie) for tie in ties])
+
+
+def _far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The log-factors' step far from the optimum (some ``q / r`` beyond ``exp(+-NEAR)``): Fisher
+    scoring on the variance factors themselves, ``theta_new / theta = 1 + F~^-1 (q - r) / 2``, with
+    the approximate information's correlations and the diagonal ``r / 2``. A group alone then
+    takes Foerstner's step ``theta <- theta q / r`` exactly, which does not overshoot (it is how far
+    off a single dominant variance is), and correlated groups move together. A ratio below 0.05
+    is Foerstner's instead (the linear step leaves the positive factors there); every step within
+    ``exp(+-MAX_LOG_STEP)``."""
+    q, r = np.maximum(q, 1e-300), np.maximum(r, 1e-300)
     d = np.sqrt(np.maximum(np.diag(F), 1e-300))
     scaled = np.sqrt(0.5 * r)
-    F_tilde = (F / np.outer(d, d)) * np.outer(scaled, scaled)
-    ratio = 1.0 + _pseudo_inverse(F_tilde) @ (0.5 * (q - r))
+    ratio = 1.0 + _pseudo_inverse((F / np.outer(d, d)) * np.outer(scaled, scaled)) @ (0.5 * (q - r))
     fallback = ~(ratio > 0.05)
     ratio[fallback] = q[fallback] / r[fallback]
     return np.clip(np.log(ratio), -MAX_LOG_STEP, MAX_LOG_STEP)
+
+
+def _observed_information(evaluate, psi: np.ndarray, before: tuple, ties: list[list[int]], score: np.ndarray,
+                          approximate: np.ndarray, leveraged) -> np.ndarray:
+    """The parameters' information ``-d score / d psi``: the approximate one, with the columns (and
+    rows) of the parameters of factors with much leverage (``leveraged(group)``: the IMU's) taken
+    by forward differences of the exact score, each from the same states ``before`` as ``score``.
+    The approximation leaves out the information between factors, which is small for a sensor's
+    measurements (little leverage each) and large for the IMU's factors (on the IMU's components
+    a tenth of it was left on a simulated rig)."""
+    out = approximate.copy()
+    for j, tie in enumerate(ties):
+        if not any(leveraged(g) for g in tie):
+            continue
+        moved = _with_step(psi, ties, np.eye(len(ties))[j] * DIFFERENCE_STEP)
+        _, _, (quadratic, expected, _, _) = evaluate(moved, *before)
+        moved_score = 0.5 * (_per_parameter(quadratic, ties) - _per_parameter(expected, ties))
+        column = -(moved_score - score) / DIFFERENCE_STEP
+        out[:, j] = column
+        out[j, :] = column
+    return 0.5 * (out + out.T)
+
+
+def _secant_update(information: np.ndarray, step: np.ndarray, change: np.ndarray) -> np.ndarray:
+    """The symmetric rank-one update of ``information`` to the secant condition ``I step = change``
+    (``change`` the fall of the score over ``step``), skipped where its denominator is tiny."""
+    gap = change - information @ step
+    denominator = float(gap @ step)
+    if abs(denominator) <= 1e-8 * float(np.linalg.norm(gap) * np.linalg.norm(step)) or not np.isfinite(denominator):
+        return information
+    return information + np.outer(gap, gap) / denominator
 
 
 def _parameter_information(information: np.ndarray, ties: list[list[int]]) -> np.ndarray:
@@ -379,13 +422,16 @@ def _parameter_information(information: np.ndarray, ties: list[list[int]]) -> np
     return T.T @ information @ T
 
 
-def _merge_candidate(F: np.ndarray, ties: list) -> tuple[int, int] | None:
-    """The two parameters whose estimates correlate most, if beyond :data:`MERGE_CORRELATION`."""
+def _merge_candidate(F: np.ndarray, ties: list, groups: list[NoiseGroup]) -> tuple[int, int] | None:
+    """The two parameters of one sensor (the IMU's components, a sensor's axis groups) whose
+    estimates correlate most, if beyond :data:`MERGE_CORRELATION`."""
     if len(ties) < 2:
         return None
     C = _pseudo_inverse(F)
     d = np.sqrt(np.maximum(np.diag(C), 1e-300))
     rho = np.abs(C / np.outer(d, d))
+    sensor = np.array([groups[tie[0]].sensor for tie in ties])
+    rho[sensor[:, None] != sensor[None, :]] = 0.0
     np.fill_diagonal(rho, 0.0)
     a, b = np.unravel_index(np.argmax(rho), rho.shape)
     if rho[a, b] <= MERGE_CORRELATION:
@@ -400,6 +446,7 @@ class _NoiseModel:
     def __init__(self, dataset: Dataset, problem: Problem, groups: list[NoiseGroup]):
         self.dataset, self.problem, self.groups = dataset, problem, groups
         self.block_index = {b.name: i for i, b in enumerate(problem.blocks)}
+        self.kinds = {s.name: s.kind for s in sensors_of(dataset)}
         for g in groups:
             if g.sensor not in self.block_index:
                 raise InputError(f"noise estimation: sensor {g.sensor!r} has no factors in the problem")
@@ -412,6 +459,12 @@ class _NoiseModel:
         self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
+
+    def leveraged(self, g: int) -> bool:
+        """Whether group ``g``'s factors carry much leverage each (the IMU's, a relative sensor's:
+        factors on two keyframes in a chain), so the approximate information is far off for it."""
+        group = self.groups[g]
+        return group.axes is None or KINDS[self.kinds[group.sensor]].relative
 
     def value(self, group: NoiseGroup, factor: float) -> float | None:
         """The group's density or (median) sigma with ``factor`` applied, in the rig's units."""
