@@ -215,7 +215,8 @@ def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:
         if name == IMU_BLOCK:
             groups += [NoiseGroup(IMU_BLOCK, field, None, unit) for field, _, _, unit in IMU_COMPONENTS]
         elif name in names:
-            groups += [NoiseGroup(name, part, tuple(axes), unit) for part, axes, unit in KINDS[names[name].kind].axis_groups]
+            groups += [NoiseGroup(name, part, tuple(axes), unit)
+                       for part, axes, unit in KINDS[names[name].kind].axis_groups]
         else:
             raise InputError(f"noise estimation: no sensor {name!r}; expected imu or one of {', '.join(names)}")
     return groups
@@ -535,9 +536,10 @@ class _NoiseModel:
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray):
         """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
         ``states`` and the calibration variables' values ``calibration`` (marginal covariances
-        ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R V_g)`` (scaled by
-        the truncated mean where outliers are left out: the score is half their difference), the
-        approximate information and the redundancy."""
+        ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R
+        V_g)`` (scaled by the truncated mean where outliers are left out: the score is half their
+        difference), the approximate information and the redundancy.
+        """
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
         n = len(states)
