@@ -95,6 +95,10 @@ MIN_REDUNDANCY = 2.0
 MAX_LOG_SD = 1.5
 #: Robust groups: a factor beyond this quantile of chi-square (its dimension) is an outlier.
 TRUNCATION_PROBABILITY = 0.999
+#: A fitted factor within this many of its standard deviations of the rig's value is reported and
+#: not applied: what the data do not tell from the rig stays the rig's, so a rig already right keeps
+#: its noise and its trajectory.
+SIGNIFICANCE = 3.0
 #: Iterations end when no log-factor moves by more than this fraction of its standard deviation.
 STEP_TOLERANCE = 0.1
 #: A parameter short of :data:`MIN_REDUNDANCY` after this many iterations keeps the rig's value.
@@ -137,7 +141,8 @@ class GroupFit:
     ``factor_sd``, ``redundancy`` (the degrees of freedom its residuals carry), ``value`` (the
     density or sigma in the rig's units, the rig's times ``factor``; a sensor whose covariances
     vary gives its median), ``merged_with`` (groups sharing its factor), ``estimable`` (False:
-    the rig's value kept, ``factor`` 1) and ``note`` (why, when not estimable)."""
+    the rig's value kept, ``factor`` 1), ``applied`` (False: the factor, consistent with 1 within
+    :data:`SIGNIFICANCE` sd, is reported and the rig's value kept) and ``note`` (why either)."""
 
     group: NoiseGroup
     factor: float
@@ -148,12 +153,13 @@ class GroupFit:
     merged_with: tuple[str, ...] = ()
     estimable: bool = True
     note: str = ""
+    applied: bool = True
 
     def record(self) -> dict:
         """``metrics.json``'s record of the group."""
         return {"factor": self.factor, "factor_sd": self.factor_sd, "redundancy": self.redundancy,
                 "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
-                "estimable": self.estimable, **({"note": self.note} if self.note else {})}
+                "estimable": self.estimable, "applied": self.applied, **({"note": self.note} if self.note else {})}
 
 
 @dataclass
@@ -167,8 +173,9 @@ class NoiseFit:
     runtime_s: float = 0.0
 
     def factor_of(self, sensor: str, part: str) -> float:
+        """The factor applied to a group (1 where none is)."""
         for g in self.groups:
-            if g.group.sensor == sensor and g.group.part == part:
+            if g.group.sensor == sensor and g.group.part == part and g.applied and g.estimable:
                 return g.factor
         return 1.0
 
@@ -182,7 +189,7 @@ class NoiseFit:
         out = np.ones(dim)
         for g in self.groups:
             if g.group.sensor == sensor and g.group.axes is not None:
-                out[list(g.group.axes)] = g.factor
+                out[list(g.group.axes)] = self.factor_of(sensor, g.group.part)
         return out
 
     def applied(self, dataset: Dataset) -> Dataset:
@@ -238,6 +245,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     psi = np.zeros(len(groups))
     ties = [[g] for g in range(len(groups))]  # the parameters: groups sharing one factor (the rest: the rig's)
     notes: dict[int, str] = {}
+    held: dict[int, tuple] = {}  # groups kept at the rig's value: (factor, sd, merged with) as estimated
     converged, iterations = False, 0
     states, calibration = result.trajectory.states, result.calibration
 
@@ -285,6 +293,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             continue
         # settled (or long enough): two parameters the data do not tell apart share one factor
         # from here on; one with too little redundancy keeps the rig's value
+        kept = []
         share = _per_parameter(redundancy, ties)
         weak = [j for j in range(len(ties)) if (share[j] < MIN_REDUNDANCY and (settled or step[j] <= 0.0))
                 or (near and sd[j] > MAX_LOG_SD)]
@@ -299,10 +308,18 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             a, b = merged
             ties[a] = ties[a] + ties.pop(b)
             psi[ties[a]] = np.mean(psi[ties[a]])
+        elif settled and (kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]):
+            # what the data do not tell from the rig's value stays the rig's; the rest fitted again
+            for j in sorted(kept, reverse=True):
+                for g in ties[j]:
+                    held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
+                               tuple(groups[t].name for t in ties[j] if t != g))
+                    psi[g] = 0.0
+                del ties[j]
         elif settled:
             converged = True
             break
-        if merged is not None or weak:
+        if merged is not None or weak or kept:
             information, last, damping = None, None, FIRST_DAMPING
         if not ties:
             converged = True
@@ -319,6 +336,11 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     for g, group in enumerate(groups):
         j = next((j for j, tie in enumerate(ties) if g in tie), None)
         factor = math.exp(0.5 * psi[g])
+        if g in held:
+            factor, sd_factor, others = held[g]
+            fits.append(GroupFit(group, factor, sd_factor, float(redundancy[g]), model.value(group, 1.0), group.unit,
+                                 others, applied=False, note=f"the rig's value kept: within {SIGNIFICANCE:g} sd of it"))
+            continue
         if j is None:
             fits.append(GroupFit(group, 1.0, float("nan"), float(redundancy[g]), model.value(group, 1.0),
                                  group.unit, (), False, notes.get(g, "not estimated")))
@@ -404,7 +426,7 @@ def _observed_information(evaluate, psi: np.ndarray, before: tuple, ties: list[l
         column = -(moved_score - score) / DIFFERENCE_STEP
         out[:, j] = column
         out[j, :] = column
-    return 0.5 * (out + out.T)
+    return _positive_definite(out)
 
 
 def _secant_update(information: np.ndarray, step: np.ndarray, change: np.ndarray) -> np.ndarray:
@@ -414,7 +436,16 @@ def _secant_update(information: np.ndarray, step: np.ndarray, change: np.ndarray
     denominator = float(gap @ step)
     if abs(denominator) <= 1e-8 * float(np.linalg.norm(gap) * np.linalg.norm(step)) or not np.isfinite(denominator):
         return information
-    return information + np.outer(gap, gap) / denominator
+    return _positive_definite(information + np.outer(gap, gap) / denominator)
+
+
+def _positive_definite(F: np.ndarray) -> np.ndarray:
+    """``F`` symmetrised with its eigenvalues kept above 1e-6 of the largest: differenced and
+    updated informations can lose definiteness along directions the data hardly fix, and an
+    indefinite one gives negative variances and meaningless correlations."""
+    values, vectors = np.linalg.eigh(0.5 * (F + F.T))
+    floor = 1e-6 * max(float(values.max()), 1e-300)
+    return (vectors * np.maximum(values, floor)) @ vectors.T
 
 
 def _parameter_information(information: np.ndarray, ties: list[list[int]]) -> np.ndarray:
