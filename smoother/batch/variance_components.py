@@ -269,8 +269,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         near = bool(np.all(np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR))
         if near and (information is None or np.any(np.abs(psi_of(psi, ties) - at) > np.sqrt(np.diag(
                 _pseudo_inverse(information))))):
-            # the exact information where it is first needed, and again once the parameters have
-            # moved by more than a standard deviation from where it was computed
+            # the exact information where it is first needed (again after a merge or a group
+            # dropped), and again once the parameters have moved by more than a standard deviation
             information = _exact_information(model, states, calibration, psi, ties,
                                              _parameter_information(approximate, ties))
             at = psi_of(psi, ties)
@@ -433,7 +433,7 @@ def _exact_information(model, states, calibration, psi: np.ndarray, ties: list[l
     def redundancy_at(moved: np.ndarray) -> np.ndarray:
         blocks = model.blocks(moved, states)
         cov, joint = covariances_at(blocks, states, pairs=True, calibration=calibration)
-        return model.statistics(blocks, states, calibration, cov, joint, psi)[3]
+        return model.statistics(blocks, states, calibration, cov, joint, psi, redundancy_only=True)[3]
 
     base = redundancy_at(psi)
     T = _tie_matrix(ties, len(model.groups))
@@ -571,13 +571,15 @@ class _NoiseModel:
                 out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
         return out
 
-    def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray):
+    def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
+                   redundancy_only: bool = False):
         """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
         ``states`` and the calibration variables' values ``calibration`` (marginal covariances
         ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R
         V_g)`` (scaled by the truncated mean where outliers are left out: the score is half their
         difference), the approximate information and the redundancy ``tr(P_R V_g)``, ``V_g`` the
-        derivative at ``psi`` (the blocks' whitenings may be those of other weights).
+        derivative at ``psi`` (the blocks' whitenings may be those of other weights);
+        ``redundancy_only``: that alone (the rest zeros).
         """
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
@@ -610,6 +612,8 @@ class _NoiseModel:
                     quadratic[i] += quad.sum()
                     expected[i] += correction * r.sum()
                     redundancy[i] += r.sum()
+                    if redundancy_only:
+                        continue
                     QU_i = (Q @ Ui)[keep]
                     for j, Uj in U.items():
                         if j < i:
