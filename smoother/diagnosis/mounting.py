@@ -194,8 +194,11 @@ def _message(sensor: Sensor, R_near, R_rig, undetermined, angle: float, sigma: f
     differ = [(names[i], _signed_axis(R_near[:, i]), _signed_axis(R_rig[:, i])) for i in axes
               if _signed_axis(R_near[:, i]) != _signed_axis(R_rig[:, i])]
     head = f"{sensor.name} ({sensor.kind}): "
-    if not wrong:
+    if angle <= SIGMAS * sigma:
         text = f"the rig's mounting agrees with the data's ({angle:.1f} deg apart, {SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg)"
+    elif not wrong:
+        text = (f"the rig's mounting is {angle:.1f} deg off the data's, beyond {SIGMAS:g} sigma ({SIGMAS * sigma:.1f} deg) "
+                f"but within the {WRONG_ANGLE_DEG:g} deg a rotation calibration corrects")
     elif differ:
         text = "the data put " + "; ".join(f"its {name} on the IMU's {data}, the rig on {rig}" for name, data, rig in differ)
         text += f" ({angle:.0f} deg apart, {SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg)"

@@ -63,10 +63,16 @@ VELOCITY_SPAN_S = 1.0
 #: Velocity rows: the windows [s] of one gravity vector each; within one the gyro bias's effect on
 #: the gravity direction is linearised (0.1 rad for 0.01 rad/s: a second-order error of 0.05 m/s^2).
 GRAVITY_WINDOW_S = 10.0
+#: Velocity rows: while the gyro-bias correction turns gravity by more than this over a window
+#: [rad] (its first-order model then errs by a few hundredths of m/s^2), the gyro is integrated
+#: again about the corrected bias, at most :data:`REINTEGRATIONS` times.
+REINTEGRATION_TURN = 0.02
+REINTEGRATIONS = 3
 #: Tilt rows: the specific force is averaged over this window [s] about each measurement.
 TILT_WINDOW_S = 0.5
 #: Tilt rows are kept only at low dynamics: the mean specific force's magnitude within this of
-#: ``|g|`` [m/s^2] and the mean angular rate below :data:`LOW_DYNAMICS_RATE` [rad/s].
+#: ``|g|`` [m/s^2] (plus two of the accelerometer bias's sigmas, which move it as much) and the
+#: mean angular rate below :data:`LOW_DYNAMICS_RATE` [rad/s].
 LOW_DYNAMICS_ACC = 0.2
 LOW_DYNAMICS_RATE = 0.3
 #: Model errors that more data do not average away (a per-row systematic error, in each family's
@@ -196,7 +202,7 @@ def bias_sigmas(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
 class _Rows:
     """A family's problem: ``linearise(R, x) -> (e (n, 3), J (n, 3, 3 + q))``, the rows'
     residuals and their Jacobians with respect to ``(rho, x)``; ``prior`` (q,): the nuisance
-    parameters' prior information (about 0); ``window`` (n,) and ``column`` (n,): where given,
+    parameters' prior information, about ``prior_mean`` (None: 0); ``window`` (n,) and ``column`` (n,): where given,
     row ``k`` also holds ``-column_k g_window_k`` with a free 3-vector per window (rows sorted by
     window); ``model_error``: the per-row floor of the covariance; ``units`` of a residual."""
 
@@ -204,6 +210,7 @@ class _Rows:
     prior: np.ndarray
     model_error: float
     units: str
+    prior_mean: np.ndarray | None = None
     window: np.ndarray | None = None
     column: np.ndarray | None = None
 
@@ -241,12 +248,13 @@ def _solve(N: np.ndarray, g: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(N / np.outer(d, d), g / d, rcond=1e-10)[0] / d
 
 
-def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> DataRotation:
+def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> tuple[DataRotation, np.ndarray]:
     """Gauss-Newton on ``(rho, x)`` from ``(R, x)``, the rows weighted by their current scatter
     plus the model error (so that the nuisance priors weigh what they should), with no step along
     directions without information (:func:`_solve`) and gross outliers dropped after the first
-    step; then the information of ``rho`` (module docstring)."""
+    step; then the information of ``rho`` (module docstring) and the nuisance parameters."""
     q = len(x)
+    prior_mean = np.zeros(q) if rows.prior_mean is None else rows.prior_mean
     keep = None
     for iteration in range(ITERATIONS + 1):
         e, J = rows.linearise(R, x)
@@ -267,15 +275,17 @@ def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> DataRotation:
         N, g = _normal(J_p, e_p)
         N, g = N / (s2 + rows.model_error**2), g / (s2 + rows.model_error**2)
         N[3:, 3:] += np.diag(rows.prior)
-        g[3:] += rows.prior * x
+        g[3:] += rows.prior * (x - prior_mean)
         step = -_solve(N, g)
         R = so3.exp(step[:3]) @ R
         x = x + step[3:]
     N, _ = _normal(J_p, e_p)
+    lam, V = np.linalg.eigh(N[:3, :3] - 2.0 * n * s2 * np.eye(3))
+    N[:3, :3] = (V * np.maximum(lam, 0.0)) @ V.T
     N = N / (s2 + n * rows.model_error**2)
     N[3:, 3:] += np.diag(rows.prior)
     information = N[:3, :3] - N[:3, 3:] @ np.linalg.solve(N[3:, 3:], N[3:, :3]) if q else N[:3, :3]
-    return DataRotation(R, 0.5 * (information + information.T), n, float(np.sqrt(s2)), rows.units)
+    return DataRotation(R, 0.5 * (information + information.T), n, float(np.sqrt(s2)), rows.units), x
 
 
 def _wahba(targets: np.ndarray, sources: np.ndarray) -> np.ndarray:
@@ -328,7 +338,7 @@ def attitude_rotation(integrals: ImuIntegrals, t: np.ndarray, Z: np.ndarray, seg
 
     R0 = _wahba(so3.log(D), alpha_S)
     rows = _Rows(linearise, 1.0 / gyro_bias_sigma**2, ATTITUDE_MODEL_ERROR, "rad")
-    return _fit(rows, R0, np.zeros(3))
+    return _fit(rows, R0, np.zeros(3))[0]
 
 
 def odometry_chain(m: RelativePoseMeasurements) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -357,31 +367,56 @@ def velocity_rotation(integrals: ImuIntegrals, m: VelocityMeasurements, acc_bias
     velocity change against the specific force integrated in the gyro's frame, with a free gravity
     vector per :data:`GRAVITY_WINDOW_S` window, the inverse scale ``k`` and corrections of the
     biases (priors ``acc_bias_sigma``, ``gyro_bias_sigma``). The rig's lever arm ``p_BS`` is taken
-    as it is (``v = k R nu - w x p``)."""
-    _, p = extrinsic_parts(m.T_BS)
-    t = m.t
+    as it is (``v = k R nu - w x p``). While the gyro-bias correction would turn the gravity by
+    more than :data:`REINTEGRATION_TURN` over a window, the gyro is integrated again about it."""
+    spans = _velocity_spans(m.t)
+    prior_mean = np.zeros(7)
+    R = x = None
+    for _ in range(REINTEGRATIONS + 1):
+        rows, start = _velocity_rows(integrals, m, spans, acc_bias_sigma, gyro_bias_sigma, prior_mean)
+        estimate, x = _fit(rows, *(start if R is None else (R, np.r_[x[:4], 0.0, 0.0, 0.0])))
+        R, correction = estimate.R, x[4:7]
+        if np.linalg.norm(correction) * GRAVITY_WINDOW_S <= REINTEGRATION_TURN:
+            break
+        integrals = ImuIntegrals(integrals.imu, integrals.b_f, integrals.b_w + correction)
+        prior_mean[4:7] -= correction
+    if not x[0] > 0:
+        raise NotDetermined(f"the velocities fit the specific force only with a negative scale ({x[0]:.3g})")
+    return estimate
+
+
+def _velocity_spans(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, b, window)``: consecutive spans of about :data:`VELOCITY_SPAN_S` (at most a fiftieth
+    of the recording, at least a sample step; none across a gap of three), and each span's
+    :data:`GRAVITY_WINDOW_S` window (windows of fewer than three spans left out)."""
     if len(t) < 2:
         raise NotDetermined("fewer than two velocities")
     step = float(np.median(np.diff(t)))
-    span = min(VELOCITY_SPAN_S, (t[-1] - t[0]) / 50.0)
-    stride = max(1, int(round(span / step)))
+    stride = max(1, int(round(min(VELOCITY_SPAN_S, (t[-1] - t[0]) / 50.0) / step)))
     a, b = _spans(np.zeros(len(t), int), stride)
-    a, b = a[t[b] - t[a] <= 3 * stride * step], b[t[b] - t[a] <= 3 * stride * step]
+    whole = t[b] - t[a] <= 3 * stride * step
+    a, b = a[whole], b[whole]
     window = np.floor((t[a] - t[0]) / GRAVITY_WINDOW_S).astype(int)
-    counts = np.bincount(window)
-    usable = counts[window] >= 3
-    a, b, window = a[usable], b[usable], window[usable]
-    if len(a) < MIN_ROWS:
-        raise NotDetermined(f"too few velocity spans ({len(a)})")
+    usable = np.bincount(window)[window] >= 3
+    if usable.sum() < MIN_ROWS:
+        raise NotDetermined(f"too few velocity spans ({int(usable.sum())})")
+    return a[usable], b[usable], window[usable]
+
+
+def _velocity_rows(integrals: ImuIntegrals, m: VelocityMeasurements, spans, acc_bias_sigma, gyro_bias_sigma,
+                   prior_mean) -> tuple[_Rows, tuple]:
+    """The velocity family's :class:`_Rows` (nuisance ``x = (k, db_f, db_w)``) about the
+    ``integrals``' biases, and its closed-form start ``(R, x)``."""
+    _, p = extrinsic_parts(m.T_BS)
+    t = m.t
+    a, b, window = spans
+    n = len(a)
     first = np.flatnonzero(np.r_[True, window[1:] != window[:-1]])
-    last = np.r_[first[1:], len(a)] - 1
+    last = np.r_[first[1:], n] - 1
     anchor = 0.5 * (t[a[first]] + t[b[last]])
     G, Sigma, F, K = integrals.at(np.r_[t[a], t[b], anchor], with_K=True)
-    n = len(a)
     ends = [slice(0, n), slice(n, 2 * n)]
-    w_of = np.repeat(np.arange(len(first)), np.diff(np.r_[first, n]))
-    Sigma_w = Sigma[2 * n:][w_of]
-    dt = t[b] - t[a]
+    Sigma_w = Sigma[2 * n:][np.repeat(np.arange(len(first)), np.diff(np.r_[first, n]))]
     dF = F[ends[1]] - F[ends[0]]
     dSigma = Sigma[ends[1]] - Sigma[ends[0]]
     bias_drift = K[ends[1]] - K[ends[0]] - so3.skew(dF) @ Sigma_w
@@ -390,43 +425,51 @@ def velocity_rotation(integrals: ImuIntegrals, m: VelocityMeasurements, acc_bias
     S = [Sigma[end] - Sigma_w for end in ends]
 
     def linearise(R, x):
-        k, b_f, b_w = x[0], x[1:4], x[4:7]
-        e = -dF + dSigma @ b_f - bias_drift @ b_w
+        scale, beta_f, b_w = x[0], x[1:4], x[4:7]
+        e = dSigma @ beta_f - scale * (dF + bias_drift @ b_w)
         J = np.zeros((n, 3, 10))
+        J[:, :, 3] = -(dF + bias_drift @ b_w)
         J[:, :, 4:7] = dSigma
-        J[:, :, 7:10] = -bias_drift
+        J[:, :, 7:10] = -scale * bias_drift
         for sign, end, nu_end, lever_end, S_end in zip((-1.0, 1.0), ends, nu, lever, S):
             A = so3.exp(-S_end @ b_w) @ G[end]
             R_nu = nu_end @ R.T
-            A_u = np.einsum("kij,kj->ki", A, k * R_nu - lever_end)
-            e += sign * A_u
-            J[:, :, 0:3] -= sign * k * (A @ so3.skew(R_nu))
-            J[:, :, 3] += sign * np.einsum("kij,kj->ki", A, R_nu)
-            J[:, :, 7:10] += sign * (so3.skew(A_u) @ S_end)
+            A_x = np.einsum("kij,kj->ki", A, R_nu - scale * lever_end)
+            e += sign * A_x
+            J[:, :, 0:3] -= sign * (A @ so3.skew(R_nu))
+            J[:, :, 3] -= sign * np.einsum("kij,kj->ki", A, lever_end)
+            J[:, :, 7:10] += sign * (so3.skew(A_x) @ S_end)
         return e, J
 
     rows = _Rows(linearise, np.r_[0.0, 1.0 / acc_bias_sigma**2, 1.0 / gyro_bias_sigma**2], VELOCITY_MODEL_ERROR,
-                 "m/s", window, dt)
-    M, k = _linear_start(rows, G, ends, nu, lever, dF, dSigma, acc_bias_sigma)
-    return _fit(rows, so3.project(M), np.r_[k, np.zeros(6)])
+                 "m/s", prior_mean, window, t[b] - t[a])
+    M, k = _linear_start(rows, G, ends, nu, lever, dF, dSigma, bias_drift)
+    return rows, (so3.project(M), np.r_[1.0 / k, np.zeros(6)])
 
 
-def _linear_start(rows: _Rows, G, ends, nu, lever, dF, dSigma, acc_bias_sigma) -> tuple[np.ndarray, float]:
-    """The velocity family's closed-form start: ``M = k R`` as a free 3x3 matrix with ``b_f`` and
-    the windows' gravity, the gyro bias left out, by linear least squares (minimum norm where the
-    motion leaves ``M`` undetermined); ``(M, k)`` with ``k`` its largest singular value."""
+def _linear_start(rows: _Rows, G, ends, nu, lever, dF, dSigma, bias_drift) -> tuple[np.ndarray, float]:
+    """The velocity family's closed-form start: ``M = k R`` as a free 3x3 matrix with the bias
+    corrections and the windows' gravity, by linear least squares (minimum norm where the motion
+    leaves ``M`` undetermined; the gyro bias only where it turns gravity, its turn of the velocity
+    left out), the rows weighted as :func:`_fit` weighs them; ``(M, k)`` with ``k`` the largest
+    singular value of ``M``."""
     n = len(dF)
-    A = np.zeros((n, 3, 12))
+    A = np.zeros((n, 3, 15))
     y = dF.copy()
     for sign, end, nu_end, lever_end in zip((-1.0, 1.0), ends, nu, lever):
         # G M nu = (nu^T kron G) vec(M), vec column-major
         A[:, :, :9] += sign * np.einsum("kj,kab->kajb", nu_end, G[end]).reshape(n, 3, 9)
         y += sign * np.einsum("kij,kj->ki", G[end], lever_end)
-    A[:, :, 9:] = dSigma
-    (A_p, y_p), _ = _without_windows(rows, np.ones(n, bool), A, y)
+    A[:, :, 9:12] = dSigma
+    A[:, :, 12:] = -bias_drift
+    (A_p, y_p), windows = _without_windows(rows, np.ones(n, bool), A, y)
+    prior, mean = np.r_[np.zeros(9), rows.prior[1:]], np.r_[np.zeros(9), rows.prior_mean[1:]]
     N, g = _normal(A_p, y_p)
-    N[9:, 9:] += np.diag(1.0 / acc_bias_sigma**2)
-    solution = _solve(N, g)
+    s2 = 0.0
+    for _ in range(2):
+        weight = 1.0 / (s2 + rows.model_error**2)
+        solution = _solve(weight * N + np.diag(prior), weight * g + prior * mean)
+        s2 = float(np.sum((y_p - A_p @ solution) ** 2)) / max(3 * n - 3 * windows - 15, 1)
     M = solution[:9].reshape(3, 3, order="F")
     k = float(np.linalg.svd(M, compute_uv=False)[0])
     if not k > 0:
@@ -452,11 +495,12 @@ def tilt_rotation(imu: ImuSamples, t: np.ndarray, Z: np.ndarray, gravity: np.nda
     mean = (sums[hi] - sums[lo]) / np.maximum(count, 1)[:, None]
     f = mean[:, :3] - b_f
     g = float(np.linalg.norm(gravity))
-    calm = ((count >= 2) & (np.abs(np.linalg.norm(f, axis=1) - g) <= LOW_DYNAMICS_ACC)
+    tolerance = LOW_DYNAMICS_ACC + 2.0 * float(np.max(acc_bias_sigma))
+    calm = ((count >= 2) & (np.abs(np.linalg.norm(f, axis=1) - g) <= tolerance)
             & (np.linalg.norm(mean[:, 3:], axis=1) <= LOW_DYNAMICS_RATE))
     if calm.sum() < MIN_ROWS:
         raise NotDetermined(f"only {int(calm.sum())} of {len(t)} attitudes at low dynamics (specific force within "
-                            f"{LOW_DYNAMICS_ACC:g} m/s^2 of |g|, rate below {LOW_DYNAMICS_RATE:g} rad/s)")
+                            f"{tolerance:.2g} m/s^2 of |g|, rate below {LOW_DYNAMICS_RATE:g} rad/s)")
     f, u_S = f[calm], Z[calm, 2, :]
 
     def linearise(R, db_f):
@@ -465,7 +509,7 @@ def tilt_rotation(imu: ImuSamples, t: np.ndarray, Z: np.ndarray, gravity: np.nda
         return f - R_u - db_f, jac
 
     rows = _Rows(linearise, 1.0 / acc_bias_sigma**2, TILT_MODEL_ERROR, "m/s^2")
-    return _fit(rows, _wahba(f, u_S), np.zeros(3))
+    return _fit(rows, _wahba(f, u_S), np.zeros(3))[0]
 
 
 # ------------------------------------------------------------------------------------------------
