@@ -193,18 +193,17 @@ def _message(sensor: Sensor, R_near, R_rig, undetermined, angle: float, sigma: f
         axes = [int(np.argmax(cosine))] if cosine.max() >= np.cos(np.radians(ALONG_DEG)) else []
     differ = [(names[i], _signed_axis(R_near[:, i]), _signed_axis(R_rig[:, i])) for i in axes
               if _signed_axis(R_near[:, i]) != _signed_axis(R_rig[:, i])]
-    head = f"{sensor.name} ({sensor.kind}): "
+    bound = f"{SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg"
     if angle <= SIGMAS * sigma:
-        text = f"the rig's mounting agrees with the data's ({angle:.1f} deg apart, {SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg)"
+        text = f"the rig's mounting agrees with the data's ({angle:.1f} deg apart, {bound})"
     elif not wrong:
-        text = (f"the rig's mounting is {angle:.1f} deg off the data's, beyond {SIGMAS:g} sigma ({SIGMAS * sigma:.1f} deg) "
-                f"but within the {WRONG_ANGLE_DEG:g} deg a rotation calibration corrects")
+        text = (f"the rig's mounting is {angle:.1f} deg off the data's, beyond {bound} but within the "
+                f"{WRONG_ANGLE_DEG:g} deg a rotation calibration corrects")
     elif differ:
         text = "the data put " + "; ".join(f"its {name} on the IMU's {data}, the rig on {rig}" for name, data, rig in differ)
-        text += f" ({angle:.0f} deg apart, {SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg)"
+        text += f" ({angle:.0f} deg apart, {bound})"
     else:
-        text = (f"the rig's mounting is {angle:.0f} deg off the data's about the IMU's {_signed_axis(along)} "
-                f"({SIGMAS:g} sigma {SIGMAS * sigma:.1f} deg)")
+        text = f"the rig's mounting is {angle:.0f} deg off the data's about the IMU's {_signed_axis(along)} ({bound})"
     if len(undetermined):
         text += f"; its rotation about the IMU's {_axis(undetermined[0])} axis is not determined by this motion"
-    return head + text
+    return f"{sensor.name} ({sensor.kind}): {text}"

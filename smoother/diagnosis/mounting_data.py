@@ -15,19 +15,21 @@ on ``(rho, x)``:
   ``alpha_S = log(Z_a^T Z_b) = R^T alpha_B`` (a constant world offset of ``Z`` cancels), ``alpha_B``
   the gyro's turn; Wahba's problem ``alpha_B ~= R alpha_S``, solved by SVD (Kabsch), then jointly
   with the gyro bias ``b_w`` (``alpha_B(b_w) ~= alpha_B - Gamma^-1(alpha_B) J b_w``);
-* velocity: the sensor's velocity ``nu = R^T (v + w x p) / k`` (``k`` the inverse of its scale)
-  and the specific force obey ``A_b v_b - A_a v_a = int A (f - b_f) dt + (t_b - t_a) g_w`` with
-  ``A`` the gyro's attitude and ``g_w`` gravity in a window's frame: linear in ``(k R, b_f,
-  g_w)``; the matrix ``k R`` is projected onto the rotations, then refined jointly with ``k``,
-  ``b_f``, ``b_w``;
+* velocity: the body velocity ``v`` and the specific force obey ``A_b v_b - A_a v_a =
+  int A (f - b_f) dt + (t_b - t_a) g_w`` with ``A`` the gyro's attitude and ``g_w`` gravity in a
+  window's frame; with the sensor's reading ``nu = R^T (v + w x p) / s`` (``s`` its scale) it is
+  linear in ``(R / s, b_f, g_w)``: the free matrix is projected onto the rotations, then refined
+  jointly with ``s`` (kept on the specific force's side, which the velocities' noise cannot
+  shrink), ``b_f`` and ``b_w``, the gyro integrated again while its bias correction is large;
 * tilt (``roll_pitch``): at low dynamics the mean specific force is ``|g| R u_S + b_f`` with
   ``u_S = Z^T e_z`` the vertical the sensor reports in its own frame; Wahba again.
 
-The information of ``rho`` is the Schur complement of the normal equations onto it, scaled by
-the residuals' scatter ``s^2`` plus a model-error floor ``eps`` that more data do not average
-away: ``cov = (s^2 / n + eps^2) Mbar^-1`` with ``Mbar`` the mean information of a row. A
-direction the motion does not excite has (nearly) no information: :mod:`smoother.diagnosis.mounting`
-decides which are determined.
+The information of ``rho`` is the Schur complement of the normal equations onto it, less what the
+noise of the measured vectors alone would put into ``J^T J`` (at most ``2 n s^2`` per direction
+for ``n`` rows of scatter ``s^2`` per component), scaled by that scatter plus a model-error floor
+``eps`` that more data do not average away: ``cov = (s^2 / n + eps^2) Mbar^-1`` with ``Mbar`` the
+mean information of a row. A direction the motion does not excite has no information:
+:mod:`smoother.diagnosis.mounting` decides which are determined.
 
 Everything is vectorised and linear in the data's size: the gyro's attitude and its integrals are
 prefix products and cumulative sums over the IMU samples (:class:`ImuIntegrals`), computed once
@@ -54,19 +56,19 @@ TARGET_TURN = 0.3
 #: Attitude rows: spans turning more than this [rad] (by the gyro or the sensor) are left out: the
 #: rotation vector of a turn near pi is ill-defined (and flips with the noise).
 MAX_TURN = 2.0
-#: Attitude rows: the longest span [s]; the gyro bias enters at first order, which holds while
-#: ``|b_w| T`` stays small (0.05 rad for 0.01 rad/s).
+#: Attitude rows: the longest span [s] (a bias of 0.01 rad/s turns the gyro by 0.05 rad over it).
 MAX_SPAN_S = 5.0
 #: Velocity rows: the span over which a velocity change is compared with the integrated specific
 #: force [s] (at most; a short recording takes a fiftieth of its length, at least one sample step).
 VELOCITY_SPAN_S = 1.0
 #: Velocity rows: the windows [s] of one gravity vector each; within one the gyro bias's effect on
-#: the gravity direction is linearised (0.1 rad for 0.01 rad/s: a second-order error of 0.05 m/s^2).
+#: the gravity direction is linearised about the window's middle.
 GRAVITY_WINDOW_S = 10.0
-#: Velocity rows: while the gyro-bias correction turns gravity by more than this over a window
-#: [rad] (its first-order model then errs by a few hundredths of m/s^2), the gyro is integrated
-#: again about the corrected bias, at most :data:`REINTEGRATIONS` times.
-REINTEGRATION_TURN = 0.02
+#: Velocity rows: while the gyro-bias correction turns gravity by more than this over half a
+#: window [rad] (from the window's middle, where its first-order model is anchored; beyond, the
+#: model errs by more than 0.012 m/s^2, half the velocity model error over a span of a second),
+#: the gyro is integrated again about the corrected bias, at most :data:`REINTEGRATIONS` times.
+REINTEGRATION_TURN = 0.05
 REINTEGRATIONS = 3
 #: Tilt rows: the specific force is averaged over this window [s] about each measurement.
 TILT_WINDOW_S = 0.5
@@ -90,8 +92,6 @@ OUTLIER_SIGMAS = 6.0
 ITERATIONS = 4
 #: Median of the chi-square distribution with 3 degrees of freedom (robust scale of a 3-vector).
 _CHI2_3_MEDIAN = 2.365974
-
-
 #: Rows of the blocks :func:`chained` multiplies out first.
 _BLOCK = 64
 
@@ -135,20 +135,20 @@ class ImuIntegrals:
     def _steps(self):
         t = self.imu.t
         dt = np.diff(t)[:, None]
-        w, f = self.imu.gyro - self.b_w, self.imu.acc - self.b_f
+        w = self.imu.gyro - self.b_w
         G = np.empty((len(t), 3, 3))
         G[0] = np.eye(3)
         G[1:] = chained(so3.exp(dt * w[:-1]))
         Sigma = np.zeros_like(G)
         np.cumsum(dt[:, :, None] * G[:-1], axis=0, out=Sigma[1:])
-        Gf = np.einsum("kij,kj->ki", G, f)
+        Gf = np.einsum("kij,kj->ki", G, self.imu.acc - self.b_f)
         F = np.zeros((len(t), 3))
         np.cumsum(dt * Gf[:-1], axis=0, out=F[1:])
-        return w, f, G, Sigma, Gf, F
+        return w, G, Sigma, Gf, F
 
     @cached_property
     def _K(self):
-        _, _, _, Sigma, Gf, _ = self._steps
+        _, _, Sigma, Gf, _ = self._steps
         dt = np.diff(self.imu.t)[:, None, None]
         K = np.zeros_like(Sigma)
         np.cumsum(dt * (so3.skew(Gf[:-1]) @ Sigma[:-1]), axis=0, out=K[1:])
@@ -157,7 +157,7 @@ class ImuIntegrals:
     def at(self, t, with_K: bool = False):
         """``(G, Sigma, F, K or None)`` at times ``t``: each sample's step continued over the
         part ``h = t - t_k`` of it (``G_k exp(h w_k)``, ``Sigma_k + h G_k``, ...)."""
-        w, _, G, Sigma, Gf, F = self._steps
+        w, G, Sigma, Gf, F = self._steps
         k = self.imu.held(t)
         h = np.maximum(np.asarray(t, dtype=float) - self.imu.t[k], 0.0)[:, None]
         G_t = G[k] @ so3.exp(h * w[k])
@@ -202,9 +202,10 @@ def bias_sigmas(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
 class _Rows:
     """A family's problem: ``linearise(R, x) -> (e (n, 3), J (n, 3, 3 + q))``, the rows'
     residuals and their Jacobians with respect to ``(rho, x)``; ``prior`` (q,): the nuisance
-    parameters' prior information, about ``prior_mean`` (None: 0); ``window`` (n,) and ``column`` (n,): where given,
-    row ``k`` also holds ``-column_k g_window_k`` with a free 3-vector per window (rows sorted by
-    window); ``model_error``: the per-row floor of the covariance; ``units`` of a residual."""
+    parameters' prior information, about ``prior_mean`` (None: 0); ``window`` (n,) and ``column``
+    (n,): where given, row ``k`` also holds ``-column_k g_window_k`` with a free 3-vector per window
+    (rows sorted by window); ``model_error``: the per-row floor of the covariance; ``units`` of a
+    residual."""
 
     linearise: Callable
     prior: np.ndarray
@@ -365,10 +366,10 @@ def velocity_rotation(integrals: ImuIntegrals, m: VelocityMeasurements, acc_bias
                       gyro_bias_sigma: np.ndarray) -> DataRotation:
     """``R_BS`` of a velocity sensor: over spans ``a -> b`` of about :data:`VELOCITY_SPAN_S`, its
     velocity change against the specific force integrated in the gyro's frame, with a free gravity
-    vector per :data:`GRAVITY_WINDOW_S` window, the inverse scale ``k`` and corrections of the
-    biases (priors ``acc_bias_sigma``, ``gyro_bias_sigma``). The rig's lever arm ``p_BS`` is taken
-    as it is (``v = k R nu - w x p``). While the gyro-bias correction would turn the gravity by
-    more than :data:`REINTEGRATION_TURN` over a window, the gyro is integrated again about it."""
+    vector per :data:`GRAVITY_WINDOW_S` window, its scale ``s`` and corrections of the biases
+    (priors ``acc_bias_sigma``, ``gyro_bias_sigma``). The rig's lever arm ``p_BS`` is taken as it
+    is (``s v = R nu - s w x p``). While the gyro-bias correction would turn the gravity by more
+    than :data:`REINTEGRATION_TURN` over a window, the gyro is integrated again about it."""
     spans = _velocity_spans(m.t)
     prior_mean = np.zeros(7)
     R = x = None
@@ -376,7 +377,7 @@ def velocity_rotation(integrals: ImuIntegrals, m: VelocityMeasurements, acc_bias
         rows, start = _velocity_rows(integrals, m, spans, acc_bias_sigma, gyro_bias_sigma, prior_mean)
         estimate, x = _fit(rows, *(start if R is None else (R, np.r_[x[:4], 0.0, 0.0, 0.0])))
         R, correction = estimate.R, x[4:7]
-        if np.linalg.norm(correction) * GRAVITY_WINDOW_S <= REINTEGRATION_TURN:
+        if np.linalg.norm(correction) * 0.5 * GRAVITY_WINDOW_S <= REINTEGRATION_TURN:
             break
         integrals = ImuIntegrals(integrals.imu, integrals.b_f, integrals.b_w + correction)
         prior_mean[4:7] -= correction
@@ -405,8 +406,9 @@ def _velocity_spans(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _velocity_rows(integrals: ImuIntegrals, m: VelocityMeasurements, spans, acc_bias_sigma, gyro_bias_sigma,
                    prior_mean) -> tuple[_Rows, tuple]:
-    """The velocity family's :class:`_Rows` (nuisance ``x = (k, db_f, db_w)``) about the
-    ``integrals``' biases, and its closed-form start ``(R, x)``."""
+    """The velocity family's :class:`_Rows` about the ``integrals``' biases, with the nuisance
+    ``x = (s, s db_f, db_w)`` (the scale, the accelerometer-bias correction times it, the gyro's),
+    and its closed-form start ``(R, x)``."""
     _, p = extrinsic_parts(m.T_BS)
     t = m.t
     a, b, window = spans
@@ -448,11 +450,11 @@ def _velocity_rows(integrals: ImuIntegrals, m: VelocityMeasurements, spans, acc_
 
 
 def _linear_start(rows: _Rows, G, ends, nu, lever, dF, dSigma, bias_drift) -> tuple[np.ndarray, float]:
-    """The velocity family's closed-form start: ``M = k R`` as a free 3x3 matrix with the bias
+    """The velocity family's closed-form start: ``M = R / s`` as a free 3x3 matrix with the bias
     corrections and the windows' gravity, by linear least squares (minimum norm where the motion
     leaves ``M`` undetermined; the gyro bias only where it turns gravity, its turn of the velocity
-    left out), the rows weighted as :func:`_fit` weighs them; ``(M, k)`` with ``k`` the largest
-    singular value of ``M``."""
+    left out), the rows weighted as :func:`_fit` weighs them; ``(M, k)`` with ``k = 1 / s`` the
+    largest singular value of ``M``."""
     n = len(dF)
     A = np.zeros((n, 3, 15))
     y = dF.copy()
@@ -486,7 +488,10 @@ def tilt_rotation(imu: ImuSamples, t: np.ndarray, Z: np.ndarray, gravity: np.nda
     """``R_BS`` from the vertical ``u_S = Z^T e_z`` a sensor reports in its own frame (its
     heading is never used) against the specific force averaged over :data:`TILT_WINDOW_S` at low
     dynamics, ``f_mean - b_f ~= |g| R u_S + db_f``, with an accelerometer-bias correction of prior
-    ``acc_bias_sigma`` about the estimate ``b_f``."""
+    ``acc_bias_sigma`` about the estimate ``b_f``; one attitude a window (their rows do not share
+    IMU samples)."""
+    apart = np.flatnonzero(np.r_[True, np.diff(np.floor((t - t[0]) / TILT_WINDOW_S)) > 0])
+    t, Z = t[apart], Z[apart]
     half = 0.5 * TILT_WINDOW_S
     lo = np.searchsorted(imu.t, t - half, side="left")
     hi = np.searchsorted(imu.t, t + half, side="right")
@@ -521,8 +526,8 @@ NOT_CHECKED = {
     "position": "a position's model holds the sensor's lever arm, not its rotation",
     "gnss": "a position's model holds the antenna's lever arm, not its rotation",
     "altitude": "a height's model holds the sensor's lever arm, not its rotation",
-    "magnetometer": "not checked: the field direction in the sensor is bent by the vehicle's own iron as much as "
-                    "by a mounting error",
+    "magnetometer": "the field's direction in the sensor is bent by the vehicle's own iron as much as by a "
+                    "mounting error",
 }
 
 
