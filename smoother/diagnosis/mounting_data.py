@@ -3,9 +3,10 @@ sensor and the IMU both observe, with the information the data carry about it.
 
 Derivations: ``docs/mounting.md``. Conventions (docs/design.md, sections 1, 3 and 7): ``C = C_IB``
 body to world, ``R = R_BS`` sensor to IMU, LEFT perturbations ``R [+] rho = exp(rho) R`` with
-``rho`` in the IMU frame; identities used: ``R^T exp(phi) R = exp(R^T phi)``,
-``exp(phi) C = C exp(C^T phi)`` (eq. 24), ``exp(phi + d) ~= exp(Gamma(phi) d) exp(phi)`` (eq. 31),
-``d log(Phi) = Gamma^-1(log Phi) dphi`` (eq. 32), ``exp(rho) x ~= x - x^x rho``.
+``rho`` in the IMU frame; identities used: ``exp(phi) C = C exp(C^T phi)``, hence
+``R^T exp(phi) R = exp(R^T phi)`` (eq. 24), ``exp(phi + d) ~= exp(Gamma(phi) d) exp(phi)`` (eq. 31),
+``log(exp(d) A) ~= log(A) + Gamma^-1(log A) d`` (eq. 32), ``exp(rho) x ~= x - x^x rho`` (eqs. 22,
+1), ``(R x)^x = R x^x R^T`` (eq. 3).
 
 Three families, each a least-squares problem in 3-vector rows ``e_k(R, x) ~ 0`` (``x``: nuisance
 parameters with Gaussian priors), started in closed form and refined by a few Gauss-Newton steps

@@ -133,6 +133,19 @@ def test_a_rig_turned_about_a_sensor_axis_is_named_with_the_axes_it_moves(rig, a
             assert (said in finding.message) == (i != axis), finding.message
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_wheels_turned_about_the_vertical_on_a_drive_are_named_by_their_forward_axis(seed):
+    """A car's figure-eight excites the wheels' forward axis only; a rig turned by half a turn
+    about the vertical puts it backwards, which every estimator would follow to the negative of the
+    right position."""
+    dataset = _rig("gentle", 60.0, {"wheels": TUMBLING_KINDS["wheels"]}, seed, np.eye(3))
+    (finding,) = check_mountings(_with_rig_rotation(dataset, so3.exp(np.array([0.0, 0.0, np.pi])))).results
+    assert finding.wrong
+    assert finding.message.startswith("wheels (velocity): the data put its forward axis (x) on the IMU's +x, "
+                                      "the rig on -x ("), finding.message
+    assert finding.message.endswith("its rotation about the IMU's x axis is not determined by this motion")
+
+
 def test_the_check_runs_on_the_dataset_as_given(tumbling):
     """The rig's rotation is read from each sensor's data (``T_BS``), the measurements used only."""
     check = check_mountings(tumbling)
