@@ -36,9 +36,9 @@ from smoother.diagnosis.mounting_data import DataRotation, NotDetermined, data_r
 #: A direction of the rotation is determined when the data's sigma about it is at most this
 #: [deg]: the smallest axis mix-up, a quarter turn, then lies at least six sigma away.
 DETERMINED_SIGMA_DEG = 15.0
-#: A rig rotation is wrong only beyond this angle from the data's [deg]: smaller errors are within
-#: two of the default rotation-calibration prior's sigmas (0.1 rad), which ``estimate =
-#: ["rotation"]`` corrects, and far below the quarter turn of an axis mix-up.
+#: A rig rotation is wrong only beyond this angle from the data's [deg]: smaller errors lie within
+#: two sigmas of the default rotation-calibration prior (0.1 rad), where ``estimate =
+#: ["rotation"]`` corrects them, and far below the quarter turn of an axis mix-up.
 WRONG_ANGLE_DEG = 10.0
 #: ... and beyond this many of the data's sigmas in the direction of the difference.
 SIGMAS = 3.0
@@ -50,7 +50,7 @@ AXIS_NAMES = {"velocity": ("forward axis (x)", "left axis (y)", "up axis (z)")}
 _PLAIN_AXES = ("x axis", "y axis", "z axis")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MountingFinding:
     """What the data say about ``sensor``'s (of ``kind``) mounting rotation.
 
@@ -95,7 +95,7 @@ class NotChecked:
         return f"{self.sensor} ({self.kind}): mounting not checked: {self.reason}"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MountingCheck:
     """Every sensor's :class:`MountingFinding` or :class:`NotChecked`, in the dataset's order."""
 
@@ -132,7 +132,7 @@ def check_mountings(dataset: Dataset) -> MountingCheck:
     return MountingCheck(tuple(results))
 
 
-def compare(sensor: Sensor, estimate: DataRotation):
+def compare(sensor: Sensor, estimate: DataRotation) -> MountingFinding | NotChecked:
     """The :class:`MountingFinding` of ``sensor`` (its rig rotation from its data's ``T_BS``)
     given the data's :class:`~smoother.diagnosis.mounting_data.DataRotation`; a
     :class:`NotChecked` when fewer than two directions are determined."""
@@ -143,7 +143,7 @@ def compare(sensor: Sensor, estimate: DataRotation):
     determined = sigma <= np.radians(DETERMINED_SIGMA_DEG)
     if determined.sum() < 2:
         return NotChecked(sensor.name, sensor.kind, "the motion determines at most one direction of its rotation "
-                                                    f"(sigmas {_degrees(sigma)} deg)")
+                                                    f"(sigmas {_sigmas_text(sigma)} deg)")
     observable = V[:, determined].T
     cov = (observable.T / lam[determined]) @ observable
     undetermined = V[:, ~determined].T
@@ -179,7 +179,8 @@ def _signed_axis(v: np.ndarray) -> str:
     return ("+" if v[i] >= 0 else "-") + "xyz"[i]
 
 
-def _degrees(sigma: np.ndarray) -> str:
+def _sigmas_text(sigma: np.ndarray) -> str:
+    """Sigmas [rad] in degrees, ``inf`` for those without information."""
     return ", ".join("inf" if not np.isfinite(s) or s > 1e6 else f"{np.degrees(s):.3g}" for s in sigma)
 
 

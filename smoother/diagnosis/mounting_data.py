@@ -101,7 +101,7 @@ class NotDetermined(ValueError):
     """The data cannot give the sensor's mounting rotation; the message says why."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DataRotation:
     """``R`` (3x3): the sensor-to-IMU rotation ``R_BS`` the data give; ``information`` (3x3,
     [1/rad^2]): of its LEFT perturbation ``rho`` (``exp(rho) R``, IMU frame), singular along the
