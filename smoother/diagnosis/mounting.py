@@ -31,7 +31,8 @@ import numpy as np
 from datasets.types import Dataset, Sensor
 from factors import so3
 from factors.sensor_models import extrinsic_parts
-from smoother.diagnosis.mounting_data import DataRotation, NotDetermined, data_rotation, imu_integrals
+from smoother.diagnosis.imu_integrals import imu_integrals
+from smoother.diagnosis.mounting_data import DataRotation, NotDetermined, data_rotation
 
 #: A direction of the rotation is determined when the data's sigma about it is at most this
 #: [deg]: the smallest axis mix-up, a quarter turn, then lies at least six sigma away.

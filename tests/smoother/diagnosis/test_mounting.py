@@ -1,4 +1,4 @@
-"""The mounting check (smoother/diagnosis/mounting.py, mounting_data.py): simulated rigs whose
+"""The mounting check (smoother/diagnosis/mounting.py, mounting_data.py, imu_integrals.py): simulated rigs whose
 data were made with the true mounting and whose rig states another one.
 
 * a rig off by a quarter or a half turn about any sensor axis is named, with exactly the sensor
@@ -30,7 +30,8 @@ from factors import so3
 from factors.scan import prefix_products
 from smoother.diagnosis.mounting import (AXIS_NAMES, WRONG_ANGLE_DEG, MountingFinding, NotChecked, check_mountings,
                                          compare)
-from smoother.diagnosis.mounting_data import DataRotation, chained
+from smoother.diagnosis.imu_integrals import chained
+from smoother.diagnosis.mounting_data import DataRotation
 
 #: A camera-like mounting, a little off the axes: the sensor's z on the IMU's x, its x on -y, its
 #: y on -z, turned by 4 degrees about a skew axis.
