@@ -28,10 +28,13 @@ class ImuIntegrals:
     estimators' zero-order hold). At sample ``k`` (``t_0`` the first):
 
     * ``G_k`` the gyro's attitude relative to the first sample (``G_{k+1} = G_k exp(dt w_k)``);
-    * ``Sigma_k = sum_{i<k} dt_i G_i``: a gyro bias ``b`` turns ``G_t`` into
-      ``exp(-(Sigma_t - Sigma_s) b) G_t`` relative to any time ``s`` (eqs. 31, 24);
-    * ``F_k = sum_{i<k} dt_i G_i f_i``, the specific force in the frame of ``G``;
-    * ``K_k = sum_{i<k} dt_i (G_i f_i)^x Sigma_i`` (for the velocity family; computed when used).
+    * ``Sigma_k``, the integral of ``G`` up to sample ``k``, exact for held readings:
+      ``Sigma_{k+1} = Sigma_k + dt G_k Gamma(dt w_k)`` (``int_0^1 exp(s phi^x) ds = Gamma(phi)``, eq.
+      33); a gyro bias ``b`` turns ``G_t`` into ``exp(-(Sigma_t - Sigma_s) b) G_t`` relative to any
+      time ``s``, to first order in ``b`` (eqs. 31, 24);
+    * ``F_k``, the integral of ``G f`` (the specific force in the frame of ``G``), exact likewise;
+    * ``K_k = sum_{i<k} dt_i (G_i f_i)^x Sigma_i``, the integral of ``(G f)^x Sigma`` to first order
+      in the step (for the velocity family; computed when used).
     """
 
     imu: ImuSamples
@@ -42,35 +45,38 @@ class ImuIntegrals:
     def _steps(self):
         t = self.imu.t
         dt = np.diff(t)[:, None]
-        w = self.imu.gyro - self.b_w
+        w, f = self.imu.gyro - self.b_w, self.imu.acc - self.b_f
         G = np.empty((len(t), 3, 3))
         G[0] = np.eye(3)
         G[1:] = chained(so3.exp(dt * w[:-1]))
+        step = dt[:, :, None] * (G[:-1] @ so3.gamma(dt * w[:-1]))
         Sigma = np.zeros_like(G)
-        np.cumsum(dt[:, :, None] * G[:-1], axis=0, out=Sigma[1:])
-        Gf = np.einsum("kij,kj->ki", G, self.imu.acc - self.b_f)
+        np.cumsum(step, axis=0, out=Sigma[1:])
         F = np.zeros((len(t), 3))
-        np.cumsum(dt * Gf[:-1], axis=0, out=F[1:])
-        return w, G, Sigma, Gf, F
+        np.cumsum(np.einsum("kij,kj->ki", step, f[:-1]), axis=0, out=F[1:])
+        return w, f, G, Sigma, F
 
     @cached_property
     def _K(self):
-        _, _, Sigma, Gf, _ = self._steps
+        _, f, G, Sigma, _ = self._steps
         dt = np.diff(self.imu.t)[:, None, None]
         K = np.zeros_like(Sigma)
-        np.cumsum(dt * (so3.skew(Gf[:-1]) @ Sigma[:-1]), axis=0, out=K[1:])
+        np.cumsum(dt * (so3.skew(np.einsum("kij,kj->ki", G[:-1], f[:-1])) @ Sigma[:-1]), axis=0, out=K[1:])
         return K
 
     def at(self, t, with_K: bool = False):
         """``(G, Sigma, F, K or None)`` at times ``t``: each sample's step continued over the
-        part ``h = t - t_k`` of it (``G_k exp(h w_k)``, ``Sigma_k + h G_k``, ...)."""
-        w, G, Sigma, Gf, F = self._steps
+        part ``h = t - t_k`` of it (``G_k exp(h w_k)``, ``Sigma_k + h G_k Gamma(h w_k)``, ...)."""
+        w, f, G, Sigma, F = self._steps
         k = self.imu.held(t)
         h = np.maximum(np.asarray(t, dtype=float) - self.imu.t[k], 0.0)[:, None]
+        part = h[:, :, None] * (G[k] @ so3.gamma(h * w[k]))
         G_t = G[k] @ so3.exp(h * w[k])
-        Sigma_t = Sigma[k] + h[:, :, None] * G[k]
-        F_t = F[k] + h * Gf[k]
-        K_t = self._K[k] + h[:, :, None] * (so3.skew(Gf[k]) @ Sigma[k]) if with_K else None
+        Sigma_t = Sigma[k] + part
+        F_t = F[k] + np.einsum("kij,kj->ki", part, f[k])
+        K_t = None
+        if with_K:
+            K_t = self._K[k] + h[:, :, None] * (so3.skew(np.einsum("kij,kj->ki", G[k], f[k])) @ Sigma[k])
         return G_t, Sigma_t, F_t, K_t
 
 

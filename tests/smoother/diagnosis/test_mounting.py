@@ -25,12 +25,12 @@ import strategies
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from datasets.trajectories import Sinusoids, sinusoid_profile
-from datasets.types import OrientationMeasurements, Sensor, VelocityMeasurements
+from datasets.types import ImuSamples, OrientationMeasurements, Sensor, VelocityMeasurements
 from factors import so3
 from factors.scan import prefix_products
 from smoother.diagnosis.mounting import (AXIS_NAMES, WRONG_ANGLE_DEG, MountingFinding, NotChecked, check_mountings,
                                          compare)
-from smoother.diagnosis.imu_integrals import chained
+from smoother.diagnosis.imu_integrals import ImuIntegrals, chained
 from smoother.diagnosis.mounting_data import DataRotation
 
 #: A camera-like mounting, a little off the axes: the sensor's z on the IMU's x, its x on -y, its
@@ -319,10 +319,43 @@ def test_a_sharp_estimate_flags_every_axis_turn(R, axis, quarter_turns):
     assert not compare(_sensor(R), DataRotation(R, np.eye(3) / np.radians(1.0) ** 2, 100, 0.01, "rad")).wrong
 
 
+@given(R=strategies.rotations(), axis=strategies.unit_vectors())
+def test_a_difference_is_wrong_beyond_both_the_tolerance_and_three_sigma(R, axis):
+    def finding(sigma_deg, off_deg):
+        information = np.eye(3) / np.radians(sigma_deg) ** 2
+        return compare(_sensor(so3.exp(np.radians(off_deg) * axis) @ R), DataRotation(R, information, 100, 0.01, "rad"))
+
+    assert not finding(10.0, 20.0).wrong and "agrees with the data's (20.0 deg apart" in finding(10.0, 20.0).message
+    assert finding(1.0, 20.0).wrong
+    within = finding(1.0, 5.0)
+    assert not within.wrong and "beyond 3 sigma 3.0 deg but within the 10 deg" in within.message
+
+
 def test_a_finding_needs_two_determined_directions():
     information = np.diag([1.0 / np.radians(1.0) ** 2, 0.0, 0.0])
     refused = compare(_sensor(np.eye(3)), DataRotation(np.eye(3), information, 100, 0.01, "rad"))
     assert isinstance(refused, NotChecked) and "at most one direction" in refused.reason
+
+
+@given(seed=st.integers(0, 2**16), fraction=st.floats(0.01, 0.99))
+def test_a_time_between_samples_continues_its_samples_step(seed, fraction):
+    """The attitude and the integrals of the attitude and the specific force at a time inside a
+    step equal those of the same IMU with the step split there (the reading held on both sides),
+    and so do all later ones (``K``, of first order in the step, is not exact)."""
+    rng = np.random.default_rng(seed)
+    n = 40
+    t = np.cumsum(rng.uniform(0.005, 0.02, n))
+    acc, gyro = rng.normal(size=(n, 3)) + [0.0, 0.0, 9.81], rng.normal(size=(n, 3))
+    k = int(rng.integers(0, n - 1))
+    t_split = t[k] + fraction * (t[k + 1] - t[k])
+    split = ImuSamples(np.insert(t, k + 1, t_split), np.insert(acc, k + 1, acc[k], axis=0),
+                       np.insert(gyro, k + 1, gyro[k], axis=0))
+    b_f, b_w = rng.normal(size=3) * 0.1, rng.normal(size=3) * 0.01
+    times = np.r_[t_split, t[k + 1:], rng.uniform(t_split, t[-1], 5)]
+    whole = ImuIntegrals(ImuSamples(t, acc, gyro), b_f, b_w).at(times)
+    parts = ImuIntegrals(split, b_f, b_w).at(times)
+    for one, other in zip(whole[:3], parts[:3]):
+        assert np.allclose(one, other, rtol=1e-12, atol=1e-12)
 
 
 @given(n=st.integers(1, 300), seed=st.integers(0, 2**16))
