@@ -1,16 +1,20 @@
-"""The mounting check (smoother/diagnosis/mounting.py, mounting_data.py, imu_integrals.py): simulated rigs whose
-data were made with the true mounting and whose rig states another one.
+"""The mounting check (smoother/diagnosis/mounting.py, mounting_data.py, imu_integrals.py) on
+simulated rigs whose data were made with the true mounting and whose rig states another one:
 
 * a rig off by a quarter or a half turn about any sensor axis is named, with exactly the sensor
   axes that the two rotations put on different IMU axes, for a velocity, a pose, an orientation,
-  an odometry and a roll_pitch sensor;
+  an odometry and a roll_pitch sensor; wheels turned about the vertical on a drive are named by
+  their forward axis;
 * a rig mounted right gives no warning over 20 seeds with random mountings, and the data's
-  rotation is within a few degrees of the truth;
+  rotation is within a few degrees of the truth, also with a poor gyro, an accelerometer bias or
+  outliers in the attitudes;
 * a motion that excites one axis only (yawing in place, driving in a straight line, standing
   still) reports the rotation about it as not determined, does not flag a rig that differs only
-  there, and still flags one that differs elsewhere; without motion nothing is checked;
-* the comparison's closed forms (the nearest rotation along an undetermined direction, the
-  blocked prefix products) hold for arbitrary inputs.
+  there, and still flags one that differs elsewhere; without motion, or only in a steady turn for
+  the vertical, nothing is checked;
+* the closed forms (the nearest rotation along an undetermined direction, the verdict's two
+  bounds, the IMU's integrals inside a step, the blocked prefix products) hold for arbitrary
+  inputs.
 """
 from __future__ import annotations
 
