@@ -1,9 +1,11 @@
 """Chi-square quantiles and the bands built from them, in one place: the sensors' verdicts, the
 EKF's innovation gate, the robust kernels' default thresholds and the NEES intervals of the
-evaluation all take theirs from here."""
+evaluation all take theirs from here; and the lag-one correlation of residuals in time order."""
 from __future__ import annotations
 
 import math
+
+import numpy as np
 
 from factors.errors import InputError
 
@@ -46,3 +48,14 @@ def per_dof_band(dof: float, probability: float) -> tuple[float, float]:
     lo = chi2_quantile(0.5 * (1 - probability), dof) / dof
     hi = chi2_quantile(0.5 * (1 + probability), dof) / dof
     return lo, hi
+
+
+def lag_one_correlation(u: np.ndarray) -> float:
+    """The lag-one correlation of whitened residuals ``u (N, d)`` in time order, over their axes
+    together (0 with fewer than three)."""
+    u = np.asarray(u, dtype=float)
+    if len(u) < 3:
+        return 0.0
+    u = u - u.mean(axis=0)
+    denominator = float(np.sum(u * u))
+    return float(np.sum(u[1:] * u[:-1]) / denominator) if denominator > 0.0 and math.isfinite(denominator) else 0.0

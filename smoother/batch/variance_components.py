@@ -77,7 +77,7 @@ from smoother.model.covariances import covariances_at, marginal_covariances
 from smoother.model.blocks import Block, block_residual, whitening
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
-from smoother.stats import chi2_quantile
+from smoother.stats import chi2_quantile, lag_one_correlation
 
 #: The IMU's four estimated densities: ``(ImuNoise field, name, rig key, unit)``.
 IMU_COMPONENTS = (
@@ -154,12 +154,18 @@ class GroupFit:
     estimable: bool = True
     note: str = ""
     applied: bool = True
+    #: The lag-one correlation of its whitened residuals in time order, and their degrees of
+    #: freedom (measurements times axes): what tells a systematic error from noise
+    #: (:mod:`smoother.diagnosis.noise_honesty`).
+    correlation: float = 0.0
+    dof: int = 0
 
     def record(self) -> dict:
         """``metrics.json``'s record of the group."""
         return {"factor": self.factor, "factor_sd": self.factor_sd, "redundancy": self.redundancy,
                 "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
-                "estimable": self.estimable, "applied": self.applied, **({"note": self.note} if self.note else {})}
+                "estimable": self.estimable, "applied": self.applied, "residual_correlation": self.correlation,
+                **({"note": self.note} if self.note else {})}
 
 
 @dataclass
@@ -341,6 +347,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     if ties:
         cov_psi = _pseudo_inverse(information if information is not None else
                                   _parameter_information(approximate, ties))
+    summary = model.residual_summary(result.trajectory.states, result.calibration, psi)
     fits = []
     for g, group in enumerate(groups):
         j = next((j for j, tie in enumerate(ties) if g in tie), None)
@@ -348,16 +355,18 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         if g in held:
             factor, sd_factor, others = held[g]
             fits.append(GroupFit(group, factor, sd_factor, float(redundancy[g]), model.value(group, 1.0), group.unit,
-                                 others, applied=False, note=f"the rig's value kept: within {SIGNIFICANCE:g} sd of it"))
+                                 others, applied=False, note=f"the rig's value kept: within {SIGNIFICANCE:g} sd of it",
+                                 correlation=summary[g][0], dof=summary[g][1]))
             continue
         if j is None:
             fits.append(GroupFit(group, 1.0, float("nan"), float(redundancy[g]), model.value(group, 1.0),
-                                 group.unit, (), False, notes.get(g, "not estimated")))
+                                 group.unit, (), False, notes.get(g, "not estimated"),
+                                 correlation=summary[g][0], dof=summary[g][1]))
             continue
         sd_psi = math.sqrt(max(cov_psi[j, j], 0.0))
         others = tuple(groups[t].name for t in ties[j] if t != g)
         fits.append(GroupFit(group, factor, 0.5 * factor * sd_psi, float(redundancy[g]), model.value(group, factor),
-                             group.unit, others))
+                             group.unit, others, correlation=summary[g][0], dof=summary[g][1]))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
     return fit, result
 
@@ -512,6 +521,22 @@ class _NoiseModel:
         R = self.R0[group.sensor]
         sigma = np.sqrt(np.diagonal(R, axis1=1, axis2=2)[:, list(group.axes)])
         return float(np.median(sigma) * factor)
+
+    def residual_summary(self, states, calibration, psi: np.ndarray) -> list[tuple[float, int]]:
+        """Per group, ``(lag-one correlation, degrees of freedom)`` of its whitened residuals at
+        ``states`` (a sensor group's axes; the IMU's whole residual for each of its components)."""
+        blocks = self.blocks(psi, states)
+        out = []
+        for group in self.groups:
+            block = blocks[self.block_index[group.sensor]]
+            kf = block.keyframes
+            slots = [states[kf[:, s]] for s in range(kf.shape[1])]
+            e = block_residual(block, slots, False, slice(None), calibration)
+            u = np.einsum("mab,mb->ma", block.whiten, e)
+            axes = slice(None) if group.axes is None else list(group.axes)
+            order = np.argsort(kf.max(axis=1), kind="stable")
+            out.append((lag_one_correlation(u[order][:, axes]), int(u[:, axes].size)))
+        return out
 
     def _imu_parts(self, states):
         """The IMU factors' covariance parts along ``states``: ``(N (4, J, 15, 15), N_0)``."""

@@ -1,0 +1,85 @@
+"""Fitted noise that stays honest: a noise factor that explains a model error is reported as that
+error, not applied as noise.
+
+Variance components (:mod:`smoother.batch.variance_components`) fit whatever the residuals hold:
+a wheel odometry mounted backwards, a gyro in degrees, a time offset left out all leave residuals
+that a large enough "noise" explains, and the run then looks consistent while its estimate is
+wrong. A fitted group is therefore a model error, with its likely cause, when
+
+* its sensor's mounting is wrong by the closed-form check (:mod:`smoother.diagnosis.mounting`):
+  the mounting is the cause, whatever the factor;
+* its factor is implausible for a noise: beyond :data:`IMPLAUSIBLE_FACTOR` from the rig's value
+  either way (a datasheet or an Allan variance is not off by that much; a unit or a frame is);
+* the IMU's components contradict each other: two estimated factors more than
+  :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
+  not an IMU, it is a misfit shared out);
+* its whitened residuals are alike from one measurement to the next (lag-one correlation beyond
+  :data:`CORRELATED`): noise is white, a systematic error is not;
+* the fit grew its sigma until the estimate hardly uses it (a factor beyond
+  :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
+  its verdict no longer responds to its sigma, and the sensor is dropped, not weighed.
+
+Each such group keeps the rig's value, and the run stays doubtful with the cause.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from smoother.batch.variance_components import IMU_BLOCK, NoiseFit
+
+#: A factor beyond this (or below its inverse) on a density or sigma is not a noise.
+IMPLAUSIBLE_FACTOR = 30.0
+#: Two of the IMU's estimated factors further apart than this ratio contradict each other.
+CONTRADICTION = 100.0
+#: Residuals correlated beyond this from one measurement to the next are not white noise.
+CORRELATED = 0.5
+#: A group grown beyond this factor ...
+DISCARDED_FACTOR = 10.0
+#: ... whose redundancy is at least this share of its residuals' degrees of freedom is discarded.
+DISCARDED_SHARE = 0.95
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """A fitted noise group that is a model error: ``group`` (its name), ``cause`` (one line)."""
+
+    group: str
+    cause: str
+
+
+def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]]:
+    """``fit`` with every group that is a model error (module docstring) kept at the rig's value,
+    and those errors. ``mounting_wrong``: the sensors whose mounting the closed-form check found
+    wrong."""
+    errors: dict[str, str] = {}
+    for g in fit.groups:
+        if not (g.estimable and g.applied):
+            continue
+        name, sensor = g.group.name, g.group.sensor
+        if sensor in mounting_wrong:
+            errors[name] = (f"its mounting is wrong (the mounting check): a noise {g.factor:.3g}x the rig's would "
+                            "hide it")
+        elif not 1.0 / IMPLAUSIBLE_FACTOR <= g.factor <= IMPLAUSIBLE_FACTOR:
+            errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
+                            "frame, a mounting or a time offset is wrong")
+        elif g.correlation > CORRELATED:
+            errors[name] = (f"its residuals are alike from one measurement to the next (correlation "
+                            f"{g.correlation:.2f}): a systematic error (a lever arm, a time offset, a scale), not noise")
+        elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
+            errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
+                            "measurements disagree with the rest of the model")
+    imu = [g for g in fit.groups if g.group.sensor == IMU_BLOCK and g.estimable and g.applied
+           and g.group.name not in errors]
+    if len(imu) >= 2:
+        high, low = max(imu, key=lambda g: g.factor), min(imu, key=lambda g: g.factor)
+        if high.factor / low.factor > CONTRADICTION:
+            cause = (f"the IMU's components contradict each other ({high.group.part} x{high.factor:.3g} beside "
+                     f"{low.group.part} x{low.factor:.3g}): a misfit shared out, not an IMU's noise")
+            errors.setdefault(high.group.name, cause)
+            errors.setdefault(low.group.name, cause)
+    if not errors:
+        return fit, []
+    groups = [replace(g, applied=False, note=f"not applied: {errors[g.group.name]}") if g.group.name in errors
+              else g for g in fit.groups]
+    return replace(fit, groups=groups), [ModelError(name, cause) for name, cause in errors.items()]
+
