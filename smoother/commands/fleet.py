@@ -35,7 +35,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.atomic import atomic_write
-    from factors.compiled import thread_count
+    from factors.threads import thread_count
     from smoother.commands import fleet_runner as fleet
     from smoother.commands import at_least, output_directory, positive
     from smoother.progress import progress_bar

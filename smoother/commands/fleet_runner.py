@@ -17,7 +17,7 @@ cluster (``smoother fleet``).
   see the rig files and the output folder at the same paths (a shared file system). Both submit
   lazily (a window of a few tasks per thread ahead, refilled as results come back, in
   ``as_completed`` order) and each child gets its share of the cores (``BOXPLUS_THREADS``,
-  :func:`factors.compiled.thread_count`).
+  :func:`factors.threads.thread_count`).
 * **Stopping**: Ctrl-C or SIGTERM to the fleet stops submitting, forwards that one signal to the
   recordings running here (their runs keep their finished estimators, as ``smoother run`` does,
   and their results come back with ``stopped``), and re-raises. The children run in their own
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from smoother.commands.run_directory import METRICS
-from factors.compiled import interrupts_held
+from factors.threads import interrupts_held
 from factors.errors import InputError
 from smoother.errors import Terminated
 

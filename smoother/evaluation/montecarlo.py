@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
-from factors import compiled
+from factors import threads
 from factors.errors import InputError
 
 
@@ -57,14 +57,14 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
 
 def make_executor(workers: int) -> Executor | None:
     """None (runs in this process, in seed order) for one worker, a process pool otherwise,
-    whose workers share this process's threads among them (:func:`factors.compiled.in_parallel`
+    whose workers share this process's threads among them (:func:`factors.threads.in_parallel`
     in each worker would otherwise use every core, ``workers`` times over)."""
     if workers < 1:
         raise InputError(f"workers: expected at least 1, got {workers}")
     if workers == 1:
         return None
-    share = max(1, compiled.thread_count() // workers)
-    return ProcessPoolExecutor(max_workers=workers, initializer=compiled.set_thread_count, initargs=(share,))
+    share = max(1, threads.thread_count() // workers)
+    return ProcessPoolExecutor(max_workers=workers, initializer=threads.set_thread_count, initargs=(share,))
 
 
 def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, dask_address: str | None = None,

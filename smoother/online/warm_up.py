@@ -26,7 +26,7 @@ import numpy as np
 
 from datasets.kinds import pose
 from factors import imu
-from factors.compiled import thread_count
+from factors.threads import thread_count
 
 #: How long the fixed-lag smoother waits for the child [s] before it compiles on its own.
 WAIT_S = 300.0
@@ -67,7 +67,7 @@ class WarmUp:
 def start(order, fixed_lag_kind: str) -> WarmUp | None:
     """A warm-up child when the estimators in ``order`` run the sliding window after another one,
     its kernels are not on disk (:func:`cold`) and the process may use more than one thread
-    (:func:`factors.compiled.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
+    (:func:`factors.threads.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
     cores); else None."""
     if fixed_lag_kind != "sliding" or "fixed-lag" not in order or list(order)[0] == "fixed-lag":
         return None

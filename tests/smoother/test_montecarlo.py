@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from factors import compiled
+from factors.threads import thread_count, thread_limit
 from smoother.evaluation import montecarlo
 from smoother.cli import main
 
@@ -24,10 +24,10 @@ def test_one_worker_and_several_give_identical_results(serial):
 
 @pytest.mark.parametrize("threads, workers, each", [(4, 2, 2), (1, 3, 1)])
 def test_process_workers_share_the_threads_instead_of_each_taking_them_all(threads, workers, each):
-    with compiled.thread_limit(threads):
+    with thread_limit(threads):
         executor = montecarlo.make_executor(workers)
     try:
-        assert executor.submit(compiled.thread_count).result(timeout=60) == each
+        assert executor.submit(thread_count).result(timeout=60) == each
     finally:
         executor.shutdown()
 
