@@ -56,10 +56,7 @@ def run(args) -> int:
                 bar.write(f"{result['recording']}: {result['failure']}", file=sys.stderr)
 
         try:
-            if args.dask:
-                fleet.run_on_dask(items, args.dask, done)
-            else:
-                fleet.run_local(items, args.workers, done)
+            fleet.run_recordings(items, done, args.workers, args.dask)
         except KeyboardInterrupt as error:
             stopped, code = interruption(error)
     ordered = [results[item.name] for item in items if item.name in results]

@@ -48,9 +48,8 @@ def run(args) -> int:
     out = output_directory(args.out)
     seeds = range(args.first_seed, args.first_seed + args.runs)
     with progress_bar(args.runs, "monte carlo", None) as bar:
-        results = montecarlo.run_many(
-            config, seeds, None if args.dask else montecarlo.make_executor(args.workers),
-            dask_address=args.dask, out_dir=out, on_done=lambda r: bar.update(1))
+        results = montecarlo.run_many(config, seeds, args.workers, dask_address=args.dask, out_dir=out,
+                                      on_done=lambda r: bar.update(1))
     summary = montecarlo.aggregate(results, estimators)
     from datasets.atomic import atomic_write
 

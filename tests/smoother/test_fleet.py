@@ -104,7 +104,7 @@ def test_a_recording_whose_process_dies_does_not_stop_the_others(rigs, tmp_path,
     python.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(python))
     results = []
-    fleet.run_local(fleet.recordings([rigs[0], rigs[2]], tmp_path / "fleet", RUN), 2, results.append)
+    fleet.run_recordings(fleet.recordings([rigs[0], rigs[2]], tmp_path / "fleet", RUN), results.append, workers=2)
     by_name = {r["recording"]: r for r in results}
     assert by_name["jackal"]["failure"] == "its process was killed by SIGSEGV"
     assert by_name["husky"]["failure"] is None and "ekf" in by_name["husky"]["estimators"]
