@@ -59,7 +59,7 @@ def run(args) -> int:
     from datasets.allan import allan, motion
     from datasets.sources import read_imu
     from smoother.commands import output_directory
-    from smoother.outputs.plots import plot_allan
+    from smoother.outputs.allan_plot import plot_allan
 
     out = output_directory(args.out)
     imu = read_imu(args.source, args.topic)

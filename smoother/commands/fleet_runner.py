@@ -37,7 +37,7 @@ from pathlib import Path
 
 from factors.errors import InputError
 from smoother import parallel
-from smoother.commands.run_directory import METRICS
+from smoother.outputs.layout import METRICS
 
 #: What a recording's run printed (stdout and stderr), in its folder.
 LOG = "run.log"

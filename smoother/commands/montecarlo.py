@@ -55,9 +55,9 @@ def run(args) -> int:
 
     with atomic_write(out / "summary.json") as handle:
         json.dump(summary.as_dict(), handle, indent=2)
-    from smoother.outputs import plots
+    from smoother.outputs.montecarlo_plot import plot_montecarlo
 
-    path = plots.plot_montecarlo(summary, out)
+    path = plot_montecarlo(summary, out)
     if args.json:
         brief = {k: {m: v for m, v in e.items() if m not in ("t", "nees_per_keyframe")}
                  for k, e in summary.estimators.items()}

@@ -277,13 +277,13 @@ def _calibration_correlations(dataset, estimates: dict) -> dict:
 
 
 def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None) -> dict:
-    """The run's files (:func:`smoother.evaluation.scoring.write_outputs`) and, with ``--mcap``, its MCAP
+    """The run's files (:func:`smoother.outputs.files.write_outputs`) and, with ``--mcap``, its MCAP
     (:func:`smoother.outputs.mcap.write_mcap`), into the staging folder ``stage``; the metrics.
     ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
     on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
     (:func:`smoother.diagnosis.calibration_report.fit_note`)."""
     from smoother.outputs import files
-    from smoother.commands.run_directory import MCAP
+    from smoother.outputs.layout import CALIBRATED_RIG, MCAP
 
     metrics = files.write_outputs(stage, dataset, estimates, run_info)
     if args.mcap:
@@ -293,10 +293,8 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
     records = metrics.get("batch", {}).get("calibration")
     if args.rig is not None and records:
         from datasets.rig import load_rig
-        from datasets.rig_writer import calibrated_rig_text
-        from smoother.commands.run_directory import CALIBRATED_RIG
-
         from datasets.atomic import atomic_write
+        from datasets.rig_writer import calibrated_rig_text
 
         from smoother.diagnosis.calibration_report import fit_note
 

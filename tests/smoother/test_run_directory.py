@@ -127,7 +127,7 @@ def test_every_output_of_a_run_is_declared():
     names = run_files()
     assert {f"{e}.{ext}" for e in ESTIMATORS for ext in ("tum", "npz", "geojson")} <= names
     assert {"truth.npz", "gps.npz", "metrics.json"} <= names
-    assert {f"{stem}.png" for stem in FIGSIZE if stem not in ("montecarlo_nees", "allan")} <= names
+    assert {f"{stem}.png" for stem in FIGSIZE} <= names
 
 
 def _child(out: Path) -> subprocess.Popen:
