@@ -108,7 +108,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from smoother.commands import dataset_specs as sources
+    from smoother.commands import dataset_specs
     from smoother.commands import at_least, duration, fraction, positive
     from smoother.commands.run_directory import RunDirectory
     from smoother.pipeline import ESTIMATORS, RunOptions
@@ -134,7 +134,7 @@ def _run(args) -> int:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
     if args.keyframe_rate is not None:
         positive("--keyframe-rate", args.keyframe_rate, "a rate")
-    options = sources.SourceOptions(
+    options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
         gps_from_truth=tuple(args.gps_from_truth) if args.gps_from_truth else None,
@@ -151,9 +151,9 @@ def _run(args) -> int:
                                 "a sensor's `every` in the rig file" if option == "--gps-every" else
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
     if args.rig is not None:
-        dataset, rig_robust = sources.load_rig(args.rig)
+        dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig)
     else:
-        dataset, rig_robust = sources.load(args.dataset or "synthetic:gentle", options), None
+        dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
@@ -372,7 +372,7 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
 #: The table's cell for a figure against the truth that is not scored (metrics.json: ``ate_note``).
 UNSCORED = "unscored"
 #: The figures that :func:`smoother.evaluation.scoring.against_truth` leaves unscored together.
-TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
+TRUTH_METRICS = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 
 def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None) -> str:
@@ -400,7 +400,7 @@ def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | 
         cells = []
         for k, _ in present:
             v = m.get(k, math.nan)
-            cell = f"{v:.4f}" if finite(v) else UNSCORED if shown in unscored and k in TRUTH_FIGURES else "-"
+            cell = f"{v:.4f}" if finite(v) else UNSCORED if shown in unscored and k in TRUTH_METRICS else "-"
             cells.append(f"{cell:>14}")
         lines.append(f"{name:<14}" + "".join(cells))
     if unscored:
