@@ -74,7 +74,7 @@ import kitti_native  # noqa: E402  (a sibling script, not a package)
 from datasets import kitti  # noqa: E402
 from datasets.simulate import simulate  # noqa: E402
 from factors import preintegration, threads  # noqa: E402
-from factors.kernel_caches import ensure_fresh_caches  # noqa: E402
+from factors.kernel_caches import ensure_fresh_caches
 from smoother.evaluation import native  # noqa: E402
 from smoother.model.covariances import covariances_at  # noqa: E402
 from smoother.batch.solve import solve_batch  # noqa: E402

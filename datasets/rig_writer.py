@@ -97,7 +97,8 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -
     imu = document["imu"]
     values, drop = {"source": rig.imu.source}, ()
     if "kalibr" in imu:  # the densities it held; those the rig gave itself stay as written
-        values.update({key: float(getattr(rig.imu.noise, field)) for key, field in NOISE_KEYS.items() if key not in imu})
+        values.update({key: float(getattr(rig.imu.noise, field)) for key, field in NOISE_KEYS.items()
+                       if key not in imu})
         drop = ("kalibr",)
     tables = {"imu": _edited(imu, values, drop)}
     if "sensor" in document:

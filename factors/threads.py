@@ -204,7 +204,7 @@ def _wait_for(others: list, ranges: _Ranges) -> None:
         try:
             wait(others)
             break
-        except BaseException as error:
+        except BaseException as error:  # noqa: BLE001 -- recorded, raised once every range has finished
             ranges.fail(-1, error)
             interrupt = interrupt or error
     if interrupt is not None:

@@ -192,7 +192,7 @@ def run_all(function, items, workers: Workers, on_result, on_failure=None, on_st
     def outcome(future, item):
         try:
             return future.result()
-        except Exception as error:  # noqa: BLE001 -- a task's failure is on_failure's to judge
+        except Exception as error:
             if on_failure is None:
                 raise
             return on_failure(item, error)

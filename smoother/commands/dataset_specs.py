@@ -33,7 +33,8 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
 
             profile = arg or "gentle"
             if profile not in PROFILES:
-                raise UserError(f"--dataset synthetic:{profile}: unknown profile; expected one of {', '.join(PROFILES)}")
+                raise UserError(f"--dataset synthetic:{profile}: unknown profile; expected one of "
+                                f"{', '.join(PROFILES)}")
             try:
                 dataset = simulate(profile=profile, duration=options.duration, seed=options.seed,
                                    outlier_fraction=options.outliers)

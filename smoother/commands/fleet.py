@@ -28,7 +28,8 @@ def register(sub) -> None:
     where.add_argument("--dask", metavar="ADDRESS", default=None,
                        help="send the recordings to this Dask scheduler (optional extra 'dask'; the workers must see "
                             "the rig files and DIR at the same paths)")
-    p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show the progress bar")
+    p.add_argument("--progress", dest="progress", action="store_true", default=None,
+                   help="always show the progress bar")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="never show the progress bar")
     p.set_defaults(handler=run)
 
@@ -36,8 +37,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import fleet_runner as fleet
     from smoother.commands import at_least, output_directory, positive
+    from smoother.commands import fleet_runner as fleet
     from smoother.progress import progress_bar
 
     at_least("--workers", args.workers, 1)

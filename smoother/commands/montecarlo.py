@@ -28,9 +28,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother.evaluation import montecarlo
     from smoother.commands import at_least, duration, fraction, output_directory
     from smoother.commands.run import parse_robust
+    from smoother.evaluation import montecarlo
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:

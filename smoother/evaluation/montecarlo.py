@@ -34,8 +34,8 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     """One seeded run: ``{"seed", <estimator>: {"ate_rmse_m", "rot_rmse_deg", "nees_mean",
     "nees": [...] per keyframe, "t": [...]}}``. Plain lists and floats only (picklable, JSON)."""
     from datasets.simulate import simulate
-    from smoother.pipeline import RunOptions, run_estimators
     from smoother.evaluation.scoring import compare_with_truth
+    from smoother.pipeline import RunOptions, run_estimators
 
     dataset = simulate(profile=config.profile, duration=config.duration, seed=seed,
                        outlier_fraction=config.outliers)

@@ -238,8 +238,9 @@ def load_gps(path: Path) -> Gps:
     n = len(t)
     if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
             or (cov is not None and cov.shape != (n, 3, 3))):
-        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
-                         f"{'' if cov is None else f', cov {cov.shape}'}, heldout {heldout.shape}); expected {expected}")
+        covariances = "" if cov is None else f", cov {cov.shape}"
+        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}{covariances}, "
+                         f"heldout {heldout.shape}); expected {expected}")
     if n > 1 and np.any(np.diff(t) <= 0):
         raise InputError(f"{path}: the times t must increase strictly")
     return Gps(t, position, cov, heldout)
@@ -282,7 +283,8 @@ def load_run(run_dir, estimators=None) -> Run:
         try:
             document = json.loads(path.read_text())
         except (OSError, ValueError) as error:
-            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
+            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run "
+                             "writes") from None
         if not isinstance(document, dict):
             raise InputError(f"{path}: expected a JSON object with one entry per estimator, "
                              f"got {type(document).__name__}")

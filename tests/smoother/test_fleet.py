@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from small_recording import write_recording
 
-from smoother.commands import fleet_runner as fleet
 from smoother.cli import main
+from smoother.commands import fleet_runner as fleet
 
 ROOT = Path(__file__).resolve().parents[2]
 #: A rig file that names a bag but no topic: refused with one line by ``smoother run --rig``.
@@ -71,7 +71,8 @@ def test_fleet_on_local_workers(rigs, tmp_path, capsys):
 def test_fleet_on_a_dask_cluster(rigs, tmp_path, capsys):
     distributed = pytest.importorskip("distributed")
     out = tmp_path / "fleet"
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
         code = main(["fleet", *map(str, rigs), "--out", str(out), "--dask", cluster.scheduler_address, "--no-progress",
                      *RUN])
     printed = capsys.readouterr().out

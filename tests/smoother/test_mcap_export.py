@@ -18,11 +18,11 @@ from datasets.kinds import sensors_of
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import imu, quaternion
-from smoother.outputs import mcap as mcap_export
-from smoother.outputs import files
-from smoother.commands import dataset_specs
 from smoother.cli import main
+from smoother.commands import dataset_specs
 from smoother.commands.run_directory import LOCK, RunDirectory
+from smoother.outputs import files
+from smoother.outputs import mcap as mcap_export
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 

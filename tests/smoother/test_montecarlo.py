@@ -4,8 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from smoother.evaluation import montecarlo
 from smoother.cli import main
+from smoother.evaluation import montecarlo
 
 CONFIG = montecarlo.MonteCarloConfig(profile="gentle", duration=2.0, estimators=("batch", "ekf"))
 

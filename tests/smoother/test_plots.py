@@ -22,8 +22,7 @@ from factors import so3
 from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import cli
-from smoother.evaluation import metrics
-from smoother.evaluation import scoring
+from smoother.evaluation import metrics, scoring
 from smoother.outputs import canvas, files, plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -211,7 +210,8 @@ def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_
     residuals (:func:`smoother.evaluation.scoring.fix_residuals`), the held-out fixes' NEES
     (:func:`smoother.evaluation.metrics.nees_from` of the residual and ``P_est + R_fix``), the pose NEES
     against the truth (:func:`smoother.evaluation.scoring.compare_with_truth`), and, without metrics.json,
-    the bars' figures (:func:`smoother.evaluation.scoring.against_truth`, :func:`smoother.evaluation.scoring.position_rmse`)."""
+    the bars' figures (:func:`smoother.evaluation.scoring.against_truth`,
+    :func:`smoother.evaluation.scoring.position_rmse`)."""
     from datasets.types import PositionMeasurements
 
     gps_run = files.load_run(_gps_run(run_dir, tmp_path), ["ekf"])
