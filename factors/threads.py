@@ -5,8 +5,8 @@ The preintegration's intervals are such work: the compiled IMU kernels release t
 (:data:`factors.compiled.recursion`), the work is cut into contiguous ranges that whichever
 thread is free takes next, and each range writes only its own outputs, so the results do not
 depend on the thread count. The threads come from one pool per process, started on first use.
-:func:`interrupts_held` keeps Ctrl-C and SIGTERM out of the moments when a pool takes work (also
-for pools of others: :mod:`smoother.parallel`).
+:func:`interrupts_held` keeps Ctrl-C and SIGTERM out of the moments when a pool takes work (this
+one's, or any other ``concurrent.futures`` pool's).
 """
 from __future__ import annotations
 
@@ -176,9 +176,9 @@ def interrupts_held():
     handlers that were set. Their handlers raise: raised inside
     :meth:`ThreadPoolExecutor.submit`, between its taking a lock and the ``with`` block that
     releases it, the exception left the executors' global shutdown lock held, and the process hung
-    at exit waiting for it (a recording SIGTERMed during its preintegration). Each handler is put
-    back whatever happens meanwhile; one set outside Python (read as None: it could not be put
-    back) is left alone."""
+    at exit waiting for it (a process stopped by SIGTERM during its preintegration). Each handler
+    is put back whatever happens meanwhile; one set outside Python (read as None: it could not be
+    put back) is left alone."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
