@@ -60,9 +60,10 @@ def run_many(config: MonteCarloConfig, seeds, workers: int = 1, dask_address: st
     on a pool of ``workers`` processes (:func:`smoother.parallel.processes`) or on the Dask
     scheduler at ``dask_address`` otherwise -- with :func:`smoother.parallel.run_all`'s window,
     failures and stopping; results sorted by seed. With ``out_dir`` each finished run is written
-    at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them (also those of the
-    runs that were under way on this machine); the seed files of an earlier call into the same
-    folder are removed first, so that ``runs/`` never mixes two configurations."""
+    at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them (and those of the
+    runs under way in worker processes that end after it: a SIGTERM to this process alone lets
+    them finish, a terminal's Ctrl-C stops them too); the seed files of an earlier call into the
+    same folder are removed first, so that ``runs/`` never mixes two configurations."""
     seeds = [int(s) for s in seeds]
     results = []
     if out_dir is not None:
