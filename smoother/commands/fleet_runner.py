@@ -41,9 +41,9 @@ from smoother.outputs.layout import METRICS
 
 #: What a recording's run printed (stdout and stderr), in its folder.
 LOG = "run.log"
-#: The per-estimator entries of ``metrics.json`` a result keeps (those the run wrote).
-METRIC_KEYS = ("ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_heldout_rmse_m", "gps_heldout_horizontal_rmse_m",
-               "gps_heldout_vertical_rmse_m", "gps_fit_residual_m", "runtime_s", "failed", "doubtful")
+#: The per-estimator figures a result keeps from ``metrics.json`` (those the run computed).
+FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_heldout_rmse_m", "gps_heldout_horizontal_rmse_m",
+           "gps_heldout_vertical_rmse_m", "gps_fit_residual_m", "runtime_s", "failed", "doubtful")
 #: The keys of a verdict a result keeps (:func:`smoother.diagnosis.verdicts.verdict`).
 VERDICT = ("per_dof", "band", "ok", "statistic", "measurements")
 
@@ -170,7 +170,7 @@ def result_of(recording: Recording, code: int, metrics: Path | None, log: Path |
     (the rig file's stem), ``rig``, ``out``, ``exit_code``, ``failure`` (None, or one line: the
     run's error, the estimators that failed, the signal that killed it), ``stopped`` (when the
     run was interrupted), ``dead_reckoning`` and ``estimators``: per estimator its
-    :data:`METRIC_KEYS` and verdicts (``fit``, ``sensors``: each :data:`VERDICT`), from the run's
+    :data:`FIGURES` and verdicts (``fit``, ``sensors``: each :data:`VERDICT`), from the run's
     ``metrics.json`` (``metrics``: None when the run wrote none)."""
     document = {}
     if metrics is not None:
@@ -181,7 +181,7 @@ def result_of(recording: Recording, code: int, metrics: Path | None, log: Path |
     run = document.pop("_run", {})
     estimators = {}
     for name, m in document.items():
-        entry = {k: m[k] for k in METRIC_KEYS if k in m}
+        entry = {k: m[k] for k in FIGURES if k in m}
         if "fit" in m:
             entry["fit"] = {k: m["fit"][k] for k in VERDICT if k in m["fit"]}
         entry["sensors"] = {s: {k: v[k] for k in VERDICT if k in v} for s, v in m.get("sensors", {}).items()}

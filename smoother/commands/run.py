@@ -375,7 +375,7 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
 #: The table's cell for a figure against the truth that is not scored (metrics.json: ``ate_note``).
 UNSCORED = "unscored"
 #: The figures that :func:`smoother.evaluation.scoring.against_truth` leaves unscored together.
-TRUTH_METRICS = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
+TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 
 def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None) -> str:
@@ -403,7 +403,7 @@ def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | 
         cells = []
         for k, _ in present:
             v = m.get(k, math.nan)
-            cell = f"{v:.4f}" if finite(v) else UNSCORED if shown in unscored and k in TRUTH_METRICS else "-"
+            cell = f"{v:.4f}" if finite(v) else UNSCORED if shown in unscored and k in TRUTH_FIGURES else "-"
             cells.append(f"{cell:>14}")
         lines.append(f"{name:<14}" + "".join(cells))
     if unscored:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
 from smoother.errors import UserError
-from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, FIGURES, GPS, MCAP, METRICS, TRUTH
+from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
 #: The lock file of a run directory.
 LOCK = ".smoother.lock"
@@ -41,7 +41,7 @@ def run_files() -> frozenset[str]:
     from smoother.pipeline import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
-                     + [TRUTH, GPS, METRICS, MCAP, CALIBRATED_RIG] + [f"{figure}.png" for figure in FIGURES])
+                     + [TRUTH, GPS, METRICS, MCAP, CALIBRATED_RIG] + [f"{plot}.png" for plot in PLOTS])
 
 
 class RunDirectory:

@@ -18,6 +18,6 @@ METRICS = "metrics.json"
 MCAP = "estimates.mcap"
 #: The rig with the batch smoother's calibration written in (a rig run that estimates one).
 CALIBRATED_RIG = "calibrated.toml"
-#: The figures of a run (:func:`smoother.outputs.plots.plot_run`), each ``<name>.png``, in the order
+#: The plots of a run (:func:`smoother.outputs.plots.plot_run`), each ``<name>.png``, in the order
 #: they are drawn.
-FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
+PLOTS = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")

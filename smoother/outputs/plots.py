@@ -3,7 +3,7 @@
 They draw what the run directory holds (:func:`smoother.outputs.files.load_run`) and what the
 evaluation computes from it (:mod:`smoother.evaluation.scoring`: the errors and NEES over time,
 and the metrics of ``metrics.json`` when it lacks them); nothing is computed here but what is
-drawn. One function each, the names of :data:`smoother.outputs.layout.FIGURES`:
+drawn. One function each, the names of :data:`smoother.outputs.layout.PLOTS`:
 
 ``trajectory.png``
     top view (x-y) and height over time of every estimate against the truth or the GPS fixes.
@@ -42,7 +42,7 @@ from smoother.evaluation.scoring import ErrorSeries
 from smoother.outputs.canvas import STYLE, estimator_color, estimator_line, new_figure, plain_log_labels, save_png
 from smoother.outputs.files import Run, load_run
 
-#: Figure sizes [inch], one per name of :data:`smoother.outputs.layout.FIGURES`; a PNG is
+#: Figure sizes [inch], one per name of :data:`smoother.outputs.layout.PLOTS`; a PNG is
 #: ``round(w * DPI) x round(h * DPI)`` pixels (:data:`smoother.outputs.canvas.DPI`).
 FIGSIZE = {
     "trajectory": (12.0, 6.0),
