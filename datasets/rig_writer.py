@@ -1,88 +1,166 @@
-"""A rig file written back: the user's rig with calibrated values in it (``calibrated.toml``).
+"""Rig files written, all through ``tomlkit``, which keeps what it is not asked to change: the
+user's comments, the order of the keys, blank lines and the numbers as written.
 
-The file is the rig as read (:func:`datasets.rig.load_rig` checked it) with, for each calibrated
-sensor, the values the batch smoother estimated (:mod:`smoother.diagnosis.calibration_report`'s records):
-``T_BS`` (replacing a ``camchain``), ``time_offset`` and ``scale``; its ``estimate`` and
-``*_sigma`` keys become a comment, so the next run uses the values as given (put them back to
-refine further). Paths become absolute (the file is written beside the run's outputs, not the
-rig), and a Kalibr ``imu.yaml`` gives way to the densities it held. Comments of the original are
-not kept (TOML readers drop them).
+* :func:`calibrated_rig_text`: the user's rig with calibrated values in it (``calibrated.toml``).
+  The file is the rig as written (:func:`datasets.rig.load_rig` checked it) with, for each
+  calibrated sensor, the values the batch smoother estimated
+  (:mod:`smoother.diagnosis.calibration_report`'s records): ``T_BS`` (replacing a ``camchain``),
+  ``time_offset`` and ``scale``, each in place where the rig had it, else after the sensor's last
+  value; its ``estimate`` and ``*_sigma`` keys become a comment there, so the next run uses the
+  values as given (put them back to refine further). Paths become absolute (the file is written
+  beside the run's outputs, not the rig), and a Kalibr ``imu.yaml`` gives way to the densities it
+  held.
+* :func:`allan_imu_block`: an ``[imu]`` table of the noise densities ``smoother allan`` measured,
+  to paste into a rig file, with the per-axis values as comments above it.
 """
 from __future__ import annotations
 
-import json
-import math
-import sys
+from pathlib import Path
+
+import numpy as np
+import tomlkit
+from tomlkit.items import Comment, Table, Whitespace
 
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:
-    import tomli as tomllib
+#: The first lines of ``calibrated.toml``.
+CALIBRATED_HEADER = ("The rig with the calibration the batch smoother estimated written in; the next run uses",
+                     "these values as given.")
 
 
-def _value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
-    raise TypeError(f"no TOML value for {type(v).__name__}")
+def _edited(table: Table, values: dict, drop=(), comments=()) -> Table:
+    """``table`` with ``values`` set -- a key it has in place, keeping its comment; a new one
+    after its last value -- the keys ``drop`` removed and ``comments`` (lines) after its last
+    value, before the comments and blank lines that end it (those stand above the next table's
+    header and belong to it)."""
+    for key in drop:
+        if key in table:
+            del table[key]
+    new = {}
+    for key, value in values.items():
+        if key in table:
+            table[key] = value
+        else:
+            new[key] = value
+    if not new and not comments:
+        return table
+    body = [(key, item) for key, item in table.value.body if key is not None or isinstance(item, (Comment, Whitespace))]
+    last = max((i for i, (key, _) in enumerate(body) if key is not None), default=-1)
+    out = tomlkit.table()
+
+    def add_new() -> None:
+        for key, value in new.items():
+            out.add(key, value)
+        for line in comments:
+            out.add(tomlkit.comment(line))
+
+    if last < 0:
+        add_new()
+    for i, (key, item) in enumerate(body):
+        if key is None:
+            out.add(item)
+        else:
+            out.add(key, item)
+        if i == last:
+            add_new()
+    before, after = table.trivia, out.trivia
+    after.indent, after.comment_ws, after.comment, after.trail = (before.indent, before.comment_ws, before.comment,
+                                                                  before.trail)
+    return out
 
 
-def _table(lines: list[str], header: str, table: dict) -> None:
-    lines.append(header)
-    lines.extend(f"{key} = {_value(value)}" for key, value in table.items() if not key.startswith("#"))
-    lines.extend(f"# {value}" for key, value in table.items() if key.startswith("#"))
-    lines.append("")
+def _rebuilt(document, tables: dict) -> tomlkit.TOMLDocument:
+    """``document`` with the top-level entries ``tables`` (``{key: table or array of tables}``)
+    in place of its own, everything else as it was, :data:`CALIBRATED_HEADER` first. Built as the
+    parser builds a document, so that tomlkit adds no blank line of its own before a header."""
+    out = tomlkit.document()
+    out.parsing(True)
+    for line in CALIBRATED_HEADER:
+        out.add(tomlkit.comment(line))
+    out.add(tomlkit.nl())
+    for key, item in document.body:
+        if key is None:
+            out.add(item)
+        else:
+            out.append(key, tables.get(key.key, item))
+    out.parsing(False)
+    return out
 
 
 def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -> str:
-    """The TOML text of ``rig`` (its file re-read) with the calibration ``records``
-    (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`) written in,
-    and beside a sensor's values, as a comment, its caution (``cautions``: ``{sensor: text}``,
-    '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`)."""
+    """The TOML text of ``rig`` (its file re-read, comments and layout kept) with the calibration
+    ``records`` (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`)
+    written in, and after a sensor's values, as a comment, its caution (``cautions``:
+    ``{sensor: text}``, '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`)."""
     cautions = cautions or {}
-    with open(rig.path, "rb") as f:
-        raw = tomllib.load(f)
-    imu = dict(raw["imu"])
-    imu["source"] = rig.imu.source
-    if "kalibr" in imu:
-        del imu["kalibr"]
-        for key, field in NOISE_KEYS.items():
-            imu[key] = float(getattr(rig.imu.noise, field))
-    lines = ["# The rig with the calibration the batch smoother estimated written in; the next run uses",
-             "# these values as given.", ""]
-    _table(lines, "[imu]", imu)
-    if "datum" in raw:
-        _table(lines, "[datum]", raw["datum"])
-    for table, config in zip(raw.get("sensor", []), rig.sensors):
-        out = dict(table)
-        out["source"] = config.source
-        record = records.get(config.name)
-        if record is not None:
-            if "T_BS" in record:
-                out.pop("camchain", None)
-                out.pop("camera", None)
-                out["T_BS"] = [[float(x) for x in row] for row in record["T_BS"]]
-            if "time_offset_s" in record:
-                out["time_offset"] = float(record["time_offset_s"])
-            if "scale" in record:
-                out["scale"] = float(config.scale * record["scale"])
-            asked = {key: out.pop(key) for key in CALIBRATION_KEYS if key in out}
-            out["# calibrated"] = ("calibrated by the batch smoother; estimated with "
-                                   + ", ".join(f"{k} = {_value(v)}" for k, v in asked.items()))
-            if cautions.get(config.name):
-                out["# caution"] = f"caution: {cautions[config.name]}"
-        elif "camchain" in out:
-            out["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
-            out.pop("camchain")
-            out.pop("camera", None)
-        _table(lines, "[[sensor]]", out)
-    return "\n".join(lines)
+    document = tomlkit.parse(Path(rig.path).read_text(encoding="utf-8"))
+    imu = document["imu"]
+    values, drop = {"source": rig.imu.source}, ()
+    if "kalibr" in imu:  # the densities it held; those the rig gave itself stay as written
+        values.update({key: float(getattr(rig.imu.noise, field)) for key, field in NOISE_KEYS.items()
+                       if key not in imu})
+        drop = ("kalibr",)
+    tables = {"imu": _edited(imu, values, drop)}
+    if "sensor" in document:
+        sensors = document["sensor"]
+        for i, (table, config) in enumerate(zip(sensors, rig.sensors)):
+            values, drop, comments = {"source": config.source}, [], []
+            record = records.get(config.name)
+            if record is not None:
+                if "T_BS" in record:
+                    values["T_BS"] = [[float(x) for x in row] for row in record["T_BS"]]
+                    drop += ["camchain", "camera"]
+                if "time_offset_s" in record:
+                    values["time_offset"] = float(record["time_offset_s"])
+                if "scale" in record:
+                    values["scale"] = float(config.scale * record["scale"])
+                asked = [f"{key} = {table[key].as_string()}" for key in CALIBRATION_KEYS if key in table]
+                drop += [key for key in CALIBRATION_KEYS if key in table]
+                comments.append("calibrated by the batch smoother; estimated with " + ", ".join(asked))
+                if cautions.get(config.name):
+                    comments.append(f"caution: {cautions[config.name]}")
+            elif "camchain" in table:
+                values["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
+                drop += ["camchain", "camera"]
+            sensors[i] = _edited(table, values, drop, comments)
+        tables["sensor"] = sensors
+    return tomlkit.dumps(_rebuilt(document, tables))
+
+
+#: Per density of :func:`allan_imu_block`: the rig file's key, the per-axis values' attribute of a
+#: :class:`datasets.allan.AllanResult` and the unit.
+ALLAN_KEYS = (("accel_noise_density", "acc_white", "m/s^2/sqrt(Hz), largest axis"),
+              ("gyro_noise_density", "gyro_white", "rad/s/sqrt(Hz)"),
+              ("accel_random_walk", "acc_walk", "m/s^3/sqrt(Hz)"),
+              ("gyro_random_walk", "gyro_walk", "rad/s^2/sqrt(Hz)"))
+
+
+def allan_imu_block(result, source: str, topic: str | None, n: int) -> str:
+    """The densities of an Allan deviation (a :class:`datasets.allan.AllanResult` of ``n``
+    samples of ``source``, ``topic``) as a rig file's ``[imu]`` table, the largest axis of each
+    (:meth:`datasets.allan.AllanResult.largest`), with the per-axis values as comments; a random
+    walk the data do not show is left out of the table (commented, to be filled in)."""
+    largest = result.largest()
+    document = tomlkit.document()
+    document.parsing(True)  # the comments run straight into the header
+    document.add(tomlkit.comment(f"Allan deviation of {n} samples at {1 / result.dt:.6g} Hz ({n * result.dt:.1f} s)"))
+    document.add(tomlkit.comment(f"{'per axis':<28}{'x':>12}{'y':>12}{'z':>12}"))
+    for key, axes, _ in ALLAN_KEYS:
+        document.add(tomlkit.comment(f"{key:<28}" + "".join(f"{'-' if np.isnan(v) else f'{v:.4e}':>12}"
+                                                            for v in getattr(result, axes))))
+    imu = tomlkit.table()
+    imu.add("source", source)
+    if topic is not None:
+        imu.add("topic", topic)
+    for key, _, unit in ALLAN_KEYS:
+        value = largest[NOISE_KEYS[key]]
+        if np.isnan(value):
+            imu.add(tomlkit.comment(f"{key} = ?    # not estimated: the recording is too short (see the warning)"))
+            continue
+        item = tomlkit.value(f"{value:.4e}")  # written as measured: five significant digits
+        item.comment(unit)
+        item.trivia.comment_ws = "    "
+        imu.add(key, item)
+    document.add("imu", imu)
+    document.parsing(False)
+    return tomlkit.dumps(document).rstrip("\n")

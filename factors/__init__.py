@@ -10,10 +10,10 @@ state, the noise and the primer's discrete IMU model), ``preintegration``, ``sen
 manifolds and the checker of any GTSAM factor), ``errors``.
 
 The modules form layers, each importing only from its own and those below it (tested): support
-(``compiled``, ``scan``, ``errors``) -> rotation calculus (``quaternion``, ``so3``, ``axis_angle``,
-``euler``, ``derivatives``, ``uncertainty``, ``chart``) -> the IMU model (``imu``,
-``preintegration``) -> GTSAM factors (``custom``, ``keys``, ``priors``, ``sensor_models``,
-``imu_factor``, ``jacobians``, ``selfcheck``).
+(``compiled``, ``kernel_caches``, ``rows``, ``threads``, ``small_linalg``, ``scan``, ``errors``) ->
+rotation calculus (``quaternion``, ``so3``, ``axis_angle``, ``euler``, ``derivatives``,
+``uncertainty``, ``chart``) -> the IMU model (``imu``, ``preintegration``) -> GTSAM factors
+(``custom``, ``keys``, ``priors``, ``sensor_models``, ``imu_factor``, ``jacobians``, ``selfcheck``).
 
 The names below are importable from the package itself (``from factors import ImuState``); each
 is loaded on first use. This package imports neither ``datasets`` nor ``smoother``.

@@ -59,9 +59,10 @@ import numpy as np
 
 from factors import imu, so3
 from factors import sensor_models as sm
-from factors.compiled import block_operation, leaf, recursion, rows
+from factors.compiled import block_operation, leaf, recursion
 from factors.errors import InputError
 from factors.imu import STATE_DIM
+from factors.rows import rows
 
 #: The parts of a calibration, in the order of its error coordinates, and their columns there.
 PARTS = ("time_offset", "rotation", "lever_arm", "scale")

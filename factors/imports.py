@@ -6,7 +6,7 @@ made late to save start-up time are dependencies all the same). An import of ``a
 of anything outside the given packages are left out. Parent packages that Python imports on the
 way (``a/__init__.py`` for ``a.b``) are not counted: they are not what the importing code uses.
 
-The compiled-kernel caches (:mod:`factors.compiled`) and the test of the layering use it.
+The compiled kernels' caches (:mod:`factors.kernel_caches`) and the test of the layering use it.
 """
 from __future__ import annotations
 

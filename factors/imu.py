@@ -45,8 +45,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from factors import scan, so3
-from factors.compiled import as_trailing, block_operation, leaf, recursion, rows
+from factors.compiled import block_operation, leaf, recursion
 from factors.errors import InputError
+from factors.rows import as_trailing, rows
 
 STATE_DIM = 15
 NOISE_DIM = 15

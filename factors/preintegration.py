@@ -42,7 +42,7 @@ up to ``K`` samples; padding samples have ``dt = 0``, which is exactly the ident
 recursions are compiled loops over all samples (:mod:`factors.compiled`), with no Python per
 sample or per interval. Intervals are independent of each other except through the reference
 trajectory, so a whole run is one pipeline over ranges of intervals
-(:func:`factors.compiled.in_parallel` with a scan): the recursions of each range, on whichever
+(:func:`factors.threads.in_parallel` with a scan): the recursions of each range, on whichever
 core is free; the reference chain through it, in order, a few operations per interval; the
 covariances along it, on whichever core is free. Each interval's arithmetic is the same whichever
 thread runs it, so the results do not depend on the number of cores.
@@ -55,9 +55,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors import imu, so3
-from factors.compiled import (as_trailing, block_operation, common_shape, in_parallel, leaf, matmul_into, recursion,
-                              rows as rows_of)
+from factors.compiled import block_operation, leaf, recursion
 from factors.errors import InputError
+from factors.rows import as_trailing, common_shape
+from factors.rows import rows as rows_of
+from factors.small_linalg import matmul_into
+from factors.threads import in_parallel
 
 #: Standard deviation (in each error-state unit: m, m/s, rad, m/s^2, rad/s) added to every
 #: IMU residual's covariance so that it is positive definite even for one-sample intervals.

@@ -25,8 +25,9 @@ import math
 import numpy as np
 from numba import njit
 
-from factors.compiled import apply_rows, as_trailing, exact_leaf
+from factors.compiled import exact_leaf
 from factors.errors import InputError
+from factors.rows import apply_rows, as_trailing
 
 #: Below this rotation angle (rad) exp and log use their Taylor forms (primer: "below 1e-4 rad").
 SMALL_ANGLE = 1e-4

@@ -1,11 +1,14 @@
 """Compiled linear algebra on small dense matrices, shared by the EKF's update, the sliding
-window (:mod:`smoother.fixed_lag.sliding.window`) and the data types' checks (:mod:`datasets.types`): calls
-into LAPACK cost more than the arithmetic at these sizes (3 to a few hundred rows)."""
+window (:mod:`smoother.fixed_lag.sliding.window`), the preintegration and the data types' checks
+(:mod:`datasets.types`): calls into LAPACK or BLAS cost more than the arithmetic at these sizes (3 to
+a few hundred rows)."""
 from __future__ import annotations
 
 import math
 
 from numba import njit
+
+from factors.compiled import exact_leaf
 
 
 @njit(cache=True)
@@ -27,3 +30,16 @@ def cholesky_into(S, L) -> bool:
         for j in range(i + 1, m):
             L[i, j] = 0.0
     return True
+
+
+@exact_leaf
+def matmul_into(A, B, out) -> None:
+    """``out = A B`` for small 2-d arrays of any layout (``out`` must not alias ``A`` or ``B``).
+    Written out because Numba's ``@`` on matrices calls SciPy's BLAS: the kernels load no SciPy
+    (slow to import; only the chi-square quantiles of :mod:`smoother.stats` use it)."""
+    for a in range(A.shape[0]):
+        for b in range(B.shape[1]):
+            acc = 0.0
+            for k in range(A.shape[1]):
+                acc += A[a, k] * B[k, b]
+            out[a, b] = acc

@@ -33,7 +33,8 @@ import numpy as np
 from numba import njit
 
 from factors import quaternion
-from factors.compiled import apply_rows, as_trailing, common_shape, exact_leaf, rows
+from factors.compiled import exact_leaf
+from factors.rows import apply_rows, as_trailing, common_shape, rows
 
 #: Below this angle (rad) the coefficients that cancel are evaluated by their Taylor series.
 SERIES_ANGLE = 1e-2

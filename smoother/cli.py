@@ -12,6 +12,7 @@ import threading
 import warnings
 
 from factors.errors import BoxplusError
+from factors.kernel_caches import ensure_fresh_caches
 from smoother.errors import Terminated, UserError, interruption
 
 #: Modules that contribute sub-commands, in the order they are listed by ``smoother --help``.
@@ -61,6 +62,11 @@ def _sigterm_raises():
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``) and return its exit code. The
+    compiled kernels' disk caches are checked first, before any kernel runs
+    (:func:`factors.kernel_caches.ensure_fresh_caches`: a cached kernel that inlines an edited
+    module's kernels is compiled again)."""
+    ensure_fresh_caches()
     previous, warnings.formatwarning = warnings.formatwarning, _format_warning  # one line per warning
     try:
         with _sigterm_raises():

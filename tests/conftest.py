@@ -1,4 +1,6 @@
-"""Shared test configuration: Hypothesis profiles and the import path of ``tests/strategies.py``.
+"""Shared test configuration: the compiled kernels' caches checked before any test runs a kernel
+(:func:`factors.kernel_caches.ensure_fresh_caches`, as the command line does), Hypothesis profiles
+and the import path of ``tests/strategies.py``.
 
 Profiles (choose with ``HYPOTHESIS_PROFILE=<name>``; ``ci`` when the environment variable ``CI``
 is set, as it is in the project's CI; ``default`` otherwise):
@@ -15,6 +17,10 @@ import os
 import sys
 
 from hypothesis import HealthCheck, settings
+
+from factors.kernel_caches import ensure_fresh_caches
+
+ensure_fresh_caches()  # before the test modules import (and run) any kernel
 
 # ``strategies.py`` sits next to this file. pytest's default (prepend) import mode already puts
 # this directory on sys.path because tests/ is not a package; doing it here as well keeps

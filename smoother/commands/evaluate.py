@@ -66,7 +66,8 @@ def _table(result, args, n_ref: int, n_est: int) -> str:
     if result.rotation_only:
         rows.append("alignment: none (the reference has attitudes only: rotation figures only)")
     else:
-        fitted = "" if args.n_to_align is None else f", fitted to the first {min(args.n_to_align, len(result.i_ref))} poses"
+        fitted = ("" if args.n_to_align is None
+                  else f", fitted to the first {min(args.n_to_align, len(result.i_ref))} poses")
         scale = f"s = {result.s:.6g}, " if "sim3" in result.align or "scale" in result.align else ""
         instead = "" if result.align == args.align else f" instead of {args.align}, whose rotation is not determined"
         rows.append(f"alignment: {result.align}{instead}" + ("" if result.align == "none" else
@@ -94,9 +95,9 @@ def run(args) -> int:
     import math
 
     from datasets.errors import DataError
-    from smoother.evaluation import metrics
     from smoother.commands import at_least, positive
     from smoother.errors import UserError
+    from smoother.evaluation import metrics
     from smoother.outputs.files import jsonable
 
     if not (math.isfinite(args.max_dt) and args.max_dt >= 0):

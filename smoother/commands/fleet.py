@@ -28,16 +28,17 @@ def register(sub) -> None:
     where.add_argument("--dask", metavar="ADDRESS", default=None,
                        help="send the recordings to this Dask scheduler (optional extra 'dask'; the workers must see "
                             "the rig files and DIR at the same paths)")
-    p.add_argument("--progress", dest="progress", action="store_true", default=None, help="always show the progress bar")
+    p.add_argument("--progress", dest="progress", action="store_true", default=None,
+                   help="always show the progress bar")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="never show the progress bar")
     p.set_defaults(handler=run)
 
 
 def run(args) -> int:
     from datasets.atomic import atomic_write
-    from factors.compiled import thread_count
-    from smoother.commands import fleet_runner as fleet
+    from factors.threads import thread_count
     from smoother.commands import at_least, output_directory, positive
+    from smoother.commands import fleet_runner as fleet
     from smoother.progress import progress_bar
 
     at_least("--workers", args.workers, 1)
@@ -56,10 +57,7 @@ def run(args) -> int:
                 bar.write(f"{result['recording']}: {result['failure']}", file=sys.stderr)
 
         try:
-            if args.dask:
-                fleet.run_on_dask(items, args.dask, done)
-            else:
-                fleet.run_local(items, args.workers, done)
+            fleet.run_recordings(items, done, args.workers, args.dask)
         except KeyboardInterrupt as error:
             stopped, code = interruption(error)
     ordered = [results[item.name] for item in items if item.name in results]

@@ -11,36 +11,33 @@ cluster (``smoother fleet``).
   (:func:`result_of`: exit code, the failure in one line, per estimator the held-out and fit
   figures, the per-sensor verdicts, ``doubtful``), never trajectories: a worker writes its own
   folder, so a thousand recordings on a cluster send back a few kB each.
-* **Where**: :func:`run_local` runs ``workers`` recordings at a time from a thread pool of this
-  process (each thread waits for its child); :func:`run_on_dask` sends them to a Dask scheduler
+* **Where**: :func:`run_recordings` runs ``workers`` recordings at a time from a thread pool of
+  this process (each thread waits for its child), or sends them to a Dask scheduler
   (``distributed.Client(address)``), the same :func:`run_recording` on the workers, which must
-  see the rig files and the output folder at the same paths (a shared file system). Both submit
-  lazily (a window of a few tasks per thread ahead, refilled as results come back, in
-  ``as_completed`` order) and each child gets its share of the cores (``BOXPLUS_THREADS``,
-  :func:`factors.compiled.thread_count`).
+  see the rig files and the output folder at the same paths (a shared file system). The window
+  of tasks, the failures of workers and the stopping are :func:`smoother.parallel.run_all`'s;
+  each child gets its share of the cores (``BOXPLUS_THREADS``, :func:`factors.threads.thread_count`).
 * **Stopping**: Ctrl-C or SIGTERM to the fleet stops submitting, forwards that one signal to the
-  recordings running here (their runs keep their finished estimators, as ``smoother run`` does,
-  and their results come back with ``stopped``), and re-raises. The children run in their own
-  session, so a terminal's Ctrl-C reaches them only through the fleet, once. On Dask the
-  recordings not started are cancelled; those already running finish into their folders.
+  recordings running here (:func:`forward`: their runs keep their finished estimators, as
+  ``smoother run`` does, and their results come back with ``stopped``), and re-raises. The
+  children run in their own session, so a terminal's Ctrl-C reaches them only through the fleet,
+  once. On Dask the recordings not started are cancelled; those already running finish into their
+  folders.
 """
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import signal
 import subprocess
 import sys
 import threading
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
-from smoother.commands.run_directory import METRICS
-from factors.compiled import interrupts_held
 from factors.errors import InputError
-from smoother.errors import Terminated
+from smoother import parallel
+from smoother.outputs.layout import METRICS
 
 #: What a recording's run printed (stdout and stderr), in its folder.
 LOG = "run.log"
@@ -49,8 +46,6 @@ FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_heldout_rmse_m", "gps
            "gps_heldout_vertical_rmse_m", "gps_fit_residual_m", "runtime_s", "failed", "doubtful")
 #: The keys of a verdict a result keeps (:func:`smoother.diagnosis.verdicts.verdict`).
 VERDICT = ("per_dof", "band", "ok", "statistic", "measurements")
-#: Tasks submitted ahead per worker thread (the window of lazy submission).
-AHEAD = 2
 
 
 @dataclass(frozen=True)
@@ -225,83 +220,28 @@ def _why(code: int, estimators: dict, log: Path | None) -> str:
 
 # --- many recordings ----------------------------------------------------------------------------
 
-def run_local(items: list[Recording], workers: int, on_result) -> None:
-    """Run ``items`` on this machine, ``workers`` at a time; ``on_result(result)`` in this thread
-    as each ends, in the order they end (never for one that did not start). Ctrl-C or SIGTERM (:class:`~smoother.errors.Terminated`):
-    nothing more starts, the signal goes on to the running recordings, their results are passed
-    on, and the interruption is raised again."""
-    pending = iter(items)
+def run_recordings(items: list[Recording], on_result, workers: int = 1, dask_address: str | None = None) -> None:
+    """Run ``items`` on this machine, ``workers`` at a time (threads, each waiting for its
+    recording's child process), or through the Dask scheduler at ``dask_address``, with
+    :func:`smoother.parallel.run_all`'s window; ``on_result(result)`` in this thread as each ends,
+    in the order they end (never for one that did not start). A worker that fails (a bug of this
+    module, a Dask worker that died: :class:`distributed.KilledWorker`) is its recording's failure.
+    Ctrl-C or SIGTERM (:class:`~smoother.errors.Terminated`): nothing more starts, the signal goes
+    on to the recordings running in this process (:func:`forward`), their results are passed on,
+    and the interruption is raised again; on Dask the recordings not started are cancelled. An
+    :class:`~factors.errors.InputError` when the scheduler cannot be reached or ``distributed``
+    is not installed."""
     _stopping.clear()
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="recording") as pool:
-        running = {}
+    where = parallel.dask(dask_address) if dask_address is not None else parallel.threads(workers)
 
-        def refill():
-            for item in itertools.islice(pending, max(0, AHEAD * workers - len(running))):
-                with interrupts_held():  # a signal's exception inside submit could leave its lock held
-                    running[pool.submit(run_recording, item)] = item
+    def passed_on(result: dict | None) -> None:
+        if result is not None:
+            on_result(result)
 
-        try:
-            refill()
-            while running:
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
-                for future in done:
-                    _pass_on(on_result, _result(future.result, running.pop(future)))
-                refill()
-        except KeyboardInterrupt as error:
-            for future in running:
-                future.cancel()
-            forward(signal.SIGTERM if isinstance(error, Terminated) else signal.SIGINT)
-            for future, item in running.items():
-                if not future.cancelled():
-                    _pass_on(on_result, _result(future.result, item))
-            raise
+    with where:
+        parallel.run_all(run_recording, items, where, passed_on, on_failure=worker_failed, on_stop=forward)
 
 
-def _pass_on(on_result, result: dict | None) -> None:
-    if result is not None:
-        on_result(result)
-
-
-def _result(get, item: Recording) -> dict:
-    """``get()``, or the failure of ``item`` whatever it raised (a bug of this module, a Dask
-    worker that died: :class:`distributed.KilledWorker`)."""
-    try:
-        return get()
-    except Exception as error:  # noqa: BLE001 -- one recording's trouble is its result, not the fleet's
-        return failed(item, f"its worker failed: {type(error).__name__}: {error}".splitlines()[0])
-
-
-def run_on_dask(items: list[Recording], address: str, on_result) -> None:
-    """Run ``items`` through the Dask scheduler at ``address`` (:func:`run_local`'s contract; on
-    an interruption the recordings not started are cancelled). An
-    :class:`~factors.errors.InputError` without the optional dependency ``distributed`` or when
-    the scheduler cannot be reached."""
-    try:
-        from distributed import Client, as_completed
-    except ImportError:
-        raise InputError("a Dask scheduler needs Dask's distributed package, an optional dependency: "
-                         "pip install 'boxplus-smoother[dask]'") from None
-    try:
-        client = Client(address)
-    except (OSError, ValueError, TypeError) as error:  # a timeout is an OSError
-        raise InputError(f"the Dask scheduler {address} cannot be reached ({type(error).__name__}: {error})") from None
-    with client:
-        pending = iter(items)
-        running: dict = {}  # future -> recording
-        completed = as_completed()
-
-        def refill():
-            threads = sum(client.nthreads().values())  # a cluster that grows gets more at once
-            for item in itertools.islice(pending, max(0, AHEAD * max(threads, 4) - len(running))):
-                future = client.submit(run_recording, item, pure=False)
-                running[future] = item
-                completed.add(future)
-
-        try:
-            refill()
-            for future in completed:
-                _pass_on(on_result, _result(future.result, running.pop(future)))
-                refill()
-        except KeyboardInterrupt:
-            client.cancel(list(running))
-            raise
+def worker_failed(item: Recording, error: Exception) -> dict:
+    """The failure of ``item`` whose worker raised ``error``."""
+    return failed(item, f"its worker failed: {parallel.failure_line(error)}")

@@ -28,9 +28,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother.evaluation import montecarlo
     from smoother.commands import at_least, duration, fraction, output_directory
     from smoother.commands.run import parse_robust
+    from smoother.evaluation import montecarlo
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
@@ -48,17 +48,16 @@ def run(args) -> int:
     out = output_directory(args.out)
     seeds = range(args.first_seed, args.first_seed + args.runs)
     with progress_bar(args.runs, "monte carlo", None) as bar:
-        results = montecarlo.run_many(
-            config, seeds, None if args.dask else montecarlo.make_executor(args.workers),
-            dask_address=args.dask, out_dir=out, on_done=lambda r: bar.update(1))
+        results = montecarlo.run_many(config, seeds, args.workers, dask_address=args.dask, out_dir=out,
+                                      on_done=lambda r: bar.update(1))
     summary = montecarlo.aggregate(results, estimators)
     from datasets.atomic import atomic_write
 
     with atomic_write(out / "summary.json") as handle:
         json.dump(summary.as_dict(), handle, indent=2)
-    from smoother.outputs import plots
+    from smoother.outputs.montecarlo_plot import plot_montecarlo
 
-    path = plots.plot_montecarlo(summary, out)
+    path = plot_montecarlo(summary, out)
     if args.json:
         brief = {k: {m: v for m, v in e.items() if m not in ("t", "nees_per_keyframe")}
                  for k, e in summary.estimators.items()}

@@ -22,8 +22,8 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from smoother.outputs import plots
     from smoother.commands import output_directory
+    from smoother.outputs import plots
 
     if args.out is not None:
         output_directory(args.out)

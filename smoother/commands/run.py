@@ -13,7 +13,8 @@ from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
 def register(sub) -> None:
     p = sub.add_parser("run", help="run batch, fixed-lag and/or EKF estimation on a dataset")
     p.add_argument("--dataset", default=None,
-                   help="synthetic[:PROFILE] (gentle, tumbling, static), kitti, or euroc:PATH (default synthetic:gentle)")
+                   help="synthetic[:PROFILE] (gentle, tumbling, static), kitti, or euroc:PATH "
+                        "(default synthetic:gentle)")
     p.add_argument("--rig", default=None, metavar="RIG.toml",
                    help="a recording of your own, described by a rig file (IMU, sensors, extrinsics; see the README)")
     p.add_argument("--estimator", default="all", choices=["batch", "fixed-lag", "ekf", "all"],
@@ -44,7 +45,8 @@ def register(sub) -> None:
                         "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
-    p.add_argument("--outliers", type=float, default=0.0, help="fraction of simulated pose measurements made gross outliers")
+    p.add_argument("--outliers", type=float, default=0.0,
+                   help="fraction of simulated pose measurements made gross outliers")
     p.add_argument("--gps-every", type=int, default=1,
                    help="use the GPS fixes whose number in the file is a multiple of K (as GTSAM's example), "
                         "hold out the rest (kitti)")
@@ -108,8 +110,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from smoother.commands import dataset_specs as sources
-    from smoother.commands import at_least, duration, fraction, positive
+    from smoother.commands import at_least, dataset_specs, duration, fraction, positive
     from smoother.commands.run_directory import RunDirectory
     from smoother.pipeline import ESTIMATORS, RunOptions
 
@@ -134,7 +135,7 @@ def _run(args) -> int:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
     if args.keyframe_rate is not None:
         positive("--keyframe-rate", args.keyframe_rate, "a rate")
-    options = sources.SourceOptions(
+    options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
         gps_from_truth=tuple(args.gps_from_truth) if args.gps_from_truth else None,
@@ -144,16 +145,17 @@ def _run(args) -> int:
         raise UserError("--rig and --dataset: give one of them")
     if args.rig is not None:  # options that shape a built-in dataset would be ignored silently
         for option, value, default in (("--duration", args.duration, 30.0), ("--outliers", args.outliers, 0.0),
-                                       ("--gps-every", args.gps_every, 1), ("--pose-from-truth", args.pose_from_truth, None),
+                                       ("--gps-every", args.gps_every, 1),
+                                       ("--pose-from-truth", args.pose_from_truth, None),
                                        ("--gps-from-truth", args.gps_from_truth, None)):
             if value != default:
                 raise UserError(f"{option} shapes a built-in dataset, not a recording; with --rig, hold fixes out with "
                                 "a sensor's `every` in the rig file" if option == "--gps-every" else
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
     if args.rig is not None:
-        dataset, rig_robust = sources.load_rig(args.rig)
+        dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig)
     else:
-        dataset, rig_robust = sources.load(args.dataset or "synthetic:gentle", options), None
+        dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
@@ -175,14 +177,15 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.imu_health import findings_record
     from datasets.initialise import world_frame
     from datasets.kinds import sensors_of
+    from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
+    from smoother.diagnosis.misfit_causes import hints
+    from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
     from smoother.outputs import files
-    from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
-    from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
-    from smoother.diagnosis.misfit_causes import hints
     from smoother.pipeline import estimate_each, judged, sensor_consistency
 
-    print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
+    print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s",
+          file=sys.stderr)
     started = time.perf_counter()
     imu_findings = imu_health(dataset)
     run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "imu": findings_record(imu_findings)}
@@ -232,7 +235,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     if baseline is not None:
         print(f"the used fixes interpolated, no IMU ({baseline['heldout_fixes']} held-out fixes between them): "
               f"held-out {baseline['gps_heldout_rmse_m']:.4f} m, horizontal "
-              f"{baseline['gps_heldout_horizontal_rmse_m']:.4f} m, vertical {baseline['gps_heldout_vertical_rmse_m']:.4f} m")
+              f"{baseline['gps_heldout_horizontal_rmse_m']:.4f} m, "
+              f"vertical {baseline['gps_heldout_vertical_rmse_m']:.4f} m")
         note = interpolation_note(baseline, metrics, estimates, dataset)
         if note:
             print(f"note: {note}", file=sys.stderr)
@@ -277,13 +281,13 @@ def _calibration_correlations(dataset, estimates: dict) -> dict:
 
 
 def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None) -> dict:
-    """The run's files (:func:`smoother.evaluation.scoring.write_outputs`) and, with ``--mcap``, its MCAP
+    """The run's files (:func:`smoother.outputs.files.write_outputs`) and, with ``--mcap``, its MCAP
     (:func:`smoother.outputs.mcap.write_mcap`), into the staging folder ``stage``; the metrics.
     ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
     on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
     (:func:`smoother.diagnosis.calibration_report.fit_note`)."""
     from smoother.outputs import files
-    from smoother.commands.run_directory import MCAP
+    from smoother.outputs.layout import CALIBRATED_RIG, MCAP
 
     metrics = files.write_outputs(stage, dataset, estimates, run_info)
     if args.mcap:
@@ -292,12 +296,9 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         write_mcap(stage / MCAP, dataset, estimates)
     records = metrics.get("batch", {}).get("calibration")
     if args.rig is not None and records:
+        from datasets.atomic import atomic_write
         from datasets.rig import load_rig
         from datasets.rig_writer import calibrated_rig_text
-        from smoother.commands.run_directory import CALIBRATED_RIG
-
-        from datasets.atomic import atomic_write
-
         from smoother.diagnosis.calibration_report import fit_note
 
         verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})

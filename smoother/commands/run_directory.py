@@ -1,9 +1,11 @@
 """The output directory of ``smoother run`` (``--out``): one run at a time, and one run's files.
 
-* **What a run writes**, by name (:func:`run_files`, the one list of them): per estimator of
-  :data:`smoother.pipeline.ESTIMATORS` its ``.tum``, ``.npz`` and ``.geojson``; ``truth.npz``,
-  ``gps.npz``, ``metrics.json``; ``estimates.mcap`` (``--mcap``, :mod:`smoother.outputs.mcap`);
-  the figures of :mod:`smoother.outputs.plots` (``--plot``, or ``smoother plot DIR``). Nothing else in the directory is ever deleted or changed.
+* **What a run writes**, by name (:func:`run_files`, the one list of them, from the names of
+  :mod:`smoother.outputs.layout`): per estimator of :data:`smoother.pipeline.ESTIMATORS` its
+  ``.tum``, ``.npz`` and ``.geojson``; ``truth.npz``, ``gps.npz``, ``metrics.json``;
+  ``estimates.mcap`` (``--mcap``, :mod:`smoother.outputs.mcap`); ``calibrated.toml``; the figures
+  of :mod:`smoother.outputs.plots` (``--plot``, or ``smoother plot DIR``). Nothing else in the
+  directory is ever deleted or changed.
 * **One run at a time**: a run holds an exclusive ``flock`` on :data:`LOCK` (a hidden file in the
   directory, holding the run's process id) from before its estimators start until it ends; a
   second run into the same directory is refused at once, naming the directory and the other run's
@@ -26,20 +28,10 @@ from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
 from smoother.errors import UserError
+from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
 #: The lock file of a run directory.
 LOCK = ".smoother.lock"
-#: What a run writes per estimator, after the estimator's name.
-ESTIMATE_SUFFIXES = (".tum", ".npz", ".geojson")
-#: The references (a ground truth, GNSS fixes) and the metrics of a run.
-REFERENCES = ("truth.npz", "gps.npz")
-METRICS = "metrics.json"
-#: The run's estimates as ROS 2 messages (``--mcap``).
-MCAP = "estimates.mcap"
-#: The rig with the batch smoother's calibration written in (a rig run that estimates one).
-CALIBRATED_RIG = "calibrated.toml"
-#: The figures of a run directory (:func:`smoother.outputs.plots.plot_run`), as ``<name>.png``.
-FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
 #: Lock errors of a file system without locks: the run goes on, unguarded, with a warning.
 _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
 
@@ -49,7 +41,7 @@ def run_files() -> frozenset[str]:
     from smoother.pipeline import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
-                     + list(REFERENCES) + [METRICS, MCAP, CALIBRATED_RIG] + [f"{figure}.png" for figure in FIGURES])
+                     + [TRUTH, GPS, METRICS, MCAP, CALIBRATED_RIG] + [f"{plot}.png" for plot in PLOTS])
 
 
 class RunDirectory:
@@ -136,7 +128,7 @@ class RunDirectory:
             written = stage.names()
             unknown = [name for name in written if name not in names]
             if unknown:
-                raise RuntimeError(f"run files not declared in smoother.commands.run_directory: {', '.join(unknown)}")
+                raise RuntimeError(f"run files not declared in smoother.outputs.layout: {', '.join(unknown)}")
             previous = sorted(p.name for p in self.path.iterdir() if p.name in names and p.name not in written
                               and (p.is_file() or p.is_symlink())) if replace else []
             stage.commit(remove=previous, last=METRICS)

@@ -25,10 +25,9 @@ from numba import njit
 from datasets.kinds import KINDS, measure_into, model_index, quiet_dispatch, sensors_of
 from datasets.types import Dataset, Trajectory
 from factors import imu
-from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
-from factors.small_linalg import cholesky_into
+from factors.small_linalg import cholesky_into, matmul_into
 from smoother.stats import chi2_quantile
 from smoother.progress import progress_bar
 from smoother.model.timeline import estimate_times, imu_steps

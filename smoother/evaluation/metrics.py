@@ -134,7 +134,8 @@ def align_posyaw(src, dst) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"align_posyaw: expected two non-empty (N, 3) arrays, got {src.shape} and {dst.shape}")
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     a, b = src - mu_s, dst - mu_d
-    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
+    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
+                     float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
     c, s = math.cos(yaw), math.sin(yaw)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return R, mu_d - R @ mu_s
@@ -312,7 +313,8 @@ def rmse_difference(errors_a, errors_b, blocks, confidence: float = 0.95, resamp
     if not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise InputError("rmse_difference: expected finite errors")
     if not 0.0 < confidence < 1.0 or resamples < 1:
-        raise InputError(f"rmse_difference: expected 0 < confidence < 1 and resamples >= 1, got {confidence}, {resamples}")
+        raise InputError(f"rmse_difference: expected 0 < confidence < 1 and resamples >= 1, "
+                         f"got {confidence}, {resamples}")
     _, block = np.unique(labels, return_inverse=True)
     n_blocks = int(block.max()) + 1
     sums_a, sums_b = np.bincount(block, a**2, n_blocks), np.bincount(block, b**2, n_blocks)

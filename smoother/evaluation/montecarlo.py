@@ -1,5 +1,5 @@
-"""Monte Carlo runs of the simulator through the estimators, on any ``concurrent.futures``
-executor or on a Dask cluster, with results that do not depend on which.
+"""Monte Carlo runs of the simulator through the estimators, in this process, on a pool of
+processes or on a Dask cluster (:mod:`smoother.parallel`), with results that do not depend on which.
 
 Each run is a pure function of its configuration and its seed (:func:`run_one`): it simulates,
 runs the estimators and returns plain numbers (metrics and the per-keyframe pose NEES). Runs are
@@ -10,15 +10,14 @@ collected by seed, so 1 worker, several processes or a Dask cluster give identic
 from __future__ import annotations
 
 import json
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from datasets.atomic import atomic_write
-from factors import compiled
-from factors.errors import InputError
+from smoother import parallel
 
 
 @dataclass(frozen=True)
@@ -35,8 +34,8 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     """One seeded run: ``{"seed", <estimator>: {"ate_rmse_m", "rot_rmse_deg", "nees_mean",
     "nees": [...] per keyframe, "t": [...]}}``. Plain lists and floats only (picklable, JSON)."""
     from datasets.simulate import simulate
-    from smoother.pipeline import RunOptions, run_estimators
     from smoother.evaluation.scoring import compare_with_truth
+    from smoother.pipeline import RunOptions, run_estimators
 
     dataset = simulate(profile=config.profile, duration=config.duration, seed=seed,
                        outlier_fraction=config.outliers)
@@ -55,25 +54,16 @@ def run_one(config: MonteCarloConfig, seed: int) -> dict:
     return out
 
 
-def make_executor(workers: int) -> Executor | None:
-    """None (runs in this process, in seed order) for one worker, a process pool otherwise,
-    whose workers share this process's threads among them (:func:`factors.compiled.in_parallel`
-    in each worker would otherwise use every core, ``workers`` times over)."""
-    if workers < 1:
-        raise InputError(f"workers: expected at least 1, got {workers}")
-    if workers == 1:
-        return None
-    share = max(1, compiled.thread_count() // workers)
-    return ProcessPoolExecutor(max_workers=workers, initializer=compiled.set_thread_count, initargs=(share,))
-
-
-def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, dask_address: str | None = None,
+def run_many(config: MonteCarloConfig, seeds, workers: int = 1, dask_address: str | None = None,
              out_dir: Path | None = None, on_done=None) -> list[dict]:
-    """Every seed through :func:`run_one` -- in this process when ``executor`` is None, else on
-    the executor or the Dask scheduler; results sorted by seed. With ``out_dir`` each finished
-    run is written at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them;
-    the seed files of an earlier call into the same folder are removed first, so that ``runs/``
-    never mixes two configurations."""
+    """Every seed through :func:`run_one` -- in this process, one after the other, for one worker;
+    on a pool of ``workers`` processes (:func:`smoother.parallel.processes`) or on the Dask
+    scheduler at ``dask_address`` otherwise -- with :func:`smoother.parallel.run_all`'s window,
+    failures and stopping; results sorted by seed. With ``out_dir`` each finished run is written
+    at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them (and those of the
+    runs under way in worker processes that end after it: a SIGTERM to this process alone lets
+    them finish, a terminal's Ctrl-C stops them too); the seed files of an earlier call into the
+    same folder are removed first, so that ``runs/`` never mixes two configurations."""
     seeds = [int(s) for s in seeds]
     results = []
     if out_dir is not None:
@@ -89,24 +79,11 @@ def run_many(config: MonteCarloConfig, seeds, executor: Executor | None = None, 
             on_done(result)
 
     if dask_address is not None:
-        try:
-            from dask.distributed import Client, as_completed as dask_completed
-        except ImportError:
-            raise InputError("--dask needs the optional dependency: pip install 'boxplus-smoother[dask]'") from None
-        with Client(dask_address) as client:
-            futures = client.map(run_one, [config] * len(seeds), seeds, pure=False)
-            for future in dask_completed(futures):
-                keep(future.result())
-    elif executor is None:
-        for seed in seeds:
-            keep(run_one(config, seed))
+        where = parallel.dask(dask_address)
     else:
-        futures = [executor.submit(run_one, config, s) for s in seeds]
-        try:
-            for future in as_completed(futures):
-                keep(future.result())
-        finally:
-            executor.shutdown(wait=False, cancel_futures=True)
+        where = parallel.in_this_thread() if workers == 1 else parallel.processes(workers)
+    with where:
+        parallel.run_all(partial(run_one, config), seeds, where, keep)
     return sorted(results, key=lambda r: r["seed"])
 
 

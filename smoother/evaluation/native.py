@@ -24,8 +24,8 @@ from gtsam.symbol_shorthand import B, V, X
 from datasets.kinds import sensors_of
 from datasets.types import Dataset, PoseMeasurements, Trajectory
 from factors import imu
-from smoother.model.timeline import estimate_times, imu_steps
 from factors.errors import InputError
+from smoother.model.timeline import estimate_times, imu_steps
 
 
 def combined_params(noise: imu.ImuNoise, gravity) -> gtsam.PreintegrationCombinedParams:
@@ -78,7 +78,8 @@ def solve_native(dataset: Dataset) -> Trajectory:
     bias0 = gtsam.imuBias.ConstantBias(x0.b_f, x0.b_w)
     P0 = dataset.initial_cov
     graph.add(gtsam.PriorFactorPose3(X(0), pose0, _pose_noise(P0[np.r_[0:3, 6:9]][:, np.r_[0:3, 6:9]], x0.C)))
-    graph.add(gtsam.PriorFactorVector(V(0), x0.C @ x0.v, gtsam.noiseModel.Gaussian.Covariance(x0.C @ P0[3:6, 3:6] @ x0.C.T)))
+    velocity_cov = x0.C @ P0[3:6, 3:6] @ x0.C.T
+    graph.add(gtsam.PriorFactorVector(V(0), x0.C @ x0.v, gtsam.noiseModel.Gaussian.Covariance(velocity_cov)))
     graph.add(gtsam.PriorFactorConstantBias(B(0), bias0, gtsam.noiseModel.Gaussian.Covariance(P0[9:15, 9:15])))
     values.insert(X(0), pose0)
     values.insert(V(0), nav.velocity())

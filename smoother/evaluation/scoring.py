@@ -14,12 +14,17 @@ makes small without being accurate; estimators are compared by held-out fixes on
 the estimate interpolated linearly to the fix times. :func:`interpolation_baseline` is the
 yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
 
+Over time, for the figures (:mod:`smoother.outputs.plots`): the same errors per compared state
+or fix with the covariances behind them (:class:`ErrorSeries`): :func:`errors_against_truth` (the
+pose errors and NEES of :func:`compare_with_truth`) and :func:`errors_against_fixes` (the residuals
+of the GPS figures, :func:`fix_residuals`, and the NEES of the held-out fixes).
+
 What a run writes: :mod:`smoother.outputs.files`.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -50,16 +55,85 @@ def truth_at(truth: Trajectory, t: np.ndarray) -> tuple:
 def compare_with_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     """The estimate against the truth at every state of the estimate in the truth's span, the
     truth interpolated to its time (:func:`truth_at`: a state inside a gap of the truth is not
-    compared): ``t`` of the compared states, ``ate_rmse_m``, ``rot_rmse_deg`` (NaN when none is
-    compared), ``position_errors`` [m] and the pose NEES of each state, ``nees`` (None without
-    covariances). One place for the run's metrics, the Monte Carlo runs and the cross-checks."""
+    compared): ``t`` of the compared states and ``inside``, the mask of them among the estimate's,
+    ``ate_rmse_m``, ``rot_rmse_deg`` (NaN when none is compared), ``position_errors`` [m],
+    ``pose_errors`` (N, 6): truth minus estimate in position and ``log(C_true C_est^T)``
+    (:func:`smoother.evaluation.metrics.pose_error`), and the pose NEES of each state, ``nees``
+    (None without covariances). One place for the run's metrics, the Monte Carlo runs, the
+    cross-checks and the figures."""
     T, inside = truth_at(truth, estimate.t)
     E = estimate.states[inside]
     result = metrics.ate(T.r, T.C, E.r, E.C)
     nees = None if estimate.cov is None else metrics.nees(T, E, estimate.cov[inside], "pose")
-    return {"t": estimate.t[inside], "ate_rmse_m": result["translation"]["rmse"],
+    return {"t": estimate.t[inside], "inside": inside, "ate_rmse_m": result["translation"]["rmse"],
             "rot_rmse_deg": result["rotation"]["rmse"], "position_errors": result["translation_errors"],
-            "nees": nees}
+            "pose_errors": metrics.pose_error(T.r, T.C, E.r, E.C), "nees": nees}
+
+
+@dataclass(frozen=True)
+class ErrorSeries:
+    """One estimate's errors against a reference at times ``t`` (absolute, not shifted): position
+    ``dr`` = reference minus estimate [m] with covariance ``P_r`` (the estimate's, plus the fix's
+    against fixes), attitude ``dphi = log(C_ref C_est^T)`` [rad] with ``P_phi`` (against the truth
+    only), ``nees`` with ``dof`` degrees of freedom (None without covariances; against fixes NaN
+    at the fixes the estimator used) and, against fixes, which were held out (``heldout``)."""
+
+    t: np.ndarray
+    dr: np.ndarray
+    P_r: np.ndarray | None
+    dphi: np.ndarray | None = None
+    P_phi: np.ndarray | None = None
+    nees: np.ndarray | None = None
+    dof: int = 6
+    heldout: np.ndarray | None = None
+
+
+def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> ErrorSeries | None:
+    """The errors of :func:`compare_with_truth` at the compared states (None if there are none),
+    with the estimate's position and attitude covariances; its pose NEES is the one
+    ``metrics.json``'s ``nees_mean`` averages (None where a covariance is singular)."""
+    try:
+        c = compare_with_truth(truth, estimate)
+    except np.linalg.LinAlgError:  # a singular covariance: the errors without their NEES
+        c = compare_with_truth(truth, replace(estimate, cov=None))
+    inside = c["inside"]
+    if not inside.any():
+        return None
+    cov = None if estimate.cov is None else estimate.cov[inside]
+    e = c["pose_errors"]
+    return ErrorSeries(t=c["t"], dr=e[:, :3], P_r=None if cov is None else cov[:, 0:3, 0:3],
+                       dphi=e[:, 3:], P_phi=None if cov is None else cov[:, 6:9, 6:9], nees=c["nees"], dof=6)
+
+
+def errors_against_fixes(t: np.ndarray, position: np.ndarray, cov: np.ndarray | None, heldout: np.ndarray,
+                         estimate: Trajectory) -> ErrorSeries | None:
+    """Fix minus estimate at the fixes (times ``t``, positions, covariances ``cov`` or None,
+    ``heldout`` flags) inside the estimate's span: the residuals of the GPS figures
+    (:func:`fix_residuals`, negated), with covariance ``P_est + R_fix`` (``P_est`` interpolated to
+    the fix times); None if no fix lies inside.
+
+    ``P_est + R_fix`` is the residual's covariance only for a HELD-OUT fix (independent of the
+    estimate); a fix the estimator used pulled the estimate towards itself, so its residual is
+    smaller than that. The NEES is therefore computed over the held-out fixes only (NaN at the
+    others, None if there are none or a covariance is singular)."""
+    inside, residual = fix_residuals(t, position, estimate)
+    if not inside.any():
+        return None
+    dr = -residual
+    held = heldout[inside]
+    P = None
+    if estimate.cov is not None:
+        P = estimate.interpolate(t[inside])[1][:, 0:3, 0:3] + (0.0 if cov is None else cov[inside])
+    nees = None
+    if P is not None and held.any():
+        try:
+            values = metrics.nees_from(dr[held], P[held])
+        except np.linalg.LinAlgError:
+            values = None
+        if values is not None:
+            nees = np.full(len(dr), np.nan)
+            nees[held] = values
+    return ErrorSeries(t=t[inside], dr=dr, P_r=P, nees=nees, dof=3, heldout=held)
 
 
 def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:

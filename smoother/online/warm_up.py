@@ -6,10 +6,11 @@ Numba compiles a kernel the first time it runs and keeps it on disk (``cache=Tru
 -- a fresh install, an edited kernel -- spends most of its time compiling, one kernel after the
 other, on one core. When a run asks for the sliding-window fixed-lag smoother after other
 estimators and the window's kernels are not on disk yet (:func:`cold`), :func:`start` compiles
-them in a child process on another core: it runs the window over a few seconds of simulated data
-and writes nothing but Numba's cache. The fixed-lag smoother waits for it (:meth:`WarmUp.wait`)
-and then loads the kernels from disk instead of compiling them again. Nothing depends on the child:
-if it fails, is slow or is killed, the smoother compiles what it still needs itself.
+them in a child process on another core (:mod:`smoother.online.warm_up_child`): it runs the window
+over a few seconds of simulated data and writes nothing but Numba's cache. The fixed-lag smoother
+waits for it (:meth:`WarmUp.wait`) and then loads the kernels from disk instead of compiling them
+again. Nothing depends on the child: if it fails, is slow or is killed, the smoother compiles what
+it still needs itself.
 
 Numba writes each cache file whole under a temporary name and renames it, so a process that reads
 the cache while another writes it sees a kernel or none.
@@ -26,7 +27,7 @@ import numpy as np
 
 from datasets.kinds import pose
 from factors import imu
-from factors.compiled import thread_count
+from factors.threads import thread_count
 
 #: How long the fixed-lag smoother waits for the child [s] before it compiles on its own.
 WAIT_S = 300.0
@@ -67,7 +68,7 @@ class WarmUp:
 def start(order, fixed_lag_kind: str) -> WarmUp | None:
     """A warm-up child when the estimators in ``order`` run the sliding window after another one,
     its kernels are not on disk (:func:`cold`) and the process may use more than one thread
-    (:func:`factors.compiled.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
+    (:func:`factors.threads.thread_count`: ``BOXPLUS_THREADS=1`` where processes share the
     cores); else None."""
     if fixed_lag_kind != "sliding" or "fixed-lag" not in order or list(order)[0] == "fixed-lag":
         return None
@@ -75,44 +76,30 @@ def start(order, fixed_lag_kind: str) -> WarmUp | None:
         return None
     root = Path(__file__).resolve().parents[2]
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    process = subprocess.Popen([sys.executable, "-m", "smoother.online.warm_up"], cwd=root, env=environment,
+    process = subprocess.Popen([sys.executable, "-m", "smoother.online.warm_up_child"], cwd=root, env=environment,
                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return WarmUp(process)
 
 
-def _compile() -> None:
-    """The child: the sliding window over 3 s of the simulator's default run (every kernel an
-    update, a marginalisation and the covariances call)."""
-    import warnings
-
-    from datasets.simulate import simulate
-    from smoother.online.replay import replay
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        replay(simulate("gentle", duration=3.0, seed=0), 1.0, "sliding", covariances=True, progress=False)
-
 _warmed = False
 
 
-def in_this_process() -> None:
+def in_this_process(smoother_class) -> None:
     """Load (or compile) every kernel the loop calls -- the checks of an IMU sample and of a pose,
     the interval's preintegration and prediction, the window's update and marginalisation, the
-    per-sample estimate -- once per process, by feeding a throwaway smoother half a second of a
-    resting IMU and three poses: otherwise the first keyframes and the first marginalisation of a
-    robot's run stall by the loading (10-250 ms). :class:`smoother.online.smoother.OnlineSmoother`
-    calls it when it is made."""
+    per-sample estimate -- once per process, by feeding a throwaway smoother (of ``smoother_class``)
+    half a second of a resting IMU and three poses: otherwise the first keyframes and the first
+    marginalisation of a robot's run stall by the loading (10-250 ms).
+    :class:`smoother.online.smoother.OnlineSmoother` calls it, with itself, when it is made."""
     global _warmed
     if _warmed:
         return
     _warmed = True
-    from smoother.online.smoother import OnlineSmoother
-
     t = np.arange(0.0, 0.8, 0.01)
     start = imu.ImuState.identity()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm = OnlineSmoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
+        warm = smoother_class(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
         for k, tk in enumerate(t):
             warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
             if k % 10 == 5:
@@ -120,7 +107,3 @@ def in_this_process() -> None:
             if k > 5:
                 warm.estimate()
         warm.finish()
-
-
-if __name__ == "__main__":
-    _compile()

@@ -1,11 +1,14 @@
-"""A run's files: every estimate as ``<estimator>.tum`` (TUM trajectory, stamped in the data's own
-clock: :attr:`datasets.types.Dataset.time_origin_ns`), ``<estimator>.npz`` (the full states and
-covariances, times from the run's start and the clock's origin beside them) and, with a GNSS
-datum, ``<estimator>.geojson``; ``truth.npz`` and ``gps.npz`` where known; ``metrics.json`` (the
-scores of :mod:`smoother.evaluation.scoring` and the run's record). Every file is written
+"""A run's files, written and read back: every estimate as ``<estimator>.tum`` (TUM trajectory,
+stamped in the data's own clock: :attr:`datasets.types.Dataset.time_origin_ns`),
+``<estimator>.npz`` (the full states and covariances, times from the run's start and the clock's
+origin beside them) and, with a GNSS datum, ``<estimator>.geojson``; ``truth.npz`` and ``gps.npz``
+(arrays ``t`` (M,), ``position`` (M, 3), ``cov`` (M, 3, 3) and ``heldout`` (M,) bool: fixes kept
+out of estimation) where known; ``metrics.json`` (the scores of :mod:`smoother.evaluation.scoring`
+and the run's record). The names are :mod:`smoother.outputs.layout`'s. Every file is written
 atomically. :func:`write_outputs` writes them into a folder; ``smoother run`` writes them through
 :class:`smoother.commands.run_directory.RunDirectory` (one run at a time, the previous run's files
-replaced together). The readers name the file and what was expected when it is not one of these.
+replaced together). :func:`load_run` reads a run directory back (``smoother plot``). The readers
+name the file and what was expected when it is not one of these.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ import json
 import math
 import pickle
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +30,7 @@ from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.errors import InputError
 from smoother.evaluation.scoring import position_streams, score
+from smoother.outputs.layout import GPS, METRICS, TRUTH
 
 
 def save_trajectory(path: Path, trajectory: Trajectory, time_origin_ns: int | None = None) -> None:
@@ -141,13 +146,13 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
         report[name] = {**score(dataset, est.trajectory, est.calibration), "runtime_s": est.runtime_s, **est.details}
     if dataset.truth is not None:
-        save_trajectory(out_dir / "truth.npz", dataset.truth, dataset.time_origin_ns)
-    save_gps(out_dir / "gps.npz", dataset)
+        save_trajectory(out_dir / TRUTH, dataset.truth, dataset.time_origin_ns)
+    save_gps(out_dir / GPS, dataset)
     aiding = aiding_sensors(dataset)
     document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
                                    "dead_reckoning": not aiding,
                                    "world_frame": world_frame(sensors_of(dataset)).describe()}}
-    with atomic_write(out_dir / "metrics.json") as handle:
+    with atomic_write(out_dir / METRICS) as handle:
         json.dump(jsonable(document), handle, indent=2)
         handle.write("\n")
     return report
@@ -185,3 +190,102 @@ def jsonable(x):
     if isinstance(x, np.ndarray):
         return jsonable(x.tolist())
     return x
+
+
+# --- reading a run directory back ---------------------------------------------------------------
+
+#: Estimators in the order a run directory's estimates are read (others after them, by name).
+ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
+
+
+@dataclass(frozen=True)
+class Gps:
+    """A run's position fixes (``gps.npz``): times, positions, covariances (or None) and which
+    were held out of estimation."""
+
+    t: np.ndarray
+    position: np.ndarray
+    cov: np.ndarray | None
+    heldout: np.ndarray
+
+
+@dataclass(frozen=True)
+class Run:
+    """What :func:`load_run` read: the estimates by name (in :func:`estimator_names`' order), the
+    truth and the fixes (or None), and ``metrics.json`` (empty without one)."""
+
+    run_dir: Path
+    estimates: dict
+    truth: Trajectory | None
+    gps: Gps | None
+    metrics: dict
+
+    @property
+    def t0(self) -> float:
+        """The first estimate's time."""
+        return min(float(tr.t[0]) for tr in self.estimates.values())
+
+
+def load_gps(path: Path) -> Gps:
+    """The fixes :func:`save_gps` wrote; an :class:`~factors.errors.InputError` naming the file
+    for anything else."""
+    expected = "an .npz with arrays t (M,), position (M, 3) and optionally cov (M, 3, 3) and heldout (M,) bool"
+    with read_npz(path, expected) as data:
+        t = np.asarray(data["t"], dtype=float)
+        position = np.asarray(data["position"], dtype=float)
+        cov = np.asarray(data["cov"], dtype=float) if "cov" in data else None
+        heldout = np.asarray(data["heldout"], dtype=bool) if "heldout" in data else np.zeros(len(t), bool)
+    n = len(t)
+    if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
+            or (cov is not None and cov.shape != (n, 3, 3))):
+        covariances = "" if cov is None else f", cov {cov.shape}"
+        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}{covariances}, "
+                         f"heldout {heldout.shape}); expected {expected}")
+    if n > 1 and np.any(np.diff(t) <= 0):
+        raise InputError(f"{path}: the times t must increase strictly")
+    return Gps(t, position, cov, heldout)
+
+
+def estimator_names(run_dir: Path) -> list[str]:
+    """Names of the estimates in ``run_dir``, in :data:`ESTIMATOR_ORDER`: those of the last run
+    when ``metrics.json`` lists them (so an older run's files left in the directory are not
+    read), else every ``<name>.npz`` other than the truth and the fixes."""
+    found = {p.stem for p in Path(run_dir).glob("*.npz") if p.name not in (TRUTH, GPS)}
+    try:
+        listed = json.loads((Path(run_dir) / METRICS).read_text())["_run"]["estimators"]
+        found &= set(listed)
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return [n for n in ESTIMATOR_ORDER if n in found] + sorted(found - set(ESTIMATOR_ORDER))
+
+
+def load_run(run_dir, estimators=None) -> Run:
+    """Read a run directory (``estimators``: the names to read, default all of
+    :func:`estimator_names`); an :class:`~factors.errors.InputError` naming the file for anything
+    missing or malformed."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: not a directory; expected the output directory of smoother run")
+    available = estimator_names(run_dir)
+    if not available:
+        raise InputError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
+                         f"(e.g. {', '.join(f'{n}.npz' for n in ESTIMATOR_ORDER)}) written by smoother run")
+    names = available if not estimators else list(dict.fromkeys(estimators))
+    for name in names:
+        if name not in available:
+            raise InputError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
+    estimates = {name: load_trajectory(run_dir / f"{name}.npz") for name in names}
+    truth = load_trajectory(run_dir / TRUTH) if (run_dir / TRUTH).exists() else None
+    gps = load_gps(run_dir / GPS) if (run_dir / GPS).exists() else None
+    document: dict = {}
+    path = run_dir / METRICS
+    if path.exists():
+        try:
+            document = json.loads(path.read_text())
+        except (OSError, ValueError) as error:
+            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run "
+                             "writes") from None
+        if not isinstance(document, dict):
+            raise InputError(f"{path}: expected a JSON object with one entry per estimator, "
+                             f"got {type(document).__name__}")
+    return Run(run_dir, estimates, truth, gps, document)

@@ -16,7 +16,7 @@ Conventions:
 
 * **Stamps**: header stamps (and each message's log time) in the data's own clock,
   ``Dataset.time_origin_ns + round(t * 1e9)`` nanoseconds, as ``.tum`` and ``.npz`` keep them
-  (:func:`smoother.evaluation.scoring.save_trajectory`); from 0 when the data have no clock of their own.
+  (:func:`smoother.outputs.files.save_trajectory`); from 0 when the data have no clock of their own.
 * **Frames**: ``header.frame_id`` is the world frame, :func:`datasets.initialise.world_frame` (REP-105's ``map`` when a
   sensor fixes the position in the world, ``odom`` otherwise); ``child_frame_id`` is ``base_link``,
   which here is the IMU frame ``B`` itself: the estimate is of the IMU, and a rig names no other

@@ -1,9 +1,9 @@
-"""Figures of a run directory (``smoother run --plot``, ``smoother plot DIR``), written as PNG.
+"""The figures of a run directory (``smoother run --plot``, ``smoother plot DIR``), written as PNG.
 
-A run directory (:mod:`smoother.evaluation.scoring`) holds ``<estimator>.npz`` per estimator, ``truth.npz``
-where the truth is known, ``metrics.json`` and, for GPS-referenced datasets, optionally
-``gps.npz`` (arrays ``t`` (M,), ``position`` (M, 3), optional ``cov`` (M, 3, 3) and optional
-``heldout`` (M,) bool: fixes kept out of estimation). The figures, one function each:
+They draw what the run directory holds (:func:`smoother.outputs.files.load_run`) and what the
+evaluation computes from it (:mod:`smoother.evaluation.scoring`: the errors and NEES over time,
+and the metrics of ``metrics.json`` when it lacks them); nothing is computed here but what is
+drawn. One function each, the names of :data:`smoother.outputs.layout.PLOTS`:
 
 ``trajectory.png``
     top view (x-y) and height over time of every estimate against the truth or the GPS fixes.
@@ -26,35 +26,24 @@ where the truth is known, ``metrics.json`` and, for GPS-referenced datasets, opt
     and the run time).
 
 Figures whose data are missing (no truth and no GPS, no covariances) are skipped, never faked.
-Every PNG is written atomically; the module uses Matplotlib's object API with the Agg canvas,
-so it works without a display and leaves no global pyplot state behind.
+The canvas, style, colours and PNG writing are :mod:`smoother.outputs.canvas`'s.
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
 
-from datasets.allan import WALK_TAU, WHITE_TAU
-from datasets.atomic import atomic_write
-from datasets.types import Trajectory
-from factors.errors import InputError
 from smoother import stats
-from smoother.evaluation import metrics
-from smoother.evaluation import scoring as report
-from smoother.evaluation.scoring import fix_residuals, truth_at
-from smoother.outputs.files import load_trajectory, read_npz
+from smoother.evaluation import scoring
+from smoother.evaluation.scoring import ErrorSeries
+from smoother.outputs.canvas import STYLE, estimator_color, estimator_line, new_figure, plain_log_labels, save_png
+from smoother.outputs.files import Run, load_run
 
-#: Resolution of every PNG [dots per inch].
-DPI = 120
-#: Figure sizes [inch] by file stem; a PNG is ``round(w * DPI) x round(h * DPI)`` pixels.
+#: Figure sizes [inch], one per name of :data:`smoother.outputs.layout.PLOTS`; a PNG is
+#: ``round(w * DPI) x round(h * DPI)`` pixels (:data:`smoother.outputs.canvas.DPI`).
 FIGSIZE = {
     "trajectory": (12.0, 6.0),
     "position_error": (12.0, 7.5),
@@ -62,242 +51,41 @@ FIGSIZE = {
     "nees": (11.0, 7.5),
     "biases": (12.0, 10.5),
     "comparison": (12.0, 8.0),
-    "montecarlo_nees": (11.0, 5.0),
-    "allan": (12.0, 5.0),
 }
-#: Estimators in the order they are drawn, with their colours (others get the next free colour).
-ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
-COLORS = {"batch": "tab:blue", "fixed-lag": "tab:orange", "ekf": "tab:green"}
-#: Fixed-lag's newest state is close to the EKF's: it is drawn dashed and on top, so both show.
-LINESTYLES = {"fixed-lag": (0, (4, 2))}
-ZORDER = {"fixed-lag": 3.0}
-_SPARE_COLORS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 TRUTH_COLOR = "black"
 GPS_COLOR = "tab:red"
 HELDOUT_COLOR = "tab:purple"
-#: Files of a run directory that are not estimates.
-RESERVED = ("truth", "gps")
 #: Confidence of the NEES band.
 NEES_CONFIDENCE = 0.95
 AXES = ("x", "y", "z")
-STYLE = {
-    "font.size": 10,
-    "axes.titlesize": 11,
-    "axes.labelsize": 10,
-    "legend.fontsize": 9,
-    "xtick.labelsize": 9,
-    "ytick.labelsize": 9,
-    "axes.grid": True,
-    "grid.alpha": 0.3,
-    "lines.linewidth": 1.3,
-}
-
-
-# ------------------------------------------------------------------------------------------
-# the run directory
-
-
-@dataclass(frozen=True)
-class Gps:
-    """GPS fixes: times, positions, covariances (or None) and which were held out of estimation."""
-
-    t: np.ndarray
-    position: np.ndarray
-    cov: np.ndarray | None
-    heldout: np.ndarray
-
-
-@dataclass(frozen=True)
-class Run:
-    """What :func:`load_run` read: estimates by name (drawing order), truth, GPS, metrics."""
-
-    run_dir: Path
-    estimates: dict
-    truth: Trajectory | None
-    gps: Gps | None
-    metrics: dict
-
-    @property
-    def t0(self) -> float:
-        """Start of the time axis: the first estimate's time."""
-        return min(float(tr.t[0]) for tr in self.estimates.values())
-
-    def color(self, name: str) -> str:
-        if name in COLORS:
-            return COLORS[name]
-        others = [n for n in self.estimates if n not in COLORS]
-        return _SPARE_COLORS[others.index(name) % len(_SPARE_COLORS)]
-
-    def line(self, name: str, **kwargs) -> dict:
-        """Keyword arguments of an estimator's line: colour, line style, drawing order."""
-        return {"color": self.color(name), "ls": LINESTYLES.get(name, "-"), "zorder": ZORDER.get(name, 2.0),
-                "label": name, **kwargs}
-
-
-def _load_gps(path: Path) -> Gps:
-    expected = "an .npz with arrays t (M,), position (M, 3) and optionally cov (M, 3, 3) and heldout (M,) bool"
-    with read_npz(path, expected) as data:
-        t = np.asarray(data["t"], dtype=float)
-        position = np.asarray(data["position"], dtype=float)
-        cov = np.asarray(data["cov"], dtype=float) if "cov" in data else None
-        heldout = np.asarray(data["heldout"], dtype=bool) if "heldout" in data else np.zeros(len(t), bool)
-    n = len(t)
-    if (t.ndim != 1 or position.shape != (n, 3) or heldout.shape != (n,)
-            or (cov is not None and cov.shape != (n, 3, 3))):
-        raise InputError(f"{path}: inconsistent shapes (t {t.shape}, position {position.shape}"
-                        f"{'' if cov is None else f', cov {cov.shape}'}, heldout {heldout.shape}); expected {expected}")
-    if n > 1 and np.any(np.diff(t) <= 0):
-        raise InputError(f"{path}: the times t must increase strictly")
-    return Gps(t, position, cov, heldout)
-
-
-def estimator_names(run_dir: Path) -> list[str]:
-    """Names of the estimates in ``run_dir``, drawing order: those of the last run when
-    ``metrics.json`` lists them (so an older run's files left in the directory are not drawn),
-    else every ``<name>.npz`` other than truth/gps."""
-    found = {p.stem for p in Path(run_dir).glob("*.npz") if p.stem not in RESERVED}
-    try:
-        listed = json.loads((Path(run_dir) / "metrics.json").read_text())["_run"]["estimators"]
-        found &= set(listed)
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    return [n for n in ESTIMATOR_ORDER if n in found] + sorted(found - set(ESTIMATOR_ORDER))
-
-
-def load_run(run_dir, estimators=None) -> Run:
-    """Read a run directory; :class:`~factors.errors.InputError` naming the file for anything missing or malformed."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: not a directory; expected the output directory of smoother run")
-    available = estimator_names(run_dir)
-    if not available:
-        raise InputError(f"{run_dir}: no estimate found; expected <estimator>.npz files "
-                        f"(e.g. {', '.join(f'{n}.npz' for n in ESTIMATOR_ORDER)}) written by smoother run")
-    names = available if not estimators else list(dict.fromkeys(estimators))
-    for name in names:
-        if name not in available:
-            raise InputError(f"{run_dir / (name + '.npz')}: not found; this run has {', '.join(available)}")
-    estimates = {name: load_trajectory(run_dir / f"{name}.npz") for name in names}
-    truth = load_trajectory(run_dir / "truth.npz") if (run_dir / "truth.npz").exists() else None
-    gps = _load_gps(run_dir / "gps.npz") if (run_dir / "gps.npz").exists() else None
-    document: dict = {}
-    path = run_dir / "metrics.json"
-    if path.exists():
-        try:
-            document = json.loads(path.read_text())
-        except (OSError, ValueError) as error:
-            raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run writes") from None
-        if not isinstance(document, dict):
-            raise InputError(f"{path}: expected a JSON object with one entry per estimator, "
-                            f"got {type(document).__name__}")
-    return Run(run_dir, estimates, truth, gps, document)
-
-
-# ------------------------------------------------------------------------------------------
-# errors against the truth or the GPS fixes
-
-
-@dataclass(frozen=True)
-class Errors:
-    """One estimator's errors against a reference at times ``t`` (absolute, not shifted):
-    position ``dr`` = reference minus estimate [m] with covariance ``P_r`` (estimate's, plus the
-    fix's against GPS), attitude ``dphi = log(C_ref C_est^T)`` [rad] with ``P_phi`` (truth only),
-    ``nees`` and its degrees of freedom."""
-
-    t: np.ndarray
-    dr: np.ndarray
-    P_r: np.ndarray | None
-    dphi: np.ndarray | None = None
-    P_phi: np.ndarray | None = None
-    nees: np.ndarray | None = None
-    dof: int = 6
-    heldout: np.ndarray | None = None
-
-
-def _nees_or_none(compute) -> np.ndarray | None:
-    """``compute()`` (a NEES of :mod:`smoother.evaluation.metrics`), None where a covariance is singular."""
-    try:
-        return compute()
-    except np.linalg.LinAlgError:
-        return None
-
-
-def errors_against_truth(truth: Trajectory, estimate: Trajectory) -> Errors | None:
-    """Errors at the estimate's times inside the truth's span and outside its gaps (as the
-    metrics: :func:`smoother.evaluation.scoring.truth_at`; None if there are none); the pose NEES of
-    :func:`smoother.evaluation.metrics.nees`, the one ``metrics.json``'s ``nees_mean`` averages."""
-    T, inside = truth_at(truth, estimate.t)
-    if not inside.any():
-        return None
-    E = estimate.states[inside]
-    cov = None if estimate.cov is None else estimate.cov[inside]
-    e = metrics.pose_error(T.r, T.C, E.r, E.C)
-    nees = None if cov is None else _nees_or_none(lambda: metrics.nees(T, E, cov, "pose"))
-    return Errors(
-        t=estimate.t[inside], dr=e[:, :3], P_r=None if cov is None else cov[:, 0:3, 0:3],
-        dphi=e[:, 3:], P_phi=None if cov is None else cov[:, 6:9, 6:9], nees=nees, dof=6,
-    )
-
-
-def errors_against_gps(gps: Gps, estimate: Trajectory) -> Errors | None:
-    """Fix minus estimate at the fixes inside the estimate's span: the residuals of
-    ``metrics.json``'s GPS RMSEs (:func:`smoother.evaluation.scoring.fix_residuals`, negated), with covariance
-    ``P_est + R_fix`` (``P_est`` interpolated to the fix times); None if no fix lies inside.
-
-    ``P_est + R_fix`` is the residual's covariance only for a HELD-OUT fix (independent of the
-    estimate); a fix the estimator used pulled the estimate towards itself, so its residual is
-    smaller than that. The NEES is therefore computed over the held-out fixes only (NaN at the
-    others, None if there are none)."""
-    inside, residual = fix_residuals(gps.t, gps.position, estimate)
-    if not inside.any():
-        return None
-    dr = -residual
-    heldout = gps.heldout[inside]
-    P = None
-    if estimate.cov is not None:
-        cov = estimate.interpolate(gps.t[inside])[1]
-        P = cov[:, 0:3, 0:3] + (0.0 if gps.cov is None else gps.cov[inside])
-    nees = None
-    if P is not None and heldout.any():
-        values = _nees_or_none(lambda: metrics.nees_from(dr[heldout], P[heldout]))
-        if values is not None:
-            nees = np.full(len(dr), np.nan)
-            nees[heldout] = values
-    return Errors(t=gps.t[inside], dr=dr, P_r=P, nees=nees, dof=3, heldout=heldout)
 
 
 def reference_errors(run: Run) -> tuple[str, dict]:
-    """``(kind, {name: Errors})`` with ``kind`` 'truth', 'gps' or '' (no reference)."""
+    """``(kind, {name: ErrorSeries})`` of the run's estimates against its truth
+    (:func:`smoother.evaluation.scoring.errors_against_truth`), else against its GPS fixes
+    (:func:`smoother.evaluation.scoring.errors_against_fixes`); ``kind`` is 'truth', 'gps' or ''
+    (no reference). Estimates with nothing to compare are left out."""
     if run.truth is not None:
-        out = {n: errors_against_truth(run.truth, tr) for n, tr in run.estimates.items()}
-        return "truth", {n: e for n, e in out.items() if e is not None}
-    if run.gps is not None:
-        out = {}
-        for n, tr in run.estimates.items():
-            result = errors_against_gps(run.gps, tr)
-            if result is not None:
-                out[n] = result
-        return "gps", out
-    return "", {}
+        out = {n: scoring.errors_against_truth(run.truth, tr) for n, tr in run.estimates.items()}
+        kind = "truth"
+    elif run.gps is not None:
+        g = run.gps
+        out = {n: scoring.errors_against_fixes(g.t, g.position, g.cov, g.heldout, tr)
+               for n, tr in run.estimates.items()}
+        kind = "gps"
+    else:
+        return "", {}
+    return kind, {n: e for n, e in out.items() if e is not None}
 
 
-# ------------------------------------------------------------------------------------------
-# figure plumbing
+def color_of(run: Run, name: str) -> str:
+    """Estimator ``name``'s colour in the run's figures."""
+    return estimator_color(name, run.estimates)
 
 
-def _figure(stem: str) -> Figure:
-    """A new figure of the configured size with an Agg canvas (no pyplot)."""
-    fig = Figure(figsize=FIGSIZE[stem], dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig: Figure, out_dir: Path, stem: str) -> Path:
-    path = Path(out_dir) / f"{stem}.png"
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=DPI)
-    fig.clear()
-    return path
+def line_of(run: Run, name: str, **kwargs) -> dict:
+    """Keyword arguments of estimator ``name``'s line in the run's figures."""
+    return estimator_line(name, run.estimates, **kwargs)
 
 
 def _sigma3(P: np.ndarray | None) -> np.ndarray | None:
@@ -316,20 +104,6 @@ def _symmetric_limit(values: list, bands: list) -> float:
     return limit if limit > 0 else 1.0
 
 
-def _plain_log_labels(ax) -> None:
-    """Tick labels like 0.02 instead of 2 x 10^-2 on a log y axis (call after setting the limits);
-    minor ticks 2 and 5 are labelled only when the axis spans at most two decades."""
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    lo, hi = ax.get_ylim()
-    few = lo > 0 and math.log10(hi / lo) <= 2.0
-    ax.yaxis.set_minor_formatter(FuncFormatter(
-        lambda v, _: f"{v:g}" if few and _leading_digit(v) in (2, 5) else ""))
-
-
-def _leading_digit(v: float) -> int:
-    return int(round(v / 10.0 ** math.floor(math.log10(v)))) if v > 0 else 0
-
-
 def _time_label(run: Run) -> str:
     return "time since start [s]" if run.t0 != 0.0 else "time [s]"
 
@@ -340,7 +114,7 @@ def _time_label(run: Run) -> str:
 
 def plot_trajectory(run: Run, out_dir: Path) -> Path:
     """Top view (x-y) and height over time of the estimates against the truth or the GPS fixes."""
-    fig = _figure("trajectory")
+    fig = new_figure(FIGSIZE["trajectory"])
     top, height = fig.subplots(1, 2, width_ratios=[1.0, 1.25])
     t0 = run.t0
     if run.truth is not None:
@@ -356,8 +130,8 @@ def plot_trajectory(run: Run, out_dir: Path) -> Path:
                 height.plot(g.t[mask] - t0, g.position[mask, 2], ".", ms=3, color=color, label=label, zorder=1)
     for name, tr in run.estimates.items():
         r = tr.position
-        top.plot(r[:, 0], r[:, 1], **run.line(name, lw=1.1))
-        height.plot(tr.t - t0, r[:, 2], **run.line(name, lw=1.1))
+        top.plot(r[:, 0], r[:, 1], **line_of(run, name, lw=1.1))
+        height.plot(tr.t - t0, r[:, 2], **line_of(run, name, lw=1.1))
     first = next(iter(run.estimates.values())).position[0]
     top.plot(first[0], first[1], "o", ms=7, mfc="none", mec="black", mew=1.2, label="start", zorder=4)
     top.set_aspect("equal", adjustable="datalim")
@@ -372,14 +146,14 @@ def plot_trajectory(run: Run, out_dir: Path) -> Path:
     handles, labels = top.get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), markerscale=1.5)
     fig.suptitle(f"Trajectory: estimates {reference}  (run {run.run_dir.name})", fontsize=12)
-    return _save(fig, out_dir, "trajectory")
+    return save_png(fig, out_dir, "trajectory")
 
 
 def _error_grid(run: Run, out_dir: Path, stem: str, errors: dict, title: str, ylabels, unit: str, pick,
                 scale: float, points: bool) -> Path:
     """Rows = world axes, columns = estimators; the error with its +-3 sigma band."""
     names = list(errors)
-    fig = _figure(stem)
+    fig = new_figure(FIGSIZE[stem])
     axes = fig.subplots(3, len(names), sharex=True, sharey="row", squeeze=False)
     t0 = run.t0
     series = {n: pick(errors[n]) for n in names}  # (values (N,3), cov (N,3,3) or None)
@@ -391,7 +165,7 @@ def _error_grid(run: Run, out_dir: Path, stem: str, errors: dict, title: str, yl
             ax = axes[row, col]
             t = errors[name].t - t0
             v, b = values[col], bands[col]
-            color = run.color(name)
+            color = color_of(run, name)
             note = f"RMS {np.sqrt(np.mean(v ** 2)):.3g} {unit}"
             if b is not None:
                 ax.fill_between(t, -b, b, color=color, alpha=0.18, lw=0, label="±3σ")
@@ -418,7 +192,7 @@ def _error_grid(run: Run, out_dir: Path, stem: str, errors: dict, title: str, yl
                 ax.set_xlabel(_time_label(run))
     axes[0, 0].legend(loc="upper right", fontsize=8, markerscale=3)
     fig.suptitle(title, fontsize=12)
-    return _save(fig, out_dir, stem)
+    return save_png(fig, out_dir, stem)
 
 
 def plot_position_error(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
@@ -447,7 +221,7 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     names = [n for n in errors if errors[n].nees is not None]
     dof = errors[names[0]].dof
     lo, hi = stats.nees_bounds(dof, 1, NEES_CONFIDENCE)
-    fig = _figure("nees")
+    fig = new_figure(FIGSIZE["nees"])
     axes = fig.subplots(len(names), 1, sharex=True, sharey=True, squeeze=False)[:, 0]
     t0 = run.t0
     values = np.concatenate([errors[n].nees for n in names])
@@ -462,14 +236,14 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
         inside = float(np.mean((nees >= lo) & (nees <= hi))) * 100.0
         band = ax.axhspan(lo, hi, color="0.5", alpha=0.2, lw=0)
         expected = ax.axhline(dof, color="0.3", lw=0.8, ls="--")
-        ax.semilogy(t, np.clip(nees, bottom, None), color=run.color(name), lw=1.0,
+        ax.semilogy(t, np.clip(nees, bottom, None), color=color_of(run, name), lw=1.0,
                     marker="." if len(t) <= 500 else None, ms=3)
         ax.set_ylim(bottom, top)
-        _plain_log_labels(ax)
+        plain_log_labels(ax)
         ax.set_ylabel(f"NEES ({dof} dof)")
         ax.set_title(f"{name}: mean NEES/dof = {np.mean(nees) / dof:.2f}, {inside:.0f}% of the "
                      f"{'times' if kind == 'truth' else f'{len(nees)} held-out fixes'} inside the band",
-                     loc="left", fontsize=10, color=run.color(name))
+                     loc="left", fontsize=10, color=color_of(run, name))
     axes[-1].set_xlabel(_time_label(run))
     fig.legend([band, expected], [f"{NEES_CONFIDENCE:.0%} band of χ²({dof}) for one run: [{lo:.2f}, {hi:.2f}]",
                                   f"expected value {dof}"], loc="outside lower center", ncol=2)
@@ -478,14 +252,14 @@ def plot_nees(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     missing = [n for n in errors if n not in names]
     note = f"\n({', '.join(missing)}: no covariance saved)" if missing else ""
     fig.suptitle(f"NEES of the {what}{note}", fontsize=12)
-    return _save(fig, out_dir, "nees")
+    return save_png(fig, out_dir, "nees")
 
 
 def plot_biases(run: Run, out_dir: Path) -> Path:
     """Accelerometer and gyro bias estimates per axis (rows) and estimator (columns) with +-3 sigma,
     and the truth where known."""
     names = list(run.estimates)
-    fig = _figure("biases")
+    fig = new_figure(FIGSIZE["biases"])
     axes = fig.subplots(6, len(names), sharex=True, sharey="row", squeeze=False)
     t0 = run.t0
     rows = [("b_f", 9 + a, 1.0, f"acc. bias {AXES[a]}\n[m/s²]") for a in range(3)]
@@ -503,7 +277,7 @@ def plot_biases(run: Run, out_dir: Path) -> Path:
             tr = run.estimates[name]
             t = tr.t - t0
             b = getattr(tr.states, field)[:, axis] * scale
-            color = run.color(name)
+            color = color_of(run, name)
             if truth is not None:
                 ax.plot(run.truth.t - t0, truth, color=TRUTH_COLOR, lw=2.5, alpha=0.35, label="truth")
                 truth_drawn = True
@@ -532,7 +306,7 @@ def plot_biases(run: Run, out_dir: Path) -> Path:
     bands = any(tr.cov is not None for tr in run.estimates.values())
     fig.suptitle("Bias estimates" + (" with ±3σ" if bands else "") + (" vs truth" if truth_drawn else ""),
                  fontsize=12)
-    return _save(fig, out_dir, "biases")
+    return save_png(fig, out_dir, "biases")
 
 
 def bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]:
@@ -567,33 +341,33 @@ def bar_values(run: Run, kind: str, errors: dict) -> list[tuple[str, str, dict]]
     return out
 
 
-def _computed_metrics(run: Run, name: str, e: Errors) -> dict:
+def _computed_metrics(run: Run, name: str, e: ErrorSeries) -> dict:
     """The figures ``metrics.json`` would hold for estimator ``name``: against the truth those of
     :func:`smoother.evaluation.scoring.against_truth`; against GPS the RMS distance
     (:func:`smoother.evaluation.scoring.rms_distance`) of the held-out and of the used fixes' residuals."""
     if run.truth is not None:
-        return report.against_truth(run.truth, run.estimates[name])
+        return scoring.against_truth(run.truth, run.estimates[name])
     if e.heldout is None:
         return {}
-    return {"gps_heldout_rmse_m": report.rms_distance(e.dr[e.heldout]),
-            "gps_fit_residual_m": report.rms_distance(e.dr[~e.heldout])}
+    return {"gps_heldout_rmse_m": scoring.rms_distance(e.dr[e.heldout]),
+            "gps_fit_residual_m": scoring.rms_distance(e.dr[~e.heldout])}
 
 
 def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
     """Position error norm over time of all estimators on one axis set, and metric bars."""
     bars = bar_values(run, kind, errors)
-    fig = _figure("comparison")
+    fig = new_figure(FIGSIZE["comparison"])
     grid = fig.add_gridspec(2, max(len(bars), 1), height_ratios=[1.5, 1.0])
     ax = fig.add_subplot(grid[0, :])
     t0 = run.t0
     for name, e in errors.items():
         norm = np.linalg.norm(e.dr, axis=1)
         if kind == "gps":
-            ax.plot(e.t - t0, norm, marker=".", ms=2.5, **run.line(name, lw=0.7))
+            ax.plot(e.t - t0, norm, marker=".", ms=2.5, **line_of(run, name, lw=0.7))
         else:
-            ax.plot(e.t - t0, norm, **run.line(name, lw=1.1))
+            ax.plot(e.t - t0, norm, **line_of(run, name, lw=1.1))
     ax.set_yscale("log")
-    _plain_log_labels(ax)
+    plain_log_labels(ax)
     ax.set_xlabel(_time_label(run))
     ax.set_ylabel("position error norm [m]" if kind == "truth" else "distance to GPS fix [m]")
     ax.set_title("|truth − estimate| over time" if kind == "truth" else "|GPS fix − estimate| at the fix times")
@@ -602,7 +376,7 @@ def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
         bx = fig.add_subplot(grid[1, col])
         names = list(values)
         heights = [values[n] for n in names]
-        rects = bx.bar(range(len(names)), heights, color=[run.color(n) for n in names], width=0.65)
+        rects = bx.bar(range(len(names)), heights, color=[color_of(run, n) for n in names], width=0.65)
         bx.bar_label(rects, labels=[f"{h:.3g}" for h in heights], fontsize=8, padding=2)
         bx.set_xticks(range(len(names)), names)
         bx.set_title(label, fontsize=10)
@@ -612,7 +386,8 @@ def plot_comparison(run: Run, out_dir: Path, kind: str, errors: dict) -> Path:
             bx.axhline(1.0, color="0.3", lw=0.8, ls="--", label="consistent (1)")
             bx.legend(loc="upper right", fontsize=8)
     fig.suptitle(f"Estimator comparison ({', '.join(run.estimates)})", fontsize=12)
-    return _save(fig, out_dir, "comparison")
+    return save_png(fig, out_dir, "comparison")
+
 
 # ------------------------------------------------------------------------------------------
 # entry point
@@ -644,55 +419,3 @@ def plot_run(run_dir, estimators=None, out_dir=None) -> list[Path]:
         if errors:
             written.append(plot_comparison(run, out_dir, kind, errors))
     return written
-
-
-def plot_montecarlo(summary, out_dir) -> Path:
-    """``montecarlo_nees.png``: the pose NEES per dimension at each keyframe, averaged over the
-    Monte Carlo runs, per estimator, with the 95% chi-square interval of that average."""
-    import matplotlib
-
-    low, high = summary.nees_interval_95
-    with matplotlib.rc_context(STYLE):
-        fig = _figure("montecarlo_nees")
-        ax = fig.add_subplot()
-        ax.axhspan(low, high, color="0.85", label=f"95% interval ({summary.runs} runs)")
-        ax.axhline(1.0, color="0.3", lw=0.8, ls="--")
-        for k, (name, e) in enumerate(summary.estimators.items()):
-            color = COLORS.get(name, _SPARE_COLORS[k % len(_SPARE_COLORS)])
-            ax.plot(e["t"], e["nees_per_keyframe"], color=color, lw=1.2, ls=LINESTYLES.get(name, "-"),
-                    label=f"{name} (mean {e['nees_mean']:.2f}, {100 * e['nees_share_inside_95']:.0f}% inside)")
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("pose NEES / 6, mean over runs")
-        ax.set_title(f"Monte Carlo consistency: {summary.runs} runs")
-        ax.legend(loc="upper right", fontsize=9)
-        return _save(fig, out_dir, "montecarlo_nees")
-
-
-def plot_allan(result, out_dir) -> Path:
-    """``allan.png``: the Allan deviation of each accelerometer and gyro axis (a
-    :class:`datasets.allan.AllanResult`), log-log, with the fitted white-noise (slope -1/2) and
-    random-walk (slope +1/2) lines of each axis and the points where they are read (1 s, 3 s)."""
-    import matplotlib
-
-    with matplotlib.rc_context(STYLE):
-        fig = _figure("allan")
-        panels = (("accelerometer", result.acc_adev, result.acc_white, result.acc_walk, "m/s$^2$"),
-                  ("gyro", result.gyro_adev, result.gyro_white, result.gyro_walk, "rad/s"))
-        tau = result.tau
-        for j, (name, adev, white, walk, unit) in enumerate(panels):
-            ax = fig.add_subplot(1, 2, j + 1)
-            for k, axis in enumerate("xyz"):
-                color = ("tab:blue", "tab:orange", "tab:green")[k]
-                known = f"{walk[k]:.3g}" if np.isfinite(walk[k]) else "not estimated"
-                ax.loglog(tau, adev[:, k], color=color, label=f"{axis}: N {white[k]:.3g}, K {known}")
-                ax.loglog(tau, white[k] / np.sqrt(tau / WHITE_TAU), color=color, lw=0.8, ls="--")
-                ax.loglog(tau, walk[k] * np.sqrt(tau / WALK_TAU), color=color, lw=0.8, ls=":")
-                ax.plot([WHITE_TAU, WALK_TAU], [white[k], walk[k]], "o", color=color, ms=4)
-            low = min(adev.min(), white.min(), np.nanmin(walk, initial=np.inf))  # NaN: a walk not estimated
-            high = max(adev.max(), white.max(), np.nanmax(walk, initial=0.0))
-            ax.set_ylim(low / 3, high * 3)  # the fitted lines run far beyond the data: keep them in view
-            ax.set_xlabel("cluster time $\\tau$ [s]")
-            ax.set_ylabel(f"Allan deviation [{unit}]")
-            ax.set_title(f"{name}: white noise N (--, read at 1 s), random walk K (:, read at 3 s)")
-            ax.legend(loc="upper center")
-        return _save(fig, out_dir, "allan")

@@ -34,8 +34,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import strategies as S
-from factors import compiled, imu, preintegration, so3
+from factors import imu, preintegration, so3
 from factors.jacobians import numerical_jacobian
+from factors.threads import thread_limit
 from strategies import EPS, random_rotation
 
 GRAVITY = imu.DEFAULT_GRAVITY
@@ -472,7 +473,7 @@ def test_results_do_not_depend_on_the_number_of_threads(monkeypatch):
     monkeypatch.setattr(preintegration, "_MIN_INTERVALS_PER_THREAD", 2)
     runs = []
     for threads in (1, 2, 5):
-        with compiled.thread_limit(threads):
+        with thread_limit(threads):
             runs.append(preintegration.integrate_with_covariance((acc, gyro, dt), start, noise, GRAVITY, anchors))
     (one, states_one), others = runs[0], runs[1:]
     for pre, states in others:

@@ -1,6 +1,8 @@
-"""``smoother allan SOURCE``: the printed block is a valid [imu] table of a rig file holding the
-densities, allan.png is written, and a bad source is one error line."""
+"""``smoother allan SOURCE``: the printed block is TOML (tomllib reads it) and a valid [imu] table
+of a rig file holding the densities, allan.png is written, and a bad source is one error line."""
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 from bagfiles import Messages, write_bag
@@ -9,6 +11,11 @@ from datasets.allan import allan
 from datasets.rig import load_rig
 from datasets.sources import read_imu
 from smoother.cli import main
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 DT_NS = 10_000_000
 
@@ -34,6 +41,7 @@ def test_block_pastes_into_a_rig_and_the_figure_is_written(tmp_path, capsys):
     _write_csv(path, x)
     assert main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr()
+    assert tomllib.loads(out.out)["imu"]["source"] == f"csv:{path}"
     (tmp_path / "rig.toml").write_text(out.out)
     rig = load_rig(tmp_path / "rig.toml")
     expected = allan(read_imu(f"csv:{path}")).noise()
@@ -81,6 +89,7 @@ def test_a_recording_too_short_for_the_random_walk_says_so(tmp_path, capsys):
     out = capsys.readouterr()
     block = out.out.splitlines()
     assert any(line.startswith("accel_noise_density = ") for line in block)
+    assert set(tomllib.loads(out.out)["imu"]) == {"source", "accel_noise_density", "gyro_noise_density"}
     for key in ("accel_random_walk", "gyro_random_walk"):
         assert not any(line.startswith(key) for line in block) and f"# {key} = ?" in out.out
     assert "warning: random walk not estimated" in out.err and "record at least" in out.err

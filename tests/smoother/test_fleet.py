@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from small_recording import write_recording
 
-from smoother.commands import fleet_runner as fleet
 from smoother.cli import main
+from smoother.commands import fleet_runner as fleet
 
 ROOT = Path(__file__).resolve().parents[2]
 #: A rig file that names a bag but no topic: refused with one line by ``smoother run --rig``.
@@ -71,7 +71,8 @@ def test_fleet_on_local_workers(rigs, tmp_path, capsys):
 def test_fleet_on_a_dask_cluster(rigs, tmp_path, capsys):
     distributed = pytest.importorskip("distributed")
     out = tmp_path / "fleet"
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
         code = main(["fleet", *map(str, rigs), "--out", str(out), "--dask", cluster.scheduler_address, "--no-progress",
                      *RUN])
     printed = capsys.readouterr().out
@@ -104,7 +105,7 @@ def test_a_recording_whose_process_dies_does_not_stop_the_others(rigs, tmp_path,
     python.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(python))
     results = []
-    fleet.run_local(fleet.recordings([rigs[0], rigs[2]], tmp_path / "fleet", RUN), 2, results.append)
+    fleet.run_recordings(fleet.recordings([rigs[0], rigs[2]], tmp_path / "fleet", RUN), results.append, workers=2)
     by_name = {r["recording"]: r for r in results}
     assert by_name["jackal"]["failure"] == "its process was killed by SIGSEGV"
     assert by_name["husky"]["failure"] is None and "ekf" in by_name["husky"]["estimators"]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from factors.compiled import thread_count
+from factors.threads import thread_count
 
 #: Runs the three estimators, and the fixed-lag smoother through GTSAM's factors (whose callbacks
 #: run the kernels on GTSAM's arrays), on a short simulation in a fresh process with an empty

@@ -18,11 +18,11 @@ from datasets.kinds import sensors_of
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors import imu, quaternion
-from smoother.outputs import mcap as mcap_export
-from smoother.outputs import files
-from smoother.commands import dataset_specs as sources
 from smoother.cli import main
+from smoother.commands import dataset_specs
 from smoother.commands.run_directory import LOCK, RunDirectory
+from smoother.outputs import files
+from smoother.outputs import mcap as mcap_export
 
 ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
@@ -58,7 +58,7 @@ def test_odometry_of_each_estimator_is_its_npz(run):
     attitude, pose covariance = the npz's (dr, dphi) block; twist = body velocity and gyro less
     its bias, with the (dv, -db_w) covariance and the gyro's white noise on the rate."""
     rig, out, messages = run
-    dataset, _ = sources.load_rig(rig)
+    dataset, _ = dataset_specs.load_rig_dataset(rig)
     gyro_variance = dataset.noise.gyro**2 / np.median(np.diff(dataset.imu.t))
     for name in ESTIMATORS:
         trajectory, origin = files.load_stamped_trajectory(out / f"{name}.npz")

@@ -10,11 +10,17 @@ from datasets.tum import write_tum
 from factors import imu, so3
 from factors.imu import ImuState
 from smoother.evaluation import metrics
-from smoother.stats import chi2_quantile, nees_bounds
 from smoother.evaluation.metrics import (
-    align_posyaw, associate, ate, evaluate, nees, rpe, rpe_pairs,
+    align_posyaw,
+    associate,
+    ate,
+    evaluate,
+    nees,
+    rpe,
+    rpe_pairs,
     umeyama,
 )
+from smoother.stats import chi2_quantile, nees_bounds
 
 
 def _walk(n=300, seed=0, dt=0.05, t0=1000.0):
@@ -92,7 +98,8 @@ def test_posyaw_recovers_yaw_and_translation_only():
 
 #: A straight road at 10 m/s with a 5 cm weave (the simulator's profile; no turn, level).
 STRAIGHT = sinusoid_profile("straight", "a straight road at 10 m/s, a 5 cm weave",
-                            position=(Sinusoids(slope=10.0), Sinusoids(terms=((0.05, 0.4, 0.0),)), Sinusoids(offset=1.0)),
+                            position=(Sinusoids(slope=10.0), Sinusoids(terms=((0.05, 0.4, 0.0),)),
+                                      Sinusoids(offset=1.0)),
                             attitude=(Sinusoids(), Sinusoids(), Sinusoids()))
 
 
@@ -104,7 +111,8 @@ def straight_drive(roll_error_deg: float = 7.0, seed: int = 4):
     truth = simulate(profile=STRAIGHT, duration=30.0, seed=0, pose_rate=None).truth.subset(slice(0, None, 20))
     drift = np.cumsum(np.random.default_rng(seed).normal(scale=0.05, size=(len(truth), 3)), axis=0)
     R, offset = so3.exp([0.0, 0.0, 0.6]), np.array([3.0, -2.0, 0.5])
-    r_est, C_est = _transform(R, offset, truth.position + drift, so3.exp([np.radians(roll_error_deg), 0.0, 0.0]) @ truth.C)
+    rolled = so3.exp([np.radians(roll_error_deg), 0.0, 0.0]) @ truth.C
+    r_est, C_est = _transform(R, offset, truth.position + drift, rolled)
     return (truth.t, truth.position, truth.C), (r_est, C_est)
 
 
@@ -299,7 +307,8 @@ def test_the_quantiles_import_scipy_special_at_the_first_call_and_never_scipy_st
 
     script = (
         "import sys\n"
-        "import smoother.stats, smoother.evaluation.metrics, smoother.ekf.filter, smoother.model.problem, smoother.diagnosis.verdicts\n"
+        "import smoother.stats, smoother.evaluation.metrics, smoother.ekf.filter, smoother.model.problem\n"
+        "import smoother.diagnosis.verdicts\n"
         "assert 'scipy.special' not in sys.modules, 'imported with the modules'\n"
         "smoother.stats.nees_bounds(6, 10)\n"
         "assert 'scipy.special' in sys.modules and 'scipy.stats' not in sys.modules\n"
@@ -369,7 +378,8 @@ def test_agrees_with_evo(tmp_path, seed, align, delta, unit, all_pairs):
         ape.process_data((evo_ref, evo_est))
         rpe_metric = evo_metrics.RPE(relation, delta=delta, delta_unit=evo_unit, all_pairs=all_pairs)
         rpe_metric.process_data((evo_ref, evo_est))
-        for mine, theirs in ((ours.ate[name], ape.get_all_statistics()), (ours.rpe[name], rpe_metric.get_all_statistics())):
+        pairs = ((ours.ate[name], ape.get_all_statistics()), (ours.rpe[name], rpe_metric.get_all_statistics()))
+        for mine, theirs in pairs:
             for key in ("rmse", "mean", "median", "std", "min", "max", "sse"):
                 assert _close(mine[key], theirs[key]), (name, key, mine[key], theirs[key])
                 compared += 1

@@ -1,39 +1,28 @@
-"""Monte Carlo: results independent of the executor, kept on interruption, CLI errors."""
+"""Monte Carlo: results independent of where the runs run, kept on interruption, CLI errors."""
 import json
 
 import numpy as np
 import pytest
 
-from factors import compiled
-from smoother.evaluation import montecarlo
 from smoother.cli import main
+from smoother.evaluation import montecarlo
 
 CONFIG = montecarlo.MonteCarloConfig(profile="gentle", duration=2.0, estimators=("batch", "ekf"))
 
 
 @pytest.fixture(scope="module")
 def serial():
-    return montecarlo.run_many(CONFIG, [3, 1, 2], montecarlo.make_executor(1))
+    return montecarlo.run_many(CONFIG, [3, 1, 2])
 
 
 def test_one_worker_and_several_give_identical_results(serial):
-    parallel = montecarlo.run_many(CONFIG, [2, 3, 1], montecarlo.make_executor(2))
+    on_processes = montecarlo.run_many(CONFIG, [2, 3, 1], workers=2)
     assert [r["seed"] for r in serial] == [1, 2, 3]
-    assert json.dumps(serial, sort_keys=True) == json.dumps(parallel, sort_keys=True)
-
-
-@pytest.mark.parametrize("threads, workers, each", [(4, 2, 2), (1, 3, 1)])
-def test_process_workers_share_the_threads_instead_of_each_taking_them_all(threads, workers, each):
-    with compiled.thread_limit(threads):
-        executor = montecarlo.make_executor(workers)
-    try:
-        assert executor.submit(compiled.thread_count).result(timeout=60) == each
-    finally:
-        executor.shutdown()
+    assert json.dumps(serial, sort_keys=True) == json.dumps(on_processes, sort_keys=True)
 
 
 def test_runs_are_seeded_and_differ_between_seeds(serial):
-    again = montecarlo.run_many(CONFIG, [1], montecarlo.make_executor(1))
+    again = montecarlo.run_many(CONFIG, [1])
     assert again[0] == serial[0]
     assert serial[0]["ekf"]["ate_rmse_m"] != serial[1]["ekf"]["ate_rmse_m"]
 
@@ -51,12 +40,12 @@ def test_aggregate_averages_nees_over_runs(serial):
 
 def test_finished_runs_are_written_as_they_complete(tmp_path):
     seen = []
-    montecarlo.run_many(CONFIG, [5, 6], montecarlo.make_executor(1), out_dir=tmp_path, on_done=seen.append)
+    montecarlo.run_many(CONFIG, [5, 6], out_dir=tmp_path, on_done=seen.append)
     files = sorted(p.name for p in (tmp_path / "runs").iterdir())
     assert files == ["seed_5.json", "seed_6.json"]
     assert json.loads((tmp_path / "runs" / "seed_5.json").read_text()) == {r["seed"]: r for r in seen}[5]
     # a second call into the same folder: its runs only, not those of the first (another config)
-    montecarlo.run_many(CONFIG, [6, 7], montecarlo.make_executor(1), out_dir=tmp_path)
+    montecarlo.run_many(CONFIG, [6, 7], out_dir=tmp_path)
     assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["seed_6.json", "seed_7.json"]
 
 
@@ -72,7 +61,7 @@ def test_an_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
 
     monkeypatch.setattr(montecarlo, "run_one", interrupt_second)
     with pytest.raises(KeyboardInterrupt):
-        montecarlo.run_many(CONFIG, [7, 8, 9], montecarlo.make_executor(1), out_dir=tmp_path)
+        montecarlo.run_many(CONFIG, [7, 8, 9], out_dir=tmp_path)
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["seed_7.json"]
 
 

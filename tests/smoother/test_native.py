@@ -5,8 +5,8 @@ import pytest
 from datasets.simulate import simulate
 from factors import imu
 from smoother.batch.solve import solve_batch
-from smoother.model.problem import build_problem
 from smoother.evaluation.native import combined_params, native_preintegration, solve_native
+from smoother.model.problem import build_problem
 
 
 @pytest.fixture(scope="module", params=["gentle", "tumbling"])
@@ -53,7 +53,8 @@ def test_solve_native_refuses_a_dataset_other_than_one_pose_sensor_at_the_imu():
     the sensors named, not solved wrongly."""
     from factors.errors import InputError
 
-    with pytest.raises(InputError, match="one pose sensor at the IMU and no other; synthetic:gentle has pose, position"):
+    expected = "one pose sensor at the IMU and no other; synthetic:gentle has pose, position"
+    with pytest.raises(InputError, match=expected):
         solve_native(simulate("gentle", duration=1.0, position_rate=1.0))
     with pytest.raises(InputError, match="has no sensor"):
         solve_native(simulate("gentle", duration=1.0, pose_rate=None))

@@ -1,7 +1,7 @@
 """Plots of a run directory: the PNG files, their sizes, runs without truth or with GPS fixes,
 errors for missing or malformed inputs, and ``smoother plot DIR`` in-process.
 
-The run directory is written by :func:`smoother.evaluation.scoring.write_outputs` from a 3 s simulated
+The run directory is written by :func:`smoother.outputs.files.write_outputs` from a 3 s simulated
 dataset and hand-made estimates (the truth perturbed, with matching covariances), so that the
 tests exercise the real file format without running the estimators.
 """
@@ -22,10 +22,8 @@ from factors import so3
 from factors.errors import InputError
 from factors.imu import ImuState
 from smoother import cli
-from smoother.evaluation import metrics
-from smoother.evaluation import scoring as report
-from smoother.outputs import files
-from smoother.outputs import plots
+from smoother.evaluation import metrics, scoring
+from smoother.outputs import canvas, files, plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 ALL_FIGURES = ["trajectory", "position_error", "orientation_error", "nees", "biases", "comparison"]
@@ -82,7 +80,7 @@ def _check_pngs(paths, directory: Path, stems) -> None:
     for p in paths:
         assert p.parent == directory and p.suffix == ".png" and p.stat().st_size > 10_000
         w, h = plots.FIGSIZE[p.stem]
-        assert _png_size(p) == (round(w * plots.DPI), round(h * plots.DPI))
+        assert _png_size(p) == (round(w * canvas.DPI), round(h * canvas.DPI))
     assert not list(directory.glob(".*.tmp")), "temporary files left behind"
 
 
@@ -115,8 +113,9 @@ def test_gps_reference(run_dir, tmp_path):
     paths = plots.plot_run(directory, estimators=["ekf"])
     _check_pngs(paths, directory, ["trajectory", "position_error", "nees", "biases", "comparison"])
 
-    run = plots.load_run(directory, ["ekf"])
-    e = plots.errors_against_gps(run.gps, run.estimates["ekf"])
+    run = files.load_run(directory, ["ekf"])
+    g = run.gps
+    e = scoring.errors_against_fixes(g.t, g.position, g.cov, g.heldout, run.estimates["ekf"])
     assert e.dof == 3 and np.array_equal(e.heldout, heldout)
     # comparison.png's bars: the held-out RMSE, and the residual to the used fixes labelled as such
     bars = {key: (label, values) for key, label, values in plots.bar_values(run, "gps", {"ekf": e})}
@@ -130,9 +129,9 @@ def test_gps_reference(run_dir, tmp_path):
 
 def test_errors_against_truth_match_metrics(run_dir):
     """At common time stamps the plotted errors and NEES are the metrics module's."""
-    run = plots.load_run(run_dir, ["batch"])
+    run = files.load_run(run_dir, ["batch"])
     est = run.estimates["batch"]
-    e = plots.errors_against_truth(run.truth, est)
+    e = scoring.errors_against_truth(run.truth, est)
     i_truth, i_est = metrics.associate(run.truth.t, est.t, SAME_INSTANT_S)
     assert len(i_est) == len(est) == len(e.t)
     T = run.truth.states[i_truth]
@@ -147,7 +146,7 @@ def test_missing_or_malformed_run_directory(tmp_path, run_dir):
     with pytest.raises(InputError, match="not a directory"):
         plots.plot_run(tmp_path / "nowhere")
     with pytest.raises(InputError, match=r"foo\.npz: not found; this run has batch, fixed-lag, ekf"):
-        plots.load_run(run_dir, ["foo"])
+        files.load_run(run_dir, ["foo"])
 
     bad = tmp_path / "bad"
     bad.mkdir()
@@ -161,11 +160,11 @@ def test_missing_or_malformed_run_directory(tmp_path, run_dir):
     files.save_trajectory(bad / "ekf.npz", est)
     np.savez(bad / "gps.npz", t=np.arange(3.0), position=np.zeros((2, 3)))
     with pytest.raises(InputError, match=r"gps\.npz: inconsistent shapes"):
-        plots.load_run(bad)
+        files.load_run(bad)
     (bad / "gps.npz").unlink()
     (bad / "metrics.json").write_text("{ not json")
     with pytest.raises(InputError, match=r"metrics\.json: cannot read it"):
-        plots.load_run(bad)
+        files.load_run(bad)
 
 
 def test_cli_plot(run_dir, tmp_path, capsys):
@@ -211,13 +210,14 @@ def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_
     residuals (:func:`smoother.evaluation.scoring.fix_residuals`), the held-out fixes' NEES
     (:func:`smoother.evaluation.metrics.nees_from` of the residual and ``P_est + R_fix``), the pose NEES
     against the truth (:func:`smoother.evaluation.scoring.compare_with_truth`), and, without metrics.json,
-    the bars' figures (:func:`smoother.evaluation.scoring.against_truth`, :func:`smoother.evaluation.scoring.position_rmse`)."""
+    the bars' figures (:func:`smoother.evaluation.scoring.against_truth`,
+    :func:`smoother.evaluation.scoring.position_rmse`)."""
     from datasets.types import PositionMeasurements
 
-    gps_run = plots.load_run(_gps_run(run_dir, tmp_path), ["ekf"])
+    gps_run = files.load_run(_gps_run(run_dir, tmp_path), ["ekf"])
     g, est = gps_run.gps, gps_run.estimates["ekf"]
-    e = plots.errors_against_gps(g, est)
-    inside, residual = report.fix_residuals(g.t, g.position, est)
+    e = scoring.errors_against_fixes(g.t, g.position, g.cov, g.heldout, est)
+    inside, residual = scoring.fix_residuals(g.t, g.position, est)
     np.testing.assert_array_equal(e.dr, -residual)
     h = e.heldout
     P = est.interpolate(g.t[inside])[1][:, :3, :3] + g.cov[inside]
@@ -225,17 +225,17 @@ def test_the_figures_draw_what_the_metrics_and_the_report_computed(run_dir, tmp_
     bars = {key: values["ekf"] for key, _, values in plots.bar_values(gps_run, "gps", {"ekf": e})}
     for key, rows in (("gps_heldout_rmse_m", g.heldout), ("gps_fit_residual_m", ~g.heldout)):
         fixes = PositionMeasurements(g.t[rows], g.position[rows], g.cov[rows])
-        assert bars[key] == report.position_rmse(fixes, est), key
+        assert bars[key] == scoring.position_rmse(fixes, est), key
 
-    run = plots.load_run(run_dir)
+    run = files.load_run(run_dir)
     for name, est in run.estimates.items():
-        e = plots.errors_against_truth(run.truth, est)
-        np.testing.assert_array_equal(e.nees, report.compare_with_truth(run.truth, est)["nees"])
-    bare = plots.Run(run.run_dir, run.estimates, run.truth, None, {})  # no metrics.json
+        e = scoring.errors_against_truth(run.truth, est)
+        np.testing.assert_array_equal(e.nees, scoring.compare_with_truth(run.truth, est)["nees"])
+    bare = files.Run(run.run_dir, run.estimates, run.truth, None, {})  # no metrics.json
     errors = plots.reference_errors(bare)[1]
     for key, _, values in plots.bar_values(bare, "truth", errors):
         if key != "runtime_s":
-            assert values == {n: report.against_truth(run.truth, est)[key] for n, est in run.estimates.items()}, key
+            assert values == {n: scoring.against_truth(run.truth, est)[key] for n, est in run.estimates.items()}, key
 
 
 def test_the_nees_figure_draws_the_errors_nees(run_dir, tmp_path, monkeypatch):
@@ -247,8 +247,8 @@ def test_the_nees_figure_draws_the_errors_nees(run_dir, tmp_path, monkeypatch):
         fig.clear()
         return Path(out_dir) / f"{stem}.png"
 
-    monkeypatch.setattr(plots, "_save", keep)
-    run = plots.load_run(run_dir)
+    monkeypatch.setattr(plots, "save_png", keep)
+    run = files.load_run(run_dir)
     kind, errors = plots.reference_errors(run)
     plots.plot_nees(run, tmp_path, kind, errors)
     assert len(drawn) == len(errors) == 3

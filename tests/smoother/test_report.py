@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import replace
 
+import estimator_cases as cases
 import numpy as np
 import pytest
 
@@ -17,8 +18,6 @@ from factors.errors import InputError
 from smoother.evaluation import scoring as report
 from smoother.outputs import files
 from smoother.pipeline import Estimate
-
-import estimator_cases as cases
 
 ANGLE = np.radians(2.0)
 
@@ -86,7 +85,8 @@ def test_an_ate_over_too_few_states_is_no_number_and_says_why():
     m = report.against_truth(truth, est)
     assert m["compared_states"] == 2
     assert all(math.isnan(m[k]) for k in ("ate_rmse_m", "rot_rmse_deg", "nees_mean"))
-    assert m["ate_note"].startswith("not scored against the truth: 2 of the estimate's 2 states lie in the truth's span")
+    assert m["ate_note"].startswith("not scored against the truth: 2 of the estimate's 2 states lie in the truth's "
+                                    "span")
     assert "position errors there up to 31 m" in m["ate_note"] and "at least 10 states over 50%" in m["ate_note"]
 
 
@@ -135,7 +135,8 @@ def test_score_reports_the_heldout_rmse_and_the_fit_residual_apart():
     (no figure mixes the two, as the distance to every fix did)."""
     data = simulate(profile="gentle", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None,
                     position_rate=10.0, position_sigma=0.5)
-    used, held = data.sensor("position").data.subset(slice(0, None, 2)), data.sensor("position").data.subset(slice(1, None, 2))
+    fixes = data.sensor("position").data
+    used, held = fixes.subset(slice(0, None, 2)), fixes.subset(slice(1, None, 2))
     data = data.with_sensor("position", data=used, heldout=held)
     m = report.score(data, data.truth)  # the truth itself as the estimate: errors = GPS noise
     assert set(m) >= {"ate_rmse_m", "rot_rmse_deg", "nees_mean", "gps_fit_residual_m", "gps_heldout_rmse_m"}
@@ -181,7 +182,8 @@ def _fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
     fixes = PositionMeasurements(t, truth.states.r + e, 0.25 * np.eye(3))
     used = np.arange(n) % every == 0
     data = simulate(profile="gentle", duration=t[-1] + 0.1, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    return replace(data, sensors=(Sensor("gps", "position", fixes.subset(used), fixes.subset(~used)),), truth=None), truth
+    gps = Sensor("gps", "position", fixes.subset(used), fixes.subset(~used))
+    return replace(data, sensors=(gps,), truth=None), truth
 
 
 def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():

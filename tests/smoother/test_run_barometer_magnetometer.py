@@ -34,7 +34,8 @@ def test_magnetometer_gives_the_heading_and_barometer_the_height(tmp_path):
     topics = {
         "/imu": ("sensor_msgs/msg/Imu", [m.imu(*row) for row in zip(ns(data.imu.t), data.imu.acc, data.imu.gyro)]),
         "/odom": ("nav_msgs/msg/Odometry", [
-            m.odometry(k, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3), np.diag([0.0025] * 6))
+            m.odometry(k, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3),
+                       np.diag([0.0025] * 6))
             for k, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
         "/pressure": ("sensor_msgs/msg/FluidPressure", [m.fluid_pressure(*row) for row in zip(
             ns(baro.data.t), pressure, variance)]),
@@ -51,7 +52,8 @@ def test_magnetometer_gives_the_heading_and_barometer_the_height(tmp_path):
     out = tmp_path / "out"
     assert main(["run", "--rig", str(rig), "--estimator", "all", "--lag", "3", "--out", str(out), "--no-progress"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["_run"]["world_frame"] == {"frame_id": "odom", "position": "relative to the start", "yaw": "absolute"}
+    assert metrics["_run"]["world_frame"] == {"frame_id": "odom", "position": "relative to the start",
+                                              "yaw": "absolute"}
     for name in ("ekf", "batch", "fixed-lag"):
         estimate = np.load(out / f"{name}.npz")
         truth, _, _ = data.truth.interpolate(estimate["t"][[0, -1]] + data.imu.t[0])

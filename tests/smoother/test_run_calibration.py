@@ -139,5 +139,6 @@ def test_bad_calibration_keys_name_the_file_and_the_key(recording, extra, key, m
 def test_a_part_the_kind_cannot_estimate_is_refused_in_the_rig(recording):
     folder, text = recording
     text = text.replace('topic = "/fix"\n', 'topic = "/fix"\nestimate = ["rotation"]\nscale = 1.1\n')
-    with pytest.raises(RigError, match=r'sensor\[1\] "gnss"\.(estimate: a gnss sensor cannot estimate its rotation|scale)'):
+    refused = r'sensor\[1\] "gnss"\.(estimate: a gnss sensor cannot estimate its rotation|scale)'
+    with pytest.raises(RigError, match=refused):
         load_rig(_rig(folder, text, "", "kind"))

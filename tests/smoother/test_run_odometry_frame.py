@@ -59,7 +59,8 @@ def recording(tmp_path_factory):
         "/imu/drifting": ("sensor_msgs/msg/Imu", imu_messages(drifting)),
         "/imu/raw": ("sensor_msgs/msg/Imu", [m.imu(*row) for row in zip(ns(t), data.imu.acc, data.imu.gyro)]),
         "/wheel/odom": ("nav_msgs/msg/Odometry", [
-            m.odometry(k, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3), np.diag([0.0025] * 6))
+            m.odometry(k, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3),
+                       np.diag([0.0025] * 6))
             for k, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
     }
     bag = write_bag(folder / "run.bag", "ros1", topics)
@@ -168,7 +169,8 @@ def test_roll_pitch_only_is_refused_on_other_kinds_and_an_imu_without_orientatio
     assert main(["run", "--rig", rig, "--estimator", "ekf", "--out", str(tmp_path / "raw"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "run.bag" in err and "topic /imu/raw" in err and "orientation_covariance[0] = -1, REP-145" in err, err
-    text = open(_rig(folder, bag, data)).read().replace('kind = "velocity"', 'kind = "velocity"\nroll_pitch_only = true')
+    text = open(_rig(folder, bag, data)).read()
+    text = text.replace('kind = "velocity"', 'kind = "velocity"\nroll_pitch_only = true')
     (folder / "bad.toml").write_text(text)
     assert main(["run", "--rig", str(folder / "bad.toml"), "--estimator", "ekf", "--out", str(tmp_path / "bad"),
                  "--no-progress"]) == 2

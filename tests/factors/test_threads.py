@@ -1,5 +1,5 @@
-"""factors.compiled: how the compiled kernels see arrays (flattened leading dimensions, checked
-trailing shapes), and that the public vectorised functions built on it broadcast like NumPy."""
+"""factors.threads: work in contiguous pieces on several threads (failures, interrupts, the
+pipeline of task, scan and then), the thread count, and signals held while a pool takes work."""
 from __future__ import annotations
 
 import multiprocessing
@@ -11,179 +11,29 @@ import time
 import numpy as np
 import pytest
 
-from factors import compiled, imu, preintegration, so3
-from factors.compiled import as_trailing, common_shape, rows
-
-
-def test_rows_broadcasts_flattens_and_keeps_views_when_it_can():
-    a = np.arange(2 * 4 * 3, dtype=float).reshape(2, 4, 3)
-    b = np.array([1.0, 2.0, 3.0])
-    ra, rb = rows((2, 4), (a, b), ((3,), (3,)))
-    assert ra.shape == (8, 3) and rb.shape == (8, 3)
-    assert np.shares_memory(ra, a)  # already in shape: a view, no copy
-    np.testing.assert_array_equal(rb, np.broadcast_to(b, (8, 3)))
-    (rc,) = rows((), (np.asfortranarray(np.eye(3)),), ((3, 3),))
-    assert rc.shape == (1, 3, 3) and rc.flags.c_contiguous
-    (ri,) = rows((2,), ([[1, 2, 3], [4, 5, 6]],), ((3,),))
-    assert ri.dtype == np.float64
-
-
-def test_common_shape():
-    assert common_shape((4,), (4,), (4,)) == (4,)
-    assert common_shape((4,), (), (1,)) == (4,)
-    with pytest.raises(ValueError):
-        common_shape((4,), (3,))
-
-
-@pytest.mark.parametrize("bad", [np.zeros(4), np.zeros((2, 2)), np.zeros(())])
-def test_wrong_trailing_shapes_are_refused_before_any_kernel_runs(bad):
-    with pytest.raises(ValueError, match=r"phi: expected shape \(\.\.\., 3\)"):
-        so3.exp(bad)
-    with pytest.raises(ValueError, match="C: expected shape"):
-        so3.log(bad)
-    with pytest.raises(ValueError, match="x: expected"):
-        as_trailing(bad, (3,), "x")
-    with pytest.raises(ValueError, match="C2: expected shape"):
-        so3.boxminus(np.eye(3), bad)
-
-
-def test_kernels_keep_leading_dimensions_and_accept_empty_batches():
-    phi = np.random.default_rng(0).normal(size=(2, 3, 3))
-    assert so3.exp(phi).shape == (2, 3, 3, 3)
-    assert so3.log(so3.exp(phi)).shape == (2, 3, 3)
-    assert so3.gamma(np.zeros((0, 3))).shape == (0, 3, 3)
-
-
-def test_residual_broadcasts_one_interval_against_many_states():
-    rng = np.random.default_rng(1)
-    K = 7
-    acc, gyro, dt = rng.normal(size=(1, K, 3)), rng.normal(size=(1, K, 3)), np.full((1, K), 0.01)
-    pre = preintegration.integrate(acc, gyro, dt, np.zeros((1, 3)))[0]
-    states = imu.ImuState(rng.normal(size=(5, 3)), rng.normal(size=(5, 3)), so3.exp(rng.normal(size=(5, 3))),
-                          np.zeros((5, 3)), rng.normal(size=(5, 3)) * 1e-3)
-    e, (Ji, Jj) = preintegration.residual(pre, states, states[::-1], jacobians=True)
-    assert e.shape == (5, 15) and Ji.shape == (5, 15, 15)
-    for k in range(5):
-        ek, (Jik, Jjk) = preintegration.residual(pre, states[k], states[4 - k], jacobians=True)
-        np.testing.assert_array_equal(e[k], ek)
-        np.testing.assert_array_equal(Ji[k], Jik)
-        np.testing.assert_array_equal(Jj[k], Jjk)
-
-
-def test_residual_one_equals_the_vectorised_residual_and_checks_its_inputs():
-    """The factor callback's direct path (:func:`preintegration.residual_one`, variables as GTSAM
-    hands them over) runs the same kernel as the vectorised residual: identical numbers."""
-    rng = np.random.default_rng(2)
-    K = 9
-    acc, gyro, dt = rng.normal(size=(1, K, 3)), rng.normal(size=(1, K, 3)), np.full((1, K), 0.01)
-    pre = preintegration.integrate(acc, gyro, dt, np.full((1, 3), 0.01))[0]
-    states = imu.ImuState(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)), so3.exp(rng.normal(size=(2, 3))),
-                          rng.normal(size=(2, 3)) * 0.1, rng.normal(size=(2, 3)) * 1e-2)
-    g = imu.DEFAULT_GRAVITY
-
-    def variables(x):
-        return [x.C, x.r, x.v, np.concatenate([x.b_f, x.b_w])]
-
-    e, (Ji, Jj) = preintegration.residual(pre, states[0], states[1], g, jacobians=True)
-    e1, (Ji1, Jj1) = preintegration.residual_one(pre, *variables(states[0]), *variables(states[1]), g, True)
-    np.testing.assert_array_equal(e1, e)
-    np.testing.assert_array_equal(Ji1, Ji)
-    np.testing.assert_array_equal(Jj1, Jj)
-    np.testing.assert_array_equal(preintegration.residual_one(pre, *variables(states[0]), *variables(states[1]), g), e)
-    bad = variables(states[1])
-    bad[3] = bad[3][:3]  # a 3-vector where the bias 6-vector belongs
-    with pytest.raises(ValueError, match="expected float arrays"):
-        preintegration.residual_one(pre, *variables(states[0]), *bad, g)
-    with pytest.raises(ValueError, match="one interval"):
-        preintegration.residual_one(preintegration.integrate(acc, gyro, dt, np.zeros((1, 3))),
-                                    *variables(states[0]), *variables(states[1]), g)
-
-
-def test_an_edit_drops_the_cached_kernels_of_the_edited_module_and_its_dependants_only(tmp_path):
-    """Numba re-validates a cached kernel only against its own file, but a kernel inlines the
-    kernels it calls from other modules: an edit drops the caches of the edited module and of
-    every module that imports it, directly, through others, inside a function or relatively."""
-    from factors.compiled import clear_stale_kernel_caches
-
-    sources = {
-        "a/__init__.py": "",
-        "a/leaf.py": "x = 1\n",
-        "a/leafy.py": "x = 1\n",  # its cache files start with 'leaf' too
-        "a/mid.py": "def f():\n    from a import leaf\n    return leaf.x\n",
-        "b/top.py": "from a.mid import f\n",
-        "b/other.py": "x = 1\n",
-        "b/rel.py": "from . import other\n",
-    }
-    for name, text in sources.items():
-        (tmp_path / name).parent.joinpath("__pycache__").mkdir(parents=True, exist_ok=True)
-        (tmp_path / name).write_text(text)
-    stamp = tmp_path / "a" / "__pycache__" / "stamp.json"
-
-    def cache_all():
-        for name in sources:
-            path = tmp_path / name
-            for suffix in ("k-10.py311.nbi", "k-10.py311.1.nbc"):
-                path.parent.joinpath("__pycache__", f"{path.stem}.{suffix}").write_text("")
-
-    def cached():
-        return sorted({f"{p.parent.parent.name}.{p.name.split('.')[0]}" for p in tmp_path.glob("*/__pycache__/*.nb?")})
-
-    def clear():
-        return clear_stale_kernel_caches(tmp_path, ("a", "b"), stamp)
-
-    everything = ["a.__init__", "a.leaf", "a.leafy", "a.mid", "b.other", "b.rel", "b.top"]
-    cache_all()
-    assert sorted(clear()) == ["a", "a.leaf", "a.leafy", "a.mid", "b.other", "b.rel", "b.top"]  # no stamp yet
-    assert cached() == []
-    cache_all()
-    assert clear() == [] and cached() == everything  # unchanged sources: kept
-    (tmp_path / "a/leaf.py").write_text("x = 2\n")
-    assert sorted(clear()) == ["a.leaf", "a.mid", "b.top"]
-    assert cached() == ["a.__init__", "a.leafy", "b.other", "b.rel"]
-    cache_all()
-    (tmp_path / "b/other.py").write_text("x = 2\n")
-    assert sorted(clear()) == ["b.other", "b.rel"]
-    assert cached() == ["a.__init__", "a.leaf", "a.leafy", "a.mid", "b.top"]
-    (tmp_path / "b/new.py").write_text("from a import leafy\n")  # a new module: its own caches only
-    assert clear() == ["b.new"]
-    (tmp_path / "a" / "__pycache__" / "other.pyc").write_text("")
-    (tmp_path / "a/leafy.py").write_text("x = 3\n")
-    assert sorted(clear()) == ["a.leafy", "b.new"]
-    assert (tmp_path / "a" / "__pycache__" / "other.pyc").exists()  # only Numba's files go
-
-
-def test_the_import_graph_reads_imports_inside_functions_and_relative_ones(tmp_path):
-    from factors.imports import cycles, module_imports
-
-    for name, text in {"p/__init__.py": "from .q import x\n", "p/q.py": "import os\nx = 1\n",
-                       "p/r.py": "def f():\n    import p.s\n", "p/s.py": "from p import r, q\n"}.items():
-        (tmp_path / name).parent.mkdir(exist_ok=True)
-        (tmp_path / name).write_text(text)
-    graph = module_imports(tmp_path, ("p",))
-    assert graph == {"p": {"p.q"}, "p.q": set(), "p.r": {"p.s"}, "p.s": {"p.q", "p.r"}}
-    assert cycles(graph) == [["p.r", "p.s"]]
+from factors import threads
 
 
 def test_in_parallel_covers_the_range_in_contiguous_disjoint_pieces():
     seen = []
-    with compiled.thread_limit(3):
-        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 10, 2)
+    with threads.thread_limit(3):
+        threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 10, 2)
     assert sorted(seen) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]  # as many as min_items allows
     seen.clear()
-    with compiled.thread_limit(2):  # at most PIECES_PER_THREAD per thread
-        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 100, 1)
+    with threads.thread_limit(2):  # at most PIECES_PER_THREAD per thread
+        threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 100, 1)
     pieces = sorted(seen)
-    assert len(pieces) == 2 * compiled.PIECES_PER_THREAD
+    assert len(pieces) == 2 * threads.PIECES_PER_THREAD
     assert pieces[0][0] == 0 and pieces[-1][1] == 100
     assert all(a[1] == b[0] for a, b in zip(pieces[:-1], pieces[1:]))
     seen.clear()
-    with compiled.thread_limit(4):  # too few items for four pieces of at least 4
-        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 9, 4)
+    with threads.thread_limit(4):  # too few items for four pieces of at least 4
+        threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 9, 4)
     assert sorted(seen) == [(0, 4), (4, 9)]
     seen.clear()
-    compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 5, 32)  # small: the calling thread only
+    threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 5, 32)  # small: the calling thread only
     assert seen == [(0, 5)]
-    compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 0, 1)
+    threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 0, 1)
     assert seen[-1] == (0, 0)
 
 
@@ -198,8 +48,8 @@ def test_in_parallel_raises_only_after_every_piece_has_finished():
         time.sleep(0.3)
         finished.append(lo)
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
-        compiled.in_parallel(task, 2, 1)
+    with threads.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
+        threads.in_parallel(task, 2, 1)
     assert finished == [1]
 
 
@@ -214,8 +64,8 @@ def test_in_parallel_starts_no_piece_after_one_has_failed():
         other_started.set()
         time.sleep(0.05)
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
-        compiled.in_parallel(task, 10, 1)
+    with threads.thread_limit(2), pytest.raises(ValueError, match="piece 0"):
+        threads.in_parallel(task, 10, 1)
     assert sorted(started) == [0, 1]  # eight pieces never started
 
 
@@ -228,8 +78,8 @@ def test_in_parallel_gives_the_remaining_pieces_to_the_thread_that_is_free():
             time.sleep(0.3)  # the calling thread is held up on its first piece
         ran_by[lo] = threading.current_thread() is caller
 
-    with compiled.thread_limit(2):
-        compiled.in_parallel(task, 8, 1)
+    with threads.thread_limit(2):
+        threads.in_parallel(task, 8, 1)
     assert sorted(ran_by) == list(range(8))
     assert sum(ran_by.values()) == 1  # the worker ran the other seven
 
@@ -244,8 +94,8 @@ def test_in_parallel_raises_the_calling_threads_own_error_first():
         time.sleep(0.02)
         raise ValueError("a worker's error")
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="the calling thread's error"):
-        compiled.in_parallel(task, 10, 1)
+    with threads.thread_limit(2), pytest.raises(ValueError, match="the calling thread's error"):
+        threads.in_parallel(task, 10, 1)
 
 
 def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
@@ -258,7 +108,7 @@ def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
     sys.setswitchinterval(1e-6)
     try:
         for _ in range(rounds):
-            compiled.forget_the_pool()
+            threads.forget_the_pool()
             seen = [[] for _ in range(callers)]
             errors = []
             start = threading.Barrier(callers)
@@ -271,15 +121,15 @@ def test_in_parallel_from_several_threads_at_once_while_the_pool_grows():
 
                 start.wait()
                 try:
-                    compiled.in_parallel(piece, i + 2, 1)
+                    threads.in_parallel(piece, i + 2, 1)
                 except Exception as error:  # noqa: BLE001  (collected, asserted below)
                     errors.append(repr(error))
 
-            with compiled.thread_limit(callers + 4):
-                threads = [threading.Thread(target=caller, args=(i,)) for i in range(callers)]
-                for thread in threads:
+            with threads.thread_limit(callers + 4):
+                spawned = [threading.Thread(target=caller, args=(i,)) for i in range(callers)]
+                for thread in spawned:
                     thread.start()
-                for thread in threads:
+                for thread in spawned:
                     thread.join(timeout=60)
             assert errors == []
             for i, pieces in enumerate(seen):
@@ -310,8 +160,8 @@ def _pipeline_log():
 def test_in_parallel_pipeline_scans_in_order_and_runs_each_then_after_its_scan():
     log, stage = _pipeline_log()
     slow_first = lambda lo, on_caller: 0.2 if lo == 0 else 0.002  # noqa: E731  (range 0's task holds up the scan)
-    with compiled.thread_limit(2):
-        _within(20, lambda: compiled.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"),
+    with threads.thread_limit(2):
+        _within(20, lambda: threads.in_parallel(stage("task", slow_first), 20, 2, scan=stage("scan"),
                                                  then=stage("then")))
     at = {event[:3]: i for i, event in enumerate(log)}
     ranges = sorted({(lo, hi) for _, _, lo, hi in log})
@@ -332,13 +182,13 @@ def test_in_parallel_pipeline_scans_in_order_and_runs_each_then_after_its_scan()
 
 def test_in_parallel_pipeline_on_one_thread_is_the_three_stages_in_turn():
     log, stage = _pipeline_log()
-    with compiled.thread_limit(1):
-        compiled.in_parallel(stage("task"), 20, 2, scan=stage("scan"), then=stage("then"))
+    with threads.thread_limit(1):
+        threads.in_parallel(stage("task"), 20, 2, scan=stage("scan"), then=stage("then"))
     assert [(name, when) for name, when, _, _ in log] == [
         ("task", "start"), ("task", "end"), ("scan", "start"), ("scan", "end"), ("then", "start"), ("then", "end")]
     assert {(lo, hi) for *_, lo, hi in log} == {(0, 20)}
     with pytest.raises(ValueError, match="both scan and then"):
-        compiled.in_parallel(stage("task"), 20, 2, scan=stage("scan"))
+        threads.in_parallel(stage("task"), 20, 2, scan=stage("scan"))
 
 
 def test_in_parallel_pipeline_stops_at_a_failed_scan_and_raises_it():
@@ -350,8 +200,8 @@ def test_in_parallel_pipeline_stops_at_a_failed_scan_and_raises_it():
         if lo >= 6:
             raise ValueError(f"scan of {lo}")
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="scan of 6"):
-        _within(20, lambda: compiled.in_parallel(stage("task", lambda lo, on_caller: 0.01), 20, 2, scan=scan,
+    with threads.thread_limit(2), pytest.raises(ValueError, match="scan of 6"):
+        _within(20, lambda: threads.in_parallel(stage("task", lambda lo, on_caller: 0.01), 20, 2, scan=scan,
                                                  then=stage("then")))
     scanned = [lo for name, when, lo, _ in log if name == "scan" and when == "start"]
     assert scanned == [0, 2, 4, 6]  # no scan after the failed one
@@ -375,7 +225,7 @@ def _within(seconds, fn):
     thread.start()
     thread.join(seconds)
     if thread.is_alive():
-        compiled.forget_the_pool()  # its workers may be stuck too: later tests get a new pool
+        threads.forget_the_pool()  # its workers may be stuck too: later tests get a new pool
         pytest.fail(f"did not return within {seconds} s")
     if "error" in out:
         raise out["error"]
@@ -389,8 +239,8 @@ def test_in_parallel_pipeline_wakes_the_threads_waiting_for_a_scan_when_a_task_f
             raise ValueError("task 0")
 
     def run():
-        with compiled.thread_limit(2):
-            compiled.in_parallel(task, 8, 1, scan=lambda lo, hi: None, then=lambda lo, hi: None)
+        with threads.thread_limit(2):
+            threads.in_parallel(task, 8, 1, scan=lambda lo, hi: None, then=lambda lo, hi: None)
 
     with pytest.raises(ValueError, match="task 0"):
         _within(10, run)
@@ -399,8 +249,8 @@ def test_in_parallel_pipeline_wakes_the_threads_waiting_for_a_scan_when_a_task_f
 def test_in_parallel_pipeline_scans_one_at_a_time_while_tasks_finish_and_then_waits_for_the_scan():
     log, stage = _pipeline_log()
     slow_scan = stage("scan", lambda lo, on_caller: 0.03)  # tasks finish on both threads meanwhile
-    with compiled.thread_limit(2):
-        _within(20, lambda: compiled.in_parallel(stage("task", lambda lo, on_caller: 0.005), 16, 1, scan=slow_scan,
+    with threads.thread_limit(2):
+        _within(20, lambda: threads.in_parallel(stage("task", lambda lo, on_caller: 0.005), 16, 1, scan=slow_scan,
                                                  then=stage("then")))
     scans = [(when, lo) for name, when, lo, _ in log if name == "scan"]
     assert scans == [(when, lo) for lo in range(16) for when in ("start", "end")]  # never two at once, each once
@@ -417,8 +267,8 @@ def test_in_parallel_pipeline_starts_no_scan_after_a_task_has_failed():
         elif lo == 2:
             raise ValueError("task 2")
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="task 2"):
-        _within(10, lambda: compiled.in_parallel(task, 8, 1, scan=stage("scan"), then=stage("then")))
+    with threads.thread_limit(2), pytest.raises(ValueError, match="task 2"):
+        _within(10, lambda: threads.in_parallel(task, 8, 1, scan=stage("scan"), then=stage("then")))
     assert log == []  # range 0 finished after the failure: no scan, so no then
 
 
@@ -432,8 +282,8 @@ def test_in_parallel_pipeline_raises_a_failed_then_and_starts_no_range_after_it(
             raise ValueError("then 3")
         time.sleep(0.01)
 
-    with compiled.thread_limit(2), pytest.raises(ValueError, match="then 3"):
-        _within(10, lambda: compiled.in_parallel(stage("task"), 12, 1, scan=stage("scan"), then=then))
+    with threads.thread_limit(2), pytest.raises(ValueError, match="then 3"):
+        _within(10, lambda: threads.in_parallel(stage("task"), 12, 1, scan=stage("scan"), then=then))
     thens = [lo for name, when, lo, _ in log if name == "then" and when == "start"]
     assert 3 in thens and max(thens) <= 4  # at most the range the other thread had already taken
 
@@ -452,8 +302,8 @@ def test_in_parallel_raises_the_earliest_failed_range_not_the_first_to_fail():
             time.sleep(0.1)  # the earlier range fails later
         raise ValueError(f"range {lo}")
 
-    with compiled.thread_limit(3), pytest.raises(ValueError) as raised:
-        compiled.in_parallel(task, 3, 1)
+    with threads.thread_limit(3), pytest.raises(ValueError) as raised:
+        threads.in_parallel(task, 3, 1)
     assert str(raised.value) == f"range {min(workers_ranges)}"
 
 
@@ -473,12 +323,12 @@ def test_in_parallel_pipeline_survives_an_interrupt_between_taking_a_range_and_r
         return divmod(a, b)
 
     log, stage = _pipeline_log()
-    monkeypatch.setattr(compiled, "divmod", interrupted_divmod, raising=False)
+    monkeypatch.setattr(threads, "divmod", interrupted_divmod, raising=False)
     def call():
         threading.current_thread().name = "caller"
-        compiled.in_parallel(stage("task", lambda lo, on_caller: 0.02), 8, 1, scan=stage("scan"), then=stage("then"))
+        threads.in_parallel(stage("task", lambda lo, on_caller: 0.02), 8, 1, scan=stage("scan"), then=stage("then"))
 
-    with compiled.thread_limit(2), pytest.raises(KeyboardInterrupt):
+    with threads.thread_limit(2), pytest.raises(KeyboardInterrupt):
         _within(10, call)
     starts = {(name, lo) for name, when, lo, _ in log if when == "start"}
     assert starts == {(name, lo) for name, when, lo, _ in log if when == "end"}
@@ -510,8 +360,8 @@ def test_a_signal_while_the_pool_takes_work_is_handled_after_it_with_the_pool_s_
         ended.append(lo)
 
     before = signal.getsignal(signal.SIGINT)
-    with compiled.thread_limit(2), pytest.raises(KeyboardInterrupt):
-        compiled.in_parallel(task, 8, 1)
+    with threads.thread_limit(2), pytest.raises(KeyboardInterrupt):
+        threads.in_parallel(task, 8, 1)
     assert inside and sorted(started) == sorted(ended)
     assert pool_threads._global_shutdown_lock.acquire(blocking=False)
     pool_threads._global_shutdown_lock.release()
@@ -529,7 +379,7 @@ def test_every_signal_held_is_raised_again_in_order_through_the_handlers_put_bac
     before_term = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append("term"))
     try:
         with pytest.raises(KeyboardInterrupt):
-            with compiled.interrupts_held():
+            with threads.interrupts_held():
                 os.kill(os.getpid(), signal.SIGTERM)
                 os.kill(os.getpid(), signal.SIGINT)
                 seen.append("inside")
@@ -553,16 +403,16 @@ def test_in_parallel_pipeline_from_several_threads_at_once():
                 out[k] += out[k - 1] if k else 0.0
 
         try:
-            compiled.in_parallel(task, 40, 2, scan=scan, then=lambda lo, hi: None)
+            threads.in_parallel(task, 40, 2, scan=scan, then=lambda lo, hi: None)
             results.append(out)
         except Exception as error:  # noqa: BLE001  (collected, asserted below)
             errors.append(repr(error))
 
-    with compiled.thread_limit(4):
-        threads = [threading.Thread(target=caller, args=(i,)) for i in range(6)]
-        for thread in threads:
+    with threads.thread_limit(4):
+        spawned = [threading.Thread(target=caller, args=(i,)) for i in range(6)]
+        for thread in spawned:
             thread.start()
-        for thread in threads:
+        for thread in spawned:
             thread.join(timeout=30)
     assert errors == [] and len(results) == 6
     for out in results:
@@ -572,16 +422,16 @@ def test_in_parallel_pipeline_from_several_threads_at_once():
 @pytest.mark.parametrize("bad", [0, -1, 1.5, None, True])
 def test_a_thread_count_that_is_not_a_whole_number_above_zero_is_refused(bad):
     with pytest.raises(ValueError, match="thread count: expected a whole number"):
-        with compiled.thread_limit(bad):
+        with threads.thread_limit(bad):
             pass
     with pytest.raises(ValueError, match="thread count: expected a whole number"):
-        compiled.set_thread_count(bad)
+        threads.set_thread_count(bad)
 
 
 def _pieces_in_a_child(queue):
     seen = []
-    with compiled.thread_limit(2):
-        compiled.in_parallel(lambda lo, hi: seen.append((lo, hi)), 4, 1)
+    with threads.thread_limit(2):
+        threads.in_parallel(lambda lo, hi: seen.append((lo, hi)), 4, 1)
     queue.put(sorted(seen))
 
 
@@ -589,8 +439,8 @@ def _pieces_in_a_child(queue):
 def test_a_forked_child_runs_in_parallel_work_although_the_parent_had_started_its_pool():
     """A forked child has none of the parent's threads; it must not hand work to the parent's
     pool (it would wait for ever) -- e.g. Monte Carlo workers of a process pool."""
-    with compiled.thread_limit(2):
-        compiled.in_parallel(lambda lo, hi: None, 4, 1)  # the parent's pool exists now
+    with threads.thread_limit(2):
+        threads.in_parallel(lambda lo, hi: None, 4, 1)  # the parent's pool exists now
     context = multiprocessing.get_context("fork")
     queue = context.Queue()
     child = context.Process(target=_pieces_in_a_child, args=(queue,))
@@ -605,10 +455,10 @@ def test_a_forked_child_runs_in_parallel_work_although_the_parent_had_started_it
 
 def test_the_default_thread_count_comes_from_boxplus_threads_when_set(monkeypatch):
     monkeypatch.setenv("BOXPLUS_THREADS", "3")
-    assert compiled.default_threads() == 3
+    assert threads.default_threads() == 3
     monkeypatch.setenv("BOXPLUS_THREADS", " ")
-    assert compiled.default_threads() >= 1  # unset: the cores this process may use
+    assert threads.default_threads() >= 1  # unset: the cores this process may use
     for bad in ("0", "two", "-1", "1.5"):
         monkeypatch.setenv("BOXPLUS_THREADS", bad)
         with pytest.raises(ValueError, match="BOXPLUS_THREADS: expected a whole number"):
-            compiled.default_threads()
+            threads.default_threads()
