@@ -19,8 +19,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import PROFILES
-    from smoother.commands import at_least, duration, positive
+    from smoother.commands import at_least, duration
     from smoother.evaluation.crosscheck import CrosscheckOptions, TARGETS, crosscheck
+    from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
@@ -28,7 +29,7 @@ def run(args) -> int:
     at_least("--seeds", args.seeds, 2)
     at_least("--first-seed", args.first_seed, 0)
     duration(args.duration)
-    positive("--lag", args.lag, "a lag in seconds")
+    check_lag(args.lag, "--lag", UserError)
     options = CrosscheckOptions(args.profile, args.seeds, args.first_seed, args.duration, args.lag)
     with progress_bar(args.seeds, f"crosscheck {args.profile}", None) as bar:
         result = crosscheck(options, progress=lambda seed: bar.update(1))

@@ -27,7 +27,7 @@ from factors import imu
 from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
-from smoother.fixed_lag.gtsam_window import run_fixed_lag
+from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
 from smoother.evaluation.scoring import compare_with_truth
 

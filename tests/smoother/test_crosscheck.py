@@ -26,7 +26,7 @@ from smoother.batch.solve import solve_batch
 from smoother.cli import main
 from smoother.evaluation.crosscheck import TARGETS, prediction_error
 from smoother.ekf.filter import Ekf
-from smoother.fixed_lag.gtsam_window import KINDS
+from smoother.fixed_lag.kinds import GTSAM_KINDS as KINDS
 from smoother.model.problem import build_problem
 from smoother.model.timeline import imu_steps
 

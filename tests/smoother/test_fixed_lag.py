@@ -14,7 +14,9 @@ import pytest
 
 from datasets.simulate import simulate
 from smoother.fixed_lag import gtsam_window as fixed_lag
-from smoother.fixed_lag.gtsam_window import KINDS, make_smoother, run_fixed_lag
+from smoother.fixed_lag.gtsam_window import make_smoother
+from smoother.fixed_lag.kinds import GTSAM_KINDS as KINDS
+from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
 
 import estimator_cases as cases
@@ -133,7 +135,7 @@ def test_factors_older_than_the_lag_are_skipped_with_a_warning():
 @pytest.mark.parametrize("lag", [0.0, -1.0, float("nan")])
 def test_lag_must_be_positive(lag, gentle):
     with pytest.raises(ValueError, match="lag"):
-        run_fixed_lag(cases.problem(gentle), lag)
+        run_fixed_lag(cases.problem(gentle), lag, "incremental")
 
 
 def test_unknown_kind_is_refused(gentle):
@@ -235,7 +237,7 @@ def test_a_keyframe_marginalised_before_it_was_read_is_an_error(gentle, monkeypa
     marginalises it; were GTSAM to marginalise earlier than that rule says (simulated by a margin
     that takes them more than a keyframe period too late), the run stops with a clear error
     instead of returning an older estimate."""
-    monkeypatch.setattr(fixed_lag, "_LAG_MARGIN_S", -0.15)
+    monkeypatch.setattr(fixed_lag, "LAG_MARGIN_S", -0.15)
     with pytest.raises(RuntimeError, match="left the window before its estimate was taken"):
         run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=covariances, progress=False)
 
@@ -307,7 +309,7 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
 def test_the_lag_warning_tells_a_gap_from_the_lag_and_suggests_a_lag_that_reaches_it():
     """A gap of 2.0019 s beside a 2-s lag is not printed as "2 s", and the lag suggested is rounded
     up, never below the gap."""
-    from smoother.fixed_lag.gtsam_window import sparse_measurement_warning
+    from smoother.fixed_lag.lag import sparse_measurement_warning
 
     text = sparse_measurement_warning(2.0019, 2.0, "sliding")
     assert "up to 2.002 s apart" in text and "at least 2.002 s" in text

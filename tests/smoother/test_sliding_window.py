@@ -493,7 +493,7 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
 
     from datasets.simulated_sensors import SensorSpec
     from datasets.types import Sensor, VelocityMeasurements
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     def run(velocity_density):
         noise = ImuNoise(acc=1.8e-2, gyro=3.7e-3, acc_bias=3e-3, gyro_bias=5e-4, velocity=velocity_density)
@@ -537,7 +537,7 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
 
 
 def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_why(monkeypatch):
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     data = simulate("gentle", duration=2, seed=2)
 

@@ -16,7 +16,8 @@ from factors.errors import InputError
 from smoother.fixed_lag.sliding import kernels
 from smoother.fixed_lag.sliding import window as sw
 from smoother.online.replay import replay
-from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window
+from smoother.fixed_lag.windows import make_window
+from smoother.online.smoother import OnlineSmoother, SensorSetup
 
 DIM = sw.DIM
 
@@ -147,7 +148,7 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
     """The calibrations' Schur complement refused at the tenth update (as a numerically singular
     one would be): the update stops with one line naming the calibrations, the window's offsets
     as the ninth left them (not its forward solution)."""
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     data = _calibrating_rig(3.0)
     factorise_forward_border, after = kernels.factorise_forward_border, []
@@ -251,16 +252,16 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
         init(calibrations, *args)
         made.append(calibrations)
 
-    def run(fraction, thresholds=(sw.RELINEARISATION_THRESHOLD, wc.RELINEARISATION_THRESHOLD)):
+    def run(fraction, thresholds=(sw.RELINEARISATION_THRESHOLD, wc.CALIBRATION_RELINEARISATION_THRESHOLD)):
         monkeypatch.setattr(sw, "RELINEARISATION_SIGMA_FRACTION", fraction)
         monkeypatch.setattr(sw, "RELINEARISATION_THRESHOLD", thresholds[0])
-        monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", thresholds[1])
+        monkeypatch.setattr(wc, "CALIBRATION_RELINEARISATION_THRESHOLD", thresholds[1])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             return replay(data, 1.0, "sliding", covariances=True, progress=False), made[-1]
 
     monkeypatch.setattr(wc.WindowCalibration, "__init__", recorded)
-    every, _ = run(0.0, (np.zeros(DIM), np.zeros_like(wc.RELINEARISATION_THRESHOLD)))
+    every, _ = run(0.0, (np.zeros(DIM), np.zeros_like(wc.CALIBRATION_RELINEARISATION_THRESHOLD)))
     default, calibrations = run(wc.RELINEARISATION_SIGMA_FRACTION)
     _, thresholds_alone = run(0.0)
     diff = cases.sigma_difference(default.smoothed.states, every.smoothed.states, every.smoothed.cov)
@@ -291,7 +292,8 @@ def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_ma
     from smoother.fixed_lag.sliding import calibration as wc
 
     if not moves:
-        monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", np.full_like(wc.RELINEARISATION_THRESHOLD, 1e9))
+        never = np.full_like(wc.CALIBRATION_RELINEARISATION_THRESHOLD, 1e9)
+        monkeypatch.setattr(wc, "CALIBRATION_RELINEARISATION_THRESHOLD", never)
     compared = []
 
     def compare(window):
