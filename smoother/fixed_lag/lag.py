@@ -33,11 +33,10 @@ def check_lag(lag_s, name: str = "lag_s", error: type[Exception] = InputError) -
 def measured_gap(problem: Problem) -> float:
     """The longest time between consecutive keyframes with an absolute measurement (one that fixes a
     position or an attitude: :attr:`Problem.absolute`; velocities and relative poses do not end
-    dead reckoning), the first and last keyframes included (inf when there is none)."""
+    dead reckoning), the first and last keyframes included: the whole run when there is none (as
+    :class:`smoother.online.smoother.OnlineSmoother` counts it)."""
     measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name in problem.absolute]
-    if not measured:
-        return np.inf
-    times = problem.times[np.unique(np.concatenate(measured))]
+    times = problem.times[np.unique(np.concatenate(measured))] if measured else problem.times[:0]
     return float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
 
 
