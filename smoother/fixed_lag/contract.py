@@ -30,16 +30,19 @@ after the last update that holds it, so the caller reads it in between:
    taken after the update before it is an error (a RuntimeError naming it and its time): an
    estimate older than the one the keyframe left with is never handed out.
 
-Both windows marginalise by the same rule; they differ in the newest keyframe: the sliding window
-never marginalises it before the next one is added, so an IMU gap longer than the lag keeps its IMU
-factor, while GTSAM's smoothers marginalise it too after such a gap and tie the next keyframe to
-the window by a weak prior (:data:`WEAK_PRIOR_SIGMAS`).
+Both windows marginalise by that rule; they differ in the newest keyframe when the next one is more
+than the lag later (an IMU gap): the sliding window keeps it until the next one is added (its
+``leaving`` never names the newest), GTSAM's smoothers marginalise it in the update that adds the
+next one (``leaving`` names it), after adding the factors between them. Either way an IMU gap longer
+than the lag keeps its IMU factor. GTSAM's windows also name the keyframes within
+:data:`smoother.fixed_lag.gtsam_window.LAG_MARGIN_S` of the boundary, which may stay for one more
+update: a keyframe may be taken more than once, and its estimate is the one taken last.
 
 Failures. A keyframe that nothing ties to the window, or whose update the solver calls
-indeterminant, gets a weak prior around its initial value or estimate and is listed in
-``recovered``; an update that fails beyond that raises :class:`FixedLagFailed`, naming the keyframe
-and its time. Measurement factors that read a keyframe already marginalised are skipped and counted
-in ``skipped``.
+indeterminant, gets a weak prior (:data:`WEAK_PRIOR_SIGMAS`) around its initial value or estimate
+and is listed in ``recovered``; an update that fails beyond that raises :class:`FixedLagFailed`,
+naming the keyframe and its time. Measurement factors that read a keyframe already marginalised
+are skipped and counted in ``skipped``.
 """
 from __future__ import annotations
 

@@ -20,9 +20,8 @@ GTSAM pitfalls handled here:
   indeterminant within seconds and ISAM2 cannot continue after a failed update;
 * a factor that refers to a variable already marginalised out (a relative pose longer than the
   lag) would make GTSAM fail: it is skipped and counted;
-* a keyframe that no factor ties to the window (no IMU factor: a gap in the IMU data, or one
-  longer than the lag, after which GTSAM has marginalised the newest keyframe too) gets a weak
-  prior around its prediction in the same update, and an update GTSAM still calls
+* a keyframe that no factor ties to the window (no IMU factor) gets a weak prior around its
+  prediction in the same update, and an update GTSAM still calls
   indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
   update that fails beyond that raises :class:`smoother.fixed_lag.contract.FixedLagFailed` naming the
   keyframe and time instead of a bare GTSAM exception;
@@ -249,9 +248,9 @@ class KeyframeWindow:
     and counted, a weak prior where nothing ties the keyframe to the window or GTSAM calls the
     update indeterminant), :meth:`add_keyframe` with factors made here from their ingredients,
     :meth:`add_problem_keyframe` with a problem's. ``gravity`` and ``reintegration_threshold`` are
-    those of the IMU factors :meth:`add_keyframe` makes. GTSAM marginalises the newest keyframe
-    too when the next one is more than the lag later (an IMU gap): nothing then ties the next one
-    to the window but a weak prior."""
+    those of the IMU factors :meth:`add_keyframe` makes. When the next keyframe is more than the lag
+    later (an IMU gap), GTSAM marginalises the newest one in the update that adds it, after adding
+    the IMU factor between them, whose information the marginal keeps."""
 
     def __init__(self, lag_s: float, kind: str = "incremental", gravity=imu.DEFAULT_GRAVITY,
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):

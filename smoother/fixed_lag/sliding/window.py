@@ -38,7 +38,7 @@ window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
   keyframes first, the rows of ``L`` after them are already the factor of that Schur complement
   (and ``y``'s rows its forward solution): no new factorisation;
 * the newest keyframe never leaves before the next one is added, so an IMU gap longer than the
-  lag keeps its IMU factor (GTSAM's smoothers drop it and need a weak prior);
+  lag keeps its IMU factor;
 * the marginal covariance of a window keyframe is its block of ``H^-1`` (two banded triangular
   solves with 15 right-hand sides).
 

@@ -7,8 +7,8 @@ import warnings
 
 import numpy as np
 import pytest
-from test_calibration_estimates import _rig
-from test_sliding_window import _dense
+from banded_cases import dense
+from test_calibration_estimates import miscalibrated_rig
 
 from factors import so3
 from factors.calibration import CalibrationPrior
@@ -23,7 +23,7 @@ DIM = sw.DIM
 
 
 def _calibrating_rig(duration: float):
-    data = _rig(1, duration=duration)
+    data = miscalibrated_rig(1, duration=duration)
     data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
     return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
 
@@ -31,7 +31,7 @@ def _calibrating_rig(duration: float):
 def _bordered(Hb, g, border):
     """The dense symmetric bordered matrix ``[A B; B^T D]`` and right-hand side of a window."""
     B, D, gc = border
-    A = _dense(Hb)
+    A = dense(Hb)
     N = A.shape[0]
     H = np.block([[A, B.reshape(N, -1)], [B.reshape(N, -1).T, D]])
     return H, np.concatenate([g, gc])
@@ -191,7 +191,7 @@ def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = Fa
     from smoother.fixed_lag.sliding.calibration import WindowCalibration
     from smoother.model.problem import measurement_spec
 
-    data = _rig(2, duration=duration)
+    data = miscalibrated_rig(2, duration=duration)
     prior = CalibrationPrior(("rotation", "scale"))
     calibrations = WindowCalibration(CalibrationSet.given(["wheels"], [np.eye(4)], [prior]), {"wheels": "velocity"})
     window = sw.SlidingWindow(lag_s, calibration=calibrations)
