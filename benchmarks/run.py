@@ -79,7 +79,7 @@ from smoother.evaluation import native  # noqa: E402
 from smoother.model.covariances import covariances_at  # noqa: E402
 from smoother.batch.solve import solve_batch  # noqa: E402
 from smoother.ekf.filter import run_ekf  # noqa: E402
-from smoother.fixed_lag.gtsam_window import run_fixed_lag  # noqa: E402
+from smoother.fixed_lag.offline import run_fixed_lag  # noqa: E402
 from smoother.model.problem import build_problem  # noqa: E402
 from smoother.online.smoother import OnlineSmoother  # noqa: E402
 from smoother.model.timeline import estimate_times, imu_steps  # noqa: E402

@@ -9,7 +9,7 @@
 
 The classes that name a particular failure derive from these: ``datasets.errors.DataError``,
 ``smoother.errors.IndeterminantSystem``, ``smoother.ekf.filter.FilterDiverged``,
-``smoother.fixed_lag.gtsam_window.FixedLagFailed``. The command line (``smoother.cli``) turns any of them into
+``smoother.fixed_lag.contract.FixedLagFailed``. The command line (``smoother.cli``) turns any of them into
 a one-line message and an exit code.
 """
 

@@ -18,7 +18,8 @@ from factors.exports import lazy_exports
 _EXPORTS = {
     **dict.fromkeys(("build_problem", "Problem"), "smoother.model.problem"),
     **dict.fromkeys(("solve_batch", "SmootherResult"), "smoother.batch.solve"),
-    **dict.fromkeys(("run_fixed_lag", "FixedLagResult", "FixedLagFailed"), "smoother.fixed_lag.gtsam_window"),
+    **dict.fromkeys(("run_fixed_lag", "FixedLagResult"), "smoother.fixed_lag.offline"),
+    "FixedLagFailed": "smoother.fixed_lag.contract",
     **dict.fromkeys(("OnlineSmoother", "SensorSetup"), "smoother.online.smoother"),
     "OnlineEstimate": "smoother.online.handover",
     **dict.fromkeys(("replay", "ReplayResult"), "smoother.online.replay"),

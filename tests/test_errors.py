@@ -14,7 +14,7 @@ from factors.errors import BoxplusError, InputError, SolverError
 from factors.imports import package_modules
 from smoother.ekf.filter import FilterDiverged
 from smoother.errors import IndeterminantSystem, UserError
-from smoother.fixed_lag.gtsam_window import FixedLagFailed
+from smoother.fixed_lag.contract import FixedLagFailed
 
 ROOT = Path(__file__).resolve().parents[1]
 

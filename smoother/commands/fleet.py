@@ -6,7 +6,7 @@ import json
 import math
 import sys
 
-from smoother.errors import interruption
+from smoother.errors import UserError, interruption
 
 #: The fleet's own file in ``--out`` (each recording's files are in its folder).
 SUMMARY = "summary.json"
@@ -37,12 +37,13 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import at_least, output_directory, positive
+    from smoother.commands import at_least, output_directory
     from smoother.commands import fleet_runner as fleet
+    from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
     at_least("--workers", args.workers, 1)
-    positive("--lag", args.lag, "a lag in seconds")
+    check_lag(args.lag, "--lag", UserError)
     options = ["--estimator", args.estimator, "--lag", repr(args.lag)] + ["--mcap"] * args.mcap + ["--plot"] * args.plot
     share = None if args.dask else max(1, thread_count() // args.workers)
     items = fleet.recordings(args.rigs, args.out, options, share)

@@ -112,6 +112,7 @@ def run(args) -> int:
 def _run(args) -> int:
     from smoother.commands import at_least, dataset_specs, duration, fraction, positive
     from smoother.commands.run_directory import RunDirectory
+    from smoother.fixed_lag.lag import check_lag
     from smoother.pipeline import ESTIMATORS, RunOptions
 
     at_least("--seed", args.seed, 0)
@@ -122,7 +123,7 @@ def _run(args) -> int:
     for option, values in (("--pose-from-truth", args.pose_from_truth), ("--gps-from-truth", args.gps_from_truth)):
         for value in values or ():
             positive(option, value)
-    positive("--lag", args.lag, "a lag in seconds")
+    check_lag(args.lag, "--lag", UserError)
     if not (math.isfinite(args.max_delay) and args.max_delay >= 0):
         raise UserError(f"--max-delay: expected a time in seconds >= 0 (finite), got {args.max_delay!r}")
     positive("--speed", args.speed, "a factor")

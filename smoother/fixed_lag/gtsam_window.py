@@ -1,16 +1,13 @@
-"""Fixed-lag smoothing on GTSAM's ``BatchFixedLagSmoother`` / ``IncrementalFixedLagSmoother``.
+"""GTSAM's fixed-lag smoothers (``BatchFixedLagSmoother``, ``IncrementalFixedLagSmoother``) as a window of
+the fixed-lag contract (:class:`smoother.fixed_lag.contract.FixedLagWindow`): :class:`KeyframeWindow`, and the
+marginal covariances of its keyframes (:func:`window_covariances`).
 
-One update loop, :class:`KeyframeWindow`, takes keyframes one at a time, in time order, each with
-its time stamp and its factors; variables older than the lag (seconds) are marginalised by GTSAM,
-and the loop lets go of the factors GTSAM has marginalised, so what a run holds of the graph stays
-the size of the window however long it is. Two things feed it: :func:`run_fixed_lag`, the factors
-of a whole :class:`smoother.model.problem.Problem` keyframe by keyframe (``Problem.keyframe_factors``), and
-:class:`smoother.online.smoother.OnlineSmoother`, keyframes made as IMU samples and measurements arrive
-(what ``smoother run --estimator fixed-lag`` replays a dataset through). The new keyframe's
-initial value is the IMU prediction from the smoother's current estimate of the previous
-keyframe. :func:`run_fixed_lag` records after every update the newest state's estimate and, if
-asked, its 15x15 covariance (primer convention); each keyframe's estimate as it leaves the window;
-and the smoothed window at the end.
+:class:`KeyframeWindow` takes keyframes one at a time, in time order, each with its time stamp and
+its factors; variables older than the lag (seconds) are marginalised by GTSAM, and the window lets
+go of the factors GTSAM has marginalised, so what a run holds of the graph stays the size of the
+window however long it is. It is fed the factors of a whole :class:`smoother.model.problem.Problem`
+keyframe by keyframe (``Problem.keyframe_factors``, by :func:`smoother.fixed_lag.offline.run_fixed_lag`) or
+keyframes made as IMU samples and measurements arrive (:class:`smoother.online.smoother.OnlineSmoother`).
 
 GTSAM pitfalls handled here:
 
@@ -22,76 +19,46 @@ GTSAM pitfalls handled here:
 * both smoothers factorise with QR: with Cholesky, sparse GPS (KITTI) is declared
   indeterminant within seconds and ISAM2 cannot continue after a failed update;
 * a factor that refers to a variable already marginalised out (a relative pose longer than the
-  lag) would make GTSAM fail: it is skipped with a warning;
-* a keyframe that no factor ties to the window (no IMU factor: a gap in the IMU data) gets a
-  weak prior around its prediction in the same update, and an update GTSAM still calls
+  lag) would make GTSAM fail: it is skipped and counted;
+* a keyframe that no factor ties to the window (no IMU factor) gets a weak prior around its
+  prediction in the same update, and an update GTSAM still calls
   indeterminant is repeated with that prior, so one bad stretch does not stop the run; an
-  update that fails beyond that raises :class:`FixedLagFailed` naming the keyframe and time
-  instead of a bare GTSAM exception;
+  update that fails beyond that raises :class:`smoother.fixed_lag.contract.FixedLagFailed` naming the
+  keyframe and time instead of a bare GTSAM exception;
 * ISAM2 relinearises at every update (:func:`make_smoother`), so that a measurement's
   correction reaches the states' linearisation before they leave the window;
-* measurements further apart than the lag leave keyframes with their dead-reckoned estimates
-  (they leave the window before the next measurement reaches them), and the
-  ``BatchFixedLagSmoother``, which keeps the state at its window's edge linearised where it first
-  was (its ``enforceConsistency``, which the Python wrapper cannot turn off), drifts off besides:
-  a warning says so for either kind (:func:`sparse_measurement_warning`). The incremental kind is
-  the default.
+* the ``BatchFixedLagSmoother`` keeps the state at its window's edge linearised where it first
+  was (its ``enforceConsistency``, which the Python wrapper cannot turn off), so where
+  measurements are further apart than the lag it drifts off
+  (:func:`smoother.fixed_lag.lag.sparse_measurement_warning`). Of GTSAM's kinds the incremental one is
+  the better.
 """
 from __future__ import annotations
 
-import math
 import time
-import warnings
 from collections import deque
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
-from datasets.types import Trajectory
 from factors import imu, preintegration, priors
-from factors.errors import InputError, SolverError
+from factors.errors import InputError
 from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
 from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem, is_indeterminant
+from smoother.fixed_lag.contract import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed, TakenKeyframes
+from smoother.fixed_lag.kinds import GTSAM_KINDS
+from smoother.fixed_lag.lag import check_lag
 from smoother.model.blocks import evaluate_block
 from smoother.model.covariances import marginal_covariances
-from smoother.model.problem import Problem, insert_state, read_state
+from smoother.model.problem import insert_state, read_state
 from smoother.model.robust import noise_model
-from smoother.progress import progress_bar
-
-KINDS = ("batch", "incremental")
 
 #: Keyframes this close to the next update's marginalisation boundary (its time minus the lag)
-#: have their lagged values taken before it as well: GTSAM marginalises those strictly older than
-#: the boundary.
-_LAG_MARGIN_S = 1e-6
-
-#: How many of the latest entries the timing records keep (``update_s``, an online smoother's
-#: ``latency_s``): every update of a day at 10 Hz (~30 MB), and no more on a robot that runs for weeks.
-HISTORY = 1_000_000
-
-#: Standard deviations of the weak prior added when an update is indeterminant.
-WEAK_PRIOR_SIGMAS = np.array([1e2] * 3 + [1e1] * 3 + [np.pi] * 3 + [1.0] * 3 + [0.1] * 3)
-
-
-@dataclass
-class FixedLagResult:
-    """``newest``: the newest state's estimate (and covariance) after each update, at the
-    keyframe times -- a filtered estimate; ``lagged``: each keyframe's estimate (and covariance)
-    at the last update that still held it, i.e. smoothed with up to ``lag`` seconds of later
-    data -- the fixed-lag smoother's own output; ``window``: the estimates of the last window;
-    ``update_s``: wall time of each update; ``recovered``: keyframes where a weak prior was
-    needed."""
-
-    newest: Trajectory
-    lagged: Trajectory
-    window: Trajectory
-    update_s: np.ndarray
-    recovered: list
-    skipped_factors: int
-    runtime_s: float
+#: count as leaving (:meth:`KeyframeWindow.leaving`), so that their estimates are taken before it as
+#: well: GTSAM marginalises those strictly older than the boundary.
+LAG_MARGIN_S = 1e-6
 
 
 def make_smoother(kind: str, lag_s: float):
@@ -126,7 +93,7 @@ def make_smoother(kind: str, lag_s: float):
         params.setFactorization("QR")
         params.findUnusedFactorSlots = True
         return gtsam.IncrementalFixedLagSmoother(lag_s, params)
-    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(KINDS)}")
+    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(GTSAM_KINDS)}")
 
 
 def window_covariances(blocks: list, smoother, estimate: gtsam.Values, first: int,
@@ -261,60 +228,8 @@ def _container_rows(containers, estimate, first: int, n: int) -> np.ndarray:
     return out
 
 
-def _measured_gap(problem: Problem) -> float:
-    """The longest time between consecutive keyframes with an absolute measurement (one that fixes a
-    position or an attitude: :attr:`Problem.absolute`; velocities and relative poses do not end
-    dead reckoning), the first and last keyframes included (inf when there is none)."""
-    measured = [np.asarray(b.keyframes).ravel() for b in problem.blocks if b.name in problem.absolute]
-    if not measured:
-        return np.inf
-    times = problem.times[np.unique(np.concatenate(measured))]
-    return float(np.max(np.diff(np.concatenate([problem.times[:1], times, problem.times[-1:]]))))
-
-
-def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str | None:
-    """The warning when measurements are ``longest_s`` apart, longer than the lag; None if not.
-
-    Either kind: a keyframe's fixed-lag estimate is the one it has when it leaves the window, so a
-    keyframe that leaves before the next measurement arrives keeps the dead-reckoned estimate
-    from the last one: on KITTI with every 20th GPS fix (20 s apart) the incremental smoother
-    ends ~50 m off the held-out fixes at a 2-s lag and ~35 m at 0.5 s. The batch kind is worse:
-    GTSAM's ``BatchFixedLagSmoother`` keeps the linearisation point of the state its marginal
-    factor lands on fixed (its ``enforceConsistency``, on by default and not settable from
-    Python), so after dead reckoning through a whole window a measurement's correction cannot
-    reach that state's IMU factor, Levenberg-Marquardt finds no descent and stops, and the
-    estimate drifts: a 120-s simulation with a position fix every 10 s and a 2-s lag ended 1.3 km
-    off (the incremental smoother: 8 m, the EKF: 0.7 m)."""
-    if not longest_s > lag_s:
-        return None
-    digits = 3  # enough to tell the gap from the lag (2.0019 s beside a 2-s lag is not "2 s")
-    while digits < 12 and float(f"{longest_s:.{digits}g}") <= lag_s:
-        digits += 1
-    step = 10.0 ** (math.floor(math.log10(longest_s)) - digits + 1)
-    enough = math.ceil(longest_s / step) * step  # rounded up: a lag that does reach the gap
-    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.{digits}g} s apart, "
-            f"longer than the lag ({lag_s:g} s): "
-            "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
-            "estimates")
-    if kind == "batch":
-        text += (" (GTSAM's BatchFixedLagSmoother can drift far off: it keeps the states at its window's edge "
-                 "linearised where dead reckoning put them; use the incremental smoother)")
-    return text + f". Choose a lag of at least {enough:.{digits}g} s (the longest gap between absolute measurements)"
-
-
-def warn_of_sparse_measurements(longest_s: float, lag_s: float, kind: str) -> None:
-    """Warn (:func:`sparse_measurement_warning`) when measurements are further apart than the lag."""
-    text = sparse_measurement_warning(longest_s, lag_s, kind)
-    if text is not None:
-        warnings.warn(text, stacklevel=3)
-
-
 def _weak_prior(keys, guess: imu.ImuState):
     return priors.state_prior_factor(keys, guess, np.diag(WEAK_PRIOR_SIGMAS**2))
-
-
-class FixedLagFailed(SolverError, ValueError):
-    """GTSAM's smoother failed at an update in a way that cannot be recovered."""
 
 
 def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
@@ -324,26 +239,26 @@ def _update_failed(k: int, t: float, error: Exception) -> FixedLagFailed:
 
 
 class KeyframeWindow:
-    """GTSAM's fixed-lag smoother of ``kind`` fed one keyframe at a time: the one update loop of
-    :func:`run_fixed_lag` (a whole problem's keyframes) and :class:`smoother.online.smoother.OnlineSmoother`
-    (keyframes made as samples arrive).
+    """GTSAM's fixed-lag smoother of ``kind`` (:data:`smoother.fixed_lag.kinds.GTSAM_KINDS`) fed one keyframe at
+    a time: a window of the fixed-lag contract (:class:`smoother.fixed_lag.contract.FixedLagWindow`: the
+    keyframes, the lag, :meth:`leaving` and :meth:`taken` and the order of the calls).
 
-    Keyframe ``k`` (0, 1, ... in the order given) has the variables ``factors.keys.keyframe_keys(k)``
-    and a time stamp; :meth:`update` adds it with its factors (the module docstring's pitfalls:
-    factors on marginalised variables skipped and counted, a weak prior where nothing ties the
-    keyframe to the window or GTSAM calls the update indeterminant). The window is the keyframes
-    ``first .. newest``; :meth:`leaving` names those the next update will marginalise, whose
-    estimates the caller reads before that update (:meth:`taken` records it, and an update after
-    which a keyframe is gone that was not read raises)."""
+    Keyframe ``k`` has the variables ``factors.keys.keyframe_keys(k)``; :meth:`update` adds it with
+    its GTSAM factors (the module docstring's pitfalls: factors on marginalised variables skipped
+    and counted, a weak prior where nothing ties the keyframe to the window or GTSAM calls the
+    update indeterminant), :meth:`add_keyframe` with factors made here from their ingredients,
+    :meth:`add_problem_keyframe` with a problem's. ``gravity`` and ``reintegration_threshold`` are
+    those of the IMU factors :meth:`add_keyframe` makes. When the next keyframe is more than the lag
+    later (an IMU gap), GTSAM marginalises the newest one in the update that adds it, after adding
+    the IMU factor between them, whose information the marginal keeps."""
 
     def __init__(self, lag_s: float, kind: str = "incremental", gravity=imu.DEFAULT_GRAVITY,
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
-        if not lag_s > 0:
-            raise InputError(f"lag must be positive, got {lag_s}")
+        lag_s = check_lag(lag_s)
         self.smoother = make_smoother(kind, lag_s)
         self.gravity = np.asarray(gravity, dtype=float)
         self.threshold = float(reintegration_threshold)
-        self.lag_s = float(lag_s)
+        self.lag_s = lag_s
         self.kind = kind
         self.first = 0  # the oldest keyframe in the window
         self.newest = -1  # the newest keyframe (-1 before the first update)
@@ -354,10 +269,18 @@ class KeyframeWindow:
         self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: ``id(factor) -> tag`` of the factors given with a tag, while GTSAM holds them
         self.rows_of: dict[int, object] = {}
+        #: the blocks of the problem whose factors :meth:`add_problem_keyframe` gave, tagged with
+        #: their rows in them (None: none given)
+        self.blocks: list | None = None
         self._times: dict[int, float] = {}  # the window's keyframe times
         self._present: set[int] = set()
         self._held: dict[int, list] = {}  # the factors by their earliest keyframe, until marginalised
-        self._taken_after: dict[int, int] = {}  # keyframe -> the update after which it was read
+        self._taken = TakenKeyframes()
+
+    @property
+    def calibration(self):
+        """None: GTSAM's windows estimate no calibration (the values given are used)."""
+        return None
 
     def time(self, k: int) -> float:
         """The time stamp of window keyframe ``k``."""
@@ -365,13 +288,13 @@ class KeyframeWindow:
 
     def leaving(self, t_next: float) -> list[int]:
         """The window keyframes (the newest too, after a gap longer than the lag) that an update
-        at ``t_next`` marginalises: older than ``t_next`` minus the lag, within :data:`_LAG_MARGIN_S`."""
-        boundary = t_next - self.lag_s + _LAG_MARGIN_S
+        at ``t_next`` marginalises: older than ``t_next`` minus the lag, within :data:`LAG_MARGIN_S`."""
+        boundary = t_next - self.lag_s + LAG_MARGIN_S
         return [j for j in range(self.first, self.newest + 1) if self._times[j] < boundary]
 
     def taken(self, keyframes) -> None:
         """Record that the estimates of ``keyframes`` were read after the last update."""
-        self._taken_after.update((j, self.newest) for j in keyframes)
+        self._taken.record(keyframes, self.newest)
 
     def update(self, t: float, factors: list, guess: imu.ImuState, oldest: list[int], tags=None) -> imu.ImuState:
         """Add the next keyframe at time ``t`` (after the newest) with ``factors`` (GTSAM factors on
@@ -423,9 +346,8 @@ class KeyframeWindow:
         self._times[k] = float(t)
         self._present = set(int(key) for key in self.estimate.keys())
         while keyframe_keys(self.first).rot not in self._present:  # the window is contiguous: [first, k]
-            if self._taken_after.pop(self.first, None) != k - 1:  # GTSAM marginalised earlier than leaving() says
-                raise RuntimeError(f"fixed-lag: keyframe {self.first} (t = {self._times[self.first]:.6f} s) left "
-                                   "the window before its estimate was taken")
+            # read after the update before this one, or GTSAM marginalised earlier than leaving() says
+            self._taken.leave(self.first, self._times[self.first], k - 1)
             for f in self._held.pop(self.first, ()):  # marginalised with the keyframe: GTSAM has let go of it
                 self.rows_of.pop(id(f), None)
             del self._times[self.first]
@@ -437,13 +359,13 @@ class KeyframeWindow:
         """Window keyframe ``k``'s estimate after the last update."""
         return read_state(self.estimate, keyframe_keys(k))
 
-    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None) -> imu.ImuState:
-        """:meth:`update` with the keyframe's factors made here: the IMU factor of the
+    def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None,
+                     held=None) -> imu.ImuState:
+        """:meth:`update` with the keyframe's factors made here (the contract's
+        :meth:`~smoother.fixed_lag.contract.FixedLagWindow.add_keyframe`): the IMU factor of the
         preintegrated interval ``pre`` from the newest keyframe (None: none), the factors of
-        ``measurements`` (``(spec, m, keyframes, robust)``: measurement ``m`` of a
-        :class:`smoother.model.problem.MeasurementSpec`, the keyframes it reads, a robust spec or None)
-        and a ``prior`` ``(state, cov)`` on the new keyframe (:class:`smoother.fixed_lag.sliding.window.SlidingWindow`
-        takes the same)."""
+        ``measurements`` (``(spec, m, keyframes, robust)``) and a ``prior`` ``(state, cov)`` on the
+        new keyframe; ``held`` is not used (no calibration here)."""
         k = self.newest + 1
         keys = keyframe_keys(k)
         factors, oldest = [], []
@@ -459,13 +381,22 @@ class KeyframeWindow:
             oldest.append(min(keyframes))
         return self.update(t, factors, guess, oldest)
 
+    def add_problem_keyframe(self, t: float, guess: imu.ImuState, made, blocks: list) -> imu.ImuState:
+        """:meth:`update` with the problem's own GTSAM factors ``made``
+        (:class:`smoother.model.problem.KeyframeFactors`), each tagged with its row of ``blocks`` (the
+        problem's), so that :meth:`covariances` linearises them with those blocks."""
+        self.blocks = blocks
+        return self.update(t, made.factors, guess, made.oldest, made.rows)
+
     def covariances(self, wanted) -> np.ndarray:
-        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: the
-        incremental kind's from ISAM2's Bayes tree (``jointMarginalCovariance`` of a keyframe's
-        four variables, at its linearisation point; the newest keyframes sit at the root, so this
-        costs little), the batch kind's -- whose Python wrapper has no covariance -- from the
-        smoother's factors linearised by GTSAM (:func:`window_covariances`)."""
-        if self.kind == "incremental":
+        """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: those
+        of the smoother's factors linearised at the estimate (:func:`window_covariances`; a
+        problem's own factors by its vectorised blocks, the rest -- the marginals, and every factor
+        of the batch kind fed :meth:`add_keyframe`, whose Python wrapper has no covariance -- by
+        GTSAM); the incremental kind fed :meth:`add_keyframe` takes them from ISAM2's Bayes tree
+        instead (``jointMarginalCovariance`` of a keyframe's four variables, at its linearisation
+        point; the newest keyframes sit at the root, so this costs little)."""
+        if self.kind == "incremental" and self.blocks is None:
             isam = self.smoother.getISAM2()
             out = []
             for j in wanted:
@@ -474,68 +405,5 @@ class KeyframeWindow:
                 out.append(state_covariance_to_primer(joint, self.estimate.atRot3(keys.rot)))
             return np.stack(out)
         states = imu.ImuState.stack([self.state(j) for j in range(self.first, self.newest + 1)])
-        return window_covariances([], self.smoother, self.estimate, self.first, states, {},
+        return window_covariances(self.blocks or [], self.smoother, self.estimate, self.first, states, self.rows_of,
                                   [j - self.first for j in wanted])
-
-
-def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "incremental", covariances: bool = True,
-                  progress: bool | None = None) -> FixedLagResult:
-    """Run a fixed-lag smoother over ``problem`` (see the module docstring): its keyframes through
-    one :class:`KeyframeWindow`."""
-    window = KeyframeWindow(lag_s, kind)
-    warn_of_sparse_measurements(_measured_gap(problem), lag_s, kind)
-    start = time.perf_counter()
-    n = len(problem.times)
-    # the outputs, filled row by row (NaN until then: a row never filled fails Trajectory's checks)
-    newest, lagged = _unfilled_states(n), _unfilled_states(n)
-    newest_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
-    lagged_cov = np.full((n, imu.STATE_DIM, imu.STATE_DIM), np.nan) if covariances else None
-    with progress_bar(len(problem.times), f"fixed-lag ({kind})", progress) as bar:
-        for k, t_k in enumerate(problem.times):
-            made = problem.keyframe_factors(k)
-            # the initial value: from the smoother's estimate of the previous keyframe after the last update
-            guess = problem.initial_states[0] if k == 0 else made.imu.predict(window.newest_state)
-            newest_state = window.update(t_k, made.factors, guess, made.oldest, made.rows)
-            first = window.first
-            _put(newest, k, newest_state)
-            # A keyframe's lagged estimate and covariance are those of the last update that holds
-            # it: take them for the keyframes that the next update marginalises and the newest,
-            # not for the whole window at every update. The covariances still need every window
-            # state (their linearisation point).
-            taken = sorted(set(window.leaving(problem.times[k + 1]) if k + 1 < n else []) | {k})
-            for j in (range(first, k) if covariances else taken[:-1]):
-                _put(lagged, j, window.state(j))
-            _put(lagged, k, newest_state)
-            window.taken(taken)
-            if covariances:
-                lagged_cov[taken] = window_covariances(problem.blocks, window.smoother, window.estimate, first,
-                                                       lagged[first:k + 1], window.rows_of, [j - first for j in taken])
-                newest_cov[k] = lagged_cov[k]
-            bar.update(1)
-    if window.skipped:
-        warnings.warn(f"{window.skipped} factors referred to variables older than the lag ({lag_s} s) and were "
-                      "skipped", stacklevel=2)
-    in_window = list(range(window.first, window.newest + 1))
-    for k in in_window:
-        _put(lagged, k, window.state(k))
-    window_states = lagged[in_window]
-    window_cov = None
-    if covariances:
-        window_cov = window_covariances(problem.blocks, window.smoother, window.estimate, in_window[0], window_states,
-                                        window.rows_of)
-        lagged_cov[in_window] = window_cov
-    return FixedLagResult(Trajectory(problem.times, newest, newest_cov), Trajectory(problem.times, lagged, lagged_cov),
-                          Trajectory(problem.times[in_window], window_states, window_cov), np.array(window.update_s),
-                          window.recovered, window.skipped, time.perf_counter() - start)
-
-
-def _unfilled_states(n: int) -> imu.ImuState:
-    """``n`` states to be filled row by row (:func:`_put`), NaN until then."""
-    return imu.ImuState(*(np.full((n,) + tail, np.nan) for tail in ((3,), (3,), (3, 3), (3,), (3,))))
-
-
-def _put(rows: imu.ImuState, k: int, state: imu.ImuState) -> None:
-    """Row ``k`` of ``rows`` set to the one state ``state``."""
-    for name in ("r", "v", "C", "b_f", "b_w"):
-        getattr(rows, name)[k] = getattr(state, name)
-

@@ -43,12 +43,18 @@ class KeyframeFactors:
     ``<= k``), in the order they are added: the prior (keyframe 0), the IMU factor from keyframe
     ``k - 1`` (``imu``, None at keyframe 0), then the measurement factors whose latest keyframe is
     ``k``, block by block. ``rows[i]`` is ``(block index, row)`` of ``factors[i]`` in the
-    problem's blocks, ``oldest[i]`` its earliest keyframe."""
+    problem's blocks, ``oldest[i]`` its earliest keyframe. What the prior and the measurement factors
+    are made of, for a window that makes its own (the sliding window's ``add_keyframe``):
+    ``prior`` ``(state, cov)`` (keyframe 0; None elsewhere) and ``measurements``, one ``(spec, m,
+    keyframes, kernel)`` per measurement factor in their order (:class:`MeasurementSpec`, the row,
+    the keyframes it reads, the robust kernel spec or None)."""
 
     imu: ImuFactor | None
     factors: list
     rows: list[tuple[int, int]]
     oldest: list[int]
+    prior: tuple | None = None
+    measurements: list = field(default_factory=list)
 
 
 @dataclass
@@ -264,7 +270,8 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
     def keyframe_factors(k: int) -> KeyframeFactors:
         """The GTSAM factors available at keyframe ``k`` (see :class:`Problem`)."""
         if k == 0:
-            out = KeyframeFactors(None, [priors.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0])
+            out = KeyframeFactors(None, [priors.state_prior_factor(keys[0], prior, dataset.initial_cov)], [(1, 0)], [0],
+                                  (prior, dataset.initial_cov))
         else:
             imu_factor = ImuFactor(pre[k - 1], keys[k - 1], keys[k], dataset.gravity,
                                    reintegration_threshold=reintegration_threshold)
@@ -274,6 +281,7 @@ def build_problem(dataset: Dataset, keyframe_rate: float | None = None, robust: 
                 out.factors.append(spec.factor([keys[j] for j in kf[m]], int(m), noise_model(cov[m], kernel)))
                 out.rows.append((block, int(m)))
                 out.oldest.append(int(kf[m].min()))
+                out.measurements.append((spec, int(m), [int(j) for j in kf[m]], kernel))
         return out
 
     absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)

@@ -7,7 +7,7 @@ the defining module on first use."""
 from factors.exports import lazy_exports
 
 _EXPORTS = {
-    **dict.fromkeys(("OnlineSmoother", "SensorSetup", "make_window"), "smoother.online.smoother"),
+    **dict.fromkeys(("OnlineSmoother", "SensorSetup"), "smoother.online.smoother"),
     "OnlineEstimate": "smoother.online.handover",
     **dict.fromkeys(("replay", "ReplayResult", "arrivals", "replaying"), "smoother.online.replay"),
 }

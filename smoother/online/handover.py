@@ -24,9 +24,9 @@ class OnlineEstimate:
 
 
 class HandOver:
-    """Estimates out of ``window`` (a :class:`smoother.fixed_lag.sliding.window.SlidingWindow` or
-    :class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`), with their marginal covariances when
-    ``covariances``, to ``on_smoothed(OnlineEstimate)`` or, with None, the queue."""
+    """Estimates out of ``window`` (a :class:`smoother.fixed_lag.contract.FixedLagWindow` of any kind), with
+    their marginal covariances when ``covariances``, to ``on_smoothed(OnlineEstimate)`` or, with
+    None, the queue."""
 
     def __init__(self, window, covariances: bool, on_smoothed=None):
         self.window, self.covariances, self.on_smoothed = window, covariances, on_smoothed
@@ -34,7 +34,7 @@ class HandOver:
 
     def read(self, keyframes) -> list[tuple[int, OnlineEstimate]]:
         """``(number, estimate)`` of the window's ``keyframes`` now (recorded as read, see
-        :meth:`smoother.fixed_lag.gtsam_window.KeyframeWindow.taken`)."""
+        :meth:`smoother.fixed_lag.contract.FixedLagWindow.taken`)."""
         keyframes = list(keyframes)
         if not keyframes:
             return []

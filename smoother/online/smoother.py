@@ -3,9 +3,10 @@ rate, each keyframe's smoothed estimate as it leaves the window.
 
 :class:`OnlineSmoother` is a fixed-lag smoother fed from streams: of ``kind`` ``"sliding"`` (the
 default; the compiled window of :mod:`smoother.fixed_lag.sliding.window`) or GTSAM's ``"incremental"`` /
-``"batch"`` (:class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`, the loop
-:func:`smoother.fixed_lag.gtsam_window.run_fixed_lag` runs too); both windows take a keyframe as its IMU
-interval, its measurements and its initial value (``add_keyframe``). Conventions are the
+``"batch"`` (:class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`); every window keeps the fixed-lag
+contract (:class:`smoother.fixed_lag.contract.FixedLagWindow`, which
+:func:`smoother.fixed_lag.offline.run_fixed_lag` drives too) and takes a keyframe as its IMU interval, its
+measurements and its initial value (``add_keyframe``). Conventions are the
 project's: state ``x = (r, v, C, b_f, b_w)`` (world position, BODY velocity, body-to-world
 attitude, accelerometer and gyro biases), 15x15 covariances in the primer's error state
 ``(dr, dv, dphi, db_f, db_w)`` with the LEFT perturbation ``C <- exp(dphi) C``, times in seconds
@@ -48,7 +49,7 @@ or when its later keyframe is made (it is older than the lag) is skipped: counte
 ``skipped``, with a warning at the first.
 
 No silent failures: besides the dropped and skipped measurements, a warning when measurements are further
-apart than the lag (:func:`smoother.fixed_lag.gtsam_window.sparse_measurement_warning`: keyframes then leave
+apart than the lag (:func:`smoother.fixed_lag.lag.sparse_measurement_warning`: keyframes then leave
 the window before the next measurement reaches them).
 
 Bad input. Every value is checked as the offline data types check it (:mod:`datasets.types`):
@@ -98,13 +99,9 @@ from datasets.types import (
 )
 from factors import calibration, imu, preintegration
 from factors.errors import InputError
-from smoother.fixed_lag.gtsam_window import (
-    HISTORY,
-    KeyframeWindow,
-    sparse_measurement_warning,
-)
-from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
-from smoother.fixed_lag.sliding.window import SlidingWindow
+from smoother.fixed_lag.contract import HISTORY
+from smoother.fixed_lag.lag import check_lag, sparse_measurement_warning
+from smoother.fixed_lag.windows import make_window
 from smoother.model.problem import measurement_spec
 from smoother.model.timeline import interval_steps
 from smoother.online import warm_up
@@ -113,20 +110,6 @@ from smoother.online.imu_buffer import ImuBuffer
 from smoother.online.pending import PendingMeasurements
 from smoother.online.prediction import ImuRatePrediction
 from smoother.online.schedule import KeyframeSchedule
-
-
-def make_window(lag_s: float, kind: str, gravity, reintegration_threshold: float, calibrations=None):
-    """The keyframe window of fixed-lag smoother ``kind`` (:data:`smoother.fixed_lag.kinds.FIXED_LAG_KINDS`),
-    with the calibration variables ``calibrations`` (a
-    :class:`smoother.fixed_lag.sliding.calibration.WindowCalibration`; the compiled window only) or None."""
-    if kind == "sliding":
-        return SlidingWindow(lag_s, gravity, reintegration_threshold, calibration=calibrations)
-    if calibrations is not None:
-        raise InputError(f"fixed-lag smoother kind {kind!r} cannot estimate calibrations (sensors "
-                         f"{', '.join(calibrations.set.names)} ask for them): use kind 'sliding'")
-    if kind in ("incremental", "batch"):
-        return KeyframeWindow(lag_s, kind, gravity, reintegration_threshold)
-    raise InputError(f"fixed-lag smoother kind {kind!r}: expected one of {', '.join(FIXED_LAG_KINDS)}")
 
 
 @dataclass(frozen=True)
@@ -190,7 +173,7 @@ class OnlineSmoother:
     It composes the parts, one job each: the IMU stream (:class:`smoother.online.imu_buffer.ImuBuffer`),
     the keyframe times (:class:`smoother.online.schedule.KeyframeSchedule`), the measurements
     waiting for their keyframe (:class:`smoother.online.pending.PendingMeasurements`), the
-    keyframe window (:func:`make_window`), the hand-over of the keyframes leaving it
+    keyframe window (:func:`smoother.fixed_lag.windows.make_window`), the hand-over of the keyframes leaving it
     (:class:`smoother.online.handover.HandOver`) and the state at IMU rate
     (:class:`smoother.online.prediction.ImuRatePrediction`)."""
 
@@ -202,8 +185,7 @@ class OnlineSmoother:
             raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
         if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
             raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
-        if not (lag_s > 0 and math.isfinite(lag_s)):
-            raise InputError(f"lag_s: expected a positive, finite lag in seconds, got {lag_s!r}")
+        lag_s = check_lag(lag_s)
         check_state("initial", initial)  # a rotation, finite 3-vectors
         initial_cov = check_state_covariance("initial_cov", initial_cov)  # symmetric, positive definite
         if not isinstance(noise, imu.ImuNoise):
@@ -217,12 +199,12 @@ class OnlineSmoother:
         calibrations = self._calibrations()
         self._window = make_window(lag_s, kind, self.gravity, reintegration_threshold, calibrations)
         self._window_calibrates = calibrations is not None
-        self.lag_s, self.kind, self.max_delay_s = float(lag_s), kind, float(max_delay_s)
+        self.lag_s, self.kind, self.max_delay_s = lag_s, kind, float(max_delay_s)
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
         self.reintegration_threshold = reintegration_threshold
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
-        #: (the latest :data:`smoother.fixed_lag.gtsam_window.HISTORY`)
+        #: (the latest :data:`smoother.fixed_lag.contract.HISTORY`)
         self.latency_s: deque[float] = deque(maxlen=HISTORY)
         #: the longest time between absolute measurements (they fix a position or an attitude) seen so
         #: far [s] (the start counts as one)
@@ -398,7 +380,7 @@ class OnlineSmoother:
         """``(values, covariances)`` of the calibration variables after the last update (a
         :class:`factors.calibration.CalibrationSet` and each sensor's marginal covariance over its
         estimated coordinates), or None when no sensor asks for one."""
-        return getattr(self._window, "calibration", None)
+        return self._window.calibration
 
     @property
     def dropped(self) -> dict[str, int]:
@@ -422,7 +404,7 @@ class OnlineSmoother:
 
     @property
     def update_s(self) -> deque[float]:
-        """Wall time of each smoother update [s] (the latest :data:`smoother.fixed_lag.gtsam_window.HISTORY`)."""
+        """Wall time of each smoother update [s] (the latest :data:`smoother.fixed_lag.contract.HISTORY`)."""
         return self._window.update_s
 
     @property

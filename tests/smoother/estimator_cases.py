@@ -68,8 +68,8 @@ def batch(spec: CaseSpec):
 
 @functools.lru_cache(maxsize=None)
 def fixed_lag(spec: CaseSpec, kind: str, lag_s: float):
-    """``(problem, smoother.fixed_lag.gtsam_window.FixedLagResult)``."""
-    from smoother.fixed_lag.gtsam_window import run_fixed_lag
+    """``(problem, smoother.fixed_lag.offline.FixedLagResult)``."""
+    from smoother.fixed_lag.offline import run_fixed_lag
 
     p = problem(spec)
     with warnings.catch_warnings():

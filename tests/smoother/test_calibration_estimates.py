@@ -39,7 +39,7 @@ def _solve(dataset):
     return result, records, against
 
 
-def _rig(seed: int, duration: float = 30.0, profile="gentle", **kw):
+def miscalibrated_rig(seed: int, duration: float = 30.0, profile="gentle", **kw):
     """A wheel speed sensor (velocity, 10 Hz) pitched 3 deg and yawed 1 deg, reading 1 % low, and a
     GNSS antenna (5 Hz) 0.5 m above the IMU whose fixes are stamped 0.1 s late; returned with the
     values a user would write: identity mountings, no offsets."""
@@ -62,7 +62,7 @@ TRUE_ROTATION = so3.log(PITCHED[:3, :3])
 
 
 def test_batch_recovers_a_delay_a_mounting_a_lever_arm_and_a_scale_within_3_sigma():
-    data = _rig(1)
+    data = miscalibrated_rig(1)
     data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
     data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
     result, records, against = _solve(data)
@@ -83,7 +83,7 @@ def test_calibration_nees_over_20_seeds_is_in_its_chi_square_band():
     normalised squared errors over 20 seeds lies in the 99 % chi-square band of 80 dof."""
     total, dof = 0.0, 0
     for seed in range(20):
-        data = _rig(100 + seed, duration=15.0)
+        data = miscalibrated_rig(100 + seed, duration=15.0)
         data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
         data = data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset",)))
         result, _, _ = _solve(data)
@@ -110,7 +110,7 @@ def test_the_fixes_delay_and_lever_arm_together_are_consistent_over_20_seeds():
     information = np.diag(1.0 / prior.sigmas ** 2)
     total, dof = 0.0, 0
     for seed in range(20):
-        data = _rig(100 + seed, duration=15.0)
+        data = miscalibrated_rig(100 + seed, duration=15.0)
         data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
         result, _, _ = _solve(data.with_sensor("gnss", calibrate=prior))
         gnss, P = result.calibration.values[1], result.calibration_cov[1]
@@ -124,7 +124,7 @@ def test_the_fixes_delay_and_lever_arm_together_are_consistent_over_20_seeds():
 def test_what_the_data_cannot_fix_stays_at_its_prior_and_is_reported():
     """Driving straight without turning: the antenna's lever arm along the way and the speed
     sensor's roll about its own axis are not observable; standing still, no time offset is."""
-    data = _rig(2, duration=20.0, profile=STRAIGHT, initial_sigma=(5.0, 0.1, 0.01))
+    data = miscalibrated_rig(2, duration=20.0, profile=STRAIGHT, initial_sigma=(5.0, 0.1, 0.01))
     data = data.with_sensor("wheels", data=replace(data.sensor("wheels").data, T_BS=PITCHED),
                             calibrate=CalibrationPrior(("rotation",)))
     data = data.with_sensor("gnss", calibrate=CalibrationPrior(("lever_arm",)))
@@ -200,9 +200,9 @@ def test_the_ekf_and_the_fixed_lag_smoother_estimate_the_batch_calibration_withi
 
 @functools.cache
 def _calibrating_rig():
-    """:func:`_rig` (seed 1, 30 s) with the wheels' rotation and scale and the fixes' delay and
-    lever arm to estimate."""
-    data = _rig(1, duration=30.0)
+    """:func:`miscalibrated_rig` (seed 1, 30 s) with the wheels' rotation and scale and the fixes'
+    delay and lever arm to estimate."""
+    data = miscalibrated_rig(1, duration=30.0)
     data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
     return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
 

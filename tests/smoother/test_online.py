@@ -13,7 +13,7 @@ import pytest
 
 from datasets.kinds import sensors_of
 from smoother.ekf.filter import Ekf
-from smoother.fixed_lag.gtsam_window import run_fixed_lag
+from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
 from smoother.online.smoother import OnlineSmoother, SensorSetup
 from smoother.online.replay import replay
@@ -84,7 +84,7 @@ def test_streamed_sample_by_sample_equals_the_replay_and_the_offline_smoother(ge
     _assert_same_states(type(whole.states).stack([e.state for e in out]), whole.states)
     np.testing.assert_array_equal(np.stack([e.cov for e in out]), whole.cov)
 
-    offline = run_fixed_lag(build_problem(data), LAG, covariances=True, progress=False).lagged
+    offline = run_fixed_lag(build_problem(data), LAG, "incremental", covariances=True, progress=False).lagged
     np.testing.assert_array_equal(whole.t, offline.t)
     diff = cases.sigma_difference(whole.states, offline.states, offline.cov)
     assert diff.max() < OFFLINE_SIGMAS[kind], diff.max()
@@ -244,7 +244,7 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
         warnings.simplefilter("error")
         long = replay(data, 2.0, "incremental", covariances=False, progress=False)
     assert long.skipped == {}
-    offline = run_fixed_lag(build_problem(data), 2.0, covariances=True, progress=False).lagged
+    offline = run_fixed_lag(build_problem(data), 2.0, "incremental", covariances=True, progress=False).lagged
     np.testing.assert_array_equal(long.smoothed.t, offline.t)
     assert cases.sigma_difference(long.smoothed.states, offline.states, offline.cov).max() < 5e-3
     sliding = replay(data, 2.0, "sliding", covariances=False, progress=False)
@@ -343,7 +343,7 @@ def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds(
     for lag, warned in ((0.5, True), (3.0, False)):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            run_fixed_lag(build_problem(data), lag, progress=False)
+            run_fixed_lag(build_problem(data), lag, "incremental", progress=False)
             replay(data, lag, progress=False)
         hits = [w for w in caught if "longer than the lag" in str(w.message)]
         assert (len(hits) >= 2) == warned, (lag, [str(w.message) for w in caught])
@@ -351,7 +351,7 @@ def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds(
 
 def test_the_timing_records_keep_only_the_latest_entries(gentle, monkeypatch):
     """A robot runs for weeks: ``update_s`` and ``latency_s`` keep the latest
-    :data:`smoother.fixed_lag.gtsam_window.HISTORY` entries (here 5), not every update since the start."""
+    :data:`smoother.fixed_lag.contract.HISTORY` entries (here 5), not every update since the start."""
     from smoother.fixed_lag import gtsam_window as fixed_lag
     from smoother.fixed_lag.sliding import window as sliding_window
     from smoother.online import smoother as online_module
@@ -424,7 +424,7 @@ def test_the_initial_state_covariance_and_sensor_setups_are_checked_at_construct
         (dict(initial_cov=np.eye(14)), re.escape("initial_cov: expected shape (15, 15), got (14, 14)")),
         (dict(noise=(1e-3, 1e-4)), "noise: expected an ImuNoise, got tuple"),
         (dict(gravity=[0, 0]), re.escape("gravity: expected shape (3,), got (2,)")),
-        (dict(lag_s=np.inf), "lag_s: expected a positive, finite lag"),
+        (dict(lag_s=np.inf), r"lag_s: expected a lag in seconds > 0 \(finite\), got inf"),
     ]
     for change, message in cases_:
         arguments = dict(initial=x0, initial_cov=P0, noise=noise) | change

@@ -18,7 +18,7 @@ it does ``L_A``'s, and ``L_D`` -- ``nc`` numbers wide -- anew. The step: the for
 
 Each calibration has a linearisation point and an offset like a keyframe's (``c = theta_c [+]
 delta_c``, :meth:`factors.calibration.Calibration.boxplus`: the rotation on the left); it is
-linearised again when the offset exceeds :data:`RELINEARISATION_THRESHOLD` and
+linearised again when the offset exceeds :data:`CALIBRATION_RELINEARISATION_THRESHOLD` and
 :data:`RELINEARISATION_SIGMA_FRACTION` of its marginal sigma, which makes every factor reading it
 stale.
 
@@ -36,7 +36,7 @@ block of ``A^-1`` plus ``W_k (L_D L_D^T)^-1 W_k^T`` with ``W = L_A^-T Z``.
 
 Everything an update evaluates is compiled: the calibrated residuals
 (:func:`datasets.kinds.calibrated_into`, :func:`factors.calibration.calibrated_odometry_into`)
-and the border's sums in :func:`smoother.fixed_lag.sliding.normal_equations._linearise_calibrated` (each
+and the border's sums in :func:`smoother.fixed_lag.sliding.normal_equations.linearise_calibrated` (each
 keyframe's one-keyframe calibrated measurements keep what they add to its rows until it or a
 calibration is linearised again), the bordered priors in
 :func:`smoother.fixed_lag.sliding.normal_equations.prior_into`, the border's solve
@@ -61,7 +61,7 @@ from factors.errors import InputError
 #: change it goes with, 0.5 %: ``|rho| / 2`` for a rotation (0.01 rad), ``|ds| / s`` for the
 #: scale's product with the state's Jacobian (5e-3), ``|dd| |w| / 2`` for a time offset's
 #: attitude (0.01 s at 1 rad/s).
-RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [5e-3])
+CALIBRATION_RELINEARISATION_THRESHOLD = np.array([0.01] + [0.01] * 3 + [0.05] * 3 + [5e-3])
 #: While a calibration coordinate is still uncertain its offset may also reach this fraction of
 #: its marginal sigma ``sigma`` (the last solve's, from ``L_D``) before it is linearised again, up
 #: to :data:`RELINEARISATION_WIDEST` times its threshold. The offset's own second-order term,
@@ -115,8 +115,8 @@ class WindowCalibration:
         #: the Cholesky factor ``L_D`` of the last solve's calibration Schur complement (before
         #: the first: the priors' square-root information)
         self.L_D = np.diag(1.0 / np.concatenate(self._sigmas))
-        #: :data:`RELINEARISATION_THRESHOLD` over the border's columns
-        self.thresholds = np.concatenate([RELINEARISATION_THRESHOLD[which] for which in self._columns])
+        #: :data:`CALIBRATION_RELINEARISATION_THRESHOLD` over the border's columns
+        self.thresholds = np.concatenate([CALIBRATION_RELINEARISATION_THRESHOLD[which] for which in self._columns])
         #: the offsets beyond which the last solve found the border's coordinates due to be linearised
         #: again: the larger of the threshold and :data:`RELINEARISATION_SIGMA_FRACTION` of the
         #: coordinate's marginal sigma, at most :data:`RELINEARISATION_WIDEST` thresholds

@@ -38,16 +38,16 @@ window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
   keyframes first, the rows of ``L`` after them are already the factor of that Schur complement
   (and ``y``'s rows its forward solution): no new factorisation;
 * the newest keyframe never leaves before the next one is added, so an IMU gap longer than the
-  lag keeps its IMU factor (GTSAM's smoothers drop it and need a weak prior);
+  lag keeps its IMU factor;
 * the marginal covariance of a window keyframe is its block of ``H^-1`` (two banded triangular
   solves with 15 right-hand sides).
 
 The block-banded linear algebra is :mod:`smoother.fixed_lag.sliding.banded`'s, the normal equations
 :mod:`smoother.fixed_lag.sliding.normal_equations`'s; this module keeps the window: its keyframes in ring slots, the
-update, relinearisation and marginalisation. The interface is
-:class:`smoother.fixed_lag.gtsam_window.KeyframeWindow`'s (``leaving``, ``taken``,
-``add_keyframe``, ``state``, ``covariances``), so :class:`smoother.online.smoother.OnlineSmoother` drives
-either.
+update, relinearisation and marginalisation. It keeps the fixed-lag contract
+(:class:`smoother.fixed_lag.contract.FixedLagWindow`: ``leaving``, ``taken``, ``add_keyframe``, ``state``,
+``covariances``, ...), as GTSAM's windows do, so :class:`smoother.online.smoother.OnlineSmoother` and
+:func:`smoother.fixed_lag.offline.run_fixed_lag` drive any of them.
 """
 from __future__ import annotations
 
@@ -61,7 +61,8 @@ from datasets.kinds import LAYOUTS, quiet_dispatch
 from factors import imu, preintegration
 from factors.errors import InputError
 from factors.sensor_models import MAX_ROW_WIDTH
-from smoother.fixed_lag.gtsam_window import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
+from smoother.fixed_lag.contract import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed, TakenKeyframes
+from smoother.fixed_lag.lag import check_lag
 from smoother.fixed_lag.sliding.banded import (
     forward_solve,
     marginal_prior,
@@ -105,7 +106,8 @@ RELINEARISATION_THRESHOLD = np.array([0.05] * 3 + [0.05] * 3 + [5e-3] * 3 + [0.0
 #: assembly of its own, what those rows hold and has moved this fraction of the way to being
 #: linearised again: each keyframe whose factors lie wholly in them with an offset beyond this
 #: fraction of :data:`RELINEARISATION_THRESHOLD`, and, when they are the whole window, each
-#: calibration beyond this fraction of its limit (:mod:`smoother.fixed_lag.sliding.calibration`). A keyframe
+#: calibration beyond this fraction of its limit
+#: (:data:`smoother.fixed_lag.sliding.calibration.CALIBRATION_RELINEARISATION_THRESHOLD`). A keyframe
 #: or a calibration so reset no longer forces a deeper update of its own a few updates later. On
 #: the benchmark's minute with the wheels calibrated, the share of updates that assemble more than
 #: three rows falls from 0.20 to 0.13; without calibration from 0.13 to 0.085.
@@ -133,16 +135,15 @@ def _compiling():
 
 
 class SlidingWindow:
-    """The compiled fixed-lag smoother (module docstring), fed one keyframe at a time.
+    """The compiled fixed-lag smoother (module docstring), fed one keyframe at a time: a window of the
+    fixed-lag contract (:class:`smoother.fixed_lag.contract.FixedLagWindow`: the keyframes, the lag,
+    :meth:`leaving` and :meth:`taken` and the order of the calls).
 
-    ``lag_s``: keyframes older than the newest one's time minus the lag leave at the next update;
+    ``lag_s``: keyframes older than the new keyframe's time minus the lag leave at its update;
     ``gravity`` (world, m/s^2) and ``reintegration_threshold`` (rad/s) as the IMU factor's;
     ``relinearisation_threshold`` (15 numbers in the error state's units, or one for all): a
     keyframe is linearised again when its offset from its linearisation point exceeds it in any
-    component (0: every keyframe at every update). Keyframe ``k`` (0, 1, ...) has a time stamp and
-    the window is ``first .. newest``; :meth:`leaving` names the keyframes the next update
-    marginalises, which the caller reads (and records with :meth:`taken`) before it.
-    ``calibration``: the calibration variables
+    component (0: every keyframe at every update). ``calibration``: the calibration variables
     (:class:`smoother.fixed_lag.sliding.calibration.WindowCalibration`), the window's dense border, or None."""
 
     kind = "sliding"
@@ -150,8 +151,7 @@ class SlidingWindow:
     def __init__(self, lag_s: float, gravity=imu.DEFAULT_GRAVITY,
                  reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
                  relinearisation_threshold=None, calibration: WindowCalibration | None = None):
-        if not lag_s > 0:
-            raise InputError(f"lag must be positive, got {lag_s}")
+        lag_s = check_lag(lag_s)
         threshold = RELINEARISATION_THRESHOLD if relinearisation_threshold is None else relinearisation_threshold
         threshold = np.broadcast_to(np.asarray(threshold, dtype=float), (DIM,)).copy()
         if not np.all(threshold >= 0):
@@ -169,7 +169,7 @@ class SlidingWindow:
         self.relinearised: deque[int] = deque(maxlen=HISTORY)
         #: updates whose step was shortened (MAX_ATTITUDE_STEP)
         self.shortened = 0
-        self._taken_after: dict[int, int] = {}
+        self._taken = TakenKeyframes()
         self._priors: list[LinearPrior] = []
         self._S = 1  # the band L is factorised with (at least the factors' reach; narrowed at whole factorisations)
         self._spans = [0, 0]  # the longest span of the measurements, of the priors
@@ -228,7 +228,7 @@ class SlidingWindow:
         """The estimate arrays ``theta [+] delta`` by slot."""
         return self._xr, self._xv, self._xC, self._xbf, self._xbw
 
-    # -- the KeyframeWindow interface -----------------------------------------------------------
+    # -- the fixed-lag contract ------------------------------------------------------------------
 
     def time(self, k: int) -> float:
         """The time stamp of window keyframe ``k``."""
@@ -247,7 +247,7 @@ class SlidingWindow:
 
     def taken(self, keyframes) -> None:
         """Record that the estimates of ``keyframes`` were read after the last update."""
-        self._taken_after.update((j, self.newest) for j in keyframes)
+        self._taken.record(keyframes, self.newest)
 
     def state(self, k: int) -> imu.ImuState:
         """Window keyframe ``k``'s estimate after the last update."""
@@ -257,6 +257,7 @@ class SlidingWindow:
 
     @property
     def newest_state(self) -> imu.ImuState:
+        """The newest keyframe's estimate after the last update."""
         return self.state(self.newest)
 
     def add_keyframe(self, t: float, guess: imu.ImuState, pre=None, measurements=(), prior=None,
@@ -315,6 +316,13 @@ class SlidingWindow:
         self._solve(t)
         self.update_s.append(time.perf_counter() - tick)
         return self.newest_state
+
+    def add_problem_keyframe(self, t: float, guess: imu.ImuState, made, blocks=None) -> imu.ImuState:
+        """:meth:`add_keyframe` with what the factors a problem makes at the keyframe are made of
+        (``made``, :class:`smoother.model.problem.KeyframeFactors`: its IMU factor's interval, its
+        measurements, its prior); the window linearises them itself (``blocks`` is not used) and
+        estimates no calibration (the values given are used, as in the problem's factors)."""
+        return self.add_keyframe(t, guess, None if made.imu is None else made.imu.pre, made.measurements, made.prior)
 
     def covariances(self, wanted) -> np.ndarray:
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted``: blocks
@@ -606,9 +614,7 @@ class SlidingWindow:
         if not leaving:
             return
         for j in leaving:
-            if self._taken_after.pop(j, None) != self.newest:
-                raise RuntimeError(f"fixed-lag: keyframe {j} (t = {self.time(j):.6f} s) left the window before its "
-                                   "estimate was taken")
+            self._taken.leave(j, self.time(j), self.newest)
         cut = leaving[-1] + 1
         S = self._bandwidth()
         nl = cut - self.first

@@ -7,8 +7,8 @@ import warnings
 
 import numpy as np
 import pytest
-from test_calibration_estimates import _rig
-from test_sliding_window import _dense
+from banded_cases import dense
+from test_calibration_estimates import miscalibrated_rig
 
 from factors import so3
 from factors.calibration import CalibrationPrior
@@ -16,13 +16,14 @@ from factors.errors import InputError
 from smoother.fixed_lag.sliding import kernels
 from smoother.fixed_lag.sliding import window as sw
 from smoother.online.replay import replay
-from smoother.online.smoother import OnlineSmoother, SensorSetup, make_window
+from smoother.fixed_lag.windows import make_window
+from smoother.online.smoother import OnlineSmoother, SensorSetup
 
 DIM = sw.DIM
 
 
 def _calibrating_rig(duration: float):
-    data = _rig(1, duration=duration)
+    data = miscalibrated_rig(1, duration=duration)
     data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
     return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset", "lever_arm")))
 
@@ -30,7 +31,7 @@ def _calibrating_rig(duration: float):
 def _bordered(Hb, g, border):
     """The dense symmetric bordered matrix ``[A B; B^T D]`` and right-hand side of a window."""
     B, D, gc = border
-    A = _dense(Hb)
+    A = dense(Hb)
     N = A.shape[0]
     H = np.block([[A, B.reshape(N, -1)], [B.reshape(N, -1).T, D]])
     return H, np.concatenate([g, gc])
@@ -147,7 +148,7 @@ def test_a_calibration_information_that_fails_stops_the_update_naming_the_calibr
     """The calibrations' Schur complement refused at the tenth update (as a numerically singular
     one would be): the update stops with one line naming the calibrations, the window's offsets
     as the ninth left them (not its forward solution)."""
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     data = _calibrating_rig(3.0)
     factorise_forward_border, after = kernels.factorise_forward_border, []
@@ -190,7 +191,7 @@ def _tied_through_the_calibration(lag_s: float, duration: float, late: bool = Fa
     from smoother.fixed_lag.sliding.calibration import WindowCalibration
     from smoother.model.problem import measurement_spec
 
-    data = _rig(2, duration=duration)
+    data = miscalibrated_rig(2, duration=duration)
     prior = CalibrationPrior(("rotation", "scale"))
     calibrations = WindowCalibration(CalibrationSet.given(["wheels"], [np.eye(4)], [prior]), {"wheels": "velocity"})
     window = sw.SlidingWindow(lag_s, calibration=calibrations)
@@ -251,16 +252,16 @@ def test_relinearising_the_calibrations_less_often_stays_close_to_relinearising_
         init(calibrations, *args)
         made.append(calibrations)
 
-    def run(fraction, thresholds=(sw.RELINEARISATION_THRESHOLD, wc.RELINEARISATION_THRESHOLD)):
+    def run(fraction, thresholds=(sw.RELINEARISATION_THRESHOLD, wc.CALIBRATION_RELINEARISATION_THRESHOLD)):
         monkeypatch.setattr(sw, "RELINEARISATION_SIGMA_FRACTION", fraction)
         monkeypatch.setattr(sw, "RELINEARISATION_THRESHOLD", thresholds[0])
-        monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", thresholds[1])
+        monkeypatch.setattr(wc, "CALIBRATION_RELINEARISATION_THRESHOLD", thresholds[1])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             return replay(data, 1.0, "sliding", covariances=True, progress=False), made[-1]
 
     monkeypatch.setattr(wc.WindowCalibration, "__init__", recorded)
-    every, _ = run(0.0, (np.zeros(DIM), np.zeros_like(wc.RELINEARISATION_THRESHOLD)))
+    every, _ = run(0.0, (np.zeros(DIM), np.zeros_like(wc.CALIBRATION_RELINEARISATION_THRESHOLD)))
     default, calibrations = run(wc.RELINEARISATION_SIGMA_FRACTION)
     _, thresholds_alone = run(0.0)
     diff = cases.sigma_difference(default.smoothed.states, every.smoothed.states, every.smoothed.cov)
@@ -291,7 +292,8 @@ def test_what_a_window_keeps_of_its_calibrated_measurements_is_what_they_give_ma
     from smoother.fixed_lag.sliding import calibration as wc
 
     if not moves:
-        monkeypatch.setattr(wc, "RELINEARISATION_THRESHOLD", np.full_like(wc.RELINEARISATION_THRESHOLD, 1e9))
+        never = np.full_like(wc.CALIBRATION_RELINEARISATION_THRESHOLD, 1e9)
+        monkeypatch.setattr(wc, "CALIBRATION_RELINEARISATION_THRESHOLD", never)
     compared = []
 
     def compare(window):

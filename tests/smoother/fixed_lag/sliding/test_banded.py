@@ -6,33 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from banded_cases import band, random_banded
 from scipy.linalg import LinAlgError, cholesky_banded, solveh_banded
 
 from smoother.fixed_lag.sliding import banded
 from smoother.fixed_lag.sliding.banded import DIM
 
 SHAPES = [(1, 1), (2, 1), (20, 1), (13, 2), (24, 3), (9, 4)]
-
-
-def _spd_banded(rng, n: int, S: int) -> np.ndarray:
-    """A random symmetric positive definite matrix of ``n`` blocks, block bandwidth ``S``, as the
-    window assembles one (a sum of ``J^T J`` of factors reaching ``S`` keyframes back)."""
-    H = np.eye(n * DIM)
-    for k in range(n):
-        lo = max(0, k - S) * DIM
-        J = rng.normal(size=(DIM, (k + 1) * DIM - lo))
-        H[lo:(k + 1) * DIM, lo:(k + 1) * DIM] += J.T @ J
-    return H
-
-
-def _blocks(H: np.ndarray, S: int) -> np.ndarray:
-    """``H``'s lower block band as ``Hb (n, S + 1, 15, 15)``: ``Hb[k, s]`` = block ``(k, k - s)``."""
-    n = len(H) // DIM
-    Hb = np.zeros((n, S + 1, DIM, DIM))
-    for k in range(n):
-        for s in range(min(k, S) + 1):
-            Hb[k, s] = H[k * DIM:(k + 1) * DIM, (k - s) * DIM:(k - s + 1) * DIM]
-    return Hb
 
 
 def _scipy_band(H: np.ndarray, S: int) -> np.ndarray:
@@ -58,7 +38,7 @@ def _dense_factor(L: np.ndarray, first: int, n: int, cap: int, S: int) -> np.nda
 def _factorised(H: np.ndarray, S: int, first: int, cap: int) -> np.ndarray:
     n = len(H) // DIM
     L = np.zeros((cap, S + 1, DIM, DIM))
-    assert banded.factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S) == -1
+    assert banded.factorise(band(H, S), L, first, first, first + n - 1, cap, S) == -1
     return L
 
 
@@ -82,7 +62,7 @@ def _ring(n: int) -> tuple[int, int]:
 @pytest.mark.parametrize("n, S", SHAPES)
 def test_the_factor_is_scipys_banded_cholesky(n, S):
     rng = np.random.default_rng(100 * n + S)
-    H = _spd_banded(rng, n, S)
+    H = random_banded(rng, n, S)
     first, cap = _ring(n)
     L = _dense_factor(_factorised(H, S, first, cap), first, n, cap, S)
     expected = cholesky_banded(_scipy_band(H, S), lower=True)
@@ -97,7 +77,7 @@ def test_the_factor_is_scipys_banded_cholesky(n, S):
 def test_solves_equal_scipys_banded_solve(n, S, m):
     """One right-hand side (the update's step) and fifteen (a keyframe's marginal covariance)."""
     rng = np.random.default_rng(10 * n + S + m)
-    H = _spd_banded(rng, n, S)
+    H = random_banded(rng, n, S)
     B = rng.normal(size=(len(H), m))
     first, cap = _ring(n)
     x = _solved(_factorised(H, S, first, cap), B, first, cap, S)
@@ -111,7 +91,7 @@ def test_badly_scaled_matrices_solve_as_scipys_does(n, S):
     entry by entry, the solutions in each component's own units (the error scaled as the
     component is)."""
     rng = np.random.default_rng(7 * n + S)
-    H0 = _spd_banded(rng, n, S)
+    H0 = random_banded(rng, n, S)
     d = 10.0 ** rng.uniform(-6.0, 6.0, size=len(H0))
     H = H0 * np.outer(d, d)
     assert np.linalg.cond(H) > 1e10
@@ -155,14 +135,14 @@ def test_refactorising_from_a_row_on_is_scipys_factor_of_the_changed_matrix(n, S
     ``S`` back): factorising those rows only, over the rows kept, gives SciPy's factor of the
     changed matrix."""
     rng = np.random.default_rng(n * S)
-    H = _spd_banded(rng, n, S)
+    H = random_banded(rng, n, S)
     first, cap = _ring(n)
     L = _factorised(H, S, first, cap)
     start = n - S - 1
     J = rng.normal(size=(DIM, (S + 1) * DIM))
     H2 = H.copy()
     H2[start * DIM:, start * DIM:] += J.T @ J
-    rows = _blocks(H2, S)[start:]
+    rows = band(H2, S)[start:]
     assert banded.factorise(rows, L, first, first + start, first + n - 1, cap, S) == -1
     expected = cholesky_banded(_scipy_band(H2, S), lower=True)
     dense = _dense_factor(L, first, n, cap, S)
@@ -175,14 +155,14 @@ def test_refactorising_from_a_row_on_is_scipys_factor_of_the_changed_matrix(n, S
 def test_a_matrix_that_is_not_positive_definite_is_refused_at_its_first_failing_block(n, S):
     """SciPy refuses it too; the keyframe named is the first whose leading block is indefinite."""
     rng = np.random.default_rng(n - S)
-    H = _spd_banded(rng, n, S)
+    H = random_banded(rng, n, S)
     bad = n // 2
     H[bad * DIM + 3, bad * DIM + 3] -= 1e4
     with pytest.raises(LinAlgError):
         cholesky_banded(_scipy_band(H, S), lower=True)
     first, cap = _ring(n)
     L = np.zeros((cap, S + 1, DIM, DIM))
-    failed = banded.factorise(_blocks(H, S), L, first, first, first + n - 1, cap, S)
+    failed = banded.factorise(band(H, S), L, first, first, first + n - 1, cap, S)
     leading = [np.linalg.eigvalsh(H[:(k + 1) * DIM, :(k + 1) * DIM]).min() > 0 for k in range(n)]
     assert failed == first + leading.index(False) == first + bad
 
@@ -194,18 +174,18 @@ def test_the_schur_complement_is_scipys(n, S, nl):
     ``R^T R`` equal to it on the keyframes it ties."""
     rng = np.random.default_rng(n + 31 * nl)
     d = 10.0 ** rng.uniform(-3.0, 3.0, size=n * DIM)  # badly scaled too
-    H = _spd_banded(rng, n, S) * np.outer(d, d)
+    H = random_banded(rng, n, S) * np.outer(d, d)
     g = rng.normal(size=len(H))
     m = nl * DIM
     X = solveh_banded(_scipy_band(H[:m, :m], min(S, nl - 1)), np.column_stack([H[:m, m:], g[:m]]), lower=True)
     Hs_expected = H[m:, m:] - H[m:, :m] @ X[:, :-1]
     gs_expected = g[m:] - H[m:, :m] @ X[:, -1]
-    Hs, gs, ok = banded.schur(_blocks(H, S), g, *banded.no_border(n), nl)
+    Hs, gs, ok = banded.schur(band(H, S), g, *banded.no_border(n), nl)
     assert ok
     scale = np.sqrt(np.outer(np.diag(Hs_expected), np.diag(Hs_expected)))
     np.testing.assert_allclose(Hs / scale, Hs_expected / scale, atol=1e-9)
     np.testing.assert_allclose(gs, gs_expected, rtol=1e-8, atol=1e-10 * np.abs(gs_expected).max())
-    status, touched, R, e0, _, _ = banded.marginal_prior(_blocks(H, S), g, *banded.no_border(n), nl)
+    status, touched, R, e0, _, _ = banded.marginal_prior(band(H, S), g, *banded.no_border(n), nl)
     keep = (touched[:, None] * DIM + np.arange(DIM)).ravel()
     informed = [b for b in range(n - nl) if np.any(Hs_expected[b * DIM:(b + 1) * DIM] != 0.0)]
     assert status == 0 and touched.tolist() == informed

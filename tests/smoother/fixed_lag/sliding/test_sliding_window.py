@@ -1,37 +1,30 @@
 """The compiled sliding-window fixed-lag smoother (:mod:`smoother.fixed_lag.sliding.window`): its linear
-algebra against dense NumPy, its robust weights against GTSAM's, and its estimates against the
-batch smoother where they must agree (a window longer than the run marginalises nothing)."""
+algebra against dense NumPy, its robust weights against GTSAM's, the factor it keeps across updates
+against one made from scratch, its relinearisation, its step limit and its recovery. What every
+kind of window does (against the EKF, the batch smoother, an IMU gap) is in
+``tests/smoother/fixed_lag/test_window_contract.py``."""
 from __future__ import annotations
 
 import estimator_cases as cases
 import gtsam
 import numpy as np
 import pytest
+from banded_cases import band, dense, random_banded
 
 from datasets.simulate import simulate
 from factors.imu import ImuNoise
-from smoother.batch.solve import solve_batch
 from smoother.fixed_lag.sliding import banded, kernels, normal_equations
 from smoother.fixed_lag.sliding import window as sw
-from smoother.model.problem import build_problem
 from smoother.online.replay import replay
 
 DIM = sw.DIM
 
 
-def _banded(rng, n: int, S: int) -> tuple[np.ndarray, np.ndarray]:
-    """A random positive definite block-banded matrix (blocks of 15, bandwidth ``S``: each
-    keyframe's factor reaches ``S`` keyframes back) as ``(Hb, dense)``."""
-    H = np.eye(n * DIM)
-    for k in range(n):
-        lo = max(0, k - S) * DIM
-        J = rng.normal(size=(DIM, (k + 1) * DIM - lo))
-        H[lo:(k + 1) * DIM, lo:(k + 1) * DIM] += J.T @ J
-    Hb = np.zeros((n, S + 1, DIM, DIM))
-    for k in range(n):
-        for s in range(min(k, S) + 1):
-            Hb[k, s] = H[k * DIM:(k + 1) * DIM, (k - s) * DIM:(k - s + 1) * DIM]
-    return Hb, H
+def _random(rng, n: int, S: int) -> tuple[np.ndarray, np.ndarray]:
+    """A random positive definite block-banded matrix (:func:`banded_cases.random_banded`) as
+    ``(Hb, dense)``."""
+    H = random_banded(rng, n, S)
+    return band(H, S), H
 
 
 def _ring(Hb: np.ndarray, first: int, cap: int) -> np.ndarray:
@@ -54,7 +47,7 @@ def _solve(L, g, first, n, cap, S):
 def test_banded_cholesky_solve_and_covariances_equal_dense_numpy(n, S):
     """Window keyframes 5 .. 5 + n - 1 in a ring of 8 slots (it wraps round)."""
     rng = np.random.default_rng(n * 10 + S)
-    Hb, H = _banded(rng, n, S)
+    Hb, H = _random(rng, n, S)
     first, cap = 5, 8
     L = np.zeros((cap, S + 1, DIM, DIM))
     assert banded.factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
@@ -77,7 +70,7 @@ def test_rows_factorised_again_from_a_keyframe_on_equal_a_whole_factorisation(S)
     stays valid."""
     rng = np.random.default_rng(S)
     n, first, cap, b0 = 7, 3, 8, 4
-    Hb, H = _banded(rng, n, S)
+    Hb, H = _random(rng, n, S)
     L = np.zeros((cap, S + 1, DIM, DIM))
     assert banded.factorise(Hb, L, first, first, first + n - 1, cap, S) == -1
     g = rng.normal(size=n * DIM)
@@ -106,7 +99,7 @@ def test_the_rows_after_marginalised_keyframes_factor_their_schur_complement():
     solution) are those of the Schur complement: marginalising needs no new factorisation."""
     rng = np.random.default_rng(3)
     n, S, nl, cap = 6, 2, 2, 8
-    Hb, H = _banded(rng, n, S)
+    Hb, H = _random(rng, n, S)
     g = rng.normal(size=n * DIM)
     L = np.zeros((cap, S + 1, DIM, DIM))
     assert banded.factorise(Hb, L, 0, 0, n - 1, cap, S) == -1
@@ -123,7 +116,7 @@ def test_the_rows_after_marginalised_keyframes_factor_their_schur_complement():
 
 def test_an_indefinite_block_is_named():
     rng = np.random.default_rng(0)
-    Hb, _ = _banded(rng, 4, 1)
+    Hb, _ = _random(rng, 4, 1)
     Hb[2, 0] -= 1e6 * np.eye(DIM)
     assert banded.factorise(Hb, np.zeros((8, 2, DIM, DIM)), 0, 0, 3, 8, 1) == 2
 
@@ -131,7 +124,7 @@ def test_an_indefinite_block_is_named():
 @pytest.mark.parametrize("nl", [1, 2])
 def test_schur_complement_equals_dense_numpy(nl):
     rng = np.random.default_rng(nl)
-    Hb, H = _banded(rng, 4, 1)
+    Hb, H = _random(rng, 4, 1)
     g = rng.normal(size=len(H))
     Hs, gs, ok = banded.schur(Hb, g, *banded.no_border(4), nl)
     m = nl * DIM
@@ -144,7 +137,7 @@ def test_schur_complement_equals_dense_numpy(nl):
 @pytest.mark.parametrize("nl", [1, 2])
 def test_the_marginal_prior_is_the_square_root_of_the_schur_complement(nl):
     rng = np.random.default_rng(nl)
-    Hb, H = _banded(rng, 4, 2)
+    Hb, H = _random(rng, 4, 2)
     g = rng.normal(size=len(H))
     status, touched, R, e0, _, _ = banded.marginal_prior(Hb, g, *banded.no_border(4), nl)
     m = nl * DIM
@@ -163,7 +156,7 @@ def test_the_bordered_marginal_prior_is_the_square_root_of_the_bordered_schur_co
     keyframes and the calibrations, the Schur complement of the dense bordered system, and its
     own share of the calibrations' ``(D, g_c)`` is that complement's calibration block."""
     rng = np.random.default_rng(10 + nl)
-    _, A = _banded(rng, 4, 2)
+    _, A = _random(rng, 4, 2)
     nc, N = 3, len(A)
     H = np.zeros((N + nc, N + nc))
     H[:N, :N] = A
@@ -236,43 +229,6 @@ def test_robust_weights_are_gtsams(name):
         assert normal_equations.robust_scale(normal_equations.ROBUST_CODES[name], k, norm) ** 2 == pytest.approx(kernel.weight(norm), abs=1e-12)
 
 
-def test_a_window_longer_than_the_run_reaches_the_batch_optimum(gentle):
-    """Nothing is marginalised, one linear solve per keyframe, keyframes relinearised as they move:
-    at the end the window is the batch smoother's estimate (within 0.05 sigma; measured 0.006)
-    with its covariances (within 0.02 in correlation units at the newest keyframe; measured
-    0.002)."""
-    data = cases.dataset(gentle)
-    result = replay(data, 100.0, "sliding", covariances=True, progress=False)
-    batch = solve_batch(build_problem(data))
-    assert result.smoothed.t.tolist() == batch.trajectory.t.tolist()
-    diff = cases.sigma_difference(result.smoothed.states, batch.trajectory.states, batch.trajectory.cov)
-    assert diff.max() < 0.05, diff.max()
-    a, b = result.smoothed.cov[-1], batch.trajectory.cov[-1]
-    scale = np.sqrt(np.diag(b))
-    assert (np.abs(a - b) / np.outer(scale, scale)).max() < 0.02
-
-
-def test_an_imu_gap_longer_than_the_lag_keeps_its_imu_factor(gentle):
-    """The newest keyframe stays until the next is added: keyframes 1 s apart with a 0.3-s lag
-    are tied by their IMU factors, no weak prior; with nothing measured the estimates are the dead
-    reckoning from the initial state, as GTSAM's incremental smoother's (equal within 1e-6 m)."""
-    from smoother.online.smoother import OnlineSmoother
-
-    data = cases.dataset(gentle)
-    recovered, positions = {}, {}
-    for kind in ("sliding", "incremental"):
-        online = OnlineSmoother(data.initial, data.initial_cov, data.noise, gravity=data.gravity, lag_s=0.3,
-                                kind=kind)
-        online.keyframe_at(data.imu.t[0] + np.array([1.0, 2.0]))
-        online.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
-        online.finish()
-        recovered[kind] = online.recovered
-        positions[kind] = np.stack([e.state.r for e in online.smoothed()])
-    assert recovered["sliding"] == []
-    assert len(positions["sliding"]) == 4  # the start, 1 s, 2 s and the end of the data
-    np.testing.assert_allclose(positions["sliding"], positions["incremental"], atol=1e-6)
-
-
 def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
     """After each update -- rows factorised again only from the oldest change on, keyframes
     marginalised without a new factorisation -- the window's factor and offsets equal a
@@ -295,7 +251,7 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
             rows = slots[s:]  # the blocks (k, k - s) inside the window
             np.testing.assert_allclose(window._L[rows, s], L[rows, s], rtol=1e-9, atol=1e-9 * np.abs(L[rows, s]).max())
         if valid == n:
-            delta = np.linalg.solve(_dense(Hb), -g)
+            delta = np.linalg.solve(dense(Hb), -g)
             slots = np.arange(window.first, window.newest + 1) % cap
             # (a dense solve of H, conditioned as it is, against the banded one: 1e-6 of the largest
             # offset; a stale row or a wrong prior is wrong at the offsets' own size)
@@ -311,17 +267,6 @@ def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
     finally:
         sw.SlidingWindow._solve = solve
     assert checked["whole"] > 10 and checked["before the stale rows"] > 0, checked
-
-
-def _dense(Hb: np.ndarray) -> np.ndarray:
-    """The symmetric matrix of the block-banded ``Hb`` (row blocks from 0)."""
-    n, S1 = Hb.shape[:2]
-    H = np.zeros((n * DIM, n * DIM))
-    for k in range(n):
-        for s in range(min(k, S1 - 1) + 1):
-            H[k * DIM:(k + 1) * DIM, (k - s) * DIM:(k - s + 1) * DIM] = Hb[k, s]
-            H[(k - s) * DIM:(k - s + 1) * DIM, k * DIM:(k + 1) * DIM] = Hb[k, s].T
-    return H
 
 
 def test_relinearising_less_often_stays_close_to_relinearising_everything(gentle, monkeypatch):
@@ -445,7 +390,7 @@ def test_a_measurement_on_older_keyframes_only_refactorises_from_them(gentle, mo
             return
         Hb, g, _ = window._normal_equations(window.first, window.newest + 1, window.newest - window.first + 1,
                                          window._S)
-        H = _dense(Hb)
+        H = dense(Hb)
         delta = np.linalg.solve(H, -g)
         slots = np.arange(window.first, window.newest + 1) % window._cap
         worst.append(np.max(np.abs(window._dx[slots, :, 0].ravel() - delta) / np.sqrt(np.diag(np.linalg.inv(H)))))
@@ -469,7 +414,8 @@ def test_a_refused_keyframe_leaves_the_window_as_it_was(gentle):
     online.add_imu(data.imu.t[:150], data.imu.acc[:150], data.imu.gyro[:150])
     window = online._window
     before = (window.first, window.newest, window._m, len(window._priors), window.skipped)
-    spec = measurement_spec(Sensor("pose", "pose", data.sensor("pose").data.subset(slice(0, 1))))
+    # a copy of the first pose (a slice would be a view: the case's data are shared by the session)
+    spec = measurement_spec(Sensor("pose", "pose", data.sensor("pose").data.subset([0])))
     state = window.newest_state
     t = window.time(window.newest) + 1.0  # the older keyframes would leave
     spec.cov[0] = -np.eye(6)
@@ -493,7 +439,7 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
 
     from datasets.simulated_sensors import SensorSpec
     from datasets.types import Sensor, VelocityMeasurements
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     def run(velocity_density):
         noise = ImuNoise(acc=1.8e-2, gyro=3.7e-3, acc_bias=3e-3, gyro_bias=5e-4, velocity=velocity_density)
@@ -537,7 +483,7 @@ def test_a_keyframe_whose_information_fails_gets_a_weak_prior_and_the_update_goe
 
 
 def test_a_keyframe_refused_again_after_its_weak_prior_stops_the_update_naming_why(monkeypatch):
-    from smoother.fixed_lag.gtsam_window import FixedLagFailed
+    from smoother.fixed_lag.contract import FixedLagFailed
 
     data = simulate("gentle", duration=2, seed=2)
 

@@ -1,5 +1,7 @@
-"""Fixed-lag smoothing (smoother/fixed_lag.py): the window, long runs with a measurement gap,
-factors older than the lag, recovery, options. (Tracking of the EKF is in test_crosscheck.py.)"""
+"""GTSAM's fixed-lag smoothers as a window (:mod:`smoother.fixed_lag.gtsam_window`): a long run with a
+measurement gap, the factors a run holds and GTSAM's graph kept to the window, a keyframe GTSAM
+marginalises before it was read, the window's covariances, and the batch smoother's isolated misses
+at a short lag. What every kind of window does is in ``test_window_contract.py``."""
 from __future__ import annotations
 
 import functools
@@ -13,45 +15,20 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
+from smoother.evaluation.crosscheck import TARGETS
 from smoother.fixed_lag import gtsam_window as fixed_lag
-from smoother.fixed_lag.gtsam_window import KINDS, make_smoother, run_fixed_lag
+from smoother.fixed_lag.gtsam_window import make_smoother
+from smoother.fixed_lag.kinds import GTSAM_KINDS
+from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
 
 import estimator_cases as cases
-
-LAG = 1.0
-
-
-@pytest.mark.parametrize("kind", KINDS)
-def test_window_holds_the_last_lag_seconds_smoothed_like_the_batch(tumbling, kind):
-    """At the end the window holds the keyframes of the last ``lag`` seconds (GTSAM keeps a
-    variable while ``t_newest - t <= lag``), its last state is the newest estimate, and inside it
-    the fixed-lag estimates are those of the full batch smoother within 0.05 batch sigma
-    (measured 0.002-0.008: the window has seen every measurement the batch has from its start
-    on; older information enters through a marginal linearised at earlier estimates)."""
-    problem, result = cases.fixed_lag(tumbling, kind, LAG)
-    t_end = problem.times[-1]
-    expected = problem.times[problem.times >= t_end - LAG - 1e-9]
-    np.testing.assert_array_equal(result.window.t, expected)
-    assert len(expected) == 11
-    for name in ("r", "v", "C", "b_f", "b_w"):
-        np.testing.assert_allclose(getattr(result.window.states, name)[-1], getattr(result.newest.states, name)[-1],
-                                   rtol=0, atol=1e-9)
-    _, batch = cases.batch(tumbling)
-    i = np.searchsorted(batch.trajectory.t, result.window.t)
-    diff = cases.sigma_difference(result.window.states, batch.trajectory.states[i], batch.trajectory.cov[i])
-    assert diff.max() < 0.05, diff.max()
-    # smoothing inside the window: the first window state is more certain than when it was newest
-    first = np.searchsorted(problem.times, result.window.t[0])
-    assert np.trace(result.window.cov[0]) < np.trace(result.newest.cov[first])
-    assert result.skipped_factors == 0 and result.recovered == []
-    assert len(result.update_s) == len(problem.times)
 
 
 @functools.lru_cache(maxsize=None)
 def gap_run():
     """10 s gentle run, poses at 10 Hz except in [4, 6) s, lag 0.5 s (incremental smoother): the
-    one warning is that of the gap (test_either_kind_warns_...)."""
+    one warning is that of the gap (as test_window_contract.test_every_kind_warns_... has it)."""
     data = simulate(profile="gentle", duration=10.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
     keep = (data.sensor("pose").data.t < 4.0) | (data.sensor("pose").data.t >= 6.0)
     gapped = data.with_sensor("pose", data=data.sensor("pose").data.subset(keep))
@@ -98,73 +75,7 @@ def test_a_long_run_with_a_measurement_gap_keeps_working():
 
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_either_kind_warns_when_measurements_are_further_apart_than_the_lag(kind):
-    """A keyframe that leaves the window before the next measurement keeps its dead-reckoned
-    estimate (and GTSAM's BatchFixedLagSmoother drifts off besides: it keeps its window's oldest
-    state linearised where dead reckoning put it): the 2-s pose gap of gap_run() with a 0.5-s
-    lag is named, with the lag that would cover it; a 3-s lag needs no warning."""
-    data, problem, _ = gap_run()
-    with pytest.warns(UserWarning, match=rf"fixed-lag \({kind}\): absolute measurements \(fixes, poses, attitudes\) up to 2.1 s apart, longer than the "
-                                         r"lag \(0.5 s\).*Choose a lag of at least 2.1 s"):
-        run_fixed_lag(problem, 0.5, kind, covariances=False, progress=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        run_fixed_lag(problem, 3.0, kind, covariances=False, progress=False)
-
-
-def test_factors_older_than_the_lag_are_skipped_with_a_warning():
-    """Odometry between keyframes 1 s apart with a lag of 0.3 s: when such a factor becomes
-    available its earlier keyframe has been marginalised; it is skipped (and counted) instead of
-    failing GTSAM. With a 2 s lag the same factors are all used."""
-    data = simulate(profile="gentle", duration=2.0, seed=1, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
-                    odometry_rate=1.0)
-    assert len(data.sensor("odometry").data) == 2
-    with pytest.warns(UserWarning, match="2 factors referred to variables older than the lag"):
-        short = run_fixed_lag(build_problem(data), 0.3, "incremental", covariances=False, progress=False)
-    assert short.skipped_factors == 2
-    assert np.all(np.isfinite(short.newest.states.r))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        long = run_fixed_lag(build_problem(data), 2.0, "incremental", covariances=False, progress=False)
-    assert long.skipped_factors == 0
-
-
-@pytest.mark.parametrize("lag", [0.0, -1.0, float("nan")])
-def test_lag_must_be_positive(lag, gentle):
-    with pytest.raises(ValueError, match="lag"):
-        run_fixed_lag(cases.problem(gentle), lag)
-
-
-def test_unknown_kind_is_refused(gentle):
-    with pytest.raises(ValueError, match="kind"):
-        run_fixed_lag(cases.problem(gentle), 1.0, "window")
-
-
-@pytest.mark.parametrize("kind", KINDS)
-def test_a_keyframe_without_imu_link_is_recovered_with_a_weak_prior(kind):
-    """Keyframe 5 of a 1.5 s run keeps its pose measurement but loses its IMU factor (as a gap
-    in the IMU data would leave it): its velocity and biases are unconstrained. Nothing ties it
-    to the window, so it gets a weak prior in the same update and the run goes on (before that
-    change GTSAM raised 'Leftover keys after elimination' / ISAM2 an IndexError, which the
-    catch-and-retry could not recover: ISAM2 is inconsistent after a failed update)."""
-    data = simulate(profile="gentle", duration=1.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
-    problem = build_problem(data)
-    k = 5
-
-    def without_imu_factor(j):
-        made = problem.keyframe_factors(j)
-        if j == k:  # the factor goes; the interval's prediction (the initial guess) stays
-            assert made.factors[0] is made.imu.factor and len(made.factors) == 2
-            made = replace(made, factors=made.factors[1:], rows=made.rows[1:], oldest=made.oldest[1:])
-        return made
-
-    result = run_fixed_lag(replace(problem, keyframe_factors=without_imu_factor), 0.3, kind, progress=False)
-    assert result.recovered == [k]
-    assert np.all(np.isfinite(result.newest.states.r))
-
-
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", GTSAM_KINDS)
 def test_a_run_holds_the_factors_of_its_window_only(kind, gentle):
     """The loop makes each keyframe's factors when it reaches it and lets go of them when GTSAM
     marginalises their keyframes, so what a run holds does not grow with its length. Watched
@@ -191,7 +102,7 @@ def test_a_run_holds_the_factors_of_its_window_only(kind, gentle):
     assert not any(r() is not None for r in imu_factors + factors)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", GTSAM_KINDS)
 def test_the_smoother_keeps_its_factor_graph_to_the_window_over_a_long_run(kind):
     """Marginalisation removes factors; their slots must be reused, or GTSAM's factor graph
     grows with the run and every relinearisation with it (ISAM2's default). A chain of 3-vector
@@ -214,28 +125,13 @@ def test_the_smoother_keeps_its_factor_graph_to_the_window_over_a_long_run(kind)
     assert sizes[-1] <= sizes[99] + 2, (sizes[99], sizes[-1])
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_each_keyframe_keeps_the_estimate_of_the_last_update_that_held_it(gentle, kind):
-    """``lagged``: without covariances only the keyframes that the next update marginalises are
-    read; with them the whole window is read at every update. Both give the same estimates, bit
-    for bit; the last window's are the window's own, and the older ones are smoothed (they
-    differ from the filtered ``newest``)."""
-    partial = run_fixed_lag(cases.problem(gentle), 0.5, kind, covariances=False, progress=False)
-    whole = run_fixed_lag(cases.problem(gentle), 0.5, kind, covariances=True, progress=False)
-    for name in ("r", "v", "C", "b_f", "b_w"):
-        np.testing.assert_array_equal(getattr(partial.lagged.states, name), getattr(whole.lagged.states, name))
-        np.testing.assert_array_equal(getattr(partial.lagged.states, name)[-len(partial.window.t):],
-                                      getattr(partial.window.states, name))
-    assert np.abs(partial.lagged.states.r[:-6] - partial.newest.states.r[:-6]).max(axis=1).min() > 0.0
-
-
 @pytest.mark.parametrize("covariances", [False, True])
 def test_a_keyframe_marginalised_before_it_was_read_is_an_error(gentle, monkeypatch, covariances):
     """The smoother takes a keyframe's estimate (and covariance) just before the update that
     marginalises it; were GTSAM to marginalise earlier than that rule says (simulated by a margin
     that takes them more than a keyframe period too late), the run stops with a clear error
     instead of returning an older estimate."""
-    monkeypatch.setattr(fixed_lag, "_LAG_MARGIN_S", -0.15)
+    monkeypatch.setattr(fixed_lag, "LAG_MARGIN_S", -0.15)
     with pytest.raises(RuntimeError, match="left the window before its estimate was taken"):
         run_fixed_lag(cases.problem(gentle), 0.5, "incremental", covariances=covariances, progress=False)
 
@@ -304,13 +200,16 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
     assert max(errors) <= 1e-6, max(errors)
 
 
-def test_the_lag_warning_tells_a_gap_from_the_lag_and_suggests_a_lag_that_reaches_it():
-    """A gap of 2.0019 s beside a 2-s lag is not printed as "2 s", and the lag suggested is rounded
-    up, never below the gap."""
-    from smoother.fixed_lag.gtsam_window import sparse_measurement_warning
-
-    text = sparse_measurement_warning(2.0019, 2.0, "sliding")
-    assert "up to 2.002 s apart" in text and "at least 2.002 s" in text
-    suggested = float(sparse_measurement_warning(4.0012, 2.0, "sliding").split("at least ")[1].split(" s")[0])
-    assert suggested >= 4.0012
-    assert sparse_measurement_warning(2.0, 2.0, "sliding") is None
+@pytest.mark.xfail(strict=True, reason=(
+    "GTSAM's BatchFixedLagSmoother keeps the state its marginal factor lands on linearised at a "
+    "fixed point (enforceConsistency: on by default, not settable from Python). With a short lag "
+    "(0.5 s here; 0.3-0.45 s on other seeds) its Levenberg-Marquardt then finds no descent after "
+    "1-2 iterations at isolated updates: the newest state is off by up to 0.39 EKF sigma (1.3 sigma "
+    "at lag 0.3 s) while its covariance is right (trace ratio 1.00); the next update is back within "
+    "0.01 sigma. A Python copy of its algorithm with enforceConsistency off passes; the incremental "
+    "smoother is not affected, lags >= 1 s rarely (one keyframe at 0.31 sigma, on one tumbling seed in six)"))
+def test_batch_fixed_lag_with_a_short_lag_tracks_the_ekf():
+    spec = cases.CaseSpec("gentle", 3.0, 2)
+    ekf = cases.ekf(spec).trajectory
+    _, result = cases.fixed_lag(spec, "batch", 0.5)
+    assert cases.sigma_difference(result.newest.states, ekf.states, ekf.cov).max() < TARGETS["fixed_lag_max_sigma"]
