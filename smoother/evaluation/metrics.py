@@ -264,12 +264,6 @@ def fit_alignment(ref_r, est_r, mode: str = "se3") -> Alignment:
     return Alignment(*fit, applied, mode, first, note)
 
 
-def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` of :func:`fit_alignment`."""
-    a = fit_alignment(ref_r, est_r, mode)
-    return a.R, a.t, a.s
-
-
 def apply_alignment(R, t, s, r, C) -> tuple[np.ndarray, np.ndarray]:
     """``(s R r + t, R C)``."""
     r = np.asarray(r, dtype=float)
