@@ -1,5 +1,6 @@
-"""Compiled linear algebra on small dense matrices, shared by the EKF's update, the sliding
-window (:mod:`smoother.fixed_lag.sliding.window`) and the data types' checks (:mod:`datasets.types`): calls
+"""Compiled linear algebra on small dense matrices, shared by the EKF's update
+(:mod:`smoother.ekf.update`), the sliding window's banded algebra
+(:mod:`smoother.fixed_lag.sliding.banded`) and the data types' checks (:mod:`datasets.types`): calls
 into LAPACK cost more than the arithmetic at these sizes (3 to a few hundred rows)."""
 from __future__ import annotations
 
@@ -27,3 +28,17 @@ def cholesky_into(S, L) -> bool:
         for j in range(i + 1, m):
             L[i, j] = 0.0
     return True
+
+
+@njit(cache=True)
+def solve_lower(L, B) -> None:
+    """``B <- L^-1 B`` in place by forward substitution, column by column (``L`` lower
+    triangular, ``B (n, m)``; a single right-hand side is passed as an ``(n, 1)`` view). Every
+    caller passes C-contiguous float64 arrays: one compiled copy."""
+    n, m = B.shape
+    for c in range(m):
+        for i in range(n):
+            s = B[i, c]
+            for j in range(i):
+                s -= L[i, j] * B[j, c]
+            B[i, c] = s / L[i, i]
