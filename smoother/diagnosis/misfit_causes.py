@@ -17,10 +17,11 @@ each candidate calibration with its own columns of ``X_i`` (``d x k``), in the u
 * ``time_offset`` ``d`` [s] (the measurement was taken at ``t_stamp + d``; ``d`` is what to add to
   the rig's ``time_offset``): ``z = h(x(t + d))`` gives ``e = -d dh/dt`` with ``dh/dt = H_i
   xdot_i``, ``H_i`` the residual's error-state Jacobian and ``xdot`` the state's rate in the
-  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)``: a position through the velocity, an
-  attitude through the angular rate, a velocity through the specific force. ``f, w`` are the
-  IMU's readings less the estimate's biases, averaged over :data:`AVERAGE_S` about ``t_i`` (one
-  sample's noise in a regressor would bias the fit towards 0). A velocity sensor's lever-arm term
+  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)`` (:func:`factors.imu.state_derivative`,
+  the model's own): a position through the velocity, an attitude through the angular rate, a
+  velocity through the specific force. ``f, w`` are the IMU's readings less the estimate's biases,
+  the readings averaged over :data:`AVERAGE_S` about ``t_i`` (one sample's noise in a regressor
+  would bias the fit towards 0). A velocity sensor's lever-arm term
   ``w x p`` also changes with the angular acceleration; that part is neglected.
 * ``rotation`` ``phi`` [rad] (``R_BS <- exp(phi) R_BS``, ``phi`` in the IMU frame): for a
   velocity sensor ``e = -R_BS^T u^x phi`` with ``u = v + w x p_BS`` the sensor's velocity in the
@@ -167,13 +168,8 @@ def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, grav
     out = {}
     if kind.name in SCALED_KINDS:
         out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
-    f, w = _averaged_imu(imu_samples, m.t, AVERAGE_S)
-    f, w = f - states.b_f, w - states.b_w
-    C, v = states.C, states.v
-    xdot = np.zeros((len(v), imu.STATE_DIM))
-    xdot[:, imu.R] = np.einsum("nij,nj->ni", C, v)
-    xdot[:, imu.V] = np.einsum("nji,j->ni", C, np.asarray(gravity, dtype=float)) + f - np.cross(w, v)
-    xdot[:, imu.PHI] = np.einsum("nij,nj->ni", C, w)
+    acc, gyro = _averaged_imu(imu_samples, m.t, AVERAGE_S)
+    xdot = imu.state_derivative(states, acc, gyro, gravity)
     out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
     R, p = extrinsic_parts(m.T_BS)
     for name, moved in (("rotation", lambda s: (so3.exp(s) @ R, p)), ("lever_arm", lambda s: (R, p + s))):
