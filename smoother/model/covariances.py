@@ -1,16 +1,30 @@
 """Marginal and joint covariances of a whitened linear system's variables, in the primer's
 convention, from its square-root information (QR elimination and a selected-inversion recursion):
-the batch smoother's keyframes and calibrations, GTSAM's fixed-lag windows, the factors' leverages."""
+the batch smoother's keyframes and calibrations, GTSAM's fixed-lag windows, the factors' leverages.
+Also a keyframe's covariance from GTSAM's own marginals on its nonlinear graph
+(:func:`keyframe_covariance`), for the estimators that run GTSAM's optimisers and smoothers."""
 from __future__ import annotations
 
 import gtsam
 import numpy as np
 
 from factors import imu
-
+from factors.keys import KeyframeKeys
+from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem
 from smoother.model.blocks import Block, Layout, linearize
 from smoother.model.rank import RANK_TOLERANCE, free_components, indeterminant_error
+
+
+def keyframe_covariance(marginals, keys: KeyframeKeys, rotation) -> np.ndarray:
+    """The primer-convention 15x15 covariance ``(dr, dv, dphi, db_f, db_w)`` of the keyframe with
+    ``keys`` from GTSAM's joint marginal of its four variables: ``marginals`` is anything with
+    GTSAM's ``jointMarginalCovariance`` (``gtsam.Marginals`` of a nonlinear graph, ``gtsam.ISAM2``),
+    ``rotation`` the keyframe's attitude at the linearisation point (a ``gtsam.Rot3`` or its 3x3
+    matrix), where GTSAM's right chart of the attitude is taken
+    (:func:`factors.uncertainty.state_covariance_to_primer`)."""
+    joint = marginals.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+    return state_covariance_to_primer(joint, rotation)
 
 
 def covariances_at(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False, calibration=None):
