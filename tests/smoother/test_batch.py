@@ -71,7 +71,7 @@ def test_linearizing_in_chunks_changes_nothing(monkeypatch):
     exactly: the same factors, the same arithmetic."""
     from smoother.model import blocks as solver
 
-    monkeypatch.setattr(solver, "LINEARIZE_CHUNK", 4)
+    monkeypatch.setattr(solver, "CHUNK", 4)
     result = solve_batch(build_problem(small()), "lm")
     ref = reference()
     assert result.iterations == ref.iterations

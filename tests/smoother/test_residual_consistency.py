@@ -129,13 +129,13 @@ def test_a_sensor_s_warning_names_every_estimator_out_of_its_band():
 
 
 def test_evaluating_in_chunks_changes_nothing(monkeypatch):
-    import smoother.diagnosis.residual_consistency as rc
+    import smoother.model.blocks as blocks
 
     data = simulate("gentle", duration=3, seed=5, pose_rate=None, sensors=[SensorSpec("wheels", "velocity", 20, 0.05)])
     problem, result = _solved(data)
     t = result.trajectory
     whole = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
-    monkeypatch.setattr(rc, "CHUNK", 7)
+    monkeypatch.setattr(blocks, "CHUNK", 7)
     chunked = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
     for a, b in zip(whole, chunked):
         assert a["measurements"] == b["measurements"]
