@@ -23,9 +23,8 @@ from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from factors.errors import BoxplusError, InputError
 from smoother.diagnosis.residual_consistency import smoother_consistency
+from smoother.estimators import ESTIMATORS
 from smoother.model.timeline import estimate_times
-
-ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
 
 @dataclass
@@ -65,7 +64,7 @@ class RunOptions:
 
 
 def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False) -> dict[str, Estimate]:
-    """Run each estimator in ``names`` (a subset of :data:`ESTIMATORS`) on ``dataset``, in the
+    """Run each estimator in ``names`` (a subset of :data:`smoother.estimators.ESTIMATORS`) on ``dataset``, in the
     order of ``names`` (:func:`estimate_each`)."""
     return dict(estimate_each(dataset, names, options, keep_going))
 

@@ -30,13 +30,13 @@ import numpy as np
 from datasets.types import Trajectory
 from factors import imu
 from factors.keys import KeyframeKeys
-from smoother.batch.optimiser import METHODS, optimize
+from smoother.batch.methods import OPTIMIZERS
+from smoother.batch.optimiser import optimize
 from smoother.model.covariances import covariances_at, keyframe_covariance
 from factors.errors import InputError
 from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
 from smoother.model.problem import Problem, read_state
 
-OPTIMIZERS = METHODS
 ENGINES = ("vectorized", "gtsam")
 
 _HINT = ("the factors do not constrain every variable there. Typical causes: a stretch with no "
@@ -44,7 +44,7 @@ _HINT = ("the factors do not constrain every variable there. Typical causes: a s
          "prior too weak, or a diverging bias. Add a prior or a measurement, or check the data "
          "around that time.")
 
-__all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_covariances", "OPTIMIZERS", "ENGINES"]
+__all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_covariances", "ENGINES"]
 
 
 @dataclass

@@ -85,6 +85,7 @@ from datasets.kinds import KINDS, measure_rows, sensors_of
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
+from smoother.estimators import ESTIMATORS
 from smoother.model.problem import build_problem
 from smoother.model.blocks import Block, evaluate_block, linearize, whitening
 
@@ -290,21 +291,17 @@ def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None,
                           values)
 
 
-#: The estimators whose estimate :func:`hints` starts from, the first that ran.
-STARTS = ("batch", "fixed-lag", "ekf")
-
-
 def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,
           robust: dict | None = None) -> dict[str, str]:
     """Per sensor of ``dataset`` with a suggested cause, its :func:`hint` from :func:`causes_at`
-    the first estimate of :data:`STARTS` that ran (``estimates`` as
+    the first estimate that ran in the order of :data:`smoother.estimators.ESTIMATORS` (``estimates`` as
     :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` when every verdict
     of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
     The sensor suggested need not be the one out of its band: a wheel's pitch that the states
     absorb shows in the fixes'."""
     if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
         return {}
-    ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
+    ran = [name for name in ESTIMATORS if name in estimates and estimates[name].failed is None]
     if not ran:
         return {}
     # the batch's verdicts count each measurement's leverage at its estimate (fit_in_problem)

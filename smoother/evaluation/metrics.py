@@ -50,9 +50,7 @@ import numpy as np
 
 from factors import so3
 from factors.errors import InputError
-
-ALIGN_MODES = ("se3", "sim3", "posyaw", "translation", "none")
-DELTA_UNITS = ("frames", "m", "s")
+from smoother.evaluation.modes import ALIGN_MODES, DELTA_UNITS
 #: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
 NEES_PARTS = {
     "pose": np.r_[0:3, 6:9],
