@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from smoother.errors import UserError
+from smoother.estimators import ESTIMATORS
 
 
 def register(sub) -> None:
@@ -42,7 +43,7 @@ def run(args) -> int:
         print(f"  final_cov_trace_ratio     {result['final_cov_trace_ratio']:.4f}  (range {lo:.4f}..{hi:.4f}, within 10% of 1)")
         print(f"  fixed_lag_max_sigma       {result['fixed_lag_max_sigma']:.4f}  (< {TARGETS['fixed_lag_max_sigma']:g})")
         low, high = result["nees_interval_95"]
-        for name in ("batch", "fixed-lag", "ekf"):
+        for name in ESTIMATORS:
             print(f"  {name:<10} ATE {result['ate_rmse_m'][name]:.4f} m   NEES/6 {result['nees_mean'][name]:.3f}"
                   f"  (95% interval {low:.3f}..{high:.3f})")
         failed = [k for k, v in result["checks"].items() if not v]

@@ -46,7 +46,7 @@ _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
 
 def run_files() -> frozenset[str]:
     """The names of every file a run (or ``smoother plot`` into it) writes into a run directory."""
-    from smoother.pipeline import ESTIMATORS
+    from smoother.estimators import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
                      + list(REFERENCES) + [METRICS, MCAP, CALIBRATED_RIG] + [f"{figure}.png" for figure in FIGURES])

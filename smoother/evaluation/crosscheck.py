@@ -27,6 +27,7 @@ from factors import imu
 from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
+from smoother.estimators import ESTIMATORS
 from smoother.fixed_lag.gtsam_window import run_fixed_lag
 from smoother.model.problem import build_problem
 from smoother.evaluation.scoring import compare_with_truth
@@ -104,7 +105,7 @@ def crosscheck(options: CrosscheckOptions, progress=None) -> dict:
         runs.append(one_seed(options, seed))
         if progress is not None:
             progress(seed)
-    names = ("batch", "fixed-lag", "ekf")
+    names = ESTIMATORS
     low, high = (b / 6.0 for b in stats.nees_bounds(6, options.seeds))
     nees_mean = {n: float(np.mean([r["nees"][n] for r in runs])) for n in names}
     ate = {n: float(np.mean([r["ate_rmse_m"][n] for r in runs])) for n in names}

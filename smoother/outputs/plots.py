@@ -47,6 +47,7 @@ from datasets.atomic import atomic_write
 from datasets.types import Trajectory
 from factors.errors import InputError
 from smoother import stats
+from smoother.estimators import ESTIMATORS
 from smoother.evaluation import metrics
 from smoother.evaluation import scoring as report
 from smoother.evaluation.scoring import fix_residuals, truth_at
@@ -66,7 +67,7 @@ FIGSIZE = {
     "allan": (12.0, 5.0),
 }
 #: Estimators in the order they are drawn, with their colours (others get the next free colour).
-ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
+ESTIMATOR_ORDER = ESTIMATORS
 COLORS = {"batch": "tab:blue", "fixed-lag": "tab:orange", "ekf": "tab:green"}
 #: Fixed-lag's newest state is close to the EKF's: it is drawn dashed and on top, so both show.
 LINESTYLES = {"fixed-lag": (0, (4, 2))}
