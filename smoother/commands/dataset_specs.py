@@ -63,14 +63,14 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
     return _with_truth_measurements(dataset, options)
 
 
-def load_rig(path) -> tuple[Dataset, dict]:
+def load_rig_dataset(path) -> tuple[Dataset, dict]:
     """The recording a rig file describes (:func:`datasets.recording.load_recording`) and the
     robust kernels its sensors ask for, by sensor name; errors become one-line UserErrors."""
     from datasets.recording import load_recording
-    from datasets.rig import load_rig as read_rig
+    from datasets.rig import load_rig
 
     try:
-        rig = read_rig(path)
+        rig = load_rig(path)
         dataset = load_recording(rig)
     except (ValueError, OSError) as error:
         raise UserError(f"{path}: {error}" if str(path) not in str(error) else str(error)) from None

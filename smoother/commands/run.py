@@ -153,7 +153,7 @@ def _run(args) -> int:
                                 "a sensor's `every` in the rig file" if option == "--gps-every" else
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
     if args.rig is not None:
-        dataset, rig_robust = sources.load_rig(args.rig)
+        dataset, rig_robust = sources.load_rig_dataset(args.rig)
     else:
         dataset, rig_robust = sources.load(args.dataset or "synthetic:gentle", options), None
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
@@ -182,7 +182,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.diagnosis.misfit_causes import hints
-    from smoother.pipeline import estimate_each, judged, sensor_consistency
+    from smoother.pipeline import estimate_each, judged, verdicts_by_estimator
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s", file=sys.stderr)
     started = time.perf_counter()
@@ -209,7 +209,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"metrics.json says stopped: {stopped}", file=sys.stderr)
         return code
     estimates = _in_order(estimates, names)
-    consistency = sensor_consistency(dataset, estimates, run_options)
+    consistency = verdicts_by_estimator(dataset, estimates, run_options)
     judged(estimates, consistency)
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:

@@ -38,8 +38,8 @@ METRICS = "metrics.json"
 MCAP = "estimates.mcap"
 #: The rig with the batch smoother's calibration written in (a rig run that estimates one).
 CALIBRATED_RIG = "calibrated.toml"
-#: The figures of a run directory (:func:`smoother.outputs.plots.plot_run`), as ``<name>.png``.
-FIGURES = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
+#: The plots of a run directory (:func:`smoother.outputs.plots.plot_run`), as ``<name>.png``.
+PLOTS = ("trajectory", "position_error", "orientation_error", "nees", "biases", "comparison")
 #: Lock errors of a file system without locks: the run goes on, unguarded, with a warning.
 _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
 
@@ -49,7 +49,7 @@ def run_files() -> frozenset[str]:
     from smoother.estimators import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
-                     + list(REFERENCES) + [METRICS, MCAP, CALIBRATED_RIG] + [f"{figure}.png" for figure in FIGURES])
+                     + list(REFERENCES) + [METRICS, MCAP, CALIBRATED_RIG] + [f"{plot}.png" for plot in PLOTS])
 
 
 class RunDirectory:

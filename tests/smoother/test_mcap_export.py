@@ -58,7 +58,7 @@ def test_odometry_of_each_estimator_is_its_npz(run):
     attitude, pose covariance = the npz's (dr, dphi) block; twist = body velocity and gyro less
     its bias, with the (dv, -db_w) covariance and the gyro's white noise on the rate."""
     rig, out, messages = run
-    dataset, _ = sources.load_rig(rig)
+    dataset, _ = sources.load_rig_dataset(rig)
     gyro_variance = dataset.noise.gyro**2 / np.median(np.diff(dataset.imu.t))
     for name in ESTIMATORS:
         trajectory, origin = files.load_stamped_trajectory(out / f"{name}.npz")
