@@ -15,6 +15,7 @@ import math
 import sys
 
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
+from factors.errors import InternalError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -33,7 +34,7 @@ def _value(v) -> str:
         return json.dumps(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_value(x) for x in v) + "]"
-    raise TypeError(f"no TOML value for {type(v).__name__}")
+    raise InternalError(f"no TOML value for {type(v).__name__}")
 
 
 def _table(lines: list[str], header: str, table: dict) -> None:

@@ -24,6 +24,7 @@ import numpy as np
 
 from datasets.simulate import simulate
 from factors import imu
+from factors.errors import InternalError
 from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
@@ -82,7 +83,7 @@ def one_seed(options: CrosscheckOptions, seed: int) -> dict:
     fixed = run_fixed_lag(problem, options.lag_s, options.fixed_lag_kind, progress=False).newest
     i_ekf = np.searchsorted(ekf.t, problem.times)
     if not np.array_equal(ekf.t[i_ekf], problem.times):
-        raise RuntimeError("EKF and smoother keyframe times differ")
+        raise InternalError("EKF and smoother keyframe times differ")
     out = {
         "prediction_max_abs_error": prediction_error(problem, dataset),
         "final_state_max_sigma": float(sigma_difference(batch.states[-1], ekf.states[-1], ekf.cov[-1]).max()),

@@ -50,7 +50,7 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu, preintegration, priors
-from factors.errors import InputError, SolverError
+from factors.errors import InputError, InternalError, SolverError
 from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
 from smoother.errors import IndeterminantSystem, is_indeterminant
@@ -423,7 +423,7 @@ class KeyframeWindow:
         self._present = set(int(key) for key in self.estimate.keys())
         while keyframe_keys(self.first).rot not in self._present:  # the window is contiguous: [first, k]
             if self._taken_after.pop(self.first, None) != k - 1:  # GTSAM marginalised earlier than leaving() says
-                raise RuntimeError(f"fixed-lag: keyframe {self.first} (t = {self._times[self.first]:.6f} s) left "
+                raise InternalError(f"fixed-lag: keyframe {self.first} (t = {self._times[self.first]:.6f} s) left "
                                    "the window before its estimate was taken")
             for f in self._held.pop(self.first, ()):  # marginalised with the keyframe: GTSAM has let go of it
                 self.rows_of.pop(id(f), None)

@@ -59,7 +59,7 @@ import numpy as np
 
 from datasets.kinds import LAYOUTS, quiet_dispatch
 from factors import imu, preintegration
-from factors.errors import InputError
+from factors.errors import InputError, InternalError
 from factors.sensor_models import MAX_ROW_WIDTH
 from smoother.fixed_lag.gtsam_window import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed
 from smoother.fixed_lag.sliding.banded import (
@@ -607,7 +607,7 @@ class SlidingWindow:
             return
         for j in leaving:
             if self._taken_after.pop(j, None) != self.newest:
-                raise RuntimeError(f"fixed-lag: keyframe {j} (t = {self.time(j):.6f} s) left the window before its "
+                raise InternalError(f"fixed-lag: keyframe {j} (t = {self.time(j):.6f} s) left the window before its "
                                    "estimate was taken")
         cut = leaving[-1] + 1
         S = self._bandwidth()
