@@ -238,7 +238,7 @@ class OnlineSmoother:
         self._last_t = None  # the newest keyframe's time
         self._last_measured_t = None
         self._newest = None  # the newest keyframe's estimate (what the next IMU interval starts from)
-        warm_up.in_this_process()
+        warm_up.in_this_process(OnlineSmoother)
 
     @classmethod
     def for_dataset(cls, dataset: Dataset, robust: dict | None = None, **options) -> "OnlineSmoother":

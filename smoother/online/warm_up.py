@@ -1,6 +1,7 @@
 """The compiled kernels made ready before they are needed: in this process, when an online smoother
 is made (:func:`in_this_process`), and in a second process while this one runs the other
-estimators (:func:`start`).
+estimators (:func:`start`; the child is ``python -m smoother.online.replay``, which replays a few
+seconds of simulated data). Neither imports the smoother it warms up, which imports this module.
 
 Numba compiles a kernel the first time it runs and keeps it on disk (``cache=True``); a first run
 -- a fresh install, an edited kernel -- spends most of its time compiling, one kernel after the
@@ -75,44 +76,30 @@ def start(order, fixed_lag_kind: str) -> WarmUp | None:
         return None
     root = Path(__file__).resolve().parents[2]
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    process = subprocess.Popen([sys.executable, "-m", "smoother.online.warm_up"], cwd=root, env=environment,
+    process = subprocess.Popen([sys.executable, "-m", "smoother.online.replay"], cwd=root, env=environment,
                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return WarmUp(process)
 
 
-def _compile() -> None:
-    """The child: the sliding window over 3 s of the simulator's default run (every kernel an
-    update, a marginalisation and the covariances call)."""
-    import warnings
-
-    from datasets.simulate import simulate
-    from smoother.online.replay import replay
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        replay(simulate("gentle", duration=3.0, seed=0), 1.0, "sliding", covariances=True, progress=False)
-
 _warmed = False
 
 
-def in_this_process() -> None:
+def in_this_process(online_smoother) -> None:
     """Load (or compile) every kernel the loop calls -- the checks of an IMU sample and of a pose,
     the interval's preintegration and prediction, the window's update and marginalisation, the
-    per-sample estimate -- once per process, by feeding a throwaway smoother half a second of a
-    resting IMU and three poses: otherwise the first keyframes and the first marginalisation of a
-    robot's run stall by the loading (10-250 ms). :class:`smoother.online.smoother.OnlineSmoother`
-    calls it when it is made."""
+    per-sample estimate -- once per process, by feeding a throwaway smoother (of the class
+    ``online_smoother``) half a second of a resting IMU and three poses: otherwise the first
+    keyframes and the first marginalisation of a robot's run stall by the loading (10-250 ms).
+    :class:`smoother.online.smoother.OnlineSmoother` calls it, with itself, when it is made."""
     global _warmed
     if _warmed:
         return
     _warmed = True
-    from smoother.online.smoother import OnlineSmoother
-
     t = np.arange(0.0, 0.8, 0.01)
     start = imu.ImuState.identity()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm = OnlineSmoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
+        warm = online_smoother(start, np.eye(imu.STATE_DIM), imu.ImuNoise(1e-2, 1e-3, 1e-3, 1e-4), lag_s=0.3)
         for k, tk in enumerate(t):
             warm.add_imu(tk, -imu.DEFAULT_GRAVITY, np.zeros(3))
             if k % 10 == 5:
@@ -120,7 +107,3 @@ def in_this_process() -> None:
             if k > 5:
                 warm.estimate()
         warm.finish()
-
-
-if __name__ == "__main__":
-    _compile()

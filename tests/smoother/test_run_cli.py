@@ -260,12 +260,12 @@ def test_the_batch_starts_from_the_ekf(tmp_path, capsys):
 def test_ctrl_c_after_the_batch_keeps_it_with_one_line(tmp_path, capsys, monkeypatch):
     """Ctrl-C while the fixed-lag smoother runs: exit 130, the EKF and batch estimates written
     with stopped: interrupted, and one line on stderr saying so."""
-    import smoother.online.smoother
+    import smoother.online.replay
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(smoother.online.smoother, "replay", interrupted)  # the pipeline imports it when the fixed-lag runs
+    monkeypatch.setattr(smoother.online.replay, "replay", interrupted)  # the pipeline imports it when the fixed-lag runs
     out = tmp_path / "run"
     assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 130
     said = [line for line in capsys.readouterr().err.splitlines()
