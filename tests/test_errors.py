@@ -149,7 +149,8 @@ def test_a_plain_raise_would_be_caught(tmp_path, monkeypatch):
     package.mkdir()
     (package / "__init__.py").write_text("")
     (package / "bad.py").write_text("import json\n\ndef f(x):\n    if x:\n        raise RuntimeError('no')\n"
-                                    "    if x is None:\n        raise TypeError\n    raise json.JSONDecodeError('x', '', 0)\n")
+                                    "    if x is None:\n        raise TypeError\n"
+                                    "    raise json.JSONDecodeError('x', '', 0)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     found = sorted((line, cls.__name__, function) for line, cls, function in _raised_classes("scanned.bad",
                                                                                               package / "bad.py"))

@@ -31,6 +31,7 @@ def long_signatures(name: str, path: Path) -> list[tuple[str, int, bool]]:
 
 
 def test_only_compiled_kernels_take_many_positional_parameters():
-    plain = [f"{name}.{function} ({count})" for name, path in package_modules(ROOT, ("factors", "datasets", "smoother")).items()
+    modules = package_modules(ROOT, ("factors", "datasets", "smoother"))
+    plain = [f"{name}.{function} ({count})" for name, path in modules.items()
              for function, count, compiled in long_signatures(name, path) if not compiled]
     assert plain == []

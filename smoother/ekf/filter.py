@@ -160,9 +160,10 @@ def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: b
         for first in range(0, n, _KNOTS_PER_CALL):
             last = min(n, first + _KNOTS_PER_CALL)
             stopped = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
-                                     updates.model, updates.dim, updates.rows, updates.R, updates.nis,
-                                     updates.accepted, dataset.noise.densities(),
-                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability), *out, stats)
+                                    updates.model, updates.dim, updates.rows, updates.R, updates.nis,
+                                    updates.accepted, dataset.noise.densities(),
+                                    np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability), *out,
+                                    stats)
             if stopped >= 0:
                 raise divergence_error(knots[stopped], out[1][stopped], out[5][stopped])
             bar.update(int(bounds[last]) - bar.n)
