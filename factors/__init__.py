@@ -32,7 +32,8 @@ _EXPORTS = {
     "to_gtsam_chart": "factors.chart",
     **dict.fromkeys(("check_factor", "numerical_jacobian", "FactorCheck"), "factors.jacobians"),
     **dict.fromkeys(("state_prior_factor", "covariance_model"), "factors.priors"),
-    **dict.fromkeys(("BoxplusError", "InputError", "SolverError"), "factors.errors"),
+    **dict.fromkeys(("BoxplusError", "InputError", "InputTypeError", "MissingKeyError", "SolverError", "InternalError"),
+                    "factors.errors"),
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

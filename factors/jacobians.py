@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from factors import so3
-from factors.errors import InputError
+from factors.errors import InputError, InputTypeError, MissingKeyError
 
 #: Default central-difference step: truncation O(eps^2) and round-off O(1e-16/eps) balance near 1e-5.
 DEFAULT_STEP = 1e-6
@@ -269,7 +269,7 @@ def _robust_row_scales(factor, b: np.ndarray, e_w: np.ndarray) -> np.ndarray:
     for s in (block, rows):
         if np.all(s > 0) and np.allclose(b, -s * e_w, rtol=1e-9, atol=1e-300):
             return s
-    raise TypeError(
+    raise InputTypeError(
         f"check_factor: cannot undo the robust weighting of {type(factor).__name__} "
         "(a weight of 0, or a reweighting scheme other than Block and Scalar)"
     )
@@ -291,7 +291,7 @@ def _linearize(factor, values):
             if hasattr(factor, "dim") and linear.rows() != factor.dim():
                 linear = None
         if linear is None:
-            raise TypeError(
+            raise InputTypeError(
                 f"check_factor needs a factor that linearises to a JacobianFactor; "
                 f"{type(factor).__name__} gave {type(factor.linearize(values)).__name__}"
             )
@@ -315,7 +315,7 @@ def check_factor(factor, values, atol: float = 1e-6, rtol: float = 1e-5, step: f
     keys = list(factor.keys())
     missing = [k for k in keys if not values.exists(k)]
     if missing:
-        raise KeyError(f"check_factor: values lack the factor's keys {[_key_label(k) for k in missing]}")
+        raise MissingKeyError(f"check_factor: values lack the factor's keys {[_key_label(k) for k in missing]}")
     A, b = _linearize(factor, values)
     if base is not None:
         A = A / _robust_row_scales(factor, b, _whitened_error(factor, values, base))[:, None]

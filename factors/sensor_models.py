@@ -465,16 +465,6 @@ def _odometry_rows(r_i, C_i, r_j, C_j, rows, e, H) -> None:
         odometry_kernel(r_i[n], C_i[n], r_j[n], C_j[n], rows[n], e[n], H[n])
 
 
-def odometry_rows(states_i: ImuState, states_j: ImuState, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(e (N, 6), H (N, 6, 30))`` of relative pose ``rows`` (:func:`pack_odometry`) between the
-    states ``states_i`` and ``states_j`` (leading dimension N each)."""
-    n = len(rows)
-    e, H = np.empty((n, 6)), np.empty((n, 6, 2 * STATE_DIM))
-    parts = [np.ascontiguousarray(a, dtype=float) for a in (states_i.r, states_i.C, states_j.r, states_j.C)]
-    _odometry_rows(parts[0], parts[1], parts[2], parts[3], np.ascontiguousarray(rows, dtype=float), e, H)
-    return e, H
-
-
 def odometry_residual(C_i, r_i, C_j, r_j, measured_dr, measured_dC, T_BS=None, jacobians: bool = False):
     """:func:`odometry_kernel` vectorised over broadcast leading dimensions: ``e (..., 6)`` and,
     with ``jacobians``, ``[J_Ci, J_ri, J_Cj, J_rj]`` (each ``(..., 6, 3)``)."""

@@ -1,7 +1,7 @@
-"""Compiled linear algebra on small dense matrices, shared by the EKF's update, the sliding
-window (:mod:`smoother.fixed_lag.sliding.window`), the preintegration and the data types' checks
-(:mod:`datasets.types`): calls into LAPACK or BLAS cost more than the arithmetic at these sizes (3 to
-a few hundred rows)."""
+"""Compiled linear algebra on small dense matrices, shared by the EKF's update
+(:mod:`smoother.ekf.update`), the preintegration, the sliding window's banded algebra
+(:mod:`smoother.fixed_lag.sliding.banded`) and the data types' checks (:mod:`datasets.types`): calls
+into LAPACK cost more than the arithmetic at these sizes (3 to a few hundred rows)."""
 from __future__ import annotations
 
 import math
@@ -43,3 +43,15 @@ def matmul_into(A, B, out) -> None:
             for k in range(A.shape[1]):
                 acc += A[a, k] * B[k, b]
             out[a, b] = acc
+@njit(cache=True)
+def solve_lower(L, B) -> None:
+    """``B <- L^-1 B`` in place by forward substitution, column by column (``L`` lower
+    triangular, ``B (n, m)``; a single right-hand side is passed as an ``(n, 1)`` view). Every
+    caller passes C-contiguous float64 arrays: one compiled copy."""
+    n, m = B.shape
+    for c in range(m):
+        for i in range(n):
+            s = B[i, c]
+            for j in range(i):
+                s -= L[i, j] * B[j, c]
+            B[i, c] = s / L[i, i]

@@ -200,25 +200,9 @@ def state_covariance_to_primer(cov_rpvb: np.ndarray, rotation) -> np.ndarray:
     return covariance_right_to_left(cov, primer_from_gtsam(rotation), index=6)
 
 
-def covariance_left_to_middle(Sigma, C, index: int = 0) -> np.ndarray:
-    """Left -> middle (noise on ``log C``): ``Gamma(mu)^-1 Sigma Gamma(mu)^-T``, ``mu = log C``.
-    First order."""
-    return convert_covariance(Sigma, C, "left", "middle", index)
-
-
 def covariance_middle_to_left(Sigma, C, index: int = 0) -> np.ndarray:
     """Middle -> left: ``Gamma(mu) Sigma Gamma(mu)^T``, ``mu = log C``. First order."""
     return convert_covariance(Sigma, C, "middle", "left", index)
-
-
-def covariance_right_to_middle(Sigma, C, index: int = 0) -> np.ndarray:
-    """Right -> middle: ``Gamma(-mu)^-1 Sigma Gamma(-mu)^-T``, ``mu = log C``. First order."""
-    return convert_covariance(Sigma, C, "right", "middle", index)
-
-
-def covariance_middle_to_right(Sigma, C, index: int = 0) -> np.ndarray:
-    """Middle -> right: ``Gamma(-mu) Sigma Gamma(-mu)^T``, ``mu = log C``. First order."""
-    return convert_covariance(Sigma, C, "middle", "right", index)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import sys
 import threading
 import warnings
 
-from factors.errors import BoxplusError
+from factors.errors import BoxplusError, InternalError
 from factors.kernel_caches import ensure_fresh_caches
 from smoother.errors import Terminated, UserError, interruption
 
@@ -86,7 +86,8 @@ def _main(argv: list[str] | None) -> int:
         return code
     except (BoxplusError, ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
         # The library's own errors (factors.errors: bad input naming the file, field, option or
-        # time; an estimator that could not finish), other bad values (ValueError), files that
+        # time; an estimator that could not finish; a broken invariant of its own, which is an
+        # internal failure like those below), other bad values (ValueError), files that
         # cannot be written (OSError; datasets.atomic.atomic_write names the file), data too large
         # for the memory (NumPy names the size) and failures inside GTSAM or NumPy: one line, no
         # traceback (SMOOTHER_DEBUG=1 shows it for all but a bad command-line option).
@@ -99,7 +100,7 @@ def _main(argv: list[str] | None) -> int:
             hint = "; try a shorter --duration" if "duration" in args else ""
             print(f"smoother: error: out of memory ({first or 'no details'}){hint}", file=sys.stderr)
             return 2
-        user = isinstance(error, (BoxplusError, ValueError, OSError))
+        user = isinstance(error, (BoxplusError, ValueError, OSError)) and not isinstance(error, InternalError)
         kind = "error" if user else f"internal failure ({type(error).__name__})"
         print(f"smoother: {kind}: {first}", file=sys.stderr)
         return 2 if user else 3

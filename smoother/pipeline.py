@@ -23,9 +23,8 @@ from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from factors.errors import BoxplusError, InputError
 from smoother.diagnosis.residual_consistency import smoother_consistency
+from smoother.estimators import ESTIMATORS
 from smoother.model.timeline import estimate_times
-
-ESTIMATORS = ("batch", "fixed-lag", "ekf")
 
 
 @dataclass
@@ -65,7 +64,7 @@ class RunOptions:
 
 
 def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False) -> dict[str, Estimate]:
-    """Run each estimator in ``names`` (a subset of :data:`ESTIMATORS`) on ``dataset``, in the
+    """Run each estimator in ``names`` (a subset of :data:`smoother.estimators.ESTIMATORS`) on ``dataset``, in the
     order of ``names`` (:func:`estimate_each`)."""
     return dict(estimate_each(dataset, names, options, keep_going))
 
@@ -191,7 +190,7 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
                     calibration=None if r.calibration is None else r.calibration[0])
 
 
-def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
+def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
     """Each estimator's own verdict on each sensor, ``{estimator: {sensor: verdict}}``
     (:func:`smoother.diagnosis.verdicts.verdict`): the EKF's innovations
     (:func:`smoother.diagnosis.verdicts.sensor_consistency`), the batch smoother's residuals with their
@@ -199,14 +198,14 @@ def sensor_consistency(dataset: Dataset, estimates: dict[str, Estimate], options
     residuals of the factors on one keyframe at its estimates
     (:func:`smoother.diagnosis.residual_consistency.smoother_consistency` over the measurement factors on
     its keyframes). An estimator without covariances or that failed has none."""
-    from smoother.diagnosis.verdicts import sensor_consistency as innovation_consistency
+    from smoother.diagnosis.verdicts import sensor_consistency
 
     out = {}
     for name, est in estimates.items():
         if est.failed is not None:
             continue
         if name == "ekf":
-            out[name] = innovation_consistency(est.innovations)
+            out[name] = sensor_consistency(est.innovations)
         elif name == "batch":
             out[name] = est.consistency or {}
         else:  # its keyframes are the batch's: the measurement factors on them, at its estimates

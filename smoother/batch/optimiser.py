@@ -10,12 +10,10 @@ import numpy as np
 
 from factors import imu
 from factors.errors import InputError
+from smoother.batch.methods import OPTIMIZERS
 from smoother.errors import IndeterminantSystem, is_indeterminant
 from smoother.model.blocks import Block, Layout, linearize, total_cost, unit_model
 from smoother.model.rank import indeterminant_error
-
-
-METHODS = ("lm", "gn", "dogleg")
 
 
 def _solve(graph: gtsam.GaussianFactorGraph, layout: "Layout", ordering: gtsam.Ordering | None) -> np.ndarray:
@@ -81,8 +79,8 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     docstring for the methods). Stops when a step decreases the cost by less than
     ``absolute_tolerance`` (:data:`ABSOLUTE_TOLERANCE`) or by less than ``relative_tolerance`` of
     itself, keeping that step, or after ``max_iterations``."""
-    if method not in METHODS:
-        raise InputError(f"method {method!r}: expected one of {', '.join(METHODS)}")
+    if method not in OPTIMIZERS:
+        raise InputError(f"method {method!r}: expected one of {', '.join(OPTIMIZERS)}")
     layout = Layout.of(initial, calibration)
     states = initial
     graph, cost = linearize(blocks, states, calibration)

@@ -9,7 +9,7 @@ Two engines over the same residuals:
 * ``gtsam``: GTSAM's own nonlinear optimisers on the ``CustomFactor`` graph (one Python callback
   per factor, each handed a copy of the whole ``Values``: quadratic in the run length; kept as the
   independent reference the tests compare against). Covariances from GTSAM's marginals are
-  converted with :func:`factors.uncertainty.state_covariance_to_primer`.
+  converted to the primer's chart by :func:`smoother.model.covariances.keyframe_covariance`.
 
 Levenberg-Marquardt by default; Gauss-Newton and Dogleg selectable in both. The vectorised
 engine's covariances come from the square-root information, so a problem with a unique optimum
@@ -29,15 +29,14 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu
-from factors.uncertainty import state_covariance_to_primer
 from factors.keys import KeyframeKeys
-from smoother.batch.optimiser import METHODS, optimize
-from smoother.model.covariances import covariances_at
+from smoother.batch.methods import OPTIMIZERS
+from smoother.batch.optimiser import optimize
+from smoother.model.covariances import covariances_at, keyframe_covariance
 from factors.errors import InputError
 from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
 from smoother.model.problem import Problem, read_state
 
-OPTIMIZERS = METHODS
 ENGINES = ("vectorized", "gtsam")
 
 _HINT = ("the factors do not constrain every variable there. Typical causes: a stretch with no "
@@ -45,7 +44,7 @@ _HINT = ("the factors do not constrain every variable there. Typical causes: a s
          "prior too weak, or a diverging bias. Add a prior or a measurement, or check the data "
          "around that time.")
 
-__all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_covariances", "OPTIMIZERS", "ENGINES"]
+__all__ = ["IndeterminantSystem", "SmootherResult", "solve_batch", "keyframe_covariances", "ENGINES"]
 
 
 @dataclass
@@ -90,11 +89,7 @@ def keyframe_covariances(graph, values, keys: list[KeyframeKeys]) -> np.ndarray:
     """Primer-convention 15x15 covariances of the keyframes with ``keys``, from GTSAM's marginals
     of a nonlinear graph (the ``gtsam`` engine and the fixed-lag smoothers)."""
     marginals = gtsam.Marginals(graph, values)
-    out = []
-    for kk in keys:
-        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(kk.all())).fullMatrix()
-        out.append(state_covariance_to_primer(joint, values.atRot3(kk.rot)))
-    return np.stack(out)
+    return np.stack([keyframe_covariance(marginals, kk, values.atRot3(kk.rot)) for kk in keys])
 
 
 def _gtsam_engine(problem: Problem, optimizer: str, max_iterations: int, covariances: bool):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from smoother.errors import UserError
+from smoother.estimators import ESTIMATORS
 
 
 def register(sub) -> None:
@@ -49,7 +50,7 @@ def run(args) -> int:
             label = "fixed_lag_max_sigma" if i == 0 else ""
             print(f"  {label:<24}  {sigma:.4f}  (< {TARGETS['fixed_lag_max_sigma']:g})  {kind}")
         low, high = result["nees_interval_95"]
-        for name in ("batch", "fixed-lag", "ekf"):
+        for name in ESTIMATORS:
             label = f"fixed-lag ({result['fixed_lag_kind']})" if name == "fixed-lag" else name
             print(f"  {label:<21} ATE {result['ate_rmse_m'][name]:.4f} m   NEES/6 {result['nees_mean'][name]:.3f}"
                   f"  (95% interval {low:.3f}..{high:.3f})")

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from smoother.evaluation.modes import ALIGN_MODES, DELTA_UNITS
+
 #: Input formats of ``--format`` (``auto``: recognised per file).
 FORMATS = ("auto", "tum", "euroc", "kitti", "npz")
 
@@ -42,7 +44,7 @@ def register(sub) -> None:
     p.add_argument("--format", choices=FORMATS, default="auto",
                    help="format of both files: tum, euroc (CSV, ns stamps), kitti (3x4 matrices, no stamps: "
                         "paired by line), npz; default auto: recognised per file")
-    p.add_argument("--align", choices=["se3", "sim3", "posyaw", "translation", "none"], default="se3",
+    p.add_argument("--align", choices=ALIGN_MODES, default="se3",
                    help="alignment of the estimate: se3 (Umeyama, default), sim3 (Umeyama with scale: monocular "
                         "trajectories), posyaw (translation + yaw), translation, none. A rotation the positions do "
                         "not determine (a nearly straight drive) is not fitted: the next well-posed alignment is "
@@ -54,7 +56,7 @@ def register(sub) -> None:
     p.add_argument("--max-dt", type=float, default=0.01, metavar="S",
                    help="largest time difference of associated poses in seconds (default 0.01)")
     p.add_argument("--delta", type=float, default=1, help="RPE pair distance (default 1)")
-    p.add_argument("--delta-unit", choices=["frames", "m", "s"], default="frames",
+    p.add_argument("--delta-unit", choices=DELTA_UNITS, default="frames",
                    help="unit of --delta: frames (default), m (path length), s (time)")
     p.add_argument("--json", action="store_true", help="print the results as JSON")
     p.set_defaults(handler=run)

@@ -7,6 +7,7 @@ import math
 import sys
 
 from smoother.errors import UserError, interruption
+from smoother.estimators import ESTIMATORS
 
 #: The fleet's own file in ``--out`` (each recording's files are in its folder).
 SUMMARY = "summary.json"
@@ -18,7 +19,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output directory: DIR/<rig file stem>/ per recording, as smoother run --out writes it, "
                         "its output in run.log there; DIR/summary.json")
-    p.add_argument("--estimator", default="all", choices=["batch", "fixed-lag", "ekf", "all"],
+    p.add_argument("--estimator", default="all", choices=[*ESTIMATORS, "all"],
                    help="which estimator(s) to run (default all)")
     p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
     p.add_argument("--mcap", action="store_true", help="also write each recording's estimates.mcap")

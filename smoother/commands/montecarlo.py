@@ -5,6 +5,7 @@ import json
 import sys
 
 from smoother.errors import UserError
+from smoother.estimators import ESTIMATORS
 
 
 def register(sub) -> None:
@@ -16,7 +17,7 @@ def register(sub) -> None:
                    help="send the runs to an existing Dask scheduler (optional extra 'dask')")
     p.add_argument("--profile", default="gentle")
     p.add_argument("--duration", type=float, default=10.0, help="simulated seconds per run (default 10)")
-    p.add_argument("--estimator", action="append", choices=["batch", "fixed-lag", "ekf"],
+    p.add_argument("--estimator", action="append", choices=list(ESTIMATORS),
                    help="estimators to run (repeatable; default batch and ekf)")
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of pose measurements made outliers")
     p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",

@@ -6,7 +6,9 @@ import math
 import sys
 import time
 
+from smoother.batch.methods import OPTIMIZERS
 from smoother.errors import UserError, interruption
+from smoother.estimators import ESTIMATORS
 from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
 
 
@@ -17,7 +19,7 @@ def register(sub) -> None:
                         "(default synthetic:gentle)")
     p.add_argument("--rig", default=None, metavar="RIG.toml",
                    help="a recording of your own, described by a rig file (IMU, sensors, extrinsics; see the README)")
-    p.add_argument("--estimator", default="all", choices=["batch", "fixed-lag", "ekf", "all"],
+    p.add_argument("--estimator", default="all", choices=[*ESTIMATORS, "all"],
                    help="which estimator(s) to run (default all)")
     p.add_argument("--out", default="out", help="output directory (default ./out)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the simulator and of synthetic measurements")
@@ -34,7 +36,7 @@ def register(sub) -> None:
                         "latency from each measurement's arrival to the updated estimate (median, p99, max)")
     p.add_argument("--speed", type=float, default=1.0,
                    help="with --realtime: replay this many times faster than recorded (default 1)")
-    p.add_argument("--optimizer", default="lm", choices=["lm", "gn", "dogleg"], help="batch optimiser (default lm)")
+    p.add_argument("--optimizer", default="lm", choices=list(OPTIMIZERS), help="batch optimiser (default lm)")
     p.add_argument("--max-iterations", type=int, default=100, metavar="N",
                    help="iterations of the batch optimiser at most (default 100); metrics.json's batch 'converged' "
                         "says whether it converged before them")
@@ -183,7 +185,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
     from smoother.outputs import files
-    from smoother.pipeline import estimate_each, judged, sensor_consistency
+    from smoother.pipeline import estimate_each, judged, verdicts_by_estimator
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s",
           file=sys.stderr)
@@ -211,7 +213,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"metrics.json says stopped: {stopped}", file=sys.stderr)
         return code
     estimates = _in_order(estimates, names)
-    consistency = sensor_consistency(dataset, estimates, run_options)
+    consistency = verdicts_by_estimator(dataset, estimates, run_options)
     judged(estimates, consistency)
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:

@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
+from factors.errors import InternalError
 from smoother.errors import UserError
 from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
@@ -38,7 +39,7 @@ _NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
 
 def run_files() -> frozenset[str]:
     """The names of every file a run (or ``smoother plot`` into it) writes into a run directory."""
-    from smoother.pipeline import ESTIMATORS
+    from smoother.estimators import ESTIMATORS
 
     return frozenset([f"{name}{suffix}" for name in ESTIMATORS for suffix in ESTIMATE_SUFFIXES]
                      + [TRUTH, GPS, METRICS, MCAP, CALIBRATED_RIG] + [f"{plot}.png" for plot in PLOTS])
@@ -120,15 +121,15 @@ class RunDirectory:
         the run files already in the directory that the block did not write are the previous
         run's: they are deleted and listed in ``removed``. When the block raises, nothing
         changes in the directory; an ``OSError`` names the directory's file, not the staged one.
-        A file whose name is not among :func:`run_files` is a programming error (RuntimeError):
-        every output is declared there."""
+        A file whose name is not among :func:`run_files` is a programming error
+        (:class:`factors.errors.InternalError`): every output is declared there."""
         names = run_files()
         with staging(self.path) as stage:
             yield stage.path
             written = stage.names()
             unknown = [name for name in written if name not in names]
             if unknown:
-                raise RuntimeError(f"run files not declared in smoother.outputs.layout: {', '.join(unknown)}")
+                raise InternalError(f"run files not declared in smoother.outputs.layout: {', '.join(unknown)}")
             previous = sorted(p.name for p in self.path.iterdir() if p.name in names and p.name not in written
                               and (p.is_file() or p.is_symlink())) if replace else []
             stage.commit(remove=previous, last=METRICS)

@@ -17,10 +17,11 @@ each candidate calibration with its own columns of ``X_i`` (``d x k``), in the u
 * ``time_offset`` ``d`` [s] (the measurement was taken at ``t_stamp + d``; ``d`` is what to add to
   the rig's ``time_offset``): ``z = h(x(t + d))`` gives ``e = -d dh/dt`` with ``dh/dt = H_i
   xdot_i``, ``H_i`` the residual's error-state Jacobian and ``xdot`` the state's rate in the
-  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)``: a position through the velocity, an
-  attitude through the angular rate, a velocity through the specific force. ``f, w`` are the
-  IMU's readings less the estimate's biases, averaged over :data:`AVERAGE_S` about ``t_i`` (one
-  sample's noise in a regressor would bias the fit towards 0). A velocity sensor's lever-arm term
+  error-state chart, ``(C v, C^T g + f - w x v, C w, 0, 0)`` (:func:`factors.imu.state_derivative`,
+  the model's own): a position through the velocity, an attitude through the angular rate, a
+  velocity through the specific force. ``f, w`` are the IMU's readings less the estimate's biases,
+  the readings averaged over :data:`AVERAGE_S` about ``t_i`` (one sample's noise in a regressor
+  would bias the fit towards 0). A velocity sensor's lever-arm term
   ``w x p`` also changes with the angular acceleration; that part is neglected.
 * ``rotation`` ``phi`` [rad] (``R_BS <- exp(phi) R_BS``, ``phi`` in the IMU frame): for a
   velocity sensor ``e = -R_BS^T u^x phi`` with ``u = v + w x p_BS`` the sensor's velocity in the
@@ -84,6 +85,7 @@ from datasets.kinds import KINDS, measure_rows, sensors_of
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
+from smoother.estimators import ESTIMATORS
 from smoother.model.problem import build_problem
 from smoother.model.blocks import Block, evaluate_block, linearize, whitening
 
@@ -167,13 +169,8 @@ def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, grav
     out = {}
     if kind.name in SCALED_KINDS:
         out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
-    f, w = _averaged_imu(imu_samples, m.t, AVERAGE_S)
-    f, w = f - states.b_f, w - states.b_w
-    C, v = states.C, states.v
-    xdot = np.zeros((len(v), imu.STATE_DIM))
-    xdot[:, imu.R] = np.einsum("nij,nj->ni", C, v)
-    xdot[:, imu.V] = np.einsum("nji,j->ni", C, np.asarray(gravity, dtype=float)) + f - np.cross(w, v)
-    xdot[:, imu.PHI] = np.einsum("nij,nj->ni", C, w)
+    acc, gyro = _averaged_imu(imu_samples, m.t, AVERAGE_S)
+    xdot = imu.state_derivative(states, acc, gyro, gravity)
     out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
     R, p = extrinsic_parts(m.T_BS)
     for name, moved in (("rotation", lambda s: (so3.exp(s) @ R, p)), ("lever_arm", lambda s: (R, p + s))):
@@ -294,21 +291,17 @@ def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None,
                           values)
 
 
-#: The estimators whose estimate :func:`hints` starts from, the first that ran.
-STARTS = ("batch", "fixed-lag", "ekf")
-
-
 def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,
           robust: dict | None = None) -> dict[str, str]:
     """Per sensor of ``dataset`` with a suggested cause, its :func:`hint` from :func:`causes_at`
-    the first estimate of :data:`STARTS` that ran (``estimates`` as
+    the first estimate that ran in the order of :data:`smoother.estimators.ESTIMATORS` (``estimates`` as
     :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` when every verdict
     of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
     The sensor suggested need not be the one out of its band: a wheel's pitch that the states
     absorb shows in the fixes'."""
     if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
         return {}
-    ran = [name for name in STARTS if name in estimates and estimates[name].failed is None]
+    ran = [name for name in ESTIMATORS if name in estimates and estimates[name].failed is None]
     if not ran:
         return {}
     # the batch's verdicts count each measurement's leverage at its estimate (fit_in_problem)

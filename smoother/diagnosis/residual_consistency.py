@@ -27,7 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from smoother.diagnosis.verdicts import verdict
-from smoother.model.blocks import Block, block_residual
+from smoother.model.blocks import Block, evaluated_chunks
+from smoother.model.covariances import joint_block
 
 #: Blocks with no verdict of their own (the prior on the first keyframe is not a sensor).
 NOT_JUDGED = ("prior",)
@@ -37,7 +38,8 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
                       calibration=None) -> dict | None:
     """The verdict (:func:`smoother.diagnosis.verdicts.verdict`) of one block's residuals at ``states``
     (one per keyframe), with the keyframes' marginal covariances ``cov (n, 15, 15)`` and, for
-    factors on two keyframes, ``joint`` (``{(a, b): Sigma_ab}``); None where those are missing.
+    factors on two keyframes, ``joint`` (``{(a, b): Sigma_ab}``, :func:`smoother.model.covariances.joint_block`);
+    None where those are missing.
     The residuals are whitened, not robustly reweighted: a robust kernel's outliers count, as
     they are in the data. A block that reads a calibration variable (``calibration``'s values;
     key ``n + j`` of ``joint``) counts that variable's share of the leverage too."""
@@ -45,19 +47,13 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
     if (kf.shape[1] == 2 or block.calibration is not None) and joint is None:
         return None
     total, dof = 0.0, 0.0
-    for start in range(0, len(kf), CHUNK):  # in chunks: a long run's Jacobians need not all be held at once
-        rows = slice(start, min(start + CHUNK, len(kf)))
-        chunk = kf[rows]
-        slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
-        e, Js = block_residual(block, slots, True, rows, calibration)
-        whiten = block.whiten[rows]
-        e_w = np.einsum("mab,mb->ma", whiten, e)
+    for rows, ev in evaluated_chunks(block, states, True, calibration, reweight=False):
+        chunk, e_w, A = kf[rows], ev.e, ev.A
         if not np.isfinite(e_w).all():
             return None
-        A = [whiten @ J for J in Js]
         lev = np.einsum("mij,mjk,mik->m", A[0], cov[chunk[:, 0]], A[0])
         if chunk.shape[1] == 2:
-            cross = np.stack([joint[(a, b)] if (a, b) in joint else joint[(b, a)].T for a, b in chunk])
+            cross = np.stack([joint_block(joint, a, b) for a, b in chunk])
             lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
             lev += np.einsum("mij,mjk,mik->m", A[1], cov[chunk[:, 1]], A[1])
         if block.calibration is not None:
@@ -77,14 +73,9 @@ def _calibration_leverage(A: list, keyframes: np.ndarray, key: int, joint: dict)
     A_c = A[-1]
     lev = np.einsum("mij,jk,mik->m", A_c, joint[(key, key)], A_c)
     for s in range(keyframes.shape[1]):
-        cross = np.stack([joint[(int(k), key)] if (int(k), key) in joint else joint[(key, int(k))].T
-                          for k in keyframes[:, s]])
+        cross = np.stack([joint_block(joint, k, key) for k in keyframes[:, s]])
         lev += 2.0 * np.einsum("mij,mjk,mik->m", A[s], cross, A_c)
     return lev
-
-
-#: Factors evaluated at once by :func:`block_consistency` (a few MB of Jacobians).
-CHUNK = 1024
 
 
 def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None,

@@ -12,14 +12,14 @@ included). An update linearises the calibrated residual (:func:`datasets.kinds.c
 the batch's): ``H = [H_x, 0 .., H_c, 0 ..]`` with ``H_c`` in its sensor's columns; a sensor that
 does not calibrate has zeros there. The correction ``dx = -K e`` is applied with the state's
 boxplus and the calibrations' (:meth:`~factors.calibration.CalibrationSet.boxplus`: rotations on
-the left), the covariance in Joseph form, gated like :func:`smoother.ekf.filter.run_ekf`'s updates.
+the left). The updates' order, the Kalman update with its gate (Joseph form, on the whole
+augmented ``P``) and the divergence test are the plain filter's (:mod:`smoother.ekf.update`).
 
 The loop runs in Python per knot (measurement time); the IMU steps between knots are compiled.
 Relative poses (odometry) are left out, as in the plain filter.
 """
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -27,22 +27,12 @@ import numpy as np
 from datasets.kinds import KINDS, calibrated_rows
 from datasets.types import Dataset, Trajectory
 from factors import calibration, imu
-from factors.errors import SolverError
 from factors.sensor_models import evaluate_one
-from smoother.ekf.filter import (DIVERGED_SPEED, DIVERGED_SPREAD, FilterResult, Innovations, divergence_error, filter_inputs,
-                          gate_thresholds)
+from smoother.ekf.filter import FilterResult, Innovations, divergence_error, filter_inputs
+from smoother.ekf.update import diverged, gate_thresholds, kalman_update, update_order
 from smoother.progress import progress_bar
 
 D = imu.STATE_DIM
-
-
-def _update_order(sensors: list, knots: np.ndarray) -> list[list[tuple[int, int]]]:
-    """``(sensor index, measurement index)`` of the updates at each knot, sensor by sensor."""
-    at: list[list[tuple[int, int]]] = [[] for _ in knots]
-    for index, sensor in enumerate(sensors):
-        for i, k in enumerate(np.searchsorted(knots, sensor.data.t)):
-            at[int(k)].append((index, i))
-    return at
 
 
 def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSet,
@@ -76,11 +66,11 @@ def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSe
             held = dataset.imu.held(m.t)
             readings = (dataset.imu.acc[held], dataset.imu.gyro[held])
         prepared.append((kind, kind.pack(m), m.cov, j, readings))
-    order = _update_order(sensors, knots)
+    order = update_order([s.data.t for s in sensors], knots, [s.name for s in sensors])
     gates = gate_thresholds(gate_probability)
     out_states, out_P = [], []
     names, times, update_dims, nis, accepted = [], [], [], [], []
-    rejected, log_likelihood = 0, 0.0
+    stats, step = np.zeros(2), np.empty(n)  # rejections and log-likelihood; the correction
     Phi = np.empty((D, D))
     with progress_bar(len(dt), "EKF (calibrating)", progress) as bar:
         for knot in range(len(knots)):
@@ -93,8 +83,16 @@ def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSe
                 P[:D, :D] = P_xx
                 P[:D, D:] = Phi @ P[:D, D:]
                 P[D:, :D] = P[:D, D:].T
-            for index, i in order[knot]:
+            for u in range(order.start[knot], order.start[knot + 1]):
+                index, i = order.sensor[u], order.measurement[u]
                 kind, rows, cov, j, readings = prepared[index]
+                names.append(sensors[index].name)
+                times.append(knots[knot])
+                update_dims.append(kind.dim)
+                if diverged(r, v, C, b_f, b_w, P):
+                    nis.append(np.nan)
+                    accepted.append(False)
+                    continue
                 state = imu.ImuState(r, v, C, b_f, b_w)
                 H = np.zeros((kind.dim, n))
                 if j is None:
@@ -104,49 +102,24 @@ def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSe
                     e, H_x, H_c = calibrated_rows(kind, state[None], rows[i:i + 1], c.values[j], at, dataset.gravity)
                     e, H[:, :D] = e[0], H_x[0]
                     H[:, offsets[j]:offsets[j + 1]] = H_c[0][:, c.priors[j].columns]
-                d2, step, P_new, ll = _update(P, e, H, cov[i], gates)
-                names.append(sensors[index].name)
-                times.append(knots[knot])
-                update_dims.append(kind.dim)
-                nis.append(d2)
-                accepted.append(step is not None)
-                if step is None:
-                    rejected += 1
+                rejected = stats[0]
+                nis.append(kalman_update(P, np.ascontiguousarray(e, dtype=float), H,
+                                         np.ascontiguousarray(cov[i], dtype=float), gates, stats, step))
+                accepted.append(bool(stats[0] == rejected))
+                if not accepted[-1]:
                     continue
-                log_likelihood += ll
                 moved = imu.boxplus(state, step[:D])
                 r, v, C = moved.r.copy(), moved.v.copy(), moved.C.copy()
                 b_f, b_w = moved.b_f.copy(), moved.b_w.copy()
                 c = c.boxplus(np.split(step[D:], offsets[1:-1] - D))
-                P = P_new
             out_states.append(imu.ImuState(r.copy(), v.copy(), C.copy(), b_f.copy(), b_w.copy()))
             out_P.append(P[:D, :D].copy())
-            if not (np.all(np.isfinite(P)) and np.all(np.isfinite(v)) and np.linalg.norm(v) <= DIVERGED_SPEED
-                    and np.trace(P[:D, :D]) <= DIVERGED_SPREAD ** 2):
+            if diverged(r, v, C, b_f, b_w, P):
                 raise divergence_error(knots[knot], v, P[:D, :D])
             bar.update(int(b) - bar.n)
     innovations = Innovations(np.asarray(names, dtype=object), np.asarray(times), np.asarray(update_dims),
                               np.asarray(nis), np.asarray(accepted, dtype=bool))
     return FilterResult(Trajectory(knots, imu.ImuState.stack(out_states), np.stack(out_P)),
-                        time.perf_counter() - start, rejected, log_likelihood, innovations, c,
+                        time.perf_counter() - start, int(stats[0]), float(stats[1]), innovations, c,
                         [P[offsets[j]:offsets[j + 1], offsets[j]:offsets[j + 1]].copy() for j in range(len(c))])
 
-
-def _update(P: np.ndarray, e: np.ndarray, H: np.ndarray, R: np.ndarray, gates: np.ndarray):
-    """``(d2, dx or None, P after, log N(e; 0, S))`` of one Kalman update (Joseph form); ``dx``
-    None when the gate rejects it (``d2 = e^T S^-1 e`` beyond its dimension's gate)."""
-    S = H @ P @ H.T + R
-    try:
-        L = np.linalg.cholesky(0.5 * (S + S.T))
-    except np.linalg.LinAlgError:
-        raise SolverError("EKF update: the innovation covariance H P H^T + R is not positive definite") from None
-    y = np.linalg.solve(L, e)
-    d2 = float(y @ y)
-    m = len(e)
-    if d2 > gates[m]:
-        return d2, None, P, 0.0
-    K = np.linalg.solve(S, H @ P).T
-    IKH = np.eye(len(P)) - K @ H
-    P_new = IKH @ P @ IKH.T + K @ R @ K.T
-    ll = -0.5 * (d2 + 2.0 * float(np.sum(np.log(np.diag(L)))) + m * math.log(2.0 * math.pi))
-    return d2, -K @ e, 0.5 * (P_new + P_new.T), ll

@@ -28,10 +28,11 @@ import numpy as np
 
 from datasets.simulate import simulate
 from factors import imu
-from factors.errors import InputError
+from factors.errors import InputError, InternalError
 from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
+from smoother.estimators import ESTIMATORS
 from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
 from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
@@ -93,7 +94,7 @@ def one_seed(options: CrosscheckOptions, seed: int) -> dict:
               for kind in options.fixed_lag_kinds}
     i_ekf = np.searchsorted(ekf.t, problem.times)
     if not np.array_equal(ekf.t[i_ekf], problem.times):
-        raise RuntimeError("EKF and smoother keyframe times differ")
+        raise InternalError("EKF and smoother keyframe times differ")
     tracking = {kind: float(sigma_difference(fixed.states, ekf.states[i_ekf], ekf.cov[i_ekf]).max())
                 for kind, fixed in newest.items()}
     headline = options.fixed_lag_kinds[0]
@@ -123,7 +124,7 @@ def crosscheck(options: CrosscheckOptions, progress=None) -> dict:
         runs.append(one_seed(options, seed))
         if progress is not None:
             progress(seed)
-    names = ("batch", "fixed-lag", "ekf")
+    names = ESTIMATORS
     low, high = (b / 6.0 for b in stats.nees_bounds(6, options.seeds))
     nees_mean = {n: float(np.mean([r["nees"][n] for r in runs])) for n in names}
     ate = {n: float(np.mean([r["ate_rmse_m"][n] for r in runs])) for n in names}

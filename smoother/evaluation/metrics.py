@@ -50,9 +50,7 @@ import numpy as np
 
 from factors import so3
 from factors.errors import InputError
-
-ALIGN_MODES = ("se3", "sim3", "posyaw", "translation", "none")
-DELTA_UNITS = ("frames", "m", "s")
+from smoother.evaluation.modes import ALIGN_MODES, DELTA_UNITS
 #: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
 NEES_PARTS = {
     "pose": np.r_[0:3, 6:9],
@@ -263,12 +261,6 @@ def fit_alignment(ref_r, est_r, mode: str = "se3") -> Alignment:
                 f"{conditioning['spread_m']:.3g} m about it, would be a rotation of "
                 f"{conditioning['uncertainty_deg']:.3g} deg {axis}: the rotation figures are that uncertain")
     return Alignment(*fit, applied, mode, first, note)
-
-
-def alignment(ref_r, est_r, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` of :func:`fit_alignment`."""
-    a = fit_alignment(ref_r, est_r, mode)
-    return a.R, a.t, a.s
 
 
 def apply_alignment(R, t, s, r, C) -> tuple[np.ndarray, np.ndarray]:

@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
-from factors.errors import SolverError
+from factors.errors import InternalError, SolverError
 
 if TYPE_CHECKING:
     from factors import imu
@@ -148,5 +148,5 @@ class TakenKeyframes:
         """Keyframe ``k`` (at ``t``) leaves the window with the update after the one that added
         keyframe ``newest``: a RuntimeError unless it was read after that one."""
         if self._after.pop(k, None) != newest:
-            raise RuntimeError(f"fixed-lag: keyframe {k} (t = {t:.6f} s) left the window before its estimate was "
+            raise InternalError(f"fixed-lag: keyframe {k} (t = {t:.6f} s) left the window before its estimate was "
                                "taken")

@@ -45,13 +45,12 @@ from factors import imu, preintegration, priors
 from factors.errors import InputError
 from factors.imu_factor import ImuFactor
 from factors.keys import keyframe_keys
-from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem, is_indeterminant
 from smoother.fixed_lag.contract import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed, TakenKeyframes
 from smoother.fixed_lag.kinds import GTSAM_KINDS
 from smoother.fixed_lag.lag import check_lag
 from smoother.model.blocks import evaluate_block
-from smoother.model.covariances import marginal_covariances
+from smoother.model.covariances import keyframe_covariance, marginal_covariances
 from smoother.model.problem import insert_state, read_state
 from smoother.model.robust import noise_model
 
@@ -398,12 +397,8 @@ class KeyframeWindow:
         point; the newest keyframes sit at the root, so this costs little)."""
         if self.kind == "incremental" and self.blocks is None:
             isam = self.smoother.getISAM2()
-            out = []
-            for j in wanted:
-                keys = keyframe_keys(j)
-                joint = isam.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
-                out.append(state_covariance_to_primer(joint, self.estimate.atRot3(keys.rot)))
-            return np.stack(out)
+            return np.stack([keyframe_covariance(isam, keyframe_keys(j), self.estimate.atRot3(keyframe_keys(j).rot))
+                             for j in wanted])
         states = imu.ImuState.stack([self.state(j) for j in range(self.first, self.newest + 1)])
         return window_covariances(self.blocks or [], self.smoother, self.estimate, self.first, states, self.rows_of,
                                   [j - self.first for j in wanted])

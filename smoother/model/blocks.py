@@ -23,6 +23,7 @@ reweighting as GTSAM does: rows scaled by ``sqrt(w(|e_w|))``, cost ``rho(|e_w|)`
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Callable
 
@@ -90,10 +91,11 @@ def block_residual(block: Block, slots: list, jacobians: bool, rows, calibration
 
 
 def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=slice(None),
-                   keyframe_offset: int = 0, calibration=None) -> Evaluated:
+                   keyframe_offset: int = 0, calibration=None, reweight: bool = True) -> Evaluated:
     """Whitened (and robustly reweighted) residuals and Jacobians of the factors ``rows`` of
     ``block``; ``states[k - keyframe_offset]`` is the state of keyframe ``k``; ``calibration``
-    the calibration variables' values (:func:`block_residual`)."""
+    the calibration variables' values (:func:`block_residual`). ``reweight`` False: whitened
+    only, a robust kernel left out (its rows and loss as without one)."""
     keyframes = block.keyframes[rows] - keyframe_offset
     whiten = block.whiten[rows]
     slots = [states[keyframes[:, s]] for s in range(keyframes.shape[1])]
@@ -102,7 +104,7 @@ def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=sli
     else:
         e, Js = block_residual(block, slots, False, rows, calibration), None
     e_w = np.einsum("mab,mb->ma", whiten, e)
-    if block.robust is None:
+    if block.robust is None or not reweight:
         loss = 0.5 * float(np.sum(e_w * e_w))
         scale = None
     else:
@@ -117,6 +119,21 @@ def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=sli
     if scale is not None:
         e_w = e_w * scale
     return Evaluated(e_w, A, loss)
+
+
+def evaluated_chunks(block: Block, states: imu.ImuState, jacobians: bool, calibration=None,
+                     reweight: bool = True) -> Iterator[tuple[slice, Evaluated]]:
+    """:func:`evaluate_block` over every factor of ``block``, :data:`CHUNK` factors at a time:
+    ``(rows, evaluated)`` per chunk, ``states`` one per keyframe. A long run's Jacobians are
+    never all held at once, and a chunk's stay in cache between their evaluation and their use."""
+    for start in range(0, len(block), CHUNK):
+        rows = slice(start, min(start + CHUNK, len(block)))
+        yield rows, evaluate_block(block, states, jacobians, rows, calibration=calibration, reweight=reweight)
+
+
+#: Factors of a block evaluated at once by :func:`evaluated_chunks` (a few MB of Jacobians:
+#: cache-resident, so the cost per factor does not grow with the length of the run).
+CHUNK = 1024
 
 
 def total_cost(blocks: list[Block], states: imu.ImuState, calibration=None) -> float:
@@ -148,10 +165,7 @@ def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tu
         if block.keyframes.shape[1] > 2:
             raise InputError(f"block {block.name}: factors on more than two keyframes are not supported")
         extra = () if block.calibration is None else (n + block.calibration,)
-        # in chunks, so the Jacobians of a long run stay in cache between evaluation and use
-        for start in range(0, len(block), LINEARIZE_CHUNK):
-            rows = slice(start, min(start + LINEARIZE_CHUNK, len(block)))
-            ev = evaluate_block(block, states, True, rows, calibration=calibration)
+        for rows, ev in evaluated_chunks(block, states, True, calibration):
             cost += ev.loss
             model = unit_model(ev.e.shape[1])
             keys = [*block.keyframes[rows].T.tolist(), *([[extra[0]] * len(ev.e)] if extra else [])]
@@ -166,11 +180,6 @@ def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tu
                 for m, (k0, k1, k2) in enumerate(zip(*keys)):
                     graph.add(gtsam.JacobianFactor(k0, A[0][m], k1, A[1][m], k2, A[2][m], b[m], model))
     return graph, cost
-
-
-#: Factors of a block linearised at once (a few MB of Jacobians: cache-resident, so the cost per
-#: factor does not grow with the length of the run).
-LINEARIZE_CHUNK = 1024
 
 
 @dataclass(frozen=True)

@@ -1,16 +1,30 @@
 """Marginal and joint covariances of a whitened linear system's variables, in the primer's
 convention, from its square-root information (QR elimination and a selected-inversion recursion):
-the batch smoother's keyframes and calibrations, GTSAM's fixed-lag windows, the factors' leverages."""
+the batch smoother's keyframes and calibrations, GTSAM's fixed-lag windows, the factors' leverages.
+Also a keyframe's covariance from GTSAM's own marginals on its nonlinear graph
+(:func:`keyframe_covariance`), for the estimators that run GTSAM's optimisers and smoothers."""
 from __future__ import annotations
 
 import gtsam
 import numpy as np
 
 from factors import imu
-
+from factors.keys import KeyframeKeys
+from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem
 from smoother.model.blocks import Block, Layout, linearize
 from smoother.model.rank import RANK_TOLERANCE, free_components, indeterminant_error
+
+
+def keyframe_covariance(marginals, keys: KeyframeKeys, rotation) -> np.ndarray:
+    """The primer-convention 15x15 covariance ``(dr, dv, dphi, db_f, db_w)`` of the keyframe with
+    ``keys`` from GTSAM's joint marginal of its four variables: ``marginals`` is anything with
+    GTSAM's ``jointMarginalCovariance`` (``gtsam.Marginals`` of a nonlinear graph, ``gtsam.ISAM2``),
+    ``rotation`` the keyframe's attitude at the linearisation point (a ``gtsam.Rot3`` or its 3x3
+    matrix), where GTSAM's right chart of the attitude is taken
+    (:func:`factors.uncertainty.state_covariance_to_primer`)."""
+    joint = marginals.jointMarginalCovariance(gtsam.KeyVector(keys.all())).fullMatrix()
+    return state_covariance_to_primer(joint, rotation)
 
 
 def covariances_at(blocks: list[Block], states: imu.ImuState, which=None, pairs: bool = False, calibration=None):
@@ -51,9 +65,10 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     ``R_i`` is below ``RANK_TOLERANCE`` times the largest -- raises :class:`IndeterminantSystem`
     naming its key and the error-state components left free there (:func:`free_components`).
 
-    ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed
-    (``Sigma_ba = Sigma_ab^T``). Every two variables that share a factor are a conditional and its
-    parent, so it holds the joint covariance of every factor's variables."""
+    ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed,
+    each pair once (:func:`joint_block` reads either order). Every two variables that share a
+    factor are a conditional and its parent, so it holds the joint covariance of every factor's
+    variables."""
     layout = layout or Layout(n)
     ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
@@ -86,8 +101,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
             sigma[(frontal, parents[kept[0]])] = cross
         elif kept:
             # Sigma_PP over the kept parents (all computed: see the docstring)
-            rows = [np.hstack([sigma[(parents[a], parents[b])] if (parents[a], parents[b]) in sigma
-                               else sigma[(parents[b], parents[a])].T for b in kept]) for a in kept]
+            rows = [np.hstack([joint_block(sigma, parents[a], parents[b]) for b in kept]) for a in kept]
             K_kept = K if len(kept) == len(parents) else np.hstack([K[:, bounds[j]:bounds[j + 1]] for j in kept])
             cross = K_kept @ np.vstack(rows)
             at = 0
@@ -114,6 +128,13 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
     return (marginals, sigma) if pairs else marginals
+
+
+def joint_block(joint: dict, a: int, b: int) -> np.ndarray:
+    """``Sigma_ab`` from ``joint`` (:func:`marginal_covariances`' ``pairs``), which holds each pair
+    of variables in one order only: ``Sigma_ba = Sigma_ab^T``."""
+    a, b = int(a), int(b)
+    return joint[(a, b)] if (a, b) in joint else joint[(b, a)].T
 
 
 def _inverted(conditionals: list, keys: list, n: int) -> tuple[list, list]:
@@ -148,8 +169,7 @@ def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dic
     between each keyframe and each calibration variable (``G_i Sigma_cc``), in place."""
     n = layout.n
     calibrations = list(columns)
-    S_cc = np.vstack([np.hstack([sigma[(a, b)] if (a, b) in sigma else sigma[(b, a)].T for b in calibrations])
-                      for a in calibrations])
+    S_cc = np.vstack([np.hstack([joint_block(sigma, a, b) for b in calibrations]) for a in calibrations])
     frames = list(gain)
     at = {k: i for i, k in enumerate(frames)}
     G = np.stack([gain[k] for k in frames])

@@ -1,7 +1,12 @@
 """A recorded dataset fed through an :class:`~smoother.online.smoother.OnlineSmoother` in order of
 arrival (:func:`replay`; ``smoother run --estimator fixed-lag``), optionally at its own pace
 (``realtime``), with what came out of it: every keyframe's smoothed estimate, the updates' times,
-the measurements' latencies, what was dropped or skipped."""
+the measurements' latencies, what was dropped or skipped.
+
+Run as a program (``python -m smoother.online.replay``) it replays 3 s of the simulator's default
+run through the sliding window and writes nothing but Numba's kernel cache: the warm-up child of
+:func:`smoother.online.warm_up.start` (every kernel of an update, a marginalisation and the
+covariances)."""
 from __future__ import annotations
 
 import time
@@ -123,3 +128,13 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
                         dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
                         online.calibration)
+
+
+if __name__ == "__main__":
+    import warnings
+
+    from datasets.simulate import simulate
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        replay(simulate("gentle", duration=3.0, seed=0), 1.0, "sliding", covariances=True, progress=False)

@@ -1,6 +1,7 @@
 """The compiled kernels made ready before they are needed: in this process, when an online smoother
 is made (:func:`in_this_process`), and in a second process while this one runs the other
-estimators (:func:`start`).
+estimators (:func:`start`; the child is ``python -m smoother.online.replay``, which replays a few
+seconds of simulated data). Neither imports the smoother it warms up, which imports this module.
 
 Numba compiles a kernel the first time it runs and keeps it on disk (``cache=True``); a first run
 -- a fresh install, an edited kernel -- spends most of its time compiling, one kernel after the

@@ -66,11 +66,12 @@ from datasets.kinds import sensors_of
 from datasets.types import Dataset
 from factors import imu, quaternion
 from factors.errors import InputError
+from smoother.estimators import ESTIMATORS
 
 #: The child frame of every pose and transform: the IMU frame (see the module docstring).
 BASE_LINK = "base_link"
 #: Whose estimate ``/tf`` carries: the first of these that finished.
-TF_ESTIMATORS = ("batch", "fixed-lag", "ekf")
+TF_ESTIMATORS = ESTIMATORS
 
 _ODOMETRY = "nav_msgs/msg/Odometry"
 _TF = "tf2_msgs/msg/TFMessage"

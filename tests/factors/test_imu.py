@@ -140,6 +140,17 @@ def test_dt_zero_is_the_identity_step(state, acc, gyro):
 
 
 @given(S.imu_states(), forces, rates, steps)
+def test_the_euler_step_moves_the_state_by_dt_times_its_rate(state, acc, gyro, dt):
+    """``state_derivative`` is the one formula of the state's rate ``(C v, C^T g + f - w x v, C w,
+    0, 0)`` (the time-offset Jacobians and the misfit patterns use it): the Euler step is linear
+    in ``dt`` in the error-state chart, so ``propagate(x, ..., dt) [-] x = dt xdot`` to round-off,
+    the attitude's ``log(exp(dt C w))`` included (``|dt w| < pi`` here)."""
+    step = imu.boxminus(imu.propagate(state, acc, gyro, dt, jacobians=False)[0], state)
+    xdot = imu.state_derivative(state, acc, gyro)
+    assert max_abs(step, dt * xdot) < tol(state, acc) * dt
+
+
+@given(S.imu_states(), forces, rates, steps)
 def test_propagate_with_zero_noise_is_propagate(state, acc, gyro, dt):
     a, _, _ = imu.propagate(state, acc, gyro, dt)
     b = imu.propagate_with_noise(state, acc, gyro, dt, np.zeros(15))

@@ -1,4 +1,4 @@
-"""Batch smoothing (smoother/batch.py): optimisers and engines agree, covariances, indeterminant
+"""Batch smoothing (smoother/batch/): optimisers and engines agree, covariances, indeterminant
 systems, robust kernels."""
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def test_linearizing_in_chunks_changes_nothing(monkeypatch):
     exactly: the same factors, the same arithmetic."""
     from smoother.model import blocks as solver
 
-    monkeypatch.setattr(solver, "LINEARIZE_CHUNK", 4)
+    monkeypatch.setattr(solver, "CHUNK", 4)
     result = solve_batch(build_problem(small()), "lm")
     ref = reference()
     assert result.iterations == ref.iterations
@@ -393,3 +393,32 @@ def test_covariances_with_calibrations_where_a_keyframe_does_not_reach_them():
     for k in range(n):
         np.testing.assert_allclose(marginals[k], dense[15 * k:15 * k + 15, 15 * k:15 * k + 15], rtol=0, atol=1e-12)
     np.testing.assert_allclose(joint[(2, n)], dense[30:45, 60:], rtol=0, atol=1e-12)
+
+
+def test_a_keyframe_covariance_from_gtsams_marginals_or_isam2_is_the_prior_it_came_from():
+    """``keyframe_covariance``, the one conversion of GTSAM's joint marginal of a keyframe's four
+    variables into the primer's 15x15 covariance (the gtsam engine's and GTSAM's fixed-lag
+    smoothers'): a keyframe whose only factor is a state prior of covariance ``P`` has ``P``
+    back at the prior's mean, from ``gtsam.Marginals`` and from ISAM2 alike (1e-10 relative:
+    one factorisation of a well-conditioned 15x15 system)."""
+    from factors import priors, so3
+    from factors.keys import keyframe_keys
+    from smoother.model.covariances import keyframe_covariance
+    from smoother.model.problem import insert_state
+
+    rng = np.random.default_rng(8)
+    prior = imu.ImuState(rng.normal(0, 10, 3), rng.normal(0, 2, 3), so3.exp(rng.normal(0, 1, 3)),
+                         rng.normal(0, 0.1, 3), rng.normal(0, 0.01, 3))
+    Q = np.linalg.qr(rng.normal(size=(15, 15)))[0]
+    sigma = np.diag(np.repeat([2.0, 0.5, 0.2, 0.1, 0.01], 3))
+    P = sigma @ Q @ np.diag(rng.uniform(0.5, 2.0, 15)) @ Q.T @ sigma  # correlated, moderately conditioned
+    k = keyframe_keys(3)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(priors.state_prior_factor(k, prior, P))
+    values = gtsam.Values()
+    insert_state(values, k, prior)
+    isam = gtsam.ISAM2()
+    isam.update(graph, values)
+    for marginals in (gtsam.Marginals(graph, values), isam):
+        back = keyframe_covariance(marginals, k, values.atRot3(k.rot))
+        assert np.abs(back - P).max() <= 1e-10 * np.abs(P).max()

@@ -228,7 +228,7 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
     from datasets import kitti
     from smoother.evaluation import scoring as report
     from smoother.diagnosis.calibration_report import calibration_lines
-    from smoother.pipeline import RunOptions, estimate_each, sensor_consistency
+    from smoother.pipeline import RunOptions, estimate_each, verdicts_by_estimator
 
     gps = kitti.GPS_SENSOR
     data = kitti.load_kitti(gps_every=every).with_sensor(gps, calibrate=CalibrationPrior(("time_offset", "lever_arm")))
@@ -236,7 +236,7 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
         warnings.simplefilter("ignore")
         estimates = dict(estimate_each(data, ["batch"], RunOptions()))
     batch = estimates["batch"]
-    verdict = sensor_consistency(data, estimates)["batch"][gps]
+    verdict = verdicts_by_estimator(data, estimates)["batch"][gps]
     rho = report.residual_correlation(data, batch.trajectory, batch.calibration, gps)
     record = batch.details["calibration"][gps]
     value = np.array([record["time_offset_s"], *record["lever_arm_m"][:2]])

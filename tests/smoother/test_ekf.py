@@ -1,4 +1,4 @@
-"""The primer's EKF (smoother/ekf.py): prediction, update, gate and statistical consistency.
+"""The primer's EKF (smoother/ekf/): prediction, update, gate and statistical consistency.
 
 Tolerances: identities between two evaluations of the same floating-point operations are held to
 1e-12 (round-off of a few hundred steps on quantities of order 1-10); hand-computed Kalman
@@ -438,3 +438,59 @@ def test_the_compiled_filter_needs_no_scipy(tmp_path):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_the_calibrating_filter_without_calibrations_is_the_plain_filter():
+    """Both filters take their update order, Kalman update, gate and divergence test from
+    smoother.ekf.update: with no calibration to estimate (an empty set: the augmented state is the
+    IMU's), the calibrating filter driven from Python gives the compiled plain filter's estimates,
+    covariances, innovations, rejections and likelihood, here with three sensors measuring at
+    common times, a gate and a rejected outlier."""
+    from factors.calibration import CalibrationSet
+    from smoother.ekf.calibrated import run_calibrated_ekf
+
+    data = simulate("tumbling", duration=6.0, seed=2, pose_rate=2.0, position_rate=4.0, orientation_rate=4.0)
+    pose = data.sensor("pose").data
+    bad = dataclasses.replace(pose, position=pose.position + np.where(np.arange(len(pose.t)) == 4, 50.0, 0.0)[:, None])
+    data = data.with_sensor("pose", data=bad)
+    plain = run_ekf(data, gate_probability=0.999, progress=False)
+    augmented = run_calibrated_ekf(data, CalibrationSet((), (), (), ()), gate_probability=0.999, progress=False)
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        np.testing.assert_allclose(getattr(augmented.trajectory.states, name), getattr(plain.trajectory.states, name),
+                                   rtol=0, atol=1e-12)
+    np.testing.assert_allclose(augmented.trajectory.cov, plain.trajectory.cov, rtol=1e-12, atol=1e-18)
+    a, b = augmented.innovations, plain.innovations
+    assert list(a.sensor) == list(b.sensor) and np.array_equal(a.t, b.t) and np.array_equal(a.accepted, b.accepted)
+    np.testing.assert_allclose(a.nis, b.nis, rtol=1e-10)
+    assert augmented.rejected == plain.rejected == 1
+    assert augmented.log_likelihood == pytest.approx(plain.log_likelihood, rel=1e-12)
+
+
+def test_the_shared_update_on_an_augmented_state_matches_the_kalman_equations():
+    """smoother.ekf.update.kalman_update on a covariance wider than the IMU's error state (a
+    calibration's coordinates after it): dx = -K e and Joseph's P = (I - K H) P (I - K H)^T + K R
+    K^T from the dense formulas, the log density of the innovation added; a gated update leaves
+    P and dx alone and is counted."""
+    from smoother.ekf.update import gate_thresholds, kalman_update
+
+    rng = np.random.default_rng(4)
+    n, m = imu.STATE_DIM + 6, 3
+    A = rng.normal(size=(n, n))
+    P = A @ A.T / n + 0.1 * np.eye(n)
+    H, R, e = rng.normal(size=(m, n)), np.diag([0.2, 0.3, 0.4]), rng.normal(size=m)
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S)
+    IKH = np.eye(n) - K @ H
+    counts, dx, updated = np.zeros(2), np.empty(n), P.copy()
+    d2 = kalman_update(updated, e, H, R, gate_thresholds(None), counts, dx)
+    assert d2 == pytest.approx(e @ np.linalg.solve(S, e), rel=1e-12)
+    np.testing.assert_allclose(dx, -K @ e, rtol=0, atol=1e-12 * np.abs(K @ e).max())
+    np.testing.assert_allclose(updated, IKH @ P @ IKH.T + K @ R @ K.T, rtol=0, atol=1e-12 * np.abs(P).max())
+    assert np.array_equal(updated, updated.T)
+    log_density = -0.5 * (d2 + np.linalg.slogdet(S)[1] + m * np.log(2 * np.pi))
+    assert counts[0] == 0 and counts[1] == pytest.approx(log_density, rel=1e-12)
+
+    before, dx[:] = updated.copy(), np.nan
+    gated = kalman_update(updated, 100.0 * e / np.sqrt(d2), H, R, gate_thresholds(0.999), counts, dx)
+    assert gated > stats.chi2_quantile(0.999, m) and counts[0] == 1
+    assert np.array_equal(updated, before) and np.all(np.isnan(dx))

@@ -21,7 +21,7 @@ from factors import so3
 from smoother.cli import main
 from smoother.diagnosis.verdicts import consistency_warnings
 from smoother.diagnosis.misfit_causes import Cause, causes_at, hint, hints, patterns
-from smoother.pipeline import run_estimators, sensor_consistency
+from smoother.pipeline import run_estimators, verdicts_by_estimator
 
 #: A car-like figure-eight: the simulator's gentle one 10 times wider (100 m x 50 m, 7-15 m/s),
 #: heading along the path.
@@ -144,13 +144,13 @@ def test_a_rig_without_errors_is_told_of_no_cause(runs, estimator):
 
 def test_hints_start_from_the_batch_and_else_from_another_estimate(runs):
     data, estimates, _ = runs["delay"]
-    consistency = sensor_consistency(data, estimates)
+    consistency = verdicts_by_estimator(data, estimates)
     batch = hints(data, estimates, consistency)
     assert set(batch) == {"gnss"} and batch["gnss"].startswith("time offset -0.09")
     assert batch["gnss"].endswith("(fitted from the batch's estimate)")
     assert hints(data, {"ekf": estimates["ekf"]}, consistency)["gnss"].endswith("(fitted from the ekf's estimate)")
     right, right_estimates, _ = runs["right"]
-    assert hints(right, right_estimates, sensor_consistency(right, right_estimates)) == {}
+    assert hints(right, right_estimates, verdicts_by_estimator(right, right_estimates)) == {}
 
 
 def test_with_a_sensor_that_calibrates_the_others_are_fitted_at_its_estimated_calibration():
@@ -161,7 +161,7 @@ def test_with_a_sensor_that_calibrates_the_others_are_fitted_at_its_estimated_ca
 
     data = _delayed(_scaled(_car(seed=2), 0.99)).with_sensor("wheels", calibrate=CalibrationPrior(("scale",)))
     estimates = run_estimators(data, ["batch"])
-    told = hints(data, estimates, sensor_consistency(data, estimates))
+    told = hints(data, estimates, verdicts_by_estimator(data, estimates))
     assert set(told) == {"gnss"}, told
     value, sigma = map(float, re.match(r"time offset (\S+) s \+- (\S+) s", told["gnss"]).groups())
     assert abs(value + 0.1) < 3 * sigma, told
@@ -174,7 +174,7 @@ def test_the_run_warning_says_the_pattern_before_the_sigma(runs):
     wheels = data.sensor("wheels").data
     data = data.with_sensor("wheels", data=replace(wheels, cov=25.0 * wheels.cov))
     estimates = run_estimators(data, ["batch", "ekf"])
-    consistency = sensor_consistency(data, estimates)
+    consistency = verdicts_by_estimator(data, estimates)
     assert consistency["batch"]["wheels"]["per_dof"] < 0.5
     [line] = [line for line in consistency_warnings(consistency, (), hints(data, estimates, consistency))
               if line.startswith("wheels")]
@@ -190,7 +190,7 @@ def test_a_calibration_error_is_not_put_on_the_imu(runs):
     IMU's warning names the GNSS's calibration, whose own warning does not call the IMU the likelier
     cause."""
     data, estimates, _ = runs["delay"]
-    consistency = sensor_consistency(data, estimates)
+    consistency = verdicts_by_estimator(data, estimates)
     lines = consistency_warnings(consistency, (), hints(data, estimates, consistency))
     [imu] = [line for line in lines if line.startswith("imu:")]
     [gnss] = [line for line in lines if line.startswith("gnss:")]

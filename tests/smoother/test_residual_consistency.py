@@ -13,7 +13,7 @@ from factors.imu import ImuNoise
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
 from smoother.model.problem import build_problem
-from smoother.pipeline import judged, run_estimators, sensor_consistency
+from smoother.pipeline import judged, run_estimators, verdicts_by_estimator
 from smoother.diagnosis.residual_consistency import block_consistency
 
 
@@ -61,7 +61,7 @@ def gyro_in_degrees():
     with max_gyro_rate(1e4):
         wrong = dataclasses.replace(data, imu=ImuSamples(data.imu.t, data.imu.acc, np.degrees(data.imu.gyro)))
         estimates = run_estimators(wrong, ["batch", "fixed-lag", "ekf"], keep_going=True)
-        consistency = sensor_consistency(wrong, estimates)
+        consistency = verdicts_by_estimator(wrong, estimates)
     judged(estimates, consistency)
     return estimates, consistency
 
@@ -92,7 +92,7 @@ def test_a_right_rig_is_neither_warned_of_nor_doubtful():
     data = simulate("gentle", duration=20, seed=2, pose_rate=None, sensors=[
         SensorSpec("gnss", "gnss", 1.0, 1.0), SensorSpec("wheels", "velocity", 10, 0.05)])
     estimates = run_estimators(data, ["batch", "fixed-lag", "ekf"])
-    consistency = sensor_consistency(data, estimates)
+    consistency = verdicts_by_estimator(data, estimates)
     judged(estimates, consistency)
     assert consistency_warnings(consistency) == []
     assert not any("doubtful" in est.details for est in estimates.values())
@@ -129,13 +129,13 @@ def test_a_sensor_s_warning_names_every_estimator_out_of_its_band():
 
 
 def test_evaluating_in_chunks_changes_nothing(monkeypatch):
-    import smoother.diagnosis.residual_consistency as rc
+    import smoother.model.blocks as blocks
 
     data = simulate("gentle", duration=3, seed=5, pose_rate=None, sensors=[SensorSpec("wheels", "velocity", 20, 0.05)])
     problem, result = _solved(data)
     t = result.trajectory
     whole = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
-    monkeypatch.setattr(rc, "CHUNK", 7)
+    monkeypatch.setattr(blocks, "CHUNK", 7)
     chunked = [block_consistency(b, t.states, t.cov, result.joint) for b in problem.blocks]
     for a, b in zip(whole, chunked):
         assert a["measurements"] == b["measurements"]

@@ -14,7 +14,7 @@ from factors import so3
 from smoother.evaluation import scoring as report
 from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings, sensor_consistency
 from smoother.pipeline import run_estimators
-from smoother.pipeline import sensor_consistency as every_estimators_verdicts
+from smoother.pipeline import verdicts_by_estimator
 
 
 def _T(rotation_vector, lever):
@@ -47,7 +47,7 @@ def runs():
     for label, data in (("centred", centred), ("mounted", mounted), ("ignored", ignored)):
         estimates = run_estimators(data, ["batch", "fixed-lag", "ekf"])
         out[label] = ({name: report.score(data, e.trajectory)["ate_rmse_m"] for name, e in estimates.items()},
-                      every_estimators_verdicts(data, estimates))
+                      verdicts_by_estimator(data, estimates))
     return out
 
 

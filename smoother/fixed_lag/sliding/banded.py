@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from factors.imu import STATE_DIM as DIM
-from factors.small_linalg import cholesky_into
+from factors.small_linalg import cholesky_into, solve_lower
 
 
 @njit(cache=True)
@@ -124,18 +124,6 @@ def backward_solve(L, b, stop, newest, cap, S) -> None:
                 for q in range(p + 1, DIM):
                     acc -= Lkk[q, p] * b[row, q, c]
                 b[row, p, c] = acc / Lkk[p, p]
-
-
-@njit(cache=True)
-def solve_lower(L, B) -> None:
-    """``B <- L^-1 B`` in place (``L`` lower triangular)."""
-    n, m = B.shape
-    for c in range(m):
-        for i in range(n):
-            s = B[i, c]
-            for j in range(i):
-                s -= L[i, j] * B[j, c]
-            B[i, c] = s / L[i, i]
 
 
 def no_border(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

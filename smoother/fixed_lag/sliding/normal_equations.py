@@ -23,8 +23,7 @@ from factors import imu, so3
 from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into, work_array
 from factors.preintegration import residual_into, residual_work
 from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
-from factors.small_linalg import cholesky_into
-from smoother.fixed_lag.sliding.banded import solve_lower
+from factors.small_linalg import cholesky_into, solve_lower
 from smoother.model.problem import RELATIVE_MODEL
 
 DIM = imu.STATE_DIM
