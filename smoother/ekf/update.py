@@ -30,9 +30,8 @@ import numpy as np
 from numba import njit
 
 from factors import imu
-from factors.compiled import matmul_into
 from factors.errors import InputError, SolverError
-from factors.small_linalg import cholesky_into, solve_lower
+from factors.small_linalg import cholesky_into, matmul_into, solve_lower
 from smoother.stats import chi2_quantile
 
 #: Beyond these the filter is declared diverged: |velocity| [m/s], sqrt(trace P) (mixed units).
