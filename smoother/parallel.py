@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 import signal
+from abc import ABC, abstractmethod
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 
 from factors.errors import InputError
@@ -36,20 +37,20 @@ AHEAD = 2
 MIN_DASK_THREADS = 4
 
 
-class Workers:
+class Workers(ABC):
     """Where :func:`run_all` runs tasks; a context manager that releases them (a pool shut down,
     a Dask client closed) on leaving."""
 
     #: Whether the tasks running when a stop comes are waited for and their results passed on.
     finish_running = True
 
+    @abstractmethod
     def window(self) -> int:
         """How many tasks may be submitted and unfinished at once now."""
-        raise NotImplementedError
 
+    @abstractmethod
     def submit(self, function, item):
         """A future of ``function(item)``."""
-        raise NotImplementedError
 
     def first_done(self, futures) -> set:
         """Wait until one of ``futures`` is done; those done."""

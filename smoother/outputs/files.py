@@ -29,6 +29,7 @@ from datasets.tum import write_tum
 from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.errors import InputError
+from smoother.estimators import ESTIMATORS
 from smoother.evaluation.scoring import position_streams, score
 from smoother.outputs.layout import GPS, METRICS, TRUTH
 
@@ -195,7 +196,7 @@ def jsonable(x):
 # --- reading a run directory back ---------------------------------------------------------------
 
 #: Estimators in the order a run directory's estimates are read (others after them, by name).
-ESTIMATOR_ORDER = ("batch", "fixed-lag", "ekf")
+ESTIMATOR_ORDER = ESTIMATORS
 
 
 @dataclass(frozen=True)
