@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datasets.types import MIN_RECORDING_SAMPLES, MIN_RECORDING_SECONDS, MIN_RECORDING_WHY
 from factors.errors import InputError
 
 #: Found values longer than this are shortened in messages (fuzzed input can be huge).
@@ -36,7 +37,8 @@ class DataError(InputError):
     """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``). ``path``, ``line`` (1-based, or None for the file as a whole),
     ``field`` (or None), ``found`` and ``expected`` are kept as attributes. ``found`` is shortened
     to :data:`_MAX_SHOWN` characters (it may be a whole fuzzed line) unless ``whole``: a text the
-    loader composed from parsed values, which must stay readable to the last digit."""
+    loader composed from parsed values, which must stay readable to the last digit (kept as an
+    attribute too, for an error re-raised with another field)."""
 
     def __init__(self, path, line: int | None, field: str | None, found, expected: str, whole: bool = False):
         self.path = str(path)
@@ -44,6 +46,7 @@ class DataError(InputError):
         self.field = field
         self.found = found
         self.expected = expected
+        self.whole = whole
         where = self.path
         if line is not None:
             where += f", line {line}"
@@ -66,19 +69,16 @@ def _split_lines(text: str) -> list[str]:
     return lines
 
 
-def read_lines(path) -> list[str]:
+def read_lines(path, kind: str = "table") -> list[str]:
     """The lines of a UTF-8 text file (without line ends: LF, CR LF or CR; a leading byte-order
-    mark dropped); a :class:`DataError` naming the file if it is missing, unreadable or not text,
-    and the line of the first byte that is not UTF-8 or of the first NUL."""
+    mark dropped), read by :func:`datasets.sourcefile.read_source` within the size limit of
+    ``kind`` ("table": CSV, TUM, KITTI; "yaml"); a :class:`DataError` naming the file if it is
+    missing, unreadable, not a regular file, too large or not text, and the line of the first
+    byte that is not UTF-8 or of the first NUL."""
+    from datasets.sourcefile import read_source  # it raises this module's DataError
+
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DataError(path, None, None, "no such file", "an existing, readable file") from None
-    except IsADirectoryError:
-        raise DataError(path, None, None, "a directory", "a file") from None
-    except OSError as error:
-        raise DataError(path, None, None, f"an unreadable file ({error.strerror})", "a readable file") from None
+    data = read_source(path, kind)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as error:
@@ -245,6 +245,20 @@ def require_rows(path, rows, n_lines: int, minimum: int, what: str) -> None:
         found = "an empty file" if n_lines == 0 else f"{len(rows)} data line{'s' if len(rows) != 1 else ''}"
         raise DataError(path, max(n_lines, 1) if len(rows) == 0 else rows[-1][0], None, found,
                         f"at least {minimum} {what}")
+
+
+def require_imu_recording(path, t, field: str | None = None) -> None:
+    """The IMU stamps ``t`` of the file ``path`` (integer nanoseconds, or float seconds) are a
+    recording the loaders accept: at least :data:`~datasets.types.MIN_RECORDING_SAMPLES` samples
+    over at least :data:`~datasets.types.MIN_RECORDING_SECONDS`; else a :class:`DataError` naming
+    the file (and ``field``, a bag's topic) with what it holds."""
+    t = np.asarray(t)
+    seconds = (int(t[-1]) - int(t[0])) * 1e-9 if np.issubdtype(t.dtype, np.integer) else float(t[-1] - t[0])
+    if len(t) >= MIN_RECORDING_SAMPLES and seconds >= MIN_RECORDING_SECONDS:
+        return
+    raise DataError(path, None, field, f"{len(t)} IMU sample{'s' if len(t) != 1 else ''} over {seconds:.6g} s",
+                    f"an IMU recording of at least {MIN_RECORDING_SAMPLES} samples over at least "
+                    f"{MIN_RECORDING_SECONDS:g} s ({MIN_RECORDING_WHY})", whole=True)
 
 
 def duplicate_stamps(path, t: np.ndarray, lines) -> str | None:

@@ -15,6 +15,7 @@ import math
 import sys
 
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
+from datasets.sourcefile import read_source
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -49,8 +50,7 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -
     and beside a sensor's values, as a comment, its caution (``cautions``: ``{sensor: text}``,
     '' for none; :func:`smoother.calibration_report.fit_note`)."""
     cautions = cautions or {}
-    with open(rig.path, "rb") as f:
-        raw = tomllib.load(f)
+    raw = tomllib.loads(read_source(rig.path, "rig").decode("utf-8"))
     imu = dict(raw["imu"])
     imu["source"] = rig.imu.source
     if "kalibr" in imu:

@@ -6,6 +6,12 @@ skipped (line numbers stay those of the file). OpenCV's ``!!opencv-matrix`` tag 
 mapping. Duplicate keys, which YAML forbids and PyYAML would silently resolve to the last, are an
 error naming both lines. Every error is a :class:`datasets.errors.DataError` naming the file, the
 line and the key path (``T_BS.data``).
+
+Bounds: the file is read within the YAML size limit of :mod:`datasets.sourcefile`. Aliases
+(``*name``, a repeat of an anchored ``&name`` node) are allowed, but the document they expand to
+may hold at most :data:`MAX_NODES` nodes, counted with every alias expanded, and nest at most
+:data:`MAX_DEPTH` levels: nested aliases make a few hundred bytes stand for billions of nodes ("a
+billion laughs"), and such a document is refused before anything walks it.
 """
 from __future__ import annotations
 
@@ -16,6 +22,13 @@ from pathlib import Path
 import yaml
 
 from datasets.errors import DataError, read_lines
+
+#: The most nodes (mappings, lists and scalars, keys included) a document may expand to, aliases
+#: expanded: a camchain of ten cameras has some 500, a ROS 2 bag's metadata of a thousand
+#: topics some 30 000.
+MAX_NODES = 100_000
+#: The deepest nesting of mappings and lists a document may have (a calibration file has 3-4).
+MAX_DEPTH = 64
 
 
 class _Loader(yaml.SafeLoader):
@@ -79,37 +92,56 @@ class YamlDocument:
         return float(value)
 
 
-def _walk(node, keys: tuple, lines: dict, path: Path) -> None:
-    """Record the line of every key and list item; reject duplicate keys."""
-    if isinstance(node, yaml.MappingNode):
-        for key_node, value_node in node.value:
-            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else key_node.start_mark.line
-            here = keys + (key,)
-            line = key_node.start_mark.line + 1
-            if here in lines:
-                raise DataError(path, line, dotted(here), f"a second '{key}:' (the first at line {lines[here]})",
-                                "each key once")
-            lines[here] = line
-            _walk(value_node, here, lines, path)
-    elif isinstance(node, yaml.SequenceNode):
-        for index, item in enumerate(node.value):
-            lines[keys + (index,)] = item.start_mark.line + 1
-            _walk(item, keys + (index,), lines, path)
+class _Walk:
+    """One walk over a composed document (aliases expanded): the line of every key and list item,
+    duplicate keys refused, and the nodes counted against :data:`MAX_NODES` and the depth against
+    :data:`MAX_DEPTH` as they are reached."""
+
+    def __init__(self, path: Path):
+        self.path, self.lines, self.nodes = path, {}, 0
+
+    def node(self, node, keys: tuple) -> None:
+        self.nodes += 1
+        if self.nodes > MAX_NODES:
+            raise DataError(self.path, node.start_mark.line + 1, dotted(keys) or None,
+                            f"a document of more than {MAX_NODES} nodes once its aliases are expanded",
+                            f"a calibration file's few hundred (nested aliases, '*name', expand exponentially)")
+        if len(keys) > MAX_DEPTH:
+            raise DataError(self.path, node.start_mark.line + 1, None, f"mappings or lists nested deeper than "
+                            f"{MAX_DEPTH} levels", "a calibration file's few levels")
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                self.nodes += 1
+                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else key_node.start_mark.line
+                here = keys + (key,)
+                line = key_node.start_mark.line + 1
+                if here in self.lines:
+                    raise DataError(self.path, line, dotted(here),
+                                    f"a second '{key}:' (the first at line {self.lines[here]})", "each key once")
+                self.lines[here] = line
+                self.node(value_node, here)
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                self.lines[keys + (index,)] = item.start_mark.line + 1
+                self.node(item, keys + (index,))
 
 
 def read_yaml(path) -> YamlDocument:
     """Read a YAML file (see the module docstring)."""
     path = Path(path)
-    text_lines = read_lines(path)
+    text_lines = read_lines(path, "yaml")
     if text_lines and text_lines[0].startswith("%YAML:"):
         text_lines[0] = ""
     loader = _Loader("\n".join(text_lines) + "\n")
-    lines: dict = {}
+    walk = _Walk(path)
     try:
         node = loader.get_single_node()
         if node is not None:
-            _walk(node, (), lines, path)
+            walk.node(node, ())
         data = None if node is None else loader.construct_document(node)
+    except RecursionError:  # PyYAML composes and constructs recursively: nesting beyond Python's stack
+        raise DataError(path, None, None, "mappings or lists nested deeper than the reader can follow",
+                        f"at most {MAX_DEPTH} levels") from None
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark or error.context_mark
         problem = " ".join(part for part in (error.context, error.problem) if part)
@@ -118,4 +150,4 @@ def read_yaml(path) -> YamlDocument:
         raise DataError(path, None, None, str(error), "valid YAML") from None
     finally:
         loader.dispose()
-    return YamlDocument(path, data, lines, len(text_lines))
+    return YamlDocument(path, data, walk.lines, len(text_lines))

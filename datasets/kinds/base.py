@@ -42,7 +42,9 @@ class Kind:
     ``scale = (metres, radians)`` in random directions (None: the simulator cannot corrupt this
     kind); ``scaled_field``: the field of readings that a sensor's scale multiplies (what it reads
     per unit of the truth; the model's :attr:`~factors.sensor_models.SensorModel.scaled` rows),
-    None if none. The registry (:func:`datasets.kinds.registered`) checks these declarations."""
+    None if none; ``sigma_units``: the unit of each residual axis (``"m"``, ``"rad"``, ``"m/s"``),
+    in which a sensor's ``sigma`` for it is given and checked (:data:`datasets.ranges.SIGMA_RANGES`).
+    The registry (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
     data_type: type
@@ -58,6 +60,7 @@ class Kind:
     times: tuple[str, ...] = ("t",)
     corrupt: Callable | None = None
     scaled_field: str | None = None
+    sigma_units: tuple[str, ...] = ()
 
     def unscaled(self, data, scale: float):
         """``data`` with its :attr:`scaled_field` divided by ``scale`` and its covariance by
@@ -113,6 +116,11 @@ class Clock:
     datum: object = None
 
 
+def sigma_counts(dim: int) -> str:
+    """How many numbers the ``sigma`` of a ``dim``-dimensional kind takes, as text."""
+    return f"1 or {dim} numbers" + (" (or translation and rotation)" if dim == 6 else "")
+
+
 def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
     """A sensor's noise sigmas for a ``dim``-dimensional residual: one number (every axis), one per
     axis, or for 6-dim kinds ``(translation, rotation)``; a ValueError naming ``where`` else."""
@@ -122,8 +130,7 @@ def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
     elif dim == 6 and s.size == 2:
         s = np.repeat(s, 3)
     if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        expected = f"1 or {dim} numbers > 0" + (" (or translation and rotation)" if dim == 6 else "")
-        raise InputError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
+        raise InputError(f"{where}: sigma: expected {sigma_counts(dim)} > 0, got {np.asarray(sigma).tolist()!r}")
     return s
 
 

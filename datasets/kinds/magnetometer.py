@@ -105,4 +105,5 @@ def _random_row(rng):
 
 KIND = Kind("magnetometer", MagneticFieldMeasurements, 2, sm.MAGNETOMETER,
             lambda m: sm.pack_magnetometer(m.direction, m.world, m.T_BS), _simulate, None, _read,
-            fields=("direction", "world"), random_row=_random_row, default_sigma=(0.02,))
+            fields=("direction", "world"), random_row=_random_row, default_sigma=(0.02,),
+            sigma_units=("rad", "rad"))

@@ -45,4 +45,4 @@ def _random_row(rng):
 
 KIND = Kind("orientation", OrientationMeasurements, 3, sm.ORIENTATION, lambda m: sm.pack_orientation(m.C, m.T_BS),
             _simulate, _anchor, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
-            corrupt=displaced)
+            corrupt=displaced, sigma_units=("rad",) * 3)

@@ -38,4 +38,4 @@ def _random_row(rng):
 
 KIND = Kind("pose", PoseMeasurements, 6, sm.POSE, lambda m: sm.pack_pose(m.position, m.C, m.T_BS), _simulate,
             _anchor, _read, fields=("position", "C"), random_row=_random_row, default_sigma=(0.05, 0.01),
-            corrupt=displaced)
+            corrupt=displaced, sigma_units=("m",) * 3 + ("rad",) * 3)

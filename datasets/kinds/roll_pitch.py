@@ -72,4 +72,5 @@ def _read(sensor, clock):
 
 
 KIND = Kind("roll_pitch", RollPitchMeasurements, 2, sm.ROLL_PITCH, lambda m: sm.pack_orientation(m.C, m.T_BS),
-            _simulate, None, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,))
+            _simulate, None, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
+            sigma_units=("rad", "rad"))
