@@ -42,7 +42,7 @@ or not positive definite counts as unknown for its message
 one. Quaternions must have norm 1 within :data:`QUATERNION_TOLERANCE` and are normalised.
 
 Before ``rosbags`` opens anything, the files it will read are checked
-(:func:`datasets.sourcefile.check_source`): a bag file, or a ROS 2 folder's ``metadata.yaml``
+(:func:`datasets.errors.check_source`): a bag file, or a ROS 2 folder's ``metadata.yaml``
 (read within the YAML limits) and the storage files it lists, must be regular files within the
 size limit of bags; a named pipe or a device would block or never end.
 
@@ -64,8 +64,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from datasets.errors import DataError, check_increasing, require_imu_recording
-from datasets.sourcefile import check_source
+from datasets.errors import DataError, check_increasing, check_source, require_imu_recording
 from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, MagneticFieldStream, PoseStream,
                               PressureStream, TwistStream, known_covariances, seconds)
 from datasets.types import ImuSamples

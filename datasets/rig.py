@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import DataError
+from datasets.errors import DataError, read_source
 from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
@@ -90,7 +90,6 @@ from datasets.kinds.base import kind_sigmas, sigma_counts
 from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
 from datasets.ranges import RANGES, SIGMA_RANGES, out_of_range, sensor_name_problem
 from datasets.robust import robust_spec
-from datasets.sourcefile import read_source
 from datasets.sources import parse_spec
 from factors import so3
 from factors.calibration import PARTS, CalibrationPrior, applicable

@@ -15,7 +15,7 @@ import math
 import sys
 
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
-from datasets.sourcefile import read_source
+from datasets.errors import read_source
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -7,7 +7,7 @@ mapping. Duplicate keys, which YAML forbids and PyYAML would silently resolve to
 error naming both lines. Every error is a :class:`datasets.errors.DataError` naming the file, the
 line and the key path (``T_BS.data``).
 
-Bounds: the file is read within the YAML size limit of :mod:`datasets.sourcefile`. Aliases
+Bounds: the file is read within the YAML size limit of :func:`datasets.errors.read_source`. Aliases
 (``*name``, a repeat of an anchored ``&name`` node) are allowed, but the document they expand to
 may hold at most :data:`MAX_NODES` nodes, counted with every alias expanded, and nest at most
 :data:`MAX_DEPTH` levels: nested aliases make a few hundred bytes stand for billions of nodes ("a
