@@ -11,7 +11,8 @@ Bounds: the file is read within the YAML size limit of :func:`datasets.errors.re
 (``*name``, a repeat of an anchored ``&name`` node) are allowed, but the document they expand to
 may hold at most :data:`MAX_NODES` nodes, counted with every alias expanded, and nest at most
 :data:`MAX_DEPTH` levels: nested aliases make a few hundred bytes stand for billions of nodes ("a
-billion laughs"), and such a document is refused before anything walks it.
+billion laughs"), and such a document is refused before anything walks it. Parsing stops at the
+same count, so that a large flat document costs no more than a few seconds either.
 """
 from __future__ import annotations
 
@@ -31,8 +32,31 @@ MAX_NODES = 100_000
 MAX_DEPTH = 64
 
 
+def _too_many(path, line: int | None, key: str | None) -> DataError:
+    return DataError(path, line, key, f"a document of more than {MAX_NODES} nodes once its aliases are expanded",
+                     "a calibration file of some hundreds (an alias, *name, stands for its anchor's whole value, "
+                     "and nested ones multiply)", whole=True)
+
+
+class _TooMany(Exception):
+    """Raised by :class:`_Loader` past :data:`MAX_NODES` composed nodes, at the line ``line``."""
+
+    def __init__(self, line: int):
+        super().__init__(line)
+        self.line = line
+
+
 class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` as a mapping."""
+    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` as a mapping, and stops
+    composing past :data:`MAX_NODES` nodes (aliases counted once: they are expanded later)."""
+
+    composed = 0
+
+    def compose_node(self, parent, index):
+        self.composed += 1
+        if self.composed > MAX_NODES:
+            raise _TooMany(self.peek_event().start_mark.line + 1)
+        return super().compose_node(parent, index)
 
 
 _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix",
@@ -102,13 +126,12 @@ class _Walk:
 
     def node(self, node, keys: tuple) -> None:
         self.nodes += 1
-        if self.nodes > MAX_NODES:
-            raise DataError(self.path, node.start_mark.line + 1, dotted(keys) or None,
-                            f"a document of more than {MAX_NODES} nodes once its aliases are expanded",
-                            f"a calibration file's few hundred (nested aliases, '*name', expand exponentially)")
+        if self.nodes > MAX_NODES:  # named at the top-level key whose value expands past the bound
+            raise _too_many(self.path, self.lines.get(keys[:1]), dotted(keys[:1]) or None)
         if len(keys) > MAX_DEPTH:
-            raise DataError(self.path, node.start_mark.line + 1, None, f"mappings or lists nested deeper than "
-                            f"{MAX_DEPTH} levels", "a calibration file's few levels")
+            raise DataError(self.path, self.lines.get(keys[:1]), dotted(keys[:1]) or None,
+                            f"mappings or lists nested deeper than {MAX_DEPTH} levels", "a calibration file's few",
+                            whole=True)
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:
                 self.nodes += 1
@@ -139,9 +162,11 @@ def read_yaml(path) -> YamlDocument:
         if node is not None:
             walk.node(node, ())
         data = None if node is None else loader.construct_document(node)
+    except _TooMany as error:
+        raise _too_many(path, error.line, None) from None
     except RecursionError:  # PyYAML composes and constructs recursively: nesting beyond Python's stack
         raise DataError(path, None, None, "mappings or lists nested deeper than the reader can follow",
-                        f"at most {MAX_DEPTH} levels") from None
+                        f"at most {MAX_DEPTH} levels", whole=True) from None
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark or error.context_mark
         problem = " ".join(part for part in (error.context, error.problem) if part)
