@@ -376,7 +376,7 @@ def require_imu_recording(path, t, field: str | None = None) -> None:
     seconds = (int(t[-1]) - int(t[0])) * 1e-9 if np.issubdtype(t.dtype, np.integer) else float(t[-1] - t[0])
     if len(t) >= MIN_RECORDING_SAMPLES and seconds >= MIN_RECORDING_SECONDS:
         return
-    raise DataError(path, None, field, f"{len(t)} IMU sample{'s' if len(t) != 1 else ''} over {seconds:.6g} s",
+    raise DataError(path, None, field, f"{len(t)} IMU sample{'s' if len(t) != 1 else ''} over {seconds:.4g} s",
                     f"an IMU recording of at least {MIN_RECORDING_SAMPLES} samples over at least "
                     f"{MIN_RECORDING_SECONDS:g} s ({MIN_RECORDING_WHY})", whole=True)
 
