@@ -62,89 +62,87 @@ class Range:
 RANGES: dict[str, Range] = {
     "imu.accel_noise_density": Range(
         1e-6, 1.0, "m/s^2/sqrt(Hz)",
-        "from below a navigation-grade accelerometer's ~2e-5 to a hundred times a consumer MEMS part's ~3e-3 "
-        "(densities inflated for a vehicle's vibration)"),
+        "a navigation-grade accelerometer's is ~2e-5, a consumer MEMS part's ~3e-3; room below the one and for "
+        "the other inflated a hundredfold by a vehicle's vibration"),
     "imu.gyro_noise_density": Range(
         1e-8, 0.1, "rad/s/sqrt(Hz)",
-        "from below a navigation-grade ring-laser gyro's ~1.5e-7 (0.0005 deg/sqrt(h)) to a hundred times a "
-        "consumer MEMS gyro's ~3e-4"),
+        "a navigation-grade ring-laser gyro's is ~1.5e-7 (0.0005 deg/sqrt(h)), a consumer MEMS gyro's ~3e-4; "
+        "room below the one and for the other inflated a hundredfold"),
     "imu.accel_random_walk": Range(
         1e-9, 1.0, "m/s^3/sqrt(Hz)",
-        "from below a navigation-grade accelerometer's bias drift (~1e-7) to a hundred times a consumer MEMS "
-        "part's (~1e-2)"),
+        "a navigation-grade accelerometer's bias drift is ~1e-7, a consumer MEMS part's ~1e-2; room below the "
+        "one and for the other inflated a hundredfold"),
     "imu.gyro_random_walk": Range(
         1e-12, 0.1, "rad/s^2/sqrt(Hz)",
-        "from below a navigation-grade gyro's bias drift (~1e-10, 0.001 deg/h over an hour) to a hundred times "
-        "a consumer MEMS gyro's (~1e-4)"),
+        "a navigation-grade gyro's bias drift is ~1e-10 (0.001 deg/h in an hour), a consumer MEMS gyro's ~1e-4; "
+        "room below the one and for the other inflated a hundredfold"),
     "imu.gravity": Range(
         9.7, 9.9, "m/s^2",
-        "the Earth's gravity, 9.76 (high on the equator) to 9.84 (the poles), with room for a flight at 30 km; "
-        "the project estimates on the Earth only (a wrong value here is usually a unit: 1 for g)"),
+        "the Earth's gravity: 9.78 on the equator, 9.83 at the poles, 9.74 at an airliner's altitude; the "
+        "estimators model the Earth only, and a value far off is a unit mistake (1 for g)"),
     "imu.forward": Range(
         1e-6, 1e6, "",
-        "the length of the forward vector: only its direction is used, and a length outside this is a typing "
-        "mistake (or overflows)"),
+        "the length of the forward vector: only its direction is used, and a length beyond these is a typing "
+        "mistake"),
     "datum.latitude": Range(-90.0, 90.0, "deg", "the globe"),
     "datum.longitude": Range(-180.0, 180.0, "deg", "the globe"),
     "datum.altitude": Range(
         -1000.0, 50_000.0, "m",
-        "metres above the WGS-84 ellipsoid: from below the Dead Sea's shore (about -410 m) to above a "
-        "stratospheric balloon's 40 km"),
+        "above the WGS-84 ellipsoid: below the Dead Sea's shore (about -410 m) to above a stratospheric "
+        "balloon (40 km)"),
     "sensor.T_BS": Range(
         0.0, 200.0, "m",
-        "the length of the lever arm (T_BS's translation): the largest ships are 400 m long, so a sensor at "
-        "one end is at most some 200 m from an IMU amidships"),
+        "the length of the lever arm, T_BS's translation: on the largest ships, 400 m long, a sensor is at most "
+        "some 200 m from an IMU amidships"),
     "sensor.time_offset": Range(
         -86_400.0, 86_400.0, "s",
-        "clocks of one recording differ by milliseconds to seconds (transport delays, the 18 leap seconds "
-        "between GPS time and UTC) or by whole hours (a time zone); stamps a day or more apart are in another "
-        "epoch, to convert in the data"),
+        "clocks of one recording differ by milliseconds to seconds (delays, GPS time's leap seconds) or by "
+        "whole hours (a time zone); stamps a day apart are in another epoch, to convert in the data"),
     "sensor.every": Range(
         1, 10_000, "",
-        "use every k-th measurement: a 100 Hz source used once in 100 s at most; beyond, nothing is left "
-        "to estimate with"),
+        "a 100 Hz source used once in 100 s; beyond, too little is left to estimate with"),
     "sensor.robust": Range(
         0.1, 100.0, "sigma",
-        "the kernel's threshold on the whitened residual's norm: below 0.1 sigma every measurement is an "
-        "outlier, above 100 sigma none is (write robust = \"none\")"),
+        "the kernel's threshold on the whitened residual's norm: below 0.1 every measurement is an outlier, "
+        "above 100 none is (that is robust = \"none\")"),
     "sensor.declination": Range(-180.0, 180.0, "deg", "an angle east of true north"),
     "sensor.inclination": Range(-90.0, 90.0, "deg", "an angle below the horizontal"),
     "sensor.scale": Range(
         0.1, 10.0, "",
-        "what the sensor reads per unit of the truth: a tyre's wear is a few per cent, and km/h (3.6), mph "
-        "(2.24) and knots (1.94) read as m/s lie inside; a factor of ten or more is a reading in other units"),
+        "what the sensor reads per unit of the truth: a worn tyre is off by per cents, and km/h (3.6), mph "
+        "(2.24) or knots (1.94) read as m/s lie inside; a factor of ten is data in other units"),
     "sensor.time_offset_sigma": Range(
         1e-5, 1.0, "s",
-        "from a hardware-synchronised clock's jitter (10 us) to a software stamp's delay (tenths of a "
-        "second); an offset unknown by more than a second is beyond the estimate's linearisation: find it by "
-        "hand first (the stamps' overlap)"),
+        "a hardware-synchronised clock's jitter (10 us) to a software stamp's delay (tenths of a second); an "
+        "offset unknown by more than a second is beyond the estimate's linearisation: find it from the stamps "
+        "first"),
     "sensor.rotation_sigma": Range(
         1e-5, 1.0, "rad",
-        "from a calibrated mount (2 arcsec) to a mounting unknown by tens of degrees; a prior of more than a "
-        "radian is no prior (the rotation's chart ends at pi) and the linearised estimate cannot find such a "
-        "mounting: write T_BS to within tens of degrees first"),
+        "a calibrated mount (2 arcsec) to one known to tens of degrees; wider is no prior (the rotation's chart "
+        "ends at pi) and beyond what the linearised estimate finds: write T_BS closer first"),
     "sensor.lever_arm_sigma": Range(
         1e-4, 10.0, "m",
-        "from a lever arm measured to 0.1 mm to one guessed to metres; unknown by more than ten metres, it is "
-        "not measured at all"),
+        "a lever arm measured to 0.1 mm to one guessed to metres; unknown by more than ten metres, it is not "
+        "measured at all"),
     "sensor.scale_sigma": Range(
         1e-5, 0.5, "",
-        "about a scale of 1: from a calibrated odometer's 10 ppm to a scale unknown by half (more is a units "
+        "about a scale of 1: a calibrated odometer's 10 ppm to a scale unknown by half (more is a units "
         "mistake: set scale)"),
 }
 
 #: The range of a sensor's ``sigma`` by the unit of its residual axis (a kind's ``sigma_units``).
 SIGMA_RANGES: dict[str, Range] = {
-    "m": Range(1e-4, 1e4, "m", "from motion capture's 0.1 mm to a fix that says nothing (10 km)"),
-    "rad": Range(1e-6, math.pi, "rad",
-                 "from below a star tracker's arcsecond (5e-6) to pi, where a rotation's chart ends"),
-    "m/s": Range(1e-4, 100.0, "m/s", "from a Doppler log's 0.1 mm/s to a speed that says nothing (100 m/s)"),
+    "m": Range(1e-4, 1e4, "m", "motion capture's 0.1 mm to a position that says nothing (10 km)"),
+    "rad": Range(1e-6, math.pi, "rad", "finer than a star tracker's arcsecond (5e-6) to pi, where a rotation's chart "
+                                       "ends"),
+    "m/s": Range(1e-4, 100.0, "m/s", "a Doppler log's 0.1 mm/s to a velocity that says nothing (100 m/s)"),
 }
 
 #: What a sensor's name must match (whole): a letter, then letters, digits, ``_`` or ``-``; at
 #: most 64 characters.
 SENSOR_NAME_SYNTAX = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")
-#: Names the outputs already use for the IMU's and the initial prior's blocks and verdicts.
+#: Names the outputs already give the estimators' own blocks: the IMU's (its verdict in
+#: ``metrics.json``) and the initial state's prior.
 RESERVED_SENSOR_NAMES = ("imu", "prior")
 
 
@@ -159,6 +157,7 @@ def sensor_name_problem(name) -> str | None:
         return (f"expected a name of a letter followed by letters, digits, _ or - (at most 64 characters; "
                 f"--robust NAME=KERNEL and metrics.json address a sensor by it), got {name!r}")
     if name in RESERVED_SENSOR_NAMES:
-        return (f"the name {name!r} is taken by the {'IMU' if name == 'imu' else 'initial prior'}'s own verdict "
-                f"in the outputs; reserved: {', '.join(RESERVED_SENSOR_NAMES)}")
+        return (f"the name {name!r} is reserved: the outputs give it to the "
+                f"{'IMU (its verdict in metrics.json)' if name == 'imu' else 'initial state prior'}; reserved are "
+                f"{', '.join(RESERVED_SENSOR_NAMES)}")
     return None

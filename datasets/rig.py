@@ -24,7 +24,7 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     altitude = 400.0                # metres above the WGS-84 ellipsoid
 
     [[sensor]]                      # any number of sensors, each a [[sensor]] table
-    name = "gnss"                   # unique
+    name = "gnss"                   # unique; a letter, then letters, digits, _ or - (not imu, prior)
     kind = "gnss"                   # pose | position | gnss | orientation | velocity | odometry
                                     # | altitude | magnetometer
     source = "bag:run.bag"          # bag:..., csv:FILE or tum:FILE (poses only)
@@ -53,12 +53,19 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
 
 Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
 ``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
-kind reads from its source, and how many numbers its ``sigma`` takes, is the measurement kind's
-business: the rig only checks that the numbers are standard deviations (> 0).
+kind reads from its source, and how many numbers its ``sigma`` takes in which units, is the
+measurement kind's business (:class:`datasets.kinds.base.Kind`): the rig checks ``sigma`` against
+what the kind declares.
 
 A bad rig file is one :class:`RigError` (a ``ValueError``) of one line naming the file, the key and
 what was expected, e.g. ``rig.toml: sensor[1] "gnss".T_BS: expected a rigid transform ...``.
-Sensors are counted from 1 in the order of their tables. Checked: TOML syntax (with its line),
+Sensors are counted from 1 in the order of their tables. Checked: the files read (the rig, a
+Kalibr file, a camchain) through :func:`datasets.errors.read_source` (regular files within their
+size limits), TOML syntax (with its line), nesting the TOML reader cannot follow, every number
+within its plausible range (:data:`datasets.ranges.RANGES`: a lever arm by its length, a Kalibr
+file's densities as the keys they stand for, a ``sigma`` per residual axis in the axis's unit,
+:data:`datasets.ranges.SIGMA_RANGES`, and as many numbers as the kind takes), sensor names
+(:func:`datasets.ranges.sensor_name_problem`),
 unknown keys (the closest known one suggested), types, missing required keys, a bag source
 without a topic or a file source with one, unknown schemes and kinds, a ``T_BS`` that is not a
 4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;

@@ -254,7 +254,7 @@ def test_a_sensor_name_nothing_can_address_is_refused_at_load(tmp_path, name):
         load_rig(path)
     message = str(info.value)
     assert message.startswith(f"{path}: {sensor_key(1, name, 'name')}: "), message
-    expected = ("taken by" if name in RESERVED_SENSOR_NAMES else "expected a non-empty string" if not name
+    expected = ("is reserved: the outputs give it to the" if name in RESERVED_SENSOR_NAMES else "expected a non-empty string" if not name
                 else "expected a name of a letter followed by")
     assert expected in message, message
 
@@ -275,7 +275,7 @@ def test_the_name_rule_is_one_rule_for_rigs_and_datasets():
         assert sensor_name_problem(name) is not None, name
     for name in ACCEPTED_NAMES:
         assert sensor_name_problem(name) is None, name
-    with pytest.raises(ValueError, match=r"Dataset.sensors\[0\].name: the name 'imu' is taken by the IMU's own verdict"):
+    with pytest.raises(ValueError, match=r"Dataset.sensors\[0\].name: the name 'imu' is reserved: the outputs give it to the IMU"):
         simulate("gentle", duration=2, seed=1, pose_rate=None, sensors=[SensorSpec("imu", "position", 1, 0.5)])
 
 
@@ -294,3 +294,40 @@ def test_a_robust_threshold_out_of_range_is_refused_wherever_it_is_parsed(text):
         check_robust("SensorSetup.robust", (name, float(value)))
     assert robust_spec(f"{name}:2") == (name, 2.0)
     check_robust("SensorSetup.robust", (name, 2.0))
+
+
+def _table_rows(text: str, first_cell: str) -> list[list[str]]:
+    """The cells of the rows of the markdown tables in ``text`` whose first cell is ``first_cell``."""
+    rows = [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("|")]
+    return [row for row in rows if row[0] == first_cell]
+
+
+def test_the_users_reference_states_every_limit_as_the_code_has_it():
+    """docs/rig.md's Limits: each range's bounds, each unit's sigma range, each file size, the YAML
+    bounds and the shortest IMU recording, as the modules define them."""
+    from datasets.errors import GIB, LIMITS, MIB
+    from datasets.types import MIN_RECORDING_SAMPLES, MIN_RECORDING_SECONDS
+    from datasets.yamlfile import MAX_DEPTH, MAX_NODES
+
+    docs = (Path(__file__).resolve().parents[2] / "docs" / "rig.md").read_text()
+    section = docs[docs.index("## Limits"):]
+    section = section[:section.index("\n## ", 1)]
+
+    def bounds(cell: str) -> tuple[float, float]:
+        low, high = cell.split(" to ")
+        return float(low), math.pi if high == "π" else float(high)
+
+    for key, r in RANGES.items():
+        (row,) = _table_rows(section, f"`{key}`")
+        assert bounds(row[1]) == (r.low, r.high), key
+    for unit, r in SIGMA_RANGES.items():
+        (row,) = _table_rows(section, unit)
+        assert bounds(row[1]) == (r.low, r.high), unit
+    unit = {"MiB": MIB, "GiB": GIB}
+    sizes = [int(number) * unit[name] for line in section.splitlines() if line.startswith("|")
+             for number, name in re.findall(r"^\|[^|]*\| (\d+) (MiB|GiB) \|", line)]
+    assert sizes == [LIMITS[kind].bytes for kind in ("rig", "yaml", "table", "bag")]
+    flat = " ".join(section.split())
+    assert f"at most {MAX_NODES:,} nodes".replace(",", " ") in flat and f"nested at most {MAX_DEPTH} levels" in flat
+    assert f"at least {MIN_RECORDING_SAMPLES} samples over at least {MIN_RECORDING_SECONDS:g} s" in flat
