@@ -35,11 +35,11 @@ fields
 
 Poses: ``(x, y, z)`` the position [m] of the sensor frame in its world frame, ``(qw, qx, qy, qz)``
 the Hamilton quaternion of the sensor-to-world rotation, norm 1 within
-:data:`QUATERNION_TOLERANCE` (then normalised). A position or attitude sensor reads only the
-columns it uses: a pose file serves both, and so does a file of positions or attitudes alone. Velocities: of the sensor frame, in the sensor
-frame [m/s]. Fixes: degrees and metres above the WGS-84 ellipsoid; every value must be a finite
-number, also in rows with ``status < 0`` (which :func:`datasets.gnss.fixes_to_enu` drops). See
-:mod:`datasets.streams` for the stream types.
+:data:`QUATERNION_TOLERANCE` (then normalised). Positions and attitudes are read from the columns
+they use only: a pose file gives both, a file of positions or of attitudes alone gives its own.
+Velocities: of the sensor frame, in the sensor frame [m/s]. Fixes: degrees and metres above the
+WGS-84 ellipsoid; every value must be a finite number, also in rows with ``status < 0`` (which
+:func:`datasets.gnss.fixes_to_enu` drops). See :mod:`datasets.streams` for the stream types.
 
 Every malformed file is one :class:`datasets.errors.DataError` naming the file, line and column.
 """

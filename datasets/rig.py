@@ -91,10 +91,10 @@ from datasets.errors import DataError, read_source
 from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
+from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
 from datasets.kinds import KIND_NAMES, KINDS
 from datasets.kinds.base import kind_sigmas, sigma_counts
-from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
 from datasets.ranges import RANGES, SIGMA_RANGES, out_of_range, sensor_name_problem
 from datasets.robust import robust_spec
 from datasets.sources import parse_spec
@@ -369,10 +369,13 @@ def _sigma(t: _Table, kind: str) -> np.ndarray | None:
         axes = kind_sigmas("sigma", sigma, declared.dim)
     except InputError:
         raise t.error("sigma", f"a {kind} sensor's sigma is {sigma_counts(declared.dim)}, got {value!r}") from None
-    for axis, (s, unit) in enumerate(zip(axes, declared.sigma_units)):
+    units = declared.sigma_units
+    for axis, (s, unit) in enumerate(zip(axes, units)):
         problem = SIGMA_RANGES[unit].problem(s)
         if problem is not None:
-            raise t.error("sigma", (f"axis {axis + 1} of {declared.dim} ({unit}): " if sigma.size > 1 else "") + problem)
+            which = (f"axis {axis + 1} of {declared.dim} ({unit}): " if sigma.size == declared.dim > 1
+                     else f"as the sigma of its {unit} axes: " if len(set(units)) > 1 else "")
+            raise t.error("sigma", which + problem)
     return sigma
 
 

@@ -1,5 +1,6 @@
-"""Reading YAML configuration files (ASL ``sensor.yaml``, Kalibr ``imu.yaml`` and camchains) with
-PyYAML, keeping the line of every key and list item for error messages.
+"""Reading YAML configuration files (ASL ``sensor.yaml``, Kalibr ``imu.yaml`` and camchains, a ROS 2
+bag's ``metadata.yaml``) with PyYAML, keeping the line of every key and list item for error
+messages.
 
 OpenCV writes ``%YAML:1.0`` as its first line, which is not YAML (PyYAML rejects it): that line is
 skipped (line numbers stay those of the file). OpenCV's ``!!opencv-matrix`` tag reads as a plain
@@ -130,8 +131,8 @@ class _Walk:
             raise _too_many(self.path, self.lines.get(keys[:1]), dotted(keys[:1]) or None)
         if len(keys) > MAX_DEPTH:
             raise DataError(self.path, self.lines.get(keys[:1]), dotted(keys[:1]) or None,
-                            f"mappings or lists nested deeper than {MAX_DEPTH} levels", "a calibration file's few",
-                            whole=True)
+                            f"mappings or lists nested deeper than {MAX_DEPTH} levels",
+                            f"at most {MAX_DEPTH} (a calibration file has a few)", whole=True)
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:
                 self.nodes += 1

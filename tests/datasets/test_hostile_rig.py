@@ -331,3 +331,14 @@ def test_the_users_reference_states_every_limit_as_the_code_has_it():
     flat = " ".join(section.split())
     assert f"at most {MAX_NODES:,} nodes".replace(",", " ") in flat and f"nested at most {MAX_DEPTH} levels" in flat
     assert f"at least {MIN_RECORDING_SAMPLES} samples over at least {MIN_RECORDING_SECONDS:g} s" in flat
+
+
+@pytest.mark.parametrize("sigma, which", [
+    ("4.0", "as the sigma of its rad axes: expected a value within [1e-06, 3.14159] rad"),
+    ("[0.1, 4.0]", "as the sigma of its rad axes: "),
+    ("[1e5, 0.1]", "as the sigma of its m axes: expected a value within [0.0001, 10000] m"),
+])
+def test_a_short_sigma_of_a_pose_names_the_unit_it_failed_in(tmp_path, sigma, which):
+    path = _rig(tmp_path, IMU + f'\n[[sensor]]\nname = "cam"\nkind = "pose"\nsource = "csv:cam.csv"\nsigma = {sigma}\n')
+    with pytest.raises(RigError, match=re.escape(f'{path}: sensor[1] "cam".sigma: {which}')):
+        load_rig(path)
