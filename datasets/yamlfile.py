@@ -39,24 +39,19 @@ def _too_many(path, line: int | None, key: str | None) -> DataError:
                      "and nested ones multiply)", whole=True)
 
 
-class _TooMany(Exception):
-    """Raised by :class:`_Loader` past :data:`MAX_NODES` composed nodes, at the line ``line``."""
-
-    def __init__(self, line: int):
-        super().__init__(line)
-        self.line = line
-
-
 class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader that also reads OpenCV's ``!!opencv-matrix`` as a mapping, and stops
-    composing past :data:`MAX_NODES` nodes (aliases counted once: they are expanded later)."""
+    """PyYAML's safe loader of the file ``path`` that also reads OpenCV's ``!!opencv-matrix`` as a
+    mapping, and stops composing past :data:`MAX_NODES` nodes (aliases counted once: they are
+    expanded later), with the :class:`DataError` of a document too large."""
 
-    composed = 0
+    def __init__(self, text: str, path: Path):
+        super().__init__(text)
+        self.path, self.composed = path, 0
 
     def compose_node(self, parent, index):
         self.composed += 1
         if self.composed > MAX_NODES:
-            raise _TooMany(self.peek_event().start_mark.line + 1)
+            raise _too_many(self.path, self.peek_event().start_mark.line + 1, None)
         return super().compose_node(parent, index)
 
 
@@ -156,15 +151,13 @@ def read_yaml(path) -> YamlDocument:
     text_lines = read_lines(path, "yaml")
     if text_lines and text_lines[0].startswith("%YAML:"):
         text_lines[0] = ""
-    loader = _Loader("\n".join(text_lines) + "\n")
+    loader = _Loader("\n".join(text_lines) + "\n", path)
     walk = _Walk(path)
     try:
         node = loader.get_single_node()
         if node is not None:
             walk.node(node, ())
         data = None if node is None else loader.construct_document(node)
-    except _TooMany as error:
-        raise _too_many(path, error.line, None) from None
     except RecursionError:  # PyYAML composes and constructs recursively: nesting beyond Python's stack
         raise DataError(path, None, None, "mappings or lists nested deeper than the reader can follow",
                         f"at most {MAX_DEPTH} levels", whole=True) from None

@@ -30,19 +30,20 @@ def _address_space() -> int | None:
 
 
 def _child(call, memory: int, write_fd: int) -> None:
-    """Run ``call`` with at most ``memory`` bytes more address space, and write its Outcome."""
-    size = _address_space()
-    if size is not None:
-        _, hard = resource.getrlimit(resource.RLIMIT_AS)
-        limit = size + memory if hard == resource.RLIM_INFINITY else min(size + memory, hard)
-        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    """Run ``call`` with at most ``memory`` bytes more address space, and write how it ended (a
+    plain tuple: this module's own classes need not pickle by the name pytest gave it)."""
     try:
+        size = _address_space()
+        if size is not None:
+            _, hard = resource.getrlimit(resource.RLIMIT_AS)
+            limit = size + memory if hard == resource.RLIM_INFINITY else min(size + memory, hard)
+            resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
         call()
-        outcome = Outcome((), "")
+        ended = ((), "")
     except BaseException as error:  # noqa: BLE001 - every ending is reported to the parent
-        outcome = Outcome(tuple(c.__name__ for c in type(error).__mro__), str(error))
+        ended = (tuple(c.__name__ for c in type(error).__mro__), str(error))
     with os.fdopen(write_fd, "wb") as pipe:
-        pipe.write(pickle.dumps(outcome))
+        pipe.write(pickle.dumps(ended))
 
 
 @pytest.fixture
@@ -71,10 +72,10 @@ def isolated():
                 os.waitpid(pid, 0)
                 pytest.fail(f"still running after {seconds} s (killed)")
             data = pipe.read()
-        os.waitpid(pid, 0)
+        _, status = os.waitpid(pid, 0)
         if not data:
-            pytest.fail("the call's process died without a result")
-        outcome = pickle.loads(data)
+            pytest.fail(f"the call's process died without a result (wait status {status:#x})")
+        outcome = Outcome(*pickle.loads(data))
         if "MemoryError" in outcome.raised:
             pytest.fail(f"ran out of its {memory} bytes of memory: {outcome.message}")
         return outcome
