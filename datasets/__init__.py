@@ -9,8 +9,9 @@ example), ``euroc`` (EuRoC/ASL folders), ``tum`` (TUM trajectory files), ``simul
 bags, CSV and TUM streams), ``gnss`` (geodetic <-> local ENU), ``initialise`` (the initial state
 from the data), ``kalibr`` (Kalibr calibration files), ``allan`` (IMU noise from a static
 recording), ``imu_health`` (the IMU's own faults: clipping, spikes, gaps, wrong units), ``errors``
-(:class:`DataError`, naming file, line and field of bad input), ``atomic`` (files written whole or
-not at all).
+(:class:`DataError`, naming file, line and field of bad input; the one bounded reader of input
+files), ``ranges`` (the plausible range of every number of a rig file, and sensor names),
+``atomic`` (files written whole or not at all).
 
 The names below are importable from the package itself (``from datasets import Dataset``); each
 is loaded on first use. ``simulate`` is the simulator's module (``simulate.simulate(...)``): a

@@ -41,26 +41,34 @@ or not positive definite counts as unknown for its message
 (:func:`datasets.streams.known_covariances`); ``cov`` is None when no message of the stream has
 one. Quaternions must have norm 1 within :data:`QUATERNION_TOLERANCE` and are normalised.
 
+Before ``rosbags`` opens anything, the files it will read are checked
+(:func:`datasets.errors.check_source`): a bag file, or a ROS 2 folder's ``metadata.yaml``
+(read within the YAML limits) and the storage files it lists, must be regular files within the
+size limit of bags; a named pipe or a device would block or never end.
+
 Errors are :class:`datasets.errors.DataError` naming the bag and the topic: a missing or unreadable
-bag, a damaged one (anything rosbags raises while reading or deserialising a message, or fewer
-messages than the bag's index lists), a topic that is not in the bag (the message lists the
-topics present with their types), a topic of another message type than the stream asked for (both
-named), an empty topic, stamps out of order, fewer IMU messages than
-:data:`datasets.types.MIN_IMU_SAMPLES`, a bad quaternion or non-finite values.
+bag, one that is not a regular file or beyond the size limit, a damaged one (anything rosbags
+raises while reading or deserialising a message, or fewer messages than the bag's index lists), a
+topic that is not in the bag (the message lists the topics present with their types), a topic of
+another message type than the stream asked for (both named), an empty topic, stamps out of order,
+an IMU topic shorter than :func:`datasets.errors.require_imu_recording` asks, a bad quaternion or
+non-finite values.
 """
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
+import os
+from pathlib import Path, PurePath
 
 import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from datasets.errors import DataError, check_increasing
+from datasets.errors import DataError, check_increasing, check_source, require_imu_recording
 from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, MagneticFieldStream, PoseStream,
                               PressureStream, TwistStream, known_covariances, seconds)
-from datasets.types import MIN_IMU_SAMPLES, MIN_IMU_SAMPLES_WHY, ImuSamples
+from datasets.types import ImuSamples
+from datasets.yamlfile import read_yaml
 from factors import quaternion
 
 IMU = "sensor_msgs/msg/Imu"
@@ -161,11 +169,33 @@ def _cause(error: Exception) -> str:
     return text if len(text) <= _MAX_CAUSE else text[: _MAX_CAUSE - 3] + "..."
 
 
+def _check_files(path: Path, topic: str) -> None:
+    """The files ``rosbags`` will read for the bag ``path`` are regular files within the size
+    limit of bags (a ROS 2 folder: its ``metadata.yaml`` read within the YAML limits, and the
+    storage files it lists); a :class:`DataError` naming the file and ``topic`` otherwise."""
+    try:
+        if not path.is_dir():
+            check_source(path, "bag")
+            return
+        metadata = path / "metadata.yaml"
+        if not os.path.lexists(metadata):
+            return  # not a ROS 2 bag folder: rosbags says so
+        data = read_yaml(metadata).data
+        info = data.get("rosbag2_bagfile_information") if isinstance(data, dict) else None
+        names = info.get("relative_file_paths") if isinstance(info, dict) else None
+        for name in names if isinstance(names, list) else ():
+            check_source(path / PurePath(str(name)).name, "bag")  # where rosbags looks for it
+    except DataError as error:
+        raise DataError(error.path, error.line, f"topic {topic}" if error.field is None else error.field,
+                        error.found, error.expected, error.whole) from None
+
+
 @contextlib.contextmanager
 def _opened(path: Path, topic: str):
     """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag and ``topic``."""
     if not path.exists():
         raise DataError(path, None, f"topic {topic}", "no such file or folder", _A_BAG)
+    _check_files(path, topic)
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -250,12 +280,10 @@ def _rotations(path, topic: str, t_ns: np.ndarray, q_wxyz: np.ndarray) -> np.nda
 
 
 def read_bag_imu(path, topic: str) -> ImuSamples:
-    """``sensor_msgs/msg/Imu`` messages of ``topic`` as IMU samples (``t_ns`` exact), at least
-    :data:`~datasets.types.MIN_IMU_SAMPLES` of them."""
+    """``sensor_msgs/msg/Imu`` messages of ``topic`` as IMU samples (``t_ns`` exact), a recording
+    as long as :func:`datasets.errors.require_imu_recording` asks."""
     t_ns, rows = _read(path, topic, "IMU samples")
-    if len(t_ns) < MIN_IMU_SAMPLES:
-        raise DataError(path, None, f"topic {topic}", f"{len(t_ns)} message{'s' if len(t_ns) != 1 else ''}",
-                        f"at least {MIN_IMU_SAMPLES} IMU samples ({MIN_IMU_SAMPLES_WHY})")
+    require_imu_recording(path, t_ns, f"topic {topic}")
     _finite(path, topic, t_ns, rows, "acceleration or angular rate")
     return ImuSamples(seconds(t_ns), rows[:, 0:3], rows[:, 3:6], t_ns=t_ns)
 

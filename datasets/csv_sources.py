@@ -4,9 +4,10 @@ IMU samples: the EuRoC/ASL ``imu0/data.csv`` layout only (``#timestamp [ns],w_RS
 w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z``; read by :func:`datasets.euroc.read_imu_csv`, which finds the
 columns by name); times in integer nanoseconds since the epoch, kept exactly in ``t_ns``.
 
-Poses: the EuRoC/ASL ``state_groundtruth_estimate0/data.csv`` layout (``#timestamp,p_RS_R_x,...,
-q_RS_w,q_RS_x,q_RS_y,q_RS_z,...``; velocities and biases are ignored) or the generic layout below.
-A file whose header has a column ``t`` is generic; any other is read as EuRoC/ASL.
+Poses, positions and attitudes: the EuRoC/ASL ``state_groundtruth_estimate0/data.csv`` layout
+(``#timestamp,p_RS_R_x,...,q_RS_w,q_RS_x,q_RS_y,q_RS_z,...``; velocities and biases are ignored)
+or the generic layouts below. A file whose header has a column ``t`` is generic; any other is
+read as EuRoC/ASL.
 
 Generic layouts: comma separated, the first non-blank line a header naming the columns (a
 leading ``#`` is allowed), in any order; ``t`` in seconds (since the epoch, or any origin shared
@@ -19,6 +20,10 @@ stream        required columns            optional groups
 ============  ==========================  ===============================================
 poses         ``t,x,y,z,qw,qx,qy,qz``     ``sigma_x,sigma_y,sigma_z`` with
                                           ``sigma_rx,sigma_ry,sigma_rz`` [m, rad]
+positions     ``t,x,y,z``                 ``sigma_x,sigma_y,sigma_z`` [m]; a pose file's
+                                          ``qw,qx,qy,qz`` and ``sigma_r*`` (not used)
+attitudes     ``t,qw,qx,qy,qz``           ``sigma_rx,sigma_ry,sigma_rz`` [rad]; a pose
+                                          file's ``x,y,z`` and ``sigma_x..z`` (not used)
 velocities    ``t,vx,vy,vz``              ``wx,wy,wz`` [rad/s]; ``sigma_vx,sigma_vy,sigma_vz``
                                           (and ``sigma_wx,sigma_wy,sigma_wz`` with ``wx..``)
 GNSS fixes    ``t,latitude,longitude,     ``status`` (integer, NavSatStatus: -1 no fix, 0 fix;
@@ -30,10 +35,11 @@ fields
 
 Poses: ``(x, y, z)`` the position [m] of the sensor frame in its world frame, ``(qw, qx, qy, qz)``
 the Hamilton quaternion of the sensor-to-world rotation, norm 1 within
-:data:`QUATERNION_TOLERANCE` (then normalised). Velocities: of the sensor frame, in the sensor
-frame [m/s]. Fixes: degrees and metres above the WGS-84 ellipsoid; every value must be a finite
-number, also in rows with ``status < 0`` (which :func:`datasets.gnss.fixes_to_enu` drops). See
-:mod:`datasets.streams` for the stream types.
+:data:`QUATERNION_TOLERANCE` (then normalised). Positions and attitudes are read from the columns
+they use only: a pose file gives both, a file of positions or of attitudes alone gives its own.
+Velocities: of the sensor frame, in the sensor frame [m/s]. Fixes: degrees and metres above the
+WGS-84 ellipsoid; every value must be a finite number, also in rows with ``status < 0`` (which
+:func:`datasets.gnss.fixes_to_enu` drops). See :mod:`datasets.streams` for the stream types.
 
 Every malformed file is one :class:`datasets.errors.DataError` naming the file, line and column.
 """
@@ -45,15 +51,20 @@ import numpy as np
 
 from datasets import euroc
 from datasets.errors import DataError, check_increasing, check_unit_quaternions, read_lines, read_table
-from datasets.streams import FixStream, MagneticFieldStream, PoseStream, PressureStream, TwistStream, seconds
+from datasets.streams import (AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PositionStream, PressureStream,
+                              TwistStream, seconds)
 from datasets.types import ImuSamples
 from factors import quaternion
 
 #: Accepted deviation of a quaternion's norm from 1 before it is normalised.
 QUATERNION_TOLERANCE = 1e-3
 
-POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
-POSE_SIGMAS = ["sigma_x", "sigma_y", "sigma_z", "sigma_rx", "sigma_ry", "sigma_rz"]
+POSITION_COLUMNS = ["t", "x", "y", "z"]
+ATTITUDE_COLUMNS = ["t", "qw", "qx", "qy", "qz"]
+POSE_COLUMNS = POSITION_COLUMNS + ATTITUDE_COLUMNS[1:]
+POSITION_SIGMAS = ["sigma_x", "sigma_y", "sigma_z"]
+ROTATION_SIGMAS = ["sigma_rx", "sigma_ry", "sigma_rz"]
+POSE_SIGMAS = POSITION_SIGMAS + ROTATION_SIGMAS
 VELOCITY_COLUMNS = ["t", "vx", "vy", "vz"]
 ANGULAR_COLUMNS = ["wx", "wy", "wz"]
 VELOCITY_SIGMAS = ["sigma_vx", "sigma_vy", "sigma_vz"]
@@ -131,10 +142,36 @@ def read_csv_poses(path) -> PoseStream:
         gt = euroc.read_groundtruth_csv(path)
         return PoseStream(seconds(gt.t_ns), gt.p, quaternion.to_matrix(gt.q), None, gt.t_ns)
     c = _generic(path, POSE_COLUMNS, [POSE_SIGMAS], "pose lines (" + ",".join(POSE_COLUMNS) + ")")
-    q = np.stack([c[name] for name in ("qw", "qx", "qy", "qz")], axis=1)
-    q = check_unit_quaternions(path, q, c["lines"], "qw qx qy qz", QUATERNION_TOLERANCE)
     position = np.stack([c["x"], c["y"], c["z"]], axis=1)
-    return PoseStream(c["t"], position, quaternion.to_matrix(q), _diagonal(c, POSE_SIGMAS))
+    return PoseStream(c["t"], position, _rotations(path, c), _diagonal(c, POSE_SIGMAS))
+
+
+def _rotations(path: Path, columns: dict) -> np.ndarray:
+    """The rotations of the quaternion columns ``qw qx qy qz``, each of norm 1 within
+    :data:`QUATERNION_TOLERANCE`."""
+    q = np.stack([columns[name] for name in ATTITUDE_COLUMNS[1:]], axis=1)
+    q = check_unit_quaternions(path, q, columns["lines"], "qw qx qy qz", QUATERNION_TOLERANCE)
+    return quaternion.to_matrix(q)
+
+
+def read_csv_positions(path) -> PositionStream:
+    """Positions of a generic position (or pose) file, or of an EuRoC/ASL ground-truth file."""
+    path = Path(path)
+    if not _is_generic(path):
+        return PositionStream.of_poses(read_csv_poses(path))
+    c = _generic(path, POSITION_COLUMNS, [ATTITUDE_COLUMNS[1:], POSITION_SIGMAS, ROTATION_SIGMAS],
+                 "position lines (" + ",".join(POSITION_COLUMNS) + ")")
+    return PositionStream(c["t"], np.stack([c["x"], c["y"], c["z"]], axis=1), _diagonal(c, POSITION_SIGMAS))
+
+
+def read_csv_attitudes(path) -> AttitudeStream:
+    """Attitudes of a generic attitude (or pose) file, or of an EuRoC/ASL ground-truth file."""
+    path = Path(path)
+    if not _is_generic(path):
+        return AttitudeStream.of_poses(read_csv_poses(path))
+    c = _generic(path, ATTITUDE_COLUMNS, [POSITION_COLUMNS[1:], ROTATION_SIGMAS, POSITION_SIGMAS],
+                 "attitude lines (" + ",".join(ATTITUDE_COLUMNS) + ")")
+    return AttitudeStream(c["t"], _rotations(path, c), _diagonal(c, ROTATION_SIGMAS))
 
 
 def read_csv_twists(path) -> TwistStream:

@@ -1,4 +1,5 @@
-"""Errors of the dataset loaders, and the small text-parsing helpers that raise them.
+"""Errors of the dataset loaders, the one bounded reader of their input files, and the small
+text-parsing helpers that raise them.
 
 Every malformed input becomes one :class:`DataError` (an ``InputError``, so a ``ValueError``) whose message names the
 file, the 1-based line, the field, what was found and what was expected, e.g.::
@@ -7,17 +8,39 @@ file, the 1-based line, the field, what was found and what was expected, e.g.::
 
 Loaders never let an exception from deep inside NumPy or GTSAM escape for bad input, and never
 return silently wrong data: a row they cannot read is an error, not a skipped row.
+
+Every file the datasets package reads as input -- rig files, YAML calibration files, CSV, TUM and
+KITTI tables, ROS bags -- passes :func:`read_source` (a whole file's bytes; :func:`read_lines` its
+text) or, when a library opens it itself (a bag, which ``rosbags`` reads), :func:`check_source`.
+Both refuse
+
+* what is not a regular file: a named pipe (FIFO) would block the reader until another program
+  writes to it, a device (``/dev/zero``) never ends, a directory or socket has no content. The
+  check is ``os.stat`` before anything opens the file, and :func:`read_source` opens it
+  non-blocking and checks the opened file again, so that a file swapped for a pipe in between
+  cannot block it either;
+* a file larger than the limit of its kind, :data:`LIMITS` (a rig or YAML file is small; a table
+  is read whole into memory, some eight times its size; a bag is read one topic at a time). A
+  file that has more to read than its size says (one growing, a ``/proc`` file) is read no
+  further than the limit and refused.
+
+Each refusal is one :class:`DataError` naming the file, what it is (or its size) and the limit;
+``docs/rig.md`` ("Limits") lists the limits for users.
 """
 from __future__ import annotations
 
 import io
 import math
+import os
 import re
+import stat
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from datasets.types import MIN_RECORDING_SAMPLES, MIN_RECORDING_SECONDS, MIN_RECORDING_WHY
 from factors.errors import InputError
 
 #: Found values longer than this are shortened in messages (fuzzed input can be huge).
@@ -36,7 +59,8 @@ class DataError(InputError):
     """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``). ``path``, ``line`` (1-based, or None for the file as a whole),
     ``field`` (or None), ``found`` and ``expected`` are kept as attributes. ``found`` is shortened
     to :data:`_MAX_SHOWN` characters (it may be a whole fuzzed line) unless ``whole``: a text the
-    loader composed from parsed values, which must stay readable to the last digit."""
+    loader composed from parsed values, which must stay readable to the last digit (kept as an
+    attribute too, for an error re-raised with another field)."""
 
     def __init__(self, path, line: int | None, field: str | None, found, expected: str, whole: bool = False):
         self.path = str(path)
@@ -44,6 +68,7 @@ class DataError(InputError):
         self.field = field
         self.found = found
         self.expected = expected
+        self.whole = whole
         where = self.path
         if line is not None:
             where += f", line {line}"
@@ -66,19 +91,114 @@ def _split_lines(text: str) -> list[str]:
     return lines
 
 
-def read_lines(path) -> list[str]:
-    """The lines of a UTF-8 text file (without line ends: LF, CR LF or CR; a leading byte-order
-    mark dropped); a :class:`DataError` naming the file if it is missing, unreadable or not text,
-    and the line of the first byte that is not UTF-8 or of the first NUL."""
+#: Bytes in a kibibyte, a mebibyte, a gibibyte.
+KIB, MIB, GIB = 1 << 10, 1 << 20, 1 << 30
+
+
+@dataclass(frozen=True)
+class SizeLimit:
+    """The largest file of one kind: ``files`` (what they are, plural, for messages), ``bytes``
+    and ``why``."""
+
+    files: str
+    bytes: int
+    why: str
+
+
+#: The size limit of each kind of file read.
+LIMITS: dict[str, SizeLimit] = {
+    "rig": SizeLimit("rig files (TOML)", 1 * MIB, "a rig of a hundred sensors is some 10 kB"),
+    "yaml": SizeLimit("YAML files (Kalibr imu.yaml and camchains, ASL sensor.yaml, ROS 2 bag metadata.yaml)", 1 * MIB,
+                      "a camchain of ten cameras is some 10 kB, the metadata of a bag of a thousand topics some "
+                      "500 kB"),
+    "table": SizeLimit("text tables (CSV, TUM and KITTI files)", 1 * GIB,
+                       "about 8 million lines of an IMU file in EuRoC's layout, a 1 kHz IMU for two hours or a 200 Hz "
+                       "one for eleven; read whole, such a file takes some 8 GB of memory"),
+    "bag": SizeLimit("ROS bag storage files (.bag, .db3, .mcap)", 256 * GIB,
+                     "a day of a camera rig writing 3 MB/s; only the topics asked for are read from it"),
+}
+
+#: What a file that is not a regular one is, by its ``stat`` type.
+_NOT_REGULAR = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a named pipe (FIFO), which would block until another program writes to it"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _size(n: int) -> str:
+    """A byte count as people read it: ``1 GiB``, ``6.2 GiB``, ``312 kiB``, ``17 bytes``."""
+    for unit, name in ((GIB, "GiB"), (MIB, "MiB"), (KIB, "kiB")):
+        if n >= unit:
+            return f"{n / unit:.3g} {name}"
+    return f"{n} bytes"
+
+
+def _refuse_size(path, kind: str, size: int | None) -> DataError:
+    """The error for a file of ``size`` bytes beyond the limit of ``kind``; ``size`` None: one that
+    had more than the limit to read than its size said (it grew, or it is a /proc-like file)."""
+    limit = LIMITS[kind]
+    found = f"{_size(size)} ({size} bytes)" if size is not None else f"more than {limit.bytes} bytes once read"
+    return DataError(path, None, None, found, f"at most {_size(limit.bytes)}, the limit of {limit.files}: {limit.why}",
+                     whole=True)
+
+
+def _check_stat(path, kind: str, st: os.stat_result) -> None:
+    """A :class:`DataError` unless ``st`` is that of a regular file within the limit of ``kind``."""
+    if not stat.S_ISREG(st.st_mode):
+        what = next((what for is_type, what in _NOT_REGULAR if is_type(st.st_mode)), "a special file")
+        raise DataError(path, None, None, what, "a regular file", whole=True)
+    if st.st_size > LIMITS[kind].bytes:
+        raise _refuse_size(path, kind, st.st_size)
+
+
+def _cannot_read(path, error: OSError) -> DataError:
+    """The error for a file that is missing or that the system would not read."""
+    if isinstance(error, FileNotFoundError):
+        return DataError(path, None, None, "no such file", "an existing, readable file")
+    return DataError(path, None, None, f"an unreadable file ({error.strerror})", "a readable file")
+
+
+def check_source(path, kind: str) -> os.stat_result:
+    """The ``stat`` of ``path`` (links followed), a regular file within the limit of ``kind`` (a
+    key of :data:`LIMITS`), for a reader that opens it itself; a :class:`DataError` otherwise."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DataError(path, None, None, "no such file", "an existing, readable file") from None
-    except IsADirectoryError:
-        raise DataError(path, None, None, "a directory", "a file") from None
+        st = os.stat(path)
     except OSError as error:
-        raise DataError(path, None, None, f"an unreadable file ({error.strerror})", "a readable file") from None
+        raise _cannot_read(path, error) from None
+    _check_stat(path, kind, st)
+    return st
+
+
+def read_source(path, kind: str) -> bytes:
+    """The bytes of ``path``, a regular file within the limit of ``kind`` (a key of
+    :data:`LIMITS`); a :class:`DataError` naming the file otherwise (module docstring)."""
+    path = Path(path)
+    check_source(path, kind)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    limit = LIMITS[kind].bytes
+    try:
+        with os.fdopen(os.open(path, flags), "rb") as handle:
+            _check_stat(path, kind, os.fstat(handle.fileno()))  # the file opened is still a regular one
+            data = handle.read(limit + 1)
+    except OSError as error:
+        raise _cannot_read(path, error) from None
+    if len(data) > limit:
+        raise _refuse_size(path, kind, None)
+    return data
+
+
+def read_lines(path, kind: str = "table") -> list[str]:
+    """The lines of a UTF-8 text file (without line ends: LF, CR LF or CR; a leading byte-order
+    mark dropped), read by :func:`read_source` within the size limit of ``kind`` ("table": CSV,
+    TUM, KITTI; "yaml"); a :class:`DataError` naming the file if it is missing, unreadable, not a
+    regular file, too large or not text, and the line of the first byte that is not UTF-8 or of
+    the first NUL."""
+    path = Path(path)
+    data = read_source(path, kind)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as error:
@@ -245,6 +365,20 @@ def require_rows(path, rows, n_lines: int, minimum: int, what: str) -> None:
         found = "an empty file" if n_lines == 0 else f"{len(rows)} data line{'s' if len(rows) != 1 else ''}"
         raise DataError(path, max(n_lines, 1) if len(rows) == 0 else rows[-1][0], None, found,
                         f"at least {minimum} {what}")
+
+
+def require_imu_recording(path, t, field: str | None = None) -> None:
+    """The IMU stamps ``t`` of the file ``path`` (integer nanoseconds, or float seconds) are a
+    recording the loaders accept: at least :data:`~datasets.types.MIN_RECORDING_SAMPLES` samples
+    over at least :data:`~datasets.types.MIN_RECORDING_SECONDS`; else a :class:`DataError` naming
+    the file (and ``field``, a bag's topic) with what it holds."""
+    t = np.asarray(t)
+    seconds = (int(t[-1]) - int(t[0])) * 1e-9 if np.issubdtype(t.dtype, np.integer) else float(t[-1] - t[0])
+    if len(t) >= MIN_RECORDING_SAMPLES and seconds >= MIN_RECORDING_SECONDS:
+        return
+    raise DataError(path, None, field, f"{len(t)} IMU sample{'s' if len(t) != 1 else ''} over {seconds:.4g} s",
+                    f"an IMU recording of at least {MIN_RECORDING_SAMPLES} samples over at least "
+                    f"{MIN_RECORDING_SECONDS:g} s ({MIN_RECORDING_WHY})", whole=True)
 
 
 def duplicate_stamps(path, t: np.ndarray, lines) -> str | None:

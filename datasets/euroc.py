@@ -69,7 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
-                             read_lines, table_fast)
+                             read_lines, require_imu_recording, table_fast)
 from datasets.kalibr import NOISE_KEYS, rigid_problem
 from datasets.yamlfile import YamlDocument, read_yaml
 from datasets.types import Dataset, ImuSamples, Trajectory
@@ -209,8 +209,10 @@ def _read_asl_csv(path, columns: list[str], duplicates: bool = False) -> tuple[n
 
 
 def read_imu_csv(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``imu0/data.csv``: (stamps [ns] int64, acc (N, 3), gyro (N, 3)) in the IMU frame."""
+    """``imu0/data.csv``: (stamps [ns] int64, acc (N, 3), gyro (N, 3)) in the IMU frame, a
+    recording as long as :func:`datasets.errors.require_imu_recording` asks."""
     stamps, values, _ = _read_asl_csv(path, IMU_COLUMNS)
+    require_imu_recording(path, stamps)
     return stamps, values[:, 3:6], values[:, 0:3]
 
 

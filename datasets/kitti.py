@@ -80,7 +80,8 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import DataError, check_increasing, data_rows, parse_rows, read_lines, read_table, require_rows
+from datasets.errors import (DataError, check_increasing, data_rows, parse_rows, read_lines, read_table,
+                             require_imu_recording, require_rows)
 from datasets.kinds.position import POSITION
 from datasets.types import Dataset, ImuSamples, PositionMeasurements, Sensor
 from factors import euler, so3
@@ -186,7 +187,8 @@ def read_metadata(path=None) -> KittiMetadata:
 
 
 def read_imu(path=None) -> tuple[ImuSamples, np.ndarray]:
-    """Read the IMU file; returns the samples and the 1-based line number of each sample."""
+    """Read the IMU file; returns the samples and the 1-based line number of each sample (a
+    recording as long as :func:`datasets.errors.require_imu_recording` asks)."""
     path = _default(path, IMU_FILE)
     lines = read_lines(path)
     _check_header(path, lines, IMU_FIELDS, str.split)
@@ -201,6 +203,7 @@ def read_imu(path=None) -> tuple[ImuSamples, np.ndarray]:
             path, int(line_numbers[i]), "dt", values[i, 1],
             f"the time since the previous sample, {t[i] - t[i - 1]!r} (within {DT_TOLERANCE:g} s)",
         )
+    require_imu_recording(path, t)
     return ImuSamples(t, values[:, 2:5], values[:, 5:8]), line_numbers
 
 

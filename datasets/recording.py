@@ -10,8 +10,8 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
   float64 keeps sub-microsecond steps; outputs are written in the data's clock again. A sensor's
   ``time_offset`` is added to its stamps first.
 * **Streams per kind**: each kind reads its sensors (:attr:`datasets.kinds.base.Kind.read`):
-  ``pose`` and ``position`` poses (a position sensor their positions), ``orientation`` their
-  attitudes, ``odometry`` consecutive poses as relative poses in the earlier pose's frame,
+  ``pose`` poses, ``position`` positions (of poses, or a file of positions alone),
+  ``orientation`` attitudes (of an AHRS, of poses, or a file of attitudes alone), ``odometry`` consecutive poses as relative poses in the earlier pose's frame,
   ``velocity`` twists (their linear part, the sensor frame's velocity in its own frame), ``gnss``
   fixes, in the local ENU frame about the rig's datum (default: the first valid fix), fixes without
   a position dropped and counted.
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from os import PathLike
 
 import numpy as np
 
@@ -123,7 +124,15 @@ def _from(sensors: list[Sensor], t_s: float) -> list[Sensor]:
 
 def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     """The recording of ``rig`` (module docstring), self-initialised. Errors name the sensor (and
-    through the readers the file, topic, line or field)."""
+    through the readers the file, topic, line or field).
+
+    ``rig`` is a :class:`~datasets.rig.Rig` as :func:`datasets.rig.load_rig` returns it, not the
+    path of a rig file: ``load_recording(load_rig("rig.toml"))``. Anything else is an InputError
+    saying so (the rig file is read and checked once, where its errors are named)."""
+    if not isinstance(rig, Rig):
+        shown = f" {str(rig)!r}" if isinstance(rig, (str, PathLike)) else ""
+        raise InputError(f"load_recording: expected a Rig, got a {type(rig).__name__}{shown}; read a rig file first "
+                         "with datasets.load_rig(path), then load_recording(rig)")
     imu = read_imu(rig.imu.source, rig.imu.topic)
     origin_ns = int(imu.t_ns[0]) if imu.t_ns is not None else int(round(float(imu.t[0]) * 1e9))
     imu = ImuSamples(_relative(imu.t, imu.t_ns, origin_ns, 0.0), imu.acc, imu.gyro, imu.t_ns)

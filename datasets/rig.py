@@ -24,7 +24,7 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     altitude = 400.0                # metres above the WGS-84 ellipsoid
 
     [[sensor]]                      # any number of sensors, each a [[sensor]] table
-    name = "gnss"                   # unique
+    name = "gnss"                   # unique; a letter, then letters, digits, _ or - (not imu, prior)
     kind = "gnss"                   # pose | position | gnss | orientation | velocity | odometry
                                     # | altitude | magnetometer
     source = "bag:run.bag"          # bag:..., csv:FILE or tum:FILE (poses only)
@@ -53,12 +53,19 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
 
 Required: ``[imu]`` with ``source`` and the four densities (here or through ``kalibr``); in a
 ``[datum]`` all three keys; in a ``[[sensor]]`` ``name``, ``kind`` and ``source``. What a sensor's
-kind reads from its source, and how many numbers its ``sigma`` takes, is the measurement kind's
-business: the rig only checks that the numbers are standard deviations (> 0).
+kind reads from its source, and how many numbers its ``sigma`` takes in which units, is the
+measurement kind's business (:class:`datasets.kinds.base.Kind`): the rig checks ``sigma`` against
+what the kind declares.
 
 A bad rig file is one :class:`RigError` (a ``ValueError``) of one line naming the file, the key and
 what was expected, e.g. ``rig.toml: sensor[1] "gnss".T_BS: expected a rigid transform ...``.
-Sensors are counted from 1 in the order of their tables. Checked: TOML syntax (with its line),
+Sensors are counted from 1 in the order of their tables. Checked: the files read (the rig, a
+Kalibr file, a camchain) through :func:`datasets.errors.read_source` (regular files within their
+size limits), TOML syntax (with its line), nesting the TOML reader cannot follow, every number
+within its plausible range (:data:`datasets.ranges.RANGES`: a lever arm by its length, a Kalibr
+file's densities as the keys they stand for, a ``sigma`` per residual axis in the axis's unit,
+:data:`datasets.ranges.SIGMA_RANGES`, and as many numbers as the kind takes), sensor names
+(:func:`datasets.ranges.sensor_name_problem`),
 unknown keys (the closest known one suggested), types, missing required keys, a bag source
 without a topic or a file source with one, unknown schemes and kinds, a ``T_BS`` that is not a
 4x4 rigid transform (rotation orthonormal with det +1 to :data:`T_BS_TOLERANCE`, last row 0 0 0 1;
@@ -80,12 +87,15 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import DataError
+from datasets.errors import DataError, read_source
 from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
+from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
 from datasets.kinds import KIND_NAMES, KINDS
+from datasets.kinds.base import kind_sigmas, sigma_counts
+from datasets.ranges import RANGES, SIGMA_RANGES, out_of_range, sensor_name_problem
 from datasets.robust import robust_spec
 from datasets.sources import parse_spec
 from factors import so3
@@ -177,10 +187,12 @@ class Rig:
 
 
 class _Table:
-    """One TOML table being checked: typed getters that raise :class:`RigError` naming the key."""
+    """One TOML table being checked: typed getters that raise :class:`RigError` naming the key.
+    ``ranges`` is the table's name in :data:`datasets.ranges.RANGES` (``imu``, ``datum``,
+    ``sensor``): a number read whose key is there must lie in its range."""
 
-    def __init__(self, path, folder: Path, where: str, table, allowed: tuple):
-        self.path, self.folder, self.where = path, folder, where
+    def __init__(self, path, folder: Path, where: str, table, allowed: tuple, ranges: str = ""):
+        self.path, self.folder, self.where, self.ranges = path, folder, where, ranges
         if not isinstance(table, dict):
             raise RigError(path, where, f"expected a table, got {_kind(table)}")
         for key in table:
@@ -213,6 +225,8 @@ class _Table:
         return value
 
     def number(self, name: str, required: bool = False, default=None, minimum=None, positive=False) -> float | None:
+        """The number ``name`` (an absent one: ``default``), finite, ``>= minimum`` or ``> 0`` if
+        asked, and within its range (:meth:`in_range`) when given."""
         value = self.get(name, (int, float), "a number", required, default)
         if value is None:
             return None
@@ -220,7 +234,17 @@ class _Table:
             raise self.error(name, f"expected a finite number, got {value!r}")
         if minimum is not None and value < minimum or positive and value <= 0:
             raise self.error(name, f"expected a number {'> 0' if positive else f'>= {minimum:g}'}, got {value!r}")
+        if name in self.table:
+            self.in_range(name, value)
         return float(value)
+
+    def in_range(self, name: str, value, what: str = "") -> None:
+        """``value`` of the key ``name`` within its range of :data:`datasets.ranges.RANGES`, else a
+        :class:`RigError` naming the key and the range (``what`` says which value of it, if not
+        the key's own)."""
+        problem = out_of_range(f"{self.ranges}.{name}", value)
+        if problem is not None:
+            raise self.error(name, what + problem)
 
     def file(self, name: str) -> Path | None:
         value = self.string(name)
@@ -247,7 +271,7 @@ def _kind(value) -> str:
 
 
 def _imu(path, folder: Path, table) -> ImuConfig:
-    t = _Table(path, folder, "imu", table, IMU_KEYS)
+    t = _Table(path, folder, "imu", table, IMU_KEYS, "imu")
     source, topic = t.source("IMU samples")
     densities = {}
     kalibr = t.file("kalibr")
@@ -256,12 +280,17 @@ def _imu(path, folder: Path, table) -> ImuConfig:
             densities = read_kalibr_imu(kalibr)
         except DataError as error:
             raise t.error("kalibr", str(error)) from None
+    kalibr_key = {field: key for key, field in KALIBR_NOISE_KEYS.items()}
     for key, field in NOISE_KEYS.items():
         value = t.number(key, minimum=0.0)
         if value is not None:
             densities[field] = value
         elif field not in densities:
             raise t.error(key, "missing; expected a density >= 0" + (" (here or in the Kalibr file)" if kalibr else ""))
+        else:  # the Kalibr file's, within the range of the key it stands for
+            problem = out_of_range(f"imu.{key}", densities[field])
+            if problem is not None:
+                raise t.error("kalibr", f"{kalibr}: {kalibr_key[field]} (the rig's {key}): {problem}")
     gravity = t.number("gravity", default=float(np.linalg.norm(DEFAULT_GRAVITY)), positive=True)
     return ImuConfig(source, topic, ImuNoise(**densities), gravity, _forward(t))
 
@@ -273,19 +302,29 @@ def _forward(t: _Table) -> tuple:
         raise t.error("forward", f"expected the vehicle's forward direction in the IMU frame: 3 finite numbers, not "
                                  f"all zero (e.g. [-1, 0, 0] for an IMU whose x axis points backwards), got {value!r}")
     norm = math.hypot(*value)
+    if "forward" in t.table:
+        t.in_range("forward", norm, f"its length {norm:g}: ")
     return tuple(float(x) / norm for x in value)
 
 
 def _datum(path, folder: Path, table) -> Datum:
-    t = _Table(path, folder, "datum", table, DATUM_KEYS)
-    values = {name: t.number(name, required=True) for name in DATUM_KEYS}
-    for name, limit in (("latitude", 90.0), ("longitude", 180.0)):
-        if abs(values[name]) > limit:
-            raise t.error(name, f"expected degrees within +-{limit:g}, got {values[name]!r}")
-    return Datum(**values)
+    t = _Table(path, folder, "datum", table, DATUM_KEYS, "datum")
+    return Datum(**{name: t.number(name, required=True) for name in DATUM_KEYS})
 
 
 def _transform(t: _Table) -> np.ndarray:
+    """The sensor's ``T_BS`` (from ``T_BS``, a ``camchain`` or the identity), its lever arm within
+    its range."""
+    T, key = _extrinsic(t)
+    lever = float(np.linalg.norm(T[:3, 3]))
+    problem = out_of_range("sensor.T_BS", lever)
+    if problem is not None:
+        raise t.error(key, f"its lever arm (the translation {T[:3, 3].tolist()}) is {lever:g} m long; {problem}")
+    return T
+
+
+def _extrinsic(t: _Table) -> tuple[np.ndarray, str]:
+    """``(T_BS, the key it came from)``."""
     if "T_BS" in t.table and "camchain" in t.table:
         raise t.error("camchain", "give either T_BS or camchain, not both")
     if "camchain" in t.table or "camera" in t.table:
@@ -294,12 +333,12 @@ def _transform(t: _Table) -> np.ndarray:
             missing = "camera" if camchain is not None else "camchain"
             raise t.error(missing, "missing; camchain and camera come together")
         try:
-            return read_camchain_T_BS(camchain, camera)
+            return read_camchain_T_BS(camchain, camera), "camchain"
         except DataError as error:
             raise t.error("camchain", str(error)) from None
     value = t.get("T_BS", (list,), "a 4x4 array of numbers (rows)", default=None)
     if value is None:
-        return np.eye(4)
+        return np.eye(4), "T_BS"
     rows_ok = len(value) == 4 and all(isinstance(row, list) and len(row) == 4 for row in value)
     if not rows_ok or any(isinstance(x, bool) or not isinstance(x, (int, float)) for row in value for x in row):
         raise t.error("T_BS", "expected a 4x4 array of numbers: 4 rows of 4")
@@ -310,10 +349,12 @@ def _transform(t: _Table) -> np.ndarray:
                               f"last row 0 0 0 1); got {problem}")
     if rigid_problem(T, 1e-12) is not None:  # rounded: the nearest rotation (an exact one is kept as written)
         T[:3, :3] = so3.project(T[:3, :3])
-    return T
+    return T, "T_BS"
 
 
-def _sigma(t: _Table) -> np.ndarray | None:
+def _sigma(t: _Table, kind: str) -> np.ndarray | None:
+    """The sensor's ``sigma``: as many numbers as its kind takes, each within the range of the
+    unit of the residual axis it applies to (:data:`datasets.ranges.SIGMA_RANGES`)."""
     value = t.get("sigma", (int, float, list), "a standard deviation > 0 or a list of them", default=None)
     if value is None:
         return None
@@ -323,6 +364,18 @@ def _sigma(t: _Table) -> np.ndarray | None:
     sigma = np.array(items, dtype=float)
     if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
         raise t.error("sigma", f"expected standard deviations > 0 (finite), got {value!r}")
+    declared = KINDS[kind]
+    try:
+        axes = kind_sigmas("sigma", sigma, declared.dim)
+    except InputError:
+        raise t.error("sigma", f"a {kind} sensor's sigma is {sigma_counts(declared.dim)}, got {value!r}") from None
+    units = declared.sigma_units
+    for axis, (s, unit) in enumerate(zip(axes, units)):
+        problem = SIGMA_RANGES[unit].problem(s)
+        if problem is not None:
+            which = (f"axis {axis + 1} of {declared.dim} ({unit}): " if sigma.size == declared.dim > 1
+                     else f"as the sigma of its {unit} axes: " if len(set(units)) > 1 else "")
+            raise t.error("sigma", which + problem)
     return sigma
 
 
@@ -336,8 +389,11 @@ def sensor_key(index: int, name, key: str | None = None) -> str:
 def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     name = table.get("name") if isinstance(table, dict) else None
     where = sensor_key(index, name)
-    t = _Table(path, folder, where, table, SENSOR_KEYS)
+    t = _Table(path, folder, where, table, SENSOR_KEYS, "sensor")
     name = t.string("name", required=True)
+    problem = sensor_name_problem(name)
+    if problem is not None:
+        raise t.error("name", problem)
     kind = t.string("kind", required=True)
     if kind not in KIND_NAMES:
         close = difflib.get_close_matches(kind, KIND_NAMES, n=1)
@@ -348,13 +404,14 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     every = t.get("every", (int,), "an integer >= 1", default=1)
     if every < 1:
         raise t.error("every", f"expected an integer >= 1, got {every!r}")
+    t.in_range("every", every)
     try:
         robust = robust_spec(t.string("robust"))
     except ValueError as error:
         raise t.error("robust", str(error)) from None
     time_offset = t.number("time_offset", default=0.0)
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
-                        time_offset=time_offset, sigma=_sigma(t), every=every, robust=robust,
+                        time_offset=time_offset, sigma=_sigma(t, kind), every=every, robust=robust,
                         **_field_angles(t, kind), scale=_scale(t, kind),
                         calibrate=_calibration(t, kind, time_offset))
 
@@ -409,12 +466,11 @@ def _field_angles(t: _Table, kind: str) -> dict:
                 raise t.error(key, f"expected only on a magnetometer; this sensor is of kind {kind!r}")
         return {}
     angles = {}
-    for key, limit, what in (("declination", 180.0, "east of true north"), ("inclination", 90.0, "below the horizontal")):
+    for key in ("declination", "inclination"):
         value = t.number(key)
         if value is None:
-            raise t.error(key, f"missing; a magnetometer needs the world field's {key} in degrees ({what})")
-        if abs(value) > limit:
-            raise t.error(key, f"expected degrees within +-{limit:g} ({what}), got {value!r}")
+            raise t.error(key, f"missing; a magnetometer needs the world field's {key} in degrees "
+                               f"({RANGES['sensor.' + key].why})")
         angles[key] = value
     return angles
 
@@ -428,17 +484,17 @@ def load_rig(path) -> Rig:
     """Read and check the rig file ``path`` (see the module docstring); reads no sensor data."""
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise RigError(path, None, "no such file") from None
+        text = read_source(path, "rig").decode("utf-8")
+    except DataError as error:  # missing, not a regular file, too large, unreadable
+        raise RigError(path, None, f"{error.found}; expected {error.expected}") from None
     except UnicodeDecodeError as error:
         raise RigError(path, None, f"not UTF-8 text (byte {error.start})") from None
-    except OSError as error:
-        raise RigError(path, None, f"cannot be read ({error.strerror})") from None
     try:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise RigError(path, None, f"TOML syntax error: {error}") from None
+    except RecursionError:  # the TOML reader parses nested arrays and tables recursively
+        raise RigError(path, None, "arrays or tables nested deeper than the TOML reader can follow") from None
     folder = path.absolute().parent
     top = _Table(path, folder, "", document, TOP_KEYS)
     if "imu" not in document:

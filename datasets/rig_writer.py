@@ -15,13 +15,13 @@ user's comments, the order of the keys, blank lines and the numbers as written.
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import tomlkit
 from tomlkit.items import Comment, Table, Whitespace
 
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
+from datasets.errors import read_source
 
 #: The first lines of ``calibrated.toml``.
 CALIBRATED_HEADER = ("The rig with the calibration the batch smoother estimated written in; the next run uses",
@@ -93,7 +93,7 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -
     written in, and after a sensor's values, as a comment, its caution (``cautions``:
     ``{sensor: text}``, '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`)."""
     cautions = cautions or {}
-    document = tomlkit.parse(Path(rig.path).read_text(encoding="utf-8"))
+    document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8"))
     imu = document["imu"]
     values, drop = {"source": rig.imu.source}, ()
     if "kalibr" in imu:  # the densities it held; those the rig gave itself stay as written

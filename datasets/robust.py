@@ -2,9 +2,13 @@
 ``none``, or a kernel name with an optional threshold, ``huber``, ``cauchy:2.5``, ``tukey:4``.
 
 Parsing needs no GTSAM: the kernels themselves (and their default thresholds) are
-``smoother.model.robust.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`.
+``smoother.model.robust.ROBUST_KERNELS``, keyed by :data:`ROBUST_KERNEL_NAMES`. A threshold given must
+lie in the range ``sensor.robust`` of :data:`datasets.ranges.RANGES` (in sigmas of the whitened
+residual's norm).
 """
 from __future__ import annotations
+
+from datasets.ranges import RANGES
 from factors.errors import InputError
 
 #: The robust kernels by name.
@@ -27,17 +31,25 @@ def robust_spec(text: str | None):
         raise InputError(f"robust kernel threshold {value!r}: expected a number") from None
     if not threshold > 0:
         raise InputError(f"robust kernel threshold must be positive, got {threshold}")
+    problem = RANGES["sensor.robust"].problem(threshold)
+    if problem is not None:
+        raise InputError(f"robust kernel threshold {value!r}: {problem}")
     return name, threshold
 
 
 def check_robust(name: str, spec) -> None:
     """``spec`` as :func:`robust_spec` returns it -- None, or ``(kernel name, threshold)`` with a
-    threshold None or positive and finite -- or an InputError naming ``name``."""
+    threshold None or within its range -- or an InputError naming ``name``."""
     if spec is None:
         return
     if not (isinstance(spec, tuple) and len(spec) == 2 and spec[0] in ROBUST_KERNEL_NAMES):
         raise InputError(f"{name}: expected None or (kernel, threshold) with a kernel of "
                          f"{', '.join(ROBUST_KERNEL_NAMES)} (datasets.robust.robust_spec), got {spec!r}")
     threshold = spec[1]
-    if threshold is not None and not (isinstance(threshold, (int, float)) and 0 < threshold < float("inf")):
-        raise InputError(f"{name}: threshold: expected None or a positive, finite number, got {threshold!r}")
+    if threshold is None:
+        return
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+        raise InputError(f"{name}: threshold: expected None or a number, got {threshold!r}")
+    problem = RANGES["sensor.robust"].problem(threshold)
+    if problem is not None:
+        raise InputError(f"{name}: threshold: {problem}")

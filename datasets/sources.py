@@ -9,7 +9,8 @@ absolute; ``~`` expands to the home folder:
   or the generic layout of the stream asked for.
 * ``tum:PATH``: a TUM trajectory (:mod:`datasets.tum`), for poses only.
 
-What each scheme gives: IMU samples from ``bag`` and ``csv``; poses and attitudes from all three;
+What each scheme gives: IMU samples from ``bag`` and ``csv``; poses, positions and attitudes from
+all three (a CSV file of positions or attitudes alone has only the columns they need);
 velocities (twists), GNSS fixes, pressures and magnetic fields from ``bag`` and ``csv``. Asking a
 scheme for a stream it cannot give, an
 unknown scheme, a bag without a topic or a file with one is one ``ValueError`` naming the spec;
@@ -21,9 +22,10 @@ from pathlib import Path
 
 from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
                            read_bag_pressures, read_bag_twists)
-from datasets.csv_sources import (read_csv_fixes, read_csv_imu, read_csv_magnetic_fields, read_csv_poses,
-                                  read_csv_pressures, read_csv_twists)
-from datasets.streams import AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PressureStream, TwistStream
+from datasets.csv_sources import (read_csv_attitudes, read_csv_fixes, read_csv_imu, read_csv_magnetic_fields,
+                                  read_csv_poses, read_csv_positions, read_csv_pressures, read_csv_twists)
+from datasets.streams import (AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PositionStream, PressureStream,
+                              TwistStream)
 from datasets.tum import read_tum
 from datasets.types import ImuSamples
 from factors.errors import InputError
@@ -34,15 +36,14 @@ def _tum_poses(path) -> PoseStream:
     return PoseStream(trajectory.t, trajectory.position, trajectory.C)
 
 
-def _attitudes_of(read_poses):
-    return lambda path: AttitudeStream.of_poses(read_poses(path))
-
-
 #: For each stream, the schemes that give it and their readers (each takes a path, bags a topic too).
 READERS = {
     "IMU samples": {"bag": read_bag_imu, "csv": read_csv_imu},
     "poses": {"bag": read_bag_poses, "csv": read_csv_poses, "tum": _tum_poses},
-    "attitudes": {"bag": read_bag_attitudes, "csv": _attitudes_of(read_csv_poses), "tum": _attitudes_of(_tum_poses)},
+    "positions": {"bag": lambda path, topic: PositionStream.of_poses(read_bag_poses(path, topic)),
+                  "csv": read_csv_positions, "tum": lambda path: PositionStream.of_poses(_tum_poses(path))},
+    "attitudes": {"bag": read_bag_attitudes, "csv": read_csv_attitudes,
+                  "tum": lambda path: AttitudeStream.of_poses(_tum_poses(path))},
     "velocities": {"bag": read_bag_twists, "csv": read_csv_twists},
     "GNSS fixes": {"bag": read_bag_fixes, "csv": read_csv_fixes},
     "pressures": {"bag": read_bag_pressures, "csv": read_csv_pressures},
@@ -89,9 +90,15 @@ def read_poses(spec: str, topic: str | None = None, base_dir=".") -> PoseStream:
     return _read("poses", spec, topic, base_dir)
 
 
+def read_positions(spec: str, topic: str | None = None, base_dir=".") -> PositionStream:
+    """Positions (the positions of a bag's or a TUM file's poses; a CSV file of positions or
+    poses)."""
+    return _read("positions", spec, topic, base_dir)
+
+
 def read_attitudes(spec: str, topic: str | None = None, base_dir=".") -> AttitudeStream:
-    """Attitudes (bag: ``sensor_msgs/Imu``'s orientation, or any pose message's; the attitudes of
-    a pose CSV or TUM file)."""
+    """Attitudes (bag: ``sensor_msgs/Imu``'s orientation, or any pose message's; a CSV file of
+    attitudes or poses; the attitudes of a TUM file)."""
     return _read("attitudes", spec, topic, base_dir)
 
 

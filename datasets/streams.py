@@ -110,6 +110,30 @@ class PoseStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
+class PositionStream(_Rows):
+    """Positions of a frame's origin in the world, without its attitude (a position CSV file, or
+    the positions of any pose source): ``position`` (N, 3) [m], ``cov`` (N, 3, 3) [m^2]."""
+
+    t: np.ndarray
+    position: np.ndarray
+    cov: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = check_times("PositionStream.t", self.t)
+        n = len(t)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "position", check_array("PositionStream.position", self.position, (3,), n))
+        object.__setattr__(self, "cov", _optional_covariances("PositionStream.cov", self.cov, n, 3))
+        object.__setattr__(self, "t_ns", _stamps("PositionStream.t_ns", self.t_ns, n))
+
+    @classmethod
+    def of_poses(cls, poses: PoseStream) -> "PositionStream":
+        """The positions of ``poses`` with the position block of their covariances."""
+        return cls(poses.t, poses.position, None if poses.cov is None else poses.cov[:, :3, :3], poses.t_ns)
+
+
+@dataclass(frozen=True, eq=False)
 class AttitudeStream(_Rows):
     """Attitudes of a frame in the world: ``C`` (N, 3, 3) the frame-to-world rotation, as the
     attitude part of a :class:`PoseStream` or the ``orientation`` of ``sensor_msgs/Imu`` (REP-145:

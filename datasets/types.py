@@ -17,6 +17,7 @@ import warnings
 import numpy as np
 from numba import njit
 
+from datasets.ranges import sensor_name_problem
 from factors import so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 from factors.errors import InputError
@@ -295,6 +296,13 @@ class _Rows:
 #: noise of one step) is measured between two samples, and every estimator steps from one to the next.
 MIN_IMU_SAMPLES = 2
 MIN_IMU_SAMPLES_WHY = "the estimators step from one sample to the next and take the IMU's rate from their spacing"
+#: The shortest IMU recording a loader accepts from a file (:func:`datasets.errors.require_imu_recording`),
+#: and why. A :class:`Dataset` built in Python needs only :data:`MIN_IMU_SAMPLES`.
+MIN_RECORDING_SAMPLES = 50
+MIN_RECORDING_SECONDS = 1.0
+MIN_RECORDING_WHY = ("the start's roll and pitch average the first half second of specific force, and the noise "
+                     "figures, verdicts and checks of the IMU need many samples: on fewer they describe the noise "
+                     "of a few samples")
 
 
 @dataclass(frozen=True, eq=False)
@@ -577,13 +585,17 @@ class Dataset:
         object.__setattr__(self, "sensors", tuple(self._sensor_inside_imu_span(s) for s in self.sensors))
 
     def _check_sensors(self) -> None:
-        """``sensors`` is a sequence of :class:`Sensor` with names used once."""
+        """``sensors`` is a sequence of :class:`Sensor` with usable names
+        (:func:`datasets.ranges.sensor_name_problem`) used once."""
         if isinstance(self.sensors, Sensor) or not isinstance(self.sensors, (tuple, list)):
             raise InputError(f"Dataset.sensors: expected a tuple of Sensor, got {type(self.sensors).__name__}")
         names = []
         for i, s in enumerate(self.sensors):
             if not isinstance(s, Sensor):
                 raise InputError(f"Dataset.sensors[{i}]: expected a Sensor, got {type(s).__name__}")
+            problem = sensor_name_problem(s.name)
+            if problem is not None:
+                raise InputError(f"Dataset.sensors[{i}].name: {problem}")
             if s.name in names:
                 raise InputError(f"sensor name {s.name!r} is used twice")
             names.append(s.name)

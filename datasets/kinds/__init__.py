@@ -32,6 +32,7 @@ from dataclasses import fields as dataclass_fields
 
 from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, position, roll_pitch, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas
+from datasets.ranges import SIGMA_RANGES
 from datasets.types import Dataset, Sensor
 from factors import calibration, imu, jacobians, selfcheck
 from factors import sensor_models as sm
@@ -49,8 +50,9 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
     window hold); a model of the kind's dimension; a data type whose fields are the kind's
     ``times``, ``fields``, ``cov``, ``T_BS`` in that order; a ``scaled_field`` exactly where the
     model has scaled rows; a ``default_sigma`` that
-    :func:`kind_sigmas` reads; a ``random_row`` of the declared width; ``noise_groups`` with distinct
-    names whose axes partition the residual's. An error naming the
+    :func:`kind_sigmas` reads; a unit of :data:`datasets.ranges.SIGMA_RANGES` for each residual
+    axis (``sigma_units``); a ``random_row`` of the declared width; ``noise_groups`` with distinct
+    names whose axes partition the residual's, one unit each. An error naming the
     kind and the rule else (an InputError)."""
     out: dict[str, Kind] = {}
     for k in kinds:
@@ -70,13 +72,17 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
         if found != expected:
             refuse(f"{k.data_type.__name__} has the fields {found}; the kind declares {expected}")
         kind_sigmas(f"measurement kind {k.name!r}: default_sigma", k.default_sigma, k.dim)
+        if len(k.sigma_units) != k.dim or not set(k.sigma_units) <= set(SIGMA_RANGES):
+            refuse(f"sigma_units {k.sigma_units!r}; expected one of {', '.join(SIGMA_RANGES)} per residual axis")
         scaled_rows = sm.ODOMETRY_SCALED if k.relative else k.model.scaled
         if (k.scaled_field is None) != (scaled_rows == 0):
             refuse(f"scaled_field {k.scaled_field!r}, and its model has {scaled_rows} scaled rows")
         axes = sorted(a for _, group, _ in k.axis_groups for a in group)
         names = [name for name, _, _ in k.axis_groups]
-        if axes != list(range(k.dim)) or len(set(names)) != len(names):
-            refuse(f"noise_groups {k.noise_groups}: expected distinct names whose axes partition 0 .. {k.dim - 1}")
+        if (axes != list(range(k.dim)) or len(set(names)) != len(names)
+                or (k.noise_groups and not all(unit for _, _, unit in k.axis_groups))):
+            refuse(f"noise_groups {k.noise_groups}: expected distinct names whose axes partition 0 .. {k.dim - 1}, "
+                   "each group's axes in one unit")
         _, row = k.random_row(np.random.default_rng(0))
         if np.shape(row) != (k.width,):
             refuse(f"random_row gives a row of shape {np.shape(row)}; expected ({k.width},)")

@@ -99,4 +99,5 @@ def _random_row(rng):
 
 KIND = Kind("altitude", AltitudeMeasurements, 1, sm.ALTITUDE, lambda m: sm.pack_altitude(m.height, m.T_BS),
             _simulate, None, _read, fields=("height",), random_row=_random_row, default_sigma=(0.3,),
-            noise_groups=(("height", (0,), "m"),))
+            sigma_units=("m",),
+            noise_groups=(("height", (0,)),))

@@ -42,11 +42,12 @@ class Kind:
     ``scale = (metres, radians)`` in random directions (None: the simulator cannot corrupt this
     kind); ``scaled_field``: the field of readings that a sensor's scale multiplies (what it reads
     per unit of the truth; the model's :attr:`~factors.sensor_models.SensorModel.scaled` rows),
-    None if none; ``noise_groups``: the residual's axes in the groups whose noise is estimated
-    apart, with the unit of their sigmas (``((name, axes, unit), ...)``, the axes a partition of
-    ``range(dim)``: a GNSS's horizontal and vertical, a velocity's forward, lateral and vertical);
-    default one group of every axis in the unit of the first declared group, or none. The registry
-    (:func:`datasets.kinds.registered`) checks these declarations."""
+    None if none; ``sigma_units``: the unit of each residual axis (``"m"``, ``"rad"``, ``"m/s"``),
+    in which a sensor's ``sigma`` for it is given and checked (:data:`datasets.ranges.SIGMA_RANGES`);
+    ``noise_groups``: the residual's axes in the groups whose noise is estimated apart
+    (``((name, axes), ...)``, the axes a partition of ``range(dim)``, one unit each: a GNSS's
+    horizontal and vertical, a velocity's forward, lateral and vertical); default one group of every
+    axis. The registry (:func:`datasets.kinds.registered`) checks these declarations."""
 
     name: str
     data_type: type
@@ -62,12 +63,17 @@ class Kind:
     times: tuple[str, ...] = ("t",)
     corrupt: Callable | None = None
     scaled_field: str | None = None
+    sigma_units: tuple[str, ...] = ()
     noise_groups: tuple = ()
 
     @property
     def axis_groups(self) -> tuple:
-        """:attr:`noise_groups`, or one group ``("all", every axis, "")`` when none is declared."""
-        return self.noise_groups or (("all", tuple(range(self.dim)), ""),)
+        """``((name, axes, unit), ...)``: :attr:`noise_groups` with their axes' unit, or one group
+        ``("all", every axis, unit)`` when none is declared (the unit "" where the axes' differ)."""
+        groups = self.noise_groups or (("all", tuple(range(self.dim))),)
+        units = self.sigma_units or ("",) * self.dim
+        return tuple((name, tuple(axes), units[axes[0]] if len({units[a] for a in axes}) == 1 else "")
+                     for name, axes in groups)
 
     def unscaled(self, data, scale: float):
         """``data`` with its :attr:`scaled_field` divided by ``scale`` and its covariance by
@@ -123,6 +129,11 @@ class Clock:
     datum: object = None
 
 
+def sigma_counts(dim: int) -> str:
+    """How many numbers the ``sigma`` of a ``dim``-dimensional kind takes, as text."""
+    return f"1 or {dim} numbers" + (" (or translation and rotation)" if dim == 6 else "")
+
+
 def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
     """A sensor's noise sigmas for a ``dim``-dimensional residual: one number (every axis), one per
     axis, or for 6-dim kinds ``(translation, rotation)``; a ValueError naming ``where`` else."""
@@ -132,8 +143,7 @@ def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
     elif dim == 6 and s.size == 2:
         s = np.repeat(s, 3)
     if s.shape != (dim,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
-        expected = f"1 or {dim} numbers > 0" + (" (or translation and rotation)" if dim == 6 else "")
-        raise InputError(f"{where}: sigma: expected {expected}, got {np.asarray(sigma).tolist()!r}")
+        raise InputError(f"{where}: sigma: expected {sigma_counts(dim)} > 0, got {np.asarray(sigma).tolist()!r}")
     return s
 
 

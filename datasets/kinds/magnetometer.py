@@ -106,4 +106,5 @@ def _random_row(rng):
 KIND = Kind("magnetometer", MagneticFieldMeasurements, 2, sm.MAGNETOMETER,
             lambda m: sm.pack_magnetometer(m.direction, m.world, m.T_BS), _simulate, None, _read,
             fields=("direction", "world"), random_row=_random_row, default_sigma=(0.02,),
-            noise_groups=(("direction", (0, 1), "1"),))
+            sigma_units=("rad", "rad"),
+            noise_groups=(("direction", (0, 1)),))

@@ -49,5 +49,5 @@ def _random_row(rng):
 
 KIND = Kind("odometry", RelativePoseMeasurements, 6, None, None, _simulate, None, _read, fields=("dr", "dC"),
             random_row=_random_row, default_sigma=(0.02, 0.005), times=("t_from", "t_to"),
-            scaled_field="dr",
-            noise_groups=(("translation", (0, 1, 2), "m"), ("rotation", (3, 4, 5), "rad")))
+            scaled_field="dr", sigma_units=("m",) * 3 + ("rad",) * 3,
+            noise_groups=(("translation", (0, 1, 2)), ("rotation", (3, 4, 5))))

@@ -45,5 +45,5 @@ def _random_row(rng):
 
 KIND = Kind("orientation", OrientationMeasurements, 3, sm.ORIENTATION, lambda m: sm.pack_orientation(m.C, m.T_BS),
             _simulate, _anchor, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
-            corrupt=displaced,
-            noise_groups=(("attitude", (0, 1, 2), "rad"),))
+            corrupt=displaced, sigma_units=("rad",) * 3,
+            noise_groups=(("attitude", (0, 1, 2)),))

@@ -38,5 +38,5 @@ def _random_row(rng):
 
 KIND = Kind("pose", PoseMeasurements, 6, sm.POSE, lambda m: sm.pack_pose(m.position, m.C, m.T_BS), _simulate,
             _anchor, _read, fields=("position", "C"), random_row=_random_row, default_sigma=(0.05, 0.01),
-            corrupt=displaced,
-            noise_groups=(("position", (0, 1, 2), "m"), ("attitude", (3, 4, 5), "rad")))
+            corrupt=displaced, sigma_units=("m",) * 3 + ("rad",) * 3,
+            noise_groups=(("position", (0, 1, 2)), ("attitude", (3, 4, 5))))

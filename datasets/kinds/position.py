@@ -1,13 +1,14 @@
 """The ``position`` and ``gnss`` kinds: a sensor's origin in the world, ``r + C p_BS`` (a GNSS
-antenna on its lever arm). ``position`` reads the positions of poses; ``gnss`` reads fixes in
-latitude, longitude and altitude and converts them to the local ENU frame about the datum."""
+antenna on its lever arm). ``position`` reads positions (of poses, or a file of positions alone);
+``gnss`` reads fixes in latitude, longitude and altitude and converts them to the local ENU frame
+about the datum."""
 from __future__ import annotations
 
 import warnings
 
 import numpy as np
 
-from datasets.kinds.base import Kind, displaced, near_prediction, noise, noisy, poses
+from datasets.kinds.base import Kind, displaced, near_prediction, noise, noisy
 from datasets.types import PositionMeasurements
 from factors import sensor_models as sm
 from factors.selfcheck import random_state
@@ -24,7 +25,10 @@ def _anchor(m):
 
 
 def _read_positions(sensor, clock):
-    stream, t = poses(sensor, clock)
+    from datasets.sources import read_positions
+
+    stream = read_positions(sensor.source, sensor.topic)
+    t = clock.stamps(stream.t, stream.t_ns, sensor.time_offset)
     return PositionMeasurements(t, stream.position, noise(sensor, 3, stream.cov, len(t)), sensor.T_BS), clock.datum
 
 
@@ -53,7 +57,8 @@ def _random_row(rng):
 
 
 
-_DECLARED = dict(noise_groups=(("horizontal", (0, 1), "m"), ("vertical", (2,), "m")), fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=displaced)
+_DECLARED = dict(fields=("position",), random_row=_random_row, default_sigma=(0.5,), corrupt=displaced,
+                 sigma_units=("m",) * 3, noise_groups=(("horizontal", (0, 1)), ("vertical", (2,))))
 POSITION = Kind("position", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_positions,
                 **_DECLARED)
 GNSS = Kind("gnss", PositionMeasurements, 3, sm.POSITION, _pack, _simulate, _anchor, _read_fixes, **_DECLARED)

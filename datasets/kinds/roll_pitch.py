@@ -73,4 +73,5 @@ def _read(sensor, clock):
 
 KIND = Kind("roll_pitch", RollPitchMeasurements, 2, sm.ROLL_PITCH, lambda m: sm.pack_orientation(m.C, m.T_BS),
             _simulate, None, _read, fields=("C",), random_row=_random_row, default_sigma=(0.01,),
-            noise_groups=(("tilt", (0, 1), "rad"),))
+            sigma_units=("rad", "rad"),
+            noise_groups=(("tilt", (0, 1)),))

@@ -21,8 +21,8 @@ def _rng_poses(n=20, seed=0):
 
 def test_euroc_imu_layout_keeps_nanoseconds(tmp_path):
     rng = np.random.default_rng(1)
-    t_ns = NS0 + 5_000_000 * np.arange(30)
-    gyro, acc = rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    t_ns = NS0 + 5_000_000 * np.arange(201)  # a second at 200 Hz, the shortest recording read
+    gyro, acc = rng.normal(size=(201, 3)), rng.normal(size=(201, 3))
     rows = [f"{s},{','.join(repr(float(x)) for x in (*g, *a))}" for s, g, a in zip(t_ns, gyro, acc)]
     path = tmp_path / "data.csv"
     path.write_text("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"

@@ -367,7 +367,7 @@ def test_empty_and_header_only(tmp_path, file):
 
 
 def test_no_overlap_and_no_folder(tmp_path):
-    write_sequence(tmp_path, n_imu=8)  # the IMU ends before the ground truth starts
+    write_sequence(tmp_path, n_imu=201, gt_offset=250 * IMU_STEP)  # the IMU ends before the ground truth starts
     with pytest.raises(DataError, match=r"imu0/data\.csv.*0 IMU samples within the ground truth's span"):
         load_euroc(tmp_path)
     with pytest.raises(DataError, match="mav0"):
@@ -440,7 +440,7 @@ _LINE = st.lists(_TOKENS, min_size=0, max_size=10).flatmap(
 def test_fuzz_only_data_errors_naming_the_file(file, line, where, replace):
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        write_sequence(root, n_imu=40, n_gt=20)
+        write_sequence(root, n_imu=241, n_gt=20)  # 1.2 s: a line cut from the IMU leaves a recording
         path = root / file
         lines = path.read_text().splitlines()
         where = min(where, len(lines))

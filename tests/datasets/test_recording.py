@@ -85,7 +85,7 @@ def test_a_recording_keeps_its_clock_its_extrinsics_and_holds_out(tmp_path, data
     (dict(camera_sigma=False), "sensor 'camera' (pose): its messages carry no covariance; give the sensor's sigma"),
     (dict(extra='[[sensor]]\nname = "vo"\nkind = "odometry"\nsource = "tum:vo.tum"'),
      "sensor 'vo' (odometry): give sigma in the rig file, the noise of one step"),
-    (dict(rig_offset_s=1e6), "sensor 'camera': none of its"),  # stamps in another clock
+    (dict(rig_offset_s=72_000.0), "sensor 'camera': none of its"),  # stamps in another clock (time zone)
 ])
 def test_unusable_sensor_data_is_one_line_naming_the_sensor(tmp_path, data, edit, message):
     rig = _write(tmp_path, data, **edit)
@@ -131,12 +131,12 @@ def test_an_imu_bag_of_one_message_is_refused_before_anything_else(tmp_path, dat
         warnings.simplefilter("error")
         with pytest.raises(ValueError) as error:
             load_recording(load_rig(rig))
-    assert str(error.value).startswith(f"{tmp_path / 'run.bag'}, field 'topic /imu': found '1 message'; expected at "
-                                       "least 2 IMU samples (the estimators step from one sample to the next")
+    assert str(error.value).startswith(f"{tmp_path / 'run.bag'}, field 'topic /imu': found 1 IMU sample over 0 s; "
+                                       "expected an IMU recording of at least 50 samples over at least 1 s (")
 
 
 def test_an_every_that_leaves_too_few_fixes_is_named_as_the_cause(tmp_path):
-    """GNSS alone gives the heading through the course over ground; `every` = 10^9 leaves the
+    """GNSS alone gives the heading through the course over ground; `every` = 10^4 leaves the
     first fix only. The error names the sensor's `every` key and the counts, not only the
     heading it could not find; with every = 1 the same recording starts."""
     from datasets.gnss import Datum, enu_to_geodetic
@@ -148,7 +148,7 @@ def test_an_every_that_leaves_too_few_fixes_is_named_as_the_cause(tmp_path):
     (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
         f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n" for t, a, b, c in zip(fixes.t, lat, lon, alt)))
     rig = tmp_path / "rig.toml"
-    for every in (1000000000, 1):
+    for every in (10_000, 1):
         rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""
 [[sensor]]
 name = "gnss"
@@ -162,6 +162,6 @@ every = {every}
         with pytest.raises(ValueError) as error:
             load_recording(load_rig(rig))
         assert str(error.value) == (
-            f'{rig}: sensor[1] "gnss".every: 1000000000 leaves 1 of the sensor\'s {len(fixes)} measurements for '
+            f'{rig}: sensor[1] "gnss".every: 10000 leaves 1 of the sensor\'s {len(fixes)} measurements for '
             f"estimation: too few to fix the initial heading, which all {len(fixes)} would; use a smaller every "
             "(the measurements between those used are held out)")

@@ -141,7 +141,7 @@ def test_a_rotation_rounded_by_hand_is_taken_to_the_nearest_one(tmp_path):
      "rig.toml: sensor[1] \"gnss\".every: expected an integer >= 1, got a number"),
     (_replace('robust = "cauchy:3"', 'robust = "hubber"'),
      "rig.toml: sensor[1] \"gnss\".robust: robust kernel 'hubber': expected one of none, huber, cauchy, tukey"),
-    (_replace("latitude = 47.0", "latitude = 147.0"), "rig.toml: datum.latitude: expected degrees within +-90"),
+    (_replace("latitude = 47.0", "latitude = 147.0"), "rig.toml: datum.latitude: expected a value within [-90, 90] deg"),
     (_replace("altitude = 400\n", ""), "rig.toml: datum.altitude: missing; expected a number"),
     (_replace('source = "tum:data/mocap.txt"', 'source = "ftp:data/mocap.txt"'),
      "rig.toml: sensor[2] \"mocap\".source: source 'ftp:data/mocap.txt': expected bag:PATH, csv:PATH or tum:PATH"),
