@@ -94,8 +94,7 @@ class _Pool(Workers):
         return AHEAD * self.size
 
     def submit(self, function, item) -> Future:
-        with interrupts_held():  # a signal's exception inside submit could leave the executors' lock held
-            return self.executor.submit(function, item)
+        return self.executor.submit(function, item)
 
     def close(self) -> None:
         self.executor.shutdown(wait=False, cancel_futures=True)
@@ -187,8 +186,12 @@ def run_all(function, items, workers: Workers, on_result, on_failure=None, on_st
     running: dict = {}  # future -> item
 
     def refill() -> None:
-        for item in itertools.islice(pending, max(0, workers.window() - len(running))):
-            running[workers.submit(function, item)] = item
+        # signals held until every future submitted is recorded: one raised between a submission
+        # and its record would lose that task's result (and inside ThreadPoolExecutor.submit it
+        # could leave the executors' lock held)
+        with interrupts_held():
+            for item in itertools.islice(pending, max(0, workers.window() - len(running))):
+                running[workers.submit(function, item)] = item
 
     def outcome(future, item):
         try:
