@@ -153,7 +153,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
                              f"sensor {config.name!r} ({config.kind}): {message}") from error
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
-        sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate))
+        sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise))
         whole.append(data)
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
     try:
@@ -164,4 +164,4 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,
                            initial_cov=cov, gravity=gravity, sensors=tuple(sensors), time_origin_ns=origin_ns,
-                           datum=clock.datum)
+                           estimate_imu_noise=rig.imu.estimate_noise, datum=clock.datum)

@@ -17,6 +17,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     kalibr = "imu.yaml"             # optional: the densities from a Kalibr imu.yaml (keys here override)
     forward = [1, 0, 0]             # optional: the vehicle's forward direction in the IMU frame (the
                                     # heading from the GNSS course without a velocity sensor)
+    estimate = ["noise"]            # optional: the four densities estimated from the data (the
+                                    # values above start it)
 
     [datum]                         # optional origin of the local ENU frame (GNSS);
     latitude = 47.0                 # default: the first valid GNSS fix
@@ -45,7 +47,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     scale = 1.0                     # optional, velocity and odometry only: what the sensor reads
                                     # per unit of the truth (its readings are divided by it)
     estimate = ["rotation", "scale"]  # optional: what of its calibration the batch smoother
-                                    # estimates, any of time_offset, rotation, lever_arm, scale
+                                    # estimates, any of time_offset, rotation, lever_arm, scale,
+                                    # and "noise": its sigmas, estimated from the data
     time_offset_sigma = 0.1         # optional priors about the values given: s (default 0.1),
     rotation_sigma = 0.1            # rad (0.1), m (0.2), and about a scale of 1 (0.05)
     lever_arm_sigma = 0.2
@@ -118,8 +121,11 @@ TOP_KEYS = ("imu", "datum", "sensor")
 #: How far a rig file's T_BS rotation may be from orthonormal: written by hand to a few decimals, it
 #: is taken to the nearest rotation (a rotation rounded to 6 decimals is ~1e-5 off).
 T_BS_TOLERANCE = 1e-4
-IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward")
+IMU_KEYS = ("source", "topic", *NOISE_KEYS, "gravity", "kalibr", "forward", "estimate")
 DATUM_KEYS = ("latitude", "longitude", "altitude")
+#: What ``estimate = [...]`` names besides a calibration's parts: the noise, estimated from the data
+#: by the batch smoother (the IMU's four densities; a sensor's sigmas per axis group).
+NOISE = "noise"
 #: The keys of a sensor's calibration (:func:`_calibration`): what to estimate and the priors' sigmas.
 CALIBRATION_KEYS = ("estimate", "time_offset_sigma", "rotation_sigma", "lever_arm_sigma", "scale_sigma")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
@@ -139,13 +145,15 @@ class RigError(InputError):
 class ImuConfig:
     """The IMU: ``source`` (a spec with an absolute path), ``topic`` (bags) or None, the noise
     densities, the magnitude of gravity [m/s^2] and the vehicle's ``forward`` direction in the IMU
-    frame (a unit 3-vector)."""
+    frame (a unit 3-vector); ``estimate_noise``: whether the densities are estimated from the data."""
 
     source: str
     topic: str | None
     noise: ImuNoise
     gravity: float
     forward: tuple = FORWARD
+    #: ``estimate = ["noise"]``: the densities estimated from the data (the values given start it).
+    estimate_noise: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,7 +166,8 @@ class SensorConfig:
     for a magnetometer the world field's ``declination`` and ``inclination`` [deg] (else None);
     ``scale``: what a velocity or odometry sensor reads per unit of the truth (its readings are
     divided by it); ``calibrate``: what of its calibration to estimate (a
-    :class:`factors.calibration.CalibrationPrior`), or None."""
+    :class:`factors.calibration.CalibrationPrior`), or None; ``estimate_noise``: whether its sigmas
+    are estimated from the data (``estimate`` names ``"noise"``)."""
 
     name: str
     kind: str
@@ -173,6 +182,7 @@ class SensorConfig:
     inclination: float | None = None
     scale: float = 1.0
     calibrate: CalibrationPrior | None = None
+    estimate_noise: bool = False
 
 
 @dataclass(frozen=True)
@@ -292,7 +302,11 @@ def _imu(path, folder: Path, table) -> ImuConfig:
             if problem is not None:
                 raise t.error("kalibr", f"{kalibr}: {kalibr_key[field]} (the rig's {key}): {problem}")
     gravity = t.number("gravity", default=float(np.linalg.norm(DEFAULT_GRAVITY)), positive=True)
-    return ImuConfig(source, topic, ImuNoise(**densities), gravity, _forward(t))
+    estimate = t.get("estimate", (list,), f'["{NOISE}"]', default=[])
+    if estimate not in ([], [NOISE]):
+        raise t.error("estimate", f'expected ["{NOISE}"] (the IMU estimates its noise densities only), '
+                                  f"got {estimate!r}")
+    return ImuConfig(source, topic, ImuNoise(**densities), gravity, _forward(t), estimate_noise=bool(estimate))
 
 
 def _forward(t: _Table) -> tuple:
@@ -413,7 +427,7 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
                         time_offset=time_offset, sigma=_sigma(t, kind), every=every, robust=robust,
                         **_field_angles(t, kind), scale=_scale(t, kind),
-                        calibrate=_calibration(t, kind, time_offset))
+                        calibrate=_calibration(t, kind, time_offset), estimate_noise=_estimates_noise(t))
 
 
 def _scale(t: "_Table", kind: str) -> float:
@@ -424,11 +438,21 @@ def _scale(t: "_Table", kind: str) -> float:
     return scale
 
 
+def _estimates_noise(t: "_Table") -> bool:
+    """Whether the sensor's ``estimate = [...]`` names its noise."""
+    parts = t.get("estimate", (list,), f"a list of any of {', '.join((*PARTS, NOISE))}", default=None)
+    return NOISE in (parts or ())
+
+
 def _calibration(t: "_Table", kind: str, time_offset: float) -> CalibrationPrior | None:
     """The sensor's ``estimate = [...]`` (any of time_offset, rotation, lever_arm, scale that its
-    kind can estimate) with the priors' ``<part>_sigma`` keys; None without ``estimate`` (a sigma
-    key without it is refused: it would do nothing)."""
-    parts = t.get("estimate", (list,), f"a list of any of {', '.join(PARTS)}", default=None)
+    kind can estimate, beside ``noise``) with the priors' ``<part>_sigma`` keys; None without a
+    calibration part (a sigma key without one is refused: it would do nothing)."""
+    parts = t.get("estimate", (list,), f"a list of any of {', '.join((*PARTS, NOISE))}", default=None)
+    if parts is not None and all(isinstance(part, str) for part in parts):
+        if len(set(parts)) != len(parts):
+            raise t.error("estimate", f"expected distinct parts of {', '.join((*PARTS, NOISE))}, got {parts!r}")
+        parts = [part for part in parts if part != NOISE] or None
     sigmas = {key: t.number(key, default=None, positive=True) for key in CALIBRATION_KEYS[1:]}
     if parts is None:
         given = [key for key, value in sigmas.items() if value is not None]
@@ -438,7 +462,7 @@ def _calibration(t: "_Table", kind: str, time_offset: float) -> CalibrationPrior
     can = applicable(KINDS[kind].model)
     for part in parts:
         if not isinstance(part, str) or part not in PARTS:
-            raise t.error("estimate", f"expected a list of any of {', '.join(PARTS)}, got {parts!r}")
+            raise t.error("estimate", f"expected a list of any of {', '.join((*PARTS, NOISE))}, got {parts!r}")
         if part not in can:
             raise t.error("estimate", f"a {kind} sensor cannot estimate its {part}; it can estimate {', '.join(can)}")
     if not parts or len(set(parts)) != len(parts):

@@ -15,13 +15,14 @@ user's comments, the order of the keys, blank lines and the numbers as written.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import tomlkit
 from tomlkit.items import Comment, Table, Whitespace
 
-from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
 from datasets.errors import read_source
+from datasets.kinds import KINDS
+from datasets.kinds.base import kind_sigmas
+from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
 
 #: The first lines of ``calibrated.toml``.
 CALIBRATED_HEADER = ("The rig with the calibration the batch smoother estimated written in; the next run uses",
@@ -87,20 +88,34 @@ def _rebuilt(document, tables: dict) -> tomlkit.TOMLDocument:
     return out
 
 
-def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -> str:
+def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, noise: dict | None = None) -> str:
     """The TOML text of ``rig`` (its file re-read, comments and layout kept) with the calibration
     ``records`` (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`)
     written in, and after a sensor's values, as a comment, its caution (``cautions``:
-    ``{sensor: text}``, '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`)."""
-    cautions = cautions or {}
+    ``{sensor: text}``, '' for none; :func:`smoother.diagnosis.calibration_report.fit_note`); with
+    ``noise`` (the batch smoother's fit, ``{group: record}`` of
+    :meth:`smoother.batch.variance_components.NoiseFit.record`), each density and sigma it applied
+    written in its place (the IMU's densities; a sensor's ``sigma`` per axis where the rig gave
+    one, else a comment with the factor on its measurements' covariances) and ``"noise"`` taken
+    out of ``estimate``, so the next run starts from them as given."""
+    cautions, noise = cautions or {}, noise or {}
+    fitted = {name: g for name, g in noise.items() if not name.startswith("_") and g["applied"] and g["estimable"]}
     document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8"))
     imu = document["imu"]
-    values, drop = {"source": rig.imu.source}, ()
+    values, drop, comments = {"source": rig.imu.source}, [], []
     if "kalibr" in imu:  # the densities it held; those the rig gave itself stay as written
         values.update({key: float(getattr(rig.imu.noise, field)) for key, field in NOISE_KEYS.items()
                        if key not in imu})
-        drop = ("kalibr",)
-    tables = {"imu": _edited(imu, values, drop)}
+        drop.append("kalibr")
+    for key, field in NOISE_KEYS.items():
+        g = fitted.get(f"imu.{field}")
+        if g is not None:
+            values[key] = float(g["value"])
+            comments.append(f"{key} fitted by the batch smoother: {g['factor']:.3g} +- {g['factor_sd']:.2g} times "
+                            "the value given")
+    if any(name.startswith("imu.") for name in fitted) and "estimate" in imu:
+        drop.append("estimate")
+    tables = {"imu": _edited(imu, values, drop, comments)}
     if "sensor" in document:
         sensors = document["sensor"]
         for i, (table, config) in enumerate(zip(sensors, rig.sensors)):
@@ -122,9 +137,31 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None) -
             elif "camchain" in table:
                 values["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
                 drop += ["camchain", "camera"]
+            _noise_written(table, config, {name.split(".", 1)[1]: g for name, g in fitted.items()
+                                           if name.split(".", 1)[0] == config.name}, values, drop, comments)
             sensors[i] = _edited(table, values, drop, comments)
         tables["sensor"] = sensors
     return tomlkit.dumps(_rebuilt(document, tables))
+
+
+def _noise_written(table: Table, config, groups: dict, values: dict, drop: list, comments: list) -> None:
+    """A sensor's fitted noise ``groups`` (``{group: record}``) into ``values`` (its ``sigma`` per
+    axis, where the rig gave one), ``drop`` (``estimate`` when it named the noise alone) and
+    ``comments``."""
+    if not groups:
+        return
+    axes = {}
+    for part, g in groups.items():
+        for a in g["axes"]:
+            axes[a] = g["factor"]
+        comments.append(f"{part} noise fitted by the batch smoother: {g['factor']:.3g} +- {g['factor_sd']:.2g} "
+                        f"times the sigma given" + ("" if config.sigma is not None else " (its measurements' "
+                                                                                          "covariances scaled so)"))
+    if config.sigma is not None:
+        given = kind_sigmas(f"sensor {config.name!r}: sigma", config.sigma, KINDS[config.kind].dim)
+        values["sigma"] = [float(s * axes.get(a, 1.0)) for a, s in enumerate(given)]
+    if "estimate" in table and list(table["estimate"]) == ["noise"]:
+        drop.append("estimate")
 
 
 #: Per density of :func:`allan_imu_block`: the rig file's key, the per-axis values' attribute of a

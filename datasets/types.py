@@ -541,13 +541,16 @@ class Sensor:
     it), its ``kind`` (a name of :data:`datasets.kinds.KINDS`), the measurements used
     (``data``, that kind's data type) and those held out for evaluation (``heldout`` or None);
     ``calibrate``: what of its calibration the batch smoother estimates, about the ``T_BS`` and
-    stamps of its data (a :class:`factors.calibration.CalibrationPrior`), or None."""
+    stamps of its data (a :class:`factors.calibration.CalibrationPrior`), or None;
+    ``estimate_noise``: whether the batch smoother estimates its noise from the data (its
+    covariances scaled per axis group, :mod:`smoother.batch.variance_components`)."""
 
     name: str
     kind: str
     data: object
     heldout: object = None
     calibrate: object = None
+    estimate_noise: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -561,7 +564,8 @@ class Dataset:
     ``time_origin_ns``: where the data have a clock of their own (EuRoC's nanosecond stamps, a
     bag's header stamps since the epoch), its reading at ``t = 0``, in integer nanoseconds; times
     inside stay small (float64 keeps sub-microsecond steps) and outputs are written in the data's
-    clock. None: the times are the data's own."""
+    clock. None: the times are the data's own. ``estimate_imu_noise``: whether the batch smoother
+    estimates the IMU's noise densities from the data (``noise`` then starts it)."""
 
     name: str
     imu: ImuSamples
@@ -572,6 +576,12 @@ class Dataset:
     sensors: tuple = ()
     truth: Trajectory | None = None
     time_origin_ns: int | None = None
+    estimate_imu_noise: bool = False
+
+    @property
+    def noise_to_estimate(self) -> tuple[str, ...]:
+        """What the data ask to have its noise estimated: ``"imu"`` and the sensors' names."""
+        return ("imu",) * self.estimate_imu_noise + tuple(s.name for s in self.sensors if s.estimate_noise)
 
     def __post_init__(self):
         object.__setattr__(self, "initial_cov", check_state_covariance("Dataset.initial_cov", self.initial_cov))

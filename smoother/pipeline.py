@@ -43,6 +43,8 @@ class Estimate:
     consistency: dict | None = None
     #: The calibrations it estimated (:class:`factors.calibration.CalibrationSet`), if any.
     calibration: object = None
+    #: The noise it fitted (:class:`smoother.batch.variance_components.NoiseFit`), if any.
+    noise: object = None
 
 
 @dataclass
@@ -61,6 +63,9 @@ class RunOptions:
     max_delay_s: float = 0.0  # how late a measurement may arrive behind the IMU (fixed-lag)
     realtime: bool = False  # fixed-lag: replay at the data's own pace (times ``speed``)
     speed: float = 1.0
+    #: The noise groups the batch smoother estimates ("imu" and sensors' names): None for what the
+    #: dataset asks (:attr:`datasets.types.Dataset.noise_to_estimate`), ``()`` for none.
+    estimate_noise: tuple | None = None
 
 
 def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False) -> dict[str, Estimate]:
@@ -70,23 +75,43 @@ def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), 
 
 
 def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False,
-                  announce: Callable[[str], None] | None = None) -> Iterator[tuple[str, Estimate]]:
+                  announce: Callable[[str], None] | None = None,
+                  record: dict | None = None) -> Iterator[tuple[str, Estimate]]:
     """Run the estimators ``names`` on ``dataset`` and yield ``(name, Estimate)`` as each finishes,
     so that a caller keeps what finished when a later one is interrupted. ``announce(name)`` is
     called as each starts.
 
-    The batch smoother starts from the EKF's estimate (:func:`smoother.model.problem.build_problem`'s
-    ``start``): the EKF runs first when both are asked for, and otherwise for the batch alone (its
-    time counted in the batch's); where the EKF fails, from dead reckoning. ``details["start"]``
-    says which. ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed``
-    set (its error in one line) and the others still run; otherwise its exception propagates.
-    While the others run, the sliding window's kernels compile in a second process when they are
-    not on disk yet (:mod:`smoother.online.warm_up`)."""
+    Before any estimator, each sensor's mounting is checked in closed form against what the IMU
+    observes (:func:`smoother.diagnosis.mounting.check_mountings`); a sensor found turned that
+    asks for its rotation to be estimated starts from the data's rotation instead of the rig's
+    (:func:`mounted_as_found`). The batch smoother starts from the EKF's estimate
+    (:func:`smoother.model.problem.build_problem`'s ``start``): the EKF runs first when both are
+    asked for, and otherwise for the batch alone (its time counted in the batch's); where the EKF
+    fails, from dead reckoning. ``details["start"]`` says which. With noise to estimate
+    (:attr:`RunOptions.estimate_noise`) the batch smoother runs first and fits it
+    (:mod:`smoother.batch.variance_components`; a batch not asked for runs for it all the same,
+    not yielded), and the other estimators run on the data with the fitted noise. ``record``, if
+    given, receives ``mounting`` (the check), ``noise`` (the fit, kept honest by
+    :func:`smoother.diagnosis.noise_honesty.honest`) and ``dataset`` (what the estimators ran on).
+    ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed`` set (its
+    error in one line) and the others still run; otherwise its exception propagates. While the
+    others run, the sliding window's kernels compile in a second process when they are not on disk
+    yet (:mod:`smoother.online.warm_up`)."""
+    from smoother.diagnosis.mounting import check_mountings
+
     unknown = [n for n in names if n not in ESTIMATORS]
     if unknown:
         raise InputError(f"unknown estimator(s) {unknown}; expected {', '.join(ESTIMATORS)}")
+    record = {} if record is None else record
+    mounting = check_mountings(dataset)
+    dataset = record["dataset"] = mounted_as_found(dataset, mounting)
+    record["mounting"] = mounting
+    noise = dataset.noise_to_estimate if options.estimate_noise is None else tuple(options.estimate_noise)
     both = "ekf" in names and "batch" in names
-    order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
+    if noise:
+        order = ["batch", *(n for n in names if n != "batch")]
+    else:
+        order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
     ekf: Estimate | None = None
     warm_up = None
     try:
@@ -98,18 +123,45 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
                 warm_up.wait()
             tick = time.perf_counter()
             try:
-                estimate = (_batch(dataset, options, ekf) if name == "batch" else
-                            _fixed_lag(dataset, options) if name == "fixed-lag" else _ekf(dataset, options))
+                if name == "batch":
+                    estimate = _batch(dataset, options, ekf, noise, mounting)
+                    if estimate.noise is not None:
+                        record["noise"] = estimate.noise
+                        dataset = record["dataset"] = estimate.noise.applied(dataset)
+                else:
+                    estimate = _fixed_lag(dataset, options) if name == "fixed-lag" else _ekf(dataset, options)
+                    if "noise" in record:
+                        estimate.details["noise_from"] = "batch"
             except Exception as error:
                 if not keep_going:
                     raise
                 estimate = Estimate(name, None, time.perf_counter() - tick, {}, failed=_one_line(error))
             if name == "ekf":
                 ekf = estimate
-            yield name, estimate
+            if name in names:
+                yield name, estimate
     finally:
         if warm_up is not None:
             warm_up.close()
+
+
+def mounted_as_found(dataset: Dataset, mounting) -> Dataset:
+    """``dataset`` with each sensor whose mounting the check found wrong and that asks for its
+    rotation to be estimated turned to the data's rotation (its measurements' ``T_BS``, and so its
+    calibration's start and prior mean): a linearised calibration cannot leave a quarter or a half
+    turn from the rig's. The lever arm stays the rig's."""
+    turned = {f.sensor: f.R_data for f in mounting.wrong}
+    if not turned:
+        return dataset
+    sensors = []
+    for s in dataset.sensors:
+        if s.name in turned and s.calibrate is not None and "rotation" in s.calibrate.parts:
+            T = np.array(s.data.T_BS if s.data.T_BS is not None else np.eye(4), dtype=float)
+            T[:3, :3] = turned[s.name]
+            s = replace(s, data=replace(s.data, T_BS=T),
+                        heldout=None if s.heldout is None else replace(s.heldout, T_BS=T))
+        sensors.append(s)
+    return replace(dataset, sensors=tuple(sensors))
 
 
 def _one_line(error: Exception) -> str:
@@ -131,9 +183,13 @@ def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
     return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations, calibration=r.calibration)
 
 
-def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estimate:
+def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: tuple = (),
+           mounting=None) -> Estimate:
     """The batch smoother started from ``ekf``'s estimate (an EKF run for it when None), its
-    calibrations from the EKF's where it estimated them (the priors stay about the values given)."""
+    calibrations from the EKF's where it estimated them (the priors stay about the values given);
+    with the noise groups ``noise``, their variance components fitted and the estimate with the
+    fitted noise (``details["noise"]``: the fit, its record and the model errors it would have
+    hidden, given the ``mounting`` check)."""
     tick = time.perf_counter()
     details: dict = {}
     if ekf is None:
@@ -150,7 +206,27 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
     build_s = time.perf_counter() - tick
     # a calibration is never reported without its sigma: its covariance is computed whatever --no-covariance says
     covariances = options.covariances or problem.calibration is not None
-    r = solve_batch(problem, options.optimizer, options.max_iterations, covariances)
+    r = solve_batch(problem, options.optimizer, options.max_iterations, covariances or bool(noise))
+    runtime_s = build_s + r.runtime_s
+    fit = None
+    if noise:
+        from smoother.batch.variance_components import estimate_noise
+        from smoother.diagnosis.noise_honesty import honest
+
+        fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
+        runtime_s += fit.runtime_s
+        fit, errors = honest(fit, [f.sensor for f in mounting.wrong] if mounting is not None else ())
+        applied = fit.applied(dataset)
+        if any(g.estimable and not g.applied and g.note.startswith("not applied") for g in fit.groups):
+            # a group kept at the rig's value as a model error: the estimate with the noise applied
+            problem = build_problem(applied, options.keyframe_rate, options.robust, start=r.trajectory)
+            if problem.calibration is not None and r.calibration is not None:
+                problem = replace(problem, calibration=r.calibration)
+            r = solve_batch(problem, options.optimizer, options.max_iterations, True)
+            runtime_s += r.runtime_s
+        details["noise"] = fit.record()
+        if errors:
+            details["noise_model_errors"] = {e.group: e.cause for e in errors}
     details.update({"iterations": r.iterations, "converged": r.converged, "final_error": r.error,
                     "graph_build_s": build_s})
     if r.calibration is not None:
@@ -158,8 +234,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None) -> Estim
                                                                                            r.calibration_cov)
     # the verdicts need the joint covariances, which only this call has
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)
-    return Estimate("batch", r.trajectory, build_s + r.runtime_s, details, consistency=consistency,
-                    calibration=r.calibration)
+    return Estimate("batch", r.trajectory, runtime_s, details, consistency=consistency, calibration=r.calibration,
+                    noise=fit)
 
 
 def _given_values_note(dataset: Dataset, kind: str) -> dict:
@@ -218,38 +294,92 @@ def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], opti
     return out
 
 
-def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
-    """Record each estimator's verdicts in its details: ``sensors`` (per sensor) and ``fit`` (all
-    together, :func:`smoother.diagnosis.verdicts.overall`) and, when the fit or any one verdict is far
-    above its band (:func:`smoother.diagnosis.verdicts.far_above`: the estimate does not explain that
-    part of its own data, whatever the optimiser reported), ``doubtful`` with why. A sensor whose
-    calibration an estimator estimated but could not judge itself (the fixed-lag smoother keeps no
-    covariances of its states with the calibrations) counts by the verdict of another estimator
-    of the same model on the same data (:func:`smoother.diagnosis.calibration_report.verdicts_for`)."""
-    from smoother.diagnosis.calibration_report import verdicts_for
-    from smoother.diagnosis.verdicts import far_above, overall
+def heldout_by_estimator(dataset: Dataset, estimates: dict[str, Estimate]) -> dict:
+    """Each estimator's verdict on each sensor's held-out measurements, ``{estimator: {sensor:
+    verdict}}`` (:func:`smoother.diagnosis.heldout.heldout_consistency`): data the fit did not use,
+    so a fitted noise cannot put them in band. Estimators without covariances have none."""
+    from smoother.diagnosis.heldout import heldout_consistency
 
+    return {name: heldout_consistency(dataset, est.trajectory, est.calibration)
+            for name, est in estimates.items() if est.failed is None}
+
+
+def run_doubts(record: dict) -> list[str]:
+    """What makes every estimate of a run doubtful whatever its own verdicts say: a sensor mounted
+    otherwise than the rig says (the closed-form check, :mod:`smoother.diagnosis.mounting`), and a
+    fitted noise that would have hidden a model error (:mod:`smoother.diagnosis.noise_honesty`)."""
+    out = []
+    mounting = record.get("mounting")
+    for finding in () if mounting is None else mounting.wrong:
+        out.append(f"the mounting of {finding.sensor} is not the rig's ({finding.message})")
+    fit = record.get("noise")
+    for g in () if fit is None else fit.groups:
+        if g.note.startswith("not applied: ") and g.estimable:
+            out.append(f"the noise fitted to {g.group.name} is a model error, not noise: "
+                       f"{g.note.removeprefix('not applied: ')}")
+    return out
+
+
+def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | None = None,
+           doubts: list[str] = ()) -> None:
+    """Record each estimator's verdicts in its details: ``sensors`` (per sensor; with held-out
+    measurements also ``heldout_per_dof``, ``heldout_band``, ``heldout_ok``,
+    ``heldout_measurements`` and ``heldout_state_share``) and ``fit`` (all together,
+    :func:`smoother.diagnosis.verdicts.overall`) and ``doubtful`` with why when
+
+    * the fit or any one verdict is far above its band (:func:`smoother.diagnosis.verdicts.far_above`:
+      the estimate does not explain that part of its own data, whatever the optimiser reported) --
+      a sensor's held-out verdict (``heldout``: :func:`heldout_by_estimator`) stands for its own
+      where it has one: data the fit did not use;
+    * a verdict is far below its band (:func:`smoother.diagnosis.verdicts.far_below`): the sensor's
+      sigma is overstated, and the estimate's covariances too large -- or, for held-out
+      predictions whose covariance is mostly the state's, a state the data do not fix;
+    * a run-wide ``doubts`` (:func:`run_doubts`) holds.
+
+    A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
+    smoother keeps no covariances of its states with the calibrations) counts by the verdict of
+    another estimator of the same model on the same data
+    (:func:`smoother.diagnosis.calibration_report.verdicts_for`)."""
+    from smoother.diagnosis.calibration_report import verdicts_for
+    from smoother.diagnosis.verdicts import far_above, far_below, overall, with_heldout
+
+    heldout = heldout or {}
     for name, est in estimates.items():
         ours = consistency.get(name, {})
-        est.details["sensors"] = ours
+        held = heldout.get(name, {})
+        est.details["sensors"] = with_heldout(ours, held)
+        judged_by = {**ours, **held}  # a held-out verdict stands for the sensor's own
         why = []
         fit = overall(ours)
         if fit is not None:
             est.details["fit"] = fit
-            off = [k for k, c in ours.items() if far_above(c)]
-            if far_above(fit) or off:
-                worst = max(ours, key=lambda k: ours[k]["per_dof"])
-                why.append(f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} are "
-                           f"{fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-{fit['band'][1]:.2g}), those "
-                           f"of {', '.join(off) or worst} far above their band (worst: {worst}, "
-                           f"{ours[worst]['per_dof']:.3g})")
+        off = [k for k, c in judged_by.items() if far_above(c)]
+        if (fit is not None and far_above(fit)) or off:
+            worst = max(judged_by, key=lambda k: judged_by[k]["per_dof"])
+            summary = "" if fit is None else (
+                f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} are "
+                f"{fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-{fit['band'][1]:.2g}), ")
+            why.append(f"{summary}those of {', '.join(off) or worst} far above their band (worst: {worst}"
+                       f"{' held out' if worst in held else ''}, {judged_by[worst]['per_dof']:.3g})")
+        low = [k for k, c in judged_by.items() if far_below(c)]
+        for k in low:
+            c = judged_by[k]
+            if c.get("state_share", 0.0) > 0.5:
+                why.append(f"{k}'s held-out predictions are {c['per_dof']:.3g} per dof (expected "
+                           f"{c['band'][0]:.2g}-{c['band'][1]:.2g}), mostly the state's uncertainty: a state the "
+                           "data do not fix (a heading, a bias) makes them look good")
+            else:
+                why.append(f"{k}'s {'held-out predictions' if k in held else 'errors'} are {c['per_dof']:.3g} per "
+                           f"dof (expected {c['band'][0]:.2g}-{c['band'][1]:.2g}), far below their band: its sigma "
+                           "is overstated, so the estimate's covariances are too large")
         calibrated = () if est.calibration is None else est.calibration.names
         borrowed = {k: v for k, v in verdicts_for(name, consistency).items()
-                    if k in calibrated and k not in ours and far_above(v)}
+                    if k in calibrated and k not in judged_by and far_above(v)}
         if borrowed:
             why.append("its calibrated " + ", ".join(
                 f"{k}, which it does not judge itself, is {v['per_dof']:.3g} per dof by the {v['by']} (expected "
                 f"{v['band'][0]:.2g}-{v['band'][1]:.2g})" for k, v in borrowed.items()))
+        why += list(doubts)
         if why:
             est.details["doubtful"] = "; ".join(why) + (": the model does not fit the data, so the estimate may be "
-                                                        "wrong and its covariances too small")
+                                                        "wrong and its covariances wrong too")

@@ -163,6 +163,7 @@ class GroupFit:
     def record(self) -> dict:
         """``metrics.json``'s record of the group."""
         return {"factor": self.factor, "factor_sd": self.factor_sd, "redundancy": self.redundancy,
+                **({} if self.group.axes is None else {"axes": list(self.group.axes)}),
                 "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
                 "estimable": self.estimable, "applied": self.applied, "residual_correlation": self.correlation,
                 **({"note": self.note} if self.note else {})}
@@ -236,11 +237,11 @@ def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:
 
 
 def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, which, optimizer: str = "lm",
-                   max_iterations: int = 100) -> tuple[NoiseFit, SmootherResult]:
+                   max_iterations: int = 100) -> tuple[NoiseFit, SmootherResult, Problem]:
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
-    ``dataset``, with covariances). Returns the fit and the batch estimate with the fitted noise.
-    Every other group keeps the rig's noise."""
+    ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
+    (with covariances) and the problem with it. Every other group keeps the rig's noise."""
     import time
 
     start = time.perf_counter()
@@ -342,8 +343,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     else:
         warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
                       "used", stacklevel=2)
-    result = solve_batch(replace(problem, blocks=model.blocks(psi, states), initial_states=states,
-                                 calibration=calibration), optimizer, max_iterations)
+    fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
+    result = solve_batch(fitted, optimizer, max_iterations)
     if ties:
         cov_psi = _pseudo_inverse(information if information is not None else
                                   _parameter_information(approximate, ties))
@@ -368,7 +369,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         fits.append(GroupFit(group, factor, 0.5 * factor * sd_psi, float(redundancy[g]), model.value(group, factor),
                              group.unit, others, correlation=summary[g][0], dof=summary[g][1]))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
-    return fit, result
+    return fit, result, fitted
 
 
 def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:

@@ -1,7 +1,6 @@
 """``smoother run``: run the estimators on a dataset, write trajectories, metrics and plots."""
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 import time
@@ -56,9 +55,10 @@ def register(sub) -> None:
                    help="pose measurements drawn from the ground truth")
     p.add_argument("--gps-from-truth", type=float, nargs=2, metavar=("HZ", "POS_M"),
                    help="position measurements drawn from the ground truth")
-    p.add_argument("--tune-noise", action="store_true",
-                   help="first scale the IMU noise densities to maximise the likelihood of the measurements used "
-                        "(EKF prediction errors; no truth, no held-out data), then run with them")
+    p.add_argument("--estimate-noise", "--tune-noise", dest="estimate_noise", action="store_true",
+                   help="estimate the IMU's four noise densities and every sensor's sigmas (per axis group) from the "
+                        "data with the batch smoother (variance components), and run the other estimators with them "
+                        "(a rig asks for some with estimate = [\"noise\"])")
     p.add_argument("--max-gyro-rate", type=float, default=None, metavar="RAD_S",
                    help="accept gyro data up to this rate [rad/s], as a 99th percentile and on each sample's axes "
                         "(default 35, 2000 deg/s: beyond it the data are refused as probably in deg/s)")
@@ -166,6 +166,7 @@ def _run(args) -> int:
         keyframe_rate=args.keyframe_rate, robust=robust,
         ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
         max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
+        estimate_noise=("imu", *dataset.sensor_names) if args.estimate_noise else None,
     )
     with RunDirectory(args.out) as out:  # locked for the run, before any estimator starts
         return _estimate(args, dataset, names, run_options, out)
@@ -185,19 +186,19 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
     from smoother.outputs import files
-    from smoother.pipeline import estimate_each, judged, verdicts_by_estimator
+    from smoother.diagnosis.noise_report import noise_lines
+    from smoother.pipeline import estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s",
           file=sys.stderr)
     started = time.perf_counter()
     imu_findings = imu_health(dataset)
     run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "imu": findings_record(imu_findings)}
-    if args.tune_noise:
-        dataset, run_info["noise_tuning"] = tuned(dataset, args.progress)
-    estimates = {}
+    estimates, record = {}, {}
     announce = lambda name: print(f"running {name} ...", file=sys.stderr)  # noqa: E731
     try:
-        for name, estimate in estimate_each(dataset, names, run_options, keep_going=True, announce=announce):
+        for name, estimate in estimate_each(dataset, names, run_options, keep_going=True, announce=announce,
+                                            record=record):
             estimates[name] = estimate
             if estimate.failed is not None:
                 print(f"{name} failed: {estimate.failed}", file=sys.stderr)
@@ -213,8 +214,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"metrics.json says stopped: {stopped}", file=sys.stderr)
         return code
     estimates = _in_order(estimates, names)
+    dataset = record.get("dataset", dataset)  # as the estimators ran on it: the fitted noise, mountings as found
+    run_info["mounting"] = record["mounting"].record() if "mounting" in record else {}
+    for finding in record["mounting"].wrong if "mounting" in record else ():
+        print(f"warning: mounting: {finding.message}", file=sys.stderr)
     consistency = verdicts_by_estimator(dataset, estimates, run_options)
-    judged(estimates, consistency)
+    judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record))
     baseline = report.interpolation_baseline(dataset)
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
@@ -250,8 +255,11 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}),
                                           verdicts_for(name, verdicts), correlations.get(name)):
                 print(f"  {line}")
-    if args.rig is not None and metrics.get("batch", {}).get("calibration"):
-        print(f"the rig with the batch's calibration: {args.out}/calibrated.toml", file=sys.stderr)
+    if metrics.get("batch", {}).get("noise"):
+        for line in noise_lines(metrics["batch"]["noise"]):
+            print(line)
+    if args.rig is not None and (metrics.get("batch", {}).get("calibration") or metrics.get("batch", {}).get("noise")):
+        print(f"the rig with the batch's calibration and noise: {args.out}/calibrated.toml", file=sys.stderr)
     latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
     if latency is not None:
         print(f"fixed-lag latency, measurement arrival to updated estimate ({latency['measurements']} measurements): "
@@ -297,8 +305,9 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         from smoother.outputs.mcap import write_mcap
 
         write_mcap(stage / MCAP, dataset, estimates)
-    records = metrics.get("batch", {}).get("calibration")
-    if args.rig is not None and records:
+    records = metrics.get("batch", {}).get("calibration") or {}
+    noise = metrics.get("batch", {}).get("noise")
+    if args.rig is not None and (records or noise):
         from datasets.atomic import atomic_write
         from datasets.rig import load_rig
         from datasets.rig_writer import calibrated_rig_text
@@ -307,7 +316,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})
         cautions = {s: fit_note(verdicts.get(s), rhos.get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
-            handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions))
+            handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise))
     return metrics
 
 
@@ -334,23 +343,6 @@ def _say_removed(out) -> None:
     if out.removed:
         print(f"removed the previous run's {', '.join(out.removed)} from {out.path} (a run directory holds one run)",
               file=sys.stderr)
-
-
-def tuned(dataset, progress: bool | None):
-    """``dataset`` with its IMU noise tuned (:func:`smoother.diagnosis.noise_tuning.tune_noise`) and the record of
-    the tuning for ``metrics.json``; the factors are reported on stderr."""
-    from smoother.diagnosis.noise_tuning import tune_noise
-
-    print("tuning the IMU noise (maximum likelihood of the measurements used) ...", file=sys.stderr)
-    try:
-        tuning = tune_noise(dataset, progress=progress)
-    except ValueError as error:
-        raise UserError(f"--tune-noise: {error}") from None
-    summary = tuning.summary()
-    factors = ", ".join(f"{name} x{scale:.3g}" for name, scale in summary["scale"].items())
-    print(f"noise tuned ({tuning.evaluations} EKF runs, log-likelihood {tuning.initial_log_likelihood:.1f} -> "
-          f"{tuning.log_likelihood:.1f}): {factors}", file=sys.stderr)
-    return dataclasses.replace(dataset, noise=tuning.noise), summary
 
 
 def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) -> str | None:

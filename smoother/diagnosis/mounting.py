@@ -119,6 +119,19 @@ class MountingCheck:
         """One message a sensor."""
         return [r.message for r in self.results]
 
+    def record(self) -> dict:
+        """``metrics.json``'s ``_run.mounting``: per sensor ``wrong``, ``angle_deg`` (the rig's
+        rotation against the data's), ``sigma_deg``, ``R_data`` and ``message``; or ``checked``
+        false with the ``reason``."""
+        out = {}
+        for r in self.results:
+            if isinstance(r, NotChecked):
+                out[r.sensor] = {"checked": False, "reason": r.reason}
+            else:
+                out[r.sensor] = {"checked": True, "wrong": r.wrong, "angle_deg": r.rig_angle_deg,
+                                 "sigma_deg": r.rig_sigma_deg, "R_data": r.R_data.tolist(), "message": r.message}
+        return out
+
 
 def check_mountings(dataset: Dataset) -> MountingCheck:
     """The mounting check of every sensor of ``dataset`` (module docstring), on its measurements

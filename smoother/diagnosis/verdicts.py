@@ -84,6 +84,24 @@ def far_above(c: dict) -> bool:
     return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
 
 
+def far_below(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) is below its band and :data:`WARN_FACTOR` or more below 1."""
+    return c["per_dof"] < min(c["band"][0], 1.0 / WARN_FACTOR)
+
+
+def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
+    """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
+    (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
+    ``heldout_state_share``; :mod:`smoother.diagnosis.heldout`); a sensor judged on held-out
+    measurements alone has those only."""
+    out = {name: dict(c) for name, c in verdicts.items()}
+    for name, h in heldout.items():
+        out.setdefault(name, {}).update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"],
+                                         "heldout_ok": h["ok"], "heldout_measurements": h["measurements"],
+                                         "heldout_state_share": h["state_share"]})
+    return out
+
+
 def far_off(c: dict) -> bool:
     """``c`` (a :func:`verdict`) is outside its band and :data:`WARN_FACTOR` or more from 1 (a
     warning's condition)."""
@@ -102,7 +120,7 @@ def _by_sensor(by_estimator: dict[str, dict]) -> dict[str, dict]:
 
 #: The name the IMU factors' verdict goes by (:mod:`smoother.diagnosis.residual_consistency`).
 IMU = "imu"
-_STATISTIC = {"nis": "NIS", "residual": "residuals"}
+_STATISTIC = {"nis": "NIS", "residual": "residuals", "heldout": "held-out predictions"}
 
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
@@ -154,8 +172,10 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
                          f"(rad/s and m/s^2, not deg/s or g), saturation and spikes, and its noise densities{symptom}")
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
+        lowest = min(c["per_dof"] for c in off.values())
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
-                  else "its sigma looks too large")
+                  else f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors; "
+                       f'estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data')
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high

@@ -51,7 +51,7 @@ def _fit(data, robust=None, which=("imu", "position", "velocity")):
     result = solve_batch(problem)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return (result, *vc.estimate_noise(data, problem, result, which))
+        return (result, *vc.estimate_noise(data, problem, result, which)[:2])
 
 
 def _within(fit: vc.NoiseFit, truth: dict, k: float = 2.0) -> dict[str, bool]:

@@ -1,0 +1,32 @@
+"""What a run says of the noise the batch smoother fitted (``metrics.json``'s ``batch.noise``,
+:meth:`smoother.batch.variance_components.NoiseFit.record`): one printed line per group, after the
+calibration table.
+
+Each line gives the group, the density or sigma in use (the rig's units: the fitted one where it
+was applied, else the rig's), the factor the data give on the value given with its standard
+deviation and the degrees of freedom its residuals carry, then what
+became of it: applied, kept at the rig's value (consistent with it, or not estimable, and why),
+merged with another component, or not applied as a model error with its likely cause
+(:mod:`smoother.diagnosis.noise_honesty`).
+"""
+from __future__ import annotations
+
+
+def noise_lines(record: dict) -> list[str]:
+    """The printed lines of a noise fit's ``record`` (``{group: record, "_fit": ...}``)."""
+    fit = record.get("_fit", {})
+    lines = [f"noise fitted by the batch smoother ({fit.get('iterations', '?')} iterations"
+             f"{'' if fit.get('converged', True) else ', NOT converged'}):"]
+    for name, g in record.items():
+        if name.startswith("_"):
+            continue
+        value = "" if g.get("value") is None else f"{g['value']:.3g} {g['unit']}".rstrip()
+        if not g["estimable"]:
+            lines.append(f"  {name:<28} {value:<22} kept: {g.get('note', 'not estimable')}")
+            continue
+        figure = f"x{g['factor']:.3g} +- {g['factor_sd']:.2g} (redundancy {g['redundancy']:.3g})"
+        if g["merged_with"]:
+            figure += f", one factor with {', '.join(g['merged_with'])}"
+        what = "applied" if g["applied"] else g.get("note", "not applied")
+        lines.append(f"  {name:<28} {value:<22} {figure}: {what}")
+    return lines
