@@ -171,12 +171,13 @@ def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float
 
 def gauss_newton_step(blocks: list[Block], states: imu.ImuState, calibration=None):
     """One Gauss-Newton step of the blocks' cost from ``states`` and the calibration variables'
-    values ``calibration``: ``(states, calibration, graph, layout)`` after the step, with the
-    whitened linear system it solved (linearised before the step) and its variables, whose
-    covariances :func:`smoother.model.covariances.marginal_covariances` gives. Near an optimum whose
-    weights changed a little (the noise estimation's iterations) one step reaches the new one."""
+    values ``calibration``: ``(states, calibration, graph, layout, delta)`` after the step, with the
+    whitened linear system it solved (linearised before the step), its variables (whose
+    covariances :func:`smoother.model.covariances.marginal_covariances` gives) and the step itself
+    (flat, in the layout's order). Near an optimum whose weights changed a little (the noise
+    estimation's iterations) one step reaches the new one."""
     graph, _ = linearize(blocks, states, calibration)
     layout = Layout.of(states, calibration)
     delta = _solve(graph, layout, layout.ordering(graph))
     moved, moved_calibration = layout.apply(states, calibration, delta)
-    return moved, moved_calibration, graph, layout
+    return moved, moved_calibration, graph, layout, delta

@@ -47,11 +47,11 @@ the ridges of correlated components (white noise against random walk) that Foers
 crawls along. Each iteration re-weights, takes one Gauss-Newton step of the batch problem to the
 optimum of the new weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
 
-Components of one sensor that the data cannot tell apart -- white noise against random walk over
-a short run, where their estimates' correlation exceeds :data:`MERGE_CORRELATION` -- share one
-factor and are reported merged; a group whose residuals carry less than :data:`MIN_REDUNDANCY`
-degrees of freedom, or whose factor the data fix no better than :data:`MAX_LOG_SD`, keeps the
-rig's value and is reported as not estimable.
+Groups the data cannot tell apart -- white noise against random walk over a short run, an
+accelerometer's noise against sparse fixes' -- where their estimates' correlation exceeds
+:data:`MERGE_CORRELATION`, share one factor and are reported merged (two of one sensor first); a
+group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom, or whose factor the
+data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reported as not estimable.
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -261,9 +261,14 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         little from one evaluation to the next) and the statistics there, with the covariances of
         the system the step solved."""
         blocks = model.blocks(psi, states)
-        states, calibration, graph, layout = gauss_newton_step(blocks, states, calibration)
+        moved, moved_calibration, graph, layout, delta = gauss_newton_step(blocks, states, calibration)
         cov, joint = marginal_covariances(graph, len(states), None, True, layout)
-        return states, calibration, model.statistics(blocks, states, calibration, cov, joint, psi)
+        # the residuals of the linear system at its solution: every statistic from that one system
+        n = len(states)
+        bounds = np.cumsum([n * imu.STATE_DIM, *layout.extra])
+        step = (delta[:n * imu.STATE_DIM].reshape(n, imu.STATE_DIM),
+                np.split(delta[bounds[0]:], bounds[1:-1] - bounds[0]))
+        return moved, moved_calibration, model.statistics(blocks, states, calibration, cov, joint, psi, step=step)
 
     information = None  # the parameters' information once near the optimum (observed), else None
     last = None  # (psi, score, step) of the last Newton step
@@ -303,27 +308,31 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         else:
             step = _far_step(F, q, r)
         settled = near and np.all(np.abs(newton) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
-        psi = _with_step(psi, ties, step)
-        # a parameter with too little redundancy keeps the rig's value once it falls (heading for a
-        # zero variance, it would move on for ever; one that rises may be a density the rig states
-        # far too small) or the rest settle, and so does one the data fix no better than MAX_LOG_SD;
-        # once the rest settle, two parameters the data do not tell apart share one factor, and
+        # near the estimate, with the exact information: two parameters the data do not tell apart
+        # share one factor from here on (before anything else: such a pair leaves every parameter
+        # tied to it with a standard deviation that says nothing). A parameter with too little
+        # redundancy keeps the rig's value once it falls (heading for a zero variance, it would move
+        # on for ever; one that rises may be a density the rig states far too small) or the rest
+        # settle, and so, once they settle, does one the data fix no better than MAX_LOG_SD; then
         # what the data do not tell from the rig's value stays the rig's
+        merged = _merge_candidate(F, ties, groups) if near else None
+        if merged is None:
+            psi = _with_step(psi, ties, step)
         kept = []
-        weak = [j for j in range(len(ties))
-                if (share[j] < MIN_REDUNDANCY and (settled or (step[j] <= 0.0 and iterations > 1)))
-                or (near and sd[j] > MAX_LOG_SD)]
-        merged = _merge_candidate(F, ties, groups) if settled and not weak else None
-        if weak:
+        weak = [] if merged is not None else [
+            j for j in range(len(ties))
+            if (share[j] < MIN_REDUNDANCY and (settled or (step[j] <= 0.0 and iterations > 1)))
+            or (settled and sd[j] > MAX_LOG_SD)]
+        if merged is not None:
+            a, b = merged
+            ties[a] = ties[a] + ties.pop(b)
+            psi[ties[a]] = np.mean(psi[ties[a]])
+        elif weak:
             for j in sorted(weak, reverse=True):
                 for g in ties[j]:
                     psi[g] = 0.0
                     notes[g] = _not_estimable(sd[j], share[j])
                 del ties[j]
-        elif merged is not None:
-            a, b = merged
-            ties[a] = ties[a] + ties.pop(b)
-            psi[ties[a]] = np.mean(psi[ties[a]])
         elif settled and (kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]):
             # what the data do not tell from the rig's value stays the rig's; the rest fitted again
             for j in sorted(kept, reverse=True):
@@ -472,20 +481,21 @@ def _parameter_information(information: np.ndarray, ties: list[list[int]]) -> np
 
 
 def _merge_candidate(F: np.ndarray, ties: list, groups: list[NoiseGroup]) -> tuple[int, int] | None:
-    """The two parameters of one sensor (the IMU's components, a sensor's axis groups) whose
-    estimates correlate most, if beyond :data:`MERGE_CORRELATION`."""
+    """The two parameters whose estimates correlate most beyond :data:`MERGE_CORRELATION`, two of
+    one sensor (the IMU's components, a sensor's axis groups) first; None if none do."""
     if len(ties) < 2:
         return None
     C = _pseudo_inverse(F)
     d = np.sqrt(np.maximum(np.diag(C), 1e-300))
     rho = np.abs(C / np.outer(d, d))
-    sensor = np.array([groups[tie[0]].sensor for tie in ties])
-    rho[sensor[:, None] != sensor[None, :]] = 0.0
     np.fill_diagonal(rho, 0.0)
-    a, b = np.unravel_index(np.argmax(rho), rho.shape)
-    if rho[a, b] <= MERGE_CORRELATION:
-        return None
-    return (int(min(a, b)), int(max(a, b)))
+    sensor = np.array([groups[tie[0]].sensor for tie in ties])
+    same = sensor[:, None] == sensor[None, :]
+    for candidates in (np.where(same, rho, 0.0), rho):
+        a, b = np.unravel_index(np.argmax(candidates), candidates.shape)
+        if candidates[a, b] > MERGE_CORRELATION:
+            return (int(min(a, b)), int(max(a, b)))
+    return None
 
 
 class _NoiseModel:
@@ -598,14 +608,16 @@ class _NoiseModel:
         return out
 
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
-                   redundancy_only: bool = False):
+                   redundancy_only: bool = False, step: tuple | None = None):
         """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
         ``states`` and the calibration variables' values ``calibration`` (marginal covariances
         ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R
         V_g)`` (scaled by the truncated mean where outliers are left out: the score is half their
         difference), the approximate information and the redundancy ``tr(P_R V_g)``, ``V_g`` the
         derivative at ``psi`` (the blocks' whitenings may be those of other weights);
-        ``redundancy_only``: that alone (the rest zeros).
+        ``redundancy_only``: that alone (the rest zeros). ``step``: ``(dx (n, 15), [dc_j])``, the
+        solution of the linear system the covariances are of: the residuals are that system's
+        at its solution, ``e + J (dx, dc)``, so that every statistic comes from one system.
         """
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
@@ -619,6 +631,11 @@ class _NoiseModel:
                 chunk = kf[rows]
                 slots = [states[chunk[:, s]] for s in range(chunk.shape[1])]
                 e, Js = block_residual(block, slots, True, rows, calibration)
+                if step is not None:
+                    dx, dc = step
+                    e = e + sum(np.einsum("mab,mb->ma", J, dx[chunk[:, s]]) for s, J in enumerate(Js[:chunk.shape[1]]))
+                    if block.calibration is not None:
+                        e = e + Js[-1] @ dc[block.calibration]
                 W = block.whiten[rows]
                 u = np.einsum("mab,mb->ma", W, e)
                 d = u.shape[1]

@@ -13,8 +13,9 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
 * the IMU's components contradict each other: two estimated factors more than
   :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
   not an IMU, it is a misfit shared out);
-* its whitened residuals are alike from one measurement to the next (lag-one correlation beyond
-  :data:`CORRELATED`): noise is white, a systematic error is not;
+* a sensor's whitened residuals are alike from one measurement to the next (lag-one correlation
+  beyond :data:`CORRELATED`): noise is white, a systematic error is not (the IMU's factors share
+  their keyframes, so theirs are correlated by construction and not judged so);
 * the fit grew its sigma until the estimate hardly uses it (a factor beyond
   :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
   its verdict no longer responds to its sigma, and the sensor is dropped, not weighed.
@@ -28,7 +29,7 @@ from dataclasses import dataclass, replace
 from smoother.batch.variance_components import IMU_BLOCK, NoiseFit
 
 #: A factor beyond this (or below its inverse) on a density or sigma is not a noise.
-IMPLAUSIBLE_FACTOR = 30.0
+IMPLAUSIBLE_FACTOR = 100.0
 #: Two of the IMU's estimated factors further apart than this ratio contradict each other.
 CONTRADICTION = 100.0
 #: Residuals correlated beyond this from one measurement to the next are not white noise.
@@ -62,7 +63,7 @@ def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]
         elif not 1.0 / IMPLAUSIBLE_FACTOR <= g.factor <= IMPLAUSIBLE_FACTOR:
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")
-        elif g.correlation > CORRELATED:
+        elif sensor != IMU_BLOCK and g.correlation > CORRELATED:
             errors[name] = (f"its residuals are alike from one measurement to the next (correlation "
                             f"{g.correlation:.2f}): a systematic error (a lever arm, a time offset, a scale), not noise")
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
