@@ -139,20 +139,19 @@ def _raw_metadata() -> dict:
 
 
 def ours(gps_every: int, tune_noise: bool = False) -> dict:
-    """Our batch smoother, load + build + solve; with ``tune_noise`` the IMU noise is first tuned
-    to the maximum likelihood of the used fixes (:mod:`smoother.diagnosis.noise_tuning`; its time included)."""
-    import dataclasses
+    """Our batch smoother, load + build + solve; with ``tune_noise`` the noise is first fitted to
+    the data by the batch smoother (:func:`smoother.pipeline.tune_noise`; its time included)."""
 
     from datasets import kitti
     from smoother.evaluation import scoring as report
     from smoother.batch.solve import solve_batch
     from smoother.model.problem import build_problem
-    from smoother.diagnosis.noise_tuning import tune_noise as tune
+    from smoother.pipeline import tune_noise as tune
 
     tick = time.perf_counter()
     dataset = kitti.load_kitti(gps_every=gps_every)
     if tune_noise:
-        dataset = dataclasses.replace(dataset, noise=tune(dataset, progress=False).noise)
+        dataset = tune(dataset)[1]
     problem = build_problem(dataset)
     result = solve_batch(problem, covariances=False)
     elapsed = time.perf_counter() - tick

@@ -31,7 +31,7 @@ _EXPORTS = {
     **dict.fromkeys(("save_trajectory", "load_trajectory", "load_stamped_trajectory"), "smoother.outputs.files"),
     **{name: f"smoother.evaluation.{name}" for name in ("metrics", "crosscheck")},
     "CrosscheckOptions": "smoother.evaluation.crosscheck",
-    "tune_noise": "smoother.diagnosis.noise_tuning",
+    "tune_noise": "smoother.pipeline",
     **dict.fromkeys(("sensor_consistency", "consistency_warnings"), "smoother.diagnosis.verdicts"),
     **dict.fromkeys(("causes_at", "Cause"), "smoother.diagnosis.misfit_causes"),
     "plot_run": "smoother.outputs.plots",

@@ -145,6 +145,18 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
             warm_up.close()
 
 
+def tune_noise(dataset: Dataset, which=None, options: RunOptions = RunOptions()):
+    """The noise of ``dataset`` fitted to its data by the batch smoother
+    (:mod:`smoother.batch.variance_components`; ``which``: the groups, by default the IMU and every
+    aiding sensor), kept honest (:func:`smoother.diagnosis.noise_honesty.honest`):
+    ``(fit, dataset with the fitted noise)``. What ``smoother run --estimate-noise`` runs first."""
+    from datasets.kinds import sensors_of
+
+    which = ("imu", *(s.name for s in sensors_of(dataset))) if which is None else tuple(which)
+    estimate = _batch(dataset, options, None, which, None)
+    return estimate.noise, estimate.noise.applied(dataset)
+
+
 def mounted_as_found(dataset: Dataset, mounting) -> Dataset:
     """``dataset`` with each sensor whose mounting the check found wrong and that asks for its
     rotation to be estimated turned to the data's rotation (its measurements' ``T_BS``, and so its

@@ -3,8 +3,9 @@
 (:mod:`~smoother.diagnosis.residual_consistency`) and from held-out measurements
 (:mod:`~smoother.diagnosis.heldout`), the calibrations a misfit points at
 (:mod:`~smoother.diagnosis.misfit_causes`), what a run says of the calibrations it estimated
-(:mod:`~smoother.diagnosis.calibration_report`), the noise fitted to the data
-(:mod:`~smoother.diagnosis.noise_tuning`), and each sensor's mounting checked in closed form against
+(:mod:`~smoother.diagnosis.calibration_report`), whether a noise fitted to the data hides a model
+error (:mod:`~smoother.diagnosis.noise_honesty`) and what the fit says (:mod:`~smoother.diagnosis.noise_report`),
+and each sensor's mounting checked in closed form against
 what the IMU observes before anything is estimated (:mod:`~smoother.diagnosis.mounting`, from
 :mod:`~smoother.diagnosis.mounting_data` over the IMU's integrals,
 :mod:`~smoother.diagnosis.imu_integrals`)."""

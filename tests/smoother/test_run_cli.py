@@ -335,18 +335,22 @@ def test_warnings_are_one_readable_line(monkeypatch, capsys, tmp_path):
     assert pywarnings.formatwarning is before
 
 
-def test_tune_noise_reports_and_records_the_tuning(tmp_path, capsys):
-    """--tune-noise: the tuning's factors go to stderr and its record into metrics.json."""
-    out = tmp_path / "tuned"
-    code = main(["run", "--dataset", "synthetic:gentle", "--duration", "4", "--estimator", "ekf", "--out", str(out),
+def test_estimate_noise_fits_prints_and_records_the_noise(tmp_path, capsys):
+    """--estimate-noise (--tune-noise its other name): the batch smoother fits every group, the
+    table is printed after the estimates, metrics.json has each group's record under the batch and
+    says the other estimators ran with it, and every estimator has its held-out verdicts."""
+    out = tmp_path / "fitted"
+    code = main(["run", "--dataset", "synthetic:gentle", "--duration", "6", "--estimator", "all", "--out", str(out),
                  "--tune-noise", "--no-progress"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
-    assert "noise tuned (" in captured.err
-    tuning = json.loads((out / "metrics.json").read_text())["_run"]["noise_tuning"]
-    assert set(tuning["scale"]) == {"acc", "gyro", "acc_bias", "gyro_bias"}
-    assert tuning["log_likelihood"] >= tuning["initial_log_likelihood"]
-    assert tuning["evaluations"] >= 9  # the start and both directions of each density at least
+    assert "noise fitted by the batch smoother" in captured.out
+    metrics = json.loads((out / "metrics.json").read_text())
+    noise = metrics["batch"]["noise"]
+    assert {"imu.acc", "imu.gyro", "imu.acc_bias", "imu.gyro_bias", "pose.position", "pose.attitude"} <= set(noise)
+    for record in (v for k, v in noise.items() if not k.startswith("_")):
+        assert {"factor", "factor_sd", "redundancy", "value", "merged_with", "estimable", "applied"} <= set(record)
+    assert metrics["ekf"]["noise_from"] == metrics["fixed-lag"]["noise_from"] == "batch"
 
 
 def test_kitti_refuses_a_path(capsys):
