@@ -452,7 +452,7 @@ def _calibration(t: "_Table", kind: str, time_offset: float) -> CalibrationPrior
     if parts is not None and all(isinstance(part, str) for part in parts):
         if len(set(parts)) != len(parts):
             raise t.error("estimate", f"expected distinct parts of {', '.join((*PARTS, NOISE))}, got {parts!r}")
-        parts = [part for part in parts if part != NOISE] or None
+        parts = None if parts == [NOISE] else [part for part in parts if part != NOISE]
     sigmas = {key: t.number(key, default=None, positive=True) for key in CALIBRATION_KEYS[1:]}
     if parts is None:
         given = [key for key, value in sigmas.items() if value is not None]

@@ -93,10 +93,10 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
     ``heldout_state_share``; :mod:`smoother.diagnosis.heldout`); a sensor judged on held-out
-    measurements alone has those only."""
+    measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
-        out.setdefault(name, {}).update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"],
+        out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"}).update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"],
                                          "heldout_ok": h["ok"], "heldout_measurements": h["measurements"],
                                          "heldout_state_share": h["state_share"]})
     return out

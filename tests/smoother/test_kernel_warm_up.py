@@ -3,6 +3,8 @@ a child starts, and that the run waits for it and stops it (that its cache is th
 loads: tests/smoother/test_kernel_layouts.py, which pays for a first run already)."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from smoother import pipeline
@@ -41,12 +43,17 @@ def test_a_child_starts_only_when_the_window_runs_after_others_with_its_kernels_
 
 
 def test_the_run_waits_for_the_child_before_the_fixed_lag_smoother_and_stops_it_at_the_end(monkeypatch):
+    from smoother.diagnosis import mounting
+
     child, seen = _Child(), []
     monkeypatch.setattr(pipeline.kernel_warm_up, "start", lambda order, kind: child)
+    monkeypatch.setattr(mounting, "check_mountings", lambda dataset: mounting.MountingCheck(()))
     for name in ("ekf", "batch", "fixed-lag"):
         monkeypatch.setattr(pipeline, f"_{name.replace('-', '_')}",
-                            lambda *a, name=name, **k: seen.append((name, list(child.calls))) or name)
-    out = dict(pipeline.estimate_each(object(), ["ekf", "batch", "fixed-lag"]))
+                            lambda *a, name=name, **k: seen.append((name, list(child.calls)))
+                            or pipeline.Estimate(name, None, 0.0, {}))
+    dataset = SimpleNamespace(noise_to_estimate=())
+    out = dict(pipeline.estimate_each(dataset, ["ekf", "batch", "fixed-lag"]))
     assert list(out) == ["ekf", "batch", "fixed-lag"]
     assert seen == [("ekf", []), ("batch", []), ("fixed-lag", ["wait"])]
     assert child.calls == ["wait", "close"]
