@@ -676,7 +676,37 @@ def bench_calibration(s: Settings) -> dict:
     ratios = [c / p for p, c in zip(times["plain"], times["calibrating"])]
     out = {"batch_calibration_ratio": _median(ratios), "batch_uncalibrated_s": _median(times["plain"]),
            "batch_calibrated_s": _median(times["calibrating"])}
-    return {**out, **_online_calibration(plain, s.repeats)}
+    return {**out, **_noise_estimation(s.repeats), **_online_calibration(plain, s.repeats)}
+
+
+def _noise_estimation(repeats: int) -> dict:
+    """The batch smoother on the calibrating rig of :func:`_calibration_rigs` (60 s and 120 s) with
+    and without its noise estimated (every group: the IMU's four densities, each sensor's axis
+    groups; :func:`smoother.batch.variance_components.estimate_noise` after the solve),
+    interleaved: the median ratio ``batch_noise_ratio`` and, per second of data, the fit's time at
+    both lengths (``batch_noise_s_per_data_s_60``, ``_120``: linear in the run's length when they
+    agree)."""
+    from smoother.batch.variance_components import estimate_noise
+
+    out = {}
+    for seconds in (60.0, 120.0):
+        _, data = _calibration_rigs(seconds)
+        which = ("imu", *data.sensor_names)
+
+        def with_noise(d=data):
+            problem = build_problem(d)
+            estimate_noise(d, problem, solve_batch(problem), which)
+
+        run = {"plain": lambda d=data: solve_batch(build_problem(d)), "noise": with_noise}
+        for fn in run.values():
+            fn()
+        times = _interleaved(run, repeats)
+        if seconds == 60.0:
+            out["batch_noise_ratio"] = _median([n / p for p, n in zip(times["plain"], times["noise"])])
+            out["batch_noise_s"], out["batch_plain_s"] = _median(times["noise"]), _median(times["plain"])
+        fit = [n - p for p, n in zip(times["plain"], times["noise"])]
+        out[f"batch_noise_s_per_data_s_{int(seconds)}"] = _median(fit) / seconds
+    return out
 
 
 def _online_calibration(plain, repeats: int) -> dict:
@@ -786,6 +816,10 @@ def _table_rows(r: dict) -> list:
         row("kitti_native_rmse_m", "m"),
         row("kitti_whole_process_ratio", "x", "<= 1 (ours / native, whole process)", lambda v: v <= 1.0),
         row("batch_calibration_ratio", "x", "<= 1.5 (calibrating / not, 60 s, 3 sensors)", lambda v: v <= 1.5),
+        row("batch_noise_ratio", "x", "<= 3 (the batch with its noise estimated / without, the calibrating 60-s rig)",
+            lambda v: v <= 3.0),
+        row("batch_noise_s_per_data_s_60", "s/s", "the fit's time per second of data, 60 s"),
+        row("batch_noise_s_per_data_s_120", "s/s", "the same at 120 s (linear: equal)"),
         row("batch_uncalibrated_s", "s"),
         row("batch_calibrated_s", "s"),
         row("online_loop_calibration_ratio", "x", "<= 1.2 (whole loop per keyframe, one calibrated sensor / none)",
