@@ -1,0 +1,64 @@
+"""Held-out verdicts (smoother/diagnosis/heldout.py): measurements the fit did not use, predicted
+by an estimate through its covariance and the sensor's."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from smoother.batch.solve import solve_batch
+from smoother.diagnosis.heldout import heldout_consistency
+from smoother.ekf.filter import run_ekf
+from smoother.model.problem import build_problem
+from smoother.stats import per_dof_band
+
+
+def _held_out(seed: int, every: int = 3, sigma_scale: float = 1.0):
+    """20 s of the figure-eight with 5-Hz positions, every ``every``-th used, the rest held out;
+    the sigma the data state ``sigma_scale`` times the truth's."""
+    data = simulate("gentle", duration=20.0, seed=seed, imu_rate=100.0, pose_rate=None, position_rate=5.0,
+                    position_sigma=0.2)
+    s = data.sensor("position")
+    used = np.arange(len(s.data.t)) % every == 0
+    stated = s.data.cov * sigma_scale**2
+    take = lambda m: replace(s.data, t=s.data.t[m], position=s.data.position[m], cov=stated[m])  # noqa: E731
+    return replace(data, sensors=(replace(s, data=take(used), heldout=take(~used)),))
+
+
+@pytest.fixture(scope="module")
+def seeds():
+    out = []
+    for seed in range(20):
+        data = _held_out(seed)
+        batch = solve_batch(build_problem(data)).trajectory
+        out.append((heldout_consistency(data, batch)["position"], heldout_consistency(data, run_ekf(data).trajectory)
+                    ["position"]))
+    return out
+
+
+@pytest.mark.parametrize("estimator", [0, 1], ids=["batch", "ekf"])
+def test_the_held_out_errors_per_dof_lie_in_their_band_over_20_seeds(seeds, estimator):
+    records = [pair[estimator] for pair in seeds]
+    dof = sum(r["dof"] for r in records)
+    mean = sum(r["per_dof"] * r["dof"] for r in records) / dof
+    lo, hi = per_dof_band(dof, 0.99)
+    assert lo <= mean <= hi, (mean, lo, hi)
+    assert all(r["statistic"] == "heldout" and r["measurements"] > 0 for r in records)
+
+
+def test_a_sigma_stated_too_large_puts_the_held_out_errors_below_their_band_with_the_sensor_s_share():
+    data = _held_out(0, sigma_scale=3.0)
+    record = heldout_consistency(data, solve_batch(build_problem(data)).trajectory)["position"]
+    assert record["per_dof"] < record["band"][0]
+    assert record["state_share"] < 0.5  # the sensor's own covariance dominates: its sigma is the cause
+
+
+def test_without_covariances_or_held_out_measurements_there_is_no_verdict():
+    data = _held_out(0)
+    trajectory = solve_batch(build_problem(data), covariances=False).trajectory
+    assert heldout_consistency(data, trajectory) == {}
+    s = data.sensor("position")
+    nothing_held = replace(data, sensors=(replace(s, heldout=None),))
+    assert heldout_consistency(nothing_held, solve_batch(build_problem(nothing_held)).trajectory) == {}

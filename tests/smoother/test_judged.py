@@ -1,0 +1,49 @@
+"""The doubt mark (smoother.pipeline.judged): verdicts far above and far below their band, a
+held-out verdict standing for the residuals' where it exists, and a run's own doubts."""
+from __future__ import annotations
+
+from smoother.diagnosis.verdicts import verdict
+from smoother.pipeline import Estimate, judged
+
+
+def _estimate(name="batch"):
+    return Estimate(name, None, 0.0, {})
+
+
+def _verdict(per_dof, dof=300.0, statistic="residual", **extra):
+    return {**verdict(per_dof * dof, dof, int(dof / 3), statistic), **extra}
+
+
+def test_a_verdict_in_band_leaves_the_estimate_trusted():
+    est = _estimate()
+    judged({"batch": est}, {"batch": {"gps": _verdict(1.02)}})
+    assert "doubtful" not in est.details
+
+
+def test_a_verdict_far_below_its_band_says_the_sigma_is_overstated():
+    est = _estimate()
+    judged({"batch": est}, {"batch": {"gps": _verdict(0.2)}})
+    assert "far below their band: its sigma is overstated" in est.details["doubtful"]
+
+
+def test_held_out_predictions_far_below_with_the_state_dominating_blame_a_state_not_the_sigma():
+    est = _estimate()
+    held = {"batch": {"gps": _verdict(0.2, statistic="heldout", state_share=0.9)}}
+    judged({"batch": est}, {"batch": {"gps": _verdict(1.0)}}, held)
+    assert "a state the data do not fix" in est.details["doubtful"]
+    assert "sigma is overstated" not in est.details["doubtful"]
+    assert est.details["sensors"]["gps"]["heldout_per_dof"] == held["batch"]["gps"]["per_dof"]
+
+
+def test_a_held_out_verdict_stands_for_the_residuals_where_it_exists():
+    """Residuals in band by a fitted noise, held-out predictions far above it: doubtful."""
+    est = _estimate()
+    judged({"batch": est}, {"batch": {"gps": _verdict(1.0)}},
+           {"batch": {"gps": _verdict(6.0, statistic="heldout", state_share=0.2)}})
+    assert "gps held out" in est.details["doubtful"]
+
+
+def test_a_run_s_own_doubts_mark_every_estimate():
+    estimates = {"batch": _estimate(), "ekf": _estimate("ekf")}
+    judged(estimates, {}, {}, ["the mounting of wheels is not the rig's (...)"])
+    assert all("the mounting of wheels" in e.details["doubtful"] for e in estimates.values())
