@@ -62,6 +62,7 @@ mean, so that the estimate stays consistent for inliers.
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import dataclass, replace
 
@@ -73,8 +74,8 @@ from factors import imu, preintegration
 from factors.errors import InputError
 from smoother.batch.optimiser import gauss_newton_step
 from smoother.batch.solve import SmootherResult, solve_batch
-from smoother.model.covariances import covariances_at, marginal_covariances
-from smoother.model.blocks import Block, block_residual, whitening
+from smoother.model.blocks import CHUNK, Block, block_residual, whitening
+from smoother.model.covariances import covariances_at, hat_blocks, marginal_covariances
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
 from smoother.stats import chi2_quantile, lag_one_correlation
@@ -118,8 +119,6 @@ FIRST_DAMPING = 1.0
 RECOMPUTE_SD = 1.0
 #: The step of the log-factors by which the information's columns are differenced.
 DIFFERENCE_STEP = 0.02
-#: Factors evaluated at once.
-CHUNK = 1024
 
 
 @dataclass(frozen=True)
@@ -246,8 +245,6 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
     (with covariances) and the problem with it. Every other group keeps the rig's noise."""
-    import time
-
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
@@ -643,7 +640,7 @@ class _NoiseModel:
                 u = np.einsum("mab,mb->ma", W, e)
                 d = u.shape[1]
                 A = [W @ J for J in Js]
-                H = _hat(A, chunk, n + block.calibration if block.calibration is not None else None, cov, joint)
+                H = hat_blocks(A, chunk, n + block.calibration if block.calibration is not None else None, cov, joint)
                 Q = np.eye(d)[None] - H
                 keep = np.ones(len(u), dtype=bool)
                 correction = 1.0
@@ -670,30 +667,6 @@ class _NoiseModel:
                         if j != i:
                             information[j, i] += value
         return quadratic, expected, information, redundancy
-
-
-def _hat(A: list, keyframes: np.ndarray, calibration_key: int | None, cov: np.ndarray, joint: dict) -> np.ndarray:
-    """Each factor's hat block ``A P A^T`` (whitened Jacobians ``A``: its keyframe slots', then its
-    calibration variable's), ``P`` the joint covariance of the variables it reads."""
-    keys = [keyframes[:, s] for s in range(keyframes.shape[1])]
-    if calibration_key is not None:
-        keys.append(np.full(len(keyframes), calibration_key))
-    H = 0.0
-    for a, (Aa, ka) in enumerate(zip(A, keys)):
-        for b, (Ab, kb) in enumerate(zip(A, keys)):
-            if b < a:
-                continue
-            if a == b and calibration_key is None or (a == b and a < keyframes.shape[1]):
-                P = cov[ka]
-            else:
-                P = np.stack([_joint_block(joint, int(x), int(y)) for x, y in zip(ka, kb)])
-            term = Aa @ P @ np.swapaxes(Ab, -1, -2)
-            H = H + (term if a == b else term + np.swapaxes(term, -1, -2))
-    return H
-
-
-def _joint_block(joint: dict, a: int, b: int) -> np.ndarray:
-    return joint[(a, b)] if (a, b) in joint else joint[(b, a)].T
 
 
 def _truncated_mean(d: int, c: float) -> float:

@@ -28,7 +28,7 @@ import numpy as np
 
 from smoother.diagnosis.verdicts import verdict
 from smoother.model.blocks import Block, evaluated_chunks
-from smoother.model.covariances import joint_block
+from smoother.model.covariances import hat_blocks
 
 #: Blocks with no verdict of their own (the prior on the first keyframe is not a sensor).
 NOT_JUDGED = ("prior",)
@@ -51,31 +51,14 @@ def block_consistency(block: Block, states, cov: np.ndarray, joint: dict | None 
         chunk, e_w, A = kf[rows], ev.e, ev.A
         if not np.isfinite(e_w).all():
             return None
-        lev = np.einsum("mij,mjk,mik->m", A[0], cov[chunk[:, 0]], A[0])
-        if chunk.shape[1] == 2:
-            cross = np.stack([joint_block(joint, a, b) for a, b in chunk])
-            lev += 2.0 * np.einsum("mij,mjk,mik->m", A[0], cross, A[1])
-            lev += np.einsum("mij,mjk,mik->m", A[1], cov[chunk[:, 1]], A[1])
-        if block.calibration is not None:
-            lev += _calibration_leverage(A, chunk, len(states) + block.calibration, joint)
+        key = None if block.calibration is None else len(states) + block.calibration
+        lev = np.trace(hat_blocks(A, chunk, key, cov, joint), axis1=1, axis2=2)
         d = e_w.shape[1]
         total += float(np.sum(e_w * e_w))
         dof += float(np.sum(np.clip(d - lev, 0.0, d)))
     if not dof > 0.0:
         return None
     return verdict(total, dof, len(kf), "residual")
-
-
-def _calibration_leverage(A: list, keyframes: np.ndarray, key: int, joint: dict) -> np.ndarray:
-    """The calibration variable ``key``'s terms of each factor's leverage: ``A_c P_cc A_c^T``
-    and twice ``A_s P_sc A_c^T`` for each keyframe slot ``s`` (``A`` the slots' whitened
-    Jacobians, then the calibration's)."""
-    A_c = A[-1]
-    lev = np.einsum("mij,jk,mik->m", A_c, joint[(key, key)], A_c)
-    for s in range(keyframes.shape[1]):
-        cross = np.stack([joint_block(joint, k, key) for k in keyframes[:, s]])
-        lev += 2.0 * np.einsum("mij,mjk,mik->m", A[s], cross, A_c)
-    return lev
 
 
 def smoother_consistency(blocks: list[Block], states, cov: np.ndarray | None, joint: dict | None = None,

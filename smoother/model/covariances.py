@@ -184,3 +184,27 @@ def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dic
     for k, G_S in zip(frames, GS):
         for key in calibrations:
             sigma[(k, key)] = G_S[:, columns[key]]
+
+
+def hat_blocks(A: list, keyframes: np.ndarray, calibration_key: int | None, cov: np.ndarray, joint: dict) -> np.ndarray:
+    """Each factor's hat block ``A P A^T`` (``(M, d, d)``): ``A`` its whitened Jacobians (one
+    ``(M, d, k)`` per keyframe slot of ``keyframes (M, slots)``, then its calibration variable's,
+    key ``calibration_key``, if any), ``P`` the joint covariance of the variables it reads (the
+    keyframes' marginals ``cov``, the other blocks from ``joint``: :func:`joint_block`). Its trace
+    is the factor's leverage; ``I - A P A^T`` the covariance of its whitened residual at an
+    estimate that used it."""
+    keys = [keyframes[:, s] for s in range(keyframes.shape[1])]
+    if calibration_key is not None:
+        keys.append(np.full(len(keyframes), calibration_key))
+    H = 0.0
+    for a, (Aa, ka) in enumerate(zip(A, keys)):
+        for b, (Ab, kb) in enumerate(zip(A, keys)):
+            if b < a:
+                continue
+            if a == b and calibration_key is None or (a == b and a < keyframes.shape[1]):
+                P = cov[ka]
+            else:
+                P = np.stack([joint_block(joint, int(x), int(y)) for x, y in zip(ka, kb)])
+            term = Aa @ P @ np.swapaxes(Ab, -1, -2)
+            H = H + (term if a == b else term + np.swapaxes(term, -1, -2))
+    return H
