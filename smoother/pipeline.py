@@ -225,10 +225,13 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
     part of its own data, whatever the optimiser reported), ``doubtful`` with why. A sensor whose
     calibration an estimator estimated but could not judge itself (the fixed-lag smoother keeps no
     covariances of its states with the calibrations) counts by the verdict of another estimator
-    of the same model on the same data (:func:`smoother.diagnosis.calibration_report.verdicts_for`)."""
-    from smoother.diagnosis.calibration_report import verdicts_for
+    of the same model on the same data (:func:`smoother.diagnosis.calibration_report.verdicts_for`).
+    An estimator whose calibration disagrees with the others' beyond their sigmas is doubtful too
+    (:func:`smoother.diagnosis.calibration_report.disagreements`)."""
+    from smoother.diagnosis.calibration_report import disagreements, verdicts_for
     from smoother.diagnosis.verdicts import far_above, overall
 
+    disagreeing = disagreements({name: est.details for name, est in estimates.items()})
     for name, est in estimates.items():
         ours = consistency.get(name, {})
         est.details["sensors"] = ours
@@ -253,3 +256,5 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
         if why:
             est.details["doubtful"] = "; ".join(why) + (": the model does not fit the data, so the estimate may be "
                                                         "wrong and its covariances too small")
+        if name in disagreeing:  # its calibration against the other estimators' (calibration_report.disagreements)
+            est.details["doubtful"] = "; ".join(filter(None, (est.details.get("doubtful"), disagreeing[name])))
