@@ -226,10 +226,12 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
     calibration an estimator estimated but could not judge itself (the fixed-lag smoother keeps no
     covariances of its states with the calibrations) counts by the verdict of another estimator
     of the same model on the same data (:func:`smoother.diagnosis.calibration_report.verdicts_for`).
-    An estimator whose calibration disagrees with the others' beyond their sigmas is doubtful too
-    (:func:`smoother.diagnosis.calibration_report.disagreements`)."""
+    An EKF whose gate rejected most of a sensor's measurements
+    (:func:`smoother.diagnosis.verdicts.rejections`) and an estimator whose calibration disagrees
+    with the others' beyond their sigmas (:func:`smoother.diagnosis.calibration_report.disagreements`)
+    are doubtful too."""
     from smoother.diagnosis.calibration_report import disagreements, verdicts_for
-    from smoother.diagnosis.verdicts import far_above, overall
+    from smoother.diagnosis.verdicts import far_above, judgeable, overall, rejections
 
     disagreeing = disagreements({name: est.details for name, est in estimates.items()})
     for name, est in estimates.items():
@@ -241,7 +243,7 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
             est.details["fit"] = fit
             off = [k for k, c in ours.items() if far_above(c)]
             if far_above(fit) or off:
-                worst = max(ours, key=lambda k: ours[k]["per_dof"])
+                worst = max(ours, key=lambda k: ours[k]["per_dof"] if judgeable(ours[k]) else -np.inf)
                 why.append(f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} are "
                            f"{fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-{fit['band'][1]:.2g}), those "
                            f"of {', '.join(off) or worst} far above their band (worst: {worst}, "
@@ -256,5 +258,7 @@ def judged(estimates: dict[str, Estimate], consistency: dict) -> None:
         if why:
             est.details["doubtful"] = "; ".join(why) + (": the model does not fit the data, so the estimate may be "
                                                         "wrong and its covariances too small")
-        if name in disagreeing:  # its calibration against the other estimators' (calibration_report.disagreements)
-            est.details["doubtful"] = "; ".join(filter(None, (est.details.get("doubtful"), disagreeing[name])))
+        # a gate that rejected most of a sensor's measurements; a calibration against the other estimators'
+        also = [text for text in (rejections(ours), disagreeing.get(name)) if text]
+        if also:
+            est.details["doubtful"] = "; ".join(filter(None, (est.details.get("doubtful"), *also)))

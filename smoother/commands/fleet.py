@@ -86,9 +86,9 @@ COLUMNS = (("ate_rmse_m", "ATE [m]"), ("gps_heldout_rmse_m", "held-out [m]"), ("
 
 def format_table(results: list[dict]) -> str:
     """One line per recording and estimator: the figures of :data:`COLUMNS` that any has, the fit
-    of all its sensors together (per dof, ``ok`` inside its band, ``OUT`` outside) and each
-    sensor's; ``(?)`` after a doubtful estimator; a recording or estimator that failed says why
-    on its line."""
+    of all its sensors together (per dof, ``ok`` inside its band, ``OUT`` outside, ``few-dof`` on
+    too few degrees of freedom to judge) and each sensor's; ``(?)`` after a doubtful estimator; a
+    recording or estimator that failed says why on its line."""
     present = [(k, h) for k, h in COLUMNS if any(k in e for r in results for e in r["estimators"].values())]
     width = max([len("recording")] + [len(r["recording"]) for r in results]) + 2
     lines = [f"{'recording':<{width}}{'estimator':<16}" + "".join(f"{h:>14}" for _, h in present)
@@ -111,6 +111,11 @@ def format_table(results: list[dict]) -> str:
             lines.append(f"{r['recording']:<{width}}failed: {r['failure']}")
     if any(e.get("doubtful") for r in results for e in r["estimators"].values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the recording's run.log says how far)")
+    from smoother.diagnosis.verdicts import MIN_DOF, TOO_FEW_DOF, judgeable
+
+    if any(not judgeable(v) for r in results for e in r["estimators"].values()
+           for v in [*e.get("sensors", {}).values(), *([e["fit"]] if "fit" in e else [])]):
+        lines.append(f"{_FEW}: {TOO_FEW_DOF} (fewer than {MIN_DOF:g}); no band, not counted as a misfit")
     return "\n".join(lines)
 
 
@@ -118,5 +123,15 @@ def _number(value) -> str:
     return f"{value:.4f}" if isinstance(value, (int, float)) and math.isfinite(value) else "-"
 
 
+#: The table's mark of a verdict not formed (:func:`smoother.diagnosis.verdicts.judgeable`).
+_FEW = "few-dof"
+
+
 def _verdict(v: dict) -> str:
+    from smoother.diagnosis.verdicts import judgeable
+
+    if v["per_dof"] is None:  # no update used (an EKF's gate rejected them all)
+        return "none"
+    if not judgeable(v):
+        return f"{v['per_dof']:.3g} {_FEW}"
     return f"{v['per_dof']:.3g} {'ok' if v['ok'] else 'OUT'}"

@@ -71,8 +71,13 @@ significant candidates (every other sensor's calibration held at 0, :func:`_gain
 fit: the part of what is left without it that it explains. A pitch that explains most of a
 wheel's residuals leaves its scale a share of the rest, and two candidates that cancel each other
 (a time offset and a lever arm along the direction of travel, at the usual speed) have little
-gain each. A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its
-share is at least :data:`MATERIAL_SHARE`.
+gain each. A cause is ``suggested`` when some component is significant -- ``|dc| > SIGNIFICANCE
+sigma`` and at least :data:`SMALLEST`, the finest prior a rig can write for that part (a
+correction below it is no advice a rig can take: on model-exact data a lever arm of 1e-17 m is
+"significant" against a sigma of 1e-18) -- and its share is at least :data:`MATERIAL_SHARE`, and
+the sensor's residuals leave at least :data:`smoother.diagnosis.verdicts.MIN_DOF` degrees of
+freedom once the candidates are fitted (on fewer, their variance, and so the sigmas, are a few
+squares' noise: ``judged`` False).
 """
 from __future__ import annotations
 
@@ -82,12 +87,14 @@ import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, measure_rows, sensors_of
+from datasets.ranges import RANGES
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
+from smoother.diagnosis.verdicts import MIN_DOF, out_of_band
 from smoother.estimators import ESTIMATORS
-from smoother.model.problem import build_problem
 from smoother.model.blocks import Block, evaluate_block, linearize, whitening
+from smoother.model.problem import build_problem
 
 #: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
 #: each correction (scale - 1, s, rad, m).
@@ -96,6 +103,9 @@ PRIOR_SIGMA = {"scale": 1.0, "time_offset": 1.0, "rotation": 1.0, "lever_arm": 1
 SCALED_KINDS = ("velocity",)
 #: A component is significant beyond this many sigmas.
 SIGNIFICANCE = 5.0
+#: The smallest correction of each candidate that is advice: the finest prior sigma a rig can
+#: write for the part (``datasets.ranges``: ``sensor.<part>_sigma``'s lower bound).
+SMALLEST = {part: RANGES[f"sensor.{part}_sigma"].low for part in PRIOR_SIGMA}
 #: A suggested cause explains at least this fraction of the sensor's residual sum of squares.
 MATERIAL_SHARE = 0.1
 #: Half the window [s] over which the IMU's readings are averaged for the time-offset pattern.
@@ -110,22 +120,24 @@ _STEP = 1e-6
 class Cause:
     """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
     correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
-    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
+    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame), ``share`` and ``judged``
+    (whether the sensor's residuals left enough degrees of freedom to judge it; module
     docstring)."""
 
     calibration: str
     value: np.ndarray
     sigma: np.ndarray
     share: float
+    judged: bool = True
 
     @property
     def significant(self) -> np.ndarray:
-        """Per component: ``|value| > SIGNIFICANCE sigma``."""
-        return np.abs(self.value) > SIGNIFICANCE * self.sigma
+        """Per component: :func:`significant`."""
+        return significant(self.calibration, self.value, self.sigma)
 
     @property
     def suggested(self) -> bool:
-        return bool(self.significant.any()) and self.share >= MATERIAL_SHARE
+        return self.judged and bool(self.significant.any()) and self.share >= MATERIAL_SHARE
 
     def text(self) -> str:
         """The fit in the rig's units, e.g. ``scale 0.9900 +- 0.0004``, ``time offset -0.100 s +-
@@ -140,6 +152,13 @@ class Cause:
             return "rotation " + ", ".join(
                 f"about {'xyz'[a]} {_pm(np.degrees(self.value[a]), np.degrees(self.sigma[a]), ' deg')}" for a in axes)
         return "lever arm " + ", ".join(f"{'xyz'[a]} {_pm(self.value[a], self.sigma[a], ' m')}" for a in axes)
+
+
+def significant(calibration: str, value: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Per component of a ``calibration`` candidate's correction ``value``: beyond
+    :data:`SIGNIFICANCE` times its ``sigma`` and at least :data:`SMALLEST`."""
+    size = np.abs(value)
+    return (size > SIGNIFICANCE * sigma) & (size >= SMALLEST[calibration])
 
 
 def _pm(value: float, sigma: float, unit: str, signed: bool = True) -> str:
@@ -299,7 +318,7 @@ def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | No
     of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
     The sensor suggested need not be the one out of its band: a wheel's pitch that the states
     absorb shows in the fixes'."""
-    if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
+    if not any(out_of_band(c) for verdicts in consistency.values() for c in verdicts.values()):
         return {}
     ran = [name for name in ESTIMATORS if name in estimates and estimates[name].failed is None]
     if not ran:
@@ -372,7 +391,8 @@ def _causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray
     sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))
     bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
     parts = [slice(bounds[j], bounds[j + 1]) for j in range(len(X))]
-    significant = [bool(np.any(np.abs(value[S]) > SIGNIFICANCE * sigma[S])) for S in parts]
-    gains = _gains(information, gradient, X, significant)
-    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0)
+    chosen = [bool(significant(name, value[S], sigma[S]).any()) for name, S in zip(X, parts)]
+    gains = _gains(information, gradient, X, chosen)
+    judged = (dof if dof is not None else n * d) - k >= MIN_DOF
+    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0, judged)
             for name, S, gain in zip(X, parts, gains)]
