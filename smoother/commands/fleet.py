@@ -38,12 +38,12 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import at_least, output_directory
+    from smoother.commands import check_option, output_directory
     from smoother.commands import fleet_runner as fleet
     from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
-    at_least("--workers", args.workers, 1)
+    check_option("--workers", args.workers)
     check_lag(args.lag, "--lag", UserError)
     options = ["--estimator", args.estimator, "--lag", repr(args.lag)] + ["--mcap"] * args.mcap + ["--plot"] * args.plot
     share = None if args.dask else max(1, thread_count() // args.workers)

@@ -29,18 +29,15 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother.commands import at_least, duration, fraction, output_directory
+    from smoother.commands import check_option, output_directory
     from smoother.commands.run import parse_robust
     from smoother.evaluation import montecarlo
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    at_least("--runs", args.runs, 2)
-    at_least("--first-seed", args.first_seed, 0)
-    at_least("--workers", args.workers, 1)
-    duration(args.duration)
-    fraction("--outliers", args.outliers)
+    for option in ("--runs", "--first-seed", "--workers", "--duration", "--outliers"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
     estimators = tuple(args.estimator or ("batch", "ekf"))
     config = montecarlo.MonteCarloConfig(
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,

@@ -75,7 +75,7 @@ def register(sub) -> None:
 def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
     """``["huber"]`` -> the same kernel for every sensor named in ``types``; ``["pose=cauchy:2"]``
     -> per sensor; over ``defaults`` (a rig file's per-sensor kernels)."""
-    from datasets.robust import robust_spec
+    from datasets.robust import check_robust, robust_spec
 
     out: dict = dict(defaults or {})
     for spec in specs:
@@ -88,47 +88,59 @@ def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
             parsed = robust_spec(kernel)
         except ValueError as error:
             raise UserError(f"--robust {spec}: {error}") from None
+        check_robust(f"--robust {spec}", parsed)  # a threshold's range is the rig key robust's
         for t in (types if target is None else (target,)):
             out[t] = parsed
     return {k: v for k, v in out.items() if v is not None}
 
 
 def gate_probability(probability: float | None) -> float | None:
-    """Validate ``--ekf-gate``."""
-    if probability is not None and not 0.0 < probability < 1.0:
-        raise UserError(f"--ekf-gate: expected a probability in (0, 1), got {probability}")
+    """``--ekf-gate`` checked against its range (:data:`smoother.commands.OPTION_RANGES`)."""
+    from smoother.commands import check_option
+
+    if probability is not None:
+        check_option("--ekf-gate", probability)
     return probability
+
+
+def check_keyframe_rate(rate: float | None, dataset) -> None:
+    """``--keyframe-rate`` at most the rate of the dataset's IMU (its median sample interval's
+    inverse): a keyframe between two IMU samples has no IMU step of its own, and a grid finer than
+    the samples multiplies the states (1 kHz on a 200 Hz IMU: five times the keyframes, for nothing)."""
+    import numpy as np
+
+    if rate is None or len(dataset.imu.t) < 2:
+        return
+    imu_rate = 1.0 / float(np.median(np.diff(dataset.imu.t)))
+    if rate > imu_rate * (1.0 + 1e-9):
+        raise UserError(f"--keyframe-rate: expected at most the IMU's rate, {imu_rate:.6g} Hz (a keyframe between "
+                        f"two IMU samples has no IMU step of its own), got {rate!r}")
 
 
 def run(args) -> int:
     from datasets.types import MAX_PLAUSIBLE_RATE, max_gyro_rate
-    from smoother.commands import positive
+    from smoother.commands import check_option
 
     if args.max_gyro_rate is not None:
-        positive("--max-gyro-rate", args.max_gyro_rate, "a rate in rad/s")
+        check_option("--max-gyro-rate", args.max_gyro_rate)
     # the whole run: datasets are re-made (measurements from truth, tuned noise) after loading
     with max_gyro_rate(MAX_PLAUSIBLE_RATE if args.max_gyro_rate is None else args.max_gyro_rate):
         return _run(args)
 
 
 def _run(args) -> int:
-    from smoother.commands import at_least, dataset_specs, duration, fraction, positive
+    from smoother.commands import check_option, dataset_specs
     from smoother.commands.run_directory import RunDirectory
     from smoother.fixed_lag.lag import check_lag
     from smoother.pipeline import ESTIMATORS, RunOptions
 
-    at_least("--seed", args.seed, 0)
-    duration(args.duration)
-    fraction("--outliers", args.outliers)
-    at_least("--gps-every", args.gps_every, 1)
-    at_least("--max-iterations", args.max_iterations, 1)
-    for option, values in (("--pose-from-truth", args.pose_from_truth), ("--gps-from-truth", args.gps_from_truth)):
-        for value in values or ():
-            positive(option, value)
+    for option in ("--seed", "--duration", "--outliers", "--gps-every", "--max-iterations", "--max-delay", "--speed"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
+    for option, values, names in (("--pose-from-truth", args.pose_from_truth, ("HZ", "POS_M", "ROT_RAD")),
+                                  ("--gps-from-truth", args.gps_from_truth, ("HZ", "POS_M"))):
+        for value, name in zip(values or (), names):
+            check_option(f"{option} {name}", value)
     check_lag(args.lag, "--lag", UserError)
-    if not (math.isfinite(args.max_delay) and args.max_delay >= 0):
-        raise UserError(f"--max-delay: expected a time in seconds >= 0 (finite), got {args.max_delay!r}")
-    positive("--speed", args.speed, "a factor")
     if args.realtime and args.estimator not in ("fixed-lag", "all"):
         raise UserError(f"--realtime replays through the fixed-lag smoother; it does not apply to --estimator "
                         f"{args.estimator}")
@@ -137,7 +149,8 @@ def _run(args) -> int:
     if args.speed != 1.0 and not args.realtime:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
     if args.keyframe_rate is not None:
-        positive("--keyframe-rate", args.keyframe_rate, "a rate")
+        check_option("--keyframe-rate", args.keyframe_rate)
+    gate_probability(args.ekf_gate)
     options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
@@ -159,12 +172,13 @@ def _run(args) -> int:
         dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig)
     else:
         dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
+    check_keyframe_rate(args.keyframe_rate, dataset)
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
         max_iterations=args.max_iterations,
         keyframe_rate=args.keyframe_rate, robust=robust,
-        ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
+        ekf_gate=args.ekf_gate, covariances=not args.no_covariance, progress=args.progress,
         max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
     )
     with RunDirectory(args.out) as out:  # locked for the run, before any estimator starts
