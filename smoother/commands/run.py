@@ -218,21 +218,24 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     except BaseException as error:  # keep what finished: an interruption
         if not estimates or not isinstance(error, KeyboardInterrupt):
             raise
-        stopped, code = interruption(error)
-        estimates = _in_order(estimates, names)
-        with out.outputs() as stage:
-            _write_outputs(args, stage, dataset, estimates, {**run_info, "stopped": stopped})
-        _say_removed(out)
-        print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
-              f"metrics.json says stopped: {stopped}", file=sys.stderr)
-        return code
+        return _stopped(args, out, dataset, _in_order(estimates, names), run_info, error)
     estimates = _in_order(estimates, names)
-    consistency = verdicts_by_estimator(dataset, estimates, run_options)
-    judged(estimates, consistency)
-    baseline = report.interpolation_baseline(dataset)
+    # what follows the estimators never costs their outputs: stopped, the finished estimates are written
+    # without it; failed (out of memory, say), they are written, the failure said, and the run ends with 2
+    try:
+        consistency = verdicts_by_estimator(dataset, estimates, run_options)
+        judged(estimates, consistency)
+        baseline = report.interpolation_baseline(dataset)
+        correlations = _calibration_correlations(dataset, estimates)
+    except KeyboardInterrupt as error:
+        return _stopped(args, out, dataset, estimates, run_info, error)
+    except Exception as error:  # noqa: BLE001 -- any failure of the analysis; the estimates stand without it
+        run_info["analysis_failed"] = " ".join(f"{type(error).__name__}: {error}".split())
+        print(f"warning: the analysis after the estimators failed ({run_info['analysis_failed']}): the estimates are "
+              "written without their verdicts", file=sys.stderr)
+        consistency, baseline, correlations = {}, None, {}
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
-    correlations = _calibration_correlations(dataset, estimates)
     with out.outputs() as stage:
         run_info["total_s"] = time.perf_counter() - started
         metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations)
@@ -272,7 +275,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    try:  # the outputs are written: Ctrl-C or SIGTERM here ends the run with them kept
+        causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    except Exception as error:  # noqa: BLE001 -- advice only: the run stands without it
+        print(f"warning: the fit of the sensors' likely calibrations failed ({type(error).__name__}: "
+              f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
+        causes = {}
     for line in consistency_warnings(consistency, imu_findings, causes):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
@@ -282,8 +290,20 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     print(f"outputs in {args.out}/", file=sys.stderr)
     if failed:
         print(f"{', '.join(failed)} failed (why: above and in metrics.json)", file=sys.stderr)
-        return 2
-    return 0
+    return 2 if failed or "analysis_failed" in run_info else 0
+
+
+def _stopped(args, out, dataset, estimates: dict, run_info: dict, error: KeyboardInterrupt) -> int:
+    """Ctrl-C or SIGTERM (``error``) after ``estimates`` finished: write them (without what was
+    still to be computed of them) with ``stopped`` in ``metrics.json``, say so, and return the exit
+    code."""
+    stopped, code = interruption(error)
+    with out.outputs() as stage:
+        _write_outputs(args, stage, dataset, estimates, {**run_info, "stopped": stopped})
+    _say_removed(out)
+    print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
+          f"metrics.json says stopped: {stopped}", file=sys.stderr)
+    return code
 
 
 def _calibration_correlations(dataset, estimates: dict) -> dict:

@@ -118,15 +118,20 @@ def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
     """Per sensor, the :func:`verdict` of its NIS through the EKF, and ``rejected``: the updates
     the EKF's gate refused. Only accepted updates count (module docstring; a sensor with none has
     a verdict of none); updates after a divergence (NaN) not at all."""
+    names, first, which = np.unique(innovations.sensor, return_index=True, return_inverse=True)
+    finite = np.isfinite(innovations.nis)
+    accepted = finite & innovations.accepted
+
+    def per_sensor(weights, mask) -> np.ndarray:  # sums over each sensor's updates, in one pass
+        return np.bincount(which[mask], weights=None if weights is None else weights[mask], minlength=len(names))
+
+    updates, used = per_sensor(None, finite), per_sensor(None, accepted)
+    dof, total = per_sensor(innovations.dim.astype(float), accepted), per_sensor(innovations.nis, accepted)
     out = {}
-    for name in dict.fromkeys(innovations.sensor):
-        ours = (innovations.sensor == name) & np.isfinite(innovations.nis)
-        mine = ours & innovations.accepted
-        if not ours.any():
-            continue
-        dof = float(innovations.dim[mine].sum())
-        out[str(name)] = {**verdict(float(innovations.nis[mine].sum()), dof, int(mine.sum()), "nis"),
-                          "rejected": int((ours & ~innovations.accepted).sum())}
+    for j in np.argsort(first):  # in the order the sensors first updated
+        if updates[j]:
+            out[str(names[j])] = {**verdict(float(total[j]), float(dof[j]), int(used[j]), "nis"),
+                                  "rejected": int(updates[j] - used[j])}
     return out
 
 
