@@ -79,10 +79,19 @@ def check_option(option: str, value) -> None:
         raise UserError(f"{option}: {problem}")
 
 
+def named_directory(path) -> Path:
+    """``--out`` as a path; an empty one is refused (``Path("")`` is the current directory, which
+    the user did not name)."""
+    if not str(path):
+        raise UserError("--out: expected a directory, got an empty name (for the current directory, give --out .)")
+    return Path(path)
+
+
 def output_directory(path) -> Path:
-    """``path`` as a directory that exists (created with its parents) and takes new files.
-    Called before the computation, so that a bad ``--out`` does not lose its results."""
-    path = Path(path)
+    """``path`` (:func:`named_directory`) as a directory that exists (created with its parents)
+    and takes new files. Called before the computation, so that a bad ``--out`` does not lose its
+    results."""
+    path = named_directory(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:

@@ -9,9 +9,6 @@ import sys
 from smoother.errors import UserError, interruption
 from smoother.estimators import ESTIMATORS
 
-#: The fleet's own file in ``--out`` (each recording's files are in its folder).
-SUMMARY = "summary.json"
-
 
 def register(sub) -> None:
     p = sub.add_parser("fleet", help="run many recordings (rig files) at once, on this machine or a Dask cluster")
@@ -38,16 +35,17 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import check_option, output_directory
+    from smoother.commands import check_option, named_directory, output_directory
     from smoother.commands import fleet_runner as fleet
     from smoother.fixed_lag.lag import check_lag
+    from smoother.outputs.confined import inside
     from smoother.progress import progress_bar
 
     check_option("--workers", args.workers)
     check_lag(args.lag, "--lag", UserError)
     options = ["--estimator", args.estimator, "--lag", repr(args.lag)] + ["--mcap"] * args.mcap + ["--plot"] * args.plot
     share = None if args.dask else max(1, thread_count() // args.workers)
-    items = fleet.recordings(args.rigs, args.out, options, share)
+    items = fleet.recordings(args.rigs, named_directory(args.out), options, share)  # refused before --out is made
     out = output_directory(args.out)
     results: dict = {}
     stopped = None
@@ -68,12 +66,12 @@ def run(args) -> int:
     summary = {"recordings": ordered, "failed": failures, "not_run": not_run, "argv": sys.argv[1:]}
     if stopped:
         summary["stopped"] = stopped
-    with atomic_write(out / SUMMARY) as handle:
+    with atomic_write(inside(out, fleet.SUMMARY)) as handle:
         json.dump(summary, handle, indent=2)
         handle.write("\n")
     print(format_table(ordered))
     print(f"{len(ordered) - len(failures)} of {len(items)} recordings ran, {len(failures)} failed"
-          + (f", {len(not_run)} not run ({stopped})" if not_run else "") + f"; summary in {out / SUMMARY}",
+          + (f", {len(not_run)} not run ({stopped})" if not_run else "") + f"; summary in {out / fleet.SUMMARY}",
           file=sys.stderr)
     if stopped:
         return code
