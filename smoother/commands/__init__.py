@@ -14,6 +14,7 @@ from pathlib import Path
 
 from datasets.ranges import RANGES, SIGMA_RANGES, Range
 from smoother.errors import UserError
+from smoother.online.delay import MAX_DELAY_RANGE
 
 _SEED = Range(0, 2**63 - 1, "", "a seed of NumPy's generators: a non-negative 64-bit integer")
 _WORKERS = Range(1, 1024, "", "processes or threads at once: beyond a thousand, the processes alone exhaust a "
@@ -34,10 +35,7 @@ OPTION_RANGES: dict[str, Range] = {
     "--max-iterations": Range(
         1, 10_000, "",
         "Levenberg-Marquardt converges in tens of iterations; ten thousand on a long recording take hours"),
-    "--max-delay": Range(
-        0.0, 60.0, "s",
-        "how late a measurement may arrive: a link delays by milliseconds to seconds; a minute late is no longer "
-        "online, and every IMU sample is held in memory that long"),
+    "--max-delay": MAX_DELAY_RANGE,
     "--speed": Range(
         0.01, 1e4, "",
         "a replay's pace against the recording's own: a hundredth of it to ten thousand times it; slower does not "

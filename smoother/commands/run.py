@@ -30,7 +30,8 @@ def register(sub) -> None:
                         "BatchFixedLagSmoother")
     p.add_argument("--max-delay", type=float, default=0.0, metavar="S",
                    help="fixed-lag: how late [s] a measurement may arrive behind the IMU stream and still be used "
-                        "(later ones are dropped and counted; default 0)")
+                        "(a keyframe waits that long; one at or before the newest keyframe made is dropped and "
+                        "counted; default 0)")
     p.add_argument("--realtime", action="store_true",
                    help="fixed-lag: replay the data at its own pace through the online smoother and report the "
                         "latency from each measurement's arrival to the updated estimate (median, p99, max)")
@@ -248,7 +249,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         for path in figures:
             print(f"wrote {out.final(path)}", file=sys.stderr)
     print(format_table(metrics, dead_reckoning=not files.aiding_sensors(dataset),
-                       frame_note=world_frame(sensors_of(dataset)).note()))
+                       frame_note=world_frame(sensors_of(dataset)).note(), rig=args.rig is not None))
     for name, m in metrics.items():
         if m.get("ate_note"):
             print(f"warning: {name}: {m['ate_note']}", file=sys.stderr)
@@ -415,14 +416,17 @@ UNSCORED = "unscored"
 TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 
-def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None) -> str:
+def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None,
+                 rig: bool = False) -> str:
     """One line per estimator with the headline metrics that exist; a figure against the truth
     that is not scored (too few states compared, metrics.json's ``ate_note``) shows
     :data:`UNSCORED`, and a closing line says so. Against GPS, two closing lines: the estimators
     ranked by their held-out RMSE (an accuracy), and what the fit residual is -- the distance to
     fixes an estimator used, which no ranking may rest on. With ``dead_reckoning`` (no aiding
     sensor) a closing line says that the estimates are the IMU's alone; ``frame_note``
-    (:meth:`datasets.initialise.WorldFrame.note`) closes an odometry-frame run's table."""
+    (:meth:`datasets.initialise.WorldFrame.note`) closes an odometry-frame run's table. Without
+    held-out fixes the table says how to hold some out: ``every`` in a ``rig`` file, else
+    ``--gps-every`` (which a rig run refuses)."""
     columns = [("ate_rmse_m", "ATE [m]"), ("rot_rmse_deg", "rot [deg]"), ("nees_mean", "NEES/dim"),
                ("gps_heldout_rmse_m", "held-out [m]"), ("gps_fit_residual_m", "fit resid [m]"),
                ("runtime_s", "time [s]")]
@@ -452,7 +456,8 @@ def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | 
         if heldout:
             lines.append("ranked by held-out RMSE: " + " < ".join(sorted(heldout, key=heldout.get)))
         else:
-            lines.append("no held-out fixes: no ranking (hold fixes out with --gps-every K > 1)")
+            how = "a sensor's every = K > 1 in the rig file" if rig else "--gps-every K > 1"
+            lines.append(f"no held-out fixes: no ranking (hold fixes out with {how})")
         lines.append("fit resid: RMS distance to the fixes the estimators used -- a residual, not an accuracy")
     if any("doubtful" in m for m in metrics.values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the warning below says how far)")

@@ -412,7 +412,8 @@ def plot_run(run_dir, estimators=None, out_dir=None) -> list[Path]:
             if any(e.nees is not None for e in errors.values()):
                 written.append(plot_nees(run, out_dir, kind, errors))
             elif kind == "gps" and not run.gps.heldout.any():
-                print("plots: no held-out GPS fix (see --gps-every): no NEES figure", file=sys.stderr)
+                print("plots: no held-out GPS fix (a rig sensor's every = K, or --gps-every K on a built-in "
+                      "dataset, holds some out): no NEES figure", file=sys.stderr)
         else:
             print(f"plots: {run.run_dir} has neither truth.npz nor gps.npz: no error figures", file=sys.stderr)
         written.append(plot_biases(run, out_dir))
