@@ -137,8 +137,9 @@ def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
 
 def overall(consistency: dict[str, dict]) -> dict | None:
     """The :func:`verdict` of all of one estimator's verdicts together (their sums and degrees of
-    freedom added), or None without any."""
-    parts = [c for c in consistency.values() if c["dof"] > 0]
+    freedom added), of those formed (:func:`judgeable`: one on too few degrees of freedom counts
+    for nothing, here neither), or None without any."""
+    parts = [c for c in consistency.values() if judgeable(c)]
     if not parts:
         return None
     total = sum(c["per_dof"] * c["dof"] for c in parts)
