@@ -16,7 +16,7 @@ from datasets.ranges import RANGES, SIGMA_RANGES, Range
 from smoother.errors import UserError
 from smoother.online.delay import MAX_DELAY_RANGE
 
-_SEED = Range(0, 2**63 - 1, "", "a seed of NumPy's generators: a non-negative 64-bit integer")
+_SEED = Range(0, 2**32 - 1, "", "a seed of NumPy's generators: a non-negative 32-bit integer")
 _WORKERS = Range(1, 1024, "", "processes or threads at once: beyond a thousand, the processes alone exhaust a "
                               "machine's memory")
 _RATE = Range(1e-3, 1e4, "Hz", "a measurement rate: one in twenty minutes to 10 kHz, beyond any IMU's")
