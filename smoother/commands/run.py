@@ -94,15 +94,6 @@ def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def gate_probability(probability: float | None) -> float | None:
-    """``--ekf-gate`` checked against its range (:data:`smoother.commands.OPTION_RANGES`)."""
-    from smoother.commands import check_option
-
-    if probability is not None:
-        check_option("--ekf-gate", probability)
-    return probability
-
-
 def check_keyframe_rate(rate: float | None, dataset) -> None:
     """``--keyframe-rate`` at most the rate of the dataset's IMU (its median sample interval's
     inverse): a keyframe between two IMU samples has no IMU step of its own, and a grid finer than
@@ -148,9 +139,9 @@ def _run(args) -> int:
         raise UserError(f"--max-delay applies to the fixed-lag smoother, not to --estimator {args.estimator}")
     if args.speed != 1.0 and not args.realtime:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
-    if args.keyframe_rate is not None:
-        check_option("--keyframe-rate", args.keyframe_rate)
-    gate_probability(args.ekf_gate)
+    for option, value in (("--keyframe-rate", args.keyframe_rate), ("--ekf-gate", args.ekf_gate)):
+        if value is not None:  # left out: none
+            check_option(option, value)
     options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,

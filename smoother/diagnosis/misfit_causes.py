@@ -78,6 +78,12 @@ correction below it is no advice a rig can take: on model-exact data a lever arm
 the sensor's residuals leave at least :data:`smoother.diagnosis.verdicts.MIN_DOF` degrees of
 freedom once the candidates are fitted (on fewer, their variance, and so the sigmas, are a few
 squares' noise: ``judged`` False).
+
+Cost. The candidates of every sensor fitted together are a dense block the states' elimination
+carries along, its width squared per keyframe: so at most :data:`MAX_ANALYSED` sensors are fitted
+together, of more the :func:`suspects` (a screen linear in the measurements), and the elimination
+runs :data:`ELIMINATION_CHUNK` keys per GTSAM call, so that a Ctrl-C or SIGTERM, which Python
+handles between calls, stops it promptly. The whole is linear in the sensors and the keyframes.
 """
 from __future__ import annotations
 
