@@ -149,7 +149,7 @@ def _one_line_error(capsys) -> str:
     (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
     # a value only the data can refuse: named by its option, not by the library's parameter
     (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
-    (["--seed", "-1"], "--seed: expected a value within [0, 9.22337e+18]"),
+    (["--seed", "-1"], "--seed: expected a value within [0, 4.29497e+09]"),
     (["--max-iterations", "0"], "--max-iterations: expected a value within [1, 10000]"),
     (["--max-gyro-rate", "0"], "--max-gyro-rate: expected a value within [1, 10000] rad/s"),
     (["--duration", "1e10"], "--duration: expected a value within [1, 1e+08] s"),
