@@ -11,10 +11,15 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
   ``time_offset`` is added to its stamps first.
 * **Streams per kind**: each kind reads its sensors (:attr:`datasets.kinds.base.Kind.read`):
   ``pose`` poses, ``position`` positions (of poses, or a file of positions alone),
-  ``orientation`` attitudes (of an AHRS, of poses, or a file of attitudes alone), ``odometry`` consecutive poses as relative poses in the earlier pose's frame,
-  ``velocity`` twists (their linear part, the sensor frame's velocity in its own frame), ``gnss``
-  fixes, in the local ENU frame about the rig's datum (default: the first valid fix), fixes without
-  a position dropped and counted.
+  ``orientation`` attitudes (of an AHRS, of poses, or a file of attitudes alone), ``odometry``
+  consecutive poses as relative poses in the earlier pose's frame, ``velocity`` twists (their
+  linear part, the sensor frame's velocity in its own frame), ``gnss`` fixes, in the local ENU
+  frame about the rig's datum (default: the first valid fix), fixes without a position dropped
+  and counted.
+* **The IMU first**: its rates and ranges are checked (:func:`datasets.types.check_imu_rates`,
+  :func:`datasets.types.check_imu_range`) before any sensor is read: a velocity sensor's rows
+  carry the IMU's gyro for its lever arm, and an IMU in deg/s would otherwise be reported as that
+  sensor's fault.
 * **Noise**: a sensor's ``sigma`` overrides; otherwise the messages' covariances where every
   message has one (:func:`datasets.kinds.base.noise`; ``odometry`` always needs ``sigma``).
 * **every = k**: measurements ``0, k, 2k, ...`` are used; the others are held out for evaluation
@@ -36,7 +41,7 @@ from datasets.initialise import InitialisationError, imu_from, initial_state
 from datasets.kinds import KINDS, Clock
 from datasets.rig import Rig, RigError, sensor_key
 from datasets.sources import read_imu
-from datasets.types import Dataset, ImuSamples, Sensor
+from datasets.types import Dataset, ImuSamples, Sensor, check_imu_range, check_imu_rates
 from factors.errors import InputError
 
 
@@ -134,6 +139,10 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
         raise InputError(f"load_recording: expected a Rig, got a {type(rig).__name__}{shown}; read a rig file first "
                          "with datasets.load_rig(path), then load_recording(rig)")
     imu = read_imu(rig.imu.source, rig.imu.topic)
+    # the IMU's own units first: a velocity sensor's rows carry its gyro, and would be blamed for them
+    where = f"imu ({rig.imu.source}{'' if rig.imu.topic is None else ', topic ' + rig.imu.topic}): "
+    check_imu_rates(where, imu.gyro)
+    check_imu_range(where, imu.t, imu.acc, imu.gyro)
     origin_ns = int(imu.t_ns[0]) if imu.t_ns is not None else int(round(float(imu.t[0]) * 1e9))
     imu = ImuSamples(_relative(imu.t, imu.t_ns, origin_ns, 0.0), imu.acc, imu.gyro, imu.t_ns)
 

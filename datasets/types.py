@@ -10,19 +10,17 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from dataclasses import dataclass, field, fields, replace
-
 import warnings
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from numba import njit
 
 from datasets.ranges import sensor_name_problem
 from factors import so3
-from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 from factors.errors import InputError
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 from factors.small_linalg import cholesky_into
-
 
 #: An IMU interval longer than this many typical periods is reported as a gap.
 IMU_GAP_FACTOR = 5.0
@@ -110,6 +108,20 @@ def check_imu_range(prefix: str, t, acc: np.ndarray, gyro: np.ndarray, rate_limi
     check_magnitude(f"{prefix}gyro", gyro, gyro_rate_limit() if rate_limit is None else rate_limit, "rad/s", t,
                     "beyond a MEMS gyro's full scale: a corrupt sample, or data in deg/s; for a real case, raise "
                     "the limit (smoother run --max-gyro-rate)")
+
+
+def check_imu_rates(prefix: str, gyro: np.ndarray) -> None:
+    """The 99th percentile of the angular rate's magnitude at most :func:`gyro_rate_limit`: no
+    vehicle turns faster for long, so data beyond it are in deg/s; an error naming the field
+    (``prefix`` + ``gyro``) otherwise. Checked on the IMU's own samples before anything carries
+    them on (a velocity sensor's rows hold the IMU's gyro for the lever arm), so that the error
+    names the IMU."""
+    w = float(np.percentile(np.linalg.norm(gyro, axis=1), 99)) if len(gyro) else 0.0
+    limit = gyro_rate_limit()
+    if w > limit:
+        raise InputError(f"{prefix}gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that no vehicle "
+                         f"reaches; the data are probably in deg/s (convert them to rad/s), or, for a real case, raise "
+                         f"the limit (smoother run --max-gyro-rate)")
 
 
 def imu_gaps(t: np.ndarray, typical: float | None = None, where: str = "Dataset.imu",
@@ -421,8 +433,10 @@ class VelocityMeasurements(_Rows):
         object.__setattr__(self, "velocity", check_magnitude("VelocityMeasurements.velocity", velocity,
                                                              MAX_PLAUSIBLE_SPEED, "m/s", t))
         gyro = check_array("VelocityMeasurements.gyro", self.gyro, (3,), len(t), t)
-        object.__setattr__(self, "gyro", check_magnitude("VelocityMeasurements.gyro", gyro, gyro_rate_limit(),
-                                                         "rad/s", t, "beyond a MEMS gyro's full scale"))
+        object.__setattr__(self, "gyro", check_magnitude(
+            "VelocityMeasurements.gyro", gyro, gyro_rate_limit(), "rad/s", t,
+            "the IMU's gyro reading held at the measurement, for the lever arm: beyond a MEMS gyro's full scale, the "
+            "IMU's gyro data are probably in deg/s"))
         object.__setattr__(self, "cov", check_covariances("VelocityMeasurements.cov", self.cov, len(t), 3))
         object.__setattr__(self, "T_BS", check_extrinsic("VelocityMeasurements.T_BS", self.T_BS))
 
@@ -639,12 +653,7 @@ class Dataset:
         if g > 0 and not 0.3 * g <= f <= 3.0 * g:
             warnings.warn(f"Dataset.imu.acc: median specific-force magnitude {f:.4g}; expected about |g| = "
                           f"{g:.4g} in m/s^2 (is the data in g, or in mm/s^2?)", stacklevel=3)
-        w = float(np.percentile(np.linalg.norm(self.imu.gyro, axis=1), 99))
-        limit = gyro_rate_limit()
-        if w > limit:
-            raise InputError(f"Dataset.imu.gyro: 99th percentile angular rate {w:.4g}, above {limit:g} rad/s that "
-                             f"no vehicle reaches; the data are probably in deg/s (convert them to rad/s), or, "
-                             f"for a real case, raise the limit (smoother run --max-gyro-rate)")
+        check_imu_rates("Dataset.imu.", self.imu.gyro)
         check_imu_range("Dataset.imu.", self.imu.t, self.imu.acc, self.imu.gyro)
 
     def _check_imu_gaps(self) -> None:

@@ -351,11 +351,17 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
     A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
     smoother keeps no covariances of its states with the calibrations) counts by the verdict of
     another estimator of the same model on the same data
-    (:func:`smoother.diagnosis.calibration_report.verdicts_for`)."""
-    from smoother.diagnosis.calibration_report import verdicts_for
-    from smoother.diagnosis.verdicts import far_above, far_below, overall, with_heldout
+    (:func:`smoother.diagnosis.calibration_report.verdicts_for`). An EKF whose gate rejected most
+    of a sensor's measurements (:func:`smoother.diagnosis.verdicts.rejections`) and an estimator
+    whose calibration disagrees with the others' beyond their sigmas
+    (:func:`smoother.diagnosis.calibration_report.disagreements`) are doubtful too. Verdicts on
+    too few degrees of freedom (:func:`smoother.diagnosis.verdicts.judgeable`) count towards
+    nothing."""
+    from smoother.diagnosis.calibration_report import disagreements, verdicts_for
+    from smoother.diagnosis.verdicts import far_above, far_below, judgeable, overall, rejections, with_heldout
 
     heldout = heldout or {}
+    disagreeing = disagreements({name: est.details for name, est in estimates.items()})
     for name, est in estimates.items():
         ours = consistency.get(name, {})
         held = heldout.get(name, {})
@@ -367,7 +373,7 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
             est.details["fit"] = fit
         off = [k for k, c in judged_by.items() if far_above(c)]
         if (fit is not None and far_above(fit)) or off:
-            worst = max(judged_by, key=lambda k: judged_by[k]["per_dof"])
+            worst = max(judged_by, key=lambda k: judged_by[k]["per_dof"] if judgeable(judged_by[k]) else -np.inf)
             summary = "" if fit is None else (
                 f"its normalised {'innovations' if fit['statistic'] == 'nis' else 'residuals'} are "
                 f"{fit['per_dof']:.3g} per dof (expected {fit['band'][0]:.2g}-{fit['band'][1]:.2g}), ")
@@ -395,3 +401,7 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
         if why:
             est.details["doubtful"] = "; ".join(why) + (": the model does not fit the data, so the estimate may be "
                                                         "wrong and its covariances wrong too")
+        # a gate that rejected most of a sensor's measurements; a calibration against the other estimators'
+        also = [text for text in (rejections(ours), disagreeing.get(name)) if text]
+        if also:
+            est.details["doubtful"] = "; ".join(filter(None, (est.details.get("doubtful"), *also)))

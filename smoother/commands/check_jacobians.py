@@ -16,10 +16,10 @@ def register(sub) -> None:
 def run(args) -> int:
     import datasets.kinds  # noqa: F401  (registers every kind's measurement-model check)
     from factors import jacobians, selfcheck
-    from smoother.commands import at_least
+    from smoother.commands import check_option
 
-    at_least("--samples", args.samples, 1)
-    at_least("--seed", args.seed, 0)
+    check_option("--samples", args.samples)
+    check_option("--seed", args.seed)
     results = selfcheck.run_checks(samples=args.samples, seed=args.seed)
     if args.json:
         print(json.dumps([r.as_dict() for r in results], indent=2))

@@ -21,16 +21,15 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import PROFILES
-    from smoother.commands import at_least, duration
+    from smoother.commands import check_option
     from smoother.evaluation.crosscheck import TARGETS, CrosscheckOptions, crosscheck
     from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    at_least("--seeds", args.seeds, 2)
-    at_least("--first-seed", args.first_seed, 0)
-    duration(args.duration)
+    for option in ("--seeds", "--first-seed", "--duration"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
     check_lag(args.lag, "--lag", UserError)
     options = CrosscheckOptions(args.profile, args.seeds, args.first_seed, args.duration, args.lag)
     with progress_bar(args.seeds, f"crosscheck {args.profile}", None) as bar:

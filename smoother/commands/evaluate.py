@@ -94,21 +94,16 @@ def _table(result, args, n_ref: int, n_est: int) -> str:
 
 
 def run(args) -> int:
-    import math
-
     from datasets.errors import DataError
-    from smoother.commands import at_least, positive
+    from smoother.commands import check_option
     from smoother.errors import UserError
     from smoother.evaluation import metrics
     from smoother.outputs.files import jsonable
 
-    if not (math.isfinite(args.max_dt) and args.max_dt >= 0):
-        raise UserError(f"--max-dt: expected a time in seconds >= 0, got {args.max_dt!r}")
-    if not math.isfinite(args.t_offset):
-        raise UserError(f"--t-offset: expected a finite time in seconds, got {args.t_offset!r}")
+    for option in ("--max-dt", "--t-offset", "--delta"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
     if args.n_to_align is not None:
-        at_least("--n-to-align", args.n_to_align, 1)
-    positive("--delta", args.delta)
+        check_option("--n-to-align", args.n_to_align)
     if args.delta_unit == "frames" and args.delta != int(args.delta):
         raise UserError(f"--delta: expected a whole number of frames, got {args.delta!r}")
     trajectories = {}

@@ -9,9 +9,6 @@ import sys
 from smoother.errors import UserError, interruption
 from smoother.estimators import ESTIMATORS
 
-#: The fleet's own file in ``--out`` (each recording's files are in its folder).
-SUMMARY = "summary.json"
-
 
 def register(sub) -> None:
     p = sub.add_parser("fleet", help="run many recordings (rig files) at once, on this machine or a Dask cluster")
@@ -38,16 +35,17 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import at_least, output_directory
+    from smoother.commands import check_option, named_directory, output_directory
     from smoother.commands import fleet_runner as fleet
     from smoother.fixed_lag.lag import check_lag
+    from smoother.outputs.confined import inside
     from smoother.progress import progress_bar
 
-    at_least("--workers", args.workers, 1)
+    check_option("--workers", args.workers)
     check_lag(args.lag, "--lag", UserError)
     options = ["--estimator", args.estimator, "--lag", repr(args.lag)] + ["--mcap"] * args.mcap + ["--plot"] * args.plot
     share = None if args.dask else max(1, thread_count() // args.workers)
-    items = fleet.recordings(args.rigs, args.out, options, share)
+    items = fleet.recordings(args.rigs, named_directory(args.out), options, share)  # refused before --out is made
     out = output_directory(args.out)
     results: dict = {}
     stopped = None
@@ -68,12 +66,12 @@ def run(args) -> int:
     summary = {"recordings": ordered, "failed": failures, "not_run": not_run, "argv": sys.argv[1:]}
     if stopped:
         summary["stopped"] = stopped
-    with atomic_write(out / SUMMARY) as handle:
+    with atomic_write(inside(out, fleet.SUMMARY)) as handle:
         json.dump(summary, handle, indent=2)
         handle.write("\n")
     print(format_table(ordered))
     print(f"{len(ordered) - len(failures)} of {len(items)} recordings ran, {len(failures)} failed"
-          + (f", {len(not_run)} not run ({stopped})" if not_run else "") + f"; summary in {out / SUMMARY}",
+          + (f", {len(not_run)} not run ({stopped})" if not_run else "") + f"; summary in {out / fleet.SUMMARY}",
           file=sys.stderr)
     if stopped:
         return code
@@ -86,9 +84,9 @@ COLUMNS = (("ate_rmse_m", "ATE [m]"), ("gps_heldout_rmse_m", "held-out [m]"), ("
 
 def format_table(results: list[dict]) -> str:
     """One line per recording and estimator: the figures of :data:`COLUMNS` that any has, the fit
-    of all its sensors together (per dof, ``ok`` inside its band, ``OUT`` outside) and each
-    sensor's; ``(?)`` after a doubtful estimator; a recording or estimator that failed says why
-    on its line."""
+    of all its sensors together (per dof, ``ok`` inside its band, ``OUT`` outside, ``few-dof`` on
+    too few degrees of freedom to judge) and each sensor's; ``(?)`` after a doubtful estimator; a
+    recording or estimator that failed says why on its line."""
     present = [(k, h) for k, h in COLUMNS if any(k in e for r in results for e in r["estimators"].values())]
     width = max([len("recording")] + [len(r["recording"]) for r in results]) + 2
     lines = [f"{'recording':<{width}}{'estimator':<16}" + "".join(f"{h:>14}" for _, h in present)
@@ -111,6 +109,11 @@ def format_table(results: list[dict]) -> str:
             lines.append(f"{r['recording']:<{width}}failed: {r['failure']}")
     if any(e.get("doubtful") for r in results for e in r["estimators"].values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the recording's run.log says how far)")
+    from smoother.diagnosis.verdicts import MIN_DOF, TOO_FEW_DOF, judgeable
+
+    if any(not judgeable(v) for r in results for e in r["estimators"].values()
+           for v in [*e.get("sensors", {}).values(), *([e["fit"]] if "fit" in e else [])]):
+        lines.append(f"{_FEW}: {TOO_FEW_DOF} (fewer than {MIN_DOF:g}); no band, not counted as a misfit")
     return "\n".join(lines)
 
 
@@ -118,5 +121,15 @@ def _number(value) -> str:
     return f"{value:.4f}" if isinstance(value, (int, float)) and math.isfinite(value) else "-"
 
 
+#: The table's mark of a verdict not formed (:func:`smoother.diagnosis.verdicts.judgeable`).
+_FEW = "few-dof"
+
+
 def _verdict(v: dict) -> str:
+    from smoother.diagnosis.verdicts import judgeable
+
+    if v["per_dof"] is None:  # no update used (an EKF's gate rejected them all)
+        return "none"
+    if not judgeable(v):
+        return f"{v['per_dof']:.3g} {_FEW}"
     return f"{v['per_dof']:.3g} {'ok' if v['ok'] else 'OUT'}"

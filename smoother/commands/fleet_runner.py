@@ -37,7 +37,11 @@ from pathlib import Path
 
 from factors.errors import InputError
 from smoother import parallel
+from smoother.outputs.confined import folder_name_problem, inside
 from smoother.outputs.layout import METRICS
+
+#: The fleet's own file in its ``--out`` (each recording's files are in its folder).
+SUMMARY = "summary.json"
 
 #: What a recording's run printed (stdout and stderr), in its folder.
 LOG = "run.log"
@@ -71,17 +75,23 @@ class Recording:
 def recordings(rigs, out_dir, run_options=(), threads: int | None = None) -> list[Recording]:
     """The recordings of the rig files ``rigs``, each into ``out_dir/<rig file stem>``; a
     :class:`~factors.errors.InputError` when two rig files share a stem (their folders would be
-    one)."""
+    one), when a stem cannot name a folder of its own in ``out_dir``
+    (:func:`smoother.outputs.confined.folder_name_problem`: ``..`` of a rig ``...toml`` is its
+    parent) or is the fleet's summary's name, or when its folder would lie outside ``out_dir``
+    (:func:`smoother.outputs.confined.inside`: a symbolic link there)."""
     seen: dict[str, str] = {}
     for rig in rigs:
         stem = Path(rig).stem
+        problem = folder_name_problem(stem) or (f"{stem!r} is the fleet's own {SUMMARY}" if stem == SUMMARY else None)
+        if problem is not None:
+            raise InputError(f"{rig}: its name without .toml, which names its recording's folder in {out_dir}, "
+                             f"cannot: {problem}; rename the rig file")
         if stem in seen:
             raise InputError(f"{seen[stem]} and {rig}: both would be run into {Path(out_dir) / stem}/ (a recording's "
                             "folder is its rig file's name without .toml); rename one of them")
         seen[stem] = str(rig)
-    out_dir = Path(out_dir).resolve()
-    return [Recording(str(Path(rig).resolve()), str(out_dir / Path(rig).stem), tuple(run_options), threads)
-            for rig in rigs]
+    return [Recording(str(Path(rig).resolve()), str(inside(out_dir, Path(rig).stem).resolve()), tuple(run_options),
+                      threads) for rig in rigs]
 
 
 # --- one recording ------------------------------------------------------------------------------
@@ -102,12 +112,12 @@ def run_recording(recording: Recording) -> dict | None:
         return None
     try:
         out.mkdir(parents=True, exist_ok=True)
-        before = _signature(out / METRICS)
+        before = _signature(inside(out, METRICS))
         env = dict(os.environ)
         threads = recording.threads or _dask_share()
         if threads is not None and "BOXPLUS_THREADS" not in os.environ:
             env["BOXPLUS_THREADS"] = str(threads)
-        with open(out / LOG, "w") as log:
+        with open(inside(out, LOG), "w") as log:
             with _children_lock:  # started and registered at once: forward() misses no child
                 if _stopping.is_set():
                     return None
@@ -122,6 +132,8 @@ def run_recording(recording: Recording) -> dict | None:
                     _children.discard(child)
     except OSError as error:
         return failed(recording, f"cannot run it: {error.filename or out}: {error.strerror or error}")
+    except InputError as error:  # its folder's log or metrics lead out of it
+        return failed(recording, f"cannot run it: {error}")
     metrics = out / METRICS
     return result_of(recording, code, metrics if _signature(metrics) != before else None, out / LOG)
 

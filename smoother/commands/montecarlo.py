@@ -7,6 +7,9 @@ import sys
 from smoother.errors import UserError
 from smoother.estimators import ESTIMATORS
 
+#: The summary of the runs in ``--out``.
+SUMMARY = "summary.json"
+
 
 def register(sub) -> None:
     p = sub.add_parser("montecarlo", help="Monte Carlo runs of the simulator (parallel; optionally on Dask)")
@@ -29,18 +32,15 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother.commands import at_least, duration, fraction, output_directory
+    from smoother.commands import check_option, output_directory
     from smoother.commands.run import parse_robust
     from smoother.evaluation import montecarlo
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    at_least("--runs", args.runs, 2)
-    at_least("--first-seed", args.first_seed, 0)
-    at_least("--workers", args.workers, 1)
-    duration(args.duration)
-    fraction("--outliers", args.outliers)
+    for option in ("--runs", "--first-seed", "--workers", "--duration", "--outliers"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
     estimators = tuple(args.estimator or ("batch", "ekf"))
     config = montecarlo.MonteCarloConfig(
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,
@@ -53,8 +53,9 @@ def run(args) -> int:
                                       on_done=lambda r: bar.update(1))
     summary = montecarlo.aggregate(results, estimators)
     from datasets.atomic import atomic_write
+    from smoother.outputs.confined import inside
 
-    with atomic_write(out / "summary.json") as handle:
+    with atomic_write(inside(out, SUMMARY)) as handle:
         json.dump(summary.as_dict(), handle, indent=2)
     from smoother.outputs.montecarlo_plot import plot_montecarlo
 
@@ -70,5 +71,5 @@ def run(args) -> int:
         for name, e in summary.estimators.items():
             print(f"  {name:<10} ATE {e['ate_rmse_m']:.4f} m  rot {e['rot_rmse_deg']:.3f} deg  "
                   f"NEES/6 {e['nees_mean']:.3f}  inside {100 * e['nees_share_inside_95']:.0f}%")
-    print(f"wrote {out}/summary.json, {path}", file=sys.stderr)
+    print(f"wrote {out / SUMMARY}, {path}", file=sys.stderr)
     return 0

@@ -29,7 +29,8 @@ def register(sub) -> None:
                         "BatchFixedLagSmoother")
     p.add_argument("--max-delay", type=float, default=0.0, metavar="S",
                    help="fixed-lag: how late [s] a measurement may arrive behind the IMU stream and still be used "
-                        "(later ones are dropped and counted; default 0)")
+                        "(a keyframe waits that long; one at or before the newest keyframe made is dropped and "
+                        "counted; default 0)")
     p.add_argument("--realtime", action="store_true",
                    help="fixed-lag: replay the data at its own pace through the online smoother and report the "
                         "latency from each measurement's arrival to the updated estimate (median, p99, max)")
@@ -87,48 +88,50 @@ def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
         try:
             parsed = robust_spec(kernel)
         except ValueError as error:
-            raise UserError(f"--robust {spec}: {error}") from None
+            raise UserError(f"--robust {spec}: {error}") from None  # a threshold's range is the rig key robust's
         for t in (types if target is None else (target,)):
             out[t] = parsed
     return {k: v for k, v in out.items() if v is not None}
 
 
-def gate_probability(probability: float | None) -> float | None:
-    """Validate ``--ekf-gate``."""
-    if probability is not None and not 0.0 < probability < 1.0:
-        raise UserError(f"--ekf-gate: expected a probability in (0, 1), got {probability}")
-    return probability
+def check_keyframe_rate(rate: float | None, dataset) -> None:
+    """``--keyframe-rate`` at most the rate of the dataset's IMU (its median sample interval's
+    inverse): a keyframe between two IMU samples has no IMU step of its own, and a grid finer than
+    the samples multiplies the states (1 kHz on a 200 Hz IMU: five times the keyframes, for nothing)."""
+    import numpy as np
+
+    if rate is None or len(dataset.imu.t) < 2:
+        return
+    imu_rate = 1.0 / float(np.median(np.diff(dataset.imu.t)))
+    if rate > imu_rate * (1.0 + 1e-9):
+        raise UserError(f"--keyframe-rate: expected at most the IMU's rate, {imu_rate:.6g} Hz (a keyframe between "
+                        f"two IMU samples has no IMU step of its own), got {rate!r}")
 
 
 def run(args) -> int:
     from datasets.types import MAX_PLAUSIBLE_RATE, max_gyro_rate
-    from smoother.commands import positive
+    from smoother.commands import check_option
 
     if args.max_gyro_rate is not None:
-        positive("--max-gyro-rate", args.max_gyro_rate, "a rate in rad/s")
+        check_option("--max-gyro-rate", args.max_gyro_rate)
     # the whole run: datasets are re-made (measurements from truth, tuned noise) after loading
     with max_gyro_rate(MAX_PLAUSIBLE_RATE if args.max_gyro_rate is None else args.max_gyro_rate):
         return _run(args)
 
 
 def _run(args) -> int:
-    from smoother.commands import at_least, dataset_specs, duration, fraction, positive
+    from smoother.commands import check_option, dataset_specs
     from smoother.commands.run_directory import RunDirectory
     from smoother.fixed_lag.lag import check_lag
     from smoother.pipeline import ESTIMATORS, RunOptions
 
-    at_least("--seed", args.seed, 0)
-    duration(args.duration)
-    fraction("--outliers", args.outliers)
-    at_least("--gps-every", args.gps_every, 1)
-    at_least("--max-iterations", args.max_iterations, 1)
-    for option, values in (("--pose-from-truth", args.pose_from_truth), ("--gps-from-truth", args.gps_from_truth)):
-        for value in values or ():
-            positive(option, value)
+    for option in ("--seed", "--duration", "--outliers", "--gps-every", "--max-iterations", "--max-delay", "--speed"):
+        check_option(option, getattr(args, option[2:].replace("-", "_")))
+    for option, values, names in (("--pose-from-truth", args.pose_from_truth, ("HZ", "POS_M", "ROT_RAD")),
+                                  ("--gps-from-truth", args.gps_from_truth, ("HZ", "POS_M"))):
+        for value, name in zip(values or (), names):
+            check_option(f"{option} {name}", value)
     check_lag(args.lag, "--lag", UserError)
-    if not (math.isfinite(args.max_delay) and args.max_delay >= 0):
-        raise UserError(f"--max-delay: expected a time in seconds >= 0 (finite), got {args.max_delay!r}")
-    positive("--speed", args.speed, "a factor")
     if args.realtime and args.estimator not in ("fixed-lag", "all"):
         raise UserError(f"--realtime replays through the fixed-lag smoother; it does not apply to --estimator "
                         f"{args.estimator}")
@@ -136,8 +139,9 @@ def _run(args) -> int:
         raise UserError(f"--max-delay applies to the fixed-lag smoother, not to --estimator {args.estimator}")
     if args.speed != 1.0 and not args.realtime:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
-    if args.keyframe_rate is not None:
-        positive("--keyframe-rate", args.keyframe_rate, "a rate")
+    for option, value in (("--keyframe-rate", args.keyframe_rate), ("--ekf-gate", args.ekf_gate)):
+        if value is not None:  # left out: none
+            check_option(option, value)
     options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,
@@ -159,12 +163,13 @@ def _run(args) -> int:
         dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig)
     else:
         dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
+    check_keyframe_rate(args.keyframe_rate, dataset)
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
         max_iterations=args.max_iterations,
         keyframe_rate=args.keyframe_rate, robust=robust,
-        ekf_gate=gate_probability(args.ekf_gate), covariances=not args.no_covariance, progress=args.progress,
+        ekf_gate=args.ekf_gate, covariances=not args.no_covariance, progress=args.progress,
         max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
         estimate_noise=("imu", *dataset.sensor_names) if args.estimate_noise else None,
     )
@@ -205,25 +210,28 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     except BaseException as error:  # keep what finished: an interruption
         if not estimates or not isinstance(error, KeyboardInterrupt):
             raise
-        stopped, code = interruption(error)
-        estimates = _in_order(estimates, names)
-        with out.outputs() as stage:
-            _write_outputs(args, stage, dataset, estimates, {**run_info, "stopped": stopped})
-        _say_removed(out)
-        print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
-              f"metrics.json says stopped: {stopped}", file=sys.stderr)
-        return code
+        return _stopped(args, out, dataset, _in_order(estimates, names), run_info, error)
     estimates = _in_order(estimates, names)
     dataset = record.get("dataset", dataset)  # as the estimators ran on it: the fitted noise, mountings as found
     run_info["mounting"] = record["mounting"].record() if "mounting" in record else {}
     for finding in record["mounting"].wrong if "mounting" in record else ():
         print(f"warning: mounting: {finding.message}", file=sys.stderr)
-    consistency = verdicts_by_estimator(dataset, estimates, run_options)
-    judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record))
-    baseline = report.interpolation_baseline(dataset)
+    # what follows the estimators never costs their outputs: stopped, the finished estimates are written
+    # without it; failed (out of memory, say), they are written, the failure said, and the run ends with 2
+    try:
+        consistency = verdicts_by_estimator(dataset, estimates, run_options)
+        judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record))
+        baseline = report.interpolation_baseline(dataset)
+        correlations = _calibration_correlations(dataset, estimates)
+    except KeyboardInterrupt as error:
+        return _stopped(args, out, dataset, estimates, run_info, error)
+    except Exception as error:  # noqa: BLE001 -- any failure of the analysis; the estimates stand without it
+        run_info["analysis_failed"] = " ".join(f"{type(error).__name__}: {error}".split())
+        print(f"warning: the analysis after the estimators failed ({run_info['analysis_failed']}): the estimates are "
+              "written without their verdicts", file=sys.stderr)
+        consistency, baseline, correlations = {}, None, {}
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
-    correlations = _calibration_correlations(dataset, estimates)
     with out.outputs() as stage:
         run_info["total_s"] = time.perf_counter() - started
         metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations)
@@ -236,7 +244,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         for path in figures:
             print(f"wrote {out.final(path)}", file=sys.stderr)
     print(format_table(metrics, dead_reckoning=not files.aiding_sensors(dataset),
-                       frame_note=world_frame(sensors_of(dataset)).note()))
+                       frame_note=world_frame(sensors_of(dataset)).note(), rig=args.rig is not None))
     for name, m in metrics.items():
         if m.get("ate_note"):
             print(f"warning: {name}: {m['ate_note']}", file=sys.stderr)
@@ -266,7 +274,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
     for line in consistency_lines(consistency):
         print(line, file=sys.stderr)
-    causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    try:  # the outputs are written: Ctrl-C or SIGTERM here ends the run with them kept
+        causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)
+    except Exception as error:  # noqa: BLE001 -- advice only: the run stands without it
+        print(f"warning: the fit of the sensors' likely calibrations failed ({type(error).__name__}: "
+              f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
+        causes = {}
     for line in consistency_warnings(consistency, imu_findings, causes):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
@@ -276,8 +289,20 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     print(f"outputs in {args.out}/", file=sys.stderr)
     if failed:
         print(f"{', '.join(failed)} failed (why: above and in metrics.json)", file=sys.stderr)
-        return 2
-    return 0
+    return 2 if failed or "analysis_failed" in run_info else 0
+
+
+def _stopped(args, out, dataset, estimates: dict, run_info: dict, error: KeyboardInterrupt) -> int:
+    """Ctrl-C or SIGTERM (``error``) after ``estimates`` finished: write them (without what was
+    still to be computed of them) with ``stopped`` in ``metrics.json``, say so, and return the exit
+    code."""
+    stopped, code = interruption(error)
+    with out.outputs() as stage:
+        _write_outputs(args, stage, dataset, estimates, {**run_info, "stopped": stopped})
+    _say_removed(out)
+    print(f"smoother: {stopped}: wrote the finished estimators ({', '.join(estimates)}) to {args.out}; "
+          f"metrics.json says stopped: {stopped}", file=sys.stderr)
+    return code
 
 
 def _calibration_correlations(dataset, estimates: dict) -> dict:
@@ -373,14 +398,17 @@ UNSCORED = "unscored"
 TRUTH_FIGURES = ("ate_rmse_m", "rot_rmse_deg", "nees_mean")
 
 
-def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None) -> str:
+def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | None = None,
+                 rig: bool = False) -> str:
     """One line per estimator with the headline metrics that exist; a figure against the truth
     that is not scored (too few states compared, metrics.json's ``ate_note``) shows
     :data:`UNSCORED`, and a closing line says so. Against GPS, two closing lines: the estimators
     ranked by their held-out RMSE (an accuracy), and what the fit residual is -- the distance to
     fixes an estimator used, which no ranking may rest on. With ``dead_reckoning`` (no aiding
     sensor) a closing line says that the estimates are the IMU's alone; ``frame_note``
-    (:meth:`datasets.initialise.WorldFrame.note`) closes an odometry-frame run's table."""
+    (:meth:`datasets.initialise.WorldFrame.note`) closes an odometry-frame run's table. Without
+    held-out fixes the table says how to hold some out: ``every`` in a ``rig`` file, else
+    ``--gps-every`` (which a rig run refuses)."""
     columns = [("ate_rmse_m", "ATE [m]"), ("rot_rmse_deg", "rot [deg]"), ("nees_mean", "NEES/dim"),
                ("gps_heldout_rmse_m", "held-out [m]"), ("gps_fit_residual_m", "fit resid [m]"),
                ("runtime_s", "time [s]")]
@@ -410,7 +438,8 @@ def format_table(metrics: dict, dead_reckoning: bool = False, frame_note: str | 
         if heldout:
             lines.append("ranked by held-out RMSE: " + " < ".join(sorted(heldout, key=heldout.get)))
         else:
-            lines.append("no held-out fixes: no ranking (hold fixes out with --gps-every K > 1)")
+            how = "a sensor's every = K > 1 in the rig file" if rig else "--gps-every K > 1"
+            lines.append(f"no held-out fixes: no ranking (hold fixes out with {how})")
         lines.append("fit resid: RMS distance to the fixes the estimators used -- a residual, not an accuracy")
     if any("doubtful" in m for m in metrics.values()):
         lines.append("(?): doubtful -- the estimate does not fit its own data (the warning below says how far)")

@@ -15,6 +15,9 @@
   that the new run did not write again are then deleted (and named on stderr), so that the
   directory never mixes two runs. A failure while writing (a full disk, Ctrl-C, SIGTERM) leaves the
   directory as it was.
+* **Only inside it**: the lock, every file moved in and every file deleted pass
+  :func:`smoother.outputs.confined.inside` first: a run file that is a symbolic link out of the
+  directory is refused (it would overwrite the file it leads to), before anything is moved.
 """
 from __future__ import annotations
 
@@ -27,8 +30,9 @@ import sys
 from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
-from factors.errors import InternalError
+from factors.errors import InputError, InternalError
 from smoother.errors import UserError
+from smoother.outputs.confined import inside
 from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
 #: The lock file of a run directory.
@@ -53,6 +57,7 @@ class RunDirectory:
     :meth:`outputs` deleted."""
 
     def __init__(self, path):
+        self._given = path
         self.path = Path(path)
         self.removed: list[str] = []
         self._lock: int | None = None
@@ -60,7 +65,13 @@ class RunDirectory:
     def __enter__(self) -> "RunDirectory":
         from smoother.commands import output_directory
 
-        output_directory(self.path)
+        output_directory(self._given)  # as given: an empty --out is refused, not taken for "."
+        for name in run_files():  # before any work: a run file that leads elsewhere would be written there
+            if os.path.lexists(self.path / name):
+                try:
+                    inside(self.path, name)
+                except InputError as error:
+                    raise UserError(f"--out {self.path}: {error}; remove it or choose another --out") from None
         self._take_lock()
         self._clear_stale_staging()
         return self
@@ -71,7 +82,7 @@ class RunDirectory:
             self._lock = None
 
     def _take_lock(self) -> None:
-        path = self.path / LOCK
+        path = inside(self.path, LOCK)  # truncated below: never a file elsewhere that a link leads to
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
         except OSError as error:
@@ -117,7 +128,8 @@ class RunDirectory:
     @contextlib.contextmanager
     def outputs(self, replace: bool = True):
         """A staging folder to write run files into (the block's value, a ``Path``); when the
-        block ends they are moved into the directory, ``metrics.json`` last. With ``replace``
+        block ends they are moved into the directory, ``metrics.json`` last, each checked to stay
+        inside it (:func:`smoother.outputs.confined.inside`). With ``replace``
         the run files already in the directory that the block did not write are the previous
         run's: they are deleted and listed in ``removed``. When the block raises, nothing
         changes in the directory; an ``OSError`` names the directory's file, not the staged one.
@@ -132,6 +144,10 @@ class RunDirectory:
                 raise InternalError(f"run files not declared in smoother.outputs.layout: {', '.join(unknown)}")
             previous = sorted(p.name for p in self.path.iterdir() if p.name in names and p.name not in written
                               and (p.is_file() or p.is_symlink())) if replace else []
+            for name in written:
+                inside(self.path, name)
+            for name in previous:
+                inside(self.path, name, follow=False)
             stage.commit(remove=previous, last=METRICS)
             self.removed = previous
 

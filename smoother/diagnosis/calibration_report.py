@@ -30,11 +30,22 @@ carry less information than that, and the line gives the factor ``sqrt((1 + rho)
 when it is :data:`CORRELATION_FACTOR` or more: an AR(1) error's variance inflation for a slowly
 varying regressor (a constant lever arm, a time offset read through a smooth velocity); an
 error drifting otherwise, or one the estimate partly follows, can inflate it more.
+
+Across estimators (:func:`disagreements`): the batch smoother, the fixed-lag smoother and the EKF
+estimate the same calibration from the same data, so each coordinate's values must agree within
+what their sigmas allow. Two values ``a``, ``b`` disagree when ``|a - b| > DISAGREEMENT_SIGMAS
+sqrt(sigma_a^2 + sigma_b^2)`` (a rotation's difference ``log(R_a R_b^T)``, about the IMU frame's
+axes); estimates of the same data are correlated, which only makes the difference's true sigma
+smaller, so the test errs towards silence. A calibration the data barely fix, under a wide prior,
+can settle in a wrong minimum in one estimator and not in the others; a disagreement says that one
+of them has, and which: of two that disagree, the one that disagrees with more of the others (both,
+when as many).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from factors import so3
 from factors.calibration import PART_COLUMNS
 from smoother.diagnosis.verdicts import far_off
 
@@ -45,6 +56,10 @@ UNOBSERVED_RATIO = 0.9
 #: From how large a factor on the sigmas the correlation of a sensor's residuals is said
 #: (``rho`` 0.38 and more).
 CORRELATION_FACTOR = 1.5
+
+#: Two estimators' values of a calibrated coordinate disagree beyond this many sigmas of their
+#: difference (module docstring).
+DISAGREEMENT_SIGMAS = 3.0
 
 _AXES = ("x", "y", "z")
 
@@ -167,3 +182,74 @@ def fit_note(verdict: dict | None, rho: float | None) -> str:
                    "independent")
     ar1 = " if its errors drift as AR(1)" if correlated >= CORRELATION_FACTOR else ""
     return f"{'; '.join(said)}: by its residuals they would be {qualifier}{factor:.2g}x these{ar1} -- {advice}"
+
+
+def _coordinates(record: dict, against: dict) -> dict[str, tuple]:
+    """A calibration record's estimated coordinates (module docstring), ``{name: (value, sigma,
+    shown, unit)}``: ``value`` what differences are taken of (a rotation matrix's row for each of
+    its axes), ``shown`` the value as printed (a rotation's turn from the one given, in degrees)."""
+    out = {}
+    if "time_offset_s" in record:
+        out["time offset"] = (record["time_offset_s"], record["time_offset_sigma_s"], record["time_offset_s"], "s")
+    if "rotation_sigma_rad" in record:
+        R = np.asarray(record["T_BS"], dtype=float)[:3, :3]
+        turned = np.degrees(against.get("rotation_change_rad", [np.nan] * 3))
+        for i, axis in enumerate(_AXES):
+            out[f"rotation about {axis}"] = ((R, i), record["rotation_sigma_rad"][i], turned[i], "deg")
+    if "lever_arm_m" in record:
+        for i, axis in enumerate(_AXES):
+            value = record["lever_arm_m"][i]
+            out[f"lever arm {axis}"] = (value, record["lever_arm_sigma_m"][i], value, "m")
+    if "scale" in record:
+        out["scale"] = (record["scale"], record["scale_sigma"], record["scale"], "")
+    return out
+
+
+def _difference(a, b) -> float:
+    """Two coordinates' values apart: a rotation's axis of ``log(R_a R_b^T)``, else ``a - b``."""
+    if isinstance(a, tuple):
+        (Ra, axis), (Rb, _) = a, b
+        return float(so3.log(Ra @ Rb.T)[axis])
+    return float(a - b)
+
+
+def _shown(value: float, sigma: float, unit: str) -> str:
+    if unit == "deg":
+        return f"{value:+.3g} +- {np.degrees(sigma):.2g} deg"
+    return f"{value:+.4g} +- {sigma:.2g}" + (f" {unit}" if unit else "")
+
+
+def disagreements(details: dict[str, dict]) -> dict[str, str]:
+    """Which estimators' calibrations disagree with the others' (module docstring), ``{estimator:
+    why}`` in one phrase naming each sensor and coordinate, from each estimator's ``details``
+    (``{estimator: details}``, with ``calibration`` and ``calibration_against_prior`` as
+    :func:`calibration_records` makes them; an estimator without them, or that failed, has none). Costs one
+    comparison per pair of estimators and coordinate."""
+    coordinates = {}
+    for name, d in details.items():
+        against = d.get("calibration_against_prior", {})
+        coordinates[name] = {(sensor, c): v for sensor, record in d.get("calibration", {}).items()
+                             for c, v in _coordinates(record, against.get(sensor, {})).items()}
+    said: dict[str, list[str]] = {}
+    for key in dict.fromkeys(k for c in coordinates.values() for k in c):
+        have = {name: c[key] for name, c in coordinates.items() if key in c}
+        apart = {name: {} for name in have}  # estimator: {other: sigmas apart}
+        for a in have:
+            for b in have:
+                if a < b:
+                    (va, sa, _, _), (vb, sb, _, _) = have[a], have[b]
+                    sigmas = abs(_difference(va, vb)) / max(float(np.hypot(sa, sb)), np.finfo(float).tiny)
+                    if sigmas > DISAGREEMENT_SIGMAS:
+                        apart[a][b] = apart[b][a] = sigmas
+        for name, others in apart.items():
+            if not any(len(apart[o]) <= len(others) for o in others):
+                continue
+            sensor, coordinate = key
+            _, sigma, shown, unit = have[name]
+            theirs = " and ".join(f"the {o}'s {_shown(have[o][2], have[o][1], unit)}" for o in others)
+            said.setdefault(name, []).append(
+                f"its {sensor} {coordinate}, {_shown(shown, sigma, unit)}, disagrees with {theirs} "
+                f"({' and '.join(f'{x:.1f}' for x in others.values())} sigmas of their difference)")
+    return {name: "; ".join(lines) + ": estimates of one calibration from the same data must agree within their "
+                                     "sigmas, so this one (or the other) may have settled in a wrong minimum"
+            for name, lines in said.items()}

@@ -71,8 +71,19 @@ significant candidates (every other sensor's calibration held at 0, :func:`_gain
 fit: the part of what is left without it that it explains. A pitch that explains most of a
 wheel's residuals leaves its scale a share of the rest, and two candidates that cancel each other
 (a time offset and a lever arm along the direction of travel, at the usual speed) have little
-gain each. A cause is ``suggested`` when some component has ``|dc| > SIGNIFICANCE sigma`` and its
-share is at least :data:`MATERIAL_SHARE`.
+gain each. A cause is ``suggested`` when some component is significant -- ``|dc| > SIGNIFICANCE
+sigma`` and at least :data:`SMALLEST`, the finest prior a rig can write for that part (a
+correction below it is no advice a rig can take: on model-exact data a lever arm of 1e-17 m is
+"significant" against a sigma of 1e-18) -- and its share is at least :data:`MATERIAL_SHARE`, and
+the sensor's residuals leave at least :data:`smoother.diagnosis.verdicts.MIN_DOF` degrees of
+freedom once the candidates are fitted (on fewer, their variance, and so the sigmas, are a few
+squares' noise: ``judged`` False).
+
+Cost. The candidates of every sensor fitted together are a dense block the states' elimination
+carries along, its width squared per keyframe: so at most :data:`MAX_ANALYSED` sensors are fitted
+together, of more the :func:`suspects` (a screen linear in the measurements), and the elimination
+runs :data:`ELIMINATION_CHUNK` keys per GTSAM call, so that a Ctrl-C or SIGTERM, which Python
+handles between calls, stops it promptly. The whole is linear in the sensors and the keyframes.
 """
 from __future__ import annotations
 
@@ -82,20 +93,32 @@ import gtsam
 import numpy as np
 
 from datasets.kinds import KINDS, measure_rows, sensors_of
+from datasets.ranges import RANGES
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu, so3
 from factors.sensor_models import extrinsic_parts
+from smoother.diagnosis.verdicts import MIN_DOF, out_of_band
 from smoother.estimators import ESTIMATORS
-from smoother.model.problem import build_problem
 from smoother.model.blocks import Block, evaluate_block, linearize, whitening
+from smoother.model.problem import build_problem
 
 #: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
 #: each correction (scale - 1, s, rad, m).
 PRIOR_SIGMA = {"scale": 1.0, "time_offset": 1.0, "rotation": 1.0, "lever_arm": 10.0}
+#: At most this many sensors' candidates are fitted together (:func:`suspects`): the candidates'
+#: dense block costs their number squared per keyframe and their cube once; with more sensors the
+#: whole fit took 3 s at 100 and 99 s and 3.7 GB at 300 (20 s of data).
+MAX_ANALYSED = 8
+#: Keys eliminated per GTSAM call (:func:`_eliminated`): a call runs some tens of milliseconds,
+#: and Ctrl-C or SIGTERM, which Python handles between calls only, stops the fit promptly.
+ELIMINATION_CHUNK = 200
 #: The kinds whose reading can be off by a scale (the prediction is the scaled quantity).
 SCALED_KINDS = ("velocity",)
 #: A component is significant beyond this many sigmas.
 SIGNIFICANCE = 5.0
+#: The smallest correction of each candidate that is advice: the finest prior sigma a rig can
+#: write for the part (``datasets.ranges``: ``sensor.<part>_sigma``'s lower bound).
+SMALLEST = {part: RANGES[f"sensor.{part}_sigma"].low for part in PRIOR_SIGMA}
 #: A suggested cause explains at least this fraction of the sensor's residual sum of squares.
 MATERIAL_SHARE = 0.1
 #: Half the window [s] over which the IMU's readings are averaged for the time-offset pattern.
@@ -110,22 +133,24 @@ _STEP = 1e-6
 class Cause:
     """One candidate calibration's fit: ``calibration`` (a key of :data:`PRIOR_SIGMA`), the
     correction ``value`` and its ``sigma`` (``(1,)`` for scale, as ``s - 1``, and time offset
-    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame) and ``share`` (module
+    [s]; ``(3,)`` for rotation [rad] and lever arm [m], IMU frame), ``share`` and ``judged``
+    (whether the sensor's residuals left enough degrees of freedom to judge it; module
     docstring)."""
 
     calibration: str
     value: np.ndarray
     sigma: np.ndarray
     share: float
+    judged: bool = True
 
     @property
     def significant(self) -> np.ndarray:
-        """Per component: ``|value| > SIGNIFICANCE sigma``."""
-        return np.abs(self.value) > SIGNIFICANCE * self.sigma
+        """Per component: :func:`significant`."""
+        return significant(self.calibration, self.value, self.sigma)
 
     @property
     def suggested(self) -> bool:
-        return bool(self.significant.any()) and self.share >= MATERIAL_SHARE
+        return self.judged and bool(self.significant.any()) and self.share >= MATERIAL_SHARE
 
     def text(self) -> str:
         """The fit in the rig's units, e.g. ``scale 0.9900 +- 0.0004``, ``time offset -0.100 s +-
@@ -140,6 +165,13 @@ class Cause:
             return "rotation " + ", ".join(
                 f"about {'xyz'[a]} {_pm(np.degrees(self.value[a]), np.degrees(self.sigma[a]), ' deg')}" for a in axes)
         return "lever arm " + ", ".join(f"{'xyz'[a]} {_pm(self.value[a], self.sigma[a], ' m')}" for a in axes)
+
+
+def significant(calibration: str, value: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Per component of a ``calibration`` candidate's correction ``value``: beyond
+    :data:`SIGNIFICANCE` times its ``sigma`` and at least :data:`SMALLEST`."""
+    size = np.abs(value)
+    return (size > SIGNIFICANCE * sigma) & (size >= SMALLEST[calibration])
 
 
 def _pm(value: float, sigma: float, unit: str, signed: bool = True) -> str:
@@ -160,16 +192,17 @@ def hint(causes: list[Cause]) -> str | None:
             + f": add estimate = [{keys}]")
 
 
-def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity) -> tuple:
+def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity, sums=None) -> tuple:
     """``(e (N, d), {calibration: X (N, d, k)})``: the kernel's residuals of ``sensor``'s
     measurements at ``states`` (one per measurement) and each candidate's columns ``X = -de/dc``
-    (module docstring); candidates that do not enter the kind's residual are left out."""
+    (module docstring); candidates that do not enter the kind's residual are left out. ``sums``:
+    the samples' :func:`imu_sums`, when the caller made them once for many sensors."""
     kind, m = KINDS[sensor.kind], sensor.data
     e, H = measure_rows(kind, states, kind.pack(m))
     out = {}
     if kind.name in SCALED_KINDS:
         out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
-    acc, gyro = _averaged_imu(imu_samples, m.t, AVERAGE_S)
+    acc, gyro = _averaged_imu(imu_samples, m.t, AVERAGE_S, imu_sums(imu_samples) if sums is None else sums)
     xdot = imu.state_derivative(states, acc, gyro, gravity)
     out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
     R, p = extrinsic_parts(m.T_BS)
@@ -191,17 +224,20 @@ def _kernel_difference(kind, m, states, moved, step) -> np.ndarray:
     return -(residual(step) - residual(-step)) / (2.0 * np.linalg.norm(step))
 
 
-def _averaged_imu(samples: ImuSamples, t: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+def imu_sums(samples: ImuSamples) -> tuple[np.ndarray, np.ndarray]:
+    """The cumulative sums of the specific force and of the angular rate, each ``(len + 1, 3)``
+    from 0, of which :func:`patterns` takes the readings' means over windows."""
+    return tuple(np.concatenate([np.zeros((1, 3)), np.cumsum(x, axis=0)]) for x in (samples.acc, samples.gyro))
+
+
+def _averaged_imu(samples: ImuSamples, t: np.ndarray, half: float, sums) -> tuple[np.ndarray, np.ndarray]:
     """The mean specific force and angular rate of the samples in ``[t - half, t + half]`` (at
-    least the sample held at ``t``), by cumulative sums."""
+    least the sample held at ``t``), from their cumulative ``sums`` (:func:`imu_sums`)."""
     held = samples.held(t)
     lo = np.minimum(np.searchsorted(samples.t, t - half, side="left"), held)
     hi = np.maximum(np.searchsorted(samples.t, t + half, side="right"), held + 1)
-    means = []
-    for x in (samples.acc, samples.gyro):
-        total = np.concatenate([np.zeros((1, 3)), np.cumsum(x, axis=0)])
-        means.append((total[hi] - total[lo]) / (hi - lo)[:, None])
-    return means[0], means[1]
+    acc, gyro = ((total[hi] - total[lo]) / (hi - lo)[:, None] for total in sums)
+    return acc, gyro
 
 
 def _whitened(sensor: Sensor, e: np.ndarray, X: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -226,13 +262,16 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     at least the one its sigma states. ``calibration``: the values of the calibration variables
     the blocks read (:class:`factors.calibration.CalibrationSet`; keys ``n + j``, free in the step
     like the states), or None. By sensor name."""
-    graph, _ = linearize([b for b in blocks if b.name not in {s.name for s in sensors}], states, calibration)
+    fitted = {s.name for s in sensors if not KINDS[s.kind].relative}
+    sums = imu_sums(imu_samples)
+    graph, _ = linearize([b for b in blocks if b.name not in fitted], states, calibration)
+    by_name = {b.name: b for b in blocks}
     estimated = 0 if calibration is None else len(calibration)
     parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
-    for sensor in (s for s in sensors if not KINDS[s.kind].relative):
-        [block] = [b for b in blocks if b.name == sensor.name]
+    for sensor in (s for s in sensors if s.name in fitted):
+        block = by_name[sensor.name]
         kf = block.keyframes[:, 0]
-        e, X = patterns(sensor, states[kf], imu_samples, gravity)
+        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums)
         ev = evaluate_block(block, states, True)
         b, A = _whitened(sensor, e, X)
         A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
@@ -248,10 +287,8 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
         return {}
     keys = [part[0] for part in parts.values()]
     colamd = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
-    ordering = gtsam.Ordering()
-    for j in [colamd.at(j) for j in range(colamd.size()) if colamd.at(j) not in keys] + keys:
-        ordering.push_back(j)
-    net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
+    last = set(keys)
+    net = _eliminated(graph, [k for k in (colamd.at(j) for j in range(colamd.size())) if k not in last] + keys)
     step = net.optimize()
     # the calibrations, eliminated last, are the last conditionals: their joint square-root information
     tail = [net.at(j) for j in range(net.size() - len(keys), net.size())]
@@ -274,21 +311,66 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     return out
 
 
+def _eliminated(graph: gtsam.GaussianFactorGraph, order: list[int]) -> gtsam.GaussianBayesNet:
+    """``graph`` eliminated by QR in the order ``order``, as :data:`ELIMINATION_CHUNK` keys per
+    GTSAM call (GTSAM holds the interpreter for a whole call: signals wait until it returns): the
+    Bayes net of one ``eliminateSequential`` over the same order."""
+    net, rest = gtsam.GaussianBayesNet(), graph
+    for at in range(0, len(order), ELIMINATION_CHUNK):
+        ordering = gtsam.Ordering()
+        for key in order[at:at + ELIMINATION_CHUNK]:
+            ordering.push_back(key)
+        part, rest = rest.eliminatePartialSequential(ordering, gtsam.EliminateQR)
+        for j in range(part.size()):
+            net.push_back(part.at(j))
+    return net
+
+
+def candidates(dataset) -> list[Sensor]:
+    """The sensors of ``dataset`` whose calibration the fit can suggest: of an absolute kind, and
+    not estimating one of their own."""
+    return [s for s in sensors_of(dataset) if s.calibrate is None and not KINDS[s.kind].relative]
+
+
+def suspects(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
+             gravity) -> list[Sensor]:
+    """The :data:`MAX_ANALYSED` of ``sensors`` (all of them when as few) whose candidates explain
+    most of their own residuals at ``states`` (their blocks in ``blocks``), each sensor alone and
+    the states held: the decrease ``g^T (A^T A + P^-1)^-1 g`` of its whitened cost (``A`` its
+    whitened candidates' columns, ``g = A^T b``, ``P`` the weak prior). A screen, linear in the
+    measurements: the fit proper (:func:`fit_in_problem`) then gives back what the states absorbed,
+    and puts each misfit on one sensor."""
+    if len(sensors) <= MAX_ANALYSED:
+        return list(sensors)
+    by_name, sums = {b.name: b for b in blocks}, imu_sums(imu_samples)
+
+    def explained(sensor) -> float:
+        kf = by_name[sensor.name].keyframes[:, 0]
+        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums)
+        b, A = _whitened(sensor, e, X)
+        A, b = A.reshape(-1, A.shape[2]), b.reshape(-1)
+        g = A.T @ b
+        return float(g @ np.linalg.solve(A.T @ A + np.diag(1.0 / _prior(X) ** 2), g))
+
+    return sorted(sensors, key=explained, reverse=True)[:MAX_ANALYSED]
+
+
 def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None, robust: dict | None = None,
               dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
-    """:func:`fit_in_problem` of every sensor of ``dataset`` that estimates no calibration of its
-    own, in its batch problem (:func:`smoother.model.problem.build_problem` with ``keyframe_rate`` and
-    ``robust``) started from ``estimate`` (any estimator's, over the same data) and from the
-    calibrations it estimated (``calibration``; None: the values given): one Gauss-Newton step
-    from there, the states, the estimated calibrations and the candidates together; ``dof`` as
-    :func:`fit_in_problem` takes it."""
+    """:func:`fit_in_problem` of the :func:`candidates` of ``dataset`` (of more than
+    :data:`MAX_ANALYSED`, the :func:`suspects`), in its batch problem
+    (:func:`smoother.model.problem.build_problem` with ``keyframe_rate`` and ``robust``) started
+    from ``estimate`` (any estimator's, over the same data) and from the calibrations it estimated
+    (``calibration``; None: the values given): one Gauss-Newton step from there, the states, the
+    estimated calibrations and the candidates together; ``dof`` as :func:`fit_in_problem` takes
+    it."""
     problem = build_problem(dataset, keyframe_rate, robust, start=estimate)
     values = problem.calibration
     if values is not None and calibration is not None:
         values = calibration
-    candidates = [s for s in sensors_of(dataset) if s.calibrate is None]
-    return fit_in_problem(problem.blocks, problem.initial_states, candidates, dataset.imu, dataset.gravity, dof,
-                          values)
+    states = problem.initial_states
+    chosen = suspects(problem.blocks, states, candidates(dataset), dataset.imu, dataset.gravity)
+    return fit_in_problem(problem.blocks, states, chosen, dataset.imu, dataset.gravity, dof, values)
 
 
 def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,
@@ -298,8 +380,9 @@ def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | No
     :func:`smoother.pipeline.run_estimators` returns them), saying which; ``{}`` when every verdict
     of ``consistency`` (the IMU's too) is in its band (nothing to explain) or without an estimate.
     The sensor suggested need not be the one out of its band: a wheel's pitch that the states
-    absorb shows in the fixes'."""
-    if all(c["ok"] for verdicts in consistency.values() for c in verdicts.values()):
+    absorb shows in the fixes'. Of a larger rig, the :data:`MAX_ANALYSED` :func:`suspects` are
+    fitted: the cost is linear in the number of sensors and of keyframes."""
+    if not any(out_of_band(c) for verdicts in consistency.values() for c in verdicts.values()):
         return {}
     ran = [name for name in ESTIMATORS if name in estimates and estimates[name].failed is None]
     if not ran:
@@ -372,7 +455,8 @@ def _causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray
     sigma = np.sqrt(np.diag(cov) * variance * (1.0 + rho) / (1.0 - rho))
     bounds = np.cumsum([0, *(x.shape[2] for x in X.values())])
     parts = [slice(bounds[j], bounds[j + 1]) for j in range(len(X))]
-    significant = [bool(np.any(np.abs(value[S]) > SIGNIFICANCE * sigma[S])) for S in parts]
-    gains = _gains(information, gradient, X, significant)
-    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0)
+    chosen = [bool(significant(name, value[S], sigma[S]).any()) for name, S in zip(X, parts)]
+    gains = _gains(information, gradient, X, chosen)
+    judged = (dof if dof is not None else n * d) - k >= MIN_DOF
+    return [Cause(name, value[S].copy(), sigma[S], gain / (gain + squares) if gain + squares > 0 else 0.0, judged)
             for name, S, gain in zip(X, parts, gains)]

@@ -7,7 +7,10 @@ per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N di
 probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
 or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
 Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
-large by construction).
+large by construction). A sensor whose every update was rejected has a verdict of none (no
+figure), and an EKF that rejected most of a sensor's updates shows mostly the IMU's dead
+reckoning there, whatever its table says: it is doubtful (:func:`rejections`), and one that used
+no aiding measurement at all is said to be dead reckoning.
 
 The smoothers' own residuals are judged the same way, with the degrees of freedom their fit leaves
 them (:mod:`smoother.diagnosis.residual_consistency`), and the IMU factors' among them:
@@ -22,6 +25,14 @@ offset, a rotation or a lever arm, with its fitted value), and the sigma after i
 pattern makes a sigma look too small or, beside a sigma stated too large, hides behind it. A
 sensor with such a finding is warned of however near its band it is: the states may have
 followed its error, which then shows in the other sensors.
+A verdict needs :data:`MIN_DOF` degrees of freedom (:func:`judgeable`): residuals that the fit
+leaves less than one independent square's worth of carry no test, and the band of their mean
+collapses towards zero -- a GNSS-only rig's IMU factors, whose residuals the fixes leave 0.0007
+degrees of freedom, would be "out of" a band of 0 to 5e-30. Such a verdict keeps its figure and
+degrees of freedom, has no band and no ``ok``, is printed as :data:`TOO_FEW_DOF`, and counts
+towards no warning, doubt or advice. From one degree of freedom on the band is a real one (0.001
+to 5 at one, 0.013 to 3.7 at two): a rig with GNSS and wheels leaves its IMU factors about two,
+on which a gyro read in deg/s is judged at 7e6 per dof.
 When the IMU itself has findings
 (:func:`datasets.imu_health.inspect_imu`: clipping, spikes, gaps, wrong units), or its own
 residuals are further out than a sensor's, that sensor's misfit is a symptom first: the warning
@@ -39,6 +50,12 @@ BAND_PROBABILITY = 0.95
 #: A sensor is warned about when its NIS per dof is outside the band and outside
 #: ``[1 / WARN_FACTOR, WARN_FACTOR]``.
 WARN_FACTOR = 2.0
+#: The fewest degrees of freedom a verdict is formed on (module docstring).
+MIN_DOF = 1.0
+#: What is printed of a verdict on fewer than :data:`MIN_DOF` degrees of freedom.
+TOO_FEW_DOF = "too few degrees of freedom to judge"
+#: An EKF that rejected more than this share of a sensor's updates is doubtful (:func:`rejections`).
+MOST_REJECTED = 0.5
 
 
 def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
@@ -46,47 +63,97 @@ def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
     (``total / dof``), ``band`` (the :data:`BAND_PROBABILITY` interval of ``per_dof`` for a model
     that fits), ``ok`` (inside it), ``measurements`` (``count``), ``dof`` and ``statistic``:
     ``"nis"`` (the EKF's innovations) or ``"residual"`` (a smoother's own residuals,
-    :mod:`smoother.diagnosis.residual_consistency`)."""
-    lo, hi = per_dof_band(dof, BAND_PROBABILITY)
-    value = total / dof
-    return {"per_dof": value, "band": [lo, hi], "ok": bool(lo <= value <= hi), "measurements": int(count),
-            "dof": dof, "statistic": statistic}
+    :mod:`smoother.diagnosis.residual_consistency`). On fewer than :data:`MIN_DOF` degrees of
+    freedom ``band`` and ``ok`` are None: not judged (:func:`judgeable`); on none, ``per_dof``
+    is None too (a sensor whose every update the EKF's gate rejected)."""
+    value = total / dof if dof > 0 else None
+    out = {"per_dof": value, "band": None, "ok": None, "measurements": int(count), "dof": dof, "statistic": statistic}
+    if dof >= MIN_DOF:
+        lo, hi = per_dof_band(dof, BAND_PROBABILITY)
+        out["band"], out["ok"] = [lo, hi], bool(lo <= value <= hi)
+    return out
+
+
+def judgeable(c: dict) -> bool:
+    """Whether the verdict ``c`` (:func:`verdict`, or its record in ``metrics.json``) was formed:
+    it has a band (at least :data:`MIN_DOF` degrees of freedom)."""
+    return c.get("band") is not None
+
+
+def out_of_band(c: dict) -> bool:
+    """``c`` (a :func:`verdict`) was formed and lies outside its band."""
+    return judgeable(c) and not c["ok"]
+
+
+def shown(c: dict) -> str:
+    """A verdict's figure as printed: ``1.03 (0.94-1.1) ok``, ``14.1 (0.82-1.2) OUT OF BAND``;
+    not judged, ``1.21: too few degrees of freedom to judge (0.0007)``; of no update, ``none used
+    (301 rejected by the gate)``."""
+    if c["per_dof"] is None:
+        return f"none used ({c.get('rejected', 0)} rejected by the gate)"
+    if not judgeable(c):
+        return f"{c['per_dof']:.3g}: {TOO_FEW_DOF} ({c['dof']:.2g})"
+    return f"{c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) {'ok' if c['ok'] else 'OUT OF BAND'}"
+
+
+def rejections(consistency: dict[str, dict]) -> str | None:
+    """Why an EKF whose gate rejected more than :data:`MOST_REJECTED` of some sensor's updates
+    (``consistency``: its verdicts, :func:`sensor_consistency`) is doubtful, naming each such
+    sensor -- an estimate that used none of its aiding measurements is the IMU's dead reckoning
+    -- or None."""
+    most = {s: c["rejected"] for s, c in consistency.items()
+            if "rejected" in c and c["rejected"] > MOST_REJECTED * (c["rejected"] + c["measurements"])}
+    if not most:
+        return None
+    counts = ", ".join(f"{rejected} of {rejected + consistency[s]['measurements']} {s} measurements"
+                       for s, rejected in most.items())
+    if not any(c["measurements"] for c in consistency.values()):
+        return (f"its gate rejected {counts}: it used no aiding measurement, so it is dead reckoning (the IMU "
+                "alone), not a fused estimate, and its errors grow without bound")
+    return (f"its gate rejected {counts}: there it shows mostly the IMU's dead reckoning, not those sensors "
+            "(a gate that tight, or measurements that contradict the rest)")
 
 
 def sensor_consistency(innovations: Innovations) -> dict[str, dict]:
     """Per sensor, the :func:`verdict` of its NIS through the EKF, and ``rejected``: the updates
-    the EKF's gate refused. Only accepted updates count (module docstring); updates after a
-    divergence (NaN) not at all."""
+    the EKF's gate refused. Only accepted updates count (module docstring; a sensor with none has
+    a verdict of none); updates after a divergence (NaN) not at all."""
+    names, first, which = np.unique(innovations.sensor, return_index=True, return_inverse=True)
+    finite = np.isfinite(innovations.nis)
+    accepted = finite & innovations.accepted
+
+    def per_sensor(weights, mask) -> np.ndarray:  # sums over each sensor's updates, in one pass
+        return np.bincount(which[mask], weights=None if weights is None else weights[mask], minlength=len(names))
+
+    updates, used = per_sensor(None, finite), per_sensor(None, accepted)
+    dof, total = per_sensor(innovations.dim.astype(float), accepted), per_sensor(innovations.nis, accepted)
     out = {}
-    for name in dict.fromkeys(innovations.sensor):
-        ours = (innovations.sensor == name) & np.isfinite(innovations.nis)
-        mine = ours & innovations.accepted
-        if not mine.any():
-            continue
-        dof = float(innovations.dim[mine].sum())
-        out[str(name)] = {**verdict(float(innovations.nis[mine].sum()), dof, int(mine.sum()), "nis"),
-                          "rejected": int((ours & ~innovations.accepted).sum())}
+    for j in np.argsort(first):  # in the order the sensors first updated
+        if updates[j]:
+            out[str(names[j])] = {**verdict(float(total[j]), float(dof[j]), int(used[j]), "nis"),
+                                  "rejected": int(updates[j] - used[j])}
     return out
 
 
 def overall(consistency: dict[str, dict]) -> dict | None:
     """The :func:`verdict` of all of one estimator's verdicts together (their sums and degrees of
-    freedom added), or None without any."""
-    if not consistency:
+    freedom added), of those formed (:func:`judgeable`: one on too few degrees of freedom counts
+    for nothing, here neither), or None without any."""
+    parts = [c for c in consistency.values() if judgeable(c)]
+    if not parts:
         return None
-    parts = list(consistency.values())
     total = sum(c["per_dof"] * c["dof"] for c in parts)
     return verdict(total, sum(c["dof"] for c in parts), sum(c["measurements"] for c in parts), parts[0]["statistic"])
 
 
 def far_above(c: dict) -> bool:
-    """``c`` (a :func:`verdict`) is above its band and :data:`WARN_FACTOR` or more above 1."""
-    return c["per_dof"] > max(c["band"][1], WARN_FACTOR)
+    """``c`` (a :func:`verdict`) was formed, is above its band and :data:`WARN_FACTOR` or more above 1."""
+    return judgeable(c) and c["per_dof"] > max(c["band"][1], WARN_FACTOR)
 
 
 def far_below(c: dict) -> bool:
-    """``c`` (a :func:`verdict`) is below its band and :data:`WARN_FACTOR` or more below 1."""
-    return c["per_dof"] < min(c["band"][0], 1.0 / WARN_FACTOR)
+    """``c`` (a :func:`verdict`) was formed, is below its band and :data:`WARN_FACTOR` or more below 1."""
+    return judgeable(c) and c["per_dof"] < min(c["band"][0], 1.0 / WARN_FACTOR)
 
 
 def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
@@ -96,16 +163,16 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
     measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
-        out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"}).update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"],
-                                         "heldout_ok": h["ok"], "heldout_measurements": h["measurements"],
-                                         "heldout_state_share": h["state_share"]})
+        own = out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"})
+        own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
+                    "heldout_measurements": h["measurements"], "heldout_state_share": h["state_share"]})
     return out
 
 
 def far_off(c: dict) -> bool:
-    """``c`` (a :func:`verdict`) is outside its band and :data:`WARN_FACTOR` or more from 1 (a
-    warning's condition)."""
-    return not c["ok"] and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
+    """``c`` (a :func:`verdict`) was formed, is outside its band and :data:`WARN_FACTOR` or more
+    from 1 (a warning's condition)."""
+    return out_of_band(c) and not 1.0 / WARN_FACTOR < c["per_dof"] < WARN_FACTOR
 
 
 def _by_sensor(by_estimator: dict[str, dict]) -> dict[str, dict]:
@@ -125,12 +192,11 @@ _STATISTIC = {"nis": "NIS", "residual": "residuals", "heldout": "held-out predic
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     """One line per sensor (the IMU last): each estimator's figure per dof with its statistic and
-    band, and whether it fits."""
+    band, and whether it fits (:func:`shown`; one on too few degrees of freedom says so)."""
     lines = []
     for sensor, verdicts in _by_sensor(by_estimator).items():
-        count = max(c["measurements"] for c in verdicts.values())
-        parts = [f"{estimator} {_STATISTIC[c['statistic']]} {c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) "
-                 f"{'ok' if c['ok'] else 'OUT OF BAND'}" for estimator, c in verdicts.items()]
+        count = max(c["measurements"] + c.get("rejected", 0) for c in verdicts.values())
+        parts = [f"{estimator} {_STATISTIC[c['statistic']]} {shown(c)}" for estimator, c in verdicts.items()]
         name = "imu" if sensor == IMU else f"sensor {sensor}"
         lines.append(f"{name} ({count} {'factors' if sensor == IMU else 'measurements'}), per dof: " + "; ".join(parts))
     return lines
@@ -139,11 +205,11 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
                          causes: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
-    with the figure of every estimator outside its band, naming what to check, and one per sensor with an entry in ``causes`` (per sensor, the
-    calibration its residuals point at, :func:`smoother.diagnosis.misfit_causes.hints`) however near its
-    band: a sensor's line names that first, before its sigma (a systematic pattern also makes a
-    sigma look too large or too small). When the IMU's own
-    residuals are far above their band, or its raw data have ``imu_findings``
+    with the figure of every estimator outside its band, naming what to check, and one per sensor
+    with an entry in ``causes`` (per sensor, the calibration its residuals point at,
+    :func:`smoother.diagnosis.misfit_causes.hints`) however near its band: a sensor's line names
+    that first, before its sigma (a systematic pattern also makes a sigma look too large or too
+    small). When the IMU's own residuals are far above their band, or its raw data have ``imu_findings``
     (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
     lines say that their misfit may follow from it -- but for a sensor with a cause, whose
     calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
@@ -160,9 +226,9 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
             continue
         # once a sensor warns, every estimator whose figure is out of its band is named, not only
         # those far enough off to raise the warning
-        shown = {e: c for e, c in verdicts.items() if not c["ok"]} if off else verdicts
+        named = {e: c for e, c in verdicts.items() if out_of_band(c)} if off else verdicts
         figures = ", ".join(f"{e} {c['per_dof']:.3g} (expected {c['band'][0]:.2g}-{c['band'][1]:.2g})"
-                            for e, c in shown.items())
+                            if judgeable(c) else f"{e} {shown(c)}" for e, c in named.items())
         if not off:  # near its band: the calibration it points at is the finding
             lines.append(f"{sensor}: per dof {figures}: its residuals point at {pattern}")
             continue

@@ -18,6 +18,10 @@ import numpy as np
 
 from datasets.atomic import atomic_write
 from smoother import parallel
+from smoother.outputs.confined import inside
+
+#: The folder of ``out_dir`` that holds each run's result (:func:`run_many`).
+RUNS = "runs"
 
 
 @dataclass(frozen=True)
@@ -60,20 +64,22 @@ def run_many(config: MonteCarloConfig, seeds, workers: int = 1, dask_address: st
     on a pool of ``workers`` processes (:func:`smoother.parallel.processes`) or on the Dask
     scheduler at ``dask_address`` otherwise -- with :func:`smoother.parallel.run_all`'s window,
     failures and stopping; results sorted by seed. With ``out_dir`` each finished run is written
-    at once (``runs/seed_<n>.json``, atomically), so an interruption keeps them (and those of the
+    at once (``runs/seed_<n>.json``, atomically, only inside ``out_dir``:
+    :func:`smoother.outputs.confined.inside`), so an interruption keeps them (and those of the
     runs under way in worker processes that end after it: a SIGTERM to this process alone lets
     them finish, a terminal's Ctrl-C stops them too); the seed files of an earlier call into the
     same folder are removed first, so that ``runs/`` never mixes two configurations."""
     seeds = [int(s) for s in seeds]
     results = []
-    if out_dir is not None:
-        for stale in (Path(out_dir) / "runs").glob("seed_*.json"):
-            stale.unlink(missing_ok=True)
+    runs = None if out_dir is None else inside(out_dir, RUNS)
+    if runs is not None:
+        for stale in runs.glob("seed_*.json"):
+            inside(runs, stale.name, follow=False).unlink(missing_ok=True)
 
     def keep(result):
         results.append(result)
-        if out_dir is not None:
-            with atomic_write(Path(out_dir) / "runs" / f"seed_{result['seed']}.json") as handle:
+        if runs is not None:
+            with atomic_write(inside(runs, f"seed_{result['seed']}.json")) as handle:
                 json.dump(result, handle)
         if on_done is not None:
             on_done(result)

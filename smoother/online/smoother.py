@@ -32,9 +32,12 @@ clock, refused, as is a measurement stamped that far after the newest IMU sample
 time ``t`` is made -- and the smoother updated with it -- once the IMU stream has reached
 ``t + max_delay_s``; until then measurements up to ``t`` may still arrive in any order
 and are sorted into time. A measurement whose time is at or before the newest keyframe already
-made (it arrived later than ``max_delay_s`` behind the IMU) is dropped: counted per sensor in
-``dropped``, with a warning at its sensor's first drop. ``max_delay_s`` is thus also the delay
-of every measurement's effect on the estimates.
+made is dropped: counted per sensor in ``dropped``, with a warning at its sensor's first drop.
+So a measurement at most ``max_delay_s`` behind the IMU stream is always used, and one later than
+that is used only while no keyframe has been made at or after its time (none was due: no other
+measurement, grid time or :meth:`OnlineSmoother.keyframe_at` since); it is the newest keyframe,
+not the delay, that decides. ``max_delay_s`` (:data:`smoother.online.delay.MAX_DELAY_RANGE`) is thus also
+the delay of every measurement's effect on the estimates.
 
 Outputs. :meth:`OnlineSmoother.estimate` is the state at the newest IMU time: the EKF's
 per-sample prediction (:func:`factors.imu.predict_into`, the filter's own step) from the
@@ -105,6 +108,7 @@ from smoother.fixed_lag.windows import make_window
 from smoother.model.problem import measurement_spec
 from smoother.model.timeline import interval_steps
 from smoother.online import warm_up
+from smoother.online.delay import MAX_DELAY_RANGE
 from smoother.online.handover import HandOver, OnlineEstimate
 from smoother.online.imu_buffer import ImuBuffer
 from smoother.online.pending import PendingMeasurements
@@ -143,7 +147,8 @@ class SensorSetup:
         object.__setattr__(self, "T_BS", check_extrinsic("SensorSetup.T_BS", self.T_BS))
         offset = check_array("SensorSetup.time_offset", [self.time_offset], ())[0]
         if not abs(offset) <= MAX_IMU_GAP_S:
-            raise InputError(f"SensorSetup.time_offset: expected at most {MAX_IMU_GAP_S:g} s either way, got {offset!r}")
+            raise InputError(f"SensorSetup.time_offset: expected at most {MAX_IMU_GAP_S:g} s either way, "
+                             f"got {offset!r}")
         object.__setattr__(self, "time_offset", float(offset))
         if self.sigma is not None:
             kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
@@ -165,10 +170,13 @@ class OnlineSmoother:
     ``noise`` (:class:`factors.imu.ImuNoise`) and ``gravity`` (world frame, m/s^2); ``sensors``:
     name -> :class:`SensorSetup` (a kind's name can always be used as a sensor at the IMU with no
     time offset); ``lag_s`` the window [s]; ``kind`` the compiled ``"sliding"`` window or GTSAM's
-    ``"incremental"`` or ``"batch"`` smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how late a measurement may arrive
-    behind the IMU stream; ``covariances``: compute keyframe covariances (the newest keyframe's,
-    for :meth:`estimate`, and each smoothed keyframe's); ``on_smoothed(OnlineEstimate)``: called
-    with each keyframe leaving the window (None: they are queued for :meth:`smoothed`).
+    ``"incremental"`` or ``"batch"`` smoother; ``keyframe_rate`` [Hz] or None; ``max_delay_s`` how
+    late a measurement may arrive behind the IMU stream (within
+    :data:`smoother.online.delay.MAX_DELAY_RANGE`; one later is used only while no keyframe has
+    been made at or after its time: module docstring); ``covariances``: compute keyframe
+    covariances (the newest keyframe's, for :meth:`estimate`, and each smoothed keyframe's);
+    ``on_smoothed(OnlineEstimate)``: called with each keyframe leaving the window (None: they are
+    queued for :meth:`smoothed`).
 
     It composes the parts, one job each: the IMU stream (:class:`smoother.online.imu_buffer.ImuBuffer`),
     the keyframe times (:class:`smoother.online.schedule.KeyframeSchedule`), the measurements
@@ -181,8 +189,10 @@ class OnlineSmoother:
                  lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
                  max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
                  on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
-        if not max_delay_s >= 0:
-            raise InputError(f"max_delay_s must be >= 0, got {max_delay_s}")
+        problem = MAX_DELAY_RANGE.problem(max_delay_s) if isinstance(max_delay_s, (int, float)) else \
+            f"expected a number of seconds, got {max_delay_s!r}"
+        if problem is not None:
+            raise InputError(f"max_delay_s: {problem}")
         if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
             raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
         lag_s = check_lag(lag_s)

@@ -56,8 +56,9 @@ _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, pick
 @contextlib.contextmanager
 def read_npz(path: Path, expected: str):
     """The arrays of the ``.npz`` archive ``path`` (``np.load`` without pickles) inside the
-    block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not such an archive,
-    cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g. a validation)."""
+    block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not
+    such an archive, cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g.
+    a data type's validation, ``Trajectory.cov: expected shape ...``, then prefixed with the file)."""
     try:
         is_zip = zipfile.is_zipfile(path)
     except OSError as error:
@@ -67,8 +68,10 @@ def read_npz(path: Path, expected: str):
     try:
         with np.load(path, allow_pickle=False) as data:
             yield data
-    except InputError:
-        raise
+    except InputError as error:  # the block's own, naming the file, or a data type's, naming its field
+        if str(error).startswith(str(path)):
+            raise
+        raise InputError(f"{path}: {error}") from None
     except _NPZ_ERRORS as error:
         raise InputError(f"{path}: cannot read it ({error}); expected {expected}") from None
 

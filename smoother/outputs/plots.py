@@ -41,6 +41,7 @@ from smoother.evaluation import scoring
 from smoother.evaluation.scoring import ErrorSeries
 from smoother.outputs.canvas import STYLE, estimator_color, estimator_line, new_figure, plain_log_labels, save_png
 from smoother.outputs.files import Run, load_run
+from smoother.outputs.layout import GPS, TRUTH
 
 #: Figure sizes [inch], one per name of :data:`smoother.outputs.layout.PLOTS`; a PNG is
 #: ``round(w * DPI) x round(h * DPI)`` pixels (:data:`smoother.outputs.canvas.DPI`).
@@ -412,9 +413,13 @@ def plot_run(run_dir, estimators=None, out_dir=None) -> list[Path]:
             if any(e.nees is not None for e in errors.values()):
                 written.append(plot_nees(run, out_dir, kind, errors))
             elif kind == "gps" and not run.gps.heldout.any():
-                print("plots: no held-out GPS fix (see --gps-every): no NEES figure", file=sys.stderr)
+                print("plots: no held-out GPS fix (a rig sensor's every = K, or --gps-every K on a built-in "
+                      "dataset, holds some out): no NEES figure", file=sys.stderr)
+        elif kind:
+            print(f"plots: {run.run_dir / (TRUTH if kind == 'truth' else GPS)} has nothing within the estimates' times "
+                  "to compare with them: no error figures", file=sys.stderr)
         else:
-            print(f"plots: {run.run_dir} has neither truth.npz nor gps.npz: no error figures", file=sys.stderr)
+            print(f"plots: {run.run_dir} has neither {TRUTH} nor {GPS}: no error figures", file=sys.stderr)
         written.append(plot_biases(run, out_dir))
         if errors:
             written.append(plot_comparison(run, out_dir, kind, errors))

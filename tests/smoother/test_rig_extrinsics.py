@@ -12,7 +12,7 @@ from datasets.simulate import simulate
 from datasets.types import Sensor
 from factors import so3
 from smoother.evaluation import scoring as report
-from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings, sensor_consistency
+from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings, judgeable, sensor_consistency
 from smoother.pipeline import run_estimators
 from smoother.pipeline import verdicts_by_estimator
 
@@ -73,9 +73,11 @@ def test_every_estimator_names_each_misplaced_sensor_and_passes_the_right_ones(r
     assert set(right) == set(wrong) == {"batch", "fixed-lag", "ekf"}
     for estimator in right:
         assert set(right[estimator]) - {"imu"} == set(wrong[estimator]) - {"imu"} == {"camera", "gnss", "wheel"}
-        # inside the band widened by 5% (a 95% band over nine verdicts leaves one at its edge now and then)
-        assert all(c["band"][0] / 1.05 < c["per_dof"] < 1.05 * c["band"][1] for c in right[estimator].values()), (
-            estimator, right[estimator])
+        # inside the band widened by 5% (a 95% band over nine verdicts leaves one at its edge now and then); the
+        # IMU factors, whose residuals the sensors leave less than a degree of freedom here, are not judged
+        assert all(judgeable(c) for n, c in right[estimator].items() if n != "imu")
+        assert all(c["band"][0] / 1.05 < c["per_dof"] < 1.05 * c["band"][1] for c in right[estimator].values()
+                   if judgeable(c)), (estimator, right[estimator])
         assert not any(c["ok"] for n, c in wrong[estimator].items() if n != "imu"), (estimator, wrong[estimator])
     lines = consistency_warnings(wrong)
     assert len([line for line in lines if not line.startswith("imu")]) == 3

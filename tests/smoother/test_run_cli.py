@@ -136,10 +136,10 @@ def _one_line_error(capsys) -> str:
     (["--robust", "pose=tukey:-2"], "--robust"),
     (["--lag", "0"], "--lag"),
     (["--ekf-gate", "1.5"], "--ekf-gate"),
-    (["--keyframe-rate", "-1"], "--keyframe-rate: expected a rate > 0 (finite), got -1.0"),
-    (["--keyframe-rate", "0"], "--keyframe-rate: expected a rate > 0 (finite), got 0.0"),
-    (["--keyframe-rate", "inf"], "--keyframe-rate: expected a rate > 0 (finite), got inf"),
-    (["--keyframe-rate", "nan"], "--keyframe-rate: expected a rate > 0 (finite), got nan"),
+    (["--keyframe-rate", "-1"], "--keyframe-rate: expected a value within [0.001, 10000] Hz"),
+    (["--keyframe-rate", "0"], "--keyframe-rate: expected a value within [0.001, 10000] Hz"),
+    (["--keyframe-rate", "inf"], "--keyframe-rate: expected a value within [0.001, 10000] Hz"),
+    (["--keyframe-rate", "nan"], "--keyframe-rate: expected a value within [0.001, 10000] Hz"),
     (["--duration", "inf"], "--duration"),
     (["--dataset", "kitti", "--duration", "nan"], "--duration"),
     (["--lag", "inf"], "--lag"),
@@ -149,12 +149,12 @@ def _one_line_error(capsys) -> str:
     (["--gps-from-truth", "inf", "1"], "--gps-from-truth"),
     # a value only the data can refuse: named by its option, not by the library's parameter
     (["--duration", "2", "--pose-from-truth", "1000", "0.1", "0.01"], "--pose-from-truth: rate_hz: 1000 Hz is above"),
-    (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
-    (["--max-iterations", "0"], "--max-iterations: expected an integer >= 1, got 0"),
-    (["--max-gyro-rate", "0"], "--max-gyro-rate: expected a rate in rad/s > 0 (finite), got 0.0"),
-    (["--duration", "1e10"], "--duration: expected at most 100000000 s"),
-    (["--duration", "0.001"], "--duration: 0.001 s is shorter than one IMU step"),
-    (["--duration", "1e20"], "--duration: expected at most 100000000 s"),
+    (["--seed", "-1"], "--seed: expected a value within [0, 4.29497e+09]"),
+    (["--max-iterations", "0"], "--max-iterations: expected a value within [1, 10000]"),
+    (["--max-gyro-rate", "0"], "--max-gyro-rate: expected a value within [1, 10000] rad/s"),
+    (["--duration", "1e10"], "--duration: expected a value within [1, 1e+08] s"),
+    (["--duration", "0.001"], "--duration: expected a value within [1, 1e+08] s"),
+    (["--duration", "1e20"], "--duration: expected a value within [1, 1e+08] s"),
 ])
 def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, mentions):
     out = tmp_path / "run"

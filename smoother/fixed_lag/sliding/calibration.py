@@ -80,6 +80,19 @@ RELINEARISATION_SIGMA_FRACTION = 0.5
 #: the defaults' (0.05 rad, 0.05 s, 0.025 of scale), so that a prior written wider does not let
 #: the offset grow past where the bound above holds.
 RELINEARISATION_WIDEST = 5.0
+#: The farthest an update may take a calibration from its linearisation point, per coordinate:
+#: the widest limit at the thresholds above (0.05 s, 0.05 rad, 0.25 m, 0.025 of scale), beyond
+#: which the linearised factors no longer hold. A step that would go further is shortened to it
+#: along its direction (:meth:`WindowCalibration.bounded`), the keyframes' step given the
+#: shortened one, and the calibration is linearised again there: it moves at most this far per
+#: update. Without the bound a coordinate the data barely observe under a wide prior -- a wheel's
+#: roll about its own axis with ``rotation_sigma = 3`` -- swung by tens of degrees per update in
+#: the first second (its marginal sigma still 40-170 deg), round past the second minimum at 180
+#: deg that a velocity along the axis leaves, and the keyframes leaving at the lag froze its
+#: linearisation there (their marginal, :class:`~smoother.fixed_lag.sliding.normal_equations.LinearPrior`,
+#: is linear about it): +50 deg +- 7 at the end of 10 s against the batch's +12 +- 9, on a
+#: simulated wheel mounted as written; bounded, +13 +- 9.
+MAX_CALIBRATION_STEP = RELINEARISATION_WIDEST * CALIBRATION_RELINEARISATION_THRESHOLD
 
 
 class WindowCalibration:
@@ -117,6 +130,8 @@ class WindowCalibration:
         self.L_D = np.diag(1.0 / np.concatenate(self._sigmas))
         #: :data:`CALIBRATION_RELINEARISATION_THRESHOLD` over the border's columns
         self.thresholds = np.concatenate([CALIBRATION_RELINEARISATION_THRESHOLD[which] for which in self._columns])
+        #: :data:`MAX_CALIBRATION_STEP` over the border's columns (:meth:`bounded`)
+        self.widest = np.concatenate([MAX_CALIBRATION_STEP[which] for which in self._columns])
         #: the offsets beyond which the last solve found the border's coordinates due to be linearised
         #: again: the larger of the threshold and :data:`RELINEARISATION_SIGMA_FRACTION` of the
         #: coordinate's marginal sigma, at most :data:`RELINEARISATION_WIDEST` thresholds
@@ -161,6 +176,18 @@ class WindowCalibration:
         :meth:`joint_covariance`."""
         cov = self.joint_covariance()
         return [cov[a:b, a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def bounded(self, before: np.ndarray, proposed: np.ndarray) -> np.ndarray | None:
+        """The offsets ``proposed`` by a solve, shortened along the step from ``before`` (the last
+        update's, each within :attr:`widest`) so that none exceeds :attr:`widest`
+        (:data:`MAX_CALIBRATION_STEP`); None when none does."""
+        outside = np.abs(proposed) > self.widest
+        if not outside.any():
+            return None
+        step = proposed - before
+        bound = np.copysign(self.widest, step)
+        fraction = np.min((bound[outside] - before[outside]) / step[outside])
+        return before + min(max(fraction, 0.0), 1.0) * step
 
     def relinearise(self, fraction: float = 1.0) -> bool:
         """Move the linearisation point of each calibration whose offset exceeds ``fraction`` of

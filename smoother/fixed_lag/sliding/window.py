@@ -547,7 +547,7 @@ class SlidingWindow:
                                                      self._cal.limits)
             if failed >= 0:
                 return failed
-            exceeds = code == 1
+            exceeds, shortened = code == 1, False
             if code < 0:
                 self._dx[:] = before  # the estimates unchanged
                 self._stale = self.first
@@ -556,6 +556,11 @@ class SlidingWindow:
                     f"the calibrations of {', '.join(self._cal.set.names)} have an information that is not positive "
                     "definite after the keyframes' share (their priors' sigmas span more orders of magnitude than "
                     "the data determine them to, or a sensor is many orders more precise than the rest)")
+            bounded = self._cal.bounded(before_c, delta_c)
+            if bounded is not None:  # the keyframes' step given the calibrations' shortened one: dx = y - Z delta_c
+                slots = np.arange(self.first, self.newest + 1) % self._cap
+                self._dx[slots] += self._Z[slots] @ (delta_c - bounded)[:, None]
+                delta_c, exceeds, shortened = bounded, True, True
             self._cal.delta = delta_c
         oldest, a = step_window(self._L, self._dx, before, self.first, self.newest, self._cap, S,
                           self.relinearisation_threshold, MAX_ATTITUDE_STEP, self._moved, *self._linearisation_points(),
@@ -565,7 +570,8 @@ class SlidingWindow:
         if self._cal is not None:
             if a < 1.0:  # the calibrations' step shortened with the keyframes'
                 self._cal.delta = before_c + a * (self._cal.delta - before_c)
-            if (exceeds or a < 1.0) and self._cal.relinearise():  # every factor reading a calibration changes
+            # every factor reading a calibration changes; a shortened one is linearised again where it stopped
+            if (exceeds or a < 1.0) and self._cal.relinearise(0.0 if shortened else 1.0):
                 self._calibrations_moved()
         if oldest >= 0:
             self._relinearised(oldest)

@@ -1,0 +1,160 @@
+"""Hostile command lines: every numeric option has its range in one table
+(``smoother.commands.OPTION_RANGES``) and every command checks it where it reads the option, with
+the option named -- each tried just beyond each bound, and each bound itself accepted by the
+table --; ``--keyframe-rate`` is capped by the IMU's own rate (1 kHz on a 200 Hz IMU made 9 601
+keyframes, 1e9 asked for 74.5 GiB); messages point the right way: a rig run without held-out
+fixes is told to set ``every``, not ``--gps-every`` which ``--rig`` refuses; an IMU in deg/s beside
+a wheel is named as the IMU, not as the wheel's "gyro"."""
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import pytest
+from rigfiles import imu_table
+
+from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
+from smoother.cli import build_parser, main
+from smoother.commands import OPTION_RANGES, check_option
+from smoother.errors import UserError
+
+#: Where each option of the table is read, with what else the command needs to get that far.
+WHERE = {
+    "--seed": [["run"], ["check-jacobians"]],
+    "--first-seed": [["montecarlo"], ["crosscheck"]],
+    "--duration": [["run"], ["montecarlo"], ["crosscheck"]],
+    "--outliers": [["run"], ["montecarlo"]],
+    "--gps-every": [["run"]], "--max-iterations": [["run"]], "--max-delay": [["run"]], "--speed": [["run"]],
+    "--keyframe-rate": [["run"]], "--ekf-gate": [["run"]], "--max-gyro-rate": [["run"]],
+    "--runs": [["montecarlo"]], "--seeds": [["crosscheck"]], "--workers": [["montecarlo"], ["fleet", "x.toml"]],
+    "--samples": [["check-jacobians"]],
+    "--max-dt": [["evaluate", "--reference", "r", "--estimate", "e"]],
+    "--t-offset": [["evaluate", "--reference", "r", "--estimate", "e"]],
+    "--n-to-align": [["evaluate", "--reference", "r", "--estimate", "e"]],
+    "--delta": [["evaluate", "--reference", "r", "--estimate", "e", "--delta-unit", "m"]],
+}
+#: The options that take several numbers: the others' values when one is tried.
+SEVERAL = {"--pose-from-truth": ("HZ", "POS_M", "ROT_RAD"), "--gps-from-truth": ("HZ", "POS_M")}
+
+
+def _is_int(command: str, option: str) -> bool:
+    """Whether the command line reads ``option`` of ``command`` as an integer."""
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    return next(a for a in sub._actions if option in a.option_strings).type is int
+
+
+def _beyond(value, integer: bool, up: bool):
+    if integer:
+        return int(value) + (1 if up else -1)
+    return float(np.nextafter(value, math.inf if up else -math.inf))
+
+
+def _middle(option: str) -> float:
+    r = OPTION_RANGES[option]
+    return r.low if r.low > 0 else r.high / 2  # a value inside, for the other numbers of an option
+
+
+def test_every_option_of_the_table_is_read_somewhere_and_every_numeric_option_is_in_the_table():
+    numeric = set()
+    for sub in next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices.values():
+        for action in sub._actions:
+            if action.type in (int, float) and action.option_strings:
+                numeric.add(action.option_strings[0])
+    tabled = {option.split()[0] for option in OPTION_RANGES}
+    assert numeric - {"--lag"} == tabled  # --lag: the lag module's one check (smoother.fixed_lag.lag)
+    assert set(WHERE) | set(SEVERAL) == tabled
+
+
+@pytest.mark.parametrize("option", sorted(OPTION_RANGES))
+def test_each_bound_is_accepted_and_just_beyond_it_is_refused_naming_the_option(option):
+    r = OPTION_RANGES[option]
+    for bound in (r.low, r.high):
+        check_option(option, bound)
+    for value in (_beyond(r.low, isinstance(r.low, int), up=False), _beyond(r.high, isinstance(r.high, int), up=True),
+                  math.inf, math.nan):
+        with pytest.raises(UserError, match=f"^{option}: expected a value within"):
+            check_option(option, value)
+
+
+@pytest.mark.parametrize("option, argv", [(o, a) for o, places in WHERE.items() for a in places])
+def test_each_command_checks_its_options_where_it_reads_them(capsys, tmp_path, option, argv):
+    r = OPTION_RANGES[option]
+    integer = _is_int(argv[0], option)
+    for value in (_beyond(r.low, integer, up=False), _beyond(r.high, integer, up=True)):
+        given = f"{option}={value!r}"  # one word: argparse takes -5e-324 for an option otherwise
+        assert main([*argv, given, "--out", str(tmp_path / "out")] if argv[0] in ("run", "montecarlo", "fleet")
+                    else [*argv, given]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"smoother: error: {option}: expected a value within"), err
+
+
+@pytest.mark.parametrize("option", sorted(SEVERAL))
+def test_each_number_of_a_truth_sensor_option_is_checked_by_its_own_range(capsys, tmp_path, option):
+    names = SEVERAL[option]
+    for i, name in enumerate(names):
+        values = [_middle(f"{option} {n}") for n in names]
+        values[i] = _beyond(OPTION_RANGES[f"{option} {name}"].high, False, up=True)
+        assert main(["run", option, *map(repr, values), "--out", str(tmp_path / "out")]) == 2
+        assert f"{option} {name}: expected a value within" in capsys.readouterr().err
+
+
+def test_hostile_values_of_the_issue_are_refused_up_front(capsys, tmp_path):
+    for argv, said in ((["--ekf-gate", "1e-300"], "--ekf-gate: expected a value within [0.5, 1]"),
+                       (["--keyframe-rate", "1e9"], "--keyframe-rate: expected a value within"),
+                       (["--speed", "1e-300", "--realtime"], "--speed: expected a value within"),
+                       (["--robust", "huber:1e300"], "--robust huber:1e300: robust kernel threshold '1e300': expected "
+                                                     "a value within [0.1, 100] sigma")):
+        assert main(["run", "--duration", "2", "--estimator", "ekf", "--out", str(tmp_path / "o"), *argv]) == 2
+        assert said in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("rate, refused", [(1000.0, True), (200.001, True), (200.0, False), (50.0, False)])
+def test_the_keyframe_rate_is_capped_by_the_imu_s_rate(capsys, tmp_path, rate, refused):
+    """1 kHz on the simulator's 200 Hz IMU is refused naming the option and the IMU's rate; at the
+    IMU's rate and below it runs."""
+    code = main(["run", "--duration", "2", "--estimator", "ekf", "--keyframe-rate", repr(rate), "--no-progress",
+                 "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert (code == 2) == refused, err
+    assert ("--keyframe-rate: expected at most the IMU's rate, 200 Hz" in err) == refused, err
+
+
+def _csv_rig(folder, gyro_scale: float = 1.0, every: int = 1):
+    """A rig of CSV files: an IMU (its gyro times ``gyro_scale``), a wheel (velocity) and a
+    position sensor used every ``every``-th fix, 20 s of the gentle profile."""
+    data = simulate("gentle", duration=20.0, seed=1, pose_rate=0, sensors=[
+        SensorSpec("wheel", "velocity", 10, 0.05), SensorSpec("fix", "position", 2, 0.3)])
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = [f"{int(round(t * 1e9)) + 10**18},{','.join(repr(float(x)) for x in (*w * gyro_scale, *a))}"
+            for t, a, w in zip(data.imu.t, data.imu.acc, data.imu.gyro)]
+    (folder / "imu.csv").write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n"
+                                    + "\n".join(rows) + "\n")
+    for name, header, field in (("wheel", "t,vx,vy,vz", "velocity"), ("fix", "t,x,y,z", "position")):
+        m = data.sensor(name).data
+        lines = [f"{float(t) + 1e9!r},{','.join(repr(float(x)) for x in v)}" for t, v in zip(m.t, getattr(m, field))]
+        (folder / f"{name}.csv").write_text(header + "\n" + "\n".join(lines) + "\n")
+    rig = folder / "rig.toml"
+    rig.write_text(imu_table("csv:imu.csv", data.noise)
+                   + '\n[[sensor]]\nname = "wheel"\nkind = "velocity"\nsource = "csv:wheel.csv"\nsigma = 0.05\n'
+                   + f'\n[[sensor]]\nname = "fix"\nkind = "position"\nsource = "csv:fix.csv"\nsigma = 0.3\n'
+                   f'every = {every}\n')
+    return rig
+
+
+def test_a_rig_run_without_held_out_fixes_is_told_to_set_every_not_gps_every(capsys, tmp_path):
+    rig = _csv_rig(tmp_path / "rig")
+    assert main(["run", "--rig", str(rig), "--estimator", "ekf", "--no-progress", "--out", str(tmp_path / "o")]) == 0
+    printed = capsys.readouterr().out
+    assert "no held-out fixes: no ranking (hold fixes out with a sensor's every = K > 1 in the rig file)" in printed
+    assert "--gps-every" not in printed
+
+
+def test_an_imu_in_degrees_beside_a_wheel_is_named_as_the_imu(capsys, tmp_path):
+    """The wheel's rows carry the IMU's gyro for its lever arm; the error names the IMU's source
+    and its units, not the wheel."""
+    rig = _csv_rig(tmp_path / "rig", gyro_scale=np.degrees(1.0) * 3)
+    assert main(["run", "--rig", str(rig), "--estimator", "ekf", "--no-progress", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "imu (csv:" in err[0] and "deg/s" in err[0] and "wheel" not in err[0], err
