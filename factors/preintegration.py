@@ -526,7 +526,9 @@ def _interval_kernel(acc, gyro, dt, b_w_bar, b_f, r0, v0, C0, g, q, floor, dC, W
     lo, hi = np.int64(0), np.int64(1)
     _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm)
     _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, v0, C0, g, q, floor, lo, hi, cov)
-    _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C, _NO_JACOBIAN, _NO_PREDICTION_J)
+    no_jacobian = np.bool_(False)
+    _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C, no_jacobian,
+                  np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
@@ -571,18 +573,12 @@ def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVI
     args = (rows_of(lead, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
             + rows_of(lead, [getattr(state_i, f) for f in ("r", "v", "C", "b_f", "b_w")], _STATE_TAILS))
     r, v, C = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
-    J = np.empty((n, imu.STATE_DIM, imu.STATE_DIM)) if jacobians else _NO_PREDICTION_J
+    J = np.empty((n if jacobians else 1, imu.STATE_DIM, imu.STATE_DIM))
     _predict_rows(*args, as_trailing(gravity, (3,), "gravity"), r, v, C, np.bool_(jacobians), J)
     b_f, b_w = args[-2:]
     state = imu.ImuState(r.reshape(lead + (3,)), v.reshape(lead + (3,)), C.reshape(lead + (3, 3)),
                          b_f.reshape(lead + (3,)).copy(), b_w.reshape(lead + (3,)).copy())
     return (state, J.reshape(lead + (imu.STATE_DIM, imu.STATE_DIM))) if jacobians else state
-
-
-#: ``jacobians`` False and a scratch Jacobian for :func:`_predict_rows` where none is wanted
-#: (run-time values: a literal would compile a second copy).
-_NO_JACOBIAN = np.bool_(False)
-_NO_PREDICTION_J = np.empty((1, imu.STATE_DIM, imu.STATE_DIM))
 
 
 #: Trailing shapes of the Preintegrated fields a residual reads, and of an ImuState's fields.

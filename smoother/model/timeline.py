@@ -185,6 +185,19 @@ def attachment(steps: Steps, times: np.ndarray, t: np.ndarray) -> Attachment:
     return Attachment(keyframe, attached, count, last_dt, t - times[keyframe])
 
 
+def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, last_dt)`` of measurements at ``stamps`` in ``(t_from, t_to)`` among the steps of
+    :func:`interval_steps` ``(t, ..., t_from, t_to)``: each after the first ``steps`` of them, the
+    last cut to ``last_dt`` -- what :func:`attachment` gives for one interval, without the whole
+    stream's steps (an online smoother's keyframe)."""
+    first = int(np.searchsorted(t, t_from, side="right")) - 1
+    stop = int(np.searchsorted(t, t_to, side="left"))
+    starts = np.concatenate([[t_from], t[first + 1:stop]])
+    stamps = np.asarray(stamps, dtype=float)
+    steps = np.searchsorted(starts, stamps, side="left")
+    return steps, stamps - starts[steps - 1]
+
+
 #: Queries :func:`states_at` propagates at once (their padded steps are a few MB).
 _STATES_CHUNK = 8192
 
