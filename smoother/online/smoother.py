@@ -89,7 +89,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from datasets.kinds import KINDS, kind_sigmas, sensors_of
+from datasets.kinds import KINDS, attached_noise, kind_sigmas, sensors_of
 from datasets.robust import check_robust
 from datasets.types import (
     MAX_IMU_GAP_S,
@@ -105,7 +105,6 @@ from factors.errors import InputError
 from smoother.fixed_lag.contract import HISTORY
 from smoother.fixed_lag.lag import check_lag, check_lag_spans_keyframes, sparse_measurement_warning
 from smoother.fixed_lag.windows import make_window
-from datasets.kinds import attached_noise
 from smoother.model.problem import AttachedAt, measurement_spec
 from smoother.model.timeline import interval_attachment, interval_steps
 from smoother.online import warm_up
