@@ -526,7 +526,9 @@ def _interval_kernel(acc, gyro, dt, b_w_bar, b_f, r0, v0, C0, g, q, floor, dC, W
     lo, hi = np.int64(0), np.int64(1)
     _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm)
     _covariance_kernel(acc, gyro, dt, b_w_bar, b_f, v0, C0, g, q, floor, lo, hi, cov)
-    _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C)
+    no_jacobian = np.bool_(False)
+    _predict_rows(dC, W, Rm, JC, dW, dRm, b_w_bar, r0, v0, C0, b_f, b_w_bar, g, r, v, C, no_jacobian,
+                  np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
 
 
 def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNoise,
@@ -558,21 +560,25 @@ def noise_covariance(samples: tuple, reference: imu.ImuState, noise: imu.ImuNois
     return pre.cov
 
 
-def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY) -> imu.ImuState:
+def predict(pre: Preintegrated, state_i: imu.ImuState, gravity=imu.DEFAULT_GRAVITY, jacobians: bool = False):
     """The state at keyframe ``j`` predicted from ``state_i`` (biases held constant): exactly the
     sample-by-sample Euler-forward propagation when ``state_i.b_w == b_w_bar``, first order in
     the gyro-bias offset otherwise (module docstring: ``r_i + C_i Rm z``, ``W z``, ``C_i dC`` of the
     corrected quantities). Vectorised over the intervals and states (broadcast); compiled
-    (:func:`_predict_into`)."""
+    (:func:`_predict_into`). With ``jacobians``: ``(state, J)``, ``J (..., 15, 15)`` the
+    prediction's Jacobian with respect to ``state_i``'s error state
+    (:func:`prediction_jacobian_into`)."""
     lead = common_shape(pre.b_w_bar.shape[:-1], state_i.shape)
     n = math.prod(lead)
     args = (rows_of(lead, (pre.dC, pre.W, pre.Rm, pre.JC, pre.dW, pre.dRm, pre.b_w_bar), _PRE_TAILS)
             + rows_of(lead, [getattr(state_i, f) for f in ("r", "v", "C", "b_f", "b_w")], _STATE_TAILS))
     r, v, C = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
-    _predict_rows(*args, as_trailing(gravity, (3,), "gravity"), r, v, C)
+    J = np.empty((n if jacobians else 1, imu.STATE_DIM, imu.STATE_DIM))
+    _predict_rows(*args, as_trailing(gravity, (3,), "gravity"), r, v, C, np.bool_(jacobians), J)
     b_f, b_w = args[-2:]
-    return imu.ImuState(r.reshape(lead + (3,)), v.reshape(lead + (3,)), C.reshape(lead + (3, 3)),
-                        b_f.reshape(lead + (3,)).copy(), b_w.reshape(lead + (3,)).copy())
+    state = imu.ImuState(r.reshape(lead + (3,)), v.reshape(lead + (3,)), C.reshape(lead + (3, 3)),
+                         b_f.reshape(lead + (3,)).copy(), b_w.reshape(lead + (3,)).copy())
+    return (state, J.reshape(lead + (imu.STATE_DIM, imu.STATE_DIM))) if jacobians else state
 
 
 #: Trailing shapes of the Preintegrated fields a residual reads, and of an ImuState's fields.
@@ -620,12 +626,152 @@ def _predict_into(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r
     matmul_into(Ci, dC, C)
 
 
+@leaf
+def prediction_jacobian_into(Ci, W, Rm, JC, dW, dRm, JCd, z, u, E, Y, J) -> None:
+    """The Jacobian ``J (15, 15)`` of :func:`predict`'s state ``x_j`` with respect to the error
+    state ``(dr, dv, dphi, db_f, db_w)`` of ``x_i`` (LEFT increment ``C_i <- exp(dphi) C_i``), from
+    what :func:`_predict_into` leaves: the corrected ``W``, ``Rm``, ``JCd = JC d``, ``z = (v_i,
+    gamma, 1, -b_f)`` and ``u = Rm z`` (``E``, ``Y`` 3x3 work arrays). With ``r_j = r_i + C_i u``,
+    ``v_j = W z``, ``C_j = C_i exp(JC d) dC`` and the biases held::
+
+        d(C_i u)/dphi = -(C_i u)^x          exp(dphi) C_i u = C_i u + dphi x C_i u   (eqs. 3, 27)
+        d gamma/dphi  = gamma^x C_i^T       C_i^T exp(-dphi) g = gamma + C_i^T (g x dphi)
+        r_j: dr I, dv C_i Rm_v, dphi -(C_i u)^x + C_i Rm_g gamma^x C_i^T, db_f -C_i Rm_b, db_w C_i (dRm . z)
+        v_j: dv W_v, dphi W_g gamma^x C_i^T, db_f -W_b, db_w dW . z
+        C_j: dphi I, db_w C_i Gamma(JC d) JC     exp(JC (d + e)) = exp(Gamma(JC d) JC e) exp(JC d)  (eq. 31)
+        b_f, b_w: I
+
+    (``Rm_v, Rm_g, Rm_b``: the columns of ``Rm`` acting on ``v_i``, ``gamma`` and ``-b_f``; the
+    bias Jacobians ``dW``, ``dRm`` contracted with ``z`` over their columns; the gyro-bias
+    offset's derivative of the corrected ``W z``, ``Rm z`` is ``dW . z``, ``dRm . z`` exactly.)"""
+    for a in range(15):
+        for b in range(15):
+            J[a, b] = 0.0
+    for a in range(15):
+        if a < 3 or a >= 6:
+            J[a, a] = 1.0
+    g0, g1, g2 = z[3], z[4], z[5]
+    for a in range(3):
+        # row a of Rm_g gamma^x and W_g gamma^x: (m x gamma) for the row m of Rm_g, W_g
+        m0, m1, m2 = Rm[a, 3], Rm[a, 4], Rm[a, 5]
+        E[a, 0], E[a, 1], E[a, 2] = m1 * g2 - m2 * g1, m2 * g0 - m0 * g2, m0 * g1 - m1 * g0
+        m0, m1, m2 = W[a, 3], W[a, 4], W[a, 5]
+        Y[a, 0], Y[a, 1], Y[a, 2] = m1 * g2 - m2 * g1, m2 * g0 - m0 * g2, m0 * g1 - m1 * g0
+        for c in range(3):
+            J[3 + a, 3 + c] = W[a, c]
+            J[3 + a, 9 + c] = -W[a, 7 + c]
+            sv = 0.0
+            for m in range(10):
+                sv += dW[a, m, c] * z[m]
+            J[3 + a, 12 + c] = sv
+    for a in range(3):
+        for c in range(3):
+            # v_j's attitude column: W_g gamma^x C_i^T
+            J[3 + a, 6 + c] = Y[a, 0] * Ci[c, 0] + Y[a, 1] * Ci[c, 1] + Y[a, 2] * Ci[c, 2]
+    for a in range(3):
+        for c in range(3):
+            crv, crb, crz, cg = 0.0, 0.0, 0.0, 0.0
+            for m in range(3):
+                crv += Ci[a, m] * Rm[m, c]
+                crb += Ci[a, m] * Rm[m, 7 + c]
+                cg += Ci[a, m] * E[m, c]
+                s = 0.0
+                for q in range(10):
+                    s += dRm[m, q, c] * z[q]
+                crz += Ci[a, m] * s
+            J[a, 3 + c] = crv
+            J[a, 9 + c] = -crb
+            J[a, 12 + c] = crz
+            Y[a, c] = cg  # C_i Rm_g gamma^x
+    for a in range(3):
+        for c in range(3):
+            J[a, 6 + c] = Y[a, 0] * Ci[c, 0] + Y[a, 1] * Ci[c, 1] + Y[a, 2] * Ci[c, 2]
+    # -(C_i u)^x
+    w0 = Ci[0, 0] * u[0] + Ci[0, 1] * u[1] + Ci[0, 2] * u[2]
+    w1 = Ci[1, 0] * u[0] + Ci[1, 1] * u[1] + Ci[1, 2] * u[2]
+    w2 = Ci[2, 0] * u[0] + Ci[2, 1] * u[1] + Ci[2, 2] * u[2]
+    J[0, 7] += w2
+    J[0, 8] -= w1
+    J[1, 6] -= w2
+    J[1, 8] += w0
+    J[2, 6] += w1
+    J[2, 7] -= w0
+    # C_i Gamma(JC d) JC
+    so3.gamma_into(JCd[0], JCd[1], JCd[2], E)
+    matmul_into(E, JC, Y)
+    matmul_into(Ci, Y, E)
+    for a in range(3):
+        for c in range(3):
+            J[6 + a, 12 + c] = E[a, c]
+
+
 @recursion
-def _predict_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C):
+def _predict_rows(dC0, W0, Rm0, JC, dW, dRm, b_w_bar, ri, vi, Ci, bfi, bwi, g, r, v, C, jacobians, J):
     work = residual_work()
     for n in range(dC0.shape[0]):
         _predict_into(dC0[n], W0[n], Rm0[n], JC[n], dW[n], dRm[n], b_w_bar[n], ri[n], vi[n], Ci[n], bfi[n], bwi[n],
                       g, r[n], v[n], C[n], work)
+        if jacobians:
+            prediction_jacobian_into(Ci[n], work[1], work[2], JC[n], dW[n], dRm[n], work[8], work[7], work[9],
+                                     work[3], work[4], J[n])
+
+
+@recursion
+def partial_work(K) -> tuple:
+    """Work arrays of :func:`partial_prediction_into` for intervals of up to ``K`` steps; allocate
+    once per batch, reuse for every row."""
+    return (np.empty((1, K, 3)), np.empty((1, K, 3)), np.empty((1, K)), np.empty((1, 3)), np.empty((1, 3, 3)),
+            np.empty((1, 3, 10)), np.empty((1, 3, 10)), np.empty((1, 3, 3)), np.empty((1, 3, 10, 3)),
+            np.empty((1, 3, 10, 3)), residual_work(), np.empty((1, 3)), np.empty((1, 3)), np.empty((1, 3, 3)),
+            np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
+
+
+@recursion
+def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, jacobians) -> None:
+    """The state ``x_m = (xr, xv, xC, b_f, b_w)`` at the end of the first ``n`` steps of an
+    interval's samples ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``,
+    from the state ``x = (r, v, C, b_f, b_w)`` at its start, and with ``jacobians`` its Jacobian
+    ``J (15, 15)`` with respect to ``x``'s error state: a partial interval preintegrated
+    (:func:`_integrate_kernel`) around ``x``'s own gyro bias, so that the prediction is the exact
+    product of the primer's Euler steps (no first-order bias correction), and its Jacobian
+    :func:`prediction_jacobian_into` (the gyro-bias column from the bias Jacobians of the
+    recursions). ``pw`` from :func:`partial_work` with at least ``n`` steps. What a measurement
+    between keyframes is evaluated at (:func:`datasets.kinds.attached_into`)."""
+    A, G, D, bbar, dC, W, Rm, JC, dW, dRm, work = pw[:11]
+    for k in range(D.shape[1]):
+        if k < n:
+            for a in range(3):
+                A[0, k, a], G[0, k, a] = acc[k, a], gyro[k, a]
+            D[0, k] = dt[k] if k < n - 1 else last_dt
+        else:
+            D[0, k] = 0.0
+    for a in range(3):
+        bbar[0, a] = b_w[a]
+    lo, hi = np.int64(0), np.int64(1)
+    _integrate_kernel(A, G, D, bbar, lo, hi, dC, W, Rm, JC, dW, dRm)
+    _predict_into(dC[0], W[0], Rm[0], JC[0], dW[0], dRm[0], bbar[0], r, v, C, b_f, b_w, g, xr, xv, xC, work)
+    if jacobians:
+        prediction_jacobian_into(C, work[1], work[2], JC[0], dW[0], dRm[0], work[8], work[7], work[9], work[3], work[4],
+                                 J)
+
+
+@recursion
+def partial_covariance_into(v, C, b_f, g, q, S, pw) -> None:
+    """The covariance ``S (15, 15)`` of the state :func:`partial_prediction_into` last predicted
+    with ``pw`` (its steps still there) given the start state ``(v, C, b_f)``: the EKF's growth
+    ``F S F^T + G Q_d G^T`` from zero along the prediction (:func:`_covariance_kernel`, noise
+    densities ``q``), in body-start coordinates ``T S_w T^T``, ``T = diag(C^T, I, C^T, I, I)``."""
+    A, G, D, bbar = pw[0], pw[1], pw[2], pw[3]
+    bf, rv, rC, out = pw[11], pw[12], pw[13], pw[14]
+    for a in range(3):
+        bf[0, a], rv[0, a] = b_f[a], v[a]
+        for b in range(3):
+            rC[0, a, b] = C[a, b]
+    lo, hi = np.int64(0), np.int64(1)
+    _covariance_kernel(A, G, D, bbar, bf, rv, rC, g, q, 0.0, lo, hi, out)
+    for a in range(imu.STATE_DIM):
+        for b in range(imu.STATE_DIM):
+            S[a, b] = out[0, a, b]
 
 
 @recursion

@@ -24,7 +24,7 @@ from smoother.model.problem import build_problem, calibration_set, measurement_b
 from factors.errors import BoxplusError, InputError
 from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.estimators import ESTIMATORS
-from smoother.model.timeline import estimate_times
+from smoother.model.timeline import keyframe_times
 
 
 @dataclass
@@ -55,7 +55,7 @@ class RunOptions:
     fixed_lag_kind: str = "sliding"
     optimizer: str = "lm"
     max_iterations: int = 100
-    keyframe_rate: float | None = None
+    keyframe_rate: float | str | None = None  # smoother.model.timeline.keyframe_rate
     robust: dict | None = None
     ekf_gate: float | None = None  # chi-square gate probability
     covariances: bool = True
@@ -298,10 +298,12 @@ def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], opti
             out[name] = est.consistency or {}
         else:  # its keyframes are the batch's: the measurement factors on them, at its estimates
             t = est.trajectory
-            times = estimate_times(dataset, options.keyframe_rate)
+            times = keyframe_times(dataset, options.keyframe_rate)
             same = len(t.t) == len(times) and np.allclose(t.t, times, rtol=0, atol=1e-9)
-            # its calibrations, where it estimated them, in the residuals (the values given otherwise)
-            blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust, est.calibration)] if same else []
+            # its calibrations, where it estimated them, in the residuals (the values given otherwise); an
+            # attached measurement's process noise along its estimates
+            blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust, est.calibration,
+                                                          t.states)] if same else []
             out[name] = smoother_consistency(blocks, t.states, t.cov, calibration=est.calibration)
     return out
 

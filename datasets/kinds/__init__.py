@@ -34,13 +34,16 @@ from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, 
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.ranges import SIGMA_RANGES
 from datasets.types import Dataset, Sensor
-from factors import calibration, imu, jacobians, selfcheck
+from factors import calibration, imu, jacobians, preintegration, selfcheck
 from factors import sensor_models as sm
 from factors.errors import InputError
 from factors.selfcheck import random_rotation
+from factors.small_linalg import matmul_into
 
-__all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into",
-           "measure_rows", "model_index", "quiet_dispatch", "registered", "sensors_of"]
+__all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "attached_into", "attached_noise", "attached_noise_into",
+           "attached_rows", "attached_work",
+           "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into", "measure_rows", "model_index",
+           "quiet_dispatch", "registered", "sensors_of"]
 
 
 def registered(*kinds: Kind) -> dict[str, Kind]:
@@ -213,6 +216,96 @@ def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravit
     return (e, H, Hc) if jacobians else (e, None, None)
 
 
+#: Length of the flat part of :func:`attached_work`: the predicted state ``(r, v, C)``, its
+#: Jacobian and the model's Jacobian at it; for :func:`attached_noise_into` also the model's
+#: residual, the prediction's covariance and the Jacobian in its coordinates.
+_ATTACHED_FLAT = (3 + 3 + 9 + 2 * imu.STATE_DIM * imu.STATE_DIM + 2 * sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
+                  + sm.MAX_RESIDUAL_DIM)
+
+
+@njit(cache=True)
+def attached_work(K) -> tuple:
+    """Work arrays of :func:`attached_into` for intervals of up to ``K`` steps; allocate once per
+    loop over measurements."""
+    return preintegration.partial_work(K), calibration.work_array(), np.empty(_ATTACHED_FLAT)
+
+
+@njit(cache=True)
+def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, cal, calibrated, with_time, hacc,
+                  hgyro, g, e, H, Hc, work, jacobians) -> None:
+    """``e (d)``, ``H (d, 15)`` (and ``H_c (d, 8)`` where ``calibrated``) of one measurement
+    ``row`` of ``MODELS[model]`` ATTACHED to the keyframe state ``x = (r, v, C, b_f, b_w)``: taken
+    after the keyframe, at the end of the first ``n`` steps of the keyframe's interval
+    ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``. Its state is the
+    exact product of the primer's Euler steps from ``x`` (a partial interval preintegrated
+    around ``x``'s gyro bias), ``x_m = f(x)``, and its Jacobian ``F_m = dx_m/dx``
+    (:func:`factors.preintegration.partial_prediction_into`); the measurement is the model's
+    (:func:`measure_into`), or through its calibration ``cal`` (:func:`calibrated_into`: the
+    time offset one more Euler step from ``x_m`` with the IMU reading ``hacc, hgyro`` held at its
+    stamp), at ``x_m``, so that by the chain rule
+
+        e(x, c) = e_m(f(x), c),    H = H_m F_m,    H_c = H_c,m
+
+    ``e`` alone (``H``, ``H_c`` untouched) without ``jacobians``; ``work`` from
+    :func:`attached_work`. The measurement's noise is that of the model at ``x_m``; the process
+    noise between the keyframe and the measurement is the caller's (the measurement's
+    covariance, :func:`smoother.model.problem.attached_covariance`)."""
+    pw, cwork, flat = work
+    d = e.shape[0]
+    xr, xv, xC = flat[0:3], flat[3:6], flat[6:15].reshape((3, 3))
+    J = flat[15:15 + imu.STATE_DIM * imu.STATE_DIM].reshape((imu.STATE_DIM, imu.STATE_DIM))
+    o = 15 + imu.STATE_DIM * imu.STATE_DIM
+    Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
+    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw,
+                                           jacobians)
+    if calibrated:
+        calibrated_into(model, lay, xr, xv, xC, b_f, b_w, row, cal, with_time, hacc, hgyro, g, e, Hm, Hc, cwork,
+                        jacobians)
+    else:
+        measure_into(model, xr, xv, xC, b_f, b_w, row, e, Hm)
+    if jacobians:
+        matmul_into(Hm, J, H)
+
+
+@njit(cache=True)
+def _attached_rows(model, lay, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, cal, calibrated,
+                   with_time, hacc, hgyro, g, e, H, Hc, jacobians) -> None:
+    work = attached_work(dt.shape[1])
+    for m in range(rows.shape[0]):
+        j = m if jacobians else 0
+        k = interval[m]
+        attached_into(model, lay, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],
+                      cal, calibrated, with_time, hacc[m], hgyro[m], g, e[m], H[j], Hc[j], work, jacobians)
+
+
+def attached_rows(kind: Kind, states, samples: tuple, interval, steps, last_dt, rows: np.ndarray, c=None,
+                  imu_at=None, gravity=imu.DEFAULT_GRAVITY, jacobians: bool = True):
+    """``(e, H, H_c)`` of ``kind``'s (one-state) measurement ``rows`` attached to the keyframe
+    states ``states`` (leading dimension N; :func:`attached_into`): measurement ``m`` at the end of
+    the first ``steps[m]`` steps of interval ``interval[m]`` of the padded ``samples = (acc, gyro
+    (J, K, 3), dt (J, K))`` (an IMU factor's :attr:`factors.preintegration.Preintegrated.samples`),
+    the last cut to ``last_dt[m]``; through the calibration ``c``
+    (:class:`factors.calibration.Calibration`; None: the model's own, ``H_c`` None), ``imu_at``
+    the IMU readings ``(acc, gyro)`` held at the stamps where the time offset is estimated. Without
+    ``jacobians``: ``(e, None, None)``."""
+    if kind.relative:
+        raise InputError(f"kind {kind.name!r}: a relative measurement is not attached; its times are keyframes")
+    rows = np.ascontiguousarray(rows, dtype=float)
+    n, i = len(rows), model_index(kind)
+    with_time, at = calibration.readings(imu_at, n)
+    e, H, Hc = calibration.residual_arrays(n, kind.dim, imu.STATE_DIM, jacobians)
+    cal = calibration.packed(calibration.Calibration.of() if c is None else c)
+    acc, gyro, dt = (np.ascontiguousarray(a, dtype=float) for a in samples)
+    with quiet_dispatch():
+        _attached_rows(i, LAYOUTS[i], *calibration.state_rows(states, n), acc, gyro, dt,
+                       np.ascontiguousarray(interval, dtype=np.int64), np.ascontiguousarray(steps, dtype=np.int64),
+                       np.ascontiguousarray(last_dt, dtype=float), rows, cal, c is not None, with_time, *at,
+                       np.asarray(gravity, dtype=float), e, H, Hc, jacobians)
+    if not jacobians:
+        return e, None, None
+    return e, H, (Hc if c is not None else None)
+
+
 def _calibration_check(kind: Kind):
     """The self-check of ``kind``'s calibrated residual: its Jacobians with respect to the state(s)
     and to every calibration part, at a random row, a random calibration (rotation of any regime,
@@ -240,6 +333,108 @@ def _calibration_check(kind: Kind):
     return draw
 
 
+@njit(cache=True)
+def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, g, q, out, work) -> None:
+    """``out (d, d) = H S_w H^T``: the share of the process noise between a keyframe ``x = (r, v,
+    C, b_f, b_w)`` and a measurement ``row`` of ``MODELS[model]`` attached to it (at the end of
+    the first ``n`` steps of the keyframe's interval ``acc, gyro, dt``, the last cut to
+    ``last_dt``; :func:`attached_into`) in the measurement's error given the keyframe:
+    ``H`` the model's Jacobian at the predicted state ``x_m``, ``S_w`` the covariance of ``x_m``
+    given ``x``, the EKF's growth from zero over the partial interval (noise densities ``q``;
+    :func:`factors.preintegration.partial_covariance_into` gives it in body coordinates ``S =
+    T S_w T^T``, ``T = diag(C^T, I, C^T, I, I)``, so ``H S_w H^T = (H T^T) S (H T^T)^T`` with the
+    position and attitude columns of ``H T^T`` those of ``H`` times ``C``). ``work`` from
+    :func:`attached_work`."""
+    pw, _, flat = work
+    d = out.shape[0]
+    D2 = imu.STATE_DIM * imu.STATE_DIM
+    xr, xv, xC = flat[0:3], flat[3:6], flat[6:15].reshape((3, 3))
+    J = flat[15:15 + D2].reshape((imu.STATE_DIM, imu.STATE_DIM))
+    o = 15 + D2
+    Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
+    o += sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
+    S = flat[o:o + D2].reshape((imu.STATE_DIM, imu.STATE_DIM))
+    o += D2
+    HT = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
+    o += sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
+    e = flat[o:o + d]
+    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, False)
+    measure_into(model, xr, xv, xC, b_f, b_w, row, e, Hm)
+    preintegration.partial_covariance_into(v, C, b_f, g, q, S, pw)
+    for a in range(d):
+        for c in range(imu.STATE_DIM):
+            HT[a, c] = Hm[a, c]
+        for c in range(3):
+            HT[a, c] = Hm[a, 0] * C[0, c] + Hm[a, 1] * C[1, c] + Hm[a, 2] * C[2, c]
+            HT[a, 6 + c] = Hm[a, 6] * C[0, c] + Hm[a, 7] * C[1, c] + Hm[a, 8] * C[2, c]
+    for a in range(d):
+        for b in range(d):
+            total = 0.0
+            for p in range(imu.STATE_DIM):
+                hs = 0.0
+                for q_ in range(imu.STATE_DIM):
+                    hs += S[p, q_] * HT[b, q_]
+                total += HT[a, p] * hs
+            out[a, b] = total
+
+
+@njit(cache=True)
+def _attached_noise_rows(model, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, g, q, out) -> None:
+    work = attached_work(dt.shape[1])
+    for m in range(rows.shape[0]):
+        k = interval[m]
+        attached_noise_into(model, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],
+                            g, q, out[m], work)
+
+
+def attached_noise(kind: Kind, states, samples: tuple, interval, steps, last_dt, rows: np.ndarray,
+                   noise: imu.ImuNoise, gravity=imu.DEFAULT_GRAVITY) -> np.ndarray:
+    """``(N, d, d)``: :func:`attached_noise_into` of ``kind``'s measurement ``rows`` attached to
+    the keyframe states ``states`` (leading dimension N), placed as in :func:`attached_rows`."""
+    rows = np.ascontiguousarray(rows, dtype=float)
+    n = len(rows)
+    out = np.empty((n, kind.dim, kind.dim))
+    acc, gyro, dt = (np.ascontiguousarray(a, dtype=float) for a in samples)
+    with quiet_dispatch():
+        _attached_noise_rows(model_index(kind), *calibration.state_rows(states, n), acc, gyro, dt,
+                             np.ascontiguousarray(interval, dtype=np.int64), np.ascontiguousarray(steps, dtype=np.int64),
+                             np.ascontiguousarray(last_dt, dtype=float), rows, np.asarray(gravity, dtype=float),
+                             noise.densities(), out)
+    return out
+
+
+def _attached_check(kind: Kind, calibrated: bool):
+    """The self-check of ``kind``'s measurement attached to the keyframe before it
+    (:func:`attached_rows`): its Jacobian with respect to the keyframe's state (and, where
+    ``calibrated``, to every calibration part, as :func:`_calibration_check` draws them) at a
+    random row, after 1-5 steps of 2-5 ms of a random interval (rates of a few rad/s, the last step
+    cut anywhere), against central differences."""
+    def draw(rng):
+        state, row = kind.random_row(rng)
+        K = int(rng.integers(1, 6))
+        n = int(rng.integers(1, K + 1))
+        samples = (rng.normal(size=(1, K, 3)) * 3, rng.normal(size=(1, K, 3)) * 3,
+                   np.full((1, K), rng.uniform(2e-3, 5e-3)))
+        where = ([0], [n], [rng.uniform(1e-3, 1.0) * samples[2][0, n - 1]])
+        c, at = None, None
+        if calibrated:
+            c = calibration.Calibration(float(rng.choice([-1, 1]) * rng.uniform(1e-3, 0.3)), random_rotation(rng),
+                                        rng.normal(size=3), float(1 + 0.05 * rng.normal()))
+            at = (rng.normal(size=(1, 3)) * 3, rng.normal(size=(1, 3)) * 3)
+
+        def e_of(x, *cal):
+            return attached_rows(kind, x[None], samples, *where, row[None], cal[0] if cal else None, at)[0][0]
+
+        _, H, H_c = attached_rows(kind, state[None], samples, *where, row[None], c, at)
+        numerical = jacobians.numerical_jacobian(
+            e_of, state, *([c] if calibrated else []),
+            arg_kinds=[imu.StateManifold] + ([calibration.CalibrationManifold] if calibrated else []),
+            value_kind="vector")
+        return (np.hstack([H[0], H_c[0]]) if calibrated else H[0]), np.hstack(numerical)
+
+    return draw
+
+
 def _model_check(kind: Kind):
     """The self-check of ``kind``'s model: its analytic error-state Jacobian at a random row
     (:attr:`Kind.random_row`) against central differences of its residual (boxplus on the state)."""
@@ -259,6 +454,11 @@ for _kind in KINDS.values():
     selfcheck.register(f"{_kind.name} measurement: H of its residual, extrinsic T_BS", _model_check(_kind))
     selfcheck.register(f"{_kind.name} measurement through its calibration: H and H_c (time offset, rotation, "
                        "lever arm, scale)", _calibration_check(_kind))
+    if not _kind.relative:
+        selfcheck.register(f"{_kind.name} measurement attached to the keyframe before it: H through the Euler "
+                           "steps to its time", _attached_check(_kind, False))
+        selfcheck.register(f"{_kind.name} measurement attached, through its calibration: H and H_c",
+                           _attached_check(_kind, True))
 
 
 def sensors_of(dataset: Dataset) -> list[Sensor]:

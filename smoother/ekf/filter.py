@@ -29,7 +29,7 @@ from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, update_order
 from smoother.progress import progress_bar
-from smoother.model.timeline import estimate_times, imu_steps
+from smoother.model.timeline import imu_steps, measurement_knots
 
 
 class Ekf:
@@ -127,13 +127,13 @@ class FilterResult:
 
 def filter_inputs(dataset: Dataset) -> tuple[list, np.ndarray, object]:
     """``(sensors, knots, steps)`` of a filter run: the one-state sensors (relative poses need a
-    cloned past state: left out, with a warning), the knots (:func:`smoother.model.timeline.estimate_times`)
+    cloned past state: left out, with a warning), the knots (:func:`smoother.model.timeline.measurement_knots`)
     and the IMU steps between them."""
     every = sensors_of(dataset)
     sensors = [s for s in every if not KINDS[s.kind].relative]
     if len(sensors) < len(every):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=3)
-    knots = estimate_times(dataset)
+    knots = measurement_knots(dataset)
     return sensors, knots, imu_steps(dataset.imu, knots)
 
 

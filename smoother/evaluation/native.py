@@ -25,7 +25,7 @@ from datasets.kinds import sensors_of
 from datasets.types import Dataset, PoseMeasurements, Trajectory
 from factors import imu
 from factors.errors import InputError
-from smoother.model.timeline import estimate_times, imu_steps
+from smoother.model.timeline import imu_steps, measurement_knots
 
 
 def combined_params(noise: imu.ImuNoise, gravity) -> gtsam.PreintegrationCombinedParams:
@@ -67,7 +67,7 @@ def solve_native(dataset: Dataset) -> Trajectory:
     if len(poses) != 1 or len(sensors_of(dataset)) != 1:
         raise InputError(f"solve_native needs one pose sensor at the IMU and no other; {dataset.name} has "
                          f"{', '.join(dataset.sensor_names) or 'no sensor'}")
-    times = estimate_times(dataset)
+    times = measurement_knots(dataset)
     steps = imu_steps(dataset.imu, times)
     acc, gyro, dt = steps.segments()
     params = combined_params(dataset.noise, dataset.gravity)

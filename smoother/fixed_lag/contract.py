@@ -112,9 +112,11 @@ class FixedLagWindow(Protocol):
         """Add keyframe ``newest + 1`` at ``t`` with the initial value ``guess``: the IMU factor of
         the preintegrated interval ``pre`` from the newest keyframe (one
         :class:`factors.preintegration.Preintegrated` interval with its covariance; None: none),
-        the factors of ``measurements`` (``(spec, m, keyframes, robust)``: measurement ``m`` of a
-        :class:`smoother.model.problem.MeasurementSpec`, the keyframes it reads, a robust kernel
-        spec or None), a ``prior`` ``(state, cov)`` on the new keyframe (or None) and ``held``
+        the factors of ``measurements`` (``(spec, m, keyframes, robust, attached)``: measurement
+        ``m`` of a :class:`smoother.model.problem.MeasurementSpec`, the keyframes it reads, a robust
+        kernel spec or None, and where it lies in ``pre``'s interval when it is attached to the
+        newest keyframe before this one -- :class:`smoother.model.problem.AttachedAt` -- or None),
+        a ``prior`` ``(state, cov)`` on the new keyframe (or None) and ``held``
         ``(acc, gyro)``, the IMU reading held at ``t`` (what a calibrated time offset steps with;
         None: none). One update; returns the new keyframe's estimate."""
 

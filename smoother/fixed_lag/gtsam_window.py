@@ -41,6 +41,7 @@ from collections import deque
 import gtsam
 import numpy as np
 
+from datasets.kinds import KINDS
 from factors import imu, preintegration, priors
 from factors.errors import InputError
 from factors.imu_factor import ImuFactor
@@ -51,7 +52,7 @@ from smoother.fixed_lag.kinds import GTSAM_KINDS
 from smoother.fixed_lag.lag import check_lag
 from smoother.model.blocks import evaluate_block
 from smoother.model.covariances import keyframe_covariance, marginal_covariances
-from smoother.model.problem import insert_state, read_state
+from smoother.model.problem import attached_factor, insert_state, read_state
 from smoother.model.robust import noise_model
 
 #: Keyframes this close to the next update's marginalisation boundary (its time minus the lag)
@@ -363,8 +364,9 @@ class KeyframeWindow:
         """:meth:`update` with the keyframe's factors made here (the contract's
         :meth:`~smoother.fixed_lag.contract.FixedLagWindow.add_keyframe`): the IMU factor of the
         preintegrated interval ``pre`` from the newest keyframe (None: none), the factors of
-        ``measurements`` (``(spec, m, keyframes, robust)``) and a ``prior`` ``(state, cov)`` on the
-        new keyframe; ``held`` is not used (no calibration here)."""
+        ``measurements`` (``(spec, m, keyframes, robust, attached)``; one attached to the newest
+        keyframe through ``pre``'s samples: :func:`smoother.model.problem.attached_factor`) and a
+        ``prior`` ``(state, cov)`` on the new keyframe; ``held`` is not used (no calibration here)."""
         k = self.newest + 1
         keys = keyframe_keys(k)
         factors, oldest = [], []
@@ -375,8 +377,13 @@ class KeyframeWindow:
             factors.append(ImuFactor(pre, keyframe_keys(k - 1), keys, self.gravity,
                                      reintegration_threshold=self.threshold).factor)
             oldest.append(k - 1)
-        for spec, m, keyframes, robust in measurements:
-            factors.append(spec.factor([keyframe_keys(j) for j in keyframes], m, noise_model(spec.cov[m], robust)))
+        for spec, m, keyframes, robust, attached in measurements:
+            model = noise_model(spec.cov[m], robust)
+            if attached is None:
+                factors.append(spec.factor([keyframe_keys(j) for j in keyframes], m, model))
+            else:  # attached to keyframes[0], the keyframe before this one: in the interval pre
+                factors.append(attached_factor(KINDS[spec.kind], keyframe_keys(keyframes[0]), pre.samples, attached,
+                                               spec.rows[m], model, self.gravity))
             oldest.append(min(keyframes))
         return self.update(t, factors, guess, oldest)
 

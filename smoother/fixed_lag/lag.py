@@ -30,6 +30,18 @@ def check_lag(lag_s, name: str = "lag_s", error: type[Exception] = InputError) -
     return value
 
 
+def check_lag_spans_keyframes(lag_s: float, keyframe_rate: float | None, name: str = "lag_s",
+                              error: type[Exception] = InputError) -> None:
+    """A measurement between keyframes is attached to the keyframe before it and reaches the
+    window with the keyframe after it; a lag no longer than the keyframe interval (``1 /
+    keyframe_rate``; None: a keyframe at every measurement time) would let that keyframe leave
+    first and the measurement be skipped: ``error`` naming ``name``."""
+    if keyframe_rate is not None and not lag_s > 1.0 / keyframe_rate:
+        raise error(f"{name}: {lag_s:g} s is no longer than the keyframe interval (1 / {keyframe_rate:g} Hz): a "
+                    "measurement between keyframes reaches the window with the keyframe after its own, which would "
+                    "have left; choose a longer lag or a higher keyframe rate")
+
+
 def measured_gap(problem: Problem) -> float:
     """The longest time between consecutive keyframes with an absolute measurement (one that fixes a
     position or an attitude: :attr:`Problem.absolute`; velocities and relative poses do not end

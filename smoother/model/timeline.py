@@ -1,8 +1,15 @@
-"""The IMU stream cut at knot times (keyframes, measurements) into Euler-forward steps.
+"""The IMU stream cut at knot times (keyframes, measurements) into Euler-forward steps, and
+where the estimators keep states.
 
 IMU sample ``k`` is held over ``[t_k, t_{k+1})`` (zero-order hold, the primer's Euler-forward
 step). A knot strictly inside such an interval splits it into two steps with the same sample, so
 an estimator can stop exactly at the knot. The last IMU sample only marks the end of the stream.
+
+States. The EKF keeps one at every measurement time (:func:`measurement_knots`). The smoothers keep
+keyframes (:func:`keyframe_times`): on a grid of a rate the motion needs, not at every measurement
+time (``docs/design.md``, keyframes); a measurement between two keyframes is attached to the one
+before it (:func:`attachment`): its state is predicted through the IMU's Euler steps from the
+keyframe to the measurement's time.
 """
 from __future__ import annotations
 
@@ -10,8 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.types import Dataset, ImuSamples
+from datasets.types import Dataset, ImuSamples, Trajectory
 from factors.errors import InputError
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, propagate_steps
 
 
 @dataclass(frozen=True)
@@ -81,23 +89,152 @@ def interval_steps(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, t_from: flo
     return acc[first:stop], gyro[first:stop], np.diff(bounds)
 
 
-def estimate_times(dataset: Dataset, grid_rate: float | None = None) -> np.ndarray:
-    """Where the estimators report states (the smoothers' keyframes, the EKF's knots): every
-    measurement time of every sensor (both ends of a relative one), the times of held-out
-    measurements (only their times: an evaluation wants estimates there), the start and end of
-    the IMU data, and optionally a grid of ``grid_rate`` Hz; all within the IMU span."""
+#: The default keyframe grid [Hz] where the measurements come faster (:func:`keyframe_rate`).
+KEYFRAME_RATE = 10.0
+#: The ``keyframe_rate`` that asks for a keyframe at every measurement time (no grid, nothing
+#: attached), as the EKF keeps its states.
+EVERY_MEASUREMENT = "measurements"
+
+
+def measurement_knots(dataset: Dataset) -> np.ndarray:
+    """Every measurement time of every sensor (both ends of a relative one), the times of
+    held-out measurements (only their times: an evaluation wants estimates there) and the start and
+    end of the IMU data, within the IMU span: where the EKF keeps a state, and the keyframes of
+    ``keyframe_rate=EVERY_MEASUREMENT``."""
     parts = [dataset.measurement_times(), [dataset.t0, dataset.t1]]
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
-    if grid_rate:
-        # Grid times as t0 + k / rate (correctly rounded, like the measurement ticks; arange's
-        # accumulated k * step differs by an ulp, e.g. 0.30000000000000004 beside a measurement
-        # at 0.3), and none within half an IMU step of another estimate time: a near-duplicate
-        # keyframe makes an IMU interval of ~1e-16 s whose factor has a ~0 covariance, and the
-        # system becomes indeterminant.
-        others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
-        grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
-        i = np.searchsorted(others, grid)
-        gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
-        parts.append(grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))])
     times = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
     return times[(times >= dataset.t0) & (times <= dataset.t1)]
+
+
+def keyframe_rate(dataset: Dataset, rate=None) -> float | None:
+    """The rate [Hz] of ``dataset``'s keyframe grid, or None for a keyframe at every measurement
+    time: ``rate`` given as a number; None for :data:`EVERY_MEASUREMENT`; when ``rate`` is None,
+    chosen from the data -- :data:`KEYFRAME_RATE` where the measurement times come faster than
+    that on average (their number less one over their span), else None (the measurement times
+    themselves are then no denser than the grid: each keeps its keyframe)."""
+    if isinstance(rate, str):
+        if rate != EVERY_MEASUREMENT:
+            raise InputError(f"keyframe_rate: expected a rate [Hz], {EVERY_MEASUREMENT!r} or None, got {rate!r}")
+        return None
+    if rate is not None:
+        if not (np.isfinite(rate) and rate > 0):
+            raise InputError(f"keyframe_rate: expected a positive finite rate [Hz], got {rate!r}")
+        return float(rate)
+    measured = dataset.measurement_times()
+    span = measured[-1] - measured[0] if len(measured) > 1 else 0.0
+    return KEYFRAME_RATE if span > 0 and (len(measured) - 1) / span > KEYFRAME_RATE * (1 + 1e-9) else None
+
+
+def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
+    """The smoothers' keyframes: with the grid of :func:`keyframe_rate` (``rate``), the grid
+    ``t0 + k / rate``, the times of held-out measurements, both ends of every relative
+    measurement and the start and end of the IMU data; without one, :func:`measurement_knots`.
+    Every other measurement is attached to the keyframe at or before its time (:func:`attachment`).
+
+    Grid times are correctly rounded (``t0 + k / rate``, like the measurement ticks; arange's
+    accumulated ``k * step`` differs by an ulp, e.g. 0.30000000000000004 beside a measurement at
+    0.3, which would then be attached 5e-17 s from its keyframe), and none lies within half an IMU
+    step of another keyframe time: a near-duplicate keyframe makes an IMU interval of ~1e-16 s
+    whose factor has a ~0 covariance, and the system becomes indeterminant."""
+    grid_rate = keyframe_rate(dataset, rate)
+    if grid_rate is None:
+        return measurement_knots(dataset)
+    parts = [[dataset.t0, dataset.t1]]
+    parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
+    parts += [s.data.t_from for s in dataset.sensors if s.data is not None and hasattr(s.data, "t_from")]
+    parts += [s.data.t for s in dataset.sensors if s.data is not None and hasattr(s.data, "t_from")]
+    others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
+    grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
+    i = np.searchsorted(others, grid)
+    gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
+    grid = grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))]
+    times = np.union1d(others, grid)
+    return times[(times >= dataset.t0) & (times <= dataset.t1)]
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """Where measurements at times ``t (M,)`` sit among keyframes (:func:`attachment`): the
+    keyframe at or before each, ``keyframe (M,)``; whether it lies strictly after it,
+    ``attached (M,)`` (False: it is at its keyframe's own time); and for an attached one the
+    Euler steps from the keyframe to its time: the first ``steps (M,)`` steps of the keyframe's
+    interval (:class:`Steps`), the last of them cut to ``last_dt (M,)`` (both 0 where not
+    attached); ``distance (M,)``: how far each lies after its keyframe [s]."""
+
+    keyframe: np.ndarray
+    attached: np.ndarray
+    steps: np.ndarray
+    last_dt: np.ndarray
+    distance: np.ndarray
+
+
+def attachment(steps: Steps, times: np.ndarray, t: np.ndarray) -> Attachment:
+    """The :class:`Attachment` of measurements at ``t`` among the keyframes ``times`` whose IMU
+    stream was cut into ``steps`` (:func:`imu_steps` at ``times``). A time before the first
+    keyframe or after the last is an InputError."""
+    t = np.asarray(t, dtype=float)
+    if t.size and (t.min() < times[0] or t.max() > times[-1]):
+        raise InputError(f"measurement times [{t.min()}, {t.max()}] outside the keyframes' span "
+                         f"[{times[0]}, {times[-1]}]")
+    keyframe = np.searchsorted(times, t, side="right") - 1
+    attached = t > times[keyframe]
+    step = np.searchsorted(steps.t, t, side="left") - 1  # the step that holds t (its start before t)
+    count = np.where(attached, step - steps.knot_step[keyframe] + 1, 0)
+    last_dt = np.where(attached, t - steps.t[np.maximum(step, 0)], 0.0)
+    return Attachment(keyframe, attached, count, last_dt, t - times[keyframe])
+
+
+def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tuple[np.ndarray, np.ndarray]:
+    """``(steps, last_dt)`` of measurements at ``stamps`` in ``(t_from, t_to)`` among the steps of
+    :func:`interval_steps` ``(t, ..., t_from, t_to)``: each after the first ``steps`` of them, the
+    last cut to ``last_dt`` -- what :func:`attachment` gives for one interval, without the whole
+    stream's steps (an online smoother's keyframe)."""
+    first = int(np.searchsorted(t, t_from, side="right")) - 1
+    stop = int(np.searchsorted(t, t_to, side="left"))
+    starts = np.concatenate([[t_from], t[first + 1:stop]])
+    stamps = np.asarray(stamps, dtype=float)
+    steps = np.searchsorted(starts, stamps, side="left")
+    return steps, stamps - starts[steps - 1]
+
+
+#: Queries :func:`states_at` propagates at once (their padded steps are a few MB).
+_STATES_CHUNK = 8192
+
+
+def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> Trajectory:
+    """The states at times ``t`` (increasing, within the IMU span, none before the trajectory's
+    first state), each predicted from ``trajectory``'s state at or before it through the IMU's
+    Euler steps -- the primer's model, exactly as a measurement between keyframes is evaluated --
+    with the EKF's prediction of its covariance, ``P <- F P F^T + G Q_d G^T``
+    (:func:`factors.imu.propagate_steps`), where the trajectory has covariances. A time at a state
+    of the trajectory takes that state. What an output or a metric reads where it needs a state
+    at a time that is not a keyframe."""
+    t = np.asarray(t, dtype=float)
+    source = np.searchsorted(trajectory.t, t, side="right") - 1
+    if t.size and source.min() < 0:
+        raise InputError(f"states_at: {t[source < 0][0]} s lies before the trajectory's first state "
+                         f"({trajectory.t[0]} s)")
+    knots = np.union1d(trajectory.t[source], t)
+    steps = imu_steps(imu, knots)
+    start = steps.knot_step[np.searchsorted(knots, trajectory.t[source])]
+    count = steps.knot_step[np.searchsorted(knots, t)] - start
+    has_cov = trajectory.cov is not None
+    parts, covs = [], []
+    for lo in range(0, len(t), _STATES_CHUNK):
+        sl = slice(lo, lo + _STATES_CHUNK)
+        K = max(1, int(count[sl].max(initial=1)))
+        idx = start[sl, None] + np.arange(K)[None, :]
+        valid = np.arange(K)[None, :] < count[sl, None]
+        safe = np.minimum(idx, len(steps.dt) - 1)
+        dt = np.where(valid, steps.dt[safe], 0.0)
+        acc = np.where(valid[..., None], steps.acc[safe], 0.0)
+        gyro = np.where(valid[..., None], steps.gyro[safe], 0.0)
+        P0 = trajectory.cov[source[sl]] if has_cov else np.zeros((len(dt), 15, 15))
+        state, P = propagate_steps(trajectory.states[source[sl]], P0, acc, gyro, dt, noise, gravity)
+        parts.append(state)
+        covs.append(P)
+    if not parts:
+        return Trajectory(t, trajectory.states[:0], trajectory.cov[:0] if has_cov else None)
+    states = ImuState(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("r", "v", "C", "b_f", "b_w")))
+    return Trajectory(t, states, np.concatenate(covs) if has_cov else None)

@@ -1,7 +1,8 @@
 """Measurements waiting for their keyframe in an online smoother
 (:class:`smoother.online.smoother.OnlineSmoother`), sorted into time whatever the order they arrive in.
 
-A measurement waits until the keyframe at its latest time is made; those of a keyframe come out
+A measurement waits until the keyframe at its latest time is made, or, one of one time between
+keyframes, the keyframe after it (it is attached to the one before); those of a keyframe come out
 sorted by latest time, sensor and row (:class:`Pending`), so a keyframe's factors do not depend
 on the order of arrival. What is too old to reach the window is refused, counted per sensor with
 a warning at the sensor's first:
@@ -66,22 +67,24 @@ class PendingMeasurements:
         heapq.heappush(self._heap, Pending(latest, sensor, times, self._seq, spec, row, arrived))
         return True
 
-    def due(self, t: float, first: bool, keyframes) -> list[Pending]:
-        """The measurements of the keyframe at ``t`` (latest time ``t``), sorted (:class:`Pending`),
-        taken off the heap with every one before ``t`` (dropped: before the ``first`` keyframe, or
-        late) and every one whose earlier time is neither ``t`` nor a keyframe in the window
-        (``keyframes``; skipped)."""
-        used = []
+    def due(self, t: float, first: bool, keyframes) -> tuple[list[Pending], list[Pending]]:
+        """The measurements that reach the window with the keyframe at ``t``, sorted
+        (:class:`Pending`) and taken off the heap: those at ``t`` (latest time ``t``), and, unless
+        it is the ``first`` keyframe, those of one time between the newest keyframe made and ``t``
+        (attached to that keyframe). Taken off too: every one before the ``first`` keyframe
+        (dropped) and every relative one whose earlier time is neither ``t`` nor a keyframe in the
+        window (``keyframes``; skipped)."""
+        used, attached = [], []
         while self._heap and self._heap[0].latest <= t:
             item = heapq.heappop(self._heap)
-            if item.latest < t:  # before the first keyframe
-                self.drop(item.sensor, "lies before the IMU's first sample and was dropped" if first else None)
+            if item.latest < t and first:  # before the first keyframe
+                self.drop(item.sensor, "lies before the IMU's first sample and was dropped")
                 continue
-            if any(x not in keyframes and x != t for x in item.times):  # its earlier keyframe left
+            if any(x not in keyframes and x != t for x in item.times) and len(item.times) > 1:  # its earlier keyframe left
                 self.skip(item.sensor)
                 continue
-            used.append(item)
-        return used
+            (used if item.latest == t else attached).append(item)
+        return used, attached
 
     def drop_all(self, why: str) -> None:
         """Drop every measurement still waiting, saying ``why``."""

@@ -19,7 +19,7 @@ from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.errors import InputError
 from smoother.model.problem import measurement_spec
-from smoother.model.timeline import estimate_times
+from smoother.model.timeline import keyframe_rate as grid_rate, keyframe_times
 from smoother.online.handover import OnlineEstimate
 from smoother.online.smoother import OnlineSmoother
 from smoother.progress import progress_bar
@@ -47,13 +47,12 @@ class ReplayResult:
     calibration: tuple | None = None
 
 
-def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate: float | None = None,
-              **options) -> OnlineSmoother:
+def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate=None, **options) -> OnlineSmoother:
     """The :class:`OnlineSmoother` that :func:`replay` feeds ``dataset`` to
-    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes asked for at
-    :func:`smoother.model.timeline.estimate_times`."""
-    online = OnlineSmoother.for_dataset(dataset, robust, **options)
-    online.keyframe_at(estimate_times(dataset, keyframe_rate))
+    (:meth:`OnlineSmoother.for_dataset` with ``options``), its keyframes the batch smoother's
+    (:func:`smoother.model.timeline.keyframe_times`: its grid, asked for at those times)."""
+    online = OnlineSmoother.for_dataset(dataset, robust, keyframe_rate=grid_rate(dataset, keyframe_rate), **options)
+    online.keyframe_at(keyframe_times(dataset, keyframe_rate))
     return online
 
 
@@ -76,14 +75,14 @@ def arrivals(dataset: Dataset):
         yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
 
 
-def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
+def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate=None,
            robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
            speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
     """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
     in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
-    sample of the same time; keyframes are asked for at :func:`smoother.model.timeline.estimate_times`
-    (measurements, held-out fixes, the ends, the ``keyframe_rate`` grid), those of the batch
-    smoother's graph. ``realtime``: at the data's own pace (``speed`` times it), sample by
+    sample of the same time; its keyframes are those of the batch smoother's graph
+    (:func:`smoother.model.timeline.keyframe_times` of ``keyframe_rate``: the grid or the measurement
+    times, held-out fixes, the ends). ``realtime``: at the data's own pace (``speed`` times it), sample by
     sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
     IMU in chunks between measurements)."""
     if not speed > 0:

@@ -12,11 +12,14 @@ attitude, accelerometer and gyro biases), 15x15 covariances in the primer's erro
 ``(dr, dv, dphi, db_f, db_w)`` with the LEFT perturbation ``C <- exp(dphi) C``, times in seconds
 on the IMU's clock.
 
-Keyframes. Keyframe 0 is at the first IMU sample, with the prior ``(initial, initial_cov)``. Every
-measurement time is a keyframe (both ends of a relative pose), and so is every time given to
-:meth:`OnlineSmoother.keyframe_at`, with ``keyframe_rate`` a grid ``t0 + m / rate`` (grid
-times within half an IMU interval of another keyframe are left out), and the last IMU sample at
-:meth:`OnlineSmoother.finish`. Consecutive keyframes are
+Keyframes. Keyframe 0 is at the first IMU sample, with the prior ``(initial, initial_cov)``. With
+``keyframe_rate`` None every measurement time is a keyframe; with a rate the keyframes are the
+grid ``t0 + m / rate`` (grid times within half an IMU interval of another keyframe are left
+out), and a measurement between two of them is attached to the one before it (its state the
+IMU's exact Euler steps from that keyframe to its time, its covariance grown by their process
+noise: ``docs/design.md``, keyframes) and reaches the window with the one after it. Both ends of
+a relative pose, every time given to :meth:`OnlineSmoother.keyframe_at` and the last IMU sample
+at :meth:`OnlineSmoother.finish` are keyframes either way. Consecutive keyframes are
 joined by the project's IMU factor, preintegrated when the later keyframe is made, its noise
 covariance evaluated along the prediction from the smoother's newest estimate.
 
@@ -89,7 +92,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from datasets.kinds import KINDS, kind_sigmas, sensors_of
+from datasets.kinds import KINDS, attached_noise, kind_sigmas, sensors_of
 from datasets.robust import check_robust
 from datasets.types import (
     MAX_IMU_GAP_S,
@@ -103,10 +106,10 @@ from datasets.types import (
 from factors import calibration, imu, preintegration
 from factors.errors import InputError
 from smoother.fixed_lag.contract import HISTORY
-from smoother.fixed_lag.lag import check_lag, sparse_measurement_warning
+from smoother.fixed_lag.lag import check_lag, check_lag_spans_keyframes, sparse_measurement_warning
 from smoother.fixed_lag.windows import make_window
-from smoother.model.problem import measurement_spec
-from smoother.model.timeline import interval_steps
+from smoother.model.problem import AttachedAt, measurement_spec
+from smoother.model.timeline import interval_attachment, interval_steps
 from smoother.online import warm_up
 from smoother.online.delay import MAX_DELAY_RANGE
 from smoother.online.handover import HandOver, OnlineEstimate
@@ -196,6 +199,7 @@ class OnlineSmoother:
         if keyframe_rate is not None and not (keyframe_rate > 0 and math.isfinite(keyframe_rate)):
             raise InputError(f"keyframe_rate must be positive and finite, or None, got {keyframe_rate}")
         lag_s = check_lag(lag_s)
+        check_lag_spans_keyframes(lag_s, keyframe_rate)
         check_state("initial", initial)  # a rotation, finite 3-vectors
         initial_cov = check_state_covariance("initial_cov", initial_cov)  # symmetric, positive definite
         if not isinstance(noise, imu.ImuNoise):
@@ -323,9 +327,10 @@ class OnlineSmoother:
                              f"{stamps.max() - stream.t_last:.6g} s after the newest IMU sample, beyond any plausible "
                              f"delay ({MAX_IMU_GAP_S:g} s): a stamp of another clock, or a wrong time offset")
         arrived = time.perf_counter()
+        asks = self.keyframe_rate is None or kind.relative  # else attached to the keyframe before it
         for m, times in enumerate(stamps):
             times = tuple(float(x) for x in times)
-            if self._pending.offer(sensor, times, spec, m, arrived, self._last_t, self._keyframe_t):
+            if self._pending.offer(sensor, times, spec, m, arrived, self._last_t, self._keyframe_t) and asks:
                 for x in times:
                     if self._last_t is None or x > self._last_t:
                         self._schedule.ask(x)
@@ -466,7 +471,8 @@ class OnlineSmoother:
             self._keyframe(t)
 
     def _keyframe(self, t: float) -> None:
-        """Make the keyframe at ``t``: its IMU interval, the measurements at ``t``, one update."""
+        """Make the keyframe at ``t``: its IMU interval, the measurements at ``t`` and those attached
+        to the keyframe before it, one update."""
         window, stream = self._window, self._imu
         k = window.newest + 1
         pre, prior = None, None
@@ -476,9 +482,12 @@ class OnlineSmoother:
         else:
             acc, gyro, dt = interval_steps(stream.t[:stream.n], stream.acc, stream.gyro, self._last_t, t)
             pre, guess = preintegration.integrate_interval(acc, gyro, dt, self._newest, self.noise, self.gravity)
-        used = self._pending.due(t, k == 0, self._keyframe_t)
+        at_t, between = self._pending.due(t, k == 0, self._keyframe_t)
         measurements = [(item.spec, item.row, [k if x == t else self._keyframe_t[x] for x in item.times],
-                         self._setup(item.sensor)[0].robust) for item in used]
+                         self._setup(item.sensor)[0].robust, None) for item in at_t]
+        if between:
+            measurements += self._attached(between, k - 1, pre.samples, t)
+        used = at_t + between
         leaving = self._hand.read(window.leaving(t))
         extra = {}
         if self._window_calibrates:  # what a calibrated time offset steps with
@@ -502,6 +511,28 @@ class OnlineSmoother:
         done = time.perf_counter()  # the updated estimate is ready (its covariance included)
         self.latency_s += [done - item.arrived for item in used]
         self._hand.give([e for j, e in leaving if j < window.first])  # read in time: they have left
+
+    def _attached(self, items: list, keyframe: int, samples: tuple, t: float) -> list:
+        """The measurements ``items`` between the newest keyframe (``keyframe``, at ``_last_t``, its
+        estimate ``_newest``) and ``t`` as the window takes them, attached to it: each where it lies
+        in the interval's steps ``samples`` (:func:`smoother.model.timeline.interval_attachment`)
+        with the IMU reading held at its stamp, its covariance grown by the process noise from the
+        keyframe (:func:`datasets.kinds.attached_noise`, along ``_newest``; a spec of its one row)."""
+        stream = self._imu
+        stamps = np.array([item.latest for item in items])
+        steps, last_dt = interval_attachment(stream.t[:stream.n], self._last_t, t, stamps)
+        held = [stream.held_at(x) for x in stamps]
+        padded = tuple(a[None] for a in samples)
+        out = []
+        for item, n, last, i in zip(items, steps, last_dt, held):
+            spec, kind = item.spec, KINDS[item.spec.kind]
+            row = spec.rows[item.row:item.row + 1]
+            grown = spec.cov[item.row] + attached_noise(kind, self._newest[None], padded, [0], [n], [last], row,
+                                                        self.noise, self.gravity)[0]
+            one = replace(spec, rows=row, cov=grown[None])
+            out.append((one, 0, [keyframe], self._setup(item.sensor)[0].robust,
+                        AttachedAt(int(n), float(last), (stream.acc[i], stream.gyro[i]))))
+        return out
 
     def _gap(self, t: float) -> None:
         gap = t - self._last_measured_t

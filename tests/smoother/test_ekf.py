@@ -18,7 +18,7 @@ from factors import sensor_models as sm
 from smoother import stats
 from smoother.evaluation import metrics
 from smoother.ekf.filter import Ekf, run_ekf
-from smoother.model.timeline import estimate_times, imu_steps
+from smoother.model.timeline import imu_steps, measurement_knots
 
 import estimator_cases as cases
 
@@ -373,7 +373,7 @@ def test_a_diverging_filter_stops_with_an_error_naming_the_time():
     from smoother.ekf.filter import FilterDiverged
 
     data = simulate("gentle", duration=1.0, seed=0)
-    first = estimate_times(data)[0]
+    first = measurement_knots(data)[0]
     run_ekf(data, progress=False)  # a sane filter passes
     fast = dataclasses.replace(data, initial=data.initial.replace(v=np.array([1e5, 0.0, 0.0])))
     with pytest.raises(FilterDiverged, match=rf"diverged at t = {first:.6f} s"):
@@ -394,7 +394,7 @@ def test_run_ekf_equals_the_filter_driven_step_by_step():
     data = data.with_sensor("pose", data=bad)
     result = run_ekf(data, gate_probability=0.999, progress=False)
 
-    knots = estimate_times(data)
+    knots = measurement_knots(data)
     samples = imu_steps(data.imu, knots)
     ekf = Ekf(data.initial, data.initial_cov, data.noise, data.gravity, gate_probability=0.999)
     start = 0

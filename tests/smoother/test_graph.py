@@ -12,6 +12,7 @@ from datasets.simulate import simulate
 from factors import so3
 from smoother.ekf.filter import run_ekf
 from smoother.model.problem import build_problem, insert_state
+from smoother.model.timeline import EVERY_MEASUREMENT, KEYFRAME_RATE
 
 import estimator_cases as cases
 
@@ -36,7 +37,7 @@ def _symbols(factor) -> list[tuple[str, int]]:
 
 def test_keyframes_are_the_measurement_times_plus_start_and_end():
     data = mixed()
-    problem = build_problem(data)
+    problem = build_problem(data, EVERY_MEASUREMENT)
     expected = np.unique(np.concatenate([data.sensor("pose").data.t, data.sensor("position").data.t, data.sensor("orientation").data.t, [data.t0, data.t1]]))
     np.testing.assert_array_equal(problem.times, expected)
     assert data.t1 not in set(data.measurement_times())  # the end really is an extra keyframe
@@ -44,15 +45,38 @@ def test_keyframes_are_the_measurement_times_plus_start_and_end():
     np.testing.assert_array_equal(run_ekf(data, progress=False).trajectory.t, problem.times)
 
 
-def test_keyframe_rate_adds_a_grid():
-    """A 3 Hz grid (t0 + k/3, which falls between measurement times) is added to the measurement
-    times; nothing else is."""
+def test_keyframe_rate_is_the_grid_and_measurements_between_are_attached():
+    """A 3 Hz grid (t0 + k/3, which falls between measurement times) and the ends are the
+    keyframes; every measurement not on one is attached to the keyframe before it, and becomes
+    available with the keyframe after it (a factor on every variable of its keyframe)."""
     data = mixed()
     problem = build_problem(data, keyframe_rate=3.0)
-    base = np.unique(np.concatenate([data.measurement_times(), [data.t0, data.t1]]))
     grid = data.t0 + np.arange(7) / 3.0  # 0, 1/3, ..., 2 (< t1 = 2.03); 0, 1 and 2 are pose times
-    np.testing.assert_array_equal(problem.times, np.union1d(base, grid))
-    assert len(problem.times) == len(base) + 4
+    np.testing.assert_array_equal(problem.times, np.union1d(grid, [data.t1]))
+    one_state = sum(len(s.data.t) for s in data.sensors)
+    on_grid = sum(np.isin(s.data.t, problem.times).sum() for s in data.sensors)
+    assert problem.keyframes == {"count": 8, "rate_hz": 3.0, "measurements": one_state, "attached": one_state - on_grid,
+                                 "max_attached_distance_s": pytest.approx(0.3, abs=1e-12)}
+    for k, group in enumerate(problem.factors_at):
+        for f in group[0 if k == 0 else 1:]:
+            (index,) = {i for _, i in _symbols(f)}
+            assert index in (k, k - 1)
+            if index == k - 1:
+                assert list(f.keys()) == problem.keys[k - 1].all()
+
+
+def test_the_default_keyframe_grid_is_chosen_from_the_measurement_rate():
+    """Measurement times denser than 10 per second (here about 13): keyframes on the 10 Hz grid;
+    no denser (the 10 Hz poses alone): a keyframe at every measurement time, as before."""
+    data = mixed()
+    assert len(data.measurement_times()) > KEYFRAME_RATE * (data.t1 - data.t0)
+    problem = build_problem(data)
+    assert problem.keyframes["rate_hz"] == KEYFRAME_RATE
+    np.testing.assert_array_equal(problem.times, np.union1d(data.t0 + np.arange(21) / 10.0, [data.t1]))
+    sparse = simulate(profile="gentle", duration=2.03, seed=4, imu_rate=cases.IMU_RATE, pose_rate=10.0)
+    sparse_problem = build_problem(sparse)
+    assert sparse_problem.keyframes["rate_hz"] is None and sparse_problem.keyframes["attached"] == 0
+    np.testing.assert_array_equal(sparse_problem.times, np.union1d(sparse.measurement_times(), [sparse.t1]))
 
 
 def test_grid_coinciding_with_measurement_times_adds_no_near_duplicate_keyframes():
@@ -156,7 +180,7 @@ def test_initial_values_equal_the_measurements_where_measured():
     state. Keyframe 0 is the dataset's initial estimate (even though a pose is measured there:
     the prior carries it), where the prior has zero error."""
     data = mixed()
-    problem = build_problem(data)
+    problem = build_problem(data, EVERY_MEASUREMENT)
     x = problem.initial_states
     index = {t: k for k, t in enumerate(problem.times)}
     assert data.sensor("pose").data.t[0] == data.sensor("position").data.t[0] == data.sensor("orientation").data.t[0] == data.t0

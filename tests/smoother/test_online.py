@@ -17,7 +17,7 @@ from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
 from smoother.online.smoother import OnlineSmoother, SensorSetup
 from smoother.online.replay import replay
-from smoother.model.timeline import estimate_times
+from smoother.model.timeline import keyframe_times
 
 import estimator_cases as cases
 
@@ -36,8 +36,8 @@ def _arrivals(data, delays=None):
 def _stream(data, online, arrivals, estimates=None, knots=None):
     """Feed ``data``'s IMU sample by sample and its poses at their ``arrivals`` (each before the
     IMU sample of the same time), then finish, with keyframes at ``knots`` (default
-    ``estimate_times(data)``); ``estimates`` collects ``estimate()`` after each sample."""
-    online.keyframe_at(estimate_times(data) if knots is None else knots)
+    ``keyframe_times(data)``); ``estimates`` collects ``estimate()`` after each sample."""
+    online.keyframe_at(keyframe_times(data) if knots is None else knots)
     a = 0
     for i, t in enumerate(np.append(data.imu.t, np.inf)):
         while a < len(arrivals) and arrivals[a][0] <= t:
@@ -114,7 +114,7 @@ def test_measurements_late_within_max_delay_change_nothing_later_ones_are_droppe
         dropped = _stream(data, online, _arrivals(data, late))
     assert online.dropped == {"pose": 5}
     kept = data.with_sensor("pose", data=data.sensor("pose").data.subset(np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
-    without = _stream(kept, _smoother(kept), _arrivals(kept), knots=estimate_times(data))
+    without = _stream(kept, _smoother(kept), _arrivals(kept), knots=keyframe_times(data))
     assert [e.t for e in dropped] == [e.t for e in without]
     for a, b in zip(dropped, without):
         _assert_same_states(a.state, b.state)
@@ -127,7 +127,7 @@ def test_estimate_between_keyframes_is_the_ekf_prediction_from_the_newest_keyfra
     data = cases.dataset(gentle)
     estimates = []
     _stream(data, _smoother(data, covariances=True), _arrivals(data), estimates)
-    keyframes = set(estimate_times(data))
+    keyframes = set(keyframe_times(data))
     checked = 0
     ekf = None
     for i, (t, e) in enumerate(zip(data.imu.t, estimates)):
@@ -254,7 +254,7 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
 
 def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
     """With ``keyframe_rate`` and no keyframe asked for, the keyframes are those of the offline
-    graph with the same rate (``estimate_times``: the measurement times, the grid, the start and
+    graph with the same rate (``keyframe_times``: the measurement times, the grid, the start and
     the end of the data)."""
     data = cases.dataset(gentle)
     online = _smoother(data, keyframe_rate=25.0)
@@ -265,7 +265,7 @@ def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
             online.add("pose", t, data.sensor("pose").data.position[m], data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
         online.add_imu(t, data.imu.acc[i], data.imu.gyro[i])
     online.finish()
-    np.testing.assert_array_equal([e.t for e in online.smoothed()], estimate_times(data, 25.0))
+    np.testing.assert_array_equal([e.t for e in online.smoothed()], keyframe_times(data, 25.0))
 
 
 def test_bad_settings_are_one_line_and_what_finish_cannot_place_is_dropped_and_counted(recwarn):

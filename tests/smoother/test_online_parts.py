@@ -136,11 +136,28 @@ def test_pending_measurements_come_out_sorted_whatever_the_order_of_arrival():
     random.Random(4).shuffle(items)
     for s, t, row in items:
         assert pending.offer(s, (t,), None, row, 0.0, None, {})
-    first = pending.due(0.1, True, {})
+    first, between = pending.due(0.1, True, {})
+    assert between == []
     assert [(p.sensor, p.latest) for p in first] == sorted((s, t) for s, t, _ in items if t == 0.1)
     assert [p.row for p in first if p.sensor == "a"] == [row for s, t, row in items if s == "a" and t == 0.1]
     assert len(pending) == 6 and pending.dropped == {} and pending.skipped == {}
-    assert [p.sensor for p in pending.due(0.2, False, {0.1: 0})] == ["a", "a", "b", "b", "c", "c"]
+    assert [p.sensor for p in pending.due(0.2, False, {0.1: 0})[0]] == ["a", "a", "b", "b", "c", "c"]
+
+
+def test_pending_measurements_between_keyframes_come_with_the_next_one():
+    """A measurement of one time between the newest keyframe made and the next comes out with
+    the next, apart from those at its time (attached to the keyframe before it); one before the
+    first keyframe comes out with it, dropped."""
+    pending = PendingMeasurements(max_delay_s=0.0, lag_s=1.0)
+    assert pending.offer("v", (-0.05,), None, 0, 0.0, None, {})
+    with pytest.warns(UserWarning, match="lies before the IMU's first sample"):
+        assert pending.due(0.0, True, {}) == ([], [])
+    for sensor, t in (("v", 0.13), ("p", 0.2), ("v", 0.27)):
+        assert pending.offer(sensor, (t,), None, 0, 0.0, 0.1, {0.1: 0})
+    at, between = pending.due(0.2, False, {0.1: 0})
+    assert [(p.sensor, p.latest) for p in at] == [("p", 0.2)]
+    assert [p.latest for p in between] == [0.13]
+    assert pending.dropped == {"v": 1} and len(pending) == 1
 
 
 def test_pending_measurements_older_than_the_window_are_refused_counted_and_warned_of_once():
@@ -162,7 +179,7 @@ def test_pending_measurements_older_than_the_window_are_refused_counted_and_warn
     assert pending.offer("odo", (0.8, 1.1), None, 1, 0.0, 1.0, window)
     assert pending.offer("gps", (1.3,), None, 2, 0.0, 1.0, window)
     assert pending.dropped == {"gps": 2} and pending.skipped == {"odo": 1}
-    assert pending.due(1.1, False, {1.0: 5}) == []  # 0.8 has left the window meanwhile
+    assert pending.due(1.1, False, {1.0: 5}) == ([], [])  # 0.8 has left the window meanwhile
     assert pending.skipped == {"odo": 2} and len(pending) == 1
     pending.drop_all("lies after the last IMU sample and was dropped")  # gps was warned of already
     assert pending.dropped == {"gps": 3} and len(pending) == 0

@@ -95,7 +95,7 @@ def step_window(L, delta, before, first, newest, cap, S, threshold, max_turn, mo
 
 
 @njit(cache=True)
-def drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg):
+def drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg, mstep, mlast, macc, mgyro):
     """Remove the measurements whose earliest keyframe is before ``cut``, keeping the order of the
     rest; returns their number and the longest span (later minus earlier keyframe) among them."""
     n, span = 0, 0
@@ -104,6 +104,7 @@ def drop_measurements(cut, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD, mg
             if n != f:
                 mk[n], model[n], rows[n], dims[n] = mk[f], model[f], rows[f], dims[f]
                 Wm[n], rcode[n], rk[n], mcal[n], mD[n], mg[n] = Wm[f], rcode[f], rk[f], mcal[f], mD[f], mg[f]
+                mstep[n], mlast[n], macc[n], mgyro[n] = mstep[f], mlast[f], macc[f], mgyro[f]
             span = max(span, mk[n, 1] - mk[n, 0])
             n += 1
     return n, span

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from datasets.kinds import calibrated_into, measure_into
+from datasets.kinds import attached_into, attached_work, calibrated_into, measure_into
 from datasets.robust import ROBUST_KERNEL_NAMES
 from factors import imu, so3
-from factors.calibration import CALIBRATION_DIM, calibrated_odometry_into, work_array
+from factors.calibration import CALIBRATION_DIM, PACKED_SIZE, calibrated_odometry_into, work_array
 from factors.preintegration import residual_into, residual_work
 from factors.sensor_models import MAX_RESIDUAL_DIM, odometry_kernel
 from factors.small_linalg import cholesky_into, solve_lower
@@ -43,6 +43,8 @@ _WITH_JACOBIANS = np.bool_(True)
 #: of the helper for its value (five of :func:`_add_diagonal`, three each of :func:`_whiten` and
 #: :func:`_add_normal`, on a first run's critical path).
 _AT_ZERO, _AT_DIM, _NO_KEYFRAME = np.int64(0), np.int64(DIM), np.int64(-1)
+#: What :func:`datasets.kinds.attached_into` reads of a calibration where a measurement reads none.
+_NO_LAYOUT, _NO_CALIBRATION = np.zeros(6, dtype=np.int64), np.zeros(PACKED_SIZE)
 
 
 @dataclass
@@ -216,12 +218,17 @@ def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
 
 @njit(cache=True)
 def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
-               m, mk, model, rows, dims, Wm, rcode, rk, mcal, Hb, g) -> None:
+               m, mk, model, rows, dims, Wm, rcode, rk, mcal, mstep, mlast, macc, mgyro, sacc, sgyro, sdt, Hb, g) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
     IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``
     that read no calibration (``mcal[f] < 0``; the others: :func:`linearise_calibrated`),
-    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``."""
+    linearised at the state arrays given. Keyframe ``k`` is at slot ``k % cap``. A measurement
+    with ``mstep[f] > 0`` is attached to its keyframe ``k``
+    (:func:`datasets.kinds.attached_into`): taken after the first ``mstep[f]`` steps of the samples
+    ``sacc, sgyro, sdt`` of the interval into keyframe ``k + 1`` (at that keyframe's slot), the last
+    cut to ``mlast[f]``; ``macc``, ``mgyro`` (the IMU reading held at its stamp) are read by
+    :func:`linearise_calibrated` only."""
     work = residual_work()
     e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
     J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM)), np.empty(DIM)
@@ -241,7 +248,8 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
         _add_normal(Hb, g, k - 1 - lo, _AT_ZERO, k - lo, _AT_DIM, JT, ew, _AT_DIM)
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
     # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
-    H, Hm = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM))
+    H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
+    attached = attached_work(sdt.shape[1])
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         if k0 >= cut or k1 < lo or mcal[f] >= 0:
@@ -253,7 +261,13 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
             odometry_kernel(r[i], C[i], r[k1 % cap], C[k1 % cap], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * _AT_DIM, ew, JT, Jt0)
         else:
-            measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
+            if mstep[f] > 0:
+                j = (k0 + 1) % cap
+                attached_into(model[f], _NO_LAYOUT, sacc[j], sgyro[j], sdt[j], mstep[f], mlast[f], r[i], v[i], C[i],
+                              bf[i], bw[i], rows[f], _NO_CALIBRATION, False, False, macc[f], mgyro[f], gravity, e[:d],
+                              Hm[:d], Hc[:d], attached, _WITH_JACOBIANS)
+            else:
+                measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
             _whiten(Wm[f], e, Hm, d, _AT_DIM, ew, JT, Jt0)
         _reweight(rcode[f], rk[f], JT, ew, d)
         _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
@@ -261,7 +275,8 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
 
 @njit(cache=True)
 def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
-                          mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, Hb, g, B, D, gc) -> None:
+                          mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, mstep, mlast, macc, mgyro,
+                          sacc, sgyro, sdt, Hb, g, B, D, gc) -> None:
     """:func:`linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
     (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
     reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
@@ -276,13 +291,16 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
     for its slot (the caller clears it when a keyframe takes the slot, when the keyframe or a
     calibration is linearised again and when a measurement joins it, and moves sums and flags
     with the slots when the ring grows) they add that sum instead of being linearised again;
-    the others are linearised, their sums kept and ``kept`` set. A separate kernel: a window without
-    calibrations never compiles the calibrated residuals."""
+    the others are linearised, their sums kept and ``kept`` set. A measurement attached to its
+    keyframe (``mstep[f] > 0``, :func:`linearise`) is evaluated through the steps to its time,
+    its time offset stepped with the reading held at its own stamp (``macc``, ``mgyro``). A
+    separate kernel: a window without calibrations never compiles the calibrated residuals."""
     e, ew = np.empty(DIM), np.empty(DIM)
     JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))
     H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
     Jc = np.empty((MAX_DIM, _WIDE))  # the factor's states and calibration side by side
     work = work_array()
+    attached = attached_work(sdt.shape[1])
     n = Hb.shape[0]
     for k in range(lo, min(cut, lo + n)):  # the sums not kept, made anew below
         s = k % cap
@@ -307,6 +325,12 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
                                      cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],
                                      H[:d], Hc[:d], work, True)
             Jc[:d, :width] = H[:d]
+        elif mstep[f] > 0:
+            nxt = (k0 + 1) % cap
+            attached_into(model[f], layouts[model[f]], sacc[nxt], sgyro[nxt], sdt[nxt], mstep[f], mlast[f], r[i], v[i], C[i],
+                          bf[i], bw[i], rows[f], cal[j], True, cal_time[j], macc[f], mgyro[f], gravity, e[:d], Hm[:d],
+                          Hc[:d], attached, _WITH_JACOBIANS)
+            Jc[:d, :width] = Hm[:d]
         else:
             calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j], cal_time[j],
                             hacc[i], hgyro[i], gravity, e[:d], Hm[:d], Hc[:d], work, True)

@@ -178,6 +178,7 @@ class SlidingWindow:
         nc = 0 if calibration is None else calibration.nc
         self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.fixed_lag.sliding.calibration)
         self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded.border_solve)
+        self._K = 1  # the steps an interval's samples hold room for (_sacc, _sgyro, _sdt), grown as needed
         self._allocate_keyframes(64)
         self._allocate_measurements(64)
         self._m = 0
@@ -191,7 +192,8 @@ class SlidingWindow:
                   "_L": (self._L.shape[1] if hasattr(self, "_L") else self._S + 1, DIM, DIM), "_dC": (3, 3),
                   "_Wp": (3, 10), "_Rm": (3, 10), "_JC": (3, 3), "_dW": (3, 10, 3), "_dRm": (3, 10, 3),
                   "_bwbar": (3,), "_Wimu": (DIM, DIM), "_hacc": (3,), "_hgyro": (3,), "_Z": (DIM, self._Z.shape[2]),
-                  "_ZZ": self._ZZ.shape[1:], "_kH": (1, 1, DIM, DIM), "_kg": (DIM,), "_kB": (1, DIM, self._Z.shape[2])}
+                  "_ZZ": self._ZZ.shape[1:], "_kH": (1, 1, DIM, DIM), "_kg": (DIM,), "_kB": (1, DIM, self._Z.shape[2]),
+                  "_sacc": (self._K, 3), "_sgyro": (self._K, 3), "_sdt": (self._K,)}
         old = {name: getattr(self, name, None) for name in shapes}
         old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
         old_kept = getattr(self, "_kept", None)
@@ -204,8 +206,8 @@ class SlidingWindow:
         self._pre = [None] * cap
         for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
             a, b = k % old_cap, k % cap
-            for name in shapes:
-                getattr(self, name)[b] = old[name][a]
+            for name in shapes:  # (an interval's samples into the leading steps of wider rows)
+                getattr(self, name)[(b, *(slice(0, n) for n in old[name].shape[1:]))] = old[name][a]
             self._has_imu[b], self._pre[b], self._kept[b] = old_imu[a], old_pre[a], old_kept[a]
 
     def _allocate_measurements(self, cap: int) -> None:
@@ -213,7 +215,8 @@ class SlidingWindow:
         m = getattr(self, "_m", 0)
         shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
                   "_dims": ((), np.int64), "_Wm": ((MAX_DIM, MAX_DIM), float), "_rcode": ((), np.int64),
-                  "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float)}
+                  "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float),
+                  "_mstep": ((), np.int64), "_mlast": ((), float), "_macc": ((3,), float), "_mgyro": ((3,), float)}
         for name, (tail, dtype) in shapes.items():
             fresh = np.zeros((cap,) + tail, dtype=dtype)
             if m:
@@ -282,11 +285,13 @@ class SlidingWindow:
             interval = np.zeros((DIM, DIM))
             if not whitening_into(pre.cov, interval):
                 raise InputError("the IMU interval's covariance is not positive definite")
-        factors = [self._measurement_row(spec, m, keyframes, robust) for spec, m, keyframes, robust in measurements
-                   if min(keyframes) >= first]
+        factors = [self._measurement_row(*measurement) for measurement in measurements if min(measurement[2]) >= first]
         priors = [] if prior is None else [(prior[0], whitening(prior[1]))]
         self.skipped += len(measurements) - len(factors)
         self._marginalise(leaving)
+        if interval is not None and len(pre.samples[2]) > self._K:  # room for the interval's samples
+            self._K = max(len(pre.samples[2]), 2 * self._K)
+            self._allocate_keyframes(self._cap)
         if k - self.first + 1 > self._cap:
             self._allocate_keyframes(2 * self._cap)
         s = k % self._cap
@@ -305,7 +310,7 @@ class SlidingWindow:
             self._store_interval(s, pre, interval)
         for row in factors:
             self._add_measurement(*row[1:], -1 if self._cal is None else self._cal.index.get(row[0].name, -1))
-            keyframes = row[-1]
+            keyframes = row[-2]
             linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
         self.newest = k
         if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
@@ -362,7 +367,8 @@ class SlidingWindow:
 
     def _store_interval(self, s: int, pre, whitening_matrix=None) -> None:
         """Keep interval ``pre`` at slot ``s``, with the whitening of its covariance (None: keep the
-        slot's: an interval integrated again keeps its covariance)."""
+        slot's: an interval integrated again keeps its covariance), and its samples (what the
+        measurements attached to its first keyframe are predicted through)."""
         self._has_imu[s] = True
         self._pre[s] = pre
         for name, value in (("_dC", pre.dC), ("_Wp", pre.W), ("_Rm", pre.Rm), ("_JC", pre.JC), ("_dW", pre.dW),
@@ -370,11 +376,16 @@ class SlidingWindow:
             getattr(self, name)[s] = value
         if whitening_matrix is not None:
             self._Wimu[s] = whitening_matrix
+            acc, gyro, dt = pre.samples  # (add_keyframe made room for them)
+            self._sacc[s, :len(dt)], self._sgyro[s, :len(dt)], self._sdt[s, :len(dt)] = acc, gyro, dt
+            self._sdt[s, len(dt):] = 0.0
 
     @staticmethod
-    def _measurement_row(spec, m: int, keyframes, robust) -> tuple:
+    def _measurement_row(spec, m: int, keyframes, robust, attached=None) -> tuple:
         """Measurement ``m`` of ``spec`` as ``spec`` and the arguments of :meth:`_add_measurement`, checked:
-        its covariance's whitening (an InputError if it is not positive definite) and robust code."""
+        its covariance's whitening (an InputError if it is not positive definite) and robust code;
+        ``attached``: where it lies in the interval after its keyframe
+        (:class:`smoother.model.problem.AttachedAt`), None at its keyframe's time."""
         cov = np.ascontiguousarray(spec.cov[m], dtype=float)
         d = cov.shape[-1]
         W = np.zeros((MAX_DIM, MAX_DIM))
@@ -383,9 +394,10 @@ class SlidingWindow:
         if robust is not None and robust[0] not in ROBUST_CODES:
             raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
         code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
-        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes
+        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes, attached
 
-    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, calibration: int) -> None:
+    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, attached,
+                         calibration: int) -> None:
         """Append a checked measurement (:meth:`_measurement_row`) that reads ``calibration`` (its
         index in the window's calibrations, -1: none); the rows of ``L`` from its oldest keyframe
         on are stale, and the sums that keyframe's calibrated measurements keep are dropped."""
@@ -401,6 +413,11 @@ class SlidingWindow:
         self._rcode[f] = code
         self._rk[f] = k
         self._mcal[f] = calibration
+        if attached is None:
+            self._mstep[f], self._mlast[f] = 0, 0.0
+        else:
+            self._mstep[f], self._mlast[f] = attached.steps, attached.last_dt
+            self._macc[f], self._mgyro[f] = attached.held
         self._m = f + 1
         self._stale = min(self._stale, min(keyframes))
         self._kept[min(keyframes) % self._cap] = False
@@ -438,10 +455,11 @@ class SlidingWindow:
         slots = np.asarray(keyframes) % self._cap
         return imu.ImuState(*(a[slots] for a in self._linearisation_points()))
 
-    def _held(self, keyframes):
-        """The IMU readings ``(acc, gyro)`` held at the times of keyframes ``keyframes``."""
-        slots = np.asarray(keyframes) % self._cap
-        return self._hacc[slots], self._hgyro[slots]
+    def _attachments(self) -> tuple:
+        """What the kernels read of the measurements attached to a keyframe: per measurement the
+        steps of its keyframe's interval and the last one's length (0 steps: at its keyframe's
+        time) and the IMU reading held at its stamp; per slot the samples of the interval into it."""
+        return self._mstep, self._mlast, self._macc, self._mgyro, self._sacc, self._sgyro, self._sdt
 
     def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
@@ -464,13 +482,13 @@ class SlidingWindow:
             linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
                        self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
-                       self._mcal, Hb, g)
+                       self._mcal, *self._attachments(), Hb, g)
             if cal is not None:
                 linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
                                       self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
                                       self._mcal, self._mD, self._mg, self._kH, self._kg, self._kB, self._kept,
                                       cal.packed, cal.with_time, cal.columns, LAYOUTS,
-                                      self._hacc, self._hgyro, Hb, g, B, D, gc)
+                                      self._hacc, self._hgyro, *self._attachments(), Hb, g, B, D, gc)
         plain = None if cal is not None else (B, D, gc)
         for p in self._priors:
             bordered = p.c_lin is not None
@@ -638,7 +656,8 @@ class SlidingWindow:
         self._priors = [p for p in self._priors
                         if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
         self._m, self._spans[0] = drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
-                                                     self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg)
+                                                     self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg,
+                                                     self._mstep, self._mlast, self._macc, self._mgyro)
         for k in range(self.first + 1, cut + 1):  # the IMU factors into and out of the leaving keyframes
             self._has_imu[k % self._cap] = False
             self._pre[k % self._cap] = None

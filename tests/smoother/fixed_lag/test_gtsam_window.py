@@ -193,7 +193,8 @@ def test_windows_that_cholesky_refuses_are_solved_to_the_accuracy_of_an_svd(monk
         return out
 
     monkeypatch.setattr(fixed_lag, "window_marginals", recording)
-    run_fixed_lag(build_problem(data, keyframe_rate=10.0), 0.8, "incremental", covariances=True, progress=False)
+    run_fixed_lag(build_problem(data, keyframe_rate=40.0), 0.8, "incremental", covariances=True,
+                  progress=False)
     assert len(refused) >= 10, len(refused)
     errors = [np.abs(out - ref).max() / np.abs(ref).max()
               for groups, n, wanted, out in refused for ref in [_svd_marginals(groups, n, wanted)]]

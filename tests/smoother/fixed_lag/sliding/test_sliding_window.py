@@ -15,6 +15,7 @@ from datasets.simulate import simulate
 from factors.imu import ImuNoise
 from smoother.fixed_lag.sliding import banded, kernels, normal_equations
 from smoother.fixed_lag.sliding import window as sw
+from smoother.model.timeline import EVERY_MEASUREMENT
 from smoother.online.replay import replay
 
 DIM = sw.DIM
@@ -381,7 +382,8 @@ def test_a_measurement_on_older_keyframes_only_refactorises_from_them(gentle, mo
     def earlier(window, t, guess, pre=None, measurements=(), prior=None):
         k = window.newest + 1
         if k >= 6 and k % 5 == 0:
-            measurements = [(spec, m, [k - 3] if len(at) == 1 else at, robust) for spec, m, at, robust in measurements]
+            measurements = [(spec, m, [k - 3] if len(at) == 1 else at, robust, attached)
+                            for spec, m, at, robust, attached in measurements]
         return add(window, t, guess, pre, measurements, prior)
 
     def checked(window, t):
@@ -420,10 +422,10 @@ def test_a_refused_keyframe_leaves_the_window_as_it_was(gentle):
     t = window.time(window.newest) + 1.0  # the older keyframes would leave
     spec.cov[0] = -np.eye(6)
     with pytest.raises(ValueError, match="not positive definite"):
-        window.add_keyframe(t, state, None, [(spec, 0, [window.newest + 1], None)])
+        window.add_keyframe(t, state, None, [(spec, 0, [window.newest + 1], None, None)])
     spec.cov[0] = np.eye(6)
     with pytest.raises(ValueError, match="robust kernel 'hubber'"):
-        window.add_keyframe(t, state, None, [(spec, 0, [window.newest + 1], ("hubber", None))])
+        window.add_keyframe(t, state, None, [(spec, 0, [window.newest + 1], ("hubber", None), None)])
     assert (window.first, window.newest, window._m, len(window._priors), window.skipped) == before
 
 
@@ -452,7 +454,7 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
             wheels.append(Sensor(name, "velocity", VelocityMeasurements(
                 t, rng.normal(0, 0.05, (len(t), 3)), np.zeros((len(t), 3)), np.tile(np.eye(3) * 0.05**2, (len(t), 1, 1)))))
         data = copy(data, sensors=tuple(data.sensors) + tuple(wheels))
-        return data, replay(data, lag_s=20.0)
+        return data, replay(data, lag_s=20.0, keyframe_rate=EVERY_MEASUREMENT)
 
     with pytest.raises(FixedLagFailed, match="not positive definite"):
         run(0.0)
