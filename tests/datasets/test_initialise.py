@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from datasets.simulated_sensors import SensorSpec
 from datasets.initialise import InitialisationError, imu_from, initial_state, self_initialised
 from datasets.kinds import sensors_of
 from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
 from factors import so3
 from smoother.pipeline import run_estimators
 
@@ -178,10 +178,10 @@ def test_reversing_out_of_a_parking_spot_gives_the_right_heading_with_wheels():
 def test_noisy_fixes_give_a_velocity_with_an_honest_sigma():
     """Parked with 10 Hz fixes of 1.5 m: the first two fixes' difference was 44 m/s with a sigma
     of 1 m/s; the line through 2 s of fixes is within its own sigma."""
-    from datasets.initialise import _velocity
+    from datasets.initialise import initial_velocity
 
     imu, sensors = _straight_drive(lambda t: np.zeros_like(t), gnss_rate=10.0, gnss_sigma=1.5, wheels=False)
-    v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+    v, sigma = initial_velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
     assert np.linalg.norm(v) < 3 * sigma and sigma < 2.0
 
 
@@ -192,12 +192,12 @@ def test_cruising_with_a_receivers_vertical_sigma_twice_its_horizontal_is_not_ta
     times sqrt(2), the threshold the largest sigma once set, which took the car for parked with
     0.05 m/s -- but forty horizontal sigmas of the line's slope. At 3 m/s the slope is still many
     of its sigmas from zero. Either way the velocity is within its sigma of the truth."""
-    from datasets.initialise import REST_VELOCITY_SIGMA, _velocity
+    from datasets.initialise import REST_VELOCITY_SIGMA, initial_velocity
 
     imu, sensors = _straight_drive(lambda t: np.full_like(t, speed), gnss_rate=10.0, gnss_sigma=(2.5, 2.5, 5.0),
                                    wheels=False)
     truth = speed * np.array([np.cos(YAW), np.sin(YAW), 0.0])
-    v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+    v, sigma = initial_velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
     assert sigma > REST_VELOCITY_SIGMA and np.linalg.norm(v - truth) < 3 * sigma, (v, sigma)
     _, state, cov = initial_state(imu, sensors, GRAVITY)
     assert np.abs(state.C @ state.v - truth).max() < 3 * np.sqrt(cov[3, 3])
@@ -206,11 +206,11 @@ def test_cruising_with_a_receivers_vertical_sigma_twice_its_horizontal_is_not_ta
 def test_parked_with_a_quiet_imu_and_fixes_that_cannot_tell_the_velocity_is_zero_within_what_they_allow():
     """Parked, fixes of 2.5 / 5 m: zero, with a sigma of the fixes' slope (not the 0.05 m/s of a
     rest the fixes cannot confirm); with centimetre fixes, the rest's own 0.05 m/s."""
-    from datasets.initialise import REST_VELOCITY_SIGMA, _velocity
+    from datasets.initialise import REST_VELOCITY_SIGMA, initial_velocity
 
     for gnss_sigma, most in (((2.5, 2.5, 5.0), 10.0), (0.02, REST_VELOCITY_SIGMA)):
         imu, sensors = _straight_drive(lambda t: np.zeros_like(t), gnss_rate=10.0, gnss_sigma=gnss_sigma, wheels=False)
-        v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+        v, sigma = initial_velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
         assert np.all(v == 0) and REST_VELOCITY_SIGMA <= sigma <= most, (gnss_sigma, sigma)
 
 
@@ -220,11 +220,11 @@ def test_fixes_further_apart_than_the_velocity_window_give_their_mean_velocity_n
     thinning 1-Hz fixes, as on KITTI): the two first fixes' mean velocity with the unknown
     velocity's sigma, not a rest of 0.05 m/s that took a car at 9 m/s for parked; parked, the
     same fixes still say zero."""
-    from datasets.initialise import REST_VELOCITY_SIGMA, UNKNOWN_VELOCITY_SIGMA, _velocity
+    from datasets.initialise import REST_VELOCITY_SIGMA, UNKNOWN_VELOCITY_SIGMA, initial_velocity
 
     imu, sensors = _straight_drive(lambda t: np.full_like(t, speed), gnss_rate=0.1, wheels=False)
     truth = speed * np.array([np.cos(YAW), np.sin(YAW), 0.0])
-    v, sigma = _velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
+    v, sigma = initial_velocity(imu, 0.0, GRAVITY, np.eye(3), [], [(s, s.data) for s in sensors])
     assert np.linalg.norm(v - truth) < 0.1, v
     assert sigma == (UNKNOWN_VELOCITY_SIGMA if speed else REST_VELOCITY_SIGMA), sigma
     if speed:  # (parked, nothing gives the heading: refused, as it should be)

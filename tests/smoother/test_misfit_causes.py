@@ -19,16 +19,16 @@ from datasets.simulated_sensors import SensorSpec
 from datasets.types import Trajectory
 from factors import so3
 from smoother.cli import main
-from smoother.diagnosis.verdicts import consistency_warnings
 from smoother.diagnosis.misfit_causes import Cause, causes_at, hint, hints, patterns
+from smoother.diagnosis.verdicts import consistency_warnings
 from smoother.pipeline import run_estimators, verdicts_by_estimator
 
 #: A car-like figure-eight: the simulator's gentle one 10 times wider (100 m x 50 m, 7-15 m/s),
 #: heading along the path.
 CAR = trajectories.Profile(
     "car", "figure-eight 100 m x 50 m, 7-15 m/s",
-    lambda t: tuple(x * np.array([10.0, 10.0, 1.0]) for x in trajectories._gentle_position(t)),
-    trajectories._gentle_attitude)
+    lambda t: tuple(x * np.array([10.0, 10.0, 1.0]) for x in trajectories.GENTLE.position(t)),
+    trajectories.GENTLE.attitude)
 
 
 def _T(rotation_vector=(0.0, 0.0, 0.0), lever=(0.0, 0.0, 0.0)):
