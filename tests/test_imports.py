@@ -5,8 +5,8 @@ the estimators independent of each other, the layers of ``factors`` -- are impor
 in ``pyproject.toml`` (``[tool.importlinter]``), checked here by running ``lint-imports``. What
 import-linter does not check is read from the sources with ``ast`` (every import statement, also
 those inside functions): no module imports itself through others, the project's modules import from
-the defining module rather than from a package's exports, and no underscore name crosses a module
-(tests included)."""
+the defining module rather than from a package's exports, no underscore name crosses a module
+(tests included), and the tests of ``factors`` and ``datasets`` do not import ``smoother``."""
 from __future__ import annotations
 
 import ast
@@ -47,6 +47,25 @@ def test_the_packages_import_from_modules_not_from_the_public_exports():
     ``factors.kernel_caches`` too)."""
     wrong = [f"{name} imports {other}" for name, imported in sorted(module_imports(ROOT, PACKAGES).items())
              for other in sorted(imported) if other in PACKAGES]
+    assert wrong == []
+
+
+#: What the tests of each package may import of the project: never ``smoother`` (the tests of the
+#: sensor models take the kinds to go through from the registry, ``datasets.kinds``).
+TESTED_WITH = {"factors": {"factors", "datasets"}, "datasets": {"factors", "datasets"}}
+
+
+def test_the_tests_of_factors_and_datasets_do_not_import_smoother():
+    """A test of ``factors`` or ``datasets`` that needs an estimator or the command line belongs
+    with ``smoother``'s tests (``tests/smoother/``, ``tests/cli/``)."""
+    wrong = []
+    for package, allowed in TESTED_WITH.items():
+        for path in sorted((ROOT / "tests" / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_bytes(), filename=str(path))):
+                names = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
+                         else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+                wrong += [f"{path.relative_to(ROOT)}:{node.lineno}: {name}" for name in names
+                          if name.split(".")[0] in PACKAGES and name.split(".")[0] not in allowed]
     assert wrong == []
 
 
