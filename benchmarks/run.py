@@ -703,7 +703,7 @@ def _online_calibration(plain, repeats: int) -> dict:
 def _lockstep(datasets) -> list:
     """Replay ``datasets`` -- one recording, each with its own sensor setup -- through one online
     smoother each (lag 2 s, no covariances) as a robot would feed it: each arrival
-    (:func:`smoother.online.smoother.arrivals`) -- the IMU samples before it one by one, its measurements,
+    (:func:`smoother.online.replay.arrivals`) -- the IMU samples before it one by one, its measurements,
     then ``estimate()`` -- handed to every smoother before the next, in turn first (what the
     caches keep from one smoother's step is the other's loss). Each smoother's ``(loop, update)``
     times [s]: of each arrival (about one keyframe each) after the first 2 s, as
