@@ -82,7 +82,7 @@ from smoother.ekf.filter import run_ekf  # noqa: E402
 from smoother.fixed_lag.offline import run_fixed_lag  # noqa: E402
 from smoother.model.problem import build_problem  # noqa: E402
 from smoother.online.smoother import OnlineSmoother  # noqa: E402
-from smoother.model.timeline import estimate_times, imu_steps  # noqa: E402
+from smoother.model.timeline import imu_steps, keyframe_times, measurement_knots  # noqa: E402
 
 KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
 LAG_S = 2.0
@@ -156,7 +156,7 @@ def warm_up() -> None:
     environment (or after an edit, which drops the cached kernels) compiles it, seconds that
     would otherwise land in whichever figure happens to call it first."""
     dataset = _synthetic(5.0)
-    times = estimate_times(dataset, KEYFRAME_RATE)
+    times = keyframe_times(dataset, KEYFRAME_RATE)
     samples = imu_steps(dataset.imu, times).segments()
     preintegration.integrate_with_covariance(samples, dataset.initial, dataset.noise, dataset.gravity)
     preintegration.integrate(*samples, dataset.initial.b_w)  # the re-integration kernel
@@ -177,7 +177,7 @@ def _preintegration_inputs(duration_s: float):
     """``(dataset, times, steps, start, anchors)`` of a synthetic run: keyframes at
     :data:`KEYFRAME_RATE` on the true states (the smoother's initial trajectory)."""
     dataset = _synthetic(duration_s)
-    times = estimate_times(dataset, KEYFRAME_RATE)
+    times = keyframe_times(dataset, KEYFRAME_RATE)
     steps = imu_steps(dataset.imu, times)
     keyframes = dataset.truth.states[np.searchsorted(dataset.truth.t, times)]
     start = dataset.initial.replace(r=keyframes.r[0], v=keyframes.v[0], C=keyframes.C[0])
@@ -259,7 +259,7 @@ def bench_preintegration(s: Settings) -> dict:
 
 def bench_ekf(s: Settings) -> dict:
     dataset = _synthetic(s.preint_s)
-    steps = imu_steps(dataset.imu, estimate_times(dataset))
+    steps = imu_steps(dataset.imu, measurement_knots(dataset))
     n = len(steps.dt)
     a_rows, g_rows, dt_rows = _per_sample(steps)
     x0 = dataset.initial
@@ -733,7 +733,7 @@ def _online_calibration(plain, repeats: int) -> dict:
 def _lockstep(datasets) -> list:
     """Replay ``datasets`` -- one recording, each with its own sensor setup -- through one online
     smoother each (lag 2 s, no covariances) as a robot would feed it: each arrival
-    (:func:`smoother.online.smoother.arrivals`) -- the IMU samples before it one by one, its measurements,
+    (:func:`smoother.online.replay.arrivals`) -- the IMU samples before it one by one, its measurements,
     then ``estimate()`` -- handed to every smoother before the next, in turn first (what the
     caches keep from one smoother's step is the other's loss). Each smoother's ``(loop, update)``
     times [s]: of each arrival (about one keyframe each) after the first 2 s, as

@@ -46,8 +46,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.kinds.magnetometer import MagneticFieldMeasurements, heading
-from datasets.types import (ImuSamples, OrientationMeasurements, PoseMeasurements, PositionMeasurements, Sensor,
-                            VelocityMeasurements)
+from datasets.types import (
+    ImuSamples,
+    OrientationMeasurements,
+    PoseMeasurements,
+    PositionMeasurements,
+    Sensor,
+    VelocityMeasurements,
+)
 from factors import preintegration, so3
 from factors.errors import InputError
 from factors.imu import STATE_DIM, ImuState
@@ -280,7 +286,7 @@ def _imu_at_rest(imu: ImuSamples, t_s: float, gravity: np.ndarray) -> bool:
                 and abs(np.linalg.norm(acc.mean(axis=0)) - np.linalg.norm(gravity)) < REST_FORCE)
 
 
-def _velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
+def initial_velocity(imu, t_s, gravity, C, velocity: list, fixes: list):
     """``(body velocity, sigma)`` at ``t_s`` (module docstring)."""
     for s, m in velocity:
         k = _nearest(m.t, t_s)
@@ -362,7 +368,7 @@ def initial_state(imu: ImuSamples, sensors: list[Sensor], gravity, bias_sigma=(0
         r = m.position[0] - C @ p
         sigma[0:3] = PRIOR_INFLATION * np.sqrt(np.diag(m.cov[0])[:3]) + np.linalg.norm(p) * sigma[6:9].max()
 
-    v, sigma[3:6] = _velocity(imu, t_s, gravity, C, velocity, fixes)
+    v, sigma[3:6] = initial_velocity(imu, t_s, gravity, C, velocity, fixes)
     state = ImuState(r=r, v=v, C=so3.project(C), b_f=np.zeros(3), b_w=np.zeros(3))
     return t_s, state, np.diag(sigma**2)
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datasets.types import _Rows, check_array, check_covariances, check_rotations, check_times
+from datasets.types import Rows, check_array, check_covariances, check_rotations, check_times
 from factors.errors import InputError
 
 #: ``sensor_msgs/NavSatStatus.STATUS_NO_FIX``: a fix with a status below this carries no position.
@@ -81,7 +81,7 @@ def _optional_covariances(name: str, cov, n: int, dim: int) -> np.ndarray | None
 
 
 @dataclass(frozen=True, eq=False)
-class PoseStream(_Rows):
+class PoseStream(Rows):
     """Poses of a message's child frame in its parent frame (``nav_msgs/Odometry``,
     ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``TransformStamped``, TUM or
     CSV files): ``position`` (N, 3) [m] of the child's origin in the parent frame and ``C``
@@ -110,7 +110,7 @@ class PoseStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class PositionStream(_Rows):
+class PositionStream(Rows):
     """Positions of a frame's origin in the world, without its attitude (a position CSV file, or
     the positions of any pose source): ``position`` (N, 3) [m], ``cov`` (N, 3, 3) [m^2]."""
 
@@ -134,7 +134,7 @@ class PositionStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class AttitudeStream(_Rows):
+class AttitudeStream(Rows):
     """Attitudes of a frame in the world: ``C`` (N, 3, 3) the frame-to-world rotation, as the
     attitude part of a :class:`PoseStream` or the ``orientation`` of ``sensor_msgs/Imu`` (REP-145:
     the attitude of the message's frame in an east-north-up world). ``cov`` (N, 3, 3) [rad^2] is
@@ -161,7 +161,7 @@ class AttitudeStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class TwistStream(_Rows):
+class TwistStream(Rows):
     """Velocities of a frame expressed in that frame (``nav_msgs/Odometry``'s twist is in the
     child frame): ``linear`` (N, 3) [m/s] and ``angular`` (N, 3) [rad/s], or None where the
     source has no angular rate (a CSV file with velocities only).
@@ -189,7 +189,7 @@ class TwistStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class PressureStream(_Rows):
+class PressureStream(Rows):
     """Static pressures (``sensor_msgs/FluidPressure``, a barometer): ``pressure`` (N,) [Pa],
     finite and > 0, with ``variance`` (N,) [Pa^2] (NaN where unknown; None when no row has one:
     ROS's 0 is "unknown")."""
@@ -218,7 +218,7 @@ class PressureStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class MagneticFieldStream(_Rows):
+class MagneticFieldStream(Rows):
     """Magnetic fields measured in the sensor's frame (``sensor_msgs/MagneticField``, a
     magnetometer): ``field`` (N, 3) [T], finite and not zero; ``cov`` (N, 3, 3) [T^2] in the
     sensor frame (NaN rows unknown; None when no row has one)."""
@@ -242,7 +242,7 @@ class MagneticFieldStream(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class FixStream(_Rows):
+class FixStream(Rows):
     """GNSS fixes (``sensor_msgs/NavSatFix``): ``latitude``, ``longitude`` [deg] and
     ``altitude`` [m] above the WGS-84 ellipsoid, each (N,); ``status`` (N,) int, ``NavSatStatus``'s
     values (-1 no fix, 0 fix, 1 SBAS, 2 GBAS). Fixes with ``status < 0`` may hold anything,

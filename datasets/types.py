@@ -292,7 +292,7 @@ def check_state_covariance(name: str, cov) -> np.ndarray:
     return check_covariances(name, cov[None], 1, 15)[0]
 
 
-class _Rows:
+class Rows:
     """Shared by the row-wise data types: ``len()`` and ``subset(index)`` (every array field but
     the per-set extrinsic ``T_BS``, re-validated by the constructor)."""
 
@@ -355,7 +355,7 @@ class ImuSamples:
 
 
 @dataclass(frozen=True, eq=False)
-class PositionMeasurements(_Rows):
+class PositionMeasurements(Rows):
     """World positions [m] (GPS-like) of the sensor's origin: ``r + C p_BS`` with ``p_BS`` from
     ``T_BS`` (None: at the IMU, ``r``); covariance ``cov`` (N, 3, 3) [m^2]."""
 
@@ -374,7 +374,7 @@ class PositionMeasurements(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class OrientationMeasurements(_Rows):
+class OrientationMeasurements(Rows):
     """Attitudes of the sensor frame, ``C R_BS`` (``R_BS`` from ``T_BS``; None: the IMU's ``C``),
     with ``C_meas = exp(n) C R_BS`` (eqs. 62, 63), ``n ~ N(0, cov)`` [rad^2] in world coordinates."""
 
@@ -393,7 +393,7 @@ class OrientationMeasurements(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class PoseMeasurements(_Rows):
+class PoseMeasurements(Rows):
     """Pose-sensor readings (eqs. 61-63) of the sensor frame: position ``r + C p_BS`` [m] and
     attitude ``C R_BS`` (``T_BS`` None: the IMU's own pose); ``cov`` (N, 6, 6) over
     ``(n_p, n_Phi)`` (position first, world-frame orientation noise second)."""
@@ -414,7 +414,7 @@ class PoseMeasurements(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class VelocityMeasurements(_Rows):
+class VelocityMeasurements(Rows):
     """Linear velocity of the sensor frame in its own frame (wheel odometry's twist, a Doppler
     sensor): ``R_BS^T (v + (w - b_w) x p_BS)`` with ``v`` the body velocity and ``w`` (``gyro``,
     N x 3) the gyro sample at the measurement time (the lever arm's velocity); ``cov`` (N, 3, 3)
@@ -443,7 +443,7 @@ class VelocityMeasurements(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class RelativePoseMeasurements(_Rows):
+class RelativePoseMeasurements(Rows):
     """Odometry between times ``t_from`` and ``t_to``: ``dr = C_i^T (r_j - r_i)`` [m] (in the body
     frame at ``t_from``) and ``dC = C_i^T C_j``; noise ``dC_meas = exp(n_Phi) dC``,
     ``dr_meas = dr + n_r`` with ``cov`` (N, 6, 6) over ``(n_r, n_Phi)``, both in frame ``i``.
@@ -477,7 +477,7 @@ class RelativePoseMeasurements(_Rows):
 
 
 @dataclass(frozen=True, eq=False)
-class Trajectory(_Rows):
+class Trajectory(Rows):
     """States over time: ``t`` (N,) and an :class:`ImuState` with leading dimension N. Biases are
     NaN where unknown (e.g. a TUM file or a ground truth without biases). ``cov`` optionally holds
     the (N, 15, 15) error-state covariances of an estimate (error-state order of

@@ -1,7 +1,7 @@
 """Running the estimators on a dataset: one call per estimator, one result type for all.
 
 ``batch`` (the whole graph), ``fixed-lag`` (GTSAM's fixed-lag smoother fed the data in order of
-arrival, :func:`smoother.online.smoother.replay`; each keyframe's estimate when it leaves the window, i.e.
+arrival, :func:`smoother.online.replay.replay`; each keyframe's estimate when it leaves the window, i.e.
 smoothed over the lag) and ``ekf`` (the primer's filter) see the same dataset; the two smoothers
 have the same keyframes and factors (:func:`smoother.model.problem.build_problem`; the online smoother
 makes them as the data arrive), so their differences are the estimators', not the model's.

@@ -1,6 +1,7 @@
 """Shared test configuration: the compiled kernels' caches checked before any test runs a kernel
 (:func:`factors.kernel_caches.ensure_fresh_caches`, as the command line does), Hypothesis profiles
-and the import path of ``tests/strategies.py``.
+and the import path of the shared helper modules (``tests/strategies.py`` and the others
+next to it).
 
 Profiles (choose with ``HYPOTHESIS_PROFILE=<name>``; ``ci`` when the environment variable ``CI``
 is set, as it is in the project's CI; ``default`` otherwise):
@@ -22,9 +23,10 @@ from factors.kernel_caches import ensure_fresh_caches
 
 ensure_fresh_caches()  # before the test modules import (and run) any kernel
 
-# ``strategies.py`` sits next to this file. pytest's default (prepend) import mode already puts
-# this directory on sys.path because tests/ is not a package; doing it here as well keeps
-# ``import strategies`` working under ``--import-mode=importlib``.
+# The helper modules the tests share sit next to this file (strategies.py, rigfiles.py, bagfiles.py,
+# eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py): this directory on sys.path
+# makes ``import strategies`` work from every folder of tests/, under pytest's default (prepend)
+# import mode, which puts only each test file's own folder there, and under ``--import-mode=importlib``.
 _HERE = os.path.dirname(os.path.abspath(__file__))
 if _HERE not in sys.path:
     sys.path.insert(0, _HERE)

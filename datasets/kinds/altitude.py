@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.kinds.base import Kind, near_prediction, noise, noisy
-from datasets.types import _Rows, check_array, check_covariances, check_extrinsic, check_times
+from datasets.types import Rows, check_array, check_covariances, check_extrinsic, check_times
 from factors import sensor_models as sm
 from factors.selfcheck import random_state
 
@@ -39,7 +39,8 @@ def pressure_height(pressure) -> np.ndarray:
 
 def height_pressure(height) -> np.ndarray:
     """The inverse of :func:`pressure_height`: the pressure [Pa] at ``height`` [m]."""
-    return ISA_PRESSURE * (1.0 - np.asarray(height, dtype=float) * ISA_LAPSE_RATE / ISA_TEMPERATURE) ** (1 / ISA_EXPONENT)
+    height = np.asarray(height, dtype=float)
+    return ISA_PRESSURE * (1.0 - height * ISA_LAPSE_RATE / ISA_TEMPERATURE) ** (1 / ISA_EXPONENT)
 
 
 def height_per_pascal(pressure) -> np.ndarray:
@@ -49,7 +50,7 @@ def height_per_pascal(pressure) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class AltitudeMeasurements(_Rows):
+class AltitudeMeasurements(Rows):
     """Heights ``height`` (N,) [m] of the sensor's origin in the world frame, ``cov`` (N, 1, 1)
     [m^2]; ``T_BS`` its extrinsic (None: at the IMU)."""
 

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.kinds.base import Kind, noise
-from datasets.types import _Rows, check_array, check_covariances, check_extrinsic, check_times
-from factors.errors import InputError
-from factors import so3
+from datasets.types import Rows, check_array, check_covariances, check_extrinsic, check_times
 from factors import sensor_models as sm
+from factors import so3
+from factors.errors import InputError
 from factors.selfcheck import random_extrinsic, random_state
 
 
@@ -32,7 +32,7 @@ def field_direction(declination_deg: float, inclination_deg: float) -> np.ndarra
 
 
 @dataclass(frozen=True, eq=False)
-class MagneticFieldMeasurements(_Rows):
+class MagneticFieldMeasurements(Rows):
     """Measured field directions ``direction`` (N, 3) in the sensor frame (made unit), against the
     world field's direction ``world`` (N, 3) (made unit); ``cov`` (N, 2, 2) [rad^2] over the two
     components across ``direction`` (:func:`factors.sensor_models.normal_basis`)."""
@@ -48,7 +48,8 @@ class MagneticFieldMeasurements(_Rows):
         n = len(t)
         object.__setattr__(self, "t", t)
         for name in ("direction", "world"):
-            v = check_array(f"MagneticFieldMeasurements.{name}", np.broadcast_to(getattr(self, name), (n, 3)), (3,), n, t)
+            v = check_array(f"MagneticFieldMeasurements.{name}", np.broadcast_to(getattr(self, name), (n, 3)),
+                            (3,), n, t)
             norm = np.linalg.norm(v, axis=1, keepdims=True)
             if np.any(norm == 0):
                 raise InputError(f"MagneticFieldMeasurements.{name}: a zero vector; expected directions")

@@ -18,14 +18,14 @@ import numpy as np
 
 from datasets.kinds.base import Kind, near_prediction, noise
 from datasets.kinds.orientation import attitudes
-from datasets.types import _Rows, check_covariances, check_extrinsic, check_rotations, check_times
-from factors import so3
+from datasets.types import Rows, check_covariances, check_extrinsic, check_rotations, check_times
 from factors import sensor_models as sm
+from factors import so3
 from factors.selfcheck import random_state
 
 
 @dataclass(frozen=True, eq=False)
-class RollPitchMeasurements(_Rows):
+class RollPitchMeasurements(Rows):
     """Attitudes ``C`` (N, 3, 3) of the sensor frame of which only roll and pitch are used, with
     ``cov`` (N, 2, 2) [rad^2] the covariance of the world-frame attitude noise about x and y."""
 

@@ -307,7 +307,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             step = damping * newton
             last = (psi_of(psi, ties), s, step)
         else:
-            step = _far_step(F, q, r)
+            step = far_step(F, q, r)
         settled = near and np.all(np.abs(newton) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
         # near the estimate, with the exact information: two parameters the data do not tell apart
         # share one factor from here on (before anything else: such a pair leaves every parameter
@@ -420,7 +420,7 @@ def _per_parameter(values: np.ndarray, ties: list[list[int]]) -> np.ndarray:
     return np.array([sum(values[g] for g in tie) for tie in ties])
 
 
-def _far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+def far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The log-factors' step far from the optimum (some ``q / r`` beyond ``exp(+-NEAR)``): Fisher
     scoring on the variance factors themselves, ``theta_new / theta = 1 + F~^-1 (q - r) / 2``, with
     the approximate information's correlations and the diagonal ``r / 2``. A group alone then
@@ -647,7 +647,7 @@ class _NoiseModel:
                 if block.robust is not None:
                     c = chi2_quantile(TRUNCATION_PROBABILITY, d)
                     keep = np.einsum("ma,ma->m", u, u) <= c
-                    correction = _truncated_mean(d, c)
+                    correction = truncated_mean(d, c)
                 U = self._derivatives(name, rows, psi, W)
                 for i, Ui in U.items():
                     quad = np.einsum("ma,mab,mb->m", u, Ui, u)[keep]
@@ -669,7 +669,7 @@ class _NoiseModel:
         return quadratic, expected, information, redundancy
 
 
-def _truncated_mean(d: int, c: float) -> float:
+def truncated_mean(d: int, c: float) -> float:
     """``E[X | X <= c] / d`` for ``X`` chi-square with ``d`` degrees of freedom:
     ``P(chi2_{d+2} <= c) / P(chi2_d <= c)``."""
     from scipy.special import gammainc

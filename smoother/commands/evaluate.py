@@ -32,7 +32,7 @@ def register(sub) -> None:
         description=(
             "Associates the two trajectories by time stamp (nearest within --max-dt), aligns the estimate "
             "onto the reference, and reports the absolute trajectory error (ATE) and the relative pose "
-            "error (RPE); the definitions are evo's (see smoother/metrics.py)."
+            "error (RPE); the definitions are evo's (see smoother/evaluation/metrics.py)."
         ),
     )
     p.add_argument("--reference", required=True, metavar="REF",

@@ -37,7 +37,7 @@ from pathlib import Path
 
 from factors.errors import InputError
 from smoother import parallel
-from smoother.outputs.confined import folder_name_problem, inside
+from smoother.confined import folder_name_problem, inside
 from smoother.outputs.layout import METRICS
 
 #: The fleet's own file in its ``--out`` (each recording's files are in its folder).
@@ -76,9 +76,9 @@ def recordings(rigs, out_dir, run_options=(), threads: int | None = None) -> lis
     """The recordings of the rig files ``rigs``, each into ``out_dir/<rig file stem>``; a
     :class:`~factors.errors.InputError` when two rig files share a stem (their folders would be
     one), when a stem cannot name a folder of its own in ``out_dir``
-    (:func:`smoother.outputs.confined.folder_name_problem`: ``..`` of a rig ``...toml`` is its
+    (:func:`smoother.confined.folder_name_problem`: ``..`` of a rig ``...toml`` is its
     parent) or is the fleet's summary's name, or when its folder would lie outside ``out_dir``
-    (:func:`smoother.outputs.confined.inside`: a symbolic link there)."""
+    (:func:`smoother.confined.inside`: a symbolic link there)."""
     seen: dict[str, str] = {}
     for rig in rigs:
         stem = Path(rig).stem

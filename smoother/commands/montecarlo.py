@@ -53,7 +53,7 @@ def run(args) -> int:
                                       on_done=lambda r: bar.update(1))
     summary = montecarlo.aggregate(results, estimators)
     from datasets.atomic import atomic_write
-    from smoother.outputs.confined import inside
+    from smoother.confined import inside
 
     with atomic_write(inside(out, SUMMARY)) as handle:
         json.dump(summary.as_dict(), handle, indent=2)

@@ -16,7 +16,7 @@
   directory never mixes two runs. A failure while writing (a full disk, Ctrl-C, SIGTERM) leaves the
   directory as it was.
 * **Only inside it**: the lock, every file moved in and every file deleted pass
-  :func:`smoother.outputs.confined.inside` first: a run file that is a symbolic link out of the
+  :func:`smoother.confined.inside` first: a run file that is a symbolic link out of the
   directory is refused (it would overwrite the file it leads to), before anything is moved.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 from datasets.atomic import STAGING_PREFIX, staging
 from factors.errors import InputError, InternalError
 from smoother.errors import UserError
-from smoother.outputs.confined import inside
+from smoother.confined import inside
 from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
 #: The lock file of a run directory.
@@ -129,7 +129,7 @@ class RunDirectory:
     def outputs(self, replace: bool = True):
         """A staging folder to write run files into (the block's value, a ``Path``); when the
         block ends they are moved into the directory, ``metrics.json`` last, each checked to stay
-        inside it (:func:`smoother.outputs.confined.inside`). With ``replace``
+        inside it (:func:`smoother.confined.inside`). With ``replace``
         the run files already in the directory that the block did not write are the previous
         run's: they are deleted and listed in ``removed``. When the block raises, nothing
         changes in the directory; an ``OSError`` names the directory's file, not the staged one.

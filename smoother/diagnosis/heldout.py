@@ -2,7 +2,7 @@
 ``every = K``: every K-th measurement used, the rest held out) predicted by an estimate.
 
 A held-out measurement ``z`` at time ``t`` is predicted from the estimate's state there (every
-held-out time is one of the estimators' states: :func:`smoother.model.timeline.estimate_times`)
+held-out time is one of the estimators' states: :func:`smoother.model.timeline.keyframe_times`)
 through the sensor's model and the estimator's calibration, ``e = h(x^) - z`` (with a calibration,
 the calibrated residual of :func:`datasets.kinds.calibrated_rows`), with the covariance
 

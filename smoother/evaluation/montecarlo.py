@@ -18,7 +18,7 @@ import numpy as np
 
 from datasets.atomic import atomic_write
 from smoother import parallel
-from smoother.outputs.confined import inside
+from smoother.confined import inside
 
 #: The folder of ``out_dir`` that holds each run's result (:func:`run_many`).
 RUNS = "runs"
@@ -65,7 +65,7 @@ def run_many(config: MonteCarloConfig, seeds, workers: int = 1, dask_address: st
     scheduler at ``dask_address`` otherwise -- with :func:`smoother.parallel.run_all`'s window,
     failures and stopping; results sorted by seed. With ``out_dir`` each finished run is written
     at once (``runs/seed_<n>.json``, atomically, only inside ``out_dir``:
-    :func:`smoother.outputs.confined.inside`), so an interruption keeps them (and those of the
+    :func:`smoother.confined.inside`), so an interruption keeps them (and those of the
     runs under way in worker processes that end after it: a SIGTERM to this process alone lets
     them finish, a terminal's Ctrl-C stops them too); the seed files of an earlier call into the
     same folder are removed first, so that ``runs/`` never mixes two configurations."""

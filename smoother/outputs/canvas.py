@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
 from datasets.atomic import atomic_write
-from smoother.outputs.confined import inside
+from smoother.confined import inside
 
 #: Resolution of every PNG [dots per inch]; a figure of ``(w, h)`` inches is
 #: ``round(w * DPI) x round(h * DPI)`` pixels.
@@ -64,7 +64,7 @@ def new_figure(size: tuple) -> Figure:
 
 def save_png(fig: Figure, out_dir: Path, stem: str) -> Path:
     """``fig`` as ``out_dir/<stem>.png``, written atomically and only inside ``out_dir``
-    (:func:`smoother.outputs.confined.inside`); the figure is cleared."""
+    (:func:`smoother.confined.inside`); the figure is cleared."""
     path = inside(out_dir, f"{stem}.png")
     with atomic_write(path, "wb") as handle:
         fig.savefig(handle, format="png", dpi=DPI)

@@ -35,6 +35,8 @@ import weakref
 import gtsam
 import numpy as np
 import pytest
+from gtsam_values import insert_state, read_state
+from strategies import random_rotation
 
 from factors import custom, imu, preintegration, priors, so3
 from factors import sensor_models as sm
@@ -42,7 +44,6 @@ from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.imu_factor import ImuFactor
 from factors.jacobians import check_factor
 from factors.keys import keyframe_keys
-from strategies import random_rotation
 from factors.selfcheck import random_extrinsic
 
 GRAVITY = imu.DEFAULT_GRAVITY
@@ -92,19 +93,6 @@ def noise_model(kind: str, cov: np.ndarray):
 
 
 MODELS = ("gaussian", "huber", "cauchy")
-
-
-def insert_state(values: gtsam.Values, keys, x: imu.ImuState) -> None:
-    values.insert(keys.rot, gtsam.Rot3(x.C))
-    values.insert(keys.pos, gtsam.Point3(*x.r))
-    values.insert(keys.vel, np.array(x.v, dtype=float))
-    values.insert(keys.bias, gtsam.imuBias.ConstantBias(x.b_f, x.b_w))
-
-
-def read_state(values: gtsam.Values, keys) -> imu.ImuState:
-    b = values.atConstantBias(keys.bias).vector()
-    return imu.ImuState(values.atPoint3(keys.pos), values.atVector(keys.vel), values.atRot3(keys.rot).matrix(),
-                        b[:3], b[3:])
 
 
 def random_state(rng, regime="ordinary", b_f=1.0, b_w=0.5) -> imu.ImuState:
@@ -450,7 +438,8 @@ def test_check_factor_fails_a_wrong_block_in_a_measurement_factor():
     assert [c.ok for c in result.comparisons] == [True, False]
     # with a robust model as well
     robust = noise_model("cauchy", random_covariance(rng, 6))
-    assert not checked("control", custom_factor(robust, [k.pos, k.rot], [VEC, ROT], _wrap(residual, 1, None, 1e-3)), values).ok
+    robust_control = custom_factor(robust, [k.pos, k.rot], [VEC, ROT], _wrap(residual, 1, None, 1e-3))
+    assert not checked("control", robust_control, values).ok
 
 
 @pytest.mark.parametrize("block, rows", [("attitude wrt gyro bias of i", imu.PHI), ("velocity wrt bias of i", imu.V)])
@@ -478,7 +467,8 @@ def test_check_factor_fails_when_the_chart_adapter_gets_C_transposed(monkeypatch
     k = keyframe_keys(0)
     values = gtsam.Values()
     values.insert(k.rot, gtsam.Rot3(C))
-    orientation = sm.sensor_factor(sm.ORIENTATION, k, sm.pack_orientation((so3.exp(np.array([0.1, 0.2, -0.1])) @ C)[None])[0],
+    turned = so3.exp(np.array([0.1, 0.2, -0.1])) @ C
+    orientation = sm.sensor_factor(sm.ORIENTATION, k, sm.pack_orientation(turned[None])[0],
                                    noise_model("gaussian", random_covariance(rng, 3)))
     pre, x_i, x_j, *_ = _imu_cases(rng, 2, long_every=0)[1]  # ordinary attitudes (p = 1)
     f, imu_values = _imu_factor_and_values(pre, x_i, x_j)
@@ -493,7 +483,8 @@ def test_check_factor_fails_when_the_chart_adapter_gets_C_transposed(monkeypatch
     assert not result.ok
     # exactly the two Rot3 keys fail
     assert [c.ok for c in result.comparisons] == [False, True, True, True, False, True, True, True]
-    position = sm.sensor_factor(sm.POSITION, k, sm.pack_position(np.zeros((1, 3)))[0], noise_model("gaussian", np.eye(3)))
+    position = sm.sensor_factor(sm.POSITION, k, sm.pack_position(np.zeros((1, 3)))[0],
+                                noise_model("gaussian", np.eye(3)))
     values.insert(k.pos, gtsam.Point3(1.0, 2.0, 3.0))
     assert checked("control", position, values).ok
 

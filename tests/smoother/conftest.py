@@ -1,6 +1,6 @@
-"""Fixtures of the estimator and command-line tests (test_ekf, test_graph, test_batch,
-fixed_lag/, test_crosscheck, test_run_cli, test_report): session-wide small simulated cases
-from ``estimator_cases.py`` (computed once, on first use; shared, so never changed in place)."""
+"""Fixtures of the tests of ``smoother`` (ekf/, model/, batch/, fixed_lag/, online/, evaluation/,
+outputs/): session-wide small simulated cases from ``estimator_cases.py`` (computed once, on first
+use; shared, so never changed in place)."""
 from __future__ import annotations
 
 import os

@@ -17,7 +17,7 @@ import numpy as np
 
 from datasets.simulate import simulate
 from datasets.types import Dataset, Trajectory
-from factors import imu
+from factors import imu, so3
 from smoother.ekf.filter import FilterResult, run_ekf
 from smoother.evaluation.crosscheck import sigma_difference  # noqa: F401  (used by the tests as cases.sigma_difference)
 
@@ -88,3 +88,34 @@ def position_rmse(data: Dataset, trajectory: Trajectory) -> float:
     """Translation ATE (RMSE of the position error, no alignment: same world frame)."""
     T = truth_at(data, trajectory.t)
     return float(np.sqrt(np.mean(np.sum((trajectory.states.r - T.r) ** 2, axis=1))))
+
+
+# ------------------------------------------------------------------------------------------
+# scoring: a truth and an estimate off it by a known error
+
+#: The attitude error of :func:`offset_estimate`.
+OFFSET_ANGLE = np.radians(2.0)
+
+
+def scored_data():
+    """One second of the tumbling case, no poses: a truth to score estimates against."""
+    return simulate(profile="tumbling", duration=1.0, seed=0, imu_rate=IMU_RATE, pose_rate=None)
+
+
+def scored_truth(n: int = 12) -> Trajectory:
+    """Every fifth truth sample of :func:`scored_data`, ``n`` of them (enough states to score:
+    ``smoother.evaluation.scoring.MIN_COMPARED_STATES``)."""
+    return scored_data().truth.subset(np.arange(0, 5 * n, 5))
+
+
+def offset_estimate(truth: Trajectory, with_cov: bool = True) -> Trajectory:
+    """Every position 0.5 m off (0.3, 0.4, 0), every attitude rotated by 2 degrees about the world
+    z axis (C_est = exp(a z) C_true); covariance 0.01 m^2 and 1e-4 rad^2 on the pose blocks."""
+    s = truth.states
+    states = s.replace(r=s.r + [0.3, 0.4, 0.0], C=so3.exp([0.0, 0.0, OFFSET_ANGLE]) @ s.C)
+    cov = None
+    if with_cov:
+        cov = np.tile(np.eye(15), (len(truth), 1, 1))
+        cov[:, 0:3, 0:3] = 0.01 * np.eye(3)
+        cov[:, 6:9, 6:9] = 1e-4 * np.eye(3)
+    return Trajectory(truth.t, states, cov)

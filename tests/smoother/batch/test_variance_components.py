@@ -124,7 +124,7 @@ def test_components_a_short_run_cannot_separate_are_merged_or_kept_not_returned_
 def test_a_group_alone_takes_foerstners_step():
     """Far from the estimate a single group's step is log(q / r), whatever the local information."""
     for F in (np.array([[3.0]]), np.array([[300.0]])):
-        step = vc._far_step(F, np.array([40.0]), np.array([10.0]))
+        step = vc.far_step(F, np.array([40.0]), np.array([10.0]))
         assert step == pytest.approx([np.log(4.0)])
 
 
@@ -133,7 +133,7 @@ def test_the_truncated_chi_square_mean_is_that_of_a_sample():
     for d in (1, 3, 6):
         c = chi2_quantile(vc.TRUNCATION_PROBABILITY, d)
         x = rng.chisquare(d, 2_000_000)
-        assert vc._truncated_mean(d, c) == pytest.approx(np.mean(x[x <= c]) / d, rel=2e-3)
+        assert vc.truncated_mean(d, c) == pytest.approx(np.mean(x[x <= c]) / d, rel=2e-3)
 
 
 def test_the_applied_noise_scales_the_imu_and_each_sensor_s_axes():

@@ -17,9 +17,10 @@ from factors.threads import thread_count
 
 #: Runs the three estimators, and the fixed-lag smoother through GTSAM's factors (whose callbacks
 #: run the kernels on GTSAM's arrays), on a short simulation in a fresh process with an empty
-#: kernel cache (so every kernel is compiled there, also those called only from other kernels), then prints, for every compiled function of the package that
-#: has more than one compiled copy, the copies' argument types with literal values made plain
-#: (a literal argument -- a constant row offset, ``True`` -- is a deliberate specialisation);
+#: kernel cache (so every kernel is compiled there, also those called only from other kernels),
+#: then prints, for every compiled function of the package that has more than one compiled copy,
+#: the copies' argument types with literal values made plain (a literal argument -- a constant row
+#: offset, ``True`` -- is a deliberate specialisation);
 #: and the warm-up child's exit status and the window kernel's cache hits and misses.
 _SCRIPT = """
 import json, sys

@@ -1,4 +1,5 @@
-"""Evaluation metrics: association, alignment, ATE, RPE, NEES, chi-square; and agreement with evo."""
+"""Evaluation metrics (smoother/evaluation/metrics.py): association, alignment, ATE, RPE, NEES,
+chi-square; and agreement with evo."""
 from __future__ import annotations
 
 import numpy as np

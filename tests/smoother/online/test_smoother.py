@@ -1,4 +1,4 @@
-"""Online fixed-lag smoothing (smoother/online.py): streamed sample by sample it equals the
+"""Online fixed-lag smoothing (smoother/online/smoother.py): streamed sample by sample it equals the
 replay and the offline smoother, late measurements within ``max_delay_s`` change nothing and later
 ones are dropped and counted, ``estimate()`` is the EKF's prediction from the newest keyframe, the
 lag-versus-gap warning, and clear errors for bad input."""

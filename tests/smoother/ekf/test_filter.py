@@ -1,4 +1,4 @@
-"""The primer's EKF (smoother/ekf/): prediction, update, gate and statistical consistency.
+"""The primer's EKF (smoother/ekf/filter.py): prediction, update, gate and statistical consistency.
 
 Tolerances: identities between two evaluations of the same floating-point operations are held to
 1e-12 (round-off of a few hundred steps on quantities of order 1-10); hand-computed Kalman
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import estimator_cases as cases
 import numpy as np
 import pytest
 
@@ -16,11 +17,9 @@ from datasets.simulate import simulate
 from factors import imu, so3
 from factors import sensor_models as sm
 from smoother import stats
-from smoother.evaluation import metrics
 from smoother.ekf.filter import Ekf, run_ekf
+from smoother.evaluation import metrics
 from smoother.model.timeline import imu_steps, measurement_knots
-
-import estimator_cases as cases
 
 
 def _update_pose(ekf, r, C, R) -> bool:
@@ -278,6 +277,16 @@ def test_run_ekf_reports_every_knot(gentle):
     assert np.all(np.linalg.eigvalsh(traj.cov).min(axis=1) > 0)
 
 
+def test_a_relative_measurement_is_refused_by_the_filter_that_keeps_no_past_state():
+    """An odometry row needs a cloned past state, which this filter does not keep: refused with
+    the reason, not read as a one-state measurement."""
+    from factors.errors import InputError
+
+    ekf = Ekf(imu.ImuState.identity(), np.eye(15), imu.ImuNoise())
+    with pytest.raises(InputError, match="a relative kind needs a cloned past state"):
+        ekf.update_sensor("odometry", np.zeros(6), np.eye(6))
+
+
 def test_run_ekf_warns_that_relative_poses_are_not_used():
     data = simulate(profile="gentle", duration=0.5, seed=0, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE,
                     odometry_rate=5.0)
@@ -401,9 +410,10 @@ def test_run_ekf_equals_the_filter_driven_step_by_step():
     for k, (t, stop) in enumerate(zip(knots, samples.knot_step)):
         ekf.predict_steps(samples.acc[start:stop], samples.gyro[start:stop], samples.dt[start:stop])
         start = stop
-        for m, update in ((data.sensor("pose").data, lambda i: _update_pose(ekf, data.sensor("pose").data.position[i], data.sensor("pose").data.C[i], data.sensor("pose").data.cov[i])),
-                          (data.sensor("position").data, lambda i: _update_position(ekf, data.sensor("position").data.position[i], data.sensor("position").data.cov[i])),
-                          (data.sensor("orientation").data, lambda i: _update_orientation(ekf, data.sensor("orientation").data.C[i], data.sensor("orientation").data.cov[i]))):
+        poses, positions, attitudes = (data.sensor(name).data for name in ("pose", "position", "orientation"))
+        for m, update in ((poses, lambda i: _update_pose(ekf, poses.position[i], poses.C[i], poses.cov[i])),
+                          (positions, lambda i: _update_position(ekf, positions.position[i], positions.cov[i])),
+                          (attitudes, lambda i: _update_orientation(ekf, attitudes.C[i], attitudes.cov[i]))):
             hit = np.flatnonzero(m.t == t)
             if len(hit):
                 update(hit[0])

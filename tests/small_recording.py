@@ -38,7 +38,8 @@ def write_recording(folder: Path, name: str = "rig", duration: float = 10.0, see
     topics = {
         "/imu/data": ("sensor_msgs/msg/Imu", [m.imu(*row) for row in zip(ns(data.imu.t), data.imu.acc, data.imu.gyro)]),
         "/wheel/odom": ("nav_msgs/msg/Odometry", [
-            m.odometry(t, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3), np.diag([0.0025] * 6))
+            m.odometry(t, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3),
+                       np.diag([0.0025] * 6))
             for t, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
         "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, a, b, c, 0, np.diag([0.25] * 3), 3)
                                                for t, a, b, c in zip(ns(gnss.data.t), lat, lon, alt)]),

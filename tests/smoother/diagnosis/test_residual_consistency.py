@@ -1,4 +1,5 @@
-"""A smoother's own verdict on each sensor and on the IMU: residuals normalised by their leverages."""
+"""A smoother's own verdict on each sensor and on the IMU (smoother/diagnosis/residual_consistency.py):
+residuals normalised by their leverages."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,10 +12,10 @@ from datasets.simulated_sensors import SensorSpec
 from datasets.types import ImuSamples, max_gyro_rate
 from factors.imu import ImuNoise
 from smoother.batch.solve import solve_batch
+from smoother.diagnosis.residual_consistency import block_consistency
 from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
 from smoother.model.problem import build_problem
 from smoother.pipeline import judged, run_estimators, verdicts_by_estimator
-from smoother.diagnosis.residual_consistency import block_consistency
 
 
 def _solved(data):

@@ -1,10 +1,11 @@
-"""Batch smoothing (smoother/batch/): optimisers and engines agree, covariances, indeterminant
+"""Batch smoothing (smoother/batch/solve.py): optimisers and engines agree, covariances, indeterminant
 systems, robust kernels."""
 from __future__ import annotations
 
 import functools
 from dataclasses import replace
 
+import estimator_cases as cases
 import gtsam
 import numpy as np
 import pytest
@@ -20,8 +21,6 @@ from smoother.model.blocks import Layout, linearize
 from smoother.model.covariances import marginal_covariances
 from smoother.model.problem import build_problem
 from smoother.model.robust import ROBUST_KERNELS, noise_model
-
-import estimator_cases as cases
 
 ENGINES = getattr(batch, "ENGINES", (None,))
 
@@ -259,7 +258,8 @@ def test_robust_kernels_are_accepted_on_clean_data(name):
     for seed in range(4):
         data = simulate(profile="gentle", duration=2.0, seed=seed, imu_rate=cases.IMU_RATE, pose_rate=cases.POSE_RATE)
         plain = solve_batch(build_problem(data), covariances=False)
-        robust = solve_batch(build_problem(data, robust={"pose": robust_spec(f"{name}:{threshold}")}), covariances=False)
+        robust_problem = build_problem(data, robust={"pose": robust_spec(f"{name}:{threshold}")})
+        robust = solve_batch(robust_problem, covariances=False)
         ratios.append(cases.position_rmse(data, robust.trajectory) / cases.position_rmse(data, plain.trajectory))
     assert np.mean(ratios) <= 1.5 and max(ratios) < 2.0, ratios
 

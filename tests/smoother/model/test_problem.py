@@ -1,4 +1,4 @@
-"""Graph building (smoother/graph.py): keyframes, factors between the right keyframes, initial
+"""Graph building (smoother/model/problem.py): keyframes, factors between the right keyframes, initial
 values from dead reckoning and measurements, the prior."""
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Hostile output paths and interrupted post-run work: every path a command writes or deletes lies
-inside the directory the user named (``smoother.outputs.confined.inside``) -- a fleet's rig named
+inside the directory the user named (``smoother.confined.inside``) -- a fleet's rig named
 ``...toml`` (stem ``..``) once wrote into the parent of ``--out``, overwrote the user's
 ``metrics.json`` there and deleted their ``batch.tum`` --, an empty ``--out`` is refused, and what
 follows the estimators (verdicts, the advice fit) can be stopped or fail without costing the
@@ -15,7 +15,7 @@ import pytest
 from factors.errors import InputError
 from smoother.cli import main
 from smoother.errors import Terminated
-from smoother.outputs.confined import folder_name_problem, inside
+from smoother.confined import folder_name_problem, inside
 
 #: The user's own files beside (or above) an output directory, which no command may touch.
 THEIRS = {"metrics.json": b'{"mine": true}\n', "batch.tum": b"0 0 0 0 0 0 0 1\n", "trajectory.png": b"mine"}

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from datasets.kinds import KINDS
 from factors import selfcheck
 from smoother import cli
 
@@ -137,3 +138,13 @@ def test_the_relative_pose_check_holds_at_many_points_including_residuals_near_p
     (result,) = selfcheck.run_checks(samples=400, seed=0,
                                      names=["odometry measurement: H of its residual, extrinsic T_BS"])
     assert result.ok, result
+
+
+def test_check_jacobians_in_a_fresh_process_checks_every_kind():
+    done = subprocess.run([sys.executable, "-m", "smoother.cli", "check-jacobians", "--samples", "20", "--json"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    results = {r["name"]: r for r in json.loads(done.stdout)}
+    for name, kind in KINDS.items():  # its model, through its calibration; a one-state kind attached too, both ways
+        checks = [r for n, r in results.items() if n.startswith(f"{name} measurement")]
+        assert len(checks) == (2 if kind.relative else 4) and all(c["ok"] for c in checks), (name, sorted(results))

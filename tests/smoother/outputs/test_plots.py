@@ -1,5 +1,5 @@
 """Plots of a run directory: the PNG files, their sizes, runs without truth or with GPS fixes,
-errors for missing or malformed inputs, and ``smoother plot DIR`` in-process.
+errors for missing or malformed inputs (``smoother plot DIR``: ``tests/cli/test_plot_cli.py``).
 
 The run directory is written by :func:`smoother.outputs.files.write_outputs` from a 3 s simulated
 dataset and hand-made estimates (the truth perturbed, with matching covariances), so that the
@@ -21,7 +21,6 @@ from datasets.types import SAME_INSTANT_S, Trajectory
 from factors import so3
 from factors.errors import InputError
 from factors.imu import ImuState
-from smoother import cli
 from smoother.evaluation import metrics, scoring
 from smoother.outputs import canvas, files, plots
 
@@ -165,31 +164,6 @@ def test_missing_or_malformed_run_directory(tmp_path, run_dir):
     (bad / "metrics.json").write_text("{ not json")
     with pytest.raises(InputError, match=r"metrics\.json: cannot read it"):
         files.load_run(bad)
-
-
-def test_cli_plot(run_dir, tmp_path, capsys):
-    # without truth.npz only two figures are possible, which keeps this test quick
-    directory = _copy(run_dir, tmp_path, without=["truth.npz"])
-    out = tmp_path / "figures"
-    assert cli.main(["plot", str(directory), "--estimators", "batch", "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.glob("*.png")) == ["biases.png", "trajectory.png"]
-    assert not list(directory.glob("*.png"))
-    assert f"wrote {out / 'biases.png'}" in capsys.readouterr().err
-
-    assert cli.main(["plot", str(tmp_path / "empty-or-missing")]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("smoother: error: ") and "empty-or-missing" in err and len(err.splitlines()) == 1
-
-
-def test_cli_plot_with_a_bad_out_is_one_line(run_dir, tmp_path, capsys):
-    """--out under a file: exit 2, one line naming --out and the path, no figure drawn."""
-    blocker = tmp_path / "file"
-    blocker.write_text("")
-    out = blocker / "figures"
-    assert cli.main(["plot", str(run_dir), "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith(f"smoother: error: --out {out}: ") and len(err.splitlines()) == 1
-    assert not list(run_dir.glob("*.png"))
 
 
 def _gps_run(run_dir: Path, tmp_path: Path) -> Path:

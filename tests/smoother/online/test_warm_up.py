@@ -1,6 +1,6 @@
 """The sliding window's kernels compiled in a second process (smoother/online/warm_up.py): when
 a child starts, and that the run waits for it and stops it (that its cache is the one the run
-loads: tests/smoother/test_kernel_layouts.py, which pays for a first run already)."""
+loads: tests/cli/test_kernel_layouts.py, which pays for a first run already)."""
 from __future__ import annotations
 
 from types import SimpleNamespace

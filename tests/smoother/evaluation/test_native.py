@@ -1,4 +1,5 @@
-"""Cross-check against GTSAM's native IMU path (issue: custom factors vs CombinedImuFactor)."""
+"""GTSAM's native IMU path as a reference (smoother/evaluation/native.py): the project's custom
+factors against ``CombinedImuFactor``."""
 import numpy as np
 import pytest
 

@@ -1,7 +1,7 @@
-"""The parts of the online smoother, each on its own contract: the IMU buffer
-(smoother/online_imu.py), the keyframe schedule (online_schedule.py), the pending-measurement heap
-(online_pending.py), the hand-over (online_handover.py) and the IMU-rate prediction
-(online_prediction.py). The whole smoother is tested in test_online.py."""
+"""The parts of the online smoother (``smoother/online/``), each on its own contract: the IMU
+buffer (imu_buffer.py), the keyframe schedule (schedule.py), the pending-measurement heap
+(pending.py), the hand-over (handover.py) and the IMU-rate prediction (prediction.py). The whole
+smoother is tested in test_smoother.py."""
 from __future__ import annotations
 
 import random

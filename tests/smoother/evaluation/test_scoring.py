@@ -1,8 +1,7 @@
-"""Scoring and run outputs (smoother/report.py): metrics against known errors, GPS RMSE,
-trajectory files, metrics.json (atomic, NaN as null)."""
+"""Scoring (:mod:`smoother.evaluation.scoring`): metrics against known errors, what too little or
+gappy truth leaves, GPS RMSE held out and fitted, the residuals' correlation."""
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import replace
 
@@ -11,53 +10,24 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
-from datasets.tum import read_tum
 from datasets.types import PositionMeasurements, Sensor, Trajectory
-from factors import so3
-from factors.errors import InputError
 from smoother.evaluation import scoring as report
-from smoother.outputs import files
-from smoother.pipeline import Estimate
-
-ANGLE = np.radians(2.0)
-
-
-def _data():
-    return simulate(profile="tumbling", duration=1.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-
-
-def _truth(n: int = 12) -> Trajectory:
-    """Every fifth truth sample, ``n`` of them (enough states to score: report.MIN_COMPARED_STATES)."""
-    return _data().truth.subset(np.arange(0, 5 * n, 5))
-
-
-def _offset_estimate(truth: Trajectory, with_cov: bool = True) -> Trajectory:
-    """Every position 0.5 m off (0.3, 0.4, 0), every attitude rotated by 2 degrees about the world
-    z axis (C_est = exp(a z) C_true); covariance 0.01 m^2 and 1e-4 rad^2 on the pose blocks."""
-    s = truth.states
-    states = s.replace(r=s.r + [0.3, 0.4, 0.0], C=so3.exp([0.0, 0.0, ANGLE]) @ s.C)
-    cov = None
-    if with_cov:
-        cov = np.tile(np.eye(15), (len(truth), 1, 1))
-        cov[:, 0:3, 0:3] = 0.01 * np.eye(3)
-        cov[:, 6:9, 6:9] = 1e-4 * np.eye(3)
-    return Trajectory(truth.t, states, cov)
 
 
 def test_against_truth_on_a_known_error():
     """ATE 0.5 m, rotation RMSE 2 deg, pose NEES = 0.25 / 0.01 + a^2 / 1e-4 (a = 2 deg in rad),
     /6, at every state."""
-    truth = _truth()
-    m = report.against_truth(truth, _offset_estimate(truth))
+    truth = cases.scored_truth()
+    m = report.against_truth(truth, cases.offset_estimate(truth))
     assert m["ate_rmse_m"] == pytest.approx(0.5, rel=1e-12)
     assert m["rot_rmse_deg"] == pytest.approx(2.0, rel=1e-9)
-    assert m["nees_mean"] == pytest.approx((0.25 / 0.01 + ANGLE**2 / 1e-4) / 6.0, rel=1e-9)
+    assert m["nees_mean"] == pytest.approx((0.25 / 0.01 + cases.OFFSET_ANGLE**2 / 1e-4) / 6.0, rel=1e-9)
     assert m["compared_states"] == 12 and m["compared_coverage"] == 1.0 and "ate_note" not in m
 
 
 def test_against_truth_needs_covariances_for_nees():
-    truth = _truth()
-    m = report.against_truth(truth, _offset_estimate(truth, with_cov=False))
+    truth = cases.scored_truth()
+    m = report.against_truth(truth, cases.offset_estimate(truth, with_cov=False))
     assert math.isnan(m["nees_mean"]) and m["ate_rmse_m"] == pytest.approx(0.5)
 
 
@@ -68,7 +38,7 @@ def test_states_between_truth_samples_are_compared_with_the_truth_interpolated_t
     dense = simulate(profile="gentle", duration=3.0, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None).truth
     truth = dense.subset(slice(0, None, 5))  # 20 Hz
     between = dense.subset(np.flatnonzero(np.arange(len(dense)) % 5 == 2)[:-1])  # none on a 20 Hz sample
-    m = report.against_truth(truth, _offset_estimate(between, with_cov=False))
+    m = report.against_truth(truth, cases.offset_estimate(between, with_cov=False))
     assert m["compared_states"] == len(between) > 50
     assert m["ate_rmse_m"] == pytest.approx(0.5, abs=1e-3) and m["rot_rmse_deg"] == pytest.approx(2.0, abs=0.01)
 
@@ -78,7 +48,7 @@ def test_an_ate_over_too_few_states_is_no_number_and_says_why():
     truth sample (error 0), the last between two, 31 m off. The figures are NaN (null in
     metrics.json) and the note gives the count, the span and the error at those states -- not an
     ATE from the one state that lies on a truth sample."""
-    truth = _truth()
+    truth = cases.scored_truth()
     t = np.array([truth.t[0], 0.5 * (truth.t[-2] + truth.t[-1])])
     est = Trajectory(t, truth.interpolate(t)[0])
     est = Trajectory(t, est.states.replace(r=est.states.r + [[0.0, 0.0, 0.0], [31.0, 0.0, 0.0]]))
@@ -93,8 +63,8 @@ def test_an_ate_over_too_few_states_is_no_number_and_says_why():
 def test_an_ate_over_part_of_the_run_says_so_and_below_half_is_no_number():
     """A truth that ends before the estimate: over 60% of its span the figures stand with a note,
     over 30% they are not scored."""
-    truth = _data().truth
-    est = _offset_estimate(truth, with_cov=False)
+    truth = cases.scored_data().truth
+    est = cases.offset_estimate(truth, with_cov=False)
     for share, scored in ((0.6, True), (0.3, False)):
         short = truth.subset(truth.t <= truth.t[0] + share * (truth.t[-1] - truth.t[0]))
         m = report.against_truth(short, est)
@@ -106,17 +76,17 @@ def test_an_ate_over_part_of_the_run_says_so_and_below_half_is_no_number():
 def test_states_inside_a_gap_of_the_truth_are_not_compared():
     """The truth across a hole of half a second is not interpolated: a state inside it would be
     scored against a straight line the motion never took."""
-    truth = _data().truth
+    truth = cases.scored_data().truth
     holed = truth.subset((truth.t < 0.3) | (truth.t > 0.8))
     between = truth.subset(slice(0, -1))
     between = Trajectory(between.t + 0.004, between.states)  # 4 ms after each 100 Hz sample
-    m = report.against_truth(holed, _offset_estimate(between, with_cov=False))
+    m = report.against_truth(holed, cases.offset_estimate(between, with_cov=False))
     assert m["compared_states"] == np.count_nonzero((between.t < 0.29) | (between.t > 0.81)) == len(holed) - 2
     assert m["ate_rmse_m"] == pytest.approx(0.5, abs=0.01)
 
 
 def test_position_rmse_interpolates_and_ignores_fixes_outside_the_estimate():
-    truth = _truth()
+    truth = cases.scored_truth()
     est = Trajectory(truth.t, truth.states.replace(r=np.outer(truth.t, [1.0, 0.0, 0.0])))
     t = np.array([truth.t[0] - 1.0, 0.5 * (truth.t[1] + truth.t[2]), truth.t[3], truth.t[-1] + 1.0])
     position = np.outer(t, [1.0, 0.0, 0.0]) + [[0, 0, 0], [0, 3.0, 0], [0, 0, 4.0], [0, 0, 0]]
@@ -178,7 +148,7 @@ def _fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
     e = np.zeros((n, 3))
     for k in range(1, n):
         e[k] = phi * e[k - 1] + np.sqrt(1 - phi**2) * rng.normal(scale=0.5, size=3)
-    truth = Trajectory(t, _truth(1).states[np.zeros(n, dtype=int)].replace(r=np.outer(t, [1.0, 0.2, 0.0])))
+    truth = Trajectory(t, cases.scored_truth(1).states[np.zeros(n, dtype=int)].replace(r=np.outer(t, [1.0, 0.2, 0.0])))
     fixes = PositionMeasurements(t, truth.states.r + e, 0.25 * np.eye(3))
     used = np.arange(n) % every == 0
     data = simulate(profile="gentle", duration=t[-1] + 0.1, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
@@ -209,86 +179,3 @@ def test_each_position_sensor_has_its_own_residual_correlation():
     assert own["gps"] == pytest.approx(0.98 ** 4, abs=0.08) and own["rtk"] == pytest.approx(0.0, abs=0.08), own
     assert own["rtk"] + 0.1 < report.residual_correlation(data, truth) < own["gps"] - 0.1
     assert report.residual_correlation(data, truth, sensor="wheels") is None
-
-
-@pytest.mark.parametrize("with_cov", [True, False])
-def test_trajectory_npz_round_trip(tmp_path, with_cov):
-    truth = _truth()
-    est = _offset_estimate(truth, with_cov)
-    files.save_trajectory(tmp_path / "x.npz", est)
-    back = files.load_trajectory(tmp_path / "x.npz")
-    np.testing.assert_array_equal(back.t, est.t)
-    for name in ("r", "v", "C", "b_f", "b_w"):
-        np.testing.assert_array_equal(getattr(back.states, name), getattr(est.states, name))
-    if with_cov:
-        np.testing.assert_array_equal(back.cov, est.cov)
-    else:
-        assert back.cov is None
-    assert files.load_stamped_trajectory(tmp_path / "x.npz")[1] is None
-
-
-def test_a_trajectory_npz_carries_the_data_clock(tmp_path):
-    """The clock's origin beside times from the start: EuRoC's 1403636579758555392 ns, exactly."""
-    est = _offset_estimate(_truth())
-    files.save_trajectory(tmp_path / "x.npz", est, time_origin_ns=1403636579758555392)
-    back, origin = files.load_stamped_trajectory(tmp_path / "x.npz")
-    assert origin == 1403636579758555392 and np.array_equal(back.t, est.t)
-    arrays = dict(np.load(tmp_path / "x.npz"))
-    np.savez(tmp_path / "bad.npz", **{**arrays, "time_origin_ns": np.array([1.5, 2.0])})
-    with pytest.raises(InputError, match=r"bad\.npz: time_origin_ns is float64 of shape \(2,\); expected"):
-        files.load_stamped_trajectory(tmp_path / "bad.npz")
-
-
-def _estimates(truth):
-    return {
-        "ekf": Estimate("ekf", _offset_estimate(truth), 0.25, {"rejected_measurements": 0}),
-        "batch": Estimate("batch", _offset_estimate(truth, with_cov=False), 0.5, {"iterations": 3}),
-    }
-
-
-def test_write_outputs_writes_every_file_and_valid_json(tmp_path):
-    data = _data()
-    truth = _truth()
-    metrics = files.write_outputs(tmp_path / "run", data, _estimates(truth), {"seed": 7})
-    names = {p.name for p in (tmp_path / "run").iterdir()}
-    assert names == {"ekf.tum", "ekf.npz", "batch.tum", "batch.npz", "truth.npz", "metrics.json"}
-    document = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert document["_run"] == {"seed": 7, "estimators": ["ekf", "batch"], "aiding_sensors": [],
-                                "dead_reckoning": True, "world_frame": {
-                                    "frame_id": "odom", "position": "relative to the start",
-                                    "yaw": "relative to the start"}}
-    assert document["ekf"]["ate_rmse_m"] == pytest.approx(0.5)
-    assert document["ekf"]["runtime_s"] == 0.25 and document["ekf"]["rejected_measurements"] == 0
-    assert document["batch"]["nees_mean"] is None  # NaN (no covariances) is written as null
-    assert math.isnan(metrics["batch"]["nees_mean"])
-    tum = read_tum(tmp_path / "run" / "ekf.tum")
-    np.testing.assert_array_equal(tum.t, truth.t)
-    np.testing.assert_allclose(tum.position, truth.position + [0.3, 0.4, 0.0], rtol=0, atol=1e-12)
-    saved_truth = files.load_trajectory(tmp_path / "run" / "truth.npz")
-    np.testing.assert_array_equal(saved_truth.t, data.truth.t)
-
-
-def test_a_failing_write_keeps_the_previous_metrics_json(tmp_path, monkeypatch):
-    """metrics.json is written atomically: an error in the middle of writing it (here json.dump
-    fails after writing part of the document) leaves the previous complete file, and no
-    temporary file behind."""
-    data, truth = _data(), _truth()
-    out = tmp_path / "run"
-    files.write_outputs(out, data, _estimates(truth), {"first": True})
-    before = (out / "metrics.json").read_bytes()
-
-    def broken_dump(obj, handle, **kwargs):
-        handle.write('{"ekf": {"ate_rmse_m": 0.')
-        raise OSError("disk full")
-
-    monkeypatch.setattr(files.json, "dump", broken_dump)
-    with pytest.raises(OSError, match="disk full"):
-        files.write_outputs(out, data, _estimates(truth), {"first": False})
-    assert (out / "metrics.json").read_bytes() == before
-    assert json.loads(before)["_run"]["first"] is True
-    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
-
-
-def test_jsonable_turns_numpy_and_non_finite_values_into_json():
-    out = files.jsonable({"a": np.float64(np.inf), "b": [np.int64(3), np.array([1.5, np.nan])], "c": (1, "x")})
-    assert json.loads(json.dumps(out)) == {"a": None, "b": [3, [1.5, None]], "c": [1, "x"]}

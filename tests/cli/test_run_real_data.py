@@ -1,24 +1,12 @@
 """`smoother run` end to end on the real-data loaders: an EuRoC/ASL folder (written by the test)
 and the KITTI example shipped with gtsam."""
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from eurocfiles import GT, IMU_STEP, write_sequence
 
+from datasets.euroc import load_euroc
 from smoother.cli import main
-
-
-def _euroc_module():
-    path = Path(__file__).parents[1] / "datasets" / "test_euroc.py"
-    spec = importlib.util.spec_from_file_location("euroc_folder_writer", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _euroc_writer():
-    return _euroc_module().write_sequence
 
 
 def _run(capsys, *argv) -> tuple[int, str, str]:
@@ -28,7 +16,7 @@ def _run(capsys, *argv) -> tuple[int, str, str]:
 
 
 def test_euroc_folder_with_pose_and_gps_from_truth(tmp_path, capsys):
-    _euroc_writer()(tmp_path / "seq")
+    write_sequence(tmp_path / "seq")
     out = tmp_path / "out"
     code = main(["run", "--dataset", f"euroc:{tmp_path / 'seq'}", "--pose-from-truth", "20", "0.05", "0.01",
                  "--gps-from-truth", "10", "0.3", "--out", str(out), "--no-progress"])
@@ -48,10 +36,9 @@ def test_dead_reckoning_is_said_and_an_ate_over_one_state_is_not_a_number(tmp_pa
     IMU's grid). Comparing exactly coinciding stamps scored that one state: ATE 0.0000 from
     compared_states 1, the last state far off. The table marks the figures unscored, stderr says
     why, metrics.json has them null with ate_note, and the run says it is dead reckoning."""
-    module = _euroc_module()
     seq = tmp_path / "seq"
-    module.write_sequence(seq, gt_offset=10 * module.IMU_STEP)
-    gt = seq / module.GT
+    write_sequence(seq, gt_offset=10 * IMU_STEP)
+    gt = seq / GT
     lines = gt.read_text().splitlines()
     stamp, rest = lines[-1].split(",", 1)
     lines[-1] = f"{int(stamp) + 1_000_000},{rest}"
@@ -75,10 +62,9 @@ def test_dead_reckoning_is_said_and_an_ate_over_one_state_is_not_a_number(tmp_pa
 def test_a_ground_truth_of_two_rows_scores_nothing_and_keeps_the_imu(tmp_path, capsys):
     """A ground truth cut to two rows: the IMU after it is kept and estimated (the loader says the
     truth covers 0.005 s of 2 s), and no ATE is printed from the two states it covers."""
-    module = _euroc_module()
     seq = tmp_path / "seq"
-    module.write_sequence(seq, gt_offset=10 * module.IMU_STEP)
-    gt = seq / module.GT
+    write_sequence(seq, gt_offset=10 * IMU_STEP)
+    gt = seq / GT
     gt.write_text("\n".join(gt.read_text().splitlines()[:3]) + "\n")
     out = tmp_path / "out"
     with pytest.warns(UserWarning, match="the ground truth covers 0.005 s of the 2 s"):
@@ -94,12 +80,11 @@ def test_a_run_npz_is_in_the_data_clock_and_evaluates_against_the_recording_refe
     """EuRoC's clock starts at 1.4e9 s: the run's .npz carries that origin, so `smoother evaluate`
     pairs it with a TUM reference in the data's clock (the .npz is the output with covariances) and
     gives the NEES, the run's own within the association's 1.3 ms at the first state."""
-    from datasets.euroc import load_euroc
     from datasets.tum import write_tum
     from smoother.outputs.files import load_stamped_trajectory
 
     seq = tmp_path / "seq"
-    _euroc_writer()(seq)
+    write_sequence(seq)
     out = tmp_path / "out"
     code, _, err = _run(capsys, "--dataset", f"euroc:{seq}", "--estimator", "ekf", "--gps-from-truth", "20", "0.1",
                         "--out", str(out))
@@ -123,7 +108,7 @@ def test_gyro_data_in_deg_per_s_stop_the_run_naming_the_cause(tmp_path, capsys):
     stops with one line naming the rate, deg/s and the option; --max-gyro-rate lets it run."""
     import numpy as np
 
-    _euroc_writer()(tmp_path / "seq")
+    write_sequence(tmp_path / "seq")
     imu_csv = tmp_path / "seq" / "mav0" / "imu0" / "data.csv"
     lines = imu_csv.read_text().splitlines()
     rows = [line.split(",") for line in lines[1:]]
@@ -187,3 +172,18 @@ def test_kitti_fixed_lag_with_a_lag_shorter_than_the_gps_gaps_beats_the_ekf(tmp_
         assert main(["run", "--dataset", "kitti", "--gps-every", "10", "--estimator", "fixed-lag", "--lag", "2",
                      "--out", str(out), "--no-progress", "--no-covariance"]) == 0
     assert json.loads((out / "metrics.json").read_text())["fixed-lag"]["gps_heldout_rmse_m"] < 10.0
+
+
+def test_outputs_keep_the_sequence_stamps(tmp_path):
+    """A run's TUM files carry EuRoC's own nanosecond stamps (evo associates them with the
+    sequence's ground truth), not times from 0."""
+    from datasets.tum import format_ns
+
+    root = tmp_path / "seq"
+    write_sequence(root)
+    data = load_euroc(root)
+    assert data.time_origin_ns == int(data.imu.t_ns[0])
+    assert main(["run", "--dataset", f"euroc:{root}", "--estimator", "ekf", "--gps-from-truth", "10", "0.5",
+                 "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    first = (tmp_path / "out" / "ekf.tum").read_text().splitlines()[1].split()[0]
+    assert first == format_ns(int(data.imu.t_ns[0]))

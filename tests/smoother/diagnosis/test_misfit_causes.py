@@ -9,8 +9,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from rigfiles import toml_matrix
-from small_recording import WHEEL, write_recording
 
 from datasets import trajectories
 from datasets.kinds import KINDS, measure_rows
@@ -18,17 +16,16 @@ from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from datasets.types import Trajectory
 from factors import so3
-from smoother.cli import main
-from smoother.diagnosis.verdicts import consistency_warnings
 from smoother.diagnosis.misfit_causes import Cause, causes_at, hint, hints, patterns
+from smoother.diagnosis.verdicts import consistency_warnings
 from smoother.pipeline import run_estimators, verdicts_by_estimator
 
 #: A car-like figure-eight: the simulator's gentle one 10 times wider (100 m x 50 m, 7-15 m/s),
 #: heading along the path.
 CAR = trajectories.Profile(
     "car", "figure-eight 100 m x 50 m, 7-15 m/s",
-    lambda t: tuple(x * np.array([10.0, 10.0, 1.0]) for x in trajectories._gentle_position(t)),
-    trajectories._gentle_attitude)
+    lambda t: tuple(x * np.array([10.0, 10.0, 1.0]) for x in trajectories.GENTLE.position(t)),
+    trajectories.GENTLE.attitude)
 
 
 def _T(rotation_vector=(0.0, 0.0, 0.0), lever=(0.0, 0.0, 0.0)):
@@ -271,20 +268,3 @@ def test_any_combination_of_errors_is_recovered_within_its_sigma(truth_case, see
     data = data.with_sensor("velocity", data=replace(m, velocity=m.velocity + e - wanted))
     for c in causes_at(data, truth)["velocity"]:
         assert np.all(np.abs(c.value - dc[c.calibration]) < 4 * c.sigma), (c, dc[c.calibration])
-
-
-def test_smoother_run_on_a_rig_names_a_mounting_off_by_a_pitch(tmp_path, capsys):
-    """A recording's rig file with the wheel's ``T_BS`` pitched by 5 deg about the IMU's y axis
-    (``R_BS`` given as ``exp(phi) R_BS`` of the true one): the states follow the wheel, which stays
-    in its band (1.08 per dof) while the fixes go out of theirs (1.6); ``smoother run`` warns of the
-    wheel and names the rotation that undoes it, ``-phi`` (measured -4.88 deg +- 0.37 deg)."""
-    rig, _ = write_recording(tmp_path, "rig", duration=30, seed=2, imu_rate=100.0, gnss_rate=2.0, every=1)
-    wrong = WHEEL.copy()
-    wrong[:3, :3] = so3.exp([0.0, np.radians(5.0), 0.0]) @ WHEEL[:3, :3]
-    rig.write_text(rig.read_text().replace(f"T_BS = {toml_matrix(WHEEL)}", f"T_BS = {toml_matrix(wrong)}"))
-    out = tmp_path / "out"
-    assert main(["run", "--rig", str(rig), "--estimator", "batch", "--out", str(out), "--no-progress"]) == 0
-    [line] = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: wheel:")]
-    assert "its residuals point at rotation about y -" in line and 'add estimate = ["rotation"]' in line, line
-    pitch = float(line.split("rotation about y ")[1].split(" deg")[0])
-    assert abs(pitch + 5.0) < 1.0, line

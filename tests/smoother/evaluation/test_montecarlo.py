@@ -1,10 +1,10 @@
-"""Monte Carlo: results independent of where the runs run, kept on interruption, CLI errors."""
+"""Monte Carlo runs (:mod:`smoother.evaluation.montecarlo`): results independent of where the runs run
+and kept on interruption (``smoother montecarlo``: ``tests/cli/test_montecarlo_cli.py``)."""
 import json
 
 import numpy as np
 import pytest
 
-from smoother.cli import main
 from smoother.evaluation import montecarlo
 
 CONFIG = montecarlo.MonteCarloConfig(profile="gentle", duration=2.0, estimators=("batch", "ekf"))
@@ -63,40 +63,6 @@ def test_an_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         montecarlo.run_many(CONFIG, [7, 8, 9], out_dir=tmp_path)
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["seed_7.json"]
-
-
-def test_cli_writes_summary_and_plot(tmp_path, capsys):
-    assert main(["montecarlo", "--runs", "2", "--duration", "2", "--out", str(tmp_path), "--json"]) == 0
-    out = json.loads(capsys.readouterr().out)
-    assert out["runs"] == 2 and set(out) >= {"batch", "ekf", "nees_interval_95"}
-    assert (tmp_path / "summary.json").exists()
-    assert (tmp_path / "montecarlo_nees.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-@pytest.mark.parametrize("argv, fragment", [
-    (["--runs", "1"], "--runs"),
-    (["--workers", "0"], "--workers"),
-    (["--profile", "loopy"], "--profile"),
-    (["--duration", "-1"], "--duration"),
-    (["--duration", "inf"], "--duration"),
-    (["--outliers", "2"], "--outliers"),
-    (["--first-seed", "-1"], "--first-seed"),
-])
-def test_cli_rejects_bad_options(tmp_path, capsys, argv, fragment):
-    assert main(["montecarlo", "--out", str(tmp_path), *argv]) == 2
-    err = capsys.readouterr().err
-    assert fragment in err and "Traceback" not in err
-
-
-def test_cli_rejects_a_bad_out_before_any_run(tmp_path, capsys, monkeypatch):
-    """--out under a file: exit 2, one line naming --out and the path, before the first run."""
-    monkeypatch.setattr(montecarlo, "run_one", lambda *a: pytest.fail("a run started"))
-    blocker = tmp_path / "file"
-    blocker.write_text("")
-    out = blocker / "mc"
-    assert main(["montecarlo", "--runs", "2", "--duration", "1", "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith(f"smoother: error: --out {out}: ") and len(err.splitlines()) == 1
 
 
 def test_dask_cluster_gives_the_same_results(serial):

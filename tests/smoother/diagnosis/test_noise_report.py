@@ -1,0 +1,38 @@
+"""The printed lines of a noise fit (smoother/diagnosis/noise_report.py), from ``metrics.json``'s
+record: a header with the iterations, then one line per group saying what became of it."""
+from __future__ import annotations
+
+from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
+from smoother.diagnosis.noise_report import noise_lines
+
+
+def _record(converged=True) -> dict:
+    groups = [
+        GroupFit(NoiseGroup("imu", "gyro"), 27.3, 2.4, 76.0, 0.00478, "rad/s/sqrt(Hz)"),
+        GroupFit(NoiseGroup("imu", "acc"), 3.57, 0.48, 12.4, 0.0357, "m/s^2/sqrt(Hz)", merged_with=("imu.acc_bias",)),
+        GroupFit(NoiseGroup("gps", "horizontal", (0, 1)), 1.0, 0.0, 0.58, 0.265, "m", estimable=False,
+                 note="not estimable: the data do not determine it (redundancy 0.58)"),
+        GroupFit(NoiseGroup("gps", "vertical", (2,)), 1.01, 0.63, 10.3, 0.265, "m", applied=False,
+                 note="the rig's value kept: within 3 sd of it"),
+        GroupFit(NoiseGroup("wheel", "speed", (0,)), 2.0, 0.1, 40.0, None, "", applied=False),
+    ]
+    return NoiseFit(groups, iterations=12, converged=converged).record()
+
+
+def test_one_line_per_group_with_its_value_factor_and_fate():
+    header, gyro, acc, horizontal, vertical, wheel = noise_lines(_record())
+    assert header == "noise fitted by the batch smoother (12 iterations):"
+    assert gyro.split() == ["imu.gyro", "0.00478", "rad/s/sqrt(Hz)", "x27.3", "+-", "2.4", "(redundancy", "76):",
+                            "applied"]
+    assert acc.endswith("x3.57 +- 0.48 (redundancy 12.4), one factor with imu.acc_bias: applied")
+    assert horizontal.split()[:3] == ["gps.horizontal", "0.265", "m"]
+    assert horizontal.endswith("kept: not estimable: the data do not determine it (redundancy 0.58)")
+    assert "x" not in horizontal.split()[3]  # a group the data do not determine has no factor
+    assert vertical.endswith("x1.01 +- 0.63 (redundancy 10.3): the rig's value kept: within 3 sd of it")
+    assert wheel.split()[:2] == ["wheel.speed", "x2"] and wheel.endswith(": not applied")
+    assert len({line.index(line.split()[1]) for line in (gyro, acc, horizontal, vertical)}) == 1  # one column
+
+
+def test_a_fit_that_did_not_converge_says_so_in_its_header():
+    header = noise_lines(_record(converged=False))[0]
+    assert header == "noise fitted by the batch smoother (12 iterations, NOT converged):"
