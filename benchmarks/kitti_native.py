@@ -143,8 +143,8 @@ def ours(gps_every: int, tune_noise: bool = False) -> dict:
     the data by the batch smoother (:func:`smoother.pipeline.tune_noise`; its time included)."""
 
     from datasets import kitti
-    from smoother.evaluation import scoring as report
     from smoother.batch.solve import solve_batch
+    from smoother.evaluation import scoring as report
     from smoother.model.problem import build_problem
     from smoother.pipeline import tune_noise as tune
 

@@ -69,20 +69,20 @@ import gtsam
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import kitti_native  # noqa: E402  (a sibling script, not a package)
+import kitti_native
 
-from datasets import kitti  # noqa: E402
-from datasets.simulate import simulate  # noqa: E402
-from factors import preintegration, threads  # noqa: E402
+from datasets import kitti
+from datasets.simulate import simulate
+from factors import preintegration, threads
 from factors.kernel_caches import ensure_fresh_caches
-from smoother.evaluation import native  # noqa: E402
-from smoother.model.covariances import covariances_at  # noqa: E402
-from smoother.batch.solve import solve_batch  # noqa: E402
-from smoother.ekf.filter import run_ekf  # noqa: E402
-from smoother.fixed_lag.offline import run_fixed_lag  # noqa: E402
-from smoother.model.problem import build_problem  # noqa: E402
-from smoother.online.smoother import OnlineSmoother  # noqa: E402
-from smoother.model.timeline import imu_steps, keyframe_times, measurement_knots  # noqa: E402
+from smoother.batch.solve import solve_batch
+from smoother.ekf.filter import run_ekf
+from smoother.evaluation import native
+from smoother.fixed_lag.offline import run_fixed_lag
+from smoother.model.covariances import covariances_at
+from smoother.model.problem import build_problem
+from smoother.model.timeline import imu_steps, keyframe_times, measurement_knots
+from smoother.online.smoother import OnlineSmoother
 
 KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
 LAG_S = 2.0

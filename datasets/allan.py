@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from datasets.types import ImuSamples
-from factors.imu import ImuNoise
 from factors.errors import InputError
+from factors.imu import ImuNoise
 
 #: Largest number of cluster times.
 POINTS = 100

@@ -65,8 +65,17 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from datasets.errors import DataError, check_increasing, check_source, require_imu_recording
-from datasets.streams import (STATUS_NO_FIX, AttitudeStream, FixStream, MagneticFieldStream, PoseStream,
-                              PressureStream, TwistStream, known_covariances, seconds)
+from datasets.streams import (
+    STATUS_NO_FIX,
+    AttitudeStream,
+    FixStream,
+    MagneticFieldStream,
+    PoseStream,
+    PressureStream,
+    TwistStream,
+    known_covariances,
+    seconds,
+)
 from datasets.types import ImuSamples
 from datasets.yamlfile import read_yaml
 from factors import quaternion
@@ -201,7 +210,7 @@ def _opened(path: Path, topic: str):
         reader.open()
     except MemoryError:
         raise
-    except Exception as error:  # rosbags raises its own errors, and OSError, KeyError, ... for damaged files
+    except Exception as error:  # noqa: BLE001 -- rosbags raises its own errors, OSError, KeyError, ... for damaged files
         raise DataError(path, None, f"topic {topic}", f"an unreadable bag ({_cause(error)})", _A_BAG,
                         whole=True) from None
     try:
@@ -228,7 +237,7 @@ def _messages(path: Path, reader, topic: str, msgtype: str, row) -> tuple[list[i
             values.extend(row(message))
     except MemoryError:
         raise
-    except Exception as error:
+    except Exception as error:  # noqa: BLE001 -- a damaged message raises whatever its decoder meets
         raise DataError(path, None, f"topic {topic}", f"a damaged bag: message {len(stamps) + 1} cannot be read "
                         f"({_cause(error)})", expected, whole=True) from None
     if len(stamps) != info.msgcount:

@@ -51,8 +51,16 @@ import numpy as np
 
 from datasets import euroc
 from datasets.errors import DataError, check_increasing, check_unit_quaternions, read_lines, read_table
-from datasets.streams import (AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PositionStream, PressureStream,
-                              TwistStream, seconds)
+from datasets.streams import (
+    AttitudeStream,
+    FixStream,
+    MagneticFieldStream,
+    PoseStream,
+    PositionStream,
+    PressureStream,
+    TwistStream,
+    seconds,
+)
 from datasets.types import ImuSamples
 from factors import quaternion
 

@@ -273,7 +273,7 @@ def check_increasing(path, t: np.ndarray, lines, field: str, duplicates: bool = 
     if bad.size:
         i = int(bad[0]) + 1
         what = "a duplicate of" if step[i - 1] == 0 else "earlier than"
-        show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))  # noqa: E731
+        show = int if np.issubdtype(t.dtype, np.integer) else (lambda x: repr(float(x)))
         expected = "increasing time stamps" if duplicates else "strictly increasing time stamps"
         if counted == "line":
             raise DataError(path, int(lines[i]), field, f"{show(t[i])}, {what} line {int(lines[i - 1])} "

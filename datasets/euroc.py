@@ -68,11 +68,20 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import (DataError, check_increasing, check_unit_quaternions, data_lines, integer, number,
-                             read_lines, require_imu_recording, table_fast)
+from datasets.errors import (
+    DataError,
+    check_increasing,
+    check_unit_quaternions,
+    data_lines,
+    integer,
+    number,
+    read_lines,
+    require_imu_recording,
+    table_fast,
+)
 from datasets.kalibr import NOISE_KEYS, rigid_problem
-from datasets.yamlfile import YamlDocument, read_yaml
 from datasets.types import Dataset, ImuSamples, Trajectory
+from datasets.yamlfile import YamlDocument, read_yaml
 from factors import quaternion, so3
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
 

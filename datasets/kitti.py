@@ -80,13 +80,21 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets.errors import (DataError, check_increasing, data_rows, parse_rows, read_lines, read_table,
-                             require_imu_recording, require_rows)
+from datasets.errors import (
+    DataError,
+    check_increasing,
+    data_rows,
+    parse_rows,
+    read_lines,
+    read_table,
+    require_imu_recording,
+    require_rows,
+)
 from datasets.kinds.position import POSITION
 from datasets.types import Dataset, ImuSamples, PositionMeasurements, Sensor
 from factors import euler, so3
-from factors.imu import ImuNoise, ImuState
 from factors.errors import InputError
+from factors.imu import ImuNoise, ImuState
 
 IMU_FILE = "KittiEquivBiasedImu.txt"
 METADATA_FILE = "KittiEquivBiasedImu_metadata.txt"

@@ -91,7 +91,6 @@ from pathlib import Path
 import numpy as np
 
 from datasets.errors import DataError, read_source
-from factors.errors import InputError
 from datasets.gnss import Datum
 from datasets.initialise import FORWARD
 from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
@@ -103,6 +102,7 @@ from datasets.robust import robust_spec
 from datasets.sources import parse_spec
 from factors import so3
 from factors.calibration import PARTS, CalibrationPrior, applicable
+from factors.errors import InputError
 from factors.imu import DEFAULT_GRAVITY, ImuNoise
 
 if sys.version_info >= (3, 11):

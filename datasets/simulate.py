@@ -91,8 +91,8 @@ from datasets.simulated_sensors import SensorSpec, sensors_from_truth
 from datasets.trajectories import PROFILES, Profile
 from datasets.types import Dataset, ImuSamples, Sensor, Trajectory
 from factors import so3
-from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 from factors.errors import InputError
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 
 __all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
 

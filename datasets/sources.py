@@ -20,12 +20,34 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
-                           read_bag_pressures, read_bag_twists)
-from datasets.csv_sources import (read_csv_attitudes, read_csv_fixes, read_csv_imu, read_csv_magnetic_fields,
-                                  read_csv_poses, read_csv_positions, read_csv_pressures, read_csv_twists)
-from datasets.streams import (AttitudeStream, FixStream, MagneticFieldStream, PoseStream, PositionStream, PressureStream,
-                              TwistStream)
+from datasets.bags import (
+    read_bag_attitudes,
+    read_bag_fixes,
+    read_bag_imu,
+    read_bag_magnetic_fields,
+    read_bag_poses,
+    read_bag_pressures,
+    read_bag_twists,
+)
+from datasets.csv_sources import (
+    read_csv_attitudes,
+    read_csv_fixes,
+    read_csv_imu,
+    read_csv_magnetic_fields,
+    read_csv_poses,
+    read_csv_positions,
+    read_csv_pressures,
+    read_csv_twists,
+)
+from datasets.streams import (
+    AttitudeStream,
+    FixStream,
+    MagneticFieldStream,
+    PoseStream,
+    PositionStream,
+    PressureStream,
+    TwistStream,
+)
 from datasets.tum import read_tum
 from datasets.types import ImuSamples
 from factors.errors import InputError

@@ -25,8 +25,8 @@ from datasets.atomic import atomic_write
 from datasets.errors import check_increasing, check_unit_quaternions, data_lines, read_lines, read_table
 from datasets.types import Trajectory
 from factors import quaternion
-from factors.imu import ImuState
 from factors.errors import InputError
+from factors.imu import ImuState
 
 FIELDS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 #: An attitude-only file's fields (:func:`read_tum_poses`).

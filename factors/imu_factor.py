@@ -17,9 +17,9 @@ import numpy as np
 
 from factors import imu, preintegration
 from factors.custom import BIAS, ROT, VEC, custom_factor
+from factors.errors import InputError
 from factors.keys import KeyframeKeys
 from factors.priors import covariance_model
-from factors.errors import InputError
 
 KINDS = [ROT, VEC, VEC, BIAS]
 

@@ -202,7 +202,7 @@ def _unit_cross(axis, x0, x1, x2) -> tuple:
 
 
 @block_operation
-def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:
+def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:  # noqa: E741 -- the docstring's axis l
     """One sample's step of the gyro-bias Jacobians along bias axis ``l`` (a constant where it is
     inlined), slices ``dW[..., l]``, ``dRm[..., l]`` (rows ``3 l ..`` of ``dWf``, ``dRf``; module
     docstring)::
@@ -299,7 +299,7 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
                 dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
             for c in range(10):
                 W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
-                for l in range(3):
+                for l in range(3):  # noqa: E741 -- the bias axis l of the module docstring
                     dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
 
 

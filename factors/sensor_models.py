@@ -55,7 +55,6 @@ from factors.custom import BIAS, ROT, VEC, custom_factor
 from factors.errors import InputError
 from factors.imu import STATE_DIM, ImuState
 
-
 #: The widest kernel row and the largest residual dimension the estimators hold room for (the EKF's
 #: batched updates, the sliding window's measurement store); the kinds registry refuses a kind
 #: beyond them.

@@ -57,8 +57,8 @@ from __future__ import annotations
 import numpy as np
 
 from factors import euler, so3
-from factors.chart import primer_from_gtsam
 from factors.axis_angle import check_matrix, check_rotation_matrix, check_vector
+from factors.chart import primer_from_gtsam
 from factors.errors import InputError
 
 #: The chart names accepted by the functions of this module.

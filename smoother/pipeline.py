@@ -15,16 +15,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.types import Dataset, Trajectory
-from smoother.online import warm_up as kernel_warm_up
+from factors.errors import BoxplusError, InputError
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.calibration_report import calibration_records
-from smoother.ekf.filter import run_ekf
-from smoother.ekf.calibrated import run_calibrated_ekf
-from smoother.model.problem import build_problem, calibration_set, measurement_blocks
-from factors.errors import BoxplusError, InputError
 from smoother.diagnosis.residual_consistency import smoother_consistency
+from smoother.ekf.calibrated import run_calibrated_ekf
+from smoother.ekf.filter import run_ekf
 from smoother.estimators import ESTIMATORS
+from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
+from smoother.online import warm_up as kernel_warm_up
 
 
 @dataclass
@@ -207,7 +207,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     if ekf is None:
         try:
             ekf = _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False))
-        except Exception as error:  # the batch can still start from dead reckoning
+        except Exception as error:  # noqa: BLE001 -- the batch can still start from dead reckoning
             ekf = Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
         details["start_ekf_s"] = time.perf_counter() - tick
     details["start"] = "ekf" if ekf.failed is None else f"dead reckoning (the EKF failed: {ekf.failed})"

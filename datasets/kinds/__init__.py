@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import warnings
 from contextlib import contextmanager
+from dataclasses import fields as dataclass_fields
 
 import numpy as np
 from numba import literal_unroll, njit
 from numba.core.errors import NumbaExperimentalFeatureWarning
-
-from dataclasses import fields as dataclass_fields
 
 from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, position, roll_pitch, velocity
 from datasets.kinds.base import Clock, Kind, kind_sigmas

@@ -7,8 +7,8 @@ import numpy as np
 
 from datasets.kinds.base import Kind, noise, noisy, poses
 from datasets.types import RelativePoseMeasurements
-from factors import so3
 from factors import sensor_models as sm
+from factors import so3
 from factors.errors import InputError
 from factors.selfcheck import PI_MARGIN_FOR_LOG, random_extrinsic, random_rotation, random_state
 

@@ -6,8 +6,8 @@ import numpy as np
 
 from datasets.kinds.base import Kind, displaced, near_prediction, noise, noisy, poses
 from datasets.types import PoseMeasurements
-from factors import so3
 from factors import sensor_models as sm
+from factors import so3
 from factors.selfcheck import random_state
 
 

@@ -29,12 +29,12 @@ import numpy as np
 
 from datasets.types import Trajectory
 from factors import imu
+from factors.errors import InputError
 from factors.keys import KeyframeKeys
 from smoother.batch.methods import OPTIMIZERS
 from smoother.batch.optimiser import optimize
-from smoother.model.covariances import covariances_at, keyframe_covariance
-from factors.errors import InputError
 from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
+from smoother.model.covariances import covariances_at, keyframe_covariance
 from smoother.model.problem import Problem, read_state
 
 ENGINES = ("vectorized", "gtsam")

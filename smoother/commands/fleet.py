@@ -37,8 +37,8 @@ def run(args) -> int:
     from factors.threads import thread_count
     from smoother.commands import check_option, named_directory, output_directory
     from smoother.commands import fleet_runner as fleet
-    from smoother.fixed_lag.lag import check_lag
     from smoother.confined import inside
+    from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
     check_option("--workers", args.workers)

@@ -188,10 +188,10 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.kinds import sensors_of
     from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
     from smoother.diagnosis.misfit_causes import hints
+    from smoother.diagnosis.noise_report import noise_lines
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
     from smoother.outputs import files
-    from smoother.diagnosis.noise_report import noise_lines
     from smoother.pipeline import estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
 
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s",

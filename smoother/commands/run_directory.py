@@ -31,8 +31,8 @@ from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
 from factors.errors import InputError, InternalError
-from smoother.errors import UserError
 from smoother.confined import inside
+from smoother.errors import UserError
 from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
 #: The lock file of a run directory.

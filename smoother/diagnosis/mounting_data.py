@@ -45,8 +45,16 @@ from typing import Callable
 import numpy as np
 
 from datasets.kinds.roll_pitch import RollPitchMeasurements
-from datasets.types import (SAME_INSTANT_S, Dataset, ImuSamples, OrientationMeasurements, PoseMeasurements,
-                            RelativePoseMeasurements, Sensor, VelocityMeasurements)
+from datasets.types import (
+    SAME_INSTANT_S,
+    Dataset,
+    ImuSamples,
+    OrientationMeasurements,
+    PoseMeasurements,
+    RelativePoseMeasurements,
+    Sensor,
+    VelocityMeasurements,
+)
 from factors import so3
 from factors.errors import SolverError
 from factors.sensor_models import extrinsic_parts

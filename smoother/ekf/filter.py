@@ -28,8 +28,8 @@ from factors import imu
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, update_order
-from smoother.progress import progress_bar
 from smoother.model.timeline import imu_steps, measurement_knots
+from smoother.progress import progress_bar
 
 
 class Ekf:

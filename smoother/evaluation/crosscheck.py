@@ -33,10 +33,10 @@ from smoother import stats
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import Ekf, run_ekf
 from smoother.estimators import ESTIMATORS
+from smoother.evaluation.scoring import compare_with_truth
 from smoother.fixed_lag.kinds import FIXED_LAG_KINDS
 from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
-from smoother.evaluation.scoring import compare_with_truth
 
 TARGETS = {
     "prediction_max_abs_error": 1e-9,

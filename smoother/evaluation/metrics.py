@@ -51,6 +51,7 @@ import numpy as np
 from factors import so3
 from factors.errors import InputError
 from smoother.evaluation.modes import ALIGN_MODES, DELTA_UNITS
+
 #: Error-state indices of the parts NEES can be computed on (factors.imu order r, v, phi, b_f, b_w).
 NEES_PARTS = {
     "pose": np.r_[0:3, 6:9],

@@ -33,17 +33,16 @@ import numpy as np
 
 from datasets.kinds import KINDS, attached_noise, attached_rows, calibrated_rows, measure_rows, model_index, sensors_of
 from datasets.types import Dataset, Trajectory
-from factors import calibration, imu, preintegration
-from factors import priors
+from factors import calibration, imu, preintegration, priors
 from factors.custom import BIAS, ROT, VEC, custom_factor
+from factors.errors import InputError
 from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.model.blocks import Block, whitening
 from smoother.model.robust import noise_model, robust_estimator
-from smoother.model.timeline import Attachment, Steps, attachment, imu_steps, keyframe_rate as grid_rate
-from smoother.model.timeline import keyframe_times, states_at
-from factors.errors import InputError
+from smoother.model.timeline import Attachment, Steps, attachment, imu_steps, keyframe_times, states_at
+from smoother.model.timeline import keyframe_rate as grid_rate
 
 
 @dataclass

@@ -19,7 +19,8 @@ from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.errors import InputError
 from smoother.model.problem import measurement_spec
-from smoother.model.timeline import keyframe_rate as grid_rate, keyframe_times
+from smoother.model.timeline import keyframe_rate as grid_rate
+from smoother.model.timeline import keyframe_times
 from smoother.online.handover import OnlineEstimate
 from smoother.online.smoother import OnlineSmoother
 from smoother.progress import progress_bar

@@ -14,8 +14,8 @@ import pytest
 
 from factors.errors import InputError
 from smoother.cli import main
-from smoother.errors import Terminated
 from smoother.confined import folder_name_problem, inside
+from smoother.errors import Terminated
 
 #: The user's own files beside (or above) an output directory, which no command may touch.
 THEIRS = {"metrics.json": b'{"mine": true}\n', "batch.tum": b"0 0 0 0 0 0 0 1\n", "trajectory.png": b"mine"}

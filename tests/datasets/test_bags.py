@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 from bagfiles import FORMATS, Messages, bag_path, storage_file, write_bag
 
-from datasets.bags import (read_bag_attitudes, read_bag_fixes, read_bag_imu, read_bag_magnetic_fields, read_bag_poses,
-                           read_bag_pressures, read_bag_twists)
+from datasets.bags import (
+    read_bag_attitudes,
+    read_bag_fixes,
+    read_bag_imu,
+    read_bag_magnetic_fields,
+    read_bag_poses,
+    read_bag_pressures,
+    read_bag_twists,
+)
 from datasets.errors import DataError
 from datasets.simulate import simulate
 from datasets.streams import seconds

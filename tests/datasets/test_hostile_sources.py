@@ -17,11 +17,19 @@ from bagfiles import Messages, write_bag
 
 from datasets import errors, euroc, kitti, tum
 from datasets.bags import read_bag_imu
+from datasets.errors import LIMITS
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu
 from datasets.rig import RigError, load_rig
-from datasets.sources import (read_attitudes, read_fixes, read_imu, read_magnetic_fields, read_poses, read_positions,
-                              read_pressures, read_twists)
-from datasets.errors import LIMITS
+from datasets.sources import (
+    read_attitudes,
+    read_fixes,
+    read_imu,
+    read_magnetic_fields,
+    read_poses,
+    read_positions,
+    read_pressures,
+    read_twists,
+)
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
 

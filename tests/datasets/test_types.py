@@ -9,8 +9,16 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from datasets.types import (SAME_INSTANT_S, Dataset, ImuSamples, PoseMeasurements, PositionMeasurements,
-                            RelativePoseMeasurements, Sensor, Trajectory)
+from datasets.types import (
+    SAME_INSTANT_S,
+    Dataset,
+    ImuSamples,
+    PoseMeasurements,
+    PositionMeasurements,
+    RelativePoseMeasurements,
+    Sensor,
+    Trajectory,
+)
 from factors import imu, so3
 from factors.errors import InputError
 

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import strategies as S
 from gtsam.utils.numerical_derivative import numericalDerivative11
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from strategies import EPS
 
-import strategies as S
 from factors import chart, so3
 from factors import derivatives as d
-from strategies import EPS
 
 TOL = 1e-9
 LOG_MARGIN = 1e-4  # keep log's argument this far from pi (delta = 1e-5 steps must not cross it)

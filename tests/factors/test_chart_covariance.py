@@ -28,12 +28,11 @@ import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
-from factors import imu, so3
-from factors import priors
-from factors.sensor_models import orientation_error_into
+from factors import imu, priors, so3
 from factors.chart import to_gtsam_chart
-from factors.uncertainty import state_covariance_to_primer
 from factors.keys import keyframe_keys
+from factors.sensor_models import orientation_error_into
+from factors.uncertainty import state_covariance_to_primer
 
 N_SAMPLES = 20000
 

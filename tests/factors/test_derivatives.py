@@ -15,14 +15,14 @@ import math
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given
 from hypothesis import strategies as st
+from strategies import EPS
 
-import strategies as S
 from factors import derivatives as d
 from factors import so3
 from factors.jacobians import numerical_jacobian
-from strategies import EPS
 
 NUM_TOL = 1e-8
 LOG_MARGIN = 1e-5  # distance to pi kept by rotations whose derivative goes through log

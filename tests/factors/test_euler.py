@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from strategies import EPS
 
 from factors import euler, quaternion, so3
-from strategies import EPS
 
 TAU = 2 * np.pi
 

@@ -17,13 +17,13 @@ import math
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from strategies import EPS
 
-import strategies as S
 from factors import imu, so3
 from factors.jacobians import numerical_jacobian
-from strategies import EPS
 
 BLOCKS = {"r": imu.R, "v": imu.V, "phi": imu.PHI, "b_f": imu.BF, "b_w": imu.BW}
 NOISE_BLOCKS = {"n_v": imu.NV, "n_f": imu.NF, "n_w": imu.NW, "n_bf": imu.NBF, "n_bw": imu.NBW}
@@ -91,7 +91,7 @@ def primer_typeset_F_and_G(state, acc, gyro, dt):
     """F and G exactly as printed in the primer (section VI.C), with -dt C^T Gamma(dt w)."""
     C, v = state.C, state.v
     w = gyro - state.b_w
-    I = np.eye(3)
+    I = np.eye(3)  # noqa: E741 -- the identity, as the matrices are typeset
     F, G = np.zeros((15, 15)), np.zeros((15, 15))
     Gam = so3.gamma(dt * w)
     F[0:3, 0:3], F[0:3, 3:6], F[0:3, 6:9] = I, dt * C, -dt * so3.skew(C @ v)

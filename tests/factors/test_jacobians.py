@@ -16,10 +16,10 @@ import math
 import gtsam
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies as S
 from factors import chart, so3
 from factors import derivatives as d
 from factors import jacobians as J
@@ -273,7 +273,7 @@ def test_check_factor_fails_a_factor_with_one_wrong_block(wrong, bad_key):
         assert worst == pytest.approx(1e-3, rel=1e-3)
     else:
         assert worst > 0.1
-    line = [l for l in str(result).splitlines() if l.startswith(bad_key)][0]
+    line = [text for text in str(result).splitlines() if text.startswith(bad_key)][0]
     assert line.endswith("FAIL") and "CustomFactor: FAIL" in str(result)
 
 

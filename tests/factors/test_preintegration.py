@@ -30,14 +30,14 @@ import zlib
 
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from strategies import EPS, random_rotation
 
-import strategies as S
 from factors import imu, preintegration, so3
 from factors.jacobians import numerical_jacobian
 from factors.threads import thread_limit
-from strategies import EPS, random_rotation
 
 GRAVITY = imu.DEFAULT_GRAVITY
 #: Required agreement of prediction and sample-by-sample integration (see module docstring).

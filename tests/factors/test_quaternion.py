@@ -21,14 +21,14 @@ import warnings
 import gtsam
 import numpy as np
 import pytest
+import strategies as S
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from strategies import EPS
 
-import strategies as S
 from factors import quaternion as Q
 from factors import so3
-from strategies import EPS
 
 ROUNDOFF = 8 * EPS
 PRODUCT = 16 * EPS

@@ -21,12 +21,12 @@ import gtsam
 import numpy as np
 import pytest
 import scipy.linalg
+import strategies as S
 from hypothesis import assume, given
 from hypothesis import strategies as st
-
-import strategies as S
-from factors import so3
 from strategies import EPS
+
+from factors import so3
 
 ROUNDOFF = 8 * EPS
 PRODUCT = 16 * EPS

@@ -226,8 +226,8 @@ def test_kitti_s_gps_calibrated_with_its_sigma_as_given_is_said_to_be_overconfid
     them: it lands over 3 of its sigmas from zero, within 3 of the sigmas its residuals give it,
     and the printed line says by how much they are understated."""
     from datasets import kitti
-    from smoother.evaluation import scoring as report
     from smoother.diagnosis.calibration_report import calibration_lines
+    from smoother.evaluation import scoring as report
     from smoother.pipeline import RunOptions, estimate_each, verdicts_by_estimator
 
     gps = kitti.GPS_SENSOR

@@ -2,11 +2,11 @@
 accuracy of the clean run while the plain estimators degrade."""
 import pytest
 
+from datasets.robust import robust_spec
 from datasets.simulate import simulate
-from smoother.evaluation import scoring as report
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import run_ekf
-from datasets.robust import robust_spec
+from smoother.evaluation import scoring as report
 from smoother.model.problem import build_problem
 
 KW = dict(profile="gentle", duration=10.0, seed=4, imu_rate=100.0)

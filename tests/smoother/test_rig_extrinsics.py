@@ -7,14 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datasets.simulated_sensors import SensorSpec
 from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
 from datasets.types import Sensor
 from factors import so3
-from smoother.evaluation import scoring as report
 from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings, judgeable, sensor_consistency
-from smoother.pipeline import run_estimators
-from smoother.pipeline import verdicts_by_estimator
+from smoother.evaluation import scoring as report
+from smoother.pipeline import run_estimators, verdicts_by_estimator
 
 
 def _T(rotation_vector, lever):

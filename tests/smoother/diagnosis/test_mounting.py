@@ -22,19 +22,25 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import strategies
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import strategies
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from datasets.trajectories import Sinusoids, sinusoid_profile
 from datasets.types import ImuSamples, OrientationMeasurements, Sensor, VelocityMeasurements
 from factors import so3
 from factors.scan import prefix_products
-from smoother.diagnosis.mounting import (AXIS_NAMES, WRONG_ANGLE_DEG, MountingFinding, NotChecked, check_mountings,
-                                         compare)
 from smoother.diagnosis.imu_integrals import ImuIntegrals, chained
+from smoother.diagnosis.mounting import (
+    AXIS_NAMES,
+    WRONG_ANGLE_DEG,
+    MountingFinding,
+    NotChecked,
+    check_mountings,
+    compare,
+)
 from smoother.diagnosis.mounting_data import DataRotation
 
 #: A camera-like mounting, a little off the axes: the sensor's z on the IMU's x, its x on -y, its

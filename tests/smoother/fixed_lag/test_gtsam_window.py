@@ -10,6 +10,7 @@ import warnings
 import weakref
 from dataclasses import replace
 
+import estimator_cases as cases
 import gtsam
 import numpy as np
 import pytest
@@ -21,8 +22,6 @@ from smoother.fixed_lag.gtsam_window import make_smoother
 from smoother.fixed_lag.kinds import GTSAM_KINDS
 from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
-
-import estimator_cases as cases
 
 
 @functools.lru_cache(maxsize=None)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 
+import estimator_cases as cases
 import gtsam
 import numpy as np
 import pytest
@@ -13,8 +14,6 @@ from factors import so3
 from smoother.ekf.filter import run_ekf
 from smoother.model.problem import build_problem, insert_state
 from smoother.model.timeline import EVERY_MEASUREMENT, KEYFRAME_RATE
-
-import estimator_cases as cases
 
 IMU_STEP = 1.0 / cases.IMU_RATE
 

@@ -8,6 +8,7 @@ import re
 import warnings
 from dataclasses import replace
 
+import estimator_cases as cases
 import numpy as np
 import pytest
 
@@ -15,11 +16,9 @@ from datasets.kinds import sensors_of
 from smoother.ekf.filter import Ekf
 from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.problem import build_problem
-from smoother.online.smoother import OnlineSmoother, SensorSetup
-from smoother.online.replay import replay
 from smoother.model.timeline import keyframe_times
-
-import estimator_cases as cases
+from smoother.online.replay import replay
+from smoother.online.smoother import OnlineSmoother, SensorSetup
 
 LAG = 0.5
 NAMES = ("r", "v", "C", "b_f", "b_w")
@@ -335,8 +334,8 @@ def test_the_lag_warning_counts_the_gaps_between_fixes_not_between_wheel_speeds(
     """Wheel speeds at 10 Hz do not end dead reckoning: with fixes 2 s apart a 0.5-s lag is
     warned of (the wheel speeds' 0.1 s do not count as measurements' spacing), both offline and
     online; with a lag over the fixes' gap it is not."""
-    from datasets.simulated_sensors import SensorSpec
     from datasets.simulate import simulate
+    from datasets.simulated_sensors import SensorSpec
 
     data = simulate("gentle", duration=8, seed=1, pose_rate=None, sensors=[
         SensorSpec("gnss", "gnss", 0.5, 0.3), SensorSpec("wheel", "velocity", 10, 0.05)])

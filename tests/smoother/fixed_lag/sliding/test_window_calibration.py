@@ -15,8 +15,8 @@ from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother.fixed_lag.sliding import kernels
 from smoother.fixed_lag.sliding import window as sw
-from smoother.online.replay import replay
 from smoother.fixed_lag.windows import make_window
+from smoother.online.replay import replay
 from smoother.online.smoother import OnlineSmoother, SensorSetup
 
 DIM = sw.DIM
