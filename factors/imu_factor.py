@@ -21,7 +21,8 @@ from factors.errors import InputError
 from factors.keys import KeyframeKeys
 from factors.priors import covariance_model
 
-KINDS = [ROT, VEC, VEC, BIAS]
+#: The variable types of one keyframe's end of the factor, in its key order (Rot3, Point3, V, bias).
+KEYFRAME_VARIABLES = [ROT, VEC, VEC, BIAS]
 
 
 def _reorder(J: np.ndarray) -> list[np.ndarray]:
@@ -76,7 +77,7 @@ class ImuFactor:
         self._interval = _Interval(pre, np.asarray(gravity, dtype=float), float(reintegration_threshold))
         model = noise_model if noise_model is not None else covariance_model(pre.cov)
         keys = keys_i.all() + keys_j.all()
-        self.factor = custom_factor(model, keys, KINDS + KINDS, self._interval.residual)
+        self.factor = custom_factor(model, keys, KEYFRAME_VARIABLES + KEYFRAME_VARIABLES, self._interval.residual)
 
     @property
     def pre(self) -> preintegration.Preintegrated:

@@ -305,8 +305,8 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     for name, (key, X, kf, ev, A) in parts.items():
         mine = slice(at, at + A.shape[2])
         after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx_all[kf]) - np.einsum("nak,k->na", A, value[mine])
-        out[name] = _causes(X, value[mine], cov[mine, mine], information[mine, mine], gradient[mine], after,
-                            (dof or {}).get(name))
+        out[name] = candidate_causes(X, value[mine], cov[mine, mine], information[mine, mine], gradient[mine],
+                                     after, (dof or {}).get(name))
         at = mine.stop
     return out
 
@@ -439,8 +439,8 @@ def _gains(information: np.ndarray, g: np.ndarray, X: dict, significant: list[bo
     return np.array(out)
 
 
-def _causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray, gradient: np.ndarray,
-            after: np.ndarray, dof: float | None) -> list[Cause]:
+def candidate_causes(X: dict, value: np.ndarray, cov: np.ndarray, information: np.ndarray,
+                     gradient: np.ndarray, after: np.ndarray, dof: float | None) -> list[Cause]:
     """One :class:`Cause` per candidate of ``X`` from the fit's ``value`` and formal ``cov``, the
     quadratic model of the cost in the sensor's candidates (``information``, ``gradient``: every
     other calibration held at 0), the sensor's whitened residuals ``after`` the fit ``(N, d)`` and

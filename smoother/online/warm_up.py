@@ -35,15 +35,19 @@ WAIT_S = 300.0
 
 
 def cold() -> bool:
-    """Whether the sliding window's main kernel is not in Numba's disk cache (False when it cannot
-    be told: Numba's JIT disabled, or a Numba without this cache layout)."""
-    from smoother.fixed_lag.sliding.normal_equations import linearise
+    """Whether the sliding window's main kernel has no index in Numba's disk cache: Numba names a
+    cached kernel's index ``<module>.<function>-<line>.py<version>.nbi``, in the module's
+    ``__pycache__`` or, with ``NUMBA_CACHE_DIR`` set, somewhere below that folder. False when it
+    cannot be told (Numba's JIT disabled)."""
+    from smoother.fixed_lag.sliding import normal_equations
 
-    try:
-        index = Path(linearise._cache._cache_file._index_path)
-    except AttributeError:
+    if os.environ.get("NUMBA_DISABLE_JIT", "0") != "0":
         return False
-    return not index.exists()
+    source = Path(normal_equations.__file__)
+    pattern = f"{source.stem}.linearise-*.nbi"
+    folder = os.environ.get("NUMBA_CACHE_DIR")
+    found = Path(folder).rglob(pattern) if folder else (source.parent / "__pycache__").glob(pattern)
+    return next(iter(found), None) is None
 
 
 class WarmUp:

@@ -14,7 +14,7 @@ from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from factors.imu import ImuNoise
 from smoother.diagnosis import verdicts as v
-from smoother.diagnosis.misfit_causes import SMALLEST, Cause, _causes, hint
+from smoother.diagnosis.misfit_causes import SMALLEST, Cause, candidate_causes, hint
 
 
 @pytest.mark.parametrize("dof", [0.0007, 0.5, v.MIN_DOF * 0.999])
@@ -152,7 +152,7 @@ def test_a_cause_fitted_on_too_few_degrees_of_freedom_is_no_advice():
     X = {"lever_arm": np.zeros((2, 3, 3))}
     value, cov = np.array([0.5, 0.0, 0.0]), np.eye(3) * 1e-6
     after = np.full((2, 3), 1e-3)
-    few = _causes(X, value, cov, np.eye(3), value, after, dof=3.0 + v.MIN_DOF * 0.5)
+    few = candidate_causes(X, value, cov, np.eye(3), value, after, dof=3.0 + v.MIN_DOF * 0.5)
     assert not few[0].judged and not few[0].suggested
-    enough = _causes(X, value, cov, np.eye(3), value, after, dof=3.0 + v.MIN_DOF)
+    enough = candidate_causes(X, value, cov, np.eye(3), value, after, dof=3.0 + v.MIN_DOF)
     assert enough[0].judged and enough[0].suggested
