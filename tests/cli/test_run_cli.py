@@ -101,10 +101,10 @@ def test_when_interpolation_wins_the_note_says_whether_the_fixes_drift():
     independent reference; with white ones, to the rig."""
     from types import SimpleNamespace
 
-    from test_report import _fixes_with_noise
+    from drifting_fixes import fixes_with_noise
 
     for phi, words in ((0.98, "drifts slowly over the fix spacing"), (0.0, "the fixes look independent")):
-        data, truth = _fixes_with_noise(phi)
+        data, truth = fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
         estimates = {"batch": SimpleNamespace(trajectory=truth, calibration=None)}
         losing = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] + 0.1}}
