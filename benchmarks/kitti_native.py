@@ -9,8 +9,9 @@ factor's sigma is sqrt(n) * metadata sigma with n either the samples of the inte
 as in the C++ original) or the running count since the start ("cumulative", as the Python example
 counts it). A third native row replaces each ImuFactor and bias between factor by one
 CombinedImuFactor with the same noise (the bias walk inside the IMU factor, correlated with the
-navigation states: GTSAM's own version of this project's model, for comparison). Cholesky fails on this graph (indeterminant system: the example's pose prior leaves the
-position free), so the linear solver is QR.
+navigation states: GTSAM's own version of this project's model, for comparison). Cholesky fails on
+this graph (indeterminant system: the example's pose prior leaves the position free), so the linear
+solver is QR.
 
 Prints JSON and a table: held-out RMS position error against the GPS fixes not used, and wall
 times (compute only: data loading excluded for native; our figure is load + build + solve). A
@@ -37,7 +38,8 @@ from gtsam.symbol_shorthand import B, V, X
 
 # GTSAM's example data and constants (IMUKittiExampleGPS); datasets.kitti reads the same files with
 # its checks, which this script imports only beside our own pipeline.
-IMU_FILE, GPS_FILE, METADATA_FILE = "KittiEquivBiasedImu.txt", "KittiGps_converted.txt", "KittiEquivBiasedImu_metadata.txt"
+IMU_FILE, GPS_FILE, METADATA_FILE = ("KittiEquivBiasedImu.txt", "KittiGps_converted.txt",
+                                     "KittiEquivBiasedImu_metadata.txt")
 GPS_VARIANCE = 0.07
 
 

@@ -277,7 +277,8 @@ def bench_ekf(s: Settings) -> dict:
         "ekf_us_per_sample": ours,
         "gtsam_ekf_us_per_sample": theirs,
         "ekf_ratio_vs_gtsam": ours / theirs,
-        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.sensor('pose').data)} pose updates, {n} samples, median of {s.repeats}",
+        "ekf_run": (f"{s.preint_s:g} s at 200 Hz, {len(dataset.sensor('pose').data)} pose updates, {n} samples, "
+                    f"median of {s.repeats}"),
     }
 
 
@@ -541,7 +542,8 @@ class _NativeFixedLag:
         values.insert(V(0), self.nav.velocity())
         values.insert(B(0), self.bias)
         self._update(graph, values, 0, float(dataset.imu.t[0]))
-        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))[[3, 4, 5, 0, 1, 2]])
+        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(
+            np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))[[3, 4, 5, 0, 1, 2]])
         self.k = 0
 
     def _update(self, graph, values, k, t) -> None:
@@ -601,7 +603,8 @@ def online_against_native(duration_s: float) -> dict:
     for i in range(first, len(ends)):
         end = int(ends[i])
         tick = time.perf_counter()
-        native_side.keyframe(acc[previous:end], gyro[previous:end], dts[previous:end], times[end], m.position[i], m.C[i])
+        native_side.keyframe(acc[previous:end], gyro[previous:end], dts[previous:end], times[end], m.position[i],
+                             m.C[i])
         native_ms.append(time.perf_counter() - tick)
         tick = time.perf_counter()
         for j in range(previous + 1, end):
@@ -622,7 +625,8 @@ def online_against_native(duration_s: float) -> dict:
     for j, tt in enumerate(short.imu.t.tolist()):
         if tt in pose_row:
             i = pose_row[tt]
-            online.add("pose", tt, short.sensor("pose").data.position[i], short.sensor("pose").data.C[i], cov=short.sensor("pose").data.cov[i])
+            online.add("pose", tt, short.sensor("pose").data.position[i], short.sensor("pose").data.C[i],
+                       cov=short.sensor("pose").data.cov[i])
         online.add_imu(tt, short.imu.acc[j], short.imu.gyro[j])
         tick = time.perf_counter()
         online.estimate()
@@ -725,7 +729,8 @@ def _online_calibration(plain, repeats: int) -> dict:
     for figure, i in (("loop", 0), ("update", 1)):
         plain_ms, one_ms = (_median([1e3 * float(np.median(r[k][i])) for r in rounds]) for k in (0, 1))
         ratio = _median([float(np.median(r[1][i]) / np.median(r[0][i])) for r in rounds])
-        out.update({f"online_{figure}_uncalibrated_ms_median": plain_ms, f"online_{figure}_calibrated_ms_median": one_ms,
+        out.update({f"online_{figure}_uncalibrated_ms_median": plain_ms,
+                    f"online_{figure}_calibrated_ms_median": one_ms,
                     f"online_{figure}_calibration_ratio": ratio})
     return out
 
@@ -900,8 +905,8 @@ def print_table(r: dict) -> None:
         if "peak_rss_mib" in run:
             after = ", ".join(f"{k} {v:.0f}" for k, v in run["peak_rss_mib_after"].items())
             extra = f", peak RSS {run['peak_rss_mib']:.0f} MiB (peak after {after} MiB)"
-        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): {run['keyframes']:>6} kf, build {run['build_s']:.2f} s + solve "
-              f"{run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
+        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): {run['keyframes']:>6} kf, build {run['build_s']:.2f} s "
+              f"+ solve {run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
               f"{run['ms_per_keyframe']:.3f} ms/kf ({run['relative_ms_per_keyframe']:.2f}x the "
               f"{REFERENCE_MIN:g}-min run's {run['reference_ms_per_keyframe']:.3f}){extra}")
     for key in ("fixed_lag_incremental", "fixed_lag_batch"):

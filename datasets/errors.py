@@ -56,11 +56,12 @@ def _shown(found) -> str:
 
 
 class DataError(InputError):
-    """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``). ``path``, ``line`` (1-based, or None for the file as a whole),
-    ``field`` (or None), ``found`` and ``expected`` are kept as attributes. ``found`` is shortened
-    to :data:`_MAX_SHOWN` characters (it may be a whole fuzzed line) unless ``whole``: a text the
-    loader composed from parsed values, which must stay readable to the last digit (kept as an
-    attribute too, for an error re-raised with another field)."""
+    """Malformed input data (an :class:`factors.errors.InputError`, so also a ``ValueError``).
+    ``path``, ``line`` (1-based, or None for the file as a whole), ``field`` (or None), ``found``
+    and ``expected`` are kept as attributes. ``found`` is shortened to :data:`_MAX_SHOWN` characters
+    (it may be a whole fuzzed line) unless ``whole``: a text the loader composed from parsed values,
+    which must stay readable to the last digit (kept as an attribute too, for an error re-raised
+    with another field)."""
 
     def __init__(self, path, line: int | None, field: str | None, found, expected: str, whole: bool = False):
         self.path = str(path)

@@ -42,9 +42,10 @@ samples lie outside the truth's span on either side and how much of the IMU's sp
 covers. The ground truth is kept over the IMU samples' span (at least two IMU samples and two of
 its samples must lie in the other's span). The initial state is the ground truth at the first
 IMU stamp, interpolated (:meth:`datasets.types.Trajectory.interpolate`: linearly for vectors,
-along the geodesic for the attitude) between the two ground-truth samples around it. A gap in the ground truth (a step longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical
-steps) within the IMU's span is reported in a warning naming its line; the body rates are never
-differenced across one (one-sided next to it).
+along the geodesic for the attitude) between the two ground-truth samples around it. A gap in the
+ground truth (a step longer than :data:`GROUNDTRUTH_GAP_FACTOR` typical steps) within the IMU's span
+is reported in a warning naming its line; the body rates are never differenced across one (one-sided
+next to it).
 
 Noise: the densities of ``imu0/sensor.yaml`` (``accelerometer_noise_density``,
 ``gyroscope_noise_density``, ``accelerometer_random_walk``, ``gyroscope_random_walk``; EuRoC
@@ -156,7 +157,8 @@ def _read_asl_csv(path, columns: list[str], duplicates: bool = False) -> tuple[n
     lines = read_lines(path)
     first = next((i for i, text in enumerate(lines) if text.strip()), None)
     if first is None:
-        raise DataError(path, max(len(lines), 1), None, "an empty file", f"a header '#{','.join(columns)}' and data lines")
+        raise DataError(path, max(len(lines), 1), None, "an empty file",
+                        f"a header '#{','.join(columns)}' and data lines")
     header_text = lines[first].strip()
     first_token = header_text.split(",")[0].strip()
     has_header = header_text.startswith("#") or not re.fullmatch(r"[+-]?\d+", first_token)

@@ -261,10 +261,11 @@ def _gravity_checks(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, gravity: f
 
 def _gyro_units(t, acc, gyro, lo, hi) -> list[ImuFinding]:
     """The deg/s test of the module docstring over the quasi-static windows ``[lo, hi)``: the
-    direction ``u = f / |f|`` obeys ``du/dt = -s (w - b) x u`` while ``f`` is gravity's, ``s`` the gyro's unit in rad/s; summed over a window, ``Delta u = -s G - s [U]x b``
-    with ``G = sum dt w x u`` and ``U = sum dt u`` -- first order in each sample's step, not in the
-    window's rotation, so valid for any rotation -- is fitted for ``s = 1`` and ``s = pi/180``,
-    each with its best bias ``b``."""
+    direction ``u = f / |f|`` obeys ``du/dt = -s (w - b) x u`` while ``f`` is gravity's, ``s`` the
+    gyro's unit in rad/s; summed over a window, ``Delta u = -s G - s [U]x b`` with
+    ``G = sum dt w x u`` and ``U = sum dt u`` -- first order in each sample's step, not in the
+    window's rotation, so valid for any rotation -- is fitted for ``s = 1`` and ``s = pi/180``, each
+    with its best bias ``b``."""
     if len(lo) < 5:
         return []
     h = np.maximum((hi - lo) // 10, 1)  # the ends: u averaged over a tenth of the window each

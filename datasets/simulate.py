@@ -94,7 +94,8 @@ from factors import so3
 from factors.errors import InputError
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, integrate
 
-__all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS", "CLEAN_IMU_MODELS"]
+__all__ = ["PROFILES", "Profile", "SimulatedDataset", "simulate", "euler_truth", "STREAMS", "TRUTH_MODELS",
+           "CLEAN_IMU_MODELS"]
 
 #: The independent random streams, in spawn order (never reorder: it would change every dataset).
 STREAMS = ("imu", "bias", "initial", "velocity", "outliers", "sensors")

@@ -81,10 +81,11 @@ def sensors_from_truth(truth: Trajectory, imu: ImuSamples, specs, seed=0, true_r
     """The measurements of each simulated sensor in ``specs`` (:class:`SensorSpec`) drawn from
     ``truth`` by its kind's simulator (:attr:`datasets.kinds.Kind.simulate`), at truth samples as
     :func:`measurement_indices` picks them, each sensor with its own noise stream from ``seed``
-    (an integer or a ``numpy.random.SeedSequence``) and its name (:func:`sensor_stream`). ``imu`` gives the gyro readings a
-    velocity sensor keeps (the sample held at each measurement time), ``true_rate`` (the body
-    rates at the IMU's times; default the readings minus the true bias) the motion it measures,
-    ``gyro_density`` [rad/s/sqrt(Hz)] the readings' white noise its covariance accounts for."""
+    (an integer or a ``numpy.random.SeedSequence``) and its name (:func:`sensor_stream`). ``imu``
+    gives the gyro readings a velocity sensor keeps (the sample held at each measurement time),
+    ``true_rate`` (the body rates at the IMU's times; default the readings minus the true bias) the
+    motion it measures, ``gyro_density`` [rad/s/sqrt(Hz)] the readings' white noise its covariance
+    accounts for."""
     specs = list(specs)
     root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     out = []

@@ -206,7 +206,8 @@ def perturbation_jacobian(angles, convention: str, chart: str = "left") -> np.nd
     intrinsic, (i, j, k) = parse(convention)
     angles = _check_angles(angles)
     if chart not in ("left", "right"):
-        raise InputError(f"chart: expected 'left' or 'right' (see uncertainty.convert_covariance for 'middle'), got {chart!r}")
+        raise InputError(f"chart: expected 'left' or 'right' (see uncertainty.convert_covariance for 'middle'), "
+                         f"got {chart!r}")
     e = np.eye(3)
     a, b, c = angles[..., 0], angles[..., 1], angles[..., 2]
     if intrinsic:

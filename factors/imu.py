@@ -694,7 +694,8 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
     b_f, b_w, acc, gyro, dt = rows(lead, (state.b_f, state.b_w, acc.reshape(lead + (K, 3)),
                                           gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
                                    (vec, vec, (K, 3), (K, 3), (K,)))
-    _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(), as_trailing(gravity, vec, "gravity"))
+    _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(),
+                            as_trailing(gravity, vec, "gravity"))
     out = ImuState(r, v, C, b_f, b_w)
     return (out[0], S[0]) if single else (out, S)
 

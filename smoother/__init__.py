@@ -5,10 +5,11 @@ A run: ``problem = build_problem(dataset)`` (keyframes, preintegrated IMU factor
 factors, the initial trajectory), then ``solve_batch(problem)``, ``run_fixed_lag(problem, lag_s)``
 or ``run_ekf(dataset)``; each result's ``trajectory`` holds the times, the states and (where
 computed) their 15x15 covariances; ``run_estimators`` runs any of them on a dataset, an
-estimator that failed with no trajectory and its reason. ``OnlineSmoother`` is the fixed-lag smoother fed sample by sample as data arrive
-(``replay`` feeds it a whole dataset). ``metrics`` compares trajectories (ATE, RPE, NEES, as evo computes them), the module
-``crosscheck`` runs the three estimators against each other, ``plot_run`` draws a run directory,
-``causes_at`` fits the calibrations a sensor's misfit points at (the warnings' hints).
+estimator that failed with no trajectory and its reason. ``OnlineSmoother`` is the fixed-lag
+smoother fed sample by sample as data arrive (``replay`` feeds it a whole dataset). ``metrics``
+compares trajectories (ATE, RPE, NEES, as evo computes them), the module ``crosscheck`` runs the
+three estimators against each other, ``plot_run`` draws a run directory, ``causes_at`` fits the
+calibrations a sensor's misfit points at (the warnings' hints).
 
 The names below are importable from the package itself (``from smoother import solve_batch``);
 each is loaded on first use. This package depends on ``factors`` and ``datasets``.

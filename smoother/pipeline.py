@@ -68,7 +68,8 @@ class RunOptions:
     estimate_noise: tuple | None = None
 
 
-def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(), keep_going: bool = False) -> dict[str, Estimate]:
+def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(),
+                   keep_going: bool = False) -> dict[str, Estimate]:
     """Run each estimator in ``names`` (a subset of :data:`smoother.estimators.ESTIMATORS`) on ``dataset``, in the
     order of ``names`` (:func:`estimate_each`)."""
     return dict(estimate_each(dataset, names, options, keep_going))

@@ -80,7 +80,8 @@ class Messages:
                                                        variance=float(variance))
 
     def magnetic_field(self, t_ns, field, cov):
-        return self.T["sensor_msgs/msg/MagneticField"](header=self.header(t_ns, "mag"), magnetic_field=self.vector(field),
+        return self.T["sensor_msgs/msg/MagneticField"](header=self.header(t_ns, "mag"),
+                                                       magnetic_field=self.vector(field),
                                                        magnetic_field_covariance=np.ravel(cov).astype(float))
 
     def pose_stamped(self, t_ns, p, q):

@@ -64,7 +64,8 @@ def near_pi_angles(min_distance: float = 0.0) -> st.SearchStrategy[float]:
     opposite vectors there) or where a numerical step of 1e-6 could cross pi.
     """
     lo = max(min_distance, 1e-12)
-    parts = [_floats(min_distance, NEAR_PI).map(lambda d: math.pi - d), _log_uniform(math.log10(lo), -3).map(lambda d: math.pi - d)]
+    parts = [_floats(min_distance, NEAR_PI).map(lambda d: math.pi - d),
+             _log_uniform(math.log10(lo), -3).map(lambda d: math.pi - d)]
     if min_distance == 0.0:
         parts.append(st.just(math.pi))
     return st.one_of(*parts)

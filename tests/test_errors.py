@@ -58,7 +58,8 @@ def test_only_the_command_line_raises_its_user_error():
     users = [name for name, path in package_modules(ROOT, ("factors", "datasets", "smoother")).items()
              if not name.startswith("smoother.commands") and name not in command_line
              and any(isinstance(node, ast.Name) and node.id == "UserError" or
-                     isinstance(node, ast.alias) and node.name == "UserError" for node in ast.walk(ast.parse(path.read_bytes())))]
+                     isinstance(node, ast.alias) and node.name == "UserError"
+                     for node in ast.walk(ast.parse(path.read_bytes())))]
     assert users == []
 
 

@@ -39,10 +39,10 @@ from factors.errors import InputError
 from factors.selfcheck import random_rotation
 from factors.small_linalg import matmul_into
 
-__all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "attached_into", "attached_noise", "attached_noise_into",
-           "attached_rows", "attached_work",
-           "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into", "measure_rows", "model_index",
-           "quiet_dispatch", "registered", "sensors_of"]
+__all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "attached_into", "attached_noise",
+           "attached_noise_into", "attached_rows", "attached_work",
+           "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into", "measure_rows",
+           "model_index", "quiet_dispatch", "registered", "sensors_of"]
 
 
 def registered(*kinds: Kind) -> dict[str, Kind]:
@@ -396,7 +396,8 @@ def attached_noise(kind: Kind, states, samples: tuple, interval, steps, last_dt,
     acc, gyro, dt = (np.ascontiguousarray(a, dtype=float) for a in samples)
     with quiet_dispatch():
         _attached_noise_rows(model_index(kind), *calibration.state_rows(states, n), acc, gyro, dt,
-                             np.ascontiguousarray(interval, dtype=np.int64), np.ascontiguousarray(steps, dtype=np.int64),
+                             np.ascontiguousarray(interval, dtype=np.int64),
+                             np.ascontiguousarray(steps, dtype=np.int64),
                              np.ascontiguousarray(last_dt, dtype=float), rows, np.asarray(gravity, dtype=float),
                              noise.densities(), out)
     return out

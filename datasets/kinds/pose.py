@@ -26,7 +26,8 @@ def _anchor(m):
 
 def _read(sensor, clock):
     stream, t = poses(sensor, clock)
-    return PoseMeasurements(t, stream.position, stream.C, noise(sensor, 6, stream.cov, len(t)), sensor.T_BS), clock.datum
+    return (PoseMeasurements(t, stream.position, stream.C, noise(sensor, 6, stream.cov, len(t)), sensor.T_BS),
+            clock.datum)
 
 
 def _random_row(rng):

@@ -45,6 +45,6 @@ def _random_row(rng):
 
 
 KIND = Kind("velocity", VelocityMeasurements, 3, sm.VELOCITY, lambda m: sm.pack_velocity(m.velocity, m.gyro, m.T_BS),
-            _simulate, None, _read, fields=("velocity", "gyro"), random_row=_random_row, default_sigma=(0.05,), scaled_field="velocity",
-            sigma_units=("m/s",) * 3,
+            _simulate, None, _read, fields=("velocity", "gyro"), random_row=_random_row, default_sigma=(0.05,),
+            scaled_field="velocity", sigma_units=("m/s",) * 3,
             noise_groups=(("forward", (0,)), ("lateral", (1,)), ("vertical", (2,))))

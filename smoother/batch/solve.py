@@ -161,4 +161,5 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
 def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:
     last = "" if decrease is None else f" (the last iteration still lowered the cost by {decrease:.3g} of itself)"
     warnings.warn(f"batch ({optimizer}): stopped after {iterations} iterations without converging{last}; the "
-                  f"estimate may be off the optimum: raise max_iterations (smoother run --max-iterations)", stacklevel=3)
+                  f"estimate may be off the optimum: raise max_iterations (smoother run --max-iterations)",
+                  stacklevel=3)

@@ -215,7 +215,8 @@ def _message(sensor: Sensor, R_near, R_rig, undetermined, angle: float, sigma: f
         text = (f"the rig's mounting is {angle:.1f} deg off the data's, beyond {bound} but within the "
                 f"{WRONG_ANGLE_DEG:g} deg a rotation calibration corrects")
     elif differ:
-        text = "the data put " + "; ".join(f"its {name} on the IMU's {data}, the rig on {rig}" for name, data, rig in differ)
+        text = "the data put " + "; ".join(f"its {name} on the IMU's {data}, the rig on {rig}"
+                                           for name, data, rig in differ)
         text += f" ({angle:.0f} deg apart, {bound})"
     else:
         text = f"the rig's mounting is {angle:.0f} deg off the data's about the IMU's {_signed_axis(along)} ({bound})"

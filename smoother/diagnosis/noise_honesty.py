@@ -65,7 +65,8 @@ def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]
                             "frame, a mounting or a time offset is wrong")
         elif sensor != IMU_BLOCK and g.correlation > CORRELATED:
             errors[name] = (f"its residuals are alike from one measurement to the next (correlation "
-                            f"{g.correlation:.2f}): a systematic error (a lever arm, a time offset, a scale), not noise")
+                            f"{g.correlation:.2f}): a systematic error (a lever arm, a time offset, a scale), "
+                            "not noise")
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
             errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
                             "measurements disagree with the rest of the model")

@@ -71,8 +71,9 @@ def make_smoother(kind: str, lag_s: float):
     ``ISAM2Params`` by default): the smoother removes every factor that marginalisation
     replaces, and with the default each left an empty slot behind, so ISAM2's factor graph grew
     with the length of the run and so did every relinearisation (the updates that set the 99th
-    percentile): 7.7 -> 8.9 ms from the first to the last 6 minutes of an hour at 10 Hz. With reuse the graph holds the window only and those updates
-    stay flat (``benchmarks/run.py``: median and 99th percentile per tenth of an hour).
+    percentile): 7.7 -> 8.9 ms from the first to the last 6 minutes of an hour at 10 Hz. With reuse
+    the graph holds the window only and those updates stay flat (``benchmarks/run.py``: median and
+    99th percentile per tenth of an hour).
 
     ISAM2 considers relinearising at every update (``relinearizeSkip`` 1; GTSAM's default is
     every 10th), of the variables whose estimate moved more than 0.05 from their linearisation
@@ -320,7 +321,8 @@ class KeyframeWindow:
         for key in keys.all():
             stamps.insert((key, float(t)))
         linked = k == 0 or any(
-            any(key in new_keys for key in graph.at(i).keys()) and any(key in self._present for key in graph.at(i).keys())
+            any(key in new_keys for key in graph.at(i).keys())
+            and any(key in self._present for key in graph.at(i).keys())
             for i in range(graph.size()))
         if not linked:  # nothing ties the new keyframe to the window (no IMU factor): weak prior
             graph.add(_weak_prior(keys, guess))

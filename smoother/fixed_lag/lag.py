@@ -72,8 +72,8 @@ def sparse_measurement_warning(longest_s: float, lag_s: float, kind: str) -> str
         digits += 1
     step = 10.0 ** (math.floor(math.log10(longest_s)) - digits + 1)
     enough = math.ceil(longest_s / step) * step  # rounded up: a lag that does reach the gap
-    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.{digits}g} s apart, "
-            f"longer than the lag ({lag_s:g} s): "
+    text = (f"fixed-lag ({kind}): absolute measurements (fixes, poses, attitudes) up to {longest_s:.{digits}g} s "
+            f"apart, longer than the lag ({lag_s:g} s): "
             "keyframes leave the window before the next measurement reaches them and keep their dead-reckoned "
             "estimates")
     if kind == "batch":

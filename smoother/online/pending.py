@@ -80,7 +80,8 @@ class PendingMeasurements:
             if item.latest < t and first:  # before the first keyframe
                 self.drop(item.sensor, "lies before the IMU's first sample and was dropped")
                 continue
-            if any(x not in keyframes and x != t for x in item.times) and len(item.times) > 1:  # its earlier keyframe left
+            # its earlier keyframe left
+            if any(x not in keyframes and x != t for x in item.times) and len(item.times) > 1:
                 self.skip(item.sensor)
                 continue
             (used if item.latest == t else attached).append(item)

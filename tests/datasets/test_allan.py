@@ -56,6 +56,7 @@ def test_a_random_walk_the_recording_cannot_show_is_not_estimated():
     assert np.all(np.isnan(result.acc_walk)) and np.all(np.isnan(result.gyro_walk))
     assert result.record_s == pytest.approx(2.0) and result.walk_record_s >= 3 * result.record_s and result.walk_beyond
     note = result.walk_note()
-    assert "random walk not estimated (accelerometer x" in note and f"record at least {result.walk_record_s:.4g} s" in note
+    assert ("random walk not estimated (accelerometer x" in note
+            and f"record at least {result.walk_record_s:.4g} s" in note)
     with pytest.raises(ValueError, match="random walk not estimated"):
         result.noise()

@@ -112,7 +112,8 @@ def test_a_pose_file_still_serves_positions_and_attitudes(tmp_path, data):
 def test_a_kind_that_uses_the_columns_still_needs_them(tmp_path, data, kind, columns, missing):
     m = data.sensors[0].data
     n = len(columns.split(","))
-    (tmp_path / "s.csv").write_text(columns + "\n" + "\n".join(repr(float(T0 + t)) + ",0" * (n - 1) for t in m.t) + "\n")
+    (tmp_path / "s.csv").write_text(columns + "\n" + "\n".join(repr(float(T0 + t)) + ",0" * (n - 1) for t in m.t)
+                                    + "\n")
     sigma = "sigma = [0.1, 0.1]\n" if kind in ("pose", "odometry") else "sigma = 0.1\n"
     rig = _rig(tmp_path, data, f'\n[[sensor]]\nname = "s"\nkind = "{kind}"\nsource = "csv:s.csv"\n{sigma}')
     with pytest.raises(InputError, match=re.escape(f"{tmp_path / 's.csv'}, line 1, field '{missing}': ")):

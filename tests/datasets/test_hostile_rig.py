@@ -63,7 +63,8 @@ inclination = 63.0
 RIG = IMU + DATUM + WHEEL + MAG
 
 #: The keys a rig file gives that are not numbers (``sigma``'s ranges are per unit: SIGMA_RANGES).
-NOT_NUMBERS = {"source", "topic", "kalibr", "name", "kind", "camchain", "camera", "roll_pitch_only", "estimate", "sigma"}
+NOT_NUMBERS = {"source", "topic", "kalibr", "name", "kind", "camchain", "camera", "roll_pitch_only", "estimate",
+               "sigma"}
 
 
 def _rig(tmp_path: Path, text: str) -> Path:
@@ -207,7 +208,8 @@ def test_a_sigma_is_checked_per_axis_in_its_unit(tmp_path, kind):
             with pytest.raises(RigError, match=re.escape(expected)):
                 load_rig(path)
     path = _rig(tmp_path, IMU + table + f"sigma = {[0.1] * (declared.dim + 1)}\n")
-    with pytest.raises(RigError, match=re.escape(f'sensor[1] "s".sigma: a {kind} sensor\'s sigma is 1 or {declared.dim}')):
+    with pytest.raises(RigError, match=re.escape(f'sensor[1] "s".sigma: a {kind} sensor\'s sigma is 1 or '
+                                                 f'{declared.dim}')):
         load_rig(path)
 
 
@@ -254,7 +256,8 @@ def test_a_sensor_name_nothing_can_address_is_refused_at_load(tmp_path, name):
         load_rig(path)
     message = str(info.value)
     assert message.startswith(f"{path}: {sensor_key(1, name, 'name')}: "), message
-    expected = ("is reserved: the outputs give it to the" if name in RESERVED_SENSOR_NAMES else "expected a non-empty string" if not name
+    expected = ("is reserved: the outputs give it to the" if name in RESERVED_SENSOR_NAMES
+                else "expected a non-empty string" if not name
                 else "expected a name of a letter followed by")
     assert expected in message, message
 
@@ -275,7 +278,8 @@ def test_the_name_rule_is_one_rule_for_rigs_and_datasets():
         assert sensor_name_problem(name) is not None, name
     for name in ACCEPTED_NAMES:
         assert sensor_name_problem(name) is None, name
-    with pytest.raises(ValueError, match=r"Dataset.sensors\[0\].name: the name 'imu' is reserved: the outputs give it to the IMU"):
+    with pytest.raises(ValueError, match=r"Dataset.sensors\[0\].name: the name 'imu' is reserved: "
+                                         r"the outputs give it to the IMU"):
         simulate("gentle", duration=2, seed=1, pose_rate=None, sensors=[SensorSpec("imu", "position", 1, 0.5)])
 
 

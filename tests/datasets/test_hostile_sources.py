@@ -114,8 +114,8 @@ def test_a_file_beyond_its_kinds_limit_is_refused_unread(tmp_path, isolated, nam
 def test_a_six_gigabyte_csv_is_one_error_naming_it_and_the_limit(tmp_path, isolated):
     path = _sparse(tmp_path / "imu.csv", 6 * 2**30)
     message = _refused(lambda p: read_imu(f"csv:{p}"), path, isolated)
-    assert message == (f"{path}: found 6 GiB (6442450944 bytes); expected at most 1 GiB, the limit of text tables (CSV, "
-                       f"TUM and KITTI files): {LIMITS['table'].why}")
+    assert message == (f"{path}: found 6 GiB (6442450944 bytes); expected at most 1 GiB, the limit of text tables "
+                       f"(CSV, TUM and KITTI files): {LIMITS['table'].why}")
 
 
 @pytest.mark.parametrize("kind", sorted(LIMITS))
@@ -192,7 +192,8 @@ def test_a_rigs_calibration_file_that_is_a_pipe_is_named_with_its_key(tmp_path, 
     if extra is not None:
         text += extra.format(path=fifo)
     else:
-        text += f'[[sensor]]\nname = "cam"\nkind = "pose"\nsource = "tum:cam.txt"\ncamchain = "{fifo}"\ncamera = "cam0"\n'
+        text += (f'[[sensor]]\nname = "cam"\nkind = "pose"\nsource = "tum:cam.txt"\ncamchain = "{fifo}"\n'
+                 'camera = "cam0"\n')
     rig = tmp_path / "rig.toml"
     rig.write_text(text)
     message = _refused(load_rig, rig, isolated, f"{key}: {fifo}: found a named pipe (FIFO)")

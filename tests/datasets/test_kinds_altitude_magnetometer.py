@@ -131,7 +131,8 @@ def test_rig_keys_of_the_magnetometer(tmp_path):
     assert (rig.sensors[0].declination, rig.sensors[0].inclination) == (2.5, 63.0)
     with pytest.raises(RigError, match=r'sensor\[1\] "mag"\.inclination: missing; a magnetometer needs'):
         load_rig(_rig(tmp_path, "declination = 2.5"))
-    with pytest.raises(RigError, match=r'sensor\[1\] "mag"\.inclination: expected a value within \[-90, 90\] deg.*got 95'):
+    with pytest.raises(RigError, match=r'sensor\[1\] "mag"\.inclination: expected a value within \[-90, 90\] deg'
+                                       r'.*got 95'):
         load_rig(_rig(tmp_path, "declination = 2.5\ninclination = 95"))
     with pytest.raises(RigError, match=r'sensor\[1\] "mag"\.declination: expected only on a magnetometer'):
         load_rig(_rig(tmp_path, "declination = 2.5", kind="altitude"))

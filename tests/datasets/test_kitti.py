@@ -23,7 +23,8 @@ def real():
 
 @pytest.fixture(scope="module")
 def real_files():
-    return {name: Path(gtsam.findExampleDataFile(name)) for name in (kitti.IMU_FILE, kitti.GPS_FILE, kitti.METADATA_FILE)}
+    return {name: Path(gtsam.findExampleDataFile(name))
+            for name in (kitti.IMU_FILE, kitti.GPS_FILE, kitti.METADATA_FILE)}
 
 
 # ------------------------------------------------------------------------------------------
@@ -176,7 +177,8 @@ def test_small_files_with_explicit_paths(tmp_path):
     d = load_kitti(**paths, first_gps=0, gps_every=2)
     assert d.imu.t[0] == 1000.0 and len(d.imu) == 501
     # fixes 1..4 after the first: 2 and 4 used, 1 and 3 held out
-    assert np.allclose(d.sensor("gps").data.t, [1002.0, 1004.0]) and np.allclose(d.sensor("gps").heldout.t, [1001.0, 1003.0])
+    assert (np.allclose(d.sensor("gps").data.t, [1002.0, 1004.0])
+            and np.allclose(d.sensor("gps").heldout.t, [1001.0, 1003.0]))
     # initial state: first fix, course along +x (yaw 0), body velocity (5, 0, 0)
     assert np.array_equal(d.initial.r, [0.0, 1.0, 0.5])
     assert np.allclose(d.initial.C, np.eye(3)) and np.allclose(d.initial.v, [5.0, 0.0, 0.0])

@@ -146,7 +146,8 @@ def test_an_every_that_leaves_too_few_fixes_is_named_as_the_cause(tmp_path):
     fixes = data.sensors[0].data
     lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
     (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
-        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n" for t, a, b, c in zip(fixes.t, lat, lon, alt)))
+        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n"
+        for t, a, b, c in zip(fixes.t, lat, lon, alt)))
     rig = tmp_path / "rig.toml"
     for every in (10_000, 1):
         rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""

@@ -71,7 +71,8 @@ def test_same_seed_same_dataset_and_different_seeds_differ():
     np.testing.assert_array_equal(a.sensor("odometry").data.dr, b.sensor("odometry").data.dr)
     for x, y in [
         (a.imu.acc, c.imu.acc), (a.imu.gyro, c.imu.gyro), (a.truth.states.b_f, c.truth.states.b_f),
-        (a.sensor("pose").data.position, c.sensor("pose").data.position), (a.sensor("position").data.position, c.sensor("position").data.position),
+        (a.sensor("pose").data.position, c.sensor("pose").data.position),
+        (a.sensor("position").data.position, c.sensor("position").data.position),
         (a.sensor("odometry").data.dr, c.sensor("odometry").data.dr), (a.initial.r, c.initial.r),
     ]:
         assert np.all(x != y)  # every random element differs, not just some
@@ -280,7 +281,8 @@ def test_noise_free_imu_integrated_from_the_true_start_reproduces_the_truth():
 
 def _truth_gap(profile, imu_rate, duration=1.0):
     kw = dict(duration=duration, imu_rate=imu_rate, pose_rate=None, clean_imu="analytic")
-    a, b = simulate(profile, truth="discrete", **kw).truth.states, simulate(profile, truth="continuous", **kw).truth.states
+    a, b = (simulate(profile, truth="discrete", **kw).truth.states,
+            simulate(profile, truth="continuous", **kw).truth.states)
     return np.array([
         np.abs(a.r - b.r).max(), np.abs(a.v - b.v).max(), np.linalg.norm(so3.boxminus(a.C, b.C), axis=1).max()
     ])
@@ -413,7 +415,8 @@ def test_attitude_noise_is_applied_on_the_left():
     i, j = np.arange(0, len(d.imu) - 8, 8), np.arange(8, len(d.imu), 8)
     n_r, n_phi = rng.standard_normal((len(i), 3)) * 0.02, rng.standard_normal((len(i), 3)) * 0.005
     Ci_T = so3.inverse(s.C[i])
-    np.testing.assert_allclose(d.sensor("odometry").data.dr, np.einsum("kij,kj->ki", Ci_T, s.r[j] - s.r[i]) + n_r, atol=1e-14)
+    np.testing.assert_allclose(d.sensor("odometry").data.dr, np.einsum("kij,kj->ki", Ci_T, s.r[j] - s.r[i]) + n_r,
+                               atol=1e-14)
     np.testing.assert_allclose(d.sensor("odometry").data.dC, so3.exp(n_phi) @ Ci_T @ s.C[j], rtol=0, atol=1e-14)
 
 
@@ -461,7 +464,8 @@ def test_measurement_times_are_imu_sample_times():
     assert len(t) == 12001 and t[0] == 12.5 and t[-1] == pytest.approx(72.5, abs=1e-12)
     np.testing.assert_allclose(np.diff(t), 1 / 200, rtol=0, atol=1e-12)
     for times, stride, count in [
-        (d.sensor("pose").data.t, 20, 601), (d.sensor("position").data.t, 200, 61), (d.sensor("orientation").data.t, 5, 2401), (d.sensor("odometry").data.t_from, 40, 300),
+        (d.sensor("pose").data.t, 20, 601), (d.sensor("position").data.t, 200, 61),
+        (d.sensor("orientation").data.t, 5, 2401), (d.sensor("odometry").data.t_from, 40, 300),
     ]:
         assert len(times) == count
         k = np.searchsorted(t, times)
@@ -479,14 +483,17 @@ def test_outliers_corrupt_the_chosen_pose_measurements_only():
     out = dirty.outliers["pose"]
     assert len(out) == round(0.1 * len(dirty.sensor("pose").data)) == 20 and len(np.unique(out)) == 20
     other = simulate("gentle", duration=20.0, seed=3, outlier_fraction=0.1).outliers["pose"]
-    assert not np.array_equal(out, other) and out.max() > len(dirty.sensor("pose").data) // 2  # drawn, not the first ones
+    # drawn, not the first ones
+    assert not np.array_equal(out, other) and out.max() > len(dirty.sensor("pose").data) // 2
     keep = np.setdiff1d(np.arange(len(dirty.sensor("pose").data)), out)
     np.testing.assert_array_equal(dirty.sensor("pose").data.position[keep], clean.sensor("pose").data.position[keep])
     np.testing.assert_array_equal(dirty.sensor("pose").data.C[keep], clean.sensor("pose").data.C[keep])
-    np.testing.assert_allclose(np.linalg.norm(dirty.sensor("pose").data.position[out] - clean.sensor("pose").data.position[out], axis=1), 4.0)
+    np.testing.assert_allclose(np.linalg.norm(dirty.sensor("pose").data.position[out]
+                                              - clean.sensor("pose").data.position[out], axis=1), 4.0)
     angle = np.linalg.norm(so3.boxminus(dirty.sensor("pose").data.C[out], clean.sensor("pose").data.C[out]), axis=1)
     np.testing.assert_allclose(angle, 0.8, atol=1e-12)
-    np.testing.assert_array_equal(dirty.sensor("pose").data.cov, clean.sensor("pose").data.cov)  # nominal covariance: that is the point
+    # nominal covariance: that is the point
+    np.testing.assert_array_equal(dirty.sensor("pose").data.cov, clean.sensor("pose").data.cov)
     assert_same_dataset(clean, simulate("gentle", duration=20.0, seed=2, outlier_fraction=0.0))
     np.testing.assert_array_equal(clean.imu.acc, dirty.imu.acc)
 

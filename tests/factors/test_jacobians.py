@@ -350,7 +350,8 @@ def test_robust_custom_factor_passes_and_a_wrong_one_still_fails():
     robust = J.check_factor(point_factor(_robust(), m), values)
     assert robust.ok, str(robust)
     for key in (R0, P0, V0):
-        assert max_abs(robust.analytic[key], gaussian.analytic[key]) <= 1e-12 * max(1.0, np.abs(gaussian.analytic[key]).max())
+        assert (max_abs(robust.analytic[key], gaussian.analytic[key])
+                <= 1e-12 * max(1.0, np.abs(gaussian.analytic[key]).max()))
     assert not J.check_factor(point_factor(_robust(), m, wrong="R-sign"), values).ok
 
 

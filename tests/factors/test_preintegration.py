@@ -51,7 +51,8 @@ NUMERIC_REL = 1e-7
 
 
 
-def random_state(rng: np.random.Generator, regime: str = "ordinary", b_f: float = 1.0, b_w: float = 0.5) -> imu.ImuState:
+def random_state(rng: np.random.Generator, regime: str = "ordinary", b_f: float = 1.0,
+                 b_w: float = 0.5) -> imu.ImuState:
     """Position within 100 m, body velocity within 10 m/s, LARGE biases (1 m/s^2, 0.5 rad/s)."""
     return imu.ImuState(
         r=rng.uniform(-100, 100, 3),

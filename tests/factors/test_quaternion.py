@@ -379,7 +379,8 @@ def test_vectorised_functions_equal_loops(seed):
         batched = f(*args)
         looped = np.array([[f(*(a[i, j] for a in args)) for j in range(3)] for i in range(2)])
         assert batched.shape == looped.shape, f.__name__
-        assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
+        assert (np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300)
+                or max_abs(batched, looped) <= 2 * EPS), f.__name__
 
 
 @pytest.mark.parametrize(

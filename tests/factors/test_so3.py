@@ -392,7 +392,8 @@ def test_vectorised_functions_equal_loops_of_single_calls(seed):
         assert batched.shape == looped.shape, f.__name__
         # Elementwise code is bitwise identical; batched matmul and SVD may take other BLAS paths,
         # so allow round-off relative to the entry (4 EPS) with a floor far below any tiny angle.
-        assert np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300) or max_abs(batched, looped) <= 2 * EPS, f.__name__
+        assert (np.allclose(batched, looped, rtol=4 * EPS, atol=1e-300)
+                or max_abs(batched, looped) <= 2 * EPS), f.__name__
 
 
 @pytest.mark.parametrize(

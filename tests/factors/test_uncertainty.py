@@ -236,7 +236,8 @@ def test_rotated_vector_functions_are_vectorised():
         for i in range(4):
             for j in range(3):
                 np.testing.assert_allclose(m[i, j], uncertainty.rotated_vector_mean(C[i, 0], S[j], x[i, j], order))
-                np.testing.assert_allclose(c[i, j], uncertainty.rotated_vector_covariance(C[i, 0], S[j], x[i, j], order))
+                np.testing.assert_allclose(c[i, j],
+                                           uncertainty.rotated_vector_covariance(C[i, 0], S[j], x[i, j], order))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -257,7 +258,8 @@ def test_left_right_conversion_is_exact_per_sample(stds):
     assert z(cov, S, se) > REJECT
     # and back
     cov_l, se_l = sample_cov(eps_l)
-    assert z(cov_l, uncertainty.covariance_right_to_left(uncertainty.covariance_left_to_right(S, C_BAR), C_BAR), se_l) < AGREE
+    assert z(cov_l, uncertainty.covariance_right_to_left(uncertainty.covariance_left_to_right(S, C_BAR), C_BAR),
+             se_l) < AGREE
     np.testing.assert_allclose(
         uncertainty.covariance_right_to_left(uncertainty.covariance_left_to_right(S, C_BAR), C_BAR), S, atol=1e-15
     )

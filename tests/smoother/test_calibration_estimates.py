@@ -150,7 +150,8 @@ def test_calibrating_a_wheel_time_offset_that_is_right_changes_the_trajectory_by
     correlated with by up to about their sigma when freed (``P_xc P_cc^-1`` times its error), as
     any least-squares fit does; that is not tested against 0.1."""
     data = simulate("gentle", duration=120.0, seed=4, pose_rate=0,
-                    sensors=(SensorSpec("wheels", "velocity", 10.0, 0.05, PITCHED), SensorSpec("gnss", "gnss", 5.0, 0.2)))
+                    sensors=(SensorSpec("wheels", "velocity", 10.0, 0.05, PITCHED),
+                             SensorSpec("gnss", "gnss", 5.0, 0.2)))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         given = solve_batch(build_problem(data))

@@ -28,7 +28,8 @@ from smoother.model.problem import build_problem
 data = simulate(profile="tumbling", duration=1.0, seed=3)
 batch, ekf = solve_batch(build_problem(data)).trajectory, run_ekf(data).trajectory
 np.savez(sys.argv[1], **{f"{name}_{part}": getattr(estimate.states, part) if part != "cov" else estimate.cov
-                         for name, estimate in (("batch", batch), ("ekf", ekf)) for part in ("r", "v", "C", "b_w", "cov")})
+                         for name, estimate in (("batch", batch), ("ekf", ekf))
+                         for part in ("r", "v", "C", "b_w", "cov")})
 """
 
 

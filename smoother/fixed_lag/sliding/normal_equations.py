@@ -218,7 +218,8 @@ def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
 
 @njit(cache=True)
 def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
-               m, mk, model, rows, dims, Wm, rcode, rk, mcal, mstep, mlast, macc, mgyro, sacc, sgyro, sdt, Hb, g) -> None:
+               m, mk, model, rows, dims, Wm, rcode, rk, mcal, mstep, mlast, macc, mgyro,
+               sacc, sgyro, sdt, Hb, g) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
     IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``
@@ -275,8 +276,8 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
 
 @njit(cache=True)
 def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
-                          mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, mstep, mlast, macc, mgyro,
-                          sacc, sgyro, sdt, Hb, g, B, D, gc) -> None:
+                          mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, mstep, mlast, macc,
+                          mgyro, sacc, sgyro, sdt, Hb, g, B, D, gc) -> None:
     """:func:`linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
     (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
     reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
@@ -327,9 +328,9 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
             Jc[:d, :width] = H[:d]
         elif mstep[f] > 0:
             nxt = (k0 + 1) % cap
-            attached_into(model[f], layouts[model[f]], sacc[nxt], sgyro[nxt], sdt[nxt], mstep[f], mlast[f], r[i], v[i], C[i],
-                          bf[i], bw[i], rows[f], cal[j], True, cal_time[j], macc[f], mgyro[f], gravity, e[:d], Hm[:d],
-                          Hc[:d], attached, _WITH_JACOBIANS)
+            attached_into(model[f], layouts[model[f]], sacc[nxt], sgyro[nxt], sdt[nxt], mstep[f], mlast[f], r[i], v[i],
+                          C[i], bf[i], bw[i], rows[f], cal[j], True, cal_time[j], macc[f], mgyro[f], gravity, e[:d],
+                          Hm[:d], Hc[:d], attached, _WITH_JACOBIANS)
             Jc[:d, :width] = Hm[:d]
         else:
             calibrated_into(model[f], layouts[model[f]], r[i], v[i], C[i], bf[i], bw[i], rows[f], cal[j], cal_time[j],

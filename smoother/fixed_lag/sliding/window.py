@@ -176,7 +176,8 @@ class SlidingWindow:
         self._stale = 0  # the rows of L (and of the forward solution) from this keyframe on are stale
         self._cal = calibration
         nc = 0 if calibration is None else calibration.nc
-        self._Z = np.zeros((0, DIM, nc))  # the border's rows of L by slot (module smoother.fixed_lag.sliding.calibration)
+        # the border's rows of L by slot (module smoother.fixed_lag.sliding.calibration)
+        self._Z = np.zeros((0, DIM, nc))
         self._ZZ = np.zeros((0, nc, nc + 1))  # their products Z_k^T [Z_k, y_k] by slot (banded.border_solve)
         self._K = 1  # the steps an interval's samples hold room for (_sacc, _sgyro, _sdt), grown as needed
         self._allocate_keyframes(64)
@@ -195,13 +196,15 @@ class SlidingWindow:
                   "_ZZ": self._ZZ.shape[1:], "_kH": (1, 1, DIM, DIM), "_kg": (DIM,), "_kB": (1, DIM, self._Z.shape[2]),
                   "_sacc": (self._K, 3), "_sgyro": (self._K, 3), "_sdt": (self._K,)}
         old = {name: getattr(self, name, None) for name in shapes}
-        old_imu, old_pre, old_cap = getattr(self, "_has_imu", None), getattr(self, "_pre", None), getattr(self, "_cap", 0)
+        old_imu, old_pre, old_cap = (getattr(self, "_has_imu", None), getattr(self, "_pre", None),
+                                     getattr(self, "_cap", 0))
         old_kept = getattr(self, "_kept", None)
         self._cap = cap
         for name, tail in shapes.items():
             setattr(self, name, np.zeros((cap,) + tail))
         self._has_imu = np.zeros(cap, dtype=np.bool_)
-        self._kept = np.zeros(cap, dtype=np.bool_)  # whether _kH, _kg, _kB hold the keyframe's sums (linearise_calibrated)
+        # whether _kH, _kg, _kB hold the keyframe's sums (linearise_calibrated)
+        self._kept = np.zeros(cap, dtype=np.bool_)
         self._moved = np.zeros(cap, dtype=np.bool_)
         self._pre = [None] * cap
         for k in range(self.first, self.newest + 1):  # the window, moved to its new slots
@@ -671,4 +674,5 @@ class SlidingWindow:
                 prior.c_lin, (prior.dc, prior.Jdc) = tuple(self._cal.theta), self._cal.at_linearisation
                 prior.own = own_D, own_g
             self._priors.append(prior)
-        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors if p.keyframes.size), default=0)
+        self._spans[1] = max((int(p.keyframes[-1] - p.keyframes[0]) for p in self._priors if p.keyframes.size),
+                             default=0)

@@ -3,9 +3,9 @@
 What is proved here: a knot strictly inside an IMU interval splits it into two steps that hold
 the same sample (zero-order hold); a knot on a sample time adds no step; the steps tile the IMU
 span (sum of dt = span, every dt > 0, start times = the merged time grid); ``knot_step`` points at
-the step that starts at each knot; ``interval_steps`` (one interval, the online smoother's) gives the same steps between two knots
-bit for bit; ``segments()`` returns the steps between consecutive knots
-padded with ``dt = 0`` (and zero samples), so that preintegrating the segments reproduces the
+the step that starts at each knot; ``interval_steps`` (one interval, the online smoother's) gives
+the same steps between two knots bit for bit; ``segments()`` returns the steps between consecutive
+knots padded with ``dt = 0`` (and zero samples), so that preintegrating the segments reproduces the
 sample-by-sample integration of the steps at every knot; knots outside the IMU span or not
 strictly increasing raise ``ValueError``.
 

@@ -41,7 +41,8 @@ def _stream(data, online, arrivals, estimates=None, knots=None):
     for i, t in enumerate(np.append(data.imu.t, np.inf)):
         while a < len(arrivals) and arrivals[a][0] <= t:
             m = arrivals[a][1]
-            online.add("pose", data.sensor("pose").data.t[m], data.sensor("pose").data.position[m], data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
+            online.add("pose", data.sensor("pose").data.t[m], data.sensor("pose").data.position[m],
+                       data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
             a += 1
         if i == len(data.imu):
             break
@@ -112,7 +113,8 @@ def test_measurements_late_within_max_delay_change_nothing_later_ones_are_droppe
     with pytest.warns(UserWarning, match="'pose' arrived after its keyframe time had been processed"):
         dropped = _stream(data, online, _arrivals(data, late))
     assert online.dropped == {"pose": 5}
-    kept = data.with_sensor("pose", data=data.sensor("pose").data.subset(np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
+    kept = data.with_sensor("pose", data=data.sensor("pose").data.subset(
+        np.setdiff1d(np.arange(len(data.sensor("pose").data)), too_late)))
     without = _stream(kept, _smoother(kept), _arrivals(kept), knots=keyframe_times(data))
     assert [e.t for e in dropped] == [e.t for e in without]
     for a, b in zip(dropped, without):
@@ -151,8 +153,9 @@ def test_the_lag_warning_fires_on_kitti_with_every_20th_fix_and_not_on_the_defau
 
     kitti = sources.load("kitti", sources.SourceOptions(gps_every=20))
     for lag in (2.0, 0.5):
-        with pytest.warns(UserWarning, match=rf"fixed-lag \(sliding\): absolute measurements \(fixes, poses, attitudes\) up to 19 s apart, longer "
-                                             rf"than the lag \({lag:g} s\).*Choose a lag of at least 19 s"):
+        with pytest.warns(UserWarning, match=rf"fixed-lag \(sliding\): absolute measurements \(fixes, poses, "
+                                             rf"attitudes\) up to 19 s apart, longer than the lag \({lag:g} s\)"
+                                             rf".*Choose a lag of at least 19 s"):
             result = replay(kitti, lag, covariances=False, progress=False)
         assert result.longest_gap_s > 18.0
     simulated = sources.load("synthetic:gentle", sources.SourceOptions())
@@ -173,7 +176,8 @@ def test_bad_input_is_refused_with_one_clear_error(gentle):
     online.add_imu(data.imu.t[:3], data.imu.acc[:3], data.imu.gyro[:3])
     with pytest.raises(ValueError, match=r"add_imu: t: IMU samples must come in strictly increasing time"):
         online.add_imu(data.imu.t[1], data.imu.acc[1], data.imu.gyro[1])
-    with pytest.raises(ValueError, match=re.escape("add_imu: acc: expected shape (3,) for one sample (t a number), got (2,)")):
+    with pytest.raises(ValueError, match=re.escape("add_imu: acc: expected shape (3,) for one sample (t a number), "
+                                                   "got (2,)")):
         online.add_imu(data.imu.t[3], [1.0, 2.0], data.imu.gyro[3])
     with pytest.raises(ValueError, match="sensor: unknown sensor 'lidar'"):
         online.add("lidar", 0.1, [0.0, 0.0, 0.0])
@@ -248,7 +252,8 @@ def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counte
     assert cases.sigma_difference(long.smoothed.states, offline.states, offline.cov).max() < 5e-3
     sliding = replay(data, 2.0, "sliding", covariances=False, progress=False)
     assert sliding.skipped == {}
-    assert cases.sigma_difference(sliding.smoothed.states, offline.states, offline.cov).max() < OFFLINE_SIGMAS["sliding"]
+    assert (cases.sigma_difference(sliding.smoothed.states, offline.states, offline.cov).max()
+            < OFFLINE_SIGMAS["sliding"])
 
 
 def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
@@ -261,7 +266,8 @@ def test_keyframes_at_the_measurements_on_a_grid_and_at_the_end(gentle):
         hit = np.flatnonzero(data.sensor("pose").data.t == t)
         if hit.size:
             m = int(hit[0])
-            online.add("pose", t, data.sensor("pose").data.position[m], data.sensor("pose").data.C[m], cov=data.sensor("pose").data.cov[m])
+            online.add("pose", t, data.sensor("pose").data.position[m], data.sensor("pose").data.C[m],
+                       cov=data.sensor("pose").data.cov[m])
         online.add_imu(t, data.imu.acc[i], data.imu.gyro[i])
     online.finish()
     np.testing.assert_array_equal([e.t for e in online.smoothed()], keyframe_times(data, 25.0))
@@ -418,7 +424,8 @@ def test_the_initial_state_covariance_and_sensor_setups_are_checked_at_construct
         (dict(initial=replace(x0, r=np.zeros(2))), re.escape("initial.r: expected shape (3,), got (2,)")),
         (dict(initial=replace(x0, v=np.array([0, np.nan, 0]))), r"initial.v: non-finite value"),
         (dict(initial="identity"), "initial: expected an ImuState, got str"),
-        (dict(initial_cov=P0 + np.triu(np.full((15, 15), 1e-3), 1)), "initial_cov: covariance at row 0 is not symmetric"),
+        (dict(initial_cov=P0 + np.triu(np.full((15, 15), 1e-3), 1)),
+         "initial_cov: covariance at row 0 is not symmetric"),
         (dict(initial_cov=P0 - 0.02 * np.eye(15)), "initial_cov: covariance at row 0 is not positive definite"),
         (dict(initial_cov=np.eye(14)), re.escape("initial_cov: expected shape (15, 15), got (14, 14)")),
         (dict(noise=(1e-3, 1e-4)), "noise: expected an ImuNoise, got tuple"),
@@ -499,8 +506,8 @@ def test_a_step_back_in_time_is_an_error_and_a_measurement_from_another_clock_is
     online = _plain()
     online.add_imu(t[:30], acc[:30], gyro[:30])
     with pytest.raises(InputError, match=re.escape(f"add_imu: t: IMU samples must come in strictly increasing time; "
-                                                   f"got t = {float(t[28])!r} after {float(t[29])!r} (a step back of 0.005 s; "
-                                                   "samples are never reordered)")):
+                                                   f"got t = {float(t[28])!r} after {float(t[29])!r} (a step back of "
+                                                   "0.005 s; samples are never reordered)")):
         online.add_imu(t[28], acc[28], gyro[28])
     with pytest.raises(InputError, match="add_imu: t: IMU samples must come in strictly increasing time"):
         online.add_imu(t[29], acc[29], gyro[29])
@@ -556,12 +563,14 @@ def test_an_imu_gap_is_warned_of_as_offline_and_a_clock_jump_is_refused():
         Dataset("gap", ImuSamples(t, acc, gyro), ImuNoise(), ImuState.identity(), np.eye(15))
     online = _plain()
     online.add_imu(t[:50], acc[:50], gyro[:50])
-    with pytest.raises(InputError, match=re.escape("online smoother: add_imu: t: a step of 7200 s after t = 0.245000 s, "
-                                                   "beyond any plausible gap (3600 s): a jump of the clock")):
+    with pytest.raises(InputError, match=re.escape("online smoother: add_imu: t: a step of 7200 s after "
+                                                   "t = 0.245000 s, beyond any plausible gap (3600 s): "
+                                                   "a jump of the clock")):
         online.add_imu(t[49] + 7200.0, acc[50], gyro[50])
     with pytest.raises(InputError, match="a jump of the clock"):
         online.add_imu(t[50:60] + 7200.0, acc[50:60], gyro[50:60])
     online.add_imu(t[50], acc[50], gyro[50])  # nothing was taken
     t[300:] += 7200.0
-    with pytest.raises(InputError, match=re.escape("Dataset.imu: t: a step of 7210.01 s after t = 1.495000 s (row 299)")):
+    with pytest.raises(InputError, match=re.escape("Dataset.imu: t: a step of 7210.01 s after t = 1.495000 s "
+                                                   "(row 299)")):
         Dataset("jump", ImuSamples(t, acc, gyro), ImuNoise(), ImuState.identity(), np.eye(15))

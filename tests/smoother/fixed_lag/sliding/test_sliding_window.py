@@ -227,15 +227,17 @@ def test_robust_weights_are_gtsams(name):
     k = 2.5
     kernel = estimators[name].Create(k)
     for norm in (0.0, 0.3, 2.4, 2.5, 2.6, 7.0, 100.0):
-        assert normal_equations.robust_scale(normal_equations.ROBUST_CODES[name], k, norm) ** 2 == pytest.approx(kernel.weight(norm), abs=1e-12)
+        assert (normal_equations.robust_scale(normal_equations.ROBUST_CODES[name], k, norm) ** 2
+                == pytest.approx(kernel.weight(norm), abs=1e-12))
 
 
 def test_the_factor_kept_across_updates_is_that_of_the_whole_window(gentle):
     """After each update -- rows factorised again only from the oldest change on, keyframes
     marginalised without a new factorisation -- the window's factor and offsets equal a
     factorisation of the whole window's normal equations at the linearisation points, made from
-    scratch (factor to 1e-9 relative, offsets to 1e-6 of the largest). An update that ends by linearising keyframes again leaves the rows
-    from theirs on stale (the next update factorises them again): the rows before must still agree."""
+    scratch (factor to 1e-9 relative, offsets to 1e-6 of the largest). An update that ends by
+    linearising keyframes again leaves the rows from theirs on stale (the next update factorises
+    them again): the rows before must still agree."""
     data = cases.dataset(gentle)
     checked = {"whole": 0, "before the stale rows": 0}
     solve = sw.SlidingWindow._solve
@@ -452,7 +454,8 @@ def test_keyframes_within_one_imu_sample_and_weak_fixes_keep_the_window_positive
         for name, offset in (("w1", 0.003), ("w2", 0.003 + gap)):
             t = np.arange(0.0, 11.5, 0.1) + offset
             wheels.append(Sensor(name, "velocity", VelocityMeasurements(
-                t, rng.normal(0, 0.05, (len(t), 3)), np.zeros((len(t), 3)), np.tile(np.eye(3) * 0.05**2, (len(t), 1, 1)))))
+                t, rng.normal(0, 0.05, (len(t), 3)), np.zeros((len(t), 3)),
+                np.tile(np.eye(3) * 0.05**2, (len(t), 1, 1)))))
         data = copy(data, sensors=tuple(data.sensors) + tuple(wheels))
         return data, replay(data, lag_s=20.0, keyframe_rate=EVERY_MEASUREMENT)
 
