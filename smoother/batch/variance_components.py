@@ -441,12 +441,13 @@ def far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
 def _exact_information(model, states, calibration, psi: np.ndarray, approximate: np.ndarray,
                        estimated: list[int]) -> np.ndarray:
     """The groups' information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: the ``approximate`` one, with the
-    columns (and rows) of the ``estimated`` groups of factors with much leverage (``model.leveraged``:
-    the IMU's) exact -- those of groups no longer estimated (kept at the rig's value) are never read. Since ``dP_R/dpsi_h = -P_R V_h P_R``, ``F_gh = -1/2 d tr(P_R V_g) / dpsi_h`` with ``V_g``
-    held: the change of each group's redundancy, evaluated with the base ``V_g`` on the system
-    re-weighted for ``psi_h + DIFFERENCE_STEP`` at the same estimate (one covariance computation
-    per such group and one at ``psi``; no re-solve). It needs the diagonal blocks of ``P_R`` only,
-    and matched the dense matrix's to 0.5 % on a simulated rig."""
+    columns (and rows) of the ``estimated`` groups of factors with much leverage
+    (``model.leveraged``: the IMU's) exact -- those of groups no longer estimated (kept at the rig's
+    value) are never read. Since ``dP_R/dpsi_h = -P_R V_h P_R``, ``F_gh = -1/2 d tr(P_R V_g) /
+    dpsi_h`` with ``V_g`` held: the change of each group's redundancy, evaluated with the base
+    ``V_g`` on the system re-weighted for ``psi_h + DIFFERENCE_STEP`` at the same estimate (one
+    covariance computation per such group and one at ``psi``; no re-solve). It needs the diagonal
+    blocks of ``P_R`` only, and matched the dense matrix's to 0.5 % on a simulated rig."""
     columns = [g for g in estimated if model.leveraged(g)]
     if not columns:
         return approximate
