@@ -272,7 +272,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     if latency is not None:
         print(f"fixed-lag latency, measurement arrival to updated estimate ({latency['measurements']} measurements): "
               f"median {latency['median']:.3g} ms, p99 {latency['p99']:.3g} ms, max {latency['max']:.3g} ms")
-    for line in consistency_lines(consistency):
+    # each estimator's verdicts as judged: its own and, beside them, its held-out predictions'
+    for line in consistency_lines({name: est.details["sensors"] for name, est in estimates.items()
+                                   if "sensors" in est.details}):
         print(line, file=sys.stderr)
     try:  # the outputs are written: Ctrl-C or SIGTERM here ends the run with them kept
         causes = hints(dataset, estimates, consistency, run_options.keyframe_rate, run_options.robust)

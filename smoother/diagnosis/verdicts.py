@@ -159,13 +159,14 @@ def far_below(c: dict) -> bool:
 def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
-    ``heldout_state_share``; :mod:`smoother.diagnosis.heldout`); a sensor judged on held-out
+    ``heldout_dof``, ``heldout_state_share``; :mod:`smoother.diagnosis.heldout`); a sensor judged on held-out
     measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
         own = out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"})
         own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
-                    "heldout_measurements": h["measurements"], "heldout_state_share": h["state_share"]})
+                    "heldout_measurements": h["measurements"], "heldout_dof": h["dof"],
+                    "heldout_state_share": h["state_share"]})
     return out
 
 
@@ -190,13 +191,28 @@ IMU = "imu"
 _STATISTIC = {"nis": "NIS", "residual": "residuals", "heldout": "held-out predictions"}
 
 
+def heldout_part(c: dict) -> dict | None:
+    """The held-out verdict that :func:`with_heldout` put beside a sensor's own ``c``, as a
+    :func:`verdict` of its own, or None."""
+    if "heldout_per_dof" not in c or c.get("statistic") == "heldout":
+        return None
+    return {"per_dof": c["heldout_per_dof"], "band": c["heldout_band"], "ok": c["heldout_ok"],
+            "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout"}
+
+
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     """One line per sensor (the IMU last): each estimator's figure per dof with its statistic and
-    band, and whether it fits (:func:`shown`; one on too few degrees of freedom says so)."""
+    band, and whether it fits (:func:`shown`; one on too few degrees of freedom says so); where a
+    sensor holds measurements out (:func:`with_heldout`), the held-out predictions' figure beside
+    its own."""
     lines = []
     for sensor, verdicts in _by_sensor(by_estimator).items():
         count = max(c["measurements"] + c.get("rejected", 0) for c in verdicts.values())
-        parts = [f"{estimator} {_STATISTIC[c['statistic']]} {shown(c)}" for estimator, c in verdicts.items()]
+        parts = []
+        for estimator, c in verdicts.items():
+            held = heldout_part(c)
+            parts.append(f"{estimator} {_STATISTIC[c['statistic']]} {shown(c)}"
+                         + ("" if held is None else f", held-out predictions ({held['measurements']}) {shown(held)}"))
         name = "imu" if sensor == IMU else f"sensor {sensor}"
         lines.append(f"{name} ({count} {'factors' if sensor == IMU else 'measurements'}), per dof: " + "; ".join(parts))
     return lines

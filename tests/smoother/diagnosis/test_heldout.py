@@ -62,3 +62,15 @@ def test_without_covariances_or_held_out_measurements_there_is_no_verdict():
     s = data.sensor("position")
     nothing_held = replace(data, sensors=(replace(s, heldout=None),))
     assert heldout_consistency(nothing_held, solve_batch(build_problem(nothing_held)).trajectory) == {}
+
+
+def test_the_printed_line_shows_the_held_out_predictions_beside_the_sensor_s_own_verdict():
+    from smoother.diagnosis.verdicts import consistency_lines, verdict, with_heldout
+
+    own = {"gps": verdict(13.2, 12.3, 46, "residual")}
+    held = {"gps": {**verdict(775.0, 1266.0, 422, "heldout"), "state_share": 0.63}}
+    [line] = consistency_lines({"batch": with_heldout(own, held)})
+    assert line.startswith("sensor gps (46 measurements), per dof: batch residuals 1.07 (")
+    assert line.endswith("ok, held-out predictions (422) 0.612 (0.92-1.1) OUT OF BAND")
+    [alone] = consistency_lines({"batch": with_heldout({}, held)})  # judged on held-out measurements alone
+    assert "batch held-out predictions 0.612" in alone and alone.count("held-out") == 1
