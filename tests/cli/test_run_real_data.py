@@ -155,7 +155,9 @@ def test_kitti_with_its_noise_estimated_beats_both_native_pipelines_and_fits(tmp
     document = json.loads((out / "metrics.json").read_text())
     assert document["batch"]["gps_heldout_rmse_m"] < 0.75
     for name in ("batch", "fixed-lag", "ekf"):
-        assert all(v["ok"] for v in document[name]["sensors"].values() if "ok" in v), name
+        # every verdict formed (the fixed-lag smoother's on the fixes, at the default 2-s lag, has less than a
+        # degree of freedom: not judged)
+        assert all(v["ok"] for v in document[name]["sensors"].values() if v.get("ok") is not None), name
     assert document["batch"]["noise"]["imu.gyro"]["applied"]
 
 
