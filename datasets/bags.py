@@ -64,7 +64,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from datasets.errors import DataError, check_increasing, check_source, require_imu_recording
+from datasets.errors import DataError, check_increasing, check_name, check_source, require_imu_recording
 from datasets.streams import (
     STATUS_NO_FIX,
     AttitudeStream,
@@ -202,6 +202,7 @@ def _check_files(path: Path, topic: str) -> None:
 @contextlib.contextmanager
 def _opened(path: Path, topic: str):
     """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag and ``topic``."""
+    check_name(path)
     if not path.exists():
         raise DataError(path, None, f"topic {topic}", "no such file or folder", _A_BAG)
     _check_files(path, topic)

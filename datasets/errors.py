@@ -165,12 +165,22 @@ def check_source(path, kind: str) -> os.stat_result:
     """The ``stat`` of ``path`` (links followed), a regular file within the limit of ``kind`` (a
     key of :data:`LIMITS`), for a reader that opens it itself; a :class:`DataError` otherwise."""
     path = Path(path)
+    check_name(path)
     try:
         st = os.stat(path)
     except OSError as error:
         raise _cannot_read(path, error) from None
     _check_stat(path, kind, st)
     return st
+
+
+def check_name(path) -> None:
+    """A :class:`DataError` naming ``path`` (as ``repr`` shows it) when it holds a NUL character,
+    which no system call takes: ``os.stat`` raises a ValueError ("embedded null byte") naming no
+    file, and ``Path.exists`` says False."""
+    if "\0" in str(path):
+        raise DataError(repr(str(path)), None, None, "a NUL character in the file name", "the name of a file",
+                        whole=True)
 
 
 def read_source(path, kind: str) -> bytes:

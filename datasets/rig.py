@@ -99,7 +99,7 @@ from datasets.kinds import KIND_NAMES, KINDS
 from datasets.kinds.base import kind_sigmas, sigma_counts
 from datasets.ranges import RANGES, SIGMA_RANGES, out_of_range, sensor_name_problem
 from datasets.robust import robust_spec
-from datasets.sources import parse_spec
+from datasets.sources import parse_spec, user_path
 from factors import so3
 from factors.calibration import PARTS, CalibrationPrior, applicable
 from factors.errors import InputError
@@ -258,7 +258,12 @@ class _Table:
 
     def file(self, name: str) -> Path | None:
         value = self.string(name)
-        return None if value is None else self.folder / Path(value).expanduser()
+        if value is None:
+            return None
+        try:
+            return user_path(value, self.folder)
+        except InputError as error:
+            raise self.error(name, str(error)) from None
 
     def source(self, stream: str | None) -> tuple[str, str | None]:
         """The source spec (absolute path) and its topic, checked together."""
@@ -509,8 +514,8 @@ def load_rig(path) -> Rig:
     path = Path(path)
     try:
         text = read_source(path, "rig").decode("utf-8")
-    except DataError as error:  # missing, not a regular file, too large, unreadable
-        raise RigError(path, None, f"{error.found}; expected {error.expected}") from None
+    except DataError as error:  # missing, not a regular file, too large, unreadable, a NUL in its name
+        raise RigError(error.path, None, f"{error.found}; expected {error.expected}") from None
     except UnicodeDecodeError as error:
         raise RigError(path, None, f"not UTF-8 text (byte {error.start})") from None
     try:

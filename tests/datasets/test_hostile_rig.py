@@ -342,3 +342,29 @@ def test_a_short_sigma_of_a_pose_names_the_unit_it_failed_in(tmp_path, sigma, wh
     path = _rig(tmp_path, IMU + f'\n[[sensor]]\nname = "cam"\nkind = "pose"\nsource = "csv:cam.csv"\nsigma = {sigma}\n')
     with pytest.raises(RigError, match=re.escape(f'{path}: sensor[1] "cam".sigma: {which}')):
         load_rig(path)
+
+
+@pytest.mark.parametrize("key, line", [
+    ("imu.source", 'source = "csv:{path}"'),
+    ("imu.kalibr", 'kalibr = "{path}"'),
+    ('sensor[2] "mag".source', 'source = "csv:{path}"'),
+])
+@pytest.mark.parametrize("path, why", [
+    ("~no-such-user-here/imu.csv", "~no-such-user-here names no home folder"),
+    ("imu\\u0000.csv", "a NUL character (\\x00) cannot be part of a file name"),
+])
+def test_a_path_that_cannot_be_one_is_refused_at_load_naming_its_key(tmp_path, key, line, path, why):
+    """``~user`` of no user made Path.expanduser raise a RuntimeError (an "internal failure", exit
+    code 3); a NUL reached the system call, whose "embedded null byte" named neither file nor key."""
+    text = RIG
+    if key == "imu.kalibr":
+        text = RIG.replace("[datum]", line.format(path=path) + "\n[datum]", 1)
+    elif key == "imu.source":
+        text = RIG.replace('source = "csv:imu.csv"', line.format(path=path), 1)
+    else:
+        text = RIG.replace('source = "csv:mag.csv"', line.format(path=path), 1)
+    rig = _rig(tmp_path, text)
+    with pytest.raises(RigError) as info:
+        load_rig(rig)
+    message = str(info.value)
+    assert message.startswith(f"{rig}: {key}: ") and why in message and "\n" not in message, message

@@ -259,3 +259,14 @@ def test_ordinary_files_still_read(tmp_path):
     (tmp_path / "p.csv").write_text("t,x,y,z\n" + "".join(f"{x},1,2,3\n" for x in t))
     (tmp_path / "link.csv").symlink_to(tmp_path / "p.csv")
     assert np.array_equal(read_positions(f"csv:{tmp_path / 'link.csv'}").t, t)
+
+
+@pytest.mark.parametrize("name, kind, read", READERS, ids=NAMES)
+def test_a_path_with_a_nul_is_one_error_naming_it(tmp_path, name, kind, read):
+    """The system call's ValueError ("embedded null byte") named no file; a path given in Python
+    or in a rig can hold a NUL (TOML's \\u0000)."""
+    path = tmp_path / "imu\0.csv"
+    with pytest.raises(ValueError) as info:
+        read(path)
+    message = str(info.value)
+    assert "NUL character" in message and repr(str(path))[1:-1] in message and "\n" not in message, message
