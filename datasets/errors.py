@@ -183,9 +183,11 @@ def check_name(path) -> None:
                         whole=True)
 
 
-def read_source(path, kind: str) -> bytes:
+def read_source(path, kind: str, head: int | None = None) -> bytes:
     """The bytes of ``path``, a regular file within the limit of ``kind`` (a key of
-    :data:`LIMITS`); a :class:`DataError` naming the file otherwise (module docstring)."""
+    :data:`LIMITS`); a :class:`DataError` naming the file otherwise (module docstring). With
+    ``head``, only its first ``head`` bytes (fewer if it is shorter): a format's magic number,
+    checked before a library that trusts it reads the file."""
     path = Path(path)
     check_source(path, kind)
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
@@ -193,7 +195,7 @@ def read_source(path, kind: str) -> bytes:
     try:
         with os.fdopen(os.open(path, flags), "rb") as handle:
             _check_stat(path, kind, os.fstat(handle.fileno()))  # the file opened is still a regular one
-            data = handle.read(limit + 1)
+            data = handle.read(limit + 1 if head is None else min(head, limit))
     except OSError as error:
         raise _cannot_read(path, error) from None
     if len(data) > limit:

@@ -270,3 +270,46 @@ def test_a_path_with_a_nul_is_one_error_naming_it(tmp_path, name, kind, read):
         read(path)
     message = str(info.value)
     assert "NUL character" in message and repr(str(path))[1:-1] in message and "\n" not in message, message
+
+
+def _ros1_bag(tmp_path: Path) -> Path:
+    """A ROS 1 bag of two seconds of IMU messages."""
+    m = Messages("ros1")
+    return write_bag(tmp_path / "run.bag", "ros1", {"/imu": ("sensor_msgs/msg/Imu", [
+        m.imu(10**18 + k * 10**7, (0, 0, 9.81), (0, 0, 0)) for k in range(201)])})
+
+
+def _index_pos(bag: Path) -> int:
+    """Where a ROS 1 bag's index (its connection records) starts: the bag header's index_pos."""
+    data = bag.read_bytes()
+    start = len(b"#ROSBAG V2.0\n")
+    length = int.from_bytes(data[start:start + 4], "little")
+    header, i = data[start + 4:start + 4 + length], 0
+    while i < len(header):
+        size = int.from_bytes(header[i:i + 4], "little")
+        name, _, value = header[i + 4:i + 4 + size].partition(b"=")
+        if name == b"index_pos":
+            return int.from_bytes(value, "little")
+        i += 4 + size
+    raise AssertionError("no index_pos")
+
+
+@pytest.mark.parametrize("damage, fragment", [
+    ("sparse", "an unreadable bag (it starts with b'\\x00"),  # no line end: rosbags read it whole for its version
+    ("bag header", "an unreadable bag (a bag header of 4294967280 bytes"),
+    ("connection record", "out of memory"),  # a record's length field of ~4 GiB, read as it says
+])
+def test_a_ros1_bag_whose_lengths_lie_is_refused_naming_it_within_the_memory_limit(tmp_path, isolated, damage,
+                                                                                     fragment):
+    """rosbags trusts a ROS 1 bag's version line and record lengths: a 6 GiB file of zeros named
+    .bag was read whole looking for the version's line end (out of memory, the file not named)."""
+    if damage == "sparse":
+        bag = _sparse(tmp_path / "run.bag", 6 * 2**30)
+    else:
+        bag = _ros1_bag(tmp_path)
+        data = bytearray(bag.read_bytes())
+        at = len(b"#ROSBAG V2.0\n") if damage == "bag header" else _index_pos(bag)
+        data[at:at + 4] = (0xFFFFFFF0).to_bytes(4, "little")
+        bag.write_bytes(bytes(data))
+    message = _refused(lambda p: read_bag_imu(p, "/imu"), bag, isolated, fragment, errors=("DataError",))
+    assert message.startswith(f"{bag}"), message
