@@ -72,9 +72,9 @@ from datasets.errors import (
     DataError,
     check_increasing,
     check_unit_quaternions,
-    data_lines,
     integer,
     number,
+    numbered_lines,
     read_lines,
     require_imu_recording,
     table_fast,
@@ -184,11 +184,11 @@ def _read_asl_csv(path, columns: list[str], duplicates: bool = False) -> tuple[n
         width = len(columns)
         name_of = dict(enumerate(columns))
         start = first
-    numbered = data_lines(lines, "#", start)
-    fast = table_fast([text for _, text in numbered], width, ",", stamps=True)
+    body, line_numbers = numbered_lines(lines, "#", start)
+    fast = table_fast(body, width, ",", stamps=True)
+    del body
     if fast is not None and len(fast[1]) >= 2:  # every data line a plain row: NumPy's C parser
         values, stamps = fast
-        line_numbers = np.array([line for line, _ in numbered], dtype=np.int64)
         check_increasing(path, stamps, line_numbers, columns[0] + " [ns]", duplicates)
         return stamps, values[:, order], line_numbers
     stamps, values, line_numbers = [], [], []

@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg  # noqa: F401 -- loaded here: OpenBLAS starting under a child's memory limit spins
 import pytest
 from bagfiles import Messages, write_bag
 
@@ -313,3 +314,28 @@ def test_a_ros1_bag_whose_lengths_lie_is_refused_naming_it_within_the_memory_lim
         bag.write_bytes(bytes(data))
     message = _refused(lambda p: read_bag_imu(p, "/imu"), bag, isolated, fragment, errors=("DataError",))
     assert message.startswith(f"{bag}"), message
+
+
+#: A table's read may take this many times its size in memory (its text once and its lines once
+#: as Python strings, the values as floats): eight before, one gibibyte more for any table.
+TABLE_MEMORY_FACTOR = 3.5
+
+
+@pytest.mark.parametrize("name", ["csv imu", "csv positions"])
+def test_a_table_is_read_within_a_few_times_its_size(tmp_path, isolated, name):
+    """The 1 GiB a table may be has to fit the 4 GB a run may take: a read of n bytes took n bytes
+    at once (a gibibyte for every table), and the parser held the text twice more, once in an
+    io.StringIO at four bytes a character (a 421 MB IMU file took 3.3 GB, a 1 GiB one 8)."""
+    n = 200_000
+    if name == "csv imu":
+        row = ",0.0123456789012345,-0.0234567890123456,0.0345678901234567,0.123456789012345,-0.2345678901234,9.8066\n"
+        stamps = (10**18 + np.arange(n, dtype=np.int64) * 5_000_000).tolist()
+        text = "#timestamp,w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + row.join(map(str, stamps)) + row
+    else:
+        row = ",12345.6789012345,-2345.67890123456,345.678901234567,0.11,0.12,0.13\n"
+        text = "t,x,y,z,sigma_x,sigma_y,sigma_z\n" + row.join(repr(x) for x in (np.arange(n) * 0.005).tolist()) + row
+    path = tmp_path / "table.csv"
+    path.write_text(text)
+    read = dict((r[0], r[2]) for r in READERS)[name]
+    outcome = isolated(lambda: read(path), memory=int(TABLE_MEMORY_FACTOR * len(text)))
+    assert outcome.raised == (), outcome
