@@ -12,8 +12,8 @@ import re
 from pathlib import Path
 
 import numpy as np
-import scipy.linalg  # noqa: F401 -- loaded here: OpenBLAS starting under a child's memory limit spins
 import pytest
+import scipy.linalg  # noqa: F401 -- loaded here: OpenBLAS starting under a child's memory limit spins
 from bagfiles import Messages, write_bag
 
 from datasets import errors, euroc, kitti, tum
