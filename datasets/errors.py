@@ -113,6 +113,10 @@ LIMITS: dict[str, SizeLimit] = {
     "table": SizeLimit("text tables (CSV, TUM and KITTI files)", 1 * GIB,
                        "about 8 million lines of an IMU file in EuRoC's layout, a 1 kHz IMU for two hours or a 200 Hz "
                        "one for eleven; read whole, such a file takes some 3 GB of memory"),
+    "npz": SizeLimit("a run's NumPy archives (.npz), their arrays unpacked too", 1 * GIB,
+                     "the states and 15x15 covariances of some 550 000 keyframes, 15 hours at 10 Hz; every one of a "
+                     "run is read whole to plot it"),
+    "json": SizeLimit("a run's metrics.json", 64 * MIB, "a run of a thousand sensors writes some 2 MB"),
     "bag": SizeLimit("ROS bag storage files (.bag, .db3, .mcap)", 256 * GIB,
                      "a day of a camera rig writing 3 MB/s; only the topics asked for are read from it"),
 }

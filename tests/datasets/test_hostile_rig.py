@@ -327,7 +327,7 @@ def test_the_users_reference_states_every_limit_as_the_code_has_it():
     unit = {"MiB": MIB, "GiB": GIB}
     sizes = [int(number) * unit[name] for line in section.splitlines() if line.startswith("|")
              for number, name in re.findall(r"^\|[^|]*\| (\d+) (MiB|GiB) \|", line)]
-    assert sizes == [LIMITS[kind].bytes for kind in ("rig", "yaml", "table", "bag")]
+    assert sizes == [LIMITS[kind].bytes for kind in ("rig", "yaml", "table", "npz", "json", "bag")]
     flat = " ".join(section.split())
     assert f"at most {MAX_NODES:,} nodes".replace(",", " ") in flat and f"nested at most {MAX_DEPTH} levels" in flat
     assert f"at least {MIN_RECORDING_SAMPLES} samples over at least {MIN_RECORDING_SECONDS:g} s" in flat
