@@ -368,3 +368,45 @@ def test_a_path_that_cannot_be_one_is_refused_at_load_naming_its_key(tmp_path, k
         load_rig(rig)
     message = str(info.value)
     assert message.startswith(f"{rig}: {key}: ") and why in message and "\n" not in message, message
+
+
+def _sensors(n: int, source=lambda i: f"csv:p{i}.csv") -> str:
+    return "".join(f'\n[[sensor]]\nname = "s{i}"\nkind = "position"\nsource = "{source(i)}"\n' for i in range(n))
+
+
+def test_a_rig_of_more_sensors_than_the_limit_is_refused_at_load(tmp_path):
+    """Ten thousand sensors (700 kB of rig file) took 276 s on 20 s of data; the limit itself reads."""
+    from datasets.ranges import MAX_SENSORS
+
+    assert len(load_rig(_rig(tmp_path, IMU + _sensors(MAX_SENSORS))).sensors) == MAX_SENSORS
+    path = _rig(tmp_path, IMU + _sensors(MAX_SENSORS + 1))
+    with pytest.raises(RigError, match=re.escape(f"{path}: sensor: {MAX_SENSORS + 1} sensors; expected at most "
+                                                 f"{MAX_SENSORS} (")):
+        load_rig(path)
+
+
+@pytest.mark.parametrize("first, second, shared", [
+    ('kind = "position"\nsource = "csv:p.csv"', 'kind = "position"\nsource = "csv:p.csv"', "position"),
+    ('kind = "pose"\nsource = "csv:p.csv"', 'kind = "position"\nsource = "csv:./p.csv"', "position"),
+    ('kind = "orientation"\nsource = "csv:p.csv"', 'kind = "orientation"\nsource = "csv:link.csv"\n'
+                                                  'roll_pitch_only = true', "C"),
+    ('kind = "gnss"\nsource = "bag:run.bag"\ntopic = "/fix"', 'kind = "gnss"\nsource = "bag:run.bag"\n'
+                                                             'topic = "/fix"', "position"),
+    ('kind = "position"\nsource = "csv:p.csv"', 'kind = "orientation"\nsource = "csv:p.csv"', None),  # a pose file
+    ('kind = "gnss"\nsource = "bag:run.bag"\ntopic = "/fix"', 'kind = "gnss"\nsource = "bag:run.bag"\n'
+                                                             'topic = "/fix2"', None),
+])
+def test_the_same_measurements_read_by_two_sensors_are_refused_at_load(tmp_path, first, second, shared):
+    """Two sensors of one file and topic that measure a same field count each measurement twice,
+    as independent ones: every sigma of the estimates came out too small (by 1.4), silently; ten
+    thousand copies of one sensor made a run of minutes. A link, or another spelling of the path,
+    is the same file."""
+    (tmp_path / "p.csv").write_text("t,x,y,z,qw,qx,qy,qz\n")
+    (tmp_path / "link.csv").symlink_to(tmp_path / "p.csv")
+    path = _rig(tmp_path, IMU + f'\n[[sensor]]\nname = "a"\n{first}\n' + f'\n[[sensor]]\nname = "b"\n{second}\n')
+    if shared is None:
+        assert len(load_rig(path).sensors) == 2
+        return
+    with pytest.raises(RigError, match=re.escape(f'{path}: sensor[2] "b".source: ') + ".* is read by sensor\\[1\\] "
+                       f"'a' .* too, and both measure its {shared}: the same measurements used twice"):
+        load_rig(path)
