@@ -158,3 +158,20 @@ def test_an_imu_in_degrees_beside_a_wheel_is_named_as_the_imu(capsys, tmp_path):
     assert main(["run", "--rig", str(rig), "--estimator", "ekf", "--no-progress", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "imu (csv:" in err[0] and "deg/s" in err[0] and "wheel" not in err[0], err
+
+
+@pytest.mark.parametrize("argv", [["montecarlo", "--runs", "2000"], ["fleet", "x.toml"]])
+def test_workers_beyond_twice_the_machines_cores_are_refused_before_any_starts(capsys, tmp_path, monkeypatch, argv):
+    """--workers 1024 (the range's bound) forked a process of some 300 MB for each of 1024 tasks
+    on a 2-core machine; a Dask cluster takes any number in the range."""
+    import smoother.commands as commands
+
+    monkeypatch.setattr(commands, "usable_cores", lambda: 2)
+    commands.check_workers(4)
+    commands.check_workers(1024, "tcp://scheduler:8786")
+    assert main([*argv, "--workers", "5", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["smoother: error: --workers: expected at most 4 on this machine (twice its 2 cores: each worker is "
+                   "a process of its own memory, some 300 MB, and more only wait for the cores), got 5; a Dask "
+                   "cluster (--dask) takes more"], err
+    assert not (tmp_path / "out").exists()
