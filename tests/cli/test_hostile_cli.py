@@ -175,3 +175,19 @@ def test_workers_beyond_twice_the_machines_cores_are_refused_before_any_starts(c
                    "a process of its own memory, some 300 MB, and more only wait for the cores), got 5; a Dask "
                    "cluster (--dask) takes more"], err
     assert not (tmp_path / "out").exists()
+
+
+def test_two_kernels_for_one_sensor_are_refused_and_a_sensors_own_holds_in_any_order(capsys, tmp_path):
+    """``--robust gnss=huber --robust gnss=cauchy`` ran with cauchy, saying nothing of huber, and
+    ``--robust gnss=cauchy --robust huber`` gave gnss huber: the order decided, silently."""
+    from smoother.commands.run import parse_robust
+
+    types = ("gnss", "wheel")
+    for specs in (["gnss=cauchy", "huber"], ["huber", "gnss=cauchy"]):
+        assert parse_robust(specs, types) == {"gnss": ("cauchy", None), "wheel": ("huber", None)}
+    for specs, said in ((["pose=huber", "pose=cauchy"], "sensor 'pose' has a kernel already (--robust pose=huber)"),
+                        (["huber", "tukey:3"], "every sensor has a kernel already (--robust huber)")):
+        assert main(["run", "--duration", "2", "--estimator", "ekf", "--out", str(tmp_path / "o"),
+                     *[a for s in specs for a in ("--robust", s)]]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"smoother: error: --robust {specs[1]}: {said}"), err
