@@ -516,7 +516,7 @@ def load_rig(path) -> Rig:
     """Read and check the rig file ``path`` (see the module docstring); reads no sensor data."""
     path = Path(path)
     try:
-        text = read_source(path, "rig").decode("utf-8")
+        text = read_source(path, "rig").decode("utf-8-sig")  # a byte-order mark (Windows editors) dropped
     except DataError as error:  # missing, not a regular file, too large, unreadable, a NUL in its name
         raise RigError(error.path, None, f"{error.found}; expected {error.expected}") from None
     except UnicodeDecodeError as error:

@@ -410,3 +410,11 @@ def test_the_same_measurements_read_by_two_sensors_are_refused_at_load(tmp_path,
     with pytest.raises(RigError, match=re.escape(f'{path}: sensor[2] "b".source: ') + ".* is read by sensor\\[1\\] "
                        f"'a' .* too, and both measure its {shared}: the same measurements used twice"):
         load_rig(path)
+
+
+def test_a_rig_saved_with_a_byte_order_mark_reads(tmp_path):
+    """Windows editors save UTF-8 with a byte-order mark: the rig was "TOML syntax error: Invalid
+    statement (at line 1, column 1)", as the CSV readers already drop it."""
+    path = tmp_path / "rig.toml"
+    path.write_bytes("\ufeff".encode() + RIG.encode())
+    assert load_rig(path).imu.gravity == 9.81
