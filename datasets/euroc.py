@@ -79,7 +79,7 @@ from datasets.errors import (
     require_imu_recording,
     table_fast,
 )
-from datasets.kalibr import NOISE_KEYS, rigid_problem
+from datasets.kalibr import NOISE_KEYS, density_in_range, rigid_problem
 from datasets.types import Dataset, ImuSamples, Trajectory
 from datasets.yamlfile import YamlDocument, read_yaml
 from factors import quaternion, so3
@@ -326,7 +326,8 @@ def _report_uncovered(imu_csv, gt_csv, imu_ns: np.ndarray, gt_ns: np.ndarray) ->
 
 def _noise_from_yaml(yaml: SensorYaml) -> ImuNoise:
     doc = yaml.document
-    return ImuNoise(**{field: doc.number((key,), minimum=0.0) for key, field in NOISE_KEYS.items() if key in doc.data})
+    return ImuNoise(**{field: density_in_range(doc, (key,), field) for key, field in NOISE_KEYS.items()
+                       if key in doc.data})
 
 
 def load_euroc(folder, *, noise: ImuNoise | None = None, gravity=DEFAULT_GRAVITY) -> Dataset:
