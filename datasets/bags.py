@@ -64,7 +64,14 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from datasets.errors import DataError, check_increasing, check_source, require_imu_recording
+from datasets.errors import (
+    DataError,
+    check_increasing,
+    check_name,
+    check_source,
+    read_source,
+    require_imu_recording,
+)
 from datasets.streams import (
     STATUS_NO_FIX,
     AttitudeStream,
@@ -185,6 +192,8 @@ def _check_files(path: Path, topic: str) -> None:
     try:
         if not path.is_dir():
             check_source(path, "bag")
+            if path.suffix == ".bag":  # what rosbags reads as ROS 1
+                _check_ros1_start(path)
             return
         metadata = path / "metadata.yaml"
         if not os.path.lexists(metadata):
@@ -199,17 +208,50 @@ def _check_files(path: Path, topic: str) -> None:
                         error.found, error.expected, error.whole) from None
 
 
+#: How a ROS 1 bag (format 2.0) starts: its version line.
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+#: The longest header of a ROS 1 bag's first record, the bag header: the record is padded to 4096
+#: bytes, its header a few dozen of them.
+ROS1_BAG_HEADER_MAX = 4096
+
+
+def _check_ros1_start(path: Path) -> None:
+    """A ``.bag`` file starts as a ROS 1 bag does: its version line and a bag header record of at
+    most :data:`ROS1_BAG_HEADER_MAX` bytes; a :class:`DataError` otherwise. ``rosbags`` reads the
+    version as a line and the header as long as its length field says, so that a file of no line
+    end (a sparse file, a disk image) would be read whole into memory, and a length field of
+    garbage allocate gigabytes, before it could say the file is no bag."""
+    head = read_source(path, "bag", head=len(ROS1_MAGIC) + 4)
+    if not head.startswith(ROS1_MAGIC):
+        raise DataError(path, None, None, f"an unreadable bag (it starts with {head[:len(ROS1_MAGIC)]!r}, a ROS 1 "
+                        f"bag with {ROS1_MAGIC!r}; a .bag file is read as ROS 1)", _A_BAG, whole=True)
+    length = int.from_bytes(head[len(ROS1_MAGIC):], "little") if len(head) == len(ROS1_MAGIC) + 4 else None
+    if length is None or length > ROS1_BAG_HEADER_MAX:
+        found = "no bag header" if length is None else f"a bag header of {length} bytes"
+        raise DataError(path, None, None, f"an unreadable bag ({found}; a ROS 1 bag's is at most "
+                        f"{ROS1_BAG_HEADER_MAX} bytes)", _A_BAG, whole=True)
+
+
+def _out_of_memory(path: Path, topic: str, where: str, error: MemoryError) -> DataError:
+    """The error for a bag whose reading asked for more memory than the process may use:
+    a damaged record claiming gigabytes, or a topic too large for the machine."""
+    details = str(error).strip().splitlines()[0] if str(error).strip() else "no details"
+    return DataError(path, None, f"topic {topic}", f"{where}: out of memory ({details})",
+                     "a bag whose records and topic fit in memory (a damaged record can claim gigabytes)", whole=True)
+
+
 @contextlib.contextmanager
 def _opened(path: Path, topic: str):
     """An open ``AnyReader`` of ``path``, or a :class:`DataError` naming the bag and ``topic``."""
+    check_name(path)
     if not path.exists():
         raise DataError(path, None, f"topic {topic}", "no such file or folder", _A_BAG)
     _check_files(path, topic)
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
-    except MemoryError:
-        raise
+    except MemoryError as error:
+        raise _out_of_memory(path, topic, "opening it", error) from None
     except Exception as error:  # noqa: BLE001 -- rosbags raises its own errors, OSError, KeyError, ... for damaged files
         raise DataError(path, None, f"topic {topic}", f"an unreadable bag ({_cause(error)})", _A_BAG,
                         whole=True) from None
@@ -235,8 +277,8 @@ def _messages(path: Path, reader, topic: str, msgtype: str, row) -> tuple[list[i
             message = reader.deserialize(raw, connection.msgtype)
             stamps.append(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
             values.extend(row(message))
-    except MemoryError:
-        raise
+    except MemoryError as error:
+        raise _out_of_memory(path, topic, f"reading message {len(stamps) + 1} of {info.msgcount}", error) from None
     except Exception as error:  # noqa: BLE001 -- a damaged message raises whatever its decoder meets
         raise DataError(path, None, f"topic {topic}", f"a damaged bag: message {len(stamps) + 1} cannot be read "
                         f"({_cause(error)})", expected, whole=True) from None

@@ -20,7 +20,7 @@ Both refuse
   non-blocking and checks the opened file again, so that a file swapped for a pipe in between
   cannot block it either;
 * a file larger than the limit of its kind, :data:`LIMITS` (a rig or YAML file is small; a table
-  is read whole into memory, some eight times its size; a bag is read one topic at a time). A
+  is read whole into memory, some three times its size; a bag is read one topic at a time). A
   file that has more to read than its size says (one growing, a ``/proc`` file) is read no
   further than the limit and refused.
 
@@ -29,7 +29,6 @@ Each refusal is one :class:`DataError` naming the file, what it is (or its size)
 """
 from __future__ import annotations
 
-import io
 import math
 import os
 import re
@@ -114,7 +113,11 @@ LIMITS: dict[str, SizeLimit] = {
                       "500 kB"),
     "table": SizeLimit("text tables (CSV, TUM and KITTI files)", 1 * GIB,
                        "about 8 million lines of an IMU file in EuRoC's layout, a 1 kHz IMU for two hours or a 200 Hz "
-                       "one for eleven; read whole, such a file takes some 8 GB of memory"),
+                       "one for eleven; read whole, such a file takes some 3 GB of memory"),
+    "npz": SizeLimit("a run's NumPy archives (.npz), their arrays unpacked too", 1 * GIB,
+                     "the states and 15x15 covariances of some 550 000 keyframes, 15 hours at 10 Hz; every one of a "
+                     "run is read whole to plot it"),
+    "json": SizeLimit("a run's metrics.json", 64 * MIB, "a run of a thousand sensors writes some 2 MB"),
     "bag": SizeLimit("ROS bag storage files (.bag, .db3, .mcap)", 256 * GIB,
                      "a day of a camera rig writing 3 MB/s; only the topics asked for are read from it"),
 }
@@ -166,6 +169,7 @@ def check_source(path, kind: str) -> os.stat_result:
     """The ``stat`` of ``path`` (links followed), a regular file within the limit of ``kind`` (a
     key of :data:`LIMITS`), for a reader that opens it itself; a :class:`DataError` otherwise."""
     path = Path(path)
+    check_name(path)
     try:
         st = os.stat(path)
     except OSError as error:
@@ -174,17 +178,42 @@ def check_source(path, kind: str) -> os.stat_result:
     return st
 
 
-def read_source(path, kind: str) -> bytes:
+def check_name(path) -> None:
+    """A :class:`DataError` naming ``path`` (as ``repr`` shows it) when it holds a NUL character,
+    which no system call takes: ``os.stat`` raises a ValueError ("embedded null byte") naming no
+    file, and ``Path.exists`` says False."""
+    if "\0" in str(path):
+        raise DataError(repr(str(path)), None, None, "a NUL character in the file name", "the name of a file",
+                        whole=True)
+
+
+#: What :func:`read_source` reads at a time beyond the size a file says it has.
+_CHUNK = 1 << 20
+
+
+def read_source(path, kind: str, head: int | None = None) -> bytes:
     """The bytes of ``path``, a regular file within the limit of ``kind`` (a key of
-    :data:`LIMITS`); a :class:`DataError` naming the file otherwise (module docstring)."""
+    :data:`LIMITS`); a :class:`DataError` naming the file otherwise (module docstring). With
+    ``head``, only its first ``head`` bytes (fewer if it is shorter): a format's magic number,
+    checked before a library that trusts it reads the file."""
     path = Path(path)
     check_source(path, kind)
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     limit = LIMITS[kind].bytes
+    want = limit + 1 if head is None else min(head, limit)
     try:
-        with os.fdopen(os.open(path, flags), "rb") as handle:
-            _check_stat(path, kind, os.fstat(handle.fileno()))  # the file opened is still a regular one
-            data = handle.read(limit + 1)
+        with os.fdopen(os.open(path, flags), "rb", buffering=0) as handle:
+            st = os.fstat(handle.fileno())
+            _check_stat(path, kind, st)  # the file opened is still a regular one
+            # as much as its size says, and a byte more (a read of n bytes takes n bytes of memory
+            # at once, however few there are: a gibibyte for every small table), then more in
+            # chunks while there is more (a file that grows, a /proc file of size 0)
+            blocks = [handle.read(min(want, st.st_size + 1))]
+            read = len(blocks[0])
+            while read < want and (block := handle.read(min(want - read, _CHUNK))):
+                blocks.append(block)
+                read += len(block)
+            data = blocks[0] if len(blocks) == 1 else b"".join(blocks)
     except OSError as error:
         raise _cannot_read(path, error) from None
     if len(data) > limit:
@@ -205,6 +234,7 @@ def read_lines(path, kind: str = "table") -> list[str]:
     except UnicodeDecodeError as error:
         line = len(_LINE_END.split(data[: error.start].decode("utf-8")))  # valid up to the bad byte
         raise DataError(path, line, None, f"byte 0x{data[error.start]:02x}", "UTF-8 text") from None
+    del data  # a table's bytes, its text and its lines would be three copies at once
     if text.startswith("\ufeff"):
         text = text[1:]
     if "\x00" in text:
@@ -309,10 +339,11 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
     parser, which names the first offending line and field. The C parser accepts a subset of
     what the token parser does (no underscores, no other Unicode digits), so both give the same
     values for any file they both accept."""
-    numbered = data_lines(lines, comment, skip)
-    values = table_fast([text for _, text in numbered], len(fields), delimiter)
+    body, numbers = numbered_lines(lines, comment, skip)
+    values = table_fast(body, len(fields), delimiter)
+    del body
     if values is not None and len(values) >= minimum:
-        return values, np.array([line for line, _ in numbered], dtype=np.int64)
+        return values, numbers
     split = str.split if delimiter is None else (lambda text: text.split(delimiter))
     rows = data_rows(lines, split, comment=comment, skip=skip)
     require_rows(path, rows, len(lines), minimum, what)
@@ -322,18 +353,19 @@ def read_table(path, lines: list[str], fields: list[str], minimum: int, what: st
 
 def table_fast(body: list[str], m: int, delimiter: str | None, stamps: bool = False):
     """``body`` as an ``(len(body), m)`` array of finite numbers by NumPy's C parser
-    (``np.loadtxt``), or None when any line is not such a row (``loadtxt`` skips blank lines, so
+    (``np.loadtxt`` of the lines), or None when any line is not such a row (``loadtxt`` skips blank lines, so
     a count mismatch means one). With ``stamps``, returns ``(values, first column as int64)``
     and the first column must be integers >= 0 (nanosecond time stamps, exact beyond 2^53)."""
     if not body:
         return None
-    text = "\n".join(body)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            values = np.loadtxt(io.StringIO(text), delimiter=delimiter, comments=None, ndmin=2, dtype=float)
-            ints = (np.loadtxt(io.StringIO(text), delimiter=delimiter, comments=None, ndmin=1, dtype=np.int64,
-                               usecols=0) if stamps else None)
+            # the lines themselves, not one text of them in an io.StringIO: that held the text
+            # twice more, once as four bytes a character (a table took eight times its size)
+            values = np.loadtxt(body, delimiter=delimiter, comments=None, ndmin=2, dtype=float)
+            ints = (np.loadtxt(body, delimiter=delimiter, comments=None, ndmin=1, dtype=np.int64, usecols=0)
+                    if stamps else None)
     except ValueError:
         return None
     if values.shape != (len(body), m) or not np.all(np.isfinite(values)):
@@ -343,6 +375,18 @@ def table_fast(body: list[str], m: int, delimiter: str | None, stamps: bool = Fa
             return None
         return values, ints
     return values
+
+
+def numbered_lines(lines: list[str], comment: str = "#", skip: int = 0) -> tuple[list[str], np.ndarray]:
+    """:func:`data_lines` as two sequences, ``(texts, 1-based lines (int64))``: no tuple per line
+    (a table of millions of lines is read whole, and those cost more than the numbers)."""
+    texts, numbers = [], []
+    for index in range(skip, len(lines)):
+        text = lines[index].strip()
+        if text and not (comment and text.startswith(comment)):
+            texts.append(text)
+            numbers.append(index + 1)
+    return texts, np.array(numbers, dtype=np.int64)
 
 
 def data_lines(lines: list[str], comment: str = "#", skip: int = 0) -> list[tuple[int, str]]:

@@ -73,14 +73,14 @@ from datasets.errors import (
     DataError,
     check_increasing,
     check_unit_quaternions,
-    data_lines,
     integer,
     number,
+    numbered_lines,
     read_lines,
     require_imu_recording,
     table_fast,
 )
-from datasets.kalibr import NOISE_KEYS, rigid_problem
+from datasets.kalibr import NOISE_KEYS, density_in_range, rigid_problem
 from datasets.types import Dataset, ImuSamples, Trajectory
 from datasets.yamlfile import YamlDocument, read_yaml
 from factors import quaternion, so3
@@ -186,11 +186,11 @@ def _read_asl_csv(path, columns: list[str], duplicates: bool = False) -> tuple[n
         width = len(columns)
         name_of = dict(enumerate(columns))
         start = first
-    numbered = data_lines(lines, "#", start)
-    fast = table_fast([text for _, text in numbered], width, ",", stamps=True)
+    body, line_numbers = numbered_lines(lines, "#", start)
+    fast = table_fast(body, width, ",", stamps=True)
+    del body
     if fast is not None and len(fast[1]) >= 2:  # every data line a plain row: NumPy's C parser
         values, stamps = fast
-        line_numbers = np.array([line for line, _ in numbered], dtype=np.int64)
         check_increasing(path, stamps, line_numbers, columns[0] + " [ns]", duplicates)
         return stamps, values[:, order], line_numbers
     stamps, values, line_numbers = [], [], []
@@ -328,7 +328,8 @@ def _report_uncovered(imu_csv, gt_csv, imu_ns: np.ndarray, gt_ns: np.ndarray) ->
 
 def _noise_from_yaml(yaml: SensorYaml) -> ImuNoise:
     doc = yaml.document
-    return ImuNoise(**{field: doc.number((key,), minimum=0.0) for key, field in NOISE_KEYS.items() if key in doc.data})
+    return ImuNoise(**{field: density_in_range(doc, (key,), field) for key, field in NOISE_KEYS.items()
+                       if key in doc.data})
 
 
 def load_euroc(folder, *, noise: ImuNoise | None = None, gravity=DEFAULT_GRAVITY) -> Dataset:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from datasets.errors import DataError
+from datasets.ranges import out_of_range
 from datasets.types import rigid_problem
 from datasets.yamlfile import read_yaml
 
@@ -27,6 +28,22 @@ NOISE_KEYS = {
     "accelerometer_random_walk": "acc_bias",
     "gyroscope_random_walk": "gyro_bias",
 }
+
+#: The rig key each :class:`ImuNoise` field stands for (its range: :data:`datasets.ranges.RANGES`).
+RIG_KEYS = {"acc": "accel_noise_density", "gyro": "gyro_noise_density", "acc_bias": "accel_random_walk",
+            "gyro_bias": "gyro_random_walk"}
+
+
+def density_in_range(doc, keys: tuple, field: str) -> float:
+    """The density at ``keys`` of the YAML document ``doc`` (for :class:`ImuNoise` ``field``), a
+    number within the range of the rig key it stands for, else a :class:`DataError` naming the
+    file, line and key: a density of a calibration file is one of the rig's."""
+    value = doc.number(keys, minimum=0.0)
+    problem = out_of_range(f"imu.{RIG_KEYS[field]}", value)
+    if problem is not None:
+        raise doc.error(keys, value, f"as the rig's {RIG_KEYS[field]}: {problem.removeprefix('expected ')}")
+    return value
+
 
 def read_kalibr_imu(path) -> dict[str, float]:
     """The noise densities of a Kalibr ``imu.yaml`` present in it, by :class:`ImuNoise` field

@@ -138,6 +138,13 @@ SIGMA_RANGES: dict[str, Range] = {
     "m/s": Range(1e-4, 100.0, "m/s", "a Doppler log's 0.1 mm/s to a velocity that says nothing (100 m/s)"),
 }
 
+#: The most ``[[sensor]]`` tables a rig file may have, and why. Every stage of a run costs time in
+#: proportion to the sensors (``docs/rig.md``, Limits: a thousand take some 25 s over a minute of
+#: data); ten thousand took 276 s on 20 s of data, and a rig file of 1 MiB holds that many.
+MAX_SENSORS = 1000
+MAX_SENSORS_WHY = ("a real rig has tens of sensors, a test rig of simulated ones a thousand; every stage of a run "
+                   "costs time in proportion to them, and ten thousand took minutes on seconds of data")
+
 #: What a sensor's name must match (whole): a letter, then letters, digits, ``_`` or ``-``; at
 #: most 64 characters.
 SENSOR_NAME_SYNTAX = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")

@@ -100,7 +100,7 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
     out of ``estimate``, so the next run starts from them as given."""
     cautions, noise = cautions or {}, noise or {}
     fitted = {name: g for name, g in noise.items() if not name.startswith("_") and g["applied"] and g["estimable"]}
-    document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8"))
+    document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8-sig"))
     imu = document["imu"]
     values, drop, comments = {"source": rig.imu.source}, [], []
     if "kalibr" in imu:  # the densities it held; those the rig gave itself stay as written

@@ -74,6 +74,22 @@ READERS = {
 SCHEMES = ("bag", "csv", "tum")
 
 
+def user_path(text: str, base_dir=".") -> Path:
+    """The path a user wrote (a rig file's value, a source spec's), ``~`` or ``~user`` expanded and
+    relative to ``base_dir`` unless absolute; an InputError naming it when it cannot be a path: a
+    NUL character (no file system takes one; the system call would fail without naming it) or a
+    ``~user`` of no known user (``Path.expanduser`` raises a ``RuntimeError`` there)."""
+    if "\0" in text:
+        raise InputError(f"path {text!r}: a NUL character (\\x00) cannot be part of a file name")
+    try:
+        path = Path(text).expanduser()
+    except RuntimeError:  # no home folder for "~" or "~user"
+        head = text.split("/", 1)[0]
+        raise InputError(f"path {text!r}: {head} names no home folder (no such user, or no HOME); write the "
+                         "folder out") from None
+    return Path(base_dir) / path
+
+
 def parse_spec(spec: str, base_dir=".", stream: str | None = None) -> tuple[str, Path]:
     """``(scheme, path)`` of ``spec``, the path resolved against ``base_dir``; with ``stream`` (a
     key of :data:`READERS`) the scheme must be able to give it. Reads nothing."""
@@ -87,7 +103,10 @@ def parse_spec(spec: str, base_dir=".", stream: str | None = None) -> tuple[str,
     if stream is not None and scheme not in READERS[stream]:
         raise InputError(f"source {spec!r}: a {scheme}: source has no {stream}; "
                          f"{stream} come from {' or '.join(s + ':' for s in READERS[stream])}")
-    return scheme, Path(base_dir) / Path(rest).expanduser()
+    try:
+        return scheme, user_path(rest, base_dir)
+    except InputError as error:
+        raise InputError(f"source {spec!r}: {error}") from None
 
 
 def _read(stream: str, spec: str, topic: str | None, base_dir):

@@ -167,6 +167,11 @@ def read_yaml(path) -> YamlDocument:
         raise DataError(path, None if mark is None else mark.line + 1, None, problem, "valid YAML") from None
     except yaml.YAMLError as error:
         raise DataError(path, None, None, str(error), "valid YAML") from None
+    except DataError:  # the walk's own (a ValueError too)
+        raise
+    except ValueError as error:  # a value PyYAML cannot construct: an integer of more than 4300 digits
+        raise DataError(path, None, None, str(error).split(";")[0], "valid YAML of values Python takes",
+                        whole=True) from None
     finally:
         loader.dispose()
     return YamlDocument(path, data, walk.lines, len(text_lines))

@@ -97,7 +97,9 @@ def _main(argv: list[str] | None) -> int:
                 and error.strerror else str(error)).strip()
         first = text.splitlines()[0] if text else ""
         if isinstance(error, MemoryError):
-            hint = "; try a shorter --duration" if "duration" in args else ""
+            dataset = str(getattr(args, "dataset", None) or "synthetic")
+            simulated = getattr(args, "rig", None) is None and dataset.startswith("synthetic")
+            hint = "; try a shorter --duration" if "duration" in args and simulated else ""
             print(f"smoother: error: out of memory ({first or 'no details'}){hint}", file=sys.stderr)
             return 2
         user = isinstance(error, (BoxplusError, ValueError, OSError)) and not isinstance(error, InternalError)

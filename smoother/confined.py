@@ -14,6 +14,7 @@ be a folder of its own inside a directory (a fleet's rig stems).
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
 
 from factors.errors import InputError
@@ -34,6 +35,28 @@ def inside(directory, name: str, follow: bool = True) -> Path:
         how = "is a symbolic link to" if os.path.islink(path) else "leads to"
         raise InputError(f"{path} {how} {resolved}, outside {directory}: a command writes and deletes only inside "
                          "the directory it is given")
+    return path
+
+
+def file_inside(directory, name: str) -> Path:
+    """:func:`inside`, for a file a command opens and writes in place (a run directory's lock, a
+    fleet recording's log): what is there already must be a regular file, or nothing. A named pipe
+    there would block the opening until another program read it, a device take what is written;
+    an InputError naming it otherwise. (Files written whole are written atomically, replacing
+    whatever has their name.)"""
+    path = inside(directory, name)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return path
+    except OSError as error:
+        raise InputError(f"{path}: cannot be written ({error.strerror})") from None
+    if not stat.S_ISREG(mode):
+        what = ("a named pipe (FIFO)" if stat.S_ISFIFO(mode) else "a directory" if stat.S_ISDIR(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "a special file")
+        raise InputError(f"{path} is {what}, not a regular file: a command writes its files as regular files; "
+                         "remove it")
     return path
 
 

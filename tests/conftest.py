@@ -24,9 +24,10 @@ from factors.kernel_caches import ensure_fresh_caches
 ensure_fresh_caches()  # before the test modules import (and run) any kernel
 
 # The helper modules the tests share sit next to this file (strategies.py, rigfiles.py, bagfiles.py,
-# eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py, drifting_fixes.py): this directory on sys.path
-# makes ``import strategies`` work from every folder of tests/, under pytest's default (prepend)
-# import mode, which puts only each test file's own folder there, and under ``--import-mode=importlib``.
+# eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py, drifting_fixes.py, isolation.py):
+# this directory on sys.path makes ``import strategies`` work from every folder of tests/, under
+# pytest's default (prepend) import mode, which puts only each test file's own folder there, and
+# under ``--import-mode=importlib``.
 _HERE = os.path.dirname(os.path.abspath(__file__))
 if _HERE not in sys.path:
     sys.path.insert(0, _HERE)

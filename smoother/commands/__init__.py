@@ -77,6 +77,24 @@ def check_option(option: str, value) -> None:
         raise UserError(f"{option}: {problem}")
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def check_workers(workers, dask_address=None) -> None:
+    """``--workers``: within its range, and on this machine (no ``--dask``) at most twice its
+    cores (four at least): every worker is a process of its own memory (some 300 MB with GTSAM and
+    the compiled kernels loaded), and those beyond the cores only wait for them -- 1024 of them,
+    the range's bound, asked for 300 GB of a 2-core machine's memory."""
+    check_option("--workers", workers)
+    most = max(4, 2 * usable_cores())
+    if dask_address is None and workers > most:
+        raise UserError(f"--workers: expected at most {most} on this machine (twice its {usable_cores()} cores: each "
+                        f"worker is a process of its own memory, some 300 MB, and more only wait for the cores), "
+                        f"got {workers}; a Dask cluster (--dask) takes more")
+
+
 def named_directory(path) -> Path:
     """``--out`` as a path; an empty one is refused (``Path("")`` is the current directory, which
     the user did not name)."""

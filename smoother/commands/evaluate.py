@@ -111,7 +111,9 @@ def run(args) -> int:
         try:
             trajectories[option] = _read(path, args.format, attitudes=option == "--reference")
         except (DataError, ValueError, OSError, KeyError) as error:
-            raise UserError(f"{option}: {path}: {error}") from None
+            text = str(error)  # the readers' errors name the file themselves, most of them
+            named = text if text.startswith(str(path)) else f"{path}: {text}"
+            raise UserError(f"{option}: {named}") from None
     ref, est = trajectories["--reference"], trajectories["--estimate"]
     if (ref.t is None) != (est.t is None):
         kitti, other = ("--reference", "--estimate") if ref.t is None else ("--estimate", "--reference")

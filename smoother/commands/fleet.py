@@ -35,13 +35,13 @@ def register(sub) -> None:
 def run(args) -> int:
     from datasets.atomic import atomic_write
     from factors.threads import thread_count
-    from smoother.commands import check_option, named_directory, output_directory
+    from smoother.commands import check_workers, named_directory, output_directory
     from smoother.commands import fleet_runner as fleet
     from smoother.confined import inside
     from smoother.fixed_lag.lag import check_lag
     from smoother.progress import progress_bar
 
-    check_option("--workers", args.workers)
+    check_workers(args.workers, args.dask)
     check_lag(args.lag, "--lag", UserError)
     options = ["--estimator", args.estimator, "--lag", repr(args.lag)] + ["--mcap"] * args.mcap + ["--plot"] * args.plot
     share = None if args.dask else max(1, thread_count() // args.workers)

@@ -37,7 +37,7 @@ from pathlib import Path
 
 from factors.errors import InputError
 from smoother import parallel
-from smoother.confined import folder_name_problem, inside
+from smoother.confined import file_inside, folder_name_problem, inside
 from smoother.outputs.layout import METRICS
 
 #: The fleet's own file in its ``--out`` (each recording's files are in its folder).
@@ -117,7 +117,8 @@ def run_recording(recording: Recording) -> dict | None:
         threads = recording.threads or _dask_share()
         if threads is not None and "BOXPLUS_THREADS" not in os.environ:
             env["BOXPLUS_THREADS"] = str(threads)
-        with open(inside(out, LOG), "w") as log:
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+        with os.fdopen(os.open(file_inside(out, LOG), flags, 0o666), "w") as log:  # never a pipe's reader awaited
             with _children_lock:  # started and registered at once: forward() misses no child
                 if _stopping.is_set():
                     return None

@@ -32,15 +32,16 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from datasets.simulate import DEFAULT_SENSOR_NAMES, PROFILES
-    from smoother.commands import check_option, output_directory
+    from smoother.commands import check_option, check_workers, output_directory
     from smoother.commands.run import parse_robust
     from smoother.evaluation import montecarlo
     from smoother.progress import progress_bar
 
     if args.profile not in PROFILES:
         raise UserError(f"--profile {args.profile}: expected one of {', '.join(PROFILES)}")
-    for option in ("--runs", "--first-seed", "--workers", "--duration", "--outliers"):
+    for option in ("--runs", "--first-seed", "--duration", "--outliers"):
         check_option(option, getattr(args, option[2:].replace("-", "_")))
+    check_workers(args.workers, args.dask)
     estimators = tuple(args.estimator or ("batch", "ekf"))
     config = montecarlo.MonteCarloConfig(
         profile=args.profile, duration=args.duration, estimators=estimators, outliers=args.outliers,

@@ -75,22 +75,30 @@ def register(sub) -> None:
 
 def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
     """``["huber"]`` -> the same kernel for every sensor named in ``types``; ``["pose=cauchy:2"]``
-    -> per sensor; over ``defaults`` (a rig file's per-sensor kernels)."""
+    -> per sensor; over ``defaults`` (a rig file's per-sensor kernels). A sensor's own kernel
+    holds, before or after one for every sensor (which the others take); two for one sensor (or
+    two for every sensor) are a UserError: one of them would be dropped without a word."""
     from datasets.robust import robust_spec
 
-    out: dict = dict(defaults or {})
+    given: dict = {}  # per target (None: every sensor): (the spec, its kernel)
     for spec in specs:
         target, sep, kernel = spec.partition("=")
         if not sep:
             target, kernel = None, spec
         elif target not in types:
             raise UserError(f"--robust {spec}: unknown sensor {target!r}; expected one of {', '.join(types)}")
+        if target in given:  # two kernels for one sensor: which was meant?
+            whose = "every sensor" if target is None else f"sensor {target!r}"
+            raise UserError(f"--robust {spec}: {whose} has a kernel already (--robust {given[target][0]}); give one "
+                            "--robust per sensor (and at most one without a sensor, for the others)")
         try:
-            parsed = robust_spec(kernel)
+            given[target] = spec, robust_spec(kernel)
         except ValueError as error:
             raise UserError(f"--robust {spec}: {error}") from None  # a threshold's range is the rig key robust's
-        for t in (types if target is None else (target,)):
-            out[t] = parsed
+    out: dict = dict(defaults or {})
+    if None in given:
+        out.update((t, given[None][1]) for t in types)
+    out.update((t, parsed) for t, (_, parsed) in given.items() if t is not None)
     return {k: v for k, v in out.items() if v is not None}
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from datasets.atomic import STAGING_PREFIX, staging
 from factors.errors import InputError, InternalError
-from smoother.confined import inside
+from smoother.confined import file_inside, inside
 from smoother.errors import UserError
 from smoother.outputs.layout import CALIBRATED_RIG, ESTIMATE_SUFFIXES, GPS, MCAP, METRICS, PLOTS, TRUTH
 
@@ -82,9 +82,13 @@ class RunDirectory:
             self._lock = None
 
     def _take_lock(self) -> None:
-        path = inside(self.path, LOCK)  # truncated below: never a file elsewhere that a link leads to
+        try:  # truncated below: never a file elsewhere that a link leads to, nor a pipe or device
+            path = file_inside(self.path, LOCK)
+        except InputError as error:
+            raise UserError(f"--out {self.path}: {error}") from None
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0),
+                         0o666)
         except OSError as error:
             raise UserError(f"--out {self.path}: cannot create its lock file {LOCK} ({error.strerror})") from None
         try:

@@ -139,7 +139,7 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     whose factor has a ~0 covariance, and the system becomes indeterminant."""
     grid_rate = keyframe_rate(dataset, rate)
     if grid_rate is None:
-        return measurement_knots(dataset)
+        return bounded_intervals(measurement_knots(dataset), dataset.imu.t)
     parts = [[dataset.t0, dataset.t1]]
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
     parts += [s.data.t_from for s in dataset.sensors if s.data is not None and hasattr(s.data, "t_from")]
@@ -150,7 +150,32 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
     grid = grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))]
     times = np.union1d(others, grid)
-    return times[(times >= dataset.t0) & (times <= dataset.t1)]
+    return bounded_intervals(times[(times >= dataset.t0) & (times <= dataset.t1)], dataset.imu.t)
+
+
+#: The longest keyframe interval, in IMU steps, as a multiple of the mean interval's
+#: (:func:`bounded_intervals`).
+LONGEST_INTERVAL = 4
+
+
+def bounded_intervals(times: np.ndarray, imu_t: np.ndarray) -> np.ndarray:
+    """``times`` (keyframes, sorted) with keyframes added, evenly, inside every interval of more
+    than :data:`LONGEST_INTERVAL` times the mean number of IMU steps: the estimators hold the
+    intervals' steps padded to the longest one (:meth:`Steps.segments`), so that one long interval
+    -- a GNSS outage of minutes, IMU data long after the last fix -- made memory of the number of
+    keyframes times its length (a 13-minute outage of a 2 Hz GNSS-only rig asked for 861 MiB at a
+    time, and the batch failed in 4 GB). Bounded so, the padded steps are at most nine times the
+    IMU's. Intervals within it are left as they are: a keyframe at every measurement time stays."""
+    times = np.asarray(times, dtype=float)
+    if len(times) < 2:
+        return times
+    steps = np.diff(np.searchsorted(imu_t, times))  # IMU samples starting in each interval
+    longest = max(1, int(np.ceil(LONGEST_INTERVAL * steps.sum() / len(steps))))
+    long = np.flatnonzero(steps > longest)
+    if not long.size:
+        return times
+    added = [np.linspace(times[j], times[j + 1], int(np.ceil(steps[j] / longest)) + 1)[1:-1] for j in long]
+    return np.union1d(times, np.concatenate(added))
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from datasets.atomic import atomic_write
+from datasets.errors import LIMITS, DataError, check_source, read_source
 from datasets.initialise import world_frame
 from datasets.kinds import sensors_of
 from datasets.tum import write_tum
@@ -59,6 +60,7 @@ def read_npz(path: Path, expected: str):
     block; an :class:`~factors.errors.InputError` naming the file and ``expected`` when it is not
     such an archive, cannot be read or holds arrays the block refuses (a ``ValueError`` there, e.g.
     a data type's validation, ``Trajectory.cov: expected shape ...``, then prefixed with the file)."""
+    check_source(path, "npz")  # a regular file (a pipe blocked np.load for ever) within the limit
     try:
         is_zip = zipfile.is_zipfile(path)
     except OSError as error:
@@ -66,6 +68,7 @@ def read_npz(path: Path, expected: str):
     if not is_zip:
         raise InputError(f"{path}: not an .npz archive; expected {expected}")
     try:
+        _check_unpacked(path)
         with np.load(path, allow_pickle=False) as data:
             yield data
     except InputError as error:  # the block's own, naming the file, or a data type's, naming its field
@@ -74,6 +77,35 @@ def read_npz(path: Path, expected: str):
         raise InputError(f"{path}: {error}") from None
     except _NPZ_ERRORS as error:
         raise InputError(f"{path}: cannot read it ({error}); expected {expected}") from None
+
+
+def _check_unpacked(path: Path) -> None:
+    """The arrays of the ``.npz`` ``path`` fit :data:`datasets.errors.LIMITS` ``["npz"]`` unpacked
+    too, each no larger than its member of the archive: ``np.load`` allocates an array as its
+    header's shape says before it reads a byte of it, and an archive compresses gigabytes of zeros
+    into megabytes. A :class:`~datasets.errors.DataError` naming the file and the array otherwise."""
+    limit = LIMITS["npz"]
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with zipfile.ZipFile(path) as archive:
+        members = archive.infolist()
+        total = sum(info.file_size for info in members)
+        if total > limit.bytes:
+            raise DataError(path, None, None, f"arrays of {total} bytes unpacked",
+                            f"at most {limit.bytes} bytes, the limit of {limit.files}: {limit.why}", whole=True)
+        for info in members:
+            if not info.filename.endswith(".npy"):
+                continue
+            with archive.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                if version not in readers:  # np.save writes 1.0 (2.0 for headers beyond 64 kB)
+                    raise DataError(path, None, info.filename.removesuffix(".npy"), f".npy format {version}",
+                                    "an array as np.save writes it (format 1.0 or 2.0)", whole=True)
+                shape, _, dtype = readers[version](member)
+            size = math.prod(shape) * dtype.itemsize
+            if size > info.file_size:
+                raise DataError(path, None, info.filename.removesuffix(".npy"),
+                                f"an array of shape {shape} ({size} bytes) in {info.file_size} bytes",
+                                "an array no larger than its file in the archive", whole=True)
 
 
 def load_trajectory(path: Path) -> Trajectory:
@@ -256,9 +288,9 @@ def estimator_names(run_dir: Path) -> list[str]:
     read), else every ``<name>.npz`` other than the truth and the fixes."""
     found = {p.stem for p in Path(run_dir).glob("*.npz") if p.name not in (TRUTH, GPS)}
     try:
-        listed = json.loads((Path(run_dir) / METRICS).read_text())["_run"]["estimators"]
+        listed = json.loads(read_source(Path(run_dir) / METRICS, "json"))["_run"]["estimators"]
         found &= set(listed)
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError):  # none, or not one (load_run names it)
         pass
     return [n for n in ESTIMATOR_ORDER if n in found] + sorted(found - set(ESTIMATOR_ORDER))
 
@@ -285,7 +317,9 @@ def load_run(run_dir, estimators=None) -> Run:
     path = run_dir / METRICS
     if path.exists():
         try:
-            document = json.loads(path.read_text())
+            document = json.loads(read_source(path, "json"))  # a regular file: a pipe blocked the read
+        except DataError:  # not a regular file, too large: it names the file
+            raise
         except (OSError, ValueError) as error:
             raise InputError(f"{path}: cannot read it ({error}); expected the JSON object smoother run "
                              "writes") from None

@@ -158,3 +158,36 @@ def test_an_imu_in_degrees_beside_a_wheel_is_named_as_the_imu(capsys, tmp_path):
     assert main(["run", "--rig", str(rig), "--estimator", "ekf", "--no-progress", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "imu (csv:" in err[0] and "deg/s" in err[0] and "wheel" not in err[0], err
+
+
+@pytest.mark.parametrize("argv", [["montecarlo", "--runs", "2000"], ["fleet", "x.toml"]])
+def test_workers_beyond_twice_the_machines_cores_are_refused_before_any_starts(capsys, tmp_path, monkeypatch, argv):
+    """--workers 1024 (the range's bound) forked a process of some 300 MB for each of 1024 tasks
+    on a 2-core machine; a Dask cluster takes any number in the range."""
+    import smoother.commands as commands
+
+    monkeypatch.setattr(commands, "usable_cores", lambda: 2)
+    commands.check_workers(4)
+    commands.check_workers(1024, "tcp://scheduler:8786")
+    assert main([*argv, "--workers", "5", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["smoother: error: --workers: expected at most 4 on this machine (twice its 2 cores: each worker is "
+                   "a process of its own memory, some 300 MB, and more only wait for the cores), got 5; a Dask "
+                   "cluster (--dask) takes more"], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_kernels_for_one_sensor_are_refused_and_a_sensors_own_holds_in_any_order(capsys, tmp_path):
+    """``--robust gnss=huber --robust gnss=cauchy`` ran with cauchy, saying nothing of huber, and
+    ``--robust gnss=cauchy --robust huber`` gave gnss huber: the order decided, silently."""
+    from smoother.commands.run import parse_robust
+
+    types = ("gnss", "wheel")
+    for specs in (["gnss=cauchy", "huber"], ["huber", "gnss=cauchy"]):
+        assert parse_robust(specs, types) == {"gnss": ("cauchy", None), "wheel": ("huber", None)}
+    for specs, said in ((["pose=huber", "pose=cauchy"], "sensor 'pose' has a kernel already (--robust pose=huber)"),
+                        (["huber", "tukey:3"], "every sensor has a kernel already (--robust huber)")):
+        assert main(["run", "--duration", "2", "--estimator", "ekf", "--out", str(tmp_path / "o"),
+                     *[a for s in specs for a in ("--robust", s)]]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"smoother: error: --robust {specs[1]}: {said}"), err

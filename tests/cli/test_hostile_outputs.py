@@ -6,12 +6,18 @@ follows the estimators (verdicts, the advice fit) can be stopped or fail without
 finished estimates. ``smoother plot`` names the ``.npz`` it cannot use."""
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from isolation import isolated
 
+from datasets.errors import LIMITS, SizeLimit
 from factors.errors import InputError
 from smoother.cli import main
 from smoother.confined import folder_name_problem, inside
@@ -190,3 +196,110 @@ def test_plot_names_the_npz_whose_arrays_do_not_make_a_trajectory(tmp_path, caps
     np.savez(run / "ekf.npz", **{**arrays, "r": np.zeros((n - 2, 3))})
     assert main(["plot", str(run)]) == 2
     assert f"{run / 'ekf.npz'}: Trajectory.states.r" in _one_line(capsys)
+
+
+def _run_files(folder: Path) -> dict:
+    """A run directory's ekf.npz and metrics.json, as smoother run writes them."""
+    folder.mkdir()
+    n = 10
+    arrays = dict(t=np.arange(n, dtype=float), r=np.zeros((n, 3)), v=np.zeros((n, 3)), C=np.tile(np.eye(3), (n, 1, 1)),
+                  b_f=np.zeros((n, 3)), b_w=np.zeros((n, 3)), cov=np.tile(np.eye(15), (n, 1, 1)))
+    np.savez(folder / "ekf.npz", **arrays)
+    (folder / "metrics.json").write_text(json.dumps({"ekf": {}, "_run": {"estimators": ["ekf"]}}))
+    return arrays
+
+
+def _unpacking_to(path: Path, arrays: dict, shape: tuple, written: int) -> None:
+    """``arrays`` as an .npz whose ``cov`` says ``shape`` and holds ``written`` bytes of zeros:
+    compressed, gigabytes of them take megabytes."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                if name != "cov":
+                    np.lib.format.write_array(member, value)
+                    continue
+                np.lib.format.write_array_header_1_0(member, {"descr": "<f8", "fortran_order": False, "shape": shape})
+                block = bytes(1 << 24)
+                for _ in range(written // len(block)):
+                    member.write(block)
+
+
+@pytest.mark.parametrize("command", ["plot", "evaluate"])
+@pytest.mark.parametrize("which, make, fragment", [
+    ("ekf.npz", "pipe", "found a named pipe (FIFO)"),
+    ("metrics.json", "pipe", "found a named pipe (FIFO)"),
+    ("metrics.json", "device", "found a character device"),
+    ("ekf.npz", "bomb", "bytes unpacked; expected at most 1048576 bytes"),
+    ("ekf.npz", "header", "field 'cov': found an array of shape (100000000, 15, 15)"),
+])
+def test_a_run_directorys_file_that_is_no_file_or_unpacks_past_its_limit_is_refused_naming_it(
+        tmp_path, monkeypatch, command, which, make, fragment):
+    """A pipe blocked ``smoother plot`` and ``evaluate`` for ever (np.load and read_text opened it);
+    /dev/zero ran them out of memory, unnamed; an archive of a few megabytes unpacked to
+    gigabytes (here past a limit of 1 MiB), and an array header of a shape its data do not have
+    allocated that shape first."""
+    if command == "evaluate" and which == "metrics.json":
+        pytest.skip("smoother evaluate reads no metrics.json")
+    run = tmp_path / "run"
+    arrays = _run_files(run)
+    path = run / which
+    path.unlink()
+    if make == "pipe":
+        os.mkfifo(path)
+    elif make == "device":
+        path.symlink_to("/dev/zero")
+    elif make == "bomb":
+        monkeypatch.setitem(LIMITS, "npz", SizeLimit(LIMITS["npz"].files, 1 << 20, LIMITS["npz"].why))
+        _unpacking_to(path, arrays, (4660, 15, 15), 1 << 24)
+    else:
+        _unpacking_to(path, arrays, (100_000_000, 15, 15), 0)
+    argv = ["plot", str(run)] if command == "plot" else ["evaluate", "--reference", str(run / "ekf.npz"),
+                                                         "--estimate", str(run / "ekf.npz"), "--align", "none"]
+
+    def call():
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            code = main(argv)
+        raise SystemExit(f"{code}\n{err.getvalue()}")
+
+    outcome = isolated(call, seconds=30)
+    code, text = outcome.message.split("\n", 1)
+    lines = [line for line in text.splitlines() if line.startswith("smoother:")]
+    named = f"smoother: error: {'--reference: ' if command == 'evaluate' else ''}{path}"
+    assert code == "2" and len(lines) == 1 and lines[0].startswith(named) and fragment in lines[0], outcome
+
+
+def _main_isolated(argv: list[str]) -> tuple[str, list[str]]:
+    """``main(argv)`` in a bounded child process: its exit code and the lines it wrote that say
+    ``smoother:`` or ``failed:`` (the child is killed, and the test fails, when it blocks)."""
+
+    def call():
+        said = io.StringIO()
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            code = main(argv)
+        raise SystemExit(f"{code}\n{said.getvalue()}")
+
+    outcome = isolated(call, seconds=30)
+    assert "SystemExit" in outcome.raised, outcome
+    code, text = outcome.message.split("\n", 1)
+    return code, [line.strip() for line in text.splitlines() if "smoother:" in line or "failed:" in line]
+
+
+@pytest.mark.parametrize("command", ["run", "fleet"])
+def test_a_pipe_where_a_command_opens_a_file_to_write_is_refused_naming_it(tmp_path, command):
+    """A named pipe at a fleet recording's run.log blocked ``smoother fleet`` for ever (opened for
+    writing, it waits for a reader); one at a run directory's lock file failed with "[Errno 22]
+    Invalid argument", naming nothing."""
+    out = tmp_path / "out"
+    if command == "run":
+        out.mkdir()
+        pipe = out / ".smoother.lock"
+        argv = ["run", *RUN, "--out", str(out)]
+    else:
+        (tmp_path / "husky.toml").write_text("[imu]\n")
+        (out / "husky").mkdir(parents=True)
+        pipe = out / "husky" / "run.log"
+        argv = ["fleet", str(tmp_path / "husky.toml"), "--out", str(out), "--no-progress"]
+    os.mkfifo(pipe)
+    code, lines = _main_isolated(argv)
+    assert code == "2" and any(f"{pipe} is a named pipe (FIFO), not a regular file" in line for line in lines), lines

@@ -331,7 +331,7 @@ def test_the_users_reference_states_every_limit_as_the_code_has_it():
     unit = {"MiB": MIB, "GiB": GIB}
     sizes = [int(number) * unit[name] for line in section.splitlines() if line.startswith("|")
              for number, name in re.findall(r"^\|[^|]*\| (\d+) (MiB|GiB) \|", line)]
-    assert sizes == [LIMITS[kind].bytes for kind in ("rig", "yaml", "table", "bag")]
+    assert sizes == [LIMITS[kind].bytes for kind in ("rig", "yaml", "table", "npz", "json", "bag")]
     flat = " ".join(section.split())
     assert f"at most {MAX_NODES:,} nodes".replace(",", " ") in flat and f"nested at most {MAX_DEPTH} levels" in flat
     assert f"at least {MIN_RECORDING_SAMPLES} samples over at least {MIN_RECORDING_SECONDS:g} s" in flat
@@ -346,3 +346,79 @@ def test_a_short_sigma_of_a_pose_names_the_unit_it_failed_in(tmp_path, sigma, wh
     path = _rig(tmp_path, IMU + f'\n[[sensor]]\nname = "cam"\nkind = "pose"\nsource = "csv:cam.csv"\nsigma = {sigma}\n')
     with pytest.raises(RigError, match=re.escape(f'{path}: sensor[1] "cam".sigma: {which}')):
         load_rig(path)
+
+
+@pytest.mark.parametrize("key, line", [
+    ("imu.source", 'source = "csv:{path}"'),
+    ("imu.kalibr", 'kalibr = "{path}"'),
+    ('sensor[2] "mag".source', 'source = "csv:{path}"'),
+])
+@pytest.mark.parametrize("path, why", [
+    ("~no-such-user-here/imu.csv", "~no-such-user-here names no home folder"),
+    ("imu\\u0000.csv", "a NUL character (\\x00) cannot be part of a file name"),
+])
+def test_a_path_that_cannot_be_one_is_refused_at_load_naming_its_key(tmp_path, key, line, path, why):
+    """``~user`` of no user made Path.expanduser raise a RuntimeError (an "internal failure", exit
+    code 3); a NUL reached the system call, whose "embedded null byte" named neither file nor key."""
+    text = RIG
+    if key == "imu.kalibr":
+        text = RIG.replace("[datum]", line.format(path=path) + "\n[datum]", 1)
+    elif key == "imu.source":
+        text = RIG.replace('source = "csv:imu.csv"', line.format(path=path), 1)
+    else:
+        text = RIG.replace('source = "csv:mag.csv"', line.format(path=path), 1)
+    rig = _rig(tmp_path, text)
+    with pytest.raises(RigError) as info:
+        load_rig(rig)
+    message = str(info.value)
+    assert message.startswith(f"{rig}: {key}: ") and why in message and "\n" not in message, message
+
+
+def _sensors(n: int, source=lambda i: f"csv:p{i}.csv") -> str:
+    return "".join(f'\n[[sensor]]\nname = "s{i}"\nkind = "position"\nsource = "{source(i)}"\n' for i in range(n))
+
+
+def test_a_rig_of_more_sensors_than_the_limit_is_refused_at_load(tmp_path):
+    """Ten thousand sensors (700 kB of rig file) took 276 s on 20 s of data; the limit itself reads."""
+    from datasets.ranges import MAX_SENSORS
+
+    assert len(load_rig(_rig(tmp_path, IMU + _sensors(MAX_SENSORS))).sensors) == MAX_SENSORS
+    path = _rig(tmp_path, IMU + _sensors(MAX_SENSORS + 1))
+    with pytest.raises(RigError, match=re.escape(f"{path}: sensor: {MAX_SENSORS + 1} sensors; expected at most "
+                                                 f"{MAX_SENSORS} (")):
+        load_rig(path)
+
+
+@pytest.mark.parametrize("first, second, shared", [
+    ('kind = "position"\nsource = "csv:p.csv"', 'kind = "position"\nsource = "csv:p.csv"', "position"),
+    ('kind = "pose"\nsource = "csv:p.csv"', 'kind = "position"\nsource = "csv:./p.csv"', "position"),
+    ('kind = "orientation"\nsource = "csv:p.csv"', 'kind = "orientation"\nsource = "csv:link.csv"\n'
+                                                  'roll_pitch_only = true', "C"),
+    ('kind = "gnss"\nsource = "bag:run.bag"\ntopic = "/fix"', 'kind = "gnss"\nsource = "bag:run.bag"\n'
+                                                             'topic = "/fix"', "position"),
+    ('kind = "position"\nsource = "csv:p.csv"', 'kind = "orientation"\nsource = "csv:p.csv"', None),  # a pose file
+    ('kind = "gnss"\nsource = "bag:run.bag"\ntopic = "/fix"', 'kind = "gnss"\nsource = "bag:run.bag"\n'
+                                                             'topic = "/fix2"', None),
+])
+def test_the_same_measurements_read_by_two_sensors_are_refused_at_load(tmp_path, first, second, shared):
+    """Two sensors of one file and topic that measure a same field count each measurement twice,
+    as independent ones: every sigma of the estimates came out too small (by 1.4), silently; ten
+    thousand copies of one sensor made a run of minutes. A link, or another spelling of the path,
+    is the same file."""
+    (tmp_path / "p.csv").write_text("t,x,y,z,qw,qx,qy,qz\n")
+    (tmp_path / "link.csv").symlink_to(tmp_path / "p.csv")
+    path = _rig(tmp_path, IMU + f'\n[[sensor]]\nname = "a"\n{first}\n' + f'\n[[sensor]]\nname = "b"\n{second}\n')
+    if shared is None:
+        assert len(load_rig(path).sensors) == 2
+        return
+    with pytest.raises(RigError, match=re.escape(f'{path}: sensor[2] "b".source: ') + ".* is read by sensor\\[1\\] "
+                       f"'a' .* too, and both measure its {shared}: the same measurements used twice"):
+        load_rig(path)
+
+
+def test_a_rig_saved_with_a_byte_order_mark_reads(tmp_path):
+    """Windows editors save UTF-8 with a byte-order mark: the rig was "TOML syntax error: Invalid
+    statement (at line 1, column 1)", as the CSV readers already drop it."""
+    path = tmp_path / "rig.toml"
+    path.write_bytes("\ufeff".encode() + RIG.encode())
+    assert load_rig(path).imu.gravity == 9.81

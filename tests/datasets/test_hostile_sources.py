@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.linalg  # noqa: F401 -- loaded here: OpenBLAS starting under a child's memory limit spins
 from bagfiles import Messages, write_bag
 
 from datasets import errors, euroc, kitti, tum
@@ -260,3 +261,83 @@ def test_ordinary_files_still_read(tmp_path):
     (tmp_path / "p.csv").write_text("t,x,y,z\n" + "".join(f"{x},1,2,3\n" for x in t))
     (tmp_path / "link.csv").symlink_to(tmp_path / "p.csv")
     assert np.array_equal(read_positions(f"csv:{tmp_path / 'link.csv'}").t, t)
+
+
+@pytest.mark.parametrize("name, kind, read", READERS, ids=NAMES)
+def test_a_path_with_a_nul_is_one_error_naming_it(tmp_path, name, kind, read):
+    """The system call's ValueError ("embedded null byte") named no file; a path given in Python
+    or in a rig can hold a NUL (TOML's \\u0000)."""
+    path = tmp_path / "imu\0.csv"
+    with pytest.raises(ValueError) as info:
+        read(path)
+    message = str(info.value)
+    assert "NUL character" in message and repr(str(path))[1:-1] in message and "\n" not in message, message
+
+
+def _ros1_bag(tmp_path: Path) -> Path:
+    """A ROS 1 bag of two seconds of IMU messages."""
+    m = Messages("ros1")
+    return write_bag(tmp_path / "run.bag", "ros1", {"/imu": ("sensor_msgs/msg/Imu", [
+        m.imu(10**18 + k * 10**7, (0, 0, 9.81), (0, 0, 0)) for k in range(201)])})
+
+
+def _index_pos(bag: Path) -> int:
+    """Where a ROS 1 bag's index (its connection records) starts: the bag header's index_pos."""
+    data = bag.read_bytes()
+    start = len(b"#ROSBAG V2.0\n")
+    length = int.from_bytes(data[start:start + 4], "little")
+    header, i = data[start + 4:start + 4 + length], 0
+    while i < len(header):
+        size = int.from_bytes(header[i:i + 4], "little")
+        name, _, value = header[i + 4:i + 4 + size].partition(b"=")
+        if name == b"index_pos":
+            return int.from_bytes(value, "little")
+        i += 4 + size
+    raise AssertionError("no index_pos")
+
+
+@pytest.mark.parametrize("damage, fragment", [
+    ("sparse", "an unreadable bag (it starts with b'\\x00"),  # no line end: rosbags read it whole for its version
+    ("bag header", "an unreadable bag (a bag header of 4294967280 bytes"),
+    ("connection record", "out of memory"),  # a record's length field of ~4 GiB, read as it says
+])
+def test_a_ros1_bag_whose_lengths_lie_is_refused_naming_it_within_the_memory_limit(tmp_path, isolated, damage,
+                                                                                     fragment):
+    """rosbags trusts a ROS 1 bag's version line and record lengths: a 6 GiB file of zeros named
+    .bag was read whole looking for the version's line end (out of memory, the file not named)."""
+    if damage == "sparse":
+        bag = _sparse(tmp_path / "run.bag", 6 * 2**30)
+    else:
+        bag = _ros1_bag(tmp_path)
+        data = bytearray(bag.read_bytes())
+        at = len(b"#ROSBAG V2.0\n") if damage == "bag header" else _index_pos(bag)
+        data[at:at + 4] = (0xFFFFFFF0).to_bytes(4, "little")
+        bag.write_bytes(bytes(data))
+    message = _refused(lambda p: read_bag_imu(p, "/imu"), bag, isolated, fragment, errors=("DataError",))
+    assert message.startswith(f"{bag}"), message
+
+
+#: A table's read may take this many times its size in memory, and a few megabytes (its text once
+#: and its lines once as Python strings, some 2.6 times its size, the values as floats): eight
+#: before, and a gibibyte more for any table.
+TABLE_MEMORY_FACTOR, TABLE_MEMORY_SLACK = 5, 16 << 20
+
+
+@pytest.mark.parametrize("name", ["csv imu", "csv positions"])
+def test_a_table_is_read_within_a_few_times_its_size(tmp_path, isolated, name):
+    """The 1 GiB a table may be has to fit the 4 GB a run may take: a read of n bytes took n bytes
+    at once (a gibibyte for every table), and the parser held the text twice more, once in an
+    io.StringIO at four bytes a character (a 421 MB IMU file took 3.3 GB, a 1 GiB one 8)."""
+    n = 200_000
+    if name == "csv imu":
+        row = ",0.0123456789012345,-0.0234567890123456,0.0345678901234567,0.123456789012345,-0.2345678901234,9.8066\n"
+        stamps = (10**18 + np.arange(n, dtype=np.int64) * 5_000_000).tolist()
+        text = "#timestamp,w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + row.join(map(str, stamps)) + row
+    else:
+        row = ",12345.6789012345,-2345.67890123456,345.678901234567,0.11,0.12,0.13\n"
+        text = "t,x,y,z,sigma_x,sigma_y,sigma_z\n" + row.join(repr(x) for x in (np.arange(n) * 0.005).tolist()) + row
+    path = tmp_path / "table.csv"
+    path.write_text(text)
+    read = dict((r[0], r[2]) for r in READERS)[name]
+    outcome = isolated(lambda: read(path), memory=TABLE_MEMORY_FACTOR * len(text) + TABLE_MEMORY_SLACK)
+    assert outcome.raised == (), outcome

@@ -5,11 +5,14 @@ run in an isolated process (the ``isolated`` fixture: a deadline and a memory li
 regression fails its test and leaves the machine alone); aliases a real file might hold are read."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from bagfiles import Messages, write_bag
 
 from datasets.bags import read_bag_imu
+from datasets.errors import DataError
 from datasets.euroc import read_sensor_yaml
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu
 from datasets.rig import load_rig
@@ -120,3 +123,33 @@ def test_aliases_of_a_real_files_size_are_read(tmp_path):
                     "gyroscope_noise_density: 1.7e-4\ngyroscope_random_walk: 1.9e-5\n")
     assert read_kalibr_imu(path)["acc_bias"] == 2.0e-3
     assert read_yaml(path).line(("accelerometer_random_walk",)) == 2
+
+
+@pytest.mark.parametrize("reader", READERS)
+def test_an_integer_python_will_not_construct_is_one_error_naming_the_file(tmp_path, reader):
+    """PyYAML's ValueError for an integer of more than 4300 digits ("Exceeds the limit ... for
+    integer string conversion") named no file, and a rig's reading let it through as it was."""
+    read, text = READERS[reader]
+    path = tmp_path / "calibration.yaml"
+    path.write_text(text + "big: " + "9" * 5000 + "\n")
+    with pytest.raises(DataError) as info:
+        read(path)
+    assert str(info.value).startswith(f"{path}: found Exceeds the limit"), info.value
+
+
+def test_an_asl_sensor_yamls_densities_are_checked_as_the_rig_keys_they_stand_for(tmp_path):
+    """A Kalibr imu.yaml's densities were checked against the rig's ranges, an ASL sensor.yaml's
+    (``--dataset euroc:PATH``) not: 1e300 ran."""
+    from eurocfiles import write_sequence
+
+    from datasets.euroc import load_euroc
+
+    write_sequence(tmp_path)
+    path = tmp_path / "mav0" / "imu0" / "sensor.yaml"
+    text = path.read_text()
+    assert "gyroscope_noise_density: 1.6968e-04" in text
+    path.write_text(text.replace("gyroscope_noise_density: 1.6968e-04", "gyroscope_noise_density: 1.0e+300"))
+    with pytest.raises(DataError, match=re.escape(f"{path}, line ") + r"\d+" + re.escape(
+            ", field 'gyroscope_noise_density': found 1e+300; expected as the rig's gyro_noise_density: a value "
+            "within [1e-08, 0.1] rad/s/sqrt(Hz)")):
+        load_euroc(tmp_path)

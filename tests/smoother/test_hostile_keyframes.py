@@ -1,0 +1,65 @@
+"""Hostile timing of the measurements: a long stretch without any (a GNSS outage of minutes, IMU
+data long after the last fix) made one keyframe interval hold most of the IMU's steps, and the
+estimators hold the intervals' steps padded to the longest (:meth:`smoother.model.timeline.Steps.
+segments`): memory of the number of keyframes times that interval. A 15-minute GNSS-only rig (2 Hz)
+with a 13-minute outage asked for 861 MiB at a time and its batch smoother failed in 4 GB.
+:func:`smoother.model.timeline.bounded_intervals` adds keyframes inside such an interval, so that
+the padded steps stay within a few times the IMU's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from smoother import build_problem, solve_batch
+from smoother.model.timeline import (
+    EVERY_MEASUREMENT,
+    LONGEST_INTERVAL,
+    imu_steps,
+    keyframe_times,
+    measurement_knots,
+)
+
+
+@pytest.fixture(scope="module")
+def uniform():
+    """60 s of a 100 Hz IMU and 1 Hz fixes."""
+    return simulate("gentle", duration=60.0, seed=3, imu_rate=100.0, pose_rate=None, position_rate=1.0,
+                    position_sigma=0.5)
+
+
+@pytest.fixture(scope="module")
+def outage(uniform):
+    """:func:`uniform` without the fixes between 5 s and 55 s."""
+    fixes = uniform.sensor("position").data
+    keep = (fixes.t <= 5.0) | (fixes.t >= 55.0)
+    return uniform.with_sensor("position", data=fixes.subset(np.flatnonzero(keep)))
+
+
+@pytest.mark.parametrize("rate", [None, EVERY_MEASUREMENT, 0.01])
+def test_a_long_interval_gets_keyframes_and_the_padded_steps_stay_within_nine_times_the_imus(outage, rate):
+    times = keyframe_times(outage, rate)
+    steps = imu_steps(outage.imu, times)
+    acc, _, dt = steps.segments()
+    n = len(outage.imu.t)
+    assert dt.size <= 9 * n + 2 * len(times), (dt.shape, n)  # before: 10 keyframes x the 5000 steps of the outage
+    lengths = np.diff(steps.knot_step)
+    assert lengths.max() <= np.ceil(LONGEST_INTERVAL * n / len(lengths))
+    if rate != 0.01:  # the measurement times stay keyframes: the added ones lie inside the outage only
+        knots = measurement_knots(outage)
+        assert set(knots) <= set(times)
+        added = np.setdiff1d(times, knots)
+        assert added.size and np.all((added > 5.0) & (added < 55.0)), added
+
+
+def test_measurements_at_their_usual_pace_get_no_keyframe_and_the_added_ones_hold_the_truth(uniform, outage):
+    """Keyframes are added only where an interval is long; inside it they are states the IMU's
+    factors chain, and the batch's estimate at the fixes holds the truth within its sigmas."""
+    assert np.array_equal(keyframe_times(uniform, EVERY_MEASUREMENT), measurement_knots(uniform))
+    result = solve_batch(build_problem(outage, keyframe_rate=EVERY_MEASUREMENT)).trajectory
+    at = np.isin(result.t, measurement_knots(outage))
+    assert at.sum() == len(measurement_knots(outage)) and len(result.t) > at.sum()
+    sigma = np.sqrt(np.einsum("nii->ni", result.cov[at][:, 0:3, 0:3]))
+    truth = outage.truth
+    r_true = np.array([truth.states.r[np.argmin(np.abs(truth.t - t))] for t in result.t[at]])
+    assert np.all(np.abs(result.states.r[at] - r_true) < 5 * sigma + 1e-9)
