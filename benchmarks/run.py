@@ -61,6 +61,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -77,12 +78,15 @@ from factors import preintegration, threads
 from factors.kernel_caches import ensure_fresh_caches
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import run_ekf
+from smoother.estimators import ESTIMATORS
 from smoother.evaluation import native
+from smoother.evaluation.scoring import compare_with_truth
 from smoother.fixed_lag.offline import run_fixed_lag
 from smoother.model.covariances import covariances_at
 from smoother.model.problem import build_problem
-from smoother.model.timeline import imu_steps, keyframe_times, measurement_knots
+from smoother.model.timeline import EVERY_MEASUREMENT, imu_steps, keyframe_record, keyframe_times, measurement_knots
 from smoother.online.smoother import OnlineSmoother
+from smoother.pipeline import RunOptions, run_estimators
 
 KEYFRAME_RATE = 10.0  # Hz, keyframes and pose measurements of the synthetic runs
 LAG_S = 2.0
@@ -101,10 +105,11 @@ class Settings:
     fixed_lag_min: float  # incremental fixed-lag run [min]
     fixed_lag_batch_s: float  # batch-kind fixed-lag run [s]
     online_min: float  # online against native fixed-lag run [min]
+    car_min: tuple  # run lengths of the car rig's every-estimator runs [min] (the hour last where ``hour``)
 
 
-FULL = Settings(60.0, 600.0, 7, 5, 9, (1, 5, 15), (1, 5), True, 60.0, 60.0, 60.0)
-QUICK = Settings(20.0, 60.0, 3, 1, 5, (0.5, 1, 2), (0.5,), False, 1.0, 5.0, 1.0)
+FULL = Settings(60.0, 600.0, 7, 5, 9, (1, 5, 15), (1, 5), True, 60.0, 60.0, 60.0, (1, 5, 15, 60))
+QUICK = Settings(20.0, 60.0, 3, 1, 5, (0.5, 1, 2), (0.5,), False, 1.0, 5.0, 1.0, (0.5, 1, 2))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -414,16 +419,20 @@ def batch_run(minutes: float, covariances: bool = False, memory: bool = False, r
 def _batch_in_child(minutes: float, covariances: bool, repeats: int) -> dict:
     """:func:`batch_run` in a fresh interpreter, after a 10-second warm-up run there, so every
     length is measured in the same conditions (no first-call costs, no memory left by earlier
-    runs); the child's own peak RSS from ``os.wait4``."""
+    runs); the child's own peak RSS."""
     command = [sys.executable, __file__, "--child-batch", str(minutes), "--repeats", str(repeats)]
-    if covariances:
-        command.append("--covariances")
+    return _child(command + (["--covariances"] if covariances else []), f"the {minutes:g}-minute child run")
+
+
+def _child(command: list, what: str) -> dict:
+    """The JSON a child process ``command`` prints, with its own peak RSS (``os.wait4``'s
+    ``ru_maxrss``) as ``peak_rss_mib``; ``what`` names it if it fails."""
     with tempfile.TemporaryFile("w+") as out:
         child = subprocess.Popen(command, stdout=out)
         _, status, usage = os.wait4(child.pid, 0)
-        child.returncode = os.waitstatus_to_exitcode(status)
-        if child.returncode != 0:
-            raise RuntimeError(f"the {minutes:g}-minute child run failed (exit code {child.returncode})")
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            raise RuntimeError(f"{what} failed (exit code {code})")
         out.seek(0)
         result = json.loads(out.read())
     result["peak_rss_mib"] = usage.ru_maxrss / 1024.0  # KiB on Linux
@@ -769,6 +778,133 @@ def _lockstep(datasets) -> list:
     return [(np.array(loop), np.array(online.update_s)) for online, loop in zip(smoothers, loops)]
 
 
+# ------------------------------------------------------------------------------------------------
+# 9. a car-like rig: every estimator, cost per second of data, keyframes on the grid
+
+
+#: Each length of the car's scaling is repeated until it has run about this many minutes of data.
+CAR_SPAN_MIN = 5.0
+
+
+def car_rig(duration_s: float, seed: int = 0):
+    """A car-like rig: the gentle figure-eight (heading along the velocity) with a 100 Hz IMU, wheel
+    speeds (a ``velocity`` sensor, 83 Hz: on the IMU's samples, so 10 or 20 ms apart; 0.05 m/s; 1.2 m
+    behind and 0.3 m below the IMU, pitched 2 deg and reading 1 % low) and GNSS (10 Hz, 0.2 m; an
+    antenna 1.2 m above, its fixes stamped 0.05 s late), the wheels' rotation and scale and the
+    fixes' time offset to estimate. The measurements come faster than 10 Hz, so the default
+    keyframes are the 10 Hz grid, the speeds between them and every fix attached."""
+    from dataclasses import replace
+
+    from datasets.simulated_sensors import SensorSpec
+    from factors import so3
+    from factors.calibration import CalibrationPrior
+
+    wheels, antenna = np.eye(4), np.eye(4)
+    wheels[:3, :3], wheels[:3, 3] = so3.exp(np.radians([0.0, 2.0, 0.0])), [-1.2, 0.0, -0.3]
+    antenna[:3, 3] = [0.0, 0.0, 1.2]
+    data = simulate("gentle", duration=duration_s, seed=seed, imu_rate=100.0, pose_rate=0, sensors=(
+        SensorSpec("wheels", "velocity", 83.0, 0.05, wheels), SensorSpec("gnss", "gnss", 10.0, 0.2, antenna)))
+    speeds, fixes = data.sensor("wheels").data, data.sensor("gnss").data
+    data = data.with_sensor("wheels", data=replace(speeds, velocity=0.99 * speeds.velocity, cov=0.99**2 * speeds.cov),
+                            calibrate=CalibrationPrior(("rotation", "scale")))
+    late = fixes.t + 0.05 <= data.imu.t[-1]
+    return data.with_sensor("gnss", data=replace(fixes.subset(late), t=fixes.t[late] + 0.05),
+                            calibrate=CalibrationPrior(("time_offset",)))
+
+
+def car_all(dataset, names=ESTIMATORS, keyframe_rate=None) -> dict:
+    """``pipeline.run_estimators`` of ``names`` on ``dataset`` (what ``smoother run --estimator all``
+    runs, without the verdicts and files after it): the wall time of the call, each estimator's
+    own time and its ATE against the truth (at its own states)."""
+    options = RunOptions(keyframe_rate=keyframe_rate, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the rig's deliberate mounting and offsets are said in warnings
+        seconds, estimates = _clock(lambda: run_estimators(dataset, names, options))
+    return {"seconds": dataset.t1 - dataset.t0, "all_s": seconds,
+            "runtime_s": {n: e.runtime_s for n, e in estimates.items()},
+            "ate_m": {n: compare_with_truth(dataset.truth, e.trajectory)["ate_rmse_m"] for n, e in estimates.items()}}
+
+
+def car_run(minutes: float, repeats: int = 1) -> dict:
+    """:func:`car_all` on :func:`car_rig` of ``minutes`` (simulated untimed), ``repeats`` times, each
+    repetition between two runs of the :data:`REFERENCE_MIN` rig timed in the same process (the
+    machine's speed wanders by up to 2x): the mean times, each estimator's (and all together's) cost
+    per second of data and that cost relative to the reference runs' (``relative``), with the peak
+    RSS so far after simulating and after the estimators (a fresh process: :func:`_car_in_child`)."""
+    dataset, reference = car_rig(60.0 * minutes), car_rig(60.0 * REFERENCE_MIN)
+    stages = {"simulate": _peak_rss_mib()}
+    runs, references = [], [car_all(reference)]
+    for _ in range(repeats):
+        runs.append(car_all(dataset))
+        references.append(car_all(reference))
+    stages["estimators"] = _peak_rss_mib()
+
+    def ms_per_data_s(of: list) -> dict:
+        return {n: 1e3 * float(np.mean([(r["all_s"] if n == "all" else r["runtime_s"][n]) / r["seconds"] for r in of]))
+                for n in (*ESTIMATORS, "all")}
+
+    ms, ref = ms_per_data_s(runs), ms_per_data_s(references)
+    return {"minutes": minutes, "repeats": repeats, "all_s": float(np.mean([r["all_s"] for r in runs])),
+            "runtime_s": {n: float(np.mean([r["runtime_s"][n] for r in runs])) for n in ESTIMATORS},
+            "ms_per_data_s": ms, "reference_ms_per_data_s": ref, "relative": {n: ms[n] / ref[n] for n in ms},
+            "ate_m": runs[-1]["ate_m"], "peak_rss_mib_after": stages}
+
+
+def _car_in_child(minutes: float, repeats: int) -> dict:
+    """:func:`car_run` in a fresh interpreter after a 10-second warm-up run there; its own peak RSS."""
+    return _child([sys.executable, __file__, "--child-car", str(minutes), "--repeats", str(repeats)],
+                  f"the {minutes:g}-minute car run")
+
+
+def bench_car(s: Settings) -> dict:
+    """The car rig: every estimator over each length of ``s.car_min`` in its own child process
+    (:func:`car_run`; the longest, an hour in the full set, gives ``car_hour_all_s`` and its peak
+    memory), each estimator's time per second of data and its fitted growth from the shortest to
+    the longest, across the children and side by side with the 1-minute runs timed in each; and the
+    60-s rig with a keyframe at every measurement time against the default grid."""
+    lengths = list(s.car_min)
+    runs = [_car_in_child(m, max(1, round(CAR_SPAN_MIN / m))) for m in lengths]
+    hour = runs[-1] if s.hour else None
+    names = list(runs[0]["ms_per_data_s"])
+    return {
+        "car_hour_all_s": hour["all_s"] if hour else None,
+        "car_hour_peak_rss_mib": hour["peak_rss_mib"] if hour else None,
+        "car_scaling": {
+            "minutes": lengths,
+            "ms_per_data_s": {n: [r["ms_per_data_s"][n] for r in runs] for n in names},
+            # across the children, which run at different moments of the machine
+            "fitted_growth": {n: _fitted_growth(lengths, [r["ms_per_data_s"][n] for r in runs]) for n in names},
+            # side by side: each length against the 1-minute runs timed around it in its own process
+            "fitted_growth_side_by_side": {n: _fitted_growth(lengths, [r["relative"][n] for r in runs])
+                                           for n in names},
+            "runs": runs},
+        "car_keyframe_speedup": keyframe_speedup(s.repeats),
+    }
+
+
+def keyframe_speedup(repeats: int) -> dict:
+    """The 60-s car rig with a keyframe at every measurement time (``keyframe_rate="measurements"``)
+    and on the default grid, every estimator each (so the batch starts from the EKF run before it,
+    its time the build and solve alone), interleaved after a first round: the median batch and
+    fixed-lag times of each, their ratios (every measurement over the grid) and each one's ATE
+    against the truth."""
+    dataset = car_rig(60.0)
+    sides = {"measurements": EVERY_MEASUREMENT, "grid": None}
+    rounds = [{side: car_all(dataset, keyframe_rate=rate) for side, rate in sides.items()}
+              for _ in range(max(repeats, 1) + 1)][1:]
+    out = {}
+    for name in ("batch", "fixed-lag"):
+        times = {side: _median([r[side]["runtime_s"][name] for r in rounds]) for side in sides}
+        ate = {side: rounds[-1][side]["ate_m"][name] for side in sides}
+        out[name] = {"every_measurement_s": times["measurements"], "grid_s": times["grid"],
+                     "speedup": _median([r["measurements"]["runtime_s"][name] / r["grid"]["runtime_s"][name]
+                                         for r in rounds]),
+                     "every_measurement_ate_m": ate["measurements"], "grid_ate_m": ate["grid"],
+                     "ate_change": ate["grid"] / ate["measurements"] - 1.0}
+    out["keyframes"] = {side: keyframe_record(dataset, rate)["count"] for side, rate in sides.items()}
+    return out
+
+
 def machine() -> dict:
     model = "unknown"
     try:
@@ -865,7 +1001,23 @@ def _table_rows(r: dict) -> list:
         row("native_fixed_lag_loop_ms_median", "ms"),
         row("native_fixed_lag_loop_ms_p99", "ms"),
         row("online_estimate_us", "us", "< 5", lambda v: v < 5.0),
+        row("car_hour_all_s", "s", "<= 60 (every estimator, one hour of the car rig)", lambda v: v <= 60.0),
+        row("car_hour_peak_rss_mib", "MiB", "<= 2048", lambda v: v <= 2048.0),
     ]
+    scaling = r["car_scaling"]
+    for name, growth in scaling["fitted_growth_side_by_side"].items():
+        rows.append((f"car_scaling {name}: ms per s of data at {', '.join(f'{m:g}' for m in scaling['minutes'])} min",
+                     " / ".join(f"{x:.3g}" for x in scaling["ms_per_data_s"][name]), "ms", "", None))
+        rows.append(row(f"car_scaling {name}: fitted growth", "", "", value=scaling["fitted_growth"][name]))
+        rows.append(row(f"car_scaling {name}: fitted growth side by side", "",
+                        "<= 0.20 (shortest to longest, against 1-min runs)", lambda v: abs(v) <= 0.2, growth))
+    speedup = r["car_keyframe_speedup"]
+    for name in ("batch", "fixed-lag"):
+        k = speedup[name]
+        rows.append(row(f"car_keyframe_speedup {name}", "x", ">= 5 (every measurement / 10 Hz grid, 60 s)",
+                        lambda v: v >= 5.0, k["speedup"]))
+        rows.append(row(f"car_keyframe_speedup {name}: ATE change", "", "within 2 % (grid / every measurement - 1)",
+                        lambda v: abs(v) <= 0.02, k["ate_change"]))
     return rows
 
 
@@ -925,6 +1077,22 @@ def print_table(r: dict) -> None:
               f"{' '.join(f'{x:.2f}' for x in f['per_tenth_p99_ms'])} ms")
     print(f"online estimate() after every IMU sample between keyframes: median {o['online_estimate_us']:.2f} us, "
           f"p99 {o['online_estimate_us_p99']:.2f} us")
+    print("car rig (100 Hz IMU, 83 Hz wheel speeds, 10 Hz GNSS, three calibrations; every estimator, each length in "
+          "a fresh child process after a warm-up):")
+    for run in r["car_scaling"]["runs"]:
+        each = ", ".join(f"{n} {v:.2f} s" for n, v in run["runtime_s"].items())
+        after = ", ".join(f"{k} {v:.0f}" for k, v in run["peak_rss_mib_after"].items())
+        relative = ", ".join(f"{n} {v:.2f}x" for n, v in run["relative"].items())
+        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): all {run['all_s']:.2f} s ({each}; per second of data "
+              f"against the 1-min runs beside it: {relative}), peak RSS {run['peak_rss_mib']:.0f} MiB (peak after "
+              f"{after} MiB); ATE " + ", ".join(f"{n} {v:.3f} m" for n, v in run["ate_m"].items()))
+    k = r["car_keyframe_speedup"]
+    print(f"car rig, 60 s: {k['keyframes']['measurements']} keyframes at every measurement time against "
+          f"{k['keyframes']['grid']} on the grid:")
+    for name in ("batch", "fixed-lag"):
+        f = k[name]
+        print(f"  {name}: {f['every_measurement_s']:.3f} s against {f['grid_s']:.3f} s ({f['speedup']:.2f}x); ATE "
+              f"{f['every_measurement_ate_m']:.4f} m against {f['grid_ate_m']:.4f} m ({100 * f['ate_change']:+.2f} %)")
     print(f"wall time of the benchmark: {r['benchmark_s']:.1f} s")
 
 
@@ -934,7 +1102,9 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
     parser.add_argument("--whole-process", action="store_true",
                         help="only the whole-process KITTI figure (kitti_whole_process_ratio)")
+    parser.add_argument("--car", action="store_true", help="only the car rig's figures (car_*), as JSON")
     parser.add_argument("--child-batch", type=float, metavar="MIN", help=argparse.SUPPRESS)
+    parser.add_argument("--child-car", type=float, metavar="MIN", help=argparse.SUPPRESS)
     parser.add_argument("--covariances", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--repeats", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -943,9 +1113,13 @@ def main() -> None:
         batch_run(10.0 / 60.0)  # warm-up: first calls, lazy imports, allocator
         print(json.dumps(batch_run(args.child_batch, args.covariances, memory=True, repeats=args.repeats)))
         return
+    if args.child_car is not None:  # internal: the car rig's estimators in a clean process (peak RSS)
+        car_all(car_rig(10.0))  # warm-up: first calls, lazy imports, allocator
+        print(json.dumps(car_run(args.child_car, args.repeats)))
+        return
     s = QUICK if args.quick else FULL
-    if args.whole_process:
-        result = bench_kitti_process(s)
+    if args.whole_process or args.car:
+        result = {"machine": machine(), **(bench_kitti_process(s) if args.whole_process else bench_car(s))}
         print(json.dumps(result, indent=2))
         return
     tick = time.perf_counter()
@@ -954,7 +1128,7 @@ def main() -> None:
     if not args.json:
         print(f"[{time.perf_counter() - tick:6.1f} s] warm-up done (kernels compiled or loaded)", file=sys.stderr)
     for bench in (bench_preintegration, bench_ekf, bench_kitti, bench_kitti_process, bench_scaling, bench_fixed_lag,
-                  bench_online, bench_calibration):
+                  bench_online, bench_calibration, bench_car):
         result.update(bench(s))
         if not args.json:
             print(f"[{time.perf_counter() - tick:6.1f} s] {bench.__name__} done", file=sys.stderr)

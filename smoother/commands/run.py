@@ -40,8 +40,10 @@ def register(sub) -> None:
     p.add_argument("--max-iterations", type=int, default=100, metavar="N",
                    help="iterations of the batch optimiser at most (default 100); metrics.json's batch 'converged' "
                         "says whether it converged before them")
-    p.add_argument("--keyframe-rate", type=float, default=None,
-                   help="add keyframes on a fixed grid [Hz] besides the measurement times")
+    p.add_argument("--keyframe-rate", type=float, default=None, metavar="HZ",
+                   help="the smoothers' keyframes on a grid of this rate [Hz], the measurements between them attached "
+                        "to the keyframe before them (default: 10 Hz where the measurements come faster, else a "
+                        "keyframe at every measurement time)")
     p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",
                    help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for every sensor or "
                         "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
@@ -114,6 +116,24 @@ def check_keyframe_rate(rate: float | None, dataset) -> None:
     if rate > imu_rate * (1.0 + 1e-9):
         raise UserError(f"--keyframe-rate: expected at most the IMU's rate, {imu_rate:.6g} Hz (a keyframe between "
                         f"two IMU samples has no IMU step of its own), got {rate!r}")
+
+
+def keyframe_line(record: dict, given: bool) -> str:
+    """The smoothers' keyframes in one line (:func:`smoother.model.timeline.keyframe_record`'s
+    ``record``; ``given``: whether ``--keyframe-rate`` chose them)."""
+    from smoother.model.timeline import EVERY_MEASUREMENT, KEYFRAME_RATE
+
+    if record["rate_hz"] == EVERY_MEASUREMENT:
+        line = f"keyframes: {record['count']}, one at every measurement time"
+    else:
+        line = f"keyframes: {record['count']} on a {record['rate_hz']:g} Hz grid"
+    if not given:
+        line += (f" (the default: a {KEYFRAME_RATE:g} Hz grid where measurements come faster; --keyframe-rate HZ "
+                 "sets it)")
+    if record["attached"]:
+        line += (f"; {record['attached']} of {record['measurements']} measurements attached to the keyframe before "
+                 f"them, at most {record['max_attached_distance_s']:.3g} s after it")
+    return line
 
 
 def run(args) -> int:
@@ -199,6 +219,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.diagnosis.noise_report import noise_lines
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
+    from smoother.model.timeline import keyframe_record
     from smoother.outputs import files
     from smoother.pipeline import estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
 
@@ -207,6 +228,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     started = time.perf_counter()
     imu_findings = imu_health(dataset)
     run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "imu": findings_record(imu_findings)}
+    if {"batch", "fixed-lag"} & set(names):
+        run_info["keyframes"] = keyframe_record(dataset, run_options.keyframe_rate)
+        print(keyframe_line(run_info["keyframes"], given=run_options.keyframe_rate is not None), file=sys.stderr)
     estimates, record = {}, {}
     announce = lambda name: print(f"running {name} ...", file=sys.stderr)  # noqa: E731
     try:

@@ -154,7 +154,12 @@ def unit_model(d: int):
 def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tuple[gtsam.GaussianFactorGraph, float]:
     """The Gauss-Newton system ``|A delta - b|^2`` at ``states`` and the calibration variables'
     values ``calibration`` (``b = -e``; a calibrated block's factors also on key ``n + j``), and
-    the cost there."""
+    the cost there. Consecutive factors of a block on the same keys -- the measurements of one
+    sensor at one keyframe -- are one GTSAM factor, their rows stacked (the same system): GTSAM's
+    ordering and elimination take time growing faster than the number of factors on one variable,
+    and a calibration variable is on every measurement of its sensor (on 15 minutes of 83 Hz wheel
+    speeds, 75 000 factors on one key, the ordering took 1.5 s and the solves 3 s; 0.3 s and 1.2 s
+    with the rows of a keyframe as one factor)."""
     for b in blocks:
         if b.before_linearize is not None:
             b.before_linearize(states)
@@ -167,19 +172,22 @@ def linearize(blocks: list[Block], states: imu.ImuState, calibration=None) -> tu
         extra = () if block.calibration is None else (n + block.calibration,)
         for rows, ev in evaluated_chunks(block, states, True, calibration):
             cost += ev.loss
-            model = unit_model(ev.e.shape[1])
             keys = [*block.keyframes[rows].T.tolist(), *([[extra[0]] * len(ev.e)] if extra else [])]
             A, b = ev.A, -ev.e
-            if len(keys) == 1:
-                for m, k in enumerate(keys[0]):
-                    graph.add(gtsam.JacobianFactor(k, A[0][m], b[m], model))
-            elif len(keys) == 2:
-                for m, (k0, k1) in enumerate(zip(*keys)):
-                    graph.add(gtsam.JacobianFactor(k0, A[0][m], k1, A[1][m], b[m], model))
-            else:
-                for m, (k0, k1, k2) in enumerate(zip(*keys)):
-                    graph.add(gtsam.JacobianFactor(k0, A[0][m], k1, A[1][m], k2, A[2][m], b[m], model))
+            for lo, hi in _runs(np.array(keys).T):
+                at = [key[lo] for key in keys]
+                parts = [x for pair in zip(at, (a[lo:hi].reshape(-1, a.shape[2]) for a in A)) for x in pair]
+                model = unit_model(b.shape[1] * (hi - lo))
+                graph.add(gtsam.JacobianFactor(*parts, b[lo:hi].reshape(-1), model))
     return graph, cost
+
+
+def _runs(keys: np.ndarray) -> list[tuple[int, int]]:
+    """``(lo, hi)`` of each run of consecutive rows of ``keys`` (factors x their keys) that are equal."""
+    if not len(keys):
+        return []
+    bounds = [0, *(np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1).tolist(), len(keys)]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 @dataclass(frozen=True)

@@ -41,8 +41,7 @@ from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.model.blocks import Block, whitening
 from smoother.model.robust import noise_model, robust_estimator
-from smoother.model.timeline import Attachment, Steps, attachment, imu_steps, keyframe_times, states_at
-from smoother.model.timeline import keyframe_rate as grid_rate
+from smoother.model.timeline import Attachment, Steps, attachment, imu_steps, keyframe_record, keyframe_times, states_at
 
 
 @dataclass
@@ -116,7 +115,7 @@ class Problem:
     #: ask for them (:attr:`datasets.types.Sensor.calibrate`), at their initial values, or None.
     #: Only the vectorised blocks read them; ``keyframe_factors`` keep the values given.
     calibration: calibration.CalibrationSet | None = None
-    #: The keyframes chosen (:func:`keyframe_record`).
+    #: The keyframes chosen (:func:`smoother.model.timeline.keyframe_record`).
     keyframes: dict = field(default_factory=dict)
 
     @property
@@ -350,22 +349,8 @@ def build_problem(dataset: Dataset, keyframe_rate=None, robust: dict | None = No
         return out
 
     absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)
-    record = keyframe_record(times, grid_rate(dataset, keyframe_rate), [spec for _, spec, _, _, _ in measurements])
     return Problem(times, keys, initial_states, blocks, keyframe_factors, dataset.gravity, absolute=absolute,
-                   calibration=calibrations, keyframes=record)
-
-
-def keyframe_record(times: np.ndarray, rate: float | None, specs: list["MeasurementSpec"]) -> dict:
-    """What a run reports of its keyframes (``metrics.json``'s ``_run.keyframes``): their
-    ``count``, the grid's ``rate_hz`` (None: a keyframe at every measurement time), how many of
-    the one-state ``measurements`` (``specs``, :func:`measurement_blocks`') were ``attached`` to the
-    keyframe before them, and the furthest of them from its keyframe [s]."""
-    one_state = [spec for spec in specs if spec.model != RELATIVE_MODEL]
-    attachments = [spec.attached for spec in one_state if spec.attached is not None]
-    return {"count": int(len(times)), "rate_hz": rate,
-            "measurements": sum(len(spec.times[0]) for spec in one_state),
-            "attached": sum(int(a.attached.sum()) for a in attachments),
-            "max_attached_distance_s": max((float(a.distance.max(initial=0.0)) for a in attachments), default=0.0)}
+                   calibration=calibrations, keyframes=keyframe_record(dataset, keyframe_rate, times))
 
 
 def attached_factor(kind, keys: KeyframeKeys, samples: tuple, where: AttachedAt, row: np.ndarray, noise,

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors.errors import InputError
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, propagate_steps
@@ -199,15 +200,40 @@ def attachment(steps: Steps, times: np.ndarray, t: np.ndarray) -> Attachment:
     stream was cut into ``steps`` (:func:`imu_steps` at ``times``). A time before the first
     keyframe or after the last is an InputError."""
     t = np.asarray(t, dtype=float)
+    keyframe, distance = keyframe_before(times, t)
+    attached = distance > 0
+    step = np.searchsorted(steps.t, t, side="left") - 1  # the step that holds t (its start before t)
+    count = np.where(attached, step - steps.knot_step[keyframe] + 1, 0)
+    last_dt = np.where(attached, t - steps.t[np.maximum(step, 0)], 0.0)
+    return Attachment(keyframe, attached, count, last_dt, distance)
+
+
+def keyframe_before(times: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(keyframe, distance)``: the index of the keyframe at or before each time ``t`` among the
+    keyframes ``times``, and how far ``t`` lies after it [s] (0 at its own time). A time before the
+    first keyframe or after the last is an InputError."""
+    t = np.asarray(t, dtype=float)
     if t.size and (t.min() < times[0] or t.max() > times[-1]):
         raise InputError(f"measurement times [{t.min()}, {t.max()}] outside the keyframes' span "
                          f"[{times[0]}, {times[-1]}]")
     keyframe = np.searchsorted(times, t, side="right") - 1
-    attached = t > times[keyframe]
-    step = np.searchsorted(steps.t, t, side="left") - 1  # the step that holds t (its start before t)
-    count = np.where(attached, step - steps.knot_step[keyframe] + 1, 0)
-    last_dt = np.where(attached, t - steps.t[np.maximum(step, 0)], 0.0)
-    return Attachment(keyframe, attached, count, last_dt, t - times[keyframe])
+    return keyframe, t - times[keyframe]
+
+
+def keyframe_record(dataset: Dataset, rate=None, times: np.ndarray | None = None) -> dict:
+    """What a run reports of its smoothers' keyframes (``metrics.json``'s ``_run.keyframes``):
+    their ``count``; ``rate_hz``, the grid's rate (:func:`keyframe_rate` of ``rate``) or
+    :data:`EVERY_MEASUREMENT`; of the ``measurements`` of one state (a relative measurement's ends
+    are keyframes), how many are ``attached`` to the keyframe before them, and the furthest of them
+    from its keyframe, ``max_attached_distance_s``. ``times``: :func:`keyframe_times` of
+    ``dataset`` and ``rate``, made here when not given."""
+    grid = keyframe_rate(dataset, rate)
+    times = keyframe_times(dataset, rate) if times is None else times
+    stamps = [s.data.t for s in sensors_of(dataset) if not KINDS[s.kind].relative]
+    _, distance = keyframe_before(times, np.concatenate(stamps) if stamps else np.zeros(0))
+    return {"count": int(len(times)), "rate_hz": EVERY_MEASUREMENT if grid is None else grid,
+            "measurements": int(len(distance)), "attached": int(np.count_nonzero(distance > 0)),
+            "max_attached_distance_s": float(distance.max(initial=0.0))}
 
 
 def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tuple[np.ndarray, np.ndarray]:

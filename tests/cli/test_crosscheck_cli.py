@@ -13,9 +13,9 @@ from smoother.cli import main
 from smoother.evaluation.crosscheck import TARGETS
 
 CROSSCHECK_KEYS = {
-    "profile", "seeds", "duration_s", "prediction_max_abs_error", "final_state_max_sigma",
+    "profile", "sensors", "seeds", "duration_s", "prediction_max_abs_error", "final_state_max_sigma",
     "final_cov_trace_ratio", "final_cov_trace_ratio_range", "fixed_lag_kind", "fixed_lag_max_sigma",
-    "fixed_lag_max_sigma_by_kind", "ate_rmse_m", "nees_mean", "nees_interval_95", "checks", "ok",
+    "fixed_lag_max_sigma_by_kind", "keyframes", "ate_rmse_m", "nees_mean", "nees_interval_95", "checks", "ok",
 }
 
 
@@ -28,7 +28,8 @@ def test_crosscheck_command_prints_json_and_exits_by_ok(capsys):
     assert result["ok"] == all(result["checks"].values())
     assert set(result["checks"]) == {"prediction", "final_state", "final_cov", "fixed_lag",
                                      "smoothed_at_least_as_accurate", "nees"}
-    assert (result["profile"], result["seeds"], result["duration_s"]) == ("gentle", 2, 3.0)
+    assert (result["profile"], result["sensors"], result["seeds"], result["duration_s"]) == ("gentle", "pose", 2, 3.0)
+    assert (result["keyframes"]["rate_hz"], result["keyframes"]["attached"]) == ("measurements", 0)
     for key in ("ate_rmse_m", "nees_mean"):
         assert set(result[key]) == {"batch", "fixed-lag", "ekf"}
     np.testing.assert_allclose(result["nees_interval_95"], np.array(stats.nees_bounds(6, 2)) / 6.0, rtol=1e-12)
@@ -62,6 +63,16 @@ def test_crosscheck_command_table_names_each_fixed_lag_kind(capsys):
     assert any(line.split()[:2] == ["fixed-lag", "(sliding)"] for line in lines)
 
 
+def test_crosscheck_command_on_the_wheels_rig_says_what_was_attached(capsys):
+    """``--sensors wheels``: the first line names the rig and how many measurements were attached
+    to the 10 Hz keyframes (the checks themselves: tests/smoother/evaluation/test_crosscheck.py)."""
+    main(["crosscheck", "--sensors", "wheels", "--seeds", "2", "--duration", "1"])
+    first = capsys.readouterr().out.splitlines()[0]
+    # 101 speeds, 5 fixes (2 of them between keyframes) and 11 poses; 11 keyframes
+    assert first == ("crosscheck on 'gentle' with the wheels rig, 2 seeds x 1 s; 11 keyframes, 92 of 117 measurements "
+                     "attached")
+
+
 def test_crosscheck_command_exit_code_is_1_when_a_check_fails(capsys, monkeypatch):
     """The exit code follows ``ok``: with a target no estimator can meet, the command says so."""
     monkeypatch.setitem(TARGETS, "prediction_max_abs_error", 0.0)
@@ -74,6 +85,7 @@ def test_crosscheck_command_exit_code_is_1_when_a_check_fails(capsys, monkeypatc
 @pytest.mark.parametrize("argv", [
     ["crosscheck", "--seeds", "1"],
     ["crosscheck", "--profile", "wobbly"],
+    ["crosscheck", "--sensors", "sonar"],
     ["crosscheck", "--duration", "0"],
     ["crosscheck", "--lag", "-1"],
     ["crosscheck", "--duration", "inf"],

@@ -54,6 +54,37 @@ def test_run_all_estimators_writes_trajectories_truth_metrics_and_a_table(tmp_pa
     assert float(ekf_row[1]) == pytest.approx(document["ekf"]["ate_rmse_m"], abs=5e-5)
 
 
+def test_the_run_says_and_records_its_keyframes(tmp_path, capsys):
+    """``_run.keyframes`` and one line on stderr: 40 Hz fixes beside the 10 Hz poses come faster
+    than 10 Hz, so the default grid is 10 Hz and the fixes between its keyframes (three of four)
+    are attached, at most 0.075 s after theirs; ``--keyframe-rate 5`` sets the grid (the poses
+    between attached too); the poses alone keep a keyframe each; an EKF alone keeps no keyframes."""
+    def run(*argv):
+        out = tmp_path / str(len(list(tmp_path.iterdir())))
+        code = main(["run", "--duration", "2", "--no-progress", "--no-covariance", "--out", str(out), *argv])
+        err = capsys.readouterr().err
+        assert code == 0, err
+        lines = [line for line in err.splitlines() if line.startswith("keyframes: ")]
+        return json.loads((out / "metrics.json").read_text())["_run"].get("keyframes"), lines
+
+    record, lines = run("--estimator", "batch", "--gps-from-truth", "40", "0.1")
+    assert record == {"count": 21, "rate_hz": 10.0, "measurements": 81 + 21, "attached": 60,
+                      "max_attached_distance_s": pytest.approx(0.075, abs=1e-12)}
+    assert lines == ["keyframes: 21 on a 10 Hz grid (the default: a 10 Hz grid where measurements come faster; "
+                     "--keyframe-rate HZ sets it); 60 of 102 measurements attached to the keyframe before them, at "
+                     "most 0.075 s after it"]
+    record, lines = run("--estimator", "fixed-lag", "--gps-from-truth", "40", "0.1", "--keyframe-rate", "5")
+    # a fix and a pose at each of the 11 keyframes
+    assert (record["count"], record["rate_hz"], record["attached"]) == (11, 5.0, 102 - 2 * 11)
+    assert lines[0].startswith("keyframes: 11 on a 5 Hz grid; 80 of 102 measurements attached")
+    record, lines = run("--estimator", "batch")
+    assert record == {"count": 21, "rate_hz": "measurements", "measurements": 21, "attached": 0,
+                      "max_attached_distance_s": 0.0}
+    assert lines == ["keyframes: 21, one at every measurement time (the default: a 10 Hz grid where measurements "
+                     "come faster; --keyframe-rate HZ sets it)"]
+    assert run("--estimator", "ekf") == (None, [])
+
+
 def test_format_table_marks_missing_values():
     table = format_table({"ekf": {"ate_rmse_m": 0.01234, "nees_mean": float("nan"), "runtime_s": 1.0},
                           "batch": {"ate_rmse_m": 0.5, "nees_mean": None, "runtime_s": 2.0}})

@@ -37,8 +37,8 @@ def _symbols(factor) -> list[tuple[str, int]]:
 def test_keyframes_are_the_measurement_times_plus_start_and_end():
     data = mixed()
     problem = build_problem(data, EVERY_MEASUREMENT)
-    expected = np.unique(np.concatenate([data.sensor("pose").data.t, data.sensor("position").data.t,
-                                         data.sensor("orientation").data.t, [data.t0, data.t1]]))
+    expected = np.unique(np.concatenate([data.sensor(name).data.t for name in ("pose", "position", "orientation")]
+                                        + [[data.t0, data.t1]]))
     np.testing.assert_array_equal(problem.times, expected)
     assert data.t1 not in set(data.measurement_times())  # the end really is an extra keyframe
     # the EKF reports at exactly the same times, so the estimators can be compared state by state
@@ -75,7 +75,7 @@ def test_the_default_keyframe_grid_is_chosen_from_the_measurement_rate():
     np.testing.assert_array_equal(problem.times, np.union1d(data.t0 + np.arange(21) / 10.0, [data.t1]))
     sparse = simulate(profile="gentle", duration=2.03, seed=4, imu_rate=cases.IMU_RATE, pose_rate=10.0)
     sparse_problem = build_problem(sparse)
-    assert sparse_problem.keyframes["rate_hz"] is None and sparse_problem.keyframes["attached"] == 0
+    assert sparse_problem.keyframes["rate_hz"] == EVERY_MEASUREMENT and sparse_problem.keyframes["attached"] == 0
     np.testing.assert_array_equal(sparse_problem.times, np.union1d(sparse.measurement_times(), [sparse.t1]))
 
 
@@ -103,8 +103,7 @@ def test_graph_holds_the_prior_one_imu_factor_per_interval_and_every_measurement
     data = mixed()
     problem = build_problem(data)
     K = len(problem.times)
-    expected = (1 + (K - 1) + len(data.sensor("pose").data) + len(data.sensor("position").data)
-                + len(data.sensor("orientation").data))
+    expected = 1 + (K - 1) + sum(len(data.sensor(name).data) for name in ("pose", "position", "orientation"))
     assert problem.graph.size() == expected
     assert sum(len(group) for group in problem.factors_at) == expected
     for k in range(1, K):
@@ -184,8 +183,7 @@ def test_initial_values_equal_the_measurements_where_measured():
     problem = build_problem(data, EVERY_MEASUREMENT)
     x = problem.initial_states
     index = {t: k for k, t in enumerate(problem.times)}
-    assert (data.sensor("pose").data.t[0] == data.sensor("position").data.t[0] == data.sensor("orientation").data.t[0]
-            == data.t0)
+    assert {data.sensor(name).data.t[0] for name in ("pose", "position", "orientation")} == {data.t0}
     pose_k = [index[t] for t in data.sensor("pose").data.t[1:]]
     gps_k = [index[t] for t in data.sensor("position").data.t[1:]]
     att_k = [index[t] for t in data.sensor("orientation").data.t[1:]]
