@@ -137,6 +137,9 @@ class AllanResult:
     record_s: float
     walk_record_s: float | None = None
     walk_beyond: bool = False
+    #: The axes whose every sample is the same (``"accelerometer x"``, ...): no density can be read
+    #: from them (their densities are NaN).
+    still: tuple = ()
 
     def largest(self) -> dict:
         """The densities for a rig file by :class:`ImuNoise` field, the largest of the three axes
@@ -151,12 +154,19 @@ class AllanResult:
             raise InputError(self.walk_note())
         return ImuNoise(**self.largest())
 
+    def still_note(self) -> str | None:
+        """What the axes that do not vary say, or None when every axis varies."""
+        if not self.still:
+            return None
+        return (f"{', '.join(self.still)} read the same value in every sample: a stuck axis, or readings written "
+                "rounded coarser than the noise; no density can be read from them")
+
     def walk_note(self) -> str | None:
         """Why random walks were not estimated and how long a recording they need; None when all were."""
         if self.walk_record_s is None:
             return None
         axes = [f"{sensor} {axis}" for sensor, walk in (("accelerometer", self.acc_walk), ("gyro", self.gyro_walk))
-                for axis, value in zip("xyz", walk) if np.isnan(value)]
+                for axis, value in zip("xyz", walk) if np.isnan(value) and f"{sensor} {axis}" not in self.still]
         reach = self.record_s / MIN_CLUSTERS
         return (f"random walk not estimated ({', '.join(axes)}): {self.record_s:.4g} s of data hold "
                 f"{MIN_CLUSTERS} independent clusters up to a cluster time of {reach:.3g} s, and up to there the "
@@ -166,23 +176,55 @@ class AllanResult:
                    "IMUs are commonly recorded for hours)" if self.walk_beyond else ""))
 
 
+#: The most the recording's span may differ from its samples at the median step, and the most
+#: the 90th percentile of the steps may exceed the 10th, as a ratio (:func:`evenly_spaced`).
+SPAN_TOLERANCE, STEP_SPREAD = 0.1, 2.0
+AXES = tuple(f"{sensor} {axis}" for sensor in ("accelerometer", "gyro") for axis in "xyz")
+
+
+def evenly_spaced(t: np.ndarray) -> str | None:
+    """None when the stamps ``t`` are evenly spaced as the Allan deviation takes them (jitter of a
+    few tens of per cent is), else what is wrong: gaps that hold more than :data:`SPAN_TOLERANCE`
+    of the span (dropped samples, pauses), or steps spread beyond :data:`STEP_SPREAD` (stamps of
+    a software clock, a varying rate)."""
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    span, even = float(t[-1] - t[0]), (len(t) - 1) * dt
+    if abs(span - even) > SPAN_TOLERANCE * even:
+        return (f"{len(t)} samples at the median step of {dt:.4g} s would span {even:.4g} s, the stamps span "
+                f"{span:.4g} s (gaps, or a varying rate)")
+    low, high = np.percentile(steps, [10, 90])
+    if high > STEP_SPREAD * low:
+        return f"the steps between samples range from {low:.4g} s to {high:.4g} s (10th to 90th percentile)"
+    return None
+
+
 def allan(imu: ImuSamples, points: int = POINTS) -> AllanResult:
-    """Allan deviations of every accelerometer and gyro axis of ``imu`` and their densities."""
+    """Allan deviations of every accelerometer and gyro axis of ``imu`` and their densities. An
+    InputError when the samples are not evenly spaced (:func:`evenly_spaced`: the deviation's
+    cluster times would be wrong, and so every density); an axis whose samples are all one value
+    has NaN densities (:attr:`AllanResult.still`: a curve of zeros has no line to fit)."""
     dt = float(np.median(np.diff(imu.t))) if len(imu) > 1 else 0.0
     if not dt > 0:
         raise InputError("Allan deviation: expected at least two IMU samples")
-    tau, adev = allan_deviation(np.concatenate([imu.acc, imu.gyro], axis=1), dt, points)
+    uneven = evenly_spaced(imu.t)
+    if uneven is not None:
+        raise InputError(f"Allan deviation: expected evenly spaced samples; {uneven}")
+    x = np.concatenate([imu.acc, imu.gyro], axis=1)
+    tau, adev = allan_deviation(x, dt, points)
     record_s = len(imu) * dt
     if supported(tau, record_s).sum() < 3:
         raise InputError(f"Allan deviation: {len(imu)} IMU samples give too few cluster times with {MIN_CLUSTERS} "
                          f"independent clusters each; record at least {3 * MIN_CLUSTERS} samples, far more for the "
                          "random walk")
-    fitted = np.array([densities(tau, adev[:, k], record_s) for k in range(6)])
+    still = np.all(x == x[0], axis=0)
+    fitted = np.array([(math.nan, math.nan, math.nan, False) if still[k] else densities(tau, adev[:, k], record_s)
+                       for k in range(6)])
     needs = np.where(np.isnan(fitted[:, 2]), -np.inf, fitted[:, 2])
     longest = int(np.argmax(needs))
     return AllanResult(tau, adev[:, :3], adev[:, 3:], fitted[:3, 0], fitted[:3, 1], fitted[3:, 0], fitted[3:, 1], dt,
                        record_s, float(needs[longest]) if np.isfinite(needs[longest]) else None,
-                       bool(fitted[longest, 3]))
+                       bool(fitted[longest, 3]), tuple(a for a, s in zip(AXES, still) if s))
 
 
 #: A recording moves when a 1-s mean angular rate exceeds this [rad/s] or a 1-s mean specific

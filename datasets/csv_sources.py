@@ -51,6 +51,7 @@ import numpy as np
 
 from datasets import euroc
 from datasets.errors import DataError, check_increasing, check_unit_quaternions, read_lines, read_table
+from datasets.ranges import SIGMA_RANGES
 from datasets.streams import (
     AttitudeStream,
     FixStream,
@@ -121,8 +122,30 @@ def _generic(path: Path, required: list[str], groups: list[list[str]], what: str
         if name.startswith("sigma_") and np.any(columns[name] <= 0):
             i = int(np.flatnonzero(columns[name] <= 0)[0])
             raise DataError(path, int(rows[i]), name, repr(float(columns[name][i])), "a standard deviation > 0")
+        if name in SIGMA_UNITS:  # a sigma in the rig's units lies in the rig's range for them
+            plausible = SIGMA_RANGES[SIGMA_UNITS[name]]
+            beyond = ~((columns[name] >= plausible.low) & (columns[name] <= plausible.high))
+        elif name.startswith("sigma_"):  # Pa, T, rad/s: a square that is a number (no overflow, no 0)
+            plausible = None
+            beyond = ~((columns[name] >= SQUARABLE[0]) & (columns[name] <= SQUARABLE[1]))
+        else:
+            continue
+        if beyond.any():
+            i = int(np.flatnonzero(beyond)[0])
+            expected = (f"a standard deviation within {plausible.text()} ({plausible.why})" if plausible is not None
+                        else f"a standard deviation within [{SQUARABLE[0]:g}, {SQUARABLE[1]:g}] (its square a number)")
+            raise DataError(path, int(rows[i]), name, repr(float(columns[name][i])), expected)
     columns["lines"], columns["header_line"] = rows, line
     return columns
+
+
+#: The unit of each ``sigma_*`` column whose unit a rig's ``sigma`` has, and so its range
+#: (:data:`datasets.ranges.SIGMA_RANGES`): a position's 1e-12 m made every estimator fail on
+#: numbers double precision cannot hold, 1e300 overflowed when squared.
+SIGMA_UNITS = {**dict.fromkeys(POSITION_SIGMAS + FIX_SIGMAS, "m"), **dict.fromkeys(ROTATION_SIGMAS, "rad"),
+               **dict.fromkeys(VELOCITY_SIGMAS, "m/s")}
+#: Where the other ``sigma_*`` columns (Pa, T, rad/s) must lie: their squares are numbers.
+SQUARABLE = (1e-150, 1e150)
 
 
 def _diagonal(columns: dict, names: list[str]) -> np.ndarray | None:

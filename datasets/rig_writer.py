@@ -22,6 +22,7 @@ from tomlkit.items import Comment, Table, Whitespace
 from datasets.errors import read_source
 from datasets.kinds import KINDS
 from datasets.kinds.base import kind_sigmas
+from datasets.ranges import out_of_range
 from datasets.rig import CALIBRATION_KEYS, NOISE_KEYS, Rig
 
 #: The first lines of ``calibrated.toml``.
@@ -189,10 +190,19 @@ def allan_imu_block(result, source: str, topic: str | None, n: int) -> str:
     imu.add("source", source)
     if topic is not None:
         imu.add("topic", topic)
-    for key, _, unit in ALLAN_KEYS:
+    for key, axes, unit in ALLAN_KEYS:
         value = largest[NOISE_KEYS[key]]
         if np.isnan(value):
-            imu.add(tomlkit.comment(f"{key} = ?    # not estimated: the recording is too short (see the warning)"))
+            sensor = "accelerometer" if key.startswith("accel") else "gyro"
+            why = [reason for reason, holds in (
+                ("an axis reads one value throughout", any(a.startswith(sensor) for a in result.still)),
+                ("the recording is too short", key.endswith("random_walk") and result.walk_record_s is not None))
+                if holds]
+            imu.add(tomlkit.comment(f"{key} = ?    # not estimated: {' and '.join(why)} (see the warning)"))
+            continue
+        problem = out_of_range(f"imu.{key}", value)
+        if problem is not None:  # what a rig file would refuse is no value to paste
+            imu.add(tomlkit.comment(f"{key} = {value:.4e}    # not usable: {problem}"))
             continue
         item = tomlkit.value(f"{value:.4e}")  # written as measured: five significant digits
         item.comment(unit)

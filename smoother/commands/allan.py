@@ -28,6 +28,7 @@ def run(args) -> int:
     from datasets.allan import allan, motion
     from datasets.rig_writer import allan_imu_block
     from datasets.sources import read_imu
+    from factors.errors import InputError
     from smoother.commands import output_directory
     from smoother.outputs.allan_plot import plot_allan
 
@@ -37,9 +38,13 @@ def run(args) -> int:
     if moving is not None:
         print(f"warning: {args.source} does not look static ({moving}): the densities below describe its motion, "
               "not the sensor's noise", file=sys.stderr)
-    result = allan(imu)
+    try:
+        result = allan(imu)
+    except InputError as error:  # the samples, not a file's syntax: say whose
+        raise InputError(f"{args.source}: {error}") from None
     print(allan_imu_block(result, args.source, args.topic, len(imu)))
-    if result.walk_note() is not None:
-        print(f"warning: {result.walk_note()}", file=sys.stderr)
+    for note in (result.still_note(), result.walk_note()):
+        if note is not None:
+            print(f"warning: {note}", file=sys.stderr)
     print(f"wrote {plot_allan(result, out)}", file=sys.stderr)
     return 0

@@ -154,27 +154,32 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     return bounded_intervals(times[(times >= dataset.t0) & (times <= dataset.t1)], dataset.imu.t)
 
 
-#: The longest keyframe interval, in IMU steps, as a multiple of the mean interval's
-#: (:func:`bounded_intervals`).
+#: The longest keyframe interval, in IMU steps, as a multiple of the mean interval's, where the
+#: intervals' padded steps would exceed :data:`PADDED_STEPS` (:func:`bounded_intervals`).
 LONGEST_INTERVAL = 4
+#: The padded steps (keyframe intervals times the longest one's IMU steps) left as they are, or
+#: nine times the IMU's steps if more: some 120 MB of the steps' readings and durations.
+PADDED_STEPS = 1 << 21
 
 
 def bounded_intervals(times: np.ndarray, imu_t: np.ndarray) -> np.ndarray:
-    """``times`` (keyframes, sorted) with keyframes added, evenly, inside every interval of more
-    than :data:`LONGEST_INTERVAL` times the mean number of IMU steps: the estimators hold the
-    intervals' steps padded to the longest one (:meth:`Steps.segments`), so that one long interval
-    -- a GNSS outage of minutes, IMU data long after the last fix -- made memory of the number of
-    keyframes times its length (a 13-minute outage of a 2 Hz GNSS-only rig asked for 861 MiB at a
-    time, and the batch failed in 4 GB). Bounded so, the padded steps are at most nine times the
-    IMU's. Intervals within it are left as they are: a keyframe at every measurement time stays."""
+    """``times`` (keyframes, sorted), with keyframes added, evenly, inside every interval of more
+    than :data:`LONGEST_INTERVAL` times the mean number of IMU steps when the intervals' steps
+    padded to the longest one exceed ``max(PADDED_STEPS, 9 * IMU steps)``. The estimators hold
+    the intervals' steps so padded (:meth:`Steps.segments`), and one long interval -- a GNSS
+    outage of minutes, IMU data long after the last fix -- made memory of the number of keyframes
+    times its length: a 13-minute outage of a 2 Hz GNSS-only rig asked for 861 MiB at a time, and
+    its batch failed in 4 GB. Cut so, the padded steps are at most about nine times the IMU's;
+    a short gap in a short run is left alone, and every keyframe given stays one."""
     times = np.asarray(times, dtype=float)
     if len(times) < 2:
         return times
     steps = np.diff(np.searchsorted(imu_t, times))  # IMU samples starting in each interval
-    longest = max(1, int(np.ceil(LONGEST_INTERVAL * steps.sum() / len(steps))))
-    long = np.flatnonzero(steps > longest)
-    if not long.size:
+    n = int(steps.sum())
+    if len(steps) * int(steps.max()) <= max(PADDED_STEPS, 9 * n):
         return times
+    longest = max(1, int(np.ceil(LONGEST_INTERVAL * n / len(steps))))
+    long = np.flatnonzero(steps > longest)
     added = [np.linspace(times[j], times[j + 1], int(np.ceil(steps[j] / longest)) + 1)[1:-1] for j in long]
     return np.union1d(times, np.concatenate(added))
 

@@ -30,13 +30,15 @@ def plot_allan(result, out_dir) -> Path:
             for k, axis in enumerate("xyz"):
                 color = AXIS_COLORS[k]
                 known = f"{walk[k]:.3g}" if np.isfinite(walk[k]) else "not estimated"
-                ax.loglog(tau, adev[:, k], color=color, label=f"{axis}: N {white[k]:.3g}, K {known}")
+                shown = np.where(adev[:, k] > 0, adev[:, k], np.nan)  # an axis of one value has zeros: no line
+                ax.loglog(tau, shown, color=color, label=f"{axis}: N {white[k]:.3g}, K {known}")
                 ax.loglog(tau, white[k] / np.sqrt(tau / WHITE_TAU), color=color, lw=0.8, ls="--")
                 ax.loglog(tau, walk[k] * np.sqrt(tau / WALK_TAU), color=color, lw=0.8, ls=":")
                 ax.plot([WHITE_TAU, WALK_TAU], [white[k], walk[k]], "o", color=color, ms=4)
-            low = min(adev.min(), white.min(), np.nanmin(walk, initial=np.inf))  # NaN: a walk not estimated
-            high = max(adev.max(), white.max(), np.nanmax(walk, initial=0.0))
-            ax.set_ylim(low / 3, high * 3)  # the fitted lines run far beyond the data: keep them in view
+            values = np.concatenate([adev.ravel(), white, walk])
+            values = values[np.isfinite(values) & (values > 0)]  # NaN: not estimated; 0: an axis of one value
+            if values.size:  # the fitted lines run far beyond the data: keep them in view
+                ax.set_ylim(values.min() / 3, values.max() * 3)
             ax.set_xlabel("cluster time $\\tau$ [s]")
             ax.set_ylabel(f"Allan deviation [{unit}]")
             ax.set_title(f"{name}: white noise N (--, read at 1 s), random walk K (:, read at 3 s)")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -19,6 +20,11 @@ from datasets.simulated_sensors import SensorSpec
 from smoother.cli import build_parser, main
 from smoother.commands import OPTION_RANGES, check_option
 from smoother.errors import UserError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 #: Where each option of the table is read, with what else the command needs to get that far.
 WHERE = {
@@ -191,3 +197,43 @@ def test_two_kernels_for_one_sensor_are_refused_and_a_sensors_own_holds_in_any_o
                      *[a for s in specs for a in ("--robust", s)]]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"smoother: error: --robust {specs[1]}: {said}"), err
+
+
+def _allan_csv(path, x, stamps_ns):
+    path.write_text("#timestamp [ns],w_RS_S_x,w_RS_S_y,w_RS_S_z,a_RS_S_x,a_RS_S_y,a_RS_S_z\n" + "".join(
+        f"{s},{','.join(repr(float(v)) for v in (*row[3:], *row[:3]))}\n" for s, row in zip(stamps_ns, x)))
+    return path
+
+
+@pytest.mark.parametrize("case", ["one value", "uneven stamps", "beyond the range"])
+def test_allan_prints_no_density_a_rig_would_refuse_or_the_data_cannot_give(capsys, tmp_path, case):
+    """A recording whose axes read one value throughout printed densities of 0 and 2e-13 to paste
+    (and "divide by zero" warnings); stamps 0.1-0.9 s apart were taken as evenly spaced at their
+    median and gave densities as sure as any; a density beyond the rig's range was printed as
+    a value to paste, which the rig then refuses."""
+    rng = np.random.default_rng(0)
+    n, stamps = 20_000, 10**18 + 10_000_000 * np.arange(20_000)
+    x = np.column_stack([rng.normal(size=(n, 3)) * 0.02, rng.normal(size=(n, 3)) * 2e-3])
+    x[:, 2] += 9.81
+    if case == "one value":
+        x[:] = (0.0, 0.0, 9.81, 0.0, 0.0, 0.0)
+    elif case == "uneven stamps":
+        stamps = 10**18 + np.cumsum(rng.integers(10**8, 9 * 10**8, size=n))
+    else:
+        x[:, :3] *= 1000.0  # an accelerometer noise of 2 m/s^2/sqrt(Hz): in mm/s^2, say
+    path = _allan_csv(tmp_path / "imu.csv", x, stamps)
+    code = main(["allan", f"csv:{path}", "--out", str(tmp_path / "out")])
+    out, err = capsys.readouterr()
+    if case == "uneven stamps":
+        assert code == 2 and err.startswith(f"smoother: error: csv:{path}: Allan deviation: expected evenly spaced "
+                                            "samples; the steps between samples range from "), err
+        return
+    assert code == 0 and "divide by zero" not in err, err
+    block = tomllib.loads(out)["imu"]
+    assert "accel_noise_density" not in block, out
+    if case == "one value":
+        assert "# accel_noise_density = ?    # not estimated: an axis reads one value throughout" in out
+        assert "gyro z read the same value in every sample: a stuck axis" in err
+    else:
+        assert "# accel_noise_density = 2.0" in out and "# not usable: expected a value within [1e-06, 1]" in out, out
+        assert block["gyro_noise_density"] > 0

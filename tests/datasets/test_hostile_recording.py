@@ -180,3 +180,32 @@ def test_a_short_kitti_or_euroc_imu_file_is_refused_naming_it(tmp_path):
     (tmp_path / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_text("#timestamp\n")
     with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'mav0' / 'imu0' / 'data.csv'}: found 10 IMU samples")):
         load_euroc(tmp_path)
+
+
+@pytest.mark.parametrize("read, header, row, column, value, expected", [
+    (read_positions, "t,x,y,z,sigma_x,sigma_y,sigma_z", "1,0,0,0,{v},0.1,0.1", "sigma_x", "1e-12", "[0.0001, 10000] m"),
+    (read_positions, "t,x,y,z,sigma_x,sigma_y,sigma_z", "1,0,0,0,0.1,{v},0.1", "sigma_y", "1e300", "[0.0001, 10000] m"),
+    (read_csv_fixes, "t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u", "1,47,8,400,0.5,0.5,{v}", "sigma_u",
+     "1e12", "[0.0001, 10000] m"),
+    (read_attitudes, "t,qw,qx,qy,qz,sigma_rx,sigma_ry,sigma_rz", "1,1,0,0,0,{v},0.01,0.01", "sigma_rx", "4.0",
+     "[1e-06, 3.14159] rad"),
+    (read_csv_twists, "t,vx,vy,vz,sigma_vx,sigma_vy,sigma_vz", "1,0,0,0,0.05,0.05,{v}", "sigma_vz", "1e-9",
+     "[0.0001, 100] m/s"),
+    (read_csv_pressures, "t,pressure,sigma_pressure", "1,95000,{v}", "sigma_pressure", "1e-300", "[1e-150, 1e+150]"),
+    (read_csv_magnetic_fields, "t,mx,my,mz,sigma_mx,sigma_my,sigma_mz", "1,2e-5,0,-4e-5,{v},1e-7,1e-7", "sigma_mx",
+     "1e200", "[1e-150, 1e+150]"),
+], ids=["position 1e-12", "position 1e300", "fix 1e12", "attitude 4 rad", "velocity 1e-9", "pressure 1e-300",
+        "field 1e200"])
+def test_a_sigma_column_beyond_its_units_range_is_refused_naming_file_line_and_column(tmp_path, read, header, row,
+                                                                                       column, value, expected):
+    """The rig's sigma had its range per unit, a CSV's sigma columns were only > 0: a fix's 1e-12 m
+    made every estimator fail on numbers double precision cannot hold, 1e300 overflowed when
+    squared ("overflow encountered in square", then a covariance "not finite" naming no file),
+    1e12 m left the run unable to find its heading."""
+    path = tmp_path / "s.csv"
+    path.write_text(f"{header}\n{row.format(v=value)}\n")
+    spec = read in (read_positions, read_attitudes)
+    with pytest.raises(DataError) as info:
+        read(f"csv:{path}") if spec else read(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}, line 2, field '{column}': found ") and f"within {expected}" in message, message

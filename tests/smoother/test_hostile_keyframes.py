@@ -15,6 +15,7 @@ from smoother import build_problem, solve_batch
 from smoother.model.timeline import (
     EVERY_MEASUREMENT,
     LONGEST_INTERVAL,
+    PADDED_STEPS,
     imu_steps,
     keyframe_times,
     measurement_knots,
@@ -23,16 +24,16 @@ from smoother.model.timeline import (
 
 @pytest.fixture(scope="module")
 def uniform():
-    """60 s of a 100 Hz IMU and 1 Hz fixes."""
-    return simulate("gentle", duration=60.0, seed=3, imu_rate=100.0, pose_rate=None, position_rate=1.0,
+    """Ten minutes of a 100 Hz IMU and 2 Hz fixes."""
+    return simulate("gentle", duration=600.0, seed=3, imu_rate=100.0, pose_rate=None, position_rate=2.0,
                     position_sigma=0.5)
 
 
 @pytest.fixture(scope="module")
 def outage(uniform):
-    """:func:`uniform` without the fixes between 5 s and 55 s."""
+    """:func:`uniform` without the fixes between 20 s and 580 s: 81 intervals, one of 56 000 steps."""
     fixes = uniform.sensor("position").data
-    keep = (fixes.t <= 5.0) | (fixes.t >= 55.0)
+    keep = (fixes.t <= 20.0) | (fixes.t >= 580.0)
     return uniform.with_sensor("position", data=fixes.subset(np.flatnonzero(keep)))
 
 
@@ -42,14 +43,21 @@ def test_a_long_interval_gets_keyframes_and_the_padded_steps_stay_within_nine_ti
     steps = imu_steps(outage.imu, times)
     acc, _, dt = steps.segments()
     n = len(outage.imu.t)
-    assert dt.size <= 9 * n + 2 * len(times), (dt.shape, n)  # before: 10 keyframes x the 5000 steps of the outage
-    lengths = np.diff(steps.knot_step)
-    assert lengths.max() <= np.ceil(LONGEST_INTERVAL * n / len(lengths))
+    assert dt.size <= max(PADDED_STEPS, 9 * n + 2 * len(times)), (dt.shape, n)  # before: 81 x 56 000 steps
     if rate != 0.01:  # the measurement times stay keyframes: the added ones lie inside the outage only
         knots = measurement_knots(outage)
         assert set(knots) <= set(times)
         added = np.setdiff1d(times, knots)
-        assert added.size and np.all((added > 5.0) & (added < 55.0)), added
+        assert added.size and np.all((added > 20.0) & (added < 580.0)), added
+        assert np.diff(steps.knot_step).max() <= np.ceil(LONGEST_INTERVAL * n / (len(knots) - 1))
+
+
+def test_a_short_gap_in_a_short_run_is_left_alone():
+    """Ten keyframes of 10 Hz poses around a 2-s gap pad to little: no keyframe is added."""
+    data = simulate("gentle", duration=10.0, seed=0, imu_rate=100.0, pose_rate=10.0)
+    poses = data.sensor("pose").data
+    gapped = data.with_sensor("pose", data=poses.subset(np.flatnonzero((poses.t < 4.0) | (poses.t > 6.0))))
+    assert np.array_equal(keyframe_times(gapped, EVERY_MEASUREMENT), measurement_knots(gapped))
 
 
 def test_measurements_at_their_usual_pace_get_no_keyframe_and_the_added_ones_hold_the_truth(uniform, outage):
