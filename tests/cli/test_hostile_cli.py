@@ -237,3 +237,16 @@ def test_allan_prints_no_density_a_rig_would_refuse_or_the_data_cannot_give(caps
     else:
         assert "# accel_noise_density = 2.0" in out and "# not usable: expected a value within [1e-06, 1]" in out, out
         assert block["gyro_noise_density"] > 0
+
+
+def test_a_lag_no_longer_than_the_keyframe_interval_is_refused_before_any_estimator_runs(capsys, tmp_path):
+    """``--keyframe-rate 0.001 --lag 0.5`` ran the EKF and the batch smoother, then failed the
+    fixed-lag smoother with an error naming ``lag_s``, the library's argument."""
+    out = tmp_path / "o"
+    assert main(["run", "--duration", "2", "--keyframe-rate", "0.001", "--lag", "0.5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("smoother: error: --lag: 0.5 s is no longer than the keyframe "
+                                               "interval (1 / 0.001 Hz)"), err
+    assert not (out / "ekf.tum").exists()
+    assert main(["run", "--duration", "2", "--keyframe-rate", "0.001", "--lag", "0.5", "--estimator", "ekf",
+                 "--no-progress", "--out", str(out)]) == 0  # the lag is the fixed-lag smoother's alone
