@@ -226,8 +226,27 @@ def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tu
     return steps, stamps - starts[steps - 1]
 
 
-#: Queries :func:`states_at` propagates at once (their padded steps are a few MB).
+#: Queries :func:`states_at` propagates at once, at most (their padded steps are a few MB), and
+#: the most padded steps (queries times the longest one's steps) it takes at once: a query far
+#: from the state it is predicted from (keyframes inside an EKF's long gap without measurements)
+#: made 104 queries of 154 606 steps each, 368 MiB per array.
 _STATES_CHUNK = 8192
+_STATES_PADDED = 1 << 20
+
+
+def _chunks(count: np.ndarray) -> list[slice]:
+    """Consecutive slices of the queries whose steps ``count`` padded to the longest in each are at
+    most :data:`_STATES_PADDED` (a query longer than that alone) and at most :data:`_STATES_CHUNK`
+    queries."""
+    out, lo, longest = [], 0, 0
+    for i, c in enumerate(np.maximum(np.asarray(count, dtype=np.int64), 1)):
+        longest = max(longest, int(c))
+        if i > lo and ((i + 1 - lo) * longest > _STATES_PADDED or i - lo >= _STATES_CHUNK):
+            out.append(slice(lo, i))
+            lo, longest = i, int(c)
+    if len(count):
+        out.append(slice(lo, len(count)))
+    return out
 
 
 def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> Trajectory:
@@ -249,8 +268,7 @@ def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravi
     count = steps.knot_step[np.searchsorted(knots, t)] - start
     has_cov = trajectory.cov is not None
     parts, covs = [], []
-    for lo in range(0, len(t), _STATES_CHUNK):
-        sl = slice(lo, lo + _STATES_CHUNK)
+    for sl in _chunks(count):
         K = max(1, int(count[sl].max(initial=1)))
         idx = start[sl, None] + np.arange(K)[None, :]
         valid = np.arange(K)[None, :] < count[sl, None]
