@@ -39,6 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The longest error line printed: an error quotes the value it refuses, which can be as long as
+#: the file it came from.
+MAX_ERROR_CHARS = 1000
+
+
 def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"smoother: warning: {message}\n"
 
@@ -96,6 +101,8 @@ def _main(argv: list[str] | None) -> int:
         text = (f"{error.filename}: {error.strerror}" if isinstance(error, OSError) and error.filename
                 and error.strerror else str(error)).strip()
         first = text.splitlines()[0] if text else ""
+        if len(first) > MAX_ERROR_CHARS:  # a value quoted whole: a 300 000-character topic, a list of a thousand
+            first = f"{first[:MAX_ERROR_CHARS]}... ({len(first) - MAX_ERROR_CHARS} more characters)"
         if isinstance(error, MemoryError):
             dataset = str(getattr(args, "dataset", None) or "synthetic")
             simulated = getattr(args, "rig", None) is None and dataset.startswith("synthetic")

@@ -6,6 +6,7 @@ import json
 import math
 import sys
 
+from factors.errors import InputError
 from smoother.errors import UserError, interruption
 from smoother.estimators import ESTIMATORS
 
@@ -47,6 +48,10 @@ def run(args) -> int:
     share = None if args.dask else max(1, thread_count() // args.workers)
     items = fleet.recordings(args.rigs, named_directory(args.out), options, share)  # refused before --out is made
     out = output_directory(args.out)
+    try:  # before any recording runs: a summary that leads out of --out would be refused after all of them
+        inside(out, fleet.SUMMARY)
+    except InputError as error:
+        raise UserError(f"--out {out}: {error}; remove it or choose another --out") from None
     results: dict = {}
     stopped = None
     with progress_bar(len(items), "recordings", args.progress) as bar:

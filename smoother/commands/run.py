@@ -150,7 +150,7 @@ def run(args) -> int:
 def _run(args) -> int:
     from smoother.commands import check_option, dataset_specs
     from smoother.commands.run_directory import RunDirectory
-    from smoother.fixed_lag.lag import check_lag
+    from smoother.fixed_lag.lag import check_lag, check_lag_spans_keyframes
     from smoother.pipeline import ESTIMATORS, RunOptions
 
     for option in ("--seed", "--duration", "--outliers", "--gps-every", "--max-iterations", "--max-delay", "--speed"):
@@ -170,6 +170,8 @@ def _run(args) -> int:
     for option, value in (("--keyframe-rate", args.keyframe_rate), ("--ekf-gate", args.ekf_gate)):
         if value is not None:  # left out: none
             check_option(option, value)
+    if args.estimator in ("fixed-lag", "all"):  # before any estimator runs, naming the option
+        check_lag_spans_keyframes(args.lag, args.keyframe_rate, "--lag", UserError)
     options = dataset_specs.SourceOptions(
         seed=args.seed, duration=args.duration, outliers=args.outliers, gps_every=args.gps_every,
         pose_from_truth=tuple(args.pose_from_truth) if args.pose_from_truth else None,

@@ -40,12 +40,10 @@ class Steps:
         starts, stops = self.knot_step[:-1], self.knot_step[1:]
         lengths = stops - starts
         L = max(int(lengths.max(initial=0)), 1)
-        idx = starts[:, None] + np.arange(L)[None, :]
         valid = np.arange(L)[None, :] < lengths[:, None]
-        safe = np.minimum(idx, max(len(self.dt) - 1, 0))
-        dt = np.where(valid, self.dt[safe], 0.0)
-        acc = np.where(valid[..., None], self.acc[safe], 0.0)
-        gyro = np.where(valid[..., None], self.gyro[safe], 0.0)
+        steps = np.arange(starts[0], stops[-1]) if len(starts) else np.zeros(0, dtype=int)  # in order, as valid's
+        dt, acc, gyro = np.zeros(valid.shape), np.zeros(valid.shape + (3,)), np.zeros(valid.shape + (3,))
+        dt[valid], acc[valid], gyro[valid] = self.dt[steps], self.acc[steps], self.gyro[steps]  # no padded temporaries
         return acc, gyro, dt
 
 
@@ -156,27 +154,27 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
 
 #: The longest keyframe interval, in IMU steps, as a multiple of the mean interval's, where the
 #: intervals' padded steps would exceed :data:`PADDED_STEPS` (:func:`bounded_intervals`).
-LONGEST_INTERVAL = 4
+LONGEST_INTERVAL = 2
 #: The padded steps (keyframe intervals times the longest one's IMU steps) left as they are, or
-#: nine times the IMU's steps if more: some 120 MB of the steps' readings and durations.
+#: five times the IMU's steps if more: some 120 MB of the steps' readings and durations.
 PADDED_STEPS = 1 << 21
 
 
 def bounded_intervals(times: np.ndarray, imu_t: np.ndarray) -> np.ndarray:
     """``times`` (keyframes, sorted), with keyframes added, evenly, inside every interval of more
     than :data:`LONGEST_INTERVAL` times the mean number of IMU steps when the intervals' steps
-    padded to the longest one exceed ``max(PADDED_STEPS, 9 * IMU steps)``. The estimators hold
+    padded to the longest one exceed ``max(PADDED_STEPS, 5 * IMU steps)``. The estimators hold
     the intervals' steps so padded (:meth:`Steps.segments`), and one long interval -- a GNSS
     outage of minutes, IMU data long after the last fix -- made memory of the number of keyframes
     times its length: a 13-minute outage of a 2 Hz GNSS-only rig asked for 861 MiB at a time, and
-    its batch failed in 4 GB. Cut so, the padded steps are at most about nine times the IMU's;
+    its batch failed in 4 GB. Cut so, the padded steps are at most about five times the IMU's;
     a short gap in a short run is left alone, and every keyframe given stays one."""
     times = np.asarray(times, dtype=float)
     if len(times) < 2:
         return times
     steps = np.diff(np.searchsorted(imu_t, times))  # IMU samples starting in each interval
     n = int(steps.sum())
-    if len(steps) * int(steps.max()) <= max(PADDED_STEPS, 9 * n):
+    if len(steps) * int(steps.max()) <= max(PADDED_STEPS, 5 * n):
         return times
     longest = max(1, int(np.ceil(LONGEST_INTERVAL * n / len(steps))))
     long = np.flatnonzero(steps > longest)
@@ -254,8 +252,27 @@ def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tu
     return steps, stamps - starts[steps - 1]
 
 
-#: Queries :func:`states_at` propagates at once (their padded steps are a few MB).
+#: Queries :func:`states_at` propagates at once, at most (their padded steps are a few MB), and
+#: the most padded steps (queries times the longest one's steps) it takes at once: a query far
+#: from the state it is predicted from (keyframes inside an EKF's long gap without measurements)
+#: made 104 queries of 154 606 steps each, 368 MiB per array.
 _STATES_CHUNK = 8192
+_STATES_PADDED = 1 << 20
+
+
+def _chunks(count: np.ndarray) -> list[slice]:
+    """Consecutive slices of the queries whose steps ``count`` padded to the longest in each are at
+    most :data:`_STATES_PADDED` (a query longer than that alone) and at most :data:`_STATES_CHUNK`
+    queries."""
+    out, lo, longest = [], 0, 0
+    for i, c in enumerate(np.maximum(np.asarray(count, dtype=np.int64), 1)):
+        longest = max(longest, int(c))
+        if i > lo and ((i + 1 - lo) * longest > _STATES_PADDED or i - lo >= _STATES_CHUNK):
+            out.append(slice(lo, i))
+            lo, longest = i, int(c)
+    if len(count):
+        out.append(slice(lo, len(count)))
+    return out
 
 
 def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> Trajectory:
@@ -277,8 +294,7 @@ def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravi
     count = steps.knot_step[np.searchsorted(knots, t)] - start
     has_cov = trajectory.cov is not None
     parts, covs = [], []
-    for lo in range(0, len(t), _STATES_CHUNK):
-        sl = slice(lo, lo + _STATES_CHUNK)
+    for sl in _chunks(count):
         K = max(1, int(count[sl].max(initial=1)))
         idx = start[sl, None] + np.arange(K)[None, :]
         valid = np.arange(K)[None, :] < count[sl, None]

@@ -46,6 +46,11 @@ class ImuRatePrediction:
         self._parts = (x.r, x.v, x.C, x.b_f, x.b_w)
         self._t, self._held = t, held
 
+    @property
+    def started(self) -> bool:
+        """Whether a keyframe's estimate has been given to predict from (:meth:`restart`)."""
+        return self._x is not None
+
     def at(self, buffer) -> OnlineEstimate:
         """The state at the newest sample of ``buffer`` (a :class:`smoother.online.imu_buffer.ImuBuffer`);
         an InputError before the first keyframe."""

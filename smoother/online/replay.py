@@ -106,7 +106,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
             for m in range(i, j):
                 wait(imu_t[m])
                 online.add_imu(imu_t[m], dataset.imu.acc[m], dataset.imu.gyro[m])
-                online.estimate()
+                if online.started:  # with --max-delay, no keyframe (and no estimate) for that long
+                    online.estimate()
         elif j > i:
             online.add_imu(imu_t[i:j], dataset.imu.acc[i:j], dataset.imu.gyro[i:j])
 

@@ -376,6 +376,12 @@ class OnlineSmoother:
         with ``covariances``. A ValueError before the first keyframe."""
         return self._prediction.at(self._imu)
 
+    @property
+    def started(self) -> bool:
+        """Whether the first keyframe has been made, so that :meth:`estimate` has a state to
+        predict from: with ``max_delay_s`` > 0 not before the IMU stream is that far past it."""
+        return self._prediction.started
+
     def smoothed(self):
         """The keyframes that left the window since the last call (oldest first), as
         :class:`OnlineEstimate` s; empty when ``on_smoothed`` takes them."""

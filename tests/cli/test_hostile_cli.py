@@ -237,3 +237,27 @@ def test_allan_prints_no_density_a_rig_would_refuse_or_the_data_cannot_give(caps
     else:
         assert "# accel_noise_density = 2.0" in out and "# not usable: expected a value within [1e-06, 1]" in out, out
         assert block["gyro_noise_density"] > 0
+
+
+def test_a_lag_no_longer_than_the_keyframe_interval_is_refused_before_any_estimator_runs(capsys, tmp_path):
+    """``--keyframe-rate 0.001 --lag 0.5`` ran the EKF and the batch smoother, then failed the
+    fixed-lag smoother with an error naming ``lag_s``, the library's argument."""
+    out = tmp_path / "o"
+    assert main(["run", "--duration", "2", "--keyframe-rate", "0.001", "--lag", "0.5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("smoother: error: --lag: 0.5 s is no longer than the keyframe "
+                                               "interval (1 / 0.001 Hz)"), err
+    assert not (out / "ekf.tum").exists()
+    assert main(["run", "--duration", "2", "--keyframe-rate", "0.001", "--lag", "0.5", "--estimator", "ekf",
+                 "--no-progress", "--out", str(out)]) == 0  # the lag is the fixed-lag smoother's alone
+
+
+def test_an_error_quoting_a_huge_value_is_one_line_of_bounded_length(capsys, tmp_path):
+    """A rig's topic of 300 000 characters was quoted whole in a 300 kB error line."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[imu]\nsource = "bag:run.bag"\ntopic = "' + "t" * 300_000 + '"\naccel_noise_density = 2e-3\n'
+                   'gyro_noise_density = 2e-4\naccel_random_walk = 3e-4\ngyro_random_walk = 2e-5\n')
+    assert main(["run", "--rig", str(rig), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "run.bag") in err[0] and len(err[0]) < 1100, len(err[0])
+    assert err[0].endswith(" more characters)"), err[0][-80:]

@@ -303,3 +303,17 @@ def test_a_pipe_where_a_command_opens_a_file_to_write_is_refused_naming_it(tmp_p
     os.mkfifo(pipe)
     code, lines = _main_isolated(argv)
     assert code == "2" and any(f"{pipe} is a named pipe (FIFO), not a regular file" in line for line in lines), lines
+
+
+def test_a_fleet_summary_that_is_a_link_out_of_out_is_refused_before_any_recording_runs(tmp_path, capsys):
+    """It was refused after every recording had run (their work written, the summary not)."""
+    elsewhere = _theirs(tmp_path / "elsewhere")
+    out = tmp_path / "fleet"
+    out.mkdir()
+    (out / "summary.json").symlink_to(elsewhere / "metrics.json")
+    rig = tmp_path / "husky.toml"
+    rig.write_text("[imu]\n")
+    assert main(["fleet", str(rig), "--out", str(out), "--no-progress"]) == 2
+    assert "summary.json is a symbolic link to" in _one_line(capsys)
+    assert not (out / "husky").exists()
+    _untouched(elsewhere)

@@ -59,3 +59,21 @@ def test_a_late_measurement_is_dropped_when_a_keyframe_at_or_after_its_time_was_
     online.finish()
     times = [e.t for e in online.smoothed()]
     assert pose.t[k] in times and pose.t[k - 2] not in times  # the late one made its keyframe
+
+
+@pytest.mark.parametrize("delay", [0.2, MAX_DELAY_RANGE.high])
+def test_a_realtime_replay_with_a_delay_runs_and_estimates_once_the_first_keyframe_is_made(data, delay):
+    """``smoother run --realtime --max-delay 0.2`` failed every time: the replay asked for the
+    estimate after every IMU sample, and before the first keyframe (made once the stream is
+    ``max_delay_s`` past it) there is none ("estimate: no keyframe yet")."""
+    from smoother.online.replay import replay
+
+    online = _smoother(data, max_delay_s=delay)
+    assert not online.started
+    with pytest.raises(InputError, match="no keyframe yet"):
+        online.estimate()
+    result = replay(data, lag_s=1.0, max_delay_s=delay, realtime=True, speed=1000.0, covariances=False,
+                    progress=False)
+    offline = replay(data, lag_s=1.0, max_delay_s=delay, covariances=False, progress=False)
+    np.testing.assert_array_equal(result.smoothed.t, offline.smoothed.t)
+    assert len(result.latency_s) > 0
