@@ -49,9 +49,24 @@ class KeyframeSchedule:
             g = self._grid_t
             self._grid_next += 1
             self._grid_t = self.t0 + self._grid_next / self.rate
-            near = [x for x in self._knots if abs(x - g) < step]
-            if not near and (newest is None or g - newest >= step):
+            if not self._near(g, step) and (newest is None or g - newest >= step):
                 self.ask(g)
+
+    def _near(self, g: float, step: float) -> bool:
+        """Whether a time asked for lies within ``step`` of ``g``: the heap searched from its root,
+        leaving each subtree whose root (its smallest time) is ``step`` or more after ``g``. The
+        times asked for span a whole recording when ``keyframe_at`` is given them all (a replay):
+        a scan of them all at every grid time made a run's cost grow with its length squared."""
+        heap, stack = self._knots, [0] if self._knots else []
+        while stack:
+            i = stack.pop()
+            x = heap[i]
+            if x - g >= step:
+                continue
+            if abs(x - g) < step:
+                return True
+            stack += [c for c in (2 * i + 1, 2 * i + 2) if c < len(heap)]
+        return False
 
     def next_due(self, horizon: float, end: float) -> float | None:
         """The earliest time asked for at or before both ``horizon`` and ``end`` (the newest IMU

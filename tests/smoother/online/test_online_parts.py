@@ -124,6 +124,30 @@ def test_the_grid_leaves_out_times_within_half_an_imu_interval_of_another_keyfra
     assert _drain(schedule, 0.55, 1.0) == pytest.approx([0.2, 0.301, 0.4, 0.5])
 
 
+def test_the_grid_leaves_out_the_times_a_scan_of_every_time_asked_for_would():
+    """Times asked for all at once over a whole run, as a replay does (``keyframe_at``), the grid
+    made as the stream passes: the keyframes are those of a schedule that scans every time asked
+    for at each grid time (the schedule searches its heap instead), some grid times left out."""
+    class Scanning(KeyframeSchedule):
+        def _near(self, g, step):
+            return any(abs(x - g) < step for x in self._knots)
+
+    rng = np.random.default_rng(3)
+    asked = rng.permutation(np.unique(np.round(rng.uniform(0.0, 20.0, 400), 3))).tolist()
+    runs = []
+    for schedule in (KeyframeSchedule(10.0), Scanning(10.0)):
+        schedule.start(0.0)
+        for x in asked:
+            schedule.ask(x)
+        made = []
+        for horizon in np.arange(0.0, 20.5, 0.05):
+            schedule.grid_up_to(horizon, 0.004, made[-1] if made else None)
+            made += _drain(schedule, horizon, horizon)
+        runs.append(made)
+    assert runs[0] == runs[1]
+    assert set(asked) < set(runs[0]) and len(set(runs[0]) - set(asked)) < 205  # of the grid's 205, some left out
+
+
 # ------------------------------------------------------------------------------------------
 # the pending measurements (late data)
 
