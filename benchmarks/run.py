@@ -42,11 +42,17 @@ interleaved, medians taken, because the machine is noisy):
 8. self-calibration: the batch smoother on a 60-s rig of wheels, GNSS and an AHRS as given and
    with 12 calibration coordinates; the online smoother on it as given and with the wheels'
    mounting and scale to estimate, the two fed in lockstep, the whole loop per keyframe and the
-   window's update alone.
+   window's update alone;
+9. a car-like rig (100 Hz IMU, 83 Hz wheel speeds, 10 Hz GNSS, three calibrations; measurements
+   attached to 10 Hz keyframes): every estimator as ``smoother run --estimator all`` runs them
+   (``pipeline.run_estimators``) over 1, 5, 15 and 60 minutes, each length in a fresh child process:
+   the hour's wall time and peak memory, each estimator's cost per second of data and its growth
+   with the length; and the 60-s rig with a keyframe at every measurement time against the grid.
+   GTSAM has no path of its own for these.
 
-Run: python benchmarks/run.py [--quick] [--json] [--whole-process]
-``--quick`` runs a reduced set in about a minute (shorter runs, fewer repetitions, no hour run:
-``hour_*`` are null).
+Run: python benchmarks/run.py [--quick] [--json] [--whole-process | --car]
+``--quick`` runs a reduced set (shorter runs, fewer repetitions, no hour runs: ``hour_*`` and
+``car_hour_*`` are null).
 """
 from __future__ import annotations
 
@@ -282,7 +288,8 @@ def bench_ekf(s: Settings) -> dict:
         "ekf_us_per_sample": ours,
         "gtsam_ekf_us_per_sample": theirs,
         "ekf_ratio_vs_gtsam": ours / theirs,
-        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.sensor('pose').data)} pose updates, {n} samples, median of {s.repeats}",
+        "ekf_run": f"{s.preint_s:g} s at 200 Hz, {len(dataset.sensor('pose').data)} pose updates, {n} samples, "
+                   f"median of {s.repeats}",
     }
 
 
@@ -550,7 +557,8 @@ class _NativeFixedLag:
         values.insert(V(0), self.nav.velocity())
         values.insert(B(0), self.bias)
         self._update(graph, values, 0, float(dataset.imu.t[0]))
-        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))[[3, 4, 5, 0, 1, 2]])
+        sigmas = np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))
+        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(sigmas[[3, 4, 5, 0, 1, 2]])
         self.k = 0
 
     def _update(self, graph, values, k, t) -> None:
@@ -610,7 +618,8 @@ def online_against_native(duration_s: float) -> dict:
     for i in range(first, len(ends)):
         end = int(ends[i])
         tick = time.perf_counter()
-        native_side.keyframe(acc[previous:end], gyro[previous:end], dts[previous:end], times[end], m.position[i], m.C[i])
+        native_side.keyframe(acc[previous:end], gyro[previous:end], dts[previous:end], times[end], m.position[i],
+                             m.C[i])
         native_ms.append(time.perf_counter() - tick)
         tick = time.perf_counter()
         for j in range(previous + 1, end):
@@ -631,7 +640,8 @@ def online_against_native(duration_s: float) -> dict:
     for j, tt in enumerate(short.imu.t.tolist()):
         if tt in pose_row:
             i = pose_row[tt]
-            online.add("pose", tt, short.sensor("pose").data.position[i], short.sensor("pose").data.C[i], cov=short.sensor("pose").data.cov[i])
+            poses = short.sensor("pose").data
+            online.add("pose", tt, poses.position[i], poses.C[i], cov=poses.cov[i])
         online.add_imu(tt, short.imu.acc[j], short.imu.gyro[j])
         tick = time.perf_counter()
         online.estimate()
@@ -734,8 +744,8 @@ def _online_calibration(plain, repeats: int) -> dict:
     for figure, i in (("loop", 0), ("update", 1)):
         plain_ms, one_ms = (_median([1e3 * float(np.median(r[k][i])) for r in rounds]) for k in (0, 1))
         ratio = _median([float(np.median(r[1][i]) / np.median(r[0][i])) for r in rounds])
-        out.update({f"online_{figure}_uncalibrated_ms_median": plain_ms, f"online_{figure}_calibrated_ms_median": one_ms,
-                    f"online_{figure}_calibration_ratio": ratio})
+        out.update({f"online_{figure}_uncalibrated_ms_median": plain_ms,
+                    f"online_{figure}_calibrated_ms_median": one_ms, f"online_{figure}_calibration_ratio": ratio})
     return out
 
 
@@ -1052,8 +1062,8 @@ def print_table(r: dict) -> None:
         if "peak_rss_mib" in run:
             after = ", ".join(f"{k} {v:.0f}" for k, v in run["peak_rss_mib_after"].items())
             extra = f", peak RSS {run['peak_rss_mib']:.0f} MiB (peak after {after} MiB)"
-        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): {run['keyframes']:>6} kf, build {run['build_s']:.2f} s + solve "
-              f"{run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
+        print(f"  {run['minutes']:>5g} min (x{run['repeats']}): {run['keyframes']:>6} kf, build {run['build_s']:.2f} s "
+              f"+ solve {run['solve_s']:.2f} s ({run['iterations']} it) = {run['total_s']:.2f} s, "
               f"{run['ms_per_keyframe']:.3f} ms/kf ({run['relative_ms_per_keyframe']:.2f}x the "
               f"{REFERENCE_MIN:g}-min run's {run['reference_ms_per_keyframe']:.3f}){extra}")
     for key in ("fixed_lag_incremental", "fixed_lag_batch"):
@@ -1093,7 +1103,7 @@ def print_table(r: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="reduced set, about a minute, no hour run")
+    parser.add_argument("--quick", action="store_true", help="reduced set, a few minutes, no hour runs")
     parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
     parser.add_argument("--whole-process", action="store_true",
                         help="only the whole-process KITTI figure (kitti_whole_process_ratio)")
