@@ -24,7 +24,7 @@ from factors.kernel_caches import ensure_fresh_caches
 ensure_fresh_caches()  # before the test modules import (and run) any kernel
 
 # The helper modules the tests share sit next to this file (strategies.py, rigfiles.py, bagfiles.py,
-# eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py): this directory on sys.path
+# eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py, drifting_fixes.py): this directory on sys.path
 # makes ``import strategies`` work from every folder of tests/, under pytest's default (prepend)
 # import mode, which puts only each test file's own folder there, and under ``--import-mode=importlib``.
 _HERE = os.path.dirname(os.path.abspath(__file__))

@@ -132,10 +132,10 @@ def test_when_interpolation_wins_the_note_says_whether_the_fixes_drift():
     independent reference; with white ones, to the rig."""
     from types import SimpleNamespace
 
-    from test_report import _fixes_with_noise
+    from drifting_fixes import fixes_with_noise
 
     for phi, words in ((0.98, "drifts slowly over the fix spacing"), (0.0, "the fixes look independent")):
-        data, truth = _fixes_with_noise(phi)
+        data, truth = fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
         estimates = {"batch": SimpleNamespace(trajectory=truth, calibration=None)}
         losing = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] + 0.1}}
@@ -301,7 +301,7 @@ def test_ctrl_c_after_the_batch_keeps_it_with_one_line(tmp_path, capsys, monkeyp
     out = tmp_path / "run"
     assert main(["run", "--duration", "2", "--out", str(out), "--no-progress", "--no-covariance"]) == 130
     said = [line for line in capsys.readouterr().err.splitlines()
-            if not line.startswith(("dataset ", "running "))]
+            if not line.startswith(("dataset ", "keyframes: ", "running "))]
     assert said == [f"smoother: interrupted: wrote the finished estimators (batch, ekf) to {out}; metrics.json says "
                     "stopped: interrupted"], said
     assert json.loads((out / "metrics.json").read_text())["_run"]["stopped"] == "interrupted"

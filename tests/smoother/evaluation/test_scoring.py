@@ -8,9 +8,10 @@ from dataclasses import replace
 import estimator_cases as cases
 import numpy as np
 import pytest
+from drifting_fixes import fixes_with_noise
 
 from datasets.simulate import simulate
-from datasets.types import PositionMeasurements, Sensor, Trajectory
+from datasets.types import PositionMeasurements, Trajectory
 from smoother.evaluation import scoring as report
 
 
@@ -140,29 +141,13 @@ def test_the_fixes_of_a_calibrated_sensor_are_scored_at_its_estimated_offset_and
     assert calibrated["gps_fit_residual_m"] < 1e-2 and calibrated["gps_heldout_rmse_m"] < 1e-2
 
 
-def _fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
-    """The truth as the estimate and fixes of it with AR(1) errors (``phi`` the correlation from one
-    fix to the next, 0.5 m), every ``every``-th used and the rest held out."""
-    t = np.arange(n) * 0.1
-    rng = np.random.default_rng(5)
-    e = np.zeros((n, 3))
-    for k in range(1, n):
-        e[k] = phi * e[k - 1] + np.sqrt(1 - phi**2) * rng.normal(scale=0.5, size=3)
-    truth = Trajectory(t, cases.scored_truth(1).states[np.zeros(n, dtype=int)].replace(r=np.outer(t, [1.0, 0.2, 0.0])))
-    fixes = PositionMeasurements(t, truth.states.r + e, 0.25 * np.eye(3))
-    used = np.arange(n) % every == 0
-    data = simulate(profile="gentle", duration=t[-1] + 0.1, seed=0, imu_rate=cases.IMU_RATE, pose_rate=None)
-    gps = Sensor("gps", "position", fixes.subset(used), fixes.subset(~used))
-    return replace(data, sensors=(gps,), truth=None), truth
-
-
 def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
     """Interpolating the used fixes at the held-out times: with white fix errors the truth itself
     beats it; with errors that drift slowly (correlation 0.98 from fix to fix, 0.92 over the used
     fixes' spacing) interpolation beats even the truth, and the residuals at consecutive used fixes
     say so (their correlation near 0.92, against near 0 for white errors)."""
     for phi, truth_wins, rho in ((0.0, True, 0.0), (0.98, False, 0.98**4)):
-        data, truth = _fixes_with_noise(phi)
+        data, truth = fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
         assert baseline["heldout_fixes"] == len(data.sensor("gps").heldout) - 3  # those after the last used fix
         assert (report.score(data, truth)["gps_heldout_rmse_m"] < baseline["gps_heldout_rmse_m"]) == truth_wins
@@ -172,8 +157,8 @@ def test_interpolation_is_the_yardstick_and_drifting_fixes_favour_it():
 def test_each_position_sensor_has_its_own_residual_correlation():
     """Two position sensors, one drifting (0.98 from fix to fix, 0.92 over the used fixes'
     spacing), one white: each sensor's correlation is its own, the pooled one between them."""
-    drifting, truth = _fixes_with_noise(0.98)
-    white, _ = _fixes_with_noise(0.0)
+    drifting, truth = fixes_with_noise(0.98)
+    white, _ = fixes_with_noise(0.0)
     data = replace(drifting, sensors=(drifting.sensor("gps"), replace(white.sensor("gps"), name="rtk")))
     own = {name: report.residual_correlation(data, truth, sensor=name) for name in ("gps", "rtk")}
     assert own["gps"] == pytest.approx(0.98 ** 4, abs=0.08) and own["rtk"] == pytest.approx(0.0, abs=0.08), own
