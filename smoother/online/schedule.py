@@ -56,7 +56,7 @@ class KeyframeSchedule:
         """Whether a time asked for lies within ``step`` of ``g``: the heap searched from its root,
         leaving each subtree whose root (its smallest time) is ``step`` or more after ``g``. The
         times asked for span a whole recording when ``keyframe_at`` is given them all (a replay):
-        a scan of them all at every grid time made a run's cost grow with its length squared."""
+        a scan of them all at every grid time would make a run's cost grow with its length squared."""
         heap, stack = self._knots, [0] if self._knots else []
         while stack:
             i = stack.pop()
