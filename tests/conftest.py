@@ -15,6 +15,7 @@ is set, as it is in the project's CI; ``default`` otherwise):
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 from hypothesis import HealthCheck, settings
@@ -22,6 +23,12 @@ from hypothesis import HealthCheck, settings
 from factors.kernel_caches import ensure_fresh_caches
 
 ensure_fresh_caches()  # before the test modules import (and run) any kernel
+
+# Python turns SIGINT into KeyboardInterrupt only when the process starts with SIGINT's default
+# disposition; a run started where it is ignored (a background job of a non-interactive shell, under
+# GNU time) would leave the tests of Ctrl-C handling without it
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # The helper modules the tests share sit next to this file (strategies.py, rigfiles.py, bagfiles.py,
 # eurocfiles.py, small_recording.py, mounted_kinds.py, gtsam_values.py, drifting_fixes.py, isolation.py):

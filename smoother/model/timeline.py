@@ -254,20 +254,20 @@ def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tu
 
 #: Queries :func:`states_at` propagates at once, at most (their padded steps are a few MB), and
 #: the most padded steps (queries times the longest one's steps) it takes at once: a query far
-#: from the state it is predicted from (keyframes inside an EKF's long gap without measurements)
-#: made 104 queries of 154 606 steps each, 368 MiB per array.
-_STATES_CHUNK = 8192
-_STATES_PADDED = 1 << 20
+#: from the state it is predicted from (keyframes inside an EKF's long gap without measurements:
+#: a 13-minute outage gives some 100 queries of 150 000 steps each) would need 370 MiB per array.
+STATES_CHUNK = 8192
+STATES_PADDED = 1 << 20
 
 
 def _chunks(count: np.ndarray) -> list[slice]:
     """Consecutive slices of the queries whose steps ``count`` padded to the longest in each are at
-    most :data:`_STATES_PADDED` (a query longer than that alone) and at most :data:`_STATES_CHUNK`
+    most :data:`STATES_PADDED` (a query longer than that alone) and at most :data:`STATES_CHUNK`
     queries."""
     out, lo, longest = [], 0, 0
     for i, c in enumerate(np.maximum(np.asarray(count, dtype=np.int64), 1)):
         longest = max(longest, int(c))
-        if i > lo and ((i + 1 - lo) * longest > _STATES_PADDED or i - lo >= _STATES_CHUNK):
+        if i > lo and ((i + 1 - lo) * longest > STATES_PADDED or i - lo >= STATES_CHUNK):
             out.append(slice(lo, i))
             lo, longest = i, int(c)
     if len(count):

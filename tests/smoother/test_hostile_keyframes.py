@@ -95,8 +95,8 @@ def test_states_predicted_far_from_their_source_are_propagated_in_bounded_chunks
     monkeypatch.setattr(timeline, "propagate_steps", recording)
     chunked = timeline.states_at(source, outage.imu, queries, outage.noise, outage.gravity)
     longest = max(k for _, k in shapes)
-    assert all(n * k <= max(timeline._STATES_PADDED, k) for n, k in shapes) and len(shapes) > 1, shapes
-    monkeypatch.setattr(timeline, "_STATES_PADDED", 10**12)  # one chunk, as before
+    assert all(n * k <= max(timeline.STATES_PADDED, k) for n, k in shapes) and len(shapes) > 1, shapes
+    monkeypatch.setattr(timeline, "STATES_PADDED", 10**12)  # one chunk, as before
     whole = timeline.states_at(source, outage.imu, queries, outage.noise, outage.gravity)
     assert shapes[-1] == (len(queries), longest)
     for name in ("r", "v", "C", "b_f", "b_w"):
