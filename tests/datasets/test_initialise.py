@@ -2,23 +2,12 @@
 ground truth (the estimators started from it: ``tests/smoother/test_self_initialisation.py``)."""
 import numpy as np
 import pytest
+from initialisation_rig import CAMERA, GNSS, WHEEL
 
 from datasets.initialise import InitialisationError, imu_from, initial_state, self_initialised
 from datasets.kinds import sensors_of
 from datasets.simulate import simulate
-from datasets.simulated_sensors import SensorSpec
 from factors import so3
-
-
-def _T(rotation_vector, lever):
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = so3.exp(np.asarray(rotation_vector, dtype=float)), lever
-    return T
-
-
-CAMERA = SensorSpec("camera", "pose", 10, (0.05, 0.01), _T([0.3, -1.2, 0.5], [0.15, 0.05, -0.3]))
-GNSS = SensorSpec("gnss", "gnss", 1, 0.3, _T([0, 0, 0], [0.2, -0.4, 0.9]))
-WHEEL = SensorSpec("wheel", "velocity", 10, 0.05, _T([0, 0, 0.4], [-0.6, 0.3, -0.35]))
 
 
 def test_at_rest_the_velocity_is_zero_and_roll_pitch_come_from_gravity():

@@ -3,23 +3,12 @@ no ground truth) reach the accuracy of a start from the truth (how the start is 
 ``tests/datasets/test_initialise.py``)."""
 import numpy as np
 import pytest
+from initialisation_rig import CAMERA, GNSS, WHEEL
 
 from datasets.initialise import self_initialised
 from datasets.simulate import simulate
-from datasets.simulated_sensors import SensorSpec
 from factors import so3
 from smoother.pipeline import run_estimators
-
-
-def _T(rotation_vector, lever):
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = so3.exp(np.asarray(rotation_vector, dtype=float)), lever
-    return T
-
-
-CAMERA = SensorSpec("camera", "pose", 10, (0.05, 0.01), _T([0.3, -1.2, 0.5], [0.15, 0.05, -0.3]))
-GNSS = SensorSpec("gnss", "gnss", 1, 0.3, _T([0, 0, 0], [0.2, -0.4, 0.9]))
-WHEEL = SensorSpec("wheel", "velocity", 10, 0.05, _T([0, 0, 0.4], [-0.6, 0.3, -0.35]))
 
 
 def _final_error(data, truth) -> dict:
