@@ -347,8 +347,11 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
       a sensor's held-out verdict (``heldout``: :func:`heldout_by_estimator`) stands for its own
       where it has one: data the fit did not use;
     * a verdict is far below its band (:func:`smoother.diagnosis.verdicts.far_below`): the sensor's
-      sigma is overstated, and the estimate's covariances too large -- or, for held-out
-      predictions whose covariance is mostly the state's, a state the data do not fix;
+      sigma is overstated, and the estimate's covariances too large (for held-out predictions, by
+      the factor that would fit them) -- or, for held-out predictions below even the state's own
+      covariance (no sigma of the sensor's fits them with the estimate's covariances held:
+      :func:`smoother.diagnosis.heldout.sigma_factor`), a sigma that also inflates those covariances
+      or a state the data do not fix;
     * a run-wide ``doubts`` (:func:`run_doubts`) holds.
 
     A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
@@ -385,14 +388,19 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
         low = [k for k, c in judged_by.items() if far_below(c)]
         for k in low:
             c = judged_by[k]
-            if c.get("state_share", 0.0) > 0.5:
-                why.append(f"{k}'s held-out predictions are {c['per_dof']:.3g} per dof (expected "
-                           f"{c['band'][0]:.2g}-{c['band'][1]:.2g}), mostly the state's uncertainty: a state the "
-                           "data do not fix (a heading, a bias) makes them look good")
+            figure = (f"{k}'s {'held-out predictions' if k in held else 'errors'} are {c['per_dof']:.3g} per dof "
+                      f"(expected {c['band'][0]:.2g}-{c['band'][1]:.2g})")
+            if k in held and c.get("sigma_factor") is None:
+                why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
+                           "are too large -- a sigma stated too large (a smaller one shrinks them too) or a state "
+                           "the data do not fix (a heading, a bias)")
             else:
-                why.append(f"{k}'s {'held-out predictions' if k in held else 'errors'} are {c['per_dof']:.3g} per "
-                           f"dof (expected {c['band'][0]:.2g}-{c['band'][1]:.2g}), far below their band: its sigma "
-                           "is overstated, so the estimate's covariances are too large")
+                factor = c.get("sigma_factor")
+                by = "" if k not in held else (
+                    f" (by up to {1.0 / factor:.2g}x: they are 1 per dof at {factor:.2g} times it with the "
+                    "estimate's covariances held, which a smaller sigma shrinks too; a value fitted to them)")
+                why.append(f"{figure}, far below their band: its sigma is overstated{by}, so the estimate's "
+                           "covariances are too large")
         calibrated = () if est.calibration is None else est.calibration.names
         borrowed = {k: v for k, v in verdicts_for(name, consistency).items()
                     if k in calibrated and k not in judged_by and far_above(v)}

@@ -15,10 +15,18 @@ the residuals of the measurements it used, which a fitted noise puts in band by 
 (A calibration's own uncertainty is left out of ``S``: it is small beside the state's where the
 data fix the calibration.)
 
-The share of ``S`` that is the state's, ``tr(S^-1 H P H^T) / d``, says what a verdict below its
-band means: where the state's uncertainty dominates (a yaw the data do not fix inflates ``S``),
-low errors say nothing of the sensor's sigma; where ``R`` dominates, its sigma is stated too
-large. Relative measurements (odometry) are not judged here: they need two states' joint
+A verdict below its band says the prediction's covariance is too large: the sensor's sigma stated
+too large, or the state's covariance (a sigma that also inflates it, a state the data do not fix).
+The mean of ``e^T (H P H^T + k^2 R)^-1 e`` per dof falls monotonically as a factor ``k`` on the
+sensor's sigma grows (``S`` grows in the positive semi-definite order), so the one ``k`` at which it
+is 1 is found by bisection (:func:`sigma_factor`) -- how far the sigma is off at most: ``P`` is
+held, and a smaller sigma makes it smaller too (it is monotone in ``R``), so re-solved with ``k``
+the errors would lie above 1 per dof, and the sigma that fits lies between ``k`` and 1 times the
+stated one. Where there is none, the errors lie below even the state's covariance alone: with ``P``
+held no sigma explains them, which does not tell a state the data do not fix from a sigma that
+inflates ``P`` too. (Such a ``k`` is fitted to the held-out measurements: a value to try, judged on
+other data.) The share of ``S`` that is the state's, ``tr(S^-1 H P H^T) / d``, is recorded beside it.
+Relative measurements (odometry) are not judged here: they need two states' joint
 covariance.
 """
 from __future__ import annotations
@@ -31,6 +39,34 @@ from smoother.diagnosis.verdicts import verdict
 
 #: A held-out time matches an estimate's state within this [s].
 MATCH_TOLERANCE = 1e-9
+#: :func:`sigma_factor` searches this range of factors on a sensor's sigma ...
+SIGMA_FACTOR_RANGE = (1e-3, 1e3)
+#: ... by this many bisections of its logarithm (to a relative precision of about 1e-6).
+BISECTIONS = 45
+
+
+def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float | None:
+    """The factor ``k`` on a sensor's sigma (``R -> k^2 R``) at which its held-out prediction
+    errors ``e (M, d)``, with the state's part ``H P H^T (M, d, d)`` of their covariance and the
+    measurements' ``R (M, d, d)``, are 1 per dof: ``sum e^T (H P H^T + k^2 R)^-1 e = M d``
+    (module docstring). None where no ``k`` within :data:`SIGMA_FACTOR_RANGE` is: the errors lie
+    below even the state's covariance (a state the data do not fix) or above even the largest."""
+    target = e.size
+
+    def excess(log_k: float) -> float:
+        S = state_part + np.exp(2.0 * log_k) * R
+        return float(np.einsum("ma,ma->", e, np.linalg.solve(S, e[..., None])[..., 0])) - target
+
+    lo, hi = np.log(SIGMA_FACTOR_RANGE)
+    if not excess(lo) >= 0.0 or not excess(hi) <= 0.0:
+        return None
+    for _ in range(BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        if excess(mid) > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(0.5 * (lo + hi)))
 
 
 def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=None) -> dict[str, dict]:
@@ -38,7 +74,9 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     normalised prediction errors through ``trajectory`` (with its covariances) and the
     estimator's calibration variables ``calibration`` (a :class:`factors.calibration.CalibrationSet`
     or None: the values given), statistic ``"heldout"``, with ``state_share``: the mean share of
-    the prediction's covariance that is the state's (module docstring). Held-out measurements at
+    the prediction's covariance that is the state's, and ``sigma_factor``: the factor on the
+    sensor's sigma at which the errors would be 1 per dof (:func:`sigma_factor`; None where no
+    sigma would do; module docstring). Held-out measurements at
     no state of the estimate are left out; a sensor with none left has no verdict."""
     if trajectory.cov is None:
         return {}
@@ -78,5 +116,6 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         d = kind.dim
         share = np.einsum("mab,mba->m", np.linalg.inv(S[good]), state_part[good]) / d
         record = verdict(float(nis[good].sum()), float(d * good.sum()), int(good.sum()), "heldout")
-        out[sensor.name] = {**record, "state_share": float(np.mean(share))}
+        out[sensor.name] = {**record, "state_share": float(np.mean(share)),
+                            "sigma_factor": sigma_factor(e[good], state_part[good], R[good])}
     return out

@@ -88,12 +88,17 @@ def out_of_band(c: dict) -> bool:
 def shown(c: dict) -> str:
     """A verdict's figure as printed: ``1.03 (0.94-1.1) ok``, ``14.1 (0.82-1.2) OUT OF BAND``;
     not judged, ``1.21: too few degrees of freedom to judge (0.0007)``; of no update, ``none used
-    (301 rejected by the gate)``."""
+    (301 rejected by the gate)``; held-out predictions out of band with the factor on the sensor's
+    sigma that would fit them (:func:`smoother.diagnosis.heldout.sigma_factor`), ``0.613 (0.92-1.1)
+    OUT OF BAND: 1 per dof at its sigma x0.19``."""
     if c["per_dof"] is None:
         return f"none used ({c.get('rejected', 0)} rejected by the gate)"
     if not judgeable(c):
         return f"{c['per_dof']:.3g}: {TOO_FEW_DOF} ({c['dof']:.2g})"
-    return f"{c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) {'ok' if c['ok'] else 'OUT OF BAND'}"
+    text = f"{c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) {'ok' if c['ok'] else 'OUT OF BAND'}"
+    if not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
+        text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
+    return text
 
 
 def rejections(consistency: dict[str, dict]) -> str | None:
@@ -159,14 +164,14 @@ def far_below(c: dict) -> bool:
 def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
-    ``heldout_dof``, ``heldout_state_share``; :mod:`smoother.diagnosis.heldout`); a sensor judged on held-out
-    measurements alone has that verdict as its own (statistic ``heldout``)."""
+    ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``; :mod:`smoother.diagnosis.heldout`);
+    a sensor judged on held-out measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
         own = out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"})
         own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
                     "heldout_measurements": h["measurements"], "heldout_dof": h["dof"],
-                    "heldout_state_share": h["state_share"]})
+                    "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor")})
     return out
 
 
@@ -197,7 +202,8 @@ def heldout_part(c: dict) -> dict | None:
     if "heldout_per_dof" not in c or c.get("statistic") == "heldout":
         return None
     return {"per_dof": c["heldout_per_dof"], "band": c["heldout_band"], "ok": c["heldout_ok"],
-            "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout"}
+            "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout",
+            "sigma_factor": c.get("heldout_sigma_factor")}
 
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:

@@ -26,13 +26,23 @@ def test_a_verdict_far_below_its_band_says_the_sigma_is_overstated():
     assert "far below their band: its sigma is overstated" in est.details["doubtful"]
 
 
-def test_held_out_predictions_far_below_with_the_state_dominating_blame_a_state_not_the_sigma():
+def test_held_out_predictions_below_the_state_s_own_uncertainty_name_both_causes_and_no_factor():
     est = _estimate()
-    held = {"batch": {"gps": _verdict(0.2, statistic="heldout", state_share=0.9)}}
+    held = {"batch": {"gps": _verdict(0.2, statistic="heldout", state_share=0.9, sigma_factor=None)}}
     judged({"batch": est}, {"batch": {"gps": _verdict(1.0)}}, held)
+    assert "below even the state's own uncertainty there" in est.details["doubtful"]
     assert "a state the data do not fix" in est.details["doubtful"]
     assert "sigma is overstated" not in est.details["doubtful"]
     assert est.details["sensors"]["gps"]["heldout_per_dof"] == held["batch"]["gps"]["per_dof"]
+
+
+def test_held_out_predictions_far_below_say_by_how_much_the_sigma_is_overstated():
+    """A state's share above half does not excuse the sigma when the errors say a smaller one fits."""
+    est = _estimate()
+    held = {"batch": {"gps": _verdict(0.2, statistic="heldout", state_share=0.63, sigma_factor=0.19)}}
+    judged({"batch": est}, {"batch": {"gps": _verdict(1.0)}}, held)
+    assert "its sigma is overstated (by up to 5.3x: they are 1 per dof at 0.19 times it" in est.details["doubtful"]
+    assert est.details["sensors"]["gps"]["heldout_sigma_factor"] == 0.19
 
 
 def test_a_held_out_verdict_stands_for_the_residuals_where_it_exists():

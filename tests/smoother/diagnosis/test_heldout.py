@@ -53,6 +53,33 @@ def test_a_sigma_stated_too_large_puts_the_held_out_errors_below_their_band_with
     record = heldout_consistency(data, solve_batch(build_problem(data)).trajectory)["position"]
     assert record["per_dof"] < record["band"][0]
     assert record["state_share"] < 0.5  # the sensor's own covariance dominates: its sigma is the cause
+    # the held-out errors say by how much: with the estimate's covariance held, which the smaller
+    # sigma would shrink too, at or beyond the truth's 1/3 (here 0.22)
+    assert 0.1 < record["sigma_factor"] < 1.1 / 3.0
+
+
+@pytest.mark.parametrize("k", [0.1, 1.0, 4.0])
+def test_the_sigma_factor_recovers_the_factor_the_errors_were_drawn_with(k):
+    from smoother.diagnosis.heldout import sigma_factor
+
+    rng = np.random.default_rng(int(10 * k))
+    A = rng.normal(size=(4000, 3, 3))
+    state_part = 0.01 * A @ np.swapaxes(A, 1, 2)
+    R = np.broadcast_to(np.diag([0.04, 0.04, 0.09]), (4000, 3, 3))
+    L = np.linalg.cholesky(state_part + k**2 * R)
+    e = (L @ rng.normal(size=(4000, 3, 1)))[..., 0]
+    assert abs(sigma_factor(e, state_part, R) / k - 1.0) < 0.1
+
+
+def test_errors_below_the_state_s_own_covariance_have_no_sigma_factor():
+    """A state the data do not fix: the errors smaller than its covariance alone says, which no
+    sigma, however small, explains."""
+    from smoother.diagnosis.heldout import sigma_factor
+
+    rng = np.random.default_rng(1)
+    state_part = np.broadcast_to(np.eye(3), (500, 3, 3))
+    e = 0.3 * rng.normal(size=(500, 3))
+    assert sigma_factor(e, state_part, 0.01 * state_part) is None
 
 
 def test_without_covariances_or_held_out_measurements_there_is_no_verdict():
