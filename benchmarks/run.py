@@ -47,8 +47,10 @@ interleaved, medians taken, because the machine is noisy):
    attached to 10 Hz keyframes): every estimator as ``smoother run --estimator all`` runs them
    (``pipeline.run_estimators``) over 1, 5, 15 and 60 minutes, each length in a fresh child process:
    the hour's wall time and peak memory, each estimator's cost per second of data and its growth
-   with the length; and the 60-s rig with a keyframe at every measurement time against the grid.
-   GTSAM has no path of its own for these.
+   with the length; the 60-s rig with a keyframe at every measurement time against the grid; and
+   the longest rig fed live to the online smoother (:func:`online_car`: the loop per keyframe and
+   per wheel message, the worst single call of each method), beside GTSAM's native fixed-lag loop
+   on the same IMU and fixes (GTSAM has no factor for the wheels' body-frame speed).
 
 Run: python benchmarks/run.py [--quick] [--json] [--whole-process | --car]
 ``--quick`` runs a reduced set (shorter runs, fewer repetitions, no hour runs: ``hour_*`` and
@@ -557,7 +559,7 @@ class _NativeFixedLag:
         values.insert(V(0), self.nav.velocity())
         values.insert(B(0), self.bias)
         self._update(graph, values, 0, float(dataset.imu.t[0]))
-        self.pose_noise = gtsam.noiseModel.Isotropic.Sigmas(
+        self.pose_noise = None if "pose" not in dataset.sensor_names else gtsam.noiseModel.Isotropic.Sigmas(
             np.sqrt(np.diag(dataset.sensor("pose").data.cov[0]))[[3, 4, 5, 0, 1, 2]])
         self.k = 0
 
@@ -572,13 +574,20 @@ class _NativeFixedLag:
 
     def keyframe(self, acc, gyro, dt, t, position, C) -> None:
         """The samples of one interval (lists), the pose at its end, one update, the estimate."""
+        self.step(acc, gyro, dt, t, [gtsam.PriorFactorPose3(self.X(self.k + 1), gtsam.Pose3(gtsam.Rot3(C), position),
+                                                            self.pose_noise)])
+
+    def step(self, acc, gyro, dt, t, factors: list) -> None:
+        """The samples of one interval (lists), the ``factors`` measuring the keyframe at its end
+        (key ``X(self.k + 1)``), one update, the estimate."""
         X, V, B, k = self.X, self.V, self.B, self.k + 1
         pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.bias)
         for a, w, h in zip(acc, gyro, dt):
             pim.integrateMeasurement(a, w, h)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
-        graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(gtsam.Rot3(C), position), self.pose_noise))
+        for factor in factors:
+            graph.add(factor)
         predicted = pim.predict(self.nav, self.bias)
         values.insert(X(k), predicted.pose())
         values.insert(V(k), predicted.velocity())
@@ -885,7 +894,86 @@ def bench_car(s: Settings) -> dict:
                                            for n in names},
             "runs": runs},
         "car_keyframe_speedup": keyframe_speedup(s.repeats),
+        "car_online": online_car(lengths[-1]),
     }
+
+
+def online_car(minutes: float) -> dict:
+    """The car rig of ``minutes`` fed live, as a robot's callbacks would, to the online smoother
+    (lag 2 s, covariances off, the rig's three calibrations estimated, keyframes on the 10 Hz
+    grid): each IMU sample by ``add_imu``, each wheel speed and fix by ``add`` when it arrives (at
+    its stamp, before the sample of that time), ``estimate()`` after each sample that made a
+    keyframe. Each call timed (in a process whose kernels are loaded): the loop per keyframe (the
+    sample that made it and the estimate out)
+    and per wheel message, median and p99 after the first 2 s, and the worst single call of each
+    method over the whole run. Beside it, GTSAM's native fixed-lag loop on the same IMU and fixes
+    (:class:`_NativeFixedLag`, stepped keyframe by keyframe in turn with ours: ``GPSFactorArm`` at
+    the antenna's lever arm, each fix at the keyframe of its true time -- GTSAM estimates no time
+    offset -- and no wheels: GTSAM has no factor for a body-frame speed): its loop per keyframe and
+    its worst."""
+    from smoother.online.replay import replaying
+
+    dataset = car_rig(60.0 * minutes)
+    t, acc, gyro = dataset.imu.t, dataset.imu.acc, dataset.imu.gyro
+    times, acc_rows, gyro_rows = t.tolist(), list(acc), list(gyro)
+    speeds, fixes = dataset.sensor("wheels").data, dataset.sensor("gnss").data
+    grid = keyframe_times(dataset)
+    # the sample at or after each keyframe time makes it; each message arrives before the sample of its stamp
+    makes = np.zeros(len(t), dtype=bool)
+    makes[np.searchsorted(t, grid[1:], side="left")] = True
+    wheel_before = np.searchsorted(t, speeds.t, side="left")
+    fix_before = np.searchsorted(t, fixes.t, side="left")
+    online = replaying(dataset, lag_s=LAG_S, covariances=False)
+    native_side = _NativeFixedLag(dataset)
+    antenna = fixes.T_BS[:3, 3]
+    fix_noise = gtsam.noiseModel.Isotropic.Sigma(3, float(np.sqrt(fixes.cov[0, 0, 0])))
+    fix_at = {round(x - 0.05, 9): i for i, x in enumerate(fixes.t.tolist())}  # the rig's fixes are 0.05 s late
+    worst = {"add_imu": 0.0, "add wheels": 0.0, "add gnss": 0.0, "estimate": 0.0}
+    keyframe_ms, wheel_ms, native_ms = [], [], []
+    w = f = 0
+    previous = 0
+    dts = np.diff(t).tolist()
+    settled = times[0] + LAG_S
+    for j in range(len(t)):
+        while w < len(speeds.t) and wheel_before[w] <= j:
+            tick = time.perf_counter()
+            online.add("wheels", speeds.t[w], speeds.velocity[w], speeds.gyro[w], cov=speeds.cov[w])
+            took = time.perf_counter() - tick
+            worst["add wheels"] = max(worst["add wheels"], took)
+            if times[j] >= settled:
+                wheel_ms.append(1e3 * took)
+            w += 1
+        while f < len(fixes.t) and fix_before[f] <= j:
+            tick = time.perf_counter()
+            online.add("gnss", fixes.t[f], fixes.position[f], cov=fixes.cov[f])
+            worst["add gnss"] = max(worst["add gnss"], time.perf_counter() - tick)
+            f += 1
+        tick = time.perf_counter()
+        online.add_imu(times[j], acc_rows[j], gyro_rows[j])
+        took = time.perf_counter() - tick
+        worst["add_imu"] = max(worst["add_imu"], took)
+        if not makes[j]:
+            continue
+        tick = time.perf_counter()
+        online.estimate()
+        took_estimate = time.perf_counter() - tick
+        worst["estimate"] = max(worst["estimate"], took_estimate)
+        i = fix_at.get(round(times[j], 9))
+        factors = [] if i is None else [gtsam.GPSFactorArm(native_side.X(native_side.k + 1), fixes.position[i],
+                                                           antenna, fix_noise)]
+        tick = time.perf_counter()
+        native_side.step(acc_rows[previous:j], gyro_rows[previous:j], dts[previous:j], times[j], factors)
+        native_took = time.perf_counter() - tick
+        previous = j
+        if times[j] >= settled:
+            keyframe_ms.append(1e3 * (took + took_estimate))
+            native_ms.append(1e3 * native_took)
+    online.finish()
+    keyframe_ms, wheel_ms, native_ms = (np.array(x) for x in (keyframe_ms, wheel_ms, native_ms))
+    return {"minutes": minutes, "keyframes": len(keyframe_ms), "wheel_messages": len(wheel_ms),
+            "online_keyframe_ms": _percentiles(keyframe_ms), "online_wheel_message_ms": _percentiles(wheel_ms),
+            "online_worst_call_ms": {k: 1e3 * v for k, v in worst.items()},
+            "native_keyframe_ms": _percentiles(native_ms)}
 
 
 def keyframe_speedup(repeats: int) -> dict:
@@ -1017,6 +1105,17 @@ def _table_rows(r: dict) -> list:
         rows.append(row(f"car_scaling {name}: fitted growth", "", "", value=scaling["fitted_growth"][name]))
         rows.append(row(f"car_scaling {name}: fitted growth side by side", "",
                         "<= 0.20 (shortest to longest, against 1-min runs)", lambda v: abs(v) <= 0.2, growth))
+    live = r["car_online"]
+    for figure, unit in (("online_keyframe_ms", "per keyframe"), ("online_wheel_message_ms", "per wheel message")):
+        for stat in ("median_ms", "p99_ms"):
+            rows.append(row(f"car_online {live['minutes']:g} min: loop {unit}, {stat[:-3]}", "ms",
+                            value=live[figure][stat]))
+    for stat in ("median_ms", "p99_ms"):
+        rows.append(row(f"car_online: native loop per keyframe, {stat[:-3]}", "ms",
+                        value=live["native_keyframe_ms"][stat]))
+    method, ms = max(live["online_worst_call_ms"].items(), key=lambda item: item[1])
+    rows.append(row(f"car_online: worst single call ({method})", "ms",
+                    f"beside native's worst keyframe ({live['native_keyframe_ms']['max_ms']:.3g})", value=ms))
     speedup = r["car_keyframe_speedup"]
     for name in ("batch", "fixed-lag"):
         k = speedup[name]
