@@ -114,7 +114,7 @@ def test_a_straight_drive_is_aligned_about_gravity_with_a_warning(tmp_path, caps
     """--align se3 on a nearly straight drive: a warning with the conditioning, the table names the
     alignment applied, the JSON carries it, and the rotation ATE is the true 7 deg (Umeyama's
     roll about the road made it 75.7 deg)."""
-    from test_metrics import straight_drive
+    from straight_drive import straight_drive
 
     (t, r, C), (r_est, C_est) = straight_drive()
     ref, est = tmp_path / "ref.tum", tmp_path / "est.tum"

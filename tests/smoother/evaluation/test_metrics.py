@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from straight_drive import straight_drive, transformed
 
-from datasets.simulate import simulate
-from datasets.trajectories import Sinusoids, sinusoid_profile
 from datasets.tum import write_tum
 from factors import imu, so3
 from factors.imu import ImuState
@@ -30,10 +29,6 @@ def _walk(n=300, seed=0, dt=0.05, t0=1000.0):
     r = np.cumsum(rng.normal(scale=0.3, size=(n, 3)), axis=0)
     C = so3.exp(np.cumsum(rng.normal(scale=0.05, size=(n, 3)), axis=0) + [0.2, -0.4, 1.0])
     return t, r, C
-
-
-def _transform(R, t, r, C, s=1.0):
-    return s * r @ R.T + t, R @ C
 
 
 # ------------------------------------------------------------------------------------------
@@ -97,26 +92,6 @@ def test_posyaw_recovers_yaw_and_translation_only():
     assert R[2, 2] == 1.0 and R[0, 2] == R[2, 0] == 0.0
 
 
-#: A straight road at 10 m/s with a 5 cm weave (the simulator's profile; no turn, level).
-STRAIGHT = sinusoid_profile("straight", "a straight road at 10 m/s, a 5 cm weave",
-                            position=(Sinusoids(slope=10.0), Sinusoids(terms=((0.05, 0.4, 0.0),)),
-                                      Sinusoids(offset=1.0)),
-                            attitude=(Sinusoids(), Sinusoids(), Sinusoids()))
-
-
-def straight_drive(roll_error_deg: float = 7.0, seed: int = 4):
-    """30 s of :data:`STRAIGHT` at 10 Hz and an estimate of it: positions drifting as a random walk
-    (5 cm a step, about 0.6 m at the end), every attitude rolled ``roll_error_deg`` about the road
-    (the true rotation error), the whole in another frame (yaw 0.6 rad, an offset). Returns the
-    reference ``(t, r, C)`` and the estimate ``(r, C)``."""
-    truth = simulate(profile=STRAIGHT, duration=30.0, seed=0, pose_rate=None).truth.subset(slice(0, None, 20))
-    drift = np.cumsum(np.random.default_rng(seed).normal(scale=0.05, size=(len(truth), 3)), axis=0)
-    R, offset = so3.exp([0.0, 0.0, 0.6]), np.array([3.0, -2.0, 0.5])
-    rolled = so3.exp([np.radians(roll_error_deg), 0.0, 0.0]) @ truth.C
-    r_est, C_est = _transform(R, offset, truth.position + drift, rolled)
-    return (truth.t, truth.position, truth.C), (r_est, C_est)
-
-
 def test_a_straight_drive_is_not_rolled_about_the_road():
     """Positions near a line fix no rotation about it: Umeyama's se3 fits that roll to the drift
     (a rotation ATE of 75.7 deg here for a true 7 deg). The fit reports its conditioning and, the
@@ -168,7 +143,7 @@ def test_alignment_recovers_a_known_offset_and_ate_is_zero(mode):
     t, r, C = _walk()
     phi = [0.0, 0.0, -1.2] if mode == "posyaw" else [0.4, -0.3, -1.2]
     R, offset = so3.exp(phi), np.array([10.0, -5.0, 2.0])
-    r_est, C_est = _transform(R, offset, r, C)
+    r_est, C_est = transformed(R, offset, r, C)
     result = evaluate(t, r, C, t, r_est, C_est, align=mode)
     assert np.abs(result.R - R.T).max() < 1e-12
     assert np.abs(result.t + R.T @ offset).max() < 1e-10
@@ -214,7 +189,7 @@ def test_rpe_is_invariant_to_a_global_transform_and_local():
     r_est = r + rng.normal(scale=0.01, size=r.shape)
     C_est = so3.exp(rng.normal(scale=0.01, size=r.shape)) @ C
     a = rpe(r, C, r_est, C_est)
-    moved = _transform(so3.exp([1.0, 2.0, -0.5]), [4.0, 5.0, 6.0], r_est, C_est)
+    moved = transformed(so3.exp([1.0, 2.0, -0.5]), [4.0, 5.0, 6.0], r_est, C_est)
     b = rpe(r, C, *moved)
     assert np.allclose(a["translation_errors"], b["translation_errors"], atol=1e-12)
     assert np.allclose(a["rotation_errors"], b["rotation_errors"], atol=1e-9)
@@ -331,7 +306,7 @@ def _evo_case(tmp_path, seed):
     R, offset = so3.exp(rng.normal(size=3)), rng.normal(scale=20.0, size=3)
     r_est = r + rng.normal(scale=0.05, size=r.shape)
     C_est = so3.exp(rng.normal(scale=0.02, size=r.shape)) @ C
-    r_est, C_est = _transform(R, offset, r_est, C_est)
+    r_est, C_est = transformed(R, offset, r_est, C_est)
     t_est = t + rng.uniform(-0.004, 0.004, size=t.size)
     t_est[keep[::7]] += 0.03  # some too far off to associate
     order = np.argsort(t_est[keep])

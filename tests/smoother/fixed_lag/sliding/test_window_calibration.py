@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 from banded_cases import dense
-from test_calibration_estimates import miscalibrated_rig
+from miscalibrated_rig import miscalibrated_rig
 
 from factors import so3
 from factors.calibration import CalibrationPrior
