@@ -827,11 +827,13 @@ def car_rig(duration_s: float, seed: int = 0):
                             calibrate=CalibrationPrior(("time_offset",)))
 
 
-def car_all(dataset, names=ESTIMATORS, keyframe_rate=None) -> dict:
+def car_all(dataset, names=ESTIMATORS, keyframe_rate=None, beside: bool = True) -> dict:
     """``pipeline.run_estimators`` of ``names`` on ``dataset`` (what ``smoother run --estimator all``
-    runs, without the verdicts and files after it): the wall time of the call, each estimator's
-    own time and its ATE against the truth (at its own states)."""
-    options = RunOptions(keyframe_rate=keyframe_rate, progress=False)
+    runs, without the verdicts and files after it: with ``beside``, the fixed-lag smoother in a
+    second process where two threads are allowed, as the command does): the wall time of the call,
+    each estimator's own time and its ATE against the truth (at its own states)."""
+    options = RunOptions(keyframe_rate=keyframe_rate, progress=False,
+                         fixed_lag_beside=beside and threads.thread_count() >= 2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the rig's deliberate mounting and offsets are said in warnings
         seconds, estimates = _clock(lambda: run_estimators(dataset, names, options))
@@ -978,13 +980,14 @@ def online_car(minutes: float) -> dict:
 
 def keyframe_speedup(repeats: int) -> dict:
     """The 60-s car rig with a keyframe at every measurement time (``keyframe_rate="measurements"``)
-    and on the default grid, every estimator each (so the batch starts from the EKF run before it,
-    its time the build and solve alone), interleaved after a first round: the median batch and
+    and on the default grid, every estimator each, one after the other (so the batch starts from
+    the EKF run before it, its time the build and solve alone, and no estimator shares the cores
+    with another), interleaved after a first round: the median batch and
     fixed-lag times of each, their ratios (every measurement over the grid) and each one's ATE
     against the truth."""
     dataset = car_rig(60.0)
     sides = {"measurements": EVERY_MEASUREMENT, "grid": None}
-    rounds = [{side: car_all(dataset, keyframe_rate=rate) for side, rate in sides.items()}
+    rounds = [{side: car_all(dataset, keyframe_rate=rate, beside=False) for side, rate in sides.items()}
               for _ in range(max(repeats, 1) + 1)][1:]
     out = {}
     for name in ("batch", "fixed-lag"):

@@ -8,7 +8,12 @@ makes them as the data arrive), so their differences are the estimators', not th
 """
 from __future__ import annotations
 
+import multiprocessing
+import os
+import signal
+import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 
@@ -66,6 +71,10 @@ class RunOptions:
     #: The noise groups the batch smoother estimates ("imu" and sensors' names): None for what the
     #: dataset asks (:attr:`datasets.types.Dataset.noise_to_estimate`), ``()`` for none.
     estimate_noise: tuple | None = None
+    #: Run the fixed-lag smoother in a second process beside the others (:func:`estimate_each`):
+    #: what ``smoother run`` does where it may use two threads or more; not for runs that are
+    #: already one of many processes (Monte Carlo, a fleet).
+    fixed_lag_beside: bool = False
 
 
 def run_estimators(dataset: Dataset, names, options: RunOptions = RunOptions(),
@@ -97,7 +106,11 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed`` set (its
     error in one line) and the others still run; otherwise its exception propagates. While the
     others run, the sliding window's kernels compile in a second process when they are not on disk
-    yet (:mod:`smoother.online.warm_up`)."""
+    yet (:mod:`smoother.online.warm_up`). With :attr:`RunOptions.fixed_lag_beside` the fixed-lag
+    smoother, which needs nothing of the others, runs in a second process while they run here
+    (:func:`_fixed_lag_beside`; not when it needs the batch's fitted noise or paces a replay in
+    real time), compiling its kernels there where they are not on disk, and is yielded last; its
+    warnings are issued here when it ends, its progress bar is not shown."""
     from smoother.diagnosis.mounting import check_mountings
 
     unknown = [n for n in names if n not in ESTIMATORS]
@@ -114,8 +127,13 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     else:
         order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
     ekf: Estimate | None = None
-    warm_up = None
+    warm_up = beside = None
     try:
+        if options.fixed_lag_beside and "fixed-lag" in order and len(order) > 1 and not noise and not options.realtime:
+            order.remove("fixed-lag")  # and its kernels, where they are to compile, compile there
+            if announce is not None:
+                announce("fixed-lag (beside the others, in a second process)")
+            beside = _fixed_lag_beside(dataset, options)
         warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
         for name in order:
             if announce is not None:
@@ -141,9 +159,106 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
                 ekf = estimate
             if name in names:
                 yield name, estimate
+        if beside is not None:
+            yield "fixed-lag", beside.result(keep_going)
     finally:
         if warm_up is not None:
             warm_up.close()
+        if beside is not None:
+            beside.close()
+
+
+class _Beside:
+    """The fixed-lag smoother running in a second process (:func:`_fixed_lag_beside`): forked where
+    the platform can (the dataset is not copied until written), its result and warnings sent back
+    through a pipe."""
+
+    def __init__(self, dataset: Dataset, options: RunOptions):
+        context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+        self._results, sending = context.Pipe(duplex=False)
+        self._started = time.perf_counter()
+        quiet = replace(options, progress=False)
+        self._process = context.Process(target=_fixed_lag_sent, args=(self._results, sending, dataset, quiet),
+                                        daemon=True)
+        self._process.start()
+        sending.close()
+
+    def result(self, keep_going: bool) -> Estimate:
+        """Its :class:`Estimate` once it ends, its warnings issued here; a failure as
+        :func:`estimate_each` treats any estimator's (a process that died without a word, too); its
+        interruption (Ctrl-C reaches both processes) raised here."""
+        try:
+            outcome = self._results.recv()
+        except EOFError:
+            self._process.join()
+            outcome = ("failed", RuntimeError(f"its process ended with exit code {self._process.exitcode}"))
+        if outcome[0] == "failed":
+            if not keep_going or not isinstance(outcome[1], Exception):  # an interruption is one here too
+                raise outcome[1]
+            return Estimate("fixed-lag", None, time.perf_counter() - self._started, {}, failed=_one_line(outcome[1]))
+        _, estimate, caught = outcome
+        for message, category in caught:
+            warnings.warn(message, category, stacklevel=2)
+        return estimate
+
+    def close(self) -> None:
+        """Stop it where it has not ended (an interruption, an estimator's failure here): SIGTERM,
+        which ends it at once (:func:`_fixed_lag_sent`), SIGKILL if it has not ended a second later."""
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(1.0)
+            if self._process.is_alive():
+                self._process.kill()
+        self._process.join()
+        self._results.close()
+
+
+def _fixed_lag_beside(dataset: Dataset, options: RunOptions) -> _Beside:
+    """:func:`_fixed_lag` started in a second process, without its progress bar."""
+    return _Beside(dataset, options)
+
+
+def _fixed_lag_sent(receiving, sending, dataset: Dataset, options: RunOptions) -> None:
+    """In the second process: :func:`_fixed_lag_with_warnings`, its outcome sent through
+    ``sending``: ``("done", estimate, warnings)`` or ``("failed", exception)``. A forked process
+    holds copies of its parent's handlers and files: SIGTERM ends it at once (the parent's handler
+    would make it a Python exception, which would then wait to be sent), its copy of the pipe's
+    reading end is closed (else a send to a parent that is gone would wait for ever), and a watch
+    ends it when the parent is gone (killed: nothing would read what it computes)."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    receiving.close()
+    parent = os.getppid()
+    threading.Thread(target=_end_with, args=(parent,), daemon=True).start()
+    try:
+        estimate, caught = _fixed_lag_with_warnings(dataset, options)
+        outcome = ("done", estimate, caught)
+    except BaseException as error:  # noqa: BLE001 -- any end, an interruption too, is told to the waiting process
+        outcome = ("failed", error)
+    try:
+        sending.send(outcome)
+    except Exception as error:  # noqa: BLE001 -- an outcome that does not pickle is told as a failure
+        sending.send(("failed", RuntimeError(f"its result could not be sent back ({type(error).__name__}: {error})")))
+    finally:
+        sending.close()
+
+
+#: How often the second process looks whether its parent is still there [s].
+PARENT_WATCH_S = 0.5
+
+
+def _end_with(parent: int) -> None:
+    """End this process once its parent (process ``parent``) is gone."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_WATCH_S)
+    os._exit(1)
+
+
+def _fixed_lag_with_warnings(dataset: Dataset, options: RunOptions) -> tuple[Estimate, list]:
+    """:func:`_fixed_lag` and the warnings it issued, ``(message, category)`` each, to be issued
+    again in the process that waits for it."""
+    with warnings.catch_warnings(record=True) as caught:
+        estimate = _fixed_lag(dataset, options)
+    return estimate, [(str(w.message), w.category) for w in caught]
 
 
 def tune_noise(dataset: Dataset, which=None, options: RunOptions = RunOptions()):

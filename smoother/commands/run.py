@@ -5,6 +5,7 @@ import math
 import sys
 import time
 
+from factors.threads import thread_count
 from smoother.batch.methods import OPTIMIZERS
 from smoother.errors import UserError, interruption
 from smoother.estimators import ESTIMATORS
@@ -202,6 +203,7 @@ def _run(args) -> int:
         ekf_gate=args.ekf_gate, covariances=not args.no_covariance, progress=args.progress,
         max_delay_s=args.max_delay, realtime=args.realtime, speed=args.speed,
         estimate_noise=("imu", *dataset.sensor_names) if args.estimate_noise else None,
+        fixed_lag_beside=thread_count() >= 2,
     )
     with RunDirectory(args.out) as out:  # locked for the run, before any estimator starts
         return _estimate(args, dataset, names, run_options, out)

@@ -1,7 +1,8 @@
 """``smoother run --out DIR``: a run directory holds one run. A re-run replaces the previous run's
 files (and only the tool's), a failure while writing (a full disk) leaves the previous run whole,
-a second run into a directory in use is refused at once, and SIGTERM keeps the finished
-estimators as Ctrl-C does. The last two run ``smoother run`` as a child process."""
+a second run into a directory in use is refused at once, SIGTERM keeps the finished estimators as
+Ctrl-C does, and neither SIGTERM nor SIGKILL leaves the fixed-lag smoother's second process
+running. Those run ``smoother run`` as a child process."""
 from __future__ import annotations
 
 import errno
@@ -10,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -130,9 +132,13 @@ def test_every_output_of_a_run_is_declared():
     assert {f"{stem}.png" for stem in FIGSIZE} <= names
 
 
-def _child(out: Path) -> subprocess.Popen:
-    """``smoother run`` on the simulator into ``out`` as a child process, stderr piped."""
+def _child(out: Path, threads: int | None = None) -> subprocess.Popen:
+    """``smoother run`` on the simulator into ``out`` as a child process, stderr piped; with
+    ``threads`` (``BOXPLUS_THREADS``) 1 the estimators run one after the other, the fixed-lag
+    smoother last, with two or more it runs in a second process beside the others."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    if threads is not None:
+        env["BOXPLUS_THREADS"] = str(threads)
     return subprocess.Popen([sys.executable, "-m", "smoother.cli", "run", *CHILD_RUN, "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
 
@@ -149,10 +155,11 @@ def _wait_for(child: subprocess.Popen, words: str) -> list[str]:
 
 
 def test_sigterm_keeps_the_finished_estimators(tmp_path):
-    """SIGTERM while the fixed-lag smoother runs (the EKF and the batch smoother finished): exit 143, one line
-    on stderr, the finished estimators written, metrics.json saying stopped: terminated."""
+    """SIGTERM while the fixed-lag smoother runs (the EKF and the batch smoother finished, one after
+    the other): exit 143, one line on stderr, the finished estimators written, metrics.json saying
+    stopped: terminated."""
     out = tmp_path / "run"
-    child = _child(out)
+    child = _child(out, threads=1)
     try:
         _wait_for(child, "running fixed-lag")
         child.send_signal(signal.SIGTERM)
@@ -170,6 +177,55 @@ def test_sigterm_keeps_the_finished_estimators(tmp_path):
         for suffix in (".tum", ".npz"):
             assert (out / f"{name}{suffix}").exists() == (name in run["estimators"]), (name, suffix)
     files.load_trajectory(out / "batch.npz")
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads a process's children from /proc")
+def test_sigterm_stops_the_fixed_lag_smoother_s_second_process_too(tmp_path):
+    """SIGTERM to the run while its fixed-lag smoother runs in a second process beside the EKF:
+    exit 143, one line on stderr, and that process is gone."""
+    out = tmp_path / "run"
+    child = _child(out, threads=2)
+    try:
+        _wait_for(child, "running fixed-lag (beside the others")
+        _wait_for(child, "running ekf")
+        second = [int(p) for p in Path(f"/proc/{child.pid}/task/{child.pid}/children").read_text().split()]
+        child.send_signal(signal.SIGTERM)
+        rest = child.stderr.read().splitlines()
+        assert child.wait() == 128 + signal.SIGTERM, rest
+    finally:
+        child.kill()
+        child.wait()
+    assert second, "no second process"
+    said = [line for line in rest if not line.startswith("running ")]
+    assert len(said) == 1 and said[0].startswith("smoother: terminated"), rest
+    assert not [p for p in second if _running(p)], second
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads a process's children from /proc")
+def test_the_fixed_lag_smoother_s_second_process_ends_when_the_run_is_killed(tmp_path):
+    """SIGKILL to the run (no handler runs): its second process, which nothing would read, ends
+    within seconds instead of computing on."""
+    child = _child(tmp_path / "run", threads=2)
+    try:
+        _wait_for(child, "running fixed-lag (beside the others")
+        _wait_for(child, "running ekf")
+        second = [int(p) for p in Path(f"/proc/{child.pid}/task/{child.pid}/children").read_text().split()]
+    finally:
+        child.kill()
+        child.wait()
+    assert second, "no second process"
+    deadline = time.monotonic() + 10.0
+    while any(_running(p) for p in second) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [p for p in second if _running(p)], second
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (Linux's /proc)."""
+    try:
+        return "zombie" not in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
 
 
 def test_a_second_run_into_a_directory_in_use_is_refused_at_once(tmp_path, capsys, monkeypatch):
