@@ -63,6 +63,7 @@ from factors.compiled import block_operation, leaf, recursion
 from factors.errors import InputError
 from factors.imu import STATE_DIM
 from factors.rows import rows
+from factors.small_linalg import matmul_into
 
 #: The parts of a calibration, in the order of its error coordinates, and their columns there.
 PARTS = ("time_offset", "rotation", "lever_arm", "scale")
@@ -100,10 +101,11 @@ class Calibration:
         return T
 
     def boxplus(self, delta) -> "Calibration":
-        """``c [+] delta`` for ``delta`` the 8 error coordinates."""
-        delta = np.asarray(delta, dtype=float)
-        return Calibration(self.time_offset + float(delta[0]), so3.boxplus(self.R, delta[1:4]),
-                           self.p + delta[4:7], self.scale + float(delta[7]))
+        """``c [+] delta`` for ``delta`` the 8 error coordinates (:func:`boxplus_into`, the kernel
+        the EKF runs)."""
+        moved = packed(self)
+        boxplus_into(moved, np.ascontiguousarray(delta, dtype=float).reshape(CALIBRATION_DIM))
+        return unpacked(moved)
 
     def boxminus(self, other: "Calibration") -> np.ndarray:
         """``c [-] other`` (8), the inverse of :meth:`boxplus`."""
@@ -144,6 +146,25 @@ _R_AT, _P_AT, _S_AT = 1, 10, 13
 def packed(c: Calibration) -> np.ndarray:
     """``c`` as the compiled kernels read it (:data:`PACKED_SIZE` numbers)."""
     return np.concatenate([[c.time_offset], np.asarray(c.R, dtype=float).reshape(9), c.p, [c.scale]])
+
+
+def unpacked(cal: np.ndarray) -> Calibration:
+    """The :class:`Calibration` of a packed one (:func:`packed`'s inverse; copies)."""
+    return Calibration(float(cal[0]), np.array(cal[_R_AT:_P_AT], dtype=float).reshape(3, 3),
+                       np.array(cal[_P_AT:_S_AT], dtype=float), float(cal[_S_AT]))
+
+
+@recursion
+def boxplus_into(cal, delta) -> None:
+    """``cal [+] delta`` in place on a packed calibration (:func:`packed`), ``delta`` its 8 error
+    coordinates (module docstring): ``d + dd``, ``exp(rho) R_BS``, ``p_BS + dp``, ``s + ds``."""
+    E, R = np.empty((3, 3)), cal[_R_AT:_P_AT].copy().reshape((3, 3))
+    so3.exp_into(delta[1], delta[2], delta[3], E)
+    matmul_into(E, R, cal[_R_AT:_P_AT].reshape((3, 3)))
+    cal[0] += delta[0]
+    for a in range(3):
+        cal[_P_AT + a] += delta[4 + a]
+    cal[_S_AT] += delta[7]
 
 
 #: The residual rows through whose attitude ``R_BS`` enters, where not all (a pose's; its position
@@ -479,9 +500,32 @@ class CalibrationSet:
         return [len(p.columns) for p in self.priors]
 
     def boxplus(self, delta) -> "CalibrationSet":
-        moved = []
-        for c, prior, d in zip(self.values, self.priors, delta):
-            full = np.zeros(CALIBRATION_DIM)
-            full[prior.columns] = d
-            moved.append(c.boxplus(full))
-        return CalibrationSet(self.names, tuple(moved), self.priors, self.means)
+        """The values moved by ``delta`` (one array per sensor over its estimated coordinates;
+        :func:`set_boxplus_into`, the kernel the EKF runs)."""
+        values = np.array([packed(c) for c in self.values]).reshape(len(self), PACKED_SIZE)
+        step = np.concatenate([np.zeros(0), *(np.ravel(d) for d in delta)])
+        set_boxplus_into(values, *placement(self.priors), step)
+        return CalibrationSet(self.names, tuple(unpacked(c) for c in values), self.priors, self.means)
+
+
+def placement(priors) -> tuple[np.ndarray, np.ndarray]:
+    """``(owner, coordinate)``: for each estimated coordinate of calibrations with ``priors``
+    (:class:`CalibrationPrior`), in order (a :class:`CalibrationSet`'s step, concatenated), the
+    index of its calibration and its place among the 8 error coordinates."""
+    owner = [np.full(len(p.columns), j) for j, p in enumerate(priors)]
+    return (np.concatenate([np.zeros(0), *owner]).astype(np.int64),
+            np.concatenate([np.zeros(0), *(p.columns for p in priors)]).astype(np.int64))
+
+
+@recursion
+def set_boxplus_into(values, owner, coordinate, step) -> None:
+    """Packed calibrations ``values (J, PACKED_SIZE)`` moved in place by ``step``, their estimated
+    coordinates concatenated as :func:`placement`'s ``owner`` and ``coordinate`` place them, each
+    by :func:`boxplus_into` (zero in the coordinates not estimated)."""
+    delta = np.empty(CALIBRATION_DIM)
+    for j in range(values.shape[0]):
+        delta[:] = 0.0
+        for k in range(owner.shape[0]):
+            if owner[k] == j:
+                delta[coordinate[k]] = step[k]
+        boxplus_into(values[j], delta)

@@ -474,12 +474,13 @@ def _propagate_rows(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F,
 
 @recursion
 def transition_into(r, v, C, b_f, b_w, acc, gyro, dt, g, Phi) -> None:
-    """``Phi (15, 15) <- F_K ... F_1 Phi``: the error-state transition of the samples ``k`` with
-    ``dt[k] > 0`` (the steps :func:`predict_into` takes), the state ``(r, v, C)`` stepped along in
-    place. What carries a covariance between the state and constants outside it (calibrations)
-    through the prediction: ``P_xc <- Phi P_xc``."""
+    """``Phi (15, m) <- F_K ... F_1 Phi``: the error-state transition of the samples ``k`` with
+    ``dt[k] > 0`` (the steps :func:`predict_into` takes) applied to ``Phi``, the state ``(r, v,
+    C)`` stepped along in place. What carries a covariance between the state and constants
+    outside it (calibrations) through the prediction: with ``Phi = P_xc``, ``P_xc <- F_K ... F_1
+    P_xc``."""
     s, work = np.empty(STEP_SIZE), np.empty(JACOBIANS_WORK)
-    F, G, T = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, NOISE_DIM)), np.empty((STATE_DIM, STATE_DIM))
+    F, G, T = np.empty((STATE_DIM, STATE_DIM)), np.empty((STATE_DIM, NOISE_DIM)), np.empty((STATE_DIM, Phi.shape[1]))
     _state_into(s, r, v, C, g)
     for k in range(dt.shape[0]):
         h = dt[k]

@@ -8,7 +8,9 @@ innovation of an attitude is the boxminus ``C [-] C_meas`` and the correction is
 the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Joseph form, kept
 symmetric. An optional chi-square gate rejects measurements whose normalised innovation is
 improbable. The update, its gate, the order of the updates and the divergence test are
-:mod:`smoother.ekf.update`'s, shared with the calibrating filter (:mod:`smoother.ekf.calibrated`).
+:mod:`smoother.ekf.update`'s; the compiled loop over the knots (:func:`run_filter`) is shared with
+the calibrating filter (:mod:`smoother.ekf.calibrated`), which carries the sensors' calibrations
+as augmented states through it.
 
 Relative-pose measurements need a cloned past state and are not used by this filter (the
 smoother uses them); :func:`run_ekf` warns when a dataset has them.
@@ -22,9 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from datasets.kinds import KINDS, measure_into, model_index, quiet_dispatch, sensors_of
-from datasets.types import Dataset, Trajectory
-from factors import imu
+from datasets.kinds import KINDS, LAYOUTS, calibrated_into, measure_into, model_index, quiet_dispatch, sensors_of
+from datasets.types import Dataset, ImuSamples, Trajectory
+from factors import calibration, imu
+from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, update_order
@@ -140,36 +143,62 @@ def filter_inputs(dataset: Dataset) -> tuple[list, np.ndarray, object]:
 def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
     time with every measurement taken then (sensor by sensor in the order of
-    :func:`datasets.kinds.sensors_of`), record the state after the updates. The loop over knots
-    is compiled (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C
-    stops it between chunks."""
+    :func:`datasets.kinds.sensors_of`), record the state after the updates (:func:`run_filter`
+    without calibrations)."""
+    return run_filter(dataset, np.array(dataset.initial_cov, dtype=float), None, gate_probability, progress)
+
+
+def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | None,
+               gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
+    """:func:`run_ekf`, or with ``calibrations`` as augmented states (:mod:`smoother.ekf.calibrated`),
+    from the dataset's initial state, the calibrations' values and the joint covariance ``P``
+    (square, the IMU's 15 error-state components, then the calibrations' estimated coordinates
+    in their order: :func:`factors.calibration.placement`). The loop over knots is compiled
+    (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C stops it
+    between chunks. The states and 15x15 covariances of every knot are written into arrays
+    allocated once. With calibrations the result carries their values at the end of the data
+    and their covariance blocks."""
     start = time.perf_counter()
     sensors, knots, steps = filter_inputs(dataset)
     n = len(knots)
     x0 = dataset.initial
     r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x0.r, x0.v, x0.C, x0.b_f, x0.b_w))
-    P = np.array(dataset.initial_cov, dtype=float)
+    P = np.array(P, dtype=float)
     out = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
            np.empty((n, imu.STATE_DIM, imu.STATE_DIM)))
-    updates = _Updates.of(sensors, knots)
+    c = calibrations if calibrations is not None else CalibrationSet((), (), (), ())
+    values = np.array([calibration.packed(value) for value in c.values]).reshape(len(c), calibration.PACKED_SIZE)
+    timed = np.array(["time_offset" in prior.parts for prior in c.priors], dtype=np.bool_)
+    owner, coordinate = calibration.placement(c.priors)
+    if P.shape != (imu.STATE_DIM + len(owner),) * 2:
+        raise InputError(f"run_filter: expected P of shape {(imu.STATE_DIM + len(owner),) * 2} (the IMU's error "
+                         f"state and the calibrations' estimated coordinates), got {P.shape}")
+    updates = _Updates.of(sensors, knots, [c.names.index(s.name) if s.name in c.names else -1 for s in sensors],
+                          dataset.imu if len(c) else None)
     bounds = np.concatenate([[0], steps.knot_step]).astype(np.int64)
     stats = np.zeros(2)
     samples = (np.ascontiguousarray(steps.acc, dtype=float), np.ascontiguousarray(steps.gyro, dtype=float),
                np.ascontiguousarray(steps.dt, dtype=float))
-    with progress_bar(len(steps.dt), "EKF", progress) as bar, quiet_dispatch():
+    with progress_bar(len(steps.dt), "EKF (calibrating)" if len(c) else "EKF", progress) as bar, quiet_dispatch():
         for first in range(0, n, _KNOTS_PER_CALL):
             last = min(n, first + _KNOTS_PER_CALL)
             stopped = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
-                                    updates.model, updates.dim, updates.rows, updates.R, updates.nis,
-                                    updates.accepted, dataset.noise.densities(),
+                                    updates.model, updates.dim, updates.rows, updates.R, updates.slot,
+                                    updates.held_acc, updates.held_gyro, values, timed, owner, coordinate,
+                                    updates.nis, updates.accepted, dataset.noise.densities(),
                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability), *out,
                                     stats)
             if stopped >= 0:
                 raise divergence_error(knots[stopped], out[1][stopped], out[5][stopped])
             bar.update(int(bounds[last]) - bar.n)
-    states = imu.ImuState(*out[:5])
-    return FilterResult(Trajectory(knots, states, out[5]), time.perf_counter() - start, int(stats[0]), float(stats[1]),
-                        updates.innovations([s.name for s in sensors], knots))
+    moved, blocks = None, None
+    if calibrations is not None:
+        at = imu.STATE_DIM + np.concatenate([[0], np.cumsum(c.dims)]).astype(int)
+        moved = CalibrationSet(c.names, tuple(calibration.unpacked(value) for value in values), c.priors, c.means)
+        blocks = [P[at[j]:at[j + 1], at[j]:at[j + 1]].copy() for j in range(len(c))]
+    return FilterResult(Trajectory(knots, imu.ImuState(*out[:5]), out[5]), time.perf_counter() - start,
+                        int(stats[0]), float(stats[1]), updates.innovations([s.name for s in sensors], knots), moved,
+                        blocks)
 
 
 @dataclass
@@ -177,21 +206,29 @@ class _Updates:
     """The measurement updates of a run in the order the filter applies them
     (:func:`smoother.ekf.update.update_order`), as flat arrays for the compiled loop: those at
     knot ``k`` are ``start[k]:start[k + 1]``; each has its model's index, dimension, kernel row
-    (zero-padded to the widest) and noise (padded to 6x6); ``nis`` and ``accepted`` are filled by
-    the loop."""
+    (zero-padded to the widest), noise (padded to 6x6) and the index of its sensor's calibration
+    among the augmented states (``slot``, -1: none), with the IMU reading held at its time
+    (``held_acc``, ``held_gyro``; empty without calibrations); ``nis`` and ``accepted`` are
+    filled by the loop."""
 
     start: np.ndarray
     model: np.ndarray
     dim: np.ndarray
     rows: np.ndarray
     R: np.ndarray
+    slot: np.ndarray
+    held_acc: np.ndarray
+    held_gyro: np.ndarray
     sensor: np.ndarray
     knot: np.ndarray
     nis: np.ndarray
     accepted: np.ndarray
 
     @classmethod
-    def of(cls, sensors: list, knots: np.ndarray) -> "_Updates":
+    def of(cls, sensors: list, knots: np.ndarray, slots: list[int], samples: ImuSamples | None) -> "_Updates":
+        """The updates of ``sensors`` (``slots``: each one's calibration index, -1: none) at
+        ``knots``, with the readings of the IMU ``samples`` held at their times (None: no
+        calibrations)."""
         parts = [(model_index(KINDS[s.kind]), KINDS[s.kind].pack(s.data), s.data.cov) for s in sensors]
         if not parts:
             parts.append((0, np.zeros((0, 1)), np.zeros((0, 1, 1))))
@@ -209,8 +246,13 @@ class _Updates:
             at += len(block)
         o = update_order([s.data.t for s in sensors], knots, [s.name for s in sensors])
         order = np.asarray(first, dtype=np.int64)[o.sensor] + o.measurement if u else np.zeros(0, dtype=np.int64)
-        return cls(o.start, model[order], dim[order], rows[order], R[order], o.sensor, o.knot,
-                   np.full(u, np.nan), np.zeros(u, dtype=np.bool_))
+        slot = np.asarray(slots, dtype=np.int64).reshape(-1)[o.sensor] if u else np.zeros(0, dtype=np.int64)
+        held = samples.held(knots[o.knot]) if samples is not None else np.zeros(0, dtype=np.int64)
+        held_acc, held_gyro = ((np.ascontiguousarray(samples.acc[held], dtype=float),
+                                np.ascontiguousarray(samples.gyro[held], dtype=float))
+                               if samples is not None else (np.zeros((0, 3)), np.zeros((0, 3))))
+        return cls(o.start, model[order], dim[order], rows[order], R[order], slot, held_acc, held_gyro, o.sensor,
+                   o.knot, np.full(u, np.nan), np.zeros(u, dtype=np.bool_))
 
     def innovations(self, names: list[str], knots: np.ndarray) -> Innovations:
         return Innovations(np.asarray(names, dtype=object)[self.sensor] if len(names) else np.zeros(0, dtype=object),
@@ -222,34 +264,70 @@ _KNOTS_PER_CALL = 256
 
 
 @njit(cache=True)
-def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, nis,
-                  accepted, q, g, gates, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
-    """Knots ``first .. last - 1`` of :func:`run_ekf`: predict through the knot's IMU steps
-    (``bounds[k] .. bounds[k + 1]``), apply the updates taken there (``start[k] .. start[k + 1]``
-    of :class:`_Updates`, each through its model's kernel and
-    :func:`smoother.ekf.update.kalman_update`), store the state. Returns the first knot where the
-    filter diverged (:func:`smoother.ekf.update.diverged`), else -1."""
-    n = P.shape[0]
+def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, slot,
+                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, q, g, gates, out_r, out_v,
+                  out_C, out_b_f, out_b_w, out_P, stats) -> int:
+    """Knots ``first .. last - 1`` of :func:`run_filter`: predict through the knot's IMU steps
+    (``bounds[k] .. bounds[k + 1]``; with calibrations, :func:`_predict_augmented`), apply the
+    updates taken there (``start[k] .. start[k + 1]`` of :class:`_Updates`, each through its
+    model's kernel, or through its calibration's for a sensor with one,
+    :func:`datasets.kinds.calibrated_into`, and :func:`smoother.ekf.update.kalman_update` on
+    the whole ``P``), the correction applied with the state's boxplus and the calibrations'
+    (:func:`factors.calibration.set_boxplus_into`), store the state. ``values`` are the packed
+    calibrations (moved in place), ``timed`` which estimate their time offset, ``owner`` and
+    ``coordinate`` their estimated coordinates' places (:func:`factors.calibration.placement`),
+    those of ``P`` after the IMU's 15. Returns the first knot where the filter diverged
+    (:func:`smoother.ekf.update.diverged`), else -1."""
+    D, n = imu.STATE_DIM, P.shape[0]
     dx = np.empty(n)
+    P_xx, P_xc = np.empty((D, D)), np.empty((D, n - D))
+    x = (np.empty(3), np.empty(3), np.empty((3, 3)))
+    H_c, work = np.empty((MAX_RESIDUAL_DIM, CALIBRATION_DIM)), calibration.work_array()
     for knot in range(first, last):
         a, b = bounds[knot], bounds[knot + 1]
-        imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
+        if n == D:
+            imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
+        elif b > a:
+            _predict_augmented(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g, P_xx, P_xc, x)
         for u in range(start[knot], start[knot + 1]):
             if diverged(r, v, C, b_f, b_w, P):
                 continue
-            m = dim[u]
-            e, H = np.empty(m), np.empty((m, n))
-            measure_into(model[u], r, v, C, b_f, b_w, rows[u], e, H)
+            m, j = dim[u], slot[u]
+            e, H_x, H = np.empty(m), np.empty((m, D)), np.zeros((m, n))
+            if j < 0:
+                measure_into(model[u], r, v, C, b_f, b_w, rows[u], e, H_x)
+            else:
+                calibrated_into(model[u], LAYOUTS[model[u]], r, v, C, b_f, b_w, rows[u], values[j], timed[j],
+                                held_acc[u], held_gyro[u], g, e, H_x, H_c[:m], work, True)
+            H[:, :D] = H_x
+            for k in range(n - D):
+                if owner[k] == j:
+                    H[:, D + k] = H_c[:m, coordinate[k]]
             rejected = stats[0]
             nis[u] = kalman_update(P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats, dx)
             accepted[u] = stats[0] == rejected
             if accepted[u]:
                 imu.boxplus_into(r, v, C, b_f, b_w, dx)
+                calibration.set_boxplus_into(values, owner, coordinate, dx[D:])
         out_r[knot], out_v[knot], out_C[knot], out_b_f[knot], out_b_w[knot] = r, v, C, b_f, b_w
-        out_P[knot] = P
+        out_P[knot] = P[:D, :D]
         if diverged(r, v, C, b_f, b_w, P):
             return knot
     return -1
+
+
+@njit(cache=True)
+def _predict_augmented(r, v, C, b_f, b_w, P, acc, gyro, dt, q, g, P_xx, P_xc, x) -> None:
+    """The prediction of the augmented ``P`` (:mod:`smoother.ekf.calibrated`): ``P_xx`` by
+    :func:`factors.imu.predict_into` (the state stepped with it), ``P_xc <- Phi P_xc`` by
+    :func:`factors.imu.transition_into` on a copy ``x`` of ``(r, v, C)``, ``P_cc`` unchanged;
+    ``P_xx``, ``P_xc`` work arrays of their blocks' shapes."""
+    D = imu.STATE_DIM
+    P_xx[:, :], P_xc[:, :] = P[:D, :D], P[:D, D:]
+    x[0][:], x[1][:], x[2][:, :] = r, v, C
+    imu.transition_into(x[0], x[1], x[2], b_f, b_w, acc, gyro, dt, g, P_xc)
+    imu.predict_into(r, v, C, b_f, b_w, P_xx, acc, gyro, dt, q, g)
+    P[:D, :D], P[:D, D:], P[D:, :D] = P_xx, P_xc, P_xc.T
 
 
 class FilterDiverged(SolverError, ValueError):

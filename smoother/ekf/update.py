@@ -1,8 +1,8 @@
 """What both EKFs do at a measurement time besides predicting: the order of the updates, the
 Kalman update with its chi-square gate, and the test that the filter has diverged. The plain
-filter (:mod:`smoother.ekf.filter`) runs them inside its compiled loop over the knots, the filter
-with calibrations as augmented states (:mod:`smoother.ekf.calibrated`) from Python; both on the
-same code, so that the two filters agree wherever no calibration is estimated.
+filter (:mod:`smoother.ekf.filter`) and the filter with calibrations as augmented states
+(:mod:`smoother.ekf.calibrated`) run them inside one compiled loop over the knots, so that the
+two filters agree wherever no calibration is estimated.
 
 Order. At each knot (a measurement time) the updates are applied sensor by sensor, in the order
 of the sensors given (:func:`datasets.kinds.sensors_of`), and a sensor's measurements at that

@@ -450,30 +450,36 @@ def test_the_compiled_filter_needs_no_scipy(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
 
 
-def test_the_calibrating_filter_without_calibrations_is_the_plain_filter():
-    """Both filters take their update order, Kalman update, gate and divergence test from
-    smoother.ekf.update: with no calibration to estimate (an empty set: the augmented state is the
-    IMU's), the calibrating filter driven from Python gives the compiled plain filter's estimates,
-    covariances, innovations, rejections and likelihood, here with three sensors measuring at
-    common times, a gate and a rejected outlier."""
-    from factors.calibration import CalibrationSet
+def test_the_calibrating_filter_with_pinned_calibrations_is_the_plain_filter():
+    """Calibrations whose priors' sigmas are negligible (1e-10) stay at the values given: the
+    calibrating filter, its augmented covariance predicted and updated through the calibrated
+    residuals, gives the plain filter's estimates, covariances, innovations, rejections and
+    likelihood, here with three sensors measuring at common times, a gate and a rejected
+    outlier."""
+    from factors.calibration import CalibrationPrior, CalibrationSet
     from smoother.ekf.calibrated import run_calibrated_ekf
 
     data = simulate("tumbling", duration=6.0, seed=2, pose_rate=2.0, position_rate=4.0, orientation_rate=4.0)
     pose = data.sensor("pose").data
     bad = dataclasses.replace(pose, position=pose.position + np.where(np.arange(len(pose.t)) == 4, 50.0, 0.0)[:, None])
     data = data.with_sensor("pose", data=bad)
+    pinned = dict(time_offset=1e-10, rotation=1e-10, lever_arm=1e-10)
+    calibrations = CalibrationSet.given(("pose", "position"), (None, None), (
+        CalibrationPrior(("time_offset", "rotation", "lever_arm"), **pinned),
+        CalibrationPrior(("time_offset", "lever_arm"), **pinned)))
     plain = run_ekf(data, gate_probability=0.999, progress=False)
-    augmented = run_calibrated_ekf(data, CalibrationSet((), (), (), ()), gate_probability=0.999, progress=False)
+    augmented = run_calibrated_ekf(data, calibrations, gate_probability=0.999, progress=False)
     for name in ("r", "v", "C", "b_f", "b_w"):
         np.testing.assert_allclose(getattr(augmented.trajectory.states, name), getattr(plain.trajectory.states, name),
-                                   rtol=0, atol=1e-12)
-    np.testing.assert_allclose(augmented.trajectory.cov, plain.trajectory.cov, rtol=1e-12, atol=1e-18)
+                                   rtol=0, atol=1e-9)
+    np.testing.assert_allclose(augmented.trajectory.cov, plain.trajectory.cov, rtol=1e-9, atol=1e-15)
     a, b = augmented.innovations, plain.innovations
     assert list(a.sensor) == list(b.sensor) and np.array_equal(a.t, b.t) and np.array_equal(a.accepted, b.accepted)
-    np.testing.assert_allclose(a.nis, b.nis, rtol=1e-10)
+    np.testing.assert_allclose(a.nis, b.nis, rtol=1e-9)
     assert augmented.rejected == plain.rejected == 1
-    assert augmented.log_likelihood == pytest.approx(plain.log_likelihood, rel=1e-12)
+    assert augmented.log_likelihood == pytest.approx(plain.log_likelihood, rel=1e-9)
+    for value, mean in zip(augmented.calibration.values, calibrations.means):
+        assert np.abs(value.boxminus(mean)).max() < 1e-8
 
 
 def test_the_shared_update_on_an_augmented_state_matches_the_kalman_equations():
