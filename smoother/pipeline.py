@@ -300,12 +300,16 @@ def _one_line(error: Exception) -> str:
 
 
 def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
-    """The EKF; with calibrations asked for, with them as augmented states (:mod:`smoother.ekf.calibrated`)."""
+    """The EKF; with calibrations asked for, with them as augmented states (:mod:`smoother.ekf.calibrated`).
+    It updates at every measurement time and keeps its state at the smoothers' keyframes
+    (:func:`smoother.model.timeline.keyframe_times`: every measurement time where they are no
+    denser than the grid, else the grid, the held-out times and the ends)."""
     calibrations = calibration_set(dataset)
+    kept_at = keyframe_times(dataset, options.keyframe_rate)
     if calibrations is None:
-        r = run_ekf(dataset, options.ekf_gate, options.progress)
+        r = run_ekf(dataset, options.ekf_gate, options.progress, kept_at)
         return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations)
-    r = run_calibrated_ekf(dataset, calibrations, options.ekf_gate, options.progress)
+    r = run_calibrated_ekf(dataset, calibrations, options.ekf_gate, options.progress, kept_at)
     details = {"rejected_measurements": r.rejected}
     details["calibration"], details["calibration_against_prior"] = calibration_records(r.calibration, r.calibration_cov)
     return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations, calibration=r.calibration)
@@ -322,7 +326,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     details: dict = {}
     if ekf is None:
         try:
-            ekf = _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False))
+            ekf = _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False,
+                                           keyframe_rate=options.keyframe_rate))
         except Exception as error:  # noqa: BLE001 -- the batch can still start from dead reckoning
             ekf = Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
         details["start_ekf_s"] = time.perf_counter() - tick

@@ -18,7 +18,7 @@ test are the plain filter's (:mod:`smoother.ekf.update`).
 
 The loop over knots is the plain filter's, compiled (:func:`smoother.ekf.filter.run_filter`): the
 calibrations ride along as packed values (:func:`factors.calibration.packed`), the states and
-15x15 covariances of every knot go into arrays allocated once. Relative poses (odometry) are
+15x15 covariances of the knots kept go into arrays allocated once. Relative poses (odometry) are
 left out, as in the plain filter.
 """
 from __future__ import annotations
@@ -33,13 +33,15 @@ D = imu.STATE_DIM
 
 
 def run_calibrated_ekf(dataset: Dataset, calibrations: calibration.CalibrationSet,
-                       gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
+                       gate_probability: float | None = None, progress: bool | None = None,
+                       kept_at=None) -> FilterResult:
     """The EKF over ``dataset`` with ``calibrations`` (its sensors' variables, at their priors'
-    means and covariances) as augmented states (module docstring). The result carries the
+    means and covariances) as augmented states (module docstring), its states kept at every knot
+    or at the times ``kept_at`` (:func:`smoother.ekf.filter.run_filter`). The result carries the
     calibrations at the end of the data and their covariance blocks (``calibration``,
     ``calibration_cov``)."""
     sigmas = np.concatenate([np.zeros(0), *(prior.sigmas for prior in calibrations.priors)])
     P = np.zeros((D + len(sigmas),) * 2)
     P[:D, :D] = dataset.initial_cov
     P[D:, D:] = np.diag(sigmas**2)
-    return run_filter(dataset, P, calibrations, gate_probability, progress)
+    return run_filter(dataset, P, calibrations, gate_probability, progress, kept_at)

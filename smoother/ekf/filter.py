@@ -114,7 +114,8 @@ class Innovations:
 
 @dataclass
 class FilterResult:
-    """Estimates and covariances at every knot (start, each measurement time, end), and the
+    """Estimates and covariances at the knots kept (every knot -- start, each measurement time, end --
+    or the times asked for: :func:`run_filter`'s ``kept_at``), and the
     innovations of every update (:class:`Innovations`)."""
 
     trajectory: Trajectory
@@ -128,44 +129,55 @@ class FilterResult:
     calibration_cov: list | None = None
 
 
-def filter_inputs(dataset: Dataset) -> tuple[list, np.ndarray, object]:
-    """``(sensors, knots, steps)`` of a filter run: the one-state sensors (relative poses need a
-    cloned past state: left out, with a warning), the knots (:func:`smoother.model.timeline.measurement_knots`)
+def filter_inputs(dataset: Dataset, kept_at=None) -> tuple[list, np.ndarray, np.ndarray, object]:
+    """``(sensors, knots, kept, steps)`` of a filter run: the one-state sensors (relative poses
+    need a cloned past state: left out, with a warning), the knots
+    (:func:`smoother.model.timeline.measurement_knots`, and the times ``kept_at`` within the IMU's
+    span), which of them keep their state (``kept``: those of ``kept_at``; every one where None)
     and the IMU steps between them."""
     every = sensors_of(dataset)
     sensors = [s for s in every if not KINDS[s.kind].relative]
     if len(sensors) < len(every):
         warnings.warn("the EKF does not use relative-pose measurements; the smoothers do", stacklevel=3)
     knots = measurement_knots(dataset)
-    return sensors, knots, imu_steps(dataset.imu, knots)
+    if kept_at is None:
+        return sensors, knots, np.ones(len(knots), dtype=np.bool_), imu_steps(dataset.imu, knots)
+    kept_at = np.asarray(kept_at, dtype=float)
+    knots = np.union1d(knots, kept_at[(kept_at >= dataset.t0) & (kept_at <= dataset.t1)])
+    return sensors, knots, np.isin(knots, kept_at), imu_steps(dataset.imu, knots)
 
 
-def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
+def run_ekf(dataset: Dataset, gate_probability: float | None = None, progress: bool | None = None,
+            kept_at=None) -> FilterResult:
     """Run the EKF over a dataset: predict through every IMU step, update at each measurement
     time with every measurement taken then (sensor by sensor in the order of
-    :func:`datasets.kinds.sensors_of`), record the state after the updates (:func:`run_filter`
-    without calibrations)."""
-    return run_filter(dataset, np.array(dataset.initial_cov, dtype=float), None, gate_probability, progress)
+    :func:`datasets.kinds.sensors_of`), record the state after the updates, there or at the
+    times ``kept_at`` (:func:`run_filter` without calibrations)."""
+    return run_filter(dataset, np.array(dataset.initial_cov, dtype=float), None, gate_probability, progress, kept_at)
 
 
 def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | None,
-               gate_probability: float | None = None, progress: bool | None = None) -> FilterResult:
+               gate_probability: float | None = None, progress: bool | None = None, kept_at=None) -> FilterResult:
     """:func:`run_ekf`, or with ``calibrations`` as augmented states (:mod:`smoother.ekf.calibrated`),
     from the dataset's initial state, the calibrations' values and the joint covariance ``P``
     (square, the IMU's 15 error-state components, then the calibrations' estimated coordinates
     in their order: :func:`factors.calibration.placement`). The loop over knots is compiled
     (:func:`_filter_knots`); it runs in chunks so the progress bar moves and Ctrl-C stops it
-    between chunks. The states and 15x15 covariances of every knot are written into arrays
-    allocated once. With calibrations the result carries their values at the end of the data
-    and their covariance blocks."""
+    between chunks. The states and 15x15 covariances are kept at every knot, or, with
+    ``kept_at``, at those times alone (the smoothers' keyframes: a filter updated at 93 Hz need
+    not keep 93 covariances a second), which are then knots too (:func:`filter_inputs`; a time
+    between two IMU samples splits that step); they are written into arrays allocated once. With
+    calibrations the result carries their values at the end of the data and their covariance
+    blocks."""
     start = time.perf_counter()
-    sensors, knots, steps = filter_inputs(dataset)
-    n = len(knots)
+    sensors, knots, kept, steps = filter_inputs(dataset, kept_at)
+    n, out_index = len(knots), np.where(kept, np.cumsum(kept) - 1, -1).astype(np.int64)
+    m = int(kept.sum())
     x0 = dataset.initial
     r, v, C, b_f, b_w = (np.array(a, dtype=float) for a in (x0.r, x0.v, x0.C, x0.b_f, x0.b_w))
     P = np.array(P, dtype=float)
-    out = (np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3)),
-           np.empty((n, imu.STATE_DIM, imu.STATE_DIM)))
+    out = (np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3, 3)), np.empty((m, 3)), np.empty((m, 3)),
+           np.empty((m, imu.STATE_DIM, imu.STATE_DIM)))
     c = calibrations if calibrations is not None else CalibrationSet((), (), (), ())
     values = np.array([calibration.packed(value) for value in c.values]).reshape(len(c), calibration.PACKED_SIZE)
     timed = np.array(["time_offset" in prior.parts for prior in c.priors], dtype=np.bool_)
@@ -186,17 +198,17 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
                                     updates.model, updates.dim, updates.rows, updates.R, updates.slot,
                                     updates.held_acc, updates.held_gyro, values, timed, owner, coordinate,
                                     updates.nis, updates.accepted, dataset.noise.densities(),
-                                    np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability), *out,
-                                    stats)
-            if stopped >= 0:
-                raise divergence_error(knots[stopped], out[1][stopped], out[5][stopped])
+                                    np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability),
+                                    out_index, *out, stats)
+            if stopped >= 0:  # the state where it diverged
+                raise divergence_error(knots[stopped], v, P[:imu.STATE_DIM, :imu.STATE_DIM])
             bar.update(int(bounds[last]) - bar.n)
     moved, blocks = None, None
     if calibrations is not None:
         at = imu.STATE_DIM + np.concatenate([[0], np.cumsum(c.dims)]).astype(int)
         moved = CalibrationSet(c.names, tuple(calibration.unpacked(value) for value in values), c.priors, c.means)
         blocks = [P[at[j]:at[j + 1], at[j]:at[j + 1]].copy() for j in range(len(c))]
-    return FilterResult(Trajectory(knots, imu.ImuState(*out[:5]), out[5]), time.perf_counter() - start,
+    return FilterResult(Trajectory(knots[kept], imu.ImuState(*out[:5]), out[5]), time.perf_counter() - start,
                         int(stats[0]), float(stats[1]), updates.innovations([s.name for s in sensors], knots), moved,
                         blocks)
 
@@ -265,15 +277,16 @@ _KNOTS_PER_CALL = 256
 
 @njit(cache=True)
 def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, slot,
-                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, q, g, gates, out_r, out_v,
-                  out_C, out_b_f, out_b_w, out_P, stats) -> int:
+                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, q, g, gates, out_index, out_r,
+                  out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_filter`: predict through the knot's IMU steps
     (``bounds[k] .. bounds[k + 1]``; with calibrations, :func:`_predict_augmented`), apply the
     updates taken there (``start[k] .. start[k + 1]`` of :class:`_Updates`, each through its
     model's kernel, or through its calibration's for a sensor with one,
     :func:`datasets.kinds.calibrated_into`, and :func:`smoother.ekf.update.kalman_update` on
     the whole ``P``), the correction applied with the state's boxplus and the calibrations'
-    (:func:`factors.calibration.set_boxplus_into`), store the state. ``values`` are the packed
+    (:func:`factors.calibration.set_boxplus_into`), store the state where the knot's ``out_index``
+    is one (-1: not kept). ``values`` are the packed
     calibrations (moved in place), ``timed`` which estimate their time offset, ``owner`` and
     ``coordinate`` their estimated coordinates' places (:func:`factors.calibration.placement`),
     those of ``P`` after the IMU's 15. Returns the first knot where the filter diverged
@@ -309,8 +322,10 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             if accepted[u]:
                 imu.boxplus_into(r, v, C, b_f, b_w, dx)
                 calibration.set_boxplus_into(values, owner, coordinate, dx[D:])
-        out_r[knot], out_v[knot], out_C[knot], out_b_f[knot], out_b_w[knot] = r, v, C, b_f, b_w
-        out_P[knot] = P[:D, :D]
+        o = out_index[knot]
+        if o >= 0:
+            out_r[o], out_v[o], out_C[o], out_b_f[o], out_b_w[o] = r, v, C, b_f, b_w
+            out_P[o] = P[:D, :D]
         if diverged(r, v, C, b_f, b_w, P):
             return knot
     return -1

@@ -5,7 +5,8 @@ IMU sample ``k`` is held over ``[t_k, t_{k+1})`` (zero-order hold, the primer's 
 step). A knot strictly inside such an interval splits it into two steps with the same sample, so
 an estimator can stop exactly at the knot. The last IMU sample only marks the end of the stream.
 
-States. The EKF keeps one at every measurement time (:func:`measurement_knots`). The smoothers keep
+States. The EKF updates at every measurement time (:func:`measurement_knots`) and keeps its state
+there, or, in a run beside the smoothers, at their keyframes alone. The smoothers keep
 keyframes (:func:`keyframe_times`): on a grid of a rate the motion needs, not at every measurement
 time (``docs/design.md``, keyframes); a measurement between two keyframes is attached to the one
 before it (:func:`attachment`): its state is predicted through the IMU's Euler steps from the

@@ -277,6 +277,38 @@ def test_run_ekf_reports_every_knot(gentle):
     assert np.all(np.linalg.eigvalsh(traj.cov).min(axis=1) > 0)
 
 
+@pytest.mark.parametrize("calibrating", [False, True], ids=["plain", "calibrating"])
+def test_states_kept_at_chosen_times_are_the_filter_s_states_there(calibrating):
+    """``kept_at`` (the smoothers' keyframes): the filter still updates at every measurement; it
+    keeps its state at those times alone, and where they are measurement times (or IMU samples),
+    that state is the full run's, to rounding."""
+    from datasets.simulated_sensors import SensorSpec
+    from factors.calibration import CalibrationPrior
+    from smoother.ekf.calibrated import run_calibrated_ekf
+    from smoother.model.problem import calibration_set
+    from smoother.model.timeline import keyframe_times
+
+    data = simulate("gentle", duration=8.0, seed=2, imu_rate=100.0, pose_rate=0,
+                    sensors=(SensorSpec("wheels", "velocity", 50.0, 0.05), SensorSpec("gnss", "gnss", 5.0, 0.2)))
+    if calibrating:
+        data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+        run = lambda kept_at=None: run_calibrated_ekf(data, calibration_set(data), progress=False,  # noqa: E731
+                                                      kept_at=kept_at)
+    else:
+        run = lambda kept_at=None: run_ekf(data, progress=False, kept_at=kept_at)  # noqa: E731
+    every, kept_at = run(), keyframe_times(data)
+    kept = run(kept_at)
+    assert len(kept_at) < len(every.trajectory.t) / 4  # a 10 Hz grid beside 55 Hz of measurements
+    np.testing.assert_array_equal(kept.trajectory.t, kept_at)
+    both, i, j = np.intersect1d(every.trajectory.t, kept_at, return_indices=True)
+    assert len(both) > 0.9 * len(kept_at)
+    for name in ("r", "v", "b_f"):
+        np.testing.assert_allclose(getattr(kept.trajectory.states, name)[j], getattr(every.trajectory.states, name)[i],
+                                   rtol=0, atol=1e-9)
+    np.testing.assert_allclose(kept.trajectory.cov[j], every.trajectory.cov[i], rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(kept.innovations.nis, every.innovations.nis)
+
+
 def test_a_relative_measurement_is_refused_by_the_filter_that_keeps_no_past_state():
     """An odometry row needs a cloned past state, which this filter does not keep: refused with
     the reason, not read as a one-state measurement."""
