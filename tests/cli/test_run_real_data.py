@@ -98,7 +98,8 @@ def test_a_run_npz_is_in_the_data_clock_and_evaluates_against_the_recording_refe
                  "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     run = json.loads((out / "metrics.json").read_text())["ekf"]
-    assert result["pairs"] >= run["compared_states"] - 1 > 30
+    # the EKF keeps its states at the 10 Hz keyframes (the 20 Hz fixes are attached to them)
+    assert result["pairs"] >= run["compared_states"] - 1 > 15
     assert result["nees_mean"] == pytest.approx(run["nees_mean"], rel=0.05)
     assert result["ate"]["translation_m"]["rmse"] == pytest.approx(run["ate_rmse_m"], rel=0.05)
 
