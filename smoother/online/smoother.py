@@ -269,8 +269,9 @@ class OnlineSmoother:
         ``gyro`` of shape (N, 3)), in strictly increasing time after every sample before; other
         shapes, non-finite or implausible values and time steps back are refused (module
         docstring), with nothing taken. Makes the keyframes the stream has passed by
-        ``max_delay_s``, each at the sample that passed it: N samples at once do what they do one
-        by one (checked at once, their warnings about gaps one for all of them)."""
+        ``max_delay_s``, each at the sample that passed it, so that N samples at once give the
+        estimates they give one by one (only checked at once: one warning for the gaps among
+        them)."""
         self._open()
         stream = self._imu
         if (type(t) is float or np.ndim(t) == 0) and np.shape(acc) == (3,) and np.shape(gyro) == (3,):
@@ -280,6 +281,8 @@ class OnlineSmoother:
             taken = stream.add(t, acc, gyro)
         if self._schedule.t0 is None:  # the first sample: the first keyframe's time
             self._schedule.start(float(stream.t[0]))
+        if stream.t_last - self.max_delay_s < self._schedule.next_time():  # no keyframe passed
+            return
         first = stream.n - taken
         horizons = stream.t[first:stream.n] - self.max_delay_s
         i = 0
@@ -533,19 +536,25 @@ class OnlineSmoother:
         estimate ``_newest``) and ``t`` as the window takes them, attached to it: each where it lies
         in the interval's steps ``samples`` (:func:`smoother.model.timeline.interval_attachment`)
         with the IMU reading held at its stamp, its covariance grown by the process noise from the
-        keyframe (:func:`datasets.kinds.attached_noise`, along ``_newest``; a spec of its one row)."""
+        keyframe (:func:`datasets.kinds.attached_noise`, along ``_newest``, one call per kind; a
+        spec of its one row)."""
         stream = self._imu
         stamps = np.array([item.latest for item in items])
         steps, last_dt = interval_attachment(stream.t[:stream.n], self._last_t, t, stamps)
         held = [stream.held_at(x) for x in stamps]
         padded = tuple(a[None] for a in samples)
+        grown = [None] * len(items)
+        for kind in {item.spec.kind for item in items}:
+            of = [m for m, item in enumerate(items) if item.spec.kind == kind]
+            rows = np.stack([items[m].spec.rows[items[m].row] for m in of])
+            noise = attached_noise(KINDS[kind], self._newest, padded, np.zeros(len(of), dtype=int), steps[of],
+                                   last_dt[of], rows, self.noise, self.gravity)
+            for m, process in zip(of, noise):
+                grown[m] = items[m].spec.cov[items[m].row] + process
         out = []
-        for item, n, last, i in zip(items, steps, last_dt, held):
-            spec, kind = item.spec, KINDS[item.spec.kind]
-            row = spec.rows[item.row:item.row + 1]
-            grown = spec.cov[item.row] + attached_noise(kind, self._newest[None], padded, [0], [n], [last], row,
-                                                        self.noise, self.gravity)[0]
-            one = replace(spec, rows=row, cov=grown[None])
+        for item, n, last, i, cov in zip(items, steps, last_dt, held, grown):
+            spec = item.spec
+            one = replace(spec, rows=spec.rows[item.row:item.row + 1], cov=cov[None])
             out.append((one, 0, [keyframe], self._setup(item.sensor)[0].robust,
                         AttachedAt(int(n), float(last), (stream.acc[i], stream.gyro[i]))))
         return out
