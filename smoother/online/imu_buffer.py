@@ -129,9 +129,11 @@ class ImuBuffer:
         self.n = n + 1
         self.t_last = t
 
-    def held_at(self, t: float) -> int:
-        """The index of the sample held at time ``t`` (the last at or before it)."""
-        return max(int(np.searchsorted(self.t[:self.n], t, side="right")) - 1, 0)
+    def held_at(self, t):
+        """The index of the sample held at time ``t`` (the last at or before it); for an array of
+        times an array of them."""
+        i = np.maximum(np.searchsorted(self.t[:self.n], t, side="right") - 1, 0)
+        return int(i) if np.ndim(i) == 0 else i
 
     def checked(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, stacklevel: int):
         """Samples ``t (N,)``, ``acc, gyro (N, 3)`` (:func:`imu_arrays`) checked as the offline

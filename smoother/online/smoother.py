@@ -541,7 +541,7 @@ class OnlineSmoother:
         stream = self._imu
         stamps = np.array([item.latest for item in items])
         steps, last_dt = interval_attachment(stream.t[:stream.n], self._last_t, t, stamps)
-        held = [stream.held_at(x) for x in stamps]
+        held = stream.held_at(stamps)
         padded = tuple(a[None] for a in samples)
         grown = [None] * len(items)
         for kind in {item.spec.kind for item in items}:
