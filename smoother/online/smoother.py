@@ -544,7 +544,7 @@ class OnlineSmoother:
         held = stream.held_at(stamps)
         padded = tuple(a[None] for a in samples)
         grown = [None] * len(items)
-        for kind in {item.spec.kind for item in items}:
+        for kind in dict.fromkeys(item.spec.kind for item in items):
             of = [m for m, item in enumerate(items) if item.spec.kind == kind]
             rows = np.stack([items[m].spec.rows[items[m].row] for m in of])
             noise = attached_noise(KINDS[kind], self._newest, padded, np.zeros(len(of), dtype=int), steps[of],
