@@ -90,9 +90,9 @@ class ImuBuffer:
         self._acc2, self._rate2 = MAX_PLAUSIBLE_SPECIFIC_FORCE ** 2, self._rate_limit ** 2
         self._room = TYPICAL_INTERVALS + 1
 
-    def add(self, t, acc, gyro) -> None:
+    def add(self, t, acc, gyro) -> int:
         """Samples as ``add_imu`` takes them (:func:`imu_arrays`), checked (:meth:`checked`); none is
-        taken when one is refused."""
+        taken when one is refused. Returns how many were taken (the newest ``n`` kept)."""
         t, acc, gyro = self.checked(*imu_arrays(t, acc, gyro), stacklevel=self._stack + 3)
         n = self.n
         if n + t.size > len(self.t):
@@ -105,6 +105,7 @@ class ImuBuffer:
             self._know_typical(stacklevel=self._stack + 3)
         # where add_one acts next: when the arrays are full, or when the typical period is due
         self._room = len(self.t) if self._typical is not None else TYPICAL_INTERVALS + 1
+        return t.size
 
     def add_one(self, t: float, acc, gyro) -> None:
         """One sample (``acc``, ``gyro`` of shape (3,)) with as few operations as it takes: a few
@@ -128,9 +129,11 @@ class ImuBuffer:
         self.n = n + 1
         self.t_last = t
 
-    def held_at(self, t: float) -> int:
-        """The index of the sample held at time ``t`` (the last at or before it)."""
-        return max(int(np.searchsorted(self.t[:self.n], t, side="right")) - 1, 0)
+    def held_at(self, t):
+        """The index of the sample held at time ``t`` (the last at or before it); for an array of
+        times an array of them."""
+        i = np.maximum(np.searchsorted(self.t[:self.n], t, side="right") - 1, 0)
+        return int(i) if np.ndim(i) == 0 else i
 
     def checked(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray, stacklevel: int):
         """Samples ``t (N,)``, ``acc, gyro (N, 3)`` (:func:`imu_arrays`) checked as the offline

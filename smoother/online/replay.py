@@ -57,23 +57,35 @@ def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate=None, 
     return online
 
 
-def arrivals(dataset: Dataset):
-    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp: one
-    ``(t, upto, arrived)`` per arrival time ``t``, ``upto`` the number of IMU samples before it
-    (which arrive first) and ``arrived`` the ``(sensor name, measurements)`` that arrive then."""
+def arrivals(dataset: Dataset, starts: np.ndarray | None = None, early=()):
+    """``dataset``'s measurements in their order of arrival, each at its (latest) time stamp, before
+    the IMU samples of that time, in groups: one ``(t, upto, arrived)`` per arrival time ``t``,
+    ``upto`` the number of IMU samples before it (which arrive first) and ``arrived`` the ``(sensor
+    name, measurements)`` that arrive then, each sensor's rows in one block in their order of
+    arrival. With ``starts`` (increasing sample counts from 0), those of the sensors named in
+    ``early`` arrive earlier, at the last of ``starts`` at or before their own ``upto``, and a group
+    is all that arrives at one ``upto`` (``t`` its earliest arrival time)."""
     sensors = sensors_of(dataset)
     arrival = [np.max(np.stack(measurement_spec(s).times, axis=1), axis=1) for s in sensors]
     none = [np.zeros(0)]  # dead reckoning: no sensor, no measurement
     which = np.concatenate(none + [np.full(len(a), i) for i, a in enumerate(arrival)]).astype(int)
     rows = np.concatenate(none + [np.arange(len(a)) for a in arrival]).astype(int)
     at = np.concatenate(none + arrival)
-    order = np.lexsort((rows, which, at))
-    groups = np.split(order, np.flatnonzero(np.diff(at[order]) > 0) + 1) if len(order) else []
-    for group in groups:
-        t = at[group[0]]
-        arrived = [(sensors[i].name, sensors[i].data.subset(rows[group[which[group] == i]]))
-                   for i in np.unique(which[group])]
-        yield t, int(np.searchsorted(dataset.imu.t, t, side="left")), arrived
+    upto = np.searchsorted(dataset.imu.t, at, side="left")
+    if starts is not None:
+        moved = np.isin(which, [i for i, s in enumerate(sensors) if s.name in early])
+        upto[moved] = starts[np.searchsorted(starts, upto[moved], side="right") - 1]
+    key = at if starts is None else upto
+    order = np.lexsort((rows, at, which, key))  # a group's sensors in turn, each's rows in order of arrival
+    if not len(order):
+        return
+    k, w = key[order], which[order]
+    heads = np.flatnonzero(np.r_[True, (k[1:] != k[:-1]) | (w[1:] != w[:-1])])  # where each sensor's rows start
+    runs = np.split(order, heads[1:])
+    for group in np.split(np.arange(len(runs)), np.flatnonzero(k[heads[1:]] != k[heads[:-1]]) + 1):
+        members = [runs[r] for r in group]
+        yield (float(min(at[m[0]] for m in members)), int(upto[members[0][0]]),
+               [(sensors[which[m[0]]].name, sensors[which[m[0]]].data.subset(rows[m])) for m in members])
 
 
 def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate=None,
@@ -84,8 +96,12 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     sample of the same time; its keyframes are those of the batch smoother's graph
     (:func:`smoother.model.timeline.keyframe_times` of ``keyframe_rate``: the grid or the measurement
     times, held-out fixes, the ends). ``realtime``: at the data's own pace (``speed`` times it), sample by
-    sample, so that the latencies are those a robot would see; otherwise as fast as it goes (the
-    IMU in chunks between measurements)."""
+    sample, so that the latencies are those a robot would see; otherwise as fast as it goes, in
+    blocks with the same estimates: the IMU between the measurements that ask for keyframes
+    (:meth:`OnlineSmoother.asks_keyframes`), the others (attached to the keyframe before them) arriving
+    together at the time of that keyframe (:func:`arrivals`), which is earlier than their own
+    and changes nothing but their latencies: a measurement waits for the keyframe after its time
+    however early it arrives."""
     if not speed > 0:
         raise InputError(f"speed must be positive, got {speed}")
     smoothed: list[OnlineEstimate] = []
@@ -93,6 +109,12 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
                        covariances=covariances, on_smoothed=smoothed.append)
     imu_t = dataset.imu.t
+    if realtime:
+        groups = arrivals(dataset)
+    else:
+        attached = [s.name for s in sensors_of(dataset) if not online.asks_keyframes(s.name)]
+        knots = np.searchsorted(imu_t, keyframe_times(dataset, keyframe_rate), side="left")
+        groups = arrivals(dataset, np.union1d([0], knots), attached)
     start = time.perf_counter()
 
     def wait(t: float) -> None:
@@ -113,7 +135,7 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
 
     fed = 0
     with progress_bar(len(imu_t), f"fixed-lag ({kind}, online)", progress) as bar:
-        for t, upto, arrived in arrivals(dataset):
+        for t, upto, arrived in groups:
             feed(fed, upto)
             bar.update(upto - fed)
             fed = upto

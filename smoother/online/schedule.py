@@ -38,9 +38,10 @@ class KeyframeSchedule:
             self._knot_set.add(t)
             heapq.heappush(self._knots, t)
 
-    def due(self, horizon: float) -> bool:
-        """Whether a keyframe asked for, or a grid time, lies at or before ``horizon``."""
-        return bool(self._knots and self._knots[0] <= horizon) or self._grid_t <= horizon
+    def next_time(self) -> float:
+        """The earliest time asked for or on the grid (inf: none): a keyframe is due once the
+        stream's horizon reaches it."""
+        return min(self._knots[0], self._grid_t) if self._knots else self._grid_t
 
     def grid_up_to(self, horizon: float, step: float, newest: float | None) -> None:
         """Ask for the grid times up to ``horizon``, except those within ``step`` (half the IMU

@@ -269,18 +269,26 @@ class OnlineSmoother:
         ``gyro`` of shape (N, 3)), in strictly increasing time after every sample before; other
         shapes, non-finite or implausible values and time steps back are refused (module
         docstring), with nothing taken. Makes the keyframes the stream has passed by
-        ``max_delay_s``."""
+        ``max_delay_s``, each at the sample that passed it, so that N samples at once give the
+        estimates they give one by one (only checked at once: one warning for the gaps among
+        them)."""
         self._open()
         stream = self._imu
         if (type(t) is float or np.ndim(t) == 0) and np.shape(acc) == (3,) and np.shape(gyro) == (3,):
             stream.add_one(float(t), acc, gyro)  # one sample: kept lean
+            taken = 1
         else:
-            stream.add(t, acc, gyro)
+            taken = stream.add(t, acc, gyro)
         if self._schedule.t0 is None:  # the first sample: the first keyframe's time
             self._schedule.start(float(stream.t[0]))
-        horizon = stream.t_last - self.max_delay_s
-        if self._schedule.due(horizon):
-            self._make_keyframes(horizon)
+        if stream.t_last - self.max_delay_s < self._schedule.next_time():  # no keyframe passed
+            return
+        first = stream.n - taken
+        horizons = stream.t[first:stream.n] - self.max_delay_s
+        i = 0
+        while (i := i + int(np.searchsorted(horizons[i:], self._schedule.next_time()))) < taken:
+            self._make_keyframes(float(horizons[i]), first + i)  # sample first + i passed a keyframe's time
+            i += 1
 
     def add(self, sensor: str, t, *values, cov=None) -> None:
         """Measurements of ``sensor`` (a name of ``sensors``, or a kind's name for a sensor at the
@@ -327,13 +335,19 @@ class OnlineSmoother:
                              f"{stamps.max() - stream.t_last:.6g} s after the newest IMU sample, beyond any plausible "
                              f"delay ({MAX_IMU_GAP_S:g} s): a stamp of another clock, or a wrong time offset")
         arrived = time.perf_counter()
-        asks = self.keyframe_rate is None or kind.relative  # else attached to the keyframe before it
+        asks = self.asks_keyframes(sensor)
         for m, times in enumerate(stamps):
             times = tuple(float(x) for x in times)
             if self._pending.offer(sensor, times, spec, m, arrived, self._last_t, self._keyframe_t) and asks:
                 for x in times:
                     if self._last_t is None or x > self._last_t:
                         self._schedule.ask(x)
+
+    def asks_keyframes(self, sensor: str) -> bool:
+        """Whether the measurements of ``sensor`` ask for keyframes at their times (every
+        measurement without ``keyframe_rate``, a relative one always) rather than being attached to
+        the keyframe before them (module docstring): only those change which keyframes are made."""
+        return self.keyframe_rate is None or self._setup(sensor)[1].relative
 
     def keyframe_at(self, t) -> None:
         """Ask for keyframes (estimates) at the times ``t`` (IMU clock); those at or before the
@@ -357,7 +371,7 @@ class OnlineSmoother:
             end = float(stream.t[stream.n - 1])
             if self._last_t is None or end > self._last_t:
                 self._schedule.ask(end)
-            self._make_keyframes(end)
+            self._make_keyframes(end, stream.n - 1)
         # after the last IMU sample (or no IMU at all): nothing to anchor them
         self._pending.drop_all("lies after the last IMU sample and was dropped")
         if self._last_t is not None:
@@ -465,14 +479,13 @@ class OnlineSmoother:
                                                   [s.calibrate for s in asking.values()])
         return WindowCalibration(chosen, {name: setup.kind for name, setup in asking.items()})
 
-    def _make_keyframes(self, horizon: float) -> None:
-        """Make every keyframe asked for at or before ``horizon`` (and the IMU's end), the grid's
-        among them."""
+    def _make_keyframes(self, horizon: float, newest: int) -> None:
+        """Make every keyframe asked for at or before ``horizon`` and the sample ``newest`` (an
+        index into the samples kept: the one the stream has reached), the grid's among them."""
         stream = self._imu
-        n = stream.n
-        step = 0.5 * (stream.t[n - 1] - stream.t[n - 2]) if n > 1 else 0.0
+        step = 0.5 * (stream.t[newest] - stream.t[newest - 1]) if newest > 0 else 0.0
         self._schedule.grid_up_to(horizon, step, self._last_t)
-        end = stream.t[n - 1]
+        end = stream.t[newest]
         while (t := self._schedule.next_due(horizon, end)) is not None:
             self._keyframe(t)
 
@@ -523,19 +536,25 @@ class OnlineSmoother:
         estimate ``_newest``) and ``t`` as the window takes them, attached to it: each where it lies
         in the interval's steps ``samples`` (:func:`smoother.model.timeline.interval_attachment`)
         with the IMU reading held at its stamp, its covariance grown by the process noise from the
-        keyframe (:func:`datasets.kinds.attached_noise`, along ``_newest``; a spec of its one row)."""
+        keyframe (:func:`datasets.kinds.attached_noise`, along ``_newest``, one call per kind; a
+        spec of its one row)."""
         stream = self._imu
         stamps = np.array([item.latest for item in items])
         steps, last_dt = interval_attachment(stream.t[:stream.n], self._last_t, t, stamps)
-        held = [stream.held_at(x) for x in stamps]
+        held = stream.held_at(stamps)
         padded = tuple(a[None] for a in samples)
+        grown = [None] * len(items)
+        for kind in dict.fromkeys(item.spec.kind for item in items):
+            of = [m for m, item in enumerate(items) if item.spec.kind == kind]
+            rows = np.stack([items[m].spec.rows[items[m].row] for m in of])
+            noise = attached_noise(KINDS[kind], self._newest, padded, np.zeros(len(of), dtype=int), steps[of],
+                                   last_dt[of], rows, self.noise, self.gravity)
+            for m, process in zip(of, noise):
+                grown[m] = items[m].spec.cov[items[m].row] + process
         out = []
-        for item, n, last, i in zip(items, steps, last_dt, held):
-            spec, kind = item.spec, KINDS[item.spec.kind]
-            row = spec.rows[item.row:item.row + 1]
-            grown = spec.cov[item.row] + attached_noise(kind, self._newest[None], padded, [0], [n], [last], row,
-                                                        self.noise, self.gravity)[0]
-            one = replace(spec, rows=row, cov=grown[None])
+        for item, n, last, i, cov in zip(items, steps, last_dt, held, grown):
+            spec = item.spec
+            one = replace(spec, rows=spec.rows[item.row:item.row + 1], cov=cov[None])
             out.append((one, 0, [keyframe], self._setup(item.sensor)[0].robust,
                         AttachedAt(int(n), float(last), (stream.acc[i], stream.gyro[i]))))
         return out

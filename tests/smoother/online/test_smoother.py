@@ -93,6 +93,46 @@ def test_streamed_sample_by_sample_equals_the_replay_and_the_offline_smoother(ge
     assert correlation_diff.max() < 0.05, correlation_diff.max()
 
 
+@pytest.mark.parametrize("max_delay_s", [0.0, 0.05])
+def test_the_replays_blocks_equal_the_stream_sample_by_sample_with_each_measurement_at_its_arrival(max_delay_s):
+    """Wheel speeds at 83 Hz and fixes at 10 Hz (attached to the 10 Hz grid's keyframes) with
+    odometry at 4 Hz (keyframes of its own): ``replay`` -- the IMU in blocks, the attached
+    measurements arriving early, together at their keyframe's time -- gives each keyframe's
+    smoothed estimate and covariance and the calibrations of the stream fed one IMU sample at a
+    time with each measurement at its own arrival, bit for bit."""
+    from datasets.simulate import simulate
+    from datasets.simulated_sensors import SensorSpec
+    from factors.calibration import CalibrationPrior
+    from smoother.online.replay import arrivals, replaying
+
+    data = simulate("gentle", duration=6.0, seed=3, imu_rate=100.0, pose_rate=0, sensors=[
+        SensorSpec("wheels", "velocity", 83.0, 0.05), SensorSpec("gnss", "gnss", 10.0, 0.2),
+        SensorSpec("odo", "odometry", 4.0, 0.05)])
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("scale",)))
+    smoothed = []
+    online = replaying(data, lag_s=1.0, max_delay_s=max_delay_s, covariances=True, on_smoothed=smoothed.append)
+    imu_data, fed = data.imu, 0
+    for _, upto, arrived in arrivals(data):
+        for m in range(fed, upto):
+            online.add_imu(float(imu_data.t[m]), imu_data.acc[m], imu_data.gyro[m])
+        fed = upto
+        for name, measurements in arrived:
+            online.add_measurements(name, measurements)
+    for m in range(fed, len(imu_data.t)):
+        online.add_imu(float(imu_data.t[m]), imu_data.acc[m], imu_data.gyro[m])
+    online.finish()
+    smoothed.sort(key=lambda e: e.t)
+    whole = replay(data, 1.0, max_delay_s=max_delay_s, covariances=True, progress=False)
+    assert len(whole.smoothed.t) > 60 and not whole.dropped and not whole.skipped
+    np.testing.assert_array_equal([e.t for e in smoothed], whole.smoothed.t)
+    _assert_same_states(type(whole.smoothed.states).stack([e.state for e in smoothed]), whole.smoothed.states)
+    np.testing.assert_array_equal(np.stack([e.cov for e in smoothed]), whole.smoothed.cov)
+    (values, covariances), (whole_values, whole_covariances) = online.calibration, whole.calibration
+    assert [c.scale for c in values.values] == [c.scale for c in whole_values.values]
+    assert len(covariances) == len(whole_covariances) == 1
+    np.testing.assert_array_equal(covariances[0], whole_covariances[0])
+
+
 def test_measurements_late_within_max_delay_change_nothing_later_ones_are_dropped_and_counted(gentle):
     """Poses arriving up to 0.3 s late in shuffled order (``max_delay_s`` 0.3) give the same
     smoothed estimates, bit for bit, as all in time order; five that arrive 0.5 s late are
