@@ -77,9 +77,8 @@ from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset
 from factors import imu, preintegration
 from factors.errors import InputError
-from smoother.batch.optimiser import gauss_newton_step
 from smoother.batch.solve import SmootherResult, solve_batch
-from smoother.model.blocks import CHUNK, Block, block_residual, whitening
+from smoother.model.blocks import CHUNK, Block, Layout, block_residual, linearize, whitening
 from smoother.model.covariances import covariance_tangent, hat_blocks, marginal_covariances
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
@@ -247,7 +246,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
-    (with covariances) and the problem with it. Every other group keeps the rig's noise."""
+    (with covariances) and the problem with it: ``result`` and ``problem`` themselves where no
+    factor is applied. Every other group keeps the rig's noise."""
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
@@ -262,11 +262,14 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
 
     def evaluate(psi, states, calibration):
         """One Gauss-Newton step to the optimum of the weights of ``psi`` (the weights change
-        little from one evaluation to the next) and the statistics there, with the covariances of
-        the system the step solved."""
+        little from one evaluation to the next), solved by the elimination the covariances come
+        from, and the statistics there."""
         blocks = model.blocks(psi, states)
-        moved, moved_calibration, graph, layout, delta = gauss_newton_step(blocks, states, calibration)
+        graph, _ = linearize(blocks, states, calibration)
+        layout = Layout.of(states, calibration)
         cov, joint, root = marginal_covariances(graph, len(states), None, True, layout, square_root=True)
+        delta = root.solution
+        moved, moved_calibration = layout.apply(states, calibration, delta)
         # the residuals of the linear system at its solution: every statistic from that one system
         n = len(states)
         bounds = np.cumsum([n * imu.STATE_DIM, *layout.extra])
@@ -357,8 +360,10 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     else:
         warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
                       "used", stacklevel=2)
-    fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
-    result = solve_batch(fitted, optimizer, max_iterations)
+    fitted = problem
+    if psi.any():  # some factor applied: the estimate with it (else the rig's noise and the given estimate)
+        fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
+        result = solve_batch(fitted, optimizer, max_iterations)
     if ties:
         cov_psi = _pseudo_inverse(_parameter_information(information if information is not None else approximate,
                                                          ties))
@@ -600,7 +605,7 @@ class _NoiseModel:
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
         columns = [g for g in range(G) if self.leveraged(g)]
-        B = []  # sum_k A_ka^T U_kg A_kb over the factors on each pair of variables (_information_blocks)
+        factors = []  # each chunk's kept factors' (keys per slot, A, U): _information_blocks' arguments
         own = np.zeros((G, G))  # sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg U_kh), h a column
         n = len(states)
         for name in dict.fromkeys(g.sensor for g in self.groups):
@@ -650,15 +655,17 @@ class _NoiseModel:
                     keys = [chunk[:, s] for s in range(chunk.shape[1])]
                     if calibration_key is not None:
                         keys.append(np.full(len(chunk), calibration_key))
-                    B += _information_blocks([k[keep] for k in keys], [a[keep] for a in A],
-                                             {g: Ug[keep] for g, Ug in U.items()})
+                    factors.append(([k[keep] for k in keys], [a[keep] for a in A],
+                                    {g: Ug[keep] for g, Ug in U.items()}))
                     HU = {g: H[keep] @ U[g][keep] for g in columns if g in U}
                     for g, HUg in HU.items():
                         for h, Uh in U.items():
                             own[h, g] += np.einsum("mab,mba->", Uh[keep], U[g][keep]) - 2.0 * np.einsum(
                                 "mab,mba->", HUg, Uh[keep])
         exact = None if root is None else (
-            lambda estimated: self._exact(information, [g for g in columns if g in estimated], own, B, root, joint))
+            lambda estimated: self._exact(information, [g for g in columns if g in estimated], own,
+                                          [part for chunk in factors for part in _information_blocks(*chunk)], root,
+                                          joint))
         return quadratic, expected, information, redundancy, exact
 
     @staticmethod

@@ -73,7 +73,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     variables.
 
     ``square_root`` (with ``pairs``): also return the conditionals as a :class:`SquareRoot`, with
-    which :func:`covariance_tangent` differentiates those blocks."""
+    which :func:`covariance_tangent` differentiates those blocks, and the system's solution."""
     layout = layout or Layout(n)
     ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
@@ -135,7 +135,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
     if square_root:
-        return marginals, sigma, SquareRoot(keys, own, gains, layout)
+        return marginals, sigma, SquareRoot(keys, own, gains, layout, layout.flat(net.optimize()))
     return (marginals, sigma) if pairs else marginals
 
 
@@ -150,12 +150,15 @@ def joint_block(joint: dict, a: int, b: int) -> np.ndarray:
 class SquareRoot:
     """The conditionals of an elimination (:func:`marginal_covariances`), in elimination order:
     each one's ``keys`` (its frontal variable, then its parents), ``inverse`` ``R_i^-1 R_i^-T`` and
-    ``gain`` ``K_i = -R_i^-1 S_i`` (None without parents), on the variables of ``layout``."""
+    ``gain`` ``K_i = -R_i^-1 S_i`` (None without parents), on the variables of ``layout``; and
+    ``solution``, the system's least-squares solution by their back-substitution (flat, in the
+    layout's order)."""
 
     keys: list
     inverse: list
     gain: list
     layout: Layout
+    solution: np.ndarray
 
 
 def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict:
