@@ -490,12 +490,12 @@ class _NoiseModel:
         for g in groups:
             if g.sensor not in self.block_index:
                 raise InputError(f"noise estimation: sensor {g.sensor!r} has no factors in the problem")
-        # each sensor block's covariances as the rig states them (R_0 = (W^T W)^-1)
-        self.R0 = {}
+        # each sensor block's whitening as the rig states it, W_0, and its inverse L_0 (R_0 = L_0 L_0^T)
+        self.rig = {}
         for g in groups:
-            if g.axes is not None and g.sensor not in self.R0:
+            if g.axes is not None and g.sensor not in self.rig:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
-                self.R0[g.sensor] = np.linalg.inv(np.einsum("mki,mkj->mij", W, W))
+                self.rig[g.sensor] = (W, np.linalg.inv(W))
         self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
@@ -510,8 +510,8 @@ class _NoiseModel:
         """The group's density or (median) sigma with ``factor`` applied, in the rig's units."""
         if group.axes is None:
             return float(getattr(self.dataset.noise, group.part) * factor)
-        R = self.R0[group.sensor]
-        sigma = np.sqrt(np.diagonal(R, axis1=1, axis2=2)[:, list(group.axes)])
+        L = self.rig[group.sensor][1]
+        sigma = np.sqrt(np.einsum("mij,mij->mi", L, L)[:, list(group.axes)])
         return float(np.median(sigma) * factor)
 
     def residual_summary(self, states, calibration, psi: np.ndarray) -> list[tuple[float, int]]:
@@ -558,13 +558,14 @@ class _NoiseModel:
             cov = np.einsum("c,cjab->jab", factors, parts) + rest
             b = self.block_index[IMU_BLOCK]
             blocks[b] = replace(blocks[b], whiten=whitening(cov))
-        for sensor, R0 in self.R0.items():
-            f = np.ones(R0.shape[-1])
+        for sensor, (W0, _) in self.rig.items():
+            f = np.ones(W0.shape[-1])
             for i, g in enumerate(self.groups):
                 if g.sensor == sensor:
                     f[list(g.axes)] = np.sqrt(theta[i])
+            # (D R_0 D)^-1 = (W_0 D^-1)^T (W_0 D^-1): the rig's whitening, its columns scaled
             b = self.block_index[sensor]
-            blocks[b] = replace(blocks[b], whiten=whitening(R0 * f[:, None] * f[None, :]))
+            blocks[b] = replace(blocks[b], whiten=W0 / f[None, None, :])
         return blocks
 
     def _derivatives(self, block_name: str, rows: slice, psi: np.ndarray, W: np.ndarray) -> dict[int, np.ndarray]:
@@ -579,12 +580,12 @@ class _NoiseModel:
                     V = theta[i] * parts[c][rows]
                     out[i] = W @ V @ np.swapaxes(W, -1, -2)
             return out
-        W_inv = np.linalg.inv(W)
+        W0, L0 = self.rig[block_name]
         for i, g in enumerate(self.groups):
             if g.sensor == block_name:
                 S = np.zeros(W.shape[-1])
                 S[list(g.axes)] = 1.0
-                A = W * S[None, None, :] @ W_inv  # W S W^-1
+                A = W0[rows] * S[None, None, :] @ L0[rows]  # W S W^-1 = W_0 D^-1 S D L_0, D and S diagonal
                 out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
         return out
 

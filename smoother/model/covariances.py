@@ -237,20 +237,25 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
         if not parents:
             conditionals[i] = ([], None, None, dD, None)
             continue
-        P = [p for p in parents if p < n] + ([c] if nc else [])
-        bounds = np.cumsum([0, *(dim(p) for p in P)]).tolist()
-        K = np.zeros((DIM, bounds[-1]))
-        at = 0
-        for p in parents:
-            width = layout.dim(p)
-            target = slice(bounds[P.index(p)], bounds[P.index(p) + 1]) if p < n else \
-                slice(bounds[-2] + columns[p].start, bounds[-2] + columns[p].stop)
-            K[:, target] = root.gain[i][:, at:at + width]
-            at += width
+        P = [p for p in parents if p < n]
+        bounds = [DIM * j for j in range(len(P) + 1)]
+        if nc:
+            P.append(c)
+            bounds.append(bounds[-1] + nc)
+        if parents[len(P) - 1:] == list(columns) or not nc:  # every calibration variable, in order
+            K = root.gain[i]
+        else:
+            K = np.zeros((DIM, bounds[-1]))
+            K[:, :bounds[-2]] = root.gain[i][:, :bounds[-2]]
+            at = start = bounds[-2]
+            for p in parents[len(P) - 1:]:
+                K[:, start + columns[p].start:start + columns[p].stop] = root.gain[i][:, at:at + layout.dim(p)]
+                at += layout.dim(p)
         dL = np.concatenate([read(acc, frontal, p) for p in P], axis=-1)
-        dK = -root.inverse[i] @ (dL + dD @ K)
+        dD_K = dD @ K
+        dK = -root.inverse[i] @ (dL + dD_K)
         KT_dL = K.T @ dL
-        update = KT_dL + np.swapaxes(KT_dL, -1, -2) + K.T @ dD @ K
+        update = KT_dL + np.swapaxes(KT_dL, -1, -2) + K.T @ dD_K
         for x, a in enumerate(P):
             for y, b in enumerate(P[x:], x):
                 block = update[:, bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]]
@@ -275,9 +280,10 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
                     S_PP[bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]] = covariance(a, b)
                     dS_PP[:, bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]] = read(out, a, b)
             dK_S = dK @ S_PP
-            cross = dK_S + K @ dS_PP
+            K_dS = K @ dS_PP
+            cross = dK_S + K_dS
             dK_S_KT = dK_S @ K.T
-            own = own + K @ dS_PP @ K.T + dK_S_KT + np.swapaxes(dK_S_KT, -1, -2)
+            own = own + K_dS @ K.T + dK_S_KT + np.swapaxes(dK_S_KT, -1, -2)
             for x, p in enumerate(P):
                 block = cross[:, :, bounds[x]:bounds[x + 1]]
                 if frontal <= p:
