@@ -115,7 +115,7 @@ MAX_LOG_STEP = 3.0
 #: Near the optimum (every parameter's ``q / r`` within ``exp(+-NEAR)``) the steps are Newton's.
 NEAR = 0.5
 #: The share of a Newton step taken first (the information is exact only where it was
-#: differenced); it grows by half at each step that does not turn back, and halves at each that does.
+#: computed); it grows by half at each step that does not turn back, and halves at each that does.
 FIRST_DAMPING = 1.0
 #: The exact information is computed again once a parameter has moved this many of its standard
 #: deviations from where it was (it costs a sweep of the system's conditionals; at two, one
@@ -447,9 +447,9 @@ def far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def _positive_definite(F: np.ndarray) -> np.ndarray:
-    """``F`` symmetrised with its eigenvalues kept above 1e-6 of the largest: differenced and
-    updated informations can lose definiteness along directions the data hardly fix, and an
-    indefinite one gives negative variances and meaningless correlations."""
+    """``F`` symmetrised with its eigenvalues kept above 1e-6 of the largest: exact columns in the
+    approximate rest can lose definiteness along directions the data hardly fix, and an
+    indefinite information gives negative variances and meaningless correlations."""
     values, vectors = np.linalg.eigh(0.5 * (F + F.T))
     floor = 1e-6 * max(float(values.max()), 1e-300)
     return (vectors * np.maximum(values, floor)) @ vectors.T
@@ -670,7 +670,7 @@ class _NoiseModel:
         return quadratic, expected, information, redundancy, exact
 
     @staticmethod
-    def _exact(approximate: np.ndarray, columns: list[int], own: np.ndarray, B: dict, root, joint: dict) -> np.ndarray:
+    def _exact(approximate: np.ndarray, columns: list[int], own: np.ndarray, B: list, root, joint: dict) -> np.ndarray:
         """The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: ``approximate`` with the ``columns``
         (and rows) exact -- those of the groups of factors with much leverage.
 
