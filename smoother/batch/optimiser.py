@@ -167,17 +167,3 @@ def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float
     a, b, c = np.sum(d * d), 2.0 * np.sum(sd * d), sd_norm**2 - radius**2
     tau = (-b + np.sqrt(b * b - 4 * a * c)) / (2 * a)
     return sd + tau * d
-
-
-def gauss_newton_step(blocks: list[Block], states: imu.ImuState, calibration=None):
-    """One Gauss-Newton step of the blocks' cost from ``states`` and the calibration variables'
-    values ``calibration``: ``(states, calibration, graph, layout, delta)`` after the step, with the
-    whitened linear system it solved (linearised before the step), its variables (whose
-    covariances :func:`smoother.model.covariances.marginal_covariances` gives) and the step itself
-    (flat, in the layout's order). Near an optimum whose weights changed a little (the noise
-    estimation's iterations) one step reaches the new one."""
-    graph, _ = linearize(blocks, states, calibration)
-    layout = Layout.of(states, calibration)
-    delta = _solve(graph, layout, layout.ordering(graph))
-    moved, moved_calibration = layout.apply(states, calibration, delta)
-    return moved, moved_calibration, graph, layout, delta

@@ -36,9 +36,14 @@ The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)`` needs ``P_R`` whole. Its diag
 (``1/2 sum_k tr((I - H_k) U_kg (I - H_k) U_kh)``) are close for a sensor's measurements, which
 carry little leverage each, and far too small for the IMU's factors, chained through the
 keyframes (a tenth of the curvature of a gyro's white noise on a simulated rig). The IMU
-components' columns are exact instead: ``F_gh = -1/2 d tr(P_R V_g) / dpsi_h`` with ``V_g`` held,
-the change of the groups' redundancies, which need only the diagonal blocks of ``P_R``, when the
-system is re-weighted for a slightly larger ``psi_h`` (:func:`_exact_information`).
+components' columns are exact instead, from the system the score came from: with ``A`` the
+whitened Jacobian and ``B_g = A^T U_g A`` (the information ``A^T A`` falls by it for a unit rise
+of ``psi_g``), ``tr(P_R V_g P_R V_h) = sum_k (tr(U_kg U_kh) - 2 tr(H_k U_kg U_kh)) + tr(X_g B_h)``
+with ``X_g = P B_g P = dP / dpsi_g``, needed only on the pairs of variables of a factor -- a
+conditional and its parent -- where one forward-mode sweep of the elimination and its selected
+inversion gives it for every IMU component at once (:meth:`_NoiseModel._exact`,
+:func:`smoother.model.covariances.covariance_tangent`; no other elimination; it matched the dense
+matrix to 1e-5).
 The iterations: far from the estimate (some ``q_g / r_g`` beyond ``exp(+-NEAR)``), Fisher scoring
 on the variance factors with the local information's correlations and ``r / 2`` on its diagonal,
 which for a group alone is Foerstner's ``theta <- theta q / r`` and never overshoots; near it,
@@ -72,10 +77,9 @@ from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset
 from factors import imu, preintegration
 from factors.errors import InputError
-from smoother.batch.optimiser import gauss_newton_step
 from smoother.batch.solve import SmootherResult, solve_batch
-from smoother.model.blocks import CHUNK, Block, block_residual, whitening
-from smoother.model.covariances import covariances_at, hat_blocks, marginal_covariances
+from smoother.model.blocks import CHUNK, Block, Layout, block_residual, linearize, whitening
+from smoother.model.covariances import covariance_tangent, hat_blocks, marginal_covariances
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
 from smoother.stats import chi2_quantile, lag_one_correlation
@@ -111,14 +115,12 @@ MAX_LOG_STEP = 3.0
 #: Near the optimum (every parameter's ``q / r`` within ``exp(+-NEAR)``) the steps are Newton's.
 NEAR = 0.5
 #: The share of a Newton step taken first (the information is exact only where it was
-#: differenced); it grows by half at each step that does not turn back, and halves at each that does.
+#: computed); it grows by half at each step that does not turn back, and halves at each that does.
 FIRST_DAMPING = 1.0
 #: The exact information is computed again once a parameter has moved this many of its standard
-#: deviations from where it was (it costs a covariance computation per IMU component; at two, one
+#: deviations from where it was (it costs a sweep of the system's conditionals; at two, one
 #: component's factor came out beyond two of its sds of the truth on 5 of 20 simulated seeds).
 RECOMPUTE_SD = 1.0
-#: The step of the log-factors by which the information's columns are differenced.
-DIFFERENCE_STEP = 0.02
 
 
 @dataclass(frozen=True)
@@ -244,7 +246,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
-    (with covariances) and the problem with it. Every other group keeps the rig's noise."""
+    (with covariances) and the problem with it: ``result`` and ``problem`` themselves where no
+    factor is applied. Every other group keeps the rig's noise."""
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
@@ -259,17 +262,21 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
 
     def evaluate(psi, states, calibration):
         """One Gauss-Newton step to the optimum of the weights of ``psi`` (the weights change
-        little from one evaluation to the next) and the statistics there, with the covariances of
-        the system the step solved."""
+        little from one evaluation to the next), solved by the elimination the covariances come
+        from, and the statistics there."""
         blocks = model.blocks(psi, states)
-        moved, moved_calibration, graph, layout, delta = gauss_newton_step(blocks, states, calibration)
-        cov, joint = marginal_covariances(graph, len(states), None, True, layout)
+        graph, _ = linearize(blocks, states, calibration)
+        layout = Layout.of(states, calibration)
+        cov, joint, root = marginal_covariances(graph, len(states), None, True, layout, square_root=True)
+        delta = root.solution
+        moved, moved_calibration = layout.apply(states, calibration, delta)
         # the residuals of the linear system at its solution: every statistic from that one system
         n = len(states)
         bounds = np.cumsum([n * imu.STATE_DIM, *layout.extra])
         step = (delta[:n * imu.STATE_DIM].reshape(n, imu.STATE_DIM),
                 np.split(delta[bounds[0]:], bounds[1:-1] - bounds[0]))
-        return moved, moved_calibration, model.statistics(blocks, states, calibration, cov, joint, psi, step=step)
+        return moved, moved_calibration, model.statistics(blocks, states, calibration, cov, joint, psi, step=step,
+                                                          root=root)
 
     information = None  # the groups' information once near the estimate (the IMU's columns exact), else None
     last = None  # (psi, score, step) of the last Newton step
@@ -277,7 +284,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     damping = FIRST_DAMPING
     for iterations in range(1, MAX_ITERATIONS + 1):
         before = (states, calibration)
-        states, calibration, (quadratic, expected, approximate, redundancy) = evaluate(psi, *before)
+        states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before)
         q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
         near = bool(np.all(np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR))
         moved = None if information is None else np.abs(psi_of(psi, ties) - psi_of(at, ties))
@@ -286,8 +293,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             # the groups' exact information where it is first needed, and again once the parameters
             # have moved by more than RECOMPUTE_SD standard deviations from where it was computed (a
             # merge or a group dropped only changes which of its rows and columns they take)
-            information, at = _exact_information(model, states, calibration, psi, approximate,
-                                                 [g for tie in ties for g in tie]), psi.copy()
+            information, at = exact([g for tie in ties for g in tie]), psi.copy()
         F = _parameter_information(information if near else approximate, ties)
         cov_psi = _pseudo_inverse(F)
         sd = np.sqrt(np.maximum(np.diag(cov_psi), 0.0))
@@ -354,8 +360,10 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     else:
         warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
                       "used", stacklevel=2)
-    fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
-    result = solve_batch(fitted, optimizer, max_iterations)
+    fitted = problem
+    if psi.any():  # some factor applied: the estimate with it (else the rig's noise and the given estimate)
+        fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
+        result = solve_batch(fitted, optimizer, max_iterations)
     if ties:
         cov_psi = _pseudo_inverse(_parameter_information(information if information is not None else approximate,
                                                          ties))
@@ -438,40 +446,10 @@ def far_step(F: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.clip(np.log(ratio), -MAX_LOG_STEP, MAX_LOG_STEP)
 
 
-def _exact_information(model, states, calibration, psi: np.ndarray, approximate: np.ndarray,
-                       estimated: list[int]) -> np.ndarray:
-    """The groups' information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: the ``approximate`` one, with the
-    columns (and rows) of the ``estimated`` groups of factors with much leverage
-    (``model.leveraged``: the IMU's) exact -- those of groups no longer estimated (kept at the rig's
-    value) are never read. Since ``dP_R/dpsi_h = -P_R V_h P_R``, ``F_gh = -1/2 d tr(P_R V_g) /
-    dpsi_h`` with ``V_g`` held: the change of each group's redundancy, evaluated with the base
-    ``V_g`` on the system re-weighted for ``psi_h + DIFFERENCE_STEP`` at the same estimate (one
-    covariance computation per such group and one at ``psi``; no re-solve). It needs the diagonal
-    blocks of ``P_R`` only, and matched the dense matrix's to 0.5 % on a simulated rig."""
-    columns = [g for g in estimated if model.leveraged(g)]
-    if not columns:
-        return approximate
-
-    def redundancy_at(moved: np.ndarray) -> np.ndarray:
-        blocks = model.blocks(moved, states)
-        cov, joint = covariances_at(blocks, states, pairs=True, calibration=calibration)
-        return model.statistics(blocks, states, calibration, cov, joint, psi, redundancy_only=True)[3]
-
-    base = redundancy_at(psi)
-    out = approximate.copy()
-    for g in columns:
-        moved = psi.copy()
-        moved[g] += DIFFERENCE_STEP
-        column = -0.5 * (redundancy_at(moved) - base) / DIFFERENCE_STEP
-        out[:, g] = column
-        out[g, :] = column
-    return _positive_definite(out)
-
-
 def _positive_definite(F: np.ndarray) -> np.ndarray:
-    """``F`` symmetrised with its eigenvalues kept above 1e-6 of the largest: differenced and
-    updated informations can lose definiteness along directions the data hardly fix, and an
-    indefinite one gives negative variances and meaningless correlations."""
+    """``F`` symmetrised with its eigenvalues kept above 1e-6 of the largest: exact columns in the
+    approximate rest can lose definiteness along directions the data hardly fix, and an
+    indefinite information gives negative variances and meaningless correlations."""
     values, vectors = np.linalg.eigh(0.5 * (F + F.T))
     floor = 1e-6 * max(float(values.max()), 1e-300)
     return (vectors * np.maximum(values, floor)) @ vectors.T
@@ -512,12 +490,12 @@ class _NoiseModel:
         for g in groups:
             if g.sensor not in self.block_index:
                 raise InputError(f"noise estimation: sensor {g.sensor!r} has no factors in the problem")
-        # each sensor block's covariances as the rig states them (R_0 = (W^T W)^-1)
-        self.R0 = {}
+        # each sensor block's whitening as the rig states it, W_0, and its inverse L_0 (R_0 = L_0 L_0^T)
+        self.rig = {}
         for g in groups:
-            if g.axes is not None and g.sensor not in self.R0:
+            if g.axes is not None and g.sensor not in self.rig:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
-                self.R0[g.sensor] = np.linalg.inv(np.einsum("mki,mkj->mij", W, W))
+                self.rig[g.sensor] = (W, np.linalg.inv(W))
         self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
@@ -532,8 +510,8 @@ class _NoiseModel:
         """The group's density or (median) sigma with ``factor`` applied, in the rig's units."""
         if group.axes is None:
             return float(getattr(self.dataset.noise, group.part) * factor)
-        R = self.R0[group.sensor]
-        sigma = np.sqrt(np.diagonal(R, axis1=1, axis2=2)[:, list(group.axes)])
+        L = self.rig[group.sensor][1]
+        sigma = np.sqrt(np.einsum("mij,mij->mi", L, L)[:, list(group.axes)])
         return float(np.median(sigma) * factor)
 
     def residual_summary(self, states, calibration, psi: np.ndarray) -> list[tuple[float, int]]:
@@ -580,13 +558,14 @@ class _NoiseModel:
             cov = np.einsum("c,cjab->jab", factors, parts) + rest
             b = self.block_index[IMU_BLOCK]
             blocks[b] = replace(blocks[b], whiten=whitening(cov))
-        for sensor, R0 in self.R0.items():
-            f = np.ones(R0.shape[-1])
+        for sensor, (W0, _) in self.rig.items():
+            f = np.ones(W0.shape[-1])
             for i, g in enumerate(self.groups):
                 if g.sensor == sensor:
                     f[list(g.axes)] = np.sqrt(theta[i])
+            # (D R_0 D)^-1 = (W_0 D^-1)^T (W_0 D^-1): the rig's whitening, its columns scaled
             b = self.block_index[sensor]
-            blocks[b] = replace(blocks[b], whiten=whitening(R0 * f[:, None] * f[None, :]))
+            blocks[b] = replace(blocks[b], whiten=W0 / f[None, None, :])
         return blocks
 
     def _derivatives(self, block_name: str, rows: slice, psi: np.ndarray, W: np.ndarray) -> dict[int, np.ndarray]:
@@ -601,29 +580,34 @@ class _NoiseModel:
                     V = theta[i] * parts[c][rows]
                     out[i] = W @ V @ np.swapaxes(W, -1, -2)
             return out
-        W_inv = np.linalg.inv(W)
+        W0, L0 = self.rig[block_name]
         for i, g in enumerate(self.groups):
             if g.sensor == block_name:
                 S = np.zeros(W.shape[-1])
                 S[list(g.axes)] = 1.0
-                A = W * S[None, None, :] @ W_inv  # W S W^-1
+                A = W0[rows] * S[None, None, :] @ L0[rows]  # W S W^-1 = W_0 D^-1 S D L_0, D and S diagonal
                 out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
         return out
 
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
-                   redundancy_only: bool = False, step: tuple | None = None):
-        """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,))`` at the estimate
-        ``states`` and the calibration variables' values ``calibration`` (marginal covariances
-        ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its expectation ``tr(P_R
-        V_g)`` (scaled by the truncated mean where outliers are left out: the score is half their
-        difference), the approximate information and the redundancy ``tr(P_R V_g)``, ``V_g`` the
-        derivative at ``psi`` (the blocks' whitenings may be those of other weights);
-        ``redundancy_only``: that alone (the rest zeros). ``step``: ``(dx (n, 15), [dc_j])``, the
-        solution of the linear system the covariances are of: the residuals are that system's
-        at its solution, ``e + J (dx, dc)``, so that every statistic comes from one system.
+                   step: tuple | None = None, root=None):
+        """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,), exact)`` at the
+        estimate ``states`` and the calibration variables' values ``calibration`` (marginal
+        covariances ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its
+        expectation ``tr(P_R V_g)`` (scaled by the truncated mean where outliers are left out: the
+        score is half their difference), the approximate information and the redundancy
+        ``tr(P_R V_g)``, ``V_g`` the derivative at ``psi``. ``step``: ``(dx (n, 15), [dc_j])``, the
+        solution of the linear system the covariances are of: the residuals are that system's at
+        its solution, ``e + J (dx, dc)``, so that every statistic comes from one system. ``root``:
+        that system's :class:`~smoother.model.covariances.SquareRoot`; given, ``exact`` is a
+        function of the groups still estimated returning the information with their columns exact
+        where their factors carry much leverage (:meth:`leveraged`; :meth:`_exact`), else None.
         """
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
+        columns = [g for g in range(G) if self.leveraged(g)]
+        factors = []  # each chunk's kept factors' (keys per slot, A, U): _information_blocks' arguments
+        own = np.zeros((G, G))  # sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg U_kh), h a column
         n = len(states)
         for name in dict.fromkeys(g.sensor for g in self.groups):
             block = blocks[self.block_index[name]]
@@ -643,7 +627,8 @@ class _NoiseModel:
                 u = np.einsum("mab,mb->ma", W, e)
                 d = u.shape[1]
                 A = [W @ J for J in Js]
-                H = hat_blocks(A, chunk, n + block.calibration if block.calibration is not None else None, cov, joint)
+                calibration_key = n + block.calibration if block.calibration is not None else None
+                H = hat_blocks(A, chunk, calibration_key, cov, joint)
                 Q = np.eye(d)[None] - H
                 keep = np.ones(len(u), dtype=bool)
                 correction = 1.0
@@ -658,8 +643,6 @@ class _NoiseModel:
                     quadratic[i] += quad.sum()
                     expected[i] += correction * r.sum()
                     redundancy[i] += r.sum()
-                    if redundancy_only:
-                        continue
                     QU_i = (Q @ Ui)[keep]
                     for j, Uj in U.items():
                         if j < i:
@@ -669,7 +652,87 @@ class _NoiseModel:
                         information[i, j] += value
                         if j != i:
                             information[j, i] += value
-        return quadratic, expected, information, redundancy
+                if root is not None:
+                    keys = [chunk[:, s] for s in range(chunk.shape[1])]
+                    if calibration_key is not None:
+                        keys.append(np.full(len(chunk), calibration_key))
+                    factors.append(([k[keep] for k in keys], [a[keep] for a in A],
+                                    {g: Ug[keep] for g, Ug in U.items()}))
+                    HU = {g: H[keep] @ U[g][keep] for g in columns if g in U}
+                    for g, HUg in HU.items():
+                        for h, Uh in U.items():
+                            own[h, g] += np.einsum("mab,mba->", Uh[keep], U[g][keep]) - 2.0 * np.einsum(
+                                "mab,mba->", HUg, Uh[keep])
+        exact = None if root is None else (
+            lambda estimated: self._exact(information, [g for g in columns if g in estimated], own,
+                                          [part for chunk in factors for part in _information_blocks(*chunk)], root,
+                                          joint))
+        return quadratic, expected, information, redundancy, exact
+
+    @staticmethod
+    def _exact(approximate: np.ndarray, columns: list[int], own: np.ndarray, B: list, root, joint: dict) -> np.ndarray:
+        """The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: ``approximate`` with the ``columns``
+        (and rows) exact -- those of the groups of factors with much leverage.
+
+        In whitened coordinates (``M = I - A P A^T`` the whitened ``P_R``, ``A`` the whitened
+        Jacobian, ``U_g`` block-diagonal over the factors, ``B_g = A^T U_g A``: the information
+        ``A^T A`` falls by ``B_g`` for a unit increase of ``psi_g``), ``tr(M U_g M U_h) = own_hg +
+        tr(P B_g P B_h)``: the factors' own terms ``own_hg = sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg
+        U_kh)``, from their hat blocks, and ``tr(X_g B_h)`` with ``X_g = P B_g P`` the change of the
+        covariance for a unit increase of ``psi_g``, needed only on the pairs of variables ``B_h``
+        is on: those of a factor, a conditional and its parent. That is what
+        :func:`~smoother.model.covariances.covariance_tangent` differentiates, from the system's
+        conditionals ``root`` and covariance blocks ``joint``, for all columns in one sweep: no
+        other elimination. ``B``: the pairs' ``B_g`` (:func:`_information_blocks`)."""
+        if not columns:
+            return approximate
+        information: dict = {}  # dLambda = -B_g, stacked over the columns
+        for groups, lo, hi, blocks in B:
+            where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
+            if not where:
+                continue
+            into, take = zip(*where)
+            for a, b, block in zip(lo.tolist(), hi.tolist(), blocks[:, list(take)]):
+                if (a, b) not in information:
+                    information[(a, b)] = np.zeros((len(columns), *block.shape[1:]))
+                information[(a, b)][list(into)] -= block
+        tangent = covariance_tangent(root, joint, information)
+        cross = np.zeros((len(approximate), len(columns)))
+        for groups, lo, hi, blocks in B:
+            X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
+            cross[groups] += np.einsum("p,pgab,pxab->gx", np.where(lo == hi, 1.0, 2.0), blocks, X)
+        exact = 0.5 * (own[:, columns] + cross)
+        F = approximate.copy()
+        F[:, columns] = exact
+        F[columns, :] = exact.T
+        return _positive_definite(F)
+
+
+def _information_blocks(keys: list, A: list, U: dict) -> list:
+    """The factors' ``A_ka^T U_kg A_kb`` summed over the factors on each pair of their variables
+    ``(a, b)``, ``a <= b``: ``keys`` and ``A``, a key array ``(M,)`` and the whitened Jacobians
+    ``(M, d, da)`` per slot, ``U`` ``{group: (M, d, d)}``. Returns ``[(groups, a (P,), b (P,),
+    blocks (P, groups, da, db))]``, one entry per pair of slots and orientation."""
+    groups = list(U)
+    Us = np.stack([U[g] for g in groups], axis=1)
+    out = []
+    for s, (As, ks) in enumerate(zip(A, keys)):
+        AU = np.swapaxes(As, -1, -2)[:, None] @ Us
+        for At, kt in zip(A[s:], keys[s:]):
+            blocks = AU @ At[:, None]
+            for flip in (False, True):
+                which = (ks > kt) if flip else (ks <= kt)
+                if not which.any():
+                    continue
+                lo, hi = (kt[which], ks[which]) if flip else (ks[which], kt[which])
+                part = np.swapaxes(blocks[which], -1, -2) if flip else blocks[which]
+                order = np.lexsort((hi, lo))
+                lo, hi, part = lo[order], hi[order], part[order]
+                starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
+                if len(starts) < len(lo):
+                    part = np.add.reduceat(part, starts, axis=0)
+                out.append((groups, lo[starts], hi[starts], part))
+    return out
 
 
 def truncated_mean(d: int, c: float) -> float:

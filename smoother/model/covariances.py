@@ -5,6 +5,8 @@ Also a keyframe's covariance from GTSAM's own marginals on its nonlinear graph
 (:func:`keyframe_covariance`), for the estimators that run GTSAM's optimisers and smoothers."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
@@ -12,7 +14,7 @@ from factors import imu
 from factors.keys import KeyframeKeys
 from factors.uncertainty import state_covariance_to_primer
 from smoother.errors import IndeterminantSystem
-from smoother.model.blocks import Block, Layout, linearize
+from smoother.model.blocks import DIM, Block, Layout, linearize
 from smoother.model.rank import RANK_TOLERANCE, free_components, indeterminant_error
 
 
@@ -37,7 +39,7 @@ def covariances_at(blocks: list[Block], states: imu.ImuState, which=None, pairs:
 
 
 def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False,
-                         layout: Layout | None = None):
+                         layout: Layout | None = None, square_root: bool = False):
     """Marginal covariances of the variables ``which`` (default all keyframes) of the whitened
     linear system ``graph`` on the 15-dim keys ``0 .. n - 1`` (and the keys of ``layout``'s
     calibration variables, if given), from its square-root information.
@@ -68,7 +70,10 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     ``pairs``: also return the dict ``{(a, b): Sigma_ab}`` of every block the recursion computed,
     each pair once (:func:`joint_block` reads either order). Every two variables that share a
     factor are a conditional and its parent, so it holds the joint covariance of every factor's
-    variables."""
+    variables.
+
+    ``square_root`` (with ``pairs``): also return the conditionals as a :class:`SquareRoot`, with
+    which :func:`covariance_tangent` differentiates those blocks, and the system's solution."""
     layout = layout or Layout(n)
     ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     try:
@@ -81,6 +86,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     columns = layout.calibration_columns()  # key n + j: its columns in the stacked calibrations
     nc = sum(layout.extra)
     sigma: dict[tuple[int, int], np.ndarray] = {}  # Sigma^c between keyframes; Sigma between calibrations
+    gains: list = [None] * len(conditionals)  # K_i of each conditional with parents
     gain: dict[int, np.ndarray] = {}  # G_i (15, nc) of each keyframe
     for i in reversed(range(len(conditionals))):
         frontal, parents = keys[i][0], keys[i][1:]
@@ -90,6 +96,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
                 gain[frontal] = np.zeros((own[i].shape[0], nc))
             continue
         K = -R_inv[i] @ conditionals[i].S()
+        gains[i] = K
         bounds = [0]
         for p in parents:
             bounds.append(bounds[-1] + layout.dim(p))
@@ -127,6 +134,8 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
         _add_calibration_share(sigma, gain, layout, columns)
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
+    if square_root:
+        return marginals, sigma, SquareRoot(keys, own, gains, layout, layout.flat(net.optimize()))
     return (marginals, sigma) if pairs else marginals
 
 
@@ -135,6 +144,161 @@ def joint_block(joint: dict, a: int, b: int) -> np.ndarray:
     of variables in one order only: ``Sigma_ba = Sigma_ab^T``."""
     a, b = int(a), int(b)
     return joint[(a, b)] if (a, b) in joint else joint[(b, a)].T
+
+
+@dataclass(frozen=True)
+class SquareRoot:
+    """The conditionals of an elimination (:func:`marginal_covariances`), in elimination order:
+    each one's ``keys`` (its frontal variable, then its parents), ``inverse`` ``R_i^-1 R_i^-T`` and
+    ``gain`` ``K_i = -R_i^-1 S_i`` (None without parents), on the variables of ``layout``; and
+    ``solution``, the system's least-squares solution by their back-substitution (flat, in the
+    layout's order)."""
+
+    keys: list
+    inverse: list
+    gain: list
+    layout: Layout
+    solution: np.ndarray
+
+
+def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict:
+    """The change of the covariance blocks ``sigma`` (:func:`marginal_covariances`' ``pairs``) for
+    changes of the information matrix on its pattern: ``information`` maps pairs of variables
+    ``(a, b)`` to ``dLambda_ab`` stacked over directions ``(D, da, db)`` (each pair in one order;
+    a missing one unchanged); returns ``dSigma = -Sigma dLambda Sigma`` on every pair of a
+    conditional and its parent (and of such a keyframe and every calibration variable),
+    ``{(a, b): (D, da, db)}`` with ``a <= b``, without forming ``Sigma`` whole.
+
+    The elimination in information form: eliminating variable ``i`` leaves ``D_i = R_i^T R_i`` and
+    ``Lambda'_iP = R_i^T S_i = -D_i K_i`` of the matrix reduced so far, and takes ``K_i^T D_i K_i``
+    off its parents' block. Its tangent, in elimination order (every block it adds to is on the
+    pattern: a conditional's parents are parents of one another): ``dK_i = -D_i^-1 (dLambda'_iP +
+    dD_i K_i)`` and ``dLambda'_PP += dLambda'_Pi K_i + K_i^T dLambda'_iP + K_i^T dD_i K_i``. Then
+    the selected inversion's (``Sigma_iP = K_i Sigma_PP``, ``Sigma_ii = D_i^-1 + K_i Sigma_PP K_i^T``)
+    in reverse order: ``dSigma_iP = dK_i Sigma_PP + K_i dSigma_PP`` and ``dSigma_ii =
+    -D_i^-1 dD_i D_i^-1 + K_i dSigma_PP K_i^T + dK_i Sigma_PP K_i^T + K_i Sigma_PP dK_i^T``. The
+    calibration variables, eliminated last, are one variable ``c`` here (a keyframe's gain on those
+    it does not read is zero), and theirs is the inverse's: ``dSigma_cc = -Sigma_cc dLambda'_cc
+    Sigma_cc``. Two sweeps of the keyframes' conditionals for all directions at once, where
+    differencing takes an elimination and an inversion per direction."""
+    layout = root.layout
+    n, nc = layout.n, sum(layout.extra)
+    columns = layout.calibration_columns()
+    directions = len(next(iter(information.values())))
+    c = n  # the calibration variables as one
+
+    def dim(key):
+        return DIM if key < n else nc
+
+    acc: dict = {}
+
+    def add(a, b, rows, cols, value):
+        if (a, b) not in acc:
+            acc[(a, b)] = np.zeros((directions, dim(a), dim(b)))
+        acc[(a, b)][:, rows, cols] += value
+
+    everything = slice(None)
+    for (a, b), block in information.items():
+        if a > b:
+            a, b, block = b, a, np.swapaxes(block, -1, -2)
+        if b < n:
+            add(a, b, everything, everything, block)
+        elif a < n:
+            add(a, c, everything, columns[b], block)
+        else:
+            add(c, c, columns[a], columns[b], block)
+            if a != b:
+                add(c, c, columns[b], columns[a], np.swapaxes(block, -1, -2))
+
+    def read(store, a, b):
+        value = store.get((a, b) if a <= b else (b, a))
+        if value is None:
+            return np.zeros((directions, dim(a), dim(b)))
+        return value if a <= b else np.swapaxes(value, -1, -2)
+
+    S_cc = np.vstack([np.hstack([joint_block(sigma, a, b) for b in columns]) for a in columns]) if nc else None
+    S_kc: dict = {}  # Sigma between a keyframe and c
+
+    def covariance(a, b):
+        if a < n and b < n:
+            return joint_block(sigma, a, b)
+        if a >= n and b >= n:
+            return S_cc
+        k = min(a, b)
+        if k not in S_kc:
+            S_kc[k] = np.hstack([joint_block(sigma, k, key) for key in columns])
+        return S_kc[k] if a < n else S_kc[k].T
+
+    frames = [i for i, k in enumerate(root.keys) if k[0] < n]  # the calibrations' come after them
+    conditionals = {}  # i -> (parents, bounds, K over the parents, dD, dK)
+    for i in frames:
+        frontal, *parents = root.keys[i]
+        dD = read(acc, frontal, frontal)
+        if not parents:
+            conditionals[i] = ([], None, None, dD, None)
+            continue
+        P = [p for p in parents if p < n]
+        bounds = [DIM * j for j in range(len(P) + 1)]
+        if nc:
+            P.append(c)
+            bounds.append(bounds[-1] + nc)
+        if parents[len(P) - 1:] == list(columns) or not nc:  # every calibration variable, in order
+            K = root.gain[i]
+        else:
+            K = np.zeros((DIM, bounds[-1]))
+            K[:, :bounds[-2]] = root.gain[i][:, :bounds[-2]]
+            at = start = bounds[-2]
+            for p in parents[len(P) - 1:]:
+                K[:, start + columns[p].start:start + columns[p].stop] = root.gain[i][:, at:at + layout.dim(p)]
+                at += layout.dim(p)
+        dL = np.concatenate([read(acc, frontal, p) for p in P], axis=-1)
+        dD_K = dD @ K
+        dK = -root.inverse[i] @ (dL + dD_K)
+        KT_dL = K.T @ dL
+        update = KT_dL + np.swapaxes(KT_dL, -1, -2) + K.T @ dD_K
+        for x, a in enumerate(P):
+            for y, b in enumerate(P[x:], x):
+                block = update[:, bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]]
+                if (a, b) in acc:
+                    acc[(a, b)] += block
+                else:
+                    acc[(a, b)] = block
+        conditionals[i] = (P, bounds, K, dD, dK)
+    out: dict = {}
+    if nc:
+        out[(c, c)] = -S_cc @ read(acc, c, c) @ S_cc
+    for i in reversed(frames):
+        frontal = root.keys[i][0]
+        P, bounds, K, dD, dK = conditionals[i]
+        D_inv = root.inverse[i]
+        own = -D_inv @ dD @ D_inv
+        if P:
+            S_PP = np.empty((bounds[-1], bounds[-1]))
+            dS_PP = np.empty((directions, bounds[-1], bounds[-1]))
+            for x, a in enumerate(P):
+                for y, b in enumerate(P):
+                    S_PP[bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]] = covariance(a, b)
+                    dS_PP[:, bounds[x]:bounds[x + 1], bounds[y]:bounds[y + 1]] = read(out, a, b)
+            dK_S = dK @ S_PP
+            K_dS = K @ dS_PP
+            cross = dK_S + K_dS
+            dK_S_KT = dK_S @ K.T
+            own = own + K_dS @ K.T + dK_S_KT + np.swapaxes(dK_S_KT, -1, -2)
+            for x, p in enumerate(P):
+                block = cross[:, :, bounds[x]:bounds[x + 1]]
+                if frontal <= p:
+                    out[(frontal, p)] = block
+                else:
+                    out[(p, frontal)] = np.swapaxes(block, -1, -2)
+        out[(frontal, frontal)] = 0.5 * (own + np.swapaxes(own, -1, -2))
+    # c back into the calibration variables
+    for (a, b) in [pair for pair in out if pair[1] == c]:
+        block = out.pop((a, b))
+        if a < n:
+            out.update({(a, key): block[:, :, cols] for key, cols in columns.items()})
+        else:
+            out.update({(x, y): block[:, columns[x], columns[y]] for x in columns for y in columns if x <= y})
+    return out
 
 
 def _inverted(conditionals: list, keys: list, n: int) -> tuple[list, list]:
