@@ -162,9 +162,7 @@ def test_sigterm_keeps_the_finished_estimators(tmp_path):
     child = _child(out, threads=1)
     try:
         _wait_for(child, "running fixed-lag")
-        child.send_signal(signal.SIGTERM)
-        rest = child.stderr.read().splitlines()
-        assert child.wait() == 128 + signal.SIGTERM, rest
+        rest = _terminated(child)
     finally:
         child.kill()
         child.wait()
@@ -186,12 +184,8 @@ def test_sigterm_stops_the_fixed_lag_smoother_s_second_process_too(tmp_path):
     out = tmp_path / "run"
     child = _child(out, threads=2)
     try:
-        _wait_for(child, "running fixed-lag (beside the others")
-        _wait_for(child, "running ekf")
-        second = [int(p) for p in Path(f"/proc/{child.pid}/task/{child.pid}/children").read_text().split()]
-        child.send_signal(signal.SIGTERM)
-        rest = child.stderr.read().splitlines()
-        assert child.wait() == 128 + signal.SIGTERM, rest
+        second = _second_process(child)
+        rest = _terminated(child)
     finally:
         child.kill()
         child.wait()
@@ -207,9 +201,7 @@ def test_the_fixed_lag_smoother_s_second_process_ends_when_the_run_is_killed(tmp
     within seconds instead of computing on."""
     child = _child(tmp_path / "run", threads=2)
     try:
-        _wait_for(child, "running fixed-lag (beside the others")
-        _wait_for(child, "running ekf")
-        second = [int(p) for p in Path(f"/proc/{child.pid}/task/{child.pid}/children").read_text().split()]
+        second = _second_process(child)
     finally:
         child.kill()
         child.wait()
@@ -218,6 +210,22 @@ def test_the_fixed_lag_smoother_s_second_process_ends_when_the_run_is_killed(tmp
     while any(_running(p) for p in second) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not [p for p in second if _running(p)], second
+
+
+def _terminated(child: subprocess.Popen) -> list[str]:
+    """SIGTERM to ``child``: the rest of its stderr, once it has exited with 128 + SIGTERM."""
+    child.send_signal(signal.SIGTERM)
+    rest = child.stderr.read().splitlines()
+    assert child.wait() == 128 + signal.SIGTERM, rest
+    return rest
+
+
+def _second_process(child: subprocess.Popen) -> list[int]:
+    """The process ids of ``child``'s children once its fixed-lag smoother runs beside its EKF
+    (Linux's /proc)."""
+    _wait_for(child, "running fixed-lag (beside the others")
+    _wait_for(child, "running ekf")
+    return [int(p) for p in Path(f"/proc/{child.pid}/task/{child.pid}/children").read_text().split()]
 
 
 def _running(pid: int) -> bool:
