@@ -21,6 +21,7 @@ import numpy as np
 
 from datasets.types import Dataset, Trajectory
 from factors.errors import BoxplusError, InputError
+from factors.threads import interrupts_held
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.calibration_report import calibration_records
 from smoother.diagnosis.residual_consistency import smoother_consistency
@@ -133,7 +134,8 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
             order.remove("fixed-lag")  # and its kernels, where they are to compile, compile there
             if announce is not None:
                 announce("fixed-lag (beside the others, in a second process)")
-            beside = _fixed_lag_beside(dataset, options)
+            with interrupts_held():  # a stop meanwhile comes once the process is known, to be stopped
+                beside = _fixed_lag_beside(dataset, options)
         warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
         for name in order:
             if announce is not None:
@@ -185,8 +187,8 @@ class _Beside:
 
     def result(self, keep_going: bool) -> Estimate:
         """Its :class:`Estimate` once it ends, its warnings issued here; a failure as
-        :func:`estimate_each` treats any estimator's (a process that died without a word, too); its
-        interruption (Ctrl-C reaches both processes) raised here."""
+        :func:`estimate_each` treats any estimator's (a process that died without a word, too); an
+        interruption there raised here."""
         try:
             outcome = self._results.recv()
         except EOFError:
@@ -221,10 +223,14 @@ def _fixed_lag_beside(dataset: Dataset, options: RunOptions) -> _Beside:
 def _fixed_lag_sent(receiving, sending, dataset: Dataset, options: RunOptions) -> None:
     """In the second process: :func:`_fixed_lag_with_warnings`, its outcome sent through
     ``sending``: ``("done", estimate, warnings)`` or ``("failed", exception)``. A forked process
-    holds copies of its parent's handlers and files: SIGTERM ends it at once (the parent's handler
-    would make it a Python exception, which would then wait to be sent), its copy of the pipe's
+    holds copies of its parent's handlers and files. Its parent decides when it stops: Ctrl-C,
+    which a terminal sends to both, is ignored here (the parent, interrupted, ends it), and SIGTERM,
+    which the parent sends, ends it at once (the parent's handler would make it a Python
+    exception, which would then wait to be sent; until this function runs, the handlers are the
+    parent's :func:`factors.threads.interrupts_held`'s, which only record). Its copy of the pipe's
     reading end is closed (else a send to a parent that is gone would wait for ever), and a watch
     ends it when the parent is gone (killed: nothing would read what it computes)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     receiving.close()
     parent = os.getppid()

@@ -132,15 +132,17 @@ def test_every_output_of_a_run_is_declared():
     assert {f"{stem}.png" for stem in FIGSIZE} <= names
 
 
-def _child(out: Path, threads: int | None = None) -> subprocess.Popen:
+def _child(out: Path, threads: int | None = None, session: bool = False) -> subprocess.Popen:
     """``smoother run`` on the simulator into ``out`` as a child process, stderr piped; with
     ``threads`` (``BOXPLUS_THREADS``) 1 the estimators run one after the other, the fixed-lag
-    smoother last, with two or more it runs in a second process beside the others."""
+    smoother last, with two or more it runs in a second process beside the others; ``session``:
+    in a session of its own (a terminal's Ctrl-C, sent to its process group, then reaches it alone)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
     if threads is not None:
         env["BOXPLUS_THREADS"] = str(threads)
     return subprocess.Popen([sys.executable, "-m", "smoother.cli", "run", *CHILD_RUN, "--out", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                            start_new_session=session)
 
 
 def _wait_for(child: subprocess.Popen, words: str) -> list[str]:
@@ -193,6 +195,24 @@ def test_sigterm_stops_the_fixed_lag_smoother_s_second_process_too(tmp_path):
     said = [line for line in rest if not line.startswith("running ")]
     assert len(said) == 1 and said[0].startswith("smoother: terminated"), rest
     assert not [p for p in second if _running(p)], second
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads a process's children from /proc")
+def test_ctrl_c_to_the_run_s_process_group_stops_both_processes_with_one_line(tmp_path):
+    """A terminal's Ctrl-C reaches the run and its fixed-lag smoother's second process: exit 130,
+    one line on stderr (no traceback of the second process's), and that process is gone."""
+    child = _child(tmp_path / "run", threads=2, session=True)
+    try:
+        second = _second_process(child)
+        os.killpg(child.pid, signal.SIGINT)
+        rest = child.stderr.read().splitlines()
+        assert child.wait() == 128 + signal.SIGINT, rest
+    finally:
+        child.kill()
+        child.wait()
+    said = [line for line in rest if not line.startswith("running ")]
+    assert len(said) == 1 and said[0].startswith("smoother: interrupted"), rest
+    assert second and not [p for p in second if _running(p)], second
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads a process's children from /proc")

@@ -74,8 +74,8 @@ def test_an_interruption_here_stops_the_second_process(data, monkeypatch):
 
 
 def test_an_interruption_in_the_second_process_is_one_here(data, monkeypatch):
-    """Ctrl-C reaches both processes: the fixed-lag smoother's interruption is raised here, as it
-    would be in this process, not made a failed estimate."""
+    """An interruption raised in the second process is raised here, as it would be in this
+    process, not made a failed estimate."""
     def interrupted(dataset, options):
         raise KeyboardInterrupt
 
