@@ -808,9 +808,8 @@ def car_rig(duration_s: float, seed: int = 0):
     antenna 1.2 m above, its fixes stamped 0.05 s late), the wheels' rotation and scale and the
     fixes' time offset to estimate. The measurements come faster than 10 Hz, so the default
     keyframes are the 10 Hz grid, the speeds between them and every fix attached."""
-    from dataclasses import replace
 
-    from datasets.simulated_sensors import SensorSpec
+    from datasets.simulated_sensors import SensorSpec, scaled_speeds, stamped_late
     from factors import so3
     from factors.calibration import CalibrationPrior
 
@@ -819,12 +818,9 @@ def car_rig(duration_s: float, seed: int = 0):
     antenna[:3, 3] = [0.0, 0.0, 1.2]
     data = simulate("gentle", duration=duration_s, seed=seed, imu_rate=100.0, pose_rate=0, sensors=(
         SensorSpec("wheels", "velocity", 83.0, 0.05, wheels), SensorSpec("gnss", "gnss", 10.0, 0.2, antenna)))
-    speeds, fixes = data.sensor("wheels").data, data.sensor("gnss").data
-    data = data.with_sensor("wheels", data=replace(speeds, velocity=0.99 * speeds.velocity, cov=0.99**2 * speeds.cov),
-                            calibrate=CalibrationPrior(("rotation", "scale")))
-    late = fixes.t + 0.05 <= data.imu.t[-1]
-    return data.with_sensor("gnss", data=replace(fixes.subset(late), t=fixes.t[late] + 0.05),
-                            calibrate=CalibrationPrior(("time_offset",)))
+    data = stamped_late(scaled_speeds(data, "wheels", 0.99), "gnss", 0.05)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset",)))
 
 
 def car_all(dataset, names=ESTIMATORS, keyframe_rate=None, beside: bool = True) -> dict:

@@ -16,13 +16,13 @@ above the truth's own rate is refused (it could not be delivered).
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from datasets.kinds import KINDS, kind_sigmas, pose, position
 from datasets.kinds.base import ImuAt
-from datasets.types import ImuSamples, Sensor, Trajectory
+from datasets.types import Dataset, ImuSamples, Sensor, Trajectory, VelocityMeasurements
 from factors.errors import InputError
 
 
@@ -126,3 +126,21 @@ def truth_sensors(truth: Trajectory, imu: ImuSamples, pose_from_truth=None, gps_
         except ValueError as error:
             raise InputError(f"{option}: {str(error).removeprefix(f'sensor {name!r}: ')}") from None
     return sensors_from_truth(truth, imu, specs, seed)
+
+
+def scaled_speeds(data: Dataset, sensor: str, scale: float) -> Dataset:
+    """``data`` with the velocity sensor ``sensor`` reading ``scale`` times the true velocity (a
+    wheel radius off: what a ``scale`` calibration is to find), its covariance scaled with it."""
+    speeds = data.sensor(sensor).data
+    if not isinstance(speeds, VelocityMeasurements):
+        raise InputError(f"scaled_speeds: {sensor!r} is a {data.sensor(sensor).kind} sensor; expected a velocity one")
+    return data.with_sensor(sensor, data=replace(speeds, velocity=scale * speeds.velocity, cov=scale**2 * speeds.cov))
+
+
+def stamped_late(data: Dataset, sensor: str, delay: float) -> Dataset:
+    """``data`` with the one-state sensor ``sensor``'s measurements stamped ``delay`` [s] after
+    their true times (a latency or another clock: what a ``time_offset`` calibration is to find),
+    those then stamped after the IMU's last sample left out."""
+    measured = data.sensor(sensor).data
+    kept = measured.t + delay <= data.imu.t[-1]
+    return data.with_sensor(sensor, data=replace(measured.subset(kept), t=measured.t[kept] + delay))

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from datasets.simulate import simulate
-from datasets.simulated_sensors import SensorSpec
+from datasets.simulated_sensors import SensorSpec, scaled_speeds, stamped_late
 from factors import so3
 
 #: A 3 deg pitched and 1 deg yawed speed sensor.
@@ -25,8 +25,7 @@ def miscalibrated_rig(seed: int, duration: float = 30.0, profile="gentle", **kw)
     data = simulate(profile, duration=duration, seed=seed, pose_rate=0, **kw,
                     sensors=(SensorSpec("wheels", "velocity", 10.0, 0.05, PITCHED), SensorSpec("gnss", "gnss", 5.0, 0.1,
                                                                                              antenna)))
-    wheels, gnss = data.sensor("wheels").data, data.sensor("gnss").data
-    data = data.with_sensor("wheels", data=replace(wheels, velocity=0.99 * wheels.velocity, cov=0.99**2 * wheels.cov,
-                                                   T_BS=np.eye(4)))
-    late = gnss.t + 0.1 <= data.imu.t[-1]
-    return data.with_sensor("gnss", data=replace(gnss.subset(late), t=gnss.t[late] + 0.1, T_BS=np.eye(4)))
+    data = stamped_late(scaled_speeds(data, "wheels", 0.99), "gnss", 0.1)
+    for name in ("wheels", "gnss"):
+        data = data.with_sensor(name, data=replace(data.sensor(name).data, T_BS=np.eye(4)))
+    return data

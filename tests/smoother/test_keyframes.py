@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import functools
 import warnings
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from datasets.simulate import simulate
-from datasets.simulated_sensors import SensorSpec
+from datasets.simulated_sensors import SensorSpec, scaled_speeds, stamped_late
 from factors import imu, so3
 from factors.calibration import CalibrationPrior
 from smoother.batch.solve import solve_batch
@@ -37,12 +36,9 @@ def rig(seed: int):
     data = simulate("gentle", duration=DURATION_S, seed=seed, imu_rate=200.0, pose_rate=0,
                     sensors=(SensorSpec("wheels", "velocity", 100.0, 0.05, pitched),
                              SensorSpec("gnss", "gnss", 1.0, 0.1, antenna)))
-    wheels, gnss = data.sensor("wheels").data, data.sensor("gnss").data
-    data = data.with_sensor("wheels", data=replace(wheels, velocity=0.99 * wheels.velocity, cov=0.99**2 * wheels.cov),
-                            calibrate=CalibrationPrior(("rotation", "scale")))
-    late = gnss.t + 0.05 <= data.imu.t[-1]
-    return data.with_sensor("gnss", data=replace(gnss.subset(late), t=gnss.t[late] + 0.05),
-                            calibrate=CalibrationPrior(("time_offset",)))
+    data = stamped_late(scaled_speeds(data, "wheels", 0.99), "gnss", 0.05)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    return data.with_sensor("gnss", calibrate=CalibrationPrior(("time_offset",)))
 
 
 @functools.lru_cache(maxsize=None)
