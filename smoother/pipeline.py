@@ -109,7 +109,7 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     others run, the sliding window's kernels compile in a second process when they are not on disk
     yet (:mod:`smoother.online.warm_up`). With :attr:`RunOptions.fixed_lag_beside` the fixed-lag
     smoother, which needs nothing of the others, runs in a second process while they run here
-    (:func:`_fixed_lag_beside`; not when it needs the batch's fitted noise or paces a replay in
+    (:class:`_Beside`; not when it needs the batch's fitted noise or paces a replay in
     real time), compiling its kernels there where they are not on disk, and is yielded last; its
     warnings are issued here when it ends, its progress bar is not shown."""
     from smoother.diagnosis.mounting import check_mountings
@@ -135,7 +135,7 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
             if announce is not None:
                 announce("fixed-lag (beside the others, in a second process)")
             with interrupts_held():  # a stop meanwhile comes once the process is known, to be stopped
-                beside = _fixed_lag_beside(dataset, options)
+                beside = _Beside(dataset, options)
         warm_up = kernel_warm_up.start(order, options.fixed_lag_kind)  # None unless its kernels are to compile
         for name in order:
             if announce is not None:
@@ -171,7 +171,7 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
 
 
 class _Beside:
-    """The fixed-lag smoother running in a second process (:func:`_fixed_lag_beside`): forked where
+    """:func:`_fixed_lag` running in a second process, without its progress bar: forked where
     the platform can (the dataset is not copied until written), its result and warnings sent back
     through a pipe."""
 
@@ -213,11 +213,6 @@ class _Beside:
                 self._process.kill()
         self._process.join()
         self._results.close()
-
-
-def _fixed_lag_beside(dataset: Dataset, options: RunOptions) -> _Beside:
-    """:func:`_fixed_lag` started in a second process, without its progress bar."""
-    return _Beside(dataset, options)
 
 
 def _fixed_lag_sent(receiving, sending, dataset: Dataset, options: RunOptions) -> None:
