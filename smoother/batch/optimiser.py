@@ -81,12 +81,12 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     itself, keeping that step, or after ``max_iterations``."""
     if method not in OPTIMIZERS:
         raise InputError(f"method {method!r}: expected one of {', '.join(OPTIMIZERS)}")
-    layout = Layout.of(initial, calibration)
+    layout = Layout.of(initial, calibration, blocks)
     states = initial
     graph, cost = linearize(blocks, states, calibration)
     # the factors' keys are the same at every linearisation, and damping adds unary factors only:
     # one elimination ordering serves every step
-    ordering = layout.ordering(graph)
+    ordering = layout.ordering(graph, nested=True)
     history = [cost]
     lam, radius = 1e-5, 1.0
     converged = False

@@ -266,7 +266,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         from, and the statistics there."""
         blocks = model.blocks(psi, states)
         graph, _ = linearize(blocks, states, calibration)
-        layout = Layout.of(states, calibration)
+        layout = Layout.of(states, calibration, blocks)
         cov, joint, root = marginal_covariances(graph, len(states), None, True, layout, square_root=True)
         delta = root.solution
         moved, moved_calibration = layout.apply(states, calibration, delta)

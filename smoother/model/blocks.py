@@ -194,10 +194,13 @@ def _runs(keys: np.ndarray) -> list[tuple[int, int]]:
 class Layout:
     """The linear variables of a problem: ``n`` keyframes (keys ``0 .. n - 1``, 15 each), then the
     calibration variables (keys ``n + j``, ``extra[j]`` each). A step is one flat vector in key
-    order."""
+    order. ``chain``: every factor is on one keyframe or on two consecutive ones (and calibration
+    variables), which lets :meth:`ordering` choose the elimination order from the structure
+    instead of searching for one."""
 
     n: int
     extra: tuple[int, ...] = ()
+    chain: bool = False
 
     def dim(self, key: int) -> int:
         return DIM if key < self.n else self.extra[key - self.n]
@@ -208,12 +211,34 @@ class Layout:
         bounds = np.cumsum([0, *self.extra])
         return {self.n + j: slice(int(bounds[j]), int(bounds[j + 1])) for j in range(len(self.extra))}
 
-    def ordering(self, graph: gtsam.GaussianFactorGraph) -> gtsam.Ordering | None:
-        """COLAMD with the calibration variables last, or None (GTSAM's default) without any."""
+    def ordering(self, graph: gtsam.GaussianFactorGraph, nested: bool = False) -> gtsam.Ordering | None:
+        """The elimination order of ``graph`` (whose keys are this layout's), or None (GTSAM's
+        default, COLAMD) without calibration variables. With them they go last: every keyframe's
+        conditional then has them among its parents, the dense border of an arrowhead system.
+
+        Every factor on a calibration variable makes GTSAM's elimination tree walk from its
+        keyframe up to the root (its construction does not compress paths), and COLAMD orders a
+        dense column in time growing with the run too: both quadratic in the run's length (on
+        an hour's car, 36 000 keyframes, 2.4 s for the ordering and about 1 s for each elimination tree). On a
+        ``chain`` the order comes from the structure instead:
+
+        * ``nested`` (the steps' sparse Cholesky): nested dissection of the chain, the keyframes
+          whose index ``k + 1`` has no factor 2 first, then those with one, and so on -- each
+          level splits what is left in halves, so the tree is ``log2 n`` deep, and a
+          conditional's parents are at most its two neighbours at its level;
+        * otherwise (the covariances' QR): the keyframes in time order, a sweep. The tree is a
+          path and the walk still quadratic, but cheap beside QR on the nested order's wider
+          conditionals (at 24 000 keyframes 65 us a keyframe against 87), and the selected
+          inversion then runs over one keyframe parent per conditional.
+
+        Elsewhere, COLAMD with the calibration variables constrained last."""
         if not self.extra:
             return None
-        last = gtsam.KeyVector(list(range(self.n, self.n + len(self.extra))))
-        return gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(graph, last)
+        calibrations = list(range(self.n, self.n + len(self.extra)))
+        if not self.chain:
+            return gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(graph, gtsam.KeyVector(calibrations))
+        keyframes = nested_dissection(self.n) if nested else np.arange(self.n)
+        return gtsam.Ordering(gtsam.KeyVector([*keyframes.tolist(), *calibrations]))
 
     @property
     def keys(self) -> range:
@@ -238,7 +263,25 @@ class Layout:
         return moved, calibration.boxplus(np.split(delta[bounds[0]:], bounds[1:-1] - bounds[0]))
 
     @staticmethod
-    def of(states: imu.ImuState, calibration=None) -> "Layout":
-        return Layout(len(states), () if calibration is None else tuple(calibration.dims))
+    def of(states: imu.ImuState, calibration=None, blocks: list[Block] | None = None) -> "Layout":
+        """The layout of ``states`` and ``calibration``; a ``chain`` if ``blocks`` (the factors)
+        are given and every one of them is on consecutive keyframes."""
+        chain = blocks is not None and all(
+            b.keyframes.shape[1] < 2 or not len(b.keyframes) or np.abs(np.diff(b.keyframes, axis=1)).max() <= 1
+            for b in blocks)
+        return Layout(len(states), () if calibration is None else tuple(calibration.dims), chain)
+
+
+def nested_dissection(n: int) -> np.ndarray:
+    """The keyframes ``0 .. n - 1`` of a chain in nested-dissection order: by the number of
+    factors 2 in ``k + 1`` (the middle of every stretch the levels before left is eliminated
+    after both its halves), in time order within a level."""
+    index = np.arange(n)
+    level, odd = np.zeros(n, dtype=np.int64), index + 1
+    while np.any(odd % 2 == 0):
+        even = odd % 2 == 0
+        level[even] += 1
+        odd = np.where(even, odd // 2, odd)
+    return np.lexsort((index, level))
 
 

@@ -35,7 +35,7 @@ def covariances_at(blocks: list[Block], states: imu.ImuState, which=None, pairs:
     ``pairs`` also the joint blocks it computes on the way, those of the calibration variables,
     keys ``n + j``, among them)."""
     graph, _ = linearize(blocks, states, calibration)
-    return marginal_covariances(graph, len(states), which, pairs, Layout.of(states, calibration))
+    return marginal_covariances(graph, len(states), which, pairs, Layout.of(states, calibration, blocks))
 
 
 def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, pairs: bool = False,
@@ -44,7 +44,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     linear system ``graph`` on the 15-dim keys ``0 .. n - 1`` (and the keys of ``layout``'s
     calibration variables, if given), from its square-root information.
 
-    GTSAM eliminates ``graph`` with QR (COLAMD ordering, the calibration variables last) into
+    GTSAM eliminates ``graph`` with QR (:meth:`Layout.ordering`, the calibration variables last) into
     conditionals ``R_i x_i + S_i x_P(i) = d_i``, which work on the rows themselves: the condition
     number that matters is that of the rows, not of their squares (``A^T A``), so a long
     dead-reckoned stretch -- whose information matrix Cholesky declares indeterminant -- still
