@@ -212,33 +212,35 @@ class Layout:
         return {self.n + j: slice(int(bounds[j]), int(bounds[j + 1])) for j in range(len(self.extra))}
 
     def ordering(self, graph: gtsam.GaussianFactorGraph, nested: bool = False) -> gtsam.Ordering | None:
-        """The elimination order of ``graph`` (whose keys are this layout's), or None (GTSAM's
-        default, COLAMD) without calibration variables. With them they go last: every keyframe's
-        conditional then has them among its parents, the dense border of an arrowhead system.
+        """The elimination order of ``graph`` (whose keys are this layout's) for the steps'
+        sparse Cholesky (``nested``) or the covariances' QR; None for GTSAM's default (COLAMD).
 
-        Every factor on a calibration variable makes GTSAM's elimination tree walk from its
-        keyframe up to the root (its construction does not compress paths), and COLAMD orders a
-        dense column in time growing with the run too: both quadratic in the run's length (on
-        an hour's car, 36 000 keyframes, 2.4 s for the ordering and about 1 s for each elimination tree). On a
-        ``chain`` the order comes from the structure instead:
+        Calibration variables go last: every keyframe's conditional then has them among its
+        parents, the dense border of an arrowhead system. But every factor on one makes GTSAM's
+        elimination tree walk from its keyframe up to the root (its construction does not
+        compress paths), and COLAMD orders a dense column in time growing with the run too: both
+        quadratic in the run's length (on an hour's car, 36 000 keyframes, 2.4 s for the ordering
+        and about 1 s for each elimination tree). On a ``chain`` the order comes from the
+        structure instead:
 
-        * ``nested`` (the steps' sparse Cholesky): nested dissection of the chain, the keyframes
+        * ``nested``, with calibration variables: nested dissection of the chain, the keyframes
           whose index ``k + 1`` has no factor 2 first, then those with one, and so on -- each
           level splits what is left in halves, so the tree is ``log2 n`` deep, and a
           conditional's parents are at most its two neighbours at its level;
-        * otherwise (the covariances' QR): the keyframes in time order, a sweep. The tree is a
-          path and the walk still quadratic, but cheap beside QR on the nested order's wider
-          conditionals (at 24 000 keyframes 65 us a keyframe against 87), and the selected
-          inversion then runs over one keyframe parent per conditional.
+        * for the covariances: the keyframes in time order, a sweep, where the selected
+          inversion runs over one keyframe parent per conditional (QR costs more on the nested
+          order's wider conditionals: 87 us a keyframe against 65 at 24 000 keyframes), swept in
+          pieces that leave the calibration variables to the end
+          (:func:`smoother.model.covariances.marginal_covariances`).
 
-        Elsewhere, COLAMD with the calibration variables constrained last."""
+        Elsewhere COLAMD, with the calibration variables constrained last."""
+        calibrations = list(range(self.n, self.n + len(self.extra)))
+        if self.chain and (self.extra or not nested):
+            keyframes = nested_dissection(self.n) if nested else np.arange(self.n)
+            return gtsam.Ordering(gtsam.KeyVector([*keyframes.tolist(), *calibrations]))
         if not self.extra:
             return None
-        calibrations = list(range(self.n, self.n + len(self.extra)))
-        if not self.chain:
-            return gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(graph, gtsam.KeyVector(calibrations))
-        keyframes = nested_dissection(self.n) if nested else np.arange(self.n)
-        return gtsam.Ordering(gtsam.KeyVector([*keyframes.tolist(), *calibrations]))
+        return gtsam.Ordering.ColamdConstrainedLastGaussianFactorGraph(graph, gtsam.KeyVector(calibrations))
 
     @property
     def keys(self) -> range:

@@ -75,28 +75,24 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     ``square_root`` (with ``pairs``): also return the conditionals as a :class:`SquareRoot`, with
     which :func:`covariance_tangent` differentiates those blocks, and the system's solution."""
     layout = layout or Layout(n)
-    ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
-    try:
-        net = graph.eliminateSequential(ordering, gtsam.EliminateQR)
-    except RuntimeError as error:
-        raise indeterminant_error(error, graph, ordering) from None
-    conditionals = [net.at(i) for i in range(net.size())]
-    keys = [[int(k) for k in c.keys()] for c in conditionals]
-    R_inv, own = _inverted(conditionals, keys, n)
+    keys, R, S, d = _eliminated(graph, layout)
+    R_inv, own = _inverted(R, keys, n)
+    del R
     columns = layout.calibration_columns()  # key n + j: its columns in the stacked calibrations
     nc = sum(layout.extra)
     sigma: dict[tuple[int, int], np.ndarray] = {}  # Sigma^c between keyframes; Sigma between calibrations
-    gains: list = [None] * len(conditionals)  # K_i of each conditional with parents
+    gains: list = [None] * len(keys)  # K_i of each conditional with parents
     gain: dict[int, np.ndarray] = {}  # G_i (15, nc) of each keyframe
-    for i in reversed(range(len(conditionals))):
+    for i in reversed(range(len(keys))):
         frontal, parents = keys[i][0], keys[i][1:]
         if not parents:
             sigma[(frontal, frontal)] = own[i]
             if frontal < n and nc:  # its mean does not depend on the calibrations
                 gain[frontal] = np.zeros((own[i].shape[0], nc))
             continue
-        K = -R_inv[i] @ conditionals[i].S()
-        gains[i] = K
+        K = -R_inv[i] @ S[i]
+        if square_root:
+            gains[i] = K
         bounds = [0]
         for p in parents:
             bounds.append(bounds[-1] + layout.dim(p))
@@ -135,7 +131,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
     if square_root:
-        return marginals, sigma, SquareRoot(keys, own, gains, layout, layout.flat(net.optimize()))
+        return marginals, sigma, SquareRoot(keys, own, gains, layout, _back_substituted(keys, R_inv, S, d, layout))
     return (marginals, sigma) if pairs else marginals
 
 
@@ -301,11 +297,67 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
     return out
 
 
-def _inverted(conditionals: list, keys: list, n: int) -> tuple[list, list]:
-    """``R_i^-1`` and ``R_i^-1 R_i^-T`` of every conditional, inverted together where their
-    dimensions agree; :class:`IndeterminantSystem` where a pivot of ``R_i`` is at most
-    ``RANK_TOLERANCE`` times the largest of them all (:func:`marginal_covariances`)."""
-    R = [c.R() for c in conditionals]  # upper triangular, the frontal variable's dimension
+#: Keyframes of a chain eliminated per GTSAM call in the covariances' sweep (:func:`_eliminated`).
+SWEEP_PIECE = 4000
+
+
+def _eliminated(graph: gtsam.GaussianFactorGraph, layout: Layout) -> tuple[list, list, list, list]:
+    """The conditionals ``R_i x_i + S_i x_P(i) = d_i`` of ``graph``'s QR elimination in
+    :meth:`Layout.ordering`'s order (COLAMD without one), as ``(keys, R, S, d)``: each
+    conditional's keys (frontal, then parents) and its three arrays.
+
+    On a chain the sweep runs in pieces of :data:`SWEEP_PIECE` keyframes, each GTSAM's partial
+    elimination of the graph the piece before left, and the calibration variables alone at the
+    end. GTSAM keeps every conditional's stacked rows whole (on the car, about four times its
+    ``R`` and ``S``): one piece of them is alive at a time instead of the whole run's. And no
+    factor on a calibration variable sends GTSAM's elimination tree walking from its keyframe
+    to the root (:meth:`Layout.ordering`): they are not eliminated with the keyframes."""
+    ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    if layout.chain:
+        keyframes = list(range(layout.n))
+        pieces = [keyframes[at:at + SWEEP_PIECE] for at in range(0, layout.n, SWEEP_PIECE)]
+        pieces.append(list(range(layout.n, layout.n + len(layout.extra))))
+    else:
+        pieces = [[int(ordering.at(i)) for i in range(ordering.size())]]
+    keys, R, S, d = [], [], [], []
+    remaining = graph
+    try:
+        for j, piece in enumerate(pieces):
+            if not piece:
+                continue
+            order = gtsam.Ordering(gtsam.KeyVector(piece))
+            if j == len(pieces) - 1:
+                net = remaining.eliminateSequential(order, gtsam.EliminateQR)
+            else:
+                net, remaining = remaining.eliminatePartialSequential(order, gtsam.EliminateQR)
+            for i in range(net.size()):  # copies: GTSAM's arrays are views into the net
+                conditional = net.at(i)
+                keys.append([int(k) for k in conditional.keys()])
+                R.append(np.array(conditional.R()))
+                S.append(np.array(conditional.S()))
+                d.append(np.array(conditional.d()))
+    except RuntimeError as error:
+        raise indeterminant_error(error, graph, ordering) from None
+    return keys, R, S, d
+
+
+def _back_substituted(keys: list, R_inv: list, S: list, d: list, layout: Layout) -> np.ndarray:
+    """The least-squares solution of the conditionals (:func:`_eliminated`; ``R_inv`` their
+    ``R_i^-1``), ``x_i = R_i^-1 (d_i - S_i x_P(i))`` in reverse elimination order, flat in the
+    layout's key order."""
+    x: dict[int, np.ndarray] = {}
+    for i in reversed(range(len(keys))):
+        frontal, parents = keys[i][0], keys[i][1:]
+        rhs = d[i] - S[i] @ np.concatenate([x[p] for p in parents]) if parents else d[i]
+        x[frontal] = R_inv[i] @ rhs
+    return np.concatenate([x[k] for k in layout.keys])
+
+
+def _inverted(R: list, keys: list, n: int) -> tuple[list, list]:
+    """``R_i^-1`` and ``R_i^-1 R_i^-T`` of every conditional's ``R_i`` (upper triangular, its
+    frontal variable's dimension), inverted together where their dimensions agree;
+    :class:`IndeterminantSystem` where a pivot of ``R_i`` is at most ``RANK_TOLERANCE`` times the
+    largest of them all (:func:`marginal_covariances`)."""
     groups: dict[int, list[int]] = {}
     for i, r in enumerate(R):
         groups.setdefault(r.shape[0], []).append(i)

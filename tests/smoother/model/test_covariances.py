@@ -1,11 +1,15 @@
-"""The covariances' tangent (smoother/model/covariances.py: ``covariance_tangent``): the change of
-the selected inverse's blocks for a change of the information, against the dense inverse."""
+"""The covariances (smoother/model/covariances.py) against the dense inverse: the selected
+inverse's blocks and the solution whatever the elimination's order and pieces, and their tangent
+(``covariance_tangent``) for a change of the information."""
 from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
-from smoother.model.blocks import Layout, unit_model
+from factors import imu
+from smoother.model import covariances
+from smoother.model.blocks import Block, Layout, nested_dissection, unit_model
 from smoother.model.covariances import covariance_tangent, joint_block, marginal_covariances
 
 
@@ -52,3 +56,43 @@ def test_the_tangent_of_the_covariance_blocks_is_minus_sigma_dlambda_sigma():
         rows, cols = slice(offsets[a], offsets[a + 1]), slice(offsets[b], offsets[b + 1])
         np.testing.assert_allclose(joint_block(joint, a, b), sigma[rows, cols], rtol=0, atol=1e-12)
         np.testing.assert_allclose(value, expected[:, rows, cols], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("piece", [1, 2, 100])
+@pytest.mark.parametrize("chain", [True, False])
+def test_covariances_and_solution_match_the_dense_inverse_whatever_the_sweep_pieces(monkeypatch, piece, chain):
+    """A chain's sweep in pieces of any length (GTSAM's partial eliminations, the calibrations
+    last) and COLAMD's order give every joint block and the least-squares solution of the dense
+    system."""
+    monkeypatch.setattr(covariances, "SWEEP_PIECE", piece)
+    rng = np.random.default_rng(7)
+    n, extra = 6, (2, 3)
+    layout = Layout(n, extra, chain)
+    graph, _ = _graph(rng, n, extra)
+    b = rng.normal(size=15)
+    graph.add(gtsam.JacobianFactor(4, np.eye(15), b, unit_model(15)))  # a right-hand side
+    _, joint, root = marginal_covariances(graph, n, None, True, layout, square_root=True)
+    offsets = np.cumsum([0, *(layout.dim(k) for k in layout.keys)])
+    A, rhs = graph.jacobian(gtsam.Ordering(list(layout.keys)))
+    sigma = np.linalg.inv(A.T @ A)
+    np.testing.assert_allclose(root.solution, sigma @ A.T @ rhs, rtol=0, atol=1e-12)
+    for (a, c), value in joint.items():
+        np.testing.assert_allclose(value, sigma[offsets[a]:offsets[a + 1], offsets[c]:offsets[c + 1]],
+                                   rtol=0, atol=1e-12)
+    assert len(joint) >= 2 * n - 1
+
+
+def test_a_chain_is_ordered_by_its_structure_and_anything_else_by_colamd():
+    """Nested dissection is a permutation whose last keyframe halves the chain; a factor two
+    keyframes apart makes the layout no chain."""
+    order = nested_dissection(15)
+    assert sorted(order.tolist()) == list(range(15)) and order[-1] == 7
+    assert set(order[:8].tolist()) == set(range(0, 15, 2))
+    states = imu.ImuState.identity((4,))
+
+    def block(keyframes):
+        return Block("b", np.array(keyframes), None, None)
+
+    assert Layout.of(states, None, [block([[0], [3]]), block([[0, 1], [2, 3]])]).chain
+    assert not Layout.of(states, None, [block([[0, 2]])]).chain
+    assert not Layout.of(states).chain
