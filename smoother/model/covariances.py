@@ -86,7 +86,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
     for i in reversed(range(len(keys))):
         frontal, parents = keys[i][0], keys[i][1:]
         if not parents:
-            sigma[(frontal, frontal)] = own[i]
+            sigma[(frontal, frontal)] = own[i].copy()  # own's arrays are views of one stack
             if frontal < n and nc:  # its mean does not depend on the calibrations
                 gain[frontal] = np.zeros((own[i].shape[0], nc))
             continue
@@ -116,7 +116,7 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
             both = own[i] + cross @ K_kept.T
             sigma[(frontal, frontal)] = 0.5 * (both + both.T)
         else:
-            sigma[(frontal, frontal)] = own[i]
+            sigma[(frontal, frontal)] = own[i].copy()
         if frontal < n and nc:
             G = np.zeros((K.shape[0], nc))
             for j, parent in enumerate(parents):
@@ -126,12 +126,14 @@ def marginal_covariances(graph: gtsam.GaussianFactorGraph, n: int, which=None, p
                 else:
                     G[:, columns[parent]] += block
             gain[frontal] = G
+    root = SquareRoot(keys, own, gains, layout, _back_substituted(keys, R_inv, S, d, layout)) if square_root else None
+    del R_inv, own, S, d  # before the calibrations' share: the largest of the arrays made at once
     if nc:
         _add_calibration_share(sigma, gain, layout, columns)
     which = range(n) if which is None else which
     marginals = np.stack([sigma[(int(k), int(k))] for k in which])
     if square_root:
-        return marginals, sigma, SquareRoot(keys, own, gains, layout, _back_substituted(keys, R_inv, S, d, layout))
+        return marginals, sigma, root
     return (marginals, sigma) if pairs else marginals
 
 
@@ -379,6 +381,10 @@ def _inverted(R: list, keys: list, n: int) -> tuple[list, list]:
     return R_inv, own
 
 
+#: Keyframe blocks given the calibration share added per stack (:func:`_add_calibration_share`).
+SHARE_PIECE = 4096
+
+
 def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dict) -> None:
     """Turn the keyframes' blocks of ``sigma`` from covariances given the calibrations into
     marginal ones (:func:`marginal_covariances`: ``+ G_a Sigma_cc G_b^T``), and add the blocks
@@ -391,12 +397,14 @@ def _add_calibration_share(sigma: dict, gain: dict, layout: Layout, columns: dic
     G = np.stack([gain[k] for k in frames])
     GS = G @ S_cc
     between = [pair for pair in sigma if pair[0] < n]  # both keyframes: no other keyframe block yet
-    a = np.array([at[p[0]] for p in between])
-    b = np.array([at[p[1]] for p in between])
-    blocks = np.stack([sigma[p] for p in between]) + GS[a] @ G[b].transpose(0, 2, 1)
-    same = a == b
-    blocks[same] = 0.5 * (blocks[same] + blocks[same].transpose(0, 2, 1))
-    sigma.update(zip(between, blocks))
+    for lo in range(0, len(between), SHARE_PIECE):  # in pieces: each makes a stack of its blocks
+        pairs = between[lo:lo + SHARE_PIECE]
+        a = np.array([at[p[0]] for p in pairs])
+        b = np.array([at[p[1]] for p in pairs])
+        blocks = np.stack([sigma[p] for p in pairs]) + GS[a] @ G[b].transpose(0, 2, 1)
+        same = a == b
+        blocks[same] = 0.5 * (blocks[same] + blocks[same].transpose(0, 2, 1))
+        sigma.update(zip(pairs, blocks))
     for k, G_S in zip(frames, GS):
         for key in calibrations:
             sigma[(k, key)] = G_S[:, columns[key]]

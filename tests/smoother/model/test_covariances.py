@@ -62,9 +62,10 @@ def test_the_tangent_of_the_covariance_blocks_is_minus_sigma_dlambda_sigma():
 @pytest.mark.parametrize("chain", [True, False])
 def test_covariances_and_solution_match_the_dense_inverse_whatever_the_sweep_pieces(monkeypatch, piece, chain):
     """A chain's sweep in pieces of any length (GTSAM's partial eliminations, the calibrations
-    last) and COLAMD's order give every joint block and the least-squares solution of the dense
-    system."""
+    last) and COLAMD's order, and the calibrations' share added in pieces of any length, give
+    every joint block and the least-squares solution of the dense system."""
     monkeypatch.setattr(covariances, "SWEEP_PIECE", piece)
+    monkeypatch.setattr(covariances, "SHARE_PIECE", piece)
     rng = np.random.default_rng(7)
     n, extra = 6, (2, 3)
     layout = Layout(n, extra, chain)
