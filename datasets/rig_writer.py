@@ -97,10 +97,12 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
     ``noise`` (the batch smoother's fit, ``{group: record}`` of
     :meth:`smoother.batch.variance_components.NoiseFit.record`), each density and sigma it applied
     written in its place (the IMU's densities; a sensor's ``sigma`` per axis where the rig gave
-    one, else a comment with the factor on its measurements' covariances) and ``"noise"`` taken
-    out of ``estimate``, so the next run starts from them as given."""
+    one, else a comment with the factor on its measurements' covariances), a comment on every
+    group it examined (fitted, checked and kept, or not determined by the data) and ``"noise"``
+    taken out of ``estimate`` wherever it examined a group, so the next run starts from them as
+    given (put it back to fit again)."""
     cautions, noise = cautions or {}, noise or {}
-    fitted = {name: g for name, g in noise.items() if not name.startswith("_") and g["applied"] and g["estimable"]}
+    examined = {name: g for name, g in noise.items() if not name.startswith("_")}
     document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8-sig"))
     imu = document["imu"]
     values, drop, comments = {"source": rig.imu.source}, [], []
@@ -109,13 +111,14 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
                        if key not in imu})
         drop.append("kalibr")
     for key, field in NOISE_KEYS.items():
-        g = fitted.get(f"imu.{field}")
-        if g is not None:
+        g = examined.get(f"imu.{field}")
+        if g is None:
+            continue
+        if _fitted(g):
             values[key] = float(g["value"])
-            comments.append(f"{key} fitted by the batch smoother: {g['factor']:.3g} +- {g['factor_sd']:.2g} times "
-                            "the value given")
-    if any(name.startswith("imu.") for name in fitted) and "estimate" in imu:
-        drop.append("estimate")
+        comments.append(_noise_comment(key, g, "value"))
+    if any(name.startswith("imu.") for name in examined):
+        _noise_taken_out(imu, values, drop)
     tables = {"imu": _edited(imu, values, drop, comments)}
     if "sensor" in document:
         sensors = document["sensor"]
@@ -138,31 +141,58 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
             elif "camchain" in table:
                 values["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
                 drop += ["camchain", "camera"]
-            _noise_written(table, config, {name.split(".", 1)[1]: g for name, g in fitted.items()
+            _noise_written(table, config, {name.split(".", 1)[1]: g for name, g in examined.items()
                                            if name.split(".", 1)[0] == config.name}, values, drop, comments)
             sensors[i] = _edited(table, values, drop, comments)
         tables["sensor"] = sensors
     return tomlkit.dumps(_rebuilt(document, tables))
 
 
+def _fitted(group: dict) -> bool:
+    """Whether the fit changed the group's value (rather than keeping the rig's)."""
+    return bool(group["applied"] and group["estimable"])
+
+
+def _noise_comment(what: str, group: dict, given: str) -> str:
+    """The comment line on a noise ``group`` the fit examined (``what`` it is, ``given`` what the
+    rig gave: the value or the sigma): its factor, or why the rig's value stands."""
+    if not group["estimable"]:
+        return f"{what} not fitted by the batch smoother: {group.get('note', 'not estimable')}"
+    factor = f"{group['factor']:.3g} +- {group['factor_sd']:.2g} times the {given} given"
+    if _fitted(group):
+        return f"{what} fitted by the batch smoother: {factor}"
+    return f"{what} checked by the batch smoother: {factor}; {group.get('note', 'kept')}"
+
+
+def _noise_taken_out(table: Table, values: dict, drop: list) -> None:
+    """``"noise"`` out of the table's ``estimate`` (the key dropped when nothing else is left): the
+    fit is done, and the next run starts from its values as given."""
+    if "estimate" not in table or "estimate" in drop:  # none, or dropped whole with a calibration's parts
+        return
+    rest = [str(part) for part in table["estimate"] if str(part) != "noise"]
+    if rest:
+        values["estimate"] = rest
+    else:
+        drop.append("estimate")
+
+
 def _noise_written(table: Table, config, groups: dict, values: dict, drop: list, comments: list) -> None:
-    """A sensor's fitted noise ``groups`` (``{group: record}``) into ``values`` (its ``sigma`` per
-    axis, where the rig gave one), ``drop`` (``estimate`` when it named the noise alone) and
-    ``comments``."""
+    """A sensor's ``groups`` the fit examined (``{group: record}``): the fitted ones into
+    ``values`` (its ``sigma`` per axis, where the rig gave one), a comment on each, and
+    ``"noise"`` taken out of its ``estimate``."""
     if not groups:
         return
     axes = {}
+    scaled = "" if config.sigma is not None else " (its measurements' covariances scaled so)"
     for part, g in groups.items():
-        for a in g["axes"]:
-            axes[a] = g["factor"]
-        comments.append(f"{part} noise fitted by the batch smoother: {g['factor']:.3g} +- {g['factor_sd']:.2g} "
-                        f"times the sigma given" + ("" if config.sigma is not None else " (its measurements' "
-                                                                                          "covariances scaled so)"))
-    if config.sigma is not None:
+        if _fitted(g):
+            for a in g["axes"]:
+                axes[a] = g["factor"]
+        comments.append(_noise_comment(f"{part} noise", g, "sigma") + (scaled if _fitted(g) else ""))
+    if config.sigma is not None and axes:
         given = kind_sigmas(f"sensor {config.name!r}: sigma", config.sigma, KINDS[config.kind].dim)
         values["sigma"] = [float(s * axes.get(a, 1.0)) for a, s in enumerate(given)]
-    if "estimate" in table and list(table["estimate"]) == ["noise"]:
-        drop.append("estimate")
+    _noise_taken_out(table, values, drop)
 
 
 #: Per density of :func:`allan_imu_block`: the rig file's key, the per-axis values' attribute of a

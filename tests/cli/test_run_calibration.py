@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -12,6 +13,11 @@ from small_recording import WHEEL, write_recording
 from datasets.rig import RigError, load_rig
 from factors import so3
 from smoother.cli import main
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:
+    import tomli as tomllib
 
 #: The wheel frame as a user would write it: 3 deg of pitch and 1 deg of yaw off the truth.
 WRITTEN = WHEEL.copy()
@@ -142,3 +148,36 @@ def test_a_part_the_kind_cannot_estimate_is_refused_in_the_rig(recording):
     refused = r'sensor\[1\] "gnss"\.(estimate: a gnss sensor cannot estimate its rotation|scale)'
     with pytest.raises(RigError, match=refused):
         load_rig(_rig(folder, text, "", "kind"))
+
+
+def test_a_rig_that_asks_for_its_noise_gets_it_written_and_the_next_run_starts_from_it(recording, tmp_path, capsys):
+    """``estimate = ["noise"]`` on ``[imu]`` and on the GNSS, whose sigma the rig states 2.5 times
+    too small: the batch smoother fits it; ``calibrated.toml`` carries the fitted sigma, a comment on
+    every group the fit examined (fitted, checked or not determined) and no ``"noise"`` left in any
+    ``estimate``; the run from it fits nothing and finds the fixes in band."""
+    folder, text = recording
+    text = text.replace("[imu]\n", '[imu]\nestimate = ["noise"]\n')
+    text = text.replace('topic = "/fix"', 'topic = "/fix"\nsigma = 0.2\nestimate = ["noise"]')
+    path = folder / "noise.toml"
+    path.write_text(text)
+    metrics = _run(str(path), tmp_path / "first")
+    assert "noise fitted by the batch smoother" in capsys.readouterr().out
+    noise = metrics["batch"]["noise"]
+    fitted = [noise[f"gnss.{part}"] for part in ("horizontal", "vertical")]
+    assert all(g["applied"] and g["estimable"] and g["factor"] > 1.6 for g in fitted), fitted
+
+    calibrated = tmp_path / "first" / "calibrated.toml"
+    written = calibrated.read_text()
+    document = tomllib.loads(written)
+    assert "estimate" not in document["imu"] and all("estimate" not in s for s in document["sensor"])
+    gnss = next(s for s in load_rig(calibrated).sensors if s.name == "gnss")
+    expected = 0.2 * np.array([fitted[0]["factor"]] * 2 + [fitted[1]["factor"]])
+    np.testing.assert_allclose(gnss.sigma, expected, rtol=1e-12)
+    for key in ("accel_noise_density", "gyro_noise_density", "accel_random_walk", "gyro_random_walk"):
+        assert sum(line.startswith(f"# {key} ") and " by the batch smoother" in line
+                   for line in written.splitlines()) == 1, (key, written)
+    assert sum(line.startswith("# horizontal noise fitted by the batch smoother") for line in written.splitlines()) == 1
+
+    second = _run(str(calibrated), tmp_path / "second")
+    assert "noise fitted by the batch smoother" not in capsys.readouterr().out
+    assert "noise" not in second["batch"] and second["batch"]["sensors"]["gnss"]["ok"]
