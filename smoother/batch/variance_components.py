@@ -606,8 +606,7 @@ class _NoiseModel:
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
         columns = [g for g in range(G) if self.leveraged(g)]
-        factors = []  # each chunk's kept factors' (keys per slot, A, U): _information_blocks' arguments
-        own = np.zeros((G, G))  # sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg U_kh), h a column
+        factors = []  # each chunk's kept factors' (keys per slot, A, U, H): what _exact reads
         n = len(states)
         for name in dict.fromkeys(g.sensor for g in self.groups):
             block = blocks[self.block_index[name]]
@@ -657,20 +656,13 @@ class _NoiseModel:
                     if calibration_key is not None:
                         keys.append(np.full(len(chunk), calibration_key))
                     factors.append(([k[keep] for k in keys], [a[keep] for a in A],
-                                    {g: Ug[keep] for g, Ug in U.items()}))
-                    HU = {g: H[keep] @ U[g][keep] for g in columns if g in U}
-                    for g, HUg in HU.items():
-                        for h, Uh in U.items():
-                            own[h, g] += np.einsum("mab,mba->", Uh[keep], U[g][keep]) - 2.0 * np.einsum(
-                                "mab,mba->", HUg, Uh[keep])
+                                    {g: Ug[keep] for g, Ug in U.items()}, H[keep]))
         exact = None if root is None else (
-            lambda estimated: self._exact(information, [g for g in columns if g in estimated], own,
-                                          [part for chunk in factors for part in _information_blocks(*chunk)], root,
-                                          joint))
+            lambda estimated: self._exact(information, [g for g in columns if g in estimated], factors, root, joint))
         return quadratic, expected, information, redundancy, exact
 
     @staticmethod
-    def _exact(approximate: np.ndarray, columns: list[int], own: np.ndarray, B: list, root, joint: dict) -> np.ndarray:
+    def _exact(approximate: np.ndarray, columns: list[int], factors: list, root, joint: dict) -> np.ndarray:
         """The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: ``approximate`` with the ``columns``
         (and rows) exact -- those of the groups of factors with much leverage.
 
@@ -678,34 +670,73 @@ class _NoiseModel:
         Jacobian, ``U_g`` block-diagonal over the factors, ``B_g = A^T U_g A``: the information
         ``A^T A`` falls by ``B_g`` for a unit increase of ``psi_g``), ``tr(M U_g M U_h) = own_hg +
         tr(P B_g P B_h)``: the factors' own terms ``own_hg = sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg
-        U_kh)``, from their hat blocks, and ``tr(X_g B_h)`` with ``X_g = P B_g P`` the change of the
-        covariance for a unit increase of ``psi_g``, needed only on the pairs of variables ``B_h``
-        is on: those of a factor, a conditional and its parent. That is what
+        U_kh)``, from their hat blocks (:func:`_own_terms`), and ``tr(X_g B_h)`` with ``X_g = P B_g P``
+        the change of the covariance for a unit increase of ``psi_g``, needed only on the pairs of
+        variables ``B_h`` is on: those of a factor, a conditional and its parent. That is what
         :func:`~smoother.model.covariances.covariance_tangent` differentiates, from the system's
         conditionals ``root`` and covariance blocks ``joint``, for all columns in one sweep: no
-        other elimination. ``B``: the pairs' ``B_g`` (:func:`_information_blocks`)."""
+        other elimination. ``factors``: each chunk's kept factors' ``(keys per slot, A per slot,
+        {group: U}, H)`` (:meth:`statistics`), whose pairs' ``B_g`` :func:`_information_blocks` sums."""
         if not columns:
             return approximate
-        information: dict = {}  # dLambda = -B_g, stacked over the columns
-        for groups, lo, hi, blocks in B:
-            where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
-            if not where:
-                continue
-            into, take = zip(*where)
-            for a, b, block in zip(lo.tolist(), hi.tolist(), blocks[:, list(take)]):
-                if (a, b) not in information:
-                    information[(a, b)] = np.zeros((len(columns), *block.shape[1:]))
-                information[(a, b)][list(into)] -= block
-        tangent = covariance_tangent(root, joint, information)
+        B = [part for keys, A, U, _ in factors for part in _information_blocks(keys, A, U)]
+        tangent = covariance_tangent(root, joint, _falls(B, columns))
         cross = np.zeros((len(approximate), len(columns)))
         for groups, lo, hi, blocks in B:
             X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
             cross[groups] += np.einsum("p,pgab,pxab->gx", np.where(lo == hi, 1.0, 2.0), blocks, X)
-        exact = 0.5 * (own[:, columns] + cross)
+        exact = 0.5 * (_own_terms(factors, columns, len(approximate)) + cross)
         F = approximate.copy()
         F[:, columns] = exact
         F[columns, :] = exact.T
         return _positive_definite(F)
+
+
+def _own_terms(factors: list, columns: list[int], G: int) -> np.ndarray:
+    """``(G, columns)``: ``sum_k tr(U_kh U_kg) - 2 tr(H_k U_kg U_kh)`` over the factors ``k`` of
+    every chunk of ``factors`` (:meth:`_NoiseModel._exact`), ``h`` any group, ``g`` a column."""
+    own = np.zeros((G, len(columns)))
+    for _, _, U, H in factors:
+        into = [x for x, g in enumerate(columns) if g in U]
+        if not into:
+            continue
+        groups = list(U)
+        Us = np.stack([U[g] for g in groups], axis=1)
+        Uc = np.stack([U[columns[x]] for x in into], axis=1)
+        HU = H[:, None] @ Uc
+        own[np.ix_(groups, into)] += np.einsum("mhab,mgba->hg", Us, Uc) - 2.0 * np.einsum("mgab,mhba->hg", HU, Us)
+    return own
+
+
+def _falls(B: list, columns: list[int]) -> dict:
+    """``{(a, b): -B_g}`` stacked over the groups ``columns`` (``(columns, da, db)``): how the
+    information falls on each pair of variables for a unit rise of each column's ``psi_g``, from the
+    pairs' blocks ``B`` (:func:`_information_blocks`); :func:`covariance_tangent`'s directions."""
+    parts: dict = {}  # (da, db) -> [(a, b, blocks)] of the pairs of that shape
+    for groups, lo, hi, blocks in B:
+        where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
+        if not where:
+            continue
+        into, take = (list(t) for t in zip(*where))
+        block = np.zeros((len(lo), len(columns), *blocks.shape[2:]))
+        block[:, into] = -blocks[:, take]
+        parts.setdefault(blocks.shape[2:], []).append((lo, hi, block))
+    out: dict = {}
+    for entries in parts.values():
+        lo, hi, block = _summed_by_pair(*(np.concatenate(x) for x in zip(*entries)))
+        out.update(zip(zip(lo.tolist(), hi.tolist()), block))
+    return out
+
+
+def _summed_by_pair(lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray) -> tuple:
+    """``(lo, hi, blocks)`` with the blocks of each pair ``(lo, hi)`` summed: the pairs once each,
+    in order."""
+    order = np.lexsort((hi, lo))
+    lo, hi, blocks = lo[order], hi[order], blocks[order]
+    starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
+    if len(starts) < len(lo):
+        blocks = np.add.reduceat(blocks, starts, axis=0)
+    return lo[starts], hi[starts], blocks
 
 
 def _information_blocks(keys: list, A: list, U: dict) -> list:
@@ -726,12 +757,7 @@ def _information_blocks(keys: list, A: list, U: dict) -> list:
                     continue
                 lo, hi = (kt[which], ks[which]) if flip else (ks[which], kt[which])
                 part = np.swapaxes(blocks[which], -1, -2) if flip else blocks[which]
-                order = np.lexsort((hi, lo))
-                lo, hi, part = lo[order], hi[order], part[order]
-                starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
-                if len(starts) < len(lo):
-                    part = np.add.reduceat(part, starts, axis=0)
-                out.append((groups, lo[starts], hi[starts], part))
+                out.append((groups, *_summed_by_pair(lo, hi, part)))
     return out
 
 
