@@ -496,6 +496,7 @@ class _NoiseModel:
             if g.axes is not None and g.sensor not in self.rig:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
                 self.rig[g.sensor] = (W, np.linalg.inv(W))
+        self.sensor_derivatives = {i: self._rig_derivative(g) for i, g in enumerate(groups) if g.axes is not None}
         self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
@@ -580,14 +581,17 @@ class _NoiseModel:
                     V = theta[i] * parts[c][rows]
                     out[i] = W @ V @ np.swapaxes(W, -1, -2)
             return out
-        W0, L0 = self.rig[block_name]
-        for i, g in enumerate(self.groups):
-            if g.sensor == block_name:
-                S = np.zeros(W.shape[-1])
-                S[list(g.axes)] = 1.0
-                A = W0[rows] * S[None, None, :] @ L0[rows]  # W S W^-1 = W_0 D^-1 S D L_0, D and S diagonal
-                out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
-        return out
+        return {i: U[rows] for i, U in self.sensor_derivatives.items() if self.groups[i].sensor == block_name}
+
+    def _rig_derivative(self, group: NoiseGroup) -> np.ndarray:
+        """A sensor group's whitened derivatives ``U_kg (M, d, d)`` over all of its sensor's factors,
+        the same at every ``psi``: ``(W S W^-1 + W^-T S W^T) / 2`` with ``W = W_0 D^-1``, which is
+        ``W_0 S L_0`` symmetrised (``D`` and the group's axes ``S`` diagonal)."""
+        W0, L0 = self.rig[group.sensor]
+        S = np.zeros(W0.shape[-1])
+        S[list(group.axes)] = 1.0
+        A = W0 * S[None, None, :] @ L0
+        return 0.5 * (A + np.swapaxes(A, -1, -2))
 
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
                    step: tuple | None = None, root=None):
@@ -636,21 +640,12 @@ class _NoiseModel:
                     keep = np.einsum("ma,ma->m", u, u) <= c
                     correction = truncated_mean(d, c)
                 U = self._derivatives(name, rows, psi, W)
-                for i, Ui in U.items():
-                    quad = np.einsum("ma,mab,mb->m", u, Ui, u)[keep]
-                    r = np.einsum("mab,mba->m", Q, Ui)[keep]
-                    quadratic[i] += quad.sum()
-                    expected[i] += correction * r.sum()
-                    redundancy[i] += r.sum()
-                    QU_i = (Q @ Ui)[keep]
-                    for j, Uj in U.items():
-                        if j < i:
-                            continue
-                        QU_j = (Q @ Uj)[keep]
-                        value = 0.5 * np.einsum("mab,mba->", QU_i, QU_j)
-                        information[i, j] += value
-                        if j != i:
-                            information[j, i] += value
+                at = list(U)
+                quad, r, info = _chunk_sums(u[keep], Q[keep], np.stack([U[g][keep] for g in at], axis=1))
+                quadratic[at] += quad
+                expected[at] += correction * r
+                redundancy[at] += r
+                information[np.ix_(at, at)] += info
                 if root is not None:
                     keys = [chunk[:, s] for s in range(chunk.shape[1])]
                     if calibration_key is not None:
@@ -690,6 +685,19 @@ class _NoiseModel:
         F[:, columns] = exact
         F[columns, :] = exact.T
         return _positive_definite(F)
+
+
+def _chunk_sums(u: np.ndarray, Q: np.ndarray, U: np.ndarray) -> tuple:
+    """Over factors with whitened residuals ``u (M, d)``, residual covariances ``Q = I - H``
+    ``(M, d, d)`` and whitened derivatives ``U (M, groups, d, d)``, per group ``g``:
+    ``sum u^T U_g u``, ``sum tr(Q U_g)`` and, per two groups, ``1/2 sum tr(Q U_g Q U_h)``."""
+    M, G, d = U.shape[:3]
+    QU = Q[:, None] @ U
+    quad = np.einsum("ma,mgab,mb->g", u, U, u)
+    r = np.einsum("mgaa->g", QU)
+    flat, transposed = QU.reshape(M, G, d * d), np.swapaxes(QU, -1, -2).reshape(M, G, d * d)
+    info = 0.5 * np.tensordot(flat, transposed, axes=([0, 2], [0, 2]))  # tr(A B) = vec(A) . vec(B^T)
+    return quad, r, info
 
 
 def _own_terms(factors: list, columns: list[int], G: int) -> np.ndarray:
