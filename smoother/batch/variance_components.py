@@ -321,16 +321,18 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         # tied to it with a standard deviation that says nothing). A parameter with too little
         # redundancy keeps the rig's value once it falls (heading for a zero variance, it would move
         # on for ever; one that rises may be a density the rig states far too small) or the rest
-        # settle, and so, once they settle, does one the data fix no better than MAX_LOG_SD; then
-        # what the data do not tell from the rig's value stays the rig's
+        # settle, and so does one the data fix no better than MAX_LOG_SD near the estimate (falling,
+        # its information only shrinks on the way to where it would settle); then what the data do
+        # not tell from the rig's value stays the rig's
         merged = _merge_candidate(F, ties, groups) if near else None
         if merged is None:
             psi = _with_step(psi, ties, step)
         kept = []
+        falls = (step <= 0.0) & (iterations > 1)
         weak = [] if merged is not None else [
             j for j in range(len(ties))
-            if (share[j] < MIN_REDUNDANCY and (settled or (step[j] <= 0.0 and iterations > 1)))
-            or (settled and sd[j] > MAX_LOG_SD)]
+            if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
+            or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
         if merged is not None:
             a, b = merged
             ties[a] = ties[a] + ties.pop(b)
