@@ -325,14 +325,14 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         # its information only shrinks on the way to where it would settle); then what the data do
         # not tell from the rig's value stays the rig's
         merged = _merge_candidate(F, ties, groups) if near else None
-        if merged is None:
-            psi = _with_step(psi, ties, step)
         kept = []
         falls = (step <= 0.0) & (iterations > 1)
         weak = [] if merged is not None else [
             j for j in range(len(ties))
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
+        if merged is None:
+            psi = _with_step(psi, ties, step)
         if merged is not None:
             a, b = merged
             ties[a] = ties[a] + ties.pop(b)
@@ -681,7 +681,9 @@ class _NoiseModel:
         cross = np.zeros((len(approximate), len(columns)))
         for groups, lo, hi, blocks in B:
             X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
-            cross[groups] += np.einsum("p,pgab,pxab->gx", np.where(lo == hi, 1.0, 2.0), blocks, X)
+            P, G = blocks.shape[:2]
+            per = blocks.reshape(P, G, -1) @ np.swapaxes(X.reshape(P, X.shape[1], -1), 1, 2)  # tr(B_pg X_px^T)
+            cross[groups] += np.einsum("p,pgx->gx", np.where(lo == hi, 1.0, 2.0), per)
         exact = 0.5 * (_own_terms(factors, columns, len(approximate)) + cross)
         F = approximate.copy()
         F[:, columns] = exact
@@ -721,20 +723,24 @@ def _own_terms(factors: list, columns: list[int], G: int) -> np.ndarray:
 def _falls(B: list, columns: list[int]) -> dict:
     """``{(a, b): -B_g}`` stacked over the groups ``columns`` (``(columns, da, db)``): how the
     information falls on each pair of variables for a unit rise of each column's ``psi_g``, from the
-    pairs' blocks ``B`` (:func:`_information_blocks`); :func:`covariance_tangent`'s directions."""
-    parts: dict = {}  # (da, db) -> [(a, b, blocks)] of the pairs of that shape
+    pairs' blocks ``B`` (:func:`_information_blocks`, each entry's pairs distinct);
+    :func:`covariance_tangent`'s directions."""
+    parts: dict = {}  # (da, db) -> [(a, b, into, blocks over take)] of the pairs of that shape
     for groups, lo, hi, blocks in B:
         where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
-        if not where:
-            continue
-        into, take = (list(t) for t in zip(*where))
-        block = np.zeros((len(lo), len(columns), *blocks.shape[2:]))
-        block[:, into] = -blocks[:, take]
-        parts.setdefault(blocks.shape[2:], []).append((lo, hi, block))
+        if where:
+            into, take = (list(t) for t in zip(*where))
+            parts.setdefault(blocks.shape[2:], []).append((lo, hi, into, blocks[:, take]))
     out: dict = {}
-    for entries in parts.values():
-        lo, hi, block = _summed_by_pair(*(np.concatenate(x) for x in zip(*entries)))
-        out.update(zip(zip(lo.tolist(), hi.tolist()), block))
+    for shape, entries in parts.items():
+        pairs, at = np.unique(np.concatenate([np.stack([lo, hi], axis=1) for lo, hi, *_ in entries]), axis=0,
+                              return_inverse=True)
+        total = np.zeros((len(pairs), len(columns), *shape))
+        start = 0
+        for lo, _, into, blocks in entries:
+            total[np.ix_(at[start:start + len(lo)], into)] -= blocks  # distinct pairs: no index twice
+            start += len(lo)
+        out.update(zip(map(tuple, pairs.tolist()), total))
     return out
 
 
