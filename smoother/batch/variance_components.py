@@ -332,6 +332,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
         if merged is None:
+            if weak and near:  # the rest's Newton step to where the score vanishes with the weak at the rig's value
+                step[:] = _step_without(F, s, psi_of(psi, ties), weak, active, step)
             psi = _with_step(psi, ties, step)
         if merged is not None:
             a, b = merged
@@ -411,6 +413,24 @@ def _with_step(psi: np.ndarray, ties: list[list[int]], step: np.ndarray) -> np.n
     out = psi.copy()
     for j, tie in enumerate(ties):
         out[tie] += step[j]
+    return out
+
+
+def _step_without(F: np.ndarray, s: np.ndarray, values: np.ndarray, weak: list[int], active: np.ndarray,
+                  step: np.ndarray) -> np.ndarray:
+    """``step`` with the Newton step of the ``active`` parameters not in ``weak`` (those with
+    redundancy) taken to where the linearised score ``s - F d`` vanishes once the ``weak`` ones are
+    back at the rig's value: ``d``, the parameters' change, is ``-values`` on ``weak`` (``values``
+    their log-factors) and nothing on the rest without redundancy."""
+    rest = active.copy()
+    rest[weak] = False
+    out = step.copy()
+    if rest.any():
+        d = np.zeros(len(s))
+        d[weak] = -values[weak]
+        score = s[rest] - F[np.ix_(rest, ~rest)] @ d[~rest]
+        out[rest] = np.clip(FIRST_DAMPING * _pseudo_inverse(F[np.ix_(rest, rest)]) @ score, -MAX_LOG_STEP,
+                            MAX_LOG_STEP)
     return out
 
 
