@@ -720,7 +720,7 @@ def _chunk_sums(u: np.ndarray, Q: np.ndarray, U: np.ndarray) -> tuple:
     quad = np.einsum("ma,mgab,mb->g", u, U, u)
     r = np.einsum("mgaa->g", QU)
     flat, transposed = QU.reshape(M, G, d * d), np.swapaxes(QU, -1, -2).reshape(M, G, d * d)
-    info = 0.5 * np.tensordot(flat, transposed, axes=([0, 2], [0, 2]))  # tr(A B) = vec(A) . vec(B^T)
+    info = 0.5 * (flat @ np.swapaxes(transposed, 1, 2)).sum(axis=0)  # tr(A B) = vec(A) . vec(B^T)
     return quad, r, info
 
 
