@@ -286,7 +286,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         before = (states, calibration)
         states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before)
         q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
-        near = bool(np.all(np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR))
+        close = np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR
+        near = bool(np.all(close))
         moved = None if information is None else np.abs(psi_of(psi, ties) - psi_of(at, ties))
         if near and (moved is None or np.any(moved > RECOMPUTE_SD * np.sqrt(np.diag(_pseudo_inverse(
                 _parameter_information(information, ties)))))):
@@ -332,8 +333,11 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
         if merged is None:
-            if weak and near:  # the rest's Newton step to where the score vanishes with the weak at the rig's value
-                step[:] = _step_without(F, s, psi_of(psi, ties), weak, active, step)
+            if weak and information is not None and np.all(np.delete(close, weak)):
+                # the rest, near the estimate without the weak: their Newton step to where the score
+                # vanishes with the weak back at the rig's value
+                step[:] = _step_without(_parameter_information(information, ties), s, psi_of(psi, ties), weak, active,
+                                        step)
             psi = _with_step(psi, ties, step)
         if merged is not None:
             a, b = merged
