@@ -49,8 +49,10 @@ on the variance factors with the local information's correlations and ``r / 2`` 
 which for a group alone is Foerstner's ``theta <- theta q / r`` and never overshoots; near it,
 damped Newton steps with that information, which follow
 the ridges of correlated components (white noise against random walk) that Foerstner's step
-crawls along. Each iteration re-weights, takes one Gauss-Newton step of the batch problem to the
-optimum of the new weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
+crawls along; where groups leave the fit at the rig's value (below) and the rest are near, the
+rest take the Newton step to where the linearised score vanishes with those back at it. Each
+iteration re-weights, takes one Gauss-Newton step of the batch problem to the optimum of the new
+weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
 
 Groups the data cannot tell apart -- white noise against random walk over a short run, an
 accelerometer's noise against sparse fixes' -- where their estimates' correlation exceeds
