@@ -334,8 +334,9 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             j for j in range(len(ties))
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
+        rest_stepped = bool(weak) and merged is None and information is not None and np.all(np.delete(close, weak))
         if merged is None:
-            if weak and information is not None and np.all(np.delete(close, weak)):
+            if rest_stepped:
                 # the rest, near the estimate without the weak: their Newton step to where the score
                 # vanishes with the weak back at the rig's value
                 step[:] = _step_without(_parameter_information(information, ties), s, psi_of(psi, ties), weak, active,
@@ -346,22 +347,31 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             ties[a] = ties[a] + ties.pop(b)
             psi[ties[a]] = np.mean(psi[ties[a]])
         elif weak:
+            rest = (np.delete(step, weak), np.delete(share, weak))
             for j in sorted(weak, reverse=True):
                 for g in ties[j]:
                     psi[g] = 0.0
                     notes[g] = _not_estimable(sd[j], share[j])
                 del ties[j]
-        elif settled and (kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]):
-            # what the data do not tell from the rig's value stays the rig's; the rest fitted again
-            for j in sorted(kept, reverse=True):
-                for g in ties[j]:
-                    held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
-                               tuple(groups[t].name for t in ties[j] if t != g))
-                    psi[g] = 0.0
-                del ties[j]
-        elif settled:
-            converged = True
-            break
+            # the rest settled already where their step says what the next iteration would find
+            settled = False
+            if rest_stepped and ties:
+                rest_sd = _settled_rest(_parameter_information(information, ties), *rest,
+                                        np.abs(psi_of(psi, ties) - psi_of(at, ties)), ties, groups)
+                settled = rest_sd is not None
+                sd = sd if rest_sd is None else rest_sd
+        if merged is None and settled and ties:
+            if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
+                # what the data do not tell from the rig's value stays the rig's; the rest fitted again
+                for j in sorted(kept, reverse=True):
+                    for g in ties[j]:
+                        held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
+                                   tuple(groups[t].name for t in ties[j] if t != g))
+                        psi[g] = 0.0
+                    del ties[j]
+            else:
+                converged = True
+                break
         if merged is not None or weak or kept:
             last, damping = None, FIRST_DAMPING
         if not ties:
@@ -438,6 +448,21 @@ def _step_without(F: np.ndarray, s: np.ndarray, values: np.ndarray, weak: list[i
         out[rest] = np.clip(FIRST_DAMPING * _pseudo_inverse(F[np.ix_(rest, rest)]) @ score, -MAX_LOG_STEP,
                             MAX_LOG_STEP)
     return out
+
+
+def _settled_rest(F: np.ndarray, step: np.ndarray, share: np.ndarray, moved: np.ndarray, ties: list,
+                  groups: list[NoiseGroup]) -> np.ndarray | None:
+    """The standard deviations of the parameters left after some were dropped, if they settled with
+    ``step`` -- the Newton step of their linearised score, with their information ``F``, from the
+    evaluation they were dropped at (:func:`_step_without`) -- as the next iteration would find them
+    settled: each step within :data:`STEP_TOLERANCE` of its sd, none ``moved`` (from where ``F`` was
+    computed) beyond :data:`RECOMPUTE_SD` of them, and none to be merged or dropped there (two
+    correlating beyond :data:`MERGE_CORRELATION`, a ``share`` of redundancy below
+    :data:`MIN_REDUNDANCY`, an sd beyond :data:`MAX_LOG_SD`); None otherwise."""
+    sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
+    settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3)) and np.all(moved <= RECOMPUTE_SD * sd)
+    kept = np.all(share >= MIN_REDUNDANCY) and np.all(sd <= MAX_LOG_SD) and _merge_candidate(F, ties, groups) is None
+    return sd if settled and kept else None
 
 
 def _not_estimable(sd: float, redundancy: float) -> str:
