@@ -784,14 +784,15 @@ def _falls(B: list, columns: list[int]) -> dict:
             parts.setdefault(blocks.shape[2:], []).append((lo, hi, into, blocks[:, take]))
     out: dict = {}
     for shape, entries in parts.items():
-        pairs, at = np.unique(np.concatenate([np.stack([lo, hi], axis=1) for lo, hi, *_ in entries]), axis=0,
-                              return_inverse=True)
+        lo, hi = (np.concatenate(keys) for keys in zip(*((lo, hi) for lo, hi, *_ in entries)))
+        width = int(hi.max()) + 1
+        pairs, at = np.unique(lo * width + hi, return_inverse=True)
         total = np.zeros((len(pairs), len(columns), *shape))
         start = 0
-        for lo, _, into, blocks in entries:
-            total[np.ix_(at[start:start + len(lo)], into)] -= blocks  # distinct pairs: no index twice
-            start += len(lo)
-        out.update(zip(map(tuple, pairs.tolist()), total))
+        for a, _, into, blocks in entries:
+            total[np.ix_(at[start:start + len(a)], into)] -= blocks  # distinct pairs: no index twice
+            start += len(a)
+        out.update(zip(zip((pairs // width).tolist(), (pairs % width).tolist()), total))
     return out
 
 
@@ -799,7 +800,8 @@ def _summed_by_pair(lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray) -> tuple
     """``(lo, hi, blocks)`` with the blocks of each pair ``(lo, hi)`` summed: the pairs once each,
     in order."""
     order = np.lexsort((hi, lo))
-    lo, hi, blocks = lo[order], hi[order], blocks[order]
+    if np.any(order[1:] < order[:-1]):
+        lo, hi, blocks = lo[order], hi[order], blocks[order]
     starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
     if len(starts) < len(lo):
         blocks = np.add.reduceat(blocks, starts, axis=0)
@@ -822,8 +824,9 @@ def _information_blocks(keys: list, A: list, U: dict) -> list:
                 which = (ks > kt) if flip else (ks <= kt)
                 if not which.any():
                     continue
-                lo, hi = (kt[which], ks[which]) if flip else (ks[which], kt[which])
-                part = np.swapaxes(blocks[which], -1, -2) if flip else blocks[which]
+                a, b, part = (ks, kt, blocks) if which.all() else (ks[which], kt[which], blocks[which])
+                lo, hi = (b, a) if flip else (a, b)
+                part = np.swapaxes(part, -1, -2) if flip else part
                 out.append((groups, *_summed_by_pair(lo, hi, part)))
     return out
 
