@@ -335,6 +335,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
         rest_stepped = bool(weak) and merged is None and information is not None and np.all(np.delete(close, weak))
+        # the weak's way back to the rig's value, in their sds: within RECOMPUTE_SD the information still holds
+        back = np.abs(psi_of(psi, ties)[weak]) <= RECOMPUTE_SD * sd[weak]
         if merged is None:
             if rest_stepped:
                 # the rest, near the estimate without the weak: their Newton step to where the score
@@ -355,7 +357,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                 del ties[j]
             # the rest settled already where their step says what the next iteration would find
             settled = False
-            if rest_stepped and ties:
+            if rest_stepped and np.all(back) and ties:
                 rest_sd = _settled_rest(_parameter_information(information, ties), *rest,
                                         np.abs(psi_of(psi, ties) - psi_of(at, ties)), ties, groups)
                 settled = rest_sd is not None
@@ -454,11 +456,13 @@ def _settled_rest(F: np.ndarray, step: np.ndarray, share: np.ndarray, moved: np.
                   groups: list[NoiseGroup]) -> np.ndarray | None:
     """The standard deviations of the parameters left after some were dropped, if they settled with
     ``step`` -- the Newton step of their linearised score, with their information ``F``, from the
-    evaluation they were dropped at (:func:`_step_without`) -- as the next iteration would find them
-    settled: each step within :data:`STEP_TOLERANCE` of its sd, none ``moved`` (from where ``F`` was
-    computed) beyond :data:`RECOMPUTE_SD` of them, and none to be merged or dropped there (two
-    correlating beyond :data:`MERGE_CORRELATION`, a ``share`` of redundancy below
-    :data:`MIN_REDUNDANCY`, an sd beyond :data:`MAX_LOG_SD`); None otherwise."""
+    evaluation they were dropped at (:func:`_step_without`; the caller takes it only where the
+    dropped ones were within :data:`RECOMPUTE_SD` of their sd of the rig's value, so that ``F``
+    still holds there) -- as the next iteration would find them settled: each step within
+    :data:`STEP_TOLERANCE` of its sd, none ``moved`` (from where ``F`` was computed) beyond
+    :data:`RECOMPUTE_SD` of them, and none to be merged or dropped there (two correlating beyond
+    :data:`MERGE_CORRELATION`, a ``share`` of redundancy below :data:`MIN_REDUNDANCY`, an sd beyond
+    :data:`MAX_LOG_SD`); None otherwise."""
     sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
     settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3)) and np.all(moved <= RECOMPUTE_SD * sd)
     kept = np.all(share >= MIN_REDUNDANCY) and np.all(sd <= MAX_LOG_SD) and _merge_candidate(F, ties, groups) is None
