@@ -49,8 +49,10 @@ on the variance factors with the local information's correlations and ``r / 2`` 
 which for a group alone is Foerstner's ``theta <- theta q / r`` and never overshoots; near it,
 damped Newton steps with that information, which follow
 the ridges of correlated components (white noise against random walk) that Foerstner's step
-crawls along. Each iteration re-weights, takes one Gauss-Newton step of the batch problem to the
-optimum of the new weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
+crawls along; where groups leave the fit at the rig's value (below) and the rest are near, the
+rest take the Newton step to where the linearised score vanishes with those back at it. Each
+iteration re-weights, takes one Gauss-Newton step of the batch problem to the optimum of the new
+weights and evaluates the score there. ``sd(psi_g) = sqrt((F^-1)_gg)``.
 
 Groups the data cannot tell apart -- white noise against random walk over a short run, an
 accelerometer's noise against sparse fixes' -- where their estimates' correlation exceeds
@@ -286,7 +288,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         before = (states, calibration)
         states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before)
         q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
-        near = bool(np.all(np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR))
+        close = np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR
+        near = bool(np.all(close))
         moved = None if information is None else np.abs(psi_of(psi, ties) - psi_of(at, ties))
         if near and (moved is None or np.any(moved > RECOMPUTE_SD * np.sqrt(np.diag(_pseudo_inverse(
                 _parameter_information(information, ties)))))):
@@ -321,37 +324,56 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         # tied to it with a standard deviation that says nothing). A parameter with too little
         # redundancy keeps the rig's value once it falls (heading for a zero variance, it would move
         # on for ever; one that rises may be a density the rig states far too small) or the rest
-        # settle, and so, once they settle, does one the data fix no better than MAX_LOG_SD; then
-        # what the data do not tell from the rig's value stays the rig's
+        # settle, and so does one the data fix no better than MAX_LOG_SD near the estimate (falling,
+        # its information only shrinks on the way to where it would settle); then what the data do
+        # not tell from the rig's value stays the rig's
         merged = _merge_candidate(F, ties, groups) if near else None
-        if merged is None:
-            psi = _with_step(psi, ties, step)
         kept = []
+        falls = (step <= 0.0) & (iterations > 1)
         weak = [] if merged is not None else [
             j for j in range(len(ties))
-            if (share[j] < MIN_REDUNDANCY and (settled or (step[j] <= 0.0 and iterations > 1)))
-            or (settled and sd[j] > MAX_LOG_SD)]
+            if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
+            or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
+        rest_stepped = bool(weak) and merged is None and information is not None and np.all(np.delete(close, weak))
+        # the weak's way back to the rig's value, in their sds: within RECOMPUTE_SD the information still holds
+        back = np.abs(psi_of(psi, ties)[weak]) <= RECOMPUTE_SD * sd[weak]
+        if merged is None:
+            if rest_stepped:
+                # the rest, near the estimate without the weak: their Newton step to where the score
+                # vanishes with the weak back at the rig's value
+                step[:] = _step_without(_parameter_information(information, ties), s, psi_of(psi, ties), weak, active,
+                                        step)
+            psi = _with_step(psi, ties, step)
         if merged is not None:
             a, b = merged
             ties[a] = ties[a] + ties.pop(b)
             psi[ties[a]] = np.mean(psi[ties[a]])
         elif weak:
+            rest = (np.delete(step, weak), np.delete(share, weak))
             for j in sorted(weak, reverse=True):
                 for g in ties[j]:
                     psi[g] = 0.0
                     notes[g] = _not_estimable(sd[j], share[j])
                 del ties[j]
-        elif settled and (kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]):
-            # what the data do not tell from the rig's value stays the rig's; the rest fitted again
-            for j in sorted(kept, reverse=True):
-                for g in ties[j]:
-                    held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
-                               tuple(groups[t].name for t in ties[j] if t != g))
-                    psi[g] = 0.0
-                del ties[j]
-        elif settled:
-            converged = True
-            break
+            # the rest settled already where their step says what the next iteration would find
+            settled = False
+            if rest_stepped and np.all(back) and ties:
+                rest_sd = _settled_rest(_parameter_information(information, ties), *rest,
+                                        np.abs(psi_of(psi, ties) - psi_of(at, ties)), ties, groups)
+                settled = rest_sd is not None
+                sd = sd if rest_sd is None else rest_sd
+        if merged is None and settled and ties:
+            if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
+                # what the data do not tell from the rig's value stays the rig's; the rest fitted again
+                for j in sorted(kept, reverse=True):
+                    for g in ties[j]:
+                        held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
+                                   tuple(groups[t].name for t in ties[j] if t != g))
+                        psi[g] = 0.0
+                    del ties[j]
+            else:
+                converged = True
+                break
         if merged is not None or weak or kept:
             last, damping = None, FIRST_DAMPING
         if not ties:
@@ -410,6 +432,41 @@ def _with_step(psi: np.ndarray, ties: list[list[int]], step: np.ndarray) -> np.n
     for j, tie in enumerate(ties):
         out[tie] += step[j]
     return out
+
+
+def _step_without(F: np.ndarray, s: np.ndarray, values: np.ndarray, weak: list[int], active: np.ndarray,
+                  step: np.ndarray) -> np.ndarray:
+    """``step`` with the Newton step of the ``active`` parameters not in ``weak`` (those with
+    redundancy) taken to where the linearised score ``s - F d`` vanishes once the ``weak`` ones are
+    back at the rig's value: ``d``, the parameters' change, is ``-values`` on ``weak`` (``values``
+    their log-factors) and nothing on the rest without redundancy."""
+    rest = active.copy()
+    rest[weak] = False
+    out = step.copy()
+    if rest.any():
+        d = np.zeros(len(s))
+        d[weak] = -values[weak]
+        score = s[rest] - F[np.ix_(rest, ~rest)] @ d[~rest]
+        out[rest] = np.clip(FIRST_DAMPING * _pseudo_inverse(F[np.ix_(rest, rest)]) @ score, -MAX_LOG_STEP,
+                            MAX_LOG_STEP)
+    return out
+
+
+def _settled_rest(F: np.ndarray, step: np.ndarray, share: np.ndarray, moved: np.ndarray, ties: list,
+                  groups: list[NoiseGroup]) -> np.ndarray | None:
+    """The standard deviations of the parameters left after some were dropped, if they settled with
+    ``step`` -- the Newton step of their linearised score, with their information ``F``, from the
+    evaluation they were dropped at (:func:`_step_without`; the caller takes it only where the
+    dropped ones were within :data:`RECOMPUTE_SD` of their sd of the rig's value, so that ``F``
+    still holds there) -- as the next iteration would find them settled: each step within
+    :data:`STEP_TOLERANCE` of its sd, none ``moved`` (from where ``F`` was computed) beyond
+    :data:`RECOMPUTE_SD` of them, and none to be merged or dropped there (two correlating beyond
+    :data:`MERGE_CORRELATION`, a ``share`` of redundancy below :data:`MIN_REDUNDANCY`, an sd beyond
+    :data:`MAX_LOG_SD`); None otherwise."""
+    sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
+    settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3)) and np.all(moved <= RECOMPUTE_SD * sd)
+    kept = np.all(share >= MIN_REDUNDANCY) and np.all(sd <= MAX_LOG_SD) and _merge_candidate(F, ties, groups) is None
+    return sd if settled and kept else None
 
 
 def _not_estimable(sd: float, redundancy: float) -> str:
@@ -496,6 +553,7 @@ class _NoiseModel:
             if g.axes is not None and g.sensor not in self.rig:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
                 self.rig[g.sensor] = (W, np.linalg.inv(W))
+        self.sensor_derivatives = {i: self._rig_derivative(g) for i, g in enumerate(groups) if g.axes is not None}
         self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
@@ -580,14 +638,17 @@ class _NoiseModel:
                     V = theta[i] * parts[c][rows]
                     out[i] = W @ V @ np.swapaxes(W, -1, -2)
             return out
-        W0, L0 = self.rig[block_name]
-        for i, g in enumerate(self.groups):
-            if g.sensor == block_name:
-                S = np.zeros(W.shape[-1])
-                S[list(g.axes)] = 1.0
-                A = W0[rows] * S[None, None, :] @ L0[rows]  # W S W^-1 = W_0 D^-1 S D L_0, D and S diagonal
-                out[i] = 0.5 * (A + np.swapaxes(A, -1, -2))
-        return out
+        return {i: U[rows] for i, U in self.sensor_derivatives.items() if self.groups[i].sensor == block_name}
+
+    def _rig_derivative(self, group: NoiseGroup) -> np.ndarray:
+        """A sensor group's whitened derivatives ``U_kg (M, d, d)`` over all of its sensor's factors,
+        the same at every ``psi``: ``(W S W^-1 + W^-T S W^T) / 2`` with ``W = W_0 D^-1``, which is
+        ``W_0 S L_0`` symmetrised (``D`` and the group's axes ``S`` diagonal)."""
+        W0, L0 = self.rig[group.sensor]
+        S = np.zeros(W0.shape[-1])
+        S[list(group.axes)] = 1.0
+        A = W0 * S[None, None, :] @ L0
+        return 0.5 * (A + np.swapaxes(A, -1, -2))
 
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
                    step: tuple | None = None, root=None):
@@ -606,8 +667,7 @@ class _NoiseModel:
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
         columns = [g for g in range(G) if self.leveraged(g)]
-        factors = []  # each chunk's kept factors' (keys per slot, A, U): _information_blocks' arguments
-        own = np.zeros((G, G))  # sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg U_kh), h a column
+        factors = []  # each chunk's kept factors' (keys per slot, A, U, H): what _exact reads
         n = len(states)
         for name in dict.fromkeys(g.sensor for g in self.groups):
             block = blocks[self.block_index[name]]
@@ -637,40 +697,24 @@ class _NoiseModel:
                     keep = np.einsum("ma,ma->m", u, u) <= c
                     correction = truncated_mean(d, c)
                 U = self._derivatives(name, rows, psi, W)
-                for i, Ui in U.items():
-                    quad = np.einsum("ma,mab,mb->m", u, Ui, u)[keep]
-                    r = np.einsum("mab,mba->m", Q, Ui)[keep]
-                    quadratic[i] += quad.sum()
-                    expected[i] += correction * r.sum()
-                    redundancy[i] += r.sum()
-                    QU_i = (Q @ Ui)[keep]
-                    for j, Uj in U.items():
-                        if j < i:
-                            continue
-                        QU_j = (Q @ Uj)[keep]
-                        value = 0.5 * np.einsum("mab,mba->", QU_i, QU_j)
-                        information[i, j] += value
-                        if j != i:
-                            information[j, i] += value
+                at = list(U)
+                quad, r, info = _chunk_sums(u[keep], Q[keep], np.stack([U[g][keep] for g in at], axis=1))
+                quadratic[at] += quad
+                expected[at] += correction * r
+                redundancy[at] += r
+                information[np.ix_(at, at)] += info
                 if root is not None:
                     keys = [chunk[:, s] for s in range(chunk.shape[1])]
                     if calibration_key is not None:
                         keys.append(np.full(len(chunk), calibration_key))
                     factors.append(([k[keep] for k in keys], [a[keep] for a in A],
-                                    {g: Ug[keep] for g, Ug in U.items()}))
-                    HU = {g: H[keep] @ U[g][keep] for g in columns if g in U}
-                    for g, HUg in HU.items():
-                        for h, Uh in U.items():
-                            own[h, g] += np.einsum("mab,mba->", Uh[keep], U[g][keep]) - 2.0 * np.einsum(
-                                "mab,mba->", HUg, Uh[keep])
+                                    {g: Ug[keep] for g, Ug in U.items()}, H[keep]))
         exact = None if root is None else (
-            lambda estimated: self._exact(information, [g for g in columns if g in estimated], own,
-                                          [part for chunk in factors for part in _information_blocks(*chunk)], root,
-                                          joint))
+            lambda estimated: self._exact(information, [g for g in columns if g in estimated], factors, root, joint))
         return quadratic, expected, information, redundancy, exact
 
     @staticmethod
-    def _exact(approximate: np.ndarray, columns: list[int], own: np.ndarray, B: list, root, joint: dict) -> np.ndarray:
+    def _exact(approximate: np.ndarray, columns: list[int], factors: list, root, joint: dict) -> np.ndarray:
         """The information ``F_gh = 1/2 tr(P_R V_g P_R V_h)``: ``approximate`` with the ``columns``
         (and rows) exact -- those of the groups of factors with much leverage.
 
@@ -678,34 +722,94 @@ class _NoiseModel:
         Jacobian, ``U_g`` block-diagonal over the factors, ``B_g = A^T U_g A``: the information
         ``A^T A`` falls by ``B_g`` for a unit increase of ``psi_g``), ``tr(M U_g M U_h) = own_hg +
         tr(P B_g P B_h)``: the factors' own terms ``own_hg = sum_k tr(U_kg U_kh) - 2 tr(H_k U_kg
-        U_kh)``, from their hat blocks, and ``tr(X_g B_h)`` with ``X_g = P B_g P`` the change of the
-        covariance for a unit increase of ``psi_g``, needed only on the pairs of variables ``B_h``
-        is on: those of a factor, a conditional and its parent. That is what
+        U_kh)``, from their hat blocks (:func:`_own_terms`), and ``tr(X_g B_h)`` with ``X_g = P B_g P``
+        the change of the covariance for a unit increase of ``psi_g``, needed only on the pairs of
+        variables ``B_h`` is on: those of a factor, a conditional and its parent. That is what
         :func:`~smoother.model.covariances.covariance_tangent` differentiates, from the system's
         conditionals ``root`` and covariance blocks ``joint``, for all columns in one sweep: no
-        other elimination. ``B``: the pairs' ``B_g`` (:func:`_information_blocks`)."""
+        other elimination. ``factors``: each chunk's kept factors' ``(keys per slot, A per slot,
+        {group: U}, H)`` (:meth:`statistics`), whose pairs' ``B_g`` :func:`_information_blocks` sums."""
         if not columns:
             return approximate
-        information: dict = {}  # dLambda = -B_g, stacked over the columns
-        for groups, lo, hi, blocks in B:
-            where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
-            if not where:
-                continue
-            into, take = zip(*where)
-            for a, b, block in zip(lo.tolist(), hi.tolist(), blocks[:, list(take)]):
-                if (a, b) not in information:
-                    information[(a, b)] = np.zeros((len(columns), *block.shape[1:]))
-                information[(a, b)][list(into)] -= block
-        tangent = covariance_tangent(root, joint, information)
+        B = [part for keys, A, U, _ in factors for part in _information_blocks(keys, A, U)]
+        tangent = covariance_tangent(root, joint, _falls(B, columns))
         cross = np.zeros((len(approximate), len(columns)))
         for groups, lo, hi, blocks in B:
             X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
-            cross[groups] += np.einsum("p,pgab,pxab->gx", np.where(lo == hi, 1.0, 2.0), blocks, X)
-        exact = 0.5 * (own[:, columns] + cross)
+            P, G = blocks.shape[:2]
+            per = blocks.reshape(P, G, -1) @ np.swapaxes(X.reshape(P, X.shape[1], -1), 1, 2)  # tr(B_pg X_px^T)
+            cross[groups] += np.einsum("p,pgx->gx", np.where(lo == hi, 1.0, 2.0), per)
+        exact = 0.5 * (_own_terms(factors, columns, len(approximate)) + cross)
         F = approximate.copy()
         F[:, columns] = exact
         F[columns, :] = exact.T
         return _positive_definite(F)
+
+
+def _chunk_sums(u: np.ndarray, Q: np.ndarray, U: np.ndarray) -> tuple:
+    """Over factors with whitened residuals ``u (M, d)``, residual covariances ``Q = I - H``
+    ``(M, d, d)`` and whitened derivatives ``U (M, groups, d, d)``, per group ``g``:
+    ``sum u^T U_g u``, ``sum tr(Q U_g)`` and, per two groups, ``1/2 sum tr(Q U_g Q U_h)``."""
+    M, G, d = U.shape[:3]
+    QU = Q[:, None] @ U
+    quad = np.einsum("ma,mgab,mb->g", u, U, u)
+    r = np.einsum("mgaa->g", QU)
+    flat, transposed = QU.reshape(M, G, d * d), np.swapaxes(QU, -1, -2).reshape(M, G, d * d)
+    info = 0.5 * (flat @ np.swapaxes(transposed, 1, 2)).sum(axis=0)  # tr(A B) = vec(A) . vec(B^T)
+    return quad, r, info
+
+
+def _own_terms(factors: list, columns: list[int], G: int) -> np.ndarray:
+    """``(G, columns)``: ``sum_k tr(U_kh U_kg) - 2 tr(H_k U_kg U_kh)`` over the factors ``k`` of
+    every chunk of ``factors`` (:meth:`_NoiseModel._exact`), ``h`` any group, ``g`` a column."""
+    own = np.zeros((G, len(columns)))
+    for _, _, U, H in factors:
+        into = [x for x, g in enumerate(columns) if g in U]
+        if not into:
+            continue
+        groups = list(U)
+        Us = np.stack([U[g] for g in groups], axis=1)
+        Uc = np.stack([U[columns[x]] for x in into], axis=1)
+        HU = H[:, None] @ Uc
+        own[np.ix_(groups, into)] += np.einsum("mhab,mgba->hg", Us, Uc) - 2.0 * np.einsum("mgab,mhba->hg", HU, Us)
+    return own
+
+
+def _falls(B: list, columns: list[int]) -> dict:
+    """``{(a, b): -B_g}`` stacked over the groups ``columns`` (``(columns, da, db)``): how the
+    information falls on each pair of variables for a unit rise of each column's ``psi_g``, from the
+    pairs' blocks ``B`` (:func:`_information_blocks`, each entry's pairs distinct);
+    :func:`covariance_tangent`'s directions."""
+    parts: dict = {}  # (da, db) -> [(a, b, into, blocks over take)] of the pairs of that shape
+    for groups, lo, hi, blocks in B:
+        where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
+        if where:
+            into, take = (list(t) for t in zip(*where))
+            parts.setdefault(blocks.shape[2:], []).append((lo, hi, into, blocks[:, take]))
+    out: dict = {}
+    for shape, entries in parts.items():
+        lo, hi = (np.concatenate(keys) for keys in zip(*((lo, hi) for lo, hi, *_ in entries)))
+        width = int(hi.max()) + 1
+        pairs, at = np.unique(lo * width + hi, return_inverse=True)
+        total = np.zeros((len(pairs), len(columns), *shape))
+        start = 0
+        for a, _, into, blocks in entries:
+            total[np.ix_(at[start:start + len(a)], into)] -= blocks  # distinct pairs: no index twice
+            start += len(a)
+        out.update(zip(zip((pairs // width).tolist(), (pairs % width).tolist()), total))
+    return out
+
+
+def _summed_by_pair(lo: np.ndarray, hi: np.ndarray, blocks: np.ndarray) -> tuple:
+    """``(lo, hi, blocks)`` with the blocks of each pair ``(lo, hi)`` summed: the pairs once each,
+    in order."""
+    order = np.lexsort((hi, lo))
+    if np.any(order[1:] < order[:-1]):
+        lo, hi, blocks = lo[order], hi[order], blocks[order]
+    starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
+    if len(starts) < len(lo):
+        blocks = np.add.reduceat(blocks, starts, axis=0)
+    return lo[starts], hi[starts], blocks
 
 
 def _information_blocks(keys: list, A: list, U: dict) -> list:
@@ -724,14 +828,10 @@ def _information_blocks(keys: list, A: list, U: dict) -> list:
                 which = (ks > kt) if flip else (ks <= kt)
                 if not which.any():
                     continue
-                lo, hi = (kt[which], ks[which]) if flip else (ks[which], kt[which])
-                part = np.swapaxes(blocks[which], -1, -2) if flip else blocks[which]
-                order = np.lexsort((hi, lo))
-                lo, hi, part = lo[order], hi[order], part[order]
-                starts = np.flatnonzero(np.r_[True, (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
-                if len(starts) < len(lo):
-                    part = np.add.reduceat(part, starts, axis=0)
-                out.append((groups, lo[starts], hi[starts], part))
+                a, b, part = (ks, kt, blocks) if which.all() else (ks[which], kt[which], blocks[which])
+                lo, hi = (b, a) if flip else (a, b)
+                part = np.swapaxes(part, -1, -2) if flip else part
+                out.append((groups, *_summed_by_pair(lo, hi, part)))
     return out
 
 
