@@ -231,6 +231,92 @@ def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:  # no
             dWf[row + a * _IW + 3 + m] += h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
 
 
+#: The length of the work array of one interval's integration (:func:`_integrate_kernel`).
+INTEGRATION_ROWS = 27 * _IW + 27
+
+
+@block_operation
+def _integration_views(rows):
+    """The views of an interval's integration work array ``rows`` (:func:`_integrate_kernel`):
+    ``W, Rm, dC W, dW, dRm`` in flat rows of ``_IW`` columns, and ``dC``, ``JC`` and a 3x3 scratch."""
+    Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
+    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:27 * _IW]
+    D = rows[27 * _IW:27 * _IW + 9].reshape((3, 3))
+    JCj = rows[27 * _IW + 9:27 * _IW + 18].reshape((3, 3))
+    tmp = rows[27 * _IW + 18:].reshape((3, 3))
+    return Wf, Rf, dCW, dWf, dRf, D, JCj, tmp
+
+
+@block_operation
+def _integration_start(rows) -> None:
+    """``rows`` at an interval's start: ``W_0 = [I | 0 | 0 | 0]``, ``Rm_0 = 0``, ``dW_0 = dRm_0 = 0``,
+    ``dC_0 = I``, ``JC_0 = 0``."""
+    rows[:] = 0.0
+    for a in range(3):
+        rows[a * _IW + a] = 1.0
+        rows[27 * _IW + 4 * a] = 1.0
+
+
+@block_operation
+def _integration_steps(acc, gyro, dt, b_w_bar, j, rows) -> None:
+    """The samples ``k`` of interval ``j`` (``acc[j, k]``, ``gyro[j, k]``, ``dt[j, k]``) stepped into
+    the integration ``rows`` in place, from whatever they hold (:func:`_integration_start`, or the
+    steps before). Samples with ``dt = 0`` are identity steps and skipped."""
+    Wf, Rf, dCW, dWf, dRf, D, JCj, tmp = _integration_views(rows)
+    for k in range(dt.shape[1]):
+        h = dt[j, k]
+        if h <= 0.0:
+            continue
+        w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
+        Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
+        d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
+                                                       D[2, 0], D[2, 1], D[2, 2])
+        for c in range(_IW):  # dC W
+            x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+            dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
+            dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
+            dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
+        # the three bias axes, each inlined with its axis a constant
+        _bias_slice_step(0, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+        _bias_slice_step(1, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+        _bias_slice_step(2, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+        # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
+        for c in range(_IW):
+            x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+            Rf[c] += h * dCW[c]
+            Rf[_IW + c] += h * dCW[_IW + c]
+            Rf[2 * _IW + c] += h * dCW[2 * _IW + c]
+            Wf[c] = x0 - h * (w1 * x2 - w2 * x1)
+            Wf[_IW + c] = x1 - h * (w2 * x0 - w0 * x2)
+            Wf[2 * _IW + c] = x2 - h * (w0 * x1 - w1 * x0)
+        for a in range(3):
+            for b in range(3):
+                Wf[a * _IW + 3 + b] += h * D[b, a]
+            Wf[a * _IW + 6] += h * acc[j, k, a]
+            Wf[a * _IW + 7 + a] += h
+        # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
+        for a in range(3):
+            for b in range(3):
+                JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
+                tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
+        for a in range(3):
+            for b in range(3):
+                D[a, b] = tmp[a, b]
+
+
+@block_operation
+def _integration_out(rows, j, dC, W, Rm, JC, dW, dRm) -> None:
+    """The integration ``rows`` copied into row ``j`` of the outputs."""
+    Wf, Rf, dCW, dWf, dRf, D, JCj, tmp = _integration_views(rows)
+    for a in range(3):
+        for b in range(3):
+            dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
+        for c in range(10):
+            W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
+            for l in range(3):  # noqa: E741 -- the bias axis l of the module docstring
+                dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
+
+
 @recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     """The recursions of the module docstring with the gyro-bias Jacobians ``JC, dW, dRm``, for
@@ -244,63 +330,11 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     product. ``dC`` and ``JC`` of the interval live in the same work array (copied out at its
     end), so LLVM knows that no store into one of them changes another. Samples with ``dt = 0``
     are identity steps and skipped."""
-    rows = np.empty(27 * _IW + 27)  # one array (see _IW)
-    Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
-    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:27 * _IW]
-    D = rows[27 * _IW:27 * _IW + 9].reshape((3, 3))
-    JCj = rows[27 * _IW + 9:27 * _IW + 18].reshape((3, 3))
-    tmp = rows[27 * _IW + 18:].reshape((3, 3))
+    rows = np.empty(INTEGRATION_ROWS)  # one array (see _IW)
     for j in range(lo, hi):
-        rows[:] = 0.0  # W_0 = [I | 0 | 0 | 0], Rm_0 = 0, dW_0 = dRm_0 = 0, dC_0 = I, JC_0 = 0
-        for a in range(3):
-            Wf[a * _IW + a] = 1.0
-            D[a, a] = 1.0
-        for k in range(dt.shape[1]):
-            h = dt[j, k]
-            if h <= 0.0:
-                continue
-            w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
-            Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
-            d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
-                                                           D[2, 0], D[2, 1], D[2, 2])
-            for c in range(_IW):  # dC W
-                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-                dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
-                dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
-                dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
-            # the three bias axes, each inlined with its axis a constant
-            _bias_slice_step(0, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-            _bias_slice_step(1, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-            _bias_slice_step(2, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-            # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
-            for c in range(_IW):
-                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-                Rf[c] += h * dCW[c]
-                Rf[_IW + c] += h * dCW[_IW + c]
-                Rf[2 * _IW + c] += h * dCW[2 * _IW + c]
-                Wf[c] = x0 - h * (w1 * x2 - w2 * x1)
-                Wf[_IW + c] = x1 - h * (w2 * x0 - w0 * x2)
-                Wf[2 * _IW + c] = x2 - h * (w0 * x1 - w1 * x0)
-            for a in range(3):
-                for b in range(3):
-                    Wf[a * _IW + 3 + b] += h * D[b, a]
-                Wf[a * _IW + 6] += h * acc[j, k, a]
-                Wf[a * _IW + 7 + a] += h
-            # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-            for a in range(3):
-                for b in range(3):
-                    JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
-                    tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
-            for a in range(3):
-                for b in range(3):
-                    D[a, b] = tmp[a, b]
-        for a in range(3):
-            for b in range(3):
-                dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
-            for c in range(10):
-                W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
-                for l in range(3):  # noqa: E741 -- the bias axis l of the module docstring
-                    dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
+        _integration_start(rows)
+        _integration_steps(acc, gyro, dt, b_w_bar, j, rows)
+        _integration_out(rows, j, dC, W, Rm, JC, dW, dRm)
 
 
 @recursion
@@ -723,21 +757,30 @@ def partial_work(K) -> tuple:
     return (np.empty((1, K, 3)), np.empty((1, K, 3)), np.empty((1, K)), np.empty((1, 3)), np.empty((1, 3, 3)),
             np.empty((1, 3, 10)), np.empty((1, 3, 10)), np.empty((1, 3, 3)), np.empty((1, 3, 10, 3)),
             np.empty((1, 3, 10, 3)), residual_work(), np.empty((1, 3)), np.empty((1, 3)), np.empty((1, 3, 3)),
-            np.empty((1, imu.STATE_DIM, imu.STATE_DIM)))
+            np.empty((1, imu.STATE_DIM, imu.STATE_DIM)), np.empty(INTEGRATION_ROWS), np.empty(INTEGRATION_ROWS),
+            np.zeros(1, dtype=np.int64))
 
 
 @recursion
-def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, jacobians) -> None:
+def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, jacobians,
+                            resume) -> None:
     """The state ``x_m = (xr, xv, xC, b_f, b_w)`` at the end of the first ``n`` steps of an
     interval's samples ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``,
     from the state ``x = (r, v, C, b_f, b_w)`` at its start, and with ``jacobians`` its Jacobian
     ``J (15, 15)`` with respect to ``x``'s error state: a partial interval preintegrated
-    (:func:`_integrate_kernel`) around ``x``'s own gyro bias, so that the prediction is the exact
-    product of the primer's Euler steps (no first-order bias correction), and its Jacobian
+    (:func:`_integrate_kernel`'s steps) around ``x``'s own gyro bias, so that the prediction is the
+    exact product of the primer's Euler steps (no first-order bias correction), and its Jacobian
     :func:`prediction_jacobian_into` (the gyro-bias column from the bias Jacobians of the
     recursions). ``pw`` from :func:`partial_work` with at least ``n`` steps. What a measurement
-    between keyframes is evaluated at (:func:`datasets.kinds.attached_into`)."""
+    between keyframes is evaluated at (:func:`datasets.kinds.attached_into`).
+
+    ``pw`` keeps the integration of the steps before the cut one: with ``resume``, the call before
+    on ``pw`` was for the same interval's samples and gyro bias and at most ``n`` steps, and this
+    one continues from there rather than from the interval's start -- the same steps in the same
+    order, so the same numbers, each step integrated once for all the measurements of an interval
+    taken in time order."""
     A, G, D, bbar, dC, W, Rm, JC, dW, dRm, work = pw[:11]
+    prefix, cut, done = pw[15], pw[16], pw[17]
     for k in range(D.shape[1]):
         if k < n:
             for a in range(3):
@@ -747,8 +790,15 @@ def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr,
             D[0, k] = 0.0
     for a in range(3):
         bbar[0, a] = b_w[a]
-    lo, hi = np.int64(0), np.int64(1)
-    _integrate_kernel(A, G, D, bbar, lo, hi, dC, W, Rm, JC, dW, dRm)
+    if not resume or done[0] > n - 1:
+        _integration_start(prefix)
+        done[0] = 0
+    if n - 1 > done[0]:
+        _integration_steps(A[:, done[0]:n - 1], G[:, done[0]:n - 1], D[:, done[0]:n - 1], bbar, 0, prefix)
+        done[0] = n - 1
+    cut[:] = prefix
+    _integration_steps(A[:, n - 1:n], G[:, n - 1:n], D[:, n - 1:n], bbar, 0, cut)
+    _integration_out(cut, 0, dC, W, Rm, JC, dW, dRm)
     _predict_into(dC[0], W[0], Rm[0], JC[0], dW[0], dRm[0], bbar[0], r, v, C, b_f, b_w, g, xr, xv, xC, work)
     if jacobians:
         prediction_jacobian_into(C, work[1], work[2], JC[0], dW[0], dRm[0], work[8], work[7], work[9], work[3], work[4],

@@ -231,7 +231,7 @@ def attached_work(K) -> tuple:
 
 @njit(cache=True)
 def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, cal, calibrated, with_time, hacc,
-                  hgyro, g, e, H, Hc, work, jacobians) -> None:
+                  hgyro, g, e, H, Hc, work, jacobians, resume=False) -> None:
     """``e (d)``, ``H (d, 15)`` (and ``H_c (d, 8)`` where ``calibrated``) of one measurement
     ``row`` of ``MODELS[model]`` ATTACHED to the keyframe state ``x = (r, v, C, b_f, b_w)``: taken
     after the keyframe, at the end of the first ``n`` steps of the keyframe's interval
@@ -246,9 +246,11 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
         e(x, c) = e_m(f(x), c),    H = H_m F_m,    H_c = H_c,m
 
     ``e`` alone (``H``, ``H_c`` untouched) without ``jacobians``; ``work`` from
-    :func:`attached_work`. The measurement's noise is that of the model at ``x_m``; the process
-    noise between the keyframe and the measurement is the caller's (the measurement's
-    covariance, :func:`smoother.model.problem.attached_covariance`)."""
+    :func:`attached_work`, ``resume`` as :func:`factors.preintegration.partial_prediction_into`'s (the
+    call before on ``work`` a measurement of the same interval and keyframe, at most as late). The
+    measurement's noise is that of the model at ``x_m``; the process noise between the keyframe
+    and the measurement is the caller's (the measurement's covariance,
+    :func:`smoother.model.problem.attached_covariance`)."""
     pw, cwork, flat = work
     d = e.shape[0]
     xr, xv, xC = flat[0:3], flat[3:6], flat[6:15].reshape((3, 3))
@@ -256,7 +258,7 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
     o = 15 + imu.STATE_DIM * imu.STATE_DIM
     Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
     preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw,
-                                           jacobians)
+                                           jacobians, resume)
     if calibrated:
         calibrated_into(model, lay, xr, xv, xC, b_f, b_w, row, cal, with_time, hacc, hgyro, g, e, Hm, Hc, cwork,
                         jacobians)
@@ -273,8 +275,11 @@ def _attached_rows(model, lay, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, la
     for m in range(rows.shape[0]):
         j = m if jacobians else 0
         k = interval[m]
+        # the steps before it integrated for the measurement before, of the same interval and keyframe
+        resume = (m > 0 and k == interval[m - 1] and n[m] >= n[m - 1] and b_w[m, 0] == b_w[m - 1, 0]
+                  and b_w[m, 1] == b_w[m - 1, 1] and b_w[m, 2] == b_w[m - 1, 2])
         attached_into(model, lay, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],
-                      cal, calibrated, with_time, hacc[m], hgyro[m], g, e[m], H[j], Hc[j], work, jacobians)
+                      cal, calibrated, with_time, hacc[m], hgyro[m], g, e[m], H[j], Hc[j], work, jacobians, resume)
 
 
 def attached_rows(kind: Kind, states, samples: tuple, interval, steps, last_dt, rows: np.ndarray, c=None,
@@ -357,7 +362,8 @@ def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row
     HT = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
     o += sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
     e = flat[o:o + d]
-    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, False)
+    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, False,
+                                           False)
     measure_into(model, xr, xv, xC, b_f, b_w, row, e, Hm)
     preintegration.partial_covariance_into(v, C, b_f, g, q, S, pw)
     for a in range(d):

@@ -140,3 +140,34 @@ def test_attached_noise_is_the_measurements_share_of_the_predictions_covariance(
     got = attached_noise(kind, states, samples, interval, steps, last, rows, noise)
     scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
     np.testing.assert_allclose(got / scale, expected / scale, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("kind", [KINDS["velocity"], KINDS["gnss"]], ids=lambda k: k.name)
+def test_measurements_of_one_interval_in_time_order_equal_each_taken_alone(kind):
+    """Several measurements attached to each keyframe, in time order: each continues the
+    integration of the one before (the same interval, keyframe and gyro bias; at most as many
+    steps), and every residual and Jacobian equals, to the bit, the measurement's alone; in any
+    other order, or between keyframes with another bias, they start again and agree too."""
+    rng = np.random.default_rng(5)
+    J, K, per = 12, 9, 7
+    acc, gyro = rng.normal(size=(J, K, 3)) * 3, rng.normal(size=(J, K, 3)) * 3
+    dt = rng.uniform(2e-3, 5e-3, size=(J, 1)) * np.ones((1, K))
+    keyframes, rows = _points(kind, rng, J)
+    interval = np.repeat(np.arange(J), per)
+    steps = np.sort(rng.integers(1, K + 1, size=(J, per)), axis=1).ravel()
+    steps[5] = steps[4]  # two at the same step, the later cut later
+    last = rng.uniform(1e-3, 1.0, size=J * per) * dt[interval, steps - 1]
+    last[5] = max(last[4], last[5])
+    states, readings = keyframes[interval], rows[interval]
+    states = states.replace(b_w=np.where((np.arange(J * per) == 3 * per + 2)[:, None], states.b_w + 1e-3, states.b_w))
+    c = calibration.Calibration.of(time_offset=0.004)
+    together = attached_rows(kind, states, (acc, gyro, dt), interval, steps, last, readings, c, None)
+    alone = [attached_rows(kind, states[m:m + 1], (acc, gyro, dt), interval[m:m + 1], steps[m:m + 1],
+                           last[m:m + 1], readings[m:m + 1], c, None) for m in range(J * per)]
+    for got, want in zip(together, zip(*alone)):
+        assert np.array_equal(got, np.concatenate(want))
+    order = rng.permutation(J * per)
+    shuffled = attached_rows(kind, states[order], (acc, gyro, dt), interval[order], steps[order], last[order],
+                             readings[order], c, None)
+    for got, want in zip(shuffled, together):
+        assert np.array_equal(got, want[order])
