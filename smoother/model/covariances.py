@@ -315,23 +315,20 @@ def _eliminated(graph: gtsam.GaussianFactorGraph, layout: Layout) -> tuple[list,
     factor on a calibration variable sends GTSAM's elimination tree walking from its keyframe
     to the root (:meth:`Layout.ordering`): they are not eliminated with the keyframes."""
     ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
+    pieces = [ordering]
     if layout.chain:
-        keyframes = list(range(layout.n))
-        pieces = [keyframes[at:at + SWEEP_PIECE] for at in range(0, layout.n, SWEEP_PIECE)]
-        pieces.append(list(range(layout.n, layout.n + len(layout.extra))))
-    else:
-        pieces = [[int(ordering.at(i)) for i in range(ordering.size())]]
+        pieces = [gtsam.Ordering(gtsam.KeyVector(list(range(at, min(at + SWEEP_PIECE, layout.n)))))
+                  for at in range(0, layout.n, SWEEP_PIECE)]
+        if layout.extra:
+            pieces.append(gtsam.Ordering(gtsam.KeyVector(list(range(layout.n, layout.n + len(layout.extra))))))
     keys, R, S, d = [], [], [], []
     remaining = graph
     try:
         for j, piece in enumerate(pieces):
-            if not piece:
-                continue
-            order = gtsam.Ordering(gtsam.KeyVector(piece))
             if j == len(pieces) - 1:
-                net = remaining.eliminateSequential(order, gtsam.EliminateQR)
+                net = remaining.eliminateSequential(piece, gtsam.EliminateQR)
             else:
-                net, remaining = remaining.eliminatePartialSequential(order, gtsam.EliminateQR)
+                net, remaining = remaining.eliminatePartialSequential(piece, gtsam.EliminateQR)
             for i in range(net.size()):  # copies: GTSAM's arrays are views into the net
                 conditional = net.at(i)
                 keys.append([int(k) for k in conditional.keys()])
