@@ -656,6 +656,91 @@ def stepped_into(r, v, C, b_f, b_w, acc, gyro, dt, g, out_r, out_v, out_C, F, ra
     _state_from(s, out_r, out_v, out_C)
 
 
+# A measurement between keyframes is taken at the state the Euler steps reach from its keyframe:
+# the first n - 1 steps of the keyframe's interval, then the n-th cut at the measurement's time.
+# The state is stepped as the EKF steps it (:func:`step_state`) and its Jacobian with respect to the
+# keyframe's error state is the product of the steps' transitions, J <- F J = J + A J with A = F - I
+# applied by the covariance step's own operator (:func:`_apply_A`): F is the exact Jacobian of one
+# step, so the product is the exact Jacobian of the prediction. The steps before the cut one are
+# kept in the work array, so the measurements of one interval taken in time order each continue
+# where the one before stopped (every step once per interval, the same steps in the same order).
+
+#: Offsets into :func:`partial_work`: the steps so far (a step array, ``STEP_SIZE``), their
+#: Jacobian (15 flat rows of ``_W``), the cut step's copies of both, ``A J`` (9 rows), and two
+#: counters: the steps taken and whether the Jacobian was kept.
+_P_S = 0
+_P_J = _P_S + STEP_SIZE
+_P_S2 = _P_J + STATE_DIM * _W
+_P_J2 = _P_S2 + STEP_SIZE
+_P_AJ = _P_J2 + STATE_DIM * _W
+_P_DONE = _P_AJ + 9 * _W
+_P_WITH_J = _P_DONE + 1
+PARTIAL_WORK = _P_WITH_J + 1
+
+
+@recursion
+def partial_work() -> np.ndarray:
+    """The work array of :func:`partial_prediction_into`: allocate once per loop over measurements."""
+    return np.zeros(PARTIAL_WORK)
+
+
+@block_operation
+def _chain_step(s, J, AJ, acc, gyro, h, b_f, b_w, jacobians) -> None:
+    """One step of ``h`` with the reading ``acc, gyro`` of the state in ``s`` and, with
+    ``jacobians``, of its Jacobian ``J`` (flat) to ``F J``; ``h <= 0`` is the identity step."""
+    if h <= 0.0:
+        return
+    w0, w1, w2 = gyro[0] - b_w[0], gyro[1] - b_w[1], gyro[2] - b_w[2]
+    step_quantities(s, w0, w1, w2, h)
+    if jacobians:
+        _apply_A(J, s[_S_Q:], AJ)
+        for t in range(9 * _W):
+            J[t] += AJ[t]
+    step_state(s, acc[0] - b_f[0], acc[1] - b_f[1], acc[2] - b_f[2], w0, w1, w2)
+
+
+@recursion
+def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, work, jacobians,
+                            resume) -> None:
+    """The state ``x_m = (xr, xv, xC, b_f, b_w)`` at the end of the first ``n >= 1`` steps of an
+    interval's samples ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``,
+    from the state ``x = (r, v, C, b_f, b_w)`` at its start: the Euler steps of
+    :func:`step_state`, and with ``jacobians`` the Jacobian ``J (15, 15)`` of ``x_m`` with respect
+    to ``x``'s error state, the product of the steps' ``F``. What a measurement between keyframes
+    is evaluated at (:func:`datasets.kinds.attached_into`); ``work`` from :func:`partial_work`.
+
+    With ``resume``, the call before on ``work`` was for the same interval's samples from the same
+    state, at most ``n`` steps long, and this one continues from the steps it took rather than
+    from the interval's start: the same steps in the same order, so the same numbers."""
+    s, Jp = work[_P_S:_P_J], work[_P_J:_P_S2]
+    s2, J2, AJ = work[_P_S2:_P_J2], work[_P_J2:_P_AJ], work[_P_AJ:_P_DONE]
+    done = int(work[_P_DONE])
+    if not resume or done > n - 1 or (jacobians and work[_P_WITH_J] == 0.0):
+        _state_into(s, r, v, C, g)
+        if jacobians:
+            for t in range(STATE_DIM * _W):
+                Jp[t] = 0.0
+            for t in range(STATE_DIM):
+                Jp[t * _W + t] = 1.0
+        work[_P_WITH_J] = 1.0 if jacobians else 0.0
+        done = 0
+    keep = work[_P_WITH_J] != 0.0
+    for k in range(done, n - 1):
+        _chain_step(s, Jp, AJ, acc[k], gyro[k], dt[k], b_f, b_w, keep)
+    work[_P_DONE] = n - 1
+    for t in range(_S_E):  # the state and gravity; the step recomputes the rest
+        s2[t] = s[t]
+    if jacobians:
+        for t in range(STATE_DIM * _W):
+            J2[t] = Jp[t]
+    _chain_step(s2, J2, AJ, acc[n - 1], gyro[n - 1], last_dt, b_f, b_w, jacobians)
+    _state_from(s2, xr, xv, xC)
+    if jacobians:
+        for i in range(STATE_DIM):
+            for k in range(STATE_DIM):
+                J[i, k] = J2[i * _W + k]
+
+
 def state_derivative(state: ImuState, acc, gyro, gravity=DEFAULT_GRAVITY) -> np.ndarray:
     """The error-state rate ``(..., 15)`` of the continuous model at ``state`` with the IMU
     reading ``acc, gyro``: ``(C v, f - b_f + C^T g - w x v, C w, 0, 0)`` with ``w = gyro - b_w``

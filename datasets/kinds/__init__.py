@@ -33,14 +33,14 @@ from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, 
 from datasets.kinds.base import Clock, Kind, kind_sigmas
 from datasets.ranges import SIGMA_RANGES
 from datasets.types import Dataset, Sensor
-from factors import calibration, imu, jacobians, preintegration, selfcheck
+from factors import calibration, imu, jacobians, selfcheck
 from factors import sensor_models as sm
 from factors.errors import InputError
 from factors.selfcheck import random_rotation
 from factors.small_linalg import matmul_into
 
 __all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "attached_into", "attached_noise",
-           "attached_noise_into", "attached_rows", "attached_work",
+           "attached_noise_into", "attached_noise_work", "attached_rows", "attached_work",
            "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into", "measure_rows",
            "model_index", "quiet_dispatch", "registered", "sensors_of"]
 
@@ -215,18 +215,16 @@ def calibrated_rows(kind: Kind, states, rows: np.ndarray, c, imu_at=None, gravit
     return (e, H, Hc) if jacobians else (e, None, None)
 
 
-#: Length of the flat part of :func:`attached_work`: the predicted state ``(r, v, C)``, its
-#: Jacobian and the model's Jacobian at it; for :func:`attached_noise_into` also the model's
-#: residual, the prediction's covariance and the Jacobian in its coordinates.
-_ATTACHED_FLAT = (3 + 3 + 9 + 2 * imu.STATE_DIM * imu.STATE_DIM + 2 * sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
-                  + sm.MAX_RESIDUAL_DIM)
+#: Length of the flat part of :func:`attached_work` and :func:`attached_noise_work`: the predicted
+#: state ``(r, v, C)``, its Jacobian (or, for :func:`attached_noise_into`, its covariance), the
+#: model's Jacobian and residual at it.
+_ATTACHED_FLAT = 3 + 3 + 9 + imu.STATE_DIM * imu.STATE_DIM + sm.MAX_RESIDUAL_DIM * imu.STATE_DIM + sm.MAX_RESIDUAL_DIM
 
 
 @njit(cache=True)
-def attached_work(K) -> tuple:
-    """Work arrays of :func:`attached_into` for intervals of up to ``K`` steps; allocate once per
-    loop over measurements."""
-    return preintegration.partial_work(K), calibration.work_array(), np.empty(_ATTACHED_FLAT)
+def attached_work() -> tuple:
+    """Work arrays of :func:`attached_into`; allocate once per loop over measurements."""
+    return imu.partial_work(), calibration.work_array(), np.empty(_ATTACHED_FLAT)
 
 
 @njit(cache=True)
@@ -238,7 +236,7 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
     ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``. Its state is the
     exact product of the primer's Euler steps from ``x`` (a partial interval preintegrated
     around ``x``'s gyro bias), ``x_m = f(x)``, and its Jacobian ``F_m = dx_m/dx``
-    (:func:`factors.preintegration.partial_prediction_into`); the measurement is the model's
+    (:func:`factors.imu.partial_prediction_into`); the measurement is the model's
     (:func:`measure_into`), or through its calibration ``cal`` (:func:`calibrated_into`: the
     time offset one more Euler step from ``x_m`` with the IMU reading ``hacc, hgyro`` held at its
     stamp), at ``x_m``, so that by the chain rule
@@ -246,7 +244,7 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
         e(x, c) = e_m(f(x), c),    H = H_m F_m,    H_c = H_c,m
 
     ``e`` alone (``H``, ``H_c`` untouched) without ``jacobians``; ``work`` from
-    :func:`attached_work`, ``resume`` as :func:`factors.preintegration.partial_prediction_into`'s (the
+    :func:`attached_work`, ``resume`` as :func:`factors.imu.partial_prediction_into`'s (the
     call before on ``work`` a measurement of the same interval and keyframe, at most as late). The
     measurement's noise is that of the model at ``x_m``; the process noise between the keyframe
     and the measurement is the caller's (the measurement's covariance,
@@ -257,8 +255,8 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
     J = flat[15:15 + imu.STATE_DIM * imu.STATE_DIM].reshape((imu.STATE_DIM, imu.STATE_DIM))
     o = 15 + imu.STATE_DIM * imu.STATE_DIM
     Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
-    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw,
-                                           jacobians, resume)
+    imu.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, jacobians,
+                                resume)
     if calibrated:
         calibrated_into(model, lay, xr, xv, xC, b_f, b_w, row, cal, with_time, hacc, hgyro, g, e, Hm, Hc, cwork,
                         jacobians)
@@ -271,7 +269,7 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
 @njit(cache=True)
 def _attached_rows(model, lay, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, cal, calibrated,
                    with_time, hacc, hgyro, g, e, H, Hc, jacobians) -> None:
-    work = attached_work(dt.shape[1])
+    work = attached_work()
     for m in range(rows.shape[0]):
         j = m if jacobians else 0
         k = interval[m]
@@ -338,54 +336,52 @@ def _calibration_check(kind: Kind):
 
 
 @njit(cache=True)
+def attached_noise_work(K) -> tuple:
+    """Work arrays of :func:`attached_noise_into` for intervals of up to ``K`` steps."""
+    return np.empty(K), imu.prediction_work(), np.empty(_ATTACHED_FLAT)
+
+
+@njit(cache=True)
 def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, g, q, out, work) -> None:
     """``out (d, d) = H S_w H^T``: the share of the process noise between a keyframe ``x = (r, v,
     C, b_f, b_w)`` and a measurement ``row`` of ``MODELS[model]`` attached to it (at the end of
     the first ``n`` steps of the keyframe's interval ``acc, gyro, dt``, the last cut to
-    ``last_dt``; :func:`attached_into`) in the measurement's error given the keyframe:
-    ``H`` the model's Jacobian at the predicted state ``x_m``, ``S_w`` the covariance of ``x_m``
-    given ``x``, the EKF's growth from zero over the partial interval (noise densities ``q``;
-    :func:`factors.preintegration.partial_covariance_into` gives it in body coordinates ``S =
-    T S_w T^T``, ``T = diag(C^T, I, C^T, I, I)``, so ``H S_w H^T = (H T^T) S (H T^T)^T`` with the
-    position and attitude columns of ``H T^T`` those of ``H`` times ``C``). ``work`` from
-    :func:`attached_work`."""
-    pw, _, flat = work
+    ``last_dt``; :func:`attached_into`) in the measurement's error given the keyframe: ``S_w``
+    the covariance of the predicted state ``x_m`` given ``x``, the EKF's growth ``F S F^T + G Q_d
+    G^T`` from zero along the same steps (:func:`factors.imu.predict_flat`, noise densities
+    ``q``), and ``H`` the model's Jacobian at ``x_m``. ``work`` from :func:`attached_noise_work`."""
+    cut, pwork, flat = work
     d = out.shape[0]
     D2 = imu.STATE_DIM * imu.STATE_DIM
     xr, xv, xC = flat[0:3], flat[3:6], flat[6:15].reshape((3, 3))
-    J = flat[15:15 + D2].reshape((imu.STATE_DIM, imu.STATE_DIM))
+    S = flat[15:15 + D2].reshape((imu.STATE_DIM, imu.STATE_DIM))
     o = 15 + D2
     Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
-    o += sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
-    S = flat[o:o + D2].reshape((imu.STATE_DIM, imu.STATE_DIM))
-    o += D2
-    HT = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
-    o += sm.MAX_RESIDUAL_DIM * imu.STATE_DIM
-    e = flat[o:o + d]
-    preintegration.partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr, xv, xC, J, pw, False,
-                                           False)
+    e = flat[o + sm.MAX_RESIDUAL_DIM * imu.STATE_DIM:o + sm.MAX_RESIDUAL_DIM * imu.STATE_DIM + d]
+    for k in range(cut.shape[0]):
+        cut[k] = dt[k] if k < n - 1 else (last_dt if k == n - 1 else 0.0)
+    for a in range(3):
+        xr[a], xv[a] = r[a], v[a]
+        for b in range(3):
+            xC[a, b] = C[a, b]
+    imu.clear_flat(pwork)
+    imu.predict_flat(xr, xv, xC, b_f, b_w, acc, gyro, cut, q, g, pwork)
+    imu.symmetric_from_flat(pwork, S, 0.0)
     measure_into(model, xr, xv, xC, b_f, b_w, row, e, Hm)
-    preintegration.partial_covariance_into(v, C, b_f, g, q, S, pw)
-    for a in range(d):
-        for c in range(imu.STATE_DIM):
-            HT[a, c] = Hm[a, c]
-        for c in range(3):
-            HT[a, c] = Hm[a, 0] * C[0, c] + Hm[a, 1] * C[1, c] + Hm[a, 2] * C[2, c]
-            HT[a, 6 + c] = Hm[a, 6] * C[0, c] + Hm[a, 7] * C[1, c] + Hm[a, 8] * C[2, c]
     for a in range(d):
         for b in range(d):
             total = 0.0
             for p in range(imu.STATE_DIM):
                 hs = 0.0
                 for q_ in range(imu.STATE_DIM):
-                    hs += S[p, q_] * HT[b, q_]
-                total += HT[a, p] * hs
+                    hs += S[p, q_] * Hm[b, q_]
+                total += Hm[a, p] * hs
             out[a, b] = total
 
 
 @njit(cache=True)
 def _attached_noise_rows(model, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, g, q, out) -> None:
-    work = attached_work(dt.shape[1])
+    work = attached_noise_work(dt.shape[1])
     for m in range(rows.shape[0]):
         k = interval[m]
         attached_noise_into(model, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],

@@ -250,7 +250,7 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
     # H for a relative pose (both keyframes); Hm, C-contiguous, for the one-state kernels, which the
     # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
     H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
-    attached = attached_work(sdt.shape[1])
+    attached = attached_work()
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         if k0 >= cut or k1 < lo or mcal[f] >= 0:
@@ -301,7 +301,7 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
     H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
     Jc = np.empty((MAX_DIM, _WIDE))  # the factor's states and calibration side by side
     work = work_array()
-    attached = attached_work(sdt.shape[1])
+    attached = attached_work()
     n = Hb.shape[0]
     for k in range(lo, min(cut, lo + n)):  # the sums not kept, made anew below
         s = k % cap
