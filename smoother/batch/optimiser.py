@@ -12,7 +12,7 @@ from factors import imu
 from factors.errors import InputError
 from smoother.batch.methods import OPTIMIZERS
 from smoother.errors import IndeterminantSystem, is_indeterminant
-from smoother.model.blocks import Block, Layout, linearize, total_cost, unit_model
+from smoother.model.blocks import Block, Layout, linearize, unit_model
 from smoother.model.rank import indeterminant_error
 
 
@@ -59,6 +59,9 @@ class SolverResult:
     history: list = field(default_factory=list)
     #: The calibration variables at the optimum (:class:`factors.calibration.CalibrationSet`), if any.
     calibration: object = None
+    #: The whitened linear system at the optimum (:func:`smoother.model.blocks.linearize`), what
+    #: its covariances come from.
+    graph: gtsam.GaussianFactorGraph | None = None
 
 
 #: The optimisation stops when a step lowers the cost by less than this: in the quadratic model a
@@ -78,7 +81,13 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     ``calibration`` (a :class:`factors.calibration.CalibrationSet` or None; see the module
     docstring for the methods). Stops when a step decreases the cost by less than
     ``absolute_tolerance`` (:data:`ABSOLUTE_TOLERANCE`) or by less than ``relative_tolerance`` of
-    itself, keeping that step, or after ``max_iterations``."""
+    itself, keeping that step, or after ``max_iterations``.
+
+    Every trial step is linearised, its cost a by-product, rather than first costed and then
+    linearised once accepted: a smoother started from a filter's estimate accepts nearly every
+    trial, and each accepted one then needs one pass over the factors instead of two (a rejected
+    one costs a linearisation more, of the current point again). One linear system is held at a
+    time. The result carries the system at the optimum, for its covariances."""
     if method not in OPTIMIZERS:
         raise InputError(f"method {method!r}: expected one of {', '.join(OPTIMIZERS)}")
     layout = Layout.of(initial, calibration, blocks)
@@ -108,8 +117,11 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                     continue
             else:
                 delta = _dogleg_step(graph, layout, radius, ordering)
+            # the decrease the linear model predicts, before its system is let go
+            predicted = cost - graph.error(layout.vector_values(delta)) if method == "dogleg" else None
             trial, trial_calibration = layout.apply(states, calibration, delta)
-            trial_cost = total_cost(blocks, trial, trial_calibration)
+            graph = None  # one linear system held at a time (a long run's is hundreds of MB)
+            trial_graph, trial_cost = linearize(blocks, trial, trial_calibration)
             if method == "gn":
                 accepted = True  # Gauss-Newton takes every step
                 break
@@ -118,6 +130,8 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                     lam = max(lam / 10.0, 1e-12)
                     accepted = True
                     break
+                trial_graph = None
+                graph, _ = linearize(blocks, states, calibration)  # rejected: the current point's again
                 # At the minimum the linear model promises a decrease at round-off level and no
                 # damping can realise it: stop there instead of raising lambda to its bound.
                 promised = cost - graph.error(layout.vector_values(delta))
@@ -127,7 +141,6 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                 if lam > 1e10:
                     break
             else:
-                predicted = cost - graph.error(layout.vector_values(delta))
                 rho = (cost - trial_cost) / predicted if predicted > 0 else -1.0
                 step = np.linalg.norm(delta)
                 if rho > 0.75:
@@ -137,21 +150,20 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                 if rho > 0:
                     accepted = True
                     break
+                trial_graph = None
+                graph, _ = linearize(blocks, states, calibration)  # rejected: the current point's again
                 if radius < 1e-12:
                     break
         if not accepted:
             converged = True  # no step decreases the cost: a (local) minimum at this precision
             break
         decrease = cost - trial_cost
-        states, calibration = trial, trial_calibration
-        if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(trial_cost, 1e-300):
-            cost = trial_cost  # converged: the step kept, no further linearisation
-            history.append(cost)
-            converged = True
-            break
-        graph, cost = linearize(blocks, states, calibration)
+        states, calibration, graph, cost = trial, trial_calibration, trial_graph, trial_cost
         history.append(cost)
-    return SolverResult(states, cost, iterations, converged, history, calibration)
+        if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(trial_cost, 1e-300):
+            converged = True  # the step kept
+            break
+    return SolverResult(states, cost, iterations, converged, history, calibration, graph)
 
 
 def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float,

@@ -34,7 +34,8 @@ from factors.keys import KeyframeKeys
 from smoother.batch.methods import OPTIMIZERS
 from smoother.batch.optimiser import optimize
 from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
-from smoother.model.covariances import covariances_at, keyframe_covariance
+from smoother.model.blocks import Layout
+from smoother.model.covariances import keyframe_covariance, marginal_covariances
 from smoother.model.problem import Problem, read_state
 
 ENGINES = ("vectorized", "gtsam")
@@ -134,7 +135,8 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
                 _warn_not_converged(optimizer, iterations, decrease)
-            cov, joint = (covariances_at(problem.blocks, states, pairs=True, calibration=calibration)
+            cov, joint = (marginal_covariances(result.graph, len(states), pairs=True,
+                                               layout=Layout.of(states, calibration, problem.blocks))
                           if covariances else (None, None))
             if covariances and calibration is not None:
                 n = len(states)
