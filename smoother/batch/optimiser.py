@@ -12,7 +12,7 @@ from factors import imu
 from factors.errors import InputError
 from smoother.batch.methods import OPTIMIZERS
 from smoother.errors import IndeterminantSystem, is_indeterminant
-from smoother.model.blocks import Block, Layout, linearize, unit_model
+from smoother.model.blocks import Block, Layout, linearize, total_cost, unit_model
 from smoother.model.rank import indeterminant_error
 
 
@@ -83,11 +83,12 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     ``absolute_tolerance`` (:data:`ABSOLUTE_TOLERANCE`) or by less than ``relative_tolerance`` of
     itself, keeping that step, or after ``max_iterations``.
 
-    Every trial step is linearised, its cost a by-product, rather than first costed and then
-    linearised once accepted: a smoother started from a filter's estimate accepts nearly every
-    trial, and each accepted one then needs one pass over the factors instead of two (a rejected
-    one costs a linearisation more, of the current point again). One linear system is held at a
-    time. The result carries the system at the optimum, for its covariances."""
+    While the first trial of every iteration is accepted -- a smoother started from a filter's
+    estimate accepts nearly every one -- each trial is linearised at once, its cost a by-product,
+    instead of costed and then linearised once accepted: one pass over the factors per iteration
+    instead of two. After a rejection (which then costs a linearisation of the current point
+    again), trials are costed first until an iteration's first is accepted. One linear system is
+    held at a time. The result carries the system at the optimum, for its covariances."""
     if method not in OPTIMIZERS:
         raise InputError(f"method {method!r}: expected one of {', '.join(OPTIMIZERS)}")
     layout = Layout.of(initial, calibration, blocks)
@@ -100,9 +101,10 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
     lam, radius = 1e-5, 1.0
     converged = False
     iterations = 0
+    eager = True  # trials linearised at once (their cost a by-product) while the first of each is accepted
     for iterations in range(1, max_iterations + 1):
         accepted = False
-        for _ in range(30):  # inner loop: damping / trust-region adjustments
+        for attempt in range(30):  # inner loop: damping / trust-region adjustments
             if method == "gn":
                 delta = _solve(graph, layout, ordering)
             elif method == "lm":
@@ -120,8 +122,11 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
             # the decrease the linear model predicts, before its system is let go
             predicted = cost - graph.error(layout.vector_values(delta)) if method == "dogleg" else None
             trial, trial_calibration = layout.apply(states, calibration, delta)
-            graph = None  # one linear system held at a time (a long run's is hundreds of MB)
-            trial_graph, trial_cost = linearize(blocks, trial, trial_calibration)
+            if eager:
+                graph = None  # one linear system held at a time (a long run's is hundreds of MB)
+                trial_graph, trial_cost = linearize(blocks, trial, trial_calibration)
+            else:
+                trial_graph, trial_cost = None, total_cost(blocks, trial, trial_calibration)
             if method == "gn":
                 accepted = True  # Gauss-Newton takes every step
                 break
@@ -130,8 +135,7 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                     lam = max(lam / 10.0, 1e-12)
                     accepted = True
                     break
-                trial_graph = None
-                graph, _ = linearize(blocks, states, calibration)  # rejected: the current point's again
+                graph, eager = _after_rejection(graph, blocks, states, calibration)
                 # At the minimum the linear model promises a decrease at round-off level and no
                 # damping can realise it: stop there instead of raising lambda to its bound.
                 promised = cost - graph.error(layout.vector_values(delta))
@@ -150,20 +154,32 @@ def optimize(blocks: list[Block], initial: imu.ImuState, method: str = "lm", max
                 if rho > 0:
                     accepted = True
                     break
-                trial_graph = None
-                graph, _ = linearize(blocks, states, calibration)  # rejected: the current point's again
+                graph, eager = _after_rejection(graph, blocks, states, calibration)
                 if radius < 1e-12:
                     break
         if not accepted:
             converged = True  # no step decreases the cost: a (local) minimum at this precision
             break
+        eager = attempt == 0
         decrease = cost - trial_cost
+        if trial_graph is None:
+            graph = None
+            trial_graph, trial_cost = linearize(blocks, trial, trial_calibration)
         states, calibration, graph, cost = trial, trial_calibration, trial_graph, trial_cost
         history.append(cost)
         if abs(decrease) < absolute_tolerance or abs(decrease) < relative_tolerance * max(trial_cost, 1e-300):
             converged = True  # the step kept
             break
     return SolverResult(states, cost, iterations, converged, history, calibration, graph)
+
+
+def _after_rejection(graph, blocks: list[Block], states: imu.ImuState, calibration) -> tuple:
+    """``(graph, eager)`` after a rejected trial: the linear system at the current ``states``
+    (``graph``, or linearised again where an eager trial let it go), and trials costed before
+    they are linearised until an iteration's first is accepted again."""
+    if graph is None:
+        graph, _ = linearize(blocks, states, calibration)
+    return graph, False
 
 
 def _dogleg_step(graph: gtsam.GaussianFactorGraph, layout: Layout, radius: float,

@@ -79,6 +79,60 @@ def test_linearizing_in_chunks_changes_nothing(monkeypatch):
                                    rtol=0, atol=1e-12)
 
 
+def _counting(monkeypatch):
+    """Counts of the optimiser's linearisations and cost-only passes over the factors."""
+    from smoother.batch import optimiser
+
+    counts = {"linearize": 0, "total_cost": 0}
+    for name in counts:
+        def counted(*args, _name=name, _f=getattr(optimiser, name), **kwargs):
+            counts[_name] += 1
+            return _f(*args, **kwargs)
+        monkeypatch.setattr(optimiser, name, counted)
+    return counts
+
+
+def test_accepted_trials_are_linearised_once_and_the_optimum_comes_with_its_system(monkeypatch):
+    """From the simulator's start every trial is accepted: one linearisation per iteration and
+    the first, no cost-only pass; the result's linear system is the linearisation at its states
+    (what the covariances come from)."""
+    from smoother.batch.optimiser import optimize
+
+    counts = _counting(monkeypatch)
+    problem = build_problem(small())
+    result = optimize(problem.blocks, problem.initial_states)
+    assert counts == {"linearize": result.iterations + 1, "total_cost": 0}
+    again, cost = linearize(problem.blocks, result.states)
+    A, b = result.graph.jacobian()
+    A_again, b_again = again.jacobian()
+    np.testing.assert_array_equal(A, A_again)
+    np.testing.assert_array_equal(b, b_again)
+    assert result.cost == cost
+
+
+@pytest.mark.parametrize("optimizer", ["lm", "dogleg"])
+def test_rejected_trials_far_from_the_optimum_still_reach_it(optimizer, monkeypatch):
+    """Started a sigma-sized step off in every state, trials are rejected (so costed first for a
+    while): the optimiser still reaches the reference optimum, returned with the linear system at
+    its states."""
+    from smoother.batch.optimiser import optimize
+
+    counts = _counting(monkeypatch)
+    problem = build_problem(small())
+    rng = np.random.default_rng(1)
+    scale = np.r_[np.ones(9), 0.01 * np.ones(6)]
+    start = imu.boxplus(problem.initial_states, rng.normal(size=(len(problem.initial_states), 15)) * scale)
+    result = optimize(problem.blocks, start, optimizer)
+    assert result.converged and counts["total_cost"] > 0, counts
+    ref = reference()
+    sigma = cases.sigma_difference(result.states, ref.trajectory.states, ref.trajectory.cov)
+    assert sigma.max() < 1e-3, sigma.max()
+    A, b = result.graph.jacobian()
+    A_again, b_again = linearize(problem.blocks, result.states)[0].jacobian()
+    np.testing.assert_array_equal(A, A_again)
+    np.testing.assert_array_equal(b, b_again)
+
+
 def test_covariances_are_symmetric_positive_definite_and_below_the_prior():
     """Every keyframe's 15x15 covariance is symmetric (to round-off) and positive definite, and
     keyframe 0's is below the prior's in the Loewner order (measurements only add information:
