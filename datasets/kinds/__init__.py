@@ -267,15 +267,28 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
 
 
 @njit(cache=True)
+def _continues(interval, n, r, v, C, b_f, b_w, m) -> bool:
+    """Whether measurement ``m`` can continue the steps taken for measurement ``m - 1``: the same
+    interval from the same keyframe state, and at least as many steps."""
+    if m == 0 or interval[m] != interval[m - 1] or n[m] < n[m - 1]:
+        return False
+    for a in range(3):
+        if r[m, a] != r[m - 1, a] or v[m, a] != v[m - 1, a] or b_f[m, a] != b_f[m - 1, a] or b_w[m, a] != b_w[m - 1, a]:
+            return False
+        for b in range(3):
+            if C[m, a, b] != C[m - 1, a, b]:
+                return False
+    return True
+
+
+@njit(cache=True)
 def _attached_rows(model, lay, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, cal, calibrated,
                    with_time, hacc, hgyro, g, e, H, Hc, jacobians) -> None:
     work = attached_work()
     for m in range(rows.shape[0]):
         j = m if jacobians else 0
         k = interval[m]
-        # the steps before it integrated for the measurement before, of the same interval and keyframe
-        resume = (m > 0 and k == interval[m - 1] and n[m] >= n[m - 1] and b_w[m, 0] == b_w[m - 1, 0]
-                  and b_w[m, 1] == b_w[m - 1, 1] and b_w[m, 2] == b_w[m - 1, 2])
+        resume = _continues(interval, n, r, v, C, b_f, b_w, m)
         attached_into(model, lay, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],
                       cal, calibrated, with_time, hacc[m], hgyro[m], g, e[m], H[j], Hc[j], work, jacobians, resume)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from datasets.kinds import KINDS, attached_noise, attached_rows, measure_rows
-from factors import calibration, imu, preintegration, selfcheck
+from factors import calibration, imu, preintegration, selfcheck, so3
 
 ONE_STATE = [k for k in KINDS.values() if not k.relative]
 
@@ -144,10 +144,10 @@ def test_attached_noise_is_the_measurements_share_of_the_predictions_covariance(
 
 @pytest.mark.parametrize("kind", [KINDS["velocity"], KINDS["gnss"]], ids=lambda k: k.name)
 def test_measurements_of_one_interval_in_time_order_equal_each_taken_alone(kind):
-    """Several measurements attached to each keyframe, in time order: each continues the
-    integration of the one before (the same interval, keyframe and gyro bias; at most as many
-    steps), and every residual and Jacobian equals, to the bit, the measurement's alone; in any
-    other order, or between keyframes with another bias, they start again and agree too."""
+    """Several measurements attached to each keyframe, in time order: each continues the steps
+    of the one before (the same interval and keyframe state; at most as many steps), and every
+    residual and Jacobian equals, to the bit, the measurement's alone; in any other order, or
+    from another keyframe state (any part of it), they start again and agree too."""
     rng = np.random.default_rng(5)
     J, K, per = 12, 9, 7
     acc, gyro = rng.normal(size=(J, K, 3)) * 3, rng.normal(size=(J, K, 3)) * 3
@@ -160,6 +160,10 @@ def test_measurements_of_one_interval_in_time_order_equal_each_taken_alone(kind)
     last[5] = max(last[4], last[5])
     states, readings = keyframes[interval], rows[interval]
     states = states.replace(b_w=np.where((np.arange(J * per) == 3 * per + 2)[:, None], states.b_w + 1e-3, states.b_w))
+    for m, part in zip((5 * per + 3, 6 * per + 4, 7 * per + 2, 8 * per + 5), ("r", "v", "b_f", "C")):
+        value = getattr(states, part).copy()  # a keyframe state other than the one before it: start again
+        value[m] = value[m] @ so3.exp(np.array([0.0, 0.0, 1e-3])) if part == "C" else value[m] + 1e-3
+        states = states.replace(**{part: value})
     c = calibration.Calibration.of(time_offset=0.004)
     together = attached_rows(kind, states, (acc, gyro, dt), interval, steps, last, readings, c, None)
     alone = [attached_rows(kind, states[m:m + 1], (acc, gyro, dt), interval[m:m + 1], steps[m:m + 1],
