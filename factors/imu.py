@@ -741,6 +741,50 @@ def partial_prediction_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, xr,
                 J[i, k] = J2[i * _W + k]
 
 
+#: Length of the work array of :func:`partial_covariance_into`: the state after the steps so far,
+#: their covariance (a :func:`prediction_work`), the cut step's covariance, its length, and the
+#: count of steps taken.
+PARTIAL_COVARIANCE_WORK = 15 + 2 * PREDICTION_WORK_SIZE + 2
+
+
+@recursion
+def partial_covariance_work() -> np.ndarray:
+    """The work array of :func:`partial_covariance_into`: allocate once per loop over measurements."""
+    return np.zeros(PARTIAL_COVARIANCE_WORK)
+
+
+@recursion
+def partial_covariance_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, q, xr, xv, xC, S, work,
+                            resume) -> None:
+    """The state ``x_m = (xr, xv, xC, b_f, b_w)`` of :func:`partial_prediction_into` and ``S (15,
+    15)``, its covariance given the start state ``x``: the EKF's growth ``F S F^T + G Q_d G^T``
+    from zero along the same steps (:func:`predict_flat`, noise densities ``q``). ``work`` from
+    :func:`partial_covariance_work`; ``resume`` as :func:`partial_prediction_into`'s."""
+    P = PREDICTION_WORK_SIZE
+    pr, pv, pC = work[0:3], work[3:6], work[6:15].reshape((3, 3))
+    prefix, cut, h = work[15:15 + P], work[15 + P:15 + 2 * P], work[15 + 2 * P:16 + 2 * P]
+    done = int(work[16 + 2 * P])
+    if not resume or done > n - 1:
+        for a in range(3):
+            pr[a], pv[a] = r[a], v[a]
+            for b in range(3):
+                pC[a, b] = C[a, b]
+        clear_flat(prefix)
+        done = 0
+    if n - 1 > done:
+        predict_flat(pr, pv, pC, b_f, b_w, acc[done:n - 1], gyro[done:n - 1], dt[done:n - 1], q, g, prefix)
+    work[16 + 2 * P] = n - 1
+    for a in range(3):
+        xr[a], xv[a] = pr[a], pv[a]
+        for b in range(3):
+            xC[a, b] = pC[a, b]
+    for t in range(STATE_DIM * _W):
+        cut[t] = prefix[t]
+    h[0] = last_dt
+    predict_flat(xr, xv, xC, b_f, b_w, acc[n - 1:n], gyro[n - 1:n], h, q, g, cut)
+    symmetric_from_flat(cut, S, 0.0)
+
+
 def state_derivative(state: ImuState, acc, gyro, gravity=DEFAULT_GRAVITY) -> np.ndarray:
     """The error-state rate ``(..., 15)`` of the continuous model at ``state`` with the IMU
     reading ``acc, gyro``: ``(C v, f - b_f + C^T g - w x v, C w, 0, 0)`` with ``w = gyro - b_w``

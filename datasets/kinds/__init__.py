@@ -349,21 +349,23 @@ def _calibration_check(kind: Kind):
 
 
 @njit(cache=True)
-def attached_noise_work(K) -> tuple:
-    """Work arrays of :func:`attached_noise_into` for intervals of up to ``K`` steps."""
-    return np.empty(K), imu.prediction_work(), np.empty(_ATTACHED_FLAT)
+def attached_noise_work() -> tuple:
+    """Work arrays of :func:`attached_noise_into`; allocate once per loop over measurements."""
+    return imu.partial_covariance_work(), np.empty(_ATTACHED_FLAT)
 
 
 @njit(cache=True)
-def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, g, q, out, work) -> None:
+def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row, g, q, out, work,
+                        resume=False) -> None:
     """``out (d, d) = H S_w H^T``: the share of the process noise between a keyframe ``x = (r, v,
     C, b_f, b_w)`` and a measurement ``row`` of ``MODELS[model]`` attached to it (at the end of
     the first ``n`` steps of the keyframe's interval ``acc, gyro, dt``, the last cut to
     ``last_dt``; :func:`attached_into`) in the measurement's error given the keyframe: ``S_w``
     the covariance of the predicted state ``x_m`` given ``x``, the EKF's growth ``F S F^T + G Q_d
-    G^T`` from zero along the same steps (:func:`factors.imu.predict_flat`, noise densities
-    ``q``), and ``H`` the model's Jacobian at ``x_m``. ``work`` from :func:`attached_noise_work`."""
-    cut, pwork, flat = work
+    G^T`` from zero along the same steps (:func:`factors.imu.partial_covariance_into`, noise
+    densities ``q``), and ``H`` the model's Jacobian at ``x_m``. ``work`` from
+    :func:`attached_noise_work`, ``resume`` as :func:`attached_into`'s."""
+    cw, flat = work
     d = out.shape[0]
     D2 = imu.STATE_DIM * imu.STATE_DIM
     xr, xv, xC = flat[0:3], flat[3:6], flat[6:15].reshape((3, 3))
@@ -371,15 +373,7 @@ def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row
     o = 15 + D2
     Hm = flat[o:o + d * imu.STATE_DIM].reshape((d, imu.STATE_DIM))
     e = flat[o + sm.MAX_RESIDUAL_DIM * imu.STATE_DIM:o + sm.MAX_RESIDUAL_DIM * imu.STATE_DIM + d]
-    for k in range(cut.shape[0]):
-        cut[k] = dt[k] if k < n - 1 else (last_dt if k == n - 1 else 0.0)
-    for a in range(3):
-        xr[a], xv[a] = r[a], v[a]
-        for b in range(3):
-            xC[a, b] = C[a, b]
-    imu.clear_flat(pwork)
-    imu.predict_flat(xr, xv, xC, b_f, b_w, acc, gyro, cut, q, g, pwork)
-    imu.symmetric_from_flat(pwork, S, 0.0)
+    imu.partial_covariance_into(acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, g, q, xr, xv, xC, S, cw, resume)
     measure_into(model, xr, xv, xC, b_f, b_w, row, e, Hm)
     for a in range(d):
         for b in range(d):
@@ -394,11 +388,11 @@ def attached_noise_into(model, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row
 
 @njit(cache=True)
 def _attached_noise_rows(model, r, v, C, b_f, b_w, acc, gyro, dt, interval, n, last_dt, rows, g, q, out) -> None:
-    work = attached_noise_work(dt.shape[1])
+    work = attached_noise_work()
     for m in range(rows.shape[0]):
         k = interval[m]
         attached_noise_into(model, acc[k], gyro[k], dt[k], n[m], last_dt[m], r[m], v[m], C[m], b_f[m], b_w[m], rows[m],
-                            g, q, out[m], work)
+                            g, q, out[m], work, _continues(interval, n, r, v, C, b_f, b_w, m))
 
 
 def attached_noise(kind: Kind, states, samples: tuple, interval, steps, last_dt, rows: np.ndarray,

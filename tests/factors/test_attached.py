@@ -146,7 +146,7 @@ def test_attached_noise_is_the_measurements_share_of_the_predictions_covariance(
 def test_measurements_of_one_interval_in_time_order_equal_each_taken_alone(kind):
     """Several measurements attached to each keyframe, in time order: each continues the steps
     of the one before (the same interval and keyframe state; at most as many steps), and every
-    residual and Jacobian equals, to the bit, the measurement's alone; in any other order, or
+    residual, Jacobian and process-noise share equals, to the bit, the measurement's alone; in any other order, or
     from another keyframe state (any part of it), they start again and agree too."""
     rng = np.random.default_rng(5)
     J, K, per = 12, 9, 7
@@ -170,6 +170,11 @@ def test_measurements_of_one_interval_in_time_order_equal_each_taken_alone(kind)
                            last[m:m + 1], readings[m:m + 1], c, None) for m in range(J * per)]
     for got, want in zip(together, zip(*alone)):
         assert np.array_equal(got, np.concatenate(want))
+    noise = imu.ImuNoise(acc=0.05, gyro=0.01, acc_bias=0.003, gyro_bias=2e-4)
+    shared = attached_noise(kind, states, (acc, gyro, dt), interval, steps, last, readings, noise)
+    assert np.array_equal(shared, np.concatenate([attached_noise(kind, states[m:m + 1], (acc, gyro, dt),
+                                                                 interval[m:m + 1], steps[m:m + 1], last[m:m + 1],
+                                                                 readings[m:m + 1], noise) for m in range(J * per)]))
     order = rng.permutation(J * per)
     shuffled = attached_rows(kind, states[order], (acc, gyro, dt), interval[order], steps[order], last[order],
                              readings[order], c, None)
