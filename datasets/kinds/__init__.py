@@ -234,8 +234,8 @@ def attached_into(model, lay, acc, gyro, dt, n, last_dt, r, v, C, b_f, b_w, row,
     ``row`` of ``MODELS[model]`` ATTACHED to the keyframe state ``x = (r, v, C, b_f, b_w)``: taken
     after the keyframe, at the end of the first ``n`` steps of the keyframe's interval
     ``acc, gyro (K, 3)``, ``dt (K,)``, the last of them cut to ``last_dt``. Its state is the
-    exact product of the primer's Euler steps from ``x`` (a partial interval preintegrated
-    around ``x``'s gyro bias), ``x_m = f(x)``, and its Jacobian ``F_m = dx_m/dx``
+    primer's Euler steps from ``x``, ``x_m = f(x)``, and its Jacobian ``F_m = dx_m/dx`` the
+    product of the steps' transitions
     (:func:`factors.imu.partial_prediction_into`); the measurement is the model's
     (:func:`measure_into`), or through its calibration ``cal`` (:func:`calibrated_into`: the
     time offset one more Euler step from ``x_m`` with the IMU reading ``hacc, hgyro`` held at its
