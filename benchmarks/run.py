@@ -723,7 +723,7 @@ def _noise_estimation(repeats: int) -> dict:
 
         def with_noise(d=data):
             problem = build_problem(d)
-            estimate_noise(d, problem, solve_batch(problem), which)
+            estimate_noise(d, problem, solve_batch(problem, square_root=True), which)
 
         run = {"plain": lambda d=data: solve_batch(build_problem(d)), "noise": with_noise}
         for fn in run.values():

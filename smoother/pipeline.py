@@ -340,7 +340,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     build_s = time.perf_counter() - tick
     # a calibration is never reported without its sigma: its covariance is computed whatever --no-covariance says
     covariances = options.covariances or problem.calibration is not None
-    r = solve_batch(problem, options.optimizer, options.max_iterations, covariances or bool(noise))
+    r = solve_batch(problem, options.optimizer, options.max_iterations, covariances or bool(noise),
+                    square_root=bool(noise))
     runtime_s = build_s + r.runtime_s
     fit = None
     if noise:

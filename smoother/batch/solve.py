@@ -67,6 +67,9 @@ class SmootherResult:
     #: each one's marginal covariance over its estimated coordinates (with covariances), or None.
     calibration: object = None
     calibration_cov: list | None = None
+    #: The covariances' elimination (:class:`smoother.model.covariances.SquareRoot`), kept where
+    #: :func:`solve_batch` was asked for it: what the noise fit's first evaluation reads.
+    square_root: object = None
 
 
 def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
@@ -114,10 +117,12 @@ def _gtsam_engine(problem: Problem, optimizer: str, max_iterations: int, covaria
 
 
 def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 100,
-                covariances: bool = True, engine: str = "vectorized") -> SmootherResult:
+                covariances: bool = True, engine: str = "vectorized", square_root: bool = False) -> SmootherResult:
     """Optimise the whole graph from its initial values (see the module docstring); at most
     ``max_iterations`` iterations, and a warning naming them and the last relative decrease of the
-    cost when they end before convergence (``SmootherResult.converged`` False)."""
+    cost when they end before convergence (``SmootherResult.converged`` False). ``square_root``
+    (vectorised engine, with covariances): keep the covariances' elimination in the result (a
+    noise fit follows, :func:`smoother.batch.variance_components.estimate_noise`)."""
     if optimizer not in OPTIMIZERS:
         raise InputError(f"optimizer {optimizer!r}: expected one of {', '.join(OPTIMIZERS)}")
     if engine not in ENGINES:
@@ -125,7 +130,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
     start = time.perf_counter()
     try:
         decrease = None
-        calibration, calibration_cov = None, None
+        calibration, calibration_cov, root = None, None, None
         if engine == "vectorized":
             result = optimize(problem.blocks, problem.initial_states, optimizer, max_iterations,
                                      calibration=problem.calibration)
@@ -135,9 +140,12 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
                 _warn_not_converged(optimizer, iterations, decrease)
-            cov, joint = (marginal_covariances(result.graph, len(states), pairs=True,
-                                               layout=Layout.of(states, calibration, problem.blocks))
-                          if covariances else (None, None))
+            cov, joint = None, None
+            if covariances:
+                layout = Layout.of(states, calibration, problem.blocks)
+                out = marginal_covariances(result.graph, len(states), pairs=True, layout=layout,
+                                           square_root=square_root)
+                cov, joint, root = out if square_root else (*out, None)
             if covariances and calibration is not None:
                 n = len(states)
                 calibration_cov = [joint[(n + j, n + j)] for j in range(len(calibration))]
@@ -157,7 +165,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
         raise
     trajectory = Trajectory(problem.times, states, cov)
     return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged, joint,
-                          calibration, calibration_cov)
+                          calibration, calibration_cov, root)
 
 
 def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:

@@ -248,8 +248,10 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
-    (with covariances) and the problem with it: ``result`` and ``problem`` themselves where no
-    factor is applied. Every other group keeps the rig's noise."""
+    (with covariances) and the problem with it: ``result`` (without a kept elimination) and
+    ``problem`` where no factor is applied. Every other group keeps the rig's noise. Where
+    ``result`` kept its covariances' elimination (:func:`smoother.batch.solve.solve_batch`'s
+    ``square_root``), the first evaluation reads it instead of making it again."""
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
@@ -262,14 +264,18 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     converged, iterations = False, 0
     states, calibration = result.trajectory.states, result.calibration
 
-    def evaluate(psi, states, calibration):
+    def evaluate(psi, states, calibration, batch=None):
         """One Gauss-Newton step to the optimum of the weights of ``psi`` (the weights change
         little from one evaluation to the next), solved by the elimination the covariances come
-        from, and the statistics there."""
-        blocks = model.blocks(psi, states)
-        graph, _ = linearize(blocks, states, calibration)
+        from, and the statistics there. ``batch``: the batch smoother's own covariances and their
+        elimination at ``states`` (``psi = 0``: the problem's weights), read instead of made again."""
+        blocks = model.blocks(psi)
         layout = Layout.of(states, calibration, blocks)
-        cov, joint, root = marginal_covariances(graph, len(states), None, True, layout, square_root=True)
+        if batch is None:
+            graph, _ = linearize(blocks, states, calibration)
+            cov, joint, root = marginal_covariances(graph, len(states), None, True, layout, square_root=True)
+        else:
+            cov, joint, root = batch
         delta = root.solution
         moved, moved_calibration = layout.apply(states, calibration, delta)
         # the residuals of the linear system at its solution: every statistic from that one system
@@ -286,7 +292,10 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     damping = FIRST_DAMPING
     for iterations in range(1, MAX_ITERATIONS + 1):
         before = (states, calibration)
-        states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before)
+        batch = None
+        if iterations == 1 and result.square_root is not None:
+            batch = (result.trajectory.cov, result.joint, result.square_root)
+        states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before, batch)
         q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
         close = np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR
         near = bool(np.all(close))
@@ -384,7 +393,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                       "used", stacklevel=2)
     fitted = problem
     if psi.any():  # some factor applied: the estimate with it (else the rig's noise and the given estimate)
-        fitted = replace(problem, blocks=model.blocks(psi, states), initial_states=states, calibration=calibration)
+        fitted = replace(problem, blocks=model.blocks(psi), initial_states=states, calibration=calibration)
         result = solve_batch(fitted, optimizer, max_iterations)
     if ties:
         cov_psi = _pseudo_inverse(_parameter_information(information if information is not None else approximate,
@@ -410,7 +419,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         fits.append(GroupFit(group, factor, 0.5 * factor * sd_psi, float(redundancy[g]), model.value(group, factor),
                              group.unit, others, correlation=summary[g][0], dof=summary[g][1]))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
-    return fit, result, fitted
+    return fit, replace(result, square_root=None), fitted  # the elimination's memory let go
 
 
 def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:
@@ -575,7 +584,7 @@ class _NoiseModel:
     def residual_summary(self, states, calibration, psi: np.ndarray) -> list[tuple[float, int]]:
         """Per group, ``(lag-one correlation, degrees of freedom)`` of its whitened residuals at
         ``states`` (a sensor group's axes; the IMU's whole residual for each of its components)."""
-        blocks = self.blocks(psi, states)
+        blocks = self.blocks(psi)
         out = []
         for group in self.groups:
             block = blocks[self.block_index[group.sensor]]
@@ -589,7 +598,9 @@ class _NoiseModel:
         return out
 
     def _imu_parts(self, states):
-        """The IMU factors' covariance parts along ``states``: ``(N (4, J, 15, 15), N_0)``."""
+        """The IMU factors' covariance parts along ``states``: ``(N (4, J, 15, 15), N_0)``. Made
+        along the problem's initial states, along which it made its own IMU covariances, so that
+        ``psi = 0`` is the problem itself (to round-off)."""
         noise = self.dataset.noise
         zero = replace(noise, acc=0.0, gyro=0.0, acc_bias=0.0, gyro_bias=0.0)
         reference = states[:-1]
@@ -601,14 +612,14 @@ class _NoiseModel:
             parts.append(preintegration.noise_covariance(self.samples, reference, alone, self.dataset.gravity) - floor)
         return np.stack(parts), rest
 
-    def blocks(self, psi: np.ndarray, states) -> list[Block]:
-        """The problem's blocks with the covariances of ``psi`` (the IMU's along ``states``)."""
+    def blocks(self, psi: np.ndarray) -> list[Block]:
+        """The problem's blocks with the covariances of ``psi`` (:meth:`_imu_parts` for the IMU's)."""
         theta = np.exp(psi)
         blocks = list(self.problem.blocks)
         imu_groups = [i for i, g in enumerate(self.groups) if g.axes is None]
         if imu_groups:
             if self.imu_parts is None:
-                self.imu_parts = self._imu_parts(states)
+                self.imu_parts = self._imu_parts(self.problem.initial_states)
             parts, rest = self.imu_parts
             factors = np.ones(len(IMU_COMPONENTS))
             for i in imu_groups:

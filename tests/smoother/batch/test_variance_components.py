@@ -152,3 +152,25 @@ def test_the_applied_noise_scales_the_imu_and_each_sensor_s_axes():
 def test_an_unknown_sensor_is_named():
     with pytest.raises(Exception, match="no sensor 'lidar'"):
         vc.noise_groups(_rig(0, duration=2.0), ("imu", "lidar"))
+
+
+def test_the_fit_from_the_batch_s_kept_elimination_equals_the_fit_that_makes_its_own():
+    """The batch's covariances' elimination, kept (``square_root``), is what the fit's first
+    evaluation would make (the fit's weights at the rig's noise are the problem's): the fits from
+    either agree to round-off, and the returned estimate keeps no elimination."""
+    data = _rig(3, duration=15.0)
+    problem = build_problem(data)
+    fits = []
+    for square_root in (False, True):
+        result = solve_batch(problem, square_root=square_root)
+        assert (result.square_root is not None) == square_root
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit, fitted, _ = vc.estimate_noise(data, problem, result, ("imu", "position", "velocity"))
+        assert fitted.square_root is None
+        fits.append(fit)
+    for own, kept in zip(*(f.groups for f in fits)):
+        assert (own.estimable, own.applied, own.merged_with) == (kept.estimable, kept.applied, kept.merged_with)
+        assert kept.factor == pytest.approx(own.factor, rel=1e-7)
+        assert kept.redundancy == pytest.approx(own.redundancy, rel=1e-7, abs=1e-6)  # degrees of freedom
+    assert fits[0].iterations == fits[1].iterations
