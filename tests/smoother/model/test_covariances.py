@@ -13,13 +13,15 @@ from smoother.model.blocks import Block, Layout, nested_dissection, unit_model
 from smoother.model.covariances import covariance_tangent, joint_block, marginal_covariances
 
 
-def _graph(rng, n: int, extra: tuple):
+def _graph(rng, n: int, extra: tuple, last_reads: bool = False):
     """A chain of ``n`` keyframes with priors; keyframe 1 reads the first calibration variable
-    only, keyframes 2 and 3 every one, the last none and no other keyframe either (its conditional
-    has no parents)."""
+    only, keyframes 2 and 3 every one, the last no other keyframe, and no calibration variable
+    either (its conditional has no parents) unless ``last_reads``: then the last one."""
     factors = [([k], [rng.normal(size=(15, 15)) + 5 * np.eye(15)]) for k in range(n)]
     factors += [([k, k + 1], [rng.normal(size=(15, 15)), rng.normal(size=(15, 15))]) for k in range(n - 2)]
     factors.append(([1, n], [rng.normal(size=(4, 15)), rng.normal(size=(4, extra[0]))]))
+    if last_reads:
+        factors.append(([n - 1, n + len(extra) - 1], [rng.normal(size=(2, 15)), rng.normal(size=(2, extra[-1]))]))
     for k in (2, 3):
         factors += [([k, n + j], [rng.normal(size=(3, 15)), rng.normal(size=(3, d))]) for j, d in enumerate(extra)]
     factors += [([n + j], [np.eye(d)]) for j, d in enumerate(extra)]
@@ -30,11 +32,15 @@ def _graph(rng, n: int, extra: tuple):
     return graph, factors
 
 
-def test_the_tangent_of_the_covariance_blocks_is_minus_sigma_dlambda_sigma():
+@pytest.mark.parametrize("last_reads", [False, True])
+@pytest.mark.parametrize("chain", [False, True])
+def test_the_tangent_of_the_covariance_blocks_is_minus_sigma_dlambda_sigma(chain, last_reads):
+    """COLAMD's order and a chain's sweep, with and without the last keyframe reading a
+    calibration variable."""
     rng = np.random.default_rng(4)
     n, extra = 6, (2, 3)
-    layout = Layout(n, extra)
-    graph, factors = _graph(rng, n, extra)
+    layout = Layout(n, extra, chain)
+    graph, factors = _graph(rng, n, extra, last_reads)
     _, joint, root = marginal_covariances(graph, n, None, True, layout, square_root=True)
     offsets = np.cumsum([0, *(layout.dim(k) for k in layout.keys)])
     # two directions: a binary factor's and a calibration factor's weight
@@ -58,9 +64,11 @@ def test_the_tangent_of_the_covariance_blocks_is_minus_sigma_dlambda_sigma():
         np.testing.assert_allclose(value, expected[:, rows, cols], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("last_reads", [False, True])
 @pytest.mark.parametrize("piece", [1, 2, 100])
 @pytest.mark.parametrize("chain", [True, False])
-def test_covariances_and_solution_match_the_dense_inverse_whatever_the_sweep_pieces(monkeypatch, piece, chain):
+def test_covariances_and_solution_match_the_dense_inverse_whatever_the_sweep_pieces(monkeypatch, piece, chain,
+                                                                                   last_reads):
     """A chain's sweep in pieces of any length (GTSAM's partial eliminations, the calibrations
     last) and COLAMD's order, and the calibrations' share added in pieces of any length, give
     every joint block and the least-squares solution of the dense system."""
@@ -69,7 +77,7 @@ def test_covariances_and_solution_match_the_dense_inverse_whatever_the_sweep_pie
     rng = np.random.default_rng(7)
     n, extra = 6, (2, 3)
     layout = Layout(n, extra, chain)
-    graph, _ = _graph(rng, n, extra)
+    graph, _ = _graph(rng, n, extra, last_reads)
     b = rng.normal(size=15)
     graph.add(gtsam.JacobianFactor(4, np.eye(15), b, unit_model(15)))  # a right-hand side
     _, joint, root = marginal_covariances(graph, n, None, True, layout, square_root=True)
