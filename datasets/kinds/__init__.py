@@ -76,6 +76,8 @@ def registered(*kinds: Kind) -> dict[str, Kind]:
         kind_sigmas(f"measurement kind {k.name!r}: default_sigma", k.default_sigma, k.dim)
         if len(k.sigma_units) != k.dim or not set(k.sigma_units) <= set(SIGMA_RANGES):
             refuse(f"sigma_units {k.sigma_units!r}; expected one of {', '.join(SIGMA_RANGES)} per residual axis")
+        if k.relative != (k.compose is not None):
+            refuse("a relative kind composes its consecutive measurements (compose), a one-state kind does not")
         scaled_rows = sm.ODOMETRY_SCALED if k.relative else k.model.scaled
         if (k.scaled_field is None) != (scaled_rows == 0):
             refuse(f"scaled_field {k.scaled_field!r}, and its model has {scaled_rows} scaled rows")

@@ -47,7 +47,11 @@ class Kind:
     ``noise_groups``: the residual's axes in the groups whose noise is estimated apart
     (``((name, axes), ...)``, the axes a partition of ``range(dim)``, one unit each: a GNSS's
     horizontal and vertical, a velocity's forward, lateral and vertical); default one group of every
-    axis. The registry (:func:`datasets.kinds.registered`) checks these declarations."""
+    axis; ``compose(data, spans) -> data``: for a relative kind, the measurements of each span
+    ``spans[s] = (lo, hi)`` of consecutive ones (each beginning where the one before ended) as one
+    from the first's start to the last's end, with its covariance (what a keyframe grid slower than
+    the measurements keeps of them). The registry (:func:`datasets.kinds.registered`) checks these
+    declarations."""
 
     name: str
     data_type: type
@@ -65,6 +69,7 @@ class Kind:
     scaled_field: str | None = None
     sigma_units: tuple[str, ...] = ()
     noise_groups: tuple = ()
+    compose: Callable | None = None
 
     @property
     def axis_groups(self) -> tuple:

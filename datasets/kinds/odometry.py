@@ -19,6 +19,36 @@ def _relative(t, r, C, cov, T_BS):
     return RelativePoseMeasurements(t[:-1], t[1:], dr, Ct @ C[1:], cov, T_BS)
 
 
+def _composed(data: RelativePoseMeasurements, spans: np.ndarray) -> RelativePoseMeasurements:
+    """The measurements of each span ``(lo, hi)`` of ``spans (S, 2)`` composed in order into one
+    from ``t_from[lo]`` to ``t_to[hi - 1]`` (:attr:`datasets.kinds.base.Kind.compose`):
+    ``dr = dr_1 + dC_1 dr_2``, ``dC = dC_1 dC_2``. In the noise convention of
+    :class:`~datasets.types.RelativePoseMeasurements` (``dr_meas = dr + n_r``, ``dC_meas = exp(n_Phi)
+    dC``), ``exp(n_1) dC_1 exp(n_2) = exp(n_1 + dC_1 n_2) dC_1`` (the primer's eq. 24) and
+    ``exp(n_1) dC_1 (dr_2 + n_r2) = dC_1 dr_2 + n_1 x dC_1 dr_2 + dC_1 n_r2`` to first order, so
+
+        n_r = n_r1 + dC_1 n_r2 - (dC_1 dr_2)^x n_Phi1,      n_Phi = n_Phi1 + dC_1 n_Phi2
+
+    and the covariance is ``J_1 S_1 J_1^T + J_2 S_2 J_2^T`` with ``J_1 = [[I, -(dC_1 dr_2)^x], [0,
+    I]]``, ``J_2 = diag(dC_1, dC_1)``: the steps' noises independent, as the factors assume. In the
+    sensor's frame, so a lever arm, a mounting and a scale (which multiplies every ``dr``, and so
+    the composed one) apply to the composed measurement as to each."""
+    spans = np.asarray(spans, dtype=int).reshape(-1, 2)
+    lo, hi = spans[:, 0], spans[:, 1]
+    dr, dC, cov = data.dr[lo].copy(), data.dC[lo].copy(), data.cov[lo].copy()
+    for k in range(1, int((hi - lo).max(initial=1))):
+        m = np.flatnonzero(lo + k < hi)  # the spans with a (k+1)-th measurement
+        i = lo[m] + k
+        J1 = np.broadcast_to(np.eye(6), (len(m), 6, 6)).copy()
+        J1[:, :3, 3:] = -so3.skew(np.einsum("nab,nb->na", dC[m], data.dr[i]))
+        J2 = np.zeros((len(m), 6, 6))
+        J2[:, :3, :3] = J2[:, 3:, 3:] = dC[m]
+        cov[m] = J1 @ cov[m] @ np.swapaxes(J1, 1, 2) + J2 @ data.cov[i] @ np.swapaxes(J2, 1, 2)
+        dr[m] += np.einsum("nab,nb->na", dC[m], data.dr[i])
+        dC[m] = dC[m] @ data.dC[i]
+    return RelativePoseMeasurements(data.t_from[lo], data.t_to[hi - 1], dr, dC, cov, data.T_BS)
+
+
 def _simulate(truth, k, imu, T_BS, sigma, rng):
     R, p = sm.extrinsic_parts(T_BS)
     exact = _relative(truth.t[k], truth.position[k] + truth.C[k] @ p, truth.C[k] @ R, np.diag(sigma**2), T_BS)
@@ -50,4 +80,4 @@ def _random_row(rng):
 KIND = Kind("odometry", RelativePoseMeasurements, 6, None, None, _simulate, None, _read, fields=("dr", "dC"),
             random_row=_random_row, default_sigma=(0.02, 0.005), times=("t_from", "t_to"),
             scaled_field="dr", sigma_units=("m",) * 3 + ("rad",) * 3,
-            noise_groups=(("translation", (0, 1, 2)), ("rotation", (3, 4, 5))))
+            noise_groups=(("translation", (0, 1, 2)), ("rotation", (3, 4, 5))), compose=_composed)

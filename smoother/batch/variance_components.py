@@ -574,11 +574,13 @@ class _NoiseModel:
         return group.axes is None or KINDS[self.kinds[group.sensor]].relative
 
     def value(self, group: NoiseGroup, factor: float) -> float | None:
-        """The group's density or (median) sigma with ``factor`` applied, in the rig's units."""
+        """The group's density or (median) sigma with ``factor`` applied, in the rig's units: its
+        measurements' own, as the rig states them (not the factors' covariances, which may add the
+        process noise of attached measurements or compose several relative ones)."""
         if group.axes is None:
             return float(getattr(self.dataset.noise, group.part) * factor)
-        L = self.rig[group.sensor][1]
-        sigma = np.sqrt(np.einsum("mij,mij->mi", L, L)[:, list(group.axes)])
+        cov = next(s.data.cov for s in sensors_of(self.dataset) if s.name == group.sensor)
+        sigma = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1)[..., list(group.axes)])
         return float(np.median(sigma) * factor)
 
     def residual_summary(self, states, calibration, psi: np.ndarray) -> list[tuple[float, int]]:

@@ -41,7 +41,16 @@ from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.model.blocks import Block, whitening
 from smoother.model.robust import noise_model, robust_estimator
-from smoother.model.timeline import Attachment, Steps, attachment, imu_steps, keyframe_record, keyframe_times, states_at
+from smoother.model.timeline import (
+    Attachment,
+    Steps,
+    attachment,
+    imu_steps,
+    keyframe_record,
+    keyframe_times,
+    relative_on_keyframes,
+    states_at,
+)
 
 
 @dataclass
@@ -408,8 +417,10 @@ def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None 
     measurement at a keyframe's time reads it; one after it (a one-state kind) is attached to it
     (:attr:`MeasurementSpec.attached`, :func:`attached_residual`), its covariance grown by the
     process noise between them (:func:`attached_covariance`, along the ``reference`` keyframe
-    states; needed only when a measurement is attached). Both ends of a relative measurement
-    must be keyframes. A sensor among ``calibrations``' names reads its calibration variable
+    states; needed only when a measurement is attached). A relative sensor's consecutive
+    measurements between keyframes are composed into one
+    (:func:`smoother.model.timeline.relative_on_keyframes`), whose ends must be keyframes. A
+    sensor among ``calibrations``' names reads its calibration variable
     (:func:`calibrated_residual`); the others, and every sensor without ``calibrations``, use the
     values given. ``steps`` and ``samples``: the IMU stream cut at ``times``
     (:func:`smoother.model.timeline.imu_steps`) and its padded intervals (:meth:`Steps.segments`),
@@ -417,6 +428,7 @@ def measurement_blocks(dataset: Dataset, times: np.ndarray, robust: dict | None 
     robust = robust or {}
     out = []
     names = () if calibrations is None else calibrations.names
+    dataset = relative_on_keyframes(dataset, times)
     if steps is None:
         steps = imu_steps(dataset.imu, times)
     for sensor, spec in zip(sensors_of(dataset), _measurement_specs(dataset)):

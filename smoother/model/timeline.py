@@ -14,7 +14,7 @@ keyframe to the measurement's time.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -128,8 +128,9 @@ def keyframe_rate(dataset: Dataset, rate=None) -> float | None:
 
 def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     """The smoothers' keyframes: with the grid of :func:`keyframe_rate` (``rate``), the grid
-    ``t0 + k / rate``, the times of held-out measurements, both ends of every relative
-    measurement and the start and end of the IMU data; without one, :func:`measurement_knots`.
+    ``t0 + k / rate``, the times of held-out measurements, the ends of the relative measurements
+    composed onto the grid (:func:`relative_anchors`) and the start and end of the IMU data;
+    without one, :func:`measurement_knots`.
     Every other measurement is attached to the keyframe at or before its time (:func:`attachment`).
 
     Grid times are correctly rounded (``t0 + k / rate``, like the measurement ticks; arange's
@@ -142,8 +143,8 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
         return bounded_intervals(measurement_knots(dataset), dataset.imu.t)
     parts = [[dataset.t0, dataset.t1]]
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
-    parts += [s.data.t_from for s in dataset.sensors if s.data is not None and hasattr(s.data, "t_from")]
-    parts += [s.data.t for s in dataset.sensors if s.data is not None and hasattr(s.data, "t_from")]
+    parts += [relative_anchors(s.data.t_from, s.data.t_to, grid_rate) for s in sensors_of(dataset)
+              if KINDS[s.kind].relative]
     others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
     grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
     i = np.searchsorted(others, grid)
@@ -151,6 +152,50 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     grid = grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))]
     times = np.union1d(others, grid)
     return bounded_intervals(times[(times >= dataset.t0) & (times <= dataset.t1)], dataset.imu.t)
+
+
+def relative_anchors(t_from: np.ndarray, t_to: np.ndarray, rate: float) -> np.ndarray:
+    """The ends of a relative sensor's measurements ``(t_from, t_to)`` that are keyframes on a grid
+    of ``rate`` [Hz]: every chain's start and end (a chain: measurements each beginning where the
+    one before it ended) and, within a chain, the last end at or before each multiple of
+    ``1 / rate`` from its start. The measurements between two of them are composed into one
+    (:func:`relative_on_keyframes`), so a relative sensor faster than the grid adds no keyframes
+    of its own; the ends of measurements composed so are their own anchors again."""
+    t_from, t_to = np.asarray(t_from, dtype=float), np.asarray(t_to, dtype=float)
+    n = len(t_to)
+    if not n:
+        return np.zeros(0)
+    breaks = np.flatnonzero(t_from[1:] != t_to[:-1]) + 1
+    first = np.concatenate([[0], breaks])
+    chain = np.cumsum(np.isin(np.arange(n), breaks))
+    tick = np.ceil((t_to - t_from[first][chain]) * rate * (1 - 1e-9))  # the grid tick each end has reached
+    closes = np.concatenate([(tick[1:] != tick[:-1]) | (chain[1:] != chain[:-1]), [True]])
+    return np.union1d(t_from[first], t_to[closes])
+
+
+def relative_spans(t_from: np.ndarray, t_to: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """``(S, 2)``: the spans ``[lo, hi)`` of consecutive relative measurements between keyframes
+    ``times``: a span ends at a measurement whose end is a keyframe or that the next does not
+    continue (it begins elsewhere), and at the last."""
+    t_from, t_to = np.asarray(t_from, dtype=float), np.asarray(t_to, dtype=float)
+    closes = np.isin(t_to, times) | np.concatenate([t_from[1:] != t_to[:-1], [True]])
+    hi = np.flatnonzero(closes) + 1
+    return np.stack([np.concatenate([[0], hi[:-1]]), hi], axis=1)
+
+
+def relative_on_keyframes(dataset: Dataset, times: np.ndarray) -> Dataset:
+    """``dataset`` with each relative sensor's consecutive measurements between keyframes
+    ``times`` composed into one (:func:`relative_spans`, the kind's ``compose``): what the
+    smoothers' factors and their verdicts read. The dataset itself where every end is a keyframe."""
+    sensors, changed = [], False
+    for sensor in dataset.sensors:
+        kind = KINDS[sensor.kind]
+        if kind.relative and sensor.data is not None and len(sensor.data.t_to):
+            spans = relative_spans(sensor.data.t_from, sensor.data.t_to, times)
+            if len(spans) < len(sensor.data.t_to):
+                sensor, changed = replace(sensor, data=kind.compose(sensor.data, spans)), True
+        sensors.append(sensor)
+    return replace(dataset, sensors=tuple(sensors)) if changed else dataset
 
 
 #: The longest keyframe interval, in IMU steps, as a multiple of the mean interval's, where the

@@ -20,7 +20,7 @@ from factors import imu
 from factors.errors import InputError
 from smoother.model.problem import measurement_spec
 from smoother.model.timeline import keyframe_rate as grid_rate
-from smoother.model.timeline import keyframe_times
+from smoother.model.timeline import keyframe_times, relative_on_keyframes
 from smoother.online.handover import OnlineEstimate
 from smoother.online.smoother import OnlineSmoother
 from smoother.progress import progress_bar
@@ -104,6 +104,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     however early it arrives."""
     if not speed > 0:
         raise InputError(f"speed must be positive, got {speed}")
+    # a relative sensor's measurements between keyframes arrive composed, as the batch smoother reads them
+    dataset = relative_on_keyframes(dataset, keyframe_times(dataset, keyframe_rate))
     smoothed: list[OnlineEstimate] = []
     began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
     online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
