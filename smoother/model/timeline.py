@@ -129,8 +129,9 @@ def keyframe_rate(dataset: Dataset, rate=None) -> float | None:
 def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     """The smoothers' keyframes: with the grid of :func:`keyframe_rate` (``rate``), the grid
     ``t0 + k / rate``, the times of held-out measurements, the ends of the relative measurements
-    composed onto the grid (:func:`relative_anchors`) and the start and end of the IMU data;
-    without one, :func:`measurement_knots`.
+    composed onto the grid (:func:`relative_anchors`, in place of the grid where their chains
+    run, so that each composed measurement joins consecutive keyframes) and the start and end of
+    the IMU data; without one, :func:`measurement_knots`.
     Every other measurement is attached to the keyframe at or before its time (:func:`attachment`).
 
     Grid times are correctly rounded (``t0 + k / rate``, like the measurement ticks; arange's
@@ -143,15 +144,25 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
         return bounded_intervals(measurement_knots(dataset), dataset.imu.t)
     parts = [[dataset.t0, dataset.t1]]
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
-    parts += [relative_anchors(s.data.t_from, s.data.t_to, grid_rate) for s in sensors_of(dataset)
-              if KINDS[s.kind].relative]
+    relative = [s.data for s in sensors_of(dataset) if KINDS[s.kind].relative]
+    parts += [relative_anchors(d.t_from, d.t_to, grid_rate) for d in relative]
     others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
     grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
+    for d in relative:  # a relative sensor's anchors are the grid where its chains run
+        for lo, hi in zip(*relative_chains(d.t_from, d.t_to)):
+            grid = grid[(grid <= d.t_from[lo]) | (grid >= d.t_to[hi - 1])]
     i = np.searchsorted(others, grid)
     gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
     grid = grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))]
     times = np.union1d(others, grid)
     return bounded_intervals(times[(times >= dataset.t0) & (times <= dataset.t1)], dataset.imu.t)
+
+
+def relative_chains(t_from: np.ndarray, t_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)``: the chains ``[lo, hi)`` of a relative sensor's measurements, each beginning
+    where the one before it ended."""
+    breaks = np.flatnonzero(np.asarray(t_from)[1:] != np.asarray(t_to)[:-1]) + 1
+    return np.concatenate([[0], breaks]), np.concatenate([breaks, [len(t_to)]])
 
 
 def relative_anchors(t_from: np.ndarray, t_to: np.ndarray, rate: float) -> np.ndarray:
@@ -165,9 +176,8 @@ def relative_anchors(t_from: np.ndarray, t_to: np.ndarray, rate: float) -> np.nd
     n = len(t_to)
     if not n:
         return np.zeros(0)
-    breaks = np.flatnonzero(t_from[1:] != t_to[:-1]) + 1
-    first = np.concatenate([[0], breaks])
-    chain = np.cumsum(np.isin(np.arange(n), breaks))
+    first, _ = relative_chains(t_from, t_to)
+    chain = np.cumsum(np.isin(np.arange(n), first)) - 1
     tick = np.ceil((t_to - t_from[first][chain]) * rate * (1 - 1e-9))  # the grid tick each end has reached
     closes = np.concatenate([(tick[1:] != tick[:-1]) | (chain[1:] != chain[:-1]), [True]])
     return np.union1d(t_from[first], t_to[closes])
@@ -177,8 +187,8 @@ def relative_spans(t_from: np.ndarray, t_to: np.ndarray, times: np.ndarray) -> n
     """``(S, 2)``: the spans ``[lo, hi)`` of consecutive relative measurements between keyframes
     ``times``: a span ends at a measurement whose end is a keyframe or that the next does not
     continue (it begins elsewhere), and at the last."""
-    t_from, t_to = np.asarray(t_from, dtype=float), np.asarray(t_to, dtype=float)
-    closes = np.isin(t_to, times) | np.concatenate([t_from[1:] != t_to[:-1], [True]])
+    closes = np.isin(np.asarray(t_to, dtype=float), times)
+    closes[relative_chains(t_from, t_to)[1] - 1] = True
     hi = np.flatnonzero(closes) + 1
     return np.stack([np.concatenate([[0], hi[:-1]]), hi], axis=1)
 

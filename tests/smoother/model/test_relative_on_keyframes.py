@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from dataclasses import replace
 
 import estimator_cases as cases
 import numpy as np
@@ -16,6 +17,7 @@ from datasets.types import RelativePoseMeasurements
 from factors import so3
 from factors.selfcheck import random_rotation
 from smoother.batch.solve import solve_batch
+from smoother.model.blocks import Layout
 from smoother.model.problem import build_problem
 from smoother.model.timeline import (
     EVERY_MEASUREMENT,
@@ -133,6 +135,20 @@ def test_the_fixed_lag_smoother_reads_the_same_composed_odometry_on_the_same_key
     odometry = [next(s.data for s in d.sensors if s.kind == "odometry")
                 for d in (data, relative_on_keyframes(data, keyframe_times(data)))]
     assert len(odometry[1].t_to) < len(odometry[0].t_to) / 4
+
+
+def test_odometry_starting_between_grid_ticks_keeps_its_factors_on_consecutive_keyframes():
+    """Where an odometry's chains run, their anchors stand in for the grid (a grid tick between two
+    anchors would leave the composed measurement spanning three keyframes): the factors stay on
+    consecutive keyframes, a chain of them (the batch's orders from the structure)."""
+    data = _odometry_rig()
+    sensors = tuple(replace(s, data=s.data.subset(slice(3, None))) if s.kind == "odometry" else s for s in data.sensors)
+    late = replace(data, sensors=sensors)  # the odometry begins at 0.06 s, between the 10 Hz ticks
+    problem = build_problem(late)
+    odometry = next(b for b in problem.blocks if b.name == "odometry")
+    assert np.all(np.diff(odometry.keyframes, axis=1) == 1)
+    assert len(problem.times) <= 10 * 20 + 4
+    assert Layout.of(problem.initial_states, problem.calibration, problem.blocks).chain
 
 
 @pytest.mark.parametrize("rate", [EVERY_MEASUREMENT, 50.0])
