@@ -129,9 +129,9 @@ def keyframe_rate(dataset: Dataset, rate=None) -> float | None:
 def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     """The smoothers' keyframes: with the grid of :func:`keyframe_rate` (``rate``), the grid
     ``t0 + k / rate``, the times of held-out measurements, the ends of the relative measurements
-    composed onto the grid (:func:`relative_anchors`, in place of the grid where their chains
-    run, so that each composed measurement joins consecutive keyframes) and the start and end of
-    the IMU data; without one, :func:`measurement_knots`.
+    composed onto the grid (:func:`relative_anchors`, in place of the grid inside a span composed
+    of several, so that it joins consecutive keyframes) and the start and end of the IMU data;
+    without one, :func:`measurement_knots`.
     Every other measurement is attached to the keyframe at or before its time (:func:`attachment`).
 
     Grid times are correctly rounded (``t0 + k / rate``, like the measurement ticks; arange's
@@ -145,12 +145,16 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     parts = [[dataset.t0, dataset.t1]]
     parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
     relative = [s.data for s in sensors_of(dataset) if KINDS[s.kind].relative]
-    parts += [relative_anchors(d.t_from, d.t_to, grid_rate) for d in relative]
-    others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
+    anchors = [relative_anchors(d.t_from, d.t_to, grid_rate) for d in relative]
+    others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts + anchors]))
     grid = dataset.t0 + np.arange(len(np.arange(dataset.t0, dataset.t1, 1.0 / grid_rate))) / grid_rate
-    for d in relative:  # a relative sensor's anchors are the grid where its chains run
-        for lo, hi in zip(*relative_chains(d.t_from, d.t_to)):
-            grid = grid[(grid <= d.t_from[lo]) | (grid >= d.t_to[hi - 1])]
+    for d, at in zip(relative, anchors):  # inside a span composed of several, its anchors are the grid
+        spans = relative_spans(d.t_from, d.t_to, at)
+        spans = spans[spans[:, 1] - spans[:, 0] > 1]
+        if len(spans):
+            start, end = d.t_from[spans[:, 0]], d.t_to[spans[:, 1] - 1]
+            j = np.maximum(np.searchsorted(start, grid, side="right") - 1, 0)
+            grid = grid[(grid <= start[j]) | (grid >= end[j])]
     i = np.searchsorted(others, grid)
     gap = np.minimum(np.abs(grid - others[np.maximum(i - 1, 0)]), np.abs(others[np.minimum(i, len(others) - 1)] - grid))
     grid = grid[gap >= 0.5 * float(np.median(np.diff(dataset.imu.t)))]

@@ -155,3 +155,13 @@ def test_odometry_starting_between_grid_ticks_keeps_its_factors_on_consecutive_k
 def test_where_every_end_is_a_keyframe_the_dataset_is_left_as_it_is(rate):
     data = _odometry_rig()
     assert relative_on_keyframes(data, keyframe_times(data, rate)) is data
+
+
+def test_an_odometry_slower_than_the_grid_keeps_the_grid_between_its_ends():
+    """2 Hz odometry on the 10 Hz grid: nothing to compose, and the grid's keyframes stay between
+    its ends (each measurement then spans several keyframes, as before any composition)."""
+    data = simulate("gentle", duration=6.0, seed=5, imu_rate=200.0, pose_rate=None, position_rate=20.0,
+                    odometry_rate=2.0)
+    times = keyframe_times(data)
+    assert relative_on_keyframes(data, times) is data
+    assert np.all(np.diff(times) <= 0.1 + 1e-9) and len(times) >= 10 * 6
