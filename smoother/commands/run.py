@@ -134,6 +134,8 @@ def keyframe_line(record: dict, given: bool) -> str:
     if record["attached"]:
         line += (f"; {record['attached']} of {record['measurements']} measurements attached to the keyframe before "
                  f"them, at most {record['max_attached_distance_s']:.3g} s after it")
+    if record["composed"] < record["relative"]:
+        line += f"; {record['relative']} relative measurements composed into {record['composed']} between keyframes"
     return line
 
 

@@ -288,15 +288,19 @@ def keyframe_record(dataset: Dataset, rate=None, times: np.ndarray | None = None
     their ``count``; ``rate_hz``, the grid's rate (:func:`keyframe_rate` of ``rate``) or
     :data:`EVERY_MEASUREMENT`; of the ``measurements`` of one state (a relative measurement's ends
     are keyframes), how many are ``attached`` to the keyframe before them, and the furthest of them
-    from its keyframe, ``max_attached_distance_s``. ``times``: :func:`keyframe_times` of
-    ``dataset`` and ``rate``, made here when not given."""
+    from its keyframe, ``max_attached_distance_s``; of the ``relative`` measurements, how many
+    there are ``composed`` into how many between keyframes (:func:`relative_on_keyframes`).
+    ``times``: :func:`keyframe_times` of ``dataset`` and ``rate``, made here when not given."""
     grid = keyframe_rate(dataset, rate)
     times = keyframe_times(dataset, rate) if times is None else times
     stamps = [s.data.t for s in sensors_of(dataset) if not KINDS[s.kind].relative]
     _, distance = keyframe_before(times, np.concatenate(stamps) if stamps else np.zeros(0))
+    relative = [s.data for s in sensors_of(dataset) if KINDS[s.kind].relative]
     return {"count": int(len(times)), "rate_hz": EVERY_MEASUREMENT if grid is None else grid,
             "measurements": int(len(distance)), "attached": int(np.count_nonzero(distance > 0)),
-            "max_attached_distance_s": float(distance.max(initial=0.0))}
+            "max_attached_distance_s": float(distance.max(initial=0.0)),
+            "relative": int(sum(len(d.t_to) for d in relative)),
+            "composed": int(sum(len(relative_spans(d.t_from, d.t_to, times)) for d in relative))}
 
 
 def interval_attachment(t: np.ndarray, t_from: float, t_to: float, stamps) -> tuple[np.ndarray, np.ndarray]:

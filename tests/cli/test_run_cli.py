@@ -69,7 +69,7 @@ def test_the_run_says_and_records_its_keyframes(tmp_path, capsys):
 
     record, lines = run("--estimator", "batch", "--gps-from-truth", "40", "0.1")
     assert record == {"count": 21, "rate_hz": 10.0, "measurements": 81 + 21, "attached": 60,
-                      "max_attached_distance_s": pytest.approx(0.075, abs=1e-12)}
+                      "max_attached_distance_s": pytest.approx(0.075, abs=1e-12), "relative": 0, "composed": 0}
     assert lines == ["keyframes: 21 on a 10 Hz grid (the default: a 10 Hz grid where measurements come faster; "
                      "--keyframe-rate HZ sets it); 60 of 102 measurements attached to the keyframe before them, at "
                      "most 0.075 s after it"]
@@ -79,7 +79,7 @@ def test_the_run_says_and_records_its_keyframes(tmp_path, capsys):
     assert lines[0].startswith("keyframes: 11 on a 5 Hz grid; 80 of 102 measurements attached")
     record, lines = run("--estimator", "batch")
     assert record == {"count": 21, "rate_hz": "measurements", "measurements": 21, "attached": 0,
-                      "max_attached_distance_s": 0.0}
+                      "max_attached_distance_s": 0.0, "relative": 0, "composed": 0}
     assert lines == ["keyframes: 21, one at every measurement time (the default: a 10 Hz grid where measurements "
                      "come faster; --keyframe-rate HZ sets it)"]
     assert run("--estimator", "ekf") == (None, [])

@@ -56,7 +56,8 @@ def test_keyframe_rate_is_the_grid_and_measurements_between_are_attached():
     one_state = sum(len(s.data.t) for s in data.sensors)
     on_grid = sum(np.isin(s.data.t, problem.times).sum() for s in data.sensors)
     assert problem.keyframes == {"count": 8, "rate_hz": 3.0, "measurements": one_state, "attached": one_state - on_grid,
-                                 "max_attached_distance_s": pytest.approx(0.3, abs=1e-12)}
+                                 "max_attached_distance_s": pytest.approx(0.3, abs=1e-12), "relative": 0,
+                                 "composed": 0}
     for k, group in enumerate(problem.factors_at):
         for f in group[0 if k == 0 else 1:]:
             (index,) = {i for _, i in _symbols(f)}

@@ -17,6 +17,7 @@ from datasets.types import RelativePoseMeasurements
 from factors import so3
 from factors.selfcheck import random_rotation
 from smoother.batch.solve import solve_batch
+from smoother.commands.run import keyframe_line
 from smoother.model.blocks import Layout
 from smoother.model.problem import build_problem
 from smoother.model.timeline import (
@@ -149,6 +150,10 @@ def test_odometry_starting_between_grid_ticks_keeps_its_factors_on_consecutive_k
     assert np.all(np.diff(odometry.keyframes, axis=1) == 1)
     assert len(problem.times) <= 10 * 20 + 4
     assert Layout.of(problem.initial_states, problem.calibration, problem.blocks).chain
+    n = len(next(s.data for s in late.sensors if s.kind == "odometry").t_to)
+    assert (problem.keyframes["relative"], problem.keyframes["composed"]) == (n, len(odometry))
+    assert keyframe_line(problem.keyframes, False).endswith(
+        f"; {n} relative measurements composed into {len(odometry)} between keyframes")
 
 
 @pytest.mark.parametrize("rate", [EVERY_MEASUREMENT, 50.0])
