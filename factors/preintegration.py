@@ -231,92 +231,6 @@ def _bias_slice_step(l, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf) -> None:  # no
             dWf[row + a * _IW + 3 + m] += h * (D[0, a] * x0 + D[1, a] * x1 + D[2, a] * x2)
 
 
-#: The length of the work array of one interval's integration (:func:`_integrate_kernel`).
-INTEGRATION_ROWS = 27 * _IW + 27
-
-
-@block_operation
-def _integration_views(rows):
-    """The views of an interval's integration work array ``rows`` (:func:`_integrate_kernel`):
-    ``W, Rm, dC W, dW, dRm`` in flat rows of ``_IW`` columns, and ``dC``, ``JC`` and a 3x3 scratch."""
-    Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
-    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:27 * _IW]
-    D = rows[27 * _IW:27 * _IW + 9].reshape((3, 3))
-    JCj = rows[27 * _IW + 9:27 * _IW + 18].reshape((3, 3))
-    tmp = rows[27 * _IW + 18:].reshape((3, 3))
-    return Wf, Rf, dCW, dWf, dRf, D, JCj, tmp
-
-
-@block_operation
-def _integration_start(rows) -> None:
-    """``rows`` at an interval's start: ``W_0 = [I | 0 | 0 | 0]``, ``Rm_0 = 0``, ``dW_0 = dRm_0 = 0``,
-    ``dC_0 = I``, ``JC_0 = 0``."""
-    rows[:] = 0.0
-    for a in range(3):
-        rows[a * _IW + a] = 1.0
-        rows[27 * _IW + 4 * a] = 1.0
-
-
-@block_operation
-def _integration_steps(acc, gyro, dt, b_w_bar, j, rows) -> None:
-    """The samples ``k`` of interval ``j`` (``acc[j, k]``, ``gyro[j, k]``, ``dt[j, k]``) stepped into
-    the integration ``rows`` in place, from whatever they hold (:func:`_integration_start`, or the
-    steps before). Samples with ``dt = 0`` are identity steps and skipped."""
-    Wf, Rf, dCW, dWf, dRf, D, JCj, tmp = _integration_views(rows)
-    for k in range(dt.shape[1]):
-        h = dt[j, k]
-        if h <= 0.0:
-            continue
-        w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
-        Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
-        d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
-                                                       D[2, 0], D[2, 1], D[2, 2])
-        for c in range(_IW):  # dC W
-            x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-            dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
-            dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
-            dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
-        # the three bias axes, each inlined with its axis a constant
-        _bias_slice_step(0, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-        _bias_slice_step(1, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-        _bias_slice_step(2, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
-        # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
-        for c in range(_IW):
-            x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
-            Rf[c] += h * dCW[c]
-            Rf[_IW + c] += h * dCW[_IW + c]
-            Rf[2 * _IW + c] += h * dCW[2 * _IW + c]
-            Wf[c] = x0 - h * (w1 * x2 - w2 * x1)
-            Wf[_IW + c] = x1 - h * (w2 * x0 - w0 * x2)
-            Wf[2 * _IW + c] = x2 - h * (w0 * x1 - w1 * x0)
-        for a in range(3):
-            for b in range(3):
-                Wf[a * _IW + 3 + b] += h * D[b, a]
-            Wf[a * _IW + 6] += h * acc[j, k, a]
-            Wf[a * _IW + 7 + a] += h
-        # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
-        for a in range(3):
-            for b in range(3):
-                JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
-                tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
-        for a in range(3):
-            for b in range(3):
-                D[a, b] = tmp[a, b]
-
-
-@block_operation
-def _integration_out(rows, j, dC, W, Rm, JC, dW, dRm) -> None:
-    """The integration ``rows`` copied into row ``j`` of the outputs."""
-    Wf, Rf, dCW, dWf, dRf, D, JCj, tmp = _integration_views(rows)
-    for a in range(3):
-        for b in range(3):
-            dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
-        for c in range(10):
-            W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
-            for l in range(3):  # noqa: E741 -- the bias axis l of the module docstring
-                dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
-
-
 @recursion
 def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     """The recursions of the module docstring with the gyro-bias Jacobians ``JC, dW, dRm``, for
@@ -330,11 +244,63 @@ def _integrate_kernel(acc, gyro, dt, b_w_bar, lo, hi, dC, W, Rm, JC, dW, dRm):
     product. ``dC`` and ``JC`` of the interval live in the same work array (copied out at its
     end), so LLVM knows that no store into one of them changes another. Samples with ``dt = 0``
     are identity steps and skipped."""
-    rows = np.empty(INTEGRATION_ROWS)  # one array (see _IW)
+    rows = np.empty(27 * _IW + 27)  # one array (see _IW)
+    Wf, Rf, dCW = rows[:3 * _IW], rows[3 * _IW:6 * _IW], rows[6 * _IW:9 * _IW]
+    dWf, dRf = rows[9 * _IW:18 * _IW], rows[18 * _IW:27 * _IW]
+    D = rows[27 * _IW:27 * _IW + 9].reshape((3, 3))
+    JCj = rows[27 * _IW + 9:27 * _IW + 18].reshape((3, 3))
+    tmp = rows[27 * _IW + 18:].reshape((3, 3))
     for j in range(lo, hi):
-        _integration_start(rows)
-        _integration_steps(acc, gyro, dt, b_w_bar, j, rows)
-        _integration_out(rows, j, dC, W, Rm, JC, dW, dRm)
+        rows[:] = 0.0  # W_0 = [I | 0 | 0 | 0], Rm_0 = 0, dW_0 = dRm_0 = 0, dC_0 = I, JC_0 = 0
+        for a in range(3):
+            Wf[a * _IW + a] = 1.0
+            D[a, a] = 1.0
+        for k in range(dt.shape[1]):
+            h = dt[j, k]
+            if h <= 0.0:
+                continue
+            w0, w1, w2 = gyro[j, k, 0] - b_w_bar[j, 0], gyro[j, k, 1] - b_w_bar[j, 1], gyro[j, k, 2] - b_w_bar[j, 2]
+            Em, Gm = so3.exp_and_gamma_entries(h * w0, h * w1, h * w2)  # row-major entries
+            d00, d01, d02, d10, d11, d12, d20, d21, d22 = (D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2],
+                                                           D[2, 0], D[2, 1], D[2, 2])
+            for c in range(_IW):  # dC W
+                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                dCW[c] = d00 * x0 + d01 * x1 + d02 * x2
+                dCW[_IW + c] = d10 * x0 + d11 * x1 + d12 * x2
+                dCW[2 * _IW + c] = d20 * x0 + d21 * x1 + d22 * x2
+            # the three bias axes, each inlined with its axis a constant
+            _bias_slice_step(0, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+            _bias_slice_step(1, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+            _bias_slice_step(2, h, w0, w1, w2, D, JCj, Wf, dCW, dWf, dRf)
+            # Rm += dt dC W;  W <- A W + dt [0 | dC^T | f~ | I]
+            for c in range(_IW):
+                x0, x1, x2 = Wf[c], Wf[_IW + c], Wf[2 * _IW + c]
+                Rf[c] += h * dCW[c]
+                Rf[_IW + c] += h * dCW[_IW + c]
+                Rf[2 * _IW + c] += h * dCW[2 * _IW + c]
+                Wf[c] = x0 - h * (w1 * x2 - w2 * x1)
+                Wf[_IW + c] = x1 - h * (w2 * x0 - w0 * x2)
+                Wf[2 * _IW + c] = x2 - h * (w0 * x1 - w1 * x0)
+            for a in range(3):
+                for b in range(3):
+                    Wf[a * _IW + 3 + b] += h * D[b, a]
+                Wf[a * _IW + 6] += h * acc[j, k, a]
+                Wf[a * _IW + 7 + a] += h
+            # JC <- JC - dt dC Gamma(dt w);  dC <- dC exp(dt w)
+            for a in range(3):
+                for b in range(3):
+                    JCj[a, b] -= h * (D[a, 0] * Gm[b] + D[a, 1] * Gm[3 + b] + D[a, 2] * Gm[6 + b])
+                    tmp[a, b] = D[a, 0] * Em[b] + D[a, 1] * Em[3 + b] + D[a, 2] * Em[6 + b]
+            for a in range(3):
+                for b in range(3):
+                    D[a, b] = tmp[a, b]
+        for a in range(3):
+            for b in range(3):
+                dC[j, a, b], JC[j, a, b] = D[a, b], JCj[a, b]
+            for c in range(10):
+                W[j, a, c], Rm[j, a, c] = Wf[a * _IW + c], Rf[a * _IW + c]
+                for l in range(3):  # noqa: E741 -- the bias axis l of the module docstring
+                    dW[j, a, c, l], dRm[j, a, c, l] = dWf[(3 * l + a) * _IW + c], dRf[(3 * l + a) * _IW + c]
 
 
 @recursion
