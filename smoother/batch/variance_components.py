@@ -563,7 +563,7 @@ class _NoiseModel:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
                 self.rig[g.sensor] = (W, np.linalg.inv(W))
         self.sensor_derivatives = {i: self._rig_derivative(g) for i, g in enumerate(groups) if g.axes is not None}
-        self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)) along the estimate
+        self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)), made when first asked for
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
 
@@ -599,13 +599,13 @@ class _NoiseModel:
             out.append((lag_one_correlation(u[order][:, axes]), int(u[:, axes].size)))
         return out
 
-    def _imu_parts(self, states):
-        """The IMU factors' covariance parts along ``states``: ``(N (4, J, 15, 15), N_0)``. Made
-        along the problem's initial states, along which it made its own IMU covariances, so that
-        ``psi = 0`` is the problem itself (to round-off)."""
+    def _imu_parts(self):
+        """The IMU factors' covariance parts ``(N (4, J, 15, 15), N_0)`` along the problem's
+        initial states, along which it made its own IMU covariances, so that ``psi = 0`` is the
+        problem itself (to round-off)."""
         noise = self.dataset.noise
         zero = replace(noise, acc=0.0, gyro=0.0, acc_bias=0.0, gyro_bias=0.0)
-        reference = states[:-1]
+        reference = self.problem.initial_states[:-1]
         rest = preintegration.noise_covariance(self.samples, reference, zero, self.dataset.gravity)
         parts = []
         for field, *_ in IMU_COMPONENTS:
@@ -621,7 +621,7 @@ class _NoiseModel:
         imu_groups = [i for i, g in enumerate(self.groups) if g.axes is None]
         if imu_groups:
             if self.imu_parts is None:
-                self.imu_parts = self._imu_parts(self.problem.initial_states)
+                self.imu_parts = self._imu_parts()
             parts, rest = self.imu_parts
             factors = np.ones(len(IMU_COMPONENTS))
             for i in imu_groups:
