@@ -98,6 +98,9 @@ TILT_MODEL_ERROR = 0.3
 MIN_ROWS = 10
 #: Rows whose residual exceeds this many robust sigmas are dropped as outliers.
 OUTLIER_SIGMAS = 6.0
+#: A parameter whose information (the square root of its diagonal of the normal equations) is below this
+#: share of the largest one's is read by nothing: left at zero (:func:`_solve`).
+NO_INFORMATION = 1e-8
 #: Gauss-Newton steps after the closed-form start.
 ITERATIONS = 4
 #: Median of the chi-square distribution with 3 degrees of freedom (robust scale of a 3-vector).
@@ -179,10 +182,18 @@ def _solve(N: np.ndarray, g: np.ndarray) -> np.ndarray:
     """The minimum-norm solution of ``N x = g`` (``N`` symmetric, positive semi-definite; ``g`` a
     vector or columns) with ``N``'s columns scaled to a unit diagonal first, so that a stiff prior
     on one parameter does not hide the others from the rank decision; directions with less than
-    1e-10 of the largest scaled information are left at zero."""
-    d = np.sqrt(np.maximum(np.diag(N), 1e-300))
-    column = d.reshape((-1,) + (1,) * (np.ndim(g) - 1))
-    return np.linalg.lstsq(N / np.outer(d, d), g / column, rcond=1e-10)[0] / column
+    1e-10 of the largest scaled information are left at zero, and so are parameters that nothing
+    reads at all (a diagonal below :data:`NO_INFORMATION` of the largest: a wheel odometer's
+    lateral and vertical velocities, exactly zero in every message), which the scaling would
+    otherwise blow up from round-off."""
+    d = np.sqrt(np.maximum(np.diag(N), 0.0))
+    live = d > NO_INFORMATION * d.max() if d.max() > 0 else np.zeros(len(d), bool)
+    x = np.zeros(np.shape(g))
+    if live.any():
+        column = d[live].reshape((-1,) + (1,) * (np.ndim(g) - 1))
+        scaled = N[np.ix_(live, live)] / np.outer(d[live], d[live])
+        x[live] = np.linalg.lstsq(scaled, g[live] / column, rcond=1e-10)[0] / column
+    return x
 
 
 def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> tuple[DataRotation, np.ndarray]:

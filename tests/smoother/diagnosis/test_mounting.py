@@ -4,7 +4,7 @@ simulated rigs whose data were made with the true mounting and whose rig states 
 * a rig off by a quarter or a half turn about any sensor axis is named, with exactly the sensor
   axes that the two rotations put on different IMU axes, for a velocity, a pose, an orientation,
   an odometry and a roll_pitch sensor; wheels turned about the vertical on a drive are named by
-  their forward axis;
+  their forward axis, also when they read exact zeros across it (a differential-drive odometer);
 * a rig mounted right gives no warning over 20 seeds with random mountings, and the data's
   rotation is within a few degrees of the truth, also with a poor gyro, an accelerometer bias or
   outliers in the attitudes;
@@ -41,7 +41,7 @@ from smoother.diagnosis.mounting import (
     check_mountings,
     compare,
 )
-from smoother.diagnosis.mounting_data import DataRotation
+from smoother.diagnosis.mounting_data import DataRotation, _solve
 
 #: A camera-like mounting, a little off the axes: the sensor's z on the IMU's x, its x on -y, its
 #: y on -z, turned by 4 degrees about a skew axis.
@@ -155,6 +155,24 @@ def test_wheels_turned_about_the_vertical_on_a_drive_are_named_by_their_forward_
     assert finding.message.startswith("wheels (velocity): the data put its forward axis (x) on the IMU's +x, "
                                       "the rig on -x ("), finding.message
     assert finding.message.endswith("its rotation about the IMU's x axis is not determined by this motion")
+
+
+@pytest.mark.parametrize("turn", [0.0, np.pi / 2, np.pi])
+def test_wheels_whose_lateral_and_vertical_readings_are_exact_zeros_are_checked(turn):
+    """A differential-drive controller's odometry reports its lateral and vertical velocities as
+    exact zeros in every message: the columns of the closed form that they multiply carry no
+    information at all (not merely little), are left at zero, and the forward axis is found as
+    with noisy readings -- the rig right agrees, turned about the vertical by a quarter or a half
+    turn it is wrong."""
+    dataset = _rig("gentle", 60.0, {"wheels": TUMBLING_KINDS["wheels"]}, 0, np.eye(3))
+    (wheels,) = dataset.sensors
+    velocity = wheels.data.velocity * np.array([1.0, 0.0, 0.0])
+    dataset = replace(dataset, sensors=(replace(wheels, data=replace(wheels.data, velocity=velocity)),))
+    (finding,) = check_mountings(_with_rig_rotation(dataset, so3.exp(np.array([0.0, 0.0, turn])))).results
+    assert isinstance(finding, MountingFinding), finding
+    assert finding.wrong == (turn > 0.0), finding.message
+    # its forward axis on the IMU's x, as close as from the noisy readings (3.2 deg; the sigma is 7)
+    assert np.degrees(np.arccos(finding.R_data[0, 0])) < 6.0, finding.R_data
 
 
 def test_the_check_runs_on_the_dataset_as_given(tumbling):
@@ -339,6 +357,23 @@ def test_a_difference_is_wrong_beyond_both_the_tolerance_and_three_sigma(R, axis
     assert finding(1.0, 20.0).wrong
     within = finding(1.0, 5.0)
     assert not within.wrong and "beyond 3 sigma 3.0 deg but within the 10 deg" in within.message
+
+
+@given(seed=st.integers(0, 2**16))
+def test_parameters_nothing_reads_are_left_at_zero(seed):
+    """Columns of the normal equations that are exactly zero (a wheel odometer's lateral and vertical
+    readings, zero in every message) stay at zero, and the rest is solved as without them, also
+    where the rest has a nearly dependent pair (the scaling to a unit diagonal used to divide the
+    round-off the least-squares solver leaves there by 1e-150)."""
+    rng = np.random.default_rng(seed)
+    J = rng.normal(size=(40, 6)) * rng.uniform(1e-3, 1e3, 6)
+    J[:, 4] = 2.0 * J[:, 3] + 1e-9 * rng.normal(size=40)
+    J[:, 1:3] = 0.0
+    N, g = J.T @ J, J.T @ rng.normal(size=40)
+    x = _solve(N, g)
+    assert np.all(x[1:3] == 0.0)
+    rest = [0, 3, 4, 5]
+    assert np.allclose(x[rest], _solve(N[np.ix_(rest, rest)], g[rest]), rtol=1e-9, atol=0.0)
 
 
 def test_a_finding_needs_two_determined_directions():
