@@ -346,11 +346,17 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     fit = None
     if noise:
         from smoother.batch.variance_components import estimate_noise
-        from smoother.diagnosis.noise_honesty import honest
+        from smoother.diagnosis.noise_honesty import correlated, honest
 
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
         runtime_s += fit.runtime_s
-        fit, errors = honest(fit, [f.sensor for f in mounting.wrong] if mounting is not None else ())
+        causes = None
+        if correlated(fit):  # residuals alike in time: a calibration's pattern, or the sensor's own drift?
+            from smoother.diagnosis.misfit_causes import causes_at
+
+            causes = causes_at(fit.applied(dataset), r.trajectory, options.keyframe_rate, options.robust,
+                               calibration=r.calibration)
+        fit, errors = honest(fit, [f.sensor for f in mounting.wrong] if mounting is not None else (), causes)
         applied = fit.applied(dataset)
         if any(g.estimable and not g.applied and g.note.startswith("not applied") for g in fit.groups):
             # a group kept at the rig's value as a model error: the estimate with the noise applied

@@ -14,8 +14,15 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
   not an IMU, it is a misfit shared out);
 * a sensor's whitened residuals are alike from one measurement to the next (lag-one correlation
-  beyond :data:`CORRELATED`): noise is white, a systematic error is not (the IMU's factors share
-  their keyframes, so theirs are correlated by construction and not judged so);
+  beyond :data:`CORRELATED`) and a calibration explains them: a lever arm, a time offset, a
+  rotation or a scale left out leaves residuals that follow the motion, which the sensor's misfit
+  causes (:mod:`smoother.diagnosis.misfit_causes`, fitted with the noise applied) name. Residuals
+  alike in time that no calibration explains are the sensor's own drifting error (a GNSS
+  receiver's, over seconds to minutes): the factor is their size and is applied, with a note that
+  the estimate takes them as independent. A sensor whose causes were not analysed (a relative kind,
+  one estimating its own calibration, or no causes given) counts as a systematic error, as without
+  the analysis. The IMU's factors share their keyframes, so theirs are correlated by construction
+  and not judged so;
 * the fit grew its sigma until the estimate hardly uses it (a factor beyond
   :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
   its verdict no longer responds to its sigma, and the sensor is dropped, not weighed.
@@ -48,11 +55,21 @@ class ModelError:
     cause: str
 
 
-def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]]:
+def correlated(fit: NoiseFit) -> list[str]:
+    """The sensors with an applied group whose residuals are alike in time (beyond
+    :data:`CORRELATED`): those whose misfit causes :func:`honest` needs."""
+    return sorted({g.group.sensor for g in fit.groups if g.estimable and g.applied and g.group.sensor != IMU_BLOCK
+                   and g.correlation > CORRELATED})
+
+
+def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tuple[NoiseFit, list[ModelError]]:
     """``fit`` with every group that is a model error (module docstring) kept at the rig's value,
     and those errors. ``mounting_wrong``: the sensors whose mounting the closed-form check found
-    wrong."""
+    wrong. ``causes``: per sensor analysed, its misfit causes
+    (:func:`smoother.diagnosis.misfit_causes.causes_at` with the fitted noise applied), which tell a
+    systematic error from a drifting one among residuals alike in time."""
     errors: dict[str, str] = {}
+    drifting: dict[str, str] = {}
     for g in fit.groups:
         if not (g.estimable and g.applied):
             continue
@@ -64,9 +81,15 @@ def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")
         elif sensor != IMU_BLOCK and g.correlation > CORRELATED:
-            errors[name] = (f"its residuals are alike from one measurement to the next (correlation "
-                            f"{g.correlation:.2f}): a systematic error (a lever arm, a time offset, a scale), "
-                            "not noise")
+            alike = f"its residuals are alike from one measurement to the next (correlation {g.correlation:.2f})"
+            if causes is None or sensor not in causes:
+                errors[name] = f"{alike}: a systematic error (a lever arm, a time offset, a scale), not noise"
+            elif found := [c for c in causes[sensor] if c.suggested]:
+                errors[name] = (f"{alike} and point at {', '.join(c.text() for c in found)}: a systematic error, "
+                                "not noise")
+            else:
+                drifting[name] = (f"{alike}, and no calibration explains them: the sensor's error drifts, the "
+                                  "factor is its size, and the estimate takes its measurements as independent")
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
             errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
                             "measurements disagree with the rest of the model")
@@ -79,9 +102,9 @@ def honest(fit: NoiseFit, mounting_wrong=()) -> tuple[NoiseFit, list[ModelError]
                      f"{low.group.part} x{low.factor:.3g}): a misfit shared out, not an IMU's noise")
             errors.setdefault(high.group.name, cause)
             errors.setdefault(low.group.name, cause)
-    if not errors:
+    if not errors and not drifting:
         return fit, []
     groups = [replace(g, applied=False, note=f"not applied: {errors[g.group.name]}") if g.group.name in errors
-              else g for g in fit.groups]
+              else replace(g, note=drifting[g.group.name]) if g.group.name in drifting else g for g in fit.groups]
     return replace(fit, groups=groups), [ModelError(name, cause) for name, cause in errors.items()]
 

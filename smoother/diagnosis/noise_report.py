@@ -27,6 +27,9 @@ def noise_lines(record: dict) -> list[str]:
         figure = f"x{g['factor']:.3g} +- {g['factor_sd']:.2g} (redundancy {g['redundancy']:.3g})"
         if g["merged_with"]:
             figure += f", one factor with {', '.join(g['merged_with'])}"
-        what = "applied" if g["applied"] else g.get("note", "not applied")
+        if g["applied"]:
+            what = "applied" + (f"; {g['note']}" if g.get("note") else "")
+        else:
+            what = g.get("note", "not applied")
         lines.append(f"  {name:<28} {value:<22} {figure}: {what}")
     return lines

@@ -2,10 +2,12 @@
 model error is reported as that error and not applied."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
-from smoother.diagnosis.noise_honesty import CONTRADICTION, CORRELATED, IMPLAUSIBLE_FACTOR, honest
+from smoother.diagnosis.misfit_causes import Cause
+from smoother.diagnosis.noise_honesty import CONTRADICTION, CORRELATED, IMPLAUSIBLE_FACTOR, correlated, honest
 
 
 def _fit(*groups) -> NoiseFit:
@@ -39,9 +41,27 @@ def test_imu_components_that_contradict_each_other_are_a_model_error():
     assert set(errors) == {"imu.acc", "imu.gyro"} and "contradict each other" in errors["imu.acc"]
 
 
-def test_a_sensor_s_residuals_correlated_in_time_are_a_model_error():
-    errors = _errors(_fit(("gnss", "horizontal", (0, 1), 3.0, 80.0, CORRELATED + 0.2, 200)))
-    assert "alike from one measurement to the next" in errors["gnss.horizontal"]
+def test_a_sensor_s_residuals_correlated_in_time_are_a_model_error_unless_analysed():
+    fit = _fit(("gnss", "horizontal", (0, 1), 3.0, 80.0, CORRELATED + 0.2, 200),
+               ("wheels", "forward", (0,), 1.2, 80.0, CORRELATED - 0.2, 200))
+    assert correlated(fit) == ["gnss"]
+    errors = _errors(fit)
+    assert set(errors) == {"gnss.horizontal"} and "alike from one measurement to the next" in errors["gnss.horizontal"]
+    assert set(_errors(fit, causes={"wheels": []})) == {"gnss.horizontal"}  # gnss not analysed
+
+
+def test_correlated_residuals_that_a_calibration_explains_name_it():
+    lever = Cause("lever_arm", np.array([0.0, 1.5, 0.0]), np.full(3, 0.01), 0.8)
+    errors = _errors(_fit(("gnss", "horizontal", (0, 1), 3.0, 80.0, CORRELATED + 0.2, 200)), causes={"gnss": [lever]})
+    assert "and point at lever arm y +1.500 m +- 0.010 m: a systematic error" in errors["gnss.horizontal"]
+
+
+def test_correlated_residuals_that_no_calibration_explains_are_a_drift_and_applied():
+    weak = Cause("lever_arm", np.array([0.0, 0.02, 0.0]), np.full(3, 0.01), 0.01)
+    fit = _fit(("gnss", "horizontal", (0, 1), 3.0, 80.0, CORRELATED + 0.2, 200))
+    out, errors = honest(fit, causes={"gnss": [weak]})
+    (g,) = out.groups
+    assert errors == [] and g.applied and "no calibration explains them: the sensor's error drifts" in g.note
 
 
 def test_a_sensor_grown_until_it_is_discarded_is_a_model_error():

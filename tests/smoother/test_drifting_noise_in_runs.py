@@ -1,0 +1,63 @@
+"""Residuals alike in time in a run that estimates its noise (smoother/pipeline.py with
+smoother/diagnosis/noise_honesty.py and misfit_causes.py): fixes whose error drifts -- a GNSS
+receiver's, over seconds -- have their sigma fitted and applied, with the note that the estimate
+takes them as independent, and no estimate is doubtful for it; fixes whose rig leaves out the
+antenna's lever arm have residuals as alike in time, which the lever arm explains: their fitted
+sigma is not applied, and the run names the lever arm."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from datasets.simulated_sensors import SensorSpec
+from smoother.pipeline import RunOptions, estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
+
+NOISE = ("imu", "gnss", "wheels")
+
+
+def _rig(lever_arm=None, drift: float = 0.0, seed: int = 0):
+    """60 s of the figure-eight with 5-Hz fixes (the rig states 0.3 m) and 10-Hz wheels; ``drift``
+    [m]: an AR(1) error of that size added to the fixes, 0.97 from one fix to the next;
+    ``lever_arm``: the antenna's true place, which the rig leaves out (the IMU's origin)."""
+    T = np.eye(4)
+    if lever_arm is not None:
+        T[:3, 3] = lever_arm
+    data = simulate("gentle", duration=60.0, seed=seed, imu_rate=100.0, pose_rate=None,
+                    sensors=(SensorSpec("gnss", "position", 5.0, 0.3, T), SensorSpec("wheels", "velocity", 10.0, 0.05)))
+    gnss = data.sensor("gnss")
+    rng = np.random.default_rng(seed + 100)
+    e = np.zeros((len(gnss.data.t), 3))
+    for k in range(1, len(e)):
+        e[k] = 0.97 * e[k - 1] + np.sqrt(1.0 - 0.97**2) * drift * rng.normal(size=3)
+    stated = replace(gnss, data=replace(gnss.data, position=gnss.data.position + e, T_BS=np.eye(4)))
+    return replace(data, sensors=tuple(stated if s.name == "gnss" else s for s in data.sensors))
+
+
+def _run(data):
+    record = {}
+    estimates = dict(estimate_each(data, ("batch",), RunOptions(progress=False, estimate_noise=NOISE), record=record))
+    used = record["dataset"]
+    judged(estimates, verdicts_by_estimator(used, estimates), heldout_by_estimator(used, estimates),
+           run_doubts(record))
+    return estimates["batch"], {g.group.name: g for g in record["noise"].groups}
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_fixes_whose_error_drifts_have_their_sigma_fitted_and_applied(seed):
+    batch, groups = _run(_rig(drift=1.0, seed=seed))
+    for part in ("gnss.horizontal", "gnss.vertical"):
+        g = groups[part]
+        assert g.correlation > 0.5 and g.applied and g.factor > 2.0, (part, g)
+        assert "no calibration explains them" in g.note
+    assert "doubtful" not in batch.details or "gnss" not in batch.details["doubtful"], batch.details.get("doubtful")
+
+
+def test_fixes_whose_lever_arm_the_rig_leaves_out_are_named_not_fitted():
+    batch, groups = _run(_rig(lever_arm=[0.0, 1.5, 0.5]))
+    horizontal = groups["gnss.horizontal"]
+    assert horizontal.correlation > 0.5 and not horizontal.applied, horizontal
+    assert horizontal.note.startswith("not applied: ") and "point at lever arm" in horizontal.note, horizontal.note
+    assert "lever arm" in batch.details["doubtful"]
