@@ -108,8 +108,11 @@ TRUNCATION_PROBABILITY = 0.999
 #: not applied: what the data do not tell from the rig stays the rig's, so a rig already right keeps
 #: its noise and its trajectory.
 SIGNIFICANCE = 3.0
-#: Iterations end when no log-factor moves by more than this fraction of its standard deviation.
+#: Iterations end when no log-factor moves by more than this fraction of its standard deviation ...
 STEP_TOLERANCE = 0.1
+#: ... or by more than this (half a per cent on a sigma): a factor the data fix to a fraction of a
+#: per cent (a sensor of thousands of measurements) need not be iterated to a tenth of that.
+STEP_FLOOR = 0.01
 #: ... or after this many.
 MAX_ITERATIONS = 25
 #: No Fisher-scoring step changes a variance factor by more than ``exp`` of this.
@@ -123,6 +126,10 @@ FIRST_DAMPING = 1.0
 #: deviations from where it was (it costs a sweep of the system's conditionals; at two, one
 #: component's factor came out beyond two of its sds of the truth on 5 of 20 simulated seeds).
 RECOMPUTE_SD = 1.0
+#: ... and by more than this: the information changes by about as much as the log-factors move
+#: (relatively), so within this it holds to some ten per cent and the sds to five, however many
+#: standard deviations that is for a group of thousands of measurements.
+RECOMPUTE_FLOOR = 0.1
 
 
 @dataclass(frozen=True)
@@ -300,10 +307,10 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         close = np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR
         near = bool(np.all(close))
         moved = None if information is None else np.abs(psi_of(psi, ties) - psi_of(at, ties))
-        if near and (moved is None or np.any(moved > RECOMPUTE_SD * np.sqrt(np.diag(_pseudo_inverse(
-                _parameter_information(information, ties)))))):
+        if near and (moved is None or not np.all(_unmoved(moved, np.sqrt(np.diag(_pseudo_inverse(
+                _parameter_information(information, ties))))))):
             # the groups' exact information where it is first needed, and again once the parameters
-            # have moved by more than RECOMPUTE_SD standard deviations from where it was computed (a
+            # have moved from where it was computed by more than _unmoved allows (a
             # merge or a group dropped only changes which of its rows and columns they take)
             information, at = exact([g for tie in ties for g in tie]), psi.copy()
         F = _parameter_information(information if near else approximate, ties)
@@ -318,7 +325,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         if near:
             # a step turned back by more than half the last, by more than a tenth of a sd
             turned = last is not None and np.any((newton * last[2] < 0.0) & (np.abs(newton) > 0.5 * np.abs(last[2]))
-                                                 & (np.abs(newton) > STEP_TOLERANCE * sd))
+                                                 & ~_small(newton, sd))
             if turned:
                 damping *= 0.5  # the step turned back: the information is off along it
             else:
@@ -327,7 +334,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             last = (psi_of(psi, ties), s, step)
         else:
             step = far_step(F, q, r)
-        settled = near and np.all(np.abs(newton) <= STEP_TOLERANCE * np.maximum(sd, 1e-3))
+        settled = near and np.all(_small(newton, sd))
         # near the estimate, with the exact information: two parameters the data do not tell apart
         # share one factor from here on (before anything else: such a pair leaves every parameter
         # tied to it with a standard deviation that says nothing). A parameter with too little
@@ -344,8 +351,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
             or (near and sd[j] > MAX_LOG_SD and (settled or falls[j]))]
         rest_stepped = bool(weak) and merged is None and information is not None and np.all(np.delete(close, weak))
-        # the weak's way back to the rig's value, in their sds: within RECOMPUTE_SD the information still holds
-        back = np.abs(psi_of(psi, ties)[weak]) <= RECOMPUTE_SD * sd[weak]
+        # the weak's way back to the rig's value: within _unmoved the information still holds
+        back = _unmoved(np.abs(psi_of(psi, ties)[weak]), sd[weak])
         if merged is None:
             if rest_stepped:
                 # the rest, near the estimate without the weak: their Newton step to where the score
@@ -466,16 +473,27 @@ def _settled_rest(F: np.ndarray, step: np.ndarray, share: np.ndarray, moved: np.
     """The standard deviations of the parameters left after some were dropped, if they settled with
     ``step`` -- the Newton step of their linearised score, with their information ``F``, from the
     evaluation they were dropped at (:func:`_step_without`; the caller takes it only where the
-    dropped ones were within :data:`RECOMPUTE_SD` of their sd of the rig's value, so that ``F``
-    still holds there) -- as the next iteration would find them settled: each step within
-    :data:`STEP_TOLERANCE` of its sd, none ``moved`` (from where ``F`` was computed) beyond
-    :data:`RECOMPUTE_SD` of them, and none to be merged or dropped there (two correlating beyond
-    :data:`MERGE_CORRELATION`, a ``share`` of redundancy below :data:`MIN_REDUNDANCY`, an sd beyond
-    :data:`MAX_LOG_SD`); None otherwise."""
+    dropped ones were near enough the rig's value for ``F`` to hold there, :func:`_unmoved`) -- as
+    the next iteration would find them settled: each step small (:func:`_small`), none ``moved``
+    (from where ``F`` was computed) beyond what :func:`_unmoved` allows, and none to be merged or
+    dropped there (two correlating beyond :data:`MERGE_CORRELATION`, a ``share`` of redundancy
+    below :data:`MIN_REDUNDANCY`, an sd beyond :data:`MAX_LOG_SD`); None otherwise."""
     sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))
-    settled = np.all(np.abs(step) <= STEP_TOLERANCE * np.maximum(sd, 1e-3)) and np.all(moved <= RECOMPUTE_SD * sd)
+    settled = np.all(_small(step, sd)) and np.all(_unmoved(moved, sd))
     kept = np.all(share >= MIN_REDUNDANCY) and np.all(sd <= MAX_LOG_SD) and _merge_candidate(F, ties, groups) is None
     return sd if settled and kept else None
+
+
+def _small(step: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Per parameter, whether a step of its log-factor is small enough to end the iterations:
+    within :data:`STEP_TOLERANCE` of its ``sd`` or :data:`STEP_FLOOR`."""
+    return np.abs(step) <= np.maximum(STEP_TOLERANCE * sd, STEP_FLOOR)
+
+
+def _unmoved(moved: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Per parameter, whether the information computed ``moved`` away (in its log-factor) still
+    holds: within :data:`RECOMPUTE_SD` of its ``sd`` or :data:`RECOMPUTE_FLOOR`."""
+    return moved <= np.maximum(RECOMPUTE_SD * sd, RECOMPUTE_FLOOR)
 
 
 def _not_estimable(sd: float, redundancy: float) -> str:
