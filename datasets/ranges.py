@@ -111,6 +111,10 @@ RANGES: dict[str, Range] = {
         0.1, 10.0, "",
         "what the sensor reads per unit of the truth: a worn tyre is off by per cents, and km/h (3.6), mph "
         "(2.24) or knots (1.94) read as m/s lie inside; a factor of ten is data in other units"),
+    "sensor.sigma_factor": Range(
+        0.01, 100.0, "",
+        "a factor on the standard deviations the messages carry (a driver's covariance off by tens of times "
+        "either way, as the noise fit writes it); a hundredfold is a unit or a model, not a noise: give sigma"),
     "sensor.time_offset_sigma": Range(
         1e-5, 1.0, "s",
         "a hardware-synchronised clock's jitter (10 us) to a software stamp's delay (tenths of a second); an "

@@ -38,6 +38,7 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     time_offset = 0.0               # optional, seconds added to this sensor's stamps
     sigma = 1.0                     # optional: standard deviation(s) overriding the messages'
                                     # covariance, one number (every axis) or a list (per axis)
+    sigma_factor = 1.0              # optional instead: a factor on the messages' sigmas, as sigma
     every = 1                       # optional: use every k-th measurement, hold the rest out
     robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
     roll_pitch_only = false         # optional, orientation sensors only: use roll and pitch, not the
@@ -131,7 +132,8 @@ DATUM_KEYS = ("latitude", "longitude", "altitude")
 NOISE = "noise"
 #: The keys of a sensor's calibration (:func:`_calibration`): what to estimate and the priors' sigmas.
 CALIBRATION_KEYS = ("estimate", "time_offset_sigma", "rotation_sigma", "lever_arm_sigma", "scale_sigma")
-SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma", "every",
+SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma",
+               "sigma_factor", "every",
                "robust", "roll_pitch_only", "declination", "inclination", "scale", *CALIBRATION_KEYS)
 
 
@@ -170,7 +172,9 @@ class SensorConfig:
     ``scale``: what a velocity or odometry sensor reads per unit of the truth (its readings are
     divided by it); ``calibrate``: what of its calibration to estimate (a
     :class:`factors.calibration.CalibrationPrior`), or None; ``estimate_noise``: whether its sigmas
-    are estimated from the data (``estimate`` names ``"noise"``)."""
+    are estimated from the data (``estimate`` names ``"noise"``); ``sigma_factor``: None or factors
+    on the messages' standard deviations, shaped as ``sigma`` (the covariances ``D C D``, ``D`` the
+    axes' factors; never with ``sigma``)."""
 
     name: str
     kind: str
@@ -186,6 +190,7 @@ class SensorConfig:
     scale: float = 1.0
     calibrate: CalibrationPrior | None = None
     estimate_noise: bool = False
+    sigma_factor: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -401,6 +406,30 @@ def _sigma(t: _Table, kind: str) -> np.ndarray | None:
     return sigma
 
 
+def _sigma_factor(t: _Table, kind: str, sigma) -> np.ndarray | None:
+    """The sensor's ``sigma_factor``: factors on its messages' standard deviations, as many as its
+    kind's ``sigma`` takes, each within :data:`datasets.ranges.RANGES`' ``sensor.sigma_factor``;
+    refused beside ``sigma``, which states the sigmas themselves."""
+    value = t.get("sigma_factor", (int, float, list), "a factor > 0 or a list of them", default=None)
+    if value is None:
+        return None
+    if sigma is not None:
+        raise t.error("sigma_factor", "scales the sigmas the messages carry; with sigma given, write the sigmas "
+                                      "themselves")
+    items = value if isinstance(value, list) else [value]
+    if not items or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in items):
+        raise t.error("sigma_factor", f"expected a factor > 0 or a non-empty list of them, got {value!r}")
+    factor = np.array(items, dtype=float)
+    try:
+        kind_sigmas("sigma_factor", factor, KINDS[kind].dim)
+    except InputError:
+        raise t.error("sigma_factor", f"a {kind} sensor's sigma_factor is {sigma_counts(KINDS[kind].dim)}, "
+                                      f"got {value!r}") from None
+    for x in factor:
+        t.in_range("sigma_factor", float(x))
+    return factor
+
+
 def sensor_key(index: int, name, key: str | None = None) -> str:
     """How errors name the ``index``-th sensor table (from 1), ``name`` (if a string) and one of
     its keys: ``sensor[2] "gnss".every``."""
@@ -432,10 +461,12 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
     except ValueError as error:
         raise t.error("robust", str(error)) from None
     time_offset = t.number("time_offset", default=0.0)
+    sigma = _sigma(t, kind)
     return SensorConfig(name=name, kind=kind, source=source, topic=topic, T_BS=_transform(t),
-                        time_offset=time_offset, sigma=_sigma(t, kind), every=every, robust=robust,
+                        time_offset=time_offset, sigma=sigma, every=every, robust=robust,
                         **_field_angles(t, kind), scale=_scale(t, kind),
-                        calibrate=_calibration(t, kind, time_offset), estimate_noise=_estimates_noise(t))
+                        calibrate=_calibration(t, kind, time_offset), estimate_noise=_estimates_noise(t),
+                        sigma_factor=_sigma_factor(t, kind, sigma))
 
 
 def _scale(t: "_Table", kind: str) -> float:

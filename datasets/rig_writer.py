@@ -178,20 +178,24 @@ def _noise_taken_out(table: Table, values: dict, drop: list) -> None:
 
 def _noise_written(table: Table, config, groups: dict, values: dict, drop: list, comments: list) -> None:
     """A sensor's ``groups`` the fit examined (``{group: record}``): the fitted ones into
-    ``values`` (its ``sigma`` per axis, where the rig gave one), a comment on each, and
-    ``"noise"`` taken out of its ``estimate``."""
+    ``values`` -- its ``sigma`` per axis where the rig gave one, else its ``sigma_factor`` per axis
+    on the messages' sigmas (times the one the rig gave) --, a comment on each, and ``"noise"``
+    taken out of its ``estimate``."""
     if not groups:
         return
     axes = {}
-    scaled = "" if config.sigma is not None else " (its measurements' covariances scaled so)"
+    scaled = "" if config.sigma is not None else " (as sigma_factor, on its messages' sigmas)"
     for part, g in groups.items():
         if _fitted(g):
             for a in g["axes"]:
                 axes[a] = g["factor"]
         comments.append(_noise_comment(f"{part} noise", g, "sigma") + (scaled if _fitted(g) else ""))
-    if config.sigma is not None and axes:
-        given = kind_sigmas(f"sensor {config.name!r}: sigma", config.sigma, KINDS[config.kind].dim)
-        values["sigma"] = [float(s * axes.get(a, 1.0)) for a, s in enumerate(given)]
+    if axes:
+        dim = KINDS[config.kind].dim
+        key, given = (("sigma", config.sigma) if config.sigma is not None else
+                      ("sigma_factor", np.ones(1) if config.sigma_factor is None else config.sigma_factor))
+        given = kind_sigmas(f"sensor {config.name!r}: {key}", given, dim)
+        values[key] = [float(s * axes.get(a, 1.0)) for a, s in enumerate(given)]
     _noise_taken_out(table, values, drop)
 
 

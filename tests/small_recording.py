@@ -24,10 +24,11 @@ WHEEL[:3, :3], WHEEL[:3, 3] = so3.exp([np.pi, 0, np.pi / 2]), [-0.8, 0.3, -0.4] 
 
 
 def write_recording(folder: Path, name: str = "rig", duration: float = 10.0, seed: int = 1, imu_rate: float = 100.0,
-                    gnss_rate: float = 2.0, every: int = 2):
+                    gnss_rate: float = 2.0, every: int = 2, fix_sigma: float = 0.5):
     """``(rig file, simulated dataset)``: the bag ``<name>.mcap`` and the rig file ``<name>.toml``
     in ``folder``, of ``duration`` seconds of the ``gentle`` profile: IMU at ``imu_rate``, fixes
-    at ``gnss_rate`` (every ``every``-th used), wheel twists at 10 Hz."""
+    at ``gnss_rate`` (every ``every``-th used; their noise 0.5 m, their messages' covariance
+    stating ``fix_sigma``), wheel twists at 10 Hz."""
     folder.mkdir(parents=True, exist_ok=True)
     data = simulate("gentle", duration=duration, seed=seed, imu_rate=imu_rate, pose_rate=None, sensors=[
         SensorSpec("gnss", "gnss", gnss_rate, 0.5, ANTENNA), SensorSpec("wheel", "velocity", 10, 0.05, WHEEL)])
@@ -41,7 +42,7 @@ def write_recording(folder: Path, name: str = "rig", duration: float = 10.0, see
             m.odometry(t, np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros((6, 6)), v, np.zeros(3),
                        np.diag([0.0025] * 6))
             for t, v in zip(ns(wheel.data.t), wheel.data.velocity)]),
-        "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, a, b, c, 0, np.diag([0.25] * 3), 3)
+        "/fix": ("sensor_msgs/msg/NavSatFix", [m.fix(t, a, b, c, 0, np.diag([fix_sigma**2] * 3), 3)
                                                for t, a, b, c in zip(ns(gnss.data.t), lat, lon, alt)]),
     }
     bag = write_bag(folder / f"{name}.mcap", "mcap", topics)

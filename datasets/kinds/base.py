@@ -154,14 +154,19 @@ def kind_sigmas(where: str, sigma, dim: int) -> np.ndarray:
 
 def noise(sensor, dim: int, cov, n: int) -> np.ndarray:
     """A rig sensor's covariances ``(n, dim, dim)``: its ``sigma`` if given, else the messages'
-    ``cov`` when every message has one (the leading ``dim`` block); a ValueError asking for
-    ``sigma`` else."""
+    ``cov`` when every message has one (the leading ``dim`` block), with its ``sigma_factor`` (if
+    any) on their standard deviations, ``D C D`` with ``D`` the axes' factors; a ValueError asking
+    for ``sigma`` else."""
     if sensor.sigma is not None:
         return np.broadcast_to(np.diag(kind_sigmas("sigma", sensor.sigma, dim) ** 2), (n, dim, dim)).copy()
     if cov is None or not np.all(np.isfinite(cov)):
         raise InputError(f"its messages carry no covariance{'' if cov is None else ' in every message'}; "
                          "give the sensor's sigma in the rig file")
-    return np.asarray(cov)[:, :dim, :dim]
+    cov = np.asarray(cov)[:, :dim, :dim]
+    if sensor.sigma_factor is None:
+        return cov
+    f = kind_sigmas("sigma_factor", sensor.sigma_factor, dim)
+    return cov * (f[:, None] * f[None, :])
 
 
 def noisy(x: np.ndarray, sigma: np.ndarray, rng) -> np.ndarray:

@@ -135,6 +135,9 @@ def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlat
     ('rotation_sigma = 0.1', "rotation_sigma", "has no effect without estimate"),
     ('estimate = ["scale"]\nscale_sigma = -1.0', "scale_sigma", "expected a number > 0"),
     ('estimate = []', "estimate", "non-empty"),
+    ('sigma_factor = 0.001', "sigma_factor", r"expected a value within \[0.01, 100\]"),
+    ('sigma_factor = [1.0, 2.0]', "sigma_factor", "a velocity sensor's sigma_factor is"),
+    ('sigma = 0.05\nsigma_factor = 2.0', "sigma_factor", "with sigma given, write the sigmas themselves"),
 ])
 def test_bad_calibration_keys_name_the_file_and_the_key(recording, extra, key, message):
     folder, text = recording
@@ -178,6 +181,31 @@ def test_a_rig_that_asks_for_its_noise_gets_it_written_and_the_next_run_starts_f
                    for line in written.splitlines()) == 1, (key, written)
     assert sum(line.startswith("# horizontal noise fitted by the batch smoother") for line in written.splitlines()) == 1
 
+    second = _run(str(calibrated), tmp_path / "second")
+    assert "noise fitted by the batch smoother" not in capsys.readouterr().out
+    assert "noise" not in second["batch"] and second["batch"]["sensors"]["gnss"]["ok"]
+
+
+def test_a_sensor_whose_messages_carry_its_noise_gets_a_sigma_factor_the_next_run_applies(tmp_path, capsys):
+    """Fixes whose messages state 0.2 m for their 0.5 m of noise (a driver's covariance too small)
+    and ``estimate = ["noise"]`` on them: ``calibrated.toml`` carries ``sigma_factor`` per axis, the
+    fitted factors on the messages' sigmas, and the run from it applies them without fitting again
+    and finds the fixes in band."""
+    folder = tmp_path / "messages"
+    rig, _ = write_recording(folder, duration=20.0, fix_sigma=0.2)
+    rig.write_text(rig.read_text().replace('topic = "/fix"', 'topic = "/fix"\nestimate = ["noise"]'))
+    metrics = _run(str(rig), tmp_path / "first")
+    noise = metrics["batch"]["noise"]
+    fitted = [noise[f"gnss.{part}"] for part in ("horizontal", "vertical")]
+    assert all(g["applied"] and g["estimable"] and g["factor"] > 1.6 for g in fitted), fitted
+
+    calibrated = tmp_path / "first" / "calibrated.toml"
+    gnss = next(s for s in load_rig(calibrated).sensors if s.name == "gnss")
+    expected = np.array([fitted[0]["factor"]] * 2 + [fitted[1]["factor"]])
+    assert gnss.sigma is None
+    np.testing.assert_allclose(gnss.sigma_factor, expected, rtol=1e-12)
+    assert "(as sigma_factor, on its messages' sigmas)" in calibrated.read_text()
+    capsys.readouterr()
     second = _run(str(calibrated), tmp_path / "second")
     assert "noise fitted by the batch smoother" not in capsys.readouterr().out
     assert "noise" not in second["batch"] and second["batch"]["sensors"]["gnss"]["ok"]

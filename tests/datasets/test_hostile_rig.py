@@ -85,7 +85,9 @@ def _with(key: str, value) -> tuple[str, str]:
         line = f'robust = "huber:{value!r}"'
     elif key == "sensor.every":
         line = f"every = {int(value)}"
-    text = re.sub(rf"^{name} = .*$", line, RIG, count=1, flags=re.M)
+    # a factor on the messages' sigmas takes the place of the sigma (the two are never given together)
+    stated = "sigma" if key == "sensor.sigma_factor" else name
+    text = re.sub(rf"^{stated} = .*$", line, RIG, count=1, flags=re.M)
     assert text != RIG or f"\n{line}\n" in RIG, key
     if table == "sensor":
         index, sensor = (2, "mag") if name in ("declination", "inclination") else (1, "wheel")
