@@ -99,7 +99,7 @@ MIN_ROWS = 10
 #: Rows whose residual exceeds this many robust sigmas are dropped as outliers.
 OUTLIER_SIGMAS = 6.0
 #: A parameter whose information (the square root of its diagonal of the normal equations) is below this
-#: share of the largest one's is read by nothing: left at zero (:func:`_solve`).
+#: share of the largest one's is read by nothing: left at zero (:func:`minimum_norm_solution`).
 NO_INFORMATION = 1e-8
 #: Gauss-Newton steps after the closed-form start.
 ITERATIONS = 4
@@ -178,7 +178,7 @@ def _normal(J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return A.T @ A, A.T @ e.reshape(-1)
 
 
-def _solve(N: np.ndarray, g: np.ndarray) -> np.ndarray:
+def minimum_norm_solution(N: np.ndarray, g: np.ndarray) -> np.ndarray:
     """The minimum-norm solution of ``N x = g`` (``N`` symmetric, positive semi-definite; ``g`` a
     vector or columns) with ``N``'s columns scaled to a unit diagonal first, so that a stiff prior
     on one parameter does not hide the others from the rank decision; directions with less than
@@ -199,7 +199,7 @@ def _solve(N: np.ndarray, g: np.ndarray) -> np.ndarray:
 def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> tuple[DataRotation, np.ndarray]:
     """Gauss-Newton on ``(rho, x)`` from ``(R, x)``, the rows weighted by their current scatter
     plus the model error (so that the nuisance priors weigh what they should), with no step along
-    directions without information (:func:`_solve`) and gross outliers dropped after the first
+    directions without information (:func:`minimum_norm_solution`) and gross outliers dropped after the first
     step; then the information of ``rho`` (module docstring) and the nuisance parameters."""
     q = len(x)
     prior_mean = np.zeros(q) if rows.prior_mean is None else rows.prior_mean
@@ -224,7 +224,7 @@ def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> tuple[DataRotation, np.nd
         N, g = N / (s2 + rows.model_error**2), g / (s2 + rows.model_error**2)
         N[3:, 3:] += np.diag(rows.prior)
         g[3:] += rows.prior * (x - prior_mean)
-        step = -_solve(N, g)
+        step = -minimum_norm_solution(N, g)
         R = so3.exp(step[:3]) @ R
         x = x + step[3:]
     N, _ = _normal(J_p, e_p)
@@ -232,7 +232,7 @@ def _fit(rows: _Rows, R: np.ndarray, x: np.ndarray) -> tuple[DataRotation, np.nd
     N[:3, :3] = (V * np.maximum(lam, 0.0)) @ V.T
     N = N / (s2 + n * rows.model_error**2)
     N[3:, 3:] += np.diag(rows.prior)
-    information = N[:3, :3] - N[:3, 3:] @ _solve(N[3:, 3:], N[3:, :3]) if q else N[:3, :3]
+    information = N[:3, :3] - N[:3, 3:] @ minimum_norm_solution(N[3:, 3:], N[3:, :3]) if q else N[:3, :3]
     return DataRotation(R, 0.5 * (information + information.T), n, float(np.sqrt(s2)), rows.units), x
 
 
@@ -417,7 +417,7 @@ def _linear_start(rows: _Rows, G, ends, nu, lever, dF, dSigma, bias_drift) -> tu
     s2 = 0.0
     for _ in range(2):
         weight = 1.0 / (s2 + rows.model_error**2)
-        solution = _solve(weight * N + np.diag(prior), weight * g + prior * mean)
+        solution = minimum_norm_solution(weight * N + np.diag(prior), weight * g + prior * mean)
         s2 = float(np.sum((y_p - A_p @ solution) ** 2)) / max(3 * n - 3 * windows - 15, 1)
     M = solution[:9].reshape(3, 3, order="F")
     k = float(np.linalg.svd(M, compute_uv=False)[0])

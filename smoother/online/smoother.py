@@ -124,8 +124,10 @@ class SensorSetup:
     """An aiding sensor of an :class:`OnlineSmoother`: its ``kind`` (a name of
     :data:`datasets.kinds.KINDS`), extrinsic ``T_BS`` (4x4, ``p_B = T_BS p_S``; None: at the IMU),
     ``time_offset`` [s] added to its stamps, ``sigma`` (the noise standard deviations used when a
-    measurement comes without a covariance; None: every measurement brings one) and ``robust``
-    (None or a kernel spec of :func:`datasets.robust.robust_spec`); ``roll_pitch_only`` makes an
+    measurement comes without a covariance; None: every measurement brings one), ``sigma_factor``
+    (instead of ``sigma``: factors per axis on the standard deviations the measurements bring, the
+    rig file's key) and ``robust`` (None or a kernel spec of
+    :func:`datasets.robust.robust_spec`); ``roll_pitch_only`` makes an
     ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file;
     ``calibrate`` (a :class:`factors.calibration.CalibrationPrior`, the rig file's ``estimate``
     and ``*_sigma`` keys) makes parts of its calibration variables, estimated about ``T_BS`` and
@@ -139,6 +141,7 @@ class SensorSetup:
     robust: tuple | None = None
     roll_pitch_only: bool = False
     calibrate: calibration.CalibrationPrior | None = None
+    sigma_factor: np.ndarray | None = None
 
     def __post_init__(self):
         from datasets.rig import roll_pitch_kind
@@ -155,6 +158,12 @@ class SensorSetup:
         object.__setattr__(self, "time_offset", float(offset))
         if self.sigma is not None:
             kind_sigmas("SensorSetup", self.sigma, KINDS[self.kind].dim)
+        if self.sigma_factor is not None:
+            if self.sigma is not None:
+                raise InputError("SensorSetup.sigma_factor: scales the sigmas the measurements bring; with sigma "
+                                 "given, give the sigmas themselves")
+            object.__setattr__(self, "sigma_factor", kind_sigmas("SensorSetup.sigma_factor", self.sigma_factor,
+                                                                 KINDS[self.kind].dim))
         check_robust("SensorSetup.robust", self.robust)
         if self.calibrate is not None:
             calibration.checked_prior(self.calibrate, self.kind, KINDS[self.kind].model, "SensorSetup.calibrate")
@@ -256,8 +265,8 @@ class OnlineSmoother:
         gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
         to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
         ``options`` as the constructor's."""
-        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate)
-                   for s in rig.sensors}
+        sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate,
+                                       sigma_factor=s.sigma_factor) for s in rig.sensors}
         return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
                    **options)
 
@@ -295,8 +304,9 @@ class OnlineSmoother:
         IMU): the fields of its kind's data type after the time(s) (:mod:`datasets.types`; e.g.
         ``add("pose", t, position, C)``, ``add("position", t, position)``, ``add("velocity", t,
         velocity, gyro)``, ``add("odometry", t_from, t_to, dr, dC)``), one measurement or arrays
-        of them, with ``cov`` ((d, d) or (N, d, d); default from the sensor's sigma). Stamps
-        are the sensor's, its time offset is added here."""
+        of them, with ``cov`` ((d, d) or (N, d, d); default from the sensor's sigma; times its
+        ``sigma_factor`` on each axis's sigma where it has one). Stamps are the sensor's, its time
+        offset is added here."""
         self._open()
         setup, kind = self._setup(sensor)
         single = np.ndim(t) == 0
@@ -319,12 +329,16 @@ class OnlineSmoother:
 
     def add_measurements(self, sensor: str, data) -> None:
         """Measurements of ``sensor`` given as its kind's data type (:mod:`datasets.types`, the
-        sensor's extrinsic inside it; stamps the sensor's, its time offset added here)."""
+        sensor's extrinsic inside it; stamps the sensor's, its time offset added here; their
+        covariances times the sensor's ``sigma_factor`` on each axis's sigma where it has one)."""
         self._open()
         setup, kind = self._setup(sensor)
         if not isinstance(data, kind.data_type):
             raise InputError(f"add_measurements({sensor!r}): data: expected {kind.data_type.__name__}, "
                              f"got {type(data).__name__}")
+        if setup.sigma_factor is not None:
+            f = setup.sigma_factor
+            data = replace(data, cov=data.cov * (f[:, None] * f[None, :]))
         spec = measurement_spec(Sensor(sensor, setup.kind, data))
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
         if not np.isfinite(stamps).all():

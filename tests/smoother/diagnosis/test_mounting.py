@@ -41,7 +41,7 @@ from smoother.diagnosis.mounting import (
     check_mountings,
     compare,
 )
-from smoother.diagnosis.mounting_data import DataRotation, _solve
+from smoother.diagnosis.mounting_data import DataRotation, minimum_norm_solution
 
 #: A camera-like mounting, a little off the axes: the sensor's z on the IMU's x, its x on -y, its
 #: y on -z, turned by 4 degrees about a skew axis.
@@ -370,10 +370,10 @@ def test_parameters_nothing_reads_are_left_at_zero(seed):
     J[:, 4] = 2.0 * J[:, 3] + 1e-9 * rng.normal(size=40)
     J[:, 1:3] = 0.0
     N, g = J.T @ J, J.T @ rng.normal(size=40)
-    x = _solve(N, g)
+    x = minimum_norm_solution(N, g)
     assert np.all(x[1:3] == 0.0)
     rest = [0, 3, 4, 5]
-    assert np.allclose(x[rest], _solve(N[np.ix_(rest, rest)], g[rest]), rtol=1e-9, atol=0.0)
+    assert np.allclose(x[rest], minimum_norm_solution(N[np.ix_(rest, rest)], g[rest]), rtol=1e-9, atol=0.0)
 
 
 def test_a_finding_needs_two_determined_directions():

@@ -263,6 +263,33 @@ def test_a_rig_gives_its_sensors_their_extrinsic_time_offset_and_sigma(gentle, t
             np.testing.assert_allclose(getattr(x.state, name), getattr(y.state, name), rtol=0, atol=1e-6)
 
 
+def test_a_rig_s_sigma_factor_scales_the_covariances_the_measurements_bring(gentle, tmp_path):
+    """``sigma_factor`` in the rig (the noise fit's factors on a sensor whose messages carry its
+    covariance): the covariances fed with the measurements are scaled per axis, as the offline
+    run scales the messages'; a smoother fed the scaled covariances itself gives the same
+    estimates. With ``sigma`` beside it a SensorSetup is refused."""
+    from datasets.rig import ImuConfig, Rig, SensorConfig
+
+    data = cases.dataset(gentle)
+    pose = data.sensor("pose").data
+    factor = np.array([2.0, 2.0, 3.0, 0.5, 0.5, 1.0])
+    rig = Rig(tmp_path / "rig.toml", ImuConfig("csv:imu.csv", None, data.noise, float(-data.gravity[2])), None,
+              (SensorConfig("pose", "pose", "csv:cam.csv", None, np.eye(4), 0.0, None, 1, None,
+                            sigma_factor=factor),))
+    from_rig = OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=LAG)
+    direct = _smoother(data, sensors={"pose": SensorSetup("pose")})
+    from_rig.add("pose", pose.t, pose.position, pose.C, cov=pose.cov)
+    direct.add("pose", pose.t, pose.position, pose.C, cov=pose.cov * np.outer(factor, factor))
+    for online in (from_rig, direct):
+        online.add_imu(data.imu.t, data.imu.acc, data.imu.gyro)
+        online.finish()
+    for x, y in zip(from_rig.smoothed(), direct.smoothed(), strict=True):
+        for name in NAMES:
+            np.testing.assert_allclose(getattr(x.state, name), getattr(y.state, name), rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"SensorSetup.sigma_factor: .*with sigma given"):
+        SensorSetup("pose", sigma=np.full(6, 0.1), sigma_factor=factor)
+
+
 def test_relative_measurements_reaching_beyond_the_window_are_skipped_and_counted():
     """Odometry between keyframes 1 s apart: with a 0.3-s lag its earlier keyframe has left the
     window when it arrives (or, given in advance, when its later keyframe is made), so it is
