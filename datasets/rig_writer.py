@@ -159,6 +159,9 @@ def _noise_comment(what: str, group: dict, given: str) -> str:
     if not group["estimable"]:
         return f"{what} not fitted by the batch smoother: {group.get('note', 'not estimable')}"
     factor = f"{group['factor']:.3g} +- {group['factor_sd']:.2g} times the {given} given"
+    if group.get("steady", True) is False:
+        first, second = group["halves"]
+        factor += f" (not steady: x{first:.3g} in the run's first half, x{second:.3g} in its second)"
     if _fitted(group):
         return f"{what} fitted by the batch smoother: {factor}"
     return f"{what} checked by the batch smoother: {factor}; {group.get('note', 'kept')}"

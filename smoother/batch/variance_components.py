@@ -108,6 +108,12 @@ TRUNCATION_PROBABILITY = 0.999
 #: not applied: what the data do not tell from the rig stays the rig's, so a rig already right keeps
 #: its noise and its trajectory.
 SIGNIFICANCE = 3.0
+#: A group's residuals in each half of the run (by time) carrying this much redundancy are compared
+#: (:func:`_halves`) ...
+MIN_HALF_REDUNDANCY = 10.0
+#: ... and its noise is not steady when the halves' factors differ by more than this ratio and by more
+#: than :data:`SIGNIFICANCE` of the difference's standard deviations.
+UNSTEADY_RATIO = 1.5
 #: Iterations end when no log-factor moves by more than this fraction of its standard deviation ...
 STEP_TOLERANCE = 0.1
 #: ... or by more than this (half a per cent on a sigma): a factor the data fix to a fraction of a
@@ -173,6 +179,10 @@ class GroupFit:
     #: (:mod:`smoother.diagnosis.noise_honesty`).
     correlation: float = 0.0
     dof: int = 0
+    #: The factors on the rig's value that the residuals of the run's first and second half say
+    #: (None: too little redundancy in one of them), and whether one noise fits both (:func:`_halves`).
+    halves: tuple[float, float] | None = None
+    steady: bool = True
 
     def record(self) -> dict:
         """``metrics.json``'s record of the group."""
@@ -180,6 +190,7 @@ class GroupFit:
                 **({} if self.group.axes is None else {"axes": list(self.group.axes)}),
                 "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
                 "estimable": self.estimable, "applied": self.applied, "residual_correlation": self.correlation,
+                "halves": None if self.halves is None else list(self.halves), "steady": self.steady,
                 **({"note": self.note} if self.note else {})}
 
 
@@ -302,7 +313,9 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         batch = None
         if iterations == 1 and result.square_root is not None:
             batch = (result.trajectory.cov, result.joint, result.square_root)
-        states, calibration, (quadratic, expected, approximate, redundancy, exact) = evaluate(psi, *before, batch)
+        at_evaluation = psi.copy()
+        states, calibration, (quadratic, expected, approximate, redundancy, exact, halves) = evaluate(psi, *before,
+                                                                                                      batch)
         q, r = _per_parameter(quadratic, ties), _per_parameter(expected, ties)
         close = np.abs(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300))) <= NEAR
         near = bool(np.all(close))
@@ -410,23 +423,41 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     for g, group in enumerate(groups):
         j = next((j for j, tie in enumerate(ties) if g in tie), None)
         factor = math.exp(0.5 * psi[g])
+        extra = {"correlation": summary[g][0], "dof": summary[g][1], **_halves(halves[:, :, g], at_evaluation[g])}
         if g in held:
             factor, sd_factor, others = held[g]
             fits.append(GroupFit(group, factor, sd_factor, float(redundancy[g]), model.value(group, 1.0), group.unit,
                                  others, applied=False, note=f"the rig's value kept: within {SIGNIFICANCE:g} sd of it",
-                                 correlation=summary[g][0], dof=summary[g][1]))
+                                 **extra))
             continue
         if j is None:
             fits.append(GroupFit(group, 1.0, float("nan"), float(redundancy[g]), model.value(group, 1.0),
-                                 group.unit, (), False, notes.get(g, "not estimated"),
-                                 correlation=summary[g][0], dof=summary[g][1]))
+                                 group.unit, (), False, notes.get(g, "not estimated"), **extra))
             continue
         sd_psi = math.sqrt(max(cov_psi[j, j], 0.0))
         others = tuple(groups[t].name for t in ties[j] if t != g)
         fits.append(GroupFit(group, factor, 0.5 * factor * sd_psi, float(redundancy[g]), model.value(group, factor),
-                             group.unit, others, correlation=summary[g][0], dof=summary[g][1]))
+                             group.unit, others, **extra))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
     return fit, replace(result, square_root=None), fitted  # the elimination's memory let go
+
+
+def _halves(halves: np.ndarray, psi: float) -> dict:
+    """``{"halves": (f_1, f_2), "steady": ...}`` of a group from its weighted squared residuals and
+    their expectations in the run's two halves, ``halves = ((q_1, q_2), (r_1, r_2))`` at the
+    log-factor ``psi``: each half's factor on the rig's value, ``f_h = exp(psi / 2) sqrt(q_h /
+    r_h)`` (the whole run's estimate makes ``q = r``). The noise is not steady when the two differ by
+    more than :data:`UNSTEADY_RATIO` and by more than :data:`SIGNIFICANCE` standard deviations of
+    ``log(q_1 / r_1) - log(q_2 / r_2)``, ``sqrt(2 / r_1 + 2 / r_2)`` (each ``q_h`` about ``r_h``
+    times a chi-square over ``r_h`` degrees of freedom). ``{}`` where a half carries less than
+    :data:`MIN_HALF_REDUNDANCY`."""
+    (q1, q2), (r1, r2) = halves
+    if min(r1, r2) < MIN_HALF_REDUNDANCY or min(q1, q2) <= 0.0:
+        return {}
+    f1, f2 = (math.exp(0.5 * psi) * math.sqrt(q / r) for q, r in ((q1, r1), (q2, r2)))
+    apart = abs(math.log(q1 / r1) - math.log(q2 / r2))
+    steady = apart <= 2.0 * math.log(UNSTEADY_RATIO) or apart <= SIGNIFICANCE * math.sqrt(2.0 / r1 + 2.0 / r2)
+    return {"halves": (f1, f2), "steady": bool(steady)}
 
 
 def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:
@@ -683,7 +714,7 @@ class _NoiseModel:
 
     def statistics(self, blocks: list[Block], states, calibration, cov: np.ndarray, joint: dict, psi: np.ndarray,
                    step: tuple | None = None, root=None):
-        """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,), exact)`` at the
+        """``(quadratic (G,), expected (G,), information (G, G), redundancy (G,), exact, halves)`` at the
         estimate ``states`` and the calibration variables' values ``calibration`` (marginal
         covariances ``cov`` and joint blocks ``joint``): each group's ``sum_k u_k^T U_kg u_k``, its
         expectation ``tr(P_R V_g)`` (scaled by the truncated mean where outliers are left out: the
@@ -694,9 +725,14 @@ class _NoiseModel:
         that system's :class:`~smoother.model.covariances.SquareRoot`; given, ``exact`` is a
         function of the groups still estimated returning the information with their columns exact
         where their factors carry much leverage (:meth:`leveraged`; :meth:`_exact`), else None.
+        ``halves`` ``(2, 2, G)``: ``quadratic`` and ``expected`` summed over the factors of the
+        run's first and of its second half (by their last keyframe's time; :func:`_halves`).
         """
         G = len(self.groups)
         quadratic, expected, information, redundancy = np.zeros(G), np.zeros(G), np.zeros((G, G)), np.zeros(G)
+        halves = np.zeros((2, 2, G))  # (q, r) x (first half, second) x groups
+        times = self.problem.times
+        middle = int(np.searchsorted(times, 0.5 * (times[0] + times[-1])))  # the second half's first keyframe
         columns = [g for g in range(G) if self.leveraged(g)]
         factors = []  # each chunk's kept factors' (keys per slot, A, U, H): what _exact reads
         n = len(states)
@@ -729,11 +765,15 @@ class _NoiseModel:
                     correction = truncated_mean(d, c)
                 U = self._derivatives(name, rows, psi, W)
                 at = list(U)
-                quad, r, info = _chunk_sums(u[keep], Q[keep], np.stack([U[g][keep] for g in at], axis=1))
-                quadratic[at] += quad
-                expected[at] += correction * r
-                redundancy[at] += r
+                quad, r, info = _chunk_terms(u[keep], Q[keep], np.stack([U[g][keep] for g in at], axis=1))
+                quadratic[at] += quad.sum(axis=0)
+                expected[at] += correction * r.sum(axis=0)
+                redundancy[at] += r.sum(axis=0)
                 information[np.ix_(at, at)] += info
+                late = chunk[keep].max(axis=1) >= middle
+                for h, part in enumerate((~late, late)):
+                    halves[0, h, at] += quad[part].sum(axis=0)
+                    halves[1, h, at] += correction * r[part].sum(axis=0)
                 if root is not None:
                     keys = [chunk[:, s] for s in range(chunk.shape[1])]
                     if calibration_key is not None:
@@ -742,7 +782,7 @@ class _NoiseModel:
                                     {g: Ug[keep] for g, Ug in U.items()}, H[keep]))
         exact = None if root is None else (
             lambda estimated: self._exact(information, [g for g in columns if g in estimated], factors, root, joint))
-        return quadratic, expected, information, redundancy, exact
+        return quadratic, expected, information, redundancy, exact, halves
 
     @staticmethod
     def _exact(approximate: np.ndarray, columns: list[int], factors: list, root, joint: dict) -> np.ndarray:
@@ -777,14 +817,15 @@ class _NoiseModel:
         return _positive_definite(F)
 
 
-def _chunk_sums(u: np.ndarray, Q: np.ndarray, U: np.ndarray) -> tuple:
+def _chunk_terms(u: np.ndarray, Q: np.ndarray, U: np.ndarray) -> tuple:
     """Over factors with whitened residuals ``u (M, d)``, residual covariances ``Q = I - H``
-    ``(M, d, d)`` and whitened derivatives ``U (M, groups, d, d)``, per group ``g``:
-    ``sum u^T U_g u``, ``sum tr(Q U_g)`` and, per two groups, ``1/2 sum tr(Q U_g Q U_h)``."""
+    ``(M, d, d)`` and whitened derivatives ``U (M, groups, d, d)``: per factor and group ``g``
+    ``u^T U_g u`` and ``tr(Q U_g)`` (``(M, groups)`` each) and, per two groups, ``1/2 sum tr(Q U_g
+    Q U_h)``."""
     M, G, d = U.shape[:3]
     QU = Q[:, None] @ U
-    quad = np.einsum("ma,mgab,mb->g", u, U, u)
-    r = np.einsum("mgaa->g", QU)
+    quad = np.einsum("ma,mgab,mb->mg", u, U, u)
+    r = np.einsum("mgaa->mg", QU)
     flat, transposed = QU.reshape(M, G, d * d), np.swapaxes(QU, -1, -2).reshape(M, G, d * d)
     info = 0.5 * (flat @ np.swapaxes(transposed, 1, 2)).sum(axis=0)  # tr(A B) = vec(A) . vec(B^T)
     return quad, r, info

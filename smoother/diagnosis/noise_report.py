@@ -7,7 +7,8 @@ was applied, else the rig's), the factor the data give on the value given with i
 deviation and the degrees of freedom its residuals carry, then what
 became of it: applied, kept at the rig's value (consistent with it, or not estimable, and why),
 merged with another component, or not applied as a model error with its likely cause
-(:mod:`smoother.diagnosis.noise_honesty`).
+(:mod:`smoother.diagnosis.noise_honesty`); and where the run's two halves ask for different noise,
+each half's factor.
 """
 from __future__ import annotations
 
@@ -31,5 +32,15 @@ def noise_lines(record: dict) -> list[str]:
             what = "applied" + (f"; {g['note']}" if g.get("note") else "")
         else:
             what = g.get("note", "not applied")
-        lines.append(f"  {name:<28} {value:<22} {figure}: {what}")
+        lines.append(f"  {name:<28} {value:<22} {figure}: {what}{unsteady(g)}")
     return lines
+
+
+def unsteady(g: dict) -> str:
+    """``"; not steady: ..."`` for a group whose two halves of the run ask for different noise
+    (:func:`smoother.batch.variance_components._halves`), else ''."""
+    if g.get("steady", True) or g.get("halves") is None:
+        return ""
+    first, second = g["halves"]
+    return (f"; not steady: x{first:.3g} in the run's first half, x{second:.3g} in its second (one value "
+            "over the run is their average, and a run of other data may find it out of band)")

@@ -36,3 +36,13 @@ def test_one_line_per_group_with_its_value_factor_and_fate():
 def test_a_fit_that_did_not_converge_says_so_in_its_header():
     header = noise_lines(_record(converged=False))[0]
     assert header == "noise fitted by the batch smoother (12 iterations, NOT converged):"
+
+
+def test_a_noise_the_run_s_halves_disagree_on_says_each_half_s_factor():
+    groups = [GroupFit(NoiseGroup("imu", "gyro"), 0.39, 0.006, 3800.0, 0.00145, "rad/s/sqrt(Hz)",
+                       halves=(0.278, 0.477), steady=False),
+              GroupFit(NoiseGroup("imu", "acc"), 0.92, 0.03, 2070.0, 0.018, "m/s^2/sqrt(Hz)", halves=(0.79, 1.16))]
+    _, gyro, acc = noise_lines(NoiseFit(groups, iterations=3, converged=True).record())
+    assert gyro.endswith("applied; not steady: x0.278 in the run's first half, x0.477 in its second (one value over "
+                         "the run is their average, and a run of other data may find it out of band)")
+    assert acc.endswith(": applied")
