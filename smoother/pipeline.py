@@ -479,7 +479,8 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
       the factor that would fit them) -- or, for held-out predictions below even the state's own
       covariance (no sigma of the sensor's fits them with the estimate's covariances held:
       :func:`smoother.diagnosis.heldout.sigma_factor`), a sigma that also inflates those covariances
-      or a state the data do not fix;
+      or a state the data do not fix -- or, where those near the used measurements lie below those
+      far from them (:func:`smoother.diagnosis.heldout.near_and_far`), errors correlated in time;
     * a run-wide ``doubts`` (:func:`run_doubts`) holds.
 
     A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
@@ -518,7 +519,12 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
             c = judged_by[k]
             figure = (f"{k}'s {'held-out predictions' if k in held else 'errors'} are {c['per_dof']:.3g} per dof "
                       f"(expected {c['band'][0]:.2g}-{c['band'][1]:.2g})")
-            if k in held and c.get("sigma_factor") is None:
+            if k in held and c.get("correlated"):
+                near, far = c["near_far"]
+                why.append(f"{figure}, {near:.2g} near the used measurements and {far:.2g} far from them: the "
+                           "sensor's errors are correlated in time and the estimate follows them through the used "
+                           "ones, which no white sigma describes")
+            elif k in held and c.get("sigma_factor") is None:
                 why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
                            "are too large -- a sigma stated too large (a smaller one shrinks them too) or a state "
                            "the data do not fix (a heading, a bias)")

@@ -28,6 +28,17 @@ inflates ``P`` too. (Such a ``k`` is fitted to the held-out measurements: a valu
 other data.) The share of ``S`` that is the state's, ``tr(S^-1 H P H^T) / d``, is recorded beside it.
 Relative measurements (odometry) are not judged here: they need two states' joint
 covariance.
+
+Errors correlated in time. A held-out measurement close to a used one shares the used one's
+error where the sensor's errors drift (a GNSS receiver's, a fused solution's): the estimate
+followed it there, so the prediction error is far smaller than ``S``, which takes the two as
+independent, while one far from any used measurement is not. So the held-out measurements are
+also split at the median of their time to the nearest used one, and each half's mean per dof is
+recorded (``near_far``); where the near half's lies below the far half's by more than
+:data:`NEAR_FAR_RATIO` and by more than :data:`NEAR_FAR_SIGMAS` standard deviations of the
+difference of their logarithms (``sqrt(2 / dof_near + 2 / dof_far)``), the sensor's errors are
+correlated in time (``correlated``): no white sigma fits both halves, and the verdict says so
+rather than blame the sigma.
 """
 from __future__ import annotations
 
@@ -43,6 +54,29 @@ MATCH_TOLERANCE = 1e-9
 SIGMA_FACTOR_RANGE = (1e-3, 1e3)
 #: ... by this many bisections of its logarithm (to a relative precision of about 1e-6).
 BISECTIONS = 45
+#: Held-out errors near the used measurements are correlated with theirs when their mean per dof
+#: lies below that of those far from them by more than this ratio ...
+NEAR_FAR_RATIO = 1.5
+#: ... and by more than this many standard deviations (module docstring).
+NEAR_FAR_SIGMAS = 3.0
+
+
+def near_and_far(nis: np.ndarray, distance: np.ndarray, d: int) -> dict:
+    """``{"near_far": (near, far), "correlated": bool}``: the mean per dof of the held-out
+    normalised errors ``nis (M,)`` (dimension ``d`` each) closer to a used measurement than the
+    median of their times to the nearest one ``distance (M,)``, and of the rest; correlated where
+    the near ones lie below the far ones as the module docstring says. ``{}`` with fewer than four
+    measurements or no spread of distances."""
+    near = distance < np.median(distance)
+    if near.sum() < 2 or (~near).sum() < 2:
+        return {}
+    per_dof = [float(nis[part].mean()) / d for part in (near, ~near)]
+    if min(per_dof) <= 0.0:
+        return {}
+    spread = np.sqrt(2.0 / (d * near.sum()) + 2.0 / (d * (~near).sum()))
+    apart = np.log(per_dof[1] / per_dof[0])
+    return {"near_far": tuple(per_dof),
+            "correlated": bool(apart > np.log(NEAR_FAR_RATIO) and apart > NEAR_FAR_SIGMAS * spread)}
 
 
 def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float | None:
@@ -76,7 +110,8 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     or None: the values given), statistic ``"heldout"``, with ``state_share``: the mean share of
     the prediction's covariance that is the state's, and ``sigma_factor``: the factor on the
     sensor's sigma at which the errors would be 1 per dof (:func:`sigma_factor`; None where no
-    sigma would do; module docstring). Held-out measurements at
+    sigma would do; module docstring), and the errors near the used measurements against those far
+    from them (:func:`near_and_far`). Held-out measurements at
     no state of the estimate are left out; a sensor with none left has no verdict."""
     if trajectory.cov is None:
         return {}
@@ -118,4 +153,10 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         record = verdict(float(nis[good].sum()), float(d * good.sum()), int(good.sum()), "heldout")
         out[sensor.name] = {**record, "state_share": float(np.mean(share)),
                             "sigma_factor": sigma_factor(e[good], state_part[good], R[good])}
+        used = np.sort(sensor.data.t)
+        if len(used):
+            at = held.t[found][good]
+            i = np.searchsorted(used, at)
+            before, after = used[np.clip(i - 1, 0, len(used) - 1)], used[np.clip(i, 0, len(used) - 1)]
+            out[sensor.name].update(near_and_far(nis[good], np.minimum(np.abs(at - before), np.abs(after - at)), d))
     return out

@@ -90,13 +90,18 @@ def shown(c: dict) -> str:
     not judged, ``1.21: too few degrees of freedom to judge (0.0007)``; of no update, ``none used
     (301 rejected by the gate)``; held-out predictions out of band with the factor on the sensor's
     sigma that would fit them (:func:`smoother.diagnosis.heldout.sigma_factor`), ``0.613 (0.92-1.1)
-    OUT OF BAND: 1 per dof at its sigma x0.19``."""
+    OUT OF BAND: 1 per dof at its sigma x0.19``, or, where the errors near the used measurements lie
+    below those far from them (:func:`smoother.diagnosis.heldout.near_and_far`), both figures."""
     if c["per_dof"] is None:
         return f"none used ({c.get('rejected', 0)} rejected by the gate)"
     if not judgeable(c):
         return f"{c['per_dof']:.3g}: {TOO_FEW_DOF} ({c['dof']:.2g})"
     text = f"{c['per_dof']:.3g} ({c['band'][0]:.2g}-{c['band'][1]:.2g}) {'ok' if c['ok'] else 'OUT OF BAND'}"
-    if not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
+    if not c["ok"] and c["statistic"] == "heldout" and c.get("correlated"):
+        near, far = c["near_far"]
+        text += (f": {near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's errors are "
+                 "correlated in time, which no sigma fits")
+    elif not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
         text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
     return text
 
@@ -164,14 +169,16 @@ def far_below(c: dict) -> bool:
 def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
-    ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``; :mod:`smoother.diagnosis.heldout`);
+    ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``, ``heldout_near_far``,
+    ``heldout_correlated``; :mod:`smoother.diagnosis.heldout`);
     a sensor judged on held-out measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
         own = out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"})
         own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
                     "heldout_measurements": h["measurements"], "heldout_dof": h["dof"],
-                    "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor")})
+                    "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor"),
+                    "heldout_near_far": h.get("near_far"), "heldout_correlated": h.get("correlated", False)})
     return out
 
 
@@ -203,7 +210,8 @@ def heldout_part(c: dict) -> dict | None:
         return None
     return {"per_dof": c["heldout_per_dof"], "band": c["heldout_band"], "ok": c["heldout_ok"],
             "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout",
-            "sigma_factor": c.get("heldout_sigma_factor")}
+            "sigma_factor": c.get("heldout_sigma_factor"), "near_far": c.get("heldout_near_far"),
+            "correlated": c.get("heldout_correlated", False)}
 
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:

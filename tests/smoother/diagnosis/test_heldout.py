@@ -48,6 +48,33 @@ def test_the_held_out_errors_per_dof_lie_in_their_band_over_20_seeds(seeds, esti
     assert all(r["statistic"] == "heldout" and r["measurements"] > 0 for r in records)
 
 
+def test_white_errors_are_not_called_correlated_over_20_seeds(seeds):
+    """The held-out errors near the used measurements and far from them agree (``near_far``) where
+    the sensor's noise is white: no seed's batch or EKF verdict calls them correlated."""
+    flagged = [(seed, k) for seed, pair in enumerate(seeds) for k, r in enumerate(pair) if r.get("correlated")]
+    assert not flagged, flagged
+    assert all(len(r["near_far"]) == 2 for pair in seeds for r in pair)
+
+
+def test_errors_that_drift_are_called_correlated_and_printed_so():
+    """Fixes at 10 Hz with an AR(1) error 0.8 from one fix to the next (a drift over half a
+    second), one in 20 used, and an IMU loose enough that the estimate follows the used fixes (its
+    white noise 300 times the simulated one's): the held-out fixes next to a used one share its
+    error and lie far below those further off; the verdict says the errors are correlated in time
+    instead of naming a sigma."""
+    from drifting_fixes import fixes_with_noise
+
+    from smoother.diagnosis.verdicts import shown
+
+    data, _ = fixes_with_noise(0.8, n=600, every=20)
+    data = replace(data, noise=replace(data.noise, acc=300.0 * data.noise.acc, gyro=300.0 * data.noise.gyro))
+    record = heldout_consistency(data, solve_batch(build_problem(data)).trajectory)["gps"]
+    near, far = record["near_far"]
+    assert record["correlated"] and near < far / 1.5, record
+    assert shown(record).endswith(f"{near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's "
+                                  "errors are correlated in time, which no sigma fits")
+
+
 def test_a_sigma_stated_too_large_puts_the_held_out_errors_below_their_band_with_the_sensor_s_share():
     data = _held_out(0, sigma_scale=3.0)
     record = heldout_consistency(data, solve_batch(build_problem(data)).trajectory)["position"]
