@@ -50,6 +50,17 @@ def per_dof_band(dof: float, probability: float) -> tuple[float, float]:
     return lo, hi
 
 
+def dof_means_apart(first: float, first_dof: float, second: float, second_dof: float, ratio: float,
+                    sigmas: float) -> float:
+    """``log(second / first)`` of two means per degree of freedom of chi-square variables (with
+    ``first_dof`` and ``second_dof`` degrees of freedom) where it exceeds both ``log(ratio)`` and
+    ``sigmas`` of its standard deviation, ``sqrt(2 / first_dof + 2 / second_dof)`` (each mean's
+    relative variance is ``2 / dof``), in either direction; 0 where it does not."""
+    apart = math.log(second / first)
+    bound = max(math.log(ratio), sigmas * math.sqrt(2.0 / first_dof + 2.0 / second_dof))
+    return apart if abs(apart) > bound else 0.0
+
+
 def lag_one_correlation(u: np.ndarray) -> float:
     """The lag-one correlation of whitened residuals ``u (N, d)`` in time order, over their axes
     together (0 with fewer than three)."""

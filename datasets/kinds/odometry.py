@@ -39,12 +39,13 @@ def _composed(data: RelativePoseMeasurements, spans: np.ndarray) -> RelativePose
     for k in range(1, int((hi - lo).max(initial=1))):
         m = np.flatnonzero(lo + k < hi)  # the spans with a (k+1)-th measurement
         i = lo[m] + k
+        step = np.einsum("nab,nb->na", dC[m], data.dr[i])  # dC_1 dr_2
         J1 = np.broadcast_to(np.eye(6), (len(m), 6, 6)).copy()
-        J1[:, :3, 3:] = -so3.skew(np.einsum("nab,nb->na", dC[m], data.dr[i]))
+        J1[:, :3, 3:] = -so3.skew(step)
         J2 = np.zeros((len(m), 6, 6))
         J2[:, :3, :3] = J2[:, 3:, 3:] = dC[m]
         cov[m] = J1 @ cov[m] @ np.swapaxes(J1, 1, 2) + J2 @ data.cov[i] @ np.swapaxes(J2, 1, 2)
-        dr[m] += np.einsum("nab,nb->na", dC[m], data.dr[i])
+        dr[m] += step
         dC[m] = dC[m] @ data.dC[i]
     return RelativePoseMeasurements(data.t_from[lo], data.t_to[hi - 1], dr, dC, cov, data.T_BS)
 

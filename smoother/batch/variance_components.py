@@ -84,7 +84,7 @@ from smoother.model.blocks import CHUNK, Block, Layout, block_residual, lineariz
 from smoother.model.covariances import covariance_tangent, hat_blocks, marginal_covariances
 from smoother.model.problem import Problem
 from smoother.model.timeline import imu_steps
-from smoother.stats import chi2_quantile, lag_one_correlation
+from smoother.stats import chi2_quantile, dof_means_apart, lag_one_correlation
 
 #: The IMU's four estimated densities: ``(ImuNoise field, name, rig key, unit)``.
 IMU_COMPONENTS = (
@@ -455,9 +455,9 @@ def _halves(halves: np.ndarray, psi: float) -> dict:
     if min(r1, r2) < MIN_HALF_REDUNDANCY or min(q1, q2) <= 0.0:
         return {}
     f1, f2 = (math.exp(0.5 * psi) * math.sqrt(q / r) for q, r in ((q1, r1), (q2, r2)))
-    apart = abs(math.log(q1 / r1) - math.log(q2 / r2))
-    steady = apart <= 2.0 * math.log(UNSTEADY_RATIO) or apart <= SIGNIFICANCE * math.sqrt(2.0 / r1 + 2.0 / r2)
-    return {"halves": (f1, f2), "steady": bool(steady)}
+    # the factors' ratio beyond UNSTEADY_RATIO: their variances' beyond its square
+    apart = dof_means_apart(q1 / r1, r1, q2 / r2, r2, UNSTEADY_RATIO**2, SIGNIFICANCE)
+    return {"halves": (f1, f2), "steady": apart == 0.0}
 
 
 def _tie_matrix(ties: list[list[int]], n: int) -> np.ndarray:

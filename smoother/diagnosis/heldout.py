@@ -47,6 +47,7 @@ import numpy as np
 from datasets.kinds import KINDS, calibrated_rows, measure_rows, sensors_of
 from datasets.types import Dataset, Trajectory
 from smoother.diagnosis.verdicts import verdict
+from smoother.stats import dof_means_apart
 
 #: A held-out time matches an estimate's state within this [s].
 MATCH_TOLERANCE = 1e-9
@@ -73,10 +74,9 @@ def near_and_far(nis: np.ndarray, distance: np.ndarray, d: int) -> dict:
     per_dof = [float(nis[part].mean()) / d for part in (near, ~near)]
     if min(per_dof) <= 0.0:
         return {}
-    spread = np.sqrt(2.0 / (d * near.sum()) + 2.0 / (d * (~near).sum()))
-    apart = np.log(per_dof[1] / per_dof[0])
-    return {"near_far": tuple(per_dof),
-            "correlated": bool(apart > np.log(NEAR_FAR_RATIO) and apart > NEAR_FAR_SIGMAS * spread)}
+    apart = dof_means_apart(per_dof[0], d * near.sum(), per_dof[1], d * (~near).sum(), NEAR_FAR_RATIO,
+                            NEAR_FAR_SIGMAS)
+    return {"near_far": tuple(per_dof), "correlated": apart > 0.0}
 
 
 def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float | None:

@@ -55,11 +55,15 @@ class ModelError:
     cause: str
 
 
+def _alike(g) -> bool:
+    """Whether a sensor's group (not the IMU's) has residuals alike in time, beyond :data:`CORRELATED`."""
+    return g.group.sensor != IMU_BLOCK and g.correlation > CORRELATED
+
+
 def correlated(fit: NoiseFit) -> list[str]:
-    """The sensors with an applied group whose residuals are alike in time (beyond
-    :data:`CORRELATED`): those whose misfit causes :func:`honest` needs."""
-    return sorted({g.group.sensor for g in fit.groups if g.estimable and g.applied and g.group.sensor != IMU_BLOCK
-                   and g.correlation > CORRELATED})
+    """The sensors with an applied group whose residuals are alike in time (:func:`_alike`):
+    those whose misfit causes :func:`honest` needs."""
+    return sorted({g.group.sensor for g in fit.groups if g.estimable and g.applied and _alike(g)})
 
 
 def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tuple[NoiseFit, list[ModelError]]:
@@ -80,7 +84,7 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
         elif not 1.0 / IMPLAUSIBLE_FACTOR <= g.factor <= IMPLAUSIBLE_FACTOR:
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")
-        elif sensor != IMU_BLOCK and g.correlation > CORRELATED:
+        elif _alike(g):
             alike = f"its residuals are alike from one measurement to the next (correlation {g.correlation:.2f})"
             if causes is None or sensor not in causes:
                 errors[name] = f"{alike}: a systematic error (a lever arm, a time offset, a scale), not noise"

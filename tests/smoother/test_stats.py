@@ -1,5 +1,6 @@
-"""The chi-square bands and the residuals' lag-one correlation (smoother/stats.py); the quantiles
-themselves against SciPy's and the NEES intervals: ``tests/smoother/evaluation/test_metrics.py``."""
+"""The chi-square bands, two means per dof apart, and the residuals' lag-one correlation
+(smoother/stats.py); the quantiles themselves against SciPy's and the NEES intervals:
+``tests/smoother/evaluation/test_metrics.py``."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 from factors.errors import InputError
-from smoother.stats import lag_one_correlation, nees_bounds, per_dof_band
+from smoother.stats import dof_means_apart, lag_one_correlation, nees_bounds, per_dof_band
 
 
 @pytest.mark.parametrize("dof", [1, 3, 12.5, 400])
@@ -47,3 +48,11 @@ def test_the_lag_one_correlation_of_too_few_or_constant_residuals_is_zero_and_of
     assert lag_one_correlation(np.full((10, 2), 4.0)) == 0.0
     # alternating signs: three lagged products of -1 over four squares
     assert lag_one_correlation(np.array([[1.0], [-1.0], [1.0], [-1.0]])) == pytest.approx(-0.75, rel=1e-12)
+
+
+def test_two_means_per_dof_are_apart_beyond_both_the_ratio_and_the_sigmas():
+    # 1 against 3 on 100 dof each: log 3 = 1.10 beyond log 1.5 and 3 sd (0.6): apart, either way
+    assert dof_means_apart(1.0, 100, 3.0, 100, 1.5, 3.0) == pytest.approx(np.log(3.0))
+    assert dof_means_apart(3.0, 100, 1.0, 100, 1.5, 3.0) == pytest.approx(-np.log(3.0))
+    assert dof_means_apart(1.0, 10, 3.0, 10, 1.5, 3.0) == 0.0  # within 3 sd (1.9) on 10 dof each
+    assert dof_means_apart(1.0, 1e6, 1.4, 1e6, 1.5, 3.0) == 0.0  # significant, but within the ratio
