@@ -3,7 +3,8 @@ calibration error leaves in them.
 
 Model. A sensor's residual at the estimate is ``e_i = h(x_i; c) - z_i`` (``d`` numbers per
 measurement ``i``, the kind's kernel, :mod:`factors.sensor_models`) with the calibration ``c``
-the rig states. Were the measurements made with ``c + dc``, then to first order
+the rig states (where the sensor estimates some of its calibration, with that estimate). Were
+the measurements made with ``c + dc``, then to first order
 
     e_i = X_i dc + n_i,        X_i = -de_i/dc,
 
@@ -13,7 +14,7 @@ each candidate calibration with its own columns of ``X_i`` (``d x k``), in the u
 * ``scale`` ``s`` (what the sensor reads per unit of the truth; the correction is ``s - 1``):
   ``z = s h`` gives ``e = -(s - 1) h``: the pattern is minus the prediction ``h_i = e_i + z_i``
   (a wheel speed reading 1 % low, ``s = 0.99``: the residual is +1 % of the speed, along the
-  direction of travel). Kinds: :data:`SCALED_KINDS`.
+  direction of travel). Kinds with scaled rows (a velocity).
 * ``time_offset`` ``d`` [s] (the measurement was taken at ``t_stamp + d``; ``d`` is what to add to
   the rig's ``time_offset``): ``z = h(x(t + d))`` gives ``e = -d dh/dt`` with ``dh/dt = H_i
   xdot_i``, ``H_i`` the residual's error-state Jacobian and ``xdot`` the state's rate in the
@@ -32,9 +33,11 @@ each candidate calibration with its own columns of ``X_i`` (``d x k``), in the u
   (an offset fixed in the IMU frame, which turns with the vehicle), a velocity's ``-R_BS^T (w x
   dp)`` (with the angular rate). Kinds with a position, or a velocity through the lever arm.
 
-The rotation and lever-arm columns are central differences of the kind's kernel in the extrinsic
-(the estimators' own model; linear in ``dp``, smooth in ``phi``). A candidate whose columns are
-zero for every measurement does not enter the kind's residual and is no candidate. Relative kinds
+These are the error coordinates of :mod:`factors.calibration`, so every candidate's columns are
+minus the calibrated kernel's own Jacobian (the estimators' model, its analytic derivatives,
+checked against numerical ones there). A candidate whose columns are zero for every measurement
+does not enter the kind's residual and is no candidate; nor is a part the sensor estimates
+already (its calibration variable is free in the fit below, at its estimate). Relative kinds
 (odometry, two states per measurement) are not analysed.
 
 Fit. A sensor's residuals at an estimate hold only the part of a calibration error that the
@@ -87,16 +90,16 @@ handles between calls, stops it promptly. The whole is linear in the sensors and
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
-from datasets.kinds import KINDS, measure_rows, sensors_of
+from datasets.kinds import KINDS, calibrated_rows, sensors_of
 from datasets.ranges import RANGES
 from datasets.types import ImuSamples, Sensor, Trajectory
-from factors import imu, so3
-from factors.sensor_models import extrinsic_parts
+from factors import imu
+from factors.calibration import PART_COLUMNS, Calibration, applicable
 from smoother.diagnosis.verdicts import MIN_DOF, out_of_band
 from smoother.estimators import ESTIMATORS
 from smoother.model.blocks import Block, evaluate_block, linearize, whitening
@@ -112,8 +115,6 @@ MAX_ANALYSED = 8
 #: Keys eliminated per GTSAM call (:func:`_eliminated`): a call runs some tens of milliseconds,
 #: and Ctrl-C or SIGTERM, which Python handles between calls only, stops the fit promptly.
 ELIMINATION_CHUNK = 200
-#: The kinds whose reading can be off by a scale (the prediction is the scaled quantity).
-SCALED_KINDS = ("velocity",)
 #: A component is significant beyond this many sigmas.
 SIGNIFICANCE = 5.0
 #: The smallest correction of each candidate that is advice: the finest prior sigma a rig can
@@ -125,8 +126,6 @@ MATERIAL_SHARE = 0.1
 AVERAGE_S = 0.05
 #: The largest lag-1 autocorrelation the sigmas are inflated for.
 MAX_RHO = 0.95
-#: Step of the central differences in the extrinsic [rad, m].
-_STEP = 1e-6
 
 
 @dataclass(frozen=True)
@@ -192,36 +191,30 @@ def hint(causes: list[Cause]) -> str | None:
             + f": add estimate = [{keys}]")
 
 
-def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity, sums=None) -> tuple:
+def patterns(sensor: Sensor, states: imu.ImuState, imu_samples: ImuSamples, gravity, sums=None,
+             value: Calibration | None = None) -> tuple:
     """``(e (N, d), {calibration: X (N, d, k)})``: the kernel's residuals of ``sensor``'s
-    measurements at ``states`` (one per measurement) and each candidate's columns ``X = -de/dc``
-    (module docstring); candidates that do not enter the kind's residual are left out. ``sums``:
-    the samples' :func:`imu_sums`, when the caller made them once for many sensors."""
+    measurements at ``states`` (one per measurement) through its calibration ``value`` (its
+    estimate where the sensor estimates one; None: the values the rig gives), and each
+    candidate's columns ``X = -de/dc`` there: minus the calibrated kernel's own Jacobian
+    (:func:`datasets.kinds.calibrated_rows`), whose error coordinates are the candidates'
+    (module docstring), with the IMU's readings averaged over :data:`AVERAGE_S` for the time
+    offset. The candidates are the parts the kind can estimate (:func:`factors.calibration.applicable`)
+    less those the sensor estimates; one whose columns are zero for every measurement does not
+    enter the residual and is left out. ``sums``: the samples' :func:`imu_sums`, when the caller
+    made them once for many sensors."""
     kind, m = KINDS[sensor.kind], sensor.data
-    e, H = measure_rows(kind, states, kind.pack(m))
+    estimated = () if sensor.calibrate is None else sensor.calibrate.parts
+    wanted = [p for p in applicable(kind.model) if p not in estimated]
+    averaged = _averaged_imu(imu_samples, m.t, AVERAGE_S, imu_sums(imu_samples) if sums is None else sums)
+    c = Calibration.of(m.T_BS) if value is None else value
+    e, _, Hc = calibrated_rows(kind, states, kind.pack(m), c, averaged, gravity)
     out = {}
-    if kind.name in SCALED_KINDS:
-        out["scale"] = -(e + getattr(m, kind.fields[0]))[..., None]
-    acc, gyro = _averaged_imu(imu_samples, m.t, AVERAGE_S, imu_sums(imu_samples) if sums is None else sums)
-    xdot = imu.state_derivative(states, acc, gyro, gravity)
-    out["time_offset"] = -np.einsum("nds,ns->nd", H, xdot)[..., None]
-    R, p = extrinsic_parts(m.T_BS)
-    for name, moved in (("rotation", lambda s: (so3.exp(s) @ R, p)), ("lever_arm", lambda s: (R, p + s))):
-        columns = np.stack([_kernel_difference(kind, m, states, moved, _STEP * a) for a in np.eye(3)], axis=-1)
+    for part in wanted:
+        columns = -Hc[:, :, PART_COLUMNS[part]]
         if np.any(columns != 0.0):
-            out[name] = columns
+            out[part] = columns
     return e, out
-
-
-def _kernel_difference(kind, m, states, moved, step) -> np.ndarray:
-    """``-de/dc`` along ``step`` by central differences: the kernel's residuals with the extrinsic
-    ``moved(+step)`` and ``moved(-step)``."""
-    def residual(s):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = moved(s)
-        return measure_rows(kind, states, kind.pack(replace(m, T_BS=T)))[0]
-
-    return -(residual(step) - residual(-step)) / (2.0 * np.linalg.norm(step))
 
 
 def imu_sums(samples: ImuSamples) -> tuple[np.ndarray, np.ndarray]:
@@ -261,30 +254,44 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     verdict, :mod:`smoother.diagnosis.residual_consistency`); a sensor without it has its variance taken as
     at least the one its sigma states. ``calibration``: the values of the calibration variables
     the blocks read (:class:`factors.calibration.CalibrationSet`; keys ``n + j``, free in the step
-    like the states), or None. By sensor name."""
-    fitted = {s.name for s in sensors if not KINDS[s.kind].relative}
+    like the states), or None: a sensor estimating its own calibration has its candidates (the
+    parts it does not estimate) at that estimate, its factors on its calibration variable too.
+    By sensor name; a sensor left no candidate (it estimates every part its kind can) has none."""
     sums = imu_sums(imu_samples)
-    graph, _ = linearize([b for b in blocks if b.name not in fitted], states, calibration)
     by_name = {b.name: b for b in blocks}
     estimated = 0 if calibration is None else len(calibration)
-    parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
-    for sensor in (s for s in sensors if s.name in fitted):
+    out: dict[str, list[Cause]] = {}
+    found = {}  # name: (sensor, keyframes, residuals, candidates' columns)
+    for sensor in (s for s in sensors if not KINDS[s.kind].relative):
         block = by_name[sensor.name]
         kf = block.keyframes[:, 0]
-        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums)
-        ev = evaluate_block(block, states, True)
+        value = None if block.calibration is None else calibration.values[block.calibration]
+        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums, value)
+        if X:
+            found[sensor.name] = (sensor, kf, e, X)
+        else:
+            out[sensor.name] = []
+    graph, _ = linearize([b for b in blocks if b.name not in found], states, calibration)
+    parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
+    for name, (sensor, kf, e, X) in found.items():
+        block = by_name[name]
+        ev = evaluate_block(block, states, True, calibration=calibration)
         b, A = _whitened(sensor, e, X)
         A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
         key = len(states) + estimated + len(parts)
         unit = gtsam.noiseModel.Unit.Create(b.shape[1])
         for i in range(len(kf)):
-            graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))  # de/dc = -X
+            if block.calibration is None:  # de/dc = -X
+                graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))
+            else:
+                graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], len(states) + block.calibration, ev.A[1][i],
+                                               key, -A[i], -ev.e[i], unit))
         prior = _prior(X)
         graph.add(gtsam.JacobianFactor(key, np.diag(1.0 / prior), np.zeros(len(prior)),
                                        gtsam.noiseModel.Unit.Create(len(prior))))
-        parts[sensor.name] = (key, X, kf, ev, A)
+        parts[name] = (key, X, kf, ev, A)
     if not parts:
-        return {}
+        return out
     keys = [part[0] for part in parts.values()]
     colamd = gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     last = set(keys)
@@ -297,14 +304,17 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     cov = R_inv @ R_inv.T
     flat = step.vector()  # by key: the keyframes' steps, the calibration variables', then the candidates
     n = len(states) * imu.STATE_DIM
-    flat = np.concatenate([flat[:n], flat[n + (0 if calibration is None else sum(calibration.dims)):]])
-    dx_all, value = flat[:n].reshape(len(states), imu.STATE_DIM), flat[n:]
+    dims = [] if calibration is None else calibration.dims
+    dx_all, value = flat[:n].reshape(len(states), imu.STATE_DIM), flat[n + sum(dims):]
+    dc_all = np.split(flat[n:n + sum(dims)], np.cumsum(dims)[:-1]) if dims else []
     information = R.T @ R
     gradient = information @ value
-    out, at = {}, 0
+    at = 0
     for name, (key, X, kf, ev, A) in parts.items():
         mine = slice(at, at + A.shape[2])
         after = ev.e + np.einsum("nas,ns->na", ev.A[0], dx_all[kf]) - np.einsum("nak,k->na", A, value[mine])
+        if by_name[name].calibration is not None:
+            after = after + ev.A[1] @ dc_all[by_name[name].calibration]
         out[name] = candidate_causes(X, value[mine], cov[mine, mine], information[mine, mine], gradient[mine],
                                      after, (dof or {}).get(name))
         at = mine.stop
@@ -327,26 +337,31 @@ def _eliminated(graph: gtsam.GaussianFactorGraph, order: list[int]) -> gtsam.Gau
 
 
 def candidates(dataset) -> list[Sensor]:
-    """The sensors of ``dataset`` whose calibration the fit can suggest: of an absolute kind, and
-    not estimating one of their own."""
-    return [s for s in sensors_of(dataset) if s.calibrate is None and not KINDS[s.kind].relative]
+    """The sensors of ``dataset`` whose calibration the fit can suggest: those of an absolute kind
+    (one estimating some of its calibration has the other parts as candidates, :func:`patterns`)."""
+    return [s for s in sensors_of(dataset) if not KINDS[s.kind].relative]
 
 
 def suspects(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
-             gravity) -> list[Sensor]:
+             gravity, calibration=None) -> list[Sensor]:
     """The :data:`MAX_ANALYSED` of ``sensors`` (all of them when as few) whose candidates explain
-    most of their own residuals at ``states`` (their blocks in ``blocks``), each sensor alone and
-    the states held: the decrease ``g^T (A^T A + P^-1)^-1 g`` of its whitened cost (``A`` its
-    whitened candidates' columns, ``g = A^T b``, ``P`` the weak prior). A screen, linear in the
-    measurements: the fit proper (:func:`fit_in_problem`) then gives back what the states absorbed,
-    and puts each misfit on one sensor."""
+    most of their own residuals at ``states`` (their blocks in ``blocks``; ``calibration`` the
+    values of the calibration variables they read, as :func:`fit_in_problem` takes them), each
+    sensor alone and the states held: the decrease ``g^T (A^T A + P^-1)^-1 g`` of its whitened
+    cost (``A`` its whitened candidates' columns, ``g = A^T b``, ``P`` the weak prior). A screen,
+    linear in the measurements: the fit proper (:func:`fit_in_problem`) then gives back what the
+    states absorbed, and puts each misfit on one sensor."""
     if len(sensors) <= MAX_ANALYSED:
         return list(sensors)
     by_name, sums = {b.name: b for b in blocks}, imu_sums(imu_samples)
 
     def explained(sensor) -> float:
-        kf = by_name[sensor.name].keyframes[:, 0]
-        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums)
+        block = by_name[sensor.name]
+        kf = block.keyframes[:, 0]
+        value = None if block.calibration is None else calibration.values[block.calibration]
+        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums, value)
+        if not X:
+            return 0.0
         b, A = _whitened(sensor, e, X)
         A, b = A.reshape(-1, A.shape[2]), b.reshape(-1)
         g = A.T @ b
@@ -369,7 +384,7 @@ def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None,
     if values is not None and calibration is not None:
         values = calibration
     states = problem.initial_states
-    chosen = suspects(problem.blocks, states, candidates(dataset), dataset.imu, dataset.gravity)
+    chosen = suspects(problem.blocks, states, candidates(dataset), dataset.imu, dataset.gravity, values)
     return fit_in_problem(problem.blocks, states, chosen, dataset.imu, dataset.gravity, dof, values)
 
 

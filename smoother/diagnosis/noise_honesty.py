@@ -14,15 +14,15 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
   not an IMU, it is a misfit shared out);
 * a sensor's whitened residuals are alike from one measurement to the next (lag-one correlation
-  beyond :data:`CORRELATED`) and a calibration explains them: a lever arm, a time offset, a
-  rotation or a scale left out leaves residuals that follow the motion, which the sensor's misfit
-  causes (:mod:`smoother.diagnosis.misfit_causes`, fitted with the noise applied) name. Residuals
-  alike in time that no calibration explains are the sensor's own drifting error (a GNSS
-  receiver's, over seconds to minutes): the factor is their size and is applied, with a note that
-  the estimate takes them as independent. A sensor whose causes were not analysed (a relative kind,
-  one estimating its own calibration, or no causes given) counts as a systematic error, as without
-  the analysis. The IMU's factors share their keyframes, so theirs are correlated by construction
-  and not judged so;
+  beyond :data:`CORRELATED`) and a calibration explains them: a lever arm, a time offset, a rotation
+  or a scale left out leaves residuals that follow the motion, which the sensor's misfit causes
+  (:mod:`smoother.diagnosis.misfit_causes`, fitted with the noise applied) name. Residuals alike in
+  time that no calibration explains are the sensor's own drifting error (a GNSS receiver's, over
+  seconds to minutes): the factor is their size and is applied, with a note that the estimate takes
+  them as independent. A sensor estimating part of its calibration has the other parts analysed at
+  its estimate; one whose causes were not analysed (a relative kind, or no causes given) counts as a
+  systematic error, as without the analysis. The IMU's factors share their keyframes, so theirs are
+  correlated by construction and not judged so;
 * the fit grew its sigma until the estimate hardly uses it (a factor beyond
   :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
   its verdict no longer responds to its sigma, and the sensor is dropped, not weighed.

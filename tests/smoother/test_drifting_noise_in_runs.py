@@ -3,7 +3,8 @@ smoother/diagnosis/noise_honesty.py and misfit_causes.py): fixes whose error dri
 receiver's, over seconds -- have their sigma fitted and applied, with the note that the estimate
 takes them as independent, and no estimate is doubtful for it; fixes whose rig leaves out the
 antenna's lever arm have residuals as alike in time, which the lever arm explains: their fitted
-sigma is not applied, and the run names the lever arm."""
+sigma is not applied, and the run names the lever arm. Both hold for fixes that estimate part of
+their calibration (a GNSS delay): the parts they do not estimate are the candidates."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -13,6 +14,7 @@ import pytest
 
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
+from factors.calibration import CalibrationPrior
 from smoother.pipeline import RunOptions, estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
 
 NOISE = ("imu", "gnss", "wheels")
@@ -45,9 +47,14 @@ def _run(data):
     return estimates["batch"], {g.group.name: g for g in record["noise"].groups}
 
 
-@pytest.mark.parametrize("seed", range(2))
-def test_fixes_whose_error_drifts_have_their_sigma_fitted_and_applied(seed):
-    batch, groups = _run(_rig(drift=1.0, seed=seed))
+def _estimating(data, parts):
+    """``data`` with the fixes estimating the calibration ``parts`` (none: as given)."""
+    return data.with_sensor("gnss", calibrate=CalibrationPrior(parts)) if parts else data
+
+
+@pytest.mark.parametrize("seed, parts", [(0, ()), (1, ()), (0, ("time_offset",)), (1, ("lever_arm",))])
+def test_fixes_whose_error_drifts_have_their_sigma_fitted_and_applied(seed, parts):
+    batch, groups = _run(_estimating(_rig(drift=1.0, seed=seed), parts))
     for part in ("gnss.horizontal", "gnss.vertical"):
         g = groups[part]
         assert g.correlation > 0.5 and g.applied and g.factor > 2.0, (part, g)
@@ -55,8 +62,9 @@ def test_fixes_whose_error_drifts_have_their_sigma_fitted_and_applied(seed):
     assert "doubtful" not in batch.details or "gnss" not in batch.details["doubtful"], batch.details.get("doubtful")
 
 
-def test_fixes_whose_lever_arm_the_rig_leaves_out_are_named_not_fitted():
-    batch, groups = _run(_rig(lever_arm=[0.0, 1.5, 0.5]))
+@pytest.mark.parametrize("parts", [(), ("time_offset",)])
+def test_fixes_whose_lever_arm_the_rig_leaves_out_are_named_not_fitted(parts):
+    batch, groups = _run(_estimating(_rig(lever_arm=[0.0, 1.5, 0.5]), parts))
     horizontal = groups["gnss.horizontal"]
     assert horizontal.correlation > 0.5 and not horizontal.applied, horizontal
     assert horizontal.note.startswith("not applied: ") and "point at lever arm" in horizontal.note, horizontal.note

@@ -153,7 +153,8 @@ def test_hints_start_from_the_batch_and_else_from_another_estimate(runs):
 def test_with_a_sensor_that_calibrates_the_others_are_fitted_at_its_estimated_calibration():
     """The wheels read 1 % low and estimate their scale; the fixes are stamped 0.1 s late and
     estimate nothing: the hint names the fixes' delay, fitted with the wheels' scale at the
-    batch's estimate (and free with the states), and says nothing of the wheels, which calibrate."""
+    batch's estimate (and free with the states), and says nothing of the wheels: their scale is
+    estimated, and the parts they do not estimate explain nothing."""
     from factors.calibration import CalibrationPrior
 
     data = _delayed(_scaled(_car(seed=2), 0.99)).with_sensor("wheels", calibrate=CalibrationPrior(("scale",)))
@@ -162,6 +163,24 @@ def test_with_a_sensor_that_calibrates_the_others_are_fitted_at_its_estimated_ca
     assert set(told) == {"gnss"}, told
     value, sigma = map(float, re.match(r"time offset (\S+) s \+- (\S+) s", told["gnss"]).groups())
     assert abs(value + 0.1) < 3 * sigma, told
+
+
+def test_a_sensor_that_calibrates_has_the_parts_it_does_not_estimate_fitted_at_its_estimate():
+    """The wheels read 1 % low and are pitched by 3 deg, which the rig leaves out; they estimate
+    their scale only: the hint names their pitch (fitted with the scale at the batch's estimate,
+    free with the states), never the scale they estimate."""
+    from factors.calibration import CalibrationPrior
+
+    data = _scaled(_extrinsic_forgotten(_car(seed=2, wheels_T=_T([0, np.radians(3.0), 0])), "wheels"), 0.99)
+    data = data.with_sensor("wheels", calibrate=CalibrationPrior(("scale",)))
+    estimates = run_estimators(data, ["batch"])
+    causes = _by_name(causes_at(data, estimates["batch"].trajectory, calibration=estimates["batch"].calibration)[
+        "wheels"])
+    assert "scale" not in causes and causes["rotation"].suggested, causes
+    pitch = causes["rotation"]
+    assert abs(pitch.value[1] - np.radians(3.0)) < 3 * pitch.sigma[1], pitch
+    told = hints(data, estimates, verdicts_by_estimator(data, estimates))
+    assert "rotation about y" in told["wheels"] and 'estimate = ["rotation"]' in told["wheels"], told
 
 
 def test_the_run_warning_says_the_pattern_before_the_sigma(runs):
