@@ -12,7 +12,9 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   either way (a datasheet or an Allan variance is not off by that much; a unit or a frame is);
 * the IMU's components contradict each other: two estimated factors more than
   :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
-  not an IMU, it is a misfit shared out);
+  not an IMU, it is a misfit shared out). Beside a sensor whose error drifts (below), an IMU's
+  factor this far off may also be that drift, which the IMU's noise grew to follow, and the cause
+  says so;
 * a sensor's whitened residuals are alike from one measurement to the next (lag-one correlation
   beyond :data:`CORRELATED`) and a calibration explains them: a lever arm, a time offset, a rotation
   or a scale left out leaves residuals that follow the motion, which the sensor's misfit causes
@@ -106,6 +108,11 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
                      f"{low.group.part} x{low.factor:.3g}): a misfit shared out, not an IMU's noise")
             errors.setdefault(high.group.name, cause)
             errors.setdefault(low.group.name, cause)
+    drifters = sorted({g.group.sensor for g in fit.groups if g.group.name in drifting})
+    if drifters:  # the IMU's noise grown to let the trajectory follow a sensor's drift
+        also = (f", or the IMU follows the drift of {' and '.join(drifters)}'s errors: measurements further "
+                "apart (`every`) keep it out")
+        errors = {name: cause + also if name.startswith(f"{IMU_BLOCK}.") else cause for name, cause in errors.items()}
     if not errors and not drifting:
         return fit, []
     groups = [replace(g, applied=False, note=f"not applied: {errors[g.group.name]}") if g.group.name in errors

@@ -64,6 +64,20 @@ def test_correlated_residuals_that_no_calibration_explains_are_a_drift_and_appli
     assert errors == [] and g.applied and "no calibration explains them: the sensor's error drifts" in g.note
 
 
+def test_an_imu_factor_beside_a_drifting_sensor_may_be_that_drift_and_says_so():
+    """Bias random walks far beyond a datasheet beside fixes whose error drifts: the cause names the
+    drift and what keeps it out; without a drifting sensor, it does not."""
+    imu = ("imu", "acc_bias", None, IMPLAUSIBLE_FACTOR * 1.6, 20.0, 0.9, 7000)
+    gnss = ("gnss", "horizontal", (0, 1), 1.5, 80.0, CORRELATED + 0.1, 2400)
+    errors = _errors(_fit(imu, gnss), causes={"gnss": []})
+    assert set(errors) == {"imu.acc_bias"}, errors
+    cause = errors["imu.acc_bias"]
+    assert "no sensor's error of its datasheet" in cause, cause
+    assert "the IMU follows the drift of gnss's errors" in cause and "`every`" in cause, cause
+    alone = _errors(_fit(imu, gnss[:5] + (CORRELATED - 0.3, 2400)), causes={"gnss": []})
+    assert "drift" not in alone["imu.acc_bias"], alone
+
+
 def test_a_sensor_grown_until_it_is_discarded_is_a_model_error():
     errors = _errors(_fit(("wheels", "lateral", (1,), 15.0, 298.0, 0.1, 300)))
     assert "hardly uses it" in errors["wheels.lateral"]
