@@ -252,6 +252,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     estimates = _in_order(estimates, names)
     dataset = record.get("dataset", dataset)  # as the estimators ran on it: the fitted noise, mountings as found
     run_info["mounting"] = record["mounting"].record() if "mounting" in record else {}
+    if "noise" in record and "batch" not in estimates:  # the batch ran for the fit alone: the fit is the run's
+        run_info["noise"] = record["noise"].record()
     for finding in record["mounting"].wrong if "mounting" in record else ():
         print(f"warning: mounting: {finding.message}", file=sys.stderr)
     # what follows the estimators never costs their outputs: stopped, the finished estimates are written
@@ -301,10 +303,10 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}),
                                           verdicts_for(name, verdicts), correlations.get(name)):
                 print(f"  {line}")
-    if metrics.get("batch", {}).get("noise"):
-        for line in noise_lines(metrics["batch"]["noise"]):
+    if _noise(metrics, run_info):
+        for line in noise_lines(_noise(metrics, run_info)):
             print(line)
-    if args.rig is not None and (metrics.get("batch", {}).get("calibration") or metrics.get("batch", {}).get("noise")):
+    if args.rig is not None and (metrics.get("batch", {}).get("calibration") or _noise(metrics, run_info)):
         print(f"the rig with the batch's calibration and noise: {args.out}/calibrated.toml", file=sys.stderr)
     latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
     if latency is not None:
@@ -371,7 +373,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
 
         write_mcap(stage / MCAP, dataset, estimates)
     records = metrics.get("batch", {}).get("calibration") or {}
-    noise = metrics.get("batch", {}).get("noise")
+    noise = _noise(metrics, run_info)
     if args.rig is not None and (records or noise):
         from datasets.atomic import atomic_write
         from datasets.rig import load_rig
@@ -383,6 +385,13 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
             handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise))
     return metrics
+
+
+def _noise(metrics: dict, run_info: dict) -> dict | None:
+    """The run's noise fit as ``metrics.json`` records it: the batch smoother's (``batch.noise``),
+    or, where the batch ran only to fit it for the estimators asked for, the run's (``run_info``,
+    written as ``_run.noise``); None without a fit."""
+    return metrics.get("batch", {}).get("noise") or run_info.get("noise")
 
 
 def _in_order(estimates: dict, names: list[str]) -> dict:

@@ -384,6 +384,20 @@ def test_estimate_noise_fits_prints_and_records_the_noise(tmp_path, capsys):
     assert metrics["ekf"]["noise_from"] == metrics["fixed-lag"]["noise_from"] == "batch"
 
 
+def test_estimate_noise_without_the_batch_asked_for_still_prints_and_records_the_fit(tmp_path, capsys):
+    """--estimate-noise with only the EKF asked for: the batch smoother runs for the fit alone (not
+    in the table), and the fit the EKF ran with is printed and recorded as the run's (``_run.noise``)."""
+    out = tmp_path / "ekf"
+    code = main(["run", "--dataset", "synthetic:gentle", "--duration", "6", "--estimator", "ekf", "--out", str(out),
+                 "--estimate-noise", "--no-progress"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "noise fitted by the batch smoother" in captured.out and "pose.position" in captured.out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {"ekf", "_run"} and metrics["ekf"]["noise_from"] == "batch"
+    assert {"imu.acc", "pose.position", "pose.attitude"} <= set(metrics["_run"]["noise"])
+
+
 def test_kitti_refuses_a_path(capsys):
     """``--dataset kitti:PATH`` is refused in one line (KITTI is the shipped data; it takes no path)."""
     from smoother.cli import main
