@@ -450,16 +450,20 @@ def heldout_by_estimator(dataset: Dataset, estimates: dict[str, Estimate]) -> di
 def run_doubts(record: dict) -> list[str]:
     """What makes every estimate of a run doubtful whatever its own verdicts say: a sensor mounted
     otherwise than the rig says (the closed-form check, :mod:`smoother.diagnosis.mounting`), and a
-    fitted noise that would have hidden a model error (:mod:`smoother.diagnosis.noise_honesty`)."""
+    fitted noise that would have hidden a model error (:mod:`smoother.diagnosis.noise_honesty`), the
+    groups refused for one cause named together."""
     out = []
     mounting = record.get("mounting")
     for finding in () if mounting is None else mounting.wrong:
         out.append(f"the mounting of {finding.sensor} is not the rig's ({finding.message})")
     fit = record.get("noise")
+    by_cause: dict[str, list[str]] = {}  # groups refused for one cause (the IMU's contradicting pair) said once
     for g in () if fit is None else fit.groups:
         if g.note.startswith("not applied: ") and g.estimable:
-            out.append(f"the noise fitted to {g.group.name} is a model error, not noise: "
-                       f"{g.note.removeprefix('not applied: ')}")
+            by_cause.setdefault(g.note.removeprefix("not applied: "), []).append(g.group.name)
+    for cause, groups in by_cause.items():
+        out.append(f"the noise fitted to {' and '.join(groups)} {'is' if len(groups) == 1 else 'are'} a model error, "
+                   f"not noise: {cause}")
     return out
 
 

@@ -41,6 +41,21 @@ def test_imu_components_that_contradict_each_other_are_a_model_error():
     assert set(errors) == {"imu.acc", "imu.gyro"} and "contradict each other" in errors["imu.acc"]
 
 
+def test_the_run_s_doubt_names_the_groups_of_one_cause_together():
+    """The contradicting pair is one doubt naming both; a group refused for a cause of its own is
+    another."""
+    from smoother.pipeline import run_doubts
+
+    low = 60.0 / (CONTRADICTION * 1.2)
+    out, _ = honest(_fit(("imu", "acc", None, 60.0, 30.0, 0.0, 7000), ("imu", "gyro", None, low, 30.0, 0.0, 7000),
+                         ("wheels", "forward", (0,), IMPLAUSIBLE_FACTOR * 2, 50.0, 0.0, 300)))
+    doubts = run_doubts({"noise": out})
+    assert len(doubts) == 2, doubts
+    assert doubts[0].startswith("the noise fitted to imu.acc and imu.gyro are a model error") and doubts[0].count(
+        "contradict each other") == 1, doubts
+    assert doubts[1].startswith("the noise fitted to wheels.forward is a model error"), doubts
+
+
 def test_a_sensor_s_residuals_correlated_in_time_are_a_model_error_unless_analysed():
     fit = _fit(("gnss", "horizontal", (0, 1), 3.0, 80.0, CORRELATED + 0.2, 200),
                ("wheels", "forward", (0,), 1.2, 80.0, CORRELATED - 0.2, 200))
