@@ -348,6 +348,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
         from smoother.batch.variance_components import estimate_noise
         from smoother.diagnosis.noise_honesty import correlated, honest
 
+        before = r
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
         runtime_s += fit.runtime_s
         causes = None
@@ -359,12 +360,11 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
         fit, errors = honest(fit, [f.sensor for f in mounting.wrong] if mounting is not None else (), causes)
         applied = fit.applied(dataset)
         if any(g.estimable and not g.applied and g.note.startswith("not applied") for g in fit.groups):
-            # a group kept at the rig's value as a model error: the estimate with the noise applied
-            problem = build_problem(applied, options.keyframe_rate, options.robust, start=r.trajectory)
-            if problem.calibration is not None and r.calibration is not None:
-                problem = replace(problem, calibration=r.calibration)
-            r = solve_batch(problem, options.optimizer, options.max_iterations, True)
-            runtime_s += r.runtime_s
+            # a group kept at the rig's value as a model error: the estimate with the noise applied, from
+            # where the fit ended and from the estimate before it (a fit that a misfit drove may end far
+            # off, in another minimum), the lower cost kept
+            problem, r, seconds = solved_from_each(applied, (r, before), options)
+            runtime_s += seconds
         details["noise"] = fit.record()
         if errors:
             details["noise_model_errors"] = {e.group: e.cause for e in errors}
@@ -377,6 +377,23 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)
     return Estimate("batch", r.trajectory, runtime_s, details, consistency=consistency, calibration=r.calibration,
                     noise=fit)
+
+
+def solved_from_each(dataset: Dataset, starts, options: RunOptions) -> tuple:
+    """``(problem, result, seconds)``: the batch smoother on ``dataset`` (with covariances) from
+    each of the estimates ``starts`` (their trajectories and calibrations; any with a ``trajectory``
+    and a ``calibration``), the one of lowest cost, and the time all took: where the problem may have
+    more than one minimum, the best of those the starts lead to."""
+    runs, seconds = [], 0.0
+    for start in starts:
+        problem = build_problem(dataset, options.keyframe_rate, options.robust, start=start.trajectory)
+        if problem.calibration is not None and start.calibration is not None:
+            problem = replace(problem, calibration=start.calibration)
+        result = solve_batch(problem, options.optimizer, options.max_iterations, True)
+        seconds += result.runtime_s
+        runs.append((problem, result))
+    problem, result = min(runs, key=lambda run: run[1].error)
+    return problem, result, seconds
 
 
 def _given_values_note(dataset: Dataset, kind: str) -> dict:

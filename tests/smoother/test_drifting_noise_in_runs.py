@@ -69,3 +69,22 @@ def test_fixes_whose_lever_arm_the_rig_leaves_out_are_named_not_fitted(parts):
     assert horizontal.correlation > 0.5 and not horizontal.applied, horizontal
     assert horizontal.note.startswith("not applied: ") and "point at lever arm" in horizontal.note, horizontal.note
     assert "lever arm" in batch.details["doubtful"]
+
+
+def test_the_estimate_after_a_refused_fit_is_the_lower_cost_of_both_starts():
+    """Where a fitted group is refused, the estimate with the noise applied is solved from where the
+    fit ended and from the estimate before it, and the one of lower cost is kept: a start the
+    optimiser cannot bring back in one iteration (the fit's end, 30 m off) loses, in either order."""
+    from smoother.batch.solve import solve_batch
+    from smoother.model.problem import build_problem
+    from smoother.pipeline import solved_from_each
+
+    data = _rig(drift=0.0)
+    good = solve_batch(build_problem(data))
+    off = replace(good, trajectory=replace(good.trajectory, states=good.trajectory.states.replace(
+        r=good.trajectory.states.r + np.array([30.0, -20.0, 5.0]))))
+    options = RunOptions(progress=False, max_iterations=1)
+    for starts in ((off, good), (good, off)):
+        _, result, _ = solved_from_each(data, starts, options)
+        assert result.error <= solve_batch(build_problem(data, start=good.trajectory), max_iterations=1).error + 1e-9
+        np.testing.assert_allclose(result.trajectory.states.r, good.trajectory.states.r, atol=1e-3)
