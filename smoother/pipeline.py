@@ -348,7 +348,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
         from smoother.batch.variance_components import estimate_noise
         from smoother.diagnosis.noise_honesty import correlated, honest
 
-        before = r
+        before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
         runtime_s += fit.runtime_s
         causes = None
