@@ -30,7 +30,7 @@ from numba import literal_unroll, njit
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
 from datasets.kinds import altitude, magnetometer, odometry, orientation, pose, position, roll_pitch, velocity
-from datasets.kinds.base import Clock, Kind, kind_sigmas
+from datasets.kinds.base import Clock, Kind, kind_sigmas, with_sigma_factor
 from datasets.ranges import SIGMA_RANGES
 from datasets.types import Dataset, Sensor
 from factors import calibration, imu, jacobians, selfcheck
@@ -42,7 +42,7 @@ from factors.small_linalg import matmul_into
 __all__ = ["KINDS", "KIND_NAMES", "LAYOUTS", "MODELS", "Clock", "Kind", "attached_into", "attached_noise",
            "attached_noise_into", "attached_noise_work", "attached_rows", "attached_work",
            "calibrated_into", "calibrated_rows", "evaluate", "kind_sigmas", "measure_into", "measure_rows",
-           "model_index", "quiet_dispatch", "registered", "sensors_of"]
+           "model_index", "quiet_dispatch", "registered", "sensors_of", "with_sigma_factor"]
 
 
 def registered(*kinds: Kind) -> dict[str, Kind]:

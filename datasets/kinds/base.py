@@ -165,8 +165,13 @@ def noise(sensor, dim: int, cov, n: int) -> np.ndarray:
     cov = np.asarray(cov)[:, :dim, :dim]
     if sensor.sigma_factor is None:
         return cov
-    f = kind_sigmas("sigma_factor", sensor.sigma_factor, dim)
-    return cov * (f[:, None] * f[None, :])
+    return with_sigma_factor(cov, kind_sigmas("sigma_factor", sensor.sigma_factor, dim))
+
+
+def with_sigma_factor(cov: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """Covariances ``cov (..., d, d)`` with their standard deviations scaled per axis by ``factor
+    (d,)``: ``D C D``, ``D = diag(factor)`` (a rig's or an online sensor's ``sigma_factor``)."""
+    return cov * (factor[:, None] * factor[None, :])
 
 
 def noisy(x: np.ndarray, sigma: np.ndarray, rng) -> np.ndarray:

@@ -113,7 +113,8 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
     if drifters:  # the IMU's noise grown to let the trajectory follow a sensor's drift
         also = (f", or the IMU follows the drift of {' and '.join(drifters)}'s errors: measurements further "
                 "apart (`every`) keep it out")
-        errors = {name: cause + also if name.startswith(f"{IMU_BLOCK}.") else cause for name, cause in errors.items()}
+        imu_groups = {g.group.name for g in fit.groups if g.group.sensor == IMU_BLOCK}
+        errors = {name: cause + also if name in imu_groups else cause for name, cause in errors.items()}
     if not errors and not drifting:
         return fit, []
     groups = [replace(g, applied=False, note=f"not applied: {errors[g.group.name]}") if g.group.name in errors

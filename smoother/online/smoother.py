@@ -92,7 +92,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from datasets.kinds import KINDS, attached_noise, kind_sigmas, sensors_of
+from datasets.kinds import KINDS, attached_noise, kind_sigmas, sensors_of, with_sigma_factor
 from datasets.robust import check_robust
 from datasets.types import (
     MAX_IMU_GAP_S,
@@ -337,8 +337,7 @@ class OnlineSmoother:
             raise InputError(f"add_measurements({sensor!r}): data: expected {kind.data_type.__name__}, "
                              f"got {type(data).__name__}")
         if setup.sigma_factor is not None:
-            f = setup.sigma_factor
-            data = replace(data, cov=data.cov * (f[:, None] * f[None, :]))
+            data = replace(data, cov=with_sigma_factor(data.cov, setup.sigma_factor))
         spec = measurement_spec(Sensor(sensor, setup.kind, data))
         stamps = np.stack([np.asarray(ts, dtype=float) + setup.time_offset for ts in spec.times], axis=1)
         if not np.isfinite(stamps).all():
