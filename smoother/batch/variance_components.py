@@ -114,8 +114,9 @@ MIN_HALF_REDUNDANCY = 10.0
 #: ... and its noise is not steady when the halves' factors differ by more than this ratio and by more
 #: than :data:`SIGNIFICANCE` of the difference's standard deviations.
 UNSTEADY_RATIO = 1.5
-#: Iterations end when no log-factor moves by more than this fraction of its standard deviation ...
-STEP_TOLERANCE = 0.1
+#: Iterations end when no log-factor moves by more than this fraction of its standard deviation
+#: (what is left of the way adds about 2 % to the estimate's spread, ``sqrt(1 + 0.2^2)``) ...
+STEP_TOLERANCE = 0.2
 #: ... or by more than this (half a per cent on a sigma): a factor the data fix to a fraction of a
 #: per cent (a sensor of thousands of measurements) need not be iterated to a tenth of that.
 STEP_FLOOR = 0.01
@@ -355,10 +356,12 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         # on for ever; one that rises may be a density the rig states far too small) or the rest
         # settle, and so does one the data fix no better than MAX_LOG_SD near the estimate (falling,
         # its information only shrinks on the way to where it would settle); then what the data do
-        # not tell from the rig's value stays the rig's
+        # not tell from the rig's value stays the rig's. Whether a parameter falls is read from the
+        # first iteration on only near the estimate (the exact information's step): far from it, a
+        # group's first step may follow the other groups' misfit
         merged = _merge_candidate(F, ties, groups) if near else None
         kept = []
-        falls = (step <= 0.0) & (iterations > 1)
+        falls = (step <= 0.0) & (iterations > 1 or near)
         weak = [] if merged is not None else [
             j for j in range(len(ties))
             if (share[j] < MIN_REDUNDANCY and (settled or falls[j]))
