@@ -615,7 +615,7 @@ class _NoiseModel:
                 W = problem.blocks[self.block_index[g.sensor]].whiten
                 self.rig[g.sensor] = (W, np.linalg.inv(W))
         self.sensor_derivatives = {i: self._rig_derivative(g) for i, g in enumerate(groups) if g.axes is not None}
-        self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)), made when first asked for
+        self.imu_parts = None  # (N_kc per component (C, J, 15, 15), N_k0 (J, 15, 15)): parts()
         steps = imu_steps(dataset.imu, problem.times)
         self.samples = steps.segments()
 
@@ -666,15 +666,22 @@ class _NoiseModel:
             parts.append(preintegration.noise_covariance(self.samples, reference, alone, self.dataset.gravity) - floor)
         return np.stack(parts), rest
 
+    def parts(self):
+        """:meth:`_imu_parts`, made when first asked for."""
+        if self.imu_parts is None:
+            self.imu_parts = self._imu_parts()
+        return self.imu_parts
+
     def blocks(self, psi: np.ndarray) -> list[Block]:
-        """The problem's blocks with the covariances of ``psi`` (:meth:`_imu_parts` for the IMU's)."""
-        theta = np.exp(psi)
+        """The problem's blocks with the covariances of ``psi`` (:meth:`_imu_parts` for the IMU's;
+        at ``psi = 0`` the problem's own, which they equal to round-off)."""
         blocks = list(self.problem.blocks)
+        if not psi.any():
+            return blocks
+        theta = np.exp(psi)
         imu_groups = [i for i, g in enumerate(self.groups) if g.axes is None]
         if imu_groups:
-            if self.imu_parts is None:
-                self.imu_parts = self._imu_parts()
-            parts, rest = self.imu_parts
+            parts, rest = self.parts()
             factors = np.ones(len(IMU_COMPONENTS))
             for i in imu_groups:
                 factors[[f for f, *_ in IMU_COMPONENTS].index(self.groups[i].part)] = theta[i]
@@ -696,7 +703,7 @@ class _NoiseModel:
         theta = np.exp(psi)
         out = {}
         if block_name == IMU_BLOCK:
-            parts, _ = self.imu_parts
+            parts, _ = self.parts()
             for i, g in enumerate(self.groups):
                 if g.axes is None:
                     c = [f for f, *_ in IMU_COMPONENTS].index(g.part)
@@ -860,7 +867,8 @@ def _falls(B: list, columns: list[int]) -> dict:
         where = [(x, groups.index(g)) for x, g in enumerate(columns) if g in groups]
         if where:
             into, take = (list(t) for t in zip(*where))
-            parts.setdefault(blocks.shape[2:], []).append((lo, hi, into, blocks[:, take]))
+            every = take == list(range(len(groups)))  # the blocks as they are: no copy of them
+            parts.setdefault(blocks.shape[2:], []).append((lo, hi, into, blocks if every else blocks[:, take]))
     out: dict = {}
     for shape, entries in parts.items():
         lo, hi = (np.concatenate(keys) for keys in zip(*((lo, hi) for lo, hi, *_ in entries)))
@@ -869,7 +877,11 @@ def _falls(B: list, columns: list[int]) -> dict:
         total = np.zeros((len(pairs), len(columns), *shape))
         start = 0
         for a, _, into, blocks in entries:
-            total[np.ix_(at[start:start + len(a)], into)] -= blocks  # distinct pairs: no index twice
+            rows = at[start:start + len(a)]  # distinct pairs: no index twice
+            if len(into) == len(columns):
+                total[rows] -= blocks
+            else:
+                total[np.ix_(rows, into)] -= blocks
             start += len(a)
         out.update(zip(zip((pairs // width).tolist(), (pairs % width).tolist()), total))
     return out

@@ -144,6 +144,15 @@ def joint_block(joint: dict, a: int, b: int) -> np.ndarray:
     return joint[(a, b)] if (a, b) in joint else joint[(b, a)].T
 
 
+def joint_blocks(joint: dict, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``Sigma_ab`` of each pair ``(a[m], b[m])`` stacked (:func:`joint_block`), each distinct pair
+    read once: a sensor's measurements at one keyframe, or all of them with its calibration
+    variable, share theirs."""
+    width = int(max(a.max(), b.max())) + 1
+    pairs, at = np.unique(a.astype(np.int64) * width + b, return_inverse=True)
+    return np.stack([joint_block(joint, x, y) for x, y in zip((pairs // width).tolist(), (pairs % width).tolist())])[at]
+
+
 @dataclass(frozen=True)
 class SquareRoot:
     """The conditionals of an elimination (:func:`marginal_covariances`), in elimination order:
@@ -200,7 +209,10 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
         if a > b:
             a, b, block = b, a, np.swapaxes(block, -1, -2)
         if b < n:
-            add(a, b, everything, everything, block)
+            if (a, b) in acc:
+                acc[(a, b)] += block
+            else:
+                acc[(a, b)] = np.array(block, dtype=float)  # a copy: the sweep adds to it
         elif a < n:
             add(a, c, everything, columns[b], block)
         else:
@@ -425,7 +437,7 @@ def hat_blocks(A: list, keyframes: np.ndarray, calibration_key: int | None, cov:
             if a == b and calibration_key is None or (a == b and a < keyframes.shape[1]):
                 P = cov[ka]
             else:
-                P = np.stack([joint_block(joint, int(x), int(y)) for x, y in zip(ka, kb)])
+                P = joint_blocks(joint, ka, kb)
             term = Aa @ P @ np.swapaxes(Ab, -1, -2)
             H = H + (term if a == b else term + np.swapaxes(term, -1, -2))
     return H
