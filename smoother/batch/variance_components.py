@@ -59,6 +59,8 @@ accelerometer's noise against sparse fixes' -- where their estimates' correlatio
 :data:`MERGE_CORRELATION`, share one factor and are reported merged (two of one sensor first); a
 group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom, or whose factor the
 data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reported as not estimable.
+A factor within :data:`SIGNIFICANCE` sd of the rig's value is reported and not applied; where every
+factor is sure to end so (:func:`_hold`), the iterations end there.
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -349,6 +351,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         else:
             step = far_step(F, q, r)
         settled = near and np.all(_small(newton, sd))
+        values = psi_of(psi, ties)  # the parameters before this iteration's step
         # near the estimate, with the exact information: two parameters the data do not tell apart
         # share one factor from here on (before anything else: such a pair leaves every parameter
         # tied to it with a standard deviation that says nothing). A parameter with too little
@@ -395,17 +398,23 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                 settled = rest_sd is not None
                 sd = sd if rest_sd is None else rest_sd
         if merged is None and settled and ties:
+            # what the data do not tell from the rig's value stays the rig's; the rest fitted again
             if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
-                # what the data do not tell from the rig's value stays the rig's; the rest fitted again
-                for j in sorted(kept, reverse=True):
-                    for g in ties[j]:
-                        held[g] = (math.exp(0.5 * psi[g]), 0.5 * math.exp(0.5 * psi[g]) * sd[j],
-                                   tuple(groups[t].name for t in ties[j] if t != g))
-                        psi[g] = 0.0
-                    del ties[j]
+                _hold(kept, psi_of(psi, ties), sd, ties, psi, held, groups)
             else:
                 converged = True
                 break
+        elif merged is None and not weak and near and ties:
+            # ... and before they settle, where every parameter is sure to stay within SIGNIFICANCE sd
+            # of it -- where its Newton step leads, by more than that step (what is left of its way,
+            # the steps shrinking), with the information holding there (_unmoved) and the data fixing
+            # it (redundancy, MAX_LOG_SD) -- all stay the rig's: the end the iterations would reach
+            projected = values + newton
+            sure = [j for j in range(len(ties)) if active[j] and sd[j] <= MAX_LOG_SD
+                    and abs(projected[j]) + abs(newton[j]) < SIGNIFICANCE * sd[j]]
+            if len(sure) == len(ties) and np.all(_unmoved(np.abs(projected - psi_of(at, ties)), sd)):
+                kept = sure
+                _hold(kept, projected, sd, ties, psi, held, groups)
         if merged is not None or weak or kept:
             last, damping = None, FIRST_DAMPING
         if not ties:
@@ -443,6 +452,19 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                              group.unit, others, **extra))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
     return fit, replace(result, square_root=None), fitted  # the elimination's memory let go
+
+
+def _hold(kept: list[int], values: np.ndarray, sd: np.ndarray, ties: list[list[int]], psi: np.ndarray, held: dict,
+          groups: list[NoiseGroup]) -> None:
+    """The parameters ``kept`` (indices into ``ties``) back at the rig's value and out of the fit, in
+    place: each of their groups' ``held`` entry ``(factor, sd, merged with)`` from the parameter's
+    log-factor ``values[j]`` and its ``sd[j]``, its ``psi`` 0, its tie deleted."""
+    for j in sorted(kept, reverse=True):
+        factor = math.exp(0.5 * values[j])
+        for g in ties[j]:
+            held[g] = (factor, 0.5 * factor * sd[j], tuple(groups[t].name for t in ties[j] if t != g))
+            psi[g] = 0.0
+        del ties[j]
 
 
 def _halves(halves: np.ndarray, psi: float) -> dict:

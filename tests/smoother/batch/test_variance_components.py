@@ -128,6 +128,27 @@ def test_a_rig_whose_noise_is_right_keeps_it_and_its_trajectory():
     assert moved.max() <= 0.1
 
 
+def test_a_fit_every_factor_of_which_stays_the_rig_s_ends_there_with_the_factors_the_iterations_reach(monkeypatch):
+    """Once every factor is sure to stay within SIGNIFICANCE sd of the rig's value, the iterations
+    end: in fewer of them than the fit that applies every factor (SIGNIFICANCE 0, iterated until
+    its steps are small), and with each factor within half its sd of that fit's."""
+    right = replace(RIG_NOISE, velocity=0.0)
+    saved = 0
+    for seed in (0, 4, 5):
+        data = _rig(seed, scale={"position": np.ones(3), "velocity": np.ones(3)}, noise=right, stated=right)
+        _, fit, _ = _fit(data)
+        with monkeypatch.context() as m:
+            m.setattr(vc, "SIGNIFICANCE", 0.0)
+            _, iterated, _ = _fit(data)
+        saved += iterated.iterations - fit.iterations
+        for g, h in zip(fit.groups, iterated.groups):
+            assert g.estimable == h.estimable
+            if g.estimable:
+                assert not g.applied and h.applied
+                assert abs(g.factor - h.factor) <= 0.5 * g.factor_sd, (g, h)
+    assert saved >= 3
+
+
 def test_outliers_with_a_robust_kernel_do_not_inflate_the_sensor_s_factor():
     data = _rig(5, outlier_fraction=0.05)
     _, fit, _ = _fit(data, robust={"position": ("huber", None)}, which=("position",))
