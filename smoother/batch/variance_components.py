@@ -282,6 +282,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     ties = [[g] for g in range(len(groups))]  # the parameters: groups sharing one factor (the rest: the rig's)
     notes: dict[int, str] = {}
     held: dict[int, tuple] = {}  # groups kept at the rig's value: (factor, sd, merged with) as estimated
+    left: dict[int, float] = {}  # groups out of the fit: how far their log-factor may be from where the
+    # information was computed for it to hold (_unmoved, with the sd they left with)
     converged, iterations = False, 0
     states, calibration = result.trajectory.states, result.calibration
 
@@ -324,10 +326,12 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         near = bool(np.all(close))
         moved = None if information is None else np.abs(psi_of(psi, ties) - psi_of(at, ties))
         if near and (moved is None or not np.all(_unmoved(moved, np.sqrt(np.diag(_pseudo_inverse(
-                _parameter_information(information, ties))))))):
+                _parameter_information(information, ties)))))) or any(
+                abs(psi[g] - at[g]) > allowed for g, allowed in left.items())):
             # the groups' exact information where it is first needed, and again once the parameters
-            # have moved from where it was computed by more than _unmoved allows (a
-            # merge or a group dropped only changes which of its rows and columns they take)
+            # have moved from where it was computed by more than _unmoved allows -- or a group that
+            # left the fit, back at the rig's value, did (a merge only changes which of its rows and
+            # columns the parameters take)
             information, at = exact([g for tie in ties for g in tie]), psi.copy()
         F = _parameter_information(information if near else approximate, ties)
         cov_psi = _pseudo_inverse(F)
@@ -389,6 +393,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                 for g in ties[j]:
                     psi[g] = 0.0
                     notes[g] = _not_estimable(sd[j], share[j])
+                    left[g] = max(RECOMPUTE_SD * sd[j], RECOMPUTE_FLOOR)
                 del ties[j]
             # the rest settled already where their step says what the next iteration would find
             settled = False
@@ -400,7 +405,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         if merged is None and settled and ties:
             # what the data do not tell from the rig's value stays the rig's; the rest fitted again
             if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
-                _hold(kept, psi_of(psi, ties), sd, ties, psi, held, groups)
+                _hold(kept, psi_of(psi, ties), sd, ties, psi, held, left, groups)
             else:
                 converged = True
                 break
@@ -414,7 +419,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                     and abs(projected[j]) + abs(newton[j]) < SIGNIFICANCE * sd[j]]
             if len(sure) == len(ties) and np.all(_unmoved(np.abs(projected - psi_of(at, ties)), sd)):
                 kept = sure
-                _hold(kept, projected, sd, ties, psi, held, groups)
+                _hold(kept, projected, sd, ties, psi, held, left, groups)
         if merged is not None or weak or kept:
             last, damping = None, FIRST_DAMPING
         if not ties:
@@ -455,15 +460,18 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
 
 
 def _hold(kept: list[int], values: np.ndarray, sd: np.ndarray, ties: list[list[int]], psi: np.ndarray, held: dict,
-          groups: list[NoiseGroup]) -> None:
+          left: dict, groups: list[NoiseGroup]) -> None:
     """The parameters ``kept`` (indices into ``ties``) back at the rig's value and out of the fit, in
     place: each of their groups' ``held`` entry ``(factor, sd, merged with)`` from the parameter's
-    log-factor ``values[j]`` and its ``sd[j]``, its ``psi`` 0, its tie deleted."""
+    log-factor ``values[j]`` and its ``sd[j]``, its ``psi`` 0, its ``left`` entry (how far from where
+    the information was computed its log-factor may be for it to hold, :func:`_unmoved`), its tie
+    deleted."""
     for j in sorted(kept, reverse=True):
         factor = math.exp(0.5 * values[j])
         for g in ties[j]:
             held[g] = (factor, 0.5 * factor * sd[j], tuple(groups[t].name for t in ties[j] if t != g))
             psi[g] = 0.0
+            left[g] = max(RECOMPUTE_SD * sd[j], RECOMPUTE_FLOOR)
         del ties[j]
 
 
