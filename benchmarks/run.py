@@ -1071,6 +1071,7 @@ def _table_rows(r: dict) -> list:
         row("batch_noise_ratio", "x", "<= 3 (the batch with its noise estimated / without, the calibrating 60-s rig)",
             lambda v: v <= 3.0),
         row("batch_noise_ratio_stated_wrong", "x", "none (the same rig stating its noise wrong: the fit iterates)"),
+        row("batch_noise_stated_wrong_iterations", "", "its iterations"),
         row("batch_noise_s_per_data_s_60", "s/s", "the fit's time per second of data, 60 s"),
         row("batch_noise_s_per_data_s_120", "s/s", "the same at 120 s (linear: equal)"),
         row("batch_uncalibrated_s", "s"),

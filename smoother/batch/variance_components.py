@@ -60,7 +60,8 @@ accelerometer's noise against sparse fixes' -- where their estimates' correlatio
 group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom, or whose factor the
 data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reported as not estimable.
 A factor within :data:`SIGNIFICANCE` sd of the rig's value is reported and not applied; where every
-factor is sure to end so (:func:`_hold`), the iterations end there.
+factor is sure to end so -- where its Newton step leads, by more than that step -- the iterations
+end there, each reported where its step leads.
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -120,7 +121,7 @@ UNSTEADY_RATIO = 1.5
 #: (what is left of the way adds about 2 % to the estimate's spread, ``sqrt(1 + 0.2^2)``) ...
 STEP_TOLERANCE = 0.2
 #: ... or by more than this (half a per cent on a sigma): a factor the data fix to a fraction of a
-#: per cent (a sensor of thousands of measurements) need not be iterated to a tenth of that.
+#: per cent (a sensor of thousands of measurements) need not be iterated to a fifth of that.
 STEP_FLOOR = 0.01
 #: ... or after this many.
 MAX_ITERATIONS = 25
@@ -342,8 +343,9 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         active = share >= MIN_REDUNDANCY
         newton = np.clip(np.log(np.maximum(q, 1e-300) / np.maximum(r, 1e-300)), -MAX_LOG_STEP, MAX_LOG_STEP)
         newton[active] = np.clip(_pseudo_inverse(F[np.ix_(active, active)]) @ s[active], -MAX_LOG_STEP, MAX_LOG_STEP)
+        turned = False
         if near:
-            # a step turned back by more than half the last, by more than a tenth of a sd
+            # a step turned back by more than half the last, by more than STEP_TOLERANCE sd
             turned = last is not None and np.any((newton * last[2] < 0.0) & (np.abs(newton) > 0.5 * np.abs(last[2]))
                                                  & ~_small(newton, sd))
             if turned:
@@ -409,17 +411,16 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             else:
                 converged = True
                 break
-        elif merged is None and not weak and near and ties:
+        elif merged is None and not weak and near and not turned and ties:
             # ... and before they settle, where every parameter is sure to stay within SIGNIFICANCE sd
             # of it -- where its Newton step leads, by more than that step (what is left of its way,
-            # the steps shrinking), with the information holding there (_unmoved) and the data fixing
-            # it (redundancy, MAX_LOG_SD) -- all stay the rig's: the end the iterations would reach
+            # the steps shrinking; a step that turned back says the information is off along it),
+            # with the information holding there (_unmoved) and the data fixing it (redundancy,
+            # MAX_LOG_SD) -- all stay the rig's: the end the iterations would reach
             projected = values + newton
-            sure = [j for j in range(len(ties)) if active[j] and sd[j] <= MAX_LOG_SD
-                    and abs(projected[j]) + abs(newton[j]) < SIGNIFICANCE * sd[j]]
-            if len(sure) == len(ties) and np.all(_unmoved(np.abs(projected - psi_of(at, ties)), sd)):
-                kept = sure
-                _hold(kept, projected, sd, ties, psi, held, left, groups)
+            if all(active[j] and sd[j] <= MAX_LOG_SD and abs(projected[j]) + abs(newton[j]) < SIGNIFICANCE * sd[j]
+                   for j in range(len(ties))) and np.all(_unmoved(np.abs(projected - psi_of(at, ties)), sd)):
+                _hold(list(range(len(ties))), projected, sd, ties, psi, held, left, groups)
         if merged is not None or weak or kept:
             last, damping = None, FIRST_DAMPING
         if not ties:
@@ -703,14 +704,13 @@ class _NoiseModel:
         return self.imu_parts
 
     def blocks(self, psi: np.ndarray) -> list[Block]:
-        """The problem's blocks with the covariances of ``psi`` (:meth:`_imu_parts` for the IMU's;
-        at ``psi = 0`` the problem's own, which they equal to round-off)."""
-        blocks = list(self.problem.blocks)
-        if not psi.any():
-            return blocks
+        """The problem's blocks with the covariances of ``psi`` (:meth:`_imu_parts` for the IMU's):
+        a block whose groups' log-factors are all 0 is the problem's own, which the covariances of
+        ``psi`` equal to round-off there."""
         theta = np.exp(psi)
+        blocks = list(self.problem.blocks)
         imu_groups = [i for i, g in enumerate(self.groups) if g.axes is None]
-        if imu_groups:
+        if np.any(psi[imu_groups]):
             parts, rest = self.parts()
             factors = np.ones(len(IMU_COMPONENTS))
             for i in imu_groups:
@@ -723,9 +723,10 @@ class _NoiseModel:
             for i, g in enumerate(self.groups):
                 if g.sensor == sensor:
                     f[list(g.axes)] = np.sqrt(theta[i])
-            # (D R_0 D)^-1 = (W_0 D^-1)^T (W_0 D^-1): the rig's whitening, its columns scaled
-            b = self.block_index[sensor]
-            blocks[b] = replace(blocks[b], whiten=W0 / f[None, None, :])
+            if np.any(f != 1.0):
+                # (D R_0 D)^-1 = (W_0 D^-1)^T (W_0 D^-1): the rig's whitening, its columns scaled
+                b = self.block_index[sensor]
+                blocks[b] = replace(blocks[b], whiten=W0 / f[None, None, :])
         return blocks
 
     def _derivatives(self, block_name: str, rows: slice, psi: np.ndarray, W: np.ndarray) -> dict[int, np.ndarray]:

@@ -130,11 +130,13 @@ def test_a_rig_whose_noise_is_right_keeps_it_and_its_trajectory():
 
 def test_a_fit_every_factor_of_which_stays_the_rig_s_ends_there_with_the_factors_the_iterations_reach(monkeypatch):
     """Once every factor is sure to stay within SIGNIFICANCE sd of the rig's value, the iterations
-    end: in fewer of them than the fit that applies every factor (SIGNIFICANCE 0, iterated until
-    its steps are small), and with each factor within half its sd of that fit's."""
+    end, each factor reported where its Newton step leads: fewer iterations over the seeds than the
+    fit that iterates until every step is small (SIGNIFICANCE 0: none is kept), the same groups
+    estimable, and each factor within a quarter of its sd of that fit's, with an sd within 20 % of
+    it (the factor before the step would be off by up to 0.4 sd)."""
     right = replace(RIG_NOISE, velocity=0.0)
     saved = 0
-    for seed in (0, 4, 5):
+    for seed in (0, 4, 5, 8):
         data = _rig(seed, scale={"position": np.ones(3), "velocity": np.ones(3)}, noise=right, stated=right)
         _, fit, _ = _fit(data)
         with monkeypatch.context() as m:
@@ -144,8 +146,9 @@ def test_a_fit_every_factor_of_which_stays_the_rig_s_ends_there_with_the_factors
         for g, h in zip(fit.groups, iterated.groups):
             assert g.estimable == h.estimable
             if g.estimable:
-                assert not g.applied and h.applied
-                assert abs(g.factor - h.factor) <= 0.5 * g.factor_sd, (g, h)
+                assert not g.applied
+                assert abs(g.factor - h.factor) <= 0.25 * g.factor_sd, (g, h)
+                assert 0.8 <= g.factor_sd / h.factor_sd <= 1.25, (g, h)
     assert saved >= 3
 
 
