@@ -220,8 +220,9 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
             if a != b:
                 add(c, c, columns[b], columns[a], np.swapaxes(block, -1, -2))
 
-    def read(store, a, b):
-        value = store.get((a, b) if a <= b else (b, a))
+    def read(store, a, b, take=False):  # take: the entry is read for the last time, and let go
+        pair = (a, b) if a <= b else (b, a)
+        value = store.pop(pair, None) if take else store.get(pair)
         if value is None:
             return np.zeros((directions, dim(a), dim(b)))
         return value if a <= b else np.swapaxes(value, -1, -2)
@@ -243,7 +244,7 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
     conditionals = {}  # i -> (parents, bounds, K over the parents, dD, dK)
     for i in frames:
         frontal, *parents = root.keys[i]
-        dD = read(acc, frontal, frontal)
+        dD = read(acc, frontal, frontal, take=True)  # eliminated: its blocks are not read again
         if not parents:
             conditionals[i] = ([], None, None, dD, None)
             continue
@@ -261,7 +262,7 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
             for p in parents[len(P) - 1:]:
                 K[:, start + columns[p].start:start + columns[p].stop] = root.gain[i][:, at:at + layout.dim(p)]
                 at += layout.dim(p)
-        dL = np.concatenate([read(acc, frontal, p) for p in P], axis=-1)
+        dL = np.concatenate([read(acc, frontal, p, take=True) for p in P], axis=-1)
         dD_K = dD @ K
         dK = -root.inverse[i] @ (dL + dD_K)
         KT_dL = K.T @ dL
@@ -279,7 +280,7 @@ def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict
         out[(c, c)] = -S_cc @ read(acc, c, c) @ S_cc
     for i in reversed(frames):
         frontal = root.keys[i][0]
-        P, bounds, K, dD, dK = conditionals[i]
+        P, bounds, K, dD, dK = conditionals.pop(i)
         D_inv = root.inverse[i]
         own = -D_inv @ dD @ D_inv
         if P:
