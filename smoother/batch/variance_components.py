@@ -843,14 +843,19 @@ class _NoiseModel:
         {group: U}, H)`` (:meth:`statistics`), whose pairs' ``B_g`` :func:`_information_blocks` sums."""
         if not columns:
             return approximate
-        B = [part for keys, A, U, _ in factors for part in _information_blocks(keys, A, U)]
-        tangent = covariance_tangent(root, joint, _falls(B, columns))
+        # the blocks of the chunks that carry a column, let go once summed into the falls; then every
+        # chunk's, one chunk at a time (a long run's blocks are never all held at once)
+        falls = _falls([part for keys, A, U, _ in factors if any(g in U for g in columns)
+                        for part in _information_blocks(keys, A, U)], columns)
+        tangent = covariance_tangent(root, joint, falls)
+        del falls
         cross = np.zeros((len(approximate), len(columns)))
-        for groups, lo, hi, blocks in B:
-            X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
-            P, G = blocks.shape[:2]
-            per = blocks.reshape(P, G, -1) @ np.swapaxes(X.reshape(P, X.shape[1], -1), 1, 2)  # tr(B_pg X_px^T)
-            cross[groups] += np.einsum("p,pgx->gx", np.where(lo == hi, 1.0, 2.0), per)
+        for keys, A, U, _ in factors:
+            for groups, lo, hi, blocks in _information_blocks(keys, A, U):
+                X = np.stack([tangent[(a, b)] for a, b in zip(lo.tolist(), hi.tolist())])
+                P, G = blocks.shape[:2]
+                per = blocks.reshape(P, G, -1) @ np.swapaxes(X.reshape(P, X.shape[1], -1), 1, 2)  # tr(B_pg X_px^T)
+                cross[groups] += np.einsum("p,pgx->gx", np.where(lo == hi, 1.0, 2.0), per)
         exact = 0.5 * (_own_terms(factors, columns, len(approximate)) + cross)
         F = approximate.copy()
         F[:, columns] = exact
