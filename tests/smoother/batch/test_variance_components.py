@@ -152,6 +152,26 @@ def test_a_fit_every_factor_of_which_stays_the_rig_s_ends_there_with_the_factors
     assert saved >= 3
 
 
+def test_groups_kept_at_settling_end_the_fit_where_the_rest_is_settled_already(monkeypatch):
+    """Where some factors are kept at the rig's value once the steps are small, and the rest's
+    Newton step with those back at it is small too, the fit ends there: one evaluation fewer than
+    evaluating the rest again (``_held_rest`` answering None), the same groups kept and applied,
+    and each factor within a fifth of its sd of that fit's."""
+    saved = 0
+    for seed in (1, 13, 14):
+        data = _rig(seed)
+        _, fit, _ = _fit(data)
+        with monkeypatch.context() as m:
+            m.setattr(vc, "_held_rest", lambda *args: None)
+            _, again, _ = _fit(data)
+        saved += again.iterations - fit.iterations
+        for g, h in zip(fit.groups, again.groups):
+            assert (g.estimable, g.applied) == (h.estimable, h.applied)
+            if g.estimable:
+                assert abs(g.factor - h.factor) <= 0.2 * g.factor_sd, (g, h)
+    assert saved == 3
+
+
 def test_outliers_with_a_robust_kernel_do_not_inflate_the_sensor_s_factor():
     data = _rig(5, outlier_fraction=0.05)
     _, fit, _ = _fit(data, robust={"position": ("huber", None)}, which=("position",))
