@@ -408,8 +408,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             # what the data do not tell from the rig's value stays the rig's; the rest fitted again --
             # or settled already, where their Newton step with those back at it says so (_held_rest)
             if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
-                ahead = _held_rest(_parameter_information(information, ties), s, values, kept, active, newton, share,
-                                   psi_of(at, ties), ties, groups)
+                ahead = _held_rest(_parameter_information(information, ties), sd, s, values, kept, active, newton,
+                                   share, psi_of(at, ties), ties, groups)
                 _hold(kept, psi_of(psi, ties), sd, ties, psi, held, left, groups)
                 if ahead is not None:
                     for tie, value in zip(ties, ahead):
@@ -557,15 +557,17 @@ def _settled_rest(F: np.ndarray, step: np.ndarray, share: np.ndarray, moved: np.
     return sd if settled and kept else None
 
 
-def _held_rest(F: np.ndarray, s: np.ndarray, values: np.ndarray, kept: list[int], active: np.ndarray,
-               newton: np.ndarray, share: np.ndarray, at: np.ndarray, ties: list, groups: list[NoiseGroup]):
+def _held_rest(F: np.ndarray, sd: np.ndarray, s: np.ndarray, values: np.ndarray, kept: list[int],
+               active: np.ndarray, newton: np.ndarray, share: np.ndarray, at: np.ndarray, ties: list,
+               groups: list[NoiseGroup]):
     """The log-factors of the parameters left once ``kept`` go back to the rig's value, if the next
     iteration would find them settled and none of them kept, else None: their Newton step from the
-    evaluation at ``values`` (score ``s``, information ``F`` computed at ``at``; :func:`_step_without`)
-    with ``kept`` at 0 -- within what :func:`_unmoved` allows of ``at`` -- small, and each then beyond
-    :data:`SIGNIFICANCE` of its sd (:func:`_settled_rest`)."""
+    evaluation at ``values`` (score ``s``, information ``F`` computed at ``at``, the parameters'
+    standard deviations ``sd`` from it; :func:`_step_without`) with ``kept`` at 0 -- within what
+    :func:`_unmoved` allows of ``at`` -- small, and each then beyond :data:`SIGNIFICANCE` of its sd
+    (:func:`_settled_rest`)."""
     rest = [j for j in range(len(ties)) if j not in kept]
-    if not rest or not np.all(_unmoved(np.abs(at[kept]), np.sqrt(np.maximum(np.diag(_pseudo_inverse(F)), 0.0))[kept])):
+    if not rest or not np.all(_unmoved(np.abs(at[kept]), sd[kept])):
         return None
     step = _step_without(F, s, values, kept, active, newton)[rest]
     ahead = values[rest] + step
