@@ -48,22 +48,69 @@ def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"smoother: warning: {message}\n"
 
 
-def _raise_terminated(signum, frame):
-    raise Terminated()
+#: Modules whose Python code runs as callbacks from native code: llvmlite's, inside numba's
+#: compiler and its kernels' disk cache. An exception raised there cannot unwind through the native
+#: frames (ctypes prints it and hands LLVM a buffer never filled in): SIGTERM while a kernel was
+#: loaded from its cache killed the process with SIGSEGV instead of stopping it.
+NATIVE_CALLBACK_MODULES = ("llvmlite.",)
+#: An interrupt that comes inside such a callback is sent again after this long [s].
+REDELIVERY_S = 0.05
+
+
+def in_native_callback(frame) -> bool:
+    """Whether ``frame`` (a signal handler's: where the main thread was interrupted) or a frame it
+    was called from belongs to :data:`NATIVE_CALLBACK_MODULES`."""
+    while frame is not None:
+        if frame.f_globals.get("__name__", "").startswith(NATIVE_CALLBACK_MODULES):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def interrupt_handler(error: type[KeyboardInterrupt], pending: list):
+    """A signal handler raising ``error`` where the main thread was interrupted, except inside a
+    native callback (:func:`in_native_callback`): there it sends the signal to the process again
+    :data:`REDELIVERY_S` later, until it comes where it can be raised; each such sending is
+    appended to ``pending`` as ``(signum, timer)``."""
+    def handler(signum, frame):
+        if in_native_callback(frame):
+            again = threading.Timer(REDELIVERY_S, os.kill, (os.getpid(), signum))
+            again.daemon = True
+            pending.append((signum, again))
+            again.start()
+            return
+        raise error()
+
+    return handler
+
+
+def _send_pending(pending: list) -> None:
+    """Each signal of ``pending`` (:func:`interrupt_handler`) whose sending has not happened yet,
+    raised now instead, for the handler in place."""
+    for signum, timer in pending:
+        if timer.is_alive():
+            timer.cancel()
+            signal.raise_signal(signum)
 
 
 @contextlib.contextmanager
-def _sigterm_raises():
-    """Inside the block SIGTERM raises :class:`~smoother.errors.Terminated` (in the main thread;
-    elsewhere signals cannot be handled and nothing changes); the previous handler afterwards."""
+def _interrupts_raise():
+    """Inside the block SIGTERM raises :class:`~smoother.errors.Terminated` and Ctrl-C (where
+    Python's own handler is set) ``KeyboardInterrupt``, both through :func:`interrupt_handler`
+    (in the main thread; elsewhere signals cannot be handled and nothing changes); the previous
+    handlers afterwards, and through them a signal whose sending again was still to come."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    try:
+    pending: list = []
+    with contextlib.ExitStack() as restore:
+        restore.callback(_send_pending, pending)  # last: once the handlers are back
+        restore.callback(signal.signal, signal.SIGTERM,
+                         signal.signal(signal.SIGTERM, interrupt_handler(Terminated, pending)))
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            restore.callback(signal.signal, signal.SIGINT,
+                             signal.signal(signal.SIGINT, interrupt_handler(KeyboardInterrupt, pending)))
         yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ensure_fresh_caches()
     previous, warnings.formatwarning = warnings.formatwarning, _format_warning  # one line per warning
     try:
-        with _sigterm_raises():
+        with _interrupts_raise():
             return _main(argv)
     finally:
         warnings.formatwarning = previous
@@ -85,8 +132,13 @@ def _main(argv: list[str] | None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.handler(args) or 0)
-    except KeyboardInterrupt as error:  # Ctrl-C, or SIGTERM (Terminated)
-        stopped, code = interruption(error)
+    except (KeyboardInterrupt, ImportError) as error:
+        # Ctrl-C, or SIGTERM (Terminated); one that came inside an extension module's initialisation
+        # (GTSAM's, imported on first use) comes back as that import's failure, caused by it
+        interrupt = error if isinstance(error, KeyboardInterrupt) else error.__cause__
+        if not isinstance(interrupt, KeyboardInterrupt):
+            raise
+        stopped, code = interruption(interrupt)
         print(f"smoother: {stopped}; files already written are complete and kept", file=sys.stderr)
         return code
     except (BoxplusError, ValueError, OSError, MemoryError, RuntimeError, IndexError, ArithmeticError) as error:
