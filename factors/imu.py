@@ -830,6 +830,34 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
     return (out[0], S[0]) if single else (out, S)
 
 
+@recursion
+def _transition_steps_kernel(r, v, C, b_f, b_w, Phi, acc, gyro, dt, g):
+    for j in range(r.shape[0]):
+        transition_into(r[j], v[j], C[j], b_f[j], b_w[j], acc[j], gyro[j], dt[j], g, Phi[j])
+
+
+def transition_steps(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY) -> tuple:
+    """``(state, Phi)``: :func:`propagate_steps`'s state at the end of the samples and the
+    error-state transition of its steps, ``Phi = F_K ... F_1`` (:func:`transition_into`; samples
+    with ``dt = 0`` skipped), ``(J, 15, 15)`` for ``J`` rows (``(15, 15)`` for one). With
+    :func:`propagate_steps` from a zero covariance, which gives the process noise ``S`` of the same
+    steps, the state's error at the end is ``Phi dx + w``, ``w ~ N(0, S)``, to first order."""
+    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
+    dt = np.asarray(dt, dtype=float)
+    single = dt.ndim == 1
+    lead = (1,) if single else dt.shape[:1]
+    K = dt.shape[-1]
+    vec = (3,)
+    r, v, C = (np.array(a) for a in rows(lead, (state.r, state.v, state.C), (vec, vec, (3, 3))))
+    b_f, b_w, acc, gyro, dt = rows(lead, (state.b_f, state.b_w, acc.reshape(lead + (K, 3)),
+                                          gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
+                                   (vec, vec, (K, 3), (K, 3), (K,)))
+    Phi = np.repeat(np.eye(STATE_DIM)[None], lead[0], axis=0)
+    _transition_steps_kernel(r, v, C, b_f, b_w, Phi, acc, gyro, dt, as_trailing(gravity, vec, "gravity"))
+    out = ImuState(r, v, C, b_f, b_w)
+    return (out[0], Phi[0]) if single else (out, Phi)
+
+
 def propagate_with_noise(state: ImuState, acc, gyro, dt, noise: np.ndarray, gravity=DEFAULT_GRAVITY) -> ImuState:
     """The step of eqs. (54)-(60) with an explicit discrete noise vector ``noise`` (15, order
     ``(n_v, n_f, n_w, n_bf, n_bw)``): the function that ``G`` differentiates."""

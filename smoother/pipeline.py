@@ -28,6 +28,8 @@ from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.ekf.filter import run_ekf
 from smoother.estimators import ESTIMATORS
+from smoother.model.between import Following
+from smoother.model.covariances import joint_blocks
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
 from smoother.online import warm_up as kernel_warm_up
@@ -51,6 +53,10 @@ class Estimate:
     calibration: object = None
     #: The noise it fitted (:class:`smoother.batch.variance_components.NoiseFit`), if any.
     noise: object = None
+    #: Each keyframe's next with their joint covariance (:class:`smoother.model.between.Following`),
+    #: where the estimator has them (the smoothers'): a state between keyframes is bridged between
+    #: both (:func:`smoother.model.between.states_between`).
+    following: object = None
 
 
 @dataclass
@@ -375,8 +381,12 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
                                                                                            r.calibration_cov)
     # the verdicts need the joint covariances, which only this call has
     consistency = smoother_consistency(problem.blocks, r.trajectory.states, r.trajectory.cov, r.joint, r.calibration)
+    following = None
+    if r.joint is not None and len(r.trajectory.t) > 1:
+        n = len(r.trajectory.t)
+        following = Following.of_batch(r.trajectory, joint_blocks(r.joint, np.arange(n - 1), np.arange(1, n)))
     return Estimate("batch", r.trajectory, runtime_s, details, consistency=consistency, calibration=r.calibration,
-                    noise=fit)
+                    noise=fit, following=following)
 
 
 def solved_from_each(dataset: Dataset, starts, options: RunOptions) -> tuple:
@@ -421,7 +431,7 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
         details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
                                  "max": float(ms.max()), "measurements": len(ms)}
     return Estimate("fixed-lag", r.smoothed, r.runtime_s, details,
-                    calibration=None if r.calibration is None else r.calibration[0])
+                    calibration=None if r.calibration is None else r.calibration[0], following=r.following)
 
 
 def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
@@ -460,7 +470,7 @@ def heldout_by_estimator(dataset: Dataset, estimates: dict[str, Estimate]) -> di
     so a fitted noise cannot put them in band. Estimators without covariances have none."""
     from smoother.diagnosis.heldout import heldout_consistency
 
-    return {name: heldout_consistency(dataset, est.trajectory, est.calibration)
+    return {name: heldout_consistency(dataset, est.trajectory, est.calibration, est.following)
             for name, est in estimates.items() if est.failed is None}
 
 

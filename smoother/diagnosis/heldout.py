@@ -1,14 +1,17 @@
 """A verdict from data the fit did not use: each sensor's held-out measurements (a rig's
 ``every = K``: every K-th measurement used, the rest held out) predicted by an estimate.
 
-A held-out measurement ``z`` at time ``t`` is predicted from the estimate's state there (every
-held-out time is one of the estimators' states: :func:`smoother.model.timeline.keyframe_times`)
-through the sensor's model and the estimator's calibration, ``e = h(x^) - z`` (with a calibration,
-the calibrated residual of :func:`datasets.kinds.calibrated_rows`), with the covariance
+A held-out measurement ``z`` at time ``t`` is predicted from the estimate's state there -- its own
+where ``t`` is one of its states; between two of them (held-out times are no keyframes), a
+smoother's bridged between both through the IMU's Euler steps with the joint covariance of the
+two, a filter's carried from the one before with the EKF's covariance step
+(:func:`smoother.model.between.states_between`) -- through the sensor's model and the estimator's
+calibration, ``e = h(x^) - z`` (with a calibration, the calibrated residual of
+:func:`datasets.kinds.calibrated_rows`), with the covariance
 
     S = H P H^T + R
 
-(``P`` the state's marginal covariance, ``R`` the measurement's). The estimate did not use ``z``,
+(``P`` the state's marginal covariance there, ``R`` the measurement's). The estimate did not use ``z``,
 so for a model that fits ``e^T S^-1 e`` is chi-square with the measurement's dimension, and a
 sensor's mean per degree of freedom has the band of :func:`smoother.stats.per_dof_band` -- unlike
 the residuals of the measurements it used, which a fitted noise puts in band by construction.
@@ -47,10 +50,9 @@ import numpy as np
 from datasets.kinds import KINDS, calibrated_rows, measure_rows, sensors_of
 from datasets.types import Dataset, Trajectory
 from smoother.diagnosis.verdicts import verdict
+from smoother.model.between import Following, states_between
 from smoother.stats import dof_means_apart
 
-#: A held-out time matches an estimate's state within this [s].
-MATCH_TOLERANCE = 1e-9
 #: :func:`sigma_factor` searches this range of factors on a sensor's sigma ...
 SIGMA_FACTOR_RANGE = (1e-3, 1e3)
 #: ... by this many bisections of its logarithm (to a relative precision of about 1e-6).
@@ -103,7 +105,8 @@ def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float 
     return float(np.exp(0.5 * (lo + hi)))
 
 
-def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=None) -> dict[str, dict]:
+def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=None,
+                        following: Following | None = None) -> dict[str, dict]:
     """Per sensor with held-out measurements of an absolute kind, the :func:`verdict` of their
     normalised prediction errors through ``trajectory`` (with its covariances) and the
     estimator's calibration variables ``calibration`` (a :class:`factors.calibration.CalibrationSet`
@@ -111,9 +114,13 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     the prediction's covariance that is the state's, and ``sigma_factor``: the factor on the
     sensor's sigma at which the errors would be 1 per dof (:func:`sigma_factor`; None where no
     sigma would do; module docstring), and the errors near the used measurements against those far
-    from them (:func:`near_and_far`). Held-out measurements at
-    no state of the estimate are left out; a sensor with none left has no verdict."""
-    if trajectory.cov is None:
+    from them (:func:`near_and_far`). The states at the held-out times are the trajectory's
+    through ``dataset``'s IMU with its noise (a run's dataset as its estimators ran on it, the
+    fitted noise included): bridged between its states with ``following``, each state's next
+    with their joint covariance (a smoother's), else carried from the one before
+    (:func:`smoother.model.between.states_between`). Held-out measurements
+    outside the trajectory's span are left out; a sensor with none left has no verdict."""
+    if trajectory.cov is None or not len(trajectory.t):
         return {}
     out = {}
     for sensor in sensors_of(dataset):
@@ -121,15 +128,11 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         held = sensor.heldout
         if held is None or kind.relative or len(held.t) == 0:
             continue
-        k = np.searchsorted(trajectory.t, held.t)
-        k = np.clip(k, 0, len(trajectory.t) - 1)
-        below = np.clip(k - 1, 0, len(trajectory.t) - 1)
-        k = np.where(np.abs(trajectory.t[below] - held.t) < np.abs(trajectory.t[k] - held.t), below, k)
-        found = np.abs(trajectory.t[k] - held.t) <= MATCH_TOLERANCE
+        found = (held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1]))
         if not found.any():
             continue
-        k = k[found]
-        states, P = trajectory.states[k], trajectory.cov[k]
+        at = states_between(trajectory, dataset.imu, held.t[found], dataset.noise, dataset.gravity, following)
+        states, P = at.states, at.cov
         rows = kind.pack(held)[found]
         R = held.cov[found]
         calibrated = calibration is not None and sensor.name in calibration.names

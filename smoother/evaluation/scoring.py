@@ -11,8 +11,10 @@ too few states or too short a part of the run they are null and ``ate_note`` say
 ``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
 fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
 makes small without being accurate; estimators are compared by held-out fixes only. Both with
-the estimate interpolated linearly to the fix times. :func:`interpolation_baseline` is the
-yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
+the estimate at each fix's time taken through the IMU from its states about it
+(:func:`position_residuals` with the run's dataset): keyframes need not include the fixes'
+times. :func:`interpolation_baseline` is the yardstick for the held-out figures: the used fixes
+interpolated to the held-out times, no IMU.
 
 Over time, for the figures (:mod:`smoother.outputs.plots`): the same errors per compared state
 or fix with the covariances behind them (:class:`ErrorSeries`): :func:`errors_against_truth` (the
@@ -31,6 +33,7 @@ import numpy as np
 from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from smoother.evaluation import metrics
+from smoother.model.between import Following, states_between
 
 #: A figure against the truth needs at least this many compared states ...
 MIN_COMPARED_STATES = 10
@@ -169,17 +172,28 @@ def against_truth(truth: Trajectory, estimate: Trajectory) -> dict:
     return out
 
 
-def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory) -> tuple:
+def position_residuals(positions: PositionMeasurements | None, estimate: Trajectory,
+                       dataset: Dataset | None = None, following: Following | None = None) -> tuple:
     """``(t, estimate - measured)``: the times of the measured positions inside the estimate's time
-    span and, for each, the estimate interpolated linearly to its time minus the measured position
-    (world axes; empty arrays when there are none). With a lever arm (``positions.T_BS``) the
-    estimate's antenna, ``r + C p_BS``, with ``C`` of the estimate's sample nearest in time: exact
-    for a run's own estimates (the fixes' times are keyframes), an approximation for a trajectory
-    sampled elsewhere."""
+    span and, for each, the estimate's position there minus the measured one (world axes; empty
+    arrays when there are none); with a lever arm (``positions.T_BS``) the estimate's antenna,
+    ``r + C p_BS``. With the ``dataset`` the estimate was made from, its state at each time is
+    taken through the IMU's Euler steps from its states about it (a run's own estimate, whose
+    keyframes need not include the fixes' times): bridged between the two with ``following`` (a
+    smoother's), else carried from the one before (:func:`smoother.model.between.states_between`);
+    without one, a trajectory sampled elsewhere, the estimate is interpolated linearly
+    (:func:`fix_residuals`)."""
     if positions is None or len(positions) == 0:
         return np.empty(0), np.empty((0, 3))
-    inside, residual = fix_residuals(positions.t, positions.position, estimate, positions.T_BS)
-    return positions.t[inside], residual
+    if dataset is None:
+        inside, residual = fix_residuals(positions.t, positions.position, estimate, positions.T_BS)
+        return positions.t[inside], residual
+    t = positions.t
+    inside = (t >= estimate.t[0]) & (t <= min(estimate.t[-1], dataset.imu.t[-1]))
+    at = states_between(estimate if following is not None else replace(estimate, cov=None), dataset.imu, t[inside],
+                        dataset.noise, dataset.gravity, following).states
+    antenna = at.r if positions.T_BS is None else at.r + at.C @ positions.T_BS[:3, 3]
+    return t[inside], antenna - positions.position[inside]
 
 
 def fix_residuals(t: np.ndarray, position: np.ndarray, estimate: Trajectory, T_BS=None) -> tuple:
@@ -246,9 +260,10 @@ def position_streams(dataset: Dataset, calibration=None, sensor: str | None = No
     return out
 
 
-def score(dataset: Dataset, estimate: Trajectory, calibration=None) -> dict:
+def score(dataset: Dataset, estimate: Trajectory, calibration=None, following: Following | None = None) -> dict:
     """Every metric the dataset allows for one estimate (the fixes of the sensors it calibrated
-    at its ``calibration``, :func:`position_streams`)."""
+    at its ``calibration``, :func:`position_streams`; a smoother's states between keyframes bridged
+    with its ``following``, :func:`position_residuals`)."""
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
@@ -256,10 +271,10 @@ def score(dataset: Dataset, estimate: Trajectory, calibration=None) -> dict:
     used = [u for u, _ in streams if u is not None]
     heldout = [h for _, h in streams if h is not None]
     if used or heldout:
-        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate)
-        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, slice(0, 2))
-        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, slice(2, 3))
-        out["gps_fit_residual_m"] = _rms_distance(used, estimate)
+        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate, dataset, following=following)
+        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, dataset, slice(0, 2), following)
+        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, dataset, slice(2, 3), following)
+        out["gps_fit_residual_m"] = _rms_distance(used, estimate, dataset, following=following)
     return out
 
 
@@ -296,7 +311,7 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=Non
     alone."""
     num = den = 0.0
     for p, _ in position_streams(dataset, calibration, sensor):
-        _, residual = position_residuals(p, estimate)  # empty for None
+        _, residual = position_residuals(p, estimate, dataset)  # empty for None
         if len(residual) < 3:
             continue
         residual = residual - residual.mean(axis=0)
@@ -305,10 +320,11 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=Non
     return num / den if den > 0 else None
 
 
-def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, axes=slice(0, 3)) -> float:
+def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, dataset: Dataset | None = None,
+                  axes=slice(0, 3), following: Following | None = None) -> float:
     """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
     ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
-    return rms_distance(np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate)[1] for p in parts]),
-                        axes)
+    residuals = [position_residuals(p, estimate, dataset, following)[1] for p in parts]
+    return rms_distance(np.concatenate([np.empty((0, 3))] + residuals), axes)
 
 

@@ -134,6 +134,13 @@ class FixedLagWindow(Protocol):
         """The 15x15 marginal covariances (primer convention) of window keyframes ``wanted`` after
         the last update, ``(len(wanted), 15, 15)``."""
 
+    def joint_with_next(self, wanted) -> np.ndarray | None:
+        """The 30x30 joint covariances of window keyframes ``wanted`` (each before ``newest``) with
+        the keyframe after each, after the last update, ``(len(wanted), 30, 30)``: the first 15
+        rows and columns :meth:`covariances`', the last the next keyframe's, the blocks between
+        their cross covariance (what :func:`smoother.model.between.states_between` bridges a state
+        between keyframes with). None where the window does not compute them (GTSAM's)."""
+
 
 class TakenKeyframes:
     """The bookkeeping of :meth:`FixedLagWindow.taken` (module docstring): which keyframe's estimate

@@ -411,3 +411,8 @@ class KeyframeWindow:
         states = imu.ImuState.stack([self.state(j) for j in range(self.first, self.newest + 1)])
         return window_covariances(self.blocks or [], self.smoother, self.estimate, self.first, states, self.rows_of,
                                   [j - self.first for j in wanted])
+
+    def joint_with_next(self, wanted) -> None:
+        """None: GTSAM's windows hand out marginals alone (a state between their keyframes is
+        carried from the one before, :func:`smoother.model.between.states_between`)."""
+        return None

@@ -21,7 +21,7 @@ import numpy as np
 from datasets.kinds import KINDS, sensors_of
 from datasets.types import Dataset, ImuSamples, Trajectory
 from factors.errors import InputError
-from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, propagate_steps
+from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, propagate_steps, transition_steps
 
 
 @dataclass(frozen=True)
@@ -128,11 +128,13 @@ def keyframe_rate(dataset: Dataset, rate=None) -> float | None:
 
 def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     """The smoothers' keyframes: with the grid of :func:`keyframe_rate` (``rate``), the grid
-    ``t0 + k / rate``, the times of held-out measurements, the ends of the relative measurements
-    composed onto the grid (:func:`relative_anchors`, in place of the grid inside a span composed
-    of several, so that it joins consecutive keyframes) and the start and end of the IMU data;
-    without one, :func:`measurement_knots`.
-    Every other measurement is attached to the keyframe at or before its time (:func:`attachment`).
+    ``t0 + k / rate``, the ends of the relative measurements composed onto the grid
+    (:func:`relative_anchors`, in place of the grid inside a span composed of several, so that it
+    joins consecutive keyframes) and the start and end of the IMU data; without one,
+    :func:`measurement_knots`.
+    Every other measurement is attached to the keyframe at or before its time (:func:`attachment`),
+    and a held-out one is predicted from it the same way (:func:`states_at`): holding measurements
+    out of a fast sensor (``every``) adds no keyframes.
 
     Grid times are correctly rounded (``t0 + k / rate``, like the measurement ticks; arange's
     accumulated ``k * step`` differs by an ulp, e.g. 0.30000000000000004 beside a measurement at
@@ -143,7 +145,6 @@ def keyframe_times(dataset: Dataset, rate=None) -> np.ndarray:
     if grid_rate is None:
         return bounded_intervals(measurement_knots(dataset), dataset.imu.t)
     parts = [[dataset.t0, dataset.t1]]
-    parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
     relative = [s.data for s in sensors_of(dataset) if KINDS[s.kind].relative]
     anchors = [relative_anchors(d.t_from, d.t_to, grid_rate) for d in relative]
     others = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts + anchors]))
@@ -339,25 +340,22 @@ def _chunks(count: np.ndarray) -> list[slice]:
     return out
 
 
-def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> Trajectory:
-    """The states at times ``t`` (increasing, within the IMU span, none before the trajectory's
-    first state), each predicted from ``trajectory``'s state at or before it through the IMU's
-    Euler steps -- the primer's model, exactly as a measurement between keyframes is evaluated --
-    with the EKF's prediction of its covariance, ``P <- F P F^T + G Q_d G^T``
-    (:func:`factors.imu.propagate_steps`), where the trajectory has covariances. A time at a state
-    of the trajectory takes that state. What an output or a metric reads where it needs a state
-    at a time that is not a keyframe."""
-    t = np.asarray(t, dtype=float)
-    source = np.searchsorted(trajectory.t, t, side="right") - 1
-    if t.size and source.min() < 0:
-        raise InputError(f"states_at: {t[source < 0][0]} s lies before the trajectory's first state "
-                         f"({trajectory.t[0]} s)")
-    knots = np.union1d(trajectory.t[source], t)
+def carry(states: ImuState, imu: ImuSamples, t_from, t_to, noise: ImuNoise, gravity=DEFAULT_GRAVITY, cov=None,
+          transition: bool = False) -> tuple:
+    """``(states, cov, Phi)``: ``states (M,)`` at times ``t_from (M,)`` carried to ``t_to (M,)``
+    (each at or after its own, all within the IMU span) through the IMU's Euler steps, the IMU
+    stream cut at every one of those times (:func:`imu_steps`); with them the EKF's prediction of
+    the covariance ``cov (M, 15, 15)``, ``P <- F P F^T + G Q_d G^T``
+    (:func:`factors.imu.propagate_steps`), from zero where ``cov`` is None (then the process noise
+    ``S`` of the steps); with ``transition`` the steps' error-state transition ``Phi (M, 15, 15)``
+    (:func:`factors.imu.transition_steps`), else None. In chunks of padded steps
+    (:data:`STATES_CHUNK`, :data:`STATES_PADDED`)."""
+    t_from, t_to = np.asarray(t_from, dtype=float), np.asarray(t_to, dtype=float)
+    knots = np.union1d(t_from, t_to)
     steps = imu_steps(imu, knots)
-    start = steps.knot_step[np.searchsorted(knots, trajectory.t[source])]
-    count = steps.knot_step[np.searchsorted(knots, t)] - start
-    has_cov = trajectory.cov is not None
-    parts, covs = [], []
+    start = steps.knot_step[np.searchsorted(knots, t_from)]
+    count = steps.knot_step[np.searchsorted(knots, t_to)] - start
+    parts, covs, transitions = [], [], []
     for sl in _chunks(count):
         K = max(1, int(count[sl].max(initial=1)))
         idx = start[sl, None] + np.arange(K)[None, :]
@@ -366,11 +364,32 @@ def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravi
         dt = np.where(valid, steps.dt[safe], 0.0)
         acc = np.where(valid[..., None], steps.acc[safe], 0.0)
         gyro = np.where(valid[..., None], steps.gyro[safe], 0.0)
-        P0 = trajectory.cov[source[sl]] if has_cov else np.zeros((len(dt), 15, 15))
-        state, P = propagate_steps(trajectory.states[source[sl]], P0, acc, gyro, dt, noise, gravity)
+        if transition:
+            transitions.append(transition_steps(states[sl], acc, gyro, dt, gravity)[1])
+        P0 = np.zeros((len(dt), 15, 15)) if cov is None else cov[sl]
+        state, P = propagate_steps(states[sl], P0, acc, gyro, dt, noise, gravity)
         parts.append(state)
         covs.append(P)
     if not parts:
-        return Trajectory(t, trajectory.states[:0], trajectory.cov[:0] if has_cov else None)
-    states = ImuState(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("r", "v", "C", "b_f", "b_w")))
-    return Trajectory(t, states, np.concatenate(covs) if has_cov else None)
+        empty = np.zeros((0, 15, 15))
+        return states[:0], empty, empty if transition else None
+    out = ImuState(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("r", "v", "C", "b_f", "b_w")))
+    return out, np.concatenate(covs), np.concatenate(transitions) if transition else None
+
+
+def states_at(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> Trajectory:
+    """The states at times ``t`` (increasing, within the IMU span, none before the trajectory's
+    first state), each predicted from ``trajectory``'s state at or before it through the IMU's
+    Euler steps -- the primer's model, as a measurement between keyframes is evaluated -- with the
+    EKF's prediction of its covariance, ``P <- F P F^T + G Q_d G^T`` (:func:`carry`), where the
+    trajectory has covariances. A time at a state of the trajectory takes that state. What an
+    output or a metric reads where it needs a state at a time that is not a keyframe."""
+    t = np.asarray(t, dtype=float)
+    source = np.searchsorted(trajectory.t, t, side="right") - 1
+    if t.size and source.min() < 0:
+        raise InputError(f"states_at: {t[source < 0][0]} s lies before the trajectory's first state "
+                         f"({trajectory.t[0]} s)")
+    has_cov = trajectory.cov is not None
+    states, cov, _ = carry(trajectory.states[source], imu, trajectory.t[source], t, noise, gravity,
+                           trajectory.cov[source] if has_cov else None)
+    return Trajectory(t, states, cov if has_cov else None)

@@ -14,13 +14,28 @@ from factors import imu
 
 
 @dataclass(slots=True)
+class NextKeyframe:
+    """The keyframe after a smoothed one as the window had it when that one was read: its time
+    ``t``, estimate ``state`` and covariance ``cov``, and ``cross`` (15x15), the two's cross
+    covariance ``Sigma_(k, k+1)``."""
+
+    t: float
+    state: imu.ImuState
+    cov: np.ndarray
+    cross: np.ndarray
+
+
+@dataclass(slots=True)
 class OnlineEstimate:
     """A state at time ``t`` with its 15x15 covariance ``cov`` (None when the smoother computes
-    no covariances)."""
+    no covariances); ``following``: the keyframe after it as the window had it then
+    (:class:`NextKeyframe`), where the window computes joint covariances
+    (:meth:`smoother.fixed_lag.contract.FixedLagWindow.joint_with_next`) and there is one."""
 
     t: float
     state: imu.ImuState
     cov: np.ndarray | None
+    following: NextKeyframe | None = None
 
 
 class HandOver:
@@ -39,9 +54,21 @@ class HandOver:
         if not keyframes:
             return []
         window = self.window
-        covs = window.covariances(keyframes) if self.covariances else [None] * len(keyframes)
+        covs, following = [None] * len(keyframes), [None] * len(keyframes)
+        if self.covariances:
+            before = [i for i, j in enumerate(keyframes) if j < window.newest]
+            joint = window.joint_with_next([keyframes[i] for i in before]) if before else None
+            if joint is not None:
+                for i, J in zip(before, joint):
+                    j = keyframes[i]
+                    covs[i] = J[:15, :15]
+                    following[i] = NextKeyframe(window.time(j + 1), window.state(j + 1), J[15:, 15:], J[:15, 15:])
+            rest = [i for i, cov in enumerate(covs) if cov is None]
+            for i, cov in zip(rest, window.covariances([keyframes[i] for i in rest]) if rest else ()):
+                covs[i] = cov
         window.taken(keyframes)
-        return [(j, OnlineEstimate(window.time(j), window.state(j), cov)) for j, cov in zip(keyframes, covs)]
+        return [(j, OnlineEstimate(window.time(j), window.state(j), cov, nxt))
+                for j, cov, nxt in zip(keyframes, covs, following)]
 
     def give(self, estimates: list[OnlineEstimate]) -> None:
         """Hand ``estimates`` of keyframes that left the window to ``on_smoothed`` or the queue."""

@@ -18,6 +18,7 @@ from datasets.kinds import sensors_of
 from datasets.types import Dataset, Trajectory
 from factors import imu
 from factors.errors import InputError
+from smoother.model.between import Following
 from smoother.model.problem import measurement_spec
 from smoother.model.timeline import keyframe_rate as grid_rate
 from smoother.model.timeline import keyframe_times, relative_on_keyframes
@@ -46,6 +47,9 @@ class ReplayResult:
     longest_gap_s: float
     runtime_s: float
     calibration: tuple | None = None
+    #: Each keyframe's next as the window had them together (:class:`smoother.model.between.Following`),
+    #: where the window computes joint covariances, or None.
+    following: object = None
 
 
 def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate=None, **options) -> OnlineSmoother:
@@ -152,7 +156,7 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
                             np.stack([e.cov for e in smoothed]) if covariances else None)
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
                         dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
-                        online.calibration)
+                        online.calibration, Following.of_handed_over(smoothed) if covariances else None)
 
 
 if __name__ == "__main__":

@@ -180,7 +180,8 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         datum = getattr(dataset, "datum", None)
         if datum is not None:
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
-        report[name] = {**score(dataset, est.trajectory, est.calibration), "runtime_s": est.runtime_s, **est.details}
+        report[name] = {**score(dataset, est.trajectory, est.calibration, est.following), "runtime_s": est.runtime_s,
+                        **est.details}
     if dataset.truth is not None:
         save_trajectory(out_dir / TRUTH, dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / GPS, dataset)

@@ -59,7 +59,7 @@ import numpy as np
 
 from datasets.kinds import LAYOUTS, quiet_dispatch
 from factors import imu, preintegration
-from factors.errors import InputError
+from factors.errors import InputError, InternalError
 from factors.sensor_models import MAX_ROW_WIDTH
 from smoother.fixed_lag.contract import HISTORY, WEAK_PRIOR_SIGMAS, FixedLagFailed, TakenKeyframes
 from smoother.fixed_lag.lag import check_lag
@@ -341,22 +341,37 @@ class SlidingWindow:
         of ``A^-1 = L_A^-T L_A^-1`` is ``X^T X``, and its row of ``W = L_A^-T Z`` is ``X^T Z``: one
         forward solve over the keyframes ``k .. newest`` and two products -- the newest keyframe's
         costs a block, the oldest's the window."""
+        return self._joint(wanted, 1)
+
+    def joint_with_next(self, wanted) -> np.ndarray:
+        """The 30x30 joint covariances of window keyframes ``wanted`` (each before ``newest``) with
+        the keyframe after each (:meth:`smoother.fixed_lag.contract.FixedLagWindow.joint_with_next`):
+        :meth:`covariances`' solve with the columns of both keyframes, ``X = L_A^-1 [E_k E_(k+1)]``,
+        and ``X^T X`` (with the calibrations' share ``W Sigma_cc W^T``, ``W = X^T Z``)."""
+        if any(int(k) >= self.newest for k in wanted):
+            raise InternalError(f"joint_with_next: keyframes {list(wanted)} include the newest, {self.newest}")
+        return self._joint(wanted, 2)
+
+    def _joint(self, wanted, count: int) -> np.ndarray:
+        """The joint covariances of the ``count`` keyframes from each of ``wanted`` on."""
         cap = self._cap
         Sigma_cc = None if self._cal is None else self._cal.joint_covariance()
-        b = np.empty((cap, DIM, DIM))
+        width = count * DIM
+        b = np.empty((cap, DIM, width))
         out = []
         for k in (int(k) for k in wanted):
             slots = np.arange(k, self.newest + 1) % cap
             b[slots] = 0.0
-            b[k % cap] = np.eye(DIM)
+            for i in range(count):
+                b[(k + i) % cap, :, i * DIM:(i + 1) * DIM] = np.eye(DIM)
             forward_solve(self._L, b, self.first, k, k, self.newest, cap, self._S)
-            X = b[slots].reshape(-1, DIM)
+            X = b[slots].reshape(-1, width)
             cov = X.T @ X
             if Sigma_cc is not None:
                 W = X.T @ self._Z[slots].reshape(-1, self._Z.shape[2])
                 cov = cov + W @ Sigma_cc @ W.T
             out.append(0.5 * (cov + cov.T))
-        return np.stack(out) if out else np.zeros((0, DIM, DIM))
+        return np.stack(out) if out else np.zeros((0, width, width))
 
     @property
     def calibration(self):

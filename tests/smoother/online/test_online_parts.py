@@ -217,10 +217,13 @@ class _Window:
     """A keyframe window's reading side: keyframe j at time j / 10 with position (j, 0, 0)."""
 
     def __init__(self):
-        self.read = []
+        self.read, self.newest = [], 100
 
     def covariances(self, keyframes):
         return [np.eye(15) * j for j in keyframes]
+
+    def joint_with_next(self, keyframes):
+        return None
 
     def taken(self, keyframes):
         self.read += list(keyframes)
