@@ -353,7 +353,7 @@ def _calibration_correlations(dataset, estimates: dict) -> dict:
     None for other kinds)."""
     from smoother.evaluation import scoring as report
 
-    return {name: {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s)
+    return {name: {s: report.residual_correlation(dataset, est.trajectory, est.calibration, s, est.following)
                    for s in est.details.get("calibration", {})}
             for name, est in estimates.items() if est.details.get("calibration")}
 
@@ -430,7 +430,8 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
     if not smoothers or min(smoothers.values()) <= baseline["gps_heldout_rmse_m"]:
         return None
     best = min(smoothers, key=smoothers.get)
-    rho = report.residual_correlation(dataset, estimates[best].trajectory, estimates[best].calibration)
+    rho = report.residual_correlation(dataset, estimates[best].trajectory, estimates[best].calibration,
+                                      following=estimates[best].following)
     if rho is None:
         return None
     return (f"interpolating the used fixes scores better on the held-out fixes than the smoothers; {best}'s "

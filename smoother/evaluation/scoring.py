@@ -235,7 +235,7 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
     """RMS distance between measured positions and the estimate interpolated to their times
     (:func:`position_errors`; fixes outside the estimate's time span are not counted; NaN when
     none is left)."""
-    return _rms_distance([] if positions is None else [positions], estimate)
+    return rms_distance(_residuals([] if positions is None else [positions], estimate))
 
 
 def position_streams(dataset: Dataset, calibration=None, sensor: str | None = None) -> list[tuple]:
@@ -271,10 +271,11 @@ def score(dataset: Dataset, estimate: Trajectory, calibration=None, following: F
     used = [u for u, _ in streams if u is not None]
     heldout = [h for _, h in streams if h is not None]
     if used or heldout:
-        out["gps_heldout_rmse_m"] = _rms_distance(heldout, estimate, dataset, following=following)
-        out["gps_heldout_horizontal_rmse_m"] = _rms_distance(heldout, estimate, dataset, slice(0, 2), following)
-        out["gps_heldout_vertical_rmse_m"] = _rms_distance(heldout, estimate, dataset, slice(2, 3), following)
-        out["gps_fit_residual_m"] = _rms_distance(used, estimate, dataset, following=following)
+        held = _residuals(heldout, estimate, dataset, following)
+        out["gps_heldout_rmse_m"] = rms_distance(held)
+        out["gps_heldout_horizontal_rmse_m"] = rms_distance(held, slice(0, 2))
+        out["gps_heldout_vertical_rmse_m"] = rms_distance(held, slice(2, 3))
+        out["gps_fit_residual_m"] = rms_distance(_residuals(used, estimate, dataset, following))
     return out
 
 
@@ -301,17 +302,17 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
 
 
 def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=None,
-                         sensor: str | None = None) -> float | None:
+                         sensor: str | None = None, following: Following | None = None) -> float | None:
     """How alike the estimate's residuals at consecutive used fixes are: their lag-one
     autocorrelation (each position or GNSS stream's residual series less its mean, per world
     axis, pooled). Near 0 the fixes' errors are white; well above 0 the receiver's error drifts
     slowly over the fix spacing -- which interpolating the used fixes follows, so that the held-out
     RMSE favours interpolation over an estimator that does not model that drift. None with fewer
-    than three fixes. ``calibration`` as :func:`score`'s; with ``sensor``, that sensor's fixes
-    alone."""
+    than three fixes. ``calibration`` and ``following`` as :func:`score`'s; with ``sensor``, that
+    sensor's fixes alone."""
     num = den = 0.0
     for p, _ in position_streams(dataset, calibration, sensor):
-        _, residual = position_residuals(p, estimate, dataset)  # empty for None
+        _, residual = position_residuals(p, estimate, dataset, following)  # empty for None
         if len(residual) < 3:
             continue
         residual = residual - residual.mean(axis=0)
@@ -320,11 +321,9 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=Non
     return num / den if den > 0 else None
 
 
-def _rms_distance(parts: list[PositionMeasurements], estimate: Trajectory, dataset: Dataset | None = None,
-                  axes=slice(0, 3), following: Following | None = None) -> float:
-    """RMS over every fix of ``parts`` of the distance (in the world ``axes``: horizontal
-    ``0:2``, vertical ``2:3``) of :func:`position_residuals` (NaN when none counts)."""
-    residuals = [position_residuals(p, estimate, dataset, following)[1] for p in parts]
-    return rms_distance(np.concatenate([np.empty((0, 3))] + residuals), axes)
+def _residuals(parts: list[PositionMeasurements], estimate: Trajectory, dataset: Dataset | None = None,
+               following: Following | None = None) -> np.ndarray:
+    """The rows of :func:`position_residuals` of every fix of ``parts``, stacked (M, 3)."""
+    return np.concatenate([np.empty((0, 3))] + [position_residuals(p, estimate, dataset, following)[1] for p in parts])
 
 

@@ -137,7 +137,7 @@ def test_when_interpolation_wins_the_note_says_whether_the_fixes_drift():
     for phi, words in ((0.98, "drifts slowly over the fix spacing"), (0.0, "the fixes look independent")):
         data, truth = fixes_with_noise(phi)
         baseline = report.interpolation_baseline(data)
-        estimates = {"batch": SimpleNamespace(trajectory=truth, calibration=None)}
+        estimates = {"batch": SimpleNamespace(trajectory=truth, calibration=None, following=None)}
         losing = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] + 0.1}}
         assert words in interpolation_note(baseline, losing, estimates, data)
         winning = {"batch": {"gps_heldout_rmse_m": baseline["gps_heldout_rmse_m"] - 0.1}}
