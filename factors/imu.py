@@ -812,22 +812,30 @@ def propagate_steps(state: ImuState, cov, acc, gyro, dt, noise: "ImuNoise", grav
     ``(J, K)``. Returns the final ``(state, cov)``. One compiled loop over rows and samples
     (:func:`step_quantities`, :func:`_covariance_step`, :func:`step_state`), so there is no
     Python per sample."""
+    single, (r, v, C, b_f, b_w, acc, gyro, dt), S = _step_rows(state, acc, gyro, dt, cov)
+    _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(),
+                            as_trailing(gravity, (3,), "gravity"))
+    out = ImuState(r, v, C, b_f, b_w)
+    return (out[0], S[0]) if single else (out, S)
+
+
+def _step_rows(state: ImuState, acc, gyro, dt, matrix) -> tuple:
+    """``(single, (r, v, C, b_f, b_w, acc, gyro, dt), matrix)`` of :func:`propagate_steps` and
+    :func:`transition_steps`: their arguments as rows ``J`` (one row where ``dt`` is 1-D:
+    ``single``), the state's ``r, v, C`` and the ``(J, 15, 15)`` ``matrix`` copied, which the
+    kernels step in place."""
     acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
     dt = np.asarray(dt, dtype=float)
     single = dt.ndim == 1
     lead = (1,) if single else dt.shape[:1]
     K = dt.shape[-1]
     vec = (3,)
-    # copies: the kernel steps the states and covariances in place
-    r, v, C, S = (np.array(a) for a in rows(lead, (state.r, state.v, state.C, cov),
+    r, v, C, M = (np.array(a) for a in rows(lead, (state.r, state.v, state.C, matrix),
                                              (vec, vec, (3, 3), (STATE_DIM, STATE_DIM))))
     b_f, b_w, acc, gyro, dt = rows(lead, (state.b_f, state.b_w, acc.reshape(lead + (K, 3)),
                                           gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
                                    (vec, vec, (K, 3), (K, 3), (K,)))
-    _propagate_steps_kernel(r, v, C, b_f, b_w, S, acc, gyro, dt, noise.densities(),
-                            as_trailing(gravity, vec, "gravity"))
-    out = ImuState(r, v, C, b_f, b_w)
-    return (out[0], S[0]) if single else (out, S)
+    return single, (r, v, C, b_f, b_w, acc, gyro, dt), M
 
 
 @recursion
@@ -842,18 +850,8 @@ def transition_steps(state: ImuState, acc, gyro, dt, gravity=DEFAULT_GRAVITY) ->
     with ``dt = 0`` skipped), ``(J, 15, 15)`` for ``J`` rows (``(15, 15)`` for one). With
     :func:`propagate_steps` from a zero covariance, which gives the process noise ``S`` of the same
     steps, the state's error at the end is ``Phi dx + w``, ``w ~ N(0, S)``, to first order."""
-    acc, gyro = as_trailing(acc, (3,), "acc"), as_trailing(gyro, (3,), "gyro")
-    dt = np.asarray(dt, dtype=float)
-    single = dt.ndim == 1
-    lead = (1,) if single else dt.shape[:1]
-    K = dt.shape[-1]
-    vec = (3,)
-    r, v, C = (np.array(a) for a in rows(lead, (state.r, state.v, state.C), (vec, vec, (3, 3))))
-    b_f, b_w, acc, gyro, dt = rows(lead, (state.b_f, state.b_w, acc.reshape(lead + (K, 3)),
-                                          gyro.reshape(lead + (K, 3)), dt.reshape(lead + (K,))),
-                                   (vec, vec, (K, 3), (K, 3), (K,)))
-    Phi = np.repeat(np.eye(STATE_DIM)[None], lead[0], axis=0)
-    _transition_steps_kernel(r, v, C, b_f, b_w, Phi, acc, gyro, dt, as_trailing(gravity, vec, "gravity"))
+    single, (r, v, C, b_f, b_w, acc, gyro, dt), Phi = _step_rows(state, acc, gyro, dt, np.eye(STATE_DIM))
+    _transition_steps_kernel(r, v, C, b_f, b_w, Phi, acc, gyro, dt, as_trailing(gravity, (3,), "gravity"))
     out = ImuState(r, v, C, b_f, b_w)
     return (out[0], Phi[0]) if single else (out, Phi)
 
