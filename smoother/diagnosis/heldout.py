@@ -51,6 +51,7 @@ from datasets.kinds import KINDS, calibrated_rows, measure_rows, sensors_of
 from datasets.types import Dataset, Trajectory
 from smoother.diagnosis.verdicts import verdict
 from smoother.model.between import Following, states_between
+from smoother.model.timeline import STATES_CHUNK
 from smoother.stats import dof_means_apart
 
 #: :func:`sigma_factor` searches this range of factors on a sensor's sigma ...
@@ -131,21 +132,25 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         found = (held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1]))
         if not found.any():
             continue
-        at = states_between(trajectory, dataset.imu, held.t[found], dataset.noise, dataset.gravity, following)
-        states, P = at.states, at.cov
-        rows = kind.pack(held)[found]
-        R = held.cov[found]
+        index = np.flatnonzero(found)
+        rows, R = kind.pack(held)[found], held.cov[found]
         calibrated = calibration is not None and sensor.name in calibration.names
         j = calibration.names.index(sensor.name) if calibrated else None
-        if j is None:
-            e, H = measure_rows(kind, states, rows)
-        else:
-            c, readings = calibration.values[j], None
-            if "time_offset" in calibration.priors[j].parts:
-                steps = dataset.imu.held(held.t[found])
-                readings = (dataset.imu.acc[steps], dataset.imu.gyro[steps])
-            e, H, _ = calibrated_rows(kind, states, rows, c, readings, dataset.gravity)
-        state_part = H @ P @ np.swapaxes(H, -1, -2)
+        parts = []  # (e, H P H^T) of the held-out measurements, a chunk at a time: P is 15x15 each
+        for lo in range(0, len(index), STATES_CHUNK):
+            part = slice(lo, lo + STATES_CHUNK)
+            t = held.t[index[part]]
+            at = states_between(trajectory, dataset.imu, t, dataset.noise, dataset.gravity, following)
+            if j is None:
+                e, H = measure_rows(kind, at.states, rows[part])
+            else:
+                c, readings = calibration.values[j], None
+                if "time_offset" in calibration.priors[j].parts:
+                    steps = dataset.imu.held(t)
+                    readings = (dataset.imu.acc[steps], dataset.imu.gyro[steps])
+                e, H, _ = calibrated_rows(kind, at.states, rows[part], c, readings, dataset.gravity)
+            parts.append((e, H @ at.cov @ np.swapaxes(H, -1, -2)))
+        e, state_part = (np.concatenate(p) for p in zip(*parts))
         S = state_part + R
         nis = np.einsum("ma,ma->m", e, np.linalg.solve(S, e[..., None])[..., 0])
         good = np.isfinite(nis)

@@ -34,6 +34,7 @@ from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
 from datasets.types import Dataset, PositionMeasurements, Trajectory
 from smoother.evaluation import metrics
 from smoother.model.between import Following, states_between
+from smoother.model.timeline import STATES_CHUNK
 
 #: A figure against the truth needs at least this many compared states ...
 MIN_COMPARED_STATES = 10
@@ -190,10 +191,13 @@ def position_residuals(positions: PositionMeasurements | None, estimate: Traject
         return positions.t[inside], residual
     t = positions.t
     inside = (t >= estimate.t[0]) & (t <= min(estimate.t[-1], dataset.imu.t[-1]))
-    at = states_between(estimate if following is not None else replace(estimate, cov=None), dataset.imu, t[inside],
-                        dataset.noise, dataset.gravity, following).states
-    antenna = at.r if positions.T_BS is None else at.r + at.C @ positions.T_BS[:3, 3]
-    return t[inside], antenna - positions.position[inside]
+    source = estimate if following is not None else replace(estimate, cov=None)
+    antennas = [np.empty((0, 3))]
+    for lo in range(0, int(inside.sum()), STATES_CHUNK):  # a bridged state comes with its 15x15 covariance
+        at = states_between(source, dataset.imu, t[inside][lo:lo + STATES_CHUNK], dataset.noise, dataset.gravity,
+                            following).states
+        antennas.append(at.r if positions.T_BS is None else at.r + at.C @ positions.T_BS[:3, 3])
+    return t[inside], np.concatenate(antennas) - positions.position[inside]
 
 
 def fix_residuals(t: np.ndarray, position: np.ndarray, estimate: Trajectory, T_BS=None) -> tuple:

@@ -34,13 +34,13 @@ noise was fitted large: 0.82 per dof carried, 1.0 bridged, on a ground robot's r
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from datasets.types import ImuSamples, Trajectory
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState, boxminus, boxplus
-from smoother.model.timeline import carry, states_at
+from smoother.model.timeline import STATES_CHUNK, carry, states_at
 
 #: Eigenvalues of the scaled interval noise below this fraction of its largest are taken as no
 #: noise (its range: :func:`_range_inverse`).
@@ -104,31 +104,46 @@ def states_between(trajectory: Trajectory, imu: ImuSamples, t, noise: ImuNoise, 
     ``k + 1`` is bridged between state ``k`` and ``following``'s ``k`` (module docstring) where
     it is given (and the trajectory has covariances), else carried from the state before
     (:func:`smoother.model.timeline.states_at`: a filter's, or a smoother's without its joint
-    covariances)."""
+    covariances). The bridge runs over :data:`smoother.model.timeline.STATES_CHUNK` times at once."""
     t = np.asarray(t, dtype=float)
-    out = states_at(trajectory, imu, t, noise, gravity)
-    if following is None or trajectory.cov is None or not t.size:
-        return out
     k = np.searchsorted(trajectory.t, t, side="right") - 1
-    inside = (k < len(trajectory.t) - 1) & (t > trajectory.t[k])
-    if following.valid is not None:
-        inside &= following.valid[np.minimum(k, len(following.valid) - 1)]
-    if not inside.any():
-        return out
-    k, tau = k[inside], t[inside]
+    bridged = np.zeros(len(t), dtype=bool)
+    if following is not None and trajectory.cov is not None and len(trajectory.t) > 1:
+        bridged = (k >= 0) & (k < len(trajectory.t) - 1) & (t > trajectory.t[np.maximum(k, 0)])
+        if following.valid is not None:
+            bridged &= following.valid[np.clip(k, 0, len(following.valid) - 1)]
+    if not bridged.any():
+        return states_at(trajectory, imu, t, noise, gravity)
+    carried = states_at(trajectory, imu, t[~bridged], noise, gravity)
+    states = ImuState(*(np.empty((len(t),) + getattr(carried.states, f).shape[1:])
+                        for f in ("r", "v", "C", "b_f", "b_w")))
+    cov = np.empty((len(t), 15, 15))
+    _put(states, cov, ~bridged, carried.states, carried.cov)
+    at = np.flatnonzero(bridged)
+    for lo in range(0, len(at), STATES_CHUNK):
+        rows = at[lo:lo + STATES_CHUNK]
+        _put(states, cov, rows, *_bridge(trajectory, following, imu, k[rows], t[rows], noise, gravity))
+    return Trajectory(t, states, cov)
+
+
+def _put(states: ImuState, cov: np.ndarray, where, part: ImuState, part_cov: np.ndarray) -> None:
+    """Write the states ``part`` and covariances ``part_cov`` into ``states`` and ``cov`` at ``where``."""
+    for name in ("r", "v", "C", "b_f", "b_w"):
+        getattr(states, name)[where] = getattr(part, name)
+    cov[where] = part_cov
+
+
+def _bridge(trajectory: Trajectory, following: Following, imu: ImuSamples, k: np.ndarray, tau: np.ndarray,
+            noise: ImuNoise, gravity) -> tuple[ImuState, np.ndarray]:
+    """The bridged states and covariances at times ``tau`` between states ``k`` and ``k + 1``
+    (module docstring)."""
     x1, S1, F1 = carry(trajectory.states[k], imu, trajectory.t[k], tau, noise, gravity, transition=True)
     x2, S2, F2 = carry(x1, imu, tau, trajectory.t[k + 1], noise, gravity, transition=True)
     F2T = np.swapaxes(F2, 1, 2)
     K = S1 @ F2T @ _range_inverse(F2 @ S1 @ F2T + S2)
     d = boxminus(following.states[k], x2)
-    A = (np.eye(15) - K @ F2) @ F1
-    AK = np.concatenate([A, K], axis=2)
+    AK = np.concatenate([(np.eye(15) - K @ F2) @ F1, K], axis=2)
     cross = following.cross[k]
     joint = np.block([[trajectory.cov[k], cross], [np.swapaxes(cross, 1, 2), following.cov[k]]])
     cov = AK @ joint @ np.swapaxes(AK, 1, 2) + S1 - K @ F2 @ S1
-    states, covs = out.states, out.cov.copy()
-    bridged = boxplus(x1, np.einsum("mab,mb->ma", K, d))
-    for name in ("r", "v", "C", "b_f", "b_w"):
-        getattr(states, name)[inside] = getattr(bridged, name)
-    covs[inside] = 0.5 * (cov + np.swapaxes(cov, 1, 2))
-    return replace(out, cov=covs)
+    return boxplus(x1, np.einsum("mab,mb->ma", K, d)), 0.5 * (cov + np.swapaxes(cov, 1, 2))

@@ -122,3 +122,17 @@ def test_the_sliding_window_s_joint_covariance_with_the_next_keyframe_is_the_bat
     assert np.abs(imu.boxminus(ours.states, batch.states) / sd).max() <= keyframes_apart + 0.02
     sd_apart = np.abs(np.sqrt(np.einsum("mii->mi", window.cov) / np.einsum("mii->mi", grid.cov)) - 1.0).max()
     assert np.abs(np.sqrt(np.einsum("mii->mi", ours.cov)) / sd - 1.0).max() <= sd_apart + 0.02
+
+
+def test_the_bridge_in_chunks_is_the_bridge_at_once(grid_and_keyframes, monkeypatch):
+    from smoother.model import between
+
+    data, held, grid, following, _ = grid_and_keyframes
+    times = np.concatenate([grid.t[2:4], held[:20]])  # keyframes' own times and bridged ones, mixed
+    times.sort()
+    whole = states_between(grid, data.imu, times, data.noise, data.gravity, following)
+    monkeypatch.setattr(between, "STATES_CHUNK", 3)
+    chunked = states_between(grid, data.imu, times, data.noise, data.gravity, following)
+    np.testing.assert_array_equal(chunked.states.r, whole.states.r)
+    np.testing.assert_array_equal(chunked.cov, whole.cov)
+    np.testing.assert_array_equal(whole.cov[np.isin(times, grid.t)], grid.cov[2:4])
