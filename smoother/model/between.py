@@ -25,9 +25,11 @@ with ``Sigma_(k, k+1)`` the two keyframes' joint covariance (:class:`Following`:
 smoother's from the selected inversion, :func:`smoother.model.covariances.marginal_covariances`;
 a fixed-lag smoother's from its window as keyframe ``k`` leaves it, with its estimate of ``k + 1``
 then). ``F_2 S_1 F_2^T +
-S_2`` is the interval's process noise, singular in the directions no noise reaches over a short
-interval; it is inverted in its range (a pseudo-inverse, scaled to unit diagonal first: the biases'
-noise is orders of magnitude below the attitude's). Carried from a smoothed state alone, without
+S_2`` is the interval's process noise: positive definite where every noise density is positive,
+singular where one is zero (a bias taken as constant); it is inverted in its range, scaled to unit
+diagonal first (the biases' noise lies orders of magnitude below the attitude's), which gives a
+generalised inverse that conditions exactly where ``d`` lies in that range, as it does in the
+model. Carried from a smoothed state alone, without
 the bridge, ``P`` holds ``S_1`` whole: where the IMU's noise over a keyframe interval is not small
 beside a sensor's, the held-out errors would lie below their band (an AHRS beside a gyro whose
 noise was fitted large: 0.82 per dof carried, 1.0 bridged, on a ground robot's recording).

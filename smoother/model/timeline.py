@@ -343,27 +343,29 @@ def _chunks(count: np.ndarray) -> list[slice]:
 def carry(states: ImuState, imu: ImuSamples, t_from, t_to, noise: ImuNoise, gravity=DEFAULT_GRAVITY, cov=None,
           transition: bool = False) -> tuple:
     """``(states, cov, Phi)``: ``states (M,)`` at times ``t_from (M,)`` carried to ``t_to (M,)``
-    (each at or after its own, all within the IMU span) through the IMU's Euler steps, the IMU
-    stream cut at every one of those times (:func:`imu_steps`); with them the EKF's prediction of
-    the covariance ``cov (M, 15, 15)``, ``P <- F P F^T + G Q_d G^T``
-    (:func:`factors.imu.propagate_steps`), from zero where ``cov`` is None (then the process noise
-    ``S`` of the steps); with ``transition`` the steps' error-state transition ``Phi (M, 15, 15)``
-    (:func:`factors.imu.transition_steps`), else None. In chunks of padded steps
-    (:data:`STATES_CHUNK`, :data:`STATES_PADDED`)."""
+    (each at or after its own, all within the IMU span) through the IMU's Euler steps -- each
+    sample held over its interval, the first step from ``t_from`` and the last cut at ``t_to``,
+    as an attached measurement is predicted (:func:`attachment`), so that each row is independent
+    of the others -- with the EKF's prediction of the covariance ``cov (M, 15, 15)``,
+    ``P <- F P F^T + G Q_d G^T`` (:func:`factors.imu.propagate_steps`), from zero where ``cov`` is
+    None (then the process noise ``S`` of the steps); with ``transition`` the steps' error-state
+    transition ``Phi (M, 15, 15)`` (:func:`factors.imu.transition_steps`), else None. In chunks of
+    padded steps (:data:`STATES_CHUNK`, :data:`STATES_PADDED`)."""
     t_from, t_to = np.asarray(t_from, dtype=float), np.asarray(t_to, dtype=float)
-    knots = np.union1d(t_from, t_to)
-    steps = imu_steps(imu, knots)
-    start = steps.knot_step[np.searchsorted(knots, t_from)]
-    count = steps.knot_step[np.searchsorted(knots, t_to)] - start
+    t = imu.t
+    first = np.searchsorted(t, t_from, side="right")  # the first sample after t_from ...
+    count = np.maximum(np.searchsorted(t, t_to, side="left") - first + 1, 0)  # ... and the steps to t_to
+    last = len(t) - 1
     parts, covs, transitions = [], [], []
     for sl in _chunks(count):
-        K = max(1, int(count[sl].max(initial=1)))
-        idx = start[sl, None] + np.arange(K)[None, :]
-        valid = np.arange(K)[None, :] < count[sl, None]
-        safe = np.minimum(idx, len(steps.dt) - 1)
-        dt = np.where(valid, steps.dt[safe], 0.0)
-        acc = np.where(valid[..., None], steps.acc[safe], 0.0)
-        gyro = np.where(valid[..., None], steps.gyro[safe], 0.0)
+        j = np.arange(max(1, int(count[sl].max(initial=1))))[None, :]
+        sample = np.minimum(first[sl, None] - 1 + j, last)  # the sample held over step j
+        valid = j < count[sl, None]
+        begin = np.where(j == 0, t_from[sl, None], t[sample])
+        end = np.where(j == count[sl, None] - 1, t_to[sl, None], t[np.minimum(sample + 1, last)])
+        dt = np.where(valid, end - begin, 0.0)
+        acc = np.where(valid[..., None], imu.acc[sample], 0.0)
+        gyro = np.where(valid[..., None], imu.gyro[sample], 0.0)
         if transition:
             transitions.append(transition_steps(states[sl], acc, gyro, dt, gravity)[1])
         P0 = np.zeros((len(dt), 15, 15)) if cov is None else cov[sl]

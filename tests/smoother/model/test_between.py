@@ -127,12 +127,15 @@ def test_the_sliding_window_s_joint_covariance_with_the_next_keyframe_is_the_bat
 def test_the_bridge_in_chunks_is_the_bridge_at_once(grid_and_keyframes, monkeypatch):
     from smoother.model import between
 
+    """Each time's state is its own: the same bit for bit whichever other times are asked with it
+    (the IMU's steps cut at its own time alone), off the IMU's samples too."""
     data, held, grid, following, _ = grid_and_keyframes
-    times = np.concatenate([grid.t[2:4], held[:20]])  # keyframes' own times and bridged ones, mixed
-    times.sort()
+    times = np.sort(np.concatenate([grid.t[2:4], held[:20], held[:20] + 0.0037]))  # keyframes', on and off samples
+    alone = states_between(grid, data.imu, times[5:6], data.noise, data.gravity, following)
     whole = states_between(grid, data.imu, times, data.noise, data.gravity, following)
     monkeypatch.setattr(between, "STATES_CHUNK", 3)
     chunked = states_between(grid, data.imu, times, data.noise, data.gravity, following)
     np.testing.assert_array_equal(chunked.states.r, whole.states.r)
     np.testing.assert_array_equal(chunked.cov, whole.cov)
+    np.testing.assert_array_equal(alone.cov[0], whole.cov[5])
     np.testing.assert_array_equal(whole.cov[np.isin(times, grid.t)], grid.cov[2:4])
