@@ -1,7 +1,9 @@
 """The hand-over of an online smoother (:class:`smoother.online.smoother.OnlineSmoother`): each keyframe's
 smoothed estimate, read from the keyframe window just before the update that marginalises it
 (or at the end of the data), goes to the caller's ``on_smoothed`` or a queue for
-:meth:`HandOver.smoothed`, oldest first.
+:meth:`HandOver.smoothed`, oldest first; with covariances, also the window's estimate of the
+keyframe after it then and the two's joint covariance, where the window computes it (what a state
+between the two is bridged with: :mod:`smoother.model.between`).
 """
 from __future__ import annotations
 
@@ -59,10 +61,11 @@ class HandOver:
             before = [i for i, j in enumerate(keyframes) if j < window.newest]
             joint = window.joint_with_next([keyframes[i] for i in before]) if before else None
             if joint is not None:
-                for i, J in zip(before, joint):
+                for i, J in zip(before, joint):  # copies: a view would keep the whole 30x30 block
                     j = keyframes[i]
-                    covs[i] = J[:15, :15]
-                    following[i] = NextKeyframe(window.time(j + 1), window.state(j + 1), J[15:, 15:], J[:15, 15:])
+                    covs[i] = J[:15, :15].copy()
+                    following[i] = NextKeyframe(window.time(j + 1), window.state(j + 1), J[15:, 15:].copy(),
+                                                J[:15, 15:].copy())
             rest = [i for i, cov in enumerate(covs) if cov is None]
             for i, cov in zip(rest, window.covariances([keyframes[i] for i in rest]) if rest else ()):
                 covs[i] = cov
