@@ -120,9 +120,9 @@ def test_the_run_gives_each_calibrated_position_sensor_its_own_residual_correlat
     text = text.replace('topic = "/fix"\n', 'topic = "/fix"\nestimate = ["time_offset"]\n')
     correlation, asked = report.residual_correlation, []
 
-    def drifting(dataset, estimate, calibration=None, sensor=None):
+    def drifting(dataset, estimate, calibration=None, sensor=None, following=None):
         asked.append(sensor)
-        return 0.9 if sensor == "gnss" else correlation(dataset, estimate, calibration, sensor)
+        return 0.9 if sensor == "gnss" else correlation(dataset, estimate, calibration, sensor, following)
 
     monkeypatch.setattr(report, "residual_correlation", drifting)
     _run(_rig(folder, text, "", "drifting"), tmp_path / "run")
