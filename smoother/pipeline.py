@@ -419,8 +419,10 @@ def _given_values_note(dataset: Dataset, kind: str) -> dict:
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
     from smoother.online.replay import replay
 
+    held_out = any(s.heldout is not None for s in dataset.sensors)  # states between keyframes: bridged there
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
-               options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress)
+               options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress,
+               joint_with_next=held_out)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
                "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind)}

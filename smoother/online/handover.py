@@ -1,9 +1,9 @@
 """The hand-over of an online smoother (:class:`smoother.online.smoother.OnlineSmoother`): each keyframe's
 smoothed estimate, read from the keyframe window just before the update that marginalises it
 (or at the end of the data), goes to the caller's ``on_smoothed`` or a queue for
-:meth:`HandOver.smoothed`, oldest first; with covariances, also the window's estimate of the
-keyframe after it then and the two's joint covariance, where the window computes it (what a state
-between the two is bridged with: :mod:`smoother.model.between`).
+:meth:`HandOver.smoothed`, oldest first; when asked, with the window's estimate of the keyframe
+after it then and the two's joint covariance, where the window computes it (what a state between
+the two is bridged with: :mod:`smoother.model.between`).
 """
 from __future__ import annotations
 
@@ -42,11 +42,13 @@ class OnlineEstimate:
 
 class HandOver:
     """Estimates out of ``window`` (a :class:`smoother.fixed_lag.contract.FixedLagWindow` of any kind), with
-    their marginal covariances when ``covariances``, to ``on_smoothed(OnlineEstimate)`` or, with
-    None, the queue."""
+    their marginal covariances when ``covariances`` (and, with ``with_next``, the next keyframe's
+    with the two's joint covariance, where the window computes it), to ``on_smoothed(OnlineEstimate)``
+    or, with None, the queue."""
 
-    def __init__(self, window, covariances: bool, on_smoothed=None):
+    def __init__(self, window, covariances: bool, on_smoothed=None, with_next: bool = False):
         self.window, self.covariances, self.on_smoothed = window, covariances, on_smoothed
+        self.with_next = with_next
         self._queue: deque[OnlineEstimate] = deque()
 
     def read(self, keyframes) -> list[tuple[int, OnlineEstimate]]:
@@ -58,7 +60,7 @@ class HandOver:
         window = self.window
         covs, following = [None] * len(keyframes), [None] * len(keyframes)
         if self.covariances:
-            before = [i for i, j in enumerate(keyframes) if j < window.newest]
+            before = [i for i, j in enumerate(keyframes) if j < window.newest] if self.with_next else []
             joint = window.joint_with_next([keyframes[i] for i in before]) if before else None
             if joint is not None:
                 for i, J in zip(before, joint):  # copies: a view would keep the whole 30x30 block

@@ -94,18 +94,19 @@ def arrivals(dataset: Dataset, starts: np.ndarray | None = None, early=()):
 
 def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate=None,
            robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
-           speed: float = 1.0, progress: bool | None = None) -> ReplayResult:
+           speed: float = 1.0, progress: bool | None = None, joint_with_next: bool = False) -> ReplayResult:
     """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
     in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
     sample of the same time; its keyframes are those of the batch smoother's graph
     (:func:`smoother.model.timeline.keyframe_times` of ``keyframe_rate``: the grid or the measurement
-    times, held-out fixes, the ends). ``realtime``: at the data's own pace (``speed`` times it), sample by
+    times, the ends). ``realtime``: at the data's own pace (``speed`` times it), sample by
     sample, so that the latencies are those a robot would see; otherwise as fast as it goes, in
     blocks with the same estimates: the IMU between the measurements that ask for keyframes
     (:meth:`OnlineSmoother.asks_keyframes`), the others (attached to the keyframe before them) arriving
     together at the time of that keyframe (:func:`arrivals`), which is earlier than their own
     and changes nothing but their latencies: a measurement waits for the keyframe after its time
-    however early it arrives."""
+    however early it arrives. ``joint_with_next`` (with ``covariances``): the result's ``following``
+    too (:class:`smoother.model.between.Following`; :class:`OnlineSmoother`'s option)."""
     if not speed > 0:
         raise InputError(f"speed must be positive, got {speed}")
     # a relative sensor's measurements between keyframes arrive composed, as the batch smoother reads them
@@ -113,7 +114,7 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     smoothed: list[OnlineEstimate] = []
     began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
     online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
-                       covariances=covariances, on_smoothed=smoothed.append)
+                       covariances=covariances, on_smoothed=smoothed.append, joint_with_next=joint_with_next)
     imu_t = dataset.imu.t
     if realtime:
         groups = arrivals(dataset)
@@ -156,7 +157,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
                             np.stack([e.cov for e in smoothed]) if covariances else None)
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
                         dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
-                        online.calibration, Following.of_handed_over(smoothed) if covariances else None)
+                        online.calibration,
+                        Following.of_handed_over(smoothed) if covariances and joint_with_next else None)
 
 
 if __name__ == "__main__":

@@ -188,7 +188,10 @@ class OnlineSmoother:
     been made at or after its time: module docstring); ``covariances``: compute keyframe
     covariances (the newest keyframe's, for :meth:`estimate`, and each smoothed keyframe's);
     ``on_smoothed(OnlineEstimate)``: called with each keyframe leaving the window (None: they are
-    queued for :meth:`smoothed`).
+    queued for :meth:`smoothed`); ``joint_with_next`` (with ``covariances``): each smoothed
+    keyframe also carries the window's estimate of the keyframe after it and the two's joint
+    covariance (``OnlineEstimate.following``, where the window computes it: the states between
+    them, :mod:`smoother.model.between`; it doubles the covariances' cost).
 
     It composes the parts, one job each: the IMU stream (:class:`smoother.online.imu_buffer.ImuBuffer`),
     the keyframe times (:class:`smoother.online.schedule.KeyframeSchedule`), the measurements
@@ -200,7 +203,8 @@ class OnlineSmoother:
     def __init__(self, initial: imu.ImuState, initial_cov, noise: imu.ImuNoise, sensors: dict | None = None,
                  lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
                  max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
-                 on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD):
+                 on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
+                 joint_with_next: bool = False):
         problem = MAX_DELAY_RANGE.problem(max_delay_s) if isinstance(max_delay_s, (int, float)) else \
             f"expected a number of seconds, got {max_delay_s!r}"
         if problem is not None:
@@ -237,7 +241,7 @@ class OnlineSmoother:
         self._imu = ImuBuffer(stacklevel=2)  # warnings name add_imu's caller
         self._schedule = KeyframeSchedule(keyframe_rate)
         self._pending = PendingMeasurements(self.max_delay_s, self.lag_s)
-        self._hand = HandOver(self._window, covariances, on_smoothed)
+        self._hand = HandOver(self._window, covariances, on_smoothed, joint_with_next)
         self._prediction = ImuRatePrediction(noise, self.gravity, covariances)
         self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
         self._last_t = None  # the newest keyframe's time

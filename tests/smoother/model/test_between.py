@@ -104,7 +104,8 @@ def test_the_sliding_window_s_joint_covariance_with_the_next_keyframe_is_the_bat
     from smoother.online.replay import replay
 
     data, held, grid, following, _ = grid_and_keyframes.__wrapped__()
-    fixed_lag = replay(data, 20.0, "sliding", 10.0, progress=False)
+    fixed_lag = replay(data, 20.0, "sliding", 10.0, progress=False, joint_with_next=True)
+    assert replay(data, 20.0, "sliding", 10.0, progress=False).following is None  # only when asked
     window = fixed_lag.smoothed
     assert fixed_lag.following is not None and fixed_lag.following.valid.all()
     np.testing.assert_allclose(fixed_lag.following.cov, window.cov[1:], rtol=0, atol=1e-12 * np.abs(window.cov).max())
