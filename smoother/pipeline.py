@@ -57,6 +57,9 @@ class Estimate:
     #: where the estimator has them (the smoothers'): a state between keyframes is bridged between
     #: both (:func:`smoother.model.between.states_between`).
     following: object = None
+    #: The held-out measurements as the estimator predicted them itself, per sensor (the EKF's,
+    #: :class:`smoother.ekf.filter.HeldoutPrediction`), where it does.
+    heldout: object = None
 
 
 @dataclass
@@ -315,11 +318,13 @@ def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
     kept_at = keyframe_times(dataset, options.keyframe_rate)
     if calibrations is None:
         r = run_ekf(dataset, options.ekf_gate, options.progress, kept_at)
-        return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations)
+        return Estimate("ekf", r.trajectory, r.runtime_s, {"rejected_measurements": r.rejected}, r.innovations,
+                        heldout=r.heldout)
     r = run_calibrated_ekf(dataset, calibrations, options.ekf_gate, options.progress, kept_at)
     details = {"rejected_measurements": r.rejected}
     details["calibration"], details["calibration_against_prior"] = calibration_records(r.calibration, r.calibration_cov)
-    return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations, calibration=r.calibration)
+    return Estimate("ekf", r.trajectory, r.runtime_s, details, r.innovations, calibration=r.calibration,
+                    heldout=r.heldout)
 
 
 def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: tuple = (),
@@ -472,7 +477,7 @@ def heldout_by_estimator(dataset: Dataset, estimates: dict[str, Estimate]) -> di
     so a fitted noise cannot put them in band. Estimators without covariances have none."""
     from smoother.diagnosis.heldout import heldout_consistency
 
-    return {name: heldout_consistency(dataset, est.trajectory, est.calibration, est.following)
+    return {name: heldout_consistency(dataset, est.trajectory, est.calibration, est.following, est.heldout)
             for name, est in estimates.items() if est.failed is None}
 
 

@@ -4,14 +4,17 @@
 A held-out measurement ``z`` at time ``t`` is predicted from the estimate's state there -- its own
 where ``t`` is one of its states; between two of them (held-out times are no keyframes), a
 smoother's bridged between both through the IMU's Euler steps with the joint covariance of the
-two, a filter's carried from the one before with the EKF's covariance step
+two, else carried from the one before with the EKF's covariance step
 (:func:`smoother.model.between.states_between`) -- through the sensor's model and the estimator's
 calibration, ``e = h(x^) - z`` (with a calibration, the calibrated residual of
 :func:`datasets.kinds.calibrated_rows`), with the covariance
 
     S = H P H^T + R
 
-(``P`` the state's marginal covariance there, ``R`` the measurement's). The estimate did not use ``z``,
+(``P`` the state's marginal covariance there, ``R`` the measurement's). The EKF predicts its
+held-out measurements in its own loop (:class:`smoother.ekf.filter.HeldoutPrediction`): from its
+state at ``t`` after the updates before and at ``t``, with its calibrations then and their
+uncertainty in ``P`` -- the filter's innovation of ``z``, not used. The estimate did not use ``z``,
 so for a model that fits ``e^T S^-1 e`` is chi-square with the measurement's dimension, and a
 sensor's mean per degree of freedom has the band of :func:`smoother.stats.per_dof_band` -- unlike
 the residuals of the measurements it used, which a fitted noise puts in band by construction.
@@ -50,6 +53,7 @@ import numpy as np
 from datasets.kinds import KINDS, calibrated_rows, measure_rows, sensors_of
 from datasets.types import Dataset, Trajectory
 from smoother.diagnosis.verdicts import verdict
+from smoother.ekf.filter import HeldoutPrediction
 from smoother.model.between import Following, states_between
 from smoother.model.timeline import STATES_CHUNK
 from smoother.stats import dof_means_apart
@@ -107,7 +111,8 @@ def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float 
 
 
 def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=None,
-                        following: Following | None = None) -> dict[str, dict]:
+                        following: Following | None = None,
+                        predictions: dict[str, HeldoutPrediction] | None = None) -> dict[str, dict]:
     """Per sensor with held-out measurements of an absolute kind, the :func:`verdict` of their
     normalised prediction errors through ``trajectory`` (with its covariances) and the
     estimator's calibration variables ``calibration`` (a :class:`factors.calibration.CalibrationSet`
@@ -119,8 +124,11 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     through ``dataset``'s IMU with its noise (a run's dataset as its estimators ran on it, the
     fitted noise included): bridged between its states with ``following``, each state's next
     with their joint covariance (a smoother's), else carried from the one before
-    (:func:`smoother.model.between.states_between`). Held-out measurements
-    outside the trajectory's span are left out; a sensor with none left has no verdict."""
+    (:func:`smoother.model.between.states_between`) -- or, for a sensor in ``predictions`` (a
+    filter's, :class:`smoother.ekf.filter.HeldoutPrediction`), its residuals and ``H P H^T`` as
+    the filter predicted them in its loop, from its own state at each held-out time. Held-out
+    measurements outside the trajectory's span are left out; a sensor with none left has no
+    verdict."""
     if trajectory.cov is None or not len(trajectory.t):
         return {}
     out = {}
@@ -129,29 +137,14 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         held = sensor.heldout
         if held is None or kind.relative or len(held.t) == 0:
             continue
-        found = (held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1]))
-        if not found.any():
+        if predictions is not None and sensor.name in predictions:
+            index, e, state_part = (getattr(predictions[sensor.name], f) for f in ("index", "e", "state_part"))
+        else:
+            index = np.flatnonzero((held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1])))
+            e, state_part = _predicted(dataset, trajectory, calibration, following, sensor, index)
+        if not len(index):
             continue
-        index = np.flatnonzero(found)
-        rows, R = kind.pack(held)[found], held.cov[found]
-        calibrated = calibration is not None and sensor.name in calibration.names
-        j = calibration.names.index(sensor.name) if calibrated else None
-        parts = []  # (e, H P H^T) of the held-out measurements, a chunk at a time: P is 15x15 each
-        for lo in range(0, len(index), STATES_CHUNK):
-            part = slice(lo, lo + STATES_CHUNK)
-            t = held.t[index[part]]
-            at = states_between(trajectory, dataset.imu, t, dataset.noise, dataset.gravity, following)
-            if j is None:
-                e, H = measure_rows(kind, at.states, rows[part])
-            else:
-                c, readings = calibration.values[j], None
-                if "time_offset" in calibration.priors[j].parts:
-                    steps = dataset.imu.held(t)
-                    readings = (dataset.imu.acc[steps], dataset.imu.gyro[steps])
-                e, H, _ = calibrated_rows(kind, at.states, rows[part], c, readings, dataset.gravity)
-            parts.append((e, H @ at.cov @ np.swapaxes(H, -1, -2)))
-        e, state_part = (np.concatenate(p) for p in zip(*parts))
-        S = state_part + R
+        S = state_part + held.cov[index]
         nis = np.einsum("ma,ma->m", e, np.linalg.solve(S, e[..., None])[..., 0])
         good = np.isfinite(nis)
         if not good.any():
@@ -160,11 +153,38 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         share = np.einsum("mab,mba->m", np.linalg.inv(S[good]), state_part[good]) / d
         record = verdict(float(nis[good].sum()), float(d * good.sum()), int(good.sum()), "heldout")
         out[sensor.name] = {**record, "state_share": float(np.mean(share)),
-                            "sigma_factor": sigma_factor(e[good], state_part[good], R[good])}
+                            "sigma_factor": sigma_factor(e[good], state_part[good], held.cov[index][good])}
         used = np.sort(sensor.data.t)
         if len(used):
-            at = held.t[found][good]
+            at = held.t[index][good]
             i = np.searchsorted(used, at)
             before, after = used[np.clip(i - 1, 0, len(used) - 1)], used[np.clip(i, 0, len(used) - 1)]
             out[sensor.name].update(near_and_far(nis[good], np.minimum(np.abs(at - before), np.abs(after - at)), d))
     return out
+
+
+def _predicted(dataset: Dataset, trajectory: Trajectory, calibration, following: Following | None, sensor,
+               index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e, H P H^T)`` of ``sensor``'s held-out measurements ``index`` through ``trajectory``'s
+    states at their times (:func:`heldout_consistency`), a chunk of them at a time: ``P`` is 15x15
+    each."""
+    kind, held = KINDS[sensor.kind], sensor.heldout
+    rows = kind.pack(held)[index]
+    calibrated = calibration is not None and sensor.name in calibration.names
+    j = calibration.names.index(sensor.name) if calibrated else None
+    parts = [(np.zeros((0, kind.dim)), np.zeros((0, kind.dim, kind.dim)))]
+    for lo in range(0, len(index), STATES_CHUNK):
+        part = slice(lo, lo + STATES_CHUNK)
+        t = held.t[index[part]]
+        at = states_between(trajectory, dataset.imu, t, dataset.noise, dataset.gravity, following)
+        if j is None:
+            e, H = measure_rows(kind, at.states, rows[part])
+        else:
+            c, readings = calibration.values[j], None
+            if "time_offset" in calibration.priors[j].parts:
+                steps = dataset.imu.held(t)
+                readings = (dataset.imu.acc[steps], dataset.imu.gyro[steps])
+            e, H, _ = calibrated_rows(kind, at.states, rows[part], c, readings, dataset.gravity)
+        parts.append((e, H @ at.cov @ np.swapaxes(H, -1, -2)))
+    e, state_part = (np.concatenate(p) for p in zip(*parts))
+    return e, state_part

@@ -7,7 +7,9 @@ kinds' registry :mod:`datasets.kinds`), so the
 innovation of an attitude is the boxminus ``C [-] C_meas`` and the correction is applied with
 the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Joseph form, kept
 symmetric. An optional chi-square gate rejects measurements whose normalised innovation is
-improbable. The update, its gate, the order of the updates and the divergence test are
+improbable. A sensor's held-out measurements (a rig's ``every = K``) are predicted in the same
+loop and not used (:class:`HeldoutPrediction`): the filter's own prediction of data it did not
+use. The update, its gate, the order of the updates and the divergence test are
 :mod:`smoother.ekf.update`'s; the compiled loop over the knots (:func:`run_filter`) is shared with
 the calibrating filter (:mod:`smoother.ekf.calibrated`), which carries the sensors' calibrations
 as augmented states through it.
@@ -30,7 +32,7 @@ from factors import calibration, imu
 from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
-from smoother.ekf.update import diverged, gate_thresholds, kalman_update, update_order
+from smoother.ekf.update import diverged, gate_thresholds, kalman_update, predict_only, update_order
 from smoother.model.timeline import imu_steps, measurement_knots
 from smoother.progress import progress_bar
 
@@ -113,6 +115,20 @@ class Innovations:
 
 
 @dataclass
+class HeldoutPrediction:
+    """A filter's own prediction of a sensor's held-out measurements (those within the IMU's span):
+    at each one's time, after the updates taken then, the residual ``e = h(x^) - z`` of the state
+    and the calibrations the filter had then (``e (M, d)``) and the share of its innovation
+    covariance that is the filter's, ``H P H^T`` (``state_part (M, d, d)``; ``P`` the whole
+    augmented covariance, so a calibration's uncertainty is in it); ``index (M,)`` their places
+    among the sensor's held-out measurements. NaN where the filter had diverged before."""
+
+    index: np.ndarray
+    e: np.ndarray
+    state_part: np.ndarray
+
+
+@dataclass
 class FilterResult:
     """Estimates and covariances at the knots kept (every knot -- start, each measurement time, end --
     or the times asked for: :func:`run_filter`'s ``kept_at``), and the
@@ -123,6 +139,8 @@ class FilterResult:
     rejected: int
     log_likelihood: float
     innovations: Innovations | None = None
+    #: Per sensor name, its held-out measurements as the filter predicted them.
+    heldout: dict[str, HeldoutPrediction] | None = None
     #: With calibrations as augmented states (:mod:`smoother.ekf.calibrated`): their values at the
     #: end of the data (:class:`factors.calibration.CalibrationSet`) and covariance blocks.
     calibration: object = None
@@ -197,7 +215,8 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
             stopped = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
                                     updates.model, updates.dim, updates.rows, updates.R, updates.slot,
                                     updates.held_acc, updates.held_gyro, values, timed, owner, coordinate,
-                                    updates.nis, updates.accepted, dataset.noise.densities(),
+                                    updates.nis, updates.accepted, updates.predicted, updates.predicted_e,
+                                    updates.predicted_state, dataset.noise.densities(),
                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability),
                                     out_index, *out, stats)
             if stopped >= 0:  # the state where it diverged
@@ -209,8 +228,8 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
         moved = CalibrationSet(c.names, tuple(calibration.unpacked(value) for value in values), c.priors, c.means)
         blocks = [P[at[j]:at[j + 1], at[j]:at[j + 1]].copy() for j in range(len(c))]
     return FilterResult(Trajectory(knots[kept], imu.ImuState(*out[:5]), out[5]), time.perf_counter() - start,
-                        int(stats[0]), float(stats[1]), updates.innovations([s.name for s in sensors], knots), moved,
-                        blocks)
+                        int(stats[0]), float(stats[1]), updates.innovations([s.name for s in sensors], knots),
+                        updates.heldout(), moved, blocks)
 
 
 @dataclass
@@ -221,7 +240,10 @@ class _Updates:
     (zero-padded to the widest), noise (padded to 6x6) and the index of its sensor's calibration
     among the augmented states (``slot``, -1: none), with the IMU reading held at its time
     (``held_acc``, ``held_gyro``; empty without calibrations); ``nis`` and ``accepted`` are
-    filled by the loop."""
+    filled by the loop. The sensors' held-out measurements within the knots' span come after
+    their used ones at a knot (``source`` counts the sensors, then those with held-out
+    measurements again): predicted, not used, each into its row ``predicted`` (-1: an update) of
+    ``predicted_e`` and ``predicted_state`` (:func:`smoother.ekf.update.predict_only`)."""
 
     start: np.ndarray
     model: np.ndarray
@@ -231,44 +253,78 @@ class _Updates:
     slot: np.ndarray
     held_acc: np.ndarray
     held_gyro: np.ndarray
-    sensor: np.ndarray
+    source: np.ndarray
     knot: np.ndarray
     nis: np.ndarray
     accepted: np.ndarray
+    predicted: np.ndarray
+    predicted_e: np.ndarray
+    predicted_state: np.ndarray
+    #: Per held-out source (in ``source``'s order after the sensors): its sensor's name, the
+    #: indices of the held-out measurements predicted among the sensor's and their dimension.
+    heldout_of: list
 
     @classmethod
     def of(cls, sensors: list, knots: np.ndarray, slots: list[int], samples: ImuSamples | None) -> "_Updates":
         """The updates of ``sensors`` (``slots``: each one's calibration index, -1: none) at
-        ``knots``, with the readings of the IMU ``samples`` held at their times (None: no
-        calibrations)."""
-        parts = [(model_index(KINDS[s.kind]), KINDS[s.kind].pack(s.data), s.data.cov) for s in sensors]
+        ``knots``, and the predictions of their held-out measurements there, with the readings of
+        the IMU ``samples`` held at their times (None: no calibrations)."""
+        parts = [(model_index(KINDS[s.kind]), KINDS[s.kind].pack(s.data), s.data.cov, s.data.t, slot)
+                 for s, slot in zip(sensors, slots)]
+        heldout_of = []
+        for s, slot in zip(sensors, slots):
+            held = s.heldout
+            if held is None or len(held.t) == 0:
+                continue
+            index = np.flatnonzero((held.t >= knots[0]) & (held.t <= knots[-1])) if len(knots) else np.zeros(0, int)
+            heldout_of.append((s.name, index, held.cov.shape[-1]))
+            parts.append((model_index(KINDS[s.kind]), KINDS[s.kind].pack(held)[index], held.cov[index],
+                          held.t[index], slot))
+        names = [s.name for s in sensors] + [f"{name} (held out)" for name, _, _ in heldout_of]
         if not parts:
-            parts.append((0, np.zeros((0, 1)), np.zeros((0, 1, 1))))
+            parts.append((0, np.zeros((0, 1)), np.zeros((0, 1, 1)), np.zeros(0), -1))
         u = sum(len(p[1]) for p in parts)
         width = max(p[1].shape[1] for p in parts)
         rows, R = np.zeros((u, width)), np.zeros((u, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM))
         model, dim = np.empty(u, np.int64), np.empty(u, np.int64)
         at, first = 0, []
-        for index, block, cov in parts:
+        for index, block, cov, _, _ in parts:
             first.append(at)
             rows[at:at + len(block), :block.shape[1]] = block
             d = cov.shape[-1]
             R[at:at + len(block), :d, :d] = cov
             model[at:at + len(block)], dim[at:at + len(block)] = index, d
             at += len(block)
-        o = update_order([s.data.t for s in sensors], knots, [s.name for s in sensors])
+        o = update_order([p[3] for p in parts], knots, names)
         order = np.asarray(first, dtype=np.int64)[o.sensor] + o.measurement if u else np.zeros(0, dtype=np.int64)
-        slot = np.asarray(slots, dtype=np.int64).reshape(-1)[o.sensor] if u else np.zeros(0, dtype=np.int64)
+        slot = np.asarray([p[4] for p in parts], dtype=np.int64)[o.sensor] if u else np.zeros(0, dtype=np.int64)
         held = samples.held(knots[o.knot]) if samples is not None else np.zeros(0, dtype=np.int64)
         held_acc, held_gyro = ((np.ascontiguousarray(samples.acc[held], dtype=float),
                                 np.ascontiguousarray(samples.gyro[held], dtype=float))
                                if samples is not None else (np.zeros((0, 3)), np.zeros((0, 3))))
+        used = sum(len(p[1]) for p in parts[:len(sensors)])
+        predicted = np.where(order >= used, order - used, -1).astype(np.int64)
         return cls(o.start, model[order], dim[order], rows[order], R[order], slot, held_acc, held_gyro, o.sensor,
-                   o.knot, np.full(u, np.nan), np.zeros(u, dtype=np.bool_))
+                   o.knot, np.full(u, np.nan), np.zeros(u, dtype=np.bool_), predicted,
+                   np.full((u - used, MAX_RESIDUAL_DIM), np.nan),
+                   np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan), heldout_of)
 
     def innovations(self, names: list[str], knots: np.ndarray) -> Innovations:
-        return Innovations(np.asarray(names, dtype=object)[self.sensor] if len(names) else np.zeros(0, dtype=object),
-                           knots[self.knot], self.dim.copy(), self.nis, self.accepted)
+        """The updates' innovations (the held-out measurements' predictions left out)."""
+        used = self.predicted < 0
+        return Innovations(np.asarray(names, dtype=object)[self.source[used]] if len(names)
+                           else np.zeros(0, dtype=object), knots[self.knot[used]], self.dim[used], self.nis[used],
+                           self.accepted[used])
+
+    def heldout(self) -> dict[str, HeldoutPrediction]:
+        """Per sensor with held-out measurements, their predictions (:class:`HeldoutPrediction`)."""
+        out, at = {}, 0
+        for name, index, d in self.heldout_of:
+            rows = slice(at, at + len(index))
+            out[name] = HeldoutPrediction(index, self.predicted_e[rows, :d].copy(),
+                                          self.predicted_state[rows, :d, :d].copy())
+            at += len(index)
+        return out
 
 
 #: Knots per call of the compiled loop (between two calls the progress bar moves and Ctrl-C is seen).
@@ -277,15 +333,17 @@ _KNOTS_PER_CALL = 256
 
 @njit(cache=True)
 def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, slot,
-                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, q, g, gates, out_index, out_r,
-                  out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, predicted, predicted_e,
+                  predicted_state, q, g, gates, out_index, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_filter`: predict through the knot's IMU steps
     (``bounds[k] .. bounds[k + 1]``; with calibrations, :func:`_predict_augmented`), apply the
     updates taken there (``start[k] .. start[k + 1]`` of :class:`_Updates`, each through its
     model's kernel, or through its calibration's for a sensor with one,
     :func:`datasets.kinds.calibrated_into`, and :func:`smoother.ekf.update.kalman_update` on
     the whole ``P``), the correction applied with the state's boxplus and the calibrations'
-    (:func:`factors.calibration.set_boxplus_into`), store the state where the knot's ``out_index``
+    (:func:`factors.calibration.set_boxplus_into`) -- a held-out measurement's residual and
+    ``H P H^T`` into its row ``predicted[u]`` of ``predicted_e``, ``predicted_state`` instead, no
+    update (:func:`smoother.ekf.update.predict_only`) -- store the state where the knot's ``out_index``
     is one (-1: not kept). ``values`` are the packed
     calibrations (moved in place), ``timed`` which estimate their time offset, ``owner`` and
     ``coordinate`` their estimated coordinates' places (:func:`factors.calibration.placement`),
@@ -316,6 +374,11 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             for k in range(n - D):
                 if owner[k] == j:
                     H[:, D + k] = H_c[:m, coordinate[k]]
+            p = predicted[u]
+            if p >= 0:
+                nis[u] = predict_only(P, e, H, np.ascontiguousarray(R[u, :m, :m]), predicted_state[p, :m, :m])
+                predicted_e[p, :m] = e
+                continue
             rejected = stats[0]
             nis[u] = kalman_update(P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats, dx)
             accepted[u] = stats[0] == rejected

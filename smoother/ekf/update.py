@@ -6,7 +6,8 @@ two filters agree wherever no calibration is estimated.
 
 Order. At each knot (a measurement time) the updates are applied sensor by sensor, in the order
 of the sensors given (:func:`datasets.kinds.sensors_of`), and a sensor's measurements at that
-time in their own order (:func:`update_order`).
+time in their own order (:func:`update_order`); the held-out measurements taken then are
+predicted after all of them.
 
 Update. With the residual ``e`` (measurement model minus measurement), its Jacobian ``H`` in the
 error-state columns and the noise ``R``: ``S = H P H^T + R = L L^T``, the normalised innovation
@@ -14,7 +15,9 @@ squared ``d2 = |L^-1 e|^2``; when ``d2`` passes the gate of its dimension (:func
 ``K = P H^T S^-1``, the correction ``dx = -K e`` (the caller applies it with the state's boxplus,
 ``exp(dphi) C`` for the attitude) and Joseph's form ``P <- (I - K H) P (I - K H)^T + K R K^T``,
 kept exactly symmetric (:func:`kalman_update`). ``P`` may be wider than the IMU's 15 error-state
-components (augmented states after them).
+components (augmented states after them). A held-out measurement (a rig's ``every = K``) is
+predicted and not used: its ``d2`` and the state's share ``H P H^T`` of ``S``, ``P`` untouched
+(:func:`predict_only`).
 
 Divergence. A filter whose state or covariance is not finite, whose speed exceeds
 :data:`DIVERGED_SPEED` or whose ``sqrt(trace P)`` over the IMU's error state exceeds
@@ -89,19 +92,14 @@ def kalman_update(P, e, H, R, gates, stats, dx) -> float:
     ``stats[1]`` accumulates ``log N(e; 0, S)``; a non-positive-definite ``S`` raises a
     SolverError. Returns ``d2``, the normalised innovation squared."""
     m, n = e.shape[0], P.shape[0]
-    PHt, S = np.empty((n, m)), np.empty((m, m))
-    matmul_into(P, np.ascontiguousarray(H.T), PHt)  # C-contiguous: matmul_into's one compiled layout
-    matmul_into(H, PHt, S)
+    PHt, S, L = np.empty((n, m)), np.empty((m, m)), np.empty((m, m))
+    _state_share(P, H, PHt, S)
     S += R
-    L = np.empty((m, m))
     if not cholesky_into(0.5 * (S + S.T), L):
         raise SolverError("EKF update: the innovation covariance H P H^T + R is not positive definite")
-    y = e.copy()
-    solve_lower(L, y.reshape((m, 1)))
-    d2 = 0.0
+    d2 = _normalised_squared(L, e)
     logdet = 0.0
     for i in range(m):
-        d2 += y[i] * y[i]
         logdet += 2.0 * math.log(L[i, i])
     if d2 > gates[m]:
         stats[0] += 1
@@ -137,6 +135,36 @@ def kalman_update(P, e, H, R, gates, stats, dx) -> float:
                 acc += KR[i, k] * K[j, k]
             P[i, j] = P[j, i] = acc
     return d2
+
+
+@njit(cache=True)
+def predict_only(P, e, H, R, state_part) -> float:
+    """A measurement predicted and not used (a held-out one): the state's share of its innovation
+    covariance, ``H P H^T``, into ``state_part`` (m x m) and ``d2 = e^T (H P H^T + R)^-1 e``
+    returned (NaN where that covariance is not positive definite); ``P`` untouched."""
+    m, n = e.shape[0], P.shape[0]
+    PHt, S, L = np.empty((n, m)), np.empty((m, m)), np.empty((m, m))
+    _state_share(P, H, PHt, S)
+    state_part[:, :] = S
+    S += R
+    if not cholesky_into(0.5 * (S + S.T), L):
+        return np.nan
+    return _normalised_squared(L, e)
+
+
+@njit(cache=True)
+def _state_share(P, H, PHt, out) -> None:
+    """``PHt <- P H^T`` and ``out <- H P H^T``."""
+    matmul_into(P, np.ascontiguousarray(H.T), PHt)  # C-contiguous: matmul_into's one compiled layout
+    matmul_into(H, PHt, out)
+
+
+@njit(cache=True)
+def _normalised_squared(L, e) -> float:
+    """``|L^-1 e|^2``: ``e^T S^-1 e`` for ``S = L L^T``."""
+    y = e.copy()
+    solve_lower(L, y.reshape((len(e), 1)))
+    return float(np.sum(y * y))
 
 
 @njit(cache=True)

@@ -53,12 +53,13 @@ def _held_out_between_keyframes(seed: int):
 def test_held_out_measurements_between_keyframes_are_predicted_there_and_lie_in_their_band_over_10_seeds():
     """Held-out times are no keyframes: the 25 held-out positions a second sit between the 10-Hz
     keyframes, the batch's state there bridged between the keyframes on either side, the EKF's
-    carried from the one before (``smoother.model.between``), and over 10 seeds the errors of both
+    carried from the one before (``smoother.model.between``, as a window without joint
+    covariances has it) or its own prediction in its loop, and over 10 seeds the errors of each
     are chi-square: their mean per dof in its band, as where every held-out time is a state. Read
     at the keyframe before, without the IMU's steps, they would not be."""
     from smoother.model.timeline import keyframe_times
 
-    batch, ekf, stale = [], [], []
+    batch, ekf, own, stale = [], [], [], []
     for seed in range(10):
         data = _held_out_between_keyframes(seed)
         times = keyframe_times(data)
@@ -68,14 +69,17 @@ def test_held_out_measurements_between_keyframes_are_predicted_there_and_lie_in_
         trajectory, n = result.trajectory, len(result.trajectory.t)
         following = Following.of_batch(trajectory, joint_blocks(result.joint, np.arange(n - 1), np.arange(1, n)))
         batch.append(heldout_consistency(data, trajectory, following=following)["position"])
-        ekf.append(heldout_consistency(data, run_ekf(data, kept_at=times).trajectory)["position"])
+        filtered = run_ekf(data, kept_at=times)
+        ekf.append(heldout_consistency(data, filtered.trajectory)["position"])
+        own.append(heldout_consistency(data, filtered.trajectory, predictions=filtered.heldout)["position"])
+        assert own[-1]["per_dof"] != ekf[-1]["per_dof"]
         held = data.sensor("position").heldout
         before = np.searchsorted(trajectory.t, held.t, side="right") - 1
         last = np.sort(len(before) - 1 - np.unique(before[::-1], return_index=True)[1])  # the last in each interval
         moved = replace(held.subset(last), t=trajectory.t[before[last]])  # the keyframe's own state, not carried
         stale.append(heldout_consistency(replace(data, sensors=(replace(data.sensors[0], heldout=moved),)),
                                          trajectory)["position"])
-    for records in (batch, ekf):
+    for records in (batch, ekf, own):
         dof = sum(r["dof"] for r in records)
         lo, hi = per_dof_band(dof, 0.99)
         assert lo <= sum(r["per_dof"] * r["dof"] for r in records) / dof <= hi, [r["per_dof"] for r in records]

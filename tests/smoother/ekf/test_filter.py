@@ -309,6 +309,60 @@ def test_states_kept_at_chosen_times_are_the_filter_s_states_there(calibrating):
     np.testing.assert_array_equal(kept.innovations.nis, every.innovations.nis)
 
 
+@pytest.mark.parametrize("calibrating", [False, True], ids=["plain", "calibrating"])
+def test_held_out_measurements_are_predicted_from_the_filter_s_own_state_and_not_used(calibrating):
+    """A rig's held-out measurements (``every = K``) are predicted in the filter's loop
+    (``FilterResult.heldout``) and not used: the states, covariances and innovations are those of
+    the same run without them; each prediction is the residual of the filter's state at the
+    held-out time (after the updates taken then) and ``H P H^T`` with its covariance there, and
+    its normalised error is ``e^T (H P H^T + R)^-1 e``."""
+    from datasets.kinds import KINDS, measure_rows
+    from datasets.simulated_sensors import SensorSpec
+    from factors.calibration import CalibrationPrior
+    from smoother.ekf.calibrated import run_calibrated_ekf
+    from smoother.model.problem import calibration_set
+    from smoother.model.timeline import keyframe_times
+
+    data = simulate("gentle", duration=8.0, seed=3, imu_rate=100.0, pose_rate=0,
+                    sensors=(SensorSpec("wheels", "velocity", 50.0, 0.05), SensorSpec("gnss", "gnss", 5.0, 0.2)))
+    for name, every in (("wheels", 5), ("gnss", 2)):
+        s = data.sensor(name)
+        used = np.arange(len(s.data.t)) % every == 0
+        data = data.with_sensor(name, data=s.data.subset(used), heldout=s.data.subset(~used))
+    if calibrating:
+        data = data.with_sensor("wheels", calibrate=CalibrationPrior(("rotation", "scale")))
+    without = data.with_sensor("wheels", heldout=None).with_sensor("gnss", heldout=None)
+    held_t = np.concatenate([data.sensor(name).heldout.t for name in ("wheels", "gnss")])
+    kept_at = np.union1d(keyframe_times(data), held_t)
+
+    def run(d):
+        if calibrating:
+            return run_calibrated_ekf(d, calibration_set(d), progress=False, kept_at=kept_at)
+        return run_ekf(d, progress=False, kept_at=kept_at)
+
+    with_held, plain = run(data), run(without)
+    assert plain.heldout == {} and set(with_held.heldout) == {"wheels", "gnss"}
+    np.testing.assert_array_equal(with_held.trajectory.position, plain.trajectory.position)
+    np.testing.assert_array_equal(with_held.trajectory.cov, plain.trajectory.cov)
+    np.testing.assert_array_equal(with_held.innovations.nis, plain.innovations.nis)
+    traj = with_held.trajectory
+    for name in ("wheels", "gnss"):
+        held, predicted = data.sensor(name).heldout, with_held.heldout[name]
+        np.testing.assert_array_equal(predicted.index, np.arange(len(held.t)))
+        assert np.isfinite(predicted.e).all()
+        S = predicted.state_part + held.cov
+        nis = np.einsum("ma,ma->m", predicted.e, np.linalg.solve(S, predicted.e[..., None])[..., 0])
+        assert np.isfinite(nis).all() and 0.5 < nis.mean() / held.cov.shape[-1] < 2.0
+        if calibrating:  # the residual is the calibrated one, P the augmented one: the plain filter's below
+            continue
+        k = np.searchsorted(traj.t, held.t)
+        at = imu.ImuState(*(getattr(traj.states, f)[k] for f in ("r", "v", "C", "b_f", "b_w")))
+        e, H = measure_rows(KINDS[data.sensor(name).kind], at, KINDS[data.sensor(name).kind].pack(held))
+        np.testing.assert_allclose(predicted.e, e, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(predicted.state_part, H @ traj.cov[k] @ np.swapaxes(H, -1, -2), rtol=1e-9,
+                                   atol=1e-15)
+
+
 def test_a_relative_measurement_is_refused_by_the_filter_that_keeps_no_past_state():
     """An odometry row needs a cloned past state, which this filter does not keep: refused with
     the reason, not read as a one-state measurement."""
