@@ -18,8 +18,8 @@ uncertainty in ``P`` -- the filter's innovation of ``z``, not used. The estimate
 so for a model that fits ``e^T S^-1 e`` is chi-square with the measurement's dimension, and a
 sensor's mean per degree of freedom has the band of :func:`smoother.stats.per_dof_band` -- unlike
 the residuals of the measurements it used, which a fitted noise puts in band by construction.
-(A calibration's own uncertainty is left out of ``S``: it is small beside the state's where the
-data fix the calibration.)
+(A smoother's calibration's own uncertainty is left out of ``S``: it is small beside the state's
+where the data fix the calibration. The EKF's is in its augmented ``P``.)
 
 A verdict below its band says the prediction's covariance is too large: the sensor's sigma stated
 too large, or the state's covariance (a sigma that also inflates it, a state the data do not fix).
