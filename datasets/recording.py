@@ -27,6 +27,13 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
   start cannot be found from the measurements used but can from all of one sensor's, the error
   is a :class:`~datasets.rig.RigError` naming that sensor's ``every``.
 * **Gravity**: ``(0, 0, -g)`` in the world frame (z up; ENU with GNSS).
+* **A part of it** (``part = (start, end)``, seconds after the first IMU sample; either None for
+  that end of the recording): the IMU samples and the measurements (used and held out; a relative
+  one with both ends) inside it, read and split by ``every`` as the whole recording is (the GNSS
+  datum and the held-out measurements are the whole recording's), then self-initialised there --
+  as a robot started at ``start`` would be. Fitting a rig's calibration and noise on one part and
+  checking the ``calibrated.toml`` on another is the test that the fit holds beyond the data it
+  was fitted to. A sensor with no measurement in the part is left out, and said so.
 """
 from __future__ import annotations
 
@@ -76,6 +83,47 @@ def _check_overlap(name: str, data, imu: ImuSamples, origin_ns: int) -> None:
                      "time_offset?")
 
 
+class PartError(InputError):
+    """The part of the recording asked for (:func:`load_recording`'s ``part``) holds no data to
+    estimate from."""
+
+
+def _inside(data, t0: float, t1: float):
+    """The rows of ``data`` (or None) with their times (both ends of a relative one) in ``[t0, t1]``;
+    None where none are."""
+    if data is None:
+        return None
+    keep = (getattr(data, "t_from", data.t) >= t0) & (data.t <= t1)
+    return data if keep.all() else (data.subset(keep) if keep.any() else None)
+
+
+def _part(imu: ImuSamples, sensors: list[Sensor], whole: list, part, origin_ns: int) -> tuple:
+    """``(imu, sensors, whole)`` within ``part = (start, end)`` seconds after the first IMU sample
+    (module docstring); a sensor with no measurement used there is left out, with a warning naming
+    it. A :class:`PartError` where the part holds fewer than two IMU samples."""
+    start, end = (imu.t[0] if part[0] is None else part[0]), (imu.t[-1] if part[1] is None else part[1])
+    a, b = int(np.searchsorted(imu.t, start, side="left")), int(np.searchsorted(imu.t, end, side="right"))
+    if b - a < 2:
+        asked = (f"{part[0]:g}-{part[1]:g} s" if None not in part else f"from {part[0]:g} s on" if part[1] is None
+                 else f"up to {part[1]:g} s")
+        raise PartError(f"the part {asked} holds {max(b - a, 0)} IMU samples, at least 2 needed: the "
+                        f"recording's IMU runs from 0 to {imu.t[-1]:.3f} s after its first sample (to "
+                        f"{(origin_ns * 1e-9 + imu.t[-1]):.3f} s in its clock)")
+    imu = imu.slice(a, b)
+    t0, t1 = imu.t[0], imu.t[-1]
+    kept, left = [], []
+    for sensor, data in zip(sensors, whole):
+        used = _inside(sensor.data, t0, t1)
+        if used is None:
+            left.append(sensor.name)
+            continue
+        kept.append((replace(sensor, data=used, heldout=_inside(sensor.heldout, t0, t1)), _inside(data, t0, t1)))
+    if left:
+        warnings.warn(f"no measurement of {', '.join(repr(n) for n in left)} lies in the part {t0:.3f}-{t1:.3f} s of "
+                      "the recording: left out", stacklevel=3)
+    return imu, [s for s, _ in kept], [w for _, w in kept]
+
+
 def _split_every(data, every: int):
     """``(used, held out)``: rows ``0, every, 2 every, ...`` and the rest (None if none)."""
     if every == 1:
@@ -89,11 +137,13 @@ def _every_is_why(rig: Rig, error: InitialisationError, sensors: list[Sensor], w
     ``error``: if using all of one sensor's measurements, not only every k-th, lets it succeed,
     a :class:`~datasets.rig.RigError` naming that sensor's ``every`` key, how many measurements
     it leaves and how many there are; else ``error`` itself."""
-    for index, (config, sensor, data) in enumerate(zip(rig.sensors, sensors, whole)):
+    numbered = {config.name: (index, config) for index, config in enumerate(rig.sensors)}
+    for position, (sensor, data) in enumerate(zip(sensors, whole)):
+        index, config = numbered[sensor.name]
         if config.every == 1:
             continue
         trial = list(sensors)
-        trial[index] = Sensor(sensor.name, sensor.kind, data, None)
+        trial[position] = Sensor(sensor.name, sensor.kind, data, None)
         try:
             start(trial)
         except InitialisationError:
@@ -127,9 +177,10 @@ def _from(sensors: list[Sensor], t_s: float) -> list[Sensor]:
     return out
 
 
-def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
-    """The recording of ``rig`` (module docstring), self-initialised. Errors name the sensor (and
-    through the readers the file, topic, line or field).
+def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) -> RecordedDataset:
+    """The recording of ``rig`` (module docstring), self-initialised; with ``part = (start, end)``,
+    that part of it alone (seconds after the first IMU sample, either None for that end). Errors
+    name the sensor (and through the readers the file, topic, line or field).
 
     ``rig`` is a :class:`~datasets.rig.Rig` as :func:`datasets.rig.load_rig` returns it, not the
     path of a rig file: ``load_recording(load_rig("rig.toml"))``. Anything else is an InputError
@@ -164,6 +215,8 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01)) -> RecordedDataset:
         used, heldout = _split_every(data, config.every)
         sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise))
         whole.append(data)
+    if part is not None:
+        imu, sensors, whole = _part(imu, sensors, whole, part, origin_ns)
     gravity = np.array([0.0, 0.0, -rig.imu.gravity])
     try:
         t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)

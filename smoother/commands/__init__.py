@@ -31,6 +31,10 @@ OPTION_RANGES: dict[str, Range] = {
         "a simulated recording: from the shortest a loader takes (50 IMU samples over 1 s) to over three years "
         "(2e10 samples at 200 Hz, some 20 TB for the simulation alone)"),
     "--outliers": Range(0.0, 1.0, "", "a fraction of the measurements"),
+    "--start": Range(0.0, 1e8, "s", "a time in a recording, after its first IMU sample; over three years as "
+                                    "--duration's bound"),
+    "--end": Range(0.0, 1e8, "s", "a time in a recording, after its first IMU sample; over three years as "
+                                  "--duration's bound"),
     "--gps-every": RANGES["sensor.every"],
     "--max-iterations": Range(
         1, 10_000, "",

@@ -64,15 +64,18 @@ def load(spec: str, options: SourceOptions = SourceOptions()) -> Dataset:
     return _with_truth_measurements(dataset, options)
 
 
-def load_rig_dataset(path) -> tuple[Dataset, dict]:
-    """The recording a rig file describes (:func:`datasets.recording.load_recording`) and the
-    robust kernels its sensors ask for, by sensor name; errors become one-line UserErrors."""
-    from datasets.recording import load_recording
+def load_rig_dataset(path, part: tuple | None = None) -> tuple[Dataset, dict]:
+    """The recording a rig file describes (:func:`datasets.recording.load_recording`; ``part``:
+    ``(start, end)`` of it, ``--start`` and ``--end``) and the robust kernels its sensors ask for,
+    by sensor name; errors become one-line UserErrors."""
+    from datasets.recording import PartError, load_recording
     from datasets.rig import load_rig
 
     try:
         rig = load_rig(path)
-        dataset = load_recording(rig)
+        dataset = load_recording(rig, part=part)
+    except PartError as error:
+        raise UserError(f"--start/--end: {error}") from None
     except (ValueError, OSError) as error:
         raise UserError(f"{path}: {error}" if str(path) not in str(error) else str(error)) from None
     return dataset, {s.name: s.robust for s in rig.sensors if s.robust is not None}

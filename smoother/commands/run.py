@@ -24,6 +24,12 @@ def register(sub) -> None:
     p.add_argument("--out", default="out", help="output directory (default ./out)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the simulator and of synthetic measurements")
     p.add_argument("--duration", type=float, default=30.0, help="simulated duration [s] (default 30)")
+    p.add_argument("--start", type=float, default=None, metavar="S",
+                   help="with --rig: estimate from this many seconds after the recording's first IMU sample on "
+                        "(self-initialised there)")
+    p.add_argument("--end", type=float, default=None, metavar="S",
+                   help="with --rig: estimate up to this many seconds after the recording's first IMU sample (fit a "
+                        "rig's calibration and noise on one part, check its calibrated.toml on another)")
     p.add_argument("--lag", type=float, default=2.0, help="fixed-lag window [s] (default 2)")
     p.add_argument("--fixed-lag-kind", default="sliding", choices=list(FIXED_LAG_KINDS),
                    help="the compiled sliding window (default), GTSAM's IncrementalFixedLagSmoother (iSAM2) or "
@@ -170,7 +176,8 @@ def _run(args) -> int:
         raise UserError(f"--max-delay applies to the fixed-lag smoother, not to --estimator {args.estimator}")
     if args.speed != 1.0 and not args.realtime:
         raise UserError("--speed sets the pace of --realtime; give --realtime too")
-    for option, value in (("--keyframe-rate", args.keyframe_rate), ("--ekf-gate", args.ekf_gate)):
+    for option, value in (("--keyframe-rate", args.keyframe_rate), ("--ekf-gate", args.ekf_gate),
+                          ("--start", args.start), ("--end", args.end)):
         if value is not None:  # left out: none
             check_option(option, value)
     if args.estimator in ("fixed-lag", "all"):  # before any estimator runs, naming the option
@@ -192,8 +199,14 @@ def _run(args) -> int:
                 raise UserError(f"{option} shapes a built-in dataset, not a recording; with --rig, hold fixes out with "
                                 "a sensor's `every` in the rig file" if option == "--gps-every" else
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
+    part = None if args.start is None and args.end is None else (args.start, args.end)
+    if part is not None and args.rig is None:
+        raise UserError("--start/--end take a part of a recording given by --rig; the simulator's length is "
+                        "--duration")
+    if None not in (args.start, args.end) and args.end <= args.start:
+        raise UserError(f"--start {args.start:g} --end {args.end:g}: expected the end after the start")
     if args.rig is not None:
-        dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig)
+        dataset, rig_robust = dataset_specs.load_rig_dataset(args.rig, part)
     else:
         dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
     check_keyframe_rate(args.keyframe_rate, dataset)
@@ -229,11 +242,15 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.outputs import files
     from smoother.pipeline import estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
 
-    print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s",
+    part = args.start is not None or args.end is not None
+    print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s"
+          + (f" ({dataset.t0:.3f}-{dataset.t1:.3f} s after the recording's first IMU sample)" if part else ""),
           file=sys.stderr)
     started = time.perf_counter()
     imu_findings = imu_health(dataset)
     run_info = {"dataset": dataset.name, "seed": args.seed, "argv": sys.argv[1:], "imu": findings_record(imu_findings)}
+    if part:  # the part of the recording estimated, as asked and as found
+        run_info["part"] = {"start_s": args.start, "end_s": args.end, "t0": dataset.t0, "t1": dataset.t1}
     if {"batch", "fixed-lag"} & set(names):
         run_info["keyframes"] = keyframe_record(dataset, run_options.keyframe_rate)
         print(keyframe_line(run_info["keyframes"], given=run_options.keyframe_rate is not None), file=sys.stderr)

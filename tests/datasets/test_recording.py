@@ -166,3 +166,43 @@ every = {every}
             f'{rig}: sensor[1] "gnss".every: 10000 leaves 1 of the sensor\'s {len(fixes)} measurements for '
             f"estimation: too few to fix the initial heading, which all {len(fixes)} would; use a smaller every "
             "(the measurements between those used are held out)")
+
+
+def test_a_part_of_a_recording_is_read_split_and_started_as_the_whole_and_then_cut(tmp_path, data):
+    """``part = (start, end)``: the IMU samples and the measurements inside it (a relative one with
+    both ends), held out by the whole recording's ``every``, self-initialised at its start; a sensor
+    with no measurement in it is left out with a warning naming it."""
+    from datasets.recording import PartError
+
+    cam = data.sensors[0].data
+    early = cam.t < 2.0
+    write_tum(tmp_path / "early.tum", T0_NS * 1e-9 + cam.t[early], cam.position[early], cam.C[early])
+    rig = _write(tmp_path, data, extra='[[sensor]]\nname = "vo"\nkind = "odometry"\nsource = "tum:vo.tum"\n'
+                 'sigma = [0.01, 0.01, 0.01, 0.005, 0.005, 0.005]\n\n'
+                 '[[sensor]]\nname = "early"\nkind = "odometry"\nsource = "tum:early.tum"\n'
+                 'sigma = [0.01, 0.01, 0.01, 0.005, 0.005, 0.005]')
+    whole = load_recording(load_rig(rig))
+    with pytest.warns(UserWarning, match=r"no measurement of 'early' lies in the part 3\.000-5\.000 s of the "
+                                         r"recording: left out"):
+        part = load_recording(load_rig(rig), part=(3.0, 5.0))
+    assert whole.sensor_names == ("camera", "vo", "early") and part.sensor_names == ("camera", "vo")
+    assert 3.0 <= part.t0 < 3.2 and part.t1 == pytest.approx(5.0)
+    assert part.imu.t[0] == part.t0 and part.imu.t[-1] <= 5.0 and part.time_origin_ns == whole.time_origin_ns
+    for name in ("camera", "vo"):
+        for field in ("data", "heldout"):
+            inside, outside = getattr(part.sensor(name), field), getattr(whole.sensor(name), field)
+            if outside is None:
+                assert inside is None
+                continue
+            first = getattr(outside, "t_from", outside.t)
+            expected = outside.t[(first >= part.t0) & (outside.t <= part.t1)]
+            np.testing.assert_array_equal(inside.t, expected)
+            assert len(expected) > 5 and len(expected) < len(outside.t) / 2
+    assert set(np.round(part.sensor("camera").data.t, 6)) <= set(np.round(whole.sensor("camera").data.t, 6))
+    k = np.searchsorted(data.truth.t, part.t0 - 1e-9)
+    assert np.linalg.norm(part.initial.r - data.truth.position[k]) < 0.2
+    assert np.linalg.norm(so3.boxminus(part.initial.C, data.truth.C[k])) < 0.05
+    with pytest.raises(PartError, match=r"the part from 100 s on holds 0 IMU samples, at least 2 needed: the "
+                                        r"recording's IMU runs from 0 to 6\.000 s after its first sample \(to "
+                                        r"1600000006\.000 s"):
+        load_recording(load_rig(rig), part=(100.0, None))
