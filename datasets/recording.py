@@ -33,7 +33,9 @@ data (:mod:`datasets.initialise`); no ground truth is needed.
   datum and the held-out measurements are the whole recording's), then self-initialised there --
   as a robot started at ``start`` would be. Fitting a rig's calibration and noise on one part and
   checking the ``calibrated.toml`` on another is the test that the fit holds beyond the data it
-  was fitted to. A sensor with no measurement in the part is left out, and said so.
+  was fitted to. A sensor none of whose used measurements lies in the part is left out, and said
+  so; a part that holds none of any sensor's, or from which the start cannot be found, is a
+  :class:`PartError` naming it.
 """
 from __future__ import annotations
 
@@ -97,30 +99,44 @@ def _inside(data, t0: float, t1: float):
     return data if keep.all() else (data.subset(keep) if keep.any() else None)
 
 
+def _described(part) -> str:
+    """``part = (start, end)`` as the user asked for it: ``"the part 10-20 s"``, ``"the part from 10
+    s on"``, ``"the part up to 20 s"``."""
+    start, end = part
+    if start is None and end is None:
+        return "the whole recording"
+    if start is None:
+        return f"the part up to {end:g} s"
+    return f"the part from {start:g} s on" if end is None else f"the part {start:g}-{end:g} s"
+
+
 def _part(imu: ImuSamples, sensors: list[Sensor], whole: list, part, origin_ns: int) -> tuple:
     """``(imu, sensors, whole)`` within ``part = (start, end)`` seconds after the first IMU sample
-    (module docstring); a sensor with no measurement used there is left out, with a warning naming
-    it. A :class:`PartError` where the part holds fewer than two IMU samples."""
+    (module docstring); a sensor none of whose used measurements lies there is left out, with a
+    warning naming it (and how many of its held-out ones there go unscored). A :class:`PartError`
+    where the part holds fewer than two IMU samples, or no used measurement of any sensor."""
     start, end = (imu.t[0] if part[0] is None else part[0]), (imu.t[-1] if part[1] is None else part[1])
     a, b = int(np.searchsorted(imu.t, start, side="left")), int(np.searchsorted(imu.t, end, side="right"))
     if b - a < 2:
-        asked = (f"{part[0]:g}-{part[1]:g} s" if None not in part else f"from {part[0]:g} s on" if part[1] is None
-                 else f"up to {part[1]:g} s")
-        raise PartError(f"the part {asked} holds {max(b - a, 0)} IMU samples, at least 2 needed: the "
+        raise PartError(f"{_described(part)} holds {max(b - a, 0)} IMU samples, at least 2 needed: the "
                         f"recording's IMU runs from 0 to {imu.t[-1]:.3f} s after its first sample (to "
                         f"{(origin_ns * 1e-9 + imu.t[-1]):.3f} s in its clock)")
     imu = imu.slice(a, b)
     t0, t1 = imu.t[0], imu.t[-1]
     kept, left = [], []
     for sensor, data in zip(sensors, whole):
-        used = _inside(sensor.data, t0, t1)
+        used, heldout = _inside(sensor.data, t0, t1), _inside(sensor.heldout, t0, t1)
         if used is None:
-            left.append(sensor.name)
+            left.append(repr(sensor.name) + ("" if heldout is None else
+                                             f" (its {len(heldout)} held-out measurements there not scored)"))
             continue
-        kept.append((replace(sensor, data=used, heldout=_inside(sensor.heldout, t0, t1)), _inside(data, t0, t1)))
+        kept.append((replace(sensor, data=used, heldout=heldout), _inside(data, t0, t1)))
+    where = f"{_described(part)} ({t0:.3f}-{t1:.3f} s after the recording's first IMU sample)"
+    if sensors and not kept:
+        raise PartError(f"{where} holds none of the measurements the sensors use (their `every`); a longer part, or "
+                        "a smaller every")
     if left:
-        warnings.warn(f"no measurement of {', '.join(repr(n) for n in left)} lies in the part {t0:.3f}-{t1:.3f} s of "
-                      "the recording: left out", stacklevel=3)
+        warnings.warn(f"none of the measurements used of {', '.join(left)} lies in {where}: left out", stacklevel=3)
     return imu, [s for s, _ in kept], [w for _, w in kept]
 
 
@@ -221,8 +237,9 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
     try:
         t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)
     except InitialisationError as error:
-        raise _every_is_why(rig, error, sensors, whole, lambda s: initial_state(imu, s, gravity, bias_sigma,
-                                                                                 rig.imu.forward)) from None
+        why = _every_is_why(rig, error, sensors, whole, lambda s: initial_state(imu, s, gravity, bias_sigma,
+                                                                                 rig.imu.forward))
+        raise (PartError(f"{_described(part)}: {why}") if part is not None and why is error else why) from None
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,
                            initial_cov=cov, gravity=gravity, sensors=tuple(sensors), time_origin_ns=origin_ns,

@@ -201,8 +201,9 @@ def _run(args) -> int:
                                 f"{option} shapes a built-in dataset, not a recording given by --rig")
     part = None if args.start is None and args.end is None else (args.start, args.end)
     if part is not None and args.rig is None:
-        raise UserError("--start/--end take a part of a recording given by --rig; the simulator's length is "
-                        "--duration")
+        raise UserError("--start/--end take a part of a recording given by --rig, not of --dataset" if args.dataset
+                        and not args.dataset.startswith("synthetic") else "--start/--end take a part of a recording "
+                        "given by --rig; the simulator's length is --duration")
     if None not in (args.start, args.end) and args.end <= args.start:
         raise UserError(f"--start {args.start:g} --end {args.end:g}: expected the end after the start")
     if args.rig is not None:

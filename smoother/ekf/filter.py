@@ -121,7 +121,7 @@ class HeldoutPrediction:
     and the calibrations the filter had then (``e (M, d)``) and the share of its innovation
     covariance that is the filter's, ``H P H^T`` (``state_part (M, d, d)``; ``P`` the whole
     augmented covariance, so a calibration's uncertainty is in it); ``index (M,)`` their places
-    among the sensor's held-out measurements. NaN where the filter had diverged before."""
+    among the sensor's held-out measurements."""
 
     index: np.ndarray
     e: np.ndarray

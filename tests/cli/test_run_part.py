@@ -70,7 +70,10 @@ def test_a_part_that_is_no_part_is_refused_naming_the_options(recording, tmp_pat
     assert not (tmp_path / "out").exists()
 
 
-def test_the_simulator_takes_its_length_from_duration_not_a_part(tmp_path, capsys):
+def test_the_simulator_takes_its_length_from_duration_and_a_dataset_is_whole(tmp_path, capsys):
     assert main(["run", "--end", "5", "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     assert capsys.readouterr().err.startswith("smoother: error: --start/--end take a part of a recording given by "
                                               "--rig; the simulator's length is --duration")
+    assert main(["run", "--dataset", "kitti", "--start", "5", "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith("smoother: error: --start/--end take a part of a recording given by "
+                                              "--rig, not of --dataset")

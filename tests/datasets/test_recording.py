@@ -182,12 +182,12 @@ def test_a_part_of_a_recording_is_read_split_and_started_as_the_whole_and_then_c
                  '[[sensor]]\nname = "early"\nkind = "odometry"\nsource = "tum:early.tum"\n'
                  'sigma = [0.01, 0.01, 0.01, 0.005, 0.005, 0.005]')
     whole = load_recording(load_rig(rig))
-    with pytest.warns(UserWarning, match=r"no measurement of 'early' lies in the part 3\.000-5\.000 s of the "
-                                         r"recording: left out"):
+    with pytest.warns(UserWarning, match=r"none of the measurements used of 'early' lies in the part 3-5 s "
+                                         r"\(3\.000-5\.000 s after the recording's first IMU sample\): left out"):
         part = load_recording(load_rig(rig), part=(3.0, 5.0))
     assert whole.sensor_names == ("camera", "vo", "early") and part.sensor_names == ("camera", "vo")
     assert 3.0 <= part.t0 < 3.2 and part.t1 == pytest.approx(5.0)
-    assert part.imu.t[0] == part.t0 and part.imu.t[-1] <= 5.0 and part.time_origin_ns == whole.time_origin_ns
+    assert part.imu.t[-1] <= 5.0 and part.time_origin_ns == whole.time_origin_ns
     for name in ("camera", "vo"):
         for field in ("data", "heldout"):
             inside, outside = getattr(part.sensor(name), field), getattr(whole.sensor(name), field)
@@ -206,3 +206,43 @@ def test_a_part_of_a_recording_is_read_split_and_started_as_the_whole_and_then_c
                                         r"recording's IMU runs from 0 to 6\.000 s after its first sample \(to "
                                         r"1600000006\.000 s"):
         load_recording(load_rig(rig), part=(100.0, None))
+
+
+def test_a_part_without_a_sensor_s_used_measurements_leaves_it_out_or_is_refused(tmp_path, data):
+    """A sensor whose used measurements (every = 100: the first alone) miss the part is left out,
+    the warning counting its held-out ones there; a part in which no sensor has a used measurement
+    is a PartError naming it."""
+    from datasets.recording import PartError
+
+    rig = _write(tmp_path, data, extra='[[sensor]]\nname = "dense"\nkind = "pose"\nsource = "csv:dense.csv"')
+    (tmp_path / "dense.csv").write_text((tmp_path / "camera.csv").read_text())
+    rig.write_text(rig.read_text().replace("every = 2", "every = 100"))
+    with pytest.warns(UserWarning, match=r"none of the measurements used of 'camera' \(its 41 held-out measurements "
+                                         r"there not scored\) lies in the part 1-5 s"):
+        part = load_recording(load_rig(rig), part=(1.0, 5.0))
+    assert part.sensor_names == ("dense",)
+    rig.write_text(rig.read_text().replace('[[sensor]]\nname = "dense"', '[[sensor]]\nname = "dense"\nevery = 100'))
+    with pytest.raises(PartError, match=r"^the part 1-5 s \(1\.000-5\.000 s after the recording's first IMU sample\) "
+                                        r"holds none of the measurements the sensors use \(their `every`\)"):
+        load_recording(load_rig(rig), part=(1.0, 5.0))
+
+
+def test_a_part_too_short_to_start_from_says_so(tmp_path):
+    """GNSS alone needs the vehicle's course over ground for the heading: a part with one fix
+    cannot give it, and the error names the part before the reason."""
+    from datasets.gnss import Datum, enu_to_geodetic
+    from datasets.recording import PartError
+
+    data = simulate("gentle", duration=20, seed=5, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)])
+    _imu_csv(tmp_path, data)
+    fixes = data.sensors[0].data
+    lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
+    (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
+        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n"
+        for t, a, b, c in zip(fixes.t, lat, lon, alt)))
+    rig = tmp_path / "rig.toml"
+    rig.write_text(imu_table("csv:imu.csv", data.noise) + '[[sensor]]\nname = "gnss"\nkind = "gnss"\n'
+                   'source = "csv:gnss.csv"\n')
+    assert len(load_recording(load_rig(rig), part=(0.5, None)).sensor("gnss").data) > 2
+    with pytest.raises(PartError, match=r"^the part 0\.5-1\.5 s: cannot fix the initial heading"):
+        load_recording(load_rig(rig), part=(0.5, 1.5))
