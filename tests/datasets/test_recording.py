@@ -135,19 +135,27 @@ def test_an_imu_bag_of_one_message_is_refused_before_anything_else(tmp_path, dat
                                        "expected an IMU recording of at least 50 samples over at least 1 s (")
 
 
+def _gnss_only(folder):
+    """20 s of the figure-eight with 1-Hz GNSS fixes (0.5 m) alone: ``imu.csv`` and ``gnss.csv``
+    in ``folder``, fixes in latitude, longitude and altitude about (47, 8, 400); the simulation."""
+    from datasets.gnss import Datum, enu_to_geodetic
+
+    data = simulate("gentle", duration=20, seed=5, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)])
+    _imu_csv(folder, data)
+    fixes = data.sensors[0].data
+    lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
+    (folder / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
+        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n"
+        for t, a, b, c in zip(fixes.t, lat, lon, alt)))
+    return data
+
+
 def test_an_every_that_leaves_too_few_fixes_is_named_as_the_cause(tmp_path):
     """GNSS alone gives the heading through the course over ground; `every` = 10^4 leaves the
     first fix only. The error names the sensor's `every` key and the counts, not only the
     heading it could not find; with every = 1 the same recording starts."""
-    from datasets.gnss import Datum, enu_to_geodetic
-
-    data = simulate("gentle", duration=20, seed=5, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)])
-    _imu_csv(tmp_path, data)
+    data = _gnss_only(tmp_path)
     fixes = data.sensors[0].data
-    lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
-    (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
-        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n"
-        for t, a, b, c in zip(fixes.t, lat, lon, alt)))
     rig = tmp_path / "rig.toml"
     for every in (10_000, 1):
         rig.write_text(imu_table("csv:imu.csv", data.noise) + f"""
@@ -230,16 +238,9 @@ def test_a_part_without_a_sensor_s_used_measurements_leaves_it_out_or_is_refused
 def test_a_part_too_short_to_start_from_says_so(tmp_path):
     """GNSS alone needs the vehicle's course over ground for the heading: a part with one fix
     cannot give it, and the error names the part before the reason."""
-    from datasets.gnss import Datum, enu_to_geodetic
     from datasets.recording import PartError
 
-    data = simulate("gentle", duration=20, seed=5, pose_rate=None, sensors=[SensorSpec("gnss", "gnss", 1, 0.5)])
-    _imu_csv(tmp_path, data)
-    fixes = data.sensors[0].data
-    lat, lon, alt = enu_to_geodetic(fixes.position, Datum(47.0, 8.0, 400.0))
-    (tmp_path / "gnss.csv").write_text("t,latitude,longitude,altitude,sigma_e,sigma_n,sigma_u\n" + "".join(
-        f"{T0_NS * 1e-9 + t:.17g},{a:.17g},{b:.17g},{c:.17g},0.5,0.5,0.5\n"
-        for t, a, b, c in zip(fixes.t, lat, lon, alt)))
+    data = _gnss_only(tmp_path)
     rig = tmp_path / "rig.toml"
     rig.write_text(imu_table("csv:imu.csv", data.noise) + '[[sensor]]\nname = "gnss"\nkind = "gnss"\n'
                    'source = "csv:gnss.csv"\n')
