@@ -13,8 +13,9 @@ fits measurements it was fitted to, which a smoother that follows every fix (and
 makes small without being accurate; estimators are compared by held-out fixes only. Both with
 the estimate at each fix's time taken through the IMU from its states about it
 (:func:`position_residuals` with the run's dataset): keyframes need not include the fixes'
-times. :func:`interpolation_baseline` is the yardstick for the held-out figures: the used fixes
-interpolated to the held-out times, no IMU.
+times. The EKF's held-out fixes are scored from its own state at their times, as its loop
+predicted them (:func:`score`'s ``predictions``). :func:`interpolation_baseline` is the
+yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
 
 Over time, for the figures (:mod:`smoother.outputs.plots`): the same errors per compared state
 or fix with the covariances behind them (:class:`ErrorSeries`): :func:`errors_against_truth` (the
@@ -244,7 +245,7 @@ def position_rmse(positions: PositionMeasurements | None, estimate: Trajectory) 
 
 def position_streams(dataset: Dataset, calibration=None, sensor: str | None = None) -> list[tuple]:
     """Each sensor's stream of position fixes (any kind measuring :class:`PositionMeasurements`:
-    KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(used, held out)``
+    KITTI's GPS, a rig's position or GNSS sensor with its lever arm) as ``(name, used, held out)``
     (either may be None); with ``sensor``, that sensor's alone. With an estimator's ``calibration``
     (:class:`factors.calibration.CalibrationSet`), a calibrated sensor's fixes as that estimate
     has them: taken at their stamps plus the estimated time offset, at the estimated lever arm."""
@@ -257,25 +258,31 @@ def position_streams(dataset: Dataset, calibration=None, sensor: str | None = No
             continue
         c = calibrated.get(s.name)
         if c is None:
-            out.append((s.data, s.heldout))
+            out.append((s.name, s.data, s.heldout))
             continue
-        out.append(tuple(None if p is None else replace(p, t=p.t + c.time_offset, T_BS=c.T_BS)
-                         for p in (s.data, s.heldout)))
+        out.append((s.name, *(None if p is None else replace(p, t=p.t + c.time_offset, T_BS=c.T_BS)
+                              for p in (s.data, s.heldout))))
     return out
 
 
-def score(dataset: Dataset, estimate: Trajectory, calibration=None, following: Following | None = None) -> dict:
+def score(dataset: Dataset, estimate: Trajectory, calibration=None, following: Following | None = None,
+          predictions: dict | None = None) -> dict:
     """Every metric the dataset allows for one estimate (the fixes of the sensors it calibrated
     at its ``calibration``, :func:`position_streams`; a smoother's states between keyframes bridged
-    with its ``following``, :func:`position_residuals`)."""
+    with its ``following``, :func:`position_residuals`). A sensor in ``predictions`` (the EKF's
+    own predictions of its held-out measurements, :class:`smoother.ekf.filter.HeldoutPrediction`:
+    the antenna's residual, from its state at each fix's time) has its held-out fixes scored by
+    them."""
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
     streams = position_streams(dataset, calibration)
-    used = [u for u, _ in streams if u is not None]
-    heldout = [h for _, h in streams if h is not None]
-    if used or heldout:
-        held = _residuals(heldout, estimate, dataset, following)
+    predictions = predictions or {}
+    used = [u for _, u, _ in streams if u is not None]
+    heldout = [h for name, _, h in streams if h is not None and name not in predictions]
+    own = [predictions[name].e for name, _, h in streams if h is not None and name in predictions]
+    if used or heldout or own:
+        held = np.concatenate([_residuals(heldout, estimate, dataset, following), *own])
         out["gps_heldout_rmse_m"] = rms_distance(held)
         out["gps_heldout_horizontal_rmse_m"] = rms_distance(held, slice(0, 2))
         out["gps_heldout_vertical_rmse_m"] = rms_distance(held, slice(2, 3))
@@ -291,7 +298,7 @@ def interpolation_baseline(dataset: Dataset) -> dict | None:
     held-out fixes inside the used ones' span. (An estimator's held-out figure also counts the
     held-out fixes after the last used one, inside its own span.)"""
     residuals = [np.empty((0, 3))]
-    for used, held in position_streams(dataset):
+    for _, used, held in position_streams(dataset):
         if used is None or held is None or len(used) < 2:
             continue
         inside = (held.t >= used.t[0]) & (held.t <= used.t[-1])
@@ -315,7 +322,7 @@ def residual_correlation(dataset: Dataset, estimate: Trajectory, calibration=Non
     than three fixes. ``calibration`` and ``following`` as :func:`score`'s; with ``sensor``, that
     sensor's fixes alone."""
     num = den = 0.0
-    for p, _ in position_streams(dataset, calibration, sensor):
+    for _, p, _ in position_streams(dataset, calibration, sensor):
         _, residual = position_residuals(p, estimate, dataset, following)  # empty for None
         if len(residual) < 3:
             continue

@@ -142,7 +142,8 @@ def save_gps(path: Path, dataset: Dataset) -> None:
     """The dataset's position fixes, used and held out (flag ``heldout``), for plots (atomic);
     nothing when it has none. A rig's position and GNSS sensors count too (their antennas'
     positions, as measured)."""
-    parts = [(p, flag) for pair in position_streams(dataset) for p, flag in zip(pair, (False, True)) if p is not None]
+    parts = [(p, flag) for _, *pair in position_streams(dataset) for p, flag in zip(pair, (False, True))
+             if p is not None]
     if not parts:
         return
     t = np.concatenate([p.t for p, _ in parts])
@@ -180,8 +181,8 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         datum = getattr(dataset, "datum", None)
         if datum is not None:
             write_geojson(out_dir / f"{name}.geojson", est.trajectory, datum, name, dataset.time_origin_ns)
-        report[name] = {**score(dataset, est.trajectory, est.calibration, est.following), "runtime_s": est.runtime_s,
-                        **est.details}
+        report[name] = {**score(dataset, est.trajectory, est.calibration, est.following, est.heldout),
+                        "runtime_s": est.runtime_s, **est.details}
     if dataset.truth is not None:
         save_trajectory(out_dir / TRUTH, dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / GPS, dataset)

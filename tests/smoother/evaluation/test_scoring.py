@@ -180,3 +180,23 @@ def test_a_run_s_estimate_is_carried_to_fixes_between_its_keyframes_through_the_
     _, interpolated = report.position_residuals(on_truth, keyframes)
     assert len(carried) == len(interpolated) == len(fixes)
     assert report.rms_distance(carried) < 1e-3 < 5e-3 < report.rms_distance(interpolated)
+
+
+def test_the_ekf_s_held_out_fixes_are_scored_from_its_own_state_at_their_times():
+    """Held-out positions between the 10-Hz keyframes the EKF keeps: its held-out RMS is that of
+    the residuals its loop predicted from its state at each fix's time (the updates up to it
+    included), not of its keyframe state carried there; the fit residual is unchanged."""
+    from smoother.ekf.filter import run_ekf
+    from smoother.model.timeline import keyframe_times
+
+    data = simulate("gentle", duration=10.0, seed=4, imu_rate=100.0, pose_rate=None, position_rate=50.0,
+                    position_sigma=0.05)
+    fixes = data.sensor("position").data
+    used = np.arange(len(fixes.t)) % 2 == 0
+    data = data.with_sensor("position", data=fixes.subset(used), heldout=fixes.subset(~used))
+    result = run_ekf(data, kept_at=keyframe_times(data), progress=False)
+    own = report.score(data, result.trajectory, predictions=result.heldout)
+    carried = report.score(data, result.trajectory)
+    assert own["gps_heldout_rmse_m"] == pytest.approx(report.rms_distance(result.heldout["position"].e), rel=1e-12)
+    assert own["gps_fit_residual_m"] == carried["gps_fit_residual_m"]
+    assert abs(own["gps_heldout_rmse_m"] - carried["gps_heldout_rmse_m"]) > 1e-4

@@ -46,7 +46,7 @@ def _estimate(truth: Trajectory, sigmas, rng) -> SimpleNamespace:
     diag = np.repeat([sr, 0.01, sphi, sbf, sbw], 3) ** 2
     cov = np.broadcast_to(np.diag(diag), (n, 15, 15)).copy()
     return SimpleNamespace(trajectory=Trajectory(truth.t[idx], states, cov), runtime_s=0.5, details={}, failed=None,
-                           calibration=None, following=None)
+                           calibration=None, following=None, heldout=None)
 
 
 @pytest.fixture(scope="module")
