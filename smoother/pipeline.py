@@ -357,13 +357,13 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     fit = None
     if noise:
         from smoother.batch.variance_components import estimate_noise
-        from smoother.diagnosis.noise_honesty import correlated, honest
+        from smoother.diagnosis.noise_honesty import honest, to_analyse
 
         before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
         runtime_s += fit.runtime_s
         causes = None
-        if correlated(fit):  # residuals alike in time: a calibration's pattern, or the sensor's own drift?
+        if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
             from smoother.diagnosis.misfit_causes import causes_at
 
             causes = causes_at(fit.applied(dataset), r.trajectory, options.keyframe_rate, options.robust,

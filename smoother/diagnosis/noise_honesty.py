@@ -27,7 +27,14 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   correlated by construction and not judged so;
 * the fit grew its sigma until the estimate hardly uses it (a factor beyond
   :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
-  its verdict no longer responds to its sigma, and the sensor is dropped, not weighed.
+  its verdict no longer responds to its sigma, and the sensor is dropped, not weighed;
+* it grew beside a calibration the rig leaves out: a sensor's misfit causes (analysed wherever a
+  factor grew, :func:`to_analyse`) name one that explains at least :data:`EXPLAINED` of its
+  residuals. Its misfit is then shared out over every noise the fit could grow to follow it -- the
+  IMU's, whose states every sensor reads, and the sensor's own -- whether or not the residuals are
+  alike in time: an AHRS whose attitudes lag the gyro by 20 ms left residuals the gyro's white
+  noise, grown 24x, took up, far beside its datasheet and gone once the delay was estimated (2.7x).
+  Every grown IMU component and the sensor's grown groups are that misfit, not noise.
 
 Each such group keeps the rig's value, and the run stays doubtful with the cause.
 """
@@ -36,6 +43,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from smoother.batch.variance_components import IMU_BLOCK, NoiseFit
+from smoother.diagnosis.misfit_causes import hint
 
 #: A factor beyond this (or below its inverse) on a density or sigma is not a noise.
 IMPLAUSIBLE_FACTOR = 100.0
@@ -47,6 +55,9 @@ CORRELATED = 0.5
 DISCARDED_FACTOR = 10.0
 #: ... whose redundancy is at least this share of its residuals' degrees of freedom is discarded.
 DISCARDED_SHARE = 0.95
+#: A calibration left out that explains at least this share of a sensor's residuals (a suggested
+#: misfit cause) is a wrong rig: the noise grown beside it is that misfit.
+EXPLAINED = 0.5
 
 
 @dataclass(frozen=True)
@@ -66,6 +77,23 @@ def correlated(fit: NoiseFit) -> list[str]:
     """The sensors with an applied group whose residuals are alike in time (:func:`_alike`):
     those whose misfit causes :func:`honest` needs."""
     return sorted({g.group.sensor for g in fit.groups if g.estimable and g.applied and _alike(g)})
+
+
+def to_analyse(fit: NoiseFit) -> bool:
+    """Whether the fit needs its sensors' misfit causes (:func:`honest`): a group's residuals are
+    alike in time (:func:`correlated`), or an applied factor grew, which a calibration the rig
+    leaves out may have grown."""
+    return bool(correlated(fit)) or any(g.estimable and g.applied and g.factor > 1.0 for g in fit.groups)
+
+
+def _left_out(causes: dict | None) -> dict[str, list]:
+    """Per sensor, its suggested misfit causes explaining at least :data:`EXPLAINED` of its residuals
+    (only sensors with one)."""
+    out = {}
+    for sensor, found in (causes or {}).items():
+        if material := [c for c in found if c.suggested and c.share >= EXPLAINED]:
+            out[sensor] = material
+    return out
 
 
 def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tuple[NoiseFit, list[ModelError]]:
@@ -100,6 +128,13 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
             errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
                             "measurements disagree with the rest of the model")
+    if left_out := _left_out(causes):
+        named = "; ".join(f"{sensor}'s residuals point at {hint(found)}" for sensor, found in left_out.items())
+        for g in fit.groups:
+            if (g.estimable and g.applied and g.factor > 1.0 and g.group.name not in errors
+                    and (g.group.sensor == IMU_BLOCK or g.group.sensor in left_out)):
+                errors[g.group.name] = (f"a noise {g.factor:.3g}x the rig's grown beside a calibration the rig "
+                                        f"leaves out ({named}): that misfit, not noise")
     imu = [g for g in fit.groups if g.group.sensor == IMU_BLOCK and g.estimable and g.applied
            and g.group.name not in errors]
     if len(imu) >= 2:

@@ -7,7 +7,15 @@ import pytest
 
 from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
 from smoother.diagnosis.misfit_causes import Cause
-from smoother.diagnosis.noise_honesty import CONTRADICTION, CORRELATED, IMPLAUSIBLE_FACTOR, correlated, honest
+from smoother.diagnosis.noise_honesty import (
+    CONTRADICTION,
+    CORRELATED,
+    EXPLAINED,
+    IMPLAUSIBLE_FACTOR,
+    correlated,
+    honest,
+    to_analyse,
+)
 
 
 def _fit(*groups) -> NoiseFit:
@@ -103,3 +111,23 @@ def test_a_wrong_mounting_is_the_cause_whatever_the_factor():
                                                                              0.0, 100)),
                      mounting_wrong=("wheels",))
     assert set(errors) == {"wheels.forward"} and "mounting is wrong" in errors["wheels.forward"]
+
+
+def test_noise_grown_beside_a_calibration_the_rig_leaves_out_is_that_misfit():
+    """An AHRS whose residuals a time offset explains (a filter's delay the rig leaves out) beside a
+    gyro noise grown 24x, its residuals not alike in time: every grown IMU component and the AHRS's
+    grown sigma are that misfit, named with the rig key that estimates it; what shrank, and a
+    sensor no cause explains, stay applied. A cause explaining less than EXPLAINED does not count."""
+    fit = _fit(("imu", "gyro", None, 24.0, 1300.0, 0.9, 7000), ("imu", "acc", None, 0.5, 30.0, 0.9, 7000),
+               ("ahrs", "attitude", (0, 1, 2), 1.8, 480.0, CORRELATED - 0.2, 1800),
+               ("wheels", "forward", (0,), 3.0, 500.0, CORRELATED - 0.3, 2400))
+    assert to_analyse(fit) and not correlated(fit)
+    delay = Cause("time_offset", np.array([0.02]), np.array([0.0003]), 0.97)
+    errors = _errors(fit, causes={"ahrs": [delay], "wheels": []})
+    assert set(errors) == {"imu.gyro", "ahrs.attitude"}, errors
+    assert ("a noise 24x the rig's grown beside a calibration the rig leaves out (ahrs's residuals point at time "
+            "offset +0.02000 s +- 0.00030 s (explains 97 % of its residuals): add estimate = [\"time_offset\"]): that "
+            "misfit, not noise" == errors["imu.gyro"]), errors["imu.gyro"]
+    minor = Cause("time_offset", np.array([0.02]), np.array([0.0003]), EXPLAINED - 0.1)
+    assert _errors(fit, causes={"ahrs": [minor], "wheels": []}) == {}
+    assert not to_analyse(_fit(("imu", "gyro", None, 0.5, 1300.0, 0.9, 7000)))
