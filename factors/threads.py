@@ -6,17 +6,21 @@ The preintegration's intervals are such work: the compiled IMU kernels release t
 thread is free takes next, and each range writes only its own outputs, so the results do not
 depend on the thread count. The threads come from one pool per process, started on first use.
 :func:`interrupts_held` keeps Ctrl-C and SIGTERM out of the moments when a pool takes work (this
-one's, or any other ``concurrent.futures`` pool's).
+one's, or any other ``concurrent.futures`` pool's), and :func:`wait_interruptibly` lets them in
+while the main thread waits for one.
 """
 from __future__ import annotations
 
 import os
 import signal
 import threading
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ALL_COMPLETED, FIRST_COMPLETED, ThreadPoolExecutor, wait
 from contextlib import ExitStack, contextmanager
 
 from factors.errors import InputError
+
+#: A wait in the main thread wakes this often [s] (:func:`wait_interruptibly`).
+SIGNAL_POLL_S = 0.1
 
 
 def default_threads() -> int:
@@ -196,13 +200,25 @@ def interrupts_held():
             signal.raise_signal(signum)
 
 
+def wait_interruptibly(futures, return_when: str = ALL_COMPLETED) -> tuple[set, set]:
+    """:func:`concurrent.futures.wait` (no timeout) in steps of :data:`SIGNAL_POLL_S`. Python runs
+    a signal's handler in the main thread, but the kernel may hand a process's signal to any of its
+    threads that does not block it; a main thread blocked in one long lock wait is then never
+    woken, and Ctrl-C or SIGTERM waits for the futures (seen on a pool of threads: a Ctrl-C that
+    waited for its tasks' 30-s timeout). Woken every step, it runs the handler within one."""
+    while True:
+        done, pending = wait(futures, timeout=SIGNAL_POLL_S, return_when=return_when)
+        if not pending or (done and return_when == FIRST_COMPLETED):
+            return done, pending
+
+
 def _wait_for(others: list, ranges: _Ranges) -> None:
     """Wait until the pool's share of ``ranges`` has finished, also through Ctrl-C: an interrupt
     meanwhile is recorded as a failure (so no new range starts) and raised once all have."""
     interrupt = None
     while True:
         try:
-            wait(others)
+            wait_interruptibly(others)
             break
         except BaseException as error:  # noqa: BLE001 -- recorded, raised once every range has finished
             ranges.fail(-1, error)

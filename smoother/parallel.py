@@ -25,10 +25,10 @@ from __future__ import annotations
 import itertools
 import signal
 from abc import ABC, abstractmethod
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor
 
 from factors.errors import InputError
-from factors.threads import interrupts_held, set_thread_count, thread_count
+from factors.threads import interrupts_held, set_thread_count, thread_count, wait_interruptibly
 from smoother.errors import Terminated
 
 #: Tasks submitted ahead per worker (the window of :func:`run_all`).
@@ -53,8 +53,9 @@ class Workers(ABC):
         """A future of ``function(item)``."""
 
     def first_done(self, futures) -> set:
-        """Wait until one of ``futures`` is done; those done."""
-        return wait(futures, return_when=FIRST_COMPLETED).done
+        """Wait until one of ``futures`` is done (a Ctrl-C or SIGTERM seen meanwhile,
+        :func:`factors.threads.wait_interruptibly`); those done."""
+        return wait_interruptibly(futures, FIRST_COMPLETED)[0]
 
     def cancel(self, futures) -> None:
         """Cancel the ``futures`` whose tasks have not started."""
@@ -215,7 +216,7 @@ def run_all(function, items, workers: Workers, on_result, on_failure=None, on_st
             for future, item in running.items():
                 if future.cancelled():
                     continue
-                wait([future])  # a second Ctrl-C here ends the waiting
+                wait_interruptibly([future])  # a second Ctrl-C here ends the waiting
                 try:
                     result = outcome(future, item)
                 except BaseException:  # noqa: BLE001 -- the task stopped by the signal too: no result
