@@ -138,7 +138,8 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         if held is None or kind.relative or len(held.t) == 0:
             continue
         if predictions is not None and sensor.name in predictions:
-            index, e, state_part = (getattr(predictions[sensor.name], f) for f in ("index", "e", "state_part"))
+            own = predictions[sensor.name]
+            index, e, state_part = own.index, own.e, own.state_part
         else:
             index = np.flatnonzero((held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1])))
             e, state_part = _predicted(dataset, trajectory, calibration, following, sensor, index)
