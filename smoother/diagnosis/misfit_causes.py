@@ -46,8 +46,11 @@ simulated car its innovations keep 0.08 % of it, and point at a scale for a pitc
 smoother's residuals keep a share that depends on what else fixes the motion. So the
 corrections of every sensor are fitted together with the states, as one Gauss-Newton step of
 the batch smoother's whole problem linearised at the estimate
-(:func:`fit_in_problem`): with ``W_i`` the whitening of a measurement's covariance the sensor's
-rows ``W_i (e_i + H_i dx_i) - W_i X_i dc`` beside every other factor's, a weak prior ``dc ~ N(0,
+(:func:`fit_in_problem`): with ``W_i`` the whitening of a measurement factor's covariance (grown
+by the process noise where the measurement is attached to the keyframe before it) the sensor's
+rows ``W_i (e_i + H_i dx_i) - W_i X_i dc`` beside every other factor's, ``H_i`` the factor's own
+Jacobian of the keyframe it reads and ``X_i`` taken at the state the measurement saw (carried from
+that keyframe to its stamp), a weak prior ``dc ~ N(0,
 PRIOR_SIGMA^2)`` (a calibration the data do not fix keeps about its prior's sigma instead of
 making the system singular), solved by sparse QR through GTSAM with the calibrations eliminated
 last, whose conditionals give their joint covariance. A misfit that one sensor's calibration
@@ -102,8 +105,9 @@ from factors import imu
 from factors.calibration import PART_COLUMNS, Calibration, applicable
 from smoother.diagnosis.verdicts import MIN_DOF, out_of_band
 from smoother.estimators import ESTIMATORS
-from smoother.model.blocks import Block, evaluate_block, linearize, whitening
-from smoother.model.problem import build_problem
+from smoother.model.blocks import Block, evaluate_block, linearize
+from smoother.model.problem import Problem, build_problem
+from smoother.model.timeline import carry
 
 #: The candidate calibrations, by the rig's ``estimate`` keys, with the sigma of the weak prior on
 #: each correction (scale - 1, s, rad, m).
@@ -126,6 +130,8 @@ MATERIAL_SHARE = 0.1
 AVERAGE_S = 0.05
 #: The largest lag-1 autocorrelation the sigmas are inflated for.
 MAX_RHO = 0.95
+#: The states at the measurements are carried without their covariance (:func:`measurement_states`).
+_NO_NOISE = imu.ImuNoise(0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -233,10 +239,37 @@ def _averaged_imu(samples: ImuSamples, t: np.ndarray, half: float, sums) -> tupl
     return acc, gyro
 
 
-def _whitened(sensor: Sensor, e: np.ndarray, X: dict) -> tuple[np.ndarray, np.ndarray]:
-    """``b = W e (N, d)`` and ``A = W X (N, d, k)``, the candidates' columns side by side."""
-    W = whitening(sensor.data.cov)
-    return np.einsum("nab,nb->na", W, e), np.einsum("nab,nbk->nak", W, np.concatenate(list(X.values()), axis=2))
+def measurement_states(problem: Problem, block: Block, sensor: Sensor, imu_samples: ImuSamples) -> imu.ImuState:
+    """The states at ``sensor``'s measurement stamps, each carried from the keyframe its factor
+    reads (``block``'s, in ``problem`` at its ``initial_states``) through the IMU's Euler steps
+    (:func:`smoother.model.timeline.carry`): a measurement attached to the keyframe before it is
+    evaluated there, as its factor evaluates it; one at a keyframe takes the keyframe's state. A
+    calibration's pattern is the kernel's Jacobian at the state the measurement saw: at the keyframe
+    before it, an attitude sensor's time offset would be fitted to residuals 0.1 s stale."""
+    kf = block.keyframes[:, 0]
+    states, _, _ = carry(problem.initial_states[kf], imu_samples, problem.times[kf], sensor.data.t, _NO_NOISE,
+                         problem.gravity)
+    return states
+
+
+def _whitened(block: Block, X: dict, scale: np.ndarray) -> np.ndarray:
+    """``A = W X (N, d, k)``, the candidates' columns side by side, whitened as ``block``'s rows are
+    (``W`` its whitening: the measurement's covariance, grown by the process noise where the
+    measurement is attached to a keyframe) and scaled by a robust kernel's row weights ``scale (N,
+    d)`` (ones without one)."""
+    A = np.einsum("nab,nbk->nak", block.whiten, np.concatenate(list(X.values()), axis=2))
+    return A * scale[..., None]
+
+
+def _row_scale(block: Block, states: imu.ImuState, calibration) -> tuple:
+    """``(evaluated, scale)``: ``block`` evaluated with its Jacobians at ``states`` (reweighted by
+    its robust kernel, as the batch's system has it) and the kernel's row scale ``sqrt(w)`` per
+    residual entry (the reweighted whitened residual over the plain one; 1 without a kernel)."""
+    ev = evaluate_block(block, states, True, calibration=calibration)
+    if block.robust is None:
+        return ev, np.ones_like(ev.e)
+    plain = evaluate_block(block, states, False, calibration=calibration, reweight=False).e
+    return ev, np.divide(ev.e, plain, out=np.ones_like(plain), where=plain != 0)
 
 
 def _prior(X: dict) -> np.ndarray:
@@ -244,10 +277,11 @@ def _prior(X: dict) -> np.ndarray:
     return np.concatenate([np.full(x.shape[2], PRIOR_SIGMA[name]) for name, x in X.items()])
 
 
-def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
-                   gravity, dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
-    """Every candidate of each of ``sensors`` (their blocks in ``blocks``, the batch problem at
-    ``states``, one per keyframe; relative kinds left out) fitted together as one Gauss-Newton
+def fit_in_problem(problem: Problem, sensors: list[Sensor], imu_samples: ImuSamples,
+                   dof: dict[str, float] | None = None, calibration=None) -> dict[str, list[Cause]]:
+    """Every candidate of each of ``sensors`` (their blocks among ``problem``'s, the batch problem
+    at its ``initial_states``; relative kinds left out; each candidate's columns at the state its
+    measurement saw, :func:`measurement_states`) fitted together as one Gauss-Newton
     step of the whole problem with each sensor's calibration added to its factors (module
     docstring): a misfit that one sensor's calibration explains is not put on another's. ``dof``:
     per sensor, the degrees of freedom its residuals leave at ``states`` (the batch smoother's
@@ -257,29 +291,29 @@ def fit_in_problem(blocks: list[Block], states: imu.ImuState, sensors: list[Sens
     like the states), or None: a sensor estimating its own calibration has its candidates (the
     parts it does not estimate) at that estimate, its factors on its calibration variable too.
     By sensor name; a sensor left no candidate (it estimates every part its kind can) has none."""
+    blocks, states = problem.blocks, problem.initial_states
     sums = imu_sums(imu_samples)
     by_name = {b.name: b for b in blocks}
     estimated = 0 if calibration is None else len(calibration)
     out: dict[str, list[Cause]] = {}
-    found = {}  # name: (sensor, keyframes, residuals, candidates' columns)
+    found = {}  # name: (sensor, keyframes, candidates' columns)
     for sensor in (s for s in sensors if not KINDS[s.kind].relative):
         block = by_name[sensor.name]
-        kf = block.keyframes[:, 0]
         value = None if block.calibration is None else calibration.values[block.calibration]
-        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums, value)
+        _, X = patterns(sensor, measurement_states(problem, block, sensor, imu_samples), imu_samples,
+                        problem.gravity, sums, value)
         if X:
-            found[sensor.name] = (sensor, kf, e, X)
+            found[sensor.name] = (sensor, block.keyframes[:, 0], X)
         else:
             out[sensor.name] = []
     graph, _ = linearize([b for b in blocks if b.name not in found], states, calibration)
     parts = {}  # name: (key, X, keyframes, evaluated block, whitened columns)
-    for name, (sensor, kf, e, X) in found.items():
+    for name, (sensor, kf, X) in found.items():
         block = by_name[name]
-        ev = evaluate_block(block, states, True, calibration=calibration)
-        b, A = _whitened(sensor, e, X)
-        A = A * np.divide(ev.e, b, out=np.ones_like(b), where=b != 0)[..., None]  # a robust kernel's row scaling
+        ev, scale = _row_scale(block, states, calibration)
+        A = _whitened(block, X, scale)
         key = len(states) + estimated + len(parts)
-        unit = gtsam.noiseModel.Unit.Create(b.shape[1])
+        unit = gtsam.noiseModel.Unit.Create(A.shape[1])
         for i in range(len(kf)):
             if block.calibration is None:  # de/dc = -X
                 graph.add(gtsam.JacobianFactor(int(kf[i]), ev.A[0][i], key, -A[i], -ev.e[i], unit))
@@ -342,27 +376,28 @@ def candidates(dataset) -> list[Sensor]:
     return [s for s in sensors_of(dataset) if not KINDS[s.kind].relative]
 
 
-def suspects(blocks: list[Block], states: imu.ImuState, sensors: list[Sensor], imu_samples: ImuSamples,
-             gravity, calibration=None) -> list[Sensor]:
+def suspects(problem: Problem, sensors: list[Sensor], imu_samples: ImuSamples, calibration=None) -> list[Sensor]:
     """The :data:`MAX_ANALYSED` of ``sensors`` (all of them when as few) whose candidates explain
-    most of their own residuals at ``states`` (their blocks in ``blocks``; ``calibration`` the
-    values of the calibration variables they read, as :func:`fit_in_problem` takes them), each
+    most of their own residuals at ``problem``'s ``initial_states`` (their blocks among its;
+    ``calibration`` the values of the calibration variables they read, as :func:`fit_in_problem`
+    takes them), each
     sensor alone and the states held: the decrease ``g^T (A^T A + P^-1)^-1 g`` of its whitened
     cost (``A`` its whitened candidates' columns, ``g = A^T b``, ``P`` the weak prior). A screen,
     linear in the measurements: the fit proper (:func:`fit_in_problem`) then gives back what the
     states absorbed, and puts each misfit on one sensor."""
     if len(sensors) <= MAX_ANALYSED:
         return list(sensors)
-    by_name, sums = {b.name: b for b in blocks}, imu_sums(imu_samples)
+    by_name, sums = {b.name: b for b in problem.blocks}, imu_sums(imu_samples)
 
     def explained(sensor) -> float:
         block = by_name[sensor.name]
-        kf = block.keyframes[:, 0]
         value = None if block.calibration is None else calibration.values[block.calibration]
-        e, X = patterns(sensor, states[kf], imu_samples, gravity, sums, value)
+        _, X = patterns(sensor, measurement_states(problem, block, sensor, imu_samples), imu_samples, problem.gravity,
+                        sums, value)
         if not X:
             return 0.0
-        b, A = _whitened(sensor, e, X)
+        ev, scale = _row_scale(block, problem.initial_states, calibration)
+        A, b = _whitened(block, X, scale), ev.e
         A, b = A.reshape(-1, A.shape[2]), b.reshape(-1)
         g = A.T @ b
         return float(g @ np.linalg.solve(A.T @ A + np.diag(1.0 / _prior(X) ** 2), g))
@@ -383,9 +418,8 @@ def causes_at(dataset, estimate: Trajectory, keyframe_rate: float | None = None,
     values = problem.calibration
     if values is not None and calibration is not None:
         values = calibration
-    states = problem.initial_states
-    chosen = suspects(problem.blocks, states, candidates(dataset), dataset.imu, dataset.gravity, values)
-    return fit_in_problem(problem.blocks, states, chosen, dataset.imu, dataset.gravity, dof, values)
+    chosen = suspects(problem, candidates(dataset), dataset.imu, values)
+    return fit_in_problem(problem, chosen, dataset.imu, dof, values)
 
 
 def hints(dataset, estimates: dict, consistency: dict, keyframe_rate: float | None = None,

@@ -47,9 +47,9 @@ def test_of_many_sensors_at_most_max_analysed_are_fitted_together_and_the_one_at
     fitted = []
     fit = mc.fit_in_problem
 
-    def spy(blocks, states, sensors, *args, **kwargs):
+    def spy(problem, sensors, *args, **kwargs):
         fitted.append([s.name for s in sensors])
-        return fit(blocks, states, sensors, *args, **kwargs)
+        return fit(problem, sensors, *args, **kwargs)
 
     monkeypatch.setattr(mc, "fit_in_problem", spy)
     said = mc.hints(data, estimates, consistency)
@@ -69,9 +69,9 @@ def _problem(many):
 def test_the_fit_is_eliminated_in_chunks_with_the_answer_of_one_call(many, monkeypatch):
     problem, sensors = _problem(many)
     data = many[0]
-    whole = mc.fit_in_problem(problem.blocks, problem.initial_states, sensors, data.imu, data.gravity)
+    whole = mc.fit_in_problem(problem, sensors, data.imu)
     monkeypatch.setattr(mc, "ELIMINATION_CHUNK", 7)
-    chunked = mc.fit_in_problem(problem.blocks, problem.initial_states, sensors, data.imu, data.gravity)
+    chunked = mc.fit_in_problem(problem, sensors, data.imu)
     for name in whole:
         for a, b in zip(whole[name], chunked[name]):
             np.testing.assert_allclose(a.value, b.value, rtol=1e-9, atol=1e-12)
@@ -102,7 +102,7 @@ def test_a_signal_stops_the_fit_between_two_gtsam_calls(many, monkeypatch):
     monkeypatch.setattr(mc, "ELIMINATION_CHUNK", 7)
     monkeypatch.setattr(mc, "gtsam", Stopping())
     with pytest.raises(KeyboardInterrupt):
-        mc.fit_in_problem(problem.blocks, problem.initial_states, sensors, data.imu, data.gravity)
+        mc.fit_in_problem(problem, sensors, data.imu)
     assert len(made) == 3
 
 
