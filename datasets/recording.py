@@ -148,11 +148,13 @@ def _split_every(data, every: int):
     return data.subset(used), (data.subset(~used) if (~used).any() else None)
 
 
-def _every_is_why(rig: Rig, error: InitialisationError, sensors: list[Sensor], whole: list, start) -> ValueError:
+def _every_is_why(rig: Rig, error: InitialisationError, sensors: list[Sensor], whole: list, start,
+                  part: tuple | None = None) -> ValueError:
     """The error to give when ``start`` (the initialisation, on a list of sensors) failed with
     ``error``: if using all of one sensor's measurements, not only every k-th, lets it succeed,
     a :class:`~datasets.rig.RigError` naming that sensor's ``every`` key, how many measurements
-    it leaves and how many there are; else ``error`` itself."""
+    it leaves and how many there are (in the ``part`` of the recording run, when one is); else
+    ``error`` itself."""
     numbered = {config.name: (index, config) for index, config in enumerate(rig.sensors)}
     for position, (sensor, data) in enumerate(zip(sensors, whole)):
         index, config = numbered[sensor.name]
@@ -166,9 +168,10 @@ def _every_is_why(rig: Rig, error: InitialisationError, sensors: list[Sensor], w
             continue
         failed = str(error).split(":")[0]  # "cannot fix the initial heading"
         need = failed[len("cannot "):] if failed.startswith("cannot ") else "start the estimate"
+        within = "" if part is None else f" in {_described(part)}"
         return RigError(rig.path, sensor_key(index + 1, config.name, "every"),
-                        f"{config.every} leaves {len(sensor.data)} of the sensor's {len(data)} measurements for "
-                        f"estimation: too few to {need}, which all {len(data)} would; use a smaller every (the "
+                        f"{config.every} leaves {len(sensor.data)} of the sensor's {len(data)} measurements{within} "
+                        f"for estimation: too few to {need}, which all {len(data)} would; use a smaller every (the "
                         "measurements between those used are held out)")
     return error
 
@@ -238,7 +241,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
         t_s, state, cov = initial_state(imu, sensors, gravity, bias_sigma, rig.imu.forward)
     except InitialisationError as error:
         why = _every_is_why(rig, error, sensors, whole, lambda s: initial_state(imu, s, gravity, bias_sigma,
-                                                                                 rig.imu.forward))
+                                                                                 rig.imu.forward), part)
         raise (PartError(f"{_described(part)}: {why}") if part is not None and why is error else why) from None
     sensors = _from(sensors, t_s)
     return RecordedDataset(name=rig.path.stem, imu=imu_from(imu, t_s), noise=rig.imu.noise, initial=state,

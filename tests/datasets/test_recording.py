@@ -174,6 +174,11 @@ every = {every}
             f'{rig}: sensor[1] "gnss".every: 10000 leaves 1 of the sensor\'s {len(fixes)} measurements for '
             f"estimation: too few to fix the initial heading, which all {len(fixes)} would; use a smaller every "
             "(the measurements between those used are held out)")
+        with pytest.raises(ValueError) as error:  # in a part: its counts, said to be the part's
+            load_recording(load_rig(rig), part=(None, 12.0))
+        inside = int(np.sum(fixes.t - data.imu.t[0] <= 12.0))
+        assert f"10000 leaves 1 of the sensor's {inside} measurements in the part up to 12 s for estimation" in str(
+            error.value), error.value
 
 
 def test_a_part_of_a_recording_is_read_split_and_started_as_the_whole_and_then_cut(tmp_path, data):
