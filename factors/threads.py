@@ -166,10 +166,11 @@ class _Ranges:
     def _scanned(self, p: int) -> bool:
         """Wait until range ``p`` is scanned; False if a range failed meanwhile. (Every task range
         is handed out before any ``then`` range, so the ranges waited for are running on other
-        threads.)"""
+        threads.) The calling thread waits here too: in steps of :data:`SIGNAL_POLL_S`, so that a
+        Ctrl-C the kernel hands to another thread reaches it (:func:`wait_interruptibly`)."""
         with self.lock:
             while self.scanned <= p and not self.failures:
-                self.progress.wait()
+                self.progress.wait(SIGNAL_POLL_S)
             return not self.failures
 
 

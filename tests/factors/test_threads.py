@@ -489,3 +489,43 @@ def test_a_signal_the_kernel_hands_to_another_thread_still_stops_a_wait_in_the_m
         sender.cancel()
         ender.cancel()
     assert not ended_first
+
+
+def test_a_signal_the_kernel_hands_to_another_thread_stops_the_calling_thread_waiting_for_a_scan():
+    """The calling thread of a pipelined ``in_parallel`` waits for a scan that a slow task on the
+    pool holds up; the main thread blocks SIGINT, so the kernel hands the Ctrl-C to another thread.
+    Its handler runs in the main thread while the slow task still runs (the wait wakes every
+    :data:`factors.threads.SIGNAL_POLL_S`), and the task is then let go; a wait without a timeout
+    would run it only once the task had ended (after 5 s, so that the test ends either way) and its
+    scan woke the waiter."""
+    with threads.thread_limit(2):  # the pool's workers start with SIGINT unblocked
+        threads.in_parallel(lambda lo, hi: time.sleep(0.01), 2, 1)
+    started, released = threading.Event(), threading.Event()
+    seen = []
+
+    def task(lo, hi):
+        if threading.current_thread() is threading.main_thread():
+            started.wait(5.0)  # the other range is the pool's: the caller's next wait is for its scan
+        else:
+            started.set()
+            released.wait(5.0)
+            released.set()
+
+    def handler(signum, frame):
+        seen.append(released.is_set())
+        released.set()  # the slow task ends now: in_parallel raises once every range has finished
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, handler)
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    sender = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    try:
+        sender.start()
+        with threads.thread_limit(2), pytest.raises(KeyboardInterrupt):
+            threads.in_parallel(task, 2, 1, scan=lambda lo, hi: None, then=lambda lo, hi: None)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        signal.signal(signal.SIGINT, previous)
+        sender.cancel()
+        released.set()
+    assert seen == [False]
