@@ -49,6 +49,7 @@ import numpy as np
 
 from factors import so3
 from factors.calibration import PART_COLUMNS
+from smoother.diagnosis.figures import plus_minus
 from smoother.diagnosis.verdicts import far_off
 
 #: Posterior over prior sigma from which a coordinate counts as not observed (the data shrank
@@ -124,17 +125,17 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
         a = against.get(name, {})
         parts = []
         if "time_offset_s" in r:
-            parts.append(f"time offset {r['time_offset_s']:+.4f} +- {r['time_offset_sigma_s']:.4f} s")
+            parts.append(f"time offset {plus_minus(r['time_offset_s'], r['time_offset_sigma_s'], digits=4)} s")
         if "rotation_sigma_rad" in r:
             angles = np.degrees(a.get("rotation_change_rad", [np.nan] * 3))
             sig = np.degrees(r["rotation_sigma_rad"])
-            parts.append("rotation turned by (" + ", ".join(f"{x:+.3f} +- {s:.3f}" for x, s in zip(angles, sig))
+            parts.append("rotation turned by (" + ", ".join(plus_minus(x, s, digits=3) for x, s in zip(angles, sig))
                          + ") deg")
         if "lever_arm_m" in r:
-            parts.append("lever arm (" + ", ".join(f"{a:+.4f} +- {s:.4f}" for a, s in
+            parts.append("lever arm (" + ", ".join(plus_minus(a, s, digits=4) for a, s in
                                                    zip(r["lever_arm_m"], r["lever_arm_sigma_m"])) + ") m")
         if "scale" in r:
-            parts.append(f"scale {r['scale']:.5f} +- {r['scale_sigma']:.5f}")
+            parts.append(f"scale {plus_minus(r['scale'], r['scale_sigma'], signed=False, digits=5)}")
         left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""

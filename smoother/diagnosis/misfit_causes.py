@@ -103,6 +103,7 @@ from datasets.ranges import RANGES
 from datasets.types import ImuSamples, Sensor, Trajectory
 from factors import imu
 from factors.calibration import PART_COLUMNS, Calibration, applicable
+from smoother.diagnosis.figures import plus_minus
 from smoother.diagnosis.verdicts import MIN_DOF, out_of_band
 from smoother.estimators import ESTIMATORS
 from smoother.model.blocks import Block, evaluate_block, linearize
@@ -162,14 +163,15 @@ class Cause:
         0.004 s``, ``rotation about y +3.00 deg +- 0.05 deg``, ``lever arm x +0.50 m +- 0.01 m``
         (rotation and lever arm: the significant axes of the IMU frame)."""
         if self.calibration == "scale":
-            return f"scale {_pm(1.0 + self.value[0], self.sigma[0], '', signed=False)}"
+            return f"scale {plus_minus(1.0 + self.value[0], self.sigma[0], '', signed=False)}"
         if self.calibration == "time_offset":
-            return f"time offset {_pm(self.value[0], self.sigma[0], ' s')}"
+            return f"time offset {plus_minus(self.value[0], self.sigma[0], ' s')}"
         axes = np.flatnonzero(self.significant)
         if self.calibration == "rotation":
-            return "rotation " + ", ".join(
-                f"about {'xyz'[a]} {_pm(np.degrees(self.value[a]), np.degrees(self.sigma[a]), ' deg')}" for a in axes)
-        return "lever arm " + ", ".join(f"{'xyz'[a]} {_pm(self.value[a], self.sigma[a], ' m')}" for a in axes)
+            degrees, sigmas = np.degrees(self.value), np.degrees(self.sigma)
+            return "rotation " + ", ".join(f"about {'xyz'[a]} {plus_minus(degrees[a], sigmas[a], ' deg')}"
+                                           for a in axes)
+        return "lever arm " + ", ".join(f"{'xyz'[a]} {plus_minus(self.value[a], self.sigma[a], ' m')}" for a in axes)
 
 
 def significant(calibration: str, value: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -177,12 +179,6 @@ def significant(calibration: str, value: np.ndarray, sigma: np.ndarray) -> np.nd
     :data:`SIGNIFICANCE` times its ``sigma`` and at least :data:`SMALLEST`."""
     size = np.abs(value)
     return (size > SIGNIFICANCE * sigma) & (size >= SMALLEST[calibration])
-
-
-def _pm(value: float, sigma: float, unit: str, signed: bool = True) -> str:
-    """``value +- sigma`` to the sigma's first two significant digits."""
-    digits = max(0, 1 - int(np.floor(np.log10(sigma)))) if sigma > 0 else 3
-    return f"{value:{'+' if signed else ''}.{digits}f}{unit} +- {sigma:.{digits}f}{unit}"
 
 
 def hint(causes: list[Cause]) -> str | None:
