@@ -356,26 +356,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     runtime_s = build_s + r.runtime_s
     fit = None
     if noise:
-        from smoother.batch.variance_components import estimate_noise
-        from smoother.diagnosis.noise_honesty import honest, to_analyse
-
-        before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
-        fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
-        runtime_s += fit.runtime_s
-        causes = None
-        if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
-            from smoother.diagnosis.misfit_causes import causes_at
-
-            causes = causes_at(fit.applied(dataset), r.trajectory, options.keyframe_rate, options.robust,
-                               calibration=r.calibration)
-        fit, errors = honest(fit, [f.sensor for f in mounting.wrong] if mounting is not None else (), causes)
-        applied = fit.applied(dataset)
-        if any(g.estimable and not g.applied and g.note.startswith("not applied") for g in fit.groups):
-            # a group kept at the rig's value as a model error: the estimate with the noise applied, from
-            # where the fit ended and from the estimate before it (a fit that a misfit drove may end far
-            # off, in another minimum), the lower cost kept
-            problem, r, seconds = solved_from_each(applied, (r, before), options)
-            runtime_s += seconds
+        fit, r, problem, errors, seconds = _honest_noise(dataset, problem, r, noise, options, mounting)
+        runtime_s += seconds
         details["noise"] = fit.record()
         if errors:
             details["noise_model_errors"] = {e.group: e.cause for e in errors}
@@ -394,21 +376,80 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
                     noise=fit, following=following)
 
 
+#: A noise fit is done again with its model errors at the rig's value at most this many times (:func:`_honest_noise`).
+MAX_REFITS = 3
+
+
+def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOptions, mounting=None) -> tuple:
+    """``(fit, result, problem, errors, seconds)``: the noise groups ``noise`` fitted from the batch
+    estimate ``r`` of ``problem`` (:func:`smoother.batch.variance_components.estimate_noise`), every
+    group that is a model error kept at the rig's value
+    (:func:`smoother.diagnosis.noise_honesty.honest`, with the sensors' misfit causes where it needs
+    them and the ``mounting`` check), the estimate with the noise applied and its problem, the model
+    errors and the time it all took.
+
+    The groups fitted beside a model error took up part of the misfit it followed (a gyro's noise
+    grown to follow an AHRS's delay leaves the AHRS's sigma fitted to the residuals that growth left),
+    so once some are held the rest are fitted again with those at the rig's value, from the estimate
+    with the rig's noise, and judged again, until no new model error is found -- at most
+    :data:`MAX_REFITS` times. Each group is reported from the last fit that estimated it."""
+    from smoother.batch.variance_components import estimate_noise
+    from smoother.diagnosis.noise_honesty import honest, to_analyse
+
+    wrong = [f.sensor for f in mounting.wrong] if mounting is not None else ()
+    before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
+    fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
+    order = [g.group.name for g in fit.groups]
+    seconds, iterations = fit.runtime_s, fit.iterations
+    held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
+    for refit in range(MAX_REFITS + 1):
+        causes = None
+        if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
+            from smoother.diagnosis.misfit_causes import causes_at
+
+            causes = causes_at(fit.not_grown().applied(dataset), r.trajectory, options.keyframe_rate,
+                               options.robust, calibration=r.calibration)
+        fit, found = honest(fit, wrong, causes)
+        errors += found
+        held.update({g.group.name: g for g in fit.groups if g.group.name in {e.group for e in found}})
+        if not found or refit == MAX_REFITS or len(held) == len(order):
+            break
+        problem, r = _solved_from(dataset, before, options, square_root=True)
+        seconds += r.runtime_s
+        fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations,
+                                         fixed=frozenset(held))
+        seconds += fit.runtime_s
+        iterations += fit.iterations
+    latest = {g.group.name: g for g in fit.groups}
+    fit = replace(fit, groups=[held.get(name) or latest[name] for name in order], iterations=iterations,
+                  runtime_s=seconds)
+    if found:
+        # groups kept at the rig's value by the last fit's judgement: the estimate with the noise applied,
+        # from where the fit ended and from the estimate before it (a fit that a misfit drove may end far
+        # off, in another minimum), the lower cost kept
+        problem, r, solved = solved_from_each(fit.applied(dataset), (r, before), options)
+        seconds += solved
+    return fit, r, problem, errors, seconds
+
+
+def _solved_from(dataset: Dataset, start, options: RunOptions, square_root: bool = False) -> tuple:
+    """``(problem, result)``: the batch smoother on ``dataset`` (with covariances; with
+    ``square_root``, their elimination kept, :func:`smoother.batch.solve.solve_batch`) from the
+    estimate ``start`` (its trajectory and calibration)."""
+    problem = build_problem(dataset, options.keyframe_rate, options.robust, start=start.trajectory)
+    if problem.calibration is not None and start.calibration is not None:
+        problem = replace(problem, calibration=start.calibration)
+    return problem, solve_batch(problem, options.optimizer, options.max_iterations, True, square_root=square_root)
+
+
 def solved_from_each(dataset: Dataset, starts, options: RunOptions) -> tuple:
     """``(problem, result, seconds)``: the batch smoother on ``dataset`` (with covariances) from
     each of the estimates ``starts`` (their trajectories and calibrations; any with a ``trajectory``
     and a ``calibration``), the one of lowest cost, and the time all took: where the problem may have
     more than one minimum, the best of those the starts lead to."""
-    runs, seconds = [], 0.0
-    for start in starts:
-        problem = build_problem(dataset, options.keyframe_rate, options.robust, start=start.trajectory)
-        if problem.calibration is not None and start.calibration is not None:
-            problem = replace(problem, calibration=start.calibration)
-        result = solve_batch(problem, options.optimizer, options.max_iterations, True)
-        seconds += result.runtime_s
-        runs.append((problem, result))
+    runs = [_solved_from(dataset, start, options) for start in starts]
     problem, result = min(runs, key=lambda run: run[1].error)
-    return problem, result, seconds
+    return problem, result, sum(run[1].runtime_s for run in runs)
 
 
 def _given_values_note(dataset: Dataset, kind: str) -> dict:

@@ -243,6 +243,12 @@ class NoiseFit:
             sensors.append(replace(sensor, data=data, heldout=heldout))
         return replace(dataset, noise=self.noise(dataset.noise), sensors=tuple(sensors))
 
+    def not_grown(self) -> "NoiseFit":
+        """The fit with every factor above 1 back at 1 (the rig's value): the noise under which a
+        misfit that the grown groups took up shows in the residuals again (a gyro's white noise grown
+        to follow an AHRS's delay hides the delay from the AHRS's residuals)."""
+        return replace(self, groups=[replace(g, factor=min(g.factor, 1.0)) for g in self.groups])
+
     def record(self) -> dict:
         """``metrics.json``'s ``noise`` record: ``{group name: GroupFit.record()}``, and ``_fit``."""
         return {**{g.group.name: g.record() for g in self.groups},
@@ -266,18 +272,22 @@ def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:
 
 
 def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, which, optimizer: str = "lm",
-                   max_iterations: int = 100) -> tuple[NoiseFit, SmootherResult, Problem]:
+                   max_iterations: int = 100, fixed=frozenset()) -> tuple[NoiseFit, SmootherResult, Problem]:
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
     (with covariances) and the problem with it: ``result`` (without a kept elimination) and
-    ``problem`` where no factor is applied. Every other group keeps the rig's noise. Where
-    ``result`` kept its covariances' elimination (:func:`smoother.batch.solve.solve_batch`'s
-    ``square_root``), the first evaluation reads it instead of making it again."""
+    ``problem`` where no factor is applied. Every other group keeps the rig's noise, and so do the
+    groups named in ``fixed`` (:attr:`NoiseGroup.name`; left out of the fit and of its groups: a
+    model error's, :mod:`smoother.diagnosis.noise_honesty`). Where ``result`` kept its covariances'
+    elimination (:func:`smoother.batch.solve.solve_batch`'s ``square_root``), the first evaluation
+    reads it instead of making it again."""
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
-    groups = noise_groups(dataset, which)
+    groups = [g for g in noise_groups(dataset, which) if g.name not in fixed]
+    if not groups:
+        raise InputError(f"noise estimation: every group of {', '.join(which)} is held at the rig's value")
     model = _NoiseModel(dataset, problem, groups)
     psi = np.zeros(len(groups))
     ties = [[g] for g in range(len(groups))]  # the parameters: groups sharing one factor (the rest: the rig's)

@@ -18,7 +18,9 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
 * a sensor's whitened residuals are alike from one measurement to the next (lag-one correlation
   beyond :data:`CORRELATED`) and a calibration explains them: a lever arm, a time offset, a rotation
   or a scale left out leaves residuals that follow the motion, which the sensor's misfit causes
-  (:mod:`smoother.diagnosis.misfit_causes`, fitted with the noise applied) name. Residuals alike in
+  (:mod:`smoother.diagnosis.misfit_causes`, fitted with the noise applied but every factor that grew
+  held at 1, :meth:`smoother.batch.variance_components.NoiseFit.not_grown`: a grown factor lets the
+  trajectory follow the misfit and hides it) name. Residuals alike in
   time that no calibration explains are the sensor's own drifting error (a GNSS receiver's, over
   seconds to minutes): the factor is their size and is applied, with a note that the estimate takes
   them as independent. A sensor estimating part of its calibration has the other parts analysed at
@@ -36,7 +38,9 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   noise, grown 24x, took up, far beside its datasheet and gone once the delay was estimated (2.7x).
   Every grown IMU component and the sensor's grown groups are that misfit, not noise.
 
-Each such group keeps the rig's value, and the run stays doubtful with the cause.
+Each such group keeps the rig's value, and the run stays doubtful with the cause; the run's other
+groups are fitted again with it held (by the run, :mod:`smoother.pipeline`), since they took up
+part of the same misfit.
 """
 from __future__ import annotations
 
@@ -100,7 +104,8 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
     """``fit`` with every group that is a model error (module docstring) kept at the rig's value,
     and those errors. ``mounting_wrong``: the sensors whose mounting the closed-form check found
     wrong. ``causes``: per sensor analysed, its misfit causes
-    (:func:`smoother.diagnosis.misfit_causes.causes_at` with the fitted noise applied), which tell a
+    (:func:`smoother.diagnosis.misfit_causes.causes_at` with the fitted noise applied, no factor
+    grown: :meth:`~smoother.batch.variance_components.NoiseFit.not_grown`), which tell a
     systematic error from a drifting one among residuals alike in time."""
     errors: dict[str, str] = {}
     drifting: dict[str, str] = {}
