@@ -392,7 +392,8 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     grown to follow an AHRS's delay leaves the AHRS's sigma fitted to the residuals that growth left),
     so once some are held the rest are fitted again with those at the rig's value, from the estimate
     with the rig's noise, and judged again, until no new model error is found -- at most
-    :data:`MAX_REFITS` times. Each group is reported from the last fit that estimated it."""
+    :data:`MAX_REFITS` times. Each group is reported from the last fit that estimated it; the
+    fit's iterations are those of all the fits, and it converged where each did."""
     from smoother.batch.variance_components import estimate_noise
     from smoother.diagnosis.noise_honesty import honest, to_analyse
 
@@ -400,7 +401,7 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
     fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
     order = [g.group.name for g in fit.groups]
-    seconds, iterations = fit.runtime_s, fit.iterations
+    seconds, iterations, converged, fits = fit.runtime_s, fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
     for refit in range(MAX_REFITS + 1):
         causes = None
@@ -419,10 +420,10 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations,
                                          fixed=frozenset(held))
         seconds += fit.runtime_s
-        iterations += fit.iterations
+        iterations, converged, fits = iterations + fit.iterations, converged and fit.converged, fits + 1
     latest = {g.group.name: g for g in fit.groups}
     fit = replace(fit, groups=[held.get(name) or latest[name] for name in order], iterations=iterations,
-                  runtime_s=seconds)
+                  converged=converged, runtime_s=seconds, fits=fits)
     if found:
         # groups kept at the rig's value by the last fit's judgement: the estimate with the noise applied,
         # from where the fit ended and from the estimate before it (a fit that a misfit drove may end far

@@ -201,12 +201,14 @@ class GroupFit:
 @dataclass
 class NoiseFit:
     """The fitted noise: each group's :class:`GroupFit`, the iterations, whether they converged,
-    and the factors to apply (:meth:`applied`)."""
+    and the factors to apply (:meth:`applied`); ``fits``: how many fits its groups come from (a
+    run fits again with the groups found model errors held, :mod:`smoother.diagnosis.noise_honesty`)."""
 
     groups: list[GroupFit]
     iterations: int
     converged: bool
     runtime_s: float = 0.0
+    fits: int = 1
 
     def factor_of(self, sensor: str, part: str) -> float:
         """The factor applied to a group (1 where none is)."""
@@ -252,7 +254,8 @@ class NoiseFit:
     def record(self) -> dict:
         """``metrics.json``'s ``noise`` record: ``{group name: GroupFit.record()}``, and ``_fit``."""
         return {**{g.group.name: g.record() for g in self.groups},
-                "_fit": {"iterations": self.iterations, "converged": self.converged, "runtime_s": self.runtime_s}}
+                "_fit": {"iterations": self.iterations, "converged": self.converged, "runtime_s": self.runtime_s,
+                         "fits": self.fits}}
 
 
 def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:

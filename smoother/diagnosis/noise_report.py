@@ -16,7 +16,9 @@ from __future__ import annotations
 def noise_lines(record: dict) -> list[str]:
     """The printed lines of a noise fit's ``record`` (``{group: record, "_fit": ...}``)."""
     fit = record.get("_fit", {})
-    lines = [f"noise fitted by the batch smoother ({fit.get('iterations', '?')} iterations"
+    fits = fit.get("fits", 1)
+    again = f" in {fits} fits, each with the model errors found before it held" if fits > 1 else ""
+    lines = [f"noise fitted by the batch smoother ({fit.get('iterations', '?')} iterations{again}"
              f"{'' if fit.get('converged', True) else ', NOT converged'}):"]
     for name, g in record.items():
         if name.startswith("_"):

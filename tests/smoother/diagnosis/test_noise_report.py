@@ -6,7 +6,7 @@ from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
 from smoother.diagnosis.noise_report import noise_lines
 
 
-def _record(converged=True) -> dict:
+def _record(converged=True, fits=1) -> dict:
     groups = [
         GroupFit(NoiseGroup("imu", "gyro"), 27.3, 2.4, 76.0, 0.00478, "rad/s/sqrt(Hz)"),
         GroupFit(NoiseGroup("imu", "acc"), 3.57, 0.48, 12.4, 0.0357, "m/s^2/sqrt(Hz)", merged_with=("imu.acc_bias",)),
@@ -16,7 +16,7 @@ def _record(converged=True) -> dict:
                  note="the rig's value kept: within 3 sd of it"),
         GroupFit(NoiseGroup("wheel", "speed", (0,)), 2.0, 0.1, 40.0, None, "", applied=False),
     ]
-    return NoiseFit(groups, iterations=12, converged=converged).record()
+    return NoiseFit(groups, iterations=12, converged=converged, fits=fits).record()
 
 
 def test_one_line_per_group_with_its_value_factor_and_fate():
@@ -36,6 +36,12 @@ def test_one_line_per_group_with_its_value_factor_and_fate():
 def test_a_fit_that_did_not_converge_says_so_in_its_header():
     header = noise_lines(_record(converged=False))[0]
     assert header == "noise fitted by the batch smoother (12 iterations, NOT converged):"
+
+
+def test_a_fit_made_again_with_its_model_errors_held_says_how_many_fits():
+    header = noise_lines(_record(fits=3))[0]
+    assert header == ("noise fitted by the batch smoother (12 iterations in 3 fits, each with the model errors found "
+                      "before it held):")
 
 
 def test_a_noise_the_run_s_halves_disagree_on_says_each_half_s_factor():
