@@ -393,15 +393,18 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     so once some are held the rest are fitted again with those at the rig's value, from the estimate
     with the rig's noise, and judged again, until no new model error is found -- at most
     :data:`MAX_REFITS` times. Each group is reported from the last fit that estimated it; the
-    fit's iterations are those of all the fits, and it converged where each did."""
+    fit's iterations are those of all the fits, and it converged where each did and the last one
+    found no new model error beside groups it applied. ``seconds`` and the fit's ``runtime_s``
+    count everything here (the fits, the misfit causes, the solves between them)."""
     from smoother.batch.variance_components import estimate_noise
     from smoother.diagnosis.noise_honesty import honest, to_analyse
 
+    tick = time.perf_counter()
     wrong = [f.sensor for f in mounting.wrong] if mounting is not None else ()
     before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
     fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
     order = [g.group.name for g in fit.groups]
-    seconds, iterations, converged, fits = fit.runtime_s, fit.iterations, fit.converged, 1
+    iterations, converged, fits = fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
     for refit in range(MAX_REFITS + 1):
         causes = None
@@ -416,21 +419,23 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         if not found or refit == MAX_REFITS or len(held) == len(order):
             break
         problem, r = _solved_from(dataset, before, options, square_root=True)
-        seconds += r.runtime_s
         fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations,
                                          fixed=frozenset(held))
-        seconds += fit.runtime_s
         iterations, converged, fits = iterations + fit.iterations, converged and fit.converged, fits + 1
     latest = {g.group.name: g for g in fit.groups}
-    fit = replace(fit, groups=[held.get(name) or latest[name] for name in order], iterations=iterations,
-                  converged=converged, runtime_s=seconds, fits=fits)
+    # a held group is reported as fitted, tied only to the groups held with it (the others were fitted again)
+    reported = [replace(held[name], merged_with=tuple(m for m in held[name].merged_with if m in held))
+                if name in held else latest[name] for name in order]
+    # the last fit allowed still found model errors: the groups it applied were fitted beside them
+    exhausted = bool(found) and refit == MAX_REFITS and len(held) < len(order)
+    fit = replace(fit, groups=reported, iterations=iterations, converged=converged and not exhausted,
+                  runtime_s=time.perf_counter() - tick, fits=fits)
     if found:
         # groups kept at the rig's value by the last fit's judgement: the estimate with the noise applied,
         # from where the fit ended and from the estimate before it (a fit that a misfit drove may end far
         # off, in another minimum), the lower cost kept
-        problem, r, solved = solved_from_each(fit.applied(dataset), (r, before), options)
-        seconds += solved
-    return fit, r, problem, errors, seconds
+        problem, r, _ = solved_from_each(fit.applied(dataset), (r, before), options)
+    return fit, r, problem, errors, time.perf_counter() - tick
 
 
 def _solved_from(dataset: Dataset, start, options: RunOptions, square_root: bool = False) -> tuple:

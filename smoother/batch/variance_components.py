@@ -202,7 +202,7 @@ class GroupFit:
 class NoiseFit:
     """The fitted noise: each group's :class:`GroupFit`, the iterations, whether they converged,
     and the factors to apply (:meth:`applied`); ``fits``: how many fits its groups come from (a
-    run fits again with the groups found model errors held, :mod:`smoother.diagnosis.noise_honesty`)."""
+    run fits again with the groups found model errors held, :mod:`smoother.pipeline`)."""
 
     groups: list[GroupFit]
     iterations: int
@@ -288,7 +288,11 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
-    groups = [g for g in noise_groups(dataset, which) if g.name not in fixed]
+    every = noise_groups(dataset, which)
+    if unknown := set(fixed) - {g.name for g in every}:
+        raise InputError(f"noise estimation: no group {', '.join(sorted(unknown))} to hold; expected among "
+                         f"{', '.join(g.name for g in every)}")
+    groups = [g for g in every if g.name not in fixed]
     if not groups:
         raise InputError(f"noise estimation: every group of {', '.join(which)} is held at the rig's value")
     model = _NoiseModel(dataset, problem, groups)

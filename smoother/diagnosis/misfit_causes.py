@@ -260,12 +260,9 @@ def _whitened(block: Block, X: dict, scale: np.ndarray) -> np.ndarray:
 def _row_scale(block: Block, states: imu.ImuState, calibration) -> tuple:
     """``(evaluated, scale)``: ``block`` evaluated with its Jacobians at ``states`` (reweighted by
     its robust kernel, as the batch's system has it) and the kernel's row scale ``sqrt(w)`` per
-    residual entry (the reweighted whitened residual over the plain one; 1 without a kernel)."""
+    residual entry (:attr:`smoother.model.blocks.Evaluated.scale`; 1 without a kernel)."""
     ev = evaluate_block(block, states, True, calibration=calibration)
-    if block.robust is None:
-        return ev, np.ones_like(ev.e)
-    plain = evaluate_block(block, states, False, calibration=calibration, reweight=False).e
-    return ev, np.divide(ev.e, plain, out=np.ones_like(plain), where=plain != 0)
+    return ev, np.ones_like(ev.e) if ev.scale is None else np.broadcast_to(ev.scale, ev.e.shape)
 
 
 def _prior(X: dict) -> np.ndarray:

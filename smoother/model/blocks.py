@@ -77,6 +77,8 @@ class Evaluated:
     e: np.ndarray  # whitened and reweighted residuals (M, d)
     A: list  # whitened and reweighted Jacobians, one (M, d, 15) per slot
     loss: float
+    #: the robust kernel's row scale ``sqrt(w(|e_w|))`` (M, 1) applied to ``e`` and ``A``; None without one
+    scale: np.ndarray | None = None
 
 
 def block_residual(block: Block, slots: list, jacobians: bool, rows, calibration=None):
@@ -118,7 +120,7 @@ def evaluate_block(block: Block, states: imu.ImuState, jacobians: bool, rows=sli
             A = [a * scale[..., None] for a in A]
     if scale is not None:
         e_w = e_w * scale
-    return Evaluated(e_w, A, loss)
+    return Evaluated(e_w, A, loss, scale)
 
 
 def evaluated_chunks(block: Block, states: imu.ImuState, jacobians: bool, calibration=None,
