@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.types import Dataset, Trajectory
-from factors.errors import BoxplusError, InputError
+from factors.errors import BoxplusError, InputError, SolverError
 from factors.threads import interrupts_held
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.calibration_report import calibration_records
@@ -394,7 +394,8 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     with the rig's noise, and judged again, until no new model error is found -- at most
     :data:`MAX_REFITS` times. Each group is reported from the last fit that estimated it; the
     fit's iterations are those of all the fits, and it converged where each did and the last one
-    found no new model error beside groups it applied. ``seconds`` and the fit's ``runtime_s``
+    found no new model error beside groups it applied (a fit again that fails, a SolverError, leaves
+    the last one standing, with a warning). ``seconds`` and the fit's ``runtime_s``
     count everything here (the fits, the misfit causes, the solves between them)."""
     from smoother.batch.variance_components import estimate_noise
     from smoother.diagnosis.noise_honesty import honest, to_analyse
@@ -406,6 +407,7 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     order = [g.group.name for g in fit.groups]
     iterations, converged, fits = fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
+    failed = False
     for refit in range(MAX_REFITS + 1):
         causes = None
         if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
@@ -418,16 +420,24 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         held.update({g.group.name: g for g in fit.groups if g.group.name in {e.group for e in found}})
         if not found or refit == MAX_REFITS or len(held) == len(order):
             break
-        problem, r = _solved_from(dataset, before, options, square_root=True)
-        fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations,
-                                         fixed=frozenset(held))
+        try:
+            start_problem, start = _solved_from(dataset, before, options, square_root=True)
+            again = estimate_noise(dataset, start_problem, start, noise, options.optimizer, options.max_iterations,
+                                   fixed=frozenset(held))
+        except SolverError as error:  # the last fit stands, its applied groups fitted beside those held
+            warnings.warn(f"noise estimation: fitting again with {', '.join(held)} at the rig's value failed "
+                          f"({error}); the other groups keep the values fitted beside them", stacklevel=2)
+            failed = True
+            break
+        fit, r, problem = again
         iterations, converged, fits = iterations + fit.iterations, converged and fit.converged, fits + 1
     latest = {g.group.name: g for g in fit.groups}
     # a held group is reported as fitted, tied only to the groups held with it (the others were fitted again)
     reported = [replace(held[name], merged_with=tuple(m for m in held[name].merged_with if m in held))
                 if name in held else latest[name] for name in order]
-    # the last fit allowed still found model errors: the groups it applied were fitted beside them
-    exhausted = bool(found) and refit == MAX_REFITS and len(held) < len(order)
+    # the last fit allowed (or the last that could be made) still found model errors: the groups it
+    # applied were fitted beside them
+    exhausted = bool(found) and (refit == MAX_REFITS or failed) and len(held) < len(order)
     fit = replace(fit, groups=reported, iterations=iterations, converged=converged and not exhausted,
                   runtime_s=time.perf_counter() - tick, fits=fits)
     if found:

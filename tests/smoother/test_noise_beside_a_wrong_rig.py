@@ -9,6 +9,7 @@ import re
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from datasets import trajectories
 from datasets.simulate import simulate
@@ -74,3 +75,28 @@ def test_a_fit_whose_last_allowed_refit_still_finds_a_model_error_is_not_converg
     fit = run_estimators(_delayed_ahrs(), ["batch"], RunOptions(progress=False, estimate_noise=NOISE))["batch"].noise
     assert fit.fits == 2 and not fit.converged and not fit.record()["_fit"]["converged"]
     assert "imu.gyro" in {g.group.name for g in fit.groups if g.note.startswith("not applied")}
+
+
+def test_a_fit_again_that_fails_leaves_the_last_fit_standing_and_says_so(monkeypatch):
+    """The second fit fails in the solver: a warning names the groups held, the first fit's
+    refusals stand, the groups it applied keep their values (not converged), and the run goes on."""
+    import smoother.batch.variance_components as vc
+    from factors.errors import SolverError
+
+    fit_once = vc.estimate_noise
+    calls = []
+
+    def failing_again(*args, **kwargs):
+        calls.append(kwargs.get("fixed"))
+        if kwargs.get("fixed"):
+            raise SolverError("the covariances' elimination failed")
+        return fit_once(*args, **kwargs)
+
+    monkeypatch.setattr(vc, "estimate_noise", failing_again)
+    with pytest.warns(UserWarning, match=r"fitting again with imu\.\w+, imu\.\w+ at the rig's value failed \(the "
+                                         r"covariances' elimination failed\)"):
+        batch = run_estimators(_delayed_ahrs(), ["batch"], RunOptions(progress=False, estimate_noise=NOISE))["batch"]
+    fit = batch.noise
+    assert len(calls) == 2 and fit.fits == 1 and not fit.converged
+    assert {g.group.name for g in fit.groups if g.note.startswith("not applied")} == set(calls[1])
+    assert batch.trajectory is not None and batch.failed is None
