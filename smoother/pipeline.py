@@ -58,7 +58,7 @@ class Estimate:
     #: both (:func:`smoother.model.between.states_between`).
     following: object = None
     #: The held-out measurements as the estimator predicted them itself, per sensor (the EKF's,
-    #: :class:`smoother.ekf.filter.HeldoutPrediction`), where it does.
+    #: :class:`smoother.model.predicted.HeldoutPrediction`), where it does.
     heldout: object = None
 
 

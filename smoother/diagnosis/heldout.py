@@ -1,18 +1,18 @@
 """A verdict from data the fit did not use: each sensor's held-out measurements (a rig's
 ``every = K``: every K-th measurement used, the rest held out) predicted by an estimate.
 
-A held-out measurement ``z`` at time ``t`` is predicted from the estimate's state there -- its own
-where ``t`` is one of its states; between two of them (held-out times are no keyframes), a
-smoother's bridged between both through the IMU's Euler steps with the joint covariance of the
-two, else carried from the one before with the EKF's covariance step
-(:func:`smoother.model.between.states_between`) -- through the sensor's model and the estimator's
-calibration, ``e = h(x^) - z`` (with a calibration, the calibrated residual of
-:func:`datasets.kinds.calibrated_rows`), with the covariance
+A held-out measurement ``z`` at time ``t`` (its stamp, plus the time offset where the estimator
+estimated one) is predicted from the estimate's state there -- its own where ``t`` is one of its
+states; between two of them (held-out times are no keyframes), a smoother's bridged between both
+through the IMU's Euler steps with the joint covariance of the two, else carried from the one
+before with the EKF's covariance step (:func:`smoother.model.between.states_between`) -- through
+the sensor's model and the estimator's calibration, ``e = h(x^) - z`` (with a calibration, the
+calibrated residual of :func:`datasets.kinds.calibrated_rows`), with the covariance
 
     S = H P H^T + R
 
 (``P`` the state's marginal covariance there, ``R`` the measurement's). The EKF predicts its
-held-out measurements in its own loop (:class:`smoother.ekf.filter.HeldoutPrediction`): from its
+held-out measurements in its own loop (:class:`smoother.model.predicted.HeldoutPrediction`): from its
 state at ``t`` after the updates before and at ``t``, with its calibrations then and their
 uncertainty in ``P`` -- the filter's innovation of ``z``, not used. The estimate did not use ``z``,
 so for a model that fits ``e^T S^-1 e`` is chi-square with the measurement's dimension, and a
@@ -48,13 +48,15 @@ rather than blame the sigma.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from datasets.kinds import KINDS, calibrated_rows, measure_rows, sensors_of
 from datasets.types import Dataset, Trajectory
 from smoother.diagnosis.verdicts import verdict
-from smoother.ekf.filter import HeldoutPrediction
 from smoother.model.between import Following, states_between
+from smoother.model.predicted import HeldoutPrediction
 from smoother.model.timeline import STATES_CHUNK
 from smoother.stats import dof_means_apart
 
@@ -124,9 +126,10 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     through ``dataset``'s IMU with its noise (a run's dataset as its estimators ran on it, the
     fitted noise included): bridged between its states with ``following``, each state's next
     with their joint covariance (a smoother's), else carried from the one before
-    (:func:`smoother.model.between.states_between`) -- or, for a sensor in ``predictions`` (a
-    filter's, :class:`smoother.ekf.filter.HeldoutPrediction`), its residuals and ``H P H^T`` as
-    the filter predicted them in its loop, from its own state at each held-out time. Held-out
+    (:func:`smoother.model.between.states_between`; :func:`heldout_predictions`) -- or, for a
+    sensor in ``predictions`` with their ``H P H^T`` (a filter's,
+    :class:`smoother.model.predicted.HeldoutPrediction`), its residuals and ``H P H^T`` as the
+    filter predicted them in its loop, from its own state at each held-out time. Held-out
     measurements outside the trajectory's span are left out; a sensor with none left has no
     verdict."""
     if trajectory.cov is None or not len(trajectory.t):
@@ -137,12 +140,10 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         held = sensor.heldout
         if held is None or kind.relative or len(held.t) == 0:
             continue
-        if predictions is not None and sensor.name in predictions:
-            own = predictions[sensor.name]
-            index, e, state_part = own.index, own.e, own.state_part
-        else:
-            index = np.flatnonzero((held.t >= trajectory.t[0]) & (held.t <= min(trajectory.t[-1], dataset.imu.t[-1])))
-            e, state_part = _predicted(dataset, trajectory, calibration, following, sensor, index)
+        own = (predictions or {}).get(sensor.name)
+        if own is None or own.state_part is None:
+            own = _predicted(dataset, trajectory, calibration, following, sensor)
+        index, e, state_part = own.index, own.e, own.state_part
         if not len(index):
             continue
         S = state_part + held.cov[index]
@@ -164,28 +165,51 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     return out
 
 
+def heldout_predictions(dataset: Dataset, trajectory: Trajectory, calibration=None, following: Following | None = None,
+                        sensors=None, covariances: bool = True) -> dict[str, HeldoutPrediction]:
+    """Per sensor of ``dataset`` (of ``sensors``, names, when given) with held-out measurements of
+    an absolute kind, their prediction through ``trajectory`` (:class:`HeldoutPrediction`): the
+    held-out measurements inside its span, each predicted from its state at that time -- bridged
+    between its states with ``following``, else carried from the one before
+    (:func:`smoother.model.between.states_between`, through ``dataset``'s IMU and noise) -- through
+    the sensor's model and the estimator's ``calibration`` (module docstring). With
+    ``covariances`` (and a trajectory that has them) each one's ``H P H^T`` too; without, only
+    the residuals (``state_part`` None): what a metric needs."""
+    if not covariances and following is None:
+        trajectory = replace(trajectory, cov=None)  # carried without the covariance step
+    out = {}
+    for sensor in sensors_of(dataset):
+        kind = KINDS[sensor.kind]
+        if (sensors is not None and sensor.name not in sensors) or sensor.heldout is None or kind.relative:
+            continue
+        if len(sensor.heldout.t):
+            out[sensor.name] = _predicted(dataset, trajectory, calibration, following, sensor, covariances)
+    return out
+
+
 def _predicted(dataset: Dataset, trajectory: Trajectory, calibration, following: Following | None, sensor,
-               index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(e, H P H^T)`` of ``sensor``'s held-out measurements ``index`` through ``trajectory``'s
-    states at their times (:func:`heldout_consistency`), a chunk of them at a time: ``P`` is 15x15
-    each."""
+               covariances: bool = True) -> HeldoutPrediction:
+    """:func:`heldout_predictions` of one ``sensor``, a chunk of its held-out measurements at a
+    time (``P`` is 15x15 each). A sensor whose time offset the estimator has is predicted at the
+    time it gives each measurement, its stamp plus that offset, with the rest of its calibration."""
     kind, held = KINDS[sensor.kind], sensor.heldout
-    rows = kind.pack(held)[index]
     calibrated = calibration is not None and sensor.name in calibration.names
-    j = calibration.names.index(sensor.name) if calibrated else None
-    parts = [(np.zeros((0, kind.dim)), np.zeros((0, kind.dim, kind.dim)))]
+    c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
+    times = held.t if c is None else held.t + c.time_offset
+    if c is not None:
+        c = replace(c, time_offset=0.0)  # taken at the time it gives: no extrapolation through the IMU reading
+    index = np.flatnonzero((times >= trajectory.t[0]) & (times <= min(trajectory.t[-1], dataset.imu.t[-1])))
+    rows = kind.pack(held)[index]
+    covariances = covariances and trajectory.cov is not None
+    errors, shares = [np.zeros((0, kind.dim))], [np.zeros((0, kind.dim, kind.dim))]
     for lo in range(0, len(index), STATES_CHUNK):
         part = slice(lo, lo + STATES_CHUNK)
-        t = held.t[index[part]]
-        at = states_between(trajectory, dataset.imu, t, dataset.noise, dataset.gravity, following)
-        if j is None:
+        at = states_between(trajectory, dataset.imu, times[index[part]], dataset.noise, dataset.gravity, following)
+        if c is None:
             e, H = measure_rows(kind, at.states, rows[part])
         else:
-            c, readings = calibration.values[j], None
-            if "time_offset" in calibration.priors[j].parts:
-                steps = dataset.imu.held(t)
-                readings = (dataset.imu.acc[steps], dataset.imu.gyro[steps])
-            e, H, _ = calibrated_rows(kind, at.states, rows[part], c, readings, dataset.gravity)
-        parts.append((e, H @ at.cov @ np.swapaxes(H, -1, -2)))
-    e, state_part = (np.concatenate(p) for p in zip(*parts))
-    return e, state_part
+            e, H, _ = calibrated_rows(kind, at.states, rows[part], c, None, dataset.gravity)
+        errors.append(e)
+        if covariances:
+            shares.append(H @ at.cov @ np.swapaxes(H, -1, -2))
+    return HeldoutPrediction(index, np.concatenate(errors), np.concatenate(shares) if covariances else None)

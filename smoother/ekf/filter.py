@@ -8,8 +8,8 @@ innovation of an attitude is the boxminus ``C [-] C_meas`` and the correction is
 the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Joseph form, kept
 symmetric. An optional chi-square gate rejects measurements whose normalised innovation is
 improbable. A sensor's held-out measurements (a rig's ``every = K``) are predicted in the same
-loop and not used (:class:`HeldoutPrediction`): the filter's own prediction of data it did not
-use. The update, its gate, the order of the updates and the divergence test are
+loop and not used (:class:`smoother.model.predicted.HeldoutPrediction`): the filter's own
+prediction of data it did not use. The update, its gate, the order of the updates and the divergence test are
 :mod:`smoother.ekf.update`'s; the compiled loop over the knots (:func:`run_filter`) is shared with
 the calibrating filter (:mod:`smoother.ekf.calibrated`), which carries the sensors' calibrations
 as augmented states through it.
@@ -33,6 +33,7 @@ from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, predict_only, update_order
+from smoother.model.predicted import HeldoutPrediction
 from smoother.model.timeline import imu_steps, measurement_knots
 from smoother.progress import progress_bar
 
@@ -112,20 +113,6 @@ class Innovations:
     dim: np.ndarray
     nis: np.ndarray
     accepted: np.ndarray
-
-
-@dataclass
-class HeldoutPrediction:
-    """A filter's own prediction of a sensor's held-out measurements (those within the IMU's span):
-    at each one's time, after the updates taken then, the residual ``e = h(x^) - z`` of the state
-    and the calibrations the filter had then (``e (M, d)``) and the share of its innovation
-    covariance that is the filter's, ``H P H^T`` (``state_part (M, d, d)``; ``P`` the whole
-    augmented covariance, so a calibration's uncertainty is in it); ``index (M,)`` their places
-    among the sensor's held-out measurements."""
-
-    index: np.ndarray
-    e: np.ndarray
-    state_part: np.ndarray
 
 
 @dataclass

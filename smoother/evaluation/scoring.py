@@ -11,10 +11,11 @@ too few states or too short a part of the run they are null and ``ate_note`` say
 ``gps_fit_residual_m`` over the fixes the estimators used -- a residual: how closely the estimate
 fits measurements it was fitted to, which a smoother that follows every fix (and the noise in it)
 makes small without being accurate; estimators are compared by held-out fixes only. Both with
-the estimate at each fix's time taken through the IMU from its states about it
-(:func:`position_residuals` with the run's dataset): keyframes need not include the fixes'
-times. The EKF's held-out fixes are scored from its own state at their times, as its loop
-predicted them (:func:`score`'s ``predictions``). :func:`interpolation_baseline` is the
+the estimate at each fix's time taken through the IMU from its states about it: keyframes need
+not include the fixes' times. The held-out fixes are scored by the predictions their verdict
+judges (:func:`smoother.diagnosis.heldout.heldout_predictions`; the EKF's from its own state at
+their times, as its loop predicted them: :func:`score`'s ``predictions``), the used ones by
+:func:`position_residuals` with the run's dataset. :func:`interpolation_baseline` is the
 yardstick for the held-out figures: the used fixes interpolated to the held-out times, no IMU.
 
 Over time, for the figures (:mod:`smoother.outputs.plots`): the same errors per compared state
@@ -33,6 +34,7 @@ import numpy as np
 
 from datasets.euroc import GROUNDTRUTH_GAP_FACTOR
 from datasets.types import Dataset, PositionMeasurements, Trajectory
+from smoother.diagnosis.heldout import heldout_predictions
 from smoother.evaluation import metrics
 from smoother.model.between import Following, states_between
 from smoother.model.timeline import STATES_CHUNK
@@ -269,20 +271,23 @@ def score(dataset: Dataset, estimate: Trajectory, calibration=None, following: F
           predictions: dict | None = None) -> dict:
     """Every metric the dataset allows for one estimate (the fixes of the sensors it calibrated
     at its ``calibration``, :func:`position_streams`; a smoother's states between keyframes bridged
-    with its ``following``, :func:`position_residuals`). A sensor in ``predictions`` (the EKF's
-    own predictions of its held-out measurements, :class:`smoother.ekf.filter.HeldoutPrediction`:
-    the antenna's residual, from its state at each fix's time) has its held-out fixes scored by
-    them."""
+    with its ``following``, :func:`position_residuals`). The held-out fixes are scored by the
+    estimate's prediction of them, the antenna's residual from its state at each fix's time: the
+    estimator's own, for a sensor in ``predictions`` (the EKF's, taken in its loop,
+    :class:`smoother.model.predicted.HeldoutPrediction`), else the one its verdict judges
+    (:func:`smoother.diagnosis.heldout.heldout_predictions`)."""
     out: dict = {}
     if dataset.truth is not None:
         out.update(against_truth(dataset.truth, estimate))
     streams = position_streams(dataset, calibration)
-    predictions = predictions or {}
+    predictions = dict(predictions or {})
+    missing = [name for name, _, h in streams if h is not None and name not in predictions]
+    if missing:
+        predictions.update(heldout_predictions(dataset, estimate, calibration, following, missing, covariances=False))
     used = [u for _, u, _ in streams if u is not None]
-    heldout = [h for name, _, h in streams if h is not None and name not in predictions]
     own = [predictions[name].e for name, _, h in streams if h is not None and name in predictions]
-    if used or heldout or own:
-        held = np.concatenate([_residuals(heldout, estimate, dataset, following), *own])
+    if used or own:
+        held = np.concatenate([np.empty((0, 3)), *own])
         out["gps_heldout_rmse_m"] = rms_distance(held)
         out["gps_heldout_horizontal_rmse_m"] = rms_distance(held, slice(0, 2))
         out["gps_heldout_vertical_rmse_m"] = rms_distance(held, slice(2, 3))
