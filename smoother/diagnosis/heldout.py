@@ -115,7 +115,8 @@ def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float 
 def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=None,
                         following: Following | None = None,
                         predictions: dict[str, HeldoutPrediction] | None = None) -> dict[str, dict]:
-    """Per sensor with held-out measurements of an absolute kind, the :func:`verdict` of their
+    """Per sensor with held-out measurements of an absolute kind (one that holds every measurement
+    out, a sensor only checking the estimate, too), the :func:`verdict` of their
     normalised prediction errors through ``trajectory`` (with its covariances) and the
     estimator's calibration variables ``calibration`` (a :class:`factors.calibration.CalibrationSet`
     or None: the values given), statistic ``"heldout"``, with ``state_share``: the mean share of
@@ -135,7 +136,7 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
     if trajectory.cov is None or not len(trajectory.t):
         return {}
     out = {}
-    for sensor in sensors_of(dataset):
+    for sensor in _holding_out(dataset):
         kind = KINDS[sensor.kind]
         held = sensor.heldout
         if held is None or kind.relative or len(held.t) == 0:
@@ -156,7 +157,7 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         record = verdict(float(nis[good].sum()), float(d * good.sum()), int(good.sum()), "heldout")
         out[sensor.name] = {**record, "state_share": float(np.mean(share)),
                             "sigma_factor": sigma_factor(e[good], state_part[good], held.cov[index][good])}
-        used = np.sort(sensor.data.t)
+        used = np.sort(sensor.data.t) if sensor.data is not None else np.zeros(0)
         if len(used):
             at = held.t[index][good]
             i = np.searchsorted(used, at)
@@ -178,13 +179,21 @@ def heldout_predictions(dataset: Dataset, trajectory: Trajectory, calibration=No
     if not covariances and following is None:
         trajectory = replace(trajectory, cov=None)  # carried without the covariance step
     out = {}
-    for sensor in sensors_of(dataset):
+    for sensor in _holding_out(dataset):
         kind = KINDS[sensor.kind]
         if (sensors is not None and sensor.name not in sensors) or sensor.heldout is None or kind.relative:
             continue
         if len(sensor.heldout.t):
             out[sensor.name] = _predicted(dataset, trajectory, calibration, following, sensor, covariances)
     return out
+
+
+def _holding_out(dataset: Dataset) -> list:
+    """The sensors of ``dataset`` with held-out measurements, those it holds out whole (no
+    measurement used: a sensor that only checks the estimate) among them, their kinds checked
+    (:func:`datasets.kinds.sensors_of`)."""
+    sensors_of(dataset)
+    return [s for s in dataset.sensors if s.heldout is not None]
 
 
 def _predicted(dataset: Dataset, trajectory: Trajectory, calibration, following: Following | None, sensor,

@@ -204,3 +204,27 @@ def test_a_delayed_sensor_s_held_out_fixes_are_predicted_at_its_stamp_plus_the_e
     assert score(data, truth, found)["gps_heldout_rmse_m"] == rms_distance(predicted.e)
     at_stamps = heldout_predictions(data, truth, None, covariances=False)["position"]
     assert rms_distance(at_stamps.e) > 0.1  # the offset matters: 0.2 m at these speeds
+
+
+def test_a_sensor_that_holds_every_measurement_out_is_judged_and_scored_by_its_predictions():
+    """A second position sensor, none of its fixes used (it only checks the estimate): its held-out
+    fixes have a verdict, in band on the truth-consistent data, without the near/far split (no used
+    measurement to be near), and the metrics' held-out RMS counts them."""
+    from smoother.evaluation.scoring import rms_distance, score
+
+    data = _held_out(0)
+    s = data.sensor("position")
+    checking = replace(s, name="check", data=None, heldout=s.heldout)
+    data = replace(data, sensors=(replace(s, heldout=None), checking))
+    batch = solve_batch(build_problem(data))
+    following = Following.of_batch(batch.trajectory, joint_blocks(batch.joint, np.arange(len(batch.trajectory.t) - 1),
+                                                                  np.arange(1, len(batch.trajectory.t))))
+    verdicts = heldout_consistency(data, batch.trajectory, following=following)
+    assert set(verdicts) == {"check"} and "near_far" not in verdicts["check"]
+    low, high = verdicts["check"]["band"]
+    assert low <= verdicts["check"]["per_dof"] <= high, verdicts["check"]
+    from smoother.diagnosis.heldout import heldout_predictions
+
+    e = heldout_predictions(data, batch.trajectory, following=following, covariances=False)["check"].e
+    assert len(e) == len(s.heldout.t) and score(data, batch.trajectory, following=following)[
+        "gps_heldout_rmse_m"] == rms_distance(e)
