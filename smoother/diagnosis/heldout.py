@@ -137,10 +137,7 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         return {}
     out = {}
     for sensor in _holding_out(dataset):
-        kind = KINDS[sensor.kind]
-        held = sensor.heldout
-        if held is None or kind.relative or len(held.t) == 0:
-            continue
+        kind, held = KINDS[sensor.kind], sensor.heldout
         own = (predictions or {}).get(sensor.name)
         if own is None or own.state_part is None:
             own = _predicted(dataset, trajectory, calibration, following, sensor)
@@ -178,22 +175,17 @@ def heldout_predictions(dataset: Dataset, trajectory: Trajectory, calibration=No
     the residuals (``state_part`` None): what a metric needs."""
     if not covariances and following is None:
         trajectory = replace(trajectory, cov=None)  # carried without the covariance step
-    out = {}
-    for sensor in _holding_out(dataset):
-        kind = KINDS[sensor.kind]
-        if (sensors is not None and sensor.name not in sensors) or sensor.heldout is None or kind.relative:
-            continue
-        if len(sensor.heldout.t):
-            out[sensor.name] = _predicted(dataset, trajectory, calibration, following, sensor, covariances)
-    return out
+    return {sensor.name: _predicted(dataset, trajectory, calibration, following, sensor, covariances)
+            for sensor in _holding_out(dataset) if sensors is None or sensor.name in sensors}
 
 
 def _holding_out(dataset: Dataset) -> list:
-    """The sensors of ``dataset`` with held-out measurements, those it holds out whole (no
-    measurement used: a sensor that only checks the estimate) among them, their kinds checked
-    (:func:`datasets.kinds.sensors_of`)."""
+    """The sensors of ``dataset`` of an absolute kind with held-out measurements, those it holds out
+    whole (no measurement used: a sensor that only checks the estimate) among them, their kinds
+    checked (:func:`datasets.kinds.sensors_of`)."""
     sensors_of(dataset)
-    return [s for s in dataset.sensors if s.heldout is not None]
+    return [s for s in dataset.sensors
+            if s.heldout is not None and len(s.heldout.t) and not KINDS[s.kind].relative]
 
 
 def _predicted(dataset: Dataset, trajectory: Trajectory, calibration, following: Following | None, sensor,

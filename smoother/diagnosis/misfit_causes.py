@@ -257,11 +257,12 @@ def _whitened(block: Block, X: dict, scale: np.ndarray) -> np.ndarray:
     return A * scale[..., None]
 
 
-def _row_scale(block: Block, states: imu.ImuState, calibration) -> tuple:
-    """``(evaluated, scale)``: ``block`` evaluated with its Jacobians at ``states`` (reweighted by
-    its robust kernel, as the batch's system has it) and the kernel's row scale ``sqrt(w)`` per
-    residual entry (:attr:`smoother.model.blocks.Evaluated.scale`; 1 without a kernel)."""
-    ev = evaluate_block(block, states, True, calibration=calibration)
+def _row_scale(block: Block, states: imu.ImuState, calibration, jacobians: bool = True) -> tuple:
+    """``(evaluated, scale)``: ``block`` evaluated at ``states`` (with its Jacobians where asked;
+    reweighted by its robust kernel, as the batch's system has it) and the kernel's row scale
+    ``sqrt(w)`` per residual entry (:attr:`smoother.model.blocks.Evaluated.scale`; 1 without a
+    kernel)."""
+    ev = evaluate_block(block, states, jacobians, calibration=calibration)
     return ev, np.ones_like(ev.e) if ev.scale is None else np.broadcast_to(ev.scale, ev.e.shape)
 
 
@@ -389,7 +390,7 @@ def suspects(problem: Problem, sensors: list[Sensor], imu_samples: ImuSamples, c
                         sums, value)
         if not X:
             return 0.0
-        ev, scale = _row_scale(block, problem.initial_states, calibration)
+        ev, scale = _row_scale(block, problem.initial_states, calibration, jacobians=False)  # a screen: residuals
         A, b = _whitened(block, X, scale), ev.e
         A, b = A.reshape(-1, A.shape[2]), b.reshape(-1)
         g = A.T @ b

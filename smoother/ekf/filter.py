@@ -9,8 +9,9 @@ the state boxplus (``exp(dphi) C`` for the attitude). Covariance update in Josep
 symmetric. An optional chi-square gate rejects measurements whose normalised innovation is
 improbable. A sensor's held-out measurements (a rig's ``every = K``) are predicted in the same
 loop and not used (:class:`smoother.model.predicted.HeldoutPrediction`): the filter's own
-prediction of data it did not use. The update, its gate, the order of the updates and the divergence test are
-:mod:`smoother.ekf.update`'s; the compiled loop over the knots (:func:`run_filter`) is shared with
+prediction of data it did not use. The update, its gate, the order of the updates and the
+divergence test are :mod:`smoother.ekf.update`'s; the compiled loop over the knots
+(:func:`run_filter`) is shared with
 the calibrating filter (:mod:`smoother.ekf.calibrated`), which carries the sensors' calibrations
 as augmented states through it.
 

@@ -15,8 +15,8 @@ class HeldoutPrediction:
     ``state_part (M, d, d)``, the share of the prediction's covariance that is the estimate's,
     ``H P H^T``, or None where the estimate has no covariances. A filter's are its own, taken in its
     loop after the updates at that time (``P`` its whole augmented covariance, a calibration's
-    uncertainty in it: :mod:`smoother.ekf.filter`); a smoother's are its states bridged or carried
-    to the times (:func:`smoother.diagnosis.heldout.heldout_predictions`)."""
+    uncertainty in it: :mod:`smoother.ekf.filter`; NaN where it had diverged before); a smoother's
+    are its states bridged or carried to the times (:func:`smoother.diagnosis.heldout.heldout_predictions`)."""
 
     index: np.ndarray
     e: np.ndarray
