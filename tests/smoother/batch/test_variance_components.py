@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from datasets.simulate import simulate
+from factors.errors import InputError
 from factors.imu import ImuNoise
 from smoother.batch import variance_components as vc
 from smoother.batch.solve import solve_batch
@@ -219,6 +220,17 @@ def test_the_applied_noise_scales_the_imu_and_each_sensor_s_axes():
 def test_an_unknown_sensor_is_named():
     with pytest.raises(Exception, match="no sensor 'lidar'"):
         vc.noise_groups(_rig(0, duration=2.0), ("imu", "lidar"))
+
+
+def test_a_group_to_hold_that_the_fit_does_not_have_is_named_and_so_is_holding_every_group():
+    data = _rig(0, duration=2.0)
+    problem = build_problem(data)
+    result = solve_batch(problem)
+    with pytest.raises(InputError, match=r"no group imu\.gyr to hold; expected among imu\.acc, imu\.gyro, "):
+        vc.estimate_noise(data, problem, result, ("imu",), fixed={"imu.gyr"})
+    every = {g.name for g in vc.noise_groups(data, ("imu",))}
+    with pytest.raises(InputError, match="every group of imu is held at the rig's value"):
+        vc.estimate_noise(data, problem, result, ("imu",), fixed=every)
 
 
 def test_the_fit_from_the_batch_s_kept_elimination_equals_the_fit_that_makes_its_own():
