@@ -9,7 +9,13 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
 * its sensor's mounting is wrong by the closed-form check (:mod:`smoother.diagnosis.mounting`):
   the mounting is the cause, whatever the factor;
 * its factor is implausible for a noise: beyond :data:`IMPLAUSIBLE_FACTOR` from the rig's value
-  either way (a datasheet or an Allan variance is not off by that much; a unit or a frame is);
+  either way (a datasheet or an Allan variance is not off by that much; a unit or a frame is). A
+  noise that large is a misfit: a unit, a frame, a mounting or a time offset. One that small is no
+  misfit, since a wrong model only ever adds to the residuals: the value the rig states is far too
+  large (a driver's placeholder covariance, millimetres read as metres), or the measurements are not
+  independent of the rest (an AHRS's attitudes, filtered from the IMU's own gyro, follow the
+  propagated attitude more closely than independent errors would). Neither is fixed by applying it:
+  a factor fitted to measurements that share the IMU's errors over-trusts them;
 * the IMU's components contradict each other: two estimated factors more than
   :data:`CONTRADICTION` apart in ratio (an accelerometer's white noise x67 beside a gyro's x0.03 is
   not an IMU, it is a misfit shared out). Beside a sensor whose error drifts (below), an IMU's
@@ -109,6 +115,7 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
     systematic error from a drifting one among residuals alike in time."""
     errors: dict[str, str] = {}
     drifting: dict[str, str] = {}
+    too_small: set[str] = set()
     for g in fit.groups:
         if not (g.estimable and g.applied):
             continue
@@ -116,9 +123,16 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
         if sensor in mounting_wrong:
             errors[name] = (f"its mounting is wrong (the mounting check): a noise {g.factor:.3g}x the rig's would "
                             "hide it")
-        elif not 1.0 / IMPLAUSIBLE_FACTOR <= g.factor <= IMPLAUSIBLE_FACTOR:
+        elif g.factor > IMPLAUSIBLE_FACTOR:
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")
+        elif g.factor < 1.0 / IMPLAUSIBLE_FACTOR:
+            too_small.add(name)
+            errors[name] = (f"a noise {g.factor:.3g}x the rig's is below any sensor's datasheet, which no model "
+                            "error makes (it only adds to the residuals): the rig's value is far too large (a "
+                            "driver's placeholder covariance, a unit), or the measurements follow the IMU closer "
+                            "than independent errors would (an AHRS's attitudes filtered from its own gyro): state "
+                            "the noise from the datasheet")
         elif _alike(g):
             alike = f"its residuals are alike from one measurement to the next (correlation {g.correlation:.2f})"
             if causes is None or sensor not in causes:
@@ -154,6 +168,7 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
         also = (f", or the IMU follows the drift of {' and '.join(drifters)}'s errors: measurements further "
                 "apart (`every`) keep it out")
         imu_groups = {g.group.name for g in fit.groups if g.group.sensor == IMU_BLOCK}
+        imu_groups -= too_small  # a drift is followed by a noise grown, not shrunk
         errors = {name: cause + also if name in imu_groups else cause for name, cause in errors.items()}
     if not errors and not drifting:
         return fit, []

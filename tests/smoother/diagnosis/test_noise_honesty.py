@@ -3,7 +3,6 @@ model error is reported as that error and not applied."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
 from smoother.diagnosis.misfit_causes import Cause
@@ -36,10 +35,27 @@ def test_a_plausible_fit_is_applied_as_it_is():
     assert errors == [] and out is fit  # the IMU's chained residuals are not judged by their correlation
 
 
-@pytest.mark.parametrize("factor", [IMPLAUSIBLE_FACTOR * 1.5, 1.0 / (IMPLAUSIBLE_FACTOR * 1.5)])
-def test_a_factor_orders_of_magnitude_off_is_a_model_error(factor):
-    errors = _errors(_fit(("wheels", "forward", (0,), factor, 50.0, 0.0, 300)))
-    assert "no sensor's error of its datasheet" in errors["wheels.forward"]
+def test_a_factor_orders_of_magnitude_above_is_a_model_error():
+    errors = _errors(_fit(("wheels", "forward", (0,), IMPLAUSIBLE_FACTOR * 1.5, 50.0, 0.0, 300)))
+    assert "no sensor's error of its datasheet: a unit, a frame, a mounting" in errors["wheels.forward"]
+
+
+def test_a_factor_orders_of_magnitude_below_is_refused_as_a_stated_value_or_dependent_data_not_a_misfit():
+    """A wrong model only adds to the residuals: a factor far below 1 names the value the rig states
+    and data that follow the IMU, not a unit or a mounting of the measurements."""
+    errors = _errors(_fit(("ahrs", "tilt", (0, 1), 1.0 / (IMPLAUSIBLE_FACTOR * 1.5), 50.0, 0.0, 300)))
+    cause = errors["ahrs.tilt"]
+    assert "below any sensor's datasheet" in cause and "far too large" in cause, cause
+    assert "mounting" not in cause and "time offset" not in cause, cause
+
+
+def test_an_imu_factor_shrunk_beside_a_drifting_sensor_is_not_said_to_follow_the_drift():
+    shrunk = ("imu", "gyro", None, 1.0 / (IMPLAUSIBLE_FACTOR * 2), 20.0, 0.9, 7000)
+    grown = ("imu", "acc_bias", None, IMPLAUSIBLE_FACTOR * 1.6, 20.0, 0.9, 7000)
+    gnss = ("gnss", "horizontal", (0, 1), 1.5, 80.0, CORRELATED + 0.1, 2400)
+    errors = _errors(_fit(shrunk, grown, gnss), causes={"gnss": []})
+    assert "follows the drift" not in errors["imu.gyro"], errors
+    assert "follows the drift of gnss's errors" in errors["imu.acc_bias"], errors
 
 
 def test_imu_components_that_contradict_each_other_are_a_model_error():
