@@ -3,6 +3,7 @@ that import it, and the check runs when called (once per process), never on impo
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -78,13 +79,17 @@ def test_the_import_graph_reads_imports_inside_functions_and_relative_ones(tmp_p
 
 def test_importing_the_packages_checks_no_cache_and_the_check_runs_once_per_process(tmp_path):
     """A fresh process that imports the compiled kernels and runs one writes no fingerprints; the
-    first call of ensure_fresh_caches does (the stamp moved to a folder of the test's own), the
-    second does nothing."""
+    first call of ensure_fresh_caches does, the second does nothing. The check runs on a copy of
+    the packages' sources with a stamp of its own: without a stamp every module is stale, and on
+    the checkout itself that would drop every compiled kernel the other tests (and the next run)
+    load."""
+    for package in kernel_caches.PACKAGES:
+        shutil.copytree(ROOT / package, tmp_path / "copy" / package, ignore=shutil.ignore_patterns("__pycache__"))
     script = (
         "import sys\n"
         "from pathlib import Path\n"
         "from factors import kernel_caches, so3\n"
-        "kernel_caches.STAMP = Path(sys.argv[1])\n"
+        "kernel_caches.ROOT, kernel_caches.STAMP = Path(sys.argv[1]), Path(sys.argv[2])\n"
         "so3.exp([[0.1, 0.2, 0.3]])\n"
         "assert not kernel_caches.STAMP.exists(), 'an import or a kernel checked the caches'\n"
         "first = kernel_caches.ensure_fresh_caches()\n"
@@ -92,9 +97,11 @@ def test_importing_the_packages_checks_no_cache_and_the_check_runs_once_per_proc
         "assert kernel_caches.ensure_fresh_caches() == []\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "stamp.json")], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    cached = sorted(ROOT.glob("*/**/__pycache__/*.nb[ic]"))
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "copy"), str(tmp_path / "stamp.json")],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
+    assert all(path.exists() for path in cached), "the checkout's compiled kernels were dropped"
 
 
 def test_a_cache_folder_of_the_user_s_own_is_left_alone(monkeypatch, tmp_path):
