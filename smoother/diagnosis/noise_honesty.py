@@ -130,9 +130,9 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
             too_small.add(name)
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is below any sensor's datasheet, which no model "
                             "error makes (it only adds to the residuals): the rig's value is far too large (a "
-                            "driver's placeholder covariance, a unit), or the measurements follow the IMU closer "
-                            "than independent errors would (an AHRS's attitudes filtered from its own gyro): state "
-                            "the noise from the datasheet")
+                            "driver's placeholder covariance, a unit: state the datasheet's), or the measurements "
+                            "follow the IMU closer than independent errors would (an AHRS's attitudes filtered from "
+                            "its own gyro), and a sigma fitted to them would over-trust them")
         elif _alike(g):
             alike = f"its residuals are alike from one measurement to the next (correlation {g.correlation:.2f})"
             if causes is None or sensor not in causes:
