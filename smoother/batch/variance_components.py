@@ -58,7 +58,8 @@ Groups the data cannot tell apart -- white noise against random walk over a shor
 accelerometer's noise against sparse fixes' -- where their estimates' correlation exceeds
 :data:`MERGE_CORRELATION`, share one factor and are reported merged (two of one sensor first); a
 group whose residuals carry less than :data:`MIN_REDUNDANCY` degrees of freedom, or whose factor the
-data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reported as not estimable.
+data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reported as not estimable
+(also where the iterations stop before they settle: its factor there is no estimate).
 A factor within :data:`SIGNIFICANCE` sd of the rig's value is reported and not applied; where every
 factor is sure to end so -- where its Newton step leads, by more than that step -- the iterations
 end there, each reported where its step leads.
@@ -454,6 +455,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
     else:
         warnings.warn(f"noise estimation: not converged after {MAX_ITERATIONS} iterations; the last estimate is "
                       "used", stacklevel=2)
+        _leave_unsettled(ties, psi, redundancy, information if information is not None else approximate, notes)
     fitted = problem
     if psi.any():  # some factor applied: the estimate with it (else the rig's noise and the given estimate)
         fitted = replace(problem, blocks=model.blocks(psi), initial_states=states, calibration=calibration)
@@ -483,6 +485,23 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
                              group.unit, others, **extra))
     fit = NoiseFit(fits, iterations, converged, time.perf_counter() - start)
     return fit, replace(result, square_root=None), fitted  # the elimination's memory let go
+
+
+def _leave_unsettled(ties: list[list[int]], psi: np.ndarray, redundancy: np.ndarray, information: np.ndarray,
+                     notes: dict) -> None:
+    """A fit stopped before it settled: each parameter whose residuals carry less than
+    :data:`MIN_REDUNDANCY` at the last evaluation (``redundancy`` per group) is no estimate -- the
+    iterations would have kept it at the rig's value once it fell or the rest settled, and a factor
+    heading for a vanishing variance has no end -- so its groups go back to the rig's value with the
+    not-estimable note, in place (``ties``, ``psi``, ``notes``; their sd from ``information`` over the
+    parameters as they stand)."""
+    share = _per_parameter(redundancy, ties)
+    sd = np.sqrt(np.maximum(np.diag(_pseudo_inverse(_parameter_information(information, ties))), 0.0))
+    for j in sorted(np.flatnonzero(share < MIN_REDUNDANCY), reverse=True):
+        for g in ties[j]:
+            psi[g] = 0.0
+            notes[g] = _not_estimable(sd[j], share[j])
+        del ties[j]
 
 
 def _hold(kept: list[int], values: np.ndarray, sd: np.ndarray, ties: list[list[int]], psi: np.ndarray, held: dict,

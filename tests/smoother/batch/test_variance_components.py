@@ -189,6 +189,20 @@ def test_components_a_short_run_cannot_separate_are_merged_or_kept_not_returned_
     assert all(g.note.startswith("not estimable") for g in walks if not g.estimable)
 
 
+def test_a_fit_stopped_before_it_settles_reports_no_factor_its_residuals_cannot_carry(monkeypatch):
+    """Cut off after three iterations on a 6-s run, each group whose residuals carry less than
+    MIN_REDUNDANCY there (the bias random walks, heading for vanishing variances) is reported not
+    estimable at the rig's value, not with the factor the iterations had reached; the rest keep
+    theirs."""
+    monkeypatch.setattr(vc, "MAX_ITERATIONS", 3)
+    _, fit, _ = _fit(_rig(1, duration=6.0), which=("imu",))
+    assert not fit.converged
+    low = [g for g in fit.groups if g.redundancy < vc.MIN_REDUNDANCY]
+    assert {g.group.part for g in low} >= {"acc_bias", "gyro_bias"}, fit.groups
+    assert all(not g.estimable and g.factor == 1.0 and g.note.startswith("not estimable") for g in low), low
+    assert all(g.estimable and g.factor != 1.0 for g in fit.groups if g.redundancy >= vc.MIN_REDUNDANCY), fit.groups
+
+
 def test_a_group_alone_takes_foerstners_step():
     """Far from the estimate a single group's step is log(q / r), whatever the local information."""
     for F in (np.array([[3.0]]), np.array([[300.0]])):
