@@ -16,6 +16,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from smoother.model.covariances import joint_blocks
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
 from smoother.online import warm_up as kernel_warm_up
+
+if TYPE_CHECKING:
+    from smoother.batch.variance_components import GroupFit
 
 
 @dataclass
@@ -432,9 +436,7 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         fit, r, problem = again
         iterations, converged, fits = iterations + fit.iterations, converged and fit.converged, fits + 1
     latest = {g.group.name: g for g in fit.groups}
-    # a held group is reported as fitted, tied only to the groups held with it (the others were fitted again)
-    reported = [replace(held[name], merged_with=tuple(m for m in held[name].merged_with if m in held))
-                if name in held else latest[name] for name in order]
+    reported = [held_as_reported(held[name], held) if name in held else latest[name] for name in order]
     # the last fit allowed (or the last that could be made) still found model errors: the groups it
     # applied were fitted beside them
     exhausted = bool(found) and (refit == MAX_REFITS or failed) and len(held) < len(order)
@@ -446,6 +448,17 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         # off, in another minimum), the lower cost kept
         problem, r, _ = solved_from_each(fit.applied(dataset), (r, before), options)
     return fit, r, problem, errors, time.perf_counter() - tick
+
+
+def held_as_reported(group: GroupFit, held) -> GroupFit:
+    """A group kept as a model error (:class:`~smoother.batch.variance_components.GroupFit`), as
+    the run reports it: as the fit that found it fitted it, tied only to the groups ``held`` with it
+    (names). A factor it shared with groups fitted again since says so in its note: its redundancy
+    is its own, its factor and sd the shared one's."""
+    refitted = [m for m in group.merged_with if m not in held]
+    note = group.note + (f" (its factor was one with {' and '.join(refitted)}, fitted again without it since)"
+                         if refitted else "")
+    return replace(group, merged_with=tuple(m for m in group.merged_with if m in held), note=note)
 
 
 def _solved_from(dataset: Dataset, start, options: RunOptions, square_root: bool = False) -> tuple:

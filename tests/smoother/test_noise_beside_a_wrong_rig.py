@@ -15,9 +15,9 @@ from datasets import trajectories
 from datasets.simulate import simulate
 from datasets.simulated_sensors import SensorSpec
 from smoother.batch.solve import solve_batch
-from smoother.batch.variance_components import estimate_noise
+from smoother.batch.variance_components import GroupFit, NoiseGroup, estimate_noise
 from smoother.model.problem import build_problem
-from smoother.pipeline import RunOptions, run_estimators
+from smoother.pipeline import RunOptions, held_as_reported, run_estimators
 
 NOISE = ("imu", "ahrs", "gnss")
 #: A car-like figure-eight (100 m x 50 m, 7-15 m/s), heading along the path.
@@ -100,3 +100,17 @@ def test_a_fit_again_that_fails_leaves_the_last_fit_standing_and_says_so(monkeyp
     assert len(calls) == 2 and fit.fits == 1 and not fit.converged
     assert {g.group.name for g in fit.groups if g.note.startswith("not applied")} == set(calls[1])
     assert batch.trajectory is not None and batch.failed is None
+
+
+def test_a_refused_group_that_shared_its_factor_with_groups_fitted_again_says_so():
+    """A group refused in a fit where it shared one factor with others keeps that fit's factor and
+    its own redundancy; the partners fitted again since are no longer named as sharing it, and its
+    note says the factor was one with them. Partners held with it stay named."""
+    acc = GroupFit(NoiseGroup("imu", "acc"), 0.049, 0.0012, 0.005, 1e-4, "m/s^2/sqrt(Hz)",
+                   merged_with=("wheels.lateral", "imu.gyro_bias"), applied=False, note="not applied: contradiction")
+    out = held_as_reported(acc, {"imu.acc", "imu.gyro_bias"})
+    assert out.merged_with == ("imu.gyro_bias",)
+    assert out.note == ("not applied: contradiction (its factor was one with wheels.lateral, fitted again "
+                        "without it since)"), out.note
+    assert (out.factor, out.redundancy) == (acc.factor, acc.redundancy)
+    assert held_as_reported(acc, {"imu.acc", "imu.gyro_bias", "wheels.lateral"}).note == acc.note
