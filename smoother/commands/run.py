@@ -236,7 +236,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from datasets.kinds import sensors_of
     from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
     from smoother.diagnosis.misfit_causes import hints
-    from smoother.diagnosis.noise_report import noise_lines
+    from smoother.diagnosis.noise_report import fitted_sensors, noise_lines
     from smoother.diagnosis.verdicts import consistency_lines, consistency_warnings
     from smoother.evaluation import scoring as report
     from smoother.model.timeline import keyframe_record
@@ -340,7 +340,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         print(f"warning: the fit of the sensors' likely calibrations failed ({type(error).__name__}: "
               f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
         causes = {}
-    for line in consistency_warnings(consistency, imu_findings, causes):
+    for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info))):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:

@@ -46,3 +46,17 @@ def unsteady(g: dict) -> str:
     first, second = g["halves"]
     return (f"; not steady: x{first:.3g} in the run's first half, x{second:.3g} in its second (one value "
             "over the run is their average, and a run of other data may find it out of band)")
+
+
+def fitted_sensors(record: dict | None) -> dict[str, str]:
+    """Per sensor whose noise the fit's ``record`` holds (the IMU's too), what became of its groups,
+    in a phrase for the run's warnings: ``"ahrs.attitude not estimable"``, ``"wheels.forward x10.6,
+    wheels.vertical kept"`` (kept: at the rig's value, consistent with it or a model error). Empty
+    without a fit."""
+    out: dict[str, list[str]] = {}
+    for name, g in (record or {}).items():
+        if name.startswith("_"):
+            continue
+        status = ("not estimable" if not g["estimable"] else f"x{g['factor']:.3g}" if g["applied"] else "kept")
+        out.setdefault(name.rsplit(".", 1)[0], []).append(f"{name} {status}")
+    return {sensor: ", ".join(parts) for sensor, parts in out.items()}

@@ -233,7 +233,7 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
 
 
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
-                         causes: dict[str, str] | None = None) -> list[str]:
+                         causes: dict[str, str] | None = None, fitted: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
     with the figure of every estimator outside its band, naming what to check, and one per sensor
     with an entry in ``causes`` (per sensor, the calibration its residuals point at,
@@ -243,7 +243,9 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
     (:class:`datasets.imu_health.ImuFinding` s), the IMU is named first and the other sensors'
     lines say that their misfit may follow from it -- but for a sensor with a cause, whose
     calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
-    those sensors instead (its findings still come first)."""
+    those sensors instead (its findings still come first). ``fitted``: per sensor whose noise the
+    run fitted, what became of it (:func:`smoother.diagnosis.noise_report.fitted_sensors`): a sigma
+    that looks too large there is not advised to be fitted, it says what the fit did."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -269,9 +271,12 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         lowest = min(c["per_dof"] for c in off.values())
+        looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors"
+        outcome = (fitted or {}).get(sensor)
         advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
-                  else f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors; "
-                       f'estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data')
+                  else f'{looks}; estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data'
+                  if outcome is None else f"{looks}, though its noise was fitted ({outcome}: the noise table says "
+                  "why)")
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high

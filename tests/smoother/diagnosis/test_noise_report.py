@@ -3,7 +3,8 @@ record: a header with the iterations, then one line per group saying what became
 from __future__ import annotations
 
 from smoother.batch.variance_components import GroupFit, NoiseFit, NoiseGroup
-from smoother.diagnosis.noise_report import noise_lines
+from smoother.diagnosis.noise_report import fitted_sensors, noise_lines
+from smoother.diagnosis.verdicts import consistency_warnings
 
 
 def _record(converged=True, fits=1) -> dict:
@@ -52,3 +53,25 @@ def test_a_noise_the_run_s_halves_disagree_on_says_each_half_s_factor():
     assert gyro.endswith("applied; not steady: x0.278 in the run's first half, x0.477 in its second (one value over "
                          "the run is their average, and a run of other data may find it out of band)")
     assert acc.endswith(": applied")
+
+
+def test_each_sensor_s_fitted_groups_are_said_in_a_phrase():
+    assert fitted_sensors(_record()) == {
+        "imu": "imu.gyro x27.3, imu.acc x3.57",
+        "gps": "gps.horizontal not estimable, gps.vertical kept",
+        "wheel": "wheel.speed kept",
+    }
+    assert fitted_sensors(None) == {}
+
+
+def test_a_sigma_that_looks_too_large_is_advised_to_be_fitted_only_where_it_was_not():
+    """A sensor far below its band whose noise the run fitted is told what the fit did, not to fit
+    it; one whose noise was not fitted is told how to."""
+    low = {"batch": {"gps": {"per_dof": 0.133, "band": (0.93, 1.07), "ok": False, "measurements": 300}}}
+    [fitted] = consistency_warnings(low, fitted=fitted_sensors(_record()))
+    assert fitted == ("gps: per dof batch 0.133 (expected 0.93-1.1): its sigma looks 2.7x too large by its errors, "
+                      "though its noise was fitted (gps.horizontal not estimable, gps.vertical kept: the noise table "
+                      "says why)"), fitted
+    [plain] = consistency_warnings(low)
+    assert plain.endswith('2.7x too large by its errors; estimate = ["noise"] on it (or smoother run --estimate-noise) '
+                          "fits it to the data"), plain
