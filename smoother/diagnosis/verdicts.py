@@ -244,8 +244,9 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
     lines say that their misfit may follow from it -- but for a sensor with a cause, whose
     calibration error bends the estimate and so the IMU's residuals too: the IMU's line names
     those sensors instead (its findings still come first). ``fitted``: per sensor whose noise the
-    run fitted, what became of it (:func:`smoother.diagnosis.noise_report.fitted_sensors`): a sigma
-    that looks too large there is not advised to be fitted, it says what the fit did."""
+    run fitted, what became of it (:func:`smoother.diagnosis.noise_report.fitted_sensors`): such a
+    sensor's line says what the fit did, and a sigma that looks too large is not advised to be
+    fitted."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -273,10 +274,13 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         lowest = min(c["per_dof"] for c in off.values())
         looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors"
         outcome = (fitted or {}).get(sensor)
-        advice = ("check its sigma (too small), lever arm, rotation or time offset" if high
-                  else f'{looks}; estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data'
-                  if outcome is None else f"{looks}, though its noise was fitted ({outcome}: the noise table says "
-                  "why)")
+        fit_said = "" if outcome is None else f"its noise was fitted ({outcome}: the noise table says why)"
+        if high:
+            advice = "check its sigma (too small), lever arm, rotation or time offset" + (f"; {fit_said}" if fit_said
+                                                                                          else "")
+        else:
+            advice = (f"{looks}, though {fit_said}" if outcome is not None else
+                      f'{looks}; estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data')
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high

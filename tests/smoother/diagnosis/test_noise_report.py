@@ -75,3 +75,11 @@ def test_a_sigma_that_looks_too_large_is_advised_to_be_fitted_only_where_it_was_
     [plain] = consistency_warnings(low)
     assert plain.endswith('2.7x too large by its errors; estimate = ["noise"] on it (or smoother run --estimate-noise) '
                           "fits it to the data"), plain
+
+
+def test_a_sensor_far_above_its_band_whose_noise_was_fitted_says_what_the_fit_did():
+    high = {"batch": {"gps": {"per_dof": 2.21, "band": (0.89, 1.1), "ok": False, "measurements": 198}}}
+    [line] = consistency_warnings(high, fitted={"gps": "gps.horizontal kept, gps.vertical x6.05"})
+    assert line.endswith("check its sigma (too small), lever arm, rotation or time offset; its noise was fitted "
+                         "(gps.horizontal kept, gps.vertical x6.05: the noise table says why)"), line
+    assert consistency_warnings(high)[0].endswith("rotation or time offset")
