@@ -191,7 +191,8 @@ class GroupFit:
 
     def record(self) -> dict:
         """``metrics.json``'s record of the group."""
-        return {"factor": self.factor, "factor_sd": self.factor_sd, "redundancy": self.redundancy,
+        return {"sensor": self.group.sensor, "factor": self.factor, "factor_sd": self.factor_sd,
+                "redundancy": self.redundancy,
                 **({} if self.group.axes is None else {"axes": list(self.group.axes)}),
                 "value": self.value, "unit": self.unit, "merged_with": list(self.merged_with),
                 "estimable": self.estimable, "applied": self.applied, "residual_correlation": self.correlation,

@@ -58,5 +58,5 @@ def fitted_sensors(record: dict | None) -> dict[str, str]:
         if name.startswith("_"):
             continue
         status = ("not estimable" if not g["estimable"] else f"x{g['factor']:.3g}" if g["applied"] else "kept")
-        out.setdefault(name.rsplit(".", 1)[0], []).append(f"{name} {status}")
+        out.setdefault(g["sensor"], []).append(f"{name} {status}")
     return {sensor: ", ".join(parts) for sensor, parts in out.items()}
