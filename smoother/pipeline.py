@@ -551,6 +551,18 @@ def heldout_by_estimator(dataset: Dataset, estimates: dict[str, Estimate]) -> di
             for name, est in estimates.items() if est.failed is None}
 
 
+def unshrunk_groups(record: dict) -> dict[str, list[str]]:
+    """Per sensor, its noise groups the fit in ``record`` shrank and the run refused as model errors
+    (:mod:`smoother.diagnosis.noise_honesty`: residuals that small are no datasheet's, or errors that
+    follow the IMU's); empty without a fit."""
+    fit = record.get("noise")
+    out: dict[str, list[str]] = {}
+    for g in () if fit is None else fit.groups:
+        if g.estimable and not g.applied and g.factor < 1.0 and g.note.startswith("not applied: "):
+            out.setdefault(g.group.sensor, []).append(g.group.name)
+    return out
+
+
 def run_doubts(record: dict) -> list[str]:
     """What makes every estimate of a run doubtful whatever its own verdicts say: a sensor mounted
     otherwise than the rig says (the closed-form check, :mod:`smoother.diagnosis.mounting`), and a
@@ -572,7 +584,7 @@ def run_doubts(record: dict) -> list[str]:
 
 
 def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | None = None,
-           doubts: list[str] = ()) -> None:
+           doubts: list[str] = (), unshrunk: dict[str, list[str]] | None = None) -> None:
     """Record each estimator's verdicts in its details: ``sensors`` (per sensor; with held-out
     measurements also ``heldout_per_dof``, ``heldout_band``, ``heldout_ok``,
     ``heldout_measurements`` and ``heldout_state_share``) and ``fit`` (all together,
@@ -588,7 +600,9 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
       covariance (no sigma of the sensor's fits them with the estimate's covariances held:
       :func:`smoother.diagnosis.heldout.sigma_factor`), a sigma that also inflates those covariances
       or a state the data do not fix -- or, where those near the used measurements lie below those
-      far from them (:func:`smoother.diagnosis.heldout.near_and_far`), errors correlated in time;
+      far from them (:func:`smoother.diagnosis.heldout.near_and_far`), errors correlated in time --
+      but for a sensor in ``unshrunk`` (:func:`unshrunk_groups`: the noise fit refused to shrink its
+      sigma), whose low errors may as well follow the IMU's, which makes the covariances too small;
     * a run-wide ``doubts`` (:func:`run_doubts`) holds.
 
     A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
@@ -636,6 +650,10 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
                 why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
                            "are too large -- a sigma stated too large (a smaller one shrinks them too) or a state "
                            "the data do not fix (a heading, a bias)")
+            elif k in (unshrunk or {}) and k not in held:
+                why.append(f"{figure}, far below their band: its sigma is overstated or its errors follow the "
+                           f"IMU's (the noise fit refused to shrink {' and '.join(unshrunk[k])}: below), so the "
+                           "estimate's covariances may be too large or too small")
             else:
                 factor = c.get("sigma_factor")
                 by = "" if k not in held else (

@@ -241,7 +241,14 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.evaluation import scoring as report
     from smoother.model.timeline import keyframe_record
     from smoother.outputs import files
-    from smoother.pipeline import estimate_each, heldout_by_estimator, judged, run_doubts, verdicts_by_estimator
+    from smoother.pipeline import (
+        estimate_each,
+        heldout_by_estimator,
+        judged,
+        run_doubts,
+        unshrunk_groups,
+        verdicts_by_estimator,
+    )
 
     part = args.start is not None or args.end is not None
     print(f"dataset {dataset.name}: {len(dataset.imu)} IMU samples over {dataset.t1 - dataset.t0:.1f} s"
@@ -278,7 +285,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     # without it; failed (out of memory, say), they are written, the failure said, and the run ends with 2
     try:
         consistency = verdicts_by_estimator(dataset, estimates, run_options)
-        judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record))
+        judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record),
+               unshrunk_groups(record))
         baseline = report.interpolation_baseline(dataset)
         correlations = _calibration_correlations(dataset, estimates)
     except KeyboardInterrupt as error:

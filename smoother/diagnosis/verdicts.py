@@ -284,7 +284,8 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high
-                       else "then judge its sigma again (it looks too large)"))
+                       else "then judge its sigma again (it looks too large)")
+                      + (f"; {fit_said}" if fit_said else ""))
         if kinds:
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "
                       f"of it; if the IMU is cleared, {advice}")

@@ -57,3 +57,14 @@ def test_a_run_s_own_doubts_mark_every_estimate():
     estimates = {"batch": _estimate(), "ekf": _estimate("ekf")}
     judged(estimates, {}, {}, ["the mounting of wheels is not the rig's (...)"])
     assert all("the mounting of wheels" in e.details["doubtful"] for e in estimates.values())
+
+
+def test_errors_far_below_whose_shrunk_noise_was_refused_are_not_blamed_on_the_sigma_alone():
+    """An AHRS filtered from the IMU's own gyro fits the estimate far better than its sigma says; the
+    noise fit refused to shrink it, so the doubt names both readings and neither covariance direction."""
+    est = _estimate()
+    judged({"batch": est}, {"batch": {"ahrs": _verdict(0.01)}}, unshrunk={"ahrs": ["ahrs.tilt"]})
+    doubt = est.details["doubtful"]
+    assert "its sigma is overstated or its errors follow the IMU's (the noise fit refused to shrink ahrs.tilt" in doubt
+    assert "may be too large or too small" in doubt
+    assert "so the estimate's covariances are too large" not in doubt

@@ -58,6 +58,16 @@ def test_an_imu_factor_shrunk_beside_a_drifting_sensor_is_not_said_to_follow_the
     assert "follows the drift of gnss's errors" in errors["imu.acc_bias"], errors
 
 
+def test_the_run_names_each_sensor_s_groups_whose_shrinking_it_refused():
+    from smoother.pipeline import unshrunk_groups
+
+    tiny = 1.0 / (IMPLAUSIBLE_FACTOR * 1.5)
+    out, _ = honest(_fit(("ahrs", "tilt", (0, 1), tiny, 50.0, 0.0, 300), ("ahrs", "yaw", (2,), 0.7, 50.0, 0.0, 150),
+                         ("wheels", "forward", (0,), IMPLAUSIBLE_FACTOR * 2, 50.0, 0.0, 300)))
+    assert unshrunk_groups({"noise": out}) == {"ahrs": ["ahrs.tilt"]}  # the refused growth is not among them
+    assert unshrunk_groups({}) == {}
+
+
 def test_imu_components_that_contradict_each_other_are_a_model_error():
     low = 60.0 / (CONTRADICTION * 1.2)
     errors = _errors(_fit(("imu", "acc", None, 60.0, 30.0, 0.0, 7000), ("imu", "gyro", None, low, 30.0, 0.0, 7000),

@@ -83,3 +83,12 @@ def test_a_sensor_far_above_its_band_whose_noise_was_fitted_says_what_the_fit_di
     assert line.endswith("check its sigma (too small), lever arm, rotation or time offset; its noise was fitted "
                          "(gps.horizontal kept, gps.vertical x6.05: the noise table says why)"), line
     assert consistency_warnings(high)[0].endswith("rotation or time offset")
+
+
+def test_a_sensor_whose_residuals_point_at_a_calibration_still_says_what_the_noise_fit_did():
+    low = {"batch": {"ahrs": {"per_dof": 0.009, "band": (0.98, 1.02), "ok": False, "measurements": 11863}}}
+    causes = {"ahrs": "rotation about z -0.539 deg +- 0.052 deg (explains 24 % of its residuals)"}
+    [line] = consistency_warnings(low, causes=causes, fitted={"ahrs": "ahrs.tilt kept"})
+    assert line.endswith("then judge its sigma again (it looks too large); its noise was fitted (ahrs.tilt kept: "
+                         "the noise table says why)"), line
+    assert consistency_warnings(low, causes=causes)[0].endswith("(it looks too large)")
