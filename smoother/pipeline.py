@@ -611,14 +611,15 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
     (:func:`smoother.diagnosis.calibration_report.verdicts_for`). An EKF whose gate rejected most
     of a sensor's measurements (:func:`smoother.diagnosis.verdicts.rejections`) and an estimator
     whose calibration disagrees with the others' beyond their sigmas
-    (:func:`smoother.diagnosis.calibration_report.disagreements`) are doubtful too. Verdicts on
+    (:func:`smoother.diagnosis.calibration_report.disagreements`; with run-wide ``doubts``, those
+    model errors named as a cause beside a wrong minimum) are doubtful too. Verdicts on
     too few degrees of freedom (:func:`smoother.diagnosis.verdicts.judgeable`) count towards
     nothing."""
     from smoother.diagnosis.calibration_report import disagreements, verdicts_for
     from smoother.diagnosis.verdicts import far_above, far_below, judgeable, overall, rejections, with_heldout
 
     heldout = heldout or {}
-    disagreeing = disagreements({name: est.details for name, est in estimates.items()})
+    disagreeing = disagreements({name: est.details for name, est in estimates.items()}, model_errors=bool(doubts))
     for name, est in estimates.items():
         ours = consistency.get(name, {})
         held = heldout.get(name, {})

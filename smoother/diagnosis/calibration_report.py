@@ -222,12 +222,15 @@ def _shown(value: float, sigma: float, unit: str) -> str:
     return f"{value:+.4g} +- {sigma:.2g}" + (f" {unit}" if unit else "")
 
 
-def disagreements(details: dict[str, dict]) -> dict[str, str]:
+def disagreements(details: dict[str, dict], model_errors: bool = False) -> dict[str, str]:
     """Which estimators' calibrations disagree with the others' (module docstring), ``{estimator:
     why}`` in one phrase naming each sensor and coordinate, from each estimator's ``details``
     (``{estimator: details}``, with ``calibration`` and ``calibration_against_prior`` as
     :func:`calibration_records` makes them; an estimator without them, or that failed, has none). Costs one
-    comparison per pair of estimators and coordinate."""
+    comparison per pair of estimators and coordinate. ``model_errors``: the run found its model
+    wrong (a mounting, a noise fitted to a misfit), which the estimators -- a smoother, a window
+    that linearises early, a filter -- weigh differently: the phrase names that cause beside a
+    wrong minimum."""
     coordinates = {}
     for name, d in details.items():
         against = d.get("calibration_against_prior", {})
@@ -253,6 +256,7 @@ def disagreements(details: dict[str, dict]) -> dict[str, str]:
             said.setdefault(name, []).append(
                 f"its {sensor} {coordinate}, {_shown(shown, sigma, unit)}, disagrees with {theirs} "
                 f"({' and '.join(f'{x:.1f}' for x in others.values())} sigmas of their difference)")
-    return {name: "; ".join(lines) + ": estimates of one calibration from the same data must agree within their "
-                                     "sigmas, so this one (or the other) may have settled in a wrong minimum"
-            for name, lines in said.items()}
+    why = (": estimates of one calibration from the same data must agree within their sigmas, so this one (or the "
+           "other) may have settled in a wrong minimum"
+           + (", or the model errors this run found pull the estimators apart" if model_errors else ""))
+    return {name: "; ".join(lines) + why for name, lines in said.items()}

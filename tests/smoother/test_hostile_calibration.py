@@ -147,6 +147,14 @@ def test_two_estimators_that_disagree_are_both_named_and_agreement_is_silent(coo
     assert disagreements({"batch": _details(**{coordinate: a})}) == {}  # nothing to compare with
 
 
+def test_a_disagreement_in_a_run_that_found_its_model_wrong_names_that_cause_too():
+    apart = {"batch": _details(scale=(1.05, 0.01)), "ekf": _details(scale=(1.00, 0.005))}
+    plain, wrong = disagreements(apart), disagreements(apart, model_errors=True)
+    assert all(text.endswith("may have settled in a wrong minimum") for text in plain.values()), plain
+    assert all(text.endswith("or the model errors this run found pull the estimators apart")
+               for text in wrong.values()), wrong
+
+
 def test_a_rotation_is_compared_on_the_rotation_not_on_its_printed_turn():
     """Two turns of +179 and -179 deg about x are 2 deg apart, not 358: no disagreement at 1 deg
     sigmas."""
