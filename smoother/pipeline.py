@@ -475,9 +475,17 @@ def solved_from_each(dataset: Dataset, starts, options: RunOptions) -> tuple:
     """``(problem, result, seconds)``: the batch smoother on ``dataset`` (with covariances) from
     each of the estimates ``starts`` (their trajectories and calibrations; any with a ``trajectory``
     and a ``calibration``), the one of lowest cost, and the time all took: where the problem may have
-    more than one minimum, the best of those the starts lead to."""
-    runs = [_solved_from(dataset, start, options) for start in starts]
-    problem, result = min(runs, key=lambda run: run[1].error)
+    more than one minimum, the best of those the starts lead to. The warnings of the solve kept are
+    issued once, after all: a start left behind (one that ran out of iterations, say) says nothing of
+    the estimate returned."""
+    runs = []
+    for start in starts:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            runs.append((*_solved_from(dataset, start, options), [(str(w.message), w.category) for w in caught]))
+    problem, result, said = min(runs, key=lambda run: run[1].error)
+    for message, category in dict.fromkeys(said):
+        warnings.warn(message, category, stacklevel=2)
     return problem, result, sum(run[1].runtime_s for run in runs)
 
 
