@@ -25,6 +25,12 @@ def interruption(error: KeyboardInterrupt) -> tuple[str, int]:
     return "interrupted", 128 + signal.SIGINT
 
 
+class NotConverged(UserWarning):
+    """An optimiser stopped at its iteration limit still lowering the cost: the estimate may be off
+    the optimum. Its own category, so that a caller solving intermediate estimates (a noise fit's)
+    can hold it back and say it only of the estimate it returns."""
+
+
 class IndeterminantSystem(SolverError):
     """The linearised system is rank-deficient: some variable is not constrained by the factors.
     ``keyframe`` is the keyframe GTSAM was eliminating when it noticed (or None); ``free`` names

@@ -23,11 +23,12 @@ import numpy as np
 from datasets.types import Dataset, Trajectory
 from factors.errors import BoxplusError, InputError, SolverError
 from factors.threads import interrupts_held
-from smoother.batch.solve import solve_batch
+from smoother.batch.solve import solve_batch, warn_not_converged
 from smoother.diagnosis.calibration_report import calibration_records
 from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.ekf.filter import run_ekf
+from smoother.errors import NotConverged
 from smoother.estimators import ESTIMATORS
 from smoother.model.between import Following
 from smoother.model.covariances import joint_blocks
@@ -400,7 +401,29 @@ def _honest_noise(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     fit's iterations are those of all the fits, and it converged where each did and the last one
     found no new model error beside groups it applied (a fit again that fails, a SolverError, leaves
     the last one standing, with a warning). ``seconds`` and the fit's ``runtime_s``
-    count everything here (the fits, the misfit causes, the solves between them)."""
+    count everything here (the fits, the misfit causes, the solves between them).
+
+    The solves on the way (with noise about to be refused, from a start left behind) are
+    intermediate: an optimiser that stopped short there is not said
+    (:class:`smoother.errors.NotConverged`); the estimate returned is, where it stopped short. The
+    other warnings are said once each."""
+    caught: list = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = _noise_fitted(dataset, problem, r, noise, options, mounting)
+    finally:
+        for message, category in dict.fromkeys((str(w.message), w.category) for w in caught
+                                               if not issubclass(w.category, NotConverged)):
+            warnings.warn(message, category, stacklevel=2)
+    final = out[1]
+    if not final.converged and final.trajectory is not r.trajectory:  # solved here; the given one was said
+        warn_not_converged(options.optimizer, final.iterations, final.decrease, stacklevel=2)
+    return out
+
+
+def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOptions, mounting=None) -> tuple:
+    """:func:`_honest_noise`'s work, its warnings as they come."""
     from smoother.batch.variance_components import estimate_noise
     from smoother.diagnosis.noise_honesty import honest, to_analyse
 

@@ -33,7 +33,7 @@ from factors.errors import InputError
 from factors.keys import KeyframeKeys
 from smoother.batch.methods import OPTIMIZERS
 from smoother.batch.optimiser import optimize
-from smoother.errors import IndeterminantSystem, indeterminant_key, is_indeterminant
+from smoother.errors import IndeterminantSystem, NotConverged, indeterminant_key, is_indeterminant
 from smoother.model.blocks import Layout
 from smoother.model.covariances import keyframe_covariance, marginal_covariances
 from smoother.model.problem import Problem, read_state
@@ -70,6 +70,9 @@ class SmootherResult:
     #: The covariances' elimination (:class:`smoother.model.covariances.SquareRoot`), kept where
     #: :func:`solve_batch` was asked for it: what the noise fit's first evaluation reads.
     square_root: object = None
+    #: The last iteration's decrease of the cost, relative to it (vectorised engine; None where none
+    #: was taken, or with GTSAM's): what :func:`warn_not_converged` says of an unconverged solve.
+    decrease: float | None = None
 
 
 def _explained(keyframe: int | None, problem: Problem, free: str | None = None) -> IndeterminantSystem:
@@ -139,7 +142,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
             if len(result.history) > 1:
                 decrease = (result.history[-2] - result.history[-1]) / max(result.history[-1], 1e-300)
             if not converged:  # before the covariances, which may fail away from the optimum
-                _warn_not_converged(optimizer, iterations, decrease)
+                warn_not_converged(optimizer, iterations, decrease)
             cov, joint = None, None
             if covariances:
                 layout = Layout.of(states, calibration, problem.blocks)
@@ -156,7 +159,7 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
             joint = None
             states, cov, cost, iterations, converged = _gtsam_engine(problem, optimizer, max_iterations, covariances)
             if not converged:
-                _warn_not_converged(optimizer, iterations, decrease)
+                warn_not_converged(optimizer, iterations, decrease)
     except IndeterminantSystem as error:
         raise _explained(error.keyframe, problem, error.free) from None
     except RuntimeError as error:
@@ -165,11 +168,13 @@ def solve_batch(problem: Problem, optimizer: str = "lm", max_iterations: int = 1
         raise
     trajectory = Trajectory(problem.times, states, cov)
     return SmootherResult(trajectory, cost, iterations, time.perf_counter() - start, converged, joint,
-                          calibration, calibration_cov, root)
+                          calibration, calibration_cov, root, decrease)
 
 
-def _warn_not_converged(optimizer: str, iterations: int, decrease: float | None) -> None:
+def warn_not_converged(optimizer: str, iterations: int, decrease: float | None, stacklevel: int = 3) -> None:
+    """The :class:`smoother.errors.NotConverged` warning of a batch solve by ``optimizer`` that
+    stopped after ``iterations`` still lowering its cost (by ``decrease`` of itself, if known)."""
     last = "" if decrease is None else f" (the last iteration still lowered the cost by {decrease:.3g} of itself)"
     warnings.warn(f"batch ({optimizer}): stopped after {iterations} iterations without converging{last}; the "
                   f"estimate may be off the optimum: raise max_iterations (smoother run --max-iterations)",
-                  stacklevel=3)
+                  NotConverged, stacklevel=stacklevel)
