@@ -348,7 +348,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         print(f"warning: the fit of the sensors' likely calibrations failed ({type(error).__name__}: "
               f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
         causes = {}
-    for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info))):
+    kinds = {s.name: s.kind for s in dataset.sensors}
+    for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info)),
+                                     kinds):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:

@@ -5,7 +5,8 @@ H^T + R``) is chi-square distributed with ``dim`` degrees of freedom when the mo
 a sensor's ``N`` updates the sum is chi-square with ``N dim`` degrees of freedom, so the mean NIS
 per degree of freedom lies in ``[chi2(0.025; N dim), chi2(0.975; N dim)] / (N dim)`` with 95%
 probability. Outside that band the sensor's ``sigma`` is too small (above) or too large (below),
-or its lever arm, rotation or time offset is wrong (above: the residuals carry a systematic part).
+or a part of its calibration its kind has (a lever arm, rotation, time offset or scale) is wrong (above: the
+residuals carry a systematic part).
 Only the updates the filter accepted count (a gate's rejections are counted apart: their NIS is
 large by construction). A sensor whose every update was rejected has a verdict of none (no
 figure), and an EKF that rejected most of a sensor's updates shows mostly the IMU's dead
@@ -42,6 +43,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from datasets.kinds import KINDS
+from factors.calibration import PARTS, applicable
 from smoother.ekf.filter import Innovations
 from smoother.stats import per_dof_band
 
@@ -232,8 +235,22 @@ def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:
     return lines
 
 
+#: How the advice names each calibration part (:data:`factors.calibration.PARTS`), in the order it names them.
+_SUSPECTS = {"lever_arm": "lever arm", "rotation": "rotation", "time_offset": "time offset", "scale": "scale"}
+
+
+def suspects(kind: str | None) -> str:
+    """The calibration parts a sensor of ``kind`` has, as a warning names them when its residuals
+    are far above their band: ``"lever arm or time offset"`` for a GNSS (its fixes have no
+    rotation), all four for a relative kind or an unknown one (None)."""
+    parts = PARTS if kind is None else applicable(KINDS[kind].model)
+    named = [text for part, text in _SUSPECTS.items() if part in parts]
+    return ", ".join(named[:-1]) + f" or {named[-1]}" if len(named) > 1 else named[0]
+
+
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
-                         causes: dict[str, str] | None = None, fitted: dict[str, str] | None = None) -> list[str]:
+                         causes: dict[str, str] | None = None, fitted: dict[str, str] | None = None,
+                         sensor_kinds: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
     with the figure of every estimator outside its band, naming what to check, and one per sensor
     with an entry in ``causes`` (per sensor, the calibration its residuals point at,
@@ -246,7 +263,8 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
     those sensors instead (its findings still come first). ``fitted``: per sensor whose noise the
     run fitted, what became of it (:func:`smoother.diagnosis.noise_report.fitted_sensors`): such a
     sensor's line says what the fit did, and a sigma that looks too large is not advised to be
-    fitted."""
+    fitted. ``sensor_kinds``: per sensor, its kind (:data:`datasets.kinds.KINDS`): a sensor's residuals far
+    above their band name the calibration parts its kind has (:func:`suspects`), all four without."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -276,8 +294,8 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         outcome = (fitted or {}).get(sensor)
         fit_said = "" if outcome is None else f"its noise was fitted ({outcome}: the noise table says why)"
         if high:
-            advice = "check its sigma (too small), lever arm, rotation or time offset" + (f"; {fit_said}" if fit_said
-                                                                                          else "")
+            advice = (f"check its sigma (too small), {suspects((sensor_kinds or {}).get(sensor))}"
+                      + (f"; {fit_said}" if fit_said else ""))
         else:
             advice = (f"{looks}, though {fit_said}" if outcome is not None else
                       f'{looks}; estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data')

@@ -125,10 +125,10 @@ def test_an_out_of_band_sensor_names_the_imu_first_when_the_imu_has_findings():
                            "gps": {"per_dof": 1.0, "band": [0.9, 1.1], "ok": True, "measurements": 30}}}
     plain = consistency_warnings(consistency)
     assert plain == ["wheels: per dof ekf 1.13e+03 (expected 0.9-1.1): check its sigma (too small), lever arm, "
-                     "rotation or time offset"]
+                     "rotation, time offset or scale"]
     spike = ImuFinding("spike", "gyro", 12.0, 12.0, 1, "gyro: 1 spike(s) ...")
     gap = ImuFinding("gap", "timing", 3.0, 13.0, 2000, "timing: ...")
     [line] = consistency_warnings(consistency, [spike, gap])
     assert line == ("wheels: per dof ekf 1.13e+03 (expected 0.9-1.1): the IMU is the likelier cause (gyro spike, gap: "
                     "see the 'imu:' warnings), this misfit a symptom of it; if the IMU is cleared, check its sigma "
-                    "(too small), lever arm, rotation or time offset")
+                    "(too small), lever arm, rotation, time offset or scale")

@@ -79,10 +79,21 @@ def test_a_sigma_that_looks_too_large_is_advised_to_be_fitted_only_where_it_was_
 
 def test_a_sensor_far_above_its_band_whose_noise_was_fitted_says_what_the_fit_did():
     high = {"batch": {"gps": {"per_dof": 2.21, "band": (0.89, 1.1), "ok": False, "measurements": 198}}}
-    [line] = consistency_warnings(high, fitted={"gps": "gps.horizontal kept, gps.vertical x6.05"})
-    assert line.endswith("check its sigma (too small), lever arm, rotation or time offset; its noise was fitted "
+    [line] = consistency_warnings(high, fitted={"gps": "gps.horizontal kept, gps.vertical x6.05"},
+                                  sensor_kinds={"gps": "gnss"})
+    assert line.endswith("check its sigma (too small), lever arm or time offset; its noise was fitted "
                          "(gps.horizontal kept, gps.vertical x6.05: the noise table says why)"), line
-    assert consistency_warnings(high)[0].endswith("rotation or time offset")
+    assert consistency_warnings(high, sensor_kinds={"gps": "gnss"})[0].endswith("lever arm or time offset")
+
+
+def test_a_sensor_far_above_its_band_is_pointed_at_the_calibration_parts_its_kind_has():
+    """A GNSS fix has no rotation, an attitude no lever arm; a velocity sensor has a scale too."""
+    high = {"batch": {s: {"per_dof": 9.0, "band": (0.9, 1.1), "ok": False, "measurements": 300}
+                      for s in ("gnss", "ahrs", "wheels")}}
+    lines = consistency_warnings(high, sensor_kinds={"gnss": "gnss", "ahrs": "orientation", "wheels": "velocity"})
+    said = {line.split(":", 1)[0]: line.split("check its sigma (too small), ", 1)[1] for line in lines}
+    assert said == {"gnss": "lever arm or time offset", "ahrs": "rotation or time offset",
+                    "wheels": "lever arm, rotation, time offset or scale"}, said
 
 
 def test_a_sensor_whose_residuals_point_at_a_calibration_still_says_what_the_noise_fit_did():
