@@ -210,7 +210,8 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
                          "with datasets.load_rig(path), then load_recording(rig)")
     imu = read_imu(rig.imu.source, rig.imu.topic)
     # the IMU's own units first: a velocity sensor's rows carry its gyro, and would be blamed for them
-    where = f"imu ({rig.imu.source}{'' if rig.imu.topic is None else ', topic ' + rig.imu.topic}): "
+    stream = f"{rig.imu.source}{'' if rig.imu.topic is None else ', topic ' + rig.imu.topic}"
+    where = f"imu ({stream}): "
     check_imu_rates(where, imu.gyro)
     check_imu_range(where, imu.t, imu.acc, imu.gyro)
     origin_ns = int(imu.t_ns[0]) if imu.t_ns is not None else int(round(float(imu.t[0]) * 1e9))
@@ -232,7 +233,9 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
                              f"sensor {config.name!r} ({config.kind}): {message}") from error
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
-        sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise))
+        shared = (config.source, config.topic) == (rig.imu.source, rig.imu.topic)
+        sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise,
+                              stream if shared else None))
         whole.append(data)
     if part is not None:
         imu, sensors, whole = _part(imu, sensors, whole, part, origin_ns)

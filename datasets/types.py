@@ -557,7 +557,10 @@ class Sensor:
     ``calibrate``: what of its calibration the batch smoother estimates, about the ``T_BS`` and
     stamps of its data (a :class:`factors.calibration.CalibrationPrior`), or None;
     ``estimate_noise``: whether the batch smoother estimates its noise from the data (its
-    covariances scaled per axis group, :mod:`smoother.batch.variance_components`)."""
+    covariances scaled per axis group, :mod:`smoother.batch.variance_components`);
+    ``imu_stream``: where it reads the IMU's own messages (a ROS ``sensor_msgs/Imu`` topic's
+    orientation), that stream as the rig names it, else None -- its measurements are then a filter's
+    output on the same gyro and accelerometer, and their errors follow the IMU's."""
 
     name: str
     kind: str
@@ -565,6 +568,7 @@ class Sensor:
     heldout: object = None
     calibrate: object = None
     estimate_noise: bool = False
+    imu_stream: str | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -594,6 +594,21 @@ def unshrunk_groups(record: dict) -> dict[str, list[str]]:
     return out
 
 
+def imu_followers(dataset: Dataset, record: dict) -> dict[str, str]:
+    """Per sensor whose errors may follow the IMU's, why, in a phrase: it reads the IMU's own
+    messages (:attr:`datasets.types.Sensor.imu_stream`: a filter's output on the same gyro), the
+    noise fit in ``record`` refused to shrink its sigma (:func:`unshrunk_groups`), or both. Such a
+    sensor's errors far below their band are not said to be an overstated sigma alone
+    (:func:`judged`, :func:`smoother.diagnosis.verdicts.consistency_warnings`)."""
+    out: dict[str, list[str]] = {}
+    for sensor in dataset.sensors:
+        if sensor.imu_stream is not None:
+            out[sensor.name] = [f"it reads the IMU's own messages, {sensor.imu_stream}"]
+    for sensor, groups in unshrunk_groups(record).items():
+        out.setdefault(sensor, []).append(f"the noise fit refused to shrink {' and '.join(groups)}")
+    return {sensor: "; ".join(why) for sensor, why in out.items()}
+
+
 def run_doubts(record: dict) -> list[str]:
     """What makes every estimate of a run doubtful whatever its own verdicts say: a sensor mounted
     otherwise than the rig says (the closed-form check, :mod:`smoother.diagnosis.mounting`), and a
@@ -615,7 +630,7 @@ def run_doubts(record: dict) -> list[str]:
 
 
 def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | None = None,
-           doubts: list[str] = (), unshrunk: dict[str, list[str]] | None = None) -> None:
+           doubts: list[str] = (), follow_imu: dict[str, str] | None = None) -> None:
     """Record each estimator's verdicts in its details: ``sensors`` (per sensor; with held-out
     measurements also ``heldout_per_dof``, ``heldout_band``, ``heldout_ok``,
     ``heldout_measurements`` and ``heldout_state_share``) and ``fit`` (all together,
@@ -632,8 +647,8 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
       :func:`smoother.diagnosis.heldout.sigma_factor`), a sigma that also inflates those covariances
       or a state the data do not fix -- or, where those near the used measurements lie below those
       far from them (:func:`smoother.diagnosis.heldout.near_and_far`), errors correlated in time --
-      but for a sensor in ``unshrunk`` (:func:`unshrunk_groups`: the noise fit refused to shrink its
-      sigma), whose low errors may as well follow the IMU's, which makes the covariances too small;
+      but for a sensor in ``follow_imu`` (:func:`imu_followers`, with why), whose low errors may as
+      well follow the IMU's, which makes the covariances too small;
     * a run-wide ``doubts`` (:func:`run_doubts`) holds.
 
     A sensor whose calibration an estimator estimated but could not judge itself (the fixed-lag
@@ -682,10 +697,9 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
                 why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
                            "are too large -- a sigma stated too large (a smaller one shrinks them too) or a state "
                            "the data do not fix (a heading, a bias)")
-            elif k in (unshrunk or {}) and k not in held:
+            elif k in (follow_imu or {}):
                 why.append(f"{figure}, far below their band: its sigma is overstated or its errors follow the "
-                           f"IMU's (the noise fit refused to shrink {' and '.join(unshrunk[k])}: below), so the "
-                           "estimate's covariances may be too large or too small")
+                           f"IMU's ({follow_imu[k]}), so the estimate's covariances may be too large or too small")
             else:
                 factor = c.get("sigma_factor")
                 by = "" if k not in held else (

@@ -244,9 +244,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     from smoother.pipeline import (
         estimate_each,
         heldout_by_estimator,
+        imu_followers,
         judged,
         run_doubts,
-        unshrunk_groups,
         verdicts_by_estimator,
     )
 
@@ -286,7 +286,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     try:
         consistency = verdicts_by_estimator(dataset, estimates, run_options)
         judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record),
-               unshrunk_groups(record))
+               imu_followers(dataset, record))
         baseline = report.interpolation_baseline(dataset)
         correlations = _calibration_correlations(dataset, estimates)
     except KeyboardInterrupt as error:
@@ -350,7 +350,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         causes = {}
     kinds = {s.name: s.kind for s in dataset.sensors}
     for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info)),
-                                     kinds):
+                                     kinds, imu_followers(dataset, record)):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:

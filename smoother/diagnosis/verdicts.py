@@ -250,7 +250,8 @@ def suspects(kind: str | None) -> str:
 
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
                          causes: dict[str, str] | None = None, fitted: dict[str, str] | None = None,
-                         sensor_kinds: dict[str, str] | None = None) -> list[str]:
+                         sensor_kinds: dict[str, str] | None = None,
+                         follow_imu: dict[str, str] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
     with the figure of every estimator outside its band, naming what to check, and one per sensor
     with an entry in ``causes`` (per sensor, the calibration its residuals point at,
@@ -264,7 +265,10 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
     run fitted, what became of it (:func:`smoother.diagnosis.noise_report.fitted_sensors`): such a
     sensor's line says what the fit did, and a sigma that looks too large is not advised to be
     fitted. ``sensor_kinds``: per sensor, its kind (:data:`datasets.kinds.KINDS`): a sensor's residuals far
-    above their band name the calibration parts its kind has (:func:`suspects`), all four without."""
+    above their band name the calibration parts its kind has (:func:`suspects`), all four without.
+    ``follow_imu``: per sensor whose errors may follow the IMU's, why
+    (:func:`smoother.pipeline.imu_followers`): a sigma that looks too large by such a sensor's
+    errors is not said to be so alone."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -290,7 +294,8 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         lowest = min(c["per_dof"] for c in off.values())
-        looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors"
+        looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors" + (
+            f", or they follow the IMU's ({follow_imu[sensor]})" if sensor in (follow_imu or {}) else "")
         outcome = (fitted or {}).get(sensor)
         fit_said = "" if outcome is None else f"its noise was fitted ({outcome}: the noise table says why)"
         if high:

@@ -132,6 +132,24 @@ def test_the_python_api_and_the_online_smoother_start_in_the_odometry_frame(reco
     assert e @ np.linalg.solve(final.cov[-1][:3, :3], e) < CHI2_3
 
 
+def test_an_attitude_read_from_the_imu_s_own_messages_is_known_to_follow_the_imu(recording):
+    """An orientation on the IMU's topic is a filter's output on the same gyro: the dataset says so
+    (``Sensor.imu_stream``, naming the stream), and a run's verdicts then name it beside an
+    overstated sigma; one on a topic of its own is independent."""
+    from datasets.recording import load_recording
+    from datasets.rig import load_rig
+    from smoother.pipeline import imu_followers
+
+    data, folder, bag = recording
+    same = load_recording(load_rig(_rig(folder, bag, data, 'topic = "/imu/data"', "same")))
+    own = load_recording(load_rig(_rig(folder, bag, data, 'topic = "/imu/drifting"', "own")))
+    [ahrs] = [s for s in same.sensors if s.name == "ahrs"]
+    assert ahrs.imu_stream == f"bag:{bag}, topic /imu/data", ahrs.imu_stream
+    assert all(s.imu_stream is None for s in own.sensors)
+    assert imu_followers(same, {}) == {"ahrs": f"it reads the IMU's own messages, bag:{bag}, topic /imu/data"}
+    assert imu_followers(own, {}) == {}
+
+
 def test_the_imu_attitude_fixes_the_heading_and_roll_pitch_only_leaves_it_out(recording, tmp_path):
     """``kind = "orientation"`` on the Imu topic: yaw absolute (the AHRS's), position relative.
     The same with a drifting heading: used whole it pulls the estimate's heading along; with

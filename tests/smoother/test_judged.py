@@ -63,8 +63,23 @@ def test_errors_far_below_whose_shrunk_noise_was_refused_are_not_blamed_on_the_s
     """An AHRS filtered from the IMU's own gyro fits the estimate far better than its sigma says; the
     noise fit refused to shrink it, so the doubt names both readings and neither covariance direction."""
     est = _estimate()
-    judged({"batch": est}, {"batch": {"ahrs": _verdict(0.01)}}, unshrunk={"ahrs": ["ahrs.tilt"]})
+    judged({"batch": est}, {"batch": {"ahrs": _verdict(0.01)}}, follow_imu={"ahrs": "the noise fit refused to shrink "
+                                                                                   "ahrs.tilt"})
     doubt = est.details["doubtful"]
-    assert "its sigma is overstated or its errors follow the IMU's (the noise fit refused to shrink ahrs.tilt" in doubt
+    assert "its sigma is overstated or its errors follow the IMU's (the noise fit refused to shrink ahrs.tilt)" in doubt
     assert "may be too large or too small" in doubt
     assert "so the estimate's covariances are too large" not in doubt
+
+
+def test_held_out_attitudes_far_below_from_the_imu_s_own_messages_name_that_beside_the_sigma():
+    """The Jackal's AHRS: its attitudes come in the IMU's own messages, and held out they are
+    predicted 10x better than its sigma says -- not a sigma to shrink by that much alone."""
+    est = _estimate()
+    held = {"batch": {"ahrs": _verdict(0.11, statistic="heldout", state_share=0.3, sigma_factor=0.075)}}
+    judged({"batch": est}, {"batch": {"ahrs": _verdict(1.0)}}, held,
+           follow_imu={"ahrs": "it reads the IMU's own messages, bag:run.bag, topic /imu/data"})
+    doubt = est.details["doubtful"]
+    assert ("ahrs's held-out predictions are 0.11 per dof (expected 0.85-1.2), far below their band: its sigma is "
+            "overstated or its errors follow the IMU's (it reads the IMU's own messages, bag:run.bag, topic "
+            "/imu/data), so the estimate's covariances may be too large or too small") in doubt, doubt
+    assert "by up to" not in doubt

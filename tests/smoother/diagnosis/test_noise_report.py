@@ -103,3 +103,10 @@ def test_a_sensor_whose_residuals_point_at_a_calibration_still_says_what_the_noi
     assert line.endswith("then judge its sigma again (it looks too large); its noise was fitted (ahrs.tilt kept: "
                          "the noise table says why)"), line
     assert consistency_warnings(low, causes=causes)[0].endswith("(it looks too large)")
+
+
+def test_a_sensor_whose_errors_may_follow_the_imu_is_not_told_its_sigma_is_too_large_alone():
+    low = {"batch": {"ahrs": {"per_dof": 0.133, "band": (0.93, 1.07), "ok": False, "measurements": 300}}}
+    [line] = consistency_warnings(low, follow_imu={"ahrs": "it reads the IMU's own messages, bag:x.bag, topic /imu"})
+    assert ("its sigma looks 2.7x too large by its errors, or they follow the IMU's (it reads the IMU's own "
+            "messages, bag:x.bag, topic /imu); estimate") in line, line
