@@ -694,9 +694,10 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
                            "sensor's errors are correlated in time and the estimate follows them through the used "
                            "ones, which no white sigma describes")
             elif k in held and c.get("sigma_factor") is None:
+                following = f", or errors that follow the IMU's ({follow_imu[k]})" if k in (follow_imu or {}) else ""
                 why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
                            "are too large -- a sigma stated too large (a smaller one shrinks them too) or a state "
-                           "the data do not fix (a heading, a bias)")
+                           f"the data do not fix (a heading, a bias){following}")
             elif k in (follow_imu or {}):
                 why.append(f"{figure}, far below their band: its sigma is overstated or its errors follow the "
                            f"IMU's ({follow_imu[k]}), so the estimate's covariances may be too large or too small")

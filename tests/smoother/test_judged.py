@@ -83,3 +83,12 @@ def test_held_out_attitudes_far_below_from_the_imu_s_own_messages_name_that_besi
             "overstated or its errors follow the IMU's (it reads the IMU's own messages, bag:run.bag, topic "
             "/imu/data), so the estimate's covariances may be too large or too small") in doubt, doubt
     assert "by up to" not in doubt
+
+
+def test_held_out_predictions_below_the_state_s_uncertainty_name_the_imu_s_messages_as_a_cause_too():
+    est = _estimate()
+    held = {"batch": {"ahrs": _verdict(0.1, statistic="heldout", state_share=0.9, sigma_factor=None)}}
+    judged({"batch": est}, {"batch": {"ahrs": _verdict(1.0)}}, held,
+           follow_imu={"ahrs": "it reads the IMU's own messages"})
+    assert "a state the data do not fix (a heading, a bias), or errors that follow the IMU's (it reads the IMU's " \
+           "own messages)" in est.details["doubtful"]
