@@ -294,8 +294,8 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
             continue
         high = any(c["per_dof"] > c["band"][1] for c in off.values())
         lowest = min(c["per_dof"] for c in off.values())
-        looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors" + (
-            f", or they follow the IMU's ({follow_imu[sensor]})" if sensor in (follow_imu or {}) else "")
+        following = f", or they follow the IMU's ({follow_imu[sensor]})" if sensor in (follow_imu or {}) else ""
+        looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors{following}"
         outcome = (fitted or {}).get(sensor)
         fit_said = "" if outcome is None else f"its noise was fitted ({outcome}: the noise table says why)"
         if high:
@@ -307,7 +307,7 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high
-                       else "then judge its sigma again (it looks too large)")
+                       else f"then judge its sigma again (it looks too large{following})")
                       + (f"; {fit_said}" if fit_said else ""))
         if kinds:
             advice = (f"the IMU is the likelier cause ({kinds}: see the 'imu:' warnings), this misfit a symptom "

@@ -103,6 +103,8 @@ def test_a_sensor_whose_residuals_point_at_a_calibration_still_says_what_the_noi
     assert line.endswith("then judge its sigma again (it looks too large); its noise was fitted (ahrs.tilt kept: "
                          "the noise table says why)"), line
     assert consistency_warnings(low, causes=causes)[0].endswith("(it looks too large)")
+    [line] = consistency_warnings(low, causes=causes, follow_imu={"ahrs": "it reads the IMU's own messages"})
+    assert line.endswith("(it looks too large, or they follow the IMU's (it reads the IMU's own messages))"), line
 
 
 def test_a_sensor_whose_errors_may_follow_the_imu_is_not_told_its_sigma_is_too_large_alone():
