@@ -285,8 +285,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     # without it; failed (out of memory, say), they are written, the failure said, and the run ends with 2
     try:
         consistency = verdicts_by_estimator(dataset, estimates, run_options)
-        judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record),
-               imu_followers(dataset, record))
+        followers = imu_followers(dataset, record)
+        judged(estimates, consistency, heldout_by_estimator(dataset, estimates), run_doubts(record), followers)
         baseline = report.interpolation_baseline(dataset)
         correlations = _calibration_correlations(dataset, estimates)
     except KeyboardInterrupt as error:
@@ -295,12 +295,12 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         run_info["analysis_failed"] = " ".join(f"{type(error).__name__}: {error}".split())
         print(f"warning: the analysis after the estimators failed ({run_info['analysis_failed']}): the estimates are "
               "written without their verdicts", file=sys.stderr)
-        consistency, baseline, correlations = {}, None, {}
+        consistency, baseline, correlations, followers = {}, None, {}, {}
     if baseline is not None:
         run_info["interpolated_fixes"] = baseline
     with out.outputs() as stage:
         run_info["total_s"] = time.perf_counter() - started
-        metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations)
+        metrics = _write_outputs(args, stage, dataset, estimates, run_info, correlations, followers)
     _say_removed(out)
     if args.plot:
         from smoother.outputs import plots
@@ -327,7 +327,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         if m.get("calibration"):
             print(f"{name}:")
             for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}),
-                                          verdicts_for(name, verdicts), correlations.get(name)):
+                                          verdicts_for(name, verdicts), correlations.get(name), followers):
                 print(f"  {line}")
     if _noise(metrics, run_info):
         for line in noise_lines(_noise(metrics, run_info)):
@@ -350,7 +350,7 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
         causes = {}
     kinds = {s.name: s.kind for s in dataset.sensors}
     for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info)),
-                                     kinds, imu_followers(dataset, record)):
+                                     kinds, followers):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
@@ -386,11 +386,13 @@ def _calibration_correlations(dataset, estimates: dict) -> dict:
             for name, est in estimates.items() if est.details.get("calibration")}
 
 
-def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None) -> dict:
+def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correlations: dict | None = None,
+                   followers: dict | None = None) -> dict:
     """The run's files (:func:`smoother.outputs.files.write_outputs`) and, with ``--mcap``, its MCAP
     (:func:`smoother.outputs.mcap.write_mcap`), into the staging folder ``stage``; the metrics.
     ``calibrated.toml`` carries, as a caution beside a sensor's values, what the batch's verdict
-    on it and its ``correlations`` (:func:`_calibration_correlations`) say of them
+    on it, its ``correlations`` (:func:`_calibration_correlations`) and its errors' following the
+    IMU's (``followers``, :func:`smoother.pipeline.imu_followers`) say of them
     (:func:`smoother.diagnosis.calibration_report.fit_note`)."""
     from smoother.outputs import files
     from smoother.outputs.layout import CALIBRATED_RIG, MCAP
@@ -409,7 +411,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         from smoother.diagnosis.calibration_report import fit_note
 
         verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})
-        cautions = {s: fit_note(verdicts.get(s), rhos.get(s)) for s in records}
+        cautions = {s: fit_note(verdicts.get(s), rhos.get(s), (followers or {}).get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
             handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise))
     return metrics

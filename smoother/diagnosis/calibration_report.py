@@ -111,15 +111,17 @@ def calibration_records(calibration, covariances) -> tuple[dict, dict]:
 
 
 def calibration_lines(records: dict, against: dict, verdicts: dict | None = None,
-                      correlations: dict | None = None) -> list[str]:
+                      correlations: dict | None = None, follow_imu: dict | None = None) -> list[str]:
     """The printed table of one estimator's calibrations: a line per sensor, each value with its
     sigma (a rotation as its change from the one given, in degrees about the IMU frame's axes),
     the coordinates that stayed at their prior, and what its residuals say of those sigmas
     (module docstring): where the estimator's verdict on the sensor (``verdicts``: ``{sensor:
     verdict}``, :func:`smoother.diagnosis.verdicts.verdict`) is out of its band, and where its residuals'
     lag-one correlation (``correlations``: ``{sensor: rho}``, position fixes,
-    :func:`smoother.evaluation.scoring.residual_correlation`) is high."""
-    verdicts, correlations = verdicts or {}, correlations or {}
+    :func:`smoother.evaluation.scoring.residual_correlation`) is high, and for the sensors whose
+    errors may follow the IMU's (``follow_imu``: ``{sensor: why}``,
+    :func:`smoother.pipeline.imu_followers`) what that would make of them."""
+    verdicts, correlations, follow_imu = verdicts or {}, correlations or {}, follow_imu or {}
     lines = []
     for name, r in records.items():
         a = against.get(name, {})
@@ -139,7 +141,7 @@ def calibration_lines(records: dict, against: dict, verdicts: dict | None = None
         left = a.get("unobserved", [])
         note = (f"; not fixed by the data, at its prior (posterior/prior sigma >= {UNOBSERVED_RATIO:g}): "
                 f"{', '.join(left)}") if left else ""
-        fit = fit_note(verdicts.get(name), correlations.get(name))
+        fit = fit_note(verdicts.get(name), correlations.get(name), follow_imu.get(name))
         lines.append(f"calibration {name}: " + "; ".join(parts) + note + (f"; {fit}" if fit else ""))
     return lines
 
@@ -158,10 +160,12 @@ def verdicts_for(estimator: str, verdicts: dict) -> dict:
     return out
 
 
-def fit_note(verdict: dict | None, rho: float | None) -> str:
+def fit_note(verdict: dict | None, rho: float | None, follows_imu: str | None = None) -> str:
     """What an estimator's verdict on a calibrated sensor (:func:`smoother.diagnosis.verdicts.verdict`)
     and its residuals' lag-one correlation ``rho`` (position fixes; None otherwise) say of its
-    calibration's sigmas (module docstring), or '' when neither says anything."""
+    calibration's sigmas (module docstring), or '' when neither says anything. ``follows_imu``: why
+    the sensor's errors may follow the IMU's, or None: residuals far below their band then do not
+    make its sigmas too large alone -- errors that follow the IMU's make them too small."""
     said, factor, qualifier = [], 1.0, ""
     misfit = bool(verdict) and far_off(verdict)
     if misfit:
@@ -184,6 +188,8 @@ def fit_note(verdict: dict | None, rho: float | None) -> str:
               else "fixes further apart (a rig's `every`, `--gps-every`) carry nearly as much and are nearer "
                    "independent")
     ar1 = " if its errors drift as AR(1)" if correlated >= CORRELATION_FACTOR else ""
+    if misfit and follows_imu is not None and verdict["per_dof"] < verdict["band"][0]:
+        ar1 += f", unless its errors follow the IMU's ({follows_imu}), which makes these too small instead"
     return f"{'; '.join(said)}: by its residuals they would be {qualifier}{factor:.2g}x these{ar1} -- {advice}"
 
 

@@ -266,6 +266,22 @@ def test_a_calibration_line_says_what_its_sensor_s_residuals_say_of_its_sigmas()
     assert "about 6x these" in line({**fits, "per_dof": 4.0, "ok": False}, 0.8)
 
 
+def test_a_calibrated_attitude_whose_errors_may_follow_the_imu_is_not_said_to_be_overstated_alone():
+    """Residuals far below their band make the calibration's sigmas too large only where the
+    sensor's errors are its own; read from the IMU's messages they may follow the IMU's, and then
+    the sigmas are too small. Far above, the note is as before."""
+    from smoother.diagnosis.calibration_report import calibration_lines
+
+    records = {"ahrs": {"time_offset_s": 0.02, "time_offset_sigma_s": 0.0003}}
+    low = {"per_dof": 0.133, "band": [0.93, 1.07], "ok": False, "statistic": "residual"}
+    followers = {"ahrs": "it reads the IMU's own messages, bag:x.bag, topic /imu/data"}
+    [line] = calibration_lines(records, {}, {"ahrs": low}, None, followers)
+    assert ("by its residuals they would be 0.36x these, unless its errors follow the IMU's (it reads the IMU's own "
+            "messages, bag:x.bag, topic /imu/data), which makes these too small instead -- trust") in line, line
+    assert "unless" not in calibration_lines(records, {}, {"ahrs": low})[0]
+    assert "unless" not in calibration_lines(records, {}, {"ahrs": {**low, "per_dof": 4.0}}, None, followers)[0]
+
+
 def test_an_estimator_without_its_own_verdict_on_a_sensor_takes_the_batch_s_then_the_ekf_s_and_says_whose():
     from smoother.diagnosis.calibration_report import calibration_lines, verdicts_for
 
