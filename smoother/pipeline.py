@@ -429,6 +429,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
 
     tick = time.perf_counter()
     wrong = [f.sensor for f in mounting.wrong] if mounting is not None else ()
+    streams = {s.name: s.imu_stream for s in dataset.sensors if s.imu_stream is not None}
     before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
     fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
     order = [g.group.name for g in fit.groups]
@@ -442,7 +443,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
 
             causes = causes_at(fit.not_grown().applied(dataset), r.trajectory, options.keyframe_rate,
                                options.robust, calibration=r.calibration)
-        fit, found = honest(fit, wrong, causes)
+        fit, found = honest(fit, wrong, causes, streams)
         errors += found
         held.update({g.group.name: g for g in fit.groups if g.group.name in {e.group for e in found}})
         if not found or refit == MAX_REFITS or len(held) == len(order):

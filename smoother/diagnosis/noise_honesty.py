@@ -8,6 +8,11 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
 
 * its sensor's mounting is wrong by the closed-form check (:mod:`smoother.diagnosis.mounting`):
   the mounting is the cause, whatever the factor;
+* it shrank the sigma of a sensor that reads the IMU's own messages
+  (:attr:`datasets.types.Sensor.imu_stream`: a ROS ``sensor_msgs/Imu`` topic's orientation, a
+  filter's output on the same gyro and accelerometer): its residuals measure how closely it
+  follows the IMU, not its own error, and a sigma shrunk to them would count the IMU's information
+  twice. A factor above 1 stays a noise to judge as any other's;
 * its factor is implausible for a noise: beyond :data:`IMPLAUSIBLE_FACTOR` from the rig's value
   either way (a datasheet or an Allan variance is not off by that much; a unit or a frame is). A
   noise that large is a misfit: a unit, a frame, a mounting or a time offset. One that small is no
@@ -106,10 +111,12 @@ def _left_out(causes: dict | None) -> dict[str, list]:
     return out
 
 
-def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tuple[NoiseFit, list[ModelError]]:
+def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None,
+           imu_streams: dict[str, str] | None = None) -> tuple[NoiseFit, list[ModelError]]:
     """``fit`` with every group that is a model error (module docstring) kept at the rig's value,
     and those errors. ``mounting_wrong``: the sensors whose mounting the closed-form check found
-    wrong. ``causes``: per sensor analysed, its misfit causes
+    wrong. ``imu_streams``: per sensor that reads the IMU's own messages, that stream.
+    ``causes``: per sensor analysed, its misfit causes
     (:func:`smoother.diagnosis.misfit_causes.causes_at` with the fitted noise applied, no factor
     grown: :meth:`~smoother.batch.variance_components.NoiseFit.not_grown`), which tell a
     systematic error from a drifting one among residuals alike in time."""
@@ -123,6 +130,11 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None) -> tupl
         if sensor in mounting_wrong:
             errors[name] = (f"its mounting is wrong (the mounting check): a noise {g.factor:.3g}x the rig's would "
                             "hide it")
+        elif sensor in (imu_streams or {}) and g.factor < 1.0:
+            too_small.add(name)
+            errors[name] = (f"it reads the IMU's own messages ({imu_streams[sensor]}): its residuals measure how "
+                            "closely it follows the IMU, not its own error, and a sigma "
+                            f"{g.factor:.3g}x the rig's would count the IMU's information twice")
         elif g.factor > IMPLAUSIBLE_FACTOR:
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")

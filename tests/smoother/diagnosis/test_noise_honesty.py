@@ -49,6 +49,18 @@ def test_a_factor_orders_of_magnitude_below_is_refused_as_a_stated_value_or_depe
     assert "mounting" not in cause and "time offset" not in cause, cause
 
 
+def test_a_sensor_reading_the_imu_s_own_messages_is_never_shrunk_but_may_grow():
+    """Its residuals say how closely it follows the IMU, not its error: x0.3 is refused (no
+    implausible factor needed); x1.8 is a noise like any other's."""
+    streams = {"ahrs": "bag:run.bag, topic /imu/data"}
+    errors = _errors(_fit(("ahrs", "tilt", (0, 1), 0.3, 50.0, 0.0, 300)), imu_streams=streams)
+    assert errors["ahrs.tilt"].startswith("it reads the IMU's own messages (bag:run.bag, topic /imu/data)"), errors
+    assert "count the IMU's information twice" in errors["ahrs.tilt"]
+    assert _errors(_fit(("ahrs", "tilt", (0, 1), 0.3, 50.0, 0.0, 300))) == {}  # a topic of its own: applied
+    out, refused = honest(_fit(("ahrs", "tilt", (0, 1), 1.8, 50.0, 0.0, 300)), imu_streams=streams)
+    assert refused == [] and out.groups[0].applied
+
+
 def test_an_imu_factor_shrunk_beside_a_drifting_sensor_is_not_said_to_follow_the_drift():
     shrunk = ("imu", "gyro", None, 1.0 / (IMPLAUSIBLE_FACTOR * 2), 20.0, 0.9, 7000)
     grown = ("imu", "acc_bias", None, IMPLAUSIBLE_FACTOR * 1.6, 20.0, 0.9, 7000)
