@@ -233,7 +233,8 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
                              f"sensor {config.name!r} ({config.kind}): {message}") from error
         _check_overlap(config.name, data, imu, origin_ns)
         used, heldout = _split_every(data, config.every)
-        shared = (config.source, config.topic) == (rig.imu.source, rig.imu.topic)
+        # a bag topic is one message stream: a sensor_msgs/Imu carries the samples and its filter's orientation
+        shared = config.topic is not None and (config.source, config.topic) == (rig.imu.source, rig.imu.topic)
         sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise,
                               stream if shared else None))
         whole.append(data)

@@ -558,9 +558,10 @@ class Sensor:
     stamps of its data (a :class:`factors.calibration.CalibrationPrior`), or None;
     ``estimate_noise``: whether the batch smoother estimates its noise from the data (its
     covariances scaled per axis group, :mod:`smoother.batch.variance_components`);
-    ``imu_stream``: where it reads the IMU's own messages (a ROS ``sensor_msgs/Imu`` topic's
-    orientation), that stream as the rig names it, else None -- its measurements are then a filter's
-    output on the same gyro and accelerometer, and their errors follow the IMU's."""
+    ``imu_stream``: where it reads the IMU's own messages (the IMU's bag topic: a ROS
+    ``sensor_msgs/Imu``'s orientation), that stream as the rig names it, else None -- its
+    measurements are then a filter's output on the same gyro and accelerometer, and their errors
+    follow the IMU's."""
 
     name: str
     kind: str
