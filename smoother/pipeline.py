@@ -429,7 +429,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
 
     tick = time.perf_counter()
     wrong = [f.sensor for f in mounting.wrong] if mounting is not None else ()
-    streams = {s.name: s.imu_stream for s in dataset.sensors if s.imu_stream is not None}
+    streams = imu_streams(dataset)
     before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
     fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
     order = [g.group.name for g in fit.groups]
@@ -595,16 +595,19 @@ def unshrunk_groups(record: dict) -> dict[str, list[str]]:
     return out
 
 
+def imu_streams(dataset: Dataset) -> dict[str, str]:
+    """Per sensor of ``dataset`` that reads the IMU's own messages, that stream
+    (:attr:`datasets.types.Sensor.imu_stream`)."""
+    return {s.name: s.imu_stream for s in dataset.sensors if s.imu_stream is not None}
+
+
 def imu_followers(dataset: Dataset, record: dict) -> dict[str, str]:
     """Per sensor whose errors may follow the IMU's, why, in a phrase: it reads the IMU's own
     messages (:attr:`datasets.types.Sensor.imu_stream`: a filter's output on the same gyro), the
     noise fit in ``record`` refused to shrink its sigma (:func:`unshrunk_groups`), or both. Such a
     sensor's errors far below their band are not said to be an overstated sigma alone
     (:func:`judged`, :func:`smoother.diagnosis.verdicts.consistency_warnings`)."""
-    out: dict[str, list[str]] = {}
-    for sensor in dataset.sensors:
-        if sensor.imu_stream is not None:
-            out[sensor.name] = [f"it reads the IMU's own messages, {sensor.imu_stream}"]
+    out = {sensor: [f"it reads the IMU's own messages, {stream}"] for sensor, stream in imu_streams(dataset).items()}
     for sensor, groups in unshrunk_groups(record).items():
         out.setdefault(sensor, []).append(f"the noise fit refused to shrink {' and '.join(groups)}")
     return {sensor: "; ".join(why) for sensor, why in out.items()}
