@@ -98,6 +98,11 @@ RANGES: dict[str, Range] = {
         -86_400.0, 86_400.0, "s",
         "clocks of one recording differ by milliseconds to seconds (delays, GPS time's leap seconds) or by "
         "whole hours (a time zone); stamps a day apart are in another epoch, to convert in the data"),
+    "sensor.correlation_time": Range(
+        0.01, 86_400.0, "s",
+        "how long a sensor's errors stay alike: a GNSS receiver's multipath and atmosphere drift over seconds "
+        "to tens of minutes; shorter than 10 ms is white at any rate a sensor measures, longer than a day an "
+        "offset (estimate it, or hold the sensor out)"),
     "sensor.every": Range(
         1, 10_000, "",
         "a 100 Hz source used once in 100 s; beyond, too little is left to estimate with"),

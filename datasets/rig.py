@@ -41,6 +41,9 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     sigma_factor = 1.0              # optional instead: a factor on the messages' sigmas, as sigma
     every = 1                       # optional: use every k-th measurement, hold the rest out
     robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
+    correlation_time = 20.0         # optional, s: the errors drift, first-order Gauss-Markov with
+                                    # this time constant and sigma as their spread (batch smoother;
+                                    # kinds of one state per measurement)
     roll_pitch_only = false         # optional, orientation sensors only: use roll and pitch, not the
                                     # heading (an AHRS without a magnetometer; the kind roll_pitch)
     declination = 2.5               # magnetometers only, and required for them: the world field's
@@ -133,7 +136,7 @@ NOISE = "noise"
 #: The keys of a sensor's calibration (:func:`_calibration`): what to estimate and the priors' sigmas.
 CALIBRATION_KEYS = ("estimate", "time_offset_sigma", "rotation_sigma", "lever_arm_sigma", "scale_sigma")
 SENSOR_KEYS = ("name", "kind", "source", "topic", "T_BS", "camchain", "camera", "time_offset", "sigma",
-               "sigma_factor", "every",
+               "sigma_factor", "every", "correlation_time",
                "robust", "roll_pitch_only", "declination", "inclination", "scale", *CALIBRATION_KEYS)
 
 
@@ -174,7 +177,8 @@ class SensorConfig:
     :class:`factors.calibration.CalibrationPrior`), or None; ``estimate_noise``: whether its sigmas
     are estimated from the data (``estimate`` names ``"noise"``); ``sigma_factor``: None or factors
     on the messages' standard deviations, shaped as ``sigma`` (the covariances ``D C D``, ``D`` the
-    axes' factors; never with ``sigma``)."""
+    axes' factors; never with ``sigma``); ``correlation_time``: None, or the time constant [s] of its
+    errors as a first-order Gauss-Markov process (:attr:`datasets.types.Sensor.correlation_time`)."""
 
     name: str
     kind: str
@@ -191,6 +195,7 @@ class SensorConfig:
     calibrate: CalibrationPrior | None = None
     estimate_noise: bool = False
     sigma_factor: np.ndarray | None = None
+    correlation_time: float | None = None
 
 
 @dataclass(frozen=True)
@@ -466,7 +471,16 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
                         time_offset=time_offset, sigma=sigma, every=every, robust=robust,
                         **_field_angles(t, kind), scale=_scale(t, kind),
                         calibrate=_calibration(t, kind, time_offset), estimate_noise=_estimates_noise(t),
-                        sigma_factor=_sigma_factor(t, kind, sigma))
+                        sigma_factor=_sigma_factor(t, kind, sigma), correlation_time=_correlation_time(t, kind))
+
+
+def _correlation_time(t: "_Table", kind: str) -> float | None:
+    """The sensor's ``correlation_time`` [s] or None, on the kinds of one state per measurement."""
+    tau = t.number("correlation_time", positive=True)
+    if tau is not None and KINDS[kind].relative:
+        raise t.error("correlation_time", f"{kind} measurements are relative (two states each); errors "
+                                          "correlated in time are modelled for kinds of one state per measurement")
+    return tau
 
 
 def _scale(t: "_Table", kind: str) -> float:

@@ -561,7 +561,9 @@ class Sensor:
     ``imu_stream``: where it reads the IMU's own messages (the IMU's bag topic: a ROS
     ``sensor_msgs/Imu``'s orientation), that stream as the rig names it, else None -- its
     measurements are then a filter's output on the same gyro and accelerometer, and their errors
-    follow the IMU's."""
+    follow the IMU's; ``correlation_time``: None for errors independent from one measurement to the
+    next, else the time constant [s] of errors that drift as a first-order Gauss-Markov process of
+    the stated covariance (:mod:`smoother.model.correlated`; a kind of one state per measurement)."""
 
     name: str
     kind: str
@@ -570,6 +572,7 @@ class Sensor:
     calibrate: object = None
     estimate_noise: bool = False
     imu_stream: str | None = None
+    correlation_time: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -627,6 +630,11 @@ class Dataset:
                 raise InputError(f"Dataset.sensors[{i}].name: {problem}")
             if s.name in names:
                 raise InputError(f"sensor name {s.name!r} is used twice")
+            if s.correlation_time is not None:
+                tau = s.correlation_time
+                if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not (np.isfinite(tau) and tau > 0):
+                    raise InputError(f"sensor {s.name!r}: correlation_time must be a positive number of seconds, "
+                                     f"got {tau!r}")
             names.append(s.name)
         object.__setattr__(self, "sensors", tuple(self.sensors))
 

@@ -32,6 +32,7 @@ from smoother.errors import NotConverged
 from smoother.estimators import ESTIMATORS
 from smoother.model.between import Following
 from smoother.model.covariances import joint_blocks
+from smoother.model.correlated import white_elsewhere_warning, with_correlated_errors
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
 from smoother.online import warm_up as kernel_warm_up
@@ -135,6 +136,9 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     mounting = check_mountings(dataset)
     dataset = record["dataset"] = mounted_as_found(dataset, mounting)
     record["mounting"] = mounting
+    white = white_elsewhere_warning(dataset, names)
+    if white is not None:
+        warnings.warn(white, stacklevel=2)
     noise = dataset.noise_to_estimate if options.estimate_noise is None else tuple(options.estimate_noise)
     both = "ekf" in names and "batch" in names
     if noise:
@@ -349,8 +353,8 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
             ekf = Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
         details["start_ekf_s"] = time.perf_counter() - tick
     details["start"] = "ekf" if ekf.failed is None else f"dead reckoning (the EKF failed: {ekf.failed})"
-    problem = build_problem(dataset, options.keyframe_rate, options.robust,
-                            start=None if ekf.failed is not None else ekf.trajectory)
+    problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust,
+                                                   start=None if ekf.failed is not None else ekf.trajectory), dataset)
     if problem.calibration is not None and ekf.calibration is not None:  # the filter's calibration too
         problem = replace(problem, calibration=replace(problem.calibration, values=ekf.calibration.values))
     build_s = time.perf_counter() - tick
@@ -489,7 +493,8 @@ def _solved_from(dataset: Dataset, start, options: RunOptions, square_root: bool
     """``(problem, result)``: the batch smoother on ``dataset`` (with covariances; with
     ``square_root``, their elimination kept, :func:`smoother.batch.solve.solve_batch`) from the
     estimate ``start`` (its trajectory and calibration)."""
-    problem = build_problem(dataset, options.keyframe_rate, options.robust, start=start.trajectory)
+    problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust,
+                                                   start=start.trajectory), dataset)
     if problem.calibration is not None and start.calibration is not None:
         problem = replace(problem, calibration=start.calibration)
     return problem, solve_batch(problem, options.optimizer, options.max_iterations, True, square_root=square_root)

@@ -44,6 +44,7 @@ T_BS = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 time_offset = 0.01
 sigma = 0.05
 every = 2
+correlation_time = 5.0
 robust = "huber:2"
 scale = 1.01
 estimate = ["time_offset", "rotation", "lever_arm", "scale"]

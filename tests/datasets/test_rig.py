@@ -37,6 +37,7 @@ altitude = 400
 sigma = [0.5, 0.5, 1.0]
 every = 2
 robust = "cauchy:3"
+correlation_time = 20
 
 [[sensor]]
 name = "mocap"
@@ -62,6 +63,7 @@ def test_a_full_rig(tmp_path):
     assert (gnss.name, gnss.kind, gnss.topic, gnss.time_offset, gnss.every, gnss.robust) == (
         "gnss", "gnss", "/fix", -0.02, 2, ("cauchy", 3.0))
     assert gnss.T_BS[2, 3] == 0.5 and np.array_equal(gnss.sigma, [0.5, 0.5, 1.0])
+    assert gnss.correlation_time == 20.0 and mocap.correlation_time is None
     assert mocap.source == f"tum:{tmp_path / 'data/mocap.txt'}" and mocap.topic is None
     assert np.array_equal(mocap.T_BS, np.eye(4)) and np.array_equal(mocap.sigma, [0.01]) and mocap.robust is None
     assert (mocap.time_offset, mocap.every) == (0.0, 1)
@@ -136,6 +138,12 @@ def test_a_rotation_rounded_by_hand_is_taken_to_the_nearest_one(tmp_path):
     (_replace("sigma = 0.01", "sigma = -0.01"),
      "rig.toml: sensor[2] \"mocap\".sigma: expected standard deviations > 0"),
     (_replace("sigma = [0.5, 0.5, 1.0]", "sigma = []"), "rig.toml: sensor[1] \"gnss\".sigma: expected a standard"),
+    (_replace("correlation_time = 20", "correlation_time = 0"),
+     "rig.toml: sensor[1] \"gnss\".correlation_time: expected a number > 0, got 0"),
+    (_replace("correlation_time = 20", "correlation_time = 1e6"),
+     "rig.toml: sensor[1] \"gnss\".correlation_time: expected a value within [0.01, 86400] s"),
+    (_replace('kind = "pose"', 'kind = "odometry"\ncorrelation_time = 3'),
+     "rig.toml: sensor[2] \"mocap\".correlation_time: odometry measurements are relative"),
     (_replace("every = 2", "every = 0"), "rig.toml: sensor[1] \"gnss\".every: expected an integer >= 1, got 0"),
     (_replace("every = 2", "every = 1.5"),
      "rig.toml: sensor[1] \"gnss\".every: expected an integer >= 1, got a number"),

@@ -1,0 +1,143 @@
+"""Measurement errors correlated in time: a sensor whose errors drift (a GNSS receiver's multipath
+and atmosphere, a fused solution's) as a first-order Gauss-Markov process, in the batch smoother.
+
+Model. A sensor with a correlation time ``tau`` (:attr:`datasets.types.Sensor.correlation_time`)
+has errors ``n_m`` whose whitened values ``u_m = W_m n_m`` (``W_m`` the whitening of measurement
+``m``'s own covariance ``R_m``, the stationary one) form an AR(1) sequence over its measurements in
+time order:
+
+    u_m = phi_m u_(m-1) + w_m,   phi_m = exp(-(t_m - t_(m-1)) / tau),   w_m ~ N(0, (1 - phi_m^2) I)
+
+-- the Ornstein-Uhlenbeck process sampled at the measurement times, each ``u_m`` of unit covariance
+(for one ``R``, ``n`` is the process of stationary covariance ``R``). Its density is that of ``u_0``
+times the transitions', so the measurements' factors are the first one alone and the whitened
+innovations of the others,
+
+    f_0 = W_0 e_0,    f_m = (W_m e_m - phi_m W_(m-1) e_(m-1)) / sqrt(1 - phi_m^2)
+
+with ``e_m = h(x) - z_m`` the measurement's residual: factors on two keyframes (those of the two
+measurements), of unit covariance. ``tau -> 0`` gives the white factors back, ``tau -> inf`` a
+sensor whose error is one constant (an offset). Each ``f_m`` reads the measurements' own residual
+functions, their calibration variable included (a lever arm, a time offset: the same for both), so
+their Jacobians are the differences of theirs. A robust kernel acts on ``f_m``.
+
+Scaling ``R`` by a factor scales every ``f`` by its inverse square root, so a noise fit's factor on
+the sensor's sigma (:mod:`smoother.batch.variance_components`) is the stationary sigma's; per axis
+group, where ``R`` is diagonal (its axes' whitened rows are the axes' own).
+
+Two measurements on one keyframe (a sensor faster than the keyframes) make a factor on that
+keyframe alone; its first measurement's too. The :class:`~smoother.model.blocks.Block` holds two
+keyframe slots per factor, so such a factor names a neighbouring keyframe in its first slot, with
+a zero Jacobian there (a structural entry the IMU factor between them makes anyway).
+
+The fixed-lag smoother and the EKF take the errors as white (their windows and state do not hold
+the earlier measurements' errors); the run says so (:func:`white_elsewhere_warning`).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from datasets.types import Dataset
+from factors.errors import InputError
+from smoother.model.blocks import Block
+
+
+def transitions(times: np.ndarray, tau: float) -> np.ndarray:
+    """``phi_m = exp(-(t_m - t_(m-1)) / tau)`` of each measurement after the first (``(M - 1,)``)."""
+    return np.exp(-np.diff(times) / tau)
+
+
+def correlated_block(block: Block, times: np.ndarray, tau: float) -> Block:
+    """``block`` -- one sensor's measurement factors on one keyframe each, at ``times`` (strictly
+    increasing, seconds) -- as factors of errors correlated with time constant ``tau`` [s] (module
+    docstring): the same name, robust kernel and calibration variable; two keyframe slots per
+    factor and unit whitening (the residual whitens)."""
+    times = np.asarray(times, dtype=float)
+    if block.keyframes.shape[1] != 1:
+        raise InputError(f"sensor {block.name!r}: errors correlated in time need measurements of one state each")
+    if len(times) != len(block):
+        raise InputError(f"sensor {block.name!r}: {len(times)} times for {len(block)} measurements")
+    step = np.diff(times)
+    if np.any(~(step > 0)):
+        m = int(np.flatnonzero(~(step > 0))[0]) + 1
+        raise InputError(f"sensor {block.name!r}: errors correlated in time need strictly increasing measurement "
+                         f"times; measurement {m} at t = {times[m]:.9g} s follows one at {times[m - 1]:.9g} s")
+    if not (np.isfinite(tau) and tau > 0):
+        raise InputError(f"sensor {block.name!r}: correlation_time must be a positive number of seconds, got {tau!r}")
+    M = len(block)
+    own = block.keyframes[:, 0]
+    phi = np.concatenate([[0.0], transitions(times, tau)])
+    scale = 1.0 / np.sqrt(1.0 - phi**2)
+    # the keyframes each factor reads: the previous measurement's and its own; one keyframe alone
+    # (the first factor, two measurements on one keyframe) names a neighbour with a zero Jacobian
+    alone = np.ones(M, dtype=bool)
+    alone[1:] = own[1:] == own[:-1]
+    previous = np.concatenate([own[:1], own[:-1]])
+    neighbour = np.where(own > 0, own - 1, own + 1)
+    keyframes = np.stack([np.where(alone, neighbour, previous), own], axis=1)
+    W = block.whiten
+
+    def residual(slots, jacobians, rows, *calibration):
+        index = np.arange(M)[rows]
+        s = scale[index]
+        current = _whitened(block, W, [slots[1]], jacobians, index, calibration)
+        if jacobians:
+            e = s[:, None] * current[0]
+            # slot 0, slot 1, then the calibration variable's coordinates
+            J = [np.zeros_like(current[1][0]), *(s[:, None, None] * j for j in current[1])]
+        else:
+            e = s[:, None] * current
+        for slot in (0, 1):  # the previous measurement read from the first slot, or the second (one keyframe)
+            here = np.flatnonzero((index > 0) & (alone[index] == (slot == 1)))
+            if not len(here):
+                continue
+            k = (phi[index[here]] * s[here])[:, None]
+            previous = _whitened(block, W, [slots[slot][here]], jacobians, index[here] - 1, calibration)
+            if not jacobians:
+                e[here] -= k * previous
+                continue
+            e[here] -= k * previous[0]
+            J[slot][here] -= k[..., None] * previous[1][0]
+            for c, j in enumerate(previous[1][1:], start=2):
+                J[c][here] -= k[..., None] * j
+        return (e, J) if jacobians else e
+
+    return Block(block.name, keyframes, residual, np.broadcast_to(np.eye(W.shape[-1]), W.shape).copy(), block.robust,
+                 block.before_linearize, block.calibration)
+
+
+def _whitened(block: Block, W: np.ndarray, slots: list, jacobians: bool, rows: np.ndarray, calibration: tuple):
+    """``W e`` (and ``W J`` for each Jacobian) of ``block``'s measurements ``rows`` at ``slots``."""
+    out = block.residual(slots, jacobians, rows, *calibration)
+    if not jacobians:
+        return np.einsum("mab,mb->ma", W[rows], out)
+    e, Js = out
+    return np.einsum("mab,mb->ma", W[rows], e), [W[rows] @ J for J in Js]
+
+
+def with_correlated_errors(problem, dataset: Dataset):
+    """``problem`` (:class:`smoother.model.problem.Problem`) with the blocks of ``dataset``'s
+    sensors that have a correlation time as :func:`correlated_block` s (the problem itself where
+    none has): the batch smoother's model. The keyframe factors (the fixed-lag smoother's) keep the
+    white ones."""
+    taus = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
+    if not taus:
+        return problem
+    times = {s.name: s.data.t for s in dataset.sensors}
+    blocks = [correlated_block(b, times[b.name], taus[b.name]) if b.name in taus else b for b in problem.blocks]
+    return replace(problem, blocks=blocks)
+
+
+def white_elsewhere_warning(dataset: Dataset, estimators) -> str | None:
+    """The warning that the estimators among ``estimators`` other than the batch smoother take the
+    errors of ``dataset``'s sensors with a correlation time as white; None where none has one or
+    only the batch runs."""
+    named = [f"{s.name} ({s.correlation_time:g} s)" for s in dataset.sensors if s.correlation_time is not None]
+    others = [e for e in estimators if e != "batch"]
+    if not named or not others:
+        return None
+    return (f"{' and '.join(others)}: the errors of {', '.join(named)} are taken as white; only the batch smoother "
+            "models their correlation in time (correlation_time), so these estimators weigh consecutive "
+            "measurements as independent and their covariances are too small there")

@@ -1,0 +1,128 @@
+"""smoother.model.correlated: a sensor's errors as a first-order Gauss-Markov process in the batch
+smoother -- the factors' values against the AR(1) density written out, their Jacobians against
+central differences (calibration variables, attached measurements and several measurements on one
+keyframe included), and the white model as its limit."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datasets.simulate import simulate
+from datasets.types import PositionMeasurements, Sensor
+from factors.calibration import CalibrationPrior
+from factors.errors import InputError
+from smoother.model.blocks import Layout, evaluate_block
+from smoother.model.correlated import correlated_block, transitions, white_elsewhere_warning, with_correlated_errors
+from smoother.model.problem import build_problem
+
+
+def _dataset(hz: float = 5.0, tau: float | None = 3.0, calibrate=None, seed: int = 0, duration: float = 8.0):
+    """A simulated run with one position sensor of AR(1) errors (0.3 m, 3 s) at ``hz`` and lever arm
+    (0.2, -0.1, 0.3) m, stamps not on the IMU's (measurements attached between keyframes)."""
+    d = simulate(profile="gentle", duration=duration, seed=seed, pose_rate=None)
+    rng = np.random.default_rng(seed)
+    t = np.arange(d.imu.t[0] + 0.013, d.imu.t[-1] - 0.2, 1.0 / hz)
+    r = np.stack([np.interp(t, d.truth.t, d.truth.states.r[:, a]) for a in range(3)], axis=1)
+    e = np.zeros_like(r)
+    e[0] = 0.3 * rng.standard_normal(3)
+    for m, phi in enumerate(transitions(t, 3.0), start=1):
+        e[m] = phi * e[m - 1] + 0.3 * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    T = np.eye(4)
+    T[:3, 3] = [0.2, -0.1, 0.3]
+    cov = np.diag([0.09, 0.04, 0.16]) * rng.uniform(0.5, 2.0, (len(t), 1, 1))
+    fixes = PositionMeasurements(t, r + e, cov, T_BS=T)
+    return replace(d, sensors=(Sensor("gnss", "position", fixes, calibrate=calibrate, correlation_time=tau),))
+
+
+def _directional(block, states, calibration, rng, eps=1e-6):
+    """The block's linearised change along a random step of every keyframe (and the calibration
+    variable) against the central difference of its whitened residuals."""
+    layout = Layout.of(states, calibration)
+    delta = rng.standard_normal(layout.n * 15 + sum(layout.extra))
+    ev = evaluate_block(block, states, True, calibration=calibration)
+    kf = block.keyframes
+    dx = delta[:layout.n * 15].reshape(layout.n, 15)
+    linear = sum(np.einsum("mab,mb->ma", A, dx[kf[:, s]]) for s, A in enumerate(ev.A[:kf.shape[1]]))
+    if block.calibration is not None:
+        linear = linear + np.einsum("mab,b->ma", ev.A[-1], delta[layout.n * 15:])
+    moved = [layout.apply(states, calibration, sign * eps * delta) for sign in (1.0, -1.0)]
+    plus, minus = (evaluate_block(block, x, False, calibration=c).e for x, c in moved)
+    return linear, (plus - minus) / (2 * eps)
+
+
+@pytest.mark.parametrize("hz", [1.3, 25.0])  # one measurement per keyframe interval; several on one keyframe
+@pytest.mark.parametrize("parts", [None, ("time_offset", "lever_arm")])
+def test_the_factors_jacobians_match_central_differences(hz, parts):
+    calibrate = None if parts is None else CalibrationPrior(parts)
+    data = _dataset(hz, calibrate=calibrate)
+    problem = with_correlated_errors(build_problem(data), data)
+    block = next(b for b in problem.blocks if b.name == "gnss")
+    assert block.keyframes.shape[1] == 2 and np.all(block.keyframes[:, 0] != block.keyframes[:, 1])
+    if hz > 10:
+        shared = np.flatnonzero(np.diff(build_problem(data).blocks[-1 - (parts is not None)].keyframes[:, 0]) == 0)
+        assert len(shared)  # the case: consecutive measurements on one keyframe
+    rng = np.random.default_rng(1)
+    states = problem.initial_states
+    states = states.replace(r=states.r + rng.normal(scale=0.5, size=states.r.shape))  # residuals far from zero
+    linear, difference = _directional(block, states, problem.calibration, rng)
+    np.testing.assert_allclose(linear, difference, rtol=1e-6, atol=1e-7 * np.abs(difference).max())
+
+
+def test_the_factors_are_the_ar1_density_s_whitened_innovations():
+    data = _dataset(1.3)
+    white = build_problem(data)
+    problem = with_correlated_errors(white, data)
+    plain = next(b for b in white.blocks if b.name == "gnss")
+    block = next(b for b in problem.blocks if b.name == "gnss")
+    states = white.initial_states
+    u = evaluate_block(plain, states, False).e  # W_m e_m
+    f = evaluate_block(block, states, False).e
+    phi = transitions(data.sensors[0].data.t, 3.0)
+    np.testing.assert_allclose(f[0], u[0], rtol=1e-12)
+    np.testing.assert_allclose(f[1:], (u[1:] - phi[:, None] * u[:-1]) / np.sqrt(1 - phi[:, None] ** 2), rtol=1e-10)
+    # the cost is the AR(1) density's exponent: that of the joint covariance of the whitened errors
+    lags = np.abs(np.subtract.outer(data.sensors[0].data.t, data.sensors[0].data.t))
+    C = np.exp(-lags / 3.0)
+    per_axis = sum(u[:, a] @ np.linalg.solve(C, u[:, a]) for a in range(3))
+    np.testing.assert_allclose(np.sum(f**2), per_axis, rtol=1e-9)
+
+
+def test_a_vanishing_correlation_time_is_the_white_model():
+    data = _dataset(1.3, tau=1e-6)
+    white = build_problem(data)
+    block = next(b for b in with_correlated_errors(white, data).blocks if b.name == "gnss")
+    plain = next(b for b in white.blocks if b.name == "gnss")
+    np.testing.assert_allclose(evaluate_block(block, white.initial_states, False).e,
+                               evaluate_block(plain, white.initial_states, False).e, rtol=1e-12)
+
+
+def test_a_problem_without_correlation_times_is_left_alone():
+    data = _dataset(1.3, tau=None)
+    problem = build_problem(data)
+    assert with_correlated_errors(problem, data) is problem
+    assert white_elsewhere_warning(data, ["batch", "ekf"]) is None
+
+
+def test_the_other_estimators_say_they_take_the_errors_as_white():
+    data = _dataset(1.3)
+    assert white_elsewhere_warning(data, ["batch"]) is None
+    message = white_elsewhere_warning(data, ["ekf", "batch", "fixed-lag"])
+    assert "ekf and fixed-lag" in message and "gnss (3 s)" in message and "white" in message
+
+
+def test_measurements_out_of_time_order_are_refused_by_name():
+    data = _dataset(1.3)
+    problem = build_problem(data)
+    block = next(b for b in problem.blocks if b.name == "gnss")
+    t = data.sensors[0].data.t.copy()
+    t[3] = t[2]
+    with pytest.raises(InputError, match=r"sensor 'gnss'.*strictly increasing.*measurement 3"):
+        correlated_block(block, t, 3.0)
+
+
+@pytest.mark.parametrize("tau", [0.0, -1.0, float("nan"), True])
+def test_a_bad_correlation_time_is_refused_by_name(tau):
+    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time"):
+        _dataset(1.3, tau=tau)
