@@ -31,8 +31,8 @@ from smoother.ekf.filter import run_ekf
 from smoother.errors import NotConverged
 from smoother.estimators import ESTIMATORS
 from smoother.model.between import Following
-from smoother.model.covariances import joint_blocks
 from smoother.model.correlated import white_elsewhere_warning, with_correlated_errors
+from smoother.model.covariances import joint_blocks
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
 from smoother.online import warm_up as kernel_warm_up
