@@ -25,6 +25,7 @@ from factors.errors import BoxplusError, InputError, SolverError
 from factors.threads import interrupts_held
 from smoother.batch.solve import solve_batch, warn_not_converged
 from smoother.diagnosis.calibration_report import calibration_records
+from smoother.diagnosis.heldout_correlated import batch_predictions
 from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.ekf.filter import run_ekf
@@ -381,8 +382,9 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     if r.joint is not None and len(r.trajectory.t) > 1:
         n = len(r.trajectory.t)
         following = Following.of_batch(r.trajectory, joint_blocks(r.joint, np.arange(n - 1), np.arange(1, n)))
+    heldout = batch_predictions(dataset if fit is None else fit.applied(dataset), problem, r, following)
     return Estimate("batch", r.trajectory, runtime_s, details, consistency=consistency, calibration=r.calibration,
-                    noise=fit, following=following)
+                    noise=fit, following=following, heldout=heldout)
 
 
 #: A noise fit is done again with its model errors at the rig's value at most this many times (:func:`_honest_noise`).

@@ -141,10 +141,12 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         own = (predictions or {}).get(sensor.name)
         if own is None or own.state_part is None:
             own = _predicted(dataset, trajectory, calibration, following, sensor)
-        index, e, state_part = own.index, own.e, own.state_part
+        index, e, state_part, R = own.index, own.e, own.state_part, held.cov[own.index]
+        if own.conditioned is not None:  # errors correlated in time: judged given the used ones'
+            e, state_part, R = own.conditioned.e, own.conditioned.state_part, own.conditioned.noise
         if not len(index):
             continue
-        S = state_part + held.cov[index]
+        S = state_part + R
         nis = np.einsum("ma,ma->m", e, np.linalg.solve(S, e[..., None])[..., 0])
         good = np.isfinite(nis)
         if not good.any():
@@ -153,7 +155,9 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         share = np.einsum("mab,mba->m", np.linalg.inv(S[good]), state_part[good]) / d
         record = verdict(float(nis[good].sum()), float(d * good.sum()), int(good.sum()), "heldout")
         out[sensor.name] = {**record, "state_share": float(np.mean(share)),
-                            "sigma_factor": sigma_factor(e[good], state_part[good], held.cov[index][good])}
+                            "sigma_factor": sigma_factor(e[good], state_part[good], R[good])}
+        if own.conditioned is not None:
+            out[sensor.name]["given_used_errors"] = True
         used = np.sort(sensor.data.t) if sensor.data is not None else np.zeros(0)
         if len(used):
             at = held.t[index][good]

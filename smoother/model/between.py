@@ -139,13 +139,24 @@ def _bridge(trajectory: Trajectory, following: Following, imu: ImuSamples, k: np
             noise: ImuNoise, gravity) -> tuple[ImuState, np.ndarray]:
     """The bridged states and covariances at times ``tau`` between states ``k`` and ``k + 1``
     (module docstring)."""
+    states, AK, own = bridge_parts(trajectory, following, imu, k, tau, noise, gravity)
+    cross = following.cross[k]
+    joint = np.block([[trajectory.cov[k], cross], [np.swapaxes(cross, 1, 2), following.cov[k]]])
+    cov = AK @ joint @ np.swapaxes(AK, 1, 2) + own
+    return states, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+
+def bridge_parts(trajectory: Trajectory, following: Following, imu: ImuSamples, k: np.ndarray, tau: np.ndarray,
+                 noise: ImuNoise, gravity=DEFAULT_GRAVITY) -> tuple[ImuState, np.ndarray, np.ndarray]:
+    """``(states, AK, own)``: the states bridged at times ``tau`` strictly between states ``k`` and
+    ``k + 1`` of a smoother's ``trajectory`` (``following``: its states ``k + 1``), their errors'
+    linear map ``[A K] (M, 15, 30)`` on the two states' errors and the bridge's own covariance
+    ``S_1 - K F_2 S_1 (M, 15, 15)``, independent of the data (module docstring): what a covariance
+    of the bridged state with states other than these two needs."""
     x1, S1, F1 = carry(trajectory.states[k], imu, trajectory.t[k], tau, noise, gravity, transition=True)
     x2, S2, F2 = carry(x1, imu, tau, trajectory.t[k + 1], noise, gravity, transition=True)
     F2T = np.swapaxes(F2, 1, 2)
     K = S1 @ F2T @ _range_inverse(F2 @ S1 @ F2T + S2)
     d = boxminus(following.states[k], x2)
     AK = np.concatenate([(np.eye(15) - K @ F2) @ F1, K], axis=2)
-    cross = following.cross[k]
-    joint = np.block([[trajectory.cov[k], cross], [np.swapaxes(cross, 1, 2), following.cov[k]]])
-    cov = AK @ joint @ np.swapaxes(AK, 1, 2) + S1 - K @ F2 @ S1
-    return boxplus(x1, np.einsum("mab,mb->ma", K, d)), 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    return boxplus(x1, np.einsum("mab,mb->ma", K, d)), AK, S1 - K @ F2 @ S1

@@ -35,7 +35,7 @@ the earlier measurements' errors); the run says so (:func:`white_elsewhere_warni
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,12 +44,51 @@ from factors.errors import InputError
 from smoother.model.blocks import Block
 
 
+@dataclass
+class CorrelatedBlock(Block):
+    """A :class:`~smoother.model.blocks.Block` of :func:`correlated_block`'s factors, with what made
+    them: ``measurements``, a block of the measurements' own whitened residuals ``u_m = W_m e_m`` (one
+    keyframe slot each, unit whitening: apply this block's ``whiten`` to it, as it is to the
+    factors, to read them at a fitted noise); their ``times`` [s]; the ``correlation_time`` [s]."""
+
+    measurements: Block | None = None
+    times: np.ndarray | None = None
+    correlation_time: float = 0.0
+
+
 def transitions(times: np.ndarray, tau: float) -> np.ndarray:
     """``phi_m = exp(-(t_m - t_(m-1)) / tau)`` of each measurement after the first (``(M - 1,)``)."""
     return np.exp(-np.diff(times) / tau)
 
 
-def correlated_block(block: Block, times: np.ndarray, tau: float) -> Block:
+def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
+    """The unit-variance process of the module docstring at times ``t``, given its values at the
+    measurements' ``times`` (sorted): ``(before, after, w_before, w_after, variance)`` -- the
+    nearest measurement at or before each time and after it (indices; -1 where there is none,
+    its weight 0), and the conditional mean's weights on their values and the conditional
+    variance. The process is Markov, so those two hold all the others say. With
+    ``a = exp(-(t - t_0) / tau)``, ``b = exp(-(t_1 - t) / tau)`` and ``c = a b`` (the correlation
+    of the two), the Gaussian conditional of ``u_t`` on ``(u_0, u_1)``:
+
+        w_0 = a (1 - b^2) / (1 - c^2),   w_1 = b (1 - a^2) / (1 - c^2),
+        variance = 1 - (a^2 + b^2 - 2 a b c) / (1 - c^2) = (1 - a^2) (1 - b^2) / (1 - c^2)
+
+    (one side alone: ``w = a``, variance ``1 - a^2``; at a measurement's own time, its value)."""
+    t = np.asarray(t, dtype=float)
+    before = np.searchsorted(times, t, side="right") - 1
+    after = before + 1
+    has_before, has_after = before >= 0, after < len(times)
+    a = np.where(has_before, np.exp(-(t - times[np.maximum(before, 0)]) / tau), 0.0)
+    b = np.where(has_after, np.exp(-(times[np.minimum(after, len(times) - 1)] - t) / tau), 0.0)
+    c2 = (a * b) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w0 = np.where(c2 < 1.0, a * (1.0 - b**2) / (1.0 - c2), 1.0)
+        w1 = np.where(c2 < 1.0, b * (1.0 - a**2) / (1.0 - c2), 0.0)
+        variance = np.where(c2 < 1.0, (1.0 - a**2) * (1.0 - b**2) / (1.0 - c2), 0.0)
+    return np.where(has_before, before, -1), np.where(has_after, after, -1), w0, w1, variance
+
+
+def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedBlock:
     """``block`` -- one sensor's measurement factors on one keyframe each, at ``times`` (strictly
     increasing, seconds) -- as factors of errors correlated with time constant ``tau`` [s] (module
     docstring): the same name, robust kernel and calibration variable; two keyframe slots per
@@ -104,8 +143,14 @@ def correlated_block(block: Block, times: np.ndarray, tau: float) -> Block:
                 J[c][here] -= k[..., None] * j
         return (e, J) if jacobians else e
 
-    return Block(block.name, keyframes, residual, np.broadcast_to(np.eye(W.shape[-1]), W.shape).copy(), block.robust,
-                 block.before_linearize, block.calibration)
+    unit = np.broadcast_to(np.eye(W.shape[-1]), W.shape).copy()
+
+    def measured(slots, jacobians, rows, *calibration):
+        return _whitened(block, W, slots, jacobians, np.arange(M)[rows], calibration)
+
+    measurements = Block(block.name, block.keyframes, measured, unit, None, None, block.calibration)
+    return CorrelatedBlock(block.name, keyframes, residual, unit.copy(), block.robust, block.before_linearize,
+                           block.calibration, measurements, times, float(tau))
 
 
 def _whitened(block: Block, W: np.ndarray, slots: list, jacobians: bool, rows: np.ndarray, calibration: tuple):

@@ -168,6 +168,58 @@ class SquareRoot:
     solution: np.ndarray
 
 
+class CovarianceBetween:
+    """``Sigma_ab`` of any two variables of an elimination (:class:`SquareRoot`), not only of a
+    conditional and its parent as :func:`marginal_covariances` computes them (``sigma``, its
+    ``pairs``): for ``a`` eliminated before ``b``, ``Sigma_ab = K_a Sigma_(P(a) b)`` over all of
+    ``a``'s parents -- the recursion's own identity, taken across the pattern -- each ``Sigma_pb``
+    read from ``sigma`` or found the same way, until every pair is one ``sigma`` holds. Memoised:
+    the pairs met on the way (the keyframes between two measurements whose errors are correlated,
+    say) serve the next call. Two variables eliminated far apart cost a chain of products as long
+    as the elimination path between them."""
+
+    def __init__(self, root: SquareRoot, sigma: dict):
+        self._root, self._sigma = root, sigma
+        self._position = {int(keys[0]): i for i, keys in enumerate(root.keys)}
+        self._found: dict = {}
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        a, b = int(a), int(b)
+        if self._position[a] > self._position[b]:
+            return self(b, a).T
+        pending = [(a, b)]
+        while pending:
+            x, y = pending[-1]
+            if self._known(x, y) is not None:
+                pending.pop()
+                continue
+            i = self._position[x]
+            parents = [int(p) for p in self._root.keys[i][1:]]
+            if not parents:  # a root eliminated before y: y is in another component, independent of it
+                self._found[(x, y)] = np.zeros((self._root.layout.dim(x), self._root.layout.dim(y)))
+                pending.pop()
+                continue
+            missing = [(p, y) if self._position[p] <= self._position[y] else (y, p)
+                       for p in parents if self._known(p, y) is None]
+            if missing:
+                pending.extend(missing)
+                continue
+            blocks = [self._known(p, y) for p in parents]
+            self._found[(x, y)] = self._root.gain[i] @ np.vstack(blocks)
+            pending.pop()
+        return self._known(a, b)
+
+    def _known(self, a: int, b: int) -> np.ndarray | None:
+        """``Sigma_ab`` where ``sigma`` holds it or it was found, else None."""
+        for x, y, flip in ((a, b, False), (b, a, True)):
+            value = self._sigma.get((x, y))
+            if value is None:
+                value = self._found.get((x, y))
+            if value is not None:
+                return value.T if flip else value
+        return None
+
+
 def covariance_tangent(root: SquareRoot, sigma: dict, information: dict) -> dict:
     """The change of the covariance blocks ``sigma`` (:func:`marginal_covariances`' ``pairs``) for
     changes of the information matrix on its pattern: ``information`` maps pairs of variables

@@ -8,6 +8,19 @@ import numpy as np
 
 
 @dataclass
+class Conditioned:
+    """A prediction of held-out measurements given the errors of the used ones, where a sensor's
+    errors are correlated in time (:mod:`smoother.diagnosis.heldout_correlated`), in the model's
+    whitened units: ``e (M, d)``, the held-out error less its expectation given those errors;
+    ``state_part (M, d, d)``, the estimate's share of its covariance; ``noise (M, d, d)``, the
+    measurement noise's share (what a white sensor's ``R`` is)."""
+
+    e: np.ndarray
+    state_part: np.ndarray
+    noise: np.ndarray
+
+
+@dataclass
 class HeldoutPrediction:
     """An estimator's prediction of a sensor's held-out measurements (those within its span):
     ``index (M,)``, their places among the sensor's held-out measurements; ``e (M, d)``, the residual
@@ -21,3 +34,6 @@ class HeldoutPrediction:
     index: np.ndarray
     e: np.ndarray
     state_part: np.ndarray | None
+    #: The prediction given the used measurements' errors, for a sensor whose errors are correlated
+    #: in time (:class:`Conditioned`): what its verdict judges; None for a white sensor.
+    conditioned: Conditioned | None = None
