@@ -54,6 +54,10 @@ def register(sub) -> None:
     p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",
                    help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for every sensor or "
                         "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
+    p.add_argument("--correlation-time", action="append", default=[], metavar="SENSOR=SECONDS",
+                   help="the sensor's errors drift as a first-order Gauss-Markov process with this time constant, "
+                        "its sigma their spread (the batch smoother models it; a rig's correlation_time, which "
+                        "this overrides); repeatable")
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
     p.add_argument("--outliers", type=float, default=0.0,
@@ -109,6 +113,41 @@ def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
         out.update((t, given[None][1]) for t in types)
     out.update((t, parsed) for t, (_, parsed) in given.items() if t is not None)
     return {k: v for k, v in out.items() if v is not None}
+
+
+def with_correlation_times(specs: list[str], dataset):
+    """``dataset`` with each ``SENSOR=SECONDS`` of ``specs`` (``--correlation-time``) as that sensor's
+    :attr:`datasets.types.Sensor.correlation_time`; a UserError naming the option for an unknown
+    sensor, one of a relative kind, a value that is no number or outside the rig key's range, or a
+    sensor given twice."""
+    from datasets.kinds import KINDS
+    from datasets.ranges import RANGES
+
+    seen: dict = {}
+    for spec in specs:
+        name, sep, value = spec.partition("=")
+        if not sep:
+            raise UserError(f"--correlation-time {spec}: expected SENSOR=SECONDS")
+        if name not in dataset.sensor_names:
+            raise UserError(f"--correlation-time {spec}: unknown sensor {name!r}; expected one of "
+                            f"{', '.join(dataset.sensor_names)}")
+        if name in seen:
+            raise UserError(f"--correlation-time {spec}: sensor {name!r} has one already (--correlation-time "
+                            f"{seen[name]}); give one per sensor")
+        try:
+            seconds = float(value)
+        except ValueError:
+            raise UserError(f"--correlation-time {spec}: expected a number of seconds, got {value!r}") from None
+        problem = RANGES["sensor.correlation_time"].problem(seconds)
+        if problem is not None:
+            raise UserError(f"--correlation-time {spec}: {problem}")
+        if KINDS[dataset.sensor(name).kind].relative:
+            raise UserError(f"--correlation-time {spec}: {dataset.sensor(name).kind} measurements are relative (two "
+                            "states each); errors correlated in time are modelled for kinds of one state per "
+                            "measurement")
+        seen[name] = spec
+        dataset = dataset.with_sensor(name, correlation_time=seconds)
+    return dataset
 
 
 def check_keyframe_rate(rate: float | None, dataset) -> None:
@@ -211,6 +250,7 @@ def _run(args) -> int:
     else:
         dataset, rig_robust = dataset_specs.load(args.dataset or "synthetic:gentle", options), None
     check_keyframe_rate(args.keyframe_rate, dataset)
+    dataset = with_correlation_times(args.correlation_time, dataset)
     robust = parse_robust(args.robust, dataset.sensor_names, rig_robust)
     run_options = RunOptions(
         lag_s=args.lag, fixed_lag_kind=args.fixed_lag_kind, optimizer=args.optimizer,
