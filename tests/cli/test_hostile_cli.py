@@ -262,3 +262,30 @@ def test_an_error_quoting_a_huge_value_is_one_line_of_bounded_length(capsys, tmp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(tmp_path / "run.bag") in err[0] and len(err[0]) < 1100, len(err[0])
     assert err[0].endswith(" more characters)"), err[0][-80:]
+
+
+@pytest.mark.parametrize("spec, said", [
+    ("pose", "--correlation-time pose: expected SENSOR=SECONDS"),
+    ("gnss=5", "--correlation-time gnss=5: unknown sensor 'gnss'; expected one of pose"),
+    ("pose=soon", "--correlation-time pose=soon: expected a number of seconds, got 'soon'"),
+    ("pose=0", "--correlation-time pose=0: expected a value within [0.01, 86400] s"),
+    ("pose=nan", "--correlation-time pose=nan: expected a value within [0.01, 86400] s"),
+])
+def test_a_bad_correlation_time_is_one_line_naming_the_option(capsys, tmp_path, spec, said):
+    assert main(["run", "--duration", "2", "--estimator", "ekf", "--out", str(tmp_path / "o"),
+                 "--correlation-time", spec]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"smoother: error: {said}"), err
+
+
+def test_a_correlation_time_given_twice_or_on_a_relative_sensor_is_refused():
+    from smoother.commands.run import with_correlation_times
+
+    data = simulate(profile="gentle", duration=3.0, seed=0)
+    assert with_correlation_times(["pose=4"], data).sensor("pose").correlation_time == 4.0
+    with pytest.raises(UserError, match=r"--correlation-time pose=5: sensor 'pose' has one already "
+                                        r"\(--correlation-time pose=4\)"):
+        with_correlation_times(["pose=4", "pose=5"], data)
+    odometry = data.with_sensor("pose", kind="odometry")
+    with pytest.raises(UserError, match="odometry measurements are relative"):
+        with_correlation_times(["pose=4"], odometry)
