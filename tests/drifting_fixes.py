@@ -1,6 +1,7 @@
 """Position fixes whose errors drift: an AR(1) sequence over a straight-line truth, every few held
 out -- the case where interpolating the used fixes beats any estimator (shared by the scoring and
-the command line's tests)."""
+the command line's tests) -- and a simulated run with such fixes, modelled as drifting or not (the
+drifting model's tests)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -9,6 +10,7 @@ import numpy as np
 
 from datasets.simulate import simulate
 from datasets.types import PositionMeasurements, Sensor, Trajectory
+from smoother.model.correlated import transitions
 
 
 def fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
@@ -27,3 +29,22 @@ def fixes_with_noise(phi: float, n: int = 2000, every: int = 4):
     used = np.arange(n) % every == 0
     gps = Sensor("gps", "position", fixes.subset(used), fixes.subset(~used))
     return replace(data, sensors=(gps,), truth=None), truth
+
+
+def drifting_run(seed: int, tau: float | None, duration: float = 60.0, hz: float = 5.0, every: int = 5,
+                 sigma: float = 0.5, true_tau: float = 10.0, pose_rate: float | None = None):
+    """A simulated run with one position sensor whose errors drift (AR(1), ``sigma`` m, ``true_tau``
+    s) at ``hz``, every ``every``-th fix used and the rest held out, modelled with correlation
+    time ``tau`` (None: white); with ``pose_rate`` [Hz], the simulator's pose sensor beside it."""
+    d = simulate(profile="gentle", duration=duration, seed=seed, pose_rate=pose_rate)
+    rng = np.random.default_rng(seed + 100)
+    t = np.arange(d.imu.t[0] + 0.5, d.imu.t[-1] - 0.5, 1.0 / hz)
+    r = np.stack([np.interp(t, d.truth.t, d.truth.states.r[:, a]) for a in range(3)], axis=1)
+    e = np.zeros_like(r)
+    e[0] = sigma * rng.standard_normal(3)
+    for m, phi in enumerate(transitions(t, true_tau), start=1):
+        e[m] = phi * e[m - 1] + sigma * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    fixes = PositionMeasurements(t, r + e, np.broadcast_to(sigma**2 * np.eye(3), (len(t), 3, 3)).copy())
+    used = np.arange(len(t)) % every == 0
+    gnss = Sensor("gnss", "position", fixes.subset(used), fixes.subset(~used), correlation_time=tau)
+    return replace(d, sensors=(*d.sensors, gnss))

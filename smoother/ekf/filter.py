@@ -20,6 +20,7 @@ smoother uses them); :func:`run_ekf` warns when a dataset has them.
 """
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, predict_only, update_order
-from smoother.model.predicted import HeldoutPrediction
+from smoother.model.predicted import Conditioned, HeldoutPrediction
 from smoother.model.timeline import imu_steps, measurement_knots
 from smoother.progress import progress_bar
 
@@ -191,8 +192,14 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
     if P.shape != (imu.STATE_DIM + len(owner),) * 2:
         raise InputError(f"run_filter: expected P of shape {(imu.STATE_DIM + len(owner),) * 2} (the IMU's error "
                          f"state and the calibrations' estimated coordinates), got {P.shape}")
+    gm_first, gm_dim, gm_tau = _drifting_columns(sensors, imu.STATE_DIM + len(owner))
+    if len(gm_first):  # each drifting sensor's error, unit-variance and zero-mean where the data start
+        G = int(gm_dim.sum())
+        P = np.block([[P, np.zeros((len(P), G))], [np.zeros((G, len(P))), np.eye(G)]])
+    gm_mean = np.zeros(len(P))
+    names = [s.name for s in sensors if s.correlation_time is not None]
     updates = _Updates.of(sensors, knots, [c.names.index(s.name) if s.name in c.names else -1 for s in sensors],
-                          dataset.imu if len(c) else None)
+                          dataset.imu if len(c) else None, dict(zip(names, gm_first.tolist())))
     bounds = np.concatenate([[0], steps.knot_step]).astype(np.int64)
     stats = np.zeros(2)
     samples = (np.ascontiguousarray(steps.acc, dtype=float), np.ascontiguousarray(steps.gyro, dtype=float),
@@ -203,8 +210,10 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
             stopped = _filter_knots(r, v, C, b_f, b_w, P, *samples, bounds, first, last, updates.start,
                                     updates.model, updates.dim, updates.rows, updates.R, updates.slot,
                                     updates.held_acc, updates.held_gyro, values, timed, owner, coordinate,
+                                    updates.drifting, updates.root, gm_first, gm_dim, gm_tau, gm_mean,
                                     updates.nis, updates.accepted, updates.predicted, updates.predicted_e,
-                                    updates.predicted_state, dataset.noise.densities(),
+                                    updates.predicted_state, updates.predicted_given, updates.predicted_drift,
+                                    dataset.noise.densities(),
                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability),
                                     out_index, *out, stats)
             if stopped >= 0:  # the state where it diverged
@@ -218,6 +227,16 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
     return FilterResult(Trajectory(knots[kept], imu.ImuState(*out[:5]), out[5]), time.perf_counter() - start,
                         int(stats[0]), float(stats[1]), updates.innovations([s.name for s in sensors], knots),
                         updates.heldout(), moved, blocks)
+
+
+def _drifting_columns(sensors: list, first: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(first column, dimension, correlation time)`` of each of ``sensors`` with a correlation
+    time (:attr:`datasets.types.Sensor.correlation_time`), its error's augmented state placed in
+    order from column ``first`` of ``P``."""
+    drifting = [s for s in sensors if s.correlation_time is not None]
+    dims = np.array([KINDS[s.kind].dim for s in drifting], dtype=np.int64)
+    starts = (first + np.concatenate([[0], np.cumsum(dims)[:-1]])).astype(np.int64) if len(dims) else dims
+    return starts, dims, np.array([s.correlation_time for s in drifting], dtype=float)
 
 
 @dataclass
@@ -248,17 +267,30 @@ class _Updates:
     predicted: np.ndarray
     predicted_e: np.ndarray
     predicted_state: np.ndarray
+    #: Per update, the first column of its sensor's drifting error among the augmented states (-1:
+    #: none; its noise then is that state's, ``n = root u``, and ``R`` is zero) and ``root``, the
+    #: Cholesky factor of its stated covariance; per prediction of a drifting sensor, the residual
+    #: with the error's estimate in it (``predicted_given``) and that error's share of its covariance
+    #: (``predicted_drift``: ``root P_uu root^T``).
+    drifting: np.ndarray
+    root: np.ndarray
+    predicted_given: np.ndarray
+    predicted_drift: np.ndarray
     #: Per held-out source (in ``source``'s order after the sensors): its sensor's name, the
     #: indices of the held-out measurements predicted among the sensor's and their dimension.
     heldout_of: list
 
     @classmethod
-    def of(cls, sensors: list, knots: np.ndarray, slots: list[int], samples: ImuSamples | None) -> "_Updates":
+    def of(cls, sensors: list, knots: np.ndarray, slots: list[int], samples: ImuSamples | None,
+           drifting: dict | None = None) -> "_Updates":
         """The updates of ``sensors`` (``slots``: each one's calibration index, -1: none) at
         ``knots``, and the predictions of their held-out measurements there, with the readings of
-        the IMU ``samples`` held at their times (None: no calibrations)."""
+        the IMU ``samples`` held at their times (None: no calibrations); ``drifting``: the first
+        column of each drifting sensor's error state, by name."""
+        drifting = drifting or {}
         parts = [(model_index(KINDS[s.kind]), KINDS[s.kind].pack(s.data), s.data.cov, s.data.t, slot)
                  for s, slot in zip(sensors, slots)]
+        columns = [drifting.get(s.name, -1) for s in sensors]
         heldout_of = []
         for s, slot in zip(sensors, slots):
             held = s.heldout
@@ -268,6 +300,7 @@ class _Updates:
             heldout_of.append((s.name, index, held.cov.shape[-1]))
             parts.append((model_index(KINDS[s.kind]), KINDS[s.kind].pack(held)[index], held.cov[index],
                           held.t[index], slot))
+            columns.append(drifting.get(s.name, -1))
         names = [s.name for s in sensors] + [f"{name} (held out)" for name, _, _ in heldout_of]
         if not parts:
             parts.append((0, np.zeros((0, 1)), np.zeros((0, 1, 1)), np.zeros(0), -1))
@@ -292,8 +325,16 @@ class _Updates:
                                if samples is not None else (np.zeros((0, 3)), np.zeros((0, 3))))
         used = sum(len(p[1]) for p in parts[:len(sensors)])
         predicted = np.where(order >= used, order - used, -1).astype(np.int64)
-        return cls(o.start, model[order], dim[order], rows[order], R[order], slot, held_acc, held_gyro, o.sensor,
+        column = np.asarray(columns or [-1], dtype=np.int64)[o.sensor] if u else np.zeros(0, dtype=np.int64)
+        R, root = R[order], np.zeros((u, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM))
+        for i in np.flatnonzero(column >= 0):  # its noise is the drifting state's: n = root u
+            d = dim[order][i]
+            root[i, :d, :d] = np.linalg.cholesky(R[i, :d, :d])
+            R[i] = 0.0
+        return cls(o.start, model[order], dim[order], rows[order], R, slot, held_acc, held_gyro, o.sensor,
                    o.knot, np.full(u, np.nan), np.zeros(u, dtype=np.bool_), predicted,
+                   np.full((u - used, MAX_RESIDUAL_DIM), np.nan),
+                   np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan), column, root,
                    np.full((u - used, MAX_RESIDUAL_DIM), np.nan),
                    np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan), heldout_of)
 
@@ -307,11 +348,24 @@ class _Updates:
     def heldout(self) -> dict[str, HeldoutPrediction]:
         """Per sensor with held-out measurements, their predictions (:class:`HeldoutPrediction`)."""
         out, at = {}, 0
+        update_of = np.empty(len(self.predicted_e), dtype=np.int64)  # each prediction's update
+        made = np.flatnonzero(self.predicted >= 0)
+        update_of[self.predicted[made]] = made
         for name, index, d in self.heldout_of:
             rows = slice(at, at + len(index))
-            out[name] = HeldoutPrediction(index, self.predicted_e[rows, :d].copy(),
-                                          self.predicted_state[rows, :d, :d].copy())
             at += len(index)
+            e, S = self.predicted_e[rows, :d].copy(), self.predicted_state[rows, :d, :d].copy()
+            update = update_of[rows]
+            if not len(index) or self.drifting[update[0]] < 0:
+                out[name] = HeldoutPrediction(index, e, S)
+                continue
+            # a drifting sensor: judged given its error's estimate, whitened by its stated noise; its
+            # error's share of the covariance in the noise's place, the rest the state's
+            W = np.linalg.inv(self.root[update, :d, :d])
+            drift = self.predicted_drift[rows, :d, :d]
+            given = np.einsum("mab,mb->ma", W, self.predicted_given[rows, :d])
+            WT = np.swapaxes(W, 1, 2)
+            out[name] = HeldoutPrediction(index, e, S - drift, Conditioned(given, W @ (S - drift) @ WT, W @ drift @ WT))
         return out
 
 
@@ -321,8 +375,9 @@ _KNOTS_PER_CALL = 256
 
 @njit(cache=True)
 def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, slot,
-                  held_acc, held_gyro, values, timed, owner, coordinate, nis, accepted, predicted, predicted_e,
-                  predicted_state, q, g, gates, out_index, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+                  held_acc, held_gyro, values, timed, owner, coordinate, drifting, root, gm_first, gm_dim, gm_tau,
+                  gm_mean, nis, accepted, predicted, predicted_e, predicted_state, predicted_given, predicted_drift,
+                  q, g, gates, out_index, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_filter`: predict through the knot's IMU steps
     (``bounds[k] .. bounds[k + 1]``; with calibrations, :func:`_predict_augmented`), apply the
     updates taken there (``start[k] .. start[k + 1]`` of :class:`_Updates`, each through its
@@ -332,7 +387,11 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
     (:func:`factors.calibration.set_boxplus_into`) -- a held-out measurement's residual and
     ``H P H^T`` into its row ``predicted[u]`` of ``predicted_e``, ``predicted_state`` instead, no
     update (:func:`smoother.ekf.update.predict_only`) -- store the state where the knot's ``out_index``
-    is one (-1: not kept). ``values`` are the packed
+    is one (-1: not kept). A drifting sensor's error (columns ``gm_first[i]`` on, ``gm_dim[i]`` of
+    them, its mean in ``gm_mean``) decays between knots as :func:`_drift` steps it and enters its
+    measurements' residuals as ``root u`` (``drifting[u]``: its first column; its ``R`` zero), each
+    held-out one's residual with it into ``predicted_given`` and its share ``root P_uu root^T`` into
+    ``predicted_drift`` (the residual without it stays in ``predicted_e``). ``values`` are the packed
     calibrations (moved in place), ``timed`` which estimate their time offset, ``owner`` and
     ``coordinate`` their estimated coordinates' places (:func:`factors.calibration.placement`),
     those of ``P`` after the IMU's 15. Returns the first knot where the filter diverged
@@ -348,6 +407,7 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             imu.predict_into(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g)
         elif b > a:
             _predict_augmented(r, v, C, b_f, b_w, P, acc[a:b], gyro[a:b], dt[a:b], q, g, P_xx, P_xc, x)
+            _drift(P, gm_mean, gm_first, gm_dim, gm_tau, np.sum(dt[a:b]))
         for u in range(start[knot], start[knot + 1]):
             if diverged(r, v, C, b_f, b_w, P):
                 continue
@@ -359,13 +419,23 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
                 calibrated_into(model[u], LAYOUTS[model[u]], r, v, C, b_f, b_w, rows[u], values[j], timed[j],
                                 held_acc[u], held_gyro[u], g, e, H_x, H_c[:m], work, True)
             H[:, :D] = H_x
-            for k in range(n - D):
+            for k in range(owner.shape[0]):
                 if owner[k] == j:
                     H[:, D + k] = H_c[:m, coordinate[k]]
-            p = predicted[u]
+            p, f = predicted[u], drifting[u]
+            if p >= 0:
+                predicted_e[p, :m] = e
+            if f >= 0:  # e + root u: the drifting error's estimate in the residual, root its Jacobian
+                for i in range(m):
+                    for k in range(m):
+                        e[i] += root[u, i, k] * gm_mean[f + k]
+                        H[i, f + k] = root[u, i, k]
             if p >= 0:
                 nis[u] = predict_only(P, e, H, np.ascontiguousarray(R[u, :m, :m]), predicted_state[p, :m, :m])
-                predicted_e[p, :m] = e
+                if f >= 0:
+                    predicted_given[p, :m] = e
+                    Lr = np.ascontiguousarray(root[u, :m, :m])
+                    predicted_drift[p, :m, :m] = Lr @ np.ascontiguousarray(P[f:f + m, f:f + m]) @ Lr.T
                 continue
             rejected = stats[0]
             nis[u] = kalman_update(P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats, dx)
@@ -373,6 +443,9 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             if accepted[u]:
                 imu.boxplus_into(r, v, C, b_f, b_w, dx)
                 calibration.set_boxplus_into(values, owner, coordinate, dx[D:])
+                for i in range(gm_first.shape[0]):
+                    for k in range(gm_first[i], gm_first[i] + gm_dim[i]):
+                        gm_mean[k] += dx[k]
         o = out_index[knot]
         if o >= 0:
             out_r[o], out_v[o], out_C[o], out_b_f[o], out_b_w[o] = r, v, C, b_f, b_w
@@ -380,6 +453,22 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
         if diverged(r, v, C, b_f, b_w, P):
             return knot
     return -1
+
+
+@njit(cache=True)
+def _drift(P, mean, first, dims, taus, dt) -> None:
+    """The drifting sensors' errors over ``dt`` [s], each a first-order Gauss-Markov process of unit
+    variance (:mod:`smoother.model.correlated`): ``u <- phi u + w``, ``phi = exp(-dt / tau)``,
+    ``w ~ N(0, (1 - phi^2) I)`` -- their rows and columns of ``P`` times ``phi``, their own diagonal
+    plus ``1 - phi^2``."""
+    for i in range(first.shape[0]):
+        phi = math.exp(-dt / taus[i])
+        for k in range(first[i], first[i] + dims[i]):
+            mean[k] *= phi
+            for j in range(P.shape[0]):
+                P[k, j] *= phi
+                P[j, k] *= phi
+            P[k, k] += 1.0 - phi * phi
 
 
 @njit(cache=True)

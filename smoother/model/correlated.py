@@ -30,8 +30,9 @@ keyframe alone; its first measurement's too. The :class:`~smoother.model.blocks.
 keyframe slots per factor, so such a factor names a neighbouring keyframe in its first slot, with
 a zero Jacobian there (a structural entry the IMU factor between them makes anyway).
 
-The fixed-lag smoother and the EKF take the errors as white (their windows and state do not hold
-the earlier measurements' errors); the run says so (:func:`white_elsewhere_warning`).
+The EKF carries the same process as augmented states (:mod:`smoother.ekf.filter`); the fixed-lag
+smoother takes the errors as white (its window's factors are the measurements' own), and the run
+says so (:func:`white_elsewhere_warning`).
 """
 from __future__ import annotations
 
@@ -176,13 +177,12 @@ def with_correlated_errors(problem, dataset: Dataset):
 
 
 def white_elsewhere_warning(dataset: Dataset, estimators) -> str | None:
-    """The warning that the estimators among ``estimators`` other than the batch smoother take the
-    errors of ``dataset``'s sensors with a correlation time as white; None where none has one or
-    only the batch runs."""
+    """The warning that the fixed-lag smoother, where it is among ``estimators``, takes the errors of
+    ``dataset``'s sensors with a correlation time as white; None where none has one or it does not
+    run."""
     named = [f"{s.name} ({s.correlation_time:g} s)" for s in dataset.sensors if s.correlation_time is not None]
-    others = [e for e in estimators if e != "batch"]
-    if not named or not others:
+    if not named or "fixed-lag" not in estimators:
         return None
-    return (f"{' and '.join(others)}: the errors of {', '.join(named)} are taken as white; only the batch smoother "
-            "models their correlation in time (correlation_time), so these estimators weigh consecutive "
-            "measurements as independent and their covariances are too small there")
+    return (f"fixed-lag: the errors of {', '.join(named)} are taken as white; the batch smoother and the EKF "
+            "model their correlation in time (correlation_time), the fixed-lag smoother weighs consecutive "
+            "measurements as independent and its covariances are too small there")

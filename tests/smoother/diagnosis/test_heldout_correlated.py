@@ -5,42 +5,20 @@ the dense inverse of the system, and the verdict in band where the model is the 
 of it for the white model on the same data)."""
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
+from drifting_fixes import drifting_run as drifting
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from datasets.simulate import simulate
-from datasets.types import PositionMeasurements, Sensor
 from smoother import pipeline
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.heldout_correlated import batch_predictions
 from smoother.model.between import Following, bridge_parts
 from smoother.model.blocks import Layout, evaluate_block, linearize, whitening
-from smoother.model.correlated import given_neighbours, transitions, with_correlated_errors
+from smoother.model.correlated import given_neighbours, with_correlated_errors
 from smoother.model.covariances import CovarianceBetween, joint_blocks
 from smoother.model.problem import build_problem
-
-
-def drifting(seed: int, tau: float | None, duration: float = 60.0, hz: float = 5.0, every: int = 5, sigma: float = 0.5,
-             true_tau: float = 10.0):
-    """A simulated run with one position sensor whose errors drift (AR(1), ``sigma`` m, ``true_tau``
-    s) at ``hz``, every ``every``-th fix used and the rest held out, modelled with correlation
-    time ``tau`` (None: white)."""
-    d = simulate(profile="gentle", duration=duration, seed=seed, pose_rate=None)
-    rng = np.random.default_rng(seed + 100)
-    t = np.arange(d.imu.t[0] + 0.5, d.imu.t[-1] - 0.5, 1.0 / hz)
-    r = np.stack([np.interp(t, d.truth.t, d.truth.states.r[:, a]) for a in range(3)], axis=1)
-    e = np.zeros_like(r)
-    e[0] = sigma * rng.standard_normal(3)
-    for m, phi in enumerate(transitions(t, true_tau), start=1):
-        e[m] = phi * e[m - 1] + sigma * np.sqrt(1 - phi**2) * rng.standard_normal(3)
-    fixes = PositionMeasurements(t, r + e, np.broadcast_to(sigma**2 * np.eye(3), (len(t), 3, 3)).copy())
-    used = np.arange(len(t)) % every == 0
-    gnss = Sensor("gnss", "position", fixes.subset(used), fixes.subset(~used), correlation_time=tau)
-    return replace(d, sensors=(gnss,))
 
 
 @settings(max_examples=60, deadline=None)
