@@ -173,7 +173,7 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
     ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``, ``heldout_near_far``,
-    ``heldout_correlated``; :mod:`smoother.diagnosis.heldout`);
+    ``heldout_correlated``, ``heldout_given_used_errors``; :mod:`smoother.diagnosis.heldout`);
     a sensor judged on held-out measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
     for name, h in heldout.items():
@@ -181,7 +181,8 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
         own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
                     "heldout_measurements": h["measurements"], "heldout_dof": h["dof"],
                     "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor"),
-                    "heldout_near_far": h.get("near_far"), "heldout_correlated": h.get("correlated", False)})
+                    "heldout_near_far": h.get("near_far"), "heldout_correlated": h.get("correlated", False),
+                    "heldout_given_used_errors": h.get("given_used_errors", False)})
     return out
 
 
