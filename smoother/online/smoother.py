@@ -268,7 +268,14 @@ class OnlineSmoother:
         """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
         gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
         to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
-        ``options`` as the constructor's."""
+        ``options`` as the constructor's. A sensor's ``correlation_time`` is not modelled here: its
+        errors are taken as white, with a warning (the fixed-lag smoother's window holds the
+        measurements' own factors; :mod:`smoother.model.correlated`)."""
+        drifting = [f"{s.name} ({s.correlation_time:g} s)" for s in rig.sensors if s.correlation_time is not None]
+        if drifting:
+            warnings.warn(f"OnlineSmoother.from_rig: the errors of {', '.join(drifting)} are taken as white; their "
+                          "correlation_time is modelled by the batch smoother and the EKF of `smoother run`, not by "
+                          "the online smoother, whose covariances are too small where they drift", stacklevel=2)
         sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate,
                                        sigma_factor=s.sigma_factor) for s in rig.sensors}
         return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
