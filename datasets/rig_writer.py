@@ -89,7 +89,8 @@ def _rebuilt(document, tables: dict) -> tomlkit.TOMLDocument:
     return out
 
 
-def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, noise: dict | None = None) -> str:
+def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, noise: dict | None = None,
+                        correlation_times: dict | None = None) -> str:
     """The TOML text of ``rig`` (its file re-read, comments and layout kept) with the calibration
     ``records`` (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`)
     written in, and after a sensor's values, as a comment, its caution (``cautions``:
@@ -100,8 +101,10 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
     one, else a comment with the factor on its measurements' covariances), a comment on every
     group it examined (fitted, checked and kept, or not determined by the data) and ``"noise"``
     taken out of ``estimate`` wherever it examined a group, so the next run starts from them as
-    given (put it back to fit again)."""
-    cautions, noise = cautions or {}, noise or {}
+    given (put it back to fit again); with ``correlation_times`` (``{sensor: seconds}``, what the run
+    modelled), each one the rig does not already give written as the sensor's ``correlation_time``,
+    noise and correlation time fitting together."""
+    cautions, noise, correlation_times = cautions or {}, noise or {}, correlation_times or {}
     examined = {name: g for name, g in noise.items() if not name.startswith("_")}
     document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8-sig"))
     imu = document["imu"]
@@ -141,6 +144,10 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
             elif "camchain" in table:
                 values["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
                 drop += ["camchain", "camera"]
+            tau = correlation_times.get(config.name)
+            if tau is not None and tau != config.correlation_time:
+                values["correlation_time"] = float(tau)
+                comments.append("correlation_time: as the run modelled it (--correlation-time)")
             _noise_written(table, config, {name.split(".", 1)[1]: g for name, g in examined.items()
                                            if name.split(".", 1)[0] == config.name}, values, drop, comments)
             sensors[i] = _edited(table, values, drop, comments)

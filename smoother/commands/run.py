@@ -453,7 +453,8 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         verdicts, rhos = metrics["batch"].get("sensors", {}), (correlations or {}).get("batch", {})
         cautions = {s: fit_note(verdicts.get(s), rhos.get(s), (followers or {}).get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
-            handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise))
+            handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise,
+                                             {s.name: s.correlation_time for s in dataset.sensors}))
     return metrics
 
 

@@ -103,3 +103,19 @@ def test_a_rig_without_calibration_comes_back_as_written_but_for_the_paths(tmp_p
     body = out.splitlines()[3:]  # after the header and its blank line
     assert body == text.replace('"csv:imu.csv"', f'"csv:{tmp_path / "imu.csv"}"').splitlines()
     assert tomllib.loads(out)["imu"]["accel_noise_density"] == 2.0e-3
+
+
+def test_a_correlation_time_the_run_modelled_is_written_in_and_one_the_rig_gave_stays(tmp_path):
+    """A correlation time given on the command line (the noise was fitted with it) is written into the
+    sensor's table, with a comment saying where it came from; one the rig gave itself is left as written."""
+    rig = _rig(tmp_path)
+    text = calibrated_rig_text(rig, {}, None, None, {"wheel": 5.0, "cam": None})
+    again = tomllib.loads(text)
+    wheel, cam = again["sensor"]
+    assert wheel["correlation_time"] == 5.0 and "correlation_time" not in cam
+    assert "# correlation_time: as the run modelled it (--correlation-time)" in text
+    path = tmp_path / "calibrated.toml"
+    path.write_text(text)
+    assert load_rig(path).sensors[0].correlation_time == 5.0
+    same = calibrated_rig_text(load_rig(path), {}, None, None, {"wheel": 5.0})
+    assert same.count("correlation_time = 5.0") == 1 and same.count("as the run modelled it") == 1
