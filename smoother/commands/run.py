@@ -509,7 +509,8 @@ def interpolation_note(baseline: dict, metrics: dict, estimates: dict, dataset) 
             f"residuals at consecutive used fixes correlate {rho:.2f} (0 for white GNSS noise): "
             + ("the receiver's error drifts slowly over the fix spacing, and interpolation follows it. The held-out "
                "RMSE then measures agreement with that drift, not accuracy: compare with an independent reference "
-               "(smoother evaluate) or hold out fixes further apart" if rho > 0.2 else
+               "(smoother evaluate), hold out fixes further apart, or model the drift (correlation_time)"
+               if rho > 0.2 else
                "the fixes look independent: check the IMU noise, the sensors' sigmas, extrinsics and time offsets"))
 
 

@@ -155,7 +155,8 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None,
             else:
                 drifting[name] = (f"{alike}, and no calibration explains them: the sensor's error drifts, the "
                                   "factor is its size, and the estimate takes its measurements as independent "
-                                  "(measurements further apart, `every`, are nearer so)")
+                                  "(measurements further apart, `every`, are nearer so; a correlation_time, or a "
+                                  "longer one, models the drift)")
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
             errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
                             "measurements disagree with the rest of the model")

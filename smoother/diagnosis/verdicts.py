@@ -103,7 +103,7 @@ def shown(c: dict) -> str:
     if not c["ok"] and c["statistic"] == "heldout" and c.get("correlated"):
         near, far = c["near_far"]
         text += (f": {near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's errors are "
-                 "correlated in time, which no sigma fits")
+                 "correlated in time, which no white sigma fits (a correlation_time models them)")
     elif not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
         text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
     return text

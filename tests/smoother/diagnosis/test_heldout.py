@@ -120,7 +120,8 @@ def test_errors_that_drift_are_called_correlated_and_printed_so():
     near, far = record["near_far"]
     assert record["correlated"] and near < far / 1.5, record
     assert shown(record).endswith(f"{near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's "
-                                  "errors are correlated in time, which no sigma fits")
+                                  "errors are correlated in time, which no white sigma fits (a correlation_time "
+                                  "models them)")
 
 
 def test_a_sigma_stated_too_large_puts_the_held_out_errors_below_their_band_with_the_sensor_s_share():
