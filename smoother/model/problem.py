@@ -204,13 +204,27 @@ def _anchors(dataset: Dataset, times: np.ndarray) -> preintegration.Anchors:
         if C is not None:
             anchors.C[kk] = C[rows]
     has_r = np.isfinite(anchors.r[:, 0])
-    if has_r.sum() >= 2:
-        tr, rr = at[has_r], anchors.r[has_r]
+    apart = np.flatnonzero(has_r)[_apart(at[has_r], SAME_INSTANT)]
+    if len(apart) >= 2:
+        tr, rr = at[apart], anchors.r[apart]
         gradient = np.gradient(rr, tr, axis=0)
         anchors.world_v[:] = np.stack([np.interp(times, tr, gradient[:, a]) for a in range(3)], axis=-1)
-        anchors.r[has_r] -= (tr - times[has_r])[:, None] * anchors.world_v[has_r]
+        anchors.r[has_r] -= (at[has_r] - times[has_r])[:, None] * anchors.world_v[has_r]
     anchors.r[0], anchors.C[0], anchors.world_v[0] = np.nan, np.nan, np.nan
     return anchors
+
+
+#: Anchoring positions closer in time than this [s] are one instant to the velocity's finite differences:
+#: two sensors' fixes stamped "at once" may differ by an ulp (1.5 and 1.4999999999999998), and their
+#: difference over that ulp made a velocity of 1e15 m/s, and an IMU factor's covariance no longer positive
+#: definite along it.
+SAME_INSTANT = 1e-6
+
+
+def _apart(t: np.ndarray, gap: float) -> np.ndarray:
+    """Indices into the sorted times ``t`` of those at least ``gap`` after the one before them (the
+    first always)."""
+    return np.flatnonzero(np.concatenate([[True], np.diff(t) >= gap])) if len(t) else np.zeros(0, dtype=np.int64)
 
 
 def _started_from(estimate: Trajectory, times: np.ndarray, dataset: Dataset) -> tuple[preintegration.Anchors, tuple]:

@@ -101,3 +101,27 @@ def test_states_predicted_far_from_their_source_are_propagated_in_bounded_chunks
     assert shapes[-1] == (len(queries), longest)
     for name in ("r", "v", "C", "b_f", "b_w"):
         np.testing.assert_array_equal(getattr(chunked.states, name), getattr(whole.states, name))
+
+
+def test_two_sensors_stamped_an_ulp_apart_give_a_solvable_problem():
+    """Fixes of two sensors stamped "at once" but an ulp apart (1.5 and 1.4999999999999998 s: one
+    clock's sum, another's product) are two keyframes an ulp apart. The initial trajectory's velocity
+    was their positions' difference over that ulp, 1e15 m/s, and the IMU factor between them had a
+    covariance no longer positive definite: the batch stopped inside numpy's Cholesky. Now the
+    velocity's finite differences take them as one instant, and the run ends near the truth."""
+    from dataclasses import replace
+
+    from datasets.types import PositionMeasurements, Sensor
+
+    data = simulate("gentle", duration=6.0, seed=1, pose_rate=None, position_rate=2.0, position_sigma=0.3)
+    fixes = data.sensor("position").data
+    fixes = fixes.subset(fixes.t > 0)  # (one an ulp before the IMU's first sample would be dropped)
+    stamps = np.nextafter(fixes.t, -np.inf)  # each an ulp before the other sensor's
+    rng = np.random.default_rng(0)
+    other = PositionMeasurements(stamps, fixes.position + rng.normal(scale=0.3, size=fixes.position.shape), fixes.cov)
+    data = replace(data, sensors=(*data.sensors, Sensor("second", "position", other)))
+    times = keyframe_times(data, EVERY_MEASUREMENT)
+    assert np.diff(times).min() < 1e-15  # the case: keyframes an ulp apart
+    result = solve_batch(build_problem(data, EVERY_MEASUREMENT))
+    truth = data.truth.states.r[np.searchsorted(data.truth.t, result.trajectory.t).clip(0, len(data.truth.t) - 1)]
+    assert np.sqrt(np.mean(np.sum((result.trajectory.states.r - truth) ** 2, axis=1))) < 1.0
