@@ -632,7 +632,8 @@ class Dataset:
                 raise InputError(f"sensor name {s.name!r} is used twice")
             if s.correlation_time is not None:
                 tau = s.correlation_time
-                if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not (np.isfinite(tau) and tau > 0):
+                if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)) or not (
+                        np.isfinite(tau) and tau > 0):
                     raise InputError(f"sensor {s.name!r}: correlation_time must be a positive number of seconds, "
                                      f"got {tau!r}")
             names.append(s.name)

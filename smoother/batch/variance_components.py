@@ -269,11 +269,28 @@ def noise_groups(dataset: Dataset, which) -> list[NoiseGroup]:
         if name == IMU_BLOCK:
             groups += [NoiseGroup(IMU_BLOCK, field, None, unit) for field, _, _, unit in IMU_COMPONENTS]
         elif name in names:
-            groups += [NoiseGroup(name, part, tuple(axes), unit)
-                       for part, axes, unit in KINDS[names[name].kind].axis_groups]
+            axis_groups = KINDS[names[name].kind].axis_groups
+            _check_correlated_axes(names[name], axis_groups)
+            groups += [NoiseGroup(name, part, tuple(axes), unit) for part, axes, unit in axis_groups]
         else:
             raise InputError(f"noise estimation: no sensor {name!r}; expected imu or one of {', '.join(names)}")
     return groups
+
+
+def _check_correlated_axes(sensor, axis_groups) -> None:
+    """An InputError where ``sensor`` has a correlation time, more than one axis group and a
+    covariance that is not diagonal: its factors (:mod:`smoother.model.correlated`) whiten each
+    measurement whole, and a factor per axis group on those whitened rows is not the factor on its
+    axes' sigmas (``D R D``) that the fit reports, applies and writes."""
+    if sensor.correlation_time is None or len(axis_groups) < 2 or sensor.data is None:
+        return
+    cov = sensor.data.cov
+    off = cov - np.einsum("...ii->...i", cov)[..., None] * np.eye(cov.shape[-1])
+    if np.any(np.abs(off) > 1e-12 * np.abs(cov).max()):
+        parts = ", ".join(part for part, _, _ in axis_groups)
+        raise InputError(f"noise estimation: sensor {sensor.name!r} has a correlation_time and covariances that are "
+                         f"not diagonal: its {parts} cannot be fitted apart under that model; give it a diagonal "
+                         "sigma, or fit its noise without the correlation_time")
 
 
 def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, which, optimizer: str = "lm",

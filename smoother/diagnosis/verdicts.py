@@ -103,7 +103,9 @@ def shown(c: dict) -> str:
     if not c["ok"] and c["statistic"] == "heldout" and c.get("correlated"):
         near, far = c["near_far"]
         text += (f": {near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's errors are "
-                 "correlated in time, which no white sigma fits (a correlation_time models them)")
+                 + ("more alike in time than its correlation_time says (a longer one models them)"
+                    if c.get("given_used_errors") else
+                    "correlated in time, which no white sigma fits (a correlation_time models them)"))
     elif not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
         text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
     return text
@@ -215,7 +217,8 @@ def heldout_part(c: dict) -> dict | None:
     return {"per_dof": c["heldout_per_dof"], "band": c["heldout_band"], "ok": c["heldout_ok"],
             "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout",
             "sigma_factor": c.get("heldout_sigma_factor"), "near_far": c.get("heldout_near_far"),
-            "correlated": c.get("heldout_correlated", False)}
+            "correlated": c.get("heldout_correlated", False),
+            "given_used_errors": c.get("heldout_given_used_errors", False)}
 
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:

@@ -213,6 +213,7 @@ def run_filter(dataset: Dataset, P: np.ndarray, calibrations: CalibrationSet | N
                                     updates.drifting, updates.root, gm_first, gm_dim, gm_tau, gm_mean,
                                     updates.nis, updates.accepted, updates.predicted, updates.predicted_e,
                                     updates.predicted_state, updates.predicted_given, updates.predicted_drift,
+                                    updates.predicted_total,
                                     dataset.noise.densities(),
                                     np.asarray(dataset.gravity, dtype=float), gate_thresholds(gate_probability),
                                     out_index, *out, stats)
@@ -270,12 +271,16 @@ class _Updates:
     #: Per update, the first column of its sensor's drifting error among the augmented states (-1:
     #: none; its noise then is that state's, ``n = root u``, and ``R`` is zero) and ``root``, the
     #: Cholesky factor of its stated covariance; per prediction of a drifting sensor, the residual
-    #: with the error's estimate in it (``predicted_given``) and that error's share of its covariance
-    #: (``predicted_drift``: ``root P_uu root^T``).
+    #: with the error's estimate in it (``predicted_given``), its whole covariance ``H P H^T``
+    #: (``predicted_total``) and the drifting error's own share of it, ``root P_(u|x) root^T`` with
+    #: ``P_(u|x)`` the error's covariance given every other state (``predicted_drift``, positive
+    #: semi-definite, and so is the rest); ``predicted_state`` holds the residual without it, ``H_x P
+    #: H_x^T`` over the other states.
     drifting: np.ndarray
     root: np.ndarray
     predicted_given: np.ndarray
     predicted_drift: np.ndarray
+    predicted_total: np.ndarray
     #: Per held-out source (in ``source``'s order after the sensors): its sensor's name, the
     #: indices of the held-out measurements predicted among the sensor's and their dimension.
     heldout_of: list
@@ -336,6 +341,7 @@ class _Updates:
                    np.full((u - used, MAX_RESIDUAL_DIM), np.nan),
                    np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan), column, root,
                    np.full((u - used, MAX_RESIDUAL_DIM), np.nan),
+                   np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan),
                    np.full((u - used, MAX_RESIDUAL_DIM, MAX_RESIDUAL_DIM), np.nan), heldout_of)
 
     def innovations(self, names: list[str], knots: np.ndarray) -> Innovations:
@@ -359,13 +365,13 @@ class _Updates:
             if not len(index) or self.drifting[update[0]] < 0:
                 out[name] = HeldoutPrediction(index, e, S)
                 continue
-            # a drifting sensor: judged given its error's estimate, whitened by its stated noise; its
-            # error's share of the covariance in the noise's place, the rest the state's
+            # a drifting sensor: judged given its error's estimate, whitened by its stated noise; the
+            # error's own share of the covariance in the noise's place, the rest the state's
             W = np.linalg.inv(self.root[update, :d, :d])
-            drift = self.predicted_drift[rows, :d, :d]
+            drift, total = self.predicted_drift[rows, :d, :d], self.predicted_total[rows, :d, :d]
             given = np.einsum("mab,mb->ma", W, self.predicted_given[rows, :d])
             WT = np.swapaxes(W, 1, 2)
-            out[name] = HeldoutPrediction(index, e, S - drift, Conditioned(given, W @ (S - drift) @ WT, W @ drift @ WT))
+            out[name] = HeldoutPrediction(index, e, S, Conditioned(given, W @ (total - drift) @ WT, W @ drift @ WT))
         return out
 
 
@@ -377,7 +383,7 @@ _KNOTS_PER_CALL = 256
 def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, start, model, dim, rows, R, slot,
                   held_acc, held_gyro, values, timed, owner, coordinate, drifting, root, gm_first, gm_dim, gm_tau,
                   gm_mean, nis, accepted, predicted, predicted_e, predicted_state, predicted_given, predicted_drift,
-                  q, g, gates, out_index, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
+                  predicted_total, q, g, gates, out_index, out_r, out_v, out_C, out_b_f, out_b_w, out_P, stats) -> int:
     """Knots ``first .. last - 1`` of :func:`run_filter`: predict through the knot's IMU steps
     (``bounds[k] .. bounds[k + 1]``; with calibrations, :func:`_predict_augmented`), apply the
     updates taken there (``start[k] .. start[k + 1]`` of :class:`_Updates`, each through its
@@ -390,8 +396,9 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
     is one (-1: not kept). A drifting sensor's error (columns ``gm_first[i]`` on, ``gm_dim[i]`` of
     them, its mean in ``gm_mean``) decays between knots as :func:`_drift` steps it and enters its
     measurements' residuals as ``root u`` (``drifting[u]``: its first column; its ``R`` zero), each
-    held-out one's residual with it into ``predicted_given`` and its share ``root P_uu root^T`` into
-    ``predicted_drift`` (the residual without it stays in ``predicted_e``). ``values`` are the packed
+    held-out one's residual with it into ``predicted_given``, its covariance into ``predicted_total``
+    and the error's own share of it into ``predicted_drift`` (:func:`_given_the_rest`); the residual
+    without it stays in ``predicted_e``, its ``H_x P H_x^T`` in ``predicted_state``. ``values`` are the packed
     calibrations (moved in place), ``timed`` which estimate their time offset, ``owner`` and
     ``coordinate`` their estimated coordinates' places (:func:`factors.calibration.placement`),
     those of ``P`` after the IMU's 15. Returns the first knot where the filter diverged
@@ -434,8 +441,12 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
                 nis[u] = predict_only(P, e, H, np.ascontiguousarray(R[u, :m, :m]), predicted_state[p, :m, :m])
                 if f >= 0:
                     predicted_given[p, :m] = e
+                    predicted_total[p, :m, :m] = predicted_state[p, :m, :m]
                     Lr = np.ascontiguousarray(root[u, :m, :m])
-                    predicted_drift[p, :m, :m] = Lr @ np.ascontiguousarray(P[f:f + m, f:f + m]) @ Lr.T
+                    predicted_drift[p, :m, :m] = Lr @ _given_the_rest(P, f, m) @ Lr.T
+                    H_x = H.copy()
+                    H_x[:, f:f + m] = 0.0
+                    predicted_state[p, :m, :m] = H_x @ P @ H_x.T
                 continue
             rejected = stats[0]
             nis[u] = kalman_update(P, e, H, np.ascontiguousarray(R[u, :m, :m]), gates, stats, dx)
@@ -453,6 +464,16 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
         if diverged(r, v, C, b_f, b_w, P):
             return knot
     return -1
+
+
+@njit(cache=True)
+def _given_the_rest(P, f, m) -> np.ndarray:
+    """``P_uu - P_ur P_rr^-1 P_ru``: the covariance of the states ``f .. f + m - 1`` of ``P`` given
+    all the others (``r``), the Schur complement."""
+    rest = np.concatenate((np.arange(f), np.arange(f + m, P.shape[0])))
+    P_rr = np.ascontiguousarray(P[rest][:, rest])
+    P_ru = np.ascontiguousarray(P[rest][:, f:f + m])
+    return P[f:f + m, f:f + m] - P_ru.T @ np.linalg.solve(P_rr, P_ru)
 
 
 @njit(cache=True)

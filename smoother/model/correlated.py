@@ -44,6 +44,10 @@ from datasets.types import Dataset
 from factors.errors import InputError
 from smoother.model.blocks import Block
 
+#: The least share ``1 - phi^2`` of new error between two consecutive measurements: below it their
+#: innovation's weight (its inverse square root) leaves double precision's reach beside the other factors.
+MIN_INNOVATION_VARIANCE = 1e-12
+
 
 @dataclass
 class CorrelatedBlock(Block):
@@ -74,18 +78,18 @@ def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
         w_0 = a (1 - b^2) / (1 - c^2),   w_1 = b (1 - a^2) / (1 - c^2),
         variance = 1 - (a^2 + b^2 - 2 a b c) / (1 - c^2) = (1 - a^2) (1 - b^2) / (1 - c^2)
 
-    (one side alone: ``w = a``, variance ``1 - a^2``; at a measurement's own time, its value)."""
+    (one side alone: ``w = a``, variance ``1 - a^2``; at a measurement's own time, its value; each
+    ``1 - x^2`` as ``-expm1(-2 lag / tau)``, exact where the lags are far below ``tau``)."""
     t = np.asarray(t, dtype=float)
     before = np.searchsorted(times, t, side="right") - 1
     after = before + 1
     has_before, has_after = before >= 0, after < len(times)
-    a = np.where(has_before, np.exp(-(t - times[np.maximum(before, 0)]) / tau), 0.0)
-    b = np.where(has_after, np.exp(-(times[np.minimum(after, len(times) - 1)] - t) / tau), 0.0)
-    c2 = (a * b) ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w0 = np.where(c2 < 1.0, a * (1.0 - b**2) / (1.0 - c2), 1.0)
-        w1 = np.where(c2 < 1.0, b * (1.0 - a**2) / (1.0 - c2), 0.0)
-        variance = np.where(c2 < 1.0, (1.0 - a**2) * (1.0 - b**2) / (1.0 - c2), 0.0)
+    # the lags (inf where there is no neighbour on that side), and 1 - a^2, 1 - b^2, 1 - c^2 without cancellation
+    lag_a = np.where(has_before, t - times[np.maximum(before, 0)], np.inf)
+    lag_b = np.where(has_after, times[np.minimum(after, len(times) - 1)] - t, np.inf)
+    a, b = np.exp(-lag_a / tau), np.exp(-lag_b / tau)
+    not_a, not_b, not_c = (-np.expm1(-2.0 * lag / tau) for lag in (lag_a, lag_b, lag_a + lag_b))
+    w0, w1, variance = a * not_b / not_c, b * not_a / not_c, not_a * not_b / not_c
     return np.where(has_before, before, -1), np.where(has_after, after, -1), w0, w1, variance
 
 
@@ -109,7 +113,14 @@ def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedB
     M = len(block)
     own = block.keyframes[:, 0]
     phi = np.concatenate([[0.0], transitions(times, tau)])
-    scale = 1.0 / np.sqrt(1.0 - phi**2)
+    fresh = -np.expm1(-2.0 * step / tau)  # 1 - phi^2, without cancellation
+    if np.any(fresh < MIN_INNOVATION_VARIANCE):
+        m = int(np.flatnonzero(fresh < MIN_INNOVATION_VARIANCE)[0]) + 1
+        raise InputError(f"sensor {block.name!r}: correlation_time {tau:g} s is too long for measurements "
+                         f"{step[m - 1]:.3g} s apart (measurement {m}): their errors would be one, whose "
+                         "differences the factors would weigh beyond double precision; a constant error is "
+                         "an offset (estimate its lever arm, or give a shorter correlation time)")
+    scale = 1.0 / np.sqrt(np.concatenate([[1.0], fresh]))
     # the keyframes each factor reads: the previous measurement's and its own; one keyframe alone
     # (the first factor, two measurements on one keyframe) names a neighbour with a zero Jacobian
     alone = np.ones(M, dtype=bool)
@@ -171,7 +182,7 @@ def with_correlated_errors(problem, dataset: Dataset):
     taus = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     if not taus:
         return problem
-    times = {s.name: s.data.t for s in dataset.sensors}
+    times = {s.name: s.data.t for s in dataset.sensors if s.name in taus and s.data is not None}
     blocks = [correlated_block(b, times[b.name], taus[b.name]) if b.name in taus else b for b in problem.blocks]
     return replace(problem, blocks=blocks)
 

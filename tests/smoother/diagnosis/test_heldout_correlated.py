@@ -141,3 +141,15 @@ def test_a_correlated_sensor_s_held_out_rms_is_the_plain_prediction_s(tau):
     plain = heldout_predictions(data, r.trajectory, None, following)["gnss"]
     np.testing.assert_allclose(prediction.e, plain.e, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(prediction.state_part, plain.state_part, rtol=1e-6, atol=1e-12)
+
+
+def test_a_drifting_sensor_whose_near_fixes_still_lie_below_the_far_ones_is_told_of_a_longer_time():
+    """The held-out verdict's text: for a sensor judged given the used errors, a near/far split says
+    its errors are more alike than its correlation time says, not that it needs one."""
+    from smoother.diagnosis.verdicts import shown
+
+    record = {"per_dof": 0.6, "band": (0.92, 1.08), "ok": False, "statistic": "heldout", "correlated": True,
+              "near_far": (0.4, 0.8), "dof": 1266.0}
+    assert shown(record).endswith("correlated in time, which no white sigma fits (a correlation_time models them)")
+    assert shown({**record, "given_used_errors": True}).endswith(
+        "more alike in time than its correlation_time says (a longer one models them)")

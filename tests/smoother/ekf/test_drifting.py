@@ -61,6 +61,9 @@ def test_a_vanishing_correlation_time_is_the_white_filter():
     np.testing.assert_allclose(drifting_filter.innovations.nis, white.innovations.nis, rtol=1e-8)
     held, plain = drifting_filter.heldout["gnss"], white.heldout["gnss"]
     np.testing.assert_allclose(held.e, plain.e, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(held.state_part, plain.state_part, rtol=1e-8, atol=1e-15)
+    np.testing.assert_allclose(held.conditioned.noise, np.broadcast_to(np.eye(3), held.conditioned.noise.shape),
+                               atol=1e-8)  # the error given the state: all of it, independent
     np.testing.assert_allclose(held.conditioned.e, held.e / 0.5, rtol=1e-8)  # whitened by the stated 0.5 m
 
 
@@ -76,6 +79,10 @@ def test_the_filter_s_innovations_and_held_out_predictions_of_drifting_fixes_are
         held.append(verdict["per_dof"])
         band = verdict["band"]
         innovations = estimates["ekf"].innovations
+        conditioned = estimates["ekf"].heldout["gnss"].conditioned
+        for part in (conditioned.state_part, conditioned.noise):  # a split into two covariances
+            assert np.linalg.eigvalsh(part).min() > -1e-9
+        assert 0.0 <= verdict["state_share"] <= 1.0
         nis.append(np.mean(innovations.nis[innovations.sensor == "gnss"]) / 3)
         plain = pipeline.run_estimators(data.with_sensor("gnss", correlation_time=None), ["ekf"],
                                         pipeline.RunOptions(progress=False))

@@ -126,3 +126,38 @@ def test_measurements_out_of_time_order_are_refused_by_name():
 def test_a_bad_correlation_time_is_refused_by_name(tau):
     with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time"):
         _dataset(1.3, tau=tau)
+
+
+def test_a_correlation_time_far_beyond_the_measurements_spacing_is_refused_by_name():
+    """1e20 s: ``phi`` rounds to 1 and the innovations' scale to infinity, which ended in numpy's SVD."""
+    data = _dataset(1.3, tau=1e20)
+    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time 1e\+20 s is too long for measurements"):
+        with_correlated_errors(build_problem(data), data)
+
+
+def test_a_sensor_without_used_measurements_beside_a_drifting_one_is_no_obstacle():
+    """A sensor that only checks the estimate (all held out, ``data`` None) beside one with a
+    correlation time: the batch's problem is made and solved."""
+    from smoother import pipeline
+
+    data = _dataset(1.3)
+    gnss = data.sensors[0]
+    checker = Sensor("checker", "position", None, gnss.data.subset(np.arange(len(gnss.data.t)) % 2 == 0))
+    data = replace(data, sensors=(gnss, checker))
+    estimate = pipeline.run_estimators(data, ["batch"], pipeline.RunOptions(progress=False))["batch"]
+    assert estimate.failed is None and np.isfinite(estimate.trajectory.states.r).all()
+
+
+def test_a_drifting_sensor_with_a_full_covariance_cannot_have_its_axis_groups_fitted_apart():
+    from smoother.batch.variance_components import noise_groups
+
+    data = _dataset(1.3)
+    gnss = data.sensors[0]
+    assert [g.part for g in noise_groups(data, ["gnss"])] == ["horizontal", "vertical"]  # diagonal: fine
+    cov = gnss.data.cov.copy()
+    cov[:, 0, 1] = cov[:, 1, 0] = 0.01
+    full = data.with_sensor("gnss", data=replace(gnss.data, cov=cov))
+    with pytest.raises(InputError, match=r"sensor 'gnss' has a correlation_time and covariances that are not "
+                                         r"diagonal: its horizontal, vertical cannot be fitted apart"):
+        noise_groups(full, ["gnss"])
+    assert len(noise_groups(full.with_sensor("gnss", correlation_time=None), ["gnss"])) == 2
