@@ -25,7 +25,7 @@ from factors.errors import BoxplusError, InputError, SolverError
 from factors.threads import interrupts_held
 from smoother.batch.solve import solve_batch, warn_not_converged
 from smoother.diagnosis.calibration_report import calibration_records
-from smoother.diagnosis.heldout_correlated import batch_predictions
+from smoother.diagnosis.heldout_correlated import batch_predictions, predicts_correlated
 from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.ekf.filter import run_ekf
@@ -362,7 +362,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     # a calibration is never reported without its sigma: its covariance is computed whatever --no-covariance says
     covariances = options.covariances or problem.calibration is not None
     r = solve_batch(problem, options.optimizer, options.max_iterations, covariances or bool(noise),
-                    square_root=bool(noise))
+                    square_root=bool(noise) or (covariances and predicts_correlated(dataset, problem)))
     runtime_s = build_s + r.runtime_s
     fit = None
     if noise:

@@ -44,14 +44,20 @@ from smoother.model.predicted import Conditioned, HeldoutPrediction
 from smoother.model.timeline import STATES_CHUNK
 
 
+def predicts_correlated(dataset: Dataset, problem) -> bool:
+    """Whether ``problem`` (the batch's, on ``dataset``) has a sensor whose errors are correlated in
+    time and which holds measurements out: :func:`batch_predictions` then needs the elimination
+    (a solve that keeps it saves making it again)."""
+    return any(isinstance(b, CorrelatedBlock) and dataset.sensor(b.name).heldout is not None for b in problem.blocks)
+
+
 def batch_predictions(dataset: Dataset, problem, result, following: Following | None) -> dict | None:
     """:func:`correlated_predictions` of the batch estimate ``result`` (a
     :class:`smoother.batch.solve.SmootherResult`) of ``problem`` on ``dataset`` (as it ran, its
     noise fitted where it was), with its keyframes' ``following``; None where it has no sensor with
     errors correlated in time and held-out measurements, or no covariances. The elimination it
     needs is made again where ``result`` did not keep it."""
-    correlated = [b.name for b in problem.blocks if isinstance(b, CorrelatedBlock)]
-    if following is None or not any(dataset.sensor(name).heldout is not None for name in correlated):
+    if following is None or not predicts_correlated(dataset, problem):
         return None
     root, sigma = result.square_root, result.joint
     if root is None:
