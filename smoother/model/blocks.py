@@ -203,6 +203,10 @@ class Layout:
     n: int
     extra: tuple[int, ...] = ()
     chain: bool = False
+    #: Not a chain, but every factor on keyframes in time order with at most :data:`BAND` of them over
+    #: any keyframe interval (a drifting sensor's factors between its consecutive measurements,
+    #: :mod:`smoother.model.correlated`): eliminated in time order too (:meth:`ordering`).
+    banded: bool = False
 
     def dim(self, key: int) -> int:
         return DIM if key < self.n else self.extra[key - self.n]
@@ -235,8 +239,13 @@ class Layout:
           pieces that leave the calibration variables to the end
           (:func:`smoother.model.covariances.marginal_covariances`).
 
-        Elsewhere COLAMD, with the calibration variables constrained last."""
+        A ``banded`` problem's covariances are swept in time order the same way: a conditional's
+        keyframe parents are the next keyframe and the far ends of the (at most :data:`BAND`)
+        factors over it. Its steps, and everything else, COLAMD, with the calibration variables
+        constrained last (time order there makes the elimination tree as deep as the run)."""
         calibrations = list(range(self.n, self.n + len(self.extra)))
+        if self.banded and not nested:  # a conditional's keyframe parents: the next, the far ends of factors over it
+            return gtsam.Ordering(gtsam.KeyVector([*range(self.n), *calibrations]))
         if self.chain and (self.extra or not nested):
             keyframes = nested_dissection(self.n) if nested else np.arange(self.n)
             return gtsam.Ordering(gtsam.KeyVector([*keyframes.tolist(), *calibrations]))
@@ -273,7 +282,29 @@ class Layout:
         chain = blocks is not None and all(
             b.keyframes.shape[1] < 2 or not len(b.keyframes) or np.abs(np.diff(b.keyframes, axis=1)).max() <= 1
             for b in blocks)
-        return Layout(len(states), () if calibration is None else tuple(calibration.dims), chain)
+        banded = blocks is not None and not chain and _spanned_at_most(blocks, len(states), BAND)
+        return Layout(len(states), () if calibration is None else tuple(calibration.dims), chain, banded)
+
+
+#: The most factors over one keyframe interval for which :class:`Layout` eliminates a problem that is
+#: no chain in time order (``banded``): each keyframe's conditional then has at most this many
+#: keyframe parents beyond the next.
+BAND = 8
+
+
+def _spanned_at_most(blocks: list[Block], n: int, most: int) -> bool:
+    """Whether at most ``most`` factors of ``blocks`` (on ``n`` keyframes) reach over any keyframe
+    interval beyond the next keyframe (a factor from ``a`` to ``b > a + 1`` reaches over ``a + 1 ..
+    b - 1``)."""
+    over = np.zeros(n + 1, dtype=np.int64)
+    for b in blocks:
+        if b.keyframes.shape[1] < 2 or not len(b.keyframes):
+            continue
+        lo, hi = b.keyframes.min(axis=1), b.keyframes.max(axis=1)
+        far = hi > lo + 1
+        np.add.at(over, lo[far] + 1, 1)
+        np.add.at(over, hi[far], -1)
+    return bool(np.cumsum(over).max() <= most)
 
 
 def nested_dissection(n: int) -> np.ndarray:

@@ -381,7 +381,7 @@ def _eliminated(graph: gtsam.GaussianFactorGraph, layout: Layout) -> tuple[list,
     to the root (:meth:`Layout.ordering`): they are not eliminated with the keyframes."""
     ordering = layout.ordering(graph) or gtsam.Ordering.ColamdGaussianFactorGraph(graph)
     pieces = [ordering]
-    if layout.chain:
+    if layout.chain or layout.banded:
         pieces = [gtsam.Ordering(gtsam.KeyVector(list(range(at, min(at + SWEEP_PIECE, layout.n)))))
                   for at in range(0, layout.n, SWEEP_PIECE)]
         if layout.extra:

@@ -161,3 +161,25 @@ def test_a_drifting_sensor_with_a_full_covariance_cannot_have_its_axis_groups_fi
                                          r"diagonal: its horizontal, vertical cannot be fitted apart"):
         noise_groups(full, ["gnss"])
     assert len(noise_groups(full.with_sensor("gnss", correlation_time=None), ["gnss"])) == 2
+
+
+def test_a_problem_with_drifting_factors_is_banded_and_one_with_many_long_factors_is_not():
+    """``Layout.banded``: factors on keyframes further apart than the next, at most ``BAND`` over any
+    interval -- a drifting sensor's between used fixes with held-out ones between them -- have their
+    covariances swept in time order; more, COLAMD."""
+    from drifting_fixes import drifting_run
+
+    from smoother.model.blocks import BAND, Block
+
+    data = drifting_run(0, 3.0, duration=12.0)
+    plain = build_problem(data)
+    states = plain.initial_states
+    assert Layout.of(states, None, plain.blocks).chain
+    layout = Layout.of(states, None, with_correlated_errors(plain, data).blocks)
+    assert layout.banded and not layout.chain
+
+    def spans(m):  # m factors each from keyframe 0 to the last
+        return Block("long", np.tile([0, len(states) - 1], (m, 1)), None, np.ones((m, 1, 1)))
+
+    assert Layout.of(states, None, [*plain.blocks, spans(BAND)]).banded
+    assert not Layout.of(states, None, [*plain.blocks, spans(BAND + 1)]).banded
