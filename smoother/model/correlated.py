@@ -1,5 +1,6 @@
 """Measurement errors correlated in time: a sensor whose errors drift (a GNSS receiver's multipath
-and atmosphere, a fused solution's) as a first-order Gauss-Markov process, in the batch smoother.
+and atmosphere, a fused solution's) as a first-order Gauss-Markov process -- its factors in the
+batch smoother, and the process's conditional at a time between its measurements.
 
 Model. A sensor with a correlation time ``tau`` (:attr:`datasets.types.Sensor.correlation_time`)
 has errors ``n_m`` whose whitened values ``u_m = W_m n_m`` (``W_m`` the whitening of measurement
@@ -23,7 +24,8 @@ their Jacobians are the differences of theirs. A robust kernel acts on ``f_m``.
 
 Scaling ``R`` by a factor scales every ``f`` by its inverse square root, so a noise fit's factor on
 the sensor's sigma (:mod:`smoother.batch.variance_components`) is the stationary sigma's; per axis
-group, where ``R`` is diagonal (its axes' whitened rows are the axes' own).
+group where ``R`` is diagonal (its axes' whitened rows are the axes' own; with a full ``R`` the fit
+refuses to split the groups).
 
 Two measurements on one keyframe (a sensor faster than the keyframes) make a factor on that
 keyframe alone; its first measurement's too. The :class:`~smoother.model.blocks.Block` holds two
@@ -118,8 +120,8 @@ def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedB
         m = int(np.flatnonzero(fresh < MIN_INNOVATION_VARIANCE)[0]) + 1
         raise InputError(f"sensor {block.name!r}: correlation_time {tau:g} s is too long for measurements "
                          f"{step[m - 1]:.3g} s apart (measurement {m}): their errors would be one, whose "
-                         "differences the factors would weigh beyond double precision; a constant error is "
-                         "an offset (estimate its lever arm, or give a shorter correlation time)")
+                         "differences the factors would weigh beyond double precision; give a shorter "
+                         "correlation time")
     scale = 1.0 / np.sqrt(np.concatenate([[1.0], fresh]))
     # the keyframes each factor reads: the previous measurement's and its own; one keyframe alone
     # (the first factor, two measurements on one keyframe) names a neighbour with a zero Jacobian
