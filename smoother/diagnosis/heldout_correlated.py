@@ -93,6 +93,9 @@ def correlated_predictions(dataset: Dataset, blocks: list, trajectory: Trajector
 
 def _predicted(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Trajectory, calibration,
                following: Following, between: CovarianceBetween) -> HeldoutPrediction:
+    """:func:`correlated_predictions` of one ``sensor`` (its ``block``), a chunk of its held-out
+    measurements at a time; each one's covariance from the few keyframes it reads (a loop over the
+    measurements: their pairs of keyframes differ, and ``between`` finds and keeps each pair once)."""
     kind, held = KINDS[sensor.kind], sensor.heldout
     calibrated = calibration is not None and sensor.name in calibration.names
     c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
