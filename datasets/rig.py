@@ -102,7 +102,7 @@ from datasets.gnss import Datum
 from datasets.initialise import FORWARD
 from datasets.kalibr import NOISE_KEYS as KALIBR_NOISE_KEYS
 from datasets.kalibr import read_camchain_T_BS, read_kalibr_imu, rigid_problem
-from datasets.kinds import KIND_NAMES, KINDS
+from datasets.kinds import KIND_NAMES, KINDS, drift_problem
 from datasets.kinds.base import kind_sigmas, sigma_counts
 from datasets.ranges import MAX_SENSORS, MAX_SENSORS_WHY, RANGES, SIGMA_RANGES, out_of_range, sensor_name_problem
 from datasets.robust import robust_spec
@@ -477,9 +477,8 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
 def _correlation_time(t: "_Table", kind: str) -> float | None:
     """The sensor's ``correlation_time`` [s] or None, on the kinds of one state per measurement."""
     tau = t.number("correlation_time", positive=True)
-    if tau is not None and KINDS[kind].relative:
-        raise t.error("correlation_time", f"{kind} measurements are relative (two states each); errors "
-                                          "correlated in time are modelled for kinds of one state per measurement")
+    if tau is not None and (problem := drift_problem(kind)) is not None:
+        raise t.error("correlation_time", problem)
     return tau
 
 

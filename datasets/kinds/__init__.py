@@ -108,6 +108,16 @@ MODELS: tuple[sm.SensorModel, ...] = tuple(dict.fromkeys(k.model for k in KINDS.
 _KERNELS = tuple(m.kernel for m in MODELS)
 
 
+def drift_problem(kind: str) -> str | None:
+    """Why a sensor of ``kind`` (a name of :data:`KINDS`) cannot have errors correlated in time
+    (a ``correlation_time``, :mod:`smoother.model.correlated`), or None where it can: the model
+    chains one-state measurements' residuals."""
+    if KINDS[kind].relative:
+        return (f"{kind} measurements are relative (two states each); errors correlated in time are modelled for "
+                "kinds of one state per measurement")
+    return None
+
+
 def model_index(kind: Kind) -> int:
     """The index of ``kind``'s model in :data:`MODELS` (the first argument of :func:`measure_into`)."""
     return MODELS.index(kind.model)

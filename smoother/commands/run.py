@@ -120,7 +120,7 @@ def with_correlation_times(specs: list[str], dataset):
     :attr:`datasets.types.Sensor.correlation_time`; a UserError naming the option for an unknown
     sensor, one of a relative kind, a value that is no number or outside the rig key's range, or a
     sensor given twice."""
-    from datasets.kinds import KINDS
+    from datasets.kinds import drift_problem
     from datasets.ranges import RANGES
 
     seen: dict = {}
@@ -141,10 +141,8 @@ def with_correlation_times(specs: list[str], dataset):
         problem = RANGES["sensor.correlation_time"].problem(seconds)
         if problem is not None:
             raise UserError(f"--correlation-time {spec}: {problem}")
-        if KINDS[dataset.sensor(name).kind].relative:
-            raise UserError(f"--correlation-time {spec}: {dataset.sensor(name).kind} measurements are relative (two "
-                            "states each); errors correlated in time are modelled for kinds of one state per "
-                            "measurement")
+        if (why := drift_problem(dataset.sensor(name).kind)) is not None:
+            raise UserError(f"--correlation-time {spec}: {why}")
         seen[name] = spec
         dataset = dataset.with_sensor(name, correlation_time=seconds)
     return dataset

@@ -454,9 +454,7 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
             if accepted[u]:
                 imu.boxplus_into(r, v, C, b_f, b_w, dx)
                 calibration.set_boxplus_into(values, owner, coordinate, dx[D:])
-                for i in range(gm_first.shape[0]):
-                    for k in range(gm_first[i], gm_first[i] + gm_dim[i]):
-                        gm_mean[k] += dx[k]
+                gm_mean[D + owner.shape[0]:] += dx[D + owner.shape[0]:]  # the drifting errors: the last columns
         o = out_index[knot]
         if o >= 0:
             out_r[o], out_v[o], out_C[o], out_b_f[o], out_b_w[o] = r, v, C, b_f, b_w
