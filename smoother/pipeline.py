@@ -703,7 +703,8 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
                 near, far = c["near_far"]
                 why.append(f"{figure}, {near:.2g} near the used measurements and {far:.2g} far from them: the "
                            "sensor's errors are correlated in time and the estimate follows them through the used "
-                           "ones, which no white sigma describes")
+                           "ones, " + ("more than its correlation_time says" if c.get("given_used_errors") else
+                                       "which no white sigma describes (a correlation_time does)"))
             elif k in held and c.get("sigma_factor") is None:
                 following = f", or errors that follow the IMU's ({follow_imu[k]})" if k in (follow_imu or {}) else ""
                 why.append(f"{figure}, below even the state's own uncertainty there: the estimate's covariances "
