@@ -158,8 +158,8 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
                             "sigma_factor": sigma_factor(e[good], state_part[good], R[good])}
         if own.conditioned is not None:
             out[sensor.name]["given_used_errors"] = True
-        elif sensor.correlation_time is not None:  # an estimator that takes its drifting errors as white
-            out[sensor.name]["taken_white"] = True
+        elif sensor.correlation_time is not None:  # predicted without the used errors (the fixed-lag smoother)
+            out[sensor.name]["not_given_used_errors"] = True
         used = np.sort(sensor.data.t) if sensor.data is not None else np.zeros(0)
         if len(used):
             at = held.t[index][good]

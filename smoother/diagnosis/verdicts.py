@@ -105,8 +105,8 @@ def shown(c: dict) -> str:
         text += (f": {near:.2g} near the used measurements, {far:.2g} far from them -- the sensor's errors are "
                  + ("more alike in time than its correlation_time says (a longer one models them)"
                     if c.get("given_used_errors") else
-                    "correlated in time, which this estimator takes as white (its correlation_time is the batch "
-                    "smoother's and the EKF's)" if c.get("taken_white") else
+                    "correlated in time, and this estimator predicts them without the used ones' errors (the batch "
+                    "smoother's and the EKF's predictions are given them)" if c.get("not_given_used_errors") else
                     "correlated in time, which no white sigma fits (a correlation_time models them)"))
     elif not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
         text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
@@ -177,7 +177,7 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
     ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``, ``heldout_near_far``,
-    ``heldout_correlated``, ``heldout_given_used_errors``, ``heldout_taken_white``;
+    ``heldout_correlated``, ``heldout_given_used_errors``, ``heldout_not_given_used_errors``;
     :mod:`smoother.diagnosis.heldout`);
     a sensor judged on held-out measurements alone has that verdict as its own (statistic ``heldout``)."""
     out = {name: dict(c) for name, c in verdicts.items()}
@@ -188,7 +188,7 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
                     "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor"),
                     "heldout_near_far": h.get("near_far"), "heldout_correlated": h.get("correlated", False),
                     "heldout_given_used_errors": h.get("given_used_errors", False),
-                    "heldout_taken_white": h.get("taken_white", False)})
+                    "heldout_not_given_used_errors": h.get("not_given_used_errors", False)})
     return out
 
 
@@ -223,7 +223,7 @@ def heldout_part(c: dict) -> dict | None:
             "sigma_factor": c.get("heldout_sigma_factor"), "near_far": c.get("heldout_near_far"),
             "correlated": c.get("heldout_correlated", False),
             "given_used_errors": c.get("heldout_given_used_errors", False),
-            "taken_white": c.get("heldout_taken_white", False)}
+            "not_given_used_errors": c.get("heldout_not_given_used_errors", False)}
 
 
 def consistency_lines(by_estimator: dict[str, dict]) -> list[str]:

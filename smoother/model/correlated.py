@@ -39,6 +39,7 @@ says so (:func:`white_elsewhere_warning`).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,6 +67,57 @@ class CorrelatedBlock(Block):
 def transitions(times: np.ndarray, tau: float) -> np.ndarray:
     """``phi_m = exp(-(t_m - t_(m-1)) / tau)`` of each measurement after the first (``(M - 1,)``)."""
     return np.exp(-np.diff(times) / tau)
+
+
+def innovation_weights(name: str, times: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(phi, s)`` of the factors of sensor ``name``'s measurements at ``times`` (strictly
+    increasing, seconds) with errors of correlation time ``tau`` [s] (module docstring): each
+    ``f_m = s_m (u_m - phi_m u_(m-1))``, ``s_m = 1 / sqrt(1 - phi_m^2)``; ``phi_0 = 0``, ``s_0 = 1``.
+    An InputError, naming the sensor, for times that do not increase, a ``tau`` that is no positive
+    number, or one so long that two consecutive errors would be one
+    (:data:`MIN_INNOVATION_VARIANCE`)."""
+    times = np.asarray(times, dtype=float)
+    step = np.diff(times)
+    if np.any(~(step > 0)):
+        m = int(np.flatnonzero(~(step > 0))[0]) + 1
+        raise InputError(f"sensor {name!r}: errors correlated in time need strictly increasing measurement "
+                         f"times; measurement {m} at t = {times[m]:.9g} s follows one at {times[m - 1]:.9g} s")
+    if not (np.isfinite(tau) and tau > 0):
+        raise InputError(f"sensor {name!r}: correlation_time must be a positive number of seconds, got {tau!r}")
+    phi, s = pair_weights(step, tau)
+    if np.any(~np.isfinite(s)):
+        m = int(np.flatnonzero(~np.isfinite(s))[0]) + 1
+        raise InputError(f"sensor {name!r}: correlation_time {tau:g} s is too long for measurements "
+                         f"{step[m - 1]:.3g} s apart (measurement {m}): their errors would be one, whose "
+                         "differences the factors would weigh beyond double precision; give a shorter "
+                         "correlation time")
+    return np.concatenate([[0.0], phi]), np.concatenate([[1.0], s])
+
+
+def pair_weights(step, tau: float) -> tuple:
+    """``(phi, s)`` of measurements ``step > 0`` seconds after the one before them
+    (:func:`innovation_weights`); ``s`` is inf where ``1 - phi^2`` is below
+    :data:`MIN_INNOVATION_VARIANCE` (the two errors one)."""
+    step = np.asarray(step, dtype=float)
+    fresh = -np.expm1(-2.0 * step / tau)  # 1 - phi^2, without cancellation
+    with np.errstate(divide="ignore"):
+        s = np.where(fresh < MIN_INNOVATION_VARIANCE, np.inf, 1.0 / np.sqrt(np.maximum(fresh, MIN_INNOVATION_VARIANCE)))
+    return np.exp(-step / tau), s
+
+
+class Innovation(NamedTuple):
+    """What makes a drifting sensor's measurement the factor ``s u_m - c u_before`` (module
+    docstring, ``c = s phi``) in a window that makes its own factors (the fixed-lag smoother's):
+    the measurement before it, row ``row`` of ``spec`` (:class:`smoother.model.problem.MeasurementSpec`),
+    the ``keyframe`` it reads and where it is attached to it (:class:`smoother.model.problem.AttachedAt`,
+    or None at its time)."""
+
+    spec: object
+    row: int
+    keyframe: int
+    attached: object
+    c: float
+    s: float
 
 
 def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
@@ -105,24 +157,9 @@ def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedB
         raise InputError(f"sensor {block.name!r}: errors correlated in time need measurements of one state each")
     if len(times) != len(block):
         raise InputError(f"sensor {block.name!r}: {len(times)} times for {len(block)} measurements")
-    step = np.diff(times)
-    if np.any(~(step > 0)):
-        m = int(np.flatnonzero(~(step > 0))[0]) + 1
-        raise InputError(f"sensor {block.name!r}: errors correlated in time need strictly increasing measurement "
-                         f"times; measurement {m} at t = {times[m]:.9g} s follows one at {times[m - 1]:.9g} s")
-    if not (np.isfinite(tau) and tau > 0):
-        raise InputError(f"sensor {block.name!r}: correlation_time must be a positive number of seconds, got {tau!r}")
     M = len(block)
     own = block.keyframes[:, 0]
-    phi = np.concatenate([[0.0], transitions(times, tau)])
-    fresh = -np.expm1(-2.0 * step / tau)  # 1 - phi^2, without cancellation
-    if np.any(fresh < MIN_INNOVATION_VARIANCE):
-        m = int(np.flatnonzero(fresh < MIN_INNOVATION_VARIANCE)[0]) + 1
-        raise InputError(f"sensor {block.name!r}: correlation_time {tau:g} s is too long for measurements "
-                         f"{step[m - 1]:.3g} s apart (measurement {m}): their errors would be one, whose "
-                         "differences the factors would weigh beyond double precision; give a shorter "
-                         "correlation time")
-    scale = 1.0 / np.sqrt(np.concatenate([[1.0], fresh]))
+    phi, scale = innovation_weights(block.name, times, tau)
     # the keyframes each factor reads: the previous measurement's and its own; one keyframe alone
     # (the first factor, two measurements on one keyframe) names a neighbour with a zero Jacobian
     alone = np.ones(M, dtype=bool)

@@ -40,6 +40,7 @@ from factors.imu_factor import ImuFactor
 from factors.keys import KeyframeKeys, keyframe_keys
 from factors.sensor_models import odometry_factor, odometry_residual, pack_odometry, sensor_factor
 from smoother.model.blocks import Block, whitening
+from smoother.model.correlated import Innovation, innovation_weights
 from smoother.model.robust import noise_model, robust_estimator
 from smoother.model.timeline import (
     Attachment,
@@ -63,9 +64,11 @@ class KeyframeFactors:
     ``factors[i]`` in the problem's blocks, ``oldest[i]`` its earliest keyframe. What the prior and
     the measurement factors are made of, for a window that makes its own (the sliding window's
     ``add_keyframe``): ``prior`` ``(state, cov)`` (keyframe 0; None elsewhere) and
-    ``measurements``, one ``(spec, m, keyframes, kernel, attached)`` per measurement factor in their
-    order (:class:`MeasurementSpec`, the row, the keyframes it reads, the robust kernel spec or
-    None, and :class:`AttachedAt` or None)."""
+    ``measurements``, one ``(spec, m, keyframes, kernel, attached, innovation)`` per measurement
+    factor in their order (:class:`MeasurementSpec`, the row, the keyframes it reads, the robust
+    kernel spec or None, :class:`AttachedAt` or None, and for a measurement after the first of a
+    sensor whose errors drift, :class:`smoother.model.correlated.Innovation`, else None: ``factors``
+    holds its own white factor all the same)."""
 
     imu: ImuFactor | None
     factors: list
@@ -335,6 +338,10 @@ def build_problem(dataset: Dataset, keyframe_rate=None, robust: dict | None = No
         order = np.argsort(latest, kind="stable")
         available.append((order, np.searchsorted(latest[order], np.arange(len(times) + 1))))
     held = {}  # the IMU readings held at an attached sensor's stamps, made when first asked for
+    # a drifting sensor's innovation weights (smoother.model.correlated), for a window's own factors
+    taus = {spec.name: dataset.sensor(spec.name).correlation_time for _, spec, _, _, _ in measurements}
+    drifting = {spec.name: innovation_weights(spec.name, spec.times[0], taus[spec.name])
+                for _, spec, _, _, _ in measurements if taus[spec.name] is not None}
 
     def attached_at(spec, m: int):
         att = spec.attached
@@ -345,6 +352,14 @@ def build_problem(dataset: Dataset, keyframe_rate=None, robust: dict | None = No
             held[spec.name] = (dataset.imu.acc[i], dataset.imu.gyro[i])
         acc_h, gyro_h = held[spec.name]
         return AttachedAt(int(att.steps[m]), float(att.last_dt[m]), (acc_h[m], gyro_h[m]))
+
+    def innovation(spec, m: int, kf) -> Innovation | None:
+        """A drifting sensor's measurement ``m > 0`` as its innovation on the one before it."""
+        if spec.name not in drifting or m == 0:
+            return None
+        phi, s = drifting[spec.name]
+        return Innovation(spec, m - 1, int(kf[m - 1, 0]), attached_at(spec, m - 1), float(s[m] * phi[m]),
+                          float(s[m]))
 
     def keyframe_factors(k: int) -> KeyframeFactors:
         """The GTSAM factors available at keyframe ``k`` (see :class:`Problem`)."""
@@ -368,7 +383,8 @@ def build_problem(dataset: Dataset, keyframe_rate=None, robust: dict | None = No
                 out.factors.append(factor)
                 out.rows.append((block, int(m)))
                 out.oldest.append(int(kf[m].min()))
-                out.measurements.append((spec, int(m), [int(j) for j in kf[m]], kernel, where))
+                out.measurements.append((spec, int(m), [int(j) for j in kf[m]], kernel, where,
+                                         innovation(spec, int(m), kf)))
         return out
 
     absolute = frozenset(s.name for s in sensors_of(dataset) if KINDS[s.kind].absolute)

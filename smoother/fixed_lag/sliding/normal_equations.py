@@ -217,9 +217,26 @@ def _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d) -> None:
 
 
 @njit(cache=True)
+def _one_state(model, k, step, last, row, W, cap, r, v, C, bf, bw, sacc, sgyro, sdt, acc, gyro, gravity, d, e, Hm,
+               Hc, attached, ew, JT, Jt0) -> None:
+    """``ew = W e`` and ``JT = (W H)^T`` (:func:`_whiten`) of one measurement of kind ``model`` that
+    reads keyframe ``k`` alone and no calibration: at the keyframe's time, or attached to it,
+    ``step > 0`` steps (the last ``last`` long) into the interval after it (:func:`linearise`)."""
+    i = k % cap
+    if step > 0:
+        j = (k + 1) % cap
+        attached_into(model, _NO_LAYOUT, sacc[j], sgyro[j], sdt[j], step, last, r[i], v[i], C[i], bf[i], bw[i], row,
+                      _NO_CALIBRATION, False, False, acc, gyro, gravity, e[:d], Hm[:d], Hc[:d], attached,
+                      _WITH_JACOBIANS)
+    else:
+        measure_into(model, r[i], v[i], C[i], bf[i], bw[i], row, e[:d], Hm[:d])
+    _whiten(W, e, Hm, d, _AT_DIM, ew, JT, Jt0)
+
+
+@njit(cache=True)
 def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
                m, mk, model, rows, dims, Wm, rcode, rk, mcal, mstep, mlast, macc, mgyro,
-               sacc, sgyro, sdt, Hb, g) -> None:
+               sacc, sgyro, sdt, dc, ds, drow, dWm, dstep, dlast, Hb, g) -> None:
     """Add to ``Hb``, ``g`` (block row 0 = keyframe ``lo``) the rows ``lo ..`` of the normal
     equations of the factors that reach keyframe ``lo`` or later and begin before ``cut``: the
     IMU intervals (stored at the slot of their later keyframe) and the measurements ``0 .. m - 1``
@@ -229,7 +246,11 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
     (:func:`datasets.kinds.attached_into`): taken after the first ``mstep[f]`` steps of the samples
     ``sacc, sgyro, sdt`` of the interval into keyframe ``k + 1`` (at that keyframe's slot), the last
     cut to ``mlast[f]``; ``macc``, ``mgyro`` (the IMU reading held at its stamp) are read by
-    :func:`linearise_calibrated` only."""
+    :func:`linearise_calibrated` only. A measurement ``f`` with ``dc[f] != 0`` is the whitened
+    innovation of errors correlated in time (:mod:`smoother.model.correlated`), ``ds[f] u_f - dc[f]
+    u_p``, of its whitened residual ``u_f`` on keyframe ``mk[f, 1]`` and that of the measurement before
+    it, ``u_p``, on keyframe ``mk[f, 0]`` (the same keyframe where both fall on one): the earlier
+    one's packed row ``drow[f]``, whitening ``dWm[f]`` and attachment ``dstep[f]``, ``dlast[f]``."""
     work = residual_work()
     e, A, B = np.empty(DIM), np.empty((DIM, DIM)), np.empty((DIM, DIM))
     J, JT, Jt0, ew = np.empty((DIM, 2 * DIM)), np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM)), np.empty(DIM)
@@ -251,6 +272,7 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
     # EKF and the batch solver call with C-contiguous arrays too: one compiled copy of each
     H, Hm, Hc = np.empty((MAX_DIM, 2 * DIM)), np.empty((MAX_DIM, DIM)), np.empty((MAX_DIM, CALIBRATION_DIM))
     attached = attached_work()
+    pew, PJT = np.empty(DIM), np.empty((_WIDE, DIM))  # the earlier measurement of a drifting pair
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         if k0 >= cut or k1 < lo or mcal[f] >= 0:
@@ -261,15 +283,22 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
         if relative:
             odometry_kernel(r[i], C[i], r[k1 % cap], C[k1 % cap], rows[f], e[:d], H[:d])
             _whiten(Wm[f], e, H, d, 2 * _AT_DIM, ew, JT, Jt0)
+        elif dc[f] != 0.0:  # the innovation s u_f - c u_p on keyframes k0 <= k1 (one where equal)
+            _one_state(model[f], k1, mstep[f], mlast[f], rows[f], Wm[f], cap, r, v, C, bf, bw, sacc, sgyro, sdt,
+                       macc[f], mgyro[f], gravity, d, e, Hm, Hc, attached, ew, JT, Jt0)
+            _one_state(model[f], k0, dstep[f], dlast[f], drow[f], dWm[f], cap, r, v, C, bf, bw,
+                       sacc, sgyro, sdt, macc[f], mgyro[f], gravity, d, e, Hm, Hc, attached, pew, PJT, Jt0)
+            relative = k1 != k0
+            at = DIM if relative else 0  # where the newer keyframe's columns go
+            for a in range(d):
+                ew[a] = ds[f] * ew[a] - dc[f] * pew[a]
+                for p in range(DIM):
+                    JT[at + p, a] = ds[f] * JT[p, a] - (dc[f] * PJT[p, a] if at == 0 else 0.0)
+                    if relative:
+                        JT[p, a] = -dc[f] * PJT[p, a]
         else:
-            if mstep[f] > 0:
-                j = (k0 + 1) % cap
-                attached_into(model[f], _NO_LAYOUT, sacc[j], sgyro[j], sdt[j], mstep[f], mlast[f], r[i], v[i], C[i],
-                              bf[i], bw[i], rows[f], _NO_CALIBRATION, False, False, macc[f], mgyro[f], gravity, e[:d],
-                              Hm[:d], Hc[:d], attached, _WITH_JACOBIANS)
-            else:
-                measure_into(model[f], r[i], v[i], C[i], bf[i], bw[i], rows[f], e[:d], Hm[:d])
-            _whiten(Wm[f], e, Hm, d, _AT_DIM, ew, JT, Jt0)
+            _one_state(model[f], k0, mstep[f], mlast[f], rows[f], Wm[f], cap, r, v, C, bf, bw, sacc, sgyro, sdt,
+                       macc[f], mgyro[f], gravity, d, e, Hm, Hc, attached, ew, JT, Jt0)
         _reweight(rcode[f], rk[f], JT, ew, d)
         _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
 

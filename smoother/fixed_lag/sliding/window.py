@@ -163,6 +163,9 @@ class SlidingWindow:
         self.first, self.newest = 0, -1
         self.recovered: list[int] = []
         self.skipped = 0
+        #: measurements of drifting sensors weighed as independent of the one before
+        #: (:meth:`_innovation`): it had left the window, or the sensor has a calibration here
+        self.taken_white = 0
         self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: keyframes linearised again, one entry each time any were: at the end of an update, or early,
         #: before its assembly (an update can have two)
@@ -219,7 +222,11 @@ class SlidingWindow:
         shapes = {"_mk": ((2,), np.int64), "_model": ((), np.int64), "_rows": ((MAX_ROW_WIDTH,), float),
                   "_dims": ((), np.int64), "_Wm": ((MAX_DIM, MAX_DIM), float), "_rcode": ((), np.int64),
                   "_rk": ((), float), "_mcal": ((), np.int64), "_mD": ((8, 8), float), "_mg": ((8,), float),
-                  "_mstep": ((), np.int64), "_mlast": ((), float), "_macc": ((3,), float), "_mgyro": ((3,), float)}
+                  "_mstep": ((), np.int64), "_mlast": ((), float), "_macc": ((3,), float), "_mgyro": ((3,), float),
+                  # a drifting sensor's innovation (linearise): its weights, the earlier measurement's
+                  # row, whitening and attachment
+                  "_dc": ((), float), "_ds": ((), float), "_drow": ((MAX_ROW_WIDTH,), float),
+                  "_dWm": ((MAX_DIM, MAX_DIM), float), "_dstep": ((), np.int64), "_dlast": ((), float)}
         for name, (tail, dtype) in shapes.items():
             fresh = np.zeros((cap,) + tail, dtype=dtype)
             if m:
@@ -288,7 +295,8 @@ class SlidingWindow:
             interval = np.zeros((DIM, DIM))
             if not whitening_into(pre.cov, interval):
                 raise InputError("the IMU interval's covariance is not positive definite")
-        factors = [self._measurement_row(*measurement) for measurement in measurements if min(measurement[2]) >= first]
+        factors = [self._measurement_row(*measurement[:5], self._innovation(measurement, first))
+                   for measurement in measurements if min(measurement[2]) >= first]
         priors = [] if prior is None else [(prior[0], whitening(prior[1]))]
         self.skipped += len(measurements) - len(factors)
         self._marginalise(leaving)
@@ -313,7 +321,7 @@ class SlidingWindow:
             self._store_interval(s, pre, interval)
         for row in factors:
             self._add_measurement(*row[1:], -1 if self._cal is None else self._cal.index.get(row[0].name, -1))
-            keyframes = row[-2]
+            keyframes = row[7]
             linked = linked or (len(keyframes) > 1 and min(keyframes) < k == max(keyframes))
         self.newest = k
         if not linked:  # nothing ties the new keyframe to the window: a weak prior around its guess
@@ -398,27 +406,58 @@ class SlidingWindow:
             self._sacc[s, :len(dt)], self._sgyro[s, :len(dt)], self._sdt[s, :len(dt)] = acc, gyro, dt
             self._sdt[s, len(dt):] = 0.0
 
+    def _innovation(self, measurement, first: int):
+        """The :class:`smoother.model.correlated.Innovation` of a problem's ``measurement`` (its sixth
+        entry, where it has one) that this window can make: None where the measurement before it
+        reads a keyframe before ``first`` (gone, with the update) or the sensor has a calibration
+        here -- its own white factor then, counted in :attr:`taken_white`."""
+        innovation = measurement[5] if len(measurement) > 5 else None
+        if innovation is None:
+            return None
+        calibrated = self._cal is not None and measurement[0].name in self._cal.index
+        if calibrated or innovation.keyframe < first:
+            self.taken_white += 1
+            return None
+        return innovation
+
     @staticmethod
-    def _measurement_row(spec, m: int, keyframes, robust, attached=None) -> tuple:
-        """Measurement ``m`` of ``spec`` as ``spec`` and the arguments of :meth:`_add_measurement`, checked:
-        its covariance's whitening (an InputError if it is not positive definite) and robust code;
-        ``attached``: where it lies in the interval after its keyframe
-        (:class:`smoother.model.problem.AttachedAt`), None at its keyframe's time."""
+    def _whitening(spec, m: int) -> np.ndarray:
+        """The whitening of measurement ``m`` of ``spec`` in a ``(MAX_DIM, MAX_DIM)`` array; an
+        InputError if its covariance is not positive definite."""
         cov = np.ascontiguousarray(spec.cov[m], dtype=float)
-        d = cov.shape[-1]
         W = np.zeros((MAX_DIM, MAX_DIM))
         if not whitening_into(cov, W):
             raise InputError(f"a measurement's covariance is not positive definite: {cov.tolist()}")
+        return W
+
+    @classmethod
+    def _measurement_row(cls, spec, m: int, keyframes, robust, attached=None, innovation=None) -> tuple:
+        """Measurement ``m`` of ``spec`` as ``spec`` and the arguments of :meth:`_add_measurement`, checked:
+        its covariance's whitening (an InputError if it is not positive definite) and robust code;
+        ``attached``: where it lies in the interval after its keyframe
+        (:class:`smoother.model.problem.AttachedAt`), None at its keyframe's time; ``innovation``:
+        None, or the measurement as its innovation on the one before
+        (:class:`smoother.model.correlated.Innovation`), whose keyframe it then reads too."""
+        W = cls._whitening(spec, m)
+        d = spec.cov.shape[-1]
         if robust is not None and robust[0] not in ROBUST_CODES:
             raise InputError(f"robust kernel {robust[0]!r}: expected one of {', '.join(ROBUST_CODES)}")
         code, k = (0, 0.0) if robust is None else (ROBUST_CODES[robust[0]], robust_threshold(robust, d))
-        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes, attached
+        drift = None
+        if innovation is not None:
+            keyframes = [innovation.keyframe, *keyframes]
+            drift = (innovation.c, innovation.s, innovation.spec.rows[innovation.row],
+                     cls._whitening(innovation.spec, innovation.row), innovation.attached)
+        return spec, spec.model, spec.rows[m], W, d, code, k, keyframes, attached, drift
 
-    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, attached,
+    def _add_measurement(self, model: int, row, W, d: int, code: int, k: float, keyframes, attached, drift,
                          calibration: int) -> None:
         """Append a checked measurement (:meth:`_measurement_row`) that reads ``calibration`` (its
         index in the window's calibrations, -1: none); the rows of ``L`` from its oldest keyframe
-        on are stale, and the sums that keyframe's calibrated measurements keep are dropped."""
+        on are stale, and the sums that keyframe's calibrated measurements keep are dropped.
+        ``drift``: None, or ``(c, s, row, W, attached)`` of its innovation on the measurement before
+        it (that one's packed row, whitening and attachment), on ``keyframes`` (the earlier one's
+        keyframe first)."""
         if self._m == len(self._mk):
             self._allocate_measurements(2 * len(self._mk))
         f = self._m
@@ -436,6 +475,11 @@ class SlidingWindow:
         else:
             self._mstep[f], self._mlast[f] = attached.steps, attached.last_dt
             self._macc[f], self._mgyro[f] = attached.held
+        self._dc[f], self._ds[f], self._dstep[f], self._dlast[f] = 0.0, 1.0, 0, 0.0
+        if drift is not None:
+            self._dc[f], self._ds[f], self._drow[f, :len(drift[2])], self._dWm[f] = drift[:4]
+            if drift[4] is not None:
+                self._dstep[f], self._dlast[f] = drift[4].steps, drift[4].last_dt
         self._m = f + 1
         self._stale = min(self._stale, min(keyframes))
         self._kept[min(keyframes) % self._cap] = False
@@ -479,6 +523,12 @@ class SlidingWindow:
         time) and the IMU reading held at its stamp; per slot the samples of the interval into it."""
         return self._mstep, self._mlast, self._macc, self._mgyro, self._sacc, self._sgyro, self._sdt
 
+    def _innovations(self) -> tuple:
+        """What :func:`smoother.fixed_lag.sliding.normal_equations.linearise` reads of the drifting
+        sensors' innovations: per measurement the weights ``c``, ``s`` (``c = 0``: its own factor),
+        the earlier measurement's row, whitening and attachment."""
+        return self._dc, self._ds, self._drow, self._dWm, self._dstep, self._dlast
+
     def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
         factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
@@ -500,7 +550,7 @@ class SlidingWindow:
             linearise(self.first, lo, cut, self._cap, *self._linearisation_points(), self._has_imu, self._dC,
                        self._Wp, self._Rm, self._JC, self._dW, self._dRm, self._bwbar, self._Wimu, self.gravity,
                        self._m, self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
-                       self._mcal, *self._attachments(), Hb, g)
+                       self._mcal, *self._attachments(), *self._innovations(), Hb, g)
             if cal is not None:
                 linearise_calibrated(lo, cut, self._cap, *self._linearisation_points(), self.gravity, self._m,
                                       self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
@@ -673,6 +723,9 @@ class SlidingWindow:
         # the priors it replaced: those reaching a leaving keyframe, and those on the calibrations alone
         self._priors = [p for p in self._priors
                         if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
+        staying = self._mk[:self._m, 0] >= cut
+        for a in self._innovations():  # (the measurements' own tables compiled, these beside them)
+            a[:np.count_nonzero(staying)] = a[:self._m][staying]
         self._m, self._spans[0] = drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
                                                      self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg,
                                                      self._mstep, self._mlast, self._macc, self._mgyro)

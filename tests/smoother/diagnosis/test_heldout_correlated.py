@@ -153,15 +153,16 @@ def test_a_drifting_sensor_whose_near_fixes_still_lie_below_the_far_ones_is_told
     assert shown(record).endswith("correlated in time, which no white sigma fits (a correlation_time models them)")
     assert shown({**record, "given_used_errors": True}).endswith(
         "more alike in time than its correlation_time says (a longer one models them)")
-    assert shown({**record, "taken_white": True}).endswith(  # the fixed-lag smoother on a drifting sensor
-        "correlated in time, which this estimator takes as white (its correlation_time is the batch smoother's "
-        "and the EKF's)")
+    assert shown({**record, "not_given_used_errors": True}).endswith(  # the fixed-lag smoother on a drifting sensor
+        "correlated in time, and this estimator predicts them without the used ones' errors (the batch smoother's "
+        "and the EKF's predictions are given them)")
 
 
-def test_the_fixed_lag_smoother_s_held_out_verdict_of_a_drifting_sensor_says_it_takes_the_errors_as_white():
+def test_the_fixed_lag_smoother_s_held_out_verdict_of_a_drifting_sensor_says_it_is_not_given_the_used_errors():
     data = drifting(0, 10.0, duration=20.0)
     estimates = pipeline.run_estimators(data, ["fixed-lag", "batch"], pipeline.RunOptions(progress=False, lag_s=3.0))
     verdicts = pipeline.heldout_by_estimator(data, estimates)
-    assert verdicts["fixed-lag"]["gnss"].get("taken_white") and not verdicts["fixed-lag"]["gnss"].get(
+    assert verdicts["fixed-lag"]["gnss"].get("not_given_used_errors") and not verdicts["fixed-lag"]["gnss"].get(
         "given_used_errors")
-    assert verdicts["batch"]["gnss"]["given_used_errors"] and not verdicts["batch"]["gnss"].get("taken_white")
+    assert verdicts["batch"]["gnss"]["given_used_errors"] and not verdicts["batch"]["gnss"].get(
+        "not_given_used_errors")
