@@ -32,7 +32,7 @@ from smoother.ekf.filter import run_ekf
 from smoother.errors import NotConverged
 from smoother.estimators import ESTIMATORS
 from smoother.model.between import Following
-from smoother.model.correlated import white_elsewhere_warning, with_correlated_errors
+from smoother.model.correlated import with_correlated_errors
 from smoother.model.covariances import joint_blocks
 from smoother.model.problem import build_problem, calibration_set, measurement_blocks
 from smoother.model.timeline import keyframe_times
@@ -137,9 +137,6 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     mounting = check_mountings(dataset)
     dataset = record["dataset"] = mounted_as_found(dataset, mounting)
     record["mounting"] = mounting
-    white = white_elsewhere_warning(dataset, names)
-    if white is not None:
-        warnings.warn(white, stacklevel=2)
     noise = dataset.noise_to_estimate if options.estimate_noise is None else tuple(options.estimate_noise)
     both = "ekf" in names and "batch" in names
     if noise:

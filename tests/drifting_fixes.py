@@ -1,7 +1,7 @@
 """Position fixes whose errors drift: an AR(1) sequence over a straight-line truth, every few held
 out -- the case where interpolating the used fixes beats any estimator (shared by the scoring and
-the command line's tests) -- and a simulated run with such fixes, modelled as drifting or not (the
-drifting model's tests)."""
+the command line's tests) -- and simulated runs with such fixes, modelled as drifting or not (the
+drifting model's tests): every few held out, or at their own stamps with a lever arm."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -48,3 +48,23 @@ def drifting_run(seed: int, tau: float | None, duration: float = 60.0, hz: float
     used = np.arange(len(t)) % every == 0
     gnss = Sensor("gnss", "position", fixes.subset(used), fixes.subset(~used), correlation_time=tau)
     return replace(d, sensors=(*d.sensors, gnss))
+
+
+def lever_arm_run(hz: float = 5.0, tau: float | None = 3.0, calibrate=None, seed: int = 0, duration: float = 8.0):
+    """A simulated run with one position sensor of AR(1) errors (0.3 m, 3 s) at ``hz`` and lever arm
+    (0.2, -0.1, 0.3) m, stamps not on the IMU's (measurements attached between keyframes), each
+    measurement's covariance its own, modelled with correlation time ``tau`` (None: white) and
+    calibrating ``calibrate`` (a :class:`factors.calibration.CalibrationPrior` or None)."""
+    d = simulate(profile="gentle", duration=duration, seed=seed, pose_rate=None)
+    rng = np.random.default_rng(seed)
+    t = np.arange(d.imu.t[0] + 0.013, d.imu.t[-1] - 0.2, 1.0 / hz)
+    r = np.stack([np.interp(t, d.truth.t, d.truth.states.r[:, a]) for a in range(3)], axis=1)
+    e = np.zeros_like(r)
+    e[0] = 0.3 * rng.standard_normal(3)
+    for m, phi in enumerate(transitions(t, 3.0), start=1):
+        e[m] = phi * e[m - 1] + 0.3 * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    T = np.eye(4)
+    T[:3, 3] = [0.2, -0.1, 0.3]
+    cov = np.diag([0.09, 0.04, 0.16]) * rng.uniform(0.5, 2.0, (len(t), 1, 1))
+    fixes = PositionMeasurements(t, r + e, cov, T_BS=T)
+    return replace(d, sensors=(Sensor("gnss", "position", fixes, calibrate=calibrate, correlation_time=tau),))

@@ -77,7 +77,10 @@ class FixedLagWindow(Protocol):
 
     ``kind`` (:data:`smoother.fixed_lag.kinds.FIXED_LAG_KINDS`), ``lag_s`` [s]; the window is the
     keyframes ``first .. newest``; ``recovered``: keyframes that needed a weak prior; ``skipped``:
-    factors left out because they read a keyframe already marginalised; ``update_s``: the wall time
+    factors left out because they read a keyframe already marginalised; ``weighed_alone``: measurements
+    of sensors whose errors drift weighed as independent of the one before (a problem's keyframe
+    factors' :class:`smoother.model.correlated.Innovation` that the window could not make, or does
+    not: GTSAM's windows hold the measurements' own factors); ``update_s``: the wall time
     of each update [s] (the latest :data:`HISTORY`)."""
 
     kind: str
@@ -86,6 +89,7 @@ class FixedLagWindow(Protocol):
     newest: int
     recovered: list[int]
     skipped: int
+    weighed_alone: int
     update_s: deque[float]
 
     @property

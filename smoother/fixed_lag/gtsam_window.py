@@ -267,6 +267,7 @@ class KeyframeWindow:
         self.newest_state: imu.ImuState | None = None  # the newest keyframe's, read from ``estimate``
         self.recovered: list[int] = []
         self.skipped = 0
+        self.weighed_alone = 0
         self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: ``id(factor) -> tag`` of the factors given with a tag, while GTSAM holds them
         self.rows_of: dict[int, object] = {}
@@ -392,8 +393,10 @@ class KeyframeWindow:
     def add_problem_keyframe(self, t: float, guess: imu.ImuState, made, blocks: list) -> imu.ImuState:
         """:meth:`update` with the problem's own GTSAM factors ``made``
         (:class:`smoother.model.problem.KeyframeFactors`), each tagged with its row of ``blocks`` (the
-        problem's), so that :meth:`covariances` linearises them with those blocks."""
+        problem's), so that :meth:`covariances` linearises them with those blocks. A drifting sensor's
+        measurement is its own factor here, counted in ``weighed_alone``."""
         self.blocks = blocks
+        self.weighed_alone += sum(len(m) > 5 and m[5] is not None for m in made.measurements)
         return self.update(t, made.factors, guess, made.oldest, made.rows)
 
     def covariances(self, wanted) -> np.ndarray:

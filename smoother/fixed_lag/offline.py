@@ -22,6 +22,7 @@ from datasets.types import Trajectory
 from factors import imu
 from smoother.fixed_lag.lag import measured_gap, warn_of_sparse_measurements
 from smoother.fixed_lag.windows import make_window
+from smoother.model.correlated import weighed_alone_warning
 from smoother.model.problem import Problem
 from smoother.progress import progress_bar
 
@@ -74,6 +75,9 @@ def run_fixed_lag(problem: Problem, lag_s: float, kind: str = "sliding", covaria
                 lagged[j], lagged_cov[j] = window.state(j), cov
             newest_cov.append(lagged_cov[k])
             bar.update(1)
+    alone = weighed_alone_warning(f"fixed-lag ({kind})", window.weighed_alone, lag_s)
+    if alone is not None:
+        warnings.warn(alone, stacklevel=2)
     if window.skipped:
         warnings.warn(f"{window.skipped} factors referred to variables older than the lag ({lag_s} s) and were "
                       "skipped", stacklevel=2)

@@ -32,9 +32,12 @@ keyframe alone; its first measurement's too. The :class:`~smoother.model.blocks.
 keyframe slots per factor, so such a factor names a neighbouring keyframe in its first slot, with
 a zero Jacobian there (a structural entry the IMU factor between them makes anyway).
 
-The EKF carries the same process as augmented states (:mod:`smoother.ekf.filter`); the fixed-lag
-smoother takes the errors as white (its window's factors are the measurements' own), and the run
-says so (:func:`white_elsewhere_warning`).
+The EKF carries the same process as augmented states (:mod:`smoother.ekf.filter`). The fixed-lag
+smoother's own window makes the same factors as measurements reach it (:class:`Innovation`, from a
+problem's keyframe factors or an online smoother's :mod:`smoother.online.drift`): the one before
+a measurement must still be in the window, else the measurement is weighed alone, and counted
+(:func:`weighed_alone_warning`). GTSAM's windows hold each measurement's own factor: white, and
+the online smoother says so.
 """
 from __future__ import annotations
 
@@ -216,8 +219,8 @@ def _whitened(block: Block, W: np.ndarray, slots: list, jacobians: bool, rows: n
 def with_correlated_errors(problem, dataset: Dataset):
     """``problem`` (:class:`smoother.model.problem.Problem`) with the blocks of ``dataset``'s
     sensors that have a correlation time as :func:`correlated_block` s (the problem itself where
-    none has): the batch smoother's model. The keyframe factors (the fixed-lag smoother's) keep the
-    white ones."""
+    none has): the batch smoother's model. (A problem's keyframe factors carry each measurement's
+    own factor and, for a window that makes its own, its :class:`Innovation`.)"""
     taus = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     if not taus:
         return problem
@@ -226,13 +229,11 @@ def with_correlated_errors(problem, dataset: Dataset):
     return replace(problem, blocks=blocks)
 
 
-def white_elsewhere_warning(dataset: Dataset, estimators) -> str | None:
-    """The warning that the fixed-lag smoother, where it is among ``estimators``, takes the errors of
-    ``dataset``'s sensors with a correlation time as white; None where none has one or it does not
-    run."""
-    named = [f"{s.name} ({s.correlation_time:g} s)" for s in dataset.sensors if s.correlation_time is not None]
-    if not named or "fixed-lag" not in estimators:
+def weighed_alone_warning(estimator: str, count: int, lag_s: float) -> str | None:
+    """The warning that ``estimator`` (a fixed-lag smoother of lag ``lag_s`` [s]) weighed ``count``
+    measurements of drifting sensors as independent of the one before them; None for none."""
+    if not count:
         return None
-    return (f"fixed-lag: the errors of {', '.join(named)} are taken as white; the batch smoother and the EKF "
-            "model their correlation in time (correlation_time), the fixed-lag smoother weighs consecutive "
-            "measurements as independent and its covariances are too small there")
+    return (f"{estimator}: {count} measurement(s) of sensors with a correlation_time were weighed as independent "
+            f"of the one before: it had left the window (the lag, {lag_s:g} s, is shorter than their spacing), "
+            "shared its stamp, or reads a calibration the window estimates; the covariances are too small there")

@@ -92,7 +92,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from datasets.kinds import KINDS, attached_noise, kind_sigmas, sensors_of, with_sigma_factor
+from datasets.kinds import KINDS, attached_noise, drift_problem, kind_sigmas, sensors_of, with_sigma_factor
+from datasets.ranges import RANGES
 from datasets.robust import check_robust
 from datasets.types import (
     MAX_IMU_GAP_S,
@@ -108,10 +109,12 @@ from factors.errors import InputError
 from smoother.fixed_lag.contract import HISTORY
 from smoother.fixed_lag.lag import check_lag, check_lag_spans_keyframes, sparse_measurement_warning
 from smoother.fixed_lag.windows import make_window
+from smoother.model.correlated import weighed_alone_warning
 from smoother.model.problem import AttachedAt, measurement_spec
 from smoother.model.timeline import interval_attachment, interval_steps
 from smoother.online import warm_up
 from smoother.online.delay import MAX_DELAY_RANGE
+from smoother.online.drift import DriftChains
 from smoother.online.handover import HandOver, OnlineEstimate
 from smoother.online.imu_buffer import ImuBuffer
 from smoother.online.pending import PendingMeasurements
@@ -131,8 +134,10 @@ class SensorSetup:
     ``orientation`` sensor one of kind ``roll_pitch`` (its heading unused), as in a rig file;
     ``calibrate`` (a :class:`factors.calibration.CalibrationPrior`, the rig file's ``estimate``
     and ``*_sigma`` keys) makes parts of its calibration variables, estimated about ``T_BS`` and
-    ``time_offset`` (the ``"sliding"`` window only). Each is checked when made: an InputError
-    naming the field otherwise."""
+    ``time_offset`` (the ``"sliding"`` window only); ``correlation_time`` [s] (None: white) makes
+    its errors drift as a first-order Gauss-Markov process (:mod:`smoother.model.correlated`; the
+    ``"sliding"`` window models it, GTSAM's take the errors as white and say so). Each is checked
+    when made: an InputError naming the field otherwise."""
 
     kind: str
     T_BS: np.ndarray | None = None
@@ -142,6 +147,7 @@ class SensorSetup:
     roll_pitch_only: bool = False
     calibrate: calibration.CalibrationPrior | None = None
     sigma_factor: np.ndarray | None = None
+    correlation_time: float | None = None
 
     def __post_init__(self):
         from datasets.rig import roll_pitch_kind
@@ -165,6 +171,11 @@ class SensorSetup:
             object.__setattr__(self, "sigma_factor", kind_sigmas("SensorSetup.sigma_factor", self.sigma_factor,
                                                                  KINDS[self.kind].dim))
         check_robust("SensorSetup.robust", self.robust)
+        if self.correlation_time is not None:
+            problem = drift_problem(self.kind) or RANGES["sensor.correlation_time"].problem(self.correlation_time)
+            if problem is not None:
+                raise InputError(f"SensorSetup.correlation_time: {problem}")
+            object.__setattr__(self, "correlation_time", float(self.correlation_time))
         if self.calibrate is not None:
             calibration.checked_prior(self.calibrate, self.kind, KINDS[self.kind].model, "SensorSetup.calibrate")
             given = self.calibrate.stamp_offset
@@ -241,6 +252,13 @@ class OnlineSmoother:
         self._imu = ImuBuffer(stacklevel=2)  # warnings name add_imu's caller
         self._schedule = KeyframeSchedule(keyframe_rate)
         self._pending = PendingMeasurements(self.max_delay_s, self.lag_s)
+        drifting = {name: setup.correlation_time for name, setup in self._sensors.items()
+                    if setup.correlation_time is not None}
+        if drifting and kind != "sliding":
+            warnings.warn(f"online smoother ({kind}): the errors of {', '.join(drifting)} are taken as white: GTSAM's "
+                          "windows hold each measurement's own factor (the 'sliding' window models their "
+                          "correlation_time), and their covariances are too small where the errors drift", stacklevel=2)
+        self._drift = DriftChains(drifting if kind == "sliding" else {})
         self._hand = HandOver(self._window, covariances, on_smoothed, joint_with_next)
         self._prediction = ImuRatePrediction(noise, self.gravity, covariances)
         self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time
@@ -259,7 +277,8 @@ class OnlineSmoother:
         robust = robust or {}
         calibrating = options.get("kind", "sliding") == "sliding"
         sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name),
-                                       calibrate=s.calibrate if calibrating else None)
+                                       calibrate=s.calibrate if calibrating else None,
+                                       correlation_time=s.correlation_time)
                    for s in sensors_of(dataset)}
         return cls(dataset.initial, dataset.initial_cov, dataset.noise, sensors, gravity=dataset.gravity, **options)
 
@@ -268,16 +287,10 @@ class OnlineSmoother:
         """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
         gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
         to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
-        ``options`` as the constructor's. A sensor's ``correlation_time`` is not modelled here: its
-        errors are taken as white, with a warning (the fixed-lag smoother's window holds the
-        measurements' own factors; :mod:`smoother.model.correlated`)."""
-        drifting = [f"{s.name} ({s.correlation_time:g} s)" for s in rig.sensors if s.correlation_time is not None]
-        if drifting:
-            warnings.warn(f"OnlineSmoother.from_rig: the errors of {', '.join(drifting)} are taken as white; their "
-                          "correlation_time is modelled by the batch smoother and the EKF of `smoother run`, not by "
-                          "the online smoother, whose covariances are too small where they drift", stacklevel=2)
+        ``options`` as the constructor's; each sensor's ``correlation_time`` too."""
         sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate,
-                                       sigma_factor=s.sigma_factor) for s in rig.sensors}
+                                       sigma_factor=s.sigma_factor, correlation_time=s.correlation_time)
+                   for s in rig.sensors}
         return cls(initial, initial_cov, rig.imu.noise, sensors, gravity=np.array([0.0, 0.0, -rig.imu.gravity]),
                    **options)
 
@@ -404,6 +417,9 @@ class OnlineSmoother:
             self._gap(self._last_t)
         if self._window.newest >= 0:
             self._hand.give([e for _, e in self._hand.read(range(self._window.first, self._window.newest + 1))])
+        alone = weighed_alone_warning("online smoother", self._drift.restarted + self._window.weighed_alone, self.lag_s)
+        if alone is not None:
+            warnings.warn(alone, stacklevel=2)
         self._finished = True
 
     # -- output -----------------------------------------------------------------------------------
@@ -531,6 +547,9 @@ class OnlineSmoother:
         if between:
             measurements += self._attached(between, k - 1, pre.samples, t)
         used = at_t + between
+        if self._drift:  # in time order: the attached ones came before those at t
+            for i in sorted(range(len(used)), key=lambda i: used[i].latest):
+                measurements[i] = self._drift.chained(used[i].sensor, used[i].latest, measurements[i])
         leaving = self._hand.read(window.leaving(t))
         extra = {}
         if self._window_calibrates:  # what a calibrated time offset steps with

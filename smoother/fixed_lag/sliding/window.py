@@ -165,7 +165,7 @@ class SlidingWindow:
         self.skipped = 0
         #: measurements of drifting sensors weighed as independent of the one before
         #: (:meth:`_innovation`): it had left the window, or the sensor has a calibration here
-        self.taken_white = 0
+        self.weighed_alone = 0
         self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: keyframes linearised again, one entry each time any were: at the end of an update, or early,
         #: before its assembly (an update can have two)
@@ -410,13 +410,13 @@ class SlidingWindow:
         """The :class:`smoother.model.correlated.Innovation` of a problem's ``measurement`` (its sixth
         entry, where it has one) that this window can make: None where the measurement before it
         reads a keyframe before ``first`` (gone, with the update) or the sensor has a calibration
-        here -- its own white factor then, counted in :attr:`taken_white`."""
+        here -- its own white factor then, counted in :attr:`weighed_alone`."""
         innovation = measurement[5] if len(measurement) > 5 else None
         if innovation is None:
             return None
         calibrated = self._cal is not None and measurement[0].name in self._cal.index
         if calibrated or innovation.keyframe < first:
-            self.taken_white += 1
+            self.weighed_alone += 1
             return None
         return innovation
 

@@ -8,32 +8,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from drifting_fixes import lever_arm_run
 
-from datasets.simulate import simulate
-from datasets.types import PositionMeasurements, Sensor
+from datasets.types import Sensor
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother.model.blocks import Layout, evaluate_block
-from smoother.model.correlated import correlated_block, transitions, white_elsewhere_warning, with_correlated_errors
+from smoother.model.correlated import correlated_block, transitions, with_correlated_errors
 from smoother.model.problem import build_problem
-
-
-def _dataset(hz: float = 5.0, tau: float | None = 3.0, calibrate=None, seed: int = 0, duration: float = 8.0):
-    """A simulated run with one position sensor of AR(1) errors (0.3 m, 3 s) at ``hz`` and lever arm
-    (0.2, -0.1, 0.3) m, stamps not on the IMU's (measurements attached between keyframes)."""
-    d = simulate(profile="gentle", duration=duration, seed=seed, pose_rate=None)
-    rng = np.random.default_rng(seed)
-    t = np.arange(d.imu.t[0] + 0.013, d.imu.t[-1] - 0.2, 1.0 / hz)
-    r = np.stack([np.interp(t, d.truth.t, d.truth.states.r[:, a]) for a in range(3)], axis=1)
-    e = np.zeros_like(r)
-    e[0] = 0.3 * rng.standard_normal(3)
-    for m, phi in enumerate(transitions(t, 3.0), start=1):
-        e[m] = phi * e[m - 1] + 0.3 * np.sqrt(1 - phi**2) * rng.standard_normal(3)
-    T = np.eye(4)
-    T[:3, 3] = [0.2, -0.1, 0.3]
-    cov = np.diag([0.09, 0.04, 0.16]) * rng.uniform(0.5, 2.0, (len(t), 1, 1))
-    fixes = PositionMeasurements(t, r + e, cov, T_BS=T)
-    return replace(d, sensors=(Sensor("gnss", "position", fixes, calibrate=calibrate, correlation_time=tau),))
 
 
 def _directional(block, states, calibration, rng, eps=1e-6):
@@ -56,7 +38,7 @@ def _directional(block, states, calibration, rng, eps=1e-6):
 @pytest.mark.parametrize("parts", [None, ("time_offset", "lever_arm")])
 def test_the_factors_jacobians_match_central_differences(hz, parts):
     calibrate = None if parts is None else CalibrationPrior(parts)
-    data = _dataset(hz, calibrate=calibrate)
+    data = lever_arm_run(hz, calibrate=calibrate)
     problem = with_correlated_errors(build_problem(data), data)
     block = next(b for b in problem.blocks if b.name == "gnss")
     assert block.keyframes.shape[1] == 2 and np.all(block.keyframes[:, 0] != block.keyframes[:, 1])
@@ -71,7 +53,7 @@ def test_the_factors_jacobians_match_central_differences(hz, parts):
 
 
 def test_the_factors_are_the_ar1_density_s_whitened_innovations():
-    data = _dataset(1.3)
+    data = lever_arm_run(1.3)
     white = build_problem(data)
     problem = with_correlated_errors(white, data)
     plain = next(b for b in white.blocks if b.name == "gnss")
@@ -90,7 +72,7 @@ def test_the_factors_are_the_ar1_density_s_whitened_innovations():
 
 
 def test_a_vanishing_correlation_time_is_the_white_model():
-    data = _dataset(1.3, tau=1e-6)
+    data = lever_arm_run(1.3, tau=1e-6)
     white = build_problem(data)
     block = next(b for b in with_correlated_errors(white, data).blocks if b.name == "gnss")
     plain = next(b for b in white.blocks if b.name == "gnss")
@@ -99,21 +81,13 @@ def test_a_vanishing_correlation_time_is_the_white_model():
 
 
 def test_a_problem_without_correlation_times_is_left_alone():
-    data = _dataset(1.3, tau=None)
+    data = lever_arm_run(1.3, tau=None)
     problem = build_problem(data)
     assert with_correlated_errors(problem, data) is problem
-    assert white_elsewhere_warning(data, ["batch", "ekf"]) is None
-
-
-def test_the_fixed_lag_smoother_says_it_takes_the_errors_as_white():
-    data = _dataset(1.3)
-    assert white_elsewhere_warning(data, ["batch", "ekf"]) is None
-    message = white_elsewhere_warning(data, ["ekf", "batch", "fixed-lag"])
-    assert message.startswith("fixed-lag:") and "gnss (3 s)" in message and "white" in message
 
 
 def test_measurements_out_of_time_order_are_refused_by_name():
-    data = _dataset(1.3)
+    data = lever_arm_run(1.3)
     problem = build_problem(data)
     block = next(b for b in problem.blocks if b.name == "gnss")
     t = data.sensors[0].data.t.copy()
@@ -125,12 +99,12 @@ def test_measurements_out_of_time_order_are_refused_by_name():
 @pytest.mark.parametrize("tau", [0.0, -1.0, float("nan"), True])
 def test_a_bad_correlation_time_is_refused_by_name(tau):
     with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time"):
-        _dataset(1.3, tau=tau)
+        lever_arm_run(1.3, tau=tau)
 
 
 def test_a_correlation_time_far_beyond_the_measurements_spacing_is_refused_by_name():
     """1e20 s: ``phi`` rounds to 1 and the innovations' scale to infinity, which ended in numpy's SVD."""
-    data = _dataset(1.3, tau=1e20)
+    data = lever_arm_run(1.3, tau=1e20)
     with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time 1e\+20 s is too long for measurements"):
         with_correlated_errors(build_problem(data), data)
 
@@ -140,7 +114,7 @@ def test_a_sensor_without_used_measurements_beside_a_drifting_one_is_no_obstacle
     correlation time: the batch's problem is made and solved."""
     from smoother import pipeline
 
-    data = _dataset(1.3)
+    data = lever_arm_run(1.3)
     gnss = data.sensors[0]
     checker = Sensor("checker", "position", None, gnss.data.subset(np.arange(len(gnss.data.t)) % 2 == 0))
     data = replace(data, sensors=(gnss, checker))
@@ -151,7 +125,7 @@ def test_a_sensor_without_used_measurements_beside_a_drifting_one_is_no_obstacle
 def test_a_drifting_sensor_with_a_full_covariance_cannot_have_its_axis_groups_fitted_apart():
     from smoother.batch.variance_components import noise_groups
 
-    data = _dataset(1.3)
+    data = lever_arm_run(1.3)
     gnss = data.sensors[0]
     assert [g.part for g in noise_groups(data, ["gnss"])] == ["horizontal", "vertical"]  # diagonal: fine
     cov = gnss.data.cov.copy()

@@ -641,16 +641,3 @@ def test_an_imu_gap_is_warned_of_as_offline_and_a_clock_jump_is_refused():
     with pytest.raises(InputError, match=re.escape("Dataset.imu: t: a step of 7210.01 s after t = 1.495000 s "
                                                    "(row 299)")):
         Dataset("jump", ImuSamples(t, acc, gyro), ImuNoise(), ImuState.identity(), np.eye(15))
-
-
-def test_a_rig_sensor_s_correlation_time_is_said_to_be_taken_as_white(gentle, tmp_path):
-    """The online smoother does not model errors that drift: a rig that gives a sensor a correlation
-    time gets a warning naming it, not a silent white model."""
-    from datasets.rig import ImuConfig, Rig, SensorConfig
-
-    data = cases.dataset(gentle)
-    rig = Rig(tmp_path / "rig.toml", ImuConfig("csv:imu.csv", None, data.noise, float(-data.gravity[2])), None,
-              (SensorConfig("gnss", "position", "csv:gnss.csv", None, np.eye(4), 0.0, np.array([0.5]), 1, None,
-                            correlation_time=20.0),))
-    with pytest.warns(UserWarning, match=r"the errors of gnss \(20 s\) are taken as white"):
-        OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=LAG)
