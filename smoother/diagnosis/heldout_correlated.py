@@ -39,7 +39,7 @@ from datasets.types import Dataset, Trajectory
 from smoother.model.between import Following, bridge_parts
 from smoother.model.blocks import Layout, evaluate_block, linearize, whitening
 from smoother.model.correlated import CorrelatedBlock, given_neighbours
-from smoother.model.covariances import CovarianceBetween, SquareRoot, marginal_covariances
+from smoother.model.covariances import CovarianceBetween, marginal_covariances
 from smoother.model.predicted import Conditioned, HeldoutPrediction
 from smoother.model.timeline import STATES_CHUNK
 
@@ -65,21 +65,21 @@ def batch_predictions(dataset: Dataset, problem, result, following: Following | 
         graph, _ = linearize(problem.blocks, states, calibration)
         _, sigma, root = marginal_covariances(graph, len(states), None, True,
                                               Layout.of(states, calibration, problem.blocks), square_root=True)
-    return correlated_predictions(dataset, problem.blocks, result.trajectory, result.calibration, following, root,
-                                  sigma)
+    return correlated_predictions(dataset, problem.blocks, result.trajectory, result.calibration, following,
+                                  CovarianceBetween(root, sigma))
 
 
 def correlated_predictions(dataset: Dataset, blocks: list, trajectory: Trajectory, calibration, following: Following,
-                           root: SquareRoot, sigma: dict) -> dict[str, HeldoutPrediction]:
+                           between) -> dict[str, HeldoutPrediction]:
     """Per sensor of ``dataset`` (as the estimate ran on it: its noise fitted, where it was) with
     held-out measurements whose block among ``blocks`` (the batch problem's, at its estimate
     ``trajectory`` and calibration variables ``calibration``) is a
     :class:`~smoother.model.correlated.CorrelatedBlock`: its held-out measurements inside the span
     as the batch predicts them (:class:`HeldoutPrediction`: each one's residual and ``H P H^T``, as
     for a white sensor, and :class:`Conditioned`: the prediction given the used measurements'
-    errors, module docstring). ``root`` and ``sigma``: the elimination and covariance blocks of the
-    estimate (:func:`smoother.model.covariances.marginal_covariances` with ``square_root``)."""
-    between = CovarianceBetween(root, sigma)
+    errors, module docstring). ``between(a, b)``: the estimate's covariance ``Sigma_ab`` of keyframes
+    ``a`` and ``b`` (:class:`smoother.model.covariances.CovarianceBetween` of a batch estimate's
+    elimination)."""
     out = {}
     for block in blocks:
         if not isinstance(block, CorrelatedBlock):
@@ -92,22 +92,36 @@ def correlated_predictions(dataset: Dataset, blocks: list, trajectory: Trajector
 
 
 def _predicted(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Trajectory, calibration,
-               following: Following, between: CovarianceBetween) -> HeldoutPrediction:
-    """:func:`correlated_predictions` of one ``sensor`` (its ``block``), a chunk of its held-out
-    measurements at a time; each one's covariance from the few keyframes it reads (a loop over the
-    measurements: their pairs of keyframes differ, and ``between`` finds and keeps each pair once)."""
+               following: Following, between) -> HeldoutPrediction:
+    """:func:`correlated_predictions` of one ``sensor`` (its ``block``): its held-out measurements
+    inside the trajectory's span (:func:`given_used`)."""
+    calibrated = calibration is not None and sensor.name in calibration.names
+    c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
+    times = sensor.heldout.t + (0.0 if c is None else c.time_offset)
+    index = np.flatnonzero((times >= trajectory.t[0]) & (times <= min(trajectory.t[-1], dataset.imu.t[-1])))
+    return given_used(dataset, block, sensor, trajectory, calibration, following, between, index)
+
+
+def given_used(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Trajectory, calibration,
+               following: Following, between, index: np.ndarray, offset: int = 0,
+               available: np.ndarray | None = None) -> HeldoutPrediction:
+    """The held-out measurements ``index`` of ``sensor`` (its ``block``; their times, on the IMU's
+    clock, within ``trajectory``'s span) as an estimate predicts them (:class:`HeldoutPrediction`,
+    with :class:`Conditioned`, module docstring), a chunk at a time; each one's covariance from the
+    few keyframes it reads (a loop over the measurements: their pairs of keyframes differ, and
+    ``between`` finds and keeps each pair once). ``trajectory`` holds keyframes ``offset ..``
+    (``between`` and ``following`` number them as the problem does); ``available`` (a mask over the
+    used measurements; None: all) the used measurements the prediction is given: the nearest of
+    them on either side of each held-out one."""
     kind, held = KINDS[sensor.kind], sensor.heldout
     calibrated = calibration is not None and sensor.name in calibration.names
     c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
-    offset = 0.0 if c is None else c.time_offset
-    times = held.t + offset
-    index = np.flatnonzero((times >= trajectory.t[0]) & (times <= min(trajectory.t[-1], dataset.imu.t[-1])))
+    times = held.t + (0.0 if c is None else c.time_offset)
     if c is not None:
         c = replace(c, time_offset=0.0)  # taken at the time it gives, as a white sensor's
+    used_at = np.flatnonzero(np.ones(len(block.times), dtype=bool) if available is None else available)
     # the used measurements' whitened residuals and Jacobians at the estimate, at the noise in use
     measured = replace(block.measurements, whiten=block.whiten)
-    used = evaluate_block(measured, trajectory.states, True, calibration=calibration, reweight=False)
-    u, G, used_keyframe = used.e, used.A[0], block.measurements.keyframes[:, 0]
     rows = kind.pack(held)[index]
     n = len(trajectory.t)
     pieces = []
@@ -116,16 +130,23 @@ def _predicted(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Tra
         t = times[index[part]]
         k = np.clip(np.searchsorted(trajectory.t, t, side="right") - 1, 0, n - 2)
         states, AK, own = bridge_parts(trajectory, following, dataset.imu, k, t, dataset.noise, dataset.gravity)
+        k = k + offset
         if c is None:
             e, H = measure_rows(kind, states, rows[part])
         else:
             e, H, _ = calibrated_rows(kind, states, rows[part], c, None, dataset.gravity)
         W = whitening(held.cov[index[part]])
-        before, after, w0, w1, v = given_neighbours(held.t[index[part]], block.times, block.correlation_time)
+        before, after, w0, w1, v = given_neighbours(held.t[index[part]], block.times[used_at], block.correlation_time)
+        before, after = (np.where(side >= 0, used_at[np.maximum(side, 0)], -1) for side in (before, after))
+        needed = np.unique(np.concatenate([before[before >= 0], after[after >= 0]]))
+        used = evaluate_block(measured, trajectory.states, True, rows=needed, keyframe_offset=offset,
+                              calibration=calibration, reweight=False)
+        place = {int(m): i for i, m in enumerate(needed)}
         WH = W @ H
         d = np.einsum("mab,mb->ma", W, e)
         for side, w in ((before, w0), (after, w1)):
-            d -= np.where(side[:, None] >= 0, w[:, None] * u[side], 0.0)
+            for m in np.flatnonzero(side >= 0):
+                d[m] -= w[m] * used.e[place[int(side[m])]]
         plain, given = [], []
         for m in range(len(t)):
             coefficients = {int(k[m]): WH[m] @ AK[m, :, :15]}
@@ -133,7 +154,8 @@ def _predicted(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Tra
             bridge_only = _quadratic(coefficients, between)
             for side, w in ((before, w0), (after, w1)):
                 if side[m] >= 0:
-                    _add(coefficients, int(used_keyframe[side[m]]), -w[m] * G[side[m]])
+                    _add(coefficients, int(block.measurements.keyframes[side[m], 0]),
+                         -w[m] * used.A[0][place[int(side[m])]])
             own_part = WH[m] @ own[m] @ WH[m].T
             plain.append(bridge_only + own_part)
             given.append(_quadratic(coefficients, between) + own_part)
@@ -153,7 +175,7 @@ def _add(coefficients: dict, key: int, value: np.ndarray) -> None:
     coefficients[key] = coefficients[key] + value if key in coefficients else value
 
 
-def _quadratic(coefficients: dict, between: CovarianceBetween) -> np.ndarray:
+def _quadratic(coefficients: dict, between) -> np.ndarray:
     """``sum_ab C_a Sigma_ab C_b^T`` over the keyframes of ``coefficients``."""
     keys = list(coefficients)
     total = 0.0
