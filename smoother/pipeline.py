@@ -25,6 +25,7 @@ from factors.errors import BoxplusError, InputError, SolverError
 from factors.threads import interrupts_held
 from smoother.batch.solve import solve_batch, warn_not_converged
 from smoother.diagnosis.calibration_report import calibration_records
+from smoother.diagnosis.heldout import heldout_predictions
 from smoother.diagnosis.heldout_correlated import batch_predictions, predicts_correlated
 from smoother.diagnosis.residual_consistency import smoother_consistency
 from smoother.ekf.calibrated import run_calibrated_ekf
@@ -531,9 +532,10 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
     from smoother.online.replay import replay
 
     held_out = any(s.heldout is not None for s in dataset.sensors)  # states between keyframes: bridged there
+    windowed = _windowed_predictions(dataset, options)
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress,
-               joint_with_next=held_out)
+               joint_with_next=held_out, before_leaving=windowed)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
                "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind)}
@@ -543,8 +545,27 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
         ms = 1e3 * r.latency_s
         details["latency_ms"] = {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
                                  "max": float(ms.max()), "measurements": len(ms)}
-    return Estimate("fixed-lag", r.smoothed, r.runtime_s, details,
-                    calibration=None if r.calibration is None else r.calibration[0], following=r.following)
+    calibration = None if r.calibration is None else r.calibration[0]
+    heldout = None
+    if windowed is not None and r.following is not None:  # its own predictions, and those given the used errors
+        heldout = windowed.attached_to(heldout_predictions(dataset, r.smoothed, calibration, r.following))
+    return Estimate("fixed-lag", r.smoothed, r.runtime_s, details, calibration=calibration, following=r.following,
+                    heldout=heldout)
+
+
+def _windowed_predictions(dataset: Dataset, options: RunOptions):
+    """What predicts the held-out measurements of ``dataset``'s drifting sensors in the fixed-lag
+    smoother's window, given the used errors (:class:`smoother.diagnosis.heldout_windowed.WindowedPredictions`,
+    on the batch's factors at the window's keyframes), or None: no such sensor (one whose calibration
+    the window estimates is weighed as white there), no covariances, or GTSAM's windows (white)."""
+    from smoother.diagnosis.heldout_windowed import WindowedPredictions
+
+    drifting = [s for s in dataset.sensors if s.correlation_time is not None and s.heldout is not None
+                and s.data is not None and s.calibrate is None]
+    if not drifting or not options.covariances or options.fixed_lag_kind != "sliding":
+        return None
+    problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust), dataset)
+    return WindowedPredictions(dataset, problem, [s.name for s in drifting]) or None
 
 
 def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:

@@ -137,7 +137,7 @@ def given_used(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Tra
             e, H, _ = calibrated_rows(kind, states, rows[part], c, None, dataset.gravity)
         W = whitening(held.cov[index[part]])
         before, after, w0, w1, v = given_neighbours(held.t[index[part]], block.times[used_at], block.correlation_time)
-        before, after = (np.where(side >= 0, used_at[np.maximum(side, 0)], -1) for side in (before, after))
+        before, after = (np.where(side >= 0, used_at[side], -1) if len(used_at) else side for side in (before, after))
         needed = np.unique(np.concatenate([before[before >= 0], after[after >= 0]]))
         used = evaluate_block(measured, trajectory.states, True, rows=needed, keyframe_offset=offset,
                               calibration=calibration, reweight=False)

@@ -136,8 +136,12 @@ def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
         variance = 1 - (a^2 + b^2 - 2 a b c) / (1 - c^2) = (1 - a^2) (1 - b^2) / (1 - c^2)
 
     (one side alone: ``w = a``, variance ``1 - a^2``; at a measurement's own time, its value; each
-    ``1 - x^2`` as ``-expm1(-2 lag / tau)``, exact where the lags are far below ``tau``)."""
+    ``1 - x^2`` as ``-expm1(-2 lag / tau)``, exact where the lags are far below ``tau``; no
+    measurements at all: weights 0, variance 1)."""
     t = np.asarray(t, dtype=float)
+    if not len(times):  # nothing to be given: the process itself
+        none = np.full(t.shape, -1)
+        return none, none.copy(), np.zeros(t.shape), np.zeros(t.shape), np.ones(t.shape)
     before = np.searchsorted(times, t, side="right") - 1
     after = before + 1
     has_before, has_after = before >= 0, after < len(times)

@@ -94,7 +94,8 @@ def arrivals(dataset: Dataset, starts: np.ndarray | None = None, early=()):
 
 def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe_rate=None,
            robust: dict | None = None, covariances: bool = True, max_delay_s: float = 0.0, realtime: bool = False,
-           speed: float = 1.0, progress: bool | None = None, joint_with_next: bool = False) -> ReplayResult:
+           speed: float = 1.0, progress: bool | None = None, joint_with_next: bool = False,
+           before_leaving=None) -> ReplayResult:
     """Feed ``dataset`` through an :class:`OnlineSmoother` (:meth:`OnlineSmoother.for_dataset`)
     in the order of arrival: each measurement arrives at its (latest) time stamp, before the IMU
     sample of the same time; its keyframes are those of the batch smoother's graph
@@ -106,7 +107,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     together at the time of that keyframe (:func:`arrivals`), which is earlier than their own
     and changes nothing but their latencies: a measurement waits for the keyframe after its time
     however early it arrives. ``joint_with_next`` (with ``covariances``): the result's ``following``
-    too (:class:`smoother.model.between.Following`; :class:`OnlineSmoother`'s option)."""
+    too (:class:`smoother.model.between.Following`; :class:`OnlineSmoother`'s option); ``before_leaving``
+    the :class:`OnlineSmoother`'s option."""
     if not speed > 0:
         raise InputError(f"speed must be positive, got {speed}")
     # a relative sensor's measurements between keyframes arrive composed, as the batch smoother reads them
@@ -114,7 +116,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     smoothed: list[OnlineEstimate] = []
     began = time.perf_counter()  # the whole replay: loading the kernels (the first smoother of a process) too
     online = replaying(dataset, robust, lag_s=lag_s, kind=kind, keyframe_rate=keyframe_rate, max_delay_s=max_delay_s,
-                       covariances=covariances, on_smoothed=smoothed.append, joint_with_next=joint_with_next)
+                       covariances=covariances, on_smoothed=smoothed.append, joint_with_next=joint_with_next,
+                       before_leaving=before_leaving)
     imu_t = dataset.imu.t
     if realtime:
         groups = arrivals(dataset)

@@ -202,7 +202,10 @@ class OnlineSmoother:
     queued for :meth:`smoothed`); ``joint_with_next`` (with ``covariances``): each smoothed
     keyframe also carries the window's estimate of the keyframe after it and the two's joint
     covariance (``OnlineEstimate.following``, where the window computes it: the states between
-    them, :mod:`smoother.model.between`; it doubles the covariances' cost).
+    them, :mod:`smoother.model.between`; it doubles the covariances' cost); ``before_leaving(window,
+    keyframes)``: called with the window and the keyframes an update is about to marginalise (and at
+    :meth:`finish`, the whole window), while the window still holds them (what reads more of it than
+    the hand-over does: :mod:`smoother.diagnosis.heldout_windowed`).
 
     It composes the parts, one job each: the IMU stream (:class:`smoother.online.imu_buffer.ImuBuffer`),
     the keyframe times (:class:`smoother.online.schedule.KeyframeSchedule`), the measurements
@@ -215,7 +218,7 @@ class OnlineSmoother:
                  lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
                  max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
                  on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
-                 joint_with_next: bool = False):
+                 joint_with_next: bool = False, before_leaving=None):
         problem = MAX_DELAY_RANGE.problem(max_delay_s) if isinstance(max_delay_s, (int, float)) else \
             f"expected a number of seconds, got {max_delay_s!r}"
         if problem is not None:
@@ -241,6 +244,7 @@ class OnlineSmoother:
         self.keyframe_rate = keyframe_rate
         self.covariances = covariances
         self.reintegration_threshold = reintegration_threshold
+        self._before_leaving = before_leaving
         #: wall time [s] from each used measurement's arrival to the end of the update that used it
         #: (the latest :data:`smoother.fixed_lag.contract.HISTORY`)
         self.latency_s: deque[float] = deque(maxlen=HISTORY)
@@ -416,6 +420,8 @@ class OnlineSmoother:
                 self._last_measured_t = self._schedule.t0
             self._gap(self._last_t)
         if self._window.newest >= 0:
+            if self._before_leaving is not None:
+                self._before_leaving(self._window, list(range(self._window.first, self._window.newest + 1)))
             self._hand.give([e for _, e in self._hand.read(range(self._window.first, self._window.newest + 1))])
         alone = weighed_alone_warning("online smoother", self._drift.restarted + self._window.weighed_alone, self.lag_s)
         if alone is not None:
@@ -550,6 +556,8 @@ class OnlineSmoother:
         if self._drift:  # in time order: the attached ones came before those at t
             for i in sorted(range(len(used)), key=lambda i: used[i].latest):
                 measurements[i] = self._drift.chained(used[i].sensor, used[i].latest, measurements[i])
+        if self._before_leaving is not None:
+            self._before_leaving(window, window.leaving(t))
         leaving = self._hand.read(window.leaving(t))
         extra = {}
         if self._window_calibrates:  # what a calibrated time offset steps with

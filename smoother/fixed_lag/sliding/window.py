@@ -360,6 +360,14 @@ class SlidingWindow:
             raise InternalError(f"joint_with_next: keyframes {list(wanted)} include the newest, {self.newest}")
         return self._joint(wanted, 2)
 
+    def joint_span(self, k: int, count: int) -> np.ndarray:
+        """The joint covariance ``(15 count, 15 count)`` of window keyframes ``k .. k + count - 1``
+        after the last update (:meth:`covariances`' solve with their columns)."""
+        if not (self.first <= k and k + count - 1 <= self.newest and count >= 1):
+            raise InternalError(f"joint_span: keyframes {k}..{k + count - 1} are not all in the window "
+                                f"({self.first}..{self.newest})")
+        return self._joint([k], count)[0]
+
     def _joint(self, wanted, count: int) -> np.ndarray:
         """The joint covariances of the ``count`` keyframes from each of ``wanted`` on."""
         cap = self._cap

@@ -158,9 +158,11 @@ def test_a_drifting_sensor_whose_near_fixes_still_lie_below_the_far_ones_is_told
         "and the EKF's predictions are given them)")
 
 
-def test_the_fixed_lag_smoother_s_held_out_verdict_of_a_drifting_sensor_says_it_is_not_given_the_used_errors():
+def test_gtsam_s_fixed_lag_windows_say_their_held_out_verdict_is_not_given_the_used_errors():
     data = drifting(0, 10.0, duration=20.0)
-    estimates = pipeline.run_estimators(data, ["fixed-lag", "batch"], pipeline.RunOptions(progress=False, lag_s=3.0))
+    options = pipeline.RunOptions(progress=False, lag_s=3.0, fixed_lag_kind="incremental")
+    with pytest.warns(UserWarning, match="taken as white"):
+        estimates = pipeline.run_estimators(data, ["fixed-lag", "batch"], options)
     verdicts = pipeline.heldout_by_estimator(data, estimates)
     assert verdicts["fixed-lag"]["gnss"].get("not_given_used_errors") and not verdicts["fixed-lag"]["gnss"].get(
         "given_used_errors")
