@@ -6,7 +6,8 @@ assembled; window keyframe ``k``'s arrays at ring slot ``k % cap``).
 
 The factors: the IMU intervals (:func:`factors.preintegration.residual_into`), the sensor
 measurements (:func:`datasets.kinds.measure_into`, :func:`factors.sensor_models.odometry_kernel`
-for a relative pose) with GTSAM's Huber, Cauchy and Tukey weights, and linear priors
+for a relative pose; a drifting sensor's measurement as its innovation on the one before,
+:mod:`smoother.model.correlated`) with GTSAM's Huber, Cauchy and Tukey weights, and linear priors
 (:class:`LinearPrior`: the marginals of keyframes that left the window, and priors on one
 keyframe).
 """

@@ -21,9 +21,11 @@ window keyframe, LEFT attitude increment ``C <- exp(dphi) C``):
   of it where an update assembles its factors' rows anyway; a step that would turn an attitude
   further than :data:`MAX_ATTITUDE_STEP` is shortened along its direction;
 * keyframes in time order and factors that couple keyframes at most ``S`` apart (IMU factors 1,
-  a relative pose its span, the marginal prior what it ties) make ``H`` block-banded; its
-  Cholesky factor ``L`` (oldest keyframe first) keeps the band. Row ``k`` of ``L`` depends on the
-  rows of ``H`` up to ``k`` only, so an update factorises again from the oldest changed row on
+  a relative pose its span, a drifting sensor's innovation the keyframes between its two
+  measurements, :mod:`smoother.model.correlated`; the marginal prior what it ties) make ``H``
+  block-banded; its Cholesky factor ``L`` (oldest keyframe first) keeps the band. Row ``k`` of
+  ``L`` depends on the rows of ``H`` up to ``k`` only, so an update factorises again from the
+  oldest changed row on
   (the new keyframe's factors reach ``S`` back; a relinearised keyframe's as far) and keeps the
   forward solution ``y = L^-1 (-g)`` of the rows before it; one backward solve gives every
   ``delta``;
