@@ -56,8 +56,8 @@ def register(sub) -> None:
                         "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
     p.add_argument("--correlation-time", action="append", default=[], metavar="SENSOR=SECONDS",
                    help="the sensor's errors drift as a first-order Gauss-Markov process with this time constant, "
-                        "its sigma their spread (the batch smoother models it; a rig's correlation_time, which "
-                        "this overrides); repeatable")
+                        "its sigma their spread (every estimator models it but GTSAM's fixed-lag kinds; a rig's "
+                        "correlation_time, which this overrides); repeatable")
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
     p.add_argument("--outliers", type=float, default=0.0,

@@ -218,7 +218,7 @@ class OnlineSmoother:
                  lag_s: float = 2.0, kind: str = "sliding", keyframe_rate: float | None = None,
                  max_delay_s: float = 0.0, gravity=imu.DEFAULT_GRAVITY, covariances: bool = False,
                  on_smoothed=None, reintegration_threshold: float = preintegration.REINTEGRATION_THRESHOLD,
-                 joint_with_next: bool = False, before_leaving=None):
+                 joint_with_next: bool = False, *, before_leaving=None):
         problem = MAX_DELAY_RANGE.problem(max_delay_s) if isinstance(max_delay_s, (int, float)) else \
             f"expected a number of seconds, got {max_delay_s!r}"
         if problem is not None:

@@ -733,9 +733,10 @@ class SlidingWindow:
         # the priors it replaced: those reaching a leaving keyframe, and those on the calibrations alone
         self._priors = [p for p in self._priors
                         if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
-        staying = self._mk[:self._m, 0] >= cut
-        for a in self._innovations():  # (the measurements' own tables compiled, these beside them)
-            a[:np.count_nonzero(staying)] = a[:self._m][staying]
+        if self._dc[:self._m].any():  # (the measurements' own tables compiled, these beside them)
+            staying = self._mk[:self._m, 0] >= cut
+            for a in self._innovations():
+                a[:np.count_nonzero(staying)] = a[:self._m][staying]
         self._m, self._spans[0] = drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
                                                      self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg,
                                                      self._mstep, self._mlast, self._macc, self._mgyro)
