@@ -26,13 +26,14 @@ from dataclasses import replace
 import numpy as np
 
 from datasets.types import Dataset, Trajectory
-from factors.imu import ImuState
+from factors.errors import InternalError
+from factors.imu import STATE_DIM, ImuState
 from smoother.diagnosis.heldout_correlated import given_used
 from smoother.model.between import Following
 from smoother.model.correlated import CorrelatedBlock
 from smoother.model.predicted import Conditioned, HeldoutPrediction
 
-DIM = 15
+DIM = STATE_DIM
 
 
 class WindowedPredictions:
@@ -71,9 +72,15 @@ class WindowedPredictions:
         leaving = np.asarray(list(leaving), dtype=int)
         if not len(leaving):
             return
+        for k in (window.first, window.newest):  # the window's keyframes are the problem's
+            if abs(window.time(k) - self._times[k]) > 1e-9:
+                raise InternalError(f"held-out predictions: window keyframe {k} at t = {window.time(k):.9f} s is "
+                                    f"the problem's at {self._times[k]:.9f} s")
         for s in self._sensors:
             due = ~s["done"] & np.isin(s["at"], leaving)
-            late = due & (s["bridge"] + 1 > window.newest)  # its bridge reaches past the window: later
+            # its time is after the newest keyframe's (its bridge reaches past the window): later
+            after = s["sensor"].heldout.t[s["index"]] > self._times[s["bridge"]]
+            late = due & ((s["bridge"] > window.newest) | ((s["bridge"] == window.newest) & after))
             s["at"][late] = s["bridge"][late]
             due &= ~late
             for at in np.unique(s["at"][due]):
@@ -95,8 +102,9 @@ class WindowedPredictions:
         else:
             ends = np.zeros(0, dtype=int)
         bridge = s["bridge"][rows]
-        lo = int(min(bridge.min(), ends.min(initial=bridge.min())))
-        hi = int(max(bridge.max() + 1, ends.max(initial=0)))
+        # (one at the newest keyframe's time is that keyframe's state: bridged up to it from the one before)
+        hi = int(min(max(bridge.max() + 1, ends.max(initial=0)), window.newest))
+        lo = int(min(bridge.min(), ends.min(initial=bridge.min()), hi - 1))
         count = hi - lo + 1
         joint = window.joint_span(lo, count)
         blocks = joint.reshape(count, DIM, count, DIM).transpose(0, 2, 1, 3)

@@ -239,5 +239,6 @@ def weighed_alone_warning(estimator: str, count: int, lag_s: float) -> str | Non
     if not count:
         return None
     return (f"{estimator}: {count} measurement(s) of sensors with a correlation_time were weighed as independent "
-            f"of the one before: it had left the window (the lag, {lag_s:g} s, is shorter than their spacing), "
-            "shared its stamp, or reads a calibration the window estimates; the covariances are too small there")
+            f"of the one before, where it had left the window (a lag, {lag_s:g} s, shorter than their spacing), "
+            "lay too many keyframes before it, shared its stamp, or where the window estimates the sensor's "
+            "calibration or is GTSAM's; the covariances are too small there")

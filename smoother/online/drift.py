@@ -27,6 +27,14 @@ class DriftChains:
     def __bool__(self) -> bool:
         return bool(self._taus)
 
+    def saved(self) -> tuple:
+        """What :meth:`restore` takes back to: the chains now (before a window's update that may be refused)."""
+        return dict(self._last), self.restarted
+
+    def restore(self, saved: tuple) -> None:
+        """The chains as :meth:`saved` found them."""
+        self._last, self.restarted = dict(saved[0]), saved[1]
+
     def chained(self, sensor: str, t: float, entry: tuple) -> tuple:
         """The window's ``entry`` ``(spec, row, keyframes, robust, attached)`` of ``sensor``'s
         measurement at ``t`` [s], with its :class:`~smoother.model.correlated.Innovation` on the one

@@ -563,7 +563,12 @@ class OnlineSmoother:
         if self._window_calibrates:  # what a calibrated time offset steps with
             i = stream.held_at(t)
             extra["held"] = (stream.acc[i], stream.gyro[i])
-        self._newest = window.add_keyframe(t, guess, pre, measurements, prior, **extra)  # its estimate after the update
+        chained = self._drift.saved()
+        try:
+            self._newest = window.add_keyframe(t, guess, pre, measurements, prior, **extra)  # its estimate after it
+        except InputError:  # refused before the window changed: the chains as they were
+            self._drift.restore(chained)
+            raise
         # every piece of state follows the update before anything is handed over: a caller's
         # on_smoothed that raises leaves the smoother consistent
         self._keyframe_t[t] = k

@@ -96,6 +96,14 @@ from smoother.model.blocks import whitening
 from smoother.model.robust import robust_threshold
 
 DIM = imu.STATE_DIM
+#: The most keyframes a drifting sensor's innovation may reach back (:meth:`SlidingWindow._innovation`):
+#: the factor joins the keyframes of two consecutive measurements, so it widens the band of ``H``
+#: to their distance, and each update refactorises that many rows of that width -- across a gap
+#: in the measurements, under a lag longer than it, a window's work grows with the gap's square
+#: (an 8 s gap at 10 Hz keyframes: 60 times the white window's). Further apart, the measurement is
+#: weighed alone and counted: at 64 keyframes (6.4 s on a 10 Hz grid) a GNSS used every 5 s keeps
+#: its innovations.
+MAX_INNOVATION_SPAN = 64
 #: How far a keyframe's estimate may move from its linearisation point before its factors are
 #: linearised again, per error-state component ``(dr [m], dv [m/s], dphi [rad], db_f [m/s^2],
 #: db_w [rad/s])`` (ISAM2's relinearisation threshold, per component). The residuals are linear in
@@ -297,10 +305,12 @@ class SlidingWindow:
             interval = np.zeros((DIM, DIM))
             if not whitening_into(pre.cov, interval):
                 raise InputError("the IMU interval's covariance is not positive definite")
-        factors = [self._measurement_row(*measurement[:5], self._innovation(measurement, first))
-                   for measurement in measurements if min(measurement[2]) >= first]
+        taken = [(measurement, *self._innovation(measurement, first)) for measurement in measurements
+                 if min(measurement[2]) >= first]
+        factors = [self._measurement_row(*measurement[:5], innovation) for measurement, innovation, _ in taken]
         priors = [] if prior is None else [(prior[0], whitening(prior[1]))]
         self.skipped += len(measurements) - len(factors)
+        self.weighed_alone += sum(alone for _, _, alone in taken)
         self._marginalise(leaving)
         if interval is not None and len(pre.samples[2]) > self._K:  # room for the interval's samples
             self._K = max(len(pre.samples[2]), 2 * self._K)
@@ -418,17 +428,19 @@ class SlidingWindow:
 
     def _innovation(self, measurement, first: int):
         """The :class:`smoother.model.correlated.Innovation` of a problem's ``measurement`` (its sixth
-        entry, where it has one) that this window can make: None where the measurement before it
-        reads a keyframe before ``first`` (gone, with the update) or the sensor has a calibration
-        here -- its own white factor then, counted in :attr:`weighed_alone`."""
+        entry, where it has one) that this window can make, or None; with whether it was one the
+        window weighs alone instead (its own white factor, counted in :attr:`weighed_alone`): the
+        measurement before it reads a keyframe before ``first`` (gone, with the update) or more
+        than :data:`MAX_INNOVATION_SPAN` keyframes before the one it reads, or the sensor has a
+        calibration here."""
         innovation = measurement[5] if len(measurement) > 5 else None
         if innovation is None:
-            return None
+            return None, False
         calibrated = self._cal is not None and measurement[0].name in self._cal.index
-        if calibrated or innovation.keyframe < first:
-            self.weighed_alone += 1
-            return None
-        return innovation
+        far = max(measurement[2]) - innovation.keyframe > MAX_INNOVATION_SPAN
+        if calibrated or far or innovation.keyframe < first:
+            return None, True
+        return innovation, False
 
     @staticmethod
     def _whitening(spec, m: int) -> np.ndarray:

@@ -13,6 +13,7 @@ import pytest
 from drifting_fixes import drifting_run, lever_arm_run
 
 from datasets.rig import ImuConfig, Rig, SensorConfig
+from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother.batch.solve import solve_batch
 from smoother.fixed_lag.offline import run_fixed_lag
@@ -54,16 +55,36 @@ def test_a_lag_shorter_than_the_measurements_spacing_weighs_them_alone_and_says_
                                          r"correlation_time were weighed as independent of the one before"):
         run_fixed_lag(build_problem(data, 10.0), 0.5)
     with pytest.warns(UserWarning, match=re.escape("online smoother: 10 measurement(s) of sensors with a "
-                                                   "correlation_time were weighed as independent of the one before: "
-                                                   "it had left the window (the lag, 0.5 s,")):
+                                                   "correlation_time were weighed as independent of the one before, "
+                                                   "where it had left the window (a lag, 0.5 s,")):
         replay(data, 0.5, "sliding", keyframe_rate=10.0, progress=False)
 
 
 def test_a_lag_spanning_the_spacing_makes_every_innovation(recwarn):
     data = drifting_run(0, 10.0, duration=12.0, hz=1.0, every=1)
-    run_fixed_lag(build_problem(data, 10.0), 1.5)
-    replay(data, 1.5, "sliding", keyframe_rate=10.0, progress=False)
+    drifting = run_fixed_lag(build_problem(data, 10.0), 1.5).lagged
+    online = replay(data, 1.5, "sliding", keyframe_rate=10.0, progress=False).smoothed
+    white = run_fixed_lag(build_problem(data.with_sensor("gnss", correlation_time=None), 10.0), 1.5).lagged
     assert not [w for w in recwarn if "weighed as independent" in str(w.message)]
+    assert _apart(online, drifting) < 0.01 and _apart(white, drifting) > 0.1  # the innovations were made
+
+
+def test_a_measurement_too_many_keyframes_after_the_one_before_is_weighed_alone():
+    """An 8 s gap in fixes at 5 Hz, keyframes at 10 Hz, a lag of 12 s: the innovation across the gap
+    would widen the window's band to 80 keyframes; the measurement after it is weighed alone, and said."""
+    data = drifting_run(0, 3.0, duration=30.0, hz=5.0, every=1)
+    gnss = data.sensor("gnss")
+    data = data.with_sensor("gnss", data=gnss.data.subset((gnss.data.t < 8.0) | (gnss.data.t > 16.0)))
+    with pytest.warns(UserWarning, match=r"fixed-lag \(sliding\): 1 measurement\(s\) of sensors with a "
+                                         "correlation_time were weighed as independent"):
+        run_fixed_lag(build_problem(data, 10.0), 12.0, covariances=False)
+
+
+def test_a_sensor_whose_calibration_the_window_estimates_is_weighed_alone_and_judged_so():
+    data = lever_arm_run(5.0, calibrate=CalibrationPrior(("lever_arm",)))
+    with pytest.warns(UserWarning, match=r"online smoother: 38 measurement\(s\) of sensors with a correlation_time "
+                                         "were weighed as independent"):
+        replay(data, WHOLE_RUN, "sliding", progress=False)
 
 
 def test_gtsam_s_windows_say_they_take_the_errors_as_white():
