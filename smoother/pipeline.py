@@ -557,7 +557,8 @@ def _windowed_predictions(dataset: Dataset, options: RunOptions):
     """What predicts the held-out measurements of ``dataset``'s drifting sensors in the fixed-lag
     smoother's window, given the used errors (:class:`smoother.diagnosis.heldout_windowed.WindowedPredictions`,
     on the batch's factors at the window's keyframes), or None: no such sensor (one whose calibration
-    the window estimates is weighed as white there), no covariances, or GTSAM's windows (white)."""
+    the window estimates is not predicted so: its estimate changes from update to update), no
+    covariances, or GTSAM's windows (white)."""
     from smoother.diagnosis.heldout_windowed import WindowedPredictions
 
     drifting = [s for s in dataset.sensors if s.correlation_time is not None and s.heldout is not None

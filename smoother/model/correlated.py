@@ -240,5 +240,5 @@ def weighed_alone_warning(estimator: str, count: int, lag_s: float) -> str | Non
         return None
     return (f"{estimator}: {count} measurement(s) of sensors with a correlation_time were weighed as independent "
             f"of the one before, where it had left the window (a lag, {lag_s:g} s, shorter than their spacing), "
-            "lay too many keyframes before it, shared its stamp, or where the window estimates the sensor's "
-            "calibration or is GTSAM's; the covariances are too small there")
+            "lay too many keyframes before it or shared its stamp, or where the window is GTSAM's; the covariances "
+            "are too small there")

@@ -235,6 +235,26 @@ def _one_state(model, k, step, last, row, W, cap, r, v, C, bf, bw, sacc, sgyro, 
 
 
 @njit(cache=True)
+def _one_calibrated(model, lay, k, step, last, row, W, acc, gyro, cap, r, v, C, bf, bw, cal, with_time, hacc, hgyro,
+                    sacc, sgyro, sdt, gravity, d, e, Hm, Hc, Jc, work, attached, ew, JT, Jt0) -> None:
+    """:func:`_one_state` of a measurement through its calibration (packed ``cal``, its time offset
+    stepped where ``with_time``): ``JT`` rows ``0 .. 15`` the keyframe's, ``15 .. 23`` the
+    calibration's error coordinates; ``acc``, ``gyro`` the IMU reading held at an attached
+    measurement's stamp (one at its keyframe's time steps with the keyframe's, ``hacc``, ``hgyro``)."""
+    i = k % cap
+    if step > 0:
+        j = (k + 1) % cap
+        attached_into(model, lay, sacc[j], sgyro[j], sdt[j], step, last, r[i], v[i], C[i], bf[i], bw[i], row, cal, True,
+                      with_time, acc, gyro, gravity, e[:d], Hm[:d], Hc[:d], attached, _WITH_JACOBIANS)
+    else:
+        calibrated_into(model, lay, r[i], v[i], C[i], bf[i], bw[i], row, cal, with_time, hacc[i], hgyro[i], gravity,
+                        e[:d], Hm[:d], Hc[:d], work, True)
+    Jc[:d, :DIM] = Hm[:d]
+    Jc[:d, DIM:DIM + CALIBRATION_DIM] = Hc[:d]
+    _whiten(W, e, Jc, d, DIM + CALIBRATION_DIM, ew, JT, Jt0)
+
+
+@njit(cache=True)
 def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW, dRm, bwbar, Wimu, gravity,
                m, mk, model, rows, dims, Wm, rcode, rk, mcal, mstep, mlast, macc, mgyro,
                sacc, sgyro, sdt, dc, ds, drow, dWm, dstep, dlast, Hb, g) -> None:
@@ -307,7 +327,8 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
 @njit(cache=True)
 def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, rows, dims, Wm, rcode, rk, mcal, mD,
                           mg, kH, kg, kB, kept, cal, cal_time, cal_cols, layouts, hacc, hgyro, mstep, mlast, macc,
-                          mgyro, sacc, sgyro, sdt, Hb, g, B, D, gc) -> None:
+                          mgyro, sacc, sgyro, sdt, dc, ds, drow, dWm, dstep, dlast, dacc, dgyro, Hb, g, B, D,
+                          gc) -> None:
     """:func:`linearise` of the measurements ``f`` that read calibration ``j = mcal[f] >= 0``
     (packed ``cal[j]``, :func:`factors.calibration.packed`; its time offset stepped with the IMU
     reading held at the keyframe, ``hacc``, ``hgyro``, where ``cal_time[j]``; its error
@@ -324,7 +345,9 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
     with the slots when the ring grows) they add that sum instead of being linearised again;
     the others are linearised, their sums kept and ``kept`` set. A measurement attached to its
     keyframe (``mstep[f] > 0``, :func:`linearise`) is evaluated through the steps to its time,
-    its time offset stepped with the reading held at its own stamp (``macc``, ``mgyro``). A
+    its time offset stepped with the reading held at its own stamp (``macc``, ``mgyro``). A drifting
+    sensor's innovation (:func:`linearise`; ``dacc``, ``dgyro`` the reading held at the earlier
+    measurement's stamp) is a factor on its two keyframes, as a relative one is, or on its one. A
     separate kernel: a window without calibrations never compiles the calibrated residuals."""
     e, ew = np.empty(DIM), np.empty(DIM)
     JT, Jt0 = np.empty((_WIDE, DIM)), np.empty((_WIDE, DIM))
@@ -339,18 +362,47 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
             kH[s] = 0.0
             kg[s] = 0.0
             kB[s] = 0.0
+    pew, PJT = np.empty(DIM), np.empty((_WIDE, DIM))  # the earlier measurement of a drifting pair
     for f in range(m):
         k0, k1 = mk[f, 0], mk[f, 1]
         j = mcal[f]
         if k0 >= cut or j < 0:
             continue
-        if k1 < lo or (model[f] != RELATIVE_MODEL and kept[k0 % cap]):
+        if k1 < lo or (model[f] != RELATIVE_MODEL and k1 == k0 and kept[k0 % cap]):
             _add_own(D, gc, cal_cols[j], mD[f], mg[f])
             continue
         d = dims[f]
         i, i1 = k0 % cap, k1 % cap
-        relative = model[f] == RELATIVE_MODEL
+        relative = model[f] == RELATIVE_MODEL or k1 != k0
         width = 2 * DIM if relative else DIM
+        if dc[f] != 0.0:  # the innovation s u_f - c u_p, its columns: [k0,] k1's, then the calibration's
+            lay = layouts[model[f]]
+            _one_calibrated(model[f], lay, k1, mstep[f], mlast[f], rows[f], Wm[f], macc[f], mgyro[f], cap, r, v, C, bf,
+                            bw, cal[j], cal_time[j], hacc, hgyro, sacc, sgyro, sdt, gravity, d, e, Hm, Hc, Jc, work,
+                            attached, ew, JT, Jt0)
+            _one_calibrated(model[f], lay, k0, dstep[f], dlast[f], drow[f], dWm[f], dacc[f], dgyro[f], cap, r, v, C, bf,
+                            bw, cal[j], cal_time[j], hacc, hgyro, sacc, sgyro, sdt, gravity, d, e, Hm, Hc, Jc, work,
+                            attached, pew, PJT, Jt0)
+            for a in range(d):
+                ew[a] = ds[f] * ew[a] - dc[f] * pew[a]
+                for p in range(DIM + CALIBRATION_DIM - 1, -1, -1):  # from the last row: rows move down
+                    later = ds[f] * JT[p, a]
+                    if p >= DIM:  # the calibration's, one for both
+                        JT[width + p - DIM, a] = later - dc[f] * PJT[p, a]
+                    elif relative:
+                        JT[DIM + p, a] = later
+                        JT[p, a] = -dc[f] * PJT[p, a]
+                    else:
+                        JT[p, a] = later - dc[f] * PJT[p, a]
+            _reweight(rcode[f], rk[f], JT, ew, d)
+            if relative:
+                _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo, DIM, width, cal_cols[j], JT, ew, d)
+                _add_factor(Hb, g, k0, k1, relative, lo, JT, ew, d)
+            else:
+                _add_border(kB[i], mD[f], mg[f], _AT_ZERO, 0, _NO_KEYFRAME, DIM, width, cal_cols[j], JT, ew, d)
+                _add_diagonal(kH[i], kg[i], 0, _AT_ZERO, JT, ew, d)
+            _add_own(D, gc, cal_cols[j], mD[f], mg[f])
+            continue
         if relative:
             calibrated_odometry_into(r[i], v[i], C[i], bf[i], bw[i], r[i1], v[i1], C[i1], bf[i1], bw[i1], rows[f],
                                      cal[j], cal_time[j], hacc[i], hgyro[i], hacc[i1], hgyro[i1], gravity, e[:d],

@@ -236,7 +236,8 @@ class SlidingWindow:
                   # a drifting sensor's innovation (linearise): its weights, the earlier measurement's
                   # row, whitening and attachment
                   "_dc": ((), float), "_ds": ((), float), "_drow": ((MAX_ROW_WIDTH,), float),
-                  "_dWm": ((MAX_DIM, MAX_DIM), float), "_dstep": ((), np.int64), "_dlast": ((), float)}
+                  "_dWm": ((MAX_DIM, MAX_DIM), float), "_dstep": ((), np.int64), "_dlast": ((), float),
+                  "_dacc": ((3,), float), "_dgyro": ((3,), float)}
         for name, (tail, dtype) in shapes.items():
             fresh = np.zeros((cap,) + tail, dtype=dtype)
             if m:
@@ -431,14 +432,11 @@ class SlidingWindow:
         entry, where it has one) that this window can make, or None; with whether it was one the
         window weighs alone instead (its own white factor, counted in :attr:`weighed_alone`): the
         measurement before it reads a keyframe before ``first`` (gone, with the update) or more
-        than :data:`MAX_INNOVATION_SPAN` keyframes before the one it reads, or the sensor has a
-        calibration here."""
+        than :data:`MAX_INNOVATION_SPAN` keyframes before the one it reads."""
         innovation = measurement[5] if len(measurement) > 5 else None
         if innovation is None:
             return None, False
-        calibrated = self._cal is not None and measurement[0].name in self._cal.index
-        far = max(measurement[2]) - innovation.keyframe > MAX_INNOVATION_SPAN
-        if calibrated or far or innovation.keyframe < first:
+        if max(measurement[2]) - innovation.keyframe > MAX_INNOVATION_SPAN or innovation.keyframe < first:
             return None, True
         return innovation, False
 
@@ -502,6 +500,7 @@ class SlidingWindow:
             self._dc[f], self._ds[f], self._drow[f, :len(drift[2])], self._dWm[f] = drift[:4]
             if drift[4] is not None:
                 self._dstep[f], self._dlast[f] = drift[4].steps, drift[4].last_dt
+                self._dacc[f], self._dgyro[f] = drift[4].held
         self._m = f + 1
         self._stale = min(self._stale, min(keyframes))
         self._kept[min(keyframes) % self._cap] = False
@@ -551,6 +550,11 @@ class SlidingWindow:
         the earlier measurement's row, whitening and attachment."""
         return self._dc, self._ds, self._drow, self._dWm, self._dstep, self._dlast
 
+    def _calibrated_innovations(self) -> tuple:
+        """:meth:`_innovations` and the IMU reading held at each earlier measurement's stamp, what
+        :func:`smoother.fixed_lag.sliding.normal_equations.linearise_calibrated` reads."""
+        return *self._innovations(), self._dacc, self._dgyro
+
     def _normal_equations(self, lo: int, cut: int, n: int, S: int, solving: bool = True):
         """Rows ``lo .. lo + n - 1`` of the normal equations at the linearisation points, of the
         factors that begin before keyframe ``cut``: block-banded ``Hb (n, S + 1, 15, 15)``, ``g``
@@ -578,7 +582,8 @@ class SlidingWindow:
                                       self._mk, self._model, self._rows, self._dims, self._Wm, self._rcode, self._rk,
                                       self._mcal, self._mD, self._mg, self._kH, self._kg, self._kB, self._kept,
                                       cal.packed, cal.with_time, cal.columns, LAYOUTS,
-                                      self._hacc, self._hgyro, *self._attachments(), Hb, g, B, D, gc)
+                                      self._hacc, self._hgyro, *self._attachments(), *self._calibrated_innovations(),
+                                      Hb, g, B, D, gc)
         plain = None if cal is not None else (B, D, gc)
         for p in self._priors:
             bordered = p.c_lin is not None
@@ -747,7 +752,7 @@ class SlidingWindow:
                         if p.keyframes.size and p.keyframes[0] >= cut or not (p.keyframes.size or bordered)]
         if self._dc[:self._m].any():  # (the measurements' own tables compiled, these beside them)
             staying = self._mk[:self._m, 0] >= cut
-            for a in self._innovations():
+            for a in self._calibrated_innovations():
                 a[:np.count_nonzero(staying)] = a[:self._m][staying]
         self._m, self._spans[0] = drop_measurements(cut, self._m, self._mk, self._model, self._rows, self._dims,
                                                      self._Wm, self._rcode, self._rk, self._mcal, self._mD, self._mg,

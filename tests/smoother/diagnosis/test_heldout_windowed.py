@@ -71,8 +71,7 @@ def test_a_lag_shorter_than_the_used_fixes_spacing_predicts_in_band_too():
     assert v["band"][0] < np.mean(given) < v["band"][1]
 
 
-@pytest.mark.filterwarnings("ignore:.*weighed as independent.*:UserWarning")
-def test_a_sensor_weighed_alone_in_the_window_is_not_judged_given_the_used_errors():
+def test_a_sensor_whose_calibration_the_window_estimates_is_judged_without_the_used_errors_and_says_so():
     from factors.calibration import CalibrationPrior
 
     data = drifting(3, 10.0, duration=20.0)

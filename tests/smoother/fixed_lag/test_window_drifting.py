@@ -80,11 +80,21 @@ def test_a_measurement_too_many_keyframes_after_the_one_before_is_weighed_alone(
         run_fixed_lag(build_problem(data, 10.0), 12.0, covariances=False)
 
 
-def test_a_sensor_whose_calibration_the_window_estimates_is_weighed_alone_and_judged_so():
-    data = lever_arm_run(5.0, calibrate=CalibrationPrior(("lever_arm",)))
-    with pytest.warns(UserWarning, match=r"online smoother: 38 measurement\(s\) of sensors with a correlation_time "
-                                         "were weighed as independent"):
-        replay(data, WHOLE_RUN, "sliding", progress=False)
+@pytest.mark.parametrize("parts", [("lever_arm",), ("time_offset", "lever_arm")])
+def test_a_window_holding_the_whole_run_estimates_a_drifting_sensor_s_calibration_as_the_batch_smoother(parts,
+                                                                                                      recwarn):
+    data = lever_arm_run(20.0, calibrate=CalibrationPrior(parts))  # attached between keyframes, two per keyframe
+    batch = solve_batch(with_correlated_errors(build_problem(data), data), max_iterations=200)
+    online = replay(data, WHOLE_RUN, "sliding", covariances=True, progress=False)
+    white = replay(data.with_sensor("gnss", correlation_time=None), WHOLE_RUN, "sliding", progress=False).smoothed
+    assert not [w for w in recwarn if "weighed as independent" in str(w.message)]
+    assert _apart(online.smoothed, batch.trajectory) < 0.02 and _apart(white, batch.trajectory) > 0.5
+    values, cov = online.calibration
+    mine, theirs = values.values[0], batch.calibration.values[0]
+    sd = np.sqrt(np.diag(batch.calibration_cov[0]))  # the error coordinates: time offset first where estimated
+    np.testing.assert_allclose(mine.p, theirs.p, atol=0.05 * sd[-3:].min())
+    if "time_offset" in parts:
+        assert abs(mine.time_offset - theirs.time_offset) < 0.05 * sd[0]
 
 
 def test_gtsam_s_windows_say_they_take_the_errors_as_white():
