@@ -172,7 +172,10 @@ class SensorSetup:
                                                                  KINDS[self.kind].dim))
         check_robust("SensorSetup.robust", self.robust)
         if self.correlation_time is not None:
-            problem = drift_problem(self.kind) or RANGES["sensor.correlation_time"].problem(self.correlation_time)
+            tau = self.correlation_time
+            number = isinstance(tau, (int, float, np.integer, np.floating)) and not isinstance(tau, bool)
+            problem = drift_problem(self.kind) or (RANGES["sensor.correlation_time"].problem(tau) if number else
+                                                   f"expected a number of seconds, got {tau!r}")
             if problem is not None:
                 raise InputError(f"SensorSetup.correlation_time: {problem}")
             object.__setattr__(self, "correlation_time", float(self.correlation_time))

@@ -121,6 +121,8 @@ def test_a_rig_s_correlation_time_reaches_the_online_smoother(tmp_path, recwarn)
     ("odometry", 5.0, "odometry measurements are relative (two states each)"),
     ("position", 0.0, "expected a value within"),
     ("position", float("nan"), "expected a value within"),
+    ("position", True, "expected a number of seconds, got True"),
+    ("position", "5", "expected a number of seconds, got '5'"),
 ])
 def test_a_sensor_setup_refuses_a_correlation_time_it_cannot_model(kind, tau, expected):
     with pytest.raises(InputError, match=re.escape(f"SensorSetup.correlation_time: {expected}")):
