@@ -103,8 +103,7 @@ def pair_weights(step, tau: float) -> tuple:
     :data:`MIN_INNOVATION_VARIANCE` (the two errors one)."""
     step = np.asarray(step, dtype=float)
     fresh = -np.expm1(-2.0 * step / tau)  # 1 - phi^2, without cancellation
-    with np.errstate(divide="ignore"):
-        s = np.where(fresh < MIN_INNOVATION_VARIANCE, np.inf, 1.0 / np.sqrt(np.maximum(fresh, MIN_INNOVATION_VARIANCE)))
+    s = np.where(fresh < MIN_INNOVATION_VARIANCE, np.inf, 1.0 / np.sqrt(np.maximum(fresh, MIN_INNOVATION_VARIANCE)))
     return np.exp(-step / tau), s
 
 

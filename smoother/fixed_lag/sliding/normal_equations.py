@@ -44,6 +44,7 @@ _WITH_JACOBIANS = np.bool_(True)
 #: of the helper for its value (five of :func:`_add_diagonal`, three each of :func:`_whiten` and
 #: :func:`_add_normal`, on a first run's critical path).
 _AT_ZERO, _AT_DIM, _NO_KEYFRAME = np.int64(0), np.int64(DIM), np.int64(-1)
+_CALIBRATED = np.int64(CALIBRATION_DIM)  # the rows a drifting pair's calibration shares (_innovation_into)
 #: What :func:`datasets.kinds.attached_into` reads of a calibration where a measurement reads none.
 _NO_LAYOUT, _NO_CALIBRATION = np.zeros(6, dtype=np.int64), np.zeros(PACKED_SIZE)
 
@@ -235,6 +236,27 @@ def _one_state(model, k, step, last, row, W, cap, r, v, C, bf, bw, sacc, sgyro, 
 
 
 @njit(cache=True)
+def _innovation_into(s, c, pew, PJT, ew, JT, d, shared, relative) -> None:
+    """A drifting sensor's whitened innovation ``s u - c u_p`` (:mod:`smoother.model.correlated`) into
+    ``ew``, ``JT`` (:func:`_whiten`'s layout), from the later measurement's ``ew``, ``JT`` and the
+    earlier one's ``pew``, ``PJT``, each with its keyframe's 15 rows then ``shared`` rows of a
+    variable both read (a calibration's). Its rows: where ``relative`` (two keyframes) the earlier
+    keyframe's, the later one's, then the shared ones; else the one keyframe's, then the shared."""
+    width = 2 * DIM if relative else DIM
+    for a in range(d):
+        ew[a] = s * ew[a] - c * pew[a]
+        for p in range(DIM + shared - 1, -1, -1):  # from the last row: the rows move down
+            later = s * JT[p, a]
+            if p >= DIM:
+                JT[width + p - DIM, a] = later - c * PJT[p, a]
+            elif relative:
+                JT[DIM + p, a] = later
+                JT[p, a] = -c * PJT[p, a]
+            else:
+                JT[p, a] = later - c * PJT[p, a]
+
+
+@njit(cache=True)
 def _one_calibrated(model, lay, k, step, last, row, W, acc, gyro, cap, r, v, C, bf, bw, cal, with_time, hacc, hgyro,
                     sacc, sgyro, sdt, gravity, d, e, Hm, Hc, Jc, work, attached, ew, JT, Jt0) -> None:
     """:func:`_one_state` of a measurement through its calibration (packed ``cal``, its time offset
@@ -310,13 +332,7 @@ def linearise(first, lo, cut, cap, r, v, C, bf, bw, has_imu, dC, Wp, Rm, JC, dW,
             _one_state(model[f], k0, dstep[f], dlast[f], drow[f], dWm[f], cap, r, v, C, bf, bw,
                        sacc, sgyro, sdt, macc[f], mgyro[f], gravity, d, e, Hm, Hc, attached, pew, PJT, Jt0)
             relative = k1 != k0
-            at = DIM if relative else 0  # where the newer keyframe's columns go
-            for a in range(d):
-                ew[a] = ds[f] * ew[a] - dc[f] * pew[a]
-                for p in range(DIM):
-                    JT[at + p, a] = ds[f] * JT[p, a] - (dc[f] * PJT[p, a] if at == 0 else 0.0)
-                    if relative:
-                        JT[p, a] = -dc[f] * PJT[p, a]
+            _innovation_into(ds[f], dc[f], pew, PJT, ew, JT, d, _AT_ZERO, relative)
         else:
             _one_state(model[f], k0, mstep[f], mlast[f], rows[f], Wm[f], cap, r, v, C, bf, bw, sacc, sgyro, sdt,
                        macc[f], mgyro[f], gravity, d, e, Hm, Hc, attached, ew, JT, Jt0)
@@ -383,17 +399,7 @@ def linearise_calibrated(lo, cut, cap, r, v, C, bf, bw, gravity, m, mk, model, r
             _one_calibrated(model[f], lay, k0, dstep[f], dlast[f], drow[f], dWm[f], dacc[f], dgyro[f], cap, r, v, C, bf,
                             bw, cal[j], cal_time[j], hacc, hgyro, sacc, sgyro, sdt, gravity, d, e, Hm, Hc, Jc, work,
                             attached, pew, PJT, Jt0)
-            for a in range(d):
-                ew[a] = ds[f] * ew[a] - dc[f] * pew[a]
-                for p in range(DIM + CALIBRATION_DIM - 1, -1, -1):  # from the last row: rows move down
-                    later = ds[f] * JT[p, a]
-                    if p >= DIM:  # the calibration's, one for both
-                        JT[width + p - DIM, a] = later - dc[f] * PJT[p, a]
-                    elif relative:
-                        JT[DIM + p, a] = later
-                        JT[p, a] = -dc[f] * PJT[p, a]
-                    else:
-                        JT[p, a] = later - dc[f] * PJT[p, a]
+            _innovation_into(ds[f], dc[f], pew, PJT, ew, JT, d, _CALIBRATED, relative)
             _reweight(rcode[f], rk[f], JT, ew, d)
             if relative:
                 _add_border(B, mD[f], mg[f], k0 - lo, 0, k1 - lo, DIM, width, cal_cols[j], JT, ew, d)

@@ -174,7 +174,7 @@ class SlidingWindow:
         self.recovered: list[int] = []
         self.skipped = 0
         #: measurements of drifting sensors weighed as independent of the one before
-        #: (:meth:`_innovation`): it had left the window, or the sensor has a calibration here
+        #: (:meth:`_innovation`): it had left the window, or lay too many keyframes before
         self.weighed_alone = 0
         self.update_s: deque[float] = deque(maxlen=HISTORY)
         #: keyframes linearised again, one entry each time any were: at the end of an update, or early,
