@@ -499,6 +499,10 @@ class CalibrationSet:
     def dims(self) -> list[int]:
         return [len(p.columns) for p in self.priors]
 
+    def value_of(self, name: str) -> Calibration | None:
+        """The current value of sensor ``name``'s calibration, or None where it has none here."""
+        return self.values[self.names.index(name)] if name in self.names else None
+
     def boxplus(self, delta) -> "CalibrationSet":
         """The values moved by ``delta`` (one array per sensor over its estimated coordinates;
         :func:`set_boxplus_into`, the kernel the EKF runs)."""

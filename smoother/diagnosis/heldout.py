@@ -200,8 +200,7 @@ def _predicted(dataset: Dataset, trajectory: Trajectory, calibration, following:
     time (``P`` is 15x15 each). A sensor whose time offset the estimator has is predicted at the
     time it gives each measurement, its stamp plus that offset, with the rest of its calibration."""
     kind, held = KINDS[sensor.kind], sensor.heldout
-    calibrated = calibration is not None and sensor.name in calibration.names
-    c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
+    c = None if calibration is None else calibration.value_of(sensor.name)
     times = held.t if c is None else held.t + c.time_offset
     if c is not None:
         c = replace(c, time_offset=0.0)  # taken at the time it gives: no extrapolation through the IMU reading

@@ -95,8 +95,7 @@ def _predicted(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Tra
                following: Following, between) -> HeldoutPrediction:
     """:func:`correlated_predictions` of one ``sensor`` (its ``block``): its held-out measurements
     inside the trajectory's span (:func:`given_used`)."""
-    calibrated = calibration is not None and sensor.name in calibration.names
-    c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
+    c = None if calibration is None else calibration.value_of(sensor.name)
     times = sensor.heldout.t + (0.0 if c is None else c.time_offset)
     index = np.flatnonzero((times >= trajectory.t[0]) & (times <= min(trajectory.t[-1], dataset.imu.t[-1])))
     return given_used(dataset, block, sensor, trajectory, calibration, following, between, index)
@@ -114,8 +113,7 @@ def given_used(dataset: Dataset, block: CorrelatedBlock, sensor, trajectory: Tra
     used measurements; None: all) the used measurements the prediction is given: the nearest of
     them on either side of each held-out one."""
     kind, held = KINDS[sensor.kind], sensor.heldout
-    calibrated = calibration is not None and sensor.name in calibration.names
-    c = calibration.values[calibration.names.index(sensor.name)] if calibrated else None
+    c = None if calibration is None else calibration.value_of(sensor.name)
     times = held.t + (0.0 if c is None else c.time_offset)
     if c is not None:
         c = replace(c, time_offset=0.0)  # taken at the time it gives, as a white sensor's

@@ -162,3 +162,12 @@ def test_which_parts_each_model_can_estimate():
     parts = {k: calibration.applicable(KINDS[k].model) for k in ("gnss", "orientation", "velocity", "odometry")}
     assert parts == {"gnss": ("time_offset", "lever_arm"), "orientation": ("time_offset", "rotation"),
                      "velocity": calibration.PARTS, "odometry": calibration.PARTS}
+
+
+def test_a_calibration_set_gives_a_sensor_s_value_by_name_and_none_for_another():
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    chosen = calibration.CalibrationSet.given(["gnss", "wheels"], [T, None],
+                                              [calibration.CalibrationPrior(("lever_arm",))] * 2)
+    np.testing.assert_array_equal(chosen.value_of("gnss").p, [0.1, 0.2, 0.3])
+    assert chosen.value_of("wheels") is chosen.values[1] and chosen.value_of("ahrs") is None
