@@ -482,12 +482,13 @@ def _drift(P, mean, first, dims, taus, dt) -> None:
     plus ``1 - phi^2``."""
     for i in range(first.shape[0]):
         phi = math.exp(-dt / taus[i])
+        fresh = -math.expm1(-2.0 * dt / taus[i])  # 1 - phi^2 without cancellation (an IMU step against hours)
         for k in range(first[i], first[i] + dims[i]):
             mean[k] *= phi
             for j in range(P.shape[0]):
                 P[k, j] *= phi
                 P[j, k] *= phi
-            P[k, k] += 1.0 - phi * phi
+            P[k, k] += fresh
 
 
 @njit(cache=True)
