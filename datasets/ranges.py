@@ -23,6 +23,7 @@ This module imports nothing of the project: any layer may use it.
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from dataclasses import dataclass
 
@@ -165,6 +166,15 @@ RESERVED_SENSOR_NAMES = ("imu", "prior")
 def out_of_range(key: str, value) -> str | None:
     """:meth:`Range.problem` of ``value`` for the rig key ``key`` of :data:`RANGES`."""
     return RANGES[key].problem(value)
+
+
+def correlation_time_problem(tau) -> str | None:
+    """None for a usable ``correlation_time`` [s] of a sensor's drifting errors (a number within
+    ``RANGES["sensor.correlation_time"]``), else what is wrong with it; whether the sensor's kind can
+    drift is the kind's to say (:func:`datasets.kinds.drift_problem`)."""
+    if isinstance(tau, bool) or not isinstance(tau, numbers.Real):
+        return f"expected a number of seconds, got {tau!r}"
+    return out_of_range("sensor.correlation_time", tau)
 
 
 def sensor_name_problem(name) -> str | None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 from numba import njit
 
-from datasets.ranges import sensor_name_problem
+from datasets.ranges import correlation_time_problem, sensor_name_problem
 from factors import so3
 from factors.errors import InputError
 from factors.imu import DEFAULT_GRAVITY, ImuNoise, ImuState
@@ -630,12 +630,9 @@ class Dataset:
                 raise InputError(f"Dataset.sensors[{i}].name: {problem}")
             if s.name in names:
                 raise InputError(f"sensor name {s.name!r} is used twice")
-            if s.correlation_time is not None:
-                tau = s.correlation_time
-                if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)) or not (
-                        np.isfinite(tau) and tau > 0):
-                    raise InputError(f"sensor {s.name!r}: correlation_time must be a positive number of seconds, "
-                                     f"got {tau!r}")
+            problem = None if s.correlation_time is None else correlation_time_problem(s.correlation_time)
+            if problem is not None:
+                raise InputError(f"sensor {s.name!r}: correlation_time: {problem}")
             names.append(s.name)
         object.__setattr__(self, "sensors", tuple(self.sensors))
 
@@ -678,12 +675,13 @@ class Dataset:
 
     def _sensor_inside_imu_span(self, sensor: Sensor) -> Sensor:
         """``sensor`` without the measurements outside the IMU span (warned about, as above); a
-        sensor left with no measurement is an error naming it (nothing of it could be used)."""
+        sensor left with no measurement is an error naming it (nothing of it could be used). An empty
+        set of measurements is none (``None``)."""
         t0, t1 = self.t0, self.t1
         parts = {}
         for part in ("data", "heldout"):
             m = getattr(sensor, part)
-            if m is None:
+            if m is None or not len(m):  # none given: a sensor whose every measurement is held out, or none held out
                 parts[part] = None
                 continue
             first = getattr(m, "t_from", m.t)

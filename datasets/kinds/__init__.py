@@ -484,11 +484,15 @@ for _kind in KINDS.values():
 
 def sensors_of(dataset: Dataset) -> list[Sensor]:
     """The aiding sensors of ``dataset`` (those with measurements to use; a sensor whose every
-    measurement is held out only scores), each one's kind checked against :data:`KINDS` and its
-    measurements against the kind's data type."""
+    measurement is held out only scores), each one's kind checked against :data:`KINDS`, its
+    measurements against the kind's data type and a ``correlation_time`` against the kind
+    (:func:`drift_problem`)."""
     for s in dataset.sensors:
         if s.kind not in KINDS:
             raise InputError(f"sensor {s.name!r}: unknown kind {s.kind!r}; expected one of {', '.join(KINDS)}")
+        problem = None if s.correlation_time is None else drift_problem(s.kind)
+        if problem is not None:
+            raise InputError(f"sensor {s.name!r}: correlation_time: {problem}")
         expected = KINDS[s.kind].data_type
         for part in (s.data, s.heldout):
             if part is not None and not isinstance(part, expected):

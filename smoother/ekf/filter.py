@@ -35,6 +35,7 @@ from factors.calibration import CALIBRATION_DIM, CalibrationSet
 from factors.errors import InputError, SolverError
 from factors.sensor_models import MAX_RESIDUAL_DIM, evaluate_one
 from smoother.ekf.update import diverged, gate_thresholds, kalman_update, predict_only, update_order
+from smoother.model.correlated import one_error
 from smoother.model.predicted import Conditioned, HeldoutPrediction
 from smoother.model.timeline import imu_steps, measurement_knots
 from smoother.progress import progress_bar
@@ -282,7 +283,8 @@ class _Updates:
     predicted_drift: np.ndarray
     predicted_total: np.ndarray
     #: Per held-out source (in ``source``'s order after the sensors): its sensor's name, the
-    #: indices of the held-out measurements predicted among the sensor's and their dimension.
+    #: indices of the held-out measurements predicted among the sensor's, their dimension and which
+    #: of them a drifting sensor's used one makes one error with (judged alone: the model's ``one_error``).
     heldout_of: list
 
     @classmethod
@@ -302,11 +304,13 @@ class _Updates:
             if held is None or len(held.t) == 0:
                 continue
             index = np.flatnonzero((held.t >= knots[0]) & (held.t <= knots[-1])) if len(knots) else np.zeros(0, int)
-            heldout_of.append((s.name, index, held.cov.shape[-1]))
+            alone = (one_error(held.t[index], s.data.t, s.correlation_time)
+                     if s.name in drifting and s.data is not None else np.zeros(len(index), dtype=bool))
+            heldout_of.append((s.name, index, held.cov.shape[-1], alone))
             parts.append((model_index(KINDS[s.kind]), KINDS[s.kind].pack(held)[index], held.cov[index],
                           held.t[index], slot))
             columns.append(drifting.get(s.name, -1))
-        names = [s.name for s in sensors] + [f"{name} (held out)" for name, _, _ in heldout_of]
+        names = [s.name for s in sensors] + [f"{name} (held out)" for name, *_ in heldout_of]
         if not parts:
             parts.append((0, np.zeros((0, 1)), np.zeros((0, 1, 1)), np.zeros(0), -1))
         u = sum(len(p[1]) for p in parts)
@@ -357,7 +361,7 @@ class _Updates:
         update_of = np.empty(len(self.predicted_e), dtype=np.int64)  # each prediction's update
         made = np.flatnonzero(self.predicted >= 0)
         update_of[self.predicted[made]] = made
-        for name, index, d in self.heldout_of:
+        for name, index, d, alone in self.heldout_of:
             rows = slice(at, at + len(index))
             at += len(index)
             e, S = self.predicted_e[rows, :d].copy(), self.predicted_state[rows, :d, :d].copy()
@@ -371,7 +375,11 @@ class _Updates:
             drift, total = self.predicted_drift[rows, :d, :d], self.predicted_total[rows, :d, :d]
             given = np.einsum("mab,mb->ma", W, self.predicted_given[rows, :d])
             WT = np.swapaxes(W, 1, 2)
-            out[name] = HeldoutPrediction(index, e, S, Conditioned(given, W @ (total - drift) @ WT, W @ drift @ WT))
+            state, noise = W @ (total - drift) @ WT, W @ drift @ WT
+            # at a used measurement's stamp: judged alone (smoother.model.correlated.one_error), its own noise
+            given[alone], state[alone] = np.einsum("mab,mb->ma", W[alone], e[alone]), W[alone] @ S[alone] @ WT[alone]
+            noise[alone] = np.eye(d)
+            out[name] = HeldoutPrediction(index, e, S, Conditioned(given, state, noise))
         return out
 
 
@@ -464,14 +472,28 @@ def _filter_knots(r, v, C, b_f, b_w, P, acc, gyro, dt, bounds, first, last, star
     return -1
 
 
+#: Relative cut-off of :func:`_given_the_rest`'s pseudo-inverse, on the rest's correlations.
+GIVEN_RCOND = 1e-12
+
+
 @njit(cache=True)
 def _given_the_rest(P, f, m) -> np.ndarray:
-    """``P_uu - P_ur P_rr^-1 P_ru``: the covariance of the states ``f .. f + m - 1`` of ``P`` given
-    all the others (``r``), the Schur complement."""
+    """``P_uu - P_ur P_rr^+ P_ru``: the covariance of the states ``f .. f + m - 1`` of ``P`` given
+    all the others (``r``), the Schur complement. With the pseudo-inverse ``+``: a drifting
+    sensor's measurement has no noise of its own (``R`` zero), so just after one, ``P_rr`` is
+    singular where the rest hold its error (another drifting sensor's, at one instant), and the
+    conditional is a degenerate Gaussian's, which the pseudo-inverse gives (``P_ru`` lies in
+    ``P_rr``'s range). It is taken of the rest's correlations (``P_rr`` scaled to a unit
+    diagonal), so that :data:`GIVEN_RCOND` is relative to each state's own variance, not to the
+    largest (metres squared beside a bias's)."""
     rest = np.concatenate((np.arange(f), np.arange(f + m, P.shape[0])))
     P_rr = np.ascontiguousarray(P[rest][:, rest])
     P_ru = np.ascontiguousarray(P[rest][:, f:f + m])
-    return P[f:f + m, f:f + m] - P_ru.T @ np.linalg.solve(P_rr, P_ru)
+    d = np.diag(P_rr)
+    scale = np.where(d > 0.0, 1.0 / np.sqrt(np.maximum(d, 1e-300)), 0.0)
+    G = scale[:, None] * P_ru
+    Q = scale[:, None] * P_rr * scale[None, :]
+    return P[f:f + m, f:f + m] - G.T @ np.linalg.pinv(Q, GIVEN_RCOND) @ G
 
 
 @njit(cache=True)

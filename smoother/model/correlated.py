@@ -134,9 +134,11 @@ def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
         w_0 = a (1 - b^2) / (1 - c^2),   w_1 = b (1 - a^2) / (1 - c^2),
         variance = 1 - (a^2 + b^2 - 2 a b c) / (1 - c^2) = (1 - a^2) (1 - b^2) / (1 - c^2)
 
-    (one side alone: ``w = a``, variance ``1 - a^2``; at a measurement's own time, its value; each
-    ``1 - x^2`` as ``-expm1(-2 lag / tau)``, exact where the lags are far below ``tau``; no
-    measurements at all: weights 0, variance 1)."""
+    (one side alone: ``w = a``, variance ``1 - a^2``; each ``1 - x^2`` as ``-expm1(-2 lag / tau)``,
+    exact where the lags are far below ``tau``; no measurements at all: weights 0, variance 1). At a
+    measurement's own time (:func:`one_error`) the process is given nothing either: there the
+    model's error has no part of its own, so a second measurement would have to equal the first,
+    and it is taken alone, as the factors weigh a second measurement at one stamp."""
     t = np.asarray(t, dtype=float)
     if not len(times):  # nothing to be given: the process itself
         none = np.full(t.shape, -1)
@@ -149,8 +151,26 @@ def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
     lag_b = np.where(has_after, times[np.minimum(after, len(times) - 1)] - t, np.inf)
     a, b = np.exp(-lag_a / tau), np.exp(-lag_b / tau)
     not_a, not_b, not_c = (-np.expm1(-2.0 * lag / tau) for lag in (lag_a, lag_b, lag_a + lag_b))
-    w0, w1, variance = a * not_b / not_c, b * not_a / not_c, not_a * not_b / not_c
-    return np.where(has_before, before, -1), np.where(has_after, after, -1), w0, w1, variance
+    alone = one_error(t, times, tau)
+    not_c = np.where(alone, 1.0, not_c)
+    w0, w1 = np.where(alone, 0.0, a * not_b / not_c), np.where(alone, 0.0, b * not_a / not_c)
+    variance = np.where(alone, 1.0, not_a * not_b / not_c)
+    return (np.where(has_before & ~alone, before, -1), np.where(has_after & ~alone, after, -1), w0, w1,
+            variance)
+
+
+def one_error(t: np.ndarray, times: np.ndarray, tau: float) -> np.ndarray:
+    """Per time of ``t``, whether one of the measurements' ``times`` lies so close that the process
+    of the module docstring is one there: less than :data:`MIN_INNOVATION_VARIANCE` of new error
+    between them (a stamp of theirs, or within nanoseconds of one where ``tau`` is seconds). A
+    measurement there would have to equal theirs; the factors weigh such a second one alone, and a
+    held-out prediction judges it alone (:func:`given_neighbours`)."""
+    t = np.asarray(t, dtype=float)
+    if not len(times):
+        return np.zeros(t.shape, dtype=bool)
+    i = np.clip(np.searchsorted(times, t), 1, max(len(times) - 1, 1))
+    nearest = np.minimum(np.abs(t - times[i - 1]), np.abs(times[np.minimum(i, len(times) - 1)] - t))
+    return -np.expm1(-2.0 * nearest / tau) < MIN_INNOVATION_VARIANCE
 
 
 def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedBlock:

@@ -93,7 +93,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from datasets.kinds import KINDS, attached_noise, drift_problem, kind_sigmas, sensors_of, with_sigma_factor
-from datasets.ranges import RANGES
+from datasets.ranges import correlation_time_problem
 from datasets.robust import check_robust
 from datasets.types import (
     MAX_IMU_GAP_S,
@@ -172,10 +172,7 @@ class SensorSetup:
                                                                  KINDS[self.kind].dim))
         check_robust("SensorSetup.robust", self.robust)
         if self.correlation_time is not None:
-            tau = self.correlation_time
-            number = isinstance(tau, (int, float, np.integer, np.floating)) and not isinstance(tau, bool)
-            problem = drift_problem(self.kind) or (RANGES["sensor.correlation_time"].problem(tau) if number else
-                                                   f"expected a number of seconds, got {tau!r}")
+            problem = drift_problem(self.kind) or correlation_time_problem(self.correlation_time)
             if problem is not None:
                 raise InputError(f"SensorSetup.correlation_time: {problem}")
             object.__setattr__(self, "correlation_time", float(self.correlation_time))

@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from datasets.kinds import sensors_of
 from datasets.types import (
     SAME_INSTANT_S,
     Dataset,
@@ -77,6 +78,43 @@ def test_sensors_are_named_once_and_found_by_name():
         _dataset(sensors=(pose,))
     thinned = d.with_sensor("a", data=pose.subset(np.array([True, False])))
     assert len(thinned.sensor("a").data) == 1 and len(d.sensor("a").data) == 2
+
+
+@pytest.mark.parametrize("tau, fragment", [
+    (0.0, "expected a value within [0.01, 86400] s"),
+    (1e-300, "got 1e-300"),
+    (1e300, "got 1e+300"),
+    (float("nan"), "got nan"),
+    (True, "expected a number of seconds, got True"),
+    ("5", "expected a number of seconds, got '5'"),
+])
+def test_a_correlation_time_is_checked_as_the_rig_checks_it_naming_the_sensor(tau, fragment):
+    """The range of the rig key ``correlation_time`` holds for a dataset built in code too (the rig
+    and the command line refuse what the API accepted before: 1e300 ran the EKF silently)."""
+    pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+    with pytest.raises(InputError, match=re.escape("sensor 'a': correlation_time: ") + ".*" + re.escape(fragment)):
+        _dataset(sensors=(Sensor("a", "pose", pose, correlation_time=tau),))
+    assert _dataset(sensors=(Sensor("a", "pose", pose, correlation_time=np.float32(5.0)),))
+
+
+def test_a_relative_kind_with_a_correlation_time_is_refused_by_every_estimator_naming_it():
+    """Where kinds are checked (:func:`datasets.kinds.sensors_of`, which every estimator calls), as
+    the rig and ``SensorSetup`` refuse it: the drift model chains measurements of one state each."""
+    rel = RelativePoseMeasurements([0.0, 0.5], [0.4, 0.9], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+    d = _dataset(sensors=(Sensor("wheels", "odometry", rel, correlation_time=5.0),))
+    with pytest.raises(InputError, match="sensor 'wheels': correlation_time: odometry measurements are relative"):
+        sensors_of(d)
+
+
+def test_an_empty_set_of_measurements_is_none():
+    """A sensor whose every measurement is held out, given as an empty set of used ones, is one with
+    none (``data`` None: it only scores), as an empty held-out set is none held out; before, the
+    dataset stopped in numpy building its message about the IMU span."""
+    pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+    nothing = pose.subset(np.array([False, False]))
+    d = _dataset(sensors=(Sensor("a", "pose", nothing, heldout=pose), Sensor("b", "pose", pose, heldout=nothing)))
+    assert d.sensor("a").data is None and len(d.sensor("a").heldout) == 2
+    assert d.sensor("b").heldout is None and len(d.sensor("b").data) == 2
 
 
 @pytest.mark.parametrize("field, value, fragment", [

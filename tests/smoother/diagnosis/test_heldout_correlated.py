@@ -11,6 +11,7 @@ from drifting_fixes import drifting_run as drifting
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from datasets.types import PositionMeasurements
 from smoother import pipeline
 from smoother.batch.solve import solve_batch
 from smoother.diagnosis.heldout_correlated import batch_predictions
@@ -39,6 +40,35 @@ def test_the_conditional_on_the_neighbours_is_gaussian_conditioning_on_all(used,
         expected[after[0]] = w1[0]
     np.testing.assert_allclose(expected, weights, atol=1e-7 * max(1.0, np.abs(weights).max()))
     np.testing.assert_allclose(variance[0], 1.0 - c @ weights, atol=1e-7)
+
+
+def test_at_a_used_measurement_s_stamp_the_process_is_given_nothing():
+    """There the model's error has no part of its own (a second measurement would equal the
+    first), so the held-out one is taken alone -- weights 0, the whole variance -- as the factors
+    weigh a second measurement at one stamp; a nanosecond after it with ``tau`` in seconds too."""
+    times = np.array([1.0, 2.0, 3.0])
+    before, after, w0, w1, variance = given_neighbours(np.array([2.0, 2.0 + 1e-14, 2.5]), times, 5.0)
+    np.testing.assert_array_equal(before[:2], -1)
+    np.testing.assert_array_equal(after[:2], -1)
+    np.testing.assert_array_equal(np.r_[w0[:2], w1[:2]], 0.0)
+    np.testing.assert_array_equal(variance[:2], 1.0)
+    assert before[2] == 1 and after[2] == 2 and 0.0 < variance[2] < 1.0
+
+
+def test_held_out_fixes_at_the_used_ones_stamps_are_judged_alone_by_every_estimator():
+    """Fixes held out at the used ones' stamps, each with an error of its own: the conditional's
+    variance there is zero and the state's part cancels, so the prediction given the used errors
+    had no covariance (numpy's "singular matrix" in all three estimators); judged alone, their
+    verdict is near 1 per dof."""
+    data = drifting(0, 5.0, duration=10.0, hz=2.0, every=1)
+    gnss = data.sensor("gnss").data
+    noise = np.random.default_rng(7).normal(0.0, 0.5, gnss.position.shape)
+    data = data.with_sensor("gnss", heldout=PositionMeasurements(gnss.t, gnss.position + noise, gnss.cov))
+    estimates = pipeline.run_estimators(data, ["ekf", "batch", "fixed-lag"],
+                                        pipeline.RunOptions(progress=False, lag_s=3.0))
+    for name, verdicts in pipeline.heldout_by_estimator(data, estimates).items():
+        verdict = verdicts["gnss"]
+        assert verdict["given_used_errors"] and 0.5 < verdict["per_dof"] < 2.0, (name, verdict)
 
 
 def _solved(data):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from drifting_fixes import drifting_run as drifting
 
+from datasets.types import PositionMeasurements, Sensor
 from smoother import pipeline
 from smoother.batch.solve import solve_batch
 from smoother.ekf.filter import run_ekf
@@ -53,7 +54,7 @@ def test_the_batch_s_last_state_is_the_filter_s_on_the_drifting_model(seed, tau)
 
 
 def test_a_vanishing_correlation_time_is_the_white_filter():
-    data = drifting(2, 1e-6, duration=10.0)
+    data = drifting(2, 0.01, duration=10.0)  # the shortest a dataset takes: 20 of them between fixes
     drifting_filter = run_ekf(data, progress=False)
     white = run_ekf(data.with_sensor("gnss", correlation_time=None), progress=False)
     np.testing.assert_allclose(drifting_filter.trajectory.states.r, white.trajectory.states.r, rtol=0, atol=1e-9)
@@ -90,3 +91,30 @@ def test_the_filter_s_innovations_and_held_out_predictions_of_drifting_fixes_are
     assert band[0] < np.mean(held) < band[1], held
     assert 0.85 < np.mean(nis) < 1.15, nis
     assert max(white) < 0.5, white
+
+
+def _with_second_sensor(data, shift: float):
+    """``data`` with a second drifting position sensor (3 s) used at every fix of ``gnss`` (its
+    held-out ones too), stamped ``shift`` seconds later."""
+    gnss = data.sensor("gnss")
+    t = np.concatenate([gnss.data.t, gnss.heldout.t])
+    order = np.argsort(t)
+    fixes = PositionMeasurements(t[order] + shift, np.concatenate([gnss.data.position, gnss.heldout.position])[order],
+                                 np.concatenate([gnss.data.cov, gnss.heldout.cov])[order])
+    return replace(data, sensors=(*data.sensors, Sensor("second", "position", fixes, correlation_time=3.0)))
+
+
+def test_a_held_out_fix_where_another_drifting_sensor_was_just_used_is_predicted_as_a_moment_after_it():
+    """Another drifting sensor's update at the same instant (its noise all its error's, ``R`` zero)
+    leaves the rest of the state singular beside ``gnss``'s error, and its held-out prediction
+    conditions on it (a degenerate Gaussian: the pseudo-inverse). Before, the EKF stopped in numpy
+    ("singular matrix"); now its verdict is the one of the same data with the other sensor's
+    stamps a tenth of a millisecond earlier, where nothing is singular, within 1e-3."""
+    data = drifting(0, 5.0, duration=10.0)
+    per_dof = []
+    for shift in (0.0, -1e-4):
+        shifted = _with_second_sensor(data, shift)
+        estimates = pipeline.run_estimators(shifted, ["ekf"], pipeline.RunOptions(progress=False))
+        per_dof.append(pipeline.heldout_by_estimator(shifted, estimates)["ekf"]["gnss"]["per_dof"])
+    assert np.isfinite(per_dof[0])
+    assert per_dof[0] == pytest.approx(per_dof[1], rel=1e-3), per_dof

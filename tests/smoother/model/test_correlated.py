@@ -14,7 +14,7 @@ from datasets.types import Sensor
 from factors.calibration import CalibrationPrior
 from factors.errors import InputError
 from smoother.model.blocks import Layout, evaluate_block
-from smoother.model.correlated import correlated_block, transitions, with_correlated_errors
+from smoother.model.correlated import correlated_block, innovation_weights, transitions, with_correlated_errors
 from smoother.model.problem import build_problem
 
 
@@ -72,7 +72,7 @@ def test_the_factors_are_the_ar1_density_s_whitened_innovations():
 
 
 def test_a_vanishing_correlation_time_is_the_white_model():
-    data = lever_arm_run(1.3, tau=1e-6)
+    data = lever_arm_run(1.3, tau=0.01)  # the shortest a dataset takes: 77 of them between fixes
     white = build_problem(data)
     block = next(b for b in with_correlated_errors(white, data).blocks if b.name == "gnss")
     plain = next(b for b in white.blocks if b.name == "gnss")
@@ -103,10 +103,13 @@ def test_a_bad_correlation_time_is_refused_by_name(tau):
 
 
 def test_a_correlation_time_far_beyond_the_measurements_spacing_is_refused_by_name():
-    """1e20 s: ``phi`` rounds to 1 and the innovations' scale to infinity, which ended in numpy's SVD."""
-    data = lever_arm_run(1.3, tau=1e20)
-    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time 1e\+20 s is too long for measurements"):
-        with_correlated_errors(build_problem(data), data)
+    """``phi`` rounding to 1 and the innovations' scale to infinity ended in numpy's SVD: 1e20 s is
+    beyond what a dataset takes, and the longest it takes, a day, against stamps 10 ns apart
+    (increasing, so accepted) is refused where the factors are made."""
+    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time: expected a value within"):
+        lever_arm_run(1.3, tau=1e20)
+    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time 86400 s is too long for measurements"):
+        innovation_weights("gnss", np.array([0.0, 1.0, 1.0 + 1e-8]), 86_400.0)
 
 
 def test_a_sensor_without_used_measurements_beside_a_drifting_one_is_no_obstacle():
