@@ -32,6 +32,7 @@ from smoother.ekf.calibrated import run_calibrated_ekf
 from smoother.ekf.filter import run_ekf
 from smoother.errors import NotConverged
 from smoother.estimators import ESTIMATORS
+from smoother.fixed_lag.kinds import GTSAM_KINDS
 from smoother.model.between import Following
 from smoother.model.correlated import with_correlated_errors
 from smoother.model.covariances import joint_blocks
@@ -532,10 +533,17 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
     from smoother.online.replay import replay
 
     held_out = any(s.heldout is not None for s in dataset.sensors)  # states between keyframes: bridged there
-    windowed = _windowed_predictions(dataset, options)
+    windowed, residuals = _in_the_window(dataset, options)
+    readers = [reader for reader in (windowed, residuals) if reader is not None]
+
+    def before_leaving(window, leaving) -> None:
+        leaving = list(leaving)
+        for reader in readers:
+            reader(window, leaving)
+
     r = replay(dataset, options.lag_s, options.fixed_lag_kind, options.keyframe_rate, options.robust,
                options.covariances, options.max_delay_s, options.realtime, options.speed, options.progress,
-               joint_with_next=held_out, before_leaving=windowed)
+               joint_with_next=held_out, before_leaving=before_leaving if readers else None)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
                "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind)}
@@ -550,23 +558,28 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
     if windowed is not None and r.following is not None:  # its own predictions, and those given the used errors
         heldout = windowed.attached_to(heldout_predictions(dataset, r.smoothed, calibration, r.following))
     return Estimate("fixed-lag", r.smoothed, r.runtime_s, details, calibration=calibration, following=r.following,
-                    heldout=heldout)
+                    heldout=heldout, consistency=None if residuals is None else residuals.verdicts())
 
 
-def _windowed_predictions(dataset: Dataset, options: RunOptions):
-    """What predicts the held-out measurements of ``dataset``'s drifting sensors in the fixed-lag
-    smoother's window, given the used errors (:class:`smoother.diagnosis.heldout_windowed.WindowedPredictions`,
-    on the batch's factors at the window's keyframes), or None: no such sensor (one whose calibration
-    the window estimates is not predicted so: its estimate changes from update to update), no
-    covariances, or GTSAM's windows (white)."""
+def _in_the_window(dataset: Dataset, options: RunOptions) -> tuple:
+    """What reads the fixed-lag smoother's window about ``dataset``'s drifting sensors as its
+    keyframes leave it, on the batch's factors at the window's keyframes: their held-out
+    measurements' predictions given the used errors
+    (:class:`smoother.diagnosis.heldout_windowed.WindowedPredictions`) and their own residuals'
+    verdicts (:class:`smoother.diagnosis.residual_windowed.WindowedResiduals`), each None where
+    there is nothing to read: no such sensor (one whose calibration the window estimates is not read
+    so: its estimate changes from update to update), no covariances, or GTSAM's windows (white)."""
     from smoother.diagnosis.heldout_windowed import WindowedPredictions
+    from smoother.diagnosis.residual_windowed import WindowedResiduals
 
-    drifting = [s for s in dataset.sensors if s.correlation_time is not None and s.heldout is not None
-                and s.data is not None and s.calibrate is None]
-    if not drifting or not options.covariances or options.fixed_lag_kind != "sliding":
-        return None
+    drifting = [s for s in dataset.sensors if s.correlation_time is not None and s.data is not None
+                and s.calibrate is None]
+    if not drifting or not options.covariances or options.fixed_lag_kind in GTSAM_KINDS:
+        return None, None
     problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust), dataset)
-    return WindowedPredictions(dataset, problem, [s.name for s in drifting]) or None
+    held_out = [s.name for s in drifting if s.heldout is not None]
+    return (WindowedPredictions(dataset, problem, held_out) or None,
+            WindowedResiduals(problem, [s.name for s in drifting]) or None)
 
 
 def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], options: RunOptions = RunOptions()) -> dict:
@@ -576,7 +589,12 @@ def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], opti
     leverages (computed with its covariances, ``details["sensors"]``), the fixed-lag smoother's
     residuals of the factors on one keyframe at its estimates
     (:func:`smoother.diagnosis.residual_consistency.smoother_consistency` over the measurement factors on
-    its keyframes). An estimator without covariances or that failed has none."""
+    its keyframes) -- but a drifting sensor's (a ``correlation_time``): its factors are innovations on
+    two keyframes, whose residuals' leverage needs the joint covariance of both, which the window's
+    output does not keep (and its own residuals judged as white would blame the sigma for the drift
+    the estimate follows), so the window judged them as it went (``consistency``:
+    :mod:`smoother.diagnosis.residual_windowed`; none where it could not: GTSAM's windows, an
+    estimated calibration). An estimator without covariances or that failed has none."""
     from smoother.diagnosis.verdicts import sensor_consistency
 
     out = {}
@@ -593,9 +611,11 @@ def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], opti
             same = len(t.t) == len(times) and np.allclose(t.t, times, rtol=0, atol=1e-9)
             # its calibrations, where it estimated them, in the residuals (the values given otherwise); an
             # attached measurement's process noise along its estimates
+            drifting = {s.name for s in dataset.sensors if s.correlation_time is not None}
             blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust, est.calibration,
-                                                          t.states)] if same else []
-            out[name] = smoother_consistency(blocks, t.states, t.cov, calibration=est.calibration)
+                                                          t.states) if b.name not in drifting] if same else []
+            out[name] = {**smoother_consistency(blocks, t.states, t.cov, calibration=est.calibration),
+                         **(est.consistency or {})}
     return out
 
 
@@ -669,7 +689,8 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
     * the fit or any one verdict is far above its band (:func:`smoother.diagnosis.verdicts.far_above`:
       the estimate does not explain that part of its own data, whatever the optimiser reported) --
       a sensor's held-out verdict (``heldout``: :func:`heldout_by_estimator`) stands for its own
-      where it has one: data the fit did not use;
+      where it has one: data the fit did not use -- unless they are a drifting sensor's, predicted
+      without the used errors (``not_given_used_errors``), which judge no model;
     * a verdict is far below its band (:func:`smoother.diagnosis.verdicts.far_below`): the sensor's
       sigma is overstated, and the estimate's covariances too large (for held-out predictions, by
       the factor that would fit them) -- or, for held-out predictions below even the state's own
@@ -700,7 +721,9 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
         ours = consistency.get(name, {})
         held = heldout.get(name, {})
         est.details["sensors"] = with_heldout(ours, held)
-        judged_by = {**ours, **held}  # a held-out verdict stands for the sensor's own
+        # a held-out verdict stands for the sensor's own -- but one predicted without the used errors
+        # of a drifting sensor (the fixed-lag smoother's, where it cannot give them) judges no model
+        judged_by = {**ours, **{k: c for k, c in held.items() if not c.get("not_given_used_errors")}}
         why = []
         fit = overall(ours)
         if fit is not None:

@@ -387,8 +387,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
         causes = {}
     kinds = {s.name: s.kind for s in dataset.sensors}
+    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info)),
-                                     kinds, followers):
+                                     kinds, followers, correlation_times=drifting):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:

@@ -94,7 +94,8 @@ def shown(c: dict) -> str:
     (301 rejected by the gate)``; held-out predictions out of band with the factor on the sensor's
     sigma that would fit them (:func:`smoother.diagnosis.heldout.sigma_factor`), ``0.613 (0.92-1.1)
     OUT OF BAND: 1 per dof at its sigma x0.19``, or, where the errors near the used measurements lie
-    below those far from them (:func:`smoother.diagnosis.heldout.near_and_far`), both figures."""
+    below those far from them (:func:`smoother.diagnosis.heldout.near_and_far`), both figures; a
+    drifting sensor's predicted without the used errors, that they judge no model."""
     if c["per_dof"] is None:
         return f"none used ({c.get('rejected', 0)} rejected by the gate)"
     if not judgeable(c):
@@ -108,6 +109,9 @@ def shown(c: dict) -> str:
                     "correlated in time, and this estimator predicts them without the used ones' errors (the batch "
                     "smoother's and the EKF's predictions are given them)" if c.get("not_given_used_errors") else
                     "correlated in time, which no white sigma fits (a correlation_time models them)"))
+    elif not c["ok"] and c.get("not_given_used_errors"):
+        text += (": not judged -- the sensor's errors drift and this estimator predicts them without the used "
+                 "ones' errors, where its estimate follows them")
     elif not c["ok"] and c["statistic"] == "heldout" and c.get("sigma_factor") is not None:
         text += f": 1 per dof at its sigma x{c['sigma_factor']:.2g}"
     return text
@@ -260,7 +264,8 @@ def suspects(kind: str | None) -> str:
 def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
                          causes: dict[str, str] | None = None, fitted: dict[str, str] | None = None,
                          sensor_kinds: dict[str, str] | None = None,
-                         follow_imu: dict[str, str] | None = None) -> list[str]:
+                         follow_imu: dict[str, str] | None = None, *,
+                         correlation_times: dict[str, float] | None = None) -> list[str]:
     """One line per sensor outside its band by more than :data:`WARN_FACTOR` in some estimator,
     with the figure of every estimator outside its band, naming what to check, and one per sensor
     with an entry in ``causes`` (per sensor, the calibration its residuals point at,
@@ -277,7 +282,10 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
     above their band name the calibration parts its kind has (:func:`suspects`), all four without.
     ``follow_imu``: per sensor whose errors may follow the IMU's, why
     (:func:`smoother.pipeline.imu_followers`): a sigma that looks too large by such a sensor's
-    errors is not said to be so alone."""
+    errors is not said to be so alone. ``correlation_times``: per drifting sensor, its
+    ``correlation_time`` [s], named beside its sigma: a time longer than its errors' makes the
+    innovations between consecutive measurements look too large (their weight grows as the two
+    errors are taken to be more alike), a shorter one too small."""
     by_sensor = dict(sorted(_by_sensor(by_estimator).items(), key=lambda item: item[0] != IMU))  # the IMU first
     imu_off = [e for e, c in by_sensor.get(IMU, {}).items() if far_above(c)]
     kinds = ", ".join(dict.fromkeys(f"{f.sensor} {f.what}" if f.what != "gap" else "gap" for f in imu_findings))
@@ -307,12 +315,15 @@ def consistency_warnings(by_estimator: dict[str, dict], imu_findings=(),
         looks = f"its sigma looks {(1.0 / max(lowest, 1e-12)) ** 0.5:.2g}x too large by its errors{following}"
         outcome = (fitted or {}).get(sensor)
         fit_said = "" if outcome is None else f"its noise was fitted ({outcome}: the noise table says why)"
+        tau = (correlation_times or {}).get(sensor)
         if high:
-            advice = (f"check its sigma (too small), {suspects((sensor_kinds or {}).get(sensor))}"
+            drift = "" if tau is None else f", its correlation_time ({tau:g} s: too long?)"
+            advice = (f"check its sigma (too small){drift}, {suspects((sensor_kinds or {}).get(sensor))}"
                       + (f"; {fit_said}" if fit_said else ""))
         else:
-            advice = (f"{looks}, though {fit_said}" if outcome is not None else
-                      f'{looks}; estimate = ["noise"] on it (or smoother run --estimate-noise) fits it to the data')
+            drift = "" if tau is None else f" or its correlation_time ({tau:g} s) too short"
+            advice = (f"{looks}{drift}, though {fit_said}" if outcome is not None else f'{looks}{drift}; estimate = '
+                      '["noise"] on it (or smoother run --estimate-noise) fits it to the data')
         if pattern is not None:
             advice = (f"its residuals point at {pattern}; " +
                       ("if that is not it, check its sigma (too small)" if high

@@ -107,6 +107,7 @@ from datasets.types import (
 from factors import calibration, imu, preintegration
 from factors.errors import InputError
 from smoother.fixed_lag.contract import HISTORY
+from smoother.fixed_lag.kinds import GTSAM_KINDS
 from smoother.fixed_lag.lag import check_lag, check_lag_spans_keyframes, sparse_measurement_warning
 from smoother.fixed_lag.windows import make_window
 from smoother.model.correlated import weighed_alone_warning
@@ -258,11 +259,11 @@ class OnlineSmoother:
         self._pending = PendingMeasurements(self.max_delay_s, self.lag_s)
         drifting = {name: setup.correlation_time for name, setup in self._sensors.items()
                     if setup.correlation_time is not None}
-        if drifting and kind != "sliding":
+        if drifting and kind in GTSAM_KINDS:
             warnings.warn(f"online smoother ({kind}): the errors of {', '.join(drifting)} are taken as white: GTSAM's "
                           "windows hold each measurement's own factor (the 'sliding' window models their "
                           "correlation_time), and their covariances are too small where the errors drift", stacklevel=2)
-        self._drift = DriftChains(drifting if kind == "sliding" else {})
+        self._drift = DriftChains({} if kind in GTSAM_KINDS else drifting)
         self._hand = HandOver(self._window, covariances, on_smoothed, joint_with_next)
         self._prediction = ImuRatePrediction(noise, self.gravity, covariances)
         self._keyframe_t: dict[float, int] = {}  # the window's keyframes by time

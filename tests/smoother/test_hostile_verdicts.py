@@ -50,6 +50,38 @@ def test_the_doubt_mark_ignores_a_verdict_that_was_not_formed():
     assert "doubtful" not in estimates["batch"].details
 
 
+def test_held_out_predictions_made_without_a_drifting_sensor_s_used_errors_judge_no_model():
+    """The fixed-lag smoother's where it cannot give them (GTSAM's windows, an estimated
+    calibration): far below their band, because its estimate follows the drift it did not model
+    in the prediction -- not a sigma to blame, and no doubt; the same figure given the used
+    errors is one."""
+    from types import SimpleNamespace
+
+    from smoother.pipeline import judged
+
+    low = {**v.verdict(0.2 * 300.0, 300.0, 100, "heldout"), "sigma_factor": 0.2, "state_share": 0.3}
+    for given, doubtful in ((False, False), (True, True)):
+        record = {**low, "given_used_errors": True} if given else {**low, "not_given_used_errors": True}
+        estimates = {"fixed-lag": SimpleNamespace(details={}, calibration=None)}
+        judged(estimates, {"fixed-lag": {}}, {"fixed-lag": {"gnss": record}})
+        assert ("doubtful" in estimates["fixed-lag"].details) == doubtful
+        text = v.shown(record)
+        assert ("not judged -- the sensor's errors drift and this estimator predicts them without the used ones' "
+                "errors" in text) != given, text
+
+
+def test_a_drifting_sensor_s_warning_names_its_correlation_time_beside_its_sigma():
+    """Too long a correlation time takes consecutive errors for more alike than they are, and their
+    innovations look too large; too short, too small. Before, only the sigma (and the IMU) was named."""
+    high = v.verdict(50.0 * 300.0, 300.0, 100, "residual")
+    low = v.verdict(0.05 * 300.0, 300.0, 100, "residual")
+    line = v.consistency_warnings({"batch": {"gnss": high}}, correlation_times={"gnss": 2000.0})[0]
+    assert "check its sigma (too small), its correlation_time (2000 s: too long?)" in line
+    line = v.consistency_warnings({"batch": {"gnss": low}}, correlation_times={"gnss": 3.0})[0]
+    assert "too large by its errors or its correlation_time (3 s) too short" in line
+    assert "correlation_time" not in v.consistency_warnings({"batch": {"gnss": high}})[0]
+
+
 def test_a_gnss_only_rig_on_model_exact_data_prints_no_band_from_a_fraction_of_a_degree_of_freedom():
     """Fixes that determine the trajectory leave the IMU factors a fraction of a degree of
     freedom: their verdict is said to be too few to judge, and nothing is warned of or advised."""
