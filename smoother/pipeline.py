@@ -529,6 +529,17 @@ def _given_values_note(dataset: Dataset, kind: str) -> dict:
                                 "estimates no calibration (the 'sliding' one, the batch smoother and the EKF do)"}
 
 
+def _drift_note(dataset: Dataset, kind: str, weighed_alone: int) -> dict:
+    """The fixed-lag smoother's details on ``dataset``'s drifting sensors: ``weighed_alone``, how
+    many of their measurements the window weighed as independent of the one before (the run warns
+    of them too), or, for GTSAM's windows, ``drift_taken_white``: the sensors whose errors they
+    take as white; nothing without such sensors."""
+    drifting = [s.name for s in dataset.sensors if s.correlation_time is not None and s.data is not None]
+    if not drifting:
+        return {}
+    return {"drift_taken_white": drifting} if kind in GTSAM_KINDS else {"weighed_alone": weighed_alone}
+
+
 def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
     from smoother.online.replay import replay
 
@@ -546,7 +557,8 @@ def _fixed_lag(dataset: Dataset, options: RunOptions) -> Estimate:
                joint_with_next=held_out, before_leaving=before_leaving if readers else None)
     details = {"lag_s": options.lag_s, "kind": options.fixed_lag_kind, "recovered_keyframes": r.recovered,
                "dropped_measurements": r.dropped, "skipped_measurements": r.skipped,
-               "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind)}
+               "longest_measurement_gap_s": r.longest_gap_s, **_given_values_note(dataset, options.fixed_lag_kind),
+               **_drift_note(dataset, options.fixed_lag_kind, r.weighed_alone)}
     if r.calibration is not None:
         details["calibration"], details["calibration_against_prior"] = calibration_records(*r.calibration)
     if options.realtime and len(r.latency_s):

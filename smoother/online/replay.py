@@ -50,6 +50,8 @@ class ReplayResult:
     #: Each keyframe's next as the window had them together (:class:`smoother.model.between.Following`),
     #: where the window computes joint covariances, or None.
     following: object = None
+    #: How many drifting measurements it weighed alone (:attr:`OnlineSmoother.weighed_alone`).
+    weighed_alone: int = 0
 
 
 def replaying(dataset: Dataset, robust: dict | None = None, keyframe_rate=None, **options) -> OnlineSmoother:
@@ -161,7 +163,8 @@ def replay(dataset: Dataset, lag_s: float = 2.0, kind: str = "sliding", keyframe
     return ReplayResult(trajectory, np.array(online.update_s), np.array(online.latency_s), dict(online.dropped),
                         dict(online.skipped), online.recovered, online.longest_gap_s, time.perf_counter() - began,
                         online.calibration,
-                        Following.of_handed_over(smoothed) if covariances and joint_with_next else None)
+                        Following.of_handed_over(smoothed) if covariances and joint_with_next else None,
+                        online.weighed_alone)
 
 
 if __name__ == "__main__":

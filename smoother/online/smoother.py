@@ -402,6 +402,13 @@ class OnlineSmoother:
             if self._last_t is None or x > self._last_t:
                 self._schedule.ask(float(x))
 
+    @property
+    def weighed_alone(self) -> int:
+        """How many drifting measurements it weighed alone, as independent of the one before: their
+        chain restarted (:class:`smoother.online.drift.DriftChains`) or the window could not make
+        their innovation (:attr:`smoother.fixed_lag.contract.FixedLagWindow.weighed_alone`)."""
+        return self._drift.restarted + self._window.weighed_alone
+
     def finish(self) -> None:
         """End of the streams: make every keyframe up to the last IMU sample and one there (the
         end of the data), then hand over the whole window (each keyframe as smoothed as it gets);
@@ -424,7 +431,7 @@ class OnlineSmoother:
             if self._before_leaving is not None:
                 self._before_leaving(self._window, list(range(self._window.first, self._window.newest + 1)))
             self._hand.give([e for _, e in self._hand.read(range(self._window.first, self._window.newest + 1))])
-        alone = weighed_alone_warning("online smoother", self._drift.restarted + self._window.weighed_alone, self.lag_s)
+        alone = weighed_alone_warning("online smoother", self.weighed_alone, self.lag_s)
         if alone is not None:
             warnings.warn(alone, stacklevel=2)
         self._finished = True

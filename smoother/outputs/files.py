@@ -164,7 +164,8 @@ def aiding_sensors(dataset: Dataset) -> list[str]:
 def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict | None = None) -> dict:
     """Write every estimate (TUM + npz, both in the data's clock; GeoJSON with a datum), the truth
     and the fixes (npz) where known and ``metrics.json`` (its ``_run`` with ``extra``, the
-    estimators, ``aiding_sensors``, ``dead_reckoning``: true without any, and ``world_frame``:
+    estimators, ``aiding_sensors``, ``correlation_times_s`` of the drifting ones (their
+    ``correlation_time``, where any has one), ``dead_reckoning``: true without any, and ``world_frame``:
     :meth:`datasets.initialise.WorldFrame.describe`) into ``out_dir``;
     return the metrics. An estimator that failed has its reason in ``metrics.json`` (``failed``)
     and no files. Files of these names already there are overwritten, others left (a run
@@ -187,7 +188,9 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         save_trajectory(out_dir / TRUTH, dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / GPS, dataset)
     aiding = aiding_sensors(dataset)
+    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
+                                   **({"correlation_times_s": drifting} if drifting else {}),
                                    "dead_reckoning": not aiding,
                                    "world_frame": world_frame(sensors_of(dataset)).describe()}}
     with atomic_write(out_dir / METRICS) as handle:

@@ -56,3 +56,23 @@ def test_fixes_the_window_weighed_alone_are_counted_not_judged():
 def test_a_drifting_sensor_whose_calibration_the_window_estimates_has_no_white_verdict():
     data = drifting(3, 10.0, duration=20.0).with_sensor("gnss", calibrate=CalibrationPrior(("lever_arm",)))
     assert "gnss" not in _verdicts(data, 3.0, ["fixed-lag"])["fixed-lag"]
+
+
+@pytest.mark.filterwarnings("ignore:.*(lag|weighed as independent|taken as white).*:UserWarning")
+def test_metrics_record_the_drift_model_and_what_the_window_made_of_it(tmp_path):
+    """``_run.correlation_times_s``; the sliding window's count of measurements weighed alone, and
+    GTSAM's windows naming the sensors whose errors they take as white (before, on stderr only)."""
+    import json
+
+    from smoother.outputs import files
+
+    data = drifting(1, 10.0, duration=20.0)
+    for kind, lag, expected in (("sliding", 0.5, "weighed_alone"), ("incremental", 3.0, "drift_taken_white")):
+        options = pipeline.RunOptions(progress=False, lag_s=lag, fixed_lag_kind=kind)
+        estimates = pipeline.run_estimators(data, ["fixed-lag"], options)
+        files.write_outputs(tmp_path / kind, data, estimates)
+        document = json.loads((tmp_path / kind / "metrics.json").read_text())
+        assert document["_run"]["correlation_times_s"] == {"gnss": 10.0}
+        assert set(document["fixed-lag"]) & {"weighed_alone", "drift_taken_white"} == {expected}
+        assert document["fixed-lag"][expected] == (["gnss"] if kind == "incremental" else
+                                                   len(data.sensor("gnss").data.t) - 1)
