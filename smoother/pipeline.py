@@ -441,6 +441,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     iterations, converged, fits = fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
     failed = False
+    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     for refit in range(MAX_REFITS + 1):
         causes = None
         if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
@@ -448,7 +449,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
 
             causes = causes_at(fit.not_grown().applied(dataset), r.trajectory, options.keyframe_rate,
                                options.robust, calibration=r.calibration)
-        fit, found = honest(fit, wrong, causes, streams)
+        fit, found = honest(fit, wrong, causes, streams, correlation_times=drifting)
         errors += found
         held.update({g.group.name: g for g in fit.groups if g.group.name in {e.group for e in found}})
         if not found or refit == MAX_REFITS or len(held) == len(order):
