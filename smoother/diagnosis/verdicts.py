@@ -61,19 +61,24 @@ TOO_FEW_DOF = "too few degrees of freedom to judge"
 MOST_REJECTED = 0.5
 
 
-def verdict(total: float, dof: float, count: int, statistic: str) -> dict:
+def verdict(total: float, dof: float, count: int, statistic: str, *, band_dof: float | None = None) -> dict:
     """A sum of squared normalised errors against its chi-square distribution: ``per_dof``
     (``total / dof``), ``band`` (the :data:`BAND_PROBABILITY` interval of ``per_dof`` for a model
     that fits), ``ok`` (inside it), ``measurements`` (``count``), ``dof`` and ``statistic``:
     ``"nis"`` (the EKF's innovations) or ``"residual"`` (a smoother's own residuals,
     :mod:`smoother.diagnosis.residual_consistency`). On fewer than :data:`MIN_DOF` degrees of
     freedom ``band`` and ``ok`` are None: not judged (:func:`judgeable`); on none, ``per_dof``
-    is None too (a sensor whose every update the EKF's gate rejected)."""
+    is None too (a sensor whose every update the EKF's gate rejected). ``band_dof``: the degrees of
+    freedom of the band where the errors are correlated (fewer than ``dof``: a sum of correlated
+    squares spreads as one of fewer independent ones, :func:`smoother.diagnosis.heldout.effective_dof`),
+    recorded beside it."""
     value = total / dof if dof > 0 else None
     out = {"per_dof": value, "band": None, "ok": None, "measurements": int(count), "dof": dof, "statistic": statistic}
     if dof >= MIN_DOF:
-        lo, hi = per_dof_band(dof, BAND_PROBABILITY)
+        lo, hi = per_dof_band(dof if band_dof is None else band_dof, BAND_PROBABILITY)
         out["band"], out["ok"] = [lo, hi], bool(lo <= value <= hi)
+    if band_dof is not None:
+        out["band_dof"] = band_dof
     return out
 
 
@@ -180,7 +185,7 @@ def far_below(c: dict) -> bool:
 def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[str, dict]:
     """Each sensor's record: its own :func:`verdict` with its held-out one's figures beside it
     (``heldout_per_dof``, ``heldout_band``, ``heldout_ok``, ``heldout_measurements``,
-    ``heldout_dof``, ``heldout_state_share``, ``heldout_sigma_factor``, ``heldout_near_far``,
+    ``heldout_dof``, ``heldout_band_dof``, ``heldout_state_share``, ``heldout_sigma_factor``, ``heldout_near_far``,
     ``heldout_correlated``, ``heldout_given_used_errors``, ``heldout_not_given_used_errors``;
     :mod:`smoother.diagnosis.heldout`);
     a sensor judged on held-out measurements alone has that verdict as its own (statistic ``heldout``)."""
@@ -189,6 +194,7 @@ def with_heldout(verdicts: dict[str, dict], heldout: dict[str, dict]) -> dict[st
         own = out.setdefault(name, {k: v for k, v in h.items() if k != "state_share"})
         own.update({"heldout_per_dof": h["per_dof"], "heldout_band": h["band"], "heldout_ok": h["ok"],
                     "heldout_measurements": h["measurements"], "heldout_dof": h["dof"],
+                    "heldout_band_dof": h.get("band_dof"),
                     "heldout_state_share": h["state_share"], "heldout_sigma_factor": h.get("sigma_factor"),
                     "heldout_near_far": h.get("near_far"), "heldout_correlated": h.get("correlated", False),
                     "heldout_given_used_errors": h.get("given_used_errors", False),
@@ -224,6 +230,7 @@ def heldout_part(c: dict) -> dict | None:
         return None
     return {"per_dof": c["heldout_per_dof"], "band": c["heldout_band"], "ok": c["heldout_ok"],
             "measurements": c["heldout_measurements"], "dof": c.get("heldout_dof"), "statistic": "heldout",
+            "band_dof": c.get("heldout_band_dof"),
             "sigma_factor": c.get("heldout_sigma_factor"), "near_far": c.get("heldout_near_far"),
             "correlated": c.get("heldout_correlated", False),
             "given_used_errors": c.get("heldout_given_used_errors", False),

@@ -9,7 +9,7 @@ import pytest
 
 from datasets.simulate import simulate
 from smoother.batch.solve import solve_batch
-from smoother.diagnosis.heldout import heldout_consistency
+from smoother.diagnosis.heldout import MIN_GAPS, effective_dof, heldout_consistency
 from smoother.ekf.filter import run_ekf
 from smoother.model.between import Following
 from smoother.model.covariances import joint_blocks
@@ -229,3 +229,17 @@ def test_a_sensor_that_holds_every_measurement_out_is_judged_and_scored_by_its_p
     e = heldout_predictions(data, batch.trajectory, following=following, covariances=False)["check"].e
     assert len(e) == len(s.heldout.t) and score(data, batch.trajectory, following=following)[
         "gps_heldout_rmse_m"] == rms_distance(e)
+
+
+def test_the_band_s_degrees_of_freedom_follow_how_alike_the_errors_are_within_the_gaps():
+    """Held-out errors independent of each other keep nearly all their degrees of freedom; errors
+    alike within each gap between used measurements (one dead reckoning each) count once per gap
+    and dimension; with fewer gaps than :data:`MIN_GAPS` there is no estimate."""
+    rng = np.random.default_rng(3)
+    G, per_gap, d = 40, 10, 3
+    gap = np.repeat(np.arange(G), per_gap)
+    independent = [effective_dof(rng.chisquare(d, G * per_gap), d, gap) for _ in range(20)]
+    assert 0.8 * G * per_gap * d < np.median(independent) <= G * per_gap * d
+    alike = [effective_dof(np.repeat(rng.chisquare(d, G), per_gap), d, gap) for _ in range(20)]
+    assert G * d <= np.median(alike) < 1.5 * G * d
+    assert effective_dof(rng.chisquare(d, 50), d, np.arange(50) % (MIN_GAPS - 1)) is None
