@@ -647,6 +647,11 @@ class Dataset:
     def sensor_names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.sensors)
 
+    @property
+    def correlation_times(self) -> dict[str, float]:
+        """Per sensor whose errors drift, its ``correlation_time`` [s] (:attr:`Sensor.correlation_time`)."""
+        return {s.name: s.correlation_time for s in self.sensors if s.correlation_time is not None}
+
     def with_sensor(self, name: str, **changes) -> "Dataset":
         """This dataset with the sensor ``name``'s fields changed (``data=``, ``heldout=``, ...;
         :func:`dataclasses.replace`); an InputError if there is no such sensor."""

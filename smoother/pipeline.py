@@ -441,7 +441,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     iterations, converged, fits = fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
     failed = False
-    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
+    drifting = dataset.correlation_times
     for refit in range(MAX_REFITS + 1):
         causes = None
         if to_analyse(fit):  # a calibration's pattern, or the sensor's own drift or noise?
@@ -581,7 +581,9 @@ def _in_the_window(dataset: Dataset, options: RunOptions) -> tuple:
     (:class:`smoother.diagnosis.heldout_windowed.WindowedPredictions`) and their own residuals'
     verdicts (:class:`smoother.diagnosis.residual_windowed.WindowedResiduals`), each None where
     there is nothing to read: no such sensor (one whose calibration the window estimates is not read
-    so: its estimate changes from update to update), no covariances, or GTSAM's windows (white)."""
+    so: its estimate changes from update to update), no covariances, or GTSAM's windows (white); or
+    data the batch's factors refuse (two measurements whose errors would be one), which the window
+    weighs alone, said in a warning."""
     from smoother.diagnosis.heldout_windowed import WindowedPredictions
     from smoother.diagnosis.residual_windowed import WindowedResiduals
 
@@ -589,7 +591,12 @@ def _in_the_window(dataset: Dataset, options: RunOptions) -> tuple:
                 and s.calibrate is None]
     if not drifting or not options.covariances or options.fixed_lag_kind in GTSAM_KINDS:
         return None, None
-    problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust), dataset)
+    try:
+        problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust), dataset)
+    except InputError as error:  # what the batch's factors refuse (two errors one), the window weighs alone
+        warnings.warn(f"fixed-lag smoother: its drifting sensors are not judged in its window "
+                      f"({_one_line(error)})", stacklevel=2)
+        return None, None
     held_out = [s.name for s in drifting if s.heldout is not None]
     return (WindowedPredictions(dataset, problem, held_out) or None,
             WindowedResiduals(problem, [s.name for s in drifting]) or None)
@@ -624,7 +631,7 @@ def verdicts_by_estimator(dataset: Dataset, estimates: dict[str, Estimate], opti
             same = len(t.t) == len(times) and np.allclose(t.t, times, rtol=0, atol=1e-9)
             # its calibrations, where it estimated them, in the residuals (the values given otherwise); an
             # attached measurement's process noise along its estimates
-            drifting = {s.name for s in dataset.sensors if s.correlation_time is not None}
+            drifting = dataset.correlation_times  # judged in its window (est.consistency)
             blocks = [b for b, _, _ in measurement_blocks(dataset, times, options.robust, est.calibration,
                                                           t.states) if b.name not in drifting] if same else []
             out[name] = {**smoother_consistency(blocks, t.states, t.cov, calibration=est.calibration),
@@ -736,7 +743,8 @@ def judged(estimates: dict[str, Estimate], consistency: dict, heldout: dict | No
         est.details["sensors"] = with_heldout(ours, held)
         # a held-out verdict stands for the sensor's own -- but one predicted without the used errors
         # of a drifting sensor (the fixed-lag smoother's, where it cannot give them) judges no model
-        judged_by = {**ours, **{k: c for k, c in held.items() if not c.get("not_given_used_errors")}}
+        held = {k: c for k, c in held.items() if not c.get("not_given_used_errors")}
+        judged_by = {**ours, **held}
         why = []
         fit = overall(ours)
         if fit is not None:

@@ -387,9 +387,8 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
               f"{' '.join(str(error).split())}); no advice below", file=sys.stderr)
         causes = {}
     kinds = {s.name: s.kind for s in dataset.sensors}
-    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
     for line in consistency_warnings(consistency, imu_findings, causes, fitted_sensors(_noise(metrics, run_info)),
-                                     kinds, followers, correlation_times=drifting):
+                                     kinds, followers, correlation_times=dataset.correlation_times):
         print(f"warning: {line}", file=sys.stderr)
     for name, est in estimates.items():
         if "doubtful" in est.details:
@@ -453,7 +452,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         cautions = {s: fit_note(verdicts.get(s), rhos.get(s), (followers or {}).get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
             handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise,
-                                             {s.name: s.correlation_time for s in dataset.sensors}))
+                                             dataset.correlation_times))
     return metrics
 
 

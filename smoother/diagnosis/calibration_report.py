@@ -151,8 +151,9 @@ def verdicts_for(estimator: str, verdicts: dict) -> dict:
     {sensor: verdict}}``), a sensor it judged none of (the fixed-lag smoother, which keeps no
     covariances of the states with the calibrations, judges no calibrated sensor) taken from the
     batch smoother's, else the EKF's, marked ``by`` with whose: the sensor's misfit is the data's
-    and the model's, and it says as much of this estimator's sigmas."""
-    out = dict(verdicts.get(estimator) or {})
+    and the model's, and it says as much of this estimator's sigmas. A held-out verdict made
+    without a drifting sensor's used errors (``not_given_used_errors``) judges no model: none."""
+    out = {sensor: v for sensor, v in (verdicts.get(estimator) or {}).items() if not v.get("not_given_used_errors")}
     for other in ("batch", "ekf"):
         for sensor, v in (verdicts.get(other) or {}).items():
             if other != estimator and sensor not in out:
@@ -170,7 +171,7 @@ def fit_note(verdict: dict | None, rho: float | None, follows_imu: str | None = 
     misfit = bool(verdict) and far_off(verdict)
     if misfit:
         lo, hi = verdict["band"]
-        what = "residuals" if verdict["statistic"] == "residual" else "innovations"
+        what = {"residual": "residuals", "heldout": "held-out predictions"}.get(verdict["statistic"], "innovations")
         whose = f"its {what} by the {verdict['by']}" if "by" in verdict else f"its {what}"
         said.append(f"{whose} are {verdict['per_dof']:.3g} per dof (band {lo:.3g}-{hi:.3g}), the sigmas take its "
                     "noise as given")

@@ -24,7 +24,7 @@ the same keyframes), so their sum spreads as one of fewer independent squares, a
 their degrees of freedom is too narrow (a consistent EKF's verdict, fixes at 5 Hz one in five
 used, spreads with a standard deviation of 0.11 over seeds where that band's is 0.05). The band's
 degrees of freedom are estimated from the spread of the gaps' sums (:func:`effective_dof`, held
-between one per gap and dimension and all of them; ``band_dof``).
+between those of errors alike within each gap and all of them; ``band_dof``).
 (A smoother's calibration's own uncertainty is left out of ``S``: it is small beside the state's
 where the data fix the calibration. The EKF's is in its augmented ``P``.)
 
@@ -72,7 +72,7 @@ SIGMA_FACTOR_RANGE = (1e-3, 1e3)
 #: ... by this many bisections of its logarithm (to a relative precision of about 1e-6).
 BISECTIONS = 45
 #: The fewest gaps between used measurements with held-out ones in them over which the held-out
-#: verdict's spread is estimated (:func:`effective_dof`); with fewer, its band takes the errors as independent.
+#: verdict's spread is estimated (:func:`effective_dof`); with fewer, its band takes each gap's errors as one.
 MIN_GAPS = 8
 #: Held-out errors near the used measurements are correlated with theirs when their mean per dof
 #: lies below that of those far from them by more than this ratio ...
@@ -98,30 +98,33 @@ def near_and_far(nis: np.ndarray, distance: np.ndarray, d: int) -> dict:
     return {"near_far": tuple(per_dof), "correlated": apart > 0.0}
 
 
-def effective_dof(nis: np.ndarray, d: int, gap: np.ndarray) -> float | None:
+def effective_dof(nis: np.ndarray, d: int, gap: np.ndarray) -> float:
     """The degrees of freedom of the held-out verdict's band: its normalised errors ``nis (M,)``
     (dimension ``d`` each) are correlated within each gap between two used measurements (``gap
     (M,)``: which gap each lies in; module docstring), so their sum spreads as a chi-square of
-    fewer degrees of freedom than ``M d``. By Satterthwaite's match of the first two moments, a sum
-    ``Q = m chi2_nu D / nu`` (``D = M d``) has ``Var Q = 2 m^2 D^2 / nu``, so
+    fewer degrees of freedom than ``D = M d``. By Satterthwaite's match of the first two moments, a
+    sum ``Q = m chi2_nu D / nu`` has ``Var Q = 2 m^2 D^2 / nu``, so
 
-        nu = 2 m^2 D^2 / Var Q,   Var Q ~ G / (G - 1) sum_g (Q_g - m D_g)^2
+        nu = 2 m^2 D^2 / Var Q,   Var Q ~ sum_g (Q_g - m_(-g) D_g)^2
 
-    over the ``G`` gaps' sums ``Q_g`` (of ``D_g`` degrees of freedom; independent from one gap to
-    the next), ``m = Q / D``, held within ``[G d, D]``: from errors alike within each gap to
-    independent ones. None with fewer than :data:`MIN_GAPS` gaps (too few to estimate a
-    spread)."""
+    over the gaps' sums ``Q_g`` (of ``D_g`` degrees of freedom, ``n_g`` errors; independent from
+    one gap to the next), ``m = Q / D``, each gap's deviation from the mean of the others,
+    ``m_(-g)`` (its own excursion stays in it, however large the gap), held within
+    ``[d (sum n_g)^2 / sum n_g^2, D]``: from errors alike within each gap (``n_g`` copies of one
+    chi-square each) to independent ones. With fewer than :data:`MIN_GAPS` gaps, too few to tell a
+    spread, the first: a band that takes each gap's errors as one."""
     _, which = np.unique(gap, return_inverse=True)
-    G = int(which.max()) + 1 if len(which) else 0
-    if G < MIN_GAPS:
-        return None
-    Q_g, D_g = np.bincount(which, weights=nis), d * np.bincount(which).astype(float)
-    D = float(D_g.sum())
-    m = float(Q_g.sum()) / D
-    spread = G / (G - 1) * float(np.sum((Q_g - m * D_g) ** 2))
+    n_g = np.bincount(which).astype(float)
+    Q_g, D_g = np.bincount(which, weights=nis), d * n_g
+    D, Q = float(D_g.sum()), float(Q_g.sum())
+    alike = d * float(n_g.sum()) ** 2 / float(np.sum(n_g * n_g))
+    if len(n_g) < MIN_GAPS:
+        return alike
+    m = Q / D
+    spread = float(np.sum((Q_g - (Q - Q_g) / (D - D_g) * D_g) ** 2))
     if not (m > 0.0 and spread > 0.0):
         return D
-    return float(np.clip(2.0 * m * m * D * D / spread, G * d, D))
+    return float(np.clip(2.0 * m * m * D * D / spread, alike, D))
 
 
 def sigma_factor(e: np.ndarray, state_part: np.ndarray, R: np.ndarray) -> float | None:

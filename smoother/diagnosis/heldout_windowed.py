@@ -36,6 +36,15 @@ from smoother.model.predicted import Conditioned, HeldoutPrediction
 DIM = STATE_DIM
 
 
+def check_keyframes(window, times: np.ndarray, reader: str) -> None:
+    """An InternalError, naming the ``reader``, unless the window's first and newest keyframes lie
+    at the problem's keyframe ``times``: what reads the window reads the problem's factors there."""
+    for k in (window.first, window.newest):
+        if abs(window.time(k) - times[k]) > 1e-9:
+            raise InternalError(f"{reader}: window keyframe {k} at t = {window.time(k):.9f} s is the problem's at "
+                                f"{times[k]:.9f} s")
+
+
 class WindowedPredictions:
     """The held-out measurements of ``dataset``'s drifting ``sensors`` (names) whose block in
     ``problem`` (the batch's factors on the fixed-lag smoother's keyframes) is a
@@ -72,10 +81,7 @@ class WindowedPredictions:
         leaving = np.asarray(list(leaving), dtype=int)
         if not len(leaving):
             return
-        for k in (window.first, window.newest):  # the window's keyframes are the problem's
-            if abs(window.time(k) - self._times[k]) > 1e-9:
-                raise InternalError(f"held-out predictions: window keyframe {k} at t = {window.time(k):.9f} s is "
-                                    f"the problem's at {self._times[k]:.9f} s")
+        check_keyframes(window, self._times, "held-out predictions")
         for s in self._sensors:
             due = ~s["done"] & np.isin(s["at"], leaving)
             # its time is after the newest keyframe's (its bridge reaches past the window): later

@@ -44,10 +44,10 @@ wrong. A fitted group is therefore a model error, with its likely cause, when
   ``phi`` leave innovations correlated ``-phi / (1 + phi^2)``, -0.5 as ``phi`` nears 1), or its
   errors have a white part beside the drift (a receiver's noise), which no one correlation time
   models (with fixes far closer than the time, a white part of 5 % of the variance alternates them
-  at -0.44). The factor, grown to put the innovations in band (5.4x on the simulator's white poses
+  at -0.44). The factor, fitted to put the innovations in band (5.4x on the simulator's white poses
   taken to drift over 3 s at 10 Hz), is applied -- the model is the user's, and a drifting receiver
   has such a part -- with a note that it fits the model, not the sensor's noise, and that held-out
-  measurements judge it;
+  measurements judge it, unless another finding here refuses it;
 * the fit grew its sigma until the estimate hardly uses it (a factor beyond
   :data:`DISCARDED_FACTOR` with a redundancy of nearly every degree of freedom its residuals have):
   its verdict no longer responds to its sigma, and the sensor is dropped, not weighed;
@@ -158,13 +158,6 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None,
             errors[name] = (f"it reads the IMU's own messages ({imu_streams[sensor]}): its residuals measure how "
                             "closely it follows the IMU, not its own error, and a sigma "
                             f"{g.factor:.3g}x the rig's would count the IMU's information twice")
-        elif sensor in (correlation_times or {}) and _alternating(g):
-            alternating[name] = (f"its innovations alternate from one measurement to the next "
-                                 f"(correlation {g.correlation:.2f}): its errors are less alike than its "
-                                 f"correlation_time ({correlation_times[sensor]:g} s) says -- a shorter one, or "
-                                 "none, models them; with a white part beside the drift (a receiver's noise), no "
-                                 "one time does -- and the factor is grown to fit the model, not the sensor's "
-                                 "noise: judge it by held-out measurements (`every`)")
         elif g.factor > IMPLAUSIBLE_FACTOR:
             errors[name] = (f"a noise {g.factor:.3g}x the rig's is no sensor's error of its datasheet: a unit, a "
                             "frame, a mounting or a time offset is wrong")
@@ -190,6 +183,13 @@ def honest(fit: NoiseFit, mounting_wrong=(), causes: dict | None = None,
         elif g.factor > DISCARDED_FACTOR and g.dof and g.redundancy >= DISCARDED_SHARE * g.dof:
             errors[name] = (f"the fit grew its sigma {g.factor:.3g}x until the estimate hardly uses it: its "
                             "measurements disagree with the rest of the model")
+        elif sensor in (correlation_times or {}) and _alternating(g):
+            alternating[name] = (f"its innovations alternate from one measurement to the next "
+                                 f"(correlation {g.correlation:.2f}): its errors are less alike than its "
+                                 f"correlation_time ({correlation_times[sensor]:g} s) says -- a shorter one, or "
+                                 "none, models them; with a white part beside the drift (a receiver's noise), no "
+                                 "one time does -- and the factor is fitted to the model, not to the sensor's "
+                                 "noise: judge it by held-out measurements (`every`)")
     if left_out := _left_out(causes):
         named = "; ".join(f"{sensor}'s residuals point at {hint(found)}" for sensor, found in left_out.items())
         for g in fit.groups:

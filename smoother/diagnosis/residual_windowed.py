@@ -25,6 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from factors.imu import STATE_DIM, ImuState
+from smoother.diagnosis.heldout_windowed import check_keyframes
 from smoother.diagnosis.verdicts import verdict
 from smoother.fixed_lag.sliding.window import MAX_INNOVATION_SPAN
 from smoother.model.blocks import evaluate_block
@@ -41,6 +42,7 @@ class WindowedResiduals:
     :meth:`verdicts`."""
 
     def __init__(self, problem, sensors):
+        self._times = problem.times
         self._sensors = []
         for block in problem.blocks:
             if not isinstance(block, CorrelatedBlock) or block.name not in sensors or not len(block):
@@ -63,6 +65,7 @@ class WindowedResiduals:
         leaving = np.asarray(list(leaving), dtype=int)
         if not len(leaving):
             return
+        check_keyframes(window, self._times, "in-sample verdicts")
         newest_t = window.time(window.newest)
         finishing = window.newest in leaving
         for s in self._sensors:

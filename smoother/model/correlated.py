@@ -162,7 +162,7 @@ def given_neighbours(t: np.ndarray, times: np.ndarray, tau: float) -> tuple:
 def one_error(t: np.ndarray, times: np.ndarray, tau: float) -> np.ndarray:
     """Per time of ``t``, whether one of the measurements' ``times`` lies so close that the process
     of the module docstring is one there: less than :data:`MIN_INNOVATION_VARIANCE` of new error
-    between them (a stamp of theirs, or within nanoseconds of one where ``tau`` is seconds). A
+    between them (a stamp of theirs, or within ``5e-13 tau`` of one: picoseconds where ``tau`` is seconds). A
     measurement there would have to equal theirs; the factors weigh such a second one alone, and a
     held-out prediction judges it alone (:func:`given_neighbours`)."""
     t = np.asarray(t, dtype=float)
@@ -244,7 +244,7 @@ def with_correlated_errors(problem, dataset: Dataset):
     sensors that have a correlation time as :func:`correlated_block` s (the problem itself where
     none has): the batch smoother's model. (A problem's keyframe factors carry each measurement's
     own factor and, for a window that makes its own, its :class:`Innovation`.)"""
-    taus = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
+    taus = dataset.correlation_times
     if not taus:
         return problem
     times = {s.name: s.data.t for s in dataset.sensors if s.name in taus and s.data is not None}

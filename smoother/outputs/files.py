@@ -188,7 +188,7 @@ def write_outputs(out_dir: Path, dataset: Dataset, estimates: dict, extra: dict 
         save_trajectory(out_dir / TRUTH, dataset.truth, dataset.time_origin_ns)
     save_gps(out_dir / GPS, dataset)
     aiding = aiding_sensors(dataset)
-    drifting = {s.name: s.correlation_time for s in dataset.sensors if s.correlation_time is not None}
+    drifting = dataset.correlation_times
     document = {**report, "_run": {**(extra or {}), "estimators": list(estimates), "aiding_sensors": aiding,
                                    **({"correlation_times_s": drifting} if drifting else {}),
                                    "dead_reckoning": not aiding,

@@ -45,7 +45,8 @@ def test_the_conditional_on_the_neighbours_is_gaussian_conditioning_on_all(used,
 def test_at_a_used_measurement_s_stamp_the_process_is_given_nothing():
     """There the model's error has no part of its own (a second measurement would equal the
     first), so the held-out one is taken alone -- weights 0, the whole variance -- as the factors
-    weigh a second measurement at one stamp; a nanosecond after it with ``tau`` in seconds too."""
+    weigh a second measurement at one stamp; 1e-14 s after it with ``tau`` in seconds too (within
+    ``5e-13 tau``)."""
     times = np.array([1.0, 2.0, 3.0])
     before, after, w0, w1, variance = given_neighbours(np.array([2.0, 2.0 + 1e-14, 2.5]), times, 5.0)
     np.testing.assert_array_equal(before[:2], -1)

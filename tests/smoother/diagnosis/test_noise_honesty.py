@@ -184,3 +184,14 @@ def test_a_drifting_sensor_s_alternating_innovations_are_applied_with_a_note_nam
         assert errors == [] and g.applied
         assert ("its innovations alternate from one measurement to the next (correlation -0.53): its errors are "
                 "less alike than its correlation_time (3 s) says" in g.note) == said, (correlation, dof, times)
+
+
+def test_a_correlation_time_does_not_turn_a_refused_factor_into_a_noted_one():
+    """Implausibly large or small, or grown until the estimate hardly uses the sensor: refused with
+    alternating innovations and a correlation time as without them."""
+    for factor, redundancy, said in ((IMPLAUSIBLE_FACTOR * 5, 200.0, "no sensor's error of its datasheet"),
+                                     (0.5 / IMPLAUSIBLE_FACTOR, 200.0, "below any sensor's datasheet"),
+                                     (20.0, 240.0, "until the estimate hardly uses it")):
+        errors = _errors(_fit(("pose", "position", (0, 1, 2), factor, redundancy, -0.53, 243)),
+                         correlation_times={"pose": 3.0})
+        assert said in errors["pose.position"], (factor, errors)
