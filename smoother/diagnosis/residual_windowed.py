@@ -70,14 +70,16 @@ class WindowedResiduals:
         finishing = window.newest in leaving
         for s in self._sensors:
             block, own = s["block"], s["own"]
-            held = (own <= window.newest) & (block.times <= newest_t)  # the measurements whose factors it holds
-            due = np.flatnonzero(~s["done"] & np.isin(s["due"], leaving))
+            # the pairs whose earlier keyframe leaves (in time order: a range of them, found by bisection)
+            due = np.arange(int(np.searchsorted(s["due"], leaving.min(), side="left")),
+                            int(np.searchsorted(s["due"], leaving.max(), side="right")))
+            due = due[~s["done"][due] & np.isin(s["due"][due], leaving)]
+            held = (own[due] <= window.newest) & (block.times[due] <= newest_t)  # factors the window holds
             # a pair whose later measurement has not arrived, or lies too far on: the window weighs it alone
-            gone = ~s["alone"][due] & (~held[due] | (own[due] - s["due"][due] > MAX_INNOVATION_SPAN))
-            s["weighed_alone"] += int((gone & (held[due] | ~finishing)).sum())  # (at the end, unheld: never used)
-            s["done"][due[gone]] = True
-            due = due[~gone & held[due]]
+            gone = ~s["alone"][due] & (~held | (own[due] - s["due"][due] > MAX_INNOVATION_SPAN))
+            s["weighed_alone"] += int((gone & (held | ~finishing)).sum())  # (at the end, unheld: never used)
             s["done"][due] = True
+            due = due[~gone & held]
             if len(due):
                 self._evaluate(window, s, due)
 
