@@ -49,10 +49,9 @@ class WindowedResiduals:
                 continue
             phi, scale = innovation_weights(block.name, block.times, block.correlation_time)
             own = block.measurements.keyframes[:, 0]
-            alone = np.arange(len(own)) == 0
-            due = np.where(alone, own, np.concatenate([own[:1], own[:-1]]))  # the earlier keyframe of each pair
+            due = np.concatenate([own[:1], own[:-1]])  # the earlier keyframe of each pair (the first: its own)
             self._sensors.append({"block": block, "measured": replace(block.measurements, whiten=block.whiten),
-                                  "phi": phi, "scale": scale, "own": own, "alone": alone, "due": due,
+                                  "phi": phi, "scale": scale, "own": own, "due": due,
                                   "done": np.zeros(len(own), dtype=bool), "total": 0.0, "dof": 0.0, "count": 0,
                                   "weighed_alone": 0})
 
@@ -76,7 +75,7 @@ class WindowedResiduals:
             due = due[~s["done"][due] & np.isin(s["due"][due], leaving)]
             held = (own[due] <= window.newest) & (block.times[due] <= newest_t)  # factors the window holds
             # a pair whose later measurement has not arrived, or lies too far on: the window weighs it alone
-            gone = ~s["alone"][due] & (~held | (own[due] - s["due"][due] > MAX_INNOVATION_SPAN))
+            gone = (due > 0) & (~held | (own[due] - s["due"][due] > MAX_INNOVATION_SPAN))
             s["weighed_alone"] += int((gone & (held | ~finishing)).sum())  # (at the end, unheld: never used)
             s["done"][due] = True
             due = due[~gone & held]
@@ -85,18 +84,17 @@ class WindowedResiduals:
 
     def _evaluate(self, window, s: dict, rows: np.ndarray) -> None:
         """Add sensor ``s``'s innovations ``rows`` at the window's estimate now to its sums."""
-        own, alone = s["own"][rows], s["alone"][rows]
-        earlier = s["own"][np.where(alone, rows, rows - 1)]
+        previous = np.maximum(rows - 1, 0)  # (the first reads itself there, with weight phi_0 = 0)
+        own, earlier = s["own"][rows], s["own"][previous]
         lo, hi = int(earlier.min()), int(own.max())
         count = hi - lo + 1
         joint = window.joint_span(lo, count).reshape(count, DIM, count, DIM).transpose(0, 2, 1, 3)
         states = ImuState.stack([window.state(k) for k in range(lo, hi + 1)])
-        previous = np.where(alone, rows, rows - 1)  # (one alone reads itself there, with a zero weight)
         needed = np.unique(np.concatenate([rows, previous]))
         ev = evaluate_block(s["measured"], states, True, rows=needed, keyframe_offset=lo, reweight=False)
         place = np.searchsorted(needed, rows), np.searchsorted(needed, previous)
-        k = np.where(alone, 0.0, s["phi"][rows] * s["scale"][rows])
-        scale = np.where(alone, 1.0, s["scale"][rows])
+        scale = s["scale"][rows]
+        k = s["phi"][rows] * scale
         f = scale[:, None] * ev.e[place[0]] - k[:, None] * ev.e[place[1]]
         A_own, A_earlier = scale[:, None, None] * ev.A[0][place[0]], -k[:, None, None] * ev.A[0][place[1]]
         a, b = own - lo, earlier - lo
