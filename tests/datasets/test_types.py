@@ -89,8 +89,8 @@ def test_sensors_are_named_once_and_found_by_name():
     ("5", "expected a number of seconds, got '5'"),
 ])
 def test_a_correlation_time_is_checked_as_the_rig_checks_it_naming_the_sensor(tau, fragment):
-    """The range of the rig key ``correlation_time`` holds for a dataset built in code too (the rig
-    and the command line refuse what the API accepted before: 1e300 ran the EKF silently)."""
+    """The range of the rig key ``correlation_time`` holds for a dataset built in code too, as the rig
+    and the command line hold it (1e300 would run the EKF silently)."""
     pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
     with pytest.raises(InputError, match=re.escape("sensor 'a': correlation_time: ") + ".*" + re.escape(fragment)):
         _dataset(sensors=(Sensor("a", "pose", pose, correlation_time=tau),))
@@ -108,8 +108,8 @@ def test_a_relative_kind_with_a_correlation_time_is_refused_by_every_estimator_n
 
 def test_an_empty_set_of_measurements_is_none():
     """A sensor whose every measurement is held out, given as an empty set of used ones, is one with
-    none (``data`` None: it only scores), as an empty held-out set is none held out; before, the
-    dataset stopped in numpy building its message about the IMU span."""
+    none (``data`` None: it only scores), as an empty held-out set is none held out -- not numpy's
+    error from the message about the IMU span, which has no stamps to name."""
     pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
     nothing = pose.subset(np.array([False, False]))
     d = _dataset(sensors=(Sensor("a", "pose", nothing, heldout=pose), Sensor("b", "pose", pose, heldout=nothing)))

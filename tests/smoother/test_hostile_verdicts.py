@@ -72,7 +72,8 @@ def test_held_out_predictions_made_without_a_drifting_sensor_s_used_errors_judge
 
 def test_a_drifting_sensor_s_warning_names_its_correlation_time_beside_its_sigma():
     """Too long a correlation time takes consecutive errors for more alike than they are, and their
-    innovations look too large; too short, too small. Before, only the sigma (and the IMU) was named."""
+    innovations look too large; too short, too small: named beside the sigma, not the sigma (or the
+    IMU) alone."""
     high = v.verdict(50.0 * 300.0, 300.0, 100, "residual")
     low = v.verdict(0.05 * 300.0, 300.0, 100, "residual")
     line = v.consistency_warnings({"batch": {"gnss": high}}, correlation_times={"gnss": 2000.0})[0]

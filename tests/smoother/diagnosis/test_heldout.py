@@ -238,8 +238,8 @@ def test_the_band_s_degrees_of_freedom_follow_how_alike_the_errors_are_within_th
     ``d (sum n)^2 / sum n^2`` -- once per gap and dimension where the gaps are equal, fewer where one
     gap (an outage) holds most of them; with fewer gaps than :data:`MIN_GAPS`, that conservative
     count itself. Over 2000 draws each, a band on it holds the verdict with about its probability
-    (measured 0.96, 0.93, 0.86 with the outage, 0.95 with few gaps; 0.20 with the outage when each
-    gap's deviation was taken from a mean that gap dominates)."""
+    (measured 0.96, 0.93, 0.86 with the outage, 0.95 with few gaps; 0.20 with the outage with each
+    gap's deviation taken from the mean of all, which that gap dominates)."""
     rng = np.random.default_rng(3)
     d = 3
 

@@ -61,7 +61,7 @@ def test_a_drifting_sensor_whose_calibration_the_window_estimates_has_no_white_v
 @pytest.mark.filterwarnings("ignore:.*(lag|weighed as independent|taken as white).*:UserWarning")
 def test_metrics_record_the_drift_model_and_what_the_window_made_of_it(tmp_path):
     """``_run.correlation_times_s``; the sliding window's count of measurements weighed alone, and
-    GTSAM's windows naming the sensors whose errors they take as white (before, on stderr only)."""
+    GTSAM's windows naming the sensors whose errors they take as white (not on stderr alone)."""
     import json
 
     from smoother.outputs import files

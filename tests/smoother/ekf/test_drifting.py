@@ -107,9 +107,9 @@ def _with_second_sensor(data, shift: float):
 def test_a_held_out_fix_where_another_drifting_sensor_was_just_used_is_predicted_as_a_moment_after_it():
     """Another drifting sensor's update at the same instant (its noise all its error's, ``R`` zero)
     leaves the rest of the state singular beside ``gnss``'s error, and its held-out prediction
-    conditions on it (a degenerate Gaussian: the pseudo-inverse). Before, the EKF stopped in numpy
-    ("singular matrix"); now its verdict is the one of the same data with the other sensor's
-    stamps a tenth of a millisecond earlier, where nothing is singular, within 1e-3."""
+    conditions on it (a degenerate Gaussian: the pseudo-inverse, where a solve stops in numpy's
+    "singular matrix"): its verdict is the one of the same data with the other sensor's stamps a
+    tenth of a millisecond earlier, where nothing is singular, within 1e-3."""
     data = drifting(0, 5.0, duration=10.0)
     per_dof = []
     for shift in (0.0, -1e-4):
