@@ -13,7 +13,7 @@ about to leave, as a white sensor's residual is read at its keyframe's estimate 
 with their estimates and joint covariance (:meth:`smoother.fixed_lag.sliding.window.SlidingWindow.joint_span`).
 The first measurement's factor is its own, ``u_0``, evaluated as its keyframe leaves. One the
 window weighed alone instead -- its predecessor's keyframe left before it arrived, or lies more
-than :data:`smoother.fixed_lag.sliding.window.MAX_INNOVATION_SPAN` keyframes back -- is not judged:
+keyframes back than the window reaches (:func:`smoother.fixed_lag.sliding.window.keeps_innovation`) -- is not judged:
 its factor takes its error as independent of the one before, which the model does not (the run
 warns of them, and the verdict counts them, ``weighed_alone``). Whitened, not robustly reweighted:
 outliers count, as in the batch's verdict.
@@ -27,7 +27,7 @@ import numpy as np
 from factors.imu import STATE_DIM, ImuState
 from smoother.diagnosis.heldout_windowed import check_keyframes
 from smoother.diagnosis.verdicts import verdict
-from smoother.fixed_lag.sliding.window import MAX_INNOVATION_SPAN
+from smoother.fixed_lag.sliding.window import keeps_innovation
 from smoother.model.blocks import evaluate_block
 from smoother.model.correlated import CorrelatedBlock, innovation_weights
 
@@ -74,8 +74,9 @@ class WindowedResiduals:
                             int(np.searchsorted(s["due"], leaving.max(), side="right")))
             due = due[~s["done"][due] & np.isin(s["due"][due], leaving)]
             held = (own[due] <= window.newest) & (block.times[due] <= newest_t)  # factors the window holds
-            # a pair whose later measurement has not arrived, or lies too far on: the window weighs it alone
-            gone = (due > 0) & (~held | (own[due] - s["due"][due] > MAX_INNOVATION_SPAN))
+            # a pair whose later measurement has not arrived (its earlier keyframe leaves now), or one the
+            # window would not make: the window weighs it alone
+            gone = (due > 0) & ~(held & keeps_innovation(s["due"][due], own[due], window.first))
             s["weighed_alone"] += int((gone & (held | ~finishing)).sum())  # (at the end, unheld: never used)
             s["done"][due] = True
             due = due[~gone & held]

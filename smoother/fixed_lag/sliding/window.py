@@ -134,6 +134,15 @@ MAX_ATTITUDE_STEP = 0.2
 _compiled = False
 
 
+def keeps_innovation(earlier, reads, first):
+    """Whether a window whose oldest keyframe is ``first`` makes a drifting measurement's innovation
+    on the one before it, whose keyframe is ``earlier``, the measurement reading keyframes up to
+    ``reads`` (arrays or numbers alike): the earlier keyframe is still in the window and at most
+    :data:`MAX_INNOVATION_SPAN` keyframes back. Otherwise the window weighs the measurement alone
+    (:meth:`SlidingWindow._innovation`; :mod:`smoother.diagnosis.residual_windowed` judges by it)."""
+    return (np.asarray(reads) - earlier <= MAX_INNOVATION_SPAN) & (np.asarray(earlier) >= first)
+
+
 def _compiling():
     """:func:`datasets.kinds.quiet_dispatch` around the first call (which compiles or loads
     :func:`linearise`), nothing after: the warning filters cost more than an update's mathematics."""
@@ -436,7 +445,7 @@ class SlidingWindow:
         innovation = measurement[5] if len(measurement) > 5 else None
         if innovation is None:
             return None, False
-        if max(measurement[2]) - innovation.keyframe > MAX_INNOVATION_SPAN or innovation.keyframe < first:
+        if not keeps_innovation(innovation.keyframe, max(measurement[2]), first):
             return None, True
         return innovation, False
 
