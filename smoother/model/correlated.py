@@ -170,7 +170,7 @@ def one_error(t: np.ndarray, times: np.ndarray, tau: float) -> np.ndarray:
         return np.zeros(t.shape, dtype=bool)
     i = np.clip(np.searchsorted(times, t), 1, max(len(times) - 1, 1))
     nearest = np.minimum(np.abs(t - times[i - 1]), np.abs(times[np.minimum(i, len(times) - 1)] - t))
-    return -np.expm1(-2.0 * nearest / tau) < MIN_INNOVATION_VARIANCE
+    return ~np.isfinite(pair_weights(nearest, tau)[1])  # the factors' own test: an innovation beyond reach
 
 
 def correlated_block(block: Block, times: np.ndarray, tau: float) -> CorrelatedBlock:
