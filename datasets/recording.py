@@ -236,7 +236,7 @@ def load_recording(rig: Rig, bias_sigma=(0.1, 0.01), part: tuple | None = None) 
         # a bag topic is one message stream: a sensor_msgs/Imu carries the samples and its filter's orientation
         shared = config.topic is not None and (config.source, config.topic) == (rig.imu.source, rig.imu.topic)
         sensors.append(Sensor(config.name, config.kind, used, heldout, config.calibrate, config.estimate_noise,
-                              stream if shared else None, config.correlation_time))
+                              stream if shared else None, config.correlation_time, config.fit_correlation_time))
         whole.append(data)
     if part is not None:
         imu, sensors, whole = _part(imu, sensors, whole, part, origin_ns)

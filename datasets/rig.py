@@ -43,7 +43,8 @@ paths, ready for :mod:`datasets.sources`. Example, with every key::
     robust = "huber"                # optional: none | huber | cauchy | tukey, each [:threshold]
     correlation_time = 20.0         # optional, s: the errors drift, first-order Gauss-Markov with
                                     # this time constant and sigma as their spread (batch smoother;
-                                    # kinds of one state per measurement)
+                                    # kinds of one state per measurement); "fit": fitted to the
+                                    # held-out measurements (needs every = K > 1)
     roll_pitch_only = false         # optional, orientation sensors only: use roll and pitch, not the
                                     # heading (an AHRS without a magnetometer; the kind roll_pitch)
     declination = 2.5               # magnetometers only, and required for them: the world field's
@@ -178,7 +179,8 @@ class SensorConfig:
     are estimated from the data (``estimate`` names ``"noise"``); ``sigma_factor``: None or factors
     on the messages' standard deviations, shaped as ``sigma`` (the covariances ``D C D``, ``D`` the
     axes' factors; never with ``sigma``); ``correlation_time``: None, or the time constant [s] of its
-    errors as a first-order Gauss-Markov process (:attr:`datasets.types.Sensor.correlation_time`)."""
+    errors as a first-order Gauss-Markov process (:attr:`datasets.types.Sensor.correlation_time`);
+    ``fit_correlation_time``: that time constant to be fitted (the rig's ``correlation_time = "fit"``)."""
 
     name: str
     kind: str
@@ -196,6 +198,7 @@ class SensorConfig:
     estimate_noise: bool = False
     sigma_factor: np.ndarray | None = None
     correlation_time: float | None = None
+    fit_correlation_time: bool = False
 
 
 @dataclass(frozen=True)
@@ -471,15 +474,28 @@ def _sensor(path, folder: Path, index: int, table) -> SensorConfig:
                         time_offset=time_offset, sigma=sigma, every=every, robust=robust,
                         **_field_angles(t, kind), scale=_scale(t, kind),
                         calibrate=_calibration(t, kind, time_offset), estimate_noise=_estimates_noise(t),
-                        sigma_factor=_sigma_factor(t, kind, sigma), correlation_time=_correlation_time(t, kind))
+                        sigma_factor=_sigma_factor(t, kind, sigma), **_correlation_time(t, kind, every))
 
 
-def _correlation_time(t: "_Table", kind: str) -> float | None:
-    """The sensor's ``correlation_time`` [s] or None, on the kinds of one state per measurement."""
-    tau = t.number("correlation_time", positive=True)
-    if tau is not None and (problem := drift_problem(kind)) is not None:
+#: The rig's ``correlation_time`` that asks for it to be fitted.
+FIT = "fit"
+
+
+def _correlation_time(t: "_Table", kind: str, every: int) -> dict:
+    """The sensor's ``correlation_time`` [s] (None: white) and whether it is to be fitted (the
+    value :data:`FIT`, which needs held-out measurements), on the kinds of one state per
+    measurement."""
+    value = t.table.get("correlation_time")
+    fit = value == FIT
+    if isinstance(value, str) and not fit:
+        raise t.error("correlation_time", f'expected a number of seconds or "{FIT}", got {value!r}')
+    tau = None if fit else t.number("correlation_time", positive=True)
+    if (tau is not None or fit) and (problem := drift_problem(kind)) is not None:
         raise t.error("correlation_time", problem)
-    return tau
+    if fit and every < 2:
+        raise t.error("correlation_time", f'"{FIT}" needs held-out measurements to fit it to (every = K > 1): the '
+                      "used ones alone hardly tell it")
+    return {"correlation_time": tau, "fit_correlation_time": fit}
 
 
 def _scale(t: "_Table", kind: str) -> float:

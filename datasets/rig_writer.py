@@ -90,7 +90,7 @@ def _rebuilt(document, tables: dict) -> tomlkit.TOMLDocument:
 
 
 def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, noise: dict | None = None,
-                        correlation_times: dict | None = None) -> str:
+                        correlation_times: dict | None = None, correlation_fitted: tuple = ()) -> str:
     """The TOML text of ``rig`` (its file re-read, comments and layout kept) with the calibration
     ``records`` (``{sensor: record}``, :func:`smoother.diagnosis.calibration_report.calibration_records`)
     written in, and after a sensor's values, as a comment, its caution (``cautions``:
@@ -103,7 +103,8 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
     taken out of ``estimate`` wherever it examined a group, so the next run starts from them as
     given (put it back to fit again); with ``correlation_times`` (``{sensor: seconds}``, what the run
     modelled), each one the rig does not already give written as the sensor's ``correlation_time``,
-    noise and correlation time fitting together."""
+    noise and correlation time fitting together (those of ``correlation_fitted``, sensors' names,
+    said to be fitted; a sensor fitted white loses its ``correlation_time = "fit"``)."""
     cautions, noise, correlation_times = cautions or {}, noise or {}, correlation_times or {}
     examined = {name: g for name, g in noise.items() if not name.startswith("_")}
     document = tomlkit.parse(read_source(rig.path, "rig").decode("utf-8-sig"))
@@ -145,7 +146,14 @@ def calibrated_rig_text(rig: Rig, records: dict, cautions: dict | None = None, n
                 values["T_BS"] = [[float(x) for x in row] for row in config.T_BS]
                 drop += ["camchain", "camera"]
             tau = correlation_times.get(config.name)
-            if tau is not None and tau != config.correlation_time:
+            if config.name in correlation_fitted:
+                if tau is None:
+                    drop.append("correlation_time")
+                else:
+                    values["correlation_time"] = float(tau)
+                comments.append(f"correlation_time: {'white' if tau is None else 'this'}, fitted to the held-out "
+                                'measurements (correlation_time = "fit" fits it again)')
+            elif tau is not None and tau != config.correlation_time:
                 values["correlation_time"] = float(tau)
                 comments.append("correlation_time: as the run modelled it (--correlation-time)")
             _noise_written(table, config, {name.split(".", 1)[1]: g for name, g in examined.items()

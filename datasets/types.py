@@ -563,7 +563,12 @@ class Sensor:
     measurements are then a filter's output on the same gyro and accelerometer, and their errors
     follow the IMU's; ``correlation_time``: None for errors independent from one measurement to the
     next, else the time constant [s] of errors that drift as a first-order Gauss-Markov process of
-    the stated covariance (:mod:`smoother.model.correlated`; a kind of one state per measurement)."""
+    the stated covariance (:mod:`smoother.model.correlated`; a kind of one state per measurement);
+    ``fit_correlation_time``: whether that time constant is to be fitted to the held-out
+    measurements before the run (``correlation_time`` then None; it needs held-out ones);
+    ``tuned``: held-out measurements such a fit used (its tuning half, of ``data``'s type, or
+    None), which neither the estimators use nor the run's held-out verdicts judge -- only their
+    times are kept, as keyframes where held-out times are, so the run is the one the fit scored."""
 
     name: str
     kind: str
@@ -573,6 +578,8 @@ class Sensor:
     estimate_noise: bool = False
     imu_stream: str | None = None
     correlation_time: float | None = None
+    fit_correlation_time: bool = False
+    tuned: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -633,6 +640,12 @@ class Dataset:
             problem = None if s.correlation_time is None else correlation_time_problem(s.correlation_time)
             if problem is not None:
                 raise InputError(f"sensor {s.name!r}: correlation_time: {problem}")
+            if s.fit_correlation_time and s.correlation_time is not None:
+                raise InputError(f"sensor {s.name!r}: correlation_time: given ({s.correlation_time:g} s) and to be "
+                                 "fitted; expected one of them")
+            if s.fit_correlation_time and (s.heldout is None or s.data is None or not len(s.heldout) or not len(s.data)):
+                raise InputError(f"sensor {s.name!r}: correlation_time: fitting it needs measurements used and held "
+                                 "out (every = K > 1): the used ones alone hardly tell it")
             names.append(s.name)
         object.__setattr__(self, "sensors", tuple(self.sensors))
 
@@ -651,6 +664,11 @@ class Dataset:
     def correlation_times(self) -> dict[str, float]:
         """Per sensor whose errors drift, its ``correlation_time`` [s] (:attr:`Sensor.correlation_time`)."""
         return {s.name: s.correlation_time for s in self.sensors if s.correlation_time is not None}
+
+    @property
+    def correlation_to_fit(self) -> tuple[str, ...]:
+        """The sensors whose correlation time is to be fitted (:attr:`Sensor.fit_correlation_time`)."""
+        return tuple(s.name for s in self.sensors if s.fit_correlation_time)
 
     def with_sensor(self, name: str, **changes) -> "Dataset":
         """This dataset with the sensor ``name``'s fields changed (``data=``, ``heldout=``, ...;

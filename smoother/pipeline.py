@@ -119,9 +119,13 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     fails, from dead reckoning. ``details["start"]`` says which. With noise to estimate
     (:attr:`RunOptions.estimate_noise`) the batch smoother runs first and fits it
     (:mod:`smoother.batch.variance_components`; a batch not asked for runs for it all the same,
-    not yielded), and the other estimators run on the data with the fitted noise. ``record``, if
-    given, receives ``mounting`` (the check), ``noise`` (the fit, kept honest by
-    :func:`smoother.diagnosis.noise_honesty.honest`) and ``dataset`` (what the estimators ran on).
+    not yielded), and the other estimators run on the data with the fitted noise. Before all of
+    them, the correlation times the dataset asks to fit are fitted (:func:`_correlation_fitted`,
+    batch runs of their own), and every estimator runs with them. ``record``, if given, receives
+    ``mounting`` (the check), ``noise`` (the fit, kept honest by
+    :func:`smoother.diagnosis.noise_honesty.honest`), ``correlation_fit`` (the correlation times'
+    fits, :class:`smoother.diagnosis.correlation_fit.CorrelationFit`) and ``dataset`` (what the
+    estimators ran on).
     ``keep_going``: an estimator that fails yields an :class:`Estimate` with ``failed`` set (its
     error in one line) and the others still run; otherwise its exception propagates. While the
     others run, the sliding window's kernels compile in a second process when they are not on disk
@@ -146,8 +150,13 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     else:
         order = ["ekf", *(n for n in names if n != "ekf")] if both else list(names)
     ekf: Estimate | None = None
-    warm_up = beside = None
+    warm_up = beside = start = None  # start: the batch's, where the correlation times' fit chose it
     try:
+        if dataset.correlation_to_fit:
+            if announce is not None:
+                announce(f"batch for the correlation time of {', '.join(dataset.correlation_to_fit)}")
+            dataset, start = _correlation_fitted(dataset, options, noise, mounting, record)
+            record["dataset"] = dataset
         if options.fixed_lag_beside and "fixed-lag" in order and len(order) > 1 and not noise and not options.realtime:
             order.remove("fixed-lag")  # and its kernels, where they are to compile, compile there
             if announce is not None:
@@ -163,7 +172,7 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
             tick = time.perf_counter()
             try:
                 if name == "batch":
-                    estimate = _batch(dataset, options, ekf, noise, mounting)
+                    estimate = _batch(dataset, options, start or ekf, noise, mounting)
                     if estimate.noise is not None:
                         record["noise"] = estimate.noise
                         dataset = record["dataset"] = estimate.noise.applied(dataset)
@@ -336,6 +345,31 @@ def _ekf(dataset: Dataset, options: RunOptions) -> Estimate:
                     heldout=r.heldout)
 
 
+def _start(dataset: Dataset, options: RunOptions) -> Estimate:
+    """The EKF the batch smoother starts from, without its progress; a failed one (the batch then
+    starts from dead reckoning) where it fails."""
+    try:
+        return _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False, keyframe_rate=options.keyframe_rate))
+    except Exception as error:  # noqa: BLE001 -- the batch can still start from dead reckoning
+        return Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
+
+
+def _correlation_fitted(dataset: Dataset, options: RunOptions, noise: tuple, mounting, record: dict) -> tuple:
+    """``(dataset, start)``: ``dataset`` with the correlation times it asks to fit fitted
+    (:mod:`smoother.diagnosis.correlation_fit`: each candidate a batch run as the run's, its noise
+    fitted where the run fits it, from one EKF ``start``, which the run's batch starts from too:
+    where the noise fit has more than one minimum, the run is the one scored) and only the judging
+    half of those sensors' held-out measurements; ``record["correlation_fit"]`` the fits."""
+    from smoother.diagnosis.correlation_fit import fit_correlation_times
+
+    start = _start(dataset, options)
+    quiet = replace(options, progress=False, covariances=True)
+    fits, dataset = fit_correlation_times(dataset, lambda candidate: _batch(candidate, quiet, start, noise, mounting),
+                                          options.progress)
+    record["correlation_fit"] = fits
+    return dataset, start
+
+
 def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: tuple = (),
            mounting=None) -> Estimate:
     """The batch smoother started from ``ekf``'s estimate (an EKF run for it when None), its
@@ -346,11 +380,7 @@ def _batch(dataset: Dataset, options: RunOptions, ekf: Estimate | None, noise: t
     tick = time.perf_counter()
     details: dict = {}
     if ekf is None:
-        try:
-            ekf = _ekf(dataset, RunOptions(ekf_gate=options.ekf_gate, progress=False,
-                                           keyframe_rate=options.keyframe_rate))
-        except Exception as error:  # noqa: BLE001 -- the batch can still start from dead reckoning
-            ekf = Estimate("ekf", None, 0.0, {}, failed=_one_line(error))
+        ekf = _start(dataset, options)
         details["start_ekf_s"] = time.perf_counter() - tick
     details["start"] = "ekf" if ekf.failed is None else f"dead reckoning (the EKF failed: {ekf.failed})"
     problem = with_correlated_errors(build_problem(dataset, options.keyframe_rate, options.robust,

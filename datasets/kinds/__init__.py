@@ -490,7 +490,7 @@ def sensors_of(dataset: Dataset) -> list[Sensor]:
     for s in dataset.sensors:
         if s.kind not in KINDS:
             raise InputError(f"sensor {s.name!r}: unknown kind {s.kind!r}; expected one of {', '.join(KINDS)}")
-        problem = None if s.correlation_time is None else drift_problem(s.kind)
+        problem = drift_problem(s.kind) if s.correlation_time is not None or s.fit_correlation_time else None
         if problem is not None:
             raise InputError(f"sensor {s.name!r}: correlation_time: {problem}")
         expected = KINDS[s.kind].data_type

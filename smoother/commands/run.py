@@ -54,10 +54,11 @@ def register(sub) -> None:
     p.add_argument("--robust", action="append", default=[], metavar="[SENSOR=]KERNEL[:T]",
                    help="robust kernel none|huber|cauchy|tukey, optionally with threshold, for every sensor or "
                         "the one named (a rig's names; the built-in datasets' pose, gps, ...); repeatable")
-    p.add_argument("--correlation-time", action="append", default=[], metavar="SENSOR=SECONDS",
+    p.add_argument("--correlation-time", action="append", default=[], metavar="SENSOR=SECONDS|fit",
                    help="the sensor's errors drift as a first-order Gauss-Markov process with this time constant, "
                         "its sigma their spread (every estimator models it but GTSAM's fixed-lag kinds; a rig's "
-                        "correlation_time, which this overrides); repeatable")
+                        "correlation_time, which this overrides); 'fit': the time that best predicts half of its "
+                        "held-out measurements, which the other half then judge; repeatable")
     p.add_argument("--ekf-gate", type=float, default=None, metavar="PROB",
                    help="EKF chi-square gate: reject innovations beyond this probability (e.g. 0.999)")
     p.add_argument("--outliers", type=float, default=0.0,
@@ -117,11 +118,13 @@ def parse_robust(specs: list[str], types, defaults: dict | None = None) -> dict:
 
 def with_correlation_times(specs: list[str], dataset):
     """``dataset`` with each ``SENSOR=SECONDS`` of ``specs`` (``--correlation-time``) as that sensor's
-    :attr:`datasets.types.Sensor.correlation_time`; a UserError naming the option for an unknown
-    sensor, one of a relative kind, a value that is no number or outside the rig key's range, or a
-    sensor given twice."""
+    :attr:`datasets.types.Sensor.correlation_time` (``SENSOR=fit``: to be fitted,
+    :attr:`datasets.types.Sensor.fit_correlation_time`); a UserError naming the option for an
+    unknown sensor, one of a relative kind, a value that is no number or outside the rig key's
+    range, a fit without held-out measurements, or a sensor given twice."""
     from datasets.kinds import drift_problem
     from datasets.ranges import RANGES
+    from datasets.rig import FIT
 
     seen: dict = {}
     for spec in specs:
@@ -134,17 +137,25 @@ def with_correlation_times(specs: list[str], dataset):
         if name in seen:
             raise UserError(f"--correlation-time {spec}: sensor {name!r} has one already (--correlation-time "
                             f"{seen[name]}); give one per sensor")
-        try:
-            seconds = float(value)
-        except ValueError:
-            raise UserError(f"--correlation-time {spec}: expected a number of seconds, got {value!r}") from None
-        problem = RANGES["sensor.correlation_time"].problem(seconds)
-        if problem is not None:
-            raise UserError(f"--correlation-time {spec}: {problem}")
         if (why := drift_problem(dataset.sensor(name).kind)) is not None:
             raise UserError(f"--correlation-time {spec}: {why}")
         seen[name] = spec
-        dataset = dataset.with_sensor(name, correlation_time=seconds)
+        if value == FIT:
+            sensor = dataset.sensor(name)
+            if sensor.heldout is None or sensor.data is None:
+                raise UserError(f"--correlation-time {spec}: fitting it needs measurements of {name!r} used and held "
+                                "out (a rig's every = K > 1, --gps-every K > 1): the used ones alone hardly tell it")
+            dataset = dataset.with_sensor(name, correlation_time=None, fit_correlation_time=True)
+            continue
+        try:
+            seconds = float(value)
+        except ValueError:
+            raise UserError(f"--correlation-time {spec}: expected a number of seconds or {FIT!r}, got {value!r}") \
+                from None
+        problem = RANGES["sensor.correlation_time"].problem(seconds)
+        if problem is not None:
+            raise UserError(f"--correlation-time {spec}: {problem}")
+        dataset = dataset.with_sensor(name, correlation_time=seconds, fit_correlation_time=False)
     return dataset
 
 
@@ -317,6 +328,9 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     run_info["mounting"] = record["mounting"].record() if "mounting" in record else {}
     if "noise" in record and "batch" not in estimates:  # the batch ran for the fit alone: the fit is the run's
         run_info["noise"] = record["noise"].record()
+    fitted_times = record.get("correlation_fit", [])
+    if fitted_times:
+        run_info["correlation_fit"] = {fit.sensor: fit.record() for fit in fitted_times}
     for finding in record["mounting"].wrong if "mounting" in record else ():
         print(f"warning: mounting: {finding.message}", file=sys.stderr)
     # what follows the estimators never costs their outputs: stopped, the finished estimates are written
@@ -367,10 +381,13 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
             for line in calibration_lines(m["calibration"], m.get("calibration_against_prior", {}),
                                           verdicts_for(name, verdicts), correlations.get(name), followers):
                 print(f"  {line}")
+    for fit in fitted_times:
+        print(fit.line())
     if _noise(metrics, run_info):
         for line in noise_lines(_noise(metrics, run_info)):
             print(line)
-    if args.rig is not None and (metrics.get("batch", {}).get("calibration") or _noise(metrics, run_info)):
+    if args.rig is not None and (metrics.get("batch", {}).get("calibration") or _noise(metrics, run_info)
+                                 or fitted_times):
         print(f"the rig with the batch's calibration and noise: {args.out}/calibrated.toml", file=sys.stderr)
     latency = estimates["fixed-lag"].details.get("latency_ms") if "fixed-lag" in estimates else None
     if latency is not None:
@@ -442,7 +459,8 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         write_mcap(stage / MCAP, dataset, estimates)
     records = metrics.get("batch", {}).get("calibration") or {}
     noise = _noise(metrics, run_info)
-    if args.rig is not None and (records or noise):
+    fitted = tuple(run_info.get("correlation_fit", ()))
+    if args.rig is not None and (records or noise or fitted):
         from datasets.atomic import atomic_write
         from datasets.rig import load_rig
         from datasets.rig_writer import calibrated_rig_text
@@ -452,7 +470,7 @@ def _write_outputs(args, stage, dataset, estimates: dict, run_info: dict, correl
         cautions = {s: fit_note(verdicts.get(s), rhos.get(s), (followers or {}).get(s)) for s in records}
         with atomic_write(stage / CALIBRATED_RIG, "w") as handle:
             handle.write(calibrated_rig_text(load_rig(args.rig), records, cautions, noise,
-                                             dataset.correlation_times))
+                                             dataset.correlation_times, fitted))
     return metrics
 
 

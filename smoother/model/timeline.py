@@ -98,11 +98,12 @@ EVERY_MEASUREMENT = "measurements"
 
 def measurement_knots(dataset: Dataset) -> np.ndarray:
     """Every measurement time of every sensor (both ends of a relative one), the times of
-    held-out measurements (only their times: an evaluation wants estimates there) and the start and
-    end of the IMU data, within the IMU span: where the EKF keeps a state, and the keyframes of
+    held-out measurements (only their times: an evaluation wants estimates there; those a
+    correlation time's fit used too, :attr:`datasets.types.Sensor.tuned`) and the start and end of
+    the IMU data, within the IMU span: where the EKF keeps a state, and the keyframes of
     ``keyframe_rate=EVERY_MEASUREMENT``."""
     parts = [dataset.measurement_times(), [dataset.t0, dataset.t1]]
-    parts += [s.heldout.t for s in dataset.sensors if s.heldout is not None]
+    parts += [part.t for s in dataset.sensors for part in (s.heldout, s.tuned) if part is not None]
     times = np.unique(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
     return times[(times >= dataset.t0) & (times <= dataset.t1)]
 
