@@ -24,8 +24,9 @@ rule for the measurement's own prediction, so the sum is least, in expectation, 
 predicts them best. It is a composite likelihood: the terms within a gap between two used
 measurements are correlated, so differences of ``L`` spread wider than a likelihood ratio's. They
 are scaled by ``D / nu`` (``D`` the degrees of freedom of the tuning half, ``nu`` those of its
-band, :func:`smoother.diagnosis.heldout.effective_dof`), and the candidates within that of the
-least are the support reported beside the fitted time.
+band, :func:`smoother.diagnosis.heldout.effective_dof`), and the times whose score lies within that
+of the least (on the parabola below, where there is one) are the support reported beside the
+fitted time: about one standard deviation (for a regular likelihood, a rise of 1 in ``-2 log L``).
 
 The search. Candidates on a grid a factor :data:`COARSE_STEP` apart, from half the sensor's
 median spacing (shorter is white at its rate) to the run's span (longer, an offset), and white;
@@ -108,13 +109,16 @@ class CorrelationFit:
 
     def line(self) -> str:
         """The fit in one line, for the run's report."""
-        lo, hi = (_seconds(x) for x in self.support)
-        value = "white" if self.tau is None else f"{self.tau:.3g} s"
-        beyond = {"longest": " (the longest tried: it may be longer)",
-                  "shortest": " (the shortest tried: it may be shorter)"}.get(self.edge, "")
-        return (f"correlation time of {self.sensor}: {value}{beyond}, {lo} to {hi} within the support; fitted to "
-                f"{self.tuned} held-out measurements (odd gaps between used ones), the other {self.judge} judge the "
-                "run")
+        low, high = self.support
+        if self.tau is None:
+            value = "white errors fit best" + (f" (up to {high:.3g} s within about one sd)" if high is not None else
+                                               ", no time tried within about one sd of them")
+        else:
+            beyond = {"longest": ", the longest tried: it may be longer",
+                      "shortest": ", the shortest tried: it may be shorter"}.get(self.edge, "")
+            value = f"{self.tau:.3g} s ({_seconds(low)} to {high:.3g} s within about one sd{beyond})"
+        return (f"correlation time of {self.sensor}: {value}; fitted to {self.tuned} held-out measurements (those in odd "
+                f"gaps between used ones), the other {self.judge} judge the run")
 
 
 def _seconds(tau: float | None) -> str:
@@ -189,9 +193,7 @@ def _fit_one(dataset: Dataset, name: str, solve: Callable, progress: bool | None
     best, nis, at = tried[tau]
     d = KINDS[sensor.kind].dim
     inflation = d * len(nis) / effective_dof(nis, d, at)
-    within = [t for t, (c, _, _) in tried.items() if c.score <= best.score + inflation]
-    times = sorted(t for t in within if t is not None)
-    support = (None if None in within else times[0], times[-1] if times else None)
+    support = _support(tried, tau, inflation)
     numbers = sorted(t for t in tried if t is not None)
     edge = None if tau is None else "longest" if tau == numbers[-1] else "shortest" if tau == numbers[0] else None
     fit = CorrelationFit(name, tau, tuple(c for c, _, _ in tried.values()), support, inflation, int(tune.sum()),
@@ -211,22 +213,43 @@ def _least(tried: dict) -> float | None:
     return None if white is not None and white[0].score < tried[best][0].score else best
 
 
-def _vertex(tried: dict) -> list[float]:
-    """The vertex of the parabola in ``log tau`` through the best time tried and its neighbours
-    among those tried (none where it has fewer than two, the parabola opens down, or the vertex
-    is one tried already)."""
+def _parabola(tried: dict) -> tuple | None:
+    """``(a, b, c)`` of the parabola ``a x^2 + b x + c`` in ``x = log tau`` through the best time
+    tried and its neighbours among those tried; None where it has fewer than two or the parabola
+    opens down."""
     best = _least(tried)
     numbers = sorted(t for t, (c, _, _) in tried.items() if t is not None and math.isfinite(c.score))
     if best is None or best in (numbers[0], numbers[-1]):
-        return []
+        return None
     i = numbers.index(best)
-    x = np.log(numbers[i - 1:i + 2])
-    y = np.array([tried[t][0].score for t in numbers[i - 1:i + 2]])
-    a, b, _ = np.polyfit(x, y, 2)
-    if not a > 0.0:
+    a, b, c = np.polyfit(np.log(numbers[i - 1:i + 2]), [tried[t][0].score for t in numbers[i - 1:i + 2]], 2)
+    return (a, b, c) if a > 0.0 else None
+
+
+def _vertex(tried: dict) -> list[float]:
+    """The vertex of :func:`_parabola`, to try (none without one, or where it is a time tried)."""
+    parabola = _parabola(tried)
+    if parabola is None:
         return []
-    vertex = float(np.exp(-b / (2.0 * a)))
-    return [vertex] if min(abs(math.log(vertex / t)) for t in numbers) > 1e-2 else []
+    vertex = float(np.exp(-parabola[1] / (2.0 * parabola[0])))
+    return [vertex] if min(abs(math.log(vertex / t)) for t in tried if t is not None) > 1e-2 else []
+
+
+def _support(tried: dict, tau: float | None, inflation: float) -> tuple:
+    """``(shortest, longest)`` correlation time whose score lies within ``inflation`` of the
+    least's (``tau``'s; None: white): on :func:`_parabola` where it has one, else among the times
+    tried, and at least those tried within it."""
+    least = tried[tau][0].score
+    within = [t for t, (c, _, _) in tried.items() if c.score <= least + inflation]
+    times = sorted(t for t in within if t is not None)
+    low, high = (None if None in within else times[0]), (times[-1] if times else None)
+    parabola = _parabola(tried)
+    if parabola is not None and tau is not None:
+        a, b, _ = parabola
+        half = math.sqrt(inflation / a)
+        centre = -b / (2.0 * a)
+        low, high = min(low, math.exp(centre - half)), max(high, math.exp(centre + half))
+    return low, high
 
 
 def _scored(base: Dataset, name: str, tau: float | None, tune: np.ndarray, gaps: np.ndarray, solve: Callable) -> tuple:

@@ -267,7 +267,9 @@ def test_an_error_quoting_a_huge_value_is_one_line_of_bounded_length(capsys, tmp
 @pytest.mark.parametrize("spec, said", [
     ("pose", "--correlation-time pose: expected SENSOR=SECONDS"),
     ("gnss=5", "--correlation-time gnss=5: unknown sensor 'gnss'; expected one of pose"),
-    ("pose=soon", "--correlation-time pose=soon: expected a number of seconds, got 'soon'"),
+    ("pose=soon", "--correlation-time pose=soon: expected a number of seconds or 'fit', got 'soon'"),
+    ("pose=fit", "--correlation-time pose=fit: fitting it needs measurements of 'pose' used and held out (a rig's "
+                 "every = K > 1, --gps-every K > 1)"),
     ("pose=0", "--correlation-time pose=0: expected a value within [0.01, 86400] s"),
     ("pose=nan", "--correlation-time pose=nan: expected a value within [0.01, 86400] s"),
 ])
@@ -289,3 +291,13 @@ def test_a_correlation_time_given_twice_or_on_a_relative_sensor_is_refused():
     odometry = data.with_sensor("pose", kind="odometry")
     with pytest.raises(UserError, match="odometry measurements are relative"):
         with_correlation_times(["pose=4"], odometry)
+    with pytest.raises(UserError, match="odometry measurements are relative"):
+        with_correlation_times(["pose=fit"], odometry)
+    pose = data.sensor("pose").data
+    held = data.with_sensor("pose", data=pose.subset(slice(0, None, 2)), heldout=pose.subset(slice(1, None, 2)),
+                            correlation_time=4.0)
+    fitted = with_correlation_times(["pose=fit"], held).sensor("pose")
+    assert fitted.fit_correlation_time and fitted.correlation_time is None
+    given = with_correlation_times(["pose=3"], held.with_sensor("pose", correlation_time=None,
+                                                               fit_correlation_time=True)).sensor("pose")
+    assert given.correlation_time == 3.0 and not given.fit_correlation_time  # the option overrides the rig's "fit"

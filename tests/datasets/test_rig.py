@@ -64,6 +64,7 @@ def test_a_full_rig(tmp_path):
         "gnss", "gnss", "/fix", -0.02, 2, ("cauchy", 3.0))
     assert gnss.T_BS[2, 3] == 0.5 and np.array_equal(gnss.sigma, [0.5, 0.5, 1.0])
     assert gnss.correlation_time == 20.0 and mocap.correlation_time is None
+    assert not gnss.fit_correlation_time and not mocap.fit_correlation_time
     assert mocap.source == f"tum:{tmp_path / 'data/mocap.txt'}" and mocap.topic is None
     assert np.array_equal(mocap.T_BS, np.eye(4)) and np.array_equal(mocap.sigma, [0.01]) and mocap.robust is None
     assert (mocap.time_offset, mocap.every) == (0.0, 1)
@@ -91,6 +92,11 @@ def test_kalibr_densities_with_overrides_and_camchain(tmp_path):
     rig = load_rig(_rig(tmp_path, text))
     assert rig.imu.noise == ImuNoise(acc=0.01, gyro=0.001, acc_bias=0.02, gyro_bias=5e-5)
     assert np.abs(rig.sensors[0].T_BS @ T_cam_imu - np.eye(4)).max() < 1e-14
+
+
+def test_a_correlation_time_to_fit(tmp_path):
+    gnss = load_rig(_rig(tmp_path, FULL.replace("correlation_time = 20", 'correlation_time = "fit"'))).sensors[0]
+    assert gnss.fit_correlation_time and gnss.correlation_time is None
 
 
 def _replace(old, new):
@@ -143,6 +149,12 @@ def test_a_rotation_rounded_by_hand_is_taken_to_the_nearest_one(tmp_path):
     (_replace("correlation_time = 20", "correlation_time = 1e6"),
      "rig.toml: sensor[1] \"gnss\".correlation_time: expected a value within [0.01, 86400] s"),
     (_replace('kind = "pose"', 'kind = "odometry"\ncorrelation_time = 3'),
+     "rig.toml: sensor[2] \"mocap\".correlation_time: odometry measurements are relative"),
+    (_replace("correlation_time = 20", 'correlation_time = "fitted"'),
+     "rig.toml: sensor[1] \"gnss\".correlation_time: expected a number of seconds or \"fit\", got 'fitted'"),
+    (lambda text: text.replace("correlation_time = 20", 'correlation_time = "fit"').replace("every = 2", "every = 1"),
+     "rig.toml: sensor[1] \"gnss\".correlation_time: \"fit\" needs held-out measurements to fit it to (every = K > 1)"),
+    (_replace('kind = "pose"', 'kind = "odometry"\ncorrelation_time = "fit"\nevery = 3'),
      "rig.toml: sensor[2] \"mocap\".correlation_time: odometry measurements are relative"),
     (_replace("every = 2", "every = 0"), "rig.toml: sensor[1] \"gnss\".every: expected an integer >= 1, got 0"),
     (_replace("every = 2", "every = 1.5"),

@@ -119,3 +119,23 @@ def test_a_correlation_time_the_run_modelled_is_written_in_and_one_the_rig_gave_
     assert load_rig(path).sensors[0].correlation_time == 5.0
     same = calibrated_rig_text(load_rig(path), {}, None, None, {"wheel": 5.0})
     assert same.count("correlation_time = 5.0") == 1 and same.count("as the run modelled it") == 1
+
+
+def test_a_fitted_correlation_time_is_written_in_as_fitted_and_a_white_fit_takes_the_key_out(tmp_path):
+    """A correlation time fitted to the held-out measurements replaces the rig's ``"fit"``, with a
+    comment saying so, and reads back as a number; fitted white, the key goes: the errors are white."""
+    _rig(tmp_path)  # its files
+    path = tmp_path / "rig.toml"
+    path.write_text(RIG.replace('kind = "velocity"', 'kind = "velocity"\ncorrelation_time = "fit"\nevery = 4', 1))
+    rig = load_rig(path)
+    assert rig.sensors[0].fit_correlation_time
+    text = calibrated_rig_text(rig, {}, None, None, {"wheel": 7.5}, ("wheel",))
+    assert tomllib.loads(text)["sensor"][0]["correlation_time"] == 7.5
+    assert '# correlation_time: this, fitted to the held-out measurements (correlation_time = "fit" fits it again)' \
+        in text
+    (tmp_path / "calibrated.toml").write_text(text)
+    again = load_rig(tmp_path / "calibrated.toml").sensors[0]
+    assert again.correlation_time == 7.5 and not again.fit_correlation_time
+    white = calibrated_rig_text(rig, {}, None, None, {}, ("wheel",))
+    assert "correlation_time" not in tomllib.loads(white)["sensor"][0]
+    assert "# correlation_time: white, fitted to the held-out measurements" in white

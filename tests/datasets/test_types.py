@@ -97,6 +97,19 @@ def test_a_correlation_time_is_checked_as_the_rig_checks_it_naming_the_sensor(ta
     assert _dataset(sensors=(Sensor("a", "pose", pose, correlation_time=np.float32(5.0)),))
 
 
+def test_a_correlation_time_to_fit_needs_held_out_measurements_and_no_time_given():
+    """A fit of the correlation time (:attr:`Sensor.fit_correlation_time`) reads the held-out
+    measurements between used ones: a sensor without both, or with a time given as well, is refused."""
+    pose = PoseMeasurements([0.0, 1.0], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.eye(6))
+    with pytest.raises(InputError, match="sensor 'a': correlation_time: fitting it needs measurements used and held "
+                                         "out"):
+        _dataset(sensors=(Sensor("a", "pose", pose, fit_correlation_time=True),))
+    with pytest.raises(InputError, match=r"sensor 'a': correlation_time: given \(5 s\) and to be fitted"):
+        _dataset(sensors=(Sensor("a", "pose", pose, pose, correlation_time=5.0, fit_correlation_time=True),))
+    d = _dataset(sensors=(Sensor("a", "pose", pose, pose, fit_correlation_time=True), Sensor("b", "pose", pose)))
+    assert d.correlation_to_fit == ("a",) and d.correlation_times == {}
+
+
 def test_a_relative_kind_with_a_correlation_time_is_refused_by_every_estimator_naming_it():
     """Where kinds are checked (:func:`datasets.kinds.sensors_of`, which every estimator calls), as
     the rig and ``SensorSetup`` refuse it: the drift model chains measurements of one state each."""
