@@ -643,7 +643,8 @@ class Dataset:
             if s.fit_correlation_time and s.correlation_time is not None:
                 raise InputError(f"sensor {s.name!r}: correlation_time: given ({s.correlation_time:g} s) and to be "
                                  "fitted; expected one of them")
-            if s.fit_correlation_time and (s.heldout is None or s.data is None or not len(s.heldout) or not len(s.data)):
+            if s.fit_correlation_time and not (s.heldout is not None and len(s.heldout) and s.data is not None
+                                               and len(s.data)):
                 raise InputError(f"sensor {s.name!r}: correlation_time: fitting it needs measurements used and held "
                                  "out (every = K > 1): the used ones alone hardly tell it")
             names.append(s.name)

@@ -61,6 +61,8 @@ from smoother.progress import progress_bar
 COARSE_STEP = 4.0
 #: ... and the fewest gaps with held-out measurements each half needs (fewer: no fit).
 MIN_GAPS_PER_HALF = 2
+#: The times tried lie within the rig key's range.
+TIME_RANGE = RANGES["sensor.correlation_time"]
 
 
 @dataclass(frozen=True)
@@ -116,13 +118,10 @@ class CorrelationFit:
         else:
             beyond = {"longest": ", the longest tried: it may be longer",
                       "shortest": ", the shortest tried: it may be shorter"}.get(self.edge, "")
-            value = f"{self.tau:.3g} s ({_seconds(low)} to {high:.3g} s within about one sd{beyond})"
-        return (f"correlation time of {self.sensor}: {value}; fitted to {self.tuned} held-out measurements (those in odd "
-                f"gaps between used ones), the other {self.judge} judge the run")
-
-
-def _seconds(tau: float | None) -> str:
-    return "white" if tau is None else f"{tau:.3g} s"
+            shortest = "white" if low is None else f"{low:.3g} s"
+            value = f"{self.tau:.3g} s ({shortest} to {high:.3g} s within about one sd{beyond})"
+        return (f"correlation time of {self.sensor}: {value}; fitted to {self.tuned} held-out measurements (those in "
+                f"odd gaps between used ones), the other {self.judge} judge the run")
 
 
 def fit_correlation_times(dataset: Dataset, solve: Callable, progress: bool | None = None
@@ -130,9 +129,10 @@ def fit_correlation_times(dataset: Dataset, solve: Callable, progress: bool | No
     """Each sensor of ``dataset`` whose correlation time is to be fitted
     (:attr:`datasets.types.Dataset.correlation_to_fit`), fitted in turn (module docstring):
     ``(fits, dataset)`` with the fitted times and, for those sensors, only the judging half held
-    out (the tuning half :attr:`datasets.types.Sensor.tuned`). ``solve(dataset)`` runs the batch smoother as the run will and returns its
-    :class:`smoother.pipeline.Estimate` (trajectory, calibration, following, held-out predictions
-    of drifting sensors, noise fit); its warnings are the candidates' own and are not repeated.
+    out (the tuning half :attr:`datasets.types.Sensor.tuned`). ``solve(dataset)`` runs the batch
+    smoother as the run will and returns its :class:`smoother.pipeline.Estimate` (trajectory,
+    calibration, following, held-out predictions of drifting sensors, noise fit); its warnings are
+    the candidates' own and are not repeated.
     An InputError, naming the sensor, where either half has held-out measurements in fewer than
     :data:`MIN_GAPS_PER_HALF` gaps, or where every candidate failed."""
     fits = []
@@ -154,9 +154,8 @@ def candidate_grid(times: np.ndarray) -> list[float]:
     times = np.sort(times)
     steps = np.diff(times)
     steps = steps[steps > 0.0]
-    low, high = RANGES["sensor.correlation_time"].low, RANGES["sensor.correlation_time"].high
-    first = max(0.5 * float(np.median(steps)) if len(steps) else low, low)
-    last = min(max(float(times[-1] - times[0]), first), high)
+    first = max(0.5 * float(np.median(steps)) if len(steps) else TIME_RANGE.low, TIME_RANGE.low)
+    last = min(max(float(times[-1] - times[0]), first), TIME_RANGE.high)
     count = int(math.floor(math.log(last / first) / math.log(COARSE_STEP) + 1e-9)) + 1
     return [first * COARSE_STEP ** k for k in range(count)]
 
@@ -184,7 +183,7 @@ def _fit_one(dataset: Dataset, name: str, solve: Callable, progress: bool | None
         attempt([None, *grid])
         best = _least(tried)
         if best is not None:  # between the grid's neighbours, then the parabola's vertex
-            attempt(t for t in (best / math.sqrt(COARSE_STEP), best * math.sqrt(COARSE_STEP)) if t in RANGES["sensor.correlation_time"])
+            attempt(t for t in (best / math.sqrt(COARSE_STEP), best * math.sqrt(COARSE_STEP)) if t in TIME_RANGE)
             attempt(_vertex(tried))
     tau = _least(tried)
     if not math.isfinite(tried[tau][0].score):
@@ -248,7 +247,8 @@ def _support(tried: dict, tau: float | None, inflation: float) -> tuple:
         a, b, _ = parabola
         half = math.sqrt(inflation / a)
         centre = -b / (2.0 * a)
-        low, high = min(low, math.exp(centre - half)), max(high, math.exp(centre + half))
+        low = None if low is None else min(low, math.exp(centre - half))  # white within: the support reaches it
+        high = max(high, math.exp(centre + half))
     return low, high
 
 
@@ -261,10 +261,10 @@ def _scored(base: Dataset, name: str, tau: float | None, tune: np.ndarray, gaps:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a candidate's: the run says the chosen one's
             estimate = solve(dataset)
-    except BoxplusError as error:  # the factors refuse the time, the solver fails there
+            ran = dataset if estimate.noise is None else estimate.noise.applied(dataset)
+            index, nis, log_det = _predicted(ran, name, estimate)
+    except (BoxplusError, np.linalg.LinAlgError) as error:  # the factors refuse the time, the solver fails there
         return Candidate(tau, math.nan, " ".join(str(error).split())), np.zeros(0), np.zeros(0, dtype=int)
-    ran = dataset if estimate.noise is None else estimate.noise.applied(dataset)
-    index, nis, log_det = _predicted(ran, name, estimate)
     part = tune[index] & np.isfinite(nis) & np.isfinite(log_det)
     converged = bool(estimate.details.get("converged", True))
     if not part.any():
