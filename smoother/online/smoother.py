@@ -278,7 +278,9 @@ class OnlineSmoother:
         sensors (:func:`datasets.kinds.sensors_of`: kinds, extrinsics and, for the ``"sliding"``
         window, what of their calibrations to estimate; their time offsets are in the dataset's
         stamps already), ``robust`` kernels by sensor name; ``options`` as the constructor's. The
-        data themselves are not fed (:func:`replay` does)."""
+        data themselves are not fed (:func:`replay` does). A sensor whose correlation time is still
+        to be fitted is refused (:func:`_fit_first`)."""
+        _fit_first(dataset.correlation_to_fit)
         robust = robust or {}
         calibrating = options.get("kind", "sliding") == "sliding"
         sensors = {s.name: SensorSetup(s.kind, getattr(s.data, "T_BS", None), robust=robust.get(s.name),
@@ -292,7 +294,9 @@ class OnlineSmoother:
         """A smoother for the sensors of a rig file (:func:`datasets.rig.load_rig`: IMU noise and
         gravity, each sensor's kind, extrinsic, time offset, sigma, robust kernel and calibrations
         to estimate), starting from ``initial`` with ``initial_cov`` at the first IMU sample;
-        ``options`` as the constructor's; each sensor's ``correlation_time`` too."""
+        ``options`` as the constructor's; each sensor's ``correlation_time`` too (one still to be
+        fitted, ``"fit"``, is refused: :func:`_fit_first`)."""
+        _fit_first(tuple(s.name for s in rig.sensors if s.fit_correlation_time))
         sensors = {s.name: SensorSetup(s.kind, s.T_BS, s.time_offset, s.sigma, s.robust, calibrate=s.calibrate,
                                        sigma_factor=s.sigma_factor, correlation_time=s.correlation_time)
                    for s in rig.sensors}
@@ -633,3 +637,11 @@ class OnlineSmoother:
                 warnings.warn(text, stacklevel=5)
 
 
+def _fit_first(names: tuple) -> None:
+    """An InputError naming the sensors ``names`` whose correlation time is still to be fitted: the
+    fit needs the whole recording's held-out measurements (``smoother run``), and the run's
+    ``calibrated.toml`` then carries the time for the online smoother."""
+    if names:
+        raise InputError(f"sensor {', '.join(map(repr, names))}: correlation_time = \"fit\" is fitted by a batch run "
+                         "over a recording with held-out measurements (smoother run); start the online smoother from "
+                         "that run's calibrated.toml, which carries the fitted time")

@@ -117,6 +117,20 @@ def test_a_rig_s_correlation_time_reaches_the_online_smoother(tmp_path, recwarn)
         OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=3.0, kind="batch")
 
 
+def test_a_correlation_time_still_to_fit_is_refused_online_pointing_at_the_batch_run(tmp_path):
+    """The fit reads a whole recording's held-out measurements: the online smoother, from a rig or a
+    dataset that still asks for it, says where the time comes from instead of taking the errors as white."""
+    data = drifting_run(0, None, duration=12.0, hz=1.0, every=2)
+    rig = Rig(tmp_path / "rig.toml", ImuConfig("csv:imu.csv", None, data.noise, float(-data.gravity[2])), None,
+              (SensorConfig("gnss", "position", "csv:gnss.csv", None, np.eye(4), 0.0, np.array([0.5]), 2, None,
+                            fit_correlation_time=True),))
+    said = "sensor 'gnss': correlation_time = \"fit\" is fitted by a batch run over a recording with held-out"
+    with pytest.raises(InputError, match=re.escape(said)):
+        OnlineSmoother.from_rig(rig, data.initial, data.initial_cov, lag_s=3.0)
+    with pytest.raises(InputError, match=re.escape(said)):
+        OnlineSmoother.for_dataset(data.with_sensor("gnss", fit_correlation_time=True), lag_s=3.0)
+
+
 @pytest.mark.parametrize("kind, tau, expected", [
     ("odometry", 5.0, "odometry measurements are relative (two states each)"),
     ("position", 0.0, "expected a value within"),
