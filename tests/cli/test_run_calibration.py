@@ -209,3 +209,32 @@ def test_a_sensor_whose_messages_carry_its_noise_gets_a_sigma_factor_the_next_ru
     second = _run(str(calibrated), tmp_path / "second")
     assert "noise fitted by the batch smoother" not in capsys.readouterr().out
     assert "noise" not in second["batch"] and second["batch"]["sensors"]["gnss"]["ok"]
+
+
+def test_a_correlation_time_to_fit_is_fitted_printed_recorded_and_written_for_the_next_run(recording, tmp_path,
+                                                                                           capsys):
+    """``correlation_time = "fit"`` on the GNSS (white errors, one fix in two held out): the run prints
+    the fit, ``metrics.json`` records every time tried and how the held-out fixes were split, the
+    held-out verdict counts the judging half only, and ``calibrated.toml`` carries the result for
+    the next run, which fits nothing."""
+    folder, text = recording
+    path = folder / "fit.toml"
+    path.write_text(text.replace('topic = "/fix"', 'topic = "/fix"\ncorrelation_time = "fit"'))
+    metrics = _run(str(path), tmp_path / "first")
+    printed = capsys.readouterr().out
+    fit = metrics["_run"]["correlation_fit"]["gnss"]
+    assert "correlation time of gnss: " in printed and f"the other {fit['judged_on']} judge the run" in printed
+    assert fit["tuned_on"] + fit["judged_on"] == 20 and min(fit["tuned_on"], fit["judged_on"]) >= 8
+    assert len(fit["candidates"]) >= 5 and fit["candidates"][0]["correlation_time_s"] is None
+    scores = [c["score"] for c in fit["candidates"] if c["score"] is not None]
+    chosen = next(c["score"] for c in fit["candidates"] if c["correlation_time_s"] == fit["correlation_time_s"])
+    assert chosen == min(scores)
+    assert metrics["batch"]["sensors"]["gnss"]["heldout_measurements"] == fit["judged_on"]
+
+    written = (tmp_path / "first" / "calibrated.toml").read_text()
+    assert '"fit"' not in written.replace('correlation_time = "fit" fits it again', "")
+    assert "fitted to the held-out measurements" in written
+    gnss = next(s for s in load_rig(tmp_path / "first" / "calibrated.toml").sensors if s.name == "gnss")
+    assert gnss.correlation_time == fit["correlation_time_s"] and not gnss.fit_correlation_time
+    second = _run(str(tmp_path / "first" / "calibrated.toml"), tmp_path / "second")
+    assert "correlation time of gnss" not in capsys.readouterr().out and "correlation_fit" not in second["_run"]
