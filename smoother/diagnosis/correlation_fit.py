@@ -44,6 +44,7 @@ ones before it at their fitted times and the ones after it white.
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import dataclass
 from typing import Callable
@@ -91,8 +92,8 @@ class CorrelationFit:
     the ``candidates`` tried in the order tried, ``support`` (the shortest and longest candidate
     within the scaled score's 1 of the least, None for white), the score's ``inflation``
     (``D / nu``), how many held-out measurements ``tuned`` it and how many are left to ``judge``
-    the run, and ``edge``: ``"longest"`` or ``"shortest"`` where the best candidate is the grid's
-    end (the time may lie beyond it), else None."""
+    the run, ``edge``: ``"longest"`` or ``"shortest"`` where the best candidate is the grid's
+    end (the time may lie beyond it), else None, and the ``seconds`` it all took."""
 
     sensor: str
     tau: float | None
@@ -102,11 +103,12 @@ class CorrelationFit:
     tuned: int
     judge: int
     edge: str | None = None
+    seconds: float = 0.0
 
     def record(self) -> dict:
         """What ``metrics.json`` keeps (``_run.correlation_fit.<sensor>``)."""
         return {"correlation_time_s": self.tau, "support_s": list(self.support), "inflation": self.inflation,
-                "tuned_on": self.tuned, "judged_on": self.judge, "edge": self.edge,
+                "tuned_on": self.tuned, "judged_on": self.judge, "edge": self.edge, "seconds": self.seconds,
                 "candidates": [c.record() for c in self.candidates]}
 
     def line(self) -> str:
@@ -162,6 +164,7 @@ def candidate_grid(times: np.ndarray) -> list[float]:
 
 def _fit_one(dataset: Dataset, name: str, solve: Callable, progress: bool | None) -> tuple[CorrelationFit, Dataset]:
     """:func:`fit_correlation_times` of sensor ``name``."""
+    tick = time.perf_counter()
     sensor = dataset.sensor(name)
     tune = tuning_half(sensor.heldout.t, sensor.data.t)
     gaps = np.searchsorted(np.sort(sensor.data.t), sensor.heldout.t)
@@ -196,7 +199,7 @@ def _fit_one(dataset: Dataset, name: str, solve: Callable, progress: bool | None
     numbers = sorted(t for t in tried if t is not None)
     edge = None if tau is None else "longest" if tau == numbers[-1] else "shortest" if tau == numbers[0] else None
     fit = CorrelationFit(name, tau, tuple(c for c, _, _ in tried.values()), support, inflation, int(tune.sum()),
-                         int((~tune).sum()), edge)
+                         int((~tune).sum()), edge, time.perf_counter() - tick)
     return fit, base.with_sensor(name, correlation_time=tau, heldout=sensor.heldout.subset(~tune),
                                  tuned=sensor.heldout.subset(tune))
 

@@ -93,9 +93,9 @@ def test_a_batch_failing_at_every_time_is_one_error_naming_the_sensor_and_why():
 
 def test_the_record_keeps_every_candidate_and_a_failed_one_says_why():
     tried = (Candidate(None, -5.0), Candidate(4.0, -9.0, converged=False), Candidate(16.0, math.nan, "refused"))
-    fit = CorrelationFit("gnss", 4.0, tried, (2.0, 8.0), 1.5, 10, 12, "longest")
+    fit = CorrelationFit("gnss", 4.0, tried, (2.0, 8.0), 1.5, 10, 12, "longest", 3.5)
     assert fit.record() == {"correlation_time_s": 4.0, "support_s": [2.0, 8.0], "inflation": 1.5, "tuned_on": 10,
-                            "judged_on": 12, "edge": "longest", "candidates": [
+                            "judged_on": 12, "edge": "longest", "seconds": 3.5, "candidates": [
                                 {"correlation_time_s": None, "score": -5.0},
                                 {"correlation_time_s": 4.0, "score": -9.0, "converged": False},
                                 {"correlation_time_s": 16.0, "score": None, "failed": "refused"}]}
