@@ -322,15 +322,16 @@ def _estimate(args, dataset, names: list[str], run_options, out) -> int:
     except BaseException as error:  # keep what finished: an interruption
         if not estimates or not isinstance(error, KeyboardInterrupt):
             raise
-        return _stopped(args, out, dataset, _in_order(estimates, names), run_info, error)
+        # as the finished estimators ran: the fitted correlation times, their held-out measurements the judging half
+        return _stopped(args, out, record.get("dataset", dataset), _in_order(estimates, names),
+                        {**run_info, **_fits_of(record)}, error)
     estimates = _in_order(estimates, names)
     dataset = record.get("dataset", dataset)  # as the estimators ran on it: the fitted noise, mountings as found
     run_info["mounting"] = record["mounting"].record() if "mounting" in record else {}
     if "noise" in record and "batch" not in estimates:  # the batch ran for the fit alone: the fit is the run's
         run_info["noise"] = record["noise"].record()
     fitted_times = record.get("correlation_fit", [])
-    if fitted_times:
-        run_info["correlation_fit"] = {fit.sensor: fit.record() for fit in fitted_times}
+    run_info.update(_fits_of(record))
     for finding in record["mounting"].wrong if "mounting" in record else ():
         print(f"warning: mounting: {finding.message}", file=sys.stderr)
     # what follows the estimators never costs their outputs: stopped, the finished estimates are written
@@ -479,6 +480,14 @@ def _noise(metrics: dict, run_info: dict) -> dict | None:
     or, where the batch ran only to fit it for the estimators asked for, the run's (``run_info``,
     written as ``_run.noise``); None without a fit."""
     return metrics.get("batch", {}).get("noise") or run_info.get("noise")
+
+
+def _fits_of(record: dict) -> dict:
+    """``{"correlation_fit": {sensor: record}}`` of the correlation times the run fitted
+    (:class:`smoother.diagnosis.correlation_fit.CorrelationFit`), for ``metrics.json``'s ``_run``;
+    ``{}`` without one."""
+    fits = record.get("correlation_fit", [])
+    return {"correlation_fit": {fit.sensor: fit.record() for fit in fits}} if fits else {}
 
 
 def _in_order(estimates: dict, names: list[str]) -> dict:
