@@ -71,13 +71,22 @@ def test_in_parallel_starts_no_piece_after_one_has_failed():
 
 
 def test_in_parallel_gives_the_remaining_pieces_to_the_thread_that_is_free():
+    """The calling thread is held up on its first piece until the worker has run seven (or 30 s
+    pass): where the pieces go to the thread that is free, the worker runs all the others, however
+    the two threads are scheduled (the worker's first piece waits for the caller to hold one)."""
     caller = threading.current_thread()
     ran_by = {}
+    caller_holds_one, worker_ran_seven = threading.Event(), threading.Event()
 
     def task(lo, hi):
         if threading.current_thread() is caller:
-            time.sleep(0.3)  # the calling thread is held up on its first piece
+            caller_holds_one.set()
+            worker_ran_seven.wait(30.0)  # the calling thread is held up on its first piece
+        else:
+            caller_holds_one.wait(30.0)
         ran_by[lo] = threading.current_thread() is caller
+        if sum(not by_caller for by_caller in ran_by.values()) == 7:
+            worker_ran_seven.set()
 
     with threads.thread_limit(2):
         threads.in_parallel(task, 8, 1)
