@@ -90,6 +90,10 @@ class RunOptions:
     #: The noise groups the batch smoother estimates ("imu" and sensors' names): None for what the
     #: dataset asks (:attr:`datasets.types.Dataset.noise_to_estimate`), ``()`` for none.
     estimate_noise: tuple | None = None
+    #: Sensors whose fitted noise is applied however near the rig's value it settles
+    #: (:func:`smoother.batch.variance_components.estimate_noise`'s ``profiled``): those whose
+    #: correlation time the run fits, so that the fit's score is continuous in the time.
+    profiled_noise: tuple = ()
     #: Run the fixed-lag smoother in a second process beside the others (:func:`estimate_each`):
     #: what ``smoother run`` does where it may use two threads or more; not for runs that are
     #: already one of many processes (Monte Carlo, a fleet).
@@ -121,7 +125,8 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     (:mod:`smoother.batch.variance_components`; a batch not asked for runs for it all the same,
     not yielded), and the other estimators run on the data with the fitted noise. Before all of
     them, the correlation times the dataset asks to fit are fitted (:func:`_correlation_fitted`,
-    batch runs of their own), and every estimator runs with them. ``record``, if given, receives
+    batch runs of their own; those sensors' noise fitted without the pull to the rig's value,
+    :attr:`RunOptions.profiled_noise`), and every estimator runs with them. ``record``, if given, receives
     ``mounting`` (the check), ``noise`` (the fit, kept honest by
     :func:`smoother.diagnosis.noise_honesty.honest`), ``correlation_fit`` (the correlation times'
     fits, :class:`smoother.diagnosis.correlation_fit.CorrelationFit`) and ``dataset`` (what the
@@ -153,6 +158,8 @@ def estimate_each(dataset: Dataset, names, options: RunOptions = RunOptions(), k
     warm_up = beside = start = None  # start: the batch's, where the correlation times' fit chose it
     try:
         if dataset.correlation_to_fit:
+            # the sensors' sigmas are profiled over the time, in the candidates and in the run they choose
+            options = replace(options, profiled_noise=(*options.profiled_noise, *dataset.correlation_to_fit))
             if announce is not None:
                 announce(f"batch for the correlation time of {', '.join(dataset.correlation_to_fit)}")
             dataset, start = _correlation_fitted(dataset, options, noise, mounting, record)
@@ -466,7 +473,9 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
     wrong = [f.sensor for f in mounting.wrong] if mounting is not None else ()
     streams = imu_streams(dataset)
     before = replace(r, joint=None, square_root=None)  # where the fit starts (its memory let go with the fit)
-    fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations)
+    profiled = frozenset(options.profiled_noise)
+    fit, r, problem = estimate_noise(dataset, problem, r, noise, options.optimizer, options.max_iterations,
+                                     profiled=profiled)
     order = [g.group.name for g in fit.groups]
     iterations, converged, fits = fit.iterations, fit.converged, 1
     held, errors = {}, []  # the groups kept as model errors, as the fit that found them reported them
@@ -487,7 +496,7 @@ def _noise_fitted(dataset: Dataset, problem, r, noise: tuple, options: RunOption
         try:
             start_problem, start = _solved_from(dataset, before, options, square_root=True)
             again = estimate_noise(dataset, start_problem, start, noise, options.optimizer, options.max_iterations,
-                                   fixed=frozenset(held))
+                                   fixed=frozenset(held), profiled=profiled)
         except SolverError as error:  # the last fit stands, its applied groups fitted beside those held
             warnings.warn(f"noise estimation: fitting again with {', '.join(held)} at the rig's value failed "
                           f"({error}); the other groups keep the values fitted beside them", stacklevel=2)

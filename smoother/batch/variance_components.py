@@ -62,7 +62,9 @@ data fix no better than :data:`MAX_LOG_SD`, keeps the rig's value and is reporte
 (also where the iterations stop before they settle: its factor there is no estimate).
 A factor within :data:`SIGNIFICANCE` sd of the rig's value is reported and not applied; where every
 factor is sure to end so -- where its Newton step leads, by more than that step -- the iterations
-end there, each reported where its step leads.
+end there, each reported where its step leads. The groups of ``profiled`` sensors are applied
+wherever they settle (a profile over another parameter, a correlation time, must be continuous
+in it: a factor that snaps back to the rig's value when it nears it is not).
 
 Outliers. In a group with a robust kernel a factor whose whitened squared residual exceeds the
 :data:`TRUNCATION_PROBABILITY` quantile of chi-square with its dimension is left out of the sums
@@ -294,16 +296,18 @@ def _check_correlated_axes(sensor, axis_groups) -> None:
 
 
 def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, which, optimizer: str = "lm",
-                   max_iterations: int = 100, fixed=frozenset()) -> tuple[NoiseFit, SmootherResult, Problem]:
+                   max_iterations: int = 100, fixed=frozenset(),
+                   profiled=frozenset()) -> tuple[NoiseFit, SmootherResult, Problem]:
     """The noise groups of ``which`` (:func:`noise_groups`) fitted by restricted maximum likelihood
     (module docstring), starting from the batch estimate ``result`` of ``problem`` (built from
     ``dataset``, with covariances). Returns the fit, the batch estimate with the fitted noise
     (with covariances) and the problem with it: ``result`` (without a kept elimination) and
     ``problem`` where no factor is applied. Every other group keeps the rig's noise, and so do the
     groups named in ``fixed`` (:attr:`NoiseGroup.name`; left out of the fit and of its groups: a
-    model error's, :mod:`smoother.diagnosis.noise_honesty`). Where ``result`` kept its covariances'
-    elimination (:func:`smoother.batch.solve.solve_batch`'s ``square_root``), the first evaluation
-    reads it instead of making it again."""
+    model error's, :mod:`smoother.diagnosis.noise_honesty`). The groups of the sensors named in
+    ``profiled`` are applied however near the rig's value they settle (module docstring). Where
+    ``result`` kept its covariances' elimination (:func:`smoother.batch.solve.solve_batch`'s
+    ``square_root``), the first evaluation reads it instead of making it again."""
     start = time.perf_counter()
     if result.joint is None or result.trajectory.cov is None:
         raise InputError("noise estimation needs the batch estimate's covariances (covariances=True)")
@@ -443,7 +447,8 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
         if merged is None and settled and ties:
             # what the data do not tell from the rig's value stays the rig's; the rest fitted again --
             # or settled already, where their Newton step with those back at it says so (_held_rest)
-            if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]]:
+            if kept := [j for j in range(len(ties)) if abs(psi[ties[j][0]]) < SIGNIFICANCE * sd[j]
+                        and not all(groups[g].sensor in profiled for g in ties[j])]:
                 ahead = _held_rest(_parameter_information(information, ties), sd, s, values, kept, active, newton,
                                    share, psi_of(at, ties), ties, groups)
                 _hold(kept, psi_of(psi, ties), sd, ties, psi, held, left, groups)
@@ -463,6 +468,7 @@ def estimate_noise(dataset: Dataset, problem: Problem, result: SmootherResult, w
             # MAX_LOG_SD) -- all stay the rig's: the end the iterations would reach
             projected = values + newton
             if all(active[j] and sd[j] <= MAX_LOG_SD and abs(projected[j]) + abs(newton[j]) < SIGNIFICANCE * sd[j]
+                   and not all(groups[g].sensor in profiled for g in ties[j])
                    for j in range(len(ties))) and np.all(_unmoved(np.abs(projected - psi_of(at, ties)), sd)):
                 _hold(list(range(len(ties))), projected, sd, ties, psi, held, left, groups)
         if merged is not None or weak or kept:

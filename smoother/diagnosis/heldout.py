@@ -180,9 +180,8 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
         own = (predictions or {}).get(sensor.name)
         if own is None or own.state_part is None:
             own = _predicted(dataset, trajectory, calibration, following, sensor)
-        index, e, state_part, R = own.index, own.e, own.state_part, held.cov[own.index]
-        if own.conditioned is not None:  # errors correlated in time: judged given the used ones'
-            e, state_part, R = own.conditioned.e, own.conditioned.state_part, own.conditioned.noise
+        index = own.index
+        e, state_part, R = judged_errors(own, held.cov)
         if not len(index):
             continue
         S = state_part + R
@@ -207,6 +206,17 @@ def heldout_consistency(dataset: Dataset, trajectory: Trajectory, calibration=No
             before, after = used[np.clip(i - 1, 0, len(used) - 1)], used[np.clip(i, 0, len(used) - 1)]
             out[sensor.name].update(near_and_far(nis[good], np.minimum(np.abs(at - before), np.abs(after - at)), d))
     return out
+
+
+def judged_errors(own: HeldoutPrediction, cov: np.ndarray) -> tuple:
+    """``(e, H P H^T, R)`` by which a held-out prediction ``own`` is judged: its residuals with
+    the state's part of their covariance and the measurements' own (``cov``, the held-out
+    measurements' covariances, indexed by ``own.index``) -- or, for errors correlated in time, the
+    prediction given the used ones' errors (:class:`smoother.model.predicted.Conditioned`, in
+    whitened units: the measurement's ``R = L L^T``, ``e = L^-1 (...)``)."""
+    if own.conditioned is not None:
+        return own.conditioned.e, own.conditioned.state_part, own.conditioned.noise
+    return own.e, own.state_part, cov[own.index]
 
 
 def heldout_predictions(dataset: Dataset, trajectory: Trajectory, calibration=None, following: Following | None = None,

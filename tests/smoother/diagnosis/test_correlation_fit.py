@@ -12,11 +12,18 @@ from drifting_fixes import drifting_run
 from factors.errors import InputError, SolverError
 from smoother.diagnosis.correlation_fit import (
     COARSE_STEP,
+    MIN_BLOCKS,
     Candidate,
     CorrelationFit,
+    blocks,
     candidate_grid,
     fit_correlation_times,
+    least,
+    parabola,
+    predictive_terms,
+    support,
     tuning_half,
+    vertex,
 )
 from smoother.model.timeline import measurement_knots
 from smoother.pipeline import RunOptions, estimate_each, heldout_by_estimator
@@ -52,7 +59,7 @@ def test_drifting_errors_have_their_correlation_time_found_and_the_other_half_ju
     modelling it; the held-out set is the judging half, the tuning half's times still keyframes."""
     fit, ran, batch = _fitted(0, 10.0)
     assert 5.0 < fit.tau < 20.0 and fit.support[0] <= 10.0 <= fit.support[1], fit
-    assert fit.support[0] <= fit.tau <= fit.support[1] and fit.edge is None and fit.inflation >= 1.0
+    assert fit.support[0] <= fit.tau <= fit.support[1] and fit.edge is None
     scores = {c.tau: c.score for c in fit.candidates}
     assert scores[fit.tau] == min(scores.values()) and scores[None] > scores[fit.tau] + 100.0
     gnss = ran.sensor("gnss")
@@ -86,17 +93,109 @@ def test_a_batch_failing_at_every_time_is_one_error_naming_the_sensor_and_why():
     def failing(candidate):
         raise SolverError("indeterminant system")
 
-    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time: the batch smoother failed at every time "
-                                         r"tried \(white: indeterminant system\)"):
+    with pytest.raises(InputError, match=r"sensor 'gnss': correlation_time: no time tried predicted its held-out "
+                                         r"measurements \(white: indeterminant system\)"):
         fit_correlation_times(data, failing, progress=False)
 
 
 def test_the_record_keeps_every_candidate_and_a_failed_one_says_why():
     tried = (Candidate(None, -5.0), Candidate(4.0, -9.0, converged=False), Candidate(16.0, math.nan, "refused"))
-    fit = CorrelationFit("gnss", 4.0, tried, (2.0, 8.0), 1.5, 10, 12, "longest", 3.5)
-    assert fit.record() == {"correlation_time_s": 4.0, "support_s": [2.0, 8.0], "inflation": 1.5, "tuned_on": 10,
+    fit = CorrelationFit("gnss", 4.0, tried, (2.0, 8.0), 10, 12, "longest", 3.5)
+    assert fit.record() == {"correlation_time_s": 4.0, "support_s": [2.0, 8.0], "tuned_on": 10,
                             "judged_on": 12, "edge": "longest", "seconds": 3.5, "candidates": [
                                 {"correlation_time_s": None, "score": -5.0},
                                 {"correlation_time_s": 4.0, "score": -9.0, "converged": False},
                                 {"correlation_time_s": 16.0, "score": None, "failed": "refused"}]}
-    assert "the longest tried: it may be longer" in fit.line()
+    assert "the range's longest: it may be longer" in fit.line()
+
+
+def test_the_least_score_wins_white_on_a_tie_and_failed_times_never():
+    assert least({None: -1.0, 2.0: -3.0, 8.0: math.nan}) == 2.0
+    assert least({None: -3.0, 2.0: -3.0}) is None and least({None: math.nan, 2.0: math.nan}) is None
+
+
+def test_the_vertex_lies_between_the_best_s_neighbours_or_is_not_tried():
+    scores = {None: 10.0, 1.0: 4.0, 4.0: 0.0, 16.0: 4.0}
+    assert vertex(scores) == [] and parabola(scores)[2] == (1.0, 16.0)  # symmetric: the vertex is the best, tried
+    scores[16.0] = 2.0
+    (at,) = vertex(scores)
+    assert 4.0 < at < 16.0
+    assert vertex({None: 0.0, 1.0: -1.0, 4.0: -5.0}) == []  # the best at the end: no neighbour beyond it
+
+
+def test_blocks_are_at_least_twice_the_longest_time_and_between_their_bounds():
+    times = np.arange(0.0, 100.5, 0.5)
+    assert blocks(times, (None, 10.0)).max() + 1 == 5  # 100 s in blocks of 20 s
+    assert blocks(times, (0.1, None)).max() + 1 == 20  # at most MAX_BLOCKS
+    assert blocks(times, (80.0, 5.0)).max() + 1 == MIN_BLOCKS
+    assert np.all(np.diff(blocks(times, (None, 10.0))) >= 0)
+
+
+def test_the_support_holds_the_times_not_clearly_worse_and_white_where_it_is():
+    """Terms over 40 s (four blocks of 10 s): 16 s behind the best by nothing in sum, its
+    differences spread over the blocks, is within; 1 s, behind by 1 at every measurement (200, no
+    spread), is not; white, 10 behind with a spread of some 50, is within and makes the short end."""
+    t = np.arange(0.0, 40.0, 0.2)
+    best = np.sin(t)
+    half = np.where(t < 20.0, 0.5, -0.5)
+    terms = {4.0: (best, t), 16.0: (best + half, t), 1.0: (best + 1.0, t)}
+    scores = {tau: float(v.sum()) for tau, (v, _) in terms.items()}
+    low, high = support(scores, terms, 4.0)
+    assert 1.0 < low <= 4.0 and high >= 16.0, (low, high)
+    terms[None] = (best + np.where(t < 20.0, 0.5, -0.4), t)
+    scores[None] = float(terms[None][0].sum())
+    assert support(scores, terms, 4.0)[0] is None
+
+
+def test_the_predictive_terms_are_in_the_measurement_s_units_for_white_and_drifting_errors():
+    """At a correlation time far below the fixes' spacing the drifting model is the white one: its
+    terms (whitened, with ``log det R`` added back) equal the white model's to 1e-6 -- with a sigma
+    of 2 m, so that ``log det R`` is not zero."""
+    from smoother.diagnosis.heldout_correlated import batch_predictions  # noqa: F401 -- the batch's own
+
+    out = {}
+    for tau in (None, 0.01):
+        data = drifting_run(0, tau, duration=20.0, hz=1.0, every=2, sigma=2.0, true_tau=0.01)
+        record: dict = {}
+        estimate = dict(estimate_each(data, ["batch"], RunOptions(progress=False), record=record))["batch"]
+        out[tau] = predictive_terms(record["dataset"], "gnss", estimate)
+    assert np.array_equal(out[None][0], out[0.01][0]) and len(out[None][0]) > 5
+    np.testing.assert_allclose(out[0.01][1], out[None][1], atol=1e-6)
+
+
+def test_a_nearly_flat_score_gives_a_support_within_the_rig_key_s_range_not_an_overflow():
+    """Scores that barely curve (a parabola of curvature 1e-9) with differences that spread: the
+    sandwich's reach would be exp(1e8); it stays within the correlation time's range."""
+    from smoother.diagnosis.correlation_fit import TIME_RANGE
+
+    t = np.arange(0.0, 40.0, 0.2)
+    spread = np.where(t < 20.0, 0.5, -0.5)
+    terms = {6.4: (spread, t), 25.6: (np.zeros(len(t)), t), 102.4: (-spread, t)}
+    scores = {6.4: 1e-9, 25.6: 0.0, 102.4: 1e-9}
+    assert support(scores, terms, 25.6) == (TIME_RANGE.low, TIME_RANGE.high)
+
+
+def test_a_time_beyond_the_grid_is_followed_while_the_score_falls():
+    """Errors of 1000 s over a 20-s run: the grid ends at the span, and the fit carries on beyond it
+    while the score still falls."""
+    data = drifting_run(0, None, duration=20.0, hz=5.0, every=5, true_tau=1000.0)
+    grid = candidate_grid(np.concatenate([data.sensor("gnss").data.t, data.sensor("gnss").heldout.t]))
+    record: dict = {}
+    dict(estimate_each(data.with_sensor("gnss", fit_correlation_time=True), ["batch"], RunOptions(progress=False),
+                       record=record))
+    (fit,) = record["correlation_fit"]
+    assert fit.tau > grid[-1] and max(c.tau or 0.0 for c in fit.candidates) >= grid[-1] * COARSE_STEP, fit
+
+
+def test_held_out_measurements_all_outside_the_imu_span_are_refused_naming_the_sensor():
+    from dataclasses import replace
+
+    data = drifting_run(0, None, duration=20.0, hz=5.0, every=5)
+    gnss = data.sensor("gnss")
+    with pytest.warns(UserWarning, match="76 of 76 heldout measurements lie outside the IMU span"):
+        data = data.with_sensor("gnss", heldout=replace(gnss.heldout, t=gnss.heldout.t - 1000.0),
+                                fit_correlation_time=True)
+    assert data.sensor("gnss").heldout is None
+    with pytest.raises(InputError, match="sensor 'gnss': correlation_time: fitting it needs measurements used and "
+                                         "held out within the IMU's span; it has none held out"):
+        fit_correlation_times(data, lambda candidate: None)
