@@ -52,7 +52,7 @@ def test_the_run_waits_for_the_child_before_the_fixed_lag_smoother_and_stops_it_
         monkeypatch.setattr(pipeline, f"_{name.replace('-', '_')}",
                             lambda *a, name=name, **k: seen.append((name, list(child.calls)))
                             or pipeline.Estimate(name, None, 0.0, {}))
-    dataset = SimpleNamespace(noise_to_estimate=(), sensors=())
+    dataset = SimpleNamespace(noise_to_estimate=(), correlation_to_fit=(), sensors=())
     out = dict(pipeline.estimate_each(dataset, ["ekf", "batch", "fixed-lag"]))
     assert list(out) == ["ekf", "batch", "fixed-lag"]
     assert seen == [("ekf", []), ("batch", []), ("fixed-lag", ["wait"])]
