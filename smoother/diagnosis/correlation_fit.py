@@ -106,7 +106,8 @@ class CorrelationFit:
     within about one standard deviation of it, :func:`support`; None for white), how many held-out
     measurements ``tuned`` it and how many are left to ``judge`` the run, ``edge``: ``"longest"``
     or ``"shortest"`` where it is the end of the rig key's range (the time may lie beyond it),
-    else None, and the ``seconds`` it all took."""
+    else None, the ``seconds`` it all took, and whether the score is ``rough`` in the time
+    (:func:`support`)."""
 
     sensor: str
     tau: float | None
@@ -116,11 +117,12 @@ class CorrelationFit:
     judge: int
     edge: str | None = None
     seconds: float = 0.0
+    rough: bool = False
 
     def record(self) -> dict:
         """What ``metrics.json`` keeps (``_run.correlation_fit.<sensor>``)."""
         return {"correlation_time_s": self.tau, "support_s": list(self.support), "tuned_on": self.tuned,
-                "judged_on": self.judge, "edge": self.edge, "seconds": self.seconds,
+                "judged_on": self.judge, "edge": self.edge, "rough": self.rough, "seconds": self.seconds,
                 "candidates": [c.record() for c in self.candidates]}
 
     def line(self) -> str:
@@ -134,8 +136,11 @@ class CorrelationFit:
                       "shortest": ", the range's shortest: it may be shorter"}.get(self.edge, "")
             shortest = "white" if low is None else f"{low:.3g} s"
             value = f"{self.tau:.3g} s ({shortest} to {high:.3g} s within about one sd{beyond})"
+        rough = ("; NOT SMOOTH: a time inside that range scores clearly worse (the noise fit or the model errors "
+                 "it finds change from one time to the next), so the time is known less well than the range says"
+                 if self.rough else "")
         return (f"correlation time of {self.sensor}: {value}; fitted to {self.tuned} held-out measurements (those in "
-                f"odd gaps between used ones), the other {self.judge} judge the run")
+                f"odd gaps between used ones), the other {self.judge} judge the run{rough}")
 
 
 def fit_correlation_times(dataset: Dataset, solve: Callable, progress: bool | None = None
@@ -218,8 +223,9 @@ def _fit_one(dataset: Dataset, name: str, solve: Callable, progress: bool | None
     elif tau is not None and tau == _ends(tried)[0] and tau / COARSE_STEP not in TIME_RANGE:
         edge = "shortest"
     terms = {t: (c.terms, c.times) for t, c in tried.items() if math.isfinite(c.candidate.score)}
-    fit = CorrelationFit(name, tau, tuple(c.candidate for c in tried.values()), support(scores, terms, tau),
-                         int(tune.sum()), int((~tune).sum()), edge, time.perf_counter() - tick)
+    *reach, rough = support(scores, terms, tau)
+    fit = CorrelationFit(name, tau, tuple(c.candidate for c in tried.values()), tuple(reach), int(tune.sum()),
+                         int((~tune).sum()), edge, time.perf_counter() - tick, rough)
     return fit, base.with_sensor(name, correlation_time=tau, heldout=sensor.heldout.subset(~tune),
                                  tuned=sensor.heldout.subset(tune))
 
@@ -289,15 +295,18 @@ def blocks(times: np.ndarray, taus) -> np.ndarray:
 
 
 def support(scores: dict, terms: dict, best: float | None) -> tuple:
-    """``(shortest, longest)`` time within about one standard deviation of ``best`` among
-    ``scores`` (``{tau: score}``, None: white), from each finite candidate's ``terms`` (``{tau:
-    (terms, times)}``, :class:`Scored`; module docstring): the times tried whose score lies
+    """``(shortest, longest, rough)``: the shortest and longest time within about one standard
+    deviation of ``best`` among ``scores`` (``{tau: score}``, None: white), from each finite
+    candidate's ``terms`` (``{tau: (terms, times)}``, :class:`Scored`; module docstring): the times
+    tried whose score lies
     behind the best's by at most half the standard deviation of the difference, and, where the
     best has a :func:`parabola`, the sandwich's ``log tau* +- sd(g) / 2a`` (``sd(g)``: the
     difference's standard deviation per unit of ``log tau`` at the neighbours), within the rig
     key's range. White as the shortest where it is within (None); None as the longest where no
-    time is."""
-    within, slopes = [best], []
+    time is. ``rough``: a time tried inside that range lies clearly behind (the score is not
+    smooth in the time: the noise fit or the model errors it finds change from one time to the
+    next, and the range understates how little the time is known)."""
+    within, behind, slopes = [best], [], []
     own, at = terms[best]
     for tau, (values, times) in terms.items():
         if tau == best:
@@ -308,8 +317,7 @@ def support(scores: dict, terms: dict, best: float | None) -> tuple:
         d = values[j] - own[i]
         sums = np.bincount(blocks(shared, (tau, best)), weights=d)
         sd = math.sqrt(len(sums) * float(np.var(sums, ddof=1)))
-        if float(d.sum()) <= 0.5 * sd:
-            within.append(tau)
+        (within if float(d.sum()) <= 0.5 * sd else behind).append(tau)
         fitted = parabola(scores)
         if fitted is not None and tau in fitted[2]:
             slopes.append(sd / abs(math.log(tau / best)))
@@ -321,7 +329,8 @@ def support(scores: dict, terms: dict, best: float | None) -> tuple:
                                                                              best * math.exp(min(half, 50.0))))
         low = None if low is None else min(low, reach[0])
         high = max(high, reach[1])
-    return low, high
+    rough = high is not None and any(t is not None and (low or 0.0) < t < high for t in behind)
+    return low, high, rough
 
 
 def _scored(base: Dataset, name: str, tau: float | None, tune: np.ndarray, solve: Callable) -> Scored:

@@ -102,11 +102,11 @@ def test_the_record_keeps_every_candidate_and_a_failed_one_says_why():
     tried = (Candidate(None, -5.0), Candidate(4.0, -9.0, converged=False), Candidate(16.0, math.nan, "refused"))
     fit = CorrelationFit("gnss", 4.0, tried, (2.0, 8.0), 10, 12, "longest", 3.5)
     assert fit.record() == {"correlation_time_s": 4.0, "support_s": [2.0, 8.0], "tuned_on": 10,
-                            "judged_on": 12, "edge": "longest", "seconds": 3.5, "candidates": [
+                            "judged_on": 12, "edge": "longest", "rough": False, "seconds": 3.5, "candidates": [
                                 {"correlation_time_s": None, "score": -5.0},
                                 {"correlation_time_s": 4.0, "score": -9.0, "converged": False},
                                 {"correlation_time_s": 16.0, "score": None, "failed": "refused"}]}
-    assert "the range's longest: it may be longer" in fit.line()
+    assert "the range's longest: it may be longer" in fit.line() and "NOT SMOOTH" not in fit.line()
 
 
 def test_the_least_score_wins_white_on_a_tie_and_failed_times_never():
@@ -140,8 +140,8 @@ def test_the_support_holds_the_times_not_clearly_worse_and_white_where_it_is():
     half = np.where(t < 20.0, 0.5, -0.5)
     terms = {4.0: (best, t), 16.0: (best + half, t), 1.0: (best + 1.0, t)}
     scores = {tau: float(v.sum()) for tau, (v, _) in terms.items()}
-    low, high = support(scores, terms, 4.0)
-    assert 1.0 < low <= 4.0 and high >= 16.0, (low, high)
+    low, high, rough = support(scores, terms, 4.0)
+    assert 1.0 < low <= 4.0 and high >= 16.0 and not rough, (low, high)
     terms[None] = (best + np.where(t < 20.0, 0.5, -0.4), t)
     scores[None] = float(terms[None][0].sum())
     assert support(scores, terms, 4.0)[0] is None
@@ -172,7 +172,7 @@ def test_a_nearly_flat_score_gives_a_support_within_the_rig_key_s_range_not_an_o
     spread = np.where(t < 20.0, 0.5, -0.5)
     terms = {6.4: (spread, t), 25.6: (np.zeros(len(t)), t), 102.4: (-spread, t)}
     scores = {6.4: 1e-9, 25.6: 0.0, 102.4: 1e-9}
-    assert support(scores, terms, 25.6) == (TIME_RANGE.low, TIME_RANGE.high)
+    assert support(scores, terms, 25.6) == (TIME_RANGE.low, TIME_RANGE.high, False)
 
 
 def test_a_time_beyond_the_grid_is_followed_while_the_score_falls():
@@ -199,3 +199,18 @@ def test_held_out_measurements_all_outside_the_imu_span_are_refused_naming_the_s
     with pytest.raises(InputError, match="sensor 'gnss': correlation_time: fitting it needs measurements used and "
                                          "held out within the IMU's span; it has none held out"):
         fit_correlation_times(data, lambda candidate: None)
+
+
+def test_a_time_inside_the_range_that_scores_clearly_worse_makes_the_fit_rough():
+    """A score that jumps between two nearby times (the noise fit refusing a group at one and not at
+    the other, as on a rig whose wheels and IMU disagree): 5 s lies behind by 100 without spread,
+    between 4 s (the best) and 16 s (within) -- the fit says the score is not smooth."""
+    t = np.arange(0.0, 40.0, 0.2)
+    best = np.sin(t)
+    half = np.where(t < 20.0, 0.5, -0.5)
+    terms = {1.0: (best + 4.0 * half + 1.0, t), 4.0: (best, t), 5.0: (best + 0.5, t), 16.0: (best + half, t)}
+    scores = {tau: float(v.sum()) for tau, (v, _) in terms.items()}
+    low, high, rough = support(scores, terms, 4.0)
+    assert low < 4.0 < 5.0 < high and rough, (low, high)
+    line = CorrelationFit("gnss", 4.0, (), (low, high), 10, 12, rough=rough).line()
+    assert "NOT SMOOTH: a time inside that range scores clearly worse" in line
